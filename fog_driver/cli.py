@@ -1,0 +1,156 @@
+"""The ``fog-driver`` command line: thin subcommands that parse, call the library, and print.
+
+Errors the user can act on are printed as one line on stderr with a non-zero
+exit status (see ``fog_driver.errors``); they never show a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import threading
+from collections.abc import Sequence
+
+from . import __version__
+from .capture import format_summary, inspect_capture
+from .console import Progress, configure_logging
+from .errors import FogDriverError, UsageError
+
+EXIT_PROBLEMS = 1  # inspect --strict found problems
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be > 0: {text!r}")
+    return value
+
+
+def _baud(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer baud rate: {text!r}") from None
+    if not 50 <= value <= 12_000_000:
+        raise argparse.ArgumentTypeError(f"baud rate out of range: {value}")
+    return value
+
+
+def cmd_inspect(args: argparse.Namespace) -> int:
+    progress = Progress()
+    try:
+        summary = inspect_capture(args.capture, progress=progress.bytes_read)
+    finally:
+        progress.clear()
+    if args.json:
+        print(json.dumps(summary.as_json_dict(), sort_keys=False))
+    else:
+        print(format_summary(summary))
+    if args.strict and summary.problems:
+        return EXIT_PROBLEMS
+    return 0
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    from .record import record  # imports the transport (pyserial) only when needed
+
+    if not args.out.endswith(".bin"):
+        raise UsageError(f"--out {args.out!r}: a capture file name must end in .bin")
+    progress = Progress()
+    stop = threading.Event()
+
+    def on_signal(signum: int, _frame: object) -> None:
+        if stop.is_set():
+            raise KeyboardInterrupt
+        stop.set()
+
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+
+    def on_progress(p) -> None:
+        c = p.counters
+        progress.show(
+            f"recording {p.elapsed_s:7.1f} s  {p.bytes_written:,} bytes  {c.sample_frames:,} frames  "
+            f"{c.crc_errors} CRC errors  {c.missing_frames} missing  port {p.port_state}"
+        )
+
+    def on_state(event) -> None:
+        # The transport logs every state change (warnings on stderr by default); keep the
+        # progress line from running into those log lines.
+        progress.clear()
+
+    try:
+        result = record(
+            args.port,
+            args.out,
+            baudrate=args.baud,
+            duration_s=args.duration,
+            reconnect=not args.no_reconnect,
+            stop=stop,
+            on_progress=on_progress,
+            on_state=on_state,
+            notes=args.notes,
+        )
+    finally:
+        progress.clear()
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+    c = result.counters
+    print(
+        f"recorded {result.bytes_written:,} bytes in {result.elapsed_s:.1f} s to {result.path} "
+        f"({c.sample_frames:,} sample frames, {c.crc_errors} CRC errors, {c.missing_frames} missing); "
+        f"provenance in {result.sidecar}"
+    )
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="fog-driver",
+        description="Fiber-optic-gyro instrument driver and temperature-drift compensator.",
+    )
+    parser.add_argument("--version", action="version", version=f"fog-driver {__version__}")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output on stderr (-v info, -vv debug)")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    p = sub.add_parser("inspect", help="check a capture file and summarize what it holds")
+    p.add_argument("capture", metavar="CAPTURE.bin")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of the text report")
+    p.add_argument("--strict", action="store_true", help=f"exit {EXIT_PROBLEMS} when the capture is not clean")
+    p.set_defaults(func=cmd_inspect)
+
+    p = sub.add_parser("record", help="record a port's raw bytes to a capture file with a provenance sidecar")
+    p.add_argument("port", metavar="PORT_OR_URL", help="device path (/dev/ttyUSB0) or pyserial URL (replay://x.bin)")
+    p.add_argument("--out", required=True, metavar="CAPTURE.bin")
+    p.add_argument("--duration", type=_positive_float, metavar="S", help="stop after S seconds (host clock)")
+    p.add_argument("--baud", type=_baud, default=460800, metavar="B", help="baud rate (default 460800)")
+    p.add_argument("--no-reconnect", action="store_true", help="stop when the port is lost instead of reconnecting")
+    p.add_argument("--notes", help="free text stored in the provenance sidecar")
+    p.set_defaults(func=cmd_record)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    configure_logging(args.verbose)
+    try:
+        return args.func(args)
+    except FogDriverError as exc:
+        print(f"fog-driver: error: {exc}", file=sys.stderr)
+        return exc.exit_status
+    except KeyboardInterrupt:
+        print("fog-driver: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:
+        # The reader of our output went away (e.g. `| head`); nothing more to say.
+        sys.stderr.close()
+        return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

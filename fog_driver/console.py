@@ -1,0 +1,61 @@
+"""Terminal niceties: a one-line progress display shown only on a terminal, and logging set-up."""
+
+from __future__ import annotations
+
+import logging
+import sys
+import time
+from typing import TextIO
+
+import structlog
+
+
+class Progress:
+    """Rewrites one status line on a terminal (``\\r``); silent when the stream is not a tty (piped, CI)."""
+
+    def __init__(self, stream: TextIO | None = None, min_interval_s: float = 0.2) -> None:
+        self.stream = stream if stream is not None else sys.stderr
+        self.enabled = bool(getattr(self.stream, "isatty", lambda: False)())
+        self.min_interval_s = min_interval_s
+        self._last_shown = 0.0
+        self._width = 0
+
+    def show(self, text: str, force: bool = False) -> None:
+        if not self.enabled:
+            return
+        now = time.monotonic()
+        if not force and now - self._last_shown < self.min_interval_s:
+            return
+        self._last_shown = now
+        pad = max(0, self._width - len(text))
+        self.stream.write("\r" + text + " " * pad)
+        self.stream.flush()
+        self._width = len(text)
+
+    def clear(self) -> None:
+        if self.enabled and self._width:
+            self.stream.write("\r" + " " * self._width + "\r")
+            self.stream.flush()
+            self._width = 0
+
+    def bytes_read(self, done: int, total: int) -> None:
+        pct = 100.0 * done / total if total else 100.0
+        self.show(f"reading {done / 1e6:.1f} / {total / 1e6:.1f} MB ({pct:.0f} %)")
+
+
+def configure_logging(verbosity: int = 0, json: bool = False) -> None:
+    """structlog key-value lines on stderr; ``verbosity`` 0 = warnings, 1 = info, 2 = debug."""
+    level = {0: logging.WARNING, 1: logging.INFO}.get(verbosity, logging.DEBUG)
+    renderer = structlog.processors.JSONRenderer() if json else structlog.processors.KeyValueRenderer(
+        key_order=["timestamp", "level", "event"], drop_missing=True
+    )
+    structlog.configure(
+        processors=[
+            structlog.processors.add_log_level,
+            structlog.processors.TimeStamper(fmt="iso", utc=True),
+            renderer,
+        ],
+        wrapper_class=structlog.make_filtering_bound_logger(level),
+        logger_factory=structlog.PrintLoggerFactory(file=sys.stderr),
+        cache_logger_on_first_use=False,
+    )

@@ -1,0 +1,27 @@
+"""The project's error type: a one-line message for the user and an exit status."""
+
+from __future__ import annotations
+
+import os
+
+
+class FogDriverError(Exception):
+    """An error the user can act on.  The CLI prints ``str(error)`` on one line and exits with ``exit_status``."""
+
+    exit_status = 1
+
+
+class UsageError(FogDriverError):
+    exit_status = os.EX_USAGE  # 64
+
+
+class InputFileError(FogDriverError):
+    """A file the user named is missing, unreadable, empty or not what it should be."""
+
+    exit_status = os.EX_DATAERR  # 65
+
+
+class DeviceError(FogDriverError):
+    """A port could not be opened or was lost for good."""
+
+    exit_status = os.EX_UNAVAILABLE  # 69

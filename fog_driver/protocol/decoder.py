@@ -1,0 +1,212 @@
+"""The sans-IO streaming frame decoder (h11 style: bytes in, events out).
+
+``FrameDecoder.feed(chunk)`` accepts bytes of any size and returns the events
+completed by them; ``close()`` marks the end of the stream and resolves what
+is still pending.  No I/O, no clock, never raises on data, never hangs.
+
+Resynchronisation follows protocol v1 exactly: at a sync ``AA 55`` a known type
+with the wrong length, or any frame whose CRC does not match, costs ONE byte
+and the hunt for the next sync resumes; the length field is never trusted
+before the CRC has verified it.  Every byte fed is accounted for::
+
+    bytes_in == bytes_in_frames + bytes_discarded + pending
+
+The decision at a sync position depends only on the bytes from that position
+on, and is taken as soon as enough of them have arrived, so the events and
+counters after any byte sequence do not depend on how it was split into chunks.
+"""
+
+from __future__ import annotations
+
+import struct
+import zlib
+from dataclasses import asdict, dataclass
+
+from .wire import (
+    HEADER_LEN,
+    KNOWN_PAYLOAD_LEN,
+    OVERHEAD_LEN,
+    SEQ_MODULUS,
+    SYNC,
+    SYNC0,
+    TYPE_IDENTITY,
+    TYPE_SAMPLE,
+    Event,
+    SampleFrame,
+    UnknownFrame,
+    parse_identity_payload,
+)
+
+_SAMPLE_UNPACK_FROM = struct.Struct("<HIihhhH").unpack_from
+_CRC_UNPACK_FROM = struct.Struct("<I").unpack_from
+_COMPACT_AT = 1 << 16
+
+
+@dataclass
+class DecoderCounters:
+    """What the decoder has seen.  All counts are cumulative over the stream."""
+
+    bytes_in: int = 0  #: bytes fed
+    bytes_in_frames: int = 0  #: bytes inside CRC-valid frames (any type)
+    bytes_discarded: int = 0  #: bytes dropped while hunting for sync
+    sample_frames: int = 0
+    identity_frames: int = 0
+    unknown_frames: int = 0  #: CRC-valid frames of an unknown type (skipped)
+    crc_errors: int = 0  #: sync positions whose complete frame failed the CRC
+    length_errors: int = 0  #: sync positions with a known type but the wrong length
+    truncated_frames: int = 0  #: sync positions cut off by the end of the stream
+    resyncs: int = 0  #: valid frames preceded by discarded bytes (sync re-acquired)
+    seq_gaps: int = 0  #: SAMPLE frames whose seq is not the previous seq + 1
+    missing_frames: int = 0  #: SAMPLE frames the seq gaps skipped over
+    seq_repeats: int = 0  #: SAMPLE frames repeating the previous seq
+    t_us_wraps: int = 0  #: SAMPLE frames whose t_us is below the previous one
+
+    def as_dict(self) -> dict[str, int]:
+        return asdict(self)
+
+
+def seq_step(seq: int, previous_seq: int) -> int:
+    """Frames from ``previous_seq`` to ``seq`` on the 16-bit counter: ``(seq - prev) mod 2^16``.
+
+    1 is the normal step, 0 a repeated frame, k > 1 means k - 1 frames are missing.
+    """
+    return (seq - previous_seq) % SEQ_MODULUS
+
+
+class FrameDecoder:
+    """Streaming protocol v1 decoder.
+
+    >>> from fog_driver.protocol import encode_sample
+    >>> d = FrameDecoder()
+    >>> frame = encode_sample(7, 1000, -3, 5120, 5120, 5120)
+    >>> d.feed(frame[:10]), len(d.feed(frame[10:]))
+    ([], 1)
+    """
+
+    def __init__(self) -> None:
+        self.counters = DecoderCounters()
+        self._buf = bytearray()
+        self._pos = 0  # index in _buf of the first undecided byte
+        self._base = 0  # stream offset of _buf[0]
+        self._hunting = False  # bytes discarded since the last valid frame
+        self._last_seq: int | None = None
+        self._last_t_us: int | None = None
+        self._closed = False
+
+    @property
+    def pending(self) -> int:
+        """Bytes held while waiting for the rest of a possible frame."""
+        return len(self._buf) - self._pos
+
+    @property
+    def offset(self) -> int:
+        """Stream offset of the first undecided byte."""
+        return self._base + self._pos
+
+    def feed(self, data: bytes | bytearray | memoryview) -> list[Event]:
+        """Add bytes; return the events they complete, in stream order."""
+        if self._closed:
+            raise RuntimeError("feed() after close()")
+        if data:
+            self.counters.bytes_in += len(data)
+            self._buf += data
+        return self._decode(final=False)
+
+    def close(self) -> list[Event]:
+        """End of stream: decide every pending byte; return the last events."""
+        if self._closed:
+            return []
+        events = self._decode(final=True)
+        self._closed = True
+        return events
+
+    def _discard(self, n: int) -> None:
+        self.counters.bytes_discarded += n
+        self._hunting = True
+
+    def _decode(self, final: bool) -> list[Event]:
+        buf = self._buf
+        pos = self._pos
+        end = len(buf)
+        c = self.counters
+        events: list[Event] = []
+        while True:
+            sync_at = buf.find(SYNC, pos)
+            if sync_at < 0:
+                # A lone trailing 0xAA may be the first half of a sync.
+                keep = 1 if (not final and end > pos and buf[end - 1] == SYNC0) else 0
+                if end - keep > pos:
+                    self._discard(end - keep - pos)
+                    pos = end - keep
+                break
+            if sync_at > pos:
+                self._discard(sync_at - pos)
+                pos = sync_at
+            if end - pos < HEADER_LEN:
+                if not final:
+                    break
+                c.truncated_frames += 1
+                self._discard(1)
+                pos += 1
+                continue
+            frame_type = buf[pos + 2]
+            payload_len = buf[pos + 3]
+            expected_len = KNOWN_PAYLOAD_LEN.get(frame_type)
+            if expected_len is not None and payload_len != expected_len:
+                c.length_errors += 1
+                self._discard(1)
+                pos += 1
+                continue
+            frame_len = OVERHEAD_LEN + payload_len
+            if end - pos < frame_len:
+                if not final:
+                    break
+                c.truncated_frames += 1
+                self._discard(1)
+                pos += 1
+                continue
+            crc_at = pos + HEADER_LEN + payload_len
+            if zlib.crc32(buf[pos + 2 : crc_at]) != _CRC_UNPACK_FROM(buf, crc_at)[0]:
+                c.crc_errors += 1
+                self._discard(1)
+                pos += 1
+                continue
+            # A valid frame.
+            if self._hunting:
+                c.resyncs += 1
+                self._hunting = False
+            offset = self._base + pos
+            if frame_type == TYPE_SAMPLE:
+                frame = SampleFrame(offset, *_SAMPLE_UNPACK_FROM(buf, pos + HEADER_LEN))
+                self._count_sample(frame.seq, frame.t_us)
+                c.sample_frames += 1
+            elif frame_type == TYPE_IDENTITY:
+                frame = parse_identity_payload(offset, bytes(buf[pos + HEADER_LEN : crc_at]))
+                c.identity_frames += 1
+            else:
+                frame = UnknownFrame(offset, frame_type, bytes(buf[pos + HEADER_LEN : crc_at]))
+                c.unknown_frames += 1
+            events.append(frame)
+            c.bytes_in_frames += frame_len
+            pos += frame_len
+        if pos >= _COMPACT_AT or pos == end:
+            del buf[:pos]
+            self._base += pos
+            pos = 0
+        self._pos = pos
+        return events
+
+    def _count_sample(self, seq: int, t_us: int) -> None:
+        c = self.counters
+        if self._last_seq is not None:
+            step = seq_step(seq, self._last_seq)
+            if step == 0:
+                c.seq_repeats += 1
+            elif step != 1:
+                c.seq_gaps += 1
+                c.missing_frames += step - 1
+            if t_us < self._last_t_us:
+                c.t_us_wraps += 1
+        self._last_seq = seq
+        self._last_t_us = t_us
+

@@ -1,0 +1,147 @@
+"""Record a port's raw bytes to a capture file, with its provenance sidecar.
+
+The bytes go to disk exactly as read; a ``FrameDecoder`` watches the same
+bytes only to report progress and to note the instrument's identity in the
+sidecar.  The sidecar is written when recording starts (``status:
+recording``) and rewritten when it ends, so even a killed recorder leaves a
+described capture behind.
+"""
+
+from __future__ import annotations
+
+import itertools
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from . import __version__
+from .capture import CaptureWriter, utc_now_iso, write_provenance
+from .errors import DeviceError
+from .protocol import DecoderCounters, FrameDecoder, IdentityFrame
+from .transport import PortError, PortEvent, PortReader
+
+_FLUSH_EVERY_S = 1.0
+
+
+@dataclass
+class RecordProgress:
+    elapsed_s: float
+    bytes_written: int
+    counters: DecoderCounters
+    port_state: str
+
+
+@dataclass
+class RecordResult:
+    path: Path
+    sidecar: Path
+    bytes_written: int
+    sha256: str
+    elapsed_s: float
+    counters: DecoderCounters
+    identity: IdentityFrame | None
+
+
+def record(
+    url: str,
+    out_path: str | Path,
+    *,
+    baudrate: int = 460800,
+    duration_s: float | None = None,
+    reconnect: bool = True,
+    stop: threading.Event | None = None,
+    on_progress: Callable[[RecordProgress], None] | None = None,
+    on_state: Callable[[PortEvent], None] | None = None,
+    notes: str | None = None,
+    progress_every_s: float = 0.5,
+) -> RecordResult:
+    """Copy bytes from ``url`` into ``out_path`` until ``duration_s`` (host time) passes, ``stop`` is set,
+    or (with ``reconnect=False``) the port is lost.
+
+    A port that cannot be opened at all with ``reconnect=False`` raises ``DeviceError`` and leaves no
+    capture behind; once bytes flow, whatever was read is kept, whatever ends the recording.
+    """
+    stop = stop or threading.Event()
+    out_path = Path(out_path)
+    decoder = FrameDecoder()
+    identity: IdentityFrame | None = None
+    port_state = "opening"
+    port_events: list[dict[str, Any]] = []
+
+    def state_changed(event: PortEvent) -> None:
+        nonlocal port_state
+        port_state = event.state
+        entry = {"utc": utc_now_iso(), "state": event.state}
+        if event.detail:
+            entry["detail"] = event.detail
+        port_events.append(entry)
+        if on_state:
+            on_state(event)
+
+    base_fields: dict[str, Any] = {
+        "source": "record",
+        "port": url,
+        "baud": baudrate,
+        "start_utc": utc_now_iso(),
+        "fog_driver_version": __version__,
+    }
+    if notes:
+        base_fields["notes"] = notes
+    reader = PortReader(url, baudrate=baudrate, reconnect=reconnect, on_state=state_changed)
+    chunks = reader.chunks(stop)
+    timer = threading.Timer(duration_s, stop.set) if duration_s is not None else None
+    if timer:
+        timer.daemon = True
+        timer.start()
+    started = time.monotonic()
+    try:
+        first = next(chunks, b"")
+    except PortError as exc:
+        if timer:
+            timer.cancel()
+        raise DeviceError(str(exc)) from None
+
+    last_flush = last_progress = started
+    with CaptureWriter(out_path) as writer:
+        write_provenance(out_path, {**base_fields, "status": "recording"})
+        try:
+            for chunk in itertools.chain((first,), chunks):
+                writer.write(chunk)
+                for event in decoder.feed(chunk):
+                    if isinstance(event, IdentityFrame):
+                        identity = event
+                now = time.monotonic()
+                if now - last_flush >= _FLUSH_EVERY_S:
+                    writer.flush()
+                    last_flush = now
+                if on_progress and now - last_progress >= progress_every_s:
+                    on_progress(RecordProgress(now - started, writer.bytes_written, decoder.counters, port_state))
+                    last_progress = now
+        finally:
+            if timer:
+                timer.cancel()
+            chunks.close()
+            elapsed = time.monotonic() - started
+            writer.close()
+            fields = {
+                **base_fields,
+                "status": "complete",
+                "end_utc": utc_now_iso(),
+                "host_duration_s": round(elapsed, 3),
+                "bytes": writer.bytes_written,
+                "sha256": writer.sha256,
+                "port_events": port_events,
+                "decoded_while_recording": decoder.counters.as_dict(),
+            }
+            if identity is not None:
+                fields["instrument"] = {
+                    "serial": identity.serial,
+                    "firmware": identity.firmware_version,
+                    "rate_hz": identity.rate_hz,
+                    "scale_arcsec_per_count": identity.scale_arcsec_per_count,
+                }
+            sidecar = write_provenance(out_path, fields)
+    return RecordResult(out_path, sidecar, writer.bytes_written, writer.sha256, elapsed, decoder.counters, identity)

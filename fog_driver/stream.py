@@ -1,0 +1,237 @@
+"""Frames -> samples: unwrapped sequence and device time, physical units, gap markers.
+
+A ``Sample`` is one SAMPLE frame in the units the rest of the project uses:
+
+* ``seq``: the 16-bit wire counter unwrapped to a non-decreasing integer,
+  ``seq(n) = seq(n-1) + ((seq_wire(n) - seq_wire(n-1)) mod 2^16)``;
+* ``t_s``: the 32-bit microsecond clock unwrapped the same way, in seconds;
+* ``dtheta_arcsec = dtheta_counts * scale`` with the scale factor in force:
+  the configured override if one is given, else the latest IDENTITY's, else
+  (before the first IDENTITY) the configured default;
+* temperatures in degC (``raw / 256``), NaN for the -32768 "no reading" value;
+* ``missing_before``: SAMPLE frames the instrument sent that never arrived
+  (``seq`` step - 1), the explicit gap marker; 0 on an unbroken stream.
+
+``SampleStream.step(event)`` takes one decoder event; ``SampleStream.run(
+decoded)`` takes a batch decode.  Both start from and update the same state,
+so any split of a capture into pieces gives bit-identical samples.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+from .protocol import (
+    SEQ_MODULUS,
+    T_US_MODULUS,
+    THERMOMETER_COUNTS_PER_C,
+    THERMOMETER_INVALID,
+    DecodedCapture,
+    Event,
+    IdentityFrame,
+    SampleArrays,
+    SampleFrame,
+)
+
+#: Scale factor used before any IDENTITY frame when the configuration gives none.
+DEFAULT_SCALE_ARCSEC_PER_COUNT = 0.01
+_US_PER_S = 1e6
+
+
+class Sample(NamedTuple):
+    """One SAMPLE frame in physical units."""
+
+    seq: int  #: unwrapped sequence number
+    t_s: float  #: unwrapped device time, seconds on the instrument clock
+    dtheta_arcsec: float  #: angle increment since the previous sample
+    t_top_c: float  #: fiber ring top thermometer, NaN when invalid
+    t_bottom_c: float  #: fiber ring bottom thermometer
+    t_housing_c: float  #: housing thermometer
+    status: int  #: wire status bits
+    missing_before: int  #: frames lost just before this one (0: no gap)
+    offset: int  #: byte offset of the frame in the raw stream
+
+    @property
+    def gap(self) -> bool:
+        return self.missing_before > 0
+
+
+@dataclass
+class SampleBlock:
+    """Many samples as columns (the batch form of ``Sample``)."""
+
+    seq: np.ndarray  #: int64
+    t_s: np.ndarray  #: float64
+    dtheta_arcsec: np.ndarray  #: float64
+    t_top_c: np.ndarray  #: float64, NaN when invalid
+    t_bottom_c: np.ndarray
+    t_housing_c: np.ndarray
+    status: np.ndarray  #: uint16
+    missing_before: np.ndarray  #: int64
+    offset: np.ndarray  #: int64
+
+    def __len__(self) -> int:
+        return len(self.seq)
+
+    def sample(self, i: int) -> Sample:
+        return Sample(
+            int(self.seq[i]),
+            float(self.t_s[i]),
+            float(self.dtheta_arcsec[i]),
+            float(self.t_top_c[i]),
+            float(self.t_bottom_c[i]),
+            float(self.t_housing_c[i]),
+            int(self.status[i]),
+            int(self.missing_before[i]),
+            int(self.offset[i]),
+        )
+
+    @classmethod
+    def from_samples(cls, samples: list[Sample]) -> SampleBlock:
+        columns = list(zip(*samples)) if samples else [()] * len(Sample._fields)
+        dtypes = (np.int64, np.float64, np.float64, np.float64, np.float64, np.float64, np.uint16, np.int64, np.int64)
+        return cls(*(np.array(col, dtype=dt) for col, dt in zip(columns, dtypes)))
+
+
+def temperature_c(raw: int) -> float:
+    """degC from a 1/256 degC thermometer reading; NaN for the -32768 sentinel."""
+    return float("nan") if raw == THERMOMETER_INVALID else raw / THERMOMETER_COUNTS_PER_C
+
+
+def temperature_c_array(raw: np.ndarray) -> np.ndarray:
+    """Vector form of ``temperature_c`` (bit-identical)."""
+    out = raw.astype(np.float64) / THERMOMETER_COUNTS_PER_C
+    out[raw == THERMOMETER_INVALID] = np.nan
+    return out
+
+
+class SampleStream:
+    """Turns decoder events into ``Sample`` records, keeping the unwrap state.
+
+    ``scale_override_arcsec_per_count``, when given, is used for every sample
+    whatever the instrument says; otherwise ``default_scale_arcsec_per_count``
+    applies until the first IDENTITY frame, whose scale then applies.
+    """
+
+    def __init__(
+        self,
+        default_scale_arcsec_per_count: float = DEFAULT_SCALE_ARCSEC_PER_COUNT,
+        scale_override_arcsec_per_count: float | None = None,
+    ) -> None:
+        self.default_scale_arcsec_per_count = float(default_scale_arcsec_per_count)
+        self.scale_override_arcsec_per_count = (
+            None if scale_override_arcsec_per_count is None else float(scale_override_arcsec_per_count)
+        )
+        self.identity: IdentityFrame | None = None  #: the latest IDENTITY frame
+        self.identity_changes = 0  #: IDENTITY frames that differed from the one before
+        self._last_seq_wire: int | None = None
+        self._last_t_us_wire = 0
+        self._seq = 0
+        self._t_us = 0
+
+    @property
+    def scale_arcsec_per_count(self) -> float:
+        """The scale factor the next sample will be converted with."""
+        if self.scale_override_arcsec_per_count is not None:
+            return self.scale_override_arcsec_per_count
+        if self.identity is not None:
+            return self.identity.scale_arcsec_per_count
+        return self.default_scale_arcsec_per_count
+
+    def _observe_identity(self, identity: IdentityFrame) -> None:
+        if self.identity is None or identity[1:] != self.identity[1:]:
+            self.identity_changes += 1
+        self.identity = identity
+
+    def step(self, event: Event) -> Sample | None:
+        """Consume one decoder event; return a ``Sample`` for a SAMPLE frame, else None."""
+        if isinstance(event, SampleFrame):
+            return self._step_sample(event)
+        if isinstance(event, IdentityFrame):
+            self._observe_identity(event)
+        return None
+
+    def _step_sample(self, frame: SampleFrame) -> Sample:
+        missing = 0
+        if self._last_seq_wire is None:
+            self._seq = frame.seq
+            self._t_us = frame.t_us
+        else:
+            step = (frame.seq - self._last_seq_wire) % SEQ_MODULUS
+            missing = step - 1 if step > 1 else 0
+            self._seq += step
+            self._t_us += (frame.t_us - self._last_t_us_wire) % T_US_MODULUS
+        self._last_seq_wire = frame.seq
+        self._last_t_us_wire = frame.t_us
+        return Sample(
+            self._seq,
+            self._t_us / _US_PER_S,
+            frame.dtheta_counts * self.scale_arcsec_per_count,
+            temperature_c(frame.t_top_raw),
+            temperature_c(frame.t_bottom_raw),
+            temperature_c(frame.t_housing_raw),
+            frame.status,
+            missing,
+            frame.offset,
+        )
+
+    def step_all(self, events: list[Event]) -> list[Sample]:
+        """``step`` over a list of events, keeping only the samples."""
+        return [s for s in map(self.step, events) if s is not None]
+
+    def run(self, decoded: DecodedCapture) -> SampleBlock:
+        """Batch form of ``step`` over every frame of ``decoded``, in stream order."""
+        return self.run_arrays(decoded.samples, decoded.identities)
+
+    def run_arrays(self, frames: SampleArrays, identities: list[IdentityFrame]) -> SampleBlock:
+        """``run`` from the columns of SAMPLE frames and the IDENTITY frames among them."""
+        n = len(frames)
+        sample_offsets = frames.offset
+        # Scale in force at each sample: the latest IDENTITY before it, else the current one.
+        scale = np.full(n, self.scale_arcsec_per_count, dtype=np.float64)
+        if identities and self.scale_override_arcsec_per_count is None:
+            identity_offsets = np.array([f.offset for f in identities], dtype=np.int64)
+            identity_scales = np.array([f.scale_arcsec_per_count for f in identities], dtype=np.float64)
+            latest = np.searchsorted(identity_offsets, sample_offsets) - 1
+            has_identity = latest >= 0
+            scale[has_identity] = identity_scales[latest[has_identity]]
+        # The state follows IDENTITY frames after the last sample too, as step() would.
+        for identity in identities:
+            self._observe_identity(identity)
+
+        seq_wire = frames.seq.astype(np.int64)
+        t_us_wire = frames.t_us.astype(np.int64)
+        seq_step = np.empty(n, dtype=np.int64)
+        t_step = np.empty(n, dtype=np.int64)
+        if n:
+            if self._last_seq_wire is None:
+                seq_step[0] = 0
+                t_step[0] = 0
+                seq_start, t_start = int(seq_wire[0]), int(t_us_wire[0])
+            else:
+                seq_step[0] = (seq_wire[0] - self._last_seq_wire) % SEQ_MODULUS
+                t_step[0] = (t_us_wire[0] - self._last_t_us_wire) % T_US_MODULUS
+                seq_start, t_start = self._seq, self._t_us
+            seq_step[1:] = np.diff(seq_wire) % SEQ_MODULUS
+            t_step[1:] = np.diff(t_us_wire) % T_US_MODULUS
+            seq = seq_start + np.cumsum(seq_step)
+            t_us = t_start + np.cumsum(t_step)
+            self._seq, self._t_us = int(seq[-1]), int(t_us[-1])
+            self._last_seq_wire, self._last_t_us_wire = int(seq_wire[-1]), int(t_us_wire[-1])
+        else:
+            seq = t_us = np.zeros(0, dtype=np.int64)
+        missing = np.where(seq_step > 1, seq_step - 1, 0)
+        return SampleBlock(
+            seq=seq,
+            t_s=t_us / _US_PER_S,
+            dtheta_arcsec=frames.dtheta_counts.astype(np.float64) * scale,
+            t_top_c=temperature_c_array(frames.t_top_raw),
+            t_bottom_c=temperature_c_array(frames.t_bottom_raw),
+            t_housing_c=temperature_c_array(frames.t_housing_raw),
+            status=frames.status.astype(np.uint16, copy=True),
+            missing_before=missing,
+            offset=sample_offsets.astype(np.int64, copy=True),
+        )

@@ -1,0 +1,194 @@
+"""Opening ports and reading them through unplugs: ``open_port`` and ``PortReader``.
+
+Everything that looks like a port goes through ``serial.serial_for_url``: device
+paths (``/dev/ttyUSB0``, a pty slave), pyserial URLs (``loop://``,
+``socket://host:port``) and ours (``replay://capture.bin?rate=1000``).  So the
+rest of the driver never special-cases a replay.
+
+``PortReader`` is the session layer of gpsd's model: it owns the port's life,
+hands out raw byte chunks, and when the port disappears (a USB adapter pulled
+out, a replay with ``unplug=1`` at its end) it closes it, reports the loss, waits
+with exponential backoff and opens it again.  Every state change is reported to
+an ``on_state`` callback as a ``PortEvent`` and logged with structlog.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Literal
+
+import serial
+import structlog
+
+try:  # POSIX only; pyserial's POSIX ports let termios.error escape from flushes
+    import termios
+
+    _TERMIOS_ERRORS: tuple[type[BaseException], ...] = (termios.error,)
+except ImportError:  # pragma: no cover - non-POSIX
+    _TERMIOS_ERRORS = ()
+
+__all__ = ["DEFAULT_BAUDRATE", "PortError", "PortEvent", "PortReader", "PortState", "open_port"]
+
+log = structlog.get_logger("fog_driver.transport")
+
+DEFAULT_BAUDRATE = 460800
+
+#: What a port that vanished or cannot be opened raises.  ``serial.SerialException``
+#: is an ``OSError``; ``termios.error`` is not.
+PORT_ERRORS: tuple[type[BaseException], ...] = (OSError, *_TERMIOS_ERRORS)
+
+PortState = Literal["opening", "open", "lost", "retry_wait", "closed"]
+
+
+class PortError(Exception):
+    """A port could not be used and the reader was told not to retry (or retrying cannot help)."""
+
+
+@dataclass(frozen=True, slots=True)
+class PortEvent:
+    """One change of a ``PortReader``'s port state.
+
+    ``attempt`` numbers the open attempts since the last open that delivered
+    data (1 for the first); ``retry_in_s`` is set only for ``retry_wait``.
+    """
+
+    state: PortState
+    url: str
+    detail: str = ""  #: error text for "lost" and "retry_wait", and for "closed" when not stopped
+    attempt: int = 0
+    retry_in_s: float | None = None
+
+
+def open_port(
+    url_or_path: str, *, baudrate: int = DEFAULT_BAUDRATE, timeout_s: float | None = 0.05
+) -> serial.SerialBase:
+    """Open a device path or a pyserial URL (``replay://`` included) with a read timeout.
+
+    Raises ``serial.SerialException`` when the port cannot be opened and
+    ``ValueError`` for a URL scheme nobody handles or bad settings.
+    """
+    return serial.serial_for_url(url_or_path, baudrate=baudrate, timeout=timeout_s)
+
+
+class PortReader:
+    """Read a port as a stream of byte chunks, reopening it with backoff when it is lost.
+
+    ``chunks(stop)`` yields non-empty ``bytes`` exactly as the port delivered
+    them and returns when ``stop`` is set (within one read timeout).  With
+    ``reconnect=False`` it also returns at the first loss, and raises
+    ``PortError`` if the very first open fails.
+
+    Backoff: the first wait after a loss or a failed open is
+    ``backoff_initial_s``; each further failure doubles it up to
+    ``backoff_max_s``; it starts over once an open port has delivered data
+    (a port that opens but dies before giving a byte keeps backing off, so a
+    flapping device cannot make a tight loop).
+
+    A URL that no handler understands, or invalid settings (``ValueError`` from
+    pyserial), raises ``PortError`` at once even with ``reconnect=True``:
+    retrying cannot fix a configuration error.
+
+    Counters: ``bytes_read``, ``opens`` (successful opens), ``losses`` (open
+    ports lost), ``open_failures``.  They are plain ints written by the reading
+    thread; reading them from another thread is fine for monitoring.
+    """
+
+    def __init__(
+        self,
+        url: str,
+        *,
+        baudrate: int = DEFAULT_BAUDRATE,
+        read_timeout_s: float = 0.05,
+        backoff_initial_s: float = 0.1,
+        backoff_max_s: float = 2.0,
+        reconnect: bool = True,
+        on_state: Callable[[PortEvent], None] | None = None,
+    ) -> None:
+        if read_timeout_s <= 0:
+            raise ValueError(f"read_timeout_s must be > 0 so a stop is seen between reads, got {read_timeout_s}")
+        if not 0 < backoff_initial_s <= backoff_max_s:
+            raise ValueError(f"need 0 < backoff_initial_s <= backoff_max_s, got {backoff_initial_s}, {backoff_max_s}")
+        self.url = url
+        self.baudrate = baudrate
+        self.read_timeout_s = read_timeout_s
+        self.backoff_initial_s = backoff_initial_s
+        self.backoff_max_s = backoff_max_s
+        self.reconnect = reconnect
+        self.on_state = on_state
+        self.bytes_read = 0
+        self.opens = 0
+        self.losses = 0
+        self.open_failures = 0
+        self.state: PortState = "closed"
+
+    def _report(self, state: PortState, *, detail: str = "", attempt: int = 0, retry_in_s: float | None = None) -> None:
+        """Record, log and publish one state change."""
+        self.state = state
+        level = log.warning if state in ("lost", "retry_wait") else log.info
+        level("port_state", state=state, url=self.url, detail=detail, attempt=attempt, retry_in_s=retry_in_s)
+        if self.on_state is not None:
+            self.on_state(PortEvent(state, self.url, detail, attempt, retry_in_s))
+
+    def chunks(self, stop: threading.Event) -> Iterator[bytes]:
+        """Yield byte chunks from the port until ``stop`` is set (see the class docstring)."""
+        attempt = 0
+        delay_s = self.backoff_initial_s
+        detail = ""
+        try:
+            while not stop.is_set():
+                attempt += 1
+                delivered = False
+                self._report("opening", attempt=attempt)
+                try:
+                    port = open_port(self.url, baudrate=self.baudrate, timeout_s=self.read_timeout_s)
+                except ValueError as exc:
+                    detail = f"cannot open {self.url}: {exc}"
+                    raise PortError(detail) from exc
+                except PORT_ERRORS as exc:
+                    self.open_failures += 1
+                    detail = f"cannot open {self.url}: {exc}"
+                    if not self.reconnect:
+                        raise PortError(detail) from exc
+                else:
+                    self.opens += 1
+                    self._report("open", attempt=attempt)
+                    try:
+                        while not stop.is_set():
+                            try:
+                                data = port.read(port.in_waiting or 1)
+                            except PORT_ERRORS as exc:
+                                detail = str(exc) or type(exc).__name__
+                                break
+                            if data:
+                                self.bytes_read += len(data)
+                                delivered = True
+                                yield data
+                        else:
+                            detail = ""
+                            return  # stopped while open
+                    finally:
+                        _close_quietly(port)
+                    self.losses += 1
+                    self._report("lost", detail=detail, attempt=attempt)
+                    if not self.reconnect:
+                        return
+                if delivered:  # the port worked: back off from the start again
+                    delay_s = self.backoff_initial_s
+                self._report("retry_wait", detail=detail, attempt=attempt, retry_in_s=delay_s)
+                if stop.wait(delay_s):
+                    return
+                if delivered:
+                    attempt = 0
+                delay_s = min(delay_s * 2.0, self.backoff_max_s)
+        finally:
+            self._report("closed", detail="" if stop.is_set() else detail)
+
+
+def _close_quietly(port: serial.SerialBase) -> None:
+    """Close a port that may already be dead; errors on the way out carry no news."""
+    try:
+        port.close()
+    except PORT_ERRORS:
+        pass

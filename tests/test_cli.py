@@ -1,0 +1,251 @@
+"""The command line: inspect and record, as a user runs them, including every kind of bad input."""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from fog_driver.capture import inspect_capture, read_provenance
+from fog_driver.console import Progress
+from fog_driver.protocol import decode_bytes, encode_sample
+from fog_driver.record import record
+from fog_driver.transport import PtyPair
+
+DATA = Path(__file__).resolve().parent / "data"
+FIXTURES = ("synthetic-clean", "synthetic-faults")
+
+
+def run_cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "fog_driver", *args],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        timeout=120,
+        stdin=subprocess.DEVNULL,
+    )
+
+
+def assert_one_line_error(proc: subprocess.CompletedProcess, status: int, *needles: str) -> None:
+    assert proc.returncode == status, proc.stderr
+    assert "Traceback" not in proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert lines[0].startswith("fog-driver: error: ")
+    for needle in needles:
+        assert needle in lines[0]
+
+
+# --- fixtures ----------------------------------------------------------------------------------
+
+
+def test_fixtures_are_small_and_reproducible():
+    sys.path.insert(0, str(DATA))
+    try:
+        import make_fixtures
+    finally:
+        sys.path.remove(str(DATA))
+    for name, make in make_fixtures.FIXTURES.items():
+        data, truth = make()
+        assert (DATA / f"{name}.bin").read_bytes() == data, f"{name}.bin differs from its generator"
+        assert read_provenance(DATA / f"{name}.bin")["truth"] == truth
+        assert len(data) < 1 << 20
+
+
+# --- inspect -----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", FIXTURES)
+def test_inspect_json_matches_the_truth_written_by_construction(name):
+    proc = run_cli("inspect", str(DATA / f"{name}.bin"), "--json")
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads(proc.stdout)
+    provenance = yaml.safe_load((DATA / f"{name}.yaml").read_text())
+    truth = provenance["truth"]
+    for key in ("sample_frames", "identity_frames", "missing_frames", "seq_gaps", "crc_errors",
+                "bytes_discarded", "thermometer_faults", "t_us_wraps"):
+        assert report[key] == truth[key], key
+    instrument = provenance["instrument"]
+    assert report["serial"] == instrument["serial"]
+    assert report["firmware"] == instrument["firmware"]
+    assert report["rate_hz"] == instrument["rate_hz"]
+    # The wire carries a float32; JSON gives it exactly, widened to double.
+    assert report["scale_arcsec_per_count"] == float(np.float32(instrument["scale_arcsec_per_count"]))
+    assert report["duration_s"] == pytest.approx((1200 - 1) / 100)
+    assert report["bytes"] == (DATA / f"{name}.bin").stat().st_size
+    assert report["sha256"] == hashlib.sha256((DATA / f"{name}.bin").read_bytes()).hexdigest()
+    required = {"sample_frames", "identity_frames", "crc_errors", "bytes_discarded", "seq_gaps", "missing_frames",
+                "serial", "firmware", "rate_hz", "scale_arcsec_per_count", "duration_s", "thermometer_faults"}
+    assert required <= report.keys()
+    assert None not in report.values()  # absent values are omitted, never null
+
+
+def test_inspect_reports_faults_flags_tail_and_temperatures():
+    report = json.loads(run_cli("inspect", str(DATA / "synthetic-faults.bin"), "--json").stdout)
+    truth = read_provenance(DATA / "synthetic-faults.bin")["truth"]
+    assert report["tail_bytes_discarded"] == truth["tail_bytes"]
+    assert report["truncated_frames"] == 1
+    assert report["status_flags_seen"] == {"thermometer_fault": truth["thermometer_faults"]}
+    top_lo, top_hi = report["temperature_range_c"]["top"]
+    assert top_lo == 20.0 and top_hi == pytest.approx(20.0 + 0.05 * 11.99, abs=1 / 256)
+    assert report["problems"]
+
+
+def test_inspect_text_report_and_strict_exit():
+    clean = run_cli("inspect", str(DATA / "synthetic-clean.bin"))
+    assert clean.returncode == 0
+    assert "verdict       clean" in clean.stdout
+    assert "serial FOG-SYN-0001, firmware 1.2, 100 Hz nominal, scale 0.0125 arcsec/count" in clean.stdout
+    assert run_cli("inspect", "--strict", str(DATA / "synthetic-clean.bin")).returncode == 0
+    faults = run_cli("inspect", "--strict", str(DATA / "synthetic-faults.bin"))
+    assert faults.returncode == 1
+    assert "3 CRC errors" in faults.stdout and "capture ends inside a frame" in faults.stdout
+
+
+def test_inspect_progress_only_on_a_terminal():
+    class FakeTty(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    piped = io.StringIO()
+    inspect_capture(DATA / "synthetic-clean.bin", progress=Progress(piped, min_interval_s=0).bytes_read)
+    assert piped.getvalue() == ""
+    tty = FakeTty()
+    progress = Progress(tty, min_interval_s=0)
+    inspect_capture(DATA / "synthetic-clean.bin", progress=progress.bytes_read)
+    assert "reading" in tty.getvalue() and "(100 %)" in tty.getvalue()
+    progress.clear()
+    assert tty.getvalue().endswith("\r")
+
+
+@pytest.mark.parametrize(
+    "make, needle",
+    [
+        (lambda p: None, "no such capture file"),
+        (lambda p: p.write_bytes(b""), "empty file"),
+        (lambda p: p.write_bytes(encode_sample(1, 2, 3, 4, 5, 6)[:20]), "too short to hold one"),
+        (lambda p: p.write_bytes(os.urandom(5000).replace(b"\xaa", b"\x00")), "no valid frame in 5000 bytes"),
+        (lambda p: p.write_text("time,rate\n0,1\n" * 200), "not a protocol v1 capture"),
+        (lambda p: p.mkdir(), "is a directory"),
+    ],
+    ids=["missing", "empty", "truncated", "random", "text", "directory"],
+)
+def test_inspect_bad_files_give_one_line_errors(tmp_path, make, needle):
+    path = tmp_path / "bad.bin"
+    make(path)
+    assert_one_line_error(run_cli("inspect", str(path)), 65, str(path), needle)
+
+
+@pytest.mark.parametrize(
+    "sidecar, needle",
+    [
+        ("capture: [unclosed\n", "not valid YAML"),
+        ("just a string\n", "not a YAML mapping"),
+        ("x: !!python/object/apply:os.system ['echo pwned']\n", "not valid YAML"),
+    ],
+    ids=["malformed", "not-mapping", "python-tag"],
+)
+def test_inspect_bad_sidecar_is_one_line_error_and_never_executed(tmp_path, sidecar, needle):
+    capture = tmp_path / "c.bin"
+    capture.write_bytes((DATA / "synthetic-clean.bin").read_bytes())
+    (tmp_path / "c.yaml").write_text(sidecar)
+    proc = run_cli("inspect", str(capture))
+    assert_one_line_error(proc, 65, "c.yaml", needle)
+    assert "pwned" not in proc.stdout
+
+
+def test_usage_errors():
+    proc = run_cli("inspect")
+    assert proc.returncode == 2 and "usage:" in proc.stderr and "Traceback" not in proc.stderr
+    assert_one_line_error(run_cli("record", "loop://", "--out", "x.txt"), 64, "must end in .bin")
+    proc = run_cli("record", "loop://", "--out", "x.bin", "--duration", "-1")
+    assert proc.returncode == 2 and "must be > 0" in proc.stderr
+
+
+# --- record ------------------------------------------------------------------------------------
+
+
+def test_record_from_replay_url_keeps_every_byte(tmp_path):
+    source = DATA / "synthetic-faults.bin"
+    out = tmp_path / "rec.bin"
+    proc = run_cli("record", f"replay://{source}?unplug=1", "--out", str(out), "--no-reconnect", "--notes", "unit test")
+    assert proc.returncode == 0, proc.stderr
+    assert out.read_bytes() == source.read_bytes()  # garbage, corrupt frames and the cut-off tail included
+    sidecar = read_provenance(out)
+    assert sidecar["status"] == "complete"
+    assert sidecar["sha256"] == hashlib.sha256(source.read_bytes()).hexdigest()
+    assert sidecar["bytes"] == source.stat().st_size
+    assert sidecar["instrument"]["serial"] == "FOG-SYN-0001"
+    assert sidecar["notes"] == "unit test"
+    assert [e["state"] for e in sidecar["port_events"]] == ["opening", "open", "lost", "closed"]
+    assert sidecar["decoded_while_recording"]["crc_errors"] == 3
+    assert "recorded 31,551 bytes" in proc.stdout
+    # The recording inspects exactly like its source.
+    a = json.loads(run_cli("inspect", "--json", str(out)).stdout)
+    b = json.loads(run_cli("inspect", "--json", str(source)).stdout)
+    for key in ("sample_frames", "crc_errors", "missing_frames", "bytes_discarded", "thermometer_faults"):
+        assert a[key] == b[key]
+
+
+def test_record_missing_device_without_reconnect_is_a_one_line_error_and_leaves_nothing(tmp_path):
+    out = tmp_path / "rec.bin"
+    proc = run_cli("record", str(tmp_path / "ttyNOPE"), "--out", str(out), "--no-reconnect")
+    assert_one_line_error(proc, 69, "ttyNOPE")
+    assert not out.exists() and not out.with_suffix(".yaml").exists()
+
+
+def test_record_through_a_real_pty_until_unplug(tmp_path):
+    data = (DATA / "synthetic-clean.bin").read_bytes()
+    out = tmp_path / "pty.bin"
+    opened = threading.Event()
+    all_read = threading.Event()
+    result = {}
+
+    def on_state(event):
+        if event.state == "open":
+            opened.set()
+
+    def on_progress(p):
+        if p.bytes_written == len(data):
+            all_read.set()
+
+    with PtyPair() as pty:
+        stop = threading.Event()
+
+        def run():
+            result["r"] = record(pty.slave_path, str(out), reconnect=False, stop=stop,
+                                 on_state=on_state, on_progress=on_progress, progress_every_s=0)
+
+        thread = threading.Thread(target=run)
+        thread.start()
+        assert opened.wait(30), "recorder never opened the pty"
+        pty.write(data)
+        assert all_read.wait(30), "recorder did not read every byte"
+        pty.unplug()
+        thread.join(30)
+        assert not thread.is_alive()
+    r = result["r"]
+    assert out.read_bytes() == data
+    assert r.bytes_written == len(data) and r.identity.serial == "FOG-SYN-0001"
+    assert r.counters.sample_frames == decode_bytes(data).counters.sample_frames
+    assert read_provenance(out)["port_events"][-2]["state"] == "lost"
+
+
+def test_record_duration_stops_an_idle_port(tmp_path):
+    # A replay that goes idle at its end: only --duration ends the recording.
+    source = DATA / "synthetic-clean.bin"
+    out = tmp_path / "idle.bin"
+    proc = run_cli("record", f"replay://{source}", "--out", str(out), "--duration", "0.3")
+    assert proc.returncode == 0, proc.stderr
+    assert out.read_bytes() == source.read_bytes()
+    assert read_provenance(out)["host_duration_s"] >= 0.3
