@@ -22,20 +22,21 @@ import yaml
 from . import __version__
 from .errors import InputFileError
 from .protocol import (
+    FILE_BLOCK_BYTES,
     IDENTITY_FRAME_LEN,
     OVERHEAD_LEN,
     SAMPLE_FRAME_LEN,
     STATUS_BIT_NAMES,
     THERMOMETER_INVALID,
     DecodedCapture,
-    decode_bytes,
+    DecoderCounters,
+    iter_decode_file,
 )
 
 from .stream import SampleStream
 
 PROVENANCE_FORMAT = "fog_driver capture provenance"
 PROVENANCE_SCHEMA_VERSION = 1
-_READ_CHUNK = 8 << 20
 #: Sidecars are small; a larger file is not a sidecar.
 _MAX_SIDECAR_BYTES = 1 << 20
 
@@ -49,31 +50,23 @@ def utc_now_iso() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds").replace("+00:00", "Z")
 
 
-def read_capture_bytes(path: str | Path, progress: Callable[[int, int], None] | None = None) -> bytes:
-    """The whole capture file, with a clear ``InputFileError`` for a missing, unreadable or empty one."""
-    path = Path(path)
+def _capture_size(path: Path) -> int:
+    """The size of a capture file, with a clear ``InputFileError`` for a missing, unreadable or empty one."""
     try:
-        size = path.stat().st_size
         if path.is_dir():
             raise InputFileError(f"{path}: is a directory, not a capture file")
-        parts = []
-        done = 0
-        with path.open("rb") as f:
-            while chunk := f.read(_READ_CHUNK):
-                parts.append(chunk)
-                done += len(chunk)
-                if progress:
-                    progress(done, size)
+        size = path.stat().st_size
+        with path.open("rb"):
+            pass
     except FileNotFoundError:
         raise InputFileError(f"{path}: no such capture file") from None
     except PermissionError:
         raise InputFileError(f"{path}: permission denied") from None
     except OSError as exc:
         raise InputFileError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    data = b"".join(parts)
-    if not data:
+    if size == 0:
         raise InputFileError(f"{path}: empty file, not a capture")
-    return data
+    return size
 
 
 def read_provenance(capture_path: str | Path) -> dict[str, Any] | None:
@@ -211,6 +204,79 @@ class CaptureSummary:
         return out
 
 
+_SENSORS = ("top", "bottom", "housing")
+
+
+class CaptureSummarizer:
+    """Builds a ``CaptureSummary`` from decoded parts of a capture, one part at a time (bounded memory)."""
+
+    def __init__(self) -> None:
+        self._stream = SampleStream()
+        self._thermometer_faults = 0
+        self._flag_counts = np.zeros(16, dtype=np.int64)
+        self._t_min = np.full(3, np.inf)
+        self._t_max = np.full(3, -np.inf)
+        self._first: tuple[int, float] | None = None  # (seq, t_s) of the first sample
+        self._last: tuple[int, float] | None = None
+        self._last_frame_end = 0
+
+    def add(self, part: DecodedCapture) -> None:
+        frames = part.samples
+        samples = self._stream.run(part)
+        faulty = np.zeros(len(frames), dtype=bool)
+        for raw in (frames.t_top_raw, frames.t_bottom_raw, frames.t_housing_raw):
+            faulty |= raw == THERMOMETER_INVALID
+        self._thermometer_faults += int(np.count_nonzero(faulty))
+        for bit in range(16):
+            self._flag_counts[bit] += np.count_nonzero(frames.status & (1 << bit))
+        for k, column in enumerate((samples.t_top_c, samples.t_bottom_c, samples.t_housing_c)):
+            valid = column[~np.isnan(column)]
+            if len(valid):
+                self._t_min[k] = min(self._t_min[k], valid.min())
+                self._t_max[k] = max(self._t_max[k], valid.max())
+        if len(samples):
+            if self._first is None:
+                self._first = (int(samples.seq[0]), float(samples.t_s[0]))
+            self._last = (int(samples.seq[-1]), float(samples.t_s[-1]))
+        self._last_frame_end = max(self._last_frame_end, _last_frame_end(part))
+
+    def finish(
+        self, counters: DecoderCounters, *, path: str = "", sha256: str = "", provenance: dict[str, Any] | None = None
+    ) -> CaptureSummary:
+        c = counters
+        # Every decoder counter the summary reports under the same name.
+        shared = {k: v for k, v in c.as_dict().items() if k in CaptureSummary.__dataclass_fields__}
+        summary = CaptureSummary(
+            path=path,
+            bytes=c.bytes_in,
+            sha256=sha256,
+            **shared,
+            thermometer_faults=self._thermometer_faults,
+            identity_changes=self._stream.identity_changes,
+            provenance=provenance,
+        )
+        identity = self._stream.identity
+        if identity is not None:
+            summary.serial = identity.serial
+            summary.firmware = identity.firmware_version
+            summary.rate_hz = identity.rate_hz
+            summary.scale_arcsec_per_count = identity.scale_arcsec_per_count
+        if self._first is not None and self._last is not None:
+            summary.duration_s = self._last[1] - self._first[1]
+            if summary.duration_s > 0:
+                # Frames the instrument sent (unwrapped seq span) per second of its own clock: gaps do not bias it.
+                summary.measured_rate_hz = (self._last[0] - self._first[0]) / summary.duration_s
+        summary.tail_bytes_discarded = c.bytes_in - self._last_frame_end if self._last_frame_end else 0
+        for bit in range(16):
+            if self._flag_counts[bit]:
+                name = STATUS_BIT_NAMES.get(1 << bit, f"reserved_bit{bit}")
+                summary.status_flags_seen[name] = int(self._flag_counts[bit])
+        for k, name in enumerate(_SENSORS):
+            if np.isfinite(self._t_min[k]):
+                summary.temperature_range_c[name] = [float(self._t_min[k]), float(self._t_max[k])]
+        return summary
+
+
 def summarize(
     decoded: DecodedCapture,
     *,
@@ -218,70 +284,15 @@ def summarize(
     sha256: str = "",
     provenance: dict[str, Any] | None = None,
 ) -> CaptureSummary:
-    """Summarize a decoded capture."""
-    c = decoded.counters
-    frames = decoded.samples
-    stream = SampleStream()
-    samples = stream.run(decoded)
-    raw_temps = (frames.t_top_raw, frames.t_bottom_raw, frames.t_housing_raw)
-    faulty = np.zeros(len(frames), dtype=bool)
-    for raw in raw_temps:
-        faulty |= raw == THERMOMETER_INVALID
-    summary = CaptureSummary(
-        path=path,
-        bytes=c.bytes_in,
-        sha256=sha256,
-        sample_frames=c.sample_frames,
-        identity_frames=c.identity_frames,
-        unknown_frames=c.unknown_frames,
-        crc_errors=c.crc_errors,
-        length_errors=c.length_errors,
-        truncated_frames=c.truncated_frames,
-        bytes_discarded=c.bytes_discarded,
-        resyncs=c.resyncs,
-        seq_gaps=c.seq_gaps,
-        missing_frames=c.missing_frames,
-        seq_repeats=c.seq_repeats,
-        t_us_wraps=c.t_us_wraps,
-        thermometer_faults=int(np.count_nonzero(faulty)),
-        identity_changes=stream.identity_changes,
-        provenance=provenance,
-    )
-    identity = stream.identity
-    if identity is not None:
-        summary.serial = identity.serial
-        summary.firmware = identity.firmware_version
-        summary.rate_hz = identity.rate_hz
-        summary.scale_arcsec_per_count = identity.scale_arcsec_per_count
-    if len(samples) >= 2:
-        summary.duration_s = float(samples.t_s[-1] - samples.t_s[0])
-        if summary.duration_s > 0:
-            # Frames the instrument sent (unwrapped seq span) per second of its own clock: gaps do not bias it.
-            summary.measured_rate_hz = float(samples.seq[-1] - samples.seq[0]) / summary.duration_s
-    elif len(samples) == 1:
-        summary.duration_s = 0.0
-    last_frame_end = _last_frame_end(decoded)
-    summary.tail_bytes_discarded = c.bytes_in - last_frame_end if last_frame_end else 0
-    for mask, name in STATUS_BIT_NAMES.items():
-        _count_flag(summary.status_flags_seen, name, frames.status & mask)
-    for bit in range(5, 16):
-        _count_flag(summary.status_flags_seen, f"reserved_bit{bit}", frames.status & (1 << bit))
-    for name, column in (("top", samples.t_top_c), ("bottom", samples.t_bottom_c), ("housing", samples.t_housing_c)):
-        valid = column[~np.isnan(column)]
-        if len(valid):
-            summary.temperature_range_c[name] = [float(valid.min()), float(valid.max())]
-    return summary
+    """Summarize a capture decoded in one piece."""
+    summarizer = CaptureSummarizer()
+    summarizer.add(decoded)
+    return summarizer.finish(decoded.counters, path=path, sha256=sha256, provenance=provenance)
 
 
 def _f32_text(value: float | None) -> str | None:
     """The shortest text that reads back as the same float32 (how the instrument stores the scale)."""
     return None if value is None else np.format_float_positional(np.float32(value), trim="-")
-
-
-def _count_flag(seen: dict[str, int], name: str, bits: np.ndarray) -> None:
-    n = int(np.count_nonzero(bits))
-    if n:
-        seen[name] = n
 
 
 def _last_frame_end(decoded: DecodedCapture) -> int:
@@ -295,22 +306,41 @@ def _last_frame_end(decoded: DecodedCapture) -> int:
     return max(ends, default=0)
 
 
-def inspect_capture(path: str | Path, progress: Callable[[int, int], None] | None = None) -> CaptureSummary:
-    """Read, decode and summarize a capture file; a file with no valid frame is an ``InputFileError``."""
-    data = read_capture_bytes(path, progress)
-    decoded = decode_bytes(data, final=True)
-    c = decoded.counters
-    if c.sample_frames + c.identity_frames + c.unknown_frames == 0:
+def inspect_capture(
+    path: str | Path,
+    progress: Callable[[int, int], None] | None = None,
+    block_bytes: int = FILE_BLOCK_BYTES,
+) -> CaptureSummary:
+    """Read, decode and summarize a capture file block by block (memory bounded by the block size).
+
+    A missing, unreadable or empty file, or one with no valid frame, is an ``InputFileError``.
+    """
+    path = Path(path)
+    size = _capture_size(path)
+    sha256 = hashlib.sha256()
+    done = 0
+
+    def on_block(block: bytes) -> None:
+        nonlocal done
+        sha256.update(block)
+        done += len(block)
+        if progress:
+            progress(done, size)
+
+    summarizer = CaptureSummarizer()
+    counters = DecoderCounters()
+    try:
+        for part in iter_decode_file(path, block_bytes, on_block=on_block):
+            summarizer.add(part)
+            counters = part.counters
+    except OSError as exc:
+        raise InputFileError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    if counters.sample_frames + counters.identity_frames + counters.unknown_frames == 0:
         raise InputFileError(
-            f"{path}: not a protocol v1 capture: no valid frame in {len(data)} bytes"
-            + (" (too short to hold one)" if len(data) < SAMPLE_FRAME_LEN else "")
+            f"{path}: not a protocol v1 capture: no valid frame in {counters.bytes_in} bytes"
+            + (" (too short to hold one)" if counters.bytes_in < SAMPLE_FRAME_LEN else "")
         )
-    return summarize(
-        decoded,
-        path=str(path),
-        sha256=hashlib.sha256(data).hexdigest(),
-        provenance=read_provenance(path),
-    )
+    return summarizer.finish(counters, path=str(path), sha256=sha256.hexdigest(), provenance=read_provenance(path))
 
 
 def format_summary(s: CaptureSummary) -> str:

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import yaml
 
-from fog_driver.capture import inspect_capture, read_provenance
+from fog_driver.capture import inspect_capture, read_provenance, summarize
 from fog_driver.console import Progress
 from fog_driver.protocol import decode_bytes, encode_sample
 from fog_driver.record import record
@@ -249,3 +249,14 @@ def test_record_duration_stops_an_idle_port(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert out.read_bytes() == source.read_bytes()
     assert read_provenance(out)["host_duration_s"] >= 0.3
+
+
+@pytest.mark.parametrize("name", FIXTURES)
+def test_inspect_block_by_block_equals_one_shot(name):
+    path = DATA / f"{name}.bin"
+    one_shot = summarize(decode_bytes(path.read_bytes()), path=str(path))
+    for block in (7, 97, 4096):  # 7: every frame straddles a block boundary
+        blockwise = inspect_capture(path, block_bytes=block)
+        blockwise.sha256 = one_shot.sha256 = ""
+        blockwise.provenance = None
+        assert blockwise == one_shot, block

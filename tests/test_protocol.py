@@ -23,16 +23,20 @@ from hypothesis import strategies as st
 
 from fog_driver.protocol import (
     SAMPLE_FRAME_LEN,
+    BatchDecoder,
     FrameDecoder,
     IdentityFrame,
     SampleFrame,
     UnknownFrame,
+    concatenate,
     crc32,
     decode_bytes,
+    decode_file,
     encode_event,
     encode_frame,
     encode_identity,
     encode_sample,
+    iter_decode_file,
 )
 
 
@@ -271,8 +275,9 @@ def test_any_bytes_never_raise_and_every_byte_is_accounted(data, sizes):
 def damaged_streams(draw):
     """Valid frames, damaged by bit flips, inserted garbage and dropped frames; returns the truth too."""
     n = draw(st.integers(1, 25))
-    seq0 = draw(st.integers(0, 65535))
-    t0 = draw(st.integers(0, 2**32 - 1))
+    # Starts near the wrap points half the time, so seq and t_us wraps are exercised often.
+    seq0 = draw(st.one_of(st.integers(65536 - 25, 65535), st.integers(0, 65535)))
+    t0 = draw(st.one_of(st.integers(2**32 - 25 * 997, 2**32 - 1), st.integers(0, 2**32 - 1)))
     frames = []
     for k in range(n):
         kind = draw(st.sampled_from(["s", "s", "s", "s", "i", "u"]))
@@ -350,3 +355,43 @@ def test_batch_decode_of_nothing():
     for data in (b"", b"\xaa", b"\xaa\x55"):
         for final in (True, False):
             batch_equals_stream(data, [1], final)
+
+
+@settings(max_examples=300, suppress_health_check=[HealthCheck.too_slow])
+@given(damaged_streams(), chunk_sizes, st.lists(st.integers(0, 120), max_size=6), st.booleans())
+def test_batch_decoder_fed_in_blocks_equals_streaming_decoder(case, sizes, cuts, final):
+    data, _ = case
+    decoder, events = decode_in_chunks(data, sizes, close=final)
+    batch = BatchDecoder()
+    bounds = sorted({0, len(data), *(min(c * 7, len(data)) for c in cuts)})
+    parts = [batch.decode(data[lo:hi]) for lo, hi in zip(bounds, bounds[1:])]
+    if final:
+        parts.append(batch.decode(b"", final=True))
+    joined = concatenate(parts)
+    assert joined.events() == events
+    assert batch.counters == decoder.counters
+    assert joined.counters == decoder.counters
+    assert batch.pending == decoder.pending
+
+
+def test_decode_file_in_small_blocks_equals_one_shot(tmp_path):
+    data = b"".join(
+        [b"\x00\xaa", *(encode_sample(i, i * 1000, i, 1, 2, 3) for i in range(200)), encode_identity("F", 1, 2, 3.0)]
+    ) * 3 + b"\xaa\x55\x01"
+    path = tmp_path / "c.bin"
+    path.write_bytes(data)
+    whole = decode_bytes(data)
+    for block in (1, 25, 26, 1000, 1 << 20):
+        part = decode_file(path, block_bytes=block)
+        assert part.events() == whole.events(), block
+        assert part.counters == whole.counters, block
+    seen = []
+    list(iter_decode_file(path, block_bytes=100, on_block=seen.append))
+    assert b"".join(seen) == data
+
+
+def test_batch_decoder_refuses_data_after_the_final_block():
+    batch = BatchDecoder()
+    batch.decode(b"abc", final=True)
+    with pytest.raises(RuntimeError):
+        batch.decode(b"")

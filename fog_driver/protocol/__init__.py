@@ -1,6 +1,15 @@
 """Wire protocol v1, sans-IO: encoders, the streaming ``FrameDecoder`` and the batch decoder."""
 
-from .batch import DecodedCapture, SampleArrays, decode_bytes, decode_file
+from .batch import (
+    FILE_BLOCK_BYTES,
+    BatchDecoder,
+    DecodedCapture,
+    SampleArrays,
+    concatenate,
+    decode_bytes,
+    decode_file,
+    iter_decode_file,
+)
 from .decoder import DecoderCounters, FrameDecoder, seq_step
 from .wire import (
     IDENTITY_FRAME_LEN,

@@ -24,7 +24,8 @@ frame:
 from __future__ import annotations
 
 import zlib
-from dataclasses import dataclass, field
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -274,90 +275,183 @@ def _greedy_accept(starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
     return keep
 
 
+class BatchDecoder:
+    """The batch decoder with explicit state, fed blocks of any size (``lfilter(zi)`` style).
+
+    ``decode(block)`` returns the frames the block completes, as columns; the
+    undecided tail (at most one frame's worth) is carried into the next call,
+    together with the resync flag and the last seq and t_us, so decoding a
+    capture in blocks gives exactly what ``FrameDecoder`` gives for the same
+    bytes in any chunks: the same frames at the same stream offsets and the
+    same cumulative ``counters``.  ``decode(block, final=True)`` ends the stream.
+    """
+
+    def __init__(self) -> None:
+        self.counters = DecoderCounters()
+        self._carry = b""
+        self._base = 0  # stream offset of _carry[0]
+        self._hunting = False
+        self._last_seq: int | None = None
+        self._last_t_us: int | None = None
+        self._closed = False
+
+    @property
+    def pending(self) -> int:
+        return len(self._carry)
+
+    def decode(self, block: bytes | bytearray | memoryview, final: bool = False) -> DecodedCapture:
+        if self._closed:
+            raise RuntimeError("decode() after the final block")
+        block = bytes(block)
+        self.counters.bytes_in += len(block)
+        data = self._carry + block if self._carry else block
+        part = self._decode(data, final)
+        self._closed = final
+        return part
+
+    def _decode(self, data: bytes, final: bool) -> DecodedCapture:
+        a = np.frombuffer(data, dtype=np.uint8)
+        n = len(a)
+        base = self._base
+        views = _u16_views(data)
+        cand = _sync_positions(views)
+        verdict, frame_len, sample_idx, sample_tails = _classify(data, a, views, cand, final)
+
+        blocking = (verdict == _TRUNCATED) & (not final)
+        selectable = (verdict == _VALID) | blocking
+        sel = np.flatnonzero(selectable)
+        starts = cand[sel]
+        ends = np.where(blocking[sel], _INFINITE_END, starts + frame_len[sel])
+        keep = _greedy_accept(starts, ends)
+        kept = sel[keep]
+        kept_starts = starts[keep]
+        kept_ends = ends[keep]
+
+        pending = 0
+        if len(kept) and blocking[kept[-1]]:
+            pending = n - int(kept_starts[-1])
+            kept, kept_starts, kept_ends = kept[:-1], kept_starts[:-1], kept_ends[:-1]
+        elif not final and n and a[-1] == SYNC0 and (not len(kept_ends) or kept_ends[-1] < n):
+            pending = 1
+
+        # Rejected candidates the scan actually reached: not inside an accepted frame, before the pending tail.
+        rejected = np.flatnonzero(~selectable)
+        rej_pos = cand[rejected]
+        if len(kept_starts):
+            j = np.searchsorted(kept_starts, rej_pos, side="right") - 1
+            covered = (j >= 0) & (rej_pos < kept_ends[np.maximum(j, 0)])
+        else:
+            covered = np.zeros(len(rejected), dtype=bool)
+        reached = ~covered & (rej_pos < n - pending)
+        rej_verdict = verdict[rejected][reached]
+
+        c = self.counters
+        in_frames = int((kept_ends - kept_starts).sum())
+        c.bytes_in_frames += in_frames
+        c.bytes_discarded += n - in_frames - pending
+        c.crc_errors += int(np.count_nonzero(rej_verdict == _CRC_ERROR))
+        c.length_errors += int(np.count_nonzero(rej_verdict == _LENGTH_ERROR))
+        c.truncated_frames += int(np.count_nonzero(rej_verdict == _TRUNCATED))
+        if len(kept_starts):
+            # A frame is a resync when bytes were discarded since the previous frame (in this block or before).
+            previous_ends = np.concatenate(([-1 if self._hunting else 0], kept_ends[:-1]))
+            c.resyncs += int(np.count_nonzero(kept_starts > previous_ends))
+            self._hunting = n - pending > int(kept_ends[-1])
+        else:
+            self._hunting = self._hunting or n - pending > 0
+
+        kinds = a[kept_starts + 2] if len(kept_starts) else np.zeros(0, np.uint8)
+        kept_samples = kept[kinds == TYPE_SAMPLE]
+        if len(kept_samples) == len(sample_idx):  # the usual case: every SAMPLE candidate was accepted
+            tails = sample_tails
+        else:
+            tails = sample_tails[np.searchsorted(sample_idx, kept_samples)]
+        samples = SampleArrays(
+            cand[kept_samples] + base, *(np.ascontiguousarray(tails[name]) for name in SAMPLE_PAYLOAD_DTYPE.names)
+        )
+        identities = []
+        unknown = []
+        for p, kind in zip(kept_starts[kinds != TYPE_SAMPLE].tolist(), kinds[kinds != TYPE_SAMPLE].tolist()):
+            payload = data[p + HEADER_LEN : p + HEADER_LEN + data[p + 3]]
+            if kind == TYPE_IDENTITY:
+                identities.append(parse_identity_payload(base + p, payload))
+            else:
+                unknown.append(UnknownFrame(base + p, kind, payload))
+        c.sample_frames += len(samples)
+        c.identity_frames += len(identities)
+        c.unknown_frames += len(unknown)
+        self._count_sequence(samples)
+
+        self._carry = data[n - pending :] if pending else b""
+        self._base = base + n - pending
+        return DecodedCapture(samples, identities, unknown, replace(c), pending)
+
+    def _count_sequence(self, samples: SampleArrays) -> None:
+        if not len(samples):
+            return
+        seq = samples.seq.astype(np.int64)
+        t_us = samples.t_us.astype(np.int64)
+        if self._last_seq is not None:
+            seq = np.concatenate(([self._last_seq], seq))
+            t_us = np.concatenate(([self._last_t_us], t_us))
+        step = np.diff(seq) % SEQ_MODULUS
+        gaps = step > 1
+        c = self.counters
+        c.seq_gaps += int(np.count_nonzero(gaps))
+        c.missing_frames += int((step[gaps] - 1).sum())
+        c.seq_repeats += int(np.count_nonzero(step == 0))
+        c.t_us_wraps += int(np.count_nonzero(t_us[1:] < t_us[:-1]))
+        self._last_seq = int(seq[-1])
+        self._last_t_us = int(t_us[-1])
+
+
 def decode_bytes(data: bytes | bytearray | memoryview, final: bool = True) -> DecodedCapture:
     """Decode a whole byte sequence; equals ``FrameDecoder`` fed the same bytes (then ``close()`` if final)."""
-    data = bytes(data)
-    a = np.frombuffer(data, dtype=np.uint8)
-    n = len(a)
-    views = _u16_views(data)
-    cand = _sync_positions(views)
-    verdict, frame_len, sample_idx, sample_tails = _classify(data, a, views, cand, final)
+    return BatchDecoder().decode(data, final=final)
 
-    blocking = (verdict == _TRUNCATED) & (not final)
-    selectable = (verdict == _VALID) | blocking
-    sel = np.flatnonzero(selectable)
-    starts = cand[sel]
-    ends = np.where(blocking[sel], _INFINITE_END, starts + frame_len[sel])
-    keep = _greedy_accept(starts, ends)
-    kept = sel[keep]
-    kept_starts = starts[keep]
-    kept_ends = ends[keep]
 
-    pending = 0
-    if len(kept) and blocking[kept[-1]]:
-        pending = n - int(kept_starts[-1])
-        kept, kept_starts, kept_ends = kept[:-1], kept_starts[:-1], kept_ends[:-1]
-    elif not final and n and a[-1] == SYNC0 and (not len(kept_ends) or kept_ends[-1] < n):
-        pending = 1
+#: Block size for decoding files: big enough that numpy's per-call costs vanish, small enough for bounded memory.
+FILE_BLOCK_BYTES = 16 << 20
 
-    # Rejected candidates the scan actually reached: not inside an accepted frame, before the pending tail.
-    rejected = np.flatnonzero(~selectable)
-    rej_pos = cand[rejected]
-    if len(kept_starts):
-        j = np.searchsorted(kept_starts, rej_pos, side="right") - 1
-        covered = (j >= 0) & (rej_pos < kept_ends[np.maximum(j, 0)])
-    else:
-        covered = np.zeros(len(rejected), dtype=bool)
-    reached = ~covered & (rej_pos < n - pending)
-    rej_verdict = verdict[rejected][reached]
 
-    counters = DecoderCounters()
-    counters.bytes_in = n
-    counters.bytes_in_frames = int((kept_ends - kept_starts).sum())
-    counters.bytes_discarded = n - counters.bytes_in_frames - pending
-    counters.crc_errors = int(np.count_nonzero(rej_verdict == _CRC_ERROR))
-    counters.length_errors = int(np.count_nonzero(rej_verdict == _LENGTH_ERROR))
-    counters.truncated_frames = int(np.count_nonzero(rej_verdict == _TRUNCATED))
-    if len(kept_starts):
-        previous_ends = np.concatenate(([0], kept_ends[:-1]))
-        counters.resyncs = int(np.count_nonzero(kept_starts > previous_ends))
+def iter_decode_file(
+    path: str | Path,
+    block_bytes: int = FILE_BLOCK_BYTES,
+    on_block: Callable[[bytes], None] | None = None,
+) -> Iterator[DecodedCapture]:
+    """Decode a capture file block by block (bounded memory); each part carries the cumulative counters.
 
-    kinds = a[kept_starts + 2] if len(kept_starts) else np.zeros(0, np.uint8)
-    kept_samples = kept[kinds == TYPE_SAMPLE]
-    if len(kept_samples) == len(sample_idx):  # the usual case: every SAMPLE candidate was accepted
-        tails = sample_tails
-    else:
-        tails = sample_tails[np.searchsorted(sample_idx, kept_samples)]
-    samples = SampleArrays(
-        cand[kept_samples], *(np.ascontiguousarray(tails[name]) for name in SAMPLE_PAYLOAD_DTYPE.names)
+    ``on_block`` sees every raw block as read (for hashing or progress).
+    """
+    decoder = BatchDecoder()
+    with Path(path).open("rb") as f:
+        block = f.read(block_bytes)
+        while True:
+            following = f.read(block_bytes) if block else b""
+            if on_block and block:
+                on_block(block)
+            yield decoder.decode(block, final=not following)
+            if not following:
+                return
+            block = following
+
+
+def concatenate(parts: list[DecodedCapture]) -> DecodedCapture:
+    """One ``DecodedCapture`` from consecutive parts (counters and pending from the last)."""
+    if not parts:
+        return decode_bytes(b"")
+    columns = [
+        np.concatenate([getattr(p.samples, name) for p in parts]) for name in SampleArrays.__dataclass_fields__
+    ]
+    return DecodedCapture(
+        SampleArrays(*columns),
+        [f for p in parts for f in p.identities],
+        [f for p in parts for f in p.unknown],
+        parts[-1].counters,
+        parts[-1].pending,
     )
-    identities = []
-    unknown = []
-    for p, kind in zip(kept_starts[kinds != TYPE_SAMPLE].tolist(), kinds[kinds != TYPE_SAMPLE].tolist()):
-        payload = data[p + HEADER_LEN : p + HEADER_LEN + data[p + 3]]
-        if kind == TYPE_IDENTITY:
-            identities.append(parse_identity_payload(p, payload))
-        else:
-            unknown.append(UnknownFrame(p, kind, payload))
-    counters.sample_frames = len(samples)
-    counters.identity_frames = len(identities)
-    counters.unknown_frames = len(unknown)
-    _count_sequence(samples, counters)
-    return DecodedCapture(samples, identities, unknown, counters, pending)
 
 
-def _count_sequence(samples: SampleArrays, counters: DecoderCounters) -> None:
-    if len(samples) < 2:
-        return
-    step = (samples.seq[1:].astype(np.int64) - samples.seq[:-1].astype(np.int64)) % SEQ_MODULUS
-    gaps = step > 1
-    counters.seq_gaps = int(np.count_nonzero(gaps))
-    counters.missing_frames = int((step[gaps] - 1).sum())
-    counters.seq_repeats = int(np.count_nonzero(step == 0))
-    counters.t_us_wraps = int(np.count_nonzero(samples.t_us[1:] < samples.t_us[:-1]))
-
-
-def decode_file(path: str | Path) -> DecodedCapture:
-    """Read and decode a whole capture file (end of stream included)."""
-    return decode_bytes(Path(path).read_bytes(), final=True)
-
+def decode_file(path: str | Path, block_bytes: int = FILE_BLOCK_BYTES) -> DecodedCapture:
+    """Read and decode a whole capture file (end of stream included), block by block."""
+    return concatenate(list(iter_decode_file(path, block_bytes)))
