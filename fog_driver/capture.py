@@ -20,7 +20,7 @@ import numpy as np
 import yaml
 
 from . import __version__
-from .errors import InputFileError
+from .errors import InputFileError, OutputFileError
 from .protocol import (
     FILE_BLOCK_BYTES,
     IDENTITY_FRAME_LEN,
@@ -109,28 +109,46 @@ def write_provenance(capture_path: str | Path, fields: dict[str, Any]) -> Path:
 class CaptureWriter:
     """Appends raw bytes to a capture file, exactly as given, and tracks size and SHA-256."""
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, overwrite: bool = False) -> None:
         self.path = Path(path)
         try:
-            self._file: BinaryIO = self.path.open("wb")
+            # "x" refuses to replace an existing capture: a lost chamber run cannot be re-recorded.
+            self._file: BinaryIO = self.path.open("wb" if overwrite else "xb")
+        except FileExistsError:
+            raise OutputFileError(f"{self.path}: exists; refusing to overwrite a capture (use --force)") from None
         except OSError as exc:
-            raise InputFileError(f"{self.path}: cannot create capture: {exc.strerror or exc}") from None
+            raise OutputFileError(f"{self.path}: cannot create capture: {exc.strerror or exc}") from None
         self._sha256 = hashlib.sha256()
         self.bytes_written = 0
 
     def write(self, chunk: bytes) -> None:
-        self._file.write(chunk)
+        try:
+            self._file.write(chunk)
+        except OSError as exc:
+            raise OutputFileError(f"{self.path}: cannot write capture: {exc.strerror or exc}") from None
         self._sha256.update(chunk)
         self.bytes_written += len(chunk)
 
     def flush(self) -> None:
-        self._file.flush()
+        try:
+            self._file.flush()
+        except OSError as exc:
+            raise OutputFileError(f"{self.path}: cannot write capture: {exc.strerror or exc}") from None
 
     def close(self) -> None:
-        if not self._file.closed:
+        """Flush, fsync and close; idempotent.  Failing to flush is an ``OutputFileError``."""
+        if self._file.closed:
+            return
+        try:
             self._file.flush()
             os.fsync(self._file.fileno())
-            self._file.close()
+        except OSError as exc:
+            raise OutputFileError(f"{self.path}: cannot write capture: {exc.strerror or exc}") from None
+        finally:
+            try:
+                self._file.close()
+            except OSError:
+                pass  # the flush above already reported it
 
     @property
     def sha256(self) -> str:

@@ -94,6 +94,7 @@ def cmd_record(args: argparse.Namespace) -> int:
             on_progress=on_progress,
             on_state=on_state,
             notes=args.notes,
+            overwrite=args.force,
         )
     finally:
         progress.clear()
@@ -130,6 +131,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--baud", type=_baud, default=460800, metavar="B", help="baud rate (default 460800)")
     p.add_argument("--no-reconnect", action="store_true", help="stop when the port is lost instead of reconnecting")
     p.add_argument("--notes", help="free text stored in the provenance sidecar")
+    p.add_argument("--force", action="store_true", help="overwrite an existing capture file")
     p.set_defaults(func=cmd_record)
     return parser
 

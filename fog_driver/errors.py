@@ -25,3 +25,9 @@ class DeviceError(FogDriverError):
     """A port could not be opened or was lost for good."""
 
     exit_status = os.EX_UNAVAILABLE  # 69
+
+
+class OutputFileError(FogDriverError):
+    """An output file cannot be created, would overwrite data, or cannot be written (disk full)."""
+
+    exit_status = os.EX_CANTCREAT  # 73

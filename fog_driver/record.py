@@ -18,8 +18,8 @@ from pathlib import Path
 from typing import Any
 
 from . import __version__
-from .capture import CaptureWriter, utc_now_iso, write_provenance
-from .errors import DeviceError
+from .capture import CaptureWriter, sidecar_path, utc_now_iso, write_provenance
+from .errors import DeviceError, OutputFileError
 from .protocol import DecoderCounters, FrameDecoder, IdentityFrame
 from .transport import PortError, PortEvent, PortReader
 
@@ -57,12 +57,15 @@ def record(
     on_state: Callable[[PortEvent], None] | None = None,
     notes: str | None = None,
     progress_every_s: float = 0.5,
+    overwrite: bool = False,
 ) -> RecordResult:
     """Copy bytes from ``url`` into ``out_path`` until ``duration_s`` (host time) passes, ``stop`` is set,
     or (with ``reconnect=False``) the port is lost.
 
     A port that cannot be opened at all with ``reconnect=False`` raises ``DeviceError`` and leaves no
     capture behind; once bytes flow, whatever was read is kept, whatever ends the recording.
+    An existing ``out_path`` is an ``OutputFileError`` unless ``overwrite``; so is a failed write
+    (disk full), after the sidecar has recorded how far the capture got.
     """
     stop = stop or threading.Event()
     out_path = Path(out_path)
@@ -90,6 +93,8 @@ def record(
     }
     if notes:
         base_fields["notes"] = notes
+    if out_path.exists() and not overwrite:  # say so now, not after waiting for the port
+        raise OutputFileError(f"{out_path}: exists; refusing to overwrite a capture (use --force)")
     reader = PortReader(url, baudrate=baudrate, reconnect=reconnect, on_state=state_changed)
     chunks = reader.chunks(stop)
     timer = threading.Timer(duration_s, stop.set) if duration_s is not None else None
@@ -105,7 +110,9 @@ def record(
         raise DeviceError(str(exc)) from None
 
     last_flush = last_progress = started
-    with CaptureWriter(out_path) as writer:
+    status = "complete"
+    sidecar = sidecar_path(out_path)
+    with CaptureWriter(out_path, overwrite=overwrite) as writer:
         write_provenance(out_path, {**base_fields, "status": "recording"})
         try:
             for chunk in itertools.chain((first,), chunks):
@@ -120,15 +127,21 @@ def record(
                 if on_progress and now - last_progress >= progress_every_s:
                     on_progress(RecordProgress(now - started, writer.bytes_written, decoder.counters, port_state))
                     last_progress = now
+        except OutputFileError as exc:
+            status = f"failed: {exc}"
+            raise
         finally:
             if timer:
                 timer.cancel()
             chunks.close()
             elapsed = time.monotonic() - started
-            writer.close()
+            try:
+                writer.close()
+            except OutputFileError as exc:
+                status = f"failed: {exc}"
             fields = {
                 **base_fields,
-                "status": "complete",
+                "status": status,
                 "end_utc": utc_now_iso(),
                 "host_duration_s": round(elapsed, 3),
                 "bytes": writer.bytes_written,
@@ -143,5 +156,10 @@ def record(
                     "rate_hz": identity.rate_hz,
                     "scale_arcsec_per_count": identity.scale_arcsec_per_count,
                 }
-            sidecar = write_provenance(out_path, fields)
+            try:
+                write_provenance(out_path, fields)
+            except OSError:
+                pass  # the disk is full: the write error on its way out says so
+    if status != "complete":
+        raise OutputFileError(status.removeprefix("failed: "))
     return RecordResult(out_path, sidecar, writer.bytes_written, writer.sha256, elapsed, decoder.counters, identity)

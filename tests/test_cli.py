@@ -260,3 +260,54 @@ def test_inspect_block_by_block_equals_one_shot(name):
         blockwise.sha256 = one_shot.sha256 = ""
         blockwise.provenance = None
         assert blockwise == one_shot, block
+
+
+def test_record_refuses_to_overwrite_a_capture_unless_forced(tmp_path):
+    source = DATA / "synthetic-clean.bin"
+    out = tmp_path / "precious.bin"
+    out.write_bytes(b"a 440-minute chamber run")
+    proc = run_cli("record", f"replay://{source}?unplug=1", "--out", str(out), "--no-reconnect")
+    assert_one_line_error(proc, 73, "precious.bin", "refusing to overwrite", "--force")
+    assert out.read_bytes() == b"a 440-minute chamber run"
+    proc = run_cli("record", f"replay://{source}?unplug=1", "--out", str(out), "--no-reconnect", "--force")
+    assert proc.returncode == 0, proc.stderr
+    assert out.read_bytes() == source.read_bytes()
+
+
+def test_record_disk_full_is_one_error_and_the_sidecar_says_how_far_it_got(tmp_path, monkeypatch):
+    import errno
+
+    import fog_driver.record as record_module
+    from fog_driver.capture import CaptureWriter
+    from fog_driver.errors import OutputFileError
+
+    class FullAfter:
+        """A file that takes the first write, then fails like a full disk."""
+
+        def __init__(self, real):
+            self.real, self.writes = real, 0
+
+        def write(self, chunk):
+            self.writes += 1
+            if self.writes > 1:
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            return self.real.write(chunk)
+
+        def __getattr__(self, name):
+            return getattr(self.real, name)
+
+    class FullDiskWriter(CaptureWriter):
+        def __init__(self, path, overwrite=False):
+            super().__init__(path, overwrite)
+            self._file = FullAfter(self._file)
+
+    monkeypatch.setattr(record_module, "CaptureWriter", FullDiskWriter)
+    source = DATA / "synthetic-clean.bin"
+    out = tmp_path / "full.bin"
+    # Paced over 12 s, so the recorder reads more than one chunk; the second write fills the disk.
+    with pytest.raises(OutputFileError, match="No space left on device"):
+        record(f"replay://{source}?rate=100&unplug=1", out, reconnect=False)
+    sidecar = read_provenance(out)
+    assert sidecar["status"].startswith("failed: ") and "No space left" in sidecar["status"]
+    assert 0 < sidecar["bytes"] < source.stat().st_size
+    assert out.read_bytes() == source.read_bytes()[: sidecar["bytes"]]  # what was written is intact

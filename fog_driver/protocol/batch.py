@@ -1,8 +1,9 @@
-"""Batch decoding of a whole capture into numpy arrays.
+"""Batch decoding of captures into numpy arrays, whole or block by block.
 
-``decode_bytes(data)`` gives exactly what ``FrameDecoder`` gives for the same
-bytes fed in any chunks (tested as a property): the same frames at the same
-offsets and the same counters.  It gets there without a Python loop per
+``decode_bytes(data)``, and ``BatchDecoder`` fed the same bytes in blocks of
+any size, give exactly what ``FrameDecoder`` gives for the same bytes fed in
+any chunks (tested as properties): the same frames at the same offsets and the
+same counters.  Within a block it gets there without a Python loop per
 frame:
 
 1. every sync position ``p`` (``AA 55``) is a candidate; its verdict depends
