@@ -44,7 +44,7 @@ def _baud(text: str) -> int:
 def cmd_inspect(args: argparse.Namespace) -> int:
     progress = Progress()
     try:
-        summary = inspect_capture(args.capture, progress=progress.bytes_read)
+        summary = inspect_capture(args.capture, progress=progress.bytes_done)
     finally:
         progress.clear()
     if args.json:

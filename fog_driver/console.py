@@ -38,9 +38,9 @@ class Progress:
             self.stream.flush()
             self._width = 0
 
-    def bytes_read(self, done: int, total: int) -> None:
+    def bytes_done(self, done: int, total: int) -> None:
         pct = 100.0 * done / total if total else 100.0
-        self.show(f"reading {done / 1e6:.1f} / {total / 1e6:.1f} MB ({pct:.0f} %)")
+        self.show(f"decoding {done / 1e6:.1f} / {total / 1e6:.1f} MB ({pct:.0f} %)")
 
 
 def configure_logging(verbosity: int = 0, json: bool = False) -> None:

@@ -118,12 +118,12 @@ def test_inspect_progress_only_on_a_terminal():
             return True
 
     piped = io.StringIO()
-    inspect_capture(DATA / "synthetic-clean.bin", progress=Progress(piped, min_interval_s=0).bytes_read)
+    inspect_capture(DATA / "synthetic-clean.bin", progress=Progress(piped, min_interval_s=0).bytes_done)
     assert piped.getvalue() == ""
     tty = FakeTty()
     progress = Progress(tty, min_interval_s=0)
-    inspect_capture(DATA / "synthetic-clean.bin", progress=progress.bytes_read)
-    assert "reading" in tty.getvalue() and "(100 %)" in tty.getvalue()
+    inspect_capture(DATA / "synthetic-clean.bin", progress=progress.bytes_done)
+    assert "decoding" in tty.getvalue() and "(100 %)" in tty.getvalue()
     progress.clear()
     assert tty.getvalue().endswith("\r")
 

@@ -126,10 +126,11 @@ class PortReader:
     def _report(self, state: PortState, *, detail: str = "", attempt: int = 0, retry_in_s: float | None = None) -> None:
         """Record, log and publish one state change."""
         self.state = state
-        level = log.warning if state in ("lost", "retry_wait") else log.info
-        level("port_state", state=state, url=self.url, detail=detail, attempt=attempt, retry_in_s=retry_in_s)
+        # The callback first, so a terminal display can clear its status line before the log line.
         if self.on_state is not None:
             self.on_state(PortEvent(state, self.url, detail, attempt, retry_in_s))
+        level = log.warning if state in ("lost", "retry_wait") else log.info
+        level("port_state", state=state, url=self.url, detail=detail, attempt=attempt, retry_in_s=retry_in_s)
 
     def chunks(self, stop: threading.Event) -> Iterator[bytes]:
         """Yield byte chunks from the port until ``stop`` is set (see the class docstring)."""
