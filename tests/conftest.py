@@ -1,5 +1,7 @@
 """Shared test settings."""
 
+import os
+
 from hypothesis import settings
 
 # The machines are shared and noisy: no per-example deadlines (speed is measured by benchmarks/,
@@ -7,4 +9,4 @@ from hypothesis import settings
 # is reproducible.
 settings.register_profile("default", deadline=None)
 settings.register_profile("ci", deadline=None, derandomize=True, print_blob=True)
-settings.load_profile("ci" if __import__("os").environ.get("CI") else "default")
+settings.load_profile("ci" if os.environ.get("CI") else "default")

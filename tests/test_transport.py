@@ -307,6 +307,14 @@ def test_replay_schedule_matches_capture_construction() -> None:
     assert replay_schedule(one).tolist() == [SAMPLE_FRAME_LEN]
 
 
+def test_replay_schedule_of_a_file_equals_that_of_its_bytes(tmp_path: Path) -> None:
+    data, ends = build_capture(60)
+    for name, content in (("c.bin", data), ("g.bin", b"\x00\xaa\x55junk"), ("e.bin", b"")):
+        path = tmp_path / name
+        path.write_bytes(content)
+        assert replay_schedule(path).tolist() == replay_schedule(content).tolist()
+
+
 def test_replay_slow_rate_releases_exactly_the_first_frame(capture: tuple[Path, bytes, list[int]]) -> None:
     """At 0.01 Hz frame 1 is 100 s away: only the bytes up to the end of frame 0 are readable."""
     path, data, ends = capture

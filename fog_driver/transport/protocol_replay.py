@@ -48,8 +48,10 @@ Port behaviour
 from __future__ import annotations
 
 import errno
+import mmap
 import math
 import numbers
+import os
 import threading
 import time
 import urllib.parse
@@ -59,7 +61,7 @@ from pathlib import Path
 import numpy as np
 from serial.serialutil import PortNotOpenError, SerialBase, SerialException
 
-from fog_driver.protocol import SAMPLE_FRAME_LEN, decode_bytes
+from fog_driver.protocol import SAMPLE_FRAME_LEN, decode_bytes, iter_decode_file
 
 SCHEME = "replay"
 URL_FORM = "replay://PATH[?rate=HZ][&unplug=0|1]"
@@ -117,18 +119,33 @@ def parse_replay_url(url: str) -> ReplayOptions:
     return ReplayOptions(path=Path(path_text), rate_hz=rate_hz, unplug=unplug)
 
 
-def replay_schedule(data: bytes) -> np.ndarray:
+def replay_schedule(capture: bytes | str | Path) -> np.ndarray:
     """Byte count readable once SAMPLE frame k is released, for k = 0 .. n-1 (int64, non-decreasing).
 
     Entry k is the end of the k-th SAMPLE frame, except the last entry, which is
-    ``len(data)`` so the tail after the last SAMPLE goes out with it.  A capture
-    without SAMPLE frames gives ``[len(data)]``: everything at once.
+    the capture's length so the tail after the last SAMPLE goes out with it.  A
+    capture without SAMPLE frames gives ``[length]``: everything at once.
+    ``capture`` is the bytes or a file path; a file is decoded block by block, so
+    memory stays bounded by the schedule itself (8 bytes per frame).
     """
-    ends = decode_bytes(data, final=True).samples.offset.astype(np.int64) + SAMPLE_FRAME_LEN
+    if isinstance(capture, (bytes, bytearray, memoryview)):
+        parts = [decode_bytes(capture, final=True)]
+    else:
+        parts = list(iter_decode_file(capture))
+    ends = np.concatenate([p.samples.offset for p in parts]) + SAMPLE_FRAME_LEN
+    length = parts[-1].counters.bytes_in
     if ends.size == 0:
-        return np.array([len(data)], dtype=np.int64)
-    ends[-1] = len(data)
+        return np.array([length], dtype=np.int64)
+    ends[-1] = length
     return ends
+
+
+def _map_file(path: Path) -> bytes | mmap.mmap:
+    """The file's bytes, memory-mapped read-only (the OS pages a long capture in as it is read)."""
+    with path.open("rb") as f:
+        if os.fstat(f.fileno()).st_size == 0:
+            return b""
+        return mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
 
 
 class Serial(SerialBase):
@@ -136,7 +153,7 @@ class Serial(SerialBase):
 
     def __init__(self, *args: object, **kwargs: object) -> None:
         self._cond = threading.Condition()
-        self._data = b""
+        self._data: bytes | mmap.mmap = b""
         self._schedule = np.array([0], dtype=np.int64)
         self._rate_hz: float | None = None
         self._unplug = False
@@ -168,6 +185,9 @@ class Serial(SerialBase):
         """Close the port; a ``read`` blocked in another thread returns ``b''``."""
         with self._cond:
             self.is_open = False
+            if isinstance(self._data, mmap.mmap):
+                self._data.close()
+            self._data = b""
             self._cond.notify_all()
         # Like pyserial's POSIX ``Serial.close``, io.RawIOBase.close is not called, so the
         # object can be opened again.
@@ -176,12 +196,14 @@ class Serial(SerialBase):
         """Apply the URL's options and load the capture (raises ``SerialException`` when unusable)."""
         options = parse_replay_url(url)
         try:
-            data = options.path.read_bytes()
+            data = _map_file(options.path)
+            schedule = (
+                replay_schedule(options.path) if options.rate_hz is not None else np.array([len(data)], dtype=np.int64)
+            )
         except FileNotFoundError:
             raise SerialException(f"replay capture not found: {str(options.path)!r} (from {url!r})") from None
         except OSError as exc:
             raise SerialException(f"cannot read replay capture {str(options.path)!r} (from {url!r}): {exc}") from None
-        schedule = replay_schedule(data) if options.rate_hz is not None else np.array([len(data)], dtype=np.int64)
         with self._cond:
             self.options = options
             self._data = data
