@@ -395,3 +395,27 @@ def test_batch_decoder_refuses_data_after_the_final_block():
     batch.decode(b"abc", final=True)
     with pytest.raises(RuntimeError):
         batch.decode(b"")
+
+
+def test_large_input_decoded_in_pieces_equals_streaming():
+    # decode_bytes splits inputs over 1 MiB into pieces internally; put damage right at the seams.
+    import random
+
+    rng = random.Random(7)
+    frames = [encode_sample(i, i * 1000, rng.randrange(-5000, 5000), 1, 2, 3) for i in range(100_000)]
+    data = bytearray(b"".join(frames))
+    for seam in (1 << 20, 2 << 20):
+        for delta in (-30, -13, -1, 0, 2, 25):
+            data[seam + delta] ^= 0x40
+        data[seam + 100 : seam + 100] = b"\xaa\x55\x7f\xff\xaa"  # a false long header just past the seam
+    data = bytes(data)
+    assert len(data) > (2 << 20) + 200
+    decoder, events = decode_in_chunks(data, [4096])
+    batch = decode_bytes(data)
+    assert batch.counters == decoder.counters
+    assert batch.counters.crc_errors > 0
+    np.testing.assert_array_equal(batch.samples.offset, [e.offset for e in events if isinstance(e, SampleFrame)])
+    np.testing.assert_array_equal(batch.samples.seq, [e.seq for e in events if isinstance(e, SampleFrame)])
+    np.testing.assert_array_equal(
+        batch.samples.dtheta_counts, [e.dtheta_counts for e in events if isinstance(e, SampleFrame)]
+    )
