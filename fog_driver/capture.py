@@ -19,7 +19,6 @@ from typing import Any, BinaryIO
 import numpy as np
 import yaml
 
-from . import __version__
 from .errors import InputFileError, OutputFileError
 from .protocol import (
     FILE_BLOCK_BYTES,
@@ -32,7 +31,6 @@ from .protocol import (
     DecoderCounters,
     iter_decode_file,
 )
-
 from .stream import SampleStream
 
 PROVENANCE_FORMAT = "fog_driver capture provenance"
@@ -196,16 +194,21 @@ class CaptureSummary:
     @property
     def problems(self) -> list[str]:
         """Anything that makes the capture less than clean, one phrase each."""
+        discarded = ("byte discarded", "bytes discarded")
+        if self.tail_bytes_discarded:
+            tail = f" ({self.tail_bytes_discarded} in a cut-off last frame)"
+            discarded = (discarded[0] + tail, discarded[1] + tail)
         checks = [
-            (self.crc_errors, "CRC errors"),
-            (self.length_errors, "length errors"),
-            (self.bytes_discarded, "bytes discarded"),
-            (self.missing_frames, "missing frames"),
-            (self.seq_repeats, "repeated frames"),
-            (self.unknown_frames, "unknown-type frames"),
-            (self.thermometer_faults, "frames with a thermometer fault"),
+            (self.crc_errors, ("CRC error", "CRC errors")),
+            (self.length_errors, ("length error", "length errors")),
+            (self.bytes_discarded, discarded),
+            (self.missing_frames, ("missing frame", "missing frames")),
+            (self.seq_repeats, ("repeated frame", "repeated frames")),
+            (self.unknown_frames, ("unknown-type frame", "unknown-type frames")),
+            (self.thermometer_faults, ("frame with a thermometer fault", "frames with a thermometer fault")),
+            (self.identity_changes - 1 if self.identity_changes > 1 else 0, ("identity change", "identity changes")),
         ]
-        found = [f"{n} {what}" for n, what in checks if n]
+        found = [f"{n} {one if n == 1 else many}" for n, (one, many) in checks if n]
         if self.identity_frames == 0:
             found.append("no IDENTITY frame")
         return found

@@ -311,3 +311,19 @@ def test_record_disk_full_is_one_error_and_the_sidecar_says_how_far_it_got(tmp_p
     assert sidecar["status"].startswith("failed: ") and "No space left" in sidecar["status"]
     assert 0 < sidecar["bytes"] < source.stat().st_size
     assert out.read_bytes() == source.read_bytes()[: sidecar["bytes"]]  # what was written is intact
+
+
+def test_inspect_flags_an_identity_change_mid_capture(tmp_path):
+    from fog_driver.protocol import encode_identity
+
+    data = (
+        encode_identity("FOG-A", 0x0102, 100, 0.01)
+        + b"".join(encode_sample(i, i * 10_000, 1, 5000, 5000, 5000) for i in range(10))
+        + encode_identity("FOG-B", 0x0102, 100, 0.01)
+        + b"".join(encode_sample(i, i * 10_000, 1, 5000, 5000, 5000) for i in range(10, 20))
+    )
+    path = tmp_path / "two.bin"
+    path.write_bytes(data)
+    summary = inspect_capture(path)
+    assert summary.serial == "FOG-B" and summary.identity_changes == 2
+    assert summary.problems == ["1 identity change"]
