@@ -32,11 +32,10 @@ from .protocol import (
     iter_decode_file,
 )
 from .stream import SampleStream
+from .yamlfile import read_yaml
 
 PROVENANCE_FORMAT = "fog_driver capture provenance"
 PROVENANCE_SCHEMA_VERSION = 1
-#: Sidecars are small; a larger file is not a sidecar.
-_MAX_SIDECAR_BYTES = 1 << 20
 
 
 def sidecar_path(capture_path: str | Path) -> Path:
@@ -70,20 +69,9 @@ def _capture_size(path: Path) -> int:
 def read_provenance(capture_path: str | Path) -> dict[str, Any] | None:
     """The sidecar's mapping, or None when there is no sidecar.  A malformed sidecar is an ``InputFileError``."""
     path = sidecar_path(capture_path)
-    try:
-        if path.stat().st_size > _MAX_SIDECAR_BYTES:
-            raise InputFileError(f"{path}: provenance sidecar larger than {_MAX_SIDECAR_BYTES} bytes")
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
+    data = read_yaml(path, "provenance sidecar", missing_ok=True)
+    if data is None:
         return None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputFileError(f"{path}: cannot read provenance sidecar: {exc}") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        where = getattr(exc, "problem_mark", None)
-        at = f" at line {where.line + 1}" if where is not None else ""
-        raise InputFileError(f"{path}: provenance sidecar is not valid YAML{at}") from None
     if not isinstance(data, dict):
         raise InputFileError(f"{path}: provenance sidecar is not a YAML mapping")
     return data

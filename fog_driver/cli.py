@@ -109,6 +109,68 @@ def cmd_record(args: argparse.Namespace) -> int:
     return 0
 
 
+def _rate_hz(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer rate: {text!r}") from None
+    if not 1 <= value <= 0xFFFF:
+        raise argparse.ArgumentTypeError(f"rate must be 1..65535 Hz (a u16 on the wire): {value}")
+    return value
+
+
+def _seed(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer seed: {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"seed must be >= 0: {value}")
+    return value
+
+
+def _simulator(args: argparse.Namespace):
+    from .sim.faults import parse_fault_spec
+    from .sim.instrument import Simulator, load_instrument_config
+    from .sim.profiles import load_profile
+
+    profile = load_profile(args.profile)
+    config = load_instrument_config(args.instrument)
+    faults = parse_fault_spec(args.faults)
+    return Simulator(profile, config, rate_hz=args.rate_hz, seed=args.seed, faults=faults), faults
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    if (args.out is None) == (args.serve is None):
+        raise UsageError("give exactly one of --out CAPTURE.bin (write a capture) or --serve pty|DEVICE (stream live)")
+    sim, faults = _simulator(args)
+    if args.serve is not None:
+        from .sim.serve import serve_cli
+
+        return serve_cli(sim, args)
+    from .sim.capture import simulate_to_file
+
+    if not args.out.endswith(".bin"):
+        raise UsageError(f"--out {args.out!r}: a capture file name must end in .bin")
+    progress = Progress()
+    try:
+        result = simulate_to_file(
+            sim,
+            args.out,
+            duration_s=args.duration,
+            overwrite=args.force,
+            progress=lambda done, total: progress.show(f"simulating {100.0 * done / total:5.1f} % ({done:,} frames)"),
+            faults_text=faults.describe(),
+        )
+    finally:
+        progress.clear()
+    print(
+        f"simulated {sim.profile.name} at {sim.rate_hz} Hz, seed {sim.seed}: {result.frames:,} frames, "
+        f"{result.bytes:,} bytes -> {result.capture} (+ {result.sidecar.name}, {result.truth.name})"
+    )
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="fog-driver",
@@ -133,6 +195,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--notes", help="free text stored in the provenance sidecar")
     p.add_argument("--force", action="store_true", help="overwrite an existing capture file")
     p.set_defaults(func=cmd_record)
+
+    p = sub.add_parser("simulate", help="simulate the instrument: write a capture with its truth, or serve it live")
+    p.add_argument("--profile", default="paper", metavar="NAME_OR_YAML",
+                   help="built-in profile (paper, paper-validation) or a profile YAML (configs/profiles/)")
+    p.add_argument("--out", metavar="CAPTURE.bin", help="write the capture, its sidecar and CAPTURE.truth.csv")
+    p.add_argument("--serve", metavar="pty|DEVICE", help="stream in real time on a new pty, or to a serial device")
+    p.add_argument("--rate-hz", type=_rate_hz, default=100, metavar="R", help="SAMPLE frame rate (default 100)")
+    p.add_argument("--seed", type=_seed, default=0, metavar="N", help="random seed (same seed, same bytes)")
+    p.add_argument("--faults", default="none", metavar="SPEC",
+                   help="e.g. drop=1e-3,flip=1e-5,garbage=0.1,thermo=0.05:2,disconnect=60:2 (see README)")
+    p.add_argument("--instrument", metavar="CONFIG.yaml", help="instrument model (default: configs/sim/instrument.yaml values)")
+    p.add_argument("--duration", type=_positive_float, metavar="S", help="stop after S device seconds")
+    p.add_argument("--force", action="store_true", help="overwrite an existing capture")
+    p.add_argument("--link", metavar="PATH", help="--serve pty: the stable symlink to the pty")
+    p.add_argument("--baud", type=_baud, default=460800, metavar="B", help="--serve DEVICE: baud rate (default 460800)")
+    p.set_defaults(func=cmd_simulate)
     return parser
 
 

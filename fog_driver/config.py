@@ -17,12 +17,9 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from .errors import InputFileError
 from .stream import DEFAULT_SCALE_ARCSEC_PER_COUNT, SampleStream
-
-_MAX_CONFIG_BYTES = 1 << 20
+from .yamlfile import read_yaml
 
 
 @dataclass(frozen=True)
@@ -75,17 +72,5 @@ def parse_config(doc: Any, where: str = "config") -> DriverConfig:
 def load_config(path: str | Path) -> DriverConfig:
     """Read and validate a config file; every problem is a one-line ``InputFileError``."""
     path = Path(path)
-    try:
-        if path.stat().st_size > _MAX_CONFIG_BYTES:
-            raise InputFileError(f"{path}: config file larger than {_MAX_CONFIG_BYTES} bytes")
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputFileError(f"{path}: no such config file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputFileError(f"{path}: cannot read config: {exc}") from None
-    try:
-        doc = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        raise InputFileError(f"{path}: not valid YAML" + (f" at line {mark.line + 1}" if mark else "")) from None
+    doc = read_yaml(path, "config file")
     return parse_config(doc, str(path))

@@ -419,3 +419,14 @@ def test_large_input_decoded_in_pieces_equals_streaming():
     np.testing.assert_array_equal(
         batch.samples.dtheta_counts, [e.dtheta_counts for e in events if isinstance(e, SampleFrame)]
     )
+
+
+@settings(max_examples=50)
+@given(st.lists(sample_frames, max_size=30))
+def test_vectorized_encoder_equals_scalar_encoder(frames):
+    from fog_driver.protocol import encode_sample_frames
+
+    columns = [np.array([f[i] for f in frames], dtype=np.int64) for i in range(1, 8)]
+    encoded = encode_sample_frames(*columns)
+    assert encoded.shape == (len(frames), SAMPLE_FRAME_LEN)
+    assert encoded.tobytes() == b"".join(encode_sample(*f[1:]) for f in frames)

@@ -48,8 +48,8 @@ Port behaviour
 from __future__ import annotations
 
 import errno
-import mmap
 import math
+import mmap
 import numbers
 import os
 import threading

@@ -1,0 +1,1 @@
+"""Instrument simulator: thermal chamber, FOG physics, frame emission and live serving."""

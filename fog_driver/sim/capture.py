@@ -1,0 +1,170 @@
+"""Simulate a whole run to files: the capture, its provenance sidecar and the truth file.
+
+The truth file ``<name>.truth.csv`` has one row per device second (the frames
+``k`` with ``k // rate_hz`` equal to the row's ``second``: exactly the blocks a
+driver averages over), written by construction from the simulator's physics,
+never by decoding.  Rates are means over the second in deg/h (angle per
+device second; 1 deg/h = 1 arcsec/s); temperatures are means of the true node
+temperatures; ``angle_deg`` is the turntable angle at the end of the second.
+
+Columns: ``second, t_device_s, t_true_s, n_frames, input_dph, earth_dph,
+scale_factor_error_dph, constant_bias_dph, drift_dph, drift_bias_temp_dph,
+drift_shupe_dph, drift_gradient_dph, drift_hysteresis_dph, bias_instability_dph,
+rrw_dph, arw_dph, measured_dph, air_c, housing_c, top_c, bottom_c, fiber_c,
+angle_deg``.  ``drift_dph`` is the temperature drift D (the four ``drift_*``
+terms); ``measured_dph`` is what the counts say (quantization included).  The
+noise a compensator cannot remove is ``bias_instability + rrw + arw`` plus
+quantization (``measured - everything else``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__
+from ..capture import CaptureWriter, utc_now_iso, write_provenance
+from .instrument import COMPONENTS, FrameBlock, Simulator
+
+TRUTH_COLUMNS = (
+    "second", "t_device_s", "t_true_s", "n_frames", "input_dph", "earth_dph", "scale_factor_error_dph",
+    "constant_bias_dph", "drift_dph", "drift_bias_temp_dph", "drift_shupe_dph", "drift_gradient_dph",
+    "drift_hysteresis_dph", "bias_instability_dph", "rrw_dph", "arw_dph", "measured_dph",
+    "air_c", "housing_c", "top_c", "bottom_c", "fiber_c", "angle_deg",
+)  # fmt: skip
+_DRIFT_PARTS = ("drift_bias_temp", "drift_shupe", "drift_gradient", "drift_hysteresis")
+#: Seconds of frames computed at once when writing files (any value gives the same bytes).
+BATCH_SECONDS = 10
+
+
+def truth_path(capture_path: str | Path) -> Path:
+    """``run.bin`` -> ``run.truth.csv``."""
+    return Path(capture_path).with_suffix(".truth.csv")
+
+
+def truth_rows(block: FrameBlock, rate_hz: int, scale_arcsec_per_count: float) -> np.ndarray:
+    """Per-device-second truth of a block that starts on a second boundary, shape (seconds, columns)."""
+    n = len(block.seq)
+    second = (block.k0 + np.arange(n)) // rate_hz
+    starts = np.flatnonzero(np.r_[True, second[1:] != second[:-1]]) if n else np.zeros(0, np.int64)
+    count = np.diff(np.r_[starts, n])
+    duration_s = count / rate_hz  # device seconds covered
+
+    def rate(arcsec: np.ndarray) -> np.ndarray:
+        return np.add.reduceat(arcsec, starts) / duration_s
+
+    def mean(values: np.ndarray) -> np.ndarray:
+        return np.add.reduceat(values, starts) / count
+
+    c = block.components_arcsec
+    columns = {
+        "second": second[starts],
+        "t_device_s": second[starts].astype(np.float64),
+        "t_true_s": block.t_true_s[starts],
+        "n_frames": count,
+        **{f"{name}_dph" if name != "scale_factor_error" else "scale_factor_error_dph": rate(c[name])
+           for name in COMPONENTS if name != "input"},
+        "input_dph": rate(c["input"]),
+        "drift_dph": rate(sum(c[name] for name in _DRIFT_PARTS)),
+        "measured_dph": rate(block.dtheta_counts * scale_arcsec_per_count),
+        **{f"{name}": mean(block.truth_temps_c[name]) for name in ("air_c", "housing_c", "top_c", "bottom_c", "fiber_c")},
+        "angle_deg": block.angle_deg[np.r_[starts[1:] - 1, n - 1]] if n else np.zeros(0),
+    }  # fmt: skip
+    return np.column_stack([columns[name] for name in TRUTH_COLUMNS]) if n else np.zeros((0, len(TRUTH_COLUMNS)))
+
+
+def write_truth_header(f) -> None:
+    f.write("# fog_driver simulator truth: one row per device second; see fog_driver/sim/capture.py\n")
+    f.write(",".join(TRUTH_COLUMNS) + "\n")
+
+
+def write_truth_rows(f, rows: np.ndarray) -> None:
+    fmt = ["%d", "%.0f", "%.6f", "%d"] + ["%.9g"] * (len(TRUTH_COLUMNS) - 4)
+    np.savetxt(f, rows, fmt=fmt, delimiter=",")
+
+
+def read_truth(path: str | Path) -> dict[str, np.ndarray]:
+    """The truth file as named columns (plain numbers; no pickle, no code)."""
+    data = np.loadtxt(path, delimiter=",", comments="#", skiprows=2, ndmin=2)
+    return {name: data[:, i] for i, name in enumerate(TRUTH_COLUMNS)}
+
+
+@dataclass
+class SimulationResult:
+    capture: Path
+    sidecar: Path
+    truth: Path
+    frames: int
+    bytes: int
+    sha256: str
+
+
+def simulate_to_file(
+    sim: Simulator,
+    out_path: str | Path,
+    *,
+    duration_s: float | None = None,
+    overwrite: bool = False,
+    progress: Callable[[int, int], None] | None = None,
+    profile_source: str = "",
+    faults_text: str = "none",
+) -> SimulationResult:
+    """Run ``sim`` over its profile (or ``duration_s`` device seconds) into capture, sidecar and truth."""
+    out_path = Path(out_path)
+    total = sim.total_frames() if duration_s is None else int(round(duration_s * sim.rate_hz))
+    batch = BATCH_SECONDS * sim.rate_hz
+    sha = hashlib.sha256()
+    truth_file = truth_path(out_path)
+    with CaptureWriter(out_path, overwrite=overwrite) as writer, truth_file.open("w", encoding="ascii") as tf:
+        write_truth_header(tf)
+        for block, data in sim.batches(batch, total):
+            writer.write(data)
+            sha.update(data)
+            write_truth_rows(tf, truth_rows(block, sim.rate_hz, sim.config.scale_f32))
+            if progress:
+                progress(sim.next_frame, total)
+    ppm = 1.0 + sim.config.clock_ppm * 1e-6
+    stops = [
+        {
+            "t_start_s": round(stop.t_start_s * ppm, 6),
+            "t_end_s": round(stop.t_end_s * ppm, 6),
+            "angle_deg": float(stop.angle_deg),
+        }
+        for stop in sim.profile.motion.stops()
+    ]
+    sidecar = write_provenance(
+        out_path,
+        {
+            "source": "simulate",
+            "generated_utc": utc_now_iso(),
+            "fog_driver_version": __version__,
+            "profile": sim.profile.name,
+            "profile_source": profile_source or sim.profile.source,
+            "seed": sim.seed,
+            "rate_hz": sim.rate_hz,
+            "faults": faults_text,
+            "frames": total,
+            "bytes": writer.bytes_written,
+            "sha256": sha.hexdigest(),
+            "truth_file": truth_file.name,
+            "instrument": {
+                "serial": sim.config.serial,
+                "firmware": f"{sim.config.firmware >> 8}.{sim.config.firmware & 0xFF}",
+                "rate_hz": sim.rate_hz,
+                "scale_arcsec_per_count": sim.config.scale_f32,
+            },
+            "run": {
+                "seq0": sim.seq0,
+                "t_us0": sim.t_us0,
+                "turn_on_bias_dph": sim.turn_on_bias_dph,
+                "thermometer_offsets_c": [float(v) for v in sim.thermometer_offsets_c],
+            },
+            "positioning_stops": stops,  # device time, s from the first sample
+            "model": sim.config.as_dict(),
+        },
+    )
+    return SimulationResult(out_path, sidecar, truth_file, total, writer.bytes_written, sha.hexdigest())

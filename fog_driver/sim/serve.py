@@ -1,0 +1,548 @@
+"""Serve a simulated instrument live: its byte stream in real time on a pty or a serial device.
+
+``serve(sim, write)`` is the real-time loop.  It asks the simulator for chunks
+of about ``chunk_s`` device seconds and hands each chunk's bytes to ``write``
+when the chunk's last frame is due: frame k (counted from where the simulator
+stood at the start) is due at ``start + k * sim.period_true_s / speed`` on the
+monotonic clock.  The schedule is fixed at the start, so the stream never
+drifts however long it runs; a writer that fell behind (a stalled machine)
+writes at once until it has caught up, and the stall is logged once.  The bytes
+are exactly ``sim.stream``'s, so a live stream equals the capture file of the
+same seed (``simulate_to_file``), faults included.
+
+Disconnect windows of the fault spec (device time) are the link's, not the
+instrument's: the instrument keeps running (the frames are generated, their
+bytes are already missing from ``sim.stream``), ``on_cut()`` is called once the
+window's first frame is due (after the half frame that was on the wire when the
+cable came out) and ``on_reconnect()`` when the first frame after the window is due.
+
+``serve_pty`` serves on a fresh raw pty behind a stable symlink (like a udev
+rule's ``/dev/ttyFOG0``): a disconnect window unplugs the pty (readers get EIO,
+exactly as from a pulled USB adapter) and removes the symlink; after the window
+a new pty is made and the symlink points at it, so a reader that reconnects
+through the symlink gets the stream again.  ``serve_device`` writes to a serial
+device or pyserial URL.  ``serve_cli`` is ``fog-driver simulate --serve``.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import math
+import os
+import signal
+import stat
+import struct
+import termios
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import serial
+import structlog
+
+from ..errors import DeviceError, OutputFileError, UsageError
+from ..protocol import IDENTITY_FRAME_LEN, SAMPLE_FRAME_LEN
+from ..transport import DEFAULT_BAUDRATE, PtyPair, open_port
+from .instrument import Simulator
+
+__all__ = [
+    "DEFAULT_LINK",
+    "PtyServer",
+    "ServeStats",
+    "serve",
+    "serve_cli",
+    "serve_device",
+    "serve_pty",
+]
+
+log = structlog.get_logger("fog_driver.sim")
+
+#: The stable name of ``--serve pty`` unless ``--link`` says otherwise.
+DEFAULT_LINK = "/tmp/fog-driver-sim.tty"
+#: How long the end of a stream may wait for the reader to take the last bytes out of the pty.
+DRAIN_TIMEOUT_S = 1.0
+#: Bits per byte on a serial line at 8N1 (start + 8 data + stop).
+_BITS_PER_BYTE = 10
+
+
+@dataclass
+class ServeStats:
+    """What a serving run did.  ``cpu_s`` is the serving thread's CPU time (``time.thread_time``)."""
+
+    frames: int = 0  #: frames generated (device time covered, disconnect windows included)
+    bytes: int = 0  #: bytes handed to the writer
+    wall_s: float = 0.0  #: monotonic seconds from start to end of the loop
+    cpu_s: float = 0.0  #: CPU seconds of the serving thread during the loop
+    process_cpu_s: float = 0.0  #: CPU seconds of the whole process during the loop (all threads)
+    late_writes: int = 0  #: writes made more than one chunk's wall time after they were due
+    stalls: int = 0  #: episodes of falling behind (each logged once)
+    cuts: int = 0  #: disconnect windows entered
+    dropped_bytes: int = 0  #: bytes the link did not accept in time (set by serve_pty / serve_device)
+    dropped_writes: int = 0  #: writes not accepted in full (each counts whole in ``dropped_bytes``)
+    stopped: bool = False  #: ended by the stop event, not by the duration or the profile end
+
+    @property
+    def cpu_percent(self) -> float:
+        """CPU of the serving thread as % of one core over the wall time."""
+        return 100.0 * self.cpu_s / self.wall_s if self.wall_s > 0 else 0.0
+
+
+def _first_frame_at_or_after(t_s: float, rate_hz: int) -> int:
+    """The smallest k >= 0 with ``k / rate_hz >= t_s``, with the simulator's own float arithmetic."""
+    k = max(0, math.ceil(t_s * rate_hz))
+    while k > 0 and (k - 1) / rate_hz >= t_s:
+        k -= 1
+    while k / rate_hz < t_s:
+        k += 1
+    return k
+
+
+def cut_windows(sim: Simulator, first: int, end: int) -> list[tuple[int, int]]:
+    """Disconnect windows as frame ranges ``[a, b)`` clipped to ``[first, end)``, in order.
+
+    Frame k is inside a window ``(start, duration)`` when ``start <= k / rate < start + duration``
+    (``Simulator.emit``'s rule); empty windows are left out.
+    """
+    windows = []
+    for start, duration in sim.faults.disconnects:
+        a = _first_frame_at_or_after(start, sim.rate_hz)
+        b = _first_frame_at_or_after(start + duration, sim.rate_hz)
+        a, b_clipped = max(a, first), min(b, end)
+        if a < b_clipped:
+            windows.append((a, b))
+    return windows
+
+
+def serve(
+    sim: Simulator,
+    write: Callable[[bytes], Any],
+    *,
+    duration_s: float | None = None,
+    stop: threading.Event | None = None,
+    speed: float = 1.0,
+    chunk_s: float = 0.02,
+    on_cut: Callable[[], Any] | None = None,
+    on_reconnect: Callable[[], Any] | None = None,
+) -> ServeStats:
+    """Stream ``sim`` through ``write(data)`` in real time (``speed`` times faster); see the module docstring.
+
+    Stops after ``duration_s`` device seconds from where the simulator stands, at the profile's
+    end, or as soon as ``stop`` is set (the wait between chunks is ``stop.wait``).  Exceptions from
+    ``write`` and the callbacks propagate.
+    """
+    if not (math.isfinite(speed) and speed > 0):
+        raise ValueError(f"speed must be a finite number > 0, got {speed!r}")
+    if not (math.isfinite(chunk_s) and chunk_s > 0):
+        raise ValueError(f"chunk_s must be a finite number > 0, got {chunk_s!r}")
+    if duration_s is not None and not (math.isfinite(duration_s) and duration_s > 0):
+        raise ValueError(f"duration_s must be a finite number > 0, got {duration_s!r}")
+    stop = stop if stop is not None else threading.Event()
+    rate = sim.rate_hz
+    k0 = sim.next_frame
+    end = sim.total_frames()
+    if duration_s is not None:
+        end = min(end, k0 + int(round(duration_s * rate)))
+    per_chunk = max(1, round(chunk_s * rate))
+    frame_wall_s = sim.period_true_s / speed
+    late_after_s = per_chunk * frame_wall_s  # a reader sees at least a double chunk
+    windows = cut_windows(sim, k0, end)
+    stats = ServeStats()
+    behind = False
+
+    log.info("serve_start", profile=sim.profile.name, rate_hz=rate, first_frame=k0, frames=max(0, end - k0),
+             speed=speed, frames_per_chunk=per_chunk, disconnects=len(windows))  # fmt: skip
+    t_start = time.monotonic()
+    cpu0, pcpu0 = time.thread_time(), time.process_time()
+    t0: float | None = None  # when frame k0 is due: set once the first chunk is ready (its set-up is slow)
+
+    def wait_due(k: int) -> bool:
+        """Wait until frame ``k`` is due; False if stopped.  Tracks late writes and stalls."""
+        nonlocal behind, t0
+        if t0 is None:
+            t0 = time.monotonic()
+        due = t0 + (k - k0) * frame_wall_s
+        delay = due - time.monotonic()
+        if delay > 0:
+            if behind:
+                behind = False
+                log.info("serve_caught_up", frame=k)
+            if stop.wait(delay):
+                stats.stopped = True
+                return False
+            return True
+        if -delay > late_after_s:
+            stats.late_writes += 1
+            if not behind:
+                behind = True
+                stats.stalls += 1
+                log.warning("serve_behind", frame=k, behind_s=round(-delay, 3), detail="writing at once to catch up")
+        if stop.is_set():
+            stats.stopped = True
+            return False
+        return True
+
+    def send(data: bytes) -> None:
+        if data:
+            write(data)
+            stats.bytes += len(data)
+
+    k = k0
+    w = 0  # index of the next (or current) window in ``windows``
+    try:
+        while k < end and not stop.is_set():
+            a, b = windows[w] if w < len(windows) else (end, end)
+            if k == a:
+                # The window's first frame: the half frame on the wire as the cable came out, then the cut.
+                _, data = sim.stream(1)
+                k += 1
+                if not wait_due(a):
+                    break
+                send(data)
+                stats.cuts += 1
+                log.info("link_cut", frame=a, device_s=a / rate, frames_lost=min(b, end) - a)
+                if on_cut is not None:
+                    on_cut()
+            else:
+                # Before the next window (a >= k), or inside one (a < k < b: no bytes, but paced all the same).
+                n = min(per_chunk, (a if a > k else min(b, end)) - k)
+                _, data = sim.stream(n)
+                k += n
+                if not wait_due(k - 1):
+                    break
+                send(data)
+            if a < k == b < end:
+                w += 1
+                if not wait_due(b):
+                    break
+                log.info("link_restored", frame=b, device_s=b / rate)
+                if on_reconnect is not None:
+                    on_reconnect()
+        if k < end and stop.is_set():
+            stats.stopped = True
+    finally:
+        stats.frames = k - k0
+        stats.wall_s = time.monotonic() - t_start
+        stats.cpu_s = time.thread_time() - cpu0
+        stats.process_cpu_s = time.process_time() - pcpu0
+    log.info("serve_end", frames=stats.frames, bytes=stats.bytes, wall_s=round(stats.wall_s, 3),
+             cpu_percent=round(stats.cpu_percent, 2), late_writes=stats.late_writes, stopped=stats.stopped)  # fmt: skip
+    return stats
+
+
+# -- a pty behind a stable symlink --------------------------------------------------------------
+
+
+def _unread_bytes(fd: int) -> int:
+    """Bytes waiting in a tty's input queue (``FIONREAD``)."""
+    return struct.unpack("i", fcntl.ioctl(fd, termios.FIONREAD, b"\0\0\0\0"))[0]
+
+
+class PtyServer:
+    """A raw pty for the simulated instrument, reachable through the stable symlink ``link``.
+
+    ``write`` never waits longer than ``write_timeout_s``: bytes the pty does not accept in time
+    (nobody reading, or a reader far behind) are lost, as on a real UART, and counted.
+    ``cut()`` unplugs the pty and removes the symlink; ``reconnect()`` makes a new pty and points
+    the symlink at it.  ``close()`` unplugs and removes the symlink (if it is still ours).
+    """
+
+    def __init__(self, link: str | os.PathLike[str] = DEFAULT_LINK, *, write_timeout_s: float = 0.01) -> None:
+        self.link = Path(link)
+        self.write_timeout_s = write_timeout_s
+        self.dropped_bytes = 0
+        self.dropped_writes = 0
+        self.ptys_made = 0
+        self._dropping = False
+        self._check_link()
+        self.pty: PtyPair | None = None
+        self._new_pty()
+
+    # -- the symlink ------------------------------------------------------------------------
+
+    def _check_link(self) -> None:
+        try:
+            st = os.lstat(self.link)
+        except FileNotFoundError:
+            return
+        except OSError as exc:
+            raise OutputFileError(f"--link {self.link}: {exc.strerror or exc}") from None
+        if not stat.S_ISLNK(st.st_mode):
+            raise OutputFileError(f"--link {self.link}: exists and is not a symlink; refusing to replace it")
+
+    def _point_link(self, target: str) -> None:
+        """Make ``link`` point at ``target`` atomically (readers never see it half made)."""
+        self._check_link()
+        tmp = self.link.with_name(f".{self.link.name}.{os.getpid()}.tmp")
+        try:
+            tmp.unlink(missing_ok=True)
+            os.symlink(target, tmp)
+            os.replace(tmp, self.link)
+        except OSError as exc:
+            tmp.unlink(missing_ok=True)
+            raise OutputFileError(f"--link {self.link}: cannot make the symlink: {exc.strerror or exc}") from None
+
+    def _remove_link(self) -> None:
+        """Remove the symlink if it still points at our pty (another server may have taken the name)."""
+        if self.pty is None:
+            return
+        try:
+            if os.readlink(self.link) == self.pty.slave_path:
+                self.link.unlink()
+        except OSError:
+            pass
+
+    # -- the pty ----------------------------------------------------------------------------
+
+    def _new_pty(self) -> None:
+        try:
+            self.pty = PtyPair()
+        except OSError as exc:
+            raise DeviceError(f"cannot make a pty: {exc.strerror or exc}") from None
+        self.ptys_made += 1
+        try:
+            self._point_link(self.pty.slave_path)
+        except BaseException:
+            self.pty.close()
+            self.pty = None
+            raise
+        log.info("pty_ready", slave=self.pty.slave_path, link=str(self.link))
+
+    @property
+    def slave_path(self) -> str | None:
+        """The current pty's slave path (None inside a disconnect window)."""
+        return self.pty.slave_path if self.pty is not None else None
+
+    def write(self, data: bytes) -> None:
+        if self.pty is None:  # inside a disconnect window: the bytes go nowhere
+            self.dropped_bytes += len(data)
+            self.dropped_writes += 1
+            return
+        try:
+            self.pty.write(data, timeout_s=self.write_timeout_s)
+        except TimeoutError:
+            # A real UART does not wait for its receiver.  PtyPair.write does not say how much of the
+            # chunk went in before the timeout, so the whole chunk counts as dropped.
+            self.dropped_bytes += len(data)
+            self.dropped_writes += 1
+            if not self._dropping:
+                log.warning("pty_full", slave=self.pty.slave_path, detail="no reader, or a reader far behind: dropping")
+            self._dropping = True
+        else:
+            self._dropping = False
+
+    def cut(self) -> None:
+        """Pull the cable: the symlink disappears (as udev's would) and readers get EIO."""
+        if self.pty is None:
+            return
+        self._remove_link()
+        self.pty.close()
+        log.info("pty_unplugged", slave=self.pty.slave_path)
+        self.pty = None
+
+    def reconnect(self) -> None:
+        """Plug a new cable: a new pty, the symlink pointing at it."""
+        if self.pty is None:
+            self._new_pty()
+
+    def drain(self, timeout_s: float = DRAIN_TIMEOUT_S, stop: threading.Event | None = None) -> bool:
+        """Wait (up to ``timeout_s``, or until ``stop``) until a reader has taken every byte; True if it has."""
+        if self.pty is None:
+            return True
+        stop = stop if stop is not None else threading.Event()
+        deadline = time.monotonic() + timeout_s
+        empty_in_a_row = 0
+        while True:
+            try:
+                empty_in_a_row = empty_in_a_row + 1 if _unread_bytes(self.pty.slave_fd) == 0 else 0
+            except OSError:
+                return False
+            if empty_in_a_row >= 2:  # twice, so bytes still on their way into the queue are seen
+                return True
+            left = deadline - time.monotonic()
+            if left <= 0 or stop.wait(min(0.01, left)):
+                return False
+
+    def close(self) -> None:
+        """Unplug and remove the symlink (if it still points at our pty); safe to call twice."""
+        if self.pty is not None:
+            self._remove_link()
+            self.pty.close()
+            self.pty = None
+
+    def __enter__(self) -> PtyServer:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+
+def serve_pty(
+    sim: Simulator,
+    *,
+    link: str | os.PathLike[str] | None = None,
+    duration_s: float | None = None,
+    stop: threading.Event | None = None,
+    speed: float = 1.0,
+    chunk_s: float = 0.02,
+    write_timeout_s: float | None = None,
+    drain_timeout_s: float = DRAIN_TIMEOUT_S,
+    on_ready: Callable[[PtyServer], Any] | None = None,
+) -> ServeStats:
+    """Serve ``sim`` on a new raw pty behind the symlink ``link`` (default ``DEFAULT_LINK``).
+
+    ``on_ready(server)`` is called once the pty and the symlink exist, before the first byte
+    (``server.slave_path``, ``server.link``).  Disconnect windows unplug the pty and bring up a new
+    one after the window.  At the end the reader gets up to ``drain_timeout_s`` to take the last
+    bytes, then the pty is unplugged and the symlink removed (also on an exception or a stop).
+    ``write_timeout_s`` defaults to half a chunk's wall time.
+    """
+    if write_timeout_s is None:
+        write_timeout_s = 0.5 * chunk_s / speed if speed > 0 else 0.0
+    stop = stop if stop is not None else threading.Event()
+    with PtyServer(link if link is not None else DEFAULT_LINK, write_timeout_s=write_timeout_s) as server:
+        if on_ready is not None:
+            on_ready(server)
+        stats = serve(
+            sim, server.write, duration_s=duration_s, stop=stop, speed=speed, chunk_s=chunk_s,
+            on_cut=server.cut, on_reconnect=server.reconnect,
+        )  # fmt: skip
+        if not stop.is_set():
+            server.drain(drain_timeout_s, stop)
+    stats.dropped_bytes += server.dropped_bytes
+    stats.dropped_writes += server.dropped_writes
+    return stats
+
+
+# -- a serial device --------------------------------------------------------------------------
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
+def required_baud(sim: Simulator, speed: float = 1.0) -> int:
+    """Line speed (8N1) the stream needs: SAMPLE frames plus one IDENTITY per device second."""
+    bytes_per_s = (sim.rate_hz * SAMPLE_FRAME_LEN + IDENTITY_FRAME_LEN) * speed
+    return int(math.ceil(bytes_per_s * _BITS_PER_BYTE))
+
+
+def serve_device(
+    sim: Simulator,
+    device: str,
+    *,
+    baudrate: int = DEFAULT_BAUDRATE,
+    duration_s: float | None = None,
+    stop: threading.Event | None = None,
+    speed: float = 1.0,
+    chunk_s: float = 0.02,
+    write_timeout_s: float = 1.0,
+    on_ready: Callable[[str], Any] | None = None,
+) -> ServeStats:
+    """Serve ``sim`` to a serial device path or pyserial URL at ``baudrate``.
+
+    A port that cannot be opened or fails while writing is a one-line ``DeviceError``; a baud rate
+    too slow for the stream is a ``UsageError``.  Disconnect windows send nothing (a device cannot
+    be unplugged from here).  Bytes the port does not take within ``write_timeout_s`` are dropped
+    and counted.
+    """
+    need = required_baud(sim, speed)
+    if need > baudrate:
+        raise UsageError(
+            f"--baud {baudrate} is too slow for {sim.rate_hz} Hz"
+            + (f" at speed {speed:g}" if speed != 1 else "")
+            + f": the stream needs at least {need} baud (8N1)"
+        )
+    try:
+        port = open_port(device, baudrate=baudrate, timeout_s=0)
+    except (serial.SerialException, OSError, ValueError) as exc:
+        raise DeviceError(f"cannot open {device}: {_one_line(exc)}") from None
+    stats = ServeStats()
+    try:
+        port.write_timeout = write_timeout_s
+
+        def write(data: bytes) -> None:
+            try:
+                port.write(data)
+            except serial.SerialTimeoutException:
+                stats.dropped_bytes += len(data)
+                stats.dropped_writes += 1
+            except (serial.SerialException, OSError) as exc:
+                raise DeviceError(f"{device}: write failed: {_one_line(exc)}") from None
+
+        if on_ready is not None:
+            on_ready(device)
+        result = serve(sim, write, duration_s=duration_s, stop=stop, speed=speed, chunk_s=chunk_s)
+        if not result.stopped:
+            try:
+                port.flush()
+            except (serial.SerialException, OSError, termios.error) as exc:
+                raise DeviceError(f"{device}: flush failed: {_one_line(exc)}") from None
+    finally:
+        try:
+            port.close()
+        except (serial.SerialException, OSError, termios.error):
+            pass
+    result.dropped_bytes += stats.dropped_bytes
+    result.dropped_writes += stats.dropped_writes
+    return result
+
+
+# -- the command line ---------------------------------------------------------------------------
+
+
+def serve_cli(sim: Simulator, args: Any) -> int:
+    """``fog-driver simulate --serve pty|DEVICE``: a readiness line, the stream, a summary line.
+
+    The readiness line (stdout, flushed) is ``serving <profile> at <rate> Hz on <path> (link <link>)``
+    for a pty and ``serving <profile> at <rate> Hz on <device> at <baud> baud`` for a device.
+    SIGINT and SIGTERM end the stream cleanly (a second one interrupts at once).
+    """
+    speed = getattr(args, "speed", None)
+    speed = 1.0 if speed is None else float(speed)
+    if not (math.isfinite(speed) and speed > 0):
+        raise UsageError(f"--speed must be a finite number > 0, got {speed!r}")
+    link = getattr(args, "link", None)
+    if args.serve != "pty" and link is not None:
+        raise UsageError("--link applies to --serve pty only")
+    stop = threading.Event()
+
+    def on_signal(signum: int, _frame: object) -> None:
+        if stop.is_set():
+            raise KeyboardInterrupt
+        stop.set()
+
+    previous = {}
+    if threading.current_thread() is threading.main_thread():
+        previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    where = f"{sim.profile.name} at {sim.rate_hz} Hz"
+    try:
+        if args.serve == "pty":
+
+            def pty_ready(server: PtyServer) -> None:
+                print(f"serving {where} on {server.slave_path} (link {server.link})", flush=True)
+
+            stats = serve_pty(sim, link=link, duration_s=args.duration, stop=stop, speed=speed, on_ready=pty_ready)
+        else:
+
+            def device_ready(device: str) -> None:
+                print(f"serving {where} on {device} at {args.baud} baud", flush=True)
+
+            stats = serve_device(
+                sim, args.serve, baudrate=args.baud, duration_s=args.duration, stop=stop, speed=speed,
+                on_ready=device_ready,
+            )  # fmt: skip
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+    cpu_pct = 100.0 * stats.process_cpu_s / stats.wall_s if stats.wall_s > 0 else 0.0
+    print(
+        f"{'stopped after' if stats.stopped else 'served'} {stats.frames:,} frames "
+        f"({stats.frames / sim.rate_hz:.1f} s of device time), {stats.bytes:,} bytes in {stats.wall_s:.1f} s; "
+        f"CPU {cpu_pct:.1f} % of one core; {stats.late_writes} late writes, {stats.dropped_bytes:,} bytes dropped, "
+        f"{stats.cuts} disconnects",
+        flush=True,
+    )
+    return 0

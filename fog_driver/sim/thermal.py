@@ -1,0 +1,168 @@
+"""Thermal model of the instrument: chamber air -> housing and mount -> fiber ring top and bottom -> fiber.
+
+A lumped, linear network of first-order links (temperatures in degC, time
+constants in s)::
+
+    dTh/dt = (Tair + q_h - Th) / tau_h                                  housing, self-heated by q_h
+    dTt/dt = (Th + q_t - Tt) / tau_t + (Tb - Tt) / tau_r                ring top (electronics above it: q_t)
+    dTb/dt = (Th - Tb) / tau_b + (Tm - Tb) / tau_mb + (Tt - Tb) / tau_r  ring bottom, on the base plate
+    dTf/dt = ((Tt + Tb) / 2 - Tf) / tau_f                               the fiber itself (not measured)
+    dTm/dt = (Tair - Tm) / tau_m                                        the turntable mount (not measured)
+
+The top and bottom of the ring follow the housing with different time
+constants, and the bottom also follows the turntable it is bolted to, a large
+thermal mass that lags the air by tens of minutes; so a ramp produces a real
+top-bottom gradient that lives on after the ramp, not just in proportion to
+the rate of change (which would make the gradient and Shupe terms impossible
+to tell apart).  The fiber, wound between top and bottom, lags both
+thermometers.  At power-on (``cold_start``) every node
+starts at the air temperature and the self-heating warms the instrument over
+the first half hour, as in the paper's 30-minute warm-up.  The mount starts at the air temperature.
+
+Discretisation: exact for an input held over each step (zero-order hold at
+the step's mid-point air temperature), ``x(k+1) = Phi x(k) + Gamma u(k)`` with
+``Phi = expm(A dt)``, ``Gamma = int_0^dt expm(A s) ds B``, on a fixed grid of
+``dt_s`` (1 s by default; the smallest time constant is minutes).
+
+Defaults (chosen to be plausible for a navigation-grade FOG angle instrument
+of about 15 cm diameter in a thermal chamber, and stated so a reader can
+disagree): the housing follows the air with 8 min (aluminium case, forced
+chamber air); the ring top and bottom follow the housing with 5 and 7 min
+(the bottom sits on a thicker base plate), and exchange heat through the
+ring with 10 min; the bottom exchanges with the mount with 10 min, and the
+mount (a turntable top plate) follows the air with 40 min; the fiber lags the
+ring surfaces by 4 min (potting); 3 degC
+of self-heating in the housing and 0.3 degC from the electronics above the
+ring, so there is a small static gradient.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+NODES = ("housing", "top", "bottom", "fiber", "mount")
+
+
+@dataclass(frozen=True)
+class ThermalParams:
+    tau_housing_s: float = 480.0
+    tau_top_s: float = 300.0
+    tau_bottom_s: float = 420.0
+    tau_ring_s: float = 600.0
+    tau_fiber_s: float = 240.0
+    tau_mount_s: float = 2400.0
+    tau_bottom_mount_s: float = 600.0
+    self_heating_c: float = 3.0
+    top_heating_c: float = 0.3
+    cold_start: bool = True
+
+    def __post_init__(self) -> None:
+        for name in (
+            "tau_housing_s", "tau_top_s", "tau_bottom_s", "tau_ring_s", "tau_fiber_s", "tau_mount_s", "tau_bottom_mount_s"
+        ):  # fmt: skip
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0")
+
+    def system(self) -> tuple[Matrix, list[float], list[float]]:
+        """``dx/dt = A x + B u + c`` with x = [Th, Tt, Tb, Tf, Tm] and u = Tair."""
+        h, t, b, r, f = self.tau_housing_s, self.tau_top_s, self.tau_bottom_s, self.tau_ring_s, self.tau_fiber_s
+        m, mb = self.tau_mount_s, self.tau_bottom_mount_s
+        a = [
+            [-1 / h, 0.0, 0.0, 0.0, 0.0],
+            [1 / t, -1 / t - 1 / r, 1 / r, 0.0, 0.0],
+            [1 / b, 1 / r, -1 / b - 1 / r - 1 / mb, 0.0, 1 / mb],
+            [0.0, 0.5 / f, 0.5 / f, -1 / f, 0.0],
+            [0.0, 0.0, 0.0, 0.0, -1 / m],
+        ]
+        bu = [1 / h, 0.0, 0.0, 0.0, 1 / m]
+        c = [self.self_heating_c / h, self.top_heating_c / t, 0.0, 0.0, 0.0]
+        return a, bu, c
+
+    def equilibrium(self, air_c: float) -> np.ndarray:
+        """The powered instrument's steady state at a constant air temperature: ``A x + B u + c = 0``."""
+        a, bu, c = self.system()
+        return np.array(_solve(a, [-(bi * air_c + ci) for bi, ci in zip(bu, c)]))
+
+
+Matrix = list[list[float]]
+
+
+def _matmul(a: Matrix, b: Matrix) -> Matrix:
+    return [[sum(a[i][k] * b[k][j] for k in range(len(b))) for j in range(len(b[0]))] for i in range(len(a))]
+
+
+def expm(m: Matrix) -> Matrix:
+    """Matrix exponential by scaling and squaring with a Taylor series, in plain floats.
+
+    Plain Python arithmetic rather than BLAS: the same bits on every machine, so a
+    seed gives the same capture everywhere (BLAS kernels round differently per CPU).
+    """
+    n = len(m)
+    norm = max(sum(abs(v) for v in row) for row in m)
+    squarings = 0
+    while norm / 2**squarings > 0.5:
+        squarings += 1
+    scaled = [[v / 2**squarings for v in row] for row in m]
+    result = [[float(i == j) for j in range(n)] for i in range(n)]
+    term = [row[:] for row in result]
+    for k in range(1, 20):
+        term = [[v / k for v in row] for row in _matmul(term, scaled)]
+        result = [[r + t for r, t in zip(rr, tr)] for rr, tr in zip(result, term)]
+    for _ in range(squarings):
+        result = _matmul(result, result)
+    return result
+
+
+def _solve(a: Matrix, b: list[float]) -> list[float]:
+    """Gaussian elimination with partial pivoting, plain floats (small systems)."""
+    n = len(a)
+    m = [row[:] + [rhs] for row, rhs in zip(a, b)]
+    for col in range(n):
+        pivot = max(range(col, n), key=lambda r: abs(m[r][col]))
+        m[col], m[pivot] = m[pivot], m[col]
+        for r in range(col + 1, n):
+            f = m[r][col] / m[col][col]
+            m[r] = [x - f * y for x, y in zip(m[r], m[col])]
+    x = [0.0] * n
+    for r in range(n - 1, -1, -1):
+        x[r] = (m[r][n] - sum(m[r][c] * x[c] for c in range(r + 1, n))) / m[r][r]
+    return x
+
+
+class ThermalModel:
+    """Steps the thermal network along a fixed time grid, with explicit state.
+
+    ``run(air_c_mid)`` advances one step per entry of ``air_c_mid`` (the air
+    temperature at each step's mid-point) and returns the node temperatures
+    at the END of each step, shape (n, 5) in ``NODES`` order.
+    """
+
+    def __init__(self, params: ThermalParams, dt_s: float, initial_air_c: float) -> None:
+        self.params = params
+        self.dt_s = float(dt_s)
+        a, bu, c = params.system()
+        # expm of the augmented [[A, B, c], [0, 0, 0]] dt gives Phi and, in its last two columns,
+        # Gamma = int_0^dt expm(A s) ds [B, c]: the held input and the heat sources over one step.
+        n = len(a)
+        augmented = [row + [bi, ci] for row, bi, ci in zip(a, bu, c)] + [[0.0] * (n + 2), [0.0] * (n + 2)]
+        e = expm([[v * dt_s for v in row] for row in augmented])
+        self._phi = [row[:n] for row in e[:n]]
+        self._gamma_u = [row[n] for row in e[:n]]
+        self._gamma_c = [row[n + 1] for row in e[:n]]
+        if params.cold_start:
+            self.state = np.full(n, float(initial_air_c))
+        else:
+            self.state = params.equilibrium(initial_air_c)
+
+    def run(self, air_c_mid: np.ndarray) -> np.ndarray:
+        out = np.empty((len(air_c_mid), len(self.state)))
+        x = self.state.tolist()
+        rows = [(phi_row, gu, gc) for phi_row, gu, gc in zip(self._phi, self._gamma_u, self._gamma_c)]
+        for k, u in enumerate(np.asarray(air_c_mid, dtype=np.float64).tolist()):
+            # Plain floats: a 5x5 step is faster (and the same on every machine) outside numpy.
+            x = [sum(p * v for p, v in zip(phi_row, x)) + gu * u + gc for phi_row, gu, gc in rows]
+            out[k] = x
+        self.state = np.array(x)
+        return out
