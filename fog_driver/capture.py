@@ -196,7 +196,7 @@ class CaptureSummary:
             (self.thermometer_faults, ("frame with a thermometer fault", "frames with a thermometer fault")),
             (self.identity_changes - 1 if self.identity_changes > 1 else 0, ("identity change", "identity changes")),
         ]
-        found = [f"{n} {one if n == 1 else many}" for n, (one, many) in checks if n]
+        found = [f"{n:,} {one if n == 1 else many}" for n, (one, many) in checks if n]
         if self.identity_frames == 0:
             found.append("no IDENTITY frame")
         return found

@@ -204,8 +204,9 @@ def test_record_missing_device_without_reconnect_is_a_one_line_error_and_leaves_
     assert not out.exists() and not out.with_suffix(".yaml").exists()
 
 
-def test_record_through_a_real_pty_until_unplug(tmp_path):
-    data = (DATA / "synthetic-clean.bin").read_bytes()
+@pytest.mark.parametrize("name, serial", [("synthetic-clean", "FOG-SYN-0001"), ("sim-faults", "FOG-SIM-0001")])
+def test_record_through_a_real_pty_until_unplug(tmp_path, name, serial):
+    data = (DATA / f"{name}.bin").read_bytes()
     out = tmp_path / "pty.bin"
     opened = threading.Event()
     all_read = threading.Event()
@@ -236,8 +237,8 @@ def test_record_through_a_real_pty_until_unplug(tmp_path):
         assert not thread.is_alive()
     r = result["r"]
     assert out.read_bytes() == data
-    assert r.bytes_written == len(data) and r.identity.serial == "FOG-SYN-0001"
-    assert r.counters.sample_frames == decode_bytes(data).counters.sample_frames
+    assert r.bytes_written == len(data) and r.identity.serial == serial
+    assert r.counters == decode_bytes(data, final=False).counters
     assert read_provenance(out)["port_events"][-2]["state"] == "lost"
 
 

@@ -311,3 +311,108 @@ def test_simulate_cli_errors(tmp_path, args, status, needle):
     assert proc.returncode == status, proc.stderr
     assert needle in proc.stderr and "Traceback" not in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1
+
+
+# --- recorded frames for tests -----------------------------------------------------------------
+
+DATA = ROOT / "tests" / "data"
+
+
+def _fixture_module():
+    sys.path.insert(0, str(DATA))
+    try:
+        import make_fixtures
+    finally:
+        sys.path.remove(str(DATA))
+    return make_fixtures
+
+
+@pytest.mark.parametrize("name", ["sim-short", "sim-faults"])
+def test_simulated_fixtures_match_their_generator(tmp_path, name):
+    result = _fixture_module().make_sim(name, tmp_path)
+    assert result.capture.read_bytes() == (DATA / f"{name}.bin").read_bytes()
+    assert result.truth.read_text() == (DATA / f"{name}.truth.csv").read_text()
+    for suffix in (".bin", ".truth.csv", ".yaml"):
+        assert (DATA / f"{name}{suffix}").stat().st_size < 1 << 20
+
+
+@pytest.mark.parametrize("name", ["sim-short", "sim-faults"])
+def test_simulated_fixture_through_the_replay_url_decodes_as_the_file_does(name):
+    import threading
+
+    from fog_driver.protocol import FrameDecoder
+    from fog_driver.transport import PortReader
+
+    path = DATA / f"{name}.bin"
+    decoder = FrameDecoder()
+    events = []
+    received = bytearray()
+    for chunk in PortReader(f"replay://{path}?rate=2000&unplug=1", reconnect=False).chunks(threading.Event()):
+        received += chunk
+        events += decoder.feed(chunk)
+    events += decoder.close()
+    whole = decode_file(path)
+    assert bytes(received) == path.read_bytes()
+    assert events == whole.events() and decoder.counters == whole.counters
+    truth = read_truth(DATA / f"{name}.truth.csv")
+    assert len(truth["second"]) == 300
+    if name == "sim-faults":
+        assert whole.counters.crc_errors > 0 and whole.counters.missing_frames > 0
+    else:
+        assert whole.counters.bytes_discarded == 0 and whole.counters.sample_frames == 3000
+
+
+# --- thermal model and thermometers ------------------------------------------------------------
+
+
+def test_thermal_discretisation_matches_a_fine_integration():
+    from fog_driver.sim.thermal import ThermalModel, ThermalParams
+
+    params = ThermalParams()
+    model = ThermalModel(params, 1.0, 0.0)
+    minutes = 90
+    air_mid = (np.arange(minutes * 60) + 0.5) / 60.0  # a 1 degC/min ramp, sampled at step mid-points
+    coarse = model.run(air_mid)[-1]
+    a, bu, c = (np.array(x) for x in params.system())
+    x = np.zeros(5)
+    dt = 0.05  # independent reference: RK4 on a 20x finer grid with the exact ramp input
+    f = lambda x, t: a @ x + bu * (t / 60.0) + c  # noqa: E731
+    for k in range(int(minutes * 60 / dt)):
+        t = k * dt
+        k1 = f(x, t)
+        k2 = f(x + 0.5 * dt * k1, t + 0.5 * dt)
+        k3 = f(x + 0.5 * dt * k2, t + 0.5 * dt)
+        k4 = f(x + dt * k3, t + dt)
+        x = x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    np.testing.assert_allclose(coarse, x, atol=1e-6)
+
+
+def test_warm_start_is_the_powered_equilibrium():
+    from fog_driver.sim.thermal import ThermalModel, ThermalParams
+
+    params = ThermalParams(cold_start=False)
+    equilibrium = params.equilibrium(20.0)
+    assert equilibrium[0] == pytest.approx(20.0 + params.self_heating_c)  # housing: air + self-heating
+    assert equilibrium[4] == pytest.approx(20.0)  # the mount is not heated
+    held = ThermalModel(params, 1.0, 20.0).run(np.full(3600, 20.0))
+    np.testing.assert_allclose(held[-1], equilibrium, atol=1e-9)
+    cold = ThermalModel(ThermalParams(), 1.0, 20.0).run(np.full(6 * 3600, 20.0))
+    assert cold[0, 0] - 20.0 < 0.01 and cold[-1] == pytest.approx(equilibrium, abs=1e-3)
+
+
+def test_thermometer_lag_and_noise_options():
+    def readings(**thermometers):
+        config = dataclasses.replace(
+            InstrumentConfig(), thermometers=dataclasses.replace(InstrumentConfig().thermometers, **thermometers)
+        )
+        sim = Simulator(load_profile(SHORT), config, rate_hz=10, seed=4)
+        block = sim.frames(10 * 600)  # 10 minutes: the 2 degC/min ramp starts at minute 5
+        return block.t_raw[:, 2] / 256.0, block.truth_temps_c["housing_c"]
+
+    quiet, housing = readings(noise_c=0.0, offset_sigma_c=0.0)
+    np.testing.assert_allclose(quiet, housing, atol=0.5 / 256 + 0.05 * 0.1)  # 1/256 rounding, 10 Hz hold
+    lagged, _ = readings(noise_c=0.0, offset_sigma_c=0.0, lag_s=60.0)
+    ramp = slice(10 * 480, 10 * 600)
+    assert np.all(lagged[ramp] < quiet[ramp] - 0.1)  # warming: a lagged sensor reads low
+    noisy, _ = readings(noise_c=0.05, offset_sigma_c=0.0)
+    assert (noisy - quiet)[: 10 * 240].std() == pytest.approx(0.05, rel=0.15)

@@ -1,11 +1,12 @@
-"""Regenerate the small synthetic captures in tests/data/ (deterministic: same bytes every run).
+"""Regenerate the small captures in tests/data/ (deterministic: same bytes every run).
 
     python tests/data/make_fixtures.py
 
 Each capture gets a provenance sidecar whose ``truth`` section is written by
 construction (what was sent, dropped, corrupted, inserted), never by decoding,
-so tests can score the decoder and ``inspect`` against it.  These stand in for
-recorded frames until the simulator's captures replace them.
+so tests can score the decoder and ``inspect`` against it.  The ``sim-*``
+captures come from the instrument simulator (``fog-driver simulate``), with
+its truth file beside them.
 """
 
 from __future__ import annotations
@@ -121,6 +122,30 @@ def make_faults() -> tuple[bytes, dict]:
 
 FIXTURES = {"synthetic-clean": make_clean, "synthetic-faults": make_faults}
 
+#: Captures made by the simulator (name -> simulate arguments): 300 s of the short-test profile at 10 Hz.
+SIM_FIXTURES = {
+    "sim-short": {"seed": 21, "faults": "none"},
+    "sim-faults": {"seed": 22, "faults": "drop=0.005,flip=1e-4,garbage=0.2,thermo=0.1:1,disconnect=100:2"},
+}
+SIM_PROFILE = "configs/profiles/short-test.yaml"
+SIM_RATE_HZ = 10
+SIM_DURATION_S = 300
+
+
+def make_sim(name: str, out_dir: Path, overwrite: bool = True):
+    """Simulate one of ``SIM_FIXTURES`` into ``out_dir`` (capture, sidecar, truth)."""
+    from fog_driver.sim.capture import simulate_to_file
+    from fog_driver.sim.faults import parse_fault_spec
+    from fog_driver.sim.instrument import Simulator
+    from fog_driver.sim.profiles import load_profile
+
+    args = SIM_FIXTURES[name]
+    faults = parse_fault_spec(args["faults"])
+    sim = Simulator(load_profile(HERE.parents[1] / SIM_PROFILE), rate_hz=SIM_RATE_HZ, seed=args["seed"], faults=faults)
+    return simulate_to_file(
+        sim, out_dir / f"{name}.bin", duration_s=SIM_DURATION_S, overwrite=overwrite, faults_text=faults.describe()
+    )
+
 
 def provenance(name: str, truth: dict) -> dict:
     return {
@@ -141,6 +166,9 @@ def main() -> None:
         (HERE / f"{name}.bin").write_bytes(data)
         (HERE / f"{name}.yaml").write_text(yaml.safe_dump(provenance(name, truth), sort_keys=False))
         print(f"{name}.bin: {len(data)} bytes")
+    for name in SIM_FIXTURES:
+        result = make_sim(name, HERE)
+        print(f"{name}.bin: {result.bytes} bytes (simulated)")
 
 
 if __name__ == "__main__":

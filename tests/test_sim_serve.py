@@ -1,0 +1,411 @@
+"""Tests of fog_driver.sim.serve: the real-time loop, the pty server, devices and the CLI.
+
+Every byte goes through a real pty and ``PortReader`` (pyserial), as a driver would read it.
+Nothing here sleeps to synchronise: the tests wait on events, queues and lines, with
+generous timeouts only as guards against a hang.  Timing is checked only from below (the
+pacing must pace); upper bounds on time would measure the machine, not the code.
+"""
+
+from __future__ import annotations
+
+import os
+import queue
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import structlog.testing
+
+from fog_driver.errors import DeviceError, OutputFileError
+from fog_driver.protocol import MAX_FRAME_LEN, SEQ_MODULUS, decode_bytes
+from fog_driver.sim.capture import simulate_to_file
+from fog_driver.sim.faults import parse_fault_spec
+from fog_driver.sim.instrument import Simulator
+from fog_driver.sim.profiles import load_profile
+from fog_driver.sim.serve import PtyServer, serve, serve_device, serve_pty
+from fog_driver.transport import PortEvent, PortReader, PtyPair
+
+REPO = Path(__file__).resolve().parent.parent
+SHORT_TEST = REPO / "configs" / "profiles" / "short-test.yaml"
+GUARD_S = 30.0  # failure guard only: nothing is expected to take anywhere near this long
+SERIAL = "FOG-SIM-0001"  # the default instrument's serial
+
+
+def make_sim(rate_hz: int = 1000, seed: int = 5, faults: str = "none") -> Simulator:
+    return Simulator(load_profile(str(SHORT_TEST)), rate_hz=rate_hz, seed=seed, faults=parse_fault_spec(faults))
+
+
+def capture_bytes(tmp_path: Path, duration_s: float, **sim_args) -> bytes:
+    """The capture file of the same simulator settings, as ``fog-driver simulate --out`` writes it."""
+    out = tmp_path / f"reference-{len(list(tmp_path.glob('reference-*.bin')))}.bin"
+    simulate_to_file(make_sim(**sim_args), out, duration_s=duration_s)
+    return out.read_bytes()
+
+
+def frame_index(seq: np.ndarray, sim: Simulator) -> np.ndarray:
+    """Frame numbers k of received SAMPLE frames (seq counts up from the run's random seq0)."""
+    return (seq.astype(np.int64) - sim.seq0) % SEQ_MODULUS
+
+
+class Reader:
+    """A ``PortReader`` in a thread; data chunks and state events in one queue, in the order they happened."""
+
+    def __init__(self, url: str, **kwargs) -> None:
+        self.items: queue.Queue[tuple[str, object]] = queue.Queue()
+        self.opened = threading.Event()
+        self.stop = threading.Event()
+        self.done = threading.Event()
+        self.error: BaseException | None = None
+        self.reader = PortReader(url, read_timeout_s=0.02, on_state=self._on_state, **kwargs)
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _on_state(self, event: PortEvent) -> None:
+        self.items.put(("state", event))
+        if event.state == "open":
+            self.opened.set()
+
+    def _run(self) -> None:
+        try:
+            for chunk in self.reader.chunks(self.stop):
+                self.items.put(("data", chunk))
+        except BaseException as exc:  # handed to the test thread
+            self.error = exc
+        finally:
+            self.done.set()
+
+    def receive(self, n_bytes: int) -> bytes:
+        """Collect exactly ``n_bytes`` of data (fails on a guard timeout or on extra bytes)."""
+        got = bytearray()
+        while len(got) < n_bytes:
+            kind, item = self.items.get(timeout=GUARD_S)
+            if kind == "data":
+                got += item
+        assert len(got) == n_bytes
+        return bytes(got)
+
+    def finish(self) -> list[tuple[str, object]]:
+        """Stop (if not finished already), join, re-raise a reader error; everything not yet taken."""
+        self.stop.set()
+        assert self.done.wait(GUARD_S), "reader did not return after stop"
+        self.thread.join(GUARD_S)
+        if self.error is not None:
+            raise self.error
+        rest = []
+        while not self.items.empty():
+            rest.append(self.items.get_nowait())
+        return rest
+
+
+# ---------------------------------------------------------------------------------------------
+# serve(): the real-time loop, through a real pty
+
+
+@pytest.mark.parametrize("speed", [1.0, 6.0])
+def test_live_stream_through_a_pty_equals_the_capture_file(tmp_path: Path, speed: float) -> None:
+    duration_s = 3.0
+    sim = make_sim()
+    with PtyPair() as pair:
+        reader = Reader(pair.slave_path, reconnect=False)
+        try:
+            assert reader.opened.wait(GUARD_S), "reader never opened the pty"
+            due_ok = []
+            t_before = time.monotonic()
+
+            def write(data: bytes) -> None:
+                # The chunk's last frame is sim.next_frame - 1; it may not go out before it is due.
+                due_ok.append(time.monotonic() >= t_before + (sim.next_frame - 1) * sim.period_true_s / speed)
+                pair.write(data)
+
+            stats = serve(sim, write, duration_s=duration_s, speed=speed)
+            wall_s = time.monotonic() - t_before
+            expected = capture_bytes(tmp_path, duration_s)
+            received = reader.receive(len(expected))
+        finally:
+            reader.finish()
+    assert received == expected
+    assert stats.frames == 3000 and stats.bytes == len(expected) and not stats.stopped
+    # Pacing paces: never ahead of the schedule (a lower bound, not a timing measurement).
+    assert all(due_ok)
+    assert wall_s >= (stats.frames - 1) * sim.period_true_s / speed - 1e-3
+    assert stats.wall_s >= (stats.frames - 1) * sim.period_true_s / speed - 1e-3
+    assert stats.cpu_s > 0 and stats.process_cpu_s >= stats.cpu_s * 0.5
+
+
+def test_a_stalled_writer_catches_up_and_still_delivers_the_same_bytes(tmp_path: Path) -> None:
+    sim = make_sim(rate_hz=500)
+    out: list[bytes] = []
+    stall = threading.Event()  # never set: waiting on it is the simulated stall of the machine
+
+    def write(data: bytes) -> None:
+        if len(out) == 5:
+            stall.wait(0.3)  # 0.3 s wall = 1.5 s of device time at speed 5: far behind the schedule
+        out.append(data)
+
+    with structlog.testing.capture_logs() as logs:
+        stats = serve(sim, write, duration_s=2.0, speed=5.0)
+    assert b"".join(out) == capture_bytes(tmp_path, 2.0, rate_hz=500)
+    assert stats.stalls >= 1 and stats.late_writes > stats.stalls  # the stall made several writes late...
+    assert [e["event"] for e in logs].count("serve_behind") == stats.stalls  # ...and was logged once
+
+
+def test_stop_ends_the_loop_at_once_mid_stream() -> None:
+    sim = make_sim(rate_hz=100)
+    stop = threading.Event()
+    writes = []
+
+    def write(data: bytes) -> None:
+        writes.append(data)
+        if len(writes) == 3:
+            stop.set()
+
+    stats = serve(sim, write, stop=stop)  # the whole 20-minute profile unless stop works
+    assert stats.stopped
+    assert len(writes) == 3 and stats.frames < 20
+
+
+def test_disconnect_windows_call_back_at_their_edges_and_bytes_still_match(tmp_path: Path) -> None:
+    faults = "disconnect=0.5:0.2+0.7:0.001+1.3:0.05"
+    sim = make_sim(faults=faults)
+    out: list[bytes] = []
+    events: list[tuple[str, int]] = []
+    stats = serve(
+        sim, out.append, duration_s=1.5, speed=8.0,
+        on_cut=lambda: events.append(("cut", sim.next_frame)),
+        on_reconnect=lambda: events.append(("reconnect", sim.next_frame)),
+    )  # fmt: skip
+    # on_cut once the window's first frame is out (next_frame = a + 1), on_reconnect at its end (b).
+    assert events == [("cut", 501), ("reconnect", 700), ("cut", 701), ("reconnect", 701), ("cut", 1301),
+                      ("reconnect", 1350)]  # fmt: skip
+    assert stats.cuts == 3
+    assert b"".join(out) == capture_bytes(tmp_path, 1.5, faults=faults)
+
+
+def test_bad_arguments_are_value_errors() -> None:
+    sim = make_sim()
+    for kwargs in ({"speed": 0}, {"speed": float("nan")}, {"chunk_s": 0}, {"duration_s": -1}):
+        with pytest.raises(ValueError):
+            serve(sim, lambda data: None, **kwargs)
+
+
+# ---------------------------------------------------------------------------------------------
+# serve_pty(): a pty behind a stable symlink, unplugged and replugged at disconnects
+
+
+def test_disconnect_unplugs_the_pty_and_a_reader_reconnects_through_the_link(tmp_path: Path) -> None:
+    faults = "disconnect=1:0.5"
+    link = tmp_path / "ttyFOG0"
+    sim = make_sim(faults=faults)
+    readers: list[Reader] = []
+    slaves: list[str] = []
+
+    def on_ready(server: PtyServer) -> None:
+        slaves.append(server.slave_path)
+        readers.append(Reader(str(link), reconnect=True, backoff_initial_s=0.02, backoff_max_s=0.1))
+        assert readers[0].opened.wait(GUARD_S), "reader never opened the link"
+
+    items: list[tuple[str, object]] = []
+    try:
+        stats = serve_pty(sim, link=link, duration_s=2.5, speed=2.0, on_ready=on_ready)
+        assert not link.exists() and not link.is_symlink()  # removed at the end
+        # Take everything until the reader has seen the final unplug and waits to retry a link now gone.
+        while True:
+            kind, item = readers[0].items.get(timeout=GUARD_S)
+            items.append((kind, item))
+            losses = sum(k == "state" and i.state == "lost" for k, i in items)
+            if kind == "state" and item.state == "retry_wait" and losses == 2:
+                break
+    finally:
+        if readers:
+            items += readers[0].finish()
+    assert stats.cuts == 1 and stats.frames == 2500
+
+    states = [item.state for kind, item in items if kind == "state"]
+    lost = [i for i, (kind, item) in enumerate(items) if kind == "state" and item.state == "lost"]
+    reopened = next(i for i, (kind, item) in enumerate(items) if i > lost[0] and kind == "state" and item.state == "open")
+    assert states[:2] == ["opening", "open"] and states.count("open") == 2
+    before = b"".join(item for kind, item in items[: lost[0]] if kind == "data")
+    after = b"".join(item for kind, item in items[reopened : lost[1]] if kind == "data")
+    reference = capture_bytes(tmp_path, 2.5, faults=faults)
+
+    # Before the cut: a prefix of the capture (the last bytes on the wire may die with the pty).
+    assert before and reference.startswith(before)
+    k_before = frame_index(decode_bytes(before).samples.seq, sim)
+    assert k_before[-1] <= 999 and np.all(np.diff(k_before) == 1)
+    # After reconnecting: frames again, their seq continuing past the gap, up to the end (drained).
+    decoded = decode_bytes(after)
+    assert decoded.counters.crc_errors <= 1
+    k_after = frame_index(decoded.samples.seq, sim)
+    assert len(k_after) > 0 and k_after[0] >= 1500 and k_after[-1] == 2499
+    assert np.all(np.diff(k_after) == 1)
+    first = int(decoded.samples.offset[0])
+    assert reference.endswith(after[first:])
+    assert len(slaves) == 1
+
+
+def test_link_refuses_to_replace_a_regular_file(tmp_path: Path) -> None:
+    path = tmp_path / "not-a-link"
+    path.write_text("precious")
+    with pytest.raises(OutputFileError, match="not a symlink"):
+        PtyServer(path)
+    assert path.read_text() == "precious"
+
+
+def test_link_replaces_an_existing_symlink_and_is_removed_on_close(tmp_path: Path) -> None:
+    link = tmp_path / "ttyFOG0"
+    link.symlink_to("/dev/null")
+    with PtyServer(link) as server:
+        assert os.readlink(link) == server.slave_path
+        server.cut()
+        assert not link.is_symlink() and server.slave_path is None
+        server.reconnect()
+        assert os.readlink(link) == server.slave_path
+    assert not link.is_symlink()
+    assert not list(tmp_path.glob(".*tmp"))  # no temporary link left behind
+
+
+def test_pty_writes_without_a_reader_are_dropped_not_blocking(tmp_path: Path) -> None:
+    with PtyServer(tmp_path / "ttyFOG0", write_timeout_s=0.0) as server:
+        chunk = b"\xaa" * 4096
+        for _ in range(20):  # 80 kB: more than a pty holds with nobody reading
+            server.write(chunk)
+        assert server.dropped_writes > 0
+        assert server.dropped_bytes == server.dropped_writes * len(chunk)
+
+
+# ---------------------------------------------------------------------------------------------
+# serve_device(): a serial device (here the slave side of a pty, read on the master side)
+
+
+def test_serve_device_writes_the_stream_to_a_tty(tmp_path: Path) -> None:
+    sim = make_sim(rate_hz=200)
+    expected = capture_bytes(tmp_path, 1.0, rate_hz=200)
+    got = bytearray()
+    with PtyPair() as pair:
+        done = threading.Event()
+
+        def drain_master() -> None:
+            while not done.is_set() or len(got) < len(expected):
+                chunk = pair.read_available(0.02)
+                got.extend(chunk)
+                if done.is_set() and not chunk:
+                    return
+
+        thread = threading.Thread(target=drain_master, daemon=True)
+        thread.start()
+        try:
+            stats = serve_device(sim, pair.slave_path, baudrate=921600, duration_s=1.0, speed=10.0)
+        finally:
+            done.set()
+            thread.join(GUARD_S)
+    assert bytes(got) == expected
+    assert stats.bytes == len(expected) and stats.dropped_bytes == 0
+
+
+def test_serve_to_a_nonexistent_device_is_a_one_line_device_error(tmp_path: Path) -> None:
+    missing = str(tmp_path / "ttyUSB99")
+    with pytest.raises(DeviceError) as info:
+        serve_device(make_sim(), missing, duration_s=1.0)
+    message = str(info.value)
+    assert missing in message and "\n" not in message
+
+
+def test_cli_serve_to_a_nonexistent_device_exits_69_with_one_line(tmp_path: Path) -> None:
+    missing = str(tmp_path / "ttyUSB99")
+    proc = subprocess.run(
+        [sys.executable, "-m", "fog_driver", "simulate", "--serve", missing, "--profile", str(SHORT_TEST),
+         "--duration", "1"],
+        capture_output=True, text=True, cwd=REPO, timeout=GUARD_S, stdin=subprocess.DEVNULL,
+    )  # fmt: skip
+    err = proc.stderr.strip().splitlines()
+    assert proc.returncode == 69, proc.stderr
+    assert len(err) == 1 and err[0].startswith("fog-driver: error: cannot open") and missing in err[0]
+    assert proc.stdout == ""  # no readiness line for a device that never opened
+
+
+def test_serve_device_refuses_a_baud_rate_too_slow_for_the_stream() -> None:
+    with pytest.raises(Exception, match="too slow"):
+        serve_device(make_sim(rate_hz=1000), "/dev/null", baudrate=9600, duration_s=1.0)
+
+
+# ---------------------------------------------------------------------------------------------
+# fog-driver simulate --serve pty, as a separate process
+
+
+def _start_cli(*extra: str, link: Path) -> tuple[subprocess.Popen, queue.Queue]:
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "fog_driver", "simulate", "--serve", "pty", "--link", str(link),
+         "--profile", str(SHORT_TEST), *extra],
+        cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    lines: queue.Queue = queue.Queue()
+
+    def pump() -> None:
+        for line in proc.stdout:
+            lines.put(line)
+        lines.put(None)
+
+    threading.Thread(target=pump, daemon=True).start()
+    return proc, lines
+
+
+def _next_line(proc: subprocess.Popen, lines: queue.Queue) -> str:
+    try:
+        line = lines.get(timeout=GUARD_S)
+    except queue.Empty:
+        proc.kill()
+        raise
+    assert line is not None, f"no more output; stderr: {proc.stderr.read()}"
+    return line
+
+
+def test_cli_serves_a_pty_that_a_reader_opens_through_the_link(tmp_path: Path) -> None:
+    link = tmp_path / "ttyFOG0"
+    proc, lines = _start_cli("--rate-hz", "200", "--duration", "3", link=link)
+    try:
+        ready = _next_line(proc, lines)
+        assert ready.startswith("serving short-test at 200 Hz on /dev/") and ready.endswith(f"(link {link})\n")
+        slave = ready.split(" on ", 1)[1].split(" (link ", 1)[0]
+        assert os.readlink(link) == slave
+        reader = Reader(str(link), reconnect=False)
+        assert reader.done.wait(GUARD_S), "reader did not see the end of the stream"
+        items = reader.finish()
+        assert proc.wait(GUARD_S) == 0, proc.stderr.read()
+        summary = _next_line(proc, lines)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    received = b"".join(item for kind, item in items if kind == "data")
+    assert [item.state for kind, item in items if kind == "state"] == ["opening", "open", "lost", "closed"]
+
+    decoded = decode_bytes(received)
+    first = int(decoded.samples.offset[0])
+    assert first < MAX_FRAME_LEN  # at most one partial frame before the first whole one
+    clean = decode_bytes(received[first:])
+    c = clean.counters
+    assert c.crc_errors == 0 and c.length_errors == 0 and c.bytes_discarded == 0 and c.truncated_frames == 0
+    assert c.seq_gaps == 0 and c.missing_frames == 0 and len(clean.samples) >= 100
+    assert {identity.serial for identity in clean.identities} == {SERIAL}
+    reference = capture_bytes(tmp_path, 3.0, rate_hz=200, seed=0)
+    assert reference.endswith(received[first:])  # the same bytes as the capture, up to the very end
+    assert summary.startswith("served 600 frames (3.0 s of device time)")
+    assert not link.exists() and not link.is_symlink()
+
+
+def test_cli_sigterm_stops_cleanly_and_removes_the_link(tmp_path: Path) -> None:
+    link = tmp_path / "ttyFOG0"
+    proc, lines = _start_cli(link=link)  # the whole 20-minute profile unless stopped
+    try:
+        assert _next_line(proc, lines).startswith("serving short-test")
+        assert link.is_symlink()
+        proc.terminate()
+        assert proc.wait(GUARD_S) == 0, proc.stderr.read()
+        assert _next_line(proc, lines).startswith("stopped after ")
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert not link.exists() and not link.is_symlink()
