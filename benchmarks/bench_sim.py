@@ -26,15 +26,13 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-
-from fog_driver.console import configure_logging  # noqa: E402
-from fog_driver.protocol import SAMPLE_FRAME_LEN, decode_bytes  # noqa: E402
-from fog_driver.sim.capture import simulate_to_file  # noqa: E402
-from fog_driver.sim.faults import FaultSpec  # noqa: E402
-from fog_driver.sim.instrument import Simulator  # noqa: E402
-from fog_driver.sim.profiles import load_profile  # noqa: E402
-from fog_driver.sim.serve import PtyServer, ServeStats, serve_pty  # noqa: E402
+from fog_driver.console import configure_logging
+from fog_driver.protocol import SAMPLE_FRAME_LEN, decode_bytes
+from fog_driver.sim.capture import simulate_to_file
+from fog_driver.sim.faults import FaultSpec
+from fog_driver.sim.instrument import Simulator
+from fog_driver.sim.profiles import load_profile
+from fog_driver.sim.serve import PtyServer, ServeStats, serve_pty
 
 # The reader: opens the pty (through the link) raw, says "ready", reads until the pty is unplugged.
 READER = """
@@ -129,7 +127,7 @@ def main() -> None:
                 )
 
         seconds = args.serve_seconds
-        frames = int(round(seconds * args.rate_hz))
+        frames = round(seconds * args.rate_hz)
         print(f"serving {seconds:g} s at {args.rate_hz} Hz in real time to a pty read by another process")
         live = Simulator(paper, rate_hz=args.rate_hz, seed=0)
         stats, received = serve_to_reader(live, seconds, tmp_path / "live.tty")

@@ -208,7 +208,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--instrument", metavar="CONFIG.yaml", help="instrument model (default: configs/sim/instrument.yaml values)")
     p.add_argument("--duration", type=_positive_float, metavar="S", help="stop after S device seconds")
     p.add_argument("--force", action="store_true", help="overwrite an existing capture")
-    p.add_argument("--link", metavar="PATH", help="--serve pty: the stable symlink to the pty")
+    p.add_argument("--link", metavar="PATH", help="--serve pty: the stable symlink to the pty (default /tmp/fog-driver-sim.tty)")
+    p.add_argument("--speed", type=_positive_float, default=1.0, metavar="X",
+                   help="--serve: run X times faster than real time (quick hardware-in-the-loop tests)")
     p.add_argument("--baud", type=_baud, default=460800, metavar="B", help="--serve DEVICE: baud rate (default 460800)")
     p.set_defaults(func=cmd_simulate)
     return parser

@@ -347,7 +347,7 @@ def test_simulated_fixture_through_the_replay_url_decodes_as_the_file_does(name)
     decoder = FrameDecoder()
     events = []
     received = bytearray()
-    for chunk in PortReader(f"replay://{path}?rate=2000&unplug=1", reconnect=False).chunks(threading.Event()):
+    for chunk in PortReader(f"replay://{path}?rate=20000&unplug=1", reconnect=False).chunks(threading.Event()):
         received += chunk
         events += decoder.feed(chunk)
     events += decoder.close()

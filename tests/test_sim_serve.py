@@ -133,7 +133,7 @@ def test_live_stream_through_a_pty_equals_the_capture_file(tmp_path: Path, speed
     assert all(due_ok)
     assert wall_s >= (stats.frames - 1) * sim.period_true_s / speed - 1e-3
     assert stats.wall_s >= (stats.frames - 1) * sim.period_true_s / speed - 1e-3
-    assert stats.cpu_s > 0 and stats.process_cpu_s >= stats.cpu_s * 0.5
+    assert stats.cpu_s > 0
 
 
 def test_a_stalled_writer_catches_up_and_still_delivers_the_same_bytes(tmp_path: Path) -> None:
@@ -319,7 +319,7 @@ def test_cli_serve_to_a_nonexistent_device_exits_69_with_one_line(tmp_path: Path
     proc = subprocess.run(
         [sys.executable, "-m", "fog_driver", "simulate", "--serve", missing, "--profile", str(SHORT_TEST),
          "--duration", "1"],
-        capture_output=True, text=True, cwd=REPO, timeout=GUARD_S, stdin=subprocess.DEVNULL,
+        check=False, capture_output=True, text=True, cwd=REPO, timeout=GUARD_S, stdin=subprocess.DEVNULL,
     )  # fmt: skip
     err = proc.stderr.strip().splitlines()
     assert proc.returncode == 69, proc.stderr

@@ -38,7 +38,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 import serial
 import structlog
@@ -101,10 +101,11 @@ def _first_frame_at_or_after(t_s: float, rate_hz: int) -> int:
 
 
 def cut_windows(sim: Simulator, first: int, end: int) -> list[tuple[int, int]]:
-    """Disconnect windows as frame ranges ``[a, b)`` clipped to ``[first, end)``, in order.
+    """Disconnect windows as frame ranges ``[a, b)`` that overlap ``[first, end)``, in order.
 
     Frame k is inside a window ``(start, duration)`` when ``start <= k / rate < start + duration``
-    (``Simulator.emit``'s rule); empty windows are left out.
+    (``Simulator.emit``'s rule).  ``a`` is raised to ``first`` (a window already under way);
+    ``b`` is kept even past ``end``; windows with no frame in ``[first, end)`` are left out.
     """
     windows = []
     for start, duration in sim.faults.disconnects:
@@ -144,7 +145,7 @@ def serve(
     k0 = sim.next_frame
     end = sim.total_frames()
     if duration_s is not None:
-        end = min(end, k0 + int(round(duration_s * rate)))
+        end = min(end, k0 + round(duration_s * rate))
     per_chunk = max(1, round(chunk_s * rate))
     frame_wall_s = sim.period_true_s / speed
     late_after_s = per_chunk * frame_wall_s  # a reader sees at least a double chunk
@@ -327,8 +328,8 @@ class PtyServer:
             # chunk went in before the timeout, so the whole chunk counts as dropped.
             self.dropped_bytes += len(data)
             self.dropped_writes += 1
-            if not self._dropping:
-                log.warning("pty_full", slave=self.pty.slave_path, detail="no reader, or a reader far behind: dropping")
+            if not self._dropping:  # info: a server waiting for its reader is normal; the summary counts drops
+                log.info("pty_full", slave=self.pty.slave_path, detail="no reader, or a reader far behind: dropping")
             self._dropping = True
         else:
             self._dropping = False
@@ -372,7 +373,7 @@ class PtyServer:
             self.pty.close()
             self.pty = None
 
-    def __enter__(self) -> PtyServer:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc_info: object) -> None:
@@ -399,8 +400,10 @@ def serve_pty(
     bytes, then the pty is unplugged and the symlink removed (also on an exception or a stop).
     ``write_timeout_s`` defaults to half a chunk's wall time.
     """
+    if not (math.isfinite(speed) and speed > 0):
+        raise ValueError(f"speed must be a finite number > 0, got {speed!r}")
     if write_timeout_s is None:
-        write_timeout_s = 0.5 * chunk_s / speed if speed > 0 else 0.0
+        write_timeout_s = 0.5 * chunk_s / speed
     stop = stop if stop is not None else threading.Event()
     with PtyServer(link if link is not None else DEFAULT_LINK, write_timeout_s=write_timeout_s) as server:
         if on_ready is not None:
@@ -426,7 +429,7 @@ def _one_line(exc: BaseException) -> str:
 def required_baud(sim: Simulator, speed: float = 1.0) -> int:
     """Line speed (8N1) the stream needs: SAMPLE frames plus one IDENTITY per device second."""
     bytes_per_s = (sim.rate_hz * SAMPLE_FRAME_LEN + IDENTITY_FRAME_LEN) * speed
-    return int(math.ceil(bytes_per_s * _BITS_PER_BYTE))
+    return math.ceil(bytes_per_s * _BITS_PER_BYTE)
 
 
 def serve_device(
