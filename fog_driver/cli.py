@@ -12,11 +12,12 @@ import signal
 import sys
 import threading
 from collections.abc import Sequence
+from pathlib import Path
 
 from . import __version__
 from .capture import format_summary, inspect_capture
 from .console import Progress, configure_logging
-from .errors import FogDriverError, UsageError
+from .errors import FogDriverError, InputFileError, OutputFileError, UsageError
 
 EXIT_PROBLEMS = 1  # inspect --strict found problems
 
@@ -171,6 +172,83 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_fit(args: argparse.Namespace) -> int:
+    from .compensation.fit import FitConfig, fit_model_file
+    from .compensation.model import save_model
+    from .yamlfile import dataclass_from_mapping, read_yaml
+
+    out = Path(args.out)
+    if out.exists() and not args.force:
+        raise OutputFileError(f"{out}: exists; refusing to overwrite a model (use --force)")
+    config = FitConfig()
+    if args.config:
+        config = dataclass_from_mapping(FitConfig, read_yaml(args.config, "fit config") or {}, args.config)
+    model_file, report = fit_model_file(args.captures, kind=args.kind, config=config, validate_paths=args.validate)
+    save_model(out, model_file)
+    fitted = model_file.provenance["captures"]
+    print(f"fitted a {model_file.kind} model for {model_file.instrument_serial} on {len(fitted)} capture(s) "
+          f"({sum(c['static_blocks'] for c in fitted):,} static blocks of {sum(c['blocks'] for c in fitted):,}) "
+          f"-> {out}")  # fmt: skip
+    print(report.format())
+    return 0
+
+
+def cmd_compensate(args: argparse.Namespace) -> int:
+    from .capture import _capture_size
+    from .compensation.compensator import Compensator
+    from .compensation.model import load_model
+    from .compensation.rows import ROW_COLUMNS, RowAggregator, format_row
+    from .protocol import iter_decode_file
+    from .stream import SampleStream
+
+    out = Path(args.out)
+    if out.exists() and not args.force:
+        raise OutputFileError(f"{out}: exists; refusing to overwrite (use --force)")
+    model_file = load_model(args.model)
+    size = _capture_size(Path(args.capture))
+    stream = SampleStream()
+    compensator = rows = None
+    progress = Progress()
+    done = 0
+    written = 0
+    try:
+        with out.open("w", encoding="ascii") as f:
+            f.write(",".join(ROW_COLUMNS) + "\n")
+            for part in iter_decode_file(args.capture):
+                samples = stream.run(part)
+                done = part.counters.bytes_in
+                progress.show(f"compensating {100.0 * done / size:5.1f} %")
+                if compensator is None:
+                    if not len(samples):
+                        continue
+                    identity = stream.identity
+                    if identity is None:
+                        raise InputFileError(f"{args.capture}: no IDENTITY frame before the first sample: rate unknown")
+                    if identity.serial != model_file.instrument_serial and not args.force:
+                        raise UsageError(
+                            f"{args.model} was fitted for instrument {model_file.instrument_serial!r}, "
+                            f"this capture is from {identity.serial!r} (use --force to apply it anyway)"
+                        )
+                    compensator = Compensator(model_file, 1.0 / identity.rate_hz)
+                    rows = RowAggregator(args.every, compensator.frame_period_s)
+                for row in rows.add(compensator.run(samples)):
+                    f.write(format_row(row) + "\n")
+                    written += 1
+            if rows is None:
+                raise InputFileError(f"{args.capture}: no SAMPLE frames to compensate")
+            for row in rows.finish():
+                f.write(format_row(row) + "\n")
+                written += 1
+    except FogDriverError:
+        out.unlink(missing_ok=True)
+        raise
+    finally:
+        progress.clear()
+    print(f"compensated {args.capture} with {args.model} ({model_file.kind}): {written:,} rows every "
+          f"{args.every:g} s -> {out}")  # fmt: skip
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="fog-driver",
@@ -213,6 +291,25 @@ def build_parser() -> argparse.ArgumentParser:
                    help="--serve: run X times faster than real time (quick hardware-in-the-loop tests)")
     p.add_argument("--baud", type=_baud, default=460800, metavar="B", help="--serve DEVICE: baud rate (default 460800)")
     p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser("fit", help="fit a drift model to static chamber captures")
+    p.add_argument("captures", nargs="+", metavar="CAPTURE.bin")
+    p.add_argument("--out", required=True, metavar="MODEL.yaml")
+    p.add_argument("--kind", default="polynomial", help="model kind (default polynomial)")
+    p.add_argument("--config", metavar="CONFIG.yaml", help="fit settings (see configs/fit.yaml)")
+    p.add_argument("--validate", action="append", default=[], metavar="CAPTURE.bin",
+                   help="a held-out capture to report on (repeatable)")
+    p.add_argument("--force", action="store_true", help="overwrite an existing model file")
+    p.set_defaults(func=cmd_fit)
+
+    p = sub.add_parser("compensate", help="apply a drift model to a capture; write a CSV row per period")
+    p.add_argument("capture", metavar="CAPTURE.bin")
+    p.add_argument("--model", required=True, metavar="MODEL.yaml")
+    p.add_argument("--out", required=True, metavar="OUT.csv")
+    p.add_argument("--every", type=_positive_float, default=1.0, metavar="SECONDS", help="row period (default 1 s)")
+    p.add_argument("--force", action="store_true",
+                   help="apply a model fitted for another instrument; overwrite OUT.csv")
+    p.set_defaults(func=cmd_compensate)
     return parser
 
 

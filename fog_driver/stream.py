@@ -96,6 +96,10 @@ class SampleBlock:
         return cls(*(np.array(col, dtype=dt) for col, dt in zip(columns, dtypes)))
 
 
+def _f32(value: float) -> float:
+    return float(np.float32(value))
+
+
 def temperature_c(raw: int) -> float:
     """degC from a 1/256 degC thermometer reading; NaN for the -32768 sentinel."""
     return float("nan") if raw == THERMOMETER_INVALID else raw / THERMOMETER_COUNTS_PER_C
@@ -121,9 +125,12 @@ class SampleStream:
         default_scale_arcsec_per_count: float = DEFAULT_SCALE_ARCSEC_PER_COUNT,
         scale_override_arcsec_per_count: float | None = None,
     ) -> None:
-        self.default_scale_arcsec_per_count = float(default_scale_arcsec_per_count)
+        # Scale factors are held at float32 precision, as the instrument stores and sends them: then
+        # every increment (counts x scale) and every sum of increments is exact in float64, so block
+        # sums do not depend on summation order (streaming and vectorized paths agree bit for bit).
+        self.default_scale_arcsec_per_count = _f32(default_scale_arcsec_per_count)
         self.scale_override_arcsec_per_count = (
-            None if scale_override_arcsec_per_count is None else float(scale_override_arcsec_per_count)
+            None if scale_override_arcsec_per_count is None else _f32(scale_override_arcsec_per_count)
         )
         self.identity: IdentityFrame | None = None  #: the latest IDENTITY frame
         self.identity_changes = 0  #: IDENTITY frames that differed from the one before

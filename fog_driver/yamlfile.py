@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+from dataclasses import fields, is_dataclass
 from pathlib import Path
 from typing import Any
 
@@ -39,3 +41,44 @@ def read_yaml(path: str | Path, what: str, *, missing_ok: bool = False, hint: st
         mark = getattr(exc, "problem_mark", None)
         at = f" at line {mark.line + 1}" if mark is not None else ""
         raise InputFileError(f"{path}: {what} is not valid YAML{at}") from None
+
+
+def dataclass_from_mapping(cls: type, doc: Any, where: str) -> Any:
+    """Build a (nested) frozen dataclass from a YAML mapping, refusing unknown keys and wrong types."""
+    if not isinstance(doc, dict):
+        raise InputFileError(f"{where}: expected a mapping")
+    known = {f.name: f for f in fields(cls)}
+    values = {}
+    for key, value in doc.items():
+        if key not in known:
+            raise InputFileError(f"{where}: unknown key {key!r} (known: {', '.join(sorted(known))})")
+        default = getattr(cls(), key)
+        here = f"{where}.{key}"
+        if is_dataclass(default):
+            values[key] = dataclass_from_mapping(type(default), value, here)
+        elif isinstance(default, bool):
+            if not isinstance(value, bool):
+                raise InputFileError(f"{here}: expected true or false, got {value!r}")
+            values[key] = value
+        elif isinstance(default, int):
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise InputFileError(f"{here}: expected an integer, got {value!r}")
+            values[key] = value
+        elif isinstance(default, float):
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise InputFileError(f"{here}: expected a finite number, got {value!r}")
+            values[key] = float(value)
+        elif isinstance(default, str):
+            if not isinstance(value, str):
+                raise InputFileError(f"{here}: expected a string, got {value!r}")
+            values[key] = value
+        elif isinstance(default, tuple):
+            if not isinstance(value, list) or not all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) for v in value
+            ):
+                raise InputFileError(f"{here}: expected a list of numbers, got {value!r}")
+            values[key] = tuple(float(v) for v in value)
+    try:
+        return cls(**values)
+    except ValueError as exc:
+        raise InputFileError(f"{where}: {exc}") from None

@@ -46,8 +46,9 @@ def test_scale_default_then_identity_then_change():
 def test_configured_override_beats_identity():
     s = SampleStream(default_scale_arcsec_per_count=2.0, scale_override_arcsec_per_count=0.1)
     s.step(identity(0.25))
-    assert s.step(frame(0, 0, dtheta=10)).dtheta_arcsec == 10 * 0.1
-    assert s.scale_arcsec_per_count == 0.1
+    # Held at float32 precision, like the instrument's own scale: increments stay exact.
+    assert s.step(frame(0, 0, dtheta=10)).dtheta_arcsec == 10 * float(np.float32(0.1))
+    assert s.scale_arcsec_per_count == float(np.float32(0.1))
 
 
 def test_seq_and_time_unwrap_across_wraps():

@@ -30,7 +30,6 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputFileError
 from ..protocol import (
     SAMPLE_FRAME_LEN,
     STATUS_STARTUP,
@@ -40,7 +39,7 @@ from ..protocol import (
     encode_identity,
     encode_sample_frames,
 )
-from ..yamlfile import read_yaml
+from ..yamlfile import dataclass_from_mapping, read_yaml
 from .faults import FaultSpec
 from .gyro import ARCSEC_PER_SQRT_S_PER_DEG_PER_SQRT_H, GyroParams, SlowNoise, drift_terms
 from .profiles import SimProfile
@@ -114,54 +113,13 @@ def _to_plain(obj: Any) -> Any:
     return obj
 
 
-def _from_mapping(cls: type, doc: Any, where: str) -> Any:
-    """Build a (nested) frozen dataclass from a YAML mapping, refusing unknown keys and wrong types."""
-    if not isinstance(doc, dict):
-        raise InputFileError(f"{where}: expected a mapping")
-    known = {f.name: f for f in fields(cls)}
-    values = {}
-    for key, value in doc.items():
-        if key not in known:
-            raise InputFileError(f"{where}: unknown key {key!r} (known: {', '.join(sorted(known))})")
-        default = getattr(cls(), key)
-        here = f"{where}.{key}"
-        if is_dataclass(default):
-            values[key] = _from_mapping(type(default), value, here)
-        elif isinstance(default, bool):
-            if not isinstance(value, bool):
-                raise InputFileError(f"{here}: expected true or false, got {value!r}")
-            values[key] = value
-        elif isinstance(default, int):
-            if isinstance(value, bool) or not isinstance(value, int):
-                raise InputFileError(f"{here}: expected an integer, got {value!r}")
-            values[key] = value
-        elif isinstance(default, float):
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise InputFileError(f"{here}: expected a finite number, got {value!r}")
-            values[key] = float(value)
-        elif isinstance(default, str):
-            if not isinstance(value, str):
-                raise InputFileError(f"{here}: expected a string, got {value!r}")
-            values[key] = value
-        elif isinstance(default, tuple):
-            if not isinstance(value, list) or not all(
-                isinstance(v, (int, float)) and not isinstance(v, bool) for v in value
-            ):
-                raise InputFileError(f"{here}: expected a list of numbers, got {value!r}")
-            values[key] = tuple(float(v) for v in value)
-    try:
-        return cls(**values)
-    except ValueError as exc:
-        raise InputFileError(f"{where}: {exc}") from None
-
-
 def load_instrument_config(path: str | Path | None) -> InstrumentConfig:
     """The instrument configuration from a YAML file (``yaml.safe_load``), or the defaults for None."""
     if path is None:
         return InstrumentConfig()
     path = Path(path)
     doc = read_yaml(path, "instrument config")
-    return _from_mapping(InstrumentConfig, doc if doc is not None else {}, str(path))
+    return dataclass_from_mapping(InstrumentConfig, doc if doc is not None else {}, str(path))
 
 
 class _SlowGrid:

@@ -1,0 +1,1 @@
+"""Temperature-drift compensation: model-rate blocks, input features, the three stages, models and the pipeline."""

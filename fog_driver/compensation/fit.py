@@ -1,0 +1,243 @@
+"""Fitting a drift model to static chamber captures, and the numbers that judge it.
+
+Per capture: decode, block-average to the model rate, compute the 8 inputs,
+and take the target ``r = rate - mean(rate over static blocks)``: each run has
+its own turn-on bias, so each capture is centred on its own (the paper's
+r(n) = D(n) + N(n), with B0 removed).  Blocks are excluded from the fit when
+the table moves (|rate - running median| above a threshold, widened by a
+margin), when inputs are stale or missing, during the rate smoother's
+warm-up, or when frames were lost.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from ..errors import InputFileError
+from ..protocol import iter_decode_file
+from ..stream import SampleStream
+from .blocks import FLAG_GAP, BlockAverager, BlockColumns
+from .features import FLAG_INPUT_STALE, FeatureExtractor, FeatureParams, Normalizer
+
+if TYPE_CHECKING:
+    from .model import ModelFile
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    model_rate_hz: float = 1.0
+    features: FeatureParams = field(default_factory=FeatureParams)
+    motion_threshold_dph: float = 30.0  #: |rate - running median| above this is table motion
+    motion_window_s: float = 61.0  #: running-median window
+    motion_margin_s: float = 10.0  #: excluded on each side of detected motion
+    warmup_s: float = 300.0  #: rate smoother and instrument start-up: not fitted
+    poly_alpha: float = 1e-3
+
+
+@dataclass
+class CaptureData:
+    """One capture at the model rate: what fitting and evaluation need."""
+
+    path: Path
+    sha256: str
+    serial: str | None
+    frame_period_s: float
+    blocks: BlockColumns
+    inputs: np.ndarray  #: (n, 8) raw inputs
+    input_flags: np.ndarray
+    static: np.ndarray  #: bool: usable for fitting
+    target_dph: np.ndarray  #: rate minus this capture's static mean
+
+    @property
+    def minutes(self) -> float:
+        return len(self.blocks) / 60.0
+
+
+def running_median(x: np.ndarray, window: int) -> np.ndarray:
+    """Centred running median (odd ``window``), edges use the available samples."""
+    half = window // 2
+    padded = np.pad(x, half, mode="edge")
+    view = np.lib.stride_tricks.sliding_window_view(padded, window)
+    return np.median(view, axis=1)
+
+
+def static_mask(blocks: BlockColumns, input_flags: np.ndarray, config: FitConfig) -> np.ndarray:
+    rate = blocks.rate_dph
+    window = max(3, int(round(config.motion_window_s * config.model_rate_hz)) | 1)
+    moving = np.abs(rate - running_median(rate, window)) > config.motion_threshold_dph
+    margin = int(round(config.motion_margin_s * config.model_rate_hz))
+    if margin and moving.any():
+        kernel = np.ones(2 * margin + 1)
+        moving = np.convolve(moving.astype(float), kernel, mode="same") > 0
+    ok = ~moving
+    ok &= (input_flags & FLAG_INPUT_STALE) == 0
+    ok &= (blocks.flags & FLAG_GAP) == 0
+    ok &= blocks.t_end_s > config.warmup_s
+    ok &= np.all(np.isfinite(blocks.temps_c), axis=1)
+    return ok
+
+
+def load_capture(path: str | Path, config: FitConfig) -> CaptureData:
+    """Decode a capture block by block and reduce it to the model rate."""
+    path = Path(path)
+    sha = hashlib.sha256()
+    stream = SampleStream()
+    averager: BlockAverager | None = None
+    parts = []
+    for part in iter_decode_file(path, on_block=sha.update):
+        samples = stream.run(part)
+        if averager is None:
+            if stream.identity is None:
+                if not len(samples):
+                    continue
+                raise InputFileError(f"{path}: no IDENTITY frame before the first sample: frame rate unknown")
+            averager = BlockAverager(1.0 / stream.identity.rate_hz, config.model_rate_hz)
+        parts.append(averager.run(samples))
+    if averager is None:
+        raise InputFileError(f"{path}: no SAMPLE frames to fit")
+    parts.append(BlockColumns.from_blocks(averager.flush()))
+    blocks = BlockColumns(*(np.concatenate([getattr(p, f) for p in parts]) for f in BlockColumns.__dataclass_fields__))
+    inputs, input_flags = FeatureExtractor(config.features).run(blocks.temps_c)
+    static = static_mask(blocks, input_flags, config)
+    if not static.any():
+        raise InputFileError(f"{path}: no static, valid block to fit (motion everywhere, or no valid thermometers)")
+    target = blocks.rate_dph - blocks.rate_dph[static].mean()
+    return CaptureData(path, sha.hexdigest(), stream.identity.serial if stream.identity else None,
+                       averager.frame_period_s, blocks, inputs, input_flags, static, target)  # fmt: skip
+
+
+def minute_rms(residual_dph: np.ndarray, mask: np.ndarray, model_rate_hz: float = 1.0) -> float:
+    """RMS of 1-minute averages of a residual over the usable blocks, its mean removed (a bias is not drift)."""
+    per_minute = int(round(60 * model_rate_hz))
+    n = len(residual_dph) // per_minute * per_minute
+    r = residual_dph[:n].reshape(-1, per_minute)
+    m = mask[:n].reshape(-1, per_minute)
+    full = m.all(axis=1)
+    if not full.any():
+        return float("nan")
+    means = r[full].mean(axis=1)
+    return float(np.sqrt(np.mean((means - means.mean()) ** 2)))
+
+
+def fit_normalizer(captures: list[CaptureData]) -> Normalizer:
+    return Normalizer.fit(np.vstack([c.inputs[c.static] for c in captures]))
+
+
+def applied_prediction(model, capture: CaptureData, normalizer: Normalizer) -> np.ndarray:
+    """The drift the compensator would apply in each block: the model's output from the block before."""
+    model.reset()
+    z = normalizer.apply(np.where(np.isfinite(capture.inputs), capture.inputs, 0.0))
+    out = model.run(z)
+    return np.r_[0.0, out[:-1]]
+
+
+@dataclass
+class FitReport:
+    """Drift RMS of 1-minute averages (usable blocks, mean removed), deg/h."""
+
+    rows: list[tuple[str, float, float | None]]  #: (what, on fit data, on validate data)
+
+    def format(self) -> str:
+        has_validate = any(v is not None for _, _, v in self.rows)
+        header = f"{'1-min drift RMS, deg/h':34s} {'fit data':>10s}" + (f" {'validate':>10s}" if has_validate else "")
+        lines = [header]
+        for what, fit_value, validate_value in self.rows:
+            line = f"{what:34s} {fit_value:10.4f}"
+            if has_validate:
+                line += f" {validate_value:10.4f}" if validate_value is not None else f" {'':>10s}"
+            lines.append(line)
+        return "\n".join(lines)
+
+
+def _pooled_minute_rms(captures: list[CaptureData], residuals: list[np.ndarray], rate_hz: float) -> float:
+    values = [minute_rms(r, c.static, rate_hz) for c, r in zip(captures, residuals)]
+    values = [v for v in values if v == v]
+    return float(np.sqrt(np.mean(np.square(values)))) if values else float("nan")
+
+
+def report_for(models: dict[str, object], normalizer: Normalizer, fit_data: list[CaptureData],
+               validate: list[CaptureData], rate_hz: float) -> FitReport:  # fmt: skip
+    """Drift RMS before and after each model, on the fit data and the validation data."""
+
+    def rms_after(model, captures):
+        if not captures:
+            return None
+        residuals = [c.target_dph - applied_prediction(model, c, normalizer) for c in captures]
+        return _pooled_minute_rms(captures, residuals, rate_hz)
+
+    before_fit = _pooled_minute_rms(fit_data, [c.target_dph for c in fit_data], rate_hz)
+    before_val = _pooled_minute_rms(validate, [c.target_dph for c in validate], rate_hz) if validate else None
+    rows: list[tuple[str, float, float | None]] = [("before compensation", before_fit, before_val)]
+    for name, model in models.items():
+        rows.append((f"after, {name}", rms_after(model, fit_data), rms_after(model, validate)))
+    return FitReport(rows)
+
+
+def _fit_polynomial(captures: list[CaptureData], normalizer: Normalizer, config: FitConfig):
+    from .polynomial import PolynomialModel
+
+    z = np.vstack([normalizer.apply(c.inputs[c.static]) for c in captures])
+    y = np.concatenate([c.target_dph[c.static] for c in captures])
+    return PolynomialModel.fit(z, y, config.poly_alpha)
+
+
+#: Model kinds that can be fitted: name -> fit(captures, normalizer, config) -> model.
+FITTERS = {"polynomial": _fit_polynomial}
+
+
+def fit_model_file(
+    paths: list[str | Path],
+    *,
+    kind: str,
+    config: FitConfig,
+    validate_paths: list[str | Path] = (),
+) -> tuple[ModelFile, FitReport]:
+    """Fit ``kind`` (and the polynomial baseline beside it) to captures; return the model file and the report."""
+    from .model import ModelFile
+
+    if kind not in FITTERS:
+        raise InputFileError(f"unknown model kind {kind!r} (known: {', '.join(sorted(FITTERS))})")
+    captures = [load_capture(p, config) for p in paths]
+    validate = [load_capture(p, config) for p in validate_paths]
+    serials = {c.serial for c in captures}
+    if len(serials) != 1:
+        raise InputFileError(f"the fit captures come from different instruments: {', '.join(sorted(map(str, serials)))}")
+    normalizer = fit_normalizer(captures)
+    models = {"polynomial": _fit_polynomial(captures, normalizer, config)}
+    if kind != "polynomial":
+        models[kind] = FITTERS[kind](captures, normalizer, config)
+    report = report_for(models, normalizer, captures, validate, config.model_rate_hz)
+    provenance = {
+        "captures": [{"file": c.path.name, "sha256": c.sha256, "blocks": len(c.blocks),
+                      "static_blocks": int(c.static.sum())} for c in captures],  # fmt: skip
+        "validate": [{"file": c.path.name, "sha256": c.sha256} for c in validate],
+        "config": _plain(config),
+        "metrics": {what: {"fit": fit_v, **({"validate": val_v} if val_v is not None else {})}
+                    for what, fit_v, val_v in report.rows},  # fmt: skip
+    }
+    model_file = ModelFile(
+        kind=kind,
+        instrument_serial=next(iter(serials)) or "",
+        model_rate_hz=config.model_rate_hz,
+        features=config.features,
+        normalizer=normalizer,
+        model=models[kind],
+        provenance=provenance,
+    )
+    return model_file, report
+
+
+def _plain(obj):
+    from dataclasses import fields as dc_fields
+    from dataclasses import is_dataclass
+
+    if is_dataclass(obj):
+        return {f.name: _plain(getattr(obj, f.name)) for f in dc_fields(obj)}
+    if isinstance(obj, tuple):
+        return [_plain(v) for v in obj]
+    return obj

@@ -1,0 +1,144 @@
+"""The model file: a fitted drift model in YAML (safe loading only, never pickle).
+
+Everything needed to reproduce the outputs exactly on another machine is in
+the file as plain numbers (floats written by ``yaml.safe_dump`` round-trip
+exactly): the feature settings, the input normalization, and every matrix.
+Also the schema version, the instrument serial the model was fitted for, and
+provenance (the captures' SHA-256s, the fit configuration and metrics, the
+date).  A model fitted for another serial is refused unless forced.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import yaml
+
+from .. import __version__
+from ..capture import utc_now_iso
+from ..errors import InputFileError, OutputFileError
+from ..yamlfile import read_yaml
+from .features import FeatureParams, Normalizer
+from .polynomial import PolynomialModel
+
+MODEL_FORMAT = "fog_driver drift model"
+MODEL_SCHEMA_VERSION = 1
+
+
+class DriftModel(Protocol):
+    """What the compensator needs of a model: one step per block, or a batch; explicit state."""
+
+    kind: str
+
+    def step(self, z: np.ndarray) -> float: ...
+
+    def run(self, z: np.ndarray) -> np.ndarray: ...
+
+    def get_state(self) -> dict: ...
+
+    def set_state(self, state: dict) -> None: ...
+
+    def reset(self) -> None: ...
+
+    def to_dict(self) -> dict: ...
+
+
+#: Model kinds: name -> class with ``from_dict``.  Other kinds register themselves here.
+MODEL_KINDS: dict[str, Any] = {"polynomial": PolynomialModel}
+
+
+@dataclass
+class ModelFile:
+    kind: str
+    instrument_serial: str
+    model_rate_hz: float
+    features: FeatureParams
+    normalizer: Normalizer
+    model: DriftModel
+    provenance: dict[str, Any] = field(default_factory=dict)
+    created_utc: str = field(default_factory=utc_now_iso)
+    fog_driver_version: str = __version__
+
+    def to_doc(self) -> dict[str, Any]:
+        return {
+            "format": MODEL_FORMAT,
+            "schema_version": MODEL_SCHEMA_VERSION,
+            "kind": self.kind,
+            "instrument_serial": self.instrument_serial,
+            "created_utc": self.created_utc,
+            "fog_driver_version": self.fog_driver_version,
+            "model_rate_hz": self.model_rate_hz,
+            "features": {
+                "sample_time_s": self.features.sample_time_s,
+                "rate_tau_fast_s": self.features.rate_tau_fast_s,
+                "rate_tau_slow_s": self.features.rate_tau_slow_s,
+                "hold_s": self.features.hold_s,
+            },
+            "normalizer": self.normalizer.to_dict(),
+            "model": self.model.to_dict(),
+            "provenance": self.provenance,
+        }
+
+
+def save_model(path: str | Path, model_file: ModelFile) -> Path:
+    path = Path(path)
+    text = yaml.safe_dump(model_file.to_doc(), sort_keys=False, default_flow_style=None, width=120)
+    try:
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_text(text, encoding="utf-8")
+        tmp.replace(path)
+    except OSError as exc:
+        raise OutputFileError(f"{path}: cannot write model: {exc.strerror or exc}") from None
+    return path
+
+
+def _require(doc: dict, key: str, kind: type | tuple[type, ...], where: str) -> Any:
+    if key not in doc:
+        raise InputFileError(f"{where}: missing {key!r}")
+    value = doc[key]
+    if not isinstance(value, kind) or isinstance(value, bool) and kind is not bool:
+        raise InputFileError(f"{where}: {key!r} has the wrong type ({type(value).__name__})")
+    return value
+
+
+def load_model(path: str | Path) -> ModelFile:
+    """Read and validate a model file; a corrupt or wrong-version file is a one-line ``InputFileError``."""
+    where = str(path)
+    doc = read_yaml(path, "model file")
+    if not isinstance(doc, dict) or doc.get("format") != MODEL_FORMAT:
+        raise InputFileError(f"{where}: not a fog_driver model file (no 'format: {MODEL_FORMAT}')")
+    version = doc.get("schema_version")
+    if version != MODEL_SCHEMA_VERSION:
+        raise InputFileError(
+            f"{where}: model schema version {version!r}; this fog_driver reads version {MODEL_SCHEMA_VERSION}"
+        )
+    kind = _require(doc, "kind", str, where)
+    if kind not in MODEL_KINDS:
+        raise InputFileError(f"{where}: unknown model kind {kind!r} (known: {', '.join(sorted(MODEL_KINDS))})")
+    try:
+        features = FeatureParams(**_require(doc, "features", dict, where))
+        normalizer = Normalizer.from_dict(_require(doc, "normalizer", dict, where))
+        if len(normalizer.mean) != 8 or len(normalizer.scale) != 8:
+            raise ValueError("the normalizer needs 8 means and 8 scales")
+        model = MODEL_KINDS[kind].from_dict(_require(doc, "model", dict, where))
+        rate = float(_require(doc, "model_rate_hz", (int, float), where))
+    except InputFileError:
+        raise
+    except (TypeError, ValueError, KeyError) as exc:
+        raise InputFileError(f"{where}: corrupt model: {exc}") from None
+    if not np.all(np.isfinite(normalizer.scale)) or not rate > 0:
+        raise InputFileError(f"{where}: corrupt model: non-finite normalizer or rate")
+    return ModelFile(
+        kind=kind,
+        instrument_serial=str(_require(doc, "instrument_serial", str, where)),
+        model_rate_hz=rate,
+        features=features,
+        normalizer=normalizer,
+        model=model,
+        provenance=doc.get("provenance") or {},
+        created_utc=str(doc.get("created_utc", "")),
+        fog_driver_version=str(doc.get("fog_driver_version", "")),
+    )

@@ -1,0 +1,161 @@
+"""The compensation pipeline: step == run, live == offline, the model file, fit and compensate end to end."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from fog_driver.compensation.compensator import FLAG_UNCOMPENSATED, CompensatedColumns, Compensator
+from fog_driver.compensation.fit import FitConfig, fit_model_file, load_capture, static_mask
+from fog_driver.compensation.model import load_model, save_model
+from fog_driver.compensation.rows import ROW_COLUMNS, RowAggregator, format_row
+from fog_driver.errors import InputFileError
+from fog_driver.protocol import FrameDecoder, decode_file
+from fog_driver.stream import SampleBlock, SampleStream
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT / "tests" / "data"
+TEST_FIT = FitConfig(warmup_s=30.0)
+
+
+@pytest.fixture(scope="module")
+def model_path(tmp_path_factory) -> Path:
+    model_file, _ = fit_model_file([DATA / "sim-short.bin"], kind="polynomial", config=TEST_FIT)
+    return save_model(tmp_path_factory.mktemp("model") / "m.yaml", model_file)
+
+
+@pytest.fixture(scope="module")
+def faulty_samples() -> SampleBlock:
+    return SampleStream().run(decode_file(DATA / "sim-faults.bin"))
+
+
+def slice_block(s: SampleBlock, lo: int, hi: int) -> SampleBlock:
+    return SampleBlock(*(getattr(s, f)[lo:hi] for f in SampleBlock.__dataclass_fields__))
+
+
+def assert_columns_equal(a: CompensatedColumns, b: CompensatedColumns) -> None:
+    for f in CompensatedColumns.__dataclass_fields__:
+        np.testing.assert_array_equal(getattr(a, f), getattr(b, f), err_msg=f)
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.lists(st.integers(0, 2956), max_size=8))
+def test_compensator_run_in_any_chunks_equals_step(model_path, faulty_samples, cuts):
+    model_file = load_model(model_path)
+    n = len(faulty_samples)
+    stepper = Compensator(model_file, 0.1)
+    reference = [stepper.step(faulty_samples.sample(i)) for i in range(n)]
+    runner = Compensator(load_model(model_path), 0.1)
+    bounds = sorted({0, n, *(min(c, n) for c in cuts)})
+    parts = [runner.run(slice_block(faulty_samples, lo, hi)) for lo, hi in zip(bounds, bounds[1:])]
+    joined = CompensatedColumns(*(np.concatenate([getattr(p, f) for p in parts]) for f in CompensatedColumns.__dataclass_fields__))
+    # repr is exact for floats and treats NaN (a faulted thermometer) as equal to itself.
+    assert [repr(joined.sample(i)) for i in range(n)] == [repr(r) for r in reference]
+
+
+def test_compensator_values(model_path, faulty_samples):
+    comp = Compensator(load_model(model_path), 0.1)
+    cols = comp.run(faulty_samples)
+    first_block = cols.t_s - cols.t_s[0] < 1.0
+    assert np.all(cols.flags[first_block] & FLAG_UNCOMPENSATED) and np.all(cols.drift_dph[first_block] == 0)
+    np.testing.assert_array_equal(cols.dtheta_comp_arcsec, cols.dtheta_arcsec - cols.drift_dph * 0.1)
+    np.testing.assert_allclose(cols.angle_raw_arcsec[-1], faulty_samples.dtheta_arcsec.sum(), rtol=1e-12)
+    assert np.all(np.isfinite(cols.angle_comp_arcsec))
+    # The drift is held per block: constant within each block after the first.
+    block = np.floor((cols.t_s - cols.t_s[0]) + 1e-9).astype(int)
+    for b in (5, 150, 250):  # (block 100 lies in the fixture's disconnect window)
+        assert np.unique(cols.drift_dph[block == b]).size == 1
+
+
+def test_compensate_cli_rows_equal_a_live_replay_in_chunks(model_path, tmp_path):
+    """The offline command and a live-style run (bytes fed in small chunks, sample by sample) agree exactly."""
+    out = tmp_path / "out.csv"
+    capture = DATA / "sim-faults.bin"
+    proc = subprocess.run([sys.executable, "-m", "fog_driver", "compensate", str(capture), "--model", str(model_path),
+                           "--out", str(out), "--every", "5"], capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    lines = out.read_text().splitlines()
+    assert lines[0] == ",".join(ROW_COLUMNS)
+
+    decoder, stream = FrameDecoder(), SampleStream()
+    comp = Compensator(load_model(model_path), 0.1)
+    rows = RowAggregator(5.0, 0.1)
+    live = []
+    data = capture.read_bytes()
+    for i in range(0, len(data), 333):
+        for event in decoder.feed(data[i : i + 333]):
+            sample = stream.step(event)
+            if sample is not None:
+                c = comp.step(sample)
+                cols = CompensatedColumns(*(np.array([v]) for v in c[:7]), np.array([c.temps_c]), np.array([c.flags]))
+                live += [format_row(r) for r in rows.add(cols)]
+    decoder.close()
+    live += [format_row(r) for r in rows.finish()]
+    assert lines[1:] == live
+    assert len(live) == 60  # 300 s in 5-s rows
+    t_s = [float(line.split(",")[0]) for line in live]
+    assert t_s[0] == pytest.approx(5.0) and t_s[-1] == pytest.approx(300.0, abs=0.2)
+
+
+def test_model_file_round_trip_is_exact(model_path, tmp_path):
+    model_file = load_model(model_path)
+    again = save_model(tmp_path / "again.yaml", model_file)
+    assert again.read_text() == model_path.read_text()
+    doc = yaml.safe_load(model_path.read_text())
+    assert doc["schema_version"] == 1 and doc["instrument_serial"] == "FOG-SIM-0001"
+    assert doc["provenance"]["captures"][0]["sha256"] and "after, polynomial" in doc["provenance"]["metrics"]
+
+
+@pytest.mark.parametrize(
+    "mutate, needle",
+    [
+        (lambda d: d.update(schema_version=99), "schema version 99"),
+        (lambda d: d.update(format="something else"), "not a fog_driver model file"),
+        (lambda d: d.update(kind="neural"), "unknown model kind"),
+        (lambda d: d["model"].update(weights=[1.0, 2.0]), "corrupt model"),
+        (lambda d: d.pop("normalizer"), "missing 'normalizer'"),
+    ],
+)
+def test_bad_model_files_are_one_line_errors(model_path, tmp_path, mutate, needle):
+    doc = yaml.safe_load(model_path.read_text())
+    mutate(doc)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump(doc))
+    with pytest.raises(InputFileError, match=needle):
+        load_model(bad)
+
+
+def test_compensate_refuses_another_instruments_model_unless_forced(model_path, tmp_path):
+    doc = yaml.safe_load(model_path.read_text())
+    doc["instrument_serial"] = "FOG-OTHER-0042"
+    other = tmp_path / "other.yaml"
+    other.write_text(yaml.safe_dump(doc))
+    args = [sys.executable, "-m", "fog_driver", "compensate", str(DATA / "sim-short.bin"), "--model", str(other),
+            "--out", str(tmp_path / "o.csv")]  # fmt: skip
+    proc = subprocess.run(args, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 64 and "FOG-OTHER-0042" in proc.stderr and "--force" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "o.csv").exists()
+    assert subprocess.run(args + ["--force"], capture_output=True, timeout=60).returncode == 0
+
+
+def test_motion_is_detected_and_excluded(tmp_path):
+    from fog_driver.sim.capture import simulate_to_file
+    from fog_driver.sim.instrument import Simulator
+    from fog_driver.sim.profiles import load_profile
+
+    out = tmp_path / "pos.bin"
+    simulate_to_file(Simulator(load_profile(ROOT / "configs" / "profiles" / "positioning.yaml"), rate_hz=20, seed=3), out)
+    capture = load_capture(out, TEST_FIT)
+    moving = np.abs(capture.blocks.rate_dph - np.median(capture.blocks.rate_dph)) > 1000
+    assert moving.sum() >= 40  # ten moves of ~4 s
+    assert not np.any(capture.static & moving)
+    static = static_mask(capture.blocks, capture.input_flags, TEST_FIT)
+    assert np.array_equal(static, capture.static)
+    assert np.abs(capture.target_dph[capture.static]).max() < 5  # only drift and noise remain
