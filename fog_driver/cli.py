@@ -17,7 +17,7 @@ from pathlib import Path
 from . import __version__
 from .capture import format_summary, inspect_capture
 from .console import Progress, configure_logging
-from .errors import FogDriverError, InputFileError, OutputFileError, UsageError
+from .errors import FogDriverError, OutputFileError, UsageError
 
 EXIT_PROBLEMS = 1  # inspect --strict found problems
 
@@ -195,48 +195,30 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
 def cmd_compensate(args: argparse.Namespace) -> int:
     from .capture import _capture_size
-    from .compensation.compensator import Compensator
+    from .compensation.apply import compensate_capture
     from .compensation.model import load_model
     from .compensation.rows import ROW_COLUMNS, RowAggregator, format_row
-    from .protocol import iter_decode_file
-    from .stream import SampleStream
 
     out = Path(args.out)
     if out.exists() and not args.force:
         raise OutputFileError(f"{out}: exists; refusing to overwrite (use --force)")
     model_file = load_model(args.model)
     size = _capture_size(Path(args.capture))
-    stream = SampleStream()
-    compensator = rows = None
     progress = Progress()
-    done = 0
+    rows = None
     written = 0
     try:
         with out.open("w", encoding="ascii") as f:
             f.write(",".join(ROW_COLUMNS) + "\n")
-            for part in iter_decode_file(args.capture):
-                samples = stream.run(part)
-                done = part.counters.bytes_in
-                progress.show(f"compensating {100.0 * done / size:5.1f} %")
-                if compensator is None:
-                    if not len(samples):
-                        continue
-                    identity = stream.identity
-                    if identity is None:
-                        raise InputFileError(f"{args.capture}: no IDENTITY frame before the first sample: rate unknown")
-                    if identity.serial != model_file.instrument_serial and not args.force:
-                        raise UsageError(
-                            f"{args.model} was fitted for instrument {model_file.instrument_serial!r}, "
-                            f"this capture is from {identity.serial!r} (use --force to apply it anyway)"
-                        )
-                    compensator = Compensator(model_file, 1.0 / identity.rate_hz)
-                    rows = RowAggregator(args.every, compensator.frame_period_s)
-                for row in rows.add(compensator.run(samples)):
+            for frame_period_s, cols in compensate_capture(
+                args.capture, model_file, force=args.force, model_name=args.model,
+                progress=lambda done: progress.show(f"compensating {100.0 * done / size:5.1f} %"),
+            ):  # fmt: skip
+                rows = rows or RowAggregator(args.every, frame_period_s)
+                for row in rows.add(cols):
                     f.write(format_row(row) + "\n")
                     written += 1
-            if rows is None:
-                raise InputFileError(f"{args.capture}: no SAMPLE frames to compensate")
-            for row in rows.finish():
+            for row in rows.finish() if rows else []:
                 f.write(format_row(row) + "\n")
                 written += 1
     except FogDriverError:

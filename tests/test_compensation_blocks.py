@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fog_driver.compensation.blocks import FLAG_GAP, FLAG_THERMOMETER_FAULT, BlockAverager, BlockColumns
-from fog_driver.compensation.features import FLAG_INPUT_STALE, FeatureExtractor, FeatureParams, Normalizer
+from fog_driver.compensation.features import FLAG_INPUT_STALE, FeatureExtractor, FeatureParams
 from fog_driver.stream import SampleBlock
 
 
@@ -108,12 +108,3 @@ def test_features_step_state_round_trip():
     second = FeatureExtractor(state=first.get_state())
     b, _ = second.run(temps[77:])
     np.testing.assert_array_equal(np.vstack([a, b]), whole)
-
-
-def test_normalizer_round_trip_and_values():
-    u = np.random.default_rng(2).normal([1, 2, 3], [1, 10, 0.1], (500, 3))
-    norm = Normalizer.fit(u)
-    z = norm.apply(u)
-    np.testing.assert_allclose(z.mean(axis=0), 0, atol=1e-12)
-    np.testing.assert_allclose(z.std(axis=0), 1, atol=1e-12)
-    assert Normalizer.from_dict(norm.to_dict()) == norm

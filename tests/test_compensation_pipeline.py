@@ -25,10 +25,10 @@ DATA = ROOT / "tests" / "data"
 TEST_FIT = FitConfig(warmup_s=30.0)
 
 
-@pytest.fixture(scope="module")
-def model_path(tmp_path_factory) -> Path:
-    model_file, _ = fit_model_file([DATA / "sim-short.bin"], kind="polynomial", config=TEST_FIT)
-    return save_model(tmp_path_factory.mktemp("model") / "m.yaml", model_file)
+@pytest.fixture(scope="module", params=["polynomial", "wesn", "paper"])
+def model_path(request, tmp_path_factory) -> Path:
+    model_file, _ = fit_model_file([DATA / "sim-short.bin"], kind=request.param, config=TEST_FIT)
+    return save_model(tmp_path_factory.mktemp(request.param) / "m.yaml", model_file)
 
 
 @pytest.fixture(scope="module")
@@ -45,7 +45,7 @@ def assert_columns_equal(a: CompensatedColumns, b: CompensatedColumns) -> None:
         np.testing.assert_array_equal(getattr(a, f), getattr(b, f), err_msg=f)
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=10, deadline=None)
 @given(st.lists(st.integers(0, 2956), max_size=8))
 def test_compensator_run_in_any_chunks_equals_step(model_path, faulty_samples, cuts):
     model_file = load_model(model_path)
@@ -111,6 +111,12 @@ def test_model_file_round_trip_is_exact(model_path, tmp_path):
     doc = yaml.safe_load(model_path.read_text())
     assert doc["schema_version"] == 1 and doc["instrument_serial"] == "FOG-SIM-0001"
     assert doc["provenance"]["captures"][0]["sha256"] and "after, polynomial" in doc["provenance"]["metrics"]
+    # A model read back gives bit-identical drift estimates.
+    samples = SampleStream().run(decode_file(DATA / "sim-faults.bin"))
+    a = Compensator(load_model(model_path), 0.1).run(samples)
+    b = Compensator(load_model(again), 0.1).run(samples)
+    np.testing.assert_array_equal(a.drift_dph, b.drift_dph)
+    assert np.ptp(a.drift_dph) > 0
 
 
 @pytest.mark.parametrize(
@@ -130,6 +136,29 @@ def test_bad_model_files_are_one_line_errors(model_path, tmp_path, mutate, needl
     bad.write_text(yaml.safe_dump(doc))
     with pytest.raises(InputFileError, match=needle):
         load_model(bad)
+
+
+def test_wesn_start_is_a_fixed_point_and_step_equals_run():
+    from fog_driver.compensation.wesn import WESN_DEFAULTS
+
+    reservoir = WESN_DEFAULTS.reservoir(1.0)
+    assert np.all(reservoir.matrices.w_in[:, 3:] == 0)  # the neurons remember temperatures only
+    assert reservoir.contraction_bound < 1
+    from fog_driver.compensation.wesn import WesnModel
+
+    model = WesnModel("wesn", reservoir, np.linspace(-1, 1, 34), 0.25, True)
+    z0 = np.array([0.5, -0.2, 1.0, 0.1, 0.0, -0.3, 0.7, -0.5])
+    model.start(z0)
+    before = model.reservoir.x
+    model.step(z0)
+    np.testing.assert_allclose(model.reservoir.x, before, atol=1e-9)
+    rng = np.random.default_rng(0)
+    zs = rng.normal(0, 1, (300, 8))
+    model.start(zs[0])
+    stepped = [model.step(z) for z in zs]
+    model.start(zs[0])
+    ran = np.r_[model.run(zs[:123]), model.run(zs[123:])]
+    assert stepped == ran.tolist()
 
 
 def test_compensate_refuses_another_instruments_model_unless_forced(model_path, tmp_path):

@@ -1,6 +1,6 @@
 """The streaming compensation pipeline: samples in, compensated samples out, with explicit state.
 
-    samples --(BlockAverager, model rate)--> blocks --(FeatureExtractor, Normalizer)--> z
+    samples --(BlockAverager, model rate)--> blocks --(FeatureExtractor, Standardizer)--> z
             --(drift model)--> drift estimate D_hat (deg/h), held until the next block closes
 
 Every frame of block j is compensated with the estimate made from blocks
@@ -91,14 +91,15 @@ class Compensator:
         self.frame_period_s = float(frame_period_s)
         self.averager = BlockAverager(frame_period_s, model_file.model_rate_hz)
         self.features = FeatureExtractor(model_file.features)
-        self._norm_mean = np.array(model_file.normalizer.mean)
-        self._norm_scale = np.array(model_file.normalizer.scale)
+        self._normalizer = model_file.normalizer
         self.estimate_dph = 0.0
         self.estimate_flags = FLAG_UNCOMPENSATED
         self._estimate_block = -1  # the block index the estimate applies from
         self.angle_raw_arcsec = 0.0
         self.angle_comp_arcsec = 0.0
         self.blocks_seen = 0
+        self._started = False
+        self.model.reset()
 
     # -- block level: shared by step and run ---------------------------------------------------
 
@@ -110,7 +111,10 @@ class Compensator:
         if any(v != v for v in u):  # a thermometer never read valid yet: nothing to model
             self.estimate_flags = FLAG_UNCOMPENSATED | flags
         else:
-            z = (np.array(u) - self._norm_mean) / self._norm_scale
+            z = self._normalizer.transform(u)
+            if not self._started:  # the model starts at rest at its first valid input, as when fitted
+                self.model.start(z)
+                self._started = True
             estimate = self.model.step(z)
             if math.isfinite(estimate):
                 self.estimate_dph = estimate

@@ -11,6 +11,7 @@ lag a ramp of slope r by r L1 and r L2, so::
     L_k    = Ts / (exp(Ts / tau_k) - 1)                    (the discrete lag; -> tau_k as Ts -> 0)
     dT/dt  = (m1 - m2) / (L2 - L1)                         exact for a ramp, smoothed for noise
 
+Inputs are standardized with ``readout.Standardizer`` (statistics stored from the fit data).
 A NaN block mean (a thermometer fault) is replaced by the last valid value
 for up to ``hold_s``; beyond that the block is flagged ``FLAG_INPUT_STALE``
 and the last valid value is still used (the output is never NaN).  Before
@@ -111,32 +112,6 @@ class FeatureExtractor:
         for i, row in enumerate(np.asarray(temps_c, dtype=np.float64).tolist()):
             out[i], flags[i] = self.step(row)
         return out, flags
-
-
-@dataclass(frozen=True)
-class Normalizer:
-    """``z = (u - mean) / scale``, with statistics stored from the fit data (never refitted)."""
-
-    mean: tuple[float, ...]
-    scale: tuple[float, ...]
-
-    @classmethod
-    def fit(cls, u: np.ndarray) -> Normalizer:
-        finite = u[np.all(np.isfinite(u), axis=1)]
-        mean = finite.mean(axis=0)
-        scale = finite.std(axis=0)
-        scale = np.where(scale > 1e-12, scale, 1.0)
-        return cls(tuple(float(v) for v in mean), tuple(float(v) for v in scale))
-
-    def apply(self, u: np.ndarray) -> np.ndarray:
-        return (np.asarray(u) - np.array(self.mean)) / np.array(self.scale)
-
-    def to_dict(self) -> dict:
-        return {"mean": list(self.mean), "scale": list(self.scale)}
-
-    @classmethod
-    def from_dict(cls, d: dict) -> Normalizer:
-        return cls(tuple(float(v) for v in d["mean"]), tuple(float(v) for v in d["scale"]))
 
 
 def params_to_dict(params: FeatureParams) -> dict:

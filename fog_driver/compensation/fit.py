@@ -22,7 +22,8 @@ from ..errors import InputFileError
 from ..protocol import iter_decode_file
 from ..stream import SampleStream
 from .blocks import FLAG_GAP, BlockAverager, BlockColumns
-from .features import FLAG_INPUT_STALE, FeatureExtractor, FeatureParams, Normalizer
+from .features import FLAG_INPUT_STALE, FeatureExtractor, FeatureParams
+from .readout import Standardizer
 
 if TYPE_CHECKING:
     from .model import ModelFile
@@ -36,7 +37,7 @@ class FitConfig:
     motion_window_s: float = 61.0  #: running-median window
     motion_margin_s: float = 10.0  #: excluded on each side of detected motion
     warmup_s: float = 300.0  #: rate smoother and instrument start-up: not fitted
-    poly_alpha: float = 1e-3
+    poly_alpha: float | None = 1e-3  #: ridge penalty per row on standardized regressors; None: blocked CV
 
 
 @dataclass
@@ -124,15 +125,21 @@ def minute_rms(residual_dph: np.ndarray, mask: np.ndarray, model_rate_hz: float 
     return float(np.sqrt(np.mean((means - means.mean()) ** 2)))
 
 
-def fit_normalizer(captures: list[CaptureData]) -> Normalizer:
-    return Normalizer.fit(np.vstack([c.inputs[c.static] for c in captures]))
+def fit_normalizer(captures: list[CaptureData]) -> Standardizer:
+    return Standardizer.fit(np.vstack([c.inputs[c.static] for c in captures]))
 
 
-def applied_prediction(model, capture: CaptureData, normalizer: Normalizer) -> np.ndarray:
-    """The drift the compensator would apply in each block: the model's output from the block before."""
+def applied_prediction(model, capture: CaptureData, normalizer: Standardizer) -> np.ndarray:
+    """The drift the compensator would apply in each block: the model's output from the block before,
+    the model started at rest at the first valid input (as ``Compensator`` does)."""
+    from .wesn import first_valid_block
+
+    z = normalizer.transform(np.where(np.isfinite(capture.inputs), capture.inputs, 0.0))
+    first = first_valid_block(capture.inputs)
     model.reset()
-    z = normalizer.apply(np.where(np.isfinite(capture.inputs), capture.inputs, 0.0))
-    out = model.run(z)
+    model.start(z[first])
+    out = np.zeros(len(z))
+    out[first:] = model.run(z[first:])
     return np.r_[0.0, out[:-1]]
 
 
@@ -160,7 +167,7 @@ def _pooled_minute_rms(captures: list[CaptureData], residuals: list[np.ndarray],
     return float(np.sqrt(np.mean(np.square(values)))) if values else float("nan")
 
 
-def report_for(models: dict[str, object], normalizer: Normalizer, fit_data: list[CaptureData],
+def report_for(models: dict[str, object], normalizer: Standardizer, fit_data: list[CaptureData],
                validate: list[CaptureData], rate_hz: float) -> FitReport:  # fmt: skip
     """Drift RMS before and after each model, on the fit data and the validation data."""
 
@@ -178,16 +185,23 @@ def report_for(models: dict[str, object], normalizer: Normalizer, fit_data: list
     return FitReport(rows)
 
 
-def _fit_polynomial(captures: list[CaptureData], normalizer: Normalizer, config: FitConfig):
+def _fit_polynomial(captures: list[CaptureData], normalizer: Standardizer, config: FitConfig):
     from .polynomial import PolynomialModel
 
-    z = np.vstack([normalizer.apply(c.inputs[c.static]) for c in captures])
+    z = np.vstack([normalizer.transform(c.inputs[c.static]) for c in captures])
     y = np.concatenate([c.target_dph[c.static] for c in captures])
     return PolynomialModel.fit(z, y, config.poly_alpha)
 
 
+def _fit_wesn(kind: str):
+    from .wesn import PAPER_DEFAULTS, WESN_DEFAULTS, fit_wesn
+
+    defaults = {"wesn": WESN_DEFAULTS, "paper": PAPER_DEFAULTS}[kind]
+    return lambda captures, normalizer, config: fit_wesn(kind, defaults, captures, normalizer, config)
+
+
 #: Model kinds that can be fitted: name -> fit(captures, normalizer, config) -> model.
-FITTERS = {"polynomial": _fit_polynomial}
+FITTERS = {"polynomial": _fit_polynomial, "wesn": _fit_wesn("wesn"), "paper": _fit_wesn("paper")}
 
 
 def fit_model_file(

@@ -21,8 +21,10 @@ from .. import __version__
 from ..capture import utc_now_iso
 from ..errors import InputFileError, OutputFileError
 from ..yamlfile import read_yaml
-from .features import FeatureParams, Normalizer
+from .features import FeatureParams
 from .polynomial import PolynomialModel
+from .readout import Standardizer
+from .wesn import PaperKind, WesnKind
 
 MODEL_FORMAT = "fog_driver drift model"
 MODEL_SCHEMA_VERSION = 1
@@ -32,6 +34,8 @@ class DriftModel(Protocol):
     """What the compensator needs of a model: one step per block, or a batch; explicit state."""
 
     kind: str
+
+    def start(self, z: np.ndarray) -> None: ...
 
     def step(self, z: np.ndarray) -> float: ...
 
@@ -46,8 +50,8 @@ class DriftModel(Protocol):
     def to_dict(self) -> dict: ...
 
 
-#: Model kinds: name -> class with ``from_dict``.  Other kinds register themselves here.
-MODEL_KINDS: dict[str, Any] = {"polynomial": PolynomialModel}
+#: Model kinds: name -> class with ``from_dict``.
+MODEL_KINDS: dict[str, Any] = {"polynomial": PolynomialModel, "wesn": WesnKind, "paper": PaperKind}
 
 
 @dataclass
@@ -56,7 +60,7 @@ class ModelFile:
     instrument_serial: str
     model_rate_hz: float
     features: FeatureParams
-    normalizer: Normalizer
+    normalizer: Standardizer
     model: DriftModel
     provenance: dict[str, Any] = field(default_factory=dict)
     created_utc: str = field(default_factory=utc_now_iso)
@@ -120,7 +124,7 @@ def load_model(path: str | Path) -> ModelFile:
         raise InputFileError(f"{where}: unknown model kind {kind!r} (known: {', '.join(sorted(MODEL_KINDS))})")
     try:
         features = FeatureParams(**_require(doc, "features", dict, where))
-        normalizer = Normalizer.from_dict(_require(doc, "normalizer", dict, where))
+        normalizer = Standardizer.from_dict(_require(doc, "normalizer", dict, where))
         if len(normalizer.mean) != 8 or len(normalizer.scale) != 8:
             raise ValueError("the normalizer needs 8 means and 8 scales")
         model = MODEL_KINDS[kind].from_dict(_require(doc, "model", dict, where))
