@@ -54,6 +54,9 @@ def dataclass_from_mapping(cls: type, doc: Any, where: str) -> Any:
             raise InputFileError(f"{where}: unknown key {key!r} (known: {', '.join(sorted(known))})")
         default = getattr(cls(), key)
         here = f"{where}.{key}"
+        if value is None and "None" in str(known[key].type):  # an optional setting, explicitly unset
+            values[key] = None
+            continue
         if is_dataclass(default):
             values[key] = dataclass_from_mapping(type(default), value, here)
         elif isinstance(default, bool):

@@ -146,7 +146,7 @@ def test_wesn_start_is_a_fixed_point_and_step_equals_run():
     assert reservoir.contraction_bound < 1
     from fog_driver.compensation.wesn import WesnModel
 
-    model = WesnModel("wesn", reservoir, np.linspace(-1, 1, 34), 0.25, True)
+    model = WesnModel("wesn", reservoir, np.linspace(-1, 1, 29), 0.25, True)
     z0 = np.array([0.5, -0.2, 1.0, 0.1, 0.0, -0.3, 0.7, -0.5])
     model.start(z0)
     before = model.reservoir.x
@@ -188,3 +188,19 @@ def test_motion_is_detected_and_excluded(tmp_path):
     static = static_mask(capture.blocks, capture.input_flags, TEST_FIT)
     assert np.array_equal(static, capture.static)
     assert np.abs(capture.target_dph[capture.static]).max() < 5  # only drift and noise remain
+
+
+def test_shipped_fit_config_lists_the_defaults():
+    from fog_driver.yamlfile import dataclass_from_mapping, read_yaml
+
+    path = ROOT / "configs" / "fit.yaml"
+    assert dataclass_from_mapping(FitConfig, read_yaml(path, "fit config"), str(path)) == FitConfig()
+
+
+def test_fit_config_optional_penalty_can_be_null(tmp_path):
+    from fog_driver.yamlfile import dataclass_from_mapping
+
+    cfg = dataclass_from_mapping(FitConfig, {"poly_alpha": None, "warmup_s": 60}, "test")
+    assert cfg.poly_alpha is None and cfg.warmup_s == 60.0
+    with pytest.raises(InputFileError, match="expected a finite number"):
+        dataclass_from_mapping(FitConfig, {"warmup_s": None}, "test")

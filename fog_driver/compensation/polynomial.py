@@ -1,13 +1,21 @@
 """The practitioner's baseline: polynomial regression of the drift on the same inputs.
 
-On the standardized inputs z (``readout.Standardizer``), the regressors are::
+On the standardized inputs z = [T1 T2 T3 dT1 dT2 dT3 G12 G13] (``readout.Standardizer``),
+in a well-conditioned physical basis::
 
-    f = [z_1 .. z_8,  z_T1^2, z_T2^2, z_T3^2,  z_T1^3, z_T2^3, z_T3^3]      (14)
+    R = (T1 + T2) / 2      ring mean (the fiber sits in the ring: T_fiber ~ R - tau dR/dt)
+    dR = (dT1 + dT2) / 2   ring rate (the Shupe term)
+    G = G12                ring top - bottom gradient
+    H = T3 - R             housing offset from the ring;   dT3: housing rate
+    f = [R, R^2, R^3, dR, R dR, R^2 dR, G, H, dT3]                                  (9)
     D_hat = w . f + b
 
-that is, a cubic in each temperature, linear in the rates and gradients: what
-a calibration engineer fits today.  It has no memory, so ``step`` and ``run``
-agree trivially; it is fitted by ridge regression with an unpenalized
+a cubic in the ring temperature with the cross terms a lagged fiber
+temperature produces, linear in the gradients and rates: what a calibration
+engineer fits today.  (A cubic in each of T1, T2, T3 fits the same physics
+but its regressors are nearly collinear: two fits to runs differing only in
+white noise then disagree by 2x on another profile.)  No memory, so ``step``
+and ``run`` agree trivially; fitted by ridge regression with an unpenalized
 intercept (``readout.ridge_fit``).
 """
 
@@ -17,14 +25,17 @@ import numpy as np
 
 from .readout import ridge_fit
 
-N_POLY_FEATURES = 14
+N_POLY_FEATURES = 9
 
 
 def polynomial_features(z: np.ndarray) -> np.ndarray:
-    """(n, 8) normalized inputs -> (n, 14) regressors; a single (8,) row gives (14,)."""
+    """(n, 8) standardized inputs -> (n, 9) regressors; a single (8,) row gives (9,)."""
     z = np.asarray(z, dtype=np.float64)
-    temps = z[..., :3]
-    return np.concatenate((z, temps**2, temps**3), axis=-1)
+    r = 0.5 * (z[..., 0:1] + z[..., 1:2])
+    dr = 0.5 * (z[..., 3:4] + z[..., 4:5])
+    g = z[..., 6:7]
+    h = z[..., 2:3] - r
+    return np.concatenate((r, r * r, r * r * r, dr, r * dr, r * r * dr, g, h, z[..., 5:6]), axis=-1)
 
 
 def dot_features(f: np.ndarray, w: np.ndarray) -> np.ndarray:
@@ -62,6 +73,13 @@ class PolynomialModel:
 
     def start(self, z: np.ndarray) -> None:
         """No memory: nothing to settle."""
+
+    def regressors_step(self, z: np.ndarray) -> np.ndarray:
+        """The regressor row f for one block (the estimate is ``f . weights + intercept``)."""
+        return polynomial_features(z)
+
+    def feed_back(self, y: float) -> None:
+        """The estimate actually used (no feedback in this model)."""
 
     def step(self, z: np.ndarray) -> float:
         return float(dot_features(polynomial_features(z), self.weights) + self.intercept)

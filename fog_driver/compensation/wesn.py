@@ -30,7 +30,13 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from .aflp import AflpFilter, AflpParams
-from .polynomial import cross_validated_alpha, dot_features, polynomial_features, standardized_ridge
+from .polynomial import (
+    N_POLY_FEATURES,
+    cross_validated_alpha,
+    dot_features,
+    polynomial_features,
+    standardized_ridge,
+)
 from .readout import AdaptiveLaw, AdaptiveLawParams
 from .reservoir import (
     PSI_MAX,
@@ -63,7 +69,7 @@ class WesnConfig:
     readout: str = "ridge"  #: "ridge" or "adaptive"
     #: Ridge penalty per row on standardized regressors; None: blocked cross-validation on the fit data
     #: (which, within one profile, picks penalties too small to extrapolate to another: not the default).
-    ridge_alpha: float | None = 1e-4
+    ridge_alpha: float | None = 1e-3
     adaptive: AdaptiveLawParams = field(default_factory=lambda: AdaptiveLawParams(
         filter_time_s=10.0, memory_time_s=7200.0, kappa=1.0, delta=1e-6))  # fmt: skip
     adaptive_epochs: int = 3
@@ -111,7 +117,7 @@ class WesnModel:
         self.weights = np.asarray(weights, dtype=np.float64)
         self.intercept = float(intercept)
         self.linear_path = bool(linear_path)
-        expected = reservoir.params.n_neurons + (14 if linear_path else 0)
+        expected = reservoir.params.n_neurons + (N_POLY_FEATURES if linear_path else 0)
         if self.weights.shape != (expected,):
             raise ValueError(f"{kind} model: {expected} weights expected, got {self.weights.shape}")
 
@@ -131,11 +137,20 @@ class WesnModel:
         """Put the reservoir at rest for input ``z``: its fixed point, with the output fed back."""
         settle(self.reservoir, np.asarray(z, dtype=np.float64), lambda x: float(self._output(self.regressors(x, z))))
 
-    def step(self, z: np.ndarray) -> float:
+    def regressors_step(self, z: np.ndarray) -> np.ndarray:
+        """Advance the reservoir one block and return the regressor row f (``D_hat = f . w + b``).
+
+        The caller then reports the estimate it used with ``feed_back`` (the output feedback);
+        ``step`` is exactly these two with the stored weights."""
         z = np.asarray(z, dtype=np.float64)
-        x = self.reservoir.step(z)
-        y = float(self._output(self.regressors(x, z)))
+        return self.regressors(self.reservoir.step(z), z)
+
+    def feed_back(self, y: float) -> None:
         self.reservoir.set_feedback(y)
+
+    def step(self, z: np.ndarray) -> float:
+        y = float(self._output(self.regressors_step(z)))
+        self.feed_back(y)
         return y
 
     def run(self, z: np.ndarray) -> np.ndarray:
@@ -242,7 +257,7 @@ def fit_wesn(kind: str, defaults: WesnConfig, captures, normalizer, config) -> W
     """Fit a WESN model of the given form to the captures (see the module docstring)."""
     wc = defaults
     reservoir = wc.reservoir(1.0 / config.model_rate_hz)
-    n_features = wc.n_neurons + (14 if wc.linear_path else 0)
+    n_features = wc.n_neurons + (N_POLY_FEATURES if wc.linear_path else 0)
     model = WesnModel(kind, reservoir, np.zeros(n_features), 0.0, wc.linear_path)
     xs, ys = [], []
     for c in captures:
