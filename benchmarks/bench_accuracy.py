@@ -152,7 +152,7 @@ def main() -> None:
         print(f"{'1-min drift RMS, deg/h':28s} {'before':>8s} {'noise':>8s} " + " ".join(f"{k:>10s}" for k in KINDS)
               + "   reduction (wesn)  wesn/poly  wesn/noise")  # fmt: skip
         compensate_times = []
-        for name, seed, role, capture in tests:
+        for name, _seed, role, capture in tests:
             truth = read_truth(capture.with_suffix(".truth.csv"))
             before = minute_rms(truth["drift_dph"])
             floor = minute_rms(noise_floor(truth))
