@@ -204,3 +204,52 @@ def test_fit_config_optional_penalty_can_be_null(tmp_path):
     assert cfg.poly_alpha is None and cfg.warmup_s == 60.0
     with pytest.raises(InputFileError, match="expected a finite number"):
         dataclass_from_mapping(FitConfig, {"warmup_s": None}, "test")
+
+
+# --- adapting mode -----------------------------------------------------------------------------
+
+
+def adapt_config():
+    from fog_driver.compensation.adapt import AdaptConfig
+
+    # A short run: adapt soon (the defaults wait 5 min and capture the bias for 5 min).
+    return AdaptConfig(warmup_s=5.0, bias_capture_s=10.0, static_window_s=5.0)
+
+
+def test_adapting_compensator_step_equals_run_in_any_chunks(model_path):
+    from fog_driver.compensation.compensator import FLAG_ADAPTING
+
+    samples = SampleStream().run(decode_file(DATA / "sim-short.bin"))
+    n = len(samples)
+    stepper = Compensator(load_model(model_path), 0.1, adapt=adapt_config(), reference_rate_dph=0.0)
+    reference = [stepper.step(samples.sample(i)) for i in range(n)]
+    assert any(r.flags & FLAG_ADAPTING for r in reference)
+    for cuts in ([n], [1, 777, 2000, n], [*range(333, n, 1234), n]):
+        runner = Compensator(load_model(model_path), 0.1, adapt=adapt_config(), reference_rate_dph=0.0)
+        lo, parts = 0, []
+        for hi in cuts:
+            parts.append(runner.run(slice_block(samples, lo, hi)))
+            lo = hi
+        joined = CompensatedColumns(*(np.concatenate([getattr(p, f) for p in parts]) for f in CompensatedColumns.__dataclass_fields__))
+        assert [repr(joined.sample(i)) for i in range(n)] == [repr(r) for r in reference]
+        assert runner.online.state_dict() == stepper.online.state_dict()
+
+
+def test_adapting_without_a_reference_is_exactly_frozen(model_path):
+    samples = SampleStream().run(decode_file(DATA / "sim-short.bin"))
+    frozen = Compensator(load_model(model_path), 0.1).run(samples)
+    gated_off = Compensator(load_model(model_path), 0.1, adapt=adapt_config(), reference_rate_dph=None).run(samples)
+    assert_columns_equal(frozen, gated_off)
+
+
+def test_adaptation_state_saves_and_restores(model_path, tmp_path):
+    samples = SampleStream().run(decode_file(DATA / "sim-short.bin"))
+    first = Compensator(load_model(model_path), 0.1, adapt=adapt_config(), reference_rate_dph=0.0)
+    first.run(samples)
+    path = first.save_adaptation(tmp_path / "adapt.yaml")
+    second = Compensator(load_model(model_path), 0.1, adapt=adapt_config(), reference_rate_dph=0.0)
+    second.load_adaptation(path)  # a new run: the bias is captured again, the learned weights kept
+    assert second.online.bias_dph is None
+    np.testing.assert_array_equal(second.online.law.weights, first.online.law.weights)
+    with pytest.raises(ValueError, match="not adapting"):
+        Compensator(load_model(model_path), 0.1).save_adaptation(tmp_path / "x.yaml")

@@ -20,7 +20,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import NamedTuple
+from pathlib import Path
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
@@ -29,6 +30,9 @@ from ..stream import Sample, SampleBlock
 from .blocks import FLAG_GAP, FLAG_THERMOMETER_FAULT, BlockAverager, ModelBlock
 from .features import FLAG_INPUT_STALE, FeatureExtractor
 from .model import ModelFile
+
+if TYPE_CHECKING:  # adapt.py imports this module's flags: import it lazily
+    from .adapt import AdaptConfig, OnlineReadout, StaticDetector
 
 FLAG_UNCOMPENSATED = 1 << 3  #: no drift estimate applied (start-up, or inputs never valid)
 FLAG_ADAPTING = 1 << 4  #: the weights are adapting online
@@ -83,9 +87,21 @@ class CompensatedColumns:
 
 
 class Compensator:
-    """A model file applied to a sample stream (frozen weights)."""
+    """A model file applied to a sample stream: frozen weights, or (``adapt``) adapting online.
 
-    def __init__(self, model_file: ModelFile, frame_period_s: float) -> None:
+    Adapting (``adapt.OnlineReadout``): the readout keeps running the adaptive law from the stored weights,
+    updated on blocks where ``reference_rate_dph`` is given (the table's known rate, 0 at rest) and the gyro's
+    own static detector says the table is static, after ``adapt.warmup_s``, on blocks with no gap, no
+    thermometer fault and fresh inputs.  Frames carry ``FLAG_ADAPTING`` / ``FLAG_GUARD`` from the estimate.
+    """
+
+    def __init__(
+        self,
+        model_file: ModelFile,
+        frame_period_s: float,
+        adapt: AdaptConfig | None = None,
+        reference_rate_dph: float | None = None,
+    ) -> None:
         self.model_file = model_file
         self.model = model_file.model
         self.frame_period_s = float(frame_period_s)
@@ -100,6 +116,16 @@ class Compensator:
         self.blocks_seen = 0
         self._started = False
         self.model.reset()
+        self.adapt = adapt
+        self.reference_rate_dph = None if reference_rate_dph is None else float(reference_rate_dph)
+        self.online: OnlineReadout | None = None
+        self.static_detector: StaticDetector | None = None
+        if adapt is not None:
+            from .adapt import OnlineReadout, StaticDetector
+
+            block_s = 1.0 / model_file.model_rate_hz
+            self.online = OnlineReadout(self.model.weights, self.model.intercept, adapt, block_s)
+            self.static_detector = StaticDetector.from_config(adapt, block_s)
 
     # -- block level: shared by step and run ---------------------------------------------------
 
@@ -108,6 +134,7 @@ class Compensator:
         u, flags = self.features.step(block.temps_c)
         flags |= block.flags & (FLAG_GAP | FLAG_THERMOMETER_FAULT)
         self.blocks_seen += 1
+        static = self.static_detector.step(block.rate_dph) if self.static_detector is not None else False
         if any(v != v for v in u):  # a thermometer never read valid yet: nothing to model
             self.estimate_flags = FLAG_UNCOMPENSATED | flags
         else:
@@ -115,13 +142,38 @@ class Compensator:
             if not self._started:  # the model starts at rest at its first valid input, as when fitted
                 self.model.start(z)
                 self._started = True
-            estimate = self.model.step(z)
+            if self.online is None:
+                estimate = self.model.step(z)
+                adapt_flags = 0
+            else:
+                clean = not flags & (FLAG_GAP | FLAG_THERMOMETER_FAULT | FLAG_INPUT_STALE)
+                gate = static and clean and block.t_end_s > self.adapt.warmup_s
+                f = self.model.regressors_step(z)
+                estimate, adapt_flags = self.online.step(f, block.rate_dph, self.reference_rate_dph, gate)
+                self.model.feed_back(estimate)  # the estimate actually used (the WESN's output feedback)
             if math.isfinite(estimate):
                 self.estimate_dph = estimate
-                self.estimate_flags = flags & FLAG_INPUT_STALE
+                self.estimate_flags = (flags & FLAG_INPUT_STALE) | adapt_flags
             else:
                 self.estimate_flags = FLAG_GUARD | (flags & FLAG_INPUT_STALE)
         self._estimate_block = block.index + 1
+
+    # -- adaptation state ----------------------------------------------------------------------
+
+    def save_adaptation(self, path: str | Path) -> Path:
+        """The adaptation state (readout and static detector) as YAML; only when adapting."""
+        if self.online is None:
+            raise ValueError("this compensator is not adapting (no adapt config)")
+        return self.online.save_state(path, detector=self.static_detector)
+
+    def load_adaptation(self, path: str | Path, *, new_run: bool = True) -> None:
+        """Restore ``save_adaptation``'s file (``InputFileError`` when it does not fit this model).  With
+        ``new_run`` (a new switch-on: a new turn-on bias) the bias is captured again; the adapted W is kept."""
+        if self.online is None:
+            raise ValueError("this compensator is not adapting (no adapt config)")
+        self.online.load_state_file(path, detector=self.static_detector)
+        if new_run:
+            self.online.begin_run()
 
     # -- frame level ---------------------------------------------------------------------------
 

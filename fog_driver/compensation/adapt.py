@@ -1,0 +1,481 @@
+"""Online adaptation of the readout (stage 3 in operation): the adaptive law run from the stored weights,
+gated by a reference, with guards.
+
+Frozen or adapting.  A model file holds frozen weights: ``D_hat = f . w0 + b0`` over the model's regressor
+row f (``regressors_step``).  ``OnlineReadout`` keeps running the adaptive law (``readout.AdaptiveLaw``)
+over the regressors ``x = [f, 1]``, warm-started at ``W = [w0, b0]``, and returns ``D_hat = f . W[:-1] +
+W[-1]`` (summed as ``polynomial.dot_features``: while W equals the stored weights the estimate is the
+frozen one bit for bit).
+
+The target.  Online, the only measurement of the drift is the gyro itself: on a block where the input
+rate is known (``reference_rate_dph``: the table's rate, 0 when it stands still; the Earth rate along a
+vertical axis need not be in it, see below)::
+
+    d = measured_rate_dph - reference_rate_dph - bias_dph
+
+where ``bias_dph`` is everything constant the drift model does not model: the Earth-rate component, the
+constant bias and this run's turn-on bias (different at every switch-on, unknown online; the fit removes
+it per capture by centring the target).  It is captured first: over the first ``bias_capture_s`` of gated
+blocks (below) the readout accumulates the mean of ``measured - reference - estimate`` (the estimate in
+use, which is the frozen estimate on a first run: W does not move before the capture is complete); W is
+not updated during the capture, and adaptation starts on the next gated block.  ``begin_run`` starts a
+new capture (a restored state on a new switch-on: the turn-on bias is new, the adapted W is kept).  Without the capture, the
+adapted intercept would absorb the run's bias (tens of deg/h), the output would stop being a drift and the
+runaway guard would fire at once (tested).  A consequence to know: whatever error the frozen model makes
+on average during the capture is taken as bias, so the adapted model learns the drift relative to the
+frozen model's mean error over the capture (the drift's slopes are learned; its offset over the capture
+is not observable from the gyro alone).  ``bias_capture_s = 0`` skips the capture (bias 0): for a
+reference that already contains every constant.
+
+The gate.  W is updated only on gated blocks: a reference is given AND the table is ``static`` (a known
+input rate while nothing moves; ``StaticDetector`` tells it from the gyro itself) AND the measured rate is
+finite.  On every other block the law still runs with ``update=False`` (its filters and the sums H, I go
+on, so re-enabling is seamless), with a neutral target: the current estimate ``W . x`` itself.  While W is
+fixed the filtered neutral target is exactly ``W . Xf``, so those blocks add nothing to ``M = H W - I`` at
+the current W: they carry no information and say "stay" (they still weigh in H, a mild pull towards the
+W of that time for one memory window).  The same neutral target is used during the bias capture.
+
+Guards.  Before it is returned, the adapted estimate is checked against the frozen one: not finite, or
+further than ``runaway_dph`` from it, and the frozen estimate is returned instead, the block is flagged
+``FLAG_GUARD`` and W is reset to the frozen weights (``reset_to_frozen``: the filters and H, I are kept).
+A non-finite W after an update is reset the same way.  Note that H and I are kept: a transient bad target
+stays in I for about one memory window, so the guard may fire again while it fades.  When the frozen
+estimate itself is not finite (non-finite regressors) there is nothing to revert to: it is returned with
+``FLAG_GUARD``, W untouched.  ``FLAG_ADAPTING`` marks a block whose target updated W.
+
+Order within ``step`` (the law's): the estimate uses W before this block's update (an honest a-priori
+estimate), then the guard, then the bias capture or the update.  ``run`` is ``step`` row by row.
+
+State.  ``state_dict`` / ``load_state`` give everything (the law's state, the bias capture, counters,
+and the frozen weights, so a state is never restored into another model) as plain YAML-safe values;
+floats round-trip exactly through ``yaml.safe_dump``, so a run saved and restored mid-stream continues bit
+for bit (tested).  ``save_state`` / ``load_state_file`` write and read a small YAML file with a format tag
+and a schema version (safe loading only, one-line ``InputFileError`` / ``OutputFileError``), optionally
+with a ``StaticDetector``'s state in the same file.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from ..errors import InputFileError, OutputFileError
+from ..yamlfile import read_yaml
+from .compensator import FLAG_ADAPTING, FLAG_GUARD
+from .polynomial import dot_features
+from .readout import AdaptiveLaw, AdaptiveLawParams, AdaptiveLawState
+
+__all__ = [
+    "ADAPT_STATE_FORMAT",
+    "ADAPT_STATE_SCHEMA_VERSION",
+    "AdaptConfig",
+    "OnlineReadout",
+    "StaticDetector",
+]
+
+ADAPT_STATE_FORMAT = "fog_driver adaptation state"
+ADAPT_STATE_SCHEMA_VERSION = 1
+
+
+def _finite(x: Any) -> bool:
+    return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def _default_law() -> AdaptiveLawParams:
+    # Drift in deg/h at 1 Hz: 10 s takes the edge off the 1-s noise, one hour of memory spans a thermal
+    # excursion, kappa 0.5 is half the fastest stable step (smoother than 1 against the target's noise).
+    return AdaptiveLawParams(filter_time_s=10.0, memory_time_s=3600.0, kappa=0.5, delta=1e-6)
+
+
+@dataclass(frozen=True)
+class AdaptConfig:
+    """Online adaptation settings (validated; ``ValueError`` when out of range).
+
+    * ``law``: the adaptive law's parameters.
+    * ``runaway_dph``: an adapted estimate further than this from the frozen one is a runaway.
+    * ``static_threshold_dph``, ``static_window_s``: the gyro's own static detector (``StaticDetector``).
+    * ``bias_capture_s``: gated time spent capturing the run's bias before W may move (0: no capture).
+    * ``warmup_s``: for the compensator's gate: blocks before it (rate smoother and instrument start-up)
+      are never gated, as in fitting (``FitConfig.warmup_s``).
+    """
+
+    law: AdaptiveLawParams = field(default_factory=_default_law)
+    runaway_dph: float = 2.0
+    static_threshold_dph: float = 30.0
+    static_window_s: float = 60.0
+    bias_capture_s: float = 300.0
+    warmup_s: float = 300.0
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.law, AdaptiveLawParams):
+            raise ValueError(f"law must be AdaptiveLawParams, got {type(self.law).__name__}")
+        for name in ("runaway_dph", "static_threshold_dph", "static_window_s"):
+            v = getattr(self, name)
+            if not _finite(v) or not v > 0:
+                raise ValueError(f"{name} must be finite and > 0, got {v!r}")
+        for name in ("bias_capture_s", "warmup_s"):
+            v = getattr(self, name)
+            if not _finite(v) or v < 0:
+                raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
+
+    def to_dict(self) -> dict[str, Any]:
+        d: dict[str, Any] = {f.name: getattr(self, f.name) for f in fields(self)}
+        d["law"] = self.law.to_dict()
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> AdaptConfig:
+        """Inverse of ``to_dict``; missing keys take their defaults, unknown keys are errors."""
+        known = {f.name for f in fields(cls)}
+        if not isinstance(d, dict) or not set(d) <= known:
+            extra = sorted(set(d) - known) if isinstance(d, dict) else type(d).__name__
+            raise ValueError(f"adapt config: unknown keys {extra}")
+        values = dict(d)
+        if "law" in values:
+            values["law"] = AdaptiveLawParams.from_dict(values["law"])
+        return cls(**values)
+
+
+def _blocks(seconds: float, sample_time_s: float) -> int:
+    return int(round(seconds / sample_time_s))
+
+
+class StaticDetector:
+    """Is the table static?  From the gyro's own block rates, causally, with explicit state.
+
+    ``step(rate_dph)`` is True when the last ``window_blocks`` block rates (this one included) are all
+    finite and all within ``threshold_dph`` of their median; False until the window has filled.  A
+    turntable move makes every window that contains one of its blocks non-static (the median is the
+    static rate, the moving blocks are far from it), so the detector turns static again a full window
+    after the move's last block.  Causal: the first block of a move counts as static when it moved
+    for so short a part of the block that its mean rate is still within the threshold.
+    """
+
+    def __init__(self, threshold_dph: float, window_blocks: int, rates: list[float] | None = None) -> None:
+        if not _finite(threshold_dph) or not threshold_dph > 0:
+            raise ValueError(f"threshold_dph must be finite and > 0, got {threshold_dph!r}")
+        if isinstance(window_blocks, bool) or not isinstance(window_blocks, (int, np.integer)) or window_blocks < 1:
+            raise ValueError(f"window_blocks must be an integer >= 1, got {window_blocks!r}")
+        self.threshold_dph = float(threshold_dph)
+        self.window_blocks = int(window_blocks)
+        self._rates: deque[float] = deque(maxlen=self.window_blocks)
+        if rates is not None:
+            if len(rates) > self.window_blocks:
+                raise ValueError(f"{len(rates)} rates for a window of {self.window_blocks} blocks")
+            self._rates.extend(float(r) for r in rates)
+
+    @classmethod
+    def from_config(cls, config: AdaptConfig, sample_time_s: float) -> StaticDetector:
+        return cls(config.static_threshold_dph, max(1, _blocks(config.static_window_s, sample_time_s)))
+
+    def step(self, rate_dph: float) -> bool:
+        self._rates.append(float(rate_dph))
+        if len(self._rates) < self.window_blocks:
+            return False
+        window = np.fromiter(self._rates, dtype=np.float64, count=self.window_blocks)
+        if not np.isfinite(window).all():
+            return False
+        return bool(np.all(np.abs(window - np.median(window)) <= self.threshold_dph))
+
+    def run(self, rate_dph: np.ndarray) -> np.ndarray:
+        """``step`` over many block rates."""
+        return np.array([self.step(r) for r in np.asarray(rate_dph, dtype=np.float64).tolist()], dtype=bool)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain values (NaN rates are ``.nan`` in YAML): safe for ``yaml.safe_dump``, exact."""
+        return {"threshold_dph": self.threshold_dph, "window_blocks": self.window_blocks,
+                "rates": [float(r) for r in self._rates]}  # fmt: skip
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> StaticDetector:
+        keys = {"threshold_dph", "window_blocks", "rates"}
+        if not isinstance(d, dict) or set(d) != keys:
+            got = sorted(d) if isinstance(d, dict) else type(d).__name__
+            raise ValueError(f"static detector state needs exactly the keys {sorted(keys)}, got {got}")
+        rates = d["rates"]
+        if not isinstance(rates, list) or not all(isinstance(r, (int, float)) and not isinstance(r, bool) for r in rates):
+            raise ValueError("static detector state: 'rates' must be a list of numbers")
+        return cls(d["threshold_dph"], d["window_blocks"], rates)
+
+
+_STATE_KEYS = ("n_features", "frozen_weights", "frozen_intercept", "law", "bias_sum_dph", "bias_count",
+               "bias_dph", "blocks", "gated_blocks", "updates", "guards")  # fmt: skip
+
+
+class OnlineReadout:
+    """The adaptive law over ``[f, 1]`` from the frozen weights, gated, guarded (see the module docstring).
+
+    ``step(f, measured_rate_dph, reference_rate_dph, static) -> (estimate_dph, flags)``.
+    """
+
+    def __init__(
+        self,
+        frozen_weights: np.ndarray,
+        frozen_intercept: float,
+        config: AdaptConfig | None = None,
+        sample_time_s: float = 1.0,
+        state: dict[str, Any] | None = None,
+    ) -> None:
+        self.config = config if config is not None else AdaptConfig()
+        w0 = np.array(frozen_weights, dtype=np.float64)
+        if w0.ndim != 1 or len(w0) < 1 or not np.isfinite(w0).all():
+            raise ValueError(f"frozen_weights must be a vector of finite numbers, got shape {w0.shape}")
+        if not _finite(frozen_intercept):
+            raise ValueError(f"frozen_intercept must be finite, got {frozen_intercept!r}")
+        w0.flags.writeable = False
+        self.frozen_weights = w0
+        self.frozen_intercept = float(frozen_intercept)
+        self.n_features = len(w0)  #: F, the model's regressors (the law has F + 1: the constant)
+        self._w_frozen = np.append(w0, self.frozen_intercept)
+        self._law = AdaptiveLaw(self.config.law, self.n_features + 1, sample_time_s)
+        self.sample_time_s = self._law.sample_time_s
+        self.bias_capture_blocks = _blocks(self.config.bias_capture_s, self.sample_time_s)
+        self._runaway = float(self.config.runaway_dph)
+        self._x = np.empty(self.n_features + 1)
+        self._x[-1] = 1.0
+        self._start()
+        if state is not None:
+            self.load_state(state)
+
+    def _start(self) -> None:
+        self._law.set_state(AdaptiveLawState.zeros(self.n_features + 1, weights=self._w_frozen))
+        self.bias_sum_dph = 0.0
+        self.bias_count = 0
+        self.bias_dph: float | None = None
+        self.begin_run()
+        self.blocks = 0
+        self.gated_blocks = 0
+        self.updates = 0
+        self.guards = 0
+
+    # -- inspection --------------------------------------------------------------------------------
+
+    @property
+    def law(self) -> AdaptiveLaw:
+        """The live adaptive law (for inspection; change it through this class only)."""
+        return self._law
+
+    @property
+    def weights(self) -> np.ndarray:
+        """A copy of the adapted weights on f, shape (F,)."""
+        return self._law._w[:-1].copy()
+
+    @property
+    def intercept(self) -> float:
+        return float(self._law._w[-1])
+
+    @property
+    def adapting(self) -> bool:
+        """True once the bias is captured: gated blocks update W."""
+        return self.bias_dph is not None
+
+    def frozen_estimate(self, f: np.ndarray) -> float:
+        return float(dot_features(f, self.frozen_weights) + self.frozen_intercept)
+
+    def begin_run(self) -> None:
+        """A new run of the instrument (switched off and on: a new turn-on bias): capture the bias again.
+        W (as adapted so far), the filters, H and I and the counters are kept; W does not move until the new
+        capture is complete."""
+        self.bias_sum_dph = 0.0
+        self.bias_count = 0
+        self.bias_dph = None if self.bias_capture_blocks else 0.0
+
+    def reset_to_frozen(self) -> None:
+        """W back to the frozen weights; the filters, H and I, the bias and the counters are kept."""
+        state = self._law.state
+        state.w = self._w_frozen.copy()
+        self._law.set_state(state)
+
+    # -- stepping ----------------------------------------------------------------------------------
+
+    def step(
+        self, f: np.ndarray, measured_rate_dph: float, reference_rate_dph: float | None, static: bool
+    ) -> tuple[float, int]:
+        """One model block: the estimate to use (deg/h) and its flags (``FLAG_ADAPTING``, ``FLAG_GUARD``).
+
+        ``f``: the model's regressor row (F,); ``measured_rate_dph``: the block's mean measured rate;
+        ``reference_rate_dph``: the known input rate, or None (NaN counts as None); ``static``: the table
+        is static (e.g. ``StaticDetector``).  The caller feeds the returned estimate back to the model.
+        """
+        f = np.asarray(f, dtype=np.float64)
+        if f.shape != (self.n_features,):
+            raise ValueError(f"f must have shape ({self.n_features},), got {f.shape}")
+        measured = float(measured_rate_dph)
+        reference = None if reference_rate_dph is None else float(reference_rate_dph)
+        return self._advance(f, measured, reference, bool(static))
+
+    def _advance(self, f: np.ndarray, measured: float, reference: float | None, static: bool) -> tuple[float, int]:
+        # Overflow and NaN are what the guards are for: no RuntimeWarning on the way to them.
+        with np.errstate(over="ignore", invalid="ignore"):
+            return self._advance_guarded(f, measured, reference, static)
+
+    def _advance_guarded(self, f: np.ndarray, measured: float, reference: float | None, static: bool) -> tuple[float, int]:
+        self.blocks += 1
+        flags = 0
+        y_frozen = float(dot_features(f, self.frozen_weights) + self.frozen_intercept)
+        w = self._law._w  # the law's live W (updated in place by the law)
+        y = float(dot_features(f, w[:-1]) + w[-1])
+        if not math.isfinite(y_frozen):  # non-finite regressors: nothing to revert to, nothing to learn
+            return y_frozen, FLAG_GUARD
+        if not math.isfinite(y) or abs(y - y_frozen) > self._runaway:
+            self.reset_to_frozen()
+            self.guards += 1
+            flags |= FLAG_GUARD
+            y = y_frozen
+        x = self._x
+        x[:-1] = f
+        gated = static and reference is not None and math.isfinite(reference) and math.isfinite(measured)
+        update = False
+        d = y  # the neutral target: no information, "stay"
+        if gated:
+            self.gated_blocks += 1
+            if self.bias_dph is None:
+                self.bias_sum_dph += measured - reference - y  # W is fixed during a capture: y is frozen on a first run
+                self.bias_count += 1
+                if self.bias_count >= self.bias_capture_blocks:
+                    self.bias_dph = self.bias_sum_dph / self.bias_count
+            else:
+                d = measured - reference - self.bias_dph
+                update = True
+        self._law.step(x, d, update)
+        if update:
+            self.updates += 1
+            flags |= FLAG_ADAPTING
+            if not np.isfinite(self._law._w).all():
+                self.reset_to_frozen()
+                self.guards += 1
+                flags |= FLAG_GUARD
+        return y, flags
+
+    def run(
+        self,
+        f: np.ndarray,
+        measured_rate_dph: np.ndarray,
+        reference_rate_dph: np.ndarray | float | None,
+        static: np.ndarray | bool,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``step`` for each row of ``f`` (T, F); ``reference_rate_dph`` a (T,) array (NaN: none), a float or
+        None; ``static`` a (T,) mask or a bool.  Returns the estimates (T,) and flags (T,) int64."""
+        f = np.asarray(f, dtype=np.float64)
+        measured = np.asarray(measured_rate_dph, dtype=np.float64)
+        if f.ndim != 2 or f.shape[1] != self.n_features or measured.shape != (len(f),):
+            raise ValueError(f"need f (T, {self.n_features}) and measured (T,), got {f.shape} and {measured.shape}")
+        t = len(f)
+        ref = np.full(t, np.nan) if reference_rate_dph is None else np.asarray(reference_rate_dph, dtype=np.float64)
+        refs = np.broadcast_to(ref, (t,)).tolist()
+        statics = np.broadcast_to(np.asarray(static, dtype=bool), (t,)).tolist()
+        ml = measured.tolist()
+        out = np.empty(t)
+        out_flags = np.zeros(t, dtype=np.int64)
+        for k in range(t):
+            out[k], out_flags[k] = self._advance(f[k], ml[k], refs[k], statics[k])
+        return out, out_flags
+
+    # -- state -------------------------------------------------------------------------------------
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything the readout carries between blocks, as plain YAML-safe values (exact)."""
+        return {
+            "n_features": self.n_features,
+            "frozen_weights": [float(v) for v in self.frozen_weights],
+            "frozen_intercept": self.frozen_intercept,
+            "law": self._law.state.to_dict(),
+            "bias_sum_dph": float(self.bias_sum_dph),
+            "bias_count": int(self.bias_count),
+            "bias_dph": None if self.bias_dph is None else float(self.bias_dph),
+            "blocks": int(self.blocks),
+            "gated_blocks": int(self.gated_blocks),
+            "updates": int(self.updates),
+            "guards": int(self.guards),
+        }
+
+    def load_state(self, d: dict[str, Any]) -> None:
+        """Inverse of ``state_dict``.  ``ValueError`` for missing or unknown keys, bad values, or a state
+        saved for other frozen weights (another model); the readout is unchanged then."""
+        if not isinstance(d, dict) or set(d) != set(_STATE_KEYS):
+            got = sorted(d) if isinstance(d, dict) else type(d).__name__
+            raise ValueError(f"adaptation state needs exactly the keys {sorted(_STATE_KEYS)}, got {got}")
+        if d["n_features"] != self.n_features or isinstance(d["n_features"], bool):
+            raise ValueError(f"adaptation state is for {d['n_features']!r} features, the model has {self.n_features}")
+        try:
+            w0 = np.array(d["frozen_weights"], dtype=np.float64)
+            b0 = float(d["frozen_intercept"])
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"adaptation state: frozen weights are not numbers: {exc}") from None
+        if w0.shape != self.frozen_weights.shape or not np.array_equal(w0, self.frozen_weights) or b0 != self.frozen_intercept:
+            raise ValueError("adaptation state was saved for another model (its frozen weights differ)")
+        law = AdaptiveLawState.from_dict(d["law"])
+        if law.n_features != self.n_features + 1:
+            raise ValueError(f"adaptation state: the law has {law.n_features} weights, expected {self.n_features + 1}")
+        counts = {k: d[k] for k in ("bias_count", "blocks", "gated_blocks", "updates", "guards")}
+        for k, v in counts.items():
+            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                raise ValueError(f"adaptation state: {k!r} must be an integer >= 0, got {v!r}")
+        if not _finite(d["bias_sum_dph"]):
+            raise ValueError(f"adaptation state: 'bias_sum_dph' must be a finite number, got {d['bias_sum_dph']!r}")
+        bias = d["bias_dph"]
+        if bias is not None and not _finite(bias):
+            raise ValueError(f"adaptation state: 'bias_dph' must be a finite number or null, got {bias!r}")
+        self._law.set_state(law)
+        self.bias_sum_dph = float(d["bias_sum_dph"])
+        self.bias_dph = None if bias is None else float(bias)
+        self.bias_count, self.blocks, self.gated_blocks, self.updates, self.guards = (int(v) for v in counts.values())
+
+    def save_state(self, path: str | Path, detector: StaticDetector | None = None) -> Path:
+        """Write the state (and a static detector's, if given) as YAML; ``OutputFileError`` on failure."""
+        path = Path(path)
+        doc: dict[str, Any] = {
+            "format": ADAPT_STATE_FORMAT,
+            "schema_version": ADAPT_STATE_SCHEMA_VERSION,
+            "sample_time_s": self.sample_time_s,
+            "config": self.config.to_dict(),  # for information: the state is loaded whatever the config
+            "readout": self.state_dict(),
+        }
+        if detector is not None:
+            doc["static_detector"] = detector.to_dict()
+        text = yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=120)
+        try:
+            tmp = path.with_name(path.name + ".tmp")
+            tmp.write_text(text, encoding="utf-8")
+            tmp.replace(path)
+        except OSError as exc:
+            raise OutputFileError(f"{path}: cannot write adaptation state: {exc.strerror or exc}") from None
+        return path
+
+    def load_state_file(self, path: str | Path, detector: StaticDetector | None = None) -> StaticDetector | None:
+        """Restore the state from ``save_state``'s file; a corrupt, wrong-format or wrong-version file, or one
+        for another model, is a one-line ``InputFileError`` (and nothing is changed).  Returns the file's
+        static detector (None if it has none); with ``detector`` given its window is restored in place and
+        the file must have one with the same settings."""
+        where = str(path)
+        doc = read_yaml(path, "adaptation state file")
+        if not isinstance(doc, dict) or doc.get("format") != ADAPT_STATE_FORMAT:
+            raise InputFileError(f"{where}: not a fog_driver adaptation state (no 'format: {ADAPT_STATE_FORMAT}')")
+        version = doc.get("schema_version")
+        if version != ADAPT_STATE_SCHEMA_VERSION:
+            raise InputFileError(f"{where}: adaptation state schema version {version!r}; "
+                                 f"this fog_driver reads version {ADAPT_STATE_SCHEMA_VERSION}")  # fmt: skip
+        if doc.get("sample_time_s") != self.sample_time_s:
+            raise InputFileError(f"{where}: adaptation state for sample time {doc.get('sample_time_s')!r} s, "
+                                 f"the readout runs at {self.sample_time_s!r} s")  # fmt: skip
+        try:
+            found = StaticDetector.from_dict(doc["static_detector"]) if "static_detector" in doc else None
+            if detector is not None:
+                if found is None:
+                    raise ValueError("no static detector state in the file")
+                if (found.threshold_dph, found.window_blocks) != (detector.threshold_dph, detector.window_blocks):
+                    raise ValueError("the static detector's settings differ from the file's")
+            if "readout" not in doc:
+                raise ValueError("missing 'readout'")
+            self.load_state(doc["readout"])
+        except ValueError as exc:
+            raise InputFileError(f"{where}: corrupt adaptation state: {exc}") from None
+        if detector is not None and found is not None:
+            detector._rates = found._rates
+        return found
