@@ -204,6 +204,13 @@ def cmd_compensate(args: argparse.Namespace) -> int:
         raise OutputFileError(f"{out}: exists; refusing to overwrite (use --force)")
     model_file = load_model(args.model)
     size = _capture_size(Path(args.capture))
+    adapt = None
+    if args.adapt_reference is not None:
+        from .compensation.adapt import AdaptConfig
+
+        adapt = AdaptConfig()
+    elif args.adapt_state is not None:
+        raise UsageError("--adapt-state goes with --adapt-reference (adapting needs a reference rate)")
     progress = Progress()
     rows = None
     written = 0
@@ -211,7 +218,8 @@ def cmd_compensate(args: argparse.Namespace) -> int:
         with out.open("w", encoding="ascii") as f:
             f.write(",".join(ROW_COLUMNS) + "\n")
             for frame_period_s, cols in compensate_capture(
-                args.capture, model_file, force=args.force, model_name=args.model,
+                args.capture, model_file, force=args.force, model_name=args.model, adapt=adapt,
+                reference_rate_dph=args.adapt_reference, adapt_state=args.adapt_state,
                 progress=lambda done: progress.show(f"compensating {100.0 * done / size:5.1f} %"),
             ):  # fmt: skip
                 rows = rows or RowAggregator(args.every, frame_period_s)
@@ -291,6 +299,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--every", type=_positive_float, default=1.0, metavar="SECONDS", help="row period (default 1 s)")
     p.add_argument("--force", action="store_true",
                    help="apply a model fitted for another instrument; overwrite OUT.csv")
+    p.add_argument("--adapt-reference", type=float, metavar="DPH",
+                   help="adapt the weights online, against this known input rate while the table is static "
+                        "(deg/h; 0 for a table at rest: Earth rate and bias are captured first)")
+    p.add_argument("--adapt-state", metavar="STATE.yaml",
+                   help="with --adapt-reference: restore the adaptation state from here if it exists, save it at the end")
     p.set_defaults(func=cmd_compensate)
     return parser
 

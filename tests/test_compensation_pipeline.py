@@ -253,3 +253,21 @@ def test_adaptation_state_saves_and_restores(model_path, tmp_path):
     np.testing.assert_array_equal(second.online.law.weights, first.online.law.weights)
     with pytest.raises(ValueError, match="not adapting"):
         Compensator(load_model(model_path), 0.1).save_adaptation(tmp_path / "x.yaml")
+
+
+def test_compensate_cli_adapts_and_keeps_its_state(model_path, tmp_path):
+    state = tmp_path / "adapt.yaml"
+    base = [sys.executable, "-m", "fog_driver", "compensate", str(DATA / "sim-short.bin"), "--model", str(model_path)]
+    proc = subprocess.run(base + ["--out", str(tmp_path / "a.csv"), "--adapt-reference", "0", "--adapt-state", str(state)],
+                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert yaml.safe_load(state.read_text())["format"] == "fog_driver adaptation state"
+    # Defaults wait 5 minutes before adapting: the 300-s capture only captures, the flags say so.
+    rows = (tmp_path / "a.csv").read_text().splitlines()[1:]
+    assert len(rows) == 300 and "guard" not in "".join(rows)
+    again = subprocess.run(base + ["--out", str(tmp_path / "b.csv"), "--adapt-reference", "0", "--adapt-state", str(state)],
+                           capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert again.returncode == 0, again.stderr
+    bad = subprocess.run(base + ["--out", str(tmp_path / "c.csv"), "--adapt-state", str(state)],
+                         capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert bad.returncode == 64 and "--adapt-reference" in bad.stderr
