@@ -17,7 +17,6 @@ from pathlib import Path
 from typing import Any, BinaryIO
 
 import numpy as np
-import yaml
 
 from .errors import InputFileError, OutputFileError
 from .protocol import (
@@ -32,7 +31,7 @@ from .protocol import (
     iter_decode_file,
 )
 from .stream import SampleStream
-from .yamlfile import read_yaml
+from .yamlfile import read_yaml, write_yaml
 
 PROVENANCE_FORMAT = "fog_driver capture provenance"
 PROVENANCE_SCHEMA_VERSION = 1
@@ -86,10 +85,7 @@ def write_provenance(capture_path: str | Path, fields: dict[str, Any]) -> Path:
         "capture": Path(capture_path).name,
         **fields,
     }
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(yaml.safe_dump(doc, sort_keys=False, allow_unicode=False), encoding="utf-8")
-    os.replace(tmp, path)
-    return path
+    return write_yaml(path, doc, "provenance sidecar")
 
 
 class CaptureWriter:

@@ -9,10 +9,25 @@ from typing import Any
 
 import yaml
 
-from .errors import InputFileError
+from .errors import InputFileError, OutputFileError
 
 #: Every YAML file the project reads is small; a larger one is not what it claims to be.
 MAX_YAML_BYTES = 1 << 20
+
+
+def write_yaml(path: str | Path, doc: Any, what: str) -> Path:
+    """Write ``doc`` with ``yaml.safe_dump``, atomically (a temporary file, then a rename): a crash or a
+    full disk never leaves half a file.  A failure is an ``OutputFileError`` naming ``what``."""
+    path = Path(path)
+    text = yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=120, allow_unicode=False)
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        tmp.write_text(text, encoding="utf-8")
+        tmp.replace(path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise OutputFileError(f"{path}: cannot write {what}: {exc.strerror or exc}") from None
+    return path
 
 
 def read_yaml(path: str | Path, what: str, *, missing_ok: bool = False, hint: str = "") -> Any:

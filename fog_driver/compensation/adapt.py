@@ -63,10 +63,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
-from ..errors import InputFileError, OutputFileError
-from ..yamlfile import read_yaml
+from ..errors import InputFileError
+from ..yamlfile import read_yaml, write_yaml
 from .compensator import FLAG_ADAPTING, FLAG_GUARD
 from .polynomial import dot_features
 from .readout import AdaptiveLaw, AdaptiveLawParams, AdaptiveLawState
@@ -439,14 +438,7 @@ class OnlineReadout:
         }
         if detector is not None:
             doc["static_detector"] = detector.to_dict()
-        text = yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=120)
-        try:
-            tmp = path.with_name(path.name + ".tmp")
-            tmp.write_text(text, encoding="utf-8")
-            tmp.replace(path)
-        except OSError as exc:
-            raise OutputFileError(f"{path}: cannot write adaptation state: {exc.strerror or exc}") from None
-        return path
+        return write_yaml(path, doc, "adaptation state")
 
     def load_state_file(self, path: str | Path, detector: StaticDetector | None = None) -> StaticDetector | None:
         """Restore the state from ``save_state``'s file; a corrupt, wrong-format or wrong-version file, or one

@@ -15,12 +15,11 @@ from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
-import yaml
 
 from .. import __version__
 from ..capture import utc_now_iso
-from ..errors import InputFileError, OutputFileError
-from ..yamlfile import read_yaml
+from ..errors import InputFileError
+from ..yamlfile import read_yaml, write_yaml
 from .features import FeatureParams
 from .polynomial import PolynomialModel
 from .readout import Standardizer
@@ -88,15 +87,7 @@ class ModelFile:
 
 
 def save_model(path: str | Path, model_file: ModelFile) -> Path:
-    path = Path(path)
-    text = yaml.safe_dump(model_file.to_doc(), sort_keys=False, default_flow_style=None, width=120)
-    try:
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text(text, encoding="utf-8")
-        tmp.replace(path)
-    except OSError as exc:
-        raise OutputFileError(f"{path}: cannot write model: {exc.strerror or exc}") from None
-    return path
+    return write_yaml(path, model_file.to_doc(), "model")
 
 
 def _require(doc: dict, key: str, kind: type | tuple[type, ...], where: str) -> Any:
