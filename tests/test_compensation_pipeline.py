@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import subprocess
 import sys
 from pathlib import Path
@@ -139,14 +140,16 @@ def test_bad_model_files_are_one_line_errors(model_path, tmp_path, mutate, needl
 
 
 def test_wesn_start_is_a_fixed_point_and_step_equals_run():
-    from fog_driver.compensation.wesn import WESN_DEFAULTS
+    from fog_driver.compensation.wesn import WESN_DEFAULTS, WesnModel, n_regressors
 
-    reservoir = WESN_DEFAULTS.reservoir(1.0)
-    assert np.all(reservoir.matrices.w_in[:, 3:] == 0)  # the neurons remember temperatures only
+    reservoir = WESN_DEFAULTS.reservoir(1.0, 240.0)
+    w_in = reservoir.matrices.w_in
+    assert np.all(w_in[:, 2:] == 0) and np.array_equal(w_in[:, 0], w_in[:, 1])  # the ring mean only
+    assert reservoir.params.leaks().tolist() == [1 / 240, 1 / 1800, 1 / 3600, 1 / 7200]
     assert reservoir.contraction_bound < 1
-    from fog_driver.compensation.wesn import WesnModel
-
-    model = WesnModel("wesn", reservoir, np.linspace(-1, 1, 29), 0.25, True)
+    n = n_regressors(4, "physical", 1)
+    assert n == 4 + 2 + 5
+    model = WesnModel("wesn", reservoir, np.linspace(-1, 1, n), 0.25, "physical", 1)
     z0 = np.array([0.5, -0.2, 1.0, 0.1, 0.0, -0.3, 0.7, -0.5])
     model.start(z0)
     before = model.reservoir.x
@@ -271,3 +274,16 @@ def test_compensate_cli_adapts_and_keeps_its_state(model_path, tmp_path):
     bad = subprocess.run(base + ["--out", str(tmp_path / "c.csv"), "--adapt-state", str(state)],
                          capture_output=True, text=True, timeout=60)  # fmt: skip
     assert bad.returncode == 64 and "--adapt-reference" in bad.stderr
+
+
+def test_fit_config_rates_must_agree(tmp_path):
+    from fog_driver.yamlfile import dataclass_from_mapping
+
+    with pytest.raises(InputFileError, match="sample_time_s"):
+        dataclass_from_mapping(FitConfig, {"model_rate_hz": 2.0}, "fit.yaml")
+    cfg = dataclass_from_mapping(FitConfig, {"model_rate_hz": 2.0, "features": {"sample_time_s": 0.5}}, "fit.yaml")
+    model_file, _ = fit_model_file([DATA / "sim-short.bin"], kind="polynomial", config=dataclasses.replace(cfg, warmup_s=30.0))
+    assert model_file.model_rate_hz == 2.0
+    cols = Compensator(model_file, 0.1).run(SampleStream().run(decode_file(DATA / "sim-short.bin")))
+    held = cols.drift_dph[(cols.t_s - cols.t_s[0] > 10) & (cols.t_s - cols.t_s[0] < 11)]
+    assert np.unique(held).size == 2  # two 0.5-s blocks in that second

@@ -39,6 +39,15 @@ class FitConfig:
     warmup_s: float = 300.0  #: rate smoother and instrument start-up: not fitted
     poly_alpha: float | None = 1e-3  #: ridge penalty per row on standardized regressors; None: blocked CV
 
+    def __post_init__(self) -> None:
+        if not self.model_rate_hz > 0:
+            raise ValueError("model_rate_hz must be > 0")
+        if abs(self.features.sample_time_s * self.model_rate_hz - 1.0) > 1e-9:
+            raise ValueError(
+                f"features.sample_time_s ({self.features.sample_time_s}) must be 1 / model_rate_hz "
+                f"({1.0 / self.model_rate_hz})"
+            )
+
 
 @dataclass
 class CaptureData:

@@ -38,6 +38,18 @@ def polynomial_features(z: np.ndarray) -> np.ndarray:
     return np.concatenate((r, r * r, r * r * r, dr, r * dr, r * r * dr, g, h, z[..., 5:6]), axis=-1)
 
 
+N_PHYSICAL_FEATURES = 5
+
+
+def physical_features(z: np.ndarray) -> np.ndarray:
+    """The linear part of the same basis, ``[R, G, H, dR, dT3]`` (the WESN's linear path: its
+    neurons supply the fiber temperature's nonlinearity and the thermal history)."""
+    z = np.asarray(z, dtype=np.float64)
+    r = 0.5 * (z[..., 0:1] + z[..., 1:2])
+    dr = 0.5 * (z[..., 3:4] + z[..., 4:5])
+    return np.concatenate((r, z[..., 6:7], z[..., 2:3] - r, dr, z[..., 5:6]), axis=-1)
+
+
 def dot_features(f: np.ndarray, w: np.ndarray) -> np.ndarray:
     """``f . w`` for one row or many, summed strictly left to right over the features.
 

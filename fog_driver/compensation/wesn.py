@@ -11,12 +11,18 @@ Kinds (``fog-driver fit --kind``):
   forcing while fitting, reservoir states only, the readout trained by the
   adaptive law on the stage-1 (AFLP) filtered drift.
 * ``wesn`` (default for new models): what it takes to generalize to other
-  thermal profiles (method.md, "Pitfalls"): normalized inputs, neurons with
-  log-spaced time scales from 30 s to 2 h (the drift has a thermal memory of
-  about an hour), a normalized leak (bounded states at every time scale), no
-  feedback, the polynomial baseline's features beside the reservoir (a linear
-  path that extrapolates), and ridge regression on standardized features with
-  an unpenalized intercept.
+  thermal profiles (method.md, "Pitfalls"), found by scoring against the
+  simulator's truth on profiles not used for fitting: wavelet neurons near
+  their linear regime (translation 0, dilation 1, small inputs, normalized
+  leak, no recurrence, no feedback) that integrate the ring mean temperature
+  R: one at the fiber's own lag (the fiber sits between the ring thermometers
+  and lags them; the lag is chosen from a grid by the fit), whose square and
+  cube enter the readout (the drift is nonlinear in the fiber temperature),
+  and three at 30 min, 1 h and 2 h (the drift's thermal history); beside them
+  a linear path (R, gradient, housing offset, rates); ridge regression on
+  standardized regressors with an unpenalized intercept.  Random reservoirs
+  over all eight inputs fit the training profile's history and extrapolate
+  worse than the polynomial baseline (the README's accuracy section).
 
 Both start from rest at the first input (``start``): the reservoir is put at
 its fixed point for that input, as if the instrument had been there for a
@@ -25,15 +31,17 @@ long time, so hours-long time scales have no start-up transient.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from .aflp import AflpFilter, AflpParams
 from .polynomial import (
+    N_PHYSICAL_FEATURES,
     N_POLY_FEATURES,
     cross_validated_alpha,
     dot_features,
+    physical_features,
     polynomial_features,
     standardized_ridge,
 )
@@ -50,83 +58,117 @@ from .reservoir import (
 
 _SETTLE_ITERATIONS = 400
 
+#: Linear paths: name -> (feature function, count), or None.
+_LINEAR_PATHS = {
+    "none": None,
+    "polynomial": (polynomial_features, N_POLY_FEATURES),
+    "physical": (physical_features, N_PHYSICAL_FEATURES),
+}
+
+
+def n_regressors(n_neurons: int, linear_path: str, state_powers: int) -> int:
+    path = _LINEAR_PATHS[linear_path]
+    return n_neurons + 2 * state_powers + (path[1] if path else 0)
+
 
 @dataclass(frozen=True)
 class WesnConfig:
-    n_neurons: int = 20
+    n_neurons: int = 20  #: random (paper) form only; the ring form has 1 + len(history_s)
     seed: int = 7
-    fastest_s: float = 30.0
+    single_leak_s: float | None = None  #: random form: one time scale for every neuron (the paper)
+    fastest_s: float = 30.0  #: random form without single_leak_s: log-spaced time scales
     slowest_s: float = 7200.0
-    single_leak_s: float | None = None  #: one time scale for every neuron (the paper's form)
     normalized_leak: bool = True
     input_scale: float = 0.1
     spectral_radius: float = 0.0
     translation_range: tuple[float, float] = (0.0, 0.0)
     dilation_range: tuple[float, float] = (1.0, 1.0)
-    memory_channels: int | None = 3  #: the neurons see only the first inputs (the temperatures); None: all 8
+    ring_input: bool = True  #: every neuron integrates the ring mean R = (T1 + T2) / 2 only
+    fiber_lag_grid_s: tuple[float, ...] = (60.0, 120.0, 180.0, 240.0, 320.0, 480.0, 960.0)
+    history_s: tuple[float, ...] = (1800.0, 3600.0, 7200.0)
+    state_powers: int = 1  #: the fiber-lag neuron's square and cube join the regressors
     feedback_scale: float = 0.0
-    linear_path: bool = True
+    linear_path: str = "physical"
     readout: str = "ridge"  #: "ridge" or "adaptive"
     #: Ridge penalty per row on standardized regressors; None: blocked cross-validation on the fit data
     #: (which, within one profile, picks penalties too small to extrapolate to another: not the default).
-    ridge_alpha: float | None = 1e-3
+    ridge_alpha: float | None = 1e-4
     adaptive: AdaptiveLawParams = field(default_factory=lambda: AdaptiveLawParams(
         filter_time_s=10.0, memory_time_s=7200.0, kappa=1.0, delta=1e-6))  # fmt: skip
     adaptive_epochs: int = 3
     aflp_target: bool = False  #: fit to the stage-1 filtered drift instead of the raw one
 
-    def reservoir_params(self, sample_time_s: float) -> ReservoirParams:
+    def reservoir(self, sample_time_s: float, fiber_lag_s: float | None = None) -> WaveletReservoir:
+        """The ring form (``ring_input``): neuron 0 lags R by ``fiber_lag_s``, the others by ``history_s``;
+        no recurrence, translation 0, dilation 1: each neuron a leaky memory of R near Psi's linear regime.
+        The random form: matrices drawn from ``seed`` (the paper's reservoir)."""
+        if self.ring_input:
+            lags = (fiber_lag_s if fiber_lag_s is not None else self.fiber_lag_grid_s[0], *self.history_s)
+            n = len(lags)
+            params = ReservoirParams(
+                n_neurons=n, n_inputs=8, sample_time_s=sample_time_s, leak_per_s=tuple(1.0 / t for t in lags),
+                normalized_leak=True, spectral_radius=0.0, input_scale=self.input_scale, seed=self.seed,
+                translation_range=(0.0, 0.0), dilation_range=(1.0, 1.0),
+            )  # fmt: skip
+            w_in = np.zeros((n, 8))
+            w_in[:, 0] = w_in[:, 1] = 0.5 * self.input_scale
+            matrices = ReservoirMatrices(w_in, np.zeros((n, n)), np.zeros(n), np.ones(n), np.zeros(n))
+            return WaveletReservoir(params, matrices)
         leaks = (1.0 / self.single_leak_s if self.single_leak_s else
                  log_spaced_leaks(self.n_neurons, self.fastest_s, self.slowest_s))  # fmt: skip
-        return ReservoirParams(
+        params = ReservoirParams(
             n_neurons=self.n_neurons, n_inputs=8, sample_time_s=sample_time_s, leak_per_s=leaks,
             normalized_leak=self.normalized_leak, spectral_radius=self.spectral_radius, input_scale=self.input_scale,
             feedback_scale=self.feedback_scale, seed=self.seed, translation_range=self.translation_range,
             dilation_range=self.dilation_range,
         )  # fmt: skip
-
-    def reservoir(self, sample_time_s: float) -> WaveletReservoir:
-        params = self.reservoir_params(sample_time_s)
-        matrices = ReservoirMatrices.draw(params)
-        if self.memory_channels is not None:
-            w_in = matrices.w_in.copy()
-            w_in[:, self.memory_channels :] = 0.0
-            matrices = replace(matrices, w_in=w_in)
-        return WaveletReservoir(params, matrices)
+        return WaveletReservoir(params)
 
 
-#: The two forms' defaults.  ``wesn``: neurons near their linear regime (translation 0, dilation 1,
-#: small inputs) that integrate the temperatures only, at 20 log-spaced time scales from 30 s to 2 h,
-#: without recurrence: leaky memories of the thermal history, which is what the drift depends on
-#: beyond the instantaneous inputs, and which extrapolate to other profiles (random mixtures of all
-#: eight inputs, rates included, fit the training profile's staircase and do not; see the README's
-#: accuracy section for both).
+#: The two forms' defaults.  ``wesn``: the ring form (module docstring); ``paper``: the reservoir as the
+#: paper writes it, with random matrices over all eight inputs.
 WESN_DEFAULTS = WesnConfig()
-PAPER_DEFAULTS = WesnConfig(single_leak_s=60.0, normalized_leak=False, feedback_scale=0.2, linear_path=False,
-                            readout="adaptive", aflp_target=True, input_scale=1.0, spectral_radius=0.9,
-                            translation_range=(-1.0, 1.0), dilation_range=(1.0, 3.0), memory_channels=None)  # fmt: skip
+PAPER_DEFAULTS = WesnConfig(ring_input=False, single_leak_s=60.0, normalized_leak=False, feedback_scale=0.2,
+                            linear_path="none", state_powers=0, readout="adaptive", aflp_target=True,
+                            input_scale=1.0, spectral_radius=0.9, translation_range=(-1.0, 1.0),
+                            dilation_range=(1.0, 3.0))  # fmt: skip
 
 
 class WesnModel:
-    """``D_hat = w . [x, p(z)] + b`` over a wavelet reservoir; explicit state (reservoir x, last output)."""
+    """``D_hat = w . f + b`` over a wavelet reservoir; explicit state (reservoir x, last output).
+
+    The regressors f: the neuron states x; the squares and cubes of the first ``state_powers``
+    neurons; and a linear path on the inputs: ``"polynomial"`` (the baseline's 9 features),
+    ``"physical"`` (its 5 linear ones) or ``"none"``.
+    """
 
     def __init__(self, kind: str, reservoir: WaveletReservoir, weights: np.ndarray, intercept: float,
-                 linear_path: bool) -> None:  # fmt: skip
+                 linear_path: str = "none", state_powers: int = 0) -> None:  # fmt: skip
         self.kind = kind
         self.reservoir = reservoir
         self.weights = np.asarray(weights, dtype=np.float64)
         self.intercept = float(intercept)
-        self.linear_path = bool(linear_path)
-        expected = reservoir.params.n_neurons + (N_POLY_FEATURES if linear_path else 0)
+        if linear_path not in _LINEAR_PATHS:
+            raise ValueError(f"{kind} model: linear_path must be one of {sorted(_LINEAR_PATHS)}, got {linear_path!r}")
+        self.linear_path = linear_path
+        self.state_powers = int(state_powers)
+        if not 0 <= self.state_powers <= reservoir.params.n_neurons:
+            raise ValueError(f"{kind} model: state_powers must be 0..{reservoir.params.n_neurons}")
+        expected = n_regressors(reservoir.params.n_neurons, linear_path, self.state_powers)
         if self.weights.shape != (expected,):
             raise ValueError(f"{kind} model: {expected} weights expected, got {self.weights.shape}")
 
     # -- regressors --------------------------------------------------------------------------
 
     def regressors(self, x: np.ndarray, z: np.ndarray) -> np.ndarray:
-        if not self.linear_path:
-            return np.asarray(x)
-        return np.concatenate((x, polynomial_features(z)), axis=-1)
+        parts = [np.asarray(x)]
+        if self.state_powers:
+            p = parts[0][..., : self.state_powers]
+            parts += [p * p, p * p * p]
+        path = _LINEAR_PATHS[self.linear_path]
+        if path is not None:
+            parts.append(path[0](z))
+        return np.concatenate(parts, axis=-1) if len(parts) > 1 else parts[0]
 
     def _output(self, f: np.ndarray) -> np.ndarray:
         return dot_features(f, self.weights) + self.intercept
@@ -179,6 +221,7 @@ class WesnModel:
         return {
             "reservoir": self.reservoir.to_dict(),
             "linear_path": self.linear_path,
+            "state_powers": self.state_powers,
             "weights": [float(v) for v in self.weights],
             "intercept": self.intercept,
         }
@@ -186,7 +229,7 @@ class WesnModel:
     @classmethod
     def from_dict_kind(cls, kind: str, d: dict) -> WesnModel:
         return cls(kind, WaveletReservoir.from_dict(d["reservoir"]), np.array(d["weights"], dtype=np.float64),
-                   float(d["intercept"]), bool(d["linear_path"]))  # fmt: skip
+                   float(d["intercept"]), str(d["linear_path"]), int(d.get("state_powers", 0)))  # fmt: skip
 
 
 class WesnKind(WesnModel):
@@ -254,27 +297,56 @@ def _aflp_target(target: np.ndarray) -> np.ndarray:
 
 
 def fit_wesn(kind: str, defaults: WesnConfig, captures, normalizer, config) -> WesnModel:
-    """Fit a WESN model of the given form to the captures (see the module docstring)."""
+    """Fit a WESN model of the given form to the captures (see the module docstring).
+
+    The ring form tries each fiber lag of ``fiber_lag_grid_s`` and keeps the one whose fit leaves the
+    smallest in-sample residual in 10-minute averages (averaging lets the model's mismatch show
+    through the gyro's white noise; one physical time constant, so choosing it in-sample is safe).
+    """
     wc = defaults
-    reservoir = wc.reservoir(1.0 / config.model_rate_hz)
-    n_features = wc.n_neurons + (N_POLY_FEATURES if wc.linear_path else 0)
-    model = WesnModel(kind, reservoir, np.zeros(n_features), 0.0, wc.linear_path)
-    xs, ys = [], []
-    for c in captures:
-        target = _aflp_target(c.target_dph) if wc.aflp_target else c.target_dph
-        f = _capture_regressors(model, c, normalizer, target if wc.feedback_scale else None)
-        xs.append(f[c.static])
-        ys.append(target[c.static])
-    x_fit = np.vstack(xs)
-    y_fit = np.concatenate(ys)
-    if wc.readout == "ridge":
-        alpha = wc.ridge_alpha
-        if alpha is None:
-            alpha, _ = cross_validated_alpha(x_fit, y_fit)
-        weights, intercept = standardized_ridge(x_fit, y_fit, alpha)
-    else:
-        weights, intercept = _adaptive_readout(x_fit, y_fit, wc, config)
-    return WesnModel(kind, reservoir, weights, intercept, wc.linear_path)
+    lags = wc.fiber_lag_grid_s if wc.ring_input else (None,)
+    best: tuple[float, WesnModel] | None = None
+    for lag in lags:
+        reservoir = wc.reservoir(1.0 / config.model_rate_hz, lag)
+        n_features = n_regressors(reservoir.params.n_neurons, wc.linear_path, wc.state_powers)
+        model = WesnModel(kind, reservoir, np.zeros(n_features), 0.0, wc.linear_path, wc.state_powers)
+        regressors, targets = [], []
+        for c in captures:
+            target = _aflp_target(c.target_dph) if wc.aflp_target else c.target_dph
+            regressors.append(_capture_regressors(model, c, normalizer, target if wc.feedback_scale else None))
+            targets.append(target)
+        x_fit = np.vstack([f[c.static] for f, c in zip(regressors, captures)])
+        y_fit = np.concatenate([t[c.static] for t, c in zip(targets, captures)])
+        if wc.readout == "ridge":
+            alpha = wc.ridge_alpha
+            if alpha is None:
+                alpha, _ = cross_validated_alpha(x_fit, y_fit)
+            weights, intercept = standardized_ridge(x_fit, y_fit, alpha)
+        else:
+            weights, intercept = _adaptive_readout(x_fit, y_fit, wc, config)
+        fitted = WesnModel(kind, reservoir, weights, intercept, wc.linear_path, wc.state_powers)
+        if len(lags) == 1:
+            return fitted
+        residuals = [t - (f @ weights + intercept) for f, t in zip(regressors, targets)]
+        score = _averaged_residual(residuals, captures, int(round(600 * config.model_rate_hz)))
+        if best is None or score < best[0]:
+            best = (score, fitted)
+    return best[1]
+
+
+def _averaged_residual(residuals, captures, window: int) -> float:
+    """RMS of the residual's means over whole static windows of ``window`` blocks, per capture mean removed."""
+    squares, count = 0.0, 0
+    for r, c in zip(residuals, captures):
+        n = len(r) // window * window
+        r = r[:n].reshape(-1, window)
+        ok = c.static[:n].reshape(-1, window).all(axis=1)
+        if ok.sum() < 2:
+            continue
+        means = r[ok].mean(axis=1)
+        squares += float(np.sum((means - means.mean()) ** 2))
+        count += len(means)
+    return float(np.sqrt(squares / count)) if count else float("inf")
 
 
 def _adaptive_readout(x: np.ndarray, y: np.ndarray, wc: WesnConfig, config) -> tuple[np.ndarray, float]:
