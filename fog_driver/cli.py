@@ -239,6 +239,74 @@ def cmd_compensate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_run(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from .config import DriverConfig, load_config
+    from .daemon.service import ConfigError, Service
+
+    try:
+        config = load_config(args.config) if args.config else DriverConfig()
+        overrides = {k: getattr(args, k) for k in ("port", "model", "listen", "capture_dir") if getattr(args, k)}
+        config = dataclasses.replace(config, **overrides)
+    except (FogDriverError, ValueError) as exc:
+        raise ConfigError(str(exc)) from None
+    stop = threading.Event()
+    simulator = None
+    port = config.port
+    if port is None:
+        simulator, port = _start_embedded_simulator(stop)
+    service = Service(config, port=port)
+    service.stop = stop
+    host, listen_port = service.start()
+    print(f"fog-driver {__version__}: {port} -> listening on {host}:{listen_port}; raw capture in "
+          f"{config.capture_dir}/; connect with: fog-driver watch {host}:{listen_port}  (Ctrl-C to stop)",
+          flush=True)  # fmt: skip
+
+    def on_signal(signum: int, _frame: object) -> None:
+        if signum == signal.SIGHUP:  # reload the model (the config's model path) without stopping
+            service.control("RELOAD", {}, 0)
+            return
+        stop.set()
+
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+    try:
+        return service.run_until_stopped()
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+        if simulator is not None:
+            simulator.join(timeout=10)
+
+
+def _start_embedded_simulator(stop: threading.Event) -> tuple[threading.Thread, str]:
+    """The demonstration instrument: the simulator on a pty in this process (the paper profile)."""
+    from .sim.instrument import Simulator
+    from .sim.profiles import load_profile
+    from .sim.serve import serve_pty
+
+    sim = Simulator(load_profile("paper"), rate_hz=100, seed=0)
+    ready = threading.Event()
+    where: dict[str, str] = {}
+
+    def on_ready(server) -> None:
+        where["path"] = server.slave_path
+        ready.set()
+
+    def serve() -> None:
+        try:
+            serve_pty(sim, link=None, stop=stop, on_ready=on_ready)
+        finally:
+            ready.set()
+
+    thread = threading.Thread(target=serve, name="simulator", daemon=True)
+    thread.start()
+    ready.wait(30)
+    if "path" not in where:
+        raise FogDriverError("the embedded simulator did not start")
+    return thread, where["path"]
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="fog-driver",
@@ -305,6 +373,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--adapt-state", metavar="STATE.yaml",
                    help="with --adapt-reference: restore the adaptation state from here if it exists, save it at the end")
     p.set_defaults(func=cmd_compensate)
+
+    p = sub.add_parser("run", help="the headless daemon: live compensation, publishing, control, raw capture")
+    p.add_argument("--config", metavar="FILE", help="settings (configs/default.yaml lists them); flags override")
+    p.add_argument("--port", metavar="PORT_OR_URL", help="the instrument (default: the embedded simulator)")
+    p.add_argument("--model", metavar="MODEL.yaml", help="drift model (default: configs/models/default.yaml)")
+    p.add_argument("--listen", metavar="HOST:PORT", help="where clients connect (default 127.0.0.1:2948)")
+    p.add_argument("--capture-dir", dest="capture_dir", metavar="DIR", help="raw capture directory")
+    p.set_defaults(func=cmd_run)
     return parser
 
 

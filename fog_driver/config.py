@@ -1,76 +1,98 @@
 """Driver configuration: a YAML file read with ``yaml.safe_load`` only, validated key by key.
 
-Only what the foundation layers need lives here so far (the port and the
-scale factor); later stages add their own sections.  Unknown keys are errors,
-so a typo never silently falls back to a default.
-
-    port: /dev/ttyUSB0              # device path or pyserial URL (replay://x.bin?rate=100)
-    baud: 460800
-    scale_arcsec_per_count: 0.01    # used until the first IDENTITY frame arrives
-    scale_override_arcsec_per_count: null   # set to force a scale over the instrument's
+``configs/default.yaml`` lists every key with its default.  Unknown keys are
+errors, so a typo never silently falls back to a default.  ``fog-driver run``
+flags override the file.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from .errors import InputFileError
 from .stream import DEFAULT_SCALE_ARCSEC_PER_COUNT, SampleStream
-from .yamlfile import read_yaml
+from .yamlfile import dataclass_from_mapping, read_yaml
+
+#: Where the project's shipped files are (configs/ beside the package in a source checkout).
+PROJECT_ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_MODEL = PROJECT_ROOT / "configs" / "models" / "default.yaml"
+DEFAULT_PORT = 2948
+
+
+def parse_host_port(text: str, default_port: int = DEFAULT_PORT) -> tuple[str, int]:
+    """``HOST:PORT``, ``HOST`` or ``:PORT`` (``[v6]:PORT`` for IPv6) -> (host, port)."""
+    host, sep, port = text.rpartition(":")
+    if not sep:
+        host, port = text, str(default_port)
+    host = host.strip("[]") or "127.0.0.1"
+    try:
+        number = int(port)
+    except ValueError:
+        raise ValueError(f"{text!r}: the port must be a number") from None
+    if not 0 <= number <= 65535:
+        raise ValueError(f"{text!r}: the port must be 0..65535")
+    return host, number
 
 
 @dataclass(frozen=True)
 class DriverConfig:
-    port: str | None = None
+    """Every setting of the driver and the daemon (``configs/default.yaml`` documents each)."""
+
+    port: str | None = None  #: device path or URL; None: the embedded simulator (``fog-driver run``)
     baud: int = 460800
     scale_arcsec_per_count: float = DEFAULT_SCALE_ARCSEC_PER_COUNT
     scale_override_arcsec_per_count: float | None = None
+    model: str | None = None  #: model file; None: the shipped default
+    listen: str = f"127.0.0.1:{DEFAULT_PORT}"
+    token: str | None = None  #: required for control commands when listening beyond loopback
+    udp: str | None = None  #: HOST:PORT to send one datagram per sample to (None: off)
+    capture_dir: str = "fog-captures"
+    capture_rotate_mb: float = 256.0
+    capture_rotate_s: float = 3600.0
+    status_every_s: float = 1.0
+    max_client_backlog_s: float = 2.0
+    adapt_reference_dph: float | None = None  #: adapt from the start against this rate (None: frozen)
+    adapt_state: str | None = None  #: restore the adaptation state from here at start, save it here
+
+    def __post_init__(self) -> None:
+        if self.port is not None and not self.port:
+            raise ValueError("port must be a device path or URL string")
+        if not 50 <= self.baud <= 12_000_000:
+            raise ValueError(f"baud must be an integer baud rate, got {self.baud!r}")
+        for name in ("scale_arcsec_per_count", "scale_override_arcsec_per_count"):
+            value = getattr(self, name)
+            if value is not None and not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a positive number of arcsec per count, got {value!r}")
+        for name in ("capture_rotate_mb", "capture_rotate_s", "status_every_s", "max_client_backlog_s"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0")
+        parse_host_port(self.listen)
+        if self.udp is not None:
+            parse_host_port(self.udp)
+        if self.token is not None and len(self.token) < 8:
+            raise ValueError("token must be at least 8 characters")
 
     def sample_stream(self) -> SampleStream:
         """A ``SampleStream`` applying this configuration's scale-factor rule."""
         return SampleStream(self.scale_arcsec_per_count, self.scale_override_arcsec_per_count)
 
-
-def _positive_scale(name: str, value: Any, where: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
-        raise InputFileError(f"{where}: {name} must be a positive number of arcsec per count, got {value!r}")
-    return float(value)
+    @property
+    def model_path(self) -> Path:
+        return Path(self.model) if self.model else DEFAULT_MODEL
 
 
 def parse_config(doc: Any, where: str = "config") -> DriverConfig:
-    """Validate a parsed YAML document into a ``DriverConfig``."""
+    """Validate a parsed YAML document into a ``DriverConfig`` (one-line ``InputFileError``s)."""
     if doc is None:
         return DriverConfig()
     if not isinstance(doc, dict):
         raise InputFileError(f"{where}: expected a YAML mapping of settings")
-    known = {f.name for f in fields(DriverConfig)}
-    unknown = sorted(set(doc) - known)
-    if unknown:
-        raise InputFileError(f"{where}: unknown setting {unknown[0]!r} (known: {', '.join(sorted(known))})")
-    values: dict[str, Any] = {}
-    if doc.get("port") is not None:
-        if not isinstance(doc["port"], str) or not doc["port"]:
-            raise InputFileError(f"{where}: port must be a device path or URL string")
-        values["port"] = doc["port"]
-    if "baud" in doc:
-        baud = doc["baud"]
-        if isinstance(baud, bool) or not isinstance(baud, int) or not 50 <= baud <= 12_000_000:
-            raise InputFileError(f"{where}: baud must be an integer baud rate, got {baud!r}")
-        values["baud"] = baud
-    if "scale_arcsec_per_count" in doc:
-        values["scale_arcsec_per_count"] = _positive_scale("scale_arcsec_per_count", doc["scale_arcsec_per_count"], where)
-    if doc.get("scale_override_arcsec_per_count") is not None:
-        values["scale_override_arcsec_per_count"] = _positive_scale(
-            "scale_override_arcsec_per_count", doc["scale_override_arcsec_per_count"], where
-        )
-    return DriverConfig(**values)
+    return dataclass_from_mapping(DriverConfig, doc, where)
 
 
 def load_config(path: str | Path) -> DriverConfig:
     """Read and validate a config file; every problem is a one-line ``InputFileError``."""
-    path = Path(path)
-    doc = read_yaml(path, "config file")
-    return parse_config(doc, str(path))
+    return parse_config(read_yaml(path, "config file"), str(path))

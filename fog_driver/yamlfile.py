@@ -58,39 +58,60 @@ def read_yaml(path: str | Path, what: str, *, missing_ok: bool = False, hint: st
         raise InputFileError(f"{path}: {what} is not valid YAML{at}") from None
 
 
+def _kind(default: Any, annotation: str) -> str:
+    """What a field holds: from its default, or (a None default) from its annotation."""
+    if is_dataclass(default):
+        return "dataclass"
+    for name, types in (("bool", bool), ("int", int), ("float", float), ("str", str), ("tuple", tuple)):
+        if isinstance(default, types):
+            return name
+    for name in ("bool", "int", "float", "str", "tuple"):
+        if name in annotation:
+            return name
+    raise TypeError(f"cannot read a {annotation!r} setting from YAML")
+
+
 def dataclass_from_mapping(cls: type, doc: Any, where: str) -> Any:
-    """Build a (nested) frozen dataclass from a YAML mapping, refusing unknown keys and wrong types."""
+    """Build a (nested) frozen dataclass from a YAML mapping, refusing unknown keys and wrong types.
+
+    A field's type comes from its default value (or, for a None default, its annotation); an
+    optional field (annotated ``... | None``) accepts null.  ``ValueError`` from the dataclass's
+    own checks becomes a one-line ``InputFileError`` naming ``where``.
+    """
     if not isinstance(doc, dict):
         raise InputFileError(f"{where}: expected a mapping")
     known = {f.name: f for f in fields(cls)}
+    defaults = cls()
     values = {}
     for key, value in doc.items():
         if key not in known:
             raise InputFileError(f"{where}: unknown key {key!r} (known: {', '.join(sorted(known))})")
-        default = getattr(cls(), key)
+        default = getattr(defaults, key)
+        annotation = str(known[key].type)
         here = f"{where}.{key}"
-        if value is None and "None" in str(known[key].type):  # an optional setting, explicitly unset
+        if value is None and "None" in annotation:  # an optional setting, explicitly unset
             values[key] = None
             continue
-        if is_dataclass(default):
+        kind = _kind(default, annotation)
+        if kind == "dataclass":
             values[key] = dataclass_from_mapping(type(default), value, here)
-        elif isinstance(default, bool):
+        elif kind == "bool":
             if not isinstance(value, bool):
                 raise InputFileError(f"{here}: expected true or false, got {value!r}")
             values[key] = value
-        elif isinstance(default, int):
+        elif kind == "int":
             if isinstance(value, bool) or not isinstance(value, int):
                 raise InputFileError(f"{here}: expected an integer, got {value!r}")
             values[key] = value
-        elif isinstance(default, float):
+        elif kind == "float":
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise InputFileError(f"{here}: expected a finite number, got {value!r}")
             values[key] = float(value)
-        elif isinstance(default, str):
+        elif kind == "str":
             if not isinstance(value, str):
                 raise InputFileError(f"{here}: expected a string, got {value!r}")
             values[key] = value
-        elif isinstance(default, tuple):
+        else:
             if not isinstance(value, list) or not all(
                 isinstance(v, (int, float)) and not isinstance(v, bool) for v in value
             ):

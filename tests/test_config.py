@@ -15,7 +15,8 @@ CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 def test_shipped_default_config_loads():
     cfg = load_config(CONFIGS / "default.yaml")
-    assert cfg == DriverConfig(port=None, baud=460800, scale_arcsec_per_count=0.01)
+    assert cfg == DriverConfig()
+    assert cfg.model_path.is_file()  # the shipped default model
 
 
 def test_config_scale_rule_reaches_the_stream(tmp_path):
@@ -36,10 +37,14 @@ def test_config_scale_rule_reaches_the_stream(tmp_path):
 @pytest.mark.parametrize(
     "text, needle",
     [
-        ("baud: fast\n", "baud must be an integer"),
+        ("baud: fast\n", "baud: expected an integer"),
+        ("baud: 3\n", "baud must be an integer baud rate"),
+        ("port: 5\n", "port: expected a string"),
+        ("listen: 'localhost:http'\n", "the port must be a number"),
+        ("token: short\n", "at least 8 characters"),
         ("scale_arcsec_per_count: -1\n", "positive number"),
-        ("scale_override_arcsec_per_count: .nan\n", "positive number"),
-        ("sclae_arcsec_per_count: 0.1\n", "unknown setting 'sclae_arcsec_per_count'"),
+        ("scale_override_arcsec_per_count: .nan\n", "expected a finite number"),
+        ("sclae_arcsec_per_count: 0.1\n", "unknown key 'sclae_arcsec_per_count'"),
         ("- a list\n", "expected a YAML mapping"),
         ("port: [unclosed\n", "not valid YAML"),
         ("port: !!python/object/apply:os.system ['true']\n", "not valid YAML"),

@@ -1,0 +1,1 @@
+"""The headless daemon (``fog-driver run``): always-on raw capture, systemd integration."""

@@ -1,0 +1,82 @@
+"""The daemon's pipeline and control, without sockets: published angles equal offline compensation."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fog_driver.compensation.apply import compensate_capture
+from fog_driver.compensation.model import load_model
+from fog_driver.config import DEFAULT_MODEL, DriverConfig
+from fog_driver.daemon.service import ConfigError, Service
+
+DATA = Path(__file__).resolve().parent / "data"
+
+
+def offline_angles(capture: Path, model_path: Path) -> list[float]:
+    return [float(a) for _, cols in compensate_capture(capture, load_model(model_path)) for a in cols.angle_comp_arcsec]
+
+
+@pytest.mark.parametrize("chunk", [1, 97, 4096])
+def test_published_angles_equal_offline_compensation(chunk):
+    capture = DATA / "sim-faults.bin"
+    service = Service(DriverConfig(), port="unused")
+    data = capture.read_bytes()
+    published = []
+    for i in range(0, len(data), chunk):
+        published += service.process(data[i : i + chunk])
+    assert [o["angle_arcsec"] for o in published] == offline_angles(capture, DEFAULT_MODEL)
+    seqs = [o["seq"] for o in published]
+    assert seqs == sorted(seqs) and len(seqs) == 2956
+    first = published[0]
+    assert first["class"] == "ANGLE" and set(first) >= {"seq", "t_s", "angle_arcsec", "angle_raw_arcsec",
+                                                        "rate_dph", "drift_dph", "temps_c", "flags"}  # fmt: skip
+    assert any("gap" in o["flags"] for o in published)
+    assert any(len(o["temps_c"]) < 3 for o in published)  # a faulted thermometer is omitted, never NaN
+
+
+def test_zero_and_bias_commands():
+    service = Service(DriverConfig(), port="unused")
+    data = (DATA / "sim-short.bin").read_bytes()
+    half = len(data) // 2
+    service.process(data[:half])
+    assert service.control("ZERO", {}, 0) == {"class": "ZERO", "zeroed": True}
+    after = service.process(data[half : half + 2600])  # 100 frames
+    assert abs(after[0]["angle_arcsec"]) < 1.0 and abs(after[0]["angle_raw_arcsec"]) < 30.0
+    future = service.control("BIAS", {"seconds": 5}, 0)
+    assert not future.done()
+    service.process(data[half + 2600 :])
+    result = future.result(timeout=1)
+    assert result["class"] == "BIAS" and abs(result["bias_dph"] - 10.0) < 2.0  # Earth rate + bias at rest
+    assert service.control("BIAS", {"seconds": 0}, 0)["class"] == "ERROR"
+    assert service.control("NOPE", {}, 0)["class"] == "ERROR"
+    assert service.control("ADAPT", {"enable": "yes"}, 0)["class"] == "ERROR"
+    assert service.control("ADAPT", {"enable": True, "reference_dph": 0}, 0) == {
+        "class": "ADAPT", "enable": True, "reference_dph": 0.0}  # fmt: skip
+    assert service.control("STATUS", {}, 0)["adapting"] is True
+    assert service.control("SAVE", {}, 0)["class"] == "ERROR"  # no adapt_state configured
+
+
+def test_bad_model_is_a_config_error(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("format: something\n")
+    with pytest.raises(ConfigError) as info:
+        Service(DriverConfig(model=str(bad)), port="unused")
+    assert info.value.exit_status == 78
+
+
+def test_samples_before_the_first_identity_are_kept_and_compensated():
+    from fog_driver.protocol import decode_bytes
+
+    data = (DATA / "sim-short.bin").read_bytes()
+    first_identity = decode_bytes(data).identities[1].offset  # skip the start-of-run IDENTITY
+    service = Service(DriverConfig(), port="unused")
+    # Without the start-of-run IDENTITY, the first second's samples wait for the next one...
+    assert service.process(data[32 : first_identity + 32]) == []
+    # ...and are compensated, in order, as soon as a sample follows it.
+    published = service.process(data[first_identity + 32 : first_identity + 32 + 26])
+    assert len(published) == 11
+    assert [o["seq"] for o in published] == list(range(published[0]["seq"], published[0]["seq"] + 11))
+    assert np.all(np.isfinite([o["angle_arcsec"] for o in published]))
