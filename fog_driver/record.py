@@ -158,7 +158,7 @@ def record(
                 }
             try:
                 write_provenance(out_path, fields)
-            except OSError:
+            except (OSError, OutputFileError):
                 pass  # the disk is full: the write error on its way out says so
     if status != "complete":
         raise OutputFileError(status.removeprefix("failed: "))

@@ -221,7 +221,8 @@ class Service:
         try:
             for chunk in reader.chunks(self.stop):
                 if self.rawlog is not None:
-                    self.rawlog.write(chunk)
+                    with self.lock:  # the status loop polls (flushes, rotates) the capture too
+                        self.rawlog.write(chunk)
                 angles = self.process(chunk)
                 if angles and self.hub is not None:
                     self.hub.publish_angles(angles)
@@ -349,12 +350,15 @@ class Service:
         try:
             while not self.stop.wait(every):
                 with self.lock:
+                    if self.rawlog is not None:
+                        self.rawlog.poll()  # a quiet port still flushes, and rotates by age
                     status = self.status_object()
                 self.hub.publish(status)
                 log.info("status", **{k: v for k, v in status.items() if k != "class"})
                 self.notifier.status(f"{status['port_state']}, {status['frames']} frames, "
                                      f"{status.get('clients', 0)} clients")  # fmt: skip
-                self.notifier.maybe_watchdog(time.monotonic())
+                if self._acquisition is not None and self._acquisition.is_alive():
+                    self.notifier.maybe_watchdog(time.monotonic())  # only while acquisition lives
                 if on_status:
                     on_status(status)
         finally:
@@ -375,7 +379,8 @@ class Service:
                 except FogDriverError as exc:
                     log.error("adapt_state_not_saved", reason=str(exc))
         if self.rawlog is not None:
-            self.rawlog.close()
+            with self.lock:  # after the acquisition thread has ended (or given up on after 10 s)
+                self.rawlog.close()
         if self.hub is not None:
             self.hub.stop()
 

@@ -1,0 +1,527 @@
+"""The daemon's raw capture (rotating files + sidecars), its systemd notifier and its unit file.
+
+No sleeps anywhere: time-based behaviour runs on an injected clock.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import random
+import re
+import socket
+from pathlib import Path
+
+import pytest
+
+from fog_driver.capture import read_provenance, sidecar_path
+from fog_driver.daemon import rawlog
+from fog_driver.daemon.rawlog import RotatingCapture
+from fog_driver.daemon.sdnotify import Notifier
+from fog_driver.errors import OutputFileError
+from fog_driver.protocol import decode_bytes, decode_file, encode_identity, encode_sample
+
+ROOT = Path(__file__).resolve().parents[1]
+UNIT = ROOT / "configs" / "systemd" / "fog-driver@.service"
+NAME = re.compile(r"^fog-(\d{8}T\d{6}Z)-(\d{4,})\.bin$")
+
+
+class FakeClock:
+    def __init__(self, t: float = 1000.0) -> None:
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def _chunks(seed: int, n: int, lo: int = 1, hi: int = 300) -> list[bytes]:
+    rng = random.Random(seed)
+    return [rng.randbytes(rng.randint(lo, hi)) for _ in range(n)]
+
+
+def _concat(paths: list[Path]) -> bytes:
+    return b"".join(p.read_bytes() for p in paths)
+
+
+def _frames(n: int) -> list[bytes]:
+    """An IDENTITY frame, then ``n`` SAMPLE frames, each as its own bytes."""
+    out = [encode_identity("FOG-TEST-0001", 0x0102, 100, 0.0125)]
+    out += [encode_sample(i, 10_000 * i, 40 + i % 7, 5120, 5100, 5000) for i in range(n)]
+    return out
+
+
+# -- the bytes -------------------------------------------------------------------------------------
+
+
+def test_files_concatenate_to_exactly_the_bytes_written(tmp_path):
+    chunks = _chunks(1, 400)
+    with RotatingCapture(tmp_path, max_bytes=2000, clock=FakeClock()) as cap:
+        for chunk in chunks:
+            cap.write(chunk)
+        assert cap.bytes_written == sum(map(len, chunks))
+    data = b"".join(chunks)
+    assert len(cap.files) > 10
+    assert _concat(cap.files) == data
+    # Name order is write order, so `cat fog-*.bin` restores the stream.
+    assert sorted(cap.files, key=lambda p: p.name) == cap.files
+    assert sorted(tmp_path.glob("*.bin")) == sorted(cap.files)
+    assert cap.current_path is None and cap.closed
+
+
+def test_file_names_follow_the_pattern(tmp_path):
+    with RotatingCapture(tmp_path / "raw", max_bytes=10, clock=FakeClock()) as cap:
+        for chunk in _chunks(2, 5, 10, 10):
+            cap.write(chunk)
+    assert [int(NAME.match(p.name)[2]) for p in cap.files] == [0, 1, 2, 3, 4]
+    for p in cap.files:
+        assert p.parent == tmp_path / "raw"
+        assert sidecar_path(p).exists()
+
+
+def test_size_rotation_never_splits_a_chunk_and_respects_max_bytes(tmp_path):
+    chunks = _chunks(3, 500, 1, 250)
+    max_bytes = 1000
+    with RotatingCapture(tmp_path, max_bytes=max_bytes, clock=FakeClock()) as cap:
+        for chunk in chunks:
+            cap.write(chunk)
+    sizes = [p.stat().st_size for p in cap.files]
+    assert max(sizes) <= max_bytes
+    # Every file is a run of whole chunks, and it rotated only when the next chunk would not fit.
+    i = 0
+    for k, path in enumerate(cap.files):
+        content = path.read_bytes()
+        held = 0
+        while i < len(chunks) and held + len(chunks[i]) <= len(content):
+            assert content[held : held + len(chunks[i])] == chunks[i]
+            held += len(chunks[i])
+            i += 1
+        assert held == len(content), f"{path.name} ends inside a chunk"
+        if k + 1 < len(cap.files):
+            assert held + len(chunks[i]) > max_bytes  # rotated only when it had to
+    assert i == len(chunks)
+
+
+def test_a_chunk_of_exactly_max_bytes_fills_a_file(tmp_path):
+    with RotatingCapture(tmp_path, max_bytes=100, clock=FakeClock()) as cap:
+        cap.write(b"a" * 100)
+        cap.write(b"b" * 100)
+        cap.write(b"c" * 40)
+        cap.write(b"d" * 60)
+    assert [p.read_bytes() for p in cap.files] == [b"a" * 100, b"b" * 100, b"c" * 40 + b"d" * 60]
+
+
+def test_a_chunk_larger_than_max_bytes_is_written_whole_alone_in_its_file(tmp_path):
+    """The one documented exception to max_bytes: a single oversized chunk is not split."""
+    big = bytes(range(256)) * 2
+    with RotatingCapture(tmp_path, max_bytes=100, clock=FakeClock()) as cap:
+        cap.write(b"x" * 30)
+        cap.write(big)
+        cap.write(b"y" * 30)
+    assert [p.read_bytes() for p in cap.files] == [b"x" * 30, big, b"y" * 30]
+    assert read_provenance(cap.files[1])["bytes"] == len(big)
+
+
+def test_empty_writes_open_no_file(tmp_path):
+    with RotatingCapture(tmp_path, clock=FakeClock()) as cap:
+        cap.write(b"")
+        assert cap.current_path is None
+    assert cap.files == [] and list(tmp_path.iterdir()) == []
+
+
+def test_write_after_close_is_an_error_and_close_is_idempotent(tmp_path):
+    cap = RotatingCapture(tmp_path, clock=FakeClock())
+    cap.write(b"abc")
+    cap.close()
+    cap.close()
+    with pytest.raises(ValueError):
+        cap.write(b"more")
+    assert _concat(cap.files) == b"abc"
+
+
+@pytest.mark.parametrize(
+    "kwargs", [{"max_bytes": 0}, {"max_age_s": 0}, {"flush_every_s": -1}, {"prefix": ""}, {"prefix": "a/b"}]
+)
+def test_bad_arguments_are_value_errors(tmp_path, kwargs):
+    with pytest.raises(ValueError):
+        RotatingCapture(tmp_path, **kwargs)
+
+
+# -- time ------------------------------------------------------------------------------------------
+
+
+def test_age_rotation_with_an_injected_clock(tmp_path):
+    clock = FakeClock(500.0)
+    with RotatingCapture(tmp_path, max_age_s=60.0, clock=clock) as cap:
+        cap.write(b"a")  # opens the first file at t=500
+        clock.t = 559.9
+        cap.write(b"b")
+        assert len(cap.files) == 1
+        clock.t = 560.0  # 60 s since the file opened
+        cap.write(b"c")
+        assert len(cap.files) == 2
+        clock.t = 619.0
+        cap.write(b"d")
+        clock.t = 620.0
+        cap.write(b"e")
+    assert [p.read_bytes() for p in cap.files] == [b"ab", b"cd", b"e"]
+    reasons = [read_provenance(p)["end_reason"] for p in cap.files]
+    assert reasons == ["max_age_s", "max_age_s", "close"]
+
+
+def test_poll_closes_an_old_file_on_a_quiet_port(tmp_path):
+    clock = FakeClock(0.0)
+    with RotatingCapture(tmp_path, max_age_s=10.0, clock=clock) as cap:
+        cap.write(b"first")
+        clock.t = 9.0
+        cap.poll()
+        assert cap.current_path == cap.files[0]
+        clock.t = 10.0
+        cap.poll()
+        assert cap.current_path is None  # closed and described, no empty successor
+        assert read_provenance(cap.files[0])["status"] == "complete"
+        clock.t = 500.0
+        cap.poll()
+        assert len(cap.files) == 1
+        cap.write(b"second")
+    assert [p.read_bytes() for p in cap.files] == [b"first", b"second"]
+
+
+def test_flush_cadence_with_an_injected_clock(tmp_path):
+    clock = FakeClock(0.0)
+    cap = RotatingCapture(tmp_path, flush_every_s=1.0, clock=clock)
+    cap.write(b"a" * 100)
+    path = cap.current_path
+    assert os.stat(path).st_size == 0  # still in the process's buffer
+    clock.t = 0.5
+    cap.write(b"b" * 100)
+    assert os.stat(path).st_size == 0
+    clock.t = 1.0  # a second since the file opened: flushed to the OS (a SIGKILL now loses nothing)
+    cap.write(b"c" * 100)
+    assert os.stat(path).st_size == 300
+    clock.t = 1.7
+    cap.write(b"d" * 100)
+    assert os.stat(path).st_size == 300
+    clock.t = 2.0
+    cap.poll()  # a quiet port is flushed by poll
+    assert os.stat(path).st_size == 400
+    cap.write(b"e" * 100)
+    cap.flush()
+    assert os.stat(path).st_size == 500
+    cap.close()
+    assert os.stat(path).st_size == 500
+
+
+def test_flush_every_zero_flushes_every_write(tmp_path):
+    cap = RotatingCapture(tmp_path, flush_every_s=0.0, clock=FakeClock())
+    for k in range(1, 4):
+        cap.write(b"z" * 10)
+        assert os.stat(cap.current_path).st_size == 10 * k
+    cap.close()
+
+
+# -- sidecars --------------------------------------------------------------------------------------
+
+
+def test_sidecars_say_recording_then_complete_with_bytes_and_sha256(tmp_path):
+    provenance = {"port": "/dev/ttyUSB0", "baud": 921600, "instrument": "chamber1"}
+    chunks = _chunks(4, 60, 50, 150)
+    cap = RotatingCapture(tmp_path, max_bytes=2000, provenance=provenance, clock=FakeClock())
+    cap.write(chunks[0])
+    open_side = read_provenance(cap.current_path)
+    assert open_side["status"] == "recording"
+    assert open_side["port"] == "/dev/ttyUSB0" and open_side["instrument"] == "chamber1"
+    assert open_side["source"] == "daemon" and "start_utc" in open_side and "sha256" not in open_side
+    for chunk in chunks[1:]:
+        cap.write(chunk)
+    cap.close()
+    total = 0
+    for k, path in enumerate(cap.files):
+        side = read_provenance(path)
+        data = path.read_bytes()
+        assert side["status"] == "complete"
+        assert side["capture"] == path.name
+        assert side["bytes"] == len(data)
+        assert side["sha256"] == hashlib.sha256(data).hexdigest()
+        assert side["baud"] == 921600 and side["port"] == "/dev/ttyUSB0"
+        assert side["segment"] == k
+        assert side.get("previous_capture") == (cap.files[k - 1].name if k else None)
+        assert side["start_utc"].endswith("Z") and side["end_utc"] >= side["start_utc"]
+        assert side["rotation"] == {"max_bytes": 2000, "max_age_s": 3600.0}
+        total += side["bytes"]
+    assert total == cap.bytes_written == sum(map(len, chunks))
+    assert not list(tmp_path.glob("*.tmp"))
+
+
+def test_update_provenance_reaches_the_current_and_later_sidecars(tmp_path):
+    cap = RotatingCapture(tmp_path, max_bytes=10, provenance={"port": "p"}, clock=FakeClock())
+    cap.write(b"0123456789")
+    cap.update_provenance({"instrument": {"serial": "FOG-1"}})
+    assert read_provenance(cap.current_path)["instrument"] == {"serial": "FOG-1"}
+    cap.write(b"abc")
+    cap.close()
+    for path in cap.files:
+        assert read_provenance(path)["instrument"] == {"serial": "FOG-1"}
+        assert read_provenance(path)["port"] == "p"
+
+
+def test_an_existing_name_is_skipped_never_overwritten(tmp_path, monkeypatch):
+    monkeypatch.setattr(rawlog, "utc_now_iso", lambda: "2024-05-06T07:08:09.000Z")
+    with RotatingCapture(tmp_path, clock=FakeClock()) as first:
+        first.write(b"first run")
+    with RotatingCapture(tmp_path, clock=FakeClock()) as second:  # a restart within the same second
+        second.write(b"second run")
+    assert [p.name for p in first.files] == ["fog-20240506T070809Z-0000.bin"]
+    assert [p.name for p in second.files] == ["fog-20240506T070809Z-0001.bin"]
+    assert first.files[0].read_bytes() == b"first run"
+
+
+# -- failures --------------------------------------------------------------------------------------
+
+
+def test_directory_is_created_with_its_parents(tmp_path):
+    target = tmp_path / "var" / "lib" / "fog-driver"
+    RotatingCapture(target).close()
+    assert target.is_dir()
+
+
+@pytest.mark.parametrize("where", ["under_a_file", "is_a_file"])
+def test_a_directory_that_cannot_be_created_is_a_one_line_error(tmp_path, where):
+    blocker = tmp_path / "plain-file"
+    blocker.write_text("not a directory")
+    target = blocker / "captures" if where == "under_a_file" else blocker
+    with pytest.raises(OutputFileError) as info:
+        RotatingCapture(target)
+    message = str(info.value)
+    assert "\n" not in message and str(target) in message
+    assert info.value.exit_status == 73
+
+
+class _FullDisk:
+    """Wraps a capture file whose disk has just filled up: every write, flush and fsync fails."""
+
+    def __init__(self, real):
+        self.real = real
+
+    @property
+    def closed(self):
+        return self.real.closed
+
+    def write(self, data):
+        raise OSError(28, "No space left on device")
+
+    def flush(self):
+        raise OSError(28, "No space left on device")
+
+    def fileno(self):
+        raise OSError(28, "No space left on device")
+
+    def close(self):
+        self.real.close()
+
+
+def test_a_full_disk_is_a_one_line_error_and_the_sidecar_says_failed(tmp_path):
+    cap = RotatingCapture(tmp_path, clock=FakeClock())
+    cap.write(b"kept")
+    cap.flush()
+    failing = cap.current_path
+    cap._writer._file = _FullDisk(cap._writer._file)  # the CaptureWriter's file: the disk fills up
+    with pytest.raises(OutputFileError) as info:
+        cap.write(b"lost")
+    assert "\n" not in str(info.value) and "No space left on device" in str(info.value)
+    side = read_provenance(failing)
+    assert side["status"].startswith("failed: ") and "No space left" in side["status"]
+    assert side["bytes"] == 4 and failing.read_bytes() == b"kept"
+    # The service decides: writing again starts a new file.
+    assert cap.current_path is None
+    cap.write(b"after")
+    cap.close()
+    assert cap.files[1].read_bytes() == b"after" and read_provenance(cap.files[1])["status"] == "complete"
+
+
+# -- frames ----------------------------------------------------------------------------------------
+
+
+def test_every_file_decodes_when_fed_whole_frames(tmp_path):
+    frames = _frames(400)
+    with RotatingCapture(tmp_path, max_bytes=1000, clock=FakeClock()) as cap:
+        for frame in frames:
+            cap.write(frame)
+    assert len(cap.files) > 5
+    samples = 0
+    for path in cap.files:
+        decoded = decode_file(path)
+        c = decoded.counters
+        assert c.crc_errors == c.length_errors == c.bytes_discarded == 0
+        assert c.bytes_in == path.stat().st_size
+        samples += c.sample_frames
+    assert samples == 400
+    assert decode_file(cap.files[0]).identities[0].serial == "FOG-TEST-0001"
+
+
+def test_files_cut_inside_frames_still_decode_as_one_stream_when_concatenated(tmp_path):
+    stream = b"".join(_frames(300))
+    rng = random.Random(5)
+    with RotatingCapture(tmp_path, max_bytes=700, clock=FakeClock()) as cap:
+        i = 0
+        while i < len(stream):
+            n = rng.randint(1, 64)
+            cap.write(stream[i : i + n])
+            i += n
+    whole = decode_bytes(_concat(cap.files))
+    assert whole.counters.sample_frames == 300 and whole.counters.bytes_discarded == 0
+    assert whole.counters.as_dict() == decode_bytes(stream).counters.as_dict()
+
+
+# -- sdnotify --------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def notify_socket(tmp_path):
+    path = tmp_path / "n.sock"
+    if len(str(path)) > 100:
+        pytest.skip("tmp_path too long for an AF_UNIX address")
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    server.bind(str(path))
+    server.settimeout(5)
+    yield path, server
+    server.close()
+
+
+def _nothing_waiting(server: socket.socket) -> bool:
+    server.setblocking(False)
+    try:
+        server.recv(4096)
+    except BlockingIOError:
+        return True
+    finally:
+        server.settimeout(5)
+    return False
+
+
+def test_sdnotify_sends_the_messages_systemd_expects(notify_socket, monkeypatch):
+    path, server = notify_socket
+    monkeypatch.setenv("NOTIFY_SOCKET", str(path))
+    monkeypatch.setenv("WATCHDOG_USEC", "10000000")
+    monkeypatch.delenv("WATCHDOG_PID", raising=False)
+    with Notifier.from_environment() as n:
+        assert n.enabled and n.watchdog_interval_s == 5.0
+        assert n.ready()
+        assert server.recv(4096) == b"READY=1"
+        assert n.status("recording chamber1: 1,234 frames\nok")
+        assert server.recv(4096) == b"STATUS=recording chamber1: 1,234 frames ok"
+        assert n.watchdog()
+        assert server.recv(4096) == b"WATCHDOG=1"
+        assert n.stopping()
+        assert server.recv(4096) == b"STOPPING=1"
+        n.ready("up")
+        assert server.recv(4096) == b"READY=1\nSTATUS=up"
+        assert n.sent == 5 and n.send_errors == 0
+        assert _nothing_waiting(server)
+
+
+def test_sdnotify_watchdog_is_rate_limited_to_half_the_period(notify_socket, monkeypatch):
+    path, server = notify_socket
+    monkeypatch.setenv("NOTIFY_SOCKET", str(path))
+    monkeypatch.setenv("WATCHDOG_USEC", "10000000")  # WatchdogSec=10: ping at most every 5 s
+    monkeypatch.setenv("WATCHDOG_PID", str(os.getpid()))
+    n = Notifier.from_environment()
+    sent = [t for t in (0.0, 1.0, 4.99, 5.0, 6.0, 9.99, 10.0, 10.5, 20.0) if n.maybe_watchdog(t)]
+    assert sent == [0.0, 5.0, 10.0, 20.0]
+    for _ in sent:
+        assert server.recv(4096) == b"WATCHDOG=1"
+    assert _nothing_waiting(server)
+    # The notifier's own clock when no time is given.
+    clock = FakeClock(100.0)
+    n2 = Notifier(str(path), 2_000_000, clock=clock)
+    assert n2.maybe_watchdog() and not n2.maybe_watchdog()
+    clock.t = 101.0
+    assert n2.maybe_watchdog()
+    assert [server.recv(4096) for _ in range(2)] == [b"WATCHDOG=1"] * 2
+    n.close()
+    n2.close()
+
+
+def test_sdnotify_abstract_socket_address(monkeypatch):
+    name = f"fog-driver-test-{os.getpid()}"
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    server.bind("\0" + name)
+    server.settimeout(5)
+    try:
+        monkeypatch.setenv("NOTIFY_SOCKET", "@" + name)
+        with Notifier.from_environment() as n:
+            assert n.ready("abstract")
+            assert server.recv(4096) == b"READY=1\nSTATUS=abstract"
+    finally:
+        server.close()
+
+
+def test_sdnotify_without_a_socket_is_a_no_op(monkeypatch):
+    monkeypatch.delenv("NOTIFY_SOCKET", raising=False)
+    monkeypatch.delenv("WATCHDOG_USEC", raising=False)
+    n = Notifier.from_environment()
+    assert not n.enabled and n.watchdog_interval_s is None
+    assert not n.ready("x") and not n.status("x") and not n.watchdog() and not n.stopping()
+    assert not n.maybe_watchdog(0.0)
+    assert n.sent == n.send_errors == 0
+    for address in ("", "relative/path", "vsock:2:1234", "@"):
+        assert not Notifier.from_environment({"NOTIFY_SOCKET": address}).enabled
+
+
+def test_sdnotify_watchdog_for_another_process_or_malformed_is_off(tmp_path):
+    env = {"NOTIFY_SOCKET": str(tmp_path / "n.sock"), "WATCHDOG_USEC": "10000000", "WATCHDOG_PID": "1"}
+    assert os.getpid() != 1
+    assert Notifier.from_environment(env).watchdog_interval_s is None
+    env.update(WATCHDOG_PID="", WATCHDOG_USEC="soon")
+    assert Notifier.from_environment(env).watchdog_interval_s is None
+
+
+def test_sdnotify_send_errors_never_raise(tmp_path):
+    n = Notifier(str(tmp_path / "nobody-listens.sock"), 1_000_000)
+    assert not n.ready() and not n.maybe_watchdog(0.0) and not n.stopping()
+    assert n.send_errors == 3 and n.sent == 0
+    assert "nobody-listens.sock" in n.last_error and "\n" not in n.last_error
+    n.close()
+
+
+# -- the systemd unit ------------------------------------------------------------------------------
+
+
+def _parse_unit(text: str) -> dict[str, dict[str, list[str]]]:
+    """systemd's INI-like unit syntax: [Section], Key=value, '#'/';' comments, repeatable keys."""
+    sections: dict[str, dict[str, list[str]]] = {}
+    current = None
+    for number, raw in enumerate(text.splitlines(), 1):
+        line = raw.strip()
+        if not line or line[0] in "#;":
+            continue
+        assert not line.endswith("\\"), f"line {number}: continuation lines not expected"
+        if line.startswith("[") and line.endswith("]"):
+            current = sections.setdefault(line[1:-1], {})
+            continue
+        assert current is not None and "=" in line, f"line {number}: not Key=value inside a section: {raw!r}"
+        key, value = line.split("=", 1)
+        current.setdefault(key.strip(), []).append(value.strip())
+    return sections
+
+
+def test_the_systemd_unit_has_the_keys_the_daemon_relies_on():
+    unit = _parse_unit(UNIT.read_text(encoding="utf-8"))
+    assert set(unit) == {"Unit", "Service"}
+    service = {key: values[-1] for key, values in unit["Service"].items()}
+    assert service["Type"] == "notify"
+    assert service["ExecStart"] == "/usr/bin/env fog-driver run --config /etc/fog-driver/%i.yaml"
+    assert service["WatchdogSec"] == "10"
+    assert service["Restart"] == "on-failure"
+    assert service["RestartPreventExitStatus"] == "78"
+    assert service["KillSignal"] == "SIGTERM"
+    assert service["TimeoutStopSec"] == "10"
+    assert service["SupplementaryGroups"] == "dialout"
+    assert service["NoNewPrivileges"] == "yes"
+    assert service["ProtectSystem"] == "strict"
+    assert service["ReadWritePaths"] == "/var/lib/fog-driver"
+    assert service["PrivateTmp"] == "yes"
+    # The dedicated user is a commented suggestion; nothing hides the serial port.
+    text = UNIT.read_text(encoding="utf-8")
+    assert re.search(r"^#\s*User=", text, re.MULTILINE) and re.search(r"^#\s*Group=", text, re.MULTILINE)
+    assert "PrivateDevices" not in service and "DevicePolicy" not in service
+    assert "%i" in unit["Unit"]["Description"][0]
