@@ -239,12 +239,33 @@ def cmd_compensate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1: {text!r}")
+    return value
+
+
+def cmd_watch(args: argparse.Namespace) -> int:
+    from .daemon.watch import watch_command
+
+    previous = signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM ends it as Ctrl-C does
+    try:
+        return watch_command(args.address, rate_hz=args.rate_hz, count=args.count, duration_s=args.duration)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     import dataclasses
 
     from .config import DriverConfig, load_config
     from .daemon.service import ConfigError, Service
 
+    configure_logging(max(args.verbose, 1), json=True)  # a service logs JSON lines: per-second summaries
     try:
         config = load_config(args.config) if args.config else DriverConfig()
         overrides = {k: getattr(args, k) for k in ("port", "model", "listen", "capture_dir") if getattr(args, k)}
@@ -381,6 +402,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--listen", metavar="HOST:PORT", help="where clients connect (default 127.0.0.1:2948)")
     p.add_argument("--capture-dir", dest="capture_dir", metavar="DIR", help="raw capture directory")
     p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("watch", help="live view of a running daemon (fog-driver run): angle, rate, temperatures, counters")
+    p.add_argument("address", nargs="?", metavar="HOST:PORT",
+                   help="the daemon's client address (default 127.0.0.1:2948; also HOST, :PORT, [IPV6]:PORT)")
+    p.add_argument("--rate-hz", type=_positive_float, default=10.0, metavar="R",
+                   help="ANGLE updates a second to ask the daemon for (default 10)")
+    p.add_argument("--count", type=_positive_int, metavar="N", help="stop after N ANGLE updates")
+    p.add_argument("--duration", type=_positive_float, metavar="S", help="stop after S seconds")
+    p.set_defaults(func=cmd_watch)
     return parser
 
 

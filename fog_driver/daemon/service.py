@@ -318,7 +318,8 @@ class Service:
         try:
             self.hub = Hub(host, port, version=self.version_object, device=self.device_object,
                            control=self.control, token=self.config.token,
-                           max_backlog_s=self.config.max_client_backlog_s)  # fmt: skip
+                           max_backlog_s=self.config.max_client_backlog_s,
+                           sndbuf_bytes=256 * 1024)  # a non-reading client is noticed in seconds, not megabytes  # fmt: skip
         except ValueError as exc:
             raise ConfigError(f"listen {self.config.listen}: {exc}") from None
         try:

@@ -1,0 +1,781 @@
+"""The daemon's client multiplexer: JSON lines over TCP, in the manner of gpsd.
+
+Client protocol (version 1)
+===========================
+
+Transport: TCP, by default on the loopback interface only.  Every message in
+either direction is one line of UTF-8 text ending in ``\\n``.
+
+Server to client: every line is one JSON object with a ``"class"`` key naming
+what it is.  Absent values are *omitted*, never ``null`` (a thermometer with no
+valid reading simply has no key); numbers are always finite.  Clients must
+ignore keys (and classes) they do not know: new keys may appear in any minor
+version, ``proto_major`` changes only when a key changes meaning or goes away.
+
+=========  =================================================================
+class      sent when
+=========  =================================================================
+VERSION    first line on every connection, and in answer to ``?VERSION;``:
+           ``release``, ``proto_major``, ``proto_minor`` and the instrument's
+           identity (filled in by the service)
+DEVICE     second line on connect when an instrument is known, and to every
+           client whenever the instrument (or its link state) changes
+STATUS     to every client (watching or not), periodic summaries
+ANGLE      one per instrument sample, only to clients with an enabled WATCH,
+           decimated per client (see ``?WATCH``); always carries ``t_s``
+           (device time, s)
+WATCH      answer to ``?WATCH``: the client's policy now in force
+AUTH       answer to a successful ``?AUTH``: ``{"class":"AUTH","authorized":true}``
+ERROR      a command failed: ``message``, and ``command`` when the command's
+           name could be read
+(other)    answers to control commands (the service's; a reply without a
+           class takes the command's name as its class)
+=========  =================================================================
+
+Client to server: commands, one per line, ``?NAME;`` or ``?NAME={json object};``
+where NAME is upper-case ASCII letters and the trailing ``;`` is optional
+(``\\r`` before the newline is tolerated, empty lines are ignored).  Every
+command is answered by exactly one line (its reply or an ``ERROR``), in the
+order the commands were sent; ANGLE/STATUS/DEVICE lines may be interleaved.
+
+- ``?WATCH;`` reports the current policy; ``?WATCH={"enable": true, "rate_hz": 10};``
+  sets it.  The object *is* the whole policy: ``enable`` defaults to true,
+  ``rate_hz`` omitted means every sample.  With ``rate_hz`` > 0 the client gets
+  the first sample of each period ``[k / rate_hz, (k + 1) / rate_hz)`` of device
+  time ``t_s`` (``k = floor(t_s * rate_hz)``): a decimation on the instrument's
+  clock, not the host's.  A new ``?WATCH`` restarts the decimation.
+- ``?VERSION;`` sends the VERSION object again.
+- ``?AUTH={"token": "..."};`` authorizes this connection for control commands,
+  needed only when the daemon was configured with a token (which it must be to
+  listen beyond loopback).  Five failed attempts close the connection.
+- Any other NAME is a control command handed to the service (for example
+  ``?ZERO;`` or ``?MARK={"label": "stop 3"};``); an unknown one is answered
+  with ``ERROR`` ``"unknown command ?NAME"``; without a prior successful
+  ``?AUTH`` on a token-protected daemon every one is refused with ``ERROR``
+  ``"unauthorized"``.
+
+Limits (a misbehaving client costs the daemon a bounded amount and never
+delays anybody else):
+
+- a line longer than ``max_line_bytes`` (4096) is answered with ``ERROR`` and
+  discarded up to its newline; 64 KiB without any newline closes the connection;
+- invalid JSON, a JSON value that is not an object, a malformed line or an
+  unknown command: ``ERROR``, and the connection stays open;
+- at most 100 commands per second per client: the excess is answered with
+  ``ERROR`` and 1000 excess commands close the connection;
+- a client that does not read is dropped: when the oldest line queued for it
+  (not yet accepted by the kernel) is older than ``max_backlog_s`` (2 s) the
+  connection is closed, logged, and counted.  Data has a short shelf life: the
+  daemon never buffers old samples for a slow reader.
+
+Example session (``nc 127.0.0.1 2948``)::
+
+    {"class":"VERSION","release":"0.1.0","proto_major":1,"proto_minor":0,...}
+    {"class":"DEVICE","serial":"FOG-SYN-0001",...}
+    ?WATCH={"enable":true,"rate_hz":1}
+    {"class":"WATCH","enable":true,"rate_hz":1}
+    {"class":"ANGLE","t_s":12.0,"angle_arcsec":3.25,...}
+
+Threading: :class:`Hub` runs an asyncio loop in its own daemon thread.  The
+acquisition thread calls :meth:`Hub.publish_angles` / :meth:`Hub.publish`,
+which never block (objects are serialized in the caller's thread and handed to
+the loop with one ``call_soon_threadsafe`` per call).  The ``version``,
+``device`` and ``control`` callbacks run on the hub's loop thread and must
+return promptly: a control command that takes time returns a
+:class:`concurrent.futures.Future` which the hub awaits without blocking the
+loop (that client's later commands wait for it, other clients do not).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import concurrent.futures
+import hmac
+import ipaddress
+import json
+import math
+import re
+import socket
+import threading
+import time
+from collections.abc import Callable
+from typing import Any, Self
+
+import structlog
+
+__all__ = [
+    "DEFAULT_MAX_BACKLOG_S",
+    "DEFAULT_MAX_LINE_BYTES",
+    "Hub",
+    "clean",
+    "encode",
+    "is_loopback_host",
+]
+
+log = structlog.get_logger("fog_driver.daemon")
+
+DEFAULT_MAX_LINE_BYTES = 4096
+DEFAULT_MAX_BACKLOG_S = 2.0
+#: Bytes without a newline after which a client is disconnected.
+MAX_UNTERMINATED_BYTES = 64 * 1024
+#: Commands per second per client before the excess is refused.
+MAX_COMMANDS_PER_S = 100
+#: Refused (excess) commands after which a client is disconnected.
+MAX_EXCESS_COMMANDS = 1000
+#: Failed ``?AUTH`` attempts after which a client is disconnected.
+MAX_AUTH_FAILURES = 5
+#: How long a control command's Future may take before the client gets an ERROR.
+DEFAULT_CONTROL_TIMEOUT_S = 30.0
+
+_READ_CHUNK = 65536
+_COMMAND_RE = re.compile(r"\?([A-Z]+)(?:=(.*))?\Z", re.DOTALL)
+_HUB_COMMANDS = frozenset({"WATCH", "VERSION", "AUTH"})
+
+
+def clean(obj: Any) -> Any:
+    """``obj`` without None values and non-finite floats, recursively (dict values, list items).
+
+    Absent values are omitted from the protocol, never sent as ``null``; numpy
+    scalars become Python numbers and numpy arrays lists.  Dict keys are kept as given.
+    """
+    if isinstance(obj, dict):
+        out = {}
+        for key, value in obj.items():
+            value = clean(value)
+            if value is not _ABSENT:
+                out[key] = value
+        return out
+    return _clean_value(obj)
+
+
+class _Absent:
+    __slots__ = ()
+
+
+_ABSENT: Any = _Absent()
+
+
+def _clean_value(value: Any) -> Any:
+    if value is None:
+        return _ABSENT
+    if isinstance(value, bool):
+        return value
+    if isinstance(value, float):
+        return value if math.isfinite(value) else _ABSENT
+    if isinstance(value, (int, str)):
+        return value
+    if isinstance(value, dict):
+        return clean(value)
+    if isinstance(value, (list, tuple)):
+        items = (_clean_value(v) for v in value)
+        return [v for v in items if v is not _ABSENT]
+    # numpy scalars and arrays, without importing numpy here
+    tolist = getattr(value, "tolist", None)
+    if tolist is not None and hasattr(value, "dtype"):
+        return _clean_value(tolist())
+    return value
+
+
+def encode(obj: dict) -> bytes:
+    """One protocol line: ``clean(obj)`` as compact JSON plus ``\\n`` (raises on unserializable values)."""
+    return json.dumps(clean(obj), separators=(",", ":"), allow_nan=False).encode() + b"\n"
+
+
+def is_loopback_host(host: str | None) -> bool:
+    """True when binding ``host`` listens on loopback only ("", None and 0.0.0.0 mean every interface)."""
+    if not host:
+        return False
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        pass
+    try:
+        infos = socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)
+    except OSError:
+        return False
+    addresses = {info[4][0] for info in infos}
+    return bool(addresses) and all(ipaddress.ip_address(a.split("%")[0]).is_loopback for a in addresses)
+
+
+class _Client:
+    """One connection: its policy, its outgoing queue and its two tasks."""
+
+    __slots__ = (
+        "auth_failures", "authorized", "closing", "excess", "gone", "id", "inflight_t", "last_bucket",
+        "lines_queued", "peer", "queue", "rate_hz", "reader", "reader_task", "wakeup", "watch",
+        "window_count", "window_start", "writer", "writer_task",
+    )
+
+    def __init__(self, cid: int, peer: Any, reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
+                 authorized: bool) -> None:
+        self.id = cid
+        self.peer = peer
+        self.reader = reader
+        self.writer = writer
+        self.queue: collections.deque[tuple[float, bytes | None]] = collections.deque()
+        self.wakeup = asyncio.Event()
+        self.inflight_t: float | None = None  # enqueue time of the oldest bytes being drained
+        self.closing = False
+        self.watch = False
+        self.rate_hz: float | None = None
+        self.last_bucket: int | None = None
+        self.authorized = authorized
+        self.auth_failures = 0
+        self.window_start = time.monotonic()
+        self.window_count = 0
+        self.excess = 0
+        self.reader_task: asyncio.Task | None = None
+        self.writer_task: asyncio.Task | None = None
+        self.gone = False
+        self.lines_queued = 0
+
+    def oldest_t(self) -> float | None:
+        if self.inflight_t is not None:
+            return self.inflight_t
+        return self.queue[0][0] if self.queue else None
+
+
+class Hub:
+    """TCP server speaking the client protocol above; see the module docstring.
+
+    ``version()`` returns the VERSION object (the hub adds ``class``), ``device()``
+    the current DEVICE object or None, ``control(name, args, client_id)`` answers
+    every command the hub does not handle itself, with a dict or a Future of one
+    (``None`` for a command it does not know: the client gets ``ERROR`` "unknown
+    command ?NAME"; an exception, raised or set on the Future, becomes an ``ERROR``
+    carrying its message).  A reply without ``class`` gets the command's name.
+
+    ``sndbuf_bytes`` sets SO_SNDBUF on accepted connections: the kernel then
+    absorbs at most that much for a client that does not read (by default, on
+    loopback, megabytes: tens of seconds of ANGLE lines before the backlog age
+    policy can even see the client is stuck).
+    """
+
+    def __init__(
+        self,
+        host: str = "127.0.0.1",
+        port: int = 0,
+        *,
+        version: Callable[[], dict],
+        device: Callable[[], dict | None],
+        control: Callable[[str, dict, int], dict | concurrent.futures.Future],
+        token: str | None = None,
+        max_line_bytes: int = DEFAULT_MAX_LINE_BYTES,
+        max_backlog_s: float = DEFAULT_MAX_BACKLOG_S,
+        control_timeout_s: float = DEFAULT_CONTROL_TIMEOUT_S,
+        sndbuf_bytes: int | None = None,
+    ) -> None:
+        if token is not None and not token:
+            raise ValueError("the client token must not be empty")
+        if token is None and not is_loopback_host(host):
+            raise ValueError(
+                f"refusing to listen on {host or 'every interface'!r} without a client token: "
+                "anyone on the network could control the instrument; set a token or bind 127.0.0.1"
+            )
+        if max_line_bytes < 16:
+            raise ValueError("max_line_bytes must be at least 16")
+        if not (max_backlog_s > 0):
+            raise ValueError("max_backlog_s must be > 0")
+        self.host = host
+        self.port = port
+        self._version = version
+        self._device = device
+        self._control = control
+        self._token = token
+        self.max_line_bytes = max_line_bytes
+        self.max_backlog_s = float(max_backlog_s)
+        self.control_timeout_s = control_timeout_s
+        self.sndbuf_bytes = sndbuf_bytes
+
+        self._clients: dict[int, _Client] = {}
+        self._next_id = 1
+        self._watchers = 0
+        self._dropped = 0
+        self._bytes_sent = 0
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._thread: threading.Thread | None = None
+        self._server: asyncio.AbstractServer | None = None
+        self._stop_event: asyncio.Event | None = None
+        self._ready = threading.Event()
+        self._start_error: BaseException | None = None
+        self._address: tuple[str, int] | None = None
+
+    # ------------------------------------------------------------------ properties
+
+    @property
+    def clients(self) -> int:
+        """Connected clients."""
+        return len(self._clients)
+
+    @property
+    def watchers(self) -> int:
+        """Connected clients with an enabled WATCH."""
+        return self._watchers
+
+    @property
+    def dropped_clients(self) -> int:
+        """Clients dropped because their backlog grew older than ``max_backlog_s``."""
+        return self._dropped
+
+    @property
+    def bytes_sent(self) -> int:
+        """Bytes handed to client sockets."""
+        return self._bytes_sent
+
+    @property
+    def address(self) -> tuple[str, int] | None:
+        """``(host, port)`` listened on, once started."""
+        return self._address
+
+    # ------------------------------------------------------------------ lifecycle
+
+    def start(self) -> tuple[str, int]:
+        """Start the loop thread; return ``(host, port)`` once the socket listens (raises OSError if it cannot)."""
+        if self._thread is not None:
+            raise RuntimeError("hub already started")
+        self._thread = threading.Thread(target=self._run, name="fog-hub", daemon=True)
+        self._thread.start()
+        self._ready.wait()
+        if self._start_error is not None:
+            self._thread.join()
+            self._thread = None
+            raise self._start_error
+        assert self._address is not None
+        return self._address
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """Close every client and the server, and join the loop thread (idempotent)."""
+        loop, thread = self._loop, self._thread
+        if loop is None or thread is None:
+            return
+        try:
+            loop.call_soon_threadsafe(self._request_stop)
+        except RuntimeError:  # loop already closed
+            pass
+        thread.join(timeout)
+        self._thread = None
+
+    def __enter__(self) -> Self:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def _request_stop(self) -> None:
+        if self._stop_event is not None:
+            self._stop_event.set()
+
+    def _run(self) -> None:
+        loop = asyncio.new_event_loop()
+        try:
+            loop.run_until_complete(self._main(loop))
+        except BaseException as exc:  # noqa: BLE001 - reported to start() or logged
+            if not self._ready.is_set():
+                self._start_error = exc
+            else:
+                log.error("hub_failed", error=repr(exc))
+        finally:
+            self._ready.set()
+            self._loop = None
+            try:
+                loop.run_until_complete(loop.shutdown_asyncgens())
+            finally:
+                loop.close()
+
+    async def _main(self, loop: asyncio.AbstractEventLoop) -> None:
+        self._stop_event = asyncio.Event()
+        self._server = await asyncio.start_server(self._on_connect, self.host, self.port, limit=_READ_CHUNK)
+        sockname = self._server.sockets[0].getsockname()
+        self._address = (sockname[0], sockname[1])
+        self._loop = loop
+        log.info("hub_listening", host=self._address[0], port=self._address[1], auth=self._token is not None)
+        self._ready.set()
+        sweeper = asyncio.create_task(self._sweep())
+        try:
+            await self._stop_event.wait()
+        finally:
+            sweeper.cancel()
+            self._server.close()
+            clients = list(self._clients.values())
+            tasks = [t for c in clients for t in (c.reader_task, c.writer_task) if t is not None]
+            for client in clients:
+                self._discard(client, "hub_stopped")
+            if tasks:
+                await asyncio.gather(*tasks, return_exceptions=True)
+            await self._server.wait_closed()
+            log.info("hub_stopped", dropped_clients=self._dropped, bytes_sent=self._bytes_sent)
+
+    async def _sweep(self) -> None:
+        """Drop stalled clients even when nothing new is being published."""
+        period = min(0.25, self.max_backlog_s / 4)
+        while True:
+            await asyncio.sleep(period)
+            now = time.monotonic()
+            for client in list(self._clients.values()):
+                self._check_backlog(client, now)
+
+    # ------------------------------------------------------------------ publishing (any thread)
+
+    def publish_angles(self, objs: list[dict]) -> None:
+        """Send ANGLE objects (each with ``t_s``) to every watching client, decimated per client.
+
+        Thread-safe and non-blocking: each object is serialized once here, and
+        the batch goes to the loop in one ``call_soon_threadsafe``.  A batch
+        published while nobody watches is skipped without serializing it.
+        """
+        if not objs or self._loop is None or self._watchers == 0:
+            return
+        items: list[tuple[float, bytes]] = []
+        for obj in objs:
+            t_s = obj.get("t_s")
+            if t_s is None or not math.isfinite(t_s):
+                raise ValueError(f"an ANGLE object needs a finite t_s: {obj!r}")
+            if "class" not in obj:
+                obj = {"class": "ANGLE", **obj}
+            items.append((float(t_s), encode(obj)))
+        self._hand_over(self._deliver_angles, items)
+
+    def publish(self, obj: dict) -> None:
+        """Send one object (DEVICE, STATUS, ...) to every connected client, watching or not.
+
+        Thread-safe and non-blocking.
+        """
+        if self._loop is None:
+            return
+        self._hand_over(self._deliver_all, encode(obj))
+
+    def _hand_over(self, fn: Callable[[Any], None], arg: Any) -> None:
+        loop = self._loop
+        if loop is None:
+            return
+        try:
+            loop.call_soon_threadsafe(fn, arg)
+        except RuntimeError:  # the loop closed between the check and the call: the hub is stopping
+            pass
+
+    def _deliver_angles(self, items: list[tuple[float, bytes]]) -> None:
+        now = time.monotonic()
+        for client in list(self._clients.values()):
+            if not client.watch or client.closing:
+                continue
+            rate = client.rate_hz
+            if rate is None:
+                chunk = b"".join(line for _, line in items)
+                n = len(items)
+            else:
+                kept = []
+                last = client.last_bucket
+                for t_s, line in items:
+                    bucket = math.floor(t_s * rate)
+                    if bucket != last:
+                        kept.append(line)
+                        last = bucket
+                client.last_bucket = last
+                if not kept:
+                    continue
+                chunk = b"".join(kept)
+                n = len(kept)
+            self._enqueue(client, chunk, now, n)
+
+    def _deliver_all(self, line: bytes) -> None:
+        now = time.monotonic()
+        for client in list(self._clients.values()):
+            if not client.closing:
+                self._enqueue(client, line, now, 1)
+
+    # ------------------------------------------------------------------ per-client output
+
+    def _enqueue(self, client: _Client, data: bytes, now: float | None = None, lines: int = 1) -> None:
+        if client.gone or client.closing:
+            return
+        if now is None:
+            now = time.monotonic()
+        client.queue.append((now, data))
+        client.lines_queued += lines
+        client.wakeup.set()
+        self._check_backlog(client, now)
+
+    def _send_obj(self, client: _Client, obj: dict) -> None:
+        try:
+            line = encode(obj)
+        except (TypeError, ValueError) as exc:
+            line = encode({"class": "ERROR", "message": f"internal: reply not serializable: {exc}"})
+        self._enqueue(client, line)
+
+    def _send_error(self, client: _Client, message: str, command: str | None = None) -> None:
+        self._enqueue(client, encode({"class": "ERROR", "message": message, "command": command}))
+
+    def _close_after_flush(self, client: _Client) -> None:
+        """Send what is queued, then close (used after a final ERROR)."""
+        if client.gone or client.closing:
+            return
+        client.queue.append((time.monotonic(), None))
+        client.closing = True
+        client.wakeup.set()
+
+    def _check_backlog(self, client: _Client, now: float) -> None:
+        oldest = client.oldest_t()
+        if oldest is None or client.gone:
+            return
+        age = now - oldest
+        if age > self.max_backlog_s:
+            self._dropped += 1
+            queued = sum(len(b) for _, b in client.queue if b is not None)
+            log.warning("client_dropped", client=client.id, peer=str(client.peer), backlog_s=round(age, 3),
+                        queued_bytes=queued, reason="not reading", dropped_clients=self._dropped)
+            self._discard(client, "dropped")
+
+    async def _write_loop(self, client: _Client) -> None:
+        writer = client.writer
+        try:
+            while True:
+                while not client.queue:
+                    client.wakeup.clear()
+                    await client.wakeup.wait()
+                batch = []
+                close = False
+                while client.queue:
+                    t, data = client.queue.popleft()
+                    if data is None:
+                        close = True
+                        break
+                    if not batch:
+                        client.inflight_t = t
+                    batch.append(data)
+                if batch:
+                    payload = b"".join(batch)
+                    writer.write(payload)
+                    self._bytes_sent += len(payload)
+                    await writer.drain()
+                client.inflight_t = None
+                if close:
+                    self._discard(client, "closed_by_server", graceful=True)
+                    return
+        except (ConnectionError, OSError):
+            self._discard(client, "connection_lost")
+        except asyncio.CancelledError:
+            pass
+
+    def _discard(self, client: _Client, reason: str, graceful: bool = False) -> None:
+        """Forget a client: remove it, stop its tasks, close its socket (abort unless ``graceful``)."""
+        if client.gone:
+            return
+        client.gone = True
+        client.queue.clear()
+        if self._clients.pop(client.id, None) is not None and client.watch:
+            self._watchers -= 1
+        current = asyncio.current_task()
+        for task in (client.reader_task, client.writer_task):
+            if task is not None and task is not current and not task.done():
+                task.cancel()
+        transport = client.writer.transport
+        if graceful:
+            client.writer.close()
+        else:
+            transport.abort()
+        log.info("client_disconnected", client=client.id, peer=str(client.peer), reason=reason,
+                 lines_queued=client.lines_queued)
+
+    # ------------------------------------------------------------------ per-client input
+
+    async def _on_connect(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        cid = self._next_id
+        self._next_id += 1
+        peer = writer.get_extra_info("peername")
+        sock = writer.get_extra_info("socket")
+        if self.sndbuf_bytes is not None and sock is not None:
+            try:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self.sndbuf_bytes)
+            except OSError:
+                pass
+        client = _Client(cid, peer, reader, writer, authorized=self._token is None)
+        self._clients[cid] = client
+        client.reader_task = asyncio.current_task()
+        client.writer_task = asyncio.create_task(self._write_loop(client))
+        log.info("client_connected", client=cid, peer=str(peer), clients=len(self._clients))
+        try:
+            self._send_version(client)
+            dev = self._device()
+            if dev:
+                self._send_obj(client, {"class": "DEVICE", **dev})
+            await self._read_loop(client)
+        except asyncio.CancelledError:
+            pass
+        except Exception as exc:  # noqa: BLE001 - a bug must cost one client, never the hub
+            log.error("client_failed", client=cid, error=repr(exc))
+        finally:
+            if not client.closing:
+                self._discard(client, "client_closed")
+            # after _close_after_flush the writer task sends what is queued, then closes
+
+    def _send_version(self, client: _Client) -> None:
+        try:
+            obj = {"class": "VERSION", **self._version()}
+        except Exception as exc:  # noqa: BLE001
+            obj = {"class": "ERROR", "message": f"version unavailable: {exc}", "command": "VERSION"}
+        self._send_obj(client, obj)
+
+    async def _read_loop(self, client: _Client) -> None:
+        buf = bytearray()
+        discarding = False  # inside an oversized line, up to its newline
+        unterminated = 0  # bytes since the last newline (discarded ones included)
+        limit = self.max_line_bytes
+        while not client.closing:
+            chunk = await client.reader.read(_READ_CHUNK)
+            if not chunk:  # the client closed its side: send what is queued (replies), then close
+                self._close_after_flush(client)
+                return
+            start = 0
+            while True:
+                nl = chunk.find(b"\n", start)
+                if nl < 0:
+                    rest = chunk[start:]
+                    unterminated += len(rest)
+                    if unterminated > MAX_UNTERMINATED_BYTES:
+                        self._send_error(client, f"more than {MAX_UNTERMINATED_BYTES} bytes without a newline: "
+                                                 "closing")
+                        self._close_after_flush(client)
+                        return
+                    if not discarding:
+                        buf += rest
+                        if len(buf) > limit:
+                            buf.clear()
+                            discarding = True
+                            if self._admit(client):
+                                self._send_error(client, f"line longer than {limit} bytes: discarded")
+                            elif client.closing:
+                                return
+                    break
+                piece = chunk[start:nl]
+                start = nl + 1
+                unterminated = 0
+                if discarding:
+                    discarding = False
+                    continue
+                buf += piece
+                line = bytes(buf)
+                buf.clear()
+                if len(line) > limit:
+                    if self._admit(client):
+                        self._send_error(client, f"line longer than {limit} bytes: discarded")
+                    elif client.closing:
+                        return
+                    continue
+                await self._handle_line(client, line)
+                if client.closing or client.gone:
+                    return
+
+    def _admit(self, client: _Client) -> bool:
+        """Rate limit: True when a command may proceed; otherwise it is refused with ERROR
+        (and after MAX_EXCESS_COMMANDS refusals the client is closed: ``client.closing``)."""
+        now = time.monotonic()
+        if now - client.window_start >= 1.0:
+            client.window_start = now
+            client.window_count = 0
+        client.window_count += 1
+        if client.window_count <= MAX_COMMANDS_PER_S:
+            return True
+        client.excess += 1
+        if client.excess >= MAX_EXCESS_COMMANDS:
+            self._send_error(client, f"{MAX_EXCESS_COMMANDS} commands over the rate limit: closing")
+            self._close_after_flush(client)
+        else:
+            self._send_error(client, f"more than {MAX_COMMANDS_PER_S} commands per second: refused")
+        return False
+
+    async def _handle_line(self, client: _Client, raw: bytes) -> None:
+        text = raw.decode("utf-8", errors="replace").strip()
+        if not text:
+            return
+        if not self._admit(client):
+            return
+        if text.endswith(";"):
+            text = text[:-1].rstrip()
+        m = _COMMAND_RE.match(text)
+        if m is None:
+            self._send_error(client, "not a command: expected ?NAME; or ?NAME={json object};")
+            return
+        name, payload = m.group(1), m.group(2)
+        args: dict = {}
+        if payload is not None and payload.strip():
+            try:
+                args = json.loads(payload)
+            except (ValueError, RecursionError) as exc:  # 4 KiB of "[" nests deeper than Python recurses
+                self._send_error(client, f"invalid JSON: {str(exc) or type(exc).__name__}", name)
+                return
+            if not isinstance(args, dict):
+                self._send_error(client, "the argument must be a JSON object", name)
+                return
+        if name == "WATCH":
+            self._cmd_watch(client, args, payload is not None)
+        elif name == "VERSION":
+            self._send_version(client)
+        elif name == "AUTH":
+            self._cmd_auth(client, args)
+        elif not client.authorized:
+            self._send_error(client, "unauthorized", name)
+        else:
+            await self._cmd_control(client, name, args)
+
+    def _cmd_watch(self, client: _Client, args: dict, has_args: bool) -> None:
+        if has_args:
+            enable = args.get("enable", True)
+            if not isinstance(enable, bool):
+                self._send_error(client, "enable must be true or false", "WATCH")
+                return
+            rate = args.get("rate_hz")
+            if rate is not None and (
+                isinstance(rate, bool) or not isinstance(rate, (int, float)) or not (0 < rate < math.inf)
+            ):
+                self._send_error(client, "rate_hz must be a number > 0", "WATCH")
+                return
+            if enable != client.watch:
+                self._watchers += 1 if enable else -1
+            client.watch = enable
+            client.rate_hz = rate
+            client.last_bucket = None
+        self._send_obj(client, {"class": "WATCH", "enable": client.watch, "rate_hz": client.rate_hz})
+
+    def _cmd_auth(self, client: _Client, args: dict) -> None:
+        token = args.get("token")
+        if self._token is None or (
+            isinstance(token, str) and hmac.compare_digest(token.encode(), self._token.encode())
+        ):
+            client.authorized = True
+        else:
+            client.auth_failures += 1
+            log.warning("auth_failed", client=client.id, peer=str(client.peer), failures=client.auth_failures)
+            if client.auth_failures >= MAX_AUTH_FAILURES:
+                self._send_error(client, "bad token: closing", "AUTH")
+                self._close_after_flush(client)
+            else:
+                self._send_error(client, "bad token", "AUTH")
+            return
+        self._send_obj(client, {"class": "AUTH", "authorized": True})
+
+    async def _cmd_control(self, client: _Client, name: str, args: dict) -> None:
+        try:
+            result = self._control(name, args, client.id)
+            if isinstance(result, concurrent.futures.Future):
+                result = await asyncio.wait_for(asyncio.wrap_future(result), self.control_timeout_s)
+            elif asyncio.isfuture(result):
+                result = await asyncio.wait_for(result, self.control_timeout_s)
+        except TimeoutError:
+            self._send_error(client, f"no answer within {self.control_timeout_s:g} s", name)
+            return
+        except asyncio.CancelledError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - the service's error becomes the client's ERROR
+            message = str(exc) or type(exc).__name__
+            self._send_error(client, message, name)
+            return
+        if not isinstance(result, dict):
+            self._send_error(client, f"unknown command ?{name}" if result is None else "internal: bad reply", name)
+            return
+        if "class" not in result:
+            result = {"class": name, **result}
+        self._send_obj(client, result)

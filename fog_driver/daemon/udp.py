@@ -1,0 +1,197 @@
+"""Optional UDP datagrams, one per sample, for stations that prefer a fixed binary record (LabVIEW).
+
+Each datagram is exactly 68 bytes, big-endian (network order), ``struct``
+format ``>4sHHQdddddfff``:
+
+======  =====  ================  ====================================================
+offset  type   field             meaning
+======  =====  ================  ====================================================
+0       4s     magic             ``b"FOGA"``
+4       u16    version           layout version, 1
+6       u16    flags             the compensator's flag word, bit for bit (the ANGLE
+                                 object's ``flags`` names): bit 0 gap (frames missing),
+                                 1 thermometer_fault, 2 input_stale, 3 uncompensated
+                                 (no drift estimate applied), 4 adapting, 5 guard (an
+                                 estimate was rejected); other bits reserved, zero
+8       u64    seq               sample sequence number (unwrapped, monotonic)
+16      f64    t_s               device time, s
+24      f64    angle_arcsec      compensated angle, arcsec
+32      f64    angle_raw_arcsec  uncompensated angle, arcsec
+40      f64    rate_dph          measured rate, deg/h
+48      f64    drift_dph         estimated temperature drift, deg/h
+56      f32    t_top_c           fiber ring top thermometer, degC
+60      f32    t_bottom_c        fiber ring bottom thermometer, degC
+64      f32    t_housing_c       housing thermometer, degC
+======  =====  ================  ====================================================
+
+In this binary layout NaN (IEEE quiet NaN) is the documented absent value: an
+invalid thermometer, or a quantity not computed yet, is sent as NaN (the JSON
+protocol omits the key instead).  A receiver checks ``magic`` and ``version``
+and ignores datagrams it does not recognise; a future layout gets a new
+version number (fields are only ever appended, so a version-1 reader may read
+the first 68 bytes of a longer datagram).  UDP may lose or reorder datagrams:
+``seq`` tells.
+
+The sender never blocks and never raises on a failed send (no listener, a full
+socket buffer, an unreachable network): failures are counted in
+``send_errors``.
+"""
+
+from __future__ import annotations
+
+import math
+import socket
+import struct
+from collections.abc import Iterable, Mapping
+from typing import Any, Self
+
+__all__ = [
+    "DATAGRAM_FORMAT",
+    "DATAGRAM_SIZE",
+    "DATAGRAM_VERSION",
+    "FIELDS",
+    "FLAG_ADAPTING",
+    "FLAG_BITS",
+    "FLAG_GAP",
+    "FLAG_GUARD",
+    "FLAG_INPUT_STALE",
+    "FLAG_THERMOMETER_FAULT",
+    "FLAG_UNCOMPENSATED",
+    "MAGIC",
+    "UdpPublisher",
+    "decode_datagram",
+    "encode_datagram",
+    "fields_from_angle",
+]
+
+MAGIC = b"FOGA"
+DATAGRAM_VERSION = 1
+DATAGRAM_FORMAT = ">4sHHQdddddfff"
+_STRUCT = struct.Struct(DATAGRAM_FORMAT)
+DATAGRAM_SIZE = _STRUCT.size  # 68
+
+# The compensator's flags (fog_driver.compensation), repeated here so that this module stands alone.
+FLAG_GAP = 1 << 0
+FLAG_THERMOMETER_FAULT = 1 << 1
+FLAG_INPUT_STALE = 1 << 2
+FLAG_UNCOMPENSATED = 1 << 3
+FLAG_ADAPTING = 1 << 4
+FLAG_GUARD = 1 << 5
+FLAG_BITS = {"gap": FLAG_GAP, "thermometer_fault": FLAG_THERMOMETER_FAULT, "input_stale": FLAG_INPUT_STALE,
+             "uncompensated": FLAG_UNCOMPENSATED, "adapting": FLAG_ADAPTING, "guard": FLAG_GUARD}
+
+#: The sample fields after magic and version, in datagram order.
+FIELDS = ("flags", "seq", "t_s", "angle_arcsec", "angle_raw_arcsec", "rate_dph", "drift_dph",
+          "t_top_c", "t_bottom_c", "t_housing_c")
+_FLOAT_FIELDS = FIELDS[2:]
+_NAN = math.nan
+
+
+def _f(value: Any) -> float:
+    return _NAN if value is None else float(value)
+
+
+def encode_datagram(
+    *,
+    seq: int,
+    t_s: float | None = None,
+    angle_arcsec: float | None = None,
+    angle_raw_arcsec: float | None = None,
+    rate_dph: float | None = None,
+    drift_dph: float | None = None,
+    t_top_c: float | None = None,
+    t_bottom_c: float | None = None,
+    t_housing_c: float | None = None,
+    flags: int = 0,
+) -> bytes:
+    """One datagram; None (absent) becomes NaN, ``seq`` is taken modulo 2**64, ``flags`` modulo 2**16."""
+    return _STRUCT.pack(
+        MAGIC, DATAGRAM_VERSION, int(flags) & 0xFFFF, int(seq) & 0xFFFF_FFFF_FFFF_FFFF,
+        _f(t_s), _f(angle_arcsec), _f(angle_raw_arcsec), _f(rate_dph), _f(drift_dph),
+        _f(t_top_c), _f(t_bottom_c), _f(t_housing_c),
+    )
+
+
+def fields_from_angle(obj: Mapping[str, Any]) -> dict:
+    """The datagram fields of an ANGLE object (a mapping; keys absent or None become NaN, others are ignored).
+
+    Thermometers come from ``t_top_c``/``t_bottom_c``/``t_housing_c`` or from a
+    ``temps_c`` mapping with ``top``/``bottom``/``housing``; ``flags`` is an int
+    or a list of flag names (unknown names are ignored).  ``seq`` is required.
+    """
+    fields = {name: obj.get(name) for name in _FLOAT_FIELDS}
+    temps = obj.get("temps_c")
+    if isinstance(temps, Mapping):
+        for key in ("top", "bottom", "housing"):
+            if fields[f"t_{key}_c"] is None:
+                fields[f"t_{key}_c"] = temps.get(key)
+    flags = obj.get("flags") or 0
+    if not isinstance(flags, int):
+        flags = sum(FLAG_BITS.get(name, 0) for name in set(flags))
+    return {"seq": obj["seq"], "flags": flags, **fields}
+
+
+def decode_datagram(data: bytes) -> dict:
+    """The fields of a version-1 datagram (NaN where absent); ValueError if it is not one.
+
+    Bytes beyond the 68 of version 1 are ignored (room for appended fields).
+    """
+    if len(data) < DATAGRAM_SIZE:
+        raise ValueError(f"datagram too short: {len(data)} bytes, a version-1 datagram has {DATAGRAM_SIZE}")
+    values = _STRUCT.unpack_from(data)
+    if values[0] != MAGIC:
+        raise ValueError(f"bad magic {values[0]!r}, expected {MAGIC!r}")
+    if values[1] != DATAGRAM_VERSION:
+        raise ValueError(f"datagram version {values[1]}, this decoder reads version {DATAGRAM_VERSION}")
+    return {"version": values[1], **dict(zip(FIELDS, values[2:]))}
+
+
+class UdpPublisher:
+    """Sends one datagram per sample to ``(host, port)`` (unicast, or broadcast with ``broadcast=True``).
+
+    ``send(angle_obj)`` takes an ANGLE object (see :func:`fields_from_angle`),
+    ``send(**fields)`` the keyword fields of :func:`encode_datagram`.  It never
+    blocks nor raises on a network failure; ``sent`` and ``send_errors`` count
+    datagrams, ``last_error`` describes the last failure.
+    """
+
+    def __init__(self, host: str, port: int, *, broadcast: bool = False) -> None:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_DGRAM)
+        family, socktype, proto, _, addr = infos[0]
+        self.address = addr
+        self._sock = socket.socket(family, socktype, proto)
+        self._sock.setblocking(False)
+        if broadcast:
+            self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
+        self.sent = 0
+        self.send_errors = 0
+        self.last_error: str | None = None
+
+    def send(self, angle_obj: Mapping[str, Any] | None = None, /, **fields: Any) -> bool:
+        """Send one sample; True when the datagram left, False (counted) when sending failed."""
+        if angle_obj is not None:
+            fields = {**fields_from_angle(angle_obj), **fields}
+        return self.send_bytes(encode_datagram(**fields))
+
+    def send_many(self, objs: Iterable[Mapping[str, Any]]) -> int:
+        """Send one datagram per ANGLE object; returns how many left."""
+        return sum(self.send(o) for o in objs)
+
+    def send_bytes(self, datagram: bytes) -> bool:
+        try:
+            self._sock.sendto(datagram, self.address)
+        except OSError as exc:  # EAGAIN (buffer full), ECONNREFUSED (ICMP), ENETUNREACH, closed socket ...
+            self.send_errors += 1
+            self.last_error = f"{type(exc).__name__}: {exc}"
+            return False
+        self.sent += 1
+        return True
+
+    def close(self) -> None:
+        self._sock.close()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,229 @@
+"""Loopback hardware-in-the-loop: the whole daemon as a process, fed through a real pty or replay://.
+
+Readiness comes from the daemon's "listening on HOST:PORT" line on its stdout and from the
+DEVICE object saying the port is activated: never from sleeps.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from fog_driver.compensation.apply import compensate_capture
+from fog_driver.compensation.model import load_model
+from fog_driver.config import DEFAULT_MODEL
+from fog_driver.protocol import decode_bytes, decode_file
+from fog_driver.transport import PtyPair
+
+DATA = Path(__file__).resolve().parent / "data"
+GUARD_S = 30.0
+
+
+class Daemon:
+    """``fog-driver run`` in a subprocess, listening on a free loopback port."""
+
+    def __init__(self, tmp_path: Path, port: str, *extra: str) -> None:
+        self.capture_dir = tmp_path / "captures"
+        self.log = (tmp_path / "daemon.log").open("w")  # a file: a full, unread pipe would block the daemon
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "fog_driver", "run", "--port", port, "--listen", "127.0.0.1:0",
+             "--capture-dir", str(self.capture_dir), *extra],
+            stdout=subprocess.PIPE, stderr=self.log, text=True, stdin=subprocess.DEVNULL,
+        )  # fmt: skip
+        line = self.proc.stdout.readline()  # the readiness line
+        assert "listening on" in line, (line, (tmp_path / "daemon.log").read_text())
+        address = line.split("listening on ")[1].split(";")[0]
+        host, _, number = address.rpartition(":")
+        self.address = (host, int(number))
+
+    def terminate(self) -> int:
+        self.proc.send_signal(signal.SIGTERM)
+        return self.proc.wait(GUARD_S)
+
+    def raw_capture(self) -> bytes:
+        return b"".join(p.read_bytes() for p in sorted(self.capture_dir.glob("*.bin")))
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(GUARD_S)
+
+
+class Client:
+    def __init__(self, address: tuple[str, int]) -> None:
+        self.sock = socket.create_connection(address, timeout=GUARD_S)
+        self.file = self.sock.makefile("rb")
+        self.device_state: str | None = None
+
+    def send(self, line: str) -> None:
+        self.sock.sendall(line.encode() + b"\n")
+
+    def next(self, cls: str | None = None) -> dict:
+        while True:
+            raw = self.file.readline()
+            assert raw, "the daemon closed the connection"
+            obj = json.loads(raw)
+            assert "class" in obj and None not in obj.values()
+            if obj["class"] == "DEVICE":
+                self.device_state = obj.get("state")
+            if cls is None or obj["class"] == cls:
+                return obj
+
+    def wait_device(self, state: str) -> None:
+        """Until the port is in ``state`` (from a DEVICE line already passed, or the next ones)."""
+        while self.device_state != state:
+            self.next("DEVICE")
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+def offline_angles(capture_bytes: bytes, tmp_path: Path) -> dict[int, float]:
+    path = tmp_path / "offline.bin"
+    path.write_bytes(capture_bytes)
+    angles = {}
+    for _, cols in compensate_capture(path, load_model(DEFAULT_MODEL)):
+        angles.update(zip(cols.seq.tolist(), cols.angle_comp_arcsec.tolist()))
+    return angles
+
+
+def test_pty_daemon_publishes_every_sample_and_replays_bit_identically(tmp_path):
+    data = (DATA / "sim-faults.bin").read_bytes()
+    n_samples = decode_bytes(data).counters.sample_frames
+    with PtyPair() as pty:
+        daemon = Daemon(tmp_path, pty.slave_path)
+        try:
+            client = Client(daemon.address)
+            assert client.next()["class"] == "VERSION"
+            client.send('?WATCH={"enable":true};')
+            assert client.next("WATCH")["enable"] is True
+            client.wait_device("activated")  # the port is open: no byte can be flushed away now
+            pty.write(data)
+            received = [client.next("ANGLE") for _ in range(n_samples)]
+            # Bad and oversized commands are answered, and never stop the stream.
+            client.send("?NOPE;")
+            assert client.next("ERROR")["message"]
+            client.send("?WATCH={not json};")
+            assert client.next("ERROR")
+            client.send("?" + "A" * 10000 + ";")
+            assert client.next("ERROR")
+            status = client.next("STATUS")
+            assert status["frames"] == n_samples and status["clients"] >= 1
+            assert daemon.terminate() == 0  # SIGTERM: flush, exit 0
+        finally:
+            daemon.kill()
+    # Nothing lost: the raw capture is every byte written.
+    assert daemon.raw_capture() == data
+    # Replay determinism: the published angles equal `compensate` on the daemon's own capture.
+    offline = offline_angles(daemon.raw_capture(), tmp_path)
+    assert [o["angle_arcsec"] for o in received] == [offline[o["seq"]] for o in received]
+    assert any("gap" in o["flags"] for o in received)
+
+
+def test_unplug_and_replug_through_a_stable_link(tmp_path):
+    data = (DATA / "sim-short.bin").read_bytes()
+    half = len(data) // 2
+    first_half, second_half = decode_bytes(data[:half], final=False), decode_bytes(data[half:])
+    link = tmp_path / "ttyFOG0"
+    pty = PtyPair()
+    pty.symlink(link)
+    daemon = Daemon(tmp_path, str(link))
+    try:
+        client = Client(daemon.address)
+        client.send('?WATCH={"enable":true};')
+        client.wait_device("activated")
+        pty.write(data[:half])
+        last = [client.next("ANGLE") for _ in range(first_half.counters.sample_frames)][-1]
+        pty.unplug()
+        client.wait_device("deactivated")
+        pty.close()
+        pty = PtyPair()  # the adapter comes back (a new /dev/pts, the same link)
+        pty.symlink(link)
+        client.wait_device("activated")  # reconnected (backoff <= 1 s)
+        pty.write(data[half:])
+        after = client.next("ANGLE")
+        # The angle carries on from the last frame received; the lost bytes are a flagged gap.
+        assert after["seq"] > last["seq"]
+        assert abs(after["angle_arcsec"] - last["angle_arcsec"]) < 50.0
+        assert second_half.counters.sample_frames > 0
+        assert daemon.terminate() == 0
+    finally:
+        pty.close()
+        daemon.kill()
+
+
+def test_stalled_client_is_dropped_and_the_live_one_gets_everything(tmp_path):
+    data = (DATA / "sim-short.bin").read_bytes()
+    n_samples = decode_bytes(data).counters.sample_frames
+    with PtyPair() as pty:
+        daemon = Daemon(tmp_path, pty.slave_path)
+        try:
+            stalled = socket.socket()
+            stalled.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+            stalled.connect(daemon.address)
+            stalled.sendall(b'?WATCH={"enable":true};\n')  # ...and never reads
+            live = Client(daemon.address)
+            live.send('?WATCH={"enable":true};')
+            live.wait_device("activated")
+            pty.write(data)
+            seqs = [live.next("ANGLE")["seq"] for _ in range(n_samples)]
+            assert seqs == list(range(seqs[0], seqs[0] + n_samples))
+            while live.next("STATUS").get("dropped_clients", 0) < 1:  # dropped within max backlog age
+                pass
+            assert daemon.terminate() == 0
+        finally:
+            daemon.kill()
+
+
+def test_sigkill_leaves_a_decodable_capture(tmp_path):
+    data = (DATA / "sim-short.bin").read_bytes()
+    with PtyPair() as pty:
+        daemon = Daemon(tmp_path, pty.slave_path)
+        try:
+            client = Client(daemon.address)
+            client.wait_device("activated")
+            pty.write(data[:20000])
+            while client.next("STATUS")["bytes_in"] < 20000:
+                pass
+            # The status loop flushes the capture at least once a second: two more passes are enough.
+            client.next("STATUS")
+            client.next("STATUS")
+            os.kill(daemon.proc.pid, signal.SIGKILL)
+            daemon.proc.wait(GUARD_S)
+        finally:
+            daemon.kill()
+    files = sorted(daemon.capture_dir.glob("*.bin"))
+    on_disk = files[0].read_bytes()
+    assert on_disk == data[:20000]  # everything up to the last flush, byte for byte
+    assert decode_file(files[0]).counters.sample_frames == decode_bytes(data[:20000]).counters.sample_frames
+
+
+def test_replay_url_into_the_daemon(tmp_path):
+    capture = DATA / "sim-short.bin"
+    daemon = Daemon(tmp_path, f"replay://{capture}?rate=2000")
+    try:
+        client = Client(daemon.address)
+        client.send('?WATCH={"enable":true,"rate_hz":1};')
+        angles = [client.next("ANGLE") for _ in range(3)]
+        assert [round(a["t_s"] - angles[0]["t_s"]) for a in angles] == [0, 1, 2]  # decimated to 1 Hz
+        assert daemon.terminate() == 0
+    finally:
+        daemon.kill()
+
+
+@pytest.mark.parametrize("args, needle", [(["--model", "/nonexistent/model.yaml"], "no such model file"),
+                                          (["--listen", "10.1.2.3:2948"], "token")])  # fmt: skip
+def test_bad_config_exits_78_with_one_line(tmp_path, args, needle):
+    proc = subprocess.run([sys.executable, "-m", "fog_driver", "run", "--port", "replay:///nonexistent.bin",
+                           "--capture-dir", str(tmp_path / "c"), *args],
+                          capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)  # fmt: skip
+    assert proc.returncode == 78, proc.stderr
+    assert needle in proc.stderr and "Traceback" not in proc.stderr
+    assert len([line for line in proc.stderr.splitlines() if line.startswith("fog-driver: error:")]) == 1

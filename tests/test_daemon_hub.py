@@ -1,0 +1,625 @@
+"""The daemon's client multiplexer (NDJSON over TCP) and UDP datagrams, on real loopback sockets.
+
+No sleeps synchronise anything here: tests wait for lines to arrive (socket
+timeouts are only failure guards) or on threading Events.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import json
+import math
+import socket
+import struct
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from fog_driver.compensation.compensator import FLAG_NAMES
+from fog_driver.daemon.hub import MAX_UNTERMINATED_BYTES, Hub, clean, is_loopback_host
+from fog_driver.daemon.udp import (
+    DATAGRAM_SIZE,
+    FLAG_BITS,
+    FLAG_GAP,
+    FLAG_THERMOMETER_FAULT,
+    FLAG_UNCOMPENSATED,
+    UdpPublisher,
+    decode_datagram,
+    encode_datagram,
+)
+
+TIMEOUT_S = 5.0
+VERSION = {"release": "9.9.9", "proto_major": 1, "proto_minor": 0, "serial": "FOG-TEST-0001"}
+DEVICE = {"path": "/dev/ttyFOG0", "serial": "FOG-TEST-0001", "rate_hz": 100, "activated": None}
+
+
+class Conn:
+    """A test client: line reader with a timeout as failure guard; every line must be JSON with a class."""
+
+    def __init__(self, address: tuple[str, int], rcvbuf: int | None = None) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        if rcvbuf is not None:
+            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
+        self.sock.settimeout(TIMEOUT_S)
+        self.sock.connect(address)
+        self.buf = b""
+
+    def send(self, data: bytes | str) -> None:
+        self.sock.sendall(data.encode() if isinstance(data, str) else data)
+
+    def raw_line(self) -> bytes:
+        while b"\n" not in self.buf:
+            chunk = self.sock.recv(65536)
+            if not chunk:
+                raise EOFError("connection closed")
+            self.buf += chunk
+        line, _, self.buf = self.buf.partition(b"\n")
+        return line
+
+    def line(self) -> dict:
+        raw = self.raw_line()
+        obj = json.loads(raw)
+        assert isinstance(obj, dict) and isinstance(obj.get("class"), str), raw
+        assert b"null" not in raw and b"NaN" not in raw and b"Infinity" not in raw, raw
+        return obj
+
+    def expect(self, cls: str) -> dict:
+        obj = self.line()
+        assert obj["class"] == cls, obj
+        return obj
+
+    def greeting(self) -> None:
+        self.expect("VERSION")
+        self.expect("DEVICE")
+
+    def sync(self) -> None:
+        """Round trip: every line the server queued for this client before now precedes the answer."""
+        self.send("?VERSION;\n")
+        self.expect("VERSION")
+
+    def wait_closed(self) -> None:
+        """Read (and discard) until the server closes the connection."""
+        while True:
+            try:
+                chunk = self.sock.recv(65536)
+            except ConnectionResetError:
+                return
+            if not chunk:
+                return
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+class Control:
+    """The service side: records calls, answers ECHO/FAIL/SLOW/SYNC, knows nothing else."""
+
+    def __init__(self) -> None:
+        self.calls: list[tuple[str, dict, int]] = []
+        self.pending: concurrent.futures.Future | None = None
+        self.slow_called = threading.Event()
+        self.sync = threading.Event()
+
+    def __call__(self, name: str, args: dict, client_id: int):
+        self.calls.append((name, args, client_id))
+        if name == "ECHO":
+            return {"class": "ECHO", "args": args, "client": client_id, "nothing": None}
+        if name == "BARE":
+            return {"ok": True}
+        if name == "FAIL":
+            raise RuntimeError("the instrument is on fire")
+        if name == "SLOW":
+            self.pending = concurrent.futures.Future()
+            self.slow_called.set()
+            return self.pending
+        if name == "FUTFAIL":
+            fut: concurrent.futures.Future = concurrent.futures.Future()
+            fut.set_exception(ValueError("future failed"))
+            return fut
+        if name == "SYNC":
+            self.sync.set()
+            return {"class": "SYNC"}
+        return None
+
+
+@pytest.fixture
+def make_hub():
+    hubs: list[Hub] = []
+
+    def factory(**kwargs) -> tuple[Hub, tuple[str, int], Control]:
+        control = kwargs.pop("control", None) or Control()
+        device = kwargs.pop("device", lambda: DEVICE)
+        hub = Hub(version=lambda: VERSION, device=device, control=control, **kwargs)
+        hubs.append(hub)
+        return hub, hub.start(), control
+
+    yield factory
+    for hub in hubs:
+        hub.stop()
+
+
+def angle(seq: int, t_s: float, **extra) -> dict:
+    return {"class": "ANGLE", "seq": seq, "t_s": t_s, "angle_arcsec": seq * 0.5, **extra}
+
+
+# --------------------------------------------------------------------------- greeting, clean
+
+
+def test_version_then_device_on_connect(make_hub):
+    hub, address, _ = make_hub()
+    c = Conn(address)
+    version = c.expect("VERSION")
+    assert version == {"class": "VERSION", **VERSION}
+    device = c.expect("DEVICE")
+    assert device == {"class": "DEVICE", "path": "/dev/ttyFOG0", "serial": "FOG-TEST-0001", "rate_hz": 100}
+    c.send("?VERSION;\n")
+    assert c.expect("VERSION") == version
+    assert hub.clients == 1 and hub.watchers == 0
+
+
+def test_no_device_line_when_no_device(make_hub):
+    _, address, _ = make_hub(device=lambda: None)
+    c = Conn(address)
+    c.expect("VERSION")
+    c.send("?VERSION\n")  # the trailing ; is optional
+    c.expect("VERSION")  # and no DEVICE came in between
+
+
+def test_clean_drops_none_and_non_finite_recursively():
+    obj = {"a": None, "b": math.nan, "c": math.inf, "d": -math.inf, "e": 1.5, "f": 0, "g": False,
+           "h": {"x": None, "y": [1.0, math.nan, None, 2]}, "i": np.float64("nan"), "j": np.float32(2.5),
+           "k": np.int64(7), "l": np.array([1.0, np.nan]), "m": "text", "n": (None, 3)}
+    assert clean(obj) == {"e": 1.5, "f": 0, "g": False, "h": {"y": [1.0, 2]}, "j": 2.5, "k": 7, "l": [1.0],
+                          "m": "text", "n": [3]}
+    assert json.dumps(clean(obj), allow_nan=False)
+
+
+def test_absent_values_are_omitted_in_output(make_hub):
+    hub, address, _ = make_hub()
+    c = Conn(address)
+    c.greeting()
+    c.send('?WATCH={"enable":true}\n')
+    c.expect("WATCH")
+    hub.publish_angles([angle(1, 1.0, t_top_c=math.nan, t_bottom_c=None, t_housing_c=20.25,
+                             drift_dph=math.inf, extra={"q": None, "r": [math.nan, 1]})])
+    hub.publish({"class": "STATUS", "state": "running", "fault": None, "rate": math.nan})
+    raw = c.raw_line()
+    assert json.loads(raw) == {"class": "ANGLE", "seq": 1, "t_s": 1.0, "angle_arcsec": 0.5, "t_housing_c": 20.25,
+                               "extra": {"r": [1]}}
+    assert b"null" not in raw and b"NaN" not in raw and b"Infinity" not in raw
+    assert c.line() == {"class": "STATUS", "state": "running"}
+
+
+def test_angle_objects_need_t_s(make_hub):
+    hub, address, _ = make_hub()
+    c = Conn(address)
+    c.greeting()
+    c.send('?WATCH={}\n')
+    c.expect("WATCH")
+    with pytest.raises(ValueError, match="t_s"):
+        hub.publish_angles([{"seq": 1}])
+    with pytest.raises(ValueError, match="t_s"):
+        hub.publish_angles([{"seq": 1, "t_s": math.nan}])
+    hub.publish_angles([{"seq": 2, "t_s": 0.0}])  # class defaults to ANGLE
+    assert c.line() == {"class": "ANGLE", "seq": 2, "t_s": 0.0}
+
+
+# --------------------------------------------------------------------------- WATCH
+
+
+def test_watch_enables_decimates_and_disables(make_hub):
+    hub, address, _ = make_hub()
+    every, decimated, idle = Conn(address), Conn(address), Conn(address)
+    for c in (every, decimated, idle):
+        c.greeting()
+    every.send('?WATCH={"enable":true};\n')
+    assert every.line() == {"class": "WATCH", "enable": True}
+    decimated.send('?WATCH={"enable":true,"rate_hz":3};\n')
+    assert decimated.line() == {"class": "WATCH", "enable": True, "rate_hz": 3}
+    idle.send("?WATCH;\n")  # no object: report the policy, change nothing
+    assert idle.line() == {"class": "WATCH", "enable": False}
+    assert hub.watchers == 2 and hub.clients == 3
+
+    # device time in ms: 5003 + 10 k (100 Hz, clear of the period boundaries), in two batches
+    n = 250
+    t_ms = [5003 + 10 * k for k in range(n)]
+    objs = [angle(k, t_ms[k] / 1000) for k in range(n)]
+    hub.publish_angles(objs[:117])
+    hub.publish_angles(objs[117:])
+    hub.publish({"class": "STATUS", "n": 1})
+
+    assert [every.expect("ANGLE")["seq"] for _ in range(n)] == list(range(n))
+    assert every.expect("STATUS") == {"class": "STATUS", "n": 1}
+
+    # independently: the first sample of each 1/3 s period, in exact integer arithmetic
+    expected, last = [], None
+    for k, ms in enumerate(t_ms):
+        period = ms * 3 // 1000
+        if period != last:
+            expected.append(k)
+            last = period
+    got = []
+    while True:
+        obj = decimated.line()
+        if obj["class"] == "STATUS":
+            break
+        got.append(obj["seq"])
+    assert got == expected
+    assert len(expected) == math.floor(7.493 * 3) - math.floor(5.003 * 3) + 1
+
+    # a non-watcher gets STATUS, never ANGLE
+    assert idle.line() == {"class": "STATUS", "n": 1}
+
+    every.send('?WATCH={"enable":false}\n')
+    assert every.line() == {"class": "WATCH", "enable": False}
+    assert hub.watchers == 1
+    hub.publish_angles([angle(1000, 100.0)])
+    every.sync()  # the next line after the disable is the answer: no ANGLE came
+    assert decimated.expect("ANGLE")["seq"] == 1000
+
+
+def test_watch_rejects_bad_policy(make_hub):
+    hub, address, _ = make_hub()
+    c = Conn(address)
+    c.greeting()
+    for bad in ('{"enable":"yes"}', '{"rate_hz":0}', '{"rate_hz":-1}', '{"rate_hz":"fast"}', '{"rate_hz":true}'):
+        c.send(f"?WATCH={bad};\n")
+        err = c.expect("ERROR")
+        assert err["command"] == "WATCH"
+    assert hub.watchers == 0
+
+
+# --------------------------------------------------------------------------- input limits and errors
+
+
+def test_oversized_line_gives_error_and_connection_survives(make_hub):
+    _, address, _ = make_hub(max_line_bytes=4096)
+    c = Conn(address)
+    c.greeting()
+    c.send("?ECHO=" + json.dumps({"pad": "x" * 5000}) + ";\n")
+    assert "longer than 4096" in c.expect("ERROR")["message"]
+    # an oversized line arriving in pieces gives one ERROR; its tail is discarded, not parsed
+    c.send(b"?ECHO=" + b"y" * 3000)
+    c.send(b"y" * 3000)
+    c.send(b"y" * 3000 + b"}\n?ECHO={\"ok\":1};\n")
+    assert "longer than" in c.expect("ERROR")["message"]
+    assert c.expect("ECHO")["args"] == {"ok": 1}
+    c.send("?ECHO=" + json.dumps({"pad": "z" * 4000}) + "\n")  # under the limit: fine
+    assert len(c.expect("ECHO")["args"]["pad"]) == 4000
+
+
+def test_64k_without_newline_disconnects(make_hub):
+    _, address, _ = make_hub()
+    c = Conn(address)
+    c.greeting()
+    try:
+        c.send(b"?" + b"A" * (MAX_UNTERMINATED_BYTES + 10))
+    except (BrokenPipeError, ConnectionResetError):
+        pass
+    lines = []
+    try:
+        while True:
+            lines.append(c.line())
+    except (EOFError, ConnectionResetError):
+        pass
+    assert lines and lines[-1]["class"] == "ERROR" and "without a newline" in lines[-1]["message"]
+    assert all(obj["class"] == "ERROR" for obj in lines)
+    c2 = Conn(address)  # the hub itself is fine
+    c2.greeting()
+
+
+def test_bad_json_non_object_malformed_and_unknown_commands(make_hub):
+    _, address, control = make_hub()
+    c = Conn(address)
+    c.greeting()
+    c.send('?ECHO={"a":;\n?ECHO=[1,2];\n?ECHO=3\nhello\n?lower;\n?NOSUCH;\n?NOSUCH={"x":1}\n\n\r\n?ECHO={"a":1}\r\n')
+    err = c.expect("ERROR")
+    assert err["command"] == "ECHO" and "invalid JSON" in err["message"]
+    err = c.expect("ERROR")
+    assert err["command"] == "ECHO" and "object" in err["message"]
+    assert c.expect("ERROR")["command"] == "ECHO"
+    assert "command" not in c.expect("ERROR")
+    assert "command" not in c.expect("ERROR")
+    assert c.expect("ERROR") == {"class": "ERROR", "message": "unknown command ?NOSUCH", "command": "NOSUCH"}
+    assert c.expect("ERROR")["command"] == "NOSUCH"
+    assert c.expect("ECHO")["args"] == {"a": 1}  # empty lines ignored, \r tolerated
+    c.send("?ECHO=" + "[" * 4000 + "\n")  # deeper than Python's recursion limit
+    assert "invalid JSON" in c.expect("ERROR")["message"]
+    c.sync()
+    assert [name for name, _, _ in control.calls] == ["NOSUCH", "NOSUCH", "ECHO"]
+
+
+def test_rate_limit_refuses_excess_then_disconnects(make_hub):
+    _, address, _ = make_hub()
+    c = Conn(address)
+    c.greeting()
+    c.send("?VERSION;\n" * 150)
+    kinds = [c.line()["class"] for _ in range(150)]
+    assert kinds.count("VERSION") >= 100 and kinds.count("ERROR") >= 1  # >= : a stalled machine may roll the 1 s window
+    assert kinds[:100] == ["VERSION"] * 100
+    c.send("?VERSION;\n" * 1500)
+    lines = 0
+    try:
+        while True:
+            c.line()
+            lines += 1
+    except (EOFError, ConnectionResetError):
+        pass
+    assert lines < 1500  # closed after 1000 refused commands
+
+
+def test_client_half_close_still_gets_replies(make_hub):
+    _, address, _ = make_hub()
+    c = Conn(address)
+    c.greeting()
+    c.send("?ECHO={\"n\":1};\n")
+    c.sock.shutdown(socket.SHUT_WR)
+    assert c.expect("ECHO")["args"] == {"n": 1}
+    with pytest.raises(EOFError):
+        c.line()
+
+
+# --------------------------------------------------------------------------- control callback
+
+
+def test_control_dict_future_and_exceptions(make_hub):
+    hub, address, control = make_hub()
+    a, b = Conn(address), Conn(address)
+    a.greeting()
+    b.greeting()
+    a.send('?ECHO={"x":[1,2]};\n')
+    echo = a.expect("ECHO")
+    assert echo["args"] == {"x": [1, 2]} and "nothing" not in echo
+    client_a = echo["client"]
+    a.send("?BARE;\n")
+    assert a.line() == {"class": "BARE", "ok": True}  # a reply without class takes the command's name
+    a.send("?FAIL;\n")
+    assert a.line() == {"class": "ERROR", "message": "the instrument is on fire", "command": "FAIL"}
+    a.send("?FUTFAIL;\n")
+    assert a.line() == {"class": "ERROR", "message": "future failed", "command": "FUTFAIL"}
+
+    # a pending Future blocks neither the loop nor other clients
+    a.send('?SLOW={"n":5};\n')
+    assert control.slow_called.wait(TIMEOUT_S)
+    b.send("?ECHO;\n")
+    assert b.expect("ECHO")["client"] != client_a
+    hub.publish({"class": "STATUS", "n": 2})
+    assert b.expect("STATUS")["n"] == 2
+    assert a.expect("STATUS")["n"] == 2  # a's published lines still flow
+    threading.Thread(target=control.pending.set_result, args=({"class": "SLOW", "done": True, "x": None},)).start()
+    assert a.line() == {"class": "SLOW", "done": True}
+    assert ("SLOW", {"n": 5}, client_a) in control.calls
+
+
+def test_control_future_timeout(make_hub):
+    _, address, _ = make_hub(control_timeout_s=0.2)
+    c = Conn(address)
+    c.greeting()
+    c.send("?SLOW;\n")
+    err = c.expect("ERROR")
+    assert err["command"] == "SLOW" and "no answer" in err["message"]
+    c.sync()
+
+
+def test_token_required_for_control_commands(make_hub):
+    _, address, control = make_hub(token="s3cret")
+    c = Conn(address)
+    c.greeting()
+    c.send("?ECHO;\n")
+    assert c.line() == {"class": "ERROR", "message": "unauthorized", "command": "ECHO"}
+    c.send("?NOSUCH;\n")
+    assert c.expect("ERROR")["message"] == "unauthorized"
+    c.send('?WATCH={"enable":true};\n')  # WATCH and VERSION need no AUTH
+    c.expect("WATCH")
+    c.sync()
+    c.send('?AUTH={"token":"wrong"};\n?AUTH;\n')
+    assert c.expect("ERROR")["command"] == "AUTH"
+    assert c.expect("ERROR")["command"] == "AUTH"
+    assert control.calls == []
+    c.send('?AUTH={"token":"s3cret"};\n')
+    assert c.line() == {"class": "AUTH", "authorized": True}
+    c.send("?ECHO;\n")
+    c.expect("ECHO")
+    other = Conn(address)  # authorization is per connection
+    other.greeting()
+    other.send("?ECHO;\n")
+    assert other.expect("ERROR")["message"] == "unauthorized"
+
+
+def test_repeated_bad_tokens_disconnect(make_hub):
+    _, address, _ = make_hub(token="s3cret")
+    c = Conn(address)
+    c.greeting()
+    c.send('?AUTH={"token":"guess"};\n' * 10)
+    errors = 0
+    with pytest.raises((EOFError, ConnectionResetError)):
+        while True:
+            c.expect("ERROR")
+            errors += 1
+    assert errors == 5
+
+
+def test_non_loopback_bind_needs_a_token():
+    kwargs = {"version": lambda: VERSION, "device": lambda: None, "control": lambda *a: None}
+    for host in ("0.0.0.0", "", "::", "192.0.2.7"):
+        with pytest.raises(ValueError, match="token"):
+            Hub(host, 0, **kwargs)
+    with pytest.raises(ValueError):
+        Hub("127.0.0.1", 0, token="", **kwargs)
+    Hub("0.0.0.0", 0, token="s3cret", **kwargs)  # constructed, not started
+    for host in ("127.0.0.1", "127.0.0.2", "::1", "localhost"):
+        Hub(host, 0, **kwargs)
+        assert is_loopback_host(host)
+
+
+# --------------------------------------------------------------------------- slow clients, threads
+
+
+def test_stalled_client_is_dropped_while_another_receives_everything(make_hub):
+    hub, address, control = make_hub(max_backlog_s=0.3)
+    stalled = Conn(address, rcvbuf=4096)
+    stalled.send('?WATCH={"enable":true};\n?SYNC;\n')  # and never reads again
+    assert control.sync.wait(TIMEOUT_S)
+    good = Conn(address)
+    good.greeting()
+    good.send('?WATCH={"enable":true};\n')
+    good.expect("WATCH")
+    assert hub.watchers == 2
+
+    pad = "p" * 400
+    batch, seq, published = 100, 0, 0
+    slowest_publish_s = 0.0
+    deadline = time.monotonic() + 10.0
+    while hub.dropped_clients == 0:  # lockstep: publish a batch, the good client reads all of it
+        assert time.monotonic() < deadline, "the stalled client was never dropped"
+        objs = [angle(seq + i, (seq + i) / 1000, pad=pad) for i in range(batch)]
+        t0 = time.monotonic()
+        hub.publish_angles(objs)
+        slowest_publish_s = max(slowest_publish_s, time.monotonic() - t0)
+        seq += batch
+        published += batch
+        for i in range(batch):
+            assert good.line()["seq"] == seq - batch + i
+    for _ in range(3):  # after the drop, publishing goes on
+        hub.publish_angles([angle(seq + i, (seq + i) / 1000) for i in range(batch)])
+        seq += batch
+    hub.publish({"class": "STATUS", "end": True})
+    tail = []
+    while (obj := good.line())["class"] == "ANGLE":
+        tail.append(obj["seq"])
+    assert obj == {"class": "STATUS", "end": True}
+    assert tail == list(range(published, seq))  # every published line, in order, exactly once
+    assert hub.dropped_clients == 1 and hub.clients == 1 and hub.watchers == 1
+    assert slowest_publish_s < 1.0  # publishing never waited for the stalled client
+    stalled.wait_closed()
+
+
+def test_publish_from_another_thread_preserves_order(make_hub):
+    hub, address, _ = make_hub(max_backlog_s=30.0)
+    conns = [Conn(address) for _ in range(2)]
+    for c in conns:
+        c.greeting()
+        c.send('?WATCH={"enable":true};\n')
+        c.expect("WATCH")
+    batches, per_batch = 400, 25
+    results: dict[int, list] = {}
+
+    def read_all(i: int, c: Conn) -> None:
+        got = []
+        while True:
+            obj = c.line()
+            if obj["class"] == "STATUS" and obj.get("last"):
+                break
+            got.append(obj["seq"] if obj["class"] == "ANGLE" else ("S", obj["n"]))
+        results[i] = got
+
+    readers = [threading.Thread(target=read_all, args=(i, c)) for i, c in enumerate(conns)]
+    for r in readers:
+        r.start()
+
+    def produce() -> None:
+        for b in range(batches):
+            hub.publish_angles([angle(b * per_batch + i, (b * per_batch + i) / 100) for i in range(per_batch)])
+            if b % 50 == 49:
+                hub.publish({"class": "STATUS", "n": b})
+        hub.publish({"class": "STATUS", "last": True})
+
+    producer = threading.Thread(target=produce)
+    producer.start()
+    producer.join(TIMEOUT_S * 2)
+    for r in readers:
+        r.join(TIMEOUT_S * 2)
+    expected = []
+    for b in range(batches):
+        expected.extend(range(b * per_batch, (b + 1) * per_batch))
+        if b % 50 == 49:
+            expected.append(("S", b))
+    assert results[0] == expected
+    assert results[1] == expected
+    assert hub.dropped_clients == 0
+    assert hub.bytes_sent > 0
+
+
+def test_lifecycle(make_hub):
+    hub, address, _ = make_hub()
+    assert address[0] == "127.0.0.1" and address[1] > 0
+    c = Conn(address)
+    c.greeting()
+    hub.stop()
+    with pytest.raises((EOFError, ConnectionResetError)):
+        c.line()
+    hub.stop()  # idempotent
+    hub.publish({"class": "STATUS"})  # after stop: a no-op, never an error
+    hub.publish_angles([angle(1, 1.0)])
+    with pytest.raises(ConnectionRefusedError):
+        socket.create_connection(address, timeout=TIMEOUT_S)
+
+
+def test_start_reports_bind_failure(make_hub):
+    _, address, _ = make_hub()
+    hub = Hub(*address, version=lambda: VERSION, device=lambda: None, control=lambda *a: None)
+    with pytest.raises(OSError):
+        hub.start()
+
+
+# --------------------------------------------------------------------------- UDP
+
+
+def test_udp_datagram_exact_bytes_and_round_trip():
+    data = encode_datagram(seq=123456789012, t_s=1234.5625, angle_arcsec=-3.25, angle_raw_arcsec=-3.5,
+                           rate_dph=15.041, drift_dph=0.0125, t_top_c=20.1, t_bottom_c=None, t_housing_c=19.875,
+                           flags=FLAG_GAP | FLAG_THERMOMETER_FAULT)
+    # independently: the documented layout, field by field
+    expected = (b"FOGA" + struct.pack(">H", 1) + struct.pack(">H", 3) + struct.pack(">Q", 123456789012)
+                + struct.pack(">d", 1234.5625) + struct.pack(">d", -3.25) + struct.pack(">d", -3.5)
+                + struct.pack(">d", 15.041) + struct.pack(">d", 0.0125)
+                + struct.pack(">f", 20.1) + bytes.fromhex("7fc00000") + struct.pack(">f", 19.875))
+    assert data == expected
+    assert len(data) == DATAGRAM_SIZE == 68
+    decoded = decode_datagram(data)
+    assert decoded["version"] == 1 and decoded["flags"] == 3 and decoded["seq"] == 123456789012
+    assert decoded["t_s"] == 1234.5625 and decoded["rate_dph"] == 15.041
+    assert decoded["t_top_c"] == float(np.float32(20.1))
+    assert math.isnan(decoded["t_bottom_c"]) and decoded["t_housing_c"] == 19.875
+    assert decode_datagram(data + b"future fields")["seq"] == 123456789012
+    for bad in (data[:67], b"FOGB" + data[4:], data[:4] + b"\x00\x02" + data[6:]):
+        with pytest.raises(ValueError):
+            decode_datagram(bad)
+
+
+def test_udp_publisher_sends_one_datagram_per_sample_and_never_raises():
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rx.bind(("127.0.0.1", 0))
+    rx.settimeout(TIMEOUT_S)
+    try:
+        pub = UdpPublisher(*rx.getsockname())
+        assert pub.send(seq=1, t_s=0.01, angle_arcsec=1.0, t_top_c=20.0)
+        assert pub.send_many([{"class": "ANGLE", "seq": 2, "t_s": 0.02, "angle_arcsec": 2.0, "flags": 1,
+                               "t_housing_c": None, "unknown": "ignored"}]) == 1
+        # the service's ANGLE object: thermometers in temps_c, flags as names
+        assert pub.send({"class": "ANGLE", "seq": 3, "t_s": 0.03, "rate_dph": 1.5,
+                         "temps_c": {"top": 20.5, "housing": 19.5}, "flags": ["gap", "uncompensated", "new"]})
+        first = decode_datagram(rx.recv(2048))
+        second_raw = rx.recv(2048)
+        assert len(second_raw) == 68
+        second = decode_datagram(second_raw)
+        assert (first["seq"], first["angle_arcsec"], first["t_top_c"]) == (1, 1.0, 20.0)
+        assert math.isnan(first["rate_dph"])
+        assert (second["seq"], second["flags"], second["t_s"]) == (2, 1, 0.02)
+        assert math.isnan(second["t_housing_c"])
+        third = decode_datagram(rx.recv(2048))
+        assert (third["seq"], third["rate_dph"], third["t_top_c"], third["t_housing_c"]) == (3, 1.5, 20.5, 19.5)
+        assert math.isnan(third["t_bottom_c"])
+        assert third["flags"] == FLAG_GAP | FLAG_UNCOMPENSATED
+        assert pub.sent == 3 and pub.send_errors == 0
+        pub.close()
+        assert pub.send(seq=4) is False  # a dead socket is counted, never raised
+        assert pub.send_errors == 1 and pub.last_error
+    finally:
+        rx.close()
+
+
+def test_udp_flag_bits_are_the_compensators():
+    assert FLAG_BITS == {name: bit for bit, name in FLAG_NAMES.items()}

@@ -1,0 +1,458 @@
+"""Tests of fog_driver.daemon.watch: the `fog-driver watch` client of the daemon's NDJSON protocol.
+
+The daemon is a tiny fake server in a thread: a listening socket that is bound and listening
+before ``run_watch`` connects (the kernel's accept backlog is the readiness; nothing sleeps),
+which sends a scripted conversation and closes.  The non-terminal view is what the tests read.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import re
+import signal
+import socket
+import threading
+import time
+
+import pytest
+
+from fog_driver.daemon.watch import (
+    MAX_LINE_BYTES,
+    LineReader,
+    compact_line,
+    format_arcsec,
+    format_dms,
+    parse_address,
+    parse_line,
+    render,
+    run_watch,
+)
+from fog_driver.errors import DeviceError, UsageError
+
+GUARD_S = 30.0  # a hang guard only, never a synchronisation
+
+VERSION = {"class": "VERSION", "release": "0.1.0", "proto_major": 1, "proto_minor": 0,
+           "instrument": {"serial": "FOG-SYN-0001", "firmware": "1.2", "rate_hz": 100}}  # fmt: skip
+DEVICE = {"class": "DEVICE", "path": "/tmp/fog-driver-sim.tty", "state": "activated", "serial": "FOG-SYN-0001", "rate_hz": 100}
+STATUS = {"class": "STATUS", "frames": 4242, "crc_errors": 3, "missing_frames": 7, "clients": 1,
+          "cpu_percent": 2.5, "port_state": "open", "some_future_key": "x"}  # fmt: skip
+
+
+def angle(seq: int, **extra) -> dict:
+    obj = {"class": "ANGLE", "seq": seq, "t_s": 12.34 + 0.1 * (seq - 1), "angle_arcsec": 3723.5 + seq,
+           "angle_raw_arcsec": -59.995 - seq, "rate_dph": 15.041, "drift_dph": 0.1234,
+           "temps_c": {"top": 20.25, "bottom": 19.88, "housing": 19.6}, "flags": ["gap"] if seq == 2 else []}  # fmt: skip
+    obj.update(extra)
+    return obj
+
+
+def ndjson(*objs) -> bytes:
+    return b"".join(o if isinstance(o, bytes) else json.dumps(o).encode() + b"\n" for o in objs)
+
+
+class FakeDaemon:
+    """One connection: greet, read the WATCH request, send ``chunks``, then ``then`` ('close' or 'wait')."""
+
+    def __init__(self, chunks: list[bytes], *, then: str = "close") -> None:
+        self.listener = socket.create_server(("127.0.0.1", 0))  # listening before the client runs
+        self.port = self.listener.getsockname()[1]
+        self.chunks, self.then = chunks, then
+        self.request = b""
+        self.error: BaseException | None = None
+        self.thread = threading.Thread(target=self._serve, daemon=True)
+        self.thread.start()
+
+    def _serve(self) -> None:
+        try:
+            self.listener.settimeout(GUARD_S)
+            conn, _ = self.listener.accept()
+            with conn:
+                conn.settimeout(GUARD_S)
+                conn.sendall(ndjson(VERSION, DEVICE))
+                while not self.request.endswith(b"\n"):  # the whole request, so close() sends FIN, not RST
+                    data = conn.recv(4096)
+                    if not data:
+                        return
+                    self.request += data
+                conn.sendall(ndjson({"class": "WATCH", "enable": True, "rate_hz": json.loads(self.request[7:-2])["rate_hz"]}))
+                for chunk in self.chunks:
+                    conn.sendall(chunk)
+                if self.then == "wait":  # until the client hangs up
+                    while conn.recv(4096):
+                        pass
+        except BaseException as exc:  # noqa: BLE001 - reported by join()
+            self.error = exc
+        finally:
+            self.listener.close()
+
+    def join(self) -> None:
+        self.thread.join(GUARD_S)
+        assert not self.thread.is_alive()
+        if self.error is not None:
+            raise self.error
+
+
+def watch(daemon: FakeDaemon, **kwargs) -> tuple[int, str]:
+    out = io.StringIO()
+    status = run_watch("127.0.0.1", daemon.port, out=out, **kwargs)
+    daemon.join()
+    return status, out.getvalue()
+
+
+CONVERSATION = [
+    ndjson(angle(1), STATUS),
+    b"this is not json\n",
+    ndjson({"class": "SKY", "satellites": 12}, ["not", "an", "object"], {"no": "class"}),
+    ndjson(angle(2))[:20],  # a line split across two sends
+    ndjson(angle(2))[20:],
+    ndjson(angle(3, unknown_key={"x": 1})),
+    ndjson(angle(4)),
+]
+
+
+def test_conversation_fixture_is_well_formed():
+    data = b"".join(CONVERSATION)
+    lines = [parse_line(line) for line in data.split(b"\n") if line]
+    assert [o["seq"] for o in lines if o and o["class"] == "ANGLE"] == [1, 2, 3, 4]
+    assert sum(o is None for o in lines) == 3  # not json, a list, no class
+
+
+# --------------------------------------------------------------------------- run_watch
+
+
+def test_count_reached_exits_0_with_the_latest_values():
+    daemon = FakeDaemon(CONVERSATION, then="wait")
+    status, text = watch(daemon, count=3, rate_hz=10)
+    assert status == 0
+    assert daemon.request == b'?WATCH={"enable":true,"rate_hz":10};\n'
+    lines = text.splitlines()
+    assert lines[0] == ("connected to 127.0.0.1:2948: server 0.1.0, protocol 1.0; "
+                        "instrument serial FOG-SYN-0001, firmware 1.2, 100 Hz").replace("2948", str(daemon.port))  # fmt: skip
+    assert lines[1] == "device /tmp/fog-driver-sim.tty, activated, serial FOG-SYN-0001, 100 Hz"
+    last = lines[-1]  # the final compact line: the third ANGLE (count=3), not the fourth
+    assert "seq 3 |" in last and "t 12.540 s" in last
+    assert "angle 3726.50\" (1°02'06.50\")" in last
+    assert "raw -63.00\" (-0°01'03.00\")" in last  # -59.995 - 3 = -62.995..., rounded away from zero
+    assert "rate 15.0410 deg/h" in last and "drift 0.1234 deg/h" in last
+    assert "temps top 20.25 bottom 19.88 housing 19.60 degC" in last
+    assert "flags none" in last
+    assert "3 ANGLE" in last and "3 malformed" in last and "1 unknown class" in last  # WATCH is known
+    assert "(WATCH 10 Hz)" in last
+    assert ("status clients=1 cpu_percent=2.5 crc_errors=3 frames=4242 missing_frames=7 "
+            "port_state=open some_future_key=x") in last  # fmt: skip
+    assert "None" not in text and "null" not in text
+
+
+def test_server_closing_early_exits_1_with_a_note():
+    daemon = FakeDaemon(CONVERSATION, then="close")
+    status, text = watch(daemon, count=100)
+    assert status == 1
+    lines = text.splitlines()
+    assert lines[-1] == f"fog-driver watch: 127.0.0.1:{daemon.port} closed the connection (4 ANGLE received)"
+    assert "seq 4 |" in lines[-2] and "4 ANGLE" in lines[-2]
+
+
+def test_server_closing_before_any_angle():
+    daemon = FakeDaemon([], then="close")
+    status, text = watch(daemon)
+    assert status == 1
+    assert text.splitlines()[-1].endswith("closed the connection (0 ANGLE received)")
+
+
+def test_error_and_device_changes_are_printed_as_they_come():
+    deactivated = dict(DEVICE, state="deactivated")
+    del deactivated["serial"]
+    daemon = FakeDaemon([ndjson({"class": "ERROR", "message": "port lost"}, deactivated, angle(1))], then="wait")
+    status, text = watch(daemon, count=1)
+    assert status == 0
+    assert "server error: port lost\n" in text
+    assert "device /tmp/fog-driver-sim.tty, deactivated, 100 Hz\n" in text
+
+
+def test_oversized_and_binary_lines_are_skipped_and_counted():
+    huge = b'{"class":"ANGLE","seq":99,"pad":"' + b"x" * (MAX_LINE_BYTES + 10) + b'"}\n'
+    daemon = FakeDaemon([huge[:70000], huge[70000:], b"\xff\xfe\x00garbage\n", b"\n", ndjson(angle(1))], then="wait")
+    status, text = watch(daemon, count=1)
+    assert status == 0
+    last = text.splitlines()[-1]
+    assert "seq 1 |" in last and "1 ANGLE" in last
+    assert "1 oversized" in last and "1 malformed" in last  # the empty line is not an error
+
+
+def test_duration_ends_the_watch_with_0():
+    daemon = FakeDaemon([ndjson(angle(1))], then="wait")
+    started = time.monotonic()
+    status, text = watch(daemon, duration_s=0.3)
+    assert status == 0
+    assert time.monotonic() - started >= 0.3
+    assert "seq 1 |" in text.splitlines()[-1]
+
+
+class CtrlCOnError(io.StringIO):
+    """Sends the process a real SIGINT (Ctrl-C) when the view prints the server's ERROR line."""
+
+    def write(self, text: str) -> int:
+        n = super().write(text)
+        if text.startswith("server error: stop"):
+            signal.raise_signal(signal.SIGINT)
+        return n
+
+
+def test_ctrl_c_is_a_clean_exit_0():
+    daemon = FakeDaemon([ndjson(angle(1), STATUS, {"class": "ERROR", "message": "stop"})], then="wait")
+    out = CtrlCOnError()
+    status = run_watch("127.0.0.1", daemon.port, out=out)  # no count, no duration: only Ctrl-C or the server ends it
+    daemon.join()  # the server waits for the client to hang up
+    assert status == 0
+    lines = out.getvalue().splitlines()
+    assert lines[-2] == "server error: stop"
+    assert "seq 1 |" in lines[-1]  # the last state is still shown
+
+
+def test_rate_hz_is_sent_as_given():
+    daemon = FakeDaemon([ndjson(angle(1))], then="wait")
+    status, text = watch(daemon, count=1, rate_hz=2.5)
+    assert status == 0
+    assert daemon.request == b'?WATCH={"enable":true,"rate_hz":2.5};\n'
+    assert "(WATCH 2.5 Hz)" in text
+
+
+class FakeTty(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def test_terminal_view_redraws_a_block_in_place():
+    daemon = FakeDaemon([ndjson(angle(1), STATUS, angle(2), angle(3))], then="wait")
+    out = FakeTty()
+    started = time.monotonic()
+    status = run_watch("127.0.0.1", daemon.port, out=out, count=3)
+    elapsed = time.monotonic() - started
+    daemon.join()
+    assert status == 0
+    text = out.getvalue()
+    frames = text.split("\x1b[H")[1:]
+    assert frames, text
+    assert len(frames) <= 2 + 10 * elapsed  # at most 10 redraws a second (+ the first and the last)
+    last = frames[-1]
+    assert "\x1b[K\n" in last and "\x1b[J" in last
+    assert "angle       3726.50\" (1°02'06.50\")" in last
+    assert "temps       top 20.25  bottom 19.88  housing 19.60 degC" in last
+    assert "device      /tmp/fog-driver-sim.tty, activated" in last
+    assert text.endswith("\x1b[?25h")  # the cursor is shown again
+
+
+def test_connection_refused_is_a_one_line_device_error():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))  # bound, never listening: the port is ours and refuses connections
+        port = s.getsockname()[1]
+        with pytest.raises(DeviceError) as info:
+            run_watch("127.0.0.1", port, out=io.StringIO(), timeout_s=GUARD_S)
+    message = str(info.value)
+    assert message == f"cannot connect to 127.0.0.1:{port}: Connection refused (is `fog-driver run` running?)"
+    assert "\n" not in message
+    assert info.value.exit_status == 69
+
+
+@pytest.mark.parametrize("kwargs", [{"count": 0}, {"count": 1.5}, {"duration_s": 0}, {"rate_hz": -1}])
+def test_bad_arguments_are_usage_errors(kwargs):
+    with pytest.raises(UsageError):
+        run_watch("127.0.0.1", 1, out=io.StringIO(), **kwargs)
+
+
+# --------------------------------------------------------------------------- pure functions
+
+
+@pytest.mark.parametrize(
+    ("arcsec", "text"),
+    [
+        (3723.5, "1°02'03.50\""),
+        (-62.995000000000005, "-0°01'03.00\""),
+        (-3723.5, "-1°02'03.50\""),
+        (0.0, "0°00'00.00\""),
+        (0, "0°00'00.00\""),
+        (59.994, "0°00'59.99\""),
+        (59.995, "0°01'00.00\""),  # rounding carries into the minutes
+        (-59.995, "-0°01'00.00\""),
+        (3599.995, "1°00'00.00\""),  # ... and into the degrees
+        (-0.004, "0°00'00.00\""),  # no "-0"
+        (-0.005, "-0°00'00.01\""),
+        (0.125, "0°00'00.13\""),
+        (1296000.0, "360°00'00.00\""),  # an integrated angle is not wrapped
+        (float("nan"), "nan"),
+        (float("-inf"), "-inf"),
+    ],
+)
+def test_format_dms(arcsec, text):
+    assert format_dms(arcsec) == text
+
+
+def test_format_dms_ascii_degree():
+    assert format_dms(3723.5, degree="d") == "1d02'03.50\""
+
+
+@pytest.mark.parametrize(
+    ("line", "expected"),
+    [
+        (b'{"class":"ANGLE","seq":1}\n', {"class": "ANGLE", "seq": 1}),
+        (b'{"class":"X"}\r\n', {"class": "X"}),
+        (b"", None),
+        (b"\n", None),
+        (b"not json\n", None),
+        (b"[1,2]\n", None),
+        (b'"ANGLE"\n', None),
+        (b'{"seq":1}\n', None),
+        (b'{"class":5}\n', None),
+        (b"\xff\xfe{}\n", None),
+        (b'{"class":"ANGLE",', None),
+        (b'{"class":"A","p":"' + b"x" * MAX_LINE_BYTES + b'"}', None),
+        (b"[" * 100_000 + b"]" * 100_000, None),  # deeply nested: no RecursionError
+    ],
+)
+def test_parse_line(line, expected):
+    assert parse_line(line) == expected
+
+
+def test_line_reader_limits_line_length_across_chunks():
+    reader = LineReader(max_line=10)
+    assert reader.feed(b"abc\nde") == [b"abc"]
+    assert reader.feed(b"f\n" + b"x" * 8) == [b"def"]
+    assert reader.feed(b"y" * 8) == []  # now over the limit: dropped up to its newline
+    assert reader.feed(b"zzz\nok\n") == [b"ok"]
+    assert reader.oversized == 1
+    assert reader.feed(b"0123456789012\nfine\n") == [b"fine"]
+    assert reader.oversized == 2
+
+
+FULL_STATE = {
+    "address": "127.0.0.1:2948", "elapsed_s": 3.25, "version": VERSION, "device": DEVICE,
+    "angle": angle(2), "status": STATUS, "angles": 30, "angle_rate_hz": 10.0, "angle_age_s": 0.04,
+    "malformed": 2, "unknown": 1, "error": "port lost",
+}  # fmt: skip
+
+
+def test_render_full_state():
+    lines = render(FULL_STATE, width=200)
+    assert lines[0] == "fog-driver watch 127.0.0.1:2948  |  server 0.1.0, protocol 1.0  |  3.2 s"
+    assert lines[1:] == [
+        "instrument  serial FOG-SYN-0001, firmware 1.2, 100 Hz",
+        "device      /tmp/fog-driver-sim.tty, activated, serial FOG-SYN-0001, 100 Hz",
+        "angle       3725.50\" (1°02'05.50\")    raw -62.00\" (-0°01'02.00\")",  # the two forms agree
+        "rate        15.0410 deg/h    drift 0.1234 deg/h",
+        "temps       top 20.25  bottom 19.88  housing 19.60 degC",
+        "flags       gap",
+        "sample      seq 2  t 12.440 s  (received 0.0 s ago)",
+        "received    10.0 ANGLE/s  30 ANGLE  2 malformed  1 unknown class",
+        "status      clients=1  cpu_percent=2.5  crc_errors=3  frames=4242  missing_frames=7  port_state=open  some_future_key=x",
+        "error       port lost",
+    ]
+
+
+def test_render_wraps_the_status_counters():
+    lines = render(FULL_STATE, width=60)
+    status = [line for line in lines if line.startswith(("status", " " * 12))]
+    assert len(status) >= 2 and all(len(line) <= 60 for line in status)
+    assert " ".join(" ".join(status).split()) == (
+        "status clients=1 cpu_percent=2.5 crc_errors=3 frames=4242 missing_frames=7 port_state=open some_future_key=x"
+    )
+
+
+@pytest.mark.parametrize(
+    "state",
+    [
+        {},
+        {"angle": {"class": "ANGLE"}},
+        {"angle": {"class": "ANGLE", "seq": 1, "temps_c": {"top": 20.0}}},  # two thermometers absent
+        {"angle": {"class": "ANGLE", "angle_arcsec": None, "temps_c": None, "flags": None}},
+        {"angle": {"class": "ANGLE", "angle_arcsec": "bad", "rate_dph": [1], "temps_c": "hot", "flags": "gap"}},
+        {"version": {"class": "VERSION"}, "device": {"class": "DEVICE"}, "status": {"class": "STATUS"}},
+        {"version": {"class": "VERSION", "instrument": None}, "device": {"class": "DEVICE", "state": "deactivated"}},
+        {"version": "nonsense", "device": 5, "angle": [], "status": {"nested": {"a": None}, "list": [None]}},
+        {"version": {"class": "VERSION", "proto_major": 2}},
+    ],
+)
+def test_render_with_missing_fields_never_crashes_or_shows_none(state):
+    for lines in (render(state), [compact_line(state)]):
+        assert lines and all(isinstance(line, str) for line in lines)
+        text = "\n".join(lines)
+        assert "None" not in text and "null" not in text
+
+
+def test_render_missing_fields_show_a_dash():
+    lines = render({"angle": {"class": "ANGLE", "seq": 7, "temps_c": {"top": 20.0}}})
+    assert "instrument  -" in lines
+    assert "device      -" in lines
+    assert "angle       -    raw -" in lines
+    assert "temps       top 20.00  bottom -  housing - degC" in lines
+    assert "flags       -" in lines
+    assert "status      -" in lines
+    assert not any(line.startswith("error") for line in lines)
+    assert "waiting for ANGLE" in "\n".join(render({}))
+
+
+def test_render_flags_a_newer_protocol():
+    assert "protocol 2.0 (this client speaks 1.x)" in render({"version": {"class": "VERSION", "release": "9", "proto_major": 2}})[0]
+
+
+def test_compact_line_is_one_line():
+    line = compact_line(FULL_STATE)
+    assert "\n" not in line
+    assert re.match(r"\[ +3\.2 s\] seq 2 \| t 12\.440 s \| angle 3725\.50\" \(1°02'05\.50\"\)", line)
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        (None, ("127.0.0.1", 2948)),
+        ("", ("127.0.0.1", 2948)),
+        ("gyro-pc", ("gyro-pc", 2948)),
+        ("gyro-pc:3000", ("gyro-pc", 3000)),
+        (":3000", ("127.0.0.1", 3000)),
+        ("3000", ("127.0.0.1", 3000)),
+        ("[::1]:3000", ("::1", 3000)),
+        ("[::1]", ("::1", 2948)),
+        ("::1", ("::1", 2948)),
+    ],
+)
+def test_parse_address(text, expected):
+    assert parse_address(text) == expected
+
+
+@pytest.mark.parametrize("text", ["host:port", "host:0", "host:70000", "[::1", "[::1]x"])
+def test_parse_address_rejects(text):
+    with pytest.raises(UsageError):
+        parse_address(text)
+
+
+@pytest.mark.parametrize(("arcsec", "text"), [(3723.5, "3723.50"), (-59.995, "-60.00"), (-0.004, "0.00"), (2.675, "2.68")])
+def test_format_arcsec_agrees_with_format_dms(arcsec, text):
+    assert format_arcsec(arcsec) == text
+
+
+def test_log_view_prints_a_line_each_second():
+    daemon = FakeDaemon([ndjson(angle(1), STATUS)], then="wait")
+    status, text = watch(daemon, duration_s=1.5)
+    assert status == 0
+    compact = [line for line in text.splitlines() if line.startswith("[")]
+    assert len(compact) == 1  # at 1 s; nothing new arrived after it, so no final line
+    assert re.match(r"\[ +1\.\d s\] seq 1 \|", compact[0])
+    assert "0.0 ANGLE/s" not in compact[0]  # the one ANGLE is still inside the 2-s rate window
+
+
+def test_server_text_cannot_inject_control_characters():
+    state = {"error": "bad\nline\x1b[2J", "status": {"class": "STATUS", "k\x1b[H": "v\r"},
+             "device": {"class": "DEVICE", "path": "/dev/tty\x07", "state": "activated"}}  # fmt: skip
+    for text in ("\n".join(render(state)), compact_line(state)):
+        assert "\x1b" not in text and "\r" not in text and "\x07" not in text
+    assert "error       bad?line?[2J" in render(state)
+
+
+@pytest.mark.parametrize(
+    ("policy", "shown"),
+    [({"enable": True, "rate_hz": 10}, "(WATCH 10 Hz)"), ({"enable": True, "rate_hz": None}, "(WATCH every sample)"),
+     ({"enable": True}, "(WATCH every sample)"), ({"enable": False}, "(WATCH disabled)")],
+)  # fmt: skip
+def test_render_shows_the_watch_policy_in_force(policy, shown):
+    received = [line for line in render({"watch": {"class": "WATCH", **policy}}) if line.startswith("received")]
+    assert received[0].endswith(shown)
