@@ -22,19 +22,41 @@ DEFAULT_MODEL = PROJECT_ROOT / "configs" / "models" / "default.yaml"
 DEFAULT_PORT = 2948
 
 
-def parse_host_port(text: str, default_port: int = DEFAULT_PORT) -> tuple[str, int]:
-    """``HOST:PORT``, ``HOST`` or ``:PORT`` (``[v6]:PORT`` for IPv6) -> (host, port)."""
-    host, sep, port = text.rpartition(":")
-    if not sep:
-        host, port = text, str(default_port)
-    host = host.strip("[]") or "127.0.0.1"
+def parse_host_port(
+    text: str | None, *, default_host: str = "127.0.0.1", default_port: int = DEFAULT_PORT, allow_zero: bool = True
+) -> tuple[str, int]:
+    """``HOST:PORT``, ``HOST``, ``:PORT``, ``PORT``, ``[IPV6]:PORT`` or a bare IPv6 address -> (host, port).
+
+    ``ValueError`` naming the problem when malformed; port 0 (any free port) only with ``allow_zero``.
+    """
+    if text is None or not text.strip():
+        return default_host, default_port
+    text = text.strip()
+    host, port_text = text, ""
+    if text.startswith("["):  # [::1] or [::1]:2948
+        end = text.find("]")
+        if end < 0:
+            raise ValueError(f"{text!r}: not HOST:PORT (an IPv6 address needs a closing ']')")
+        host, rest = text[1:end], text[end + 1 :]
+        if rest and not rest.startswith(":"):
+            raise ValueError(f"{text!r}: not HOST:PORT")
+        port_text = rest[1:]
+    elif text.count(":") == 1:
+        host, port_text = text.split(":")
+    elif text.count(":") > 1:  # a bare IPv6 address
+        host = text
+    elif text.isdigit():
+        host, port_text = "", text
+    host = host or default_host
+    if not port_text:
+        return host, default_port
     try:
-        number = int(port)
+        port = int(port_text)
     except ValueError:
-        raise ValueError(f"{text!r}: the port must be a number") from None
-    if not 0 <= number <= 65535:
-        raise ValueError(f"{text!r}: the port must be 0..65535")
-    return host, number
+        raise ValueError(f"{text!r}: port {port_text!r} is not a number") from None
+    if not (0 if allow_zero else 1) <= port <= 65535:
+        raise ValueError(f"{text!r}: port {port} is out of range")
+    return host, port
 
 
 @dataclass(frozen=True)
@@ -71,7 +93,7 @@ class DriverConfig:
                 raise ValueError(f"{name} must be > 0")
         parse_host_port(self.listen)
         if self.udp is not None:
-            parse_host_port(self.udp)
+            parse_host_port(self.udp, allow_zero=False)
         if self.token is not None and len(self.token) < 8:
             raise ValueError("token must be at least 8 characters")
 

@@ -40,7 +40,7 @@ def test_config_scale_rule_reaches_the_stream(tmp_path):
         ("baud: fast\n", "baud: expected an integer"),
         ("baud: 3\n", "baud must be an integer baud rate"),
         ("port: 5\n", "port: expected a string"),
-        ("listen: 'localhost:http'\n", "the port must be a number"),
+        ("listen: 'localhost:http'\n", "is not a number"),
         ("token: short\n", "at least 8 characters"),
         ("scale_arcsec_per_count: -1\n", "positive number"),
         ("scale_override_arcsec_per_count: .nan\n", "expected a finite number"),

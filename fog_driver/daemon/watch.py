@@ -40,6 +40,7 @@ from collections.abc import Mapping
 from decimal import ROUND_HALF_UP, Decimal
 from typing import Any, TextIO
 
+from ..config import parse_host_port
 from ..errors import DeviceError, UsageError
 
 __all__ = [
@@ -145,34 +146,10 @@ def format_dms(arcsec: float, *, degree: str = _DEGREE) -> str:
 
 def parse_address(text: str | None, *, default_host: str = DEFAULT_HOST, default_port: int = DEFAULT_PORT) -> tuple[str, int]:
     """``HOST:PORT``, ``HOST``, ``:PORT``, ``PORT`` or ``[IPV6]:PORT`` -> ``(host, port)``; ``UsageError`` if bad."""
-    if text is None or not text.strip():
-        return default_host, default_port
-    text = text.strip()
-    host, port_text = text, ""
-    if text.startswith("["):  # [::1] or [::1]:2948
-        end = text.find("]")
-        if end < 0:
-            raise UsageError(f"{text!r}: not HOST:PORT (an IPv6 address needs a closing ']')")
-        host, rest = text[1:end], text[end + 1 :]
-        if rest and not rest.startswith(":"):
-            raise UsageError(f"{text!r}: not HOST:PORT")
-        port_text = rest[1:]
-    elif text.count(":") == 1:
-        host, port_text = text.split(":")
-    elif text.count(":") > 1:  # a bare IPv6 address
-        host = text
-    elif text.isdigit():
-        host, port_text = "", text
-    host = host or default_host
-    if not port_text:
-        return host, default_port
     try:
-        port = int(port_text)
-    except ValueError:
-        raise UsageError(f"{text!r}: port {port_text!r} is not a number") from None
-    if not 1 <= port <= 65535:
-        raise UsageError(f"{text!r}: port {port} is out of range (1..65535)")
-    return host, port
+        return parse_host_port(text, default_host=default_host, default_port=default_port, allow_zero=False)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
 
 
 def _format_address(host: str, port: int) -> str:
