@@ -23,6 +23,7 @@ from fog_driver.protocol import decode_bytes, decode_file
 from fog_driver.transport import PtyPair
 
 DATA = Path(__file__).resolve().parent / "data"
+GOLDEN = DATA / "golden" / "sim-faults.watch-1hz.ndjson"
 GUARD_S = 30.0
 
 
@@ -104,9 +105,19 @@ def test_pty_daemon_publishes_every_sample_and_replays_bit_identically(tmp_path)
             assert client.next()["class"] == "VERSION"
             client.send('?WATCH={"enable":true};')
             assert client.next("WATCH")["enable"] is True
+            slow = Client(daemon.address)  # a station that wants 1 Hz: compared with the golden file
+            slow.send('?WATCH={"enable":true,"rate_hz":1};')
+            slow.next("WATCH")
             client.wait_device("activated")  # the port is open: no byte can be flushed away now
             pty.write(data)
             received = [client.next("ANGLE") for _ in range(n_samples)]
+            golden = GOLDEN.read_bytes().splitlines(keepends=True)
+            got = []
+            while len(got) < len(golden):
+                raw = slow.file.readline()
+                if raw.startswith(b'{"class":"ANGLE"'):
+                    got.append(raw)
+            assert got == golden  # byte for byte: regenerate only on purpose (tests/data/make_goldens.py)
             # Bad and oversized commands are answered, and never stop the stream.
             client.send("?NOPE;")
             assert client.next("ERROR")["message"]
@@ -227,3 +238,12 @@ def test_bad_config_exits_78_with_one_line(tmp_path, args, needle):
     assert proc.returncode == 78, proc.stderr
     assert needle in proc.stderr and "Traceback" not in proc.stderr
     assert len([line for line in proc.stderr.splitlines() if line.startswith("fog-driver: error:")]) == 1
+
+
+def test_golden_file_matches_its_generator():
+    sys.path.insert(0, str(DATA))
+    try:
+        import make_goldens
+    finally:
+        sys.path.remove(str(DATA))
+    assert b"".join(make_goldens.golden_lines()) == GOLDEN.read_bytes()
