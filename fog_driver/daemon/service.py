@@ -294,9 +294,12 @@ class Service:
         """Load the model file again; the angles carry on from where they are."""
         try:
             model_file = load_model(self.config.model_path)
-        except FogDriverError as exc:
+        except FogDriverError as exc:  # keep running with the model in use
+            log.error("model_reload_failed", reason=str(exc))
             return {"class": "ERROR", "message": str(exc)}
         self.reload_model(model_file)
+        log.info("model_reloaded", model=str(self.config.model_path), kind=model_file.kind,
+                 created_utc=model_file.created_utc)  # fmt: skip
         return {"class": "RELOAD", "model": model_file.kind, "created_utc": model_file.created_utc}
 
     def reload_model(self, model_file: ModelFile) -> None:
