@@ -518,3 +518,14 @@ def test_pty_is_raw_before_any_reader_opens_it() -> None:
             got += os.read(pair.slave_fd, 4096)
         assert bytes(got) == payload
         assert pair.read_available(0.0) == b""  # no echo
+
+
+def test_reader_chunks_are_bounded_even_when_megabytes_wait(tmp_path: Path) -> None:
+    from fog_driver.transport.port import MAX_READ_BYTES
+
+    path = tmp_path / "big.bin"
+    data = bytes(range(256)) * (4 * MAX_READ_BYTES // 256 + 3)
+    path.write_bytes(data)
+    chunks = list(PortReader(f"replay://{path}?unplug=1", reconnect=False).chunks(threading.Event()))
+    assert b"".join(chunks) == data
+    assert max(len(c) for c in chunks) == MAX_READ_BYTES and len(chunks) >= 5

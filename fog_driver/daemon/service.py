@@ -49,6 +49,18 @@ PROTO_MAJOR = 1
 PROTO_MINOR = 0
 
 
+def _current_rss_mb() -> float:
+    """The resident set size now (VmRSS; Linux), else the peak (``ru_maxrss``)."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return round(int(line.split()[1]) / 1024.0, 1)
+    except OSError:
+        pass
+    return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)
+
+
 class ConfigError(FogDriverError):
     """A bad configuration or model: exit 78 (EX_CONFIG), so systemd does not restart in a loop."""
 
@@ -130,7 +142,7 @@ class Service:
             "missing_frames": c.missing_frames,
             "published": self.samples_published,
             "cpu_percent": round(100.0 * (cpu - cpu_mark) / max(now - wall_mark, 1e-9), 2),
-            "rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1),
+            "rss_mb": _current_rss_mb(),
             "bias_dph": self.bias_dph,
             "adapting": bool(self.compensator and self.compensator.reference_rate_dph is not None),
         }

@@ -34,6 +34,9 @@ __all__ = ["DEFAULT_BAUDRATE", "PortError", "PortEvent", "PortReader", "PortStat
 log = structlog.get_logger("fog_driver.transport")
 
 DEFAULT_BAUDRATE = 460800
+#: The most one read takes: chunks stay small (bounded memory and latency downstream) even when a
+#: port has megabytes waiting, as an unpaced ``replay://`` does.
+MAX_READ_BYTES = 64 * 1024
 
 #: What a port that vanished or cannot be opened raises.  ``serial.SerialException``
 #: is an ``OSError``; ``termios.error`` is not.
@@ -158,7 +161,7 @@ class PortReader:
                     try:
                         while not stop.is_set():
                             try:
-                                data = port.read(port.in_waiting or 1)
+                                data = port.read(min(port.in_waiting or 1, MAX_READ_BYTES))
                             except PORT_ERRORS as exc:
                                 detail = str(exc) or type(exc).__name__
                                 break
