@@ -14,6 +14,8 @@ import threading
 from collections.abc import Sequence
 from pathlib import Path
 
+import structlog
+
 from . import __version__
 from .capture import format_summary, inspect_capture
 from .console import Progress, configure_logging
@@ -266,10 +268,14 @@ def cmd_run(args: argparse.Namespace) -> int:
     from .daemon.service import ConfigError, Service
 
     configure_logging(max(args.verbose, 1), json=True)  # a service logs JSON lines: per-second summaries
-    try:
+
+    def read_config() -> DriverConfig:
         config = load_config(args.config) if args.config else DriverConfig()
         overrides = {k: getattr(args, k) for k in ("port", "model", "listen", "capture_dir") if getattr(args, k)}
-        config = dataclasses.replace(config, **overrides)
+        return dataclasses.replace(config, **overrides)
+
+    try:
+        config = read_config()
     except (FogDriverError, ValueError) as exc:
         raise ConfigError(str(exc)) from None
     stop = threading.Event()
@@ -280,17 +286,21 @@ def cmd_run(args: argparse.Namespace) -> int:
     service = Service(config, port=port)
     service.stop = stop
     host, listen_port = service.start()
-    print(f"fog-driver {__version__}: {port} -> listening on {host}:{listen_port}; raw capture in "
-          f"{config.capture_dir}/; connect with: fog-driver watch {host}:{listen_port}  (Ctrl-C to stop)",
-          flush=True)  # fmt: skip
 
     def on_signal(signum: int, _frame: object) -> None:
-        if signum == signal.SIGHUP:  # reload the model (the config's model path) without stopping
-            service.control("RELOAD", {}, 0)
+        if signum == signal.SIGHUP:  # reload the config file and the model, without stopping
+            try:
+                service.reload_config(read_config())
+            except (FogDriverError, ValueError) as exc:  # keep running with what is in use
+                structlog.get_logger("fog_driver.daemon").error("config_reload_failed", reason=str(exc))
             return
         stop.set()
 
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+    # The readiness line comes after the handlers: a signal sent on seeing it is handled.
+    print(f"fog-driver {__version__}: {port} -> listening on {host}:{listen_port}; raw capture in "
+          f"{config.capture_dir}/; connect with: fog-driver watch {host}:{listen_port}  (Ctrl-C to stop)",
+          flush=True)  # fmt: skip
     try:
         return service.run_until_stopped()
     finally:

@@ -58,6 +58,19 @@ def read_yaml(path: str | Path, what: str, *, missing_ok: bool = False, hint: st
         raise InputFileError(f"{path}: {what} is not valid YAML{at}") from None
 
 
+def read_tagged_yaml(path: str | Path, kind: str, format_tag: str, schema_version: int) -> dict:
+    """A project file that names itself: a mapping with ``format: <format_tag>`` and the expected
+    ``schema_version``; anything else is a one-line ``InputFileError`` saying which."""
+    where = str(path)
+    doc = read_yaml(path, f"{kind} file" if not kind.endswith("file") else kind)
+    if not isinstance(doc, dict) or doc.get("format") != format_tag:
+        raise InputFileError(f"{where}: not a fog_driver {kind} (no 'format: {format_tag}')")
+    version = doc.get("schema_version")
+    if version != schema_version:
+        raise InputFileError(f"{where}: {kind} schema version {version!r}; this fog_driver reads version {schema_version}")
+    return doc
+
+
 def _kind(default: Any, annotation: str) -> str:
     """What a field holds: from its default, or (a None default) from its annotation."""
     if is_dataclass(default):

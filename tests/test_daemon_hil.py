@@ -230,9 +230,11 @@ def test_replay_url_into_the_daemon(tmp_path):
 
 
 @pytest.mark.parametrize("args, needle", [(["--model", "/nonexistent/model.yaml"], "no such model file"),
-                                          (["--listen", "10.1.2.3:2948"], "token")])  # fmt: skip
+                                          (["--listen", "10.1.2.3:2948"], "token"),
+                                          (["--port", "nosuch://device"], "nosuch")])  # fmt: skip
 def test_bad_config_exits_78_with_one_line(tmp_path, args, needle):
-    proc = subprocess.run([sys.executable, "-m", "fog_driver", "run", "--port", "replay:///nonexistent.bin",
+    port = [] if "--port" in args else ["--port", "replay:///nonexistent.bin"]
+    proc = subprocess.run([sys.executable, "-m", "fog_driver", "run", *port,
                            "--capture-dir", str(tmp_path / "c"), *args],
                           capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)  # fmt: skip
     assert proc.returncode == 78, proc.stderr
@@ -247,3 +249,30 @@ def test_golden_file_matches_its_generator():
     finally:
         sys.path.remove(str(DATA))
     assert b"".join(make_goldens.golden_lines()) == GOLDEN.read_bytes()
+
+
+def test_sighup_reloads_the_config_and_the_model(tmp_path):
+    from fog_driver.compensation.fit import FitConfig, fit_model_file
+    from fog_driver.compensation.model import save_model
+
+    model_file, _ = fit_model_file([DATA / "sim-short.bin"], kind="polynomial", config=FitConfig(warmup_s=30.0))
+    poly = save_model(tmp_path / "poly.yaml", model_file)
+    config = tmp_path / "fog.yaml"
+    config.write_text("status_every_s: 1.0\n")
+    daemon = Daemon(tmp_path, f"replay://{DATA / 'sim-short.bin'}?rate=100", "--config", str(config))
+    try:
+        client = Client(daemon.address)
+        assert client.next("VERSION")["model"] == "wesn"
+        config.write_text(f"model: {poly}\n")
+        daemon.proc.send_signal(signal.SIGHUP)
+        model = None
+        for _ in range(10000):  # each answer comes after the previous one: a bounded poll, no sleep
+            client.send("?VERSION;")
+            model = client.next("VERSION")["model"]
+            if model == "polynomial":
+                break
+        assert model == "polynomial"
+        assert daemon.proc.poll() is None  # still running
+        assert daemon.terminate() == 0
+    finally:
+        daemon.kill()

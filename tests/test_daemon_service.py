@@ -80,3 +80,22 @@ def test_samples_before_the_first_identity_are_kept_and_compensated():
     assert len(published) == 11
     assert [o["seq"] for o in published] == list(range(published[0]["seq"], published[0]["seq"] + 11))
     assert np.all(np.isfinite([o["angle_arcsec"] for o in published]))
+
+
+def test_reload_config_applies_live_settings_and_keeps_the_rest(tmp_path):
+    from fog_driver.compensation.fit import FitConfig, fit_model_file
+    from fog_driver.compensation.model import save_model
+
+    model_file, _ = fit_model_file([DATA / "sim-short.bin"], kind="polynomial", config=FitConfig(warmup_s=30.0))
+    other = save_model(tmp_path / "poly.yaml", model_file)
+    service = Service(DriverConfig(listen="127.0.0.1:2999"), port="unused")
+    service.process((DATA / "sim-short.bin").read_bytes()[:5000])
+    angle_before = service.compensator.angle_comp_arcsec
+    result = service.reload_config(DriverConfig(model=str(other), listen="0.0.0.0:1", adapt_reference_dph=0.0,
+                                                token="a-long-token"))  # fmt: skip
+    assert result["class"] == "RELOAD" and result["model"] == "polynomial"
+    assert service.config.listen == "127.0.0.1:2999"  # needs a restart: kept
+    assert service.config.token == "a-long-token" and service.config.model == str(other)
+    assert service.compensator.reference_rate_dph == 0.0
+    assert service.compensator.angle_comp_arcsec == angle_before  # the angle carries on
+    assert service.version_object()["model"] == "polynomial"

@@ -65,7 +65,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputFileError
-from ..yamlfile import read_yaml, write_yaml
+from ..yamlfile import read_tagged_yaml, write_yaml
 from .compensator import FLAG_ADAPTING, FLAG_GUARD
 from .polynomial import dot_features
 from .readout import AdaptiveLaw, AdaptiveLawParams, AdaptiveLawState
@@ -446,13 +446,7 @@ class OnlineReadout:
         static detector (None if it has none); with ``detector`` given its window is restored in place and
         the file must have one with the same settings."""
         where = str(path)
-        doc = read_yaml(path, "adaptation state file")
-        if not isinstance(doc, dict) or doc.get("format") != ADAPT_STATE_FORMAT:
-            raise InputFileError(f"{where}: not a fog_driver adaptation state (no 'format: {ADAPT_STATE_FORMAT}')")
-        version = doc.get("schema_version")
-        if version != ADAPT_STATE_SCHEMA_VERSION:
-            raise InputFileError(f"{where}: adaptation state schema version {version!r}; "
-                                 f"this fog_driver reads version {ADAPT_STATE_SCHEMA_VERSION}")  # fmt: skip
+        doc = read_tagged_yaml(path, "adaptation state", ADAPT_STATE_FORMAT, ADAPT_STATE_SCHEMA_VERSION)
         if doc.get("sample_time_s") != self.sample_time_s:
             raise InputFileError(f"{where}: adaptation state for sample time {doc.get('sample_time_s')!r} s, "
                                  f"the readout runs at {self.sample_time_s!r} s")  # fmt: skip

@@ -19,7 +19,7 @@ import numpy as np
 from .. import __version__
 from ..capture import utc_now_iso
 from ..errors import InputFileError
-from ..yamlfile import read_yaml, write_yaml
+from ..yamlfile import read_tagged_yaml, write_yaml
 from .features import FeatureParams
 from .polynomial import PolynomialModel
 from .readout import Standardizer
@@ -102,14 +102,7 @@ def _require(doc: dict, key: str, kind: type | tuple[type, ...], where: str) -> 
 def load_model(path: str | Path) -> ModelFile:
     """Read and validate a model file; a corrupt or wrong-version file is a one-line ``InputFileError``."""
     where = str(path)
-    doc = read_yaml(path, "model file")
-    if not isinstance(doc, dict) or doc.get("format") != MODEL_FORMAT:
-        raise InputFileError(f"{where}: not a fog_driver model file (no 'format: {MODEL_FORMAT}')")
-    version = doc.get("schema_version")
-    if version != MODEL_SCHEMA_VERSION:
-        raise InputFileError(
-            f"{where}: model schema version {version!r}; this fog_driver reads version {MODEL_SCHEMA_VERSION}"
-        )
+    doc = read_tagged_yaml(path, "model file", MODEL_FORMAT, MODEL_SCHEMA_VERSION)
     kind = _require(doc, "kind", str, where)
     if kind not in MODEL_KINDS:
         raise InputFileError(f"{where}: unknown model kind {kind!r} (known: {', '.join(sorted(MODEL_KINDS))})")

@@ -233,12 +233,17 @@ class RotatingCapture:
         self._last_flush = now
         self._unflushed = False
 
-    def _finish(self, reason: str) -> None:
-        """Close the current file (flush + fsync) and write its final sidecar."""
+    def _detach(self) -> CaptureWriter:
+        """Take the current file out of use, counting its bytes as closed."""
         writer = self._writer
         assert writer is not None
         self._writer = None
         self._bytes_closed += writer.bytes_written
+        return writer
+
+    def _finish(self, reason: str) -> None:
+        """Close the current file (flush + fsync) and write its final sidecar."""
+        writer = self._detach()
         try:
             writer.close()
         except OutputFileError as exc:
@@ -248,10 +253,7 @@ class RotatingCapture:
 
     def _fail(self, exc: OutputFileError) -> None:
         """A write or flush failed: close what can be closed and describe the file as failed."""
-        writer = self._writer
-        assert writer is not None
-        self._writer = None
-        self._bytes_closed += writer.bytes_written
+        writer = self._detach()
         try:
             writer.close()
         except OutputFileError:

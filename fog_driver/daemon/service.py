@@ -24,6 +24,7 @@ first frame after the gap is flagged ``gap``.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import resource
 import threading
@@ -41,7 +42,7 @@ from ..compensation.model import ModelFile, load_model
 from ..config import DriverConfig, parse_host_port
 from ..errors import FogDriverError
 from ..protocol import FrameDecoder, IdentityFrame
-from ..transport import PortEvent, PortReader
+from ..transport import PortError, PortEvent, PortReader
 
 log = structlog.get_logger("fog_driver.daemon")
 
@@ -238,6 +239,10 @@ class Service:
                 angles = self.process(chunk)
                 if angles and self.hub is not None:
                     self.hub.publish_angles(angles)
+        except PortError as exc:  # a URL no handler understands, bad settings: retrying cannot help
+            log.error("acquisition_stopped", reason=str(exc))
+            self.failure = ConfigError(str(exc))
+            self.stop.set()
         except FogDriverError as exc:
             log.error("acquisition_stopped", reason=str(exc))
             self.failure = exc
@@ -314,6 +319,24 @@ class Service:
                  created_utc=model_file.created_utc)  # fmt: skip
         return {"class": "RELOAD", "model": model_file.kind, "created_utc": model_file.created_utc}
 
+    #: Settings a SIGHUP can change in a running daemon; the others need a restart.
+    RESTART_KEYS = ("port", "baud", "listen", "udp", "capture_dir", "capture_rotate_mb", "capture_rotate_s")
+
+    def reload_config(self, config: DriverConfig) -> dict:
+        """SIGHUP: take the new settings that can change live, then reload the model file."""
+        with self.lock:
+            ignored = [k for k in self.RESTART_KEYS if getattr(config, k) != getattr(self.config, k)]
+            self.config = dataclasses.replace(config, **{k: getattr(self.config, k) for k in self.RESTART_KEYS})
+            if self.hub is not None:
+                self.hub.max_backlog_s = self.config.max_client_backlog_s
+            if self.compensator is not None:
+                self.compensator.reference_rate_dph = self.config.adapt_reference_dph
+            result = self._cmd_reload({})
+        if ignored:
+            log.warning("config_needs_restart", keys=ignored)
+        log.info("config_reloaded", restart_needed=ignored)
+        return result
+
     def reload_model(self, model_file: ModelFile) -> None:
         old = self.compensator
         self.model_file = model_file
@@ -379,7 +402,9 @@ class Service:
                     on_status(status)
         finally:
             self.shutdown()
-        return 0 if self.failure is None else getattr(self.failure, "exit_status", 1)
+        if isinstance(self.failure, FogDriverError):
+            raise self.failure  # the CLI prints it on one line, with its exit status
+        return 0 if self.failure is None else 1
 
     def shutdown(self) -> None:
         """Flush and close everything (SIGTERM ends here, exit 0)."""
