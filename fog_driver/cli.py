@@ -241,6 +241,49 @@ def cmd_compensate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from .compensation.model import load_model
+    from .report.evaluate import evaluate, write_report
+    from .sim.capture import read_truth
+
+    out = Path(args.out)
+    if out.exists() and any(out.iterdir()) and not args.force:
+        raise OutputFileError(f"{out}: exists and is not empty; refusing to overwrite a report (use --force)")
+    model_file = load_model(args.model)
+    truth = None
+    if args.truth:
+        try:
+            truth = read_truth(args.truth)
+        except (OSError, ValueError) as exc:
+            raise InputFileError(f"{args.truth}: not a truth file ({exc})") from None
+    progress = Progress()
+    progress.show("evaluating...", force=True)
+    try:
+        summary, series, allans = evaluate(Path(args.capture), model_file, truth=truth, force=args.force)
+        positioning_md = _positioning_markdown(args, model_file, summary)
+        report = write_report(out, summary, series, allans, positioning_md)
+    finally:
+        progress.clear()
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        raw, comp = summary["raw"], summary["compensated"]
+        print(f"report: {report}  (summary.json and PNG plots beside it)")
+        print(f"ARW {raw['arw_deg_sqrt_h']:.5f} -> {comp['arw_deg_sqrt_h']:.5f} deg/sqrt(h); bias instability "
+              f"{raw['bias_instability_dph']:.5f} -> {comp['bias_instability_dph']:.5f} deg/h; 1-min drift RMS "
+              f"{raw['drift_rms_1min_dph']:.4f} -> {comp['drift_rms_1min_dph']:.4f} deg/h")  # fmt: skip
+    return 0
+
+
+def _positioning_markdown(args: argparse.Namespace, model_file, summary: dict) -> str | None:
+    """The Table-1 positioning table, when the capture has positioning sequences (or a reference CSV)."""
+    try:
+        from .report import positioning
+    except ImportError:  # the positioning module is not built yet
+        return None
+    return positioning.report_for(args, model_file, summary)
+
+
 def _positive_int(text: str) -> int:
     try:
         value = int(text)
@@ -421,6 +464,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--count", type=_positive_int, metavar="N", help="stop after N ANGLE updates")
     p.add_argument("--duration", type=_positive_float, metavar="S", help="stop after S seconds")
     p.set_defaults(func=cmd_watch)
+
+    p = sub.add_parser("evaluate", help="a report: Allan deviation, drift before and after, positioning accuracy, plots")
+    p.add_argument("capture", metavar="CAPTURE.bin")
+    p.add_argument("--model", required=True, metavar="MODEL.yaml")
+    p.add_argument("--out", required=True, metavar="DIR", help="the report folder (report.md, summary.json, PNGs)")
+    p.add_argument("--truth", metavar="TRUTH.csv", help="a simulator truth file: score against the true drift")
+    p.add_argument("--reference", metavar="STOPS.csv", help="reference positioning stops (see the README)")
+    p.add_argument("--compare", action="append", default=[], metavar="MODEL.yaml",
+                   help="another model for the positioning table (repeatable)")
+    p.add_argument("--json", action="store_true", help="also print summary.json on stdout")
+    p.add_argument("--force", action="store_true", help="overwrite the report folder; a model for another instrument")
+    p.set_defaults(func=cmd_evaluate)
     return parser
 
 

@@ -1,0 +1,1 @@
+"""Evaluation reports: Allan deviation, drift before and after, positioning accuracy, plots."""

@@ -1,0 +1,85 @@
+"""fog-driver evaluate: Allan read points against the simulator, the report folder, errors."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fog_driver.report.allan import allan
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT / "tests" / "data"
+
+
+def test_allan_read_points_on_synthetic_white_noise():
+    rng = np.random.default_rng(0)
+    arw = 0.003  # deg/sqrt(h): 1-s std of 0.18 deg/h
+    result = allan(rng.normal(0.0, arw * 60.0, 20000))
+    assert result.arw_deg_sqrt_h == pytest.approx(arw, rel=0.03)
+    assert result.bias_instability_tau_s <= 2000  # read within a tenth of the record
+
+
+def test_evaluate_measures_the_simulators_arw_within_10_percent(tmp_path):
+    from fog_driver.sim.capture import simulate_to_file
+    from fog_driver.sim.instrument import Simulator
+    from fog_driver.sim.profiles import load_profile
+
+    capture = tmp_path / "run.bin"
+    simulate_to_file(Simulator(load_profile(ROOT / "configs" / "profiles" / "short-test.yaml"), rate_hz=20, seed=4),
+                     capture)  # fmt: skip
+    out = tmp_path / "report"
+    proc = subprocess.run([sys.executable, "-m", "fog_driver", "evaluate", str(capture), "--model",
+                           str(ROOT / "configs" / "models" / "default.yaml"), "--out", str(out), "--json",
+                           "--truth", str(capture.with_suffix(".truth.csv"))],
+                          capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads(proc.stdout)
+    assert summary == json.loads((out / "summary.json").read_text())
+    for side in ("raw", "compensated"):
+        assert set(summary[side]) >= {"arw_deg_sqrt_h", "bias_instability_dph", "drift_rms_1min_dph"}
+    assert summary["raw"]["arw_deg_sqrt_h"] == pytest.approx(0.003, rel=0.10)  # the configured ARW
+    assert summary["truth"]["residual_rms_1min_dph"] < summary["truth"]["drift_rms_1min_dph"]
+    for name in ("temperatures.png", "drift.png", "allan.png"):
+        assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and (out / name).stat().st_size > 10000
+    report = (out / "report.md").read_text()
+    assert "angle random walk" in report and "![allan](allan.png)" in report
+    assert "No positioning sequences in this capture: the table is skipped." in report
+    again = subprocess.run([sys.executable, "-m", "fog_driver", "evaluate", str(capture), "--model",
+                            str(ROOT / "configs" / "models" / "default.yaml"), "--out", str(out)],
+                           capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert again.returncode == 73 and "refusing to overwrite" in again.stderr
+
+
+def test_missing_extra_is_a_one_line_hint(monkeypatch):
+    import builtins
+
+    from fog_driver.errors import UsageError
+    from fog_driver.report import allan as allan_module
+
+    real_import = builtins.__import__
+
+    def no_allantools(name, *args, **kwargs):
+        if name == "allantools":
+            raise ImportError("No module named 'allantools'")
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", no_allantools)
+    with pytest.raises(UsageError, match=r"pip install 'fog_driver\[report\]'"):
+        allan_module.allan(np.zeros(100))
+
+
+def test_evaluate_refuses_another_instruments_model(tmp_path):
+    import yaml
+
+    doc = yaml.safe_load((ROOT / "configs" / "models" / "default.yaml").read_text())
+    doc["instrument_serial"] = "FOG-OTHER-0001"
+    other = tmp_path / "other.yaml"
+    other.write_text(yaml.safe_dump(doc))
+    proc = subprocess.run([sys.executable, "-m", "fog_driver", "evaluate", str(DATA / "sim-short.bin"), "--model",
+                           str(other), "--out", str(tmp_path / "r")], capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert proc.returncode == 64 and "FOG-OTHER-0001" in proc.stderr and "Traceback" not in proc.stderr
