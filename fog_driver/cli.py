@@ -19,7 +19,7 @@ import structlog
 from . import __version__
 from .capture import format_summary, inspect_capture
 from .console import Progress, configure_logging
-from .errors import FogDriverError, OutputFileError, UsageError
+from .errors import FogDriverError, InputFileError, OutputFileError, UsageError
 
 EXIT_PROBLEMS = 1  # inspect --strict found problems
 
