@@ -277,10 +277,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 def _positioning_markdown(args: argparse.Namespace, model_file, summary: dict) -> str | None:
     """The Table-1 positioning table, when the capture has positioning sequences (or a reference CSV)."""
-    try:
-        from .report import positioning
-    except ImportError:  # the positioning module is not built yet
-        return None
+    from .report import positioning
+
     return positioning.report_for(args, model_file, summary)
 
 
