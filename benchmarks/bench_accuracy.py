@@ -48,7 +48,7 @@ from fog_driver.sim.capture import read_truth, simulate_to_file  # noqa: E402
 from fog_driver.sim.instrument import Simulator  # noqa: E402
 from fog_driver.sim.profiles import load_profile  # noqa: E402
 
-KINDS = ("polynomial", "wesn", "paper")
+KINDS = ("polynomial", "wesn", "paper", "pso-svr")  # pso-svr: the paper's comparator (the svr extra)
 TESTS = (("fast-ramps", 2, "development"), ("soak-cycle", 3, "held out"))
 SKIP_MINUTES = 10
 

@@ -2,6 +2,8 @@
 
 import os
 
+import pytest
+import structlog
 from hypothesis import settings
 
 # The machines are shared and noisy: no per-example deadlines (speed is measured by benchmarks/,
@@ -10,3 +12,10 @@ from hypothesis import settings
 settings.register_profile("default", deadline=None)
 settings.register_profile("ci", deadline=None, derandomize=True, print_blob=True)
 settings.load_profile("ci" if os.environ.get("CI") else "default")
+
+
+@pytest.fixture(autouse=True)
+def _structlog_defaults():
+    """A command's ``configure_logging`` must not outlive its test (its stderr may be a closed capture)."""
+    yield
+    structlog.reset_defaults()

@@ -209,8 +209,15 @@ def _fit_wesn(kind: str):
     return lambda captures, normalizer, config: fit_wesn(kind, defaults, captures, normalizer, config)
 
 
+def _fit_pso_svr(captures: list[CaptureData], normalizer: Standardizer, config: FitConfig):
+    from .svr import fit_pso_svr
+
+    return fit_pso_svr(captures, normalizer, config)
+
+
 #: Model kinds that can be fitted: name -> fit(captures, normalizer, config) -> model.
-FITTERS = {"polynomial": _fit_polynomial, "wesn": _fit_wesn("wesn"), "paper": _fit_wesn("paper")}
+FITTERS = {"polynomial": _fit_polynomial, "wesn": _fit_wesn("wesn"), "paper": _fit_wesn("paper"),
+           "pso-svr": _fit_pso_svr}  # fmt: skip
 
 
 def fit_model_file(

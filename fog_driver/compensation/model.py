@@ -23,6 +23,7 @@ from ..yamlfile import read_tagged_yaml, write_yaml
 from .features import FeatureParams
 from .polynomial import PolynomialModel
 from .readout import Standardizer
+from .svr import SvrModel
 from .wesn import PaperKind, WesnKind
 
 MODEL_FORMAT = "fog_driver drift model"
@@ -50,7 +51,8 @@ class DriftModel(Protocol):
 
 
 #: Model kinds: name -> class with ``from_dict``.
-MODEL_KINDS: dict[str, Any] = {"polynomial": PolynomialModel, "wesn": WesnKind, "paper": PaperKind}
+MODEL_KINDS: dict[str, Any] = {"polynomial": PolynomialModel, "wesn": WesnKind, "paper": PaperKind,
+                               "pso-svr": SvrModel}  # fmt: skip
 
 
 @dataclass

@@ -63,7 +63,24 @@ def dot_features(f: np.ndarray, w: np.ndarray) -> np.ndarray:
     return acc
 
 
-class PolynomialModel:
+class Memoryless:
+    """For drift models without memory: ``step`` and ``run`` are pure functions of the inputs, so
+    there is no feedback to take and no state to save, restore or reset."""
+
+    def feed_back(self, y: float) -> None:
+        """The estimate actually used (no feedback in this model)."""
+
+    def get_state(self) -> dict:
+        return {}
+
+    def set_state(self, state: dict) -> None:
+        pass
+
+    def reset(self) -> None:
+        pass
+
+
+class PolynomialModel(Memoryless):
     """``D_hat = w . polynomial_features(z) + b``; stateless."""
 
     kind = "polynomial"
@@ -90,24 +107,11 @@ class PolynomialModel:
         """The regressor row f for one block (the estimate is ``f . weights + intercept``)."""
         return polynomial_features(z)
 
-    def feed_back(self, y: float) -> None:
-        """The estimate actually used (no feedback in this model)."""
-
     def step(self, z: np.ndarray) -> float:
         return float(dot_features(polynomial_features(z), self.weights) + self.intercept)
 
     def run(self, z: np.ndarray) -> np.ndarray:
         return dot_features(polynomial_features(z), self.weights) + self.intercept
-
-    # No memory: nothing to save or restore.
-    def get_state(self) -> dict:
-        return {}
-
-    def set_state(self, state: dict) -> None:
-        pass
-
-    def reset(self) -> None:
-        pass
 
     def to_dict(self) -> dict:
         return {"weights": [float(v) for v in self.weights], "intercept": self.intercept}

@@ -1,0 +1,340 @@
+"""The paper's comparator: support-vector regression with PSO-chosen hyperparameters (``pso-svr``).
+
+The paper compares its WESN with a "PSO-SVM": a support-vector regression of the drift on the same
+standardized inputs z = [T1 T2 T3 dT1 dT2 dT3 G12 G13] (``readout.Standardizer``), RBF kernel,
+its hyperparameters found by particle swarm optimization::
+
+    D_hat(z) = sum_i a_i exp(-gamma |z - sv_i|^2) + b
+
+Fitting (``fit_pso_svr``) needs scikit-learn's ``SVR`` (an optional extra, imported inside the fit);
+prediction is plain numpy over the stored support vectors, so a model file compensates anywhere.
+
+* Rows: 1-minute averages of the standardized inputs and of the target over whole static minutes
+  of each capture (minutes aligned with the capture's first block, as ``fit.minute_rms``): a few
+  hundred rows for the paper's 440-minute run.  An SVR on every 1-s block would be slow, and its
+  support vectors (most rows, with a small epsilon) would bloat the model file.  A capture too short
+  for 30 such rows (a test fixture) is averaged over shorter windows (``window_blocks``).
+* Hyperparameters: C in [1e-2, 1e3], gamma in [1e-3, 1e1], epsilon in [1e-4, 1e-1] deg/h, searched
+  in log10 space by ``pso_minimize`` (seeded: deterministic), minimizing the blocked cross-validation
+  error: 3 contiguous folds of the minute rows (another part of the thermal run, so the score rewards
+  extrapolation), the RMS of the held-out residual, each fold's mean removed (a bias is not drift).
+  The final SVR is fitted on all rows with the best point.  Search fits are capped at 30,000 libsvm
+  iterations (large C with large gamma can take millions; such a fit is scored as it stands) and the
+  swarm is evaluated on 2 threads (libsvm releases the GIL; the result does not depend on it): about
+  14 s for the paper's 440-minute capture on 2 cores.
+* No memory: ``step`` and ``run`` agree trivially; ``run`` is bit-identical to repeated ``step``
+  (the same per-row arithmetic: squared distances summed over the 8 inputs in order, the kernel
+  row weighted and summed strictly left to right, as ``polynomial.dot_features``).
+* Adapting: an SVR is linear in its dual coefficients, so the model exposes the kernel row
+  ``k_i(z) = exp(-gamma |z - sv_i|^2)`` as its regressors (``regressors_step``), ``weights`` =
+  the dual coefficients and ``intercept`` = b: the compensator's online readout
+  (``adapt.OnlineReadout``, which the daemon always builds) then works unchanged, and while it does
+  not update its estimate is this model's ``step`` bit for bit.  Adapting moves the dual
+  coefficients over the fixed support vectors; the law's state is (n_sv + 1)^2 numbers, so an
+  adaptation state file for a model with hundreds of support vectors is megabytes.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import UsageError
+from .polynomial import Memoryless
+
+N_INPUTS = 8
+_CHUNK_ROWS = 2048  #: rows per kernel chunk in ``run`` (bounded memory: chunk x n_sv floats)
+
+MISSING_SKLEARN = "fitting a pso-svr model needs scikit-learn: pip install 'fog_driver[svr]'"
+
+
+# -- particle swarm optimization ---------------------------------------------------------------------
+
+
+def pso_minimize(
+    f: Callable[[np.ndarray], float],
+    bounds: Sequence[tuple[float, float]],
+    n_particles: int = 16,
+    iterations: int = 20,
+    seed: int = 0,
+    inertia: float = 0.72,
+    c1: float = 1.49,
+    c2: float = 1.49,
+    *,
+    map_fn: Callable = map,
+) -> tuple[np.ndarray, float]:
+    """Minimize ``f`` over the box ``bounds`` by a global-best particle swarm; returns ``(best_x, best_f)``.
+
+    Particles start uniformly in the box with velocities uniform in +-half its width; each iteration
+    ``v = inertia v + c1 r1 (personal best - x) + c2 r2 (swarm best - x)`` (r1, r2 uniform per
+    coordinate), velocities clamped to the box width, positions clipped to the box (and the velocity
+    component that hit a wall zeroed).  ``f`` is evaluated ``n_particles * (iterations + 1)`` times,
+    a swarm at a time through ``map_fn(f, points)`` (``map``, or e.g. a thread pool's ``map``: the
+    result does not depend on it for a deterministic ``f``); a non-finite value counts as +inf; ties
+    keep the earlier point.  Seeded (``numpy.random.default_rng(seed)``): the same arguments give the
+    same result.
+    """
+    lo = np.array([float(b[0]) for b in bounds])
+    hi = np.array([float(b[1]) for b in bounds])
+    if lo.ndim != 1 or not len(lo) or not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(hi > lo)):
+        raise ValueError(f"bounds must be finite (lo, hi) pairs with hi > lo, got {list(bounds)!r}")
+    if n_particles < 1 or iterations < 0:
+        raise ValueError("n_particles must be >= 1 and iterations >= 0")
+    rng = np.random.default_rng(seed)
+    span = hi - lo
+    n, d = int(n_particles), len(lo)
+    x = lo + rng.random((n, d)) * span
+    v = (rng.random((n, d)) - 0.5) * span
+
+    def evaluate(points: np.ndarray) -> np.ndarray:
+        values = np.array([float(v) for v in map_fn(f, [p.copy() for p in points])])
+        return np.where(np.isfinite(values), values, np.inf)
+
+    best_x = x.copy()
+    best_f = evaluate(x)
+    g = int(np.argmin(best_f))
+    for _ in range(int(iterations)):
+        r1 = rng.random((n, d))
+        r2 = rng.random((n, d))
+        v = inertia * v + c1 * r1 * (best_x - x) + c2 * r2 * (best_x[g] - x)
+        v = np.clip(v, -span, span)
+        x = x + v
+        wall = (x < lo) | (x > hi)
+        x = np.clip(x, lo, hi)
+        v[wall] = 0.0
+        fx = evaluate(x)
+        better = fx < best_f
+        best_x[better] = x[better]
+        best_f[better] = fx[better]
+        g = int(np.argmin(best_f))
+    return best_x[g].copy(), float(best_f[g])
+
+
+# -- the model ---------------------------------------------------------------------------------------
+
+
+class SvrModel(Memoryless):
+    """``D_hat = sum_i a_i exp(-gamma |z - sv_i|^2) + b`` over stored support vectors; stateless."""
+
+    kind = "pso-svr"
+
+    def __init__(
+        self,
+        support_vectors: np.ndarray,
+        dual_coef: np.ndarray,
+        intercept: float,
+        gamma: float,
+        C: float | None = None,
+        epsilon: float | None = None,
+        cv_rms_dph: float | None = None,
+        average_s: float | None = None,
+    ) -> None:
+        self.support_vectors = np.ascontiguousarray(support_vectors, dtype=np.float64)
+        self.dual_coef = np.ascontiguousarray(dual_coef, dtype=np.float64)
+        self.intercept = float(intercept)
+        self.gamma = float(gamma)
+        self.C = None if C is None else float(C)
+        self.epsilon = None if epsilon is None else float(epsilon)
+        self.cv_rms_dph = None if cv_rms_dph is None else float(cv_rms_dph)
+        self.average_s = None if average_s is None else float(average_s)
+        sv = self.support_vectors
+        if sv.ndim != 2 or sv.shape[1] != N_INPUTS or sv.shape[0] < 1:
+            raise ValueError(f"a pso-svr model needs support vectors of shape (n >= 1, {N_INPUTS}), got {sv.shape}")
+        if self.dual_coef.shape != (sv.shape[0],):
+            raise ValueError(f"a pso-svr model needs {sv.shape[0]} dual coefficients, got {self.dual_coef.shape}")
+        if not (np.all(np.isfinite(sv)) and np.all(np.isfinite(self.dual_coef)) and math.isfinite(self.intercept)):
+            raise ValueError("a pso-svr model's support vectors, dual coefficients and intercept must be finite")
+        if not (math.isfinite(self.gamma) and self.gamma > 0):
+            raise ValueError(f"a pso-svr model's gamma must be finite and > 0, got {self.gamma!r}")
+        self._neg_gamma = -self.gamma
+        self._sv_columns = [np.ascontiguousarray(sv[:, j]) for j in range(N_INPUTS)]
+
+    @property
+    def weights(self) -> np.ndarray:
+        """The readout's weights on ``regressors_step``'s kernel row: the dual coefficients."""
+        return self.dual_coef
+
+    @property
+    def n_support(self) -> int:
+        return len(self.dual_coef)
+
+    # -- arithmetic shared by step and run ---------------------------------------------------------
+
+    def kernel_rows(self, z: np.ndarray) -> np.ndarray:
+        """(m, 8) standardized inputs -> (m, n_sv) kernel rows ``exp(-gamma |z - sv_i|^2)``.
+
+        The squared distance is summed over the 8 inputs in order, elementwise: the same operations
+        for one row as for many."""
+        z = np.asarray(z, dtype=np.float64)
+        d = z[:, 0:1] - self._sv_columns[0]
+        acc = d * d
+        for j in range(1, N_INPUTS):
+            d = z[:, j : j + 1] - self._sv_columns[j]
+            acc += d * d
+        acc *= self._neg_gamma
+        return np.exp(acc, out=acc)
+
+    def _predict(self, z: np.ndarray) -> np.ndarray:
+        """(m, 8) -> (m,): the kernel rows weighted by the dual coefficients and summed strictly left
+        to right (a cumulative sum: equal bit for bit to ``polynomial.dot_features``), plus b."""
+        k = self.kernel_rows(z)
+        k *= self.dual_coef
+        return np.cumsum(k, axis=1)[:, -1] + self.intercept
+
+    # -- the DriftModel interface --------------------------------------------------------------------
+
+    def start(self, z: np.ndarray) -> None:
+        """No memory: nothing to settle."""
+
+    def regressors_step(self, z: np.ndarray) -> np.ndarray:
+        """The regressor row for one block: the kernel row (n_sv,); the estimate is ``k . weights + intercept``."""
+        return self.kernel_rows(np.asarray(z, dtype=np.float64).reshape(1, N_INPUTS))[0]
+
+    def step(self, z: np.ndarray) -> float:
+        return float(self._predict(np.asarray(z, dtype=np.float64).reshape(1, N_INPUTS))[0])
+
+    def run(self, z: np.ndarray) -> np.ndarray:
+        z = np.asarray(z, dtype=np.float64).reshape(-1, N_INPUTS)
+        out = np.empty(len(z))
+        for lo in range(0, len(z), _CHUNK_ROWS):
+            out[lo : lo + _CHUNK_ROWS] = self._predict(z[lo : lo + _CHUNK_ROWS])
+        return out
+
+    # -- model file ----------------------------------------------------------------------------------
+
+    def to_dict(self) -> dict:
+        return {
+            "gamma": self.gamma,
+            "intercept": self.intercept,
+            "C": self.C,
+            "epsilon": self.epsilon,
+            "cv_rms_dph": self.cv_rms_dph,
+            "average_s": self.average_s,
+            "dual_coef": [float(v) for v in self.dual_coef],
+            "support_vectors": [[float(v) for v in row] for row in self.support_vectors],
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> SvrModel:
+        def optional(key: str) -> float | None:
+            v = d.get(key)
+            return None if v is None else float(v)
+
+        sv = d["support_vectors"]
+        if not isinstance(sv, list) or not all(isinstance(row, list) for row in sv):
+            raise ValueError("pso-svr: support_vectors must be a list of rows")
+        return cls(np.array(sv, dtype=np.float64), np.array(d["dual_coef"], dtype=np.float64), float(d["intercept"]),
+                   float(d["gamma"]), optional("C"), optional("epsilon"), optional("cv_rms_dph"),
+                   optional("average_s"))  # fmt: skip
+
+    @classmethod
+    def from_sklearn(cls, svr, C: float | None = None, epsilon: float | None = None,
+                     cv_rms_dph: float | None = None, average_s: float | None = None) -> SvrModel:  # fmt: skip
+        """From a fitted ``sklearn.svm.SVR`` with an RBF kernel and a numeric gamma."""
+        if svr.kernel != "rbf":
+            raise ValueError(f"only an RBF kernel is supported, got {svr.kernel!r}")
+        return cls(svr.support_vectors_, svr.dual_coef_[0], float(svr.intercept_[0]), float(svr._gamma),
+                   C, epsilon, cv_rms_dph, average_s)  # fmt: skip
+
+
+# -- fitting -----------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class PsoSvrConfig:
+    c_bounds: tuple[float, float] = (1e-2, 1e3)
+    gamma_bounds: tuple[float, float] = (1e-3, 1e1)
+    epsilon_bounds_dph: tuple[float, float] = (1e-4, 1e-1)
+    n_particles: int = 16
+    iterations: int = 20
+    seed: int = 0
+    folds: int = 3
+    average_s: float = 60.0  #: rows: averages over whole static windows this long ...
+    min_rows: int = 30  #: ... or shorter ones (down to one block) when that gives fewer rows (a short capture)
+    #: libsvm iterations per SVR fit during the search (large C with large gamma can take millions; such a
+    #: fit is scored as it stands: deterministic, and those corners overfit anyway)
+    max_iter: int = 30_000
+    final_max_iter: int = 1_000_000  #: the chosen point's fit on all rows
+    workers: int = 2  #: threads evaluating the swarm (libsvm releases the GIL); the result does not depend on it
+
+
+PSO_SVR_DEFAULTS = PsoSvrConfig()
+
+
+def _import_svr():
+    try:
+        from sklearn.exceptions import ConvergenceWarning
+        from sklearn.svm import SVR
+    except ImportError:
+        raise UsageError(MISSING_SKLEARN) from None
+    return SVR, ConvergenceWarning
+
+
+def window_blocks(captures, model_rate_hz: float, average_s: float = 60.0, min_rows: int = 30) -> int:
+    """Blocks per averaging window: ``average_s``, shortened (to the static blocks / ``min_rows``, at
+    least 1) when the captures have too few static blocks for ``min_rows`` full windows."""
+    per = max(1, int(round(average_s * model_rate_hz)))
+    static_blocks = sum(int(c.static.sum()) for c in captures)
+    return max(1, min(per, static_blocks // max(1, min_rows)))
+
+
+def minute_rows(captures, normalizer, model_rate_hz: float, average_s: float = 60.0,
+                per: int | None = None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """Averages of the standardized inputs and of the target over whole static windows of ``average_s``
+    (or ``per`` blocks), aligned with each capture's first block, in time order, captures one after
+    another: (z (m, 8), y (m,))."""
+    if per is None:
+        per = max(1, int(round(average_s * model_rate_hz)))
+    zs, ys = [], []
+    for c in captures:
+        n = len(c.target_dph) // per * per
+        finite = np.all(np.isfinite(c.inputs), axis=1)
+        z = normalizer.transform(np.where(np.isfinite(c.inputs), c.inputs, 0.0))
+        ok = (c.static & finite)[:n].reshape(-1, per).all(axis=1)
+        zs.append(z[:n].reshape(-1, per, N_INPUTS)[ok].mean(axis=1))
+        ys.append(c.target_dph[:n].reshape(-1, per)[ok].mean(axis=1))
+    return np.vstack(zs), np.concatenate(ys)
+
+
+def blocked_cv_rms(svr_factory, z: np.ndarray, y: np.ndarray, folds: int = 3) -> float:
+    """RMS of the held-out residual over ``folds`` contiguous folds, each fold's mean removed."""
+    edges = np.linspace(0, len(y), folds + 1).astype(int)
+    total, count = 0.0, 0
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        if hi - lo < 1:
+            continue
+        train = np.r_[0:lo, hi : len(y)]
+        model = svr_factory().fit(z[train], y[train])
+        r = y[lo:hi] - model.predict(z[lo:hi])
+        total += float(np.sum((r - r.mean()) ** 2))
+        count += hi - lo
+    return math.sqrt(total / count) if count else math.inf
+
+
+def fit_pso_svr(captures, normalizer, config, settings: PsoSvrConfig = PSO_SVR_DEFAULTS) -> SvrModel:
+    """Fit a ``pso-svr`` model (module docstring); ``UsageError`` without scikit-learn."""
+    SVR, ConvergenceWarning = _import_svr()
+    per = window_blocks(captures, config.model_rate_hz, settings.average_s, settings.min_rows)
+    z, y = minute_rows(captures, normalizer, config.model_rate_hz, per=per)
+    if len(y) < 2 * settings.folds:
+        raise ValueError(f"pso-svr: {len(y)} whole static minutes to fit, need at least {2 * settings.folds}")
+
+    def make(log_params: np.ndarray, max_iter: int = settings.max_iter):
+        c, gamma, eps = (float(v) for v in 10.0 ** np.asarray(log_params))
+        return lambda: SVR(kernel="rbf", C=c, gamma=gamma, epsilon=eps, max_iter=max_iter)
+
+    bounds = [tuple(math.log10(v) for v in b)
+              for b in (settings.c_bounds, settings.gamma_bounds, settings.epsilon_bounds_dph)]  # fmt: skip
+    with warnings.catch_warnings(), ThreadPoolExecutor(max(1, settings.workers)) as pool:
+        warnings.simplefilter("ignore", ConvergenceWarning)  # the iteration cap, by design
+        best, score = pso_minimize(lambda p: blocked_cv_rms(make(p), z, y, settings.folds), bounds,
+                                   n_particles=settings.n_particles, iterations=settings.iterations,
+                                   seed=settings.seed, map_fn=pool.map)  # fmt: skip
+        svr = make(best, settings.final_max_iter)().fit(z, y)
+    c, _, eps = (float(v) for v in 10.0 ** best)
+    return SvrModel.from_sklearn(svr, C=c, epsilon=eps, cv_rms_dph=score, average_s=per / config.model_rate_hz)
