@@ -315,3 +315,42 @@ def test_report_for_evaluate(positioning_capture, default_model):
     assert text.startswith("| Temperature | moves | uncompensated mean") and "precision improvement" in text
     assert summary["positioning"]["rows"][0]["moves"] == 10
     json.dumps(summary, allow_nan=False)
+
+
+def test_evaluate_command_with_reference_and_compare(positioning_capture, tmp_path):
+    """The CLI end to end: the table from a station's reference CSV, with a second model compared;
+    a bad reference CSV is one line on stderr and a non-zero exit, no report written."""
+    import json
+    import subprocess
+    import sys
+
+    from fog_driver.config import DEFAULT_MODEL
+
+    stops = load_stops(positioning_capture)
+    ref = tmp_path / "stops.csv"
+    ref.write_text("t_start_s,t_end_s,angle_deg\n"
+                   + "".join(f"{s.t_start_s!r},{s.t_end_s!r},{s.angle_deg!r}\n" for s in stops))  # fmt: skip
+    other = tmp_path / "other.yaml"
+    other.write_bytes(Path(DEFAULT_MODEL).read_bytes())
+    out = tmp_path / "rep"
+    proc = subprocess.run([sys.executable, "-m", "fog_driver", "evaluate", str(positioning_capture), "--model",
+                           str(DEFAULT_MODEL), "--out", str(out), "--reference", str(ref), "--compare", str(other),
+                           "--json"], capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads(proc.stdout)
+    row = summary["positioning"]["rows"][0]
+    assert row["moves"] == 10 and set(row["methods"]) == {RAW, "wesn", "other"}
+    assert row["methods"]["other"] == row["methods"]["wesn"]  # the same model under another name
+    assert abs(row["methods"]["wesn"]["mean_arcsec"]) < 2.0 < abs(row["methods"][RAW]["mean_arcsec"])
+    report = (out / "report.md").read_text()
+    assert "| Temperature | moves | uncompensated mean" in report and "other mean" in report
+
+    bad = tmp_path / "bad.csv"
+    bad.write_text("t_start_s,t_end_s,angle_deg\n10,5,0\n")
+    proc = subprocess.run([sys.executable, "-m", "fog_driver", "evaluate", str(positioning_capture), "--model",
+                           str(DEFAULT_MODEL), "--out", str(tmp_path / "rep2"), "--reference", str(bad)],
+                          capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert proc.returncode != 0 and "Traceback" not in proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "bad.csv:2: t_end_s (5) must be after t_start_s (10)" in lines[0], proc.stderr
+    assert not (tmp_path / "rep2" / "report.md").exists()
