@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import signal
 import sys
 import threading
@@ -282,6 +283,18 @@ def _positioning_markdown(args: argparse.Namespace, model_file, summary: dict) -
     return positioning.report_for(args, model_file, summary)
 
 
+def _time_window(text: str) -> tuple[float, float]:
+    """``START:END`` in seconds, 0 <= START < END, both finite."""
+    start, sep, end = text.partition(":")
+    try:
+        window = (float(start), float(end))
+    except ValueError:
+        window = None
+    if not sep or window is None or not all(math.isfinite(x) for x in window) or not 0 <= window[0] < window[1]:
+        raise argparse.ArgumentTypeError(f"expected START:END in seconds with 0 <= START < END: {text!r}")
+    return window
+
+
 def _positive_int(text: str) -> int:
     try:
         value = int(text)
@@ -471,6 +484,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--reference", metavar="STOPS.csv", help="reference positioning stops (see the README)")
     p.add_argument("--compare", action="append", default=[], metavar="MODEL.yaml",
                    help="another model for the positioning table (repeatable)")
+    p.add_argument("--zero-window", type=_time_window, metavar="START:END",
+                   help="zero every method over this device-time window, seconds from the first sample "
+                        "(default: the first 300 s of compensated output)")
     p.add_argument("--json", action="store_true", help="also print summary.json on stdout")
     p.add_argument("--force", action="store_true", help="overwrite the report folder; a model for another instrument")
     p.set_defaults(func=cmd_evaluate)

@@ -345,6 +345,19 @@ def test_evaluate_command_with_reference_and_compare(positioning_capture, tmp_pa
     report = (out / "report.md").read_text()
     assert "| Temperature | moves | uncompensated mean" in report and "other mean" in report
 
+    zeroed = subprocess.run([sys.executable, "-m", "fog_driver", "evaluate", str(positioning_capture), "--model",
+                             str(DEFAULT_MODEL), "--out", str(tmp_path / "rep-z"), "--zero-window", "400:700",
+                             "--json"], capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert zeroed.returncode == 0, zeroed.stderr
+    zrow = json.loads(zeroed.stdout)["positioning"]["rows"][0]
+    assert zrow["bias_window_s"] == [400.0, 700.0] and row["bias_window_s"] != [400.0, 700.0]
+    assert zrow["bias_dph"]["wesn"] != row["bias_dph"]["wesn"]
+    for window in ("700:400", "abc", "-5:10", "5"):
+        proc = subprocess.run([sys.executable, "-m", "fog_driver", "evaluate", str(positioning_capture), "--model",
+                               str(DEFAULT_MODEL), "--out", str(tmp_path / "rep-bad"), "--zero-window", window],
+                              capture_output=True, text=True, timeout=300)  # fmt: skip
+        assert proc.returncode == 2 and "START:END" in proc.stderr and "Traceback" not in proc.stderr, window
+
     bad = tmp_path / "bad.csv"
     bad.write_text("t_start_s,t_end_s,angle_deg\n10,5,0\n")
     proc = subprocess.run([sys.executable, "-m", "fog_driver", "evaluate", str(positioning_capture), "--model",

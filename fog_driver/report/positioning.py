@@ -559,6 +559,7 @@ def report_for(args: Any, model_file: ModelFile, summary: dict[str, Any]) -> str
     """The positioning section for ``fog-driver evaluate`` (the call ``cli._positioning_markdown`` makes).
 
     Reads ``args.capture``, ``args.reference`` (a reference CSV, else the sidecar's stops),
+    ``args.zero_window`` (the bias window, None for the default),
     ``args.compare`` (more model files, named by their file stem) and ``args.force``; the main model
     is named by its kind.  Adds ``summary["positioning"]`` and returns the Markdown table with the
     improvement figures, or None (the table is skipped) when the capture has no sequence.
@@ -573,7 +574,8 @@ def report_for(args: Any, model_file: ModelFile, summary: dict[str, Any]) -> str
         while name in models or name == RAW:
             name += "'"
         models[name] = load_model(path)
-    rows = positioning_table(capture, models, stops, force=bool(getattr(args, "force", False)))
+    rows = positioning_table(capture, models, stops, force=bool(getattr(args, "force", False)),
+                             bias_window_s=getattr(args, "zero_window", None))  # fmt: skip
     if not rows:
         summary["positioning"] = None
         return None
