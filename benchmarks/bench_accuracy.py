@@ -44,7 +44,7 @@ from fog_driver.compensation.aflp import AflpFilter, AflpParams  # noqa: E402
 from fog_driver.compensation.apply import compensate_capture  # noqa: E402
 from fog_driver.compensation.fit import FitConfig, fit_model_file, load_capture  # noqa: E402
 from fog_driver.compensation.model import load_model, save_model  # noqa: E402
-from fog_driver.sim.capture import read_truth, simulate_to_file  # noqa: E402
+from fog_driver.sim.capture import read_truth, simulate_to_file, truth_noise_dph  # noqa: E402
 from fog_driver.sim.instrument import Simulator  # noqa: E402
 from fog_driver.sim.profiles import load_profile  # noqa: E402
 
@@ -83,11 +83,6 @@ def minute_rms(x: np.ndarray) -> float:
     n = len(x) // 60 * 60
     m = x[:n].reshape(-1, 60).mean(axis=1)[SKIP_MINUTES:]
     return float(np.sqrt(np.mean((m - m.mean()) ** 2)))
-
-
-def noise_floor(truth: dict[str, np.ndarray]) -> np.ndarray:
-    known = sum(truth[f"{c}_dph"] for c in ("input", "earth", "scale_factor_error", "constant_bias", "drift"))
-    return truth["measured_dph"] - known  # bias instability + RRW + ARW + quantization
 
 
 def stage1_ratio(capture: Path) -> tuple[float, float, float]:
@@ -155,7 +150,7 @@ def main() -> None:
         for name, _seed, role, capture in tests:
             truth = read_truth(capture.with_suffix(".truth.csv"))
             before = minute_rms(truth["drift_dph"])
-            floor = minute_rms(noise_floor(truth))
+            floor = minute_rms(truth_noise_dph(truth))
             residual = {}
             for kind in KINDS:
                 drift, seconds = per_second_drift(capture, models[kind])

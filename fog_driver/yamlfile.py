@@ -84,6 +84,15 @@ def _kind(default: Any, annotation: str) -> str:
     raise TypeError(f"cannot read a {annotation!r} setting from YAML")
 
 
+def require_known_keys(cls: type, d: Any, what: str) -> None:
+    """``ValueError`` unless ``d`` is a dict whose keys are all fields of the dataclass ``cls``
+    (missing keys are allowed: they take the defaults).  For ``from_dict`` of model-file parts."""
+    known = {f.name for f in fields(cls)}
+    if not isinstance(d, dict) or not set(d) <= known:
+        extra = sorted(set(d) - known) if isinstance(d, dict) else type(d).__name__
+        raise ValueError(f"{what}: unknown keys {extra}")
+
+
 def dataclass_from_mapping(cls: type, doc: Any, where: str) -> Any:
     """Build a (nested) frozen dataclass from a YAML mapping, refusing unknown keys and wrong types.
 

@@ -65,7 +65,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputFileError
-from ..yamlfile import read_tagged_yaml, write_yaml
+from ..yamlfile import read_tagged_yaml, require_known_keys, write_yaml
 from .compensator import FLAG_ADAPTING, FLAG_GUARD
 from .polynomial import dot_features
 from .readout import AdaptiveLaw, AdaptiveLawParams, AdaptiveLawState
@@ -131,10 +131,7 @@ class AdaptConfig:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> AdaptConfig:
         """Inverse of ``to_dict``; missing keys take their defaults, unknown keys are errors."""
-        known = {f.name for f in fields(cls)}
-        if not isinstance(d, dict) or not set(d) <= known:
-            extra = sorted(set(d) - known) if isinstance(d, dict) else type(d).__name__
-            raise ValueError(f"adapt config: unknown keys {extra}")
+        require_known_keys(cls, d, "adapt config")
         values = dict(d)
         if "law" in values:
             values["law"] = AdaptiveLawParams.from_dict(values["law"])

@@ -63,6 +63,8 @@ from typing import Any
 
 import numpy as np
 
+from ..yamlfile import require_known_keys
+
 __all__ = ["AdaptiveLaw", "AdaptiveLawParams", "AdaptiveLawState", "Standardizer", "ridge_fit"]
 
 
@@ -113,10 +115,7 @@ class AdaptiveLawParams:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> AdaptiveLawParams:
         """Inverse of ``to_dict``; missing keys take their defaults, unknown keys are errors."""
-        known = {f.name for f in fields(cls)}
-        if not isinstance(d, dict) or not set(d) <= known:
-            extra = sorted(set(d) - known) if isinstance(d, dict) else type(d).__name__
-            raise ValueError(f"adaptive law params: unknown keys {extra}")
+        require_known_keys(cls, d, "adaptive law params")
         return cls(**d)
 
 

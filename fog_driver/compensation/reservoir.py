@@ -85,6 +85,8 @@ from typing import Any
 
 import numpy as np
 
+from ..yamlfile import require_known_keys
+
 __all__ = [
     "PSI_MAX",
     "ReservoirMatrices",
@@ -226,10 +228,7 @@ class ReservoirParams:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> ReservoirParams:
         """Inverse of ``to_dict``; missing keys take their defaults, unknown keys are errors."""
-        known = {f.name for f in fields(cls)}
-        if not isinstance(d, dict) or not set(d) <= known:
-            extra = sorted(set(d) - known) if isinstance(d, dict) else type(d).__name__
-            raise ValueError(f"reservoir params: unknown keys {extra}")
+        require_known_keys(cls, d, "reservoir params")
         d = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
         return cls(**d)
 

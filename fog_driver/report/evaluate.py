@@ -23,6 +23,7 @@ from ..compensation.apply import compensate_capture
 from ..compensation.fit import FitConfig, load_capture
 from ..compensation.model import ModelFile
 from ..errors import UsageError
+from ..sim.capture import truth_noise_dph
 from .allan import AllanResult, allan
 
 PLOT_HINT = "pip install 'fog_driver[report]'"
@@ -115,11 +116,10 @@ def evaluate(capture: Path, model_file: ModelFile, *, truth: dict[str, np.ndarra
     if truth is not None:
         n = min(len(truth["drift_dph"]), len(series.t_s))
         mask = series.static[:n]
-        known = sum(truth[f"{c}_dph"] for c in ("input", "earth", "scale_factor_error", "constant_bias", "drift"))
         summary["truth"] = {
             "drift_rms_1min_dph": minute_rms(truth["drift_dph"][:n], mask),
             "residual_rms_1min_dph": minute_rms(truth["drift_dph"][:n] - series.drift_dph[:n], mask),
-            "noise_floor_rms_1min_dph": minute_rms((truth["measured_dph"] - known)[:n], mask),
+            "noise_floor_rms_1min_dph": minute_rms(truth_noise_dph(truth)[:n], mask),
         }
     return summary, series, allans
 

@@ -93,6 +93,13 @@ def read_truth(path: str | Path) -> dict[str, np.ndarray]:
     return {name: data[:, i] for i, name in enumerate(TRUTH_COLUMNS)}
 
 
+def truth_noise_dph(truth: dict[str, np.ndarray]) -> np.ndarray:
+    """What no compensator can remove, per second: measured - (input + earth + scale-factor error +
+    constant bias + drift) = bias instability + RRW + ARW + quantization."""
+    known = sum(truth[f"{c}_dph"] for c in ("input", "earth", "scale_factor_error", "constant_bias", "drift"))
+    return truth["measured_dph"] - known
+
+
 @dataclass
 class SimulationResult:
     capture: Path
