@@ -244,6 +244,7 @@ def cmd_compensate(args: argparse.Namespace) -> int:
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from .compensation.model import load_model
+    from .report import positioning
     from .report.evaluate import evaluate, write_report
     from .sim.capture import read_truth
 
@@ -261,7 +262,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     progress.show("evaluating...", force=True)
     try:
         summary, series, allans = evaluate(Path(args.capture), model_file, truth=truth, force=args.force)
-        positioning_md = _positioning_markdown(args, model_file, summary)
+        positioning_md = positioning.report_for(args.capture, model_file, summary, reference=args.reference,
+                                                compare=args.compare, zero_window_s=args.zero_window,
+                                                force=args.force)  # fmt: skip
         report = write_report(out, summary, series, allans, positioning_md)
     finally:
         progress.clear()
@@ -274,13 +277,6 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
               f"{raw['bias_instability_dph']:.5f} -> {comp['bias_instability_dph']:.5f} deg/h; 1-min drift RMS "
               f"{raw['drift_rms_1min_dph']:.4f} -> {comp['drift_rms_1min_dph']:.4f} deg/h")  # fmt: skip
     return 0
-
-
-def _positioning_markdown(args: argparse.Namespace, model_file, summary: dict) -> str | None:
-    """The Table-1 positioning table, when the capture has positioning sequences (or a reference CSV)."""
-    from .report import positioning
-
-    return positioning.report_for(args, model_file, summary)
 
 
 def _time_window(text: str) -> tuple[float, float]:

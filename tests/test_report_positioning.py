@@ -304,14 +304,12 @@ def test_capture_without_stops_skips_the_table(tmp_path, default_model):
 
 
 def test_report_for_evaluate(positioning_capture, default_model):
-    import argparse
     import json
 
     from fog_driver.report.positioning import report_for
 
     summary: dict = {}
-    args = argparse.Namespace(capture=str(positioning_capture), reference=None, compare=[], force=False)
-    text = report_for(args, default_model, summary)
+    text = report_for(str(positioning_capture), default_model, summary)
     assert text.startswith("| Temperature | moves | uncompensated mean") and "precision improvement" in text
     assert summary["positioning"]["rows"][0]["moves"] == 10
     json.dumps(summary, allow_nan=False)

@@ -61,7 +61,7 @@ Statistics and improvement
     its -40 degC row, 0.168 -> 0.097 arcsec, gives 1 - 0.097 / 0.168 = 42.3 %; the paper prints
     42.1 %, which is the same definition on unrounded means (e.g. 0.1675 -> 0.0970).
 
-``report_for(args, model_file, summary)`` is the section ``fog-driver evaluate`` asks for.
+``report_for(capture, model_file, summary, ...)`` is the section ``fog-driver evaluate`` asks for.
 """
 
 from __future__ import annotations
@@ -555,27 +555,34 @@ def summary_dict(rows: Sequence[Row]) -> list[dict[str, Any]]:
             for r in rows]  # fmt: skip
 
 
-def report_for(args: Any, model_file: ModelFile, summary: dict[str, Any]) -> str | None:
-    """The positioning section for ``fog-driver evaluate`` (the call ``cli._positioning_markdown`` makes).
+def report_for(
+    capture: str | Path,
+    model_file: ModelFile,
+    summary: dict[str, Any],
+    *,
+    reference: str | Path | None = None,
+    compare: Sequence[str | Path] = (),
+    zero_window_s: tuple[float, float] | None = None,
+    force: bool = False,
+) -> str | None:
+    """The positioning section of ``fog-driver evaluate``.
 
-    Reads ``args.capture``, ``args.reference`` (a reference CSV, else the sidecar's stops),
-    ``args.zero_window`` (the bias window, None for the default),
-    ``args.compare`` (more model files, named by their file stem) and ``args.force``; the main model
-    is named by its kind.  Adds ``summary["positioning"]`` and returns the Markdown table with the
-    improvement figures, or None (the table is skipped) when the capture has no sequence.
+    Stops from ``reference`` (a reference CSV), else the sidecar's; ``compare``: more model files,
+    named by their file stem (the main model is named by its kind); ``zero_window_s``: the bias
+    window (None for the default).  Adds ``summary["positioning"]`` and returns the Markdown table
+    with the improvement figures, or None (the table is skipped) when the capture has no sequence.
     """
     from ..compensation.model import load_model
 
-    capture = Path(args.capture)
-    stops = load_stops(capture, getattr(args, "reference", None))
+    capture = Path(capture)
+    stops = load_stops(capture, reference)
     models: dict[str, ModelFile] = {model_file.kind: model_file}
-    for path in getattr(args, "compare", None) or []:
+    for path in compare:
         name = Path(path).stem
         while name in models or name == RAW:
             name += "'"
         models[name] = load_model(path)
-    rows = positioning_table(capture, models, stops, force=bool(getattr(args, "force", False)),
-                             bias_window_s=getattr(args, "zero_window", None))  # fmt: skip
+    rows = positioning_table(capture, models, stops, force=force, bias_window_s=zero_window_s)
     if not rows:
         summary["positioning"] = None
         return None
