@@ -14,7 +14,7 @@ from fog_driver.compensation.adapt import (
     StaticDetector,
 )
 from fog_driver.compensation.compensator import FLAG_ADAPTING, FLAG_GUARD
-from fog_driver.compensation.polynomial import dot_features
+from fog_driver.compensation.numerics import dot
 from fog_driver.compensation.readout import (
     AdaptiveLaw,
     AdaptiveLawParams,
@@ -44,13 +44,13 @@ def _regressors(seed: int, t: int, n: int = 3, tau: float = 300.0) -> np.ndarray
 def _problem(t: int, *, seed: int = 0, bias: float = EARTH_AND_BIAS, w_true=W_TRUE, b_true=B0, noise=0.2):
     """measured = reference (0) + bias + f . w_true + b_true + noise."""
     f = _regressors(seed, t)
-    drift = dot_features(f, np.asarray(w_true)) + b_true
+    drift = dot(f, np.asarray(w_true)) + b_true
     measured = bias + drift + noise * np.random.default_rng(seed + 100).normal(size=t)
     return f, drift, measured
 
 
 def _frozen(f: np.ndarray) -> np.ndarray:
-    return dot_features(f, W0) + B0
+    return dot(f, W0) + B0
 
 
 # --- convergence with a reference -------------------------------------------------------------------
@@ -240,6 +240,7 @@ def _run_detected(readout: OnlineReadout, detector: StaticDetector, f, measured,
     return out
 
 
+@pytest.mark.determinism
 def test_state_saved_and_restored_mid_stream_continues_bit_identically(tmp_path):
     f, measured = _stream()
     config = AdaptConfig(bias_capture_s=200.0)
@@ -273,6 +274,7 @@ def test_state_dict_round_trips_through_yaml_exactly():
     assert a == b
 
 
+@pytest.mark.determinism
 def test_step_equals_run_for_any_chunking():
     f, measured = _stream(1200)
     static = StaticDetector.from_config(AdaptConfig(), 1.0).run(measured)
@@ -420,6 +422,6 @@ def test_begin_run_captures_the_new_bias_and_keeps_the_adapted_weights():
     r.begin_run()  # switched off and on: a new turn-on bias, 7 deg/h higher
     est, flags = r.run(f[3000:], measured[3000:] + 7.0, 0.0, True)
     assert not flags[:300].any() and (flags[300:] == FLAG_ADAPTING).all() and r.guards == 0
-    np.testing.assert_array_equal(est[:301], dot_features(f[3000:3301], w_adapted[:-1]) + w_adapted[-1])
+    np.testing.assert_array_equal(est[:301], dot(f[3000:3301], w_adapted[:-1]) + w_adapted[-1])
     assert abs(r.bias_dph - first_bias - 7.0) < 0.05  # the new bias (relative to the adapted model, as before)
     np.testing.assert_allclose(r.weights, W_TRUE, rtol=0, atol=0.02)

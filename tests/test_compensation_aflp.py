@@ -57,6 +57,7 @@ params = st.builds(
 )
 
 
+@pytest.mark.determinism
 @settings(max_examples=150)
 @given(params, samples, st.lists(st.integers(0, 120), max_size=6))
 def test_run_equals_step_for_any_chunking(p, values, cuts):
@@ -77,6 +78,7 @@ def test_run_equals_step_for_any_chunking(p, values, cuts):
     assert whole.state.samples == int(np.isfinite(r).sum())
 
 
+@pytest.mark.determinism
 @settings(max_examples=60)
 @given(params, samples, st.integers(0, 120))
 def test_state_saved_mid_stream_through_yaml_continues_identically(p, values, cut):

@@ -46,6 +46,7 @@ def assert_columns_equal(a: BlockColumns, b: BlockColumns) -> None:
 
 
 @settings(max_examples=60, deadline=None)
+@pytest.mark.determinism
 @given(st.integers(1, 400), st.lists(st.integers(0, 400), max_size=6), st.lists(st.integers(0, 399), max_size=5),
        st.lists(st.integers(0, 399), max_size=5))  # fmt: skip
 def test_run_equals_step_for_any_split(n, cuts, missing, nan_at):

@@ -46,6 +46,7 @@ def assert_columns_equal(a: CompensatedColumns, b: CompensatedColumns) -> None:
         np.testing.assert_array_equal(getattr(a, f), getattr(b, f), err_msg=f)
 
 
+@pytest.mark.determinism
 @settings(max_examples=10, deadline=None)
 @given(st.lists(st.integers(0, 2956), max_size=8))
 def test_compensator_run_in_any_chunks_equals_step(model_path, faulty_samples, cuts):
@@ -75,6 +76,7 @@ def test_compensator_values(model_path, faulty_samples):
         assert np.unique(cols.drift_dph[block == b]).size == 1
 
 
+@pytest.mark.determinism
 def test_compensate_cli_rows_equal_a_live_replay_in_chunks(model_path, tmp_path):
     """The offline command and a live-style run (bytes fed in small chunks, sample by sample) agree exactly."""
     out = tmp_path / "out.csv"
@@ -139,6 +141,7 @@ def test_bad_model_files_are_one_line_errors(model_path, tmp_path, mutate, needl
         load_model(bad)
 
 
+@pytest.mark.determinism
 def test_wesn_start_is_a_fixed_point_and_step_equals_run():
     from fog_driver.compensation.wesn import WESN_DEFAULTS, WesnModel, n_regressors
 
@@ -219,6 +222,7 @@ def adapt_config():
     return AdaptConfig(warmup_s=5.0, bias_capture_s=10.0, static_window_s=5.0)
 
 
+@pytest.mark.determinism
 def test_adapting_compensator_step_equals_run_in_any_chunks(model_path):
     from fog_driver.compensation.compensator import FLAG_ADAPTING
 

@@ -22,7 +22,7 @@ from fog_driver.compensation.fit import (
     minute_rms,
 )
 from fog_driver.compensation.model import MODEL_KINDS, load_model, save_model
-from fog_driver.compensation.polynomial import dot_features
+from fog_driver.compensation.numerics import dot
 from fog_driver.compensation.svr import (
     MISSING_SKLEARN,
     PsoSvrConfig,
@@ -123,6 +123,7 @@ def test_numpy_prediction_equals_sklearn():
         SvrModel.from_sklearn(SVR(kernel="linear").fit(z, y))
 
 
+@pytest.mark.determinism
 def test_step_equals_run_bit_for_bit():
     model = random_model()
     z = np.random.default_rng(6).normal(0.0, 1.5, (5000, 8))
@@ -130,8 +131,8 @@ def test_step_equals_run_bit_for_bit():
     stepped = np.array([model.step(row) for row in z])
     np.testing.assert_array_equal(ran, stepped)
     np.testing.assert_array_equal(np.concatenate([model.run(z[:1]), model.run(z[1:777]), model.run(z[777:])]), ran)
-    # The adapting readout's frozen estimate (dot_features over the kernel row) is the same number.
-    via_regressors = np.array([dot_features(model.regressors_step(row), model.weights) + model.intercept for row in z[:300]])
+    # The adapting readout's frozen estimate (numerics.dot over the kernel row) is the same number.
+    via_regressors = np.array([dot(model.regressors_step(row), model.weights) + model.intercept for row in z[:300]])
     np.testing.assert_array_equal(via_regressors, ran[:300])
     assert model.get_state() == {}
 
@@ -230,6 +231,7 @@ def slice_block(s: SampleBlock, lo: int, hi: int) -> SampleBlock:
     return SampleBlock(*(getattr(s, f)[lo:hi] for f in SampleBlock.__dataclass_fields__))
 
 
+@pytest.mark.determinism
 @needs_sklearn
 def test_compensator_step_equals_run_and_adapting_without_reference_is_frozen(fitted):
     from fog_driver.compensation.adapt import AdaptConfig

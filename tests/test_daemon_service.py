@@ -19,6 +19,7 @@ def offline_angles(capture: Path, model_path: Path) -> list[float]:
     return [float(a) for _, cols in compensate_capture(capture, load_model(model_path)) for a in cols.angle_comp_arcsec]
 
 
+@pytest.mark.determinism
 @pytest.mark.parametrize("chunk", [1, 97, 4096])
 def test_published_angles_equal_offline_compensation(chunk):
     capture = DATA / "sim-faults.bin"

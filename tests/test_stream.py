@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 from framegen import assemble, frame_piece, sample_frames
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -99,6 +100,7 @@ def _assert_blocks_equal(a: SampleBlock, b: SampleBlock) -> None:
     st.lists(st.integers(0, 45), max_size=4),
     st.one_of(st.none(), st.floats(1e-3, 1.0)),
 )
+@pytest.mark.determinism
 def test_step_and_run_agree_for_any_split(frames, identity_at, scales, cuts, override):
     data, events = _events_with_identities(frames, sorted(identity_at), scales)
     stepped = SampleStream(0.75, override)

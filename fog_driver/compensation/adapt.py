@@ -4,8 +4,8 @@ gated by a reference, with guards.
 Frozen or adapting.  A model file holds frozen weights: ``D_hat = f . w0 + b0`` over the model's regressor
 row f (``regressors_step``).  ``OnlineReadout`` keeps running the adaptive law (``readout.AdaptiveLaw``)
 over the regressors ``x = [f, 1]``, warm-started at ``W = [w0, b0]``, and returns ``D_hat = f . W[:-1] +
-W[-1]`` (summed as ``polynomial.dot_features``: while W equals the stored weights the estimate is the
-frozen one bit for bit).
+W[-1]`` (summed strictly left to right, ``numerics.dot``: while W equals the stored weights the estimate
+is the frozen one bit for bit).
 
 The target.  Online, the only measurement of the drift is the gyro itself: on a block where the input
 rate is known (``reference_rate_dph``: the table's rate, 0 when it stands still; the Earth rate along a
@@ -66,8 +66,8 @@ import numpy as np
 
 from ..errors import InputFileError
 from ..yamlfile import read_tagged_yaml, require_known_keys, write_yaml
+from . import numerics
 from .compensator import FLAG_ADAPTING, FLAG_GUARD
-from .polynomial import dot_features
 from .readout import AdaptiveLaw, AdaptiveLawParams, AdaptiveLawState
 
 __all__ = [
@@ -272,7 +272,7 @@ class OnlineReadout:
         return self.bias_dph is not None
 
     def frozen_estimate(self, f: np.ndarray) -> float:
-        return float(dot_features(f, self.frozen_weights) + self.frozen_intercept)
+        return float(numerics.dot(f, self.frozen_weights) + self.frozen_intercept)
 
     def begin_run(self) -> None:
         """A new run of the instrument (switched off and on: a new turn-on bias): capture the bias again.
@@ -314,9 +314,9 @@ class OnlineReadout:
     def _advance_guarded(self, f: np.ndarray, measured: float, reference: float | None, static: bool) -> tuple[float, int]:
         self.blocks += 1
         flags = 0
-        y_frozen = float(dot_features(f, self.frozen_weights) + self.frozen_intercept)
+        y_frozen = float(numerics.dot(f, self.frozen_weights) + self.frozen_intercept)
         w = self._law._w  # the law's live W (updated in place by the law)
-        y = float(dot_features(f, w[:-1]) + w[-1])
+        y = float(numerics.dot(f, w[:-1]) + w[-1])
         if not math.isfinite(y_frozen):  # non-finite regressors: nothing to revert to, nothing to learn
             return y_frozen, FLAG_GUARD
         if not math.isfinite(y) or abs(y - y_frozen) > self._runaway:

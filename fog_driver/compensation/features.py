@@ -25,6 +25,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from . import numerics
+
 INPUT_NAMES = ("t_top_c", "t_bottom_c", "t_housing_c", "rate_top_c_per_min", "rate_bottom_c_per_min",
                "rate_housing_c_per_min", "grad_top_bottom_c", "grad_top_housing_c")  # fmt: skip
 N_INPUTS = len(INPUT_NAMES)
@@ -52,11 +54,12 @@ class FeatureExtractor:
     def __init__(self, params: FeatureParams | None = None, state: dict | None = None) -> None:
         self.params = params or FeatureParams()
         p = self.params
-        self._a1 = 1.0 - math.exp(-p.sample_time_s / p.rate_tau_fast_s)
-        self._a2 = 1.0 - math.exp(-p.sample_time_s / p.rate_tau_slow_s)
+        # Correctly rounded exponentials: the same coefficients on every machine (the C library's are not).
+        self._a1 = 1.0 - numerics.exp_correctly_rounded(-p.sample_time_s / p.rate_tau_fast_s)
+        self._a2 = 1.0 - numerics.exp_correctly_rounded(-p.sample_time_s / p.rate_tau_slow_s)
         # A discrete EMA lags a ramp of slope r by r * lag, lag = Ts / (exp(Ts / tau) - 1) (-> tau as Ts -> 0).
-        lag_fast = p.sample_time_s / math.expm1(p.sample_time_s / p.rate_tau_fast_s)
-        lag_slow = p.sample_time_s / math.expm1(p.sample_time_s / p.rate_tau_slow_s)
+        lag_fast = p.sample_time_s / numerics.expm1_correctly_rounded(p.sample_time_s / p.rate_tau_fast_s)
+        lag_slow = p.sample_time_s / numerics.expm1_correctly_rounded(p.sample_time_s / p.rate_tau_slow_s)
         self._denominator_min = (lag_slow - lag_fast) / 60.0
         self.reset()
         if state is not None:

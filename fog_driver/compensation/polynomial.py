@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import numerics
 from .readout import ridge_fit
 
 N_POLY_FEATURES = 9
@@ -50,17 +51,6 @@ def physical_features(z: np.ndarray) -> np.ndarray:
     return np.concatenate((r, z[..., 6:7], z[..., 2:3] - r, dr, z[..., 5:6]), axis=-1)
 
 
-def dot_features(f: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """``f . w`` for one row or many, summed strictly left to right over the features.
-
-    Not BLAS: a matrix-vector product may sum in another order than a single
-    dot product, and ``step`` (one row) must equal ``run`` (many) bit for bit.
-    """
-    f = np.asarray(f, dtype=np.float64)
-    acc = f[..., 0] * w[0]
-    for j in range(1, len(w)):
-        acc = acc + f[..., j] * w[j]
-    return acc
 
 
 class Memoryless:
@@ -108,10 +98,10 @@ class PolynomialModel(Memoryless):
         return polynomial_features(z)
 
     def step(self, z: np.ndarray) -> float:
-        return float(dot_features(polynomial_features(z), self.weights) + self.intercept)
+        return float(numerics.dot(polynomial_features(z), self.weights) + self.intercept)
 
     def run(self, z: np.ndarray) -> np.ndarray:
-        return dot_features(polynomial_features(z), self.weights) + self.intercept
+        return numerics.dot(polynomial_features(z), self.weights) + self.intercept
 
     def to_dict(self) -> dict:
         return {"weights": [float(v) for v in self.weights], "intercept": self.intercept}

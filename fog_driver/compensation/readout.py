@@ -64,6 +64,7 @@ from typing import Any
 import numpy as np
 
 from ..yamlfile import require_known_keys
+from . import numerics
 
 __all__ = ["AdaptiveLaw", "AdaptiveLawParams", "AdaptiveLawState", "Standardizer", "ridge_fit"]
 
@@ -193,10 +194,12 @@ class AdaptiveLaw:
         self.n_features = int(n_features)
         self.sample_time_s = ts = float(sample_time_s)
         lam = 1.0 / p.memory_time_s
-        self._alpha = math.exp(-ts / p.filter_time_s) if p.filter_time_s > 0 else 0.0
-        self._one_minus_alpha = -math.expm1(-ts / p.filter_time_s) if p.filter_time_s > 0 else 1.0
-        self._beta = math.exp(-lam * ts)
-        self._g = -math.expm1(-lam * ts) / lam
+        # Correctly rounded: the same coefficients on every machine (the C library's exp is not).
+        self._alpha = numerics.exp_correctly_rounded(-ts / p.filter_time_s) if p.filter_time_s > 0 else 0.0
+        self._one_minus_alpha = (-numerics.expm1_correctly_rounded(-ts / p.filter_time_s) if p.filter_time_s > 0
+                                 else 1.0)  # fmt: skip
+        self._beta = numerics.exp_correctly_rounded(-lam * ts)
+        self._g = -numerics.expm1_correctly_rounded(-lam * ts) / lam
         self._sigma = float(p.sigma)
         self._fixed = None if p.fixed_gain is None else ts * float(p.fixed_gain)
         self._kappa = float(p.kappa)
@@ -226,7 +229,7 @@ class AdaptiveLaw:
         """Gamma as the next update would use it (from the current H)."""
         if self._fixed is not None:
             return self._fixed
-        return self._kappa / (self._norm_offset + float(np.trace(self._h)))
+        return self._kappa / (self._norm_offset + numerics.total(self._h.diagonal()))
 
     def least_squares_weights(self) -> np.ndarray:
         """``(H + sigma I)^-1 I``, where the law is heading (lstsq: minimum norm when H is singular)."""
@@ -235,13 +238,13 @@ class AdaptiveLaw:
 
     def predict(self, x: np.ndarray) -> float:
         """``W^T x``; the state is not touched."""
-        return float(self._w @ np.asarray(x, dtype=np.float64))
+        return float(numerics.dot(np.asarray(x, dtype=np.float64), self._w))
 
     # --- stepping --------------------------------------------------------------------------------
 
     def _advance(self, x: np.ndarray, d: float, update: bool) -> float:
         w = self._w
-        y_hat = float(w @ x)
+        y_hat = float(numerics.dot(x, w))
         if not (math.isfinite(d) and math.isfinite(x.sum())):
             return y_hat
         xf = self._xf
@@ -257,11 +260,14 @@ class AdaptiveLaw:
         i *= self._beta
         i += (self._g * df) * xf
         if update:
-            m = h @ w
+            m = numerics.matvec(h, w)
             m -= i
             if self._sigma:
                 m += self._sigma * w
-            gamma = self._fixed if self._fixed is not None else self._kappa / (self._norm_offset + float(np.trace(h)))
+            if self._fixed is not None:
+                gamma = self._fixed
+            else:
+                gamma = self._kappa / (self._norm_offset + numerics.total(h.diagonal()))
             m *= gamma
             w -= m
         return y_hat

@@ -71,9 +71,16 @@ Non-finite values.  When the new state would not be finite (a NaN or inf input, 
 left exactly as it was and the held state is returned.  The pipeline should never feed NaN (the
 features hold the last good thermometer reading); this is defence, not a gap model.
 
+Machine-independent.  ``W_in u`` and ``W x`` are summed strictly left to right and ``Psi`` uses
+``numerics.exp`` (no BLAS, no CPU-specific exp), so a stored reservoir gives the same states, to the
+bit, on every CPU (``numerics``; tested by ``tests/test_numerics.py`` and the golden outputs).
+
 ``step`` and ``run`` share one update (``_advance``), so ``run`` is bit-identical to repeated
-``step`` and to running in any chunks (tested).  A step of the 20-neuron, 8-input reservoir costs
-about 6.5 us on the development machine (26,400 steps, the paper's 7-hour run at 1 Hz, take 0.2 s).
+``step`` and to running in any chunks (tested).  Without recurrence and feedback (the ring form)
+``run`` computes every row's wavelet input at once with the same elementwise operations and steps
+only the leak row by row (``_run_feedforward``): the same bits, about 10x faster, which is what
+fitting (one run per candidate lag) spends its time on.  A step costs about 20 us (4 or 20
+neurons alike: numpy's per-call overhead dominates; ``benchmarks/bench_model_step.py``).
 """
 
 from __future__ import annotations
@@ -86,6 +93,7 @@ from typing import Any
 import numpy as np
 
 from ..yamlfile import require_known_keys
+from . import numerics
 
 __all__ = [
     "PSI_MAX",
@@ -98,7 +106,7 @@ __all__ = [
 ]
 
 #: max |Psi(z)| = Psi(1) = e^-1/2.
-PSI_MAX = math.exp(-0.5)
+PSI_MAX = numerics.exp_correctly_rounded(-0.5)
 
 # Child generators of SeedSequence(seed).spawn(_N_CHILDREN), by matrix.  Append new matrices at the end.
 _CHILD = {"w_in": 0, "w": 1, "w_back": 2, "dilation": 3, "translation": 4}
@@ -106,10 +114,11 @@ _N_CHILDREN = 5
 
 
 def psi(z: np.ndarray) -> np.ndarray:
-    """The mother wavelet ``Psi(z) = z exp(-z^2 / 2)``, exactly as the reservoir computes it."""
+    """The mother wavelet ``Psi(z) = z exp(-z^2 / 2)``, exactly as the reservoir computes it (with the
+    machine-independent ``numerics.exp``)."""
     e = z * z
     e *= -0.5
-    np.exp(e, out=e)
+    e = numerics.exp(e)
     e *= z
     return e
 
@@ -357,6 +366,7 @@ class WaveletReservoir:
         self._w_in, self._w, self._w_back = mat.w_in, mat.w, mat.w_back
         self._t, self._s = mat.translation, mat.dilation
         self._feedback = bool((mat.w_back != 0).any())
+        self._recurrent = bool((mat.w != 0).any())  # W = 0 (the ring form): W x is 0, not computed
         self._decay = 1.0 - ts * leaks  # (1 - Ts leak), per neuron
         self._gain = ts * leaks if self.params.normalized_leak else np.full(self.params.n_neurons, ts)
         self.set_state(state if state is not None else ReservoirState.zeros(self.params.n_neurons))
@@ -401,23 +411,46 @@ class WaveletReservoir:
 
     # --- stepping --------------------------------------------------------------------------------
 
-    def _advance(self, u: np.ndarray, y: float) -> bool:
-        """One Euler step from ``self._x``; False (and nothing changed) when the result is not finite."""
-        x = self._x
-        v = self._w_in @ u
-        v += self._w @ x
-        if self._feedback:
-            v += self._w_back * y
-        v -= self._t
+    def _activation(self, z: np.ndarray) -> np.ndarray:
+        """``Ts g_i Psi((z_i - t_i) / s_i)`` for a row z (n_neurons,) or many rows (T, n_neurons)."""
+        v = z - self._t
         v /= self._s
         p = psi(v)
         p *= self._gain
+        return p
+
+    def _advance(self, u: np.ndarray, y: float) -> bool:
+        """One Euler step from ``self._x``; False (and nothing changed) when the result is not finite."""
+        x = self._x
+        z = numerics.matvec(self._w_in, u)
+        if self._recurrent:
+            z += numerics.matvec(self._w, x)
+        if self._feedback:
+            z += self._w_back * y
         new = self._decay * x
-        new += p
+        new += self._activation(z)
         if not math.isfinite(new.sum()):
             return False
         self._x = new
         return True
+
+    def _run_feedforward(self, inputs: np.ndarray, ys: list[float] | None, out: np.ndarray) -> None:
+        """``run`` without recurrence and feedback (the ring form): the wavelet input of a row does not
+        depend on the state, so it is computed for all rows at once with the same elementwise operations
+        as ``_advance`` (``W_in u`` summed over the inputs in the same order), and only the leak is
+        stepped row by row: bit-identical to ``_advance`` row by row, and many times faster."""
+        products = inputs.T[:, :, None] * self._w_in.T[:, None, :]  # (n_inputs, T, n_neurons)
+        drive = self._activation(numerics.sum_first(products))  # (T, n_neurons)
+        x, last_ok = self._x, None
+        for k in range(len(inputs)):
+            new = self._decay * x
+            new += drive[k]
+            if math.isfinite(new.sum()):
+                x, last_ok = new, k
+            out[k] = x
+        self._x = x
+        if ys is not None and last_ok is not None:
+            self._y = ys[last_ok]
 
     def step(self, u: Sequence[float] | np.ndarray, y_prev: float | None = None) -> np.ndarray:
         """x(n) from u(n), shape (n_inputs,), and the feedback y(n-1) (default: the stored one).
@@ -445,6 +478,9 @@ class WaveletReservoir:
                 raise ValueError(f"y_prev must have shape ({n},), got {y_prev.shape}")
         out = np.empty((n, self.params.n_neurons))
         ys = y_prev.tolist() if y_prev is not None else None
+        if not (self._recurrent or self._feedback):
+            self._run_feedforward(inputs, ys, out)
+            return out
         for k in range(n):
             y = self._y if ys is None else ys[k]
             if self._advance(inputs[k], y):

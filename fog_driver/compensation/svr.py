@@ -24,7 +24,7 @@ prediction is plain numpy over the stored support vectors, so a model file compe
   14 s for the paper's 440-minute capture on 2 cores.
 * No memory: ``step`` and ``run`` agree trivially; ``run`` is bit-identical to repeated ``step``
   (the same per-row arithmetic: squared distances summed over the 8 inputs in order, the kernel
-  row weighted and summed strictly left to right, as ``polynomial.dot_features``).
+  row weighted and summed strictly left to right, as ``numerics.dot``).
 * Adapting: an SVR is linear in its dual coefficients, so the model exposes the kernel row
   ``k_i(z) = exp(-gamma |z - sv_i|^2)`` as its regressors (``regressors_step``), ``weights`` =
   the dual coefficients and ``intercept`` = b: the compensator's online readout
@@ -45,10 +45,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import UsageError
+from . import numerics
 from .polynomial import Memoryless
 
 N_INPUTS = 8
-_CHUNK_ROWS = 2048  #: rows per kernel chunk in ``run`` (bounded memory: chunk x n_sv floats)
+_CHUNK_FLOATS = 1 << 20  #: ``run`` works in chunks of rows whose differences (rows x n_sv x 8) fit in 8 MB
 
 MISSING_SKLEARN = "fitting a pso-svr model needs scikit-learn: pip install 'fog_driver[svr]'"
 
@@ -152,7 +153,8 @@ class SvrModel(Memoryless):
         if not (math.isfinite(self.gamma) and self.gamma > 0):
             raise ValueError(f"a pso-svr model's gamma must be finite and > 0, got {self.gamma!r}")
         self._neg_gamma = -self.gamma
-        self._sv_columns = [np.ascontiguousarray(sv[:, j]) for j in range(N_INPUTS)]
+        self._sv_by_input = np.ascontiguousarray(sv.T)  # (8, n_sv)
+        self._chunk_rows = max(1, _CHUNK_FLOATS // (N_INPUTS * len(sv)))
 
     @property
     def weights(self) -> np.ndarray:
@@ -168,23 +170,18 @@ class SvrModel(Memoryless):
     def kernel_rows(self, z: np.ndarray) -> np.ndarray:
         """(m, 8) standardized inputs -> (m, n_sv) kernel rows ``exp(-gamma |z - sv_i|^2)``.
 
-        The squared distance is summed over the 8 inputs in order, elementwise: the same operations
-        for one row as for many."""
-        z = np.asarray(z, dtype=np.float64)
-        d = z[:, 0:1] - self._sv_columns[0]
-        acc = d * d
-        for j in range(1, N_INPUTS):
-            d = z[:, j : j + 1] - self._sv_columns[j]
-            acc += d * d
+        The squared distance is summed over the 8 inputs in order, elementwise, and the exponential is
+        ``numerics.exp``: the same operations for one row as for many, the same bits on every CPU."""
+        d = np.asarray(z, dtype=np.float64).T[:, :, None] - self._sv_by_input[:, None, :]  # (8, m, n_sv)
+        d *= d
+        acc = numerics.sum_first(d)
         acc *= self._neg_gamma
-        return np.exp(acc, out=acc)
+        return numerics.exp(acc)
 
     def _predict(self, z: np.ndarray) -> np.ndarray:
-        """(m, 8) -> (m,): the kernel rows weighted by the dual coefficients and summed strictly left
-        to right (a cumulative sum: equal bit for bit to ``polynomial.dot_features``), plus b."""
-        k = self.kernel_rows(z)
-        k *= self.dual_coef
-        return np.cumsum(k, axis=1)[:, -1] + self.intercept
+        """(m, 8) -> (m,): the kernel rows weighted by the dual coefficients, summed strictly left to
+        right (``numerics.dot``), plus b."""
+        return numerics.dot(self.kernel_rows(z), self.dual_coef) + self.intercept
 
     # -- the DriftModel interface --------------------------------------------------------------------
 
@@ -201,8 +198,8 @@ class SvrModel(Memoryless):
     def run(self, z: np.ndarray) -> np.ndarray:
         z = np.asarray(z, dtype=np.float64).reshape(-1, N_INPUTS)
         out = np.empty(len(z))
-        for lo in range(0, len(z), _CHUNK_ROWS):
-            out[lo : lo + _CHUNK_ROWS] = self._predict(z[lo : lo + _CHUNK_ROWS])
+        for lo in range(0, len(z), self._chunk_rows):
+            out[lo : lo + self._chunk_rows] = self._predict(z[lo : lo + self._chunk_rows])
         return out
 
     # -- model file ----------------------------------------------------------------------------------

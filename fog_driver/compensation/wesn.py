@@ -35,12 +35,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from . import numerics
 from .aflp import AflpFilter, AflpParams
 from .polynomial import (
     N_PHYSICAL_FEATURES,
     N_POLY_FEATURES,
     cross_validated_alpha,
-    dot_features,
     physical_features,
     polynomial_features,
     standardized_ridge,
@@ -171,7 +171,7 @@ class WesnModel:
         return np.concatenate(parts, axis=-1) if len(parts) > 1 else parts[0]
 
     def _output(self, f: np.ndarray) -> np.ndarray:
-        return dot_features(f, self.weights) + self.intercept
+        return numerics.dot(f, self.weights) + self.intercept
 
     # -- streaming ----------------------------------------------------------------------------
 
@@ -261,10 +261,10 @@ def settle(reservoir: WaveletReservoir, z: np.ndarray, output) -> None:
     scale = np.ones(p.n_neurons) if p.normalized_leak else 1.0 / leaks
     x = np.zeros(p.n_neurons)
     y = 0.0
-    drive = m.w_in @ z - m.translation
+    drive = numerics.matvec(m.w_in, z) - m.translation
     feedback = (m.w_back != 0).any()
     for _ in range(_SETTLE_ITERATIONS):
-        v = (drive + m.w @ x + (m.w_back * y if feedback else 0.0)) / m.dilation
+        v = (drive + numerics.matvec(m.w, x) + (m.w_back * y if feedback else 0.0)) / m.dilation
         new = np.clip(scale * psi(v), -PSI_MAX * scale, PSI_MAX * scale)
         x = 0.5 * x + 0.5 * new
         if feedback:

@@ -1,35 +1,72 @@
-"""Regenerate the golden client output in tests/data/golden/ (only on purpose; say why in the commit).
+"""Regenerate the golden outputs in tests/data/golden/ (only on purpose; say why in the commit).
 
-    python tests/data/make_goldens.py
+    python tests/data/make_goldens.py                  rewrite every golden output, saying how each changed
+    python tests/data/make_goldens.py --check          compare only; exit 1 if any differs beyond the tolerance
+    python tests/data/make_goldens.py --refit-models   also refit the golden model files (new inputs)
 
-``sim-faults.watch-1hz.ndjson``: the ANGLE lines a client that sent
-``?WATCH={"enable":true,"rate_hz":1};`` receives when ``tests/data/sim-faults.bin``
-is fed to ``fog-driver run`` with the shipped default model, byte for byte.
-The HIL test feeds the capture through a real pty into the daemon and compares.
-A change of any published value (compensation, flags, formatting) shows up here.
+Goldens (floats compared within ``tests/golden.py``'s tolerance on any machine, the rest exactly):
+
+* ``sim-faults.watch-1hz.ndjson``: the ANGLE lines a client that sent
+  ``?WATCH={"enable":true,"rate_hz":1};`` receives when ``tests/data/sim-faults.bin`` is fed to
+  ``fog-driver run`` with the shipped default model (``configs/models/default.yaml``), as sent.
+  The HIL test feeds the capture through a real pty into the daemon and compares.
+* ``models/<kind>.yaml``: one small model file of each kind, fitted on ``sim-short.bin``.  They are
+  inputs, not outputs: a fit uses LAPACK, whose last bits differ between machines, so they are
+  only refitted with ``--refit-models``, and a model file written by an older version must keep
+  compensating the same way.
+* ``sim-faults.compensate-<name>.ndjson``: ``fog-driver compensate`` of ``sim-faults.bin`` with
+  those model files (one wesn run also adapting against a known rate of 0), one row every
+  5 s as in ``compensate --every 5``, at full precision: one JSON object per row with the CSV's
+  columns (absent temperatures omitted, flags as a list).
+
+A change of any published value (compensation, flags, formatting) shows up here.  When output
+changes on purpose, regenerate and check what this script prints: files it reports as changed
+"within tolerance" changed only in last bits (e.g. another exp or summation order); "BEYOND
+tolerance" must be a change you meant.
 """
 
 from __future__ import annotations
 
+import argparse
+import json
 import math
 import sys
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parents[1]))
+sys.path.insert(0, str(HERE.parent))
 
+import golden  # noqa: E402  (tests/golden.py: the comparison the tests make)
+
+from fog_driver.compensation.adapt import AdaptConfig  # noqa: E402
+from fog_driver.compensation.apply import compensate_capture  # noqa: E402
+from fog_driver.compensation.fit import FitConfig, fit_model_file  # noqa: E402
+from fog_driver.compensation.model import load_model, save_model  # noqa: E402
+from fog_driver.compensation.rows import ROW_COLUMNS, RowAggregator  # noqa: E402
 from fog_driver.config import DriverConfig  # noqa: E402
 from fog_driver.daemon.hub import encode  # noqa: E402
 from fog_driver.daemon.service import Service  # noqa: E402
 
-GOLDEN = HERE / "golden" / "sim-faults.watch-1hz.ndjson"
+GOLDEN_DIR = HERE / "golden"
+WATCH_GOLDEN = GOLDEN_DIR / "sim-faults.watch-1hz.ndjson"
+MODEL_DIR = GOLDEN_DIR / "models"
+CAPTURE = HERE / "sim-faults.bin"
+FIT_CAPTURE = HERE / "sim-short.bin"
+FIT_CONFIG = FitConfig(warmup_s=30.0)
+MODEL_KINDS = ("polynomial", "wesn", "paper", "pso-svr")
+EVERY_S = 5.0
+#: A short run adapts soon (the defaults wait 5 min and capture the bias for 5 min).
+ADAPT = AdaptConfig(warmup_s=5.0, bias_capture_s=10.0, static_window_s=5.0)
+#: name -> (model kind, adapt against a reference of 0 deg/h)
+COMPENSATE_GOLDENS = {kind: (kind, False) for kind in MODEL_KINDS} | {"wesn-adapting": ("wesn", True)}
 
 
-def golden_lines(rate_hz: float = 1.0) -> list[bytes]:
+def watch_lines(rate_hz: float = 1.0) -> list[bytes]:
     """The daemon's ANGLE objects for the capture, decimated as ``?WATCH`` does, encoded as sent."""
     service = Service(DriverConfig(), port="unused")
     lines, last_period = [], None
-    for obj in service.process((HERE / "sim-faults.bin").read_bytes()):
+    for obj in service.process(CAPTURE.read_bytes()):
         period = math.floor(obj["t_s"] * rate_hz)
         if period != last_period:
             lines.append(encode(obj))
@@ -37,11 +74,98 @@ def golden_lines(rate_hz: float = 1.0) -> list[bytes]:
     return lines
 
 
-def main() -> None:
-    GOLDEN.parent.mkdir(exist_ok=True)
-    GOLDEN.write_bytes(b"".join(golden_lines()))
-    print(f"{GOLDEN.relative_to(HERE.parents[1])}: {len(golden_lines())} lines")
+def model_path(kind: str) -> Path:
+    return MODEL_DIR / f"{kind}.yaml"
+
+
+def compensate_path(name: str) -> Path:
+    return GOLDEN_DIR / f"sim-faults.compensate-{name}.ndjson"
+
+
+def compensate_lines(name: str) -> list[str]:
+    """``compensate --every 5`` of the capture with a golden model, one JSON object per row, full precision."""
+    kind, adapting = COMPENSATE_GOLDENS[name]
+    model_file = load_model(model_path(kind))
+    chunks = compensate_capture(CAPTURE, model_file, adapt=ADAPT if adapting else None,
+                                reference_rate_dph=0.0 if adapting else None)  # fmt: skip
+    aggregator = None
+    rows = []
+    for frame_period_s, cols in chunks:
+        aggregator = aggregator or RowAggregator(EVERY_S, frame_period_s)
+        rows += aggregator.add(cols)
+    rows += aggregator.finish()
+    lines = []
+    for row in rows:
+        obj = {}
+        for key, value in zip(ROW_COLUMNS, row):
+            if key == "flags":
+                obj[key] = value.split("|") if value else []
+            elif key == "n_samples":
+                obj[key] = int(value)
+            elif not math.isnan(value):  # a thermometer with no valid reading in the row: omitted
+                obj[key] = float(value)
+        lines.append(json.dumps(obj, separators=(",", ":")) + "\n")
+    return lines
+
+
+def _shown(path: Path) -> Path:
+    """A path as printed: relative to the project when inside it."""
+    return path.relative_to(HERE.parents[1]) if path.is_relative_to(HERE.parents[1]) else path
+
+
+def refit_models() -> None:
+    MODEL_DIR.mkdir(parents=True, exist_ok=True)
+    for kind in MODEL_KINDS:
+        model_file, _ = fit_model_file([FIT_CAPTURE], kind=kind, config=FIT_CONFIG)
+        model_file.provenance["note"] = "golden test model: refit only with make_goldens.py --refit-models"
+        save_model(model_path(kind), model_file)
+        print(f"{_shown(model_path(kind))}: refitted")
+
+
+def outputs() -> dict[Path, list]:
+    """Every golden output: path -> its lines as generated now."""
+    out: dict[Path, list] = {WATCH_GOLDEN: watch_lines()}
+    for name in COMPENSATE_GOLDENS:
+        out[compensate_path(name)] = compensate_lines(name)
+    return out
+
+
+def how_it_changed(path: Path, lines: list) -> tuple[str, bool]:
+    """(a description of how ``lines`` differ from the file on disk, True when beyond the tolerance)."""
+    new = [line.decode() if isinstance(line, bytes) else line for line in lines]
+    if not path.exists():
+        return "new", True
+    old_text = path.read_text(encoding="utf-8")
+    if old_text == "".join(new):
+        return "unchanged", False
+    try:
+        old = [json.loads(line) for line in old_text.splitlines()]
+    except ValueError:
+        return "replaces a malformed file", True
+    difference = golden.first_difference([json.loads(line) for line in new], old)
+    if difference is None:
+        return f"changed within tolerance (floats within {golden.REL_TOL:g})", False
+    return f"changed BEYOND tolerance: {difference}", True
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument(
+        "--check", action="store_true", help="compare only; exit 1 if any golden differs beyond tolerance"
+    )
+    parser.add_argument("--refit-models", action="store_true", help="refit the golden model files first")
+    args = parser.parse_args(argv)
+    if args.refit_models and not args.check:
+        refit_models()
+    beyond = False
+    for path, lines in outputs().items():
+        change, is_beyond = how_it_changed(path, lines)
+        beyond |= is_beyond
+        print(f"{_shown(path)}: {len(lines)} lines, {change}")
+        if not args.check:
+            path.write_bytes(b"".join(line if isinstance(line, bytes) else line.encode() for line in lines))
+    return 1 if args.check and beyond else 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())
