@@ -67,7 +67,8 @@ def exp(x: np.ndarray | float) -> np.ndarray:
     """``e^x`` elementwise, the same bits on every machine (fdlibm's algorithm; module docstring).
 
     Returns a new float64 array of x's shape (a 0-d array for a scalar).  Overflow to inf raises
-    numpy's usual overflow warning; NaN gives NaN quietly, as ``np.exp`` does.
+    numpy's usual overflow warning; NaN gives NaN quietly, as ``np.exp`` does; underflow to 0 (also
+    for -inf) sets numpy's underflow flag, which numpy ignores by default.
     """
     x = np.minimum(np.maximum(np.asarray(x, dtype=np.float64), X_MIN), X_MAX)  # NaN stays NaN
     k = np.rint(x * INV_LN2)

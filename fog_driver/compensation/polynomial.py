@@ -51,8 +51,6 @@ def physical_features(z: np.ndarray) -> np.ndarray:
     return np.concatenate((r, z[..., 6:7], z[..., 2:3] - r, dr, z[..., 5:6]), axis=-1)
 
 
-
-
 class Memoryless:
     """For drift models without memory: ``step`` and ``run`` are pure functions of the inputs, so
     there is no feedback to take and no state to save, restore or reset."""
