@@ -200,7 +200,7 @@ def cmd_compensate(args: argparse.Namespace) -> int:
     from .capture import _capture_size
     from .compensation.apply import compensate_capture
     from .compensation.model import load_model
-    from .compensation.rows import ROW_COLUMNS, RowAggregator, format_row
+    from .compensation.rows import ROW_COLUMNS, compensated_rows, format_row
 
     out = Path(args.out)
     if out.exists() and not args.force:
@@ -215,21 +215,16 @@ def cmd_compensate(args: argparse.Namespace) -> int:
     elif args.adapt_state is not None:
         raise UsageError("--adapt-state goes with --adapt-reference (adapting needs a reference rate)")
     progress = Progress()
-    rows = None
     written = 0
     try:
         with out.open("w", encoding="ascii") as f:
             f.write(",".join(ROW_COLUMNS) + "\n")
-            for frame_period_s, cols in compensate_capture(
+            chunks = compensate_capture(
                 args.capture, model_file, force=args.force, model_name=args.model, adapt=adapt,
                 reference_rate_dph=args.adapt_reference, adapt_state=args.adapt_state,
                 progress=lambda done: progress.show(f"compensating {100.0 * done / size:5.1f} %"),
-            ):  # fmt: skip
-                rows = rows or RowAggregator(args.every, frame_period_s)
-                for row in rows.add(cols):
-                    f.write(format_row(row) + "\n")
-                    written += 1
-            for row in rows.finish() if rows else []:
+            )  # fmt: skip
+            for row in compensated_rows(chunks, args.every):
                 f.write(format_row(row) + "\n")
                 written += 1
     except FogDriverError:

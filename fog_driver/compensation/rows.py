@@ -16,6 +16,8 @@ period is a last row.  Columns::
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Iterator
+
 import numpy as np
 
 from .compensator import CompensatedColumns, flag_names
@@ -79,6 +81,17 @@ class RowAggregator:
              cols.angle_comp_arcsec[ends[i]], *temps[i], "|".join(flag_names(int(flags[i]))))
             for i in range(len(starts))
         ]  # fmt: skip
+
+
+def compensated_rows(chunks: Iterable[tuple[float, CompensatedColumns]], every_s: float) -> Iterator[tuple]:
+    """The rows of ``compensate --every EVERY_S`` from ``apply.compensate_capture``'s (frame period,
+    frames) chunks, the last partial row included (``RowAggregator``)."""
+    aggregator = None
+    for frame_period_s, cols in chunks:
+        aggregator = aggregator or RowAggregator(every_s, frame_period_s)
+        yield from aggregator.add(cols)
+    if aggregator is not None:
+        yield from aggregator.finish()
 
 
 def _slice(c: CompensatedColumns, lo: int, hi: int) -> CompensatedColumns:

@@ -43,7 +43,7 @@ from fog_driver.compensation.adapt import AdaptConfig  # noqa: E402
 from fog_driver.compensation.apply import compensate_capture  # noqa: E402
 from fog_driver.compensation.fit import FitConfig, fit_model_file  # noqa: E402
 from fog_driver.compensation.model import load_model, save_model  # noqa: E402
-from fog_driver.compensation.rows import ROW_COLUMNS, RowAggregator  # noqa: E402
+from fog_driver.compensation.rows import ROW_COLUMNS, compensated_rows  # noqa: E402
 from fog_driver.config import DriverConfig  # noqa: E402
 from fog_driver.daemon.hub import encode  # noqa: E402
 from fog_driver.daemon.service import Service  # noqa: E402
@@ -82,20 +82,14 @@ def compensate_path(name: str) -> Path:
     return GOLDEN_DIR / f"sim-faults.compensate-{name}.ndjson"
 
 
-def compensate_lines(name: str) -> list[str]:
+def compensate_lines(name: str) -> list[bytes]:
     """``compensate --every 5`` of the capture with a golden model, one JSON object per row, full precision."""
     kind, adapting = COMPENSATE_GOLDENS[name]
     model_file = load_model(model_path(kind))
     chunks = compensate_capture(CAPTURE, model_file, adapt=ADAPT if adapting else None,
                                 reference_rate_dph=0.0 if adapting else None)  # fmt: skip
-    aggregator = None
-    rows = []
-    for frame_period_s, cols in chunks:
-        aggregator = aggregator or RowAggregator(EVERY_S, frame_period_s)
-        rows += aggregator.add(cols)
-    rows += aggregator.finish()
     lines = []
-    for row in rows:
+    for row in compensated_rows(chunks, EVERY_S):
         obj = {}
         for key, value in zip(ROW_COLUMNS, row):
             if key == "flags":
@@ -104,7 +98,7 @@ def compensate_lines(name: str) -> list[str]:
                 obj[key] = int(value)
             elif not math.isnan(value):  # a thermometer with no valid reading in the row: omitted
                 obj[key] = float(value)
-        lines.append(json.dumps(obj, separators=(",", ":")) + "\n")
+        lines.append(json.dumps(obj, separators=(",", ":")).encode() + b"\n")
     return lines
 
 
@@ -122,27 +116,26 @@ def refit_models() -> None:
         print(f"{_shown(model_path(kind))}: refitted")
 
 
-def outputs() -> dict[Path, list]:
+def outputs() -> dict[Path, list[bytes]]:
     """Every golden output: path -> its lines as generated now."""
-    out: dict[Path, list] = {WATCH_GOLDEN: watch_lines()}
+    out = {WATCH_GOLDEN: watch_lines()}
     for name in COMPENSATE_GOLDENS:
         out[compensate_path(name)] = compensate_lines(name)
     return out
 
 
-def how_it_changed(path: Path, lines: list) -> tuple[str, bool]:
+def how_it_changed(path: Path, lines: list[bytes]) -> tuple[str, bool]:
     """(a description of how ``lines`` differ from the file on disk, True when beyond the tolerance)."""
-    new = [line.decode() if isinstance(line, bytes) else line for line in lines]
     if not path.exists():
         return "new", True
-    old_text = path.read_text(encoding="utf-8")
-    if old_text == "".join(new):
+    if path.read_bytes() == b"".join(lines):
         return "unchanged", False
+    old_text = path.read_text(encoding="utf-8", errors="replace")
     try:
         old = [json.loads(line) for line in old_text.splitlines()]
     except ValueError:
         return "replaces a malformed file", True
-    difference = golden.first_difference([json.loads(line) for line in new], old)
+    difference = golden.first_difference([json.loads(line) for line in lines], old)
     if difference is None:
         return f"changed within tolerance (floats within {golden.REL_TOL:g})", False
     return f"changed BEYOND tolerance: {difference}", True
@@ -163,7 +156,7 @@ def main(argv: list[str] | None = None) -> int:
         beyond |= is_beyond
         print(f"{_shown(path)}: {len(lines)} lines, {change}")
         if not args.check:
-            path.write_bytes(b"".join(line if isinstance(line, bytes) else line.encode() for line in lines))
+            path.write_bytes(b"".join(lines))
     return 1 if args.check and beyond else 0
 
 
