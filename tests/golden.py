@@ -23,7 +23,7 @@ import pytest
 #: The promise across machines (and numpy versions): relative, and absolute near zero.
 REL_TOL = 1e-12
 ABS_TOL = 1e-12
-REGENERATE = "python tests/data/make_goldens.py"
+REGENERATE = ".venv/bin/python tests/data/make_goldens.py"
 
 
 class Mismatch(Exception):
