@@ -133,13 +133,25 @@ def _seed(text: str) -> int:
     return value
 
 
+def _instrument_seed(text: str) -> int:
+    from .sim.population import MAX_INSTRUMENT_SEED
+
+    value = _seed(text)
+    if value > MAX_INSTRUMENT_SEED:
+        raise argparse.ArgumentTypeError(f"instrument seed must be 0..{MAX_INSTRUMENT_SEED}: {value}")
+    return value
+
+
 def _simulator(args: argparse.Namespace):
     from .sim.faults import parse_fault_spec
     from .sim.instrument import Simulator, load_instrument_config
+    from .sim.population import draw_instrument
     from .sim.profiles import load_profile
 
     profile = load_profile(args.profile)
     config = load_instrument_config(args.instrument)
+    if args.instrument_seed is not None:
+        config = draw_instrument(args.instrument_seed, config)
     faults = parse_fault_spec(args.faults)
     return Simulator(profile, config, rate_hz=args.rate_hz, seed=args.seed, faults=faults), faults
 
@@ -418,6 +430,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--faults", default="none", metavar="SPEC",
                    help="e.g. drop=1e-3,flip=1e-5,garbage=0.1,thermo=0.05:2,disconnect=60:2 (see README)")
     p.add_argument("--instrument", metavar="CONFIG.yaml", help="instrument model (default: configs/sim/instrument.yaml values)")
+    p.add_argument("--instrument-seed", type=_instrument_seed, metavar="K",
+                   help="instrument K of the simulated population: its physics drawn from documented ranges")
     p.add_argument("--duration", type=_positive_float, metavar="S", help="stop after S device seconds")
     p.add_argument("--force", action="store_true", help="overwrite an existing capture")
     p.add_argument("--link", metavar="PATH", help="--serve pty: the stable symlink to the pty (default /tmp/fog-driver-sim.tty)")

@@ -9,7 +9,7 @@ Output rate, deg/h (1 deg/h = 1 arcsec/s)::
 
     D = P(Tf - Tref)                                   bias vs fiber temperature (cubic, nonlinear)
       + k_S dTf/dt                                     Shupe term, deg/h per degC/min of fiber rate
-      + k_G (Tt - Tb)                                  radial/axial gradient across the ring
+      + k_G (Tt - Tb) + k_R (Tc - Tf)                  axial gradient across the ring; radial, coil boundary to fiber
       + k_H (Tf - Th)                                  thermal history: Th is Tf lagged by tau_H (hysteresis)
 
     s(Tf) = (s1 (Tf - Tref) + s2 (Tf - Tref)^2) * 1e-6   scale-factor error
@@ -31,7 +31,8 @@ instrument; each is a configuration key in ``configs/sim/instrument.yaml``):
 * Shupe ``0.15`` deg/h per degC/min: a quadrupole-wound coil of a few hundred
   metres (the paper's 1 degC/min ramps then give ~0.1 deg/h, clearly above the
   1-min noise of ~0.025 deg/h, as their Fig. 5 suggests).
-* Gradient ``0.08`` deg/h per degC of top-bottom difference.
+* Gradient ``0.08`` deg/h per degC of top-bottom difference (axial); radial ``0`` per degC of the
+  coil's boundary above its fiber (``thermal.py``: Tc - Tf, a ramp's rate times the coil's lag).
 * Thermal history ``0.003`` deg/h per degC with a 1 h lag: the part of the
   drift that depends on where the temperature came from, not just where it is.
 * Scale factor ``0.05`` ppm/degC: a calibrated, temperature-compensated scale
@@ -60,6 +61,7 @@ class GyroParams:
     bias_temp_coeffs_dph: tuple[float, ...] = (0.004, 1.5e-4, -2.0e-6)
     shupe_dph_per_c_per_min: float = 0.15
     gradient_dph_per_c: float = 0.08
+    radial_gradient_dph_per_c: float = 0.0
     hysteresis_dph_per_c: float = 0.003
     hysteresis_tau_s: float = 3600.0
     arw_deg_per_sqrt_h: float = 0.003
@@ -125,12 +127,17 @@ def drift_terms(
     top_c: np.ndarray,
     bottom_c: np.ndarray,
     history_c: np.ndarray,
+    boundary_c: np.ndarray | None = None,
 ) -> DriftTerms:
-    """``D`` split into its terms (see the module docstring), from true (not measured) temperatures."""
+    """``D`` split into its terms (see the module docstring), from true (not measured) temperatures;
+    the gradient term holds the axial and the radial part (``boundary_c``: the coil's boundary Tc)."""
+    gradient = params.gradient_dph_per_c * (np.asarray(top_c) - np.asarray(bottom_c))
+    if params.radial_gradient_dph_per_c:
+        gradient = gradient + params.radial_gradient_dph_per_c * (np.asarray(boundary_c) - np.asarray(fiber_c))
     return DriftTerms(
         bias_vs_temperature=params.bias_vs_temperature_dph(fiber_c),
         shupe=params.shupe_dph_per_c_per_min * 60.0 * np.asarray(fiber_rate_c_per_s),
-        gradient=params.gradient_dph_per_c * (np.asarray(top_c) - np.asarray(bottom_c)),
+        gradient=gradient,
         hysteresis=params.hysteresis_dph_per_c * (np.asarray(fiber_c) - np.asarray(history_c)),
     )
 

@@ -57,20 +57,34 @@ class ThermometerParams:
 
     Readings are taken at ``update_hz`` and held until the next one (a frame
     carries the latest); each is the node temperature through a first-order
-    sensor lag ``lag_s`` (0: none), plus a fixed per-sensor offset (drawn once
-    per run, ``offset_sigma_c``), plus white noise ``noise_c``, rounded to 1/256 degC.
+    sensor lag (``lag_s`` for all three, or ``sensor_lags_s`` one each; 0: none),
+    plus the sensor's calibration offset (``offsets_c``, fixed for the instrument)
+    and a per-run one (drawn once per run, ``offset_sigma_c``), plus white noise
+    ``noise_c``, rounded to 1/256 degC.
     """
 
     noise_c: float = 0.01
     update_hz: float = 10.0
     lag_s: float = 0.0
     offset_sigma_c: float = 0.05
+    sensor_lags_s: tuple[float, ...] = ()  #: top, bottom, housing; () for lag_s on all three
+    offsets_c: tuple[float, ...] = (0.0, 0.0, 0.0)  #: top, bottom, housing calibration offsets
 
     def __post_init__(self) -> None:
         if not self.update_hz > 0:
             raise ValueError("update_hz must be > 0")
         if self.lag_s < 0 or self.noise_c < 0 or self.offset_sigma_c < 0:
             raise ValueError("lag_s, noise_c and offset_sigma_c must be >= 0")
+        if self.sensor_lags_s and (len(self.sensor_lags_s) != 3 or min(self.sensor_lags_s) < 0):
+            raise ValueError(f"sensor_lags_s: three lags >= 0 (top, bottom, housing) or none, got {self.sensor_lags_s}")
+        if len(self.offsets_c) != 3 or not all(math.isfinite(v) and abs(v) <= 10 for v in self.offsets_c):
+            raise ValueError(f"offsets_c: three offsets within +-10 degC (top, bottom, housing), got {self.offsets_c}")
+        object.__setattr__(self, "sensor_lags_s", tuple(float(v) for v in self.sensor_lags_s))
+        object.__setattr__(self, "offsets_c", tuple(float(v) for v in self.offsets_c))
+
+    def lags(self) -> tuple[float, float, float]:
+        """The lag of each sensor (top, bottom, housing), s."""
+        return self.sensor_lags_s if self.sensor_lags_s else (self.lag_s,) * 3
 
 
 @dataclass(frozen=True)
@@ -85,6 +99,8 @@ class InstrumentConfig:
     thermal: ThermalParams = field(default_factory=ThermalParams)
     gyro: GyroParams = field(default_factory=GyroParams)
     thermometers: ThermometerParams = field(default_factory=ThermometerParams)
+    #: Provenance: the ``fog_driver.sim.population`` instrument these physics were drawn for (None: not drawn).
+    population_seed: int | None = None
 
     def __post_init__(self) -> None:
         if len(self.serial.encode("ascii", errors="replace")) > 16:
@@ -145,8 +161,8 @@ class _SlowGrid:
         x = self.thermal.state
         self._history = float(x[3])
         self._history_a = 1.0 - math.exp(-GRID_DT_S / config.gyro.hysteresis_tau_s)
-        lag = config.thermometers.lag_s
-        self._sensor_a = 1.0 if lag == 0 else 1.0 - math.exp(-GRID_DT_S / lag)
+        self._sensor_a = np.array([1.0 if lag == 0 else 1.0 - math.exp(-GRID_DT_S / lag)
+                                   for lag in config.thermometers.lags()])  # fmt: skip
         self._sensors = np.array([x[1], x[2], x[0]])
         self.start = 0  # grid index of the first kept point
         self.data = {name: np.zeros(0) for name in self.COLUMNS}
@@ -170,8 +186,9 @@ class _SlowGrid:
             sensors[k] = s
         self._history, self._sensors = h, s
         p = self.config.thermal
-        fiber_rate = (0.5 * (nodes[:, 1] + nodes[:, 2]) - nodes[:, 3]) / p.tau_fiber_s  # dTf/dt from the model
-        terms = drift_terms(self.config.gyro, nodes[:, 3], fiber_rate, nodes[:, 1], nodes[:, 2], history)
+        fiber_rate = p.fiber_rate_c_per_s(nodes)  # dTf/dt from the model
+        terms = drift_terms(self.config.gyro, nodes[:, 3], fiber_rate, nodes[:, 1], nodes[:, 2], history,
+                            p.boundary_c(nodes))  # fmt: skip
         new = {
             "air_c": air_c,
             "housing_c": nodes[:, 0],
@@ -276,7 +293,8 @@ class Simulator:
         self.seq0 = int(run[0] * 65536)
         self.t_us0 = int(run[1] * 2**32)
         self.turn_on_bias_dph = g.turn_on_bias_sigma_dph * float(self._rng_run.standard_normal())
-        self.thermometer_offsets_c = self.config.thermometers.offset_sigma_c * self._rng_run.standard_normal(3)
+        sensors = self.config.thermometers
+        self.thermometer_offsets_c = np.array(sensors.offsets_c) + sensors.offset_sigma_c * self._rng_run.standard_normal(3)
         self._grid = _SlowGrid(profile, self.config, self._rng_slow)
         self.period_true_s = 1.0 / (rate_hz * (1.0 + self.config.clock_ppm * 1e-6))
         self._scale = self.config.scale_f32

@@ -6,7 +6,9 @@ constants in s)::
     dTh/dt = (Tair + q_h - Th) / tau_h                                  housing, self-heated by q_h
     dTt/dt = (Th + q_t - Tt) / tau_t + (Tb - Tt) / tau_r                ring top (electronics above it: q_t)
     dTb/dt = (Th - Tb) / tau_b + (Tm - Tb) / tau_mb + (Tt - Tb) / tau_r  ring bottom, on the base plate
-    dTf/dt = ((Tt + Tb) / 2 - Tf) / tau_f                               the fiber itself (not measured)
+    Tc     = c_t Tt + c_b Tb + c_h Th                                  the coil's boundary (coupling weights, sum 1)
+    dC1/dt = (Tc - C1) / tau_1,  dC2/dt = (C1 - C2) / tau_2, ...       the coil's internal lags (none by default)
+    dTf/dt = (Cn - Tf) / tau_f           (Cn = Tc without inner lags)   the fiber itself (not measured)
     dTm/dt = (Tair - Tm) / tau_m                                        the turntable mount (not measured)
 
 The top and bottom of the ring follow the housing with different time
@@ -18,6 +20,12 @@ to tell apart).  The fiber, wound between top and bottom, lags both
 thermometers.  At power-on (``cold_start``) every node
 starts at the air temperature and the self-heating warms the instrument over
 the first half hour, as in the paper's 30-minute warm-up.  The mount starts at the air temperature.
+
+The coil.  By default its boundary is the ring mean (``coil_coupling`` (0.5, 0.5, 0)) and one lag of
+``tau_fiber_s`` separates it from the fiber; a real coil's potting, former and layers make a
+distributed thermal mass, which ``coil_inner_lags_s`` approximates by more first-order stages in
+series (outermost first), and a coil in contact with the housing wall couples to it too
+(``coil_coupling[2]``).  ``fog_driver.sim.population`` draws both per instrument.
 
 Discretisation: exact for an input held over each step (zero-order hold at
 the step's mid-point air temperature), ``x(k+1) = Phi x(k) + Gamma u(k)`` with
@@ -42,7 +50,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-NODES = ("housing", "top", "bottom", "fiber", "mount")
+NODES = ("housing", "top", "bottom", "fiber", "mount")  #: then the coil's inner stages C1..Cn, if any
 
 
 @dataclass(frozen=True)
@@ -57,6 +65,8 @@ class ThermalParams:
     self_heating_c: float = 3.0
     top_heating_c: float = 0.3
     cold_start: bool = True
+    coil_coupling: tuple[float, ...] = (0.5, 0.5, 0.0)  #: weights of ring top, ring bottom, housing; sum 1
+    coil_inner_lags_s: tuple[float, ...] = ()  #: the coil's inner stages before tau_fiber_s, outermost first
 
     def __post_init__(self) -> None:
         for name in (
@@ -64,21 +74,52 @@ class ThermalParams:
         ):  # fmt: skip
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0")
+        w = tuple(float(v) for v in self.coil_coupling)
+        if len(w) != 3 or min(w) < 0 or abs(sum(w) - 1.0) > 1e-9:
+            raise ValueError(f"coil_coupling: three weights >= 0 (top, bottom, housing) summing to 1, got {w}")
+        lags = tuple(float(v) for v in self.coil_inner_lags_s)
+        if len(lags) > 8 or not all(v > 0 for v in lags):
+            raise ValueError(f"coil_inner_lags_s: up to 8 time constants > 0, got {lags}")
+        object.__setattr__(self, "coil_coupling", w)
+        object.__setattr__(self, "coil_inner_lags_s", lags)
 
     def system(self) -> tuple[Matrix, list[float], list[float]]:
-        """``dx/dt = A x + B u + c`` with x = [Th, Tt, Tb, Tf, Tm] and u = Tair."""
+        """``dx/dt = A x + B u + c`` with x = [Th, Tt, Tb, Tf, Tm, C1..Cn] and u = Tair."""
         h, t, b, r, f = self.tau_housing_s, self.tau_top_s, self.tau_bottom_s, self.tau_ring_s, self.tau_fiber_s
         m, mb = self.tau_mount_s, self.tau_bottom_mount_s
+        inner = self.coil_inner_lags_s
+        n = 5 + len(inner)
+        ct, cb, ch = self.coil_coupling
+        boundary = [ch, ct, cb, 0.0, 0.0] + [0.0] * len(inner)  # Tc as a row over the state
         a = [
             [-1 / h, 0.0, 0.0, 0.0, 0.0],
             [1 / t, -1 / t - 1 / r, 1 / r, 0.0, 0.0],
             [1 / b, 1 / r, -1 / b - 1 / r - 1 / mb, 0.0, 1 / mb],
-            [0.0, 0.5 / f, 0.5 / f, -1 / f, 0.0],
+            [0.0, 0.0, 0.0, -1 / f, 0.0],
             [0.0, 0.0, 0.0, 0.0, -1 / m],
         ]
-        bu = [1 / h, 0.0, 0.0, 0.0, 1 / m]
-        c = [self.self_heating_c / h, self.top_heating_c / t, 0.0, 0.0, 0.0]
+        a = [row + [0.0] * len(inner) for row in a]
+        # What drives each coil stage: the boundary Tc, then the stage before it; the fiber is driven by the last.
+        drivers = [boundary] + [[float(j == 5 + i) for j in range(n)] for i in range(len(inner))]
+        for i, tau in enumerate(inner):
+            a.append([d / tau for d in drivers[i]])
+            a[-1][5 + i] -= 1 / tau
+        a[3] = [d / f for d in drivers[-1]]
+        a[3][3] -= 1 / f
+        bu = [1 / h, 0.0, 0.0, 0.0, 1 / m] + [0.0] * len(inner)
+        c = [self.self_heating_c / h, self.top_heating_c / t, 0.0, 0.0, 0.0] + [0.0] * len(inner)
         return a, bu, c
+
+    def boundary_c(self, nodes: np.ndarray) -> np.ndarray:
+        """The coil's boundary temperature Tc for node rows (n, 5 + inner) in the state's order."""
+        ct, cb, ch = self.coil_coupling
+        tc = ct * nodes[:, 1] + cb * nodes[:, 2]
+        return tc + ch * nodes[:, 0] if ch else tc
+
+    def fiber_rate_c_per_s(self, nodes: np.ndarray) -> np.ndarray:
+        """dTf/dt from the model: (driver - Tf) / tau_f, the driver being Tc or the last inner stage."""
+        driver = nodes[:, 4 + len(self.coil_inner_lags_s)] if self.coil_inner_lags_s else self.boundary_c(nodes)
+        return (driver - nodes[:, 3]) / self.tau_fiber_s
 
     def equilibrium(self, air_c: float) -> np.ndarray:
         """The powered instrument's steady state at a constant air temperature: ``A x + B u + c = 0``."""

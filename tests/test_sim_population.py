@@ -1,0 +1,156 @@
+"""The population of simulated instruments: the same seed gives the same instrument, every drawn
+parameter stays inside its documented range (and the draws cover it), and the physics reach the capture."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import yaml
+
+from fog_driver.capture import read_provenance
+from fog_driver.sim import population
+from fog_driver.sim.capture import read_truth, simulate_to_file
+from fog_driver.sim.instrument import InstrumentConfig, Simulator
+from fog_driver.sim.population import RANGES, draw_instrument
+from fog_driver.sim.profiles import load_profile
+from fog_driver.sim.thermal import ThermalModel, ThermalParams
+
+SEEDS = range(300)
+
+
+@pytest.fixture(scope="module")
+def drawn() -> list[InstrumentConfig]:
+    return [draw_instrument(k) for k in SEEDS]
+
+
+def _values(name: str, c: InstrumentConfig) -> list[float]:
+    """The drawn values of RANGES entry ``name`` in one instrument config."""
+    th, g, s = c.thermal, c.gyro, c.thermometers
+    direct = {**{k: [getattr(th, k)] for k in ("tau_housing_s", "tau_top_s", "tau_bottom_s", "tau_ring_s",
+                                                "tau_mount_s", "tau_bottom_mount_s", "self_heating_c", "top_heating_c")},
+              **{k: [getattr(g, k)] for k in ("shupe_dph_per_c_per_min", "gradient_dph_per_c", "radial_gradient_dph_per_c",
+                                               "hysteresis_dph_per_c", "hysteresis_tau_s")}}  # fmt: skip
+    if name in direct:
+        return direct[name]
+    return {
+        "coil_stages": [1 + len(th.coil_inner_lags_s)],
+        "coil_lag_s": [*th.coil_inner_lags_s, th.tau_fiber_s],
+        "sensor_lag_s": list(s.sensor_lags_s),
+        "sensor_offset_c": list(s.offsets_c),
+    }[name]
+
+
+def test_the_same_seed_gives_the_same_instrument_and_another_seed_another():
+    a, b = draw_instrument(17), draw_instrument(17)
+    assert a == b and a.as_dict() == b.as_dict()
+    assert a.serial == "FOG-POP-00017" and a.population_seed == 17
+    assert draw_instrument(18).as_dict() != a.as_dict()
+    # Through YAML, as a sidecar stores it: the same instrument again.
+    from fog_driver.yamlfile import dataclass_from_mapping
+
+    again = dataclass_from_mapping(InstrumentConfig, yaml.safe_load(yaml.safe_dump(a.as_dict())), "test")
+    assert again == a
+
+
+def test_the_base_configuration_supplies_everything_not_drawn():
+    base = InstrumentConfig(clock_ppm=-3.0)
+    c = draw_instrument(4, base)
+    assert c.clock_ppm == -3.0 and c.gyro.arw_deg_per_sqrt_h == base.gyro.arw_deg_per_sqrt_h
+    assert c.thermal.tau_fiber_s != base.thermal.tau_fiber_s
+
+
+@pytest.mark.parametrize("name", [n for n in RANGES if n not in ("coil_weight_top", "coil_weight_bottom",
+                                                                  "coil_weight_housing", "bias_curve_excursion_dph",
+                                                                  "bias_curve_shape")])  # fmt: skip
+def test_every_drawn_parameter_is_inside_its_range_and_the_draws_cover_it(name, drawn):
+    r = RANGES[name]
+    values = np.array([v for c in drawn for v in _values(name, c)])
+    magnitude = np.abs(values) if r.signed else values
+    assert magnitude.min() >= r.lo and magnitude.max() <= r.hi * (1 + 1e-12)
+    span = (math.log(r.hi) - math.log(r.lo)) if r.log else (r.hi - r.lo)
+    low_end = (np.log(magnitude.min()) - math.log(r.lo)) if r.log else (magnitude.min() - r.lo)
+    high_end = (math.log(r.hi) - np.log(magnitude.max())) if r.log else (r.hi - magnitude.max())
+    assert low_end < 0.1 * span and high_end < 0.1 * span, "the draws reach both ends of the range"
+    if r.signed:
+        assert 0.3 < (values < 0).mean() < 0.7, "both signs, about equally often"
+    if name == "coil_stages":
+        assert set(values.tolist()) == {1, 2, 3}
+
+
+def test_coil_coupling_and_the_bias_curve_follow_their_rules(drawn):
+    excursions = []
+    span = np.linspace(*population.BIAS_CURVE_SPAN_C, 1001)
+    for c in drawn:
+        w = np.array(c.thermal.coil_coupling)
+        assert w.min() >= 0 and abs(w.sum() - 1) < 1e-12
+        raw = w / w[0] * 1.0  # ratios of the raw weights are kept by the normalization
+        assert 0.2 / 1.0 <= raw[1] <= 1.0 / 0.2 and w[2] / w[0] <= 0.4 / 0.2
+        coeffs = c.gyro.bias_temp_coeffs_dph
+        assert len(coeffs) == 4 and c.gyro.reference_temp_c == 20.0
+        curve = c.gyro.bias_vs_temperature_dph(span)
+        excursions.append(curve.max() - curve.min())
+    r = RANGES["bias_curve_excursion_dph"]
+    excursions = np.array(excursions)
+    assert excursions.min() >= r.lo * (1 - 1e-9) and excursions.max() <= r.hi * (1 + 1e-9)
+    assert excursions.min() < 0.4 and excursions.max() > 1.6
+    # The shape is not a cubic: the quartic term matters in some instruments.
+    assert max(abs(c.gyro.bias_temp_coeffs_dph[3]) * 50**4 for c in drawn) > 0.1
+
+
+def test_bad_instrument_seeds_are_refused():
+    for bad in (-1, population.MAX_INSTRUMENT_SEED + 1, 1.5, True, "3"):
+        with pytest.raises(ValueError, match="instrument seed"):
+            draw_instrument(bad)
+
+
+def test_the_coil_stages_lag_the_fiber_behind_its_boundary():
+    """One stage: the fiber follows the boundary with tau_fiber_s; more stages lag it further, and the rate
+    the drift model uses is the fiber temperature's derivative."""
+    air = np.r_[np.full(600, 20.0), 20.0 + np.arange(1, 4 * 3600 + 1) / 240.0]  # 0.25 degC/min for 4 hours
+    lags = []
+    for inner in ((), (300.0,), (300.0, 600.0)):
+        p = ThermalParams(coil_inner_lags_s=inner, cold_start=False)
+        x = ThermalModel(p, 1.0, 20.0).run(air)
+        boundary = p.boundary_c(x)
+        lag = float(boundary[-1] - x[-1, 3])
+        # A chain of lags on a ramp lags it by the boundary's rate times their sum (the rate is nearly steady).
+        assert lag == pytest.approx(float(np.gradient(boundary)[-2]) * (240.0 + sum(inner)), rel=0.03)
+        lags.append(lag)
+        rate = p.fiber_rate_c_per_s(x)
+        np.testing.assert_allclose(rate[100:-1], np.gradient(x[:, 3])[100:-1], rtol=2e-3, atol=1e-6)
+    assert lags[0] < lags[1] < lags[2]
+
+
+def test_a_drawn_instrument_is_simulated_with_its_physics(tmp_path):
+    """The capture of instrument K is the same every time, and its truth shows the drawn coil: the fiber lags
+    the ring by the drawn stages, and the thermometers carry the drawn offsets."""
+    k = next(k for k in SEEDS if len(draw_instrument(k).thermal.coil_inner_lags_s) == 2)
+    config = draw_instrument(k)
+    profile = load_profile("configs/profiles/short-test.yaml")
+    paths = [simulate_to_file(Simulator(profile, config, rate_hz=10, seed=3), tmp_path / f"p{i}.bin").capture
+             for i in range(2)]  # fmt: skip
+    assert paths[0].read_bytes() == paths[1].read_bytes()
+    side = read_provenance(paths[0])
+    assert side["model"]["population_seed"] == k and side["instrument"]["serial"] == config.serial
+    truth = read_truth(paths[0].with_suffix(".truth.csv"))
+    default = simulate_to_file(Simulator(profile, rate_hz=10, seed=3), tmp_path / "d.bin").capture
+    assert read_truth(default.with_suffix(".truth.csv"))["fiber_c"].tolist() != truth["fiber_c"].tolist()
+    assert np.isfinite(truth["drift_dph"]).all() and truth["drift_dph"].std() > 0
+
+
+def test_simulate_takes_an_instrument_seed(tmp_path):
+    out = tmp_path / "pop.bin"
+    cmd = [sys.executable, "-m", "fog_driver", "simulate", "--profile", "configs/profiles/short-test.yaml",
+           "--rate-hz", "5", "--duration", "60", "--instrument-seed", "42", "--out", str(out)]  # fmt: skip
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    side = read_provenance(out)
+    assert side["instrument"]["serial"] == "FOG-POP-00042"
+    assert side["model"] == draw_instrument(42).as_dict()
+    bad = subprocess.run(cmd[:-4] + ["--instrument-seed", "-2", "--out", str(tmp_path / "x.bin")],
+                         capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert bad.returncode == 2 and "seed must be >= 0" in bad.stderr and "Traceback" not in bad.stderr
