@@ -69,7 +69,6 @@ import numpy as np
 
 from .gyro import GyroParams
 from .instrument import InstrumentConfig, ThermometerParams
-from .thermal import ThermalParams
 
 __all__ = ["RANGES", "Range", "SERIAL_FORMAT", "draw_instrument"]
 
