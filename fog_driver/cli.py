@@ -204,6 +204,13 @@ def cmd_fit(args: argparse.Namespace) -> int:
     print(f"fitted a {model_file.kind} model for {model_file.instrument_serial} on {len(fitted)} capture(s) "
           f"({sum(c['static_blocks'] for c in fitted):,} static blocks of {sum(c['blocks'] for c in fitted):,}) "
           f"-> {out}")  # fmt: skip
+    selection = model_file.provenance.get("selection")
+    if selection:
+        print(f"structure chosen from the data: coil lag {selection['coil_lag_s']:g} s, ridge penalty "
+              f"{selection['ridge_alpha']:g}, history neurons {', '.join(f'{v:g}' for v in selection['history_s'])} s "
+              f"at {selection['history_penalty']:g}x the penalty")  # fmt: skip
+        if "warning" in selection:
+            print(f"warning: {selection['warning']}")
     print(report.format())
     return 0
 

@@ -199,7 +199,13 @@ def _fit_polynomial(captures: list[CaptureData], normalizer: Standardizer, confi
 
     z = np.vstack([normalizer.transform(c.inputs[c.static]) for c in captures])
     y = np.concatenate([c.target_dph[c.static] for c in captures])
-    return PolynomialModel.fit(z, y, config.poly_alpha)
+    return PolynomialModel.fit(z, y, config.poly_alpha, capture_groups(captures))
+
+
+def capture_groups(captures: list[CaptureData]) -> np.ndarray:
+    """For rows stacked from each capture's static blocks: the index of the capture each comes from
+    (each capture has its own offset: its turn-on bias and its own mean drift, see ``standardized_ridge``)."""
+    return np.concatenate([np.full(int(c.static.sum()), i) for i, c in enumerate(captures)])
 
 
 def _fit_wesn(kind: str):
@@ -250,6 +256,9 @@ def fit_model_file(
         "metrics": {what: {"fit": fit_v, **({"validate": val_v} if val_v is not None else {})}
                     for what, fit_v, val_v in report.rows},  # fmt: skip
     }
+    selection = getattr(models[kind], "selection", None)
+    if selection:
+        provenance["selection"] = selection
     model_file = ModelFile(
         kind=kind,
         instrument_serial=next(iter(serials)) or "",

@@ -39,6 +39,18 @@ def polynomial_features(z: np.ndarray) -> np.ndarray:
     return np.concatenate((r, r * r, r * r * r, dr, r * dr, r * r * dr, g, h, z[..., 5:6]), axis=-1)
 
 
+N_LEVEL_FEATURES = 3
+
+
+def level_features(z: np.ndarray) -> np.ndarray:
+    """The levels of the same basis, ``[R, G, H]``: no rates (the ring form's linear path; its coil
+    neuron supplies the coil's own rate, ``(R - x) / tau``, and rates of the ring would only let a
+    fit fake a wrong coil lag on slow ramps)."""
+    z = np.asarray(z, dtype=np.float64)
+    r = 0.5 * (z[..., 0:1] + z[..., 1:2])
+    return np.concatenate((r, z[..., 6:7], z[..., 2:3] - r), axis=-1)
+
+
 N_PHYSICAL_FEATURES = 5
 
 
@@ -80,12 +92,14 @@ class PolynomialModel(Memoryless):
             raise ValueError(f"a polynomial model has {N_POLY_FEATURES} weights, got {self.weights.shape}")
 
     @classmethod
-    def fit(cls, z: np.ndarray, target: np.ndarray, alpha: float | None = None) -> PolynomialModel:
-        """Ridge on standardized regressors; ``alpha`` None: chosen by blocked cross-validation."""
+    def fit(cls, z: np.ndarray, target: np.ndarray, alpha: float | None = None,
+            groups: np.ndarray | None = None) -> PolynomialModel:  # fmt: skip
+        """Ridge on standardized regressors (one intercept per capture, ``groups``); ``alpha`` None: chosen by
+        blocked cross-validation."""
         f = polynomial_features(z)
         if alpha is None:
-            alpha, _ = cross_validated_alpha(f, target)
-        w, b = standardized_ridge(f, target, alpha)
+            alpha, _ = cross_validated_alpha(f, target, groups=groups)
+        w, b = standardized_ridge(f, target, alpha, groups=groups)
         return cls(w, b)
 
     def start(self, z: np.ndarray) -> None:
@@ -113,17 +127,34 @@ class PolynomialModel(Memoryless):
 ALPHA_GRID = (1e-6, 3e-6, 1e-5, 3e-5, 1e-4, 3e-4, 1e-3, 3e-3, 1e-2)
 
 
-def standardized_ridge(x: np.ndarray, y: np.ndarray, alpha: float) -> tuple[np.ndarray, float]:
-    """Ridge on standardized columns (penalty ``alpha * rows``), weights folded back to raw columns."""
+def standardized_ridge(x: np.ndarray, y: np.ndarray, alpha: float, penalty: np.ndarray | None = None,
+                       groups: np.ndarray | None = None) -> tuple[np.ndarray, float]:  # fmt: skip
+    """Ridge on standardized columns (penalty ``alpha * rows``), weights folded back to raw columns.
+
+    ``penalty``: a multiplier per column (default 1): column j's standardized weight is penalized by
+    ``alpha * rows * penalty[j]`` (solved by scaling the column by ``1 / sqrt(penalty[j])``).
+    ``groups``: the capture each row comes from (0..K-1).  Each capture gets its own intercept (its
+    target was centred on its own mean, which holds its own turn-on bias and its own mean drift), fitted
+    as nearly unpenalized indicator columns and then dropped; the intercept returned is capture 0's.
+    """
+    if groups is not None and np.ptp(groups) > 0:
+        labels = np.unique(groups)
+        indicators = (np.asarray(groups)[:, None] == labels[None, 1:]).astype(np.float64)
+        penalty = np.r_[np.ones(x.shape[1]) if penalty is None else penalty, np.full(len(labels) - 1, 1e-8)]
+        w, b = standardized_ridge(np.column_stack([x, indicators]), y, alpha, penalty)
+        return w[: x.shape[1]], b
     mean = x.mean(axis=0)
     scale = x.std(axis=0)
     scale = np.where(scale > 1e-12, scale, 1.0)
+    if penalty is not None:
+        scale = scale * np.sqrt(np.asarray(penalty, dtype=np.float64))
     w_std, b_std = ridge_fit((x - mean) / scale, y, alpha * len(y))
     return w_std / scale, float(b_std - (mean / scale) @ w_std)
 
 
 def cross_validated_alpha(x: np.ndarray, y: np.ndarray, folds: int = 5, average_rows: int = 60,
-                          grid: tuple[float, ...] = ALPHA_GRID) -> tuple[float, dict[float, float]]:  # fmt: skip
+                          grid: tuple[float, ...] = ALPHA_GRID, penalty: np.ndarray | None = None,
+                          groups: np.ndarray | None = None) -> tuple[float, dict[float, float]]:  # fmt: skip
     """The penalty with the smallest blocked cross-validation error.
 
     Rows are in time order; each fold is a contiguous stretch (another part of the thermal run,
@@ -138,8 +169,8 @@ def cross_validated_alpha(x: np.ndarray, y: np.ndarray, folds: int = 5, average_
         count = 0
         for lo, hi in zip(edges[:-1], edges[1:]):
             train = np.r_[0:lo, hi : len(y)]
-            w, b = standardized_ridge(x[train], y[train], alpha)
-            residual = y[lo:hi] - (x[lo:hi] @ w + b)
+            w, b = standardized_ridge(x[train], y[train], alpha, penalty, None if groups is None else groups[train])
+            residual = y[lo:hi] - (x[lo:hi] @ w + b)  # a capture's own offset: removed with the fold's mean below
             m = len(residual) // average_rows * average_rows
             if m == 0:
                 continue

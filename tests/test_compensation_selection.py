@@ -1,0 +1,125 @@
+"""The wesn fit chooses its structure from its own data: the coil lag behind a known lag, the penalty by
+cross-validation, history neurons only under their prior; and it says when the data cannot tell lags apart."""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from fog_driver.compensation.features import FeatureExtractor
+from fog_driver.compensation.fit import FitConfig, fit_normalizer
+from fog_driver.compensation.wesn import COIL_LAG_GRID_S, WESN_DEFAULTS, fit_wesn
+
+
+def lagged(u: np.ndarray, tau_s: float) -> np.ndarray:
+    """First-order lag at 1 s steps, from rest at u[0] (the coil behind its boundary)."""
+    a = 1.0 / tau_s
+    out = np.empty_like(u)
+    x = u[0]
+    for k, v in enumerate(u.tolist()):
+        x += a * (v - x)
+        out[k] = x
+    return out
+
+
+def staircase(step_c: float, ramp_c_per_min: float, hold_s: int, steps: int) -> np.ndarray:
+    """Chamber air at 1 s: a warm-up, then ramps of ``step_c`` at ``ramp_c_per_min`` with holds, up then down."""
+    air = [np.full(1800, 20.0)]
+    level = 20.0
+    ramp_s = int(round(60.0 * step_c / ramp_c_per_min))
+    for direction in [1] * steps + [-1] * (2 * steps):
+        air.append(level + direction * step_c * np.arange(1, ramp_s + 1) / ramp_s)
+        level += direction * step_c
+        air.append(np.full(hold_s, level))
+    return np.concatenate(air)
+
+
+def synthetic_capture(coil_lag_s: float, air: np.ndarray, seed: int = 1, noise_dph: float = 0.02):
+    """Block data of an instrument whose coil lags the ring by ``coil_lag_s``; drift cubic in the coil
+    temperature plus a Shupe term on its own rate; white noise on the target, 1/256-degC readings."""
+    rng = np.random.default_rng(seed)
+    ring = lagged(air, 300.0)
+    top, bottom = ring + 0.2, ring - 0.1 * (air - ring)  # a gradient that lives on after a ramp
+    housing = lagged(air, 240.0) + 2.0
+    temps = np.round(np.column_stack([top, bottom, housing]) * 256) / 256
+    inputs, flags = FeatureExtractor().run(temps)
+    coil = lagged(0.5 * (top + bottom), coil_lag_s)
+    rate_c_per_min = 60.0 * np.gradient(coil)
+    drift = 0.004 * (coil - 20) + 1.5e-4 * (coil - 20) ** 2 - 2e-6 * (coil - 20) ** 3 + 0.15 * rate_c_per_min
+    target = drift + noise_dph * rng.standard_normal(len(drift))
+    static = np.ones(len(target), dtype=bool)
+    static[:300] = False
+    return SimpleNamespace(inputs=inputs, input_flags=flags, static=static, target_dph=target - target[static].mean())
+
+
+@pytest.mark.parametrize("coil_lag_s", [146.5, 558.8, 1705.3])
+def test_the_fit_finds_a_known_coil_lag(coil_lag_s):
+    assert coil_lag_s in COIL_LAG_GRID_S
+    capture = synthetic_capture(coil_lag_s, staircase(5.0, 1.0, 900, 7))
+    model = fit_wesn("wesn", WESN_DEFAULTS, [capture], fit_normalizer([capture]), FitConfig())
+    chosen = model.selection["coil_lag_s"]
+    assert abs(math.log(chosen / coil_lag_s)) <= math.log(1.25) + 1e-9, (chosen, model.selection["lag_rms_1min_dph"])
+    assert model.selection["ridge_alpha"] in WESN_DEFAULTS.ridge_alpha_grid
+    assert model.max_power == 4 and model.linear_path == "levels"
+    assert "warning" not in model.selection
+
+
+def test_history_neurons_enter_under_their_prior():
+    """With no thermal history in the data, the history neurons' weights stay small next to the coil's."""
+    capture = synthetic_capture(558.8, staircase(5.0, 1.0, 900, 7))
+    model = fit_wesn("wesn", WESN_DEFAULTS, [capture], fit_normalizer([capture]), FitConfig())
+    n_history = len(WESN_DEFAULTS.history_s)
+    x = model.reservoir.run(fit_normalizer([capture]).transform(capture.inputs[300:]))
+    contribution = np.abs(model.weights[: 1 + n_history] * x.std(axis=0))  # deg/h per standard deviation
+    assert contribution[1:].max() < 0.2 * contribution[0]
+
+
+def test_a_run_that_cannot_tell_lags_apart_says_so():
+    """Two 1-degC ramps at 0.02 degC/min: lags of a minute to an hour explain the run alike; the fit warns
+    (0.05 degC/min ramps already pin the lag to within a factor 1.6)."""
+    capture = synthetic_capture(558.8, staircase(1.0, 0.02, 300, 2))
+    model = fit_wesn("wesn", WESN_DEFAULTS, [capture], fit_normalizer([capture]), FitConfig())
+    tied = model.selection["lags_explaining_equally_s"]
+    assert max(tied) > 2 * min(tied)
+    assert "poorly identified" in model.selection["warning"] and "faster ramps" in model.selection["warning"]
+
+
+def test_captures_fitted_together_each_get_their_own_intercept():
+    """Each capture's target is centred on its own mean (its own turn-on bias and mean drift): with one
+    intercept per capture the pooled fit recovers the true weights; with one for all it cannot."""
+    from fog_driver.compensation.polynomial import standardized_ridge
+
+    rng = np.random.default_rng(3)
+    x = [rng.normal(size=(2000, 3)) + [0.0, 1.0, 2.0], rng.normal(size=(2000, 3)) * 2 - 1.0]
+    w_true = np.array([0.5, -1.0, 0.25])
+    y = [xi @ w_true for xi in x]
+    y = [yi - yi.mean() for yi in y]  # centred per capture, as fitting does
+    groups = np.r_[np.zeros(2000, int), np.ones(2000, int)]
+    w, _ = standardized_ridge(np.vstack(x), np.concatenate(y), 1e-9, groups=groups)
+    np.testing.assert_allclose(w, w_true, rtol=1e-6, atol=1e-6)
+    w_one, _ = standardized_ridge(np.vstack(x), np.concatenate(y), 1e-9)
+    assert np.abs(w_one - w_true).max() > 0.05
+
+
+def test_two_runs_fitted_together_do_at_least_as_well_as_one():
+    """A staircase run and a faster one of the same coil, fitted together, predict a third profile at least
+    as well as the staircase alone (scored against the noise-free drift)."""
+    lag = 873.1
+    slow = synthetic_capture(lag, staircase(5.0, 1.0, 900, 7), seed=1)
+    fast = synthetic_capture(lag, staircase(10.0, 3.0, 1500, 3), seed=2)
+    test = synthetic_capture(lag, staircase(8.0, 2.0, 1200, 4), seed=3, noise_dph=0.0)
+
+    def residual(captures) -> float:
+        normalizer = fit_normalizer(captures)
+        model = fit_wesn("wesn", WESN_DEFAULTS, captures, normalizer, FitConfig())
+        model.reset()
+        z = normalizer.transform(test.inputs)
+        model.start(z[0])
+        r = (test.target_dph - model.run(z))[test.static]
+        return float(np.sqrt(np.mean((r - r.mean()) ** 2)))
+
+    alone, together = residual([slow]), residual([slow, fast])
+    assert together <= alone * 1.05, (alone, together)
