@@ -187,6 +187,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+#: What ``fog-driver fit`` fits without ``--kind``: the project's best model (README, "Accuracy").
+DEFAULT_FIT_KIND = "wesn"
+
+
 def cmd_fit(args: argparse.Namespace) -> int:
     from .compensation.fit import FitConfig, fit_model_file
     from .compensation.model import save_model
@@ -198,19 +202,29 @@ def cmd_fit(args: argparse.Namespace) -> int:
     config = FitConfig()
     if args.config:
         config = dataclass_from_mapping(FitConfig, read_yaml(args.config, "fit config") or {}, args.config)
-    model_file, report = fit_model_file(args.captures, kind=args.kind, config=config, validate_paths=args.validate)
+    kind = args.kind or DEFAULT_FIT_KIND
+    model_file, report = fit_model_file(args.captures, kind=kind, config=config, validate_paths=args.validate,
+                                        fall_back=args.kind is None)  # fmt: skip
     save_model(out, model_file)
-    fitted = model_file.provenance["captures"]
+    provenance = model_file.provenance
+    fitted = provenance["captures"]
     print(f"fitted a {model_file.kind} model for {model_file.instrument_serial} on {len(fitted)} capture(s) "
           f"({sum(c['static_blocks'] for c in fitted):,} static blocks of {sum(c['blocks'] for c in fitted):,}) "
           f"-> {out}")  # fmt: skip
-    selection = model_file.provenance.get("selection")
-    if selection:
+    selection = provenance.get("selection")
+    if selection and model_file.kind == kind:
+        history = (f"history neurons {', '.join(f'{v:g}' for v in selection['history_s'])} s at "
+                   f"{selection['history_penalty']:g}x the penalty") if selection["history_s"] else "no history neurons"
         print(f"structure chosen from the data: coil lag {selection['coil_lag_s']:g} s, ridge penalty "
-              f"{selection['ridge_alpha']:g}, history neurons {', '.join(f'{v:g}' for v in selection['history_s'])} s "
-              f"at {selection['history_penalty']:g}x the penalty")  # fmt: skip
-        if "warning" in selection:
-            print(f"warning: {selection['warning']}")
+              f"{selection['ridge_alpha']:g}, {history}"
+              f"{'' if selection['state_powers'] else ', linear in the coil temperature'}")  # fmt: skip
+        for note in selection.get("limits", []):
+            print(f"note: {note}")
+        for key in ("warning", "warning_validation"):
+            if key in selection:
+                print(f"warning: {selection[key]}")
+    if "fell_back" in provenance:
+        print(f"note: {provenance['fell_back']}")
     print(report.format())
     return 0
 
@@ -450,7 +464,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("fit", help="fit a drift model to static chamber captures")
     p.add_argument("captures", nargs="+", metavar="CAPTURE.bin")
     p.add_argument("--out", required=True, metavar="MODEL.yaml")
-    p.add_argument("--kind", default="polynomial", help="model kind (default polynomial)")
+    p.add_argument("--kind", default=None,
+                   help=f"model kind: wesn, polynomial, paper or pso-svr (default: {DEFAULT_FIT_KIND}, or the polynomial "
+                        f"when the {DEFAULT_FIT_KIND} does worse on the fit's own validation split)")
     p.add_argument("--config", metavar="CONFIG.yaml", help="fit settings (see configs/fit.yaml)")
     p.add_argument("--validate", action="append", default=[], metavar="CAPTURE.bin",
                    help="a held-out capture to report on (repeatable)")

@@ -4,6 +4,7 @@ cross-validation, history neurons only under their prior; and it says when the d
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -12,6 +13,8 @@ import pytest
 from fog_driver.compensation.features import FeatureExtractor
 from fog_driver.compensation.fit import FitConfig, fit_normalizer
 from fog_driver.compensation.wesn import COIL_LAG_GRID_S, WESN_DEFAULTS, fit_wesn
+
+DATA = Path(__file__).resolve().parent / "data"
 
 
 def lagged(u: np.ndarray, tau_s: float) -> np.ndarray:
@@ -123,3 +126,50 @@ def test_two_runs_fitted_together_do_at_least_as_well_as_one():
 
     alone, together = residual([slow]), residual([slow, fast])
     assert together <= alone * 1.05, (alone, together)
+
+
+# --- fog-driver fit: the default kind, its safety net, and what a short run can identify ------------------
+
+def _fit_cli(tmp_path, *extra: str):
+    from fog_driver.cli import main
+
+    config = tmp_path / "fit.yaml"
+    config.write_text("warmup_s: 30\n")  # a 5-minute capture: keep almost all of it
+    out = tmp_path / "model.yaml"
+    status = main(["fit", str(DATA / "sim-short.bin"), "--config", str(config), "--out", str(out), *extra])
+    return status, out
+
+
+def test_fit_without_a_kind_fits_the_wesn_and_says_what_a_short_run_cannot_identify(tmp_path, capsys):
+    from fog_driver.compensation.model import load_model
+
+    status, out = _fit_cli(tmp_path)
+    printed = capsys.readouterr().out
+    assert status == 0 and load_model(out).kind == "wesn"
+    assert "after, polynomial" in printed and "after, wesn" in printed  # the baseline beside it, as always
+    assert "coil lags above 1.0 min cannot be identified" in printed
+    assert "thermal history over 30, 60, 120 min cannot be identified" in printed
+    assert "linear in the coil temperature" in printed and "no history neurons" in printed
+    selection = load_model(out).provenance["selection"]
+    assert selection["history_s"] == [] and selection["state_powers"] == 0 and selection["coil_lag_s"] == 60.0
+    scores = selection["own_validation_rms_dph"]
+    assert scores["wesn"] <= scores["polynomial"]  # why the wesn was kept
+
+
+def test_a_wesn_worse_than_the_polynomial_on_its_own_validation_is_never_kept_silently(tmp_path, capsys, monkeypatch):
+    from fog_driver.compensation import fit
+    from fog_driver.compensation.model import load_model
+
+    real = fit.own_validation
+    monkeypatch.setattr(fit, "own_validation",  # as if the wesn's structure extrapolated worse than the polynomial's
+                        lambda model, *a: real(model, *a) * (3.0 if hasattr(model, "reservoir") else 1.0))
+    status, out = _fit_cli(tmp_path)
+    printed = capsys.readouterr().out
+    assert status == 0 and load_model(out).kind == "polynomial"
+    assert "the polynomial was saved instead" in printed and "on its own validation split" in printed
+    # Asked for by name, the wesn is kept, with the warning.
+    named = tmp_path / "named"
+    named.mkdir()
+    status, out = _fit_cli(named, "--kind", "wesn")
+    printed = capsys.readouterr().out
+    assert status == 0 and load_model(out).kind == "wesn" and "warning: on its own validation split" in printed

@@ -3,6 +3,7 @@ within the stated tolerance (``tests/golden.py``), on any machine; and the compa
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
@@ -128,7 +129,10 @@ def test_make_goldens_check_reports_a_change_beyond_the_tolerance(tmp_path, monk
     monkeypatch.setattr(make_goldens, "outputs", lambda: {edited: [line.encode() for line in lines]})
     assert make_goldens.main(["--check"]) == 1
     assert f"changed BEYOND tolerance: line {len(lines)}, seq" in capsys.readouterr().out
-    edited.write_text(original.replace("1528.047431515089", "1528.0474315150895", 1))
+    first = json.loads(lines[0])
+    nudged = repr(first["angle_arcsec"] * (1 + 1e-14))  # a last-bits change, whatever the golden holds
+    assert nudged != repr(first["angle_arcsec"])
+    edited.write_text(original.replace(repr(first["angle_arcsec"]), nudged, 1))
     assert make_goldens.main(["--check"]) == 0
     assert "changed within tolerance" in capsys.readouterr().out
     assert edited.read_text() != original  # --check never writes

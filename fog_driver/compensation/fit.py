@@ -194,6 +194,59 @@ def report_for(models: dict[str, object], normalizer: Standardizer, fit_data: li
     return FitReport(rows)
 
 
+#: The fit's own validation split: chunks of device time dealt in turn to the folds.
+VALIDATION_CHUNK_S = 1200.0
+VALIDATION_FOLDS = 4
+
+
+def own_validation(model, captures: list[CaptureData], normalizer: Standardizer, config: FitConfig) -> float:
+    """The drift a model's structure leaves on data it was not fitted on, from the fit data alone, deg/h.
+
+    Chunks of ``VALIDATION_CHUNK_S`` device time (shorter for captures under 4 chunks) are dealt in turn to
+    ``VALIDATION_FOLDS`` folds; for each fold the model's readout is refitted, at its chosen structure and
+    penalty and with one intercept per capture, on the other folds' static blocks, and its residual on the
+    fold is averaged over windows of half a chunk (10 minutes) inside it.  Returns the RMS of those means,
+    each capture's and fold's mean removed.  For the polynomial and the ring ``wesn`` (the structures the
+    fit compares); interleaved folds keep every temperature in each training set."""
+    from .polynomial import PolynomialModel, polynomial_features, standardized_ridge
+    from .wesn import _capture_regressors
+
+    rate = config.model_rate_hz
+    longest = max(len(c.static) for c in captures)
+    window = max(1, min(int(round(VALIDATION_CHUNK_S * rate)), longest // (2 * VALIDATION_FOLDS)) // 2)
+    chunk = 2 * window  # whole windows in every chunk
+    if isinstance(model, PolynomialModel):
+        rows = [polynomial_features(normalizer.transform(np.where(np.isfinite(c.inputs), c.inputs, 0.0))) for c in captures]
+        alpha, penalty = (config.poly_alpha if config.poly_alpha is not None else 1e-3), None
+    else:
+        rows = [_capture_regressors(model, c, normalizer, None) for c in captures]
+        sel = model.selection
+        alpha = sel["ridge_alpha"]
+        penalty = np.ones(len(model.weights))
+        penalty[1 : 1 + len(sel["history_s"])] = sel["history_penalty"]
+    index = [np.flatnonzero(c.static) for c in captures]
+    x = np.vstack([f[i] for f, i in zip(rows, index)])
+    y = np.concatenate([c.target_dph[i] for c, i in zip(captures, index)])
+    group = np.concatenate([np.full(len(i), g) for g, i in enumerate(index)])
+    block = np.concatenate(index)
+    fold = (block // chunk) % VALIDATION_FOLDS
+    squares, count = 0.0, 0
+    for k in range(VALIDATION_FOLDS):
+        train, test = fold != k, fold == k
+        if not train.any() or not test.any():
+            continue
+        w, b = standardized_ridge(x[train], y[train], alpha, penalty, group[train])
+        residual = y[test] - (x[test] @ w + b)
+        for g in np.unique(group[test]):
+            mine = group[test] == g
+            windows, inverse, sizes = np.unique(block[test][mine] // window, return_inverse=True, return_counts=True)
+            means = np.bincount(inverse, weights=residual[mine])[sizes == window] / window
+            if len(means) > 1:
+                squares += float(np.sum((means - means.mean()) ** 2))
+                count += len(means)
+    return float(np.sqrt(squares / count)) if count else float("nan")
+
+
 def _fit_polynomial(captures: list[CaptureData], normalizer: Standardizer, config: FitConfig):
     from .polynomial import PolynomialModel
 
@@ -232,8 +285,13 @@ def fit_model_file(
     kind: str,
     config: FitConfig,
     validate_paths: list[str | Path] = (),
+    fall_back: bool = False,
 ) -> tuple[ModelFile, FitReport]:
-    """Fit ``kind`` (and the polynomial baseline beside it) to captures; return the model file and the report."""
+    """Fit ``kind`` (and the polynomial baseline beside it) to captures; return the model file and the report.
+
+    A ring ``wesn`` is compared with the polynomial on the fit's own validation split (``own_validation``);
+    when it does worse, its provenance says so, and with ``fall_back`` (``fog-driver fit`` without
+    ``--kind``) the polynomial's model file is returned instead."""
     from .model import ModelFile
 
     if kind not in FITTERS:
@@ -259,6 +317,16 @@ def fit_model_file(
     selection = getattr(models[kind], "selection", None)
     if selection:
         provenance["selection"] = selection
+        scores = {name: own_validation(models[name], captures, normalizer, config) for name in ("polynomial", kind)}
+        selection["own_validation_rms_dph"] = scores
+        if scores[kind] > scores["polynomial"]:
+            selection["warning_validation"] = (
+                f"on its own validation split (interleaved {VALIDATION_CHUNK_S / 60:g}-min chunks of the fit data) the "
+                f"{kind} leaves {scores[kind]:.4f} deg/h, the polynomial {scores['polynomial']:.4f}"
+            )
+            if fall_back:
+                kind = "polynomial"
+                provenance["fell_back"] = f"{selection['warning_validation']}: the polynomial was saved instead"
     model_file = ModelFile(
         kind=kind,
         instrument_serial=next(iter(serials)) or "",
