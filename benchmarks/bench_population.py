@@ -1,13 +1,16 @@
 """Compensation on a population of instruments the models were not tuned on.
 
     python benchmarks/bench_population.py [--set eval|dev] [--instruments N] [--kinds K,K] [--rate-hz 10]
-                                          [--workers 2] [--workdir DIR] [--per-instrument]
+                                          [--workers 2] [--workdir DIR] [--per-instrument] [--adapt]
 
 THE RULE.  Instrument seeds come in two ranges.  ``dev`` (0 ..) is for developing and tuning: look
 at it as often as you like.  ``eval`` (10000 ..) is reserved for evaluation: nobody looks at it
 while developing a model, choosing its settings or its structure; it is run to report a model that
 is finished, and what it shows is reported as it is, never fed back.  Results quoted in the README
-come from ``--set eval`` (the default).
+come from ``--set eval`` (the default).  Log of its runs: 2026-12-01, first run, for the wesn ring form,
+the ``auto`` fallback and the adapting comparison guard (seeds 10000..10023; the README's figures).
+Its individual instruments are not to be studied: to find what failed there, draw more development
+instruments (``--set dev --first 24``) and look for the same failure among them.
 
 Per instrument K (``fog_driver.sim.population.draw_instrument``), three runs of the simulated
 chamber, each with its own run seed (noise, turn-on bias):
@@ -28,6 +31,9 @@ Per instrument the two scoring runs are pooled (mean of the squares).  For each 
 and the worst instrument of the reduction against raw (1 - r / r_raw), of the excess against the
 polynomial's (e / e_poly) and of the ratio to the noise floor (r / f); fit time; model step time.
 Targets (issue 10): median e / e_poly <= 0.5, worst <= 1; median r / f <= 1.3, worst <= 2.
+With ``--adapt``, the polynomial, wesn and auto models also compensate the scoring runs adapting online
+(``AdaptConfig()`` defaults, reference rate 0, the gyro's static detector gating the moves out), and the
+ratio of the adapting to the frozen 1-min RMS is printed per kind.
 Captures are cached in ``--workdir`` (by instrument, profile, rate and run seed); models are fitted
 afresh every time.  Two worker processes by default (the machine has two cores).  Figures are
 printed, never asserted.
@@ -47,12 +53,13 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from fog_driver.compensation.adapt import AdaptConfig  # noqa: E402
 from fog_driver.compensation.fit import FitConfig, fit_model_file  # noqa: E402
 from fog_driver.report.evaluate import minute_rms, per_second  # noqa: E402
 from fog_driver.sim.capture import read_truth, simulate_to_file, truth_noise_dph  # noqa: E402
 from fog_driver.sim.instrument import Simulator  # noqa: E402
 from fog_driver.sim.population import draw_instrument  # noqa: E402
-from fog_driver.sim.profiles import load_profile  # noqa: E402
+from fog_driver.sim.profiles import BUILTIN_PROFILES, load_profile  # noqa: E402
 
 SEED_SETS = {"dev": 0, "eval": 10_000}  #: first instrument seed of each set (THE RULE above)
 #: Model kinds; "auto" is what ``fog-driver fit`` fits without --kind (the wesn, or the polynomial when the
@@ -64,10 +71,11 @@ SKIP_MINUTES = 10
 
 
 def capture(workdir: Path, seed: int, profile: str, run_seed: int, rate_hz: int) -> Path:
+    """Instrument ``seed``'s run of ``profile`` (built-in, or ``configs/profiles/<profile>.yaml``), cached."""
     out = workdir / f"i{seed}" / f"{profile}-r{run_seed}-{rate_hz}hz.bin"
     if not out.exists():
         out.parent.mkdir(parents=True, exist_ok=True)
-        source = profile if profile == "paper" else ROOT / "configs" / "profiles" / f"{profile}.yaml"
+        source = profile if profile in BUILTIN_PROFILES else ROOT / "configs" / "profiles" / f"{profile}.yaml"
         sim = Simulator(load_profile(source), draw_instrument(seed), rate_hz=rate_hz, seed=run_seed)
         simulate_to_file(sim, out.with_suffix(".part.bin"))
         for suffix in (".bin", ".yaml", ".truth.csv"):  # complete files only: an interrupted run redoes them
@@ -82,7 +90,7 @@ def static_minutes_mask(truth: dict[str, np.ndarray], n: int) -> np.ndarray:
     return mask
 
 
-def score_instrument(seed: int, kinds: tuple[str, ...], rate_hz: int, workdir: Path) -> dict:
+def score_instrument(seed: int, kinds: tuple[str, ...], rate_hz: int, workdir: Path, adapt: bool = False) -> dict:
     """Fit every kind on instrument ``seed``'s paper run; score each on the two other profiles."""
     fit_run = capture(workdir, seed, FIT_PROFILE, 10 * seed + 1, rate_hz)
     runs = [(p, capture(workdir, seed, p, 10 * seed + 2 + i, rate_hz)) for i, p in enumerate(SCORE_PROFILES)]
@@ -96,12 +104,16 @@ def score_instrument(seed: int, kinds: tuple[str, ...], rate_hz: int, workdir: P
         else:
             models[kind], _ = fit_model_file([fit_run], kind=kind, config=FitConfig())
         result["fit_s"][kind] = time.perf_counter() - t0
-    sq = {name: [] for name in ("raw", "floor", *kinds)}
+    adapting = [f"{k}+adapt" for k in kinds if adapt and k in ("wesn", "auto", "polynomial")]
+    sq = {name: [] for name in ("raw", "floor", *kinds, *adapting)}
     for _profile, path in runs:
         truth = read_truth(path.with_suffix(".truth.csv"))
         noise = truth_noise_dph(truth)
-        for kind in kinds:
-            series = per_second(path, models[kind])
+        for kind in (*kinds, *adapting):
+            if kind.endswith("+adapt"):  # the table is still between moves: adapt against a known rate of 0
+                series = per_second(path, models[kind[:-6]], adapt=AdaptConfig(), reference_rate_dph=0.0)
+            else:
+                series = per_second(path, models[kind])
             n = min(len(series.drift_dph), len(truth["drift_dph"]))
             mask = static_minutes_mask(truth, n)
             if kind == kinds[0]:
@@ -110,6 +122,7 @@ def score_instrument(seed: int, kinds: tuple[str, ...], rate_hz: int, workdir: P
             sq[kind].append(minute_rms(truth["drift_dph"][:n] - series.drift_dph[:n] + noise[:n], mask) ** 2)
     result["r"] = {name: float(np.sqrt(np.mean(v))) for name, v in sq.items()}
     result["step_us"] = {kind: model_step_us(models[kind], fit_run) for kind in kinds}
+    result["adapting"] = adapting
     return result  # plain numbers only
 
 
@@ -161,6 +174,17 @@ def summarize(results: list[dict], kinds: tuple[str, ...]) -> None:
           "model step <= 50 us")
 
 
+def summarize_adapting(results: list[dict]) -> None:
+    """What adapting online adds over the frozen model on the scoring runs, per instrument (r adapting / r frozen)."""
+    print("\nadapting online against a known rate of 0 on the scoring runs (1-min RMS adapting / frozen):")
+    for name in results[0]["adapting"]:
+        frozen = name[: -len("+adapt")]
+        ratio = np.array([x["r"][name] / x["r"][frozen] for x in results])
+        worse = [x["seed"] for x, v in zip(results, ratio) if v > 1.02]
+        print(f"  {frozen:12s} median {np.median(ratio):.2f}x, best {ratio.min():.2f}x, worst {ratio.max():.2f}x; "
+              f"worse by over 2 % on {len(worse)} of {len(results)}")  # fmt: skip
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--set", choices=SEED_SETS, default="eval", help="which instruments (see THE RULE)")
@@ -171,6 +195,9 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--workdir", type=Path, help="cache the simulated captures here (default: a temporary dir)")
     parser.add_argument("--per-instrument", action="store_true", help="print each instrument's figures")
+    parser.add_argument("--adapt", action="store_true",
+                        help="also compensate the scoring runs adapting online against a known rate of 0 (the table "
+                             "still between moves, the gyro's static detector gating)")  # fmt: skip
     args = parser.parse_args()
     kinds = tuple(k.strip() for k in args.kinds.split(",") if k.strip())
     seeds = [SEED_SETS[args.set] + args.first + i for i in range(args.instruments)]
@@ -178,7 +205,7 @@ def main() -> None:
         workdir = args.workdir or Path(tmp)
         t0 = time.perf_counter()
         with ProcessPoolExecutor(max_workers=args.workers) as pool:
-            futures = [pool.submit(score_instrument, s, kinds, args.rate_hz, workdir) for s in seeds]
+            futures = [pool.submit(score_instrument, s, kinds, args.rate_hz, workdir, args.adapt) for s in seeds]
             results = []
             for f in futures:
                 results.append(f.result())
@@ -189,6 +216,8 @@ def main() -> None:
         print(f"\n{args.set} set: {len(seeds)} instruments (seeds {seeds[0]}..{seeds[-1]}), fitted on {FIT_PROFILE}, "
               f"scored on {' and '.join(SCORE_PROFILES)} at {args.rate_hz} Hz  [{time.perf_counter() - t0:.0f} s]\n")
         summarize(results, kinds)
+        if args.adapt:
+            summarize_adapting(results)
 
 
 if __name__ == "__main__":

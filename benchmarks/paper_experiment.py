@@ -1,6 +1,15 @@
 """The seed paper's whole experiment on simulated data: its Table 1 and improvement figures.
 
     python benchmarks/paper_experiment.py [--rate-hz 10] [--seed 1] [--workdir DIR] [--no-svr]
+    python benchmarks/paper_experiment.py --instruments N [--set eval|dev] [--workers 2] [--per-instrument]
+                                          [--rate-hz 10] [--workdir DIR] [--no-svr]
+
+Without ``--instruments``: the default simulated instrument, one draw (below).  With it: the same
+experiment on N instruments of the population (``fog_driver.sim.population``; the seed sets and THE
+RULE of ``bench_population.py``: ``eval`` is reported, never developed on), and the improvements as
+a distribution over them (median, quartiles, range) instead of a single draw.  Instrument K fits on
+its ``paper`` run (run seed 10 K + 1, the same capture ``bench_population.py`` fits on) and is
+scored on its ``paper-validation`` run (run seed 10 K + 5).
 
 1. simulate the ``paper`` profile (440 min, static; seed S) to fit on, and the
    ``paper-validation`` profile (1010 min; seed S + 1) with a 10 x 36 deg
@@ -30,7 +39,10 @@ import argparse
 import sys
 import tempfile
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
+
+import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -47,6 +59,9 @@ from fog_driver.report.positioning import (  # noqa: E402
 from fog_driver.sim.capture import simulate_to_file  # noqa: E402
 from fog_driver.sim.instrument import Simulator  # noqa: E402
 from fog_driver.sim.profiles import PAPER_VALIDATION_TEMPS_C, load_profile  # noqa: E402
+
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from bench_population import SEED_SETS, capture  # noqa: E402
 
 #: The paper's Table 1 (arcsec): temperature -> (raw mean, raw std, PSO-SVM mean, std, proposed mean, std).
 PAPER_TABLE_1 = {
@@ -101,42 +116,109 @@ def over(rows: list[Row], method: str, ref: str) -> float:
     return mean_abs_ratio_improvement([r.stats[method][0] for r in rows], [r.stats[ref][0] for r in rows])
 
 
+def svr_kinds(no_svr: bool) -> list[str]:
+    """The kinds to fit: polynomial, PSO-SVR when installed and wanted, wesn."""
+    kinds = ["polynomial"]
+    if no_svr:
+        pass
+    elif svr_available():
+        kinds.append("pso-svr")
+    else:
+        print("PSO-SVR left out: install the svr extra (pip install 'fog_driver[svr]')")
+    return [*kinds, "wesn"]
+
+
+def score(fit_capture: Path, val_capture: Path, kinds: list[str], workdir: Path | None = None,
+          verbose: bool = False) -> list[Row]:  # fmt: skip
+    """Fit every kind on ``fit_capture``, compensate ``val_capture`` with each, score every move."""
+    models = {}
+    for kind in kinds:
+        t0 = time.perf_counter()
+        model_file, _ = fit_model_file([fit_capture], kind=kind, config=FitConfig())
+        if workdir is not None:
+            save_model(workdir / f"{kind}.yaml", model_file)
+        models[kind] = model_file
+        if verbose:
+            print(f"fit {kind}: {time.perf_counter() - t0:.1f} s")
+    t0 = time.perf_counter()
+    rows = positioning_table(val_capture, models, load_stops(val_capture), plateau_temps_c=PAPER_VALIDATION_TEMPS_C,
+                             bias_window_s=BIAS_WINDOW_S)  # fmt: skip
+    if verbose:
+        print(f"compensate and score the validation run ({len(models)} models): {time.perf_counter() - t0:.1f} s")
+    return rows
+
+
+def figures(rows: list[Row], kinds: list[str]) -> dict[str, float]:
+    """The experiment's improvement figures, percent: each kind overall, and wesn over the others."""
+    out = {f"overall, {kind}": improvement(rows, kind) for kind in kinds}
+    for ref in ("pso-svr", "polynomial"):
+        if ref in kinds:
+            out[f"wesn over {ref}"] = over(rows, "wesn", ref)
+    return out
+
+
+def population_instrument(seed: int, kinds: list[str], rate_hz: int, workdir: Path) -> dict:
+    """One population instrument's figures (plain numbers, for the worker pool)."""
+    fit_capture = capture(workdir, seed, "paper", 10 * seed + 1, rate_hz)
+    val_capture = capture(workdir, seed, "paper-validation", 10 * seed + 5, rate_hz)
+    return {"seed": seed, **figures(score(fit_capture, val_capture, kinds), kinds)}
+
+
+def population(args: argparse.Namespace, workdir: Path) -> None:
+    kinds = svr_kinds(args.no_svr)
+    seeds = [SEED_SETS[args.set] + args.first + i for i in range(args.instruments)]
+    t0 = time.perf_counter()
+    with ProcessPoolExecutor(max_workers=args.workers) as pool:
+        results = list(pool.map(population_instrument, seeds, [kinds] * len(seeds), [args.rate_hz] * len(seeds),
+                                [workdir] * len(seeds)))  # fmt: skip
+    names = [k for k in results[0] if k != "seed"]
+    if args.per_instrument:
+        print("instrument  " + "  ".join(f"{n:>24s}" for n in names))
+        for r in results:
+            print(f"{r['seed']:10d}  " + "  ".join(f"{r[n]:23.1f}%" for n in names))
+        print()
+    print(f"{args.set} set: {len(seeds)} instruments (seeds {seeds[0]}..{seeds[-1]}), fitted on paper, scored on "
+          f"paper-validation (10 x 36 deg moves on 11 plateaus) at {args.rate_hz} Hz  [{time.perf_counter() - t0:.0f} s]")
+    print()
+    print(f"{'improvement, %':24s} {'median':>8s} {'quartiles':>15s} {'range':>17s}  positive")
+    for n in names:
+        v = np.array([r[n] for r in results])
+        q1, q3 = np.percentile(v, [25, 75])
+        print(f"{n:24s} {np.median(v):8.1f} {q1:7.1f}..{q3:<7.1f} {v.min():8.1f}..{v.max():<8.1f}  "
+              f"{int((v > 0).sum())} of {len(v)}")
+    paper = paper_figures()
+    print()
+    print(f"paper (printed, one instrument): overall {PAPER_PRINTED['overall']} %, over PSO-SVM "
+          f"{PAPER_PRINTED['over PSO-SVM']} %; recomputed from its Table 1: PSO-SVM overall {paper['PSO-SVM overall']:.1f} %")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--rate-hz", type=int, default=10, help="simulated frame rate (default 10)")
     parser.add_argument("--seed", type=int, default=1, help="fitting run's seed; the validation run uses seed + 1")
     parser.add_argument("--workdir", type=Path, help="keep captures and models here (default: a temporary dir)")
     parser.add_argument("--no-svr", action="store_true", help="leave PSO-SVR out (it is the slowest fit)")
+    parser.add_argument("--instruments", type=int, help="run on this many population instruments instead")
+    parser.add_argument("--set", choices=SEED_SETS, default="eval", help="with --instruments: which instruments")
+    parser.add_argument("--first", type=int, default=0, help="with --instruments: offset into the seed set")
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--per-instrument", action="store_true", help="with --instruments: each instrument's figures")
     args = parser.parse_args()
+    if args.instruments is not None and args.instruments < 1:
+        parser.error("--instruments must be at least 1")
     with tempfile.TemporaryDirectory() as tmp:
         workdir = args.workdir or Path(tmp)
         workdir.mkdir(parents=True, exist_ok=True)
+        if args.instruments is not None:
+            population(args, workdir)
+            return
         t_all = time.perf_counter()
         t0 = time.perf_counter()
         fit_capture = simulate(workdir, "paper", args.seed, args.rate_hz)
         val_capture = simulate(workdir, "paper-validation", args.seed + 1, args.rate_hz)
         print(f"simulate paper + paper-validation at {args.rate_hz} Hz: {time.perf_counter() - t0:.1f} s")
-
-        kinds = ["polynomial"]
-        if args.no_svr:
-            pass
-        elif svr_available():
-            kinds.append("pso-svr")
-        else:
-            print("PSO-SVR left out: install the svr extra (pip install 'fog_driver[svr]')")
-        kinds.append("wesn")
-        models = {}
-        for kind in kinds:
-            t0 = time.perf_counter()
-            model_file, _ = fit_model_file([fit_capture], kind=kind, config=FitConfig())
-            save_model(workdir / f"{kind}.yaml", model_file)
-            models[kind] = model_file
-            print(f"fit {kind}: {time.perf_counter() - t0:.1f} s")
-
-        t0 = time.perf_counter()
-        rows = positioning_table(val_capture, models, load_stops(val_capture), plateau_temps_c=PAPER_VALIDATION_TEMPS_C,
-                                 bias_window_s=BIAS_WINDOW_S)
-        print(f"compensate and score the validation run ({len(models)} models): {time.perf_counter() - t0:.1f} s")
+        kinds = svr_kinds(args.no_svr)
+        rows = score(fit_capture, val_capture, kinds, workdir, verbose=True)
         print()
         print("Positioning error per 36-degree move, arcsec (simulated; zeroed over 1500..1800 s of the warm-up):")
         print()
@@ -144,7 +226,7 @@ def main() -> None:
         print()
         for kind in kinds:
             print(f"overall improvement, {kind}: {improvement(rows, kind):.1f} %")
-        if "pso-svr" in models:
+        if "pso-svr" in kinds:
             print(f"wesn over PSO-SVR: {over(rows, 'wesn', 'pso-svr'):.1f} %")
         print(f"wesn over polynomial: {over(rows, 'wesn', 'polynomial'):.1f} %")
         paper = paper_figures()

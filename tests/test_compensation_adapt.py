@@ -297,14 +297,19 @@ def test_step_equals_run_for_any_chunking():
         assert runner.state_dict() == stepper.state_dict()
 
 
-def test_reset_to_frozen_keeps_the_sums_and_the_bias():
+def test_reset_to_frozen_keeps_the_sums_and_the_bias_and_restarts_the_comparison():
     r, _, _ = _adapted()
     before = r.state_dict()
+    assert before["compare_windows"] > 0
     r.reset_to_frozen()
     after = r.state_dict()
     assert after["law"]["w"] == [*W0.tolist(), B0]
+    assert after["compare_weights"] == after["law"]["w"] and after["compare_windows"] == 0
+    assert all(after[k] == 0 for k in after if k.startswith("compare_") and k != "compare_weights")
+    keep = [k for k in before if k != "law" and not k.startswith("compare_")]
+    assert {k: after[k] for k in keep} == {k: before[k] for k in keep}
     after["law"]["w"] = before["law"]["w"]
-    assert after == before
+    assert after["law"] == before["law"]
 
 
 # --- state files -------------------------------------------------------------------------------------------
@@ -415,8 +420,9 @@ def test_static_detector_state_round_trips_mid_stream():
 
 def test_begin_run_captures_the_new_bias_and_keeps_the_adapted_weights():
     f, _, measured = _problem(6000, seed=12)
-    r = OnlineReadout(W0, B0, AdaptConfig(), 1.0)
+    r = OnlineReadout(W0, B0, AdaptConfig(compare_window_s=60.0, compare_min_windows=3), 1.0)
     r.run(f[:3000], measured[:3000], 0.0, True)
+    assert r.adapted_in_use  # the wrong frozen model: adapting has earned its place (short windows here)
     w_adapted = r.law.weights
     first_bias = r.bias_dph
     r.begin_run()  # switched off and on: a new turn-on bias, 7 deg/h higher
@@ -425,3 +431,50 @@ def test_begin_run_captures_the_new_bias_and_keeps_the_adapted_weights():
     np.testing.assert_array_equal(est[:301], dot(f[3000:3301], w_adapted[:-1]) + w_adapted[-1])
     assert abs(r.bias_dph - first_bias - 7.0) < 0.05  # the new bias (relative to the adapted model, as before)
     np.testing.assert_allclose(r.weights, W_TRUE, rtol=0, atol=0.02)
+
+
+# --- the comparison guard: adapting must earn its place ------------------------------------------------
+
+
+def test_over_an_exact_frozen_model_the_adapted_estimate_is_never_used():
+    """The frozen model is the drift exactly: the law still moves W (it chases the noise), but the guard
+    never returns its estimate, so adapting costs nothing."""
+    f, drift, measured = _problem(20000, w_true=W0, b_true=B0, noise=0.2)
+    r = OnlineReadout(W0, B0, AdaptConfig(bias_capture_s=300.0))
+    est, flags = r.run(f, measured, 0.0, True)
+    assert r.updates > 0 and not np.array_equal(r.weights, W0)  # W moved underneath
+    assert est.tobytes() == _frozen(f).tobytes()  # ... and every estimate returned is the frozen one
+    assert not r.adapted_in_use and r.compare_windows == (20000 - 300) // int(r.config.compare_window_s)
+    assert (flags & FLAG_ADAPTING).any()  # the blocks still say that W is adapting
+
+
+def test_over_a_wrong_frozen_model_the_adapted_estimate_takes_over_once_it_does_better():
+    f, drift, measured = _problem(20000, w_true=W_TRUE, noise=0.2)
+    config = AdaptConfig(bias_capture_s=300.0)
+    r = OnlineReadout(W0, B0, config)
+    est, _ = r.run(f, measured, 0.0, True)
+    assert r.adapted_in_use
+    frozen = _frozen(f)
+    switched = int(np.flatnonzero(est != frozen)[0])
+    min_blocks = 300 + config.compare_min_windows * int(config.compare_window_s)  # 1-s blocks
+    assert switched >= min_blocks  # never before the bias capture and the minimum windows
+    late = slice(switched + 3000, None)
+    offset = (drift - est)[late].mean()  # the bias capture fixes the offset; the slopes are what adapting learns
+    assert np.std(drift[late] - est[late] - offset) < 0.5 * np.std(drift[late] - frozen[late] - (drift - frozen)[late].mean())
+
+
+def test_a_state_saved_before_the_comparison_existed_still_loads():
+    f, _, measured = _problem(2000)
+    r = OnlineReadout(W0, B0, AdaptConfig(bias_capture_s=60.0))
+    r.run(f, measured, 0.0, True)
+    state = r.state_dict()
+    old = {k: v for k, v in state.items() if not k.startswith("compare_")}
+    again = OnlineReadout(W0, B0, AdaptConfig(bias_capture_s=60.0))
+    again.load_state(old)
+    assert again.compare_windows == 0 and again.state_dict()["law"] == state["law"]
+    again.load_state(state)
+    assert again.state_dict() == state
+    with pytest.raises(ValueError, match="the comparison needs all of"):
+        again.load_state({**old, "compare_windows": 3})
+    with pytest.raises(ValueError, match="compare_gain_sq"):
+        again.load_state({**state, "compare_gain_sq": -1.0})

@@ -56,7 +56,8 @@ def test_zero_and_bias_commands():
     assert service.control("ADAPT", {"enable": "yes"}, 0)["class"] == "ERROR"
     assert service.control("ADAPT", {"enable": True, "reference_dph": 0}, 0) == {
         "class": "ADAPT", "enable": True, "reference_dph": 0.0}  # fmt: skip
-    assert service.control("STATUS", {}, 0)["adapting"] is True
+    status = service.control("STATUS", {}, 0)
+    assert status["adapting"] is True and status["adapted_in_use"] is False  # nothing has been compared yet
     assert service.control("SAVE", {}, 0)["class"] == "ERROR"  # no adapt_state configured
 
 

@@ -43,8 +43,23 @@ stays in I for about one memory window, so the guard may fire again while it fad
 estimate itself is not finite (non-finite regressors) there is nothing to revert to: it is returned with
 ``FLAG_GUARD``, W untouched.  ``FLAG_ADAPTING`` marks a block whose target updated W.
 
-Order within ``step`` (the law's): the estimate uses W before this block's update (an honest a-priori
-estimate), then the guard, then the bias capture or the update.  ``run`` is ``step`` row by row.
+The comparison guard: adapting must earn its place.  On a run the frozen model already fits, the law
+chases the gyro's own slow noise and makes things worse; so on every gated update block both estimates'
+errors against the target (``d - frozen``, ``d - adapted``) are summed over windows of
+``compare_window_s``, each window's mean error is taken about that estimate's running mean of them (a
+constant offset is not drift: the bias capture leaves the frozen estimate one, the adapted intercept
+would remove it and seem better for it), and the window's gain, ``dev_frozen^2 - dev_adapted^2``, goes
+into a running mean and mean square (memory ``compare_memory_windows``).  Both estimates see the same
+gyro noise n in a window, so the gain is ``(e_f - e_a)(2 n + e_f + e_a)``: the noise enters it
+linearly, with mean 0, and the mean gain is ``e_f^2 - e_a^2``.  The adapted weights are scored as they
+were when the window opened, so the window is out of sample for them.  The adapted estimate is returned only when the mean gain exceeds
+``COMPARE_SIGMAS`` (1) standard error, after ``compare_min_windows`` windows; otherwise the frozen one
+is, and the law keeps adapting underneath (``adapted_in_use``).  A window's mean keeps the 1-s white
+noise from swamping the comparison.
+
+Order within ``step`` (the law's): the estimate uses W and the comparison's verdict before this block's
+update (an honest a-priori estimate), then the guard, then the bias capture or the update.  ``run`` is
+``step`` row by row.
 
 State.  ``state_dict`` / ``load_state`` give everything (the law's state, the bias capture, counters,
 and the frozen weights, so a state is never restored into another model) as plain YAML-safe values;
@@ -102,6 +117,10 @@ class AdaptConfig:
     * ``bias_capture_s``: gated time spent capturing the run's bias before W may move (0: no capture).
     * ``warmup_s``: for the compensator's gate: blocks before it (rate smoother and instrument start-up)
       are never gated, as in fitting (``FitConfig.warmup_s``).
+    * ``compare_window_s``, ``compare_memory_windows``, ``compare_min_windows``: the comparison guard
+      (module docstring): windows of gated time over which the frozen and the adapted estimates' mean
+      errors are compared, the memory of their running mean squares (in windows), and how many windows
+      must have been seen before the adapted estimate may be used.
     """
 
     law: AdaptiveLawParams = field(default_factory=_default_law)
@@ -110,11 +129,14 @@ class AdaptConfig:
     static_window_s: float = 60.0
     bias_capture_s: float = 300.0
     warmup_s: float = 300.0
+    compare_window_s: float = 300.0
+    compare_memory_windows: float = 12.0
+    compare_min_windows: int = 4
 
     def __post_init__(self) -> None:
         if not isinstance(self.law, AdaptiveLawParams):
             raise ValueError(f"law must be AdaptiveLawParams, got {type(self.law).__name__}")
-        for name in ("runaway_dph", "static_threshold_dph", "static_window_s"):
+        for name in ("runaway_dph", "static_threshold_dph", "static_window_s", "compare_window_s"):
             v = getattr(self, name)
             if not _finite(v) or not v > 0:
                 raise ValueError(f"{name} must be finite and > 0, got {v!r}")
@@ -122,6 +144,12 @@ class AdaptConfig:
             v = getattr(self, name)
             if not _finite(v) or v < 0:
                 raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
+        if not _finite(self.compare_memory_windows) or not self.compare_memory_windows >= 1:
+            raise ValueError(f"compare_memory_windows must be finite and >= 1, got {self.compare_memory_windows!r}")
+        if isinstance(self.compare_min_windows, bool) or not isinstance(self.compare_min_windows, int) or (
+            self.compare_min_windows < 0
+        ):
+            raise ValueError(f"compare_min_windows must be an integer >= 0, got {self.compare_min_windows!r}")
 
     def to_dict(self) -> dict[str, Any]:
         d: dict[str, Any] = {f.name: getattr(self, f.name) for f in fields(self)}
@@ -202,6 +230,15 @@ class StaticDetector:
 
 _STATE_KEYS = ("n_features", "frozen_weights", "frozen_intercept", "law", "bias_sum_dph", "bias_count",
                "bias_dph", "blocks", "gated_blocks", "updates", "guards")  # fmt: skip
+#: The comparison guard's state (states saved before it existed load without it: a fresh comparison).
+_COMPARE_KEYS = ("compare_blocks", "compare_sum_frozen_dph", "compare_sum_adapted_dph", "compare_gain",
+                 "compare_gain_sq", "compare_windows", "compare_weights", "compare_level_frozen_dph",
+                 "compare_level_adapted_dph")  # fmt: skip
+#: The adapted estimate is used when the comparison's mean gain exceeds this many standard errors.  One,
+#: with 300-s windows and 4 of them first, was chosen on the development population
+#: (``benchmarks/bench_population.py --set dev --adapt``): 2 sigmas or 600-s windows kept the frozen
+#: estimate nearly always; no guard made 1 in 24 instruments worse, as did 0 sigmas with 3 windows.
+COMPARE_SIGMAS = 1.0
 
 
 class OnlineReadout:
@@ -233,6 +270,7 @@ class OnlineReadout:
         self.sample_time_s = self._law.sample_time_s
         self.bias_capture_blocks = _blocks(self.config.bias_capture_s, self.sample_time_s)
         self._runaway = float(self.config.runaway_dph)
+        self._compare_window_blocks = max(1, _blocks(self.config.compare_window_s, sample_time_s))
         self._x = np.empty(self.n_features + 1)
         self._x[-1] = 1.0
         self._start()
@@ -249,6 +287,28 @@ class OnlineReadout:
         self.gated_blocks = 0
         self.updates = 0
         self.guards = 0
+        self._reset_comparison()
+
+    def _reset_comparison(self) -> None:
+        self._compare_w = self._law._w.copy()  # the adapted weights when the open window began
+        self.compare_blocks = 0  # gated update blocks in the open window
+        self.compare_sum_frozen_dph = 0.0  # sums of (d - frozen estimate) and (d - adapted estimate) in it
+        self.compare_sum_adapted_dph = 0.0
+        self.compare_gain = 0.0  # running mean, and mean square, of a window's gain: frozen error^2 - adapted error^2
+        self.compare_gain_sq = 0.0
+        self.compare_level_frozen_dph = 0.0  # running means of the windows' mean errors (their constant part)
+        self.compare_level_adapted_dph = 0.0
+        self.compare_windows = 0
+
+    @property
+    def adapted_in_use(self) -> bool:
+        """The comparison guard's verdict: over the recent windows the adapted estimate's squared error was
+        smaller than the frozen one's by more than ``COMPARE_SIGMAS`` standard errors of that gain."""
+        n = min(self.compare_windows - 1, self.config.compare_memory_windows)  # windows that gave a gain
+        if self.compare_windows < max(3, self.config.compare_min_windows):
+            return False
+        variance = max(self.compare_gain_sq - self.compare_gain**2, 0.0)
+        return self.compare_gain > COMPARE_SIGMAS * math.sqrt(variance / n)
 
     # -- inspection --------------------------------------------------------------------------------
 
@@ -283,10 +343,13 @@ class OnlineReadout:
         self.bias_dph = None if self.bias_capture_blocks else 0.0
 
     def reset_to_frozen(self) -> None:
-        """W back to the frozen weights; the filters, H and I, the bias and the counters are kept."""
+        """W back to the frozen weights; the filters, H and I, the bias and the counters are kept.  The
+        comparison guard starts over (its evidence was about weights that are gone): the frozen estimate is
+        returned until the adapted one has earned its place again."""
         state = self._law.state
         state.w = self._w_frozen.copy()
         self._law.set_state(state)
+        self._reset_comparison()
 
     # -- stepping ----------------------------------------------------------------------------------
 
@@ -319,6 +382,7 @@ class OnlineReadout:
         y = float(numerics.dot(f, w[:-1]) + w[-1])
         if not math.isfinite(y_frozen):  # non-finite regressors: nothing to revert to, nothing to learn
             return y_frozen, FLAG_GUARD
+        use_adapted = self.adapted_in_use  # the comparison's verdict so far: a priori, like the estimate
         if not math.isfinite(y) or abs(y - y_frozen) > self._runaway:
             self.reset_to_frozen()
             self.guards += 1
@@ -339,6 +403,7 @@ class OnlineReadout:
             else:
                 d = measured - reference - self.bias_dph
                 update = True
+                self._compare(f, d, y_frozen)
         self._law.step(x, d, update)
         if update:
             self.updates += 1
@@ -347,7 +412,35 @@ class OnlineReadout:
                 self.reset_to_frozen()
                 self.guards += 1
                 flags |= FLAG_GUARD
-        return y, flags
+        return (y if use_adapted else y_frozen), flags
+
+    def _compare(self, f: np.ndarray, d: float, y_frozen: float) -> None:
+        """One gated block's errors into the comparison window: the frozen estimate's, and the adapted
+        weights' as they were when the window opened (so the window is out of sample for them: weights that
+        learned from a window's noise would otherwise seem to predict it); a full window's gain into the
+        running mean and mean square (``compare_memory_windows`` of memory)."""
+        if self.compare_blocks == 0:
+            self._compare_w = self._law._w.copy()
+        w = self._compare_w
+        self.compare_blocks += 1
+        self.compare_sum_frozen_dph += d - y_frozen
+        self.compare_sum_adapted_dph += d - float(numerics.dot(f, w[:-1]) + w[-1])
+        if self.compare_blocks < self._compare_window_blocks:
+            return
+        error_frozen = self.compare_sum_frozen_dph / self.compare_blocks
+        error_adapted = self.compare_sum_adapted_dph / self.compare_blocks
+        # Running means that are plain means until the memory is full, then exponential.
+        weight = 1.0 / min(self.compare_windows + 1, self.config.compare_memory_windows)
+        if self.compare_windows:  # errors about their own running level: a constant offset is no drift
+            gain = (error_frozen - self.compare_level_frozen_dph) ** 2 - (error_adapted - self.compare_level_adapted_dph) ** 2
+            gain_weight = 1.0 / min(self.compare_windows, self.config.compare_memory_windows)
+            self.compare_gain += gain_weight * (gain - self.compare_gain)
+            self.compare_gain_sq += gain_weight * (gain * gain - self.compare_gain_sq)
+        self.compare_level_frozen_dph += weight * (error_frozen - self.compare_level_frozen_dph)
+        self.compare_level_adapted_dph += weight * (error_adapted - self.compare_level_adapted_dph)
+        self.compare_windows += 1
+        self.compare_blocks = 0
+        self.compare_sum_frozen_dph = self.compare_sum_adapted_dph = 0.0
 
     def run(
         self,
@@ -389,14 +482,41 @@ class OnlineReadout:
             "gated_blocks": int(self.gated_blocks),
             "updates": int(self.updates),
             "guards": int(self.guards),
+            "compare_blocks": int(self.compare_blocks),
+            "compare_sum_frozen_dph": float(self.compare_sum_frozen_dph),
+            "compare_sum_adapted_dph": float(self.compare_sum_adapted_dph),
+            "compare_gain": float(self.compare_gain),
+            "compare_gain_sq": float(self.compare_gain_sq),
+            "compare_windows": int(self.compare_windows),
+            "compare_weights": [float(v) for v in self._compare_w],
+            "compare_level_frozen_dph": float(self.compare_level_frozen_dph),
+            "compare_level_adapted_dph": float(self.compare_level_adapted_dph),
         }
 
     def load_state(self, d: dict[str, Any]) -> None:
         """Inverse of ``state_dict``.  ``ValueError`` for missing or unknown keys, bad values, or a state
         saved for other frozen weights (another model); the readout is unchanged then."""
-        if not isinstance(d, dict) or set(d) != set(_STATE_KEYS):
+        if not isinstance(d, dict) or not set(_STATE_KEYS) <= set(d) <= set(_STATE_KEYS) | set(_COMPARE_KEYS):
             got = sorted(d) if isinstance(d, dict) else type(d).__name__
-            raise ValueError(f"adaptation state needs exactly the keys {sorted(_STATE_KEYS)}, got {got}")
+            raise ValueError(f"adaptation state needs exactly the keys {sorted(_STATE_KEYS)} (and the comparison's "
+                             f"{sorted(_COMPARE_KEYS)}), got {got}")  # fmt: skip
+        compare = {k: d[k] for k in _COMPARE_KEYS if k in d}
+        if compare and set(compare) != set(_COMPARE_KEYS):
+            raise ValueError(f"adaptation state: the comparison needs all of {sorted(_COMPARE_KEYS)}")
+        for k in ("compare_blocks", "compare_windows"):
+            if k in compare and (isinstance(compare[k], bool) or not isinstance(compare[k], int) or compare[k] < 0):
+                raise ValueError(f"adaptation state: {k!r} must be an integer >= 0, got {compare[k]!r}")
+        try:
+            weights = np.array(compare.get("compare_weights", []), dtype=np.float64) if compare else None
+        except (TypeError, ValueError):
+            weights = np.zeros(0)
+        if compare and (weights.shape != (self.n_features + 1,) or not np.isfinite(weights).all()):
+            raise ValueError(f"adaptation state: 'compare_weights' must be {self.n_features + 1} finite numbers")
+        for k in ("compare_sum_frozen_dph", "compare_sum_adapted_dph", "compare_gain", "compare_gain_sq",
+                  "compare_level_frozen_dph", "compare_level_adapted_dph"):
+            if k in compare and not (_finite(compare[k]) and (k != "compare_gain_sq" or compare[k] >= 0)):
+                raise ValueError(f"adaptation state: {k!r} must be a finite number (>= 0 for a mean square), "
+                                 f"got {compare[k]!r}")  # fmt: skip
         if d["n_features"] != self.n_features or isinstance(d["n_features"], bool):
             raise ValueError(f"adaptation state is for {d['n_features']!r} features, the model has {self.n_features}")
         try:
@@ -422,6 +542,12 @@ class OnlineReadout:
         self.bias_sum_dph = float(d["bias_sum_dph"])
         self.bias_dph = None if bias is None else float(bias)
         self.bias_count, self.blocks, self.gated_blocks, self.updates, self.guards = (int(v) for v in counts.values())
+        self._reset_comparison()
+        for k, v in compare.items():
+            if k == "compare_weights":
+                self._compare_w = weights
+            else:
+                setattr(self, k, v if k in ("compare_blocks", "compare_windows") else float(v))
 
     def save_state(self, path: str | Path, detector: StaticDetector | None = None) -> Path:
         """Write the state (and a static detector's, if given) as YAML; ``OutputFileError`` on failure."""

@@ -147,6 +147,9 @@ class Service:
             "bias_dph": self.bias_dph,
             "adapting": bool(self.compensator and self.compensator.reference_rate_dph is not None),
         }
+        online = self.compensator.online if self.compensator is not None else None
+        if online is not None:  # is the published drift the adapted weights' (the comparison guard's verdict)?
+            obj["adapted_in_use"] = online.adapted_in_use
         if self.hub is not None:
             obj["clients"] = self.hub.clients
             obj["dropped_clients"] = self.hub.dropped_clients

@@ -45,14 +45,17 @@ class Series:
         return self.rate_raw_dph - self.drift_dph
 
 
-def per_second(capture: Path, model_file: ModelFile, *, force: bool = False) -> Series:
-    """Block-average the capture and the drift the compensator applied, per device second."""
+def per_second(capture: Path, model_file: ModelFile, *, force: bool = False, adapt=None,
+               reference_rate_dph: float | None = None) -> Series:  # fmt: skip
+    """Block-average the capture and the drift the compensator applied, per device second (adapting
+    against ``reference_rate_dph`` when ``adapt``, an ``AdaptConfig``, is given)."""
     # 1-s blocks and the static mask (motion excluded); 2 min of warm-up is enough to evaluate
     data = load_capture(capture, FitConfig(warmup_s=EVALUATE_WARMUP_S))
     sums: list[np.ndarray] = []
     counts: list[np.ndarray] = []
     first = None
-    for _, cols in compensate_capture(capture, model_file, force=force, model_name="the model"):
+    for _, cols in compensate_capture(capture, model_file, force=force, model_name="the model", adapt=adapt,
+                                      reference_rate_dph=reference_rate_dph):  # fmt: skip
         if first is None:
             first = cols.t_s[0]
         second = np.floor(cols.t_s - first + 1e-9).astype(np.int64)
