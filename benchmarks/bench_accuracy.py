@@ -44,9 +44,9 @@ sys.path.insert(0, str(ROOT))
 
 from fog_driver.compensation.adapt import AdaptConfig  # noqa: E402
 from fog_driver.compensation.aflp import AflpFilter, AflpParams  # noqa: E402
-from fog_driver.compensation.apply import compensate_capture  # noqa: E402
 from fog_driver.compensation.fit import FitConfig, fit_model_file, load_capture  # noqa: E402
 from fog_driver.compensation.model import load_model, save_model  # noqa: E402
+from fog_driver.report.evaluate import per_second  # noqa: E402
 from fog_driver.sim.capture import read_truth, simulate_to_file, truth_noise_dph  # noqa: E402
 from fog_driver.sim.instrument import Simulator  # noqa: E402
 from fog_driver.sim.profiles import load_profile  # noqa: E402
@@ -64,24 +64,11 @@ def simulate(workdir: Path, profile: str, seed: int, rate_hz: int) -> Path:
     return out
 
 
-def per_second_drift(capture: Path, model_path: Path, adapt: AdaptConfig | None = None) -> tuple[np.ndarray, float]:
-    """The drift applied in each device second (mean over its frames) and the wall time it took (with
-    ``adapt``: adapting online against a known rate of 0, as ``compensate --adapt-reference 0``)."""
-    t0 = time.perf_counter()
-    sums: list[np.ndarray] = []
-    counts: list[np.ndarray] = []
-    first = None
+def per_second_drift(capture: Path, model_path: Path, adapt: AdaptConfig | None = None) -> np.ndarray:
+    """The drift applied in each device second (``evaluate.per_second``; with ``adapt``: adapting online
+    against a known rate of 0, as ``compensate --adapt-reference 0``)."""
     reference = None if adapt is None else 0.0
-    for _, cols in compensate_capture(capture, load_model(model_path), adapt=adapt, reference_rate_dph=reference):
-        if first is None:
-            first = cols.t_s[0]
-        second = np.floor(cols.t_s - first + 1e-9).astype(np.int64)
-        sums.append(np.bincount(second, weights=cols.drift_dph))
-        counts.append(np.bincount(second))
-    n = max(len(s) for s in sums)
-    total = sum(np.pad(s, (0, n - len(s))) for s in sums)
-    count = sum(np.pad(c, (0, n - len(c))) for c in counts)
-    return total / np.maximum(count, 1), time.perf_counter() - t0
+    return per_second(capture, load_model(model_path), adapt=adapt, reference_rate_dph=reference).drift_dph
 
 
 def minute_rms(x: np.ndarray) -> float:
@@ -151,15 +138,13 @@ def main() -> None:
         print()
         print(f"{'1-min drift RMS, deg/h':28s} {'before':>8s} {'noise':>8s} " + " ".join(f"{k:>10s}" for k in KINDS)
               + "   reduction (wesn)  wesn/poly  wesn/noise")  # fmt: skip
-        compensate_times = []
         for name, _seed, role, capture in tests:
             truth = read_truth(capture.with_suffix(".truth.csv"))
             before = minute_rms(truth["drift_dph"])
             floor = minute_rms(truth_noise_dph(truth))
             residual = {}
             for kind in KINDS:
-                drift, seconds = per_second_drift(capture, models[kind])
-                compensate_times.append(seconds)
+                drift = per_second_drift(capture, models[kind])
                 n = min(len(drift), len(truth["drift_dph"]))
                 residual[kind] = minute_rms(truth["drift_dph"][:n] - drift[:n])
             w, p = residual["wesn"], residual["polynomial"]
@@ -175,8 +160,8 @@ def main() -> None:
             name, seed, _ = TESTS[0]
             t0 = time.perf_counter()
             fast = simulate(workdir, name, seed, 1000)
-            d100, _ = per_second_drift(tests[0][3], models["wesn"])
-            d1k, _ = per_second_drift(fast, models["wesn"])
+            d100 = per_second_drift(tests[0][3], models["wesn"])
+            d1k = per_second_drift(fast, models["wesn"])
             n = min(len(d100), len(d1k))
             rel = float(np.sqrt(np.mean((d1k[:n] - d100[:n]) ** 2)) / np.sqrt(np.mean(d100[:n] ** 2)))
             print(f"wesn fitted at {args.rate_hz} Hz applied to a 1 kHz capture of the same {name} run: drift estimates "
@@ -189,7 +174,7 @@ def main() -> None:
         pair_path = save_model(workdir / "wesn-paper+fast.yaml", pair)
         fit_s = time.perf_counter() - t0
         truth = read_truth(tests[1][3].with_suffix(".truth.csv"))
-        drift, _ = per_second_drift(tests[1][3], pair_path)
+        drift = per_second_drift(tests[1][3], pair_path)
         n = min(len(drift), len(truth["drift_dph"]))
         print(f"wesn fitted on paper + fast-ramps together (coil lag {pair.provenance['selection']['coil_lag_s']:g} s, "
               f"{fit_s:.1f} s), on soak-cycle: {minute_rms(truth['drift_dph'][:n] - drift[:n]):.4f} deg/h; "
@@ -205,7 +190,7 @@ def main() -> None:
                 truth = read_truth(capture.with_suffix(".truth.csv"))
                 scores = []
                 for adapt in (None, AdaptConfig()):
-                    drift, _ = per_second_drift(capture, model_path, adapt)
+                    drift = per_second_drift(capture, model_path, adapt)
                     n = min(len(drift), len(truth["drift_dph"]))
                     scores.append(minute_rms(truth["drift_dph"][:n] - drift[:n]))
                 print(f"adapting (--adapt-reference 0), {label}, on {name}: {scores[0]:.4f} frozen -> "
