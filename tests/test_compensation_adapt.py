@@ -365,7 +365,9 @@ def test_config_validation_and_round_trip():
     c = AdaptConfig(runaway_dph=1.5, bias_capture_s=0.0)
     assert AdaptConfig.from_dict(yaml.safe_load(yaml.safe_dump(c.to_dict()))) == c
     for bad in ({"runaway_dph": 0.0}, {"static_window_s": float("nan")}, {"bias_capture_s": -1.0},
-                {"static_threshold_dph": True}):  # fmt: skip
+                {"static_threshold_dph": True}, {"compare_window_s": 0.0}, {"compare_window_s": float("inf")},
+                {"compare_memory_windows": 0.5}, {"compare_memory_windows": float("nan")},
+                {"compare_min_windows": -1}, {"compare_min_windows": 2.0}, {"compare_min_windows": True}):  # fmt: skip
         with pytest.raises(ValueError):
             AdaptConfig(**bad)
     with pytest.raises(ValueError):
@@ -478,3 +480,10 @@ def test_a_state_saved_before_the_comparison_existed_still_loads():
         again.load_state({**old, "compare_windows": 3})
     with pytest.raises(ValueError, match="compare_gain_sq"):
         again.load_state({**state, "compare_gain_sq": -1.0})
+    n = len(state["compare_weights"])
+    for key, bad in (("compare_weights", [0.0] * (n - 1)), ("compare_weights", [float("nan")] * n),
+                     ("compare_weights", "abc"), ("compare_blocks", -1), ("compare_windows", True),
+                     ("compare_gain", float("inf")), ("compare_level_frozen_dph", "1.0")):  # fmt: skip
+        with pytest.raises(ValueError, match=key):
+            again.load_state({**state, key: bad})
+        assert again.state_dict() == state  # a refused state leaves the readout as it was
