@@ -111,7 +111,7 @@ def score_instrument(seed: int, kinds: tuple[str, ...], rate_hz: int, workdir: P
         noise = truth_noise_dph(truth)
         for kind in (*kinds, *adapting):
             if kind.endswith("+adapt"):  # the table is still between moves: adapt against a known rate of 0
-                series = per_second(path, models[kind[:-6]], adapt=AdaptConfig(), reference_rate_dph=0.0)
+                series = per_second(path, models[kind.removesuffix("+adapt")], adapt=AdaptConfig(), reference_rate_dph=0.0)
             else:
                 series = per_second(path, models[kind])
             n = min(len(series.drift_dph), len(truth["drift_dph"]))
@@ -178,7 +178,7 @@ def summarize_adapting(results: list[dict]) -> None:
     """What adapting online adds over the frozen model on the scoring runs, per instrument (r adapting / r frozen)."""
     print("\nadapting online against a known rate of 0 on the scoring runs (1-min RMS adapting / frozen):")
     for name in results[0]["adapting"]:
-        frozen = name[: -len("+adapt")]
+        frozen = name.removesuffix("+adapt")
         ratio = np.array([x["r"][name] / x["r"][frozen] for x in results])
         worse = [x["seed"] for x, v in zip(results, ratio) if v > 1.02]
         print(f"  {frozen:12s} median {np.median(ratio):.2f}x, best {ratio.min():.2f}x, worst {ratio.max():.2f}x; "
