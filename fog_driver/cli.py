@@ -215,7 +215,9 @@ def cmd_fit(args: argparse.Namespace) -> int:
     if selection and model_file.kind == kind:
         history = (f"history neurons {', '.join(f'{v:g}' for v in selection['history_s'])} s at "
                    f"{selection['history_penalty']:g}x the penalty") if selection["history_s"] else "no history neurons"
-        print(f"structure chosen from the data: coil lag {selection['coil_lag_s']:g} s, ridge penalty "
+        order = selection.get("coil_order", 1)
+        stages = f" in {order} stages" if order > 1 else ""
+        print(f"structure chosen from the data: coil lag {selection['coil_lag_s']:g} s{stages}, ridge penalty "
               f"{selection['ridge_alpha']:g}, {history}"
               f"{'' if selection['state_powers'] else ', linear in the coil temperature'}")  # fmt: skip
         for note in selection.get("limits", []):

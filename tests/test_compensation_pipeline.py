@@ -142,17 +142,21 @@ def test_bad_model_files_are_one_line_errors(model_path, tmp_path, mutate, needl
 
 
 @pytest.mark.determinism
-def test_wesn_start_is_a_fixed_point_and_step_equals_run():
+@pytest.mark.parametrize("order, coil_rate", [(1, False), (1, True), (2, True), (3, False), (3, True)])
+def test_wesn_start_is_a_fixed_point_and_step_equals_run(order, coil_rate):
     from fog_driver.compensation.wesn import WESN_DEFAULTS, WesnModel, n_regressors
 
-    reservoir = WESN_DEFAULTS.reservoir(1.0, 240.0)
+    reservoir = WESN_DEFAULTS.reservoir(1.0, 240.0, order)
     w_in = reservoir.matrices.w_in
     assert np.all(w_in[:, 2:] == 0) and np.array_equal(w_in[:, 0], w_in[:, 1])  # the ring mean only
-    assert reservoir.params.leaks().tolist() == [1 / 240, 1 / 1800, 1 / 3600, 1 / 7200]
-    assert reservoir.contraction_bound < 1
-    n = n_regressors(4, "physical", 1)
-    assert n == 4 + 2 + 5
-    model = WesnModel("wesn", reservoir, np.linspace(-1, 1, n), 0.25, "physical", 1)
+    assert reservoir.params.leaks().tolist() == [order / 240, 1 / 1800, 1 / 3600, 1 / 7200] + [order / 240] * (order - 1)
+    if order == 1:
+        assert reservoir.contraction_bound < 1
+    else:  # the coil (neuron 0) integrates the last inner stage, which the wavelet does not drive
+        assert reservoir.params.chain_from[0] == 3 + order - 1 and not w_in[0].any()
+    n = n_regressors(3 + order, "physical", 1, coil_rate=coil_rate)
+    assert n == 3 + order + 2 + coil_rate + 5
+    model = WesnModel("wesn", reservoir, np.linspace(-1, 1, n), 0.25, "physical", 1, coil_rate=coil_rate)
     z0 = np.array([0.5, -0.2, 1.0, 0.1, 0.0, -0.3, 0.7, -0.5])
     model.start(z0)
     before = model.reservoir.x
@@ -165,6 +169,14 @@ def test_wesn_start_is_a_fixed_point_and_step_equals_run():
     model.start(zs[0])
     ran = np.r_[model.run(zs[:123]), model.run(zs[123:])]
     assert stepped == ran.tolist()
+    if coil_rate:  # the coil's rate regressor is the coil's own increment per second (Ts = 1 s here)
+        model.start(zs[0])
+        x = model.reservoir.run(zs)
+        rate, increment = model.coil_rate_of(x, zs), np.diff(x[:, 0])
+        if order == 1:  # leak (Psi(n) - x(n)) = (1 - Ts leak) (x(n) - x(n-1)) / Ts
+            np.testing.assert_allclose(rate[1:], (1.0 - 1.0 / 240.0) * increment, rtol=1e-9, atol=1e-15)
+        else:  # leak (x_inner(n) - x(n)) = (x(n+1) - x(n)) / Ts: the stage's next step
+            np.testing.assert_allclose(rate[:-1], increment, rtol=1e-9, atol=1e-15)
 
 
 def test_compensate_refuses_another_instruments_model_unless_forced(model_path, tmp_path):

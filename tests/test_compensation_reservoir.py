@@ -445,3 +445,86 @@ def test_paper_form_without_the_echo_state_property_depends_on_rate_and_initial_
     _, ref = _continuous_run(params, 0.1, 3000.0)
     _, coarse = _continuous_run(params, 1.0, 3000.0)
     assert (np.abs(coarse - ref[9::10]) / np.abs(ref).max(axis=0)).max() > 0.5
+
+
+# --- the linear cascade (the ring form's coil of several stages) ------------------------------------
+
+
+def _cascade(order: int, stage_s: float, ts: float = 0.1, n_inputs: int = 1) -> WaveletReservoir:
+    """Neuron 0 driven by the wavelet, neurons 1..order-1 each integrating the one before."""
+    chain = tuple([-1] + list(range(order - 1)))
+    params = ReservoirParams(n_neurons=order, n_inputs=n_inputs, sample_time_s=ts, leak_per_s=1.0 / stage_s,
+                             spectral_radius=0.0, chain_from=chain if order > 1 else (),
+                             translation_range=(0.0, 0.0), dilation_range=(1.0, 1.0))  # fmt: skip
+    w_in = np.zeros((order, n_inputs))
+    w_in[0, 0] = 1.0
+    zeros = np.zeros(order)
+    return WaveletReservoir(params, ReservoirMatrices(w_in, np.zeros((order, order)), zeros, np.ones(order), zeros))
+
+
+@pytest.mark.parametrize("order", [1, 2, 3])
+def test_a_cascade_steps_like_m_first_order_lags_in_series(order):
+    """The step response of m equal stages of time constant T is the Erlang one,
+    ``1 - exp(-t/T) sum_{k<m} (t/T)^k / k!`` (closed form of the continuous cascade; Euler at Ts = T/1000
+    and the one-sample delay per stage stay within 2e-3 of it)."""
+    stage_s, ts = 100.0, 0.1
+    res = _cascade(order, stage_s, ts)
+    level = float(psi(np.array([0.3]))[0])
+    x = res.run(np.full((6000, 1), 0.3))  # 600 s
+    t = ts * np.arange(1, 6001) / stage_s
+    erlang = 1.0 - np.exp(-t) * sum(t**k / math.factorial(k) for k in range(order))
+    assert np.abs(x[:, order - 1] / level - erlang).max() < 2e-3
+    assert x[-1, order - 1] / level > 0.9 * erlang[-1]
+
+
+@pytest.mark.determinism
+@pytest.mark.parametrize("cuts", [(1,), (7, 300), (2999,)])
+def test_a_cascade_runs_as_it_steps_in_any_chunks(cuts):
+    """A cascade keeps ``run`` on its fast path (no recurrence): the same bits as ``step``, chunks alike."""
+    res = _cascade(3, 40.0, 1.0, n_inputs=8)
+    assert not res._recurrent and res._chained
+    u = _inputs(3, 3000, 8)
+    u[100] = np.nan  # a skipped row holds every stage
+    one = _cascade(3, 40.0, 1.0, 8)
+    stepped = np.array([one.step(row) for row in u])
+    pieces, start = [], 0
+    for cut in (*cuts, len(u)):
+        pieces.append(res.run(u[start:cut]))
+        start = cut
+    assert np.vstack(pieces).tobytes() == stepped.tobytes()
+    assert res.state.x.tobytes() == one.state.x.tobytes()
+    assert stepped[100].tobytes() == stepped[99].tobytes()
+
+
+def test_a_cascade_stays_inside_its_bound_and_forgets_its_start():
+    res = _cascade(3, 30.0, 1.0)
+    assert res.bounds.tolist() == pytest.approx([PSI_MAX, 2 * PSI_MAX, 3 * PSI_MAX])
+    a, b = _cascade(3, 30.0, 1.0), _cascade(3, 30.0, 1.0)
+    b.set_state(ReservoirState(np.array([0.6, -1.2, 1.8])))
+    u = _inputs(8, 3000, 1, 3.0)
+    xa, xb = a.run(u), b.run(u)
+    assert (np.abs(xa) <= res.bounds).all() and (np.abs(xb) <= res.bounds + 1e-12).all()
+    assert np.abs(xa[-1] - xb[-1]).max() < 1e-9  # triangular with decays < 1: the echo-state property
+
+
+@pytest.mark.parametrize(
+    "chain",
+    [(0, -1), (1, 0), (-1, 2), (-1, 0.5), (-1,), (-1, True)],
+)
+def test_bad_cascades_are_rejected(chain):
+    """A stage of itself, a loop, an index out of range, a non-integer, the wrong length."""
+    with pytest.raises(ValueError, match="chain_from"):
+        ReservoirParams(n_neurons=2, chain_from=chain)
+
+
+def test_a_cascade_needs_the_normalized_leak_and_round_trips_its_file():
+    with pytest.raises(ValueError, match="normalized"):
+        ReservoirParams(n_neurons=2, chain_from=(-1, 0), normalized_leak=False)
+    res = _cascade(3, 50.0, 1.0)
+    d = yaml.safe_load(yaml.safe_dump(res.to_dict()))
+    assert d["params"]["chain_from"] == [-1, 0, 1]
+    loaded = WaveletReservoir.from_dict(d)
+    assert loaded.params == res.params
+    u = _inputs(2, 200, 1)
+    assert loaded.run(u).tobytes() == res.run(u).tobytes()
+    assert "chain_from" not in _cascade(1, 50.0, 1.0).to_dict()["params"]  # no cascade: the file as before

@@ -40,16 +40,20 @@ def staircase(step_c: float, ramp_c_per_min: float, hold_s: int, steps: int) -> 
     return np.concatenate(air)
 
 
-def synthetic_capture(coil_lag_s: float, air: np.ndarray, seed: int = 1, noise_dph: float = 0.02):
-    """Block data of an instrument whose coil lags the ring by ``coil_lag_s``; drift cubic in the coil
-    temperature plus a Shupe term on its own rate; white noise on the target, 1/256-degC readings."""
+def synthetic_capture(coil_lag_s: float, air: np.ndarray, seed: int = 1, noise_dph: float = 0.02,
+                      stages: tuple[float, ...] | None = None):  # fmt: skip
+    """Block data of an instrument whose coil lags the ring by ``coil_lag_s`` (or through first-order
+    ``stages`` in series); drift cubic in the coil temperature plus a Shupe term on its own rate; white
+    noise on the target, 1/256-degC readings."""
     rng = np.random.default_rng(seed)
     ring = lagged(air, 300.0)
     top, bottom = ring + 0.2, ring - 0.1 * (air - ring)  # a gradient that lives on after a ramp
     housing = lagged(air, 240.0) + 2.0
     temps = np.round(np.column_stack([top, bottom, housing]) * 256) / 256
     inputs, flags = FeatureExtractor().run(temps)
-    coil = lagged(0.5 * (top + bottom), coil_lag_s)
+    coil = 0.5 * (top + bottom)
+    for stage_s in stages or (coil_lag_s,):
+        coil = lagged(coil, stage_s)
     rate_c_per_min = 60.0 * np.gradient(coil)
     drift = 0.004 * (coil - 20) + 1.5e-4 * (coil - 20) ** 2 - 2e-6 * (coil - 20) ** 3 + 0.15 * rate_c_per_min
     target = drift + noise_dph * rng.standard_normal(len(drift))
@@ -65,9 +69,23 @@ def test_the_fit_finds_a_known_coil_lag(coil_lag_s):
     model = fit_wesn("wesn", WESN_DEFAULTS, [capture], fit_normalizer([capture]), FitConfig())
     chosen = model.selection["coil_lag_s"]
     assert abs(math.log(chosen / coil_lag_s)) <= math.log(1.25) + 1e-9, (chosen, model.selection["lag_rms_1min_dph"])
+    assert model.selection["coil_order"] == 1, model.selection["order_rms_1min_dph"]
     assert model.selection["ridge_alpha"] in WESN_DEFAULTS.ridge_alpha_grid
     assert model.max_power == 4 and model.linear_path == "levels"
     assert "warning" not in model.selection
+
+
+@pytest.mark.parametrize("stages", [(279.4, 279.4), (186.3, 186.3, 186.3), (1200.0, 300.0)])
+def test_the_fit_finds_a_coil_of_several_stages(stages):
+    """A coil of two or three first-order stages in series: the fit takes a cascade (order 2 or 3) with
+    about the right mean delay, and it explains the run better than any single lag does."""
+    capture = synthetic_capture(0.0, staircase(5.0, 1.0, 900, 7), stages=stages)
+    model = fit_wesn("wesn", WESN_DEFAULTS, [capture], fit_normalizer([capture]), FitConfig())
+    s = model.selection
+    assert s["coil_order"] >= 2, s["order_rms_1min_dph"]
+    assert abs(math.log(s["coil_lag_s"] / sum(stages))) <= math.log(1.25**1.5), s["coil_lag_s"]
+    assert s["order_rms_1min_dph"][s["coil_order"]] < 0.99 * s["order_rms_1min_dph"][1]
+    assert model.reservoir.params.chain_from and model.coil_rate
 
 
 def test_history_neurons_enter_under_their_prior():

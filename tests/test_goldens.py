@@ -45,6 +45,9 @@ def test_the_golden_models_are_of_their_kind_and_fitted_on_the_short_fixture():
         doc = yaml.safe_load(make_goldens.model_path(kind).read_text())
         assert doc["kind"] == kind
         assert doc["provenance"]["captures"][0]["file"] == make_goldens.FIT_CAPTURE.name
+    cascade = yaml.safe_load(make_goldens.model_path("wesn-cascade").read_text())
+    assert cascade["kind"] == "wesn" and cascade["model"]["coil_rate"] is True
+    assert cascade["model"]["reservoir"]["params"]["chain_from"][0] >= 0  # the coil integrates an inner stage
 
 
 @pytest.mark.parametrize("name", make_fixtures.SIM_FIXTURES)

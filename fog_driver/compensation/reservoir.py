@@ -171,6 +171,13 @@ class ReservoirParams:
     * ``density``: fraction of nonzero entries of ``w``, in [0, 1].
     * ``dilation_range``: s_i uniform in it, low > 0; ``translation_range``: t_i uniform in it.
     * ``seed``: the one seed every matrix is drawn from.
+    * ``chain_from``: a linear cascade beside the wavelets, ``x_i(n) = (1 - Ts leak_i) x_i(n-1) +
+      Ts leak_i (Psi(v_i) + x_c(n-1))`` with ``c = chain_from[i]`` (-1: no upstream neuron): the ring
+      form's coil of several first-order stages in series (``wesn.WesnConfig.reservoir``).  The
+      upstream state is the previous sample's (one sample of delay against time constants of
+      minutes), so a row's update stays elementwise.  The cascade must be acyclic; it keeps the
+      echo-state property (its matrix is triangular with the decays on the diagonal) although
+      ``contraction_bound`` (an infinity-norm bound) reaches 1 for a chained neuron.
     """
 
     n_neurons: int = 20
@@ -185,6 +192,9 @@ class ReservoirParams:
     dilation_range: tuple[float, float] = (1.0, 3.0)
     translation_range: tuple[float, float] = (-1.0, 1.0)
     seed: int = 0
+    #: Linear cascade: ``chain_from[i]`` is the neuron whose previous state neuron i also integrates, -1 for
+    #: none; () for no cascade (see the class docstring).  Normalized form only; acyclic.
+    chain_from: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         for name in ("n_neurons", "n_inputs"):
@@ -219,6 +229,17 @@ class ReservoirParams:
         if not _is_int(self.seed) or self.seed < 0:
             raise ValueError(f"seed must be an integer >= 0, got {self.seed!r}")
         object.__setattr__(self, "seed", int(self.seed))
+        chain = self.chain_from
+        if not isinstance(chain, (list, tuple)) or (chain and len(chain) != self.n_neurons) or not all(
+                _is_int(c) and -1 <= c < self.n_neurons and c != i for i, c in enumerate(chain)):  # fmt: skip
+            raise ValueError(f"chain_from: need () or {self.n_neurons} neuron indices (-1 for none, never the neuron "
+                             f"itself), got {chain!r}")  # fmt: skip
+        chain = tuple(int(c) for c in chain)
+        if chain and not self.normalized_leak:
+            raise ValueError("chain_from needs the normalized leak")
+        if any(chain_depth(chain, i) is None for i in range(len(chain))):
+            raise ValueError(f"chain_from: the cascade must not loop, got {chain!r}")
+        object.__setattr__(self, "chain_from", chain)
 
     def leaks(self) -> np.ndarray:
         """The leak rate of each neuron, shape (n_neurons,)."""
@@ -227,10 +248,15 @@ class ReservoirParams:
         return np.full(self.n_neurons, float(self.leak_per_s))
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain ints, floats, bools and lists: safe for ``yaml.safe_dump``, exact."""
+        """Plain ints, floats, bools and lists: safe for ``yaml.safe_dump``, exact.  No cascade: no
+        ``chain_from`` key (the file of a reservoir without one is as before the cascade existed)."""
         d: dict[str, Any] = {}
         for f in fields(self):
             v = getattr(self, f.name)
+            if f.name == "chain_from":
+                if v:
+                    d[f.name] = list(v)
+                continue
             d[f.name] = [float(x) for x in v] if isinstance(v, tuple) else v
         return d
 
@@ -240,6 +266,16 @@ class ReservoirParams:
         require_known_keys(cls, d, "reservoir params")
         d = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
         return cls(**d)
+
+
+def chain_depth(chain: Sequence[int], i: int) -> int | None:
+    """How many neurons lie upstream of neuron i in the cascade ``chain`` (None: a loop)."""
+    depth = 0
+    while chain and chain[i] >= 0:
+        i, depth = chain[i], depth + 1
+        if depth > len(chain):
+            return None
+    return depth
 
 
 @dataclass(frozen=True, eq=False)
@@ -369,6 +405,11 @@ class WaveletReservoir:
         self._recurrent = bool((mat.w != 0).any())  # W = 0 (the ring form): W x is 0, not computed
         self._decay = 1.0 - ts * leaks  # (1 - Ts leak), per neuron
         self._gain = ts * leaks if self.params.normalized_leak else np.full(self.params.n_neurons, ts)
+        chain = self.params.chain_from
+        self._chained = any(c >= 0 for c in chain)
+        if self._chained:  # x_c(n-1) for chained neurons; unchained ones read themselves, times 0
+            self._chain_src = np.array([c if c >= 0 else i for i, c in enumerate(chain)])
+            self._chain_gain = np.where(np.array(chain) >= 0, self._gain, 0.0)
         self.set_state(state if state is not None else ReservoirState.zeros(self.params.n_neurons))
 
     # --- state -----------------------------------------------------------------------------------
@@ -398,16 +439,19 @@ class WaveletReservoir:
 
     @property
     def bounds(self) -> np.ndarray:
-        """The invariant bound on |x_i|: ``e^-1/2 / leak_i`` (paper form) or ``e^-1/2`` (normalized)."""
+        """The invariant bound on |x_i|: ``e^-1/2 / leak_i`` (paper form) or ``e^-1/2`` (normalized), times
+        one plus the number of neurons upstream in a cascade."""
         if self.params.normalized_leak:
-            return np.full(self.params.n_neurons, PSI_MAX)
+            chain = self.params.chain_from
+            return np.array([PSI_MAX * (1 + chain_depth(chain, i)) for i in range(self.params.n_neurons)])
         return PSI_MAX / self.params.leaks()
 
     @property
     def contraction_bound(self) -> float:
         """c of ``||xa(n) - xb(n)||_inf <= c^n ||xa(0) - xb(0)||_inf``; < 1 guarantees the echo-state property."""
         row = np.abs(self._w).sum(axis=1) / self._s
-        return float((self._decay + self._gain * row).max())
+        chain = self._chain_gain if self._chained else 0.0
+        return float((self._decay + self._gain * row + chain).max())
 
     # --- stepping --------------------------------------------------------------------------------
 
@@ -429,6 +473,8 @@ class WaveletReservoir:
             z += self._w_back * y
         new = self._decay * x
         new += self._activation(z)
+        if self._chained:
+            new += self._chain_gain * x[self._chain_src]
         if not math.isfinite(new.sum()):
             return False
         self._x = new
@@ -442,9 +488,13 @@ class WaveletReservoir:
         products = inputs.T[:, :, None] * self._w_in.T[:, None, :]  # (n_inputs, T, n_neurons)
         drive = self._activation(numerics.sum_first(products))  # (T, n_neurons)
         x, last_ok = self._x, None
+        chained, chain_gain = self._chained, (self._chain_gain if self._chained else None)
+        chain_src = self._chain_src if chained else None
         for k in range(len(inputs)):
             new = self._decay * x
             new += drive[k]
+            if chained:
+                new += chain_gain * x[chain_src]
             if math.isfinite(new.sum()):
                 x, last_ok = new, k
             out[k] = x

@@ -14,24 +14,29 @@ Kinds (``fog-driver fit --kind``):
   down, found on a population of simulated instruments (``fog_driver.sim.population``; development
   seeds only, ``benchmarks/bench_population.py``), scored on profiles never fitted on.  Wavelet
   neurons near their linear regime (translation 0, dilation 1, small inputs, normalized leak, no
-  recurrence, no feedback) that integrate the ring mean R: one at the coil's lag, the "coil neuron",
-  whose powers 2..4 enter the readout (the bias is a smooth but not necessarily cubic function of
-  the coil's temperature), and three at 30 min, 1 h and 2 h (thermal history); beside them the
-  levels R, top-bottom gradient and housing offset (``polynomial.level_features``).  The coil's own
-  rate, which carries its Shupe and radial-gradient terms, is ``(R - x) / tau``: in the readout's
-  span, so no ring-rate input is needed, and none is given (a ring rate lets a fit fake a wrong
-  coil lag on slow ramps, which then fails on fast ones).  Ridge regression on standardized
-  regressors with an unpenalized intercept.
+  recurrence, no feedback) that integrate the ring mean R (in degC, ``ring_weights_for``): the "coil
+  neuron" at the coil's lag, as one first-order stage or as two or three equal stages in series
+  (``ReservoirParams.chain_from``: a coil is a distributed thermal body, heat reaches the fiber's
+  inner layers through its outer ones), whose powers 2..4 enter the readout (the bias is a smooth but
+  not necessarily cubic function of the coil's temperature), and three at 30 min, 1 h and 2 h
+  (thermal history); beside them the levels R, top-bottom gradient and housing offset
+  (``polynomial.level_features``) and the coil's own rate (``WesnModel.coil_rate_of``), which
+  carries its Shupe and radial-gradient terms.  The coil's rate, ``(R - x) / tau``, is in the span
+  of R and the coil neuron already, but only as a small difference of two large weights, which the
+  ridge penalty shrinks: given as a regressor of its own, the penalty leaves it alone.  No ring rate
+  is given (a ring rate lets a fit fake a wrong coil lag on slow ramps, which then fails on fast
+  ones).  Ridge regression on standardized regressors with an unpenalized intercept.
 
   Fitting (``_fit_ring_form``), everything from the fit data alone:
 
   0. the structure cut down to what the data can identify (``identifiable_structure``: lags up to a
      tenth of the longest capture, history up to a third, the bias powers only over 5 degC), each
      cut said in ``selection["limits"]``;
-  1. the coil lag, from ``COIL_LAG_GRID_S`` (60 s to 87 min, 25 % apart), by the smallest in-sample
-     residual in 1-minute means of the model WITHOUT the history neurons (with them, the fit can
-     shape a multi-stage coil's response out of history neurons and then evaluate the bias
-     powers at the wrong lag);
+  1. the coil: its lag (mean delay) from ``COIL_LAG_GRID_S`` (60 s to 87 min, 25 % apart) and its
+     number of stages (1, 2 or 3), by the smallest in-sample residual in 1-minute means of the model
+     WITHOUT the history neurons (with them, the fit can shape a multi-stage coil's response out of
+     history neurons and then evaluate the bias powers at the wrong lag); more stages only when they
+     beat fewer by ``ORDER_TOLERANCE`` (1 %): each adds a regressor;
   2. the ridge penalty, from ``ridge_alpha_grid``, by blocked cross-validation (4 contiguous
      folds, 10-minute means of the held-out residual), each penalty with its own lag;
   3. the final fit with the history neurons, whose penalty is ``history_penalty`` (100) times the
@@ -48,9 +53,16 @@ Kinds (``fog-driver fit --kind``):
   selection were all tried on the development population and each traded one failure for
   another; the simple criterion above was the most robust.
 
-  The earlier ring form (one lag up to 16 min, powers 2..3, history neurons at the same penalty, a
+  The first ring form (one lag up to 16 min, powers 2..3, history neurons at the same penalty, a
   linear path with rates) reached 98 % on the default simulated instrument and 0.45x the
-  polynomial's excess drift (median) but 2.96x (worst) on the population; this one 0.28x and 0.45x.
+  polynomial's excess drift (median) but 2.96x (worst) on the population; the second (one stage,
+  no coil-rate regressor) 0.29x and 1.58x on development instruments 0..71, its 1-min RMS 1.19x the
+  noise floor (median) and 5.15x (worst); this one, with the cascade and the coil's rate, 0.26x and
+  1.75x, 1.17x and 3.62x (better than the second by more than 3 % on 24 instruments, worse on 11;
+  the cascade made the gains, on coils of two or three stages, the largest 0.082 -> 0.037 deg/h).
+  Its misses are coils whose lag one paper run cannot pin down: on the worst, a single 171-s stage,
+  every lag from 60 s to 18 min explains the run within 1.5 %, the fit takes 873 s, and on fast
+  ramps leaves 0.050 deg/h where the true lag would leave 0.026.
   ``fit.own_validation`` then compares it with the polynomial on the fit's own validation split, and
   ``fog-driver fit`` without ``--kind`` saves the polynomial when the wesn does worse there.
   Random reservoirs over all eight inputs fit the training profile's history and extrapolate worse
@@ -97,6 +109,8 @@ _SETTLE_ITERATIONS = 400
 COIL_LAG_GRID_S = tuple(round(60.0 * 1.25**k, 1) for k in range(21))
 #: Lags whose in-sample residual is within this fraction of the best explain a capture equally well.
 LAG_TIE_TOLERANCE = 0.002
+#: A coil of more stages is chosen only when its in-sample residual beats the fewer stages' by this fraction.
+ORDER_TOLERANCE = 0.01
 #: What a fit can identify: coil lags up to this fraction of its longest capture, history neurons up to
 #: HISTORY_FRACTION of it, and the bias curve's powers only over a ring temperature span of MIN_SPAN_C.
 LAG_FRACTION = 0.1
@@ -114,9 +128,10 @@ _LINEAR_PATHS = {
 }
 
 
-def n_regressors(n_neurons: int, linear_path: str, state_powers: int, max_power: int = 3) -> int:
+def n_regressors(n_neurons: int, linear_path: str, state_powers: int, max_power: int = 3,
+                 coil_rate: bool = False) -> int:  # fmt: skip
     path = _LINEAR_PATHS[linear_path]
-    return n_neurons + (max_power - 1) * state_powers + (path[1] if path else 0)
+    return n_neurons + (max_power - 1) * state_powers + int(coil_rate) + (path[1] if path else 0)
 
 
 @dataclass(frozen=True)
@@ -133,6 +148,8 @@ class WesnConfig:
     dilation_range: tuple[float, float] = (1.0, 1.0)
     ring_input: bool = True  #: every neuron integrates the ring mean R = (T1 + T2) / 2 only
     fiber_lag_grid_s: tuple[float, ...] = COIL_LAG_GRID_S  #: the coil neuron's candidate lags
+    coil_orders: tuple[int, ...] = (1, 2, 3)  #: the coil's candidate numbers of equal stages in series
+    coil_rate: bool = True  #: ring form: the coil's own rate joins the regressors (``WesnModel.coil_rate_of``)
     history_s: tuple[float, ...] = (1800.0, 3600.0, 7200.0)
     #: The history neurons' ridge penalty, as a multiple of the others' (module docstring: the prior).
     history_penalty: float = 100.0
@@ -150,20 +167,40 @@ class WesnConfig:
     adaptive_epochs: int = 3
     aflp_target: bool = False  #: fit to the stage-1 filtered drift instead of the raw one
 
-    def reservoir(self, sample_time_s: float, fiber_lag_s: float | None = None) -> WaveletReservoir:
-        """The ring form (``ring_input``): neuron 0 lags R by ``fiber_lag_s``, the others by ``history_s``;
-        no recurrence, translation 0, dilation 1: each neuron a leaky memory of R near Psi's linear regime.
+    def reservoir(self, sample_time_s: float, fiber_lag_s: float | None = None, coil_order: int = 1,
+                  ring_weights: tuple[float, float] = (0.5, 0.5)) -> WaveletReservoir:
+        """The ring form (``ring_input``): neuron 0, the coil, lags R by ``fiber_lag_s``, the history neurons
+        1..H by ``history_s``; no recurrence, translation 0, dilation 1: each neuron a leaky memory of R near
+        Psi's linear regime.  Each neuron's input is ``input_scale (w_top z_top + w_bottom z_bottom)``
+        on the standardized thermometers, ``ring_weights`` (w_top, w_bottom): ``ring_weights_for`` makes
+        it the ring mean in degC, whatever the two thermometers' spreads.  ``coil_order`` m > 1: the coil is m equal first-order stages in series, each
+        of ``fiber_lag_s / m`` (the same mean delay), the first m - 1 appended as neurons H+1..H+m-1
+        (outermost first) and the last one neuron 0 (``ReservoirParams.chain_from``):
+
+            s_1(n) = (1 - Ts m / tau) s_1(n-1) + (Ts m / tau) Psi(0.1 R),   s_k: the same of s_(k-1)(n-1)
+
         The random form: matrices drawn from ``seed`` (the paper's reservoir)."""
         if self.ring_input:
-            lags = (fiber_lag_s if fiber_lag_s is not None else self.fiber_lag_grid_s[0], *self.history_s)
+            lag = fiber_lag_s if fiber_lag_s is not None else self.fiber_lag_grid_s[0]
+            if isinstance(coil_order, bool) or not isinstance(coil_order, int) or not 1 <= coil_order <= 3:
+                raise ValueError(f"coil_order must be 1, 2 or 3, got {coil_order!r}")
+            h = len(self.history_s)
+            stage = lag / coil_order
+            lags = (stage, *self.history_s, *([stage] * (coil_order - 1)))
             n = len(lags)
+            chain = ()
+            if coil_order > 1:  # stage k (neuron h+k) integrates stage k-1; the coil (neuron 0) the last one
+                chain = tuple([n - 1] + [-1] * h + [-1] + [h + k for k in range(1, coil_order - 1)])
             params = ReservoirParams(
                 n_neurons=n, n_inputs=8, sample_time_s=sample_time_s, leak_per_s=tuple(1.0 / t for t in lags),
                 normalized_leak=True, spectral_radius=0.0, input_scale=self.input_scale, seed=self.seed,
-                translation_range=(0.0, 0.0), dilation_range=(1.0, 1.0),
+                translation_range=(0.0, 0.0), dilation_range=(1.0, 1.0), chain_from=chain,
             )  # fmt: skip
             w_in = np.zeros((n, 8))
-            w_in[:, 0] = w_in[:, 1] = 0.5 * self.input_scale
+            w_in[:, 0] = ring_weights[0] * self.input_scale
+            w_in[:, 1] = ring_weights[1] * self.input_scale
+            if coil_order > 1:
+                w_in[0] = 0.0  # the coil is driven by its inner stage only
             matrices = ReservoirMatrices(w_in, np.zeros((n, n)), np.zeros(n), np.ones(n), np.zeros(n))
             return WaveletReservoir(params, matrices)
         leaks = (1.0 / self.single_leak_s if self.single_leak_s else
@@ -195,7 +232,8 @@ class WesnModel:
     """
 
     def __init__(self, kind: str, reservoir: WaveletReservoir, weights: np.ndarray, intercept: float,
-                 linear_path: str = "none", state_powers: int = 0, max_power: int = 3) -> None:  # fmt: skip
+                 linear_path: str = "none", state_powers: int = 0, max_power: int = 3,
+                 coil_rate: bool = False) -> None:  # fmt: skip
         self.kind = kind
         self.reservoir = reservoir
         self.weights = np.asarray(weights, dtype=np.float64)
@@ -209,9 +247,19 @@ class WesnModel:
         if isinstance(max_power, bool) or not isinstance(max_power, int) or not 2 <= max_power <= 6:
             raise ValueError(f"{kind} model: max_power must be an integer 2..6, got {max_power!r}")
         self.max_power = max_power
+        if not isinstance(coil_rate, bool):
+            raise ValueError(f"{kind} model: coil_rate must be true or false, got {coil_rate!r}")
+        if coil_rate and (reservoir.matrices.w != 0).any():
+            raise ValueError(f"{kind} model: coil_rate needs a reservoir without recurrence (the ring form)")
+        self.coil_rate = coil_rate
+        chain = reservoir.params.chain_from
+        self._coil_source = chain[0] if chain else -1
+        self._coil_leak = float(reservoir.params.leaks()[0])
+        m = reservoir.matrices
+        self._coil_w_in, self._coil_t, self._coil_s = m.w_in[0].copy(), float(m.translation[0]), float(m.dilation[0])
         #: How the fit chose the structure (lag, penalty, scores), for the model file's provenance; None when loaded.
         self.selection: dict | None = None
-        expected = n_regressors(reservoir.params.n_neurons, linear_path, self.state_powers, max_power)
+        expected = n_regressors(reservoir.params.n_neurons, linear_path, self.state_powers, max_power, coil_rate)
         if self.weights.shape != (expected,):
             raise ValueError(f"{kind} model: {expected} weights expected, got {self.weights.shape}")
 
@@ -225,10 +273,28 @@ class WesnModel:
             for _ in range(2, self.max_power + 1):  # p^k = p^(k-1) p, left to right
                 power = power * p
                 parts.append(power)
+        if self.coil_rate:
+            parts.append(self.coil_rate_of(parts[0], z)[..., None])
         path = _LINEAR_PATHS[self.linear_path]
         if path is not None:
             parts.append(path[0](z))
         return np.concatenate(parts, axis=-1) if len(parts) > 1 else parts[0]
+
+    def coil_rate_of(self, x: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """The coil neuron's own rate of change (1/s, in its units), ``dx_0/dt = leak_0 (d - x_0)``, where d
+        is what it integrates: its upstream stage's state (a cascade) or its wavelet input
+        ``Psi((w_in,0 . z - t_0) / s_0)``.  The Shupe and radial-gradient terms are the coil's rate:
+        the readout could form it from x_0 and its input, but only as a small difference of two large,
+        nearly equal weights, which the ridge penalty shrinks (on a coil of known lag, 6x the residual
+        of the unpenalized fit); as its own regressor it costs the penalty nothing."""
+        if self._coil_source >= 0:
+            upstream = x[..., self._coil_source]
+        else:
+            v = numerics.dot(z, self._coil_w_in)
+            v = v - self._coil_t
+            v = v / self._coil_s
+            upstream = psi(np.asarray(v, dtype=np.float64))
+        return (upstream - x[..., 0]) * self._coil_leak
 
     def _output(self, f: np.ndarray) -> np.ndarray:
         return numerics.dot(f, self.weights) + self.intercept
@@ -283,6 +349,7 @@ class WesnModel:
             "linear_path": self.linear_path,
             "state_powers": self.state_powers,
             "max_power": self.max_power,
+            **({"coil_rate": True} if self.coil_rate else {}),
             "weights": [float(v) for v in self.weights],
             "intercept": self.intercept,
         }
@@ -291,7 +358,7 @@ class WesnModel:
     def from_dict_kind(cls, kind: str, d: dict) -> WesnModel:
         return cls(kind, WaveletReservoir.from_dict(d["reservoir"]), np.array(d["weights"], dtype=np.float64),
                    float(d["intercept"]), str(d["linear_path"]), int(d.get("state_powers", 0)),
-                   d.get("max_power", 3))  # fmt: skip
+                   d.get("max_power", 3), d.get("coil_rate", False))  # fmt: skip
 
 
 class WesnKind(WesnModel):
@@ -325,9 +392,13 @@ def settle(reservoir: WaveletReservoir, z: np.ndarray, output) -> None:
     y = 0.0
     drive = numerics.matvec(m.w_in, z) - m.translation
     feedback = (m.w_back != 0).any()
+    chain = np.array(p.chain_from if p.chain_from else [-1] * p.n_neurons)
+    chained = chain >= 0  # a cascade's rest: each stage at its upstream's state plus its own wavelet
     for _ in range(_SETTLE_ITERATIONS):
         v = (drive + numerics.matvec(m.w, x) + (m.w_back * y if feedback else 0.0)) / m.dilation
         new = np.clip(scale * psi(v), -PSI_MAX * scale, PSI_MAX * scale)
+        if chained.any():
+            new = new + np.where(chained, x[np.where(chained, chain, 0)], 0.0)
         x = 0.5 * x + 0.5 * new
         if feedback:
             y = output(x)
@@ -386,11 +457,13 @@ def fit_wesn(kind: str, defaults: WesnConfig, captures, normalizer, config) -> W
 def _fit_ring_form(kind: str, wc: WesnConfig, captures, normalizer, config) -> WesnModel:
     """The ring form's structure and penalty, chosen from the fit data (module docstring, "Fitting"):
 
-    1. for each penalty of ``ridge_alpha_grid``, the coil lag (``fiber_lag_grid_s``) whose fit
-       WITHOUT the history neurons leaves the smallest in-sample residual in 1-minute means;
-    2. of those (lag, penalty) pairs, the one with the smallest blocked cross-validation error
+    1. for each penalty of ``ridge_alpha_grid``, the coil (its lag from ``fiber_lag_grid_s`` and its
+       order from ``coil_orders``) whose fit WITHOUT the history neurons leaves the smallest in-sample
+       residual in 1-minute means; a higher order only when it beats the best lower one by more than
+       ``ORDER_TOLERANCE``;
+    2. of those (coil, penalty) pairs, the one with the smallest blocked cross-validation error
        (4 contiguous folds, 10-minute means of the held-out residual);
-    3. the final fit at that lag and penalty with the history neurons, penalized ``history_penalty``
+    3. the final fit at that coil and penalty with the history neurons, penalized ``history_penalty``
        times more.
     """
     rate = config.model_rate_hz
@@ -399,44 +472,55 @@ def _fit_ring_form(kind: str, wc: WesnConfig, captures, normalizer, config) -> W
     targets = [c.target_dph for c in captures]
     y_fit = np.concatenate([t[c.static] for t, c in zip(targets, captures)])
     groups = np.concatenate([np.full(int(c.static.sum()), i) for i, c in enumerate(captures)])  # fit.capture_groups
-    per_lag = {}
-    for lag in wc.fiber_lag_grid_s:
-        reservoir = wc.reservoir(1.0 / rate, lag)
-        n_features = n_regressors(reservoir.params.n_neurons, wc.linear_path, wc.state_powers, wc.max_power)
-        probe = WesnModel(kind, reservoir, np.zeros(n_features), 0.0, wc.linear_path, wc.state_powers, wc.max_power)
-        per_lag[lag] = (reservoir, [_capture_regressors(probe, c, normalizer, None) for c in captures])
-    no_history = np.r_[0, np.arange(1 + n_history, n_features)]  # every column but the history neurons'
+    per_coil = {}
+    weights = ring_weights_for(normalizer)
+    for order in wc.coil_orders:
+        for lag in wc.fiber_lag_grid_s:
+            reservoir = wc.reservoir(1.0 / rate, lag, order, weights)
+            n_features = n_regressors(reservoir.params.n_neurons, wc.linear_path, wc.state_powers, wc.max_power,
+                                      wc.coil_rate)  # fmt: skip
+            probe = WesnModel(kind, reservoir, np.zeros(n_features), 0.0, wc.linear_path, wc.state_powers,
+                              wc.max_power, wc.coil_rate)  # fmt: skip
+            regressors = [_capture_regressors(probe, c, normalizer, None) for c in captures]
+            no_history = np.r_[0, np.arange(1 + n_history, n_features)]  # every column but the history neurons'
+            per_coil[lag, order] = (reservoir, regressors, no_history)
     alphas = (wc.ridge_alpha,) if wc.ridge_alpha is not None else wc.ridge_alpha_grid
     minute = max(2, int(round(60 * rate)))
     choices = {}
     for alpha in alphas:
         criteria = {}
-        for lag, (_, regressors) in per_lag.items():
-            x = np.vstack([f[c.static][:, no_history] for f, c in zip(regressors, captures)])
+        for coil, (_, regressors, columns) in per_coil.items():
+            x = np.vstack([f[c.static][:, columns] for f, c in zip(regressors, captures)])
             w, b = standardized_ridge(x, y_fit, alpha, groups=groups)
-            residuals = [t - (f[:, no_history] @ w + b) for f, t in zip(regressors, targets)]
-            criteria[lag] = _averaged_residual(residuals, captures, minute)
-        lag = min(criteria, key=criteria.get)
-        tied = [other for other, v in criteria.items() if v <= criteria[lag] * (1.0 + LAG_TIE_TOLERANCE)]
-        x = np.vstack([f[c.static][:, no_history] for f, c in zip(per_lag[lag][1], captures)])
+            residuals = [t - (f[:, columns] @ w + b) for f, t in zip(regressors, targets)]
+            criteria[coil] = _averaged_residual(residuals, captures, minute)
+        coil = _chosen_coil(criteria)
+        best_of_order = {k: v for k, v in criteria.items() if k[1] == coil[1]}
+        tied = [lag for (lag, _), v in best_of_order.items() if v <= criteria[coil] * (1.0 + LAG_TIE_TOLERANCE)]
+        _, regressors, columns = per_coil[coil]
+        x = np.vstack([f[c.static][:, columns] for f, c in zip(regressors, captures)])
         _, cv = cross_validated_alpha(x, y_fit, folds=4, average_rows=max(2, int(round(600 * rate))), grid=(alpha,),
                                       groups=groups)  # fmt: skip
-        choices[alpha] = (cv[alpha], lag, criteria, tied)
+        choices[alpha] = (cv[alpha], coil, criteria, tied)
     alpha = min(choices, key=lambda a: choices[a][0])
-    _, lag, criteria, tied = choices[alpha]
-    reservoir, regressors = per_lag[lag]
+    _, (lag, order), criteria, tied = choices[alpha]
+    reservoir, regressors, _ = per_coil[lag, order]
+    n_features = len(regressors[0][0])
     penalty = np.ones(n_features)
     penalty[1 : 1 + n_history] = wc.history_penalty
     x_fit = np.vstack([f[c.static] for f, c in zip(regressors, captures)])
     weights, intercept = standardized_ridge(x_fit, y_fit, alpha, penalty, groups)
-    model = WesnModel(kind, reservoir, weights, intercept, wc.linear_path, wc.state_powers, wc.max_power)
+    model = WesnModel(kind, reservoir, weights, intercept, wc.linear_path, wc.state_powers, wc.max_power,
+                      wc.coil_rate)  # fmt: skip
     model.selection = {
         "coil_lag_s": float(lag),
+        "coil_order": int(order),
         "ridge_alpha": float(alpha),
         "history_s": [float(v) for v in wc.history_s],
         "history_penalty": float(wc.history_penalty),
         "cv_rms_dph": {float(a): float(v[0]) for a, v in choices.items()},
-        "lag_rms_1min_dph": {float(k): float(v) for k, v in criteria.items()},
+        "lag_rms_1min_dph": {float(k): float(v) for (k, m), v in criteria.items() if m == order},
+        "order_rms_1min_dph": {m: float(min(v for (_, o), v in criteria.items() if o == m)) for m in wc.coil_orders},
         "lags_explaining_equally_s": [float(v) for v in sorted(tied)],
         "state_powers": wc.state_powers,
     }
@@ -449,6 +533,26 @@ def _fit_ring_form(kind: str, wc: WesnConfig, captures, normalizer, config) -> W
             f"with faster ramps or steps, fitted together with this one, tells them apart"
         )
     return model
+
+
+def ring_weights_for(normalizer) -> tuple[float, float]:
+    """(w_top, w_bottom) such that ``w_top z_top + w_bottom z_bottom`` on inputs standardized by
+    ``normalizer`` is ``(R - mean R) / s``, R = (T1 + T2) / 2 the ring mean in degC, s = (s_top + s_bottom) / 2:
+    ``w = s_k / (s_top + s_bottom)``.  (Equal weights on the standardized thermometers would weight
+    each by the inverse of its spread in the fit data: a combination no coil is made of.)"""
+    s_top, s_bottom = float(normalizer.scale[0]), float(normalizer.scale[1])
+    return s_top / (s_top + s_bottom), s_bottom / (s_top + s_bottom)
+
+
+def _chosen_coil(criteria: dict) -> tuple[float, int]:
+    """The (lag, order) of smallest criterion, a higher order only when it beats every lower order's best
+    by more than ``ORDER_TOLERANCE`` (more stages add regressors: they must earn them)."""
+    best = None
+    for order in sorted({m for _, m in criteria}):
+        coil = min((k for k in criteria if k[1] == order), key=criteria.get)
+        if best is None or criteria[coil] < criteria[best] * (1.0 - ORDER_TOLERANCE):
+            best = coil
+    return best
 
 
 def identifiable_structure(wc: WesnConfig, captures, model_rate_hz: float) -> tuple[WesnConfig, list[str]]:
