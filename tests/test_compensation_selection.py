@@ -158,20 +158,28 @@ def _fit_cli(tmp_path, *extra: str):
     return status, out
 
 
-def test_fit_without_a_kind_fits_the_wesn_and_says_what_a_short_run_cannot_identify(tmp_path, capsys):
+def test_fit_without_a_kind_keeps_the_better_on_its_own_validation_and_says_what_a_short_run_cannot_identify(
+        tmp_path, capsys):  # fmt: skip
     from fog_driver.compensation.model import load_model
 
     status, out = _fit_cli(tmp_path)
     printed = capsys.readouterr().out
-    assert status == 0 and load_model(out).kind == "wesn"
+    assert status == 0
+    scores = load_model(out).provenance["selection"]["own_validation_rms_dph"]  # the wesn's, kept or not
+    assert load_model(out).kind == min(scores, key=scores.get)  # the wesn, unless the polynomial beat it
     assert "after, polynomial" in printed and "after, wesn" in printed  # the baseline beside it, as always
+    named = tmp_path / "named"
+    named.mkdir()
+    status, out = _fit_cli(named, "--kind", "wesn")
+    printed = capsys.readouterr().out
+    assert status == 0 and load_model(out).kind == "wesn"
     assert "coil lags above 1.0 min cannot be identified" in printed
+    assert "a coil of several stages in series cannot be told from one stage" in printed
     assert "thermal history over 30, 60, 120 min cannot be identified" in printed
     assert "linear in the coil temperature" in printed and "no history neurons" in printed
     selection = load_model(out).provenance["selection"]
     assert selection["history_s"] == [] and selection["state_powers"] == 0 and selection["coil_lag_s"] == 60.0
-    scores = selection["own_validation_rms_dph"]
-    assert scores["wesn"] <= scores["polynomial"]  # why the wesn was kept
+    assert selection["coil_order"] == 1
 
 
 def test_a_wesn_worse_than_the_polynomial_on_its_own_validation_is_never_kept_silently(tmp_path, capsys, monkeypatch):

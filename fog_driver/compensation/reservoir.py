@@ -66,6 +66,12 @@ compensator does the same step by step: ``x = step(u)``, ``y = readout(x)``, ``s
 With ``feedback_scale = 0`` the feedback term is not computed at all: ``y_prev`` is irrelevant, even
 NaN (tested).
 
+Cascade (``ReservoirParams.chain_from``).  A neuron may also integrate another neuron's previous
+state, linearly and beside its wavelet: ``x_i(n) = (1 - Ts leak_i) x_i(n-1) + Ts leak_i (Psi(v_i) +
+x_c(n-1))``.  The ring form builds a coil of two or three first-order stages in series from it
+(normalized form only, acyclic; the bound on |x_i| grows by e^-1/2 per stage upstream).  It adds an
+elementwise multiply and add per step, so ``run`` keeps its fast path and its bits.
+
 Non-finite values.  When the new state would not be finite (a NaN or inf input, a non-finite
 ``y_prev`` with feedback on, or an overflow from absurd inputs), the step is skipped: the state is
 left exactly as it was and the held state is returned.  The pipeline should never feed NaN (the
@@ -410,6 +416,7 @@ class WaveletReservoir:
         if self._chained:  # x_c(n-1) for chained neurons; unchained ones read themselves, times 0
             self._chain_src = np.array([c if c >= 0 else i for i, c in enumerate(chain)])
             self._chain_gain = np.where(np.array(chain) >= 0, self._gain, 0.0)
+        self._last_wavelet = np.zeros(self.params.n_neurons)
         self.set_state(state if state is not None else ReservoirState.zeros(self.params.n_neurons))
 
     # --- state -----------------------------------------------------------------------------------
@@ -438,6 +445,12 @@ class WaveletReservoir:
         return self._x.copy()
 
     @property
+    def last_wavelet(self) -> np.ndarray:
+        """``Psi(v)`` of the last ``step`` (or of the last row ``run`` stepped one at a time), before the leak's
+        gain: what each neuron integrated.  For a readout that needs it (``wesn.WesnModel.coil_rate_of``)."""
+        return self._last_wavelet
+
+    @property
     def bounds(self) -> np.ndarray:
         """The invariant bound on |x_i|: ``e^-1/2 / leak_i`` (paper form) or ``e^-1/2`` (normalized), times
         one plus the number of neurons upstream in a cascade."""
@@ -460,8 +473,9 @@ class WaveletReservoir:
         v = z - self._t
         v /= self._s
         p = psi(v)
-        p *= self._gain
-        return p
+        if p.ndim == 1:  # a step: kept for ``last_wavelet`` (a run's rows are not kept)
+            self._last_wavelet = p
+        return p * self._gain
 
     def _advance(self, u: np.ndarray, y: float) -> bool:
         """One Euler step from ``self._x``; False (and nothing changed) when the result is not finite."""

@@ -249,8 +249,8 @@ class WesnModel:
         self.max_power = max_power
         if not isinstance(coil_rate, bool):
             raise ValueError(f"{kind} model: coil_rate must be true or false, got {coil_rate!r}")
-        if coil_rate and (reservoir.matrices.w != 0).any():
-            raise ValueError(f"{kind} model: coil_rate needs a reservoir without recurrence (the ring form)")
+        if coil_rate and ((reservoir.matrices.w != 0).any() or (reservoir.matrices.w_back != 0).any()):
+            raise ValueError(f"{kind} model: coil_rate needs a reservoir without recurrence or feedback (the ring form)")
         self.coil_rate = coil_rate
         chain = reservoir.params.chain_from
         self._coil_source = chain[0] if chain else -1
@@ -265,7 +265,9 @@ class WesnModel:
 
     # -- regressors --------------------------------------------------------------------------
 
-    def regressors(self, x: np.ndarray, z: np.ndarray) -> np.ndarray:
+    def regressors(self, x: np.ndarray, z: np.ndarray, coil_wavelet: float | None = None) -> np.ndarray:
+        """f for states x and inputs z (one row or many); ``coil_wavelet``: the coil's wavelet input for
+        this one row when the caller has it (``regressors_step``), else computed from z."""
         parts = [np.asarray(x)]
         if self.state_powers:
             p = parts[0][..., : self.state_powers]
@@ -274,13 +276,13 @@ class WesnModel:
                 power = power * p
                 parts.append(power)
         if self.coil_rate:
-            parts.append(self.coil_rate_of(parts[0], z)[..., None])
+            parts.append(self.coil_rate_of(parts[0], z, coil_wavelet)[..., None])
         path = _LINEAR_PATHS[self.linear_path]
         if path is not None:
             parts.append(path[0](z))
         return np.concatenate(parts, axis=-1) if len(parts) > 1 else parts[0]
 
-    def coil_rate_of(self, x: np.ndarray, z: np.ndarray) -> np.ndarray:
+    def coil_rate_of(self, x: np.ndarray, z: np.ndarray, coil_wavelet: float | None = None) -> np.ndarray:
         """The coil neuron's own rate of change (1/s, in its units), ``dx_0/dt = leak_0 (d - x_0)``, where d
         is what it integrates: its upstream stage's state (a cascade) or its wavelet input
         ``Psi((w_in,0 . z - t_0) / s_0)``.  The Shupe and radial-gradient terms are the coil's rate:
@@ -289,6 +291,8 @@ class WesnModel:
         of the unpenalized fit); as its own regressor it costs the penalty nothing."""
         if self._coil_source >= 0:
             upstream = x[..., self._coil_source]
+        elif coil_wavelet is not None:  # the same bits as below: the reservoir computed it from the same z
+            upstream = coil_wavelet
         else:
             v = numerics.dot(z, self._coil_w_in)
             v = v - self._coil_t
@@ -311,7 +315,9 @@ class WesnModel:
         The caller then reports the estimate it used with ``feed_back`` (the output feedback);
         ``step`` is exactly these two with the stored weights."""
         z = np.asarray(z, dtype=np.float64)
-        return self.regressors(self.reservoir.step(z), z)
+        x = self.reservoir.step(z)
+        wavelet = self.reservoir.last_wavelet[0] if self.coil_rate and self._coil_source < 0 else None
+        return self.regressors(x, z, wavelet)
 
     def feed_back(self, y: float) -> None:
         self.reservoir.set_feedback(y)
@@ -559,7 +565,8 @@ def identifiable_structure(wc: WesnConfig, captures, model_rate_hz: float) -> tu
     """The ring form's structure cut down to what the captures can identify, and what was cut, in words.
 
     A lag shows in a run only if the run is many lags long: coil lags beyond ``LAG_FRACTION`` of the
-    longest capture are not tried, history neurons beyond ``HISTORY_FRACTION`` of it are left out; the
+    longest capture are not tried, a coil of several stages only when lags up to ``NOTED_LAG_S`` are
+    (250 min), history neurons beyond ``HISTORY_FRACTION`` of it are left out; the
     bias curve's powers need the ring temperature to span ``MIN_SPAN_C``, else the model is linear in
     the coil temperature (``state_powers`` 0)."""
     longest_s = max(len(c.static) for c in captures) / model_rate_hz
@@ -572,6 +579,12 @@ def identifiable_structure(wc: WesnConfig, captures, model_rate_hz: float) -> tu
     if max(lags) < NOTED_LAG_S and len(lags) < len(wc.fiber_lag_grid_s):  # said when it can matter
         limits.append(f"the fit data last {minutes:.0f} min: coil lags above {max(lags) / 60:.1f} min cannot be "
                       f"identified and were not tried")  # fmt: skip
+    orders = wc.coil_orders
+    if max(lags) < NOTED_LAG_S and len(orders) > 1:  # telling stages apart takes more than telling lags apart
+        orders = (1,)
+        limits.append(f"the fit data last {minutes:.0f} min: a coil of several stages in series cannot be told "
+                      f"from one stage (it takes {LAG_FRACTION**-1 * NOTED_LAG_S / 60:.0f} min), so one stage "
+                      f"was fitted")  # fmt: skip
     history = tuple(v for v in wc.history_s if v <= HISTORY_FRACTION * longest_s)
     if len(history) < len(wc.history_s):
         dropped = ", ".join(f"{v / 60:g}" for v in wc.history_s if v not in history)
@@ -582,7 +595,8 @@ def identifiable_structure(wc: WesnConfig, captures, model_rate_hz: float) -> tu
         powers = 0
         limits.append(f"the ring temperature spans {span_c:.1f} degC (under {MIN_SPAN_C:g}): the bias curve's shape "
                       f"cannot be identified, so the model is linear in the coil temperature")  # fmt: skip
-    structure = dataclasses.replace(wc, fiber_lag_grid_s=lags, history_s=history, state_powers=powers)
+    structure = dataclasses.replace(wc, fiber_lag_grid_s=lags, coil_orders=orders, history_s=history,
+                                    state_powers=powers)  # fmt: skip
     return structure, limits
 
 
