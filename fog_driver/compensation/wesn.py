@@ -30,8 +30,8 @@ Kinds (``fog-driver fit --kind``):
   Fitting (``_fit_ring_form``), everything from the fit data alone:
 
   0. the structure cut down to what the data can identify (``identifiable_structure``: lags up to a
-     tenth of the longest capture, history up to a third, the bias powers only over 5 degC), each
-     cut said in ``selection["limits"]``;
+     tenth of the longest capture, a coil of several stages only in runs of 250 min, history up to a
+     third, the bias powers only over 5 degC), each cut said in ``selection["limits"]``;
   1. the coil: its lag (mean delay) from ``COIL_LAG_GRID_S`` (60 s to 87 min, 25 % apart) and its
      number of stages (1, 2 or 3), by the smallest in-sample residual in 1-minute means of the model
      WITHOUT the history neurons (with them, the fit can shape a multi-stage coil's response out of
@@ -173,11 +173,12 @@ class WesnConfig:
         1..H by ``history_s``; no recurrence, translation 0, dilation 1: each neuron a leaky memory of R near
         Psi's linear regime.  Each neuron's input is ``input_scale (w_top z_top + w_bottom z_bottom)``
         on the standardized thermometers, ``ring_weights`` (w_top, w_bottom): ``ring_weights_for`` makes
-        it the ring mean in degC, whatever the two thermometers' spreads.  ``coil_order`` m > 1: the coil is m equal first-order stages in series, each
-        of ``fiber_lag_s / m`` (the same mean delay), the first m - 1 appended as neurons H+1..H+m-1
-        (outermost first) and the last one neuron 0 (``ReservoirParams.chain_from``):
+        it the ring mean in degC, whatever the two thermometers' spreads.  ``coil_order`` m > 1: the
+        coil is m equal first-order stages in series, each of ``fiber_lag_s / m`` (the same mean
+        delay), the first m - 1 appended as neurons H+1..H+m-1 (outermost first) and the last one
+        neuron 0 (``ReservoirParams.chain_from``), with u the ring input above:
 
-            s_1(n) = (1 - Ts m / tau) s_1(n-1) + (Ts m / tau) Psi(0.1 R),   s_k: the same of s_(k-1)(n-1)
+            s_1(n) = (1 - Ts m / tau) s_1(n-1) + (Ts m / tau) Psi(u(n)),   s_k: the same of s_(k-1)(n-1)
 
         The random form: matrices drawn from ``seed`` (the paper's reservoir)."""
         if self.ring_input:
