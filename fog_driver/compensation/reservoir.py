@@ -444,6 +444,14 @@ class WaveletReservoir:
     def x(self) -> np.ndarray:
         return self._x.copy()
 
+    def wavelet_of(self, z: np.ndarray, neuron: int) -> np.ndarray:
+        """``Psi((w_in,i . z - t_i) / s_i)`` of one neuron for one input row (M,) or many (T, M): what it
+        integrates without recurrence and feedback, the same bits as a step computes (sums left to right)."""
+        v = numerics.dot(z, self._w_in[neuron])
+        v = v - self._t[neuron]
+        v = v / self._s[neuron]
+        return psi(np.asarray(v, dtype=np.float64))
+
     @property
     def last_wavelet(self) -> np.ndarray:
         """``Psi(v)`` of the last ``step`` (or of the last row ``run`` stepped one at a time), before the leak's

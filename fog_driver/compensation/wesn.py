@@ -256,8 +256,6 @@ class WesnModel:
         chain = reservoir.params.chain_from
         self._coil_source = chain[0] if chain else -1
         self._coil_leak = float(reservoir.params.leaks()[0])
-        m = reservoir.matrices
-        self._coil_w_in, self._coil_t, self._coil_s = m.w_in[0].copy(), float(m.translation[0]), float(m.dilation[0])
         #: How the fit chose the structure (lag, penalty, scores), for the model file's provenance; None when loaded.
         self.selection: dict | None = None
         expected = n_regressors(reservoir.params.n_neurons, linear_path, self.state_powers, max_power, coil_rate)
@@ -295,10 +293,7 @@ class WesnModel:
         elif coil_wavelet is not None:  # the same bits as below: the reservoir computed it from the same z
             upstream = coil_wavelet
         else:
-            v = numerics.dot(z, self._coil_w_in)
-            v = v - self._coil_t
-            v = v / self._coil_s
-            upstream = psi(np.asarray(v, dtype=np.float64))
+            upstream = self.reservoir.wavelet_of(z, 0)
         return (upstream - x[..., 0]) * self._coil_leak
 
     def _output(self, f: np.ndarray) -> np.ndarray:
