@@ -109,11 +109,14 @@ def score_instrument(seed: int, kinds: tuple[str, ...], rate_hz: int, workdir: P
     for kind in kinds:
         t0 = time.perf_counter()
         if kind == "auto":  # what `fog-driver fit` does without --kind: the wesn, or the polynomial it falls back to
-            models[kind], _ = fit_model_file([fit_run], kind="wesn", config=FitConfig(), fall_back=True)
+            models[kind], _ = fit_model_file([fit_run], kind="wesn", config=FitConfig(), fall_back=True,
+                                             accept_weak=True)  # fmt: skip
             result["fell_back"] = models[kind].kind == "polynomial"
-        else:
-            models[kind], _ = fit_model_file([fit_run], kind=kind, config=FitConfig())
+        else:  # a fit that fails its checks is scored all the same (and counted: ``weak``)
+            models[kind], _ = fit_model_file([fit_run], kind=kind, config=FitConfig(), accept_weak=True)
         result["fit_s"][kind] = time.perf_counter() - t0
+        checks = models[kind].provenance["fit_quality"]["checks"]
+        result.setdefault("weak", {})[kind] = [name for name, c in checks.items() if not c["passed"]]
     adapting = [f"{k}+adapt" for k in kinds if adapt and k in ("wesn", "auto", "polynomial")]
     sq = {name: [] for name in ("raw", "floor", *kinds, *adapting)}
     for _profile, path in runs:
@@ -172,6 +175,10 @@ def summarize(results: list[dict], kinds: tuple[str, ...]) -> None:
         step = np.median([x["step_us"][kind] for x in results])
         print(f"{kind:12s} {100 * np.median(red):10.1f}%{100 * red.min():10.1f}% {ex_text} "
               f"{np.median(ratio_floor):10.2f}x{ratio_floor.max():10.2f}x {fit:7.1f} {step:8.1f}")  # fmt: skip
+    weak = {kind: sum(bool(x.get("weak", {}).get(kind)) for x in results) for kind in kinds}
+    if any(weak.values()):
+        print("fits that failed the fit checks (scored all the same): "
+              + ", ".join(f"{kind} {n} of {len(results)}" for kind, n in weak.items() if n))  # fmt: skip
     if "auto" in kinds:
         fell = [x["seed"] for x in results if x.get("fell_back")]
         print(f"auto fell back to the polynomial on {len(fell)} of {len(results)} instruments{': ' if fell else ''}"

@@ -134,7 +134,7 @@ def score(fit_capture: Path, val_capture: Path, kinds: list[str], workdir: Path 
     models = {}
     for kind in kinds:
         t0 = time.perf_counter()
-        model_file, _ = fit_model_file([fit_capture], kind=kind, config=FitConfig())
+        model_file, _ = fit_model_file([fit_capture], kind=kind, config=FitConfig(), accept_weak=True)
         if workdir is not None:
             save_model(workdir / f"{kind}.yaml", model_file)
         models[kind] = model_file

@@ -192,8 +192,9 @@ DEFAULT_FIT_KIND = "wesn"
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
-    from .compensation.fit import FitConfig, fit_model_file
+    from .compensation.fit import FitConfig, WeakFitError, fit_model_file
     from .compensation.model import save_model
+    from .compensation.quality import format_checks
     from .yamlfile import dataclass_from_mapping, read_yaml
 
     out = Path(args.out)
@@ -203,8 +204,16 @@ def cmd_fit(args: argparse.Namespace) -> int:
     if args.config:
         config = dataclass_from_mapping(FitConfig, read_yaml(args.config, "fit config") or {}, args.config)
     kind = args.kind or DEFAULT_FIT_KIND
-    model_file, report = fit_model_file(args.captures, kind=kind, config=config, validate_paths=args.validate,
-                                        fall_back=args.kind is None)  # fmt: skip
+    try:
+        model_file, report = fit_model_file(args.captures, kind=kind, config=config, validate_paths=args.validate,
+                                            fall_back=args.kind is None, accept_weak=args.accept_weak_fit)  # fmt: skip
+    except WeakFitError as exc:
+        print(exc.report.format())
+        print(exc.quality.format())
+        for check in exc.quality.failed:
+            print(f"error: {check.message}")
+        raise InputFileError(f"{exc}; {out} not written (--accept-weak-fit writes it anyway, and the model file "
+                             f"records that)") from None
     save_model(out, model_file)
     provenance = model_file.provenance
     fitted = provenance["captures"]
@@ -228,6 +237,12 @@ def cmd_fit(args: argparse.Namespace) -> int:
     if "fell_back" in provenance:
         print(f"note: {provenance['fell_back']}")
     print(report.format())
+    quality = provenance["fit_quality"]
+    print(format_checks(quality))
+    for message in quality.get("weak", []):
+        print(f"warning: weak fit accepted (--accept-weak-fit): {message}")
+    print(f"the model's input box and estimate bound (+-{model_file.domain.estimate_limit_dph:.3g} deg/h) are in "
+          f"the file: outside them its estimate is flagged extrapolating")
     return 0
 
 
@@ -249,8 +264,11 @@ def cmd_compensate(args: argparse.Namespace) -> int:
         adapt = AdaptConfig()
     elif args.adapt_state is not None:
         raise UsageError("--adapt-state goes with --adapt-reference (adapting needs a reference rate)")
+    for line in model_file.warnings(args.model):
+        print(f"warning: {line}")
     progress = Progress()
     written = 0
+    extrapolating_s, last_t_s = 0.0, 0.0
     try:
         with out.open("w", encoding="ascii") as f:
             f.write(",".join(ROW_COLUMNS) + "\n")
@@ -262,6 +280,8 @@ def cmd_compensate(args: argparse.Namespace) -> int:
             for row in compensated_rows(chunks, args.every):
                 f.write(format_row(row) + "\n")
                 written += 1
+                extrapolating_s += row[0] - last_t_s if "extrapolating" in row[-1].split("|") else 0.0
+                last_t_s = row[0]
     except FogDriverError:
         out.unlink(missing_ok=True)
         raise
@@ -269,7 +289,11 @@ def cmd_compensate(args: argparse.Namespace) -> int:
         progress.clear()
     print(f"compensated {args.capture} with {args.model} ({model_file.kind}): {written:,} rows every "
           f"{args.every:g} s -> {out}")  # fmt: skip
+    if extrapolating_s > 0:
+        print(f"warning: the model extrapolated for {extrapolating_s / 60:.1f} of {last_t_s / 60:.1f} min (rows flagged "
+              f"extrapolating): the capture's inputs left the range it was fitted on, or its estimate was clipped")
     return 0
+
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
@@ -473,6 +497,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--validate", action="append", default=[], metavar="CAPTURE.bin",
                    help="a held-out capture to report on (repeatable)")
     p.add_argument("--force", action="store_true", help="overwrite an existing model file")
+    p.add_argument("--accept-weak-fit", action="store_true",
+                   help="write the model even when its data fail the fit's checks (too short, too little "
+                        "temperature range, ...); the model file records it")
     p.set_defaults(func=cmd_fit)
 
     p = sub.add_parser("compensate", help="apply a drift model to a capture; write a CSV row per period")

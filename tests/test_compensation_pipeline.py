@@ -28,7 +28,8 @@ TEST_FIT = FitConfig(warmup_s=30.0)
 
 @pytest.fixture(scope="module", params=["polynomial", "wesn", "paper"])
 def model_path(request, tmp_path_factory) -> Path:
-    model_file, _ = fit_model_file([DATA / "sim-short.bin"], kind=request.param, config=TEST_FIT)
+    model_file, _ = fit_model_file([DATA / "sim-short.bin"], kind=request.param, config=TEST_FIT,
+                                   accept_weak=True)
     return save_model(tmp_path_factory.mktemp(request.param) / "m.yaml", model_file)
 
 
@@ -298,7 +299,8 @@ def test_fit_config_rates_must_agree(tmp_path):
     with pytest.raises(InputFileError, match="sample_time_s"):
         dataclass_from_mapping(FitConfig, {"model_rate_hz": 2.0}, "fit.yaml")
     cfg = dataclass_from_mapping(FitConfig, {"model_rate_hz": 2.0, "features": {"sample_time_s": 0.5}}, "fit.yaml")
-    model_file, _ = fit_model_file([DATA / "sim-short.bin"], kind="polynomial", config=dataclasses.replace(cfg, warmup_s=30.0))
+    model_file, _ = fit_model_file([DATA / "sim-short.bin"], kind="polynomial", config=dataclasses.replace(cfg, warmup_s=30.0),
+                                   accept_weak=True)
     assert model_file.model_rate_hz == 2.0
     cols = Compensator(model_file, 0.1).run(SampleStream().run(decode_file(DATA / "sim-short.bin")))
     held = cols.drift_dph[(cols.t_s - cols.t_s[0] > 10) & (cols.t_s - cols.t_s[0] < 11)]

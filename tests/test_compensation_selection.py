@@ -154,7 +154,7 @@ def _fit_cli(tmp_path, *extra: str):
     config = tmp_path / "fit.yaml"
     config.write_text("warmup_s: 30\n")  # a 5-minute capture: keep almost all of it
     out = tmp_path / "model.yaml"
-    status = main(["fit", str(DATA / "sim-short.bin"), "--config", str(config), "--out", str(out), *extra])
+    status = main(["fit", str(DATA / "sim-short.bin"), "--config", str(config), "--out", str(out), "--accept-weak-fit", *extra])
     return status, out
 
 

@@ -154,7 +154,7 @@ def test_model_validates_its_arrays():
 
 @pytest.fixture(scope="module")
 def fitted(tmp_path_factory):
-    model_file, report = fit_model_file([DATA / "sim-short.bin"], kind="pso-svr", config=TEST_FIT)
+    model_file, report = fit_model_file([DATA / "sim-short.bin"], kind="pso-svr", config=TEST_FIT, accept_weak=True)
     path = save_model(tmp_path_factory.mktemp("svr") / "m.yaml", model_file)
     return model_file, report, path
 
@@ -263,7 +263,8 @@ def test_cli_fit_and_compensate(tmp_path):
     def cli(*args):
         return subprocess.run([sys.executable, "-m", "fog_driver", *args], capture_output=True, text=True, timeout=120)
 
-    proc = cli("fit", str(DATA / "sim-short.bin"), "--kind", "pso-svr", "--config", str(config), "--out", str(model))
+    proc = cli("fit", str(DATA / "sim-short.bin"), "--kind", "pso-svr", "--config", str(config), "--out", str(model),
+               "--accept-weak-fit")
     assert proc.returncode == 0, proc.stderr
     assert "after, pso-svr" in proc.stdout
     proc = cli("compensate", str(DATA / "sim-short.bin"), "--model", str(model), "--out", str(tmp_path / "o.csv"))
@@ -279,7 +280,7 @@ def test_missing_scikit_learn_is_a_one_line_usage_error(monkeypatch, tmp_path, c
 
     monkeypatch.setitem(sys.modules, "sklearn.svm", None)  # ``from sklearn.svm import SVR`` -> ImportError
     with pytest.raises(UsageError) as info:
-        fit_model_file([DATA / "sim-short.bin"], kind="pso-svr", config=TEST_FIT)
+        fit_model_file([DATA / "sim-short.bin"], kind="pso-svr", config=TEST_FIT, accept_weak=True)
     assert str(info.value) == MISSING_SKLEARN
     assert MISSING_SKLEARN == "fitting a pso-svr model needs scikit-learn: pip install 'fog_driver[svr]'"
     config = tmp_path / "fit.yaml"

@@ -253,7 +253,8 @@ def test_sighup_reloads_the_config_and_the_model(tmp_path):
     from fog_driver.compensation.fit import FitConfig, fit_model_file
     from fog_driver.compensation.model import save_model
 
-    model_file, _ = fit_model_file([DATA / "sim-short.bin"], kind="polynomial", config=FitConfig(warmup_s=30.0))
+    model_file, _ = fit_model_file([DATA / "sim-short.bin"], kind="polynomial", config=FitConfig(warmup_s=30.0),
+                                   accept_weak=True)
     poly = save_model(tmp_path / "poly.yaml", model_file)
     config = tmp_path / "fog.yaml"
     config.write_text("status_every_s: 1.0\n")

@@ -88,7 +88,8 @@ def test_reload_config_applies_live_settings_and_keeps_the_rest(tmp_path):
     from fog_driver.compensation.fit import FitConfig, fit_model_file
     from fog_driver.compensation.model import save_model
 
-    model_file, _ = fit_model_file([DATA / "sim-short.bin"], kind="polynomial", config=FitConfig(warmup_s=30.0))
+    model_file, _ = fit_model_file([DATA / "sim-short.bin"], kind="polynomial", config=FitConfig(warmup_s=30.0),
+                                   accept_weak=True)
     other = save_model(tmp_path / "poly.yaml", model_file)
     service = Service(DriverConfig(listen="127.0.0.1:2999"), port="unused")
     service.process((DATA / "sim-short.bin").read_bytes()[:5000])

@@ -10,7 +10,8 @@ before j (causal, held)::
     angle_raw   = sum of dtheta,  angle_comp = sum of dtheta_comp         (from the frames, never host time)
 
 Until the first block closes there is no estimate: D_hat = 0 and the frame is
-flagged ``FLAG_UNCOMPENSATED``.  A non-finite estimate (inputs never valid)
+flagged ``FLAG_UNCOMPENSATED``.  Inputs outside the model file's fit box (``domain``) are
+clamped to it and an estimate beyond its bound is clipped, both flagged ``FLAG_EXTRAPOLATING``.  A non-finite estimate (inputs never valid)
 keeps the last good one and flags the frame; the angle is never NaN.
 ``step(sample)`` and ``run(samples)`` share the block-level code and give
 bit-identical results for any split of a capture (tested).
@@ -28,6 +29,7 @@ import numpy as np
 from ..protocol import STATUS_THERMOMETER_FAULT
 from ..stream import Sample, SampleBlock
 from .blocks import FLAG_GAP, FLAG_THERMOMETER_FAULT, BlockAverager, ModelBlock
+from .domain import FLAG_EXTRAPOLATING
 from .features import FLAG_INPUT_STALE, FeatureExtractor
 from .model import ModelFile
 
@@ -44,6 +46,7 @@ FLAG_NAMES = {
     FLAG_UNCOMPENSATED: "uncompensated",
     FLAG_ADAPTING: "adapting",
     FLAG_GUARD: "guard",
+    FLAG_EXTRAPOLATING: "extrapolating",
 }
 
 
@@ -108,6 +111,7 @@ class Compensator:
         self.averager = BlockAverager(frame_period_s, model_file.model_rate_hz)
         self.features = FeatureExtractor(model_file.features)
         self._normalizer = model_file.normalizer
+        self.domain = model_file.domain
         self.estimate_dph = 0.0
         self.estimate_flags = FLAG_UNCOMPENSATED
         self._estimate_block = -1  # the block index the estimate applies from
@@ -138,6 +142,10 @@ class Compensator:
         if any(v != v for v in u):  # a thermometer never read valid yet: nothing to model
             self.estimate_flags = FLAG_UNCOMPENSATED | flags
         else:
+            extrapolating = 0
+            if self.domain is not None:
+                u, outside = self.domain.clamp(u)
+                extrapolating = FLAG_EXTRAPOLATING if outside else 0
             z = self._normalizer.transform(u)
             if not self._started:  # the model starts at rest at its first valid input, as when fitted
                 self.model.start(z)
@@ -150,10 +158,14 @@ class Compensator:
                 gate = static and clean and block.t_end_s > self.adapt.warmup_s
                 f = self.model.regressors_step(z)
                 estimate, adapt_flags = self.online.step(f, block.rate_dph, self.reference_rate_dph, gate)
+            if self.domain is not None:
+                estimate, clipped = self.domain.bound(estimate)
+                extrapolating |= FLAG_EXTRAPOLATING if clipped else 0
+            if self.online is not None:
                 self.model.feed_back(estimate)  # the estimate actually used (the WESN's output feedback)
             if math.isfinite(estimate):
                 self.estimate_dph = estimate
-                self.estimate_flags = (flags & FLAG_INPUT_STALE) | adapt_flags
+                self.estimate_flags = (flags & FLAG_INPUT_STALE) | adapt_flags | extrapolating
             else:
                 self.estimate_flags = FLAG_GUARD | (flags & FLAG_INPUT_STALE)
         self._estimate_block = block.index + 1

@@ -22,7 +22,9 @@ from ..errors import InputFileError
 from ..protocol import iter_decode_file
 from ..stream import SampleStream
 from .blocks import FLAG_GAP, BlockAverager, BlockColumns
+from .domain import InputDomain
 from .features import FLAG_INPUT_STALE, FeatureExtractor, FeatureParams
+from .quality import FitQuality, assess, condition_number
 from .readout import Standardizer
 
 if TYPE_CHECKING:
@@ -123,14 +125,9 @@ def load_capture(path: str | Path, config: FitConfig) -> CaptureData:
 
 def minute_rms(residual_dph: np.ndarray, mask: np.ndarray, model_rate_hz: float = 1.0) -> float:
     """RMS of 1-minute averages of a residual over the usable blocks, its mean removed (a bias is not drift)."""
-    per_minute = int(round(60 * model_rate_hz))
-    n = len(residual_dph) // per_minute * per_minute
-    r = residual_dph[:n].reshape(-1, per_minute)
-    m = mask[:n].reshape(-1, per_minute)
-    full = m.all(axis=1)
-    if not full.any():
+    means = static_minute_means(residual_dph, mask, model_rate_hz)
+    if not len(means):
         return float("nan")
-    means = r[full].mean(axis=1)
     return float(np.sqrt(np.mean((means - means.mean()) ** 2)))
 
 
@@ -138,18 +135,40 @@ def fit_normalizer(captures: list[CaptureData]) -> Standardizer:
     return Standardizer.fit(np.vstack([c.inputs[c.static] for c in captures]))
 
 
-def applied_prediction(model, capture: CaptureData, normalizer: Standardizer) -> np.ndarray:
+def applied_prediction(model, capture: CaptureData, normalizer: Standardizer,
+                       domain: InputDomain | None = None) -> np.ndarray:  # fmt: skip
     """The drift the compensator would apply in each block: the model's output from the block before,
-    the model started at rest at the first valid input (as ``Compensator`` does)."""
+    the model started at rest at the first valid input (as ``Compensator`` does), its inputs clamped to
+    ``domain`` and its output bounded by it (as ``Compensator`` does)."""
     from .wesn import first_valid_block
 
-    z = normalizer.transform(np.where(np.isfinite(capture.inputs), capture.inputs, 0.0))
+    u = np.where(np.isfinite(capture.inputs), capture.inputs, 0.0)
+    if domain is not None:
+        u, _ = domain.clamp(u)
+    z = normalizer.transform(u)
     first = first_valid_block(capture.inputs)
     model.reset()
     model.start(z[first])
     out = np.zeros(len(z))
     out[first:] = model.run(z[first:])
+    if domain is not None:
+        out, _ = domain.bound_many(out)
     return np.r_[0.0, out[:-1]]
+
+
+def static_minute_means(values: np.ndarray, mask: np.ndarray, model_rate_hz: float) -> np.ndarray:
+    """Means of ``values`` over the whole minutes whose blocks are all in ``mask``."""
+    per_minute = int(round(60 * model_rate_hz))
+    n = len(values) // per_minute * per_minute
+    full = mask[:n].reshape(-1, per_minute).all(axis=1)
+    return values[:n].reshape(-1, per_minute)[full].mean(axis=1)
+
+
+def fit_domain(captures: list[CaptureData], model_rate_hz: float) -> InputDomain:
+    """The fit's input box (its static blocks) and the estimate's bound (its target's 1-minute means)."""
+    inputs = np.vstack([c.inputs[c.static] for c in captures])
+    means = np.concatenate([static_minute_means(c.target_dph, c.static, model_rate_hz) for c in captures])
+    return InputDomain.from_fit(inputs, means)
 
 
 @dataclass
@@ -177,13 +196,14 @@ def _pooled_minute_rms(captures: list[CaptureData], residuals: list[np.ndarray],
 
 
 def report_for(models: dict[str, object], normalizer: Standardizer, fit_data: list[CaptureData],
-               validate: list[CaptureData], rate_hz: float) -> FitReport:  # fmt: skip
-    """Drift RMS before and after each model, on the fit data and the validation data."""
+               validate: list[CaptureData], rate_hz: float, domain: InputDomain | None = None) -> FitReport:  # fmt: skip
+    """Drift RMS before and after each model, on the fit data and the validation data (each model applied
+    as the compensator applies it: inputs clamped to ``domain``, estimates bounded)."""
 
     def rms_after(model, captures):
         if not captures:
             return None
-        residuals = [c.target_dph - applied_prediction(model, c, normalizer) for c in captures]
+        residuals = [c.target_dph - applied_prediction(model, c, normalizer, domain) for c in captures]
         return _pooled_minute_rms(captures, residuals, rate_hz)
 
     before_fit = _pooled_minute_rms(fit_data, [c.target_dph for c in fit_data], rate_hz)
@@ -192,6 +212,21 @@ def report_for(models: dict[str, object], normalizer: Standardizer, fit_data: li
     for name, model in models.items():
         rows.append((f"after, {name}", rms_after(model, fit_data), rms_after(model, validate)))
     return FitReport(rows)
+
+
+def regressor_rows(model, captures: list[CaptureData], normalizer: Standardizer) -> list[np.ndarray] | None:
+    """Each capture's regressor matrix (every block) for the models whose readout is a linear regression
+    (the polynomial and the ring ``wesn``); None for the others."""
+    from .polynomial import PolynomialModel, polynomial_features
+
+    if isinstance(model, PolynomialModel):
+        return [polynomial_features(normalizer.transform(np.where(np.isfinite(c.inputs), c.inputs, 0.0)))
+                for c in captures]  # fmt: skip
+    if getattr(model, "selection", None):  # the ring wesn (its structure chosen by the fit)
+        from .wesn import _capture_regressors
+
+        return [_capture_regressors(model, c, normalizer, None) for c in captures]
+    return None
 
 
 #: The fit's own validation split: chunks of device time dealt in turn to the folds.
@@ -208,18 +243,16 @@ def own_validation(model, captures: list[CaptureData], normalizer: Standardizer,
     fold is averaged over windows of half a chunk (10 minutes) inside it.  Returns the RMS of those means,
     each capture's and fold's mean removed.  For the polynomial and the ring ``wesn`` (the structures the
     fit compares); interleaved folds keep every temperature in each training set."""
-    from .polynomial import PolynomialModel, polynomial_features, standardized_ridge
-    from .wesn import _capture_regressors
+    from .polynomial import PolynomialModel, standardized_ridge
 
     rate = config.model_rate_hz
     longest = max(len(c.static) for c in captures)
     window = max(1, min(int(round(VALIDATION_CHUNK_S * rate)), longest // (2 * VALIDATION_FOLDS)) // 2)
     chunk = 2 * window  # whole windows in every chunk
+    rows = regressor_rows(model, captures, normalizer)
     if isinstance(model, PolynomialModel):
-        rows = [polynomial_features(normalizer.transform(np.where(np.isfinite(c.inputs), c.inputs, 0.0))) for c in captures]
         alpha, penalty = (config.poly_alpha if config.poly_alpha is not None else 1e-3), None
     else:
-        rows = [_capture_regressors(model, c, normalizer, None) for c in captures]
         sel = model.selection
         alpha = sel["ridge_alpha"]
         penalty = np.ones(len(model.weights))
@@ -286,12 +319,15 @@ def fit_model_file(
     config: FitConfig,
     validate_paths: list[str | Path] = (),
     fall_back: bool = False,
+    accept_weak: bool = False,
 ) -> tuple[ModelFile, FitReport]:
     """Fit ``kind`` (and the polynomial baseline beside it) to captures; return the model file and the report.
 
     A ring ``wesn`` is compared with the polynomial on the fit's own validation split (``own_validation``);
     when it does worse, its provenance says so, and with ``fall_back`` (``fog-driver fit`` without
-    ``--kind``) the polynomial's model file is returned instead."""
+    ``--kind``) the polynomial's model file is returned instead.  The fit's data are checked
+    (``quality.assess``): a fit that fails a check raises ``WeakFitError`` unless ``accept_weak``, and
+    then the model file's ``provenance.fit_quality`` records the failures and that they were accepted."""
     from .model import ModelFile
 
     if kind not in FITTERS:
@@ -305,7 +341,8 @@ def fit_model_file(
     models = {"polynomial": _fit_polynomial(captures, normalizer, config)}
     if kind != "polynomial":
         models[kind] = FITTERS[kind](captures, normalizer, config)
-    report = report_for(models, normalizer, captures, validate, config.model_rate_hz)
+    domain = fit_domain(captures, config.model_rate_hz)
+    report = report_for(models, normalizer, captures, validate, config.model_rate_hz, domain)
     provenance = {
         "captures": [{"file": c.path.name, "sha256": c.sha256, "blocks": len(c.blocks),
                       "static_blocks": int(c.static.sum())} for c in captures],  # fmt: skip
@@ -327,6 +364,8 @@ def fit_model_file(
             if fall_back:
                 kind = "polynomial"
                 provenance["fell_back"] = f"{selection['warning_validation']}: the polynomial was saved instead"
+    quality = _assess(models[kind], captures, validate, normalizer, report, kind, config)
+    provenance["fit_quality"] = quality.to_dict(accept_weak)
     model_file = ModelFile(
         kind=kind,
         instrument_serial=next(iter(serials)) or "",
@@ -335,8 +374,38 @@ def fit_model_file(
         normalizer=normalizer,
         model=models[kind],
         provenance=provenance,
+        domain=domain,
     )
+    if quality.failed and not accept_weak:
+        raise WeakFitError(quality, report, model_file)
     return model_file, report
+
+
+class WeakFitError(InputFileError):
+    """The fit data cannot support the model (``quality``); the fit's ``report`` and the unsaved
+    ``model_file`` ride along for the caller to show."""
+
+    def __init__(self, quality: FitQuality, report: FitReport, model_file: ModelFile) -> None:
+        failed = quality.failed
+        more = f" (and {len(failed) - 1} more)" if len(failed) > 1 else ""
+        super().__init__(f"the fit data cannot support this model: {failed[0].message}{more}")
+        self.quality, self.report, self.model_file = quality, report, model_file
+
+
+def _assess(model, captures: list[CaptureData], validate: list[CaptureData], normalizer: Standardizer,
+            report: FitReport, kind: str, config: FitConfig) -> FitQuality:  # fmt: skip
+    """``quality.assess`` of this fit: its static blocks' span and duration, its regressors' conditioning,
+    and its report's before/after rows for the saved model."""
+    rate = config.model_rate_hz
+    inputs = np.vstack([c.inputs[c.static] for c in captures])
+    means = np.concatenate([static_minute_means(c.target_dph, c.static, rate) for c in captures])
+    rows = regressor_rows(model, captures, normalizer)
+    condition = None if rows is None else condition_number(np.vstack([r[c.static] for r, c in zip(rows, captures)]))
+    by_name = {what: (fit_v, val_v) for what, fit_v, val_v in report.rows}
+    before, after = by_name["before compensation"], by_name[f"after, {kind}"]
+    validated = (before[1], after[1]) if validate else None
+    return assess(len(inputs) / rate / 60.0, 0.5 * (inputs[:, 0] + inputs[:, 1]), 0.5 * (inputs[:, 3] + inputs[:, 4]),
+                  means, condition, (before[0], after[0]), validated)  # fmt: skip
 
 
 def _plain(obj):

@@ -20,6 +20,7 @@ from .. import __version__
 from ..capture import utc_now_iso
 from ..errors import InputFileError
 from ..yamlfile import read_tagged_yaml, write_yaml
+from .domain import InputDomain
 from .features import FeatureParams
 from .polynomial import PolynomialModel
 from .readout import Standardizer
@@ -64,8 +65,22 @@ class ModelFile:
     normalizer: Standardizer
     model: DriftModel
     provenance: dict[str, Any] = field(default_factory=dict)
+    #: the fit data's input box and the estimate's bound (``domain``); None in files made before it existed
+    domain: InputDomain | None = None
     created_utc: str = field(default_factory=utc_now_iso)
     fog_driver_version: str = __version__
+
+    def warnings(self, name: str) -> list[str]:
+        """What a user applying this model should know of its fit: a weak fit accepted, no stored range."""
+        lines = []
+        quality = self.provenance.get("fit_quality") or {}
+        if isinstance(quality, dict) and quality.get("accepted_weak"):
+            lines.append(f"{name} is a weak fit, accepted with --accept-weak-fit: "
+                         f"{'; '.join(map(str, quality.get('weak') or []))}")  # fmt: skip
+        if self.domain is None:
+            lines.append(f"{name} stores no fit range (made by an older fog-driver): extrapolation cannot be "
+                         f"flagged; refit it to get the range checks")  # fmt: skip
+        return lines
 
     def to_doc(self) -> dict[str, Any]:
         return {
@@ -84,6 +99,7 @@ class ModelFile:
             },
             "normalizer": self.normalizer.to_dict(),
             "model": self.model.to_dict(),
+            **({"domain": self.domain.to_dict()} if self.domain is not None else {}),
             "provenance": self.provenance,
         }
 
@@ -115,6 +131,7 @@ def load_model(path: str | Path) -> ModelFile:
             raise ValueError("the normalizer needs 8 means and 8 scales")
         model = MODEL_KINDS[kind].from_dict(_require(doc, "model", dict, where))
         rate = float(_require(doc, "model_rate_hz", (int, float), where))
+        domain = InputDomain.from_dict(doc["domain"]) if "domain" in doc else None
     except InputFileError:
         raise
     except (TypeError, ValueError, KeyError) as exc:
@@ -129,6 +146,7 @@ def load_model(path: str | Path) -> ModelFile:
         normalizer=normalizer,
         model=model,
         provenance=doc.get("provenance") or {},
+        domain=domain,
         created_utc=str(doc.get("created_utc", "")),
         fog_driver_version=str(doc.get("fog_driver_version", "")),
     )

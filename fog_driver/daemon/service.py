@@ -78,6 +78,8 @@ class Service:
             self.model_file = model_file or load_model(config.model_path)
         except FogDriverError as exc:
             raise ConfigError(str(exc)) from None
+        for line in self.model_file.warnings(str(config.model_path)):
+            log.warning("model_warning", message=line)
         self.lock = threading.Lock()
         self.stop = threading.Event()
         self.started_monotonic = time.monotonic()
@@ -318,6 +320,8 @@ class Service:
             log.error("model_reload_failed", reason=str(exc))
             return {"class": "ERROR", "message": str(exc)}
         self.reload_model(model_file)
+        for line in model_file.warnings(str(self.config.model_path)):
+            log.warning("model_warning", message=line)
         log.info("model_reloaded", model=str(self.config.model_path), kind=model_file.kind,
                  created_utc=model_file.created_utc)  # fmt: skip
         return {"class": "RELOAD", "model": model_file.kind, "created_utc": model_file.created_utc}

@@ -12,7 +12,9 @@ offset  type   field             meaning
                                  object's ``flags`` names): bit 0 gap (frames missing),
                                  1 thermometer_fault, 2 input_stale, 3 uncompensated
                                  (no drift estimate applied), 4 adapting, 5 guard (an
-                                 estimate was rejected); other bits reserved, zero
+                                 estimate was rejected), 6 extrapolating (inputs
+                                 outside the model's fit range, or its estimate
+                                 clipped); other bits reserved, zero
 8       u64    seq               sample sequence number (unwrapped, monotonic)
 16      f64    t_s               device time, s
 24      f64    angle_arcsec      compensated angle, arcsec
@@ -52,6 +54,7 @@ __all__ = [
     "FIELDS",
     "FLAG_ADAPTING",
     "FLAG_BITS",
+    "FLAG_EXTRAPOLATING",
     "FLAG_GAP",
     "FLAG_GUARD",
     "FLAG_INPUT_STALE",
@@ -77,8 +80,10 @@ FLAG_INPUT_STALE = 1 << 2
 FLAG_UNCOMPENSATED = 1 << 3
 FLAG_ADAPTING = 1 << 4
 FLAG_GUARD = 1 << 5
+FLAG_EXTRAPOLATING = 1 << 6
 FLAG_BITS = {"gap": FLAG_GAP, "thermometer_fault": FLAG_THERMOMETER_FAULT, "input_stale": FLAG_INPUT_STALE,
-             "uncompensated": FLAG_UNCOMPENSATED, "adapting": FLAG_ADAPTING, "guard": FLAG_GUARD}
+             "uncompensated": FLAG_UNCOMPENSATED, "adapting": FLAG_ADAPTING, "guard": FLAG_GUARD,
+             "extrapolating": FLAG_EXTRAPOLATING}
 
 #: The sample fields after magic and version, in datagram order.
 FIELDS = ("flags", "seq", "t_s", "angle_arcsec", "angle_raw_arcsec", "rate_dph", "drift_dph",

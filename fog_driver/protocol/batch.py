@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import InputFileError
 from .decoder import DecoderCounters
 from .wire import (
     HEADER_LEN,
@@ -481,10 +482,15 @@ def iter_decode_file(
 ) -> Iterator[DecodedCapture]:
     """Decode a capture file block by block (bounded memory); each part carries the cumulative counters.
 
-    ``on_block`` sees every raw block as read (for hashing or progress).
+    ``on_block`` sees every raw block as read (for hashing or progress).  A file that cannot be opened is
+    an ``InputFileError`` (one line: the path and the reason).
     """
     decoder = BatchDecoder()
-    with Path(path).open("rb") as f:
+    try:
+        f = Path(path).open("rb")
+    except OSError as exc:
+        raise InputFileError(f"{path}: cannot read the capture: {exc.strerror or exc}") from None
+    with f:
         block = f.read(block_bytes)
         while True:
             following = f.read(block_bytes) if block else b""
