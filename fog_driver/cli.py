@@ -306,6 +306,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if out.exists() and any(out.iterdir()) and not args.force:
         raise OutputFileError(f"{out}: exists and is not empty; refusing to overwrite a report (use --force)")
     model_file = load_model(args.model)
+    for line in model_file.warnings(args.model):
+        print(f"warning: {line}", file=sys.stderr if args.json else sys.stdout)  # --json: stdout is the summary
     truth = None
     if args.truth:
         try:
@@ -330,6 +332,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         print(f"ARW {raw['arw_deg_sqrt_h']:.5f} -> {comp['arw_deg_sqrt_h']:.5f} deg/sqrt(h); bias instability "
               f"{raw['bias_instability_dph']:.5f} -> {comp['bias_instability_dph']:.5f} deg/h; 1-min drift RMS "
               f"{raw['drift_rms_1min_dph']:.4f} -> {comp['drift_rms_1min_dph']:.4f} deg/h")  # fmt: skip
+        if summary["extrapolating_seconds"]:
+            print(f"warning: the model extrapolated for {summary['extrapolating_seconds'] / 60:.1f} of "
+                  f"{summary['seconds'] / 60:.1f} min (inputs outside its fit range, or its estimate clipped)")
     return 0
 
 

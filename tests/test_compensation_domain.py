@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import json
 import math
 from pathlib import Path
 
@@ -340,3 +341,15 @@ def test_a_missing_capture_is_a_one_line_error(tmp_path, capsys):
     assert main(["fit", str(tmp_path / "nothere.bin"), "--out", str(tmp_path / "m.yaml")]) == 65
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "cannot read the capture" in err
+
+
+def test_evaluate_reports_the_time_spent_extrapolating(runs, capsys):
+    model = runs / "weak-eval.yaml"
+    assert main(["fit", str(runs / "short.bin"), "--kind", "polynomial", "--out", str(model), "--accept-weak-fit"]) == 0
+    capsys.readouterr()
+    assert main(["evaluate", str(runs / "fast.bin"), "--model", str(model), "--out", str(runs / "rep"), "--json"]) == 0
+    captured = capsys.readouterr()
+    summary = json.loads(captured.out)
+    assert summary["extrapolating_seconds"] > 0.5 * summary["seconds"]
+    assert "is a weak fit" in captured.err
+    assert f"for {summary['extrapolating_seconds']:,} s" in (runs / "rep" / "report.md").read_text()

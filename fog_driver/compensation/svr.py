@@ -18,7 +18,10 @@ prediction is plain numpy over the stored support vectors, so a model file compe
   in log10 space by ``pso_minimize`` (seeded: deterministic), minimizing the blocked cross-validation
   error: 3 contiguous folds of the minute rows (another part of the thermal run, so the score rewards
   extrapolation), the RMS of the held-out residual, each fold's mean removed (a bias is not drift).
-  The final SVR is fitted on all rows with the best point.  Search fits are capped at 30,000 libsvm
+  The final SVR is fitted on all rows with the best point.  Several captures: each target was centred
+  on its own capture's mean, so each capture gets its own offset (y_k = f(z) + a_k, a_0 = 0), found by
+  backfitting ``OFFSET_PASSES`` times at the chosen point (f refitted on y - a, a_k the mean of capture
+  k's residual): an RBF kernel has no column to give an intercept per capture.  Search fits are capped at 30,000 libsvm
   iterations (large C with large gamma can take millions; such a fit is scored as it stands) and the
   swarm is evaluated on 2 threads (libsvm releases the GIL; the result does not depend on it): about
   14 s for the paper's 440-minute capture on 2 cores.
@@ -313,11 +316,18 @@ def blocked_cv_rms(svr_factory, z: np.ndarray, y: np.ndarray, folds: int = 3) ->
     return math.sqrt(total / count) if count else math.inf
 
 
+#: Backfitting passes for the per-capture offsets of a multi-capture fit: y_k = f(z) + a_k, f refitted
+#: on y - a, a_k the mean of capture k's residual (a_0 = 0); the offsets settle in two or three.
+OFFSET_PASSES = 3
+
+
 def fit_pso_svr(captures, normalizer, config, settings: PsoSvrConfig = PSO_SVR_DEFAULTS) -> SvrModel:
     """Fit a ``pso-svr`` model (module docstring); ``UsageError`` without scikit-learn."""
     SVR, ConvergenceWarning = _import_svr()
     per = window_blocks(captures, config.model_rate_hz, settings.average_s, settings.min_rows)
-    z, y = minute_rows(captures, normalizer, config.model_rate_hz, per=per)
+    parts = [minute_rows([c], normalizer, config.model_rate_hz, per=per) for c in captures]
+    z, y = np.vstack([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+    group = np.concatenate([np.full(len(p[1]), k) for k, p in enumerate(parts)])
     if len(y) < 2 * settings.folds:
         raise ValueError(f"pso-svr: {len(y)} whole static minutes to fit, need at least {2 * settings.folds}")
 
@@ -333,5 +343,13 @@ def fit_pso_svr(captures, normalizer, config, settings: PsoSvrConfig = PSO_SVR_D
                                    n_particles=settings.n_particles, iterations=settings.iterations,
                                    seed=settings.seed, map_fn=pool.map)  # fmt: skip
         svr = make(best, settings.final_max_iter)().fit(z, y)
+        if len(captures) > 1:  # one offset per capture (each target is centred on its own mean): backfitting
+            offsets = np.zeros(len(captures))
+            for _ in range(OFFSET_PASSES):
+                residual = y - svr.predict(z)
+                offsets = np.array([residual[group == k].mean() if (group == k).any() else 0.0
+                                    for k in range(len(captures))])  # fmt: skip
+                offsets -= offsets[0]  # capture 0's level is the model's, as for the other kinds
+                svr = make(best, settings.final_max_iter)().fit(z, y - offsets[group])
     c, _, eps = (float(v) for v in 10.0 ** best)
     return SvrModel.from_sklearn(svr, C=c, epsilon=eps, cv_rms_dph=score, average_s=per / config.model_rate_hz)

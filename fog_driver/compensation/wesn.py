@@ -446,11 +446,17 @@ def fit_wesn(kind: str, defaults: WesnConfig, captures, normalizer, config) -> W
         targets.append(target)
     x_fit = np.vstack([f[c.static] for f, c in zip(regressors, captures)])
     y_fit = np.concatenate([t[c.static] for t, c in zip(targets, captures)])
+    groups = np.concatenate([np.full(int(c.static.sum()), i) for i, c in enumerate(captures)])  # fit.capture_groups
     if wc.readout == "ridge":
         alpha = wc.ridge_alpha
         if alpha is None:
-            alpha, _ = cross_validated_alpha(x_fit, y_fit)
-        weights, intercept = standardized_ridge(x_fit, y_fit, alpha)
+            alpha, _ = cross_validated_alpha(x_fit, y_fit, groups=groups)
+        weights, intercept = standardized_ridge(x_fit, y_fit, alpha, groups=groups)
+    elif len(captures) > 1:  # one intercept per capture: the law learns on each capture's deviations from its means
+        x_means = np.array([x_fit[groups == g].mean(axis=0) for g in range(len(captures))])
+        y_means = np.array([y_fit[groups == g].mean() for g in range(len(captures))])
+        weights, intercept = _adaptive_readout(x_fit - x_means[groups], y_fit - y_means[groups], wc, config)
+        intercept += float(y_means[0] - x_means[0] @ weights)  # capture 0's, as standardized_ridge returns
     else:
         weights, intercept = _adaptive_readout(x_fit, y_fit, wc, config)
     return WesnModel(kind, reservoir, weights, intercept, wc.linear_path, wc.state_powers, wc.max_power)

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from ..compensation.apply import compensate_capture
+from ..compensation.domain import FLAG_EXTRAPOLATING
 from ..compensation.fit import FitConfig, load_capture
 from ..compensation.model import ModelFile
 from ..errors import UsageError
@@ -39,6 +40,8 @@ class Series:
     drift_dph: np.ndarray
     temps_c: np.ndarray  #: (n, 3)
     static: np.ndarray
+    #: seconds in which a frame was flagged ``extrapolating`` (the model outside its fit range)
+    extrapolating: np.ndarray | None = None
 
     @property
     def rate_comp_dph(self) -> np.ndarray:
@@ -53,6 +56,7 @@ def per_second(capture: Path, model_file: ModelFile, *, force: bool = False, ada
     data = load_capture(capture, FitConfig(warmup_s=EVALUATE_WARMUP_S))
     sums: list[np.ndarray] = []
     counts: list[np.ndarray] = []
+    flagged: list[np.ndarray] = []
     first = None
     for _, cols in compensate_capture(capture, model_file, force=force, model_name="the model", adapt=adapt,
                                       reference_rate_dph=reference_rate_dph):  # fmt: skip
@@ -61,15 +65,18 @@ def per_second(capture: Path, model_file: ModelFile, *, force: bool = False, ada
         second = np.floor(cols.t_s - first + 1e-9).astype(np.int64)
         sums.append(np.bincount(second, weights=cols.drift_dph))
         counts.append(np.bincount(second))
+        flagged.append(np.bincount(second, weights=(cols.flags & FLAG_EXTRAPOLATING) != 0))
     n = len(data.blocks)
     drift = np.zeros(n)
     count = np.zeros(n)
-    for s, c in zip(sums, counts):
+    extrapolating = np.zeros(n)
+    for s, c, e in zip(sums, counts, flagged):
         m = min(len(s), n)
         drift[:m] += s[:m]
         count[:m] += c[:m]
+        extrapolating[:m] += e[:m]
     drift = drift / np.maximum(count, 1)
-    return Series(data.blocks.t_end_s, data.blocks.rate_dph, drift, data.blocks.temps_c, data.static)
+    return Series(data.blocks.t_end_s, data.blocks.rate_dph, drift, data.blocks.temps_c, data.static, extrapolating > 0)
 
 
 def longest_run(mask: np.ndarray) -> slice:
@@ -107,6 +114,7 @@ def evaluate(capture: Path, model_file: ModelFile, *, truth: dict[str, np.ndarra
         "seconds": int(len(series.t_s)),
         "static_seconds": int(series.static.sum()),
         "allan_stretch_s": [int(stretch.start), int(stretch.stop)],
+        "extrapolating_seconds": int(series.extrapolating.sum()),
     }
     for name, rate in (("raw", series.rate_raw_dph), ("compensated", series.rate_comp_dph)):
         a = allans[name]
@@ -197,7 +205,8 @@ def markdown(summary: dict[str, Any], plots: list[Path], positioning_md: str | N
         "",
         f"Model: `{summary['model']['kind']}` for {summary['model']['instrument_serial']} "
         f"(fitted {summary['model']['created_utc']}). {summary['seconds']:,} s of data, "
-        f"{summary['static_seconds']:,} s static (table motion excluded).",
+        f"{summary['static_seconds']:,} s static (table motion excluded). The model ran outside its fit range "
+        f"(inputs clamped or estimate clipped) for {summary['extrapolating_seconds']:,} s.",
         "",
         "| | raw | compensated |",
         "|---|---|---|",

@@ -1,0 +1,127 @@
+"""Several captures of one instrument fitted together: each capture its own intercept (fixed effects),
+checked against the simulator's truth on a run none of them is.
+
+Each capture's target is its rate less its own static mean: that mean holds the run's turn-on bias
+and also the run's mean drift, which differs between a hot and a cold run.  One intercept for all
+would make the temperature terms explain that difference (measured: 0.10 deg/h left on a third run
+against 0.008 with one intercept per capture), and splitting one run in two made the model worse
+than none."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fog_driver.cli import main
+from fog_driver.compensation import fit
+from fog_driver.compensation.blocks import BlockColumns
+from fog_driver.compensation.features import FeatureExtractor
+from fog_driver.compensation.fit import CaptureData, FitConfig, fit_model_file, load_capture, static_mask
+from fog_driver.report.evaluate import minute_rms, per_second
+from fog_driver.sim.capture import read_truth
+
+PROFILES = Path(__file__).resolve().parents[1] / "configs" / "profiles"
+HOT = "name: hot\nstart_c: 20\nsegments:\n" + "".join(
+    f"  - {s}\n" for s in ("hold: {duration_min: 30}", "ramp: {rate_c_per_min: 1, target_c: 30}",
+                           "hold: {duration_min: 15}", "ramp: {rate_c_per_min: 1, target_c: 40}",
+                           "hold: {duration_min: 15}", "ramp: {rate_c_per_min: 1, target_c: 55}",
+                           "hold: {duration_min: 15}", "ramp: {rate_c_per_min: 2, target_c: 20}",
+                           "hold: {duration_min: 15}"))  # fmt: skip
+COLD = HOT.replace("name: hot", "name: cold").replace("target_c: 30", "target_c: 0").replace(
+    "target_c: 40", "target_c: -20").replace("target_c: 55", "target_c: -40")  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    """One simulated instrument at 1 Hz: the paper run, a hot and a cold run, and a soak-cycle run to score on."""
+    d = tmp_path_factory.mktemp("multi")
+    (d / "hot.yaml").write_text(HOT)
+    (d / "cold.yaml").write_text(COLD)
+    for name, profile, seed in (("paper", "paper", 1), ("hot", str(d / "hot.yaml"), 11),
+                                ("cold", str(d / "cold.yaml"), 12), ("soak", str(PROFILES / "soak-cycle.yaml"), 3)):
+        assert main(["simulate", "--profile", profile, "--seed", str(seed), "--rate-hz", "1",
+                     "--out", str(d / f"{name}.bin")]) == 0  # fmt: skip
+    return d
+
+
+def truth_residual(model_file, run: Path) -> float:
+    """1-min RMS of the true drift left after the model on ``run`` (static minutes past the first 10)."""
+    truth = read_truth(run.with_suffix(".truth.csv"))
+    series = per_second(run, model_file)
+    n = min(len(series.drift_dph), len(truth["drift_dph"]))
+    mask = truth["input_dph"][:n] == 0.0
+    mask[:600] = False
+    return minute_rms(truth["drift_dph"][:n] - series.drift_dph[:n], mask)
+
+
+def fit_paths(paths, kind):
+    model_file, _ = fit_model_file(paths, kind=kind, config=FitConfig())
+    return model_file
+
+
+@pytest.mark.parametrize("kind", ["polynomial", "wesn"])
+def test_a_hot_and_a_cold_run_fitted_together_do_as_well_as_one_run_over_both(runs, kind):
+    whole = truth_residual(fit_paths([runs / "paper.bin"], kind), runs / "soak.bin")
+    pair = truth_residual(fit_paths([runs / "hot.bin", runs / "cold.bin"], kind), runs / "soak.bin")
+    assert pair <= 1.5 * whole + 0.002, (pair, whole)
+
+
+def test_a_hot_and_a_cold_run_fitted_together_get_their_own_offsets_in_the_svr(runs, monkeypatch):
+    """The RBF kernel has no column for a capture's intercept: its offsets are backfitted (measured on soak:
+    0.077 deg/h, the paper run alone 0.067, without the offsets 0.111)."""
+    from fog_driver.compensation import svr
+
+    pair = truth_residual(fit_paths([runs / "hot.bin", runs / "cold.bin"], "pso-svr"), runs / "soak.bin")
+    monkeypatch.setattr(svr, "OFFSET_PASSES", 0)
+    pooled = truth_residual(fit_paths([runs / "hot.bin", runs / "cold.bin"], "pso-svr"), runs / "soak.bin")
+    assert pair < 0.8 * pooled, (pair, pooled)
+
+
+def test_one_intercept_for_all_captures_would_fail_the_same_check(runs, monkeypatch):
+    """The check above can fail: with every capture's rows in one group the hot + cold polynomial is far off
+    (measured 0.097 deg/h against 0.013 for the paper run alone and 0.007 for hot + cold done right)."""
+    whole = truth_residual(fit_paths([runs / "paper.bin"], "polynomial"), runs / "soak.bin")
+    monkeypatch.setattr(fit, "capture_groups", lambda captures: np.zeros(sum(int(c.static.sum()) for c in captures), int))
+    pooled = truth_residual(fit_paths([runs / "hot.bin", runs / "cold.bin"], "polynomial"), runs / "soak.bin")
+    assert pooled > 3 * whole, (pooled, whole)
+
+
+def piece(capture: CaptureData, lo: int, hi: int, config: FitConfig) -> CaptureData:
+    """Blocks lo..hi of a capture as a capture of their own (its target centred on its own static mean),
+    as if the run had been recorded in pieces."""
+    b = capture.blocks
+    blocks = BlockColumns(b.index[lo:hi] - lo, b.t_end_s[lo:hi] - b.t_end_s[lo] + 1.0, b.n_samples[lo:hi],
+                          b.rate_dph[lo:hi], b.temps_c[lo:hi], b.flags[lo:hi])  # fmt: skip
+    inputs, input_flags = FeatureExtractor(config.features).run(blocks.temps_c)
+    static = static_mask(blocks, input_flags, config)
+    target = blocks.rate_dph - blocks.rate_dph[static].mean()
+    return CaptureData(capture.path, capture.sha256, capture.serial, capture.frame_period_s, blocks, inputs,
+                       input_flags, static, target)  # fmt: skip
+
+
+@pytest.mark.parametrize("kind", ["polynomial", "wesn"])
+@pytest.mark.parametrize("pieces", [2, 3])
+def test_a_run_split_in_pieces_fits_as_well_as_the_whole_run(runs, pieces, kind, monkeypatch):
+    """(With one intercept for all, the polynomial leaves 0.13 and 0.17 deg/h here: worse than 2 pieces' 0.011.)"""
+    config = FitConfig()
+    whole_capture = load_capture(runs / "paper.bin", config)
+    whole = truth_residual(fit_paths([runs / "paper.bin"], kind), runs / "soak.bin")
+    raw = truth_residual(_zero_model(fit_paths([runs / "paper.bin"], "polynomial")), runs / "soak.bin")
+    n = len(whole_capture.blocks)
+    cuts = np.linspace(0, n, pieces + 1).astype(int)
+    parts = [piece(whole_capture, a, b, config) for a, b in zip(cuts[:-1], cuts[1:])]
+    monkeypatch.setattr(fit, "load_capture", lambda path, cfg: parts[int(str(path))])
+    split = truth_residual(fit_paths([str(k) for k in range(pieces)], kind), runs / "soak.bin")
+    # a wesn fitted on pieces shorter than 250 min may not try a cascade or the longest lags, and its
+    # history neurons restart with each piece: it is held to 2x the whole run (measured 0.0100 vs 0.0061)
+    factor = 1.3 if kind == "polynomial" else 2.0
+    assert split <= factor * whole + 0.002 and split < 0.1 * raw, (split, whole, raw)
+
+
+def _zero_model(model_file):
+    """The same model file with zero weights: no compensation."""
+    model_file.model.weights = np.zeros_like(model_file.model.weights)
+    model_file.model.intercept = 0.0
+    return model_file
