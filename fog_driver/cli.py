@@ -220,6 +220,10 @@ def cmd_fit(args: argparse.Namespace) -> int:
     print(f"fitted a {model_file.kind} model for {model_file.instrument_serial} on {len(fitted)} capture(s) "
           f"({sum(c['static_blocks'] for c in fitted):,} static blocks of {sum(c['blocks'] for c in fitted):,}) "
           f"-> {out}")  # fmt: skip
+    moving = sum(c.get("moving_blocks", 0) for c in fitted)
+    if moving:
+        print(f"note: {moving:,} blocks of table motion were found and not fitted (with {config.motion_margin_s:g} s "
+              f"on each side)")  # fmt: skip
     selection = provenance.get("selection")
     if selection and model_file.kind == kind:
         history = (f"history neurons {', '.join(f'{v:g}' for v in selection['history_s'])} s at "

@@ -139,10 +139,11 @@ def test_the_bias_capture_removes_a_constant_bias():
     # the adapted model did not absorb the bias: it stays the frozen drift model
     np.testing.assert_allclose(r.law.weights, np.r_[W0, B0], rtol=0, atol=0.05)
     assert np.abs(est - _frozen(f)).max() < 0.1
-    # without the capture the intercept absorbs the bias: runaway after runaway
+    # without the capture the bias is a 50 deg/h innovation: the gate keeps it from the law, every block flagged
     r0 = OnlineReadout(W0, B0, AdaptConfig(bias_capture_s=0.0), 1.0)
-    _, flags0 = r0.run(f, measured, 0.0, True)
-    assert r0.guards > 10 and (flags0 & FLAG_GUARD).any()
+    est0, flags0 = r0.run(f, measured, 0.0, True)
+    assert r0.updates < 10 and r0.rejected > len(f) - 10 and (flags0[10:] & FLAG_GUARD).all()
+    np.testing.assert_array_equal(est0, _frozen(f))
 
 
 def test_the_capture_counts_gated_blocks_only():
@@ -166,21 +167,42 @@ def _adapted(t: int = 1000) -> tuple[OnlineReadout, np.ndarray, np.ndarray]:
     return r, f, measured
 
 
-def test_a_huge_target_is_a_runaway_reverted_to_the_frozen_weights():
+def test_a_huge_target_is_kept_from_the_law_by_the_innovation_gate():
     r, f, measured = _adapted()
-    y, flags = r.step(f[1000], 1e6, 0.0, True)  # a bad block passes the gate
-    assert flags == FLAG_ADAPTING and abs(y - _frozen(f[1000:1001])[0]) < 2.0  # a-priori: still fine
-    i_before = r.law.state.i
-    y, flags = r.step(f[1001], measured[1001], None, False)
+    w_before, i_before = r.law.weights, r.law.state.i.copy()
+    y, flags = r.step(f[1000], 1e6, 0.0, True)  # the gyro far from the reference: the table moved, say
+    assert flags == FLAG_GUARD and r.rejected == 1 and r.updates == 1000 - 300
+    np.testing.assert_array_equal(r.law.weights, w_before)  # not learned
+    assert np.abs(r.law.state.i - i_before).max() < 10  # the neutral target: nothing of the 1e6 in I
+    y, flags = r.step(f[1001], measured[1001], 0.0, True)
+    assert flags == FLAG_GUARD  # the filtered innovation still remembers the bad block: still refused
+    assert r.gate_innovation_dph > r.gate_limit_dph
+
+
+def test_a_runaway_reverts_to_the_frozen_weights_and_clears_what_the_law_had_learned():
+    r, f, measured = _adapted()
+    state = r.law.state
+    state.w = np.r_[W0, B0] + np.array([0.0, 0.0, 0.0, 5.0])  # 5 deg/h off: beyond the 2 deg/h runaway
+    r.law.set_state(state)
+    y, flags = r.step(f[1000], measured[1000], None, False)
     assert flags == FLAG_GUARD and r.guards == 1
-    assert y == _frozen(f[1001:1002])[0]  # the frozen estimate, exactly
+    assert y == _frozen(f[1000:1001])[0]  # the frozen estimate, exactly
     np.testing.assert_array_equal(r.law.weights, np.r_[W0, B0])  # W reset (and not updated: gate off)
-    assert np.abs(r.law.state.i).max() > 1e3  # H and I kept: the bad target is still in I
-    assert not np.array_equal(r.law.state.i, i_before)  # and the sums kept running
-    # H is what the regressors alone make it (never reset)
+    # H and I cleared: kept, they would lead W straight back to the solution that ran away
     law = AdaptiveLaw(AdaptConfig().law, 4, 1.0)
-    law.run(np.column_stack([f[:1002], np.ones(1002)]), np.zeros(1002), False)
-    np.testing.assert_array_equal(r.law.state.h, law.state.h)
+    law.step(np.r_[f[1000], 1.0], float(np.r_[f[1000], 1.0] @ np.r_[W0, B0]), False)
+    np.testing.assert_allclose(r.law.state.h, law.state.h, rtol=0, atol=1e-12)
+    assert np.abs(r.law.state.i).max() < 1.0
+
+
+def test_the_runaway_bound_comes_from_the_models_fit_residual():
+    from fog_driver.compensation.adapt import RUNAWAY_MAX_DPH, RUNAWAY_MIN_DPH, runaway_for
+
+    assert runaway_for(0.024) == pytest.approx(0.12)
+    assert runaway_for(0.001) == RUNAWAY_MIN_DPH and runaway_for(1.0) == RUNAWAY_MAX_DPH
+    assert runaway_for(None) == RUNAWAY_MAX_DPH and runaway_for(float("nan")) == RUNAWAY_MAX_DPH
+    assert OnlineReadout(W0, B0, AdaptConfig(), 1.0, fit_residual_dph=0.024).runaway_dph == pytest.approx(0.12)
+    assert OnlineReadout(W0, B0, AdaptConfig(runaway_dph=0.7), 1.0, fit_residual_dph=0.024).runaway_dph == 0.7
 
 
 def test_a_non_finite_estimate_reverts_and_flags():
@@ -198,7 +220,7 @@ def test_a_non_finite_w_after_an_update_is_reset_at_once():
     # a wildly unstable fixed gain: the first real update overflows W
     r = OnlineReadout(W0, B0, AdaptConfig(law=AdaptiveLawParams(fixed_gain=1e308), bias_capture_s=0.0), 1.0)
     r.run(f[:500], measured[:500], None, True)  # gate off: H and I build up, W stays
-    y, flags = r.step(f[500], 1e6, 0.0, True)
+    y, flags = r.step(f[500], measured[500] + 1.0, 0.0, True)  # a plausible target (within the gate)
     assert flags == FLAG_ADAPTING | FLAG_GUARD and np.isfinite(y)
     np.testing.assert_array_equal(r.law.weights, np.r_[W0, B0])
     assert yaml.safe_load(yaml.safe_dump(r.state_dict()))  # the state stays saveable
@@ -297,7 +319,7 @@ def test_step_equals_run_for_any_chunking():
         assert runner.state_dict() == stepper.state_dict()
 
 
-def test_reset_to_frozen_keeps_the_sums_and_the_bias_and_restarts_the_comparison():
+def test_reset_to_frozen_clears_the_laws_sums_keeps_the_bias_and_restarts_the_comparison():
     r, _, _ = _adapted()
     before = r.state_dict()
     assert before["compare_windows"] > 0
@@ -308,8 +330,8 @@ def test_reset_to_frozen_keeps_the_sums_and_the_bias_and_restarts_the_comparison
     assert all(after[k] == 0 for k in after if k.startswith("compare_") and k != "compare_weights")
     keep = [k for k in before if k != "law" and not k.startswith("compare_")]
     assert {k: after[k] for k in keep} == {k: before[k] for k in keep}
-    after["law"]["w"] = before["law"]["w"]
-    assert after["law"] == before["law"]
+    fresh = OnlineReadout(W0, B0, AdaptConfig(), 1.0).state_dict()["law"]
+    assert after["law"] == fresh
 
 
 # --- state files -------------------------------------------------------------------------------------------

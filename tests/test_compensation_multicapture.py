@@ -9,6 +9,7 @@ than none."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +20,7 @@ from fog_driver.compensation import fit
 from fog_driver.compensation.blocks import BlockColumns
 from fog_driver.compensation.features import FeatureExtractor
 from fog_driver.compensation.fit import CaptureData, FitConfig, fit_model_file, load_capture, static_mask
+from fog_driver.compensation.model import load_model
 from fog_driver.report.evaluate import minute_rms, per_second
 from fog_driver.sim.capture import read_truth
 
@@ -125,3 +127,66 @@ def _zero_model(model_file):
     model_file.model.weights = np.zeros_like(model_file.model.weights)
     model_file.model.intercept = 0.0
     return model_file
+
+
+# -- motion in the fit data: detected, not assumed absent -------------------------------------------------
+
+
+def _with_motion(capture: CaptureData, add_dph: np.ndarray, config: FitConfig) -> CaptureData:
+    """The capture with ``add_dph`` added to its block rates (the table turning or creeping), re-masked."""
+    b = capture.blocks
+    blocks = BlockColumns(b.index, b.t_end_s, b.n_samples, b.rate_dph + add_dph, b.temps_c, b.flags)
+    static = static_mask(blocks, capture.input_flags, config)
+    target = blocks.rate_dph - blocks.rate_dph[static].mean()
+    return CaptureData(capture.path, capture.sha256, capture.serial, capture.frame_period_s, blocks, capture.inputs,
+                       capture.input_flags, static, target)  # fmt: skip
+
+
+@pytest.mark.parametrize("what, rate_dph, seconds", [
+    ("a 40-s turn at 10 deg/s", 36000.0, 40),
+    ("a 10-min turn at 10 deg/s", 36000.0, 600),
+    ("a 30-min creep at 14.4 deg/h", 14.4, 1800),
+    ("a 3-min creep at 3 deg/h", 3.0, 180),
+])  # fmt: skip
+def test_steady_motion_and_slow_creeps_in_fit_data_are_not_fitted(runs, what, rate_dph, seconds):
+    """The old detector (rate against a 61-s running median) passed every one of these as static."""
+    config = FitConfig()
+    clean = load_capture(runs / "paper.bin", config)
+    t = np.arange(len(clean.blocks))
+    moving = (t >= 13200) & (t < 13200 + seconds)
+    moved = _with_motion(clean, np.where(moving, rate_dph, 0.0), config)
+    assert not (moved.static & moving).any(), what
+    assert (moved.static != clean.static).sum() <= seconds + 2 * 60 + 2 * 450  # the motion, margins, envelope edges
+
+
+def test_a_clean_chamber_run_loses_no_block_to_the_motion_detector(runs):
+    """A thermal drift is not motion: on the paper run only the warm-up is excluded."""
+    config = FitConfig()
+    capture = load_capture(runs / "paper.bin", config)
+    assert not fit.motion_mask(capture.blocks.rate_dph, config).any()
+    assert capture.static.sum() == (capture.blocks.t_end_s > config.warmup_s).sum()
+
+
+def test_block_noise_is_the_white_noise_sigma():
+    rng = np.random.default_rng(7)
+    drift = np.cumsum(rng.normal(0, 0.001, 20000))  # a slow wander
+    rate = drift + rng.normal(0, 0.25, 20000)
+    rate[5000:5040] += 36000.0  # a turn
+    assert fit.block_noise_dph(rate) == pytest.approx(0.25, rel=0.05)
+
+
+def test_fit_reports_the_blocks_excluded_for_motion(runs, capsys):
+    """A 40-s turn at 10 deg/s in the paper run (which once fitted into a 424 deg/h model with exit 0)."""
+    paper = (PROFILES / "paper.yaml").read_text().split("\nmotion:")[0]
+    (runs / "turn.yaml").write_text(paper.rstrip() + "\nmotion:\n  kind: constant_rate\n  rate_dps: 10\n"
+                                    "  start_s: 13200\n  stop_s: 13240\n")  # fmt: skip
+    assert main(["simulate", "--profile", str(runs / "turn.yaml"), "--seed", "1", "--rate-hz", "1",
+                 "--out", str(runs / "turn.bin")]) == 0  # fmt: skip
+    capsys.readouterr()
+    assert main(["fit", str(runs / "turn.bin"), "--kind", "polynomial", "--out", str(runs / "turn-model.yaml")]) == 0
+    out = capsys.readouterr().out
+    found = re.search(r"note: (\d+) blocks of table motion were found and not fitted", out)
+    assert found and 40 <= int(found[1]) <= 42, out
+    turned = truth_residual(load_model(runs / "turn-model.yaml"), runs / "soak.bin")
+    clean = truth_residual(fit_paths([runs / "paper.bin"], "polynomial"), runs / "soak.bin")
+    assert turned < 1.2 * clean + 0.002, (turned, clean)

@@ -35,13 +35,29 @@ fixed the filtered neutral target is exactly ``W . Xf``, so those blocks add not
 the current W: they carry no information and say "stay" (they still weigh in H, a mild pull towards the
 W of that time for one memory window).  The same neutral target is used during the bias capture.
 
+The innovation gate: the rate must match the reference.  A static detector sees only the spread of the
+rate; a table that turns steadily or creeps while the reference says 0 looks static, and its rate would
+be learned as drift.  So on a gated block after the capture the innovation ``d - frozen estimate`` goes
+through the law's target filter (an exponential mean over ``law.filter_time_s``), and when that filtered
+innovation is farther from 0 than the runaway bound plus ``innovation_sigmas`` (4) sigmas of its noise
+(``gate_limit_dph``; the block noise from half the squared differences of successive gated rates over
+``NOISE_MEMORY_S``, through the same filter), the block is not learned (the neutral target, as for an
+ungated block), is counted (``rejected``) and flagged ``FLAG_GUARD``.  No drift the law may learn is
+that far from the frozen model: the gyro disagrees with the reference.  The filter starts afresh after
+any ungated block.  A creep of a few deg/h is refused within seconds; one near the bound (0.2 deg/h on a
+model with 0.024 deg/h of fit residual) within minutes, and until then the runaway guard bounds it.
+
 Guards.  Before it is returned, the adapted estimate is checked against the frozen one: not finite, or
-further than ``runaway_dph`` from it, and the frozen estimate is returned instead, the block is flagged
-``FLAG_GUARD`` and W is reset to the frozen weights (``reset_to_frozen``: the filters and H, I are kept).
-A non-finite W after an update is reset the same way.  Note that H and I are kept: a transient bad target
-stays in I for about one memory window, so the guard may fire again while it fades.  When the frozen
-estimate itself is not finite (non-finite regressors) there is nothing to revert to: it is returned with
-``FLAG_GUARD``, W untouched.  ``FLAG_ADAPTING`` marks a block whose target updated W.
+further than the runaway bound from it, and the frozen estimate is returned instead, the block is
+flagged ``FLAG_GUARD`` and W is reset to the frozen weights with the law's accumulated information
+cleared (``reset_to_frozen``: the filters, H and I start again from zero; kept, they would lead W straight
+back to the solution that ran away).  A non-finite W after an update is reset the same way.  The
+runaway bound is ``AdaptConfig.runaway_dph``, or by default ``runaway_for`` the model's fit residual:
+5 times the 1-min RMS it left on its own fit data (0.12 deg/h for 0.024), within 0.05 to 2 deg/h: an
+adapted model that departs from the frozen one by several times what the frozen one left on its data is
+learning something else.  When the frozen estimate itself is not finite (non-finite regressors) there
+is nothing to revert to: it is returned with ``FLAG_GUARD``, W untouched.  ``FLAG_ADAPTING`` marks a
+block whose target updated W.
 
 The comparison guard: adapting must earn its place.  On a run the frozen model already fits, the law
 chases the gyro's own slow noise and makes things worse; so on every gated update block both estimates'
@@ -112,7 +128,10 @@ class AdaptConfig:
     """Online adaptation settings (validated; ``ValueError`` when out of range).
 
     * ``law``: the adaptive law's parameters.
-    * ``runaway_dph``: an adapted estimate further than this from the frozen one is a runaway.
+    * ``runaway_dph``: an adapted estimate further than this from the frozen one is a runaway; None (the
+      default): ``runaway_for`` the model's own fit residual.
+    * ``innovation_sigmas``: the innovation gate (module docstring): a filtered innovation beyond the
+      runaway bound plus this many of its noise sigmas is not learned.
     * ``static_threshold_dph``, ``static_window_s``: the gyro's own static detector (``StaticDetector``).
     * ``bias_capture_s``: gated time spent capturing the run's bias before W may move (0: no capture).
     * ``warmup_s``: for the compensator's gate: blocks before it (rate smoother and instrument start-up)
@@ -124,7 +143,8 @@ class AdaptConfig:
     """
 
     law: AdaptiveLawParams = field(default_factory=_default_law)
-    runaway_dph: float = 2.0
+    runaway_dph: float | None = None
+    innovation_sigmas: float = 4.0
     static_threshold_dph: float = 30.0
     static_window_s: float = 60.0
     bias_capture_s: float = 300.0
@@ -136,7 +156,9 @@ class AdaptConfig:
     def __post_init__(self) -> None:
         if not isinstance(self.law, AdaptiveLawParams):
             raise ValueError(f"law must be AdaptiveLawParams, got {type(self.law).__name__}")
-        for name in ("runaway_dph", "static_threshold_dph", "static_window_s", "compare_window_s"):
+        if self.runaway_dph is not None and (not _finite(self.runaway_dph) or not self.runaway_dph > 0):
+            raise ValueError(f"runaway_dph must be finite and > 0 (or null: from the model), got {self.runaway_dph!r}")
+        for name in ("innovation_sigmas", "static_threshold_dph", "static_window_s", "compare_window_s"):
             v = getattr(self, name)
             if not _finite(v) or not v > 0:
                 raise ValueError(f"{name} must be finite and > 0, got {v!r}")
@@ -241,6 +263,27 @@ _COMPARE_KEYS = ("compare_blocks", "compare_sum_frozen_dph", "compare_sum_adapte
 COMPARE_SIGMAS = 1.0
 
 
+#: The runaway bound from the model (``runaway_for``): this many times its fit residual (the 1-min RMS the
+#: model leaves on its fit data, the gyro's noise included), within [RUNAWAY_MIN_DPH, RUNAWAY_MAX_DPH].
+RUNAWAY_FIT_RESIDUALS = 5.0
+RUNAWAY_MIN_DPH = 0.05
+RUNAWAY_MAX_DPH = 2.0
+#: The innovation's noise: an exponential mean of half the squared differences of successive gated
+#: rates, over this time (the white noise of a block; a drift is smooth and does not enter it).
+NOISE_MEMORY_S = 600.0
+#: Gate state (states saved before the gate existed load without it: a fresh gate).
+_GATE_KEYS = ("gate_noise_var_dph2", "gate_last_rate_dph", "gate_innovation_dph", "rejected")
+
+
+def runaway_for(fit_residual_dph: float | None) -> float:
+    """The adapted estimate's largest allowed departure from the frozen one, deg/h: ``RUNAWAY_FIT_RESIDUALS``
+    times the model's fit residual, clipped to [``RUNAWAY_MIN_DPH``, ``RUNAWAY_MAX_DPH``];
+    ``RUNAWAY_MAX_DPH`` when the model file does not say (made before fit metrics were recorded)."""
+    if fit_residual_dph is None or not _finite(fit_residual_dph) or fit_residual_dph <= 0:
+        return RUNAWAY_MAX_DPH
+    return min(max(RUNAWAY_FIT_RESIDUALS * float(fit_residual_dph), RUNAWAY_MIN_DPH), RUNAWAY_MAX_DPH)
+
+
 class OnlineReadout:
     """The adaptive law over ``[f, 1]`` from the frozen weights, gated, guarded (see the module docstring).
 
@@ -254,6 +297,7 @@ class OnlineReadout:
         config: AdaptConfig | None = None,
         sample_time_s: float = 1.0,
         state: dict[str, Any] | None = None,
+        fit_residual_dph: float | None = None,
     ) -> None:
         self.config = config if config is not None else AdaptConfig()
         w0 = np.array(frozen_weights, dtype=np.float64)
@@ -269,7 +313,14 @@ class OnlineReadout:
         self._law = AdaptiveLaw(self.config.law, self.n_features + 1, sample_time_s)
         self.sample_time_s = self._law.sample_time_s
         self.bias_capture_blocks = _blocks(self.config.bias_capture_s, self.sample_time_s)
-        self._runaway = float(self.config.runaway_dph)
+        self.runaway_dph = float(self.config.runaway_dph if self.config.runaway_dph is not None
+                                 else runaway_for(fit_residual_dph))  # fmt: skip
+        self._runaway = self.runaway_dph
+        # the innovation's filter is the law's target filter; the noise's memory NOISE_MEMORY_S
+        self._gate_a = 1.0 - numerics.exp_correctly_rounded(-self._law.sample_time_s / self.config.law.filter_time_s)
+        self._noise_a = 1.0 - numerics.exp_correctly_rounded(-self._law.sample_time_s / NOISE_MEMORY_S)
+        # an exponential mean of white noise of variance v has variance v a / (2 - a)
+        self._gate_gain = math.sqrt(self._gate_a / (2.0 - self._gate_a))
         self._compare_window_blocks = max(1, _blocks(self.config.compare_window_s, sample_time_s))
         self._x = np.empty(self.n_features + 1)
         self._x[-1] = 1.0
@@ -287,6 +338,10 @@ class OnlineReadout:
         self.gated_blocks = 0
         self.updates = 0
         self.guards = 0
+        self.rejected = 0  # gated blocks the innovation gate kept from the law
+        self.gate_noise_var_dph2 = 0.0
+        self.gate_last_rate_dph: float | None = None
+        self.gate_innovation_dph = 0.0
         self._reset_comparison()
 
     def _reset_comparison(self) -> None:
@@ -343,12 +398,11 @@ class OnlineReadout:
         self.bias_dph = None if self.bias_capture_blocks else 0.0
 
     def reset_to_frozen(self) -> None:
-        """W back to the frozen weights; the filters, H and I, the bias and the counters are kept.  The
-        comparison guard starts over (its evidence was about weights that are gone): the frozen estimate is
-        returned until the adapted one has earned its place again."""
-        state = self._law.state
-        state.w = self._w_frozen.copy()
-        self._law.set_state(state)
+        """W back to the frozen weights, and the law's accumulated information (its filters, H and I) cleared:
+        kept, it would lead W straight back to the solution that ran away.  The bias and the counters are
+        kept.  The comparison guard starts over (its evidence was about weights that are gone): the frozen
+        estimate is returned until the adapted one has earned its place again."""
+        self._law.set_state(AdaptiveLawState.zeros(self.n_features + 1, weights=self._w_frozen))
         self._reset_comparison()
 
     # -- stepping ----------------------------------------------------------------------------------
@@ -395,15 +449,28 @@ class OnlineReadout:
         d = y  # the neutral target: no information, "stay"
         if gated:
             self.gated_blocks += 1
+            if self.gate_last_rate_dph is not None:  # the block noise, from successive gated rates
+                step = measured - self.gate_last_rate_dph
+                self.gate_noise_var_dph2 += self._noise_a * (0.5 * step * step - self.gate_noise_var_dph2)
+            self.gate_last_rate_dph = measured
             if self.bias_dph is None:
                 self.bias_sum_dph += measured - reference - y  # W is fixed during a capture: y is frozen on a first run
                 self.bias_count += 1
                 if self.bias_count >= self.bias_capture_blocks:
                     self.bias_dph = self.bias_sum_dph / self.bias_count
             else:
-                d = measured - reference - self.bias_dph
-                update = True
-                self._compare(f, d, y_frozen)
+                target = measured - reference - self.bias_dph
+                self.gate_innovation_dph += self._gate_a * (target - y_frozen - self.gate_innovation_dph)
+                if abs(self.gate_innovation_dph) <= self.gate_limit_dph:
+                    d = target
+                    update = True
+                    self._compare(f, d, y_frozen)
+                else:  # the gyro disagrees with the reference by more than any drift the law may learn
+                    self.rejected += 1
+                    flags |= FLAG_GUARD
+        else:  # the gate starts afresh after any block it did not see
+            self.gate_last_rate_dph = None
+            self.gate_innovation_dph = 0.0
         self._law.step(x, d, update)
         if update:
             self.updates += 1
@@ -413,6 +480,13 @@ class OnlineReadout:
                 self.guards += 1
                 flags |= FLAG_GUARD
         return (y if use_adapted else y_frozen), flags
+
+    @property
+    def gate_limit_dph(self) -> float:
+        """The innovation gate's bound: the runaway bound plus ``innovation_sigmas`` sigmas of the filtered
+        innovation's noise (the block noise through the target filter)."""
+        sigma = math.sqrt(self.gate_noise_var_dph2) * self._gate_gain
+        return self._runaway + self.config.innovation_sigmas * sigma
 
     def _compare(self, f: np.ndarray, d: float, y_frozen: float) -> None:
         """One gated block's errors into the comparison window: the frozen estimate's, and the adapted
@@ -491,15 +565,32 @@ class OnlineReadout:
             "compare_weights": [float(v) for v in self._compare_w],
             "compare_level_frozen_dph": float(self.compare_level_frozen_dph),
             "compare_level_adapted_dph": float(self.compare_level_adapted_dph),
+            "gate_noise_var_dph2": float(self.gate_noise_var_dph2),
+            "gate_last_rate_dph": None if self.gate_last_rate_dph is None else float(self.gate_last_rate_dph),
+            "gate_innovation_dph": float(self.gate_innovation_dph),
+            "rejected": int(self.rejected),
         }
 
     def load_state(self, d: dict[str, Any]) -> None:
         """Inverse of ``state_dict``.  ``ValueError`` for missing or unknown keys, bad values, or a state
         saved for other frozen weights (another model); the readout is unchanged then."""
-        if not isinstance(d, dict) or not set(_STATE_KEYS) <= set(d) <= set(_STATE_KEYS) | set(_COMPARE_KEYS):
+        optional = set(_COMPARE_KEYS) | set(_GATE_KEYS)
+        if not isinstance(d, dict) or not set(_STATE_KEYS) <= set(d) <= set(_STATE_KEYS) | optional:
             got = sorted(d) if isinstance(d, dict) else type(d).__name__
             raise ValueError(f"adaptation state needs exactly the keys {sorted(_STATE_KEYS)} (and the comparison's "
-                             f"{sorted(_COMPARE_KEYS)}), got {got}")  # fmt: skip
+                             f"{sorted(_COMPARE_KEYS)} and the gate's {sorted(_GATE_KEYS)}), got {got}")  # fmt: skip
+        gate = {k: d[k] for k in _GATE_KEYS if k in d}
+        if gate and set(gate) != set(_GATE_KEYS):
+            raise ValueError(f"adaptation state: the gate needs all of {sorted(_GATE_KEYS)}")
+        if gate:
+            if not (_finite(gate["gate_noise_var_dph2"]) and gate["gate_noise_var_dph2"] >= 0):
+                raise ValueError("adaptation state: 'gate_noise_var_dph2' must be a finite number >= 0")
+            if not _finite(gate["gate_innovation_dph"]):
+                raise ValueError("adaptation state: 'gate_innovation_dph' must be a finite number")
+            if gate["gate_last_rate_dph"] is not None and not _finite(gate["gate_last_rate_dph"]):
+                raise ValueError("adaptation state: 'gate_last_rate_dph' must be a finite number or null")
+            if isinstance(gate["rejected"], bool) or not isinstance(gate["rejected"], int) or gate["rejected"] < 0:
+                raise ValueError("adaptation state: 'rejected' must be an integer >= 0")
         compare = {k: d[k] for k in _COMPARE_KEYS if k in d}
         if compare and set(compare) != set(_COMPARE_KEYS):
             raise ValueError(f"adaptation state: the comparison needs all of {sorted(_COMPARE_KEYS)}")
@@ -542,6 +633,13 @@ class OnlineReadout:
         self.bias_sum_dph = float(d["bias_sum_dph"])
         self.bias_dph = None if bias is None else float(bias)
         self.bias_count, self.blocks, self.gated_blocks, self.updates, self.guards = (int(v) for v in counts.values())
+        self.rejected, self.gate_noise_var_dph2, self.gate_last_rate_dph, self.gate_innovation_dph = 0, 0.0, None, 0.0
+        if gate:
+            self.rejected = int(gate["rejected"])
+            self.gate_noise_var_dph2 = float(gate["gate_noise_var_dph2"])
+            last = gate["gate_last_rate_dph"]
+            self.gate_last_rate_dph = None if last is None else float(last)
+            self.gate_innovation_dph = float(gate["gate_innovation_dph"])
         self._reset_comparison()
         for k, v in compare.items():
             if k == "compare_weights":
@@ -549,8 +647,10 @@ class OnlineReadout:
             else:
                 setattr(self, k, v if k in ("compare_blocks", "compare_windows") else float(v))
 
-    def save_state(self, path: str | Path, detector: StaticDetector | None = None) -> Path:
-        """Write the state (and a static detector's, if given) as YAML; ``OutputFileError`` on failure."""
+    def save_state(self, path: str | Path, detector: StaticDetector | None = None,
+                   pipeline: dict[str, Any] | None = None) -> Path:  # fmt: skip
+        """Write the state (and a static detector's, and the compensator's ``pipeline`` state, if given) as
+        YAML; ``OutputFileError`` on failure."""
         path = Path(path)
         doc: dict[str, Any] = {
             "format": ADAPT_STATE_FORMAT,
@@ -561,6 +661,8 @@ class OnlineReadout:
         }
         if detector is not None:
             doc["static_detector"] = detector.to_dict()
+        if pipeline is not None:
+            doc["pipeline"] = pipeline
         return write_yaml(path, doc, "adaptation state")
 
     def load_state_file(self, path: str | Path, detector: StaticDetector | None = None) -> StaticDetector | None:
@@ -568,8 +670,12 @@ class OnlineReadout:
         for another model, is a one-line ``InputFileError`` (and nothing is changed).  Returns the file's
         static detector (None if it has none); with ``detector`` given its window is restored in place and
         the file must have one with the same settings."""
-        where = str(path)
         doc = read_tagged_yaml(path, "adaptation state", ADAPT_STATE_FORMAT, ADAPT_STATE_SCHEMA_VERSION)
+        return self.load_state_doc(doc, str(path), detector)
+
+    def load_state_doc(self, doc: dict[str, Any], where: str, detector: StaticDetector | None = None
+                       ) -> StaticDetector | None:  # fmt: skip
+        """``load_state_file`` of a document already read (``where`` names it in errors)."""
         if doc.get("sample_time_s") != self.sample_time_s:
             raise InputFileError(f"{where}: adaptation state for sample time {doc.get('sample_time_s')!r} s, "
                                  f"the readout runs at {self.sample_time_s!r} s")  # fmt: skip

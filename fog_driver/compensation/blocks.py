@@ -105,6 +105,34 @@ class BlockAverager:
         self._flags = 0
         self._last_t_us = 0
 
+    _STATE_KEYS = ("frame_period_s", "block_us", "first_us", "current", "n", "sum_dtheta", "sum_t", "n_t", "flags",
+                   "last_t_us")  # fmt: skip
+
+    def get_state(self) -> dict:
+        """The open block and the block grid, as plain YAML-safe values (exact)."""
+        return {"frame_period_s": self.frame_period_s, "block_us": self.block_us, "first_us": self._first_us,
+                "current": self._current, "n": self._n, "sum_dtheta": self._sum_dtheta, "sum_t": list(self._sum_t),
+                "n_t": list(self._n_t), "flags": self._flags, "last_t_us": self._last_t_us}  # fmt: skip
+
+    def set_state(self, state: dict) -> None:
+        """Inverse of ``get_state``; ``ValueError`` for a state of another frame period or block length."""
+        if not isinstance(state, dict) or set(state) != set(self._STATE_KEYS):
+            raise ValueError(f"block averager state needs exactly the keys {sorted(self._STATE_KEYS)}")
+        if state["frame_period_s"] != self.frame_period_s or state["block_us"] != self.block_us:
+            raise ValueError("block averager state is for another frame period or model rate")
+        try:
+            first = None if state["first_us"] is None else int(state["first_us"])
+            sum_t = [float(v) for v in state["sum_t"]]
+            n_t = [int(v) for v in state["n_t"]]
+            values = (int(state["current"]), int(state["n"]), float(state["sum_dtheta"]), int(state["flags"]),
+                      int(state["last_t_us"]))  # fmt: skip
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"block averager state: not numbers: {exc}") from None
+        if len(sum_t) != 3 or len(n_t) != 3:
+            raise ValueError("block averager state: sum_t and n_t need 3 values each")
+        self._first_us, self._sum_t, self._n_t = first, sum_t, n_t
+        self._current, self._n, self._sum_dtheta, self._flags, self._last_t_us = values
+
     def _close(self) -> ModelBlock:
         temps = tuple(s / n if n else float("nan") for s, n in zip(self._sum_t, self._n_t))
         block = ModelBlock(

@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
+from ..errors import InputFileError
 from ..protocol import STATUS_THERMOMETER_FAULT
 from ..stream import Sample, SampleBlock
 from .blocks import FLAG_GAP, FLAG_THERMOMETER_FAULT, BlockAverager, ModelBlock
@@ -38,7 +39,7 @@ if TYPE_CHECKING:  # adapt.py imports this module's flags: import it lazily
 
 FLAG_UNCOMPENSATED = 1 << 3  #: no drift estimate applied (start-up, or inputs never valid)
 FLAG_ADAPTING = 1 << 4  #: the weights are adapting online
-FLAG_GUARD = 1 << 5  #: a runaway or non-finite estimate was rejected
+FLAG_GUARD = 1 << 5  #: a runaway or non-finite estimate, or a reference the gyro disagrees with, was rejected
 FLAG_NAMES = {
     FLAG_GAP: "gap",
     FLAG_THERMOMETER_FAULT: "thermometer_fault",
@@ -128,7 +129,8 @@ class Compensator:
             from .adapt import OnlineReadout, StaticDetector
 
             block_s = 1.0 / model_file.model_rate_hz
-            self.online = OnlineReadout(self.model.weights, self.model.intercept, adapt, block_s)
+            self.online = OnlineReadout(self.model.weights, self.model.intercept, adapt, block_s,
+                                        fit_residual_dph=model_file.fit_residual_dph)  # fmt: skip
             self.static_detector = StaticDetector.from_config(adapt, block_s)
 
     # -- block level: shared by step and run ---------------------------------------------------
@@ -172,18 +174,86 @@ class Compensator:
 
     # -- adaptation state ----------------------------------------------------------------------
 
+    def pipeline_state(self) -> dict:
+        """Everything but the readout the estimate depends on: the open block, the feature smoothers and
+        held values, the model's memory (reservoir), the held estimate.  Plain YAML-safe values, exact."""
+        return {
+            "averager": self.averager.get_state(),
+            "features": self.features.get_state(),
+            "model": self.model.get_state(),
+            "started": self._started,
+            "blocks_seen": self.blocks_seen,
+            "estimate_dph": self.estimate_dph,
+            "estimate_flags": self.estimate_flags,
+            "estimate_block": self._estimate_block,
+        }
+
+    def set_pipeline_state(self, state: dict) -> None:
+        """Inverse of ``pipeline_state`` (``ValueError`` when it does not fit this model and frame rate)."""
+        keys = {"averager", "features", "model", "started", "blocks_seen", "estimate_dph", "estimate_flags",
+                "estimate_block"}  # fmt: skip
+        if not isinstance(state, dict) or set(state) != keys:
+            raise ValueError(f"pipeline state needs exactly the keys {sorted(keys)}")
+        averager = BlockAverager(self.averager.frame_period_s, self.averager.model_rate_hz)
+        averager.set_state(state["averager"])  # on fresh objects first: nothing changes when a part is bad
+        features = FeatureExtractor(self.features.params)
+        try:
+            features.set_state(state["features"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"pipeline state: bad feature state: {exc}") from None
+        if any(len(features.get_state()[k]) != 3 for k in ("last", "stale_s", "m1", "m2")):
+            raise ValueError("pipeline state: the feature state needs 3 values per sensor")
+        before = self.model.get_state()
+        try:
+            self.model.set_state(state["model"])
+        except (KeyError, TypeError, ValueError) as exc:
+            self.model.set_state(before)
+            raise ValueError(f"pipeline state: bad model state: {exc}") from None
+        if {k: len(v) if isinstance(v, list) else None for k, v in self.model.get_state().items()} != {
+            k: len(v) if isinstance(v, list) else None for k, v in before.items()
+        }:
+            self.model.set_state(before)
+            raise ValueError("pipeline state: the model state is for another model")
+        self.averager = averager
+        self.features = features
+        self._started = bool(state["started"])
+        self.blocks_seen = int(state["blocks_seen"])
+        self.estimate_dph = float(state["estimate_dph"])
+        self.estimate_flags = int(state["estimate_flags"])
+        self._estimate_block = int(state["estimate_block"])
+
     def save_adaptation(self, path: str | Path) -> Path:
-        """The adaptation state (readout and static detector) as YAML; only when adapting."""
+        """The adaptation state as YAML (the readout, the static detector, and the pipeline's state, so that
+        a restart of the same run continues exactly); only when adapting."""
         if self.online is None:
             raise ValueError("this compensator is not adapting (no adapt config)")
-        return self.online.save_state(path, detector=self.static_detector)
+        return self.online.save_state(path, detector=self.static_detector, pipeline=self.pipeline_state())
 
     def load_adaptation(self, path: str | Path, *, new_run: bool = True) -> None:
         """Restore ``save_adaptation``'s file (``InputFileError`` when it does not fit this model).  With
-        ``new_run`` (a new switch-on: a new turn-on bias) the bias is captured again; the adapted W is kept."""
+        ``new_run`` (a new switch-on: a new turn-on bias, a new device clock) the bias is captured again and
+        only the readout is kept (the adapted W); without, the same run continues: the pipeline's state
+        (open block, smoothers, reservoir, held estimate) is restored too, and the output continues exactly
+        as if uninterrupted."""
+        from ..yamlfile import read_tagged_yaml
+        from .adapt import ADAPT_STATE_FORMAT, ADAPT_STATE_SCHEMA_VERSION
+
         if self.online is None:
             raise ValueError("this compensator is not adapting (no adapt config)")
-        self.online.load_state_file(path, detector=self.static_detector)
+        doc = read_tagged_yaml(path, "adaptation state", ADAPT_STATE_FORMAT, ADAPT_STATE_SCHEMA_VERSION)
+        if not new_run and "pipeline" in doc:  # checked before anything changes
+            saved = self.pipeline_state()
+            try:
+                self.set_pipeline_state(doc["pipeline"])
+            except ValueError as exc:
+                raise InputFileError(f"{path}: corrupt adaptation state: {exc}") from None
+            try:
+                self.online.load_state_doc(doc, str(path), detector=self.static_detector)
+            except InputFileError:
+                self.set_pipeline_state(saved)
+                raise
+        else:
+            self.online.load_state_doc(doc, str(path), detector=self.static_detector)
         if new_run:
             self.online.begin_run()
 

@@ -12,6 +12,7 @@ warm-up, or when frames were lost.
 from __future__ import annotations
 
 import hashlib
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -38,6 +39,10 @@ class FitConfig:
     motion_threshold_dph: float = 30.0  #: |rate - running median| above this is table motion
     motion_window_s: float = 61.0  #: running-median window
     motion_margin_s: float = 10.0  #: excluded on each side of detected motion
+    motion_envelope_s: float = 900.0  #: the drift envelope: a running median of the rate over this window
+    motion_sigmas: float = 8.0  #: |rate - envelope| above this many block-noise sigmas is motion ...
+    motion_floor_dph: float = 1.0  #: ... and above this (a drift's own curvature inside the envelope's window)
+    max_drift_dph: float = 5.0  #: the envelope farther than this from the capture's static level is motion
     warmup_s: float = 300.0  #: rate smoother and instrument start-up: not fitted
     poly_alpha: float | None = 1e-3  #: ridge penalty per row on standardized regressors; None: blocked CV
 
@@ -64,6 +69,7 @@ class CaptureData:
     input_flags: np.ndarray
     static: np.ndarray  #: bool: usable for fitting
     target_dph: np.ndarray  #: rate minus this capture's static mean
+    moving_blocks: int = 0  #: blocks the motion detector found (``motion_mask``; not fitted)
 
     @property
     def minutes(self) -> float:
@@ -78,10 +84,45 @@ def running_median(x: np.ndarray, window: int) -> np.ndarray:
     return np.median(view, axis=1)
 
 
-def static_mask(blocks: BlockColumns, input_flags: np.ndarray, config: FitConfig) -> np.ndarray:
-    rate = blocks.rate_dph
-    window = max(3, int(round(config.motion_window_s * config.model_rate_hz)) | 1)
+def block_noise_dph(rate_dph: np.ndarray) -> float:
+    """The white noise of one block's rate, robustly: 1.4826 MAD of first differences / sqrt(2) (a drift
+    and the table's rare moves barely move the median of the differences)."""
+    d = np.diff(rate_dph[np.isfinite(rate_dph)])
+    if not len(d):
+        return 0.0
+    return float(1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(2.0))
+
+
+def motion_mask(rate_dph: np.ndarray, config: FitConfig) -> np.ndarray:
+    """Blocks where the table moves, by three tests (each catches what the others miss):
+
+    1. fast moves: ``|rate - running median (motion_window_s)| > motion_threshold_dph``;
+    2. steady motion (a turn longer than half that window, which becomes its median) and slow creeps:
+       ``|rate - E| > max(motion_sigmas * sigma_b, motion_floor_dph)``, E the running median over
+       ``motion_envelope_s`` (a thermal drift changes little in 15 minutes), sigma_b the block noise
+       (``block_noise_dph``);
+    3. motion as long as the envelope itself: ``|E - L| > max_drift_dph``, L the median rate of the
+       blocks 1 and 2 left (the capture's static level: Earth rate and bias), where no thermal drift goes.
+    """
+    rate = rate_dph
+    rate_hz = config.model_rate_hz
+    window = max(3, int(round(config.motion_window_s * rate_hz)) | 1)
     moving = np.abs(rate - running_median(rate, window)) > config.motion_threshold_dph
+    envelope_window = max(3, int(round(config.motion_envelope_s * rate_hz)) | 1)
+    if len(rate) >= 3:
+        envelope = running_median(rate, envelope_window)
+        sigma = block_noise_dph(rate)
+        moving |= np.abs(rate - envelope) > max(config.motion_sigmas * sigma, config.motion_floor_dph)
+        if (~moving).any():
+            level = float(np.median(rate[~moving]))
+            moving |= np.abs(envelope - level) > config.max_drift_dph
+    return moving
+
+
+def static_mask(blocks: BlockColumns, input_flags: np.ndarray, config: FitConfig) -> np.ndarray:
+    """Blocks to fit: no motion (``motion_mask``, widened by ``motion_margin_s``), fresh and valid
+    thermometers, no lost frames, past the warm-up."""
+    moving = motion_mask(blocks.rate_dph, config)
     margin = int(round(config.motion_margin_s * config.model_rate_hz))
     if margin and moving.any():
         kernel = np.ones(2 * margin + 1)
@@ -119,8 +160,9 @@ def load_capture(path: str | Path, config: FitConfig) -> CaptureData:
     if not static.any():
         raise InputFileError(f"{path}: no static, valid block to fit (motion everywhere, or no valid thermometers)")
     target = blocks.rate_dph - blocks.rate_dph[static].mean()
+    moving = int(motion_mask(blocks.rate_dph, config).sum())
     return CaptureData(path, sha.hexdigest(), stream.identity.serial if stream.identity else None,
-                       averager.frame_period_s, blocks, inputs, input_flags, static, target)  # fmt: skip
+                       averager.frame_period_s, blocks, inputs, input_flags, static, target, moving)  # fmt: skip
 
 
 def minute_rms(residual_dph: np.ndarray, mask: np.ndarray, model_rate_hz: float = 1.0) -> float:
@@ -345,7 +387,8 @@ def fit_model_file(
     report = report_for(models, normalizer, captures, validate, config.model_rate_hz, domain)
     provenance = {
         "captures": [{"file": c.path.name, "sha256": c.sha256, "blocks": len(c.blocks),
-                      "static_blocks": int(c.static.sum())} for c in captures],  # fmt: skip
+                      "static_blocks": int(c.static.sum()), "moving_blocks": c.moving_blocks}
+                     for c in captures],  # fmt: skip
         "validate": [{"file": c.path.name, "sha256": c.sha256} for c in validate],
         "config": _plain(config),
         "metrics": {what: {"fit": fit_v, **({"validate": val_v} if val_v is not None else {})}

@@ -70,6 +70,14 @@ class ModelFile:
     created_utc: str = field(default_factory=utc_now_iso)
     fog_driver_version: str = __version__
 
+    @property
+    def fit_residual_dph(self) -> float | None:
+        """The 1-min drift RMS this model left on its own fit data (``provenance.metrics``), or None."""
+        metrics = self.provenance.get("metrics") or {}
+        row = metrics.get(f"after, {self.kind}") if isinstance(metrics, dict) else None
+        value = row.get("fit") if isinstance(row, dict) else None
+        return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else None
+
     def warnings(self, name: str) -> list[str]:
         """What a user applying this model should know of its fit: a weak fit accepted, no stored range."""
         lines = []

@@ -345,11 +345,27 @@ class Service:
         return result
 
     def reload_model(self, model_file: ModelFile) -> None:
+        """Compensate with ``model_file`` from the next block on, without a restart of the pipeline: the
+        angles, the open block and the feature smoothers carry on; the same model reloaded also keeps its
+        memory (reservoir) and its adaptation; a different model starts at rest at the current inputs (as
+        at switch-on), and its adaptation from its saved state, if any."""
         old = self.compensator
         self.model_file = model_file
         if old is not None:
             new = self._new_compensator()
             new.angle_raw_arcsec, new.angle_comp_arcsec = old.angle_raw_arcsec, old.angle_comp_arcsec
+            same_inputs = new.features.params == old.features.params and new.averager.block_us == old.averager.block_us
+            if same_inputs:
+                new.averager, new.features = old.averager, old.features
+                new.estimate_dph, new.estimate_flags = old.estimate_dph, old.estimate_flags
+                new._estimate_block, new.blocks_seen = old._estimate_block, old.blocks_seen
+                if _same_model(old.model_file, model_file):
+                    state = old.pipeline_state()
+                    new.model.set_state(state["model"])
+                    new._started = state["started"]
+                    if old.online is not None and new.online is not None:
+                        new.online.load_state(old.online.state_dict())
+                        new.static_detector = old.static_detector
             self.compensator = new
 
     # -- life cycle ----------------------------------------------------------------------------
@@ -432,3 +448,7 @@ class Service:
         if self.hub is not None:
             self.hub.stop()
 
+
+def _same_model(a: ModelFile, b: ModelFile) -> bool:
+    """The same drift model (kind, normalization and every matrix): its memory and adaptation carry over."""
+    return a.kind == b.kind and a.normalizer.to_dict() == b.normalizer.to_dict() and a.model.to_dict() == b.model.to_dict()

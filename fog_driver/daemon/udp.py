@@ -12,7 +12,8 @@ offset  type   field             meaning
                                  object's ``flags`` names): bit 0 gap (frames missing),
                                  1 thermometer_fault, 2 input_stale, 3 uncompensated
                                  (no drift estimate applied), 4 adapting, 5 guard (an
-                                 estimate was rejected), 6 extrapolating (inputs
+                                 estimate or the adapting reference was rejected),
+                                 6 extrapolating (inputs
                                  outside the model's fit range, or its estimate
                                  clipped); other bits reserved, zero
 8       u64    seq               sample sequence number (unwrapped, monotonic)
