@@ -38,14 +38,17 @@ W of that time for one memory window).  The same neutral target is used during t
 The innovation gate: the rate must match the reference.  A static detector sees only the spread of the
 rate; a table that turns steadily or creeps while the reference says 0 looks static, and its rate would
 be learned as drift.  So on a gated block after the capture the innovation ``d - frozen estimate`` goes
-through the law's target filter (an exponential mean over ``law.filter_time_s``), and when that filtered
+through an exponential mean over ``GATE_FILTER_S`` (120 s), and when that filtered
 innovation is farther from 0 than the runaway bound plus ``innovation_sigmas`` (4) sigmas of its noise
 (``gate_limit_dph``; the block noise from half the squared differences of successive gated rates over
-``NOISE_MEMORY_S``, through the same filter), the block is not learned (the neutral target, as for an
-ungated block), is counted (``rejected``) and flagged ``FLAG_GUARD``.  No drift the law may learn is
-that far from the frozen model: the gyro disagrees with the reference.  The filter starts afresh after
+``NOISE_MEMORY_S``, each capped at 25 times the estimate so far and at the static detector's threshold
+squared so that a bad block cannot open the gate, through the same filter), the block is not learned (the neutral target, as for an
+ungated block), is counted (``rejected``) and flagged ``FLAG_GUARD``, and W is reset to the frozen
+weights as by a guard (what the law learned while the mismatch grew towards the bound is suspect too).
+No drift the law may learn is that far from the frozen model: the gyro disagrees with the reference.  The filter starts afresh after
 any ungated block.  A creep of a few deg/h is refused within seconds; one near the bound (0.2 deg/h on a
-model with 0.024 deg/h of fit residual) within minutes, and until then the runaway guard bounds it.
+model with 0.024 deg/h of fit residual) within minutes; a slower one is learned, and the runaway guard
+bounds what it does to the estimate.
 
 Guards.  Before it is returned, the adapted estimate is checked against the frozen one: not finite, or
 further than the runaway bound from it, and the frozen estimate is returned instead, the block is
@@ -268,6 +271,11 @@ COMPARE_SIGMAS = 1.0
 RUNAWAY_FIT_RESIDUALS = 5.0
 RUNAWAY_MIN_DPH = 0.05
 RUNAWAY_MAX_DPH = 2.0
+#: The innovation gate's filter (an exponential mean over this time): long enough that its noise (the
+#: block noise / sqrt(2 GATE_FILTER_S / Ts): 0.011 deg/h for 0.17) leaves the bound close to the
+#: runaway bound, so that a creep just above that bound is refused within minutes; a move or a fast
+#: creep is refused within seconds all the same (a 2 deg/h creep crosses a 0.2 deg/h bound in 13 s).
+GATE_FILTER_S = 120.0
 #: The innovation's noise: an exponential mean of half the squared differences of successive gated
 #: rates, over this time (the white noise of a block; a drift is smooth and does not enter it).
 NOISE_MEMORY_S = 600.0
@@ -316,8 +324,8 @@ class OnlineReadout:
         self.runaway_dph = float(self.config.runaway_dph if self.config.runaway_dph is not None
                                  else runaway_for(fit_residual_dph))  # fmt: skip
         self._runaway = self.runaway_dph
-        # the innovation's filter is the law's target filter; the noise's memory NOISE_MEMORY_S
-        self._gate_a = 1.0 - numerics.exp_correctly_rounded(-self._law.sample_time_s / self.config.law.filter_time_s)
+        # the innovation's filter: GATE_FILTER_S; the noise's memory: NOISE_MEMORY_S
+        self._gate_a = 1.0 - numerics.exp_correctly_rounded(-self._law.sample_time_s / GATE_FILTER_S)
         self._noise_a = 1.0 - numerics.exp_correctly_rounded(-self._law.sample_time_s / NOISE_MEMORY_S)
         # an exponential mean of white noise of variance v has variance v a / (2 - a)
         self._gate_gain = math.sqrt(self._gate_a / (2.0 - self._gate_a))
@@ -449,9 +457,11 @@ class OnlineReadout:
         d = y  # the neutral target: no information, "stay"
         if gated:
             self.gated_blocks += 1
-            if self.gate_last_rate_dph is not None:  # the block noise, from successive gated rates
+            if self.gate_last_rate_dph is not None:  # the block noise, from successive gated rates, winsorized
                 step = measured - self.gate_last_rate_dph
-                self.gate_noise_var_dph2 += self._noise_a * (0.5 * step * step - self.gate_noise_var_dph2)
+                var = self.gate_noise_var_dph2
+                cap = min(25.0 * var if var > 0 else math.inf, self.config.static_threshold_dph ** 2)
+                self.gate_noise_var_dph2 += self._noise_a * (min(0.5 * step * step, cap) - var)
             self.gate_last_rate_dph = measured
             if self.bias_dph is None:
                 self.bias_sum_dph += measured - reference - y  # W is fixed during a capture: y is frozen on a first run
@@ -465,9 +475,13 @@ class OnlineReadout:
                     d = target
                     update = True
                     self._compare(f, d, y_frozen)
-                else:  # the gyro disagrees with the reference by more than any drift the law may learn
-                    self.rejected += 1
+                else:  # the gyro disagrees with the reference by more than any drift the law may learn:
+                    self.rejected += 1  # what the law learned as the mismatch grew is suspect too
                     flags |= FLAG_GUARD
+                    self.reset_to_frozen()
+                    use_adapted = False
+                    y = y_frozen
+                    d = y
         else:  # the gate starts afresh after any block it did not see
             self.gate_last_rate_dph = None
             self.gate_innovation_dph = 0.0

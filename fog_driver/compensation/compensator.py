@@ -40,6 +40,11 @@ if TYPE_CHECKING:  # adapt.py imports this module's flags: import it lazily
 FLAG_UNCOMPENSATED = 1 << 3  #: no drift estimate applied (start-up, or inputs never valid)
 FLAG_ADAPTING = 1 << 4  #: the weights are adapting online
 FLAG_GUARD = 1 << 5  #: a runaway or non-finite estimate, or a reference the gyro disagrees with, was rejected
+#: A link gap longer than this restarts the pipeline at rest (the model's memory of before is stale);
+#: a shorter one is stepped through block by block.
+MAX_GAP_S = 6 * 3600.0
+#: After a gap the estimates are flagged ``gap`` for this many slow rate-smoother time constants.
+SETTLE_TAUS = 3.0
 FLAG_NAMES = {
     FLAG_GAP: "gap",
     FLAG_THERMOMETER_FAULT: "thermometer_fault",
@@ -113,6 +118,11 @@ class Compensator:
         self.features = FeatureExtractor(model_file.features)
         self._normalizer = model_file.normalizer
         self.domain = model_file.domain
+        self._block_s = 1.0 / model_file.model_rate_hz
+        self._settle_blocks = int(math.ceil(SETTLE_TAUS * model_file.features.rate_tau_slow_s / self._block_s))
+        self._last_index: int | None = None  # the last block seen (a gap: blocks missing after it)
+        self._last_temps = (math.nan, math.nan, math.nan)  # its temperatures (a gap is interpolated from them)
+        self._settle_until = -1  # estimates up to this block are flagged gap (the smoothers catch up)
         self.estimate_dph = 0.0
         self.estimate_flags = FLAG_UNCOMPENSATED
         self._estimate_block = -1  # the block index the estimate applies from
@@ -136,7 +146,33 @@ class Compensator:
     # -- block level: shared by step and run ---------------------------------------------------
 
     def _on_block(self, block: ModelBlock) -> None:
-        """A block has closed: update the held estimate, which applies from the next block on."""
+        """A block has closed: update the held estimate, which applies from the next block on.
+
+        Blocks missing before it (a link gap) are stepped first, their temperatures interpolated linearly
+        between the blocks on either side (the features, the model and the law advance by the elapsed time;
+        nothing is learned: no rate), up to ``MAX_GAP_S``; after a longer gap the pipeline restarts at rest.  Either way the estimates of the
+        next ``SETTLE_S`` (three slow rate-smoother time constants) are flagged ``gap``: the smoothers are
+        catching up with what the gap hid."""
+        if self._last_index is not None and block.index > self._last_index + 1:
+            missing = block.index - self._last_index - 1
+            if missing * self._block_s > MAX_GAP_S:
+                self.features.reset()
+                self.model.reset()
+                self._started = False
+            else:  # the temperatures interpolated linearly across the gap (exact for a ramp)
+                before, now = self._last_temps, block.temps_c
+                for i, index in enumerate(range(self._last_index + 1, block.index)):
+                    w = (i + 1) / (missing + 1)
+                    temps = tuple(a + w * (b - a) for a, b in zip(before, now))  # NaN where either is NaN
+                    self._process(ModelBlock(index, math.nan, 0, math.nan, temps, FLAG_GAP))
+            self._settle_until = block.index + self._settle_blocks
+        self._last_index = block.index
+        self._last_temps = tuple(float(v) for v in block.temps_c)
+        self._process(block)
+        if block.index <= self._settle_until:
+            self.estimate_flags |= FLAG_GAP
+
+    def _process(self, block: ModelBlock) -> None:
         u, flags = self.features.step(block.temps_c)
         flags |= block.flags & (FLAG_GAP | FLAG_THERMOMETER_FAULT)
         self.blocks_seen += 1
@@ -157,6 +193,7 @@ class Compensator:
                 adapt_flags = 0
             else:
                 clean = not flags & (FLAG_GAP | FLAG_THERMOMETER_FAULT | FLAG_INPUT_STALE)
+                clean = clean and block.index > self._settle_until
                 gate = static and clean and block.t_end_s > self.adapt.warmup_s
                 f = self.model.regressors_step(z)
                 estimate, adapt_flags = self.online.step(f, block.rate_dph, self.reference_rate_dph, gate)
@@ -186,16 +223,28 @@ class Compensator:
             "estimate_dph": self.estimate_dph,
             "estimate_flags": self.estimate_flags,
             "estimate_block": self._estimate_block,
+            "last_index": self._last_index,
+            "last_temps": list(self._last_temps),
+            "settle_until": self._settle_until,
         }
 
     def set_pipeline_state(self, state: dict) -> None:
         """Inverse of ``pipeline_state`` (``ValueError`` when it does not fit this model and frame rate)."""
         keys = {"averager", "features", "model", "started", "blocks_seen", "estimate_dph", "estimate_flags",
-                "estimate_block"}  # fmt: skip
+                "estimate_block", "last_index", "last_temps", "settle_until"}  # fmt: skip
         if not isinstance(state, dict) or set(state) != keys:
             raise ValueError(f"pipeline state needs exactly the keys {sorted(keys)}")
+        try:  # the scalars first, and every part on fresh objects: nothing changes when a part is bad
+            scalars = (bool(state["started"]), int(state["blocks_seen"]), float(state["estimate_dph"]),
+                       int(state["estimate_flags"]), int(state["estimate_block"]),
+                       None if state["last_index"] is None else int(state["last_index"]),
+                       tuple(float(v) for v in state["last_temps"]), int(state["settle_until"]))  # fmt: skip
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"pipeline state: not numbers: {exc}") from None
+        if len(scalars[6]) != 3:
+            raise ValueError("pipeline state: last_temps needs 3 values")
         averager = BlockAverager(self.averager.frame_period_s, self.averager.model_rate_hz)
-        averager.set_state(state["averager"])  # on fresh objects first: nothing changes when a part is bad
+        averager.set_state(state["averager"])
         features = FeatureExtractor(self.features.params)
         try:
             features.set_state(state["features"])
@@ -216,11 +265,8 @@ class Compensator:
             raise ValueError("pipeline state: the model state is for another model")
         self.averager = averager
         self.features = features
-        self._started = bool(state["started"])
-        self.blocks_seen = int(state["blocks_seen"])
-        self.estimate_dph = float(state["estimate_dph"])
-        self.estimate_flags = int(state["estimate_flags"])
-        self._estimate_block = int(state["estimate_block"])
+        (self._started, self.blocks_seen, self.estimate_dph, self.estimate_flags, self._estimate_block,
+         self._last_index, self._last_temps, self._settle_until) = scalars  # fmt: skip
 
     def save_adaptation(self, path: str | Path) -> Path:
         """The adaptation state as YAML (the readout, the static detector, and the pipeline's state, so that
@@ -263,12 +309,13 @@ class Compensator:
         for block in self.averager.step(sample):
             self._on_block(block)
         drift = self.estimate_dph
+        stale = 0 <= self._estimate_block < self.averager._current  # after a gap: the estimate is from before it
         dtheta_comp = sample.dtheta_arcsec - drift * self.frame_period_s
         self.angle_raw_arcsec += sample.dtheta_arcsec
         self.angle_comp_arcsec += dtheta_comp
         temps = (sample.t_top_c, sample.t_bottom_c, sample.t_housing_c)
         flags = self.estimate_flags
-        if sample.missing_before:
+        if sample.missing_before or stale:
             flags |= FLAG_GAP
         if any(t != t for t in temps) or sample.status & STATUS_THERMOMETER_FAULT:
             flags |= FLAG_THERMOMETER_FAULT
@@ -280,21 +327,24 @@ class Compensator:
     def run(self, samples: SampleBlock) -> CompensatedColumns:
         """Vector form of ``step`` over many samples: per-frame work vectorized, blocks in order."""
         n = len(samples)
-        held_before = (self.estimate_dph, self.estimate_flags)
+        held_before = (self.estimate_dph, self.estimate_flags, self._estimate_block)
         blocks = self.averager.run(samples)
         # The estimate each closed block leaves behind, in order.
         after = []
         for i in range(len(blocks)):
             self._on_block(blocks.block(i))
-            after.append((self.estimate_dph, self.estimate_flags))
+            after.append((self.estimate_dph, self.estimate_flags, self._estimate_block))
         # Which estimate each frame sees: the latest from a block with a smaller index.
         first_us = self.averager._first_us
         frame_block = (np.rint(samples.t_s * 1e6).astype(np.int64) - first_us) // self.averager.block_us
         which = np.searchsorted(blocks.index, frame_block, side="left") - 1  # -1: the estimate held before
         estimates = np.array([held_before[0]] + [a[0] for a in after])
         est_flags = np.array([held_before[1]] + [a[1] for a in after], dtype=np.int64)
+        est_blocks = np.array([held_before[2]] + [a[2] for a in after], dtype=np.int64)
         drift = estimates[which + 1]
         flags = est_flags[which + 1].copy()
+        held_block = est_blocks[which + 1]
+        flags[(held_block >= 0) & (frame_block > held_block)] |= FLAG_GAP  # after a gap: the estimate is from before it
         dtheta = samples.dtheta_arcsec
         dtheta_comp = dtheta - drift * self.frame_period_s
         angle_raw = np.cumsum(np.r_[self.angle_raw_arcsec, dtheta])[1:]

@@ -359,6 +359,8 @@ class Service:
                 new.averager, new.features = old.averager, old.features
                 new.estimate_dph, new.estimate_flags = old.estimate_dph, old.estimate_flags
                 new._estimate_block, new.blocks_seen = old._estimate_block, old.blocks_seen
+                new._last_index, new._settle_until = old._last_index, old._settle_until
+                new._last_temps = old._last_temps
                 if _same_model(old.model_file, model_file):
                     state = old.pipeline_state()
                     new.model.set_state(state["model"])
