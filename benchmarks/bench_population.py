@@ -18,6 +18,9 @@ runs:
   coils of two or three stages: the next version's cascade.  ``eval`` is spent.
 * 2026-12-01, ``eval2`` (20000..20023), first run: the wesn with the coil cascade and the coil's
   rate (the README's figures).
+* 2026-12-02, ``eval2``, second run, ``--adapt``: the adapting guards of issue 11 (innovation gate,
+  runaway bound from the fit residual), developed on ``dev`` 0..23; the frozen models are the
+  first run's, and so are their figures, bit for bit.
 
 Individual evaluation instruments are not to be studied: to find what failed there, draw more
 development instruments (``--set dev --first 72``) and look for the same failure among them.

@@ -407,8 +407,12 @@ def fit_model_file(
             if fall_back:
                 kind = "polynomial"
                 provenance["fell_back"] = f"{selection['warning_validation']}: the polynomial was saved instead"
-    quality = _assess(models[kind], captures, validate, normalizer, report, kind, config)
+    quality = _assess(captures, validate, normalizer, report, kind, config)
     provenance["fit_quality"] = quality.to_dict(accept_weak)
+    rows = regressor_rows(models[kind], captures, normalizer)
+    if rows is not None:  # for information: the model's own regressors (the review's M6)
+        provenance["fit_quality"]["model_condition"] = condition_number(
+            np.vstack([r[c.static] for r, c in zip(rows, captures)]))  # fmt: skip
     model_file = ModelFile(
         kind=kind,
         instrument_serial=next(iter(serials)) or "",
@@ -435,15 +439,19 @@ class WeakFitError(InputFileError):
         self.quality, self.report, self.model_file = quality, report, model_file
 
 
-def _assess(model, captures: list[CaptureData], validate: list[CaptureData], normalizer: Standardizer,
+def _assess(captures: list[CaptureData], validate: list[CaptureData], normalizer: Standardizer,
             report: FitReport, kind: str, config: FitConfig) -> FitQuality:  # fmt: skip
-    """``quality.assess`` of this fit: its static blocks' span and duration, its regressors' conditioning,
-    and its report's before/after rows for the saved model."""
+    """``quality.assess`` of this fit: its static blocks' span and duration, the data's conditioning, and
+    its report's before/after rows for the saved model."""
+    from .polynomial import polynomial_features
+
     rate = config.model_rate_hz
     inputs = np.vstack([c.inputs[c.static] for c in captures])
     means = np.concatenate([static_minute_means(c.target_dph, c.static, rate) for c in captures])
-    rows = regressor_rows(model, captures, normalizer)
-    condition = None if rows is None else condition_number(np.vstack([r[c.static] for r, c in zip(rows, captures)]))
+
+    # the data's conditioning, in the physical basis every kind is built on (a model's own basis may be
+    # collinear by design, e.g. the coil's rate beside the coil and the ring: the penalty handles that)
+    condition = condition_number(polynomial_features(normalizer.transform(inputs)))
     by_name = {what: (fit_v, val_v) for what, fit_v, val_v in report.rows}
     before, after = by_name["before compensation"], by_name[f"after, {kind}"]
     validated = (before[1], after[1]) if validate else None

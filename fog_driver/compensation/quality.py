@@ -13,7 +13,7 @@ check                  what is measured                                         
 ``ring_span``          span (max - min) of the ring mean (T1 + T2) / 2, degC             >= 5
 ``rate_span``          span of the ring mean's rate (dT1/dt + dT2/dt) / 2, degC/min     >= 0.2
 ``target_range``       range of the fit target's 1-minute means, deg/h                  <= 20
-``condition``          condition number of the model's standardized regressors          <= 1e8
+``condition``          condition number of the data in the physical basis, standardized  <= 1e8
 ``fit_residual``       1-min drift RMS after the model on its fit data, vs before        < before
 ``validation``         the same on ``--validate`` captures (when given), vs before       < before
 =====================  ===============================================================  ==========
@@ -23,7 +23,11 @@ both over a range worth modelling (5 degC, 0.2 degC/min: a few times the thermom
 and drift of their offsets, and a tenth of a chamber's usual ramp), for long enough to average the
 gyro's white noise below its drift (30 min of 1-minute means); a FOG's thermal drift spans a few
 deg/h at most, so a target range of 20 deg/h means motion or a fault in the fit data, not drift; a
-condition number above 1e8 leaves the weights to the penalty, not the data.  A model worse than no
+condition number above 1e8 leaves the weights to the penalty, not the data.  The condition is the
+data's, measured in the physical basis every kind is built on (the polynomial's: the ring temperature
+to the cube, its rate and their products, the gradients); a model's own regressors may be collinear by
+design (the wesn's coil rate beside the coil and the ring), which its penalty handles: their condition
+number is recorded beside the checks (``model_condition``), for information.  A model worse than no
 compensation on its own fit data or on a validation run is no model to deploy.
 """
 
@@ -120,8 +124,8 @@ def assess(static_minutes: float, ring_c: np.ndarray, ring_rate_c_per_min: np.nd
     ]  # fmt: skip
     if condition is not None:
         checks.append(_check("condition", condition, MAX_CONDITION, condition <= MAX_CONDITION,
-                             f"the regressors' condition number is {condition:.3g} (at most {MAX_CONDITION:g}): the "
-                             f"data do not determine the weights"))  # fmt: skip
+                             f"the data's condition number is {condition:.3g} (at most {MAX_CONDITION:g}): they do not "
+                             f"determine the weights"))  # fmt: skip
     before, after = fit_before_after
     checks.append(_check("fit_residual", after, before, after < before,
                          f"on its own fit data the model leaves {after:.4f} deg/h, more than the {before:.4f} before "
