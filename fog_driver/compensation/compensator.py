@@ -268,6 +268,23 @@ class Compensator:
         (self._started, self.blocks_seen, self.estimate_dph, self.estimate_flags, self._estimate_block,
          self._last_index, self._last_temps, self._settle_until) = scalars  # fmt: skip
 
+    def continue_from(self, old: Compensator, *, same_model: bool) -> None:
+        """Carry on from ``old`` (a model reloaded mid-run): with the same inputs (features, block length
+        and frame period) the open block, the smoothers, the gap bookkeeping and the held estimate; with the
+        same model (``same_model``) also its memory and its adaptation.  A different model starts at
+        rest at the next block's inputs, as at switch-on.  The angles are the caller's to carry."""
+        same_grid = (self.averager.block_us, self.averager.frame_period_s) == (old.averager.block_us,
+                                                                              old.averager.frame_period_s)  # fmt: skip
+        if self.features.params != old.features.params or not same_grid:
+            return
+        state = old.pipeline_state()
+        if not same_model:
+            state["model"], state["started"] = self.model.get_state(), False
+        self.set_pipeline_state(state)
+        if same_model and old.online is not None and self.online is not None:
+            self.online.load_state(old.online.state_dict())
+            self.static_detector = old.static_detector
+
     def save_adaptation(self, path: str | Path) -> Path:
         """The adaptation state as YAML (the readout, the static detector, and the pipeline's state, so that
         a restart of the same run continues exactly); only when adapting."""

@@ -119,10 +119,11 @@ def motion_mask(rate_dph: np.ndarray, config: FitConfig) -> np.ndarray:
     return moving
 
 
-def static_mask(blocks: BlockColumns, input_flags: np.ndarray, config: FitConfig) -> np.ndarray:
-    """Blocks to fit: no motion (``motion_mask``, widened by ``motion_margin_s``), fresh and valid
-    thermometers, no lost frames, past the warm-up."""
-    moving = motion_mask(blocks.rate_dph, config)
+def static_mask(blocks: BlockColumns, input_flags: np.ndarray, config: FitConfig,
+                moving: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+    """Blocks to fit: no motion (``moving``, by default ``motion_mask``; widened by ``motion_margin_s``),
+    fresh and valid thermometers, no lost frames, past the warm-up."""
+    moving = motion_mask(blocks.rate_dph, config) if moving is None else moving
     margin = int(round(config.motion_margin_s * config.model_rate_hz))
     if margin and moving.any():
         kernel = np.ones(2 * margin + 1)
@@ -156,13 +157,14 @@ def load_capture(path: str | Path, config: FitConfig) -> CaptureData:
     parts.append(BlockColumns.from_blocks(averager.flush()))
     blocks = BlockColumns(*(np.concatenate([getattr(p, f) for p in parts]) for f in BlockColumns.__dataclass_fields__))
     inputs, input_flags = FeatureExtractor(config.features).run(blocks.temps_c)
-    static = static_mask(blocks, input_flags, config)
+    moving = motion_mask(blocks.rate_dph, config)
+    static = static_mask(blocks, input_flags, config, moving)
     if not static.any():
         raise InputFileError(f"{path}: no static, valid block to fit (motion everywhere, or no valid thermometers)")
     target = blocks.rate_dph - blocks.rate_dph[static].mean()
-    moving = int(motion_mask(blocks.rate_dph, config).sum())
     return CaptureData(path, sha.hexdigest(), stream.identity.serial if stream.identity else None,
-                       averager.frame_period_s, blocks, inputs, input_flags, static, target, moving)  # fmt: skip
+                       averager.frame_period_s, blocks, inputs, input_flags, static, target,
+                       int(moving.sum()))  # fmt: skip
 
 
 def minute_rms(residual_dph: np.ndarray, mask: np.ndarray, model_rate_hz: float = 1.0) -> float:
@@ -206,11 +208,11 @@ def static_minute_means(values: np.ndarray, mask: np.ndarray, model_rate_hz: flo
     return values[:n].reshape(-1, per_minute)[full].mean(axis=1)
 
 
-def fit_domain(captures: list[CaptureData], model_rate_hz: float) -> InputDomain:
-    """The fit's input box (its static blocks) and the estimate's bound (its target's 1-minute means)."""
+def static_rows(captures: list[CaptureData], model_rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
+    """The fit's static inputs (rows, 8) and its target's whole static 1-minute means, all captures."""
     inputs = np.vstack([c.inputs[c.static] for c in captures])
     means = np.concatenate([static_minute_means(c.target_dph, c.static, model_rate_hz) for c in captures])
-    return InputDomain.from_fit(inputs, means)
+    return inputs, means
 
 
 @dataclass
@@ -383,7 +385,8 @@ def fit_model_file(
     models = {"polynomial": _fit_polynomial(captures, normalizer, config)}
     if kind != "polynomial":
         models[kind] = FITTERS[kind](captures, normalizer, config)
-    domain = fit_domain(captures, config.model_rate_hz)
+    inputs, means = static_rows(captures, config.model_rate_hz)
+    domain = InputDomain.from_fit(inputs, means)  # the fit's box, and the estimate's bound
     report = report_for(models, normalizer, captures, validate, config.model_rate_hz, domain)
     provenance = {
         "captures": [{"file": c.path.name, "sha256": c.sha256, "blocks": len(c.blocks),
@@ -407,7 +410,7 @@ def fit_model_file(
             if fall_back:
                 kind = "polynomial"
                 provenance["fell_back"] = f"{selection['warning_validation']}: the polynomial was saved instead"
-    quality = _assess(captures, validate, normalizer, report, kind, config)
+    quality = _assess(inputs, means, validate, normalizer, report, kind, config)
     provenance["fit_quality"] = quality.to_dict(accept_weak)
     rows = regressor_rows(models[kind], captures, normalizer)
     if rows is not None:  # for information: the model's own regressors (the review's M6)
@@ -439,15 +442,13 @@ class WeakFitError(InputFileError):
         self.quality, self.report, self.model_file = quality, report, model_file
 
 
-def _assess(captures: list[CaptureData], validate: list[CaptureData], normalizer: Standardizer,
+def _assess(inputs: np.ndarray, means: np.ndarray, validate: list[CaptureData], normalizer: Standardizer,
             report: FitReport, kind: str, config: FitConfig) -> FitQuality:  # fmt: skip
-    """``quality.assess`` of this fit: its static blocks' span and duration, the data's conditioning, and
-    its report's before/after rows for the saved model."""
+    """``quality.assess`` of this fit (``static_rows``: its static inputs and target minute means): their
+    span and duration, the data's conditioning, and its report's before/after rows for the saved model."""
     from .polynomial import polynomial_features
 
     rate = config.model_rate_hz
-    inputs = np.vstack([c.inputs[c.static] for c in captures])
-    means = np.concatenate([static_minute_means(c.target_dph, c.static, rate) for c in captures])
 
     # the data's conditioning, in the physical basis every kind is built on (a model's own basis may be
     # collinear by design, e.g. the coil's rate beside the coil and the ring: the penalty handles that)

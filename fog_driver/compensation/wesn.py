@@ -433,6 +433,8 @@ def _aflp_target(target: np.ndarray) -> np.ndarray:
 
 def fit_wesn(kind: str, defaults: WesnConfig, captures, normalizer, config) -> WesnModel:
     """Fit a WESN model of the given form to the captures (see the module docstring)."""
+    from .fit import capture_groups  # (fit imports this module lazily: no cycle)
+
     if defaults.ring_input and defaults.readout == "ridge":
         return _fit_ring_form(kind, defaults, captures, normalizer, config)
     wc = defaults
@@ -446,7 +448,7 @@ def fit_wesn(kind: str, defaults: WesnConfig, captures, normalizer, config) -> W
         targets.append(target)
     x_fit = np.vstack([f[c.static] for f, c in zip(regressors, captures)])
     y_fit = np.concatenate([t[c.static] for t, c in zip(targets, captures)])
-    groups = np.concatenate([np.full(int(c.static.sum()), i) for i, c in enumerate(captures)])  # fit.capture_groups
+    groups = capture_groups(captures)
     if wc.readout == "ridge":
         alpha = wc.ridge_alpha
         if alpha is None:
@@ -474,12 +476,14 @@ def _fit_ring_form(kind: str, wc: WesnConfig, captures, normalizer, config) -> W
     3. the final fit at that coil and penalty with the history neurons, penalized ``history_penalty``
        times more.
     """
+    from .fit import capture_groups
+
     rate = config.model_rate_hz
     wc, limits = identifiable_structure(wc, captures, rate)
     n_history = len(wc.history_s)
     targets = [c.target_dph for c in captures]
     y_fit = np.concatenate([t[c.static] for t, c in zip(targets, captures)])
-    groups = np.concatenate([np.full(int(c.static.sum()), i) for i, c in enumerate(captures)])  # fit.capture_groups
+    groups = capture_groups(captures)
     per_coil = {}
     weights = ring_weights_for(normalizer)
     for order in wc.coil_orders:

@@ -354,20 +354,7 @@ class Service:
         if old is not None:
             new = self._new_compensator()
             new.angle_raw_arcsec, new.angle_comp_arcsec = old.angle_raw_arcsec, old.angle_comp_arcsec
-            same_inputs = new.features.params == old.features.params and new.averager.block_us == old.averager.block_us
-            if same_inputs:
-                new.averager, new.features = old.averager, old.features
-                new.estimate_dph, new.estimate_flags = old.estimate_dph, old.estimate_flags
-                new._estimate_block, new.blocks_seen = old._estimate_block, old.blocks_seen
-                new._last_index, new._settle_until = old._last_index, old._settle_until
-                new._last_temps = old._last_temps
-                if _same_model(old.model_file, model_file):
-                    state = old.pipeline_state()
-                    new.model.set_state(state["model"])
-                    new._started = state["started"]
-                    if old.online is not None and new.online is not None:
-                        new.online.load_state(old.online.state_dict())
-                        new.static_detector = old.static_detector
+            new.continue_from(old, same_model=_same_model(old.model_file, model_file))
             self.compensator = new
 
     # -- life cycle ----------------------------------------------------------------------------
