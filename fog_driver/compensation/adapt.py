@@ -283,6 +283,11 @@ NOISE_MEMORY_S = 600.0
 _GATE_KEYS = ("gate_noise_var_dph2", "gate_last_rate_dph", "gate_innovation_dph", "rejected")
 
 
+def read_state_doc(path: str | Path) -> dict[str, Any]:
+    """An adaptation state file's document (format and schema checked; one-line ``InputFileError``)."""
+    return read_tagged_yaml(path, "adaptation state", ADAPT_STATE_FORMAT, ADAPT_STATE_SCHEMA_VERSION)
+
+
 def runaway_for(fit_residual_dph: float | None) -> float:
     """The adapted estimate's largest allowed departure from the frozen one, deg/h: ``RUNAWAY_FIT_RESIDUALS``
     times the model's fit residual, clipped to [``RUNAWAY_MIN_DPH``, ``RUNAWAY_MAX_DPH``];
@@ -684,8 +689,7 @@ class OnlineReadout:
         for another model, is a one-line ``InputFileError`` (and nothing is changed).  Returns the file's
         static detector (None if it has none); with ``detector`` given its window is restored in place and
         the file must have one with the same settings."""
-        doc = read_tagged_yaml(path, "adaptation state", ADAPT_STATE_FORMAT, ADAPT_STATE_SCHEMA_VERSION)
-        return self.load_state_doc(doc, str(path), detector)
+        return self.load_state_doc(read_state_doc(path), str(path), detector)
 
     def load_state_doc(self, doc: dict[str, Any], where: str, detector: StaticDetector | None = None
                        ) -> StaticDetector | None:  # fmt: skip

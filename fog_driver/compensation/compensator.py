@@ -11,8 +11,9 @@ before j (causal, held)::
 
 Until the first block closes there is no estimate: D_hat = 0 and the frame is
 flagged ``FLAG_UNCOMPENSATED``.  Inputs outside the model file's fit box (``domain``) are
-clamped to it and an estimate beyond its bound is clipped, both flagged ``FLAG_EXTRAPOLATING``.  A non-finite estimate (inputs never valid)
-keeps the last good one and flags the frame; the angle is never NaN.
+clamped to it and an estimate beyond its bound is clipped, both flagged ``FLAG_EXTRAPOLATING``.
+A non-finite estimate (inputs never valid) keeps the last good one and flags the frame; the angle
+is never NaN.
 ``step(sample)`` and ``run(samples)`` share the block-level code and give
 bit-identical results for any split of a capture (tested).
 """
@@ -138,10 +139,9 @@ class Compensator:
         if adapt is not None:
             from .adapt import OnlineReadout, StaticDetector
 
-            block_s = 1.0 / model_file.model_rate_hz
-            self.online = OnlineReadout(self.model.weights, self.model.intercept, adapt, block_s,
+            self.online = OnlineReadout(self.model.weights, self.model.intercept, adapt, self._block_s,
                                         fit_residual_dph=model_file.fit_residual_dph)  # fmt: skip
-            self.static_detector = StaticDetector.from_config(adapt, block_s)
+            self.static_detector = StaticDetector.from_config(adapt, self._block_s)
 
     # -- block level: shared by step and run ---------------------------------------------------
 
@@ -150,9 +150,9 @@ class Compensator:
 
         Blocks missing before it (a link gap) are stepped first, their temperatures interpolated linearly
         between the blocks on either side (the features, the model and the law advance by the elapsed time;
-        nothing is learned: no rate), up to ``MAX_GAP_S``; after a longer gap the pipeline restarts at rest.  Either way the estimates of the
-        next ``SETTLE_S`` (three slow rate-smoother time constants) are flagged ``gap``: the smoothers are
-        catching up with what the gap hid."""
+        nothing is learned: no rate), up to ``MAX_GAP_S``; after a longer gap the pipeline restarts at
+        rest.  Either way the estimates of the next ``SETTLE_TAUS`` slow rate-smoother time constants are
+        flagged ``gap``: the smoothers are catching up with what the gap hid."""
         if self._last_index is not None and block.index > self._last_index + 1:
             missing = block.index - self._last_index - 1
             if missing * self._block_s > MAX_GAP_S:
@@ -298,12 +298,11 @@ class Compensator:
         only the readout is kept (the adapted W); without, the same run continues: the pipeline's state
         (open block, smoothers, reservoir, held estimate) is restored too, and the output continues exactly
         as if uninterrupted."""
-        from ..yamlfile import read_tagged_yaml
-        from .adapt import ADAPT_STATE_FORMAT, ADAPT_STATE_SCHEMA_VERSION
+        from .adapt import read_state_doc
 
         if self.online is None:
             raise ValueError("this compensator is not adapting (no adapt config)")
-        doc = read_tagged_yaml(path, "adaptation state", ADAPT_STATE_FORMAT, ADAPT_STATE_SCHEMA_VERSION)
+        doc = read_state_doc(path)
         if not new_run and "pipeline" in doc:  # checked before anything changes
             saved = self.pipeline_state()
             try:
