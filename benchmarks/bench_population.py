@@ -4,7 +4,8 @@
                                           [--workers 2] [--workdir DIR] [--per-instrument] [--adapt]
 
 THE RULE.  Instrument seeds come in ranges.  ``dev`` (0 ..) is for developing and tuning: look at
-it as often as you like.  ``eval`` (10000 ..) and ``eval2`` (20000 ..) are reserved for evaluation:
+it as often as you like.  ``eval`` (10000 ..), ``eval2`` (20000 ..) and ``eval3`` (30000 .., first
+used by ``bench_thermo_fault.py``, which logs its runs) are reserved for evaluation:
 nobody looks at them while developing a model, choosing its settings or its structure; one is run
 to report a model that is finished, and what it shows is reported as it is, never fed back.  Each
 model version is evaluated on an evaluation range no earlier version was developed after: a range
@@ -74,7 +75,7 @@ from fog_driver.sim.instrument import Simulator  # noqa: E402
 from fog_driver.sim.population import draw_instrument  # noqa: E402
 from fog_driver.sim.profiles import BUILTIN_PROFILES, load_profile  # noqa: E402
 
-SEED_SETS = {"dev": 0, "eval": 10_000, "eval2": 20_000}  #: first instrument seed of each set (THE RULE above)
+SEED_SETS = {"dev": 0, "eval": 10_000, "eval2": 20_000, "eval3": 30_000}  #: first instrument seed of each set (THE RULE above)
 #: Model kinds; "auto" is what ``fog-driver fit`` fits without --kind (the wesn, or the polynomial when the
 #: wesn does worse on the fit's own validation split).
 KINDS = ("polynomial", "wesn", "auto", "paper", "pso-svr")
@@ -241,4 +242,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from readme_block import run_main  # --update-readme: the README's block for this command
+
+    run_main(main)

@@ -238,4 +238,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from readme_block import run_main  # --update-readme: the README's block for this command
+
+    run_main(main)

@@ -245,6 +245,15 @@ def cmd_fit(args: argparse.Namespace) -> int:
     print(format_checks(quality))
     for message in quality.get("weak", []):
         print(f"warning: weak fit accepted (--accept-weak-fit): {message}")
+    if "bias_step" in quality:
+        from .compensation.fit import bias_step_warning
+
+        step = quality["bias_step"]
+        print(f"{'bias step test (largest step)':34s} {step['step_dph']:+10.4f} deg/h at minute {step['minute']} of "
+              f"{step['capture']}, {100 * step['share']:.0f} % of the temperature terms' residual")  # fmt: skip
+        warning = bias_step_warning(step)
+        if warning:
+            print(f"warning: {warning}")
     print(f"the model's input box and estimate bound (+-{model_file.domain.estimate_limit_dph:.3g} deg/h) are in "
           f"the file: outside them its estimate is flagged extrapolating")
     return 0

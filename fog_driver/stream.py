@@ -95,6 +95,13 @@ class SampleBlock:
         dtypes = (np.int64, np.float64, np.float64, np.float64, np.float64, np.float64, np.uint16, np.int64, np.int64)
         return cls(*(np.array(col, dtype=dt) for col, dt in zip(columns, dtypes)))
 
+    @classmethod
+    def concatenate(cls, parts: list[SampleBlock]) -> SampleBlock:
+        """One block of ``parts`` in order (an empty block for none)."""
+        if not parts:
+            return cls.from_samples([])
+        return cls(*(np.concatenate([getattr(p, name) for p in parts]) for name in cls.__dataclass_fields__))
+
 
 def _f32(value: float) -> float:
     return float(np.float32(value))
@@ -242,3 +249,16 @@ class SampleStream:
             missing_before=missing,
             offset=sample_offsets.astype(np.int64, copy=True),
         )
+
+
+def read_capture_samples(path) -> tuple[SampleBlock, float]:
+    """A whole capture file's samples in memory and its frame period, s (from its IDENTITY frame): for
+    tests and benchmarks that alter samples before compensating them.  ``InputFileError`` without one."""
+    from .errors import InputFileError
+    from .protocol import iter_decode_file
+
+    stream = SampleStream()
+    parts = [stream.run(part) for part in iter_decode_file(path)]
+    if stream.identity is None:
+        raise InputFileError(f"{path}: no IDENTITY frame: frame rate unknown")
+    return SampleBlock.concatenate([p for p in parts if len(p)]), 1.0 / stream.identity.rate_hz

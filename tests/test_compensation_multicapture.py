@@ -9,6 +9,7 @@ than none."""
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from pathlib import Path
 
@@ -190,3 +191,36 @@ def test_fit_reports_the_blocks_excluded_for_motion(runs, capsys):
     turned = truth_residual(load_model(runs / "turn-model.yaml"), runs / "soak.bin")
     clean = truth_residual(fit_paths([runs / "paper.bin"], "polynomial"), runs / "soak.bin")
     assert turned < 1.2 * clean + 0.002, (turned, clean)
+
+
+# -- the bias step test ----------------------------------------------------------------------------------
+
+
+def with_step(capture: CaptureData, minute: int, step_dph: float) -> CaptureData:
+    t_min = np.arange(len(capture.target_dph)) / 60.0
+    return dataclasses.replace(capture, target_dph=capture.target_dph + np.where(t_min >= minute, step_dph, 0.0))
+
+
+def test_a_bias_step_in_the_fit_data_is_found_where_and_as_big_as_it_is(runs):
+    paper = load_capture(runs / "paper.bin", FitConfig())
+    normalizer = fit.fit_normalizer([paper])
+    clean = fit.bias_step_scan([paper], normalizer, 1.0)
+    assert fit.bias_step_warning(clean._asdict() | {"capture": "paper.bin"}) is None
+    stepped = fit.bias_step_scan([with_step(paper, 220, 0.1)], normalizer, 1.0)
+    assert stepped.capture == 0 and abs(stepped.minute - 220) <= 10
+    assert stepped.step_dph == pytest.approx(0.1, abs=0.02) and stepped.share > clean.share
+    warning = fit.bias_step_warning(stepped._asdict() | {"capture": "paper.bin"})
+    assert warning.startswith("the fit data hold a bias step of +0.") and "minute 2" in warning
+
+
+def test_the_step_test_names_the_capture_that_holds_the_step(runs):
+    hot, cold = (load_capture(runs / f"{name}.bin", FitConfig()) for name in ("hot", "cold"))
+    normalizer = fit.fit_normalizer([hot, cold])
+    step = fit.bias_step_scan([hot, with_step(cold, 90, -0.15)], normalizer, 1.0)
+    assert step.capture == 1 and abs(step.minute - 90) <= 10 and step.step_dph == pytest.approx(-0.15, abs=0.03)
+
+
+def test_the_fit_records_the_step_test_in_the_model_file(runs):
+    model_file, _ = fit_model_file([runs / "paper.bin"], kind="polynomial", config=FitConfig())
+    step = model_file.provenance["fit_quality"]["bias_step"]
+    assert step["capture"] == "paper.bin" and abs(step["step_dph"]) < fit.STEP_WARN_DPH

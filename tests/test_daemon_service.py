@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from fog_driver.compensation.apply import compensate_capture
 from fog_driver.compensation.model import load_model
@@ -133,4 +134,7 @@ def test_reloading_another_model_keeps_the_block_grid_and_the_smoothers(tmp_path
     features, averager = service.compensator.features.get_state(), service.compensator.averager.get_state()
     service.reload_model(model_file)
     assert service.compensator.model_file is model_file
-    assert service.compensator.features.get_state() == features and service.compensator.averager.get_state() == averager
+    # everything but the substitutes' offsets, which the other model's coupling gives another meaning
+    now = {k: v for k, v in service.compensator.features.get_state().items() if k != "offset"}
+    assert yaml.safe_dump(now) == yaml.safe_dump({k: v for k, v in features.items() if k != "offset"})  # NaN-aware
+    assert service.compensator.averager.get_state() == averager

@@ -120,9 +120,7 @@ def test_step_and_run_agree_for_any_split(frames, identity_at, scales, cuts, ove
         ids = [e for e in piece if isinstance(e, IdentityFrame)]
         parts.append(pieces_stream.run_arrays(SampleArrays.from_frames(samples), ids))
     if parts:
-        joined = SampleBlock(
-            *(np.concatenate([getattr(p, name) for p in parts]) for name in SampleBlock.__dataclass_fields__)
-        )
+        joined = SampleBlock.concatenate(parts)
         _assert_blocks_equal(joined, reference)
 
 

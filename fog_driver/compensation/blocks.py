@@ -5,7 +5,7 @@ Block j holds the samples whose device time since the first sample lies in
 For each block::
 
     rate_dph  = sum(dtheta_arcsec) / (n * frame_period_s)     mean rate over the frames received
-    T_c       = mean of the valid (non-NaN) readings of each thermometer (NaN if none)
+    T_c       = mean of the valid readings of each thermometer (NaN if none): not NaN, inside PLAUSIBLE_TEMP_C
     t_end_s   = t_last - t_first + frame_period_s              device time at the end of the block
 
 Exactness: temperatures are multiples of 1/256 degC and angle increments are
@@ -26,7 +26,17 @@ from ..stream import Sample, SampleBlock
 
 #: Block flags (the pipeline adds its own above these).
 FLAG_GAP = 1 << 0  #: frames were missing in this block
-FLAG_THERMOMETER_FAULT = 1 << 1  #: a thermometer read NaN (or its fault bit was set) in this block
+FLAG_THERMOMETER_FAULT = 1 << 1  #: a thermometer read NaN or implausibly (or its fault bit was set) in this block
+#: Readings outside this range (degC) are implausible for the instrument's thermometers (a saturated 127.99 degC
+#: is a fault, not a temperature): they count as invalid.
+PLAUSIBLE_TEMP_C = (-55.0, 125.0)
+
+
+def plausible_temps(temps_c: np.ndarray) -> np.ndarray:
+    """True where a reading is valid: not NaN and inside ``PLAUSIBLE_TEMP_C``."""
+    low, high = PLAUSIBLE_TEMP_C
+    temps_c = np.asarray(temps_c)
+    return (temps_c >= low) & (temps_c <= high)
 
 
 class ModelBlock(NamedTuple):
@@ -163,7 +173,7 @@ class BlockAverager:
         self._n += 1
         self._sum_dtheta += sample.dtheta_arcsec
         for k, value in enumerate((sample.t_top_c, sample.t_bottom_c, sample.t_housing_c)):
-            if value == value:  # not NaN
+            if PLAUSIBLE_TEMP_C[0] <= value <= PLAUSIBLE_TEMP_C[1]:  # not NaN, not implausible
                 self._sum_t[k] += value
                 self._n_t[k] += 1
             else:
@@ -192,7 +202,7 @@ class BlockAverager:
         # The open block continues if the first samples belong to it.
         continues = self._n > 0 and index[0] == self._current
         temps = np.column_stack([samples.t_top_c, samples.t_bottom_c, samples.t_housing_c])
-        valid = ~np.isnan(temps)
+        valid = plausible_temps(temps)
         sum_dtheta = np.add.reduceat(samples.dtheta_arcsec, starts)
         sum_t = np.add.reduceat(np.where(valid, temps, 0.0), starts, axis=0)
         n_t = np.add.reduceat(valid.astype(np.int64), starts, axis=0)

@@ -30,9 +30,9 @@ import numpy as np
 from ..errors import InputFileError
 from ..protocol import STATUS_THERMOMETER_FAULT
 from ..stream import Sample, SampleBlock
-from .blocks import FLAG_GAP, FLAG_THERMOMETER_FAULT, BlockAverager, ModelBlock
+from .blocks import FLAG_GAP, FLAG_THERMOMETER_FAULT, PLAUSIBLE_TEMP_C, BlockAverager, ModelBlock, plausible_temps
 from .domain import FLAG_EXTRAPOLATING
-from .features import FLAG_INPUT_STALE, FeatureExtractor
+from .features import FLAG_INPUT_STALE, FLAG_RECOVERING, FLAG_SUBSTITUTED, FeatureExtractor
 from .model import ModelFile
 
 if TYPE_CHECKING:  # adapt.py imports this module's flags: import it lazily
@@ -54,7 +54,11 @@ FLAG_NAMES = {
     FLAG_ADAPTING: "adapting",
     FLAG_GUARD: "guard",
     FLAG_EXTRAPOLATING: "extrapolating",
+    FLAG_SUBSTITUTED: "substituted",
+    FLAG_RECOVERING: "recovering",
 }
+#: The feature flags an estimate carries: a degraded input (substituted, frozen beyond hold_s) or its after-effect.
+INPUT_FLAGS = FLAG_INPUT_STALE | FLAG_SUBSTITUTED | FLAG_RECOVERING
 
 
 def flag_names(flags: int) -> list[str]:
@@ -116,7 +120,7 @@ class Compensator:
         self.model = model_file.model
         self.frame_period_s = float(frame_period_s)
         self.averager = BlockAverager(frame_period_s, model_file.model_rate_hz)
-        self.features = FeatureExtractor(model_file.features)
+        self.features = FeatureExtractor(model_file.features, substitution=model_file.substitution)
         self._normalizer = model_file.normalizer
         self.domain = model_file.domain
         self._block_s = 1.0 / model_file.model_rate_hz
@@ -192,7 +196,7 @@ class Compensator:
                 estimate = self.model.step(z)
                 adapt_flags = 0
             else:
-                clean = not flags & (FLAG_GAP | FLAG_THERMOMETER_FAULT | FLAG_INPUT_STALE)
+                clean = not flags & (FLAG_GAP | FLAG_THERMOMETER_FAULT | INPUT_FLAGS)
                 clean = clean and block.index > self._settle_until
                 gate = static and clean and block.t_end_s > self.adapt.warmup_s
                 f = self.model.regressors_step(z)
@@ -200,13 +204,16 @@ class Compensator:
             if self.domain is not None:
                 estimate, clipped = self.domain.bound(estimate)
                 extrapolating |= FLAG_EXTRAPOLATING if clipped else 0
+            held = flags & FLAG_INPUT_STALE  # inputs frozen beyond hold_s: the estimate is held
+            if held:
+                estimate = self.estimate_dph
             if self.online is not None:
                 self.model.feed_back(estimate)  # the estimate actually used (the WESN's output feedback)
             if math.isfinite(estimate):
                 self.estimate_dph = estimate
-                self.estimate_flags = (flags & FLAG_INPUT_STALE) | adapt_flags | extrapolating
+                self.estimate_flags = (flags & INPUT_FLAGS) | adapt_flags | extrapolating
             else:
-                self.estimate_flags = FLAG_GUARD | (flags & FLAG_INPUT_STALE)
+                self.estimate_flags = FLAG_GUARD | (flags & INPUT_FLAGS)
         self._estimate_block = block.index + 1
 
     # -- adaptation state ----------------------------------------------------------------------
@@ -245,13 +252,11 @@ class Compensator:
             raise ValueError("pipeline state: last_temps needs 3 values")
         averager = BlockAverager(self.averager.frame_period_s, self.averager.model_rate_hz)
         averager.set_state(state["averager"])
-        features = FeatureExtractor(self.features.params)
+        features = FeatureExtractor(self.features.params, substitution=self.features.substitution)
         try:
             features.set_state(state["features"])
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"pipeline state: bad feature state: {exc}") from None
-        if any(len(features.get_state()[k]) != 3 for k in ("last", "stale_s", "m1", "m2")):
-            raise ValueError("pipeline state: the feature state needs 3 values per sensor")
         before = self.model.get_state()
         try:
             self.model.set_state(state["model"])
@@ -270,14 +275,16 @@ class Compensator:
 
     def continue_from(self, old: Compensator, *, same_model: bool) -> None:
         """Carry on from ``old`` (a model reloaded mid-run): with the same inputs (features, block length
-        and frame period) the open block, the smoothers, the gap bookkeeping and the held estimate; with the
-        same model (``same_model``) also its memory and its adaptation.  A different model starts at
-        rest at the next block's inputs, as at switch-on.  The angles are the caller's to carry."""
+        and frame period) the open block, the smoothers, the gap bookkeeping and the held estimate (the
+        substitutes' offsets where the new model predicts a sensor the same way; the others are tracked
+        afresh); with the same model (``same_model``) also its memory and its adaptation.  A different model
+        starts at rest at the next block's inputs, as at switch-on.  The angles are the caller's to carry."""
         same_grid = (self.averager.block_us, self.averager.frame_period_s) == (old.averager.block_us,
                                                                               old.averager.frame_period_s)  # fmt: skip
         if self.features.params != old.features.params or not same_grid:
             return
         state = old.pipeline_state()
+        state["features"] = self.features.adopt_state(state["features"], old.features.substitution)
         if not same_model:
             state["model"], state["started"] = self.model.get_state(), False
         self.set_pipeline_state(state)
@@ -333,7 +340,8 @@ class Compensator:
         flags = self.estimate_flags
         if sample.missing_before or stale:
             flags |= FLAG_GAP
-        if any(t != t for t in temps) or sample.status & STATUS_THERMOMETER_FAULT:
+        low, high = PLAUSIBLE_TEMP_C
+        if not all(low <= t <= high for t in temps) or sample.status & STATUS_THERMOMETER_FAULT:
             flags |= FLAG_THERMOMETER_FAULT
         return CompensatedSample(
             sample.seq, sample.t_s, sample.dtheta_arcsec, drift, dtheta_comp,
@@ -370,7 +378,7 @@ class Compensator:
             self.angle_comp_arcsec = float(angle_comp[-1])
         temps = np.column_stack([samples.t_top_c, samples.t_bottom_c, samples.t_housing_c])
         flags[samples.missing_before > 0] |= FLAG_GAP
-        bad_temp = np.isnan(temps).any(axis=1) | ((samples.status & STATUS_THERMOMETER_FAULT) != 0)
+        bad_temp = ~plausible_temps(temps).all(axis=1) | ((samples.status & STATUS_THERMOMETER_FAULT) != 0)
         flags[bad_temp] |= FLAG_THERMOMETER_FAULT
         return CompensatedColumns(samples.seq, samples.t_s, dtheta, drift, dtheta_comp, angle_raw, angle_comp,
                                   temps, flags)  # fmt: skip

@@ -12,10 +12,36 @@ lag a ramp of slope r by r L1 and r L2, so::
     dT/dt  = (m1 - m2) / (L2 - L1)                         exact for a ramp, smoothed for noise
 
 Inputs are standardized with ``readout.Standardizer`` (statistics stored from the fit data).
-A NaN block mean (a thermometer fault) is replaced by the last valid value
-for up to ``hold_s``; beyond that the block is flagged ``FLAG_INPUT_STALE``
-and the last valid value is still used (the output is never NaN).  Before
-any valid value at all, inputs are NaN and the block is flagged.
+
+Thermometer faults (a NaN block mean: no valid reading in the block; or an implausible one) are
+detected per block and per sensor, and degrade the inputs gracefully:
+
+- **plausible**: a reading is accepted when it lies in ``PLAUSIBLE_TEMP_C`` (a saturated 127.99 degC
+  is not; the block averager has left such samples out already), with all three in that range lies
+  within ``max_spread_c`` of their median (cross-sensor), and moves less than ``max_rate_c_per_s * Ts``
+  from the sensor's value of the block before (a faulted one: from its own previous reading, or from
+  its substitute);
+- **substituted**: a faulted sensor is predicted from the healthy ones (``Substitution``): from both
+  partners when both are healthy, else from one (T1: T2, T3; T2: T1, T3; T3: T1, T2)::
+
+      T_k = sum_j a_kj T_j + sum_j b_kj dT_j/dt + c_k        c_k: T_k - prediction, tracked while healthy
+
+  (``c_k`` smoothed with ``rate_tau_fast_s``, so the substitute continues from the last reading).  The
+  coefficients are fitted on the model's own fit data (``fit_substitution``: the thermal coupling
+  between the sensors, whose gradients change during a ramp); without them (``Substitution.offsets``)
+  a sensor is its partner plus their last offset.  Its rate and gradients keep tracking the ramp; the
+  block is flagged ``FLAG_SUBSTITUTED``;
+- **frozen**: with no healthy partner (all three faulted) the last value and the rate smoothers are
+  held; after ``hold_s`` the block is flagged ``FLAG_INPUT_STALE`` (the compensator then holds
+  its estimate);
+- **recovery**: a faulted sensor is accepted again at once when its reading agrees with the value
+  in use (within the step limit), else after ``recover_s`` of plausible, self-consistent readings;
+  then both rate smoothers are shifted by the step (no rate spike from it), and when it had to wait
+  the next ``RECOVERY_TAUS * rate_tau_slow_s`` are flagged ``FLAG_RECOVERING`` (the model
+  settles to the corrected temperature).
+
+Before any valid value of a sensor (and with no partner to substitute from), its inputs are NaN
+and the block is flagged ``FLAG_INPUT_STALE``.
 """
 
 from __future__ import annotations
@@ -26,12 +52,127 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from . import numerics
+from .blocks import PLAUSIBLE_TEMP_C
 
 INPUT_NAMES = ("t_top_c", "t_bottom_c", "t_housing_c", "rate_top_c_per_min", "rate_bottom_c_per_min",
                "rate_housing_c_per_min", "grad_top_bottom_c", "grad_top_housing_c")  # fmt: skip
 N_INPUTS = len(INPUT_NAMES)
-#: Set when a thermometer has been invalid for longer than ``hold_s`` (or was never valid).
+#: Set when a thermometer's value is frozen (no valid reading, no healthy partner) for longer than ``hold_s``,
+#: or was never valid.
 FLAG_INPUT_STALE = 1 << 2
+#: Set when a faulted thermometer is replaced by a healthy one plus their last offset.
+FLAG_SUBSTITUTED = 1 << 7
+#: Set while the model settles after a faulted thermometer came back with a different value.
+FLAG_RECOVERING = 1 << 8
+#: The recovery flag lasts this many slow rate-smoother time constants.
+RECOVERY_TAUS = 3.0
+#: Substitution partner sets per sensor, in order of preference: both others, then the ring's other half first.
+PARTNER_SETS = (((1, 2), (1,), (2,)), ((0, 2), (0,), (2,)), ((0, 1), (0,), (1,)))
+SENSOR_NAMES = INPUT_NAMES[:3]
+
+
+@dataclass(frozen=True)
+class Substitution:
+    """How a faulted thermometer is predicted from healthy ones: per sensor k and partner set S
+    (``PARTNER_SETS[k]``), the coefficients ``[a_j for j in S] + [b_j for j in S]`` of
+    ``T_k = sum a_j T_j + sum b_j dT_j/dt + c_k`` (degC, degC/min), or None (not used)."""
+
+    coefficients: tuple[tuple[tuple[float, ...] | None, ...], ...]
+
+    @classmethod
+    def offsets(cls) -> Substitution:
+        """No fitted coupling: a sensor is its partner plus their last offset."""
+        return cls(tuple((None, (1.0, 0.0), (1.0, 0.0)) for _ in range(3)))
+
+    def to_dict(self) -> dict:
+        return {SENSOR_NAMES[k]: {"+".join(SENSOR_NAMES[j] for j in partners): None if c is None else list(c)
+                                  for partners, c in zip(PARTNER_SETS[k], self.coefficients[k])}
+                for k in range(3)}  # fmt: skip
+
+    @classmethod
+    def from_dict(cls, doc: dict) -> Substitution:
+        if not isinstance(doc, dict) or set(doc) != set(SENSOR_NAMES):
+            raise ValueError(f"substitution needs the keys {', '.join(SENSOR_NAMES)}")
+        rows = []
+        for k, name in enumerate(SENSOR_NAMES):
+            entry = doc[name]
+            keys = ["+".join(SENSOR_NAMES[j] for j in partners) for partners in PARTNER_SETS[k]]
+            if not isinstance(entry, dict) or set(entry) != set(keys):
+                raise ValueError(f"substitution of {name} needs the keys {', '.join(keys)}")
+            row = []
+            for key, partners in zip(keys, PARTNER_SETS[k]):
+                c = entry[key]
+                if c is not None:
+                    c = tuple(float(v) for v in c)
+                    if len(c) != 2 * len(partners) or not all(math.isfinite(v) for v in c):
+                        raise ValueError(f"substitution of {name} from {key}: {2 * len(partners)} finite numbers")
+                row.append(c)
+            rows.append(tuple(row))
+        return cls(tuple(rows))
+
+
+def fit_substitution(inputs: list[np.ndarray], usable: list[np.ndarray], block_s: float,
+                     chunk_s: float = 1200.0) -> Substitution:  # fmt: skip
+    """Fit ``Substitution`` on captures' inputs (rows of the 8 inputs; ``usable``: all three measured).
+
+    Per sensor and partner set, least squares of T_k on the partners' temperatures and rates with one
+    intercept per capture (the intercept is ``c_k``, tracked in operation).  A fitted row is kept only
+    where it beats the plain offset (a single partner, coefficients 1, 0) on interleaved held-out chunks
+    of ``chunk_s``: the RMS of the residual within each held-out chunk, its chunk mean removed (what a
+    substitute drifts off over a fault of that length).  A pair is kept only where it beats the better
+    single.  Returns ``Substitution.offsets()`` where the data are too few (under 4 chunks)."""
+    chunk = max(1, int(round(chunk_s / block_s)))
+    rows = [(u[m], np.arange(len(u))[m] // chunk, i) for i, (u, m) in enumerate(zip(inputs, usable))]
+    u = np.vstack([r[0] for r in rows]) if rows else np.empty((0, N_INPUTS))
+    if len(u) < 4 * chunk:
+        return Substitution.offsets()
+    chunk_id = np.concatenate([r[1] + 100_000 * r[2] for r in rows])
+    capture = np.concatenate([np.full(len(r[0]), r[2]) for r in rows])
+    held_out = np.concatenate([r[1] % 2 == 1 for r in rows])
+
+    def design(partners: tuple[int, ...]) -> np.ndarray:
+        return u[:, [*partners, *(3 + j for j in partners)]]
+
+    def within(x: np.ndarray, groups: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        out = x[mask].astype(float).copy()
+        g = groups[mask]
+        _, inverse = np.unique(g, return_inverse=True)
+        for column in range(out.shape[1] if out.ndim == 2 else 1):
+            col = out[:, column] if out.ndim == 2 else out
+            sums = np.bincount(inverse, weights=col)
+            col -= (sums / np.bincount(inverse))[inverse]
+        return out
+
+    def solve(x: np.ndarray, y: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        xw, yw = within(x, capture, mask), within(y[:, None], capture, mask)[:, 0]
+        scale = np.sqrt(np.mean(xw**2, axis=0)) + 1e-12
+        a = xw / scale
+        coef = np.linalg.solve(a.T @ a + 1e-6 * len(a) * np.eye(a.shape[1]), a.T @ yw)
+        return coef / scale
+
+    def held_out_rms(x: np.ndarray, y: np.ndarray, coef: np.ndarray) -> float:
+        residual = (y - x @ coef)[:, None]
+        return float(np.sqrt(np.mean(within(residual, chunk_id, held_out) ** 2)))
+
+    result = []
+    for k in range(3):
+        y = u[:, k]
+        chosen: list[tuple[float, ...] | None] = []
+        scores = []
+        for partners in PARTNER_SETS[k]:
+            x = design(partners)
+            score = held_out_rms(x, y, solve(x, y, ~held_out))
+            coef = tuple(float(v) for v in solve(x, y, np.ones(len(y), dtype=bool)))
+            if len(partners) == 1:
+                plain_score = held_out_rms(x, y, np.array([1.0, 0.0]))
+                if not score < plain_score:
+                    coef, score = (1.0, 0.0), plain_score
+            chosen.append(coef)
+            scores.append(score)
+        if not scores[0] < min(scores[1:]):
+            chosen[0] = None
+        result.append(tuple(chosen))
+    return Substitution(tuple(result))
 
 
 @dataclass(frozen=True)
@@ -40,19 +181,26 @@ class FeatureParams:
     rate_tau_fast_s: float = 30.0
     rate_tau_slow_s: float = 90.0
     hold_s: float = 30.0
+    max_rate_c_per_s: float = 0.5
+    max_spread_c: float = 50.0
+    recover_s: float = 10.0
 
     def __post_init__(self) -> None:
         if not 0 < self.rate_tau_fast_s < self.rate_tau_slow_s:
             raise ValueError("need 0 < rate_tau_fast_s < rate_tau_slow_s")
         if not self.sample_time_s > 0 or self.hold_s < 0:
             raise ValueError("sample_time_s must be > 0 and hold_s >= 0")
+        if not (self.max_rate_c_per_s > 0 and self.max_spread_c > 0 and self.recover_s >= 0):
+            raise ValueError("max_rate_c_per_s and max_spread_c must be > 0 and recover_s >= 0")
 
 
 class FeatureExtractor:
     """Block temperatures -> the 8 inputs, with explicit state (smoothers, last valid values)."""
 
-    def __init__(self, params: FeatureParams | None = None, state: dict | None = None) -> None:
+    def __init__(self, params: FeatureParams | None = None, state: dict | None = None,
+                 substitution: Substitution | None = None) -> None:  # fmt: skip
         self.params = params or FeatureParams()
+        self.substitution = substitution or Substitution.offsets()
         p = self.params
         # Correctly rounded exponentials: the same coefficients on every machine (the C library's are not).
         self._a1 = 1.0 - numerics.exp_correctly_rounded(-p.sample_time_s / p.rate_tau_fast_s)
@@ -66,47 +214,153 @@ class FeatureExtractor:
             self.set_state(state)
 
     def reset(self) -> None:
-        self._last = [math.nan] * 3  # last valid temperature per sensor
-        self._stale_s = [0.0] * 3  # how long each sensor has been invalid
+        self._last = [math.nan] * 3  # the value in use per sensor (a reading, a substitute, or frozen)
+        self._stale_s = [0.0] * 3  # how long each sensor's value has been frozen
         self._m1 = [math.nan] * 3
         self._m2 = [math.nan] * 3
+        self._faulted = [False] * 3
+        self._raw_prev = [math.nan] * 3  # a faulted sensor's previous in-range reading
+        self._good_s = [0.0] * 3  # how long a faulted sensor has read plausibly
+        self._offset = [math.nan] * 9  # per sensor and partner set: smoothed T_k - prediction while all healthy
+        self._recovering_s = 0.0
 
     def get_state(self) -> dict:
-        return {"last": list(self._last), "stale_s": list(self._stale_s), "m1": list(self._m1), "m2": list(self._m2)}
+        return {"last": list(self._last), "stale_s": list(self._stale_s), "m1": list(self._m1), "m2": list(self._m2),
+                "faulted": list(self._faulted), "raw_prev": list(self._raw_prev), "good_s": list(self._good_s),
+                "offset": list(self._offset), "recovering_s": self._recovering_s}  # fmt: skip
 
     def set_state(self, state: dict) -> None:
-        self._last = [float(v) for v in state["last"]]
-        self._stale_s = [float(v) for v in state["stale_s"]]
-        self._m1 = [float(v) for v in state["m1"]]
-        self._m2 = [float(v) for v in state["m2"]]
+        """Inverse of ``get_state``; a state saved before fault handling (no ``faulted`` ...) means healthy."""
+        values = {k: [float(v) for v in state[k]] for k in ("last", "stale_s", "m1", "m2")}
+        values["faulted"] = [bool(v) for v in state.get("faulted", [False] * 3)]
+        for k, default in (("raw_prev", math.nan), ("good_s", 0.0)):
+            values[k] = [float(v) for v in state.get(k, [default] * 3)]
+        offset = [float(v) for v in state.get("offset", [math.nan] * 9)]
+        if any(len(v) != 3 for v in values.values()) or len(offset) != 9:
+            raise ValueError("feature state: 3 values per sensor (9 offsets)")
+        values["offset"] = offset
+        recovering_s = float(state.get("recovering_s", 0.0))
+        self._last, self._stale_s, self._m1, self._m2 = values["last"], values["stale_s"], values["m1"], values["m2"]
+        self._faulted, self._raw_prev, self._good_s = values["faulted"], values["raw_prev"], values["good_s"]
+        self._offset, self._recovering_s = values["offset"], recovering_s
 
     def step(self, temps_c: tuple[float, float, float] | np.ndarray) -> tuple[list[float], int]:
-        """The input vector for one block and its flags (``FLAG_INPUT_STALE`` or 0)."""
+        """The input vector for one block and its flags (``FLAG_SUBSTITUTED``, ``FLAG_RECOVERING``,
+        ``FLAG_INPUT_STALE``, or 0)."""
         p = self.params
-        flags = 0
-        t = [0.0, 0.0, 0.0]
-        rates = [0.0, 0.0, 0.0]
+        ts = p.sample_time_s
+        step_limit = p.max_rate_c_per_s * ts
+        low, high = PLAUSIBLE_TEMP_C
+        raw = [float(temps_c[k]) for k in range(3)]
+        # 1. Plausible readings: in range and, with three in range, within max_spread_c of their median
+        #    (``level``); and no jump (``ok``): against the value in use, a faulted sensor against its previous
+        #    reading (or, in step 3, against its predicted value).
+        level = [low <= v <= high for v in raw]  # NaN: False
+        if all(level):
+            median = sorted(raw)[1]
+            level = [abs(v - median) <= p.max_spread_c for v in raw]
+        ok = [False] * 3
         for k in range(3):
-            value = float(temps_c[k])
-            if value == value:
-                self._last[k] = value
-                self._stale_s[k] = 0.0
-            else:
-                self._stale_s[k] += p.sample_time_s
-                value = self._last[k]
-                if self._stale_s[k] > p.hold_s or value != value:
-                    flags |= FLAG_INPUT_STALE
-            if value != value:  # never a valid reading yet
-                t[k] = math.nan
-                rates[k] = math.nan
+            if level[k]:
+                ref = self._raw_prev[k] if self._faulted[k] else self._last[k]
+                ok[k] = not abs(raw[k] - ref) > step_limit  # no reference (NaN): accepted
+        # 2. Healthy sensors with a plausible reading use it; a healthy one without becomes faulted.
+        flags = 0
+        healthy = [False] * 3
+        t = [math.nan] * 3
+        rates = [math.nan] * 3
+        for k in range(3):
+            if self._faulted[k]:
                 continue
-            if self._m1[k] != self._m1[k]:
-                self._m1[k] = self._m2[k] = value
-            self._m1[k] += self._a1 * (value - self._m1[k])
-            self._m2[k] += self._a2 * (value - self._m2[k])
-            t[k] = value
-            rates[k] = (self._m1[k] - self._m2[k]) / self._denominator_min
+            if ok[k]:
+                healthy[k] = True
+                t[k], rates[k] = self._smooth(k, raw[k])
+            else:
+                self._faulted[k] = True  # step 3 handles it from this block on
+        # 3. Faulted ones: the value in use is predicted from healthy partners, else frozen (value and rate
+        #    held).  A plausible reading that agrees with it, or after recover_s of plausible readings, is
+        #    accepted again: the smoothers shift by the step, so it causes no rate spike.
+        for k in range(3):
+            if healthy[k]:
+                continue
+            value = raw[k]
+            in_use, substituted = self._substitute(k, healthy, t, rates), True
+            if in_use != in_use:
+                in_use, substituted = self._last[k], False
+            ok[k] = ok[k] or level[k] and abs(value - in_use) <= step_limit
+            self._good_s[k] = self._good_s[k] + ts if ok[k] else 0.0  # consecutive plausible readings
+            self._raw_prev[k] = value if low <= value <= high else math.nan
+            if ok[k]:
+                agrees = in_use != in_use or abs(value - in_use) <= step_limit
+                if agrees or self._good_s[k] >= p.recover_s:
+                    self._faulted[k] = False
+                    if self._m1[k] == self._m1[k] and in_use == in_use:
+                        self._m1[k] += value - in_use
+                        self._m2[k] += value - in_use
+                    if not agrees:
+                        self._recovering_s = RECOVERY_TAUS * p.rate_tau_slow_s
+                    t[k], rates[k] = self._smooth(k, value)
+                    healthy[k] = True
+                    continue
+            if substituted:
+                flags |= FLAG_SUBSTITUTED
+                t[k], rates[k] = self._smooth(k, in_use)
+                continue
+            self._stale_s[k] += ts
+            if self._stale_s[k] > p.hold_s or in_use != in_use:
+                flags |= FLAG_INPUT_STALE
+            if in_use == in_use:
+                t[k] = in_use
+                rates[k] = (self._m1[k] - self._m2[k]) / self._denominator_min
+        # 5. The offsets of each prediction while the sensor and its partners are all healthy.
+        for k in range(3):
+            if not healthy[k]:
+                continue
+            for s_index, (partners, coef) in enumerate(zip(PARTNER_SETS[k], self.substitution.coefficients[k])):
+                if coef is None or not all(healthy[j] for j in partners):
+                    continue
+                difference = t[k] - self._predict(partners, coef, t, rates)
+                i = 3 * k + s_index
+                self._offset[i] = difference if self._offset[i] != self._offset[i] else (
+                    self._offset[i] + self._a1 * (difference - self._offset[i]))  # fmt: skip
+        if self._recovering_s > 0:
+            flags |= FLAG_RECOVERING
+            self._recovering_s = max(0.0, self._recovering_s - ts)
         return [t[0], t[1], t[2], rates[0], rates[1], rates[2], t[0] - t[1], t[0] - t[2]], flags
+
+    def adopt_state(self, state: dict, substitution: Substitution) -> dict:
+        """``state`` of an extractor that predicted sensors by ``substitution``, for this one: the offsets of
+        the predictions this one makes differently are dropped (tracked afresh while the sensor is healthy)."""
+        offset = list(state.get("offset", [math.nan] * 9))
+        for k in range(3):
+            for s_index in range(3):
+                if substitution.coefficients[k][s_index] != self.substitution.coefficients[k][s_index]:
+                    offset[3 * k + s_index] = math.nan
+        return {**state, "offset": offset}
+
+    def _substitute(self, k: int, healthy: list[bool], t: list[float], rates: list[float]) -> float:
+        """Sensor k predicted from the first partner set that is all healthy (NaN: none, or no offset yet)."""
+        for s_index, (partners, coef) in enumerate(zip(PARTNER_SETS[k], self.substitution.coefficients[k])):
+            offset = self._offset[3 * k + s_index]
+            if coef is not None and offset == offset and all(healthy[j] for j in partners):
+                return self._predict(partners, coef, t, rates) + offset
+        return math.nan
+
+    def _smooth(self, k: int, value: float) -> tuple[float, float]:
+        """Sensor k's value through its two smoothers: (value, rate in degC/min)."""
+        self._stale_s[k] = 0.0
+        self._last[k] = value
+        if self._m1[k] != self._m1[k]:
+            self._m1[k] = self._m2[k] = value
+        self._m1[k] += self._a1 * (value - self._m1[k])
+        self._m2[k] += self._a2 * (value - self._m2[k])
+        return value, (self._m1[k] - self._m2[k]) / self._denominator_min
+
+    @staticmethod
+    def _predict(partners: tuple[int, ...], coef: tuple[float, ...], t: list[float], rates: list[float]) -> float:
+        """``sum a_j T_j + sum b_j dT_j/dt`` over the partners (no offset)."""
+        n = len(partners)
+        return sum(coef[i] * t[j] + coef[n + i] * rates[j] for i, j in enumerate(partners))
 
     def run(self, temps_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``step`` over blocks: (n, 8) inputs and (n,) flags, bit-identical."""

@@ -21,7 +21,7 @@ from ..capture import utc_now_iso
 from ..errors import InputFileError
 from ..yamlfile import read_tagged_yaml, write_yaml
 from .domain import InputDomain
-from .features import FeatureParams
+from .features import FeatureParams, Substitution, params_to_dict
 from .polynomial import PolynomialModel
 from .readout import Standardizer
 from .svr import SvrModel
@@ -67,6 +67,9 @@ class ModelFile:
     provenance: dict[str, Any] = field(default_factory=dict)
     #: the fit data's input box and the estimate's bound (``domain``); None in files made before it existed
     domain: InputDomain | None = None
+    #: how a faulted thermometer is predicted from the others, fitted on the fit data; files made before it
+    #: existed substitute a partner plus its last offset (``Substitution.offsets``)
+    substitution: Substitution = field(default_factory=Substitution.offsets)
     created_utc: str = field(default_factory=utc_now_iso)
     fog_driver_version: str = __version__
 
@@ -99,15 +102,11 @@ class ModelFile:
             "created_utc": self.created_utc,
             "fog_driver_version": self.fog_driver_version,
             "model_rate_hz": self.model_rate_hz,
-            "features": {
-                "sample_time_s": self.features.sample_time_s,
-                "rate_tau_fast_s": self.features.rate_tau_fast_s,
-                "rate_tau_slow_s": self.features.rate_tau_slow_s,
-                "hold_s": self.features.hold_s,
-            },
+            "features": params_to_dict(self.features),
             "normalizer": self.normalizer.to_dict(),
             "model": self.model.to_dict(),
             **({"domain": self.domain.to_dict()} if self.domain is not None else {}),
+            "substitution": self.substitution.to_dict(),
             "provenance": self.provenance,
         }
 
@@ -140,6 +139,7 @@ def load_model(path: str | Path) -> ModelFile:
         model = MODEL_KINDS[kind].from_dict(_require(doc, "model", dict, where))
         rate = float(_require(doc, "model_rate_hz", (int, float), where))
         domain = InputDomain.from_dict(doc["domain"]) if "domain" in doc else None
+        substitution = Substitution.from_dict(doc["substitution"]) if "substitution" in doc else Substitution.offsets()
     except InputFileError:
         raise
     except (TypeError, ValueError, KeyError) as exc:
@@ -155,6 +155,7 @@ def load_model(path: str | Path) -> ModelFile:
         model=model,
         provenance=doc.get("provenance") or {},
         domain=domain,
+        substitution=substitution,
         created_utc=str(doc.get("created_utc", "")),
         fog_driver_version=str(doc.get("fog_driver_version", "")),
     )

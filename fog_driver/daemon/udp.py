@@ -15,7 +15,10 @@ offset  type   field             meaning
                                  estimate or the adapting reference was rejected),
                                  6 extrapolating (inputs
                                  outside the model's fit range, or its estimate
-                                 clipped); other bits reserved, zero
+                                 clipped), 7 substituted (a faulted thermometer
+                                 replaced from a healthy one), 8 recovering (the
+                                 model settling after a thermometer fault); other
+                                 bits reserved, zero
 8       u64    seq               sample sequence number (unwrapped, monotonic)
 16      f64    t_s               device time, s
 24      f64    angle_arcsec      compensated angle, arcsec
@@ -59,6 +62,8 @@ __all__ = [
     "FLAG_GAP",
     "FLAG_GUARD",
     "FLAG_INPUT_STALE",
+    "FLAG_RECOVERING",
+    "FLAG_SUBSTITUTED",
     "FLAG_THERMOMETER_FAULT",
     "FLAG_UNCOMPENSATED",
     "MAGIC",
@@ -82,9 +87,11 @@ FLAG_UNCOMPENSATED = 1 << 3
 FLAG_ADAPTING = 1 << 4
 FLAG_GUARD = 1 << 5
 FLAG_EXTRAPOLATING = 1 << 6
+FLAG_SUBSTITUTED = 1 << 7
+FLAG_RECOVERING = 1 << 8
 FLAG_BITS = {"gap": FLAG_GAP, "thermometer_fault": FLAG_THERMOMETER_FAULT, "input_stale": FLAG_INPUT_STALE,
              "uncompensated": FLAG_UNCOMPENSATED, "adapting": FLAG_ADAPTING, "guard": FLAG_GUARD,
-             "extrapolating": FLAG_EXTRAPOLATING}
+             "extrapolating": FLAG_EXTRAPOLATING, "substituted": FLAG_SUBSTITUTED, "recovering": FLAG_RECOVERING}
 
 #: The sample fields after magic and version, in datagram order.
 FIELDS = ("flags", "seq", "t_s", "angle_arcsec", "angle_raw_arcsec", "rate_dph", "drift_dph",

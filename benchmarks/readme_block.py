@@ -1,0 +1,106 @@
+"""The README's benchmark figures are written by the benchmarks, never copied by hand.
+
+Every benchmark takes ``--update-readme``: it prints as always and then replaces its block in README.md
+with ``$ COMMAND`` and what it printed.  A block is the fenced text between two markers named by the
+command that makes it (the script and its arguments, less ``--update-readme`` and ``--workdir DIR``,
+a cache that changes no figure)::
+
+    <!-- bench: bench_population.py --adapt -->
+    ```
+    $ .venv/bin/python benchmarks/bench_population.py --adapt
+    ...
+    ```
+    <!-- /bench -->
+
+A command without a block in the README is an error before any work is done: a new figure gets its
+block first, by hand, empty.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import re
+import sys
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+README = Path(__file__).resolve().parents[1] / "README.md"
+END = "<!-- /bench -->"
+
+
+class _Tee(io.TextIOBase):
+    def __init__(self, *streams) -> None:
+        self.streams = streams
+
+    def write(self, text: str) -> int:
+        for stream in self.streams:
+            stream.write(text)
+        return len(text)
+
+    def flush(self) -> None:
+        for stream in self.streams:
+            stream.flush()
+
+
+def block_key(script: str, argv: list[str]) -> str:
+    """The block's name: the script's file name and its arguments, less ``--update-readme`` and
+    ``--workdir DIR`` (or ``--workdir=DIR``)."""
+    shown, skip = [], False
+    for arg in argv:
+        if skip:
+            skip = False
+        elif arg == "--update-readme" or arg.startswith("--workdir="):
+            continue
+        elif arg == "--workdir":
+            skip = True
+        else:
+            shown.append(arg)
+    return " ".join([Path(script).name, *shown])
+
+
+def blocks(text: str) -> dict[str, str]:
+    """Every block of a README: key -> its text between the markers."""
+    return {m.group(1): m.group(2) for m in re.finditer(r"<!-- bench: (.+?) -->\n(.*?)" + re.escape(END), text, re.S)}
+
+
+def replace_block(text: str, key: str, body: str) -> str:
+    """``text`` with block ``key`` replaced by ``body`` in a fence (``ValueError`` without the block)."""
+    pattern = re.compile(rf"(<!-- bench: {re.escape(key)} -->\n)(.*?)({re.escape(END)})", re.S)
+    if not pattern.search(text):
+        raise ValueError(f"README.md has no block <!-- bench: {key} -->: add it (empty) first")
+    fenced = "```\n" + body.rstrip("\n") + "\n```\n"
+    return pattern.sub(lambda m: m.group(1) + fenced + m.group(3), text, count=1)
+
+
+@contextlib.contextmanager
+def readme_output(key: str, *, update: bool, readme: Path = README) -> Iterator[None]:
+    """Print as usual; with ``update``, on success also write ``$ command`` and the output into block ``key``."""
+    if not update:
+        yield
+        return
+    replace_block(readme.read_text(), key, "")  # the block exists: checked before the work, not after it
+    captured = io.StringIO()
+    with contextlib.redirect_stdout(_Tee(sys.stdout, captured)):
+        yield
+    command = ".venv/bin/python benchmarks/" + key
+    readme.write_text(replace_block(readme.read_text(), key, f"$ {command}\n{captured.getvalue()}"))
+    print(f"README.md: block {key!r} updated", file=sys.stderr)
+
+
+def run_main(main: Callable[[], None]) -> None:
+    """A benchmark's entry point: ``main()``, with ``--update-readme`` taken off the command line first."""
+    update = "--update-readme" in sys.argv[1:]
+    key = block_key(sys.argv[0], sys.argv[1:])
+    sys.argv[1:] = [a for a in sys.argv[1:] if a != "--update-readme"]
+    try:
+        context = readme_output(key, update=update)
+        context.__enter__()
+    except ValueError as exc:
+        raise SystemExit(f"{Path(sys.argv[0]).name}: {exc}") from None
+    try:
+        main()
+    except BaseException:
+        context.__exit__(*sys.exc_info())
+        raise
+    context.__exit__(None, None, None)
