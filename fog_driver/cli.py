@@ -243,6 +243,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
     print(report.format())
     quality = provenance["fit_quality"]
     print(format_checks(quality))
+    if "model_condition" in quality:  # for information: a model's own basis may be collinear by design
+        print(f"{'model regressors, condition':34s} {quality['model_condition']:10.4g}  (information, not a check)")
     for message in quality.get("weak", []):
         print(f"warning: weak fit accepted (--accept-weak-fit): {message}")
     if "bias_step" in quality:

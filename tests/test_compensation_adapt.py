@@ -453,10 +453,25 @@ def test_begin_run_captures_the_new_bias_and_keeps_the_adapted_weights():
     first_bias = r.bias_dph
     r.begin_run()  # switched off and on: a new turn-on bias, 7 deg/h higher
     est, flags = r.run(f[3000:], measured[3000:] + 7.0, 0.0, True)
-    assert not flags[:300].any() and (flags[300:] == FLAG_ADAPTING).all() and r.guards == 0
+    # the kept weights give the estimate from the first block (flagged adapting), W still during the capture
+    assert (flags == FLAG_ADAPTING).all() and r.guards == 0 and r.updates == 3000 - 300 + 6000 - 3000 - 300
     np.testing.assert_array_equal(est[:301], dot(f[3000:3301], w_adapted[:-1]) + w_adapted[-1])
     assert abs(r.bias_dph - first_bias - 7.0) < 0.05  # the new bias (relative to the adapted model, as before)
     np.testing.assert_allclose(r.weights, W_TRUE, rtol=0, atol=0.02)
+
+
+def test_restored_adapted_weights_are_flagged_even_without_a_reference():
+    """A state restored with no reference given (a daemon with adapt_state but no adapt_reference_dph): the
+    adapted weights give the estimate, so every block says so; the frozen weights' blocks are unflagged."""
+    f, _, measured = _problem(4000, seed=13)
+    r = OnlineReadout(W0, B0, AdaptConfig(compare_window_s=60.0, compare_min_windows=3), 1.0)
+    r.run(f[:3000], measured[:3000], 0.0, True)
+    assert r.adapted_in_use
+    est, flags = r.run(f[3000:], measured[3000:], None, True)
+    assert (flags == FLAG_ADAPTING).all()
+    frozen = OnlineReadout(W0, B0, AdaptConfig(), 1.0)
+    _, frozen_flags = frozen.run(f[3000:], measured[3000:], None, True)
+    assert not frozen_flags.any()
 
 
 # --- the comparison guard: adapting must earn its place ------------------------------------------------

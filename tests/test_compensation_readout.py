@@ -78,6 +78,27 @@ def test_convergence_is_slow_along_weak_directions_of_h():
     assert strong < 1e-9 and weak > 0.1  # only the strong direction converged in 4000 samples
 
 
+def test_the_preconditioned_law_is_the_law_on_standardized_regressors():
+    """Columns of very different scales: the plain normalized gain leaves the small column's weight far
+    off, the diagonal preconditioning (the law in standardized coordinates) converges on both; and it is
+    stable at any scale, as the normalized gain."""
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=(3000, 2)) * np.array([1.0, 1e-3])
+    w_true = np.array([0.5, 300.0])
+    d = x @ w_true
+    params = AdaptiveLawParams(filter_time_s=0.0, memory_time_s=500.0, kappa=1.0)
+    plain = AdaptiveLaw(params, 2)
+    plain.run(x, d)
+    pre = AdaptiveLaw(AdaptiveLawParams(filter_time_s=0.0, memory_time_s=500.0, kappa=1.0, precondition=True), 2)
+    pre.run(x, d)
+    assert abs(plain.weights[1] - 300.0) > 100.0
+    np.testing.assert_allclose(pre.weights, w_true, rtol=1e-6)
+    for scale in (1e-3, 1e3):
+        big = AdaptiveLaw(AdaptiveLawParams(filter_time_s=0.0, memory_time_s=500.0, kappa=1.9, precondition=True), 2)
+        big.run(x * scale, d)
+        assert np.all(np.isfinite(big.weights)) and np.abs(big.weights * scale - w_true).max() < 1e-3 * 300
+
+
 @pytest.mark.parametrize("scale", [1e-3, 1e-1, 1.0, 1e1, 1e3])
 def test_normalized_gain_is_stable_at_any_data_scale(scale):
     x, d, w_true = _problem(3, 3000, 8, scale=scale)
@@ -218,7 +239,8 @@ def test_bad_state_is_rejected(bad):
 @pytest.mark.parametrize(
     "kwargs",
     [{"kappa": 2.0}, {"kappa": 0.0}, {"memory_time_s": 0.0}, {"filter_time_s": -1.0}, {"delta": 0.0},
-     {"sigma": -1.0}, {"fixed_gain": 0.0}, {"fixed_gain": math.inf}],
+     {"sigma": -1.0}, {"fixed_gain": 0.0}, {"fixed_gain": math.inf}, {"precondition": 1},
+     {"precondition": True, "fixed_gain": 1.0}],
 )  # fmt: skip
 def test_bad_params_are_rejected(kwargs):
     with pytest.raises(ValueError):

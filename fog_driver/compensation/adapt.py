@@ -60,7 +60,9 @@ runaway bound is ``AdaptConfig.runaway_dph``, or by default ``runaway_for`` the 
 adapted model that departs from the frozen one by several times what the frozen one left on its data is
 learning something else.  When the frozen estimate itself is not finite (non-finite regressors) there
 is nothing to revert to: it is returned with ``FLAG_GUARD``, W untouched.  ``FLAG_ADAPTING`` marks a
-block whose target updated W.
+block whose target updated W, and every block whose estimate is the adapted weights' rather than the
+frozen ones' (also weights restored from a state file while no reference is given: the operator sees
+which weights are in use).
 
 The comparison guard: adapting must earn its place.  On a run the frozen model already fits, the law
 chases the gyro's own slow noise and makes things worse; so on every gated update block both estimates'
@@ -498,7 +500,10 @@ class OnlineReadout:
                 self.reset_to_frozen()
                 self.guards += 1
                 flags |= FLAG_GUARD
-        return (y if use_adapted else y_frozen), flags
+        if use_adapted and y != y_frozen:  # the adapted weights' estimate is in use (restored ones too)
+            flags |= FLAG_ADAPTING
+            return y, flags
+        return y_frozen, flags
 
     @property
     def gate_limit_dph(self) -> float:

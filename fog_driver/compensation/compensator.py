@@ -39,7 +39,7 @@ if TYPE_CHECKING:  # adapt.py imports this module's flags: import it lazily
     from .adapt import AdaptConfig, OnlineReadout, StaticDetector
 
 FLAG_UNCOMPENSATED = 1 << 3  #: no drift estimate applied (start-up, or inputs never valid)
-FLAG_ADAPTING = 1 << 4  #: the weights are adapting online
+FLAG_ADAPTING = 1 << 4  #: the weights are adapting online, or adapted weights give the estimate
 FLAG_GUARD = 1 << 5  #: a runaway or non-finite estimate, or a reference the gyro disagrees with, was rejected
 #: A link gap longer than this restarts the pipeline at rest (the model's memory of before is stale);
 #: a shorter one is stepped through block by block.
