@@ -32,6 +32,11 @@ FLAG_THERMOMETER_FAULT = 1 << 1  #: a thermometer read NaN or implausibly (or it
 PLAUSIBLE_TEMP_C = (-55.0, 125.0)
 
 
+def plausible_temp(value: float) -> bool:
+    """One reading: not NaN and inside ``PLAUSIBLE_TEMP_C`` (the per-sample form of ``plausible_temps``)."""
+    return PLAUSIBLE_TEMP_C[0] <= value <= PLAUSIBLE_TEMP_C[1]
+
+
 def plausible_temps(temps_c: np.ndarray) -> np.ndarray:
     """True where a reading is valid: not NaN and inside ``PLAUSIBLE_TEMP_C``."""
     low, high = PLAUSIBLE_TEMP_C
@@ -173,7 +178,7 @@ class BlockAverager:
         self._n += 1
         self._sum_dtheta += sample.dtheta_arcsec
         for k, value in enumerate((sample.t_top_c, sample.t_bottom_c, sample.t_housing_c)):
-            if PLAUSIBLE_TEMP_C[0] <= value <= PLAUSIBLE_TEMP_C[1]:  # not NaN, not implausible
+            if plausible_temp(value):  # not NaN, not implausible
                 self._sum_t[k] += value
                 self._n_t[k] += 1
             else:

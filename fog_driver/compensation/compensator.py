@@ -30,9 +30,9 @@ import numpy as np
 from ..errors import InputFileError
 from ..protocol import STATUS_THERMOMETER_FAULT
 from ..stream import Sample, SampleBlock
-from .blocks import FLAG_GAP, FLAG_THERMOMETER_FAULT, PLAUSIBLE_TEMP_C, BlockAverager, ModelBlock, plausible_temps
+from .blocks import FLAG_GAP, FLAG_THERMOMETER_FAULT, BlockAverager, ModelBlock, plausible_temp, plausible_temps
 from .domain import FLAG_EXTRAPOLATING
-from .features import FLAG_INPUT_STALE, FLAG_RECOVERING, FLAG_SUBSTITUTED, FeatureExtractor
+from .features import DEGRADED_FLAGS, FLAG_INPUT_STALE, FLAG_RECOVERING, FLAG_SUBSTITUTED, FeatureExtractor
 from .model import ModelFile
 
 if TYPE_CHECKING:  # adapt.py imports this module's flags: import it lazily
@@ -57,8 +57,6 @@ FLAG_NAMES = {
     FLAG_SUBSTITUTED: "substituted",
     FLAG_RECOVERING: "recovering",
 }
-#: The feature flags an estimate carries: a degraded input (substituted, frozen beyond hold_s) or its after-effect.
-INPUT_FLAGS = FLAG_INPUT_STALE | FLAG_SUBSTITUTED | FLAG_RECOVERING
 
 
 def flag_names(flags: int) -> list[str]:
@@ -196,7 +194,7 @@ class Compensator:
                 estimate = self.model.step(z)
                 adapt_flags = 0
             else:
-                clean = not flags & (FLAG_GAP | FLAG_THERMOMETER_FAULT | INPUT_FLAGS)
+                clean = not flags & (FLAG_GAP | FLAG_THERMOMETER_FAULT | DEGRADED_FLAGS)
                 clean = clean and block.index > self._settle_until
                 gate = static and clean and block.t_end_s > self.adapt.warmup_s
                 f = self.model.regressors_step(z)
@@ -211,9 +209,9 @@ class Compensator:
                 self.model.feed_back(estimate)  # the estimate actually used (the WESN's output feedback)
             if math.isfinite(estimate):
                 self.estimate_dph = estimate
-                self.estimate_flags = (flags & INPUT_FLAGS) | adapt_flags | extrapolating
+                self.estimate_flags = (flags & DEGRADED_FLAGS) | adapt_flags | extrapolating
             else:
-                self.estimate_flags = FLAG_GUARD | (flags & INPUT_FLAGS)
+                self.estimate_flags = FLAG_GUARD | (flags & DEGRADED_FLAGS)
         self._estimate_block = block.index + 1
 
     # -- adaptation state ----------------------------------------------------------------------
@@ -340,8 +338,7 @@ class Compensator:
         flags = self.estimate_flags
         if sample.missing_before or stale:
             flags |= FLAG_GAP
-        low, high = PLAUSIBLE_TEMP_C
-        if not all(low <= t <= high for t in temps) or sample.status & STATUS_THERMOMETER_FAULT:
+        if not all(plausible_temp(t) for t in temps) or sample.status & STATUS_THERMOMETER_FAULT:
             flags |= FLAG_THERMOMETER_FAULT
         return CompensatedSample(
             sample.seq, sample.t_s, sample.dtheta_arcsec, drift, dtheta_comp,

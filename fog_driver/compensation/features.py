@@ -16,7 +16,7 @@ Inputs are standardized with ``readout.Standardizer`` (statistics stored from th
 Thermometer faults (a NaN block mean: no valid reading in the block; or an implausible one) are
 detected per block and per sensor, and degrade the inputs gracefully:
 
-- **plausible**: a reading is accepted when it lies in ``PLAUSIBLE_TEMP_C`` (a saturated 127.99 degC
+- **plausible**: a reading is accepted when it lies in ``blocks.PLAUSIBLE_TEMP_C`` (a saturated 127.99 degC
   is not; the block averager has left such samples out already), with all three in that range lies
   within ``max_spread_c`` of their median (cross-sensor), and moves less than ``max_rate_c_per_s * Ts``
   from the sensor's value of the block before (a faulted one: from its own previous reading, or from
@@ -52,7 +52,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from . import numerics
-from .blocks import PLAUSIBLE_TEMP_C
+from .blocks import plausible_temp
 
 INPUT_NAMES = ("t_top_c", "t_bottom_c", "t_housing_c", "rate_top_c_per_min", "rate_bottom_c_per_min",
                "rate_housing_c_per_min", "grad_top_bottom_c", "grad_top_housing_c")  # fmt: skip
@@ -64,6 +64,9 @@ FLAG_INPUT_STALE = 1 << 2
 FLAG_SUBSTITUTED = 1 << 7
 #: Set while the model settles after a faulted thermometer came back with a different value.
 FLAG_RECOVERING = 1 << 8
+#: The flags of a degraded input (frozen, substituted, or settling after a fault): carried by the estimate,
+#: never fitted or learned from.
+DEGRADED_FLAGS = FLAG_INPUT_STALE | FLAG_SUBSTITUTED | FLAG_RECOVERING
 #: The recovery flag lasts this many slow rate-smoother time constants.
 RECOVERY_TAUS = 3.0
 #: Substitution partner sets per sensor, in order of preference: both others, then the ring's other half first.
@@ -250,12 +253,11 @@ class FeatureExtractor:
         p = self.params
         ts = p.sample_time_s
         step_limit = p.max_rate_c_per_s * ts
-        low, high = PLAUSIBLE_TEMP_C
         raw = [float(temps_c[k]) for k in range(3)]
         # 1. Plausible readings: in range and, with three in range, within max_spread_c of their median
         #    (``level``); and no jump (``ok``): against the value in use, a faulted sensor against its previous
         #    reading (or, in step 3, against its predicted value).
-        level = [low <= v <= high for v in raw]  # NaN: False
+        level = [plausible_temp(v) for v in raw]  # NaN: False
         if all(level):
             median = sorted(raw)[1]
             level = [abs(v - median) <= p.max_spread_c for v in raw]
@@ -289,7 +291,7 @@ class FeatureExtractor:
                 in_use, substituted = self._last[k], False
             ok[k] = ok[k] or level[k] and abs(value - in_use) <= step_limit
             self._good_s[k] = self._good_s[k] + ts if ok[k] else 0.0  # consecutive plausible readings
-            self._raw_prev[k] = value if low <= value <= high else math.nan
+            self._raw_prev[k] = value if plausible_temp(value) else math.nan
             if ok[k]:
                 agrees = in_use != in_use or abs(value - in_use) <= step_limit
                 if agrees or self._good_s[k] >= p.recover_s:
@@ -312,7 +314,7 @@ class FeatureExtractor:
             if in_use == in_use:
                 t[k] = in_use
                 rates[k] = (self._m1[k] - self._m2[k]) / self._denominator_min
-        # 5. The offsets of each prediction while the sensor and its partners are all healthy.
+        # 4. The offsets of each prediction while the sensor and its partners are all healthy.
         for k in range(3):
             if not healthy[k]:
                 continue

@@ -24,14 +24,7 @@ from ..protocol import iter_decode_file
 from ..stream import SampleStream
 from .blocks import FLAG_GAP, FLAG_THERMOMETER_FAULT, BlockAverager, BlockColumns
 from .domain import InputDomain
-from .features import (
-    FLAG_INPUT_STALE,
-    FLAG_RECOVERING,
-    FLAG_SUBSTITUTED,
-    FeatureExtractor,
-    FeatureParams,
-    fit_substitution,
-)
+from .features import DEGRADED_FLAGS, FeatureExtractor, FeatureParams, fit_substitution
 from .quality import FitQuality, assess, condition_number
 from .readout import Standardizer
 
@@ -136,7 +129,7 @@ def static_mask(blocks: BlockColumns, input_flags: np.ndarray, config: FitConfig
         kernel = np.ones(2 * margin + 1)
         moving = np.convolve(moving.astype(float), kernel, mode="same") > 0
     ok = ~moving
-    ok &= (input_flags & (FLAG_INPUT_STALE | FLAG_SUBSTITUTED | FLAG_RECOVERING)) == 0
+    ok &= (input_flags & DEGRADED_FLAGS) == 0
     ok &= (blocks.flags & FLAG_GAP) == 0
     ok &= blocks.t_end_s > config.warmup_s
     ok &= np.all(np.isfinite(blocks.temps_c), axis=1)
