@@ -526,3 +526,22 @@ def test_a_state_saved_before_the_comparison_existed_still_loads():
         with pytest.raises(ValueError, match=key):
             again.load_state({**state, key: bad})
         assert again.state_dict() == state  # a refused state leaves the readout as it was
+
+
+def test_a_gain_below_the_least_worth_having_keeps_the_frozen_estimate():
+    """The frozen model is slightly wrong: adapting gains, significantly, but less than the least gain set
+    (``compare_min_gain`` times the fit residual, squared): the frozen estimate stays in use; with no
+    least gain the adapted one is used."""
+    w_close = W0 + np.array([0.02, 0.0, 0.0])
+    f, _, measured = _problem(6000, seed=21, w_true=w_close, noise=0.05)
+    plain = OnlineReadout(W0, B0, AdaptConfig(compare_window_s=60.0, compare_min_windows=3, compare_min_gain=0.0),
+                          1.0, fit_residual_dph=0.05)  # fmt: skip
+    plain.run(f, measured, 0.0, True)
+    strict = OnlineReadout(W0, B0, AdaptConfig(compare_window_s=60.0, compare_min_windows=3), 1.0,
+                           fit_residual_dph=0.05)  # fmt: skip
+    _, flags = strict.run(f, measured, 0.0, True)
+    assert plain.adapted_in_use and plain.compare_gain > 0
+    assert strict._min_gain == pytest.approx((0.5 * 0.05) ** 2)
+    assert plain.compare_gain < strict._min_gain and not strict.adapted_in_use
+    with pytest.raises(ValueError):
+        AdaptConfig(compare_min_gain=-1.0)
