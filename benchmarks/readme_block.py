@@ -93,14 +93,10 @@ def run_main(main: Callable[[], None]) -> None:
     update = "--update-readme" in sys.argv[1:]
     key = block_key(sys.argv[0], sys.argv[1:])
     sys.argv[1:] = [a for a in sys.argv[1:] if a != "--update-readme"]
-    try:
-        context = readme_output(key, update=update)
-        context.__enter__()
-    except ValueError as exc:
-        raise SystemExit(f"{Path(sys.argv[0]).name}: {exc}") from None
-    try:
+    if update:  # a missing block is refused before the work (readme_output checks it too)
+        try:
+            replace_block(README.read_text(), key, "")
+        except ValueError as exc:
+            raise SystemExit(f"{Path(sys.argv[0]).name}: {exc}") from None
+    with readme_output(key, update=update):
         main()
-    except BaseException:
-        context.__exit__(*sys.exc_info())
-        raise
-    context.__exit__(None, None, None)

@@ -53,6 +53,7 @@ import numpy as np
 
 from . import numerics
 from .blocks import plausible_temp
+from .polynomial import standardized_ridge
 
 INPUT_NAMES = ("t_top_c", "t_bottom_c", "t_housing_c", "rate_top_c_per_min", "rate_bottom_c_per_min",
                "rate_housing_c_per_min", "grad_top_bottom_c", "grad_top_housing_c")  # fmt: skip
@@ -114,6 +115,11 @@ class Substitution:
         return cls(tuple(rows))
 
 
+#: The coupling fit's ridge penalty per row, on standardized columns: only enough to keep a column that
+#: never moved (a run without ramps: rates near 0) from taking an absurd weight.
+RIDGE_ALPHA = 1e-6
+
+
 def fit_substitution(inputs: list[np.ndarray], usable: list[np.ndarray], block_s: float,
                      chunk_s: float = 1200.0) -> Substitution:  # fmt: skip
     """Fit ``Substitution`` on captures' inputs (rows of the 8 inputs; ``usable``: all three measured).
@@ -136,26 +142,14 @@ def fit_substitution(inputs: list[np.ndarray], usable: list[np.ndarray], block_s
     def design(partners: tuple[int, ...]) -> np.ndarray:
         return u[:, [*partners, *(3 + j for j in partners)]]
 
-    def within(x: np.ndarray, groups: np.ndarray, mask: np.ndarray) -> np.ndarray:
-        out = x[mask].astype(float).copy()
-        g = groups[mask]
-        _, inverse = np.unique(g, return_inverse=True)
-        for column in range(out.shape[1] if out.ndim == 2 else 1):
-            col = out[:, column] if out.ndim == 2 else out
-            sums = np.bincount(inverse, weights=col)
-            col -= (sums / np.bincount(inverse))[inverse]
-        return out
-
     def solve(x: np.ndarray, y: np.ndarray, mask: np.ndarray) -> np.ndarray:
-        xw, yw = within(x, capture, mask), within(y[:, None], capture, mask)[:, 0]
-        scale = np.sqrt(np.mean(xw**2, axis=0)) + 1e-12
-        a = xw / scale
-        coef = np.linalg.solve(a.T @ a + 1e-6 * len(a) * np.eye(a.shape[1]), a.T @ yw)
-        return coef / scale
+        return standardized_ridge(x[mask], y[mask], RIDGE_ALPHA, groups=capture[mask])[0]
 
     def held_out_rms(x: np.ndarray, y: np.ndarray, coef: np.ndarray) -> float:
-        residual = (y - x @ coef)[:, None]
-        return float(np.sqrt(np.mean(within(residual, chunk_id, held_out) ** 2)))
+        residual = (y - x @ coef)[held_out]
+        _, chunk_of = np.unique(chunk_id[held_out], return_inverse=True)
+        residual -= (np.bincount(chunk_of, weights=residual) / np.bincount(chunk_of))[chunk_of]
+        return float(np.sqrt(np.mean(residual**2)))
 
     result = []
     for k in range(3):
