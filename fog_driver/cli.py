@@ -21,6 +21,7 @@ from . import __version__
 from .capture import format_summary, inspect_capture
 from .console import Progress, configure_logging
 from .errors import FogDriverError, InputFileError, OutputFileError, UsageError
+from .signals import SignalDispatcher, stop_on_signals
 
 EXIT_PROBLEMS = 1  # inspect --strict found problems
 
@@ -68,13 +69,6 @@ def cmd_record(args: argparse.Namespace) -> int:
     progress = Progress()
     stop = threading.Event()
 
-    def on_signal(signum: int, _frame: object) -> None:
-        if stop.is_set():
-            raise KeyboardInterrupt
-        stop.set()
-
-    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-
     def on_progress(p) -> None:
         c = p.counters
         progress.show(
@@ -88,22 +82,21 @@ def cmd_record(args: argparse.Namespace) -> int:
         progress.clear()
 
     try:
-        result = record(
-            args.port,
-            args.out,
-            baudrate=args.baud,
-            duration_s=args.duration,
-            reconnect=not args.no_reconnect,
-            stop=stop,
-            on_progress=on_progress,
-            on_state=on_state,
-            notes=args.notes,
-            overwrite=args.force,
-        )
+        with stop_on_signals(stop):
+            result = record(
+                args.port,
+                args.out,
+                baudrate=args.baud,
+                duration_s=args.duration,
+                reconnect=not args.no_reconnect,
+                stop=stop,
+                on_progress=on_progress,
+                on_state=on_state,
+                notes=args.notes,
+                overwrite=args.force,
+            )
     finally:
         progress.clear()
-        for s, handler in previous.items():
-            signal.signal(s, handler)
     c = result.counters
     print(
         f"recorded {result.bytes_written:,} bytes in {result.elapsed_s:.1f} s to {result.path} "
@@ -411,7 +404,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     service.stop = stop
     host, listen_port = service.start()
 
-    def on_signal(signum: int, _frame: object) -> None:
+    def on_signal(signum: int) -> None:
+        """In the signal dispatcher's thread: a reload never runs inside a handler, nor twice at once."""
         if signum == signal.SIGHUP:  # reload the config file and the model, without stopping
             try:
                 service.reload_config(read_config())
@@ -420,16 +414,14 @@ def cmd_run(args: argparse.Namespace) -> int:
             return
         stop.set()
 
-    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
-    # The readiness line comes after the handlers: a signal sent on seeing it is handled.
-    print(f"fog-driver {__version__}: {port} -> listening on {host}:{listen_port}; raw capture in "
-          f"{config.capture_dir}/; connect with: fog-driver watch {host}:{listen_port}  (Ctrl-C to stop)",
-          flush=True)  # fmt: skip
     try:
-        return service.run_until_stopped()
+        with SignalDispatcher((signal.SIGINT, signal.SIGTERM, signal.SIGHUP), on_signal):
+            # The readiness line comes after the handlers: a signal sent on seeing it is handled.
+            print(f"fog-driver {__version__}: {port} -> listening on {host}:{listen_port}; raw capture in "
+                  f"{config.capture_dir}/; connect with: fog-driver watch {host}:{listen_port}  (Ctrl-C to stop)",
+                  flush=True)  # fmt: skip
+            return service.run_until_stopped()
     finally:
-        for s, handler in previous.items():
-            signal.signal(s, handler)
         if simulator is not None:
             simulator.join(timeout=10)
 

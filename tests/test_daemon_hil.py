@@ -34,11 +34,14 @@ class Daemon:
 
     def __init__(self, tmp_path: Path, port: str, *extra: str) -> None:
         self.capture_dir = tmp_path / "captures"
-        self.log = (tmp_path / "daemon.log").open("w")  # a file: a full, unread pipe would block the daemon
+        self.log_path = tmp_path / "daemon.log"
+        self.log = self.log_path.open("w")  # a file: a full, unread pipe would block the daemon
+        # PYTHONFAULTHANDLER: a hung daemon told SIGABRT writes every thread's stack to its log.
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "fog_driver", "run", "--port", port, "--listen", "127.0.0.1:0",
              "--capture-dir", str(self.capture_dir), *extra],
             stdout=subprocess.PIPE, stderr=self.log, text=True, stdin=subprocess.DEVNULL,
+            env={**os.environ, "PYTHONFAULTHANDLER": "1"},
         )  # fmt: skip
         line = self.proc.stdout.readline()  # the readiness line
         assert "listening on" in line, (line, (tmp_path / "daemon.log").read_text())
@@ -48,7 +51,16 @@ class Daemon:
 
     def terminate(self) -> int:
         self.proc.send_signal(signal.SIGTERM)
-        return self.proc.wait(GUARD_S)
+        return self.wait()
+
+    def wait(self) -> int:
+        """The exit status; a daemon still running after GUARD_S fails with its thread stacks and log."""
+        try:
+            return self.proc.wait(GUARD_S)
+        except subprocess.TimeoutExpired:
+            self.proc.send_signal(signal.SIGABRT)  # faulthandler dumps every thread, then the process dies
+            self.proc.wait(GUARD_S)
+            pytest.fail(f"the daemon did not exit within {GUARD_S} s; its log:\n{self.log_path.read_text()[-20000:]}")
 
     def raw_capture(self) -> bytes:
         return b"".join(p.read_bytes() for p in sorted(self.capture_dir.glob("*.bin")))
@@ -275,3 +287,23 @@ def test_sighup_reloads_the_config_and_the_model(tmp_path):
         assert daemon.terminate() == 0
     finally:
         daemon.kill()
+
+
+def test_a_burst_of_sighups_then_sigterm_ends_cleanly(tmp_path):
+    """Reloads run one after another in the signal dispatcher, never inside a handler (where a second
+    SIGHUP once re-entered the reload under its own lock and hung the daemon for good)."""
+    config = tmp_path / "fog.yaml"
+    config.write_text("status_every_s: 0.2\n")
+    daemon = Daemon(tmp_path, f"replay://{DATA / 'sim-short.bin'}?rate=100", "--config", str(config))
+    try:
+        client = Client(daemon.address)
+        client.next("STATUS")
+        for _ in range(20):
+            daemon.proc.send_signal(signal.SIGHUP)
+        client.send("?VERSION;")
+        assert client.next("VERSION")["model"] == "wesn"  # the hub answers
+        client.next("STATUS")  # and the status loop goes on
+        assert daemon.terminate() == 0
+    finally:
+        daemon.kill()
+    assert "config_reload_failed" not in daemon.log_path.read_text()

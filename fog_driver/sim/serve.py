@@ -29,13 +29,13 @@ from __future__ import annotations
 import fcntl
 import math
 import os
-import signal
 import stat
 import struct
 import termios
 import threading
 import time
 from collections.abc import Callable
+from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Self
@@ -45,6 +45,7 @@ import structlog
 
 from ..errors import DeviceError, OutputFileError, UsageError
 from ..protocol import IDENTITY_FRAME_LEN, SAMPLE_FRAME_LEN
+from ..signals import stop_on_signals
 from ..transport import DEFAULT_BAUDRATE, PtyPair, open_port
 from .instrument import Simulator
 
@@ -511,17 +512,9 @@ def serve_cli(sim: Simulator, args: Any) -> int:
     if args.serve != "pty" and link is not None:
         raise UsageError("--link applies to --serve pty only")
     stop = threading.Event()
-
-    def on_signal(signum: int, _frame: object) -> None:
-        if stop.is_set():
-            raise KeyboardInterrupt
-        stop.set()
-
-    previous = {}
-    if threading.current_thread() is threading.main_thread():
-        previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    signals = stop_on_signals(stop) if threading.current_thread() is threading.main_thread() else nullcontext()
     where = f"{sim.profile.name} at {sim.rate_hz} Hz"
-    try:
+    with signals:
         if args.serve == "pty":
 
             def pty_ready(server: PtyServer) -> None:
@@ -537,9 +530,6 @@ def serve_cli(sim: Simulator, args: Any) -> int:
                 sim, args.serve, baudrate=args.baud, duration_s=args.duration, stop=stop, speed=speed,
                 on_ready=device_ready,
             )  # fmt: skip
-    finally:
-        for s, handler in previous.items():
-            signal.signal(s, handler)
     cpu_pct = 100.0 * stats.process_cpu_s / stats.wall_s if stats.wall_s > 0 else 0.0
     print(
         f"{'stopped after' if stats.stopped else 'served'} {stats.frames:,} frames "
