@@ -9,6 +9,7 @@ import pytest
 import yaml
 
 from fog_driver.compensation.apply import compensate_capture
+from fog_driver.compensation.compensator import FLAG_NAMES
 from fog_driver.compensation.model import load_model
 from fog_driver.config import DEFAULT_MODEL, DriverConfig
 from fog_driver.daemon.service import ConfigError, Service
@@ -37,6 +38,11 @@ def test_published_angles_equal_offline_compensation(chunk):
                                                         "rate_dph", "drift_dph", "temps_c", "flags"}  # fmt: skip
     assert any("gap" in o["flags"] for o in published)
     assert any(len(o["temps_c"]) < 3 for o in published)  # a faulted thermometer is omitted, never NaN
+    # STATUS counts the published samples per flag, as the offline flags do
+    offline_flags = np.concatenate([cols.flags for _, cols in compensate_capture(capture, load_model(DEFAULT_MODEL))])
+    expected = {name: int(np.count_nonzero(offline_flags & bit)) for bit, name in FLAG_NAMES.items()}
+    assert service.status_object()["flagged"] == expected
+    assert expected["gap"] > 0 and expected["thermometer_fault"] > 0 and expected["substituted"] > 0
 
 
 def test_zero_and_bias_commands():

@@ -37,7 +37,7 @@ import structlog
 
 from .. import __version__
 from ..compensation.adapt import AdaptConfig
-from ..compensation.compensator import CompensatedSample, Compensator, flag_names
+from ..compensation.compensator import FLAG_NAMES, CompensatedSample, Compensator, flag_names
 from ..compensation.model import ModelFile, load_model
 from ..config import DriverConfig, parse_host_port
 from ..errors import FogDriverError
@@ -87,6 +87,7 @@ class Service:
         self.identity: IdentityFrame | None = None
         self.port_state = "closed"
         self.samples_published = 0
+        self.flagged = dict.fromkeys(FLAG_NAMES.values(), 0)  # published samples per flag, since start
         self.samples_before_identity: list = []
         self.zero_raw_arcsec = 0.0
         self.zero_comp_arcsec = 0.0
@@ -144,6 +145,7 @@ class Service:
             "seq_gaps": c.seq_gaps,
             "missing_frames": c.missing_frames,
             "published": self.samples_published,
+            "flagged": dict(self.flagged),
             "cpu_percent": round(100.0 * (cpu - cpu_mark) / max(now - wall_mark, 1e-9), 2),
             "rss_mb": _current_rss_mb(),
             "bias_dph": self.bias_dph,
@@ -231,6 +233,10 @@ class Service:
         if self.udp is not None:
             self.udp.send(obj)
         self.samples_published += 1
+        if c.flags:
+            for bit, name in FLAG_NAMES.items():
+                if c.flags & bit:
+                    self.flagged[name] += 1
         return obj
 
     def _acquire(self) -> None:
