@@ -44,15 +44,16 @@ class _Tee(io.TextIOBase):
 
 
 def block_key(script: str, argv: list[str]) -> str:
-    """The block's name: the script's file name and its arguments, less ``--update-readme`` and
-    ``--workdir DIR`` (or ``--workdir=DIR``)."""
+    """The block's name: the script's file name and its arguments, less ``--update-readme``,
+    ``--workdir DIR`` and ``--workers N`` (or ``=``): where it works and how many processes it uses never
+    change a figure."""
     shown, skip = [], False
     for arg in argv:
         if skip:
             skip = False
-        elif arg == "--update-readme" or arg.startswith("--workdir="):
+        elif arg == "--update-readme" or arg.startswith(("--workdir=", "--workers=")):
             continue
-        elif arg == "--workdir":
+        elif arg in ("--workdir", "--workers"):
             skip = True
         else:
             shown.append(arg)

@@ -15,7 +15,8 @@ import readme_block  # noqa: E402
 
 
 def test_the_block_key_is_the_command_less_the_cache_and_the_flag():
-    argv = ["--set", "dev", "--workdir", "/tmp/x", "--update-readme", "--workdir=/y", "--adapt"]
+    argv = ["--set", "dev", "--workdir", "/tmp/x", "--update-readme", "--workdir=/y", "--workers", "1",
+            "--workers=2", "--adapt"]
     assert readme_block.block_key("benchmarks/bench_population.py", argv) == "bench_population.py --set dev --adapt"
 
 
