@@ -17,8 +17,10 @@ from fog_driver.daemon.service import ConfigError, Service
 DATA = Path(__file__).resolve().parent / "data"
 
 
-def offline_angles(capture: Path, model_path: Path) -> list[float]:
-    return [float(a) for _, cols in compensate_capture(capture, load_model(model_path)) for a in cols.angle_comp_arcsec]
+def offline(capture: Path, model_path: Path) -> tuple[list[float], np.ndarray]:
+    """The compensated angles and the flags of ``fog-driver compensate``, sample by sample."""
+    parts = [cols for _, cols in compensate_capture(capture, load_model(model_path))]
+    return [float(a) for cols in parts for a in cols.angle_comp_arcsec], np.concatenate([c.flags for c in parts])
 
 
 @pytest.mark.determinism
@@ -30,7 +32,8 @@ def test_published_angles_equal_offline_compensation(chunk):
     published = []
     for i in range(0, len(data), chunk):
         published += service.process(data[i : i + chunk])
-    assert [o["angle_arcsec"] for o in published] == offline_angles(capture, DEFAULT_MODEL)
+    offline_angles_arcsec, offline_flags = offline(capture, DEFAULT_MODEL)
+    assert [o["angle_arcsec"] for o in published] == offline_angles_arcsec
     seqs = [o["seq"] for o in published]
     assert seqs == sorted(seqs) and len(seqs) == 2956
     first = published[0]
@@ -39,7 +42,6 @@ def test_published_angles_equal_offline_compensation(chunk):
     assert any("gap" in o["flags"] for o in published)
     assert any(len(o["temps_c"]) < 3 for o in published)  # a faulted thermometer is omitted, never NaN
     # STATUS counts the published samples per flag, as the offline flags do
-    offline_flags = np.concatenate([cols.flags for _, cols in compensate_capture(capture, load_model(DEFAULT_MODEL))])
     expected = {name: int(np.count_nonzero(offline_flags & bit)) for bit, name in FLAG_NAMES.items()}
     assert service.status_object()["flagged"] == expected
     assert expected["gap"] > 0 and expected["thermometer_fault"] > 0 and expected["substituted"] > 0

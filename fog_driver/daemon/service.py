@@ -233,10 +233,8 @@ class Service:
         if self.udp is not None:
             self.udp.send(obj)
         self.samples_published += 1
-        if c.flags:
-            for bit, name in FLAG_NAMES.items():
-                if c.flags & bit:
-                    self.flagged[name] += 1
+        for name in obj["flags"]:  # the names angle_object already made
+            self.flagged[name] += 1
         return obj
 
     def _acquire(self) -> None:
