@@ -2,14 +2,15 @@
 
     python benchmarks/bench_thermo_fault.py [--set eval3|dev|...] [--instruments N] [--first K] [--kinds auto,polynomial]
                                             [--rate-hz 10] [--workers 2] [--workdir DIR] [--per-instrument]
-                                            [--offsets-only] [--update-readme]
+                                            [--offsets-only] [--fault invalid|stuck] [--update-readme]
 
 Per instrument (``bench_population``'s: the same seed sets and THE RULE, the same cached captures), the
 model that ``fog-driver fit`` makes without ``--kind`` (``auto``) is fitted on the ``paper`` run, then each
 scoring run (``soak-cycle``, ``steps-moves``) is compensated five times from its frames: clean; with each
-one thermometer invalid (NaN, as the protocol's "no valid reading") for 30 minutes from the first ramp
-(the first second after minute 20 whose ring rate reaches half the run's steepest); and with the top
-thermometer reading a saturated 127.99 degC for 60 s.
+one thermometer invalid (NaN, as the protocol's "no valid reading"; ``--fault stuck``: reading its value
+of the fault's first frame, a frozen converter) for 30 minutes from the first ramp (the first second after
+minute 20 whose ring rate reaches half the run's steepest); and with the top thermometer reading a
+saturated 127.99 degC for 60 s.
 
 Score per case: the drift residual r = D - D_hat (the simulator's truth D; D_hat = 0 uncompensated),
 zeroed over the 10 minutes before the fault (the operator's zero), integrated from the fault's start:
@@ -26,6 +27,8 @@ Log of the runs (see THE RULE in bench_population.py):
 
 * 2026-12-02, ``eval3`` (30000..30011), first run: substitution from the fitted thermal coupling (issue 11), 220 s;
   all 72 cases meet the target (the README's figures).
+* 2026-12-02, ``eval3``, ``--fault stuck``, first run: the stuck-reading check (thresholds set from the
+  physics, no false alarm on 12 clean development instruments x 4 profiles).
 """
 
 from __future__ import annotations
@@ -84,7 +87,13 @@ def worst_angle(drift_true: np.ndarray, estimate: np.ndarray, start: int) -> flo
     return float(np.abs(np.cumsum(r[start:start + FAULT_S + AFTER_S])).max())
 
 
-def score_instrument(seed: int, kinds: tuple[str, ...], rate_hz: int, workdir: Path, offsets_only: bool = False) -> dict:
+def faulted_column(column: np.ndarray, window: np.ndarray, fault: str) -> np.ndarray:
+    """``column`` with the fault over ``window``: NaN (invalid), or its value at the window's first frame (stuck)."""
+    return np.where(window, np.nan if fault == "invalid" else column[np.argmax(window)], column)
+
+
+def score_instrument(seed: int, kinds: tuple[str, ...], rate_hz: int, workdir: Path, offsets_only: bool = False,
+                     fault: str = "invalid") -> dict:  # fmt: skip
     fit_run = capture(workdir, seed, FIT_PROFILE, 10 * seed + 1, rate_hz)
     models = {}
     for kind in kinds:
@@ -108,7 +117,7 @@ def score_instrument(seed: int, kinds: tuple[str, ...], rate_hz: int, workdir: P
             clean = drift_per_second(model_file, samples, period, n)
             worst_clean = worst_angle(drift, clean, start)
             for sensor in SENSORS:
-                faulted = dataclasses.replace(samples, **{sensor: np.where(window, np.nan, getattr(samples, sensor))})
+                faulted = dataclasses.replace(samples, **{sensor: faulted_column(getattr(samples, sensor), window, fault)})
                 estimate = drift_per_second(model_file, faulted, period, n)
                 cases.append({"kind": kind, "profile": profile, "sensor": sensor, "start_s": start,
                               "clean": worst_clean, "fault": worst_angle(drift, estimate, start),
@@ -158,6 +167,8 @@ def main() -> None:
     parser.add_argument("--per-instrument", action="store_true")
     parser.add_argument("--offsets-only", action="store_true",
                         help="substitute a partner plus its last offset (no fitted coupling): the baseline")
+    parser.add_argument("--fault", choices=("invalid", "stuck"), default="invalid",
+                        help="invalid readings (NaN), or a reading stuck at its value when the fault begins")
     args = parser.parse_args()
     kinds = tuple(args.kinds.split(","))
     seeds = [SEED_SETS[args.set] + args.first + i for i in range(args.instruments)]
@@ -166,9 +177,10 @@ def main() -> None:
         workdir.mkdir(parents=True, exist_ok=True)
         with ProcessPoolExecutor(args.workers) as pool:
             results = list(pool.map(score_instrument, seeds, [kinds] * len(seeds), [args.rate_hz] * len(seeds),
-                                    [workdir] * len(seeds), [args.offsets_only] * len(seeds)))  # fmt: skip
-    print(f"{args.set}: instruments {seeds[0]}..{seeds[-1]}, {args.rate_hz} Hz, fault {FAULT_S // 60} min from the "
-          f"first ramp\n")  # fmt: skip
+                                    [workdir] * len(seeds), [args.offsets_only] * len(seeds),
+                                    [args.fault] * len(seeds)))  # fmt: skip
+    print(f"{args.set}: instruments {seeds[0]}..{seeds[-1]}, {args.rate_hz} Hz, one thermometer {args.fault} for "
+          f"{FAULT_S // 60} min from the first ramp\n")  # fmt: skip
     summarize(results, kinds, args.per_instrument)
 
 

@@ -124,11 +124,73 @@ def test_a_sensor_that_comes_back_with_another_value_waits_then_is_flagged_recov
     assert np.abs(u[accepted:, 3] - 1.0).max() < 0.02  # the smoothers shifted: no rate spike from the step
 
 
+def stuck_block(temps: np.ndarray, k: int, start: int) -> int:
+    """The first block at which sensor ``k``, stuck at its reading of ``start``, has partners that all moved by
+    more than ``stuck_partner_c`` (the earliest it can be caught)."""
+    p = FeatureParams()
+    moved = np.all(np.abs(np.delete(temps, k, axis=1) - np.delete(temps[start], k)) > p.stuck_partner_c, axis=1)
+    return start + int(np.argmax(moved[start:]))
+
+
+@pytest.mark.parametrize("k", [0, 1, 2])
+def test_a_sensor_stuck_at_a_plausible_value_is_caught_once_its_partners_move_and_substituted(k):
+    """A frozen converter returns its last value: in range, no jump, near the others; only that it no longer
+    moves while they do gives it away.  Caught, it is substituted with the offset it had before it stuck
+    (not one that followed the stuck value) and its rate continues the ramp (no step)."""
+    p = FeatureParams()
+    temps = ramps(3000)
+    clean, _ = FeatureExtractor().run(temps)
+    bad = temps.copy()
+    bad[900:1800, k] = bad[900, k]  # stuck 5 minutes into the ramp, for 15 minutes; then reads again
+    u, flags = FeatureExtractor().run(bad)
+    caught = stuck_block(temps, k, 900)
+    assert 1000 < caught < 1100  # 2 degC at 1 degC/min
+    assert not flags[:caught].any()  # nothing tells it apart before
+    assert np.all(flags[caught:1800] & FLAG_SUBSTITUTED)
+    temperatures = [0, 1, 2, 6, 7]
+    np.testing.assert_allclose(u[caught:, temperatures], clean[caught:, temperatures], atol=1e-9)  # exact offset
+    np.testing.assert_allclose(u[caught:, 3:6], clean[caught:, 3:6], atol=0.005)  # the ramp's rate, no step
+    settle = int(RECOVERY_TAUS * p.rate_tau_slow_s)
+    assert np.all(flags[caught:caught + settle] & FLAG_RECOVERING)  # the model ran on the stuck value
+    assert np.all(flags[caught + settle:1800] == FLAG_SUBSTITUTED)
+    assert not flags[1800:].any()  # reading again: it agrees with its substitute, so it is back at once
+
+
+def test_a_sensor_that_stays_stuck_is_never_taken_back_and_the_state_round_trips():
+    temps = ramps(3000)
+    bad = temps.copy()
+    bad[900:, 0] = bad[900, 0]
+    whole, whole_flags = FeatureExtractor().run(bad)
+    caught = stuck_block(temps, 0, 900)
+    assert np.all(whole_flags[caught:] & FLAG_SUBSTITUTED)  # plausible and self-consistent, but stuck
+    for cut in (caught - 1, caught, caught + 1, 2500):
+        assert_continues_through_a_saved_state(bad, cut)
+
+
+@pytest.mark.parametrize("partners_move_c", [0.0, 1.9])
+def test_a_sensor_that_does_not_move_while_its_partners_move_less_than_the_limit_is_healthy(partners_move_c):
+    """At rest nothing moves and nothing is decided; a partner moving less than stuck_partner_c is no proof."""
+    n = 1200
+    ring = 20.0 + np.clip(np.arange(float(n)) - 300.0, 0.0, partners_move_c * 60.0) / 60.0
+    temps = np.column_stack([np.full(n, 20.5), ring, ring - 1.25])
+    _, flags = FeatureExtractor().run(temps)
+    assert not flags.any()
+    temps[:, 2] = 18.75  # only one partner moving is no proof either
+    temps[:, 1] = 20.0 + np.clip(np.arange(float(n)) - 300.0, 0.0, 300.0) / 60.0
+    _, flags = FeatureExtractor().run(temps)
+    assert not flags.any()
+
+
 @pytest.mark.parametrize("cut", [950, 1001, 1299, 1305, 1400])
 def test_state_round_trip_inside_a_fault_is_bit_identical(cut):
     temps = ramps()
     temps[1000:1300, 0] = np.nan
     temps[1300:, 0] += 2.0
+    assert_continues_through_a_saved_state(temps, cut)
+
+
+def assert_continues_through_a_saved_state(temps: np.ndarray, cut: int) -> None:
+    """Run to ``cut``, save the state through YAML, restore it in a new extractor: bit for bit the whole run."""
     whole, whole_flags = FeatureExtractor().run(temps)
     first = FeatureExtractor()
     a, fa = first.run(temps[:cut])
@@ -262,10 +324,13 @@ def estimates(model_file, samples, period):
     return out.drift_dph, out.flags
 
 
+@pytest.mark.parametrize("fault", ["invalid", "stuck"])
 @pytest.mark.parametrize("kind", ["polynomial", "wesn"])
 @pytest.mark.parametrize("sensor", ["t_top_c", "t_bottom_c", "t_housing_c"])
 def test_one_thermometer_faulted_for_30_minutes_in_a_ramp_costs_less_than_a_quarter_of_no_compensation(
-        chamber, kind, sensor):  # fmt: skip
+        chamber, kind, sensor, fault):  # fmt: skip
+    """Invalid (NaN) for 30 minutes, or stuck at its reading of the fault's start (the wesn then gave -1,913"
+    against -715" uncompensated: the model ran on a frozen temperature with its rate decaying to 0)."""
     d, models = chamber
     samples, period = read_capture_samples(d / "fast.bin")
     truth = read_truth(d / "fast.truth.csv")
@@ -275,13 +340,17 @@ def test_one_thermometer_faulted_for_30_minutes_in_a_ramp_costs_less_than_a_quar
     lo, hi = 1500, 3300  # 25 to 55 minutes: inside the first 2 degC/min ramp
     clean, _ = estimates(models[kind], samples, period)
     column = getattr(samples, sensor).copy()
-    column[lo:hi] = np.nan
+    column[lo:hi] = np.nan if fault == "invalid" else column[lo]
     faulted, flags = estimates(models[kind], dataclasses.replace(samples, **{sensor: column}), period)
     clean_err = abs(angle_error(drift, clean, lo))
     fault_err = abs(angle_error(drift, faulted, lo))
     none_err = abs(angle_error(drift, np.zeros(n), lo))
     assert fault_err <= clean_err + 0.25 * none_err, (fault_err, clean_err, none_err)
-    assert np.all(flags[lo + 1:hi] & FLAG_SUBSTITUTED)
+    if fault == "invalid":
+        assert np.all(flags[lo + 1:hi] & FLAG_SUBSTITUTED)
+    else:  # caught once the partners moved 2 degC (the ramp's ring lags the chamber: within 5 minutes)
+        substituted = np.flatnonzero(flags[lo:hi] & FLAG_SUBSTITUTED)
+        assert substituted[0] < 300 and np.all(flags[lo + substituted[0]:hi] & FLAG_SUBSTITUTED)
     # after it: any estimate still off the clean one by more than 0.1 deg/h is flagged
     off = np.abs(faulted[hi:] - clean[hi:]) > 0.1
     assert np.all(flags[hi:][off] & (FLAG_SUBSTITUTED | FLAG_RECOVERING | FLAG_THERMOMETER_FAULT))

@@ -31,6 +31,17 @@ detected per block and per sensor, and degrade the inputs gracefully:
   between the sensors, whose gradients change during a ramp); without them (``Substitution.offsets``)
   a sensor is its partner plus their last offset.  Its rate and gradients keep tracking the ramp; the
   block is flagged ``FLAG_SUBSTITUTED``;
+- **stuck**: a reading that has not moved by ``stuck_tol_c`` since every healthy partner moved by more than
+  ``stuck_partner_c`` is stuck (a frozen converter or bus returning its last value: in range, no jump,
+  near the others, so the checks above pass it).  From that block on it is faulted and substituted; its
+  offsets are those it had when it last moved (the ones tracked since followed the stuck value), its
+  rate smoothers are re-seated on the substitute's ramp (``value - L_k rate``: the rate continues
+  without a step), and the next ``RECOVERY_TAUS * rate_tau_slow_s`` are flagged ``FLAG_RECOVERING``
+  (the model ran on the stuck value until it was caught).  It is taken back only once its reading
+  moves again, then as any faulted sensor.  A healthy sensor's reading moves with its partners (a
+  coupling of 1/200 would be needed to stay within 0.01 degC while they move 2 degC), and with none
+  moving nothing is decided: a stuck sensor is caught once its partners have moved ``stuck_partner_c``
+  (a minute into a 2 degC/min ramp), and the estimates until then used it;
 - **frozen**: with no healthy partner (all three faulted) the last value and the rate smoothers are
   held; after ``hold_s`` the block is flagged ``FLAG_INPUT_STALE`` (the compensator then holds
   its estimate);
@@ -181,6 +192,8 @@ class FeatureParams:
     max_rate_c_per_s: float = 0.5
     max_spread_c: float = 50.0
     recover_s: float = 10.0
+    stuck_tol_c: float = 0.01
+    stuck_partner_c: float = 2.0
 
     def __post_init__(self) -> None:
         if not 0 < self.rate_tau_fast_s < self.rate_tau_slow_s:
@@ -189,6 +202,8 @@ class FeatureParams:
             raise ValueError("sample_time_s must be > 0 and hold_s >= 0")
         if not (self.max_rate_c_per_s > 0 and self.max_spread_c > 0 and self.recover_s >= 0):
             raise ValueError("max_rate_c_per_s and max_spread_c must be > 0 and recover_s >= 0")
+        if not (0 <= self.stuck_tol_c < self.stuck_partner_c):
+            raise ValueError("need 0 <= stuck_tol_c < stuck_partner_c")
 
 
 class FeatureExtractor:
@@ -205,6 +220,7 @@ class FeatureExtractor:
         # A discrete EMA lags a ramp of slope r by r * lag, lag = Ts / (exp(Ts / tau) - 1) (-> tau as Ts -> 0).
         lag_fast = p.sample_time_s / numerics.expm1_correctly_rounded(p.sample_time_s / p.rate_tau_fast_s)
         lag_slow = p.sample_time_s / numerics.expm1_correctly_rounded(p.sample_time_s / p.rate_tau_slow_s)
+        self._lag_fast_s, self._lag_slow_s = lag_fast, lag_slow
         self._denominator_min = (lag_slow - lag_fast) / 60.0
         self.reset()
         if state is not None:
@@ -220,26 +236,36 @@ class FeatureExtractor:
         self._good_s = [0.0] * 3  # how long a faulted sensor has read plausibly
         self._offset = [math.nan] * 9  # per sensor and partner set: smoothed T_k - prediction while all healthy
         self._recovering_s = 0.0
+        self._anchor = [math.nan] * 9  # per sensor k: the three values in use when k's reading last moved
+        self._anchor_offset = [math.nan] * 9  # per sensor k: its three offsets then
+        self._stuck_at = [math.nan] * 3  # a sensor caught stuck: the reading it is stuck at
 
     def get_state(self) -> dict:
         return {"last": list(self._last), "stale_s": list(self._stale_s), "m1": list(self._m1), "m2": list(self._m2),
                 "faulted": list(self._faulted), "raw_prev": list(self._raw_prev), "good_s": list(self._good_s),
-                "offset": list(self._offset), "recovering_s": self._recovering_s}  # fmt: skip
+                "offset": list(self._offset), "recovering_s": self._recovering_s, "anchor": list(self._anchor),
+                "anchor_offset": list(self._anchor_offset), "stuck_at": list(self._stuck_at)}  # fmt: skip
 
     def set_state(self, state: dict) -> None:
-        """Inverse of ``get_state``; a state saved before fault handling (no ``faulted`` ...) means healthy."""
+        """Inverse of ``get_state``; a state saved before fault handling (no ``faulted`` ...) means healthy, one
+        saved before the stuck check (no ``anchor`` ...) starts it afresh."""
         values = {k: [float(v) for v in state[k]] for k in ("last", "stale_s", "m1", "m2")}
         values["faulted"] = [bool(v) for v in state.get("faulted", [False] * 3)]
         for k, default in (("raw_prev", math.nan), ("good_s", 0.0)):
             values[k] = [float(v) for v in state.get(k, [default] * 3)]
         offset = [float(v) for v in state.get("offset", [math.nan] * 9)]
-        if any(len(v) != 3 for v in values.values()) or len(offset) != 9:
-            raise ValueError("feature state: 3 values per sensor (9 offsets)")
+        anchor = [float(v) for v in state.get("anchor", [math.nan] * 9)]
+        anchor_offset = [float(v) for v in state.get("anchor_offset", [math.nan] * 9)]
+        stuck_at = [float(v) for v in state.get("stuck_at", [math.nan] * 3)]
+        if any(len(v) != 3 for v in values.values()) or len(stuck_at) != 3 or {len(offset), len(anchor),
+                                                                                 len(anchor_offset)} != {9}:  # fmt: skip
+            raise ValueError("feature state: 3 values per sensor (9 offsets and anchors)")
         values["offset"] = offset
         recovering_s = float(state.get("recovering_s", 0.0))
         self._last, self._stale_s, self._m1, self._m2 = values["last"], values["stale_s"], values["m1"], values["m2"]
         self._faulted, self._raw_prev, self._good_s = values["faulted"], values["raw_prev"], values["good_s"]
         self._offset, self._recovering_s = values["offset"], recovering_s
+        self._anchor, self._anchor_offset, self._stuck_at = anchor, anchor_offset, stuck_at
 
     def step(self, temps_c: tuple[float, float, float] | np.ndarray) -> tuple[list[float], int]:
         """The input vector for one block and its flags (``FLAG_SUBSTITUTED``, ``FLAG_RECOVERING``,
@@ -273,6 +299,7 @@ class FeatureExtractor:
                 t[k], rates[k] = self._smooth(k, raw[k])
             else:
                 self._faulted[k] = True  # step 3 handles it from this block on
+        caught = self._check_stuck(raw, healthy, t)
         # 3. Faulted ones: the value in use is predicted from healthy partners, else frozen (value and rate
         #    held).  A plausible reading that agrees with it, or after recover_s of plausible readings, is
         #    accepted again: the smoothers shift by the step, so it causes no rate spike.
@@ -280,10 +307,15 @@ class FeatureExtractor:
             if healthy[k]:
                 continue
             value = raw[k]
-            in_use, substituted = self._substitute(k, healthy, t, rates), True
+            (in_use, rate_in_use), substituted = self._substitute(k, healthy, t, rates), True
             if in_use != in_use:
                 in_use, substituted = self._last[k], False
             ok[k] = ok[k] or level[k] and abs(value - in_use) <= step_limit
+            if self._stuck_at[k] == self._stuck_at[k]:  # caught stuck: usable again only once it moves
+                if abs(value - self._stuck_at[k]) <= p.stuck_tol_c:
+                    ok[k] = False
+                else:
+                    self._stuck_at[k] = math.nan
             self._good_s[k] = self._good_s[k] + ts if ok[k] else 0.0  # consecutive plausible readings
             self._raw_prev[k] = value if plausible_temp(value) else math.nan
             if ok[k]:
@@ -300,7 +332,7 @@ class FeatureExtractor:
                     continue
             if substituted:
                 flags |= FLAG_SUBSTITUTED
-                t[k], rates[k] = self._smooth(k, in_use)
+                t[k], rates[k] = self._reseat(k, in_use, rate_in_use) if caught[k] else self._smooth(k, in_use)
                 continue
             self._stale_s[k] += ts
             if self._stale_s[k] > p.hold_s or in_use != in_use:
@@ -328,19 +360,59 @@ class FeatureExtractor:
         """``state`` of an extractor that predicted sensors by ``substitution``, for this one: the offsets of
         the predictions this one makes differently are dropped (tracked afresh while the sensor is healthy)."""
         offset = list(state.get("offset", [math.nan] * 9))
+        anchor_offset = list(state.get("anchor_offset", [math.nan] * 9))
         for k in range(3):
             for s_index in range(3):
                 if substitution.coefficients[k][s_index] != self.substitution.coefficients[k][s_index]:
-                    offset[3 * k + s_index] = math.nan
-        return {**state, "offset": offset}
+                    offset[3 * k + s_index] = anchor_offset[3 * k + s_index] = math.nan
+        return {**state, "offset": offset, "anchor_offset": anchor_offset}
 
-    def _substitute(self, k: int, healthy: list[bool], t: list[float], rates: list[float]) -> float:
-        """Sensor k predicted from the first partner set that is all healthy (NaN: none, or no offset yet)."""
+    def _substitute(self, k: int, healthy: list[bool], t: list[float], rates: list[float]) -> tuple[float, float]:
+        """Sensor k predicted from the first partner set that is all healthy, and the rate that prediction
+        ramps at (``sum a_j dT_j/dt``); NaN, NaN: none, or no offset yet."""
         for s_index, (partners, coef) in enumerate(zip(PARTNER_SETS[k], self.substitution.coefficients[k])):
             offset = self._offset[3 * k + s_index]
             if coef is not None and offset == offset and all(healthy[j] for j in partners):
-                return self._predict(partners, coef, t, rates) + offset
-        return math.nan
+                rate = sum(coef[i] * rates[j] for i, j in enumerate(partners))
+                return self._predict(partners, coef, t, rates) + offset, rate
+        return math.nan, math.nan
+
+    def _check_stuck(self, raw: list[float], healthy: list[bool], t: list[float]) -> list[bool]:
+        """Which healthy sensors are caught stuck in this block (see the module docstring); those are made
+        faulted (``healthy`` updated), their offsets put back to those they had when they last moved."""
+        p = self.params
+        caught = [False] * 3
+        for k in range(3):
+            if not healthy[k]:
+                continue
+            anchor = self._anchor[3 * k:3 * k + 3]
+            if not abs(raw[k] - anchor[k]) <= p.stuck_tol_c:  # it moved (or has no anchor yet): anchor here
+                self._anchor[3 * k:3 * k + 3] = [t[j] if healthy[j] else math.nan for j in range(3)]
+                self._anchor_offset[3 * k:3 * k + 3] = self._offset[3 * k:3 * k + 3]
+                continue
+            moved = []
+            for j in range(3):
+                if j != k and healthy[j]:
+                    if anchor[j] != anchor[j]:  # a partner healthy again: counted from here
+                        self._anchor[3 * k + j] = t[j]
+                    moved.append(abs(t[j] - anchor[j]))
+            if moved and min(moved) > p.stuck_partner_c:
+                caught[k], healthy[k], self._faulted[k] = True, False, True
+                self._stuck_at[k], self._raw_prev[k], self._good_s[k] = raw[k], raw[k], 0.0
+                self._offset[3 * k:3 * k + 3] = self._anchor_offset[3 * k:3 * k + 3]
+                self._anchor[3 * k:3 * k + 3] = [math.nan] * 3
+                self._recovering_s = RECOVERY_TAUS * p.rate_tau_slow_s
+        return caught
+
+    def _reseat(self, k: int, value: float, rate_c_per_min: float) -> tuple[float, float]:
+        """Sensor k's smoothers put where they would be on a ramp through ``value`` at ``rate_c_per_min``
+        (``m_i = value - L_i rate``): the rate it returns is that ramp's, with no step."""
+        self._stale_s[k] = 0.0
+        self._last[k] = value
+        slope_c_per_s = rate_c_per_min / 60.0
+        self._m1[k] = value - self._lag_fast_s * slope_c_per_s
+        self._m2[k] = value - self._lag_slow_s * slope_c_per_s
+        return value, (self._m1[k] - self._m2[k]) / self._denominator_min
 
     def _smooth(self, k: int, value: float) -> tuple[float, float]:
         """Sensor k's value through its two smoothers: (value, rate in degC/min)."""
