@@ -22,6 +22,10 @@ runs:
 * 2026-12-02, ``eval2``, second run, ``--adapt``: the adapting guards of issue 11 (innovation gate,
   runaway bound from the fit residual), developed on ``dev`` 0..23; the frozen models are the
   first run's, and so are their figures, bit for bit.
+* 2026-12-02, ``eval3`` (30000..30023), ``bench_adapt_creep.py``, first creep run: the comparison guard's
+  least gain (chosen on ``dev`` 0..23, evaluated once on ``eval2``).  It missed the creep target (0.2
+  deg/h: worst 2.06x; correct reference 1.295x); ``dev`` 24..71 then drawn to find the same failures
+  (worst 1.149x, a correct reference).  ``eval3`` is spent for adapting.
 
 Individual evaluation instruments are not to be studied: to find what failed there, draw more
 development instruments (``--set dev --first 72``) and look for the same failure among them.
