@@ -52,7 +52,10 @@ order the commands were sent; ANGLE/STATUS/DEVICE lines may be interleaved.
   ``?ZERO;`` or ``?MARK={"label": "stop 3"};``); an unknown one is answered
   with ``ERROR`` ``"unknown command ?NAME"``; without a prior successful
   ``?AUTH`` on a token-protected daemon every one is refused with ``ERROR``
-  ``"unauthorized"``.
+  ``"unauthorized"``.  A command that gets no answer in time (``control_timeout_s``,
+  30 s, unless the service gave it a deadline of its own) is answered with
+  ``ERROR`` ``"no answer within N s"``; the command itself is not undone and
+  runs to its end.
 
 Limits (a misbehaving client costs the daemon a bounded amount and never
 delays anybody else):
@@ -79,11 +82,17 @@ Example session (``nc 127.0.0.1 2948``)::
 Threading: :class:`Hub` runs an asyncio loop in its own daemon thread.  The
 acquisition thread calls :meth:`Hub.publish_angles` / :meth:`Hub.publish`,
 which never block (objects are serialized in the caller's thread and handed to
-the loop with one ``call_soon_threadsafe`` per call).  The ``version``,
-``device`` and ``control`` callbacks run on the hub's loop thread and must
-return promptly: a control command that takes time returns a
-:class:`concurrent.futures.Future` which the hub awaits without blocking the
-loop (that client's later commands wait for it, other clients do not).
+the loop with one ``call_soon_threadsafe`` per call).  The ``version`` and
+``device`` callbacks run on the hub's loop thread and must return promptly.
+The ``control`` callback runs in one of the hub's own worker threads
+(``CONTROL_WORKERS``), never on the loop, so a slow command (a model reload)
+delays nobody's ANGLE lines; commands of one client are still answered one at a
+time, in order.  A command whose answer comes later returns a
+:class:`concurrent.futures.Future` (answered within ``control_timeout_s``) or a
+:class:`Deferred` (a Future with a deadline of its own).  The hub only ever
+*waits* for such a Future: a timeout or the client hanging up abandons the
+wait, and the Future's owner may complete it whenever it likes (the hub never
+cancels it).
 """
 
 from __future__ import annotations
@@ -100,13 +109,16 @@ import socket
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any, Self
 
 import structlog
 
 __all__ = [
+    "DEFAULT_CONTROL_TIMEOUT_S",
     "DEFAULT_MAX_BACKLOG_S",
     "DEFAULT_MAX_LINE_BYTES",
+    "Deferred",
     "Hub",
     "clean",
     "encode",
@@ -125,8 +137,10 @@ MAX_COMMANDS_PER_S = 100
 MAX_EXCESS_COMMANDS = 1000
 #: Failed ``?AUTH`` attempts after which a client is disconnected.
 MAX_AUTH_FAILURES = 5
-#: How long a control command's Future may take before the client gets an ERROR.
+#: How long a control command (the callback and a Future it returns) may take before the client gets an ERROR.
 DEFAULT_CONTROL_TIMEOUT_S = 30.0
+#: Worker threads that run the ``control`` callback (off the event loop).
+CONTROL_WORKERS = 2
 
 _READ_CHUNK = 65536
 _COMMAND_RE = re.compile(r"\?([A-Z]+)(?:=(.*))?\Z", re.DOTALL)
@@ -200,6 +214,42 @@ def is_loopback_host(host: str | None) -> bool:
     return bool(addresses) and all(ipaddress.ip_address(a.split("%")[0]).is_loopback for a in addresses)
 
 
+@dataclass(frozen=True)
+class Deferred:
+    """A control command's answer that comes later, with a deadline of its own.
+
+    A ``control`` callback returns ``Deferred(future, timeout_s)`` instead of a bare
+    Future for a command that legitimately takes longer than ``control_timeout_s``
+    (``?BIAS`` over N seconds of data): the client gets the Future's result, or
+    ``ERROR`` "no answer within <timeout_s> s" when ``future`` is not done
+    ``timeout_s`` after the callback returned.  The hub never cancels ``future``.
+    """
+
+    future: concurrent.futures.Future
+    timeout_s: float
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.future, concurrent.futures.Future):
+            raise TypeError("Deferred.future must be a concurrent.futures.Future")
+        if not _is_positive_finite(self.timeout_s):
+            raise ValueError(f"Deferred.timeout_s must be a finite number of seconds > 0, not {self.timeout_s!r}")
+
+
+def _is_positive_finite(value: Any) -> bool:
+    """True for an int or float (not a bool) with ``0 < value < inf``."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and 0 < value < math.inf
+
+
+class _NoAnswer(Exception):
+    """A control command's answer did not come before its deadline."""
+
+
+def _settle(waiter: asyncio.Future) -> None:
+    """Mark ``waiter`` done, unless its wait was abandoned (cancelled) already."""
+    if not waiter.done():
+        waiter.set_result(None)
+
+
 class _Client:
     """One connection: its policy, its outgoing queue and its two tasks."""
 
@@ -243,10 +293,13 @@ class Hub:
 
     ``version()`` returns the VERSION object (the hub adds ``class``), ``device()``
     the current DEVICE object or None, ``control(name, args, client_id)`` answers
-    every command the hub does not handle itself, with a dict or a Future of one
-    (``None`` for a command it does not know: the client gets ``ERROR`` "unknown
-    command ?NAME"; an exception, raised or set on the Future, becomes an ``ERROR``
-    carrying its message).  A reply without ``class`` gets the command's name.
+    every command the hub does not handle itself, with a dict, a
+    :class:`concurrent.futures.Future` of one or a :class:`Deferred` (``None`` for a
+    command it does not know: the client gets ``ERROR`` "unknown command ?NAME"; an
+    exception, raised or set on the Future, becomes an ``ERROR`` carrying its
+    message).  ``control`` runs in the hub's worker threads, at most
+    ``CONTROL_WORKERS`` at a time.  A reply without ``class`` gets the command's
+    name, and an ``ERROR`` reply without ``command`` gets the command's name there.
 
     ``sndbuf_bytes`` sets SO_SNDBUF on accepted connections: the kernel then
     absorbs at most that much for a client that does not read (by default, on
@@ -261,7 +314,7 @@ class Hub:
         *,
         version: Callable[[], dict],
         device: Callable[[], dict | None],
-        control: Callable[[str, dict, int], dict | concurrent.futures.Future],
+        control: Callable[[str, dict, int], dict | concurrent.futures.Future | Deferred | None],
         token: str | None = None,
         max_line_bytes: int = DEFAULT_MAX_LINE_BYTES,
         max_backlog_s: float = DEFAULT_MAX_BACKLOG_S,
@@ -279,6 +332,8 @@ class Hub:
             raise ValueError("max_line_bytes must be at least 16")
         if not (max_backlog_s > 0):
             raise ValueError("max_backlog_s must be > 0")
+        if not _is_positive_finite(control_timeout_s):
+            raise ValueError("control_timeout_s must be a finite number of seconds > 0")
         self.host = host
         self.port = port
         self._version = version
@@ -302,6 +357,7 @@ class Hub:
         self._ready = threading.Event()
         self._start_error: BaseException | None = None
         self._address: tuple[str, int] | None = None
+        self._control_pool: concurrent.futures.ThreadPoolExecutor | None = None
 
     # ------------------------------------------------------------------ properties
 
@@ -336,27 +392,37 @@ class Hub:
         """Start the loop thread; return ``(host, port)`` once the socket listens (raises OSError if it cannot)."""
         if self._thread is not None:
             raise RuntimeError("hub already started")
+        self._control_pool = concurrent.futures.ThreadPoolExecutor(CONTROL_WORKERS, thread_name_prefix="fog-hub-control")
         self._thread = threading.Thread(target=self._run, name="fog-hub", daemon=True)
         self._thread.start()
         self._ready.wait()
         if self._start_error is not None:
             self._thread.join()
             self._thread = None
+            self._shut_down_control_pool()
             raise self._start_error
         assert self._address is not None
         return self._address
 
     def stop(self, timeout: float = 5.0) -> None:
-        """Close every client and the server, and join the loop thread (idempotent)."""
+        """Close every client and the server, join the loop thread, and shut the control workers down
+        without waiting for a command still running there (idempotent)."""
         loop, thread = self._loop, self._thread
-        if loop is None or thread is None:
+        if thread is None:
             return
-        try:
-            loop.call_soon_threadsafe(self._request_stop)
-        except RuntimeError:  # loop already closed
-            pass
+        if loop is not None:
+            try:
+                loop.call_soon_threadsafe(self._request_stop)
+            except RuntimeError:  # loop already closed
+                pass
         thread.join(timeout)
         self._thread = None
+        self._shut_down_control_pool()
+
+    def _shut_down_control_pool(self) -> None:
+        pool, self._control_pool = self._control_pool, None
+        if pool is not None:
+            pool.shutdown(wait=False, cancel_futures=True)
 
     def __enter__(self) -> Self:
         self.start()
@@ -758,24 +824,65 @@ class Hub:
         self._send_obj(client, {"class": "AUTH", "authorized": True})
 
     async def _cmd_control(self, client: _Client, name: str, args: dict) -> None:
+        """Hand a command to ``control`` in a worker thread and send its answer (or an ERROR) to ``client``.
+
+        The callback and a bare Future it returns share ``control_timeout_s``; a
+        :class:`Deferred` is waited for its own ``timeout_s`` from when it was returned.
+        """
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + self.control_timeout_s
+        waited_s = self.control_timeout_s
+        pool = self._control_pool
         try:
-            result = self._control(name, args, client.id)
-            if isinstance(result, concurrent.futures.Future):
-                result = await asyncio.wait_for(asyncio.wrap_future(result), self.control_timeout_s)
-            elif asyncio.isfuture(result):
-                result = await asyncio.wait_for(result, self.control_timeout_s)
-        except TimeoutError:
-            self._send_error(client, f"no answer within {self.control_timeout_s:g} s", name)
+            if pool is None:
+                raise RuntimeError("the hub is stopping")
+            reply = await self._answer_of(pool.submit(self._control, name, args, client.id), deadline)
+            if isinstance(reply, Deferred):
+                waited_s = reply.timeout_s
+                reply = await self._answer_of(reply.future, loop.time() + reply.timeout_s)
+            elif isinstance(reply, concurrent.futures.Future):
+                reply = await self._answer_of(reply, deadline)
+        except _NoAnswer:
+            self._send_error(client, f"no answer within {waited_s:g} s", name)
             return
-        except asyncio.CancelledError:
-            raise
+        except concurrent.futures.CancelledError:
+            self._send_error(client, "the command was cancelled", name)
+            return
         except Exception as exc:  # noqa: BLE001 - the service's error becomes the client's ERROR
             message = str(exc) or type(exc).__name__
             self._send_error(client, message, name)
             return
-        if not isinstance(result, dict):
-            self._send_error(client, f"unknown command ?{name}" if result is None else "internal: bad reply", name)
+        if not isinstance(reply, dict):
+            self._send_error(client, f"unknown command ?{name}" if reply is None else "internal: bad reply", name)
             return
-        if "class" not in result:
-            result = {"class": name, **result}
-        self._send_obj(client, result)
+        if "class" not in reply:
+            reply = {"class": name, **reply}
+        elif reply["class"] == "ERROR" and "command" not in reply:
+            reply = {**reply, "command": name}
+        self._send_obj(client, reply)
+
+    @staticmethod
+    async def _answer_of(future: concurrent.futures.Future, deadline: float) -> Any:
+        """``future``'s result (its exception raised), waited for until ``deadline`` (loop time).
+
+        Raises ``_NoAnswer`` when the deadline passes first.  Only the *wait* ends on a
+        timeout or when the calling task is cancelled (the client hung up): ``future``
+        itself is never cancelled, so whoever completes it later (the acquisition
+        thread) never finds it cancelled.  (``asyncio.wrap_future`` would cancel it.)
+        """
+        loop = asyncio.get_running_loop()
+        settled: asyncio.Future = loop.create_future()
+
+        def on_done(_: concurrent.futures.Future) -> None:  # in whichever thread completed ``future``
+            try:
+                loop.call_soon_threadsafe(_settle, settled)
+            except RuntimeError:  # the loop has closed: the hub stopped, nobody waits any more
+                pass
+
+        if not future.done():
+            future.add_done_callback(on_done)
+            try:
+                await asyncio.wait_for(settled, max(0.0, deadline - loop.time()))
+            except TimeoutError:
+                raise _NoAnswer from None
+        return future.result()
