@@ -200,3 +200,59 @@ def test_a_blocking_control_callback_delays_nobody_elses_angles(make_hub):
     service.release.set()
     assert operator.expect("BLOCK") == {"class": "BLOCK"}  # one client's commands: answered in order
     assert operator.expect("ECHO")["args"] == {}
+
+
+# --------------------------------------------------------------------------- H1: one client cannot stop delivery to others
+
+
+def watch(conn: Conn, policy: str = '{"enable":true}') -> None:
+    conn.send(f"?WATCH={policy};\n")
+    conn.expect("WATCH")
+
+
+@pytest.mark.parametrize("rate", ["1e308", "1" + "0" * 3999, "1e999", "NaN", "10000.5", "-0.0", "1e-400"])
+def test_watch_refuses_absurd_rates(make_hub, rate):
+    # before: 1e308 and a 4000-digit integer were accepted, and every batch then raised OverflowError
+    hub, address, _ = make_hub()
+    attacker = Conn(address)
+    attacker.greeting()
+    attacker.send(f'?WATCH={{"enable":true,"rate_hz":{rate}}};\n')
+    assert attacker.line() == {"class": "ERROR", "message": "rate_hz must be a number > 0 and <= 10000",
+                               "command": "WATCH"}
+    victim = Conn(address)
+    victim.greeting()
+    watch(victim)
+    assert hub.watchers == 1
+    hub.publish_angles([angle(1, 1e6)])  # device time far from 0: t_s * rate would overflow
+    assert victim.expect("ANGLE")["seq"] == 1
+
+
+def test_watch_accepts_the_fastest_rate(make_hub):
+    hub, address, _ = make_hub()
+    c = Conn(address)
+    c.greeting()
+    c.send('?WATCH={"enable":true,"rate_hz":10000};\n')
+    assert c.line() == {"class": "WATCH", "enable": True, "rate_hz": 10000}
+    hub.publish_angles([angle(1, 1e6), angle(2, 1e6 + 1e-5), angle(3, 1e6 + 1e-3)])
+    assert [c.expect("ANGLE")["seq"] for _ in range(2)] == [1, 3]
+
+
+def test_a_delivery_failure_costs_only_that_client(make_hub, log_events):
+    hub, address, _ = make_hub()
+    before, broken, after = Conn(address), Conn(address), Conn(address)
+    for c in (before, broken, after):
+        c.greeting()
+        watch(c, '{"enable":true,"rate_hz":5}')
+    broken.send("?ECHO;\n")
+    broken_id = broken.expect("ECHO")["client"]
+    # a bug for one client: its decimation now raises (float('inf') * t_s cannot be floored)
+    hub._loop.call_soon_threadsafe(setattr, hub._clients[broken_id], "rate_hz", float("inf"))
+    broken.sync()  # the change is in place
+    for seq in range(3):  # before: every batch stopped at the broken client, "after" got nothing
+        hub.publish_angles([angle(seq, 10.0 + seq)])
+    assert [before.expect("ANGLE")["seq"] for _ in range(3)] == [0, 1, 2]
+    assert [after.expect("ANGLE")["seq"] for _ in range(3)] == [0, 1, 2]
+    broken.wait_closed()
+    failures = log_events.named("client_failed")
+    assert len(failures) == 1 and failures[0]["client"] == broken_id and "OverflowError" in failures[0]["error"]
+    assert hub.watchers == 2

@@ -40,7 +40,8 @@ order the commands were sent; ANGLE/STATUS/DEVICE lines may be interleaved.
 
 - ``?WATCH;`` reports the current policy; ``?WATCH={"enable": true, "rate_hz": 10};``
   sets it.  The object *is* the whole policy: ``enable`` defaults to true,
-  ``rate_hz`` omitted means every sample.  With ``rate_hz`` > 0 the client gets
+  ``rate_hz`` omitted means every sample (at most ``MAX_WATCH_RATE_HZ``,
+  10000).  With ``rate_hz`` > 0 the client gets
   the first sample of each period ``[k / rate_hz, (k + 1) / rate_hz)`` of device
   time ``t_s`` (``k = floor(t_s * rate_hz)``): a decimation on the instrument's
   clock, not the host's.  A new ``?WATCH`` restarts the decimation.
@@ -118,6 +119,7 @@ __all__ = [
     "DEFAULT_CONTROL_TIMEOUT_S",
     "DEFAULT_MAX_BACKLOG_S",
     "DEFAULT_MAX_LINE_BYTES",
+    "MAX_WATCH_RATE_HZ",
     "Deferred",
     "Hub",
     "clean",
@@ -141,6 +143,8 @@ MAX_AUTH_FAILURES = 5
 DEFAULT_CONTROL_TIMEOUT_S = 30.0
 #: Worker threads that run the ``control`` callback (off the event loop).
 CONTROL_WORKERS = 2
+#: The highest ``?WATCH`` ``rate_hz``: above any instrument's rate, and far from float overflow.
+MAX_WATCH_RATE_HZ = 10_000
 
 _READ_CHUNK = 65536
 _COMMAND_RE = re.compile(r"\?([A-Z]+)(?:=(.*))?\Z", re.DOTALL)
@@ -526,32 +530,44 @@ class Hub:
     def _deliver_angles(self, items: list[tuple[float, bytes]]) -> None:
         now = time.monotonic()
         for client in list(self._clients.values()):
-            if not client.watch or client.closing:
-                continue
-            rate = client.rate_hz
-            if rate is None:
-                chunk = b"".join(line for _, line in items)
-                n = len(items)
-            else:
-                kept = []
-                last = client.last_bucket
-                for t_s, line in items:
-                    bucket = math.floor(t_s * rate)
-                    if bucket != last:
-                        kept.append(line)
-                        last = bucket
-                client.last_bucket = last
-                if not kept:
-                    continue
-                chunk = b"".join(kept)
-                n = len(kept)
-            self._enqueue(client, chunk, now, n)
+            if client.watch and not client.closing:
+                self._for_one_client(self._send_angles, client, items, now)
+
+    def _send_angles(self, client: _Client, items: list[tuple[float, bytes]], now: float) -> None:
+        """Queue the ANGLE lines of one batch that ``client``'s WATCH policy keeps."""
+        rate = client.rate_hz
+        if rate is None:
+            self._enqueue(client, b"".join(line for _, line in items), now, len(items))
+            return
+        kept = []
+        last = client.last_bucket
+        for t_s, line in items:
+            bucket = math.floor(t_s * rate)
+            if bucket != last:
+                kept.append(line)
+                last = bucket
+        client.last_bucket = last
+        if kept:
+            self._enqueue(client, b"".join(kept), now, len(kept))
 
     def _deliver_all(self, line: bytes) -> None:
         now = time.monotonic()
         for client in list(self._clients.values()):
             if not client.closing:
-                self._enqueue(client, line, now, 1)
+                self._for_one_client(self._enqueue, client, line, now, 1)
+
+    def _for_one_client(self, deliver: Callable[..., None], client: _Client, *args: Any) -> None:
+        """``deliver(client, *args)``: an exception costs this client its connection, never another its lines."""
+        try:
+            deliver(client, *args)
+        except Exception as exc:  # noqa: BLE001 - a bug must cost one client, never the hub
+            self._client_failed(client, exc)
+
+    def _client_failed(self, client: _Client, exc: Exception) -> None:
+        """Log a bug met while serving ``client`` (once: the client is discarded) and discard it."""
+        if not client.gone:
+            log.error("client_failed", client=client.id, peer=str(client.peer), error=repr(exc))
+        self._discard(client, "failed")
 
     # ------------------------------------------------------------------ per-client output
 
@@ -672,7 +688,7 @@ class Hub:
         except asyncio.CancelledError:
             pass
         except Exception as exc:  # noqa: BLE001 - a bug must cost one client, never the hub
-            log.error("client_failed", client=cid, error=repr(exc))
+            self._client_failed(client, exc)
         finally:
             if not client.closing:
                 self._discard(client, "client_closed")
@@ -794,10 +810,8 @@ class Hub:
                 self._send_error(client, "enable must be true or false", "WATCH")
                 return
             rate = args.get("rate_hz")
-            if rate is not None and (
-                isinstance(rate, bool) or not isinstance(rate, (int, float)) or not (0 < rate < math.inf)
-            ):
-                self._send_error(client, "rate_hz must be a number > 0", "WATCH")
+            if rate is not None and not (_is_positive_finite(rate) and rate <= MAX_WATCH_RATE_HZ):
+                self._send_error(client, f"rate_hz must be a number > 0 and <= {MAX_WATCH_RATE_HZ}", "WATCH")
                 return
             if enable != client.watch:
                 self._watchers += 1 if enable else -1
