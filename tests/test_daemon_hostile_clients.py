@@ -11,6 +11,7 @@ generous on purpose (a shared 2-core machine): they tell "delivered meanwhile" f
 from __future__ import annotations
 
 import concurrent.futures
+import socket
 import threading
 import time
 
@@ -83,6 +84,27 @@ def log_events():
     events = LogEvents()
     structlog.configure(processors=[events])
     return events  # conftest resets structlog after the test
+
+
+def authorized(address: tuple[str, int], token: str) -> Conn:
+    """A connection that has authenticated; everything before its answer to a later ?VERSION is read."""
+    conn = Conn(address)
+    conn.send(f'?AUTH={{"token":"{token}"}};\n')
+    kinds = []
+    while (kind := conn.line()["class"]) != "AUTH":
+        kinds.append(kind)
+    assert "ERROR" not in kinds
+    skip_until(conn, "VERSION")  # a DEVICE line may come first
+    return conn
+
+
+def skip_until(conn: Conn, cls: str) -> dict:
+    """Send ?VERSION when ``cls`` is VERSION; read until a line of class ``cls`` and return it."""
+    if cls == "VERSION":
+        conn.send("?VERSION;\n")
+    while (obj := conn.line())["class"] != cls:
+        pass
+    return obj
 
 
 def hang_up_hard(conn: Conn) -> None:
@@ -256,3 +278,110 @@ def test_a_delivery_failure_costs_only_that_client(make_hub, log_events):
     failures = log_events.named("client_failed")
     assert len(failures) == 1 and failures[0]["client"] == broken_id and "OverflowError" in failures[0]["error"]
     assert hub.watchers == 2
+
+
+# --------------------------------------------------------------------------- H3: floods cost their sender, not the others
+
+
+def test_empty_and_blank_lines_count_against_the_rate_limit(make_hub):
+    # before: empty lines returned before the limiter, so they were free and unbounded
+    _, address, _ = make_hub()
+    c = Conn(address)
+    c.greeting()
+    c.send("\n" * 100 + " \r\n" * 50 + "?VERSION;\n")
+    refused = {"class": "ERROR", "message": "more than 100 commands per second: refused"}
+    assert [c.line() for _ in range(51)] == [refused] * 51
+
+
+def test_a_newline_flood_is_closed(make_hub):
+    _, address, _ = make_hub()
+    c = Conn(address)
+    c.greeting()
+    try:
+        c.send(b"\n" * 65536)
+    except (BrokenPipeError, ConnectionResetError):
+        pass
+    errors = 0
+    with pytest.raises((EOFError, ConnectionResetError)):
+        while True:
+            assert c.expect("ERROR")["message"] in ("more than 100 commands per second: refused",
+                                                    "1000 commands over the rate limit: closing")
+            errors += 1
+    assert errors == 1000
+
+
+HOSTILE_PAYLOADS = {
+    "empty lines": b"\n" * 65536,
+    "blank lines": b" \r\n\t\n" * 16384,
+    "junk": b"\x00\xff garbage \x1b[2J no command here\n" * 2048,
+    "oversized lines": (b"?ECHO=" + b"x" * 5000 + b"\n") * 12,
+    "bad JSON": b'?ECHO={"a":;\n' * 4096,
+    "deep nesting": (b"?ECHO=" + b"[" * 4000 + b"\n") * 16,
+    "auth guesses": b'?AUTH={"token":"guess-0000"};\n' * 2048,
+    "no newline": b"?" + b"A" * 65535,
+}
+
+
+class Flooder(threading.Thread):
+    """A hostile client: connects, sends its payload over and over without reading, reconnects when cut off."""
+
+    def __init__(self, address: tuple[str, int], payload: bytes, stop: threading.Event) -> None:
+        super().__init__(daemon=True)
+        self.address, self.payload, self.stop = address, payload, stop
+        self.bytes_sent = 0
+        self.cut_off = 0  # connections the hub closed or refused
+
+    def run(self) -> None:
+        while not self.stop.is_set():
+            try:
+                with socket.create_connection(self.address, timeout=TIMEOUT_S) as sock:
+                    sock.settimeout(0.5)  # a full send buffer: look at ``stop`` now and then
+                    while not self.stop.is_set():
+                        try:
+                            sock.sendall(self.payload)
+                        except TimeoutError:
+                            continue
+                        self.bytes_sent += len(self.payload)
+            except ConnectionError:  # reset, broken pipe, refused: the hub cut this connection off
+                self.cut_off += 1
+
+
+def test_a_watcher_keeps_its_angles_while_eight_clients_flood(make_hub):
+    hub, address, _ = make_hub(token="s3cret-token")
+    watcher = authorized(address, "s3cret-token")
+    watch(watcher)
+    stop = threading.Event()
+    flooders = [Flooder(address, payload, stop) for payload in HOSTILE_PAYLOADS.values()]
+
+    def publish_at_100_hz() -> None:
+        seq = 0
+        while not stop.wait(0.01):  # the pace of an instrument, not a synchronisation
+            hub.publish_angles([angle(seq, 100.0 + seq / 100)])
+            seq += 1
+
+    publisher = threading.Thread(target=publish_at_100_hz, daemon=True)
+    publisher.start()
+    assert watcher.expect("ANGLE")["seq"] == 0
+    for f in flooders:
+        f.start()
+    received, worst_gap_s, last = 0, 0.0, time.monotonic()
+    end = last + 3.0
+    try:
+        while time.monotonic() < end:
+            watcher.expect("ANGLE")
+            now = time.monotonic()
+            worst_gap_s, last = max(worst_gap_s, now - last), now
+            received += 1
+    finally:
+        stop.set()
+        publisher.join(TIMEOUT_S)
+        for f in flooders:
+            f.join(TIMEOUT_S)
+    # measured on the shared 2-core machine (flooders, publisher and hub in one process): worst gap
+    # 50-150 ms, about 200 lines in 3 s; before the change 220 ms, and the empty-line flooder was never
+    # cut off (the flooders here share the hub's GIL, so they flood far less than separate processes do)
+    assert worst_gap_s < 1.5
+    assert received > 50
+    skip_until(watcher, "VERSION")  # still connected: it answers
+    for name, f in zip(HOSTILE_PAYLOADS, flooders):
+        assert f.cut_off >= 1, f"the {name} flooder was never cut off ({f.bytes_sent} bytes sent)"

@@ -34,7 +34,8 @@ ERROR      a command failed: ``message``, and ``command`` when the command's
 
 Client to server: commands, one per line, ``?NAME;`` or ``?NAME={json object};``
 where NAME is upper-case ASCII letters and the trailing ``;`` is optional
-(``\\r`` before the newline is tolerated, empty lines are ignored).  Every
+(``\\r`` before the newline is tolerated, empty lines are ignored but count
+against the rate limit).  Every
 command is answered by exactly one line (its reply or an ``ERROR``), in the
 order the commands were sent; ANGLE/STATUS/DEVICE lines may be interleaved.
 
@@ -65,8 +66,10 @@ delays anybody else):
   discarded up to its newline; 64 KiB without any newline closes the connection;
 - invalid JSON, a JSON value that is not an object, a malformed line or an
   unknown command: ``ERROR``, and the connection stays open;
-- at most 100 commands per second per client: the excess is answered with
-  ``ERROR`` and 1000 excess commands close the connection;
+- at most 100 lines per second per client (commands, and empty or oversized
+  lines alike): the excess is answered with ``ERROR`` and 1000 excess lines
+  close the connection; the hub reads one 64 KiB chunk of a client at a time,
+  then serves the others;
 - a client that does not read is dropped: when the oldest line queued for it
   (not yet accepted by the kernel) is older than ``max_backlog_s`` (2 s) the
   connection is closed, logged, and counted.  Data has a short shelf life: the
@@ -750,10 +753,12 @@ class Hub:
                 await self._handle_line(client, line)
                 if client.closing or client.gone:
                     return
+            await asyncio.sleep(0)  # one client's chunk (up to 64 KiB of lines) at a time: others get their turn
 
     def _admit(self, client: _Client) -> bool:
-        """Rate limit: True when a command may proceed; otherwise it is refused with ERROR
-        (and after MAX_EXCESS_COMMANDS refusals the client is closed: ``client.closing``)."""
+        """Rate limit on every line received (a command, an empty line, an oversized one): True when it
+        may proceed; otherwise it is refused with ERROR (and after MAX_EXCESS_COMMANDS refusals the
+        client is closed: ``client.closing``)."""
         now = time.monotonic()
         if now - client.window_start >= 1.0:
             client.window_start = now
@@ -770,10 +775,10 @@ class Hub:
         return False
 
     async def _handle_line(self, client: _Client, raw: bytes) -> None:
+        if not self._admit(client):  # every line counts, an empty or blank one too
+            return
         text = raw.decode("utf-8", errors="replace").strip()
         if not text:
-            return
-        if not self._admit(client):
             return
         if text.endswith(";"):
             text = text[:-1].rstrip()
