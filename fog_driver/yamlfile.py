@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import errno
 import math
+import os
+import secrets
 from dataclasses import fields, is_dataclass
 from pathlib import Path
 from typing import Any
@@ -16,18 +19,57 @@ MAX_YAML_BYTES = 1 << 20
 
 
 def write_yaml(path: str | Path, doc: Any, what: str) -> Path:
-    """Write ``doc`` with ``yaml.safe_dump``, atomically (a temporary file, then a rename): a crash or a
-    full disk never leaves half a file.  A failure is an ``OutputFileError`` naming ``what``."""
+    """Write ``doc`` with ``yaml.safe_dump``, atomically and durably: a crash or a full disk never leaves
+    half a file.  A failure is an ``OutputFileError`` naming ``what``.
+
+    The text goes to a new temporary file with a random name beside ``path``, created with
+    ``O_CREAT | O_EXCL | O_NOFOLLOW`` (a file or symlink planted under any name is never opened, let
+    alone written through), and with the process's umask; it is fsynced, renamed onto ``path`` (a
+    symlink at ``path`` is replaced, its target untouched), and the directory is fsynced.
+    """
     path = Path(path)
     text = yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=120, allow_unicode=False)
-    tmp = path.with_name(path.name + ".tmp")
+    tmp: Path | None = None
     try:
-        tmp.write_text(text, encoding="utf-8")
-        tmp.replace(path)
+        fd, tmp = _create_new_file_beside(path)
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+        tmp = None
+        _fsync_directory(path.parent)
     except OSError as exc:
-        tmp.unlink(missing_ok=True)
+        if tmp is not None:
+            tmp.unlink(missing_ok=True)
         raise OutputFileError(f"{path}: cannot write {what}: {exc.strerror or exc}") from None
     return path
+
+
+def _create_new_file_beside(path: Path, attempts: int = 100) -> tuple[int, Path]:
+    """A new, empty, hidden file ``.<name>.<random>.tmp`` in ``path``'s directory, open for writing:
+    (descriptor, path).  Never an existing file or a symlink (``O_EXCL | O_NOFOLLOW``); mode 0666 less
+    the umask, like any file the process creates."""
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC
+    for _ in range(attempts):
+        candidate = path.with_name(f".{path.name}.{secrets.token_hex(8)}.tmp")
+        try:
+            return os.open(candidate, flags, 0o666), candidate
+        except FileExistsError:
+            continue  # someone else's name: draw another
+    raise FileExistsError(errno.EEXIST, f"no free temporary name after {attempts} attempts", str(path.parent))
+
+
+def _fsync_directory(directory: Path) -> None:
+    """Make a rename in ``directory`` durable; a file system that cannot fsync a directory is let be."""
+    fd = os.open(directory, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
+    try:
+        os.fsync(fd)
+    except OSError as exc:
+        if exc.errno not in (errno.EINVAL, errno.ENOTSUP):
+            raise
+    finally:
+        os.close(fd)
 
 
 def read_yaml(path: str | Path, what: str, *, missing_ok: bool = False, hint: str = "") -> Any:

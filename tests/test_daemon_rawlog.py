@@ -275,6 +275,21 @@ def test_an_existing_name_is_skipped_never_overwritten(tmp_path, monkeypatch):
     assert first.files[0].read_bytes() == b"first run"
 
 
+def test_sidecars_never_write_through_a_symlink_planted_at_a_predictable_name(tmp_path, monkeypatch):
+    """The review's E15: with the capture directory writable by someone else, a symlink planted as
+    ``<capture>.yaml.tmp`` (the name is the UTC second) made the daemon overwrite the link's target."""
+    monkeypatch.setattr(rawlog, "utc_now_iso", lambda: "2024-05-06T07:08:09.000Z")
+    victim = tmp_path / "victim.conf"
+    victim.write_text("important: config\n")
+    captures = tmp_path / "captures"
+    captures.mkdir()
+    (captures / "fog-20240506T070809Z-0000.yaml.tmp").symlink_to(victim)
+    with RotatingCapture(captures, clock=FakeClock()) as cap:
+        cap.write(b"\xaa\x55")
+    assert victim.read_text() == "important: config\n"
+    assert read_provenance(cap.files[0])["status"] == "complete"
+
+
 # -- failures --------------------------------------------------------------------------------------
 
 
