@@ -1,7 +1,9 @@
 """The ``fog-driver`` command line: thin subcommands that parse, call the library, and print.
 
 Errors the user can act on are printed as one line on stderr with a non-zero
-exit status (see ``fog_driver.errors``); they never show a traceback.
+exit status (see ``fog_driver.errors``); they never show a traceback.  Any other
+exception is a bug: one line ``fog-driver: error: internal error: <type>: <message>``,
+exit 70 (EX_SOFTWARE), and its traceback in the log on stderr.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ import structlog
 from . import __version__
 from .capture import format_summary, inspect_capture
 from .console import Progress, configure_logging
-from .errors import FogDriverError, InputFileError, OutputFileError, UsageError
+from .errors import FogDriverError, InputFileError, InternalError, OutputFileError, UsageError
 from .signals import SignalDispatcher, stop_on_signals
 
 EXIT_PROBLEMS = 1  # inspect --strict found problems
@@ -420,10 +422,13 @@ def cmd_run(args: argparse.Namespace) -> int:
             print(f"fog-driver {__version__}: {port} -> listening on {host}:{listen_port}; raw capture in "
                   f"{config.capture_dir}/; connect with: fog-driver watch {host}:{listen_port}  (Ctrl-C to stop)",
                   flush=True)  # fmt: skip
-            return service.run_until_stopped()
+            status = service.run_until_stopped()
     finally:
         if simulator is not None:
             simulator.join(timeout=10)
+    if status != 0 and service.failure is not None and not isinstance(service.failure, FogDriverError):
+        raise InternalError.from_exception(service.failure)  # the acquisition thread logged its traceback
+    return status
 
 
 def _start_embedded_simulator(stop: threading.Event) -> tuple[threading.Thread, str]:
@@ -578,6 +583,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         # The reader of our output went away (e.g. `| head`); nothing more to say.
         sys.stderr.close()
         return 0
+    except Exception as exc:  # a bug: the traceback goes to the log, one line to the user, exit 70
+        structlog.get_logger("fog_driver").exception("internal_error", command=args.command)
+        error = InternalError.from_exception(exc)
+        print(f"fog-driver: error: {error}", file=sys.stderr)
+        return error.exit_status
 
 
 if __name__ == "__main__":

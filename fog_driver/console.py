@@ -8,6 +8,7 @@ import time
 from typing import TextIO
 
 import structlog
+from structlog.tracebacks import ExceptionDictTransformer
 
 
 class Progress:
@@ -44,15 +45,24 @@ class Progress:
 
 
 def configure_logging(verbosity: int = 0, json: bool = False) -> None:
-    """structlog key-value lines on stderr; ``verbosity`` 0 = warnings, 1 = info, 2 = debug."""
+    """structlog key-value lines on stderr; ``verbosity`` 0 = warnings, 1 = info, 2 = debug.
+
+    ``log.exception(...)`` (or ``exc_info=True``) carries the exception: with ``json``, an
+    ``exception`` list of ``{exc_type, exc_value, frames: [{filename, lineno, name}, ...]}`` (no local
+    variables: they may hold a token); otherwise the formatted traceback as one escaped value.
+    """
     level = {0: logging.WARNING, 1: logging.INFO}.get(verbosity, logging.DEBUG)
-    renderer = structlog.processors.JSONRenderer() if json else structlog.processors.KeyValueRenderer(
-        key_order=["timestamp", "level", "event"], drop_missing=True
-    )
+    if json:
+        renderer = structlog.processors.JSONRenderer()
+        exceptions = structlog.processors.ExceptionRenderer(ExceptionDictTransformer(show_locals=False))
+    else:
+        renderer = structlog.processors.KeyValueRenderer(key_order=["timestamp", "level", "event"], drop_missing=True)
+        exceptions = structlog.processors.format_exc_info
     structlog.configure(
         processors=[
             structlog.processors.add_log_level,
             structlog.processors.TimeStamper(fmt="iso", utc=True),
+            exceptions,
             renderer,
         ],
         wrapper_class=structlog.make_filtering_bound_logger(level),

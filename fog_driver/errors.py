@@ -31,3 +31,14 @@ class OutputFileError(FogDriverError):
     """An output file cannot be created, would overwrite data, or cannot be written (disk full)."""
 
     exit_status = os.EX_CANTCREAT  # 73
+
+
+class InternalError(FogDriverError):
+    """A bug: an exception nothing expected.  The CLI prints ``internal error: <type>: <message>`` on one
+    line and exits 70 (EX_SOFTWARE); the log carries the traceback."""
+
+    exit_status = os.EX_SOFTWARE  # 70
+
+    @classmethod
+    def from_exception(cls, exc: BaseException) -> InternalError:
+        return cls(f"internal error: {type(exc).__name__}: {' '.join(str(exc).split())}")

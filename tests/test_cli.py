@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import structlog
 import yaml
 
 from fog_driver.capture import inspect_capture, read_provenance, summarize
@@ -328,3 +329,77 @@ def test_inspect_flags_an_identity_change_mid_capture(tmp_path):
     summary = inspect_capture(path)
     assert summary.serial == "FOG-B" and summary.identity_changes == 2
     assert summary.problems == ["1 identity change"]
+
+
+# --- bugs: a traceback in the log, one line and exit 70 for the user ----------------------------
+
+
+def _crash_in_a_helper() -> None:
+    raise ZeroDivisionError("the helper divided by zero")
+
+
+def test_json_logs_carry_the_exception_type_and_stack_without_locals(capsys):
+    from fog_driver.console import configure_logging
+
+    configure_logging(0, json=True)
+    secret = "a-long-token"  # a local variable of a frame in the traceback: never in the log
+    try:
+        _crash_in_a_helper()
+    except ZeroDivisionError:
+        structlog.get_logger("test").exception("acquisition_crashed", reason="x")
+    (line,) = capsys.readouterr().err.splitlines()
+    entry = json.loads(line)
+    assert entry["event"] == "acquisition_crashed" and entry["level"] == "error"
+    (exception,) = entry["exception"]
+    assert exception["exc_type"] == "ZeroDivisionError"
+    assert exception["exc_value"] == "the helper divided by zero"
+    names = [frame["name"] for frame in exception["frames"]]
+    assert names == ["test_json_logs_carry_the_exception_type_and_stack_without_locals", "_crash_in_a_helper"]
+    assert secret not in line and all("locals" not in frame for frame in exception["frames"])
+
+
+def test_key_value_logs_carry_the_traceback(capsys):
+    from fog_driver.console import configure_logging
+
+    configure_logging(0)
+    try:
+        _crash_in_a_helper()
+    except ZeroDivisionError:
+        structlog.get_logger("test").exception("crashed")
+    (line,) = capsys.readouterr().err.splitlines()
+    assert "Traceback (most recent call last)" in line and "in _crash_in_a_helper" in line
+    assert "ZeroDivisionError: the helper divided by zero" in line
+
+
+def test_an_unexpected_exception_is_one_line_exit_70_and_a_logged_traceback(monkeypatch, capsys):
+    from fog_driver import cli
+
+    def broken_inspect(args):
+        raise ValueError("a\nmulti-line message")
+
+    monkeypatch.setattr(cli, "cmd_inspect", broken_inspect)
+    assert cli.main(["inspect", "x.bin"]) == 70
+    lines = capsys.readouterr().err.splitlines()
+    assert lines[-1] == "fog-driver: error: internal error: ValueError: a multi-line message"
+    assert [line for line in lines if line.startswith("fog-driver:")] == lines[-1:]
+    assert "event='internal_error'" in lines[0] and "in broken_inspect" in lines[0]
+
+
+def test_run_exits_70_when_acquisition_crashes_on_a_bug(tmp_path, monkeypatch, capsys):
+    """An exception from a bug in the acquisition thread ended the daemon with exit 1 and no
+    ``fog-driver: error:`` line; now 70 (EX_SOFTWARE), one line, and the traceback in the JSON log."""
+    from fog_driver import cli
+    from fog_driver.daemon.service import Service
+
+    def broken_process(self, chunk):
+        raise RuntimeError("a bug in the pipeline")
+
+    monkeypatch.setattr(Service, "process", broken_process)
+    status = cli.main(["run", "--port", f"replay://{DATA / 'synthetic-clean.bin'}", "--listen", "127.0.0.1:0",
+                       "--capture-dir", str(tmp_path / "captures")])  # fmt: skip
+    assert status == 70
+    err = capsys.readouterr().err.splitlines()
+    assert err[-1] == "fog-driver: error: internal error: RuntimeError: a bug in the pipeline"
+    crashes = [json.loads(line) for line in err if '"acquisition_crashed"' in line]
+    assert [c["exception"][0]["exc_type"] for c in crashes] == ["RuntimeError"]
+    assert crashes[0]["exception"][0]["frames"][-1]["name"] == "broken_process"
