@@ -456,6 +456,35 @@ def test_sdnotify_watchdog_is_rate_limited_to_half_the_period(notify_socket, mon
     n2.close()
 
 
+@pytest.mark.parametrize("status_every_s, watchdog_usec, wait_s",
+                         [(3.0, 2_000_000, 0.5), (1.0, 10_000_000, 1.0), (10.0, 10_000_000, 2.5), (3.0, None, 3.0)])
+def test_sdnotify_loop_wait_is_the_status_period_or_a_quarter_of_the_watchdog(notify_socket, status_every_s,
+                                                                              watchdog_usec, wait_s):
+    path, _ = notify_socket
+    assert Notifier(str(path), watchdog_usec).loop_wait_s(status_every_s) == wait_s
+
+
+def test_sdnotify_a_loop_waking_at_loop_wait_pings_within_the_period(notify_socket):
+    """The review's E11: status_every_s 3 under WatchdogSec=2 pinged every 3 s, and systemd would have
+    killed a healthy daemon.  A loop waiting ``loop_wait_s`` pings every 1 to 1.5 s, even when each
+    wake-up comes up to 10 % early or late."""
+    path, server = notify_socket
+    clock = FakeClock(0.0)
+    n = Notifier(str(path), 2_000_000, clock=clock)
+    wait_s = n.loop_wait_s(3.0)
+    jitter = random.Random(11)
+    pings = []
+    for _ in range(200):
+        clock.t += wait_s * jitter.uniform(0.9, 1.1)
+        if n.maybe_watchdog():
+            pings.append(clock.t)
+            assert server.recv(4096) == b"WATCHDOG=1"
+    gaps = [b - a for a, b in zip(pings, pings[1:])]
+    assert pings[0] <= wait_s * 1.1 and len(gaps) > 50
+    assert 1.0 <= min(gaps) and max(gaps) <= 1.5 * 1.1 < 2.0
+    n.close()
+
+
 def test_sdnotify_abstract_socket_address(monkeypatch):
     name = f"fog-driver-test-{os.getpid()}"
     server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
@@ -480,6 +509,8 @@ def test_sdnotify_without_a_socket_is_a_no_op(monkeypatch):
     assert n.sent == n.send_errors == 0
     for address in ("", "relative/path", "vsock:2:1234", "@"):
         assert not Notifier.from_environment({"NOTIFY_SOCKET": address}).enabled
+    no_socket = Notifier.from_environment({"WATCHDOG_USEC": "2000000"})  # nothing to ping: no watchdog
+    assert no_socket.watchdog_interval_s is None and no_socket.loop_wait_s(3.0) == 3.0
 
 
 def test_sdnotify_watchdog_for_another_process_or_malformed_is_off(tmp_path):

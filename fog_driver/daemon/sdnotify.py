@@ -10,8 +10,9 @@ Everything here is a no-op without ``NOTIFY_SOCKET`` (run from a shell, under te
 never raises: a failure is counted (``send_errors``, ``last_error``) and the daemon carries on.
 The socket is non-blocking, so a stalled systemd can never stall the acquisition loop.
 
-Send ``WATCHDOG=1`` from the main loop (``maybe_watchdog()`` every iteration), never from a
-helper thread: the point of the watchdog is that a wedged main loop stops pinging.
+Send ``WATCHDOG=1`` from the main loop (``maybe_watchdog()`` every iteration, the loop waking at
+least every ``loop_wait_s(...)``), never from a helper thread: the point of the watchdog is that a
+wedged main loop stops pinging.
 """
 
 from __future__ import annotations
@@ -72,8 +73,21 @@ class Notifier:
 
     @property
     def watchdog_interval_s(self) -> float | None:
-        """How often ``maybe_watchdog`` pings: half the watchdog period (None: no watchdog)."""
-        return self.watchdog_usec / 2e6 if self.watchdog_usec else None
+        """How often ``maybe_watchdog`` pings: half the watchdog period (``WATCHDOG_USEC``).  None when
+        there is no watchdog: no period, a ``WATCHDOG_PID`` naming another process, or no notify socket."""
+        return self.watchdog_usec / 2e6 if self.watchdog_usec and self.enabled else None
+
+    def loop_wait_s(self, status_every_s: float) -> float:
+        """How long a main loop that calls ``maybe_watchdog`` once per iteration may wait between
+        iterations: ``status_every_s``, or a quarter of the watchdog period when that is shorter.
+
+        A quarter, not half: ``maybe_watchdog`` sends at most every half period, so a loop waking every
+        quarter pings every half to three quarters of the period, inside it even when a wake-up comes
+        a little early or late.  (Waiting ``status_every_s`` alone let a 3 s status period starve a 2 s
+        watchdog: the review's E11.)  Publish STATUS on its own schedule in such a loop.
+        """
+        interval = self.watchdog_interval_s
+        return status_every_s if interval is None else min(status_every_s, interval / 2)
 
     # -- the messages ----------------------------------------------------------------------------
 
