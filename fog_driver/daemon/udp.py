@@ -39,8 +39,13 @@ the first 68 bytes of a longer datagram).  UDP may lose or reorder datagrams:
 ``seq`` tells.
 
 The sender never blocks and never raises on a failed send (no listener, a full
-socket buffer, an unreachable network): failures are counted in
-``send_errors``.
+socket buffer, an unreachable network, a name that does not resolve yet):
+failures are counted in ``send_errors``.  A destination name is resolved when
+the publisher is made; if that fails (the network is not up yet), it is tried
+again in a background thread, at most every ``retry_resolve_s``, while the
+samples meanwhile are counted as send errors.  IPv4 sockets have
+``SO_BROADCAST`` set, so a broadcast destination (``255.255.255.255``, a
+subnet's ``x.y.z.255``) works like any other.
 """
 
 from __future__ import annotations
@@ -48,7 +53,9 @@ from __future__ import annotations
 import math
 import socket
 import struct
-from collections.abc import Iterable, Mapping
+import threading
+import time
+from collections.abc import Callable, Iterable, Mapping
 from typing import Any, Self
 
 __all__ = [
@@ -160,25 +167,86 @@ def decode_datagram(data: bytes) -> dict:
 
 
 class UdpPublisher:
-    """Sends one datagram per sample to ``(host, port)`` (unicast, or broadcast with ``broadcast=True``).
+    """Sends one datagram per sample to ``(host, port)``, unicast or broadcast.
 
     ``send(angle_obj)`` takes an ANGLE object (see :func:`fields_from_angle`),
     ``send(**fields)`` the keyword fields of :func:`encode_datagram`.  It never
     blocks nor raises on a network failure; ``sent`` and ``send_errors`` count
-    datagrams, ``last_error`` describes the last failure.
+    datagrams, ``last_error`` describes the last failure (``status_fields()``
+    gives all three for a STATUS object).
+
+    ``host`` is resolved now; a name that does not resolve yet is retried in the
+    background at most every ``retry_resolve_s`` of ``clock`` (each sample until
+    then is a send error).  ``resolved`` is set once the destination is known,
+    ``address`` is it (None until then).  ``broadcast`` sets ``SO_BROADCAST`` on
+    an IPv4 socket (a unicast destination is unaffected by it).
     """
 
-    def __init__(self, host: str, port: int, *, broadcast: bool = False) -> None:
-        infos = socket.getaddrinfo(host, port, type=socket.SOCK_DGRAM)
-        family, socktype, proto, _, addr = infos[0]
-        self.address = addr
-        self._sock = socket.socket(family, socktype, proto)
-        self._sock.setblocking(False)
-        if broadcast:
-            self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
+    def __init__(
+        self,
+        host: str,
+        port: int,
+        *,
+        broadcast: bool = True,
+        retry_resolve_s: float = 5.0,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.host = host
+        self.port = port
+        self.broadcast = broadcast
+        self.retry_resolve_s = retry_resolve_s
         self.sent = 0
         self.send_errors = 0
         self.last_error: str | None = None
+        self.resolved = threading.Event()
+        self._clock = clock
+        self._destination: tuple[socket.socket, Any] | None = None  # (socket, address), set once
+        self._resolver: threading.Thread | None = None
+        self._next_resolve_at = 0.0
+        self._closed = False
+        self._lock = threading.Lock()
+        self._resolve()
+
+    @property
+    def address(self) -> Any:
+        """The resolved destination (a ``sockaddr`` tuple), or None while the name does not resolve."""
+        destination = self._destination
+        return destination[1] if destination is not None else None
+
+    def status_fields(self) -> dict[str, Any]:
+        """``udp_sent``, ``udp_send_errors`` and (after a failure) ``udp_last_error``, for STATUS."""
+        fields: dict[str, Any] = {"udp_sent": self.sent, "udp_send_errors": self.send_errors}
+        if self.last_error is not None:
+            fields["udp_last_error"] = self.last_error
+        return fields
+
+    def _resolve(self) -> None:
+        """Resolve the destination and open its socket; on failure note why and when to try again."""
+        self._next_resolve_at = self._clock() + self.retry_resolve_s
+        try:
+            family, socktype, proto, _, address = socket.getaddrinfo(self.host, self.port, type=socket.SOCK_DGRAM)[0]
+            sock = socket.socket(family, socktype, proto)
+        except OSError as exc:  # socket.gaierror: no such name (yet), no network
+            self.last_error = f"cannot resolve {self.host}:{self.port}: {exc.strerror or exc}"
+            return
+        sock.setblocking(False)
+        if self.broadcast and family == socket.AF_INET:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
+        with self._lock:  # against a close() meanwhile
+            if not self._closed:
+                self._destination = (sock, address)
+                self.resolved.set()
+                return
+        sock.close()
+
+    def _resolve_in_background(self) -> None:
+        """Start one resolver thread if none is running and the retry delay has passed (never blocks)."""
+        if self._closed or self._clock() < self._next_resolve_at:
+            return
+        if self._resolver is not None and self._resolver.is_alive():
+            return
+        self._resolver = threading.Thread(target=self._resolve, name="udp-resolve", daemon=True)
+        self._resolver.start()
 
     def send(self, angle_obj: Mapping[str, Any] | None = None, /, **fields: Any) -> bool:
         """Send one sample; True when the datagram left, False (counted) when sending failed."""
@@ -191,8 +259,15 @@ class UdpPublisher:
         return sum(self.send(o) for o in objs)
 
     def send_bytes(self, datagram: bytes) -> bool:
+        """Send one datagram; True when it left, False (counted in ``send_errors``) when it did not."""
+        destination = self._destination
+        if destination is None:  # not resolved (yet): count it, and perhaps try the name again
+            self.send_errors += 1
+            self._resolve_in_background()
+            return False
+        sock, address = destination
         try:
-            self._sock.sendto(datagram, self.address)
+            sock.sendto(datagram, address)
         except OSError as exc:  # EAGAIN (buffer full), ECONNREFUSED (ICMP), ENETUNREACH, closed socket ...
             self.send_errors += 1
             self.last_error = f"{type(exc).__name__}: {exc}"
@@ -201,7 +276,12 @@ class UdpPublisher:
         return True
 
     def close(self) -> None:
-        self._sock.close()
+        """Close the socket; later sends are counted as errors (a resolver still running closes its own)."""
+        with self._lock:
+            self._closed = True
+            destination = self._destination
+        if destination is not None:
+            destination[0].close()
 
     def __enter__(self) -> Self:
         return self
