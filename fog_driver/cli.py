@@ -536,7 +536,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("run", help="the headless daemon: live compensation, publishing, control, raw capture")
     p.add_argument("--config", metavar="FILE", help="settings (configs/default.yaml lists them); flags override")
     p.add_argument("--port", metavar="PORT_OR_URL", help="the instrument (default: the embedded simulator)")
-    p.add_argument("--model", metavar="MODEL.yaml", help="drift model (default: configs/models/default.yaml)")
+    p.add_argument("--model", metavar="MODEL.yaml", help="drift model (default: the shipped fog_driver/data/models/default.yaml)")
     p.add_argument("--listen", metavar="HOST:PORT", help="where clients connect (default 127.0.0.1:2948)")
     p.add_argument("--capture-dir", dest="capture_dir", metavar="DIR", help="raw capture directory")
     p.set_defaults(func=cmd_run)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from importlib.resources import files
 from pathlib import Path
 from typing import Any
 
@@ -16,9 +17,9 @@ from .errors import InputFileError
 from .stream import DEFAULT_SCALE_ARCSEC_PER_COUNT, SampleStream
 from .yamlfile import dataclass_from_mapping, read_yaml
 
-#: Where the project's shipped files are (configs/ beside the package in a source checkout).
-PROJECT_ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_MODEL = PROJECT_ROOT / "configs" / "models" / "default.yaml"
+#: The shipped drift model (``fog_driver/data/models/default.yaml``): package data, so a wheel or any
+#: other install finds it as a source checkout does.
+DEFAULT_MODEL = Path(str(files("fog_driver").joinpath("data", "models", "default.yaml")))
 DEFAULT_PORT = 2948
 
 

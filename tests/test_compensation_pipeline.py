@@ -17,6 +17,7 @@ from fog_driver.compensation.compensator import FLAG_UNCOMPENSATED, CompensatedC
 from fog_driver.compensation.fit import FitConfig, fit_model_file, load_capture, static_mask
 from fog_driver.compensation.model import load_model, save_model
 from fog_driver.compensation.rows import ROW_COLUMNS, RowAggregator, format_row
+from fog_driver.config import DEFAULT_MODEL
 from fog_driver.errors import InputFileError
 from fog_driver.protocol import FrameDecoder, decode_file
 from fog_driver.stream import SampleBlock, SampleStream
@@ -392,7 +393,7 @@ def test_after_a_link_gap_every_estimate_off_by_more_than_a_trickle_is_flagged(r
     (The review measured 0.27 deg/h off for 65 s after a 600-s gap, one block of it flagged.)"""
     from fog_driver.compensation.compensator import FLAG_GAP, SETTLE_TAUS
 
-    model = ROOT / "configs" / "models" / "default.yaml"
+    model = DEFAULT_MODEL
     t = ramp_samples.t_s - ramp_samples.t_s[0]
     whole = Compensator(load_model(model), 0.5).run(ramp_samples)
     start = 1500.0
@@ -420,7 +421,7 @@ def test_after_a_link_gap_every_estimate_off_by_more_than_a_trickle_is_flagged(r
 
 
 def test_a_gap_is_stepped_the_same_by_step_and_run(ramp_samples):
-    model = ROOT / "configs" / "models" / "default.yaml"
+    model = DEFAULT_MODEL
     t = ramp_samples.t_s - ramp_samples.t_s[0]
     keep = np.flatnonzero((t < 1500.0) | (t >= 2100.0))
     cut = SampleBlock(*(getattr(ramp_samples, f)[keep] for f in SampleBlock.__dataclass_fields__))

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fog_driver.config import DEFAULT_MODEL
 from fog_driver.report.allan import allan
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -34,7 +35,7 @@ def test_evaluate_measures_the_simulators_arw_within_10_percent(tmp_path):
                      capture)  # fmt: skip
     out = tmp_path / "report"
     proc = subprocess.run([sys.executable, "-m", "fog_driver", "evaluate", str(capture), "--model",
-                           str(ROOT / "configs" / "models" / "default.yaml"), "--out", str(out), "--json",
+                           str(DEFAULT_MODEL), "--out", str(out), "--json",
                            "--truth", str(capture.with_suffix(".truth.csv"))],
                           capture_output=True, text=True, timeout=300)  # fmt: skip
     assert proc.returncode == 0, proc.stderr
@@ -50,7 +51,7 @@ def test_evaluate_measures_the_simulators_arw_within_10_percent(tmp_path):
     assert "angle random walk" in report and "![allan](allan.png)" in report
     assert "No positioning sequences in this capture: the table is skipped." in report
     again = subprocess.run([sys.executable, "-m", "fog_driver", "evaluate", str(capture), "--model",
-                            str(ROOT / "configs" / "models" / "default.yaml"), "--out", str(out)],
+                            str(DEFAULT_MODEL), "--out", str(out)],
                            capture_output=True, text=True, timeout=300)  # fmt: skip
     assert again.returncode == 73 and "refusing to overwrite" in again.stderr
 
@@ -76,7 +77,7 @@ def test_missing_extra_is_a_one_line_hint(monkeypatch):
 def test_evaluate_refuses_another_instruments_model(tmp_path):
     import yaml
 
-    doc = yaml.safe_load((ROOT / "configs" / "models" / "default.yaml").read_text())
+    doc = yaml.safe_load(DEFAULT_MODEL.read_text())
     doc["instrument_serial"] = "FOG-OTHER-0001"
     other = tmp_path / "other.yaml"
     other.write_text(yaml.safe_dump(doc))

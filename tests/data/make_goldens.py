@@ -8,7 +8,7 @@ Goldens (floats compared within ``tests/golden.py``'s tolerance on any machine, 
 
 * ``sim-faults.watch-1hz.ndjson``: the ANGLE lines a client that sent
   ``?WATCH={"enable":true,"rate_hz":1};`` receives when ``tests/data/sim-faults.bin`` is fed to
-  ``fog-driver run`` with the shipped default model (``configs/models/default.yaml``), as sent.
+  ``fog-driver run`` with the shipped default model (``fog_driver/data/models/default.yaml``), as sent.
   The HIL test feeds the capture through a real pty into the daemon and compares.
 * ``models/<kind>.yaml``: one small model file of each kind, fitted on ``sim-short.bin``.  They are
   inputs, not outputs: a fit uses LAPACK, whose last bits differ between machines, so they are

@@ -1,0 +1,80 @@
+"""The daemon as it is deployed: installed from a wheel, started from anywhere.
+
+Readiness comes from the daemon's "listening on" line on its stdout: never from sleeps.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT / "tests" / "data"
+GUARD_S = 60.0
+INSTALL_GUARD_S = 600.0  # building a wheel and installing its dependencies into a new virtual environment
+
+
+def _environment_outside_the_source_tree() -> dict[str, str]:
+    """This process's environment less anything that would make Python import this source tree."""
+    return {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV")}
+
+
+def run_until_ready_then_terminate(command: list[str], *, cwd: Path, env: dict[str, str], log: Path) -> str:
+    """Start ``command``; once it prints its readiness line, SIGTERM it; the line (asserting exit 0)."""
+    with log.open("w") as stderr:
+        proc = subprocess.Popen(command, cwd=cwd, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                                stderr=stderr, text=True)  # fmt: skip
+        try:
+            line = proc.stdout.readline()
+            assert "listening on" in line, (line, log.read_text()[-5000:])
+            proc.send_signal(signal.SIGTERM)
+            assert proc.wait(GUARD_S) == 0, log.read_text()[-5000:]
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(GUARD_S)
+    return line
+
+
+@pytest.mark.install
+def test_a_wheel_installed_in_a_new_environment_runs_the_daemon_from_anywhere(tmp_path):
+    """The review's M5: from a wheel, the default model was looked for beside site-packages
+    (``.../site-packages/configs/models/default.yaml``) and ``fog-driver run`` exited 78."""
+    source = tmp_path / "source"  # what a wheel is built from, and nothing else (no stale build/)
+    source.mkdir()
+    shutil.copy2(ROOT / "pyproject.toml", source)
+    shutil.copy2(ROOT / "README.md", source)
+    shutil.copytree(ROOT / "fog_driver", source / "fog_driver", ignore=shutil.ignore_patterns("__pycache__"))
+    wheels = tmp_path / "wheels"
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", str(source), "-w", str(wheels)],
+                   check=True, timeout=INSTALL_GUARD_S, capture_output=True)  # fmt: skip
+    (wheel,) = wheels.glob("fog_driver-*.whl")
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, timeout=INSTALL_GUARD_S)
+    subprocess.run([str(venv / "bin" / "python"), "-m", "pip", "install", "-q", str(wheel)],
+                   check=True, timeout=INSTALL_GUARD_S, capture_output=True)  # fmt: skip
+
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    env = _environment_outside_the_source_tree()
+    where = subprocess.run([str(venv / "bin" / "python"), "-c",
+                            "import fog_driver, fog_driver.config as c; print(fog_driver.__file__); "
+                            "print(c.DEFAULT_MODEL); print(c.DEFAULT_MODEL.is_file())"],
+                           cwd=elsewhere, env=env, capture_output=True, text=True, check=True, timeout=GUARD_S)  # fmt: skip
+    package_file, model, model_is_file = where.stdout.split("\n")[:3]
+    assert Path(package_file).is_relative_to(venv) and Path(model).is_relative_to(venv), where.stdout
+    assert model_is_file == "True"
+
+    line = run_until_ready_then_terminate(
+        [str(venv / "bin" / "fog-driver"), "run", "--port", f"replay://{DATA / 'sim-short.bin'}?rate=100",
+         "--listen", "127.0.0.1:0"],
+        cwd=elsewhere, env=env, log=tmp_path / "daemon.log",
+    )  # fmt: skip
+    assert "raw capture in fog-captures/" in line
+    assert (elsewhere / "fog-captures").is_dir()  # relative to the working directory
