@@ -400,8 +400,12 @@ def cmd_run(args: argparse.Namespace) -> int:
     stop = threading.Event()
     simulator = None
     port = config.port
-    if port is None:
+    if args.simulate or (port is None and _stdin_is_a_terminal()):
         simulator, port = _start_embedded_simulator(stop)
+    elif port is None:  # under systemd, or piped: a production daemon never falls back to a simulator
+        where = f" in {args.config}" if args.config else ""
+        raise ConfigError(f"no instrument port: set 'port'{where} or give --port PORT_OR_URL "
+                          "(--simulate runs the built-in simulated instrument)")  # fmt: skip
     service = Service(config, port=port)
     service.stop = stop
     host, listen_port = service.start()
@@ -429,6 +433,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     if status != 0 and service.failure is not None and not isinstance(service.failure, FogDriverError):
         raise InternalError.from_exception(service.failure)  # the acquisition thread logged its traceback
     return status
+
+
+def _stdin_is_a_terminal() -> bool:
+    """True when a person runs the command at a terminal (not under systemd, cron or a pipe)."""
+    return sys.stdin is not None and sys.stdin.isatty()
 
 
 def _start_embedded_simulator(stop: threading.Event) -> tuple[threading.Thread, str]:
@@ -535,7 +544,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("run", help="the headless daemon: live compensation, publishing, control, raw capture")
     p.add_argument("--config", metavar="FILE", help="settings (configs/default.yaml lists them); flags override")
-    p.add_argument("--port", metavar="PORT_OR_URL", help="the instrument (default: the embedded simulator)")
+    instrument = p.add_mutually_exclusive_group()
+    instrument.add_argument("--port", metavar="PORT_OR_URL", help="the instrument's device path or URL (overrides 'port')")
+    instrument.add_argument("--simulate", action="store_true",
+                            help="serve the built-in simulated instrument (a demonstration) instead of a port; the "
+                                 "default on a terminal when no port is configured")
     p.add_argument("--model", metavar="MODEL.yaml", help="drift model (default: the shipped fog_driver/data/models/default.yaml)")
     p.add_argument("--listen", metavar="HOST:PORT", help="where clients connect (default 127.0.0.1:2948)")
     p.add_argument("--capture-dir", dest="capture_dir", metavar="DIR", help="raw capture directory")

@@ -64,7 +64,7 @@ def parse_host_port(
 class DriverConfig:
     """Every setting of the driver and the daemon (``configs/default.yaml`` documents each)."""
 
-    port: str | None = None  #: device path or URL; None: the embedded simulator (``fog-driver run``)
+    port: str | None = None  #: device path or URL; None: none (``fog-driver run`` needs ``--port``, or ``--simulate``)
     baud: int = 460800
     scale_arcsec_per_count: float = DEFAULT_SCALE_ARCSEC_PER_COUNT
     scale_override_arcsec_per_count: float | None = None
