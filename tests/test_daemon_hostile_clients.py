@@ -107,6 +107,14 @@ def skip_until(conn: Conn, cls: str) -> dict:
     return obj
 
 
+def greeted(address: tuple[str, int], count: int) -> list[Conn]:
+    """``count`` connections that have read their greeting."""
+    conns = [Conn(address) for _ in range(count)]
+    for c in conns:
+        c.greeting()
+    return conns
+
+
 def hang_up_hard(conn: Conn) -> None:
     """Close without reading what the server sent: the kernel answers with a RST."""
     conn.sock.close()
@@ -158,9 +166,7 @@ def test_a_timed_out_command_leaves_its_future_to_its_owner(make_hub):
 
 def test_a_deferred_is_waited_for_its_own_timeout_not_the_default(make_hub):
     _, address, service = make_hub(control=Service(), control_timeout_s=0.2)
-    a, b = Conn(address), Conn(address)
-    a.greeting()
-    b.greeting()
+    a, b = greeted(address, 2)
     a.send('?DEFER={"timeout_s":60};\n')
     assert service.answered_later.wait(TIMEOUT_S)
     b.send("?LATE;\n")  # a bare Future, begun after a's: its 0.2 s pass first
@@ -204,9 +210,7 @@ def test_service_errors_carry_the_command(make_hub):
 
 def test_a_blocking_control_callback_delays_nobody_elses_angles(make_hub):
     hub, address, service = make_hub(control=Service())
-    watcher, operator, other = Conn(address), Conn(address), Conn(address)
-    for c in (watcher, operator, other):
-        c.greeting()
+    watcher, operator, other = greeted(address, 3)
     watcher.send('?WATCH={"enable":true};\n')
     watcher.expect("WATCH")
     operator.send("?BLOCK;\n?ECHO;\n")
@@ -261,9 +265,8 @@ def test_watch_accepts_the_fastest_rate(make_hub):
 
 def test_a_delivery_failure_costs_only_that_client(make_hub, log_events):
     hub, address, _ = make_hub()
-    before, broken, after = Conn(address), Conn(address), Conn(address)
+    before, broken, after = greeted(address, 3)
     for c in (before, broken, after):
-        c.greeting()
         watch(c, '{"enable":true,"rate_hz":5}')
     broken.send("?ECHO;\n")
     broken_id = broken.expect("ECHO")["client"]
@@ -385,3 +388,198 @@ def test_a_watcher_keeps_its_angles_while_eight_clients_flood(make_hub):
     skip_until(watcher, "VERSION")  # still connected: it answers
     for name, f in zip(HOSTILE_PAYLOADS, flooders):
         assert f.cut_off >= 1, f"the {name} flooder was never cut off ({f.bytes_sent} bytes sent)"
+
+
+# --------------------------------------------------------------------------- H2: caps, deadlines, throttles, quiet logs
+
+
+def refused_with(address: tuple[str, int], message: str) -> None:
+    """A new connection gets exactly one ERROR line, ``message``, and is closed."""
+    c = Conn(address)
+    assert c.line() == {"class": "ERROR", "message": message}
+    with pytest.raises((EOFError, ConnectionResetError)):
+        c.line()
+
+
+def conn_of(sock: socket.socket) -> Conn:
+    """A test client on a socket connected already."""
+    c = Conn.__new__(Conn)
+    c.sock, c.buf = sock, b""
+    return c
+
+
+def connect_from(address: tuple[str, int], source: str) -> Conn:
+    """A test client connected from another loopback address (``source``)."""
+    return conn_of(socket.create_connection(address, timeout=TIMEOUT_S, source_address=(source, 0)))
+
+
+def test_max_clients(make_hub, log_events):
+    hub, address, _ = make_hub(max_clients=3)
+    conns = greeted(address, 3)
+    refused_with(address, "too many clients (3): try again later")
+    assert hub.clients == 3 and hub.refused_clients == 1
+    conns[0].close()  # a clean close: the hub reads the EOF and frees the place
+    assert log_events.wait_for("client_disconnected")
+    Conn(address).greeting()
+    for c in conns[1:]:  # the others were never disturbed
+        c.sync()
+
+
+def test_max_clients_per_peer_address(make_hub):
+    hub, address, _ = make_hub(max_clients_per_peer=2)
+    first = greeted(address, 2)  # kept open (a dropped reference would close it)
+    refused_with(address, "too many connections from 127.0.0.1 (2): try again later")
+    other = connect_from(address, "127.0.0.2")  # another address has places of its own
+    other.greeting()
+    assert hub.clients == 3 and hub.refused_clients == 1
+    for c in first:
+        c.sync()
+
+
+def test_unauthorized_clients_are_closed_after_the_auth_deadline(make_hub):
+    _, address, _ = make_hub(token="s3cret-token", auth_deadline_s=0.3)
+    operator = authorized(address, "s3cret-token")
+    idle = Conn(address)  # connects later than the operator, so its deadline passes later
+    idle.expect("VERSION")
+    assert skip_until(idle, "ERROR") == {"class": "ERROR", "message": "not authorized within 0.3 s: closing",
+                                         "command": "AUTH"}
+    with pytest.raises((EOFError, ConnectionResetError)):
+        idle.line()
+    operator.send("?ECHO;\n")  # its deadline has passed too, and it was authorized in time
+    assert operator.expect("ECHO")["args"] == {}
+
+
+def test_no_auth_deadline_when_asked_or_without_a_token(make_hub):
+    for kwargs in ({"token": "s3cret-token", "auth_deadline_s": None}, {}):
+        hub, address, _ = make_hub(**kwargs)
+        c = Conn(address)
+        c.expect("VERSION")
+        assert not hub._clients[next(iter(hub._clients))].auth_deadline
+
+
+def test_failed_auth_is_throttled_per_address_across_reconnects(make_hub, log_events):
+    _, address, control = make_hub(token="s3cret-token", auth_backoff_base_s=30.0)
+    guesser = Conn(address)
+    guesser.expect("VERSION")
+    guesser.send('?AUTH={"token":"guess-1"};\n?AUTH={"token":"guess-2"};\n?AUTH={"token":"guess-3"};\n'
+                 '?AUTH={"token":"guess-4"};\n')
+    for _ in range(4):
+        assert skip_until(guesser, "ERROR") == {"class": "ERROR", "message": "bad token", "command": "AUTH"}
+    guesser.close()
+    again = Conn(address)  # a new connection from the same address: still in its backoff
+    again.expect("VERSION")
+    again.send('?AUTH={"token":"s3cret-token"};\n')
+    assert skip_until(again, "ERROR") == {"class": "ERROR", "message": "too many failed attempts, retry in 30 s",
+                                          "command": "AUTH"}  # refused without looking at the token
+    again.send("?ECHO;\n")
+    assert skip_until(again, "ERROR")["message"] == "unauthorized"
+    assert [e["blocked_s"] for e in log_events.named("auth_failed")] == [0.0, 0.0, 0.0, 30.0]
+    elsewhere = connect_from(address, "127.0.0.2")  # another address is not in anybody's backoff
+    elsewhere.expect("VERSION")
+    elsewhere.send('?AUTH={"token":"s3cret-token"};\n')
+    assert skip_until(elsewhere, "AUTH") == {"class": "AUTH", "authorized": True}
+    assert control.calls == []
+
+
+def test_auth_backoff_doubles_is_capped_and_is_forgotten():
+    from fog_driver.daemon.hub import AUTH_FAILURES_BEFORE_BACKOFF, _AuthThrottle
+
+    throttle = _AuthThrottle(base_s=1.0, max_s=10.0)
+    now = 1000.0
+    assert [throttle.failed("a", now) for _ in range(AUTH_FAILURES_BEFORE_BACKOFF)] == [0.0] * 3
+    assert throttle.blocked_for_s("a", now) == 0.0
+    blocks = []
+    for _ in range(6):  # each failure once the previous block has passed
+        blocks.append(throttle.failed("a", now))
+        assert throttle.blocked_for_s("a", now + blocks[-1] / 2) == blocks[-1] / 2
+        now += blocks[-1]
+        assert throttle.blocked_for_s("a", now) == 0.0
+    assert blocks == [1.0, 2.0, 4.0, 8.0, 10.0, 10.0]
+    assert throttle.blocked_for_s("b", now) == 0.0  # per address
+    assert throttle.failed("a", now) == 10.0
+    assert throttle.blocked_for_s("a", now + 10.0 + 9.9) == 0.0  # block over, still remembered ...
+    assert throttle.failed("a", now + 19.9) == 10.0
+    now += 19.9
+    assert throttle.blocked_for_s("a", now + 20.0) == 0.0  # ... forgotten max_s after the block ended
+    assert throttle.failed("a", now + 20.0) == 0.0
+    throttle.succeeded("a")
+    assert [throttle.failed("a", now) for _ in range(4)] == [0.0, 0.0, 0.0, 1.0]
+    for k in range(5000):  # memory is bounded; the least recently failed address goes first
+        throttle.failed(f"x{k}", now)
+    assert len(throttle._peers) == 4096 and "a" not in throttle._peers
+
+
+def test_a_token_with_a_lone_surrogate_is_a_failed_attempt(make_hub, log_events):
+    _, address, _ = make_hub(token="s3cret-token")
+    c = Conn(address)
+    c.expect("VERSION")
+    c.send('?AUTH={"token":"\\ud800"};\n')  # before: UnicodeEncodeError, the client was cut off uncounted
+    assert skip_until(c, "ERROR") == {"class": "ERROR", "message": "bad token", "command": "AUTH"}
+    assert len(log_events.named("auth_failed")) == 1
+    c.send('?AUTH={"token":"s3cret-token"};\n')
+    assert skip_until(c, "AUTH")["authorized"] is True
+
+
+def test_connection_floods_cost_a_few_log_lines_a_second(make_hub, log_events):
+    hub, address, _ = make_hub()
+    for _ in range(40):
+        Conn(address).greeting()  # each closed at once (garbage collected)
+    assert log_events.wait_for("log_lines_suppressed")
+    logged = len(log_events.named("client_connected"))
+    total = logged
+    deadline = time.monotonic() + TIMEOUT_S
+    while total < 40:  # the summaries account for every line not logged
+        assert time.monotonic() < deadline and log_events.wait_for("log_lines_suppressed", timeout_s=1.5)
+        total = logged + sum(e["count"] for e in log_events.named("log_lines_suppressed")
+                             if e["suppressed_event"] == "client_connected")
+    assert total == 40 and logged < 40
+
+
+def test_out_of_descriptors_the_hub_logs_little_and_serves_on(make_hub, log_events):
+    # before: asyncio's default handler logged a traceback for every failed accept (up to 100 a tick)
+    import os
+    import resource
+
+    hub, address, _ = make_hub(max_clients=100, max_clients_per_peer=100)
+    watcher = Conn(address)
+    watcher.greeting()
+    waiting = [socket.socket() for _ in range(5)]  # their descriptors exist before the limit drops
+    for s in waiting:
+        s.settimeout(TIMEOUT_S)
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    highest = max(int(fd) for fd in os.listdir("/proc/self/fd"))
+    fillers = [os.open(os.devnull, os.O_RDONLY)]
+    try:
+        while fillers[-1] <= highest:  # fill every free descriptor number up to the new limit
+            fillers.append(os.open(os.devnull, os.O_RDONLY))
+        resource.setrlimit(resource.RLIMIT_NOFILE, (fillers[-1] + 1, hard))
+        for s in waiting:
+            s.connect(address)  # the kernel completes it; the hub's accept() fails with EMFILE
+        assert log_events.wait_for("hub_loop_error")
+        hub.publish({"class": "STATUS", "n": 1})
+        assert watcher.expect("STATUS") == {"class": "STATUS", "n": 1}  # existing clients are served on
+        assert log_events.wait_for("log_lines_suppressed")
+    finally:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
+        for fd in fillers:
+            os.close(fd)
+    errors = log_events.named("hub_loop_error")
+    assert 1 <= len(errors) <= 10  # at most 5 a second; here one or two seconds
+    assert errors[0]["message"] == "socket.accept() out of system resource" and "Too many open files" in errors[0]["error"]
+    summary = [e for e in log_events.named("log_lines_suppressed") if e["suppressed_event"] == "hub_loop_error"]
+    assert summary and summary[0]["count"] >= 1
+    conn_of(waiting[0]).greeting()  # once descriptors are free, the waiting connections are accepted
+    watcher.sync()
+
+
+def test_limits_are_validated():
+    kwargs = {"version": dict, "device": lambda: None, "control": lambda *a: None}
+    from fog_driver.daemon.hub import Hub
+
+    for bad in ({"max_clients": 0}, {"max_clients": 2.5}, {"max_clients_per_peer": 0}, {"max_clients": True},
+                {"auth_deadline_s": 0}, {"auth_deadline_s": float("inf")}, {"auth_backoff_base_s": 0},
+                {"auth_backoff_base_s": 20.0, "auth_backoff_max_s": 10.0}, {"log_lines_per_s": 0},
+                {"control_timeout_s": float("nan")}, {"token": "bad\ud800token"}):
+        with pytest.raises(ValueError):
+            Hub("127.0.0.1", 0, **kwargs, **bad)
+    Hub("127.0.0.1", 0, **kwargs, auth_deadline_s=None, max_clients=1, max_clients_per_peer=1)

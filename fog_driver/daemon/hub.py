@@ -34,22 +34,23 @@ ERROR      a command failed: ``message``, and ``command`` when the command's
 
 Client to server: commands, one per line, ``?NAME;`` or ``?NAME={json object};``
 where NAME is upper-case ASCII letters and the trailing ``;`` is optional
-(``\\r`` before the newline is tolerated, empty lines are ignored but count
-against the rate limit).  Every
-command is answered by exactly one line (its reply or an ``ERROR``), in the
-order the commands were sent; ANGLE/STATUS/DEVICE lines may be interleaved.
+(``\\r`` before the newline is tolerated; empty lines are ignored, but count
+against the rate limit).  Every command is answered by exactly one line (its
+reply or an ``ERROR``), in the order the commands were sent; ANGLE/STATUS/DEVICE
+lines may be interleaved.
 
 - ``?WATCH;`` reports the current policy; ``?WATCH={"enable": true, "rate_hz": 10};``
   sets it.  The object *is* the whole policy: ``enable`` defaults to true,
-  ``rate_hz`` omitted means every sample (at most ``MAX_WATCH_RATE_HZ``,
-  10000).  With ``rate_hz`` > 0 the client gets
-  the first sample of each period ``[k / rate_hz, (k + 1) / rate_hz)`` of device
-  time ``t_s`` (``k = floor(t_s * rate_hz)``): a decimation on the instrument's
-  clock, not the host's.  A new ``?WATCH`` restarts the decimation.
+  ``rate_hz`` omitted means every sample; otherwise it is a number with
+  ``0 < rate_hz <= 10000`` (``MAX_WATCH_RATE_HZ``).  With ``rate_hz`` the client
+  gets the first sample of each period ``[k / rate_hz, (k + 1) / rate_hz)`` of
+  device time ``t_s`` (``k = floor(t_s * rate_hz)``): a decimation on the
+  instrument's clock, not the host's.  A new ``?WATCH`` restarts the decimation.
 - ``?VERSION;`` sends the VERSION object again.
 - ``?AUTH={"token": "..."};`` authorizes this connection for control commands,
   needed only when the daemon was configured with a token (which it must be to
-  listen beyond loopback).  Five failed attempts close the connection.
+  listen beyond loopback).  Failed attempts are throttled per peer address (see
+  Limits); five failed or refused attempts close the connection.
 - Any other NAME is a control command handed to the service (for example
   ``?ZERO;`` or ``?MARK={"label": "stop 3"};``); an unknown one is answered
   with ``ERROR`` ``"unknown command ?NAME"``; without a prior successful
@@ -60,20 +61,41 @@ order the commands were sent; ANGLE/STATUS/DEVICE lines may be interleaved.
   runs to its end.
 
 Limits (a misbehaving client costs the daemon a bounded amount and never
-delays anybody else):
+delays anybody else).  Each is a module constant or a :class:`Hub` argument
+(named here, with its default):
 
 - a line longer than ``max_line_bytes`` (4096) is answered with ``ERROR`` and
-  discarded up to its newline; 64 KiB without any newline closes the connection;
+  discarded up to its newline; 64 KiB (``MAX_UNTERMINATED_BYTES``) without any
+  newline closes the connection;
 - invalid JSON, a JSON value that is not an object, a malformed line or an
   unknown command: ``ERROR``, and the connection stays open;
-- at most 100 lines per second per client (commands, and empty or oversized
-  lines alike): the excess is answered with ``ERROR`` and 1000 excess lines
-  close the connection; the hub reads one 64 KiB chunk of a client at a time,
-  then serves the others;
+- at most 100 lines per second per client (``MAX_COMMANDS_PER_S``; commands,
+  and empty or oversized lines alike): the excess is answered with ``ERROR``,
+  and 1000 excess lines (``MAX_EXCESS_COMMANDS``) close the connection.  The hub
+  handles one 64 KiB chunk of a client's input at a time, then serves the others;
 - a client that does not read is dropped: when the oldest line queued for it
   (not yet accepted by the kernel) is older than ``max_backlog_s`` (2 s) the
   connection is closed, logged, and counted.  Data has a short shelf life: the
-  daemon never buffers old samples for a slow reader.
+  daemon never buffers old samples for a slow reader;
+- at most ``max_clients`` (64) connections, and ``max_clients_per_peer`` (16)
+  from one peer address (an IPv4 address; an IPv6 /64): one more gets one
+  ``ERROR`` line and is closed;
+- on a token-protected daemon a client that has not authorized within
+  ``auth_deadline_s`` (10 s) of connecting gets ``ERROR`` and is closed;
+- failed ``?AUTH`` attempts are counted per peer address, across connections:
+  after 3 (``AUTH_FAILURES_BEFORE_BACKOFF``) each further failure blocks the
+  address for ``auth_backoff_base_s`` (1 s), doubled each time up to
+  ``auth_backoff_max_s`` (300 s); while blocked, ``?AUTH`` is refused with
+  ``ERROR`` "too many failed attempts, retry in N s" without looking at the
+  token.  An address is forgotten after a success, and 300 s after its last
+  block ended (at most 4096 addresses are remembered, ``MAX_THROTTLED_PEERS``);
+- a control command waits ``control_timeout_s`` (30 s) for its answer, or the
+  service's own deadline (:class:`Deferred`);
+- per-client log lines (connected, disconnected, refused, dropped, failed,
+  auth failures, errors of the loop such as failed accepts when out of file
+  descriptors) are limited to ``log_lines_per_s`` (5) per event and second,
+  and the ones left out are counted in a ``log_lines_suppressed`` line (one a
+  second per event at most).
 
 Example session (``nc 127.0.0.1 2948``)::
 
@@ -119,8 +141,14 @@ from typing import Any, Self
 import structlog
 
 __all__ = [
+    "DEFAULT_AUTH_BACKOFF_BASE_S",
+    "DEFAULT_AUTH_BACKOFF_MAX_S",
+    "DEFAULT_AUTH_DEADLINE_S",
     "DEFAULT_CONTROL_TIMEOUT_S",
+    "DEFAULT_LOG_LINES_PER_S",
     "DEFAULT_MAX_BACKLOG_S",
+    "DEFAULT_MAX_CLIENTS",
+    "DEFAULT_MAX_CLIENTS_PER_PEER",
     "DEFAULT_MAX_LINE_BYTES",
     "MAX_WATCH_RATE_HZ",
     "Deferred",
@@ -140,8 +168,24 @@ MAX_UNTERMINATED_BYTES = 64 * 1024
 MAX_COMMANDS_PER_S = 100
 #: Refused (excess) commands after which a client is disconnected.
 MAX_EXCESS_COMMANDS = 1000
-#: Failed ``?AUTH`` attempts after which a client is disconnected.
+#: Failed (or refused) ``?AUTH`` attempts after which a connection is closed.
 MAX_AUTH_FAILURES = 5
+#: Connected clients at most; one more gets one ERROR line and is closed.
+DEFAULT_MAX_CLIENTS = 64
+#: Connected clients from one peer address at most (an IPv4 address, or an IPv6 /64).
+DEFAULT_MAX_CLIENTS_PER_PEER = 16
+#: On a token-protected hub, seconds a client has to ``?AUTH`` after connecting before it is closed.
+DEFAULT_AUTH_DEADLINE_S = 10.0
+#: Failed ``?AUTH`` attempts from one peer address (across connections) before the backoff starts.
+AUTH_FAILURES_BEFORE_BACKOFF = 3
+#: The first backoff after a failed ``?AUTH`` (s); each further failure doubles it.
+DEFAULT_AUTH_BACKOFF_BASE_S = 1.0
+#: The longest backoff (s); an address is also forgotten this long after its last backoff ended.
+DEFAULT_AUTH_BACKOFF_MAX_S = 300.0
+#: Peer addresses whose failed ``?AUTH`` attempts are remembered at most (the least recent go first).
+MAX_THROTTLED_PEERS = 4096
+#: Log lines per second at most for each per-client event (connect, disconnect, auth failure, ...).
+DEFAULT_LOG_LINES_PER_S = 5
 #: How long a control command (the callback and a Future it returns) may take before the client gets an ERROR.
 DEFAULT_CONTROL_TIMEOUT_S = 30.0
 #: Worker threads that run the ``control`` callback (off the event loop).
@@ -257,12 +301,126 @@ def _settle(waiter: asyncio.Future) -> None:
         waiter.set_result(None)
 
 
+def _peer_address(peer: Any) -> str:
+    """The address a client's connection and ``?AUTH`` limits are counted on: its IPv4 address (an
+    IPv4-mapped IPv6 one too), its IPv6 /64 (what one host or user usually holds), or the text of
+    anything else."""
+    host = peer[0] if isinstance(peer, tuple) and peer else peer
+    try:
+        ip = ipaddress.ip_address(str(host).split("%")[0])
+    except ValueError:
+        return str(host)
+    if isinstance(ip, ipaddress.IPv6Address):
+        if ip.ipv4_mapped is not None:
+            return str(ip.ipv4_mapped)
+        if not ip.is_loopback:
+            return str(ipaddress.IPv6Network((ip, 64), strict=False))
+    return str(ip)
+
+
+class _LogWindow:
+    __slots__ = ("logged", "start_s", "summarized_s", "suppressed")
+
+    def __init__(self, start_s: float) -> None:
+        self.start_s = start_s
+        self.logged = 0
+        self.suppressed = 0
+        self.summarized_s = start_s
+
+
+class _LogRateLimiter:
+    """At most ``lines_per_s`` lines of each event per 1 s window; the others are counted.
+
+    ``take_suppressed(now)`` hands out (and forgets) the counts not yet handed out, for
+    each event at most once a second, so a summary costs one line per event and second
+    at most, and every suppressed line is counted in one.
+    """
+
+    WINDOW_S = 1.0
+
+    def __init__(self, lines_per_s: int) -> None:
+        self.lines_per_s = lines_per_s
+        self._windows: dict[str, _LogWindow] = {}
+
+    def allow(self, event: str, now: float) -> bool:
+        window = self._windows.get(event)
+        if window is None:
+            window = self._windows[event] = _LogWindow(now)
+        elif now - window.start_s >= self.WINDOW_S:
+            window.start_s, window.logged = now, 0
+        if window.logged < self.lines_per_s:
+            window.logged += 1
+            return True
+        window.suppressed += 1
+        return False
+
+    def take_suppressed(self, now: float) -> list[tuple[str, int]]:
+        taken = []
+        for event, window in self._windows.items():
+            if window.suppressed and now - window.summarized_s >= self.WINDOW_S:
+                taken.append((event, window.suppressed))
+                window.suppressed = 0
+                window.summarized_s = now
+        return taken
+
+
+class _PeerAuthFailures:
+    __slots__ = ("blocked_until", "failures")
+
+    def __init__(self, now: float) -> None:
+        self.failures = 0
+        self.blocked_until = now
+
+
+class _AuthThrottle:
+    """Failed ``?AUTH`` attempts per peer address across connections, with exponential backoff.
+
+    The first ``AUTH_FAILURES_BEFORE_BACKOFF`` failures of an address cost nothing; the
+    next one blocks the address for ``base_s``, and each further one for twice as long as
+    the one before (at most ``max_s``).  While an address is blocked its attempts are
+    refused without comparing the token.  An address is forgotten on a successful
+    ``?AUTH`` from it and ``max_s`` after its last failure or block ended; at most
+    ``MAX_THROTTLED_PEERS`` addresses are remembered (the least recently failed go first).
+    """
+
+    def __init__(self, base_s: float, max_s: float) -> None:
+        self.base_s = base_s
+        self.max_s = max_s
+        self._peers: collections.OrderedDict[str, _PeerAuthFailures] = collections.OrderedDict()
+
+    def blocked_for_s(self, peer: str, now: float) -> float:
+        """Seconds ``peer`` must still wait before its next attempt is compared (0: not blocked)."""
+        record = self._peers.get(peer)
+        if record is None:
+            return 0.0
+        if now >= record.blocked_until + self.max_s:
+            del self._peers[peer]
+            return 0.0
+        return max(0.0, record.blocked_until - now)
+
+    def failed(self, peer: str, now: float) -> float:
+        """Count a failed attempt from ``peer``; returns the seconds it is now blocked for (0: none)."""
+        record = self._peers.pop(peer, None) or _PeerAuthFailures(now)
+        self._peers[peer] = record  # the most recent failure last
+        while len(self._peers) > MAX_THROTTLED_PEERS:
+            self._peers.popitem(last=False)
+        record.failures += 1
+        beyond = record.failures - AUTH_FAILURES_BEFORE_BACKOFF
+        blocked_s = min(self.base_s * 2.0 ** min(beyond - 1, 62), self.max_s) if beyond > 0 else 0.0
+        record.blocked_until = now + blocked_s
+        return blocked_s
+
+    def succeeded(self, peer: str) -> None:
+        self._peers.pop(peer, None)
+
+
 class _Client:
     """One connection: its policy, its outgoing queue and its two tasks."""
 
     __slots__ = (
-        "auth_failures", "authorized", "closing", "excess", "gone", "id", "inflight_t", "last_bucket",
-        "lines_queued", "peer", "queue", "rate_hz", "reader", "reader_task", "wakeup", "watch",
+        "auth_deadline", "auth_failures", "authorized", "closing", "excess", "gone", "id", "inflight_t",
+        "last_bucket", "lines_queued", "peer", "peer_address", "queue", "rate_hz", "reader", "reader_task",
+        "wakeup", "watch",
         "window_count", "window_start", "writer", "writer_task",
     )
 
@@ -270,6 +428,8 @@ class _Client:
                  authorized: bool) -> None:
         self.id = cid
         self.peer = peer
+        self.peer_address = _peer_address(peer)
+        self.auth_deadline: asyncio.TimerHandle | None = None
         self.reader = reader
         self.writer = writer
         self.queue: collections.deque[tuple[float, bytes | None]] = collections.deque()
@@ -312,6 +472,13 @@ class Hub:
     absorbs at most that much for a client that does not read (by default, on
     loopback, megabytes: tens of seconds of ANGLE lines before the backlog age
     policy can even see the client is stuck).
+
+    ``max_clients`` and ``max_clients_per_peer`` cap connections (overall, and per
+    IPv4 address or IPv6 /64); ``auth_deadline_s`` (None: no deadline) is how long a
+    client of a token-protected hub may stay without ``?AUTH``;
+    ``auth_backoff_base_s`` and ``auth_backoff_max_s`` set the backoff on failed
+    ``?AUTH`` attempts per peer address; ``log_lines_per_s`` caps the log lines of
+    each per-client event.  The module docstring's "Limits" says what each does.
     """
 
     def __init__(
@@ -327,9 +494,17 @@ class Hub:
         max_backlog_s: float = DEFAULT_MAX_BACKLOG_S,
         control_timeout_s: float = DEFAULT_CONTROL_TIMEOUT_S,
         sndbuf_bytes: int | None = None,
+        max_clients: int = DEFAULT_MAX_CLIENTS,
+        max_clients_per_peer: int = DEFAULT_MAX_CLIENTS_PER_PEER,
+        auth_deadline_s: float | None = DEFAULT_AUTH_DEADLINE_S,
+        auth_backoff_base_s: float = DEFAULT_AUTH_BACKOFF_BASE_S,
+        auth_backoff_max_s: float = DEFAULT_AUTH_BACKOFF_MAX_S,
+        log_lines_per_s: int = DEFAULT_LOG_LINES_PER_S,
     ) -> None:
         if token is not None and not token:
             raise ValueError("the client token must not be empty")
+        if token is not None:
+            token.encode("utf-8")  # UnicodeEncodeError (a ValueError) for a lone surrogate
         if token is None and not is_loopback_host(host):
             raise ValueError(
                 f"refusing to listen on {host or 'every interface'!r} without a client token: "
@@ -341,6 +516,15 @@ class Hub:
             raise ValueError("max_backlog_s must be > 0")
         if not _is_positive_finite(control_timeout_s):
             raise ValueError("control_timeout_s must be a finite number of seconds > 0")
+        for name, count in (("max_clients", max_clients), ("max_clients_per_peer", max_clients_per_peer),
+                            ("log_lines_per_s", log_lines_per_s)):
+            if not isinstance(count, int) or isinstance(count, bool) or count < 1:
+                raise ValueError(f"{name} must be an integer >= 1")
+        if auth_deadline_s is not None and not _is_positive_finite(auth_deadline_s):
+            raise ValueError("auth_deadline_s must be a finite number of seconds > 0, or None")
+        if not (_is_positive_finite(auth_backoff_base_s) and _is_positive_finite(auth_backoff_max_s)
+                and auth_backoff_base_s <= auth_backoff_max_s):
+            raise ValueError("auth backoff: need 0 < auth_backoff_base_s <= auth_backoff_max_s < inf")
         self.host = host
         self.port = port
         self._version = version
@@ -351,8 +535,15 @@ class Hub:
         self.max_backlog_s = float(max_backlog_s)
         self.control_timeout_s = control_timeout_s
         self.sndbuf_bytes = sndbuf_bytes
+        self.max_clients = max_clients
+        self.max_clients_per_peer = max_clients_per_peer
+        self.auth_deadline_s = auth_deadline_s
+        self._auth_throttle = _AuthThrottle(auth_backoff_base_s, auth_backoff_max_s)
+        self._log_limiter = _LogRateLimiter(log_lines_per_s)
 
         self._clients: dict[int, _Client] = {}
+        self._clients_per_peer: collections.Counter[str] = collections.Counter()
+        self._refused = 0
         self._next_id = 1
         self._watchers = 0
         self._dropped = 0
@@ -382,6 +573,11 @@ class Hub:
     def dropped_clients(self) -> int:
         """Clients dropped because their backlog grew older than ``max_backlog_s``."""
         return self._dropped
+
+    @property
+    def refused_clients(self) -> int:
+        """Connections refused because of ``max_clients`` or ``max_clients_per_peer``."""
+        return self._refused
 
     @property
     def bytes_sent(self) -> int:
@@ -444,6 +640,7 @@ class Hub:
 
     def _run(self) -> None:
         loop = asyncio.new_event_loop()
+        loop.set_exception_handler(self._on_loop_error)
         try:
             loop.run_until_complete(self._main(loop))
         except BaseException as exc:  # noqa: BLE001 - reported to start() or logged
@@ -483,13 +680,31 @@ class Hub:
             log.info("hub_stopped", dropped_clients=self._dropped, bytes_sent=self._bytes_sent)
 
     async def _sweep(self) -> None:
-        """Drop stalled clients even when nothing new is being published."""
-        period = min(0.25, self.max_backlog_s / 4)
+        """Drop stalled clients even when nothing new is being published; summarize suppressed log lines."""
         while True:
-            await asyncio.sleep(period)
+            await asyncio.sleep(min(0.25, self.max_backlog_s / 4))
             now = time.monotonic()
             for client in list(self._clients.values()):
                 self._check_backlog(client, now)
+            for event, count in self._log_limiter.take_suppressed(now):
+                log.warning("log_lines_suppressed", suppressed_event=event, count=count)
+
+    def _log(self, level: str, event: str, **fields: Any) -> None:
+        """Log a per-client ``event``, unless ``log_lines_per_s`` of it were logged in this second (then count it).
+
+        A flood of connections or guesses thus costs the log a few lines a second and one
+        ``log_lines_suppressed`` summary line a second per event."""
+        if self._log_limiter.allow(event, time.monotonic()):
+            getattr(log, level)(event, **fields)
+
+    def _on_loop_error(self, loop: asyncio.AbstractEventLoop, context: dict) -> None:
+        """The loop's exception handler: one short, rate-limited line instead of a traceback each time.
+
+        Out of descriptors, asyncio reports every failed accept (up to 100 per retry, a retry a
+        second); the default handler's traceback each time would fill the disk.  The hub serves
+        its connected clients meanwhile, and accepts again once descriptors are free."""
+        exc = context.get("exception")
+        self._log("error", "hub_loop_error", message=context.get("message"), error=repr(exc) if exc else None)
 
     # ------------------------------------------------------------------ publishing (any thread)
 
@@ -569,7 +784,7 @@ class Hub:
     def _client_failed(self, client: _Client, exc: Exception) -> None:
         """Log a bug met while serving ``client`` (once: the client is discarded) and discard it."""
         if not client.gone:
-            log.error("client_failed", client=client.id, peer=str(client.peer), error=repr(exc))
+            self._log("error", "client_failed", client=client.id, peer=str(client.peer), error=repr(exc))
         self._discard(client, "failed")
 
     # ------------------------------------------------------------------ per-client output
@@ -610,7 +825,7 @@ class Hub:
         if age > self.max_backlog_s:
             self._dropped += 1
             queued = sum(len(b) for _, b in client.queue if b is not None)
-            log.warning("client_dropped", client=client.id, peer=str(client.peer), backlog_s=round(age, 3),
+            self._log("warning", "client_dropped", client=client.id, peer=str(client.peer), backlog_s=round(age, 3),
                         queued_bytes=queued, reason="not reading", dropped_clients=self._dropped)
             self._discard(client, "dropped")
 
@@ -651,8 +866,14 @@ class Hub:
             return
         client.gone = True
         client.queue.clear()
-        if self._clients.pop(client.id, None) is not None and client.watch:
-            self._watchers -= 1
+        if client.auth_deadline is not None:
+            client.auth_deadline.cancel()
+        if self._clients.pop(client.id, None) is not None:
+            self._clients_per_peer[client.peer_address] -= 1
+            if not self._clients_per_peer[client.peer_address]:
+                del self._clients_per_peer[client.peer_address]
+            if client.watch:
+                self._watchers -= 1
         current = asyncio.current_task()
         for task in (client.reader_task, client.writer_task):
             if task is not None and task is not current and not task.done():
@@ -662,15 +883,22 @@ class Hub:
             client.writer.close()
         else:
             transport.abort()
-        log.info("client_disconnected", client=client.id, peer=str(client.peer), reason=reason,
+        self._log("info", "client_disconnected", client=client.id, peer=str(client.peer), reason=reason,
                  lines_queued=client.lines_queued)
 
     # ------------------------------------------------------------------ per-client input
 
     async def _on_connect(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        peer = writer.get_extra_info("peername")
+        refusal = self._refusal(_peer_address(peer))
+        if refusal is not None:
+            self._refused += 1
+            self._log("warning", "client_refused", peer=str(peer), reason=refusal, refused_clients=self._refused)
+            writer.write(encode({"class": "ERROR", "message": refusal}))
+            writer.close()
+            return
         cid = self._next_id
         self._next_id += 1
-        peer = writer.get_extra_info("peername")
         sock = writer.get_extra_info("socket")
         if self.sndbuf_bytes is not None and sock is not None:
             try:
@@ -679,9 +907,13 @@ class Hub:
                 pass
         client = _Client(cid, peer, reader, writer, authorized=self._token is None)
         self._clients[cid] = client
+        self._clients_per_peer[client.peer_address] += 1
         client.reader_task = asyncio.current_task()
         client.writer_task = asyncio.create_task(self._write_loop(client))
-        log.info("client_connected", client=cid, peer=str(peer), clients=len(self._clients))
+        if not client.authorized and self.auth_deadline_s is not None:
+            client.auth_deadline = asyncio.get_running_loop().call_later(
+                self.auth_deadline_s, self._auth_deadline_passed, client)
+        self._log("info", "client_connected", client=cid, peer=str(peer), clients=len(self._clients))
         try:
             self._send_version(client)
             dev = self._device()
@@ -696,6 +928,23 @@ class Hub:
             if not client.closing:
                 self._discard(client, "client_closed")
             # after _close_after_flush the writer task sends what is queued, then closes
+
+    def _refusal(self, peer_address: str) -> str | None:
+        """Why a new connection from ``peer_address`` is refused (a cap is reached), or None."""
+        if len(self._clients) >= self.max_clients:
+            return f"too many clients ({self.max_clients}): try again later"
+        if self._clients_per_peer[peer_address] >= self.max_clients_per_peer:
+            return f"too many connections from {peer_address} ({self.max_clients_per_peer}): try again later"
+        return None
+
+    def _auth_deadline_passed(self, client: _Client) -> None:
+        client.auth_deadline = None
+        if client.authorized or client.gone or client.closing:
+            return
+        self._log("info", "client_unauthorized", client=client.id, peer=str(client.peer),
+                  deadline_s=self.auth_deadline_s)
+        self._send_error(client, f"not authorized within {self.auth_deadline_s:g} s: closing", "AUTH")
+        self._close_after_flush(client)
 
     def _send_version(self, client: _Client) -> None:
         try:
@@ -826,21 +1075,42 @@ class Hub:
         self._send_obj(client, {"class": "WATCH", "enable": client.watch, "rate_hz": client.rate_hz})
 
     def _cmd_auth(self, client: _Client, args: dict) -> None:
-        token = args.get("token")
-        if self._token is None or (
-            isinstance(token, str) and hmac.compare_digest(token.encode(), self._token.encode())
-        ):
-            client.authorized = True
-        else:
-            client.auth_failures += 1
-            log.warning("auth_failed", client=client.id, peer=str(client.peer), failures=client.auth_failures)
-            if client.auth_failures >= MAX_AUTH_FAILURES:
-                self._send_error(client, "bad token: closing", "AUTH")
-                self._close_after_flush(client)
-            else:
-                self._send_error(client, "bad token", "AUTH")
+        """``?AUTH``: compare the token (unless the peer address is in its backoff), authorize or refuse."""
+        if self._token is None:
+            self._authorize(client)
             return
+        now = time.monotonic()
+        wait_s = self._auth_throttle.blocked_for_s(client.peer_address, now)
+        if wait_s > 0:
+            self._refuse_auth(client, f"too many failed attempts, retry in {math.ceil(wait_s)} s")
+            return
+        token = args.get("token")
+        # surrogatepass: a lone surrogate ("\ud800") is a wrong token like any other, never an exception
+        if isinstance(token, str) and hmac.compare_digest(token.encode("utf-8", "surrogatepass"),
+                                                          self._token.encode("utf-8")):
+            self._auth_throttle.succeeded(client.peer_address)
+            self._authorize(client)
+            return
+        blocked_s = self._auth_throttle.failed(client.peer_address, now)
+        self._log("warning", "auth_failed", client=client.id, peer=str(client.peer),
+                  failures=client.auth_failures + 1, blocked_s=blocked_s)
+        self._refuse_auth(client, "bad token")
+
+    def _authorize(self, client: _Client) -> None:
+        client.authorized = True
+        if client.auth_deadline is not None:
+            client.auth_deadline.cancel()
+            client.auth_deadline = None
         self._send_obj(client, {"class": "AUTH", "authorized": True})
+
+    def _refuse_auth(self, client: _Client, message: str) -> None:
+        """ERROR for a failed or refused ``?AUTH``; the MAX_AUTH_FAILURES-th closes the connection."""
+        client.auth_failures += 1
+        if client.auth_failures >= MAX_AUTH_FAILURES:
+            self._send_error(client, f"{message}: closing", "AUTH")
+            self._close_after_flush(client)
+        else:
+            self._send_error(client, message, "AUTH")
 
     async def _cmd_control(self, client: _Client, name: str, args: dict) -> None:
         """Hand a command to ``control`` in a worker thread and send its answer (or an ERROR) to ``client``.
