@@ -18,7 +18,7 @@ import time
 import pytest
 import structlog
 
-from fog_driver.daemon.hub import Deferred
+from fog_driver.daemon.hub import Deferred, Hub
 from test_daemon_hub import TIMEOUT_S, Conn, Control, angle, make_hub  # noqa: F401 - make_hub is a fixture
 
 
@@ -441,8 +441,7 @@ def test_unauthorized_clients_are_closed_after_the_auth_deadline(make_hub):
     operator = authorized(address, "s3cret-token")
     idle = Conn(address)  # connects later than the operator, so its deadline passes later
     idle.expect("VERSION")
-    assert skip_until(idle, "ERROR") == {"class": "ERROR", "message": "not authorized within 0.3 s: closing",
-                                         "command": "AUTH"}
+    assert idle.line() == {"class": "ERROR", "message": "not authorized within 0.3 s: closing", "command": "AUTH"}
     with pytest.raises((EOFError, ConnectionResetError)):
         idle.line()
     operator.send("?ECHO;\n")  # its deadline has passed too, and it was authorized in time
@@ -574,8 +573,6 @@ def test_out_of_descriptors_the_hub_logs_little_and_serves_on(make_hub, log_even
 
 def test_limits_are_validated():
     kwargs = {"version": dict, "device": lambda: None, "control": lambda *a: None}
-    from fog_driver.daemon.hub import Hub
-
     for bad in ({"max_clients": 0}, {"max_clients": 2.5}, {"max_clients_per_peer": 0}, {"max_clients": True},
                 {"auth_deadline_s": 0}, {"auth_deadline_s": float("inf")}, {"auth_backoff_base_s": 0},
                 {"auth_backoff_base_s": 20.0, "auth_backoff_max_s": 10.0}, {"log_lines_per_s": 0},
@@ -583,3 +580,78 @@ def test_limits_are_validated():
         with pytest.raises(ValueError):
             Hub("127.0.0.1", 0, **kwargs, **bad)
     Hub("127.0.0.1", 0, **kwargs, auth_deadline_s=None, max_clients=1, max_clients_per_peer=1)
+
+
+# --------------------------------------------------------------------------- L9: nothing for the unauthorized
+
+
+def test_unauthorized_clients_get_version_only_until_they_authenticate(make_hub):
+    # before: DEVICE on connect and every STATUS went to everybody (serial, firmware, capture path)
+    hub, address, _ = make_hub(token="s3cret-token")
+    c = Conn(address)
+    c.expect("VERSION")
+    hub.publish({"class": "STATUS", "n": 1})
+    hub.publish({"class": "DEVICE", "serial": "FOG-TEST-0001"})
+    c.send("?VERSION;\n")
+    c.expect("VERSION")  # nothing came in between
+    c.send('?AUTH={"token":"s3cret-token"};\n')
+    assert c.line() == {"class": "AUTH", "authorized": True}
+    assert c.expect("DEVICE")["serial"] == "FOG-TEST-0001"  # the current device, once authorized
+    hub.publish({"class": "STATUS", "n": 2})
+    assert c.line() == {"class": "STATUS", "n": 2}
+    c.send('?AUTH={"token":"s3cret-token"};\n')  # again: AUTH, and no second DEVICE
+    assert c.line() == {"class": "AUTH", "authorized": True}
+    c.sync()
+
+
+# --------------------------------------------------------------------------- settings the service changes on SIGHUP
+
+
+def test_a_new_token_closes_every_connection_and_only_it_authorizes(make_hub):
+    hub, address, control = make_hub(token="old-token-1")
+    operator = authorized(address, "old-token-1")
+    idle = Conn(address)
+    idle.expect("VERSION")
+    hub.set_token("old-token-1")  # the same token: nothing happens
+    operator.send("?ECHO;\n")
+    operator.expect("ECHO")
+    hub.set_token("new-token-2")
+    for c in (operator, idle):
+        assert c.line() == {"class": "ERROR", "message": "the client token changed: connect again",
+                            "command": "AUTH"}
+        with pytest.raises((EOFError, ConnectionResetError)):
+            c.line()
+    again = Conn(address)
+    again.expect("VERSION")
+    again.send('?AUTH={"token":"old-token-1"};\n?AUTH={"token":"new-token-2"};\n?ECHO;\n')
+    assert again.line() == {"class": "ERROR", "message": "bad token", "command": "AUTH"}
+    assert again.line() == {"class": "AUTH", "authorized": True}
+    again.expect("DEVICE")
+    again.expect("ECHO")
+    hub.set_token(None)  # loopback only: everybody may control
+    fresh = Conn(address)
+    fresh.greeting()
+    fresh.send("?ECHO;\n")
+    fresh.expect("ECHO")
+    for bad in ("", "bad\ud800token", 12345678):
+        with pytest.raises(ValueError):
+            hub.set_token(bad)
+    with pytest.raises(ValueError, match="token"):
+        Hub("0.0.0.0", 0, version=dict, device=lambda: None, control=control, token="s3cret-token").set_token(None)
+
+
+def test_a_shorter_backlog_limit_applies_to_connected_clients(make_hub, log_events):
+    hub, address, _ = make_hub(max_backlog_s=30.0, sndbuf_bytes=4096)
+    stalled = Conn(address, rcvbuf=4096)
+    stalled.greeting()
+    watch(stalled)  # and never reads again
+    pad = "p" * 1000
+    for batch in range(20):  # about 2 MB: far more than the kernel buffers hold
+        hub.publish_angles([angle(batch * 100 + i, batch + i / 100, pad=pad) for i in range(100)])
+    hub.set_max_backlog_s(0.3)
+    assert log_events.wait_for("client_dropped")
+    assert hub.dropped_clients == 1 and hub.max_backlog_s == 0.3
+    stalled.wait_closed()
+    for bad in (0, -1.0, float("nan")):
+        with pytest.raises(ValueError):
+            hub.set_max_backlog_s(bad)

@@ -406,7 +406,7 @@ def test_control_future_timeout(make_hub):
 def test_token_required_for_control_commands(make_hub):
     _, address, control = make_hub(token="s3cret")
     c = Conn(address)
-    c.greeting()
+    c.expect("VERSION")  # no DEVICE before AUTH
     c.send("?ECHO;\n")
     assert c.line() == {"class": "ERROR", "message": "unauthorized", "command": "ECHO"}
     c.send("?NOSUCH;\n")
@@ -420,10 +420,11 @@ def test_token_required_for_control_commands(make_hub):
     assert control.calls == []
     c.send('?AUTH={"token":"s3cret"};\n')
     assert c.line() == {"class": "AUTH", "authorized": True}
+    c.expect("DEVICE")  # now that it may know
     c.send("?ECHO;\n")
     c.expect("ECHO")
     other = Conn(address)  # authorization is per connection
-    other.greeting()
+    other.expect("VERSION")
     other.send("?ECHO;\n")
     assert other.expect("ERROR")["message"] == "unauthorized"
 
@@ -431,7 +432,7 @@ def test_token_required_for_control_commands(make_hub):
 def test_repeated_bad_tokens_disconnect(make_hub):
     _, address, _ = make_hub(token="s3cret")
     c = Conn(address)
-    c.greeting()
+    c.expect("VERSION")
     c.send('?AUTH={"token":"guess"};\n' * 10)
     errors = 0
     with pytest.raises((EOFError, ConnectionResetError)):

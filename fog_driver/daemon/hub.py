@@ -19,8 +19,10 @@ VERSION    first line on every connection, and in answer to ``?VERSION;``:
            ``release``, ``proto_major``, ``proto_minor`` and the instrument's
            identity (filled in by the service)
 DEVICE     second line on connect when an instrument is known, and to every
-           client whenever the instrument (or its link state) changes
-STATUS     to every client (watching or not), periodic summaries
+           authorized client whenever the instrument (or its link state)
+           changes; on a token-protected daemon, right after a successful
+           ``?AUTH`` instead of on connect
+STATUS     to every authorized client (watching or not), periodic summaries
 ANGLE      one per instrument sample, only to clients with an enabled WATCH,
            decimated per client (see ``?WATCH``); always carries ``t_s``
            (device time, s)
@@ -47,10 +49,14 @@ lines may be interleaved.
   device time ``t_s`` (``k = floor(t_s * rate_hz)``): a decimation on the
   instrument's clock, not the host's.  A new ``?WATCH`` restarts the decimation.
 - ``?VERSION;`` sends the VERSION object again.
-- ``?AUTH={"token": "..."};`` authorizes this connection for control commands,
-  needed only when the daemon was configured with a token (which it must be to
-  listen beyond loopback).  Failed attempts are throttled per peer address (see
-  Limits); five failed or refused attempts close the connection.
+- ``?AUTH={"token": "..."};`` authorizes this connection, needed only when the
+  daemon was configured with a token (which it must be to listen beyond
+  loopback).  Until then a client gets VERSION (and the answers to its
+  ``?WATCH``, ``?VERSION`` and ``?AUTH``, and ANGLE lines it watches) but no
+  DEVICE or STATUS, and every control command is refused.  Failed attempts are
+  throttled per peer address (see Limits); five failed or refused attempts
+  close the connection.  When the daemon's token changes, every connection is
+  closed (``ERROR`` "the client token changed: connect again").
 - Any other NAME is a control command handed to the service (for example
   ``?ZERO;`` or ``?MARK={"label": "stop 3"};``); an unknown one is answered
   with ``ERROR`` ``"unknown command ?NAME"``; without a prior successful
@@ -212,6 +218,28 @@ def clean(obj: Any) -> Any:
                 out[key] = value
         return out
     return _clean_value(obj)
+
+
+def _check_token(token: str | None, host: str) -> None:
+    """ValueError unless ``token`` is a non-empty string that encodes as UTF-8, or None on a loopback ``host``."""
+    if token is None:
+        if not is_loopback_host(host):
+            raise ValueError(
+                f"refusing to listen on {host or 'every interface'!r} without a client token: "
+                "anyone on the network could control the instrument; set a token or bind 127.0.0.1"
+            )
+        return
+    if not isinstance(token, str) or not token:
+        raise ValueError("the client token must be a non-empty string")
+    try:
+        token.encode("utf-8")
+    except UnicodeEncodeError:
+        raise ValueError("the client token must be valid text (it has a lone surrogate)") from None
+
+
+def _check_max_backlog_s(seconds: float) -> None:
+    if not (seconds > 0):  # inf is allowed: never drop a client that does not read
+        raise ValueError("max_backlog_s must be > 0")
 
 
 class _Absent:
@@ -501,19 +529,10 @@ class Hub:
         auth_backoff_max_s: float = DEFAULT_AUTH_BACKOFF_MAX_S,
         log_lines_per_s: int = DEFAULT_LOG_LINES_PER_S,
     ) -> None:
-        if token is not None and not token:
-            raise ValueError("the client token must not be empty")
-        if token is not None:
-            token.encode("utf-8")  # UnicodeEncodeError (a ValueError) for a lone surrogate
-        if token is None and not is_loopback_host(host):
-            raise ValueError(
-                f"refusing to listen on {host or 'every interface'!r} without a client token: "
-                "anyone on the network could control the instrument; set a token or bind 127.0.0.1"
-            )
+        _check_token(token, host)
         if max_line_bytes < 16:
             raise ValueError("max_line_bytes must be at least 16")
-        if not (max_backlog_s > 0):
-            raise ValueError("max_backlog_s must be > 0")
+        _check_max_backlog_s(max_backlog_s)
         if not _is_positive_finite(control_timeout_s):
             raise ValueError("control_timeout_s must be a finite number of seconds > 0")
         for name, count in (("max_clients", max_clients), ("max_clients_per_peer", max_clients_per_peer),
@@ -588,6 +607,58 @@ class Hub:
     def address(self) -> tuple[str, int] | None:
         """``(host, port)`` listened on, once started."""
         return self._address
+
+    # ------------------------------------------------------------------ settings (any thread)
+
+    def set_token(self, token: str | None) -> None:
+        """Use ``token`` for ``?AUTH`` from now on (the service calls this on SIGHUP); thread-safe.
+
+        Validated as in the constructor (ValueError; None only on a loopback address).  A
+        changed token closes every connection open at the time, with ``ERROR`` "the client
+        token changed: connect again": a token is rotated because it may have leaked, so no
+        session authorized by the old one may outlive it, and the clients that had not
+        authorized meet the new rules from their first line.  The same token again changes
+        nothing.  Returns once the hub's loop has applied it (waiting 5 s at most).
+        """
+        _check_token(token, self.host)
+        self._apply_on_loop(self._replace_token, token)
+
+    def set_max_backlog_s(self, seconds: float) -> None:
+        """The backlog age after which a client that does not read is dropped, from now on, for the
+        clients connected too (checked at least every 0.25 s); thread-safe, ValueError unless > 0."""
+        _check_max_backlog_s(seconds)
+        self._apply_on_loop(setattr, self, "max_backlog_s", float(seconds))
+
+    def _apply_on_loop(self, apply: Callable[..., None], *args: Any) -> None:
+        """``apply(*args)`` on the loop thread, waiting for it (5 s at most); directly when no loop runs."""
+        loop, thread = self._loop, self._thread
+        if loop is None or threading.current_thread() is thread:
+            apply(*args)
+            return
+        applied = threading.Event()
+
+        def run() -> None:
+            try:
+                apply(*args)
+            finally:
+                applied.set()
+
+        try:
+            loop.call_soon_threadsafe(run)
+        except RuntimeError:  # the loop closed meanwhile: no client is left to apply it to
+            apply(*args)
+            return
+        if not applied.wait(5.0):
+            log.warning("hub_setting_late", setting=getattr(apply, "__name__", repr(apply)))
+
+    def _replace_token(self, token: str | None) -> None:
+        if token == self._token:
+            return
+        self._token = token
+        for client in list(self._clients.values()):
+            self._send_error(client, "the client token changed: connect again", "AUTH")
+            self._close_after_flush(client)
+        log.warning("client_token_changed", auth=token is not None, clients_closed=len(self._clients))
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -728,7 +799,7 @@ class Hub:
         self._hand_over(self._deliver_angles, items)
 
     def publish(self, obj: dict) -> None:
-        """Send one object (DEVICE, STATUS, ...) to every connected client, watching or not.
+        """Send one object (DEVICE, STATUS, ...) to every authorized client, watching or not.
 
         Thread-safe and non-blocking.
         """
@@ -771,7 +842,7 @@ class Hub:
     def _deliver_all(self, line: bytes) -> None:
         now = time.monotonic()
         for client in list(self._clients.values()):
-            if not client.closing:
+            if client.authorized and not client.closing:
                 self._for_one_client(self._enqueue, client, line, now, 1)
 
     def _for_one_client(self, deliver: Callable[..., None], client: _Client, *args: Any) -> None:
@@ -916,9 +987,8 @@ class Hub:
         self._log("info", "client_connected", client=cid, peer=str(peer), clients=len(self._clients))
         try:
             self._send_version(client)
-            dev = self._device()
-            if dev:
-                self._send_obj(client, {"class": "DEVICE", **dev})
+            if client.authorized:
+                self._send_device(client)
             await self._read_loop(client)
         except asyncio.CancelledError:
             pass
@@ -945,6 +1015,12 @@ class Hub:
                   deadline_s=self.auth_deadline_s)
         self._send_error(client, f"not authorized within {self.auth_deadline_s:g} s: closing", "AUTH")
         self._close_after_flush(client)
+
+    def _send_device(self, client: _Client) -> None:
+        """The current DEVICE object, when an instrument is known."""
+        device = self._device()
+        if device:
+            self._send_obj(client, {"class": "DEVICE", **device})
 
     def _send_version(self, client: _Client) -> None:
         try:
@@ -1097,11 +1173,15 @@ class Hub:
         self._refuse_auth(client, "bad token")
 
     def _authorize(self, client: _Client) -> None:
+        """AUTH, then (when this authorized the client) the DEVICE it did not get before."""
+        newly = not client.authorized
         client.authorized = True
         if client.auth_deadline is not None:
             client.auth_deadline.cancel()
             client.auth_deadline = None
         self._send_obj(client, {"class": "AUTH", "authorized": True})
+        if newly:
+            self._send_device(client)
 
     def _refuse_auth(self, client: _Client, message: str) -> None:
         """ERROR for a failed or refused ``?AUTH``; the MAX_AUTH_FAILURES-th closes the connection."""
