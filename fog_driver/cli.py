@@ -385,6 +385,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     from .config import DriverConfig, load_config
     from .daemon.service import ConfigError, Service
+    from .daemon.watch import format_address
 
     configure_logging(max(args.verbose, 1), json=True)  # a service logs JSON lines: per-second summaries
 
@@ -423,8 +424,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     try:
         with SignalDispatcher((signal.SIGINT, signal.SIGTERM, signal.SIGHUP), on_signal):
             # The readiness line comes after the handlers: a signal sent on seeing it is handled.
-            print(f"fog-driver {__version__}: {port} -> listening on {host}:{listen_port}; raw capture in "
-                  f"{config.capture_dir}/; connect with: fog-driver watch {host}:{listen_port}  (Ctrl-C to stop)",
+            address = format_address(host, listen_port)  # an IPv6 address in brackets: [::1]:2948
+            print(f"fog-driver {__version__}: {port} -> listening on {address}; raw capture in "
+                  f"{config.capture_dir}/; connect with: fog-driver watch {address}  (Ctrl-C to stop)",
                   flush=True)  # fmt: skip
             status = service.run_until_stopped()
     finally:

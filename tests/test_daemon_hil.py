@@ -21,6 +21,7 @@ import pytest
 from fog_driver.compensation.apply import compensate_capture
 from fog_driver.compensation.model import load_model
 from fog_driver.config import DEFAULT_MODEL
+from fog_driver.daemon.watch import parse_address
 from fog_driver.protocol import decode_bytes, decode_file
 from fog_driver.transport import PtyPair
 
@@ -44,6 +45,7 @@ class Daemon:
             env={**os.environ, "PYTHONFAULTHANDLER": "1"},
         )  # fmt: skip
         line = self.proc.stdout.readline()  # the readiness line
+        self.readiness = line
         assert "listening on" in line, (line, (tmp_path / "daemon.log").read_text())
         address = line.split("listening on ")[1].split(";")[0]
         host, _, number = address.rpartition(":")
@@ -230,6 +232,20 @@ def test_sigkill_leaves_a_decodable_capture(tmp_path):
     on_disk = files[0].read_bytes()
     assert on_disk == data[:20000]  # everything up to the last flush, byte for byte
     assert decode_file(files[0]).counters.sample_frames == decode_bytes(data[:20000]).counters.sample_frames
+
+
+def test_an_ipv6_listener_is_announced_in_brackets(tmp_path):
+    # before: "listening on ::1:PORT ... fog-driver watch ::1:PORT", which reads back as host "::1:PORT"
+    daemon = Daemon(tmp_path, f"replay://{DATA / 'sim-short.bin'}?rate=100", "--listen", "[::1]:0")
+    try:
+        announced = daemon.readiness.split("listening on ")[1].split(";")[0]
+        hint = daemon.readiness.split("fog-driver watch ")[1].split()[0]
+        assert hint == announced == f"[::1]:{daemon.address[1]}"
+        client = Client(parse_address(hint))
+        assert client.next()["class"] == "VERSION"
+        client.close()
+    finally:
+        assert daemon.terminate() == 0
 
 
 def test_replay_url_into_the_daemon(tmp_path):

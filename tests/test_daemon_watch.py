@@ -21,6 +21,7 @@ from fog_driver.daemon.watch import (
     MAX_LINE_BYTES,
     LineReader,
     compact_line,
+    format_address,
     format_arcsec,
     format_dms,
     parse_address,
@@ -298,6 +299,31 @@ def test_format_dms_ascii_degree():
 
 
 @pytest.mark.parametrize(
+    ("arcsec", "text"),
+    [(1e30, "1e+30"), (-1e26, "-1e+26"), (1e15, "1000000000000000.0"), (10**400, "1.000000e+400"),
+     (-(10**400), "-1.000000e+400"), (float("inf"), "inf")],
+    ids=["1e30", "-1e26", "1e15", "10**400", "-10**400", "inf"],
+)
+def test_absurd_angles_are_shown_plainly(arcsec, text):
+    # before: decimal.InvalidOperation from 1e26" on, OverflowError for an integer beyond float's range
+    assert format_dms(arcsec) == text
+    assert format_arcsec(arcsec) == text
+
+
+def test_the_views_survive_absurd_values():
+    absurd = angle(2, angle_arcsec=1e30, angle_raw_arcsec=-(10**400), rate_dph=10**400, t_s=1e300,
+                   temps_c={"top": 10**400, "housing": 20.0})
+    lines = render({**FULL_STATE, "angle": absurd}, width=200)
+    assert "angle       1e+30\" (1e+30)    raw -1.000000e+400\" (-1.000000e+400)" in lines
+    assert "rate        1.000000e+400 deg/h    drift 0.1234 deg/h" in lines
+    assert "temps       top 1.000000e+400  bottom -  housing 20.00 degC" in lines
+    assert "1e+30" in compact_line({**FULL_STATE, "angle": absurd})
+    daemon = FakeDaemon([ndjson(absurd)], then="wait")
+    status, text = watch(daemon, count=1)
+    assert status == 0 and "1e+30" in text
+
+
+@pytest.mark.parametrize(
     ("line", "expected"),
     [
         (b'{"class":"ANGLE","seq":1}\n', {"class": "ANGLE", "seq": 1}),
@@ -422,6 +448,13 @@ def test_compact_line_is_one_line():
 )
 def test_parse_address(text, expected):
     assert parse_address(text) == expected
+
+
+@pytest.mark.parametrize(("host", "text"), [("127.0.0.1", "127.0.0.1:2948"), ("gyro-pc", "gyro-pc:2948"),
+                                           ("::1", "[::1]:2948"), ("fe80::1%eth0", "[fe80::1%eth0]:2948")])
+def test_format_address_is_read_back_by_parse_address(host, text):
+    assert format_address(host, 2948) == text
+    assert parse_address(text) == (host, 2948)
 
 
 @pytest.mark.parametrize("text", ["host:port", "host:0", "host:70000", "[::1", "[::1]x"])

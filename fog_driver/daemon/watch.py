@@ -50,6 +50,7 @@ __all__ = [
     "LineReader",
     "compact_line",
     "format_arcsec",
+    "format_address",
     "format_dms",
     "parse_address",
     "parse_line",
@@ -107,16 +108,37 @@ def parse_line(line: bytes) -> dict[str, Any] | None:
     return obj
 
 
+#: From this size on (arcsec) an angle is shown as it is, not rounded to 0.01": a float's hundredths
+#: are noise there, and from 1e26 on the rounding's 28 decimal digits cannot even hold them.
+_ROUNDED_BELOW_ARCSEC = 1e15
+
+
+def _unrounded(arcsec: float) -> str | None:
+    """An angle that is not rounded to 0.01" as plain text (``nan``, ``inf``, ``-inf``, ``1e+30``,
+    ``1.000000e+400`` for an integer beyond float's range: any number too large for a float), or
+    None for one that is."""
+    try:
+        value = float(arcsec)
+    except OverflowError:
+        return f"{Decimal(arcsec):.6e}"
+    if math.isnan(value):
+        return "nan"
+    if math.isinf(value):
+        return "inf" if value > 0 else "-inf"
+    return repr(value) if abs(value) >= _ROUNDED_BELOW_ARCSEC else None
+
+
 def _hundredths(value: float) -> int:
     """``round(value * 100)``, half away from zero, on the value's shortest decimal form (0.125 -> 13)."""
     return int(Decimal(repr(float(value))).quantize(Decimal("0.01"), rounding=ROUND_HALF_UP).scaleb(2))
 
 
 def format_arcsec(arcsec: float) -> str:
-    """An angle in arcsec to 0.01, rounded as ``format_dms`` rounds it (so the two always agree)."""
+    """An angle in arcsec to 0.01, rounded as ``format_dms`` rounds it (so the two always agree);
+    NaN, infinities and angles of 1e15" or more are shown as they are."""
+    if (plain := _unrounded(arcsec)) is not None:
+        return plain
     value = float(arcsec)
-    if not math.isfinite(value):
-        return str(value)
     hundredths = _hundredths(abs(value))
     sign = "-" if value < 0 and hundredths else ""
     whole, cents = divmod(hundredths, 100)
@@ -129,13 +151,12 @@ def format_dms(arcsec: float, *, degree: str = _DEGREE) -> str:
     The value is rounded (half away from zero, on its shortest decimal form, so 59.995" is
     1'00.00") before it is split, so rounding carries into the minutes and degrees; a negative
     angle gets one leading ``-`` (none when it rounds to zero).  Degrees are not wrapped (an
-    integrated angle can be many turns).  NaN and infinities are shown as such.
+    integrated angle can be many turns).  NaN, infinities and angles of 1e15" or more (beyond
+    any real rotation; a wrong scale factor) are shown as they are, not split.
     """
+    if (plain := _unrounded(arcsec)) is not None:
+        return plain
     value = float(arcsec)
-    if math.isnan(value):
-        return "nan"
-    if math.isinf(value):
-        return "inf" if value > 0 else "-inf"
     hundredths = _hundredths(abs(value))
     sign = "-" if value < 0 and hundredths else ""
     degrees, rest = divmod(hundredths, 3600 * 100)
@@ -152,7 +173,8 @@ def parse_address(text: str | None, *, default_host: str = DEFAULT_HOST, default
         raise UsageError(str(exc)) from None
 
 
-def _format_address(host: str, port: int) -> str:
+def format_address(host: str, port: int) -> str:
+    """``HOST:PORT``, with an IPv6 address in brackets (``[::1]:2948``): what ``parse_address`` reads back."""
     return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
 
 
@@ -167,7 +189,10 @@ def _show(value: Any, spec: str = "") -> str:
     if _is_number(value):
         if isinstance(value, float) and not math.isfinite(value):
             return str(value)
-        return format(value, spec)
+        try:
+            return format(value, spec)
+        except OverflowError:  # an integer beyond float's range, in a float format
+            return str(_unrounded(value))
     if isinstance(value, bool):
         return "true" if value else "false"
     text = value if isinstance(value, str) else json.dumps(value, separators=(",", ":"), default=str)
@@ -534,7 +559,7 @@ def _connect(host: str, port: int, timeout_s: float) -> socket.socket:
         else:
             reason = exc.strerror or str(exc) or type(exc).__name__
         raise DeviceError(
-            f"cannot connect to {_format_address(host, port)}: {reason} (is `fog-driver run` running?)"
+            f"cannot connect to {format_address(host, port)}: {reason} (is `fog-driver run` running?)"
         ) from None
 
 
@@ -563,7 +588,7 @@ def run_watch(
         raise UsageError(f"--duration must be > 0 s, not {duration_s!r}")
     if rate_hz is not None and not (rate_hz > 0 and math.isfinite(rate_hz)):
         raise UsageError(f"--rate-hz must be > 0, not {rate_hz!r}")
-    address = _format_address(host, port)
+    address = format_address(host, port)
     watch: _Watch | None = None
     sock: socket.socket | None = None
     try:
