@@ -128,7 +128,7 @@ def wait_until_gone(hub, log_events: LogEvents, disconnects: int) -> None:
         hub.publish({"class": "STATUS"})
 
 
-# --------------------------------------------------------------------------- C1: the service's Future is never cancelled
+# ------------------------------------------------------------------ C1: the service's Future is never cancelled
 
 
 @pytest.mark.parametrize("command", ["DEFER", "LATE"])
@@ -228,7 +228,7 @@ def test_a_blocking_control_callback_delays_nobody_elses_angles(make_hub):
     assert operator.expect("ECHO")["args"] == {}
 
 
-# --------------------------------------------------------------------------- H1: one client cannot stop delivery to others
+# ------------------------------------------------------------------ H1: one client cannot stop delivery to others
 
 
 def watch(conn: Conn, policy: str = '{"enable":true}') -> None:
@@ -283,7 +283,7 @@ def test_a_delivery_failure_costs_only_that_client(make_hub, log_events):
     assert hub.watchers == 2
 
 
-# --------------------------------------------------------------------------- H3: floods cost their sender, not the others
+# ------------------------------------------------------------------ H3: floods cost their sender, not the others
 
 
 def test_empty_and_blank_lines_count_against_the_rate_limit(make_hub):
@@ -564,7 +564,8 @@ def test_out_of_descriptors_the_hub_logs_little_and_serves_on(make_hub, log_even
             os.close(fd)
     errors = log_events.named("hub_loop_error")
     assert 1 <= len(errors) <= 10  # at most 5 a second; here one or two seconds
-    assert errors[0]["message"] == "socket.accept() out of system resource" and "Too many open files" in errors[0]["error"]
+    assert errors[0]["message"] == "socket.accept() out of system resource"
+    assert "Too many open files" in errors[0]["error"]
     summary = [e for e in log_events.named("log_lines_suppressed") if e["suppressed_event"] == "hub_loop_error"]
     assert summary and summary[0]["count"] >= 1
     conn_of(waiting[0]).greeting()  # once descriptors are free, the waiting connections are accepted

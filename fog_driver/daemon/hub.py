@@ -93,8 +93,9 @@ delays anybody else).  Each is a module constant or a :class:`Hub` argument
   address for ``auth_backoff_base_s`` (1 s), doubled each time up to
   ``auth_backoff_max_s`` (300 s); while blocked, ``?AUTH`` is refused with
   ``ERROR`` "too many failed attempts, retry in N s" without looking at the
-  token.  An address is forgotten after a success, and 300 s after its last
-  block ended (at most 4096 addresses are remembered, ``MAX_THROTTLED_PEERS``);
+  token.  An address is forgotten after a success, and ``auth_backoff_max_s``
+  after its last failure or block ended (at most 4096 addresses are remembered,
+  ``MAX_THROTTLED_PEERS``; the least recently failed are forgotten first);
 - a control command waits ``control_timeout_s`` (30 s) for its answer, or the
   service's own deadline (:class:`Deferred`);
 - per-client log lines (connected, disconnected, refused, dropped, failed,
@@ -170,9 +171,9 @@ DEFAULT_MAX_LINE_BYTES = 4096
 DEFAULT_MAX_BACKLOG_S = 2.0
 #: Bytes without a newline after which a client is disconnected.
 MAX_UNTERMINATED_BYTES = 64 * 1024
-#: Commands per second per client before the excess is refused.
+#: Lines per second per client (commands, empty or oversized lines) before the excess is refused.
 MAX_COMMANDS_PER_S = 100
-#: Refused (excess) commands after which a client is disconnected.
+#: Refused (excess) lines after which a client is disconnected.
 MAX_EXCESS_COMMANDS = 1000
 #: Failed (or refused) ``?AUTH`` attempts after which a connection is closed.
 MAX_AUTH_FAILURES = 5
@@ -507,6 +508,9 @@ class Hub:
     ``auth_backoff_base_s`` and ``auth_backoff_max_s`` set the backoff on failed
     ``?AUTH`` attempts per peer address; ``log_lines_per_s`` caps the log lines of
     each per-client event.  The module docstring's "Limits" says what each does.
+
+    While it runs, :meth:`set_token` and :meth:`set_max_backlog_s` change the token
+    and the backlog limit from any thread (the service calls them on SIGHUP).
     """
 
     def __init__(
@@ -666,7 +670,8 @@ class Hub:
         """Start the loop thread; return ``(host, port)`` once the socket listens (raises OSError if it cannot)."""
         if self._thread is not None:
             raise RuntimeError("hub already started")
-        self._control_pool = concurrent.futures.ThreadPoolExecutor(CONTROL_WORKERS, thread_name_prefix="fog-hub-control")
+        self._control_pool = concurrent.futures.ThreadPoolExecutor(
+            CONTROL_WORKERS, thread_name_prefix="fog-hub-control")
         self._thread = threading.Thread(target=self._run, name="fog-hub", daemon=True)
         self._thread.start()
         self._ready.wait()
