@@ -9,6 +9,7 @@ exit 70 (EX_SOFTWARE), and its traceback in the log on stderr.
 from __future__ import annotations
 
 import argparse
+import errno
 import json
 import math
 import signal
@@ -22,7 +23,7 @@ import structlog
 from . import __version__
 from .capture import format_summary, inspect_capture
 from .console import Progress, configure_logging
-from .errors import FogDriverError, InputFileError, InternalError, OutputFileError, UsageError
+from .errors import FogDriverError, InputFileError, InternalError, OutputFileError, TemporaryFailure, UsageError
 from .signals import SignalDispatcher, stop_on_signals
 
 EXIT_PROBLEMS = 1  # inspect --strict found problems
@@ -409,7 +410,10 @@ def cmd_run(args: argparse.Namespace) -> int:
                           "(--simulate runs the built-in simulated instrument)")  # fmt: skip
     service = Service(config, port=port)
     service.stop = stop
-    host, listen_port = service.start()
+    try:
+        host, listen_port = service.start()
+    except ConfigError as exc:
+        raise _temporary_if_the_address_is_busy(exc) from None
 
     def on_signal(signum: int) -> None:
         """In the signal dispatcher's thread: a reload never runs inside a handler, nor twice at once."""
@@ -435,6 +439,17 @@ def cmd_run(args: argparse.Namespace) -> int:
     if status != 0 and service.failure is not None and not isinstance(service.failure, FogDriverError):
         raise InternalError.from_exception(service.failure)  # the acquisition thread logged its traceback
     return status
+
+
+def _temporary_if_the_address_is_busy(error: FogDriverError) -> FogDriverError:
+    """``Service.start`` reports every failure to listen as a ``ConfigError`` (exit 78, which systemd's
+    ``RestartPreventExitStatus=78`` never restarts); a listen address in use (the previous instance still
+    closing, another program) or not on this host yet (the network coming up) may clear by itself: a
+    ``TemporaryFailure``, exit 75, restarted.  The socket's ``OSError`` is the error's context."""
+    cause = error.__context__
+    if isinstance(cause, OSError) and cause.errno in (errno.EADDRINUSE, errno.EADDRNOTAVAIL):
+        return TemporaryFailure(str(error))
+    return error
 
 
 def _stdin_is_a_terminal() -> bool:

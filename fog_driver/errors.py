@@ -27,6 +27,13 @@ class DeviceError(FogDriverError):
     exit_status = os.EX_UNAVAILABLE  # 69
 
 
+class TemporaryFailure(FogDriverError):
+    """A failure that may go away by itself, such as a listen address in use or not up yet: exit 75
+    (EX_TEMPFAIL), so a service manager starts the daemon again (78 would stop it for good)."""
+
+    exit_status = os.EX_TEMPFAIL  # 75
+
+
 class OutputFileError(FogDriverError):
     """An output file cannot be created, would overwrite data, or cannot be written (disk full)."""
 

@@ -9,6 +9,7 @@ import contextlib
 import os
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -138,3 +139,22 @@ def test_simulate_and_port_together_are_a_usage_error(tmp_path):
     proc = subprocess.run(_run_command("--simulate", "--port", "/dev/ttyUSB0"), cwd=tmp_path, capture_output=True,
                           text=True, stdin=subprocess.DEVNULL, timeout=GUARD_S)  # fmt: skip
     assert proc.returncode == 2 and "not allowed with argument" in proc.stderr
+
+
+# -- exit statuses systemd acts on ------------------------------------------------------------------
+
+
+def test_a_listen_address_in_use_is_exit_75_so_systemd_tries_again(tmp_path):
+    """The review's L5: EADDRINUSE was exit 78, which RestartPreventExitStatus=78 never restarts; a
+    previous instance still closing, or another program for a while, stopped the unit for good."""
+    with socket.create_server(("127.0.0.1", 0)) as holder:
+        busy = f"127.0.0.1:{holder.getsockname()[1]}"
+        proc = subprocess.run([sys.executable, "-m", "fog_driver", "run", "--port", f"replay://{DATA / 'sim-short.bin'}",
+                               "--listen", busy, "--capture-dir", str(tmp_path / "c")],
+                              cwd=tmp_path, capture_output=True, text=True, stdin=subprocess.DEVNULL,
+                              timeout=GUARD_S)  # fmt: skip
+    assert proc.returncode == 75, proc.stderr
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("fog-driver:")]
+    assert len(errors) == 1 and errors[0].startswith(f"fog-driver: error: cannot listen on {busy}: ")
+    assert "address already in use" in errors[0].lower()
+    assert "Traceback" not in proc.stderr
