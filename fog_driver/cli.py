@@ -12,6 +12,7 @@ import argparse
 import errno
 import json
 import math
+import os
 import signal
 import sys
 import threading
@@ -389,6 +390,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from .daemon.watch import format_address
 
     configure_logging(max(args.verbose, 1), json=True)  # a service logs JSON lines: per-second summaries
+    _never_world_writable()
 
     def read_config() -> DriverConfig:
         config = load_config(args.config) if args.config else DriverConfig()
@@ -439,6 +441,13 @@ def cmd_run(args: argparse.Namespace) -> int:
     if status != 0 and service.failure is not None and not isinstance(service.failure, FogDriverError):
         raise InternalError.from_exception(service.failure)  # the acquisition thread logged its traceback
     return status
+
+
+def _never_world_writable() -> None:
+    """Add 'others may not write' to the umask the daemon was given (even 0): no capture, sidecar or state
+    file it creates is world-writable.  (The systemd unit sets ``UMask=0027``: group-readable only.)
+    Call it before any thread starts: the umask is the whole process's."""
+    os.umask(os.umask(0o022) | 0o002)
 
 
 def _temporary_if_the_address_is_busy(error: FogDriverError) -> FogDriverError:

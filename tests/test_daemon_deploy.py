@@ -1,24 +1,41 @@
-"""The daemon as it is deployed: installed from a wheel, started from anywhere.
+"""The daemon as it is deployed: installed from a wheel, started from anywhere, run by the shipped systemd
+unit with the example instrument config; the exit statuses systemd acts on.
 
-Readiness comes from the daemon's "listening on" line on its stdout: never from sleeps.
+Readiness comes from the daemon's "listening on" line on its stdout, or from READY=1 on a notify socket
+the test listens on: never from sleeps.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import shlex
 import shutil
 import signal
 import socket
+import stat
 import subprocess
 import sys
+import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+import yaml
+
+from fog_driver.config import load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "tests" / "data"
+UNIT = ROOT / "configs" / "systemd" / "fog-driver@.service"
+EXAMPLE_CONFIG = ROOT / "configs" / "systemd" / "example-instrument.yaml"
+INSTALLED_FOG_DRIVER = "/opt/fog-driver/venv/bin/fog-driver"  # the unit's ExecStart (the README's install)
+STATE_DIRECTORY = "/var/lib/fog-driver"
+INSTANCE = "bench1"
+#: Service.shutdown's own budget: the acquisition thread joined within 10 s, the hub within 5 s.
+DAEMON_SHUTDOWN_BUDGET_S = 15.0
+#: The environment systemd gives a service (no virtual environment on the PATH), before the unit's own.
+SYSTEMD_PATH = "/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin"
 GUARD_S = 60.0
 INSTALL_GUARD_S = 600.0  # building a wheel and installing its dependencies into a new virtual environment
 
@@ -30,11 +47,11 @@ def _environment_outside_the_source_tree() -> dict[str, str]:
 
 @contextlib.contextmanager
 def daemon_process(command: list[str], *, cwd: Path, log: Path, env: dict[str, str] | None = None,
-                   stdin: int = subprocess.DEVNULL) -> Iterator[subprocess.Popen]:  # fmt: skip
+                   stdin: int = subprocess.DEVNULL, umask: int = -1) -> Iterator[subprocess.Popen]:  # fmt: skip
     """``command`` running with its stdout piped and its stderr in ``log``; killed if still running at the end."""
     with log.open("w") as stderr:
         proc = subprocess.Popen(command, cwd=cwd, env=env, stdin=stdin, stdout=subprocess.PIPE, stderr=stderr,
-                                text=True)  # fmt: skip
+                                text=True, umask=umask)  # fmt: skip
         try:
             yield proc
         finally:
@@ -44,9 +61,9 @@ def daemon_process(command: list[str], *, cwd: Path, log: Path, env: dict[str, s
 
 
 def run_until_ready_then_terminate(command: list[str], *, cwd: Path, log: Path, env: dict[str, str] | None = None,
-                                   stdin: int = subprocess.DEVNULL) -> str:  # fmt: skip
+                                   stdin: int = subprocess.DEVNULL, umask: int = -1) -> str:  # fmt: skip
     """Start ``command``; once it prints its readiness line, SIGTERM it; the line (asserting exit 0)."""
-    with daemon_process(command, cwd=cwd, log=log, env=env, stdin=stdin) as proc:
+    with daemon_process(command, cwd=cwd, log=log, env=env, stdin=stdin, umask=umask) as proc:
         line = proc.stdout.readline()
         assert "listening on" in line, (line, log.read_text()[-5000:])
         proc.send_signal(signal.SIGTERM)
@@ -158,3 +175,142 @@ def test_a_listen_address_in_use_is_exit_75_so_systemd_tries_again(tmp_path):
     assert len(errors) == 1 and errors[0].startswith(f"fog-driver: error: cannot listen on {busy}: ")
     assert "address already in use" in errors[0].lower()
     assert "Traceback" not in proc.stderr
+
+
+def test_the_daemon_never_creates_world_writable_files(tmp_path):
+    """Started with umask 0, the daemon's capture directory was 0777 (anyone could plant or replace files)."""
+    run_until_ready_then_terminate(
+        [sys.executable, "-m", "fog_driver", "run", "--port", f"replay://{DATA / 'sim-short.bin'}", "--listen",
+         "127.0.0.1:0", "--capture-dir", "c"], cwd=tmp_path, log=tmp_path / "daemon.log", umask=0)  # fmt: skip
+    assert stat.S_IMODE((tmp_path / "c").stat().st_mode) == 0o775
+    for path in (tmp_path / "c").iterdir():
+        assert not path.stat().st_mode & 0o002, path
+
+
+# -- the systemd unit and the example instrument config, as shipped ---------------------------------
+
+
+def parse_unit(text: str) -> dict[str, dict[str, list[str]]]:
+    """systemd's INI-like unit syntax: [Section], Key=value, '#'/';' comments, repeatable keys."""
+    sections: dict[str, dict[str, list[str]]] = {}
+    current = None
+    for number, raw in enumerate(text.splitlines(), 1):
+        line = raw.strip()
+        if not line or line[0] in "#;":
+            continue
+        assert not line.endswith("\\"), f"line {number}: continuation lines not expected"
+        if line.startswith("[") and line.endswith("]"):
+            current = sections.setdefault(line[1:-1], {})
+            continue
+        assert current is not None and "=" in line, f"line {number}: not Key=value inside a section: {raw!r}"
+        key, value = line.split("=", 1)
+        current.setdefault(key.strip(), []).append(value.strip())
+    return sections
+
+
+def unit_service_keys() -> dict[str, str]:
+    """The unit's [Service] settings (the last value of a repeated key)."""
+    return {key: values[-1] for key, values in parse_unit(UNIT.read_text(encoding="utf-8"))["Service"].items()}
+
+
+def this_machines_fog_driver() -> Path:
+    """The ``fog-driver`` this test environment installed, standing in for the unit's /opt/fog-driver one."""
+    path = Path(sys.executable).with_name("fog-driver")
+    assert path.is_file(), f"{path}: the tests need the package installed in their virtual environment"
+    return path
+
+
+def test_the_unit_and_the_example_config_fit_together():
+    unit = parse_unit(UNIT.read_text(encoding="utf-8"))
+    assert set(unit) == {"Unit", "Service"}
+    assert "%i" in unit["Unit"]["Description"][0] and unit["Unit"]["StartLimitIntervalSec"] == ["0"]
+    service = unit_service_keys()
+    assert service["Type"] == "notify"
+    assert service["ExecStart"] == f"{INSTALLED_FOG_DRIVER} run --config /etc/fog-driver/%i.yaml"
+    assert (service["User"], service["Group"], service["SupplementaryGroups"]) == ("fog-driver", "fog-driver", "dialout")
+    assert service["StateDirectory"] == "fog-driver" and service["StateDirectoryMode"] == "0750"
+    assert service["WorkingDirectory"] == service["ReadWritePaths"] == STATE_DIRECTORY
+    assert service["UMask"] == "0027"
+    assert service["Restart"] == "on-failure" and service["RestartPreventExitStatus"] == "78"
+    assert service["KillSignal"] == "SIGTERM" and float(service["TimeoutStopSec"]) > DAEMON_SHUTDOWN_BUDGET_S
+    assert (service["NoNewPrivileges"], service["ProtectSystem"], service["PrivateTmp"]) == ("yes", "strict", "yes")
+    assert "PrivateDevices" not in service and "DevicePolicy" not in service  # they would hide the serial port
+
+    config = load_config(EXAMPLE_CONFIG)
+    assert config.port  # with none the daemon exits 78 under systemd
+    assert Path(config.capture_dir).is_absolute() and Path(config.capture_dir).is_relative_to(STATE_DIRECTORY)
+    assert config.adapt_state is None  # documented, commented out, below the state directory too
+    assert f"adapt_state: {STATE_DIRECTORY}/{INSTANCE}/" in EXAMPLE_CONFIG.read_text()
+    assert config.status_every_s <= float(service["WatchdogSec"]) / 2
+
+
+def test_systemd_analyze_verifies_the_unit(tmp_path):
+    analyze = shutil.which("systemd-analyze")
+    if analyze is None:
+        message = "systemd-analyze is missing (apt-get install systemd); .ci/run installs it"
+        pytest.fail(message) if os.environ.get("CI") else pytest.skip(message)
+    # The only change: ExecStart names a binary that exists here (verify checks that it is executable).
+    text = UNIT.read_text(encoding="utf-8").replace(f"ExecStart={INSTALLED_FOG_DRIVER} ",
+                                                    f"ExecStart={this_machines_fog_driver()} ")  # fmt: skip
+    assert text != UNIT.read_text(encoding="utf-8")
+    (tmp_path / UNIT.name).write_text(text, encoding="utf-8")
+    proc = subprocess.run([analyze, "verify", "--man=no", str(tmp_path / f"fog-driver@{INSTANCE}.service")],
+                          capture_output=True, text=True, timeout=GUARD_S)  # fmt: skip
+    about_the_unit = [line for line in (proc.stdout + proc.stderr).splitlines() if "fog-driver@" in line]
+    assert proc.returncode == 0 and about_the_unit == [], proc.stdout + proc.stderr
+
+
+def test_the_units_command_with_the_example_config_gets_ready_and_stops_cleanly(tmp_path):
+    """ExecStart= exactly, with the unit's Environment=, UMask= and working directory, the example config
+    copied with its paths moved into a temporary root and a replay port: READY=1, WATCHDOG=1 and STOPPING=1
+    on the notify socket, exit 0 on SIGTERM, and everything written below the (mapped) state directory."""
+    service = unit_service_keys()
+    root = tmp_path / "root"
+    state = root / STATE_DIRECTORY.lstrip("/")
+    state.mkdir(parents=True, mode=int(service["StateDirectoryMode"], 8))  # what StateDirectory= makes
+
+    config_doc = yaml.safe_load(EXAMPLE_CONFIG.read_text().replace(STATE_DIRECTORY, str(state)))
+    config_doc.update(port=f"replay://{DATA / 'sim-short.bin'}?rate=100", listen="127.0.0.1:0")
+    argv = shlex.split(service["ExecStart"].replace("%i", INSTANCE))
+    assert argv[0] == INSTALLED_FOG_DRIVER
+    argv[0] = str(this_machines_fog_driver())
+    for k, arg in enumerate(argv):
+        if arg.startswith("/etc/fog-driver/"):
+            argv[k] = str(root / arg.lstrip("/"))
+            Path(argv[k]).parent.mkdir(parents=True, exist_ok=True)
+            Path(argv[k]).write_text(yaml.safe_dump(config_doc))
+    assert argv[1:3] == ["run", "--config"] and Path(argv[3]).is_file()
+
+    notify_dir = Path(tempfile.mkdtemp(prefix="fog-notify-"))  # short: an AF_UNIX path has at most 107 bytes
+    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    try:
+        notify.bind(str(notify_dir / "notify"))
+        notify.settimeout(GUARD_S)
+        env = {"PATH": SYSTEMD_PATH, "HOME": str(state), "NOTIFY_SOCKET": str(notify_dir / "notify"),
+               "WATCHDOG_USEC": str(int(service["WatchdogSec"]) * 1_000_000)}  # fmt: skip
+        for assignment in shlex.split(service["Environment"]):
+            key, value = assignment.split("=", 1)
+            env[key] = value
+        messages: list[str] = []
+
+        def wait_for(wanted: str) -> None:
+            """Read notify datagrams until one has the line ``wanted`` (socket.timeout after GUARD_S)."""
+            while not messages or wanted not in messages[-1].split("\n"):
+                messages.append(notify.recv(4096).decode())
+
+        with daemon_process(argv, cwd=state, log=tmp_path / "daemon.log", env=env,
+                            umask=int(service["UMask"], 8)) as proc:  # fmt: skip
+            wait_for("READY=1")
+            wait_for("WATCHDOG=1")
+            proc.send_signal(signal.SIGTERM)
+            assert proc.wait(GUARD_S) == 0, (tmp_path / "daemon.log").read_text()[-5000:]
+        wait_for("STOPPING=1")
+    finally:
+        notify.close()
+        shutil.rmtree(notify_dir)
+    captures = state / INSTANCE / "captures"
+    assert captures.is_dir() and stat.S_IMODE(captures.stat().st_mode) == 0o750
+    files = sorted(str(p.relative_to(root)) for p in root.rglob("*") if not p.is_dir())
+    assert files[0] == f"etc/fog-driver/{INSTANCE}.yaml"  # the config, then what the daemon wrote:
+    assert all(p.startswith(f"{STATE_DIRECTORY.lstrip('/')}/{INSTANCE}/captures/") for p in files[1:]), files
+    assert all(stat.S_IMODE((root / p).stat().st_mode) == 0o640 for p in files[1:])  # UMask=0027

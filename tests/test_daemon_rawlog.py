@@ -1,4 +1,4 @@
-"""The daemon's raw capture (rotating files + sidecars), its systemd notifier and its unit file.
+"""The daemon's raw capture (rotating files + sidecars) and its systemd notifier (the unit file: test_daemon_deploy.py).
 
 No sleeps anywhere: time-based behaviour runs on an injected clock.
 """
@@ -21,8 +21,6 @@ from fog_driver.daemon.sdnotify import Notifier
 from fog_driver.errors import OutputFileError
 from fog_driver.protocol import decode_bytes, decode_file, encode_identity, encode_sample
 
-ROOT = Path(__file__).resolve().parents[1]
-UNIT = ROOT / "configs" / "systemd" / "fog-driver@.service"
 NAME = re.compile(r"^fog-(\d{8}T\d{6}Z)-(\d{4,})\.bin$")
 
 
@@ -527,47 +525,3 @@ def test_sdnotify_send_errors_never_raise(tmp_path):
     assert n.send_errors == 3 and n.sent == 0
     assert "nobody-listens.sock" in n.last_error and "\n" not in n.last_error
     n.close()
-
-
-# -- the systemd unit ------------------------------------------------------------------------------
-
-
-def _parse_unit(text: str) -> dict[str, dict[str, list[str]]]:
-    """systemd's INI-like unit syntax: [Section], Key=value, '#'/';' comments, repeatable keys."""
-    sections: dict[str, dict[str, list[str]]] = {}
-    current = None
-    for number, raw in enumerate(text.splitlines(), 1):
-        line = raw.strip()
-        if not line or line[0] in "#;":
-            continue
-        assert not line.endswith("\\"), f"line {number}: continuation lines not expected"
-        if line.startswith("[") and line.endswith("]"):
-            current = sections.setdefault(line[1:-1], {})
-            continue
-        assert current is not None and "=" in line, f"line {number}: not Key=value inside a section: {raw!r}"
-        key, value = line.split("=", 1)
-        current.setdefault(key.strip(), []).append(value.strip())
-    return sections
-
-
-def test_the_systemd_unit_has_the_keys_the_daemon_relies_on():
-    unit = _parse_unit(UNIT.read_text(encoding="utf-8"))
-    assert set(unit) == {"Unit", "Service"}
-    service = {key: values[-1] for key, values in unit["Service"].items()}
-    assert service["Type"] == "notify"
-    assert service["ExecStart"] == "/usr/bin/env fog-driver run --config /etc/fog-driver/%i.yaml"
-    assert service["WatchdogSec"] == "10"
-    assert service["Restart"] == "on-failure"
-    assert service["RestartPreventExitStatus"] == "78"
-    assert service["KillSignal"] == "SIGTERM"
-    assert service["TimeoutStopSec"] == "10"
-    assert service["SupplementaryGroups"] == "dialout"
-    assert service["NoNewPrivileges"] == "yes"
-    assert service["ProtectSystem"] == "strict"
-    assert service["ReadWritePaths"] == "/var/lib/fog-driver"
-    assert service["PrivateTmp"] == "yes"
-    # The dedicated user is a commented suggestion; nothing hides the serial port.
-    text = UNIT.read_text(encoding="utf-8")
-    assert re.search(r"^#\s*User=", text, re.MULTILINE) and re.search(r"^#\s*Group=", text, re.MULTILINE)
-    assert "PrivateDevices" not in service and "DevicePolicy" not in service
-    assert "%i" in unit["Unit"]["Description"][0]
