@@ -32,7 +32,7 @@ EXAMPLE_CONFIG = ROOT / "configs" / "systemd" / "example-instrument.yaml"
 INSTALLED_FOG_DRIVER = "/opt/fog-driver/venv/bin/fog-driver"  # the unit's ExecStart (the README's install)
 STATE_DIRECTORY = "/var/lib/fog-driver"
 INSTANCE = "bench1"
-#: Service.shutdown's own budget: the acquisition thread joined within 10 s, the hub within 5 s.
+#: Service.shutdown's own budget: the sum of its bounded waits (acquisition, capture, clients).
 DAEMON_SHUTDOWN_BUDGET_S = 15.0
 #: The environment systemd gives a service (no virtual environment on the PATH), before the unit's own.
 SYSTEMD_PATH = "/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin"
