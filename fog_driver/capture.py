@@ -89,13 +89,18 @@ def write_provenance(capture_path: str | Path, fields: dict[str, Any]) -> Path:
 
 
 class CaptureWriter:
-    """Appends raw bytes to a capture file, exactly as given, and tracks size and SHA-256."""
+    """Appends raw bytes to a capture file, exactly as given, and tracks size and SHA-256.
+
+    Unbuffered: each ``write`` hands its bytes to the OS at once (a process killed a moment later loses
+    nothing it wrote), and ``bytes_written`` and ``sha256`` count only what the OS took: after a failed write
+    (a full disk takes part of a chunk) they describe exactly the file on disk.  ``close`` fsyncs.
+    """
 
     def __init__(self, path: str | Path, overwrite: bool = False) -> None:
         self.path = Path(path)
         try:
             # "x" refuses to replace an existing capture: a lost chamber run cannot be re-recorded.
-            self._file: BinaryIO = self.path.open("wb" if overwrite else "xb")
+            self._file: BinaryIO = self.path.open("wb" if overwrite else "xb", buffering=0)
         except FileExistsError:
             raise OutputFileError(f"{self.path}: exists; refusing to overwrite a capture (use --force)") from None
         except OSError as exc:
@@ -104,33 +109,40 @@ class CaptureWriter:
         self.bytes_written = 0
 
     def write(self, chunk: bytes) -> None:
-        try:
-            self._file.write(chunk)
-        except OSError as exc:
-            raise OutputFileError(f"{self.path}: cannot write capture: {exc.strerror or exc}") from None
-        self._sha256.update(chunk)
-        self.bytes_written += len(chunk)
+        """Write all of ``chunk`` (``OutputFileError`` when the OS refuses the rest: counted up to there)."""
+        view = memoryview(chunk)
+        while view:
+            try:
+                n = self._file.write(view)
+            except OSError as exc:
+                raise OutputFileError(f"{self.path}: cannot write capture: {exc.strerror or exc}") from None
+            if not n:  # a raw file returns None only when non-blocking; 0 would loop forever
+                raise OutputFileError(f"{self.path}: cannot write capture: the file takes no more bytes")
+            self._sha256.update(view[:n])
+            self.bytes_written += n
+            view = view[n:]
 
     def flush(self) -> None:
+        """Nothing to do: every ``write`` reached the OS (kept for the writers that call it)."""
+
+    def fsync(self) -> None:
+        """Ask the OS to put what was written on the disk (a power cut then loses nothing before it)."""
         try:
-            self._file.flush()
+            os.fsync(self._file.fileno())
         except OSError as exc:
             raise OutputFileError(f"{self.path}: cannot write capture: {exc.strerror or exc}") from None
 
     def close(self) -> None:
-        """Flush, fsync and close; idempotent.  Failing to flush is an ``OutputFileError``."""
+        """Fsync and close; idempotent.  A failed fsync is an ``OutputFileError``."""
         if self._file.closed:
             return
         try:
-            self._file.flush()
-            os.fsync(self._file.fileno())
-        except OSError as exc:
-            raise OutputFileError(f"{self.path}: cannot write capture: {exc.strerror or exc}") from None
+            self.fsync()
         finally:
             try:
                 self._file.close()
             except OSError:
-                pass  # the flush above already reported it
+                pass  # the fsync above already reported it
 
     @property
     def sha256(self) -> str:
@@ -168,6 +180,7 @@ class CaptureSummary:
     rate_hz: int | None = None
     scale_arcsec_per_count: float | None = None
     identity_changes: int = 0
+    identities_rejected: int = 0  #: IDENTITY frames with a rate of 0 or a scale that is not finite and positive
     duration_s: float | None = None  #: device time from first to last sample
     measured_rate_hz: float | None = None
     tail_bytes_discarded: int = 0  #: bytes after the last valid frame (a cut-off recording)
@@ -191,6 +204,7 @@ class CaptureSummary:
             (self.unknown_frames, ("unknown-type frame", "unknown-type frames")),
             (self.thermometer_faults, ("frame with a thermometer fault", "frames with a thermometer fault")),
             (self.identity_changes - 1 if self.identity_changes > 1 else 0, ("identity change", "identity changes")),
+            (self.identities_rejected, ("implausible IDENTITY frame (ignored)", "implausible IDENTITY frames (ignored)")),
         ]
         found = [f"{n:,} {one if n == 1 else many}" for n, (one, many) in checks if n]
         if self.identity_frames == 0:
@@ -258,6 +272,7 @@ class CaptureSummarizer:
             **shared,
             thermometer_faults=self._thermometer_faults,
             identity_changes=self._stream.identity_changes,
+            identities_rejected=self._stream.identities_rejected,
             provenance=provenance,
         )
         identity = self._stream.identity

@@ -9,7 +9,6 @@ exit 70 (EX_SOFTWARE), and its traceback in the log on stderr.
 from __future__ import annotations
 
 import argparse
-import errno
 import json
 import math
 import os
@@ -24,7 +23,7 @@ import structlog
 from . import __version__
 from .capture import format_summary, inspect_capture
 from .console import Progress, configure_logging
-from .errors import FogDriverError, InputFileError, InternalError, OutputFileError, TemporaryFailure, UsageError
+from .errors import FogDriverError, InputFileError, InternalError, OutputFileError, UsageError
 from .signals import SignalDispatcher, stop_on_signals
 
 EXIT_PROBLEMS = 1  # inspect --strict found problems
@@ -270,12 +269,12 @@ def cmd_compensate(args: argparse.Namespace) -> int:
     model_file = load_model(args.model)
     size = _capture_size(Path(args.capture))
     adapt = None
-    if args.adapt_reference is not None:
+    if args.adapt_reference is not None or args.adapt_state is not None:
         from .compensation.adapt import AdaptConfig
 
         adapt = AdaptConfig()
-    elif args.adapt_state is not None:
-        raise UsageError("--adapt-state goes with --adapt-reference (adapting needs a reference rate)")
+    if args.adapt_state is not None and args.adapt_reference is None and not Path(args.adapt_state).exists():
+        raise InputFileError(f"{args.adapt_state}: no such adaptation state (without --adapt-reference it is only read)")
     for line in model_file.warnings(args.model):
         print(f"warning: {line}")
     progress = Progress()
@@ -287,6 +286,8 @@ def cmd_compensate(args: argparse.Namespace) -> int:
             chunks = compensate_capture(
                 args.capture, model_file, force=args.force, model_name=args.model, adapt=adapt,
                 reference_rate_dph=args.adapt_reference, adapt_state=args.adapt_state,
+                save_adapt_state=args.adapt_reference is not None,
+                scale_override_arcsec_per_count=args.scale_override,
                 progress=lambda done: progress.show(f"compensating {100.0 * done / size:5.1f} %"),
             )  # fmt: skip
             for row in compensated_rows(chunks, args.every):
@@ -412,10 +413,7 @@ def cmd_run(args: argparse.Namespace) -> int:
                           "(--simulate runs the built-in simulated instrument)")  # fmt: skip
     service = Service(config, port=port)
     service.stop = stop
-    try:
-        host, listen_port = service.start()
-    except ConfigError as exc:
-        raise _temporary_if_the_address_is_busy(exc) from None
+    host, listen_port = service.start()  # a listen address in use: TemporaryFailure, exit 75 (restarted)
 
     def on_signal(signum: int) -> None:
         """In the signal dispatcher's thread: a reload never runs inside a handler, nor twice at once."""
@@ -448,17 +446,6 @@ def _never_world_writable() -> None:
     file it creates is world-writable.  (The systemd unit sets ``UMask=0027``: group-readable only.)
     Call it before any thread starts: the umask is the whole process's."""
     os.umask(os.umask(0o022) | 0o002)
-
-
-def _temporary_if_the_address_is_busy(error: FogDriverError) -> FogDriverError:
-    """``Service.start`` reports every failure to listen as a ``ConfigError`` (exit 78, which systemd's
-    ``RestartPreventExitStatus=78`` never restarts); a listen address in use (the previous instance still
-    closing, another program) or not on this host yet (the network coming up) may clear by itself: a
-    ``TemporaryFailure``, exit 75, restarted.  The socket's ``OSError`` is the error's context."""
-    cause = error.__context__
-    if isinstance(cause, OSError) and cause.errno in (errno.EADDRINUSE, errno.EADDRNOTAVAIL):
-        return TemporaryFailure(str(error))
-    return error
 
 
 def _stdin_is_a_terminal() -> bool:
@@ -565,7 +552,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="adapt the weights online, against this known input rate while the table is static "
                         "(deg/h; 0 for a table at rest: Earth rate and bias are captured first)")
     p.add_argument("--adapt-state", metavar="STATE.yaml",
-                   help="with --adapt-reference: restore the adaptation state from here if it exists, save it at the end")
+                   help="restore the adaptation state from here (with --adapt-reference: if it exists, and save it "
+                        "at the end; without: its adapted weights give the estimate, as in a daemon that restored it)")
+    p.add_argument("--scale-override", type=_positive_float, metavar="ARCSEC_PER_COUNT",
+                   help="use this scale factor whatever the IDENTITY frames say (the daemon's "
+                        "scale_override_arcsec_per_count)")
     p.set_defaults(func=cmd_compensate)
 
     p = sub.add_parser("run", help="the headless daemon: live compensation, publishing, control, raw capture")

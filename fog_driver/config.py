@@ -79,6 +79,7 @@ class DriverConfig:
     max_client_backlog_s: float = 2.0
     adapt_reference_dph: float | None = None  #: adapt from the start against this rate (None: frozen)
     adapt_state: str | None = None  #: restore the adaptation state from here at start, save it here
+    force_model: bool = False  #: apply the model even when it was fitted for another instrument serial
 
     def __post_init__(self) -> None:
         if self.port is not None and not self.port:

@@ -19,6 +19,7 @@ so any split of a capture into pieces gives bit-identical samples.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -38,6 +39,17 @@ from .protocol import (
 
 #: Scale factor used before any IDENTITY frame when the configuration gives none.
 DEFAULT_SCALE_ARCSEC_PER_COUNT = 0.01
+#: The largest scale factor an IDENTITY may carry: one count of a degree (real gyros: hundredths of an arcsec).
+MAX_SCALE_ARCSEC_PER_COUNT = 3600.0
+
+
+def identity_is_plausible(identity: IdentityFrame) -> bool:
+    """An IDENTITY a driver can use: a rate of at least 1 Hz and a scale factor in (0, 1 degree] per count.
+
+    A CRC-valid frame from a firmware bug or an unconfigured unit (rate 0, a NaN scale) would otherwise
+    divide by zero or make every later angle NaN."""
+    scale = identity.scale_arcsec_per_count
+    return identity.rate_hz >= 1 and math.isfinite(scale) and 0.0 < scale <= MAX_SCALE_ARCSEC_PER_COUNT
 _US_PER_S = 1e6
 
 
@@ -75,6 +87,10 @@ class SampleBlock:
 
     def __len__(self) -> int:
         return len(self.seq)
+
+    def take(self, index: slice | np.ndarray) -> SampleBlock:
+        """The samples at ``index`` (a slice, a mask or indices), as a block of their own."""
+        return SampleBlock(*(getattr(self, name)[index] for name in self.__dataclass_fields__))
 
     def sample(self, i: int) -> Sample:
         return Sample(
@@ -124,7 +140,10 @@ class SampleStream:
 
     ``scale_override_arcsec_per_count``, when given, is used for every sample
     whatever the instrument says; otherwise ``default_scale_arcsec_per_count``
-    applies until the first IDENTITY frame, whose scale then applies.
+    applies until the first IDENTITY frame, whose scale then applies.  An IDENTITY
+    that is not plausible (``identity_is_plausible``: rate 0, a scale that is not a
+    finite positive number) is counted in ``identities_rejected`` and ignored: the
+    identity in force stays.
     """
 
     def __init__(
@@ -141,6 +160,7 @@ class SampleStream:
         )
         self.identity: IdentityFrame | None = None  #: the latest IDENTITY frame
         self.identity_changes = 0  #: IDENTITY frames that differed from the one before
+        self.identities_rejected = 0  #: implausible IDENTITY frames, ignored
         self._last_seq_wire: int | None = None
         self._last_t_us_wire = 0
         self._seq = 0
@@ -156,6 +176,9 @@ class SampleStream:
         return self.default_scale_arcsec_per_count
 
     def _observe_identity(self, identity: IdentityFrame) -> None:
+        if not identity_is_plausible(identity):
+            self.identities_rejected += 1
+            return
         if self.identity is None or identity[1:] != self.identity[1:]:
             self.identity_changes += 1
         self.identity = identity
@@ -206,15 +229,16 @@ class SampleStream:
         sample_offsets = frames.offset
         # Scale in force at each sample: the latest IDENTITY before it, else the current one.
         scale = np.full(n, self.scale_arcsec_per_count, dtype=np.float64)
+        # The state follows IDENTITY frames after the last sample too, as step() would.
+        for identity in identities:
+            self._observe_identity(identity)
+        identities = [f for f in identities if identity_is_plausible(f)]
         if identities and self.scale_override_arcsec_per_count is None:
             identity_offsets = np.array([f.offset for f in identities], dtype=np.int64)
             identity_scales = np.array([f.scale_arcsec_per_count for f in identities], dtype=np.float64)
             latest = np.searchsorted(identity_offsets, sample_offsets) - 1
             has_identity = latest >= 0
             scale[has_identity] = identity_scales[latest[has_identity]]
-        # The state follows IDENTITY frames after the last sample too, as step() would.
-        for identity in identities:
-            self._observe_identity(identity)
 
         seq_wire = frames.seq.astype(np.int64)
         t_us_wire = frames.t_us.astype(np.int64)

@@ -346,9 +346,19 @@ def test_compensate_cli_adapts_and_keeps_its_state(model_path, tmp_path):
     again = subprocess.run(base + ["--out", str(tmp_path / "b.csv"), "--adapt-reference", "0", "--adapt-state", str(state)],
                            capture_output=True, text=True, timeout=120)  # fmt: skip
     assert again.returncode == 0, again.stderr
-    bad = subprocess.run(base + ["--out", str(tmp_path / "c.csv"), "--adapt-state", str(state)],
-                         capture_output=True, text=True, timeout=60)  # fmt: skip
-    assert bad.returncode == 64 and "--adapt-reference" in bad.stderr
+    # Without a reference: the state's adapted weights, frozen (a daemon that restored it), the file untouched.
+    saved = state.read_bytes()
+    frozen = subprocess.run(base + ["--out", str(tmp_path / "c.csv"), "--adapt-state", str(state)],
+                            capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert frozen.returncode == 0, frozen.stderr
+    assert state.read_bytes() == saved
+    plain = subprocess.run(base + ["--out", str(tmp_path / "e.csv")], capture_output=True, text=True, timeout=60)
+    assert plain.returncode == 0, plain.stderr
+    # 300 s never leave the bias capture (5 min): the restored weights are the frozen ones, bit for bit
+    assert (tmp_path / "c.csv").read_text() == (tmp_path / "e.csv").read_text()
+    missing = subprocess.run(base + ["--out", str(tmp_path / "d.csv"), "--adapt-state", str(tmp_path / "none.yaml")],
+                             capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert missing.returncode == 65 and "no such adaptation state" in missing.stderr
 
 
 def test_fit_config_rates_must_agree(tmp_path):

@@ -21,7 +21,7 @@ from fog_driver.daemon.sdnotify import Notifier
 from fog_driver.errors import OutputFileError
 from fog_driver.protocol import decode_bytes, decode_file, encode_identity, encode_sample
 
-NAME = re.compile(r"^fog-(\d{8}T\d{6}Z)-(\d{4,})\.bin$")
+NAME = re.compile(r"^fog-(\d{6,})-(\d{8}T\d{6}Z)\.bin$")
 
 
 class FakeClock:
@@ -70,7 +70,7 @@ def test_file_names_follow_the_pattern(tmp_path):
     with RotatingCapture(tmp_path / "raw", max_bytes=10, clock=FakeClock()) as cap:
         for chunk in _chunks(2, 5, 10, 10):
             cap.write(chunk)
-    assert [int(NAME.match(p.name)[2]) for p in cap.files] == [0, 1, 2, 3, 4]
+    assert [int(NAME.match(p.name)[1]) for p in cap.files] == [0, 1, 2, 3, 4]
     for p in cap.files:
         assert p.parent == tmp_path / "raw"
         assert sidecar_path(p).exists()
@@ -137,7 +137,7 @@ def test_write_after_close_is_an_error_and_close_is_idempotent(tmp_path):
 
 
 @pytest.mark.parametrize(
-    "kwargs", [{"max_bytes": 0}, {"max_age_s": 0}, {"flush_every_s": -1}, {"prefix": ""}, {"prefix": "a/b"}]
+    "kwargs", [{"max_bytes": 0}, {"max_age_s": 0}, {"prefix": ""}, {"prefix": "a/b"}]
 )
 def test_bad_arguments_are_value_errors(tmp_path, kwargs):
     with pytest.raises(ValueError):
@@ -184,36 +184,16 @@ def test_poll_closes_an_old_file_on_a_quiet_port(tmp_path):
     assert [p.read_bytes() for p in cap.files] == [b"first", b"second"]
 
 
-def test_flush_cadence_with_an_injected_clock(tmp_path):
-    clock = FakeClock(0.0)
-    cap = RotatingCapture(tmp_path, flush_every_s=1.0, clock=clock)
-    cap.write(b"a" * 100)
-    path = cap.current_path
-    assert os.stat(path).st_size == 0  # still in the process's buffer
-    clock.t = 0.5
-    cap.write(b"b" * 100)
-    assert os.stat(path).st_size == 0
-    clock.t = 1.0  # a second since the file opened: flushed to the OS (a SIGKILL now loses nothing)
-    cap.write(b"c" * 100)
-    assert os.stat(path).st_size == 300
-    clock.t = 1.7
-    cap.write(b"d" * 100)
-    assert os.stat(path).st_size == 300
-    clock.t = 2.0
-    cap.poll()  # a quiet port is flushed by poll
-    assert os.stat(path).st_size == 400
-    cap.write(b"e" * 100)
-    cap.flush()
-    assert os.stat(path).st_size == 500
-    cap.close()
-    assert os.stat(path).st_size == 500
-
-
-def test_flush_every_zero_flushes_every_write(tmp_path):
-    cap = RotatingCapture(tmp_path, flush_every_s=0.0, clock=FakeClock())
+def test_every_write_reaches_the_os_at_once_and_sync_fsyncs(tmp_path, monkeypatch):
+    """Unbuffered: a process killed right after a write loses nothing it wrote."""
+    cap = RotatingCapture(tmp_path, clock=FakeClock())
     for k in range(1, 4):
         cap.write(b"z" * 10)
         assert os.stat(cap.current_path).st_size == 10 * k
+    synced = []
+    monkeypatch.setattr(os, "fsync", lambda fd: synced.append(fd))
+    cap.sync()
+    assert len(synced) == 1
     cap.close()
 
 
@@ -262,14 +242,21 @@ def test_update_provenance_reaches_the_current_and_later_sidecars(tmp_path):
         assert read_provenance(path)["port"] == "p"
 
 
-def test_an_existing_name_is_skipped_never_overwritten(tmp_path, monkeypatch):
+def test_names_sort_in_opening_order_across_restarts_whatever_the_clock_says(tmp_path, monkeypatch):
+    """The number continues from the directory's highest: a restart within the same second, or after the
+    wall clock stepped back (no RTC at boot, then NTP), still sorts after the earlier files."""
     monkeypatch.setattr(rawlog, "utc_now_iso", lambda: "2024-05-06T07:08:09.000Z")
     with RotatingCapture(tmp_path, clock=FakeClock()) as first:
         first.write(b"first run")
     with RotatingCapture(tmp_path, clock=FakeClock()) as second:  # a restart within the same second
         second.write(b"second run")
-    assert [p.name for p in first.files] == ["fog-20240506T070809Z-0000.bin"]
-    assert [p.name for p in second.files] == ["fog-20240506T070809Z-0001.bin"]
+    monkeypatch.setattr(rawlog, "utc_now_iso", lambda: "1970-01-01T00:00:05.000Z")
+    with RotatingCapture(tmp_path, clock=FakeClock()) as third:  # the clock went back
+        third.write(b"third run")
+    assert [p.name for p in first.files] == ["fog-000000-20240506T070809Z.bin"]
+    assert [p.name for p in second.files] == ["fog-000001-20240506T070809Z.bin"]
+    assert [p.name for p in third.files] == ["fog-000002-19700101T000005Z.bin"]
+    assert _concat(sorted(tmp_path.glob("*.bin"))) == b"first runsecond runthird run"
     assert first.files[0].read_bytes() == b"first run"
 
 

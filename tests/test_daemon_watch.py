@@ -494,3 +494,50 @@ def test_server_text_cannot_inject_control_characters():
 def test_render_shows_the_watch_policy_in_force(policy, shown):
     received = [line for line in render({"watch": {"class": "WATCH", **policy}}) if line.startswith("received")]
     assert received[0].endswith(shown)
+
+
+# --------------------------------------------------------------------------- a daemon with a token
+
+
+def test_the_token_is_sent_first_so_a_token_daemon_keeps_the_watch():
+    """A token-protected daemon closes a client that has not authorized within its auth deadline: the watch
+    sends ?AUTH before ?WATCH (the token from FOG_DRIVER_TOKEN), and without it is closed."""
+    from fog_driver.daemon.hub import Hub
+
+    hub = Hub("127.0.0.1", 0, version=lambda: {"release": "0.1.0", "proto_major": 1, "proto_minor": 0},
+              device=lambda: None, control=lambda name, args, cid: {"class": name}, token="a-long-token",
+              auth_deadline_s=0.3)  # fmt: skip
+    host, port = hub.start()
+    stop = threading.Event()
+
+    def publish() -> None:  # the instrument: 100 samples a second (a pace, not a synchronisation)
+        seq = 0
+        while not stop.is_set():
+            seq += 1
+            hub.publish_angles([angle(seq, t_s=0.01 * seq)])
+            stop.wait(0.01)
+
+    publisher = threading.Thread(target=publish, daemon=True)
+    publisher.start()
+    try:
+        out = io.StringIO()
+        assert run_watch(host, port, rate_hz=None, count=100, out=out, token="a-long-token") == 0
+        out = io.StringIO()
+        assert run_watch(host, port, rate_hz=None, count=100_000, out=out) == 1  # closed at the deadline
+        assert "closed the connection" in out.getvalue()
+    finally:
+        stop.set()
+        publisher.join(GUARD_S)
+        hub.stop()
+
+
+def test_watch_command_takes_the_token_from_the_environment(monkeypatch):
+    from fog_driver.daemon import watch as watch_module
+
+    seen = {}
+    monkeypatch.setattr(watch_module, "run_watch", lambda host, port, **kwargs: seen.update(kwargs) or 0)
+    monkeypatch.setenv("FOG_DRIVER_TOKEN", "from-the-env")
+    assert watch_module.watch_command("127.0.0.1:1") == 0 and seen["token"] == "from-the-env"
+    monkeypatch.delenv("FOG_DRIVER_TOKEN")
+    watch_module.watch_command("127.0.0.1:1")
+    assert seen["token"] is None

@@ -300,6 +300,11 @@ def read_state_doc(path: str | Path) -> dict[str, Any]:
     return read_tagged_yaml(path, "adaptation state", ADAPT_STATE_FORMAT, ADAPT_STATE_SCHEMA_VERSION)
 
 
+def write_state_doc(path: str | Path, doc: dict[str, Any]) -> Path:
+    """Write a ``state_document`` to ``path`` (atomically; ``OutputFileError`` on failure)."""
+    return write_yaml(Path(path), doc, "adaptation state")
+
+
 def runaway_for(fit_residual_dph: float | None) -> float:
     """The adapted estimate's largest allowed departure from the frozen one, deg/h: ``RUNAWAY_FIT_RESIDUALS``
     times the model's fit residual, clipped to [``RUNAWAY_MIN_DPH``, ``RUNAWAY_MAX_DPH``];
@@ -687,7 +692,11 @@ class OnlineReadout:
                    pipeline: dict[str, Any] | None = None) -> Path:  # fmt: skip
         """Write the state (and a static detector's, and the compensator's ``pipeline`` state, if given) as
         YAML; ``OutputFileError`` on failure."""
-        path = Path(path)
+        return write_state_doc(path, self.state_document(detector, pipeline))
+
+    def state_document(self, detector: StaticDetector | None = None,
+                       pipeline: dict[str, Any] | None = None) -> dict[str, Any]:  # fmt: skip
+        """What ``save_state`` writes, as a document of plain values (a snapshot: later steps do not change it)."""
         doc: dict[str, Any] = {
             "format": ADAPT_STATE_FORMAT,
             "schema_version": ADAPT_STATE_SCHEMA_VERSION,
@@ -699,7 +708,7 @@ class OnlineReadout:
             doc["static_detector"] = detector.to_dict()
         if pipeline is not None:
             doc["pipeline"] = pipeline
-        return write_yaml(path, doc, "adaptation state")
+        return doc
 
     def load_state_file(self, path: str | Path, detector: StaticDetector | None = None) -> StaticDetector | None:
         """Restore the state from ``save_state``'s file; a corrupt, wrong-format or wrong-version file, or one

@@ -1,16 +1,135 @@
-"""Compensating a capture file: the loop ``fog-driver compensate`` and the benchmarks share."""
+"""A model applied to an instrument's stream: the binding the daemon and ``fog-driver compensate`` share.
+
+The same rules live and offline, so that a capture compensated offline gives what the daemon published:
+
+- The compensator is built at the first plausible IDENTITY frame (``stream.identity_is_plausible``): its
+  rate gives the frame period.  Samples before it are compensated with it once it arrives.
+- A model fitted for another instrument serial is refused (``ModelMismatchError``) unless ``force``.
+- A later IDENTITY with another serial or another rate (a unit swapped on the port, a rate changed) rebuilds
+  the compensator: the model starts at rest as at switch-on, the angles carry on, and the first frame after
+  it is flagged ``gap``.  The serial is checked again.  A change of scale factor alone needs nothing: the
+  sample stream applies it.
+"""
 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+import numpy as np
+
 from ..errors import InputFileError, UsageError
-from ..protocol import iter_decode_file
-from ..stream import SampleStream
+from ..protocol import IdentityFrame, iter_decode_file
+from ..stream import SampleBlock, SampleStream, identity_is_plausible
 from .adapt import AdaptConfig
-from .compensator import CompensatedColumns, Compensator
+from .blocks import FLAG_GAP
+from .compensator import CompensatedColumns, CompensatedSample, Compensator
 from .model import ModelFile
+
+
+class ModelMismatchError(UsageError):
+    """The model was fitted for another instrument than the one on the port."""
+
+
+class InstrumentCompensation:
+    """A model file bound to the instrument on a stream (see the module docstring).
+
+    ``bind(identity)`` at every plausible IDENTITY, ``step``/``run`` for samples once ``bound``.
+    ``adapt_state``, when given and existing, is restored into the first compensator (as a new run).
+    """
+
+    def __init__(self, model_file: ModelFile, *, force: bool = False, model_name: str = "the model",
+                 hint: str = "use --force to apply it anyway", adapt: AdaptConfig | None = None,
+                 reference_rate_dph: float | None = None, adapt_state: str | Path | None = None) -> None:  # fmt: skip
+        self.model_file = model_file
+        self.force = force
+        self.model_name = model_name
+        self.hint = hint
+        self.adapt = adapt
+        self.reference_rate_dph = reference_rate_dph
+        self.adapt_state = adapt_state
+        self.compensator: Compensator | None = None
+        self.identity: IdentityFrame | None = None  #: the identity the compensator was built for
+        self.rebuilds = 0  #: compensators rebuilt for a new serial or rate
+        self.adapt_state_loaded = False
+        self._flag_next = False
+
+    @property
+    def bound(self) -> bool:
+        return self.compensator is not None
+
+    def changes_binding(self, identity: IdentityFrame) -> bool:
+        """Whether ``identity`` (plausible) builds or rebuilds the compensator."""
+        return self.identity is None or (identity.serial, identity.rate_hz) != (self.identity.serial,
+                                                                                self.identity.rate_hz)  # fmt: skip
+
+    def check(self, identity: IdentityFrame, model_file: ModelFile | None = None) -> None:
+        """``ModelMismatchError`` when ``model_file`` (default: this one) was fitted for another serial."""
+        model_file = model_file or self.model_file
+        if identity.serial != model_file.instrument_serial and not self.force:
+            raise ModelMismatchError(
+                f"{self.model_name} was fitted for instrument {model_file.instrument_serial!r}, "
+                f"the instrument is {identity.serial!r} ({self.hint})"
+            )
+
+    def bind(self, identity: IdentityFrame) -> str | None:
+        """Take a plausible IDENTITY: ``"bound"`` (the first), ``"rebuilt"`` (a new serial or rate), else None."""
+        if not self.changes_binding(identity):
+            self.identity = identity
+            return None
+        self.check(identity)
+        old = self.compensator
+        reference = old.reference_rate_dph if old is not None else self.reference_rate_dph
+        new = Compensator(self.model_file, 1.0 / identity.rate_hz, adapt=self.adapt, reference_rate_dph=reference)
+        self.identity = identity
+        if old is None:
+            if self.adapt is not None and self.adapt_state is not None and Path(self.adapt_state).exists():
+                new.load_adaptation(self.adapt_state)
+                self.adapt_state_loaded = True
+            self.compensator = new
+            return "bound"
+        new.angle_raw_arcsec, new.angle_comp_arcsec = old.angle_raw_arcsec, old.angle_comp_arcsec
+        self.compensator = new
+        self.rebuilds += 1
+        self._flag_next = True
+        return "rebuilt"
+
+    def replace_model(self, model_file: ModelFile, compensator: Compensator) -> None:
+        """Use ``model_file`` through ``compensator`` (built for it and continued from the current one) from now on."""
+        self.model_file = model_file
+        self.compensator = compensator
+
+    def step(self, sample) -> CompensatedSample:
+        c = self.compensator.step(sample)
+        if self._flag_next:
+            self._flag_next = False
+            c = c._replace(flags=c.flags | FLAG_GAP)
+        return c
+
+    def run(self, samples: SampleBlock) -> CompensatedColumns:
+        out = self.compensator.run(samples)
+        if self._flag_next and len(out):
+            self._flag_next = False
+            out.flags[0] |= FLAG_GAP
+        return out
+
+
+def split_at_identities(samples: SampleBlock, identities: list[IdentityFrame],
+                        binding: InstrumentCompensation) -> list[tuple[IdentityFrame | None, SampleBlock]]:  # fmt: skip
+    """``samples`` cut where an IDENTITY among ``identities`` would change ``binding`` (plausible ones, in
+    stream order): ``(identity to bind first or None, the samples after it)``; the first part has None."""
+    parts: list[tuple[IdentityFrame | None, SampleBlock]] = []
+    start, pending = 0, None
+    current = binding.identity
+    for identity in identities:
+        if not identity_is_plausible(identity):
+            continue
+        if current is None or (identity.serial, identity.rate_hz) != (current.serial, current.rate_hz):
+            cut = int(np.searchsorted(samples.offset, identity.offset))
+            parts.append((pending, samples.take(slice(start, cut))))
+            start, pending, current = cut, identity, identity
+    parts.append((pending, samples.take(slice(start, len(samples)))))
+    return parts
 
 
 def compensate_capture(
@@ -23,37 +142,42 @@ def compensate_capture(
     adapt: AdaptConfig | None = None,
     reference_rate_dph: float | None = None,
     adapt_state: str | Path | None = None,
+    scale_override_arcsec_per_count: float | None = None,
+    save_adapt_state: bool = True,
 ) -> Iterator[tuple[float, CompensatedColumns]]:
     """Decode ``path`` block by block and yield (frame period s, compensated frames), bounded memory.
 
-    The frame period comes from the capture's IDENTITY frame; a model fitted for another
-    instrument serial is a ``UsageError`` unless ``force``.  With ``adapt`` the weights adapt online
-    against ``reference_rate_dph``; ``adapt_state`` is restored first when it exists (as a new run: the
-    bias is captured again) and saved when the capture ends.
+    The binding rules of ``InstrumentCompensation`` (the module docstring).  With ``adapt`` the weights adapt
+    online against ``reference_rate_dph`` (None: frozen, but a restored state's adapted weights give the
+    estimate, as in the daemon); ``adapt_state`` is restored first when it exists (as a new run: the bias is
+    captured again) and, with ``save_adapt_state``, saved when the capture ends.
+    ``scale_override_arcsec_per_count``: the daemon's setting of that name.
     """
-    stream = SampleStream()
-    compensator: Compensator | None = None
+    stream = SampleStream(scale_override_arcsec_per_count=scale_override_arcsec_per_count)
+    binding = InstrumentCompensation(model_file, force=force, model_name=model_name, adapt=adapt,
+                                     reference_rate_dph=reference_rate_dph, adapt_state=adapt_state)  # fmt: skip
+    pending: list[SampleBlock] = []  # samples before the first IDENTITY
+    samples_seen = 0
     for part in iter_decode_file(path):
         samples = stream.run(part)
+        samples_seen += len(samples)
         if progress:
             progress(part.counters.bytes_in)
-        if compensator is None:
-            if not len(samples):
+        for identity, block in split_at_identities(samples, part.identities, binding):
+            if identity is not None:
+                binding.bind(identity)
+            if not binding.bound:
+                if len(block):
+                    pending.append(block)
                 continue
-            identity = stream.identity
-            if identity is None:
-                raise InputFileError(f"{path}: no IDENTITY frame before the first sample: frame rate unknown")
-            if identity.serial != model_file.instrument_serial and not force:
-                raise UsageError(
-                    f"{model_name} was fitted for instrument {model_file.instrument_serial!r}, "
-                    f"this capture is from {identity.serial!r} (use --force to apply it anyway)"
-                )
-            compensator = Compensator(model_file, 1.0 / identity.rate_hz, adapt=adapt,
-                                      reference_rate_dph=reference_rate_dph)  # fmt: skip
-            if adapt is not None and adapt_state is not None and Path(adapt_state).exists():
-                compensator.load_adaptation(adapt_state)
-        yield compensator.frame_period_s, compensator.run(samples)
-    if compensator is None:
+            for earlier in pending:
+                yield binding.compensator.frame_period_s, binding.run(earlier)
+            pending = []
+            if len(block):
+                yield binding.compensator.frame_period_s, binding.run(block)
+    if not samples_seen:
         raise InputFileError(f"{path}: no SAMPLE frames to compensate")
-    if adapt is not None and adapt_state is not None:
-        compensator.save_adaptation(adapt_state)
+    if not binding.bound:
+        raise InputFileError(f"{path}: no IDENTITY frame: frame rate unknown")
+    if adapt is not None and adapt_state is not None and save_adapt_state:
+        binding.compensator.save_adaptation(adapt_state)

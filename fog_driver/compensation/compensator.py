@@ -293,9 +293,16 @@ class Compensator:
     def save_adaptation(self, path: str | Path) -> Path:
         """The adaptation state as YAML (the readout, the static detector, and the pipeline's state, so that
         a restart of the same run continues exactly); only when adapting."""
+        from .adapt import write_state_doc
+
+        return write_state_doc(path, self.adaptation_document())
+
+    def adaptation_document(self) -> dict:
+        """What ``save_adaptation`` writes, as a snapshot of plain values (to take under a lock and write
+        outside it)."""
         if self.online is None:
             raise ValueError("this compensator is not adapting (no adapt config)")
-        return self.online.save_state(path, detector=self.static_detector, pipeline=self.pipeline_state())
+        return self.online.state_document(detector=self.static_detector, pipeline=self.pipeline_state())
 
     def load_adaptation(self, path: str | Path, *, new_run: bool = True) -> None:
         """Restore ``save_adaptation``'s file (``InputFileError`` when it does not fit this model).  With

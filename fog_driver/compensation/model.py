@@ -56,6 +56,12 @@ MODEL_KINDS: dict[str, Any] = {"polynomial": PolynomialModel, "wesn": WesnKind, 
                                "pso-svr": SvrModel}  # fmt: skip
 
 
+#: The drift model runs on block means of temperature, seconds to minutes apart: rates outside these are a
+#: corrupt file (a block of under 1 ms would be 0 us long on the block grid).
+MIN_MODEL_RATE_HZ = 1e-3
+MAX_MODEL_RATE_HZ = 100.0
+
+
 @dataclass
 class ModelFile:
     kind: str
@@ -144,8 +150,11 @@ def load_model(path: str | Path) -> ModelFile:
         raise
     except (TypeError, ValueError, KeyError) as exc:
         raise InputFileError(f"{where}: corrupt model: {exc}") from None
-    if not np.all(np.isfinite(normalizer.scale)) or not rate > 0:
-        raise InputFileError(f"{where}: corrupt model: non-finite normalizer or rate")
+    if not np.all(np.isfinite(normalizer.scale)) or not MIN_MODEL_RATE_HZ <= rate <= MAX_MODEL_RATE_HZ:
+        raise InputFileError(f"{where}: corrupt model: non-finite normalizer, or a model rate outside "
+                             f"{MIN_MODEL_RATE_HZ:g}..{MAX_MODEL_RATE_HZ:g} Hz")  # fmt: skip
+    if abs(features.sample_time_s * rate - 1.0) > 1e-9:
+        raise InputFileError(f"{where}: corrupt model: features.sample_time_s is not 1 / model_rate_hz")
     return ModelFile(
         kind=kind,
         instrument_serial=str(_require(doc, "instrument_serial", str, where)),

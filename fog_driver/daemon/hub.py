@@ -608,6 +608,15 @@ class Hub:
         return self._bytes_sent
 
     @property
+    def running(self) -> bool:
+        """The hub's loop thread is alive (a watchdog pings only while it is)."""
+        return self._thread is not None and self._thread.is_alive()
+
+    def check_token(self, token: str | None) -> None:
+        """``ValueError`` when ``set_token(token)`` would refuse it (checked before a reload applies anything)."""
+        _check_token(token, self.host)
+
+    @property
     def address(self) -> tuple[str, int] | None:
         """``(host, port)`` listened on, once started."""
         return self._address

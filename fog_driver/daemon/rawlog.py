@@ -1,9 +1,16 @@
 """The daemon's always-on raw capture: every byte read from the port, in rotating capture files.
 
+Two layers:
+
 ``RotatingCapture`` appends the port's bytes exactly as read (garbage, partial frames and all) to
-``<prefix>-<UTC yyyymmddThhmmssZ>-<nnnn>.bin`` files in one directory, each with the usual
+``<prefix>-<nnnnnn>-<UTC yyyymmddThhmmssZ>.bin`` files in one directory, each with the usual
 provenance sidecar ``<same name>.yaml`` (see ``fog_driver.capture``).  The file itself is a
-``CaptureWriter``: size, SHA-256, the one-line ``OutputFileError`` on a full disk all come from it.
+``CaptureWriter``: unbuffered, so size and SHA-256 count exactly the bytes the OS took.  It is not
+thread-safe: one thread owns it.
+
+``CaptureSink`` is that thread: the acquisition thread hands each chunk over (``put``, O(1), never a
+wait for the disk) and the sink's own thread writes, rotates, fsyncs and rewrites sidecars.  A disk that
+fills up or fails degrades the capture, never the daemon (see ``CaptureSink``).
 
 Rules (the tests hold them):
 
@@ -14,44 +21,61 @@ Rules (the tests hold them):
   few kB; ``max_bytes`` is hundreds of MB, so this only happens with a misconfigured limit).
 - Files are cut at read-chunk boundaries, not at frame boundaries: a file may begin or end inside
   a frame.  Concatenating the files in name order gives back the port's byte stream exactly
-  (``cat fog-*.bin``), which is how a decoder should read a run that spans files.
+  (``cat fog-*.bin``), which is how a decoder should read a run that spans files; where bytes could not
+  be captured the sidecars say so (``events``: ``bytes_lost``).
+- Names sort in the order the files were opened, across restarts and whatever the wall clock does (no
+  RTC at boot, then NTP): ``<nnnnnn>`` continues from the highest number in the directory; the UTC time
+  after it is for people.  A name that exists is never overwritten.
 - A file rotates by age when ``max_age_s`` (of ``clock``, monotonic by default) has passed since it
   was opened; checked on each ``write`` and on ``poll``, so a port that goes quiet still gets its
-  file closed and described (call ``poll`` from the daemon's main loop).
+  file closed and described.
 - Files open lazily, on the first byte after construction or after a rotation: a silent port
   leaves no empty files.  ``current_path`` is None while no file is open.
-- Data is flushed to the OS when ``flush_every_s`` has passed since the last flush (on ``write``
-  and on ``poll``): a SIGKILL loses at most about that much.  ``close`` flushes and fsyncs.
-  (A power cut can lose whatever the OS has not written back since the last fsync.)
+- Every ``write`` reaches the OS at once (a SIGKILL loses nothing written); ``sync`` fsyncs (the sink
+  does every ``fsync_every_s``, so a power cut loses at most about that much), and ``close`` does.
 - Sidecar: written with ``status: recording`` when a file opens, rewritten on close with
-  ``status: complete`` (or ``failed: ...``), ``bytes``, ``sha256``, ``start_utc``, ``end_utc``,
-  ``end_reason`` (``max_bytes``, ``max_age_s`` or ``close``), the segment number, the previous
-  file's name, plus the ``provenance`` mapping given (port, instrument...).
+  ``status: complete`` (or ``failed: ...``), ``bytes``, ``sha256`` (of exactly the bytes on disk),
+  ``start_utc``, ``end_utc``, ``end_reason`` (``max_bytes``, ``max_age_s`` or ``close``), the segment
+  number, the previous file's name, ``events`` (``note``: what happened at which byte of the file),
+  plus the ``provenance`` mapping given (port, instrument, model...).
+- A sidecar a killed process left at ``status: recording`` is set right by ``repair_interrupted``
+  (``status: interrupted``, the file's true size and SHA-256) before the next run writes.
 - A failed write (disk full) raises the ``CaptureWriter``'s one-line ``OutputFileError`` after the
-  file is closed and its sidecar says ``status: failed: ...`` with the bytes that made it; the
-  service decides what to do.  A later ``write`` starts a new file.
-- ``<nnnn>`` counts the files this object opened (0000, 0001, ...; a fifth digit after 9999); a name
-  that already exists (a restart within the same second) is skipped, never overwritten.
-
-Not thread-safe: one acquisition loop owns it.
+  file is closed and its sidecar says ``status: failed: ...`` with the bytes that made it; a later
+  ``write`` starts a new file.
 """
 
 from __future__ import annotations
 
+import collections
 import datetime as _dt
+import hashlib
 import os
+import re
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import structlog
+
 from .. import __version__
-from ..capture import CaptureWriter, sidecar_path, utc_now_iso, write_provenance
-from ..errors import OutputFileError
+from ..capture import CaptureWriter, read_provenance, sidecar_path, utc_now_iso, write_provenance
+from ..errors import FogDriverError, OutputFileError
+
+log = structlog.get_logger("fog_driver.daemon")
 
 DEFAULT_MAX_BYTES = 256 * 2**20
 DEFAULT_MAX_AGE_S = 3600.0
-DEFAULT_FLUSH_EVERY_S = 1.0
+#: The sink fsyncs the current file this often (a power cut loses at most about this much).
+DEFAULT_FSYNC_EVERY_S = 5.0
+#: Bytes the sink holds for a disk that is slow before it stops capturing them (counted as lost).
+DEFAULT_MAX_QUEUE_BYTES = 64 * 2**20
+#: After a failed write the sink tries a new file after this long, doubling up to the maximum.
+RETRY_FIRST_S = 1.0
+RETRY_MAX_S = 60.0
+_INDEX_DIGITS = 6
 
 
 class RotatingCapture:
@@ -64,7 +88,6 @@ class RotatingCapture:
         prefix: str = "fog",
         max_bytes: int = DEFAULT_MAX_BYTES,
         max_age_s: float = DEFAULT_MAX_AGE_S,
-        flush_every_s: float = DEFAULT_FLUSH_EVERY_S,
         provenance: dict[str, Any] | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
@@ -74,24 +97,22 @@ class RotatingCapture:
             raise ValueError(f"max_bytes must be positive, not {max_bytes}")
         if not max_age_s > 0:
             raise ValueError(f"max_age_s must be positive, not {max_age_s}")
-        if not flush_every_s >= 0:
-            raise ValueError(f"flush_every_s must be zero or positive, not {flush_every_s}")
         self.directory = Path(directory)
         self.prefix = prefix
         self.max_bytes = int(max_bytes)
         self.max_age_s = float(max_age_s)
-        self.flush_every_s = float(flush_every_s)
         self._provenance: dict[str, Any] = dict(provenance or {})
         self._clock = clock
         _make_directory(self.directory)
 
         self._files: list[Path] = []
-        self._segment = 0  # the next <nnnn> to try
+        self._index = _next_index(self.directory, prefix)  # the next <nnnnnn> to try
+        self._segment = 0  # files this object opened
         self._writer: CaptureWriter | None = None
         self._fields: dict[str, Any] = {}  # the current file's own sidecar fields (segment, start_utc...)
+        self._events: list[dict[str, Any]] = []  # the current file's events
+        self._pending_events: list[dict[str, Any]] = []  # events for the next file (none open now)
         self._opened_at = 0.0
-        self._last_flush = 0.0
-        self._unflushed = False
         self._bytes_closed = 0  # bytes in files already closed
         self._closed = False
 
@@ -109,14 +130,14 @@ class RotatingCapture:
 
     @property
     def bytes_written(self) -> int:
-        """Bytes written across all files (those handed to the OS or still in the buffer)."""
+        """Bytes written across all files (each taken by the OS)."""
         return self._bytes_closed + (self._writer.bytes_written if self._writer is not None else 0)
 
     @property
     def closed(self) -> bool:
         return self._closed
 
-    # -- what the daemon calls -------------------------------------------------------------------
+    # -- what the owner calls --------------------------------------------------------------------
 
     def write(self, chunk: bytes) -> None:
         """Append ``chunk`` exactly, rotating first if it would overflow ``max_bytes`` or the file is too old."""
@@ -138,35 +159,44 @@ class RotatingCapture:
         except OutputFileError as exc:
             self._fail(exc)
             raise
-        self._unflushed = True
-        if now - self._last_flush >= self.flush_every_s:
-            self._flush(now)
 
     def poll(self) -> None:
-        """Housekeeping for a quiet port (call it from the main loop, e.g. once a second):
-        flush if due, and close the current file if it is older than ``max_age_s``."""
+        """Housekeeping for a quiet port: close the current file if it is older than ``max_age_s``."""
         if self._closed or self._writer is None:
             return
-        now = self._clock()
-        if now - self._opened_at >= self.max_age_s:
+        if self._clock() - self._opened_at >= self.max_age_s:
             self._finish("max_age_s")
-        elif self._unflushed and now - self._last_flush >= self.flush_every_s:
-            self._flush(now)
 
     def flush(self) -> None:
-        """Hand everything written so far to the OS (no fsync)."""
-        if self._writer is not None:
-            self._flush(self._clock())
+        """Nothing to do: every ``write`` reached the OS (kept for callers of the buffered version)."""
+
+    def sync(self) -> None:
+        """Fsync the current file (``OutputFileError``: the file is closed as failed)."""
+        if self._writer is None:
+            return
+        try:
+            self._writer.fsync()
+        except OutputFileError as exc:
+            self._fail(exc)
+            raise
 
     def update_provenance(self, fields: dict[str, Any]) -> None:
         """Merge ``fields`` (e.g. the instrument's identity, once its IDENTITY frame arrives) into the
         provenance of the current file (its sidecar is rewritten now) and of every later one."""
         self._provenance.update(fields)
-        if self._writer is not None:
-            write_provenance(self._writer.path, self._sidecar("recording"))
+        self._rewrite_recording()
+
+    def note(self, event: dict[str, Any]) -> None:
+        """Record ``event`` in the sidecar of the file the next byte goes to, with ``at_byte``: the bytes
+        of that file before it (a model reload, ADAPT, an identity change, bytes that were not captured)."""
+        if self._writer is None:
+            self._pending_events.append({**event, "at_byte": 0})
+            return
+        self._events.append({**event, "at_byte": self._writer.bytes_written})
+        self._rewrite_recording()
 
     def close(self) -> None:
-        """Flush, fsync and close the current file and write its final sidecar; idempotent."""
+        """Fsync and close the current file and write its final sidecar; idempotent."""
         if self._closed:
             return
         self._closed = True
@@ -181,6 +211,10 @@ class RotatingCapture:
 
     # -- inside ----------------------------------------------------------------------------------
 
+    def _rewrite_recording(self) -> None:
+        if self._writer is not None:
+            write_provenance(self._writer.path, self._sidecar("recording"))
+
     def _rotation_reason(self, incoming: int, now: float) -> str | None:
         writer = self._writer
         assert writer is not None
@@ -193,8 +227,8 @@ class RotatingCapture:
     def _next_path(self, start: _dt.datetime) -> Path:
         stamp = start.strftime("%Y%m%dT%H%M%SZ")
         while True:
-            path = self.directory / f"{self.prefix}-{stamp}-{self._segment:04d}.bin"
-            self._segment += 1
+            path = self.directory / f"{self.prefix}-{self._index:0{_INDEX_DIGITS}d}-{stamp}.bin"
+            self._index += 1
             if not path.exists() and not sidecar_path(path).exists():
                 return path
 
@@ -203,35 +237,25 @@ class RotatingCapture:
         path = self._next_path(_dt.datetime.fromisoformat(start_utc))
         writer = CaptureWriter(path)  # "x" mode: never replaces a file that appeared meanwhile
         previous = self._files[-1].name if self._files else None
-        self._fields = {"segment": self._segment - 1, "start_utc": start_utc}
+        self._fields = {"segment": self._segment, "start_utc": start_utc}
         if previous is not None:
             self._fields["previous_capture"] = previous
         self._writer = writer
+        self._events, self._pending_events = self._pending_events, []
         try:
             write_provenance(path, self._sidecar("recording"))
         except OutputFileError:
             self._writer = None
+            self._pending_events, self._events = self._events, []
             try:
                 writer.close()
             except OutputFileError:
                 pass
             path.unlink(missing_ok=True)  # an empty file nothing describes: leave nothing behind
             raise
+        self._segment += 1
         self._files.append(path)
         self._opened_at = now
-        self._last_flush = now
-        self._unflushed = False
-
-    def _flush(self, now: float) -> None:
-        writer = self._writer
-        assert writer is not None
-        try:
-            writer.flush()
-        except OutputFileError as exc:
-            self._fail(exc)
-            raise
-        self._last_flush = now
-        self._unflushed = False
 
     def _detach(self) -> CaptureWriter:
         """Take the current file out of use, counting its bytes as closed."""
@@ -242,7 +266,7 @@ class RotatingCapture:
         return writer
 
     def _finish(self, reason: str) -> None:
-        """Close the current file (flush + fsync) and write its final sidecar."""
+        """Close the current file (fsync) and write its final sidecar."""
         writer = self._detach()
         try:
             writer.close()
@@ -252,7 +276,7 @@ class RotatingCapture:
         self._write_final(writer, "complete", reason, quiet=False)
 
     def _fail(self, exc: OutputFileError) -> None:
-        """A write or flush failed: close what can be closed and describe the file as failed."""
+        """A write or fsync failed: close what can be closed and describe the file as failed."""
         writer = self._detach()
         try:
             writer.close()
@@ -262,12 +286,8 @@ class RotatingCapture:
 
     def _write_final(self, writer: CaptureWriter, status: str, reason: str, *, quiet: bool) -> None:
         fields = self._sidecar(status)
-        fields.update(
-            end_utc=utc_now_iso(),
-            end_reason=reason,
-            bytes=writer.bytes_written,
-            sha256=writer.sha256,
-        )
+        fields.update(end_utc=utc_now_iso(), end_reason=reason, bytes=writer.bytes_written, sha256=writer.sha256)
+        self._events = []
         try:
             write_provenance(writer.path, fields)
         except OutputFileError:
@@ -275,7 +295,7 @@ class RotatingCapture:
                 raise  # the capture itself is closed and intact; only its description failed
 
     def _sidecar(self, status: str) -> dict[str, Any]:
-        return {
+        doc = {
             "source": "daemon",
             "fog_driver_version": __version__,
             **self._provenance,
@@ -283,6 +303,257 @@ class RotatingCapture:
             **self._fields,
             "rotation": {"max_bytes": self.max_bytes, "max_age_s": self.max_age_s},
         }
+        if self._events:
+            doc["events"] = list(self._events)
+        return doc
+
+
+class CaptureSink:
+    """A ``RotatingCapture`` written by a thread of its own, so that the port's reader never waits for the disk.
+
+    - ``put(chunk)`` (any thread, O(1)): the bytes join a queue the writer thread empties in order.
+      When ``max_queue_bytes`` are already waiting (a disk that stalls) or the capture has failed, the
+      chunk is not captured: it is counted in ``bytes_lost`` and the gap is noted in the sidecar of the
+      file the next captured byte goes to (``events``: ``bytes_lost``, at that byte), so the files still
+      say exactly what they hold.
+    - ``note(event)`` (any thread): an event for the sidecar, in order with the bytes put before it.
+    - A write, fsync or file-open error (a full disk, EIO, no descriptor left) is logged once, the file
+      is closed as ``failed`` (its sidecar counts the bytes on disk), ``state`` becomes ``failed`` and
+      the sink tries a new file after ``retry_first_s`` (1 s), doubling up to ``retry_max_s`` (60 s); the first file
+      that opens again sets ``state`` back to ``recording`` (``on_state`` is called at each change).
+    - Every ``fsync_every_s`` the current file is fsynced; ``poll_s`` is the thread's housekeeping tick
+      (age rotation of a quiet port).
+    - ``status()``: a snapshot for STATUS: ``state`` (``idle`` before the first byte, ``recording``, ``failed``,
+      ``retrying``: the next chunk tries a new file, ``closed``), the file, bytes captured and lost, failures,
+      the last error.
+    - ``close(timeout_s)``: writes what is queued, closes the file, joins the thread (bounded).
+    """
+
+    def __init__(self, capture: RotatingCapture, *, max_queue_bytes: int = DEFAULT_MAX_QUEUE_BYTES,
+                 fsync_every_s: float = DEFAULT_FSYNC_EVERY_S, poll_s: float = 1.0,
+                 retry_first_s: float = RETRY_FIRST_S, retry_max_s: float = RETRY_MAX_S,
+                 on_state: Callable[[str], None] | None = None) -> None:  # fmt: skip
+        if max_queue_bytes <= 0 or not fsync_every_s > 0 or not poll_s > 0 or not 0 < retry_first_s <= retry_max_s:
+            raise ValueError("max_queue_bytes, fsync_every_s, poll_s and retry_first_s <= retry_max_s must be positive")
+        self.retry_first_s = float(retry_first_s)
+        self.retry_max_s = float(retry_max_s)
+        self.capture = capture
+        self.max_queue_bytes = int(max_queue_bytes)
+        self.fsync_every_s = float(fsync_every_s)
+        self.poll_s = float(poll_s)
+        self._on_state = on_state
+        self._cond = threading.Condition()
+        self._queue: collections.deque[tuple[str, Any]] = collections.deque()
+        self._queued_bytes = 0
+        self._closing = False
+        self._state = "idle"  # idle (no byte yet), recording, failed, closed
+        self._error: str | None = None
+        self._retry_at = 0.0
+        self._retry_s = self.retry_first_s
+        self._lost_pending = 0  # bytes lost since the last note of it
+        self.bytes_put = 0
+        self.bytes_lost = 0
+        self.failures = 0
+        self._current: str | None = None
+        self._bytes_captured = 0
+        self._thread = threading.Thread(target=self._run, name="capture", daemon=True)
+        self._thread.start()
+
+    @property
+    def state(self) -> str:
+        return self._state
+
+    def put(self, chunk: bytes) -> None:
+        if not chunk:
+            return
+        with self._cond:
+            self.bytes_put += len(chunk)
+            if self._closing or self._state == "failed" or self._queued_bytes + len(chunk) > self.max_queue_bytes:
+                self.bytes_lost += len(chunk)
+                self._lost_pending += len(chunk)
+                return
+            if self._lost_pending:
+                self._queue.append(("note", {"event": "bytes_lost", "bytes": self._lost_pending, "utc": utc_now_iso()}))
+                self._lost_pending = 0
+            self._queue.append(("bytes", chunk))
+            self._queued_bytes += len(chunk)
+            self._cond.notify()
+
+    def note(self, event: dict[str, Any]) -> None:
+        with self._cond:
+            if self._closing:
+                return
+            self._queue.append(("note", {**event, "utc": utc_now_iso()}))
+            self._cond.notify()
+
+    def update_provenance(self, fields: dict[str, Any]) -> None:
+        with self._cond:
+            if self._closing:
+                return
+            self._queue.append(("provenance", dict(fields)))
+            self._cond.notify()
+
+    def status(self) -> dict[str, Any]:
+        with self._cond:
+            out: dict[str, Any] = {"state": self._state, "bytes": self._bytes_captured, "bytes_lost": self.bytes_lost,
+                                   "failures": self.failures}  # fmt: skip
+            if self._current is not None:
+                out["path"] = self._current
+            if self._error is not None:
+                out["last_error"] = self._error
+            return out
+
+    def close(self, timeout_s: float = 5.0) -> bool:
+        """Write what is queued and close; True when the thread finished within ``timeout_s``."""
+        with self._cond:
+            self._closing = True
+            self._cond.notify()
+        self._thread.join(timeout_s)
+        return not self._thread.is_alive()
+
+    # -- the writer thread ---------------------------------------------------------------------------
+
+    def _set_state(self, state: str, error: str | None = None) -> None:
+        with self._cond:
+            changed = state != self._state
+            self._state = state
+            if error is not None:
+                self._error = error
+            self._current = str(self.capture.current_path) if self.capture.current_path is not None else None
+            self._bytes_captured = self.capture.bytes_written
+        if changed and self._on_state is not None:
+            try:
+                self._on_state(state)
+            except Exception:  # noqa: BLE001 - a listener's bug must not stop the capture
+                log.exception("capture_state_listener_failed")
+
+    def _run(self) -> None:
+        last_sync = time.monotonic()
+        try:
+            for capture in repair_interrupted(self.capture.directory, self.capture.prefix):
+                log.warning("capture_repaired", capture=str(capture), status="interrupted")
+            while True:
+                with self._cond:
+                    if not self._queue and not self._closing:
+                        wait_s = self.poll_s
+                        if self._state == "failed":
+                            wait_s = max(0.0, min(wait_s, self._retry_at - time.monotonic()))
+                        self._cond.wait(wait_s)
+                    items = list(self._queue)
+                    self._queue.clear()
+                    self._queued_bytes = 0
+                    closing = self._closing
+                for kind, item in items:
+                    self._apply(kind, item)
+                now = time.monotonic()
+                if self._state == "failed" and now >= self._retry_at:
+                    self._set_state("retrying")  # put() queues again; the next chunk tries a new file
+                elif self._state == "recording":
+                    self._guard(self.capture.poll)
+                    if now - last_sync >= self.fsync_every_s:
+                        self._guard(self.capture.sync)
+                        last_sync = now
+                self._set_state(self._state)
+                if closing:
+                    break
+        except Exception as exc:  # noqa: BLE001 - a bug: the capture stops, the daemon goes on
+            log.exception("capture_crashed", reason=str(exc))
+            self._set_state("failed", f"internal error: {exc}")
+        finally:
+            try:
+                self.capture.close()
+            except FogDriverError as exc:
+                log.error("capture_close_failed", reason=str(exc))
+            with self._cond:
+                self._closing = True
+            self._set_state("closed")
+
+    def _apply(self, kind: str, item: Any) -> None:
+        if kind == "bytes":
+            if self._state == "failed":  # queued before the failure: not captured
+                with self._cond:
+                    self.bytes_lost += len(item)
+                    self._lost_pending += len(item)
+                return
+            before = self.capture.bytes_written
+            if not self._guard(self.capture.write, item):
+                with self._cond:  # the part of the chunk the file did not take
+                    missed = len(item) - (self.capture.bytes_written - before)
+                    self.bytes_lost += missed
+                    self._lost_pending += missed
+            else:
+                if self._state != "recording":
+                    log.info("capture_recording", path=str(self.capture.current_path))
+                    self._retry_s = self.retry_first_s
+                self._set_state("recording")
+        elif kind == "note":
+            self._guard(self.capture.note, item)
+        elif kind == "provenance":
+            self._guard(self.capture.update_provenance, item)
+
+    def _guard(self, action: Callable[..., None], *args: Any) -> bool:
+        """Run one capture action; an ``OutputFileError`` fails the capture (logged, retried later)."""
+        try:
+            action(*args)
+        except OutputFileError as exc:
+            self.failures += 1
+            log.error("capture_failed", reason=str(exc), retry_in_s=self._retry_s, failures=self.failures)
+            self._retry_at = time.monotonic() + self._retry_s
+            self._retry_s = min(2 * self._retry_s, self.retry_max_s)
+            self._set_state("failed", str(exc))
+            return False
+        return True
+
+
+def repair_interrupted(directory: str | Path, prefix: str = "fog") -> list[Path]:
+    """Set right the sidecars a killed process left at ``status: recording``: ``status: interrupted`` with
+    the capture's true ``bytes`` and ``sha256``.  A sidecar whose ``pid`` is a process still running (another
+    daemon on the same directory, or this one) is left alone.  Returns the captures repaired."""
+    repaired = []
+    for side in sorted(Path(directory).glob(f"{prefix}-*.yaml")):
+        capture = side.with_suffix(".bin")
+        try:
+            doc = read_provenance(capture)
+        except FogDriverError:
+            continue
+        if not doc or doc.get("status") != "recording" or not capture.is_file() or _alive(doc.get("pid")):
+            continue
+        sha = hashlib.sha256()
+        with capture.open("rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                sha.update(block)
+        end = _dt.datetime.fromtimestamp(capture.stat().st_mtime, _dt.timezone.utc)
+        fields = {k: v for k, v in doc.items() if k not in ("format", "schema_version", "capture")}
+        fields.update(status="interrupted", end_reason="the recording process ended without closing it",
+                      end_utc=end.isoformat(timespec="milliseconds").replace("+00:00", "Z"),
+                      bytes=capture.stat().st_size, sha256=sha.hexdigest())  # fmt: skip
+        try:
+            write_provenance(capture, fields)
+        except OutputFileError as exc:
+            log.error("capture_repair_failed", capture=str(capture), reason=str(exc))
+            continue
+        repaired.append(capture)
+    return repaired
+
+
+def _alive(pid: Any) -> bool:
+    """Whether ``pid`` (from a sidecar) names a running process (this one included)."""
+    if isinstance(pid, bool) or not isinstance(pid, int) or pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # exists, owned by someone else
+        return True
+    return True
+
+
+def _next_index(directory: Path, prefix: str) -> int:
+    """One more than the highest ``<prefix>-<nnnnnn>-`` number in ``directory`` (0 when there is none)."""
+    pattern = re.compile(rf"^{re.escape(prefix)}-(\d{{{_INDEX_DIGITS},}})-")
+    numbers = [int(m.group(1)) for p in directory.iterdir() if (m := pattern.match(p.name))]
+    return max(numbers, default=-1) + 1
 
 
 def _make_directory(directory: Path) -> None:

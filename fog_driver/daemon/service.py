@@ -2,30 +2,45 @@
 
 Threads and who owns what:
 
-* the acquisition thread reads the port (``PortReader``: reconnects within
-  ``backoff_max_s`` of the port coming back), appends every byte to the raw
-  capture, decodes, compensates sample by sample and hands each chunk's ANGLE
-  objects to the hub in one call; it never waits on a client, on disk beyond
-  its own append, or on logging;
-* the hub's thread serves clients (``hub.py``);
-* the main thread publishes STATUS, logs a one-line summary and pings the
-  systemd watchdog every ``status_every_s``, and handles signals.
+* the acquisition thread reads the port (``PortReader``: reconnects within ``backoff_max_s`` of the port
+  coming back), hands every byte to the raw capture (``CaptureSink.put``: O(1), never a wait for the disk),
+  decodes, compensates sample by sample and hands each chunk's ANGLE objects to the hub in one call; it
+  never waits on a client, on the disk or on logging;
+* the capture thread writes, rotates and fsyncs the raw capture (``rawlog.CaptureSink``); a disk that fails
+  degrades the capture (STATUS and DEVICE say ``failed``; retried with backoff), never the publishing;
+* the hub's thread serves clients (``hub.py``), and runs control commands in its worker threads;
+* the main thread publishes STATUS, logs a one-line summary every ``status_every_s`` and pings the systemd
+  watchdog (at half ``WATCHDOG_USEC``, only while the acquisition, the hub and the port reader make progress);
+  the signal dispatcher's thread handles signals (``fog_driver.signals``).
 
-The pipeline state (decoder, stream, compensator, angle offsets) is touched
-under one lock: by the acquisition thread per chunk, and by control commands.
+The lock (``Service.lock``) guards only the in-memory pipeline: decoder, stream, compensator, angle offsets.
+It is held per chunk by the acquisition thread and briefly by control commands; nothing slow runs under it.
+A model reload parses and builds the new compensator outside it, then swaps it in (``reload_model``);
+``?SAVE`` takes a snapshot under it and writes the file outside it.
 
 Angles: ``angle_arcsec`` is the compensated angle integrated from the frames
 (``Compensator.angle_comp_arcsec``) less the offsets ``?ZERO`` and ``?BIAS``
-introduce; without them it equals ``fog-driver compensate`` on the daemon's
-own raw capture, bit for bit (tested).  Frames lost while the port was away
-carry no increment: the angle continues from the last frame received and the
-first frame after the gap is flagged ``gap``.
+introduce.  Frames lost while the port was away carry no increment: the angle continues from the last frame
+received and the first frame after the gap is flagged ``gap``.
+
+Live == offline.  The published ``angle_arcsec`` equals ``fog-driver compensate`` (``apply.compensate_capture``)
+on the daemon's raw capture (its files concatenated in name order), bit for bit, when the offline run is given
+the daemon's settings: ``--scale-override`` for ``scale_override_arcsec_per_count``, ``--force`` for
+``force_model``, and with an ``adapt_state`` the state file as it was at the start with ``--adapt-state``
+(``--adapt-reference`` for ``adapt_reference_dph``), and when during the capture no ``?ZERO`` or ``?BIAS``
+offset was taken, no ``?ADAPT`` changed the reference and no different model was loaded.  Each of those
+is recorded in the capture's sidecar (``events``, with the byte of the file it took effect at), as are the
+model (path, SHA-256), the scale settings, the adaptation state's SHA-256 and the instrument.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import datetime as _dt
+import errno
+import hashlib
 import math
+import os
 import resource
 import threading
 import time
@@ -36,11 +51,12 @@ from typing import Any
 import structlog
 
 from .. import __version__
-from ..compensation.adapt import AdaptConfig
+from ..compensation.adapt import AdaptConfig, read_state_doc, write_state_doc
+from ..compensation.apply import InstrumentCompensation, ModelMismatchError
 from ..compensation.compensator import FLAG_NAMES, CompensatedSample, Compensator, flag_names
 from ..compensation.model import ModelFile, load_model
 from ..config import DriverConfig, parse_host_port
-from ..errors import FogDriverError
+from ..errors import FogDriverError, TemporaryFailure
 from ..protocol import FrameDecoder, IdentityFrame
 from ..transport import PortError, PortEvent, PortReader
 
@@ -48,6 +64,17 @@ log = structlog.get_logger("fog_driver.daemon")
 
 PROTO_MAJOR = 1
 PROTO_MINOR = 0
+#: Samples kept while no IDENTITY has arrived (the frame rate is unknown): 60 s at 2 kHz.  Older ones are
+#: dropped and counted (``samples_dropped_before_identity``).
+MAX_SAMPLES_BEFORE_IDENTITY = 120_000
+#: ``?BIAS`` answers within its seconds of device time plus this margin, else the client gets an ERROR
+#: (the capture still completes and is applied: STATUS ``bias_dph``).
+BIAS_ANSWER_MARGIN_S = 30.0
+#: The port reader is stuck (no watchdog ping) when its loop has not come round for this long.
+READER_STALL_S = 10.0
+#: Shutdown budget: the acquisition join and the capture's close each get at most this long (the unit's
+#: ``TimeoutStopSec`` must exceed their sum plus the hub's stop).
+JOIN_TIMEOUT_S = 5.0
 
 
 def _current_rss_mb() -> float:
@@ -62,6 +89,14 @@ def _current_rss_mb() -> float:
     return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)
 
 
+def _file_sha256(path: str | Path) -> str | None:
+    """A file's SHA-256, or None when it cannot be read."""
+    try:
+        return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    except OSError:
+        return None
+
+
 class ConfigError(FogDriverError):
     """A bad configuration or model: exit 78 (EX_CONFIG), so systemd does not restart in a loop."""
 
@@ -71,6 +106,10 @@ class ConfigError(FogDriverError):
 class Service:
     """One instrument: its port, its model, its clients."""
 
+    #: Settings that need a restart; every other one applies on SIGHUP (``reload_config``).
+    RESTART_KEYS = ("port", "baud", "listen", "udp", "capture_dir", "capture_rotate_mb", "capture_rotate_s",
+                    "scale_arcsec_per_count", "scale_override_arcsec_per_count")  # fmt: skip
+
     def __init__(self, config: DriverConfig, *, port: str, model_file: ModelFile | None = None) -> None:
         self.config = config
         self.port_url = port
@@ -78,34 +117,71 @@ class Service:
             self.model_file = model_file or load_model(config.model_path)
         except FogDriverError as exc:
             raise ConfigError(str(exc)) from None
+        self.model_sha256 = None if model_file is not None else _file_sha256(config.model_path)
         for line in self.model_file.warnings(str(config.model_path)):
             log.warning("model_warning", message=line)
-        self.lock = threading.Lock()
+        self.lock = threading.Lock()  # the in-memory pipeline only
+        self._reload_lock = threading.Lock()  # one reload at a time, never held with ``lock`` while parsing
         self.stop = threading.Event()
         self.started_monotonic = time.monotonic()
-        self._reset_pipeline()
+        self.adapt_state_sha256 = self._check_adapt_state(self.model_file)
+        self.decoder = FrameDecoder()
+        self.stream = self.config.sample_stream()
+        self.binding = self._new_binding(self.model_file)
         self.identity: IdentityFrame | None = None
         self.port_state = "closed"
         self.samples_published = 0
         self.flagged = dict.fromkeys(FLAG_NAMES.values(), 0)  # published samples per flag, since start
         self.samples_before_identity: list = []
+        self.samples_dropped_before_identity = 0
         self.zero_raw_arcsec = 0.0
         self.zero_comp_arcsec = 0.0
         self.bias_dph = 0.0
         self.bias_angle_arcsec = 0.0
         self._bias_capture: dict[str, Any] | None = None
+        self._adapt_touched = config.adapt_reference_dph is not None  # save the state at exit only if adapted
+        self.reloads = 0
         self.hub = None
-        self.rawlog = None
+        self.capture = None
         self.udp = None
         self.notifier = None
+        self.reader: PortReader | None = None
         self._acquisition: threading.Thread | None = None
         self.failure: BaseException | None = None
         self._cpu_mark = (time.monotonic(), time.process_time())
 
-    def _reset_pipeline(self) -> None:
-        self.decoder = FrameDecoder()
-        self.stream = self.config.sample_stream()
-        self.compensator: Compensator | None = None
+    @property
+    def compensator(self) -> Compensator | None:
+        return self.binding.compensator
+
+    def _new_binding(self, model_file: ModelFile) -> InstrumentCompensation:
+        return InstrumentCompensation(model_file, force=self.config.force_model,
+                                      model_name=f"the model {self.config.model_path}",
+                                      hint="set force_model: true in the config to apply it anyway",
+                                      adapt=AdaptConfig(), reference_rate_dph=self.config.adapt_reference_dph,
+                                      adapt_state=self.config.adapt_state)  # fmt: skip
+
+    def _check_adapt_state(self, model_file: ModelFile) -> str | None:
+        """The configured adaptation state, checked against the model before anything runs: a state saved for
+        another model (a re-fit) or a corrupt one is set aside (renamed ``.stale-<UTC>``) with a warning, so
+        it can never stop the daemon after it said it was ready.  Returns the usable state's SHA-256."""
+        path = self.config.adapt_state
+        if not path or not Path(path).exists():
+            return None
+        try:
+            probe = Compensator(model_file, 0.01, adapt=AdaptConfig())
+            probe.online.load_state_doc(read_state_doc(path), str(path), detector=probe.static_detector)
+        except FogDriverError as exc:
+            stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+            aside = Path(f"{path}.stale-{stamp}")
+            try:
+                os.replace(path, aside)
+            except OSError as move:
+                raise ConfigError(f"{path}: unusable adaptation state ({exc}) that cannot be set aside: "
+                                  f"{move.strerror or move}") from None  # fmt: skip
+            log.warning("adapt_state_set_aside", reason=str(exc), moved_to=str(aside))
+            return None
+        return _file_sha256(path)
 
     # -- objects clients see -------------------------------------------------------------------
 
@@ -126,13 +202,18 @@ class Service:
                                "state": "activated" if self.port_state == "open" else "deactivated"}  # fmt: skip
         if self.identity is not None:
             obj.update(self._identity_fields())
+        if self.capture is not None:
+            obj["capture"] = self.capture.state
         return obj
 
-    def status_object(self) -> dict:
+    def status_object(self, *, mark_cpu: bool = True) -> dict:
+        """STATUS now; ``mark_cpu``: the CPU share is over the time since the last marked call (the periodic
+        STATUS marks it; a client's ``?STATUS`` does not, so it cannot skew the periodic figure)."""
         now = time.monotonic()
         cpu = time.process_time()
         wall_mark, cpu_mark = self._cpu_mark
-        self._cpu_mark = (now, cpu)
+        if mark_cpu:
+            self._cpu_mark = (now, cpu)
         c = self.decoder.counters
         obj: dict[str, Any] = {
             "class": "STATUS",
@@ -144,21 +225,35 @@ class Service:
             "bytes_discarded": c.bytes_discarded,
             "seq_gaps": c.seq_gaps,
             "missing_frames": c.missing_frames,
+            "identities_rejected": self.stream.identities_rejected,
+            "instrument_changes": self.binding.rebuilds,
             "published": self.samples_published,
             "flagged": dict(self.flagged),
             "cpu_percent": round(100.0 * (cpu - cpu_mark) / max(now - wall_mark, 1e-9), 2),
             "rss_mb": _current_rss_mb(),
             "bias_dph": self.bias_dph,
             "adapting": bool(self.compensator and self.compensator.reference_rate_dph is not None),
+            "reloads": self.reloads,
         }
+        if self.samples_dropped_before_identity:
+            obj["samples_dropped_before_identity"] = self.samples_dropped_before_identity
         online = self.compensator.online if self.compensator is not None else None
         if online is not None:  # is the published drift the adapted weights' (the comparison guard's verdict)?
             obj["adapted_in_use"] = online.adapted_in_use
         if self.hub is not None:
             obj["clients"] = self.hub.clients
             obj["dropped_clients"] = self.hub.dropped_clients
-        if self.rawlog is not None and self.rawlog.current_path is not None:
-            obj["capture"] = str(self.rawlog.current_path)
+        if self.capture is not None:
+            capture = self.capture.status()
+            obj["capture_state"] = capture["state"]
+            obj["capture_bytes"] = capture["bytes"]
+            obj["capture_bytes_lost"] = capture["bytes_lost"]
+            if "path" in capture:
+                obj["capture"] = capture["path"]
+            if "last_error" in capture:
+                obj["capture_error"] = capture["last_error"]
+        if self.udp is not None:
+            obj.update(self.udp.status_fields())
         return obj
 
     def angle_object(self, c: CompensatedSample) -> dict:
@@ -178,6 +273,11 @@ class Service:
             "flags": flag_names(c.flags),
         }
 
+    def _note(self, event: str, **fields: Any) -> None:
+        """An event for the capture's sidecar, in order with the bytes (call under ``lock``)."""
+        if self.capture is not None:
+            self.capture.note({"event": event, **fields})
+
     # -- acquisition ---------------------------------------------------------------------------
 
     def _on_port_state(self, event: PortEvent) -> None:
@@ -185,49 +285,63 @@ class Service:
         if event.state in ("open", "lost") and self.hub is not None:
             self.hub.publish(self.device_object())
 
-    def _new_compensator(self) -> Compensator:
-        compensator = Compensator(self.model_file, 1.0 / self.identity.rate_hz, adapt=AdaptConfig(),
-                                  reference_rate_dph=self.config.adapt_reference_dph)  # fmt: skip
-        if self.config.adapt_state and Path(self.config.adapt_state).exists():
-            compensator.load_adaptation(self.config.adapt_state)
-        return compensator
+    def _on_capture_state(self, state: str) -> None:
+        if self.hub is not None:
+            self.hub.publish(self.device_object())
 
     def process(self, chunk: bytes) -> list[dict]:
         """Bytes from the port -> ANGLE objects (the acquisition thread; also used by tests)."""
         angles: list[dict] = []
         with self.lock:
+            if self.capture is not None:
+                self.capture.put(chunk)
             for event in self.decoder.feed(chunk):
                 sample = self.stream.step(event)
                 if isinstance(event, IdentityFrame):
-                    changed = self.identity is None or self.identity[1:] != event[1:]
-                    self.identity = event
-                    if changed and self.hub is not None:
-                        self.hub.publish(self.device_object())
+                    self._on_identity(angles)
+                    continue
                 if sample is None:
                     continue
-                if self.compensator is None:
-                    if self.identity is None:  # frame period unknown until the first IDENTITY
-                        self.samples_before_identity.append(sample)
-                        continue
-                    self.compensator = self._new_compensator()
-                    pending, self.samples_before_identity = self.samples_before_identity, []
-                    for earlier in pending:
-                        angles.append(self._compensate(earlier))
+                if not self.binding.bound:  # frame period unknown until the first IDENTITY
+                    self.samples_before_identity.append(sample)
+                    if len(self.samples_before_identity) > MAX_SAMPLES_BEFORE_IDENTITY:
+                        del self.samples_before_identity[0]
+                        self.samples_dropped_before_identity += 1
+                    continue
                 angles.append(self._compensate(sample))
         return angles
 
+    def _on_identity(self, angles: list[dict]) -> None:
+        """The stream took an IDENTITY (an implausible one is counted there and changes nothing)."""
+        identity = self.stream.identity
+        if identity is None or identity == self.identity:
+            return
+        changed = self.identity is None or self.identity[1:] != identity[1:]
+        self.identity = identity
+        if self.binding.changes_binding(identity):
+            first = not self.binding.bound
+            self.binding.bind(identity)  # ModelMismatchError: the acquisition stops with exit 78
+            fields = self._identity_fields()
+            if self.capture is not None:
+                self.capture.update_provenance({"instrument": fields})
+            if first:
+                pending, self.samples_before_identity = self.samples_before_identity, []
+                angles.extend(self._compensate(s) for s in pending)
+            else:
+                self._note("instrument_changed", **fields)
+                log.warning("instrument_changed", **fields)
+        if changed and self.hub is not None:
+            self.hub.publish(self.device_object())
+
     def _compensate(self, sample) -> dict:
-        c = self.compensator.step(sample)
+        c = self.binding.step(sample)
         period = self.compensator.frame_period_s
         if self._bias_capture is not None:
             capture = self._bias_capture
             capture["sum_arcsec"] += c.dtheta_comp_arcsec
             capture["seconds"] += period
             if capture["seconds"] >= capture["target_s"]:
-                self.bias_dph = capture["sum_arcsec"] / capture["seconds"]
-                self._bias_capture = None
-                capture["future"].set_result({"class": "BIAS", "bias_dph": self.bias_dph,
-                                              "seconds": capture["seconds"]})  # fmt: skip
+                self._finish_bias(capture)
         self.bias_angle_arcsec += self.bias_dph * period
         obj = self.angle_object(c)
         if self.udp is not None:
@@ -237,17 +351,29 @@ class Service:
             self.flagged[name] += 1
         return obj
 
+    def _finish_bias(self, capture: dict) -> None:
+        """A ``?BIAS`` capture is complete: apply it, and answer whoever still waits (nobody may)."""
+        self.bias_dph = capture["sum_arcsec"] / capture["seconds"]
+        self._bias_capture = None
+        self._note("bias", bias_dph=self.bias_dph, seconds=capture["seconds"])
+        log.info("bias_applied", bias_dph=self.bias_dph, seconds=capture["seconds"])
+        future: Future = capture["future"]
+        try:  # a cancelled future (a client that hung up, in any hub) is simply not answered
+            if future.set_running_or_notify_cancel():
+                future.set_result({"class": "BIAS", "bias_dph": self.bias_dph, "seconds": capture["seconds"]})
+        except Exception:  # noqa: BLE001 - an answer nobody can take must never stop the acquisition
+            log.exception("bias_answer_failed")
+
     def _acquire(self) -> None:
-        baud = self.config.baud
-        reader = PortReader(self.port_url, baudrate=baud, backoff_max_s=1.0, on_state=self._on_port_state)
         try:
-            for chunk in reader.chunks(self.stop):
-                if self.rawlog is not None:
-                    with self.lock:  # the status loop polls (flushes, rotates) the capture too
-                        self.rawlog.write(chunk)
+            for chunk in self.reader.chunks(self.stop):
                 angles = self.process(chunk)
                 if angles and self.hub is not None:
                     self.hub.publish_angles(angles)
+        except ModelMismatchError as exc:  # refused at the first IDENTITY: a configuration problem
+            log.error("acquisition_stopped", reason=str(exc))
+            self.failure = ConfigError(str(exc))
+            self.stop.set()
         except PortError as exc:  # a URL no handler understands, bad settings: retrying cannot help
             log.error("acquisition_stopped", reason=str(exc))
             self.failure = ConfigError(str(exc))
@@ -261,57 +387,76 @@ class Service:
             self.failure = exc
             self.stop.set()
 
-    # -- control (called from the hub's thread) -------------------------------------------------
+    # -- control (called from the hub's worker threads) ----------------------------------------
 
-    def control(self, name: str, args: dict, client_id: int) -> dict | Future:
+    def control(self, name: str, args: dict, client_id: int) -> dict | Future | Any:
         handler = getattr(self, f"_cmd_{name.lower()}", None)
         if handler is None:
-            return {"class": "ERROR", "message": f"unknown command ?{name}"}
-        with self.lock:
-            return handler(args)
+            return {"class": "ERROR", "message": f"unknown command ?{name}", "command": name}
+        return handler(args)
 
     def _cmd_status(self, args: dict) -> dict:
-        return self.status_object()
+        with self.lock:
+            return self.status_object(mark_cpu=False)
 
     def _cmd_zero(self, args: dict) -> dict:
         """Zero the published angles here (the raw capture and the model are untouched)."""
-        if self.compensator is None:
-            return {"class": "ERROR", "message": "no samples yet: nothing to zero"}
-        self.zero_raw_arcsec = self.compensator.angle_raw_arcsec
-        self.zero_comp_arcsec = self.compensator.angle_comp_arcsec - self.bias_angle_arcsec
+        with self.lock:
+            if self.compensator is None:
+                return {"class": "ERROR", "message": "no samples yet: nothing to zero"}
+            self.zero_raw_arcsec = self.compensator.angle_raw_arcsec
+            self.zero_comp_arcsec = self.compensator.angle_comp_arcsec - self.bias_angle_arcsec
+            self._note("zero")
         return {"class": "ZERO", "zeroed": True}
 
-    def _cmd_bias(self, args: dict) -> dict | Future:
+    def _cmd_bias(self, args: dict) -> dict | Any:
         """Capture the residual bias over N seconds (device time) of static data, then remove it."""
+        from .hub import Deferred
+
         seconds = args.get("seconds", 60)
         if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or not 1 <= seconds <= 86400:
             return {"class": "ERROR", "message": "?BIAS needs \"seconds\" between 1 and 86400"}
-        if self._bias_capture is not None:
-            return {"class": "ERROR", "message": "a bias capture is already running"}
-        future: Future = Future()
-        self._bias_capture = {"target_s": float(seconds), "sum_arcsec": 0.0, "seconds": 0.0, "future": future}
-        return future
+        with self.lock:
+            if self._bias_capture is not None:
+                return {"class": "ERROR", "message": "a bias capture is already running"}
+            future: Future = Future()
+            self._bias_capture = {"target_s": float(seconds), "sum_arcsec": 0.0, "seconds": 0.0, "future": future}
+        return Deferred(future, float(seconds) + BIAS_ANSWER_MARGIN_S)
 
     def _cmd_adapt(self, args: dict) -> dict:
-        if self.compensator is None:
-            return {"class": "ERROR", "message": "no samples yet: nothing to adapt"}
         enable = args.get("enable")
         if not isinstance(enable, bool):
             return {"class": "ERROR", "message": "?ADAPT needs \"enable\": true or false"}
         reference = args.get("reference_dph", 0.0)
         if isinstance(reference, bool) or not isinstance(reference, (int, float)) or not math.isfinite(reference):
             return {"class": "ERROR", "message": "\"reference_dph\" must be a number (deg/h, 0 at rest)"}
-        self.compensator.reference_rate_dph = float(reference) if enable else None
+        if abs(reference) > 1e7:
+            return {"class": "ERROR", "message": "\"reference_dph\" must be within +-1e7 deg/h"}
+        with self.lock:
+            if self.compensator is None:
+                return {"class": "ERROR", "message": "no samples yet: nothing to adapt"}
+            self._set_reference(float(reference) if enable else None)
         return {"class": "ADAPT", "enable": enable, **({"reference_dph": float(reference)} if enable else {})}
+
+    def _set_reference(self, reference: float | None) -> None:
+        """Adapt against ``reference`` (None: frozen) from the next block (under ``lock``)."""
+        if reference == self.compensator.reference_rate_dph:
+            return
+        self.compensator.reference_rate_dph = reference
+        self.binding.reference_rate_dph = reference
+        self._adapt_touched = self._adapt_touched or reference is not None
+        self._note("adapt", reference_dph=reference)
 
     def _cmd_save(self, args: dict) -> dict:
         path = self.config.adapt_state
         if not path:
             return {"class": "ERROR", "message": "no adapt_state file configured"}
-        if self.compensator is None:
-            return {"class": "ERROR", "message": "no samples yet: nothing to save"}
+        with self.lock:
+            if self.compensator is None:
+                return {"class": "ERROR", "message": "no samples yet: nothing to save"}
+            doc = self.compensator.adaptation_document()  # a snapshot; written outside the lock
         try:
-            self.compensator.save_adaptation(path)
+            write_state_doc(path, doc)
         except FogDriverError as exc:
             return {"class": "ERROR", "message": str(exc)}
         return {"class": "SAVE", "path": str(path)}
@@ -319,54 +464,98 @@ class Service:
     def _cmd_reload(self, args: dict) -> dict:
         """Load the model file again; the angles carry on from where they are."""
         try:
-            model_file = load_model(self.config.model_path)
+            return self.reload_from_file(self.config)
         except FogDriverError as exc:  # keep running with the model in use
             log.error("model_reload_failed", reason=str(exc))
             return {"class": "ERROR", "message": str(exc)}
-        self.reload_model(model_file)
-        for line in model_file.warnings(str(self.config.model_path)):
-            log.warning("model_warning", message=line)
-        log.info("model_reloaded", model=str(self.config.model_path), kind=model_file.kind,
-                 created_utc=model_file.created_utc)  # fmt: skip
-        return {"class": "RELOAD", "model": model_file.kind, "created_utc": model_file.created_utc}
 
-    #: Settings a SIGHUP can change in a running daemon; the others need a restart.
-    RESTART_KEYS = ("port", "baud", "listen", "udp", "capture_dir", "capture_rotate_mb", "capture_rotate_s")
+    # -- reloads ---------------------------------------------------------------------------------
 
-    def reload_config(self, config: DriverConfig) -> dict:
-        """SIGHUP: take the new settings that can change live, then reload the model file."""
-        with self.lock:
-            ignored = [k for k in self.RESTART_KEYS if getattr(config, k) != getattr(self.config, k)]
-            self.config = dataclasses.replace(config, **{k: getattr(self.config, k) for k in self.RESTART_KEYS})
-            if self.hub is not None:
-                self.hub.max_backlog_s = self.config.max_client_backlog_s
-            if self.compensator is not None:
-                self.compensator.reference_rate_dph = self.config.adapt_reference_dph
-            result = self._cmd_reload({})
-        if ignored:
-            log.warning("config_needs_restart", keys=ignored)
-        log.info("config_reloaded", restart_needed=ignored)
-        return result
+    def reload_from_file(self, config: DriverConfig) -> dict:
+        """Read ``config``'s model file (outside the lock) and use it, unless it is byte for byte the one in
+        use; all or nothing: an unreadable model, or one fitted for another instrument than the one on the
+        port, changes nothing (``FogDriverError``)."""
+        with self._reload_lock:
+            path = config.model_path
+            digest = _file_sha256(path)
+            if digest is not None and digest == self.model_sha256 and path == self.config.model_path:
+                return {"class": "RELOAD", "model": self.model_file.kind, "created_utc": self.model_file.created_utc,
+                        "changed": False}  # fmt: skip
+            model_file = load_model(path)
+            self._swap_model(model_file, digest, config.force_model)
+            for line in model_file.warnings(str(path)):
+                log.warning("model_warning", message=line)
+            log.info("model_reloaded", model=str(path), kind=model_file.kind, created_utc=model_file.created_utc)
+            return {"class": "RELOAD", "model": model_file.kind, "created_utc": model_file.created_utc,
+                    "changed": True}  # fmt: skip
 
     def reload_model(self, model_file: ModelFile) -> None:
-        """Compensate with ``model_file`` from the next block on, without a restart of the pipeline: the
-        angles, the open block and the feature smoothers carry on; the same model reloaded also keeps its
-        memory (reservoir) and its adaptation; a different model starts at rest at the current inputs (as
-        at switch-on), and its adaptation from its saved state, if any."""
-        old = self.compensator
-        self.model_file = model_file
-        if old is not None:
-            new = self._new_compensator()
-            new.angle_raw_arcsec, new.angle_comp_arcsec = old.angle_raw_arcsec, old.angle_comp_arcsec
-            new.continue_from(old, same_model=_same_model(old.model_file, model_file))
-            self.compensator = new
+        """Compensate with ``model_file`` from the next block on (see ``_swap_model``)."""
+        with self._reload_lock:
+            self._swap_model(model_file, None, self.config.force_model)
+
+    def _swap_model(self, model_file: ModelFile, digest: str | None, force: bool) -> None:
+        """Build the compensator for ``model_file`` outside the lock, then swap it in: the angles, the open
+        block and the feature smoothers carry on; the same model also keeps its memory (reservoir) and its
+        adaptation; a different model starts at rest at the current inputs (as at switch-on) and adapts afresh.
+        A model fitted for another instrument than the one on the port is refused (unless ``force``)."""
+        identity = self.binding.identity
+        if identity is not None and identity.serial != model_file.instrument_serial and not force:
+            raise ModelMismatchError(f"the model was fitted for instrument {model_file.instrument_serial!r}, the "
+                                     f"instrument is {identity.serial!r} (set force_model: true to apply it anyway)")
+        new = None
+        if identity is not None:
+            new = Compensator(model_file, 1.0 / identity.rate_hz, adapt=AdaptConfig())
+        with self.lock:  # O(state): the pipeline state is copied, nothing is parsed
+            old = self.compensator
+            if old is not None and new is not None:
+                new.reference_rate_dph = old.reference_rate_dph
+                new.angle_raw_arcsec, new.angle_comp_arcsec = old.angle_raw_arcsec, old.angle_comp_arcsec
+                new.continue_from(old, same_model=_same_model(old.model_file, model_file))
+                self.binding.replace_model(model_file, new)
+            else:
+                self.binding.model_file = model_file
+            self.binding.force = force
+            self.model_file = model_file
+            self.model_sha256 = digest
+            self.reloads += 1
+            self._note("model", kind=model_file.kind, created_utc=model_file.created_utc, sha256=digest)
+
+    def reload_config(self, config: DriverConfig) -> dict:
+        """SIGHUP: apply every setting that can change live, all or nothing, and say which need a restart.
+
+        The model file is read first (if it cannot be used, nothing changes); then the token, the client
+        backlog, the status period, the adaptation reference (only when the file's value changed: a client's
+        ``?ADAPT`` is not undone by an unrelated edit), ``adapt_state`` and ``force_model`` apply.  The keys
+        of ``RESTART_KEYS`` that changed are kept as they are and reported (``restart_needed``)."""
+        restart = [k for k in self.RESTART_KEYS if getattr(config, k) != getattr(self.config, k)]
+        new = dataclasses.replace(config, **{k: getattr(self.config, k) for k in self.RESTART_KEYS})
+        if self.hub is not None and new.token != self.config.token:
+            self.hub.check_token(new.token)  # ValueError (e.g. no token beyond loopback): nothing changed
+        result = self.reload_from_file(new)  # FogDriverError: nothing changed
+        old = self.config
+        self.config = new
+        if self.hub is not None:
+            if new.token != old.token:
+                self.hub.set_token(new.token)
+            self.hub.set_max_backlog_s(new.max_client_backlog_s)
+        with self.lock:
+            self.binding.force = new.force_model
+            if new.adapt_reference_dph != old.adapt_reference_dph and self.compensator is not None:
+                self._set_reference(new.adapt_reference_dph)
+        applied = [f.name for f in dataclasses.fields(DriverConfig)
+                   if f.name not in self.RESTART_KEYS and getattr(new, f.name) != getattr(old, f.name)]  # fmt: skip
+        if restart:
+            log.warning("config_needs_restart", keys=restart)
+        log.info("config_reloaded", applied=applied, restart_needed=restart)
+        return {**result, "applied": applied, "restart_needed": restart}
 
     # -- life cycle ----------------------------------------------------------------------------
 
     def start(self) -> tuple[str, int]:
         """Listen, open the raw capture, start acquiring; returns the listening address."""
         from .hub import Hub
-        from .rawlog import RotatingCapture
+        from .rawlog import CaptureSink, RotatingCapture
 
         host, port = parse_host_port(self.config.listen)
         try:
@@ -378,42 +567,79 @@ class Service:
             raise ConfigError(f"listen {self.config.listen}: {exc}") from None
         try:
             address = self.hub.start()
-        except OSError as exc:
-            raise ConfigError(f"cannot listen on {self.config.listen}: {exc.strerror or exc}") from None
-        self.rawlog = RotatingCapture(
+        except OSError as exc:  # in use, or not on this host yet (the network coming up): may clear by itself
+            error = TemporaryFailure if exc.errno in (errno.EADDRINUSE, errno.EADDRNOTAVAIL) else ConfigError
+            raise error(f"cannot listen on {self.config.listen}: {exc.strerror or exc}") from None
+        capture = RotatingCapture(
             self.config.capture_dir,
             max_bytes=int(self.config.capture_rotate_mb * 2**20),
             max_age_s=self.config.capture_rotate_s,
-            provenance={"source": "fog-driver run", "port": self.port_url, "baud": self.config.baud,
-                        "fog_driver_version": __version__},  # fmt: skip
+            provenance=self._provenance(),
         )
+        self.capture = CaptureSink(capture, on_state=self._on_capture_state)
         if self.config.udp:
             from .udp import UdpPublisher
 
             self.udp = UdpPublisher(*parse_host_port(self.config.udp))
+        self.reader = PortReader(self.port_url, baudrate=self.config.baud, backoff_max_s=1.0,
+                                 on_state=self._on_port_state)  # fmt: skip
         self._acquisition = threading.Thread(target=self._acquire, name="acquisition", daemon=True)
         self._acquisition.start()
         return address
 
+    def _provenance(self) -> dict[str, Any]:
+        """What a capture's sidecar records so the published output can be reproduced from it."""
+        c = self.config
+        return {
+            "source": "fog-driver run",
+            "port": self.port_url,
+            "baud": c.baud,
+            "fog_driver_version": __version__,
+            "pid": os.getpid(),
+            "model": {"path": str(c.model_path), "sha256": self.model_sha256, "kind": self.model_file.kind,
+                      "created_utc": self.model_file.created_utc,
+                      "instrument_serial": self.model_file.instrument_serial},  # fmt: skip
+            "settings": {"scale_arcsec_per_count": c.scale_arcsec_per_count,
+                         "scale_override_arcsec_per_count": c.scale_override_arcsec_per_count,
+                         "force_model": c.force_model, "adapt_reference_dph": c.adapt_reference_dph,
+                         "adapt_state": c.adapt_state, "adapt_state_sha256": self.adapt_state_sha256},  # fmt: skip
+        }
+
+    def _making_progress(self) -> bool:
+        """Whether the watchdog may be pinged: the acquisition and hub threads live and the port reader's loop
+        comes round (a quiet port still does, at its read timeout)."""
+        if self._acquisition is None or not self._acquisition.is_alive():
+            return False
+        if self.hub is not None and not self.hub.running:
+            return False
+        reader = self.reader
+        return reader is None or time.monotonic() - reader.last_activity_monotonic < READER_STALL_S
+
     def run_until_stopped(self, on_status=None) -> int:
-        """The main loop: STATUS and a log summary every ``status_every_s``, until ``stop``."""
+        """The main loop: STATUS and a log summary every ``status_every_s`` (read afresh each time, so a SIGHUP
+        applies it), the watchdog at its own cadence, until ``stop``."""
         from .sdnotify import Notifier
 
         self.notifier = Notifier.from_environment()
         self.notifier.ready(status=f"listening on {self.config.listen}")
-        every = self.config.status_every_s
+        next_status = time.monotonic() + self.config.status_every_s
         try:
-            while not self.stop.wait(every):
+            while True:
+                tick = self.notifier.loop_wait_s(self.config.status_every_s)
+                if self.stop.wait(max(0.0, min(tick, next_status - time.monotonic()))):
+                    break
+                now = time.monotonic()
+                if self._making_progress():
+                    self.notifier.maybe_watchdog(now)
+                if now < next_status:
+                    continue
+                next_status = now + self.config.status_every_s
                 with self.lock:
-                    if self.rawlog is not None:
-                        self.rawlog.poll()  # a quiet port still flushes, and rotates by age
                     status = self.status_object()
                 self.hub.publish(status)
                 log.info("status", **{k: v for k, v in status.items() if k != "class"})
                 self.notifier.status(f"{status['port_state']}, {status['frames']} frames, "
-                                     f"{status.get('clients', 0)} clients")  # fmt: skip
-                if self._acquisition is not None and self._acquisition.is_alive():
-                    self.notifier.maybe_watchdog(time.monotonic())  # only while acquisition lives
+                                     f"{status.get('clients', 0)} clients, capture {status.get('capture_state')}")  # fmt: skip
                 if on_status:
                     on_status(status)
         finally:
@@ -423,25 +649,33 @@ class Service:
         return 0 if self.failure is None else 1
 
     def shutdown(self) -> None:
-        """Flush and close everything (SIGTERM ends here, exit 0)."""
+        """Stop acquiring, save the adaptation (only if it ran), close the capture and the hub (SIGTERM ends
+        here, exit 0).  Each wait is bounded: ``JOIN_TIMEOUT_S`` for the acquisition and for the capture."""
         self.stop.set()
         if self.notifier is not None:
             self.notifier.stopping()
         if self._acquisition is not None:
-            self._acquisition.join(timeout=10)
+            self._acquisition.join(timeout=JOIN_TIMEOUT_S)
+        doc = None
         with self.lock:
-            if self.compensator is not None and self.config.adapt_state:
-                try:
-                    self.compensator.save_adaptation(self.config.adapt_state)
-                except FogDriverError as exc:
-                    log.error("adapt_state_not_saved", reason=str(exc))
-        if self.rawlog is not None:
-            with self.lock:  # after the acquisition thread has ended (or given up on after 10 s)
-                self.rawlog.close()
+            if self.compensator is not None and self.config.adapt_state and self._adapt_touched:
+                doc = self.compensator.adaptation_document()
+        if doc is not None:
+            try:
+                write_state_doc(self.config.adapt_state, doc)
+            except FogDriverError as exc:
+                log.error("adapt_state_not_saved", reason=str(exc))
+        if self.capture is not None and not self.capture.close(JOIN_TIMEOUT_S):
+            log.error("capture_not_closed", reason=f"the capture thread did not finish within {JOIN_TIMEOUT_S} s")
         if self.hub is not None:
             self.hub.stop()
+        if self.udp is not None:
+            self.udp.close()
 
 
 def _same_model(a: ModelFile, b: ModelFile) -> bool:
     """The same drift model (kind, normalization and every matrix): its memory and adaptation carry over."""
     return a.kind == b.kind and a.normalizer.to_dict() == b.normalizer.to_dict() and a.model.to_dict() == b.model.to_dict()
+
+
+__all__ = ["ConfigError", "Service"]

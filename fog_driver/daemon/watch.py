@@ -543,6 +543,15 @@ class _Watch:
                 pass
 
 
+#: The environment variable ``fog-driver watch`` reads a daemon's client token from (never a command-line
+#: argument: those show in every user's process list).
+TOKEN_ENV = "FOG_DRIVER_TOKEN"
+
+
+def _auth_command(token: str) -> bytes:
+    return b"?AUTH=" + json.dumps({"token": token}, separators=(",", ":")).encode("utf-8") + b";\n"
+
+
 def _watch_command(rate_hz: float | None) -> bytes:
     request: dict[str, Any] = {"enable": True}
     if rate_hz is not None:
@@ -572,11 +581,13 @@ def run_watch(
     duration_s: float | None = None,
     out: TextIO | None = None,
     timeout_s: float = 5.0,
+    token: str | None = None,
 ) -> int:
     """Watch a running daemon until ``count`` ANGLE objects, ``duration_s`` seconds, Ctrl-C or disconnect.
 
     ``out`` defaults to ``sys.stdout`` (looked up at call time).  ``timeout_s`` bounds the
-    connection attempt and sending the WATCH request.  Returns 0 (count reached, duration
+    connection attempt and sending the WATCH request.  ``token``: sent with ``?AUTH`` first (a daemon with a
+    token closes a client that has not authorized within its auth deadline).  Returns 0 (count reached, duration
     elapsed, Ctrl-C) or 1 (the server closed or lost the connection; a one-line note says so).
     Raises ``DeviceError`` when the daemon cannot be reached, ``UsageError`` for bad arguments.
     """
@@ -598,7 +609,7 @@ def run_watch(
         deadline = None if duration_s is None else started + duration_s
         reader = LineReader()
         try:
-            sock.sendall(_watch_command(rate_hz))
+            sock.sendall((_auth_command(token) if token else b"") + _watch_command(rate_hz))
         except OSError:
             pass  # the server went away at once: what it sent is still read below, then EOF
         watch.tick(started)
@@ -655,7 +666,9 @@ def run_watch(
 
 def watch_command(address: str | None, *, rate_hz: float | None = 10.0, count: int | None = None,
                   duration_s: float | None = None) -> int:  # fmt: skip
-    """``fog-driver watch [HOST:PORT]``: parse the address and run the watch on stdout."""
+    """``fog-driver watch [HOST:PORT]``: parse the address and run the watch on stdout (the token, if the daemon
+    has one, from the environment variable ``FOG_DRIVER_TOKEN``)."""
     host, port = parse_address(address)
-    return run_watch(host, port, rate_hz=rate_hz, count=count, duration_s=duration_s)
+    token = os.environ.get(TOKEN_ENV) or None
+    return run_watch(host, port, rate_hz=rate_hz, count=count, duration_s=duration_s, token=token)
 

@@ -15,6 +15,7 @@ an ``on_state`` callback as a ``PortEvent`` and logged with structlog.
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Literal
@@ -96,6 +97,9 @@ class PortReader:
     Counters: ``bytes_read``, ``opens`` (successful opens), ``losses`` (open
     ports lost), ``open_failures``.  They are plain ints written by the reading
     thread; reading them from another thread is fine for monitoring.
+    ``last_activity_monotonic`` is when the reading loop last came round (a read
+    returned, with data or at its timeout, or a state changed): a watchdog tells a
+    quiet port from a stuck reader by it.
     """
 
     def __init__(
@@ -125,10 +129,12 @@ class PortReader:
         self.losses = 0
         self.open_failures = 0
         self.state: PortState = "closed"
+        self.last_activity_monotonic = time.monotonic()
 
     def _report(self, state: PortState, *, detail: str = "", attempt: int = 0, retry_in_s: float | None = None) -> None:
         """Record, log and publish one state change."""
         self.state = state
+        self.last_activity_monotonic = time.monotonic()
         # The callback first, so a terminal display can clear its status line before the log line.
         if self.on_state is not None:
             self.on_state(PortEvent(state, self.url, detail, attempt, retry_in_s))
@@ -165,6 +171,7 @@ class PortReader:
                             except PORT_ERRORS as exc:
                                 detail = str(exc) or type(exc).__name__
                                 break
+                            self.last_activity_monotonic = time.monotonic()
                             if data:
                                 self.bytes_read += len(data)
                                 delivered = True

@@ -1,0 +1,209 @@
+"""The daemon under faults, as a process: a full disk, an instrument that changes or lies, signal bursts
+during reloads and rotations, a port lost during a reload, a client that leaves mid-command.
+
+For each: a well-behaved watcher keeps receiving every sample (its largest gap in device time is
+asserted against the frame period, never a wall-clock timing), and SIGTERM still exits 0 with the
+capture intact.  Readiness from the daemon's own lines, never sleeps (see test_daemon_hil)."""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import resource
+import signal
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from framegen import with_identities
+from test_daemon_hil import DATA, Client, Daemon, offline_angles
+
+from fog_driver.capture import read_provenance
+from fog_driver.protocol import decode_bytes
+from fog_driver.transport import PtyPair
+
+SHORT = (DATA / "sim-short.bin").read_bytes()
+N_SHORT = decode_bytes(SHORT).counters.sample_frames
+
+
+def next_status(client: Client, until, what: str, limit: int = 120) -> dict:
+    """The first STATUS for which ``until(status)`` holds, within ``limit`` of them (one a second)."""
+    for _ in range(limit):
+        status = client.next("STATUS")
+        if until(status):
+            return status
+    pytest.fail(f"no STATUS with {what} within {limit} of them")
+
+
+def watch_all(client: Client, n: int) -> list[dict]:
+    """``n`` consecutive ANGLE lines; the seqs must have no hole (nothing was lost on the way)."""
+    angles = [client.next("ANGLE") for _ in range(n)]
+    seqs = [a["seq"] for a in angles]
+    assert seqs == list(range(seqs[0], seqs[0] + n)), "a sample was not published"
+    return angles
+
+
+def start_watching(daemon: Daemon) -> Client:
+    client = Client(daemon.address)
+    client.send('?WATCH={"enable":true};')
+    client.next("WATCH")
+    client.wait_device("activated")
+    return client
+
+
+@contextlib.contextmanager
+def watched_daemon(tmp_path: Path, *extra: str, preexec=None) -> Iterator[tuple[PtyPair, Daemon, Client]]:
+    """A daemon on a pty with a client watching every sample, the port open; killed if still running at the end."""
+    with PtyPair() as pty:
+        daemon = Daemon(tmp_path, pty.slave_path, *extra, preexec=preexec)
+        try:
+            yield pty, daemon, start_watching(daemon)
+        finally:
+            daemon.kill()
+
+
+def test_a_full_disk_degrades_the_capture_and_never_the_live_angle(tmp_path):
+    """The review's E7: RLIMIT_FSIZE (CPython ignores SIGXFSZ, so writes fail as on a full disk) made the
+    daemon stop publishing and exit 73, and the failed sidecar over-stated the bytes on disk."""
+    limit = 40_000
+
+    def small_files() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+    with watched_daemon(tmp_path, preexec=small_files) as (pty, daemon, client):
+        first = 50_000
+        pty.write(SHORT[:first])  # the file fills at 40 kB: the capture fails...
+        angles = watch_all(client, decode_bytes(SHORT[:first], final=False).counters.sample_frames)
+        status = next_status(client, lambda s: s["capture_state"] != "recording", "the capture failed")
+        assert status["capture_state"] in ("failed", "retrying") and "File too large" in status["capture_error"]
+        # ...and tries a new file after its backoff (1 s)
+        next_status(client, lambda s: s["capture_state"] == "retrying", "the capture retrying")
+        pty.write(SHORT[first:])
+        angles += watch_all(client, N_SHORT - len(angles))  # the live angle never stopped
+        assert angles[-1]["seq"] == angles[0]["seq"] + N_SHORT - 1
+        status = next_status(client, lambda s: s["capture_bytes"] + s["capture_bytes_lost"] >= len(SHORT),
+                             "every byte captured or counted lost")  # fmt: skip
+        assert status["capture_state"] == "recording" and status["capture_bytes_lost"] > 0
+        assert daemon.proc.poll() is None
+        assert daemon.terminate() == 0
+    files = sorted(daemon.capture_dir.glob("*.bin"))
+    assert len(files) >= 2
+    captured = 0
+    for path in files:
+        side, data = read_provenance(path), path.read_bytes()
+        assert side["bytes"] == len(data) and side["sha256"] == hashlib.sha256(data).hexdigest()  # true to the disk
+        captured += len(data)
+    assert captured + status["capture_bytes_lost"] == len(SHORT)
+    assert any(e["event"] == "bytes_lost" for p in files for e in read_provenance(p).get("events", []))
+
+
+def test_an_instrument_that_changes_rate_mid_run_rebuilds_and_live_equals_offline(tmp_path):
+    data = with_identities(SHORT, len(SHORT) // 2, rate_hz=20)
+    with watched_daemon(tmp_path) as (pty, daemon, client):
+        pty.write(data)
+        angles = watch_all(client, N_SHORT)
+        client.send("?VERSION;")
+        assert client.next("VERSION")["instrument"]["rate_hz"] == 20  # the change was taken...
+        next_status(client, lambda s: s["instrument_changes"] == 1, "the change counted")  # ...counted...
+        assert daemon.terminate() == 0
+    events = [e for p in sorted(daemon.capture_dir.glob("*.bin")) for e in read_provenance(p).get("events", [])]
+    assert [e["event"] for e in events if e["event"] == "instrument_changed"] == ["instrument_changed"]  # ...recorded
+    offline = offline_angles(daemon.raw_capture(), tmp_path)
+    assert {a["seq"]: a["angle_arcsec"] for a in angles} == offline
+
+
+@pytest.mark.parametrize("fields", [{"rate_hz": 0}, {"scale_arcsec_per_count": float("nan")}])
+def test_an_identity_with_a_zero_rate_or_a_nan_scale_is_ignored(tmp_path, fields):
+    """Rate 0 crashed the daemon in a restart loop; a NaN scale removed angle_arcsec for good."""
+    data = with_identities(SHORT, len(SHORT) // 3, **fields)
+    with watched_daemon(tmp_path) as (pty, daemon, client):
+        pty.write(data)
+        angles = watch_all(client, N_SHORT)
+        assert all("angle_arcsec" in a for a in angles)
+        assert client.next("STATUS")["identities_rejected"] > 0
+        assert daemon.terminate() == 0
+
+
+def test_a_model_for_another_instrument_stops_the_daemon_with_exit_78_and_one_line(tmp_path):
+    data = with_identities(SHORT, 0, serial="FOG-OTHER-9999")
+    with PtyPair() as pty:
+        daemon = Daemon(tmp_path, pty.slave_path)
+        try:
+            client = Client(daemon.address)
+            client.wait_device("activated")
+            pty.write(data[:5000])
+            assert daemon.wait() == 78
+        finally:
+            daemon.kill()
+    log = daemon.log_path.read_text()
+    assert "FOG-OTHER-9999" in log and "force_model" in log and "Traceback" not in log
+
+
+def test_signal_bursts_during_reloads_and_rotations_lose_nothing(tmp_path):
+    config = tmp_path / "fog.yaml"
+    config.write_text("status_every_s: 0.2\ncapture_rotate_s: 0.3\ncapture_rotate_mb: 0.01\n")  # files of 10 kB
+    with watched_daemon(tmp_path, "--config", str(config)) as (pty, daemon, client):
+        step = len(SHORT) // 8
+        received: list[dict] = []
+        for k in range(8):
+            chunk = SHORT[k * step : (k + 1) * step if k < 7 else len(SHORT)]
+            pty.write(chunk)
+            for _ in range(5):
+                daemon.proc.send_signal(signal.SIGHUP)
+            # the samples this chunk completes (the capture rotates every 10 kB, and every 0.3 s)
+            done = decode_bytes(SHORT[: k * step + len(chunk)], final=False).counters.sample_frames
+            received += watch_all(client, done - len(received))
+        assert [a["seq"] for a in received] == list(range(received[0]["seq"], received[0]["seq"] + N_SHORT))
+        client.send("?VERSION;")
+        assert client.next("VERSION")["model"] == "wesn"
+        assert daemon.terminate() == 0
+    assert daemon.raw_capture() == SHORT  # every byte, in name order, across every rotation
+    assert len(sorted(daemon.capture_dir.glob("*.bin"))) >= 2
+    assert len(received) == N_SHORT and "Traceback" not in daemon.log_path.read_text()
+
+
+def test_a_port_lost_during_a_reload_comes_back_and_the_stream_continues(tmp_path):
+    link = tmp_path / "ttyFOG0"
+    pty = PtyPair()
+    pty.symlink(link)
+    daemon = Daemon(tmp_path, str(link))
+    try:
+        client = start_watching(daemon)
+        half = len(SHORT) // 2
+        pty.write(SHORT[:half])
+        last = watch_all(client, decode_bytes(SHORT[:half], final=False).counters.sample_frames)[-1]
+        control = Client(daemon.address)
+        control.send("?RELOAD;")
+        pty.unplug()
+        assert control.next("RELOAD")["changed"] is False  # the same model: nothing to change
+        client.wait_device("deactivated")
+        pty.close()
+        pty = PtyPair()
+        pty.symlink(link)
+        client.wait_device("activated")
+        pty.write(SHORT[half:])
+        after = client.next("ANGLE")
+        assert after["seq"] == last["seq"] + 1  # nothing written was lost: the frame cut by the unplug completes
+        assert daemon.terminate() == 0
+    finally:
+        pty.close()
+        daemon.kill()
+
+
+def test_a_client_that_asks_for_a_bias_and_hangs_up_does_not_stop_the_daemon(tmp_path):
+    """The review's E1: the daemon exited 1 when the capture completed."""
+    with watched_daemon(tmp_path) as (pty, daemon, client):
+        pty.write(SHORT[:20000])
+        watch_all(client, decode_bytes(SHORT[:20000], final=False).counters.sample_frames)
+        one_shot = Client(daemon.address)
+        one_shot.send('?BIAS={"seconds":3};')
+        one_shot.next("VERSION")
+        one_shot.close()  # hangs up before the answer...
+        next_status(client, lambda s: s["clients"] == 1, "the hang-up noticed")  # ...and the hub notices
+        pty.write(SHORT[20000:])  # then the capture completes
+        watch_all(client, N_SHORT - decode_bytes(SHORT[:20000], final=False).counters.sample_frames)
+        status = next_status(client, lambda s: s["bias_dph"] != 0.0, "the bias applied")
+        assert abs(status["bias_dph"] - 10.0) < 5.0  # applied: Earth rate and bias at rest
+        assert daemon.proc.poll() is None
+        assert daemon.terminate() == 0
+    assert "acquisition_crashed" not in Path(daemon.log_path).read_text()
