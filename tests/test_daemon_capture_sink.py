@@ -23,10 +23,11 @@ TIMEOUT_S = 20.0
 
 
 class Disk:
-    """A disk that fills up at ``free`` bytes (writes take what fits, then ENOSPC) and can stall."""
+    """A disk that fills up at ``free`` bytes (writes take what fits, then fail with ``error``) and can stall."""
 
     def __init__(self, free: int | None = None) -> None:
         self.free = free
+        self.error = OSError(28, "No space left on device")
         self.open = threading.Event()
         self.open.set()
 
@@ -40,7 +41,7 @@ class Disk:
                 disk.open.wait(TIMEOUT_S)
                 if disk.free is not None:
                     if disk.free == 0:
-                        raise OSError(28, "No space left on device")
+                        raise disk.error
                     data = bytes(data)[: disk.free]
                     disk.free -= len(data)
                 return real.write(data)
@@ -99,9 +100,11 @@ def test_bytes_and_events_land_in_order_with_their_byte_offsets(tmp_path):
     assert sink.status() == {"state": "closed", "bytes": 1200, "bytes_lost": 0, "failures": 0}
 
 
-def test_a_full_disk_degrades_the_capture_the_sidecar_stays_true_and_a_new_file_follows(tmp_path, disk):
-    """The review's E7: the failed sidecar claimed bytes that never reached the disk, and the daemon stopped."""
-    disk.free = 1000
+@pytest.mark.parametrize("error", [OSError(28, "No space left on device"), OSError(5, "Input/output error")])
+def test_a_full_disk_degrades_the_capture_the_sidecar_stays_true_and_a_new_file_follows(tmp_path, disk, error):
+    """The review's E7: the failed sidecar claimed bytes that never reached the disk, and the daemon stopped.
+    A full disk, or one that fails (EIO)."""
+    disk.free, disk.error = 1000, error
     q, on_state = states()
     sink = CaptureSink(RotatingCapture(tmp_path), retry_first_s=0.05, on_state=on_state)
     sink.put(b"x" * 700)
@@ -110,9 +113,9 @@ def test_a_full_disk_degrades_the_capture_the_sidecar_stays_true_and_a_new_file_
     failed = sink.capture.files[0]
     side = read_provenance(failed)
     data = failed.read_bytes()
-    assert side["status"].startswith("failed: ") and "No space left" in side["status"]
+    assert side["status"].startswith("failed: ") and error.strerror in side["status"]
     assert side["bytes"] == len(data) == 1000 and side["sha256"] == hashlib.sha256(data).hexdigest()
-    assert sink.status()["state"] in ("failed", "retrying") and "No space left" in sink.status()["last_error"]
+    assert sink.status()["state"] in ("failed", "retrying") and error.strerror in sink.status()["last_error"]
     disk.free = None  # space again
     until(q, "retrying")
     sink.put(b"z" * 50)  # tries a new file

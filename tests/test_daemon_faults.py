@@ -11,6 +11,7 @@ import contextlib
 import hashlib
 import resource
 import signal
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -207,3 +208,53 @@ def test_a_client_that_asks_for_a_bias_and_hangs_up_does_not_stop_the_daemon(tmp
         assert daemon.proc.poll() is None
         assert daemon.terminate() == 0
     assert "acquisition_crashed" not in Path(daemon.log_path).read_text()
+
+
+def test_the_watchdog_follows_watchdog_usec_not_the_status_period(tmp_path, monkeypatch):
+    """The review's E11: pings came once per status period (3 s) against a 2 s watchdog, and systemd killed
+    a healthy daemon.  With a status period of 60 s, two pings must come before the first STATUS= line."""
+    import socket
+    import tempfile
+
+    notify_dir = Path(tempfile.mkdtemp(prefix="fog-wd-"))  # short: an AF_UNIX path has at most 107 bytes
+    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    notify.bind(str(notify_dir / "n"))
+    notify.settimeout(30.0)
+    config = tmp_path / "fog.yaml"
+    config.write_text("status_every_s: 60\n")
+    monkeypatch.setenv("NOTIFY_SOCKET", str(notify_dir / "n"))
+    monkeypatch.setenv("WATCHDOG_USEC", "2000000")
+    monkeypatch.delenv("WATCHDOG_PID", raising=False)
+    try:
+        with watched_daemon(tmp_path, "--config", str(config)) as (_, daemon, _client):
+            messages = []
+            while messages.count("WATCHDOG=1") < 2:
+                messages.append(notify.recv(4096).decode())
+            assert not any(m.startswith("STATUS=") and "frames" in m for m in messages), messages
+            assert daemon.terminate() == 0
+    finally:
+        notify.close()
+
+
+def test_the_watchdog_is_not_pinged_when_the_reader_or_the_hub_is_stuck():
+    from fog_driver.config import DriverConfig
+    from fog_driver.daemon.service import READER_STALL_S, Service
+
+    class Alive:
+        running = True
+
+        def is_alive(self):
+            return True
+
+    class Reader:
+        last_activity_monotonic = 0.0
+
+    service = Service(DriverConfig(), port="unused")
+    service._acquisition, service.hub, service.reader = Alive(), Alive(), Reader()
+    service.reader.last_activity_monotonic = time.monotonic()
+    assert service._making_progress()
+    service.reader.last_activity_monotonic = time.monotonic() - READER_STALL_S - 1  # a reader stuck in a read
+    assert not service._making_progress()
+    service.reader.last_activity_monotonic = time.monotonic()
+    service.hub.running = False  # the hub's thread died
+    assert not service._making_progress()
