@@ -508,7 +508,9 @@ class Service:
             new = Compensator(model_file, 1.0 / identity.rate_hz, adapt=AdaptConfig())
         with self.lock:  # O(state): the pipeline state is copied, nothing is parsed
             old = self.compensator
-            if old is not None and new is not None:
+            if old is not None and (new is None or new.frame_period_s != old.frame_period_s):
+                new = Compensator(model_file, old.frame_period_s, adapt=AdaptConfig())  # the rate changed meanwhile
+            if old is not None:
                 new.reference_rate_dph = old.reference_rate_dph
                 new.angle_raw_arcsec, new.angle_comp_arcsec = old.angle_raw_arcsec, old.angle_comp_arcsec
                 new.continue_from(old, same_model=_same_model(old.model_file, model_file))
