@@ -90,10 +90,16 @@ class SignalDispatcher:
 
 
 def stop_on_signals(stop: threading.Event, signals: Iterable[int] = (signal.SIGINT, signal.SIGTERM)) -> SignalDispatcher:
-    """The first signal sets ``stop`` (a clean end); one more after that raises ``KeyboardInterrupt``."""
+    """The first signal sets ``stop`` (a clean end); one more after that raises ``KeyboardInterrupt``.
+
+    The handler counts the signals itself: it must not read ``stop``, which the dispatcher thread may
+    already have set for this very signal (the wake-up byte reaches it at once, while the Python handler
+    waits for the main thread's next bytecode), and a first SIGTERM would then end as an interrupt."""
+    received = [0]
 
     def force(_signum: int, _frame: FrameType | None) -> None:
-        if stop.is_set():  # a plain read of a flag: safe at any bytecode, unlike Event.set
+        received[0] += 1  # plain arithmetic on a list: safe at any bytecode, unlike Event.set
+        if received[0] > 1:
             raise KeyboardInterrupt
 
     return SignalDispatcher(signals, lambda _signum: stop.set(), in_handler=force)

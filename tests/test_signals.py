@@ -100,3 +100,16 @@ def test_stop_on_signals_sets_stop_then_a_second_signal_forces_keyboardinterrupt
         assert stop.wait(GUARD_S)
         with pytest.raises(KeyboardInterrupt):
             os.kill(os.getpid(), signal.SIGUSR1)
+
+
+def test_a_first_signal_never_forces_even_when_stop_is_already_set():
+    """The dispatcher thread gets the wake-up byte at once and may set ``stop`` before the main thread runs
+    the Python handler of the same signal: a handler that read ``stop`` turned a single SIGTERM into an
+    interrupt (exit 130; a CI failure of `simulate --serve`).  Here ``stop`` is set first, as the
+    dispatcher (or anything else) may have done."""
+    stop = threading.Event()
+    stop.set()
+    with stop_on_signals(stop, [signal.SIGUSR1]):
+        os.kill(os.getpid(), signal.SIGUSR1)  # the first: a clean stop, never KeyboardInterrupt
+        with pytest.raises(KeyboardInterrupt):
+            os.kill(os.getpid(), signal.SIGUSR1)  # the second forces
