@@ -34,6 +34,7 @@ TOKEN = "soak-test-token"
 #: The RSS may grow this much from a tenth of the run to its end (a leak of 1 kB per second of a 10-min run
 #: at 2 kHz is 0.6 MB; a per-sample leak is hundreds of MB).
 RSS_GROWTH_LIMIT_MB = 20.0
+GUARD_S = 30.0
 
 
 def frames(n: int) -> tuple[bytes, list[int]]:
@@ -110,14 +111,20 @@ def test_soak_at_2_khz_with_churning_and_hostile_clients(tmp_path):
             for t in churners:
                 t.start()
 
+            written: dict[str, object] = {}
+
             def write() -> None:
                 t0, done = time.monotonic(), 0
-                while done < n:
-                    due = min(n, int((time.monotonic() - t0) * RATE_HZ) + 1)
-                    if due > done:
-                        pty.write(data[ends[done - 1] if done else 0 : ends[due - 1]])
-                        done = due
-                    time.sleep(TICK_S)  # the pace of the instrument, not a synchronization
+                try:
+                    while done < n:
+                        due = min(n, int((time.monotonic() - t0) * RATE_HZ) + 1)
+                        if due > done:
+                            pty.write(data[ends[done - 1] if done else 0 : ends[due - 1]])
+                            done = due
+                        time.sleep(TICK_S)  # the pace of the instrument, not a synchronization
+                except Exception as exc:  # noqa: BLE001 - reported by the reading loop
+                    written["error"] = exc
+                written["done_at"] = time.monotonic()
 
             writer = threading.Thread(target=write, name="writer", daemon=True)
             writer.start()
@@ -128,6 +135,9 @@ def test_soak_at_2_khz_with_churning_and_hostile_clients(tmp_path):
                 raw = reader.readline()
                 assert raw, f"the daemon closed the watcher after {count} samples"
                 now = time.monotonic()
+                assert "error" not in written, f"the writer failed after {count} samples: {written['error']!r}"
+                # a hang guard (STATUS lines keep coming): every sample is due within 30 s of the last write
+                assert now - written.get("done_at", now) < GUARD_S, f"{n - count} samples never came: {raw[:300]!r}"
                 if not raw.startswith(b'{"class":"ANGLE"'):
                     continue
                 max_gap_s, last_line_t = max(max_gap_s, now - last_line_t), now
