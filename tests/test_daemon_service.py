@@ -17,9 +17,10 @@ from fog_driver.daemon.service import ConfigError, Service
 DATA = Path(__file__).resolve().parent / "data"
 
 
-def offline(capture: Path, model_path: Path) -> tuple[list[float], np.ndarray]:
-    """The compensated angles and the flags of ``fog-driver compensate``, sample by sample."""
-    parts = [cols for _, cols in compensate_capture(capture, load_model(model_path))]
+def offline(capture: Path, model_path: Path = DEFAULT_MODEL, **settings) -> tuple[list[float], np.ndarray]:
+    """The compensated angles and the flags of ``fog-driver compensate`` (with ``settings``: the keyword
+    arguments of ``compensate_capture``), sample by sample."""
+    parts = [cols for _, cols in compensate_capture(capture, load_model(model_path), **settings)]
     return [float(a) for cols in parts for a in cols.angle_comp_arcsec], np.concatenate([c.flags for c in parts])
 
 

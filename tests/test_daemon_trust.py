@@ -12,14 +12,15 @@ import numpy as np
 import pytest
 import yaml
 from framegen import with_identities
+from test_daemon_service import offline
 
 from fog_driver.compensation.adapt import AdaptConfig
-from fog_driver.compensation.apply import ModelMismatchError, compensate_capture
+from fog_driver.compensation.apply import ModelMismatchError
 from fog_driver.compensation.blocks import FLAG_GAP
 from fog_driver.compensation.compensator import FLAG_ADAPTING
 from fog_driver.compensation.fit import FitConfig, fit_model_file
 from fog_driver.compensation.model import load_model, save_model
-from fog_driver.config import DEFAULT_MODEL, DriverConfig
+from fog_driver.config import DriverConfig
 from fog_driver.daemon.service import Service
 from fog_driver.errors import InputFileError
 from fog_driver.protocol import decode_bytes
@@ -33,11 +34,6 @@ def publish(service: Service, data: bytes, chunk: int = 997) -> list[dict]:
     for i in range(0, len(data), chunk):
         out += service.process(data[i : i + chunk])
     return out
-
-
-def offline_angles(path: Path, **kwargs) -> tuple[list[float], np.ndarray]:
-    parts = [cols for _, cols in compensate_capture(path, load_model(DEFAULT_MODEL), **kwargs)]
-    return [float(a) for c in parts for a in c.angle_comp_arcsec], np.concatenate([c.flags for c in parts])
 
 
 # -- M6: IDENTITY fields from the wire ------------------------------------------------------------
@@ -85,7 +81,7 @@ def test_a_rate_change_mid_run_rebuilds_the_pipeline_flags_it_and_offline_does_t
     path.write_bytes(data)
     service = Service(DriverConfig(), port="unused")
     published = publish(service, data)
-    angles, flags = offline_angles(path)
+    angles, flags = offline(path)
     assert [o["angle_arcsec"] for o in published] == angles  # live == offline through the change
     first_after = next(i for i, o in enumerate(published) if o["seq"] and service.identity.rate_hz == 20
                        and "gap" in o["flags"] and i > 100)  # fmt: skip
@@ -223,9 +219,9 @@ def test_live_equals_offline_with_a_scale_override(tmp_path):
     """3000 of 3000 angles differed: compensate had no scale override."""
     service = Service(DriverConfig(scale_override_arcsec_per_count=0.0100001), port="unused")
     published = publish(service, SHORT)
-    angles, _ = offline_angles(DATA / "sim-short.bin", scale_override_arcsec_per_count=0.0100001)
+    angles, _ = offline(DATA / "sim-short.bin", scale_override_arcsec_per_count=0.0100001)
     assert [o["angle_arcsec"] for o in published] == angles
-    assert angles != offline_angles(DATA / "sim-short.bin")[0]
+    assert angles != offline(DATA / "sim-short.bin")[0]
 
 
 def test_live_equals_offline_with_a_restored_adaptation_state(tmp_path):
@@ -240,7 +236,7 @@ def test_live_equals_offline_with_a_restored_adaptation_state(tmp_path):
     state.write_text(yaml.safe_dump(doc))
     service = Service(DriverConfig(adapt_state=str(state)), port="unused")  # frozen, with the adapted weights
     published = publish(service, SHORT)
-    angles, flags = offline_angles(DATA / "sim-short.bin", adapt=AdaptConfig(), adapt_state=state,
+    angles, flags = offline(DATA / "sim-short.bin", adapt=AdaptConfig(), adapt_state=state,
                                    save_adapt_state=False)  # fmt: skip
     assert [o["angle_arcsec"] for o in published] == angles
     assert [bool("adapting" in o["flags"]) for o in published] == [bool(f & FLAG_ADAPTING) for f in flags]

@@ -31,6 +31,12 @@ class ModelMismatchError(UsageError):
     """The model was fitted for another instrument than the one on the port."""
 
 
+def _new_instrument(current: IdentityFrame | None, identity: IdentityFrame) -> bool:
+    """Whether ``identity`` names another instrument than ``current`` for the pipeline: a serial or a rate of
+    its own (a scale factor alone is the stream's business), or the first one."""
+    return current is None or (identity.serial, identity.rate_hz) != (current.serial, current.rate_hz)
+
+
 class InstrumentCompensation:
     """A model file bound to the instrument on a stream (see the module docstring).
 
@@ -51,7 +57,6 @@ class InstrumentCompensation:
         self.compensator: Compensator | None = None
         self.identity: IdentityFrame | None = None  #: the identity the compensator was built for
         self.rebuilds = 0  #: compensators rebuilt for a new serial or rate
-        self.adapt_state_loaded = False
         self._flag_next = False
 
     @property
@@ -60,15 +65,17 @@ class InstrumentCompensation:
 
     def changes_binding(self, identity: IdentityFrame) -> bool:
         """Whether ``identity`` (plausible) builds or rebuilds the compensator."""
-        return self.identity is None or (identity.serial, identity.rate_hz) != (self.identity.serial,
-                                                                                self.identity.rate_hz)  # fmt: skip
+        return _new_instrument(self.identity, identity)
 
-    def check(self, identity: IdentityFrame, model_file: ModelFile | None = None) -> None:
-        """``ModelMismatchError`` when ``model_file`` (default: this one) was fitted for another serial."""
+    def check(self, identity: IdentityFrame, model_file: ModelFile | None = None, *, force: bool | None = None,
+              model_name: str | None = None) -> None:  # fmt: skip
+        """``ModelMismatchError`` when ``model_file`` (default: this one, named ``model_name``) was fitted for
+        another serial, unless ``force`` (default: this binding's)."""
         model_file = model_file or self.model_file
-        if identity.serial != model_file.instrument_serial and not self.force:
+        force = self.force if force is None else force
+        if identity.serial != model_file.instrument_serial and not force:
             raise ModelMismatchError(
-                f"{self.model_name} was fitted for instrument {model_file.instrument_serial!r}, "
+                f"{model_name or self.model_name} was fitted for instrument {model_file.instrument_serial!r}, "
                 f"the instrument is {identity.serial!r} ({self.hint})"
             )
 
@@ -85,7 +92,6 @@ class InstrumentCompensation:
         if old is None:
             if self.adapt is not None and self.adapt_state is not None and Path(self.adapt_state).exists():
                 new.load_adaptation(self.adapt_state)
-                self.adapt_state_loaded = True
             self.compensator = new
             return "bound"
         new.angle_raw_arcsec, new.angle_comp_arcsec = old.angle_raw_arcsec, old.angle_comp_arcsec
@@ -124,7 +130,7 @@ def split_at_identities(samples: SampleBlock, identities: list[IdentityFrame],
     for identity in identities:
         if not identity_is_plausible(identity):
             continue
-        if current is None or (identity.serial, identity.rate_hz) != (current.serial, current.rate_hz):
+        if _new_instrument(current, identity):
             cut = int(np.searchsorted(samples.offset, identity.offset))
             parts.append((pending, samples.take(slice(start, cut))))
             start, pending, current = cut, identity, identity

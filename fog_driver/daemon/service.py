@@ -53,7 +53,12 @@ import structlog
 from .. import __version__
 from ..compensation.adapt import AdaptConfig, read_state_doc, write_state_doc
 from ..compensation.apply import InstrumentCompensation, ModelMismatchError
-from ..compensation.compensator import FLAG_NAMES, CompensatedSample, Compensator, flag_names
+from ..compensation.compensator import (
+    FLAG_NAMES,
+    CompensatedSample,
+    Compensator,
+    flag_names,
+)
 from ..compensation.model import ModelFile, load_model
 from ..config import DriverConfig, parse_host_port
 from ..errors import FogDriverError, TemporaryFailure
@@ -500,9 +505,8 @@ class Service:
         adaptation; a different model starts at rest at the current inputs (as at switch-on) and adapts afresh.
         A model fitted for another instrument than the one on the port is refused (unless ``force``)."""
         identity = self.binding.identity
-        if identity is not None and identity.serial != model_file.instrument_serial and not force:
-            raise ModelMismatchError(f"the model was fitted for instrument {model_file.instrument_serial!r}, the "
-                                     f"instrument is {identity.serial!r} (set force_model: true to apply it anyway)")
+        if identity is not None:
+            self.binding.check(identity, model_file, force=force, model_name="the new model")
         new = None
         if identity is not None:
             new = Compensator(model_file, 1.0 / identity.rate_hz, adapt=AdaptConfig())
