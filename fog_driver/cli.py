@@ -22,7 +22,7 @@ import structlog
 
 from . import __version__
 from .capture import format_summary, inspect_capture
-from .console import Progress, configure_logging
+from .console import LOG_FORMATS, Progress, configure_logging
 from .errors import FogDriverError, InputFileError, InternalError, OutputFileError, UsageError
 from .signals import SignalDispatcher, stop_on_signals
 
@@ -390,7 +390,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     from .daemon.service import ConfigError, Service
     from .daemon.watch import format_address
 
-    configure_logging(max(args.verbose, 1), json=True)  # a service logs JSON lines: per-second summaries
+    # A service logs JSON lines to journald or a pipe (per-second summaries); at a terminal it is quiet.
+    configure_logging(args.verbose, args.log_format, service=True)
     _never_world_writable()
 
     def read_config() -> DriverConfig:
@@ -487,16 +488,26 @@ def build_parser() -> argparse.ArgumentParser:
         description="Fiber-optic-gyro instrument driver and temperature-drift compensator.",
     )
     parser.add_argument("--version", action="version", version=f"fog-driver {__version__}")
-    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output on stderr (-v info, -vv debug)")
+    # The logging options, before or after the command: `fog-driver -v run` and `fog-driver run -v`.
+    logging_options = argparse.ArgumentParser(add_help=False)
+    for where, default in ((parser, {"verbose": 0, "log_format": "auto"}), (logging_options, None)):
+        where.add_argument("-v", "--verbose", action="count", default=default["verbose"] if default else argparse.SUPPRESS,
+                           help="more log output on stderr (-v info, -vv debug)")  # fmt: skip
+        where.add_argument("--log-format", choices=LOG_FORMATS, default=default["log_format"] if default else argparse.SUPPRESS,
+                           help="log lines for a person (human) or a machine (json); auto: human on a terminal, "
+                                "json elsewhere (journald, pipes)")  # fmt: skip
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
-    p = sub.add_parser("inspect", help="check a capture file and summarize what it holds")
+    def add_parser(name: str, **kw) -> argparse.ArgumentParser:
+        return sub.add_parser(name, parents=[logging_options], **kw)
+
+    p = add_parser("inspect", help="check a capture file and summarize what it holds")
     p.add_argument("capture", metavar="CAPTURE.bin")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the text report")
     p.add_argument("--strict", action="store_true", help=f"exit {EXIT_PROBLEMS} when the capture is not clean")
     p.set_defaults(func=cmd_inspect)
 
-    p = sub.add_parser("record", help="record a port's raw bytes to a capture file with a provenance sidecar")
+    p = add_parser("record", help="record a port's raw bytes to a capture file with a provenance sidecar")
     p.add_argument("port", metavar="PORT_OR_URL", help="device path (/dev/ttyUSB0) or pyserial URL (replay://x.bin)")
     p.add_argument("--out", required=True, metavar="CAPTURE.bin")
     p.add_argument("--duration", type=_positive_float, metavar="S", help="stop after S seconds (host clock)")
@@ -506,7 +517,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="overwrite an existing capture file")
     p.set_defaults(func=cmd_record)
 
-    p = sub.add_parser("simulate", help="simulate the instrument: write a capture with its truth, or serve it live")
+    p = add_parser("simulate", help="simulate the instrument: write a capture with its truth, or serve it live")
     p.add_argument("--profile", default="paper", metavar="NAME_OR_YAML",
                    help="built-in profile (paper, paper-validation) or a profile YAML (configs/profiles/)")
     p.add_argument("--out", metavar="CAPTURE.bin", help="write the capture, its sidecar and CAPTURE.truth.csv")
@@ -526,7 +537,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--baud", type=_baud, default=460800, metavar="B", help="--serve DEVICE: baud rate (default 460800)")
     p.set_defaults(func=cmd_simulate)
 
-    p = sub.add_parser("fit", help="fit a drift model to static chamber captures")
+    p = add_parser("fit", help="fit a drift model to static chamber captures")
     p.add_argument("captures", nargs="+", metavar="CAPTURE.bin")
     p.add_argument("--out", required=True, metavar="MODEL.yaml")
     p.add_argument("--kind", default=None,
@@ -541,7 +552,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "temperature range, ...); the model file records it")
     p.set_defaults(func=cmd_fit)
 
-    p = sub.add_parser("compensate", help="apply a drift model to a capture; write a CSV row per period")
+    p = add_parser("compensate", help="apply a drift model to a capture; write a CSV row per period")
     p.add_argument("capture", metavar="CAPTURE.bin")
     p.add_argument("--model", required=True, metavar="MODEL.yaml")
     p.add_argument("--out", required=True, metavar="OUT.csv")
@@ -559,7 +570,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "scale_override_arcsec_per_count)")
     p.set_defaults(func=cmd_compensate)
 
-    p = sub.add_parser("run", help="the headless daemon: live compensation, publishing, control, raw capture")
+    p = add_parser("run", help="the headless daemon: live compensation, publishing, control, raw capture")
     p.add_argument("--config", metavar="FILE", help="settings (configs/default.yaml lists them); flags override")
     instrument = p.add_mutually_exclusive_group()
     instrument.add_argument("--port", metavar="PORT_OR_URL", help="the instrument's device path or URL (overrides 'port')")
@@ -571,7 +582,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--capture-dir", dest="capture_dir", metavar="DIR", help="raw capture directory")
     p.set_defaults(func=cmd_run)
 
-    p = sub.add_parser("watch", help="live view of a running daemon (fog-driver run): angle, rate, temperatures, counters")
+    p = add_parser("watch", help="live view of a running daemon (fog-driver run): angle, rate, temperatures, counters")
     p.add_argument("address", nargs="?", metavar="HOST:PORT",
                    help="the daemon's client address (default 127.0.0.1:2948; also HOST, :PORT, [IPV6]:PORT)")
     p.add_argument("--rate-hz", type=_positive_float, default=10.0, metavar="R",
@@ -580,7 +591,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--duration", type=_positive_float, metavar="S", help="stop after S seconds")
     p.set_defaults(func=cmd_watch)
 
-    p = sub.add_parser("evaluate", help="a report: Allan deviation, drift before and after, positioning accuracy, plots")
+    p = add_parser("evaluate", help="a report: Allan deviation, drift before and after, positioning accuracy, plots")
     p.add_argument("capture", metavar="CAPTURE.bin")
     p.add_argument("--model", required=True, metavar="MODEL.yaml")
     p.add_argument("--out", required=True, metavar="DIR", help="the report folder (report.md, summary.json, PNGs)")
@@ -600,7 +611,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    configure_logging(args.verbose)
+    configure_logging(args.verbose, args.log_format)
     try:
         return args.func(args)
     except FogDriverError as exc:
