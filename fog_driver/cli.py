@@ -412,9 +412,15 @@ def cmd_run(args: argparse.Namespace) -> int:
         where = f" in {args.config}" if args.config else ""
         raise ConfigError(f"no instrument port: set 'port'{where} or give --port PORT_OR_URL "
                           "(--simulate runs the built-in simulated instrument)")  # fmt: skip
-    service = Service(config, port=port)
-    service.stop = stop
-    host, listen_port = service.start()  # a listen address in use: TemporaryFailure, exit 75 (restarted)
+    try:
+        service = Service(config, port=port)
+        service.stop = stop
+        host, listen_port = service.start()  # a listen address in use: TemporaryFailure, exit 75 (restarted)
+    except BaseException:
+        if simulator is not None:  # a failed start leaves no simulator behind (nor a link: it has none)
+            stop.set()
+            simulator.join(timeout=10)
+        raise
 
     def on_signal(signum: int) -> None:
         """In the signal dispatcher's thread: a reload never runs inside a handler, nor twice at once."""
@@ -519,7 +525,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = add_parser("simulate", help="simulate the instrument: write a capture with its truth, or serve it live")
     p.add_argument("--profile", default="paper", metavar="NAME_OR_YAML",
-                   help="built-in profile (paper, paper-validation) or a profile YAML (configs/profiles/)")
+                   help="a profile's name: built-in (paper, paper-validation) or a file's stem in configs/profiles/ "
+                        "(fast-ramps, positioning, ...); or a profile YAML file's path (default: paper)")
     p.add_argument("--out", metavar="CAPTURE.bin", help="write the capture, its sidecar and CAPTURE.truth.csv")
     p.add_argument("--serve", metavar="pty|DEVICE", help="stream in real time on a new pty, or to a serial device")
     p.add_argument("--rate-hz", type=_rate_hz, default=100, metavar="R", help="SAMPLE frame rate (default 100)")

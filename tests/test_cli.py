@@ -7,6 +7,7 @@ import io
 import json
 import os
 import re
+import socket
 import subprocess
 import sys
 import threading
@@ -423,3 +424,17 @@ def test_run_exits_70_when_acquisition_crashes_on_a_bug(tmp_path, monkeypatch, c
     crashes = [json.loads(line) for line in err if '"acquisition_crashed"' in line]
     assert [c["exception"][0]["exc_type"] for c in crashes] == ["RuntimeError"]
     assert crashes[0]["exception"][0]["frames"][-1]["name"] == "broken_process"
+
+
+def test_a_demo_that_fails_to_start_leaves_no_simulator_running(tmp_path):
+    """A demonstration ``run`` whose listen address is taken had already started its simulator, which
+    went on serving its pty after the failure; now it is stopped before the error is reported."""
+    from fog_driver import cli
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        host, port = taken.getsockname()
+        status = cli.main(["run", "--simulate", "--listen", f"{host}:{port}", "--capture-dir", str(tmp_path / "c")])
+    assert status == 75
+    assert not [t for t in threading.enumerate() if t.name == "simulator"]

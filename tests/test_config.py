@@ -45,6 +45,8 @@ def test_config_scale_rule_reaches_the_stream(tmp_path):
         ("scale_arcsec_per_count: -1\n", "positive number"),
         ("scale_override_arcsec_per_count: .nan\n", "expected a finite number"),
         ("sclae_arcsec_per_count: 0.1\n", "unknown key 'sclae_arcsec_per_count'"),
+        ("capture_keep_days: 0\n", "capture_keep_days must be a positive number"),
+        ("capture_max_gb: -5\n", "capture_max_gb must be a positive number"),
         ("- a list\n", "expected a YAML mapping"),
         ("port: [unclosed\n", "not valid YAML"),
         ("port: !!python/object/apply:os.system ['true']\n", "not valid YAML"),
