@@ -63,3 +63,18 @@ def test_bad_config_is_a_one_line_error(tmp_path, text, needle):
 def test_missing_config(tmp_path):
     with pytest.raises(InputFileError, match="no such config file"):
         load_config(tmp_path / "nope.yaml")
+
+
+def test_a_bad_value_names_the_file_then_the_key(tmp_path):
+    """``badval.yaml.baud: expected an integer`` ran the file name and the key together."""
+    from fog_driver.sim.instrument import load_instrument_config
+
+    path = tmp_path / "badval.yaml"
+    path.write_text("baud: fast\n")
+    with pytest.raises(InputFileError) as info:
+        load_config(path)
+    assert str(info.value) == f"{path}: baud: expected an integer, got 'fast'"
+    path.write_text("thermal:\n  tau_top_s: fast\n")
+    with pytest.raises(InputFileError) as info:
+        load_instrument_config(path)
+    assert str(info.value).startswith(f"{path}: thermal.tau_top_s: expected")

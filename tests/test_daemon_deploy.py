@@ -175,7 +175,7 @@ def test_a_listen_address_in_use_is_exit_75_so_systemd_tries_again(tmp_path):
     assert proc.returncode == 75, proc.stderr
     errors = [line for line in proc.stderr.splitlines() if line.startswith("fog-driver:")]
     assert len(errors) == 1 and errors[0].startswith(f"fog-driver: error: cannot listen on {busy}: ")
-    assert "address already in use" in errors[0].lower()
+    assert "address already in use (another fog-driver run? give this one another address: --listen" in errors[0].lower()
     assert "Traceback" not in proc.stderr
 
 

@@ -576,7 +576,9 @@ class Service:
             address = self.hub.start()
         except OSError as exc:  # in use, or not on this host yet (the network coming up): may clear by itself
             error = TemporaryFailure if exc.errno in (errno.EADDRINUSE, errno.EADDRNOTAVAIL) else ConfigError
-            raise error(f"cannot listen on {self.config.listen}: {exc.strerror or exc}") from None
+            hint = (" (another fog-driver run? give this one another address: --listen or 'listen' in its config)"
+                    if exc.errno == errno.EADDRINUSE else "")  # fmt: skip
+            raise error(f"cannot listen on {self.config.listen}: {exc.strerror or exc}{hint}") from None
         capture = RotatingCapture(
             self.config.capture_dir,
             max_bytes=int(self.config.capture_rotate_mb * 2**20),
