@@ -309,10 +309,15 @@ def cmd_compensate(args: argparse.Namespace) -> int:
 
 
 
+def _read(value: float | None, fmt: str) -> str:
+    """A read point for printing: the number, or "not reached"."""
+    return "not reached" if value is None else format(value, fmt)
+
+
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from .compensation.model import load_model
     from .report import positioning
-    from .report.evaluate import evaluate, write_report
+    from .report.evaluate import evaluate, format_bias_instability, model_label, series_names, write_report
     from .sim.capture import read_truth
 
     out = Path(args.out)
@@ -327,24 +332,39 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
             truth = read_truth(args.truth)
         except (OSError, ValueError) as exc:
             raise InputFileError(f"{args.truth}: not a truth file ({exc})") from None
+    label = model_label(args.model, model_file)
+    compare = {}
+    for path in args.compare:
+        other = load_model(path)
+        name = model_label(path, other)
+        while name in compare or name in (label, "raw", "compensated"):
+            name += "'"
+        compare[name] = other
     progress = Progress()
     progress.show("evaluating...", force=True)
     try:
-        summary, series, allans = evaluate(Path(args.capture), model_file, truth=truth, force=args.force)
+        summary, series, allans = evaluate(Path(args.capture), model_file, truth=truth, force=args.force, label=label,
+                                           compare=compare, progress=progress.show)  # fmt: skip
+        progress.show("evaluating: positioning table", force=True)
         positioning_md = positioning.report_for(args.capture, model_file, summary, reference=args.reference,
-                                                compare=args.compare, zero_window_s=args.zero_window,
-                                                force=args.force)  # fmt: skip
+                                                compare=compare, zero_window_s=args.zero_window,
+                                                force=args.force, label=label)  # fmt: skip
+        progress.show("evaluating: writing the report", force=True)
         report = write_report(out, summary, series, allans, positioning_md)
     finally:
         progress.clear()
+    for warning in summary["warnings"]:
+        print(f"warning: {warning}", file=sys.stderr)
     if args.json:
         print(json.dumps(summary))
     else:
-        raw, comp = summary["raw"], summary["compensated"]
-        print(f"report: {report}  (summary.json and PNG plots beside it)")
-        print(f"ARW {raw['arw_deg_sqrt_h']:.5f} -> {comp['arw_deg_sqrt_h']:.5f} deg/sqrt(h); bias instability "
-              f"{raw['bias_instability_dph']:.5f} -> {comp['bias_instability_dph']:.5f} deg/h; 1-min drift RMS "
-              f"{raw['drift_rms_1min_dph']:.4f} -> {comp['drift_rms_1min_dph']:.4f} deg/h")  # fmt: skip
+        print(f"report: {report}  (summary.json, allan-*.csv and PNG plots beside it)")
+        for name in series_names(summary)[1:]:
+            a, b = summary["raw"], summary[name]
+            print(f"{summary['model']['label'] if name == 'compensated' else name}: ARW {_read(a['arw_deg_per_rt_h'], '.5f')} -> "
+                  f"{_read(b['arw_deg_per_rt_h'], '.5f')} deg/sqrt(h); bias instability "
+                  f"{format_bias_instability(a)} -> {format_bias_instability(b)}; 1-min drift RMS "
+                  f"{a['drift_rms_1min_dph']:.4f} -> {b['drift_rms_1min_dph']:.4f} deg/h")  # fmt: skip
         if summary["extrapolating_seconds"]:
             print(f"warning: the model extrapolated for {summary['extrapolating_seconds'] / 60:.1f} of "
                   f"{summary['seconds'] / 60:.1f} min (inputs outside its fit range, or its estimate clipped)")
@@ -605,7 +625,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--truth", metavar="TRUTH.csv", help="a simulator truth file: score against the true drift")
     p.add_argument("--reference", metavar="STOPS.csv", help="reference positioning stops (see the README)")
     p.add_argument("--compare", action="append", default=[], metavar="MODEL.yaml",
-                   help="another model for the positioning table (repeatable)")
+                   help="another model to evaluate beside MODEL: its drift RMS, Allan curve and positioning column, "
+                        "labelled by file stem and kind (repeatable)")
     p.add_argument("--zero-window", type=_time_window, metavar="START:END",
                    help="zero every method over this device-time window, seconds from the first sample "
                         "(default: the first 300 s of compensated output)")

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
@@ -145,14 +146,26 @@ def measured_rows(capture: CaptureData, config: FitConfig) -> np.ndarray:
     return ok & np.all(np.isfinite(capture.inputs), axis=1)
 
 
-def load_capture(path: str | Path, config: FitConfig) -> CaptureData:
-    """Decode a capture block by block and reduce it to the model rate."""
+def load_capture(path: str | Path, config: FitConfig,
+                 progress: Callable[[int, int], None] | None = None) -> CaptureData:  # fmt: skip
+    """Decode a capture block by block and reduce it to the model rate; ``progress(bytes read, file size)``
+    after every block read."""
     path = Path(path)
     sha = hashlib.sha256()
     stream = SampleStream()
     averager: BlockAverager | None = None
     parts = []
-    for part in iter_decode_file(path, on_block=sha.update):
+    on_block = sha.update
+    if progress is not None:
+        size = path.stat().st_size if path.is_file() else 0
+        done = [0]
+
+        def on_block(block: bytes) -> None:
+            sha.update(block)
+            done[0] += len(block)
+            progress(done[0], size)
+
+    for part in iter_decode_file(path, on_block=on_block):
         samples = stream.run(part)
         if averager is None:
             if stream.identity is None:
