@@ -187,6 +187,24 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 DEFAULT_FIT_KIND = "wesn"
 
 
+def _print_fit_report(report) -> None:
+    """The fit's table (stdout), its noise-floor line, and a warning on stderr for each model row that
+    leaves more drift than no compensation (marked in the table)."""
+    from .compensation.fit import WORSE_MARKER
+
+    print(report.format())
+    note = report.floor_note()
+    if note:
+        print(f"note: {note}")
+    before = report.rows[0]
+    for what, fit_value, validate_value in report.rows[1:]:
+        for col in report.worse().get(what, []):
+            value, base = (fit_value, before[1]) if col == "fit" else (validate_value, before[2])
+            where = "its fit data" if col == "fit" else "the validation data"
+            print(f"warning: {what.removeprefix('after, ')} is {WORSE_MARKER} on {where}: {value:.4f} deg/h "
+                  f"against {base:.4f} deg/h before compensation", file=sys.stderr)  # fmt: skip
+
+
 def cmd_fit(args: argparse.Namespace) -> int:
     from .compensation.fit import FitConfig, WeakFitError, fit_model_file
     from .compensation.model import save_model
@@ -200,16 +218,24 @@ def cmd_fit(args: argparse.Namespace) -> int:
     if args.config:
         config = dataclass_from_mapping(FitConfig, read_yaml(args.config, "fit config") or {}, args.config)
     kind = args.kind or DEFAULT_FIT_KIND
+    default = " (the default kind: the polynomial is saved instead if the wesn does worse on its own validation " \
+              "split; --kind chooses)" if args.kind is None else ""  # fmt: skip
+    print(f"fitting a {kind} model{default}", flush=True)
+    progress = Progress()
     try:
         model_file, report = fit_model_file(args.captures, kind=kind, config=config, validate_paths=args.validate,
-                                            fall_back=args.kind is None, accept_weak=args.accept_weak_fit)  # fmt: skip
+                                            fall_back=args.kind is None, accept_weak=args.accept_weak_fit,
+                                            progress=progress.show)  # fmt: skip
     except WeakFitError as exc:
-        print(exc.report.format())
+        progress.clear()
+        _print_fit_report(exc.report)
         print(exc.quality.format())
         for check in exc.quality.failed:
             print(f"error: {check.message}")
         raise InputFileError(f"{exc}; {out} not written (--accept-weak-fit writes it anyway, and the model file "
                              f"records that)") from None
+    finally:
+        progress.clear()
     save_model(out, model_file)
     provenance = model_file.provenance
     fitted = provenance["captures"]
@@ -236,7 +262,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
                 print(f"warning: {selection[key]}")
     if "fell_back" in provenance:
         print(f"note: {provenance['fell_back']}")
-    print(report.format())
+    _print_fit_report(report)
     quality = provenance["fit_quality"]
     print(format_checks(quality))
     if "model_condition" in quality:  # for information: a model's own basis may be collinear by design
@@ -564,12 +590,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--baud", type=_baud, default=460800, metavar="B", help="--serve DEVICE: baud rate (default 460800)")
     p.set_defaults(func=cmd_simulate)
 
-    p = add_parser("fit", help="fit a drift model to static chamber captures")
+    from .compensation.fit import FITTERS, KIND_HELP
+
+    kinds = [DEFAULT_FIT_KIND] + [k for k in KIND_HELP if k != DEFAULT_FIT_KIND] + [k for k in FITTERS if k not in KIND_HELP]
+    p = add_parser("fit", help="fit a drift model to static chamber captures",
+                   formatter_class=argparse.RawDescriptionHelpFormatter,
+                   epilog="model kinds (--kind):\n" + "\n".join(
+                           f"  {k:11s} {KIND_HELP.get(k, '')}" for k in kinds))  # fmt: skip
     p.add_argument("captures", nargs="+", metavar="CAPTURE.bin")
     p.add_argument("--out", required=True, metavar="MODEL.yaml")
-    p.add_argument("--kind", default=None,
-                   help=f"model kind: wesn, polynomial, paper or pso-svr (default: {DEFAULT_FIT_KIND}, or the polynomial "
-                        f"when the {DEFAULT_FIT_KIND} does worse on the fit's own validation split)")
+    p.add_argument("--kind", default=None, choices=kinds, metavar="KIND",
+                   help=f"{', '.join(kinds)} (below; default: {DEFAULT_FIT_KIND}, or the polynomial when the "
+                        f"{DEFAULT_FIT_KIND} does worse on the fit's own validation split)")
     p.add_argument("--config", metavar="CONFIG.yaml", help="fit settings (see configs/fit.yaml)")
     p.add_argument("--validate", action="append", default=[], metavar="CAPTURE.bin",
                    help="a held-out capture to report on (repeatable)")
