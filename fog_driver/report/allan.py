@@ -40,7 +40,9 @@ intercept weighted by each point's degrees of freedom) through the longest run o
 ``MIN_REGION_POINTS`` (3) consecutive trusted taus that shows that slope: the run's own least-squares
 slope within ``SLOPE_TOLERANCE`` (0.2) of it and every point within ``REGION_SIGMAS`` (3) standard
 errors of the line (the standard error of ln sigma is 1 / sqrt(2 edf)).  Where no run shows the slope,
-the reading is None ("not reached").  B is the minimum of sigma over the trusted taus; when that
+the reading is None ("not reached").  Two regions may share a corner tau, no more: of two that
+overlap further (a curve whose scatter fits two slopes, e.g. a thermal drift between +1/2 and +1),
+the one over fewer octaves is dropped, as not shown.  B is the minimum of sigma over the trusted taus; when that
 minimum is at the last trusted tau the curve is still falling there, and B is only an upper bound
 ("minimum not reached"; ``bias_instability_bound`` is "upper bound", else "floor").
 """
@@ -182,10 +184,19 @@ def allan(rate_dph: np.ndarray, dt_s: float = 1.0) -> AllanResult:
         intercepts[name] = intercept
         return float(math.exp(intercept + slope * math.log(at_tau_s)))
 
-    arw = read("arw", 1.0)
-    q = read("quantization", math.sqrt(3.0))
-    rrw = read("rrw", 3.0)
-    ramp = read("rate_ramp", math.sqrt(2.0))
+    readings = {"arw": read("arw", 1.0), "quantization": read("quantization", math.sqrt(3.0)),
+                "rrw": read("rrw", 3.0), "rate_ramp": read("rate_ramp", math.sqrt(2.0))}  # fmt: skip
+    # one region per stretch of the curve: of two regions sharing more than a corner, the shorter is dropped
+    by_length = sorted(regions, key=lambda k: (-np.log2(regions[k][1] / regions[k][0]), list(SLOPES).index(k)))
+    kept: list[str] = []
+    for name in by_length:
+        t0, t1 = regions[name]
+        if any(min(t1, regions[o][1]) > max(t0, regions[o][0]) for o in kept):
+            del regions[name], intercepts[name]
+            readings[name] = None
+        else:
+            kept.append(name)
+    arw, q, rrw, ramp = (readings[k] for k in ("arw", "quantization", "rrw", "rate_ramp"))
     return AllanResult(
         tau, sigma, bounds[:, 0], bounds[:, 1], np.asarray(n_pairs, dtype=np.int64), edf, alpha, trusted, record_s,
         arw_deg_per_rt_h=None if arw is None else arw / 60.0,
