@@ -326,7 +326,7 @@ class FitReport:
     A model row that leaves more than the "before compensation" row in a column is marked
     ``WORSE_MARKER`` (``worse``).  ``noise_floor`` (fit data, validate data or None): the white noise of
     the 1-s blocks over sqrt(60) (``noise_floor_dph``), what the 1-minute RMS of a perfect model still
-    holds on measured data."""
+    holds on measured data, in expectation (a few minutes, or a model fitted to them, can show less)."""
 
     rows: list[tuple[str, float, float | None]]  #: (what, on fit data, on validate data)
     noise_floor: tuple[float, float | None] | None = None
@@ -365,9 +365,9 @@ class FitReport:
             return None
         fit_floor, validate_floor = self.noise_floor
         also = f", {validate_floor:.4f} on the validation data" if validate_floor is not None else ""
-        return (f"noise floor of 1-min means: {fit_floor:.4f} deg/h on the fit data{also} (the gyro's white noise); "
-                f"no model goes below it, and differences between models well below it are not meaningful on "
-                f"measured data (evaluate --truth scores against the true drift)")
+        return (f"noise floor of 1-min means: {fit_floor:.4f} deg/h on the fit data{also}: the gyro's white noise, "
+                f"which no model removes; differences between models well below it are not meaningful on measured "
+                f"data (evaluate --truth scores against the true drift)")
 
 
 def noise_floor_dph(captures: list[CaptureData], rate_hz: float) -> float:
