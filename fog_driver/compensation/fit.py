@@ -518,7 +518,7 @@ FITTERS = {"polynomial": _fit_polynomial, "wesn": _fit_wesn("wesn"), "paper": _f
 KIND_HELP = {
     "wesn": "the project's best, the default: wavelet echo-state network, structure chosen from the data",
     "polynomial": "the baseline (fitted beside every kind): cubic in the ring temperature, ridge regression",
-    "paper": "the seed paper's WESN as written, for comparison",
+    "paper": "the paper's WESN as written, for comparison",
     "pso-svr": "the paper's comparator: RBF SVR tuned by a particle swarm (svr extra; the slowest)",
 }
 
