@@ -140,7 +140,8 @@ def test_count_reached_exits_0_with_the_latest_values():
     assert "seq 3 |" in last and "t 12.540 s" in last
     assert "angle 3726.50\" (1°02'06.50\")" in last
     assert "raw -63.00\" (-0°01'03.00\")" in last  # -59.995 - 3 = -62.995..., rounded away from zero
-    assert "rate 15.0410 deg/h" in last and "drift 0.1234 deg/h" in last
+    # the mean rate over the ANGLEs since the gap (seq 2): 1" in 0.1 s of device time, not one sample's 15.041
+    assert "rate 10.00 deg/h (mean over 0.1 s)" in last and "drift 0.1234 deg/h" in last
     assert "temps top 20.25 bottom 19.88 housing 19.60 degC" in last
     assert "flags none" in last
     assert "3 ANGLE" in last and "3 malformed" in last and "1 unknown class" in last  # WATCH is known
@@ -173,7 +174,7 @@ def test_error_and_device_changes_are_printed_as_they_come():
     status, text = watch(daemon, count=1)
     assert status == 0
     assert "server error: port lost\n" in text
-    assert "device /tmp/fog-driver-sim.tty, deactivated, 100 Hz\n" in text
+    assert "device /tmp/fog-driver-sim.tty, deactivated, 100 Hz  *** LINK DOWN ***\n" in text
 
 
 def test_oversized_and_binary_lines_are_skipped_and_counted():
@@ -256,7 +257,7 @@ def test_connection_refused_is_a_one_line_device_error():
         with pytest.raises(DeviceError) as info:
             run_watch("127.0.0.1", port, out=io.StringIO(), timeout_s=GUARD_S)
     message = str(info.value)
-    assert message == f"cannot connect to 127.0.0.1:{port}: Connection refused (is `fog-driver run` running?)"
+    assert message == f"could not connect to 127.0.0.1:{port}: Connection refused (is `fog-driver run` running?)"
     assert "\n" not in message
     assert info.value.exit_status == 69
 
@@ -315,7 +316,7 @@ def test_the_views_survive_absurd_values():
                    temps_c={"top": 10**400, "housing": 20.0})
     lines = render({**FULL_STATE, "angle": absurd}, width=200)
     assert "angle       1e+30\" (1e+30)    raw -1.000000e+400\" (-1.000000e+400)" in lines
-    assert "rate        1.000000e+400 deg/h    drift 0.1234 deg/h" in lines
+    assert "rate        1.000000e+400 deg/h (one sample)    drift 0.1234 deg/h" in lines
     assert "temps       top 1.000000e+400  bottom -  housing 20.00 degC" in lines
     assert "1e+30" in compact_line({**FULL_STATE, "angle": absurd})
     daemon = FakeDaemon([ndjson(absurd)], then="wait")
@@ -370,7 +371,7 @@ def test_render_full_state():
         "instrument  serial FOG-SYN-0001, firmware 1.2, 100 Hz",
         "device      /tmp/fog-driver-sim.tty, activated, serial FOG-SYN-0001, 100 Hz",
         "angle       3725.50\" (1°02'05.50\")    raw -62.00\" (-0°01'02.00\")",  # the two forms agree
-        "rate        15.0410 deg/h    drift 0.1234 deg/h",
+        "rate        15.0 deg/h (one sample)    drift 0.1234 deg/h",
         "temps       top 20.25  bottom 19.88  housing 19.60 degC",
         "flags       gap",
         "sample      seq 2  t 12.440 s  (received 0.0 s ago)",
