@@ -846,9 +846,13 @@ class Hub:
             self._client_failed(client, exc)
 
     def _client_failed(self, client: _Client, exc: Exception) -> None:
-        """Log a bug met while serving ``client`` (once: the client is discarded) and discard it."""
+        """Log a bug met while serving ``client`` (once: the client is discarded) and discard it.  A client
+        that hung up (connection reset, broken pipe) is no bug: that is logged at info."""
         if not client.gone:
-            self._log("error", "client_failed", client=client.id, peer=str(client.peer), error=repr(exc))
+            if isinstance(exc, ConnectionError):
+                self._log("info", "client_hung_up", client=client.id, peer=str(client.peer), error=repr(exc))
+            else:
+                self._log("error", "client_failed", client=client.id, peer=str(client.peer), error=repr(exc))
         self._discard(client, "failed")
 
     # ------------------------------------------------------------------ per-client output

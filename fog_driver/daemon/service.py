@@ -116,7 +116,8 @@ class Service:
 
     #: Settings that need a restart; every other one applies on SIGHUP (``reload_config``).
     RESTART_KEYS = ("port", "baud", "listen", "udp", "capture_dir", "capture_rotate_mb", "capture_rotate_s",
-                    "scale_arcsec_per_count", "scale_override_arcsec_per_count")  # fmt: skip
+                    "capture_keep_days", "capture_max_gb", "scale_arcsec_per_count",
+                    "scale_override_arcsec_per_count")  # fmt: skip
 
     def __init__(self, config: DriverConfig, *, port: str, model_file: ModelFile | None = None) -> None:
         self.config = config
@@ -622,12 +623,16 @@ class Service:
             address = self.hub.start()
         except OSError as exc:  # in use, or not on this host yet (the network coming up): may clear by itself
             error = TemporaryFailure if exc.errno in (errno.EADDRINUSE, errno.EADDRNOTAVAIL) else ConfigError
-            raise error(f"cannot listen on {self.config.listen}: {exc.strerror or exc}") from None
+            hint = (" (another fog-driver run? give this one another address: --listen or 'listen' in its config)"
+                    if exc.errno == errno.EADDRINUSE else "")  # fmt: skip
+            raise error(f"cannot listen on {self.config.listen}: {exc.strerror or exc}{hint}") from None
         capture = RotatingCapture(
             self.config.capture_dir,
             max_bytes=int(self.config.capture_rotate_mb * 2**20),
             max_age_s=self.config.capture_rotate_s,
             provenance=self._provenance(),
+            keep_days=self.config.capture_keep_days,
+            max_total_bytes=None if self.config.capture_max_gb is None else int(self.config.capture_max_gb * 1e9),
         )
         self.capture = CaptureSink(capture, on_state=self._on_capture_state)
         if self.config.udp:
