@@ -38,7 +38,7 @@ def test_the_walkthrough_covers_the_newcomers_path():
     """Deleting a marker must not quietly shorten the walkthrough: the main job and every step of a
     calibration are in it, in this order."""
     commands = [c for step in walkthrough.steps(walkthrough.README.read_text()) for c in step.commands]
-    wanted = ["python3 -m venv .venv", "pip install -e", "fog-driver run", "fog-driver watch",
+    wanted = ["python3 -m venv .venv", "pip install -e", "fog-driver run", "fog-driver watch", "fog-driver ctl bias",
               "fog-driver simulate", "fog-driver inspect", "fog-driver fit", "fog-driver compensate",
               "fog-driver evaluate"]  # fmt: skip
     positions = [next((i for i, c in enumerate(commands) if c.startswith(w)), None) for w in wanted]
