@@ -188,8 +188,9 @@ DEFAULT_FIT_KIND = "wesn"
 
 
 def _print_fit_report(report) -> None:
-    """The fit's table (stdout), its noise-floor line, and a warning on stderr for each model row that
-    leaves more drift than no compensation (marked in the table)."""
+    """The fit's table, its noise-floor line, and a warning (with the fit's other warnings, on stdout: stderr
+    keeps the one-line error of a refused fit) for each model row that leaves more drift than no compensation
+    (marked in the table)."""
     from .compensation.fit import WORSE_MARKER
 
     print(report.format())
@@ -202,7 +203,7 @@ def _print_fit_report(report) -> None:
             value, base = (fit_value, before[1]) if col == "fit" else (validate_value, before[2])
             where = "its fit data" if col == "fit" else "the validation data"
             print(f"warning: {what.removeprefix('after, ')} is {WORSE_MARKER} on {where}: {value:.4f} deg/h "
-                  f"against {base:.4f} deg/h before compensation", file=sys.stderr)  # fmt: skip
+                  f"against {base:.4f} deg/h before compensation")  # fmt: skip
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
