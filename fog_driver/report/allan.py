@@ -16,15 +16,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import UsageError
+from ..extras import missing_message
 
-INSTALL_HINT = "pip install 'fog_driver[report]'"
 
 
 def _allantools():
     try:
         import allantools
     except ImportError:
-        raise UsageError(f"Allan deviation needs allantools: {INSTALL_HINT}") from None
+        raise UsageError(missing_message("report", "Allan deviation", ["allantools"])) from None
     return allantools
 
 

@@ -24,10 +24,10 @@ from ..compensation.domain import FLAG_EXTRAPOLATING
 from ..compensation.fit import FitConfig, load_capture
 from ..compensation.model import ModelFile
 from ..errors import UsageError
+from ..extras import missing_message
 from ..sim.capture import truth_noise_dph
 from .allan import AllanResult, allan
 
-PLOT_HINT = "pip install 'fog_driver[report]'"
 EVALUATE_WARMUP_S = 120.0
 
 
@@ -53,7 +53,8 @@ def per_second(capture: Path, model_file: ModelFile, *, force: bool = False, ada
     """Block-average the capture and the drift the compensator applied, per device second (adapting
     against ``reference_rate_dph`` when ``adapt``, an ``AdaptConfig``, is given)."""
     # 1-s blocks and the static mask (motion excluded); 2 min of warm-up is enough to evaluate
-    data = load_capture(capture, FitConfig(warmup_s=EVALUATE_WARMUP_S))
+    data = load_capture(capture, FitConfig(warmup_s=EVALUATE_WARMUP_S), purpose="to evaluate",
+                        warmup_setting="evaluate's fixed warm-up")  # fmt: skip
     sums: list[np.ndarray] = []
     counts: list[np.ndarray] = []
     flagged: list[np.ndarray] = []
@@ -105,7 +106,9 @@ def evaluate(capture: Path, model_file: ModelFile, *, truth: dict[str, np.ndarra
     series = per_second(capture, model_file, force=force)
     stretch = longest_run(series.static)
     if stretch.stop - stretch.start < 64:
-        raise UsageError(f"{capture}: fewer than 64 static seconds in a row: no Allan deviation to read")
+        raise UsageError(f"{capture}: the longest static stretch is {stretch.stop - stretch.start} s (the capture is "
+                         f"{len(series.t_s)} s, the first {EVALUATE_WARMUP_S:g} s excluded as warm-up); the Allan "
+                         f"deviation needs 64 s in a row")  # fmt: skip
     allans = {"raw": allan(series.rate_raw_dph[stretch]), "compensated": allan(series.rate_comp_dph[stretch])}
     summary: dict[str, Any] = {
         "capture": str(capture),
@@ -143,7 +146,7 @@ def plot(series: Series, allans: dict[str, AllanResult], out_dir: Path) -> list[
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError:
-        raise UsageError(f"the report's plots need matplotlib: {PLOT_HINT}") from None
+        raise UsageError(missing_message("report", "the report's plots", ["matplotlib"])) from None
     minutes = series.t_s / 60.0
     paths = []
 
