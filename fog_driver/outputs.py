@@ -47,8 +47,6 @@ def describe(path: str | Path) -> str:
             head = f.read(_SNIFF_BYTES + 1)
     except OSError:
         return "a file"
-    if head.startswith(SYNC) or (path.suffix == ".bin" and head[:1] != b"#"):
-        return "a capture"
     text_kinds, yaml_kinds = _kinds()
     for start, kind in text_kinds:
         if head.startswith(start.encode()):
@@ -60,6 +58,8 @@ def describe(path: str | Path) -> str:
             doc = None
         if isinstance(doc, dict) and doc.get("format") in yaml_kinds:
             return yaml_kinds[doc["format"]].format(capture=doc.get("capture", "a capture"))
+    if head.startswith(SYNC) or (path.suffix == ".bin" and head):  # raw bytes: garbage may come first
+        return "a capture"
     return "a file" if head else "an empty file"
 
 
