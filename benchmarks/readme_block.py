@@ -7,7 +7,7 @@ a cache that changes no figure)::
 
     <!-- bench: bench_population.py --adapt -->
     ```
-    $ .venv/bin/python benchmarks/bench_population.py --adapt
+    $ python benchmarks/bench_population.py --adapt
     ...
     ```
     <!-- /bench -->
@@ -84,7 +84,7 @@ def readme_output(key: str, *, update: bool, readme: Path = README) -> Iterator[
     captured = io.StringIO()
     with contextlib.redirect_stdout(_Tee(sys.stdout, captured)):
         yield
-    command = ".venv/bin/python benchmarks/" + key
+    command = "python benchmarks/" + key
     readme.write_text(replace_block(readme.read_text(), key, f"$ {command}\n{captured.getvalue()}"))
     print(f"README.md: block {key!r} updated", file=sys.stderr)
 

@@ -22,7 +22,7 @@ import structlog
 
 from . import __version__
 from .capture import format_summary, inspect_capture
-from .console import Progress, configure_logging
+from .console import LOG_FORMATS, Progress, configure_logging
 from .errors import FogDriverError, InputFileError, InternalError, OutputFileError, UsageError
 from .outputs import check_outputs, write_error
 from .signals import SignalDispatcher, stop_on_signals
@@ -197,6 +197,24 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 DEFAULT_FIT_KIND = "wesn"
 
 
+def _print_fit_report(report) -> None:
+    """The fit's table (stdout), its noise-floor line, and a warning on stderr for each model row that
+    leaves more drift than no compensation (marked in the table)."""
+    from .compensation.fit import WORSE_MARKER
+
+    print(report.format())
+    note = report.floor_note()
+    if note:
+        print(f"note: {note}")
+    before = report.rows[0]
+    for what, fit_value, validate_value in report.rows[1:]:
+        for col in report.worse().get(what, []):
+            value, base = (fit_value, before[1]) if col == "fit" else (validate_value, before[2])
+            where = "its fit data" if col == "fit" else "the validation data"
+            print(f"warning: {what.removeprefix('after, ')} is {WORSE_MARKER} on {where}: {value:.4f} deg/h "
+                  f"against {base:.4f} deg/h before compensation", file=sys.stderr)  # fmt: skip
+
+
 def cmd_fit(args: argparse.Namespace) -> int:
     from .compensation.fit import FitConfig, WeakFitError, fit_model_file
     from .compensation.model import save_model
@@ -213,16 +231,24 @@ def cmd_fit(args: argparse.Namespace) -> int:
     if args.config:
         config = dataclass_from_mapping(FitConfig, read_yaml(args.config, "fit config") or {}, args.config)
     kind = args.kind or DEFAULT_FIT_KIND
+    default = " (the default kind: the polynomial is saved instead if the wesn does worse on its own validation " \
+              "split; --kind chooses)" if args.kind is None else ""  # fmt: skip
+    print(f"fitting a {kind} model{default}", flush=True)
+    progress = Progress()
     try:
         model_file, report = fit_model_file(args.captures, kind=kind, config=config, validate_paths=args.validate,
-                                            fall_back=args.kind is None, accept_weak=args.accept_weak_fit)  # fmt: skip
+                                            fall_back=args.kind is None, accept_weak=args.accept_weak_fit,
+                                            progress=progress.show)  # fmt: skip
     except WeakFitError as exc:
-        print(exc.report.format())
+        progress.clear()
+        _print_fit_report(exc.report)
         print(exc.quality.format())
         for check in exc.quality.failed:
             print(f"error: {check.message}")
         raise InputFileError(f"{exc}; {out} not written (--accept-weak-fit writes it anyway, and the model file "
                              f"records that)") from None
+    finally:
+        progress.clear()
     save_model(out, model_file)
     provenance = model_file.provenance
     fitted = provenance["captures"]
@@ -249,7 +275,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
                 print(f"warning: {selection[key]}")
     if "fell_back" in provenance:
         print(f"note: {provenance['fell_back']}")
-    print(report.format())
+    _print_fit_report(report)
     quality = provenance["fit_quality"]
     print(format_checks(quality))
     if "model_condition" in quality:  # for information: a model's own basis may be collinear by design
@@ -339,11 +365,16 @@ def _check_adapt_state(path: Path, *, save: bool, inputs: list) -> None:
         raise InputFileError(f"{path}: is a directory, not an adaptation state")
 
 
+def _read(value: float | None, fmt: str) -> str:
+    """A read point for printing: the number, or "not reached"."""
+    return "not reached" if value is None else format(value, fmt)
+
+
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from .compensation.model import load_model
     from .report import positioning
     from .extras import require_extra
-    from .report.evaluate import evaluate, write_report
+    from .report.evaluate import evaluate, format_bias_instability, model_label, series_names, write_report
     from .sim.capture import check_truth_matches, read_truth
 
     require_extra("report", "evaluate's report (Allan deviation, plots)")
@@ -357,32 +388,47 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         truth = read_truth(args.truth)
         check_truth_matches(truth, args.truth, args.capture)
     stops = positioning.read_reference_csv(args.reference) if args.reference else None
+    label = model_label(args.model, model_file)
+    compare = {}
+    for path in args.compare:
+        other = load_model(path)
+        name = model_label(path, other)
+        while name in compare or name in (label, "raw", "compensated"):
+            name += "'"
+        compare[name] = other
     progress = Progress()
     progress.show("evaluating...", force=True)
     try:
-        summary, series, allans = evaluate(Path(args.capture), model_file, truth=truth, force=args.force)
+        summary, series, allans = evaluate(Path(args.capture), model_file, truth=truth, force=args.force, label=label,
+                                           compare=compare, progress=progress.show)  # fmt: skip
         span_s = float(series.t_s[-1])
         if truth is not None:
             check_truth_matches(truth, args.truth, args.capture, span_s=span_s)
         if stops is not None:
             positioning.check_stops_within(stops, span_s, args.reference, args.capture)
+        progress.show("evaluating: positioning table", force=True)
         positioning_md = positioning.report_for(args.capture, model_file, summary, reference=args.reference,
-                                                compare=args.compare, zero_window_s=args.zero_window,
-                                                force=args.force)  # fmt: skip
+                                                compare=compare, zero_window_s=args.zero_window,
+                                                force=args.force, label=label)  # fmt: skip
+        progress.show("evaluating: writing the report", force=True)
         try:
             report = write_report(out, summary, series, allans, positioning_md)
         except OSError as exc:
             raise write_error(out, "the report", exc) from None
     finally:
         progress.clear()
+    for warning in summary["warnings"]:
+        print(f"warning: {warning}", file=sys.stderr)
     if args.json:
         print(json.dumps(summary))
     else:
-        raw, comp = summary["raw"], summary["compensated"]
-        print(f"report: {report}  (summary.json and PNG plots beside it)")
-        print(f"ARW {raw['arw_deg_sqrt_h']:.5f} -> {comp['arw_deg_sqrt_h']:.5f} deg/sqrt(h); bias instability "
-              f"{raw['bias_instability_dph']:.5f} -> {comp['bias_instability_dph']:.5f} deg/h; 1-min drift RMS "
-              f"{raw['drift_rms_1min_dph']:.4f} -> {comp['drift_rms_1min_dph']:.4f} deg/h")  # fmt: skip
+        print(f"report: {report}  (summary.json, allan-*.csv and PNG plots beside it)")
+        for name in series_names(summary)[1:]:
+            a, b = summary["raw"], summary[name]
+            print(f"{summary['model']['label'] if name == 'compensated' else name}: ARW {_read(a['arw_deg_per_rt_h'], '.5f')} -> "
+                  f"{_read(b['arw_deg_per_rt_h'], '.5f')} deg/sqrt(h); bias instability "
+                  f"{format_bias_instability(a)} -> {format_bias_instability(b)}; 1-min drift RMS "
+                  f"{a['drift_rms_1min_dph']:.4f} -> {b['drift_rms_1min_dph']:.4f} deg/h")  # fmt: skip
         if summary["extrapolating_seconds"]:
             print(f"warning: the model extrapolated for {summary['extrapolating_seconds'] / 60:.1f} of "
                   f"{summary['seconds'] / 60:.1f} min (inputs outside its fit range, or its estimate clipped)")
@@ -416,9 +462,17 @@ def cmd_watch(args: argparse.Namespace) -> int:
 
     previous = signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM ends it as Ctrl-C does
     try:
-        return watch_command(args.address, rate_hz=args.rate_hz, count=args.count, duration_s=args.duration)
+        return watch_command(args.connect or args.address, rate_hz=args.rate_hz, count=args.count,
+                             duration_s=args.duration, json_lines=args.json, token_file=args.token_file)  # fmt: skip
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+def cmd_ctl(args: argparse.Namespace) -> int:
+    from .daemon.ctl import ctl_command
+
+    return ctl_command(args.ctl_command, args.ctl_args, address=args.connect, token_file=args.token_file,
+                       json_out=args.json, reference_dph=args.reference_dph, timeout_s=args.timeout)  # fmt: skip
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -428,7 +482,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     from .daemon.service import ConfigError, Service
     from .daemon.watch import format_address
 
-    configure_logging(max(args.verbose, 1), json=True)  # a service logs JSON lines: per-second summaries
+    # A service logs JSON lines to journald or a pipe (per-second summaries); at a terminal it is quiet.
+    configure_logging(args.verbose, args.log_format, service=True)
     _never_world_writable()
 
     def read_config() -> DriverConfig:
@@ -449,9 +504,15 @@ def cmd_run(args: argparse.Namespace) -> int:
         where = f" in {args.config}" if args.config else ""
         raise ConfigError(f"no instrument port: set 'port'{where} or give --port PORT_OR_URL "
                           "(--simulate runs the built-in simulated instrument)")  # fmt: skip
-    service = Service(config, port=port)
-    service.stop = stop
-    host, listen_port = service.start()  # a listen address in use: TemporaryFailure, exit 75 (restarted)
+    try:
+        service = Service(config, port=port)
+        service.stop = stop
+        host, listen_port = service.start()  # a listen address in use: TemporaryFailure, exit 75 (restarted)
+    except BaseException:
+        if simulator is not None:  # a failed start leaves no simulator behind (nor a link: it has none)
+            stop.set()
+            simulator.join(timeout=10)
+        raise
 
     def on_signal(signum: int) -> None:
         """In the signal dispatcher's thread: a reload never runs inside a handler, nor twice at once."""
@@ -525,16 +586,26 @@ def build_parser() -> argparse.ArgumentParser:
         description="Fiber-optic-gyro instrument driver and temperature-drift compensator.",
     )
     parser.add_argument("--version", action="version", version=f"fog-driver {__version__}")
-    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output on stderr (-v info, -vv debug)")
+    # The logging options, before or after the command: `fog-driver -v run` and `fog-driver run -v`.
+    logging_options = argparse.ArgumentParser(add_help=False)
+    for where, default in ((parser, {"verbose": 0, "log_format": "auto"}), (logging_options, None)):
+        where.add_argument("-v", "--verbose", action="count", default=default["verbose"] if default else argparse.SUPPRESS,
+                           help="more log output on stderr (-v info, -vv debug)")  # fmt: skip
+        where.add_argument("--log-format", choices=LOG_FORMATS, default=default["log_format"] if default else argparse.SUPPRESS,
+                           help="log lines for a person (human) or a machine (json); auto: human on a terminal, "
+                                "json elsewhere (journald, pipes)")  # fmt: skip
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
-    p = sub.add_parser("inspect", help="check a capture file and summarize what it holds")
+    def add_parser(name: str, **kw) -> argparse.ArgumentParser:
+        return sub.add_parser(name, parents=[logging_options], **kw)
+
+    p = add_parser("inspect", help="check a capture file and summarize what it holds")
     p.add_argument("capture", metavar="CAPTURE.bin")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the text report")
     p.add_argument("--strict", action="store_true", help=f"exit {EXIT_PROBLEMS} when the capture is not clean")
     p.set_defaults(func=cmd_inspect)
 
-    p = sub.add_parser("record", help="record a port's raw bytes to a capture file with a provenance sidecar")
+    p = add_parser("record", help="record a port's raw bytes to a capture file with a provenance sidecar")
     p.add_argument("port", metavar="PORT_OR_URL", help="device path (/dev/ttyUSB0) or pyserial URL (replay://x.bin)")
     p.add_argument("--out", required=True, metavar="CAPTURE.bin")
     p.add_argument("--duration", type=_positive_float, metavar="S", help="stop after S seconds (host clock)")
@@ -547,9 +618,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="overwrite an existing capture file")
     p.set_defaults(func=cmd_record)
 
-    p = sub.add_parser("simulate", help="simulate the instrument: write a capture with its truth, or serve it live")
+    p = add_parser("simulate", help="simulate the instrument: write a capture with its truth, or serve it live")
     p.add_argument("--profile", default="paper", metavar="NAME_OR_YAML",
-                   help="built-in profile (paper, paper-validation) or a profile YAML (configs/profiles/)")
+                   help="a profile's name: built-in (paper, paper-validation) or a file's stem in configs/profiles/ "
+                        "(fast-ramps, positioning, ...); or a profile YAML file's path (default: paper)")
     p.add_argument("--out", metavar="CAPTURE.bin", help="write the capture, its sidecar and CAPTURE.truth.csv")
     p.add_argument("--serve", metavar="pty|DEVICE", help="stream in real time on a new pty, or to a serial device")
     p.add_argument("--rate-hz", type=_rate_hz, default=100, metavar="R", help="SAMPLE frame rate (default 100)")
@@ -567,12 +639,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--baud", type=_baud, default=460800, metavar="B", help="--serve DEVICE: baud rate (default 460800)")
     p.set_defaults(func=cmd_simulate)
 
-    p = sub.add_parser("fit", help="fit a drift model to static chamber captures")
+    from .compensation.fit import FITTERS, KIND_HELP
+
+    kinds = [DEFAULT_FIT_KIND] + [k for k in KIND_HELP if k != DEFAULT_FIT_KIND] + [k for k in FITTERS if k not in KIND_HELP]
+    p = add_parser("fit", help="fit a drift model to static chamber captures",
+                   formatter_class=argparse.RawDescriptionHelpFormatter,
+                   epilog="model kinds (--kind):\n" + "\n".join(
+                           f"  {k:11s} {KIND_HELP.get(k, '')}" for k in kinds))  # fmt: skip
     p.add_argument("captures", nargs="+", metavar="CAPTURE.bin")
     p.add_argument("--out", required=True, metavar="MODEL.yaml")
-    p.add_argument("--kind", default=None,
-                   help=f"model kind: wesn, polynomial, paper or pso-svr (default: {DEFAULT_FIT_KIND}, or the polynomial "
-                        f"when the {DEFAULT_FIT_KIND} does worse on the fit's own validation split)")
+    p.add_argument("--kind", default=None, choices=kinds, metavar="KIND",
+                   help=f"{', '.join(kinds)} (below; default: {DEFAULT_FIT_KIND}, or the polynomial when the "
+                        f"{DEFAULT_FIT_KIND} does worse on the fit's own validation split)")
     p.add_argument("--config", metavar="CONFIG.yaml", help="fit settings (see configs/fit.yaml)")
     p.add_argument("--validate", action="append", default=[], metavar="CAPTURE.bin",
                    help="a held-out capture to report on (repeatable)")
@@ -582,7 +660,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "temperature range, ...); the model file records it")
     p.set_defaults(func=cmd_fit)
 
-    p = sub.add_parser("compensate", help="apply a drift model to a capture; write a CSV row per period")
+    p = add_parser("compensate", help="apply a drift model to a capture; write a CSV row per period")
     p.add_argument("capture", metavar="CAPTURE.bin")
     p.add_argument("--model", required=True, metavar="MODEL.yaml")
     p.add_argument("--out", required=True, metavar="OUT.csv")
@@ -600,7 +678,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "scale_override_arcsec_per_count)")
     p.set_defaults(func=cmd_compensate)
 
-    p = sub.add_parser("run", help="the headless daemon: live compensation, publishing, control, raw capture")
+    p = add_parser("run", help="the headless daemon: live compensation, publishing, control, raw capture")
     p.add_argument("--config", metavar="FILE", help="settings (configs/default.yaml lists them); flags override")
     instrument = p.add_mutually_exclusive_group()
     instrument.add_argument("--port", metavar="PORT_OR_URL", help="the instrument's device path or URL (overrides 'port')")
@@ -612,23 +690,47 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--capture-dir", dest="capture_dir", metavar="DIR", help="raw capture directory")
     p.set_defaults(func=cmd_run)
 
-    p = sub.add_parser("watch", help="live view of a running daemon (fog-driver run): angle, rate, temperatures, counters")
+    p = add_parser("watch", help="live view of a running daemon (fog-driver run): angle, rate, temperatures, counters")
     p.add_argument("address", nargs="?", metavar="HOST:PORT",
                    help="the daemon's client address (default 127.0.0.1:2948; also HOST, :PORT, [IPV6]:PORT)")
     p.add_argument("--rate-hz", type=_positive_float, default=10.0, metavar="R",
                    help="ANGLE updates a second to ask the daemon for (default 10)")
     p.add_argument("--count", type=_positive_int, metavar="N", help="stop after N ANGLE updates")
     p.add_argument("--duration", type=_positive_float, metavar="S", help="stop after S seconds")
+    p.add_argument("--connect", metavar="HOST:PORT", help="the daemon's client address (as the positional HOST:PORT)")
+    p.add_argument("--json", action="store_true",
+                   help="print the daemon's NDJSON lines unchanged, one per line, flushed (like gpspipe -w)")
+    p.add_argument("--token-file", metavar="FILE",
+                   help="read the daemon's client token from FILE's first line (default: $FOG_DRIVER_TOKEN)")
     p.set_defaults(func=cmd_watch)
 
-    p = sub.add_parser("evaluate", help="a report: Allan deviation, drift before and after, positioning accuracy, plots")
+    p = add_parser("ctl", help="send one control command to a running daemon: zero, bias, adapt, reload, status, save",
+                   description="zero | bias [SECONDS] | adapt on|off | reload | status | save.  Exit 0 done; "
+                               "64 unknown to the daemon; 65 refused or the bias capture failed; 69 unreachable "
+                               "or the connection lost; 77 the token refused or needed.")  # fmt: skip
+    p.add_argument("ctl_command", metavar="COMMAND", choices=["zero", "bias", "adapt", "reload", "status", "save"],
+                   help="zero, bias, adapt, reload, status or save")
+    p.add_argument("ctl_args", nargs="*", metavar="ARG", help="bias: SECONDS (default 60, 1..86400); adapt: on or off")
+    p.add_argument("--connect", metavar="HOST:PORT",
+                   help="the daemon's client address (default 127.0.0.1:2948; also HOST, :PORT, [IPV6]:PORT)")
+    p.add_argument("--token-file", metavar="FILE",
+                   help="read the daemon's client token from FILE's first line (default: $FOG_DRIVER_TOKEN)")
+    p.add_argument("--json", action="store_true", help="print the daemon's answer (and bias's result event) as JSON lines")
+    p.add_argument("--reference-dph", type=float, metavar="DPH",
+                   help="adapt on: the known input rate while static (deg/h; default 0, a table at rest)")
+    p.add_argument("--timeout", type=_positive_float, default=35.0, metavar="S",
+                   help="how long to wait for the answer (default 35 s; bias waits for its result besides)")
+    p.set_defaults(func=cmd_ctl)
+
+    p = add_parser("evaluate", help="a report: Allan deviation, drift before and after, positioning accuracy, plots")
     p.add_argument("capture", metavar="CAPTURE.bin")
     p.add_argument("--model", required=True, metavar="MODEL.yaml")
     p.add_argument("--out", required=True, metavar="DIR", help="the report folder (report.md, summary.json, PNGs)")
     p.add_argument("--truth", metavar="TRUTH.csv", help="a simulator truth file: score against the true drift")
     p.add_argument("--reference", metavar="STOPS.csv", help="reference positioning stops (see the README)")
     p.add_argument("--compare", action="append", default=[], metavar="MODEL.yaml",
-                   help="another model for the positioning table (repeatable)")
+                   help="another model to evaluate beside MODEL: its drift RMS, Allan curve and positioning column, "
+                        "labelled by file stem and kind (repeatable)")
     p.add_argument("--zero-window", type=_time_window, metavar="START:END",
                    help="zero every method over this device-time window, seconds from the first sample "
                         "(default: the first 300 s of compensated output)")
@@ -641,7 +743,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    configure_logging(args.verbose)
+    configure_logging(args.verbose, args.log_format)
     try:
         return args.func(args)
     except FogDriverError as exc:

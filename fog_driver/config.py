@@ -75,6 +75,8 @@ class DriverConfig:
     capture_dir: str = "fog-captures"
     capture_rotate_mb: float = 256.0
     capture_rotate_s: float = 3600.0
+    capture_keep_days: float | None = None  #: delete captures older than this (None: keep them all)
+    capture_max_gb: float | None = None  #: delete the oldest captures beyond this total (None: no limit)
     status_every_s: float = 1.0
     max_client_backlog_s: float = 2.0
     adapt_reference_dph: float | None = None  #: adapt from the start against this rate (None: frozen)
@@ -93,6 +95,10 @@ class DriverConfig:
         for name in ("capture_rotate_mb", "capture_rotate_s", "status_every_s", "max_client_backlog_s"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0")
+        for name in ("capture_keep_days", "capture_max_gb"):
+            value = getattr(self, name)
+            if value is not None and not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a positive number (or null: no limit), got {value!r}")
         parse_host_port(self.listen)
         if self.udp is not None:
             parse_host_port(self.udp, allow_zero=False)

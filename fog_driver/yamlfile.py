@@ -135,30 +135,32 @@ def require_known_keys(cls: type, d: Any, what: str) -> None:
         raise ValueError(f"{what}: unknown keys {extra}")
 
 
-def dataclass_from_mapping(cls: type, doc: Any, where: str) -> Any:
+def dataclass_from_mapping(cls: type, doc: Any, where: str, path: str = "") -> Any:
     """Build a (nested) frozen dataclass from a YAML mapping, refusing unknown keys and wrong types.
 
     A field's type comes from its default value (or, for a None default, its annotation); an
     optional field (annotated ``... | None``) accepts null.  ``ValueError`` from the dataclass's
-    own checks becomes a one-line ``InputFileError`` naming ``where``.
+    own checks becomes a one-line ``InputFileError`` naming ``where`` (the file) and the key's ``path``
+    within it: ``fit.yaml: aflp.order: expected an integer, got 'x'``.
     """
+    at = f"{where}: {path}: " if path else f"{where}: "
     if not isinstance(doc, dict):
-        raise InputFileError(f"{where}: expected a mapping")
+        raise InputFileError(f"{at}expected a mapping")
     known = {f.name: f for f in fields(cls)}
     defaults = cls()
     values = {}
     for key, value in doc.items():
         if key not in known:
-            raise InputFileError(f"{where}: unknown key {key!r} (known: {', '.join(sorted(known))})")
+            raise InputFileError(f"{at}unknown key {key!r} (known: {', '.join(sorted(known))})")
         default = getattr(defaults, key)
         annotation = str(known[key].type)
-        here = f"{where}.{key}"
+        here = f"{where}: {path}.{key}" if path else f"{where}: {key}"
         if value is None and "None" in annotation:  # an optional setting, explicitly unset
             values[key] = None
             continue
         kind = _kind(default, annotation)
         if kind == "dataclass":
-            values[key] = dataclass_from_mapping(type(default), value, here)
+            values[key] = dataclass_from_mapping(type(default), value, where, f"{path}.{key}" if path else key)
         elif kind == "bool":
             if not isinstance(value, bool):
                 raise InputFileError(f"{here}: expected true or false, got {value!r}")
@@ -184,4 +186,4 @@ def dataclass_from_mapping(cls: type, doc: Any, where: str) -> Any:
     try:
         return cls(**values)
     except ValueError as exc:
-        raise InputFileError(f"{where}: {exc}") from None
+        raise InputFileError(f"{at}{exc}") from None

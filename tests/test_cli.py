@@ -6,6 +6,8 @@ import hashlib
 import io
 import json
 import os
+import re
+import socket
 import subprocess
 import sys
 import threading
@@ -341,7 +343,7 @@ def _crash_in_a_helper() -> None:
 def test_json_logs_carry_the_exception_type_and_stack_without_locals(capsys):
     from fog_driver.console import configure_logging
 
-    configure_logging(0, json=True)
+    configure_logging(0, "json")
     secret = "a-long-token"  # a local variable of a frame in the traceback: never in the log
     try:
         _crash_in_a_helper()
@@ -358,17 +360,35 @@ def test_json_logs_carry_the_exception_type_and_stack_without_locals(capsys):
     assert secret not in line and all("locals" not in frame for frame in exception["frames"])
 
 
-def test_key_value_logs_carry_the_traceback(capsys):
+def test_human_logs_carry_the_traceback_after_the_event(capsys):
     from fog_driver.console import configure_logging
 
-    configure_logging(0)
+    assert configure_logging(0, "human") == "human"
     try:
         _crash_in_a_helper()
     except ZeroDivisionError:
-        structlog.get_logger("test").exception("crashed")
-    (line,) = capsys.readouterr().err.splitlines()
-    assert "Traceback (most recent call last)" in line and "in _crash_in_a_helper" in line
-    assert "ZeroDivisionError: the helper divided by zero" in line
+        structlog.get_logger("test").exception("crashed", port="/dev/ttyUSB0", detail="a b")
+    first, *rest = capsys.readouterr().err.splitlines()
+    assert re.fullmatch(r"\d\d:\d\d:\d\d error   crashed  port=/dev/ttyUSB0 detail='a b'", first)
+    assert rest[0] == "Traceback (most recent call last):" and any("in _crash_in_a_helper" in r for r in rest)
+    assert rest[-1] == "ZeroDivisionError: the helper divided by zero"
+
+
+def test_log_format_follows_where_the_lines_go(monkeypatch):
+    """One rule for every command: lines for a person on a terminal, JSON for journald and pipes."""
+    from fog_driver.console import configure_logging, log_format_for
+
+    master, slave = os.openpty()
+    with open(slave, "w", closefd=True) as tty, open(os.devnull, "w") as pipe:
+        assert log_format_for(tty) == "human" and log_format_for(pipe) == "json"
+        assert log_format_for(tty, "json") == "json" and log_format_for(pipe, "human") == "human"
+        monkeypatch.setattr(sys, "stderr", tty)
+        assert configure_logging(0) == "human"
+        monkeypatch.setattr(sys, "stderr", pipe)
+        assert configure_logging(0) == "json"
+    os.close(master)
+    with pytest.raises(ValueError, match="log format"):
+        log_format_for(sys.stdout, "xml")
 
 
 def test_an_unexpected_exception_is_one_line_exit_70_and_a_logged_traceback(monkeypatch, capsys):
@@ -382,7 +402,8 @@ def test_an_unexpected_exception_is_one_line_exit_70_and_a_logged_traceback(monk
     lines = capsys.readouterr().err.splitlines()
     assert lines[-1] == "fog-driver: error: internal error: ValueError: a multi-line message"
     assert [line for line in lines if line.startswith("fog-driver:")] == lines[-1:]
-    assert "event='internal_error'" in lines[0] and "in broken_inspect" in lines[0]
+    entry = json.loads(lines[0])  # stderr is a capture, not a terminal: the log is JSON
+    assert entry["event"] == "internal_error" and "broken_inspect" in [f["name"] for f in entry["exception"][0]["frames"]]
 
 
 def test_run_exits_70_when_acquisition_crashes_on_a_bug(tmp_path, monkeypatch, capsys):
@@ -403,3 +424,17 @@ def test_run_exits_70_when_acquisition_crashes_on_a_bug(tmp_path, monkeypatch, c
     crashes = [json.loads(line) for line in err if '"acquisition_crashed"' in line]
     assert [c["exception"][0]["exc_type"] for c in crashes] == ["RuntimeError"]
     assert crashes[0]["exception"][0]["frames"][-1]["name"] == "broken_process"
+
+
+def test_a_demo_that_fails_to_start_leaves_no_simulator_running(tmp_path):
+    """A demonstration ``run`` whose listen address is taken had already started its simulator, which
+    went on serving its pty after the failure; now it is stopped before the error is reported."""
+    from fog_driver import cli
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        host, port = taken.getsockname()
+        status = cli.main(["run", "--simulate", "--listen", f"{host}:{port}", "--capture-dir", str(tmp_path / "c")])
+    assert status == 75
+    assert not [t for t in threading.enumerate() if t.name == "simulator"]

@@ -15,6 +15,7 @@ from fog_driver.compensation.fit import FitConfig, fit_normalizer
 from fog_driver.compensation.wesn import COIL_LAG_GRID_S, WESN_DEFAULTS, fit_wesn
 
 DATA = Path(__file__).resolve().parent / "data"
+ROOT = DATA.parents[1]
 
 
 def lagged(u: np.ndarray, tau_s: float) -> np.ndarray:
@@ -199,3 +200,153 @@ def test_a_wesn_worse_than_the_polynomial_on_its_own_validation_is_never_kept_si
     status, out = _fit_cli(named, "--kind", "wesn")
     printed = capsys.readouterr().out
     assert status == 0 and load_model(out).kind == "wesn" and "warning: on its own validation split" in printed
+
+
+# --- fog-driver fit: progress, the kinds in --help, the worse-than-uncompensated marker, the noise floor ----
+
+
+def _kinds_to_test() -> list[str]:
+    from importlib.util import find_spec
+
+    from fog_driver.compensation.fit import FITTERS
+
+    return [k for k in FITTERS if k != "pso-svr" or find_spec("sklearn") is not None]
+
+
+@pytest.mark.parametrize("kind", _kinds_to_test())
+def test_every_kind_reports_its_phases_with_counts(kind):
+    """Every kind says what it is doing and how far it is: decoding, its own phases with counts, validating."""
+    from fog_driver.compensation.fit import fit_model_file
+
+    seen: list[str] = []
+    fit_model_file([DATA / "sim-short.bin"], kind=kind, config=FitConfig(warmup_s=30.0), accept_weak=True,
+                   validate_paths=[DATA / "sim-short.bin"], progress=seen.append)  # fmt: skip
+    assert "decoding sim-short.bin 100 %" in seen
+    assert "polynomial: ridge regression" in seen  # the baseline, fitted beside every kind
+    assert any(t.startswith(f"validating {kind} on sim-short.bin (") for t in seen)
+    own = [t for t in seen if t.startswith(f"{kind}: ")]
+    if kind == "wesn":
+        coils = [t for t in own if t.startswith("wesn: reservoir states, coil ")]
+        n = int(coils[0].split("/")[1].split()[0])
+        assert coils[0] == f"wesn: reservoir states, coil 1/{n} (0 %)" and len(coils) == n
+        assert any(t.startswith("wesn: ridge penalty 1/") for t in own)
+    elif kind == "paper":
+        assert own[:2] == ["paper: reservoir states, capture 1/1 (0 %)", "paper: readout (adaptive)"]
+    elif kind == "pso-svr":
+        from fog_driver.compensation.svr import PSO_SVR_DEFAULTS as S
+
+        swarm = [t for t in own if t.startswith("pso-svr: iteration")]
+        assert len(swarm) == S.n_particles * (S.iterations + 1)  # one line per evaluated particle
+        assert swarm[-1] == f"pso-svr: iteration {S.iterations}/{S.iterations}, particle {S.n_particles}/{S.n_particles} (100 %)"
+        assert own[-1] == "pso-svr: the final fit at the swarm's best"
+
+
+def _tty_progress(monkeypatch):
+    """A terminal for ``Progress``: a stream that says it is a tty, and no rate limit (no waiting in a test)."""
+    import io
+
+    from fog_driver import cli, console
+
+    class Tty(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    stream = Tty()
+    monkeypatch.setattr(cli, "Progress", lambda: console.Progress(stream, min_interval_s=0.0))
+    return stream
+
+
+def test_fit_shows_a_progress_line_on_a_terminal_and_nothing_on_a_pipe(tmp_path, monkeypatch, capsys):
+    stream = _tty_progress(monkeypatch)
+    status, _ = _fit_cli(tmp_path, "--kind", "paper")
+    shown = stream.getvalue()
+    assert status == 0
+    assert "\rdecoding sim-short.bin 100 %" in shown and "\rpaper: reservoir states, capture 1/1 (0 %)" in shown
+    assert shown.endswith("\r")  # cleared before the report
+    monkeypatch.undo()
+    piped = tmp_path / "piped"
+    piped.mkdir()
+    status, _ = _fit_cli(piped, "--kind", "paper")
+    captured = capsys.readouterr()
+    assert status == 0 and "\r" not in captured.err + captured.out
+    assert captured.out.startswith("fitting a paper model\n")
+
+
+def test_fit_help_lists_every_kind_on_a_line_and_the_default_is_the_shipped_models_kind(capsys):
+    from fog_driver.cli import DEFAULT_FIT_KIND, build_parser
+    from fog_driver.compensation.fit import FITTERS, KIND_HELP
+    from fog_driver.compensation.model import load_model
+    from fog_driver.config import DEFAULT_MODEL
+
+    assert DEFAULT_FIT_KIND == load_model(DEFAULT_MODEL).kind  # the project's best: what it ships
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["fit", "--help"])
+    text = capsys.readouterr().out
+    lines = text.splitlines()
+    for kind in FITTERS:
+        assert any(line.split()[:1] == [kind] and KIND_HELP[kind][:30] in line for line in lines), kind
+    assert "default: wesn" in " ".join(text.split())
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["fit", "x.bin", "--out", "m.yaml", "--kind", "cubic"])
+    assert "invalid choice: 'cubic'" in capsys.readouterr().err
+
+
+def test_the_marker_is_on_exactly_the_rows_worse_than_no_compensation():
+    from fog_driver.compensation.fit import WORSE_MARKER, FitReport
+
+    report = FitReport([("before compensation", 0.2732, 0.2630), ("after, polynomial", 0.0238, 0.0242),
+                        ("after, pso-svr", 0.2800, 0.4226), ("after, wesn", 0.0237, None)])  # fmt: skip
+    assert report.worse() == {"after, pso-svr": ["fit", "validate"]}
+    lines = report.format().splitlines()
+    assert [WORSE_MARKER in line for line in lines] == [False, False, False, True, False]
+    assert lines[3].endswith(f"{WORSE_MARKER} (fit data and validation)")
+
+
+def test_fit_marks_a_model_that_makes_validation_worse_and_names_the_noise_floor(tmp_path, capsys):
+    """Fitted on 5 minutes at one temperature and validated on a run over other temperatures, the models
+    extrapolate and make the validation drift worse: marked in the table, a warning each on stderr, recorded
+    in the model file; exit 0 with --accept-weak-fit, 65 without (the validation check, as before)."""
+    from fog_driver.compensation.fit import WORSE_MARKER, block_noise_dph, load_capture
+    from fog_driver.compensation.model import load_model
+    from fog_driver.sim.capture import simulate_to_file
+    from fog_driver.sim.instrument import Simulator
+    from fog_driver.sim.profiles import load_profile
+
+    other = tmp_path / "other-temperatures.bin"
+    simulate_to_file(Simulator(load_profile(ROOT / "configs" / "profiles" / "positioning.yaml"), rate_hz=10, seed=3),
+                     other)  # fmt: skip
+    status, out = _fit_cli(tmp_path, "--kind", "polynomial", "--validate", str(other))
+    captured = capsys.readouterr()
+    assert status == 0
+    rows = {}
+    for line in captured.out.splitlines():
+        words = line.split()
+        if line.startswith(("before compensation", "after, ")):
+            name = line[:34].strip()
+            rows[name] = (float(words[len(name.split())]), float(words[len(name.split()) + 1]), WORSE_MARKER in line)
+    before = rows.pop("before compensation")
+    assert rows and any(marked for *_, marked in rows.values())  # the case is one
+    for name, (fit_v, val_v, marked) in rows.items():
+        assert marked == (fit_v > before[0] or val_v > before[1]), name
+        kind = name.removeprefix("after, ")
+        assert (f"warning: {kind} is {WORSE_MARKER} on the validation data" in captured.err) == (val_v > before[1])
+    metrics = load_model(out).provenance["metrics"]
+    assert metrics["after, polynomial"]["worse_than_uncompensated"] == ["validate"]
+    # the noise floor: the white noise of the 1-s blocks over sqrt(60), against the simulator's configured
+    # ARW (0.003 deg/sqrt(h): 0.18 deg/h per 1-s mean, 0.0232 deg/h per 1-min mean)
+    assert "note: noise floor of 1-min means: " in captured.out and "not meaningful" in captured.out
+    floor = load_model(out).provenance["noise_floor_1min_dph"]
+    assert floor["fit"] == pytest.approx(0.18 / math.sqrt(60.0), rel=0.2)
+    assert floor["validate"] == pytest.approx(0.18 / math.sqrt(60.0), rel=0.2)
+    data = load_capture(other, FitConfig(warmup_s=30.0))
+    assert floor["validate"] == pytest.approx(block_noise_dph(data.blocks.rate_dph[data.static]) / math.sqrt(60.0))
+
+    strict = tmp_path / "strict"
+    strict.mkdir()
+    from fog_driver.cli import main
+
+    config = tmp_path / "fit.yaml"
+    status = main(["fit", str(DATA / "sim-short.bin"), "--config", str(config), "--kind", "polynomial",
+                   "--validate", str(other), "--out", str(strict / "m.yaml")])  # fmt: skip
+    captured = capsys.readouterr()
+    assert status == 65 and WORSE_MARKER in captured.out and not (strict / "m.yaml").exists()

@@ -45,6 +45,8 @@ def test_config_scale_rule_reaches_the_stream(tmp_path):
         ("scale_arcsec_per_count: -1\n", "positive number"),
         ("scale_override_arcsec_per_count: .nan\n", "expected a finite number"),
         ("sclae_arcsec_per_count: 0.1\n", "unknown key 'sclae_arcsec_per_count'"),
+        ("capture_keep_days: 0\n", "capture_keep_days must be a positive number"),
+        ("capture_max_gb: -5\n", "capture_max_gb must be a positive number"),
         ("- a list\n", "expected a YAML mapping"),
         ("port: [unclosed\n", "not valid YAML"),
         ("port: !!python/object/apply:os.system ['true']\n", "not valid YAML"),
@@ -61,3 +63,18 @@ def test_bad_config_is_a_one_line_error(tmp_path, text, needle):
 def test_missing_config(tmp_path):
     with pytest.raises(InputFileError, match="no such config file"):
         load_config(tmp_path / "nope.yaml")
+
+
+def test_a_bad_value_names_the_file_then_the_key(tmp_path):
+    """``badval.yaml.baud: expected an integer`` ran the file name and the key together."""
+    from fog_driver.sim.instrument import load_instrument_config
+
+    path = tmp_path / "badval.yaml"
+    path.write_text("baud: fast\n")
+    with pytest.raises(InputFileError) as info:
+        load_config(path)
+    assert str(info.value) == f"{path}: baud: expected an integer, got 'fast'"
+    path.write_text("thermal:\n  tau_top_s: fast\n")
+    with pytest.raises(InputFileError) as info:
+        load_instrument_config(path)
+    assert str(info.value).startswith(f"{path}: thermal.tau_top_s: expected")

@@ -16,8 +16,10 @@ import socket
 import stat
 import subprocess
 import sys
+import select
 import tempfile
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -173,7 +175,7 @@ def test_a_listen_address_in_use_is_exit_75_so_systemd_tries_again(tmp_path):
     assert proc.returncode == 75, proc.stderr
     errors = [line for line in proc.stderr.splitlines() if line.startswith("fog-driver:")]
     assert len(errors) == 1 and errors[0].startswith(f"fog-driver: error: cannot listen on {busy}: ")
-    assert "address already in use" in errors[0].lower()
+    assert "address already in use (another fog-driver run? give this one another address: --listen" in errors[0].lower()
     assert "Traceback" not in proc.stderr
 
 
@@ -316,3 +318,49 @@ def test_the_units_command_with_the_example_config_gets_ready_and_stops_cleanly(
     assert files[0] == f"etc/fog-driver/{INSTANCE}.yaml"  # the config, then what the daemon wrote:
     assert all(p.startswith(f"{STATE_DIRECTORY.lstrip('/')}/{INSTANCE}/captures/") for p in files[1:]), files
     assert all(stat.S_IMODE((root / p).stat().st_mode) == 0o640 for p in files[1:])  # UMask=0027
+
+
+def _read_terminal(fd: int, until: Callable[[str], bool], guard_s: float = GUARD_S) -> str:
+    """What a terminal shows from ``fd`` (a pty's master) until ``until(text)`` or the far end closes."""
+    text = ""
+    deadline = time.monotonic() + guard_s
+    while not until(text):
+        left = deadline - time.monotonic()
+        assert left > 0, f"the terminal showed, within {guard_s} s: {text!r}"
+        ready, _, _ = select.select([fd], [], [], left)
+        if not ready:
+            continue
+        try:
+            data = os.read(fd, 4096)
+        except OSError:  # EIO: every holder of the pty's other end has closed it
+            break
+        if not data:
+            break
+        text += data.decode("utf-8", "replace")
+    return text
+
+
+def test_on_a_terminal_the_banner_comes_first_and_ctrl_c_stops_quietly(tmp_path):
+    """The review: at a terminal, JSON log lines came before the banner, a status line each second pushed
+    it away, and Ctrl-C logged two warnings (port lost).  Now: the banner is the first thing on screen,
+    nothing follows it without ``-v``, and Ctrl-C ends with exit 0 and no warning or error."""
+    terminal, terminal_peer = os.openpty()
+    try:
+        proc = subprocess.Popen(_run_command("--simulate", "--capture-dir", "c"), cwd=tmp_path, stdin=terminal_peer,
+                                stdout=terminal_peer, stderr=terminal_peer, start_new_session=True)  # fmt: skip
+        os.close(terminal_peer)
+        try:
+            shown = _read_terminal(terminal, lambda text: "(Ctrl-C to stop)" in text)
+            os.killpg(proc.pid, signal.SIGINT)  # what the terminal sends on Ctrl-C: the whole foreground group
+            assert proc.wait(GUARD_S) == 0
+            shown += _read_terminal(terminal, lambda text: False)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(GUARD_S)
+    finally:
+        os.close(terminal)
+    lines = [line for line in shown.replace("\r", "").splitlines() if line.strip()]
+    assert lines[0].startswith("fog-driver ") and "connect with: fog-driver watch" in lines[0], lines
+    assert not [line for line in lines if line.lstrip().startswith("{")], lines  # no JSON at a terminal
+    assert not [line for line in lines[1:] if " warning " in line or " error " in line or "port_state" in line], lines

@@ -18,15 +18,14 @@ import time
 import pytest
 import structlog
 
-from fog_driver.daemon.hub import Deferred, Hub
+from fog_driver.daemon.hub import Hub
 from test_daemon_hub import TIMEOUT_S, Conn, Control, angle, make_hub  # noqa: F401 - make_hub is a fixture
 
 
 class Service(Control):
     """Control plus the slow and late answers of a real service.
 
-    DEFER answers with ``Deferred(future, timeout_s)`` (``timeout_s`` from the args, 30 s by
-    default), LATE with a bare Future, BLOCK blocks its worker thread for up to 2 s (until
+    LATE answers with a bare Future, BLOCK blocks its worker thread for up to 2 s (until
     ``release`` is set), SVCERR answers like the service does for a name it does not know.
     """
 
@@ -39,12 +38,12 @@ class Service(Control):
         self.block_ended = threading.Event()
 
     def __call__(self, name: str, args: dict, client_id: int):
-        if name in ("DEFER", "LATE"):
+        if name == "LATE":
             self.calls.append((name, args, client_id))
             future: concurrent.futures.Future = concurrent.futures.Future()
             self.futures.append(future)
             self.answered_later.set()
-            return Deferred(future, args.get("timeout_s", 30.0)) if name == "DEFER" else future
+            return future
         if name == "BLOCK":
             self.calls.append((name, args, client_id))
             self.blocking.set()
@@ -131,13 +130,12 @@ def wait_until_gone(hub, log_events: LogEvents, disconnects: int) -> None:
 # ------------------------------------------------------------------ C1: the service's Future is never cancelled
 
 
-@pytest.mark.parametrize("command", ["DEFER", "LATE"])
-def test_a_hang_up_never_cancels_the_services_future(make_hub, log_events, command):
+def test_a_hang_up_never_cancels_the_services_future(make_hub, log_events):
     # before: the client's reader task was cancelled and asyncio.wrap_future cancelled the service's
     # Future with it; the acquisition thread's set_result then raised InvalidStateError (the daemon died)
     hub, address, service = make_hub(control=Service())
     c = Conn(address)
-    c.send(f"?{command};\n")
+    c.send("?LATE;\n")
     assert service.answered_later.wait(TIMEOUT_S)
     hang_up_hard(c)
     wait_until_gone(hub, log_events, 1)
@@ -162,39 +160,6 @@ def test_a_timed_out_command_leaves_its_future_to_its_owner(make_hub):
     future.set_result({"class": "LATE"})  # must not raise
     c.send("?ECHO;\n")  # the connection is fine, and the late answer was not sent
     c.expect("ECHO")
-
-
-def test_a_deferred_is_waited_for_its_own_timeout_not_the_default(make_hub):
-    _, address, service = make_hub(control=Service(), control_timeout_s=0.2)
-    a, b = greeted(address, 2)
-    a.send('?DEFER={"timeout_s":60};\n')
-    assert service.answered_later.wait(TIMEOUT_S)
-    b.send("?LATE;\n")  # a bare Future, begun after a's: its 0.2 s pass first
-    assert b.expect("ERROR")["message"] == "no answer within 0.2 s"
-    service.futures[0].set_result({"bias_dph": 0.25})
-    assert a.line() == {"class": "DEFER", "bias_dph": 0.25}  # not the default timeout's ERROR
-
-
-def test_a_deferred_times_out_at_its_own_deadline(make_hub):
-    _, address, service = make_hub(control=Service())  # the default: 30 s
-    c = Conn(address)
-    c.greeting()
-    t0 = time.monotonic()
-    c.send('?DEFER={"timeout_s":0.3};\n')
-    assert c.line() == {"class": "ERROR", "message": "no answer within 0.3 s", "command": "DEFER"}
-    assert time.monotonic() - t0 < TIMEOUT_S  # (Conn's timeout would have failed first anyway)
-    assert not service.futures[0].cancelled()
-    service.futures[0].set_exception(RuntimeError("too late"))  # must not raise either
-
-
-def test_deferred_validates_its_fields():
-    future: concurrent.futures.Future = concurrent.futures.Future()
-    assert Deferred(future, 5).timeout_s == 5
-    for bad in (0, -1, float("inf"), float("nan"), True, "5"):
-        with pytest.raises(ValueError):
-            Deferred(future, bad)
-    with pytest.raises(TypeError):
-        Deferred("not a future", 5.0)
 
 
 def test_service_errors_carry_the_command(make_hub):

@@ -16,6 +16,7 @@ import time
 
 import numpy as np
 import pytest
+import structlog
 
 from fog_driver.compensation.compensator import FLAG_NAMES
 from fog_driver.daemon.hub import MAX_UNTERMINATED_BYTES, Hub, clean, is_loopback_host
@@ -624,3 +625,27 @@ def test_udp_publisher_sends_one_datagram_per_sample_and_never_raises():
 
 def test_udp_flag_bits_are_the_compensators():
     assert FLAG_BITS == {name: bit for bit, name in FLAG_NAMES.items()}
+
+
+def test_a_client_hanging_up_is_logged_at_info_not_as_a_failure(make_hub):
+    """A client that resets its connection (a script exiting with lines unread) was logged at level
+    ``error`` as ``client_failed``; a hang-up is no bug: ``client_hung_up`` at info."""
+    seen: list[dict] = []
+    gone = threading.Event()
+
+    def keep(_logger, method, event):
+        seen.append({**event, "level": method})
+        if event.get("event") in ("client_hung_up", "client_failed", "client_closed"):
+            gone.set()
+        raise structlog.DropEvent
+
+    structlog.configure(processors=[keep], wrapper_class=structlog.make_filtering_bound_logger(0))
+    _, address, _ = make_hub()
+    c = Conn(address)
+    c.greeting()
+    c.sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))  # close sends RST
+    c.sock.close()
+    assert gone.wait(10)
+    events = [(e["event"], e["level"]) for e in seen if e["event"].startswith("client_")]
+    assert ("client_hung_up", "info") in events
+    assert not [e for e in seen if e["level"] in ("error", "warning")]

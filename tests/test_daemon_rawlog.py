@@ -512,3 +512,54 @@ def test_sdnotify_send_errors_never_raise(tmp_path):
     assert n.send_errors == 3 and n.sent == 0
     assert "nobody-listens.sock" in n.last_error and "\n" not in n.last_error
     n.close()
+
+
+# --------------------------------------------------------------------------- retention
+
+
+def test_retention_by_total_size_deletes_the_oldest_closed_captures_and_their_sidecars(tmp_path):
+    """``capture_max_gb``: after each file closes, the oldest captures go until the directory's captures
+    total at most the limit; what stays is the stream's tail, exactly, and never the file being written."""
+    stranger = tmp_path / "notes.bin"  # a file of another name is never touched
+    stranger.write_bytes(b"x" * 5000)
+    chunks = _chunks(7, 200, 50, 150)  # about 20 kB in files of at most 1000 bytes
+    with RotatingCapture(tmp_path, max_bytes=1000, max_total_bytes=3500) as cap:
+        for chunk in chunks:
+            cap.write(chunk)
+            on_disk = sorted(tmp_path.glob("fog-*.bin"))
+            closed = [p for p in on_disk if p != cap.current_path]
+            assert sum(p.stat().st_size for p in closed) <= 3500
+            assert cap.current_path is None or cap.current_path.exists()
+    kept = sorted(tmp_path.glob("fog-*.bin"))
+    assert cap.pruned and cap.pruned == sorted(cap.pruned) and not set(cap.pruned) & set(kept)
+    assert cap.pruned[-1] < kept[0]  # the oldest went first
+    assert b"".join(chunks).endswith(_concat(kept))
+    assert sum(p.stat().st_size for p in kept) <= 3500
+    assert all(not sidecar_path(p).exists() for p in cap.pruned) and all(sidecar_path(p).exists() for p in kept)
+    assert stranger.read_bytes() == b"x" * 5000
+
+
+def test_retention_by_age_at_start_and_never_a_live_recording(tmp_path):
+    """``capture_keep_days``: captures whose last byte is older go at start (and as files close); one whose
+    sidecar says another live process is recording it stays."""
+    with RotatingCapture(tmp_path, max_bytes=100) as cap:
+        for chunk in (b"a" * 100, b"b" * 100, b"c" * 100):
+            cap.write(chunk)
+    old, live, recent = cap.files
+    now = 1_900_000_000.0
+    for path, age_days in ((old, 40), (live, 40), (recent, 10)):
+        os.utime(path, (now - age_days * 86400, now - age_days * 86400))
+    doc = read_provenance(live)
+    doc.update(status="recording", pid=os.getppid())  # another process, alive, still writing it
+    rawlog.write_provenance(live, {k: v for k, v in doc.items() if k not in ("format", "schema_version", "capture")})
+    cap2 = RotatingCapture(tmp_path, keep_days=30, wall_clock=lambda: now)
+    assert cap2.pruned == [old]
+    assert not old.exists() and not sidecar_path(old).exists()
+    assert live.exists() and recent.exists()
+    cap2.close()
+
+
+@pytest.mark.parametrize("kwargs", [{"keep_days": 0}, {"keep_days": -1.0}, {"max_total_bytes": 0}])
+def test_retention_limits_must_be_positive(tmp_path, kwargs):
+    with pytest.raises(ValueError, match="must be positive"):
+        RotatingCapture(tmp_path, **kwargs)

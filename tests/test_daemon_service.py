@@ -56,11 +56,17 @@ def test_zero_and_bias_commands():
     assert service.control("ZERO", {}, 0) == {"class": "ZERO", "zeroed": True}
     after = service.process(data[half : half + 2600])  # 100 frames
     assert abs(after[0]["angle_arcsec"]) < 1.0 and abs(after[0]["angle_raw_arcsec"]) < 30.0
-    future = service.control("BIAS", {"seconds": 5}, 0).future  # a Deferred: the hub waits its own deadline
-    assert not future.done()
+    assert service.status_object()["bias_captured"] is False
+    started = service.control("BIAS", {"seconds": 5}, 0)  # answered at once; the result is an event later
+    assert started == {"class": "BIAS", "state": "started", "capture_id": 1, "seconds": 5.0, "timeout_s": 35.0}
+    assert service.control("BIAS", {"seconds": 5}, 0) == {"class": "ERROR", "message": "a bias capture is already running"}
+    assert service.last_event is None and service.status_object()["bias_capture_target_s"] == 5.0
     service.process(data[half + 2600 :])
-    result = future.result(timeout=1)
-    assert result["class"] == "BIAS" and abs(result["bias_dph"] - 10.0) < 2.0  # Earth rate + bias at rest
+    result = service.last_event
+    assert result["class"] == "BIAS" and result["state"] == "done" and result["capture_id"] == 1
+    assert abs(result["bias_dph"] - 10.0) < 2.0  # Earth rate + bias at rest
+    status = service.status_object()
+    assert status["bias_captured"] is True and "bias_capture_target_s" not in status
     assert service.control("BIAS", {"seconds": 0}, 0)["class"] == "ERROR"
     assert service.control("NOPE", {}, 0)["class"] == "ERROR"
     assert service.control("ADAPT", {"enable": "yes"}, 0)["class"] == "ERROR"

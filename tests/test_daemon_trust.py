@@ -5,7 +5,7 @@ Each test names the finding it holds; each failed on the code before its fix."""
 from __future__ import annotations
 
 import math
-from concurrent.futures import Future
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -247,13 +247,42 @@ def test_live_equals_offline_with_a_restored_adaptation_state(tmp_path):
 
 
 def test_a_bias_capture_whose_client_left_completes_and_applies_without_an_error():
-    """The hub cancelled the future and set_result raised in the acquisition thread: exit 1."""
+    """The hub cancelled the future and set_result raised in the acquisition thread: exit 1.  Now nothing
+    waits on a capture: it is acknowledged at once, and its result is an event for whoever is connected."""
     service = Service(DriverConfig(), port="unused")
     publish(service, SHORT[:10000])
-    deferred = service.control("BIAS", {"seconds": 5}, 0)
-    assert deferred.timeout_s == pytest.approx(5 + 30.0)
-    future: Future = deferred.future
-    assert future.cancel()  # the client hung up and some hub cancelled it
+    started = service.control("BIAS", {"seconds": 5}, 0)
+    assert started["state"] == "started" and started["timeout_s"] == pytest.approx(5 + 30.0)
     rest = publish(service, SHORT[10000:])
-    assert len(rest) > 0 and service.bias_dph != 0.0  # applied anyway
-    assert future.cancelled()
+    assert len(rest) > 0 and service.bias_dph != 0.0  # applied
+    assert service.last_event["state"] == "done"
+
+
+def test_a_bias_capture_without_data_fails_at_its_deadline_and_keeps_the_bias(monkeypatch):
+    """The port went away: the capture is abandoned after its seconds plus the margin (a BIAS failed event),
+    never applied later out of the blue; a new one may start."""
+    import fog_driver.daemon.service as service_module
+
+    monkeypatch.setattr(service_module, "BIAS_ANSWER_MARGIN_S", 0.05)
+    service = Service(DriverConfig(), port="unused")
+
+    class Hub:
+        def __init__(self) -> None:
+            self.published: list[dict] = []
+            self.done = threading.Event()
+
+        def publish(self, obj):
+            if obj["class"] == "BIAS":  # (DEVICE objects too, at the IDENTITY)
+                self.published.append(obj)
+                self.done.set()
+
+    service.hub = hub = Hub()
+    publish(service, SHORT[:10000])
+    started = service.control("BIAS", {"seconds": 1}, 0)
+    assert hub.done.wait(30.0)  # a bound, not a synchronization: the timer fires after 1.05 s
+    (event,) = hub.published
+    assert event["state"] == "failed" and event["capture_id"] == started["capture_id"] and "reason" in event
+    service.hub = None
+    assert service.bias_dph == 0.0 and service.status_object()["bias_captured"] is False
+    assert service.control("BIAS", {"seconds": 1}, 0)["state"] == "started"  # not "already running"
+    service.shutdown()

@@ -140,7 +140,8 @@ def test_count_reached_exits_0_with_the_latest_values():
     assert "seq 3 |" in last and "t 12.540 s" in last
     assert "angle 3726.50\" (1°02'06.50\")" in last
     assert "raw -63.00\" (-0°01'03.00\")" in last  # -59.995 - 3 = -62.995..., rounded away from zero
-    assert "rate 15.0410 deg/h" in last and "drift 0.1234 deg/h" in last
+    # the mean rate over the ANGLEs since the gap (seq 2): 1" in 0.1 s of device time, not one sample's 15.041
+    assert "rate 10.00 deg/h (mean over 0.1 s)" in last and "drift 0.1234 deg/h" in last
     assert "temps top 20.25 bottom 19.88 housing 19.60 degC" in last
     assert "flags none" in last
     assert "3 ANGLE" in last and "3 malformed" in last and "1 unknown class" in last  # WATCH is known
@@ -173,7 +174,7 @@ def test_error_and_device_changes_are_printed_as_they_come():
     status, text = watch(daemon, count=1)
     assert status == 0
     assert "server error: port lost\n" in text
-    assert "device /tmp/fog-driver-sim.tty, deactivated, 100 Hz\n" in text
+    assert "device /tmp/fog-driver-sim.tty, deactivated, 100 Hz  *** LINK DOWN ***\n" in text
 
 
 def test_oversized_and_binary_lines_are_skipped_and_counted():
@@ -256,7 +257,7 @@ def test_connection_refused_is_a_one_line_device_error():
         with pytest.raises(DeviceError) as info:
             run_watch("127.0.0.1", port, out=io.StringIO(), timeout_s=GUARD_S)
     message = str(info.value)
-    assert message == f"cannot connect to 127.0.0.1:{port}: Connection refused (is `fog-driver run` running?)"
+    assert message == f"could not connect to 127.0.0.1:{port}: Connection refused (is `fog-driver run` running?)"
     assert "\n" not in message
     assert info.value.exit_status == 69
 
@@ -315,7 +316,7 @@ def test_the_views_survive_absurd_values():
                    temps_c={"top": 10**400, "housing": 20.0})
     lines = render({**FULL_STATE, "angle": absurd}, width=200)
     assert "angle       1e+30\" (1e+30)    raw -1.000000e+400\" (-1.000000e+400)" in lines
-    assert "rate        1.000000e+400 deg/h    drift 0.1234 deg/h" in lines
+    assert "rate        1.000000e+400 deg/h (one sample)    drift 0.1234 deg/h" in lines
     assert "temps       top 1.000000e+400  bottom -  housing 20.00 degC" in lines
     assert "1e+30" in compact_line({**FULL_STATE, "angle": absurd})
     daemon = FakeDaemon([ndjson(absurd)], then="wait")
@@ -370,7 +371,7 @@ def test_render_full_state():
         "instrument  serial FOG-SYN-0001, firmware 1.2, 100 Hz",
         "device      /tmp/fog-driver-sim.tty, activated, serial FOG-SYN-0001, 100 Hz",
         "angle       3725.50\" (1°02'05.50\")    raw -62.00\" (-0°01'02.00\")",  # the two forms agree
-        "rate        15.0410 deg/h    drift 0.1234 deg/h",
+        "rate        15.0 deg/h (one sample)    drift 0.1234 deg/h",
         "temps       top 20.25  bottom 19.88  housing 19.60 degC",
         "flags       gap",
         "sample      seq 2  t 12.440 s  (received 0.0 s ago)",
@@ -541,3 +542,245 @@ def test_watch_command_takes_the_token_from_the_environment(monkeypatch):
     monkeypatch.delenv("FOG_DRIVER_TOKEN")
     watch_module.watch_command("127.0.0.1:1")
     assert seen["token"] is None
+
+
+# --------------------------------------------------------------------------- operator tools (issue 13, item 5)
+
+
+def test_a_peer_that_closes_before_the_greeting_is_could_not_connect_at_once():
+    """The review's finding 19: an unreachable host was "closed the connection (0 ANGLE received)", exit 1,
+    after --duration."""
+    listener = socket.create_server(("127.0.0.1", 0))
+    port = listener.getsockname()[1]
+
+    def accept_and_close() -> None:
+        listener.settimeout(GUARD_S)
+        conn, _ = listener.accept()
+        conn.close()
+
+    server = threading.Thread(target=accept_and_close, daemon=True)
+    server.start()
+    started = time.monotonic()
+    try:
+        with pytest.raises(DeviceError) as info:
+            run_watch("127.0.0.1", port, out=io.StringIO(), duration_s=60)
+    finally:
+        server.join(GUARD_S)
+        listener.close()
+    assert time.monotonic() - started < 30  # not after --duration
+    assert str(info.value) == (f"could not connect to 127.0.0.1:{port}: the daemon closed the connection before the "
+                               "VERSION greeting (is `fog-driver run` running?)")  # fmt: skip
+    assert info.value.exit_status == 69
+
+
+def test_the_rate_shown_is_the_mean_over_the_last_second_not_one_sample():
+    """The review's finding 6: one decimated sample's rate, quantized, with 4 decimals."""
+    rates = [9.0, 12.0, 14.0, 9.0, 11.0, 10.0, 8.0, 13.0, 10.0, 9.0, 12.0, 11.0, 10.0]  # one count steps
+    angles, arcsec = [], 100.0
+    for k, rate in enumerate(rates):
+        arcsec += rate * 0.1  # deg/h = arcsec/s: each sample's increment over its 0.1 s
+        angles.append(angle(k + 1, t_s=20.0 + 0.1 * k, angle_arcsec=arcsec, rate_dph=rate, flags=[]))
+    daemon = FakeDaemon([ndjson(*angles)], then="wait")
+    status, text = watch(daemon, count=len(rates))
+    assert status == 0
+    mean = sum(rates[-10:]) / 10  # the last 1.0 s of device time: the samples after the window's first point
+    assert f"rate {mean:.2f} deg/h (mean over 1.0 s)" in text.splitlines()[-1]
+
+
+def test_the_daemons_rates_average_to_the_angle_difference(tmp_path):
+    """What the averaged rate rests on: over every published sample, the mean of ``rate_dph`` is the angle's
+    difference over the device time (1 arcsec/s = 1 deg/h)."""
+    from test_daemon_faults import SHORT, watch_all, watched_daemon
+
+    from fog_driver.protocol import decode_bytes
+
+    with watched_daemon(tmp_path) as (pty, daemon, client):
+        pty.write(SHORT[:20000])
+        angles = watch_all(client, decode_bytes(SHORT[:20000], final=False).counters.sample_frames)
+        assert daemon.terminate() == 0
+    window = [a for a in angles if "gap" not in a["flags"]][-11:]
+    mean = sum(a["rate_dph"] for a in window[1:]) / 10
+    assert mean == pytest.approx((window[-1]["angle_arcsec"] - window[0]["angle_arcsec"])
+                                 / (window[-1]["t_s"] - window[0]["t_s"]), abs=1e-9)  # fmt: skip
+
+
+@pytest.mark.parametrize(("state", "banner"), [
+    ({"device": {"state": "deactivated"}}, "*** LINK DOWN: the daemon's instrument port is closed"),
+    ({"status": {"port_state": "lost"}}, "*** LINK DOWN"),
+    ({"elapsed_s": 7.2}, "*** NO DATA for 7 s ***"),
+    ({"angle": angle(1), "angle_age_s": 4.0}, "*** NO DATA for 4 s ***"),
+    ({"status": {"bias_captured": False}, "keys": True},
+     "bias not removed: at rest the angle climbs with Earth rate + bias; press b (or `fog-driver ctl bias 60`)"),
+    ({"status": {"bias_captured": False}, "address": "gyro-pc:2948"},
+     "bias not removed: at rest the angle climbs with Earth rate + bias; run `fog-driver ctl --connect gyro-pc:2948 bias 60`"),
+    ({"status": {"bias_captured": False, "bias_capture_s": 12.0, "bias_capture_target_s": 60.0}},
+     "capturing the bias: 12.0 / 60 s of data; keep the table still"),
+])  # fmt: skip
+def test_banners(state, banner):
+    lines = render(state)
+    assert any(line.startswith(banner) for line in lines[1:3]), lines  # right under the head line
+    assert compact_line(state).split(" | ")[0].split("] ")[1] in banner  # and first in the log line
+
+
+@pytest.mark.parametrize("state", [{"status": {"bias_captured": True}, "elapsed_s": 1.0},
+                                   {"angle": angle(1), "angle_age_s": 0.5, "device": {"state": "activated"}},
+                                   {"status": {"bias_dph": 0.0}}])  # fmt: skip
+def test_no_banner_when_all_is_well(state):
+    assert not any(line.startswith(("***", "bias", "capturing")) for line in render(state))
+
+
+def test_watch_json_passes_the_daemons_lines_through_a_pipe_unchanged(tmp_path):
+    """``watch --json`` is ``gpspipe -w``: the daemon's bytes, one line each, flushed per line; a reader that
+    goes away (``| head``) ends it with exit 0 and nothing on stderr."""
+    import subprocess
+    import sys
+
+    from test_daemon_faults import SHORT, watched_daemon
+
+    with watched_daemon(tmp_path) as (pty, daemon, _):
+        host, port = daemon.address
+        proc = subprocess.Popen([sys.executable, "-m", "fog_driver", "watch", f"{host}:{port}", "--json", "--rate-hz", "10"],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL)  # fmt: skip
+        try:
+            lines = [proc.stdout.readline()]
+            assert json.loads(lines[0])["class"] == "VERSION"
+            while json.loads(lines[-1])["class"] != "WATCH":  # its WATCH is in force: the same decimation as ours
+                lines.append(proc.stdout.readline())
+            reference = socket.create_connection(daemon.address, timeout=GUARD_S)
+            ref_file = reference.makefile("rb")
+            reference.sendall(b'?WATCH={"enable":true,"rate_hz":10};\n')
+            while not ref_file.readline().startswith(b'{"class":"WATCH"'):
+                pass
+            pty.write(SHORT[:20000])
+            theirs: dict[int, bytes] = {}
+            ours: dict[int, bytes] = {}
+            while len(theirs) < 5:
+                line = proc.stdout.readline()
+                assert line.endswith(b"\n") and json.loads(line)["class"]
+                if line.startswith(b'{"class":"ANGLE"'):
+                    theirs[json.loads(line)["seq"]] = line
+            while not set(theirs) <= set(ours):
+                line = ref_file.readline()
+                if line.startswith(b'{"class":"ANGLE"'):
+                    ours[json.loads(line)["seq"]] = line
+            assert all(theirs[seq] == ours[seq] for seq in theirs)  # byte for byte, utc included
+            proc.stdout.close()  # the reader goes away: the next line (a STATUS within 1 s) meets EPIPE
+            assert proc.wait(GUARD_S) == 0
+            assert proc.stderr.read() == b""
+        finally:
+            proc.kill()
+            proc.wait(GUARD_S)
+        reference.close()
+        assert daemon.terminate() == 0
+
+
+class Terminal:
+    """A pty for ``fog-driver watch`` to run in: what it drew (escape sequences removed), keys to type."""
+
+    def __init__(self) -> None:
+        import os
+        import pty
+        import termios
+
+        self.master, self.slave = pty.openpty()
+        termios.tcsetattr(self.slave, termios.TCSANOW, termios.tcgetattr(self.slave))
+        self.screen = ""
+        self._os = os
+
+    def wait_for(self, text: str) -> None:
+        """Read the output until ``text`` appears in it (GUARD_S at most)."""
+        import select
+
+        deadline = time.monotonic() + GUARD_S
+        while text not in self.screen:
+            assert time.monotonic() < deadline, f"{text!r} never shown; the last screen: {self.screen[-3000:]}"
+            if select.select([self.master], [], [], 0.5)[0]:
+                data = self._os.read(self.master, 65536).decode("utf-8", "replace")
+                self.screen += re.sub(r"\x1b\[[0-9;?]*[A-Za-z]", "", data)
+
+    def type(self, keys: bytes) -> None:
+        self._os.write(self.master, keys)
+
+    def close(self) -> None:
+        self._os.close(self.master)
+        self._os.close(self.slave)
+
+
+def test_keys_z_b_q_on_a_terminal_and_the_terminal_restored(tmp_path):
+    """z sends ?ZERO, b ?BIAS (60 s) with its result in the banner, q quits with exit 0; stdin was in cbreak
+    mode meanwhile and has its settings back afterwards."""
+    import subprocess
+    import sys
+    import termios
+
+    from test_daemon_faults import N_SHORT, SHORT, watch_all, watched_daemon
+
+    from fog_driver.protocol import decode_bytes
+
+    head = 20000
+    term = Terminal()
+    before = termios.tcgetattr(term.slave)
+    with watched_daemon(tmp_path) as (pty, daemon, client):
+        pty.write(SHORT[:head])
+        n_head = decode_bytes(SHORT[:head], final=False).counters.sample_frames
+        watch_all(client, n_head)
+        host, port = daemon.address
+        proc = subprocess.Popen([sys.executable, "-m", "fog_driver", "watch", f"{host}:{port}"],
+                                stdin=term.slave, stdout=term.slave, stderr=subprocess.PIPE)  # fmt: skip
+        try:
+            term.wait_for("keys        q quit")
+            term.wait_for("bias not removed: at rest the angle climbs with Earth rate + bias; press b")
+            assert not termios.tcgetattr(term.slave)[3] & termios.ICANON  # cbreak: one key at a time
+            term.type(b"z")
+            term.wait_for("zeroed: the angle starts again from 0 here")
+            term.type(b"b")
+            term.wait_for("bias capture started: 60 s of data; keep the table still")
+            pty.write(SHORT[head:])  # 270 s of device data: the capture completes
+            term.wait_for("bias captured: ")
+            term.type(b"q")
+            assert proc.wait(GUARD_S) == 0
+            assert proc.stderr.read() == b""
+        finally:
+            proc.kill()
+            proc.wait(GUARD_S)
+        angles = watch_all(client, N_SHORT - n_head)
+        assert abs(angles[0]["angle_arcsec"]) < 5.0  # the z reached the daemon
+        assert daemon.terminate() == 0
+    assert termios.tcgetattr(term.slave) == before  # the terminal's settings are back
+    term.close()
+
+
+@pytest.mark.parametrize("how", ["SIGTERM", "SIGINT", "SIGTSTP"])
+def test_the_terminal_is_restored_when_a_signal_ends_or_suspends_the_watch(tmp_path, how):
+    import subprocess
+    import sys
+    import termios
+
+    from test_daemon_faults import watched_daemon
+
+    term = Terminal()
+    before = termios.tcgetattr(term.slave)
+    with watched_daemon(tmp_path) as (_, daemon, _client):
+        host, port = daemon.address
+        proc = subprocess.Popen([sys.executable, "-m", "fog_driver", "watch", f"{host}:{port}"],
+                                stdin=term.slave, stdout=term.slave, stderr=subprocess.PIPE)  # fmt: skip
+        try:
+            term.wait_for("keys        q quit")
+            assert termios.tcgetattr(term.slave) != before
+            proc.send_signal(getattr(signal, how))
+            if how == "SIGTSTP":  # Ctrl-Z: the shell gets its terminal back while the watch is stopped
+                deadline = time.monotonic() + GUARD_S
+                while termios.tcgetattr(term.slave) != before:
+                    assert time.monotonic() < deadline, "not restored on Ctrl-Z"
+                    term.wait_for("")  # (drains the output; returns at once)
+                proc.send_signal(signal.SIGCONT)
+                term.screen = ""
+                term.wait_for("keys        q quit")  # redrawn after fg
+                term.type(b"q")
+            assert proc.wait(GUARD_S) == 0
+        finally:
+            proc.kill()
+            proc.wait(GUARD_S)
+        assert daemon.terminate() == 0
+    assert termios.tcgetattr(term.slave) == before
+    term.close()

@@ -33,7 +33,7 @@ def test_update_readme_writes_the_output_and_refuses_before_the_work_without_a_b
     readme.write_text("<!-- bench: b.py --k -->\n<!-- /bench -->\n")
     with readme_block.readme_output("b.py --k", update=True, readme=readme):
         print("figure 1.23")
-    assert readme_block.blocks(readme.read_text())["b.py --k"] == "```\n$ .venv/bin/python benchmarks/b.py --k\nfigure 1.23\n```\n"
+    assert readme_block.blocks(readme.read_text())["b.py --k"] == "```\n$ python benchmarks/b.py --k\nfigure 1.23\n```\n"
     worked = []
     with pytest.raises(ValueError):
         with readme_block.readme_output("other.py", update=True, readme=readme):
@@ -50,4 +50,4 @@ def test_every_readme_block_holds_its_own_command_and_a_script_that_can_write_it
         assert "run_main(main)" in script.read_text(), f"{script.name} cannot --update-readme"
         lines = body.splitlines()
         assert lines[0] == "```" and lines[-1] == "```" and len(lines) > 3, key
-        assert lines[1] == f"$ .venv/bin/python benchmarks/{key}", key
+        assert lines[1] == f"$ python benchmarks/{key}", key

@@ -21,7 +21,7 @@ def test_allan_read_points_on_synthetic_white_noise():
     rng = np.random.default_rng(0)
     arw = 0.003  # deg/sqrt(h): 1-s std of 0.18 deg/h
     result = allan(rng.normal(0.0, arw * 60.0, 20000))
-    assert result.arw_deg_sqrt_h == pytest.approx(arw, rel=0.03)
+    assert result.arw_deg_per_rt_h == pytest.approx(arw, rel=0.03)
     assert result.bias_instability_tau_s <= 2000  # read within a tenth of the record
 
 
@@ -42,8 +42,8 @@ def test_evaluate_measures_the_simulators_arw_within_10_percent(tmp_path):
     summary = json.loads(proc.stdout)
     assert summary == json.loads((out / "summary.json").read_text())
     for side in ("raw", "compensated"):
-        assert set(summary[side]) >= {"arw_deg_sqrt_h", "bias_instability_dph", "drift_rms_1min_dph"}
-    assert summary["raw"]["arw_deg_sqrt_h"] == pytest.approx(0.003, rel=0.10)  # the configured ARW
+        assert set(summary[side]) >= {"arw_deg_per_rt_h", "bias_instability_dph", "drift_rms_1min_dph"}
+    assert summary["raw"]["arw_deg_per_rt_h"] == pytest.approx(0.003, rel=0.10)  # the configured ARW
     assert summary["truth"]["residual_rms_1min_dph"] < summary["truth"]["drift_rms_1min_dph"]
     for name in ("temperatures.png", "drift.png", "allan.png"):
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and (out / name).stat().st_size > 10000

@@ -337,11 +337,12 @@ def test_evaluate_command_with_reference_and_compare(positioning_capture, tmp_pa
     assert proc.returncode == 0, proc.stderr
     summary = json.loads(proc.stdout)
     row = summary["positioning"]["rows"][0]
-    assert row["moves"] == 10 and set(row["methods"]) == {RAW, "wesn", "other"}
-    assert row["methods"]["other"] == row["methods"]["wesn"]  # the same model under another name
-    assert abs(row["methods"]["wesn"]["mean_arcsec"]) < 2.0 < abs(row["methods"][RAW]["mean_arcsec"])
+    main, other = "default (wesn)", "other (wesn)"  # every model by its file stem and kind
+    assert row["moves"] == 10 and set(row["methods"]) == {RAW, main, other}
+    assert row["methods"][other] == row["methods"][main]  # the same model under another name
+    assert abs(row["methods"][main]["mean_arcsec"]) < 2.0 < abs(row["methods"][RAW]["mean_arcsec"])
     report = (out / "report.md").read_text()
-    assert "| Temperature | moves | uncompensated mean" in report and "other mean" in report
+    assert "| Temperature | moves | uncompensated mean" in report and "other (wesn) mean" in report
 
     zeroed = subprocess.run([sys.executable, "-m", "fog_driver", "evaluate", str(positioning_capture), "--model",
                              str(DEFAULT_MODEL), "--out", str(tmp_path / "rep-z"), "--zero-window", "400:700",
@@ -349,7 +350,7 @@ def test_evaluate_command_with_reference_and_compare(positioning_capture, tmp_pa
     assert zeroed.returncode == 0, zeroed.stderr
     zrow = json.loads(zeroed.stdout)["positioning"]["rows"][0]
     assert zrow["bias_window_s"] == [400.0, 700.0] and row["bias_window_s"] != [400.0, 700.0]
-    assert zrow["bias_dph"]["wesn"] != row["bias_dph"]["wesn"]
+    assert zrow["bias_dph"][main] != row["bias_dph"][main]
     for window in ("700:400", "abc", "-5:10", "5"):
         proc = subprocess.run([sys.executable, "-m", "fog_driver", "evaluate", str(positioning_capture), "--model",
                                str(DEFAULT_MODEL), "--out", str(tmp_path / "rep-bad"), "--zero-window", window],

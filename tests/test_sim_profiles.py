@@ -518,3 +518,21 @@ def test_segment_dataclasses_validate_their_arguments():
         Positioning(start_s=0.0, step_deg=0.0)
     with pytest.raises(TypeError, match="not a chamber segment"):
         ChamberProfile("x", 0.0, ("hold",))
+
+
+def test_profile_names_resolve_from_configs_profiles(tmp_path, monkeypatch):
+    """``--profile fast-ramps`` failed ("built-in profiles: paper, paper-validation"); a name now also
+    means ``configs/profiles/<name>.yaml``, from the current directory or the source tree."""
+    from fog_driver.errors import InputFileError
+    from fog_driver.sim.profiles import load_profile, profile_names
+
+    repo = Path(__file__).resolve().parents[1]
+    by_path = load_profile(str(repo / "configs" / "profiles" / "fast-ramps.yaml"))
+    monkeypatch.chdir(tmp_path)  # not the repository: the source tree's folder serves
+    assert load_profile("fast-ramps") == by_path
+    assert {"paper", "paper-validation", "fast-ramps", "positioning", "soak-cycle"} <= set(profile_names())
+    (tmp_path / "configs" / "profiles").mkdir(parents=True)  # the current directory's folder comes first
+    (tmp_path / "configs" / "profiles" / "fast-ramps.yaml").write_text("name: mine\nstart_c: 20\nsegments:\n  - hold: {duration_min: 5}\n")
+    assert load_profile("fast-ramps").name == "mine"
+    with pytest.raises(InputFileError, match=r"nope: no such profile \(profiles: paper, paper-validation, .*fast-ramps"):
+        load_profile("nope")

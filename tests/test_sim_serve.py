@@ -409,3 +409,37 @@ def test_cli_sigterm_stops_cleanly_and_removes_the_link(tmp_path: Path) -> None:
         if proc.poll() is None:
             proc.kill()
     assert not link.exists() and not link.is_symlink()
+
+
+def test_serving_shows_progress_and_dropped_bytes_on_a_terminal():
+    """``simulate --serve`` was silent until stopped: bytes dropped for want of a reader showed only at
+    the end.  On a terminal a line now says how far it is and what was dropped."""
+    import io
+    import threading
+
+    from fog_driver.sim.serve import ServeProgress
+
+    class Terminal(io.StringIO):
+        def __init__(self) -> None:
+            super().__init__()
+            self.dropped_shown = threading.Event()
+
+        def isatty(self) -> bool:
+            return True
+
+        def write(self, text: str) -> int:
+            if "bytes dropped" in text:
+                self.dropped_shown.set()
+            return super().write(text)
+
+    class Server:
+        dropped_bytes = 1234
+
+    sim = Simulator(load_profile("paper"), rate_hz=10, seed=0)
+    terminal = Terminal()
+    with ServeProgress(sim, speed=1.0, duration_s=60.0, every_s=0.01, stream=terminal) as progress:
+        progress.start(Server())
+        assert terminal.dropped_shown.wait(10)
+    shown = terminal.getvalue()
+    assert "/ 60 s of device time; 1,234 bytes dropped (is anything reading?)" in shown
+    assert shown.endswith("\r")  # cleared at the end: the summary line starts on a clean line

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
@@ -169,16 +170,28 @@ def measured_rows(capture: CaptureData, config: FitConfig) -> np.ndarray:
     return ok & np.all(np.isfinite(capture.inputs), axis=1)
 
 
-def load_capture(path: str | Path, config: FitConfig, *, purpose: str = "to fit",
-                 warmup_setting: str = "warmup_s in the fit config, fit --config FILE") -> CaptureData:  # fmt: skip
-    """Decode a capture block by block and reduce it to the model rate.  No static, valid block is an
-    ``InputFileError`` saying why (``no_static_reason``; ``purpose`` and ``warmup_setting`` word it)."""
+def load_capture(path: str | Path, config: FitConfig, progress: Callable[[int, int], None] | None = None, *,
+                 purpose: str = "to fit", warmup_setting: str = "warmup_s in the fit config, fit --config FILE",
+                 ) -> CaptureData:  # fmt: skip
+    """Decode a capture block by block and reduce it to the model rate; ``progress(bytes read, file size)``
+    after every block read.  No static, valid block is an ``InputFileError`` saying why
+    (``no_static_reason``; ``purpose`` and ``warmup_setting`` word it)."""
     path = Path(path)
     sha = hashlib.sha256()
     stream = SampleStream()
     averager: BlockAverager | None = None
     parts = []
-    for part in iter_decode_file(path, on_block=sha.update):
+    on_block = sha.update
+    if progress is not None:
+        size = path.stat().st_size if path.is_file() else 0
+        done = [0]
+
+        def on_block(block: bytes) -> None:
+            sha.update(block)
+            done[0] += len(block)
+            progress(done[0], size)
+
+    for part in iter_decode_file(path, on_block=on_block):
         samples = stream.run(part)
         if averager is None:
             if stream.identity is None:
@@ -329,22 +342,67 @@ def static_rows(captures: list[CaptureData], model_rate_hz: float) -> tuple[np.n
     return inputs, means
 
 
+#: The marker on a report row whose model leaves more drift than no compensation.
+WORSE_MARKER = "WORSE than uncompensated"
+
+
 @dataclass
 class FitReport:
-    """Drift RMS of 1-minute averages (usable blocks, mean removed), deg/h."""
+    """Drift RMS of 1-minute averages (usable blocks, mean removed), deg/h.
+
+    A model row that leaves more than the "before compensation" row in a column is marked
+    ``WORSE_MARKER`` (``worse``).  ``noise_floor`` (fit data, validate data or None): the white noise of
+    the 1-s blocks over sqrt(60) (``noise_floor_dph``), what the 1-minute RMS of a perfect model still
+    holds on measured data, in expectation (a few minutes, or a model fitted to them, can show less)."""
 
     rows: list[tuple[str, float, float | None]]  #: (what, on fit data, on validate data)
+    noise_floor: tuple[float, float | None] | None = None
+
+    def worse(self) -> dict[str, list[str]]:
+        """For each model row worse than no compensation: the columns ("fit", "validate") where it is."""
+        before = self.rows[0]
+        out: dict[str, list[str]] = {}
+        for what, fit_value, validate_value in self.rows[1:]:
+            cols = [col for col, v, b in (("fit", fit_value, before[1]), ("validate", validate_value, before[2]))
+                    if v is not None and b is not None and v > b]  # fmt: skip
+            if cols:
+                out[what] = cols
+        return out
 
     def format(self) -> str:
         has_validate = any(v is not None for _, _, v in self.rows)
         header = f"{'1-min drift RMS, deg/h':34s} {'fit data':>10s}" + (f" {'validate':>10s}" if has_validate else "")
         lines = [header]
-        for what, fit_value, validate_value in self.rows:
+        worse = self.worse()
+        rows = list(self.rows)
+        if self.noise_floor is not None:
+            rows.append(("noise floor (white, 1-min means)", *self.noise_floor))
+        for what, fit_value, validate_value in rows:
             line = f"{what:34s} {fit_value:10.4f}"
             if has_validate:
                 line += f" {validate_value:10.4f}" if validate_value is not None else f" {'':>10s}"
+            if what in worse:
+                line += f"  {WORSE_MARKER} ({' and '.join('validation' if c == 'validate' else 'fit data' for c in worse[what])})"
             lines.append(line)
         return "\n".join(lines)
+
+    def floor_note(self) -> str | None:
+        """The line that says what the noise floor means for the table."""
+        if self.noise_floor is None:
+            return None
+        fit_floor, validate_floor = self.noise_floor
+        also = f", {validate_floor:.4f} on the validation data" if validate_floor is not None else ""
+        return (f"noise floor of 1-min means: {fit_floor:.4f} deg/h on the fit data{also}: the gyro's white noise, "
+                f"which no model removes; differences between models well below it are not meaningful on measured "
+                f"data (evaluate --truth scores against the true drift)")
+
+
+def noise_floor_dph(captures: list[CaptureData], rate_hz: float) -> float:
+    """The white-noise floor of 1-minute means, deg/h: ``block_noise_dph`` of each capture's static blocks
+    (1.4826 MAD of first differences / sqrt(2)) over sqrt(blocks a minute), pooled as an RMS."""
+    per_minute = 60.0 * rate_hz
+    values = [block_noise_dph(c.blocks.rate_dph[c.static]) / math.sqrt(per_minute) for c in captures if c.static.any()]
+    return float(np.sqrt(np.mean(np.square(values)))) if values else float("nan")
 
 
 def _pooled_minute_rms(captures: list[CaptureData], residuals: list[np.ndarray], rate_hz: float) -> float:
@@ -354,22 +412,32 @@ def _pooled_minute_rms(captures: list[CaptureData], residuals: list[np.ndarray],
 
 
 def report_for(models: dict[str, object], normalizer: Standardizer, fit_data: list[CaptureData],
-               validate: list[CaptureData], rate_hz: float, domain: InputDomain | None = None) -> FitReport:  # fmt: skip
+               validate: list[CaptureData], rate_hz: float, domain: InputDomain | None = None,
+               progress: Callable[[str], None] | None = None) -> FitReport:  # fmt: skip
     """Drift RMS before and after each model, on the fit data and the validation data (each model applied
-    as the compensator applies it: inputs clamped to ``domain``, estimates bounded)."""
+    as the compensator applies it: inputs clamped to ``domain``, estimates bounded), and the noise floor."""
+    runs = len(models) * (len(fit_data) + len(validate))
+    done = [0]
 
-    def rms_after(model, captures):
+    def rms_after(name, model, captures, where):
         if not captures:
             return None
-        residuals = [c.target_dph - applied_prediction(model, c, normalizer, domain) for c in captures]
+        residuals = []
+        for c in captures:
+            if progress is not None:
+                progress(f"{where} {name} on {c.path.name} ({100 * done[0] / runs:.0f} %)")
+            done[0] += 1
+            residuals.append(c.target_dph - applied_prediction(model, c, normalizer, domain))
         return _pooled_minute_rms(captures, residuals, rate_hz)
 
     before_fit = _pooled_minute_rms(fit_data, [c.target_dph for c in fit_data], rate_hz)
     before_val = _pooled_minute_rms(validate, [c.target_dph for c in validate], rate_hz) if validate else None
     rows: list[tuple[str, float, float | None]] = [("before compensation", before_fit, before_val)]
     for name, model in models.items():
-        rows.append((f"after, {name}", rms_after(model, fit_data), rms_after(model, validate)))
-    return FitReport(rows)
+        rows.append((f"after, {name}", rms_after(name, model, fit_data, "applying"),
+                     rms_after(name, model, validate, "validating")))  # fmt: skip
+    floor = (noise_floor_dph(fit_data, rate_hz), noise_floor_dph(validate, rate_hz) if validate else None)
+    return FitReport(rows, floor)
 
 
 def regressor_rows(model, captures: list[CaptureData], normalizer: Standardizer) -> list[np.ndarray] | None:
@@ -438,9 +506,11 @@ def own_validation(model, captures: list[CaptureData], normalizer: Standardizer,
     return float(np.sqrt(squares / count)) if count else float("nan")
 
 
-def _fit_polynomial(captures: list[CaptureData], normalizer: Standardizer, config: FitConfig):
+def _fit_polynomial(captures: list[CaptureData], normalizer: Standardizer, config: FitConfig, progress=None):
     from .polynomial import PolynomialModel
 
+    if progress is not None:
+        progress("polynomial: ridge regression")
     z = np.vstack([normalizer.transform(c.inputs[c.static]) for c in captures])
     y = np.concatenate([c.target_dph[c.static] for c in captures])
     return PolynomialModel.fit(z, y, config.poly_alpha, capture_groups(captures))
@@ -456,18 +526,28 @@ def _fit_wesn(kind: str):
     from .wesn import PAPER_DEFAULTS, WESN_DEFAULTS, fit_wesn
 
     defaults = {"wesn": WESN_DEFAULTS, "paper": PAPER_DEFAULTS}[kind]
-    return lambda captures, normalizer, config: fit_wesn(kind, defaults, captures, normalizer, config)
+    return lambda captures, normalizer, config, progress=None: fit_wesn(kind, defaults, captures, normalizer, config,
+                                                                         progress)  # fmt: skip
 
 
-def _fit_pso_svr(captures: list[CaptureData], normalizer: Standardizer, config: FitConfig):
-    from .svr import fit_pso_svr
+def _fit_pso_svr(captures: list[CaptureData], normalizer: Standardizer, config: FitConfig, progress=None):
+    from .svr import PSO_SVR_DEFAULTS, fit_pso_svr
 
-    return fit_pso_svr(captures, normalizer, config)
+    return fit_pso_svr(captures, normalizer, config, PSO_SVR_DEFAULTS, progress)
 
 
-#: Model kinds that can be fitted: name -> fit(captures, normalizer, config) -> model.
+#: Model kinds that can be fitted: name -> fit(captures, normalizer, config, progress=None) -> model
+#: (``progress(text)`` hears the phase and how far it is).
 FITTERS = {"polynomial": _fit_polynomial, "wesn": _fit_wesn("wesn"), "paper": _fit_wesn("paper"),
            "pso-svr": _fit_pso_svr}  # fmt: skip
+
+#: One line per kind for ``fog-driver fit --help`` (every key of ``FITTERS``).
+KIND_HELP = {
+    "wesn": "the project's best, the default: wavelet echo-state network, structure chosen from the data",
+    "polynomial": "the baseline (fitted beside every kind): cubic in the ring temperature, ridge regression",
+    "paper": "the paper's WESN as written, for comparison",
+    "pso-svr": "the paper's comparator: RBF SVR tuned by a particle swarm (svr extra; the slowest)",
+}
 
 
 def fit_model_file(
@@ -478,6 +558,7 @@ def fit_model_file(
     validate_paths: list[str | Path] = (),
     fall_back: bool = False,
     accept_weak: bool = False,
+    progress: Callable[[str], None] | None = None,
 ) -> tuple[ModelFile, FitReport]:
     """Fit ``kind`` (and the polynomial baseline beside it) to captures; return the model file and the report.
 
@@ -485,38 +566,52 @@ def fit_model_file(
     when it does worse, its provenance says so, and with ``fall_back`` (``fog-driver fit`` without
     ``--kind``) the polynomial's model file is returned instead.  The fit's data are checked
     (``quality.assess``): a fit that fails a check raises ``WeakFitError`` unless ``accept_weak``, and
-    then the model file's ``provenance.fit_quality`` records the failures and that they were accepted."""
+    then the model file's ``provenance.fit_quality`` records the failures and that they were accepted.
+    ``progress(text)`` hears every phase and how far it is ("decoding paper.bin 40 %", "pso-svr: iteration
+    4/20, particle 12/16 (21 %)", "validating wesn on fast.bin (75 %)")."""
     from .model import ModelFile
 
     if kind not in FITTERS:
         raise InputFileError(f"unknown model kind {kind!r} (known: {', '.join(sorted(FITTERS))})")
-    captures = [load_capture(p, config) for p in paths]
-    validate = [load_capture(p, config) for p in validate_paths]
+    say = progress or (lambda text: None)
+
+    def decoding(p):
+        name = Path(p).name
+        return None if progress is None else lambda done, total: say(f"decoding {name} {100 * done / max(total, 1):.0f} %")
+
+    captures = [load_capture(p, config, decoding(p)) for p in paths]
+    validate = [load_capture(p, config, decoding(p)) for p in validate_paths]
     serials = {c.serial for c in captures}
     if len(serials) != 1:
         raise InputFileError(f"the fit captures come from different instruments: {', '.join(sorted(map(str, serials)))}")
     normalizer = fit_normalizer(captures)
-    models = {"polynomial": _fit_polynomial(captures, normalizer, config)}
+    models = {"polynomial": _fit_polynomial(captures, normalizer, config, progress)}
     if kind != "polynomial":
-        models[kind] = FITTERS[kind](captures, normalizer, config)
+        models[kind] = FITTERS[kind](captures, normalizer, config, progress)
     inputs, means = static_rows(captures, config.model_rate_hz)
     domain = InputDomain.from_fit(inputs, means)  # the fit's box, and the estimate's bound
     substitution = fit_substitution([c.inputs for c in captures], [measured_rows(c, config) for c in captures],
                                     1.0 / config.model_rate_hz)  # fmt: skip
-    report = report_for(models, normalizer, captures, validate, config.model_rate_hz, domain)
+    report = report_for(models, normalizer, captures, validate, config.model_rate_hz, domain, progress)
     provenance = {
         "captures": [{"file": c.path.name, "sha256": c.sha256, "blocks": len(c.blocks),
                       "static_blocks": int(c.static.sum()), "moving_blocks": c.moving_blocks}
                      for c in captures],  # fmt: skip
         "validate": [{"file": c.path.name, "sha256": c.sha256} for c in validate],
         "config": _plain(config),
-        "metrics": {what: {"fit": fit_v, **({"validate": val_v} if val_v is not None else {})}
+        "metrics": {what: {"fit": fit_v, **({"validate": val_v} if val_v is not None else {}),
+                           **({"worse_than_uncompensated": report.worse()[what]} if what in report.worse() else {})}
                     for what, fit_v, val_v in report.rows},  # fmt: skip
+        "noise_floor_1min_dph": {"fit": report.noise_floor[0],
+                                 **({"validate": report.noise_floor[1]} if validate else {})},  # fmt: skip
     }
     selection = getattr(models[kind], "selection", None)
     if selection:
         provenance["selection"] = selection
-        scores = {name: own_validation(models[name], captures, normalizer, config) for name in ("polynomial", kind)}
+        scores = {}
+        for name in ("polynomial", kind):
+            say(f"own validation split: {name}, {VALIDATION_FOLDS} folds")
+            scores[name] = own_validation(models[name], captures, normalizer, config)
         selection["own_validation_rms_dph"] = scores
         if scores[kind] > scores["polynomial"]:
             selection["warning_validation"] = (
@@ -528,6 +623,7 @@ def fit_model_file(
                 provenance["fell_back"] = f"{selection['warning_validation']}: the polynomial was saved instead"
     quality = _assess(inputs, means, validate, normalizer, report, kind, config)
     provenance["fit_quality"] = quality.to_dict(accept_weak)
+    say("bias step test")
     step = bias_step_scan(captures, normalizer, config.model_rate_hz)
     if step is not None:  # reported, not a check: see bias_step_warning
         provenance["fit_quality"]["bias_step"] = {"capture": captures[step.capture].path.name, "minute": step.minute,

@@ -39,7 +39,9 @@ prediction is plain numpy over the stored support vectors, so a model file compe
 
 from __future__ import annotations
 
+import itertools
 import math
+import threading
 import warnings
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -322,8 +324,9 @@ def blocked_cv_rms(svr_factory, z: np.ndarray, y: np.ndarray, folds: int = 3) ->
 OFFSET_PASSES = 3
 
 
-def fit_pso_svr(captures, normalizer, config, settings: PsoSvrConfig = PSO_SVR_DEFAULTS) -> SvrModel:
-    """Fit a ``pso-svr`` model (module docstring); ``UsageError`` without scikit-learn."""
+def fit_pso_svr(captures, normalizer, config, settings: PsoSvrConfig = PSO_SVR_DEFAULTS, progress=None) -> SvrModel:
+    """Fit a ``pso-svr`` model (module docstring); ``UsageError`` without scikit-learn.  ``progress(text)``
+    hears the swarm's iteration and particle ("pso-svr: iteration 4/20, particle 12/16 (21 %)")."""
     SVR, ConvergenceWarning = _import_svr()
     per = window_blocks(captures, config.model_rate_hz, settings.average_s, settings.min_rows)
     parts = [minute_rows([c], normalizer, config.model_rate_hz, per=per) for c in captures]
@@ -338,11 +341,26 @@ def fit_pso_svr(captures, normalizer, config, settings: PsoSvrConfig = PSO_SVR_D
 
     bounds = [tuple(math.log10(v) for v in b)
               for b in (settings.c_bounds, settings.gamma_bounds, settings.epsilon_bounds_dph)]  # fmt: skip
+    n, total = settings.n_particles, settings.n_particles * (settings.iterations + 1)
+    done = itertools.count()
+    lock = threading.Lock()
+
+    def score_of(p: np.ndarray) -> float:
+        value = blocked_cv_rms(make(p), z, y, settings.folds)
+        if progress is not None:
+            with lock:  # the pool's threads report one at a time
+                k = next(done)
+                progress(f"pso-svr: iteration {k // n}/{settings.iterations}, particle {k % n + 1}/{n} "
+                         f"({100 * (k + 1) / total:.0f} %)")  # fmt: skip
+        return value
+
     with warnings.catch_warnings(), ThreadPoolExecutor(max(1, settings.workers)) as pool:
         warnings.simplefilter("ignore", ConvergenceWarning)  # the iteration cap, by design
-        best, score = pso_minimize(lambda p: blocked_cv_rms(make(p), z, y, settings.folds), bounds,
+        best, score = pso_minimize(score_of, bounds,
                                    n_particles=settings.n_particles, iterations=settings.iterations,
                                    seed=settings.seed, map_fn=pool.map)  # fmt: skip
+        if progress is not None:
+            progress("pso-svr: the final fit at the swarm's best")
         svr = make(best, settings.final_max_iter)().fit(z, y)
         if len(captures) > 1:  # one offset per capture (each target is centred on its own mean): backfitting
             offsets = np.zeros(len(captures))

@@ -431,24 +431,28 @@ def _aflp_target(target: np.ndarray) -> np.ndarray:
     return AflpFilter(AflpParams()).run(target)
 
 
-def fit_wesn(kind: str, defaults: WesnConfig, captures, normalizer, config) -> WesnModel:
-    """Fit a WESN model of the given form to the captures (see the module docstring)."""
+def fit_wesn(kind: str, defaults: WesnConfig, captures, normalizer, config, progress=None) -> WesnModel:
+    """Fit a WESN model of the given form to the captures (see the module docstring); ``progress(text)``
+    hears which phase runs and how far it is."""
     from .fit import capture_groups  # (fit imports this module lazily: no cycle)
 
+    say = progress or (lambda text: None)
     if defaults.ring_input and defaults.readout == "ridge":
-        return _fit_ring_form(kind, defaults, captures, normalizer, config)
+        return _fit_ring_form(kind, defaults, captures, normalizer, config, say)
     wc = defaults
     reservoir = wc.reservoir(1.0 / config.model_rate_hz)
     n_features = n_regressors(reservoir.params.n_neurons, wc.linear_path, wc.state_powers, wc.max_power)
     model = WesnModel(kind, reservoir, np.zeros(n_features), 0.0, wc.linear_path, wc.state_powers, wc.max_power)
     regressors, targets = [], []
-    for c in captures:
+    for k, c in enumerate(captures):
+        say(f"{kind}: reservoir states, capture {k + 1}/{len(captures)} ({100 * k / len(captures):.0f} %)")
         target = _aflp_target(c.target_dph) if wc.aflp_target else c.target_dph
         regressors.append(_capture_regressors(model, c, normalizer, target if wc.feedback_scale else None))
         targets.append(target)
     x_fit = np.vstack([f[c.static] for f, c in zip(regressors, captures)])
     y_fit = np.concatenate([t[c.static] for t, c in zip(targets, captures)])
     groups = capture_groups(captures)
+    say(f"{kind}: readout ({wc.readout})")
     if wc.readout == "ridge":
         alpha = wc.ridge_alpha
         if alpha is None:
@@ -464,7 +468,7 @@ def fit_wesn(kind: str, defaults: WesnConfig, captures, normalizer, config) -> W
     return WesnModel(kind, reservoir, weights, intercept, wc.linear_path, wc.state_powers, wc.max_power)
 
 
-def _fit_ring_form(kind: str, wc: WesnConfig, captures, normalizer, config) -> WesnModel:
+def _fit_ring_form(kind: str, wc: WesnConfig, captures, normalizer, config, say=lambda text: None) -> WesnModel:
     """The ring form's structure and penalty, chosen from the fit data (module docstring, "Fitting"):
 
     1. for each penalty of ``ridge_alpha_grid``, the coil (its lag from ``fiber_lag_grid_s`` and its
@@ -486,8 +490,10 @@ def _fit_ring_form(kind: str, wc: WesnConfig, captures, normalizer, config) -> W
     groups = capture_groups(captures)
     per_coil = {}
     weights = ring_weights_for(normalizer)
+    coils = len(wc.coil_orders) * len(wc.fiber_lag_grid_s)
     for order in wc.coil_orders:
         for lag in wc.fiber_lag_grid_s:
+            say(f"{kind}: reservoir states, coil {len(per_coil) + 1}/{coils} ({100 * len(per_coil) / coils:.0f} %)")
             reservoir = wc.reservoir(1.0 / rate, lag, order, weights)
             n_features = n_regressors(reservoir.params.n_neurons, wc.linear_path, wc.state_powers, wc.max_power,
                                       wc.coil_rate)  # fmt: skip
@@ -499,7 +505,8 @@ def _fit_ring_form(kind: str, wc: WesnConfig, captures, normalizer, config) -> W
     alphas = (wc.ridge_alpha,) if wc.ridge_alpha is not None else wc.ridge_alpha_grid
     minute = max(2, int(round(60 * rate)))
     choices = {}
-    for alpha in alphas:
+    for k, alpha in enumerate(alphas):
+        say(f"{kind}: ridge penalty {k + 1}/{len(alphas)}, coil lags and cross-validation")
         criteria = {}
         for coil, (_, regressors, columns) in per_coil.items():
             x = np.vstack([f[c.static][:, columns] for f, c in zip(regressors, captures)])

@@ -64,7 +64,10 @@ lines may be interleaved.
   ``"unauthorized"``.  A command that gets no answer in time (``control_timeout_s``,
   30 s, unless the service gave it a deadline of its own) is answered with
   ``ERROR`` ``"no answer within N s"``; the command itself is not undone and
-  runs to its end.
+  runs to its end.  A command that takes longer (``?BIAS`` over N seconds of
+  data) is answered at once (``"state": "started"``) and publishes its result
+  later as an event of its own class (``BIAS`` ``"state": "done"``): the hub
+  never holds a connection's answers for it.
 
 Limits (a misbehaving client costs the daemon a bounded amount and never
 delays anybody else).  Each is a module constant or a :class:`Hub` argument
@@ -96,8 +99,7 @@ delays anybody else).  Each is a module constant or a :class:`Hub` argument
   token.  An address is forgotten after a success, and ``auth_backoff_max_s``
   after its last failure or block ended (at most 4096 addresses are remembered,
   ``MAX_THROTTLED_PEERS``; the least recently failed are forgotten first);
-- a control command waits ``control_timeout_s`` (30 s) for its answer, or the
-  service's own deadline (:class:`Deferred`);
+- a control command waits ``control_timeout_s`` (30 s) for its answer;
 - per-client log lines (connected, disconnected, refused, dropped, failed,
   auth failures, errors of the loop such as failed accepts when out of file
   descriptors) are limited to ``log_lines_per_s`` (5) per event and second,
@@ -121,8 +123,8 @@ The ``control`` callback runs in one of the hub's own worker threads
 (``CONTROL_WORKERS``), never on the loop, so a slow command (a model reload)
 delays nobody's ANGLE lines; commands of one client are still answered one at a
 time, in order.  A command whose answer comes later returns a
-:class:`concurrent.futures.Future` (answered within ``control_timeout_s``) or a
-:class:`Deferred` (a Future with a deadline of its own).  The hub only ever
+:class:`concurrent.futures.Future` (answered within ``control_timeout_s``; a
+longer task answers at once and publishes its result as an event).  The hub only ever
 *waits* for such a Future: a timeout or the client hanging up abandons the
 wait, and the Future's owner may complete it whenever it likes (the hub never
 cancels it).
@@ -142,7 +144,6 @@ import socket
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any, Self
 
 import structlog
@@ -158,7 +159,6 @@ __all__ = [
     "DEFAULT_MAX_CLIENTS_PER_PEER",
     "DEFAULT_MAX_LINE_BYTES",
     "MAX_WATCH_RATE_HZ",
-    "Deferred",
     "Hub",
     "clean",
     "encode",
@@ -292,27 +292,6 @@ def is_loopback_host(host: str | None) -> bool:
         return False
     addresses = {info[4][0] for info in infos}
     return bool(addresses) and all(ipaddress.ip_address(a.split("%")[0]).is_loopback for a in addresses)
-
-
-@dataclass(frozen=True)
-class Deferred:
-    """A control command's answer that comes later, with a deadline of its own.
-
-    A ``control`` callback returns ``Deferred(future, timeout_s)`` instead of a bare
-    Future for a command that legitimately takes longer than ``control_timeout_s``
-    (``?BIAS`` over N seconds of data): the client gets the Future's result, or
-    ``ERROR`` "no answer within <timeout_s> s" when ``future`` is not done
-    ``timeout_s`` after the callback returned.  The hub never cancels ``future``.
-    """
-
-    future: concurrent.futures.Future
-    timeout_s: float
-
-    def __post_init__(self) -> None:
-        if not isinstance(self.future, concurrent.futures.Future):
-            raise TypeError("Deferred.future must be a concurrent.futures.Future")
-        if not _is_positive_finite(self.timeout_s):
-            raise ValueError(f"Deferred.timeout_s must be a finite number of seconds > 0, not {self.timeout_s!r}")
 
 
 def _is_positive_finite(value: Any) -> bool:
@@ -489,8 +468,8 @@ class Hub:
 
     ``version()`` returns the VERSION object (the hub adds ``class``), ``device()``
     the current DEVICE object or None, ``control(name, args, client_id)`` answers
-    every command the hub does not handle itself, with a dict, a
-    :class:`concurrent.futures.Future` of one or a :class:`Deferred` (``None`` for a
+    every command the hub does not handle itself, with a dict or a
+    :class:`concurrent.futures.Future` of one (``None`` for a
     command it does not know: the client gets ``ERROR`` "unknown command ?NAME"; an
     exception, raised or set on the Future, becomes an ``ERROR`` carrying its
     message).  ``control`` runs in the hub's worker threads, at most
@@ -520,7 +499,7 @@ class Hub:
         *,
         version: Callable[[], dict],
         device: Callable[[], dict | None],
-        control: Callable[[str, dict, int], dict | concurrent.futures.Future | Deferred | None],
+        control: Callable[[str, dict, int], dict | concurrent.futures.Future | None],
         token: str | None = None,
         max_line_bytes: int = DEFAULT_MAX_LINE_BYTES,
         max_backlog_s: float = DEFAULT_MAX_BACKLOG_S,
@@ -867,9 +846,13 @@ class Hub:
             self._client_failed(client, exc)
 
     def _client_failed(self, client: _Client, exc: Exception) -> None:
-        """Log a bug met while serving ``client`` (once: the client is discarded) and discard it."""
+        """Log a bug met while serving ``client`` (once: the client is discarded) and discard it.  A client
+        that hung up (connection reset, broken pipe) is no bug: that is logged at info."""
         if not client.gone:
-            self._log("error", "client_failed", client=client.id, peer=str(client.peer), error=repr(exc))
+            if isinstance(exc, ConnectionError):
+                self._log("info", "client_hung_up", client=client.id, peer=str(client.peer), error=repr(exc))
+            else:
+                self._log("error", "client_failed", client=client.id, peer=str(client.peer), error=repr(exc))
         self._discard(client, "failed")
 
     # ------------------------------------------------------------------ per-client output
@@ -1209,24 +1192,19 @@ class Hub:
     async def _cmd_control(self, client: _Client, name: str, args: dict) -> None:
         """Hand a command to ``control`` in a worker thread and send its answer (or an ERROR) to ``client``.
 
-        The callback and a bare Future it returns share ``control_timeout_s``; a
-        :class:`Deferred` is waited for its own ``timeout_s`` from when it was returned.
+        The callback and a Future it returns share ``control_timeout_s``.
         """
         loop = asyncio.get_running_loop()
         deadline = loop.time() + self.control_timeout_s
-        waited_s = self.control_timeout_s
         pool = self._control_pool
         try:
             if pool is None:
                 raise RuntimeError("the hub is stopping")
             reply = await self._answer_of(pool.submit(self._control, name, args, client.id), deadline)
-            if isinstance(reply, Deferred):
-                waited_s = reply.timeout_s
-                reply = await self._answer_of(reply.future, loop.time() + reply.timeout_s)
-            elif isinstance(reply, concurrent.futures.Future):
+            if isinstance(reply, concurrent.futures.Future):
                 reply = await self._answer_of(reply, deadline)
         except _NoAnswer:
-            self._send_error(client, f"no answer within {waited_s:g} s", name)
+            self._send_error(client, f"no answer within {self.control_timeout_s:g} s", name)
             return
         except concurrent.futures.CancelledError:
             self._send_error(client, "the command was cancelled", name)

@@ -99,6 +99,9 @@ class RotatingCapture:
         max_age_s: float = DEFAULT_MAX_AGE_S,
         provenance: dict[str, Any] | None = None,
         clock: Callable[[], float] = time.monotonic,
+        keep_days: float | None = None,
+        max_total_bytes: int | None = None,
+        wall_clock: Callable[[], float] = time.time,
     ) -> None:
         if not prefix or "/" in prefix or os.sep in prefix or prefix.startswith("."):
             raise ValueError(f"capture prefix {prefix!r} must be a plain, non-hidden file name part")
@@ -106,6 +109,13 @@ class RotatingCapture:
             raise ValueError(f"max_bytes must be positive, not {max_bytes}")
         if not max_age_s > 0:
             raise ValueError(f"max_age_s must be positive, not {max_age_s}")
+        if keep_days is not None and not keep_days > 0:
+            raise ValueError(f"keep_days must be positive (or None: keep every capture), not {keep_days}")
+        if max_total_bytes is not None and not max_total_bytes > 0:
+            raise ValueError(f"max_total_bytes must be positive (or None: no limit), not {max_total_bytes}")
+        self.keep_days = keep_days
+        self.max_total_bytes = max_total_bytes
+        self._wall_clock = wall_clock
         self.directory = Path(directory)
         self.prefix = prefix
         self.max_bytes = int(max_bytes)
@@ -124,6 +134,8 @@ class RotatingCapture:
         self._opened_at = 0.0
         self._bytes_closed = 0  # bytes in files already closed
         self._closed = False
+        self.pruned: list[Path] = []  # captures deleted by the retention limits, oldest first
+        self.prune()
 
     # -- what the daemon reads -------------------------------------------------------------------
 
@@ -275,7 +287,7 @@ class RotatingCapture:
         return writer
 
     def _finish(self, reason: str) -> None:
-        """Close the current file (fsync) and write its final sidecar."""
+        """Close the current file (fsync), write its final sidecar, then apply the retention limits."""
         writer = self._detach()
         try:
             writer.close()
@@ -283,6 +295,49 @@ class RotatingCapture:
             self._write_final(writer, f"failed: {exc}", reason, quiet=True)
             raise
         self._write_final(writer, "complete", reason, quiet=False)
+        self.prune()
+
+    def prune(self) -> list[Path]:
+        """Delete the oldest closed captures (with their sidecars) beyond the retention limits.
+
+        A capture goes when its last byte was written more than ``keep_days`` ago (its mtime), or while
+        the captures of this prefix in the directory total more than ``max_total_bytes`` (oldest first, by
+        number).  Never the file being written, never a file whose sidecar still says ``recording`` (another
+        daemon's), never a file of another name.  Called at start and after each file is closed; a capture
+        that cannot be deleted is logged and left.  Returns what was deleted now.
+        """
+        if self.keep_days is None and self.max_total_bytes is None:
+            return []
+        current = self.current_path
+        captures = []  # (path, size, mtime), oldest first
+        for path in _numbered_captures(self.directory, self.prefix):
+            try:
+                st = path.stat()
+            except OSError:
+                continue
+            captures.append((path, st.st_size, st.st_mtime))
+        total = sum(size for _, size, _ in captures)
+        cutoff = None if self.keep_days is None else self._wall_clock() - self.keep_days * 86400.0
+        deleted = []
+        for path, size, mtime in captures:
+            too_old = cutoff is not None and mtime < cutoff
+            too_much = self.max_total_bytes is not None and total > self.max_total_bytes
+            if not (too_old or too_much):
+                continue
+            if path == current or _recording_elsewhere(path):
+                continue
+            try:
+                path.unlink()
+                sidecar_path(path).unlink(missing_ok=True)
+            except OSError as exc:
+                log.error("capture_prune_failed", capture=str(path), reason=exc.strerror or str(exc))
+                continue
+            total -= size
+            deleted.append(path)
+            log.info("capture_pruned", capture=str(path), bytes=size,
+                     reason="older than capture_keep_days" if too_old else "over capture_max_gb")  # fmt: skip
+        self.pruned += deleted
+        return deleted
 
     def _fail(self, exc: OutputFileError) -> None:
         """A write or fsync failed: close what can be closed and describe the file as failed."""
@@ -556,6 +611,22 @@ def _alive(pid: Any) -> bool:
     except OSError:  # exists, owned by someone else
         return True
     return True
+
+
+def _numbered_captures(directory: Path, prefix: str) -> list[Path]:
+    """The ``<prefix>-<nnnnnn>-<UTC>.bin`` captures in ``directory``, in number order (oldest first)."""
+    pattern = re.compile(rf"^{re.escape(prefix)}-(\d{{{_INDEX_DIGITS},}})-[0-9TZ]+\.bin$")
+    found = [(int(m.group(1)), p) for p in directory.iterdir() if (m := pattern.match(p.name)) and p.is_file()]
+    return [p for _, p in sorted(found)]
+
+
+def _recording_elsewhere(capture: Path) -> bool:
+    """Whether ``capture``'s sidecar says another live process is still writing it."""
+    try:
+        doc = read_provenance(capture)
+    except FogDriverError:
+        return False
+    return bool(doc) and doc.get("status") == "recording" and _alive(doc.get("pid")) and doc.get("pid") != os.getpid()
 
 
 def _next_index(directory: Path, prefix: str) -> int:

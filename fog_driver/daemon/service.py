@@ -28,7 +28,8 @@ on the daemon's raw capture (its files concatenated in name order), bit for bit,
 the daemon's settings: ``--scale-override`` for ``scale_override_arcsec_per_count``, ``--force`` for
 ``force_model``, and with an ``adapt_state`` the state file as it was at the start with ``--adapt-state``
 (``--adapt-reference`` for ``adapt_reference_dph``), and when during the capture no ``?ZERO`` or ``?BIAS``
-offset was taken, no ``?ADAPT`` changed the reference and no different model was loaded.  Each of those
+offset was taken, no ``?ADAPT`` changed the reference and no different model was loaded.  (ANGLE's ``utc``, the
+host's clock when the sample was read, is the one key that cannot be reproduced offline; see ``stamp_utc``.)  Each of those
 is recorded in the capture's sidecar (``events``, with the byte of the file it took effect at), as are the
 model (path, SHA-256), the scale settings, the adaptation state's SHA-256 and the instrument.
 """
@@ -44,7 +45,6 @@ import os
 import resource
 import threading
 import time
-from concurrent.futures import Future
 from pathlib import Path
 from typing import Any
 
@@ -72,9 +72,12 @@ PROTO_MINOR = 0
 #: Samples kept while no IDENTITY has arrived (the frame rate is unknown): 60 s at 2 kHz.  Older ones are
 #: dropped and counted (``samples_dropped_before_identity``).
 MAX_SAMPLES_BEFORE_IDENTITY = 120_000
-#: ``?BIAS`` answers within its seconds of device time plus this margin, else the client gets an ERROR
-#: (the capture still completes and is applied: STATUS ``bias_dph``).
+#: A ``?BIAS`` capture whose seconds of device time have not arrived within its seconds plus this margin (host
+#: time) is abandoned: a ``BIAS`` ``failed`` event, and the bias in use is kept.
 BIAS_ANSWER_MARGIN_S = 30.0
+#: ``?BIAS`` seconds when the command gives none, and the most it accepts.
+DEFAULT_BIAS_S = 60
+MAX_BIAS_S = 86400
 #: The port reader is stuck (no watchdog ping) when its loop has not come round for this long.
 READER_STALL_S = 10.0
 #: Shutdown budget: the acquisition join and the capture's close each get at most this long (the unit's
@@ -113,7 +116,8 @@ class Service:
 
     #: Settings that need a restart; every other one applies on SIGHUP (``reload_config``).
     RESTART_KEYS = ("port", "baud", "listen", "udp", "capture_dir", "capture_rotate_mb", "capture_rotate_s",
-                    "scale_arcsec_per_count", "scale_override_arcsec_per_count")  # fmt: skip
+                    "capture_keep_days", "capture_max_gb", "scale_arcsec_per_count",
+                    "scale_override_arcsec_per_count")  # fmt: skip
 
     def __init__(self, config: DriverConfig, *, port: str, model_file: ModelFile | None = None) -> None:
         self.config = config
@@ -144,6 +148,9 @@ class Service:
         self.bias_dph = 0.0
         self.bias_angle_arcsec = 0.0
         self._bias_capture: dict[str, Any] | None = None
+        self._bias_captures = 0  # ?BIAS captures started (each one's capture_id)
+        self.bias_captured = False  # a ?BIAS capture completed: bias_dph is a measured bias, not the default 0
+        self.last_event: dict | None = None
         self._adapt_touched = config.adapt_reference_dph is not None  # save the state at exit only if adapted
         self.reloads = 0
         self.hub = None
@@ -237,9 +244,13 @@ class Service:
             "cpu_percent": round(100.0 * (cpu - cpu_mark) / max(now - wall_mark, 1e-9), 2),
             "rss_mb": _current_rss_mb(),
             "bias_dph": self.bias_dph,
+            "bias_captured": self.bias_captured,
             "adapting": bool(self.compensator and self.compensator.reference_rate_dph is not None),
             "reloads": self.reloads,
         }
+        if self._bias_capture is not None:  # a ?BIAS capture running: how far it is, in seconds of device time
+            obj["bias_capture_s"] = self._bias_capture["seconds"]
+            obj["bias_capture_target_s"] = self._bias_capture["target_s"]
         if self.samples_dropped_before_identity:
             obj["samples_dropped_before_identity"] = self.samples_dropped_before_identity
         online = self.compensator.online if self.compensator is not None else None
@@ -357,23 +368,33 @@ class Service:
         return obj
 
     def _finish_bias(self, capture: dict) -> None:
-        """A ``?BIAS`` capture is complete: apply it, and answer whoever still waits (nobody may)."""
+        """A ``?BIAS`` capture is complete: apply it and publish its result (under ``lock``, in the acquisition
+        thread; nobody waits on it, so a client that hung up meanwhile changes nothing)."""
+        capture["timer"].cancel()
         self.bias_dph = capture["sum_arcsec"] / capture["seconds"]
+        self.bias_captured = True
         self._bias_capture = None
         self._note("bias", bias_dph=self.bias_dph, seconds=capture["seconds"])
-        log.info("bias_applied", bias_dph=self.bias_dph, seconds=capture["seconds"])
-        future: Future = capture["future"]
-        try:  # a cancelled future (a client that hung up, in any hub) is simply not answered
-            if future.set_running_or_notify_cancel():
-                future.set_result({"class": "BIAS", "bias_dph": self.bias_dph, "seconds": capture["seconds"]})
-        except Exception:  # noqa: BLE001 - an answer nobody can take must never stop the acquisition
-            log.exception("bias_answer_failed")
+        log.info("bias_applied", capture_id=capture["capture_id"], bias_dph=self.bias_dph, seconds=capture["seconds"])
+        self._publish_event({"class": "BIAS", "state": "done", "capture_id": capture["capture_id"],
+                             "bias_dph": self.bias_dph, "seconds": capture["seconds"]})  # fmt: skip
+
+    def _publish_event(self, obj: dict) -> None:
+        """An event for every authorized client (non-blocking), and kept as ``last_event`` (tests, STATUS-less
+        services); never raises into the acquisition."""
+        self.last_event = obj
+        if self.hub is not None:
+            try:
+                self.hub.publish(obj)
+            except Exception:  # noqa: BLE001 - an event nobody can take must never stop the acquisition
+                log.exception("event_not_published", event=obj.get("class"))
 
     def _acquire(self) -> None:
         try:
             for chunk in self.reader.chunks(self.stop):
                 angles = self.process(chunk)
                 if angles and self.hub is not None:
+                    stamp_utc(angles, time.time_ns())
                     self.hub.publish_angles(angles)
         except ModelMismatchError as exc:  # refused at the first IDENTITY: a configuration problem
             log.error("acquisition_stopped", reason=str(exc))
@@ -394,7 +415,7 @@ class Service:
 
     # -- control (called from the hub's worker threads) ----------------------------------------
 
-    def control(self, name: str, args: dict, client_id: int) -> dict | Future | Any:
+    def control(self, name: str, args: dict, client_id: int) -> dict:
         handler = getattr(self, f"_cmd_{name.lower()}", None)
         if handler is None:
             return {"class": "ERROR", "message": f"unknown command ?{name}", "command": name}
@@ -414,19 +435,46 @@ class Service:
             self._note("zero")
         return {"class": "ZERO", "zeroed": True}
 
-    def _cmd_bias(self, args: dict) -> dict | Any:
-        """Capture the residual bias over N seconds (device time) of static data, then remove it."""
-        from .hub import Deferred
+    def _cmd_bias(self, args: dict) -> dict:
+        """Capture the residual bias over N seconds (device time) of static data, then remove it.
 
-        seconds = args.get("seconds", 60)
-        if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or not 1 <= seconds <= 86400:
-            return {"class": "ERROR", "message": "?BIAS needs \"seconds\" between 1 and 86400"}
+        Answered at once (``BIAS`` ``state: started`` with the capture's ``capture_id``); the result is an event
+        published later to every authorized client (the one that asked included, if it is still there):
+        ``BIAS`` ``state: done`` with ``bias_dph``, or ``state: failed`` with ``reason`` when the N seconds of
+        data did not arrive within N + ``BIAS_ANSWER_MARGIN_S`` seconds of host time (the port went away): the
+        capture is then abandoned and the bias in use is kept.  One capture at a time."""
+        seconds = args.get("seconds", DEFAULT_BIAS_S)
+        if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or not 1 <= seconds <= MAX_BIAS_S:
+            return {"class": "ERROR", "message": f"?BIAS needs \"seconds\" between 1 and {MAX_BIAS_S}"}
+        timeout_s = float(seconds) + BIAS_ANSWER_MARGIN_S
         with self.lock:
             if self._bias_capture is not None:
                 return {"class": "ERROR", "message": "a bias capture is already running"}
-            future: Future = Future()
-            self._bias_capture = {"target_s": float(seconds), "sum_arcsec": 0.0, "seconds": 0.0, "future": future}
-        return Deferred(future, float(seconds) + BIAS_ANSWER_MARGIN_S)
+            self._bias_captures += 1
+            capture = {"capture_id": self._bias_captures, "target_s": float(seconds), "sum_arcsec": 0.0,
+                       "seconds": 0.0}  # fmt: skip
+            timer = threading.Timer(timeout_s, self._bias_timed_out, args=(capture,))
+            timer.daemon = True
+            capture["timer"] = timer
+            self._bias_capture = capture
+            timer.start()
+        log.info("bias_started", capture_id=capture["capture_id"], seconds=float(seconds))
+        return {"class": "BIAS", "state": "started", "capture_id": capture["capture_id"], "seconds": float(seconds),
+                "timeout_s": timeout_s}  # fmt: skip
+
+    def _bias_timed_out(self, capture: dict) -> None:
+        """The timer of a ``?BIAS`` capture: abandon it if it is still the one running (its own thread)."""
+        with self.lock:
+            if self._bias_capture is not capture:
+                return  # completed (or replaced) meanwhile
+            self._bias_capture = None
+            event = {"class": "BIAS", "state": "failed", "capture_id": capture["capture_id"],
+                     "seconds": capture["target_s"], "seconds_captured": capture["seconds"],
+                     "reason": f"only {capture['seconds']:.1f} of {capture['target_s']:g} s of data arrived within "
+                               f"{capture['target_s'] + BIAS_ANSWER_MARGIN_S:g} s (is the instrument sending?); "
+                               f"the bias in use is kept"}  # fmt: skip
+            log.warning("bias_failed", capture_id=capture["capture_id"], reason=event["reason"])
+            self._publish_event(event)
 
     def _cmd_adapt(self, args: dict) -> dict:
         enable = args.get("enable")
@@ -575,12 +623,16 @@ class Service:
             address = self.hub.start()
         except OSError as exc:  # in use, or not on this host yet (the network coming up): may clear by itself
             error = TemporaryFailure if exc.errno in (errno.EADDRINUSE, errno.EADDRNOTAVAIL) else ConfigError
-            raise error(f"cannot listen on {self.config.listen}: {exc.strerror or exc}") from None
+            hint = (" (another fog-driver run? give this one another address: --listen or 'listen' in its config)"
+                    if exc.errno == errno.EADDRINUSE else "")  # fmt: skip
+            raise error(f"cannot listen on {self.config.listen}: {exc.strerror or exc}{hint}") from None
         capture = RotatingCapture(
             self.config.capture_dir,
             max_bytes=int(self.config.capture_rotate_mb * 2**20),
             max_age_s=self.config.capture_rotate_s,
             provenance=self._provenance(),
+            keep_days=self.config.capture_keep_days,
+            max_total_bytes=None if self.config.capture_max_gb is None else int(self.config.capture_max_gb * 1e9),
         )
         self.capture = CaptureSink(capture, on_state=self._on_capture_state)
         if self.config.udp:
@@ -658,6 +710,9 @@ class Service:
         """Stop acquiring, save the adaptation (only if it ran), close the capture and the hub (SIGTERM ends
         here, exit 0).  Each wait is bounded: ``JOIN_TIMEOUT_S`` for the acquisition and for the capture."""
         self.stop.set()
+        with self.lock:
+            if self._bias_capture is not None:  # its result would come after the clients are gone
+                self._bias_capture["timer"].cancel()
         if self.notifier is not None:
             self.notifier.stopping()
         if self._acquisition is not None:
@@ -679,9 +734,23 @@ class Service:
             self.udp.close()
 
 
+def stamp_utc(angles: list[dict], now_ns: int) -> None:
+    """Give each ANGLE object ``utc``: the host's UTC clock when the daemon read the bytes that completed the
+    sample (``now_ns``, from ``time.time_ns()``), ISO 8601 to the millisecond (``2026-12-02T14:56:26.123Z``).
+
+    Host time, beside the device's ``t_s``: a station logging ANGLE lines can line them up with other
+    instruments.  It is added after ``Service.process``, so the pipeline's output stays a function of the
+    port's bytes alone (``compensate`` of the capture gives it exactly); live and offline ANGLE objects differ
+    by this key only.  One chunk's samples share one stamp (a chunk is what one read returned)."""
+    seconds, ns = divmod(now_ns, 1_000_000_000)
+    stamp = time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(seconds)) + f".{ns // 1_000_000:03d}Z"
+    for obj in angles:
+        obj["utc"] = stamp
+
+
 def _same_model(a: ModelFile, b: ModelFile) -> bool:
     """The same drift model (kind, normalization and every matrix): its memory and adaptation carry over."""
     return a.kind == b.kind and a.normalizer.to_dict() == b.normalizer.to_dict() and a.model.to_dict() == b.model.to_dict()
 
 
-__all__ = ["ConfigError", "Service"]
+__all__ = ["ConfigError", "Service", "stamp_utc"]

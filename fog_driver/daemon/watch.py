@@ -1,28 +1,39 @@
 """``fog-driver watch``: a live view of a running daemon, over its NDJSON client protocol.
 
-The client connects to the daemon (default ``127.0.0.1:2948``), reads the
-``VERSION`` (and possibly ``DEVICE``) greeting, sends
-``?WATCH={"enable":true,"rate_hz":R};`` and then shows what arrives: the
-instrument's identity and the device state, the latest ``ANGLE`` (compensated
-and raw, in arcsec and in deg-min-sec; rate and drift in deg/h; the three
-temperatures; the flags), the latest ``STATUS`` counters (every scalar key,
-sorted), the last ``ERROR`` and how many ``ANGLE`` objects arrive per second.
+The client connects to the daemon (default ``127.0.0.1:2948``; the connection, the token and the line
+reading are ``client.py``'s, shared with ``fog-driver ctl``), reads the ``VERSION`` greeting, sends
+``?WATCH={"enable":true,"rate_hz":R};`` and then shows what arrives: the instrument's identity and the
+device state, the latest ``ANGLE`` (compensated and raw, in arcsec and in deg-min-sec; the rate averaged
+over the last second of device time, the drift in deg/h; the three temperatures; the flags), the latest
+``STATUS`` counters (every scalar key, sorted), the last ``ERROR`` and how many ``ANGLE`` objects arrive
+per second.  Banners above it say what the operator must know first: ``LINK DOWN`` (the daemon's port is
+closed), ``NO DATA for N s`` (no ANGLE for ``NO_DATA_S`` or more), and ``bias not removed`` while the
+daemon's STATUS says no ``?BIAS`` capture was made (at rest the angle then climbs with Earth rate plus
+the gyro's bias), or how far a running capture is.
 
-On a terminal the view is a fixed block redrawn in place (cursor home, clear to
-end of line and of screen; at most 10 redraws a second).  Anywhere else (a pipe,
-a log file, a test) it prints one line when the server says who it is, one per
-``DEVICE`` change and ``ERROR``, and one compact line per second.
+The rate shown is ``(angle_arcsec[last] - angle_arcsec[first]) / (t_s[last] - t_s[first])`` over the
+ANGLE objects of the last ``RATE_AVERAGE_S`` (1 s) of device time (1 arcsec/s = 1 deg/h): the mean of
+*every* sample's rate in that second, the decimated ones included, which a single sample's ``rate_dph``
+(quantized to one count per frame period: 1 deg/h steps at 100 Hz) is not.  It is shown to 0.01 deg/h.
+The average starts again after a ``gap`` flag, device time going backwards, and this watch's ``?ZERO``.
 
-The reader is defensive: a line is at most 64 KiB (longer ones are skipped up
-to their newline), lines that are not a JSON object with a string ``"class"``
-are skipped and counted, unknown classes are counted and ignored, unknown keys
-are ignored (except in ``STATUS``, whose scalar keys are all shown), and absent
-or ``null`` values show as ``-``, never ``None``.
+On a terminal the view is a fixed block redrawn in place (cursor home, clear to end of line and of
+screen; at most 10 redraws a second), and when stdin is a terminal too, keys act at once (stdin in
+cbreak mode, restored on every exit, Ctrl-Z included): ``q`` quits, ``z`` sends ``?ZERO``, ``b`` sends
+``?BIAS`` (``bias_s`` seconds, 60 by default), whose result shows in the banner.  Anywhere else (a pipe,
+a log file, a test) it prints one line when the server says who it is, one per ``DEVICE`` change,
+``ERROR`` and ``BIAS`` event, and one compact line per second.  With ``json_lines`` it prints the
+daemon's lines themselves, unchanged, one per line and flushed (like ``gpspipe -w``).
 
-``run_watch`` returns 0 when ``count`` ANGLE objects were shown, ``duration_s``
-elapsed or the user pressed Ctrl-C, and 1 (after a one-line note) when the
-server closed or lost the connection.  A daemon that cannot be reached is a
-one-line ``DeviceError``.  ``parse_line``, ``format_dms``, ``render`` and
+The reader is defensive: a line is at most 64 KiB (longer ones are skipped up to their newline), lines
+that are not a JSON object with a string ``"class"`` are skipped and counted, unknown classes are
+counted and ignored, unknown keys are ignored (except in ``STATUS``, whose scalar keys are all shown),
+and absent or ``null`` values show as ``-``, never ``None``.
+
+``run_watch`` returns 0 when ``count`` ANGLE objects were shown, ``duration_s`` elapsed, the user pressed
+``q`` or Ctrl-C, or the reader of ``--json`` output went away; 1 (after a one-line note) when the
+server closed or lost the connection.  A daemon that cannot be reached (refused, or a peer that closes
+or never greets) is a one-line ``DeviceError`` at once.  ``format_dms``, ``render`` and
 ``compact_line`` are pure and tested on their own.
 """
 
@@ -31,8 +42,9 @@ from __future__ import annotations
 import json
 import math
 import os
+import select
 import shutil
-import socket
+import signal
 import sys
 import time
 from collections import deque
@@ -40,13 +52,30 @@ from collections.abc import Mapping
 from decimal import ROUND_HALF_UP, Decimal
 from typing import Any, TextIO
 
-from ..config import parse_host_port
-from ..errors import DeviceError, UsageError
+from ..errors import UsageError
+from .client import (
+    DEFAULT_HOST,
+    DEFAULT_PORT,
+    MAX_LINE_BYTES,
+    TOKEN_ENV,
+    Connection,
+    ConnectionClosed,
+    LineReader,
+    command_line,
+    format_address,
+    parse_address,
+    parse_line,
+    read_token,
+)
 
 __all__ = [
+    "DEFAULT_BIAS_S",
     "DEFAULT_HOST",
     "DEFAULT_PORT",
     "MAX_LINE_BYTES",
+    "NO_DATA_S",
+    "RATE_AVERAGE_S",
+    "TOKEN_ENV",
     "LineReader",
     "compact_line",
     "format_arcsec",
@@ -59,19 +88,21 @@ __all__ = [
     "watch_command",
 ]
 
-DEFAULT_HOST = "127.0.0.1"
-DEFAULT_PORT = 2948
-MAX_LINE_BYTES = 64 * 1024  # a protocol line longer than this (without its newline) is skipped
-
 EXIT_OK = 0
 EXIT_CONNECTION_CLOSED = 1
+
+#: The rate shown is averaged over this much device time (s).
+RATE_AVERAGE_S = 1.0
+#: No ANGLE for this long (s, host time) is the ``NO DATA`` banner.
+NO_DATA_S = 3.0
+#: ``b``'s ``?BIAS`` seconds.
+DEFAULT_BIAS_S = 60
 
 _TTY_MIN_REDRAW_S = 0.1  # at most 10 redraws a second
 _TTY_REFRESH_S = 1.0  # redraw at least this often (ages and rates move even without data)
 _LINE_PERIOD_S = 1.0  # non-tty: one compact line per second
 _RATE_WINDOW_S = 2.0  # ANGLE objects per second, counted over this window
-_POLL_S = 0.1  # longest a recv() waits before the view gets a chance to refresh
-_RECV_BYTES = 65536
+_POLL_S = 0.1  # longest a wait for the socket or a key lasts before the view gets a chance to refresh
 
 _HIDE_CURSOR = "\x1b[?25l"
 _SHOW_CURSOR = "\x1b[?25h"
@@ -85,27 +116,6 @@ _DEGREE = "\u00b0"
 
 
 # --------------------------------------------------------------------------- pure helpers
-
-
-def parse_line(line: bytes) -> dict[str, Any] | None:
-    """One protocol line -> its JSON object, or ``None`` when it is not a usable protocol object.
-
-    Surrounding whitespace (the newline, a ``\\r``) is ignored.  ``None`` for: an empty line,
-    a line over ``MAX_LINE_BYTES``, bytes that are not UTF-8, text that is not JSON, JSON that
-    is not an object, and an object without a string ``"class"``.
-    """
-    if len(line) > MAX_LINE_BYTES + 2:  # room for "\r\n"
-        return None
-    line = line.strip()
-    if not line or len(line) > MAX_LINE_BYTES:
-        return None
-    try:
-        obj = json.loads(line.decode("utf-8"))
-    except (UnicodeDecodeError, ValueError, RecursionError):
-        return None
-    if not isinstance(obj, dict) or not isinstance(obj.get("class"), str):
-        return None
-    return obj
 
 
 #: From this size on (arcsec) an angle is shown as it is, not rounded to 0.01": a float's hundredths
@@ -163,19 +173,6 @@ def format_dms(arcsec: float, *, degree: str = _DEGREE) -> str:
     minutes, rest = divmod(rest, 60 * 100)
     seconds, cents = divmod(rest, 100)
     return f"{sign}{degrees}{degree}{minutes:02d}'{seconds:02d}.{cents:02d}\""
-
-
-def parse_address(text: str | None, *, default_host: str = DEFAULT_HOST, default_port: int = DEFAULT_PORT) -> tuple[str, int]:
-    """``HOST:PORT``, ``HOST``, ``:PORT``, ``PORT`` or ``[IPV6]:PORT`` -> ``(host, port)``; ``UsageError`` if bad."""
-    try:
-        return parse_host_port(text, default_host=default_host, default_port=default_port, allow_zero=False)
-    except ValueError as exc:
-        raise UsageError(str(exc)) from None
-
-
-def format_address(host: str, port: int) -> str:
-    """``HOST:PORT``, with an IPv6 address in brackets (``[::1]:2948``): what ``parse_address`` reads back."""
-    return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
 
 
 def _is_number(value: Any) -> bool:
@@ -310,30 +307,75 @@ def _received(state: Mapping[str, Any]) -> str:
     return "  ".join(parts)
 
 
+def _rate_text(state: Mapping[str, Any], angle: Mapping[str, Any]) -> str:
+    """The rate: the mean over the last second of device time (0.01 deg/h), else the one sample's (0.1)."""
+    mean, span = state.get("rate_mean_dph"), state.get("rate_span_s")
+    if _is_number(mean) and _is_number(span):
+        return f"{_show(mean, '.2f')} deg/h (mean over {_show(span, '.1f')} s)"
+    return f"{_show(angle.get('rate_dph'), '.1f')} deg/h (one sample)"
+
+
+def _bias_hint(state: Mapping[str, Any]) -> str:
+    """How to capture the bias from here: the key (when keys work) and the ``ctl`` command for this daemon."""
+    address = state.get("address")
+    connect = "" if address in (None, format_address(DEFAULT_HOST, DEFAULT_PORT)) else f" --connect {address}"
+    command = f"`fog-driver ctl{connect} bias {DEFAULT_BIAS_S}`"
+    return f"press b (or {command})" if state.get("keys") else f"run {command}"
+
+
+def banners(state: Mapping[str, Any]) -> list[str]:
+    """What the operator must see first, most urgent first: LINK DOWN, NO DATA for N s, the bias.
+
+    ``LINK DOWN`` when DEVICE says ``deactivated`` (or STATUS's ``port_state`` is not ``open``); ``NO DATA
+    for N s`` when no ANGLE came for ``NO_DATA_S`` (``angle_age_s``, or ``elapsed_s`` before the first one);
+    the bias banner while STATUS says ``bias_captured: false`` (a daemon that does not say gets none), or a
+    running capture's progress (``bias_capture_s`` of ``bias_capture_target_s``).
+    """
+    lines = []
+    device, status = _dict(state.get("device")), _dict(state.get("status"))
+    port_state = status.get("port_state")
+    if device.get("state") == "deactivated" or (port_state is not None and port_state != "open"):
+        lines.append("*** LINK DOWN: the daemon's instrument port is closed; no samples, the angle holds ***")
+    age = state.get("angle_age_s") if state.get("angle") else state.get("elapsed_s")
+    if _is_number(age) and age >= NO_DATA_S and _dict(state.get("watch")).get("enable", True) is not False:
+        lines.append(f"*** NO DATA for {age:.0f} s ***")
+    if _is_number(status.get("bias_capture_target_s")):
+        lines.append(f"capturing the bias: {_show(status.get('bias_capture_s'), '.1f')} / "
+                     f"{_show(status.get('bias_capture_target_s'), 'g')} s of data; keep the table still")  # fmt: skip
+    elif status.get("bias_captured") is False:
+        lines.append(f"bias not removed: at rest the angle climbs with Earth rate + bias; {_bias_hint(state)}")
+    return lines
+
+
 def render(state: Mapping[str, Any], *, width: int = 100, degree: str = _DEGREE) -> list[str]:
     """The live view's lines (no ANSI, no newlines) from a state mapping; every key may be absent.
 
     Keys read: ``address`` (text), ``elapsed_s``, ``version``/``device``/``angle``/``status``
     (the latest protocol object of that class), ``error`` (the last ERROR message),
     ``watch`` (the server's WATCH answer), ``angles`` (ANGLE objects received), ``angle_rate_hz``, ``angle_age_s`` (seconds since the
-    last ANGLE), ``malformed``, ``oversized``, ``unknown``.
+    last ANGLE), ``rate_mean_dph`` and ``rate_span_s`` (the averaged rate and the device time it spans),
+    ``keys`` (keys work: their line is shown), ``action`` (the last key's outcome), ``malformed``,
+    ``oversized``, ``unknown``.
     """
     version, device = _dict(state.get("version")), _dict(state.get("device"))
     angle, status = _dict(state.get("angle")), _dict(state.get("status"))
     head = f"fog-driver watch {_show(state.get('address'))}  |  {_server(version)}"
     if state.get("elapsed_s") is not None:
         head += f"  |  {_show(state.get('elapsed_s'), '.1f')} s"
-    lines = [head, f"{'instrument':<12}{_identity(version)}", f"{'device':<12}{_device(device)}"]
+    lines = [head, *banners(state)]
+    lines += [f"{'instrument':<12}{_identity(version)}", f"{'device':<12}{_device(device)}"]
     if not angle:
         lines.append(f"{'angle':<12}{_MISSING} (waiting for ANGLE)")
     else:
         lines.append(f"{'angle':<12}{_angle_text(angle.get('angle_arcsec'), degree)}"
                      f"    raw {_angle_text(angle.get('angle_raw_arcsec'), degree)}")  # fmt: skip
-        lines.append(f"{'rate':<12}{_show(angle.get('rate_dph'), '.4f')} deg/h"
+        lines.append(f"{'rate':<12}{_rate_text(state, angle)}"
                      f"    drift {_show(angle.get('drift_dph'), '.4f')} deg/h")  # fmt: skip
         lines.append(f"{'temps':<12}{_temps(_dict(angle.get('temps_c')), '  ')}")
         lines.append(f"{'flags':<12}{_flags(angle.get('flags'))}")
         sample = f"seq {_show(angle.get('seq'))}  t {_show(angle.get('t_s'), '.3f')} s"
+        if angle.get("utc") is not None:
+            sample += f"  utc {_show(angle.get('utc'))}"
         if state.get("angle_age_s") is not None:
             sample += f"  (received {_show(state.get('angle_age_s'), '.1f')} s ago)"
         lines.append(f"{'sample':<12}{sample}")
@@ -342,6 +384,10 @@ def render(state: Mapping[str, Any], *, width: int = 100, degree: str = _DEGREE)
     lines.extend(_wrap("status", items, width) if items else [f"{'status':<12}{_MISSING}"])
     if state.get("error") is not None:
         lines.append(f"{'error':<12}{_show(state.get('error'))}")
+    if state.get("action") is not None:
+        lines.append(f"{'last key':<12}{_printable(str(state.get('action')))}")
+    if state.get("keys"):
+        lines.append(f"{'keys':<12}q quit   z zero the angle   b capture the bias ({DEFAULT_BIAS_S} s, table still)")
     return lines
 
 
@@ -349,6 +395,8 @@ def compact_line(state: Mapping[str, Any], *, degree: str = _DEGREE) -> str:
     """One line of the latest state, for logs (the non-terminal view prints one a second)."""
     angle, status = _dict(state.get("angle")), _dict(state.get("status"))
     parts = [f"[{_show(state.get('elapsed_s'), '7.1f')} s]"]
+    parts += [line.strip("* ").split(":")[0] if line.startswith("***") else line.split(";")[0]
+              for line in banners(state)]  # fmt: skip
     if not angle:
         parts.append("waiting for ANGLE")
     else:
@@ -357,7 +405,7 @@ def compact_line(state: Mapping[str, Any], *, degree: str = _DEGREE) -> str:
             f"t {_show(angle.get('t_s'), '.3f')} s",
             f"angle {_angle_text(angle.get('angle_arcsec'), degree)}",
             f"raw {_angle_text(angle.get('angle_raw_arcsec'), degree)}",
-            f"rate {_show(angle.get('rate_dph'), '.4f')} deg/h",
+            f"rate {_rate_text(state, angle)}",
             f"drift {_show(angle.get('drift_dph'), '.4f')} deg/h",
             f"temps {_temps(_dict(angle.get('temps_c')), ' ')}",
             f"flags {_flags(angle.get('flags')).replace(', ', ',')}",
@@ -370,36 +418,6 @@ def compact_line(state: Mapping[str, Any], *, degree: str = _DEGREE) -> str:
 
 
 # --------------------------------------------------------------------------- the stream
-
-
-class LineReader:
-    """Splits a byte stream into lines of at most ``max_line`` bytes; longer ones are dropped and counted."""
-
-    def __init__(self, max_line: int = MAX_LINE_BYTES) -> None:
-        self.max_line = max_line
-        self.oversized = 0
-        self._buf = bytearray()
-        self._discarding = False  # inside an oversized line: drop bytes up to its newline
-
-    def feed(self, data: bytes) -> list[bytes]:
-        lines: list[bytes] = []
-        self._buf += data
-        start = 0
-        while (nl := self._buf.find(b"\n", start)) >= 0:
-            if self._discarding:
-                self._discarding = False
-            elif nl - start > self.max_line + 1:  # allow a "\r" before the newline
-                self.oversized += 1
-            else:
-                lines.append(bytes(self._buf[start:nl]))
-            start = nl + 1
-        del self._buf[:start]
-        if len(self._buf) > self.max_line + 1:
-            if not self._discarding:
-                self.oversized += 1
-                self._discarding = True
-            self._buf.clear()
-        return lines
 
 
 def _degree_for(out: TextIO) -> str:
@@ -427,16 +445,49 @@ def _terminal_size(out: TextIO) -> tuple[int, int]:
     return size.columns or 80, size.lines or 24
 
 
+class _RateAverage:
+    """The mean rate over the last ``RATE_AVERAGE_S`` of device time, from the ANGLE objects' cumulative angle.
+
+    Keeps ``(t_s, angle_arcsec)`` pairs spanning just over the window; the mean is the angle difference over
+    the time difference (arcsec/s = deg/h), which counts every sample of the interval (the decimated ones
+    too).  ``reset`` starts again (after a gap, a ?ZERO, time going backwards)."""
+
+    def __init__(self) -> None:
+        self._points: deque[tuple[float, float]] = deque()
+
+    def reset(self) -> None:
+        self._points.clear()
+
+    def add(self, angle: Mapping[str, Any]) -> None:
+        t_s, arcsec = angle.get("t_s"), angle.get("angle_arcsec")
+        if not (_is_number(t_s) and _is_number(arcsec) and math.isfinite(t_s) and math.isfinite(arcsec)):
+            return
+        flags = angle.get("flags")
+        if (isinstance(flags, list) and "gap" in flags) or (self._points and t_s <= self._points[-1][0]):
+            self.reset()
+        self._points.append((float(t_s), float(arcsec)))
+        while len(self._points) > 2 and self._points[1][0] <= t_s - RATE_AVERAGE_S:
+            self._points.popleft()
+
+    def mean(self) -> tuple[float, float] | None:
+        """``(rate_dph, span_s)``, or None with fewer than two points."""
+        if len(self._points) < 2:
+            return None
+        (t0, a0), (t1, a1) = self._points[0], self._points[-1]
+        return (a1 - a0) / (t1 - t0), t1 - t0
+
+
 class _Watch:
     """The client's state and its two views (terminal block, or log lines)."""
 
-    def __init__(self, address: str, out: TextIO, started: float) -> None:
+    def __init__(self, address: str, out: TextIO, started: float, *, keys: bool = False) -> None:
         self.out = out
         self.tty = _isatty(out)
         self.degree = _degree_for(out)
         self.started = started
-        self.state: dict[str, Any] = {"address": address, "angles": 0, "malformed": 0, "unknown": 0}
+        self.state: dict[str, Any] = {"address": address, "angles": 0, "malformed": 0, "unknown": 0, "keys": keys}
         self._arrivals: deque[float] = deque()
+        self._rate = _RateAverage()
         self._last_angle_at: float | None = None
         self._dirty = True
         self._last_draw: float | None = None
@@ -455,6 +506,7 @@ class _Watch:
             self.state["angles"] += 1
             self._arrivals.append(now)
             self._last_angle_at = now
+            self._rate.add(obj)
         elif cls == "STATUS":
             self.state["status"] = obj
         elif cls == "VERSION":
@@ -462,16 +514,42 @@ class _Watch:
             self._event(f"connected to {self.state['address']}: {_server(obj)}; instrument {_identity(obj)}")
         elif cls == "DEVICE":
             self.state["device"] = obj
-            self._event(f"device {_device(obj)}")
+            down = "  *** LINK DOWN ***" if obj.get("state") == "deactivated" else ""
+            self._event(f"device {_device(obj)}{down}")
         elif cls == "WATCH":  # the server's answer to ?WATCH: the policy in force
             self.state["watch"] = obj
         elif cls == "ERROR":
-            message = obj.get("message")
-            self.state["error"] = _show(message) if message is not None else "(no message)"
-            self._event(f"server error: {self.state['error']}")
+            message = _show(obj.get("message")) if obj.get("message") is not None else "(no message)"
+            if obj.get("command") in ("ZERO", "BIAS"):
+                hint = f" (set {TOKEN_ENV} or --token-file)" if message == "unauthorized" else ""
+                self._action(f"?{obj['command']} refused: {message}{hint}")
+            else:
+                self.state["error"] = message
+                self._event(f"server error: {message}")
+        elif cls == "ZERO":
+            self._rate.reset()
+            self._action("zeroed: the angle starts again from 0 here")
+        elif cls == "BIAS":
+            self._bias(obj)
+        elif cls == "AUTH":
+            pass
         else:
             self.state["unknown"] += 1
         self._dirty = True
+
+    def _bias(self, obj: Mapping[str, Any]) -> None:
+        state = obj.get("state")
+        if state == "started":
+            self._action(f"bias capture started: {_show(obj.get('seconds'), 'g')} s of data; keep the table still")
+        elif state == "done":
+            self._action(f"bias captured: {_show(obj.get('bias_dph'), '.4f')} deg/h over "
+                         f"{_show(obj.get('seconds'), '.1f')} s, removed from rate and angle from now on")  # fmt: skip
+        elif state == "failed":
+            self._action(f"bias capture failed: {_show(obj.get('reason'))}")
+
+    def _action(self, text: str) -> None:
+        self.state["action"] = text
+        self._event(text)
 
     def malformed(self, n: int = 1) -> None:
         self.state["malformed"] += n
@@ -487,6 +565,8 @@ class _Watch:
         self.state["angle_rate_hz"] = len(self._arrivals) / window if window > 0 else 0.0
         if self._last_angle_at is not None:
             self.state["angle_age_s"] = now - self._last_angle_at
+        mean = self._rate.mean()
+        self.state["rate_mean_dph"], self.state["rate_span_s"] = mean if mean is not None else (None, None)
         return self.state
 
     def _write(self, text: str) -> None:
@@ -507,6 +587,11 @@ class _Watch:
         self._write(prefix + body + _CLEAR_EOS)
         self._last_draw = now
         self._dirty = False
+
+    def redraw_all(self) -> None:
+        """Clear and draw the whole block at the next tick (after the terminal was given back to the shell)."""
+        self._drawn = False
+        self._last_draw = None
 
     def _print_line(self, now: float) -> None:
         self._write(compact_line(self._snapshot(now), degree=self.degree) + "\n")
@@ -543,33 +628,75 @@ class _Watch:
                 pass
 
 
-#: The environment variable ``fog-driver watch`` reads a daemon's client token from (never a command-line
-#: argument: those show in every user's process list).
-TOKEN_ENV = "FOG_DRIVER_TOKEN"
+class _Keys:
+    """Single keys from a terminal on stdin: cbreak mode (no echo, no line buffering; Ctrl-C still
+    interrupts) while the watch runs, the terminal's settings restored by ``restore`` (call it in a
+    ``finally``), and around Ctrl-Z (the shell gets its terminal back; ``fg`` resumes cbreak mode)."""
 
+    def __init__(self, stream: TextIO, on_resume: Any = None) -> None:
+        import termios
+        import tty
 
-def _auth_command(token: str) -> bytes:
-    return b"?AUTH=" + json.dumps({"token": token}, separators=(",", ":")).encode("utf-8") + b";\n"
+        self._termios = termios
+        self.fd = stream.fileno()
+        self._saved = termios.tcgetattr(self.fd)
+        self._on_resume = on_resume
+        self._previous_tstp: Any = None
+        tty.setcbreak(self.fd, termios.TCSANOW)
+        try:
+            self._previous_tstp = signal.signal(signal.SIGTSTP, self._suspend)
+        except (ValueError, OSError):  # not the main thread: no job-control handling, the rest works
+            self._previous_tstp = None
+
+    def read(self) -> bytes:
+        try:
+            return os.read(self.fd, 64)
+        except OSError:
+            return b""
+
+    def _suspend(self, signum: int, frame: Any) -> None:
+        import tty
+
+        self._set(self._saved)
+        signal.signal(signal.SIGTSTP, signal.SIG_DFL)
+        os.kill(os.getpid(), signal.SIGTSTP)  # stopped here until SIGCONT
+        signal.signal(signal.SIGTSTP, self._suspend)
+        tty.setcbreak(self.fd, self._termios.TCSANOW)
+        if self._on_resume is not None:
+            self._on_resume()
+
+    def _set(self, attributes: list) -> None:
+        try:
+            self._termios.tcsetattr(self.fd, self._termios.TCSADRAIN, attributes)
+        except (OSError, self._termios.error):
+            pass
+
+    def restore(self) -> None:
+        self._set(self._saved)
+        if self._previous_tstp is not None:
+            try:
+                signal.signal(signal.SIGTSTP, self._previous_tstp)
+            except (ValueError, OSError):
+                pass
+            self._previous_tstp = None
 
 
 def _watch_command(rate_hz: float | None) -> bytes:
     request: dict[str, Any] = {"enable": True}
     if rate_hz is not None:
         request["rate_hz"] = int(rate_hz) if float(rate_hz).is_integer() else float(rate_hz)
-    return b"?WATCH=" + json.dumps(request, separators=(",", ":")).encode("ascii") + b";\n"
+    return command_line("WATCH", request)
 
 
-def _connect(host: str, port: int, timeout_s: float) -> socket.socket:
-    try:
-        return socket.create_connection((host, port), timeout=timeout_s)
-    except OSError as exc:
-        if isinstance(exc, TimeoutError):  # socket.timeout is TimeoutError
-            reason = "timed out"
-        else:
-            reason = exc.strerror or str(exc) or type(exc).__name__
-        raise DeviceError(
-            f"cannot connect to {format_address(host, port)}: {reason} (is `fog-driver run` running?)"
-        ) from None
+def _check_arguments(count: int | None, duration_s: float | None, rate_hz: float | None, bias_s: float) -> None:
+    if count is not None and (isinstance(count, bool) or not isinstance(count, int) or count < 1):
+        raise UsageError(f"--count must be a whole number >= 1, not {count!r}")
+    if duration_s is not None and not duration_s > 0:
+        raise UsageError(f"--duration must be > 0 s, not {duration_s!r}")
+    if rate_hz is not None and not (rate_hz > 0 and math.isfinite(rate_hz)):
+        raise UsageError(f"--rate-hz must be > 0, not {rate_hz!r}")
+    if not 1 <= bias_s <= 86400:
+        raise UsageError(f"the bias seconds must be between 1 and 86400, not {bias_s!r}")
 
 
 def run_watch(
@@ -582,74 +709,36 @@ def run_watch(
     out: TextIO | None = None,
     timeout_s: float = 5.0,
     token: str | None = None,
+    json_lines: bool = False,
+    keys: TextIO | None = None,
+    bias_s: float = DEFAULT_BIAS_S,
 ) -> int:
-    """Watch a running daemon until ``count`` ANGLE objects, ``duration_s`` seconds, Ctrl-C or disconnect.
+    """Watch a running daemon until ``count`` ANGLE objects, ``duration_s`` seconds, ``q``, Ctrl-C or disconnect.
 
-    ``out`` defaults to ``sys.stdout`` (looked up at call time).  ``timeout_s`` bounds the
-    connection attempt and sending the WATCH request.  ``token``: sent with ``?AUTH`` first (a daemon with a
-    token closes a client that has not authorized within its auth deadline).  Returns 0 (count reached, duration
-    elapsed, Ctrl-C) or 1 (the server closed or lost the connection; a one-line note says so).
-    Raises ``DeviceError`` when the daemon cannot be reached, ``UsageError`` for bad arguments.
+    ``out`` defaults to ``sys.stdout`` (looked up at call time).  ``timeout_s`` bounds the connection attempt
+    and the wait for the daemon's VERSION greeting.  ``token``: sent with ``?AUTH`` first (a daemon with a
+    token closes a client that has not authorized within its auth deadline).  ``json_lines``: print the
+    daemon's lines unchanged instead of the view.  ``keys``: a terminal to read keys from (``q``, ``z``, ``b``
+    with ``bias_s``); it is put in cbreak mode and restored on every exit.  Returns 0 (count reached,
+    duration elapsed, ``q``, Ctrl-C, the reader of ``json_lines`` gone) or 1 (the server closed or lost the
+    connection; a one-line note says so).  Raises ``DeviceError`` when the daemon cannot be reached,
+    ``UsageError`` for bad arguments.
     """
     if out is None:
         out = sys.stdout
-    if count is not None and (isinstance(count, bool) or not isinstance(count, int) or count < 1):
-        raise UsageError(f"--count must be a whole number >= 1, not {count!r}")
-    if duration_s is not None and not duration_s > 0:
-        raise UsageError(f"--duration must be > 0 s, not {duration_s!r}")
-    if rate_hz is not None and not (rate_hz > 0 and math.isfinite(rate_hz)):
-        raise UsageError(f"--rate-hz must be > 0, not {rate_hz!r}")
-    address = format_address(host, port)
+    _check_arguments(count, duration_s, rate_hz, bias_s)
+    conn = Connection.open(host, port, timeout_s=timeout_s)  # DeviceError: exit 69, at once
     watch: _Watch | None = None
-    sock: socket.socket | None = None
+    key_reader: _Keys | None = None
     try:
-        sock = _connect(host, port, timeout_s)
         started = time.monotonic()
-        watch = _Watch(address, out, started)
-        deadline = None if duration_s is None else started + duration_s
-        reader = LineReader()
-        try:
-            sock.sendall((_auth_command(token) if token else b"") + _watch_command(rate_hz))
-        except OSError:
-            pass  # the server went away at once: what it sent is still read below, then EOF
-        watch.tick(started)
-        while True:
-            now = time.monotonic()
-            if deadline is not None and now >= deadline:
-                watch.finish(now)
-                return EXIT_OK
-            wait = _POLL_S if deadline is None else max(0.001, min(_POLL_S, deadline - now))
-            sock.settimeout(wait)
-            try:
-                data = sock.recv(_RECV_BYTES)
-            except TimeoutError:
-                data = None
-            except OSError as exc:
-                reason = exc.strerror or str(exc) or type(exc).__name__
-                watch.finish(time.monotonic(), f"fog-driver watch: lost the connection to {address}: {reason} "
-                             f"({watch.state['angles']:,} ANGLE received)")  # fmt: skip
-                return EXIT_CONNECTION_CLOSED
-            now = time.monotonic()
-            if data == b"":
-                watch.finish(now, f"fog-driver watch: {address} closed the connection "
-                             f"({watch.state['angles']:,} ANGLE received)")  # fmt: skip
-                return EXIT_CONNECTION_CLOSED
-            if data:
-                oversized_before = reader.oversized
-                for line in reader.feed(data):
-                    if not line.strip():
-                        continue  # an empty line (a keep-alive) is not an error
-                    obj = parse_line(line)
-                    if obj is None:
-                        watch.malformed()
-                        continue
-                    watch.handle(obj, now)
-                    if count is not None and watch.state["angles"] >= count:
-                        watch.finish(now)
-                        return EXIT_OK
-                if reader.oversized != oversized_before:
-                    watch.state["oversized"] = reader.oversized
-            watch.tick(now)
+        if json_lines:
+            return _pass_through(conn, out, token, rate_hz, count, None if duration_s is None else started + duration_s)
+        watch = _Watch(conn.address, out, started, keys=keys is not None)
+        if keys is not None:
+            key_reader = _Keys(keys, on_resume=watch.redraw_all)
+        return _view(conn, watch, key_reader, token, rate_hz, count,
+                     None if duration_s is None else started + duration_s, bias_s)  # fmt: skip
     except KeyboardInterrupt:
         if watch is not None:
             try:
@@ -658,17 +747,118 @@ def run_watch(
                 pass
         return EXIT_OK
     finally:
+        if key_reader is not None:
+            key_reader.restore()
         if watch is not None:
             watch.restore()
-        if sock is not None:
-            sock.close()
+        conn.close()
+
+
+def _greet(conn: Connection, token: str | None, rate_hz: float | None) -> None:
+    """?AUTH (when there is a token) and ?WATCH, in one send."""
+    try:
+        conn.send((command_line("AUTH", {"token": token}) if token else b"") + _watch_command(rate_hz))
+    except ConnectionClosed:
+        pass  # the server went away at once: what it sent is still read, then EOF
+
+
+def _view(conn: Connection, watch: _Watch, keys: _Keys | None, token: str | None, rate_hz: float | None,
+          count: int | None, deadline: float | None, bias_s: float) -> int:  # fmt: skip
+    """The view's loop: lines from the daemon, keys from the terminal, a redraw or a log line when due."""
+    _greet(conn, token, rate_hz)
+    watch.tick(time.monotonic())
+    while True:
+        now = time.monotonic()
+        watch.state["malformed"] = conn.malformed
+        if conn.reader.oversized:
+            watch.state["oversized"] = conn.reader.oversized
+        while conn.has_pending():
+            _, obj = conn.read(0)
+            watch.handle(obj, now)
+            if count is not None and watch.state["angles"] >= count:
+                watch.finish(now)
+                return EXIT_OK
+        if deadline is not None and now >= deadline:
+            watch.finish(now)
+            return EXIT_OK
+        watch.tick(now)
+        wait = _POLL_S if deadline is None else max(0.001, min(_POLL_S, deadline - now))
+        readable = select.select([conn] + ([keys.fd] if keys else []), [], [], wait)[0]
+        if keys is not None and keys.fd in readable:
+            for key in keys.read().decode("ascii", "replace").lower():
+                if key == "q":
+                    watch.finish(time.monotonic())
+                    return EXIT_OK
+                command = {"z": command_line("ZERO"), "b": command_line("BIAS", {"seconds": bias_s})}.get(key)
+                if command is not None:
+                    watch.state["action"] = f"?{'ZERO' if key == 'z' else 'BIAS'} sent"
+                    try:
+                        conn.send(command)
+                    except ConnectionClosed:
+                        pass  # the read below says so
+        if conn in readable:
+            try:
+                conn.receive()
+            except ConnectionClosed as exc:
+                while conn.has_pending():
+                    watch.handle(conn.read(0)[1], time.monotonic())
+                what = "closed the connection" if exc.reason.endswith("closed the connection") else exc.reason
+                watch.finish(time.monotonic(), f"fog-driver watch: {conn.address} {what} "
+                                                f"({watch.state['angles']:,} ANGLE received)")  # fmt: skip
+                return EXIT_CONNECTION_CLOSED
+
+
+def _pass_through(conn: Connection, out: TextIO, token: str | None, rate_hz: float | None, count: int | None,
+                  deadline: float | None) -> int:  # fmt: skip
+    """``--json``: every protocol line of the daemon, unchanged, one per line, flushed (``gpspipe -w``);
+    malformed lines are dropped.  Ends as the view does; a reader that went away (``| head -3``) is exit 0,
+    with stdout pointed at /dev/null so the interpreter's last flush cannot complain."""
+    _greet(conn, token, rate_hz)
+    angles = 0
+    try:
+        while True:
+            now = time.monotonic()
+            if deadline is not None and now >= deadline:
+                return EXIT_OK
+            try:
+                item = conn.read(None if deadline is None else max(0.001, deadline - now))
+            except ConnectionClosed as exc:
+                print(f"fog-driver watch: {conn.address} {exc.reason}", file=sys.stderr)
+                return EXIT_CONNECTION_CLOSED
+            if item is None:
+                continue
+            raw, obj = item
+            out.write(raw.decode("utf-8") + "\n")
+            out.flush()
+            if obj["class"] == "ANGLE":
+                angles += 1
+                if count is not None and angles >= count:
+                    return EXIT_OK
+    except BrokenPipeError:
+        _stdout_to_devnull(out)
+        return EXIT_OK
+
+
+def _stdout_to_devnull(out: TextIO) -> None:
+    """After EPIPE on stdout: point its descriptor at /dev/null, so nothing complains at exit."""
+    if out is not sys.stdout:
+        return
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError):
+        pass
 
 
 def watch_command(address: str | None, *, rate_hz: float | None = 10.0, count: int | None = None,
-                  duration_s: float | None = None) -> int:  # fmt: skip
+                  duration_s: float | None = None, json_lines: bool = False, token_file: str | None = None,
+                  bias_s: float = DEFAULT_BIAS_S) -> int:  # fmt: skip
     """``fog-driver watch [HOST:PORT]``: parse the address and run the watch on stdout (the token, if the daemon
-    has one, from the environment variable ``FOG_DRIVER_TOKEN``)."""
+    has one, from ``token_file`` or the environment variable ``FOG_DRIVER_TOKEN``).  Keys work when stdin and
+    stdout are both terminals (and not with ``json_lines``)."""
     host, port = parse_address(address)
-    token = os.environ.get(TOKEN_ENV) or None
-    return run_watch(host, port, rate_hz=rate_hz, count=count, duration_s=duration_s, token=token)
-
+    token = read_token(token_file)
+    keys = sys.stdin if not json_lines and _isatty(sys.stdin) and _isatty(sys.stdout) else None
+    return run_watch(host, port, rate_hz=rate_hz, count=count, duration_s=duration_s, token=token,
+                     json_lines=json_lines, keys=keys, bias_s=bias_s)  # fmt: skip

@@ -1,7 +1,7 @@
 """Wire protocol v1: constants, frame events and encoders.
 
-The normative description is ``shared/design/protocol-v1.md``; the firmware
-authors' copy is ``firmware_protocol/PROTOCOL.md``.  A frame is::
+The specification is ``firmware_protocol/PROTOCOL.md`` (with its golden vectors and C
+reference encoder).  A frame is::
 
     sync(0xAA 0x55) | type u8 | len u8 | payload[len] | crc32 u32 LE
 

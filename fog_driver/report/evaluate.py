@@ -7,13 +7,25 @@ with its IEEE 952 read points (``allan.py``), and the RMS of 1-minute means of
 the rate (mean removed); with ``--truth`` (a simulator truth file) the drift
 residual against the true drift and the noise floor; the positioning table
 when the capture holds positioning sequences.  Writes ``summary.json``,
-``report.md`` and PNG plots into the output folder.
+``report.md``, PNG plots and the ADEV tables (``allan-<series>.csv``) into the output folder.
+
+Every model is labelled by its file's stem and its kind, ``default (wesn)``; each ``--compare`` model is
+applied to the capture too (its drift, drift RMS and Allan curve beside the main model's).
+
+Short stretches (``stretch_warnings``): the Allan readings rest on the longest static stretch and the
+drift RMS on the static 1-minute means; a stretch under ``SHORT_STRETCH_S`` (1 h) trusts taus only up to
+a tenth of it (< 360 s, short of where a FOG's bias-instability minimum usually lies, 100 s to 1000 s
+and more), and fewer than ``MIN_MINUTE_MEANS`` (30) one-minute means give an RMS whose own relative
+standard error, about 1 / sqrt(2 (n - 1)), exceeds 13 % (50 % from 3 means).  Both are warnings
+(``summary["warnings"]``, report.md, stderr), not errors.
 """
 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+import re
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -26,9 +38,16 @@ from ..compensation.model import ModelFile
 from ..errors import UsageError
 from ..extras import missing_message
 from ..sim.capture import truth_noise_dph
-from .allan import AllanResult, allan
+from .allan import FLICKER_FLOOR, AllanResult, allan, write_csv
 
 EVALUATE_WARMUP_S = 120.0
+SHORT_STRETCH_S = 3600.0
+MIN_MINUTE_MEANS = 30
+
+
+def model_label(path: str | Path, model_file: ModelFile) -> str:
+    """How a model is named in every table and plot: its file's stem and its kind, ``default (wesn)``."""
+    return f"{Path(path).stem} ({model_file.kind})"
 
 
 @dataclass
@@ -42,6 +61,8 @@ class Series:
     static: np.ndarray
     #: seconds in which a frame was flagged ``extrapolating`` (the model outside its fit range)
     extrapolating: np.ndarray | None = None
+    #: the drift each ``--compare`` model applied, by label
+    compared_drift_dph: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def rate_comp_dph(self) -> np.ndarray:
@@ -49,25 +70,39 @@ class Series:
 
 
 def per_second(capture: Path, model_file: ModelFile, *, force: bool = False, adapt=None,
-               reference_rate_dph: float | None = None) -> Series:  # fmt: skip
+               reference_rate_dph: float | None = None,
+               progress: Callable[[int, int], None] | None = None) -> Series:  # fmt: skip
     """Block-average the capture and the drift the compensator applied, per device second (adapting
-    against ``reference_rate_dph`` when ``adapt``, an ``AdaptConfig``, is given)."""
+    against ``reference_rate_dph`` when ``adapt``, an ``AdaptConfig``, is given); ``progress(bytes done,
+    bytes in all)`` over its two passes (decoding, compensating)."""
     # 1-s blocks and the static mask (motion excluded); 2 min of warm-up is enough to evaluate
-    data = load_capture(capture, FitConfig(warmup_s=EVALUATE_WARMUP_S), purpose="to evaluate",
-                        warmup_setting="evaluate's fixed warm-up")  # fmt: skip
+    size = Path(capture).stat().st_size if Path(capture).is_file() else 0
+    data = load_capture(capture, FitConfig(warmup_s=EVALUATE_WARMUP_S),
+                        progress=None if progress is None else lambda done, _: progress(done, 2 * size),
+                        purpose="to evaluate", warmup_setting="evaluate's fixed warm-up")  # fmt: skip
+    drift, extrapolating = drift_per_second(
+        capture, model_file, len(data.blocks), force=force, adapt=adapt, reference_rate_dph=reference_rate_dph,
+        progress=None if progress is None else lambda done: progress(size + done, 2 * size))  # fmt: skip
+    return Series(data.blocks.t_end_s, data.blocks.rate_dph, drift, data.blocks.temps_c, data.static, extrapolating > 0)
+
+
+def drift_per_second(capture: Path, model_file: ModelFile, n: int, *, force: bool = False, adapt=None,
+                     reference_rate_dph: float | None = None, model_name: str = "the model",
+                     progress: Callable[[int], None] | None = None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """The mean drift a model applied in each of the capture's first ``n`` device seconds, and how many of
+    its frames were flagged extrapolating there (``progress(bytes decoded)``)."""
     sums: list[np.ndarray] = []
     counts: list[np.ndarray] = []
     flagged: list[np.ndarray] = []
     first = None
-    for _, cols in compensate_capture(capture, model_file, force=force, model_name="the model", adapt=adapt,
-                                      reference_rate_dph=reference_rate_dph):  # fmt: skip
+    for _, cols in compensate_capture(capture, model_file, force=force, model_name=model_name, adapt=adapt,
+                                      reference_rate_dph=reference_rate_dph, progress=progress):  # fmt: skip
         if first is None:
             first = cols.t_s[0]
         second = np.floor(cols.t_s - first + 1e-9).astype(np.int64)
         sums.append(np.bincount(second, weights=cols.drift_dph))
         counts.append(np.bincount(second))
         flagged.append(np.bincount(second, weights=(cols.flags & FLAG_EXTRAPOLATING) != 0))
-    n = len(data.blocks)
     drift = np.zeros(n)
     count = np.zeros(n)
     extrapolating = np.zeros(n)
@@ -76,8 +111,7 @@ def per_second(capture: Path, model_file: ModelFile, *, force: bool = False, ada
         drift[:m] += s[:m]
         count[:m] += c[:m]
         extrapolating[:m] += e[:m]
-    drift = drift / np.maximum(count, 1)
-    return Series(data.blocks.t_end_s, data.blocks.rate_dph, drift, data.blocks.temps_c, data.static, extrapolating > 0)
+    return drift / np.maximum(count, 1), extrapolating
 
 
 def longest_run(mask: np.ndarray) -> slice:
@@ -101,32 +135,71 @@ def minute_rms(x: np.ndarray, mask: np.ndarray) -> float:
     return float(np.sqrt(np.mean((means - means.mean()) ** 2))) if len(means) > 1 else float("nan")
 
 
+def static_minutes(mask: np.ndarray) -> int:
+    """The number of whole static minutes ``minute_rms`` averages."""
+    n = len(mask) // 60 * 60
+    return int(mask[:n].reshape(-1, 60).all(axis=1).sum())
+
+
+def stretch_warnings(stretch_s: float, minutes: int) -> list[str]:
+    """The short-stretch warnings (module docstring), one line each; [] when the data suffice."""
+    out = []
+    if stretch_s < SHORT_STRETCH_S:
+        out.append(f"short stretch: {stretch_s:.0f} s of static data in a row (under {SHORT_STRETCH_S:.0f} s); "
+                   f"Allan readings above {stretch_s / 10:.0f} s untrusted, and a bias-instability minimum beyond "
+                   f"that cannot be reached")  # fmt: skip
+    if minutes < MIN_MINUTE_MEANS:
+        out.append(f"drift RMS from {minutes} one-minute means is not reliable (under {MIN_MINUTE_MEANS}: its "
+                   f"relative standard error is about {100 / np.sqrt(2 * max(minutes - 1, 1)):.0f} %)")  # fmt: skip
+    return out
+
+
 def evaluate(capture: Path, model_file: ModelFile, *, truth: dict[str, np.ndarray] | None = None,
-             force: bool = False) -> tuple[dict[str, Any], Series, dict[str, AllanResult]]:  # fmt: skip
-    series = per_second(capture, model_file, force=force)
+             force: bool = False, label: str | None = None, compare: Mapping[str, ModelFile] | None = None,
+             progress: Callable[[str], None] | None = None,
+             ) -> tuple[dict[str, Any], Series, dict[str, AllanResult]]:  # fmt: skip
+    """The report's numbers: read points, drift RMS and ADEV tables of the raw rate, the rate compensated
+    by ``model_file`` (named ``label``) and by each ``compare`` model (by label); ``progress(text)`` says
+    which pass is running and how far it is."""
+    compare = dict(compare or {})
+    label = label or model_file.kind
+    passes = 1 + len(compare)
+
+    def say(step: int, what: str):
+        if progress is None:
+            return None
+        return lambda done, total: progress(f"evaluating {step}/{passes}: {what} {100.0 * done / max(total, 1):3.0f} %")
+
+    series = per_second(capture, model_file, force=force, progress=say(1, f"decoding and compensating with {label}"))
+    size = Path(capture).stat().st_size if Path(capture).is_file() else 0
+    for k, (name, other) in enumerate(compare.items(), start=2):
+        step = say(k, f"compensating with {name}")
+        series.compared_drift_dph[name], _ = drift_per_second(
+            capture, other, len(series.t_s), force=force, model_name=f"model {name!r}",
+            progress=None if step is None else lambda done, step=step: step(done, size))  # fmt: skip
     stretch = longest_run(series.static)
     if stretch.stop - stretch.start < 64:
         raise UsageError(f"{capture}: the longest static stretch is {stretch.stop - stretch.start} s (the capture is "
                          f"{len(series.t_s)} s, the first {EVALUATE_WARMUP_S:g} s excluded as warm-up); the Allan "
                          f"deviation needs 64 s in a row")  # fmt: skip
-    allans = {"raw": allan(series.rate_raw_dph[stretch]), "compensated": allan(series.rate_comp_dph[stretch])}
+    rates = {"raw": series.rate_raw_dph, "compensated": series.rate_comp_dph}
+    rates.update({name: series.rate_raw_dph - d for name, d in series.compared_drift_dph.items()})
+    allans = {name: allan(rate[stretch]) for name, rate in rates.items()}
     summary: dict[str, Any] = {
         "capture": str(capture),
-        "model": {"kind": model_file.kind, "instrument_serial": model_file.instrument_serial,
+        "model": {"kind": model_file.kind, "label": label, "instrument_serial": model_file.instrument_serial,
                   "created_utc": model_file.created_utc},  # fmt: skip
+        "compared": {name: {"kind": m.kind, "instrument_serial": m.instrument_serial} for name, m in compare.items()},
         "seconds": int(len(series.t_s)),
         "static_seconds": int(series.static.sum()),
         "allan_stretch_s": [int(stretch.start), int(stretch.stop)],
         "extrapolating_seconds": int(series.extrapolating.sum()),
+        "static_minutes": static_minutes(series.static),
+        "warnings": stretch_warnings(stretch.stop - stretch.start, static_minutes(series.static)),
     }
-    for name, rate in (("raw", series.rate_raw_dph), ("compensated", series.rate_comp_dph)):
-        a = allans[name]
-        summary[name] = {
-            "arw_deg_sqrt_h": a.arw_deg_sqrt_h,
-            "bias_instability_dph": a.bias_instability_dph,
-            "bias_instability_tau_s": a.bias_instability_tau_s,
-            "drift_rms_1min_dph": minute_rms(rate, series.static),
-        }
+    for name, rate in rates.items():
+        summary[name] = {**allans[name].read_points(), "drift_rms_1min_dph": minute_rms(rate, series.static)}
+    summary["allan"] = {name: a.table() for name, a in allans.items()}
     if truth is not None:
         n = min(len(truth["drift_dph"]), len(series.t_s))
         mask = series.static[:n]
@@ -138,8 +211,38 @@ def evaluate(capture: Path, model_file: ModelFile, *, truth: dict[str, np.ndarra
     return summary, series, allans
 
 
-def plot(series: Series, allans: dict[str, AllanResult], out_dir: Path) -> list[Path]:
-    """The report's PNGs (matplotlib, Agg: no display needed)."""
+def series_names(summary: dict[str, Any]) -> list[str]:
+    """The summary's series in order: raw, compensated, then each compared model's label."""
+    return ["raw", "compensated", *summary.get("compared", {})]
+
+
+def series_title(summary: dict[str, Any], name: str) -> str:
+    """A column title: "raw", "compensated, default (wesn)", "m-default (polynomial)"."""
+    if name == "compensated":
+        return f"compensated, {summary['model'].get('label', summary['model']['kind'])}"
+    return name
+
+
+def csv_name(name: str) -> str:
+    """``allan-<series>.csv``: the series name with anything but letters, digits, '-' and '_' as '-'."""
+    return "allan-" + re.sub(r"[^A-Za-z0-9_-]+", "-", name).strip("-") + ".csv"
+
+
+def format_bias_instability(points: dict) -> str:
+    """``0.00812 deg/h (floor at 256 s)`` or ``< 0.00812 deg/h (minimum not reached: upper bound)``."""
+    value = points["bias_instability_dph"]
+    if points["bias_instability_bound"] == "upper bound":
+        return f"< {value:.5f} deg/h (minimum not reached: upper bound)"
+    return f"{value:.5f} deg/h (floor at {points['bias_instability_tau_s']:g} s)"
+
+
+def _reading(value: float | None, fmt: str) -> str:
+    return "not reached" if value is None else format(value, fmt)
+
+
+def plot(series: Series, allans: dict[str, AllanResult], out_dir: Path,
+         titles: Mapping[str, str] | None = None) -> list[Path]:  # fmt: skip
+    """The report's PNGs (matplotlib, Agg: no display needed); ``titles``: each series' legend name."""
     try:
         import matplotlib
 
@@ -147,6 +250,7 @@ def plot(series: Series, allans: dict[str, AllanResult], out_dir: Path) -> list[
         import matplotlib.pyplot as plt
     except ImportError:
         raise UsageError(missing_message("report", "the report's plots", ["matplotlib"])) from None
+    titles = dict(titles or {})
     minutes = series.t_s / 60.0
     paths = []
 
@@ -166,28 +270,54 @@ def plot(series: Series, allans: dict[str, AllanResult], out_dir: Path) -> list[
 
     static_min = series.static[:n].reshape(-1, 60).all(axis=1)
     raw = per_min(series.rate_raw_dph)
-    comp = per_min(series.rate_comp_dph)
     offset = np.median(raw[static_min]) if static_min.any() else 0.0
     fig, ax = plt.subplots(figsize=(9, 4))
     ax.plot(mm[static_min], raw[static_min] - offset, ".", ms=3, label="raw rate (1-min means, median removed)")
-    ax.plot(mm, per_min(series.drift_dph), lw=1.5, label="estimated drift")
-    ax.plot(mm[static_min], comp[static_min] - offset, ".", ms=3, label="compensated rate (same offset)")
+    drifts = {"compensated": series.drift_dph, **series.compared_drift_dph}
+    for name, drift in drifts.items():
+        ax.plot(mm, per_min(drift), lw=1.5, label=f"estimated drift, {titles.get(name, name)}")
+    for name, drift in drifts.items():
+        comp = per_min(series.rate_raw_dph - drift)
+        ax.plot(mm[static_min], comp[static_min] - offset, ".", ms=3,
+                label=f"compensated rate, {titles.get(name, name)} (same offset)")  # fmt: skip
     ax.set(xlabel="time, min", ylabel="deg/h", title="Drift before and after compensation (static minutes)")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=7)
     paths.append(_save(fig, out_dir / "drift.png"))
 
-    fig, ax = plt.subplots(figsize=(6.5, 5))
+    fig, ax = plt.subplots(figsize=(7.5, 6))
     for name, a in allans.items():
-        line = ax.loglog(a.tau_s, a.sigma_dph, "o-", ms=3, label=name)[0]
-        ax.loglog([1.0], [a.arw_deg_sqrt_h * 60.0], "s", color=line.get_color(), ms=8, mfc="none")
-        ax.loglog([a.bias_instability_tau_s], [a.bias_instability_dph * 0.664], "D", color=line.get_color(), ms=8,
-                  mfc="none")  # fmt: skip
+        ok = a.trusted
+        err = np.vstack([a.sigma_dph - a.lo_dph, a.hi_dph - a.sigma_dph])
+        bi = a.bias_instability_dph
+        reading = f"B {bi:.4f} deg/h" if a.minimum_reached else f"B < {bi:.4f} deg/h: minimum not reached, upper bound"
+        line = ax.errorbar(a.tau_s[ok], a.sigma_dph[ok], yerr=err[:, ok], fmt="o-", ms=3, capsize=2, lw=1,
+                           label=f"{titles.get(name, name)} ({reading})")  # fmt: skip
+        color = line[0].get_color()
+        tail = np.flatnonzero(ok)[-1:].tolist() + np.flatnonzero(~ok).tolist()
+        if (~ok).any():  # past the trust limit: hollow, dashed, faded; never read
+            ax.errorbar(a.tau_s[tail], a.sigma_dph[tail], yerr=err[:, tail], fmt="o--", ms=4, mfc="none", capsize=2,
+                        lw=1, color=color, alpha=0.45)  # fmt: skip
+        if a.arw_deg_per_rt_h is not None:
+            ax.plot([1.0], [a.arw_deg_per_rt_h * 60.0], "s", color=color, ms=9, mfc="none")
+        if a.minimum_reached:
+            ax.plot([a.bias_instability_tau_s], [bi * FLICKER_FLOOR], "D", color=color, ms=9, mfc="none")
+        else:
+            ax.plot([a.bias_instability_tau_s], [bi * FLICKER_FLOOR], "v", color=color, ms=10, mfc="none")
+        for region, (t0, t1) in a.regions.items():
+            if region == "arw":
+                continue
+            taus = np.geomspace(t0, t1, 8)
+            ax.loglog(taus, a.line_dph(region, taus), ":", color=color, lw=2)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
     ax.set(xlabel="tau, s", ylabel="Allan deviation, deg/h",
-           title="Allan deviation (squares: ARW read at 1 s; diamonds: bias-instability floor)")  # fmt: skip
-    ax.title.set_fontsize(9)
+           title="Allan deviation with 68 % intervals; hollow, dashed: tau above a tenth of the stretch (not read)\n"
+                 "squares: ARW read at 1 s; diamonds: bias-instability floor; triangles: its upper bound\n"
+                 "(minimum not reached); dotted: the fitted RRW, rate-ramp and quantization lines")  # fmt: skip
+    ax.title.set_fontsize(8)
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend()
+    ax.legend(fontsize=7)
     paths.append(_save(fig, out_dir / "allan.png"))
     return paths
 
@@ -201,23 +331,44 @@ def _save(fig, path: Path) -> Path:
     return path
 
 
-def markdown(summary: dict[str, Any], plots: list[Path], positioning_md: str | None) -> str:
-    raw, comp = summary["raw"], summary["compensated"]
+def markdown(summary: dict[str, Any], plots: list[Path], positioning_md: str | None,
+             tables: list[Path] = ()) -> str:  # fmt: skip
+    names = series_names(summary)
+    cols = [summary[n] for n in names]
+    model = summary["model"]
     lines = [
         f"# Compensation report: {Path(summary['capture']).name}",
         "",
-        f"Model: `{summary['model']['kind']}` for {summary['model']['instrument_serial']} "
-        f"(fitted {summary['model']['created_utc']}). {summary['seconds']:,} s of data, "
+        f"Model: `{model.get('label', model['kind'])}` for {model['instrument_serial']} "
+        f"(fitted {model['created_utc']}). {summary['seconds']:,} s of data, "
         f"{summary['static_seconds']:,} s static (table motion excluded). The model ran outside its fit range "
         f"(inputs clamped or estimate clipped) for {summary['extrapolating_seconds']:,} s.",
         "",
-        "| | raw | compensated |",
-        "|---|---|---|",
-        f"| angle random walk, deg/sqrt(h) | {raw['arw_deg_sqrt_h']:.5f} | {comp['arw_deg_sqrt_h']:.5f} |",
-        f"| bias instability, deg/h | {raw['bias_instability_dph']:.5f} | {comp['bias_instability_dph']:.5f} |",
-        f"| drift RMS of 1-min means, deg/h | {raw['drift_rms_1min_dph']:.4f} | {comp['drift_rms_1min_dph']:.4f} |",
+    ]
+    for warning in summary.get("warnings", []):
+        lines += [f"**Warning: {warning}.**", ""]
+    start, stop = summary["allan_stretch_s"]
+    raw = summary["raw"]
+    lines += [
+        f"Allan deviation over the longest static stretch, {start:,} s to {stop:,} s ({stop - start:,} s): read "
+        f"only at tau <= {raw['trusted_tau_max_s']:g} s (a tenth of it); \"not reached\": the curve shows no "
+        "region of that slope there (IEEE 952 read points, `fog_driver/report/allan.py`).",
+        "",
+        "| | " + " | ".join(series_title(summary, n) for n in names) + " |",
+        "|---|" + "---|" * len(names),
+        "| angle random walk N, deg/sqrt(h) | " + " | ".join(_reading(c["arw_deg_per_rt_h"], ".5f") for c in cols) + " |",
+        "| bias instability B | " + " | ".join(format_bias_instability(c) for c in cols) + " |",
+        "| rate random walk K, deg/h/sqrt(h) | " + " | ".join(_reading(c["rrw_dph_per_rt_h"], ".5f") for c in cols)
+        + " |",
+        "| rate ramp R, deg/h/h | " + " | ".join(_reading(c["rate_ramp_dph_per_h"], ".5f") for c in cols) + " |",
+        "| quantization Q, arcsec | " + " | ".join(_reading(c["quantization_arcsec"], ".4f") for c in cols) + " |",
+        f"| drift RMS of {summary.get('static_minutes', 0)} 1-min means, deg/h | "
+        + " | ".join(f"{c['drift_rms_1min_dph']:.4f}" for c in cols) + " |",
         "",
     ]
+    if tables:
+        lines += ["The full ADEV tables (tau, ADEV, 68 % interval, pairs, EDF, noise type, trusted): "
+                  + ", ".join(f"[{p.name}]({p.name})" for p in tables) + ".", ""]  # fmt: skip
     if "truth" in summary:
         t = summary["truth"]
         lines += [
@@ -232,9 +383,12 @@ def markdown(summary: dict[str, Any], plots: list[Path], positioning_md: str | N
 
 
 def write_report(out_dir: Path, summary: dict[str, Any], series: Series, allans, positioning_md: str | None) -> Path:
+    """report.md, summary.json, the plots and ``allan-<series>.csv`` for every series into ``out_dir``."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    plots = plot(series, allans, out_dir)
+    titles = {n: series_title(summary, n) for n in allans}
+    plots = plot(series, allans, out_dir, titles)
+    tables = [write_csv(out_dir / csv_name(name), a) for name, a in allans.items()]
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     report = out_dir / "report.md"
-    report.write_text(markdown(summary, plots, positioning_md))
+    report.write_text(markdown(summary, plots, positioning_md, tables))
     return report

@@ -567,27 +567,34 @@ def report_for(
     summary: dict[str, Any],
     *,
     reference: str | Path | None = None,
-    compare: Sequence[str | Path] = (),
+    compare: Sequence[str | Path] | Mapping[str, ModelFile] = (),
     zero_window_s: tuple[float, float] | None = None,
     force: bool = False,
+    label: str | None = None,
 ) -> str | None:
     """The positioning section of ``fog-driver evaluate``.
 
-    Stops from ``reference`` (a reference CSV), else the sidecar's; ``compare``: more model files,
-    named by their file stem (the main model is named by its kind); ``zero_window_s``: the bias
-    window (None for the default).  Adds ``summary["positioning"]`` and returns the Markdown table
-    with the improvement figures, or None (the table is skipped) when the capture has no sequence.
+    Stops from ``reference`` (a reference CSV), else the sidecar's; ``compare``: more models, by label, or
+    model files, labelled by their file stem and kind ("m-default (polynomial)"); ``label``: the main
+    model's (default: its kind); ``zero_window_s``: the bias window (None for the default).  Adds
+    ``summary["positioning"]`` and returns the Markdown table with the improvement figures, or None (the
+    table is skipped) when the capture has no sequence.
     """
     from ..compensation.model import load_model
 
     capture = Path(capture)
     stops = load_stops(capture, reference)
-    models: dict[str, ModelFile] = {model_file.kind: model_file}
-    for path in compare:
-        name = Path(path).stem
+    models: dict[str, ModelFile] = {label or model_file.kind: model_file}
+    others = compare.items() if isinstance(compare, Mapping) else ((None, p) for p in compare)
+    for name, other in others:
+        if name is None:
+            other_file = load_model(other)
+            name = f"{Path(other).stem} ({other_file.kind})"
+        else:
+            other_file = other
         while name in models or name == RAW:
             name += "'"
-        models[name] = load_model(path)
+        models[name] = other_file
     rows = positioning_table(capture, models, stops, force=force, bias_window_s=zero_window_s)
     if not rows:
         summary["positioning"] = None

@@ -751,12 +751,48 @@ def parse_profile(doc: Any, where: str = "profile", default_name: str = "profile
     return SimProfile(name, chamber, motion, where)
 
 
+PROFILE_FOLDER = Path("configs") / "profiles"
+
+
+def profile_folders() -> list[Path]:
+    """Where profile names are looked up, in order: ``configs/profiles/`` in the current directory, then
+    in the source tree this package runs from (a clone's editable install; absent from a wheel's)."""
+    candidates = [Path.cwd() / PROFILE_FOLDER, Path(__file__).resolve().parents[2] / PROFILE_FOLDER]
+    folders: list[Path] = []
+    for folder in candidates:
+        if folder.is_dir() and all(folder.resolve() != f.resolve() for f in folders):
+            folders.append(folder)
+    return folders
+
+
+def profile_names() -> list[str]:
+    """Every name ``load_profile`` accepts: the built-in profiles, then the profile files' stems."""
+    names = list(BUILTIN_PROFILES)
+    for folder in profile_folders():
+        names += [f.stem for f in sorted(folder.glob("*.yaml")) if f.stem not in names]
+    return names
+
+
 def load_profile(name_or_path: str | Path) -> SimProfile:
-    """A built-in profile by name (``paper``, ``paper-validation``) or a YAML profile file, validated."""
+    """A profile by name or a YAML profile file, validated.
+
+    A name is a built-in profile (``paper``, ``paper-validation``) or the stem of a file in
+    ``configs/profiles/`` (see :func:`profile_folders`): ``fast-ramps`` is ``configs/profiles/fast-ramps.yaml``.
+    Anything with a ``/`` or a ``.yaml`` suffix is a path.
+    """
     if isinstance(name_or_path, str) and name_or_path in BUILTIN_PROFILES:
         return BUILTIN_PROFILES[name_or_path]()
     path = Path(name_or_path)
-    doc = read_yaml(path, "profile file", hint=f" (built-in profiles: {', '.join(BUILTIN_PROFILES)})")
+    if isinstance(name_or_path, str) and "/" not in name_or_path and path.suffix not in (".yaml", ".yml") \
+            and not path.is_file():
+        for folder in profile_folders():
+            if (folder / f"{name_or_path}.yaml").is_file():
+                path = folder / f"{name_or_path}.yaml"
+                break
+        else:
+            raise InputFileError(f"{name_or_path}: no such profile (profiles: {', '.join(profile_names())}; "
+                                 "or give the path of a profile YAML file)")  # fmt: skip
+    doc = read_yaml(path, "profile file", hint=f" (profiles: {', '.join(profile_names())})")
     return parse_profile(doc, str(path), default_name=path.stem)
 
 

@@ -497,6 +497,49 @@ def serve_device(
 # -- the command line ---------------------------------------------------------------------------
 
 
+class ServeProgress:
+    """A progress line while serving, on a terminal only: device time served of the total, and the bytes a
+    pty dropped because nobody read them (a reader that never came, or one far behind)."""
+
+    def __init__(self, sim: Simulator, speed: float, duration_s: float | None, every_s: float = 0.5,
+                 stream: Any = None) -> None:  # fmt: skip
+        from ..console import Progress
+
+        self.display = Progress(stream)
+        self.total_s = (sim.total_frames() - sim.next_frame) / sim.rate_hz
+        if duration_s is not None:
+            self.total_s = min(self.total_s, duration_s)
+        self.speed = speed
+        self.every_s = every_s
+        self._done = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start(self, server: PtyServer | None) -> None:
+        if not self.display.enabled:
+            return
+        started = time.monotonic()
+
+        def show() -> None:
+            while not self._done.wait(self.every_s):
+                served_s = min(self.total_s, (time.monotonic() - started) * self.speed)
+                dropped = server.dropped_bytes if server is not None else 0
+                self.display.show(f"served {served_s:,.0f} / {self.total_s:,.0f} s of device time"
+                                  + (f"; {dropped:,} bytes dropped (is anything reading?)" if dropped else ""),
+                                  force=True)  # fmt: skip
+
+        self._thread = threading.Thread(target=show, name="serve-progress", daemon=True)
+        self._thread.start()
+
+    def __enter__(self) -> ServeProgress:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._done.set()
+        if self._thread is not None:
+            self._thread.join()
+        self.display.clear()
+
+
 def serve_cli(sim: Simulator, args: Any) -> int:
     """``fog-driver simulate --serve pty|DEVICE``: a readiness line, the stream, a summary line.
 
@@ -514,17 +557,20 @@ def serve_cli(sim: Simulator, args: Any) -> int:
     stop = threading.Event()
     signals = stop_on_signals(stop) if threading.current_thread() is threading.main_thread() else nullcontext()
     where = f"{sim.profile.name} at {sim.rate_hz} Hz"
-    with signals:
+    progress = ServeProgress(sim, speed, args.duration)
+    with signals, progress:
         if args.serve == "pty":
 
             def pty_ready(server: PtyServer) -> None:
                 print(f"serving {where} on {server.slave_path} (link {server.link})", flush=True)
+                progress.start(server)
 
             stats = serve_pty(sim, link=link, duration_s=args.duration, stop=stop, speed=speed, on_ready=pty_ready)
         else:
 
             def device_ready(device: str) -> None:
                 print(f"serving {where} on {device} at {args.baud} baud", flush=True)
+                progress.start(None)
 
             stats = serve_device(
                 sim, args.serve, baudrate=args.baud, duration_s=args.duration, stop=stop, speed=speed,

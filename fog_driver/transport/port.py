@@ -195,6 +195,8 @@ class PortReader:
                             return  # stopped while open
                     finally:
                         _close_quietly(port)
+                    if stop.is_set():  # the far end closed as we were stopping (a demo's simulator): no loss
+                        return
                     self.losses += 1
                     self._report("lost", detail=detail, attempt=attempt)
                     if not self.reconnect:

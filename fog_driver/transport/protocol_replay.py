@@ -1,6 +1,6 @@
 """pyserial URL handler ``replay://PATH?rate=HZ&unplug=1``: a capture file served as a read-only port.
 
-A capture is the raw byte stream exactly as read from a port (protocol-v1.md,
+A capture is the raw byte stream exactly as read from a port (PROTOCOL.md,
 "Captures"), so replaying it through an object that behaves like a serial port
 lets the whole driver run on recorded data with no special case: the driver
 opens ``replay://capture.bin`` where it would open ``/dev/ttyUSB0``.

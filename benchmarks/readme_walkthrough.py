@@ -1,0 +1,138 @@
+"""The README as an executable walkthrough: its marked command blocks, in order.
+
+A block runs when the line before its ```` ```sh ```` fence is a marker::
+
+    <!-- walkthrough -->                                   each line runs in turn and must exit 0
+    <!-- walkthrough: background, ready when "TEXT" -->    its one command starts on a terminal (a pty)
+                                                           and runs on; ready once TEXT is on the screen
+    <!-- walkthrough: stop -->                             (no block) Ctrl-C to the background command:
+                                                           it must exit 0
+
+Lines run with bash in the walkthrough's directory, in the project's virtual environment once
+``.venv/bin/activate`` exists there (as after ``source .venv/bin/activate``; with ``venv_bin`` given,
+that directory instead, for a benchmark that reuses an installed environment and skips the install
+lines).  A line ending in a backslash continues on the next.  ``tests/test_readme_walkthrough.py`` runs
+the walkthrough on a fresh clone; ``bench_walkthrough.py`` times it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import re
+import select
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+README = Path(__file__).resolve().parents[1] / "README.md"
+MARKER = re.compile(r"^<!-- walkthrough(?::\s*(?P<options>.*?))?\s*-->\n", re.M)
+FENCE = re.compile(r"[ \t\n]*```sh\n(?P<body>.*?)^```\n", re.S | re.M)
+READY = re.compile(r'^background, ready when "(?P<text>[^"]+)"$')
+INSTALL = re.compile(r"^(python3 -m venv|pip install)\b")
+
+
+@dataclasses.dataclass(frozen=True)
+class Step:
+    kind: str  # "run", "background" or "stop"
+    commands: tuple[str, ...] = ()
+    ready_text: str = ""
+    line: int = 0  # in the README, for messages
+
+
+def _commands(body: str) -> tuple[str, ...]:
+    joined = re.sub(r"\\\n\s*", " ", body)
+    return tuple(line.strip() for line in joined.splitlines() if line.strip() and not line.lstrip().startswith("#"))
+
+
+def steps(text: str) -> list[Step]:
+    """The walkthrough's steps in README order; ``ValueError`` for a marker that makes no sense."""
+    found = []
+    for m in MARKER.finditer(text):
+        line = text.count("\n", 0, m.start()) + 1
+        options = m.group("options") or ""
+        if options == "stop":
+            found.append(Step("stop", line=line))
+            continue
+        fence = FENCE.match(text, m.end())
+        if fence is None:
+            raise ValueError(f"README.md:{line}: a walkthrough marker without a ```sh block after it")
+        commands = _commands(fence.group("body"))
+        if options == "":
+            found.append(Step("run", commands, line=line))
+        elif ready := READY.match(options):
+            if len(commands) != 1:
+                raise ValueError(f"README.md:{line}: a background step runs one command, not {len(commands)}")
+            found.append(Step("background", commands, ready.group("text"), line=line))
+        else:
+            raise ValueError(f"README.md:{line}: unknown walkthrough marker options {options!r}")
+    return found
+
+
+class Background:
+    """A command on a terminal of its own (a pty: what a person has), until stopped with Ctrl-C."""
+
+    def __init__(self, command: str, cwd: Path, env: dict[str, str]) -> None:
+        self.command = command
+        self.master, slave = os.openpty()
+        self.proc = subprocess.Popen(["bash", "-c", f"exec {command}"], cwd=cwd, env=env, stdin=slave, stdout=slave,
+                                     stderr=slave, start_new_session=True)  # fmt: skip
+        os.close(slave)
+        self.screen = ""
+
+    def read_until(self, text: str | None, timeout_s: float) -> None:
+        """Read the terminal until ``text`` shows (or, with None, until the command closes it)."""
+        deadline = time.monotonic() + timeout_s
+        while text is None or text not in self.screen:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise TimeoutError(f"{self.command!r}: {text!r} not on its terminal within {timeout_s} s; "
+                                   f"it showed: {self.screen[-2000:]!r}")  # fmt: skip
+            ready, _, _ = select.select([self.master], [], [], left)
+            if not ready:
+                continue
+            try:
+                data = os.read(self.master, 65536)
+            except OSError:  # EIO: the command and its children closed the terminal
+                data = b""
+            if not data:
+                if text is None:
+                    return
+                raise RuntimeError(f"{self.command!r} ended (exit {self.proc.wait()}) before showing {text!r}: "
+                                   f"{self.screen[-2000:]!r}")  # fmt: skip
+            self.screen += data.decode("utf-8", "replace")
+
+    def stop(self, timeout_s: float) -> int:
+        """Ctrl-C (SIGINT to its process group, as a terminal sends it); its exit status."""
+        try:
+            os.killpg(self.proc.pid, signal.SIGINT)
+            status = self.proc.wait(timeout_s)
+            self.read_until(None, timeout_s)
+            return status
+        finally:
+            self.kill()
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+            self.proc.wait()
+        if self.master >= 0:
+            os.close(self.master)
+            self.master = -1
+
+
+def environment(cwd: Path, venv_bin: Path | None = None) -> dict[str, str]:
+    """The environment a line runs in: the walkthrough's virtual environment on PATH, if there is one."""
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV")}
+    bin_dir = venv_bin if venv_bin is not None else cwd / ".venv" / "bin"
+    if (bin_dir / "python").exists():
+        env["PATH"] = f"{bin_dir}{os.pathsep}{env.get('PATH', '')}"
+        env["VIRTUAL_ENV"] = str(bin_dir.parent)
+    return env
+
+
+def run_line(command: str, cwd: Path, env: dict[str, str], timeout_s: float) -> subprocess.CompletedProcess:
+    """One foreground line, with bash, stdin closed (no terminal: what a script has)."""
+    return subprocess.run(["bash", "-euo", "pipefail", "-c", command], cwd=cwd, env=env, capture_output=True,
+                          text=True, stdin=subprocess.DEVNULL, timeout=timeout_s)  # fmt: skip

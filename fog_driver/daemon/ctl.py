@@ -1,0 +1,266 @@
+"""``fog-driver ctl``: one control command to a running daemon (``fog-driver run``), like gpsd's ``gpsctl``.
+
+``fog-driver ctl [--connect HOST:PORT] [--token-file FILE] [--json] COMMAND [ARGS]`` with COMMAND one of:
+
+=====================  =========================================================================
+``zero``               ``?ZERO``: the published angles start again from 0 here
+``bias [SECONDS]``     ``?BIAS`` (60 s by default, 1..86400): acknowledged at once, then the
+                       result event is waited for (SECONDS of device data plus the daemon's margin,
+                       and 5 s more); on a terminal a progress line shows on stderr
+``adapt on|off``       ``?ADAPT``: adapt the model's weights online (``--reference-dph``, 0 at rest)
+``reload``             ``?RELOAD``: load the model file again (unchanged: nothing happens)
+``status``             ``?STATUS``: one line of the daemon's state
+``save``               ``?SAVE``: save the adaptation state to the configured file
+=====================  =========================================================================
+
+The connection, the token (``FOG_DRIVER_TOKEN`` or ``--token-file``; ``?AUTH`` is sent first) and the line
+reading are ``client.py``'s, shared with ``fog-driver watch``.  Output: one human-readable line per
+answer on stdout, or with ``--json`` the daemon's own lines (the reply, and for ``bias`` the result event).
+Exit statuses (sysexits), each failure one line on stderr: 0 done; 64 the daemon does not know the
+command (an older daemon), or bad arguments; 65 the daemon refused the command or the bias capture
+failed; 69 the daemon cannot be reached or the connection was lost; 77 the token was refused or is
+needed.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+import time
+from typing import Any, TextIO
+
+from ..console import Progress
+from ..errors import DeviceError, FogDriverError, UsageError
+from .client import TOKEN_ENV, Connection, ConnectionClosed, command_line, parse_address, read_token
+
+__all__ = ["COMMANDS", "CommandRefused", "NotPermitted", "ctl_command", "parse_request", "run_ctl"]
+
+#: ``fog-driver ctl`` commands -> the protocol's command names.
+COMMANDS = {"zero": "ZERO", "bias": "BIAS", "adapt": "ADAPT", "reload": "RELOAD", "status": "STATUS", "save": "SAVE"}
+#: Seconds the result of a ``bias`` is waited for beyond the daemon's own deadline (``timeout_s`` of its reply).
+BIAS_WAIT_MARGIN_S = 5.0
+#: How long a reply is waited for by default: the daemon answers every control command within 30 s.
+DEFAULT_TIMEOUT_S = 35.0
+DEFAULT_BIAS_S = 60
+MAX_BIAS_S = 86400
+#: ``--reference-dph`` beyond this is refused (the daemon's own limit).
+MAX_REFERENCE_DPH = 1e7
+
+
+class CommandRefused(FogDriverError):
+    """The daemon refused the command (its ERROR), or a bias capture failed: exit 65 (EX_DATAERR)."""
+
+    exit_status = os.EX_DATAERR
+
+
+class NotPermitted(FogDriverError):
+    """The daemon refused the token, or needs one: exit 77 (EX_NOPERM)."""
+
+    exit_status = os.EX_NOPERM
+
+
+def parse_request(command: str, words: list[str], *, reference_dph: float | None = None) -> tuple[str, dict | None]:
+    """``ctl``'s COMMAND and ARGS -> ``(protocol name, argument object or None)``; ``UsageError`` when bad."""
+    name = COMMANDS.get(command)
+    if name is None:
+        raise UsageError(f"unknown command {command!r}: one of {', '.join(COMMANDS)}")
+    if reference_dph is not None and name != "ADAPT":
+        raise UsageError("--reference-dph goes with `adapt on` only")
+    if name == "BIAS":
+        if len(words) > 1:
+            raise UsageError("bias takes at most one argument: the seconds of data (default 60)")
+        if not words:
+            return name, {"seconds": DEFAULT_BIAS_S}
+        try:
+            seconds = float(words[0])
+        except ValueError:
+            raise UsageError(f"bias SECONDS: not a number: {words[0]!r}") from None
+        if not 1 <= seconds <= MAX_BIAS_S:
+            raise UsageError(f"bias SECONDS must be between 1 and {MAX_BIAS_S}, not {words[0]}")
+        return name, {"seconds": int(seconds) if seconds.is_integer() else seconds}
+    if name == "ADAPT":
+        if len(words) != 1 or words[0] not in ("on", "off"):
+            raise UsageError("adapt takes one argument: on or off")
+        if words[0] == "off":
+            if reference_dph is not None:
+                raise UsageError("--reference-dph goes with `adapt on` only")
+            return name, {"enable": False}
+        reference = 0.0 if reference_dph is None else reference_dph
+        if not (math.isfinite(reference) and abs(reference) <= MAX_REFERENCE_DPH):
+            raise UsageError(f"--reference-dph must be a number within +-{MAX_REFERENCE_DPH:g} deg/h")
+        return name, {"enable": True, "reference_dph": reference}
+    if words:
+        raise UsageError(f"{command} takes no arguments")
+    return name, None
+
+
+def _number(obj: dict, key: str, spec: str) -> str:
+    value = obj.get(key)
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return format(value, spec)
+    return "-"
+
+
+def _word(obj: dict, key: str) -> str:
+    value = obj.get(key)
+    text = value if isinstance(value, str) else "-" if value is None else str(value)
+    text = "".join(ch if ch.isprintable() else "?" for ch in text)
+    return text if len(text) <= 200 else text[:197] + "..."
+
+
+def describe(reply: dict) -> str:
+    """One human-readable line for a daemon's answer (or BIAS event)."""
+    cls = reply.get("class")
+    if cls == "ZERO":
+        return "zeroed: the published angle starts again from 0 here"
+    if cls == "BIAS":
+        state = reply.get("state")
+        if state == "started":
+            return (f"bias capture started: {_number(reply, 'seconds', 'g')} s of data; keep the table still "
+                    f"(result within {_number(reply, 'timeout_s', 'g')} s)")  # fmt: skip
+        if state == "done":
+            return (f"bias captured: {_number(reply, 'bias_dph', '.4f')} deg/h over {_number(reply, 'seconds', '.1f')} s; "
+                    "removed from rate_dph and angle_arcsec from now on")  # fmt: skip
+        return f"bias capture failed: {_word(reply, 'reason')}"
+    if cls == "ADAPT":
+        if reply.get("enable"):
+            return (f"adaptation on: the weights adapt while the table is static "
+                    f"(reference {_number(reply, 'reference_dph', 'g')} deg/h)")  # fmt: skip
+        return "adaptation off: the weights are frozen"
+    if cls == "RELOAD":
+        if reply.get("changed"):
+            return f"reloaded the model: {_word(reply, 'model')} (created {_word(reply, 'created_utc')})"
+        return f"model unchanged ({_word(reply, 'model')}, created {_word(reply, 'created_utc')}): nothing reloaded"
+    if cls == "SAVE":
+        return f"adaptation state saved to {_word(reply, 'path')}"
+    if cls == "STATUS":
+        bias = "captured" if reply.get("bias_captured") else "not captured"
+        if reply.get("bias_capture_target_s") is not None:
+            bias = f"capturing {_number(reply, 'bias_capture_s', '.1f')} / {_number(reply, 'bias_capture_target_s', 'g')} s"
+        return (f"port {_word(reply, 'port_state')}, {_number(reply, 'frames', ',')} frames, "
+                f"{_number(reply, 'published', ',')} published, bias {_number(reply, 'bias_dph', '.4f')} deg/h ({bias}), "
+                f"adapting {'yes' if reply.get('adapting') else 'no'}, {_number(reply, 'clients', 'd')} clients, "
+                f"capture {_word(reply, 'capture_state')}, uptime {_number(reply, 'uptime_s', '.0f')} s")  # fmt: skip
+    return _word(reply, "class")
+
+
+def _is_reply(name: str, obj: dict) -> bool:
+    """Whether ``obj`` answers the command ``name`` (a BIAS event is not the answer to ?BIAS: its ack is)."""
+    cls = obj.get("class")
+    if cls == "ERROR":
+        return obj.get("command") in (name, None)
+    if cls != name:
+        return False
+    return name != "BIAS" or obj.get("state") == "started"
+
+
+def _refusal(name: str, message: str) -> FogDriverError:
+    if message == "unauthorized":
+        return NotPermitted(f"the daemon needs a token for ?{name}: set {TOKEN_ENV} or give --token-file")
+    if message.startswith("unknown command"):
+        return UsageError(f"the daemon does not know ?{name} (an older fog-driver?)")
+    return CommandRefused(f"?{name} refused: {message}")
+
+
+class _Session:
+    """One ctl connection: wait for lines of interest within a deadline, printing raw lines with ``--json``."""
+
+    def __init__(self, conn: Connection, out: TextIO, json_out: bool) -> None:
+        self.conn = conn
+        self.out = out
+        self.json_out = json_out
+        self.events: dict[Any, tuple[bytes, dict]] = {}  # BIAS results seen, by capture_id
+
+    def wait_for(self, accept, deadline: float, what: str, on_other=None) -> tuple[bytes, dict]:
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise DeviceError(f"no {what} from {self.conn.address} within the time allowed")
+            try:
+                item = self.conn.read(remaining)
+            except ConnectionClosed as exc:
+                raise DeviceError(f"{self.conn.address}: {exc.reason} while waiting for {what}") from None
+            if item is None:
+                continue
+            raw, obj = item
+            if obj.get("class") == "BIAS" and obj.get("state") in ("done", "failed"):
+                self.events[obj.get("capture_id")] = (raw, obj)
+            if accept(obj):
+                return raw, obj
+            if on_other is not None:
+                on_other(obj)
+
+    def show(self, raw: bytes, obj: dict) -> None:
+        self.out.write((raw.decode("utf-8") if self.json_out else describe(obj)) + "\n")
+        self.out.flush()
+
+
+def run_ctl(host: str, port: int, name: str, args: dict | None, *, token: str | None = None, json_out: bool = False,
+            out: TextIO | None = None, progress_stream: TextIO | None = None,
+            timeout_s: float = DEFAULT_TIMEOUT_S) -> int:  # fmt: skip
+    """Send one command (``name``, ``args``) to the daemon at ``host:port`` and print its answer; for ``BIAS``
+    wait for the capture's result too.  Returns 0; raises ``FogDriverError`` (one line, its exit status)."""
+    out = sys.stdout if out is None else out
+    conn = Connection.open(host, port, timeout_s=min(timeout_s, 5.0))  # DeviceError (69), at once
+    try:
+        session = _Session(conn, out, json_out)
+        deadline = time.monotonic() + timeout_s
+        try:
+            if token:
+                conn.send(command_line("AUTH", {"token": token}))
+                _, answer = session.wait_for(lambda o: o.get("class") == "AUTH" or
+                                             (o.get("class") == "ERROR" and o.get("command") == "AUTH"),
+                                             deadline, "an answer to ?AUTH")  # fmt: skip
+                if answer["class"] == "ERROR":
+                    raise NotPermitted(f"the daemon refused the token: {_word(answer, 'message')}")
+            conn.send(command_line(name, args))
+        except ConnectionClosed as exc:
+            raise DeviceError(f"{conn.address}: {exc.reason}") from None
+        raw, reply = session.wait_for(lambda o: _is_reply(name, o), deadline, f"an answer to ?{name}")
+        if reply["class"] == "ERROR":
+            raise _refusal(name, _word(reply, "message"))
+        session.show(raw, reply)
+        if name == "BIAS":
+            _wait_for_bias(session, reply, progress_stream if progress_stream is not None else sys.stderr)
+        return 0
+    finally:
+        conn.close()
+
+
+def _wait_for_bias(session: _Session, started: dict, progress_stream: TextIO) -> None:
+    """The result of the capture ``started`` acknowledged: its ``done`` event (printed), or a failure."""
+    capture_id = started.get("capture_id")
+    wait_s = started.get("timeout_s")
+    if not (isinstance(wait_s, (int, float)) and 0 < wait_s <= MAX_BIAS_S + 3600):
+        wait_s = float(started.get("seconds") or DEFAULT_BIAS_S) + 30.0
+    progress = Progress(progress_stream)
+
+    def show_progress(obj: dict) -> None:
+        if obj.get("class") == "STATUS" and obj.get("bias_capture_target_s") is not None:
+            progress.show(f"bias: {_number(obj, 'bias_capture_s', '.1f')} / {_number(obj, 'bias_capture_target_s', 'g')} "
+                          "s of data (keep the table still)")  # fmt: skip
+
+    try:
+        if capture_id in session.events:  # the result came before the acknowledgement (a fast replay)
+            raw, result = session.events[capture_id]
+        else:
+            raw, result = session.wait_for(
+                lambda o: o.get("class") == "BIAS" and o.get("state") in ("done", "failed")
+                and o.get("capture_id") == capture_id,
+                time.monotonic() + wait_s + BIAS_WAIT_MARGIN_S, "the bias capture's result", show_progress)  # fmt: skip
+    finally:
+        progress.clear()
+    session.show(raw, result)
+    if result.get("state") != "done":
+        raise CommandRefused(describe(result))
+
+
+def ctl_command(command: str, words: list[str], *, address: str | None = None, token_file: str | None = None,
+                json_out: bool = False, reference_dph: float | None = None,
+                timeout_s: float = DEFAULT_TIMEOUT_S) -> int:  # fmt: skip
+    """``fog-driver ctl``: parse the command and the address, read the token, run it on stdout."""
+    name, args = parse_request(command, words, reference_dph=reference_dph)
+    host, port = parse_address(address)
+    token = read_token(token_file)
+    return run_ctl(host, port, name, args, token=token, json_out=json_out, timeout_s=timeout_s)

@@ -1,0 +1,163 @@
+"""``fog-driver ctl`` and ``?BIAS`` against a real daemon (``fog-driver run`` on a pty, test_daemon_faults'
+fixtures): every command with and without a token, ``?BIAS`` acknowledged at once with its result as an event
+later, other commands answered meanwhile, a client that hangs up mid-capture.  Readiness from the daemon's own
+lines (its readiness line, DEVICE activated, the ctl's printed acknowledgement), never sleeps; every wait is
+bounded by GUARD_S."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+from test_daemon_faults import N_SHORT, SHORT, next_status, watch_all, watched_daemon
+from test_daemon_hil import GUARD_S, Client, Daemon
+
+from fog_driver.cli import main
+from fog_driver.daemon.ctl import parse_request
+from fog_driver.errors import UsageError
+from fog_driver.protocol import decode_bytes
+from fog_driver.transport import PtyPair
+
+TOKEN = "a-long-token-for-ctl"
+HEAD = 20000  # the bytes written before the commands: the daemon has a compensator
+N_HEAD = decode_bytes(SHORT[:HEAD], final=False).counters.sample_frames
+
+
+def ctl(capsys, daemon: Daemon, *args: str) -> tuple[int, str, str]:
+    """``fog-driver ctl --connect ADDRESS ARGS...`` in this process: (exit status, stdout, stderr)."""
+    host, port = daemon.address
+    status = main(["ctl", "--connect", f"{host}:{port}", *args])
+    out, err = capsys.readouterr()
+    return status, out, err
+
+
+def ctl_process(daemon: Daemon, *args: str, env: dict | None = None) -> subprocess.Popen:
+    host, port = daemon.address
+    return subprocess.Popen([sys.executable, "-m", "fog_driver", "ctl", "--connect", f"{host}:{port}", *args],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, stdin=subprocess.DEVNULL,
+                            env=env)  # fmt: skip
+
+
+def test_ctl_zero_adapt_reload_status_save(tmp_path, capsys):
+    with watched_daemon(tmp_path) as (pty, daemon, client):
+        pty.write(SHORT[:HEAD])
+        watch_all(client, N_HEAD)
+        status, out, err = ctl(capsys, daemon, "status")
+        assert status == 0 and err == "" and len(out.splitlines()) == 1
+        assert "port open" in out and "bias 0.0000 deg/h (not captured)" in out and "adapting no" in out
+        assert ctl(capsys, daemon, "zero")[:2] == (0, "zeroed: the published angle starts again from 0 here\n")
+        assert ctl(capsys, daemon, "adapt", "on")[0] == 0
+        status, out, _ = ctl(capsys, daemon, "reload")
+        assert status == 0 and out.startswith("model unchanged (wesn")
+        status, out, _ = ctl(capsys, daemon, "--json", "status")
+        reply = json.loads(out)
+        # the review's finding 10: ?RELOAD switched off a client's ?ADAPT; it is kept now
+        assert status == 0 and reply["class"] == "STATUS" and reply["adapting"] is True
+        assert reply["bias_captured"] is False
+        assert ctl(capsys, daemon, "adapt", "off")[:2] == (0, "adaptation off: the weights are frozen\n")
+        status, out, err = ctl(capsys, daemon, "save")  # no adapt_state configured: refused, 65
+        assert (status, out) == (65, "") and err == "fog-driver: error: ?SAVE refused: no adapt_state file configured\n"
+        pty.write(SHORT[HEAD:])
+        angles = watch_all(client, N_SHORT - N_HEAD)
+        assert abs(angles[0]["angle_arcsec"]) < 5.0  # zeroed
+        assert daemon.terminate() == 0
+
+
+def test_ctl_with_a_token(tmp_path, capsys, monkeypatch):
+    config = tmp_path / "fog.yaml"
+    config.write_text(f"token: {TOKEN}\n")
+    token_file = tmp_path / "token"
+    token_file.write_text(TOKEN + "\n")
+    with PtyPair() as pty:
+        daemon = Daemon(tmp_path, pty.slave_path, "--config", str(config))
+        try:
+            monkeypatch.delenv("FOG_DRIVER_TOKEN", raising=False)
+            status, out, err = ctl(capsys, daemon, "zero")
+            assert (status, out) == (77, "")
+            assert err == "fog-driver: error: the daemon needs a token for ?ZERO: set FOG_DRIVER_TOKEN or give --token-file\n"
+            monkeypatch.setenv("FOG_DRIVER_TOKEN", "not-the-token")
+            status, _, err = ctl(capsys, daemon, "status")
+            assert status == 77 and err == "fog-driver: error: the daemon refused the token: bad token\n"
+            monkeypatch.setenv("FOG_DRIVER_TOKEN", TOKEN)
+            assert ctl(capsys, daemon, "status")[0] == 0
+            monkeypatch.delenv("FOG_DRIVER_TOKEN")
+            assert ctl(capsys, daemon, "--token-file", str(token_file), "reload")[0] == 0
+            status, _, err = ctl(capsys, daemon, "--token-file", str(tmp_path / "none"), "status")
+            assert status == 65 and "cannot read the token file" in err
+            assert daemon.terminate() == 0
+        finally:
+            daemon.kill()
+
+
+def test_bias_is_acknowledged_at_once_and_its_result_is_an_event(tmp_path):
+    """The review's finding 10: ?BIAS answered only after its N seconds, and every later command on the
+    connection (even an invalid one) waited as long."""
+    with watched_daemon(tmp_path) as (pty, daemon, watcher):
+        pty.write(SHORT[:HEAD])
+        watch_all(watcher, N_HEAD)
+        operator = Client(daemon.address)
+        operator.send('?BIAS={"seconds":3};')
+        started = operator.next("BIAS")  # no more data has been written: the capture cannot have completed
+        assert started["state"] == "started" and started["seconds"] == 3 and started["timeout_s"] == 33
+        operator.send("?NOPE;")
+        assert operator.next("ERROR")["command"] == "NOPE"  # answered meanwhile
+        operator.send("?ZERO;")
+        assert operator.next("ZERO") == {"class": "ZERO", "zeroed": True}
+        operator.send('?BIAS={"seconds":3};')
+        assert operator.next("ERROR")["message"] == "a bias capture is already running"
+        status = next_status(operator, lambda s: "bias_capture_target_s" in s, "the capture's progress")
+        assert status["bias_capture_target_s"] == 3 and status["bias_capture_s"] == 0 and not status["bias_captured"]
+        pty.write(SHORT[HEAD:])  # now the 3 s of data
+        done = operator.next("BIAS")
+        assert done["state"] == "done" and done["capture_id"] == started["capture_id"] and 5 < done["bias_dph"] < 15
+        assert watcher.next("BIAS") == done  # every authorized client gets the event
+        assert next_status(operator, lambda s: s["bias_captured"], "bias_captured")["bias_dph"] == done["bias_dph"]
+        assert daemon.terminate() == 0
+
+
+def test_ctl_bias_waits_for_the_result(tmp_path):
+    with watched_daemon(tmp_path) as (pty, daemon, client):
+        pty.write(SHORT[:HEAD])
+        watch_all(client, N_HEAD)
+        proc = ctl_process(daemon, "bias", "3")
+        try:
+            first = proc.stdout.readline()  # the acknowledgement: the capture runs
+            assert first.startswith("bias capture started: 3 s of data"), (first, proc.stderr.read())
+            pty.write(SHORT[HEAD:])
+            out, err = proc.communicate(timeout=GUARD_S)
+        finally:
+            proc.kill()
+        assert proc.returncode == 0 and err == ""
+        assert out.startswith("bias captured: ") and "deg/h over 3.0 s" in out and len(out.splitlines()) == 1
+        assert daemon.terminate() == 0
+
+
+def test_ctl_on_a_daemon_that_is_not_there_is_one_line_and_69(tmp_path):
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))  # bound, never listening: refuses connections
+        port = s.getsockname()[1]
+        proc = subprocess.run([sys.executable, "-m", "fog_driver", "ctl", "--connect", f"127.0.0.1:{port}", "zero"],
+                              capture_output=True, text=True, timeout=GUARD_S, stdin=subprocess.DEVNULL)  # fmt: skip
+    assert proc.returncode == 69 and proc.stdout == ""
+    assert proc.stderr == (f"fog-driver: error: could not connect to 127.0.0.1:{port}: Connection refused "
+                           "(is `fog-driver run` running?)\n")  # fmt: skip
+
+
+@pytest.mark.parametrize(("command", "words", "expected"), [
+    ("zero", [], ("ZERO", None)), ("bias", [], ("BIAS", {"seconds": 60})), ("bias", ["2.5"], ("BIAS", {"seconds": 2.5})),
+    ("adapt", ["on"], ("ADAPT", {"enable": True, "reference_dph": 0.0})), ("adapt", ["off"], ("ADAPT", {"enable": False})),
+    ("reload", [], ("RELOAD", None)), ("status", [], ("STATUS", None)), ("save", [], ("SAVE", None))])  # fmt: skip
+def test_parse_request(command, words, expected):
+    assert parse_request(command, words) == expected
+
+
+@pytest.mark.parametrize(("command", "words"), [("bias", ["0"]), ("bias", ["1e9"]), ("bias", ["nan"]), ("bias", ["x"]),
+                                                ("bias", ["1", "2"]), ("adapt", []), ("adapt", ["yes"]), ("zero", ["1"]),
+                                                ("nope", [])])  # fmt: skip
+def test_parse_request_refuses(command, words):
+    with pytest.raises(UsageError):
+        parse_request(command, words)

@@ -1,0 +1,87 @@
+"""The README as an executable walkthrough: its marked blocks ("Start here", "A first session") run in
+order on a fresh copy of the repository, from the install on, and each must work as written."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+import readme_walkthrough as walkthrough  # noqa: E402
+
+INSTALL_TIMEOUT_S = 900.0  # a new virtual environment and its dependencies from the package index
+LINE_TIMEOUT_S = 300.0
+READY_TIMEOUT_S = 60.0
+
+
+def test_markers_parse_into_steps_and_nonsense_is_refused():
+    text = ('<!-- walkthrough -->\n```sh\na --x \\\n  --y   # comment\n# only a comment\nb\n```\n'
+            '<!-- walkthrough: background, ready when "go" -->\n```sh\nserve\n```\n<!-- walkthrough: stop -->\n')  # fmt: skip
+    assert walkthrough.steps(text) == [
+        walkthrough.Step("run", ("a --x  --y   # comment", "b"), line=1),
+        walkthrough.Step("background", ("serve",), "go", line=8),
+        walkthrough.Step("stop", line=12),
+    ]
+    for bad in ("<!-- walkthrough -->\nno block\n", "<!-- walkthrough: sometimes -->\n```sh\na\n```\n",
+                '<!-- walkthrough: background, ready when "x" -->\n```sh\na\nb\n```\n'):  # fmt: skip
+        with pytest.raises(ValueError, match="README.md:1"):
+            walkthrough.steps(bad)
+
+
+def test_the_walkthrough_covers_the_newcomers_path():
+    """Deleting a marker must not quietly shorten the walkthrough: the main job and every step of a
+    calibration are in it, in this order."""
+    commands = [c for step in walkthrough.steps(walkthrough.README.read_text()) for c in step.commands]
+    wanted = ["python3 -m venv .venv", "pip install -e", "fog-driver run", "fog-driver watch",
+              "fog-driver simulate", "fog-driver inspect", "fog-driver fit", "fog-driver compensate",
+              "fog-driver evaluate"]  # fmt: skip
+    positions = [next((i for i, c in enumerate(commands) if c.startswith(w)), None) for w in wanted]
+    assert None not in positions, dict(zip(wanted, positions))
+    assert positions == sorted(positions), dict(zip(wanted, positions))
+
+
+def fresh_copy(destination: Path) -> Path:
+    """The files a fresh clone of this working tree would hold (tracked ones and new ones not ignored)."""
+    listed = subprocess.run(["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"], cwd=ROOT,
+                            capture_output=True, check=True).stdout.decode().split("\0")  # fmt: skip
+    for name in filter(None, listed):
+        source = ROOT / name
+        if source.is_file():  # a tracked file deleted in the working tree is not in the next commit
+            (destination / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(source, destination / name)
+    return destination
+
+
+@pytest.mark.install
+def test_the_readme_walkthrough_runs_as_written(tmp_path):
+    clone = fresh_copy(tmp_path / "fog_driver")
+    background: walkthrough.Background | None = None
+    try:
+        for step in walkthrough.steps((clone / "README.md").read_text()):
+            where = f"README.md:{step.line}"
+            env = walkthrough.environment(clone)
+            if step.kind == "stop":
+                assert background is not None, f"{where}: stop without a background command"
+                status = background.stop(READY_TIMEOUT_S)
+                assert status == 0, f"{where}: {background.command!r} exited {status}: {background.screen[-3000:]}"
+                background = None
+            elif step.kind == "background":
+                assert background is None, f"{where}: a second background command"
+                background = walkthrough.Background(step.commands[0], clone, env)
+                background.read_until(step.ready_text, READY_TIMEOUT_S)
+            else:
+                for command in step.commands:
+                    timeout_s = INSTALL_TIMEOUT_S if walkthrough.INSTALL.match(command) else LINE_TIMEOUT_S
+                    done = walkthrough.run_line(command, clone, walkthrough.environment(clone), timeout_s)
+                    assert done.returncode == 0, (f"{where}: {command!r} exited {done.returncode}\n"
+                                                  f"{done.stdout[-3000:]}\n{done.stderr[-3000:]}")  # fmt: skip
+        assert background is None, f"{background.command!r} was never stopped"
+    finally:
+        if background is not None:
+            background.kill()
