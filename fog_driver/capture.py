@@ -1,9 +1,13 @@
-"""Capture files (raw ``.bin`` bytes) and their provenance sidecars (``.yaml``).
+"""Capture files (raw ``.bin`` bytes) and their provenance sidecars (``.bin.yaml``).
 
 A capture is the byte stream exactly as read from the port: garbage, partial
 frames and all.  The raw bytes are the source of truth; everything else is
-derived from them.  The sidecar ``<name>.yaml`` beside ``<name>.bin`` records
-where the bytes came from.  Sidecars are read with ``yaml.safe_load`` only.
+derived from them.  The sidecar ``<name>.bin.yaml`` beside ``<name>.bin`` records
+where the bytes came from: a name no other command gives its output (a model
+``<name>.yaml`` and a capture ``<name>.bin`` can share a stem).  Captures made
+before that name was used have their sidecar at ``<name>.yaml``; it is still read,
+but only when its ``format`` tag says it is a capture's provenance sidecar.
+Sidecars are read with ``yaml.safe_load`` only.
 """
 
 from __future__ import annotations
@@ -38,8 +42,35 @@ PROVENANCE_SCHEMA_VERSION = 1
 
 
 def sidecar_path(capture_path: str | Path) -> Path:
-    """``run.bin`` -> ``run.yaml``."""
+    """Where a capture's sidecar is written: ``run.bin`` -> ``run.bin.yaml``."""
+    capture_path = Path(capture_path)
+    return capture_path.with_name(capture_path.name + ".yaml")
+
+
+def legacy_sidecar_path(capture_path: str | Path) -> Path:
+    """Where captures made before ``sidecar_path`` had their sidecar: ``run.bin`` -> ``run.yaml``."""
     return Path(capture_path).with_suffix(".yaml")
+
+
+def is_provenance(doc: Any) -> bool:
+    """Whether a loaded YAML document is a capture's provenance sidecar (by its ``format`` tag)."""
+    return isinstance(doc, dict) and doc.get("format") == PROVENANCE_FORMAT
+
+
+def find_sidecar(capture_path: str | Path) -> Path | None:
+    """The capture's sidecar: ``run.bin.yaml``, else an old ``run.yaml`` that really is a capture's provenance
+    sidecar (its ``format`` tag; a model or any other file of that name is not), else None."""
+    path = sidecar_path(capture_path)
+    if path.exists():
+        return path
+    legacy = legacy_sidecar_path(capture_path)
+    if legacy == path or not legacy.is_file():
+        return None
+    try:
+        doc = read_yaml(legacy, "provenance sidecar")
+    except InputFileError:
+        return None  # not readable YAML: not a sidecar this project wrote
+    return legacy if is_provenance(doc) else None
 
 
 def utc_now_iso() -> str:
@@ -66,8 +97,11 @@ def _capture_size(path: Path) -> int:
 
 
 def read_provenance(capture_path: str | Path) -> dict[str, Any] | None:
-    """The sidecar's mapping, or None when there is no sidecar.  A malformed sidecar is an ``InputFileError``."""
-    path = sidecar_path(capture_path)
+    """The sidecar's mapping (``find_sidecar``), or None when there is no sidecar.  A malformed sidecar is an
+    ``InputFileError``."""
+    path = find_sidecar(capture_path)
+    if path is None:
+        return None
     data = read_yaml(path, "provenance sidecar", missing_ok=True)
     if data is None:
         return None
@@ -76,9 +110,10 @@ def read_provenance(capture_path: str | Path) -> dict[str, Any] | None:
     return data
 
 
-def write_provenance(capture_path: str | Path, fields: dict[str, Any]) -> Path:
-    """Write the sidecar atomically (temp file + rename): a crash never leaves half a sidecar."""
-    path = sidecar_path(capture_path)
+def write_provenance(capture_path: str | Path, fields: dict[str, Any], sidecar: str | Path | None = None) -> Path:
+    """Write the sidecar atomically (temp file + rename): a crash never leaves half a sidecar.  At
+    ``sidecar_path`` unless ``sidecar`` names another (an old-named sidecar rewritten where it is)."""
+    path = sidecar_path(capture_path) if sidecar is None else Path(sidecar)
     doc = {
         "format": PROVENANCE_FORMAT,
         "schema_version": PROVENANCE_SCHEMA_VERSION,

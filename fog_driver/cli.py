@@ -24,6 +24,7 @@ from . import __version__
 from .capture import format_summary, inspect_capture
 from .console import LOG_FORMATS, Progress, configure_logging
 from .errors import FogDriverError, InputFileError, InternalError, OutputFileError, UsageError
+from .outputs import check_outputs, write_error
 from .signals import SignalDispatcher, stop_on_signals
 
 EXIT_PROBLEMS = 1  # inspect --strict found problems
@@ -74,15 +75,23 @@ def cmd_record(args: argparse.Namespace) -> int:
 
     def on_progress(p) -> None:
         c = p.counters
+        target = f" / {args.duration:g} s ({max(args.duration - p.elapsed_s, 0.0):.0f} s left)" if args.duration else " s"
         progress.show(
-            f"recording {p.elapsed_s:7.1f} s  {p.bytes_written:,} bytes  {c.sample_frames:,} frames  "
+            f"recording {p.elapsed_s:7.1f}{target}  {p.bytes_written:,} bytes  {c.sample_frames:,} frames  "
             f"{c.crc_errors} CRC errors  {c.missing_frames} missing  port {p.port_state}"
         )
+
+    waiting_said = False
 
     def on_state(event) -> None:
         # The transport logs every state change (warnings on stderr by default); keep the
         # progress line from running into those log lines.
+        nonlocal waiting_said
         progress.clear()
+        if args.wait and event.state == "retry_wait" and not waiting_said:  # said once; -v shows each try
+            waiting_said = True
+            now = event.detail.removeprefix(f"cannot open {args.port}: ")
+            print(f"waiting for {args.port} to appear (now: {now}); Ctrl-C to stop", file=sys.stderr, flush=True)
 
     try:
         with stop_on_signals(stop):
@@ -97,6 +106,7 @@ def cmd_record(args: argparse.Namespace) -> int:
                 on_state=on_state,
                 notes=args.notes,
                 overwrite=args.force,
+                wait=args.wait,
             )
     finally:
         progress.clear()
@@ -213,8 +223,11 @@ def cmd_fit(args: argparse.Namespace) -> int:
     from .yamlfile import dataclass_from_mapping, read_yaml
 
     out = Path(args.out)
-    if out.exists() and not args.force:
-        raise OutputFileError(f"{out}: exists; refusing to overwrite a model (use --force)")
+    check_outputs([out], force=args.force, inputs=[*args.captures, *args.validate, *filter(None, [args.config])])
+    if args.kind == "pso-svr":
+        from .extras import require_extra
+
+        require_extra("svr", "fitting a pso-svr model")
     config = FitConfig()
     if args.config:
         config = dataclass_from_mapping(FitConfig, read_yaml(args.config, "fit config") or {}, args.config)
@@ -291,8 +304,10 @@ def cmd_compensate(args: argparse.Namespace) -> int:
     from .compensation.rows import ROW_COLUMNS, compensated_rows, format_row
 
     out = Path(args.out)
-    if out.exists() and not args.force:
-        raise OutputFileError(f"{out}: exists; refusing to overwrite (use --force)")
+    inputs = [args.capture, args.model]
+    check_outputs([out], force=args.force, inputs=inputs)
+    if args.adapt_state is not None:
+        _check_adapt_state(Path(args.adapt_state), save=args.adapt_reference is not None, inputs=inputs + [out])
     model_file = load_model(args.model)
     size = _capture_size(Path(args.capture))
     adapt = None
@@ -322,9 +337,11 @@ def cmd_compensate(args: argparse.Namespace) -> int:
                 written += 1
                 extrapolating_s += row[0] - last_t_s if "extrapolating" in row[-1].split("|") else 0.0
                 last_t_s = row[0]
-    except FogDriverError:
+    except (FogDriverError, OSError) as exc:
         out.unlink(missing_ok=True)
-        raise
+        if isinstance(exc, FogDriverError):
+            raise
+        raise write_error(out, "the compensated CSV", exc) from None
     finally:
         progress.clear()
     print(f"compensated {args.capture} with {args.model} ({model_file.kind}): {written:,} rows every "
@@ -335,6 +352,19 @@ def cmd_compensate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_adapt_state(path: Path, *, save: bool, inputs: list) -> None:
+    """``compensate --adapt-state``: read when it exists, and (``save``) replaced at the end, so an existing
+    file must be an adaptation state (by its content), and its directory must exist."""
+    from .outputs import describe
+
+    if path.exists() and not path.is_dir() and (kind := describe(path)) != "an adaptation state":
+        raise OutputFileError(f"{path}: --adapt-state exists and is {kind}, not an adaptation state; refusing to "
+                              f"read or replace it")  # fmt: skip
+    if save:
+        check_outputs([path], force=True, inputs=inputs)
+    elif path.is_dir():
+        raise InputFileError(f"{path}: is a directory, not an adaptation state")
+
 
 def _read(value: float | None, fmt: str) -> str:
     """A read point for printing: the number, or "not reached"."""
@@ -344,21 +374,21 @@ def _read(value: float | None, fmt: str) -> str:
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from .compensation.model import load_model
     from .report import positioning
+    from .extras import require_extra
     from .report.evaluate import evaluate, format_bias_instability, model_label, series_names, write_report
-    from .sim.capture import read_truth
+    from .sim.capture import check_truth_matches, read_truth
 
+    require_extra("report", "evaluate's report (Allan deviation, plots)")
     out = Path(args.out)
-    if out.exists() and any(out.iterdir()) and not args.force:
-        raise OutputFileError(f"{out}: exists and is not empty; refusing to overwrite a report (use --force)")
+    check_outputs(directories=[out], force=args.force)
     model_file = load_model(args.model)
     for line in model_file.warnings(args.model):
         print(f"warning: {line}", file=sys.stderr if args.json else sys.stdout)  # --json: stdout is the summary
     truth = None
     if args.truth:
-        try:
-            truth = read_truth(args.truth)
-        except (OSError, ValueError) as exc:
-            raise InputFileError(f"{args.truth}: not a truth file ({exc})") from None
+        truth = read_truth(args.truth)
+        check_truth_matches(truth, args.truth, args.capture)
+    stops = positioning.read_reference_csv(args.reference) if args.reference else None
     label = model_label(args.model, model_file)
     compare = {}
     for path in args.compare:
@@ -372,12 +402,20 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     try:
         summary, series, allans = evaluate(Path(args.capture), model_file, truth=truth, force=args.force, label=label,
                                            compare=compare, progress=progress.show)  # fmt: skip
+        span_s = float(series.t_s[-1])
+        if truth is not None:
+            check_truth_matches(truth, args.truth, args.capture, span_s=span_s)
+        if stops is not None:
+            positioning.check_stops_within(stops, span_s, args.reference, args.capture)
         progress.show("evaluating: positioning table", force=True)
         positioning_md = positioning.report_for(args.capture, model_file, summary, reference=args.reference,
                                                 compare=compare, zero_window_s=args.zero_window,
                                                 force=args.force, label=label)  # fmt: skip
         progress.show("evaluating: writing the report", force=True)
-        report = write_report(out, summary, series, allans, positioning_md)
+        try:
+            report = write_report(out, summary, series, allans, positioning_md)
+        except OSError as exc:
+            raise write_error(out, "the report", exc) from None
     finally:
         progress.clear()
     for warning in summary["warnings"]:
@@ -574,6 +612,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--duration", type=_positive_float, metavar="S", help="stop after S seconds (host clock)")
     p.add_argument("--baud", type=_baud, default=460800, metavar="B", help="baud rate (default 460800)")
     p.add_argument("--no-reconnect", action="store_true", help="stop when the port is lost instead of reconnecting")
+    p.add_argument("--wait", action="store_true",
+                   help="wait for a port that is not there yet (default: a port that does not open is an error at "
+                        "once; a port lost after it worked is always reopened, unless --no-reconnect)")
     p.add_argument("--notes", help="free text stored in the provenance sidecar")
     p.add_argument("--force", action="store_true", help="overwrite an existing capture file")
     p.set_defaults(func=cmd_record)

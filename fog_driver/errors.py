@@ -49,3 +49,13 @@ class InternalError(FogDriverError):
     @classmethod
     def from_exception(cls, exc: BaseException) -> InternalError:
         return cls(f"internal error: {type(exc).__name__}: {' '.join(str(exc).split())}")
+
+
+def read_error(path: object, what: str, exc: OSError) -> InputFileError:
+    """The one-line error for an input file that cannot be read: "<path>: no such <what>", "<path>: is a
+    directory, not a <what>", or "<path>: cannot read the <what>: <reason>"."""
+    if isinstance(exc, FileNotFoundError):
+        return InputFileError(f"{path}: no such {what}")
+    if isinstance(exc, IsADirectoryError):
+        return InputFileError(f"{path}: is a directory, not a {what}")
+    return InputFileError(f"{path}: cannot read the {what}: {exc.strerror or exc}")

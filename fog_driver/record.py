@@ -20,6 +20,7 @@ from typing import Any
 from . import __version__
 from .capture import CaptureWriter, sidecar_path, utc_now_iso, write_provenance
 from .errors import DeviceError, OutputFileError
+from .outputs import check_outputs
 from .protocol import DecoderCounters, FrameDecoder, IdentityFrame
 from .transport import PortError, PortEvent, PortReader
 
@@ -58,14 +59,18 @@ def record(
     notes: str | None = None,
     progress_every_s: float = 0.5,
     overwrite: bool = False,
+    wait: bool = False,
 ) -> RecordResult:
     """Copy bytes from ``url`` into ``out_path`` until ``duration_s`` (host time) passes, ``stop`` is set,
     or (with ``reconnect=False``) the port is lost.
 
-    A port that cannot be opened at all with ``reconnect=False`` raises ``DeviceError`` and leaves no
-    capture behind; once bytes flow, whatever was read is kept, whatever ends the recording.
-    An existing ``out_path`` is an ``OutputFileError`` unless ``overwrite``; so is a failed write
-    (disk full), after the sidecar has recorded how far the capture got.
+    A port that cannot be opened the first time raises ``DeviceError`` at once (reconnecting is for a port
+    that worked), unless ``wait``: then it is retried until it appears.  A recording that ends before
+    the first byte (stopped, or the duration passed) is a ``DeviceError`` and leaves no capture behind;
+    once bytes flow, whatever was read is kept, whatever ends the recording.
+    An existing capture or sidecar, or a missing directory, is an ``OutputFileError`` (before the port is
+    opened) unless ``overwrite``; so is a failed write (disk full), after the sidecar has recorded how
+    far the capture got.
     """
     stop = stop or threading.Event()
     out_path = Path(out_path)
@@ -93,9 +98,9 @@ def record(
     }
     if notes:
         base_fields["notes"] = notes
-    if out_path.exists() and not overwrite:  # say so now, not after waiting for the port
-        raise OutputFileError(f"{out_path}: exists; refusing to overwrite a capture (use --force)")
-    reader = PortReader(url, baudrate=baudrate, reconnect=reconnect, on_state=state_changed)
+    check_outputs([out_path, sidecar_path(out_path)], force=overwrite)  # say so now, not after waiting for the port
+    reader = PortReader(url, baudrate=baudrate, reconnect=reconnect, on_state=state_changed,
+                        first_open="wait" if wait else "fail")  # fmt: skip
     chunks = reader.chunks(stop)
     timer = threading.Timer(duration_s, stop.set) if duration_s is not None else None
     if timer:
@@ -108,6 +113,12 @@ def record(
         if timer:
             timer.cancel()
         raise DeviceError(str(exc)) from None
+    if not first:  # stopped before the first byte: an empty capture would only block a rerun
+        if timer:
+            timer.cancel()
+        why = "never opened" if not reader.opens else "sent no bytes"
+        raise DeviceError(f"nothing recorded: {url} {why} in {time.monotonic() - started:.1f} s; "
+                          f"no capture written")  # fmt: skip
 
     last_flush = last_progress = started
     status = "complete"

@@ -18,7 +18,7 @@ import pytest
 import structlog
 import yaml
 
-from fog_driver.capture import inspect_capture, read_provenance, summarize
+from fog_driver.capture import inspect_capture, read_provenance, sidecar_path, summarize
 from fog_driver.console import Progress
 from fog_driver.protocol import decode_bytes, encode_sample
 from fog_driver.record import record
@@ -73,7 +73,7 @@ def test_inspect_json_matches_the_truth_written_by_construction(name):
     proc = run_cli("inspect", str(DATA / f"{name}.bin"), "--json")
     assert proc.returncode == 0, proc.stderr
     report = json.loads(proc.stdout)
-    provenance = yaml.safe_load((DATA / f"{name}.yaml").read_text())
+    provenance = yaml.safe_load((DATA / f"{name}.bin.yaml").read_text())
     truth = provenance["truth"]
     for key in ("sample_frames", "identity_frames", "missing_frames", "seq_gaps", "crc_errors",
                 "bytes_discarded", "thermometer_faults", "t_us_wraps"):
@@ -161,9 +161,9 @@ def test_inspect_bad_files_give_one_line_errors(tmp_path, make, needle):
 def test_inspect_bad_sidecar_is_one_line_error_and_never_executed(tmp_path, sidecar, needle):
     capture = tmp_path / "c.bin"
     capture.write_bytes((DATA / "synthetic-clean.bin").read_bytes())
-    (tmp_path / "c.yaml").write_text(sidecar)
+    (tmp_path / "c.bin.yaml").write_text(sidecar)
     proc = run_cli("inspect", str(capture))
-    assert_one_line_error(proc, 65, "c.yaml", needle)
+    assert_one_line_error(proc, 65, "c.bin.yaml", needle)
     assert "pwned" not in proc.stdout
 
 
@@ -204,7 +204,7 @@ def test_record_missing_device_without_reconnect_is_a_one_line_error_and_leaves_
     out = tmp_path / "rec.bin"
     proc = run_cli("record", str(tmp_path / "ttyNOPE"), "--out", str(out), "--no-reconnect")
     assert_one_line_error(proc, 69, "ttyNOPE")
-    assert not out.exists() and not out.with_suffix(".yaml").exists()
+    assert not out.exists() and not sidecar_path(out).exists()
 
 
 @pytest.mark.parametrize("name, serial", [("synthetic-clean", "FOG-SYN-0001"), ("sim-faults", "FOG-SIM-0001")])

@@ -282,7 +282,8 @@ def test_missing_scikit_learn_is_a_one_line_usage_error(monkeypatch, tmp_path, c
     with pytest.raises(UsageError) as info:
         fit_model_file([DATA / "sim-short.bin"], kind="pso-svr", config=TEST_FIT, accept_weak=True)
     assert str(info.value) == MISSING_SKLEARN
-    assert MISSING_SKLEARN == "fitting a pso-svr model needs scikit-learn: pip install 'fog_driver[svr]'"
+    assert MISSING_SKLEARN == ("fitting a pso-svr model needs scikit-learn (the 'svr' extra); in the project's "
+                               "virtual environment: pip install -e '.[svr]'")
     config = tmp_path / "fit.yaml"
     config.write_text("warmup_s: 30.0\n")
     status = main(["fit", str(DATA / "sim-short.bin"), "--kind", "pso-svr", "--config", str(config),

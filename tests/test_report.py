@@ -70,7 +70,7 @@ def test_missing_extra_is_a_one_line_hint(monkeypatch):
         return real_import(name, *args, **kwargs)
 
     monkeypatch.setattr(builtins, "__import__", no_allantools)
-    with pytest.raises(UsageError, match=r"pip install 'fog_driver\[report\]'"):
+    with pytest.raises(UsageError, match=r"in the project's virtual environment: pip install -e '\.\[report\]'"):
         allan_module.allan(np.zeros(100))
 
 

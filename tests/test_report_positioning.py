@@ -195,7 +195,7 @@ def test_reference_csv_bad(tmp_path, text, match):
 def test_reference_csv_bad_files(tmp_path):
     big = tmp_path / "big.csv"
     big.write_text("t_start_s,t_end_s,angle_deg\n" + "#" * MAX_REFERENCE_BYTES + "\n")
-    for path, match in ((big, "over the limit"), (tmp_path / "none.csv", "not found"), (tmp_path, "is a directory")):
+    for path, match in ((big, "over the limit"), (tmp_path / "none.csv", "no such reference CSV"), (tmp_path, "is a directory")):
         with pytest.raises(InputFileError, match=match) as info:
             read_reference_csv(path)
         assert "\n" not in str(info.value)

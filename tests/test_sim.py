@@ -332,7 +332,7 @@ def test_simulated_fixtures_match_their_generator(tmp_path, name):
     result = _fixture_module().make_sim(name, tmp_path)
     assert result.capture.read_bytes() == (DATA / f"{name}.bin").read_bytes()
     assert result.truth.read_text() == (DATA / f"{name}.truth.csv").read_text()
-    for suffix in (".bin", ".truth.csv", ".yaml"):
+    for suffix in (".bin", ".truth.csv", ".bin.yaml"):
         assert (DATA / f"{name}{suffix}").stat().st_size < 1 << 20
 
 

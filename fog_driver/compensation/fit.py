@@ -124,17 +124,41 @@ def static_mask(blocks: BlockColumns, input_flags: np.ndarray, config: FitConfig
                 moving: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
     """Blocks to fit: no motion (``moving``, by default ``motion_mask``; widened by ``motion_margin_s``),
     fresh, measured (not substituted) and settled thermometers, no lost frames, past the warm-up."""
+    return ~np.any(list(_exclusions(blocks, input_flags, config, moving).values()), axis=0)
+
+
+def _exclusions(blocks: BlockColumns, input_flags: np.ndarray, config: FitConfig,
+                moving: np.ndarray | None = None) -> dict[str, np.ndarray]:  # fmt: skip
+    """Why each block is not fitted (``static_mask``): one mask per reason, named as ``no_static_reason``
+    tells the user."""
     moving = motion_mask(blocks.rate_dph, config) if moving is None else moving
     margin = int(round(config.motion_margin_s * config.model_rate_hz))
     if margin and moving.any():
         kernel = np.ones(2 * margin + 1)
         moving = np.convolve(moving.astype(float), kernel, mode="same") > 0
-    ok = ~moving
-    ok &= (input_flags & DEGRADED_FLAGS) == 0
-    ok &= (blocks.flags & FLAG_GAP) == 0
-    ok &= blocks.t_end_s > config.warmup_s
-    ok &= np.all(np.isfinite(blocks.temps_c), axis=1)
-    return ok
+    return {
+        "warm-up": blocks.t_end_s <= config.warmup_s,
+        "table motion (with motion_margin_s either side)": moving,
+        "no valid, settled thermometers": ((input_flags & DEGRADED_FLAGS) != 0)
+        | ~np.all(np.isfinite(blocks.temps_c), axis=1),
+        "lost frames": (blocks.flags & FLAG_GAP) != 0,
+    }
+
+
+def no_static_reason(blocks: BlockColumns, input_flags: np.ndarray, config: FitConfig, moving: np.ndarray,
+                     warmup_setting: str) -> str:  # fmt: skip
+    """Why no block is static and valid, in the user's terms: the capture's length against the warm-up
+    (named as ``warmup_setting``), or how many of the blocks after it each reason excluded."""
+    length_s = float(blocks.t_end_s[-1]) if len(blocks) else 0.0
+    reasons = _exclusions(blocks, input_flags, config, moving)
+    warmup = reasons.pop("warm-up")
+    if warmup.all():
+        return (f"the capture is {length_s:.0f} s and its first {config.warmup_s:g} s are excluded as warm-up "
+                f"({warmup_setting})")  # fmt: skip
+    after = ~warmup
+    counts = ", ".join(f"{int(np.count_nonzero(mask & after)):,} {why}" for why, mask in reasons.items()
+                       if (mask & after).any())  # fmt: skip
+    return f"of its {int(after.sum()):,} blocks after the {config.warmup_s:g}-s warm-up: {counts}"
 
 
 def measured_rows(capture: CaptureData, config: FitConfig) -> np.ndarray:
@@ -146,10 +170,12 @@ def measured_rows(capture: CaptureData, config: FitConfig) -> np.ndarray:
     return ok & np.all(np.isfinite(capture.inputs), axis=1)
 
 
-def load_capture(path: str | Path, config: FitConfig,
-                 progress: Callable[[int, int], None] | None = None) -> CaptureData:  # fmt: skip
+def load_capture(path: str | Path, config: FitConfig, progress: Callable[[int, int], None] | None = None, *,
+                 purpose: str = "to fit", warmup_setting: str = "warmup_s in the fit config, fit --config FILE",
+                 ) -> CaptureData:  # fmt: skip
     """Decode a capture block by block and reduce it to the model rate; ``progress(bytes read, file size)``
-    after every block read."""
+    after every block read.  No static, valid block is an ``InputFileError`` saying why
+    (``no_static_reason``; ``purpose`` and ``warmup_setting`` word it)."""
     path = Path(path)
     sha = hashlib.sha256()
     stream = SampleStream()
@@ -182,7 +208,8 @@ def load_capture(path: str | Path, config: FitConfig,
     moving = motion_mask(blocks.rate_dph, config)
     static = static_mask(blocks, input_flags, config, moving)
     if not static.any():
-        raise InputFileError(f"{path}: no static, valid block to fit (motion everywhere, or no valid thermometers)")
+        reason = no_static_reason(blocks, input_flags, config, moving, warmup_setting)
+        raise InputFileError(f"{path}: no static, valid block {purpose}: {reason}")
     target = blocks.rate_dph - blocks.rate_dph[static].mean()
     return CaptureData(path, sha.hexdigest(), stream.identity.serial if stream.identity else None,
                        averager.frame_period_s, blocks, inputs, input_flags, static, target,

@@ -50,13 +50,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import UsageError
+from ..extras import missing_message
 from . import numerics
 from .polynomial import Memoryless
 
 N_INPUTS = 8
 _CHUNK_FLOATS = 1 << 20  #: ``run`` works in chunks of rows whose differences (rows x n_sv x 8) fit in 8 MB
 
-MISSING_SKLEARN = "fitting a pso-svr model needs scikit-learn: pip install 'fog_driver[svr]'"
+MISSING_SKLEARN = missing_message("svr", "fitting a pso-svr model", ["scikit-learn"])
 
 
 # -- particle swarm optimization ---------------------------------------------------------------------

@@ -4,7 +4,8 @@ Two layers:
 
 ``RotatingCapture`` appends the port's bytes exactly as read (garbage, partial frames and all) to
 ``<prefix>-<nnnnnn>-<UTC yyyymmddThhmmssZ>.bin`` files in one directory, each with the usual
-provenance sidecar ``<same name>.yaml`` (see ``fog_driver.capture``).  The file itself is a
+provenance sidecar ``<same name>.bin.yaml`` (see ``fog_driver.capture``; files from before have it at
+``<same name>.yaml``, and ``repair_interrupted`` reads and rewrites either).  The file itself is a
 ``CaptureWriter``: unbuffered, so size and SHA-256 count exactly the bytes the OS took.  It is not
 thread-safe: one thread owns it.
 
@@ -61,7 +62,15 @@ from typing import Any
 import structlog
 
 from .. import __version__
-from ..capture import CaptureWriter, read_provenance, sidecar_path, utc_now_iso, write_provenance
+from ..capture import (
+    CaptureWriter,
+    find_sidecar,
+    legacy_sidecar_path,
+    read_provenance,
+    sidecar_path,
+    utc_now_iso,
+    write_provenance,
+)
 from ..errors import FogDriverError, OutputFileError
 
 log = structlog.get_logger("fog_driver.daemon")
@@ -241,7 +250,7 @@ class RotatingCapture:
         while True:
             path = self.directory / f"{self.prefix}-{self._index:0{_INDEX_DIGITS}d}-{stamp}.bin"
             self._index += 1
-            if not path.exists() and not sidecar_path(path).exists():
+            if not any(p.exists() for p in (path, sidecar_path(path), legacy_sidecar_path(path))):
                 return path
 
     def _open(self, now: float) -> None:
@@ -565,9 +574,9 @@ def repair_interrupted(directory: str | Path, prefix: str = "fog") -> list[Path]
     the capture's true ``bytes`` and ``sha256``.  A sidecar whose ``pid`` is a process still running (another
     daemon on the same directory, or this one) is left alone.  Returns the captures repaired."""
     repaired = []
-    for side in sorted(Path(directory).glob(f"{prefix}-*.yaml")):
-        capture = side.with_suffix(".bin")
+    for capture in sorted(Path(directory).glob(f"{prefix}-*.bin")):
         try:
+            side = find_sidecar(capture)  # <name>.bin.yaml, or <name>.yaml from before
             doc = read_provenance(capture)
         except FogDriverError:
             continue
@@ -583,7 +592,7 @@ def repair_interrupted(directory: str | Path, prefix: str = "fog") -> list[Path]
                       end_utc=end.isoformat(timespec="milliseconds").replace("+00:00", "Z"),
                       bytes=capture.stat().st_size, sha256=sha.hexdigest())  # fmt: skip
         try:
-            write_provenance(capture, fields)
+            write_provenance(capture, fields, sidecar=side)  # where it is: never a second sidecar
         except OutputFileError as exc:
             log.error("capture_repair_failed", capture=str(capture), reason=str(exc))
             continue

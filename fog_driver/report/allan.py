@@ -58,8 +58,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import UsageError
+from ..extras import missing_message
 
-INSTALL_HINT = "pip install 'fog_driver[report]'"
 
 TRUST_FRACTION = 10.0
 NOISE_ID_MIN_POINTS = 100
@@ -80,7 +80,7 @@ def _allantools():
     try:
         import allantools
     except ImportError:
-        raise UsageError(f"Allan deviation needs allantools: {INSTALL_HINT}") from None
+        raise UsageError(missing_message("report", "Allan deviation", ["allantools"])) from None
     return allantools
 
 

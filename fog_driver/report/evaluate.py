@@ -36,10 +36,10 @@ from ..compensation.domain import FLAG_EXTRAPOLATING
 from ..compensation.fit import FitConfig, load_capture
 from ..compensation.model import ModelFile
 from ..errors import UsageError
+from ..extras import missing_message
 from ..sim.capture import truth_noise_dph
 from .allan import FLICKER_FLOOR, AllanResult, allan, write_csv
 
-PLOT_HINT = "pip install 'fog_driver[report]'"
 EVALUATE_WARMUP_S = 120.0
 SHORT_STRETCH_S = 3600.0
 MIN_MINUTE_MEANS = 30
@@ -78,7 +78,8 @@ def per_second(capture: Path, model_file: ModelFile, *, force: bool = False, ada
     # 1-s blocks and the static mask (motion excluded); 2 min of warm-up is enough to evaluate
     size = Path(capture).stat().st_size if Path(capture).is_file() else 0
     data = load_capture(capture, FitConfig(warmup_s=EVALUATE_WARMUP_S),
-                        progress=None if progress is None else lambda done, _: progress(done, 2 * size))  # fmt: skip
+                        progress=None if progress is None else lambda done, _: progress(done, 2 * size),
+                        purpose="to evaluate", warmup_setting="evaluate's fixed warm-up")  # fmt: skip
     drift, extrapolating = drift_per_second(
         capture, model_file, len(data.blocks), force=force, adapt=adapt, reference_rate_dph=reference_rate_dph,
         progress=None if progress is None else lambda done: progress(size + done, 2 * size))  # fmt: skip
@@ -178,7 +179,9 @@ def evaluate(capture: Path, model_file: ModelFile, *, truth: dict[str, np.ndarra
             progress=None if step is None else lambda done, step=step: step(done, size))  # fmt: skip
     stretch = longest_run(series.static)
     if stretch.stop - stretch.start < 64:
-        raise UsageError(f"{capture}: fewer than 64 static seconds in a row: no Allan deviation to read")
+        raise UsageError(f"{capture}: the longest static stretch is {stretch.stop - stretch.start} s (the capture is "
+                         f"{len(series.t_s)} s, the first {EVALUATE_WARMUP_S:g} s excluded as warm-up); the Allan "
+                         f"deviation needs 64 s in a row")  # fmt: skip
     rates = {"raw": series.rate_raw_dph, "compensated": series.rate_comp_dph}
     rates.update({name: series.rate_raw_dph - d for name, d in series.compared_drift_dph.items()})
     allans = {name: allan(rate[stretch]) for name, rate in rates.items()}
@@ -246,7 +249,7 @@ def plot(series: Series, allans: dict[str, AllanResult], out_dir: Path,
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError:
-        raise UsageError(f"the report's plots need matplotlib: {PLOT_HINT}") from None
+        raise UsageError(missing_message("report", "the report's plots", ["matplotlib"])) from None
     titles = dict(titles or {})
     minutes = series.t_s / 60.0
     paths = []

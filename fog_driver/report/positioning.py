@@ -76,11 +76,11 @@ from typing import Any
 
 import numpy as np
 
-from ..capture import read_provenance
+from ..capture import find_sidecar, read_provenance
 from ..compensation.apply import compensate_capture
 from ..compensation.compensator import FLAG_UNCOMPENSATED
 from ..compensation.model import ModelFile
-from ..errors import InputFileError, UsageError
+from ..errors import InputFileError, UsageError, read_error
 from ..protocol import iter_decode_file
 from ..sim.profiles import Stop
 from ..stream import SampleStream
@@ -168,12 +168,8 @@ def read_reference_csv(path: str | Path) -> list[Stop]:
         data = path.read_bytes()
     except InputFileError:
         raise
-    except FileNotFoundError:
-        raise InputFileError(f"{path}: reference CSV not found") from None
-    except IsADirectoryError:
-        raise InputFileError(f"{path}: is a directory, not a reference CSV") from None
     except OSError as exc:
-        raise InputFileError(f"{path}: cannot read the reference CSV: {exc.strerror or exc}") from None
+        raise read_error(path, "reference CSV", exc) from None
     try:
         text = data.decode("utf-8-sig")
     except UnicodeDecodeError:
@@ -211,7 +207,7 @@ def stops_from_sidecar(capture: str | Path) -> list[Stop]:
     """The ``positioning_stops`` of the capture's provenance sidecar; [] without a sidecar or stops."""
     provenance = read_provenance(capture) or {}
     entries = provenance.get("positioning_stops") or []
-    where = f"{Path(capture).with_suffix('.yaml')}: positioning_stops"
+    where = f"{find_sidecar(capture)}: positioning_stops"
     if not isinstance(entries, list):
         raise InputFileError(f"{where}: expected a list of stops")
     stops: list[Stop] = []
@@ -227,6 +223,16 @@ def stops_from_sidecar(capture: str | Path) -> list[Stop]:
         _check_order(stops, values[0], values[1], f"{where}[{i}]")
         stops.append(Stop(*values))
     return stops
+
+
+def check_stops_within(stops: Sequence[Stop], span_s: float, where: str | Path, capture: str | Path) -> None:
+    """A one-line ``InputFileError`` when reference stops lie outside the capture's device time (``span_s``
+    seconds from its first sample): the reference of another capture, or times not counted from its start."""
+    outside = [s for s in stops if s.t_end_s > span_s + 1.0]
+    if outside:
+        raise InputFileError(f"{where}: {len(outside)} of {len(stops)} reference stops end after the capture does "
+                             f"(the last at {stops[-1].t_end_s:,.1f} s; {capture} holds {span_s:,.1f} s of device "
+                             f"time from its first sample): the reference of another capture?")  # fmt: skip
 
 
 def load_stops(capture: str | Path, reference_csv: str | Path | None = None) -> list[Stop]:

@@ -19,7 +19,9 @@ quantization (``measured - everything else``).
 
 from __future__ import annotations
 
+import filecmp
 import hashlib
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,7 +29,9 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..capture import CaptureWriter, utc_now_iso, write_provenance
+from ..capture import CaptureWriter, read_provenance, sidecar_path, utc_now_iso, write_provenance
+from ..errors import InputFileError, OutputFileError, read_error
+from ..outputs import check_outputs, write_error
 from .instrument import COMPONENTS, FrameBlock, Simulator
 
 TRUTH_COLUMNS = (
@@ -77,8 +81,12 @@ def truth_rows(block: FrameBlock, rate_hz: int, scale_arcsec_per_count: float) -
     return np.column_stack([columns[name] for name in TRUTH_COLUMNS]) if n else np.zeros((0, len(TRUTH_COLUMNS)))
 
 
+#: The truth file's first line (``outputs.describe`` knows a truth file by it).
+TRUTH_HEADER = "# fog_driver simulator truth: one row per device second; see fog_driver/sim/capture.py"
+
+
 def write_truth_header(f) -> None:
-    f.write("# fog_driver simulator truth: one row per device second; see fog_driver/sim/capture.py\n")
+    f.write(TRUTH_HEADER + "\n")
     f.write(",".join(TRUTH_COLUMNS) + "\n")
 
 
@@ -88,9 +96,40 @@ def write_truth_rows(f, rows: np.ndarray) -> None:
 
 
 def read_truth(path: str | Path) -> dict[str, np.ndarray]:
-    """The truth file as named columns (plain numbers; no pickle, no code)."""
-    data = np.loadtxt(path, delimiter=",", comments="#", skiprows=2, ndmin=2)
+    """The truth file as named columns (plain numbers; no pickle, no code); a missing, unreadable or
+    malformed file is a one-line ``InputFileError``."""
+    try:
+        data = np.loadtxt(path, delimiter=",", comments="#", skiprows=2, ndmin=2)
+    except OSError as exc:
+        raise read_error(path, "truth file", exc) from None
+    except ValueError as exc:
+        raise InputFileError(f"{path}: not a truth file ({' '.join(str(exc).split())})") from None
+    if data.shape[1] != len(TRUTH_COLUMNS) or not len(data) or not np.array_equal(data[:, 0], np.arange(len(data))):
+        raise InputFileError(f"{path}: not a truth file (expected {len(TRUTH_COLUMNS)} columns and one row per "
+                             f"device second from 0)")  # fmt: skip
     return {name: data[:, i] for i, name in enumerate(TRUTH_COLUMNS)}
+
+
+def check_truth_matches(truth: dict[str, np.ndarray], truth_file: str | Path, capture: str | Path,
+                        span_s: float | None = None) -> None:  # fmt: skip
+    """A one-line ``InputFileError`` when ``truth`` (read from ``truth_file``) is not the truth of ``capture``:
+    the capture's sidecar names another truth file that is there (and differs), or the truth's seconds differ from the
+    capture's (the sidecar's frames and rate, or ``span_s``, the capture's device time from its first sample)."""
+    rows = len(truth["second"])
+    provenance = read_provenance(capture) or {}
+    named = provenance.get("truth_file")
+    own = Path(capture).parent / named if isinstance(named, str) else None
+    if own is not None and own.is_file() and not filecmp.cmp(own, truth_file, shallow=False):
+        raise InputFileError(f"{truth_file}: not the truth of {capture}: its sidecar names {own} (give that one)")
+    frames, rate_hz = provenance.get("frames"), provenance.get("rate_hz")
+    if isinstance(frames, int) and isinstance(rate_hz, int) and rate_hz > 0:
+        expected = -(-frames // rate_hz)
+        if rows != expected:
+            raise InputFileError(f"{truth_file}: {rows:,} s of truth, but {capture} holds {expected:,} s ({frames:,} "
+                                 f"frames at {rate_hz} Hz, says its sidecar): the truth of another capture")  # fmt: skip
+    if span_s is not None and abs(rows - math.ceil(span_s - 1e-6)) > 1:
+        raise InputFileError(f"{truth_file}: {rows:,} s of truth, but {capture} holds {span_s:,.0f} s of device time: "
+                             f"the truth of another capture")  # fmt: skip
 
 
 def truth_noise_dph(truth: dict[str, np.ndarray]) -> np.ndarray:
@@ -120,20 +159,29 @@ def simulate_to_file(
     profile_source: str = "",
     faults_text: str = "none",
 ) -> SimulationResult:
-    """Run ``sim`` over its profile (or ``duration_s`` device seconds) into capture, sidecar and truth."""
+    """Run ``sim`` over its profile (or ``duration_s`` device seconds) into capture, sidecar and truth.
+
+    All three are checked first (``check_outputs``: none exists unless ``overwrite``); a failed write (disk
+    full) is an ``OutputFileError`` and removes the capture and truth file this run started."""
     out_path = Path(out_path)
     total = sim.total_frames() if duration_s is None else int(round(duration_s * sim.rate_hz))
     batch = BATCH_SECONDS * sim.rate_hz
     sha = hashlib.sha256()
     truth_file = truth_path(out_path)
-    with CaptureWriter(out_path, overwrite=overwrite) as writer, truth_file.open("w", encoding="ascii") as tf:
-        write_truth_header(tf)
-        for block, data in sim.batches(batch, total):
-            writer.write(data)
-            sha.update(data)
-            write_truth_rows(tf, truth_rows(block, sim.rate_hz, sim.config.scale_f32))
-            if progress:
-                progress(sim.next_frame, total)
+    check_outputs([out_path, sidecar_path(out_path), truth_file], force=overwrite)
+    writer = CaptureWriter(out_path, overwrite=overwrite)  # fails before creating anything
+    try:
+        with writer, truth_file.open("w", encoding="ascii") as tf:
+            write_truth_header(tf)
+            for block, data in sim.batches(batch, total):
+                writer.write(data)
+                sha.update(data)
+                write_truth_rows(tf, truth_rows(block, sim.rate_hz, sim.config.scale_f32))
+                if progress:
+                    progress(sim.next_frame, total)
+    except (OSError, OutputFileError) as exc:
+        _remove(out_path, truth_file)
+        raise exc if isinstance(exc, OutputFileError) else write_error(truth_file, "truth file", exc) from None
     ppm = 1.0 + sim.config.clock_ppm * 1e-6
     stops = [
         {
@@ -143,7 +191,23 @@ def simulate_to_file(
         }
         for stop in sim.profile.motion.stops()
     ]
-    sidecar = write_provenance(
+    try:
+        sidecar = _write_sidecar(sim, out_path, truth_file, total, writer, sha, stops, profile_source, faults_text)
+    except OutputFileError:
+        _remove(out_path, truth_file)
+        raise
+    return SimulationResult(out_path, sidecar, truth_file, total, writer.bytes_written, sha.hexdigest())
+
+
+def _remove(*paths: Path) -> None:
+    """Remove the files of a run that failed half-way (running it again makes them)."""
+    for path in paths:
+        path.unlink(missing_ok=True)
+
+
+def _write_sidecar(sim: Simulator, out_path: Path, truth_file: Path, total: int, writer: CaptureWriter, sha,
+                   stops: list[dict], profile_source: str, faults_text: str) -> Path:  # fmt: skip
+    return write_provenance(
         out_path,
         {
             "source": "simulate",
@@ -174,4 +238,3 @@ def simulate_to_file(
             "model": sim.config.as_dict(),
         },
     )
-    return SimulationResult(out_path, sidecar, truth_file, total, writer.bytes_written, sha.hexdigest())

@@ -14,6 +14,8 @@ an ``on_state`` callback as a ``PortEvent`` and logged with structlog.
 
 from __future__ import annotations
 
+import errno
+import os
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -94,6 +96,13 @@ class PortReader:
     pyserial), raises ``PortError`` at once even with ``reconnect=True``:
     retrying cannot fix a configuration error.
 
+    ``first_open`` is what a failed open does before the port has ever opened:
+    ``"retry"`` (a service waiting for its device: retry with backoff, each
+    failure logged as a warning), ``"fail"`` (a typo in a device name is not
+    waited for: ``PortError`` at once, even with ``reconnect=True``; reconnecting
+    is for a port that worked), or ``"wait"`` (retry, logging at info level: the
+    caller has told the user once that it waits for the device).
+
     Counters: ``bytes_read``, ``opens`` (successful opens), ``losses`` (open
     ports lost), ``open_failures``.  They are plain ints written by the reading
     thread; reading them from another thread is fine for monitoring.
@@ -112,6 +121,7 @@ class PortReader:
         backoff_max_s: float = 2.0,
         reconnect: bool = True,
         on_state: Callable[[PortEvent], None] | None = None,
+        first_open: Literal["retry", "fail", "wait"] = "retry",
     ) -> None:
         if read_timeout_s <= 0:
             raise ValueError(f"read_timeout_s must be > 0 so a stop is seen between reads, got {read_timeout_s}")
@@ -124,6 +134,9 @@ class PortReader:
         self.backoff_max_s = backoff_max_s
         self.reconnect = reconnect
         self.on_state = on_state
+        if first_open not in ("retry", "fail", "wait"):
+            raise ValueError(f"first_open must be 'retry', 'fail' or 'wait', got {first_open!r}")
+        self.first_open = first_open
         self.bytes_read = 0
         self.opens = 0
         self.losses = 0
@@ -138,7 +151,8 @@ class PortReader:
         # The callback first, so a terminal display can clear its status line before the log line.
         if self.on_state is not None:
             self.on_state(PortEvent(state, self.url, detail, attempt, retry_in_s))
-        level = log.warning if state in ("lost", "retry_wait") else log.info
+        waiting = self.first_open == "wait" and not self.opens
+        level = log.warning if state in ("lost", "retry_wait") and not waiting else log.info
         level("port_state", state=state, url=self.url, detail=detail, attempt=attempt, retry_in_s=retry_in_s)
 
     def chunks(self, stop: threading.Event) -> Iterator[bytes]:
@@ -158,8 +172,8 @@ class PortReader:
                     raise PortError(detail) from exc
                 except PORT_ERRORS as exc:
                     self.open_failures += 1
-                    detail = f"cannot open {self.url}: {exc}"
-                    if not self.reconnect:
+                    detail = open_error_text(self.url, exc)
+                    if not self.reconnect or (self.first_open == "fail" and not self.opens):
                         raise PortError(detail) from exc
                 else:
                     self.opens += 1
@@ -197,6 +211,29 @@ class PortReader:
                 delay_s = min(delay_s * 2.0, self.backoff_max_s)
         finally:
             self._report("closed", detail="" if stop.is_set() else detail)
+
+
+#: What a failed open means to a user, by errno (other errors: the system's own text).
+_OPEN_REASONS = {
+    errno.ENOENT: "no such device",
+    errno.ENODEV: "no such device",
+    errno.ENXIO: "no such device",
+    errno.EACCES: "permission denied (is the user in the dialout group?)",
+    errno.EBUSY: "device busy (another program has it open?)",
+    errno.EISDIR: "is a directory, not a device",
+    errno.ENOTDIR: "a part of the path is not a directory",
+}
+
+
+def open_error_text(url: str, exc: BaseException) -> str:
+    """One short line for a failed open: "cannot open /dev/ttyUSB0: no such device" (pyserial's own text
+    repeats the path and the errno twice)."""
+    code = getattr(exc, "errno", None)
+    if isinstance(code, int) and code:
+        reason = _OPEN_REASONS.get(code) or os.strerror(code).lower()
+    else:
+        reason = " ".join(str(exc).split()) or type(exc).__name__
+    return f"cannot open {url}: {reason}"
 
 
 def _close_quietly(port: serial.SerialBase) -> None:

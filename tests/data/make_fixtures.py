@@ -164,7 +164,7 @@ def main() -> None:
     for name, make in FIXTURES.items():
         data, truth = make()
         (HERE / f"{name}.bin").write_bytes(data)
-        (HERE / f"{name}.yaml").write_text(yaml.safe_dump(provenance(name, truth), sort_keys=False))
+        (HERE / f"{name}.bin.yaml").write_text(yaml.safe_dump(provenance(name, truth), sort_keys=False))
         print(f"{name}.bin: {len(data)} bytes")
     for name in SIM_FIXTURES:
         result = make_sim(name, HERE)
