@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from fog_driver.capture import read_provenance, sidecar_path
+from fog_driver.capture import legacy_sidecar_path, read_provenance, sidecar_path
 from fog_driver.daemon import rawlog
 from fog_driver.daemon.rawlog import RotatingCapture
 from fog_driver.daemon.sdnotify import Notifier
@@ -540,21 +540,26 @@ def test_retention_by_total_size_deletes_the_oldest_closed_captures_and_their_si
 
 
 def test_retention_by_age_at_start_and_never_a_live_recording(tmp_path):
-    """``capture_keep_days``: captures whose last byte is older go at start (and as files close); one whose
-    sidecar says another live process is recording it stays."""
+    """``capture_keep_days``: captures whose last byte is older go at start (and as files close), with their
+    sidecar of either name; one whose sidecar says another live process is recording it stays, and so does a
+    user's file that merely has an old sidecar's name."""
     with RotatingCapture(tmp_path, max_bytes=100) as cap:
-        for chunk in (b"a" * 100, b"b" * 100, b"c" * 100):
+        for chunk in (b"a" * 100, b"b" * 100, b"c" * 100, b"d" * 100):
             cap.write(chunk)
-    old, live, recent = cap.files
+    old, old_legacy, live, recent = cap.files
     now = 1_900_000_000.0
-    for path, age_days in ((old, 40), (live, 40), (recent, 10)):
+    for path, age_days in ((old, 40), (old_legacy, 40), (live, 40), (recent, 10)):
         os.utime(path, (now - age_days * 86400, now - age_days * 86400))
+    sidecar_path(old_legacy).rename(legacy_sidecar_path(old_legacy))  # a capture from before X.bin.yaml: X.yaml
+    model_like = legacy_sidecar_path(old)
+    model_like.write_text("format: fog_driver drift model\n")  # a user's file of the old sidecar's name: not ours
     doc = read_provenance(live)
     doc.update(status="recording", pid=os.getppid())  # another process, alive, still writing it
     rawlog.write_provenance(live, {k: v for k, v in doc.items() if k not in ("format", "schema_version", "capture")})
     cap2 = RotatingCapture(tmp_path, keep_days=30, wall_clock=lambda: now)
-    assert cap2.pruned == [old]
-    assert not old.exists() and not sidecar_path(old).exists()
+    assert cap2.pruned == [old, old_legacy]
+    assert not old.exists() and not sidecar_path(old).exists() and model_like.exists()
+    assert not old_legacy.exists() and not legacy_sidecar_path(old_legacy).exists()
     assert live.exists() and recent.exists()
     cap2.close()
 

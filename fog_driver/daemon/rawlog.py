@@ -327,8 +327,10 @@ class RotatingCapture:
             if path == current or _recording_elsewhere(path):
                 continue
             try:
+                sidecar = find_sidecar(path)  # this version's name, or a capture sidecar of the old one
                 path.unlink()
-                sidecar_path(path).unlink(missing_ok=True)
+                if sidecar is not None:
+                    sidecar.unlink(missing_ok=True)
             except OSError as exc:
                 log.error("capture_prune_failed", capture=str(path), reason=exc.strerror or str(exc))
                 continue
