@@ -486,9 +486,9 @@ def test_bad_profile_is_a_one_line_error_naming_the_file_and_item(tmp_path, text
 
 
 def test_bad_profile_files(tmp_path):
-    with pytest.raises(InputFileError, match="no such profile file.*built-in profiles: paper, paper-validation"):
+    with pytest.raises(InputFileError, match=r"no such profile file \(profiles: paper, paper-validation, fast-ramps"):
         load_profile(tmp_path / "nope.yaml")
-    with pytest.raises(InputFileError, match="no such profile file"):
+    with pytest.raises(InputFileError, match=r"papper: no such profile \(profiles: paper, "):
         load_profile("papper")
     with pytest.raises(InputFileError, match="is a directory"):
         load_profile(tmp_path)
