@@ -1,4 +1,4 @@
-"""The seed paper's whole experiment on simulated data: its Table 1 and improvement figures.
+"""The paper's whole experiment on simulated data: its Table 1 and improvement figures.
 
     python benchmarks/paper_experiment.py [--rate-hz 10] [--seed 1] [--workdir DIR] [--no-svr]
     python benchmarks/paper_experiment.py --instruments N [--set eval2|eval|dev] [--workers 2] [--per-instrument]

@@ -9,7 +9,7 @@
  * Frame:  AA 55 | type u8 | len u8 | payload[len] | crc32 u32 LE
  * CRC-32/ISO-HDLC over type, len and payload.
  *
- * See ../PROTOCOL.md; the project's design/protocol-v1.md is normative.
+ * See ../PROTOCOL.md, the protocol's specification.
  */
 #ifndef FOG_PROTOCOL_H
 #define FOG_PROTOCOL_H

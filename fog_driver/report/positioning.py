@@ -1,4 +1,4 @@
-"""Positioning accuracy: the seed paper's Table 1, computed from a capture and its reference stops.
+"""Positioning accuracy: the paper's Table 1, computed from a capture and its reference stops.
 
 The paper's experiment: at each chamber temperature the turntable turns in 36-degree steps, 10
 steps, dwelling between them; the instrument's measured angle of each step is compared with the

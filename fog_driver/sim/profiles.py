@@ -41,7 +41,7 @@ lasts 60 + 10 * (3.795 + 60) = 697.9 s.
 
 Built-in profiles (``load_profile("paper")``, ``load_profile("paper-validation")``):
 
-- ``paper``: the seed paper's 440-minute chamber experiment.  20 degC, 30 min warm-up; +1 degC/min to
+- ``paper``: the paper's 440-minute chamber experiment.  20 degC, 30 min warm-up; +1 degC/min to
   25, 30, ..., 55 degC with 15 min at each; back to 20 degC at 2 degC/min (the paper only says
   "quickly"; 2 degC/min is a realistic chamber cooling rate) and 12.5 min at 20 degC, which makes
   the total exactly 440 min; then -1 degC/min to 15, 10, ..., -40 degC with 15 min at each.
@@ -602,7 +602,7 @@ VALIDATION_HOLD_S = 75 * 60.0
 
 
 def paper_profile() -> SimProfile:
-    """The seed paper's 440-minute chamber experiment, static table (see the module docstring)."""
+    """The paper's 440-minute chamber experiment, static table (see the module docstring)."""
     return SimProfile("paper", _paper_chamber(), MotionPlan.static(), "built-in")
 
 
