@@ -157,3 +157,21 @@ def test_reloading_another_model_keeps_the_block_grid_and_the_smoothers(tmp_path
     now = {k: v for k, v in service.compensator.features.get_state().items() if k not in offsets}
     assert yaml.safe_dump(now) == yaml.safe_dump({k: v for k, v in features.items() if k not in offsets})  # NaN-aware
     assert service.compensator.averager.get_state() == averager
+
+
+def test_a_start_that_fails_on_its_capture_directory_leaves_nothing_listening(tmp_path):
+    """The capture directory is checked after the hub listens: a file there failed the start with the hub
+    still serving its port (a daemon half started, in the test process or a service manager's view)."""
+    import socket
+
+    from fog_driver.errors import OutputFileError
+
+    blocker = tmp_path / "captures"
+    blocker.write_text("a file, not a directory")
+    service = Service(DriverConfig(listen="127.0.0.1:0", capture_dir=str(blocker)), port="replay:///nonexistent.bin")
+    with pytest.raises(OutputFileError, match="not a directory"):
+        service.start()
+    assert not service.hub.running
+    host, port = service.hub.address
+    with pytest.raises(ConnectionRefusedError):
+        socket.create_connection((host, port), timeout=5).close()

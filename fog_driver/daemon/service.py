@@ -626,19 +626,26 @@ class Service:
             hint = (" (another fog-driver run? give this one another address: --listen or 'listen' in its config)"
                     if exc.errno == errno.EADDRINUSE else "")  # fmt: skip
             raise error(f"cannot listen on {self.config.listen}: {exc.strerror or exc}{hint}") from None
-        capture = RotatingCapture(
-            self.config.capture_dir,
-            max_bytes=int(self.config.capture_rotate_mb * 2**20),
-            max_age_s=self.config.capture_rotate_s,
-            provenance=self._provenance(),
-            keep_days=self.config.capture_keep_days,
-            max_total_bytes=None if self.config.capture_max_gb is None else int(self.config.capture_max_gb * 1e9),
-        )
-        self.capture = CaptureSink(capture, on_state=self._on_capture_state)
-        if self.config.udp:
-            from .udp import UdpPublisher
+        try:
+            capture = RotatingCapture(
+                self.config.capture_dir,
+                max_bytes=int(self.config.capture_rotate_mb * 2**20),
+                max_age_s=self.config.capture_rotate_s,
+                provenance=self._provenance(),
+                keep_days=self.config.capture_keep_days,
+                max_total_bytes=None if self.config.capture_max_gb is None else int(self.config.capture_max_gb * 1e9),
+            )
+            self.capture = CaptureSink(capture, on_state=self._on_capture_state)
+            if self.config.udp:
+                from .udp import UdpPublisher
 
-            self.udp = UdpPublisher(*parse_host_port(self.config.udp))
+                self.udp = UdpPublisher(*parse_host_port(self.config.udp))
+        except BaseException:  # a start that fails leaves nothing listening or running behind it
+            if self.capture is not None:
+                self.capture.close()
+                self.capture = None
+            self.hub.stop()
+            raise
         self.reader = PortReader(self.port_url, baudrate=self.config.baud, backoff_max_s=1.0,
                                  on_state=self._on_port_state)  # fmt: skip
         self._acquisition = threading.Thread(target=self._acquire, name="acquisition", daemon=True)
