@@ -80,10 +80,26 @@ def per_second(capture: Path, model_file: ModelFile, *, force: bool = False, ada
     data = load_capture(capture, FitConfig(warmup_s=EVALUATE_WARMUP_S),
                         progress=None if progress is None else lambda done, _: progress(done, 2 * size),
                         purpose="to evaluate", warmup_setting="evaluate's fixed warm-up")  # fmt: skip
+    # One row per device second, the seconds no frame arrived in (a link gap) included as NaN, not static:
+    # row k is second k for the drift a model applied and for a truth file's rows too, whatever was lost.
+    index = np.asarray(data.blocks.index, dtype=np.int64)
+    n = int(index[-1]) + 1 if index.size else 0
     drift, extrapolating = drift_per_second(
-        capture, model_file, len(data.blocks), force=force, adapt=adapt, reference_rate_dph=reference_rate_dph,
+        capture, model_file, n, force=force, adapt=adapt, reference_rate_dph=reference_rate_dph,
         progress=None if progress is None else lambda done: progress(size + done, 2 * size))  # fmt: skip
-    return Series(data.blocks.t_end_s, data.blocks.rate_dph, drift, data.blocks.temps_c, data.static, extrapolating > 0)
+    return Series(_on_grid(index, data.blocks.t_end_s, n, np.arange(1.0, n + 1.0)),
+                  _on_grid(index, data.blocks.rate_dph, n, np.nan),
+                  drift, _on_grid(index, data.blocks.temps_c, n, np.nan),
+                  _on_grid(index, data.static, n, False), extrapolating > 0)  # fmt: skip
+
+
+def _on_grid(index: np.ndarray, values: np.ndarray, n: int, missing) -> np.ndarray:
+    """``values`` (one per block present) on the grid of all ``n`` seconds, ``missing`` where none arrived."""
+    values = np.asarray(values)
+    grid = np.empty((n,) + values.shape[1:], dtype=values.dtype)
+    grid[...] = missing if np.ndim(missing) == 0 else np.reshape(missing, (n,) + (1,) * (values.ndim - 1))
+    grid[index] = values
+    return grid
 
 
 def drift_per_second(capture: Path, model_file: ModelFile, n: int, *, force: bool = False, adapt=None,
