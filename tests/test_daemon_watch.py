@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import re
 import signal
 import socket
@@ -207,6 +208,16 @@ class CtrlCOnError(io.StringIO):
 
 
 def test_ctrl_c_is_a_clean_exit_0():
+    # Python's Ctrl-C handler, as at a terminal: a run started in the background (CI's, say) inherits SIGINT
+    # ignored, and then Python installs none, so the SIGINT below would do nothing.
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        _ctrl_c_is_a_clean_exit_0()
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def _ctrl_c_is_a_clean_exit_0():
     daemon = FakeDaemon([ndjson(angle(1), STATUS, {"class": "ERROR", "message": "stop"})], then="wait")
     out = CtrlCOnError()
     status = run_watch("127.0.0.1", daemon.port, out=out)  # no count, no duration: only Ctrl-C or the server ends it
@@ -750,6 +761,17 @@ def test_keys_z_b_q_on_a_terminal_and_the_terminal_restored(tmp_path):
     term.close()
 
 
+def _default_ctrl_c() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+#: How a shell starts a command in the foreground: Ctrl-C at its default (this test run may have inherited it
+#: ignored, as a background job does, and Python then installs no KeyboardInterrupt handler), and a process
+#: group of its own whose parent is in the same session, so Ctrl-Z stops it (the kernel discards SIGTSTP sent
+#: to an orphaned process group, such as a detached CI run's).
+AS_A_SHELLS_FOREGROUND_JOB = {"preexec_fn": _default_ctrl_c, "process_group": 0}
+
+
 @pytest.mark.parametrize("how", ["SIGTERM", "SIGINT", "SIGTSTP"])
 def test_the_terminal_is_restored_when_a_signal_ends_or_suspends_the_watch(tmp_path, how):
     import subprocess
@@ -763,16 +785,21 @@ def test_the_terminal_is_restored_when_a_signal_ends_or_suspends_the_watch(tmp_p
     with watched_daemon(tmp_path) as (_, daemon, _client):
         host, port = daemon.address
         proc = subprocess.Popen([sys.executable, "-m", "fog_driver", "watch", f"{host}:{port}"],
-                                stdin=term.slave, stdout=term.slave, stderr=subprocess.PIPE)  # fmt: skip
+                                stdin=term.slave, stdout=term.slave, stderr=subprocess.PIPE,
+                                **AS_A_SHELLS_FOREGROUND_JOB)  # fmt: skip
         try:
             term.wait_for("keys        q quit")
             assert termios.tcgetattr(term.slave) != before
             proc.send_signal(getattr(signal, how))
             if how == "SIGTSTP":  # Ctrl-Z: the shell gets its terminal back while the watch is stopped
                 deadline = time.monotonic() + GUARD_S
-                while termios.tcgetattr(term.slave) != before:
-                    assert time.monotonic() < deadline, "not restored on Ctrl-Z"
+                while True:  # until the watch has stopped itself (a SIGCONT before that would be lost)
+                    pid, status = os.waitpid(proc.pid, os.WUNTRACED | os.WNOHANG)
+                    if pid and os.WIFSTOPPED(status):
+                        break
+                    assert time.monotonic() < deadline, "never stopped on Ctrl-Z"
                     term.wait_for("")  # (drains the output; returns at once)
+                assert termios.tcgetattr(term.slave) == before, "not restored on Ctrl-Z"
                 proc.send_signal(signal.SIGCONT)
                 term.screen = ""
                 term.wait_for("keys        q quit")  # redrawn after fg
