@@ -1,0 +1,444 @@
+"""iXblue (Exail) STDBIN navigation telegrams, protocol versions 2 to 5 (Phins, Octans, Rovins, ...).
+
+Sans-IO streaming decoder in the style of ``fog_driver.protocol.FrameDecoder``: ``feed(bytes) -> events``,
+``close()``, ``counters``; never raises on data, never hangs, ONE-byte resync on a bad checksum or an
+impossible header, the decision at a header position depends only on the bytes from there on (any
+chunking gives the same events and counters), and every byte is accounted for::
+
+    bytes_in == bytes_in_frames + bytes_discarded + pending
+
+Layout, all fields big-endian (verified against iXblue's open-source ``ixblue_stdbin_decoder``,
+``src/stdbin_decoder.cpp`` ``parseHeader`` / ``HEADER_SIZE_V2..V5`` and ``src/memory_block_parser.cpp``
+(``big_to_native``), and against the real captures of its ``test/datasets/log_STDBIN_V{2,3,4,5}.log`` and of
+``ixblue_ins_stdbin_driver/ixblue_ins_driver/test/datas/stdbin_V{2,3,5}_2Hz.pcapng``, whose telegram sizes
+equal header + the blocks below + checksum exactly)::
+
+    offset  size  field
+    0       2     'I' 'X'
+    2       1     protocol version (2..5)
+    3       4     navigation-data bitmask
+    (v>=3)  4     extended-navigation-data bitmask
+    .       4     external-data bitmask
+    (v>=4)  2     navigation size: in every capture = the navigation + extended-navigation blocks' bytes
+                  (their external masks are all 0, so "everything between header and checksum" cannot be
+                  told apart; the field is read, not checked)
+    .       2     telegram size, header to checksum inclusive
+    .       4     navigation-data validity time, uint32, 100 us steps (wraps after 2^32 * 100 us = 4.97 d)
+    .       4     counter, uint32
+    header: 21 bytes (v2), 25 (v3), 27 (v4, v5)
+    then the navigation blocks, the extended-navigation blocks, the external-data blocks, each section in
+    ascending bit order, each block of a fixed size (``NAV_BLOCK_LEN`` etc.; the same in v2..v5: the real
+    v2..v5 captures above all fit these sizes, and the reference decoder has no per-version size)
+    last 4  checksum, uint32: the sum of every preceding byte of the telegram, mod 2^32
+
+Blocks decoded (navigation bitmask bit: content), float32 unless said::
+
+    0  attitude: heading, roll, pitch (deg)                       -> extra heading_deg, roll_deg, pitch_deg
+    5  rotation rate, vessel frame XV1, XV2, XV3 (deg/s, compensated from earth rotation)
+                                                                  -> rate_dph = deg/s * 3600 (x, y, z)
+    6  acceleration, vessel frame XV1..XV3 (m/s^2)                -> extra accel_x_mps2 ...
+    14 sensor status: 2 x uint32                                  -> extra sensor_status_1, _2 (raw)
+    15 INS algorithm status: 4 x uint32                           -> status (word k in bits 32k..32k+31)
+    18 AHRS algorithm status: uint32                              -> extra ahrs_algorithm_status (raw)
+    25 temperatures: mean FOG, mean accelerometer, board (degC)  -> temps_c fog, accelerometer, board
+
+Every other block present is skipped by its size and counted (``counters.blocks_skipped``).  Flags:
+``startup`` when INS algorithm status word 1 bit 1 (ALIGNMENT) is set (``ixblue_stdbin_decoder``
+``INSAlgorithmStatus::Status1``; ``ixblue_ins_stdbin_driver`` diagnostics: "System in alignment, do not
+move").  The sensor-status and AHRS-status bits have no public meaning, so they are kept raw and mapped to
+no flag (no ``sensor_invalid`` from this format).
+
+Time and increments: ``t_s`` = unwrapped validity time * 1e-4 s (device time; a step of more than half
+the 2^32 range backwards is a small step back, not a wrap).  The rotation-rate block is an instantaneous
+rate, so ``from_rate`` is True, ``rate_dph`` is the rate as sent and ``dtheta_arcsec = rate_dph * dt_s``
+(1 deg/h over 1 s is 1 arcsec) where ``dt_s`` is the validity-time step from the previous valid telegram
+(the true sample interval, also across a gap of lost telegrams), or ``1 / rate_hz`` when there is no
+previous telegram or the step is not positive, or NaN when ``rate_hz`` was not given.  ``seq`` is the
+counter unwrapped by ``SeqUnwrapper(2**32)``.  A telegram without the rotation-rate block gives no sample
+(``other_frames``).  An impossible header (unknown version, or a telegram size that differs from header +
+announced blocks + checksum, or that is too small when a bit of unknown size is set) costs one byte
+(``length_errors``).  STDBIN telegrams are variable-length: there is no fixed-stride batch path.
+'AN' answer telegrams are not decoded (their bytes are discarded while hunting).
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from dataclasses import dataclass
+
+from .common import FLAG_STARTUP, FormatCounters, ImuSample, SeqUnwrapper
+
+SYNC = b"IX"
+SYNC0 = SYNC[0]
+VERSIONS = (2, 3, 4, 5)
+HEADER_LEN = {2: 21, 3: 25, 4: 27, 5: 27}  #: bytes before the first block, per protocol version
+CHECKSUM_LEN = 4
+MAX_TELEGRAM_LEN = 0xFFFF  #: the telegram-size field is 16 bits
+TIME_LSB_S = 1e-4  #: validity time step (100 us)
+TIME_MODULUS = 1 << 32
+COUNTER_MODULUS = 1 << 32
+
+#: Navigation-data block sizes in bytes by bit (``ixblue_stdbin_decoder`` memory_blocs_parsers/navigation_data).
+NAV_BLOCK_LEN = (
+    12, 12, 16, 8, 12, 12, 12, 21, 16, 12, 12, 8, 8, 4, 8, 16,  # 0..15
+    12, 4, 4, 12, 4, 12, 12, 12, 8, 12, 16, 12, 12, 12, 12,  # 16..30
+)  # fmt: skip
+#: Extended-navigation block sizes by bit (v3+).
+EXTNAV_BLOCK_LEN = (12, 12, 12, 12, 12, 21, 16)
+#: External-data block sizes by bit; None: a bit the reference decoder does not know (size unknown).
+EXTERNAL_BLOCK_LEN = (
+    5, 46, 46, 46, 13, 13, 49, 49, 49, 12, 37, 33, 8, 8, 41, 41,  # 0..15
+    41, 41, 9, 9, 9, 37, 33, None, 16, 17, 17, 12,  # 16..27
+)  # fmt: skip
+
+BIT_ATTITUDE = 0
+BIT_ROTATION_RATE = 5
+BIT_ACCELERATION = 6
+BIT_SENSOR_STATUS = 14
+BIT_INS_ALGORITHM_STATUS = 15
+BIT_AHRS_ALGORITHM_STATUS = 18
+BIT_TEMPERATURES = 25
+INS_ALGO1_ALIGNMENT = 1 << 1  #: INS algorithm status word 1: alignment in progress
+
+_F3 = struct.Struct(">3f")
+_U32 = struct.Struct(">I")
+_HEADER_TAIL = struct.Struct(">HII")  # telegram size, validity time, counter
+_COMPACT_AT = 1 << 16
+
+
+def _table(table: tuple, n: int) -> list[int | None]:
+    return [table[b] if b < len(table) else None for b in range(n)]
+
+
+_NAV = _table(NAV_BLOCK_LEN, 32)
+_EXTNAV = _table(EXTNAV_BLOCK_LEN, 32)
+_EXTERNAL = _table(EXTERNAL_BLOCK_LEN, 32)
+
+
+def _blocks_len(mask: int, table: list[int | None]) -> tuple[int, int]:
+    """(bytes of the known blocks, number of set bits of unknown size) for ``mask``."""
+    total = unknown = 0
+    bit = 0
+    while mask:
+        if mask & 1:
+            size = table[bit]
+            if size is None:
+                unknown += 1
+            else:
+                total += size
+        mask >>= 1
+        bit += 1
+    return total, unknown
+
+
+@dataclass
+class StdbinCounters(FormatCounters):
+    """``FormatCounters`` plus what STDBIN adds."""
+
+    version_errors: int = 0  #: 'IX' positions with an unknown protocol version (also in length_errors)
+    blocks_skipped: int = 0  #: blocks of valid telegrams skipped by size, not decoded
+    unknown_blocks: int = 0  #: set bitmask bits of unknown size in valid telegrams
+    time_wraps: int = 0  #: validity-time wraps (2^32 x 100 us)
+
+
+class StdbinDecoder:
+    """Streaming STDBIN decoder: bytes in, ``ImuSample`` events out.
+
+    ``rate_hz``: the configured output rate, used for the increment of a telegram with no usable previous
+    validity time (the first one); None leaves that increment NaN.
+    """
+
+    def __init__(self, rate_hz: float | None = None) -> None:
+        self.rate_hz = rate_hz
+        self.counters = StdbinCounters()
+        self._seq = SeqUnwrapper(COUNTER_MODULUS, self.counters)
+        self._buf = bytearray()
+        self._pos = 0
+        self._base = 0
+        self._hunting = False
+        self._closed = False
+        self._last_time_raw: int | None = None
+        self._time_unwrapped = 0
+
+    @property
+    def pending(self) -> int:
+        """Bytes held while waiting for the rest of a possible telegram."""
+        return len(self._buf) - self._pos
+
+    def feed(self, data: bytes | bytearray | memoryview) -> list[ImuSample]:
+        """Add bytes; return the samples they complete, in stream order."""
+        if self._closed:
+            raise RuntimeError("feed() after close()")
+        if data:
+            self.counters.bytes_in += len(data)
+            self._buf += data
+        return self._decode(final=False)
+
+    def close(self) -> list[ImuSample]:
+        """End of stream: decide every pending byte; return the last samples."""
+        if self._closed:
+            return []
+        events = self._decode(final=True)
+        self._closed = True
+        return events
+
+    def _discard(self, n: int) -> None:
+        self.counters.bytes_discarded += n
+        self._hunting = True
+
+    def _decode(self, final: bool) -> list[ImuSample]:
+        buf = self._buf
+        pos = self._pos
+        end = len(buf)
+        c = self.counters
+        events: list[ImuSample] = []
+        while True:
+            at = buf.find(SYNC, pos)
+            if at < 0:
+                keep = 1 if (not final and end > pos and buf[end - 1] == SYNC0) else 0
+                if end - keep > pos:
+                    self._discard(end - keep - pos)
+                    pos = end - keep
+                break
+            if at > pos:
+                self._discard(at - pos)
+                pos = at
+            verdict = self._judge(buf, pos, end, final)
+            if verdict is None:  # wait for more bytes
+                break
+            if verdict <= 0:  # impossible, bad checksum or truncated: one byte
+                self._discard(1)
+                pos += 1
+                continue
+            if self._hunting:
+                c.resyncs += 1
+                self._hunting = False
+            sample = self._telegram(bytes(buf[pos : pos + verdict]))
+            if sample is not None:
+                events.append(sample)
+            c.bytes_in_frames += verdict
+            pos += verdict
+        if pos >= _COMPACT_AT or pos == end:
+            del buf[:pos]
+            self._base += pos
+            pos = 0
+        self._pos = pos
+        return events
+
+    def _judge(self, buf: bytearray, pos: int, end: int, final: bool) -> int | None:
+        """At an 'IX': the telegram length if a valid telegram starts here, 0 if not (counted), None
+        to wait for more bytes."""
+        c = self.counters
+        have = end - pos
+        if have < 3:
+            return self._short(final)
+        version = buf[pos + 2]
+        if version not in HEADER_LEN:
+            c.version_errors += 1
+            c.length_errors += 1
+            return 0
+        header_len = HEADER_LEN[version]
+        if have < header_len:
+            return self._short(final)
+        nav_mask, extnav_mask, external_mask, size = _header_masks(buf, pos, version)
+        known = header_len + CHECKSUM_LEN
+        unknown = 0
+        for mask, table in ((nav_mask, _NAV), (extnav_mask, _EXTNAV), (external_mask, _EXTERNAL)):
+            k, u = _blocks_len(mask, table)
+            known += k
+            unknown += u
+        if (size != known) if unknown == 0 else (size < known + unknown):
+            c.length_errors += 1
+            return 0
+        if have < size:
+            return self._short(final)
+        body_end = pos + size - CHECKSUM_LEN
+        if sum(buf[pos:body_end]) & 0xFFFFFFFF != _U32.unpack_from(buf, body_end)[0]:
+            c.crc_errors += 1
+            return 0
+        return size
+
+    def _short(self, final: bool) -> int | None:
+        if not final:
+            return None
+        self.counters.truncated_frames += 1
+        return 0
+
+    def _telegram(self, t: bytes) -> ImuSample | None:
+        """Decode one checksum-valid telegram (its bytes, header to checksum)."""
+        c = self.counters
+        version = t[2]
+        nav_mask, extnav_mask, external_mask, _ = _header_masks(t, 0, version)
+        time_raw, counter = struct.unpack_from(">II", t, HEADER_LEN[version] - 8)
+        seq = self._seq.step(counter)
+        dt_s = self._step_time(time_raw)
+        t_s = self._time_unwrapped * TIME_LSB_S
+
+        blocks: dict[int, int] = {}  # decoded bit -> offset in t
+        offset = HEADER_LEN[version]
+        for bit in range(31):
+            if nav_mask >> bit & 1:
+                if bit in _DECODED_BITS:
+                    blocks[bit] = offset
+                else:
+                    c.blocks_skipped += 1
+                offset += NAV_BLOCK_LEN[bit]
+        for mask, table in ((extnav_mask, _EXTNAV), (external_mask, _EXTERNAL)):
+            for bit in range(32):
+                if mask >> bit & 1:
+                    if table[bit] is None:
+                        c.unknown_blocks += 1
+                    else:
+                        c.blocks_skipped += 1
+        if nav_mask >> 31 & 1:
+            c.unknown_blocks += 1
+
+        if BIT_ROTATION_RATE not in blocks:
+            c.other_frames += 1
+            return None
+        rate_dph = tuple(r * 3600.0 for r in _F3.unpack_from(t, blocks[BIT_ROTATION_RATE]))
+        if dt_s is None or dt_s <= 0:
+            dt_s = 1.0 / self.rate_hz if self.rate_hz else math.nan
+        dtheta = tuple(r * dt_s for r in rate_dph)
+
+        extra: dict[str, float] = {}
+        if BIT_ATTITUDE in blocks:
+            extra["heading_deg"], extra["roll_deg"], extra["pitch_deg"] = _F3.unpack_from(t, blocks[BIT_ATTITUDE])
+        if BIT_ACCELERATION in blocks:
+            acc = _F3.unpack_from(t, blocks[BIT_ACCELERATION])
+            extra.update(zip(("accel_x_mps2", "accel_y_mps2", "accel_z_mps2"), acc))
+        if BIT_SENSOR_STATUS in blocks:
+            s1, s2 = struct.unpack_from(">II", t, blocks[BIT_SENSOR_STATUS])
+            extra["sensor_status_1"], extra["sensor_status_2"] = float(s1), float(s2)
+        if BIT_AHRS_ALGORITHM_STATUS in blocks:
+            extra["ahrs_algorithm_status"] = float(_U32.unpack_from(t, blocks[BIT_AHRS_ALGORITHM_STATUS])[0])
+        status = 0
+        flags: set[str] = set()
+        if BIT_INS_ALGORITHM_STATUS in blocks:
+            words = struct.unpack_from(">4I", t, blocks[BIT_INS_ALGORITHM_STATUS])
+            status = sum(w << (32 * k) for k, w in enumerate(words))
+            if words[0] & INS_ALGO1_ALIGNMENT:
+                flags.add(FLAG_STARTUP)
+        temps: dict[str, float] = {}
+        if BIT_TEMPERATURES in blocks:
+            temps = dict(zip(("fog", "accelerometer", "board"), _F3.unpack_from(t, blocks[BIT_TEMPERATURES])))
+        c.sample_frames += 1
+        return ImuSample(
+            seq=seq,
+            t_s=t_s,
+            dtheta_arcsec=dtheta,  # type: ignore[arg-type]
+            rate_dph=rate_dph,  # type: ignore[arg-type]
+            temps_c=temps,
+            flags=frozenset(flags),
+            status=status,
+            from_rate=True,
+            extra=extra,
+        )
+
+    def _step_time(self, raw: int) -> float | None:
+        """Unwrap the validity time; return the step from the previous telegram in s (None: first)."""
+        if self._last_time_raw is None:
+            self._last_time_raw = raw
+            self._time_unwrapped = raw
+            return None
+        step = (raw - self._last_time_raw) % TIME_MODULUS
+        if step >= TIME_MODULUS // 2:
+            step -= TIME_MODULUS
+        elif raw < self._last_time_raw:
+            self.counters.time_wraps += 1
+        self._last_time_raw = raw
+        self._time_unwrapped += step
+        return step * TIME_LSB_S
+
+
+_DECODED_BITS = frozenset(
+    (BIT_ATTITUDE, BIT_ROTATION_RATE, BIT_ACCELERATION, BIT_SENSOR_STATUS, BIT_INS_ALGORITHM_STATUS,
+     BIT_AHRS_ALGORITHM_STATUS, BIT_TEMPERATURES)
+)  # fmt: skip
+
+
+def _header_masks(buf: bytes | bytearray, pos: int, version: int) -> tuple[int, int, int, int]:
+    """(navigation, extended-navigation (0 in v2), external masks, telegram size) of the header at pos."""
+    nav = _U32.unpack_from(buf, pos + 3)[0]
+    p = pos + 7
+    extnav = 0
+    if version >= 3:
+        extnav = _U32.unpack_from(buf, p)[0]
+        p += 4
+    external = _U32.unpack_from(buf, p)[0]
+    p += 4
+    if version >= 4:
+        p += 2  # navigation size
+    return nav, extnav, external, struct.unpack_from(">H", buf, p)[0]
+
+
+def encode_stdbin(
+    version: int,
+    *,
+    counter: int,
+    validity_time_100us: int,
+    attitude_deg: tuple[float, float, float] | None = None,
+    rotation_rate_dps: tuple[float, float, float] | None = None,
+    acceleration_mps2: tuple[float, float, float] | None = None,
+    sensor_status: tuple[int, int] | None = None,
+    ins_algorithm_status: tuple[int, int, int, int] | None = None,
+    ahrs_algorithm_status: int | None = None,
+    temperatures_c: tuple[float, float, float] | None = None,
+    nav_blocks: dict[int, bytes] | None = None,
+    extnav_blocks: dict[int, bytes] | None = None,
+    external_blocks: dict[int, bytes] | None = None,
+) -> bytes:
+    """One STDBIN navigation telegram (layout in the module docstring).
+
+    The named blocks are encoded from values; ``nav_blocks`` / ``extnav_blocks`` / ``external_blocks`` add
+    raw blocks by bit (their length must be the block's size; extended blocks need version >= 3).  Raises
+    ValueError on an unknown version, a wrong block length or a duplicated bit.
+    """
+    if version not in HEADER_LEN:
+        raise ValueError(f"unknown STDBIN version {version}")
+    nav = dict(nav_blocks or {})
+    named = (
+        (BIT_ATTITUDE, attitude_deg, ">3f"),
+        (BIT_ROTATION_RATE, rotation_rate_dps, ">3f"),
+        (BIT_ACCELERATION, acceleration_mps2, ">3f"),
+        (BIT_SENSOR_STATUS, sensor_status, ">2I"),
+        (BIT_INS_ALGORITHM_STATUS, ins_algorithm_status, ">4I"),
+        (BIT_AHRS_ALGORITHM_STATUS, None if ahrs_algorithm_status is None else (ahrs_algorithm_status,), ">I"),
+        (BIT_TEMPERATURES, temperatures_c, ">3f"),
+    )
+    for bit, values, fmt in named:
+        if values is not None:
+            if bit in nav:
+                raise ValueError(f"navigation bit {bit} given twice")
+            nav[bit] = struct.pack(fmt, *values)
+    extnav = dict(extnav_blocks or {})
+    external = dict(external_blocks or {})
+    if version < 3 and extnav:
+        raise ValueError("extended navigation blocks need version >= 3")
+
+    def section(blocks: dict[int, bytes], table: list[int | None], name: str) -> tuple[int, bytes]:
+        mask = 0
+        out = b""
+        for bit in sorted(blocks):
+            if not 0 <= bit < 32 or table[bit] is None or len(blocks[bit]) != table[bit]:
+                raise ValueError(f"{name} block {bit}: unknown bit or wrong length")
+            mask |= 1 << bit
+            out += blocks[bit]
+        return mask, out
+
+    nav_mask, nav_bytes = section(nav, _NAV, "navigation")
+    extnav_mask, extnav_bytes = section(extnav, _EXTNAV, "extended navigation")
+    external_mask, external_bytes = section(external, _EXTERNAL, "external")
+    size = HEADER_LEN[version] + len(nav_bytes) + len(extnav_bytes) + len(external_bytes) + CHECKSUM_LEN
+    if size > MAX_TELEGRAM_LEN:
+        raise ValueError(f"telegram of {size} bytes exceeds the 16-bit size field")
+    header = b"IX" + bytes([version]) + _U32.pack(nav_mask)
+    if version >= 3:
+        header += _U32.pack(extnav_mask)
+    header += _U32.pack(external_mask)
+    if version >= 4:
+        header += struct.pack(">H", len(nav_bytes) + len(extnav_bytes))
+    header += _HEADER_TAIL.pack(size, validity_time_100us % TIME_MODULUS, counter % COUNTER_MODULUS)
+    body = header + nav_bytes + extnav_bytes + external_bytes
+    return body + _U32.pack(sum(body) & 0xFFFFFFFF)
