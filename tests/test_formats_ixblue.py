@@ -9,6 +9,7 @@ computed with this decoder.
 from __future__ import annotations
 
 import math
+import os
 import struct
 from pathlib import Path
 
@@ -16,12 +17,14 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from fog_driver.formats.common import FLAG_STARTUP
+from fog_driver.formats.common import FLAG_STARTUP, ImuSample
 from fog_driver.formats.ixblue import (
     EXTNAV_BLOCK_LEN,
     NAV_BLOCK_LEN,
+    StdbinAnswer,
     StdbinDecoder,
     encode_stdbin,
+    encode_stdbin_answer,
 )
 
 DATA = Path(__file__).parent / "data" / "ixblue"
@@ -335,7 +338,7 @@ def test_false_ix_inside_data_and_between_telegrams_is_skipped():
     assert counters["bytes_discarded"] == len(false) + 5 + 1
 
 
-@settings(max_examples=60, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=int(os.environ.get("IXBLUE_FUZZ_EXAMPLES", "60")), suppress_health_check=[HealthCheck.too_slow])
 @given(
     versions=st.lists(st.sampled_from([2, 3, 4, 5]), min_size=1, max_size=6),
     garbage=st.lists(st.binary(max_size=40), min_size=7, max_size=7),
@@ -352,9 +355,11 @@ def test_fuzz_never_raises_accounts_every_byte_recovers_untouched_telegrams(
         g = garbage[k] + (b"IX" + bytes([version]) if false_headers[k] else b"")
         pieces.append((g, None))
         pieces.append((_telegram(k + 1, version), k + 1))
+        if version >= 3 and k % 2:  # an answer telegram now and then
+            pieces.append((encode_stdbin_answer(version, b"answer %d" % k), -(k + 1)))
     pieces.append((tail, None))
     stream = bytearray(b"".join(p for p, _ in pieces))
-    touched: set[int] = set()
+    touched: set[int] = set()  # telegram indices (answers: negative) a flip hit
     for at, mask in flips:
         if stream:
             i = at % len(stream)
@@ -362,14 +367,16 @@ def test_fuzz_never_raises_accounts_every_byte_recovers_untouched_telegrams(
             start = 0
             for p, k in pieces:
                 if k is not None and start <= i < start + len(p):
-                    touched.add(k)
+                    touched.add(abs(k))
                 start += len(p)
     data = bytes(stream)
     events, counters, _ = _decode(data, sorted({c % (len(data) + 1) for c in cuts}))
     whole, whole_counters, _ = _decode(data)
     assert repr(events) == repr(whole) and counters == whole_counters
-    recovered = {round(e.rate_dph[0] / 3600) for e in events}
-    assert {k for _, k in pieces if k is not None} - touched <= recovered
+    recovered = {round(e.rate_dph[0] / 3600) for e in events if isinstance(e, ImuSample)}
+    answers = {e.payload for e in events if isinstance(e, StdbinAnswer)}
+    assert {p[5:-4] for p, k in pieces if k is not None and k < 0 and -k not in touched} <= answers
+    assert {k for _, k in pieces if k is not None and k > 0} - touched <= recovered
 
 
 def test_block_size_tables_agree_with_the_navigation_size_field_of_real_v4_v5_telegrams():
@@ -425,3 +432,28 @@ def test_validity_time_a_small_step_back_is_not_a_wrap_and_uses_the_nominal_peri
     assert [e.t_s for e in events] == [pytest.approx(0.5), pytest.approx(0.499)]
     assert counters["time_wraps"] == 0
     assert events[1].dtheta_arcsec[0] == pytest.approx(3600.0 / 50.0)  # no positive step: 1 / rate_hz
+
+
+# ixblue_stdbin_decoder test/datasets/MinimalV3AnsFrame.h (vendor test vector; TEST(StdBinDecoder,
+# WeCanParseAnAnswerFrame) expects the payload de ad be ef) and errors/BadAnswerProtocolVersion.h
+MINIMAL_V3_ANSWER = b"AN\x03\x00\x0d\xde\xad\xbe\xef\x00\x00\x03\xd7"
+BAD_ANSWER_VERSION = b"AN\x00\x00\x0d\xde\xad\xbe\xef\x00\x00\x03\xd4"
+
+
+def test_vendor_answer_frame_and_recovery_after_a_bad_answer_version():
+    events, counters, _ = _decode(BAD_ANSWER_VERSION + MINIMAL_V3_ANSWER)
+    assert events == [StdbinAnswer(3, bytes.fromhex("deadbeef"))]
+    assert counters["answer_frames"] == counters["other_frames"] == 1
+    assert counters["version_errors"] == 1 and counters["resyncs"] == 1
+    assert counters["bytes_discarded"] == len(BAD_ANSWER_VERSION)
+    for cut in range(1, len(MINIMAL_V3_ANSWER)):
+        _same_as_whole(BAD_ANSWER_VERSION + MINIMAL_V3_ANSWER, [len(BAD_ANSWER_VERSION) + cut])
+
+
+def test_answer_encoder_round_trip_between_navigation_telegrams():
+    stream = _telegram(1) + encode_stdbin_answer(5, b"$PIXSE,CONFIG") + _telegram(2)
+    events, counters, _ = _decode(stream)
+    assert [type(e) for e in events] == [ImuSample, StdbinAnswer, ImuSample]
+    assert events[1] == StdbinAnswer(5, b"$PIXSE,CONFIG")
+    with pytest.raises(ValueError):
+        encode_stdbin_answer(2, b"")

@@ -58,20 +58,31 @@ counter unwrapped by ``SeqUnwrapper(2**32)``.  A telegram without the rotation-r
 (``other_frames``).  An impossible header (unknown version, or a telegram size that differs from header +
 announced blocks + checksum, or that is too small when a bit of unknown size is set) costs one byte
 (``length_errors``).  STDBIN telegrams are variable-length: there is no fixed-stride batch path.
-'AN' answer telegrams are not decoded (their bytes are discarded while hunting).
+
+Answer telegrams (replies to commands), ``ixblue_stdbin_decoder`` ``parseHeader`` / ``ANSWER_HEADER_SIZE``::
+
+    'A' 'N', protocol version (3..5), telegram size (uint16, whole telegram), payload, checksum (as above)
+
+give a ``StdbinAnswer`` event (``other_frames``, ``answer_frames``); an answer with another version or a
+size below 9 bytes is impossible (one byte).
 """
 
 from __future__ import annotations
 
 import math
+import re
 import struct
 from dataclasses import dataclass
 
 from .common import FLAG_STARTUP, FormatCounters, ImuSample, SeqUnwrapper
 
 SYNC = b"IX"
-SYNC0 = SYNC[0]
+ANSWER_SYNC = b"AN"
+_SYNC_RE = re.compile(b"IX|AN")
+_SYNC_FIRST = frozenset(b"IA")
 VERSIONS = (2, 3, 4, 5)
+ANSWER_VERSIONS = (3, 4, 5)
+ANSWER_HEADER_LEN = 5
 HEADER_LEN = {2: 21, 3: 25, 4: 27, 5: 27}  #: bytes before the first block, per protocol version
 CHECKSUM_LEN = 4
 MAX_TELEGRAM_LEN = 0xFFFF  #: the telegram-size field is 16 bits
@@ -140,6 +151,15 @@ class StdbinCounters(FormatCounters):
     blocks_skipped: int = 0  #: blocks of valid telegrams skipped by size, not decoded
     unknown_blocks: int = 0  #: set bitmask bits of unknown size in valid telegrams
     time_wraps: int = 0  #: validity-time wraps (2^32 x 100 us)
+    answer_frames: int = 0  #: valid 'AN' answer telegrams (also in other_frames)
+
+
+@dataclass(frozen=True)
+class StdbinAnswer:
+    """An 'AN' answer telegram: its protocol version and payload (between header and checksum)."""
+
+    version: int
+    payload: bytes
 
 
 class StdbinDecoder:
@@ -166,7 +186,7 @@ class StdbinDecoder:
         """Bytes held while waiting for the rest of a possible telegram."""
         return len(self._buf) - self._pos
 
-    def feed(self, data: bytes | bytearray | memoryview) -> list[ImuSample]:
+    def feed(self, data: bytes | bytearray | memoryview) -> list[ImuSample | StdbinAnswer]:
         """Add bytes; return the samples they complete, in stream order."""
         if self._closed:
             raise RuntimeError("feed() after close()")
@@ -175,7 +195,7 @@ class StdbinDecoder:
             self._buf += data
         return self._decode(final=False)
 
-    def close(self) -> list[ImuSample]:
+    def close(self) -> list[ImuSample | StdbinAnswer]:
         """End of stream: decide every pending byte; return the last samples."""
         if self._closed:
             return []
@@ -187,16 +207,17 @@ class StdbinDecoder:
         self.counters.bytes_discarded += n
         self._hunting = True
 
-    def _decode(self, final: bool) -> list[ImuSample]:
+    def _decode(self, final: bool) -> list[ImuSample | StdbinAnswer]:
         buf = self._buf
         pos = self._pos
         end = len(buf)
         c = self.counters
-        events: list[ImuSample] = []
+        events: list[ImuSample | StdbinAnswer] = []
         while True:
-            at = buf.find(SYNC, pos)
+            found = _SYNC_RE.search(buf, pos)
+            at = -1 if found is None else found.start()
             if at < 0:
-                keep = 1 if (not final and end > pos and buf[end - 1] == SYNC0) else 0
+                keep = 1 if (not final and end > pos and buf[end - 1] in _SYNC_FIRST) else 0
                 if end - keep > pos:
                     self._discard(end - keep - pos)
                     pos = end - keep
@@ -214,9 +235,15 @@ class StdbinDecoder:
             if self._hunting:
                 c.resyncs += 1
                 self._hunting = False
-            sample = self._telegram(bytes(buf[pos : pos + verdict]))
-            if sample is not None:
-                events.append(sample)
+            telegram = bytes(buf[pos : pos + verdict])
+            if telegram[0] == ANSWER_SYNC[0]:
+                c.answer_frames += 1
+                c.other_frames += 1
+                events.append(StdbinAnswer(telegram[2], telegram[ANSWER_HEADER_LEN:-CHECKSUM_LEN]))
+            else:
+                sample = self._telegram(telegram)
+                if sample is not None:
+                    events.append(sample)
             c.bytes_in_frames += verdict
             pos += verdict
         if pos >= _COMPACT_AT or pos == end:
@@ -227,13 +254,25 @@ class StdbinDecoder:
         return events
 
     def _judge(self, buf: bytearray, pos: int, end: int, final: bool) -> int | None:
-        """At an 'IX': the telegram length if a valid telegram starts here, 0 if not (counted), None
-        to wait for more bytes."""
+        """At an 'IX' or 'AN': the telegram length if a valid telegram starts here, 0 if not (counted),
+        None to wait for more bytes."""
         c = self.counters
         have = end - pos
         if have < 3:
             return self._short(final)
         version = buf[pos + 2]
+        if buf[pos] == ANSWER_SYNC[0]:
+            if version not in ANSWER_VERSIONS:
+                c.version_errors += 1
+                c.length_errors += 1
+                return 0
+            if have < ANSWER_HEADER_LEN:
+                return self._short(final)
+            size = struct.unpack_from(">H", buf, pos + 3)[0]
+            if size < ANSWER_HEADER_LEN + CHECKSUM_LEN:
+                c.length_errors += 1
+                return 0
+            return self._check(buf, pos, end, size, final)
         if version not in HEADER_LEN:
             c.version_errors += 1
             c.length_errors += 1
@@ -251,7 +290,12 @@ class StdbinDecoder:
         if (size != known) if unknown == 0 else (size < known + unknown):
             c.length_errors += 1
             return 0
-        if have < size:
+        return self._check(buf, pos, end, size, final)
+
+    def _check(self, buf: bytearray, pos: int, end: int, size: int, final: bool) -> int | None:
+        """``size`` if the checksum of the telegram of ``size`` bytes at ``pos`` holds, else 0 (None: wait)."""
+        c = self.counters
+        if end - pos < size:
             return self._short(final)
         body_end = pos + size - CHECKSUM_LEN
         if sum(buf[pos:body_end]) & 0xFFFFFFFF != _U32.unpack_from(buf, body_end)[0]:
@@ -441,4 +485,15 @@ def encode_stdbin(
         header += struct.pack(">H", len(nav_bytes) + len(extnav_bytes))
     header += _HEADER_TAIL.pack(size, validity_time_100us % TIME_MODULUS, counter % COUNTER_MODULUS)
     body = header + nav_bytes + extnav_bytes + external_bytes
+    return body + _U32.pack(sum(body) & 0xFFFFFFFF)
+
+
+def encode_stdbin_answer(version: int, payload: bytes) -> bytes:
+    """One 'AN' answer telegram (version 3..5) carrying ``payload``; ValueError if it cannot be sent."""
+    if version not in ANSWER_VERSIONS:
+        raise ValueError(f"answer telegrams exist in versions {ANSWER_VERSIONS}, not {version}")
+    size = ANSWER_HEADER_LEN + len(payload) + CHECKSUM_LEN
+    if size > MAX_TELEGRAM_LEN:
+        raise ValueError(f"telegram of {size} bytes exceeds the 16-bit size field")
+    body = ANSWER_SYNC + bytes([version]) + struct.pack(">H", size) + payload
     return body + _U32.pack(sum(body) & 0xFFFFFFFF)
