@@ -156,6 +156,10 @@ def test_real_telegram_decodes_to_the_values_the_vendor_test_asserts(name):
     header_len = {2: 21, 3: 25, 4: 27, 5: 27}[data[2]]
     time_raw, counter = struct.unpack(">II", data[header_len - 8 : header_len])
     assert s.t_s == pytest.approx(time_raw * 1e-4) and s.seq == counter
+    if data[2] >= 3:  # the tests assert rawRotationRateVesselFrame 0, 0, 0 (extended navigation, v3+)
+        assert (s.extra["raw_rate_x_dph"], s.extra["raw_rate_y_dph"], s.extra["raw_rate_z_dph"]) == (0, 0, 0)
+    else:
+        assert "raw_rate_x_dph" not in s.extra
 
 
 def test_the_vendor_v3_log_is_17_consecutive_telegrams():
@@ -255,7 +259,7 @@ def _f32(x: float) -> float:
 @pytest.mark.parametrize("version", [2, 3, 4, 5])
 def test_encode_decode_round_trip_each_version(version):
     skip_nav = {2: bytes(range(16)), 7: bytes(21), 30: bytes(12)}
-    extnav = {} if version == 2 else {0: bytes(12), 5: bytes(21), 6: bytes(16)}
+    extnav = {} if version == 2 else {0: bytes(12), 2: struct.pack(">3f", 0.25, 0.5, -1.0), 6: bytes(16)}
     external = {0: bytes(5), 1: bytes(46), 27: bytes(12)}
     telegrams = [
         encode_stdbin(
@@ -278,7 +282,7 @@ def test_encode_decode_round_trip_each_version(version):
     events, counters, _ = _decode(b"".join(telegrams), rate_hz=10.0)
     assert len(events) == 8 and counters["sample_frames"] == 8
     assert counters["time_wraps"] == 1 and counters["seq_gaps"] == 0
-    assert counters["blocks_skipped"] == 8 * (len(skip_nav) + len(extnav) + len(external))
+    assert counters["blocks_skipped"] == 8 * (len(skip_nav) + len(extnav) - (version > 2) + len(external))
     for k, s in enumerate(events):
         assert s.seq == 2**32 - 2 + k
         assert s.t_s == pytest.approx((2**32 - 5000 + 1000 * k) * 1e-4)
@@ -291,6 +295,8 @@ def test_encode_decode_round_trip_each_version(version):
         assert _ins_words(s.status) == ((0b10 if k == 0 else 0b01), 3, 4, 5)
         assert s.flags == (frozenset({FLAG_STARTUP}) if k == 0 else frozenset())
         assert s.temps_c == {"fog": 25.5, "accelerometer": 30.25, "board": 40.0}
+        if version > 2:
+            assert (s.extra["raw_rate_x_dph"], s.extra["raw_rate_z_dph"]) == (0.25 * 3600, -3600.0)
 
 
 def test_encoder_rejects_what_the_format_cannot_carry():

@@ -41,6 +41,8 @@ Blocks decoded (navigation bitmask bit: content), float32 unless said::
     15 INS algorithm status: 4 x uint32                           -> status (word k in bits 32k..32k+31)
     18 AHRS algorithm status: uint32                              -> extra ahrs_algorithm_status (raw)
     25 temperatures: mean FOG, mean accelerometer, board (degC)  -> temps_c fog, accelerometer, board
+    extended-navigation bit 2: raw rotation rate, vessel frame XV1..XV3 (deg/s, NOT compensated from earth
+       rotation)                                                  -> extra raw_rate_x_dph ... (deg/h)
 
 Every other block present is skipped by its size and counted (``counters.blocks_skipped``).  Flags:
 ``startup`` when INS algorithm status word 1 bit 1 (ALIGNMENT) is set (``ixblue_stdbin_decoder``
@@ -110,6 +112,7 @@ BIT_SENSOR_STATUS = 14
 BIT_INS_ALGORITHM_STATUS = 15
 BIT_AHRS_ALGORITHM_STATUS = 18
 BIT_TEMPERATURES = 25
+EXTNAV_BIT_RAW_ROTATION_RATE = 2
 INS_ALGO1_ALIGNMENT = 1 << 1  #: INS algorithm status word 1: alignment in progress
 
 _F3 = struct.Struct(">3f")
@@ -328,15 +331,21 @@ class StdbinDecoder:
                 else:
                     c.blocks_skipped += 1
                 offset += NAV_BLOCK_LEN[bit]
+        raw_rate_at = None
+        if nav_mask >> 31 & 1:
+            c.unknown_blocks += 1
+            offset = -1  # the extended blocks' offsets are unknown
         for mask, table in ((extnav_mask, _EXTNAV), (external_mask, _EXTERNAL)):
             for bit in range(32):
                 if mask >> bit & 1:
                     if table[bit] is None:
                         c.unknown_blocks += 1
+                    elif table is _EXTNAV and bit == EXTNAV_BIT_RAW_ROTATION_RATE and offset >= 0:
+                        raw_rate_at = offset
                     else:
                         c.blocks_skipped += 1
-        if nav_mask >> 31 & 1:
-            c.unknown_blocks += 1
+                    if table is _EXTNAV and offset >= 0:
+                        offset = -1 if table[bit] is None else offset + table[bit]
 
         if BIT_ROTATION_RATE not in blocks:
             c.other_frames += 1
@@ -347,6 +356,9 @@ class StdbinDecoder:
         dtheta = tuple(r * dt_s for r in rate_dph)
 
         extra: dict[str, float] = {}
+        if raw_rate_at is not None:
+            raw = _F3.unpack_from(t, raw_rate_at)
+            extra.update(zip(("raw_rate_x_dph", "raw_rate_y_dph", "raw_rate_z_dph"), (r * 3600.0 for r in raw)))
         if BIT_ATTITUDE in blocks:
             extra["heading_deg"], extra["roll_deg"], extra["pitch_deg"] = _F3.unpack_from(t, blocks[BIT_ATTITUDE])
         if BIT_ACCELERATION in blocks:
