@@ -515,7 +515,8 @@ def decode_kvh_batch(data: bytes | bytearray | memoryview, **config) -> KvhBatch
     failed = np.flatnonzero(~valid)
     if failed.size:
         j = np.searchsorted(starts, cand[failed], side="right") - 1
-        inside = (j >= 0) & (cand[failed] < np.where(j >= 0, ends[np.maximum(j, 0)], 0))
+        end_before = np.concatenate(([0], ends))[j + 1]  # end of the last taken frame starting at or before
+        inside = cand[failed] < end_before
         reached = failed[~inside]
         counters.truncated_frames = int(np.count_nonzero(~complete[reached]))
         counters.crc_errors = int(reached.size - counters.truncated_frames)
