@@ -127,13 +127,43 @@ def crc32_mpeg2_reference(data: bytes | bytearray | memoryview) -> int:
     return crc
 
 
+_POSITION_TABLES: dict[int, tuple[np.ndarray, np.ndarray, int]] = {}
+
+
+def _position_tables(m: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """For messages of m bytes: ``T[j, v]`` = CRC (register starting at 0) of the message with byte j = v
+    and every other byte 0; ``T2[k, lo | hi << 8] = T[2k, lo] ^ T[2k + 1, hi]`` (byte pairs, m even); and
+    ``c0`` = CRC (register starting at 0xFFFFFFFF) of m zero bytes."""
+    if m not in _POSITION_TABLES:
+        tables = np.empty((m, 256), dtype=np.uint32)
+        reg = _CRC_TABLE_NP.copy()  # one byte v, register from 0: the table itself
+        for j in range(m - 1, -1, -1):
+            tables[j] = reg
+            reg = (reg << np.uint32(8)) ^ _CRC_TABLE_NP[reg >> np.uint32(24)]  # one more zero byte after
+        pairs = (tables[0 : m - 1 : 2, None, :] ^ tables[1::2, :, None]).reshape(m // 2, 65536)
+        _POSITION_TABLES[m] = (tables, pairs, crc32_mpeg2_reference(bytes(m)))
+    return _POSITION_TABLES[m]
+
+
 def crc32_mpeg2_rows(rows: np.ndarray) -> np.ndarray:
-    """CRC-32/MPEG-2 of every row of a ``(n, m)`` uint8 array at once (loop over the m columns)."""
-    crc = np.full(rows.shape[0], 0xFFFFFFFF, dtype=np.uint32)
-    for j in range(rows.shape[1]):
-        idx = ((crc >> np.uint32(24)) ^ rows[:, j]).astype(np.uint8)
-        crc = (crc << np.uint32(8)) ^ _CRC_TABLE_NP[idx]
-    return crc
+    """CRC-32/MPEG-2 of every row of a ``(n, m)`` uint8 array at once.
+
+    A CRC without final xor is affine in the message over GF(2): for a fixed length m,
+    ``crc(msg) = crc(m zero bytes) XOR T[0, msg[0]] XOR ... XOR T[m-1, msg[m-1]]`` where ``T[j, v]`` is the
+    CRC (register starting at 0) of the message holding v at byte j and zeros elsewhere.  So the CRCs of n
+    frames are one table gather and an xor-reduction along each row; for even m the gather is over byte
+    pairs (m / 2 lookups per row in 65536-entry tables).
+    """
+    n, m = rows.shape
+    if n == 0:
+        return np.zeros(0, dtype=np.uint32)
+    tables, pairs, c0 = _position_tables(m)
+    if m % 2 == 0:
+        halves = np.ascontiguousarray(rows).view("<u2")  # lo | hi << 8, whatever the host order is
+        words = pairs[np.arange(m // 2), halves]
+    else:
+        words = tables[np.arange(m), rows]
+    return np.bitwise_xor.reduce(words, axis=1) ^ np.uint32(c0)
 
 
 # --- events ----------------------------------------------------------------------------------------------
@@ -482,11 +512,12 @@ def decode_kvh_batch(data: bytes | bytearray | memoryview, **config) -> KvhBatch
     counters = FormatCounters(bytes_in=n)
     kinds = {b: length for b, (_, length) in cfg.accepted_seconds().items()}
     if n >= 4:
-        head = (buf[:-3] == 0xFE) & (buf[1:-2] == 0x81)
-        third, fourth = buf[2:-1], buf[3:]
-        sample_head = head & (third == 0xFF) & np.isin(fourth, np.array(list(kinds), dtype=np.uint8))
-        bit_head = head & (third == 0x00) & ((fourth == 0xAA) | (fourth == 0xAB))
-        cand = np.flatnonzero(sample_head | bit_head)
+        fe = np.flatnonzero(buf[: n - 3] == 0xFE)
+        fe = fe[buf[fe + 1] == 0x81]
+        third, fourth = buf[fe + 2], buf[fe + 3]
+        sample_head = (third == 0xFF) & np.isin(fourth, np.array(list(kinds), dtype=np.uint8))
+        bit_head = (third == 0x00) & ((fourth == 0xAA) | (fourth == 0xAB))
+        cand = fe[sample_head | bit_head]
     else:
         cand = np.zeros(0, dtype=np.int64)
     cand_kind = buf[cand + 3] if cand.size else np.zeros(0, dtype=np.uint8)
@@ -496,11 +527,12 @@ def decode_kvh_batch(data: bytes | bytearray | memoryview, **config) -> KvhBatch
         cand_len[cand_kind == b] = length
     complete = cand + cand_len <= n
     valid = np.zeros(cand.size, dtype=bool)
+    windows = {k: np.lib.stride_tricks.sliding_window_view(buf, k) for k in set(lengths.values()) if k <= n}
     for b, length in lengths.items():
         sel = np.flatnonzero((cand_kind == b) & complete)
         if sel.size == 0:
             continue
-        rows = buf[cand[sel][:, None] + np.arange(length)]
+        rows = windows[length][cand[sel]]
         if b in BIT_FRAME_LEN:
             valid[sel] = (rows[:, :-1].sum(axis=1, dtype=np.uint64) & 0xFF) == rows[:, -1]
         else:
@@ -538,7 +570,7 @@ def decode_kvh_batch(data: bytes | bytearray | memoryview, **config) -> KvhBatch
         sel = np.flatnonzero(kind == b)
         if sel.size == 0:
             continue
-        rows = buf[starts[sel][:, None] + np.arange(HEADER_LEN, length - 4)]
+        rows = windows[length][starts[sel], HEADER_LEN : length - 4]
         rec = np.ascontiguousarray(rows).view(_DTYPES[name]).reshape(-1)
         gyro[sel] = rec["g"]
         accel[sel] = rec["a"]
