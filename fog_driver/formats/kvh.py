@@ -151,19 +151,21 @@ def crc32_mpeg2_rows(rows: np.ndarray) -> np.ndarray:
     A CRC without final xor is affine in the message over GF(2): for a fixed length m,
     ``crc(msg) = crc(m zero bytes) XOR T[0, msg[0]] XOR ... XOR T[m-1, msg[m-1]]`` where ``T[j, v]`` is the
     CRC (register starting at 0) of the message holding v at byte j and zeros elsewhere.  So the CRCs of n
-    frames are one table gather and an xor-reduction along each row; for even m the gather is over byte
-    pairs (m / 2 lookups per row in 65536-entry tables).
+    frames are m table gathers (one per column, vectorized across frames) xor-ed together; for even m the
+    gathers are over byte pairs (m / 2 lookups per frame in 65536-entry tables).
     """
     n, m = rows.shape
     if n == 0:
         return np.zeros(0, dtype=np.uint32)
     tables, pairs, c0 = _position_tables(m)
-    if m % 2 == 0:
-        halves = np.ascontiguousarray(rows).view("<u2")  # lo | hi << 8, whatever the host order is
-        words = pairs[np.arange(m // 2), halves]
+    if m % 2 == 0:  # columns of byte pairs lo | hi << 8 (whatever the host order), one gather per column
+        table, columns = pairs, np.ascontiguousarray(np.ascontiguousarray(rows).view("<u2").T)
     else:
-        words = tables[np.arange(m), rows]
-    return np.bitwise_xor.reduce(words, axis=1) ^ np.uint32(c0)
+        table, columns = tables, np.ascontiguousarray(rows.T)
+    crc = np.full(n, c0, dtype=np.uint32)
+    for k in range(columns.shape[0]):
+        crc ^= table[k].take(columns[k])
+    return crc
 
 
 # --- events ----------------------------------------------------------------------------------------------
