@@ -378,3 +378,18 @@ def test_batch_on_overlapping_valid_frames_matches_the_sequential_choice():
 def test_zlib_is_not_what_the_device_uses():
     # guards against a "simplification" to zlib.crc32: the real frame's CRC is not the ISO-HDLC CRC-32
     assert zlib.crc32(REAL_A[:32]) != int.from_bytes(REAL_A[32:], "big")
+
+
+def test_delta_without_rate_hz_gives_nan_rates_and_bad_settings_are_refused():
+    (s,), _ = run(encode_kvh_frame("a", GYRO, ACCEL), rot_format="delta", rot_units="deg")
+    assert s.dtheta_arcsec == (1800.0, -900.0, 3600 * 2.0**-10) and all(math.isnan(r) for r in s.rate_dph)
+    for bad in ({"format": "d"}, {"rot_format": "angle"}, {"rot_units": "grad"}, {"temp_units": "f"}, {"rate_hz": 0}):
+        with pytest.raises(ValueError):
+            KvhDecoder(**bad)
+
+
+def test_a_sequence_byte_above_127_is_taken_modulo_128():
+    data = encode_kvh_frame("a", GYRO, ACCEL, seq=127) + encode_kvh_frame("a", GYRO, ACCEL, seq=128 + 0)
+    events, c = run(data)
+    assert [e.seq for e in events] == [127, 128] and c.seq_gaps == 0
+    assert key(decode_kvh_batch(data).events()) == key(events)

@@ -23,10 +23,21 @@ Status byte: bit 0/1/2 = gyro x/y/z valid, bit 4/5/6 = accelerometer x/y/z valid
 axis whose bit is clear gets ``FLAG_SENSOR_INVALID``; the raw byte is kept in ``ImuSample.status``.
 
 Format C's mux word carries, by ``sequence mod 4``: 0 -> temperature (degC, f32), 1/2/3 -> magnetometer
-x/y/z (gauss).  Sources and how far each detail is verified: see ``docs`` in the module's tests
-(``tests/test_formats_kvh.py``) and the report of the commit that added this module; in short the A layout,
-the CRC and the BIT checksum are verified against real device bytes; B and C come from open-source drivers
-(not from the ICD itself, which was not available).
+x/y/z (gauss).  The sequence counter is 7 bits (0..127); a CRC-valid frame whose sequence byte is above 127
+is kept and its counter taken modulo 128.
+
+Sources (the vendor ICD itself was not available here):
+
+* A's layout, the CRC-32/MPEG-2 over the header and data, status 0x77 = all valid, the BIT reply and its
+  8-bit sum: real DSP-1750 bytes with their checks (the ROS ``kvh_driver`` package's
+  ``kvh_driver/test/kvhtest.cpp``, vendored in github.com/jtukpah/wildfire_hyperdrive_ssrr_2024), and a
+  DSP-1750 log showing status ``0b1110111`` (github.com/yoos/kvh_1750_troubleshooting).
+* frame sizes 36/40/38 (A/B/C) and 11/13 (BIT AA/AB) and the five headers: KVH's own test script
+  ``TestDspImu.pl`` (KVH Industries, 2014) and INSTINCT's ``KvhUartSensor.cpp`` (Univ. of Stuttgart).
+* B's time tag (u32 between the accelerations and the status): an OpenDLV-derived ``datagram_parser.cpp``
+  Format B parser and a Python Format B decoder of the keelson KVH connector -- not checked on real bytes.
+* C's multiplexed word: the keelson KVH connector's notes, which cite OpenDLV's
+  ``opendlv-device-imu-kvhp1775`` -- not checked on real bytes.
 
 Units (the decoder's configuration says what the device was set to; the frame does not):
 
@@ -64,7 +75,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .common import AXES, FLAG_SENSOR_INVALID, FormatCounters, ImuSample, SeqUnwrapper
+from .common import FLAG_SENSOR_INVALID, FormatCounters, ImuSample, SeqUnwrapper
 
 SYNC = b"\xfe\x81"
 SYNC0 = 0xFE
@@ -606,7 +617,6 @@ def decode_kvh_batch(data: bytes | bytearray | memoryview, **config) -> KvhBatch
 
 
 __all__ = [
-    "AXES",
     "BIT_FRAME_LEN",
     "SAMPLE_FORMATS",
     "KvhBatch",
