@@ -303,7 +303,7 @@ def hostile_streams(draw):
     for _ in range(draw(st.integers(0, 3))):
         gap = rng.randrange(len(spans) + 1)
         inserts.append((gap, bytes.fromhex(rng.choice(["FE81FF55", "FE81FF56", "FE81FF57", "FE81", "FE"]))))
-    out = bytearray()
+    out = bytearray(data[: spans[0][0]] if spans else b"")  # the garbage before the first frame
     kept = []
     for i, (o, n) in enumerate(spans):
         out += b"".join(b for g, b in inserts if g == i)
