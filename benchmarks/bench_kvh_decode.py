@@ -15,12 +15,14 @@ from __future__ import annotations
 import argparse
 import struct
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from bench_decode import best_time  # noqa: E402
 
 from fog_driver.formats.kvh import (  # noqa: E402
     SAMPLE_FORMATS,
@@ -65,16 +67,6 @@ def baseline_decode(data: bytes, fmt: str) -> list[tuple]:
     return out
 
 
-def best_of(repeat: int, fn) -> tuple[float, object]:
-    best = float("inf")
-    result = None
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        result = fn()
-        best = min(best, time.perf_counter() - t0)
-    return best, result
-
-
 def streaming(data: bytes, fmt: str) -> int:
     d = KvhDecoder(format=fmt, rate_hz=1000)
     n = 0
@@ -93,14 +85,14 @@ def main() -> None:
     data = make_capture(n, fmt)
     n_frames = n + (n + 999) // 1000
 
-    t_batch, batch = best_of(args.repeat, lambda: decode_kvh_batch(data, format=fmt, rate_hz=1000))
-    t_base, base = best_of(args.repeat, lambda: baseline_decode(data, fmt))
+    t_batch, batch = best_time(lambda: decode_kvh_batch(data, format=fmt, rate_hz=1000), args.repeat)
+    t_base, base = best_time(lambda: baseline_decode(data, fmt), args.repeat)
     sample = batch.kind != 0xAA
     assert len(base) == int(sample.sum()) == n, "batch and baseline disagree on the frame count"
     base_gyro = np.array([b[:3] for b in base])
     assert np.array_equal(base_gyro, batch.gyro[sample]), "batch and baseline disagree on the gyro words"
-    t_events, _ = best_of(1, lambda: decode_kvh_batch(data, format=fmt, rate_hz=1000).events())
-    t_stream, n_stream = best_of(1, lambda: streaming(data, fmt))
+    t_events, _ = best_time(lambda: decode_kvh_batch(data, format=fmt, rate_hz=1000).events(), 1)
+    t_stream, n_stream = best_time(lambda: streaming(data, fmt), 1)
 
     print(f"KVH Format {fmt.upper()}: {n} sample frames + {n_frames - n} BIT replies, {len(data)} bytes")
     rows = [
