@@ -361,6 +361,19 @@ def _last_frame_end(decoded: DecodedCapture) -> int:
     return max(ends, default=0)
 
 
+def _what_it_is(path: Path) -> str:
+    """For a file that holds no protocol v1 frame: what the format sniffer sees in it, said on one line."""
+    from .formats.registry import sniff_file
+
+    try:
+        seen = sniff_file(str(path))
+    except OSError:
+        return ""
+    if seen.name is None:
+        return f"; the format sniffer sees {seen.describe()}"
+    return f"; it looks like {seen.describe()}, which fog-driver cannot read yet"
+
+
 def inspect_capture(
     path: str | Path,
     progress: Callable[[int, int], None] | None = None,
@@ -393,7 +406,7 @@ def inspect_capture(
     if counters.sample_frames + counters.identity_frames + counters.unknown_frames == 0:
         raise InputFileError(
             f"{path}: not a protocol v1 capture: no valid frame in {counters.bytes_in} bytes"
-            + (" (too short to hold one)" if counters.bytes_in < SAMPLE_FRAME_LEN else "")
+            + (" (too short to hold one)" if counters.bytes_in < SAMPLE_FRAME_LEN else _what_it_is(path))
         )
     return summarizer.finish(counters, path=str(path), sha256=sha256.hexdigest(), provenance=read_provenance(path))
 

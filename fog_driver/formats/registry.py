@@ -1,0 +1,110 @@
+"""The frame formats fog_driver knows, by name, and a sniffer that tells them apart from a stream's bytes.
+
+Every entry names a streaming decoder (``feed(bytes) -> events``, ``close()``, ``counters``).  Adding a
+format is one module and one line in ``FORMATS``.  ``sniff`` is gpsd's idea: feed the first bytes to
+every format's decoder and take the format whose checksums verify on the most frames; each decoder hunts
+with a 1-byte resync, so garbage before the first frame (a port opened mid-frame) costs nothing.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+#: Bytes ``sniff`` looks at by default: at 1 kHz, about 2 s of protocol v1 or KVH, a few STDBIN telegrams.
+SNIFF_BYTES = 64 * 1024
+#: Fewer checksum-valid frames than this in the bytes looked at is no verdict (a 32-bit CRC passes by chance
+#: once in 4e9 positions; two in a row by chance, never in practice).
+MIN_FRAMES = 2
+
+
+@dataclass(frozen=True)
+class FrameFormat:
+    """One entry of the registry: its name, what it is, and how to make its decoder."""
+
+    name: str
+    description: str
+    make_decoder: Callable[[], Any]
+    #: the decoder's counters -> how many checksum-valid frames it has found
+    valid_frames: Callable[[Any], int]
+
+
+def _fog_v1() -> Any:
+    from ..protocol import FrameDecoder
+
+    return FrameDecoder()
+
+
+def _kvh(fmt: str) -> Callable[[], Any]:
+    def make() -> Any:
+        from .kvh import KvhDecoder
+
+        return KvhDecoder(format=fmt)
+
+    return make
+
+
+def _ixblue() -> Any:
+    from .ixblue import StdbinDecoder
+
+    return StdbinDecoder()
+
+
+def _v1_frames(counters: Any) -> int:
+    return counters.sample_frames + counters.identity_frames + counters.unknown_frames
+
+
+def _format_frames(counters: Any) -> int:
+    return counters.sample_frames + counters.other_frames
+
+
+FORMATS: dict[str, FrameFormat] = {
+    f.name: f
+    for f in (
+        FrameFormat("fog-v1", "fog_driver's own protocol v1 (firmware_protocol/PROTOCOL.md)", _fog_v1, _v1_frames),
+        FrameFormat("kvh-a", "KVH (EMCORE) DSP-1750/1760/1775 normal mode, Format A", _kvh("a"), _format_frames),
+        FrameFormat("kvh-b", "KVH (EMCORE) DSP-1750/1760/1775 normal mode, Format B", _kvh("b"), _format_frames),
+        FrameFormat("kvh-c", "KVH (EMCORE) DSP-1750/1760/1775 normal mode, Format C", _kvh("c"), _format_frames),
+        FrameFormat("ixblue-stdbin", "iXblue (Exail) STDBIN v2..v5 (Phins, Octans, ...)", _ixblue, _format_frames),
+    )
+}
+
+
+@dataclass(frozen=True)
+class Sniffed:
+    """What ``sniff`` saw: the format (None: no verdict), and the valid frames of every format."""
+
+    name: str | None
+    frames: dict[str, int]
+    bytes_looked_at: int
+
+    def describe(self) -> str:
+        """One line for a person: ``kvh-a (57 valid frames in the first 2,052 bytes)``."""
+        where = f"in the first {self.bytes_looked_at:,} bytes"
+        if self.name is not None:
+            return f"{self.name} ({self.frames[self.name]:,} valid frames {where})"
+        seen = ", ".join(f"{name} {n:,}" for name, n in self.frames.items() if n)
+        return f"no known format {where}" + (f" (valid frames: {seen}, too few to tell)" if seen else "")
+
+
+def sniff(data: bytes | bytearray | memoryview, limit: int = SNIFF_BYTES) -> Sniffed:
+    """The format of a stream from its first ``limit`` bytes: the one whose checksums verify on the most
+    frames, at least ``MIN_FRAMES`` of them (or the only frame of a stream shorter than two frames)."""
+    head = bytes(data[:limit])
+    frames = {}
+    for name, fmt in FORMATS.items():
+        decoder = fmt.make_decoder()
+        decoder.feed(head)
+        frames[name] = fmt.valid_frames(decoder.counters)
+    best = max(frames, key=lambda name: frames[name])
+    count = frames[best]
+    tied = sum(1 for n in frames.values() if n == count)
+    enough = count >= MIN_FRAMES or (count == 1 and len(head) < limit)
+    return Sniffed(best if enough and tied == 1 else None, frames, len(head))
+
+
+def sniff_file(path: str, limit: int = SNIFF_BYTES) -> Sniffed:
+    """``sniff`` of a file's first ``limit`` bytes (OSError when it cannot be read)."""
+    with open(path, "rb") as f:
+        return sniff(f.read(limit), limit)
