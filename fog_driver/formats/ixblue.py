@@ -76,6 +76,7 @@ import re
 import struct
 from dataclasses import dataclass
 
+from ..protocol.hunting import HuntingDecoder
 from .common import FLAG_STARTUP, FormatCounters, ImuSample, SeqUnwrapper
 
 SYNC = b"IX"
@@ -118,7 +119,6 @@ INS_ALGO1_ALIGNMENT = 1 << 1  #: INS algorithm status word 1: alignment in progr
 _F3 = struct.Struct(">3f")
 _U32 = struct.Struct(">I")
 _HEADER_TAIL = struct.Struct(">HII")  # telegram size, validity time, counter
-_COMPACT_AT = 1 << 16
 
 
 def _table(table: tuple, n: int) -> list[int | None]:
@@ -165,7 +165,7 @@ class StdbinAnswer:
     payload: bytes
 
 
-class StdbinDecoder:
+class StdbinDecoder(HuntingDecoder):
     """Streaming STDBIN decoder: bytes in, ``ImuSample`` events out.
 
     ``rate_hz``: the configured output rate, used for the increment of a telegram with no usable previous
@@ -174,41 +174,10 @@ class StdbinDecoder:
 
     def __init__(self, rate_hz: float | None = None) -> None:
         self.rate_hz = rate_hz
-        self.counters = StdbinCounters()
+        super().__init__(StdbinCounters())
         self._seq = SeqUnwrapper(COUNTER_MODULUS, self.counters)
-        self._buf = bytearray()
-        self._pos = 0
-        self._base = 0
-        self._hunting = False
-        self._closed = False
         self._last_time_raw: int | None = None
         self._time_unwrapped = 0
-
-    @property
-    def pending(self) -> int:
-        """Bytes held while waiting for the rest of a possible telegram."""
-        return len(self._buf) - self._pos
-
-    def feed(self, data: bytes | bytearray | memoryview) -> list[ImuSample | StdbinAnswer]:
-        """Add bytes; return the samples they complete, in stream order."""
-        if self._closed:
-            raise RuntimeError("feed() after close()")
-        if data:
-            self.counters.bytes_in += len(data)
-            self._buf += data
-        return self._decode(final=False)
-
-    def close(self) -> list[ImuSample | StdbinAnswer]:
-        """End of stream: decide every pending byte; return the last samples."""
-        if self._closed:
-            return []
-        events = self._decode(final=True)
-        self._closed = True
-        return events
-
-    def _discard(self, n: int) -> None:
-        self.counters.bytes_discarded += n
-        self._hunting = True
 
     def _decode(self, final: bool) -> list[ImuSample | StdbinAnswer]:
         buf = self._buf
@@ -219,15 +188,9 @@ class StdbinDecoder:
         while True:
             found = _SYNC_RE.search(buf, pos)
             at = -1 if found is None else found.start()
+            pos = self._skip_to_header(pos, at, end, not final and end > pos and buf[end - 1] in _SYNC_FIRST)
             if at < 0:
-                keep = 1 if (not final and end > pos and buf[end - 1] in _SYNC_FIRST) else 0
-                if end - keep > pos:
-                    self._discard(end - keep - pos)
-                    pos = end - keep
                 break
-            if at > pos:
-                self._discard(at - pos)
-                pos = at
             verdict = self._judge(buf, pos, end, final)
             if verdict is None:  # wait for more bytes
                 break
@@ -249,11 +212,7 @@ class StdbinDecoder:
                     events.append(sample)
             c.bytes_in_frames += verdict
             pos += verdict
-        if pos >= _COMPACT_AT or pos == end:
-            del buf[:pos]
-            self._base += pos
-            pos = 0
-        self._pos = pos
+        self._settle(pos)
         return events
 
     def _judge(self, buf: bytearray, pos: int, end: int, final: bool) -> int | None:

@@ -75,6 +75,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..protocol.hunting import HuntingDecoder
 from .common import FLAG_SENSOR_INVALID, FormatCounters, ImuSample, SeqUnwrapper
 
 SYNC = b"\xfe\x81"
@@ -310,10 +311,9 @@ def _make_sample(cfg: KvhConfig, fmt: str, values: tuple, seq_unwrapped: int) ->
 
 
 Event = ImuSample | KvhBitFrame
-_COMPACT_AT = 1 << 16
 
 
-class KvhDecoder:
+class KvhDecoder(HuntingDecoder):
     """Streaming KVH normal-mode decoder: ``feed(bytes) -> list[ImuSample | KvhBitFrame]``, ``close()``.
 
     >>> frame = encode_kvh_frame("a", (0.0, 0.0, 1e-6), (0.0, 0.0, 1.0), seq=5, temp=30)
@@ -332,39 +332,8 @@ class KvhDecoder:
     ) -> None:
         self.config = KvhConfig(format, rot_format, rot_units, temp_units, rate_hz)
         self._seconds = self.config.accepted_seconds()
-        self.counters = FormatCounters()
+        super().__init__(FormatCounters())
         self._unwrap = SeqUnwrapper(SEQ_MODULUS, self.counters)
-        self._buf = bytearray()
-        self._pos = 0
-        self._base = 0
-        self._hunting = False
-        self._closed = False
-
-    @property
-    def pending(self) -> int:
-        """Bytes held while waiting for the rest of a possible frame."""
-        return len(self._buf) - self._pos
-
-    def feed(self, data: bytes | bytearray | memoryview) -> list[Event]:
-        """Add bytes; return the events they complete, in stream order."""
-        if self._closed:
-            raise RuntimeError("feed() after close()")
-        if data:
-            self.counters.bytes_in += len(data)
-            self._buf += data
-        return self._decode(final=False)
-
-    def close(self) -> list[Event]:
-        """End of stream: decide every pending byte; return the last events."""
-        if self._closed:
-            return []
-        events = self._decode(final=True)
-        self._closed = True
-        return events
-
-    def _discard(self, n: int) -> None:
-        self.counters.bytes_discarded += n
-        self._hunting = True
 
     def _decode(self, final: bool) -> list[Event]:
         buf = self._buf
@@ -375,15 +344,9 @@ class KvhDecoder:
         seconds = self._seconds
         while True:
             at = buf.find(SYNC, pos)
+            pos = self._skip_to_header(pos, at, end, not final and end > pos and buf[end - 1] == SYNC0)
             if at < 0:
-                keep = 1 if (not final and end > pos and buf[end - 1] == SYNC0) else 0
-                if end - keep > pos:
-                    self._discard(end - keep - pos)
-                    pos = end - keep
                 break
-            if at > pos:
-                self._discard(at - pos)
-                pos = at
             if end - pos < HEADER_LEN:
                 if not final:
                     break
@@ -431,11 +394,7 @@ class KvhDecoder:
                 c.other_frames += 1
             c.bytes_in_frames += frame_len
             pos += frame_len
-        if pos >= _COMPACT_AT or pos == end:
-            del buf[:pos]
-            self._base += pos
-            pos = 0
-        self._pos = pos
+        self._settle(pos)
         return events
 
 

@@ -22,6 +22,7 @@ import struct
 import zlib
 from dataclasses import asdict, dataclass
 
+from .hunting import HuntingDecoder
 from .wire import (
     HEADER_LEN,
     KNOWN_PAYLOAD_LEN,
@@ -39,7 +40,6 @@ from .wire import (
 
 _SAMPLE_UNPACK_FROM = struct.Struct("<HIihhhH").unpack_from
 _CRC_UNPACK_FROM = struct.Struct("<I").unpack_from
-_COMPACT_AT = 1 << 16
 
 
 @dataclass
@@ -73,7 +73,7 @@ def seq_step(seq: int, previous_seq: int) -> int:
     return (seq - previous_seq) % SEQ_MODULUS
 
 
-class FrameDecoder:
+class FrameDecoder(HuntingDecoder):
     """Streaming protocol v1 decoder.
 
     >>> from fog_driver.protocol import encode_sample
@@ -84,45 +84,9 @@ class FrameDecoder:
     """
 
     def __init__(self) -> None:
-        self.counters = DecoderCounters()
-        self._buf = bytearray()
-        self._pos = 0  # index in _buf of the first undecided byte
-        self._base = 0  # stream offset of _buf[0]
-        self._hunting = False  # bytes discarded since the last valid frame
+        super().__init__(DecoderCounters())
         self._last_seq: int | None = None
         self._last_t_us: int | None = None
-        self._closed = False
-
-    @property
-    def pending(self) -> int:
-        """Bytes held while waiting for the rest of a possible frame."""
-        return len(self._buf) - self._pos
-
-    @property
-    def offset(self) -> int:
-        """Stream offset of the first undecided byte."""
-        return self._base + self._pos
-
-    def feed(self, data: bytes | bytearray | memoryview) -> list[Event]:
-        """Add bytes; return the events they complete, in stream order."""
-        if self._closed:
-            raise RuntimeError("feed() after close()")
-        if data:
-            self.counters.bytes_in += len(data)
-            self._buf += data
-        return self._decode(final=False)
-
-    def close(self) -> list[Event]:
-        """End of stream: decide every pending byte; return the last events."""
-        if self._closed:
-            return []
-        events = self._decode(final=True)
-        self._closed = True
-        return events
-
-    def _discard(self, n: int) -> None:
-        self.counters.bytes_discarded += n
-        self._hunting = True
 
     def _decode(self, final: bool) -> list[Event]:
         buf = self._buf
@@ -132,16 +96,10 @@ class FrameDecoder:
         events: list[Event] = []
         while True:
             sync_at = buf.find(SYNC, pos)
+            # (none found: a lone trailing 0xAA may be the first half of a sync)
+            pos = self._skip_to_header(pos, sync_at, end, not final and end > pos and buf[end - 1] == SYNC0)
             if sync_at < 0:
-                # A lone trailing 0xAA may be the first half of a sync.
-                keep = 1 if (not final and end > pos and buf[end - 1] == SYNC0) else 0
-                if end - keep > pos:
-                    self._discard(end - keep - pos)
-                    pos = end - keep
                 break
-            if sync_at > pos:
-                self._discard(sync_at - pos)
-                pos = sync_at
             if end - pos < HEADER_LEN:
                 if not final:
                     break
@@ -189,11 +147,7 @@ class FrameDecoder:
             events.append(frame)
             c.bytes_in_frames += frame_len
             pos += frame_len
-        if pos >= _COMPACT_AT or pos == end:
-            del buf[:pos]
-            self._base += pos
-            pos = 0
-        self._pos = pos
+        self._settle(pos)
         return events
 
     def _count_sample(self, seq: int, t_us: int) -> None:

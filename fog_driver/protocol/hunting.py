@@ -1,0 +1,84 @@
+"""What every streaming frame decoder shares: the buffer, ``feed``/``close``, and the byte accounting.
+
+A decoder hunts for frame headers in the bytes fed so far and decides at each header position from the
+bytes from there on (h11 style: bytes in, events out; no I/O, never raises on data).  The subclass
+implements ``_decode(final)``: decide what it can in ``_buf[_pos:]``, counting discarded bytes through
+``_discard`` and advancing ``_pos`` (and compacting, moving ``_base``), and return the events.  Every
+subclass keeps ``bytes_in == bytes_in_frames + bytes_discarded + pending`` in its counters.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+#: Decided bytes are dropped from the buffer once this many have accumulated (or all are decided).
+COMPACT_AT = 1 << 16
+
+
+class HuntingDecoder:
+    """Base of the streaming decoders: protocol v1's ``FrameDecoder`` and the other formats'."""
+
+    def __init__(self, counters: Any) -> None:
+        self.counters = counters
+        self._buf = bytearray()
+        self._pos = 0  # index in _buf of the first undecided byte
+        self._base = 0  # stream offset of _buf[0]
+        self._hunting = False  # bytes discarded since the last valid frame
+        self._closed = False
+
+    @property
+    def pending(self) -> int:
+        """Bytes held while waiting for the rest of a possible frame."""
+        return len(self._buf) - self._pos
+
+    @property
+    def offset(self) -> int:
+        """Stream offset of the first undecided byte."""
+        return self._base + self._pos
+
+    def feed(self, data: bytes | bytearray | memoryview) -> list:
+        """Add bytes; return the events they complete, in stream order."""
+        if self._closed:
+            raise RuntimeError("feed() after close()")
+        if data:
+            self.counters.bytes_in += len(data)
+            self._buf += data
+        return self._decode(final=False)
+
+    def close(self) -> list:
+        """End of stream: decide every pending byte; return the last events."""
+        if self._closed:
+            return []
+        events = self._decode(final=True)
+        self._closed = True
+        return events
+
+    def _discard(self, n: int) -> None:
+        self.counters.bytes_discarded += n
+        self._hunting = True
+
+    def _skip_to_header(self, pos: int, at: int, end: int, partial_tail: bool) -> int:
+        """Discard the bytes before the header found at ``at``; with none found (``at < 0``), every byte but a
+        last one that may begin a header (``partial_tail``: the caller checks that the stream is not final and
+        the last byte is a header's first).  Returns the new position."""
+        if at < 0:
+            keep = 1 if partial_tail and end > pos else 0
+            if end - keep > pos:
+                self._discard(end - keep - pos)
+                pos = end - keep
+        elif at > pos:
+            self._discard(at - pos)
+            pos = at
+        return pos
+
+    def _settle(self, pos: int) -> None:
+        """Keep ``pos`` as the first undecided byte; drop the decided bytes once ``COMPACT_AT`` of them have
+        accumulated or all are decided."""
+        if pos >= COMPACT_AT or pos == len(self._buf):
+            del self._buf[:pos]
+            self._base += pos
+            pos = 0
+        self._pos = pos
+
+    def _decode(self, final: bool) -> list:  # pragma: no cover - every subclass has its own
+        raise NotImplementedError
