@@ -361,8 +361,9 @@ def _last_frame_end(decoded: DecodedCapture) -> int:
     return max(ends, default=0)
 
 
-def _what_it_is(path: Path) -> str:
-    """For a file that holds no protocol v1 frame: what the format sniffer sees in it, said on one line."""
+def what_it_is(path: str | Path) -> str:
+    """For a file that holds no protocol v1 frame: what the format sniffer sees in it, as the end of a one-line
+    error ("; it looks like kvh-a (...), which fog-driver cannot read yet"; "" when it cannot be read)."""
     from .formats.registry import sniff_file
 
     try:
@@ -406,7 +407,7 @@ def inspect_capture(
     if counters.sample_frames + counters.identity_frames + counters.unknown_frames == 0:
         raise InputFileError(
             f"{path}: not a protocol v1 capture: no valid frame in {counters.bytes_in} bytes"
-            + (" (too short to hold one)" if counters.bytes_in < SAMPLE_FRAME_LEN else _what_it_is(path))
+            + (" (too short to hold one)" if counters.bytes_in < SAMPLE_FRAME_LEN else what_it_is(path))
         )
     return summarizer.finish(counters, path=str(path), sha256=sha256.hexdigest(), provenance=read_provenance(path))
 

@@ -159,7 +159,8 @@ def _simulator(args: argparse.Namespace):
     if args.instrument_seed is not None:
         config = draw_instrument(args.instrument_seed, config)
     faults = parse_fault_spec(args.faults)
-    return Simulator(profile, config, rate_hz=args.rate_hz, seed=args.seed, faults=faults), faults
+    return Simulator(profile, config, rate_hz=args.rate_hz, seed=args.seed, faults=faults,
+                     wire_format=args.format), faults  # fmt: skip
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
@@ -619,6 +620,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="overwrite an existing capture file")
     p.set_defaults(func=cmd_record)
 
+    from .sim.instrument import WIRE_FORMATS
+
     p = add_parser("simulate", help="simulate the instrument: write a capture with its truth, or serve it live")
     p.add_argument("--profile", default="paper", metavar="NAME_OR_YAML",
                    help="a profile's name: built-in (paper, paper-validation) or a file's stem in configs/profiles/ "
@@ -627,6 +630,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--serve", metavar="pty|DEVICE", help="stream in real time on a new pty, or to a serial device")
     p.add_argument("--rate-hz", type=_rate_hz, default=100, metavar="R", help="SAMPLE frame rate (default 100)")
     p.add_argument("--seed", type=_seed, default=0, metavar="N", help="random seed (same seed, same bytes)")
+    p.add_argument("--format", default="fog-v1", choices=WIRE_FORMATS,
+                   help="the frames to send: fog-v1 (the instrument's own protocol, default) or a KVH DSP-1750 "
+                        "normal-mode format (delta angles in rad, temperature in 0.01 degC)")
     p.add_argument("--faults", default="none", metavar="SPEC",
                    help="e.g. drop=1e-3,flip=1e-5,garbage=0.1,thermo=0.05:2,disconnect=60:2 (see README)")
     p.add_argument("--instrument", metavar="CONFIG.yaml", help="instrument model (default: configs/sim/instrument.yaml values)")

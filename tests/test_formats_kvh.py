@@ -393,3 +393,23 @@ def test_a_sequence_byte_above_127_is_taken_modulo_128():
     events, c = run(data)
     assert [e.seq for e in events] == [127, 128] and c.seq_gaps == 0
     assert key(decode_kvh_batch(data).events()) == key(events)
+
+
+@pytest.mark.parametrize("fmt", ["a", "b", "c"])
+def test_the_vector_encoder_writes_the_bytes_of_the_frame_encoder(fmt):
+    from fog_driver.formats.kvh import encode_kvh_frames
+
+    rng = np.random.default_rng(3)
+    n = 50
+    gyro = rng.normal(0, 1e-5, (n, 3)).astype(np.float32)
+    accel = rng.normal(0, 1, (n, 3)).astype(np.float32)
+    status = rng.integers(0, 256, n)
+    seq = rng.integers(0, 1000, n)
+    temp = rng.integers(-4000, 8000, n) if fmt != "c" else rng.normal(30, 5, n).astype(np.float32)
+    tag = rng.integers(0, 2**32, n)
+    rows = encode_kvh_frames(fmt, gyro, accel, status, seq, temp, tag if fmt == "b" else None)
+    for k in range(n):
+        one = encode_kvh_frame(fmt, tuple(map(float, gyro[k])), tuple(map(float, accel[k])), int(status[k]),
+                               int(seq[k]) % 128, float(temp[k]) if fmt == "c" else int(temp[k]),
+                               time_tag_us=int(tag[k]) if fmt == "b" else 0)  # fmt: skip
+        assert rows[k].tobytes() == one

@@ -182,7 +182,9 @@ def compensate_capture(
             if len(block):
                 yield binding.compensator.frame_period_s, binding.run(block)
     if not samples_seen:
-        raise InputFileError(f"{path}: no SAMPLE frames to compensate")
+        from ..capture import what_it_is
+
+        raise InputFileError(f"{path}: no SAMPLE frames to compensate{what_it_is(path)}")
     if not binding.bound:
         raise InputFileError(f"{path}: no IDENTITY frame: frame rate unknown")
     if adapt is not None and adapt_state is not None and save_adapt_state:

@@ -201,7 +201,9 @@ def load_capture(path: str | Path, config: FitConfig, progress: Callable[[int, i
             averager = BlockAverager(1.0 / stream.identity.rate_hz, config.model_rate_hz)
         parts.append(averager.run(samples))
     if averager is None:
-        raise InputFileError(f"{path}: no SAMPLE frames to fit")
+        from ..capture import what_it_is
+
+        raise InputFileError(f"{path}: no SAMPLE frames to fit{what_it_is(path)}")
     parts.append(BlockColumns.from_blocks(averager.flush()))
     blocks = BlockColumns(*(np.concatenate([getattr(p, f) for p in parts]) for f in BlockColumns.__dataclass_fields__))
     inputs, input_flags = FeatureExtractor(config.features).run(blocks.temps_c)

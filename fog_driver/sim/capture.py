@@ -236,5 +236,16 @@ def _write_sidecar(sim: Simulator, out_path: Path, truth_file: Path, total: int,
             },
             "positioning_stops": stops,  # device time, s from the first sample
             "model": sim.config.as_dict(),
+            **_wire_format(sim),
         },
     )
+
+
+def _wire_format(sim: Simulator) -> dict:
+    """The frame format and the device settings it was sent with, for a format other than protocol v1 (whose
+    frames say everything themselves; a sidecar without ``wire_format`` is protocol v1)."""
+    if sim.wire_format == "fog-v1":
+        return {}
+    return {"wire_format": sim.wire_format,
+            "wire_settings": {"rot_format": "delta", "rot_units": "rad", "temp_units": "c_100", "rate_hz": sim.rate_hz,
+                              "temperature_channel": "housing"}}  # fmt: skip

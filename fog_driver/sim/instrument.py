@@ -31,7 +31,8 @@ from typing import Any
 import numpy as np
 
 from ..protocol import (
-    SAMPLE_FRAME_LEN,
+    STATUS_LIGHT_SOURCE_FAULT,
+    STATUS_LOOP_UNLOCKED,
     STATUS_STARTUP,
     STATUS_THERMOMETER_FAULT,
     THERMOMETER_COUNTS_PER_C,
@@ -252,6 +253,9 @@ class FrameBlock:
     angle_deg: np.ndarray  #: turntable angle at t_k
 
 
+#: The wire formats the simulator speaks (``fog_driver.formats.registry`` names).
+WIRE_FORMATS = ("fog-v1", "kvh-a", "kvh-b", "kvh-c")
+
 #: Per-frame angle components, in the order the truth file lists them.
 COMPONENTS = (
     "input", "earth", "scale_factor_error", "constant_bias", "drift_bias_temp", "drift_shupe",
@@ -274,7 +278,10 @@ class Simulator:
         rate_hz: int = 100,
         seed: int = 0,
         faults: FaultSpec | None = None,
+        wire_format: str = "fog-v1",
     ) -> None:
+        if wire_format not in WIRE_FORMATS:
+            raise ValueError(f"the simulator speaks {', '.join(WIRE_FORMATS)}, not {wire_format!r}")
         if not (isinstance(rate_hz, int) and 1 <= rate_hz <= 0xFFFF):
             raise ValueError(f"rate_hz must be an integer 1..65535 (a u16 on the wire), got {rate_hz!r}")
         self.profile = profile
@@ -282,6 +289,7 @@ class Simulator:
         self.rate_hz = rate_hz
         self.seed = seed
         self.faults = faults or FaultSpec()
+        self.wire_format = wire_format
         # One stream per source, each drawn strictly in order: decisions and contents of a fault
         # have separate streams, so no interleaving depends on how the frames are batched.
         streams = np.random.SeedSequence(seed).spawn(9)
@@ -434,14 +442,46 @@ class Simulator:
         u = float(self._rng_flip.random())
         return int(math.log(1.0 - u) / math.log(1.0 - p))  # bytes passed before the next flip (geometric)
 
-    def emit(self, block: FrameBlock) -> bytes:
-        """The bytes the link carries for ``block``: IDENTITY at each device second, then the frames,
-        with the fault spec applied (drops, garbage, bit flips, disconnects)."""
+    def encode(self, block: FrameBlock) -> np.ndarray:
+        """``block``'s frames in the wire format, one row each (``(n, frame length)`` uint8).
+
+        ``fog-v1``: SAMPLE frames (IDENTITY is added by ``emit``).  ``kvh-a/b/c``: KVH normal-mode frames as a
+        DSP-1750 configured ``=ROTFMT,DELTA``, ``=ROTUNITS,RAD``, ``=TEMPUNITS,C_100`` sends them: the z gyro word
+        is the frame's angle increment in rad (float32, the increment unquantized: no counts), x and y 0,
+        the accelerometers 1 g on z, the temperature the housing thermometer's reading in 0.01 degC (Format
+        C sends it in its multiplexed word every fourth frame and 0 gauss between), the status byte 0x77 (all
+        valid) with the z gyro marked invalid while the light source or the loop reports a fault.
+        """
+        if self.wire_format == "fog-v1":
+            return encode_sample_frames(
+                block.seq, block.t_us, block.dtheta_counts,
+                block.t_raw[:, 0], block.t_raw[:, 1], block.t_raw[:, 2], block.status,
+            )  # fmt: skip
+        from ..formats.kvh import ARCSEC_PER_RAD, encode_kvh_frames
+
         n = len(block.seq)
-        encoded = encode_sample_frames(
-            block.seq, block.t_us, block.dtheta_counts,
-            block.t_raw[:, 0], block.t_raw[:, 1], block.t_raw[:, 2], block.status,
-        )  # fmt: skip
+        fmt = self.wire_format[-1]
+        gyro = np.zeros((n, 3), dtype=np.float32)
+        gyro[:, 2] = sum(block.components_arcsec.values()) / ARCSEC_PER_RAD
+        accel = np.zeros((n, 3), dtype=np.float32)
+        accel[:, 2] = 1.0
+        gyro_fault = (block.status & (STATUS_LIGHT_SOURCE_FAULT | STATUS_LOOP_UNLOCKED)) != 0
+        status = np.where(gyro_fault, 0x73, 0x77)
+        housing_raw = block.t_raw[:, 2].astype(np.int64)
+        valid = housing_raw != -32768
+        temp_c100 = np.where(valid, np.rint(housing_raw * (100.0 / 256.0)), -32768)
+        k = np.arange(block.k0, block.k0 + n)
+        if fmt == "c":
+            temp = np.where(k % 4 == 0, np.where(valid, temp_c100 / 100.0, np.nan), 0.0).astype(np.float32)
+        else:
+            temp = temp_c100.astype(np.int16)
+        return encode_kvh_frames(fmt, gyro, accel, status, k, temp)
+
+    def emit(self, block: FrameBlock) -> bytes:
+        """The bytes the link carries for ``block``: (protocol v1: an IDENTITY at each device second, then) the
+        frames, with the fault spec applied (drops, garbage, bit flips, disconnects)."""
+        n = len(block.seq)
+        encoded = self.encode(block)
         f = self.faults
         k = np.arange(block.k0, block.k0 + n)
         keep = np.ones(n, dtype=bool)
@@ -467,9 +507,9 @@ class Simulator:
                 # The link dies while the cut's first frame is on the wire: half of it goes out.
                 starts_here = not self._cut_open if lo == 0 else not in_cut[lo - 1]
                 if starts_here and keep[lo]:
-                    pieces.append(encoded[lo, : SAMPLE_FRAME_LEN // 2].tobytes())
+                    pieces.append(encoded[lo, : encoded.shape[1] // 2].tobytes())
                 continue
-            if k[lo] % self.rate_hz == 0:
+            if k[lo] % self.rate_hz == 0 and self.wire_format == "fog-v1":
                 pieces.append(self._identity)
             if garbage_before[lo]:
                 pieces.append(self._garbage_burst())
@@ -485,7 +525,10 @@ class Simulator:
         length = 1 + int(u[0] * 64)
         burst = bytearray((u[1 : 1 + length] * 256).astype(np.uint8).tobytes())
         if length >= 4:  # a false sync and a plausible header now and then: what hurts a decoder
-            burst[0:4] = b"\xaa\x55\x01\x12" if u[-1] < 0.5 else b"\xaa\x55\x7f\xff"
+            if self.wire_format == "fog-v1":
+                burst[0:4] = b"\xaa\x55\x01\x12" if u[-1] < 0.5 else b"\xaa\x55\x7f\xff"
+            else:
+                burst[0:4] = b"\xfe\x81\xff" + bytes((0x55 + int(u[-1] * 3),))
         return bytes(burst)
 
     def _flip_bits(self, data: bytes) -> bytes:
