@@ -51,6 +51,18 @@ def _baud(text: str) -> int:
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
+    other = _other_format(args.capture, args.format)
+    if other is not None:
+        from .capture import read_provenance
+        from .formats.summary import format_format_summary, summarize_format
+
+        settings = (read_provenance(args.capture) or {}).get("wire_settings") or {}
+        try:
+            found = summarize_format(args.capture, other, settings if isinstance(settings, dict) else {})
+        except (TypeError, ValueError) as exc:  # wire_settings the decoder cannot take
+            raise InputFileError(f"{args.capture}: its sidecar's wire_settings do not fit {other}: {exc}") from None
+        print(json.dumps(found.as_json_dict()) if args.json else format_format_summary(found))
+        return EXIT_PROBLEMS if args.strict and found.problems() else 0
     progress = Progress()
     try:
         summary = inspect_capture(args.capture, progress=progress.bytes_done)
@@ -63,6 +75,24 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     if args.strict and summary.problems:
         return EXIT_PROBLEMS
     return 0
+
+
+def _other_format(capture: str, requested: str) -> str | None:
+    """The format of ``capture`` when it is not protocol v1 (None: read it as protocol v1).  ``auto`` sniffs it;
+    a named format the sniffer contradicts is a one-line error naming what the sniffer saw."""
+    from .formats.registry import sniff_file
+
+    if requested == "fog-v1":
+        return None
+    try:
+        seen = sniff_file(capture)
+    except OSError:
+        return None  # the protocol v1 path says why, in its words
+    if requested == "auto":
+        return seen.name if seen.name not in (None, "fog-v1") else None
+    if seen.name is not None and seen.name != requested:
+        raise InputFileError(f"{capture}: --format {requested}, but the format sniffer sees {seen.describe()}")
+    return requested
 
 
 def cmd_record(args: argparse.Namespace) -> int:
@@ -601,10 +631,15 @@ def build_parser() -> argparse.ArgumentParser:
     def add_parser(name: str, **kw) -> argparse.ArgumentParser:
         return sub.add_parser(name, parents=[logging_options], **kw)
 
+    from .formats.registry import FORMATS
+
+    FORMAT_NAMES = list(FORMATS)
     p = add_parser("inspect", help="check a capture file and summarize what it holds")
     p.add_argument("capture", metavar="CAPTURE.bin")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the text report")
     p.add_argument("--strict", action="store_true", help=f"exit {EXIT_PROBLEMS} when the capture is not clean")
+    p.add_argument("--format", default="auto", choices=["auto", *FORMAT_NAMES],
+                   help="the capture's frame format (default auto: sniffed from its first 64 kB)")
     p.set_defaults(func=cmd_inspect)
 
     p = add_parser("record", help="record a port's raw bytes to a capture file with a provenance sidecar")

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -67,7 +68,11 @@ def test_simulate_format_records_it_and_the_other_commands_say_what_the_capture_
     assert done.returncode == 0, done.stderr
     sidecar = read_provenance(capture)
     assert sidecar["wire_format"] == "kvh-c" and sidecar["wire_settings"]["rot_units"] == "rad"
-    refused = subprocess.run(run + ["inspect", str(capture)], capture_output=True, text=True)
+    inspected = subprocess.run(run + ["inspect", str(capture)], capture_output=True, text=True)
+    assert inspected.returncode == 0 and "format        kvh-c: KVH" in inspected.stdout
+    model = Path(__file__).resolve().parents[1] / "fog_driver" / "data" / "models" / "default.yaml"
+    refused = subprocess.run(run + ["compensate", str(capture), "--model", str(model), "--out", str(tmp_path / "c.csv")],
+                             capture_output=True, text=True)  # fmt: skip
     assert refused.returncode == 65
     assert refused.stderr.strip().endswith("it looks like kvh-c (1,200 valid frames in the first 45,600 bytes), "
                                            "which fog-driver cannot read yet")  # fmt: skip
