@@ -68,3 +68,12 @@ def test_a_format_the_sniffer_contradicts_is_one_line_naming_what_it_saw(tmp_pat
     assert cli.main(["inspect", str(v1), "--format", "kvh-a"]) == 65
     assert "but the format sniffer sees fog-v1" in capsys.readouterr().err
     assert cli.main(["inspect", str(v1)]) == 0 and "verdict" in capsys.readouterr().out  # protocol v1 as before
+
+
+def test_a_temperature_read_in_the_wrong_units_is_a_problem(tmp_path, capsys):
+    """A KVH capture recorded without its settings: the decoder's default whole degC reads a device sending
+    hundredths as 2,000 degC; inspect says so instead of calling the capture clean."""
+    capture, _ = kvh_capture(tmp_path, seconds=10.0)
+    (tmp_path / "kvh.bin.yaml").unlink()  # no wire_settings: the defaults
+    assert cli.main(["inspect", str(capture), "--strict"]) == EXIT_PROBLEMS
+    assert "outside -55 .. 125 (the device's temperature units? temp_units in wire_settings)" in capsys.readouterr().out

@@ -101,6 +101,10 @@ class FormatSummary:
                           ("truncated_frames", "frames cut off")):  # fmt: skip
             if c.get(key):
                 found.append(f"{c[key]:,} {what}")
+        for channel, ch in self.temps_c.items():  # PLAUSIBLE_TEMP_C: a thermometer's range
+            if ch.n and (ch.low < -55.0 or ch.high > 125.0):
+                found.append(f"temperature {channel} reads {ch.low:.2f} .. {ch.high:.2f} degC, outside -55 .. 125 "
+                             "(the device's temperature units? temp_units in wire_settings)")  # fmt: skip
         return found
 
     def as_json_dict(self) -> dict[str, Any]:
