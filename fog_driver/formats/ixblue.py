@@ -198,9 +198,8 @@ class StdbinDecoder(HuntingDecoder):
                 self._discard(1)
                 pos += 1
                 continue
-            if self._hunting:
-                c.resyncs += 1
-                self._hunting = False
+            if self._hunting:  # (checked here: the call only on the rare resync, off the per-frame path)
+                self._resynced()
             telegram = bytes(buf[pos : pos + verdict])
             if telegram[0] == ANSWER_SYNC[0]:
                 c.answer_frames += 1

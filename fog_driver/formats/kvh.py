@@ -419,9 +419,8 @@ class KvhDecoder(HuntingDecoder):
                 self._discard(1)
                 pos += 1
                 continue
-            if self._hunting:
-                c.resyncs += 1
-                self._hunting = False
+            if self._hunting:  # (checked here: the call only on the rare resync, off the per-frame path)
+                self._resynced()
             if fmt:
                 values = _BODY[fmt].unpack_from(buf, pos + HEADER_LEN)
                 seq_raw = values[-2] if fmt != "c" else values[-1]

@@ -130,9 +130,8 @@ class FrameDecoder(HuntingDecoder):
                 pos += 1
                 continue
             # A valid frame.
-            if self._hunting:
-                c.resyncs += 1
-                self._hunting = False
+            if self._hunting:  # (checked here: the call only on the rare resync, off the per-frame path)
+                self._resynced()
             offset = self._base + pos
             if frame_type == TYPE_SAMPLE:
                 frame = SampleFrame(offset, *_SAMPLE_UNPACK_FROM(buf, pos + HEADER_LEN))

@@ -57,6 +57,11 @@ class HuntingDecoder:
         self.counters.bytes_discarded += n
         self._hunting = True
 
+    def _resynced(self) -> None:
+        """A valid frame after discarded bytes: the header was found again (``resyncs``), the hunt is over."""
+        self.counters.resyncs += 1
+        self._hunting = False
+
     def _skip_to_header(self, pos: int, at: int, end: int, partial_tail: bool) -> int:
         """Discard the bytes before the header found at ``at``; with none found (``at < 0``), every byte but a
         last one that may begin a header (``partial_tail``: the caller checks that the stream is not final and
