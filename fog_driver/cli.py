@@ -666,8 +666,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rate-hz", type=_rate_hz, default=100, metavar="R", help="SAMPLE frame rate (default 100)")
     p.add_argument("--seed", type=_seed, default=0, metavar="N", help="random seed (same seed, same bytes)")
     p.add_argument("--format", default="fog-v1", choices=WIRE_FORMATS,
-                   help="the frames to send: fog-v1 (the instrument's own protocol, default) or a KVH DSP-1750 "
-                        "normal-mode format (delta angles in rad, temperature in 0.01 degC)")
+                   help="the frames to send: fog-v1 (the instrument's own protocol, default), a KVH DSP-1750 "
+                        "normal-mode format (delta angles in rad, temperature in 0.01 degC) or ixblue-stdbin "
+                        "(STDBIN v5 telegrams: rotation rate in deg/s, attitude, the three thermometers in degC)")
     p.add_argument("--faults", default="none", metavar="SPEC",
                    help="e.g. drop=1e-3,flip=1e-5,garbage=0.1,thermo=0.05:2,disconnect=60:2 (see README)")
     p.add_argument("--instrument", metavar="CONFIG.yaml", help="instrument model (default: configs/sim/instrument.yaml values)")

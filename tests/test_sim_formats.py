@@ -56,7 +56,7 @@ def test_protocol_v1_is_the_default_and_stays_what_it_was():
     a = Simulator(load_profile("short-test"), rate_hz=100, seed=6)
     b = Simulator(load_profile("short-test"), rate_hz=100, seed=6, wire_format="fog-v1")
     assert a.stream(500)[1] == b.stream(500)[1]
-    with pytest.raises(ValueError, match="the simulator speaks fog-v1, kvh-a, kvh-b, kvh-c, not 'nmea'"):
+    with pytest.raises(ValueError, match="the simulator speaks fog-v1, kvh-a, kvh-b, kvh-c, ixblue-stdbin, not 'nmea'"):
         Simulator(load_profile("short-test"), wire_format="nmea")
 
 

@@ -32,7 +32,7 @@ from .. import __version__
 from ..capture import CaptureWriter, read_provenance, sidecar_path, utc_now_iso, write_provenance
 from ..errors import InputFileError, OutputFileError, read_error
 from ..outputs import check_outputs, write_error
-from .instrument import COMPONENTS, FrameBlock, Simulator
+from .instrument import COMPONENTS, STDBIN_TEMPERATURE_CHANNELS, STDBIN_VERSION, FrameBlock, Simulator
 
 TRUTH_COLUMNS = (
     "second", "t_device_s", "t_true_s", "n_frames", "input_dph", "earth_dph", "scale_factor_error_dph",
@@ -243,9 +243,15 @@ def _write_sidecar(sim: Simulator, out_path: Path, truth_file: Path, total: int,
 
 def _wire_format(sim: Simulator) -> dict:
     """The frame format and the device settings it was sent with, for a format other than protocol v1 (whose
-    frames say everything themselves; a sidecar without ``wire_format`` is protocol v1)."""
+    frames say everything themselves; a sidecar without ``wire_format`` is protocol v1).  KVH: the decoder's
+    settings and the thermometer its temperature is; STDBIN: ``rate_hz``, ``version`` and
+    ``temperature_channels`` (each Temperatures-block channel -> the simulated thermometer it carries)."""
     if sim.wire_format == "fog-v1":
         return {}
+    if sim.wire_format == "ixblue-stdbin":
+        return {"wire_format": sim.wire_format,
+                "wire_settings": {"rate_hz": sim.rate_hz, "version": STDBIN_VERSION,
+                                  "temperature_channels": dict(STDBIN_TEMPERATURE_CHANNELS)}}  # fmt: skip
     return {"wire_format": sim.wire_format,
             "wire_settings": {"rot_format": "delta", "rot_units": "rad", "temp_units": "c_100", "rate_hz": sim.rate_hz,
                               "temperature_channel": "housing"}}  # fmt: skip

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from ..protocol import (
+    SAMPLE_FRAME_LEN,
     STATUS_LIGHT_SOURCE_FAULT,
     STATUS_LOOP_UNLOCKED,
     STATUS_STARTUP,
@@ -254,13 +255,38 @@ class FrameBlock:
 
 
 #: The wire formats the simulator speaks (``fog_driver.formats.registry`` names).
-WIRE_FORMATS = ("fog-v1", "kvh-a", "kvh-b", "kvh-c")
+WIRE_FORMATS = ("fog-v1", "kvh-a", "kvh-b", "kvh-c", "ixblue-stdbin")
+
+#: The STDBIN protocol version the simulator sends: 5, the newest the decoder reads (its header has the
+#: extended-navigation mask and the navigation size; the blocks are the same in every version).
+STDBIN_VERSION = 5
+#: STDBIN Temperatures-block channel -> the simulated thermometer whose reading it carries.
+STDBIN_TEMPERATURE_CHANNELS = {"fog": "top", "accelerometer": "bottom", "board": "housing"}
+_THERMOMETER_COLUMN = {"top": 0, "bottom": 1, "housing": 2}  #: the thermometer's column of ``FrameBlock.t_raw``
 
 #: Per-frame angle components, in the order the truth file lists them.
 COMPONENTS = (
     "input", "earth", "scale_factor_error", "constant_bias", "drift_bias_temp", "drift_shupe",
     "drift_gradient", "drift_hysteresis", "bias_instability", "rrw", "arw",
 )  # fmt: skip
+
+
+def _stdbin_layout() -> tuple[np.dtype, np.ndarray]:
+    """The simulator's STDBIN telegram as a numpy record (big-endian fields) and its constant first bytes
+    (sync, version, masks, navigation size, telegram size), both taken from ``encode_stdbin``."""
+    from ..formats.ixblue import HEADER_LEN, encode_stdbin
+
+    zeros = (0.0, 0.0, 0.0)
+    template = encode_stdbin(STDBIN_VERSION, counter=0, validity_time_100us=0, attitude_deg=zeros,
+                             rotation_rate_dps=zeros, temperatures_c=zeros)  # fmt: skip
+    fixed = HEADER_LEN[STDBIN_VERSION] - 8  # the validity time and the counter end the header
+    # The blocks in ascending bit order (attitude 0, rotation rate 5, temperatures 25), as encode_stdbin puts them.
+    dtype = np.dtype([("prefix", "u1", (fixed,)), ("time", ">u4"), ("counter", ">u4"),
+                      ("attitude", ">f4", (3,)), ("rate", ">f4", (3,)), ("temps", ">f4", (3,)),
+                      ("checksum", ">u4")])  # fmt: skip
+    if dtype.itemsize != len(template):
+        raise AssertionError(f"STDBIN layout of {dtype.itemsize} bytes, encode_stdbin says {len(template)}")
+    return dtype, np.frombuffer(template[:fixed], dtype=np.uint8)
 
 
 class Simulator:
@@ -284,6 +310,8 @@ class Simulator:
             raise ValueError(f"the simulator speaks {', '.join(WIRE_FORMATS)}, not {wire_format!r}")
         if not (isinstance(rate_hz, int) and 1 <= rate_hz <= 0xFFFF):
             raise ValueError(f"rate_hz must be an integer 1..65535 (a u16 on the wire), got {rate_hz!r}")
+        if wire_format == "ixblue-stdbin" and rate_hz > 10_000:
+            raise ValueError(f"STDBIN's validity time counts 100 us: at most 10000 telegrams/s, not {rate_hz} Hz")
         self.profile = profile
         self.config = config or InstrumentConfig()
         self.rate_hz = rate_hz
@@ -307,6 +335,7 @@ class Simulator:
         self.period_true_s = 1.0 / (rate_hz * (1.0 + self.config.clock_ppm * 1e-6))
         self._scale = self.config.scale_f32
         self._identity = encode_identity(self.config.serial, self.config.firmware, rate_hz, self._scale)
+        self._stdbin_layout = _stdbin_layout() if wire_format == "ixblue-stdbin" else None
         self._next_k = 0
         self._remainder_fixed = 0  # quantizer remainder, in 2^-24 counts
         self._readings_done = 0  # thermometer readings generated so far
@@ -322,6 +351,17 @@ class Simulator:
     @property
     def next_frame(self) -> int:
         return self._next_k
+
+    @property
+    def frame_len_bytes(self) -> int:
+        """Bytes of one frame in the wire format (protocol v1's IDENTITY not included)."""
+        if self.wire_format == "fog-v1":
+            return SAMPLE_FRAME_LEN
+        if self._stdbin_layout is not None:
+            return self._stdbin_layout[0].itemsize
+        from ..formats.kvh import SAMPLE_FORMATS
+
+        return SAMPLE_FORMATS[self.wire_format[-1]][1]
 
     def device_time_s(self, k: np.ndarray | int) -> np.ndarray | float:
         return np.asarray(k) / self.rate_hz
@@ -451,12 +491,15 @@ class Simulator:
         the accelerometers 1 g on z, the temperature the housing thermometer's reading in 0.01 degC (Format
         C sends it in its multiplexed word every fourth frame and 0 gauss between), the status byte 0x77 (all
         valid) with the z gyro marked invalid while the light source or the loop reports a fault.
+        ``ixblue-stdbin``: one STDBIN telegram per frame (``_encode_stdbin``).
         """
         if self.wire_format == "fog-v1":
             return encode_sample_frames(
                 block.seq, block.t_us, block.dtheta_counts,
                 block.t_raw[:, 0], block.t_raw[:, 1], block.t_raw[:, 2], block.status,
             )  # fmt: skip
+        if self.wire_format == "ixblue-stdbin":
+            return self._encode_stdbin(block)
         from ..formats.kvh import ARCSEC_PER_RAD, encode_kvh_frames
 
         n = len(block.seq)
@@ -476,6 +519,44 @@ class Simulator:
         else:
             temp = temp_c100.astype(np.int16)
         return encode_kvh_frames(fmt, gyro, accel, status, k, temp)
+
+    def stdbin_time_100us(self, k: np.ndarray | int) -> np.ndarray:
+        """Device time of frame(s) ``k`` in STDBIN's 100-us steps, unwrapped (int64): the clock that stamps
+        ``t_us`` (``t_us0 + k * 1e6 // rate_hz`` us, before its 2^32-us wrap), floored to 100 us."""
+        return (self.t_us0 + (np.asarray(k, dtype=np.int64) * 1_000_000) // self.rate_hz) // 100
+
+    def _encode_stdbin(self, block: FrameBlock) -> np.ndarray:
+        """``block``'s frames as STDBIN telegrams (``STDBIN_VERSION``), one row each, byte-identical to
+        ``fog_driver.formats.ixblue.encode_stdbin`` of the same values (vectorized).
+
+        Blocks: Attitude (heading = the turntable angle mod 360 deg, roll and pitch 0), Rotation rate (z = the
+        frame's angle increment, unquantized, divided by the validity-time step from the previous frame, in
+        deg/s, so the decoder's rate x step gives the increment back; x and y 0; the increment includes the
+        earth rate: a gyro's view, not a Phins' earth-compensated rate), Temperatures (float32 degC:
+        ``STDBIN_TEMPERATURE_CHANNELS``; STDBIN has no invalid marker, so a faulted reading is sent as NaN).
+        Header: validity time ``stdbin_time_100us(k) mod 2^32``, counter ``(seq0 + k) mod 2^32`` (its low 16
+        bits are protocol v1's seq).  No status block: the decoder maps no STDBIN status to ``sensor_invalid``
+        (their bits have no public meaning), so light-source and loop faults are not represented.
+        """
+        from ..formats.ixblue import CHECKSUM_LEN, COUNTER_MODULUS, TIME_LSB_S, TIME_MODULUS
+
+        dtype, prefix = self._stdbin_layout
+        n = len(block.seq)
+        k = np.arange(block.k0, block.k0 + n, dtype=np.int64)
+        time_100us = self.stdbin_time_100us(k)
+        step_s = (time_100us - self.stdbin_time_100us(k - 1)) * TIME_LSB_S
+        rows = np.zeros(n, dtype=dtype)
+        rows["prefix"] = prefix
+        rows["time"] = time_100us % TIME_MODULUS
+        rows["counter"] = (self.seq0 + k) % COUNTER_MODULUS
+        rows["attitude"][:, 0] = np.mod(block.angle_deg, 360.0)
+        rows["rate"][:, 2] = sum(block.components_arcsec.values()) / 3600.0 / step_s
+        raw = block.t_raw[:, [_THERMOMETER_COLUMN[STDBIN_TEMPERATURE_CHANNELS[c]]
+                              for c in ("fog", "accelerometer", "board")]]  # fmt: skip
+        rows["temps"] = np.where(raw == THERMOMETER_INVALID, np.nan, raw / THERMOMETER_COUNTS_PER_C)
+        out = rows.view(np.uint8).reshape(n, dtype.itemsize)
+        rows["checksum"] = out[:, :-CHECKSUM_LEN].sum(axis=1, dtype=np.uint64) & 0xFFFFFFFF
+        return out
 
     def emit(self, block: FrameBlock) -> bytes:
         """The bytes the link carries for ``block``: (protocol v1: an IDENTITY at each device second, then) the
@@ -527,6 +608,8 @@ class Simulator:
         if length >= 4:  # a false sync and a plausible header now and then: what hurts a decoder
             if self.wire_format == "fog-v1":
                 burst[0:4] = b"\xaa\x55\x01\x12" if u[-1] < 0.5 else b"\xaa\x55\x7f\xff"
+            elif self.wire_format == "ixblue-stdbin":  # 'IX', a version 2..5, the first byte of the simulator's mask
+                burst[0:4] = b"IX" + bytes((2 + int(u[-1] * 4), 0x02))
             else:
                 burst[0:4] = b"\xfe\x81\xff" + bytes((0x55 + int(u[-1] * 3),))
         return bytes(burst)

@@ -44,7 +44,7 @@ import serial
 import structlog
 
 from ..errors import DeviceError, OutputFileError, UsageError
-from ..protocol import IDENTITY_FRAME_LEN, SAMPLE_FRAME_LEN
+from ..protocol import IDENTITY_FRAME_LEN
 from ..signals import stop_on_signals
 from ..transport import DEFAULT_BAUDRATE, PtyPair, open_port
 from .instrument import Simulator
@@ -428,8 +428,10 @@ def _one_line(exc: BaseException) -> str:
 
 
 def required_baud(sim: Simulator, speed: float = 1.0) -> int:
-    """Line speed (8N1) the stream needs: SAMPLE frames plus one IDENTITY per device second."""
-    bytes_per_s = (sim.rate_hz * SAMPLE_FRAME_LEN + IDENTITY_FRAME_LEN) * speed
+    """Line speed (8N1) the stream needs: the frames of its wire format (plus, protocol v1, one IDENTITY per
+    device second)."""
+    identity = IDENTITY_FRAME_LEN if sim.wire_format == "fog-v1" else 0
+    bytes_per_s = (sim.rate_hz * sim.frame_len_bytes + identity) * speed
     return math.ceil(bytes_per_s * _BITS_PER_BYTE)
 
 
