@@ -150,6 +150,31 @@ def test_bytes_read_during_setup_are_returned_and_passed_on(device: tuple[PtyPai
     assert result.raw[:4] == b"\xfe\x81\xff\x55"
 
 
+def test_streaming_stops_in_config_mode_and_resumes_with_the_new_settings() -> None:
+    with PtyPair() as pair, FakeKvhDevice(pair, rate_hz=500.0, frames_before_config=0) as dev:
+        port = open_port(pair.slave_path, timeout_s=0.05)
+        try:
+            first = port.read(36)  # the stream is running (a read waits for the bytes, no sleep)
+            result = run_setup(port, DeviceSetup(("=TEMPUNITS,C_100",)))
+            after = bytearray()
+            while frames_in(bytes(after)) < 3:  # three streamed frames after the setup
+                chunk = port.read(256)
+                assert chunk, "the stream did not resume after CONFIG,0"
+                after += chunk
+        finally:
+            port.close()
+            dev.close()
+    raw = first + result.raw
+    start = raw.index(b"CONFIG,1\r\n") + len(b"CONFIG,1\r\n")
+    assert raw[start : raw.index(b"CONFIG,0\r\n")] == b"TEMPUNITS,C_100\r\n"  # no frame in config mode
+    decoder = KvhDecoder()
+    before = decoder.feed(raw[: raw.index(b"CONFIG,1")])
+    assert before and {s.temps_c["sensor"] for s in before} == {25.0}  # degC words before the change
+    decoder = KvhDecoder()
+    resumed = decoder.feed(raw[raw.index(b"CONFIG,0\r\n") :] + bytes(after))
+    assert len(resumed) >= 3 and {s.temps_c["sensor"] for s in resumed} == {2500.0}  # 0.01 degC words now
+
+
 def test_empty_setup_sends_and_reads_nothing() -> None:
     with PtyPair() as pair:
         port = open_port(pair.slave_path, timeout_s=0.05)
@@ -174,8 +199,12 @@ def test_device_that_never_answers_is_a_one_line_error_within_the_deadline() -> 
             elapsed_s = time.monotonic() - t0
         finally:
             port.close()
-        # nothing sent after the unanswered command but the way out of config mode
-        assert pair.read_available(GUARD_S) == b"=CONFIG,1\r\n=CONFIG,0\r\n"
+        sent = bytearray()
+        while len(sent) < len(b"=CONFIG,1\r\n=CONFIG,0\r\n") and (chunk := pair.read_available(GUARD_S)):
+            sent += chunk
+        assert pair.read_available(0.0) == b""
+    # nothing sent after the unanswered command but the way out of config mode
+    assert bytes(sent) == b"=CONFIG,1\r\n=CONFIG,0\r\n"
     message = str(info.value)
     assert message == "no reply 'CONFIG,1' from the device to '=CONFIG,1' within 0.2 s (last line: 'noise')"
     assert 0.2 <= elapsed_s < 1.0

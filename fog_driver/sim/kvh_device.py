@@ -131,7 +131,7 @@ class FakeKvhDevice:
                 except OSError:  # EIO while no slave is open: nothing to read
                     data = b""
                 self._receive(data)
-            if streaming and period_s is not None and time.monotonic() >= next_frame:
+            if streaming and not self.config_mode and period_s is not None and time.monotonic() >= next_frame:
                 self._write_quietly(self.frame())
                 next_frame += period_s
 
