@@ -31,9 +31,9 @@ Sources:
   ``?p=63``).
 * A DSP-1750 driver of the PeRL lab (``program_imu``: writes ``=CONFIG,1\\r\\n``, reads until
   ``CONFIG,1``; ``=DR,<n>\\r\\n`` until ``DR,``; ``=rotfmt,RATE\\r\\n`` until ``ROTFMT,RATE``; then
-  ``=CONFIG,0\\r\\n``), found in the public code index (file id 42565002848); Paradigm Hyperloop's
-  ``imu_config.c`` (``CONFIG_CMD "=config,1\\r\\n"``, ``CONFIG_RES "CONFIG,1"``, read with a select()
-  timeout); the ROS ``kvh_driver`` (``kvh_driver/src/helpers/kvh_imu.cpp`` in
+  ``=CONFIG,0\\r\\n``; an LCM publisher of ``senlcm_kvh1750_t`` whose repository the public code index
+  did not name); Paradigm Hyperloop's ``imu_config/imu_config.c`` (github.com/ParadigmHyperloop/hyperloop:
+  ``CONFIG_CMD "=config,1\\r\\n"``, ``CONFIG_RES "CONFIG,1"``, read with a select() timeout); the ROS ``kvh_driver`` (``kvh_driver/src/helpers/kvh_imu.cpp`` in
   github.com/jtukpah/wildfire_hyperdrive_ssrr_2024: ``=config,1\\n`` / ``=config,0\\n``, LF only, which the
   manual also allows); an OpenDLV-derived P1775 configuration script (``=CONFIG,1``, ``=CONFIG,0``, each
   ``\\r\\n``-terminated).  Those drivers either read without a deadline or sleep a fixed 200 ms between
