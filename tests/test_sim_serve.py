@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import structlog.testing
+from readerthread import Reader
 
 from fog_driver.errors import DeviceError, OutputFileError
 from fog_driver.protocol import MAX_FRAME_LEN, SEQ_MODULUS, decode_bytes
@@ -27,7 +28,7 @@ from fog_driver.sim.faults import parse_fault_spec
 from fog_driver.sim.instrument import Simulator
 from fog_driver.sim.profiles import load_profile
 from fog_driver.sim.serve import PtyServer, serve, serve_device, serve_pty
-from fog_driver.transport import PortEvent, PortReader, PtyPair
+from fog_driver.transport import PtyPair
 
 REPO = Path(__file__).resolve().parent.parent
 SHORT_TEST = REPO / "configs" / "profiles" / "short-test.yaml"
@@ -49,56 +50,6 @@ def capture_bytes(tmp_path: Path, duration_s: float, **sim_args) -> bytes:
 def frame_index(seq: np.ndarray, sim: Simulator) -> np.ndarray:
     """Frame numbers k of received SAMPLE frames (seq counts up from the run's random seq0)."""
     return (seq.astype(np.int64) - sim.seq0) % SEQ_MODULUS
-
-
-class Reader:
-    """A ``PortReader`` in a thread; data chunks and state events in one queue, in the order they happened."""
-
-    def __init__(self, url: str, **kwargs) -> None:
-        self.items: queue.Queue[tuple[str, object]] = queue.Queue()
-        self.opened = threading.Event()
-        self.stop = threading.Event()
-        self.done = threading.Event()
-        self.error: BaseException | None = None
-        self.reader = PortReader(url, read_timeout_s=0.02, on_state=self._on_state, **kwargs)
-        self.thread = threading.Thread(target=self._run, daemon=True)
-        self.thread.start()
-
-    def _on_state(self, event: PortEvent) -> None:
-        self.items.put(("state", event))
-        if event.state == "open":
-            self.opened.set()
-
-    def _run(self) -> None:
-        try:
-            for chunk in self.reader.chunks(self.stop):
-                self.items.put(("data", chunk))
-        except BaseException as exc:  # handed to the test thread
-            self.error = exc
-        finally:
-            self.done.set()
-
-    def receive(self, n_bytes: int) -> bytes:
-        """Collect exactly ``n_bytes`` of data (fails on a guard timeout or on extra bytes)."""
-        got = bytearray()
-        while len(got) < n_bytes:
-            kind, item = self.items.get(timeout=GUARD_S)
-            if kind == "data":
-                got += item
-        assert len(got) == n_bytes
-        return bytes(got)
-
-    def finish(self) -> list[tuple[str, object]]:
-        """Stop (if not finished already), join, re-raise a reader error; everything not yet taken."""
-        self.stop.set()
-        assert self.done.wait(GUARD_S), "reader did not return after stop"
-        self.thread.join(GUARD_S)
-        if self.error is not None:
-            raise self.error
-        rest = []
-        while not self.items.empty():
-            rest.append(self.items.get_nowait())
-        return rest
 
 
 # ---------------------------------------------------------------------------------------------

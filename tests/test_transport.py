@@ -21,6 +21,7 @@ from pathlib import Path
 
 import pytest
 import serial
+from readerthread import Reader
 
 import fog_driver.transport
 from fog_driver.protocol import SAMPLE_FRAME_LEN, encode_identity, encode_sample
@@ -74,34 +75,23 @@ def capture(tmp_path: Path) -> tuple[Path, bytes, list[int]]:
 # helpers for PortReader in a thread
 
 
-class ReaderThread:
-    """Runs ``reader.chunks(stop)`` in a thread; chunks and state events arrive through queues."""
+class ReaderThread(Reader):
+    """``readerthread.Reader`` with chunks and state events in two queues (``chunks``, ``events``)."""
 
     def __init__(self, url: str, **kwargs: object) -> None:
         self.events: queue.Queue[PortEvent] = queue.Queue()
         self.chunks: queue.Queue[bytes] = queue.Queue()
         self.seen: list[PortEvent] = []
-        self.opened = threading.Event()
-        self.stop = threading.Event()
-        self.done = threading.Event()
-        self.error: BaseException | None = None
-        self.reader = PortReader(url, on_state=self._on_state, **kwargs)  # type: ignore[arg-type]
-        self.thread = threading.Thread(target=self._run, daemon=True)
-        self.thread.start()
+        kwargs.setdefault("read_timeout_s", 0.05)
+        super().__init__(url, **kwargs)
 
     def _on_state(self, event: PortEvent) -> None:
         self.events.put(event)
         if event.state == "open":
             self.opened.set()
 
-    def _run(self) -> None:
-        try:
-            for chunk in self.reader.chunks(self.stop):
-                self.chunks.put(chunk)
-        except BaseException as exc:  # handed to the test thread
-            self.error = exc
-        finally:
-            self.done.set()
+    def _on_chunk(self, chunk: bytes) -> None:
+        self.chunks.put(chunk)
 
     def receive(self, n_bytes: int) -> bytes:
         """Collect exactly ``n_bytes`` (fails on a guard timeout or on extra bytes)."""
@@ -124,13 +114,9 @@ class ReaderThread:
             if event.state == state:
                 return event
 
-    def finish(self) -> list[PortEvent]:
+    def finish(self) -> list[PortEvent]:  # type: ignore[override]
         """Stop, join, re-raise a reader error, and return every event reported."""
-        self.stop.set()
-        assert self.done.wait(GUARD_S), "reader did not return after stop"
-        self.thread.join(GUARD_S)
-        if self.error is not None:
-            raise self.error
+        self.join()
         while not self.events.empty():
             self.seen.append(self.events.get_nowait())
         return self.seen

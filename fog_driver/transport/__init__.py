@@ -1,4 +1,5 @@
-"""Transport layer: opening ports, reading them through unplugs, the ``replay://`` URL and a pty helper.
+"""Transport layer: opening ports, reading them through unplugs, device setup on open, the ``replay://`` URL
+and a pty helper.
 
 Importing this package registers it with pyserial (``serial.protocol_handler_packages``),
 so ``serial.serial_for_url("replay://capture.bin?rate=1000")`` finds
@@ -14,19 +15,27 @@ _HANDLER_PACKAGE = "fog_driver.transport"
 if _HANDLER_PACKAGE not in serial.protocol_handler_packages:  # idempotent across re-imports
     serial.protocol_handler_packages.append(_HANDLER_PACKAGE)
 
-from .port import DEFAULT_BAUDRATE, PortError, PortEvent, PortReader, PortState, open_port  # noqa: E402
+from .port import DEFAULT_BAUDRATE, PortError, PortEvent, PortReader, PortSetupError, PortState, open_port  # noqa: E402
 from .protocol_replay import ReplayOptions, parse_replay_url, replay_schedule  # noqa: E402
+from .setup import DeviceSetup, DeviceSetupError, InvalidSetupCommand, SetupResult, make_on_open, run_setup  # noqa: E402
 
 __all__ = [
     "DEFAULT_BAUDRATE",
+    "DeviceSetup",
+    "DeviceSetupError",
+    "InvalidSetupCommand",
     "PortError",
     "PortEvent",
     "PortReader",
+    "PortSetupError",
     "PortState",
     "ReplayOptions",
+    "SetupResult",
+    "make_on_open",
     "open_port",
     "parse_replay_url",
     "replay_schedule",
+    "run_setup",
 ]
 
 try:  # POSIX only (os.openpty, termios)

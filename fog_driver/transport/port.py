@@ -32,7 +32,7 @@ try:  # POSIX only; pyserial's POSIX ports let termios.error escape from flushes
 except ImportError:  # pragma: no cover - non-POSIX
     _TERMIOS_ERRORS = ()
 
-__all__ = ["DEFAULT_BAUDRATE", "PortError", "PortEvent", "PortReader", "PortState", "open_port"]
+__all__ = ["DEFAULT_BAUDRATE", "PortError", "PortEvent", "PortReader", "PortSetupError", "PortState", "open_port"]
 
 log = structlog.get_logger("fog_driver.transport")
 
@@ -50,6 +50,13 @@ PortState = Literal["opening", "open", "lost", "retry_wait", "closed"]
 
 class PortError(Exception):
     """A port could not be used and the reader was told not to retry (or retrying cannot help)."""
+
+
+class PortSetupError(Exception):
+    """What an ``on_open`` hook raises when the device does not accept its setup: the open failed.
+
+    A ``raw`` attribute (``bytes``), when present, holds what the port delivered during the attempt.
+    """
 
 
 @dataclass(frozen=True, slots=True)
@@ -109,6 +116,16 @@ class PortReader:
     ``last_activity_monotonic`` is when the reading loop last came round (a read
     returned, with data or at its timeout, or a state changed): a watchdog tells a
     quiet port from a stuck reader by it.
+
+    ``on_open`` (optional) is called with the port right after every successful
+    open (the first and each reopen after a loss), before any read: a device setup
+    (``fog_driver.transport.setup.make_on_open``).  The bytes it returns (what the
+    port delivered meanwhile) are yielded first, as one chunk.  If it raises
+    ``PortSetupError`` or a port error, the open failed: the port is closed, the
+    failure is reported and counted like a failed open (``retry_wait``, or
+    ``PortError`` under ``reconnect=False`` or ``first_open="fail"`` before any
+    open succeeded), and the bytes of the exception's ``raw`` attribute are yielded
+    before the report.  The ``"open"`` state is reported after ``on_open`` returns.
     """
 
     def __init__(
@@ -122,6 +139,7 @@ class PortReader:
         reconnect: bool = True,
         on_state: Callable[[PortEvent], None] | None = None,
         first_open: Literal["retry", "fail", "wait"] = "retry",
+        on_open: Callable[[serial.SerialBase], bytes] | None = None,
     ) -> None:
         if read_timeout_s <= 0:
             raise ValueError(f"read_timeout_s must be > 0 so a stop is seen between reads, got {read_timeout_s}")
@@ -137,6 +155,7 @@ class PortReader:
         if first_open not in ("retry", "fail", "wait"):
             raise ValueError(f"first_open must be 'retry', 'fail' or 'wait', got {first_open!r}")
         self.first_open = first_open
+        self.on_open = on_open
         self.bytes_read = 0
         self.opens = 0
         self.losses = 0
@@ -165,6 +184,8 @@ class PortReader:
                 attempt += 1
                 delivered = False
                 self._report("opening", attempt=attempt)
+                port: serial.SerialBase | None = None
+                setup_bytes = b""
                 try:
                     port = open_port(self.url, baudrate=self.baudrate, timeout_s=self.read_timeout_s)
                 except ValueError as exc:
@@ -176,9 +197,31 @@ class PortReader:
                     if not self.reconnect or (self.first_open == "fail" and not self.opens):
                         raise PortError(detail) from exc
                 else:
+                    if self.on_open is not None:
+                        try:
+                            setup_bytes = self.on_open(port)
+                        except (PortSetupError, *PORT_ERRORS) as exc:  # the device refused: the open failed
+                            _close_quietly(port)
+                            port = None
+                            self.open_failures += 1
+                            detail = f"setup of {self.url} failed: {' '.join(str(exc).split()) or type(exc).__name__}"
+                            raw = getattr(exc, "raw", b"")
+                            if isinstance(raw, bytes | bytearray) and raw:  # what the port said is still data
+                                self.bytes_read += len(raw)
+                                yield bytes(raw)
+                            if not self.reconnect or (self.first_open == "fail" and not self.opens):
+                                raise PortError(detail) from exc
+                        except BaseException:
+                            _close_quietly(port)
+                            raise
+                if port is not None:
                     self.opens += 1
                     self._report("open", attempt=attempt)
                     try:
+                        if setup_bytes:  # inside the try: the port is closed even if the consumer stops here
+                            self.bytes_read += len(setup_bytes)
+                            delivered = True
+                            yield bytes(setup_bytes)
                         while not stop.is_set():
                             try:
                                 data = port.read(min(port.in_waiting or 1, MAX_READ_BYTES))
