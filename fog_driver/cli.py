@@ -95,11 +95,25 @@ def _other_format(capture: str, requested: str) -> str | None:
     return requested
 
 
+def _record_wire(config_path: str | None):
+    """What ``record --config FILE`` says the port sends and the device's setup commands (None, None: protocol
+    v1, no setup)."""
+    from .config import load_config
+
+    if config_path is None:
+        return None, None
+    config = load_config(config_path)
+    if config.format == "auto":
+        raise UsageError(f"{config_path}: format auto: record needs the format the port sends (format: in the config)")
+    return config.wire_settings(), config.device.device_setup()
+
+
 def cmd_record(args: argparse.Namespace) -> int:
     from .record import record  # imports the transport (pyserial) only when needed
 
     if not args.out.endswith(".bin"):
         raise UsageError(f"--out {args.out!r}: a capture file name must end in .bin")
+    wire, setup = _record_wire(args.config)
     progress = Progress()
     stop = threading.Event()
 
@@ -137,6 +151,8 @@ def cmd_record(args: argparse.Namespace) -> int:
                 notes=args.notes,
                 overwrite=args.force,
                 wait=args.wait,
+                wire=wire,
+                setup=setup,
             )
     finally:
         progress.clear()
@@ -270,7 +286,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     try:
         model_file, report = fit_model_file(args.captures, kind=kind, config=config, validate_paths=args.validate,
                                             fall_back=args.kind is None, accept_weak=args.accept_weak_fit,
-                                            progress=progress.show)  # fmt: skip
+                                            progress=progress.show, wire_format=args.format)  # fmt: skip
     except WeakFitError as exc:
         progress.clear()
         _print_fit_report(exc.report)
@@ -360,7 +376,7 @@ def cmd_compensate(args: argparse.Namespace) -> int:
                 args.capture, model_file, force=args.force, model_name=args.model, adapt=adapt,
                 reference_rate_dph=args.adapt_reference, adapt_state=args.adapt_state,
                 save_adapt_state=args.adapt_reference is not None,
-                scale_override_arcsec_per_count=args.scale_override,
+                scale_override_arcsec_per_count=args.scale_override, wire_format=args.format,
                 progress=lambda done: progress.show(f"compensating {100.0 * done / size:5.1f} %"),
             )  # fmt: skip
             for row in compensated_rows(chunks, args.every):
@@ -432,7 +448,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     progress.show("evaluating...", force=True)
     try:
         summary, series, allans = evaluate(Path(args.capture), model_file, truth=truth, force=args.force, label=label,
-                                           compare=compare, progress=progress.show)  # fmt: skip
+                                           compare=compare, progress=progress.show, wire_format=args.format)  # fmt: skip
         span_s = float(series.t_s[-1])
         if truth is not None:
             check_truth_matches(truth, args.truth, args.capture, span_s=span_s)
@@ -441,7 +457,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         progress.show("evaluating: positioning table", force=True)
         positioning_md = positioning.report_for(args.capture, model_file, summary, reference=args.reference,
                                                 compare=compare, zero_window_s=args.zero_window,
-                                                force=args.force, label=label)  # fmt: skip
+                                                force=args.force, label=label, wire_format=args.format)  # fmt: skip
         progress.show("evaluating: writing the report", force=True)
         try:
             report = write_report(out, summary, series, allans, positioning_md)
@@ -520,7 +536,8 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     def read_config() -> DriverConfig:
         config = load_config(args.config) if args.config else DriverConfig()
-        overrides = {k: getattr(args, k) for k in ("port", "model", "listen", "capture_dir") if getattr(args, k)}
+        overrides = {k: getattr(args, k) for k in ("port", "model", "listen", "capture_dir", "format")
+                     if getattr(args, k)}  # fmt: skip
         return dataclasses.replace(config, **overrides)
 
     try:
@@ -612,6 +629,14 @@ def _start_embedded_simulator(stop: threading.Event) -> tuple[threading.Thread, 
     return thread, where["path"]
 
 
+def _format_option(p: argparse.ArgumentParser) -> None:
+    from .formats.registry import FORMATS
+
+    p.add_argument("--format", default="auto", choices=["auto", *FORMATS], metavar="FORMAT",
+                   help=f"the capture's frame format: {', '.join(['auto', *FORMATS])} (default auto: the sidecar's, "
+                        f"else sniffed from the first bytes); a format the bytes contradict is an error")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="fog-driver",
@@ -653,6 +678,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "once; a port lost after it worked is always reopened, unless --no-reconnect)")
     p.add_argument("--notes", help="free text stored in the provenance sidecar")
     p.add_argument("--force", action="store_true", help="overwrite an existing capture file")
+    p.add_argument("--config", metavar="FILE",
+                   help="a daemon config whose format, axis and device settings (rate, units, setup commands) "
+                        "say what the port sends: recorded in the sidecar (default: fog-v1)")
     p.set_defaults(func=cmd_record)
 
     from .sim.instrument import WIRE_FORMATS
@@ -701,6 +729,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--accept-weak-fit", action="store_true",
                    help="write the model even when its data fail the fit's checks (too short, too little "
                         "temperature range, ...); the model file records it")
+    _format_option(p)
     p.set_defaults(func=cmd_fit)
 
     p = add_parser("compensate", help="apply a drift model to a capture; write a CSV row per period")
@@ -719,6 +748,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scale-override", type=_positive_float, metavar="ARCSEC_PER_COUNT",
                    help="use this scale factor whatever the IDENTITY frames say (the daemon's "
                         "scale_override_arcsec_per_count)")
+    _format_option(p)
     p.set_defaults(func=cmd_compensate)
 
     p = add_parser("run", help="the headless daemon: live compensation, publishing, control, raw capture")
@@ -731,6 +761,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", metavar="MODEL.yaml", help="drift model (default: the shipped fog_driver/data/models/default.yaml)")
     p.add_argument("--listen", metavar="HOST:PORT", help="where clients connect (default 127.0.0.1:2948)")
     p.add_argument("--capture-dir", dest="capture_dir", metavar="DIR", help="raw capture directory")
+    p.add_argument("--format", choices=["auto", *FORMAT_NAMES], metavar="FORMAT",
+                   help=f"the instrument's frame format (overrides 'format'; {', '.join(['auto', *FORMAT_NAMES])}); "
+                        "a format other than fog-v1 needs 'device' settings in the config")
     p.set_defaults(func=cmd_run)
 
     p = add_parser("watch", help="live view of a running daemon (fog-driver run): angle, rate, temperatures, counters")
@@ -779,6 +812,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default: the first 300 s of compensated output)")
     p.add_argument("--json", action="store_true", help="also print summary.json on stdout")
     p.add_argument("--force", action="store_true", help="overwrite the report folder; a model for another instrument")
+    _format_option(p)
     p.set_defaults(func=cmd_evaluate)
     return parser
 

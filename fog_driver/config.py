@@ -61,6 +61,34 @@ def parse_host_port(
 
 
 @dataclass(frozen=True)
+class DeviceConfig:
+    """How the instrument is set, for a frame format whose frames do not say it (``format`` other than
+    fog-v1): ``sources.WireSettings``'s keys, and the commands sent to the device on every open."""
+
+    rate_hz: int | None = None  #: the device's output rate (KVH ``=DR``), Hz
+    rot_format: str = "delta"  #: KVH ``=ROTFMT``: delta (angle increments) or rate
+    rot_units: str = "rad"  #: KVH ``=ROTUNITS``: rad or deg
+    temp_units: str = "c"  #: KVH ``=TEMPUNITS``: c (whole degC) or c_100 (0.01 degC)
+    serial: str = ""  #: the instrument's serial number (a model records the serial it was fitted on)
+    setup: tuple[str, ...] = ()  #: commands sent on every open (KVH: inside =CONFIG,1 ... =CONFIG,0)
+    setup_reply_timeout_s: float = 1.0  #: how long to wait for the device's answer to each setup command
+
+    def __post_init__(self) -> None:
+        from .transport.setup import validate_command
+
+        for command in self.setup:
+            validate_command(command)  # InvalidSetupCommand is a ValueError: "config: device: setup command ..."
+        if not 0 < self.setup_reply_timeout_s <= 30:
+            raise ValueError("setup_reply_timeout_s must be in (0, 30] s")
+
+    def device_setup(self):
+        """``transport.setup.DeviceSetup`` of the commands, or None when there are none."""
+        from .transport.setup import DeviceSetup
+
+        return DeviceSetup(commands=self.setup, reply_timeout_s=self.setup_reply_timeout_s) if self.setup else None
+
+
+@dataclass(frozen=True)
 class DriverConfig:
     """Every setting of the driver and the daemon (``configs/default.yaml`` documents each)."""
 
@@ -82,6 +110,9 @@ class DriverConfig:
     adapt_reference_dph: float | None = None  #: adapt from the start against this rate (None: frozen)
     adapt_state: str | None = None  #: restore the adaptation state from here at start, save it here
     force_model: bool = False  #: apply the model even when it was fitted for another instrument serial
+    format: str = "fog-v1"  #: the instrument's frame format (``formats.registry.FORMATS``), or auto: sniffed
+    axis: str = "z"  #: the instrument's angle axis, for a format with three (x, y or z)
+    device: DeviceConfig = DeviceConfig()  #: the device's settings, for a format other than fog-v1
 
     def __post_init__(self) -> None:
         if self.port is not None and not self.port:
@@ -104,6 +135,24 @@ class DriverConfig:
             parse_host_port(self.udp, allow_zero=False)
         if self.token is not None and len(self.token) < 8:
             raise ValueError("token must be at least 8 characters")
+        if self.format != "auto":
+            self.wire_settings(self.format)  # a format other than fog-v1 needs device.rate_hz, ...
+        if self.device.setup and not self.format.startswith("kvh-"):
+            raise ValueError(f"device.setup: setup commands are sent to a KVH device (format kvh-a, kvh-b or kvh-c), "
+                             f"not with format {self.format}")  # fmt: skip
+
+    def wire_settings(self, name: str | None = None):
+        """``sources.WireSettings`` of the configured format (``name``: the one the bytes showed, for auto)."""
+        from .sources import WireSettings
+
+        name = name or self.format
+        d = self.device
+        try:
+            return WireSettings(format=name, axis=self.axis, rate_hz=d.rate_hz, rot_format=d.rot_format,
+                                rot_units=d.rot_units, temp_units=d.temp_units, serial=d.serial)  # fmt: skip
+        except ValueError as exc:
+            where = "" if str(exc).startswith(("format", "axis")) else "device."
+            raise ValueError(f"{where}{exc}") from None
 
     def sample_stream(self) -> SampleStream:
         """A ``SampleStream`` applying this configuration's scale-factor rule."""

@@ -21,7 +21,7 @@ from . import __version__
 from .capture import CaptureWriter, sidecar_path, utc_now_iso, write_provenance
 from .errors import DeviceError, OutputFileError
 from .outputs import check_outputs
-from .protocol import DecoderCounters, FrameDecoder, IdentityFrame
+from .protocol import DecoderCounters, IdentityFrame
 from .transport import PortError, PortEvent, PortReader
 
 _FLUSH_EVERY_S = 1.0
@@ -60,6 +60,8 @@ def record(
     progress_every_s: float = 0.5,
     overwrite: bool = False,
     wait: bool = False,
+    wire: Any = None,
+    setup: Any = None,
 ) -> RecordResult:
     """Copy bytes from ``url`` into ``out_path`` until ``duration_s`` (host time) passes, ``stop`` is set,
     or (with ``reconnect=False``) the port is lost.
@@ -70,11 +72,16 @@ def record(
     once bytes flow, whatever was read is kept, whatever ends the recording.
     An existing capture or sidecar, or a missing directory, is an ``OutputFileError`` (before the port is
     opened) unless ``overwrite``; so is a failed write (disk full), after the sidecar has recorded how
-    far the capture got.
+    far the capture got.  ``wire``: what the port sends (``sources.WireSettings``, default protocol v1): its
+    decoder counts the frames, and the sidecar records it (``wire_format``, ``wire_settings``).  ``setup``: a
+    ``transport.setup.DeviceSetup`` run on every open (its replies are in the capture, as every byte read).
     """
+    from .sources import WireSettings
+
+    wire = wire or WireSettings()
     stop = stop or threading.Event()
     out_path = Path(out_path)
-    decoder = FrameDecoder()
+    decoder = wire.make_decoder()
     identity: IdentityFrame | None = None
     port_state = "opening"
     port_events: list[dict[str, Any]] = []
@@ -95,12 +102,18 @@ def record(
         "baud": baudrate,
         "start_utc": utc_now_iso(),
         "fog_driver_version": __version__,
+        **wire.sidecar_fields(),
     }
     if notes:
         base_fields["notes"] = notes
     check_outputs([out_path, sidecar_path(out_path)], force=overwrite)  # say so now, not after waiting for the port
+    on_open = None
+    if setup is not None:
+        from .transport.setup import make_on_open
+
+        on_open = make_on_open(setup)
     reader = PortReader(url, baudrate=baudrate, reconnect=reconnect, on_state=state_changed,
-                        first_open="wait" if wait else "fail")  # fmt: skip
+                        first_open="wait" if wait else "fail", on_open=on_open)  # fmt: skip
     chunks = reader.chunks(stop)
     timer = threading.Timer(duration_s, stop.set) if duration_s is not None else None
     if timer:

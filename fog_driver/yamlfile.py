@@ -117,6 +117,8 @@ def _kind(default: Any, annotation: str) -> str:
     """What a field holds: from its default, or (a None default) from its annotation."""
     if is_dataclass(default):
         return "dataclass"
+    if "tuple[str" in annotation:
+        return "strings"
     for name, types in (("bool", bool), ("int", int), ("float", float), ("str", str), ("tuple", tuple)):
         if isinstance(default, types):
             return name
@@ -177,6 +179,10 @@ def dataclass_from_mapping(cls: type, doc: Any, where: str, path: str = "") -> A
             if not isinstance(value, str):
                 raise InputFileError(f"{here}: expected a string, got {value!r}")
             values[key] = value
+        elif kind == "strings":
+            if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+                raise InputFileError(f"{here}: expected a list of strings, got {value!r}")
+            values[key] = tuple(value)
         else:
             if not isinstance(value, list) or not all(
                 isinstance(v, (int, float)) and not isinstance(v, bool) for v in value

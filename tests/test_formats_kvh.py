@@ -84,7 +84,7 @@ def sig(event) -> object:
     """An event without what depends on its place in the stream (offset, unwrapped seq)."""
     if isinstance(event, KvhBitFrame):
         return (event.kind, event.results)
-    return repr(dataclasses.replace(event, seq=None))
+    return repr(dataclasses.replace(event, seq=None, offset=0))
 
 
 def key(events: list) -> list[str]:

@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputFileError, UsageError
-from ..protocol import IdentityFrame, iter_decode_file
-from ..stream import SampleBlock, SampleStream, identity_is_plausible
+from ..protocol import IdentityFrame
+from ..stream import SampleBlock, identity_is_plausible
 from .adapt import AdaptConfig
 from .blocks import FLAG_GAP
 from .compensator import CompensatedColumns, CompensatedSample, Compensator
@@ -29,6 +29,17 @@ from .model import ModelFile
 
 class ModelMismatchError(UsageError):
     """The model was fitted for another instrument than the one on the port."""
+
+
+def check_channels(model_file: ModelFile, wire, model_name: str = "the model", what: str = "the capture") -> None:
+    """``ModelMismatchError`` when the frames of ``wire`` (``sources.WireSettings``) do not carry the temperature
+    channels ``model_file`` was fitted on: its inputs do not exist there, so no ``force`` can apply it."""
+    channels = tuple(model_file.temperature_channels)
+    if tuple(wire.temperature_channels) != channels:
+        raise ModelMismatchError(
+            f"{model_name} was fitted on the temperature channels {', '.join(channels)}; {what}'s {wire.format} "
+            f"frames carry {', '.join(wire.temperature_channels)}: it cannot be applied (fit a model on this "
+            f"instrument's captures)")  # fmt: skip
 
 
 def _new_instrument(current: IdentityFrame | None, identity: IdentityFrame) -> bool:
@@ -150,6 +161,7 @@ def compensate_capture(
     adapt_state: str | Path | None = None,
     scale_override_arcsec_per_count: float | None = None,
     save_adapt_state: bool = True,
+    wire_format: str = "auto",
 ) -> Iterator[tuple[float, CompensatedColumns]]:
     """Decode ``path`` block by block and yield (frame period s, compensated frames), bounded memory.
 
@@ -157,18 +169,23 @@ def compensate_capture(
     online against ``reference_rate_dph`` (None: frozen, but a restored state's adapted weights give the
     estimate, as in the daemon); ``adapt_state`` is restored first when it exists (as a new run: the bias is
     captured again) and, with ``save_adapt_state``, saved when the capture ends.
-    ``scale_override_arcsec_per_count``: the daemon's setting of that name.
+    ``scale_override_arcsec_per_count``: the daemon's setting of that name.  ``wire_format``: ``--format``
+    (``sources.wire_settings_for``); a model fitted on other temperature channels is refused first.
     """
-    stream = SampleStream(scale_override_arcsec_per_count=scale_override_arcsec_per_count)
+    from ..sources import CaptureReader, wire_settings_for
+
+    wire = wire_settings_for(path, wire_format)
+    check_channels(model_file, wire, model_name, str(path))
+    reader = CaptureReader(path, wire, scale_override_arcsec_per_count)
     binding = InstrumentCompensation(model_file, force=force, model_name=model_name, adapt=adapt,
                                      reference_rate_dph=reference_rate_dph, adapt_state=adapt_state)  # fmt: skip
     pending: list[SampleBlock] = []  # samples before the first IDENTITY
     samples_seen = 0
-    for part in iter_decode_file(path):
-        samples = stream.run(part)
+    for part in reader.parts():
+        samples = part.samples
         samples_seen += len(samples)
         if progress:
-            progress(part.counters.bytes_in)
+            progress(part.bytes_in)
         for identity, block in split_at_identities(samples, part.identities, binding):
             if identity is not None:
                 binding.bind(identity)

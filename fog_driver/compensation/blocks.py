@@ -105,9 +105,11 @@ class BlockAverager:
     closes the last, partial block at the end of a stream.
     """
 
-    def __init__(self, frame_period_s: float, model_rate_hz: float = 1.0) -> None:
+    def __init__(self, frame_period_s: float, model_rate_hz: float = 1.0, n_channels: int = 3) -> None:
         if not frame_period_s > 0 or not model_rate_hz > 0:
             raise ValueError("frame_period_s and model_rate_hz must be > 0")
+        #: the temperature places a format fills (a KVH: 1); the others' NaN is no thermometer fault
+        self.n_channels = n_channels
         self.frame_period_s = float(frame_period_s)
         self.model_rate_hz = float(model_rate_hz)
         self.block_us = int(round(1e6 / model_rate_hz))
@@ -181,7 +183,7 @@ class BlockAverager:
             if plausible_temp(value):  # not NaN, not implausible
                 self._sum_t[k] += value
                 self._n_t[k] += 1
-            else:
+            elif k < self.n_channels:
                 self._flags |= FLAG_THERMOMETER_FAULT
         if sample.status & STATUS_THERMOMETER_FAULT:
             self._flags |= FLAG_THERMOMETER_FAULT
@@ -212,7 +214,8 @@ class BlockAverager:
         sum_t = np.add.reduceat(np.where(valid, temps, 0.0), starts, axis=0)
         n_t = np.add.reduceat(valid.astype(np.int64), starts, axis=0)
         count = np.diff(np.r_[starts, n])
-        flags = np.where(np.logical_or.reduceat(~valid.all(axis=1), starts), FLAG_THERMOMETER_FAULT, 0)
+        flags = np.where(np.logical_or.reduceat(~valid[:, : self.n_channels].all(axis=1), starts),
+                         FLAG_THERMOMETER_FAULT, 0)  # fmt: skip
         flags |= np.where(
             np.logical_or.reduceat((samples.status & STATUS_THERMOMETER_FAULT) != 0, starts), FLAG_THERMOMETER_FAULT, 0
         )

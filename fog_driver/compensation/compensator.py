@@ -117,8 +117,10 @@ class Compensator:
         self.model_file = model_file
         self.model = model_file.model
         self.frame_period_s = float(frame_period_s)
-        self.averager = BlockAverager(frame_period_s, model_file.model_rate_hz)
-        self.features = FeatureExtractor(model_file.features, substitution=model_file.substitution)
+        self.n_channels = len(model_file.temperature_channels)
+        self.averager = BlockAverager(frame_period_s, model_file.model_rate_hz, self.n_channels)
+        self.features = FeatureExtractor(model_file.features, substitution=model_file.substitution,
+                                         n_channels=self.n_channels)  # fmt: skip
         self._normalizer = model_file.normalizer
         self.domain = model_file.domain
         self._block_s = 1.0 / model_file.model_rate_hz
@@ -248,9 +250,10 @@ class Compensator:
             raise ValueError(f"pipeline state: not numbers: {exc}") from None
         if len(scalars[6]) != 3:
             raise ValueError("pipeline state: last_temps needs 3 values")
-        averager = BlockAverager(self.averager.frame_period_s, self.averager.model_rate_hz)
+        averager = BlockAverager(self.averager.frame_period_s, self.averager.model_rate_hz, self.n_channels)
         averager.set_state(state["averager"])
-        features = FeatureExtractor(self.features.params, substitution=self.features.substitution)
+        features = FeatureExtractor(self.features.params, substitution=self.features.substitution,
+                                    n_channels=self.n_channels)  # fmt: skip
         try:
             features.set_state(state["features"])
         except (KeyError, TypeError, ValueError) as exc:
@@ -345,7 +348,7 @@ class Compensator:
         flags = self.estimate_flags
         if sample.missing_before or stale:
             flags |= FLAG_GAP
-        if not all(plausible_temp(t) for t in temps) or sample.status & STATUS_THERMOMETER_FAULT:
+        if not all(plausible_temp(t) for t in temps[: self.n_channels]) or sample.status & STATUS_THERMOMETER_FAULT:
             flags |= FLAG_THERMOMETER_FAULT
         return CompensatedSample(
             sample.seq, sample.t_s, sample.dtheta_arcsec, drift, dtheta_comp,
@@ -382,7 +385,8 @@ class Compensator:
             self.angle_comp_arcsec = float(angle_comp[-1])
         temps = np.column_stack([samples.t_top_c, samples.t_bottom_c, samples.t_housing_c])
         flags[samples.missing_before > 0] |= FLAG_GAP
-        bad_temp = ~plausible_temps(temps).all(axis=1) | ((samples.status & STATUS_THERMOMETER_FAULT) != 0)
+        bad_temp = ~plausible_temps(temps[:, : self.n_channels]).all(axis=1) | (
+            (samples.status & STATUS_THERMOMETER_FAULT) != 0)  # fmt: skip
         flags[bad_temp] |= FLAG_THERMOMETER_FAULT
         return CompensatedColumns(samples.seq, samples.t_s, dtheta, drift, dtheta_comp, angle_raw, angle_comp,
                                   temps, flags)  # fmt: skip

@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from .features import INPUT_NAMES, N_INPUTS
+from .features import INPUT_NAMES, channels_of, input_names
 
 #: Set on blocks whose inputs left the fit box (widened by its margin) or whose estimate was clipped.
 FLAG_EXTRAPOLATING = 1 << 6
@@ -43,25 +43,34 @@ FLAG_EXTRAPOLATING = 1 << 6
 LEVEL_MARGIN = 0.1
 LINEAR_MARGIN = 2.0
 MARGINS = (LEVEL_MARGIN,) * 3 + (LINEAR_MARGIN,) * 5
+
+
+def margins_for(n_inputs: int) -> tuple[float, ...]:
+    """``MARGINS`` for an input vector of ``n_inputs`` (``features.input_names``: the temperatures first)."""
+    n = channels_of(n_inputs)
+    return (LEVEL_MARGIN,) * n + (LINEAR_MARGIN,) * (n_inputs - n)
 #: The estimate's bound, in multiples of the range of the fit target's 1-minute means.
 ESTIMATE_LIMIT_FACTOR = 3.0
 
 
 @dataclass(frozen=True)
 class InputDomain:
-    """The fit data's box of the 8 inputs (raw units: degC, degC/min), its margins, and the estimate's bound."""
+    """The fit data's box of the inputs (raw units: degC, degC/min; ``names``, 8 for three temperature
+    channels), its margins, and the estimate's bound."""
 
     low: tuple[float, ...]
     high: tuple[float, ...]
     estimate_limit_dph: float
     margin: tuple[float, ...] = MARGINS
+    names: tuple[str, ...] = INPUT_NAMES
 
     def __post_init__(self) -> None:
         low = tuple(float(v) for v in self.low)
         high = tuple(float(v) for v in self.high)
         margin = tuple(float(v) for v in self.margin)
-        if len(low) != N_INPUTS or len(high) != N_INPUTS or len(margin) != N_INPUTS:
-            raise ValueError(f"the domain needs {N_INPUTS} lows, highs and margins")
+        n = len(self.names)
+        if len(low) != n or len(high) != n or len(margin) != n:
+            raise ValueError(f"the domain needs {n} lows, highs and margins")
         if not all(math.isfinite(a) and math.isfinite(b) and a <= b for a, b in zip(low, high)):
             raise ValueError("the domain's lows and highs must be finite, low <= high")
         if not all(math.isfinite(m) and m >= 0 for m in margin):
@@ -79,7 +88,8 @@ class InputDomain:
         object.__setattr__(self, "_bounds", bounds)
 
     @classmethod
-    def from_fit(cls, inputs: np.ndarray, minute_means_dph: np.ndarray) -> InputDomain:
+    def from_fit(cls, inputs: np.ndarray, minute_means_dph: np.ndarray,
+                 names: tuple[str, ...] = INPUT_NAMES) -> InputDomain:  # fmt: skip
         """The box of the fit's (rows, 8) raw inputs (finite values) and the bound from its target's
         1-minute means.  A target with no spread (a model of nothing) still gets a positive bound."""
         x = np.asarray(inputs, dtype=np.float64)
@@ -87,7 +97,7 @@ class InputDomain:
         means = np.asarray(minute_means_dph, dtype=np.float64)
         spread = float(np.ptp(means)) if len(means) else 0.0
         return cls(tuple(np.nanmin(x, axis=0)), tuple(np.nanmax(x, axis=0)),
-                   ESTIMATE_LIMIT_FACTOR * max(spread, 1e-3))  # fmt: skip
+                   ESTIMATE_LIMIT_FACTOR * max(spread, 1e-3), margins_for(len(names)), tuple(names))  # fmt: skip
 
     @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
@@ -120,11 +130,11 @@ class InputDomain:
     def outside_names(self, u: np.ndarray) -> list[str]:
         """The inputs of one row outside the widened box (for messages)."""
         lower, upper = self._bounds
-        return [name for name, v, a, b in zip(INPUT_NAMES, u, lower, upper) if v < a or v > b]
+        return [name for name, v, a, b in zip(self.names, u, lower, upper) if v < a or v > b]
 
     def to_dict(self) -> dict[str, Any]:
         return {
-            "inputs": list(INPUT_NAMES),
+            "inputs": list(self.names),
             "low": list(self.low),
             "high": list(self.high),
             "margin": list(self.margin),
@@ -136,8 +146,13 @@ class InputDomain:
         if not isinstance(doc, dict):
             raise ValueError("the domain must be a mapping")
         names = doc.get("inputs", list(INPUT_NAMES))
-        if list(names) != list(INPUT_NAMES):
-            raise ValueError(f"the domain's inputs must be {', '.join(INPUT_NAMES)}")
+        if not isinstance(names, list) or not all(isinstance(v, str) for v in names):
+            raise ValueError("the domain's inputs must be a list of names")
+        n = channels_of(len(names))  # the names must be those of some temperature channels
+        channels = tuple(v[2:-2] if v.startswith("t_") and v.endswith("_c") else "" for v in names[:n])
+        if not all(channels) or list(input_names(channels)) != list(names):
+            raise ValueError(f"the domain's inputs must be named as a model's inputs ({', '.join(INPUT_NAMES)} for "
+                             f"protocol v1)")  # fmt: skip
         for key in ("low", "high", "margin"):
             if not isinstance(doc.get(key), list) or not all(
                 isinstance(v, (int, float)) and not isinstance(v, bool) for v in doc[key]
@@ -146,4 +161,4 @@ class InputDomain:
         limit = doc.get("estimate_limit_dph")
         if not isinstance(limit, (int, float)) or isinstance(limit, bool):
             raise ValueError("the domain's 'estimate_limit_dph' must be a number")
-        return cls(tuple(doc["low"]), tuple(doc["high"]), float(limit), tuple(doc["margin"]))
+        return cls(tuple(doc["low"]), tuple(doc["high"]), float(limit), tuple(doc["margin"]), tuple(names))

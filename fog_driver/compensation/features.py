@@ -64,10 +64,47 @@ import numpy as np
 
 from . import numerics
 from .blocks import plausible_temp
-from .polynomial import standardized_ridge
 
-INPUT_NAMES = ("t_top_c", "t_bottom_c", "t_housing_c", "rate_top_c_per_min", "rate_bottom_c_per_min",
-               "rate_housing_c_per_min", "grad_top_bottom_c", "grad_top_housing_c")  # fmt: skip
+#: Protocol v1's thermometers, in the order they fill a sample's three temperature places.
+V1_CHANNELS = ("top", "bottom", "housing")
+
+
+def input_names(channels: tuple[str, ...] = V1_CHANNELS) -> tuple[str, ...]:
+    """The inputs made from a format's temperature channels (one to three, in their places' order)::
+
+        u = [T_1 .. T_n, dT_1/dt .. dT_n/dt, T_1 - T_2 .. T_1 - T_n]
+
+    three channels (protocol v1, STDBIN): the 8 inputs above; one channel (KVH): ``[T, dT/dt]``."""
+    if not 1 <= len(channels) <= 3:
+        raise ValueError(f"a model needs 1 to 3 temperature channels, not {len(channels)}")
+    return (tuple(f"t_{c}_c" for c in channels) + tuple(f"rate_{c}_c_per_min" for c in channels)
+            + tuple(f"grad_{channels[0]}_{c}_c" for c in channels[1:]))  # fmt: skip
+
+
+def input_columns(n_channels: int) -> list[int]:
+    """Where ``input_names`` of ``n_channels`` channels sit in the three-channel vector of 8."""
+    return list(range(n_channels)) + [3 + k for k in range(n_channels)] + [5 + k for k in range(1, n_channels)]
+
+
+def channels_of(n_inputs: int) -> int:
+    """How many temperature channels an input vector of ``n_inputs`` comes from (8: 3, 5: 2, 2: 1)."""
+    for n in (3, 2, 1):
+        if n_inputs == 3 * n - 1:
+            return n
+    raise ValueError(f"{n_inputs} inputs come from no number of temperature channels (8, 5 or 2 inputs)")
+
+
+def ring_of(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The ring's temperature and rate from rows of inputs (raw or standardized): the mean of the first two
+    channels (protocol v1: the fiber ring's top and bottom), or the one channel a one-channel format has."""
+    u = np.asarray(u)
+    n = channels_of(u.shape[-1])
+    if n == 1:
+        return u[..., 0], u[..., 1]
+    return 0.5 * (u[..., 0] + u[..., 1]), 0.5 * (u[..., n] + u[..., n + 1])
+
+
+INPUT_NAMES = input_names()
 N_INPUTS = len(INPUT_NAMES)
 #: Set when a thermometer's value is frozen (no valid reading, no healthy partner) for longer than ``hold_s``,
 #: or was never valid.
@@ -141,6 +178,10 @@ def fit_substitution(inputs: list[np.ndarray], usable: list[np.ndarray], block_s
     of ``chunk_s``: the RMS of the residual within each held-out chunk, its chunk mean removed (what a
     substitute drifts off over a fault of that length).  A pair is kept only where it beats the better
     single.  Returns ``Substitution.offsets()`` where the data are too few (under 4 chunks)."""
+    from .polynomial import standardized_ridge
+
+    if any(u.shape[1] != N_INPUTS for u in inputs):  # fewer than three channels: none to predict from
+        return Substitution.offsets()
     chunk = max(1, int(round(chunk_s / block_s)))
     rows = [(u[m], np.arange(len(u))[m] // chunk, i) for i, (u, m) in enumerate(zip(inputs, usable))]
     u = np.vstack([r[0] for r in rows]) if rows else np.empty((0, N_INPUTS))
@@ -207,10 +248,18 @@ class FeatureParams:
 
 
 class FeatureExtractor:
-    """Block temperatures -> the 8 inputs, with explicit state (smoothers, last valid values)."""
+    """Block temperatures -> the inputs (``input_names`` of the first ``n_channels`` temperature places; 8 for
+    three), with explicit state (smoothers, last valid values)."""
 
     def __init__(self, params: FeatureParams | None = None, state: dict | None = None,
-                 substitution: Substitution | None = None) -> None:  # fmt: skip
+                 substitution: Substitution | None = None, n_channels: int = 3) -> None:  # fmt: skip
+        if n_channels not in (1, 2, 3):
+            raise ValueError(f"n_channels must be 1, 2 or 3, not {n_channels!r}")
+        self.n_channels = n_channels
+        #: the temperature places in use (a format with fewer channels leaves the others out entirely: they
+        #: are never faulted, substituted or flagged, and never a partner)
+        self._present = [k < n_channels for k in range(3)]
+        self._columns = input_columns(n_channels)
         self.params = params or FeatureParams()
         self.substitution = substitution or Substitution.offsets()
         p = self.params
@@ -292,7 +341,7 @@ class FeatureExtractor:
         t = [math.nan] * 3
         rates = [math.nan] * 3
         for k in range(3):
-            if self._faulted[k]:
+            if self._faulted[k] or not self._present[k]:
                 continue
             if ok[k]:
                 healthy[k] = True
@@ -304,7 +353,7 @@ class FeatureExtractor:
         #    held).  A plausible reading that agrees with it, or after recover_s of plausible readings, is
         #    accepted again: the smoothers shift by the step, so it causes no rate spike.
         for k in range(3):
-            if healthy[k]:
+            if healthy[k] or not self._present[k]:
                 continue
             value = raw[k]
             (in_use, rate_in_use), substituted = self._substitute(k, healthy, t, rates), True
@@ -354,7 +403,8 @@ class FeatureExtractor:
         if self._recovering_s > 0:
             flags |= FLAG_RECOVERING
             self._recovering_s = max(0.0, self._recovering_s - ts)
-        return [t[0], t[1], t[2], rates[0], rates[1], rates[2], t[0] - t[1], t[0] - t[2]], flags
+        full = [t[0], t[1], t[2], rates[0], rates[1], rates[2], t[0] - t[1], t[0] - t[2]]
+        return (full if self.n_channels == 3 else [full[i] for i in self._columns]), flags
 
     def adopt_state(self, state: dict, substitution: Substitution) -> dict:
         """``state`` of an extractor that predicted sensors by ``substitution``, for this one: the offsets of
@@ -431,8 +481,8 @@ class FeatureExtractor:
         return sum(coef[i] * t[j] + coef[n + i] * rates[j] for i, j in enumerate(partners))
 
     def run(self, temps_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``step`` over blocks: (n, 8) inputs and (n,) flags, bit-identical."""
-        out = np.empty((len(temps_c), N_INPUTS))
+        """``step`` over blocks: (n, inputs) inputs and (n,) flags, bit-identical."""
+        out = np.empty((len(temps_c), len(self._columns)))
         flags = np.zeros(len(temps_c), dtype=np.int64)
         for i, row in enumerate(np.asarray(temps_c, dtype=np.float64).tolist()):
             out[i], flags[i] = self.step(row)

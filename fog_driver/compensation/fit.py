@@ -21,11 +21,17 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 
 from ..errors import InputFileError
-from ..protocol import iter_decode_file
-from ..stream import SampleStream
 from .blocks import FLAG_GAP, FLAG_THERMOMETER_FAULT, BlockAverager, BlockColumns
 from .domain import InputDomain
-from .features import DEGRADED_FLAGS, FeatureExtractor, FeatureParams, fit_substitution
+from .features import (
+    V1_CHANNELS,
+    DEGRADED_FLAGS,
+    FeatureExtractor,
+    FeatureParams,
+    fit_substitution,
+    input_names,
+    ring_of,
+)
 from .quality import FitQuality, assess, condition_number
 from .readout import Standardizer
 
@@ -71,6 +77,9 @@ class CaptureData:
     static: np.ndarray  #: bool: usable for fitting
     target_dph: np.ndarray  #: rate minus this capture's static mean
     moving_blocks: int = 0  #: blocks the motion detector found (``motion_mask``; not fitted)
+    #: its frame format's temperature channels (the inputs are ``features.input_names`` of them)
+    channels: tuple[str, ...] = V1_CHANNELS
+    wire_format: str = "fog-v1"
 
     @property
     def minutes(self) -> float:
@@ -121,16 +130,16 @@ def motion_mask(rate_dph: np.ndarray, config: FitConfig) -> np.ndarray:
 
 
 def static_mask(blocks: BlockColumns, input_flags: np.ndarray, config: FitConfig,
-                moving: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+                moving: np.ndarray | None = None, n_channels: int = 3) -> np.ndarray:  # fmt: skip
     """Blocks to fit: no motion (``moving``, by default ``motion_mask``; widened by ``motion_margin_s``),
     fresh, measured (not substituted) and settled thermometers, no lost frames, past the warm-up."""
-    return ~np.any(list(_exclusions(blocks, input_flags, config, moving).values()), axis=0)
+    return ~np.any(list(_exclusions(blocks, input_flags, config, moving, n_channels).values()), axis=0)
 
 
 def _exclusions(blocks: BlockColumns, input_flags: np.ndarray, config: FitConfig,
-                moving: np.ndarray | None = None) -> dict[str, np.ndarray]:  # fmt: skip
+                moving: np.ndarray | None = None, n_channels: int = 3) -> dict[str, np.ndarray]:  # fmt: skip
     """Why each block is not fitted (``static_mask``): one mask per reason, named as ``no_static_reason``
-    tells the user."""
+    tells the user.  ``n_channels``: the temperature places the capture's format fills."""
     moving = motion_mask(blocks.rate_dph, config) if moving is None else moving
     margin = int(round(config.motion_margin_s * config.model_rate_hz))
     if margin and moving.any():
@@ -140,17 +149,17 @@ def _exclusions(blocks: BlockColumns, input_flags: np.ndarray, config: FitConfig
         "warm-up": blocks.t_end_s <= config.warmup_s,
         "table motion (with motion_margin_s either side)": moving,
         "no valid, settled thermometers": ((input_flags & DEGRADED_FLAGS) != 0)
-        | ~np.all(np.isfinite(blocks.temps_c), axis=1),
+        | ~np.all(np.isfinite(blocks.temps_c[:, : n_channels]), axis=1),
         "lost frames": (blocks.flags & FLAG_GAP) != 0,
     }
 
 
 def no_static_reason(blocks: BlockColumns, input_flags: np.ndarray, config: FitConfig, moving: np.ndarray,
-                     warmup_setting: str) -> str:  # fmt: skip
+                     warmup_setting: str, n_channels: int = 3) -> str:  # fmt: skip
     """Why no block is static and valid, in the user's terms: the capture's length against the warm-up
     (named as ``warmup_setting``), or how many of the blocks after it each reason excluded."""
     length_s = float(blocks.t_end_s[-1]) if len(blocks) else 0.0
-    reasons = _exclusions(blocks, input_flags, config, moving)
+    reasons = _exclusions(blocks, input_flags, config, moving, n_channels)
     warmup = reasons.pop("warm-up")
     if warmup.all():
         return (f"the capture is {length_s:.0f} s and its first {config.warmup_s:g} s are excluded as warm-up "
@@ -172,13 +181,18 @@ def measured_rows(capture: CaptureData, config: FitConfig) -> np.ndarray:
 
 def load_capture(path: str | Path, config: FitConfig, progress: Callable[[int, int], None] | None = None, *,
                  purpose: str = "to fit", warmup_setting: str = "warmup_s in the fit config, fit --config FILE",
-                 ) -> CaptureData:  # fmt: skip
+                 wire_format: str = "auto") -> CaptureData:  # fmt: skip
     """Decode a capture block by block and reduce it to the model rate; ``progress(bytes read, file size)``
     after every block read.  No static, valid block is an ``InputFileError`` saying why
-    (``no_static_reason``; ``purpose`` and ``warmup_setting`` word it)."""
+    (``no_static_reason``; ``purpose`` and ``warmup_setting`` word it).  ``wire_format``: ``--format``
+    (``sources.wire_settings_for``: auto reads the sidecar, else sniffs)."""
+    from ..sources import CaptureReader, wire_settings_for
+
     path = Path(path)
     sha = hashlib.sha256()
-    stream = SampleStream()
+    wire = wire_settings_for(path, wire_format)
+    reader = CaptureReader(path, wire)
+    n_channels = len(wire.temperature_channels)
     averager: BlockAverager | None = None
     parts = []
     on_block = sha.update
@@ -191,14 +205,14 @@ def load_capture(path: str | Path, config: FitConfig, progress: Callable[[int, i
             done[0] += len(block)
             progress(done[0], size)
 
-    for part in iter_decode_file(path, on_block=on_block):
-        samples = stream.run(part)
+    for part in reader.parts(on_block=on_block):
+        samples = part.samples
         if averager is None:
-            if stream.identity is None:
+            if reader.identity is None:
                 if not len(samples):
                     continue
                 raise InputFileError(f"{path}: no IDENTITY frame before the first sample: frame rate unknown")
-            averager = BlockAverager(1.0 / stream.identity.rate_hz, config.model_rate_hz)
+            averager = BlockAverager(1.0 / reader.identity.rate_hz, config.model_rate_hz, n_channels)
         parts.append(averager.run(samples))
     if averager is None:
         from ..capture import what_it_is
@@ -206,16 +220,17 @@ def load_capture(path: str | Path, config: FitConfig, progress: Callable[[int, i
         raise InputFileError(f"{path}: no SAMPLE frames to fit{what_it_is(path)}")
     parts.append(BlockColumns.from_blocks(averager.flush()))
     blocks = BlockColumns(*(np.concatenate([getattr(p, f) for p in parts]) for f in BlockColumns.__dataclass_fields__))
-    inputs, input_flags = FeatureExtractor(config.features).run(blocks.temps_c)
+    inputs, input_flags = FeatureExtractor(config.features, n_channels=n_channels).run(blocks.temps_c)
     moving = motion_mask(blocks.rate_dph, config)
-    static = static_mask(blocks, input_flags, config, moving)
+    static = static_mask(blocks, input_flags, config, moving, n_channels)
     if not static.any():
-        reason = no_static_reason(blocks, input_flags, config, moving, warmup_setting)
+        reason = no_static_reason(blocks, input_flags, config, moving, warmup_setting, n_channels)
         raise InputFileError(f"{path}: no static, valid block {purpose}: {reason}")
     target = blocks.rate_dph - blocks.rate_dph[static].mean()
-    return CaptureData(path, sha.hexdigest(), stream.identity.serial if stream.identity else None,
-                       averager.frame_period_s, blocks, inputs, input_flags, static, target,
-                       int(moving.sum()))  # fmt: skip
+    identity = reader.identity
+    return CaptureData(path, sha.hexdigest(), identity.serial if identity else None, averager.frame_period_s, blocks,
+                       inputs, input_flags, static, target, int(moving.sum()), wire.temperature_channels,
+                       wire.format)  # fmt: skip
 
 
 def minute_rms(residual_dph: np.ndarray, mask: np.ndarray, model_rate_hz: float = 1.0) -> float:
@@ -561,6 +576,7 @@ def fit_model_file(
     fall_back: bool = False,
     accept_weak: bool = False,
     progress: Callable[[str], None] | None = None,
+    wire_format: str = "auto",
 ) -> tuple[ModelFile, FitReport]:
     """Fit ``kind`` (and the polynomial baseline beside it) to captures; return the model file and the report.
 
@@ -570,7 +586,9 @@ def fit_model_file(
     (``quality.assess``): a fit that fails a check raises ``WeakFitError`` unless ``accept_weak``, and
     then the model file's ``provenance.fit_quality`` records the failures and that they were accepted.
     ``progress(text)`` hears every phase and how far it is ("decoding paper.bin 40 %", "pso-svr: iteration
-    4/20, particle 12/16 (21 %)", "validating wesn on fast.bin (75 %)")."""
+    4/20, particle 12/16 (21 %)", "validating wesn on fast.bin (75 %)").  ``wire_format``: ``--format`` (the
+    captures' frame format; auto: each capture's sidecar, else sniffed); every capture must have the same
+    temperature channels, which the model file records."""
     from .model import ModelFile
 
     if kind not in FITTERS:
@@ -581,8 +599,13 @@ def fit_model_file(
         name = Path(p).name
         return None if progress is None else lambda done, total: say(f"decoding {name} {100 * done / max(total, 1):.0f} %")
 
-    captures = [load_capture(p, config, decoding(p)) for p in paths]
-    validate = [load_capture(p, config, decoding(p)) for p in validate_paths]
+    captures = [load_capture(p, config, decoding(p), wire_format=wire_format) for p in paths]
+    validate = [load_capture(p, config, decoding(p), wire_format=wire_format) for p in validate_paths]
+    for c in [*captures[1:], *validate]:
+        if c.channels != captures[0].channels:
+            raise InputFileError(f"{c.path}: {c.wire_format} frames with temperature channels {', '.join(c.channels)}; "
+                                 f"{captures[0].path.name} has {', '.join(captures[0].channels)}: one model is "
+                                 f"fitted on one instrument's channels")  # fmt: skip
     serials = {c.serial for c in captures}
     if len(serials) != 1:
         raise InputFileError(f"the fit captures come from different instruments: {', '.join(sorted(map(str, serials)))}")
@@ -591,7 +614,8 @@ def fit_model_file(
     if kind != "polynomial":
         models[kind] = FITTERS[kind](captures, normalizer, config, progress)
     inputs, means = static_rows(captures, config.model_rate_hz)
-    domain = InputDomain.from_fit(inputs, means)  # the fit's box, and the estimate's bound
+    channels = captures[0].channels
+    domain = InputDomain.from_fit(inputs, means, input_names(channels))  # the fit's box, and the estimate's bound
     substitution = fit_substitution([c.inputs for c in captures], [measured_rows(c, config) for c in captures],
                                     1.0 / config.model_rate_hz)  # fmt: skip
     report = report_for(models, normalizer, captures, validate, config.model_rate_hz, domain, progress)
@@ -644,6 +668,7 @@ def fit_model_file(
         provenance=provenance,
         domain=domain,
         substitution=substitution,
+        temperature_channels=channels,
     )
     if quality.failed and not accept_weak:
         raise WeakFitError(quality, report, model_file)
@@ -675,8 +700,9 @@ def _assess(inputs: np.ndarray, means: np.ndarray, validate: list[CaptureData], 
     by_name = {what: (fit_v, val_v) for what, fit_v, val_v in report.rows}
     before, after = by_name["before compensation"], by_name[f"after, {kind}"]
     validated = (before[1], after[1]) if validate else None
-    return assess(len(inputs) / rate / 60.0, 0.5 * (inputs[:, 0] + inputs[:, 1]), 0.5 * (inputs[:, 3] + inputs[:, 4]),
-                  means, condition, (before[0], after[0]), validated)  # fmt: skip
+    ring_c, ring_rate_c_per_min = ring_of(inputs)
+    return assess(len(inputs) / rate / 60.0, ring_c, ring_rate_c_per_min, means, condition, (before[0], after[0]),
+                  validated)  # fmt: skip
 
 
 def _plain(obj):

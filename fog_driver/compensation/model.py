@@ -10,6 +10,8 @@ date).  A model fitted for another serial is refused unless forced.
 
 from __future__ import annotations
 
+import copy
+
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -21,7 +23,7 @@ from ..capture import utc_now_iso
 from ..errors import InputFileError
 from ..yamlfile import read_tagged_yaml, write_yaml
 from .domain import InputDomain
-from .features import FeatureParams, Substitution, params_to_dict
+from .features import V1_CHANNELS, FeatureParams, Substitution, input_names, params_to_dict
 from .polynomial import PolynomialModel
 from .readout import Standardizer
 from .svr import SvrModel
@@ -76,6 +78,9 @@ class ModelFile:
     #: how a faulted thermometer is predicted from the others, fitted on the fit data; files made before it
     #: existed substitute a partner plus its last offset (``Substitution.offsets``)
     substitution: Substitution = field(default_factory=Substitution.offsets)
+    #: the frame format's temperature channels the model was fitted on (``features.input_names`` of them are
+    #: its inputs); files made before other formats existed: protocol v1's three
+    temperature_channels: tuple[str, ...] = V1_CHANNELS
     created_utc: str = field(default_factory=utc_now_iso)
     fog_driver_version: str = __version__
 
@@ -113,6 +118,7 @@ class ModelFile:
             "model": self.model.to_dict(),
             **({"domain": self.domain.to_dict()} if self.domain is not None else {}),
             "substitution": self.substitution.to_dict(),
+            "temperature_channels": list(self.temperature_channels),
             "provenance": self.provenance,
         }
 
@@ -140,15 +146,24 @@ def load_model(path: str | Path) -> ModelFile:
     try:
         features = FeatureParams(**_require(doc, "features", dict, where))
         normalizer = Standardizer.from_dict(_require(doc, "normalizer", dict, where))
-        if len(normalizer.mean) != 8 or len(normalizer.scale) != 8:
-            raise ValueError("the normalizer needs 8 means and 8 scales")
+        channels = doc.get("temperature_channels", list(V1_CHANNELS))
+        if (not isinstance(channels, list) or not 1 <= len(channels) <= 3
+                or not all(isinstance(c, str) and c.isidentifier() for c in channels)):  # fmt: skip
+            raise ValueError("temperature_channels must list 1 to 3 channel names")
+        channels = tuple(channels)
+        names = input_names(channels)
+        if len(normalizer.mean) != len(names) or len(normalizer.scale) != len(names):
+            raise ValueError(f"the normalizer needs {len(names)} means and scales ({', '.join(names)})")
         model = MODEL_KINDS[kind].from_dict(_require(doc, "model", dict, where))
+        copy.deepcopy(model).run(np.zeros((1, len(names))))  # a model of another input count fails here
         rate = float(_require(doc, "model_rate_hz", (int, float), where))
         domain = InputDomain.from_dict(doc["domain"]) if "domain" in doc else None
         substitution = Substitution.from_dict(doc["substitution"]) if "substitution" in doc else Substitution.offsets()
+        if domain is not None and domain.names != names:
+            raise ValueError(f"the domain's inputs must be {', '.join(names)}")
     except InputFileError:
         raise
-    except (TypeError, ValueError, KeyError) as exc:
+    except (TypeError, ValueError, KeyError, IndexError) as exc:
         raise InputFileError(f"{where}: corrupt model: {exc}") from None
     if not np.all(np.isfinite(normalizer.scale)) or not MIN_MODEL_RATE_HZ <= rate <= MAX_MODEL_RATE_HZ:
         raise InputFileError(f"{where}: corrupt model: non-finite normalizer, or a model rate outside "
@@ -165,6 +180,7 @@ def load_model(path: str | Path) -> ModelFile:
         provenance=doc.get("provenance") or {},
         domain=domain,
         substitution=substitution,
+        temperature_channels=channels,
         created_utc=str(doc.get("created_utc", "")),
         fog_driver_version=str(doc.get("fog_driver_version", "")),
     )

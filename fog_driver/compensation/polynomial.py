@@ -24,19 +24,38 @@ from __future__ import annotations
 import numpy as np
 
 from . import numerics
+from .features import channels_of
 from .readout import ridge_fit
 
-N_POLY_FEATURES = 9
+def _basis(z: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[np.ndarray], list[np.ndarray]]:
+    """R, dR, the levels after R ([G, H] for three channels) and the rates after dR ([dT3]), as columns.
+
+    Three channels (8 inputs): as the module docstring.  Two (5 inputs ``[T1 T2 dT1 dT2 G12]``): R, dR, G.
+    One (2 inputs ``[T dT]``, a KVH's one sensor): R = T, dR = dT, nothing else."""
+    z = np.asarray(z, dtype=np.float64)
+    n = channels_of(z.shape[-1])
+    if n == 1:
+        return z[..., 0:1], z[..., 1:2], [], []
+    r = 0.5 * (z[..., 0:1] + z[..., 1:2])
+    dr = 0.5 * (z[..., n : n + 1] + z[..., n + 1 : n + 2])
+    if n == 2:
+        return r, dr, [z[..., 4:5]], []
+    return r, dr, [z[..., 6:7], z[..., 2:3] - r], [z[..., 5:6]]
+
+
+def n_poly_features(n_inputs: int = 8) -> int:
+    """Regressors ``polynomial_features`` makes of ``n_inputs`` inputs: 9 (three channels), 7 (two), 6 (one)."""
+    return {3: 9, 2: 7, 1: 6}[channels_of(n_inputs)]
+
+
+N_POLY_FEATURES = n_poly_features()
 
 
 def polynomial_features(z: np.ndarray) -> np.ndarray:
-    """(n, 8) standardized inputs -> (n, 9) regressors; a single (8,) row gives (9,)."""
-    z = np.asarray(z, dtype=np.float64)
-    r = 0.5 * (z[..., 0:1] + z[..., 1:2])
-    dr = 0.5 * (z[..., 3:4] + z[..., 4:5])
-    g = z[..., 6:7]
-    h = z[..., 2:3] - r
-    return np.concatenate((r, r * r, r * r * r, dr, r * dr, r * r * dr, g, h, z[..., 5:6]), axis=-1)
+    """(n, 8) standardized inputs -> (n, 9) regressors; a single (8,) row gives (9,) (fewer channels: fewer,
+    ``_basis``)."""
+    r, dr, levels, rates = _basis(z)
+    return np.concatenate((r, r * r, r * r * r, dr, r * dr, r * r * dr, *levels, *rates), axis=-1)
 
 
 N_LEVEL_FEATURES = 3
@@ -46,9 +65,8 @@ def level_features(z: np.ndarray) -> np.ndarray:
     """The levels of the same basis, ``[R, G, H]``: no rates (the ring form's linear path; its coil
     neuron supplies the coil's own rate, ``(R - x) / tau``, and rates of the ring would only let a
     fit fake a wrong coil lag on slow ramps)."""
-    z = np.asarray(z, dtype=np.float64)
-    r = 0.5 * (z[..., 0:1] + z[..., 1:2])
-    return np.concatenate((r, z[..., 6:7], z[..., 2:3] - r), axis=-1)
+    r, _, levels, _ = _basis(z)
+    return np.concatenate((r, *levels), axis=-1)
 
 
 N_PHYSICAL_FEATURES = 5
@@ -57,10 +75,8 @@ N_PHYSICAL_FEATURES = 5
 def physical_features(z: np.ndarray) -> np.ndarray:
     """The linear part of the same basis, ``[R, G, H, dR, dT3]`` (the WESN's linear path: its
     neurons supply the fiber temperature's nonlinearity and the thermal history)."""
-    z = np.asarray(z, dtype=np.float64)
-    r = 0.5 * (z[..., 0:1] + z[..., 1:2])
-    dr = 0.5 * (z[..., 3:4] + z[..., 4:5])
-    return np.concatenate((r, z[..., 6:7], z[..., 2:3] - r, dr, z[..., 5:6]), axis=-1)
+    r, dr, levels, rates = _basis(z)
+    return np.concatenate((r, *levels, dr, *rates), axis=-1)
 
 
 class Memoryless:
@@ -88,8 +104,9 @@ class PolynomialModel(Memoryless):
     def __init__(self, weights: np.ndarray, intercept: float) -> None:
         self.weights = np.asarray(weights, dtype=np.float64)
         self.intercept = float(intercept)
-        if self.weights.shape != (N_POLY_FEATURES,):
-            raise ValueError(f"a polynomial model has {N_POLY_FEATURES} weights, got {self.weights.shape}")
+        if self.weights.shape not in ((9,), (7,), (6,)):
+            raise ValueError(f"a polynomial model has 9 weights (three channels), 7 (two) or 6 (one), got "
+                             f"{self.weights.shape}")  # fmt: skip
 
     @classmethod
     def fit(cls, z: np.ndarray, target: np.ndarray, alpha: float | None = None,

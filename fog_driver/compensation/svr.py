@@ -54,7 +54,6 @@ from ..extras import missing_message
 from . import numerics
 from .polynomial import Memoryless
 
-N_INPUTS = 8
 _CHUNK_FLOATS = 1 << 20  #: ``run`` works in chunks of rows whose differences (rows x n_sv x 8) fit in 8 MB
 
 MISSING_SKLEARN = missing_message("svr", "fitting a pso-svr model", ["scikit-learn"])
@@ -150,8 +149,9 @@ class SvrModel(Memoryless):
         self.cv_rms_dph = None if cv_rms_dph is None else float(cv_rms_dph)
         self.average_s = None if average_s is None else float(average_s)
         sv = self.support_vectors
-        if sv.ndim != 2 or sv.shape[1] != N_INPUTS or sv.shape[0] < 1:
-            raise ValueError(f"a pso-svr model needs support vectors of shape (n >= 1, {N_INPUTS}), got {sv.shape}")
+        if sv.ndim != 2 or sv.shape[1] not in (8, 5, 2) or sv.shape[0] < 1:
+            raise ValueError(f"a pso-svr model needs support vectors of shape (n >= 1, 8, 5 or 2 inputs), got {sv.shape}")
+        self.n_inputs = sv.shape[1]
         if self.dual_coef.shape != (sv.shape[0],):
             raise ValueError(f"a pso-svr model needs {sv.shape[0]} dual coefficients, got {self.dual_coef.shape}")
         if not (np.all(np.isfinite(sv)) and np.all(np.isfinite(self.dual_coef)) and math.isfinite(self.intercept)):
@@ -160,7 +160,7 @@ class SvrModel(Memoryless):
             raise ValueError(f"a pso-svr model's gamma must be finite and > 0, got {self.gamma!r}")
         self._neg_gamma = -self.gamma
         self._sv_by_input = np.ascontiguousarray(sv.T)  # (8, n_sv)
-        self._chunk_rows = max(1, _CHUNK_FLOATS // (N_INPUTS * len(sv)))
+        self._chunk_rows = max(1, _CHUNK_FLOATS // (self.n_inputs * len(sv)))
 
     @property
     def weights(self) -> np.ndarray:
@@ -196,13 +196,13 @@ class SvrModel(Memoryless):
 
     def regressors_step(self, z: np.ndarray) -> np.ndarray:
         """The regressor row for one block: the kernel row (n_sv,); the estimate is ``k . weights + intercept``."""
-        return self.kernel_rows(np.asarray(z, dtype=np.float64).reshape(1, N_INPUTS))[0]
+        return self.kernel_rows(np.asarray(z, dtype=np.float64).reshape(1, self.n_inputs))[0]
 
     def step(self, z: np.ndarray) -> float:
-        return float(self._predict(np.asarray(z, dtype=np.float64).reshape(1, N_INPUTS))[0])
+        return float(self._predict(np.asarray(z, dtype=np.float64).reshape(1, self.n_inputs))[0])
 
     def run(self, z: np.ndarray) -> np.ndarray:
-        z = np.asarray(z, dtype=np.float64).reshape(-1, N_INPUTS)
+        z = np.asarray(z, dtype=np.float64).reshape(-1, self.n_inputs)
         out = np.empty(len(z))
         for lo in range(0, len(z), self._chunk_rows):
             out[lo : lo + self._chunk_rows] = self._predict(z[lo : lo + self._chunk_rows])
@@ -299,7 +299,7 @@ def minute_rows(captures, normalizer, model_rate_hz: float, average_s: float = 6
         finite = np.all(np.isfinite(c.inputs), axis=1)
         z = normalizer.transform(np.where(np.isfinite(c.inputs), c.inputs, 0.0))
         ok = (c.static & finite)[:n].reshape(-1, per).all(axis=1)
-        zs.append(z[:n].reshape(-1, per, N_INPUTS)[ok].mean(axis=1))
+        zs.append(z[:n].reshape(-1, per, z.shape[1])[ok].mean(axis=1))
         ys.append(c.target_dph[:n].reshape(-1, per)[ok].mean(axis=1))
     return np.vstack(zs), np.concatenate(ys)
 

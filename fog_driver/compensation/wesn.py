@@ -82,6 +82,7 @@ import numpy as np
 
 from . import numerics
 from .aflp import AflpFilter, AflpParams
+from .features import channels_of, ring_of
 from .polynomial import (
     N_LEVEL_FEATURES,
     N_PHYSICAL_FEATURES,
@@ -129,9 +130,11 @@ _LINEAR_PATHS = {
 
 
 def n_regressors(n_neurons: int, linear_path: str, state_powers: int, max_power: int = 3,
-                 coil_rate: bool = False) -> int:  # fmt: skip
+                 coil_rate: bool = False, n_inputs: int = 8) -> int:  # fmt: skip
+    """Regressors of a WESN: neurons, powers, the coil's rate, and the linear path on ``n_inputs`` inputs."""
     path = _LINEAR_PATHS[linear_path]
-    return n_neurons + (max_power - 1) * state_powers + int(coil_rate) + (path[1] if path else 0)
+    linear = path[0](np.zeros(n_inputs)).shape[-1] if path else 0
+    return n_neurons + (max_power - 1) * state_powers + int(coil_rate) + linear
 
 
 @dataclass(frozen=True)
@@ -168,7 +171,7 @@ class WesnConfig:
     aflp_target: bool = False  #: fit to the stage-1 filtered drift instead of the raw one
 
     def reservoir(self, sample_time_s: float, fiber_lag_s: float | None = None, coil_order: int = 1,
-                  ring_weights: tuple[float, float] = (0.5, 0.5)) -> WaveletReservoir:
+                  ring_weights: tuple[float, ...] = (0.5, 0.5), n_inputs: int = 8) -> WaveletReservoir:
         """The ring form (``ring_input``): neuron 0, the coil, lags R by ``fiber_lag_s``, the history neurons
         1..H by ``history_s``; no recurrence, translation 0, dilation 1: each neuron a leaky memory of R near
         Psi's linear regime.  Each neuron's input is ``input_scale (w_top z_top + w_bottom z_bottom)``
@@ -180,6 +183,7 @@ class WesnConfig:
 
             s_1(n) = (1 - Ts m / tau) s_1(n-1) + (Ts m / tau) Psi(u(n)),   s_k: the same of s_(k-1)(n-1)
 
+        A one-channel format (``n_inputs`` 2, ``ring_weights`` (1,)): its one temperature is the ring.
         The random form: matrices drawn from ``seed`` (the paper's reservoir)."""
         if self.ring_input:
             lag = fiber_lag_s if fiber_lag_s is not None else self.fiber_lag_grid_s[0]
@@ -193,13 +197,13 @@ class WesnConfig:
             if coil_order > 1:  # stage k (neuron h+k) integrates stage k-1; the coil (neuron 0) the last one
                 chain = tuple([n - 1] + [-1] * h + [-1] + [h + k for k in range(1, coil_order - 1)])
             params = ReservoirParams(
-                n_neurons=n, n_inputs=8, sample_time_s=sample_time_s, leak_per_s=tuple(1.0 / t for t in lags),
+                n_neurons=n, n_inputs=n_inputs, sample_time_s=sample_time_s, leak_per_s=tuple(1.0 / t for t in lags),
                 normalized_leak=True, spectral_radius=0.0, input_scale=self.input_scale, seed=self.seed,
                 translation_range=(0.0, 0.0), dilation_range=(1.0, 1.0), chain_from=chain,
             )  # fmt: skip
-            w_in = np.zeros((n, 8))
-            w_in[:, 0] = ring_weights[0] * self.input_scale
-            w_in[:, 1] = ring_weights[1] * self.input_scale
+            w_in = np.zeros((n, n_inputs))
+            for k, weight in enumerate(ring_weights):
+                w_in[:, k] = weight * self.input_scale
             if coil_order > 1:
                 w_in[0] = 0.0  # the coil is driven by its inner stage only
             matrices = ReservoirMatrices(w_in, np.zeros((n, n)), np.zeros(n), np.ones(n), np.zeros(n))
@@ -207,7 +211,7 @@ class WesnConfig:
         leaks = (1.0 / self.single_leak_s if self.single_leak_s else
                  log_spaced_leaks(self.n_neurons, self.fastest_s, self.slowest_s))  # fmt: skip
         params = ReservoirParams(
-            n_neurons=self.n_neurons, n_inputs=8, sample_time_s=sample_time_s, leak_per_s=leaks,
+            n_neurons=self.n_neurons, n_inputs=n_inputs, sample_time_s=sample_time_s, leak_per_s=leaks,
             normalized_leak=self.normalized_leak, spectral_radius=self.spectral_radius, input_scale=self.input_scale,
             feedback_scale=self.feedback_scale, seed=self.seed, translation_range=self.translation_range,
             dilation_range=self.dilation_range,
@@ -258,7 +262,8 @@ class WesnModel:
         self._coil_leak = float(reservoir.params.leaks()[0])
         #: How the fit chose the structure (lag, penalty, scores), for the model file's provenance; None when loaded.
         self.selection: dict | None = None
-        expected = n_regressors(reservoir.params.n_neurons, linear_path, self.state_powers, max_power, coil_rate)
+        expected = n_regressors(reservoir.params.n_neurons, linear_path, self.state_powers, max_power, coil_rate,
+                                reservoir.params.n_inputs)  # fmt: skip
         if self.weights.shape != (expected,):
             raise ValueError(f"{kind} model: {expected} weights expected, got {self.weights.shape}")
 
@@ -440,8 +445,9 @@ def fit_wesn(kind: str, defaults: WesnConfig, captures, normalizer, config, prog
     if defaults.ring_input and defaults.readout == "ridge":
         return _fit_ring_form(kind, defaults, captures, normalizer, config, say)
     wc = defaults
-    reservoir = wc.reservoir(1.0 / config.model_rate_hz)
-    n_features = n_regressors(reservoir.params.n_neurons, wc.linear_path, wc.state_powers, wc.max_power)
+    reservoir = wc.reservoir(1.0 / config.model_rate_hz, n_inputs=len(normalizer.mean))
+    n_features = n_regressors(reservoir.params.n_neurons, wc.linear_path, wc.state_powers, wc.max_power,
+                              n_inputs=reservoir.params.n_inputs)  # fmt: skip
     model = WesnModel(kind, reservoir, np.zeros(n_features), 0.0, wc.linear_path, wc.state_powers, wc.max_power)
     regressors, targets = [], []
     for k, c in enumerate(captures):
@@ -494,9 +500,9 @@ def _fit_ring_form(kind: str, wc: WesnConfig, captures, normalizer, config, say=
     for order in wc.coil_orders:
         for lag in wc.fiber_lag_grid_s:
             say(f"{kind}: reservoir states, coil {len(per_coil) + 1}/{coils} ({100 * len(per_coil) / coils:.0f} %)")
-            reservoir = wc.reservoir(1.0 / rate, lag, order, weights)
+            reservoir = wc.reservoir(1.0 / rate, lag, order, weights, len(normalizer.mean))
             n_features = n_regressors(reservoir.params.n_neurons, wc.linear_path, wc.state_powers, wc.max_power,
-                                      wc.coil_rate)  # fmt: skip
+                                      wc.coil_rate, reservoir.params.n_inputs)  # fmt: skip
             probe = WesnModel(kind, reservoir, np.zeros(n_features), 0.0, wc.linear_path, wc.state_powers,
                               wc.max_power, wc.coil_rate)  # fmt: skip
             regressors = [_capture_regressors(probe, c, normalizer, None) for c in captures]
@@ -554,11 +560,14 @@ def _fit_ring_form(kind: str, wc: WesnConfig, captures, normalizer, config, say=
     return model
 
 
-def ring_weights_for(normalizer) -> tuple[float, float]:
+def ring_weights_for(normalizer) -> tuple[float, ...]:
     """(w_top, w_bottom) such that ``w_top z_top + w_bottom z_bottom`` on inputs standardized by
     ``normalizer`` is ``(R - mean R) / s``, R = (T1 + T2) / 2 the ring mean in degC, s = (s_top + s_bottom) / 2:
     ``w = s_k / (s_top + s_bottom)``.  (Equal weights on the standardized thermometers would weight
-    each by the inverse of its spread in the fit data: a combination no coil is made of.)"""
+    each by the inverse of its spread in the fit data: a combination no coil is made of.)  A one-channel
+    format: (1,), its one temperature."""
+    if channels_of(len(normalizer.scale)) == 1:
+        return (1.0,)
     s_top, s_bottom = float(normalizer.scale[0]), float(normalizer.scale[1])
     return s_top / (s_top + s_bottom), s_bottom / (s_top + s_bottom)
 
@@ -583,7 +592,7 @@ def identifiable_structure(wc: WesnConfig, captures, model_rate_hz: float) -> tu
     bias curve's powers need the ring temperature to span ``MIN_SPAN_C``, else the model is linear in
     the coil temperature (``state_powers`` 0)."""
     longest_s = max(len(c.static) for c in captures) / model_rate_hz
-    ring = np.concatenate([0.5 * (c.inputs[c.static, 0] + c.inputs[c.static, 1]) for c in captures])
+    ring = np.concatenate([ring_of(c.inputs[c.static])[0] for c in captures])
     ring = ring[np.isfinite(ring)]
     span_c = float(ring.max() - ring.min()) if len(ring) else 0.0
     minutes = longest_s / 60.0

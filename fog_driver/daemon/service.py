@@ -52,7 +52,7 @@ import structlog
 
 from .. import __version__
 from ..compensation.adapt import AdaptConfig, read_state_doc, write_state_doc
-from ..compensation.apply import InstrumentCompensation, ModelMismatchError
+from ..compensation.apply import InstrumentCompensation, ModelMismatchError, check_channels
 from ..compensation.compensator import (
     FLAG_NAMES,
     CompensatedSample,
@@ -62,7 +62,9 @@ from ..compensation.compensator import (
 from ..compensation.model import ModelFile, load_model
 from ..config import DriverConfig, parse_host_port
 from ..errors import FogDriverError, TemporaryFailure
-from ..protocol import FrameDecoder, IdentityFrame
+from ..protocol import IdentityFrame
+from ..sources import make_source
+from ..transport.setup import make_on_open
 from ..transport import PortError, PortEvent, PortReader
 
 log = structlog.get_logger("fog_driver.daemon")
@@ -117,7 +119,7 @@ class Service:
     #: Settings that need a restart; every other one applies on SIGHUP (``reload_config``).
     RESTART_KEYS = ("port", "baud", "listen", "udp", "capture_dir", "capture_rotate_mb", "capture_rotate_s",
                     "capture_keep_days", "capture_max_gb", "scale_arcsec_per_count",
-                    "scale_override_arcsec_per_count")  # fmt: skip
+                    "scale_override_arcsec_per_count", "format", "axis", "device")  # fmt: skip
 
     def __init__(self, config: DriverConfig, *, port: str, model_file: ModelFile | None = None) -> None:
         self.config = config
@@ -134,8 +136,9 @@ class Service:
         self.stop = threading.Event()
         self.started_monotonic = time.monotonic()
         self.adapt_state_sha256 = self._check_adapt_state(self.model_file)
-        self.decoder = FrameDecoder()
-        self.stream = self.config.sample_stream()
+        self.source = make_source(config)
+        if config.format != "auto":
+            self._check_channels(self.model_file, config.wire_settings(), f"the model {config.model_path}")
         self.binding = self._new_binding(self.model_file)
         self.identity: IdentityFrame | None = None
         self.port_state = "closed"
@@ -165,6 +168,14 @@ class Service:
     @property
     def compensator(self) -> Compensator | None:
         return self.binding.compensator
+
+    @staticmethod
+    def _check_channels(model_file: ModelFile, wire, model_name: str = "the model") -> None:
+        """A model fitted on other temperature channels than the instrument's format carries cannot run: exit 78."""
+        try:
+            check_channels(model_file, wire, model_name, "the instrument")
+        except ModelMismatchError as exc:
+            raise ConfigError(str(exc)) from None
 
     def _new_binding(self, model_file: ModelFile) -> InstrumentCompensation:
         return InstrumentCompensation(model_file, force=self.config.force_model,
@@ -212,6 +223,8 @@ class Service:
     def device_object(self) -> dict | None:
         obj: dict[str, Any] = {"class": "DEVICE", "path": self.port_url,
                                "state": "activated" if self.port_state == "open" else "deactivated"}  # fmt: skip
+        if self.source.wire is not None:
+            obj["format"] = self.source.wire.format
         if self.identity is not None:
             obj.update(self._identity_fields())
         if self.capture is not None:
@@ -226,7 +239,7 @@ class Service:
         wall_mark, cpu_mark = self._cpu_mark
         if mark_cpu:
             self._cpu_mark = (now, cpu)
-        c = self.decoder.counters
+        c = self.source.counters
         obj: dict[str, Any] = {
             "class": "STATUS",
             "uptime_s": round(now - self.started_monotonic, 3),
@@ -237,7 +250,7 @@ class Service:
             "bytes_discarded": c.bytes_discarded,
             "seq_gaps": c.seq_gaps,
             "missing_frames": c.missing_frames,
-            "identities_rejected": self.stream.identities_rejected,
+            "identities_rejected": self.source.identities_rejected,
             "instrument_changes": self.binding.rebuilds,
             "published": self.samples_published,
             "flagged": dict(self.flagged),
@@ -275,7 +288,7 @@ class Service:
     def angle_object(self, c: CompensatedSample) -> dict:
         period = self.compensator.frame_period_s
         rate_comp = c.dtheta_comp_arcsec / period - self.bias_dph
-        temps = {name: t for name, t in zip(("top", "bottom", "housing"), c.temps_c) if t == t}
+        temps = {name: t for name, t in zip(self.source.temperature_channels, c.temps_c) if t == t}
         return {
             "class": "ANGLE",
             "seq": c.seq,
@@ -301,6 +314,15 @@ class Service:
         if event.state in ("open", "lost") and self.hub is not None:
             self.hub.publish(self.device_object())
 
+    def _on_device_setup(self, result) -> None:
+        """The setup commands were sent on an open (the reader's thread, before the bytes read meanwhile are
+        yielded): logged, and noted in the capture's sidecar in order with the bytes.  The device re-initialises
+        its output for about ``settle_s`` after it; its status byte marks the frames it says are invalid."""
+        sent = [command.decode("ascii", "replace").strip() for command in result.sent]
+        log.info("device_setup", sent=sent, replies=list(result.replies), settle_s=result.settle_s)
+        with self.lock:
+            self._note("device_setup", sent=sent, replies=list(result.replies))
+
     def _on_capture_state(self, state: str) -> None:
         if self.hub is not None:
             self.hub.publish(self.device_object())
@@ -311,12 +333,9 @@ class Service:
         with self.lock:
             if self.capture is not None:
                 self.capture.put(chunk)
-            for event in self.decoder.feed(chunk):
-                sample = self.stream.step(event)
-                if isinstance(event, IdentityFrame):
+            for sample in self.source.feed(chunk):
+                if isinstance(sample, IdentityFrame):
                     self._on_identity(angles)
-                    continue
-                if sample is None:
                     continue
                 if not self.binding.bound:  # frame period unknown until the first IDENTITY
                     self.samples_before_identity.append(sample)
@@ -329,12 +348,18 @@ class Service:
 
     def _on_identity(self, angles: list[dict]) -> None:
         """The stream took an IDENTITY (an implausible one is counted there and changes nothing)."""
-        identity = self.stream.identity
+        identity = self.source.identity
         if identity is None or identity == self.identity:
             return
         changed = self.identity is None or self.identity[1:] != identity[1:]
         self.identity = identity
         if self.binding.changes_binding(identity):
+            if self.identity is None and self.config.format == "auto":  # the format is known from now on
+                check_channels(self.model_file, self.source.wire, f"the model {self.config.model_path}",
+                               "the instrument")  # ModelMismatchError: exit 78, as below
+                log.info("format_detected", format=self.source.wire.format)
+                if self.capture is not None:
+                    self.capture.update_provenance(self.source.wire.sidecar_fields())
             first = not self.binding.bound
             self.binding.bind(identity)  # ModelMismatchError: the acquisition stops with exit 78
             fields = self._identity_fields()
@@ -555,6 +580,8 @@ class Service:
         identity = self.binding.identity
         if identity is not None:
             self.binding.check(identity, model_file, force=force, model_name="the new model")
+        if self.source.wire is not None:
+            self._check_channels(model_file, self.source.wire, "the new model")
         new = None
         if identity is not None:
             new = Compensator(model_file, 1.0 / identity.rate_hz, adapt=AdaptConfig())
@@ -646,8 +673,10 @@ class Service:
                 self.capture = None
             self.hub.stop()
             raise
+        setup = self.config.device.device_setup()
+        on_open = None if setup is None else make_on_open(setup, on_result=self._on_device_setup)
         self.reader = PortReader(self.port_url, baudrate=self.config.baud, backoff_max_s=1.0,
-                                 on_state=self._on_port_state)  # fmt: skip
+                                 on_state=self._on_port_state, on_open=on_open)  # fmt: skip
         self._acquisition = threading.Thread(target=self._acquire, name="acquisition", daemon=True)
         self._acquisition.start()
         return address
@@ -664,6 +693,7 @@ class Service:
             "model": {"path": str(c.model_path), "sha256": self.model_sha256, "kind": self.model_file.kind,
                       "created_utc": self.model_file.created_utc,
                       "instrument_serial": self.model_file.instrument_serial},  # fmt: skip
+            **(self.source.wire.sidecar_fields() if self.source.wire is not None else {}),
             "settings": {"scale_arcsec_per_count": c.scale_arcsec_per_count,
                          "scale_override_arcsec_per_count": c.scale_override_arcsec_per_count,
                          "force_model": c.force_model, "adapt_reference_dph": c.adapt_reference_dph,

@@ -43,6 +43,7 @@ class ImuSample:
     from_rate: bool = False
     host_time: bool = False
     extra: dict[str, float] = field(default_factory=dict)  #: e.g. accelerations (m/s^2), heading/roll/pitch (deg)
+    offset: int = 0  #: byte offset of the frame in the stream the decoder was fed
 
 
 @dataclass

@@ -206,7 +206,7 @@ class StdbinDecoder(HuntingDecoder):
                 c.other_frames += 1
                 events.append(StdbinAnswer(telegram[2], telegram[ANSWER_HEADER_LEN:-CHECKSUM_LEN]))
             else:
-                sample = self._telegram(telegram)
+                sample = self._telegram(telegram, self._base + pos)
                 if sample is not None:
                     events.append(sample)
             c.bytes_in_frames += verdict
@@ -270,7 +270,7 @@ class StdbinDecoder(HuntingDecoder):
         self.counters.truncated_frames += 1
         return 0
 
-    def _telegram(self, t: bytes) -> ImuSample | None:
+    def _telegram(self, t: bytes, offset: int) -> ImuSample | None:
         """Decode one checksum-valid telegram (its bytes, header to checksum)."""
         c = self.counters
         version = t[2]
@@ -348,6 +348,7 @@ class StdbinDecoder(HuntingDecoder):
             status=status,
             from_rate=True,
             extra=extra,
+            offset=offset,
         )
 
     def _step_time(self, raw: int) -> float | None:

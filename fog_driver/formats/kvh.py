@@ -304,7 +304,7 @@ class KvhConfig:
         return {b: (name, n) for name, (b, n) in SAMPLE_FORMATS.items() if self.format in (None, name)}
 
 
-def _make_sample(cfg: KvhConfig, fmt: str, values: tuple, seq_unwrapped: int) -> ImuSample:
+def _make_sample(cfg: KvhConfig, fmt: str, values: tuple, seq_unwrapped: int, offset: int) -> ImuSample:
     k = _ARCSEC_PER_UNIT[cfg.rot_units]
     gyro = values[0:3]
     accel = values[3:6]
@@ -345,6 +345,7 @@ def _make_sample(cfg: KvhConfig, fmt: str, values: tuple, seq_unwrapped: int) ->
         from_rate=from_rate,
         host_time=True,
         extra=extra,
+        offset=offset,
     )
 
 
@@ -424,7 +425,8 @@ class KvhDecoder(HuntingDecoder):
             if fmt:
                 values = _BODY[fmt].unpack_from(buf, pos + HEADER_LEN)
                 seq_raw = values[-2] if fmt != "c" else values[-1]
-                events.append(_make_sample(self.config, fmt, values, self._unwrap.step(seq_raw % SEQ_MODULUS)))
+                events.append(_make_sample(self.config, fmt, values, self._unwrap.step(seq_raw % SEQ_MODULUS),
+                                           self._base + pos))
                 c.sample_frames += 1
             else:
                 events.append(KvhBitFrame(self._base + pos, b3, bytes(buf[pos + HEADER_LEN : check_at])))
@@ -489,7 +491,7 @@ class KvhBatch:
                 values = (*gyro[i], *accel[i], int(self.time_tag_us[i]), status, seq_raw, int(self.temp_raw[i]))
             else:
                 values = (*gyro[i], *accel[i], float(self.mux[i]), status, seq_raw)
-            out.append(_make_sample(cfg, fmt, values, int(self.seq[i])))
+            out.append(_make_sample(cfg, fmt, values, int(self.seq[i]), int(self.offset[i])))
         return out
 
 

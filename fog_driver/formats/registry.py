@@ -28,6 +28,8 @@ class FrameFormat:
     make_decoder: Callable[[], Any]
     #: the decoder's counters -> how many checksum-valid frames it has found
     valid_frames: Callable[[Any], int]
+    #: the format's temperature channels, in the order they fill a sample's three temperature places
+    temperature_channels: tuple[str, ...] = ()
 
 
 def _fog_v1() -> Any:
@@ -62,11 +64,16 @@ def _format_frames(counters: Any) -> int:
 FORMATS: dict[str, FrameFormat] = {
     f.name: f
     for f in (
-        FrameFormat("fog-v1", "fog_driver's own protocol v1 (firmware_protocol/PROTOCOL.md)", _fog_v1, _v1_frames),
-        FrameFormat("kvh-a", "KVH (EMCORE) DSP-1750/1760/1775 normal mode, Format A", _kvh("a"), _format_frames),
-        FrameFormat("kvh-b", "KVH (EMCORE) DSP-1750/1760/1775 normal mode, Format B", _kvh("b"), _format_frames),
-        FrameFormat("kvh-c", "KVH (EMCORE) DSP-1750/1760/1775 normal mode, Format C", _kvh("c"), _format_frames),
-        FrameFormat("ixblue-stdbin", "iXblue (Exail) STDBIN v2..v5 (Phins, Octans, ...)", _ixblue, _format_frames),
+        FrameFormat("fog-v1", "fog_driver's own protocol v1 (firmware_protocol/PROTOCOL.md)", _fog_v1, _v1_frames,
+                    ("top", "bottom", "housing")),
+        FrameFormat("kvh-a", "KVH (EMCORE) DSP-1750/1760/1775 normal mode, Format A", _kvh("a"), _format_frames,
+                    ("sensor",)),
+        FrameFormat("kvh-b", "KVH (EMCORE) DSP-1750/1760/1775 normal mode, Format B", _kvh("b"), _format_frames,
+                    ("sensor",)),
+        FrameFormat("kvh-c", "KVH (EMCORE) DSP-1750/1760/1775 normal mode, Format C", _kvh("c"), _format_frames,
+                    ("sensor",)),
+        FrameFormat("ixblue-stdbin", "iXblue (Exail) STDBIN v2..v5 (Phins, Octans, ...)", _ixblue, _format_frames,
+                    ("fog", "accelerometer", "board")),
     )
 }
 

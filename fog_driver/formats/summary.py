@@ -24,7 +24,8 @@ def decoder_for(name: str, settings: dict[str, Any] | None) -> Any:
     """The decoder of format ``name`` with the device settings a capture's sidecar recorded (``wire_settings``:
     KVH's ``rot_format``, ``rot_units``, ``temp_units``, ``rate_hz``; STDBIN's ``rate_hz``), else the defaults."""
     settings = dict(settings or {})
-    settings.pop("temperature_channel", None)
+    for key in ("temperature_channel", "temperature_channels", "version", "axis", "serial"):  # not the decoder's
+        settings.pop(key, None)
     if name.startswith("kvh-"):
         from .kvh import KvhDecoder
 

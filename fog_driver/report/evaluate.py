@@ -70,8 +70,8 @@ class Series:
 
 
 def per_second(capture: Path, model_file: ModelFile, *, force: bool = False, adapt=None,
-               reference_rate_dph: float | None = None,
-               progress: Callable[[int, int], None] | None = None) -> Series:  # fmt: skip
+               reference_rate_dph: float | None = None, progress: Callable[[int, int], None] | None = None,
+               wire_format: str = "auto") -> Series:  # fmt: skip
     """Block-average the capture and the drift the compensator applied, per device second (adapting
     against ``reference_rate_dph`` when ``adapt``, an ``AdaptConfig``, is given); ``progress(bytes done,
     bytes in all)`` over its two passes (decoding, compensating)."""
@@ -79,14 +79,16 @@ def per_second(capture: Path, model_file: ModelFile, *, force: bool = False, ada
     size = Path(capture).stat().st_size if Path(capture).is_file() else 0
     data = load_capture(capture, FitConfig(warmup_s=EVALUATE_WARMUP_S),
                         progress=None if progress is None else lambda done, _: progress(done, 2 * size),
-                        purpose="to evaluate", warmup_setting="evaluate's fixed warm-up")  # fmt: skip
+                        purpose="to evaluate", warmup_setting="evaluate's fixed warm-up",
+                        wire_format=wire_format)  # fmt: skip
     # One row per device second, the seconds no frame arrived in (a link gap) included as NaN, not static:
     # row k is second k for the drift a model applied and for a truth file's rows too, whatever was lost.
     index = np.asarray(data.blocks.index, dtype=np.int64)
     n = int(index[-1]) + 1 if index.size else 0
     drift, extrapolating = drift_per_second(
         capture, model_file, n, force=force, adapt=adapt, reference_rate_dph=reference_rate_dph,
-        progress=None if progress is None else lambda done: progress(size + done, 2 * size))  # fmt: skip
+        progress=None if progress is None else lambda done: progress(size + done, 2 * size),
+        wire_format=wire_format)  # fmt: skip
     return Series(_on_grid(index, data.blocks.t_end_s, n, np.arange(1.0, n + 1.0)),
                   _on_grid(index, data.blocks.rate_dph, n, np.nan),
                   drift, _on_grid(index, data.blocks.temps_c, n, np.nan),
@@ -104,7 +106,8 @@ def _on_grid(index: np.ndarray, values: np.ndarray, n: int, missing) -> np.ndarr
 
 def drift_per_second(capture: Path, model_file: ModelFile, n: int, *, force: bool = False, adapt=None,
                      reference_rate_dph: float | None = None, model_name: str = "the model",
-                     progress: Callable[[int], None] | None = None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+                     progress: Callable[[int], None] | None = None,
+                     wire_format: str = "auto") -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """The mean drift a model applied in each of the capture's first ``n`` device seconds, and how many of
     its frames were flagged extrapolating there (``progress(bytes decoded)``)."""
     sums: list[np.ndarray] = []
@@ -112,7 +115,8 @@ def drift_per_second(capture: Path, model_file: ModelFile, n: int, *, force: boo
     flagged: list[np.ndarray] = []
     first = None
     for _, cols in compensate_capture(capture, model_file, force=force, model_name=model_name, adapt=adapt,
-                                      reference_rate_dph=reference_rate_dph, progress=progress):  # fmt: skip
+                                      reference_rate_dph=reference_rate_dph, progress=progress,
+                                      wire_format=wire_format):  # fmt: skip
         if first is None:
             first = cols.t_s[0]
         second = np.floor(cols.t_s - first + 1e-9).astype(np.int64)
@@ -172,7 +176,7 @@ def stretch_warnings(stretch_s: float, minutes: int) -> list[str]:
 
 def evaluate(capture: Path, model_file: ModelFile, *, truth: dict[str, np.ndarray] | None = None,
              force: bool = False, label: str | None = None, compare: Mapping[str, ModelFile] | None = None,
-             progress: Callable[[str], None] | None = None,
+             progress: Callable[[str], None] | None = None, wire_format: str = "auto",
              ) -> tuple[dict[str, Any], Series, dict[str, AllanResult]]:  # fmt: skip
     """The report's numbers: read points, drift RMS and ADEV tables of the raw rate, the rate compensated
     by ``model_file`` (named ``label``) and by each ``compare`` model (by label); ``progress(text)`` says
@@ -186,12 +190,13 @@ def evaluate(capture: Path, model_file: ModelFile, *, truth: dict[str, np.ndarra
             return None
         return lambda done, total: progress(f"evaluating {step}/{passes}: {what} {100.0 * done / max(total, 1):3.0f} %")
 
-    series = per_second(capture, model_file, force=force, progress=say(1, f"decoding and compensating with {label}"))
+    series = per_second(capture, model_file, force=force, progress=say(1, f"decoding and compensating with {label}"),
+                        wire_format=wire_format)
     size = Path(capture).stat().st_size if Path(capture).is_file() else 0
     for k, (name, other) in enumerate(compare.items(), start=2):
         step = say(k, f"compensating with {name}")
         series.compared_drift_dph[name], _ = drift_per_second(
-            capture, other, len(series.t_s), force=force, model_name=f"model {name!r}",
+            capture, other, len(series.t_s), force=force, model_name=f"model {name!r}", wire_format=wire_format,
             progress=None if step is None else lambda done, step=step: step(done, size))  # fmt: skip
     stretch = longest_run(series.static)
     if stretch.stop - stretch.start < 64:

@@ -81,9 +81,7 @@ from ..compensation.apply import compensate_capture
 from ..compensation.compensator import FLAG_UNCOMPENSATED
 from ..compensation.model import ModelFile
 from ..errors import InputFileError, UsageError, read_error
-from ..protocol import iter_decode_file
 from ..sim.profiles import Stop
-from ..stream import SampleStream
 
 __all__ = [
     "BIAS_WINDOW_S",
@@ -351,16 +349,19 @@ class _Pass:
     ready_s: float | None = None
 
 
-def _columns(capture: Path, model_file: ModelFile | None, force: bool, name: str
+def _columns(capture: Path, model_file: ModelFile | None, force: bool, name: str, wire_format: str = "auto"
              ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:  # fmt: skip
     """(t_s absolute, raw angle, method's angle, temps (n, 3), uncompensated mask) per chunk."""
+    from ..sources import CaptureReader, wire_settings_for
+
     if model_file is not None:
-        for _, c in compensate_capture(capture, model_file, force=force, model_name=f"model {name!r}"):
+        for _, c in compensate_capture(capture, model_file, force=force, model_name=f"model {name!r}",
+                                       wire_format=wire_format):  # fmt: skip
             yield c.t_s, c.angle_raw_arcsec, c.angle_comp_arcsec, c.temps_c, (c.flags & FLAG_UNCOMPENSATED) != 0
         return
-    stream, angle = SampleStream(), 0.0
-    for part in iter_decode_file(capture):
-        s = stream.run(part)
+    angle = 0.0
+    for part in CaptureReader(capture, wire_settings_for(capture, wire_format)).parts():
+        s = part.samples
         if not len(s):
             continue
         a = angle + np.cumsum(s.dtheta_arcsec)
@@ -422,6 +423,7 @@ def positioning_table(
     remove_bias: bool = True,
     bias_window_s: tuple[float, float] | None = None,
     force: bool = False,
+    wire_format: str = "auto",
 ) -> list[Row]:
     """The paper's Table 1 for ``capture``: one ``Row`` per positioning sequence ([] when there is none).
 
@@ -453,7 +455,7 @@ def positioning_table(
             targets[RAW] = _Pass(_DwellSums(windows), ready_s=0.0)
         t0: float | None = None
         last_second = {key: -1 for key in targets}
-        for t_abs, raw, comp, temps, uncomp in _columns(capture, mf, force, name or ""):
+        for t_abs, raw, comp, temps, uncomp in _columns(capture, mf, force, name or "", wire_format):
             if t0 is None:
                 t0 = float(t_abs[0])
             t = t_abs - t0
@@ -570,6 +572,7 @@ def report_for(
     compare: Sequence[str | Path] | Mapping[str, ModelFile] = (),
     zero_window_s: tuple[float, float] | None = None,
     force: bool = False,
+    wire_format: str = "auto",
     label: str | None = None,
 ) -> str | None:
     """The positioning section of ``fog-driver evaluate``.
@@ -595,7 +598,7 @@ def report_for(
         while name in models or name == RAW:
             name += "'"
         models[name] = other_file
-    rows = positioning_table(capture, models, stops, force=force, bias_window_s=zero_window_s)
+    rows = positioning_table(capture, models, stops, force=force, bias_window_s=zero_window_s, wire_format=wire_format)
     if not rows:
         summary["positioning"] = None
         return None

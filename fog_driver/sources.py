@@ -1,0 +1,433 @@
+"""Bytes of any registered frame format -> the instrument's ``Sample`` stream, live or from a capture file.
+
+Protocol v1 frames say everything themselves (IDENTITY: rate, scale, serial).  Another format's frames do
+not, so its ``WireSettings`` say it: the format, the instrument's angle axis (``axis``, default z), the
+output rate (``rate_hz``) and, for KVH, the units the device was set to (``=ROTFMT``, ``=ROTUNITS``,
+``=TEMPUNITS``).  The daemon takes them from its config (``format:``, ``axis:``, ``device:``) and records
+them in each capture's sidecar (``wire_format``, ``wire_settings``), so offline tools never guess; a
+capture without a sidecar is sniffed (``formats.registry.sniff``) and another format's defaults apply.
+
+``ImuSampleStream`` reduces a format's ``ImuSample`` (three axes, named temperature channels, common flags)
+to the one-axis ``Sample`` the compensation consumes:
+
+* ``dtheta_arcsec``: the chosen axis' increment (a rate output: ``rate_dph / rate_hz``, the frame's own
+  period, as a protocol v1 frame's increment is; frames lost in a gap are counted in ``missing_before``,
+  their angle is not invented), held on a grid of ``2^-24`` arcsec (6e-8 arcsec, far below any gyro's
+  resolution) so that sums of increments are exact in float64 and do not depend on their order: the
+  per-sample and the batch paths and any split of a capture agree bit for bit, as they do for v1's integer
+  counts times a float32 scale;
+* the format's temperature channels (``FrameFormat.temperature_channels``) in the sample's three
+  temperature places in order (``t_top_c``, ``t_bottom_c``, ``t_housing_c`` hold a KVH's one ``sensor``
+  reading and two NaN, or STDBIN's ``fog``, ``accelerometer``, ``board``), held on a ``2^-16`` degC grid
+  (exact sums again); a channel a frame does not carry (KVH Format C multiplexes its temperature into every
+  fourth frame) keeps its last reading, a channel it reports invalid is NaN;
+* time: device time where the format has it (STDBIN's validity time, in whole microseconds); KVH normal
+  mode has none, so ``t_s = seq / rate_hz`` from the unwrapped sequence counter (a gap of a whole multiple
+  of the counter's 128 frames cannot be seen: the format's limit);
+* the common flags as protocol v1 status bits (``sensor_invalid`` -> loop unlocked, ``startup``,
+  ``over_range``, ``temperature_invalid`` -> thermometer fault), the raw status kept nowhere else;
+* an ``IdentityFrame`` made up before the first sample (``serial`` from the settings, firmware 0, the
+  settings' rate, scale 1), so every consumer binds the model as it does for protocol v1.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any, NamedTuple
+
+from .errors import InputFileError
+from .formats.common import AXES, FLAG_OVER_RANGE, FLAG_SENSOR_INVALID, FLAG_STARTUP, FLAG_TEMPERATURE_INVALID
+from .formats.common import ImuSample
+from .formats.registry import FORMATS, SNIFF_BYTES, sniff
+from .protocol import (
+    STATUS_LOOP_UNLOCKED,
+    STATUS_OVER_RANGE,
+    STATUS_STARTUP,
+    STATUS_THERMOMETER_FAULT,
+    IdentityFrame,
+)
+from .protocol.batch import FILE_BLOCK_BYTES
+from .stream import Sample, SampleBlock, SampleStream
+
+PROTOCOL_V1 = "fog-v1"
+#: Increments are held on this grid (arcsec) and temperatures on ``TEMP_GRID_C`` (degC): exact sums.
+DTHETA_GRID_ARCSEC = 2.0**-24
+TEMP_GRID_C = 2.0**-16
+_FLAG_STATUS = {FLAG_SENSOR_INVALID: STATUS_LOOP_UNLOCKED, FLAG_STARTUP: STATUS_STARTUP,
+                FLAG_OVER_RANGE: STATUS_OVER_RANGE, FLAG_TEMPERATURE_INVALID: STATUS_THERMOMETER_FAULT}  # fmt: skip
+#: Keys a sidecar's ``wire_settings`` may hold that describe the simulation, not the device: ignored here.
+_DESCRIPTIVE_KEYS = ("temperature_channel", "temperature_channels", "version")
+_KVH_CHOICES = {"rot_format": ("delta", "rate"), "rot_units": ("deg", "rad"), "temp_units": ("c", "c_100")}
+MAX_RATE_HZ = 100_000
+
+
+@dataclass(frozen=True)
+class WireSettings:
+    """What the frames of a stream are and how the device that sent them was set.
+
+    ``format``: a ``formats.registry.FORMATS`` name.  ``axis``: the instrument's angle axis among the
+    format's three (protocol v1 has one).  ``rate_hz``: the device's output rate (needed by every format but
+    protocol v1, whose IDENTITY says it).  ``rot_format``, ``rot_units``, ``temp_units``: KVH's ``=ROTFMT``,
+    ``=ROTUNITS``, ``=TEMPUNITS``.  ``serial``: the instrument's serial number where the format sends none
+    (a model file records the serial it was fitted on).
+    """
+
+    format: str = PROTOCOL_V1
+    axis: str = "z"
+    rate_hz: int | None = None
+    rot_format: str = "delta"
+    rot_units: str = "rad"
+    temp_units: str = "c"
+    serial: str = ""
+
+    def __post_init__(self) -> None:
+        if self.format not in FORMATS:
+            raise ValueError(f"format: unknown frame format {self.format!r} (known: {', '.join(FORMATS)})")
+        if self.axis not in AXES:
+            raise ValueError(f"axis: must be one of {', '.join(AXES)}, not {self.axis!r}")
+        if self.rate_hz is not None and not (isinstance(self.rate_hz, int) and 1 <= self.rate_hz <= MAX_RATE_HZ):
+            raise ValueError(f"rate_hz: must be an integer 1..{MAX_RATE_HZ}, not {self.rate_hz!r}")
+        if self.format != PROTOCOL_V1 and self.rate_hz is None:
+            raise ValueError(f"rate_hz: {self.format} frames do not say the device's output rate: give it")
+        for key, choices in _KVH_CHOICES.items():
+            if getattr(self, key) not in choices:
+                raise ValueError(f"{key}: must be one of {', '.join(choices)}, not {getattr(self, key)!r}")
+        if not isinstance(self.serial, str) or len(self.serial) > 64 or not self.serial.isprintable():
+            raise ValueError("serial: at most 64 printable characters")
+
+    @classmethod
+    def from_sidecar(cls, wire_format: str | None, settings: Any, where: str = "") -> WireSettings:
+        """From a sidecar's ``wire_format`` and ``wire_settings`` (None: protocol v1); ``ValueError`` naming
+        the key when they are not usable."""
+        if wire_format is None:
+            return cls()
+        if settings is None:
+            settings = {}
+        if not isinstance(settings, dict):
+            raise ValueError(f"{where}wire_settings: expected a mapping")
+        known = {f.name for f in fields(cls)} - {"format"}
+        values = {}
+        for key, value in settings.items():
+            if key in _DESCRIPTIVE_KEYS:
+                continue
+            if key not in known:
+                raise ValueError(f"{where}wire_settings: unknown key {key!r} (known: {', '.join(sorted(known))})")
+            values[key] = value
+        if isinstance(values.get("rate_hz"), float) and float(values["rate_hz"]).is_integer():
+            values["rate_hz"] = int(values["rate_hz"])
+        try:
+            return cls(format=str(wire_format), **values)
+        except ValueError as exc:
+            raise ValueError(f"{where}{exc}") from None
+
+    def sidecar_fields(self) -> dict[str, Any]:
+        """What a capture's sidecar records (nothing for protocol v1, whose frames say it all)."""
+        if self.format == PROTOCOL_V1:
+            return {}
+        settings: dict[str, Any] = {"rate_hz": self.rate_hz, "axis": self.axis}
+        if self.format.startswith("kvh-"):
+            settings.update(rot_format=self.rot_format, rot_units=self.rot_units, temp_units=self.temp_units)
+        if self.serial:
+            settings["serial"] = self.serial
+        return {"wire_format": self.format, "wire_settings": settings}
+
+    @property
+    def temperature_channels(self) -> tuple[str, ...]:
+        return FORMATS[self.format].temperature_channels
+
+    def make_decoder(self) -> Any:
+        """The format's streaming decoder, set as the device was."""
+        if self.format.startswith("kvh-"):
+            from .formats.kvh import KvhDecoder
+
+            return KvhDecoder(format=self.format[-1], rot_format=self.rot_format, rot_units=self.rot_units,
+                              temp_units=self.temp_units, rate_hz=self.rate_hz)  # fmt: skip
+        if self.format == "ixblue-stdbin":
+            from .formats.ixblue import StdbinDecoder
+
+            return StdbinDecoder(rate_hz=self.rate_hz)
+        return FORMATS[self.format].make_decoder()
+
+
+def _grid(value: float, step: float) -> float:
+    return round(value / step) * step if value == value else value
+
+
+class ImuSampleStream:
+    """``ImuSample`` events -> ``Sample`` records of the chosen axis (the module docstring), explicit state.
+
+    ``step(event)`` returns a ``Sample`` for an ``ImuSample`` and None for anything else (a built-in-test
+    reply, an answer telegram); ``identity`` is the made-up IDENTITY (set by ``step`` at the first sample).
+    """
+
+    identities_rejected = 0  #: (protocol v1's counter; another format has no IDENTITY to reject)
+    identity_changes = 0
+
+    def __init__(self, wire: WireSettings) -> None:
+        if wire.format == PROTOCOL_V1:
+            raise ValueError("protocol v1 frames go through stream.SampleStream")
+        self.wire = wire
+        self.channels = wire.temperature_channels
+        self.axis_index = AXES.index(wire.axis)
+        self.rate_hz = int(wire.rate_hz)
+        self.identity: IdentityFrame | None = None
+        self._last_seq: int | None = None
+        self._temps = [math.nan] * 3
+
+    def make_identity(self, offset: int) -> IdentityFrame:
+        return IdentityFrame(offset, self.wire.serial, 0, self.rate_hz, 1.0)
+
+    def step(self, event: Any) -> Sample | None:
+        if not isinstance(event, ImuSample):
+            return None
+        if self.identity is None:
+            self.identity = self.make_identity(event.offset)
+        a = self.axis_index
+        if event.from_rate:
+            dtheta = event.rate_dph[a] / self.rate_hz
+        else:
+            dtheta = event.dtheta_arcsec[a]
+        seq = event.seq if event.seq is not None else (0 if self._last_seq is None else self._last_seq + 1)
+        missing = 0 if self._last_seq is None else max(0, seq - self._last_seq - 1)
+        self._last_seq = seq
+        if event.t_s is None or event.host_time:
+            t_us = seq * 1_000_000 // self.rate_hz
+        else:
+            t_us = round(event.t_s * 1e6)
+        temps = self._temps
+        for k, name in enumerate(self.channels):
+            if name in event.temps_c:
+                temps[k] = _grid(float(event.temps_c[name]), TEMP_GRID_C)
+        status = 0
+        for flag in event.flags:
+            status |= _FLAG_STATUS.get(flag, 0)
+        return Sample(seq, t_us / 1e6, _grid(float(dtheta), DTHETA_GRID_ARCSEC), temps[0], temps[1], temps[2],
+                      status, missing, event.offset)  # fmt: skip
+
+
+class SampleSource:
+    """A live stream's bytes -> ``Sample`` and ``IdentityFrame`` items, for any format (the daemon's front end).
+
+    ``feed(chunk)`` returns, in stream order, the IDENTITY frames (protocol v1's, or another format's made-up
+    one before its first sample) and the samples.  ``counters`` are the decoder's (``bytes_in``,
+    ``sample_frames``, ``crc_errors``, ``bytes_discarded``, ``seq_gaps``, ``missing_frames`` in every format).
+    """
+
+    def __init__(self, wire: WireSettings, v1_stream: SampleStream | None = None) -> None:
+        self.wire = wire
+        self.decoder = wire.make_decoder()
+        self.stream: SampleStream | ImuSampleStream = (
+            (v1_stream or SampleStream()) if wire.format == PROTOCOL_V1 else ImuSampleStream(wire))  # fmt: skip
+
+    @property
+    def counters(self) -> Any:
+        return self.decoder.counters
+
+    @property
+    def identity(self) -> IdentityFrame | None:
+        return self.stream.identity
+
+    @property
+    def identities_rejected(self) -> int:
+        return self.stream.identities_rejected
+
+    @property
+    def temperature_channels(self) -> tuple[str, ...]:
+        return self.wire.temperature_channels
+
+    def feed(self, chunk: bytes) -> list[Sample | IdentityFrame]:
+        return self._items(self.decoder.feed(chunk))
+
+    def close(self) -> list[Sample | IdentityFrame]:
+        return self._items(self.decoder.close())
+
+    def _items(self, events: list) -> list[Sample | IdentityFrame]:
+        out: list[Sample | IdentityFrame] = []
+        stream = self.stream
+        if isinstance(stream, SampleStream):
+            for event in events:
+                sample = stream.step(event)
+                if sample is not None:
+                    out.append(sample)
+                elif isinstance(event, IdentityFrame):
+                    out.append(event)
+            return out
+        for event in events:
+            first = stream.identity is None
+            sample = stream.step(event)
+            if sample is None:
+                continue
+            if first:
+                out.append(stream.identity)
+            out.append(sample)
+        return out
+
+
+class AutoSampleSource:
+    """``SampleSource`` for ``format: auto``: the bytes are held until ``formats.registry.sniff`` names their
+    format (``MIN_FRAMES`` checksum-valid frames of one format), then fed to that format's source, built by
+    ``make_wire(name)``; ``wire`` is None until then.  Held bytes beyond ``SNIFF_BYTES`` with no verdict are
+    dropped oldest first (``bytes_unsniffed``; the raw capture keeps them all)."""
+
+    def __init__(self, make_wire: Callable[[str], WireSettings], v1_stream: SampleStream | None = None) -> None:
+        from .formats.common import FormatCounters
+
+        self._make_wire = make_wire
+        self._v1_stream = v1_stream
+        self._held = bytearray()
+        self._source: SampleSource | None = None
+        self._counters = FormatCounters()
+        self.bytes_unsniffed = 0
+
+    @property
+    def wire(self) -> WireSettings | None:
+        return None if self._source is None else self._source.wire
+
+    @property
+    def counters(self) -> Any:
+        return self._counters if self._source is None else self._source.counters
+
+    @property
+    def identity(self) -> IdentityFrame | None:
+        return None if self._source is None else self._source.identity
+
+    @property
+    def identities_rejected(self) -> int:
+        return 0 if self._source is None else self._source.identities_rejected
+
+    @property
+    def temperature_channels(self) -> tuple[str, ...]:
+        return FORMATS[PROTOCOL_V1].temperature_channels if self._source is None else self._source.temperature_channels
+
+    def feed(self, chunk: bytes) -> list[Sample | IdentityFrame]:
+        if self._source is not None:
+            return self._source.feed(chunk)
+        self._held += chunk
+        self._counters.bytes_in += len(chunk)
+        seen = sniff(self._held)
+        if seen.name is None or seen.frames[seen.name] < 2:
+            excess = len(self._held) - SNIFF_BYTES
+            if excess > 0:
+                del self._held[:excess]
+                self.bytes_unsniffed += excess
+            return []
+        self._source = SampleSource(self._make_wire(seen.name), self._v1_stream)
+        held, self._held = bytes(self._held), bytearray()
+        return self._source.feed(held)
+
+
+def make_source(config: Any) -> SampleSource | AutoSampleSource:
+    """The daemon's front end for a ``config.DriverConfig``: its format's source, or a sniffing one (auto)."""
+    v1_stream = config.sample_stream()
+    if config.format == "auto":
+        return AutoSampleSource(config.wire_settings, v1_stream)
+    return SampleSource(config.wire_settings(), v1_stream)
+
+
+class SamplePart(NamedTuple):
+    """One block of a capture file, decoded: its samples, the IDENTITY frames among them, bytes read so far."""
+
+    samples: SampleBlock
+    identities: list[IdentityFrame]
+    bytes_in: int
+
+
+class CaptureReader:
+    """A capture file's samples block by block (bounded memory), in whatever format it is.
+
+    ``wire``: how to read it (``wire_settings_for`` works it out from ``--format``, the sidecar and the
+    bytes).  ``parts()`` yields ``SamplePart``; ``identity`` is the IDENTITY in force (None before one).
+    """
+
+    def __init__(self, path: str | Path, wire: WireSettings | None = None,
+                 scale_override_arcsec_per_count: float | None = None) -> None:  # fmt: skip
+        self.path = Path(path)
+        self.wire = wire or WireSettings()
+        if self.wire.format == PROTOCOL_V1:
+            self.stream: SampleStream | ImuSampleStream = SampleStream(
+                scale_override_arcsec_per_count=scale_override_arcsec_per_count)
+        else:
+            self.stream = ImuSampleStream(self.wire)
+        self.counters: Any = None
+
+    @property
+    def identity(self) -> IdentityFrame | None:
+        return self.stream.identity
+
+    def parts(self, on_block: Callable[[bytes], None] | None = None,
+              block_bytes: int = FILE_BLOCK_BYTES) -> Iterator[SamplePart]:  # fmt: skip
+        if self.wire.format == PROTOCOL_V1:
+            from .protocol import iter_decode_file
+
+            for part in iter_decode_file(self.path, block_bytes, on_block=on_block):
+                self.counters = part.counters
+                yield SamplePart(self.stream.run(part), part.identities, part.counters.bytes_in)
+            return
+        source = SampleSource(self.wire)
+        source.stream = self.stream
+        self.counters = source.counters
+        try:
+            f = self.path.open("rb")
+        except OSError as exc:
+            raise InputFileError(f"{self.path}: cannot read the capture: {exc.strerror or exc}") from None
+        with f:
+            while True:
+                block = f.read(block_bytes)
+                if on_block and block:
+                    on_block(block)
+                items = source.feed(block) if block else source.close()
+                samples = [s for s in items if isinstance(s, Sample)]
+                identities = [s for s in items if isinstance(s, IdentityFrame)]
+                yield SamplePart(SampleBlock.from_samples(samples), identities, source.counters.bytes_in)
+                if not block:
+                    return
+
+
+def wire_settings_for(path: str | Path, requested: str = "auto", *, override: WireSettings | None = None
+                      ) -> WireSettings:  # fmt: skip
+    """How to read the capture ``path``: ``requested`` is ``--format`` (``auto``: the sidecar's
+    ``wire_format``, else what the sniffer finds in the first bytes, else protocol v1).  A requested format
+    that the bytes contradict is an ``InputFileError`` naming what the sniffer saw; so is a sidecar whose
+    wire settings cannot be used.  ``override``: settings given by the caller (a daemon config), used
+    when the sidecar has none."""
+    from .capture import find_sidecar, read_provenance, sidecar_path
+
+    doc = read_provenance(path) or {}
+    where = f"{find_sidecar(path)}: "
+    try:
+        with open(path, "rb") as f:
+            head = f.read(SNIFF_BYTES)
+    except OSError as exc:
+        raise InputFileError(f"{path}: cannot read the capture: {exc.strerror or exc}") from None
+    seen = sniff(head)
+    recorded = doc.get("wire_format") if isinstance(doc.get("wire_format"), str) else None
+    if requested == "auto":
+        name = recorded or seen.name or (override.format if override else PROTOCOL_V1)
+    else:
+        name = requested
+        if seen.name is not None and seen.name != name:
+            raise InputFileError(f"{path}: --format {name}, but the sniffer saw {seen.describe()}")
+    if seen.name is None and head and name != PROTOCOL_V1 and not _frames_of(name, head):
+        raise InputFileError(f"{path}: no {name} frame: the sniffer saw {seen.describe()}")
+    if recorded == name:
+        try:
+            return WireSettings.from_sidecar(name, doc.get("wire_settings"), where)
+        except ValueError as exc:
+            raise InputFileError(str(exc)) from None
+    if override is not None and override.format == name:
+        return override
+    if name == PROTOCOL_V1:
+        return WireSettings()
+    raise InputFileError(f"{path}: a {name} capture needs the device's settings (rate_hz ...) and has no sidecar "
+                         f"recording them: write {sidecar_path(path).name} with wire_format and "
+                         f"wire_settings (see the README)")  # fmt: skip
+
+
+def _frames_of(name: str, head: bytes) -> int:
+    fmt = FORMATS[name]
+    decoder = fmt.make_decoder()
+    decoder.feed(head)
+    return fmt.valid_frames(decoder.counters)
