@@ -20,6 +20,8 @@ from hypothesis import strategies as st
 from fog_driver.formats.common import FLAG_STARTUP, ImuSample
 from fog_driver.formats.ixblue import (
     EXTNAV_BLOCK_LEN,
+    MAX_TELEGRAM_LEN,
+    MAX_UNVERIFIED_LEN,
     NAV_BLOCK_LEN,
     StdbinAnswer,
     StdbinDecoder,
@@ -429,6 +431,22 @@ def test_a_bit_of_unknown_size_is_allowed_when_the_size_leaves_room_for_it():
     events, counters, _ = _decode(no_room + roomy)
     assert [e.rate_dph for e in events] == [(3600.0, 7200.0, 10800.0)]
     assert counters["unknown_blocks"] == 1 and counters["length_errors"] == 1
+
+
+def test_a_false_header_of_unknown_size_does_not_hold_a_live_stream_back():
+    # a header with a bit of unknown size can only be checked by its checksum: one that claims 65,535 bytes
+    # would make a live decoder wait for that many before the next telegram came out (seconds at 100 Hz)
+    base = encode_stdbin(3, counter=9, validity_time_100us=0, rotation_rate_dps=(1.0, 2.0, 3.0))
+    false = bytearray(_resized(base, bytes(6), external_bit=23))
+    size_at = 15  # v3: "IX", version, three 4-byte masks, then the telegram size
+    struct.pack_into(">H", false, size_at, MAX_TELEGRAM_LEN)
+    good = [encode_stdbin(3, counter=k, validity_time_100us=100 * k, rotation_rate_dps=(1.0, 2.0, 3.0))
+            for k in range(10, 14)]  # fmt: skip
+    decoder = StdbinDecoder()
+    decoder.feed(bytes(false[:40]))
+    for k, telegram in zip(range(10, 14), good):  # fed as they arrive: each comes out at once
+        assert [e.seq for e in decoder.feed(telegram)][-1:] == [k]
+    assert decoder.counters.length_errors >= 1 and MAX_UNVERIFIED_LEN < MAX_TELEGRAM_LEN
 
 
 def test_validity_time_a_small_step_back_is_not_a_wrap_and_uses_the_nominal_period():

@@ -58,8 +58,8 @@ rate, so ``from_rate`` is True, ``rate_dph`` is the rate as sent and ``dtheta_ar
 previous telegram or the step is not positive, or NaN when ``rate_hz`` was not given.  ``seq`` is the
 counter unwrapped by ``SeqUnwrapper(2**32)``.  A telegram without the rotation-rate block gives no sample
 (``other_frames``).  An impossible header (unknown version, or a telegram size that differs from header +
-announced blocks + checksum, or that is too small when a bit of unknown size is set) costs one byte
-(``length_errors``).  STDBIN telegrams are variable-length: there is no fixed-stride batch path.
+announced blocks + checksum, or, when a bit of unknown size is set, one too small for the known blocks or
+above ``MAX_UNVERIFIED_LEN``) costs one byte (``length_errors``).  STDBIN telegrams are variable-length: there is no fixed-stride batch path.
 
 Answer telegrams (replies to commands), ``ixblue_stdbin_decoder`` ``parseHeader`` / ``ANSWER_HEADER_SIZE``::
 
@@ -89,6 +89,10 @@ ANSWER_HEADER_LEN = 5
 HEADER_LEN = {2: 21, 3: 25, 4: 27, 5: 27}  #: bytes before the first block, per protocol version
 CHECKSUM_LEN = 4
 MAX_TELEGRAM_LEN = 0xFFFF  #: the telegram-size field is 16 bits
+#: A telegram with a block of unknown size cannot have its size checked against its blocks: such a header is
+#: believed up to this size only (the real telegrams are a few hundred bytes).  Without the cap, a false
+#: header that claims 65,535 bytes holds a live stream's output back until that many bytes have arrived.
+MAX_UNVERIFIED_LEN = 4096
 TIME_LSB_S = 1e-4  #: validity time step (100 us)
 TIME_MODULUS = 1 << 32
 COUNTER_MODULUS = 1 << 32
@@ -248,7 +252,7 @@ class StdbinDecoder(HuntingDecoder):
             k, u = _blocks_len(mask, table)
             known += k
             unknown += u
-        if (size != known) if unknown == 0 else (size < known + unknown):
+        if (size != known) if unknown == 0 else not (known + unknown <= size <= MAX_UNVERIFIED_LEN):
             c.length_errors += 1
             return 0
         return self._check(buf, pos, end, size, final)
