@@ -113,6 +113,7 @@ class DriverConfig:
     format: str = "fog-v1"  #: the instrument's frame format (``formats.registry.FORMATS``), or auto: sniffed
     axis: str = "z"  #: the instrument's angle axis, for a format with three (x, y or z)
     device: DeviceConfig = DeviceConfig()  #: the device's settings, for a format other than fog-v1
+    publish_axes: bool = False  #: ANGLE carries the three axes' raw rates (a three-axis format's)
 
     def __post_init__(self) -> None:
         if self.port is not None and not self.port:

@@ -156,6 +156,13 @@ def _grid(value: float, step: float) -> float:
     return round(value / step) * step if value == value else value
 
 
+class AxesSample(Sample):
+    """A ``Sample`` that also carries its frame's mean rate about each of the three axes (``axes_rate_dph``,
+    deg/h, raw: x, y, z), for a daemon that publishes all three (``publish_axes``)."""
+
+    axes_rate_dph: tuple[float, float, float]
+
+
 class ImuSampleStream:
     """``ImuSample`` events -> ``Sample`` records of the chosen axis (the module docstring), explicit state.
 
@@ -166,10 +173,11 @@ class ImuSampleStream:
     identities_rejected = 0  #: (protocol v1's counter; another format has no IDENTITY to reject)
     identity_changes = 0
 
-    def __init__(self, wire: WireSettings) -> None:
+    def __init__(self, wire: WireSettings, keep_axes: bool = False) -> None:
         if wire.format == PROTOCOL_V1:
             raise ValueError("protocol v1 frames go through stream.SampleStream")
         self.wire = wire
+        self.keep_axes = keep_axes  #: give ``AxesSample`` (the three axes' rates) instead of ``Sample``
         self.channels = wire.temperature_channels
         self.axis_index = AXES.index(wire.axis)
         self.rate_hz = int(wire.rate_hz)
@@ -204,8 +212,13 @@ class ImuSampleStream:
         status = 0
         for flag in event.flags:
             status |= _FLAG_STATUS.get(flag, 0)
-        return Sample(seq, t_us / 1e6, _grid(float(dtheta), DTHETA_GRID_ARCSEC), temps[0], temps[1], temps[2],
-                      status, missing, event.offset)  # fmt: skip
+        fields = (seq, t_us / 1e6, _grid(float(dtheta), DTHETA_GRID_ARCSEC), temps[0], temps[1], temps[2], status,
+                  missing, event.offset)  # fmt: skip
+        if not self.keep_axes:
+            return Sample(*fields)
+        sample = AxesSample(*fields)
+        sample.axes_rate_dph = tuple(float(r) for r in event.rate_dph)
+        return sample
 
 
 class SampleSource:
@@ -216,11 +229,11 @@ class SampleSource:
     ``sample_frames``, ``crc_errors``, ``bytes_discarded``, ``seq_gaps``, ``missing_frames`` in every format).
     """
 
-    def __init__(self, wire: WireSettings, v1_stream: SampleStream | None = None) -> None:
+    def __init__(self, wire: WireSettings, v1_stream: SampleStream | None = None, keep_axes: bool = False) -> None:
         self.wire = wire
         self.decoder = wire.make_decoder()
         self.stream: SampleStream | ImuSampleStream = (
-            (v1_stream or SampleStream()) if wire.format == PROTOCOL_V1 else ImuSampleStream(wire))  # fmt: skip
+            (v1_stream or SampleStream()) if wire.format == PROTOCOL_V1 else ImuSampleStream(wire, keep_axes))  # fmt: skip
 
     @property
     def counters(self) -> Any:
@@ -272,9 +285,11 @@ class AutoSampleSource:
     ``make_wire(name)``; ``wire`` is None until then.  Held bytes beyond ``SNIFF_BYTES`` with no verdict are
     dropped oldest first (``bytes_unsniffed``; the raw capture keeps them all)."""
 
-    def __init__(self, make_wire: Callable[[str], WireSettings], v1_stream: SampleStream | None = None) -> None:
+    def __init__(self, make_wire: Callable[[str], WireSettings], v1_stream: SampleStream | None = None,
+                 keep_axes: bool = False) -> None:  # fmt: skip
         from .formats.common import FormatCounters
 
+        self._keep_axes = keep_axes
         self._make_wire = make_wire
         self._v1_stream = v1_stream
         self._held = bytearray()
@@ -314,7 +329,7 @@ class AutoSampleSource:
                 del self._held[:excess]
                 self.bytes_unsniffed += excess
             return []
-        self._source = SampleSource(self._make_wire(seen.name), self._v1_stream)
+        self._source = SampleSource(self._make_wire(seen.name), self._v1_stream, self._keep_axes)
         held, self._held = bytes(self._held), bytearray()
         return self._source.feed(held)
 
@@ -323,8 +338,8 @@ def make_source(config: Any) -> SampleSource | AutoSampleSource:
     """The daemon's front end for a ``config.DriverConfig``: its format's source, or a sniffing one (auto)."""
     v1_stream = config.sample_stream()
     if config.format == "auto":
-        return AutoSampleSource(config.wire_settings, v1_stream)
-    return SampleSource(config.wire_settings(), v1_stream)
+        return AutoSampleSource(config.wire_settings, v1_stream, config.publish_axes)
+    return SampleSource(config.wire_settings(), v1_stream, config.publish_axes)
 
 
 class SamplePart(NamedTuple):

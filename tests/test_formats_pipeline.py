@@ -242,3 +242,19 @@ def test_fit_compensate_and_evaluate_a_kvh_chamber_run_from_the_command_line(tmp
     assert main(["compensate", str(tmp_path / "check.bin"), "--model", str(DEFAULT_MODEL), "--force",
                  "--out", str(tmp_path / "d.csv")]) == 64  # fmt: skip
     assert "cannot be applied" in capsys.readouterr().err
+
+
+def test_the_daemon_can_publish_all_three_axes(captures, kvh_model):
+    path = captures["kvh-a"]
+    wire = wire_settings_for(path)
+    device = DeviceConfig(rate_hz=wire.rate_hz, temp_units=wire.temp_units)
+    data = path.read_bytes()[:36 * 400]
+    plain = Service(DriverConfig(format="kvh-a", model=str(kvh_model), device=device), port="unused").process(data)
+    axes = Service(DriverConfig(format="kvh-a", model=str(kvh_model), device=device, publish_axes=True),
+                   port="unused").process(data)  # fmt: skip
+    assert len(axes) == len(plain) == 400 and "axes_rate_raw_dph" not in plain[0]
+    for a, p in zip(axes, plain):
+        rates = a.pop("axes_rate_raw_dph")
+        assert a == p  # the angle, rate and flags do not change
+        assert set(rates) == {"x", "y", "z"} and rates["x"] == rates["y"] == 0.0  # the simulator turns about z
+        assert rates["z"] == pytest.approx(p["rate_raw_dph"], rel=1e-6, abs=1e-4)

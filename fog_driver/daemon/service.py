@@ -119,7 +119,7 @@ class Service:
     #: Settings that need a restart; every other one applies on SIGHUP (``reload_config``).
     RESTART_KEYS = ("port", "baud", "listen", "udp", "capture_dir", "capture_rotate_mb", "capture_rotate_s",
                     "capture_keep_days", "capture_max_gb", "scale_arcsec_per_count",
-                    "scale_override_arcsec_per_count", "format", "axis", "device")  # fmt: skip
+                    "scale_override_arcsec_per_count", "format", "axis", "device", "publish_axes")  # fmt: skip
 
     def __init__(self, config: DriverConfig, *, port: str, model_file: ModelFile | None = None) -> None:
         self.config = config
@@ -385,6 +385,9 @@ class Service:
                 self._finish_bias(capture)
         self.bias_angle_arcsec += self.bias_dph * period
         obj = self.angle_object(c)
+        axes = getattr(sample, "axes_rate_dph", None)  # publish_axes, a three-axis format
+        if axes is not None:
+            obj["axes_rate_raw_dph"] = {a: r for a, r in zip("xyz", axes) if math.isfinite(r)}
         if self.udp is not None:
             self.udp.send(obj)
         self.samples_published += 1
