@@ -95,17 +95,24 @@ def _other_format(capture: str, requested: str) -> str | None:
     return requested
 
 
-def _record_wire(config_path: str | None):
-    """What ``record --config FILE`` says the port sends and the device's setup commands (None, None: protocol
-    v1, no setup)."""
-    from .config import load_config
+def _record_wire(config_path: str | None, fmt: str | None):
+    """What ``record [--config FILE] [--format NAME]`` says the port sends, and the device's setup commands
+    (None, None: protocol v1, no setup)."""
+    from .config import DriverConfig, load_config
 
-    if config_path is None:
+    if config_path is None and fmt in (None, "fog-v1"):
         return None, None
-    config = load_config(config_path)
-    if config.format == "auto":
-        raise UsageError(f"{config_path}: format auto: record needs the format the port sends (format: in the config)")
-    return config.wire_settings(), config.device.device_setup()
+    config = load_config(config_path) if config_path else DriverConfig()
+    name = fmt or config.format
+    if name == "auto":
+        raise UsageError(f"{config_path}: format auto: record needs the format the port sends (--format, or "
+                         f"format: in the config)")  # fmt: skip
+    try:
+        wire = config.wire_settings(name)
+    except ValueError as exc:
+        raise UsageError(f"record --format {name}: {exc} (--config FILE with a device: section: see "
+                         f"configs/kvh-dsp1750.yaml)") from None  # fmt: skip
+    return wire, config.device.device_setup()
 
 
 def cmd_record(args: argparse.Namespace) -> int:
@@ -113,7 +120,7 @@ def cmd_record(args: argparse.Namespace) -> int:
 
     if not args.out.endswith(".bin"):
         raise UsageError(f"--out {args.out!r}: a capture file name must end in .bin")
-    wire, setup = _record_wire(args.config)
+    wire, setup = _record_wire(args.config, args.format)
     progress = Progress()
     stop = threading.Event()
 
@@ -681,6 +688,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", metavar="FILE",
                    help="a daemon config whose format, axis and device settings (rate, units, setup commands) "
                         "say what the port sends: recorded in the sidecar (default: fog-v1)")
+    p.add_argument("--format", choices=FORMAT_NAMES, metavar="FORMAT",
+                   help=f"the frame format the port sends ({', '.join(FORMAT_NAMES)}; default: the config's, "
+                        "else fog-v1); another than fog-v1 needs --config with its device settings")
     p.set_defaults(func=cmd_record)
 
     from .sim.instrument import WIRE_FORMATS

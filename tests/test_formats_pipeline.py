@@ -258,3 +258,24 @@ def test_the_daemon_can_publish_all_three_axes(captures, kvh_model):
         assert a == p  # the angle, rate and flags do not change
         assert set(rates) == {"x", "y", "z"} and rates["x"] == rates["y"] == 0.0  # the simulator turns about z
         assert rates["z"] == pytest.approx(p["rate_raw_dph"], rel=1e-6, abs=1e-4)
+
+
+def test_record_writes_the_format_and_device_settings_into_the_sidecar(captures, tmp_path, capsys):
+    config = tmp_path / "kvh.yaml"
+    config.write_text("format: kvh-a\ndevice: {rate_hz: 10, temp_units: c_100}\n")
+    out = tmp_path / "rec.bin"
+    assert main(["record", f"replay://{captures['kvh-a']}?unplug=1", "--no-reconnect", "--config", str(config),
+                 "--out", str(out)]) == 0  # fmt: skip
+    assert "sample frames, 0 CRC errors" in capsys.readouterr().out
+    assert out.read_bytes() == captures["kvh-a"].read_bytes()
+    doc = yaml.safe_load((tmp_path / "rec.bin.yaml").read_text())
+    assert doc["wire_format"] == "kvh-a" and doc["wire_settings"]["temp_units"] == "c_100"
+    wire = wire_settings_for(out)
+    assert wire == wire_settings_for(captures["kvh-a"])
+    n = sum(len(p.samples) for p in CaptureReader(out, wire).parts())
+    assert doc["decoded_while_recording"]["sample_frames"] == n > 10000
+    # a format that needs the device's settings, without them: one line, exit 64, nothing recorded
+    assert main(["record", f"replay://{captures['kvh-a']}?unplug=1", "--format", "kvh-b", "--out",
+                 str(tmp_path / "no.bin")]) == 64  # fmt: skip
+    assert "kvh-b frames do not say the device's output rate" in capsys.readouterr().err
+    assert not (tmp_path / "no.bin").exists()
