@@ -231,6 +231,10 @@ class SampleSource:
 
     def __init__(self, wire: WireSettings, v1_stream: SampleStream | None = None, keep_axes: bool = False) -> None:
         self.wire = wire
+        #: set once when the first ``SNIFF_BYTES`` held no frame of this format: what the sniffer sees instead
+        #: (a port configured for the wrong format; the daemon logs it and shows it in STATUS)
+        self.format_problem: str | None = None
+        self._head: bytearray | None = bytearray()
         self.decoder = wire.make_decoder()
         self.stream: SampleStream | ImuSampleStream = (
             (v1_stream or SampleStream()) if wire.format == PROTOCOL_V1 else ImuSampleStream(wire, keep_axes))  # fmt: skip
@@ -252,7 +256,21 @@ class SampleSource:
         return self.wire.temperature_channels
 
     def feed(self, chunk: bytes) -> list[Sample | IdentityFrame]:
-        return self._items(self.decoder.feed(chunk))
+        items = self._items(self.decoder.feed(chunk))
+        if self._head is not None:
+            self._check_head(chunk)
+        return items
+
+    def _check_head(self, chunk: bytes) -> None:
+        if self.counters.sample_frames:  # frames of the format: nothing to say
+            self._head = None
+            return
+        self._head += chunk[: SNIFF_BYTES - len(self._head)]
+        if len(self._head) >= SNIFF_BYTES:
+            seen = sniff(self._head)
+            self.format_problem = (f"no {self.wire.format} sample frame in the first {SNIFF_BYTES:,} bytes; the "
+                                   f"sniffer sees {seen.describe()}")  # fmt: skip
+            self._head = None
 
     def close(self) -> list[Sample | IdentityFrame]:
         return self._items(self.decoder.close())
@@ -300,6 +318,14 @@ class AutoSampleSource:
     @property
     def wire(self) -> WireSettings | None:
         return None if self._source is None else self._source.wire
+
+    @property
+    def format_problem(self) -> str | None:
+        if self._source is not None:
+            return self._source.format_problem
+        if self.bytes_unsniffed:
+            return f"no known format in {self.bytes_unsniffed + len(self._held):,} bytes (format: auto)"
+        return None
 
     @property
     def counters(self) -> Any:

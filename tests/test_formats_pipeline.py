@@ -279,3 +279,32 @@ def test_record_writes_the_format_and_device_settings_into_the_sidecar(captures,
                  str(tmp_path / "no.bin")]) == 64  # fmt: skip
     assert "kvh-b frames do not say the device's output rate" in capsys.readouterr().err
     assert not (tmp_path / "no.bin").exists()
+
+
+def test_a_port_configured_for_the_wrong_format_says_what_it_sees(captures, kvh_model):
+    wire = wire_settings_for(captures["kvh-a"])
+    config = DriverConfig(format="kvh-a", model=str(kvh_model), device=DeviceConfig(rate_hz=wire.rate_hz))
+    service = Service(config, port="unused")
+    data = captures["fog-v1"].read_bytes()[:100_000]  # the port sends protocol v1
+    assert [o for i in range(0, len(data), 4096) for o in service.process(data[i : i + 4096])] == []
+    problem = service.status_object()["format_problem"]
+    assert problem.startswith("no kvh-a sample frame in the first 65,536 bytes; the sniffer sees fog-v1 (")
+    right = Service(config, port="unused")
+    right.process(captures["kvh-a"].read_bytes()[:100_000])
+    assert "format_problem" not in right.status_object()
+
+
+def test_format_auto_in_the_daemon_finds_the_format_and_publishes_as_configured_for_it(captures, kvh_model):
+    wire = wire_settings_for(captures["kvh-a"])
+    device = DeviceConfig(rate_hz=wire.rate_hz, temp_units=wire.temp_units)
+    data = captures["kvh-a"].read_bytes()[:36 * 3000]
+    auto = Service(DriverConfig(format="auto", model=str(kvh_model), device=device), port="unused")
+    assert auto.device_object().get("format") is None  # not known before the first bytes
+    got = [o for i in range(0, len(data), 500) for o in auto.process(data[i : i + 500])]
+    fixed = Service(DriverConfig(format="kvh-a", model=str(kvh_model), device=device), port="unused").process(data)
+    assert got == fixed and len(got) == 3000
+    assert auto.device_object()["format"] == "kvh-a"
+    # a model of other channels than the format found: the acquisition stops (exit 78 in the daemon)
+    wrong = Service(DriverConfig(format="auto", device=device), port="unused")
+    with pytest.raises(ModelMismatchError, match="frames carry sensor"):
+        wrong.process(data)

@@ -137,6 +137,7 @@ class Service:
         self.started_monotonic = time.monotonic()
         self.adapt_state_sha256 = self._check_adapt_state(self.model_file)
         self.source = make_source(config)
+        self._format_problem_said = False
         if config.format != "auto":
             self._check_channels(self.model_file, config.wire_settings(), f"the model {config.model_path}")
         self.binding = self._new_binding(self.model_file)
@@ -266,6 +267,8 @@ class Service:
             obj["bias_capture_target_s"] = self._bias_capture["target_s"]
         if self.samples_dropped_before_identity:
             obj["samples_dropped_before_identity"] = self.samples_dropped_before_identity
+        if self.source.format_problem is not None:
+            obj["format_problem"] = self.source.format_problem
         online = self.compensator.online if self.compensator is not None else None
         if online is not None:  # is the published drift the adapted weights' (the comparison guard's verdict)?
             obj["adapted_in_use"] = online.adapted_in_use
@@ -333,7 +336,11 @@ class Service:
         with self.lock:
             if self.capture is not None:
                 self.capture.put(chunk)
-            for sample in self.source.feed(chunk):
+            items = self.source.feed(chunk)
+            if self.source.format_problem is not None and not self._format_problem_said:
+                self._format_problem_said = True
+                log.warning("format_problem", format=self.config.format, problem=self.source.format_problem)
+            for sample in items:
                 if isinstance(sample, IdentityFrame):
                     self._on_identity(angles)
                     continue
@@ -352,14 +359,15 @@ class Service:
         if identity is None or identity == self.identity:
             return
         changed = self.identity is None or self.identity[1:] != identity[1:]
+        detected = self.identity is None and self.config.format == "auto"  # the format is known from now on
         self.identity = identity
+        if detected:
+            check_channels(self.model_file, self.source.wire, f"the model {self.config.model_path}",
+                           "the instrument")  # ModelMismatchError: exit 78, as below
+            log.info("format_detected", format=self.source.wire.format)
+            if self.capture is not None:
+                self.capture.update_provenance(self.source.wire.sidecar_fields())
         if self.binding.changes_binding(identity):
-            if self.identity is None and self.config.format == "auto":  # the format is known from now on
-                check_channels(self.model_file, self.source.wire, f"the model {self.config.model_path}",
-                               "the instrument")  # ModelMismatchError: exit 78, as below
-                log.info("format_detected", format=self.source.wire.format)
-                if self.capture is not None:
-                    self.capture.update_provenance(self.source.wire.sidecar_fields())
             first = not self.binding.bound
             self.binding.bind(identity)  # ModelMismatchError: the acquisition stops with exit 78
             fields = self._identity_fields()
