@@ -24,6 +24,9 @@ to the one-axis ``Sample`` the compensation consumes:
 * time: device time where the format has it (STDBIN's validity time, in whole microseconds); KVH normal
   mode has none, so ``t_s = seq / rate_hz`` from the unwrapped sequence counter (a gap of a whole multiple
   of the counter's 128 frames cannot be seen: the format's limit);
+* an increment that is not a number or beyond ``MAX_RATE_DPH`` (a float word that passed its checksum as
+  NaN or garbage) is taken as 0 and flagged, and counted in ``increments_rejected``: the angle, a sum of
+  increments, is never poisoned;
 * the common flags as protocol v1 status bits (``sensor_invalid`` -> loop unlocked, ``startup``,
   ``over_range``, ``temperature_invalid`` -> thermometer fault), the raw status kept nowhere else;
 * an ``IdentityFrame`` made up before the first sample (``serial`` from the settings, firmware 0, the
@@ -62,6 +65,10 @@ _FLAG_STATUS = {FLAG_SENSOR_INVALID: STATUS_LOOP_UNLOCKED, FLAG_STARTUP: STATUS_
 _DESCRIPTIVE_KEYS = ("temperature_channel", "temperature_channels", "version")
 _KVH_CHOICES = {"rot_format": ("delta", "rate"), "rot_units": ("deg", "rad"), "temp_units": ("c", "c_100")}
 MAX_RATE_HZ = 100_000
+#: A chosen-axis rate beyond this (10,000 deg/s, in deg/h) is no gyro's: a float word a device sent as NaN,
+#: infinity or garbage that passed its checksum.  Its increment is taken as 0 (the angle is never poisoned)
+#: and the sample flagged as protocol v1's loop-unlocked bit.
+MAX_RATE_DPH = 3.6e7
 
 
 @dataclass(frozen=True)
@@ -84,11 +91,12 @@ class WireSettings:
     serial: str = ""
 
     def __post_init__(self) -> None:
-        if self.format not in FORMATS:
+        if not isinstance(self.format, str) or self.format not in FORMATS:
             raise ValueError(f"format: unknown frame format {self.format!r} (known: {', '.join(FORMATS)})")
         if self.axis not in AXES:
             raise ValueError(f"axis: must be one of {', '.join(AXES)}, not {self.axis!r}")
-        if self.rate_hz is not None and not (isinstance(self.rate_hz, int) and 1 <= self.rate_hz <= MAX_RATE_HZ):
+        if self.rate_hz is not None and (isinstance(self.rate_hz, bool) or not isinstance(self.rate_hz, int)
+                                         or not 1 <= self.rate_hz <= MAX_RATE_HZ):  # fmt: skip
             raise ValueError(f"rate_hz: must be an integer 1..{MAX_RATE_HZ}, not {self.rate_hz!r}")
         if self.format != PROTOCOL_V1 and self.rate_hz is None:
             raise ValueError(f"rate_hz: {self.format} frames do not say the device's output rate: give it")
@@ -182,6 +190,7 @@ class ImuSampleStream:
         self.axis_index = AXES.index(wire.axis)
         self.rate_hz = int(wire.rate_hz)
         self.identity: IdentityFrame | None = None
+        self.increments_rejected = 0  #: samples whose increment was not a number or beyond MAX_RATE_DPH
         self._last_seq: int | None = None
         self._temps = [math.nan] * 3
 
@@ -198,6 +207,10 @@ class ImuSampleStream:
             dtheta = event.rate_dph[a] / self.rate_hz
         else:
             dtheta = event.dtheta_arcsec[a]
+        sensor_bad = 0
+        if not abs(dtheta) * self.rate_hz <= MAX_RATE_DPH:  # NaN, infinite, or no gyro's: never integrated
+            dtheta, sensor_bad = 0.0, STATUS_LOOP_UNLOCKED
+            self.increments_rejected += 1
         seq = event.seq if event.seq is not None else (0 if self._last_seq is None else self._last_seq + 1)
         missing = 0 if self._last_seq is None else max(0, seq - self._last_seq - 1)
         self._last_seq = seq
@@ -209,7 +222,7 @@ class ImuSampleStream:
         for k, name in enumerate(self.channels):
             if name in event.temps_c:
                 temps[k] = _grid(float(event.temps_c[name]), TEMP_GRID_C)
-        status = 0
+        status = sensor_bad
         for flag in event.flags:
             status |= _FLAG_STATUS.get(flag, 0)
         fields = (seq, t_us / 1e6, _grid(float(dtheta), DTHETA_GRID_ARCSEC), temps[0], temps[1], temps[2], status,
@@ -250,6 +263,10 @@ class SampleSource:
     @property
     def identities_rejected(self) -> int:
         return self.stream.identities_rejected
+
+    @property
+    def increments_rejected(self) -> int:
+        return getattr(self.stream, "increments_rejected", 0)
 
     @property
     def temperature_channels(self) -> tuple[str, ...]:
@@ -338,6 +355,10 @@ class AutoSampleSource:
     @property
     def identities_rejected(self) -> int:
         return 0 if self._source is None else self._source.identities_rejected
+
+    @property
+    def increments_rejected(self) -> int:
+        return 0 if self._source is None else self._source.increments_rejected
 
     @property
     def temperature_channels(self) -> tuple[str, ...]:
@@ -444,7 +465,9 @@ def wire_settings_for(path: str | Path, requested: str = "auto", *, override: Wi
     except OSError as exc:
         raise InputFileError(f"{path}: cannot read the capture: {exc.strerror or exc}") from None
     seen = sniff(head)
-    recorded = doc.get("wire_format") if isinstance(doc.get("wire_format"), str) else None
+    recorded = doc.get("wire_format")
+    if recorded is not None and recorded not in FORMATS:
+        raise InputFileError(f"{where}wire_format: unknown frame format {recorded!r} (known: {', '.join(FORMATS)})")
     if requested == "auto":
         name = recorded or seen.name or (override.format if override else PROTOCOL_V1)
     else:

@@ -308,3 +308,38 @@ def test_format_auto_in_the_daemon_finds_the_format_and_publishes_as_configured_
     wrong = Service(DriverConfig(format="auto", device=device), port="unused")
     with pytest.raises(ModelMismatchError, match="frames carry sensor"):
         wrong.process(data)
+
+
+def test_a_float_word_that_passed_its_checksum_as_nan_never_poisons_the_angle(captures, kvh_model):
+    from fog_driver.formats.kvh import encode_kvh_frame
+
+    wire = wire_settings_for(captures["kvh-a"])
+    data = bytearray(captures["kvh-a"].read_bytes()[: 36 * 300])
+    bad = [encode_kvh_frame("a", (0.0, 0.0, value), (0.0, 0.0, 1.0), seq=(100 + k) % 128, temp=2500)
+           for k, value in enumerate((math.nan, math.inf, -1e30))]  # fmt: skip
+    for k, frame in enumerate(bad):  # CRC-valid frames in place of three of the capture's
+        data[36 * (100 + k) : 36 * (101 + k)] = frame
+    service = Service(DriverConfig(format="kvh-a", model=str(kvh_model), device=DeviceConfig(
+        rate_hz=wire.rate_hz, temp_units=wire.temp_units)), port="unused")  # fmt: skip
+    published = service.process(bytes(data))
+    assert len(published) == 300
+    assert all(math.isfinite(o["angle_arcsec"]) and math.isfinite(o["rate_raw_dph"]) for o in published)
+    assert [o["rate_raw_dph"] for o in published[100:103]] == [0.0, 0.0, 0.0]
+    assert service.status_object()["increments_rejected"] == 3
+    samples = samples_of(SampleSource(wire).feed(bytes(data)))
+    assert list(samples.status[100:103] & 2) == [2, 2, 2]  # flagged as protocol v1's loop-unlocked bit
+
+
+def test_sidecar_settings_of_the_wrong_kind_are_one_line_errors(captures, tmp_path):
+    bare = tmp_path / "k.bin"
+    bare.write_bytes(captures["kvh-a"].read_bytes()[:5000])
+    for text, expected in (("wire_format: kvh-z\n", r"wire_format: unknown frame format 'kvh-z'"),
+                           ("wire_format: kvh-a\nwire_settings: {rate_hz: true}\n", r"rate_hz: must be an integer"),
+                           ("wire_format: kvh-a\nwire_settings: [1, 2]\n", r"wire_settings: expected a mapping"),
+                           ("wire_format: kvh-a\nwire_settings: {rate_hz: 10, axis: w}\n", r"axis: must be one of"),
+                           ("wire_format: kvh-a\nwire_settings: {rate_hz: 10, serial: 7}\n", r"serial: at most 64"),
+                           ):  # fmt: skip
+        (tmp_path / "k.bin.yaml").write_text(text)
+        with pytest.raises(InputFileError, match=expected):
+            wire_settings_for(bare)
+        assert main(["compensate", str(bare), "--model", str(DEFAULT_MODEL), "--out", str(tmp_path / "o.csv")]) == 65

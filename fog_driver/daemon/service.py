@@ -269,6 +269,8 @@ class Service:
             obj["samples_dropped_before_identity"] = self.samples_dropped_before_identity
         if self.source.format_problem is not None:
             obj["format_problem"] = self.source.format_problem
+        if self.source.increments_rejected:  # another format's float words that were NaN or no gyro's
+            obj["increments_rejected"] = self.source.increments_rejected
         online = self.compensator.online if self.compensator is not None else None
         if online is not None:  # is the published drift the adapted weights' (the comparison guard's verdict)?
             obj["adapted_in_use"] = online.adapted_in_use
