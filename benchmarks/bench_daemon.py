@@ -244,12 +244,13 @@ class CpuMark:
 class Daemon:
     """``fog-driver run`` in a subprocess, exactly as tests/test_daemon_hil.py starts it."""
 
-    def __init__(self, tmp: Path, port: str) -> None:
+    def __init__(self, tmp: Path, port: str, *extra: str) -> None:
+        """``extra``: more arguments for ``fog-driver run`` (``--config FILE``)."""
         self.log_path = tmp / "daemon.log"
         self.log = self.log_path.open("w")  # a file: a full, unread pipe would block the daemon
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "fog_driver", "run", "--port", port, "--listen", "127.0.0.1:0",
-             "--capture-dir", str(tmp / "captures")],
+             "--capture-dir", str(tmp / "captures"), *extra],
             stdout=subprocess.PIPE, stderr=self.log, text=True, stdin=subprocess.DEVNULL, cwd=ROOT,
         )  # fmt: skip
         line = self.proc.stdout.readline()  # the readiness line
@@ -288,10 +289,20 @@ class Frames:
         return len(self.bounds) - 1
 
 
-def make_frames(rate_hz: int, seconds: float, seed: int = 1) -> Frames:
-    sim = Simulator(load_profile(str(LIVE_PROFILE)), rate_hz=rate_hz, seed=seed)
+def make_frames(rate_hz: int, seconds: float, seed: int = 1, wire_format: str = "fog-v1") -> Frames:
+    """``wire_format``: the simulator's; another than fog-v1 has fixed-length frames (no IDENTITY, no fault)
+    and ``seq0`` is the first frame's seq as its decoder gives it (a KVH decoder's counts from 0)."""
+    sim = Simulator(load_profile(str(LIVE_PROFILE)), rate_hz=rate_hz, seed=seed, wire_format=wire_format)
     n = round(rate_hz * seconds)
     block, data = sim.stream(n)
+    if wire_format != "fog-v1":
+        from fog_driver.sources import SampleSource, WireSettings
+        from fog_driver.stream import Sample
+
+        bounds = np.arange(n + 1, dtype=np.int64) * sim.frame_len_bytes
+        assert bounds[-1] == len(data), "frames of another format are all one length"
+        first = SampleSource(WireSettings(format=wire_format, rate_hz=rate_hz)).feed(data[: bounds[1]])
+        return Frames(data, bounds, next(s.seq for s in first if isinstance(s, Sample)), rate_hz)
     ends = decode_bytes(data).samples.offset.astype(np.int64) + SAMPLE_FRAME_LEN
     ends[-1] = len(data)
     return Frames(data, np.concatenate([[0], ends]), int(block.seq[0]), rate_hz)
@@ -416,12 +427,14 @@ class LiveResult:
 
 
 def live_run(label: str, rate_hz: int, seconds: float, tick_s: float, warmup_s: float, n_clients: int,
-             hostile: int = 0) -> LiveResult:  # fmt: skip
-    frames = make_frames(rate_hz, seconds)
+             hostile: int = 0, *, wire_format: str = "fog-v1", daemon_args: tuple[str, ...] = ()) -> LiveResult:  # fmt: skip
+    """``wire_format``: the frames' (``make_frames``); ``daemon_args``: more for ``fog-driver run`` (a
+    ``--config`` saying that format)."""
+    frames = make_frames(rate_hz, seconds, wire_format=wire_format)
     warmup_frames = int(warmup_s * rate_hz)
     with tempfile.TemporaryDirectory(prefix="bench-daemon-") as tmp, PtyPair() as pty:
         tmp_path = Path(tmp)
-        daemon = Daemon(tmp_path, pty.slave_path)
+        daemon = Daemon(tmp_path, pty.slave_path, *daemon_args)
         readers = []
         try:
             host, port = daemon.address
@@ -633,6 +646,12 @@ def report_live(table: Table, r: LiveResult, p99_target_ms: float = 5.0) -> None
     table.add("", "  (RssAnon start -> end, MB)", f"{a0:.1f} -> {a1:.1f}")
 
 
+def add_pacing_options(parser: argparse.ArgumentParser, warmup_s: float) -> None:
+    """``--tick-ms`` and ``--warmup-s``: how ``pace`` writes and what it leaves out of CPU and latency."""
+    parser.add_argument("--tick-ms", type=float, default=5.0, help="writer period: frames due go out together (default 5)")
+    parser.add_argument("--warmup-s", type=float, default=warmup_s, help=f"left out of latency and CPU (default {warmup_s:g})")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="a smoke run: every part, shrunk (about 20 s)")
@@ -643,8 +662,7 @@ def main() -> None:
     parser.add_argument("--clients", type=int, default=2, help="watching clients in the live runs (default 2)")
     parser.add_argument("--hostile", type=int, default=8, help="hostile clients in the hostile run (default 8)")
     parser.add_argument("--hostile-seconds", type=float, default=20.0, help="hostile run length at --rate-hz (default 20; 0 skips)")
-    parser.add_argument("--tick-ms", type=float, default=5.0, help="writer period: frames due go out together (default 5)")
-    parser.add_argument("--warmup-s", type=float, default=1.0, help="left out of latency and CPU (default 1)")
+    add_pacing_options(parser, warmup_s=1.0)
     parser.add_argument("--baseline-seconds", type=float, default=5.0, help="the pty alone at --rate-hz (default 5; 0 skips)")
     parser.add_argument("--frames", type=int, default=5_000_000,
                         help="accelerated replay length (default 5,000,000; the issue's target is 10,000,000; 0 skips)")
