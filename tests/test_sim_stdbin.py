@@ -169,8 +169,9 @@ def test_garbage_bursts_carry_false_stdbin_headers_and_cost_nothing():
     sim = stdbin_sim(faults="garbage=5")
     block, data = sim.stream(3000)
     samples, counters = decode(data, 100)
-    # 'IX', a known version: the decoder reads such a header, and the checksum (or the size) refuses it.
-    assert counters.crc_errors > 20 and counters.length_errors > 10 and counters.bytes_discarded > 0
+    # 'IX', a known version: the decoder reads such a header, and the checksum or the size refuses it (a size
+    # that the blocks do not give, or, with a block of unknown size, one above MAX_UNVERIFIED_LEN)
+    assert counters.crc_errors > 5 and counters.length_errors > 100 and counters.bytes_discarded > 0
     assert [s.seq for s in samples] == list(range(sim.seq0, sim.seq0 + 3000))
     np.testing.assert_allclose([s.dtheta_arcsec[2] for s in samples], truth_arcsec(block), rtol=2e-7, atol=1e-9)
 
