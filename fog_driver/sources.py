@@ -41,6 +41,8 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any, NamedTuple
 
+import numpy as np
+
 from .errors import InputFileError
 from .formats.common import AXES, FLAG_OVER_RANGE, FLAG_SENSOR_INVALID, FLAG_STARTUP, FLAG_TEMPERATURE_INVALID
 from .formats.common import ImuSample
@@ -52,7 +54,7 @@ from .protocol import (
     STATUS_THERMOMETER_FAULT,
     IdentityFrame,
 )
-from .protocol.batch import FILE_BLOCK_BYTES
+from .protocol.batch import FILE_BLOCK_BYTES, iter_file_blocks
 from .stream import Sample, SampleBlock, SampleStream
 
 PROTOCOL_V1 = "fog-v1"
@@ -161,7 +163,8 @@ class WireSettings:
 
 
 def _grid(value: float, step: float) -> float:
-    return round(value / step) * step if value == value else value
+    """``value`` on the grid of ``step`` (round half to even); NaN and infinities as they are."""
+    return round(value / step) * step if math.isfinite(value) else value
 
 
 class AxesSample(Sample):
@@ -428,24 +431,117 @@ class CaptureReader:
                 self.counters = part.counters
                 yield SamplePart(self.stream.run(part), part.identities, part.counters.bytes_in)
             return
+        if self.wire.format.startswith("kvh-"):  # fixed-length frames: the numpy batch decoder
+            yield from _kvh_file_parts(self, on_block, block_bytes)
+            return
         source = SampleSource(self.wire)
         source.stream = self.stream
         self.counters = source.counters
-        try:
-            f = self.path.open("rb")
-        except OSError as exc:
-            raise InputFileError(f"{self.path}: cannot read the capture: {exc.strerror or exc}") from None
-        with f:
-            while True:
-                block = f.read(block_bytes)
-                if on_block and block:
-                    on_block(block)
-                items = source.feed(block) if block else source.close()
-                samples = [s for s in items if isinstance(s, Sample)]
-                identities = [s for s in items if isinstance(s, IdentityFrame)]
-                yield SamplePart(SampleBlock.from_samples(samples), identities, source.counters.bytes_in)
-                if not block:
-                    return
+        for block, final in iter_file_blocks(self.path, block_bytes, on_block):
+            items = source.feed(block) + (source.close() if final else [])
+            samples = [s for s in items if isinstance(s, Sample)]
+            identities = [s for s in items if isinstance(s, IdentityFrame)]
+            yield SamplePart(SampleBlock.from_samples(samples), identities, source.counters.bytes_in)
+
+
+def _grid_array(values: np.ndarray, step: float) -> np.ndarray:
+    """``_grid`` elementwise (the same round-half-even, the same products: the same bits)."""
+    return np.round(values / step) * step
+
+
+class _KvhBatchState:
+    """What the batch path carries from one block of a file to the next (as ``ImuSampleStream`` does)."""
+
+    def __init__(self) -> None:
+        self.last_raw: int | None = None
+        self.last_seq = 0
+        self.temp = math.nan
+
+
+def kvh_batch_samples(batch: Any, wire: WireSettings, state: _KvhBatchState, base: int,
+                      stream: ImuSampleStream) -> SampleBlock:  # fmt: skip
+    """``ImuSampleStream.step`` over a ``formats.kvh.decode_kvh_batch`` result, vectorized: the same samples,
+    bit for bit (tested).  ``base``: the file offset of the buffer decoded; ``stream``'s identity and
+    ``increments_rejected`` are kept up to date."""
+    from .formats.kvh import _ARCSEC_PER_UNIT, _TEMP_SCALE, SAMPLE_FORMATS
+
+    sample_kinds = np.array([b for b, _ in SAMPLE_FORMATS.values()], dtype=np.uint8)
+    rows = np.flatnonzero(np.isin(batch.kind, sample_kinds))
+    if not rows.size:
+        return SampleBlock.from_samples([])
+    raw = batch.seq_raw[rows] % 128
+    previous = raw[0] if state.last_raw is None else state.last_raw
+    steps = np.diff(np.r_[previous, raw]) % 128
+    seq = (raw[0] if state.last_raw is None else state.last_seq) + np.cumsum(steps)
+    missing = np.maximum(0, np.diff(np.r_[seq[0] if state.last_raw is None else state.last_seq, seq]) - 1)
+    state.last_raw, state.last_seq = int(raw[-1]), int(seq[-1])
+    rate_hz = stream.rate_hz
+    k = _ARCSEC_PER_UNIT[wire.rot_units]
+    g = batch.gyro[rows, AXES.index(wire.axis)] * k
+    dtheta = g / rate_hz if wire.rot_format == "rate" else g
+    with np.errstate(invalid="ignore", over="ignore"):
+        bad = ~(np.abs(dtheta) * rate_hz <= MAX_RATE_DPH)
+    dtheta = np.where(bad, 0.0, dtheta)
+    stream.increments_rejected += int(np.count_nonzero(bad))
+    status = np.where((batch.status[rows] & 0x07) != 0x07, STATUS_LOOP_UNLOCKED, 0) | np.where(bad, STATUS_LOOP_UNLOCKED, 0)
+    kind = batch.kind[rows]
+    c_byte = SAMPLE_FORMATS["c"][0]
+    temp = np.where(kind == c_byte, np.nan, batch.temp_raw[rows] * _TEMP_SCALE[wire.temp_units])
+    sent_c = (kind == c_byte) & (batch.seq_raw[rows] % 4 == 0)
+    temp = np.where(sent_c, batch.mux[rows], temp)
+    has = (kind != c_byte) | sent_c
+    temp = np.where(has, _grid_array(temp, TEMP_GRID_C), np.nan)
+    # a frame without the reading (Format C between its temperature slots) keeps the last one
+    last = np.maximum.accumulate(np.where(has, np.arange(len(temp)), -1))
+    held = np.where(last >= 0, temp[np.maximum(last, 0)], state.temp)
+    state.temp = float(held[-1])
+    offset = batch.offset[rows].astype(np.int64) + base
+    if stream.identity is None:
+        stream.identity = stream.make_identity(int(offset[0]))
+    nan = np.full(len(rows), np.nan)
+    return SampleBlock(seq=seq.astype(np.int64), t_s=(seq * 1_000_000 // rate_hz) / 1e6,
+                       dtheta_arcsec=_grid_array(dtheta, DTHETA_GRID_ARCSEC), t_top_c=held, t_bottom_c=nan,
+                       t_housing_c=nan.copy(), status=status.astype(np.uint16), missing_before=missing.astype(np.int64),
+                       offset=offset)  # fmt: skip
+
+
+#: The longest KVH frame: a file block's last bytes shorter than this wait for the next block.
+_KVH_MAX_FRAME = 40
+
+
+def _kvh_file_parts(reader: CaptureReader, on_block: Callable[[bytes], None] | None,
+                    block_bytes: int) -> Iterator[SamplePart]:  # fmt: skip
+    """``CaptureReader.parts`` of a KVH capture through the numpy batch decoder: each block is decoded with the
+    bytes carried from the one before; frames starting within the last ``_KVH_MAX_FRAME`` bytes of a block
+    that is not the last wait for the next (they may be cut off), so every frame is decided on whole bytes,
+    as the streaming decoder decides it."""
+    from .formats.kvh import BIT_FRAME_LEN, SAMPLE_FORMATS, decode_kvh_batch
+
+    frame_len = {**dict(SAMPLE_FORMATS.values()), **BIT_FRAME_LEN}  # fourth header byte -> frame length
+    wire = reader.wire
+    config = dict(format=wire.format[-1], rot_format=wire.rot_format, rot_units=wire.rot_units,
+                  temp_units=wire.temp_units, rate_hz=wire.rate_hz)  # fmt: skip
+    state = _KvhBatchState()
+    carry = b""
+    base = 0  # file offset of carry[0]
+    bytes_in = 0
+    for block, final in iter_file_blocks(reader.path, block_bytes, on_block):
+        bytes_in += len(block)
+        data = carry + block
+        batch = decode_kvh_batch(data, **config)
+        if not final:
+            cutoff = max(0, len(data) - _KVH_MAX_FRAME)
+            decided = batch.offset < cutoff
+            for name in ("offset", "kind", "gyro", "status", "seq_raw", "temp_raw", "mux"):
+                setattr(batch, name, getattr(batch, name)[decided])
+            last_end = int(batch.offset[-1]) + frame_len[int(batch.kind[-1])] if decided.any() else 0
+            keep_from = max(cutoff, last_end)
+        else:
+            keep_from = len(data)
+        samples = kvh_batch_samples(batch, wire, state, base, reader.stream)
+        carry, base = data[keep_from:], base + keep_from
+        yield SamplePart(samples, [reader.stream.identity] if len(samples) and samples.offset[0] == (
+            reader.stream.identity.offset) else [], bytes_in)  # fmt: skip
 
 
 def wire_settings_for(path: str | Path, requested: str = "auto", *, override: WireSettings | None = None

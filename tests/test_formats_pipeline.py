@@ -22,6 +22,7 @@ from fog_driver.config import DEFAULT_MODEL, DeviceConfig, DriverConfig, parse_c
 from fog_driver.daemon.service import ConfigError, Service
 from fog_driver.errors import InputFileError
 from fog_driver.sim.capture import simulate_to_file
+from fog_driver.sim.faults import parse_fault_spec
 from fog_driver.sim.instrument import Simulator
 from fog_driver.sim.profiles import load_profile
 from fog_driver.sources import (
@@ -343,3 +344,26 @@ def test_sidecar_settings_of_the_wrong_kind_are_one_line_errors(captures, tmp_pa
         with pytest.raises(InputFileError, match=expected):
             wire_settings_for(bare)
         assert main(["compensate", str(bare), "--model", str(DEFAULT_MODEL), "--out", str(tmp_path / "o.csv")]) == 65
+
+
+@pytest.mark.determinism
+@pytest.mark.parametrize("fmt", ["kvh-a", "kvh-b", "kvh-c"])
+def test_the_kvh_batch_path_gives_the_streaming_samples_bit_for_bit(fmt, tmp_path):
+    """Files are read by the numpy batch decoder, the daemon by the streaming one: the same samples, with
+    drops, flips, garbage with false headers and link gaps, for any block size."""
+    sim = Simulator(load_profile("short-test"), rate_hz=50, seed=3, wire_format=fmt,
+                    faults=parse_fault_spec("drop=0.01,flip=2e-5,garbage=0.5,disconnect=5:2"))  # fmt: skip
+    path = simulate_to_file(sim, tmp_path / "f.bin", duration_s=120).capture
+    wire = wire_settings_for(path)
+    data = path.read_bytes()
+    streamed = SampleSource(wire)
+    reference = samples_of(streamed.feed(data) + streamed.close())
+    assert np.count_nonzero(reference.missing_before) > 10 and len(reference) > 5000
+    for block_bytes in (1 << 24, 4096, 1001, 97):
+        reader = CaptureReader(path, wire)
+        parts = list(reader.parts(block_bytes=block_bytes))
+        got = SampleBlock.concatenate([p.samples for p in parts])
+        for name in SampleBlock.__dataclass_fields__:
+            np.testing.assert_array_equal(getattr(got, name), getattr(reference, name), err_msg=f"{name} {block_bytes}")
+        assert [i for p in parts for i in p.identities] == [streamed.identity]
+        assert parts[-1].bytes_in == len(data)

@@ -183,40 +183,24 @@ class StdbinDecoder(HuntingDecoder):
         self._last_time_raw: int | None = None
         self._time_unwrapped = 0
 
-    def _decode(self, final: bool) -> list[ImuSample | StdbinAnswer]:
-        buf = self._buf
-        pos = self._pos
-        end = len(buf)
+    def _find(self, buf: bytearray, pos: int) -> int:
+        found = _SYNC_RE.search(buf, pos)
+        return -1 if found is None else found.start()
+
+    def _may_begin(self, byte: int) -> bool:
+        return byte in _SYNC_FIRST
+
+    def _emit(self, buf: bytearray, pos: int, n: int, events: list) -> None:
         c = self.counters
-        events: list[ImuSample | StdbinAnswer] = []
-        while True:
-            found = _SYNC_RE.search(buf, pos)
-            at = -1 if found is None else found.start()
-            pos = self._skip_to_header(pos, at, end, not final and end > pos and buf[end - 1] in _SYNC_FIRST)
-            if at < 0:
-                break
-            verdict = self._judge(buf, pos, end, final)
-            if verdict is None:  # wait for more bytes
-                break
-            if verdict <= 0:  # impossible, bad checksum or truncated: one byte
-                self._discard(1)
-                pos += 1
-                continue
-            if self._hunting:  # (checked here: the call only on the rare resync, off the per-frame path)
-                self._resynced()
-            telegram = bytes(buf[pos : pos + verdict])
-            if telegram[0] == ANSWER_SYNC[0]:
-                c.answer_frames += 1
-                c.other_frames += 1
-                events.append(StdbinAnswer(telegram[2], telegram[ANSWER_HEADER_LEN:-CHECKSUM_LEN]))
-            else:
-                sample = self._telegram(telegram, self._base + pos)
-                if sample is not None:
-                    events.append(sample)
-            c.bytes_in_frames += verdict
-            pos += verdict
-        self._settle(pos)
-        return events
+        telegram = bytes(buf[pos : pos + n])
+        if telegram[0] == ANSWER_SYNC[0]:
+            c.answer_frames += 1
+            c.other_frames += 1
+            events.append(StdbinAnswer(telegram[2], telegram[ANSWER_HEADER_LEN:-CHECKSUM_LEN]))
+        else:
+            sample = self._telegram(telegram, self._base + pos)
+            if sample is not None:
+                events.append(sample)
 
     def _judge(self, buf: bytearray, pos: int, end: int, final: bool) -> int | None:
         """At an 'IX' or 'AN': the telegram length if a valid telegram starts here, 0 if not (counted),
@@ -267,12 +251,6 @@ class StdbinDecoder(HuntingDecoder):
             c.crc_errors += 1
             return 0
         return size
-
-    def _short(self, final: bool) -> int | None:
-        if not final:
-            return None
-        self.counters.truncated_frames += 1
-        return 0
 
     def _telegram(self, t: bytes, offset: int) -> ImuSample | None:
         """Decode one checksum-valid telegram (its bytes, header to checksum)."""

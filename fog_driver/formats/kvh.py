@@ -374,67 +374,51 @@ class KvhDecoder(HuntingDecoder):
         super().__init__(FormatCounters())
         self._unwrap = SeqUnwrapper(SEQ_MODULUS, self.counters)
 
-    def _decode(self, final: bool) -> list[Event]:
-        buf = self._buf
-        pos = self._pos
-        end = len(buf)
+    def _find(self, buf: bytearray, pos: int) -> int:
+        return buf.find(SYNC, pos)
+
+    def _may_begin(self, byte: int) -> bool:
+        return byte == SYNC0
+
+    def _judge(self, buf: bytearray, pos: int, end: int, final: bool) -> int | None:
         c = self.counters
-        events: list[Event] = []
-        seconds = self._seconds
-        while True:
-            at = buf.find(SYNC, pos)
-            pos = self._skip_to_header(pos, at, end, not final and end > pos and buf[end - 1] == SYNC0)
-            if at < 0:
-                break
-            if end - pos < HEADER_LEN:
-                if not final:
-                    break
-                self._discard(1)  # too short to be a header: no frame was cut off
-                pos += 1
-                continue
-            b2 = buf[pos + 2]
-            b3 = buf[pos + 3]
-            fmt = None
-            if b2 == 0xFF and b3 in seconds:
-                fmt, frame_len = seconds[b3]
-            elif b2 == 0x00 and b3 in BIT_FRAME_LEN:
-                frame_len = BIT_FRAME_LEN[b3]
-            else:
-                self._discard(1)  # FE 81 not followed by a known header
-                pos += 1
-                continue
-            if end - pos < frame_len:
-                if not final:
-                    break
-                c.truncated_frames += 1
-                self._discard(1)
-                pos += 1
-                continue
-            check_at = pos + frame_len - (4 if fmt else 1)
-            if fmt:
-                ok = crc32_mpeg2(buf[pos:check_at]) == _U32.unpack_from(buf, check_at)[0]
-            else:
-                ok = sum(buf[pos:check_at]) & 0xFF == buf[check_at]
-            if not ok:
-                c.crc_errors += 1
-                self._discard(1)
-                pos += 1
-                continue
-            if self._hunting:  # (checked here: the call only on the rare resync, off the per-frame path)
-                self._resynced()
-            if fmt:
-                values = _BODY[fmt].unpack_from(buf, pos + HEADER_LEN)
-                seq_raw = values[-2] if fmt != "c" else values[-1]
-                events.append(_make_sample(self.config, fmt, values, self._unwrap.step(seq_raw % SEQ_MODULUS),
-                                           self._base + pos))
-                c.sample_frames += 1
-            else:
-                events.append(KvhBitFrame(self._base + pos, b3, bytes(buf[pos + HEADER_LEN : check_at])))
-                c.other_frames += 1
-            c.bytes_in_frames += frame_len
-            pos += frame_len
-        self._settle(pos)
-        return events
+        if end - pos < HEADER_LEN:
+            return None if not final else 0  # too short to be a header: no frame was cut off
+        b2 = buf[pos + 2]
+        b3 = buf[pos + 3]
+        if b2 == 0xFF and b3 in self._seconds:
+            frame_len = self._seconds[b3][1]
+            check_len = 4
+        elif b2 == 0x00 and b3 in BIT_FRAME_LEN:
+            frame_len = BIT_FRAME_LEN[b3]
+            check_len = 1
+        else:
+            return 0  # FE 81 not followed by a known header
+        if end - pos < frame_len:
+            return self._short(final)
+        check_at = pos + frame_len - check_len
+        if check_len == 4:
+            ok = crc32_mpeg2(buf[pos:check_at]) == _U32.unpack_from(buf, check_at)[0]
+        else:
+            ok = sum(buf[pos:check_at]) & 0xFF == buf[check_at]
+        if not ok:
+            c.crc_errors += 1
+            return 0
+        return frame_len
+
+    def _emit(self, buf: bytearray, pos: int, n: int, events: list) -> None:
+        c = self.counters
+        b3 = buf[pos + 3]
+        if buf[pos + 2] == 0xFF:
+            fmt = self._seconds[b3][0]
+            values = _BODY[fmt].unpack_from(buf, pos + HEADER_LEN)
+            seq_raw = values[-2] if fmt != "c" else values[-1]
+            events.append(_make_sample(self.config, fmt, values, self._unwrap.step(seq_raw % SEQ_MODULUS),
+                                       self._base + pos))  # fmt: skip
+            c.sample_frames += 1
+        else:
+            events.append(KvhBitFrame(self._base + pos, b3, bytes(buf[pos + HEADER_LEN : pos + n - 1])))
+            c.other_frames += 1
 
 
 # --- the batch decoder ---------------------------------------------------------------------------------------

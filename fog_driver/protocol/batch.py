@@ -486,6 +486,14 @@ def iter_decode_file(
     an ``InputFileError`` (one line: the path and the reason).
     """
     decoder = BatchDecoder()
+    for block, final in iter_file_blocks(path, block_bytes, on_block):
+        yield decoder.decode(block, final=final)
+
+
+def iter_file_blocks(path: str | Path, block_bytes: int = FILE_BLOCK_BYTES,
+                     on_block: Callable[[bytes], None] | None = None) -> Iterator[tuple[bytes, bool]]:  # fmt: skip
+    """A capture file's ``(block, final)`` pairs, ``final`` True for the last (an empty file: one empty
+    block); ``on_block`` sees every block as read.  A file that cannot be opened is an ``InputFileError``."""
     try:
         f = Path(path).open("rb")
     except OSError as exc:
@@ -496,7 +504,7 @@ def iter_decode_file(
             following = f.read(block_bytes) if block else b""
             if on_block and block:
                 on_block(block)
-            yield decoder.decode(block, final=not following)
+            yield block, not following
             if not following:
                 return
             block = following

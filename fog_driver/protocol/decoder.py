@@ -24,6 +24,7 @@ from dataclasses import asdict, dataclass
 
 from .hunting import HuntingDecoder
 from .wire import (
+    CRC_LEN,
     HEADER_LEN,
     KNOWN_PAYLOAD_LEN,
     OVERHEAD_LEN,
@@ -32,7 +33,6 @@ from .wire import (
     SYNC0,
     TYPE_IDENTITY,
     TYPE_SAMPLE,
-    Event,
     SampleFrame,
     UnknownFrame,
     parse_identity_payload,
@@ -88,66 +88,45 @@ class FrameDecoder(HuntingDecoder):
         self._last_seq: int | None = None
         self._last_t_us: int | None = None
 
-    def _decode(self, final: bool) -> list[Event]:
-        buf = self._buf
-        pos = self._pos
-        end = len(buf)
+    def _find(self, buf: bytearray, pos: int) -> int:
+        return buf.find(SYNC, pos)
+
+    def _may_begin(self, byte: int) -> bool:
+        return byte == SYNC0  # a lone trailing 0xAA may be the first half of a sync
+
+    def _judge(self, buf: bytearray, pos: int, end: int, final: bool) -> int | None:
         c = self.counters
-        events: list[Event] = []
-        while True:
-            sync_at = buf.find(SYNC, pos)
-            # (none found: a lone trailing 0xAA may be the first half of a sync)
-            pos = self._skip_to_header(pos, sync_at, end, not final and end > pos and buf[end - 1] == SYNC0)
-            if sync_at < 0:
-                break
-            if end - pos < HEADER_LEN:
-                if not final:
-                    break
-                c.truncated_frames += 1
-                self._discard(1)
-                pos += 1
-                continue
-            frame_type = buf[pos + 2]
-            payload_len = buf[pos + 3]
-            expected_len = KNOWN_PAYLOAD_LEN.get(frame_type)
-            if expected_len is not None and payload_len != expected_len:
-                c.length_errors += 1
-                self._discard(1)
-                pos += 1
-                continue
-            frame_len = OVERHEAD_LEN + payload_len
-            if end - pos < frame_len:
-                if not final:
-                    break
-                c.truncated_frames += 1
-                self._discard(1)
-                pos += 1
-                continue
-            crc_at = pos + HEADER_LEN + payload_len
-            if zlib.crc32(buf[pos + 2 : crc_at]) != _CRC_UNPACK_FROM(buf, crc_at)[0]:
-                c.crc_errors += 1
-                self._discard(1)
-                pos += 1
-                continue
-            # A valid frame.
-            if self._hunting:  # (checked here: the call only on the rare resync, off the per-frame path)
-                self._resynced()
-            offset = self._base + pos
-            if frame_type == TYPE_SAMPLE:
-                frame = SampleFrame(offset, *_SAMPLE_UNPACK_FROM(buf, pos + HEADER_LEN))
-                self._count_sample(frame.seq, frame.t_us)
-                c.sample_frames += 1
-            elif frame_type == TYPE_IDENTITY:
-                frame = parse_identity_payload(offset, bytes(buf[pos + HEADER_LEN : crc_at]))
-                c.identity_frames += 1
-            else:
-                frame = UnknownFrame(offset, frame_type, bytes(buf[pos + HEADER_LEN : crc_at]))
-                c.unknown_frames += 1
-            events.append(frame)
-            c.bytes_in_frames += frame_len
-            pos += frame_len
-        self._settle(pos)
-        return events
+        if end - pos < HEADER_LEN:
+            return self._short(final)
+        payload_len = buf[pos + 3]
+        expected_len = KNOWN_PAYLOAD_LEN.get(buf[pos + 2])
+        if expected_len is not None and payload_len != expected_len:
+            c.length_errors += 1
+            return 0
+        frame_len = OVERHEAD_LEN + payload_len
+        if end - pos < frame_len:
+            return self._short(final)
+        crc_at = pos + HEADER_LEN + payload_len
+        if zlib.crc32(buf[pos + 2 : crc_at]) != _CRC_UNPACK_FROM(buf, crc_at)[0]:
+            c.crc_errors += 1
+            return 0
+        return frame_len
+
+    def _emit(self, buf: bytearray, pos: int, n: int, events: list) -> None:
+        c = self.counters
+        offset = self._base + pos
+        frame_type = buf[pos + 2]
+        if frame_type == TYPE_SAMPLE:
+            frame = SampleFrame(offset, *_SAMPLE_UNPACK_FROM(buf, pos + HEADER_LEN))
+            self._count_sample(frame.seq, frame.t_us)
+            c.sample_frames += 1
+        elif frame_type == TYPE_IDENTITY:
+            frame = parse_identity_payload(offset, bytes(buf[pos + HEADER_LEN : pos + n - CRC_LEN]))
+            c.identity_frames += 1
+        else:
+            frame = UnknownFrame(offset, frame_type, bytes(buf[pos + HEADER_LEN : pos + n - CRC_LEN]))
+            c.unknown_frames += 1
+        events.append(frame)
 
     def _count_sample(self, seq: int, t_us: int) -> None:
         c = self.counters

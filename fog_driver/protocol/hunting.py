@@ -1,10 +1,10 @@
 """What every streaming frame decoder shares: the buffer, ``feed``/``close``, and the byte accounting.
 
 A decoder hunts for frame headers in the bytes fed so far and decides at each header position from the
-bytes from there on (h11 style: bytes in, events out; no I/O, never raises on data).  The subclass
-implements ``_decode(final)``: decide what it can in ``_buf[_pos:]``, counting discarded bytes through
-``_discard`` and advancing ``_pos`` (and compacting, moving ``_base``), and return the events.  Every
-subclass keeps ``bytes_in == bytes_in_frames + bytes_discarded + pending`` in its counters.
+bytes from there on (h11 style: bytes in, events out; no I/O, never raises on data).  The hunt is one loop
+(``_decode``); a format implements ``_find`` (where a header may start), ``_may_begin``, ``_judge`` (is a
+valid frame there, and how long) and ``_emit`` (what it holds): adding a format is those four methods.
+The loop keeps ``bytes_in == bytes_in_frames + bytes_discarded + pending`` in the counters.
 """
 
 from __future__ import annotations
@@ -85,5 +85,57 @@ class HuntingDecoder:
             pos = 0
         self._pos = pos
 
-    def _decode(self, final: bool) -> list:  # pragma: no cover - every subclass has its own
+    # -- the hunt: one loop for every format; a format says where a header may start, whether a frame is
+    # -- there, and what it holds
+
+    def _find(self, buf: bytearray, pos: int) -> int:
+        """Index of the next possible header at or after ``pos`` in ``buf``, -1 when there is none."""
         raise NotImplementedError
+
+    def _may_begin(self, byte: int) -> bool:
+        """Whether a last byte may be the first of a header (kept while waiting for more)."""
+        raise NotImplementedError
+
+    def _judge(self, buf: bytearray, pos: int, end: int, final: bool) -> int | None:
+        """At a possible header at ``pos`` (``end``: the end of the bytes held): the length of the valid frame
+        that starts there; 0 when none does (the subclass counts why: a checksum error, a bad length, a cut-off
+        frame); None to wait for more bytes.  It may look only at ``buf[pos:end]``."""
+        raise NotImplementedError
+
+    def _emit(self, buf: bytearray, pos: int, n: int, events: list) -> None:
+        """Decode the valid frame of ``n`` bytes at ``pos`` into ``events`` and count it."""
+        raise NotImplementedError
+
+    def _short(self, final: bool) -> int | None:
+        """A ``_judge`` verdict for a frame not all held: wait, or at the end of the stream, cut off (counted)."""
+        if not final:
+            return None
+        self.counters.truncated_frames += 1
+        return 0
+
+    def _decode(self, final: bool) -> list:
+        """Every decision the bytes held allow: at each possible header the subclass's ``_judge`` says
+        wait, no frame (ONE byte discarded, the hunt goes on from the next), or a frame (emitted, skipped)."""
+        buf = self._buf
+        pos = self._pos
+        end = len(buf)
+        events: list = []
+        while True:
+            at = self._find(buf, pos)
+            pos = self._skip_to_header(pos, at, end, not final and end > pos and self._may_begin(buf[end - 1]))
+            if at < 0:
+                break
+            n = self._judge(buf, pos, end, final)
+            if n is None:
+                break
+            if not n:
+                self._discard(1)
+                pos += 1
+                continue
+            if self._hunting:  # (checked here: the call only on the rare resync, off the per-frame path)
+                self._resynced()
+            self._emit(buf, pos, n, events)
+            self.counters.bytes_in_frames += n
+            pos += n
+        self._settle(pos)
+        return events
