@@ -108,10 +108,16 @@ def record(
         base_fields["notes"] = notes
     check_outputs([out_path, sidecar_path(out_path)], force=overwrite)  # say so now, not after waiting for the port
     on_open = None
+    captured = [0]  # bytes written to the capture so far
+    events: list[dict[str, Any]] = []  # device setups: the offline readers skip their bytes, as the daemon does
     if setup is not None:
         from .transport.setup import make_on_open
 
-        on_open = make_on_open(setup)
+        def on_setup(result) -> None:  # before its bytes are yielded: they start at the bytes written so far
+            events.append({"event": "device_setup", "utc": utc_now_iso(), "at_byte": captured[0],
+                           "bytes_not_decoded": len(result.raw), "replies": list(result.replies)})  # fmt: skip
+
+        on_open = make_on_open(setup, on_result=on_setup)
     reader = PortReader(url, baudrate=baudrate, reconnect=reconnect, on_state=state_changed,
                         first_open="wait" if wait else "fail", on_open=on_open)  # fmt: skip
     chunks = reader.chunks(stop)
@@ -141,6 +147,7 @@ def record(
         try:
             for chunk in itertools.chain((first,), chunks):
                 writer.write(chunk)
+                captured[0] = writer.bytes_written
                 for event in decoder.feed(chunk):
                     if isinstance(event, IdentityFrame):
                         identity = event
@@ -172,6 +179,7 @@ def record(
                 "sha256": writer.sha256,
                 "port_events": port_events,
                 "decoded_while_recording": decoder.counters.as_dict(),
+                **({"events": events} if events else {}),
             }
             if identity is not None:
                 fields["instrument"] = {

@@ -417,6 +417,8 @@ class CaptureReader:
         else:
             self.stream = ImuSampleStream(self.wire)
         self.counters: Any = None
+        #: byte ranges read during a device setup, not decoded (``setup_byte_ranges``)
+        self.skip = setup_byte_ranges(self.path) if self.wire.format != PROTOCOL_V1 else []
 
     @property
     def identity(self) -> IdentityFrame | None:
@@ -437,11 +439,45 @@ class CaptureReader:
         source = SampleSource(self.wire)
         source.stream = self.stream
         self.counters = source.counters
-        for block, final in iter_file_blocks(self.path, block_bytes, on_block):
+        for block, final in _without(iter_file_blocks(self.path, block_bytes, on_block), self.skip):
             items = source.feed(block) + (source.close() if final else [])
             samples = [s for s in items if isinstance(s, Sample)]
             identities = [s for s in items if isinstance(s, IdentityFrame)]
             yield SamplePart(SampleBlock.from_samples(samples), identities, source.counters.bytes_in)
+
+
+def setup_byte_ranges(path: str | Path) -> list[tuple[int, int]]:
+    """The ``(start, end)`` byte ranges of a capture that a daemon or ``record`` read during a device setup
+    (the sidecar's ``device_setup`` events: ``at_byte``, ``bytes_not_decoded``): not decoded live, so not
+    offline either (frames the device sent under its old settings, and its replies)."""
+    from .capture import read_provenance
+
+    events = (read_provenance(path) or {}).get("events") or []
+    ranges = []
+    for event in events if isinstance(events, list) else []:
+        if isinstance(event, dict) and event.get("event") == "device_setup":
+            start, n = event.get("at_byte"), event.get("bytes_not_decoded")
+            if isinstance(start, int) and isinstance(n, int) and start >= 0 and n > 0:
+                ranges.append((start, start + n))
+    return sorted(ranges)
+
+
+def _without(blocks: Iterator[tuple[bytes, bool]], ranges: list[tuple[int, int]]) -> Iterator[tuple[bytes, bool]]:
+    """``blocks`` (``iter_file_blocks``) with the bytes of ``ranges`` (file offsets) left out."""
+    at = 0
+    for block, final in blocks:
+        if ranges:
+            kept = []
+            start = 0
+            for a, b in ranges:
+                lo, hi = max(a - at, 0), min(b - at, len(block))
+                if lo < hi:
+                    kept.append(block[start:lo])
+                    start = max(start, hi)
+            kept.append(block[start:])
+            at += len(block)
+            block = b"".join(kept)
+        yield block, final
 
 
 def _grid_array(values: np.ndarray, step: float) -> np.ndarray:
@@ -525,7 +561,7 @@ def _kvh_file_parts(reader: CaptureReader, on_block: Callable[[bytes], None] | N
     carry = b""
     base = 0  # file offset of carry[0]
     bytes_in = 0
-    for block, final in iter_file_blocks(reader.path, block_bytes, on_block):
+    for block, final in _without(iter_file_blocks(reader.path, block_bytes, on_block), reader.skip):
         bytes_in += len(block)
         data = carry + block
         batch = decode_kvh_batch(data, **config)

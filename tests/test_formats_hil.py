@@ -88,11 +88,42 @@ def test_setup_commands_reach_a_kvh_device_on_open_and_its_frames_are_published(
             client.wait_device("activated")  # reported once the setup has been answered
             handled = [kvh.commands.get(timeout=30) for _ in range(4)]
             assert [c.upper() for c in handled] == ["=CONFIG,1", "=TEMPUNITS,C_100", "=DR,100", "=CONFIG,0"]
+            # The frames the device sent before the setup (whole degC) are captured, not decoded: every
+            # published temperature is the C_100 word the device sends since.
             angles = [client.next("ANGLE") for _ in range(50)]
-            assert all(a["temps_c"] == {"sensor": 25.0} for a in angles)  # the C_100 word the device now sends
+            assert [a["temps_c"] for a in angles] == [{"sensor": 25.0}] * 50, angles[:3]
             assert daemon.terminate() == 0
         finally:
             daemon.kill()
-    sidecar = yaml.safe_load(sorted(daemon.capture_dir.glob("*.bin.yaml"))[0].read_text())
+    own = sorted(daemon.capture_dir.glob("*.bin"))[0]
+    sidecar = yaml.safe_load(Path(str(own) + ".yaml").read_text())
     events = [e for e in sidecar.get("events", []) if e.get("event") == "device_setup"]
     assert events and events[0]["sent"] == ["=CONFIG,1", "=TEMPUNITS,C_100", "=DR,100", "=CONFIG,0"]
+    assert events[0]["bytes_not_decoded"] > 36  # frames sent before the setup, and the replies
+    assert b"CONFIG,1" in own.read_bytes()  # nothing lost: the raw capture holds them
+    # offline, the same bytes are skipped: `compensate` on the daemon's capture gives the published angles
+    offline = {}
+    for _, cols in compensate_capture(own, load_model(model)):
+        offline.update(zip(cols.seq.tolist(), cols.angle_comp_arcsec.tolist()))
+    assert [a["angle_arcsec"] for a in angles] == [offline[a["seq"]] for a in angles]
+
+
+def test_record_sends_the_setup_and_its_capture_reads_as_the_daemon_reads_it(tmp_path):
+    from fog_driver.cli import main
+
+    config = daemon_config(tmp_path, "kvh-a", tmp_path / "unused.yaml", rate_hz=100, temp_units="c_100",
+                           setup=["=TEMPUNITS,C_100"])  # fmt: skip
+    out = tmp_path / "rec.bin"
+    with PtyPair() as pty, FakeKvhDevice(pty, rate_hz=100) as kvh:
+        # the device sends frames in whole degC until the setup changes it
+        assert main(["record", pty.slave_path, "--config", str(config), "--duration", "1.5", "--out", str(out)]) == 0
+        assert [c.upper() for c in [kvh.commands.get(timeout=5) for _ in range(3)]] == [
+            "=CONFIG,1", "=TEMPUNITS,C_100", "=CONFIG,0"]  # fmt: skip
+    doc = yaml.safe_load((tmp_path / "rec.bin.yaml").read_text())
+    (event,) = doc["events"]
+    assert event["event"] == "device_setup" and event["at_byte"] == 0 and event["bytes_not_decoded"] > 0
+    wire = wire_settings_for(out)
+    from fog_driver.sources import CaptureReader
+
+    temps = [t for p in CaptureReader(out, wire).parts() for t in p.samples.t_top_c.tolist()]
+    assert len(temps) > 50 and set(temps) == {25.0}  # none of the frames before the setup read as 0.25 degC

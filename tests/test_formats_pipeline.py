@@ -367,3 +367,15 @@ def test_the_kvh_batch_path_gives_the_streaming_samples_bit_for_bit(fmt, tmp_pat
             np.testing.assert_array_equal(getattr(got, name), getattr(reference, name), err_msg=f"{name} {block_bytes}")
         assert [i for p in parts for i in p.identities] == [streamed.identity]
         assert parts[-1].bytes_in == len(data)
+
+
+def test_bytes_read_during_a_device_setup_are_left_out_offline_at_any_block_size():
+    from fog_driver.sources import _without
+
+    data = bytes(range(256)) * 40
+    ranges = [(0, 3), (100, 250), (251, 252), (5000, 7000), (10230, 10240)]
+    expected = b"".join(data[b:a] for (_, b), (a, _) in zip([(0, 0), *ranges], [*ranges, (len(data), 0)]))
+    for size in (1, 7, 100, 4096, len(data)):
+        blocks = [(data[i : i + size], i + size >= len(data)) for i in range(0, len(data), size)]
+        assert b"".join(b for b, _ in _without(iter(blocks), ranges)) == expected
+        assert [f for _, f in _without(iter(blocks), ranges)] == [f for _, f in blocks]

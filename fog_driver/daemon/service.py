@@ -138,6 +138,7 @@ class Service:
         self.adapt_state_sha256 = self._check_adapt_state(self.model_file)
         self.source = make_source(config)
         self._format_problem_said = False
+        self._setup_bytes_left = 0  # bytes read during a device setup, still to be skipped by the decoder
         if config.format != "auto":
             self._check_channels(self.model_file, config.wire_settings(), f"the model {config.model_path}")
         self.binding = self._new_binding(self.model_file)
@@ -326,7 +327,10 @@ class Service:
         sent = [command.decode("ascii", "replace").strip() for command in result.sent]
         log.info("device_setup", sent=sent, replies=list(result.replies), settle_s=result.settle_s)
         with self.lock:
-            self._note("device_setup", sent=sent, replies=list(result.replies))
+            # The bytes read during the setup (frames the device sent under its old settings, and its replies)
+            # are captured but not decoded; the note says where they are, and offline readers skip them too.
+            self._note("device_setup", sent=sent, replies=list(result.replies), bytes_not_decoded=len(result.raw))
+            self._setup_bytes_left = len(result.raw)
 
     def _on_capture_state(self, state: str) -> None:
         if self.hub is not None:
@@ -338,6 +342,10 @@ class Service:
         with self.lock:
             if self.capture is not None:
                 self.capture.put(chunk)
+            if self._setup_bytes_left:  # the setup's bytes: the PortReader yields them as the first chunk
+                skipped = min(len(chunk), self._setup_bytes_left)
+                self._setup_bytes_left -= skipped
+                chunk = chunk[skipped:]
             items = self.source.feed(chunk)
             if self.source.format_problem is not None and not self._format_problem_said:
                 self._format_problem_said = True
