@@ -363,7 +363,7 @@ def _last_frame_end(decoded: DecodedCapture) -> int:
 
 def what_it_is(path: str | Path) -> str:
     """For a file that holds no protocol v1 frame: what the format sniffer sees in it, as the end of a one-line
-    error ("; it looks like kvh-a (...), which fog-driver cannot read yet"; "" when it cannot be read)."""
+    error ("; it looks like kvh-a (...): read it with --format kvh-a or auto"; "" when it cannot be read)."""
     from .formats.registry import sniff_file
 
     try:
@@ -372,7 +372,7 @@ def what_it_is(path: str | Path) -> str:
         return ""
     if seen.name is None:
         return f"; the format sniffer sees {seen.describe()}"
-    return f"; it looks like {seen.describe()}, which fog-driver cannot read yet"
+    return f"; it looks like {seen.describe()}: read it with --format {seen.name} or auto"
 
 
 def inspect_capture(

@@ -62,4 +62,4 @@ def test_inspect_names_what_a_capture_of_another_format_is(tmp_path):
         inspect_capture(capture)
     message = str(info.value)
     assert message == (f"{capture}: not a protocol v1 capture: no valid frame in 7200 bytes; it looks like kvh-a "
-                       "(200 valid frames in the first 7,200 bytes), which fog-driver cannot read yet")  # fmt: skip
+                       "(200 valid frames in the first 7,200 bytes): read it with --format kvh-a or auto")  # fmt: skip

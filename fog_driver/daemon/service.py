@@ -64,6 +64,7 @@ from ..config import DriverConfig, parse_host_port
 from ..errors import FogDriverError, TemporaryFailure
 from ..protocol import IdentityFrame
 from ..sources import make_source
+from ..stream import identity_is_plausible
 from ..transport.setup import make_on_open
 from ..transport import PortError, PortEvent, PortReader
 
@@ -352,7 +353,7 @@ class Service:
                 log.warning("format_problem", format=self.config.format, problem=self.source.format_problem)
             for sample in items:
                 if isinstance(sample, IdentityFrame):
-                    self._on_identity(angles)
+                    self._on_identity(angles, sample)
                     continue
                 if not self.binding.bound:  # frame period unknown until the first IDENTITY
                     self.samples_before_identity.append(sample)
@@ -363,10 +364,10 @@ class Service:
                 angles.append(self._compensate(sample))
         return angles
 
-    def _on_identity(self, angles: list[dict]) -> None:
-        """The stream took an IDENTITY (an implausible one is counted there and changes nothing)."""
-        identity = self.source.identity
-        if identity is None or identity == self.identity:
+    def _on_identity(self, angles: list[dict], identity: IdentityFrame) -> None:
+        """An IDENTITY in the stream, in order with the samples around it (an implausible one is counted by the
+        stream and changes nothing)."""
+        if not identity_is_plausible(identity) or identity == self.identity:
             return
         changed = self.identity is None or self.identity[1:] != identity[1:]
         detected = self.identity is None and self.config.format == "auto"  # the format is known from now on
