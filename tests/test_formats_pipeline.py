@@ -379,3 +379,10 @@ def test_bytes_read_during_a_device_setup_are_left_out_offline_at_any_block_size
         blocks = [(data[i : i + size], i + size >= len(data)) for i in range(0, len(data), size)]
         assert b"".join(b for b, _ in _without(iter(blocks), ranges)) == expected
         assert [f for _, f in _without(iter(blocks), ranges)] == [f for _, f in blocks]
+
+
+def test_format_auto_finding_a_format_without_its_device_settings_is_a_config_error(captures):
+    service = Service(DriverConfig(format="auto"), port="unused")
+    with pytest.raises(ConfigError, match=r"format auto: device\.rate_hz: kvh-a frames do not say the device's "
+                                          r"output rate"):  # fmt: skip
+        service.process(captures["kvh-a"].read_bytes()[:10000])

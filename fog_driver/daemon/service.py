@@ -347,7 +347,10 @@ class Service:
                 skipped = min(len(chunk), self._setup_bytes_left)
                 self._setup_bytes_left -= skipped
                 chunk = chunk[skipped:]
-            items = self.source.feed(chunk)
+            try:
+                items = self.source.feed(chunk)
+            except ValueError as exc:  # format auto found a format the config has no device settings for
+                raise ConfigError(f"format auto: {exc}") from None
             if self.source.format_problem is not None and not self._format_problem_said:
                 self._format_problem_said = True
                 log.warning("format_problem", format=self.config.format, problem=self.source.format_problem)
