@@ -499,7 +499,7 @@ def kvh_batch_samples(batch: Any, wire: WireSettings, state: _KvhBatchState, bas
     """``ImuSampleStream.step`` over a ``formats.kvh.decode_kvh_batch`` result, vectorized: the same samples,
     bit for bit (tested).  ``base``: the file offset of the buffer decoded; ``stream``'s identity and
     ``increments_rejected`` are kept up to date."""
-    from .formats.kvh import _ARCSEC_PER_UNIT, _TEMP_SCALE, SAMPLE_FORMATS
+    from .formats.kvh import _ARCSEC_PER_UNIT, _TEMP_SCALE, GYRO_VALID, SAMPLE_FORMATS
 
     sample_kinds = np.array([b for b, _ in SAMPLE_FORMATS.values()], dtype=np.uint8)
     rows = np.flatnonzero(np.isin(batch.kind, sample_kinds))
@@ -519,7 +519,8 @@ def kvh_batch_samples(batch: Any, wire: WireSettings, state: _KvhBatchState, bas
         bad = ~(np.abs(dtheta) * rate_hz <= MAX_RATE_DPH)
     dtheta = np.where(bad, 0.0, dtheta)
     stream.increments_rejected += int(np.count_nonzero(bad))
-    status = np.where((batch.status[rows] & 0x07) != 0x07, STATUS_LOOP_UNLOCKED, 0) | np.where(bad, STATUS_LOOP_UNLOCKED, 0)
+    status = np.where((batch.status[rows] & GYRO_VALID) != GYRO_VALID, STATUS_LOOP_UNLOCKED, 0) | np.where(
+        bad, STATUS_LOOP_UNLOCKED, 0)  # fmt: skip
     kind = batch.kind[rows]
     c_byte = SAMPLE_FORMATS["c"][0]
     temp = np.where(kind == c_byte, np.nan, batch.temp_raw[rows] * _TEMP_SCALE[wire.temp_units])
@@ -580,13 +581,11 @@ def _kvh_file_parts(reader: CaptureReader, on_block: Callable[[bytes], None] | N
             reader.stream.identity.offset) else [], bytes_in)  # fmt: skip
 
 
-def wire_settings_for(path: str | Path, requested: str = "auto", *, override: WireSettings | None = None
-                      ) -> WireSettings:  # fmt: skip
+def wire_settings_for(path: str | Path, requested: str = "auto") -> WireSettings:
     """How to read the capture ``path``: ``requested`` is ``--format`` (``auto``: the sidecar's
     ``wire_format``, else what the sniffer finds in the first bytes, else protocol v1).  A requested format
     that the bytes contradict is an ``InputFileError`` naming what the sniffer saw; so is a sidecar whose
-    wire settings cannot be used.  ``override``: settings given by the caller (a daemon config), used
-    when the sidecar has none."""
+    wire settings cannot be used."""
     from .capture import find_sidecar, read_provenance, sidecar_path
 
     doc = read_provenance(path) or {}
@@ -601,29 +600,20 @@ def wire_settings_for(path: str | Path, requested: str = "auto", *, override: Wi
     if recorded is not None and recorded not in FORMATS:
         raise InputFileError(f"{where}wire_format: unknown frame format {recorded!r} (known: {', '.join(FORMATS)})")
     if requested == "auto":
-        name = recorded or seen.name or (override.format if override else PROTOCOL_V1)
+        name = recorded or seen.name or PROTOCOL_V1
     else:
         name = requested
         if seen.name is not None and seen.name != name:
             raise InputFileError(f"{path}: --format {name}, but the sniffer saw {seen.describe()}")
-    if seen.name is None and head and name != PROTOCOL_V1 and not _frames_of(name, head):
+    if seen.name is None and head and name != PROTOCOL_V1 and not seen.frames[name]:
         raise InputFileError(f"{path}: no {name} frame: the sniffer saw {seen.describe()}")
     if recorded == name:
         try:
             return WireSettings.from_sidecar(name, doc.get("wire_settings"), where)
         except ValueError as exc:
             raise InputFileError(str(exc)) from None
-    if override is not None and override.format == name:
-        return override
     if name == PROTOCOL_V1:
         return WireSettings()
     raise InputFileError(f"{path}: a {name} capture needs the device's settings (rate_hz ...) and has no sidecar "
                          f"recording them: write {sidecar_path(path).name} with wire_format and "
                          f"wire_settings (see the README)")  # fmt: skip
-
-
-def _frames_of(name: str, head: bytes) -> int:
-    fmt = FORMATS[name]
-    decoder = fmt.make_decoder()
-    decoder.feed(head)
-    return fmt.valid_frames(decoder.counters)

@@ -82,6 +82,8 @@ SYNC = b"\xfe\x81"
 SYNC0 = 0xFE
 HEADER_LEN = 4
 SEQ_MODULUS = 128
+#: Status bits 0..2: gyro x, y, z valid (a frame without all three is ``sensor_invalid``).
+GYRO_VALID = 0x07
 
 #: sample formats: name -> (fourth header byte, frame length in bytes)
 SAMPLE_FORMATS = {"a": (0x55, 36), "b": (0x56, 40), "c": (0x57, 38)}
@@ -333,7 +335,7 @@ def _make_sample(cfg: KvhConfig, fmt: str, values: tuple, seq_unwrapped: int, of
         rate = tuple(g * k for g in gyro)
         dtheta = tuple(r / rate_hz for r in rate) if rate_hz else (math.nan,) * 3
         from_rate = True
-    flags = frozenset() if status & 0x07 == 0x07 else frozenset((FLAG_SENSOR_INVALID,))
+    flags = frozenset() if status & GYRO_VALID == GYRO_VALID else frozenset((FLAG_SENSOR_INVALID,))
     return ImuSample(
         seq=seq_unwrapped,
         t_s=None,
