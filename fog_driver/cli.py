@@ -51,12 +51,16 @@ def _baud(text: str) -> int:
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
-    other = _other_format(args.capture, args.format)
-    if other is not None:
-        from .capture import read_provenance
+    from .sources import PROTOCOL_V1, capture_format
+
+    other, doc = PROTOCOL_V1, {}
+    if args.format != PROTOCOL_V1 and os.path.isfile(args.capture) and os.access(args.capture, os.R_OK):
+        other, doc = capture_format(args.capture, args.format)  # (an unreadable file: inspect's own words below)
+    if other != PROTOCOL_V1:  # without a sidecar too: inspect is how one finds out what a capture holds
         from .formats.summary import format_format_summary, summarize_format
 
-        settings = (read_provenance(args.capture) or {}).get("wire_settings") or {}
+        settings = doc.get("wire_settings") if doc.get("wire_format") == other else None
+        settings = settings if isinstance(settings, dict) else {}
         try:
             found = summarize_format(args.capture, other, settings if isinstance(settings, dict) else {})
         except (TypeError, ValueError) as exc:  # wire_settings the decoder cannot take
@@ -75,24 +79,6 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     if args.strict and summary.problems:
         return EXIT_PROBLEMS
     return 0
-
-
-def _other_format(capture: str, requested: str) -> str | None:
-    """The format of ``capture`` when it is not protocol v1 (None: read it as protocol v1).  ``auto`` sniffs it;
-    a named format the sniffer contradicts is a one-line error naming what the sniffer saw."""
-    from .formats.registry import sniff_file
-
-    if requested == "fog-v1":
-        return None
-    try:
-        seen = sniff_file(capture)
-    except OSError:
-        return None  # the protocol v1 path says why, in its words
-    if requested == "auto":
-        return seen.name if seen.name not in (None, "fog-v1") else None
-    if seen.name is not None and seen.name != requested:
-        raise InputFileError(f"{capture}: --format {requested}, but the format sniffer sees {seen.describe()}")
-    return requested
 
 
 def _record_wire(config_path: str | None, fmt: str | None):
@@ -343,7 +329,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
         step = quality["bias_step"]
         print(f"{'bias step test (largest step)':34s} {step['step_dph']:+10.4f} deg/h at minute {step['minute']} of "
               f"{step['capture']}, {100 * step['share']:.0f} % of the temperature terms' residual")  # fmt: skip
-        warning = bias_step_warning(step)
+        warning = bias_step_warning(step, len(model_file.temperature_channels))
         if warning:
             print(f"warning: {warning}")
     print(f"the model's input box and estimate bound (+-{model_file.domain.estimate_limit_dph:.3g} deg/h) are in "

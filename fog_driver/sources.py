@@ -150,16 +150,8 @@ class WireSettings:
 
     def make_decoder(self) -> Any:
         """The format's streaming decoder, set as the device was."""
-        if self.format.startswith("kvh-"):
-            from .formats.kvh import KvhDecoder
-
-            return KvhDecoder(format=self.format[-1], rot_format=self.rot_format, rot_units=self.rot_units,
-                              temp_units=self.temp_units, rate_hz=self.rate_hz)  # fmt: skip
-        if self.format == "ixblue-stdbin":
-            from .formats.ixblue import StdbinDecoder
-
-            return StdbinDecoder(rate_hz=self.rate_hz)
-        return FORMATS[self.format].make_decoder()
+        return FORMATS[self.format].decoder({"rot_format": self.rot_format, "rot_units": self.rot_units,
+                                             "temp_units": self.temp_units, "rate_hz": self.rate_hz})  # fmt: skip
 
 
 def _grid(value: float, step: float) -> float:
@@ -222,12 +214,15 @@ class ImuSampleStream:
         else:
             t_us = round(event.t_s * 1e6)
         temps = self._temps
+        event_temps = event.temps_c
         for k, name in enumerate(self.channels):
-            if name in event.temps_c:
-                temps[k] = _grid(float(event.temps_c[name]), TEMP_GRID_C)
+            value = event_temps.get(name)
+            if value is not None:
+                temps[k] = _grid(float(value), TEMP_GRID_C)
         status = sensor_bad
-        for flag in event.flags:
-            status |= _FLAG_STATUS.get(flag, 0)
+        if event.flags:
+            for flag in event.flags:
+                status |= _FLAG_STATUS.get(flag, 0)
         fields = (seq, t_us / 1e6, _grid(float(dtheta), DTHETA_GRID_ARCSEC), temps[0], temps[1], temps[2], status,
                   missing, event.offset)  # fmt: skip
         if not self.keep_axes:
@@ -581,15 +576,14 @@ def _kvh_file_parts(reader: CaptureReader, on_block: Callable[[bytes], None] | N
             reader.stream.identity.offset) else [], bytes_in)  # fmt: skip
 
 
-def wire_settings_for(path: str | Path, requested: str = "auto") -> WireSettings:
-    """How to read the capture ``path``: ``requested`` is ``--format`` (``auto``: the sidecar's
-    ``wire_format``, else what the sniffer finds in the first bytes, else protocol v1).  A requested format
-    that the bytes contradict is an ``InputFileError`` naming what the sniffer saw; so is a sidecar whose
-    wire settings cannot be used."""
-    from .capture import find_sidecar, read_provenance, sidecar_path
+def capture_format(path: str | Path, requested: str = "auto") -> tuple[str, dict]:
+    """The frame format to read the capture ``path`` as, and its sidecar (``{}``: none).  ``requested`` is
+    ``--format`` (``auto``: the sidecar's ``wire_format``, else what the sniffer finds in the first bytes, else
+    protocol v1).  A requested format that the bytes contradict, or bytes without one frame of the format,
+    are an ``InputFileError`` naming what the sniffer saw."""
+    from .capture import find_sidecar, read_provenance
 
     doc = read_provenance(path) or {}
-    where = f"{find_sidecar(path)}: "
     try:
         with open(path, "rb") as f:
             head = f.read(SNIFF_BYTES)
@@ -598,7 +592,8 @@ def wire_settings_for(path: str | Path, requested: str = "auto") -> WireSettings
     seen = sniff(head)
     recorded = doc.get("wire_format")
     if recorded is not None and recorded not in FORMATS:
-        raise InputFileError(f"{where}wire_format: unknown frame format {recorded!r} (known: {', '.join(FORMATS)})")
+        raise InputFileError(f"{find_sidecar(path)}: wire_format: unknown frame format {recorded!r} "
+                             f"(known: {', '.join(FORMATS)})")  # fmt: skip
     if requested == "auto":
         name = recorded or seen.name or PROTOCOL_V1
     else:
@@ -607,9 +602,19 @@ def wire_settings_for(path: str | Path, requested: str = "auto") -> WireSettings
             raise InputFileError(f"{path}: --format {name}, but the sniffer saw {seen.describe()}")
     if seen.name is None and head and name != PROTOCOL_V1 and not seen.frames[name]:
         raise InputFileError(f"{path}: no {name} frame: the sniffer saw {seen.describe()}")
-    if recorded == name:
+    return name, doc
+
+
+def wire_settings_for(path: str | Path, requested: str = "auto") -> WireSettings:
+    """How to read the capture ``path`` (``capture_format``), with the device settings its sidecar recorded; a
+    sidecar whose wire settings cannot be used, or a capture of another format without one, is an
+    ``InputFileError``."""
+    from .capture import find_sidecar, sidecar_path
+
+    name, doc = capture_format(path, requested)
+    if doc.get("wire_format") == name:
         try:
-            return WireSettings.from_sidecar(name, doc.get("wire_settings"), where)
+            return WireSettings.from_sidecar(name, doc.get("wire_settings"), f"{find_sidecar(path)}: ")
         except ValueError as exc:
             raise InputFileError(str(exc)) from None
     if name == PROTOCOL_V1:

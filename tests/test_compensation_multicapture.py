@@ -211,6 +211,9 @@ def test_a_bias_step_in_the_fit_data_is_found_where_and_as_big_as_it_is(runs):
     assert stepped.step_dph == pytest.approx(0.1, abs=0.02) and stepped.share > clean.share
     warning = fit.bias_step_warning(stepped._asdict() | {"capture": "paper.bin"})
     assert warning.startswith("the fit data hold a bias step of +0.") and "minute 2" in warning
+    assert "thermometer" not in warning
+    one = fit.bias_step_warning(stepped._asdict() | {"capture": "paper.bin"}, n_channels=1)
+    assert "drift that one thermometer cannot follow" in one and one.startswith(warning[:40])
 
 
 def test_the_step_test_names_the_capture_that_holds_the_step(runs):

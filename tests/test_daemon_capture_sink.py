@@ -204,3 +204,52 @@ def test_bad_sink_settings_are_value_errors(tmp_path, kwargs):
     with pytest.raises(ValueError):
         CaptureSink(RotatingCapture(tmp_path), **kwargs)
     assert Path(tmp_path).is_dir()
+
+
+class CountingCapture(RotatingCapture):
+    """A ``RotatingCapture`` that says when it writes (the writer thread's calls, in order)."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.writes: queue.Queue = queue.Queue()
+
+    def write(self, chunk: bytes) -> None:
+        super().write(chunk)
+        self.writes.put(bytes(chunk))
+
+
+def test_while_bytes_flow_the_writer_takes_them_in_batches_not_one_wake_per_chunk(tmp_path):
+    """The first chunk after a pause is written at once; the chunks that follow while the writer gathers wait
+    for its next write (one wake-up per ``write_every_s``, which is set long here so the test does not depend on
+    timing); closing writes them all, in order."""
+    capture = CountingCapture(tmp_path)
+    sink = CaptureSink(capture, write_every_s=3600.0)
+    sink.put(b"first")
+    assert capture.writes.get(timeout=TIMEOUT_S) == b"first"  # at once: the writer was idle
+    for k in range(100):
+        sink.put(b"%03d" % k)
+    assert capture.writes.empty()  # gathered, not written per chunk
+    assert sink.close()
+    later = []
+    while not capture.writes.empty():
+        later.append(capture.writes.get_nowait())
+    assert b"".join(later) == b"".join(b"%03d" % k for k in range(100))
+    assert capture.files[0].read_bytes() == b"first" + b"".join(b"%03d" % k for k in range(100))
+
+
+def test_a_batch_of_write_at_bytes_is_written_without_waiting_for_the_interval(tmp_path):
+    """An unpaced replay's 64 kB chunks are written as they come, not held for ``write_every_s``."""
+    capture = CountingCapture(tmp_path)
+    sink = CaptureSink(capture, write_every_s=3600.0)
+    sink.put(b"first")
+    assert capture.writes.get(timeout=TIMEOUT_S) == b"first"
+    big = bytes(range(256)) * (rawlog.WRITE_AT_BYTES // 256)
+    sink.put(big)  # the writer gathers for an hour, unless a full batch wakes it
+    assert capture.writes.get(timeout=TIMEOUT_S) == big
+    assert sink.close()
+    assert capture.files[0].read_bytes() == b"first" + big
+
+
+def test_write_every_s_must_be_positive(tmp_path):
+    with pytest.raises(ValueError, match="write_every_s"):
+        CaptureSink(RotatingCapture(tmp_path), write_every_s=0.0)

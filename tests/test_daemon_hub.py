@@ -17,9 +17,11 @@ import time
 import numpy as np
 import pytest
 import structlog
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from fog_driver.compensation.compensator import FLAG_NAMES
-from fog_driver.daemon.hub import MAX_UNTERMINATED_BYTES, Hub, clean, is_loopback_host
+from fog_driver.daemon.hub import MAX_UNTERMINATED_BYTES, Hub, clean, encode, is_loopback_host
 from fog_driver.daemon.udp import (
     DATAGRAM_SIZE,
     FLAG_BITS,
@@ -175,6 +177,29 @@ def test_clean_drops_none_and_non_finite_recursively():
     assert clean(obj) == {"e": 1.5, "f": 0, "g": False, "h": {"y": [1.0, 2]}, "j": 2.5, "k": 7, "l": [1.0],
                           "m": "text", "n": [3]}
     assert json.dumps(clean(obj), allow_nan=False)
+
+
+_LEAVES = st.one_of(
+    st.none(), st.booleans(), st.integers(-(2**70), 2**70), st.floats(allow_nan=True, allow_infinity=True),
+    st.text(max_size=12), st.sampled_from(["null", "a null here", "nullable"]),
+    st.floats(allow_nan=True, allow_infinity=True).map(np.float64), st.integers(-1000, 1000).map(np.int64),
+    st.booleans().map(np.bool_),
+)
+_OBJECTS = st.dictionaries(
+    st.text(max_size=8),
+    st.recursive(_LEAVES, lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=6), inner,
+                                                                                       max_size=4), max_leaves=12),
+    max_size=8,
+)
+
+
+@settings(max_examples=200, deadline=None)
+@given(_OBJECTS)
+def test_encode_gives_the_line_of_the_cleaned_object_whatever_it_holds(obj):
+    """``encode`` skips ``clean`` for objects that are clean already: the line must be the same as encoding the
+    cleaned object, for Nones, non-finite floats, numpy scalars and the text "null" anywhere."""
+    reference = (json.dumps(clean(obj), separators=(",", ":"), allow_nan=False) + "\n").encode()
+    assert encode(obj) == reference
 
 
 def test_absent_values_are_omitted_in_output(make_hub):

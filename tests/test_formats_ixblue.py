@@ -299,6 +299,14 @@ def test_encode_decode_round_trip_each_version(version):
         assert s.temps_c == {"fog": 25.5, "accelerometer": 30.25, "board": 40.0}
         if version > 2:
             assert (s.extra["raw_rate_x_dph"], s.extra["raw_rate_z_dph"]) == (0.25 * 3600, -3600.0)
+    # each sample's offset is where its telegram starts in the stream (it was once a block's offset inside the
+    # telegram), here after a little garbage and at any split
+    garbage = b"\x00IX\x07"
+    data = garbage + b"".join(telegrams)
+    starts = [len(garbage) + sum(len(t) for t in telegrams[:k]) for k in range(8)]
+    for chunks in ([], [3, 50, 51, len(data) - 7]):
+        events, _, _ = _decode(data, chunks, rate_hz=10.0)
+        assert [s.offset for s in events] == starts
 
 
 def test_encoder_rejects_what_the_format_cannot_carry():

@@ -62,11 +62,11 @@ def test_a_format_the_sniffer_contradicts_is_one_line_naming_what_it_saw(tmp_pat
     capture, _ = kvh_capture(tmp_path, seconds=10.0)
     assert cli.main(["inspect", str(capture), "--format", "ixblue-stdbin"]) == 65
     (line,) = capsys.readouterr().err.splitlines()
-    assert line == (f"fog-driver: error: {capture}: --format ixblue-stdbin, but the format sniffer sees kvh-a "
+    assert line == (f"fog-driver: error: {capture}: --format ixblue-stdbin, but the sniffer saw kvh-a "
                     "(500 valid frames in the first 18,000 bytes)")  # fmt: skip
     v1 = DATA / "sim-short.bin"
     assert cli.main(["inspect", str(v1), "--format", "kvh-a"]) == 65
-    assert "but the format sniffer sees fog-v1" in capsys.readouterr().err
+    assert "but the sniffer saw fog-v1" in capsys.readouterr().err
     assert cli.main(["inspect", str(v1)]) == 0 and "verdict" in capsys.readouterr().out  # protocol v1 as before
 
 

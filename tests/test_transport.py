@@ -515,3 +515,81 @@ def test_reader_chunks_are_bounded_even_when_megabytes_wait(tmp_path: Path) -> N
     chunks = list(PortReader(f"replay://{path}?unplug=1", reconnect=False).chunks(threading.Event()))
     assert b"".join(chunks) == data
     assert max(len(c) for c in chunks) == MAX_READ_BYTES and len(chunks) >= 5
+
+
+# ---------------------------------------------------------------------------------------------
+# read_available: what one read of the acquisition takes
+
+
+class LumpPort:
+    """A stand-in for a non-POSIX port (pyserial's ``read``/``in_waiting`` only): nothing waiting when the read
+    starts, then a lump whose first byte wakes the read."""
+
+    def __init__(self, lump: bytes, fail_after_first: bool = False) -> None:
+        self.lump = lump
+        self.fail_after_first = fail_after_first
+        self.calls: list[tuple[str, int]] = []
+        self.first = True
+
+    @property
+    def in_waiting(self) -> int:
+        if self.first:
+            return 0
+        if self.fail_after_first:
+            raise serial.SerialException("gone")
+        return len(self.lump)
+
+    def read(self, size: int) -> bytes:
+        self.calls.append(("read", size))
+        if self.first:
+            self.first = False
+            out, self.lump = self.lump[:1], self.lump[1:]
+            return out
+        out, self.lump = self.lump[:size], self.lump[size:]
+        return out
+
+
+def test_read_available_takes_the_rest_of_a_lump_with_the_byte_that_woke_it() -> None:
+    """A read woken by a lump's first byte returns the whole lump as one chunk (pyserial's ``read(1)`` alone
+    gave a chunk of one byte, and the pipeline ran twice per lump)."""
+    from fog_driver.transport.port import read_available
+
+    port = LumpPort(b"abcdefghij")
+    assert read_available(port) == b"abcdefghij"
+    assert port.calls == [("read", 1), ("read", 9)]
+
+
+def test_read_available_keeps_the_first_byte_when_the_port_fails_after_it() -> None:
+    from fog_driver.transport.port import read_available
+
+    port = LumpPort(b"abc", fail_after_first=True)
+    assert read_available(port) == b"a"  # the byte read is data; the next read meets the error
+
+
+def test_read_available_on_a_pty_reads_the_descriptor_directly() -> None:
+    """A POSIX port is read with select and one read(2), not through pyserial's byte-at-a-time ``read``: the
+    lump comes whole and in order, a port with nothing gives b"" at its timeout, ``cancel_read`` wakes it, and a
+    vanished far end (readable, no bytes) is pyserial's own error for an unplugged adapter."""
+    from fog_driver.transport.port import read_available
+
+    lump = bytes(range(256)) * 8
+    with PtyPair() as pair:
+        port = open_port(pair.slave_path, timeout_s=GUARD_S)
+        try:
+            port.read = None  # pyserial's read must not be used (calling it would raise TypeError)
+            pair.write(lump)
+            got = b""
+            while len(got) < len(lump):
+                got += read_available(port)
+            assert got == lump
+            port.timeout = 0.01
+            assert read_available(port) == b""
+            port.timeout = GUARD_S
+            port.cancel_read()
+            assert read_available(port) == b""  # woken by the cancel, not the guard timeout
+            pair.unplug()
+            with pytest.raises(serial.SerialException, match="readiness to read but returned no data"):
+                read_available(port)
+        finally:
+            del port.read
+            port.close()

@@ -168,7 +168,7 @@ class BlockAverager:
         return block
 
     def step(self, sample: Sample) -> list[ModelBlock]:
-        t_us = int(_us(sample.t_s))
+        t_us = round(sample.t_s * 1e6)  # ``_us`` of one value: the same float64 product, rounded half to even
         if self._first_us is None:
             self._first_us = t_us
         index = (t_us - self._first_us) // self.block_us
@@ -179,8 +179,9 @@ class BlockAverager:
             self._current = index
         self._n += 1
         self._sum_dtheta += sample.dtheta_arcsec
+        low, high = PLAUSIBLE_TEMP_C
         for k, value in enumerate((sample.t_top_c, sample.t_bottom_c, sample.t_housing_c)):
-            if plausible_temp(value):  # not NaN, not implausible
+            if low <= value <= high:  # plausible_temp: not NaN, not implausible
                 self._sum_t[k] += value
                 self._n_t[k] += 1
             elif k < self.n_channels:

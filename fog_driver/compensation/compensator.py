@@ -20,6 +20,7 @@ bit-identical results for any split of a capture (tested).
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,7 +31,7 @@ import numpy as np
 from ..errors import InputFileError
 from ..protocol import STATUS_THERMOMETER_FAULT
 from ..stream import Sample, SampleBlock
-from .blocks import FLAG_GAP, FLAG_THERMOMETER_FAULT, BlockAverager, ModelBlock, plausible_temp, plausible_temps
+from .blocks import FLAG_GAP, FLAG_THERMOMETER_FAULT, PLAUSIBLE_TEMP_C, BlockAverager, ModelBlock, plausible_temps
 from .domain import FLAG_EXTRAPOLATING
 from .features import DEGRADED_FLAGS, FLAG_INPUT_STALE, FLAG_RECOVERING, FLAG_SUBSTITUTED, FeatureExtractor
 from .model import ModelFile
@@ -60,7 +61,13 @@ FLAG_NAMES = {
 
 
 def flag_names(flags: int) -> list[str]:
-    return [name for bit, name in FLAG_NAMES.items() if flags & bit]
+    """The names of the bits set in ``flags``, in ``FLAG_NAMES`` order (a new list each call)."""
+    return list(_flag_names(flags))
+
+
+@functools.lru_cache(maxsize=1024)
+def _flag_names(flags: int) -> tuple[str, ...]:
+    return tuple(name for bit, name in FLAG_NAMES.items() if flags & bit)
 
 
 class CompensatedSample(NamedTuple):
@@ -348,8 +355,14 @@ class Compensator:
         flags = self.estimate_flags
         if sample.missing_before or stale:
             flags |= FLAG_GAP
-        if not all(plausible_temp(t) for t in temps[: self.n_channels]) or sample.status & STATUS_THERMOMETER_FAULT:
+        if sample.status & STATUS_THERMOMETER_FAULT:
             flags |= FLAG_THERMOMETER_FAULT
+        else:
+            low, high = PLAUSIBLE_TEMP_C
+            for t in temps[: self.n_channels]:
+                if not low <= t <= high:  # not plausible_temp(t): NaN or implausible
+                    flags |= FLAG_THERMOMETER_FAULT
+                    break
         return CompensatedSample(
             sample.seq, sample.t_s, sample.dtheta_arcsec, drift, dtheta_comp,
             self.angle_raw_arcsec, self.angle_comp_arcsec, temps, flags,

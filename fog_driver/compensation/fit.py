@@ -339,17 +339,21 @@ STEP_WARN_DPH = 0.05
 STEP_WARN_SHARE = 0.25
 
 
-def bias_step_warning(step: dict) -> str | None:
+def bias_step_warning(step: dict, n_channels: int = 3) -> str | None:
     """The warning for ``provenance.fit_quality.bias_step``, or None when the step is within what the
     temperature terms' misfit alone produces.  Not a failing check: without a step, the 12 development
     instruments' paper runs (the polynomial's misfit of a coil lag) show steps up to 0.07 deg/h explaining
-    up to 20 % of the residual; a 0.1 deg/h step mid-run explains 32 %."""
+    up to 20 % of the residual; a 0.1 deg/h step mid-run explains 32 %.  ``n_channels``: the thermometers the
+    model has; with one (a KVH unit), drift it cannot follow (a gradient across the coil) looks like a step."""
     if abs(step["step_dph"]) < STEP_WARN_DPH or step["share"] < STEP_WARN_SHARE:
         return None
+    causes = "a bias jump, a turn-on transient longer than warmup_s, or a slow move"
+    if n_channels == 1:
+        causes = (f"drift that one thermometer cannot follow (a gradient or a lag across the coil that this "
+                  f"format's single sensor does not see), {causes}")  # fmt: skip
     return (f"the fit data hold a bias step of {step['step_dph']:+.3f} deg/h at minute {step['minute']} of "
-            f"{step['capture']} (it explains {100 * step['share']:.0f} % of what the temperatures leave): a bias "
-            f"jump, a turn-on transient longer than warmup_s, or a slow move; the model absorbs it as drift. Fit the "
-            f"parts either side separately, or raise warmup_s")
+            f"{step['capture']} (it explains {100 * step['share']:.0f} % of what the temperatures leave): {causes}; "
+            f"the model absorbs it as drift. Fit the parts either side separately, or raise warmup_s")
 
 
 def static_rows(captures: list[CaptureData], model_rate_hz: float) -> tuple[np.ndarray, np.ndarray]:

@@ -271,9 +271,23 @@ def _clean_value(value: Any) -> Any:
     return value
 
 
+_ENCODER = json.JSONEncoder(separators=(",", ":"), allow_nan=False)
+
+
 def encode(obj: dict) -> bytes:
-    """One protocol line: ``clean(obj)`` as compact JSON plus ``\\n`` (raises on unserializable values)."""
-    return json.dumps(clean(obj), separators=(",", ":"), allow_nan=False).encode() + b"\n"
+    """One protocol line: ``clean(obj)`` as compact JSON plus ``\\n`` (raises on unserializable values).
+
+    Most objects are clean already (every ANGLE the daemon makes): they are encoded as they are, and
+    ``clean`` runs only when that fails or might differ, i.e. when the object holds a non-finite float
+    (ValueError), a numpy integer or array (TypeError) or a ``null`` (None; the text ``null`` inside a
+    string also takes the slow path, which gives the same line)."""
+    try:
+        text = _ENCODER.encode(obj)
+    except (ValueError, TypeError):
+        text = None
+    if text is None or "null" in text:
+        text = _ENCODER.encode(clean(obj))
+    return text.encode() + b"\n"
 
 
 def is_loopback_host(host: str | None) -> bool:

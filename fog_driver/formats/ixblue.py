@@ -71,10 +71,12 @@ size below 9 bytes is impossible (one byte).
 
 from __future__ import annotations
 
+import functools
 import math
 import re
 import struct
 from dataclasses import dataclass
+from types import MappingProxyType
 
 from ..protocol.hunting import HuntingDecoder
 from .common import FLAG_STARTUP, FormatCounters, ImuSample, SeqUnwrapper
@@ -230,12 +232,8 @@ class StdbinDecoder(HuntingDecoder):
         if have < header_len:
             return self._short(final)
         nav_mask, extnav_mask, external_mask, size = _header_masks(buf, pos, version)
-        known = header_len + CHECKSUM_LEN
-        unknown = 0
-        for mask, table in ((nav_mask, _NAV), (extnav_mask, _EXTNAV), (external_mask, _EXTERNAL)):
-            k, u = _blocks_len(mask, table)
-            known += k
-            unknown += u
+        known, unknown = _masks_len(nav_mask, extnav_mask, external_mask)
+        known += header_len + CHECKSUM_LEN
         if (size != known) if unknown == 0 else not (known + unknown <= size <= MAX_UNVERIFIED_LEN):
             c.length_errors += 1
             return 0
@@ -262,30 +260,9 @@ class StdbinDecoder(HuntingDecoder):
         dt_s = self._step_time(time_raw)
         t_s = self._time_unwrapped * TIME_LSB_S
 
-        blocks: dict[int, int] = {}  # decoded bit -> offset in t
-        offset = HEADER_LEN[version]
-        for bit in range(31):
-            if nav_mask >> bit & 1:
-                if bit in _DECODED_BITS:
-                    blocks[bit] = offset
-                else:
-                    c.blocks_skipped += 1
-                offset += NAV_BLOCK_LEN[bit]
-        raw_rate_at = None
-        if nav_mask >> 31 & 1:
-            c.unknown_blocks += 1
-            offset = -1  # the extended blocks' offsets are unknown
-        for mask, table in ((extnav_mask, _EXTNAV), (external_mask, _EXTERNAL)):
-            for bit in range(32):
-                if mask >> bit & 1:
-                    if table[bit] is None:
-                        c.unknown_blocks += 1
-                    elif table is _EXTNAV and bit == EXTNAV_BIT_RAW_ROTATION_RATE and offset >= 0:
-                        raw_rate_at = offset
-                    else:
-                        c.blocks_skipped += 1
-                    if table is _EXTNAV and offset >= 0:
-                        offset = -1 if table[bit] is None else offset + table[bit]
+        blocks, raw_rate_at, skipped, unknown = _layout(HEADER_LEN[version], nav_mask, extnav_mask, external_mask)
+        c.blocks_skipped += skipped
+        c.unknown_blocks += unknown
 
         if BIT_ROTATION_RATE not in blocks:
             c.other_frames += 1
@@ -353,6 +330,53 @@ _DECODED_BITS = frozenset(
     (BIT_ATTITUDE, BIT_ROTATION_RATE, BIT_ACCELERATION, BIT_SENSOR_STATUS, BIT_INS_ALGORITHM_STATUS,
      BIT_AHRS_ALGORITHM_STATUS, BIT_TEMPERATURES)
 )  # fmt: skip
+
+
+@functools.lru_cache(maxsize=256)
+def _masks_len(nav_mask: int, extnav_mask: int, external_mask: int) -> tuple[int, int]:
+    """(bytes of the known blocks, number of set bits of unknown size) of the three masks (``_blocks_len`` of
+    each, summed; cached: a unit sends the same masks in every telegram, and the cache is bounded, so a flood
+    of false headers with random masks costs what it did without it)."""
+    known = unknown = 0
+    for mask, table in ((nav_mask, _NAV), (extnav_mask, _EXTNAV), (external_mask, _EXTERNAL)):
+        k, u = _blocks_len(mask, table)
+        known += k
+        unknown += u
+    return known, unknown
+
+
+@functools.lru_cache(maxsize=256)
+def _layout(header_len: int, nav_mask: int, extnav_mask: int,
+            external_mask: int) -> tuple[MappingProxyType, int | None, int, int]:  # fmt: skip
+    """Where a telegram with these masks has its blocks: (decoded navigation bit -> offset in the telegram,
+    the raw rotation rate block's offset or None, blocks skipped by size, set bits of unknown size).
+    Cached (bounded) as ``_masks_len``."""
+    blocks: dict[int, int] = {}
+    skipped = unknown = 0
+    offset = header_len
+    for bit in range(31):
+        if nav_mask >> bit & 1:
+            if bit in _DECODED_BITS:
+                blocks[bit] = offset
+            else:
+                skipped += 1
+            offset += NAV_BLOCK_LEN[bit]
+    raw_rate_at = None
+    if nav_mask >> 31 & 1:
+        unknown += 1
+        offset = -1  # the extended blocks' offsets are unknown
+    for mask, table in ((extnav_mask, _EXTNAV), (external_mask, _EXTERNAL)):
+        for bit in range(32):
+            if mask >> bit & 1:
+                if table[bit] is None:
+                    unknown += 1
+                elif table is _EXTNAV and bit == EXTNAV_BIT_RAW_ROTATION_RATE and offset >= 0:
+                    raw_rate_at = offset
+                else:
+                    skipped += 1
+                if table is _EXTNAV and offset >= 0:
+                    offset = -1 if table[bit] is None else offset + table[bit]
+    return MappingProxyType(blocks), raw_rate_at, skipped, unknown
 
 
 def _header_masks(buf: bytes | bytearray, pos: int, version: int) -> tuple[int, int, int, int]:

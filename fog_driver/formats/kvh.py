@@ -129,8 +129,10 @@ def crc32_mpeg2(data: bytes | bytearray | memoryview) -> int:
     ``mpeg2(d) = reverse32(crc32(reverse8(d)) ^ 0xFFFFFFFF)``.  ``crc32_mpeg2_reference`` is the table
     form it is tested against.
     """
-    reg = zlib.crc32(bytes(data).translate(_REVERSE_BITS8)) ^ 0xFFFFFFFF
-    return int(f"{reg:032b}"[::-1], 2)
+    reg = zlib.crc32(data.translate(_REVERSE_BITS8) if not isinstance(data, memoryview)
+                     else bytes(data).translate(_REVERSE_BITS8)) ^ 0xFFFFFFFF  # fmt: skip
+    # reverse32: the bytes in the opposite order, each bit-reversed
+    return int.from_bytes(reg.to_bytes(4, "little").translate(_REVERSE_BITS8), "big")
 
 
 def crc32_mpeg2_reference(data: bytes | bytearray | memoryview) -> int:
@@ -306,11 +308,14 @@ class KvhConfig:
         return {b: (name, n) for name, (b, n) in SAMPLE_FORMATS.items() if self.format in (None, name)}
 
 
+_VALID: frozenset[str] = frozenset()
+_INVALID = frozenset((FLAG_SENSOR_INVALID,))
+
+
 def _make_sample(cfg: KvhConfig, fmt: str, values: tuple, seq_unwrapped: int, offset: int) -> ImuSample:
     k = _ARCSEC_PER_UNIT[cfg.rot_units]
-    gyro = values[0:3]
-    accel = values[3:6]
-    extra = {"accel_x_g": accel[0], "accel_y_g": accel[1], "accel_z_g": accel[2]}
+    gx, gy, gz = values[0:3]
+    extra = {"accel_x_g": values[3], "accel_y_g": values[4], "accel_z_g": values[5]}
     temps: dict[str, float] = {}
     if fmt == "a":
         status, seq, temp_raw = values[6:9]
@@ -328,14 +333,14 @@ def _make_sample(cfg: KvhConfig, fmt: str, values: tuple, seq_unwrapped: int, of
             extra[_MUX_NAMES[slot]] = mux
     rate_hz = cfg.rate_hz
     if cfg.rot_format == "delta":
-        dtheta = tuple(g * k for g in gyro)
-        rate = tuple(d * rate_hz for d in dtheta) if rate_hz else (math.nan,) * 3
+        dx, dy, dz = dtheta = (gx * k, gy * k, gz * k)
+        rate = (dx * rate_hz, dy * rate_hz, dz * rate_hz) if rate_hz else (math.nan,) * 3
         from_rate = False
     else:
-        rate = tuple(g * k for g in gyro)
-        dtheta = tuple(r / rate_hz for r in rate) if rate_hz else (math.nan,) * 3
+        rx, ry, rz = rate = (gx * k, gy * k, gz * k)
+        dtheta = (rx / rate_hz, ry / rate_hz, rz / rate_hz) if rate_hz else (math.nan,) * 3
         from_rate = True
-    flags = frozenset() if status & GYRO_VALID == GYRO_VALID else frozenset((FLAG_SENSOR_INVALID,))
+    flags = _VALID if status & GYRO_VALID == GYRO_VALID else _INVALID
     return ImuSample(
         seq=seq_unwrapped,
         t_s=None,

@@ -8,7 +8,7 @@ with a 1-byte resync, so garbage before the first frame (a port opened mid-frame
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -25,11 +25,20 @@ class FrameFormat:
 
     name: str
     description: str
-    make_decoder: Callable[[], Any]
+    #: ``make_decoder(**settings)``: a streaming decoder, set as the device was (``decoder_settings``' keys)
+    make_decoder: Callable[..., Any]
     #: the decoder's counters -> how many checksum-valid frames it has found
     valid_frames: Callable[[Any], int]
     #: the format's temperature channels, in the order they fill a sample's three temperature places
     temperature_channels: tuple[str, ...] = ()
+    #: the device settings its decoder takes (keys of a capture sidecar's ``wire_settings``)
+    decoder_settings: tuple[str, ...] = ()
+
+    def decoder(self, settings: Mapping[str, Any] | None = None) -> Any:
+        """A decoder set as the device was: the keys of ``settings`` that this format's decoder takes (the others,
+        such as the axis or the serial number, are not the decoder's); a key absent or None keeps its default."""
+        settings = settings or {}
+        return self.make_decoder(**{k: settings[k] for k in self.decoder_settings if settings.get(k) is not None})
 
 
 def _fog_v1() -> Any:
@@ -38,19 +47,22 @@ def _fog_v1() -> Any:
     return FrameDecoder()
 
 
-def _kvh(fmt: str) -> Callable[[], Any]:
-    def make() -> Any:
+def _kvh(fmt: str) -> Callable[..., Any]:
+    def make(**settings: Any) -> Any:
         from .kvh import KvhDecoder
 
-        return KvhDecoder(format=fmt)
+        return KvhDecoder(format=fmt, **settings)
 
     return make
 
 
-def _ixblue() -> Any:
+def _ixblue(**settings: Any) -> Any:
     from .ixblue import StdbinDecoder
 
-    return StdbinDecoder()
+    return StdbinDecoder(**settings)
+
+
+_KVH_SETTINGS = ("rot_format", "rot_units", "temp_units", "rate_hz")
 
 
 def _v1_frames(counters: Any) -> int:
@@ -67,13 +79,13 @@ FORMATS: dict[str, FrameFormat] = {
         FrameFormat("fog-v1", "fog_driver's own protocol v1 (firmware_protocol/PROTOCOL.md)", _fog_v1, _v1_frames,
                     ("top", "bottom", "housing")),
         FrameFormat("kvh-a", "KVH (EMCORE) DSP-1750/1760/1775 normal mode, Format A", _kvh("a"), _format_frames,
-                    ("sensor",)),
+                    ("sensor",), _KVH_SETTINGS),
         FrameFormat("kvh-b", "KVH (EMCORE) DSP-1750/1760/1775 normal mode, Format B", _kvh("b"), _format_frames,
-                    ("sensor",)),
+                    ("sensor",), _KVH_SETTINGS),
         FrameFormat("kvh-c", "KVH (EMCORE) DSP-1750/1760/1775 normal mode, Format C", _kvh("c"), _format_frames,
-                    ("sensor",)),
+                    ("sensor",), _KVH_SETTINGS),
         FrameFormat("ixblue-stdbin", "iXblue (Exail) STDBIN v2..v5 (Phins, Octans, ...)", _ixblue, _format_frames,
-                    ("fog", "accelerometer", "board")),
+                    ("fog", "accelerometer", "board"), ("rate_hz",)),
     )
 }
 

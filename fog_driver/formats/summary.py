@@ -20,23 +20,6 @@ from .registry import FORMATS
 _BLOCK = 1 << 20
 
 
-def decoder_for(name: str, settings: dict[str, Any] | None) -> Any:
-    """The decoder of format ``name`` with the device settings a capture's sidecar recorded (``wire_settings``:
-    KVH's ``rot_format``, ``rot_units``, ``temp_units``, ``rate_hz``; STDBIN's ``rate_hz``), else the defaults."""
-    settings = dict(settings or {})
-    for key in ("temperature_channel", "temperature_channels", "version", "axis", "serial"):  # not the decoder's
-        settings.pop(key, None)
-    if name.startswith("kvh-"):
-        from .kvh import KvhDecoder
-
-        return KvhDecoder(format=name[-1], **settings)
-    if name == "ixblue-stdbin":
-        from .ixblue import StdbinDecoder
-
-        return StdbinDecoder(rate_hz=settings.get("rate_hz"))
-    return FORMATS[name].make_decoder()
-
-
 @dataclass
 class _Channel:
     n: int = 0
@@ -123,7 +106,7 @@ class FormatSummary:
 
 def summarize_format(path: str | Path, name: str, settings: dict[str, Any] | None = None) -> FormatSummary:
     """Decode a whole capture of format ``name`` and summarize it (an ``InputFileError`` when unreadable)."""
-    decoder = decoder_for(name, settings)
+    decoder = FORMATS[name].decoder(settings)
     summary = FormatSummary(str(path), name, dict(settings or {}), {})
     try:
         with open(path, "rb") as f:

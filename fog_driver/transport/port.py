@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import errno
 import os
+import select
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -28,9 +29,12 @@ import structlog
 try:  # POSIX only; pyserial's POSIX ports let termios.error escape from flushes
     import termios
 
+    from serial.serialposix import Serial as _PosixSerial
+
     _TERMIOS_ERRORS: tuple[type[BaseException], ...] = (termios.error,)
 except ImportError:  # pragma: no cover - non-POSIX
     _TERMIOS_ERRORS = ()
+    _PosixSerial = None
 
 __all__ = ["DEFAULT_BAUDRATE", "PortError", "PortEvent", "PortReader", "PortSetupError", "PortState", "open_port"]
 
@@ -46,6 +50,51 @@ MAX_READ_BYTES = 64 * 1024
 PORT_ERRORS: tuple[type[BaseException], ...] = (OSError, *_TERMIOS_ERRORS)
 
 PortState = Literal["opening", "open", "lost", "retry_wait", "closed"]
+
+
+def read_available(port: serial.SerialBase) -> bytes:
+    """Every byte the port holds, up to ``MAX_READ_BYTES``, after waiting up to the port's timeout for the
+    first (``b""`` at the timeout).
+
+    A POSIX serial device (a tty, a pty, a USB adapter) is read directly: one ``select`` on its descriptor
+    and pyserial's cancel pipe, then one ``read(2)`` of whatever the kernel has.  That is two system calls
+    per lump of bytes where ``port.read(port.in_waiting or 1)`` makes six (pyserial reads a woken port one
+    byte at a time, then asks how many more are waiting).  Its errors are pyserial's: a failing ``read(2)``
+    raises ``SerialException("read failed: ...")``, and a descriptor that is readable but gives no bytes (a
+    USB adapter unplugged) raises pyserial's "device reports readiness to read but returned no data".
+    Any other port (``replay://``, ``loop://``, ``socket://``) is read through pyserial's ``read``, the
+    first byte and then the rest of its lump in one chunk.
+    """
+    fd = getattr(port, "fd", None)
+    if _PosixSerial is not None and isinstance(port, _PosixSerial) and isinstance(fd, int) \
+            and port.pipe_abort_read_r is not None:  # fmt: skip
+        cancel = port.pipe_abort_read_r
+        try:
+            ready = select.select([fd, cancel], [], [], port.timeout)[0]
+            if cancel in ready:
+                os.read(cancel, 1000)
+                return b""
+            if not ready:
+                return b""
+            data = os.read(fd, MAX_READ_BYTES)
+        except BlockingIOError:  # EAGAIN and its kin: nothing after all (EINTR is retried by Python)
+            return b""
+        except OSError as exc:
+            raise serial.SerialException(f"read failed: {exc}") from exc
+        if not data:
+            raise serial.SerialException("device reports readiness to read but returned no data "
+                                         "(device disconnected or multiple access on port?)")  # fmt: skip
+        return data
+    waiting = port.in_waiting
+    data = port.read(min(waiting or 1, MAX_READ_BYTES))
+    if not waiting and data:  # woken by a first byte: the rest of its lump with it
+        try:
+            waiting = port.in_waiting
+            if waiting:
+                data += port.read(min(waiting, MAX_READ_BYTES - 1))
+        except PORT_ERRORS:
+            pass  # the byte read is returned; the next read meets the error and reports it
+    return data
 
 
 class PortError(Exception):
@@ -224,7 +273,7 @@ class PortReader:
                             yield bytes(setup_bytes)
                         while not stop.is_set():
                             try:
-                                data = port.read(min(port.in_waiting or 1, MAX_READ_BYTES))
+                                data = read_available(port)
                             except PORT_ERRORS as exc:
                                 detail = str(exc) or type(exc).__name__
                                 break
