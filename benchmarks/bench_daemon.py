@@ -83,6 +83,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -254,6 +255,7 @@ class Daemon:
             stdout=subprocess.PIPE, stderr=self.log, text=True, stdin=subprocess.DEVNULL, cwd=ROOT,
         )  # fmt: skip
         line = self.proc.stdout.readline()  # the readiness line
+        self.readiness = line
         if "listening on" not in line:
             self.kill()
             sys.exit(f"the daemon did not start: {line!r}\n{self.log_path.read_text()[-2000:]}")
@@ -424,12 +426,15 @@ class LiveResult:
     cpu_pct: float = float("nan")
     cpu_threads: list[tuple[str, float]] = field(default_factory=list)
     exit_code: int | None = None
+    companions: dict = field(default_factory=dict)
 
 
 def live_run(label: str, rate_hz: int, seconds: float, tick_s: float, warmup_s: float, n_clients: int,
-             hostile: int = 0, *, wire_format: str = "fog-v1", daemon_args: tuple[str, ...] = ()) -> LiveResult:  # fmt: skip
+             hostile: int = 0, *, wire_format: str = "fog-v1", daemon_args: tuple[str, ...] = (),
+             companions: Callable[[Daemon], Callable[[], dict]] | None = None) -> LiveResult:  # fmt: skip
     """``wire_format``: the frames' (``make_frames``); ``daemon_args``: more for ``fog-driver run`` (a
-    ``--config`` saying that format)."""
+    ``--config`` saying that format); ``companions(daemon)``: started once the clients are ready, before the
+    frames (browsers, a scraper); returns the function that stops them and says what they saw."""
     frames = make_frames(rate_hz, seconds, wire_format=wire_format)
     warmup_frames = int(warmup_s * rate_hz)
     with tempfile.TemporaryDirectory(prefix="bench-daemon-") as tmp, PtyPair() as pty:
@@ -445,8 +450,10 @@ def live_run(label: str, rate_hz: int, seconds: float, tick_s: float, warmup_s: 
                 attackers = subprocess.Popen([sys.executable, str(ROOT / "tests" / "hostile.py"), host, str(port),
                                               str(hostile)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)  # fmt: skip
                 assert attackers.stdout.readline().strip() == "ready"
+            stop_companions = companions(daemon) if companions is not None else None
             pacing = pace(pty, frames, tick_s, warmup_s, daemon.pid)
             join_readers(readers, timeout_s=10.0)
+            seen = stop_companions() if stop_companions is not None else {}
             if attackers is not None:
                 attackers.stdin.close()
                 attackers.wait(GUARD_S)
@@ -458,7 +465,7 @@ def live_run(label: str, rate_hz: int, seconds: float, tick_s: float, warmup_s: 
                 if proc.poll() is None:
                     proc.kill()
             code = daemon.stop()
-    return LiveResult(label, rate_hz, seconds, clients, pacing, cpu_pct, per_thread, code)
+    return LiveResult(label, rate_hz, seconds, clients, pacing, cpu_pct, per_thread, code, seen)
 
 
 def pty_alone(rate_hz: int, seconds: float, tick_s: float, warmup_s: float) -> tuple[Received, Pacing]:

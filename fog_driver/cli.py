@@ -529,7 +529,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     def read_config() -> DriverConfig:
         config = load_config(args.config) if args.config else DriverConfig()
-        overrides = {k: getattr(args, k) for k in ("port", "model", "listen", "capture_dir", "format")
+        overrides = {k: getattr(args, k) for k in ("port", "model", "listen", "http", "capture_dir", "format")
                      if getattr(args, k)}  # fmt: skip
         return dataclasses.replace(config, **overrides)
 
@@ -570,7 +570,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         with SignalDispatcher((signal.SIGINT, signal.SIGTERM, signal.SIGHUP), on_signal):
             # The readiness line comes after the handlers: a signal sent on seeing it is handled.
             address = format_address(host, listen_port)  # an IPv6 address in brackets: [::1]:2948
-            print(f"fog-driver {__version__}: {port} -> listening on {address}; raw capture in "
+            web = "" if service.web is None else f"; web view on http://{format_address(*service.web.address)}/"
+            print(f"fog-driver {__version__}: {port} -> listening on {address}{web}; raw capture in "
                   f"{config.capture_dir}/; connect with: fog-driver watch {address}  (Ctrl-C to stop)",
                   flush=True)  # fmt: skip
             status = service.run_until_stopped()
@@ -756,6 +757,8 @@ def build_parser() -> argparse.ArgumentParser:
                                  "default on a terminal when no port is configured")
     p.add_argument("--model", metavar="MODEL.yaml", help="drift model (default: the shipped fog_driver/data/models/default.yaml)")
     p.add_argument("--listen", metavar="HOST:PORT", help="where clients connect (default 127.0.0.1:2948)")
+    p.add_argument("--http", metavar="HOST:PORT", help="serve the web view and /metrics here (overrides 'http'; "
+                                                        "needs the web extra; e.g. 127.0.0.1:8948)")
     p.add_argument("--capture-dir", dest="capture_dir", metavar="DIR", help="raw capture directory")
     p.add_argument("--format", choices=["auto", *FORMAT_NAMES], metavar="FORMAT",
                    help=f"the instrument's frame format (overrides 'format'; {', '.join(['auto', *FORMAT_NAMES])}); "

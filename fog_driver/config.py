@@ -60,6 +60,15 @@ def parse_host_port(
     return host, port
 
 
+#: The web view's port when ``http`` gives a host only.
+DEFAULT_HTTP_PORT = 8948
+
+
+def format_address(host: str, port: int) -> str:
+    """``HOST:PORT``, with an IPv6 address in brackets (``[::1]:2948``): what ``parse_host_port`` reads back."""
+    return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+
+
 @dataclass(frozen=True)
 class DeviceConfig:
     """How the instrument is set, for a frame format whose frames do not say it (``format`` other than
@@ -100,6 +109,8 @@ class DriverConfig:
     listen: str = f"127.0.0.1:{DEFAULT_PORT}"
     token: str | None = None  #: required for control commands when listening beyond loopback
     udp: str | None = None  #: HOST:PORT to send one datagram per sample to (None: off)
+    http: str | None = None  #: HOST:PORT of the web view and /metrics (None: off); beyond loopback needs token
+    http_history_min: float = 60.0  #: minutes of plots the web view keeps
     capture_dir: str = "fog-captures"
     capture_rotate_mb: float = 256.0
     capture_rotate_s: float = 3600.0
@@ -134,6 +145,10 @@ class DriverConfig:
         parse_host_port(self.listen)
         if self.udp is not None:
             parse_host_port(self.udp, allow_zero=False)
+        if self.http is not None:
+            parse_host_port(self.http, default_port=DEFAULT_HTTP_PORT)
+        if not (math.isfinite(self.http_history_min) and 0 < self.http_history_min <= 24 * 60):
+            raise ValueError(f"http_history_min must be in (0, 1440] minutes, got {self.http_history_min!r}")
         if self.token is not None and len(self.token) < 8:
             raise ValueError("token must be at least 8 characters")
         if self.format != "auto":

@@ -13,8 +13,8 @@
 ``save``               ``?SAVE``: save the adaptation state to the configured file
 =====================  =========================================================================
 
-The connection, the token (``FOG_DRIVER_TOKEN`` or ``--token-file``; ``?AUTH`` is sent first) and the line
-reading are ``client.py``'s, shared with ``fog-driver watch``.  Output: one human-readable line per
+It is built on the client library (``fog_driver.client.Client``, without reconnecting); the token comes
+from ``FOG_DRIVER_TOKEN`` or ``--token-file`` and ``?AUTH`` is sent first.  Output: one human-readable line per
 answer on stdout, or with ``--json`` the daemon's own lines (the reply, and for ``bias`` the result event).
 Exit statuses (sysexits), each failure one line on stderr: 0 done; 64 the daemon does not know the
 command (an older daemon), or bad arguments; 65 the daemon refused the command or the bias capture
@@ -25,16 +25,16 @@ needed.
 from __future__ import annotations
 
 import math
-import os
 import sys
 import time
-from typing import Any, TextIO
+from typing import TextIO
 
+from ..client import Bias, BiasFailed, Client, CommandRefused, Message, NoReply, Status, Unauthorized, UnknownCommand
+from ..client.wire import TOKEN_ENV, parse_address, read_token
 from ..console import Progress
-from ..errors import DeviceError, FogDriverError, UsageError
-from .client import TOKEN_ENV, Connection, ConnectionClosed, command_line, parse_address, read_token
+from ..errors import FogDriverError, UsageError
 
-__all__ = ["COMMANDS", "CommandRefused", "NotPermitted", "ctl_command", "parse_request", "run_ctl"]
+__all__ = ["COMMANDS", "ctl_command", "parse_request", "run_ctl"]
 
 #: ``fog-driver ctl`` commands -> the protocol's command names.
 COMMANDS = {"zero": "ZERO", "bias": "BIAS", "adapt": "ADAPT", "reload": "RELOAD", "status": "STATUS", "save": "SAVE"}
@@ -46,18 +46,6 @@ DEFAULT_BIAS_S = 60
 MAX_BIAS_S = 86400
 #: ``--reference-dph`` beyond this is refused (the daemon's own limit).
 MAX_REFERENCE_DPH = 1e7
-
-
-class CommandRefused(FogDriverError):
-    """The daemon refused the command (its ERROR), or a bias capture failed: exit 65 (EX_DATAERR)."""
-
-    exit_status = os.EX_DATAERR
-
-
-class NotPermitted(FogDriverError):
-    """The daemon refused the token, or needs one: exit 77 (EX_NOPERM)."""
-
-    exit_status = os.EX_NOPERM
 
 
 def parse_request(command: str, words: list[str], *, reference_dph: float | None = None) -> tuple[str, dict | None]:
@@ -145,55 +133,15 @@ def describe(reply: dict) -> str:
     return _word(reply, "class")
 
 
-def _is_reply(name: str, obj: dict) -> bool:
-    """Whether ``obj`` answers the command ``name`` (a BIAS event is not the answer to ?BIAS: its ack is)."""
-    cls = obj.get("class")
-    if cls == "ERROR":
-        return obj.get("command") in (name, None)
-    if cls != name:
-        return False
-    return name != "BIAS" or obj.get("state") == "started"
-
-
-def _refusal(name: str, message: str) -> FogDriverError:
-    if message == "unauthorized":
-        return NotPermitted(f"the daemon needs a token for ?{name}: set {TOKEN_ENV} or give --token-file")
-    if message.startswith("unknown command"):
-        return UsageError(f"the daemon does not know ?{name} (an older fog-driver?)")
-    return CommandRefused(f"?{name} refused: {message}")
-
-
-class _Session:
-    """One ctl connection: wait for lines of interest within a deadline, printing raw lines with ``--json``."""
-
-    def __init__(self, conn: Connection, out: TextIO, json_out: bool) -> None:
-        self.conn = conn
-        self.out = out
-        self.json_out = json_out
-        self.events: dict[Any, tuple[bytes, dict]] = {}  # BIAS results seen, by capture_id
-
-    def wait_for(self, accept, deadline: float, what: str, on_other=None) -> tuple[bytes, dict]:
-        while True:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                raise DeviceError(f"no {what} from {self.conn.address} within the time allowed")
-            try:
-                item = self.conn.read(remaining)
-            except ConnectionClosed as exc:
-                raise DeviceError(f"{self.conn.address}: {exc.reason} while waiting for {what}") from None
-            if item is None:
-                continue
-            raw, obj = item
-            if obj.get("class") == "BIAS" and obj.get("state") in ("done", "failed"):
-                self.events[obj.get("capture_id")] = (raw, obj)
-            if accept(obj):
-                return raw, obj
-            if on_other is not None:
-                on_other(obj)
-
-    def show(self, raw: bytes, obj: dict) -> None:
-        self.out.write((raw.decode("utf-8") if self.json_out else describe(obj)) + "\n")
-        self.out.flush()
+def _refused(name: str, exc: CommandRefused) -> FogDriverError:
+    """The library's typed refusal, in ctl's words (a missing token names the environment variable and flag)."""
+    if isinstance(exc, Unauthorized):
+        if name == "AUTH":
+            return Unauthorized(f"the daemon refused the token: {_word({'m': exc.message}, 'm')}")
+        return Unauthorized(f"the daemon needs a token for ?{name}: set {TOKEN_ENV} or give --token-file")
+    if isinstance(exc, UnknownCommand):
+        return UsageError(str(exc))
+    return exc
 
 
 def run_ctl(host: str, port: int, name: str, args: dict | None, *, token: str | None = None, json_out: bool = False,
@@ -202,58 +150,55 @@ def run_ctl(host: str, port: int, name: str, args: dict | None, *, token: str | 
     """Send one command (``name``, ``args``) to the daemon at ``host:port`` and print its answer; for ``BIAS``
     wait for the capture's result too.  Returns 0; raises ``FogDriverError`` (one line, its exit status)."""
     out = sys.stdout if out is None else out
-    conn = Connection.open(host, port, timeout_s=min(timeout_s, 5.0))  # DeviceError (69), at once
+    client = Client((host, port), token=token, timeout_s=min(timeout_s, 5.0), reconnect=False,
+                    reply_timeout_s=timeout_s)  # fmt: skip
     try:
-        session = _Session(conn, out, json_out)
-        deadline = time.monotonic() + timeout_s
         try:
-            if token:
-                conn.send(command_line("AUTH", {"token": token}))
-                _, answer = session.wait_for(lambda o: o.get("class") == "AUTH" or
-                                             (o.get("class") == "ERROR" and o.get("command") == "AUTH"),
-                                             deadline, "an answer to ?AUTH")  # fmt: skip
-                if answer["class"] == "ERROR":
-                    raise NotPermitted(f"the daemon refused the token: {_word(answer, 'message')}")
-            conn.send(command_line(name, args))
-        except ConnectionClosed as exc:
-            raise DeviceError(f"{conn.address}: {exc.reason}") from None
-        raw, reply = session.wait_for(lambda o: _is_reply(name, o), deadline, f"an answer to ?{name}")
-        if reply["class"] == "ERROR":
-            raise _refusal(name, _word(reply, "message"))
-        session.show(raw, reply)
+            client.connect()  # ConnectError (69) at once; Unauthorized (77) for a refused token
+        except CommandRefused as exc:
+            raise _refused("AUTH", exc) from None
+        try:
+            reply = client.command(name, args)
+        except CommandRefused as exc:
+            raise _refused(name, exc) from None
+        _show(out, json_out, reply)
         if name == "BIAS":
-            _wait_for_bias(session, reply, progress_stream if progress_stream is not None else sys.stderr)
+            _wait_for_bias(client, reply, out, json_out, progress_stream if progress_stream is not None else sys.stderr)
         return 0
     finally:
-        conn.close()
+        client.close()
 
 
-def _wait_for_bias(session: _Session, started: dict, progress_stream: TextIO) -> None:
+def _show(out: TextIO, json_out: bool, message: Message) -> None:
+    out.write((message.line.decode("utf-8") if json_out else describe(dict(message.raw))) + "\n")
+    out.flush()
+
+
+def _wait_for_bias(client: Client, started: Bias, out: TextIO, json_out: bool, progress_stream: TextIO) -> None:
     """The result of the capture ``started`` acknowledged: its ``done`` event (printed), or a failure."""
-    capture_id = started.get("capture_id")
-    wait_s = started.get("timeout_s")
-    if not (isinstance(wait_s, (int, float)) and 0 < wait_s <= MAX_BIAS_S + 3600):
-        wait_s = float(started.get("seconds") or DEFAULT_BIAS_S) + 30.0
+    wait_s = started.timeout_s
+    if wait_s is None or not 0 < wait_s <= MAX_BIAS_S + 3600:
+        wait_s = (started.seconds or DEFAULT_BIAS_S) + 30.0
+    deadline = time.monotonic() + wait_s + BIAS_WAIT_MARGIN_S
     progress = Progress(progress_stream)
-
-    def show_progress(obj: dict) -> None:
-        if obj.get("class") == "STATUS" and obj.get("bias_capture_target_s") is not None:
-            progress.show(f"bias: {_number(obj, 'bias_capture_s', '.1f')} / {_number(obj, 'bias_capture_target_s', 'g')} "
-                          "s of data (keep the table still)")  # fmt: skip
-
     try:
-        if capture_id in session.events:  # the result came before the acknowledgement (a fast replay)
-            raw, result = session.events[capture_id]
-        else:
-            raw, result = session.wait_for(
-                lambda o: o.get("class") == "BIAS" and o.get("state") in ("done", "failed")
-                and o.get("capture_id") == capture_id,
-                time.monotonic() + wait_s + BIAS_WAIT_MARGIN_S, "the bias capture's result", show_progress)  # fmt: skip
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise NoReply(f"no result of the bias capture from {client.address} within the time allowed")
+            message = client.poll(remaining)
+            if isinstance(message, Bias) and message.state in ("done", "failed") \
+                    and message.capture_id == started.capture_id:  # fmt: skip
+                result = message
+                break
+            if isinstance(message, Status) and message.raw.get("bias_capture_target_s") is not None:
+                progress.show(f"bias: {_number(message.raw, 'bias_capture_s', '.1f')} / "
+                              f"{_number(message.raw, 'bias_capture_target_s', 'g')} s of data (keep the table still)")
     finally:
         progress.clear()
-    session.show(raw, result)
-    if result.get("state") != "done":
-        raise CommandRefused(describe(result))
+    _show(out, json_out, result)
+    if result.state != "done":
+        raise BiasFailed(describe(dict(result.raw)), message=result.reason or "", command="BIAS")
 
 
 def ctl_command(command: str, words: list[str], *, address: str | None = None, token_file: str | None = None,

@@ -148,6 +148,8 @@ from typing import Any, Self
 
 import structlog
 
+from .metrics import LatencyHistogram
+
 __all__ = [
     "DEFAULT_AUTH_BACKOFF_BASE_S",
     "DEFAULT_AUTH_BACKOFF_MAX_S",
@@ -525,6 +527,7 @@ class Hub:
         auth_backoff_base_s: float = DEFAULT_AUTH_BACKOFF_BASE_S,
         auth_backoff_max_s: float = DEFAULT_AUTH_BACKOFF_MAX_S,
         log_lines_per_s: int = DEFAULT_LOG_LINES_PER_S,
+        latency: LatencyHistogram | None = None,
     ) -> None:
         _check_token(token, host)
         if max_line_bytes < 16:
@@ -556,6 +559,7 @@ class Hub:
         self.auth_deadline_s = auth_deadline_s
         self._auth_throttle = _AuthThrottle(auth_backoff_base_s, auth_backoff_max_s)
         self._log_limiter = _LogRateLimiter(log_lines_per_s)
+        self.latency = latency  #: frame-to-publish latency, observed once per published batch (None: not measured)
 
         self._clients: dict[int, _Client] = {}
         self._clients_per_peer: collections.Counter[str] = collections.Counter()
@@ -786,12 +790,15 @@ class Hub:
 
     # ------------------------------------------------------------------ publishing (any thread)
 
-    def publish_angles(self, objs: list[dict]) -> None:
+    def publish_angles(self, objs: list[dict], read_monotonic_s: float | None = None) -> None:
         """Send ANGLE objects (each with ``t_s``) to every watching client, decimated per client.
 
         Thread-safe and non-blocking: each object is serialized once here, and
         the batch goes to the loop in one ``call_soon_threadsafe``.  A batch
         published while nobody watches is skipped without serializing it.
+        ``read_monotonic_s``: when the bytes that completed the batch were read
+        (``time.monotonic()``); with a ``latency`` histogram, the time from then
+        to the batch's lines queued for every watching client is observed.
         """
         if not objs or self._loop is None or self._watchers == 0:
             return
@@ -803,7 +810,7 @@ class Hub:
             if "class" not in obj:
                 obj = {"class": "ANGLE", **obj}
             items.append((float(t_s), encode(obj)))
-        self._hand_over(self._deliver_angles, items)
+        self._hand_over(self._deliver_angles, (items, read_monotonic_s))
 
     def publish(self, obj: dict) -> None:
         """Send one object (DEVICE, STATUS, ...) to every authorized client, watching or not.
@@ -823,11 +830,14 @@ class Hub:
         except RuntimeError:  # the loop closed between the check and the call: the hub is stopping
             pass
 
-    def _deliver_angles(self, items: list[tuple[float, bytes]]) -> None:
+    def _deliver_angles(self, batch: tuple[list[tuple[float, bytes]], float | None]) -> None:
+        items, read_monotonic_s = batch
         now = time.monotonic()
         for client in list(self._clients.values()):
             if client.watch and not client.closing:
                 self._for_one_client(self._send_angles, client, items, now)
+        if read_monotonic_s is not None and self.latency is not None:
+            self.latency.observe(time.monotonic() - read_monotonic_s)
 
     def _send_angles(self, client: _Client, items: list[tuple[float, bytes]], now: float) -> None:
         """Queue the ANGLE lines of one batch that ``client``'s WATCH policy keeps."""

@@ -67,6 +67,7 @@ from ..sources import make_source
 from ..stream import identity_is_plausible
 from ..transport.setup import make_on_open
 from ..transport import PortError, PortEvent, PortReader
+from .metrics import LatencyHistogram
 
 log = structlog.get_logger("fog_driver.daemon")
 
@@ -118,7 +119,7 @@ class Service:
     """One instrument: its port, its model, its clients."""
 
     #: Settings that need a restart; every other one applies on SIGHUP (``reload_config``).
-    RESTART_KEYS = ("port", "baud", "listen", "udp", "capture_dir", "capture_rotate_mb", "capture_rotate_s",
+    RESTART_KEYS = ("port", "baud", "listen", "udp", "http", "http_history_min", "capture_dir", "capture_rotate_mb", "capture_rotate_s",
                     "capture_keep_days", "capture_max_gb", "scale_arcsec_per_count",
                     "scale_override_arcsec_per_count", "format", "axis", "device", "publish_axes")  # fmt: skip
 
@@ -162,6 +163,8 @@ class Service:
         self.hub = None
         self.capture = None
         self.udp = None
+        self.web = None
+        self.latency = LatencyHistogram()  # frame-to-publish, for /metrics
         self.notifier = None
         self.reader: PortReader | None = None
         self._acquisition: threading.Thread | None = None
@@ -279,6 +282,9 @@ class Service:
         if self.hub is not None:
             obj["clients"] = self.hub.clients
             obj["dropped_clients"] = self.hub.dropped_clients
+        if self.web is not None:
+            obj["web_clients"] = len(self.web.browsers)
+            obj["web_dropped_clients"] = self.web.dropped_browsers
         if self.capture is not None:
             capture = self.capture.status()
             obj["capture_state"] = capture["state"]
@@ -318,8 +324,8 @@ class Service:
 
     def _on_port_state(self, event: PortEvent) -> None:
         self.port_state = event.state
-        if event.state in ("open", "lost") and self.hub is not None:
-            self.hub.publish(self.device_object())
+        if event.state in ("open", "lost"):
+            self._publish(self.device_object())
 
     def _on_device_setup(self, result) -> None:
         """The setup commands were sent on an open (the reader's thread, before the bytes read meanwhile are
@@ -334,8 +340,16 @@ class Service:
             self._setup_bytes_left = len(result.raw)
 
     def _on_capture_state(self, state: str) -> None:
+        self._publish(self.device_object())
+
+    def _publish(self, obj: dict | None) -> None:
+        """An object for every authorized client and the web view (non-blocking, any thread)."""
+        if obj is None:
+            return
         if self.hub is not None:
-            self.hub.publish(self.device_object())
+            self.hub.publish(obj)
+        if self.web is not None:
+            self.web.publish(obj)
 
     def process(self, chunk: bytes) -> list[dict]:
         """Bytes from the port -> ANGLE objects (the acquisition thread; also used by tests)."""
@@ -393,8 +407,8 @@ class Service:
             else:
                 self._note("instrument_changed", **fields)
                 log.warning("instrument_changed", **fields)
-        if changed and self.hub is not None:
-            self.hub.publish(self.device_object())
+        if changed:
+            self._publish(self.device_object())
 
     def _compensate(self, sample) -> dict:
         c = self.binding.step(sample)
@@ -433,19 +447,23 @@ class Service:
         """An event for every authorized client (non-blocking), and kept as ``last_event`` (tests, STATUS-less
         services); never raises into the acquisition."""
         self.last_event = obj
-        if self.hub is not None:
+        if self.hub is not None or self.web is not None:
             try:
-                self.hub.publish(obj)
+                self._publish(obj)
             except Exception:  # noqa: BLE001 - an event nobody can take must never stop the acquisition
                 log.exception("event_not_published", event=obj.get("class"))
 
     def _acquire(self) -> None:
         try:
             for chunk in self.reader.chunks(self.stop):
+                read_s = time.monotonic()
                 angles = self.process(chunk)
-                if angles and self.hub is not None:
+                if angles and (self.hub is not None or self.web is not None):
                     stamp_utc(angles, time.time_ns())
-                    self.hub.publish_angles(angles)
+                    if self.hub is not None:
+                        self.hub.publish_angles(angles, read_s)
+                    if self.web is not None:
+                        self.web.publish_angles(angles)
         except ModelMismatchError as exc:  # refused at the first IDENTITY: a configuration problem
             log.error("acquisition_stopped", reason=str(exc))
             self.failure = ConfigError(str(exc))
@@ -645,6 +663,10 @@ class Service:
             if new.token != old.token:
                 self.hub.set_token(new.token)
             self.hub.set_max_backlog_s(new.max_client_backlog_s)
+        if self.web is not None:
+            if new.token != old.token:
+                self.web.set_token(new.token)
+            self.web.max_backlog_s = new.max_client_backlog_s
         with self.lock:
             self.binding.force = new.force_model
             if new.adapt_reference_dph != old.adapt_reference_dph and self.compensator is not None:
@@ -660,6 +682,17 @@ class Service:
 
     def start(self) -> tuple[str, int]:
         """Listen, open the raw capture, start acquiring; returns the listening address."""
+        if self.config.http is not None:  # first: its errors come before anything else listens or logs
+            self._start_web(self._make_web())
+        try:
+            return self._start_after_web()
+        except BaseException:
+            if self.web is not None:
+                self.web.stop()
+                self.web = None
+            raise
+
+    def _start_after_web(self) -> tuple[str, int]:
         from .hub import Hub
         from .rawlog import CaptureSink, RotatingCapture
 
@@ -668,7 +701,8 @@ class Service:
             self.hub = Hub(host, port, version=self.version_object, device=self.device_object,
                            control=self.control, token=self.config.token,
                            max_backlog_s=self.config.max_client_backlog_s,
-                           sndbuf_bytes=256 * 1024)  # a non-reading client is noticed in seconds, not megabytes  # fmt: skip
+                           sndbuf_bytes=256 * 1024,  # a non-reading client is noticed in seconds, not megabytes
+                           latency=self.latency)  # fmt: skip
         except ValueError as exc:
             raise ConfigError(f"listen {self.config.listen}: {exc}") from None
         try:
@@ -702,9 +736,53 @@ class Service:
         on_open = None if setup is None else make_on_open(setup, on_result=self._on_device_setup)
         self.reader = PortReader(self.port_url, baudrate=self.config.baud, backoff_max_s=1.0,
                                  on_state=self._on_port_state, on_open=on_open)  # fmt: skip
+        if self.web is not None:
+            from ..config import format_address
+
+            self.web.view.control_address = format_address(*address)  # the bias banner's ctl command
+            log.info("web_listening", address=format_address(*self.web.address), token=self.web.need_token)
         self._acquisition = threading.Thread(target=self._acquire, name="acquisition", daemon=True)
         self._acquisition.start()
         return address
+
+    def _make_web(self):
+        """The web view and /metrics on ``http``, not started (ConfigError: the extra is missing, no token
+        beyond loopback)."""
+        from ..config import DEFAULT_HTTP_PORT
+        from .web import WebUnavailable, WebView
+
+        try:
+            host, port = parse_host_port(self.config.http, default_port=DEFAULT_HTTP_PORT)
+            return WebView(host, port, token=self.config.token, read_status=self.metrics_state, latency=self.latency,
+                           max_backlog_s=self.config.max_client_backlog_s,
+                           history_min=self.config.http_history_min)  # fmt: skip
+        except (ValueError, WebUnavailable) as exc:
+            raise ConfigError(f"http {self.config.http}: {exc}") from None
+
+    def _start_web(self, web) -> None:
+        """Start the web view (TemporaryFailure: its address is in use or not there yet); ``self.web`` from then on."""
+        try:
+            web.start()
+        except OSError as exc:
+            error = TemporaryFailure if exc.errno in (errno.EADDRINUSE, errno.EADDRNOTAVAIL) else ConfigError
+            raise error(f"cannot listen on {self.config.http} (http): {exc.strerror or exc}") from None
+        web.publish(self.version_object())
+        web.publish(self.device_object())
+        self.web = web
+
+    def metrics_state(self) -> dict[str, Any]:
+        """What ``/metrics`` reads at each scrape (``metrics.DaemonCollector``): STATUS, DEVICE, VERSION and
+        the counters STATUS does not carry (any thread)."""
+        with self.lock:
+            out: dict[str, Any] = {"status": self.status_object(mark_cpu=False), "device": self.device_object(),
+                                   "version": self.version_object()}  # fmt: skip
+        reader = self.reader
+        if reader is not None:
+            out["reconnects"] = max(0, reader.opens - 1)
+        if self.capture is not None:
+            out["capture_failures"] = self.capture.status()["failures"]
+        out["model_age_s"] = _age_s(self.model_file.created_utc)
+        return out
 
     def _provenance(self) -> dict[str, Any]:
         """What a capture's sidecar records so the published output can be reproduced from it."""
@@ -756,7 +834,7 @@ class Service:
                 next_status = now + self.config.status_every_s
                 with self.lock:
                     status = self.status_object()
-                self.hub.publish(status)
+                self._publish(status)
                 log.info("status", **{k: v for k, v in status.items() if k != "class"})
                 self.notifier.status(f"{status['port_state']}, {status['frames']} frames, "
                                      f"{status.get('clients', 0)} clients, capture {status.get('capture_state')}")  # fmt: skip
@@ -792,6 +870,8 @@ class Service:
             log.error("capture_not_closed", reason=f"the capture thread did not finish within {JOIN_TIMEOUT_S} s")
         if self.hub is not None:
             self.hub.stop()
+        if self.web is not None:
+            self.web.stop()
         if self.udp is not None:
             self.udp.close()
 
@@ -808,6 +888,17 @@ def stamp_utc(angles: list[dict], now_ns: int) -> None:
     stamp = time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(seconds)) + f".{ns // 1_000_000:03d}Z"
     for obj in angles:
         obj["utc"] = stamp
+
+
+def _age_s(created_utc: str) -> float | None:
+    """Seconds since an ISO 8601 UTC time (a model's ``created_utc``), or None when it is not one."""
+    try:
+        created = _dt.datetime.fromisoformat(created_utc.replace("Z", "+00:00"))
+    except (ValueError, AttributeError):
+        return None
+    if created.tzinfo is None:
+        created = created.replace(tzinfo=_dt.timezone.utc)
+    return (_dt.datetime.now(_dt.timezone.utc) - created).total_seconds()
 
 
 def _same_model(a: ModelFile, b: ModelFile) -> bool:

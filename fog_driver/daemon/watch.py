@@ -1,7 +1,8 @@
 """``fog-driver watch``: a live view of a running daemon, over its NDJSON client protocol.
 
-The client connects to the daemon (default ``127.0.0.1:2948``; the connection, the token and the line
-reading are ``client.py``'s, shared with ``fog-driver ctl``), reads the ``VERSION`` greeting, sends
+The client connects to the daemon (default ``127.0.0.1:2948``) through the client library
+(``fog_driver.client.Client``, without reconnecting: a lost connection ends the watch), reads the
+``VERSION`` greeting, sends
 ``?WATCH={"enable":true,"rate_hz":R};`` and then shows what arrives: the instrument's identity and the
 device state, the latest ``ANGLE`` (compensated and raw, in arcsec and in deg-min-sec; the rate averaged
 over the last second of device time, the drift in deg/h; the three temperatures; the flags), the latest
@@ -52,21 +53,19 @@ from collections.abc import Mapping
 from decimal import ROUND_HALF_UP, Decimal
 from typing import Any, TextIO
 
-from ..errors import UsageError
-from .client import (
+from ..client import Client, ConnectionLost
+from ..client.wire import (
     DEFAULT_HOST,
     DEFAULT_PORT,
     MAX_LINE_BYTES,
     TOKEN_ENV,
-    Connection,
-    ConnectionClosed,
     LineReader,
-    command_line,
     format_address,
     parse_address,
     parse_line,
     read_token,
 )
+from ..errors import UsageError
 
 __all__ = [
     "DEFAULT_BIAS_S",
@@ -681,11 +680,11 @@ class _Keys:
             self._previous_tstp = None
 
 
-def _watch_command(rate_hz: float | None) -> bytes:
+def _watch_request(rate_hz: float | None) -> dict[str, Any]:
     request: dict[str, Any] = {"enable": True}
     if rate_hz is not None:
         request["rate_hz"] = int(rate_hz) if float(rate_hz).is_integer() else float(rate_hz)
-    return command_line("WATCH", request)
+    return request
 
 
 def _check_arguments(count: int | None, duration_s: float | None, rate_hz: float | None, bias_s: float) -> None:
@@ -727,7 +726,8 @@ def run_watch(
     if out is None:
         out = sys.stdout
     _check_arguments(count, duration_s, rate_hz, bias_s)
-    conn = Connection.open(host, port, timeout_s=timeout_s)  # DeviceError: exit 69, at once
+    conn = Client((host, port), timeout_s=timeout_s, reconnect=False)
+    conn.connect()  # ConnectError (a DeviceError): exit 69, at once
     watch: _Watch | None = None
     key_reader: _Keys | None = None
     try:
@@ -754,30 +754,47 @@ def run_watch(
         conn.close()
 
 
-def _greet(conn: Connection, token: str | None, rate_hz: float | None) -> None:
-    """?AUTH (when there is a token) and ?WATCH, in one send."""
+def _greet(conn: Client, token: str | None, rate_hz: float | None) -> None:
+    """?AUTH (when there is a token) and ?WATCH, without waiting: their answers come with the rest."""
     try:
-        conn.send((command_line("AUTH", {"token": token}) if token else b"") + _watch_command(rate_hz))
-    except ConnectionClosed:
+        if token:
+            conn.send("AUTH", {"token": token})
+        conn.send("WATCH", _watch_request(rate_hz))
+    except ConnectionLost:
         pass  # the server went away at once: what it sent is still read, then EOF
 
 
-def _view(conn: Connection, watch: _Watch, keys: _Keys | None, token: str | None, rate_hz: float | None,
+def _counts(watch: _Watch, conn: Client) -> None:
+    """The lines the client library skipped: malformed, and oversized among them."""
+    watch.state["malformed"] = conn.malformed
+    if conn.session.reader.oversized:
+        watch.state["oversized"] = conn.session.reader.oversized
+
+
+def _lost(watch: _Watch, conn: Client, exc: ConnectionLost) -> int:
+    what = "closed the connection" if exc.reason.endswith("closed the connection") else exc.reason
+    watch.finish(time.monotonic(), f"fog-driver watch: {conn.address} {what} "
+                                   f"({watch.state['angles']:,} ANGLE received)")  # fmt: skip
+    return EXIT_CONNECTION_CLOSED
+
+
+def _view(conn: Client, watch: _Watch, keys: _Keys | None, token: str | None, rate_hz: float | None,
           count: int | None, deadline: float | None, bias_s: float) -> int:  # fmt: skip
-    """The view's loop: lines from the daemon, keys from the terminal, a redraw or a log line when due."""
+    """The view's loop: messages from the daemon, keys from the terminal, a redraw or a log line when due."""
     _greet(conn, token, rate_hz)
     watch.tick(time.monotonic())
     while True:
         now = time.monotonic()
-        watch.state["malformed"] = conn.malformed
-        if conn.reader.oversized:
-            watch.state["oversized"] = conn.reader.oversized
-        while conn.has_pending():
-            _, obj = conn.read(0)
-            watch.handle(obj, now)
-            if count is not None and watch.state["angles"] >= count:
-                watch.finish(now)
-                return EXIT_OK
+        try:
+            while (message := conn.poll(0)) is not None:  # what has arrived, without waiting
+                _counts(watch, conn)
+                watch.handle(dict(message.raw), now)
+                if count is not None and watch.state["angles"] >= count:
+                    watch.finish(now)
+                    return EXIT_OK
+        except ConnectionLost as exc:
+            _counts(watch, conn)
+            return _lost(watch, conn, exc)
         if deadline is not None and now >= deadline:
             watch.finish(now)
             return EXIT_OK
@@ -789,26 +806,16 @@ def _view(conn: Connection, watch: _Watch, keys: _Keys | None, token: str | None
                 if key == "q":
                     watch.finish(time.monotonic())
                     return EXIT_OK
-                command = {"z": command_line("ZERO"), "b": command_line("BIAS", {"seconds": bias_s})}.get(key)
+                command = {"z": ("ZERO", None), "b": ("BIAS", {"seconds": bias_s})}.get(key)
                 if command is not None:
-                    watch.state["action"] = f"?{'ZERO' if key == 'z' else 'BIAS'} sent"
+                    watch.state["action"] = f"?{command[0]} sent"
                     try:
-                        conn.send(command)
-                    except ConnectionClosed:
-                        pass  # the read below says so
-        if conn in readable:
-            try:
-                conn.receive()
-            except ConnectionClosed as exc:
-                while conn.has_pending():
-                    watch.handle(conn.read(0)[1], time.monotonic())
-                what = "closed the connection" if exc.reason.endswith("closed the connection") else exc.reason
-                watch.finish(time.monotonic(), f"fog-driver watch: {conn.address} {what} "
-                                                f"({watch.state['angles']:,} ANGLE received)")  # fmt: skip
-                return EXIT_CONNECTION_CLOSED
+                        conn.send(*command)
+                    except ConnectionLost:
+                        pass  # the next read says so
 
 
-def _pass_through(conn: Connection, out: TextIO, token: str | None, rate_hz: float | None, count: int | None,
+def _pass_through(conn: Client, out: TextIO, token: str | None, rate_hz: float | None, count: int | None,
                   deadline: float | None) -> int:  # fmt: skip
     """``--json``: every protocol line of the daemon, unchanged, one per line, flushed (``gpspipe -w``);
     malformed lines are dropped.  Ends as the view does; a reader that went away (``| head -3``) is exit 0,
@@ -821,16 +828,15 @@ def _pass_through(conn: Connection, out: TextIO, token: str | None, rate_hz: flo
             if deadline is not None and now >= deadline:
                 return EXIT_OK
             try:
-                item = conn.read(None if deadline is None else max(0.001, deadline - now))
-            except ConnectionClosed as exc:
+                message = conn.poll(None if deadline is None else max(0.001, deadline - now))
+            except ConnectionLost as exc:
                 print(f"fog-driver watch: {conn.address} {exc.reason}", file=sys.stderr)
                 return EXIT_CONNECTION_CLOSED
-            if item is None:
+            if message is None:
                 continue
-            raw, obj = item
-            out.write(raw.decode("utf-8") + "\n")
+            out.write(message.line.decode("utf-8") + "\n")
             out.flush()
-            if obj["class"] == "ANGLE":
+            if message.raw.get("class") == "ANGLE":
                 angles += 1
                 if count is not None and angles >= count:
                     return EXIT_OK

@@ -1,6 +1,6 @@
-"""The client side of the daemon's NDJSON protocol, shared by ``fog-driver watch`` and ``fog-driver ctl``.
+"""The client library's lowest layer: the daemon's NDJSON lines, its address and its token.
 
-One place for what every client of ``fog-driver run`` needs: the address (``parse_address``,
+One place for what every client of ``fog-driver run`` needs (``Client``, ``AsyncClient``, ``fog-driver ctl``): the address (``parse_address``,
 ``format_address``, the default ``127.0.0.1:2948``), the token (``FOG_DRIVER_TOKEN`` or a token file,
 never a command-line argument: every user's ``ps`` shows those), the connection with its greeting
 (``Connection.open``: a daemon that cannot be reached, or a peer that closes or says nothing before
@@ -20,7 +20,7 @@ from collections import deque
 from pathlib import Path
 from typing import Any
 
-from ..config import parse_host_port
+from ..config import format_address, parse_host_port
 from ..errors import DeviceError, InputFileError, UsageError
 
 __all__ = [
@@ -108,11 +108,6 @@ def parse_address(text: str | None, *, default_host: str = DEFAULT_HOST, default
         return parse_host_port(text, default_host=default_host, default_port=default_port, allow_zero=False)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-
-
-def format_address(host: str, port: int) -> str:
-    """``HOST:PORT``, with an IPv6 address in brackets (``[::1]:2948``): what ``parse_address`` reads back."""
-    return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
 
 
 def read_token(token_file: str | None = None) -> str | None:

@@ -1,0 +1,82 @@
+"""A client library for station software: read the compensated angle from ``fog-driver run`` and control it.
+
+Blocking::
+
+    from fog_driver.client import Client
+
+    with Client("127.0.0.1:2948", token=None) as c:     # token: the daemon's, when it has one
+        for a in c.angles(rate_hz=10):                     # ?WATCH, decimated by device time
+            print(a.seq, a.t_s, a.angle_arcsec, a.drift_dph, a.temps_c, a.flags)
+            if a.gap_before:                               # samples missed across a reconnect
+                print("missed", a.gap_before.missed)
+
+asyncio::
+
+    async with AsyncClient("127.0.0.1:2948") as c:
+        async for a in c.angles(rate_hz=10):
+            ...
+
+Control, each returning the daemon's answer or raising a typed error (``CommandRefused``, ``Unauthorized``,
+``UnknownCommand``, ``BiasFailed``, ``ConnectionLost``, ``NoReply``): ``zero()``, ``bias(seconds)`` (waits
+for the capture's result), ``adapt(enable, reference_dph)``, ``save()``, ``reload()``, ``status()``.
+
+The objects are frozen dataclasses with units in their field names: ``Angle``, ``Device``, ``Status``,
+``Version``, ``Bias``, ``Reply`` (``?ZERO``, ``?ADAPT`` ... answers), ``ErrorReply``, ``Other`` (a class this
+library does not know); each keeps the daemon's object (``raw``) for keys a newer daemon adds.  A lost
+connection is made again with backoff (0.5 s doubling up to 30 s, each attempt logged as a warning), never
+silently: the first ``Angle`` after it carries ``gap_before`` (``Gap``: the sequence numbers either side, the
+samples missed, the time without a connection), and ``reconnects`` counts them.  ``reconnect=False`` raises
+``ConnectionLost`` instead.  A daemon that cannot be reached at the first ``connect`` is a ``ConnectError`` at
+once.
+
+The layers: ``wire`` (lines, addresses, the token file), ``messages`` (typed objects), ``session`` (the
+protocol without I/O: bytes in, messages out, which answer belongs to which command, the gap across
+connections), ``blocking`` and ``aio`` (the sockets).  The protocol itself is the docstring of
+``fog_driver/daemon/hub.py``.
+"""
+
+from __future__ import annotations
+
+from .aio import AsyncClient
+from .blocking import Client
+from .errors import (
+    BiasFailed,
+    ClientError,
+    CommandRefused,
+    ConnectError,
+    ConnectionLost,
+    NoReply,
+    Unauthorized,
+    UnknownCommand,
+)
+from .messages import Angle, Bias, Device, ErrorReply, Gap, Message, Other, Reply, Status, Version
+from .session import Session
+from .wire import DEFAULT_HOST, DEFAULT_PORT, TOKEN_ENV, read_token
+
+__all__ = [
+    "DEFAULT_HOST",
+    "DEFAULT_PORT",
+    "TOKEN_ENV",
+    "Angle",
+    "AsyncClient",
+    "Bias",
+    "BiasFailed",
+    "Client",
+    "ClientError",
+    "CommandRefused",
+    "ConnectError",
+    "ConnectionLost",
+    "Device",
+    "ErrorReply",
+    "Gap",
+    "Message",
+    "NoReply",
+    "Other",
+    "Reply",
+    "Session",
+    "Status",
+    "Unauthorized",
+    "UnknownCommand",
+    "Version",
+    "read_token",
+]

@@ -1,0 +1,354 @@
+"""``Client``: the blocking client of ``fog-driver run`` (one thread; see ``fog_driver.client``).
+
+The client reads only when asked: ``angles()`` and ``messages()`` read as they yield; a command sends its
+line and reads until its answer, keeping what arrives meanwhile (samples, events) for the iterators.  A lost
+connection while iterating is made again with backoff (``backoff_initial_s`` doubling up to ``backoff_max_s``,
+each attempt logged), ``?AUTH`` and ``?WATCH`` are sent again, and the first sample after it carries the
+``Gap``; a lost connection while a command waits raises ``ConnectionLost`` (the command is not sent again: it
+may have been carried out).
+"""
+
+from __future__ import annotations
+
+import select
+import socket
+import threading
+import time
+from collections import deque
+from collections.abc import Iterator
+from typing import Any
+
+from .errors import ConnectError, ConnectionLost, NoReply
+from .messages import Angle, Bias, ErrorReply, Message, Reply, Status, Version
+from .protocol import (MAX_BUFFERED_ANGLES, ClientBase, Reconnection, bias_args, check_bias, check_reply, control_args,
+                       printable)
+from .session import Request
+from .wire import GREETING_TIMEOUT_S
+
+__all__ = ["Client"]
+
+_RECV_BYTES = 65536
+
+
+class Client(ClientBase):
+    """A connection to a daemon (``address`` ``HOST:PORT``, default ``127.0.0.1:2948``), its token, and its
+    reconnection policy.  Use it as a context manager (``connect`` on enter, ``close`` on exit)::
+
+        with Client("127.0.0.1:2948", token=os.environ.get("FOG_DRIVER_TOKEN")) as c:
+            for a in c.angles(rate_hz=10):
+                print(a.seq, a.angle_arcsec, a.drift_dph)
+
+    Parameters (``ClientBase``): ``address``; ``token`` (sent with ``?AUTH`` on every connection);
+    ``timeout_s`` (5: to connect and for the greeting); ``reconnect`` (True); ``backoff_initial_s`` (0.5) and
+    ``backoff_max_s`` (30); ``reply_timeout_s`` (35: for a command's answer).  ``version``, ``device`` and
+    ``status_seen`` hold the latest of each the daemon sent.  Counters: ``reconnects``, ``angles_dropped``
+    (samples the caller did not take in time), ``malformed`` and ``unknown`` lines.
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._sock: socket.socket | None = None
+        self._inbox: deque[Message] = deque()
+        self._angles_held = 0
+        self._closed = threading.Event()
+
+    # -- connection -------------------------------------------------------------------------------------
+
+    def __enter__(self) -> Client:
+        self.connect()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def connect(self) -> Version:
+        """Connect, read the VERSION greeting, authorize with the token; ``ConnectError`` when the daemon cannot
+        be reached (at once: a first connection is not retried), ``Unauthorized`` when it refuses the token."""
+        if self._closed.is_set():
+            raise ConnectionLost(f"{self.address}: the client was closed")
+        self._open()
+        return self.session.version
+
+    def close(self) -> None:
+        """Close the connection (from any thread: an iteration or a reconnect wait in progress ends with
+        ``ConnectionLost``)."""
+        self._closed.set()
+        self._close_socket()
+
+    def fileno(self) -> int:
+        """The socket's descriptor (for a caller's own ``select``; then ``poll(0)`` reads what it holds)."""
+        if self._sock is None:
+            raise ConnectionLost(f"{self.address}: not connected")
+        return self._sock.fileno()
+
+    def _open(self) -> None:
+        hint = "(is `fog-driver run` running?)"
+        try:
+            sock = socket.create_connection((self.host, self.port), timeout=self.timeout_s)
+        except OSError as exc:
+            raise ConnectError(f"could not connect to {self.address}: {_reason(exc)} {hint}") from None
+        sock.setblocking(False)
+        self._sock = sock
+        self.session.connection_made()
+        try:
+            self._greeting(hint)
+            if self.token is not None:
+                self._command("AUTH", {"token": self.token}, connecting=True)
+            if self._watch is not None:
+                self._command("WATCH", self._watch, connecting=True)
+        except BaseException:
+            self._drop()
+            raise
+
+    def _greeting(self, hint: str) -> None:
+        """Read up to the VERSION greeting (kept with anything before it for ``messages``)."""
+        greeting = self.session.request("VERSION")[0]  # the greeting answers it (nothing is sent)
+        deadline = time.monotonic() + self.timeout_s
+        while greeting.reply is None:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise ConnectError(f"could not connect to {self.address}: no VERSION greeting within "
+                                   f"{self.timeout_s:g} s (not a fog-driver daemon?)")  # fmt: skip
+            try:
+                self._read_once(remaining)
+            except _Lost as exc:
+                raise ConnectError(f"could not connect to {self.address}: {exc.reason} before the VERSION "
+                                   f"greeting {hint}") from None  # fmt: skip
+        if isinstance(greeting.reply, ErrorReply):  # refused at once: too many clients
+            raise ConnectError(f"could not connect to {self.address}: the daemon refused the connection: "
+                               f"{printable(greeting.reply.message)}")  # fmt: skip
+
+    def _close_socket(self) -> None:
+        sock, self._sock = self._sock, None
+        if sock is not None:
+            try:
+                sock.close()
+            except OSError:
+                pass
+
+    def _drop(self) -> None:
+        self._close_socket()
+        self.session.connection_lost()
+
+    def _reconnect(self, reason: str) -> None:
+        """Connect again with backoff until it works or the client is closed (``ConnectionLost`` then)."""
+        self._drop()
+        if not self.reconnect or self._closed.is_set():
+            raise ConnectionLost(f"{self.address}: {reason}", reason)
+        backoff = Reconnection(self, reason)
+        while True:
+            if self._closed.wait(backoff.delay):
+                raise ConnectionLost(f"{self.address}: {reason}; closed while reconnecting")
+            try:
+                self._open()
+            except (ConnectError, ConnectionLost, NoReply) as exc:
+                backoff.failed(exc)
+                continue
+            backoff.succeeded()
+            return
+
+    # -- reading ----------------------------------------------------------------------------------------
+
+    def _read_once(self, timeout_s: float | None) -> bool:
+        """Read what the socket holds, waiting up to ``timeout_s`` for it; False when nothing came.
+        ``_Lost`` when the connection went."""
+        sock = self._sock
+        if sock is None:
+            raise _Lost("not connected")
+        try:
+            if not select.select([sock], [], [], timeout_s)[0]:
+                return False
+            data = sock.recv(_RECV_BYTES)
+        except BlockingIOError:
+            return False
+        except (OSError, ValueError) as exc:  # ValueError: closed from another thread (fd -1)
+            raise _Lost(f"lost the connection: {_reason(exc) if isinstance(exc, OSError) else 'closed'}") from None
+        if not data:
+            raise _Lost("the daemon closed the connection")
+        for message in self.session.receive(data):
+            self._keep(message)
+        return True
+
+    def _keep(self, message: Message) -> None:
+        if isinstance(message, Angle):
+            if self._angles_held >= MAX_BUFFERED_ANGLES:
+                self._drop_oldest_angle()
+            self._angles_held += 1
+        self._inbox.append(message)
+
+    def _drop_oldest_angle(self) -> None:
+        for i, held in enumerate(self._inbox):
+            if isinstance(held, Angle):
+                del self._inbox[i]
+                self._angles_held -= 1
+                self.angles_dropped += 1
+                return
+
+    def _next(self, timeout_s: float | None) -> Message | None:
+        """The next message received (None when none within ``timeout_s``); reconnects when allowed."""
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        while not self._inbox:
+            if self._closed.is_set():
+                raise ConnectionLost(f"{self.address}: the client was closed")
+            wait = None if deadline is None else max(0.0, deadline - time.monotonic())
+            try:
+                if not self._read_once(wait) and deadline is not None and time.monotonic() >= deadline:
+                    return None
+            except _Lost as exc:
+                self._reconnect(exc.reason)
+        message = self._inbox.popleft()
+        if isinstance(message, Angle):
+            self._angles_held -= 1
+        return message
+
+    def poll(self, timeout_s: float | None = 0.0) -> Message | None:
+        """The next message of any kind, waiting up to ``timeout_s`` (0: only what has arrived; None: no limit)."""
+        return self._next(timeout_s)
+
+    def messages(self, timeout_s: float | None = None) -> Iterator[Message]:
+        """Every message as it comes (``Angle``, ``Device``, ``Status``, ``Bias`` events, ``ErrorReply`` ...);
+        ends when nothing came for ``timeout_s`` (None: never)."""
+        while (message := self._next(timeout_s)) is not None:
+            yield message
+
+    def angles(self, rate_hz: float | None = None, *, timeout_s: float | None = None) -> Iterator[Angle]:
+        """Watch the samples (``?WATCH``, decimated by the daemon to ``rate_hz`` by device time; None: every
+        sample) and yield them; ends when none came for ``timeout_s`` (None: never).  Other messages update
+        ``device`` and ``status_seen``; a BIAS result is kept for ``bias``."""
+        self.watch(rate_hz)
+        while (message := self._next(timeout_s)) is not None:
+            if isinstance(message, Angle):
+                yield message
+
+    def watch(self, rate_hz: float | None = None) -> Reply:
+        """Start (or change) the watch without reading samples yet (``angles`` does it for you)."""
+        args = self.session.watch_args(rate_hz)
+        reply = self._command("WATCH", args)
+        self._watch = args
+        return reply
+
+    # -- commands ---------------------------------------------------------------------------------------
+
+    def _wait(self, request: Request, timeout_s: float, what: str, *, keep: bool = False,
+              connecting: bool = False) -> Message:  # fmt: skip
+        deadline = time.monotonic() + timeout_s
+        while request.reply is None:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                error = ConnectError if connecting else NoReply
+                raise error(f"{self.address}: no {what} within {timeout_s:g} s")
+            try:
+                self._read_once(remaining)
+            except _Lost as exc:
+                self._drop()
+                error = ConnectError if connecting else ConnectionLost
+                raise error(f"{self.address}: {exc.reason} while waiting for {what}") from None
+        reply = request.reply
+        if not keep:  # the answer is returned, not also queued for the iterators
+            try:
+                self._inbox.remove(reply)
+            except ValueError:
+                pass
+        return reply
+
+    def _command(self, name: str, args: dict[str, Any] | None = None, *, connecting: bool = False,
+                 timeout_s: float | None = None) -> Message:  # fmt: skip
+        if self._sock is None:
+            if connecting or self._closed.is_set():
+                raise ConnectionLost(f"{self.address}: not connected")
+            self._open()
+        request, data = self.session.request(name, args)
+        try:
+            _send_all(self._sock, data)
+        except OSError as exc:
+            self._drop()
+            raise ConnectionLost(f"{self.address}: lost the connection: {_reason(exc)}") from None
+        timeout = self.timeout_s if connecting else (timeout_s or self.reply_timeout_s)
+        reply = self._wait(request, timeout, f"answer to ?{name}", connecting=connecting)
+        return check_reply(name, reply)
+
+    def send(self, name: str, args: dict[str, Any] | None = None) -> Request:
+        """Send a command without waiting: its answer comes through ``poll``/``messages`` like any message
+        (and in ``request.reply``); for a caller with a loop of its own, such as ``fog-driver watch``."""
+        if self._sock is None:
+            raise ConnectionLost(f"{self.address}: not connected")
+        request, data = self.session.request(name, args)
+        try:
+            _send_all(self._sock, data)
+        except OSError as exc:
+            raise ConnectionLost(f"{self.address}: lost the connection: {_reason(exc)}") from None
+        if name == "WATCH" and args is not None:
+            self._watch = args
+        return request
+
+    def command(self, name: str, args: dict[str, Any] | None = None) -> Message:
+        """Any command (``?NAME;`` or ``?NAME={args};``) and its answer; a refusal raises as the methods do."""
+        return self._command(name, args)
+
+    def status(self) -> Status:
+        """``?STATUS``: the daemon's state now."""
+        return self._command("STATUS")
+
+    def zero(self) -> Reply:
+        """``?ZERO``: the published angles start again from 0 here."""
+        return self._command("ZERO")
+
+    def adapt(self, enable: bool = True, reference_dph: float = 0.0) -> Reply:
+        """``?ADAPT``: adapt the model's weights online against ``reference_dph`` (0: the table at rest), or
+        freeze them again (``enable=False``)."""
+        return self._command("ADAPT", control_args(enable, reference_dph))
+
+    def save(self) -> Reply:
+        """``?SAVE``: save the adaptation state to the daemon's configured file."""
+        return self._command("SAVE")
+
+    def reload(self) -> Reply:
+        """``?RELOAD``: load the model file again (``reply.get("changed")`` says whether it was another)."""
+        return self._command("RELOAD")
+
+    def bias(self, seconds: float = 60.0, *, wait: bool = True) -> Bias:
+        """``?BIAS``: the mean compensated rate over ``seconds`` of device data (keep the table still) becomes
+        the bias removed from then on.  With ``wait`` (default) returns the result (``state`` ``done``,
+        ``bias_dph``), or raises ``BiasFailed``; else the acknowledgement (``state`` ``started``)."""
+        started = self._command("BIAS", bias_args(seconds))
+        if not wait:
+            return started
+        deadline = time.monotonic() + (started.timeout_s or seconds + 30.0) + 5.0
+        while True:
+            for held in self._inbox:
+                if isinstance(held, Bias) and held.state in ("done", "failed") and held.capture_id == started.capture_id:
+                    self._inbox.remove(held)
+                    return check_bias(held)
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise NoReply(f"{self.address}: no result of the bias capture {started.capture_id} in time")
+            try:
+                self._read_once(remaining)
+            except _Lost as exc:
+                self._drop()
+                raise ConnectionLost(f"{self.address}: {exc.reason} while waiting for the bias result") from None
+
+
+class _Lost(Exception):
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason)
+        self.reason = reason
+
+
+def _send_all(sock: socket.socket, data: bytes) -> None:
+    """``sendall`` on a non-blocking socket: wait for room between sends (a command line is small)."""
+    view = memoryview(data)
+    while view:
+        if not select.select([], [sock], [], GREETING_TIMEOUT_S)[1]:
+            raise TimeoutError("the daemon does not read")
+        try:
+            sent = sock.send(view)
+        except BlockingIOError:
+            continue
+        view = view[sent:]
+
+
+def _reason(exc: OSError) -> str:
+    if isinstance(exc, TimeoutError):
+        return "timed out"
+    return exc.strerror or str(exc) or type(exc).__name__

@@ -1,0 +1,310 @@
+"""What the web page shows, built from the daemon's own objects (sans-IO: objects in, JSON-ready dicts out).
+
+The web listener (``web.py``) hands every published batch of ANGLE objects and every other object (STATUS,
+DEVICE, VERSION, BIAS, ...) to one ``ViewState`` on its own thread; the page gets a ``snapshot()`` when it
+connects and an ``update()`` a few times a second.  The decimation happens here, on the server: a page never
+receives more than one sample per update, whatever the instrument's rate.
+
+Series kept for the plots (the last ``history_min`` minutes of device time):
+
+* ``points``: one per ``point_every_s`` of device time (1 s, longer for a history beyond an hour, so a
+  page never holds more than ``MAX_POINTS``), from the span's last sample: its UTC, drift estimate,
+  temperatures and angle, and the span's mean compensated rate ``rate_dph = (1/n) * sum_i rate_dph_i`` over
+  its n samples;
+* ``minutes``: one per minute of device time, the minute's mean compensated and raw rates
+  ``rate_dph = (1/n) * sum_i rate_dph_i`` (every sample, not the decimated ones: a mean of the published
+  rates is the angle gained over the minute divided by its duration, unaffected by a ``?ZERO`` meanwhile).
+
+Also ``rate_1s_dph``, the same mean over the last full second (shown, and exported as a metric).  A span
+closes when the first sample of the next one arrives.  Device time that goes back (the
+instrument restarted, another one plugged in) starts the series afresh.
+
+The numbers shown are formatted here (``text``), with ``watch``'s rules (``format_arcsec``,
+``format_dms``), so the page, ``fog-driver watch`` and a script formatting an ANGLE line all agree.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+from .watch import NO_DATA_S, banners, format_arcsec, format_dms
+
+#: Device seconds per plotted point (at least), and per mean of the rate plot.
+POINT_EVERY_S = 1.0
+MEAN_EVERY_S = 60.0
+#: Plotted points kept at most: a longer history spaces them further apart.
+MAX_POINTS = 3600
+DEFAULT_HISTORY_MIN = 60.0
+#: Events (BIAS results, ...) kept for a page that connects later.
+MAX_EVENTS = 20
+#: A STATUS whose ``missing_frames`` grew within this long (host s) shows the "samples missing" banner.
+MISSING_BANNER_S = 60.0
+
+#: STATUS counters on the page, in this order: (key, label).
+STATUS_ROWS = (
+    ("port_state", "port"),
+    ("frames", "frames"),
+    ("missing_frames", "missing frames"),
+    ("crc_errors", "CRC errors"),
+    ("bytes_discarded", "bytes discarded"),
+    ("seq_gaps", "sequence gaps"),
+    ("published", "published"),
+    ("clients", "clients"),
+    ("dropped_clients", "dropped clients"),
+    ("capture_state", "capture"),
+    ("capture_bytes", "capture bytes"),
+    ("bias_dph", "bias removed (deg/h)"),
+    ("adapting", "adapting"),
+    ("cpu_percent", "daemon CPU (%)"),
+    ("rss_mb", "daemon RSS (MB)"),
+    ("uptime_s", "uptime (s)"),
+)
+
+
+def _number(value: Any) -> float | None:
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        value = float(value)
+        return value if math.isfinite(value) else None
+    return None
+
+
+def _fixed(value: Any, digits: int) -> str:
+    number = _number(value)
+    return "-" if number is None else f"{number:.{digits}f}"
+
+
+class _Mean:
+    """Running sums of one bucket (a second or a minute of device time)."""
+
+    __slots__ = ("bucket", "n", "rate_sum", "raw_sum", "last")
+
+    def __init__(self, bucket: int) -> None:
+        self.bucket = bucket
+        self.n = 0
+        self.rate_sum = 0.0
+        self.raw_sum = 0.0
+        self.last: Mapping[str, Any] | None = None
+
+
+class ViewState:
+    """The page's data: the latest sample and objects, the plotted series, the banners."""
+
+    def __init__(self, history_min: float = DEFAULT_HISTORY_MIN, control_address: str | None = None) -> None:
+        if not (math.isfinite(history_min) and history_min > 0):
+            raise ValueError(f"history_min must be a positive number of minutes, got {history_min!r}")
+        self.history_s = history_min * 60.0
+        self.point_every_s = max(POINT_EVERY_S, self.history_s / MAX_POINTS)
+        self.control_address = control_address  # the NDJSON listener, for the bias banner's ctl command
+        self.points: deque[dict[str, Any]] = deque()
+        self.minutes: deque[dict[str, Any]] = deque()
+        self.angle: Mapping[str, Any] | None = None
+        self.angle_host_s: float | None = None
+        self.rate_1s_dph: float | None = None
+        self.objects: dict[str, Mapping[str, Any]] = {}  # the last STATUS, DEVICE, VERSION by class
+        self.events: deque[Mapping[str, Any]] = deque(maxlen=MAX_EVENTS)
+        self.samples = 0
+        self.restarts = 0
+        self._second: _Mean | None = None
+        self._point: _Mean | None = None
+        self._minute: _Mean | None = None
+        self._missing: tuple[float, int] | None = None  # (host s it last grew, the count then)
+        self._started_s: float | None = None
+
+    # -------------------------------------------------------------------------------- input
+
+    def add_angles(self, objs: Iterable[Mapping[str, Any]], now_s: float) -> None:
+        """A published batch of ANGLE objects (``now_s``: host monotonic seconds it arrived)."""
+        for obj in objs:
+            t_s = _number(obj.get("t_s"))
+            if t_s is None:
+                continue
+            if self.angle is not None and t_s < self.angle["t_s"]:
+                self._restart()
+            self._add(obj, t_s)
+            self.angle = obj
+            self.samples += 1
+        if self.angle is not None:
+            self.angle_host_s = now_s
+
+    def add_object(self, obj: Mapping[str, Any], now_s: float) -> None:
+        """Any other published object: the last of each class is kept; BIAS results are events."""
+        cls = obj.get("class")
+        if not isinstance(cls, str):
+            return
+        if cls in ("STATUS", "DEVICE", "VERSION"):
+            if cls == "STATUS":
+                missing = obj.get("missing_frames")
+                if isinstance(missing, int):
+                    if self._missing is None or missing < self._missing[1]:
+                        self._missing = (-math.inf, missing)  # the first STATUS, or the daemon restarted
+                    elif missing > self._missing[1]:
+                        self._missing = (now_s, missing)
+            self.objects[cls] = obj
+        else:
+            self.events.append(obj)
+
+    def _restart(self) -> None:
+        self.points.clear()
+        self.minutes.clear()
+        self._second = self._point = self._minute = None
+        self.rate_1s_dph = None
+        self.restarts += 1
+
+    def _add(self, obj: Mapping[str, Any], t_s: float) -> None:
+        second = math.floor(t_s)
+        if self._second is None or second != self._second.bucket:
+            if self._second is not None and self._second.n:
+                self.rate_1s_dph = self._second.rate_sum / self._second.n
+            self._second = _Mean(second)
+        point = math.floor(t_s / self.point_every_s)
+        if self._point is None or point != self._point.bucket:
+            if self._point is not None:
+                self._close_point(self._point)
+            self._point = _Mean(point)
+        minute = math.floor(t_s / MEAN_EVERY_S)
+        if self._minute is None or minute != self._minute.bucket:
+            if self._minute is not None:
+                self._close_minute(self._minute)
+            self._minute = _Mean(minute)
+        rate, raw = _number(obj.get("rate_dph")), _number(obj.get("rate_raw_dph"))
+        for mean in (self._second, self._point, self._minute):
+            if rate is not None and raw is not None:
+                mean.n += 1
+                mean.rate_sum += rate
+                mean.raw_sum += raw
+            mean.last = obj
+
+    def _close_point(self, point: _Mean) -> None:
+        last = point.last
+        temps = last.get("temps_c") if isinstance(last.get("temps_c"), Mapping) else {}
+        self.points.append({
+            "t_s": last["t_s"],
+            "utc": last.get("utc"),
+            "drift_dph": _number(last.get("drift_dph")),
+            "angle_arcsec": _number(last.get("angle_arcsec")),
+            "rate_dph": point.rate_sum / point.n if point.n else None,
+            "temps_c": {str(k): _number(v) for k, v in temps.items()},
+        })
+        self._trim(self.points)
+
+    def _close_minute(self, minute: _Mean) -> None:
+        if not minute.n:
+            return
+        self.minutes.append({
+            "t_s": minute.bucket * MEAN_EVERY_S,
+            "utc": minute.last.get("utc"),
+            "rate_dph": minute.rate_sum / minute.n,
+            "rate_raw_dph": minute.raw_sum / minute.n,
+            "samples": minute.n,
+        })
+        self._trim(self.minutes)
+
+    def _trim(self, series: deque) -> None:
+        newest = series[-1]["t_s"]
+        while series and series[0]["t_s"] < newest - self.history_s:
+            series.popleft()
+
+    # -------------------------------------------------------------------------------- output
+
+    def snapshot(self, now_s: float) -> dict[str, Any]:
+        """Everything a page needs when it connects: the full series and the current state."""
+        return {"type": "snapshot", "points": list(self.points), "minutes": list(self.minutes),
+                "events": list(self.events), "rows": [list(row) for row in STATUS_ROWS],
+                **self._current(now_s)}  # fmt: skip
+
+    def update(self, now_s: float, points_after_s: float | None, minutes_after_s: float | None) -> dict[str, Any]:
+        """The current state and the series' points newer than the device times given (None: all)."""
+        return {"type": "update",
+                "points": _newer(self.points, points_after_s), "minutes": _newer(self.minutes, minutes_after_s),
+                **self._current(now_s)}  # fmt: skip
+
+    def _current(self, now_s: float) -> dict[str, Any]:
+        if self._started_s is None:
+            self._started_s = now_s
+        angle = self.angle or {}
+        status = self.objects.get("STATUS", {})
+        state = {
+            "device": self.objects.get("DEVICE", {}),
+            "status": status,
+            "angle": angle,
+            "angle_age_s": None if self.angle_host_s is None else now_s - self.angle_host_s,
+            "elapsed_s": now_s - self._started_s,
+            "address": self.control_address,
+        }
+        lines = [{"text": line.strip("* "), "level": "alarm" if line.startswith("***") else "notice"}
+                 for line in banners(state)]  # fmt: skip
+        missing = self._missing is not None and now_s - self._missing[0] <= MISSING_BANNER_S
+        if missing:
+            lines.insert(0, {"text": f"SAMPLES MISSING: {self._missing[1]:,} frames missing since start, the last "
+                                     f"{now_s - self._missing[0]:.0f} s ago", "level": "alarm"})  # fmt: skip
+        return {
+            "angle": dict(angle),
+            "rate_1s_dph": self.rate_1s_dph,
+            "status": dict(status),
+            "device": dict(self.objects.get("DEVICE", {})),
+            "version": dict(self.objects.get("VERSION", {})),
+            "banners": lines,
+            "restarts": self.restarts,
+            "alarm": any(line["level"] == "alarm" for line in lines),
+            "text": self.text(state["angle_age_s"]),
+        }
+
+    def text(self, angle_age_s: float | None) -> dict[str, str]:
+        """The page's numbers as shown, formatted here so every view agrees."""
+        a = self.angle or {}
+        temps = a.get("temps_c") if isinstance(a.get("temps_c"), Mapping) else {}
+        flags = a.get("flags") if isinstance(a.get("flags"), list) else []
+        status = self.objects.get("STATUS", {})
+        device = self.objects.get("DEVICE", {})
+        out = {
+            "seq": str(a["seq"]) if isinstance(a.get("seq"), int) else "-",
+            "t_s": _fixed(a.get("t_s"), 3),
+            "utc": str(a.get("utc", "-")),
+            "angle_arcsec": format_arcsec(a["angle_arcsec"]) if _number(a.get("angle_arcsec")) is not None else "-",
+            "angle_dms": format_dms(a["angle_arcsec"]) if _number(a.get("angle_arcsec")) is not None else "-",
+            "angle_raw_arcsec": (format_arcsec(a["angle_raw_arcsec"])
+                                 if _number(a.get("angle_raw_arcsec")) is not None else "-"),
+            "angle_raw_dms": format_dms(a["angle_raw_arcsec"]) if _number(a.get("angle_raw_arcsec")) is not None else "-",
+            "rate_dph": _fixed(a.get("rate_dph"), 1),
+            "rate_1s_dph": _fixed(self.rate_1s_dph, 2),
+            "rate_raw_dph": _fixed(a.get("rate_raw_dph"), 1),
+            "drift_dph": _fixed(a.get("drift_dph"), 3),
+            "flags": ", ".join(str(f) for f in flags) or "none",
+            "age": "-" if angle_age_s is None else f"{angle_age_s:.1f} s ago",
+            "link": {"activated": "link up", "deactivated": "link down"}.get(device.get("state"), "-"),
+            "instrument": " ".join(str(device[k]) for k in ("serial", "format") if k in device) or "-",
+        }
+        for name, value in temps.items():
+            out[f"temp_{name}"] = _fixed(value, 3)
+        for key, _label in STATUS_ROWS:
+            value = status.get(key)
+            out[f"status_{key}"] = _status_text(value)
+        return out
+
+
+def _status_text(value: Any) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, int):
+        return f"{value:,}"
+    return str(value)
+
+
+def _newer(series: deque, after_s: float | None) -> list[dict[str, Any]]:
+    if after_s is None:
+        return list(series)
+    out = []
+    for item in reversed(series):
+        if item["t_s"] <= after_s:
+            break
+        out.append(item)
+    out.reverse()
+    return out
+
+
+__all__ = ["DEFAULT_HISTORY_MIN", "MEAN_EVERY_S", "POINT_EVERY_S", "STATUS_ROWS", "ViewState", "NO_DATA_S"]

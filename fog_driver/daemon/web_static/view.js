@@ -1,0 +1,172 @@
+// fog-driver's live page: a WebSocket from the daemon (snapshot, then updates), shown as numbers and plots.
+// Every number arrives formatted (msg.text) so the page shows what `fog-driver watch` shows; the plots get the
+// server's decimated series (one point per second of device time, one mean per minute).
+"use strict";
+
+const series = { points: [], minutes: [], restarts: null };
+const layoutBase = {
+  margin: { l: 56, r: 12, t: 30, b: 36 }, paper_bgcolor: "#fff", plot_bgcolor: "#fff",
+  font: { size: 12 }, legend: { orientation: "h", y: -0.2 }, xaxis: { type: "date" },
+};
+const plotConfig = { displayModeBar: false, responsive: true, staticPlot: false };
+let statusRows = null;
+let socket = null;
+let retryMs = 1000;
+
+function setText(text) {
+  document.querySelectorAll("[data-text]").forEach((el) => {
+    const key = el.dataset.text;
+    if (key in text && el.textContent !== text[key]) el.textContent = text[key];  // unchanged: no relayout
+  });
+}
+
+function showTemps(text) {
+  const body = document.getElementById("temps");
+  const names = Object.keys(text).filter((k) => k.startsWith("temp_")).sort();
+  if (body.dataset.names !== names.join(",")) {
+    body.replaceChildren(...names.map((key) => {
+      const row = document.createElement("tr");
+      const th = document.createElement("th");
+      th.textContent = key.slice(5) + " temperature";
+      const td = document.createElement("td");
+      const span = document.createElement("span");
+      span.dataset.text = key;
+      span.id = "temp-" + key.slice(5);
+      td.append(span, " \u00b0C");
+      row.append(th, td);
+      return row;
+    }));
+    body.dataset.names = names.join(",");
+  }
+}
+
+function showStatus(rows, text) {
+  const table = document.getElementById("status");
+  if (rows && table.dataset.built !== "1") {
+    table.replaceChildren(...rows.map(([key, label]) => {
+      const row = document.createElement("tr");
+      const th = document.createElement("th");
+      th.textContent = label;
+      const td = document.createElement("td");
+      td.dataset.text = "status_" + key;
+      td.id = "status-" + key;
+      row.append(th, td);
+      return row;
+    }));
+    table.dataset.built = "1";
+  }
+}
+
+function showBanners(lines, alarm, device) {
+  const box = document.getElementById("banners");
+  box.replaceChildren(...lines.map((line) => {
+    const div = document.createElement("div");
+    div.textContent = line.text;
+    div.className = line.level;
+    return div;
+  }));
+  document.body.dataset.alarm = alarm ? "1" : "0";
+  const link = document.getElementById("link");
+  const up = device && device.state === "activated";
+  link.className = "pill " + (up ? "ok" : "bad");
+}
+
+function merge(list, fresh) {
+  const last = list.length ? list[list.length - 1].t_s : -Infinity;
+  for (const p of fresh) if (p.t_s > last) list.push(p);
+}
+
+// Plots are over device time, shown as the host's UTC: the latest sample's UTC less the device seconds
+// since each point (a replay faster than real time keeps its true spacing).
+let anchorMs = null;
+
+function x(list, offsetS = 0) {
+  if (anchorMs === null) return list.map((p) => p.utc || null);
+  return list.map((p) => new Date(anchorMs + (p.t_s + offsetS) * 1000));
+}
+
+function drawPlots() {
+  if (typeof Plotly === "undefined") return;
+  const pts = series.points, mins = series.minutes;
+  Plotly.react("plot-drift", [{ x: x(pts), y: pts.map((p) => p.drift_dph), name: "drift estimate", line: { color: "#3b5ba5" } }],
+    { ...layoutBase, title: { text: "drift estimate (deg/h)" } }, plotConfig);
+  Plotly.react("plot-rate", [
+    { x: x(mins, 30), y: mins.map((m) => m.rate_dph), name: "compensated", mode: "lines+markers", line: { color: "#1f7a3a" } },
+    { x: x(mins, 30), y: mins.map((m) => m.rate_raw_dph), name: "raw", mode: "lines+markers", line: { color: "#aaa" } },
+  ], { ...layoutBase, title: { text: "rate, 1-minute means (deg/h)" },
+    annotations: mins.length ? [] : [{ text: "the first mean comes after a full minute of data", showarrow: false,
+      xref: "paper", yref: "paper", x: 0.5, y: 0.5 }],
+    xaxis: { ...layoutBase.xaxis, visible: mins.length > 0 }, yaxis: { visible: mins.length > 0 } }, plotConfig);
+  const names = new Set();
+  pts.forEach((p) => Object.keys(p.temps_c || {}).forEach((n) => names.add(n)));
+  Plotly.react("plot-temps", [...names].sort().map((n) => ({ x: x(pts), y: pts.map((p) => (p.temps_c || {})[n] ?? null), name: n })),
+    { ...layoutBase, title: { text: "temperatures (\u00b0C)" } }, plotConfig);
+  document.getElementById("plot-drift").dataset.points = String(pts.length);
+  document.getElementById("plot-temps").dataset.points = String(pts.length);
+  document.getElementById("plot-rate").dataset.points = String(mins.length);
+}
+
+function handle(msg) {
+  document.body.dataset.updates = String((Number(document.body.dataset.updates) || 0) + 1);
+  if (msg.type === "snapshot" || msg.restarts !== series.restarts) {
+    series.points = [];
+    series.minutes = [];
+    series.restarted = msg.type !== "snapshot";
+    series.restarts = msg.restarts;
+  }
+  const before = series.points.length + series.minutes.length;
+  merge(series.points, msg.points || []);
+  merge(series.minutes, msg.minutes || []);
+  if (msg.rows) statusRows = msg.rows;
+  const utcMs = msg.angle && msg.angle.utc ? Date.parse(msg.angle.utc) : NaN;
+  if (Number.isFinite(utcMs) && typeof msg.angle.t_s === "number") anchorMs = utcMs - msg.angle.t_s * 1000;
+  showStatus(statusRows, msg.text);
+  showTemps(msg.text);
+  setText(msg.text);
+  showBanners(msg.banners || [], msg.alarm, msg.device);
+  document.body.dataset.seq = msg.angle && msg.angle.seq !== undefined ? String(msg.angle.seq) : "";
+  if (msg.type === "snapshot" || series.restarted) {
+    series.restarted = false;
+    drawPlots();
+  } else if (series.points.length + series.minutes.length !== before) {
+    schedulePlots();
+  }
+}
+
+// New points are drawn at most every PLOT_EVERY_MS: a plot of an hour gains nothing from faster redraws, and
+// a redraw is the page's dearest work (an operator's laptop, or the instrument PC itself, pays for it).
+const PLOT_EVERY_MS = 5000;
+let plotTimer = null;
+let plottedAt = 0;
+
+function schedulePlots() {
+  if (plotTimer !== null) return;
+  const wait = Math.max(0, plottedAt + PLOT_EVERY_MS - Date.now());
+  plotTimer = setTimeout(() => { plotTimer = null; plottedAt = Date.now(); drawPlots(); }, wait);
+}
+
+function pageState(text, ok) {
+  const el = document.getElementById("page-state");
+  el.textContent = text;
+  el.className = "pill " + (ok ? "ok" : "bad");
+}
+
+function connect() {
+  const scheme = location.protocol === "https:" ? "wss:" : "ws:";
+  socket = new WebSocket(scheme + "//" + location.host + "/ws");
+  socket.onopen = () => { retryMs = 1000; pageState("live", true); };
+  socket.onmessage = (event) => handle(JSON.parse(event.data));
+  socket.onclose = () => {
+    pageState("no connection to the daemon: retrying", false);
+    const box = document.getElementById("banners");
+    const div = document.createElement("div");
+    div.textContent = "NO CONNECTION to the daemon's web listener: the numbers below are stale";
+    div.className = "alarm";
+    box.replaceChildren(div);
+    document.body.dataset.alarm = "1";
+    setTimeout(connect, retryMs);
+    retryMs = Math.min(retryMs * 2, 10000);
+  };
+}
+
+connect();

@@ -1,0 +1,545 @@
+"""The web view's data (``view.ViewState``), its metrics (``metrics``) and its listener (``web.WebView``).
+
+The listener is tested in-process on a free loopback port, with raw sockets where a client must misbehave
+(aiohttp's own client would not).  Readiness: ``WebView.start`` returns once the socket listens; WebSocket
+messages are waited for, never slept for.
+"""
+
+from __future__ import annotations
+
+import base64
+import gzip
+import importlib.resources
+import json
+import math
+import os
+import re
+import socket
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import pytest
+from prometheus_client.parser import text_string_to_metric_families
+
+from fog_driver.daemon.hub import AUTH_FAILURES_BEFORE_BACKOFF
+from fog_driver.daemon.metrics import LATENCY_BUCKETS_S, METRICS, DaemonCollector, LatencyHistogram
+from fog_driver.daemon.view import MEAN_EVERY_S, MISSING_BANNER_S, ViewState
+from fog_driver.daemon.watch import format_arcsec, format_dms
+from fog_driver.daemon.web import MAX_CONNECTIONS_PER_PEER, MAX_WS_MESSAGES_PER_S, WebView
+
+TIMEOUT_S = 20.0
+
+
+def angle(seq: int, t_s: float, *, rate: float | None = None, **extra) -> dict:
+    rate = 10.0 + math.sin(seq / 37.0) * 3 if rate is None else rate
+    return {"class": "ANGLE", "seq": seq, "t_s": t_s, "angle_arcsec": seq * 0.1 - 50.0,
+            "angle_raw_arcsec": seq * 0.11, "rate_dph": rate, "rate_raw_dph": rate + 1.5,
+            "drift_dph": -0.5 + seq * 1e-4, "temps_c": {"top": 20 + seq * 1e-3, "bottom": 21.0, "housing": 22.0},
+            "flags": [], "utc": f"2026-12-03T00:00:{seq % 60:02d}.000Z", **extra}  # fmt: skip
+
+
+def stream(n: int, rate_hz: float = 100.0, t0: float = 3.0) -> list[dict]:
+    return [angle(i, t0 + i / rate_hz) for i in range(n)]
+
+
+# ---------------------------------------------------------------------------------------------- ViewState
+
+
+def test_minute_means_are_every_samples_mean_and_points_one_per_second():
+    samples = stream(100 * 200)  # 200 s at 100 Hz from t = 3 s
+    view = ViewState()
+    view.add_angles(samples, 0.0)
+    t = np.array([s["t_s"] for s in samples])
+    rate = np.array([s["rate_dph"] for s in samples])
+    raw = np.array([s["rate_raw_dph"] for s in samples])
+    minute = np.floor(t / MEAN_EVERY_S)
+    closed = np.unique(minute)[:-1]  # the last minute is still open
+    assert [m["t_s"] for m in view.minutes] == [k * MEAN_EVERY_S for k in closed]
+    for m, k in zip(view.minutes, closed):
+        assert m["rate_dph"] == pytest.approx(rate[minute == k].mean(), rel=1e-12)
+        assert m["rate_raw_dph"] == pytest.approx(raw[minute == k].mean(), rel=1e-12)
+        assert m["samples"] == int((minute == k).sum())
+    second = np.floor(t)
+    closed_s = np.unique(second)[:-1]
+    assert len(view.points) == len(closed_s)
+    for p, k in zip(view.points, closed_s):
+        last = samples[int(np.nonzero(second == k)[0][-1])]
+        assert p["t_s"] == last["t_s"] and p["drift_dph"] == last["drift_dph"]
+        assert p["temps_c"] == last["temps_c"]
+        assert p["rate_dph"] == pytest.approx(rate[second == k].mean(), rel=1e-12)
+    assert view.rate_1s_dph == pytest.approx(rate[second == closed_s[-1]].mean(), rel=1e-12)
+
+
+@pytest.mark.determinism
+def test_the_series_do_not_depend_on_how_the_samples_are_batched():
+    samples = stream(100 * 130)
+    whole = ViewState()
+    whole.add_angles(samples, 0.0)
+    rng = np.random.default_rng(7)
+    pieces = ViewState()
+    i = 0
+    while i < len(samples):
+        n = int(rng.integers(1, 300))
+        pieces.add_angles(samples[i:i + n], 0.0)
+        i += n
+    one = ViewState()
+    for s in samples:
+        one.add_angles([s], 0.0)
+    for other in (pieces, one):
+        assert list(other.points) == list(whole.points)
+        assert list(other.minutes) == list(whole.minutes)
+
+
+def test_device_time_going_back_starts_the_series_afresh_and_history_is_bounded():
+    view = ViewState(history_min=2.0)
+    view.add_angles(stream(100 * 400), 0.0)  # 400 s: only the last 2 minutes of points are kept
+    assert view.points[-1]["t_s"] - view.points[0]["t_s"] <= 120.0
+    assert len(view.points) in (120, 121)
+    view.add_angles(stream(250, t0=1.0), 1.0)  # the instrument restarted
+    assert view.restarts == 1
+    assert [p["t_s"] for p in view.points] == [1.99, 2.99]
+    assert list(view.minutes) == []
+
+
+def test_a_long_history_spaces_its_points_so_a_page_never_holds_more_than_an_hours_worth():
+    view = ViewState(history_min=24 * 60)
+    assert view.point_every_s == 24.0
+    view.add_angles([angle(i, float(i)) for i in range(3 * 3600)], 0.0)  # 3 h at 1 Hz
+    assert len(view.points) == 3 * 3600 // 24 - 1
+    assert all(b["t_s"] - a["t_s"] == 24.0 for a, b in zip(view.points, list(view.points)[1:]))
+
+
+def test_the_numbers_are_formatted_as_watch_formats_them():
+    view = ViewState()
+    sample = angle(12345, 100.0, rate=-3.25)
+    sample["angle_arcsec"] = 3723.495
+    view.add_angles([sample], 0.0)
+    text = view.snapshot(0.5)["text"]
+    assert text["seq"] == "12345"
+    assert text["angle_arcsec"] == format_arcsec(3723.495) == "3723.50"
+    assert text["angle_dms"] == format_dms(3723.495) == "1\u00b002'03.50\""
+    assert text["rate_dph"] == "-3.2" or text["rate_dph"] == f"{-3.25:.1f}"
+    assert text["temp_top"] == f"{sample['temps_c']['top']:.3f}"
+    assert text["age"] == "0.5 s ago"
+
+
+def test_banners_for_a_link_down_and_for_missing_frames():
+    view = ViewState(control_address="127.0.0.1:2948")
+    view.add_angles(stream(10), 0.0)
+    view.add_object({"class": "DEVICE", "state": "activated"}, 0.0)
+    view.add_object({"class": "STATUS", "port_state": "open", "missing_frames": 0, "bias_captured": True}, 0.0)
+    assert view.snapshot(0.1)["banners"] == [] and not view.snapshot(0.1)["alarm"]
+    view.add_object({"class": "DEVICE", "state": "deactivated"}, 1.0)
+    current = view.snapshot(1.1)
+    assert current["alarm"] and current["banners"][0]["text"].startswith("LINK DOWN")
+    assert current["text"]["link"] == "link down"
+    view.add_object({"class": "DEVICE", "state": "activated"}, 2.0)
+    view.add_object({"class": "STATUS", "port_state": "open", "missing_frames": 7, "bias_captured": True}, 2.0)
+    view.add_angles([angle(20, 4.0)], 2.0)
+    current = view.snapshot(3.0)
+    assert [b["text"].split(":")[0] for b in current["banners"]] == ["SAMPLES MISSING"] and current["alarm"]
+    view.add_angles([angle(21, 4.01)], 2.0 + MISSING_BANNER_S)
+    assert view.snapshot(2.0 + MISSING_BANNER_S + 1)["banners"] == []  # a minute without new losses
+    assert view.snapshot(2.0 + MISSING_BANNER_S + 5)["banners"][0]["text"].startswith("NO DATA for 5 s")
+    view.add_object({"class": "STATUS", "port_state": "open", "missing_frames": 7, "bias_captured": False}, 70.0)
+    view.add_angles([angle(22, 4.02)], 70.0)
+    notice = view.snapshot(70.0)["banners"]
+    assert [b["level"] for b in notice] == ["notice"] and "fog-driver ctl bias 60" in notice[0]["text"]
+
+
+def test_an_update_carries_only_points_newer_than_asked_for():
+    view = ViewState()
+    view.add_angles(stream(100 * 10), 0.0)
+    first = view.update(0.0, None, None)
+    assert len(first["points"]) == 9
+    view.add_angles([angle(1000 + i, 13.0 + i / 100) for i in range(300)], 1.0)
+    second = view.update(1.0, first["points"][-1]["t_s"], None)
+    assert [p["t_s"] for p in second["points"]] == [12.99, 13.99, 14.99]
+
+
+# ---------------------------------------------------------------------------------------------- metrics
+
+
+def scrape(collector: DaemonCollector) -> dict:
+    from prometheus_client import CollectorRegistry, generate_latest
+
+    registry = CollectorRegistry(auto_describe=False)
+    registry.register(collector)
+    out: dict = {}
+    for family in text_string_to_metric_families(generate_latest(registry).decode()):
+        for sample in family.samples:
+            out[(sample.name, tuple(sorted(sample.labels.items())))] = sample.value
+    return out
+
+
+def test_metrics_carry_the_status_counters_and_the_latency_histogram():
+    status = {"uptime_s": 12.5, "port_state": "lost", "bytes_in": 123456, "frames": 4000, "crc_errors": 3,
+              "bytes_discarded": 77, "missing_frames": 12, "published": 3990, "clients": 2, "dropped_clients": 1,
+              "capture_state": "failed", "capture_bytes_lost": 999, "bias_dph": 0.25, "adapting": True,
+              "flagged": {"gap": 2, "extrapolating": 5}}  # fmt: skip
+    latencies = np.random.default_rng(1).lognormal(np.log(0.002), 1.0, 5000)
+    histogram = LatencyHistogram()
+    for value in latencies:
+        histogram.observe(float(value))
+    state = {"status": status, "device": {"format": "kvh-a", "serial": "S1", "firmware": "2"},
+             "version": {"release": "9.9"}, "reconnects": 4, "capture_failures": 6, "model_age_s": 86400.0,
+             "angle": {"drift_dph": -1.5, "temps_c": {"top": 30.5, "bottom": 31.0}, "flags": ["extrapolating"]},
+             "angle_age_s": 0.25, "rate_1s_dph": 14.9, "web_clients": 3, "web_dropped": 2}  # fmt: skip
+    m = scrape(DaemonCollector(lambda: state, histogram))
+    assert m[("fog_driver_info", (("firmware", "2"), ("format", "kvh-a"), ("release", "9.9"), ("serial", "S1")))] == 1
+    expected = {"fog_driver_bytes_total": 123456, "fog_driver_frames_total": 4000, "fog_driver_crc_errors_total": 3,
+                "fog_driver_bytes_discarded_total": 77, "fog_driver_missing_frames_total": 12,
+                "fog_driver_samples_published_total": 3990, "fog_driver_port_up": 0, "fog_driver_capture_up": 0,
+                "fog_driver_port_reconnects_total": 4, "fog_driver_capture_failures_total": 6,
+                "fog_driver_capture_bytes_lost_total": 999, "fog_driver_bias_dph": 0.25, "fog_driver_adapting": 1,
+                "fog_driver_model_age_seconds": 86400, "fog_driver_drift_dph": -1.5, "fog_driver_rate_dph": 14.9,
+                "fog_driver_last_sample_age_seconds": 0.25, "fog_driver_extrapolating": 1,
+                "fog_driver_uptime_seconds": 12.5}  # fmt: skip
+    for name, value in expected.items():
+        assert m[(name, ())] == value, name
+    assert m[("fog_driver_clients", (("listener", "ndjson"),))] == 2
+    assert m[("fog_driver_clients", (("listener", "web"),))] == 3
+    assert m[("fog_driver_clients_dropped_total", (("listener", "web"),))] == 2
+    assert m[("fog_driver_temperature_celsius", (("channel", "bottom"),))] == 31.0
+    assert m[("fog_driver_flagged_samples_total", (("flag", "extrapolating"),))] == 5
+    for bound in LATENCY_BUCKETS_S:  # cumulative counts against numpy's own count
+        key = ("fog_driver_publish_latency_seconds_bucket", (("le", repr(bound)),))
+        assert m[key] == int((latencies <= bound).sum()), bound
+    assert m[("fog_driver_publish_latency_seconds_count", ())] == len(latencies)
+    assert m[("fog_driver_publish_latency_seconds_sum", ())] == pytest.approx(latencies.sum(), rel=1e-9)
+    exported = {name for name, _ in m} | {name[: -len("_bucket")] for name, _ in m if name.endswith("_bucket")}
+    for name, (kind, _) in METRICS.items():  # every documented metric is there
+        assert name in exported, name
+
+
+def test_metrics_of_a_daemon_that_has_said_nothing_yet_are_still_valid():
+    m = scrape(DaemonCollector(lambda: {}, LatencyHistogram()))
+    assert m[("fog_driver_publish_latency_seconds_count", ())] == 0
+
+
+# ---------------------------------------------------------------------------------------------- the listener
+
+
+@pytest.fixture
+def web():
+    started: list[WebView] = []
+
+    def make(host: str = "127.0.0.1", **kw) -> WebView:
+        view = WebView(host, 0, **kw)
+        view.start()
+        started.append(view)
+        return view
+
+    yield make
+    for view in started:
+        view.stop()
+
+
+def http(address, request: bytes, *, read_all: bool = True) -> tuple[int, dict, bytes]:
+    with socket.create_connection(address, timeout=TIMEOUT_S) as s:
+        s.sendall(request)
+        data = b""
+        while True:
+            chunk = s.recv(1 << 20)
+            if not chunk:
+                break
+            data += chunk
+            if not read_all and b"\r\n\r\n" in data:
+                break
+    head, _, body = data.partition(b"\r\n\r\n")
+    lines = head.decode("latin-1").split("\r\n")
+    headers = {}
+    for line in lines[1:]:
+        key, _, value = line.partition(":")
+        headers.setdefault(key.strip().lower(), value.strip())
+    return int(lines[0].split()[1]), headers, body
+
+
+def get(address, path: str, *extra: str) -> tuple[int, dict, bytes]:
+    head = "".join(f"{h}\r\n" for h in extra)
+    return http(address, f"GET {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\n{head}\r\n".encode())
+
+
+class WsClient:
+    """A minimal WebSocket client on a raw socket (the page's protocol as a browser speaks it)."""
+
+    def __init__(self, address, *, origin: str | None = None, rcvbuf: int | None = None, headers=()) -> None:
+        self.sock = socket.socket()
+        if rcvbuf:
+            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
+        self.sock.settimeout(TIMEOUT_S)
+        self.sock.connect(address)
+        key = base64.b64encode(os.urandom(16)).decode()
+        extra = "".join(f"{h}\r\n" for h in headers) + (f"Origin: {origin}\r\n" if origin else "")
+        self.sock.sendall(f"GET /ws HTTP/1.1\r\nHost: {address[0]}:{address[1]}\r\nUpgrade: websocket\r\n"
+                          f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n"
+                          f"{extra}\r\n".encode())  # fmt: skip
+        self.buffer = b""
+        while b"\r\n\r\n" not in self.buffer:
+            chunk = self.sock.recv(65536)
+            if not chunk:
+                break
+            self.buffer += chunk
+        head, _, self.buffer = self.buffer.partition(b"\r\n\r\n")
+        self.status = int(head.split()[1])
+
+    def _read(self, n: int) -> bytes:
+        while len(self.buffer) < n:
+            chunk = self.sock.recv(1 << 20)
+            if not chunk:
+                raise ConnectionError("closed")
+            self.buffer += chunk
+        out, self.buffer = self.buffer[:n], self.buffer[n:]
+        return out
+
+    def frame(self) -> tuple[int, bytes]:
+        b0, b1 = self._read(2)
+        n = b1 & 0x7F
+        if n == 126:
+            n = int.from_bytes(self._read(2), "big")
+        elif n == 127:
+            n = int.from_bytes(self._read(8), "big")
+        return b0 & 0x0F, self._read(n)
+
+    def message(self) -> dict:
+        while True:
+            opcode, payload = self.frame()
+            if opcode == 1:
+                return json.loads(payload)
+            if opcode == 8:
+                raise ConnectionError(f"closed by the server: {payload!r}")
+
+    def send_text(self, text: str) -> None:
+        payload = text.encode()
+        mask = os.urandom(4)
+        masked = bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
+        self.sock.sendall(bytes([0x81, 0x80 | len(payload)]) + mask + masked)
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+def test_the_page_its_assets_and_plotly_from_the_installed_package(web):
+    view = web()
+    status, headers, body = get(view.address, "/")
+    assert status == 200 and b"/static/plotly.min.js" in body and b"<script src=\"http" not in body
+    assert "default-src 'self'" in headers["content-security-policy"]
+    plotly = importlib.resources.files("plotly").joinpath("package_data/plotly.min.js").read_bytes()
+    status, headers, body = get(view.address, "/static/plotly.min.js")
+    assert status == 200 and body == plotly and headers["content-type"].startswith("text/javascript")
+    status, headers, body = get(view.address, "/static/plotly.min.js", "Accept-Encoding: gzip")
+    assert headers["content-encoding"] == "gzip" and gzip.decompress(body) == plotly
+    assert get(view.address, "/static/plotly.min.js", f"If-None-Match: {headers['etag']}")[0] == 304
+    assert get(view.address, "/static/../../etc/passwd")[0] == 404
+    assert get(view.address, "/static/nothing.js")[0] == 404
+    assert http(view.address, b"DELETE / HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")[0] == 405
+    assert get(view.address, "/ws")[0] == 400  # not an upgrade
+
+
+def test_the_websocket_sends_a_snapshot_then_decimated_updates(web):
+    view = web(update_hz=20.0)
+    view.publish({"class": "DEVICE", "state": "activated", "serial": "S9", "format": "fog-v1"})
+    view.publish_angles(stream(500))
+    ws = WsClient(view.address)
+    assert ws.status == 101
+    snapshot = ws.message()
+    assert snapshot["type"] == "snapshot" and snapshot["angle"]["seq"] == 499
+    assert [p["t_s"] for p in snapshot["points"]] == [3.99, 4.99, 5.99, 6.99]
+    assert snapshot["text"]["instrument"] == "S9 fog-v1" and snapshot["text"]["link"] == "link up"
+    sent = 500
+    seen = []
+    while len(seen) < 10:
+        batch = stream(sent + 200)[sent:]  # 2 s of samples per update: only the last one is shown
+        view.publish_angles(batch)
+        sent += 200
+        message = ws.message()
+        assert message["type"] == "update"
+        seen.append(message["angle"]["seq"])
+        for point in message["points"]:
+            assert point["t_s"] > snapshot["points"][-1]["t_s"]
+    assert len(set(seen)) >= 5 and max(seen) < sent
+    ws.close()
+
+
+def test_pages_start_their_series_afresh_when_the_instrument_restarts(web):
+    view = web(update_hz=20.0)
+    view.publish_angles(stream(1000))
+    ws = WsClient(view.address)
+    snapshot = ws.message()
+    assert snapshot["restarts"] == 0 and snapshot["points"][-1]["t_s"] == 11.99
+    view.publish_angles(stream(350, t0=1.0))  # device time went back
+    message = ws.message()
+    while message["restarts"] == 0:
+        message = ws.message()
+    assert [p["t_s"] for p in message["points"]] == [1.99, 2.99, 3.99]
+    ws.close()
+
+
+def test_beyond_loopback_every_request_needs_the_token(web):
+    with pytest.raises(ValueError, match="without a token"):
+        WebView("0.0.0.0", 0)
+    view = web("0.0.0.0", token="s3cret-token")
+    address = ("127.0.0.1", view.address[1])
+    assert get(address, "/metrics")[0] == 401
+    assert get(address, "/api/view")[0] == 401
+    assert get(address, "/metrics", "Authorization: Bearer wrong-token")[0] == 401  # counts as a wrong token
+    assert get(address, "/metrics", "Authorization: Bearer s3cret-token")[0] == 200  # and a right one resets
+    status, headers, _ = get(address, "/", "Accept: text/html")
+    assert status == 302 and headers["location"] == "/login"
+    assert WsClient(address).status == 401
+    status, headers, _ = get(address, "/?token=s3cret-token")
+    assert status == 303 and headers["location"] == "/"
+    cookie = headers["set-cookie"].split(";")[0]
+    assert "s3cret" not in cookie and "HttpOnly" in headers["set-cookie"] and "SameSite=Strict" in headers["set-cookie"]
+    assert get(address, "/api/view", f"Cookie: {cookie}")[0] == 200
+    ws = WsClient(address, headers=[f"Cookie: {cookie}"])
+    assert ws.status == 101 and ws.message()["type"] == "snapshot"
+    ws.close()
+    view.set_token("another-token")  # rotated: the old cookie no longer opens anything
+    assert get(address, "/api/view", f"Cookie: {cookie}")[0] == 401
+    assert get(address, "/metrics", "Authorization: Bearer another-token")[0] == 200
+    form = b"token=nope"
+    request = (b"POST /login HTTP/1.1\r\nHost: x\r\nConnection: close\r\nContent-Type: application/x-www-form-"
+               b"urlencoded\r\nContent-Length: %d\r\n\r\n%s")  # fmt: skip
+    codes = [http(address, request % (len(form), form))[0] for _ in range(AUTH_FAILURES_BEFORE_BACKOFF + 2)]
+    assert codes == [401] * (AUTH_FAILURES_BEFORE_BACKOFF + 1) + [429]  # then this address waits
+    assert get(address, "/metrics", "Authorization: Bearer another-token")[0] == 429  # even with the right one
+
+
+def test_a_websocket_from_another_origin_is_refused(web):
+    view = web()
+    assert WsClient(view.address, origin="http://evil.example").status == 403
+    ws = WsClient(view.address, origin=f"http://{view.address[0]}:{view.address[1]}")
+    assert ws.status == 101
+    ws.close()
+
+
+def test_oversized_requests_get_a_clear_status(web):
+    view = web()
+    long_header = "X-Junk: " + "a" * 10000
+    assert get(view.address, "/", long_header)[0] in (400, 431)
+    assert get(view.address, "/" + "a" * 10000)[0] in (400, 414)
+    many = [f"X-H{i}: 1" for i in range(200)]
+    assert get(view.address, "/", *many)[0] in (400, 431)
+    body = b"token=" + b"a" * 5000
+    request = (b"POST /login HTTP/1.1\r\nHost: x\r\nConnection: close\r\nContent-Type: application/x-www-form-"
+               b"urlencoded\r\nContent-Length: %d\r\n\r\n%s") % (len(body), body)
+    view_beyond = web("0.0.0.0", token="s3cret-token")
+    assert http(("127.0.0.1", view_beyond.address[1]), request)[0] == 413
+
+
+def test_connections_beyond_the_per_peer_limit_are_closed_at_once(web):
+    view = web()
+    held = [socket.create_connection(view.address, timeout=TIMEOUT_S) for _ in range(MAX_CONNECTIONS_PER_PEER)]
+    try:
+        for s in held:  # each one answered: they are counted as open connections
+            s.sendall(b"GET /favicon.ico HTTP/1.1\r\nHost: x\r\n\r\n")
+            assert s.recv(4096).startswith(b"HTTP/1.1 204")
+        extra = socket.create_connection(view.address, timeout=TIMEOUT_S)
+        assert extra.recv(4096) == b""  # closed before a byte was read
+        extra.close()
+        assert view.refused_connections == 1
+    finally:
+        for s in held:
+            s.close()
+
+
+def test_a_connection_that_sends_no_request_is_closed(web, monkeypatch):
+    monkeypatch.setattr("fog_driver.daemon.web.REQUEST_HEAD_TIMEOUT_S", 0.5)
+    view = web()
+    idle = socket.create_connection(view.address, timeout=TIMEOUT_S)
+    idle.sendall(b"GET / HTTP/1.1\r\nHost: x\r\n")  # ...and never the blank line
+    started = time.monotonic()
+    assert idle.recv(4096) == b""
+    assert time.monotonic() - started < 5.0
+    idle.close()
+
+
+def test_a_browser_that_stops_reading_is_dropped_and_others_carry_on(web):
+    view = web(update_hz=50.0, max_backlog_s=0.5)
+    stalled = WsClient(view.address, rcvbuf=4096)
+    assert stalled.status == 101
+    live = WsClient(view.address)
+    live.message()
+    seq = 0
+    pad = "x" * 60000
+    while view.dropped_browsers == 0:
+        view.publish_angles([angle(seq, 3.0 + seq / 100, pad=pad)])
+        seq += 1
+        message = live.message()  # the live page keeps getting its updates meanwhile
+        assert message["type"] == "update"
+    assert len(view.browsers) == 1
+    live.close()
+    stalled.close()
+
+
+def test_a_page_that_floods_the_socket_is_closed(web):
+    view = web()
+    ws = WsClient(view.address)
+    ws.message()
+    for _ in range(MAX_WS_MESSAGES_PER_S + 5):
+        ws.send_text("hello")
+    with pytest.raises(ConnectionError, match="closed"):
+        while True:
+            ws.message()
+    ws.close()
+
+
+def test_api_view_is_the_snapshot(web):
+    view = web()
+    view.publish_angles(stream(350))
+    status, _, body = get(view.address, "/api/view")
+    doc = json.loads(body)
+    assert status == 200 and doc["type"] == "snapshot" and doc["angle"]["seq"] == 349
+    counts = defaultdict(int)
+    for p in doc["points"]:
+        counts[math.floor(p["t_s"])] += 1
+    assert set(counts.values()) == {1}
+
+
+def test_the_shipped_prometheus_and_grafana_configs_name_only_metrics_that_exist():
+    root = Path(__file__).resolve().parents[1] / "configs" / "monitoring"
+    dashboard = json.loads(root.joinpath("grafana-dashboard.json").read_text())
+    exprs = [t["expr"] for panel in dashboard["panels"] for t in panel["targets"]]
+    exprs += [line for line in root.joinpath("prometheus.yml").read_text().splitlines() if "expr:" in line]
+    used = {re.sub(r"_(bucket|count|sum)$", "", name) for e in exprs for name in re.findall(r"fog_driver_\w+", e)}
+    assert used and used <= set(METRICS), used - set(METRICS)
+    assert {"fog_driver_port_up", "fog_driver_missing_frames_total", "fog_driver_publish_latency_seconds"} <= used
+    counters = {name for name, (kind, _) in METRICS.items() if kind == "counter"}
+    for e in exprs:  # a counter is only ever read through rate() or increase()
+        for name in set(re.findall(r"fog_driver_\w+", e)) & counters:
+            assert re.search(rf"(rate|increase)\({name}\b", e), e
+
+
+def test_the_readme_lists_every_metric():
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    for name, (kind, _) in METRICS.items():
+        assert f"| `{name}` | {kind} |" in readme, name
+
+
+def test_the_daemon_refuses_a_web_view_beyond_loopback_without_a_token_and_one_on_a_busy_port(tmp_path):
+    from test_cli import assert_one_line_error, run_cli
+
+    port = f"replay://{Path(__file__).resolve().parent / 'data' / 'sim-short.bin'}?rate=10"
+    proc = run_cli("run", "--port", port, "--listen", "127.0.0.1:0", "--http", "0.0.0.0:0",
+                   "--capture-dir", str(tmp_path / "c"), cwd=tmp_path)  # fmt: skip
+    assert_one_line_error(proc, 78, "http 0.0.0.0:0", "without a token")
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        proc = run_cli("run", "--port", port, "--listen", "127.0.0.1:0", "--http", f"127.0.0.1:{busy.getsockname()[1]}",
+                       "--capture-dir", str(tmp_path / "c"), cwd=tmp_path)  # fmt: skip
+    assert_one_line_error(proc, 75, "cannot listen on", "(http)")
+
+
+def test_without_the_web_extra_the_error_says_what_to_install(monkeypatch):
+    import importlib.util
+
+    from fog_driver.daemon import web as web_module
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "plotly" else real(name, *a))
+    with pytest.raises(web_module.WebUnavailable, match=r"needs plotly: pip install 'fog_driver\[web\]'"):
+        web_module.check_web_extra()

@@ -1,0 +1,202 @@
+"""The web view in a real browser: headless Chromium (Debian's ``chromium``), driven by Playwright.
+
+A daemon (``fog-driver run --http``) reads a recorded capture through a real pty; an NDJSON client watches
+every sample beside the page.  The test checks that the numbers the page shows are the NDJSON stream's for the
+same ``seq`` (formatted as ``watch`` formats them), that the plots grow, that the LINK DOWN banner appears when
+the pty is unplugged and goes when it comes back, and that the page raised no error (its Content Security
+Policy included).  Screenshots go to the test's directory, and to ``$FOG_SCREENSHOT_DIR`` when set (the
+README's picture: ``FOG_SCREENSHOT_DIR=docs python -m pytest tests/test_web_browser.py``).
+
+Readiness: the daemon's "listening on" line, the DEVICE object, and Playwright's waits on the page's own
+elements (``expect``), never sleeps.  The pty is fed at 10 times the capture's pace by a writer thread, as
+an instrument would feed it.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import threading
+import time
+from pathlib import Path
+
+from playwright.sync_api import expect, sync_playwright
+from test_daemon_hil import Client, Daemon
+
+from fog_driver.daemon.watch import format_arcsec, format_dms
+from fog_driver.transport import PtyPair
+
+DATA = Path(__file__).resolve().parent / "data"
+CAPTURE = DATA / "sim-short.bin"  # 300 s at 10 Hz (its sidecar says how it was made)
+FRAME_BYTES = 29
+SPEEDUP = 10
+WAIT_MS = 20_000
+
+
+def chromium() -> str:
+    path = os.environ.get("FOG_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
+    assert path, "the browser test needs Chromium: apt-get install chromium (or FOG_CHROMIUM=/path/to/chrome)"
+    return path
+
+
+class Instrument:
+    """Writes the capture into the pty at ``SPEEDUP`` times its pace; ``flowing`` pauses it (unplugged)."""
+
+    def __init__(self, pty: PtyPair, data: bytes, rate_hz: int = 10) -> None:
+        self.pty = pty
+        self.data = data
+        self.chunk = FRAME_BYTES * rate_hz  # one second of the instrument's frames
+        self.flowing = threading.Event()
+        self.flowing.set()
+        self.done = threading.Event()
+        self.offset = 0
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        while not self.done.is_set() and self.offset < len(self.data):
+            self.flowing.wait()
+            if self.done.is_set():
+                break
+            try:
+                self.pty.write(self.data[self.offset:self.offset + self.chunk])
+            except OSError:  # unplugged between the check and the write: written again after the replug
+                continue
+            self.offset += self.chunk
+            time.sleep(1.0 / SPEEDUP)  # the instrument's pace, not a synchronization
+
+    def stop(self) -> None:
+        self.done.set()
+        self.flowing.set()
+        self.thread.join(10)
+
+
+class Watcher:
+    """An NDJSON client taking every ANGLE into ``by_seq`` (in a thread)."""
+
+    def __init__(self, address) -> None:
+        self.client = Client(address)
+        self.client.send('?WATCH={"enable":true};')
+        self.client.wait_device("activated")
+        self.by_seq: dict[int, dict] = {}
+        self.status: dict = {}
+        self.changed = threading.Condition()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        try:
+            while True:
+                obj = self.client.next()
+                if obj.get("class") == "ANGLE":
+                    with self.changed:
+                        self.by_seq[obj["seq"]] = obj
+                        self.changed.notify_all()
+                elif obj.get("class") == "STATUS":
+                    self.status = obj
+        except Exception:  # noqa: BLE001 - the connection closes at the end of the test
+            pass
+
+    def angle(self, seq: int) -> dict:
+        with self.changed:
+            assert self.changed.wait_for(lambda: seq in self.by_seq, timeout=WAIT_MS / 1000), seq
+            return self.by_seq[seq]
+
+
+SHOWN = """() => {
+  const t = (id) => document.getElementById(id).textContent;
+  const temps = {};
+  document.querySelectorAll("#temps [data-text]").forEach((el) => { temps[el.dataset.text.slice(5)] = el.textContent; });
+  return {seq: document.body.dataset.seq, angle: t("angle-arcsec"), dms: t("angle-dms"), raw: t("angle-raw-arcsec"),
+          rate: t("rate"), drift: t("drift"), flags: t("flags"), temps};
+}"""
+
+
+def test_the_page_shows_the_streams_numbers_live_plots_and_the_link_banner(tmp_path):
+    data = CAPTURE.read_bytes()
+    link = tmp_path / "ttyFOG0"
+    pty = PtyPair()
+    pty.symlink(link)
+    daemon = Daemon(tmp_path, str(link), "--http", "127.0.0.1:0")
+    instrument = None
+    shots = [Path(os.environ["FOG_SCREENSHOT_DIR"])] if os.environ.get("FOG_SCREENSHOT_DIR") else []
+    try:
+        url = re.search(r"web view on (http://\S+/)", daemon.readiness).group(1)
+        watcher = Watcher(daemon.address)
+        instrument = Instrument(pty, data)
+        problems: list[str] = []
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=chromium(), args=["--no-sandbox"])
+            page = browser.new_page(viewport={"width": 1280, "height": 860})
+            page.on("console", lambda m: problems.append(m.text) if m.type in ("error", "warning") else None)
+            page.on("pageerror", lambda e: problems.append(str(e)))
+            page.goto(url)
+            expect(page.locator("#page-state")).to_have_text("live", timeout=WAIT_MS)
+            expect(page.locator("body")).to_have_attribute("data-seq", re.compile(r"^\d+$"), timeout=WAIT_MS)
+
+            # The numbers: whatever sample the page shows, they are the NDJSON stream's for its seq.
+            seen = set()
+            while len(seen) < 3:
+                shown = page.evaluate(SHOWN)
+                seq = int(shown["seq"])
+                if seq in seen:
+                    expect(page.locator("body")).not_to_have_attribute("data-seq", str(seq), timeout=WAIT_MS)
+                    continue
+                seen.add(seq)
+                obj = watcher.angle(seq)
+                assert shown["angle"] == format_arcsec(obj["angle_arcsec"])
+                assert shown["dms"] == format_dms(obj["angle_arcsec"])
+                assert shown["raw"] == format_arcsec(obj["angle_raw_arcsec"])
+                assert shown["rate"] == f"{obj['rate_dph']:.1f}"
+                assert shown["drift"] == f"{obj['drift_dph']:.3f}"
+                assert shown["flags"] == (", ".join(obj["flags"]) or "none")
+                assert shown["temps"] == {k: f"{v:.3f}" for k, v in obj["temps_c"].items()}
+                assert set(shown["temps"]) == {"top", "bottom", "housing"}
+
+            # The plots grow as device seconds and minutes close.
+            drift = page.locator("#plot-drift")
+            points = drift.get_attribute("data-points")
+            expect(drift).not_to_have_attribute("data-points", points, timeout=WAIT_MS)
+            expect(page.locator("#plot-rate")).not_to_have_attribute("data-points", "0", timeout=WAIT_MS)
+            assert page.locator("#plot-drift .scatterlayer .trace").count() == 1
+            assert page.locator("#plot-temps .scatterlayer .trace").count() == 3
+            expect(page.locator("#banners .alarm")).to_have_count(0)
+            page.screenshot(path=str(tmp_path / "web-view.png"), full_page=True)
+
+            # Unplugged: the banner says so; back: it goes.
+            instrument.flowing.clear()
+            pty.unplug()
+            expect(page.locator("#banners .alarm").first).to_contain_text("LINK DOWN", timeout=WAIT_MS)
+            expect(page.locator("#link")).to_have_text("link down")
+            page.screenshot(path=str(tmp_path / "web-view-link-down.png"), full_page=True)
+            pty.close()
+            pty = PtyPair()  # the adapter comes back: a new /dev/pts behind the same link
+            pty.symlink(link)
+            instrument.pty = pty
+            instrument.flowing.set()
+            expect(page.locator("#link")).to_have_text("link up", timeout=WAIT_MS)
+            expect(page.locator("#banners")).not_to_contain_text("LINK DOWN", timeout=WAIT_MS)
+            banners = page.locator("#banners").inner_text()
+            missing = re.search(r"SAMPLES MISSING: ([\d,]+) frames", banners)
+            if missing:  # bytes the unplug cut off: the page says as many as the daemon's STATUS does
+                assert int(missing.group(1).replace(",", "")) == watcher.status["missing_frames"] > 0, banners
+            before = int(page.evaluate(SHOWN)["seq"])
+            expect(page.locator("body")).not_to_have_attribute("data-seq", str(before), timeout=WAIT_MS)
+            received = len(watcher.by_seq)
+            metrics = page.request.get(url + "metrics").text()  # the same listener's Prometheus text
+            frames = float(re.search(r"^fog_driver_frames_total (\S+)$", metrics, re.M).group(1))
+            latencies = float(re.search(r"^fog_driver_publish_latency_seconds_count (\S+)$", metrics, re.M).group(1))
+            assert frames >= received > 0 and latencies > 0  # measured with a watcher
+            assert re.search(r'^fog_driver_port_up 1\.0$', metrics, re.M)
+            for directory in shots:
+                directory.mkdir(parents=True, exist_ok=True)
+                shutil.copy(tmp_path / "web-view.png", directory / "web-view.png")
+            browser.close()
+        assert problems == [], problems
+        assert daemon.terminate() == 0
+    finally:
+        if instrument is not None:
+            instrument.stop()
+        pty.close()
+        daemon.kill()
