@@ -399,6 +399,8 @@ def test_beyond_loopback_every_request_needs_the_token(web):
     ws.close()
     view.set_token("another-token")  # rotated: the old cookie no longer opens anything
     assert get(address, "/api/view", f"Cookie: {cookie}")[0] == 401
+    status, headers, _ = get(address, "/", f"Cookie: {cookie}", "Accept: text/html")
+    assert status == 302 and headers["location"] == "/login"  # a browser is sent to log in again
     assert get(address, "/metrics", "Authorization: Bearer another-token")[0] == 200
     form = b"token=nope"
     request = (b"POST /login HTTP/1.1\r\nHost: x\r\nConnection: close\r\nContent-Type: application/x-www-form-"
@@ -455,6 +457,34 @@ def test_a_connection_that_sends_no_request_is_closed(web, monkeypatch):
     assert idle.recv(4096) == b""
     assert time.monotonic() - started < 5.0
     idle.close()
+
+
+def test_a_kept_alive_connection_that_starts_a_request_and_never_ends_it_is_closed(web, monkeypatch):
+    monkeypatch.setattr("fog_driver.daemon.web.REQUEST_HEAD_TIMEOUT_S", 0.5)
+    view = web()
+    slow = socket.create_connection(view.address, timeout=TIMEOUT_S)
+    slow.sendall(b"GET /favicon.ico HTTP/1.1\r\nHost: x\r\n\r\n")
+    assert slow.recv(4096).startswith(b"HTTP/1.1 204")
+    slow.sendall(b"GET / HTTP/1.1\r\nHost: x\r\nX-Slow: 1")  # the second request's head, never finished
+    started = time.monotonic()
+    assert slow.recv(4096) == b""
+    assert time.monotonic() - started < 5.0
+    slow.close()
+
+
+def test_a_websocket_outlives_the_request_head_timeout(web, monkeypatch):
+    monkeypatch.setattr("fog_driver.daemon.web.REQUEST_HEAD_TIMEOUT_S", 0.2)
+    view = web(update_hz=20.0)
+    ws = WsClient(view.address)
+    ws.message()
+    deadline = time.monotonic() + 1.5  # several sweeps past the timeout, the page still gets its updates
+    n = 0
+    while time.monotonic() < deadline:
+        if n % 5 == 0:
+            ws.send_text("{}")  # frames from the page too (4 a second, under the limit): they are no request head
+        assert ws.message()["type"] == "update"
+        n += 1
+    ws.close()
 
 
 def test_a_browser_that_stops_reading_is_dropped_and_others_carry_on(web):

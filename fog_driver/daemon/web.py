@@ -32,9 +32,10 @@ must come from the page's own origin (a foreign ``Origin``: 403).
 Limits (a misbehaving client costs itself, never the instrument): ``MAX_CONNECTIONS`` connections and
 ``MAX_CONNECTIONS_PER_PEER`` per address (beyond them the connection is closed at once); request line and
 each header at most ``MAX_LINE_BYTES``, ``MAX_HEADERS`` headers (431/400), a body at most ``MAX_BODY_BYTES``
-(413); a connection must send its request head within ``REQUEST_HEAD_TIMEOUT_S`` and a request must be
-answered within ``REQUEST_TIMEOUT_S`` (a client that does not read its response is closed); idle keep-alive
-connections close after ``KEEPALIVE_S``; a WebSocket peer may send at most ``MAX_WS_MESSAGE_BYTES`` per
+(413); a request head must be complete within ``REQUEST_HEAD_TIMEOUT_S`` of the connection (the first) or of
+its first byte (the next ones on a kept-alive connection), and a request must be answered within
+``REQUEST_TIMEOUT_S`` (a client that does not read its response is closed); idle keep-alive connections
+close after ``KEEPALIVE_S``; a WebSocket peer may send at most ``MAX_WS_MESSAGE_BYTES`` per
 message and ``MAX_WS_MESSAGES_PER_S`` messages a second (the page sends none), and one that does not read
 is dropped when its oldest unsent update is older than ``max_client_backlog_s``, like an NDJSON client.
 """
@@ -182,7 +183,7 @@ class WebView:
         self._start_error: BaseException | None = None
         self._stop_event: asyncio.Event | None = None
         self._address: tuple[str, int] | None = None
-        self._connections: dict[Any, list] = {}  # handler -> [peer, connected_s, request started_s or None, seen]
+        self._connections: dict[Any, _Connection] = {}  # aiohttp's handler -> what the sweeper needs
         self._peers: dict[str, int] = {}
         self._registry = None
         #: device times of the newest point and mean the pages were sent (a page dedups by device time)
@@ -372,14 +373,14 @@ class WebView:
             now = time.monotonic()
             for event, count in self._log_limiter.take_suppressed(now):
                 log.warning("log_lines_suppressed", suppressed_event=event, count=count)
-            for handler, (peer, connected_s, started_s, seen) in list(self._connections.items()):
-                if started_s is None and not seen and now - connected_s > REQUEST_HEAD_TIMEOUT_S:
-                    reason = f"no request within {REQUEST_HEAD_TIMEOUT_S:g} s"
-                elif started_s is not None and now - started_s > REQUEST_TIMEOUT_S:
+            for handler, c in list(self._connections.items()):
+                if c.head_since_s is not None and now - c.head_since_s > REQUEST_HEAD_TIMEOUT_S:
+                    reason = f"no complete request head within {REQUEST_HEAD_TIMEOUT_S:g} s"
+                elif c.request_since_s is not None and now - c.request_since_s > REQUEST_TIMEOUT_S:
                     reason = f"request not done within {REQUEST_TIMEOUT_S:g} s"
                 else:
                     continue
-                self._log("info", "web_connection_closed", peer=peer, reason=reason)
+                self._log("info", "web_connection_closed", peer=c.peer, reason=reason)
                 handler.force_close()
                 if handler.transport is not None:
                     handler.transport.abort()
@@ -388,16 +389,16 @@ class WebView:
     # ------------------------------------------------------------------ requests
 
     def _credentials(self, request: Any) -> str:
-        """``ok``, ``wrong`` (a token or cookie that does not match) or ``none`` (neither was given)."""
+        """``ok``, ``wrong`` (an ``Authorization`` token that does not match: counted against the address) or
+        ``none`` (no token, or only a cookie that is no longer valid)."""
         header = request.headers.get("Authorization")
         cookie = request.cookies.get(COOKIE)
-        if header is None and not cookie:
-            return "none"
-        if header is not None:
-            given = header[7:] if header.startswith("Bearer ") else ""
-            if self.token is not None and hmac.compare_digest(given.encode("utf-8", "replace"), self.token.encode()):
-                return "ok"
         if cookie and hmac.compare_digest(cookie.encode("utf-8", "replace"), self._cookie_value.encode()):
+            return "ok"
+        if header is None:  # no token; a stale cookie (a token rotated since) is no guess: log in again
+            return "none"
+        given = header[7:] if header.startswith("Bearer ") else ""
+        if self.token is not None and hmac.compare_digest(given.encode("utf-8", "replace"), self.token.encode()):
             return "ok"
         return "wrong"
 
@@ -419,9 +420,9 @@ class WebView:
         """Middleware: timing for the sweeper, authorization, security headers."""
         web = self._web()
         self.requests += 1
-        state = self._connections.get(request.protocol)
-        if state is not None:
-            state[2], state[3] = time.monotonic(), True
+        connection = self._connections.get(request.protocol)
+        if connection is not None:
+            connection.head_since_s, connection.request_since_s = None, time.monotonic()
         try:
             if request.method not in ("GET", "HEAD", "POST"):
                 raise web.HTTPMethodNotAllowed(request.method, ["GET", "HEAD", "POST"])
@@ -435,8 +436,8 @@ class WebView:
                     response.headers.setdefault(key, value)
             return response
         finally:
-            if state is not None:
-                state[2] = None
+            if connection is not None:
+                connection.request_since_s = None
 
     async def _authorize(self, request: Any) -> Any:
         """None when the request carries the token (or the login cookie); else the response refusing it."""
@@ -559,9 +560,9 @@ class WebView:
         if not ws.can_prepare(request).ok:
             return web.Response(status=400, text="400: /ws takes a WebSocket upgrade\n")
         await ws.prepare(request)
-        state = self._connections.get(request.protocol)
-        if state is not None:
-            state[2] = None  # a WebSocket is a long exchange, not a slow request
+        connection = self._connections.get(request.protocol)
+        if connection is not None:  # a WebSocket is a long exchange of frames, neither a slow request nor a head
+            connection.request_since_s, connection.websocket = None, True
         browser = _Browser(_peer(request), ws, request.transport)
         self._drain()
         now = time.monotonic()
@@ -611,6 +612,19 @@ class WebView:
             pass
 
 
+class _Connection:
+    """What the sweeper knows of one connection: since when a request head is awaited (None: not now), since
+    when a request runs (None: none), whether it became a WebSocket."""
+
+    __slots__ = ("peer", "head_since_s", "request_since_s", "websocket")
+
+    def __init__(self, peer: str, connected_s: float) -> None:
+        self.peer = peer
+        self.head_since_s: float | None = connected_s  # a new connection owes its first request head
+        self.request_since_s: float | None = None
+        self.websocket = False
+
+
 class _Counted(asyncio.Protocol):
     """A connection's protocol: aiohttp's handler behind the connection limits, tracked for the sweeper.
 
@@ -621,6 +635,7 @@ class _Counted(asyncio.Protocol):
         self.view = view
         self.handler = handler
         self.peer: str | None = None
+        self.connection: _Connection | None = None
 
     def connection_made(self, transport: Any) -> None:
         view, peer = self.view, _peer_of(transport)
@@ -630,12 +645,16 @@ class _Counted(asyncio.Protocol):
             return
         self.peer = peer
         view._peers[peer] = view._peers.get(peer, 0) + 1
-        view._connections[self.handler] = [peer, time.monotonic(), None, False]
+        view._connections[self.handler] = self.connection = _Connection(peer, time.monotonic())
         self.handler.connection_made(transport)
 
     def data_received(self, data: bytes) -> None:
-        if self.peer is not None:
-            self.handler.data_received(data)
+        if self.peer is None:
+            return
+        c = self.connection
+        if c.request_since_s is None and c.head_since_s is None and not c.websocket:
+            c.head_since_s = time.monotonic()  # the next request's head begins: it has REQUEST_HEAD_TIMEOUT_S
+        self.handler.data_received(data)
 
     def eof_received(self) -> bool | None:
         return self.handler.eof_received() if self.peer is not None else None
