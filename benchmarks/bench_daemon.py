@@ -186,12 +186,20 @@ np.savez(out, seq=np.frombuffer(seqs, dtype=np.int64), t=np.frombuffer(times, dt
 # -- /proc ---------------------------------------------------------------------------------------
 
 
+def stat_fields(path: str) -> list[str]:
+    """A /proc ``stat`` file's fields after the command name: [0] state, [1] ppid, ... [11] utime, [12] stime."""
+    with open(path) as f:
+        return f.read().rsplit(")", 1)[1].split()
+
+
+def stat_cpu_s(fields: list[str]) -> float:
+    """utime + stime of ``stat_fields``, seconds."""
+    return (int(fields[11]) + int(fields[12])) / CLK_TCK
+
+
 def cpu_s(pid: int, tid: int | None = None) -> float:
     """utime + stime of a process (or one of its threads), seconds."""
-    path = f"/proc/{pid}/stat" if tid is None else f"/proc/{pid}/task/{tid}/stat"
-    with open(path) as f:
-        fields = f.read().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / CLK_TCK
+    return stat_cpu_s(stat_fields(f"/proc/{pid}/stat" if tid is None else f"/proc/{pid}/task/{tid}/stat"))
 
 
 def threads_cpu_s(pid: int) -> dict[int, float]:

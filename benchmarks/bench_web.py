@@ -49,7 +49,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from bench_daemon import CLK_TCK, Table, add_pacing_options, live_run, ok  # noqa: E402
+from bench_daemon import Table, add_pacing_options, live_run, ok, stat_cpu_s, stat_fields  # noqa: E402
 
 # A page's WebSocket without a browser (a process of its own): argv url.  Prints "ready" once the snapshot came,
 # then counts the updates until stdin closes, and prints the count.
@@ -111,12 +111,11 @@ def tree_cpu_s(root: int) -> float:
         if not entry.isdigit():
             continue
         try:
-            with open(f"/proc/{entry}/stat") as f:
-                fields = f.read().rsplit(")", 1)[1].split()
-        except OSError:
+            fields = stat_fields(f"/proc/{entry}/stat")
+        except OSError:  # the process ended meanwhile
             continue
         parents[int(entry)] = int(fields[1])
-        times[int(entry)] = (int(fields[11]) + int(fields[12])) / CLK_TCK
+        times[int(entry)] = stat_cpu_s(fields)
     total, todo = 0.0, [root]
     while todo:
         pid = todo.pop()

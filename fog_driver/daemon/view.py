@@ -263,11 +263,10 @@ class ViewState:
             "seq": str(a["seq"]) if isinstance(a.get("seq"), int) else "-",
             "t_s": _fixed(a.get("t_s"), 3),
             "utc": str(a.get("utc", "-")),
-            "angle_arcsec": format_arcsec(a["angle_arcsec"]) if _number(a.get("angle_arcsec")) is not None else "-",
-            "angle_dms": format_dms(a["angle_arcsec"]) if _number(a.get("angle_arcsec")) is not None else "-",
-            "angle_raw_arcsec": (format_arcsec(a["angle_raw_arcsec"])
-                                 if _number(a.get("angle_raw_arcsec")) is not None else "-"),
-            "angle_raw_dms": format_dms(a["angle_raw_arcsec"]) if _number(a.get("angle_raw_arcsec")) is not None else "-",
+            "angle_arcsec": _angle(a.get("angle_arcsec"), format_arcsec),
+            "angle_dms": _angle(a.get("angle_arcsec"), format_dms),
+            "angle_raw_arcsec": _angle(a.get("angle_raw_arcsec"), format_arcsec),
+            "angle_raw_dms": _angle(a.get("angle_raw_arcsec"), format_dms),
             "rate_dph": _fixed(a.get("rate_dph"), 1),
             "rate_1s_dph": _fixed(self.rate_1s_dph, 2),
             "rate_raw_dph": _fixed(a.get("rate_raw_dph"), 1),
@@ -283,6 +282,11 @@ class ViewState:
             value = status.get(key)
             out[f"status_{key}"] = _status_text(value)
         return out
+
+
+def _angle(value: Any, fmt: Any) -> str:
+    """An angle as ``watch`` shows it (``fmt``: ``format_arcsec`` or ``format_dms``), ``-`` when not a number."""
+    return fmt(value) if _number(value) is not None else "-"
 
 
 def _status_text(value: Any) -> str:
