@@ -117,8 +117,12 @@ def stage1_figures(capture: Path) -> dict[str, float]:
         x = data.target_dph[lo:hi] - data.target_dph[lo:hi].mean()
         before.append(detrended(x[-600:]))
         after.append(detrended(AflpFilter(AflpParams()).run(x)[-600:]))
-    return {"input": rms_about_truth(r), "aflp": rms_about_truth(aflp), "ema": rms_about_truth(ema),
-            "plateau_ratio": float(np.concatenate(before).std() / np.concatenate(after).std())}  # fmt: skip
+    return {
+        "input": rms_about_truth(r),
+        "aflp": rms_about_truth(aflp),
+        "ema": rms_about_truth(ema),
+        "plateau_ratio": float(np.concatenate(before).std() / np.concatenate(after).std()),
+    }
 
 
 def model_step_us(model_path: Path) -> float:
@@ -146,8 +150,11 @@ def main() -> None:
         t0 = time.perf_counter()
         fit_capture = simulate(workdir, "paper", 1, args.rate_hz)
         tests = [(name, seed, role, simulate(workdir, name, seed, args.rate_hz)) for name, seed, role in TESTS]
-        print(f"simulated at {args.rate_hz} Hz: paper (seed 1) for fitting; "
-              + ", ".join(f"{n} (seed {s}, {r})" for n, s, r, _ in tests) + f"  [{time.perf_counter() - t0:.0f} s]")
+        print(
+            f"simulated at {args.rate_hz} Hz: paper (seed 1) for fitting; "
+            + ", ".join(f"{n} (seed {s}, {r})" for n, s, r, _ in tests)
+            + f"  [{time.perf_counter() - t0:.0f} s]"
+        )
         models = {}
         for kind in KINDS:
             t0 = time.perf_counter()
@@ -156,8 +163,11 @@ def main() -> None:
             print(f"fit {kind:10s} {time.perf_counter() - t0:5.1f} s")
 
         print()
-        print(f"{'1-min drift RMS, deg/h':28s} {'before':>8s} {'noise':>8s} " + " ".join(f"{k:>10s}" for k in KINDS)
-              + "   reduction (wesn)  wesn/poly  wesn/noise")  # fmt: skip
+        print(
+            f"{'1-min drift RMS, deg/h':28s} {'before':>8s} {'noise':>8s} "
+            + " ".join(f"{k:>10s}" for k in KINDS)
+            + "   reduction (wesn)  wesn/poly  wesn/noise"
+        )
         for name, _seed, role, capture in tests:
             truth = read_truth(capture.with_suffix(".truth.csv"))
             before = minute_rms(truth["drift_dph"])
@@ -168,16 +178,20 @@ def main() -> None:
                 n = min(len(drift), len(truth["drift_dph"]))
                 residual[kind] = minute_rms(truth["drift_dph"][:n] - drift[:n])
             w, p = residual["wesn"], residual["polynomial"]
-            print(f"{name + ' (' + role + ')':28s} {before:8.4f} {floor:8.4f} "
-                  + " ".join(f"{residual[k]:10.4f}" for k in KINDS)
-                  + f"   {100 * (1 - w / before):6.1f} % (>= 75)   {w / p:5.2f} (<= 0.8)  {w / floor:5.2f} (<= 2)")
+            print(
+                f"{name + ' (' + role + ')':28s} {before:8.4f} {floor:8.4f} "
+                + " ".join(f"{residual[k]:10.4f}" for k in KINDS)
+                + f"   {100 * (1 - w / before):6.1f} % (>= 75)   {w / p:5.2f} (<= 0.8)  {w / floor:5.2f} (<= 2)"
+            )
         print()
         st = stage1_figures(fit_capture)
-        print(f"stage 1 alone, the paper's setup (one filter over the paper run, its mean removed), 1-s RMS about the "
-              f"true drift: input {st['input']:.3f}, AFLP order 10 {st['aflp']:.3f} ({st['input'] / st['aflp']:.2f} x "
-              f"lower), EMA {EMA_TAU_S:g} s {st['ema']:.3f} ({st['input'] / st['ema']:.2f} x lower); the paper: 4 x "
-              f"(0.176 -> 0.044 deg/h); per-plateau fresh filters, std about each plateau's trend: "
-              f"{st['plateau_ratio']:.2f} x")  # fmt: skip
+        print(
+            f"stage 1 alone, the paper's setup (one filter over the paper run, its mean removed), 1-s RMS about the "
+            f"true drift: input {st['input']:.3f}, AFLP order 10 {st['aflp']:.3f} ({st['input'] / st['aflp']:.2f} x "
+            f"lower), EMA {EMA_TAU_S:g} s {st['ema']:.3f} ({st['input'] / st['ema']:.2f} x lower); the paper: 4 x "
+            f"(0.176 -> 0.044 deg/h); per-plateau fresh filters, std about each plateau's trend: "
+            f"{st['plateau_ratio']:.2f} x"
+        )
 
         if not args.skip_1khz:
             name, seed, _ = TESTS[0]
@@ -187,8 +201,10 @@ def main() -> None:
             d1k = per_second_drift(fast, models["wesn"])
             n = min(len(d100), len(d1k))
             rel = float(np.sqrt(np.mean((d1k[:n] - d100[:n]) ** 2)) / np.sqrt(np.mean(d100[:n] ** 2)))
-            print(f"wesn fitted at {args.rate_hz} Hz applied to a 1 kHz capture of the same {name} run: drift estimates "
-                  f"differ by {100 * rel:.3f} % RMS (target <= 2 %)  [{time.perf_counter() - t0:.0f} s]")
+            print(
+                f"wesn fitted at {args.rate_hz} Hz applied to a 1 kHz capture of the same {name} run: drift estimates "
+                f"differ by {100 * rel:.3f} % RMS (target <= 2 %)  [{time.perf_counter() - t0:.0f} s]"
+            )
 
         # Two runs of one instrument fitted together (the paper run and the faster fast-ramps run) pin the
         # coil's lag, which one paper run can leave ambiguous; scored on the held-out soak-cycle run.
@@ -199,16 +215,20 @@ def main() -> None:
         truth = read_truth(tests[1][3].with_suffix(".truth.csv"))
         drift = per_second_drift(tests[1][3], pair_path)
         n = min(len(drift), len(truth["drift_dph"]))
-        print(f"wesn fitted on paper + fast-ramps together (coil lag {pair.provenance['selection']['coil_lag_s']:g} s, "
-              f"{fit_s:.1f} s), on soak-cycle: {minute_rms(truth['drift_dph'][:n] - drift[:n]):.4f} deg/h; "
-              f"fitted on paper alone (coil lag {load_model(models['wesn']).provenance['selection']['coil_lag_s']:g} s): "
-              "see the table")  # fmt: skip
+        print(
+            f"wesn fitted on paper + fast-ramps together (coil lag {pair.provenance['selection']['coil_lag_s']:g} s, "
+            f"{fit_s:.1f} s), on soak-cycle: {minute_rms(truth['drift_dph'][:n] - drift[:n]):.4f} deg/h; "
+            f"fitted on paper alone (coil lag {load_model(models['wesn']).provenance['selection']['coil_lag_s']:g} s): "
+            "see the table"
+        )
 
         # Adapting online (compensate --adapt-reference 0, the defaults) against frozen, on the runs each
         # model was not fitted on: the comparison guard should keep a good model's estimate, and let the
         # adapted one in where the frozen model is wrong.
-        for label, model_path, runs in (("wesn paper + fast-ramps", pair_path, tests[1:]),
-                                        ("wesn paper alone", models["wesn"], tests)):  # fmt: skip
+        for label, model_path, runs in (
+            ("wesn paper + fast-ramps", pair_path, tests[1:]),
+            ("wesn paper alone", models["wesn"], tests),
+        ):
             for name, _seed, _role, capture in runs:
                 truth = read_truth(capture.with_suffix(".truth.csv"))
                 scores = []
@@ -216,17 +236,31 @@ def main() -> None:
                     drift = per_second_drift(capture, model_path, adapt)
                     n = min(len(drift), len(truth["drift_dph"]))
                     scores.append(minute_rms(truth["drift_dph"][:n] - drift[:n]))
-                print(f"adapting (--adapt-reference 0), {label}, on {name}: {scores[0]:.4f} frozen -> "
-                      f"{scores[1]:.4f} deg/h adapting")
+                print(
+                    f"adapting (--adapt-reference 0), {label}, on {name}: {scores[0]:.4f} frozen -> "
+                    f"{scores[1]:.4f} deg/h adapting"
+                )
 
         paper_100 = fit_capture
-        cmd = [sys.executable, "-m", "fog_driver", "compensate", str(paper_100), "--model", str(models["wesn"]),
-               "--out", str(workdir / "paper.csv"), "--force"]  # fmt: skip
+        cmd = [
+            sys.executable,
+            "-m",
+            "fog_driver",
+            "compensate",
+            str(paper_100),
+            "--model",
+            str(models["wesn"]),
+            "--out",
+            str(workdir / "paper.csv"),
+            "--force",
+        ]
         t0 = time.perf_counter()
         subprocess.run(cmd, check=True, capture_output=True)
         wall = time.perf_counter() - t0
-        print(f"fog-driver compensate, 440-min paper capture at {args.rate_hz} Hz, wesn model: {wall:.1f} s end to end "
-              f"(target <= 10 s)")
+        print(
+            f"fog-driver compensate, 440-min paper capture at {args.rate_hz} Hz, wesn model: {wall:.1f} s end to end "
+            f"(target <= 10 s)"
+        )
         for kind in KINDS:
             print(f"model step, {kind:10s} {model_step_us(models[kind]):6.1f} us (target <= 50 us)")
 

@@ -62,7 +62,9 @@ def creeping_capture(workdir: Path, seed: int, creep_dph: float, rate_hz: int) -
         out.parent.mkdir(parents=True, exist_ok=True)
         profile = load_profile(ROOT / "configs" / "profiles" / f"{SCORE_PROFILE}.yaml")
         if creep_dph:
-            profile = dataclasses.replace(profile, motion=MotionPlan((ConstantRate(creep_dph / 3600.0, CREEP_START_S),)))
+            profile = dataclasses.replace(
+                profile, motion=MotionPlan((ConstantRate(creep_dph / 3600.0, CREEP_START_S),))
+            )
         sim = Simulator(profile, draw_instrument(seed), rate_hz=rate_hz, seed=10 * seed + 2)
         simulate_to_file(sim, out.with_suffix(".part.bin"))
         for suffix in (".bin", ".yaml", ".truth.csv"):
@@ -137,16 +139,28 @@ def main() -> None:
                 results.append(future.result())
                 x = results[-1]
                 if args.per_instrument:
-                    print(f"instrument {x['seed']:5d} ({x['kind']}): " + "  ".join(
-                        f"{c:g}: {v['frozen']:.4f} -> {v['adapting']:.4f} flagged {100 * v['flagged_share']:.0f}% "
-                        f"after {v['first_flag_s']:.0f} s" for c, v in x["creep"].items()), flush=True)  # fmt: skip
-    print(f"\n{args.set} set: {len(seeds)} instruments (seeds {seeds[0]}..{seeds[-1]}), {SCORE_PROFILE} at "
-          f"{args.rate_hz} Hz, table creeping from {CREEP_START_S:g} s, adapting against 0  "
-          f"[{time.perf_counter() - t0:.0f} s]\n")  # fmt: skip
-    print(f"{'creep, deg/h':>12s} {'adapting / frozen':>22s} {'/ correct reference':>22s} {'flagged share':>22s} "
-          f"{'first flag, s':>14s}")  # fmt: skip
-    print(f"{'':12s} {'median':>11s}{'worst':>11s} {'median':>11s}{'worst':>11s} {'median':>11s}{'least':>11s} "
-          f"{'worst':>14s}")  # fmt: skip
+                    print(
+                        f"instrument {x['seed']:5d} ({x['kind']}): "
+                        + "  ".join(
+                            f"{c:g}: {v['frozen']:.4f} -> {v['adapting']:.4f} flagged {100 * v['flagged_share']:.0f}% "
+                            f"after {v['first_flag_s']:.0f} s"
+                            for c, v in x["creep"].items()
+                        ),
+                        flush=True,
+                    )
+    print(
+        f"\n{args.set} set: {len(seeds)} instruments (seeds {seeds[0]}..{seeds[-1]}), {SCORE_PROFILE} at "
+        f"{args.rate_hz} Hz, table creeping from {CREEP_START_S:g} s, adapting against 0  "
+        f"[{time.perf_counter() - t0:.0f} s]\n"
+    )
+    print(
+        f"{'creep, deg/h':>12s} {'adapting / frozen':>22s} {'/ correct reference':>22s} {'flagged share':>22s} "
+        f"{'first flag, s':>14s}"
+    )
+    print(
+        f"{'':12s} {'median':>11s}{'worst':>11s} {'median':>11s}{'worst':>11s} {'median':>11s}{'least':>11s} "
+        f"{'worst':>14s}"
+    )
     for c in creeps:
         ratio = np.array([x["creep"][c]["adapting"] / x["creep"][c]["frozen"] for x in results])
         share = np.array([x["creep"][c]["flagged_share"] for x in results])
@@ -156,8 +170,10 @@ def main() -> None:
             own_text = f"{np.median(own):10.3f}x{own.max():10.3f}x"
         else:
             own_text = f"{'-':>11s}{'-':>11s}"
-        print(f"{c:12g} {np.median(ratio):10.3f}x{ratio.max():10.3f}x {own_text} {100 * np.median(share):10.0f}%"
-              f"{100 * share.min():10.0f}% {first:14.0f}")  # fmt: skip
+        print(
+            f"{c:12g} {np.median(ratio):10.3f}x{ratio.max():10.3f}x {own_text} {100 * np.median(share):10.0f}%"
+            f"{100 * share.min():10.0f}% {first:14.0f}"
+        )
 
 
 if __name__ == "__main__":

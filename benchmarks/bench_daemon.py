@@ -258,10 +258,25 @@ class Daemon:
         self.log_path = tmp / "daemon.log"
         self.log = self.log_path.open("w")  # a file: a full, unread pipe would block the daemon
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "fog_driver", "run", "--port", port, "--listen", "127.0.0.1:0",
-             "--capture-dir", str(tmp / "captures"), *extra],
-            stdout=subprocess.PIPE, stderr=self.log, text=True, stdin=subprocess.DEVNULL, cwd=ROOT,
-        )  # fmt: skip
+            [
+                sys.executable,
+                "-m",
+                "fog_driver",
+                "run",
+                "--port",
+                port,
+                "--listen",
+                "127.0.0.1:0",
+                "--capture-dir",
+                str(tmp / "captures"),
+                *extra,
+            ],
+            stdout=subprocess.PIPE,
+            stderr=self.log,
+            text=True,
+            stdin=subprocess.DEVNULL,
+            cwd=ROOT,
+        )
         line = self.proc.stdout.readline()  # the readiness line
         self.readiness = line
         if "listening on" not in line:
@@ -402,8 +417,9 @@ def score(npz_path: Path, frames: Frames, pacing: Pacing, warmup_frames: int) ->
 def start_readers(script: str, argvs: list[list[str]]) -> list[subprocess.Popen]:
     procs = []
     for argv in argvs:
-        proc = subprocess.Popen([sys.executable, "-c", script, *argv], stdout=subprocess.PIPE, text=True,
-                                stdin=subprocess.DEVNULL, cwd=ROOT)  # fmt: skip
+        proc = subprocess.Popen(
+            [sys.executable, "-c", script, *argv], stdout=subprocess.PIPE, text=True, stdin=subprocess.DEVNULL, cwd=ROOT
+        )
         procs.append(proc)
     for proc in procs:
         line = proc.stdout.readline().strip()
@@ -437,9 +453,19 @@ class LiveResult:
     companions: dict = field(default_factory=dict)
 
 
-def live_run(label: str, rate_hz: int, seconds: float, tick_s: float, warmup_s: float, n_clients: int,
-             hostile: int = 0, *, wire_format: str = "fog-v1", daemon_args: tuple[str, ...] = (),
-             companions: Callable[[Daemon], Callable[[], dict]] | None = None) -> LiveResult:  # fmt: skip
+def live_run(
+    label: str,
+    rate_hz: int,
+    seconds: float,
+    tick_s: float,
+    warmup_s: float,
+    n_clients: int,
+    hostile: int = 0,
+    *,
+    wire_format: str = "fog-v1",
+    daemon_args: tuple[str, ...] = (),
+    companions: Callable[[Daemon], Callable[[], dict]] | None = None,
+) -> LiveResult:
     """``wire_format``: the frames' (``make_frames``); ``daemon_args``: more for ``fog-driver run`` (a
     ``--config`` saying that format); ``companions(daemon)``: started once the clients are ready, before the
     frames (browsers, a scraper); returns the function that stops them and says what they saw."""
@@ -455,8 +481,12 @@ def live_run(label: str, rate_hz: int, seconds: float, tick_s: float, warmup_s: 
             readers = start_readers(CLIENT, [[host, str(port), str(frames.n), str(o)] for o in outs])
             attackers = None
             if hostile:
-                attackers = subprocess.Popen([sys.executable, str(ROOT / "tests" / "hostile.py"), host, str(port),
-                                              str(hostile)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)  # fmt: skip
+                attackers = subprocess.Popen(
+                    [sys.executable, str(ROOT / "tests" / "hostile.py"), host, str(port), str(hostile)],
+                    stdin=subprocess.PIPE,
+                    stdout=subprocess.PIPE,
+                    text=True,
+                )
                 assert attackers.stdout.readline().strip() == "ready"
             stop_companions = companions(daemon) if companions is not None else None
             pacing = pace(pty, frames, tick_s, warmup_s, daemon.pid)
@@ -466,8 +496,10 @@ def live_run(label: str, rate_hz: int, seconds: float, tick_s: float, warmup_s: 
                 attackers.stdin.close()
                 attackers.wait(GUARD_S)
             cpu_pct, per_thread = pacing.cpu_marks[1].percent_since(pacing.cpu_marks[0])
-            clients = [score(o, frames, pacing, warmup_frames) if o.exists() else
-                       Received(frames.n, 0, 0, 0, np.array([])) for o in outs]  # fmt: skip
+            clients = [
+                score(o, frames, pacing, warmup_frames) if o.exists() else Received(frames.n, 0, 0, 0, np.array([]))
+                for o in outs
+            ]
         finally:
             for proc in readers:
                 if proc.poll() is None:
@@ -602,7 +634,7 @@ def replay(frames: int, tmp_path: Path, capture: Path, *, via_pty: bool, sample_
             if now >= next_sample:
                 samples.append((now - mark0.wall, watcher.frames(), *rss_mb(daemon.pid)))
                 next_sample += sample_every_s
-        end_t = (watcher.status_times[-1] if finished else time.monotonic())
+        end_t = watcher.status_times[-1] if finished else time.monotonic()
         mark1 = CpuMark.take(daemon.pid)
         samples.append((end_t - mark0.wall, watcher.frames(), *rss_mb(daemon.pid)))
         cpu_pct, _ = mark1.percent_since(mark0)
@@ -614,8 +646,17 @@ def replay(frames: int, tmp_path: Path, capture: Path, *, via_pty: bool, sample_
         code = daemon.stop()
         if pty is not None:
             pty.close()
-    return ReplayResult(frames, end_t - mark0.wall, samples, cpu_pct, status, watcher.angles,
-                        float(gaps.max()) if gaps.size else float("nan"), finished, code)  # fmt: skip
+    return ReplayResult(
+        frames,
+        end_t - mark0.wall,
+        samples,
+        cpu_pct,
+        status,
+        watcher.angles,
+        float(gaps.max()) if gaps.size else float("nan"),
+        finished,
+        code,
+    )
 
 
 # -- report ----------------------------------------------------------------------------------------
@@ -645,13 +686,22 @@ def ok(good: bool) -> str:
 def report_live(table: Table, r: LiveResult, p99_target_ms: float = 5.0) -> None:
     run = f"{r.rate_hz / 1000:g} kHz x {r.seconds:g} s" + (f", {r.label}" if r.label.startswith("hostile") else "")
     lost = [c.lost for c in r.clients]
-    table.add(run, f"samples lost, per client (of {r.clients[0].written:,})", " / ".join(map(str, lost)), "0",
-              ok(all(x == 0 for x in lost)))  # fmt: skip
+    table.add(
+        run,
+        f"samples lost, per client (of {r.clients[0].written:,})",
+        " / ".join(map(str, lost)),
+        "0",
+        ok(all(x == 0 for x in lost)),
+    )
     for i, c in enumerate(r.clients, 1):
-        table.add("", f"client {i} latency p50 / p99 / p99.9 / max, ms",
-                  f"{c.pct(50):.2f} / {c.pct(99):.2f} / {c.pct(99.9):.2f} / "
-                  f"{c.lat_ms.max() if c.lat_ms.size else float('nan'):.2f}",
-                  f"p99 <= {p99_target_ms:g}", ok(c.pct(99) <= p99_target_ms))  # fmt: skip
+        table.add(
+            "",
+            f"client {i} latency p50 / p99 / p99.9 / max, ms",
+            f"{c.pct(50):.2f} / {c.pct(99):.2f} / {c.pct(99.9):.2f} / "
+            f"{c.lat_ms.max() if c.lat_ms.size else float('nan'):.2f}",
+            f"p99 <= {p99_target_ms:g}",
+            ok(c.pct(99) <= p99_target_ms),
+        )
     if r.label.startswith("hostile"):  # the attackers' share is theirs: no target
         table.add("", "daemon CPU, % of one core", f"{r.cpu_pct:.1f}", "(under attack)")
     else:
@@ -663,8 +713,12 @@ def report_live(table: Table, r: LiveResult, p99_target_ms: float = 5.0) -> None
 
 def add_pacing_options(parser: argparse.ArgumentParser, warmup_s: float) -> None:
     """``--tick-ms`` and ``--warmup-s``: how ``pace`` writes and what it leaves out of CPU and latency."""
-    parser.add_argument("--tick-ms", type=float, default=5.0, help="writer period: frames due go out together (default 5)")
-    parser.add_argument("--warmup-s", type=float, default=warmup_s, help=f"left out of latency and CPU (default {warmup_s:g})")
+    parser.add_argument(
+        "--tick-ms", type=float, default=5.0, help="writer period: frames due go out together (default 5)"
+    )
+    parser.add_argument(
+        "--warmup-s", type=float, default=warmup_s, help=f"left out of latency and CPU (default {warmup_s:g})"
+    )
 
 
 def main() -> None:
@@ -676,55 +730,81 @@ def main() -> None:
     parser.add_argument("--stress-seconds", type=float, default=10.0, help="stress run length (default 10; 0 skips)")
     parser.add_argument("--clients", type=int, default=2, help="watching clients in the live runs (default 2)")
     parser.add_argument("--hostile", type=int, default=8, help="hostile clients in the hostile run (default 8)")
-    parser.add_argument("--hostile-seconds", type=float, default=20.0, help="hostile run length at --rate-hz (default 20; 0 skips)")
+    parser.add_argument(
+        "--hostile-seconds", type=float, default=20.0, help="hostile run length at --rate-hz (default 20; 0 skips)"
+    )
     add_pacing_options(parser, warmup_s=1.0)
-    parser.add_argument("--baseline-seconds", type=float, default=5.0, help="the pty alone at --rate-hz (default 5; 0 skips)")
-    parser.add_argument("--frames", type=int, default=5_000_000,
-                        help="accelerated replay length (default 5,000,000; the issue's target is 10,000,000; 0 skips)")
-    parser.add_argument("--oneshot-frames", type=int, default=250_000,
-                        help="replay:// without a rate, read as one chunk (default 250,000; 0 skips)")
+    parser.add_argument(
+        "--baseline-seconds", type=float, default=5.0, help="the pty alone at --rate-hz (default 5; 0 skips)"
+    )
+    parser.add_argument(
+        "--frames",
+        type=int,
+        default=5_000_000,
+        help="accelerated replay length (default 5,000,000; the issue's target is 10,000,000; 0 skips)",
+    )
+    parser.add_argument(
+        "--oneshot-frames",
+        type=int,
+        default=250_000,
+        help="replay:// without a rate, read as one chunk (default 250,000; 0 skips)",
+    )
     args = parser.parse_args()
     if args.quick:
         args.seconds, args.stress_seconds, args.baseline_seconds, args.hostile_seconds = 4.0, 3.0, 2.0, 4.0
         args.frames, args.oneshot_frames = 200_000, 50_000
     tick_s = args.tick_ms / 1e3
 
-    print(f"daemon benchmark: {os.cpu_count()} cores, Python {platform.python_version()}, "
-          f"writer tick {args.tick_ms:g} ms, warm-up {args.warmup_s:g} s{' (--quick)' if args.quick else ''}",
-          flush=True)  # fmt: skip
+    print(
+        f"daemon benchmark: {os.cpu_count()} cores, Python {platform.python_version()}, "
+        f"writer tick {args.tick_ms:g} ms, warm-up {args.warmup_s:g} s{' (--quick)' if args.quick else ''}",
+        flush=True,
+    )
     wall0 = time.monotonic()
     table = Table()
     notes: list[str] = []
 
-    runs = [("live", args.rate_hz, args.seconds, args.clients, 0), ("stress", args.stress_rate_hz, args.stress_seconds,
-                                                                        args.clients, 0),
-            (f"hostile x{args.hostile}", args.rate_hz, args.hostile_seconds, 1, args.hostile)]  # fmt: skip
+    runs = [
+        ("live", args.rate_hz, args.seconds, args.clients, 0),
+        ("stress", args.stress_rate_hz, args.stress_seconds, args.clients, 0),
+        (f"hostile x{args.hostile}", args.rate_hz, args.hostile_seconds, 1, args.hostile),
+    ]
     for label, rate, seconds, clients, hostile in runs:
         if seconds <= 0:
             continue
-        print(f"... {label}: {rate} Hz for {seconds:g} s into a pty, {clients} clients watching"
-              + (f", {hostile} hostile clients" if hostile else ""), flush=True)  # fmt: skip
+        print(
+            f"... {label}: {rate} Hz for {seconds:g} s into a pty, {clients} clients watching"
+            + (f", {hostile} hostile clients" if hostile else ""),
+            flush=True,
+        )
         r = live_run(label, rate, seconds, tick_s, args.warmup_s, clients, hostile)
         report_live(table, r, 20.0 if hostile else 5.0)
         threads = ", ".join(f"{name} {pct:.1f}" for name, pct in r.cpu_threads if pct >= 0.05)
-        notes.append(f"{label} {rate} Hz: daemon CPU % by thread: {threads}; writer: {r.pacing.writes:,} writes, "
-                     f"worst tick {r.pacing.max_late_ms:.1f} ms late; daemon exit {r.exit_code}")  # fmt: skip
+        notes.append(
+            f"{label} {rate} Hz: daemon CPU % by thread: {threads}; writer: {r.pacing.writes:,} writes, "
+            f"worst tick {r.pacing.max_late_ms:.1f} ms late; daemon exit {r.exit_code}"
+        )
         for i, c in enumerate(r.clients, 1):
             s = c.status or {}
             over = int(np.count_nonzero(c.lat_ms > 5.0))
-            notes.append(f"  client {i}: {c.received:,} ANGLE lines, {c.repeats_or_reorders} repeats/reorders, "
-                         f"{over} of {c.lat_ms.size:,} measured over 5 ms; "
-                         f"last STATUS frames {s.get('frames')}, missing {s.get('missing_frames')}, "
-                         f"crc {s.get('crc_errors')}, discarded {s.get('bytes_discarded')}, "
-                         f"dropped clients {s.get('dropped_clients')}")  # fmt: skip
+            notes.append(
+                f"  client {i}: {c.received:,} ANGLE lines, {c.repeats_or_reorders} repeats/reorders, "
+                f"{over} of {c.lat_ms.size:,} measured over 5 ms; "
+                f"last STATUS frames {s.get('frames')}, missing {s.get('missing_frames')}, "
+                f"crc {s.get('crc_errors')}, discarded {s.get('bytes_discarded')}, "
+                f"dropped clients {s.get('dropped_clients')}"
+            )
 
     if args.baseline_seconds > 0:
         print(f"... the pty alone: {args.rate_hz} Hz for {args.baseline_seconds:g} s, no daemon", flush=True)
         base, _ = pty_alone(args.rate_hz, args.baseline_seconds, tick_s, args.warmup_s)
-        table.add(f"pty alone {args.rate_hz / 1000:g} kHz", "latency p50 / p99 / p99.9 / max, ms",
-                  f"{base.pct(50):.2f} / {base.pct(99):.2f} / {base.pct(99.9):.2f} / "
-                  f"{base.lat_ms.max() if base.lat_ms.size else float('nan'):.2f}",
-                  "(baseline)")  # fmt: skip
+        table.add(
+            f"pty alone {args.rate_hz / 1000:g} kHz",
+            "latency p50 / p99 / p99.9 / max, ms",
+            f"{base.pct(50):.2f} / {base.pct(99):.2f} / {base.pct(99.9):.2f} / "
+            f"{base.lat_ms.max() if base.lat_ms.size else float('nan'):.2f}",
+            "(baseline)",
+        )
         table.add("", "frames lost", str(base.lost))
 
     with tempfile.TemporaryDirectory(prefix="bench-daemon-") as tmp:
@@ -733,8 +813,11 @@ def main() -> None:
             capture = tmp_path / "replay.bin"
             gen_s = generate_replay_file(capture, args.frames)
             size_mb = capture.stat().st_size / 1e6
-            print(f"... accelerated replay: {args.frames:,} frames ({size_mb:,.0f} MB, generated in {gen_s:.1f} s) "
-                  f"through the pty as fast as the daemon reads", flush=True)  # fmt: skip
+            print(
+                f"... accelerated replay: {args.frames:,} frames ({size_mb:,.0f} MB, generated in {gen_s:.1f} s) "
+                f"through the pty as fast as the daemon reads",
+                flush=True,
+            )
             (tmp_path / "c").mkdir()
             rr = replay(args.frames, tmp_path / "c", capture, via_pty=True, sample_every_s=1.0)
             run = f"replay {args.frames / 1e6:g} M frames"
@@ -745,8 +828,9 @@ def main() -> None:
             tenth = args.frames / 10
             first, last = s[(s[:, 0] > 0) & (s[:, 0] <= tenth)], s[s[:, 0] >= args.frames - tenth]
             if len(first) and len(last):
-                table.add("", "VmRSS first -> last tenth, MB", f"{first[:, 1].mean():.1f} -> {last[:, 1].mean():.1f}",
-                          "flat")  # fmt: skip
+                table.add(
+                    "", "VmRSS first -> last tenth, MB", f"{first[:, 1].mean():.1f} -> {last[:, 1].mean():.1f}", "flat"
+                )
             fit = s[s[:, 0] >= tenth]
             if len(fit) >= 3 and np.ptp(fit[:, 0]) > 0:
                 slope = np.polyfit(fit[:, 0] / 1e6, fit[:, 1], 1)[0]
@@ -756,30 +840,47 @@ def main() -> None:
             table.add("", "throughput, frames/s", f"{fps:,.0f}", "(>= 4,000)", ok(fps >= 4000))
             table.add("", "daemon CPU, % of one core", f"{rr.cpu_pct:.0f}")
             st = rr.status or {}
-            notes.append(f"replay: finished {rr.finished} in {rr.seconds:.1f} s; STATUS frames {st.get('frames')}, "
-                         f"missing {st.get('missing_frames')}, crc {st.get('crc_errors')}, discarded "
-                         f"{st.get('bytes_discarded')}; {rr.angles:,} ANGLE lines at 1 Hz; longest STATUS gap "
-                         f"{rr.max_status_gap_s:.2f} s; {len(rr.samples)} RSS samples; daemon exit {rr.exit_code}")  # fmt: skip
+            notes.append(
+                f"replay: finished {rr.finished} in {rr.seconds:.1f} s; STATUS frames {st.get('frames')}, "
+                f"missing {st.get('missing_frames')}, crc {st.get('crc_errors')}, discarded "
+                f"{st.get('bytes_discarded')}; {rr.angles:,} ANGLE lines at 1 Hz; longest STATUS gap "
+                f"{rr.max_status_gap_s:.2f} s; {len(rr.samples)} RSS samples; daemon exit {rr.exit_code}"
+            )
             marks = [s[np.argmin(np.abs(s[:, 0] - q * args.frames))] for q in np.linspace(0, 1, 11)]
-            notes.append("replay VmRSS / RssAnon MB at 0, 10, ..., 100 % of the frames: "
-                         + ", ".join(f"{v:.1f}/{a:.1f}" for _, v, a in marks))  # fmt: skip
+            notes.append(
+                "replay VmRSS / RssAnon MB at 0, 10, ..., 100 % of the frames: "
+                + ", ".join(f"{v:.1f}/{a:.1f}" for _, v, a in marks)
+            )
             capture.unlink()
         if args.oneshot_frames > 0:
             capture = tmp_path / "oneshot.bin"
             generate_replay_file(capture, args.oneshot_frames)
-            print(f"... replay:// without a rate: {args.oneshot_frames:,} frames "
-                  f"({capture.stat().st_size / 1e6:,.1f} MB) in one chunk", flush=True)  # fmt: skip
+            print(
+                f"... replay:// without a rate: {args.oneshot_frames:,} frames "
+                f"({capture.stat().st_size / 1e6:,.1f} MB) in one chunk",
+                flush=True,
+            )
             (tmp_path / "d").mkdir()
             ro = replay(args.oneshot_frames, tmp_path / "d", capture, via_pty=False, sample_every_s=0.25)
             run = f"replay:// no rate, {args.oneshot_frames / 1e3:g} k frames"
             s = np.array([(v, a) for _, _, v, a in ro.samples], dtype=float)
-            table.add(run, "peak VmRSS / RssAnon, MB", f"{s[:, 0].max():.0f} / {s[:, 1].max():.0f}", "<= 100",
-                      ok(s[:, 0].max() <= 100.0))  # fmt: skip
-            table.add("", "time to process, s (frames/s)",
-                      f"{ro.seconds:.1f} ({ro.frames / ro.seconds:,.0f})" if ro.finished else "did not finish")
+            table.add(
+                run,
+                "peak VmRSS / RssAnon, MB",
+                f"{s[:, 0].max():.0f} / {s[:, 1].max():.0f}",
+                "<= 100",
+                ok(s[:, 0].max() <= 100.0),
+            )
+            table.add(
+                "",
+                "time to process, s (frames/s)",
+                f"{ro.seconds:.1f} ({ro.frames / ro.seconds:,.0f})" if ro.finished else "did not finish",
+            )
             table.add("", "longest gap between STATUS lines, s", f"{ro.max_status_gap_s:.1f}", "(~1: every 1 s)")
-            notes.append(f"replay:// no rate: RSS per 1,000 frames ~ "
-                         f"{(s[:, 1].max() - s[0, 1]) / ro.frames * 1e3:.2f} MB (RssAnon growth); daemon exit {ro.exit_code}")  # fmt: skip
+            notes.append(
+                f"replay:// no rate: RSS per 1,000 frames ~ "
+                f"{(s[:, 1].max() - s[0, 1]) / ro.frames * 1e3:.2f} MB (RssAnon growth); daemon exit {ro.exit_code}"
+            )
 
     print()
     table.print()

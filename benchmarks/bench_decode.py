@@ -104,8 +104,10 @@ def main() -> None:
 
     t0 = time.perf_counter()
     data, truth = make_capture(n)
-    print(f"capture: {n:,} SAMPLE frames + {(n + 999) // 1000:,} IDENTITY, {len(data) / 1e6:.1f} MB "
-          f"(generated in {time.perf_counter() - t0:.1f} s)")
+    print(
+        f"capture: {n:,} SAMPLE frames + {(n + 999) // 1000:,} IDENTITY, {len(data) / 1e6:.1f} MB "
+        f"(generated in {time.perf_counter() - t0:.1f} s)"
+    )
 
     t_batch, batch = best_time(lambda: decode_bytes(data), args.repeat)
     for name in SAMPLE_PAYLOAD_DTYPE.names:
@@ -129,7 +131,9 @@ def main() -> None:
     print(f"baseline struct-per-frame     {fps['baseline']:>12,.0f} frames/s  ({t_base:.3f} s, best of {args.repeat})")
     print(f"batch / baseline              {fps['batch'] / fps['baseline']:>12.1f} x")
     print(f"stream / baseline             {fps['stream'] / fps['baseline']:>12.2f} x")
-    print(f"batch / saturated 921600-baud link ({LINK_FRAMES_PER_S:,.0f} frames/s) {fps['batch'] / LINK_FRAMES_PER_S:.0f} x")
+    print(
+        f"batch / saturated 921600-baud link ({LINK_FRAMES_PER_S:,.0f} frames/s) {fps['batch'] / LINK_FRAMES_PER_S:.0f} x"
+    )
     print(f"batch decode peak memory      {peak / 1e6:>12.0f} MB  ({peak / len(data):.1f} x the capture size)")
 
 

@@ -79,8 +79,10 @@ def line(fmt: str, r: LiveResult, base_cpu: float | None) -> str:
     c = r.clients[0]
     ratio = f"{r.cpu_pct / base_cpu:4.2f}x fog-v1" if base_cpu else "  (baseline) "
     vm_end = r.pacing.rss_end[0]
-    return (f"  {fmt:14s} {r.rate_hz:5d} Hz  sent {c.written:7,}  received {c.unique:7,}  lost {c.lost:3d}  "
-            f"CPU {r.cpu_pct:5.1f} % of a core  {ratio}  RSS {vm_end:5.1f} MB  p99 {c.pct(99):5.2f} ms")  # fmt: skip
+    return (
+        f"  {fmt:14s} {r.rate_hz:5d} Hz  sent {c.written:7,}  received {c.unique:7,}  lost {c.lost:3d}  "
+        f"CPU {r.cpu_pct:5.1f} % of a core  {ratio}  RSS {vm_end:5.1f} MB  p99 {c.pct(99):5.2f} ms"
+    )
 
 
 def main() -> None:
@@ -91,9 +93,12 @@ def main() -> None:
     args = parser.parse_args()
     if args.quick:
         args.seconds = 5.0
-    print(f"daemon on other frame formats: {os.cpu_count()} cores, Python {platform.python_version()}, "
-          f"{args.seconds:g} s per run, writer tick {args.tick_ms:g} ms, CPU after a {args.warmup_s:g} s warm-up, "
-          f"one watching client{' (--quick)' if args.quick else ''}", flush=True)  # fmt: skip
+    print(
+        f"daemon on other frame formats: {os.cpu_count()} cores, Python {platform.python_version()}, "
+        f"{args.seconds:g} s per run, writer tick {args.tick_ms:g} ms, CPU after a {args.warmup_s:g} s warm-up, "
+        f"one watching client{' (--quick)' if args.quick else ''}",
+        flush=True,
+    )
     wall0 = time.monotonic()
     lost = 0
     notes = []
@@ -104,8 +109,16 @@ def main() -> None:
         for fmt, rate in RUNS:
             model, device = fitted[fmt]
             config = write_config(tmp_path, fmt, rate, model, device)
-            r = live_run(fmt, rate, args.seconds, args.tick_ms / 1e3, args.warmup_s, 1, wire_format=fmt,
-                         daemon_args=("--config", str(config)))  # fmt: skip
+            r = live_run(
+                fmt,
+                rate,
+                args.seconds,
+                args.tick_ms / 1e3,
+                args.warmup_s,
+                1,
+                wire_format=fmt,
+                daemon_args=("--config", str(config)),
+            )
             print(line(fmt, r, base_cpu), flush=True)
             if (fmt, rate) == BASELINE:
                 base_cpu = r.cpu_pct

@@ -79,10 +79,14 @@ def main() -> None:
 
     t_inspect, t_shot = float(t_inspect), float(t_shot)
     print(f"interpreter + imports          peak RSS {int(idle_kb) / 1e3:7.0f} MB")
-    print(f"inspect (block by block)      {t_inspect:6.2f} s  {args.frames / t_inspect:>12,.0f} frames/s  "
-          f"peak RSS {int(rss_inspect_kb) / 1e3:7.0f} MB")
-    print(f"baseline: one-shot decode     {t_shot:6.2f} s  {args.frames / t_shot:>12,.0f} frames/s  "
-          f"peak RSS {int(rss_shot_kb) / 1e3:7.0f} MB")
+    print(
+        f"inspect (block by block)      {t_inspect:6.2f} s  {args.frames / t_inspect:>12,.0f} frames/s  "
+        f"peak RSS {int(rss_inspect_kb) / 1e3:7.0f} MB"
+    )
+    print(
+        f"baseline: one-shot decode     {t_shot:6.2f} s  {args.frames / t_shot:>12,.0f} frames/s  "
+        f"peak RSS {int(rss_shot_kb) / 1e3:7.0f} MB"
+    )
     print(f"inspect peak RSS / capture size   {int(rss_inspect_kb) / 1e3 / size_mb:.2f} x")
     print(f"baseline peak RSS / capture size  {int(rss_shot_kb) / 1e3 / size_mb:.2f} x")
 

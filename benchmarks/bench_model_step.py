@@ -73,8 +73,13 @@ def platform_math():
     except ImportError:  # the code before issue 9: it already is the platform's math
         yield False
         return
-    platform = {"exp": np.exp, "matvec": np.matmul, "dot": np.matmul, "sum_last": lambda a: np.sum(a, axis=-1),
-                "total": lambda v: float(np.sum(v))}  # fmt: skip
+    platform = {
+        "exp": np.exp,
+        "matvec": np.matmul,
+        "dot": np.matmul,
+        "sum_last": lambda a: np.sum(a, axis=-1),
+        "total": lambda v: float(np.sum(v)),
+    }
     saved = {name: getattr(numerics, name) for name in platform}
     for name, fn in platform.items():
         setattr(numerics, name, fn)
@@ -113,9 +118,11 @@ def main() -> None:
         for kind in KINDS:
             mf = models[kind]
             z = mf.normalizer.transform(rows)
-            for label, fn in ((f"model step, {kind}", lambda: time_model(mf, z)),
-                              (f"block, {kind}", lambda: time_blocks(mf, blocks, False)),
-                              (f"block adapting, {kind}", lambda: time_blocks(mf, blocks, True))):  # fmt: skip
+            for label, fn in (
+                (f"model step, {kind}", lambda: time_model(mf, z)),
+                (f"block, {kind}", lambda: time_blocks(mf, blocks, False)),
+                (f"block adapting, {kind}", lambda: time_blocks(mf, blocks, True)),
+            ):
                 if kind == "pso-svr" and "adapting" in label:
                     continue  # a kernel row of every support vector: not a readout to adapt in a daemon
                 shipped = fn()

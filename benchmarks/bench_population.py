@@ -79,7 +79,12 @@ from fog_driver.sim.instrument import Simulator  # noqa: E402
 from fog_driver.sim.population import draw_instrument  # noqa: E402
 from fog_driver.sim.profiles import BUILTIN_PROFILES, load_profile  # noqa: E402
 
-SEED_SETS = {"dev": 0, "eval": 10_000, "eval2": 20_000, "eval3": 30_000}  #: first instrument seed of each set (THE RULE above)
+SEED_SETS = {
+    "dev": 0,
+    "eval": 10_000,
+    "eval2": 20_000,
+    "eval3": 30_000,
+}  #: first instrument seed of each set (THE RULE above)
 #: Model kinds; "auto" is what ``fog-driver fit`` fits without --kind (the wesn, or the polynomial when the
 #: wesn does worse on the fit's own validation split).
 KINDS = ("polynomial", "wesn", "auto", "paper", "pso-svr")
@@ -117,8 +122,9 @@ def score_instrument(seed: int, kinds: tuple[str, ...], rate_hz: int, workdir: P
     for kind in kinds:
         t0 = time.perf_counter()
         if kind == "auto":  # what `fog-driver fit` does without --kind: the wesn, or the polynomial it falls back to
-            models[kind], _ = fit_model_file([fit_run], kind="wesn", config=FitConfig(), fall_back=True,
-                                             accept_weak=True)  # fmt: skip
+            models[kind], _ = fit_model_file(
+                [fit_run], kind="wesn", config=FitConfig(), fall_back=True, accept_weak=True
+            )
             result["fell_back"] = models[kind].kind == "polynomial"
         else:  # a fit that fails its checks is scored all the same (and counted: ``weak``)
             models[kind], _ = fit_model_file([fit_run], kind=kind, config=FitConfig(), accept_weak=True)
@@ -132,7 +138,9 @@ def score_instrument(seed: int, kinds: tuple[str, ...], rate_hz: int, workdir: P
         noise = truth_noise_dph(truth)
         for kind in (*kinds, *adapting):
             if kind.endswith("+adapt"):  # the table is still between moves: adapt against a known rate of 0
-                series = per_second(path, models[kind.removesuffix("+adapt")], adapt=AdaptConfig(), reference_rate_dph=0.0)
+                series = per_second(
+                    path, models[kind.removesuffix("+adapt")], adapt=AdaptConfig(), reference_rate_dph=0.0
+                )
             else:
                 series = per_second(path, models[kind])
             n = min(len(series.drift_dph), len(truth["drift_dph"]))
@@ -165,38 +173,56 @@ def summarize(results: list[dict], kinds: tuple[str, ...]) -> None:
     def excess(r: float, f: float) -> float:
         return float(np.sqrt(max(r * r - f * f, 0.0)))
 
-    header = (f"{'kind':12s} {'reduction vs raw':>22s} {'excess / polynomial':>22s} {'1-min RMS / floor':>22s} "
-              f"{'fit s':>7s} {'step us':>8s}")  # fmt: skip
+    header = (
+        f"{'kind':12s} {'reduction vs raw':>22s} {'excess / polynomial':>22s} {'1-min RMS / floor':>22s} "
+        f"{'fit s':>7s} {'step us':>8s}"
+    )
     print(header)
-    print(f"{'':12s} {'median':>11s}{'worst':>11s} {'median':>11s}{'worst':>11s} {'median':>11s}{'worst':>11s} "
-          f"{'mean':>7s} {'median':>8s}")  # fmt: skip
+    print(
+        f"{'':12s} {'median':>11s}{'worst':>11s} {'median':>11s}{'worst':>11s} {'median':>11s}{'worst':>11s} "
+        f"{'mean':>7s} {'median':>8s}"
+    )
     for kind in kinds:
         red = np.array([1 - x["r"][kind] / x["r"]["raw"] for x in results])
         ratio_floor = np.array([x["r"][kind] / x["r"]["floor"] for x in results])
         if "polynomial" in kinds:
-            ex = np.array([excess(x["r"][kind], x["r"]["floor"]) / max(excess(x["r"]["polynomial"], x["r"]["floor"]), 1e-12)
-                           for x in results])  # fmt: skip
+            ex = np.array(
+                [
+                    excess(x["r"][kind], x["r"]["floor"]) / max(excess(x["r"]["polynomial"], x["r"]["floor"]), 1e-12)
+                    for x in results
+                ]
+            )
             ex_text = f"{np.median(ex):10.2f}x{ex.max():10.2f}x"
         else:
             ex_text = f"{'-':>11s}{'-':>11s}"
         fit = np.mean([x["fit_s"][kind] for x in results])
         step = np.median([x["step_us"][kind] for x in results])
-        print(f"{kind:12s} {100 * np.median(red):10.1f}%{100 * red.min():10.1f}% {ex_text} "
-              f"{np.median(ratio_floor):10.2f}x{ratio_floor.max():10.2f}x {fit:7.1f} {step:8.1f}")  # fmt: skip
+        print(
+            f"{kind:12s} {100 * np.median(red):10.1f}%{100 * red.min():10.1f}% {ex_text} "
+            f"{np.median(ratio_floor):10.2f}x{ratio_floor.max():10.2f}x {fit:7.1f} {step:8.1f}"
+        )
     weak = {kind: sum(bool(x.get("weak", {}).get(kind)) for x in results) for kind in kinds}
     if any(weak.values()):
-        print("fits that failed the fit checks (scored all the same): "
-              + ", ".join(f"{kind} {n} of {len(results)}" for kind, n in weak.items() if n))  # fmt: skip
+        print(
+            "fits that failed the fit checks (scored all the same): "
+            + ", ".join(f"{kind} {n} of {len(results)}" for kind, n in weak.items() if n)
+        )
     if "auto" in kinds:
         fell = [x["seed"] for x in results if x.get("fell_back")]
-        print(f"auto fell back to the polynomial on {len(fell)} of {len(results)} instruments{': ' if fell else ''}"
-              + ", ".join(map(str, fell)))
+        print(
+            f"auto fell back to the polynomial on {len(fell)} of {len(results)} instruments{': ' if fell else ''}"
+            + ", ".join(map(str, fell))
+        )
     raw = np.array([x["r"]["raw"] for x in results])
     floor = np.array([x["r"]["floor"] for x in results])
-    print(f"\nraw 1-min drift RMS: median {np.median(raw):.4f}, range {raw.min():.4f}..{raw.max():.4f} deg/h; "
-          f"noise floor median {np.median(floor):.4f} deg/h")
-    print("targets: excess / polynomial median <= 0.5x, worst <= 1x; 1-min RMS / floor median <= 1.3x, worst <= 2x; "
-          "model step <= 50 us")
+    print(
+        f"\nraw 1-min drift RMS: median {np.median(raw):.4f}, range {raw.min():.4f}..{raw.max():.4f} deg/h; "
+        f"noise floor median {np.median(floor):.4f} deg/h"
+    )
+    print(
+        "targets: excess / polynomial median <= 0.5x, worst <= 1x; 1-min RMS / floor median <= 1.3x, worst <= 2x; "
+        "model step <= 50 us"
+    )
 
 
 def summarize_adapting(results: list[dict]) -> None:
@@ -206,8 +232,10 @@ def summarize_adapting(results: list[dict]) -> None:
         frozen = name.removesuffix("+adapt")
         ratio = np.array([x["r"][name] / x["r"][frozen] for x in results])
         worse = [x["seed"] for x, v in zip(results, ratio) if v > 1.02]
-        print(f"  {frozen:12s} median {np.median(ratio):.2f}x, best {ratio.min():.2f}x, worst {ratio.max():.2f}x; "
-              f"worse by over 2 % on {len(worse)} of {len(results)}")  # fmt: skip
+        print(
+            f"  {frozen:12s} median {np.median(ratio):.2f}x, best {ratio.min():.2f}x, worst {ratio.max():.2f}x; "
+            f"worse by over 2 % on {len(worse)} of {len(results)}"
+        )
 
 
 def main() -> None:
@@ -215,14 +243,21 @@ def main() -> None:
     parser.add_argument("--set", choices=SEED_SETS, default="eval2", help="which instruments (see THE RULE)")
     parser.add_argument("--instruments", type=int, default=24, help="how many instruments of the set")
     parser.add_argument("--first", type=int, default=0, help="start this many instruments into the set")
-    parser.add_argument("--kinds", default=",".join(KINDS), help=f"comma-separated model kinds (default {','.join(KINDS)})")
-    parser.add_argument("--rate-hz", type=int, default=10, help="frame rate of the simulated runs (the model runs at 1 Hz)")
+    parser.add_argument(
+        "--kinds", default=",".join(KINDS), help=f"comma-separated model kinds (default {','.join(KINDS)})"
+    )
+    parser.add_argument(
+        "--rate-hz", type=int, default=10, help="frame rate of the simulated runs (the model runs at 1 Hz)"
+    )
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--workdir", type=Path, help="cache the simulated captures here (default: a temporary dir)")
     parser.add_argument("--per-instrument", action="store_true", help="print each instrument's figures")
-    parser.add_argument("--adapt", action="store_true",
-                        help="also compensate the scoring runs adapting online against a known rate of 0 (the table "
-                             "still between moves, the gyro's static detector gating)")  # fmt: skip
+    parser.add_argument(
+        "--adapt",
+        action="store_true",
+        help="also compensate the scoring runs adapting online against a known rate of 0 (the table "
+        "still between moves, the gyro's static detector gating)",
+    )
     args = parser.parse_args()
     kinds = tuple(k.strip() for k in args.kinds.split(",") if k.strip())
     seeds = [SEED_SETS[args.set] + args.first + i for i in range(args.instruments)]
@@ -236,10 +271,15 @@ def main() -> None:
                 results.append(f.result())
                 x = results[-1]
                 if args.per_instrument:
-                    print(f"instrument {x['seed']:5d}: raw {x['r']['raw']:.4f} floor {x['r']['floor']:.4f} "
-                          + " ".join(f"{k} {x['r'][k]:.4f}" for k in kinds), flush=True)
-        print(f"\n{args.set} set: {len(seeds)} instruments (seeds {seeds[0]}..{seeds[-1]}), fitted on {FIT_PROFILE}, "
-              f"scored on {' and '.join(SCORE_PROFILES)} at {args.rate_hz} Hz  [{time.perf_counter() - t0:.0f} s]\n")
+                    print(
+                        f"instrument {x['seed']:5d}: raw {x['r']['raw']:.4f} floor {x['r']['floor']:.4f} "
+                        + " ".join(f"{k} {x['r'][k]:.4f}" for k in kinds),
+                        flush=True,
+                    )
+        print(
+            f"\n{args.set} set: {len(seeds)} instruments (seeds {seeds[0]}..{seeds[-1]}), fitted on {FIT_PROFILE}, "
+            f"scored on {' and '.join(SCORE_PROFILES)} at {args.rate_hz} Hz  [{time.perf_counter() - t0:.0f} s]\n"
+        )
         summarize(results, kinds)
         if args.adapt:
             summarize_adapting(results)

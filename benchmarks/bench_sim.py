@@ -116,7 +116,10 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         tmp_path = Path(tmp)
         if not args.skip_generate:
-            for rate, duration_s, label in ((100, None, "paper at 100 Hz, whole"), (1000, 3600.0, "paper at 1 kHz, 1st hour")):
+            for rate, duration_s, label in (
+                (100, None, "paper at 100 Hz, whole"),
+                (1000, 3600.0, "paper at 1 kHz, 1st hour"),
+            ):
                 sim = Simulator(paper, rate_hz=rate, seed=0)
                 t0 = time.perf_counter()
                 result = simulate_to_file(sim, tmp_path / f"paper-{rate}.bin", duration_s=duration_s)

@@ -69,7 +69,8 @@ def drift_per_second(model_file, samples: SampleBlock, frame_period_s: float, n:
     second = np.floor(out.t_s - out.t_s[0] + 1e-9).astype(np.int64)
     keep = second < n
     return np.bincount(second[keep], weights=out.drift_dph[keep], minlength=n) / np.maximum(
-        np.bincount(second[keep], minlength=n), 1)  # fmt: skip
+        np.bincount(second[keep], minlength=n), 1
+    )
 
 
 def fault_start(truth: dict[str, np.ndarray], n: int) -> int:
@@ -83,8 +84,8 @@ def fault_start(truth: dict[str, np.ndarray], n: int) -> int:
 
 def worst_angle(drift_true: np.ndarray, estimate: np.ndarray, start: int) -> float:
     r = drift_true - estimate
-    r = r - r[start - ZERO_S:start].mean()
-    return float(np.abs(np.cumsum(r[start:start + FAULT_S + AFTER_S])).max())
+    r = r - r[start - ZERO_S : start].mean()
+    return float(np.abs(np.cumsum(r[start : start + FAULT_S + AFTER_S])).max())
 
 
 def faulted_column(column: np.ndarray, window: np.ndarray, fault: str) -> np.ndarray:
@@ -92,13 +93,19 @@ def faulted_column(column: np.ndarray, window: np.ndarray, fault: str) -> np.nda
     return np.where(window, np.nan if fault == "invalid" else column[np.argmax(window)], column)
 
 
-def score_instrument(seed: int, kinds: tuple[str, ...], rate_hz: int, workdir: Path, offsets_only: bool = False,
-                     fault: str = "invalid") -> dict:  # fmt: skip
+def score_instrument(
+    seed: int, kinds: tuple[str, ...], rate_hz: int, workdir: Path, offsets_only: bool = False, fault: str = "invalid"
+) -> dict:
     fit_run = capture(workdir, seed, FIT_PROFILE, 10 * seed + 1, rate_hz)
     models = {}
     for kind in kinds:
-        models[kind], _ = fit_model_file([fit_run], kind="wesn" if kind == "auto" else kind, config=FitConfig(),
-                                         fall_back=kind == "auto", accept_weak=True)  # fmt: skip
+        models[kind], _ = fit_model_file(
+            [fit_run],
+            kind="wesn" if kind == "auto" else kind,
+            config=FitConfig(),
+            fall_back=kind == "auto",
+            accept_weak=True,
+        )
         if offsets_only:  # the baseline: a partner plus its last offset, no fitted coupling
             models[kind] = dataclasses.replace(models[kind], substitution=Substitution.offsets())
     cases = []
@@ -117,21 +124,39 @@ def score_instrument(seed: int, kinds: tuple[str, ...], rate_hz: int, workdir: P
             clean = drift_per_second(model_file, samples, period, n)
             worst_clean = worst_angle(drift, clean, start)
             for sensor in SENSORS:
-                faulted = dataclasses.replace(samples, **{sensor: faulted_column(getattr(samples, sensor), window, fault)})
+                faulted = dataclasses.replace(
+                    samples, **{sensor: faulted_column(getattr(samples, sensor), window, fault)}
+                )
                 estimate = drift_per_second(model_file, faulted, period, n)
-                cases.append({"kind": kind, "profile": profile, "sensor": sensor, "start_s": start,
-                              "clean": worst_clean, "fault": worst_angle(drift, estimate, start),
-                              "uncompensated": uncompensated})  # fmt: skip
+                cases.append(
+                    {
+                        "kind": kind,
+                        "profile": profile,
+                        "sensor": sensor,
+                        "start_s": start,
+                        "clean": worst_clean,
+                        "fault": worst_angle(drift, estimate, start),
+                        "uncompensated": uncompensated,
+                    }
+                )
             glitched = dataclasses.replace(samples, t_top_c=np.where(glitch, GLITCH_C, samples.t_top_c))
             estimate = drift_per_second(model_file, glitched, period, n)
-            cases.append({"kind": kind, "profile": profile, "sensor": "glitch",
-                          "glitch_dph": float(np.abs(estimate - clean).max())})  # fmt: skip
+            cases.append(
+                {
+                    "kind": kind,
+                    "profile": profile,
+                    "sensor": "glitch",
+                    "glitch_dph": float(np.abs(estimate - clean).max()),
+                }
+            )
     return {"seed": seed, "cases": cases}
 
 
 def summarize(results: list[dict], kinds: tuple[str, ...], per_instrument: bool) -> None:
-    print(f"{'kind':10s} {'sensor':12s} {'<= clean+25%':>13s} {'<= uncomp':>10s} {'worst excess':>13s} "
-          f"{'median fault/clean':>19s}")  # fmt: skip
+    print(
+        f"{'kind':10s} {'sensor':12s} {'<= clean+25%':>13s} {'<= uncomp':>10s} {'worst excess':>13s} "
+        f"{'median fault/clean':>19s}"
+    )
     for kind in kinds:
         for sensor in SENSORS:
             rows = [c for x in results for c in x["cases"] if c["kind"] == kind and c["sensor"] == sensor]
@@ -139,20 +164,30 @@ def summarize(results: list[dict], kinds: tuple[str, ...], per_instrument: bool)
             better = sum(c["fault"] <= c["uncompensated"] for c in rows)
             excess = max((c["fault"] - c["clean"]) / c["uncompensated"] for c in rows)
             ratio = np.median([c["fault"] / max(c["clean"], 1e-9) for c in rows])
-            print(f"{kind:10s} {sensor:12s} {meet:>6d} of {len(rows):<4d} {better:>4d} of {len(rows):<3d} "
-                  f"{100 * excess:11.1f} % {ratio:18.2f}x")  # fmt: skip
-        glitch = max(c["glitch_dph"] for x in results for c in x["cases"] if c["kind"] == kind and c["sensor"] == "glitch")
-        print(f"{kind:10s} glitch: T1 at {GLITCH_C} degC for {GLITCH_S} s moves the estimate by at most "
-              f"{glitch:.4f} deg/h")  # fmt: skip
+            print(
+                f"{kind:10s} {sensor:12s} {meet:>6d} of {len(rows):<4d} {better:>4d} of {len(rows):<3d} "
+                f"{100 * excess:11.1f} % {ratio:18.2f}x"
+            )
+        glitch = max(
+            c["glitch_dph"] for x in results for c in x["cases"] if c["kind"] == kind and c["sensor"] == "glitch"
+        )
+        print(
+            f"{kind:10s} glitch: T1 at {GLITCH_C} degC for {GLITCH_S} s moves the estimate by at most "
+            f"{glitch:.4f} deg/h"
+        )
     if per_instrument:
         for x in results:
             for c in x["cases"]:
                 if c["sensor"] != "glitch":
-                    print(f"  i{x['seed']} {c['kind']} {c['profile']:12s} {c['sensor']:12s} start {c['start_s']:5d} s  "
-                          f"worst angle error clean {c['clean']:7.1f}\"  fault {c['fault']:7.1f}\"  "
-                          f"uncompensated {c['uncompensated']:7.1f}\"")  # fmt: skip
-    print("target: worst_fault <= worst_clean + 25 % of worst_uncompensated, and never above worst_uncompensated "
-          "(worst |angle error| over the fault and 30 min after)")
+                    print(
+                        f"  i{x['seed']} {c['kind']} {c['profile']:12s} {c['sensor']:12s} start {c['start_s']:5d} s  "
+                        f'worst angle error clean {c["clean"]:7.1f}"  fault {c["fault"]:7.1f}"  '
+                        f'uncompensated {c["uncompensated"]:7.1f}"'
+                    )
+    print(
+        "target: worst_fault <= worst_clean + 25 % of worst_uncompensated, and never above worst_uncompensated "
+        "(worst |angle error| over the fault and 30 min after)"
+    )
 
 
 def main() -> None:
@@ -165,10 +200,17 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--workdir", type=Path)
     parser.add_argument("--per-instrument", action="store_true")
-    parser.add_argument("--offsets-only", action="store_true",
-                        help="substitute a partner plus its last offset (no fitted coupling): the baseline")
-    parser.add_argument("--fault", choices=("invalid", "stuck"), default="invalid",
-                        help="invalid readings (NaN), or a reading stuck at its value when the fault begins")
+    parser.add_argument(
+        "--offsets-only",
+        action="store_true",
+        help="substitute a partner plus its last offset (no fitted coupling): the baseline",
+    )
+    parser.add_argument(
+        "--fault",
+        choices=("invalid", "stuck"),
+        default="invalid",
+        help="invalid readings (NaN), or a reading stuck at its value when the fault begins",
+    )
     args = parser.parse_args()
     kinds = tuple(args.kinds.split(","))
     seeds = [SEED_SETS[args.set] + args.first + i for i in range(args.instruments)]
@@ -176,11 +218,21 @@ def main() -> None:
         workdir = args.workdir or Path(tmp)
         workdir.mkdir(parents=True, exist_ok=True)
         with ProcessPoolExecutor(args.workers) as pool:
-            results = list(pool.map(score_instrument, seeds, [kinds] * len(seeds), [args.rate_hz] * len(seeds),
-                                    [workdir] * len(seeds), [args.offsets_only] * len(seeds),
-                                    [args.fault] * len(seeds)))  # fmt: skip
-    print(f"{args.set}: instruments {seeds[0]}..{seeds[-1]}, {args.rate_hz} Hz, one thermometer {args.fault} for "
-          f"{FAULT_S // 60} min from the first ramp\n")  # fmt: skip
+            results = list(
+                pool.map(
+                    score_instrument,
+                    seeds,
+                    [kinds] * len(seeds),
+                    [args.rate_hz] * len(seeds),
+                    [workdir] * len(seeds),
+                    [args.offsets_only] * len(seeds),
+                    [args.fault] * len(seeds),
+                )
+            )
+    print(
+        f"{args.set}: instruments {seeds[0]}..{seeds[-1]}, {args.rate_hz} Hz, one thermometer {args.fault} for "
+        f"{FAULT_S // 60} min from the first ramp\n"
+    )
     summarize(results, kinds, args.per_instrument)
 
 

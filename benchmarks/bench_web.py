@@ -167,15 +167,28 @@ def web_companions(n_browsers: int, scrape_every_s: float, mode: str):
         readers = []
         if mode == "ws":  # the pages as WebSocket readers: what the daemon does for a browser on another desk
             host_port = url.split("//", 1)[1].rstrip("/")
-            readers = [subprocess.Popen([sys.executable, "-c", WS_READER, f"ws://{host_port}/ws"], stdout=subprocess.PIPE,
-                                        stdin=subprocess.PIPE, text=True, cwd=ROOT) for _ in range(n_browsers)]  # fmt: skip
+            readers = [
+                subprocess.Popen(
+                    [sys.executable, "-c", WS_READER, f"ws://{host_port}/ws"],
+                    stdout=subprocess.PIPE,
+                    stdin=subprocess.PIPE,
+                    text=True,
+                    cwd=ROOT,
+                )
+                for _ in range(n_browsers)
+            ]
             for reader in readers:
                 if reader.stdout.readline().strip() != "ready":
                     sys.exit("a WebSocket reader did not connect")
         elif n_browsers:
-            browsers = subprocess.Popen([sys.executable, "-c", BROWSERS, chromium(), url, str(n_browsers)],
-                                        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=ROOT,
-                                        preexec_fn=lambda: os.nice(NICE))  # fmt: skip
+            browsers = subprocess.Popen(
+                [sys.executable, "-c", BROWSERS, chromium(), url, str(n_browsers)],
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                text=True,
+                cwd=ROOT,
+                preexec_fn=lambda: os.nice(NICE),
+            )
             if browsers.stdout.readline().strip() != "ready":
                 browsers.kill()
                 sys.exit("the browsers did not open the page")
@@ -197,9 +210,14 @@ def web_companions(n_browsers: int, scrape_every_s: float, mode: str):
                 browsers_cpu = 100 * (tree_cpu_s(browsers.pid) - started[1]) / (time.monotonic() - started[0])
                 out, _ = browsers.communicate("", timeout=60)
                 pages = json.loads(out.strip().splitlines()[-1]) if out.strip() else {**pages, "errors": ["no output"]}
-            return {"pages": pages, "scrapes_ms": scraper.times_ms, "scrape_failures": scraper.failures,
-                    "scrape_error": scraper.last_error, "browsers_cpu_pct": browsers_cpu,
-                    "scrape_bytes": scraper.bytes}  # fmt: skip
+            return {
+                "pages": pages,
+                "scrapes_ms": scraper.times_ms,
+                "scrape_failures": scraper.failures,
+                "scrape_error": scraper.last_error,
+                "browsers_cpu_pct": browsers_cpu,
+                "scrape_bytes": scraper.bytes,
+            }
 
         return stop
 
@@ -219,18 +237,31 @@ def main() -> None:
         args.seconds = 5.0
     if args.browsers:
         chromium()
-    print(f"web view: {os.cpu_count()} cores, Python {platform.python_version()}, {args.rate_hz} Hz for "
-          f"{args.seconds:g} s per run, two NDJSON clients, writer tick {args.tick_ms:g} ms, CPU after a "
-          f"{args.warmup_s:g} s warm-up{' (--quick)' if args.quick else ''}", flush=True)  # fmt: skip
+    print(
+        f"web view: {os.cpu_count()} cores, Python {platform.python_version()}, {args.rate_hz} Hz for "
+        f"{args.seconds:g} s per run, two NDJSON clients, writer tick {args.tick_ms:g} ms, CPU after a "
+        f"{args.warmup_s:g} s warm-up{' (--quick)' if args.quick else ''}",
+        flush=True,
+    )
     wall0 = time.monotonic()
     tick_s = args.tick_ms / 1e3
     runs = [("no web view", live_run("baseline", args.rate_hz, args.seconds, tick_s, args.warmup_s, 2))]
-    for mode, title in (("ws", f"{args.browsers} pages elsewhere (WebSocket readers)"),
-                        ("chromium", f"{args.browsers} Chromium here, nice {NICE}")):  # fmt: skip
+    for mode, title in (
+        ("ws", f"{args.browsers} pages elsewhere (WebSocket readers)"),
+        ("chromium", f"{args.browsers} Chromium here, nice {NICE}"),
+    ):
         if mode == "chromium" and not args.browsers:
             continue
-        r = live_run("web", args.rate_hz, args.seconds, tick_s, args.warmup_s, 2, daemon_args=("--http", "127.0.0.1:0"),
-                     companions=web_companions(args.browsers, args.scrape_every_s, mode))  # fmt: skip
+        r = live_run(
+            "web",
+            args.rate_hz,
+            args.seconds,
+            tick_s,
+            args.warmup_s,
+            2,
+            daemon_args=("--http", "127.0.0.1:0"),
+            companions=web_companions(args.browsers, args.scrape_every_s, mode),
+        )
         runs.append((f"{title}, /metrics every {args.scrape_every_s:g} s", r))
     table = Table()
     failed = False
@@ -238,35 +269,54 @@ def main() -> None:
     for title, r in runs:
         for i, c in enumerate(r.clients, 1):
             failed |= c.lost > 0
-            table.add(title if i == 1 else "", f"NDJSON client {i}: lost / p50 / p99 / max latency, ms",
-                      f"{c.lost} / {c.pct(50):.2f} / {c.pct(99):.2f} / {c.lat_ms.max() if c.lat_ms.size else float('nan'):.2f}",
-                      "0 lost, p99 <= 5", ok(c.lost == 0 and c.pct(99) <= 5.0))  # fmt: skip
-        table.add("", "daemon CPU, % of one core (x the run without)", f"{r.cpu_pct:.1f} ({r.cpu_pct / base_cpu:.2f}x)",
-                  "<= 25", ok(r.cpu_pct <= 25.0))  # fmt: skip
+            table.add(
+                title if i == 1 else "",
+                f"NDJSON client {i}: lost / p50 / p99 / max latency, ms",
+                f"{c.lost} / {c.pct(50):.2f} / {c.pct(99):.2f} / {c.lat_ms.max() if c.lat_ms.size else float('nan'):.2f}",
+                "0 lost, p99 <= 5",
+                ok(c.lost == 0 and c.pct(99) <= 5.0),
+            )
+        table.add(
+            "",
+            "daemon CPU, % of one core (x the run without)",
+            f"{r.cpu_pct:.1f} ({r.cpu_pct / base_cpu:.2f}x)",
+            "<= 25",
+            ok(r.cpu_pct <= 25.0),
+        )
         seen = r.companions
         if not seen:
             continue
         pages = seen["pages"]
         scrapes = np.array(seen["scrapes_ms"])
         failed |= bool(pages["errors"]) or seen["scrape_failures"] > 0
-        table.add("", "page updates received, per page", " / ".join(map(str, pages["updates"])),
-                  f"~{2 * args.seconds:g} each (2 a second)")  # fmt: skip
+        table.add(
+            "",
+            "page updates received, per page",
+            " / ".join(map(str, pages["updates"])),
+            f"~{2 * args.seconds:g} each (2 a second)",
+        )
         if pages.get("points"):
             table.add("", "drift plot points, per page", " / ".join(map(str, pages["points"])))
         if seen["browsers_cpu_pct"] == seen["browsers_cpu_pct"]:
             table.add("", "the browsers' CPU (all their processes), % of one core", f"{seen['browsers_cpu_pct']:.1f}")
-        table.add("", "scrapes ok / failed; p50 / max time, ms",
-                  f"{scrapes.size} / {seen['scrape_failures']}; "
-                  f"{np.percentile(scrapes, 50) if scrapes.size else float('nan'):.1f} / "
-                  f"{scrapes.max() if scrapes.size else float('nan'):.1f}", "0 failed",
-                  ok(seen["scrape_failures"] == 0))  # fmt: skip
+        table.add(
+            "",
+            "scrapes ok / failed; p50 / max time, ms",
+            f"{scrapes.size} / {seen['scrape_failures']}; "
+            f"{np.percentile(scrapes, 50) if scrapes.size else float('nan'):.1f} / "
+            f"{scrapes.max() if scrapes.size else float('nan'):.1f}",
+            "0 failed",
+            ok(seen["scrape_failures"] == 0),
+        )
         if seen["scrape_error"]:
             table.add("", "last scrape error", seen["scrape_error"][:60])
         if pages["errors"]:
             table.add("", "page errors", "; ".join(pages["errors"])[:60])
     table.print()
-    print(f"one scrape: {runs[-1][1].companions.get('scrape_bytes', 0):,} bytes; total wall time "
-          f"{time.monotonic() - wall0:.0f} s")  # fmt: skip
+    print(
+        f"one scrape: {runs[-1][1].companions.get('scrape_bytes', 0):,} bytes; total wall time "
+        f"{time.monotonic() - wall0:.0f} s"
+    )
     if failed:
         sys.exit("a sample was lost, a page failed or a scrape failed")
 

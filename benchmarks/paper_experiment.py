@@ -93,8 +93,11 @@ def paper_figures() -> dict[str, float]:
     raw = [v[0] for v in PAPER_TABLE_1.values()]
     svm = [v[2] for v in PAPER_TABLE_1.values()]
     ours = [v[4] for v in PAPER_TABLE_1.values()]
-    return {"overall": mean_abs_ratio_improvement(ours, raw), "over PSO-SVM": mean_abs_ratio_improvement(ours, svm),
-            "PSO-SVM overall": mean_abs_ratio_improvement(svm, raw)}  # fmt: skip
+    return {
+        "overall": mean_abs_ratio_improvement(ours, raw),
+        "over PSO-SVM": mean_abs_ratio_improvement(ours, svm),
+        "PSO-SVM overall": mean_abs_ratio_improvement(svm, raw),
+    }
 
 
 def simulate(workdir: Path, profile: str, seed: int, rate_hz: int) -> Path:
@@ -128,8 +131,9 @@ def svr_kinds(no_svr: bool) -> list[str]:
     return [*kinds, "wesn"]
 
 
-def score(fit_capture: Path, val_capture: Path, kinds: list[str], workdir: Path | None = None,
-          verbose: bool = False) -> list[Row]:  # fmt: skip
+def score(
+    fit_capture: Path, val_capture: Path, kinds: list[str], workdir: Path | None = None, verbose: bool = False
+) -> list[Row]:
     """Fit every kind on ``fit_capture``, compensate ``val_capture`` with each, score every move."""
     models = {}
     for kind in kinds:
@@ -141,8 +145,13 @@ def score(fit_capture: Path, val_capture: Path, kinds: list[str], workdir: Path 
         if verbose:
             print(f"fit {kind}: {time.perf_counter() - t0:.1f} s")
     t0 = time.perf_counter()
-    rows = positioning_table(val_capture, models, load_stops(val_capture), plateau_temps_c=PAPER_VALIDATION_TEMPS_C,
-                             bias_window_s=BIAS_WINDOW_S)  # fmt: skip
+    rows = positioning_table(
+        val_capture,
+        models,
+        load_stops(val_capture),
+        plateau_temps_c=PAPER_VALIDATION_TEMPS_C,
+        bias_window_s=BIAS_WINDOW_S,
+    )
     if verbose:
         print(f"compensate and score the validation run ({len(models)} models): {time.perf_counter() - t0:.1f} s")
     return rows
@@ -169,27 +178,36 @@ def population(args: argparse.Namespace, workdir: Path) -> None:
     seeds = [SEED_SETS[args.set] + args.first + i for i in range(args.instruments)]
     t0 = time.perf_counter()
     with ProcessPoolExecutor(max_workers=args.workers) as pool:
-        results = list(pool.map(population_instrument, seeds, [kinds] * len(seeds), [args.rate_hz] * len(seeds),
-                                [workdir] * len(seeds)))  # fmt: skip
+        results = list(
+            pool.map(
+                population_instrument, seeds, [kinds] * len(seeds), [args.rate_hz] * len(seeds), [workdir] * len(seeds)
+            )
+        )
     names = [k for k in results[0] if k != "seed"]
     if args.per_instrument:
         print("instrument  " + "  ".join(f"{n:>24s}" for n in names))
         for r in results:
             print(f"{r['seed']:10d}  " + "  ".join(f"{r[n]:23.1f}%" for n in names))
         print()
-    print(f"{args.set} set: {len(seeds)} instruments (seeds {seeds[0]}..{seeds[-1]}), fitted on paper, scored on "
-          f"paper-validation (10 x 36 deg moves on 11 plateaus) at {args.rate_hz} Hz  [{time.perf_counter() - t0:.0f} s]")
+    print(
+        f"{args.set} set: {len(seeds)} instruments (seeds {seeds[0]}..{seeds[-1]}), fitted on paper, scored on "
+        f"paper-validation (10 x 36 deg moves on 11 plateaus) at {args.rate_hz} Hz  [{time.perf_counter() - t0:.0f} s]"
+    )
     print()
     print(f"{'improvement, %':24s} {'median':>8s} {'quartiles':>15s} {'range':>17s}  positive")
     for n in names:
         v = np.array([r[n] for r in results])
         q1, q3 = np.percentile(v, [25, 75])
-        print(f"{n:24s} {np.median(v):8.1f} {q1:7.1f}..{q3:<7.1f} {v.min():8.1f}..{v.max():<8.1f}  "
-              f"{int((v > 0).sum())} of {len(v)}")
+        print(
+            f"{n:24s} {np.median(v):8.1f} {q1:7.1f}..{q3:<7.1f} {v.min():8.1f}..{v.max():<8.1f}  "
+            f"{int((v > 0).sum())} of {len(v)}"
+        )
     paper = paper_figures()
     print()
-    print(f"paper (printed, one instrument): overall {PAPER_PRINTED['overall']} %, over PSO-SVM "
-          f"{PAPER_PRINTED['over PSO-SVM']} %; recomputed from its Table 1: PSO-SVM overall {paper['PSO-SVM overall']:.1f} %")
+    print(
+        f"paper (printed, one instrument): overall {PAPER_PRINTED['overall']} %, over PSO-SVM "
+        f"{PAPER_PRINTED['over PSO-SVM']} %; recomputed from its Table 1: PSO-SVM overall {paper['PSO-SVM overall']:.1f} %"
+    )
 
 
 def main() -> None:
@@ -231,9 +249,11 @@ def main() -> None:
         print(f"wesn over polynomial: {over(rows, 'wesn', 'polynomial'):.1f} %")
         paper = paper_figures()
         print()
-        print(f"paper (printed): overall {PAPER_PRINTED['overall']} %, over PSO-SVM {PAPER_PRINTED['over PSO-SVM']} %; "
-              f"recomputed from its Table 1: overall {paper['overall']:.1f} %, over PSO-SVM "
-              f"{paper['over PSO-SVM']:.1f} %, PSO-SVM overall {paper['PSO-SVM overall']:.1f} %")  # fmt: skip
+        print(
+            f"paper (printed): overall {PAPER_PRINTED['overall']} %, over PSO-SVM {PAPER_PRINTED['over PSO-SVM']} %; "
+            f"recomputed from its Table 1: overall {paper['overall']:.1f} %, over PSO-SVM "
+            f"{paper['over PSO-SVM']:.1f} %, PSO-SVM overall {paper['PSO-SVM overall']:.1f} %"
+        )
         print(f"total: {time.perf_counter() - t_all:.1f} s (target < 600 s)")
 
 

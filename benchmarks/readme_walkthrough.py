@@ -76,8 +76,15 @@ class Background:
     def __init__(self, command: str, cwd: Path, env: dict[str, str]) -> None:
         self.command = command
         self.master, slave = os.openpty()
-        self.proc = subprocess.Popen(["bash", "-c", f"exec {command}"], cwd=cwd, env=env, stdin=slave, stdout=slave,
-                                     stderr=slave, start_new_session=True)  # fmt: skip
+        self.proc = subprocess.Popen(
+            ["bash", "-c", f"exec {command}"],
+            cwd=cwd,
+            env=env,
+            stdin=slave,
+            stdout=slave,
+            stderr=slave,
+            start_new_session=True,
+        )
         os.close(slave)
         self.screen = ""
 
@@ -87,8 +94,10 @@ class Background:
         while text is None or text not in self.screen:
             left = deadline - time.monotonic()
             if left <= 0:
-                raise TimeoutError(f"{self.command!r}: {text!r} not on its terminal within {timeout_s} s; "
-                                   f"it showed: {self.screen[-2000:]!r}")  # fmt: skip
+                raise TimeoutError(
+                    f"{self.command!r}: {text!r} not on its terminal within {timeout_s} s; "
+                    f"it showed: {self.screen[-2000:]!r}"
+                )
             ready, _, _ = select.select([self.master], [], [], left)
             if not ready:
                 continue
@@ -99,8 +108,9 @@ class Background:
             if not data:
                 if text is None:
                     return
-                raise RuntimeError(f"{self.command!r} ended (exit {self.proc.wait()}) before showing {text!r}: "
-                                   f"{self.screen[-2000:]!r}")  # fmt: skip
+                raise RuntimeError(
+                    f"{self.command!r} ended (exit {self.proc.wait()}) before showing {text!r}: {self.screen[-2000:]!r}"
+                )
             self.screen += data.decode("utf-8", "replace")
 
     def stop(self, timeout_s: float) -> int:
@@ -134,5 +144,12 @@ def environment(cwd: Path, venv_bin: Path | None = None) -> dict[str, str]:
 
 def run_line(command: str, cwd: Path, env: dict[str, str], timeout_s: float) -> subprocess.CompletedProcess:
     """One foreground line, with bash, stdin closed (no terminal: what a script has)."""
-    return subprocess.run(["bash", "-euo", "pipefail", "-c", command], cwd=cwd, env=env, capture_output=True,
-                          text=True, stdin=subprocess.DEVNULL, timeout=timeout_s)  # fmt: skip
+    return subprocess.run(
+        ["bash", "-euo", "pipefail", "-c", command],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        stdin=subprocess.DEVNULL,
+        timeout=timeout_s,
+    )

@@ -36,14 +36,48 @@ def main() -> None:
     rate_hz = 100
     with tempfile.TemporaryDirectory(prefix="fog-shot-") as tmp:
         capture = Path(tmp) / "run.bin"
-        subprocess.run([sys.executable, "-m", "fog_driver", "simulate", "--profile", args.profile, "--rate-hz",
-                        str(rate_hz), "--seed", "3", "--duration", str(args.minutes * 60), "--out", str(capture)],
-                       check=True, cwd=ROOT, stdout=subprocess.DEVNULL)  # fmt: skip
+        subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "fog_driver",
+                "simulate",
+                "--profile",
+                args.profile,
+                "--rate-hz",
+                str(rate_hz),
+                "--seed",
+                "3",
+                "--duration",
+                str(args.minutes * 60),
+                "--out",
+                str(capture),
+            ],
+            check=True,
+            cwd=ROOT,
+            stdout=subprocess.DEVNULL,
+        )
         frames = int(args.minutes * 60 * rate_hz)
-        daemon = subprocess.Popen([sys.executable, "-m", "fog_driver", "run", "--port",
-                                   f"replay://{capture}?rate={rate_hz * args.speedup:g}", "--listen", "127.0.0.1:0",
-                                   "--http", "127.0.0.1:0", "--capture-dir", str(Path(tmp) / "captures")],
-                                  stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, cwd=ROOT)  # fmt: skip
+        daemon = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "fog_driver",
+                "run",
+                "--port",
+                f"replay://{capture}?rate={rate_hz * args.speedup:g}",
+                "--listen",
+                "127.0.0.1:0",
+                "--http",
+                "127.0.0.1:0",
+                "--capture-dir",
+                str(Path(tmp) / "captures"),
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL,
+            text=True,
+            cwd=ROOT,
+        )
         try:
             url = re.search(r"web view on (http://\S+/)", daemon.stdout.readline()).group(1)
             with sync_playwright() as p:

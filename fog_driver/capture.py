@@ -239,7 +239,10 @@ class CaptureSummary:
             (self.unknown_frames, ("unknown-type frame", "unknown-type frames")),
             (self.thermometer_faults, ("frame with a thermometer fault", "frames with a thermometer fault")),
             (self.identity_changes - 1 if self.identity_changes > 1 else 0, ("identity change", "identity changes")),
-            (self.identities_rejected, ("implausible IDENTITY frame (ignored)", "implausible IDENTITY frames (ignored)")),
+            (
+                self.identities_rejected,
+                ("implausible IDENTITY frame (ignored)", "implausible IDENTITY frames (ignored)"),
+            ),
         ]
         found = [f"{n:,} {one if n == 1 else many}" for n, (one, many) in checks if n]
         if self.identity_frames == 0:
@@ -455,4 +458,3 @@ def format_summary(s: CaptureSummary) -> str:
     problems = s.problems
     lines.append("verdict       " + ("clean" if not problems else "; ".join(problems)))
     return "\n".join(lines)
-

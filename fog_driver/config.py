@@ -154,8 +154,10 @@ class DriverConfig:
         if self.format != "auto":
             self.wire_settings(self.format)  # a format other than fog-v1 needs device.rate_hz, ...
         if self.device.setup and not self.format.startswith("kvh-"):
-            raise ValueError(f"device.setup: setup commands are sent to a KVH device (format kvh-a, kvh-b or kvh-c), "
-                             f"not with format {self.format}")  # fmt: skip
+            raise ValueError(
+                f"device.setup: setup commands are sent to a KVH device (format kvh-a, kvh-b or kvh-c), "
+                f"not with format {self.format}"
+            )
 
     def wire_settings(self, name: str | None = None):
         """``sources.WireSettings`` of the configured format (``name``: the one the bytes showed, for auto)."""
@@ -164,8 +166,15 @@ class DriverConfig:
         name = name or self.format
         d = self.device
         try:
-            return WireSettings(format=name, axis=self.axis, rate_hz=d.rate_hz, rot_format=d.rot_format,
-                                rot_units=d.rot_units, temp_units=d.temp_units, serial=d.serial)  # fmt: skip
+            return WireSettings(
+                format=name,
+                axis=self.axis,
+                rate_hz=d.rate_hz,
+                rot_format=d.rot_format,
+                rot_units=d.rot_units,
+                temp_units=d.temp_units,
+                serial=d.serial,
+            )
         except ValueError as exc:
             where = "" if str(exc).startswith(("format", "axis")) else "device."
             raise ValueError(f"{where}{exc}") from None

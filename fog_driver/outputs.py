@@ -32,8 +32,11 @@ def _kinds() -> tuple[tuple[tuple[str, str], ...], dict[str, str]]:
     from .sim.capture import TRUTH_HEADER
 
     text = ((TRUTH_HEADER, "a simulator truth file"), (",".join(ROW_COLUMNS), "a compensate CSV"))
-    tags = {PROVENANCE_FORMAT: "a capture's provenance sidecar (of {capture})", MODEL_FORMAT: "a fitted model",
-            ADAPT_STATE_FORMAT: "an adaptation state"}  # fmt: skip
+    tags = {
+        PROVENANCE_FORMAT: "a capture's provenance sidecar (of {capture})",
+        MODEL_FORMAT: "a fitted model",
+        ADAPT_STATE_FORMAT: "an adaptation state",
+    }
     return text, tags
 
 
@@ -116,8 +119,7 @@ def check_outputs(
             raise OutputFileError(f"{folder}: cannot list: {exc.strerror or exc}") from None
         if present:
             shown = ", ".join(present[:3]) + (", ..." if len(present) > 3 else "")
-            raise OutputFileError(f"{folder}: exists and is not empty ({shown}); refusing to overwrite "
-                                  f"(use --force)")  # fmt: skip
+            raise OutputFileError(f"{folder}: exists and is not empty ({shown}); refusing to overwrite (use --force)")
 
 
 def write_error(path: str | Path, what: str, exc: OSError) -> OutputFileError:

@@ -114,12 +114,25 @@ def record(
         from .transport.setup import make_on_open
 
         def on_setup(result) -> None:  # before its bytes are yielded: they start at the bytes written so far
-            events.append({"event": "device_setup", "utc": utc_now_iso(), "at_byte": captured[0],
-                           "bytes_not_decoded": len(result.raw), "replies": list(result.replies)})  # fmt: skip
+            events.append(
+                {
+                    "event": "device_setup",
+                    "utc": utc_now_iso(),
+                    "at_byte": captured[0],
+                    "bytes_not_decoded": len(result.raw),
+                    "replies": list(result.replies),
+                }
+            )
 
         on_open = make_on_open(setup, on_result=on_setup)
-    reader = PortReader(url, baudrate=baudrate, reconnect=reconnect, on_state=state_changed,
-                        first_open="wait" if wait else "fail", on_open=on_open)  # fmt: skip
+    reader = PortReader(
+        url,
+        baudrate=baudrate,
+        reconnect=reconnect,
+        on_state=state_changed,
+        first_open="wait" if wait else "fail",
+        on_open=on_open,
+    )
     chunks = reader.chunks(stop)
     timer = threading.Timer(duration_s, stop.set) if duration_s is not None else None
     if timer:
@@ -136,8 +149,7 @@ def record(
         if timer:
             timer.cancel()
         why = "never opened" if not reader.opens else "sent no bytes"
-        raise DeviceError(f"nothing recorded: {url} {why} in {time.monotonic() - started:.1f} s; "
-                          f"no capture written")  # fmt: skip
+        raise DeviceError(f"nothing recorded: {url} {why} in {time.monotonic() - started:.1f} s; no capture written")
 
     last_flush = last_progress = started
     status = "complete"

@@ -41,8 +41,14 @@ class SignalDispatcher:
     wake-up descriptor are restored, and the dispatcher is joined (it finishes the call in progress).
     """
 
-    def __init__(self, signals: Iterable[int], on_signal: Callable[[int], None], *,
-                 in_handler: InHandler | None = None, join_timeout_s: float = 30.0) -> None:  # fmt: skip
+    def __init__(
+        self,
+        signals: Iterable[int],
+        on_signal: Callable[[int], None],
+        *,
+        in_handler: InHandler | None = None,
+        join_timeout_s: float = 30.0,
+    ) -> None:
         self.signals = tuple(signals)
         self.on_signal = on_signal
         self.in_handler = in_handler or _ignore
@@ -89,7 +95,9 @@ class SignalDispatcher:
                     log.exception("signal_action_failed", signal=signal.Signals(signum).name, reason=str(exc))
 
 
-def stop_on_signals(stop: threading.Event, signals: Iterable[int] = (signal.SIGINT, signal.SIGTERM)) -> SignalDispatcher:
+def stop_on_signals(
+    stop: threading.Event, signals: Iterable[int] = (signal.SIGINT, signal.SIGTERM)
+) -> SignalDispatcher:
     """The first signal sets ``stop`` (a clean end); one more after that raises ``KeyboardInterrupt``.
 
     The handler counts the signals itself: it must not read ``stop``, which the dispatcher thread may

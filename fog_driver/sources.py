@@ -61,8 +61,12 @@ PROTOCOL_V1 = "fog-v1"
 #: Increments are held on this grid (arcsec) and temperatures on ``TEMP_GRID_C`` (degC): exact sums.
 DTHETA_GRID_ARCSEC = 2.0**-24
 TEMP_GRID_C = 2.0**-16
-_FLAG_STATUS = {FLAG_SENSOR_INVALID: STATUS_LOOP_UNLOCKED, FLAG_STARTUP: STATUS_STARTUP,
-                FLAG_OVER_RANGE: STATUS_OVER_RANGE, FLAG_TEMPERATURE_INVALID: STATUS_THERMOMETER_FAULT}  # fmt: skip
+_FLAG_STATUS = {
+    FLAG_SENSOR_INVALID: STATUS_LOOP_UNLOCKED,
+    FLAG_STARTUP: STATUS_STARTUP,
+    FLAG_OVER_RANGE: STATUS_OVER_RANGE,
+    FLAG_TEMPERATURE_INVALID: STATUS_THERMOMETER_FAULT,
+}
 #: Keys a sidecar's ``wire_settings`` may hold that describe the simulation, not the device: ignored here.
 _DESCRIPTIVE_KEYS = ("temperature_channel", "temperature_channels", "version")
 _KVH_CHOICES = {"rot_format": ("delta", "rate"), "rot_units": ("deg", "rad"), "temp_units": ("c", "c_100")}
@@ -97,8 +101,9 @@ class WireSettings:
             raise ValueError(f"format: unknown frame format {self.format!r} (known: {', '.join(FORMATS)})")
         if self.axis not in AXES:
             raise ValueError(f"axis: must be one of {', '.join(AXES)}, not {self.axis!r}")
-        if self.rate_hz is not None and (isinstance(self.rate_hz, bool) or not isinstance(self.rate_hz, int)
-                                         or not 1 <= self.rate_hz <= MAX_RATE_HZ):  # fmt: skip
+        if self.rate_hz is not None and (
+            isinstance(self.rate_hz, bool) or not isinstance(self.rate_hz, int) or not 1 <= self.rate_hz <= MAX_RATE_HZ
+        ):
             raise ValueError(f"rate_hz: must be an integer 1..{MAX_RATE_HZ}, not {self.rate_hz!r}")
         if self.format != PROTOCOL_V1 and self.rate_hz is None:
             raise ValueError(f"rate_hz: {self.format} frames do not say the device's output rate: give it")
@@ -150,8 +155,14 @@ class WireSettings:
 
     def make_decoder(self) -> Any:
         """The format's streaming decoder, set as the device was."""
-        return FORMATS[self.format].decoder({"rot_format": self.rot_format, "rot_units": self.rot_units,
-                                             "temp_units": self.temp_units, "rate_hz": self.rate_hz})  # fmt: skip
+        return FORMATS[self.format].decoder(
+            {
+                "rot_format": self.rot_format,
+                "rot_units": self.rot_units,
+                "temp_units": self.temp_units,
+                "rate_hz": self.rate_hz,
+            }
+        )
 
 
 def _grid(value: float, step: float) -> float:
@@ -223,8 +234,17 @@ class ImuSampleStream:
         if event.flags:
             for flag in event.flags:
                 status |= _FLAG_STATUS.get(flag, 0)
-        fields = (seq, t_us / 1e6, _grid(float(dtheta), DTHETA_GRID_ARCSEC), temps[0], temps[1], temps[2], status,
-                  missing, event.offset)  # fmt: skip
+        fields = (
+            seq,
+            t_us / 1e6,
+            _grid(float(dtheta), DTHETA_GRID_ARCSEC),
+            temps[0],
+            temps[1],
+            temps[2],
+            status,
+            missing,
+            event.offset,
+        )
         if not self.keep_axes:
             return Sample(*fields)
         sample = AxesSample(*fields)
@@ -248,7 +268,8 @@ class SampleSource:
         self._head: bytearray | None = bytearray()
         self.decoder = wire.make_decoder()
         self.stream: SampleStream | ImuSampleStream = (
-            (v1_stream or SampleStream()) if wire.format == PROTOCOL_V1 else ImuSampleStream(wire, keep_axes))  # fmt: skip
+            (v1_stream or SampleStream()) if wire.format == PROTOCOL_V1 else ImuSampleStream(wire, keep_axes)
+        )
 
     @property
     def counters(self) -> Any:
@@ -283,8 +304,10 @@ class SampleSource:
         self._head += chunk[: SNIFF_BYTES - len(self._head)]
         if len(self._head) >= SNIFF_BYTES:
             seen = sniff(self._head)
-            self.format_problem = (f"no {self.wire.format} sample frame in the first {SNIFF_BYTES:,} bytes; the "
-                                   f"sniffer sees {seen.describe()}")  # fmt: skip
+            self.format_problem = (
+                f"no {self.wire.format} sample frame in the first {SNIFF_BYTES:,} bytes; the "
+                f"sniffer sees {seen.describe()}"
+            )
             self._head = None
 
     def close(self) -> list[Sample | IdentityFrame]:
@@ -318,8 +341,9 @@ class AutoSampleSource:
     ``make_wire(name)``; ``wire`` is None until then.  Held bytes beyond ``SNIFF_BYTES`` with no verdict are
     dropped oldest first (``bytes_unsniffed``; the raw capture keeps them all)."""
 
-    def __init__(self, make_wire: Callable[[str], WireSettings], v1_stream: SampleStream | None = None,
-                 keep_axes: bool = False) -> None:  # fmt: skip
+    def __init__(
+        self, make_wire: Callable[[str], WireSettings], v1_stream: SampleStream | None = None, keep_axes: bool = False
+    ) -> None:
         from .formats.common import FormatCounters
 
         self._keep_axes = keep_axes
@@ -402,13 +426,15 @@ class CaptureReader:
     bytes).  ``parts()`` yields ``SamplePart``; ``identity`` is the IDENTITY in force (None before one).
     """
 
-    def __init__(self, path: str | Path, wire: WireSettings | None = None,
-                 scale_override_arcsec_per_count: float | None = None) -> None:  # fmt: skip
+    def __init__(
+        self, path: str | Path, wire: WireSettings | None = None, scale_override_arcsec_per_count: float | None = None
+    ) -> None:
         self.path = Path(path)
         self.wire = wire or WireSettings()
         if self.wire.format == PROTOCOL_V1:
             self.stream: SampleStream | ImuSampleStream = SampleStream(
-                scale_override_arcsec_per_count=scale_override_arcsec_per_count)
+                scale_override_arcsec_per_count=scale_override_arcsec_per_count
+            )
         else:
             self.stream = ImuSampleStream(self.wire)
         self.counters: Any = None
@@ -419,8 +445,9 @@ class CaptureReader:
     def identity(self) -> IdentityFrame | None:
         return self.stream.identity
 
-    def parts(self, on_block: Callable[[bytes], None] | None = None,
-              block_bytes: int = FILE_BLOCK_BYTES) -> Iterator[SamplePart]:  # fmt: skip
+    def parts(
+        self, on_block: Callable[[bytes], None] | None = None, block_bytes: int = FILE_BLOCK_BYTES
+    ) -> Iterator[SamplePart]:
         if self.wire.format == PROTOCOL_V1:
             from .protocol import iter_decode_file
 
@@ -489,8 +516,9 @@ class _KvhBatchState:
         self.temp = math.nan
 
 
-def kvh_batch_samples(batch: Any, wire: WireSettings, state: _KvhBatchState, base: int,
-                      stream: ImuSampleStream) -> SampleBlock:  # fmt: skip
+def kvh_batch_samples(
+    batch: Any, wire: WireSettings, state: _KvhBatchState, base: int, stream: ImuSampleStream
+) -> SampleBlock:
     """``ImuSampleStream.step`` over a ``formats.kvh.decode_kvh_batch`` result, vectorized: the same samples,
     bit for bit (tested).  ``base``: the file offset of the buffer decoded; ``stream``'s identity and
     ``increments_rejected`` are kept up to date."""
@@ -515,7 +543,8 @@ def kvh_batch_samples(batch: Any, wire: WireSettings, state: _KvhBatchState, bas
     dtheta = np.where(bad, 0.0, dtheta)
     stream.increments_rejected += int(np.count_nonzero(bad))
     status = np.where((batch.status[rows] & GYRO_VALID) != GYRO_VALID, STATUS_LOOP_UNLOCKED, 0) | np.where(
-        bad, STATUS_LOOP_UNLOCKED, 0)  # fmt: skip
+        bad, STATUS_LOOP_UNLOCKED, 0
+    )
     kind = batch.kind[rows]
     c_byte = SAMPLE_FORMATS["c"][0]
     temp = np.where(kind == c_byte, np.nan, batch.temp_raw[rows] * _TEMP_SCALE[wire.temp_units])
@@ -531,18 +560,26 @@ def kvh_batch_samples(batch: Any, wire: WireSettings, state: _KvhBatchState, bas
     if stream.identity is None:
         stream.identity = stream.make_identity(int(offset[0]))
     nan = np.full(len(rows), np.nan)
-    return SampleBlock(seq=seq.astype(np.int64), t_s=(seq * 1_000_000 // rate_hz) / 1e6,
-                       dtheta_arcsec=_grid_array(dtheta, DTHETA_GRID_ARCSEC), t_top_c=held, t_bottom_c=nan,
-                       t_housing_c=nan.copy(), status=status.astype(np.uint16), missing_before=missing.astype(np.int64),
-                       offset=offset)  # fmt: skip
+    return SampleBlock(
+        seq=seq.astype(np.int64),
+        t_s=(seq * 1_000_000 // rate_hz) / 1e6,
+        dtheta_arcsec=_grid_array(dtheta, DTHETA_GRID_ARCSEC),
+        t_top_c=held,
+        t_bottom_c=nan,
+        t_housing_c=nan.copy(),
+        status=status.astype(np.uint16),
+        missing_before=missing.astype(np.int64),
+        offset=offset,
+    )
 
 
 #: The longest KVH frame: a file block's last bytes shorter than this wait for the next block.
 _KVH_MAX_FRAME = 40
 
 
-def _kvh_file_parts(reader: CaptureReader, on_block: Callable[[bytes], None] | None,
-                    block_bytes: int) -> Iterator[SamplePart]:  # fmt: skip
+def _kvh_file_parts(
+    reader: CaptureReader, on_block: Callable[[bytes], None] | None, block_bytes: int
+) -> Iterator[SamplePart]:
     """``CaptureReader.parts`` of a KVH capture through the numpy batch decoder: each block is decoded with the
     bytes carried from the one before; frames starting within the last ``_KVH_MAX_FRAME`` bytes of a block
     that is not the last wait for the next (they may be cut off), so every frame is decided on whole bytes,
@@ -551,8 +588,13 @@ def _kvh_file_parts(reader: CaptureReader, on_block: Callable[[bytes], None] | N
 
     frame_len = {**dict(SAMPLE_FORMATS.values()), **BIT_FRAME_LEN}  # fourth header byte -> frame length
     wire = reader.wire
-    config = dict(format=wire.format[-1], rot_format=wire.rot_format, rot_units=wire.rot_units,
-                  temp_units=wire.temp_units, rate_hz=wire.rate_hz)  # fmt: skip
+    config = dict(
+        format=wire.format[-1],
+        rot_format=wire.rot_format,
+        rot_units=wire.rot_units,
+        temp_units=wire.temp_units,
+        rate_hz=wire.rate_hz,
+    )
     state = _KvhBatchState()
     carry = b""
     base = 0  # file offset of carry[0]
@@ -572,8 +614,11 @@ def _kvh_file_parts(reader: CaptureReader, on_block: Callable[[bytes], None] | N
             keep_from = len(data)
         samples = kvh_batch_samples(batch, wire, state, base, reader.stream)
         carry, base = data[keep_from:], base + keep_from
-        yield SamplePart(samples, [reader.stream.identity] if len(samples) and samples.offset[0] == (
-            reader.stream.identity.offset) else [], bytes_in)  # fmt: skip
+        yield SamplePart(
+            samples,
+            [reader.stream.identity] if len(samples) and samples.offset[0] == (reader.stream.identity.offset) else [],
+            bytes_in,
+        )
 
 
 def capture_format(path: str | Path, requested: str = "auto") -> tuple[str, dict]:
@@ -592,8 +637,9 @@ def capture_format(path: str | Path, requested: str = "auto") -> tuple[str, dict
     seen = sniff(head)
     recorded = doc.get("wire_format")
     if recorded is not None and recorded not in FORMATS:
-        raise InputFileError(f"{find_sidecar(path)}: wire_format: unknown frame format {recorded!r} "
-                             f"(known: {', '.join(FORMATS)})")  # fmt: skip
+        raise InputFileError(
+            f"{find_sidecar(path)}: wire_format: unknown frame format {recorded!r} (known: {', '.join(FORMATS)})"
+        )
     if requested == "auto":
         name = recorded or seen.name or PROTOCOL_V1
     else:
@@ -619,6 +665,8 @@ def wire_settings_for(path: str | Path, requested: str = "auto") -> WireSettings
             raise InputFileError(str(exc)) from None
     if name == PROTOCOL_V1:
         return WireSettings()
-    raise InputFileError(f"{path}: a {name} capture needs the device's settings (rate_hz ...) and has no sidecar "
-                         f"recording them: write {sidecar_path(path).name} with wire_format and "
-                         f"wire_settings (see the README)")  # fmt: skip
+    raise InputFileError(
+        f"{path}: a {name} capture needs the device's settings (rate_hz ...) and has no sidecar "
+        f"recording them: write {sidecar_path(path).name} with wire_format and "
+        f"wire_settings (see the README)"
+    )

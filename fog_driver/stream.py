@@ -50,6 +50,8 @@ def identity_is_plausible(identity: IdentityFrame) -> bool:
     divide by zero or make every later angle NaN."""
     scale = identity.scale_arcsec_per_count
     return identity.rate_hz >= 1 and math.isfinite(scale) and 0.0 < scale <= MAX_SCALE_ARCSEC_PER_COUNT
+
+
 _US_PER_S = 1e6
 
 

@@ -109,7 +109,9 @@ def read_tagged_yaml(path: str | Path, kind: str, format_tag: str, schema_versio
         raise InputFileError(f"{where}: not a fog_driver {kind} (no 'format: {format_tag}')")
     version = doc.get("schema_version")
     if version != schema_version:
-        raise InputFileError(f"{where}: {kind} schema version {version!r}; this fog_driver reads version {schema_version}")
+        raise InputFileError(
+            f"{where}: {kind} schema version {version!r}; this fog_driver reads version {schema_version}"
+        )
     return doc
 
 

@@ -84,7 +84,17 @@ any_frame = st.one_of(sample_frames, sample_frames, sample_frames, identity_fram
 # Garbage biased towards what hurts: sync bytes and plausible headers.
 garbage = st.one_of(
     st.binary(min_size=1, max_size=40),
-    st.sampled_from([b"\xaa", b"\xaa\x55", b"\xaa\x55\x01", b"\xaa\x55\x01\x12", b"\xaa\x55\x02\x18", b"\xaa\x55\x7f\xff", b"\xaa\xaa\x55"]),
+    st.sampled_from(
+        [
+            b"\xaa",
+            b"\xaa\x55",
+            b"\xaa\x55\x01",
+            b"\xaa\x55\x01\x12",
+            b"\xaa\x55\x02\x18",
+            b"\xaa\x55\x7f\xff",
+            b"\xaa\xaa\x55",
+        ]
+    ),
 )
 
 
@@ -96,8 +106,14 @@ def with_identities(data: bytes, after_offset: int, **fields) -> bytes:
     out = bytearray(data)
     for frame in decode_bytes(data).identities:
         if frame.offset >= after_offset:
-            values = {"serial": frame.serial, "firmware": frame.firmware, "rate_hz": frame.rate_hz,
-                      "scale_arcsec_per_count": frame.scale_arcsec_per_count, **fields}  # fmt: skip
-            out[frame.offset : frame.offset + 32] = encode_identity(values["serial"], values["firmware"],
-                                                                    values["rate_hz"], values["scale_arcsec_per_count"])
+            values = {
+                "serial": frame.serial,
+                "firmware": frame.firmware,
+                "rate_hz": frame.rate_hz,
+                "scale_arcsec_per_count": frame.scale_arcsec_per_count,
+                **fields,
+            }
+            out[frame.offset : frame.offset + 32] = encode_identity(
+                values["serial"], values["firmware"], values["rate_hz"], values["scale_arcsec_per_count"]
+            )
     return bytes(out)

@@ -75,8 +75,16 @@ def test_inspect_json_matches_the_truth_written_by_construction(name):
     report = json.loads(proc.stdout)
     provenance = yaml.safe_load((DATA / f"{name}.bin.yaml").read_text())
     truth = provenance["truth"]
-    for key in ("sample_frames", "identity_frames", "missing_frames", "seq_gaps", "crc_errors",
-                "bytes_discarded", "thermometer_faults", "t_us_wraps"):
+    for key in (
+        "sample_frames",
+        "identity_frames",
+        "missing_frames",
+        "seq_gaps",
+        "crc_errors",
+        "bytes_discarded",
+        "thermometer_faults",
+        "t_us_wraps",
+    ):
         assert report[key] == truth[key], key
     instrument = provenance["instrument"]
     assert report["serial"] == instrument["serial"]
@@ -87,8 +95,20 @@ def test_inspect_json_matches_the_truth_written_by_construction(name):
     assert report["duration_s"] == pytest.approx((1200 - 1) / 100)
     assert report["bytes"] == (DATA / f"{name}.bin").stat().st_size
     assert report["sha256"] == hashlib.sha256((DATA / f"{name}.bin").read_bytes()).hexdigest()
-    required = {"sample_frames", "identity_frames", "crc_errors", "bytes_discarded", "seq_gaps", "missing_frames",
-                "serial", "firmware", "rate_hz", "scale_arcsec_per_count", "duration_s", "thermometer_faults"}
+    required = {
+        "sample_frames",
+        "identity_frames",
+        "crc_errors",
+        "bytes_discarded",
+        "seq_gaps",
+        "missing_frames",
+        "serial",
+        "firmware",
+        "rate_hz",
+        "scale_arcsec_per_count",
+        "duration_s",
+        "thermometer_faults",
+    }
     assert required <= report.keys()
     assert None not in report.values()  # absent values are omitted, never null
 
@@ -227,8 +247,15 @@ def test_record_through_a_real_pty_until_unplug(tmp_path, name, serial):
         stop = threading.Event()
 
         def run():
-            result["r"] = record(pty.slave_path, str(out), reconnect=False, stop=stop,
-                                 on_state=on_state, on_progress=on_progress, progress_every_s=0)
+            result["r"] = record(
+                pty.slave_path,
+                str(out),
+                reconnect=False,
+                stop=stop,
+                on_state=on_state,
+                on_progress=on_progress,
+                progress_every_s=0,
+            )
 
         thread = threading.Thread(target=run)
         thread.start()
@@ -403,7 +430,9 @@ def test_an_unexpected_exception_is_one_line_exit_70_and_a_logged_traceback(monk
     assert lines[-1] == "fog-driver: error: internal error: ValueError: a multi-line message"
     assert [line for line in lines if line.startswith("fog-driver:")] == lines[-1:]
     entry = json.loads(lines[0])  # stderr is a capture, not a terminal: the log is JSON
-    assert entry["event"] == "internal_error" and "broken_inspect" in [f["name"] for f in entry["exception"][0]["frames"]]
+    assert entry["event"] == "internal_error" and "broken_inspect" in [
+        f["name"] for f in entry["exception"][0]["frames"]
+    ]
 
 
 def test_run_exits_70_when_acquisition_crashes_on_a_bug(tmp_path, monkeypatch, capsys):
@@ -416,8 +445,17 @@ def test_run_exits_70_when_acquisition_crashes_on_a_bug(tmp_path, monkeypatch, c
         raise RuntimeError("a bug in the pipeline")
 
     monkeypatch.setattr(Service, "process", broken_process)
-    status = cli.main(["run", "--port", f"replay://{DATA / 'synthetic-clean.bin'}", "--listen", "127.0.0.1:0",
-                       "--capture-dir", str(tmp_path / "captures")])  # fmt: skip
+    status = cli.main(
+        [
+            "run",
+            "--port",
+            f"replay://{DATA / 'synthetic-clean.bin'}",
+            "--listen",
+            "127.0.0.1:0",
+            "--capture-dir",
+            str(tmp_path / "captures"),
+        ]
+    )
     assert status == 70
     err = capsys.readouterr().err.splitlines()
     assert err[-1] == "fog-driver: error: internal error: RuntimeError: a bug in the pipeline"

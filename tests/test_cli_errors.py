@@ -45,9 +45,15 @@ def _full_disk(limit_bytes: int):
 
 
 def run_cli(args: list[str], cwd: Path, fsize: int | None = None) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "fog_driver", *args], capture_output=True, text=True, cwd=cwd,
-                          timeout=60, stdin=subprocess.DEVNULL,
-                          preexec_fn=_full_disk(fsize) if fsize else None)  # fmt: skip
+    return subprocess.run(
+        [sys.executable, "-m", "fog_driver", *args],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        timeout=60,
+        stdin=subprocess.DEVNULL,
+        preexec_fn=_full_disk(fsize) if fsize else None,
+    )
 
 
 def assert_one_line(proc: subprocess.CompletedProcess, status: int, *needles: str, json_log: bool = False) -> str:
@@ -95,8 +101,12 @@ CASES = [
     ("record-no-dir", ["record", REPLAY, "--out", "nodir/r.bin", "--no-reconnect"], 73, ["no such directory"]),
     ("fit-no-dir", FIT + ["--out", "nodir/m.yaml"], 73, ["no such directory"]),
     ("compensate-no-dir", COMP + ["--out", "nodir/c.csv"], 73, ["no such directory"]),
-    ("compensate-adapt-state-no-dir", COMP + ["--out", "c1.csv", "--adapt-reference", "0", "--adapt-state",
-                                              "nodir/s.yaml"], 73, ["no such directory"]),  # fmt: skip
+    (
+        "compensate-adapt-state-no-dir",
+        COMP + ["--out", "c1.csv", "--adapt-reference", "0", "--adapt-state", "nodir/s.yaml"],
+        73,
+        ["no such directory"],
+    ),
     ("evaluate-no-parent", EVAL + ["--out", "nodir/sub/report"], 73, ["no such directory"]),
     # a directory where a file goes
     ("simulate-out-is-dir", SIM + ["--out", "x.bin"], 73, ["is a directory"]),
@@ -117,13 +127,21 @@ CASES = [
     ("record-replay-dir", ["record", "replay://adir", "--out", "r1.bin"], 69, ["cannot open"]),
     ("record-device-under-file", ["record", "plain.txt/tty", "--out", "r2.bin"], 69, ["cannot open"]),
     ("simulate-profile-dir", ["simulate", "--profile", "adir", "--out", "s1.bin"], 65, ["adir"]),
-    ("simulate-instrument-under-file", SIM + ["--instrument", "plain.txt/i.yaml", "--out", "s2.bin"], 65,
-     ["plain.txt/i.yaml"]),
+    (
+        "simulate-instrument-under-file",
+        SIM + ["--instrument", "plain.txt/i.yaml", "--out", "s2.bin"],
+        65,
+        ["plain.txt/i.yaml"],
+    ),
     ("fit-capture-dir", ["fit", "adir", "--out", "m1.yaml"], 65, ["adir"]),
     ("fit-config-dir", ["fit", "cap.bin", "--config", "adir", "--out", "m2.yaml"], 65, ["adir"]),
     ("compensate-capture-dir", ["compensate", "adir", "--model", "model.yaml", "--out", "c2.csv"], 65, ["adir"]),
-    ("compensate-model-under-file", ["compensate", "cap.bin", "--model", "plain.txt/m.yaml", "--out", "c3.csv"],
-     65, ["plain.txt/m.yaml"]),
+    (
+        "compensate-model-under-file",
+        ["compensate", "cap.bin", "--model", "plain.txt/m.yaml", "--out", "c3.csv"],
+        65,
+        ["plain.txt/m.yaml"],
+    ),
     ("compensate-adapt-state-dir", COMP + ["--out", "c4.csv", "--adapt-state", "adir"], 65, ["adir"]),
     ("evaluate-capture-dir", ["evaluate", "adir", "--model", "model.yaml", "--out", "r1"], 65, ["adir"]),
     ("evaluate-model-dir", ["evaluate", "cap.bin", "--model", "adir", "--out", "r2"], 65, ["adir"]),
@@ -142,7 +160,9 @@ def test_file_errors_are_one_line_with_a_sysexits_status(work, args, status, nee
     before = sorted(p.name for p in work.iterdir())
     assert_one_line(run_cli(args, work), status, *needles, json_log=args[0] == "run")
     assert sorted(p.name for p in work.iterdir()) == before  # nothing left behind
-    assert (work / "adir" / "keep.txt").read_text() == "mine\n" and (work / "plain.txt").read_text() == "a user's file\n"
+    assert (work / "adir" / "keep.txt").read_text() == "mine\n" and (
+        work / "plain.txt"
+    ).read_text() == "a user's file\n"
 
 
 # (id, arguments, the files the command starts and must not leave half-written: None to keep them)
@@ -165,4 +185,7 @@ def test_a_full_disk_is_one_line_and_exit_73(tmp_path, work, args, removed):
         assert not (tmp_path / name).exists(), name
     if args[0] == "record":  # a recording keeps what the disk took, and its sidecar says how it ended
         assert (tmp_path / "full.bin").stat().st_size <= 1024
-        assert not sidecar_path(tmp_path / "full.bin").exists() or "failed" in sidecar_path(tmp_path / "full.bin").read_text()
+        assert (
+            not sidecar_path(tmp_path / "full.bin").exists()
+            or "failed" in sidecar_path(tmp_path / "full.bin").read_text()
+        )

@@ -23,8 +23,14 @@ PROFILE = ROOT / "configs" / "profiles" / "short-test.yaml"
 
 
 def cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "fog_driver", *args], capture_output=True, text=True, cwd=cwd,
-                          timeout=120, stdin=subprocess.DEVNULL)  # fmt: skip
+    return subprocess.run(
+        [sys.executable, "-m", "fog_driver", *args],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        timeout=120,
+        stdin=subprocess.DEVNULL,
+    )
 
 
 def one_line(proc: subprocess.CompletedProcess, status: int) -> str:
@@ -35,8 +41,19 @@ def one_line(proc: subprocess.CompletedProcess, status: int) -> str:
 
 
 def simulate(cwd: Path, out: str, *extra: str, seconds: int = 60) -> subprocess.CompletedProcess:
-    return cli("simulate", "--profile", str(PROFILE), "--rate-hz", "10", "--duration", str(seconds), "--out", out,
-               *extra, cwd=cwd)  # fmt: skip
+    return cli(
+        "simulate",
+        "--profile",
+        str(PROFILE),
+        "--rate-hz",
+        "10",
+        "--duration",
+        str(seconds),
+        "--out",
+        out,
+        *extra,
+        cwd=cwd,
+    )
 
 
 def digests(folder: Path) -> dict[str, str]:
@@ -129,14 +146,36 @@ def made(tmp_path_factory) -> Path:
         (["fit", "short.bin", "--out", "model.yaml"], "is a fitted model"),
         (["fit", "short.bin", "--out", "st.bin"], "is a capture"),
         (["compensate", "st.bin", "--model", "model.yaml", "--out", "st.csv"], "is a compensate CSV"),
-        (["compensate", "st.bin", "--model", "model.yaml", "--out", "x.csv", "--adapt-reference", "0",
-          "--adapt-state", "model.yaml"], "is a fitted model, not an adaptation state"),
+        (
+            [
+                "compensate",
+                "st.bin",
+                "--model",
+                "model.yaml",
+                "--out",
+                "x.csv",
+                "--adapt-reference",
+                "0",
+                "--adapt-state",
+                "model.yaml",
+            ],
+            "is a fitted model, not an adaptation state",
+        ),
         (["simulate", "--profile", str(PROFILE), "--out", "st.bin"], "is a capture"),
         (["record", f"replay://{DATA / 'synthetic-clean.bin'}", "--out", "st.bin"], "is a capture"),
         (["evaluate", "st.bin", "--model", "model.yaml", "--out", "."], "is not empty"),
     ],
-    ids=["fit-sidecar", "fit-truth", "fit-model", "fit-capture", "compensate-csv", "adapt-state-model",
-         "simulate-capture", "record-capture", "evaluate-folder"],
+    ids=[
+        "fit-sidecar",
+        "fit-truth",
+        "fit-model",
+        "fit-capture",
+        "compensate-csv",
+        "adapt-state-model",
+        "simulate-capture",
+        "record-capture",
+        "evaluate-folder",
+    ],
 )
 def test_existing_outputs_are_refused_naming_what_they_are(made, args, kind):
     before = digests(made)
@@ -164,7 +203,9 @@ def test_an_input_is_never_an_output_even_with_force(made):
     before = digests(made)
     line = one_line(cli("fit", "st.bin", "--out", "st.bin", "--force", cwd=made), 73)
     assert "is also an input" in line
-    line = one_line(cli("compensate", "st.bin", "--model", "model.yaml", "--out", "model.yaml", "--force", cwd=made), 73)
+    line = one_line(
+        cli("compensate", "st.bin", "--model", "model.yaml", "--out", "model.yaml", "--force", cwd=made), 73
+    )
     assert "is also an input" in line
     assert digests(made) == before
 
@@ -194,8 +235,20 @@ def test_evaluate_refuses_the_truth_of_another_capture(made, tmp_path):
 def test_evaluate_refuses_reference_stops_outside_the_capture(made, tmp_path):
     stops = tmp_path / "stops.csv"
     stops.write_text("t_start_s,t_end_s,angle_deg\n10,20,0\n1500,1560,36\n")
-    line = one_line(cli("evaluate", "st.bin", "--model", "model.yaml", "--out", str(tmp_path / "r"), "--reference",
-                        str(stops), cwd=made), 65)  # fmt: skip
+    line = one_line(
+        cli(
+            "evaluate",
+            "st.bin",
+            "--model",
+            "model.yaml",
+            "--out",
+            str(tmp_path / "r"),
+            "--reference",
+            str(stops),
+            cwd=made,
+        ),
+        65,
+    )
     assert "1 of 2 reference stops end after the capture does" in line and "240.0 s of device time" in line
     assert not (tmp_path / "r").exists()
 
@@ -203,8 +256,10 @@ def test_evaluate_refuses_reference_stops_outside_the_capture(made, tmp_path):
 def test_a_model_for_another_instrument_is_refused(made, tmp_path):
     other = tmp_path / "other.yaml"
     other.write_text(MODEL.read_text().replace("instrument_serial: FOG-SIM-0001", "instrument_serial: FOG-LAB-0042"))
-    for command in (["compensate", "st.bin", "--out", str(tmp_path / "c.csv")], ["evaluate", "st.bin", "--out",
-                                                                                  str(tmp_path / "r")]):  # fmt: skip
+    for command in (
+        ["compensate", "st.bin", "--out", str(tmp_path / "c.csv")],
+        ["evaluate", "st.bin", "--out", str(tmp_path / "r")],
+    ):
         line = one_line(cli(*command, "--model", str(other), cwd=made), 64)
         assert "FOG-LAB-0042" in line and "--force" in line
 
@@ -216,8 +271,9 @@ def test_a_short_capture_names_the_warm_up(tmp_path):
     line = one_line(cli("fit", str(DATA / "sim-short.bin"), "--out", "m.yaml", cwd=tmp_path), 65)
     assert "the capture is 300 s and its first 300 s are excluded as warm-up (warmup_s in the fit config" in line
     shutil.copy(MODEL, tmp_path / "model.yaml")
-    line = one_line(cli("evaluate", str(DATA / "synthetic-clean.bin"), "--model", "model.yaml", "--out", "r",
-                        cwd=tmp_path), 65)  # fmt: skip
+    line = one_line(
+        cli("evaluate", str(DATA / "synthetic-clean.bin"), "--model", "model.yaml", "--out", "r", cwd=tmp_path), 65
+    )
     assert "no static, valid block to evaluate: the capture is 12 s and its first 120 s are excluded" in line
     assert "to fit" not in line
 
@@ -238,8 +294,10 @@ def test_evaluate_checks_its_extra_before_any_work(monkeypatch, tmp_path, capsys
     # the capture does not exist: the extra is what it says first
     assert main(["evaluate", str(tmp_path / "none.bin"), "--model", str(MODEL), "--out", str(tmp_path / "r")]) == 64
     err = capsys.readouterr().err
-    assert err == ("fog-driver: error: evaluate's report (Allan deviation, plots) needs allantools (the 'report' "
-                   "extra); in the project's virtual environment: pip install -e '.[report]'\n")
+    assert err == (
+        "fog-driver: error: evaluate's report (Allan deviation, plots) needs allantools (the 'report' "
+        "extra); in the project's virtual environment: pip install -e '.[report]'\n"
+    )
 
 
 # --- record: a port that never opened ----------------------------------------------------------------
@@ -254,9 +312,14 @@ def test_record_fails_at_once_on_a_port_that_never_opened(tmp_path):
 
 def test_record_wait_says_so_once_and_an_interrupt_leaves_nothing(tmp_path):
     port = tmp_path / "ttyUSB9"
-    proc = subprocess.Popen([sys.executable, "-m", "fog_driver", "record", str(port), "--out", "r.bin", "--wait"],
-                            cwd=tmp_path, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)  # fmt: skip
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "fog_driver", "record", str(port), "--out", "r.bin", "--wait"],
+        cwd=tmp_path,
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         first = proc.stderr.readline()  # blocks until the recorder has tried once and said it waits
         assert first == f"waiting for {port} to appear (now: no such device); Ctrl-C to stop\n"

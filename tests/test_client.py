@@ -64,7 +64,8 @@ SCRIPT = [
     b'{"class":"STATUS","uptime_s":1.5,"port_state":"open","frames":10,"crc_errors":0,"adapting":false,"new_key":3}',
     b"",
     b'{"class":"ANGLE","seq":8,"t_s":0.008,"angle_arcsec":1.6,"temps_c":{"top":"hot"},"flags":"gap","rate_dph":'
-    + b"9" * 400 + b"}",  # an integer beyond float's range: absent, not an OverflowError
+    + b"9" * 400
+    + b"}",  # an integer beyond float's range: absent, not an OverflowError
 ]
 STREAM = b"".join(line + b"\r\n" if i == 3 else line + b"\n" for i, line in enumerate(SCRIPT))
 
@@ -89,9 +90,18 @@ def test_the_session_types_every_object_and_pairs_answers_with_requests():
     assert version == Version(release="0.1.0", proto_major=1, proto_minor=0, model="wesn")
     assert device.activated and device.format == "fog-v1" and device.rate_hz == 1000.0 and device.firmware is None
     assert watch.kind == "WATCH" and watch.get("enable") is True
-    assert angle == Angle(seq=7, t_s=0.007, angle_arcsec=1.5, angle_raw_arcsec=2.5, rate_dph=0.1, rate_raw_dph=0.2,
-                          drift_dph=0.05, temps_c={"top": 25.5, "bottom": 24.0, "housing": 23.0}, flags=("gap",),
-                          utc="2026-12-02T14:56:26.123Z")  # fmt: skip
+    assert angle == Angle(
+        seq=7,
+        t_s=0.007,
+        angle_arcsec=1.5,
+        angle_raw_arcsec=2.5,
+        rate_dph=0.1,
+        rate_raw_dph=0.2,
+        drift_dph=0.05,
+        temps_c={"top": 25.5, "bottom": 24.0, "housing": 23.0},
+        flags=("gap",),
+        utc="2026-12-02T14:56:26.123Z",
+    )
     assert angle.line == SCRIPT[3] and json.loads(angle.line) == dict(angle.raw)  # the \r is not part of it
     assert isinstance(other, Other) and other.kind == "FUTURE" and other.raw["x"] == 1
     assert (zero.reply, foo.reply, status.reply) == (zeroed, error, stat)  # in order, events in between skipped
@@ -160,9 +170,14 @@ class Instrument:
     """A hub fed by a thread publishing samples at 100 Hz from ``first_seq`` (a pace, not a synchronization)."""
 
     def __init__(self, port: int = 0, first_seq: int = 1, token: str | None = None, control=None) -> None:
-        self.hub = Hub("127.0.0.1", port, version=lambda: {"release": "test", "proto_major": 1, "proto_minor": 0},
-                       device=lambda: {"path": "/dev/test", "state": "activated"},
-                       control=control or (lambda name, args, cid: {"class": name}), token=token)  # fmt: skip
+        self.hub = Hub(
+            "127.0.0.1",
+            port,
+            version=lambda: {"release": "test", "proto_major": 1, "proto_minor": 0},
+            device=lambda: {"path": "/dev/test", "state": "activated"},
+            control=control or (lambda name, args, cid: {"class": name}),
+            token=token,
+        )
         self.address = self.hub.start()
         self.seq = first_seq
         self.stop = threading.Event()
@@ -171,8 +186,17 @@ class Instrument:
 
     def _publish(self) -> None:
         while not self.stop.is_set():
-            self.hub.publish_angles([{"seq": self.seq, "t_s": self.seq / 100, "angle_arcsec": self.seq * 0.5,
-                                      "temps_c": {"top": 25.0}, "flags": []}])  # fmt: skip
+            self.hub.publish_angles(
+                [
+                    {
+                        "seq": self.seq,
+                        "t_s": self.seq / 100,
+                        "angle_arcsec": self.seq * 0.5,
+                        "temps_c": {"top": 25.0},
+                        "flags": [],
+                    }
+                ]
+            )
             self.seq += 1
             self.stop.wait(0.01)
 
@@ -344,7 +368,12 @@ def test_the_samples_are_the_daemons_own_lines_typed(daemon):
     for seq, a in got.items():
         obj = lines[seq]
         assert (a.t_s, a.angle_arcsec, a.angle_raw_arcsec, a.rate_dph, a.drift_dph) == (
-            obj["t_s"], obj["angle_arcsec"], obj["angle_raw_arcsec"], obj["rate_dph"], obj.get("drift_dph"))
+            obj["t_s"],
+            obj["angle_arcsec"],
+            obj["angle_raw_arcsec"],
+            obj["rate_dph"],
+            obj.get("drift_dph"),
+        )
         assert dict(a.temps_c) == obj["temps_c"] and list(a.flags) == obj["flags"]
     assert daemon.terminate() == 0
 
@@ -372,9 +401,23 @@ def test_the_example_station_script_logs_the_angles_the_daemon_publishes(daemon,
     raw = RawClient(daemon.address)
     raw.send('?WATCH={"enable":true};')
     host, port = daemon.address
-    proc = subprocess.run([sys.executable, str(ROOT / "examples" / "station_csv.py"), f"{host}:{port}", "--out",
-                           str(out), "--count", "50", "--rate-hz", "0"], capture_output=True, text=True,
-                          timeout=GUARD_S, env={**os.environ, "PYTHONPATH": str(ROOT)})  # fmt: skip
+    proc = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "examples" / "station_csv.py"),
+            f"{host}:{port}",
+            "--out",
+            str(out),
+            "--count",
+            "50",
+            "--rate-hz",
+            "0",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=GUARD_S,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
     assert proc.returncode == 0, proc.stderr
     with out.open(newline="") as f:
         rows = list(csv.DictReader(f))

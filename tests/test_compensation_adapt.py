@@ -305,8 +305,9 @@ def test_step_equals_run_for_any_chunking():
     reference = np.where(np.arange(1200) % 300 < 250, 0.0, np.nan)
     config = AdaptConfig(bias_capture_s=100.0)
     stepper = OnlineReadout(W0, B0, config, 1.0)
-    stepped = [stepper.step(f[k], measured[k], None if reference[k] != reference[k] else 0.0, static[k])
-               for k in range(1200)]  # fmt: skip
+    stepped = [
+        stepper.step(f[k], measured[k], None if reference[k] != reference[k] else 0.0, static[k]) for k in range(1200)
+    ]
     est = np.array([s[0] for s in stepped])
     flags = np.array([s[1] for s in stepped])
     assert (flags == FLAG_ADAPTING).sum() > 100
@@ -388,10 +389,19 @@ def test_an_unwritable_state_file_is_an_output_file_error(tmp_path):
 def test_config_validation_and_round_trip():
     c = AdaptConfig(runaway_dph=1.5, bias_capture_s=0.0)
     assert AdaptConfig.from_dict(yaml.safe_load(yaml.safe_dump(c.to_dict()))) == c
-    for bad in ({"runaway_dph": 0.0}, {"static_window_s": float("nan")}, {"bias_capture_s": -1.0},
-                {"static_threshold_dph": True}, {"compare_window_s": 0.0}, {"compare_window_s": float("inf")},
-                {"compare_memory_windows": 0.5}, {"compare_memory_windows": float("nan")},
-                {"compare_min_windows": -1}, {"compare_min_windows": 2.0}, {"compare_min_windows": True}):  # fmt: skip
+    for bad in (
+        {"runaway_dph": 0.0},
+        {"static_window_s": float("nan")},
+        {"bias_capture_s": -1.0},
+        {"static_threshold_dph": True},
+        {"compare_window_s": 0.0},
+        {"compare_window_s": float("inf")},
+        {"compare_memory_windows": 0.5},
+        {"compare_memory_windows": float("nan")},
+        {"compare_min_windows": -1},
+        {"compare_min_windows": 2.0},
+        {"compare_min_windows": True},
+    ):
         with pytest.raises(ValueError):
             AdaptConfig(**bad)
     with pytest.raises(ValueError):
@@ -501,7 +511,9 @@ def test_over_a_wrong_frozen_model_the_adapted_estimate_takes_over_once_it_does_
     assert switched >= min_blocks  # never before the bias capture and the minimum windows
     late = slice(switched + 3000, None)
     offset = (drift - est)[late].mean()  # the bias capture fixes the offset; the slopes are what adapting learns
-    assert np.std(drift[late] - est[late] - offset) < 0.5 * np.std(drift[late] - frozen[late] - (drift - frozen)[late].mean())
+    assert np.std(drift[late] - est[late] - offset) < 0.5 * np.std(
+        drift[late] - frozen[late] - (drift - frozen)[late].mean()
+    )
 
 
 def test_a_state_saved_before_the_comparison_existed_still_loads():
@@ -520,9 +532,15 @@ def test_a_state_saved_before_the_comparison_existed_still_loads():
     with pytest.raises(ValueError, match="compare_gain_sq"):
         again.load_state({**state, "compare_gain_sq": -1.0})
     n = len(state["compare_weights"])
-    for key, bad in (("compare_weights", [0.0] * (n - 1)), ("compare_weights", [float("nan")] * n),
-                     ("compare_weights", "abc"), ("compare_blocks", -1), ("compare_windows", True),
-                     ("compare_gain", float("inf")), ("compare_level_frozen_dph", "1.0")):  # fmt: skip
+    for key, bad in (
+        ("compare_weights", [0.0] * (n - 1)),
+        ("compare_weights", [float("nan")] * n),
+        ("compare_weights", "abc"),
+        ("compare_blocks", -1),
+        ("compare_windows", True),
+        ("compare_gain", float("inf")),
+        ("compare_level_frozen_dph", "1.0"),
+    ):
         with pytest.raises(ValueError, match=key):
             again.load_state({**state, key: bad})
         assert again.state_dict() == state  # a refused state leaves the readout as it was
@@ -534,11 +552,17 @@ def test_a_gain_below_the_least_worth_having_keeps_the_frozen_estimate():
     least gain the adapted one is used."""
     w_close = W0 + np.array([0.02, 0.0, 0.0])
     f, _, measured = _problem(6000, seed=21, w_true=w_close, noise=0.05)
-    plain = OnlineReadout(W0, B0, AdaptConfig(compare_window_s=60.0, compare_min_windows=3, compare_min_gain=0.0),
-                          1.0, fit_residual_dph=0.05)  # fmt: skip
+    plain = OnlineReadout(
+        W0,
+        B0,
+        AdaptConfig(compare_window_s=60.0, compare_min_windows=3, compare_min_gain=0.0),
+        1.0,
+        fit_residual_dph=0.05,
+    )
     plain.run(f, measured, 0.0, True)
-    strict = OnlineReadout(W0, B0, AdaptConfig(compare_window_s=60.0, compare_min_windows=3), 1.0,
-                           fit_residual_dph=0.05)  # fmt: skip
+    strict = OnlineReadout(
+        W0, B0, AdaptConfig(compare_window_s=60.0, compare_min_windows=3), 1.0, fit_residual_dph=0.05
+    )
     _, flags = strict.run(f, measured, 0.0, True)
     assert plain.adapted_in_use and plain.compare_gain > 0
     assert strict._min_gain == pytest.approx((0.5 * 0.05) ** 2)

@@ -24,8 +24,9 @@ def _same_state(a: AflpState, b: AflpState) -> bool:
     )
 
 
-def _reference_aflp(r: np.ndarray, order: int, lam: float, delta: float = 1e-9, tiny: float = 1e-30,
-                    fixed_step: float | None = None) -> tuple[np.ndarray, np.ndarray, list[float]]:  # fmt: skip
+def _reference_aflp(
+    r: np.ndarray, order: int, lam: float, delta: float = 1e-9, tiny: float = 1e-30, fixed_step: float | None = None
+) -> tuple[np.ndarray, np.ndarray, list[float]]:
     """The method page's equations, written out with numpy vectors (an independent implementation)."""
     phi, big_r = np.zeros(order), np.zeros(order)
     ke2, ki2, kei = 0.0, np.zeros(order), np.zeros(order)
@@ -165,9 +166,11 @@ def test_adaptive_filter_follows_the_method_equations(order, lam):
 @given(
     st.integers(1, 12),
     st.floats(0.5, 0.999),
-    st.lists(st.one_of(st.floats(-1e6, 1e6, allow_nan=False, allow_subnormal=False), st.sampled_from([0.0, 1.0, -1.0])),
-             max_size=150),
-)  # fmt: skip
+    st.lists(
+        st.one_of(st.floats(-1e6, 1e6, allow_nan=False, allow_subnormal=False), st.sampled_from([0.0, 1.0, -1.0])),
+        max_size=150,
+    ),
+)
 def test_correlations_are_bounded_by_one(order, lam, values):
     f = AflpFilter(AflpParams(order=order, forgetting=lam))
     for v in values:
@@ -312,13 +315,25 @@ def test_non_finite_sample_is_skipped(bad):
 @pytest.mark.parametrize(
     "kwargs",
     [
-        {"order": 0}, {"order": -1}, {"order": 2.0}, {"order": True},
-        {"forgetting": 0.0}, {"forgetting": 1.0}, {"forgetting": 1.5}, {"forgetting": math.nan},
-        {"delta": 0.0}, {"delta": -1e-9}, {"delta": math.inf},
-        {"tiny": 0.0}, {"tiny": math.nan},
-        {"fixed_step": 0.0}, {"fixed_step": 2.0}, {"fixed_step": -0.1}, {"fixed_step": math.nan},
+        {"order": 0},
+        {"order": -1},
+        {"order": 2.0},
+        {"order": True},
+        {"forgetting": 0.0},
+        {"forgetting": 1.0},
+        {"forgetting": 1.5},
+        {"forgetting": math.nan},
+        {"delta": 0.0},
+        {"delta": -1e-9},
+        {"delta": math.inf},
+        {"tiny": 0.0},
+        {"tiny": math.nan},
+        {"fixed_step": 0.0},
+        {"fixed_step": 2.0},
+        {"fixed_step": -0.1},
+        {"fixed_step": math.nan},
     ],
-)  # fmt: skip
+)
 def test_invalid_params_raise(kwargs):
     with pytest.raises(ValueError):
         AflpParams(**kwargs)

@@ -28,10 +28,16 @@ def make_samples(n: int, rate_hz: int = 10, seed: int = 0, missing: tuple[int, .
         temps[i, i % 3] = np.nan
     missing_before = np.r_[0, np.diff(k) - 1]
     return SampleBlock(
-        seq=k.astype(np.int64), t_s=t_s, dtheta_arcsec=counts * scale, t_top_c=temps[:, 0], t_bottom_c=temps[:, 1],
-        t_housing_c=temps[:, 2], status=np.zeros(n, np.uint16), missing_before=missing_before.astype(np.int64),
+        seq=k.astype(np.int64),
+        t_s=t_s,
+        dtheta_arcsec=counts * scale,
+        t_top_c=temps[:, 0],
+        t_bottom_c=temps[:, 1],
+        t_housing_c=temps[:, 2],
+        status=np.zeros(n, np.uint16),
+        missing_before=missing_before.astype(np.int64),
         offset=k * 26,
-    )  # fmt: skip
+    )
 
 
 def slice_block(s: SampleBlock, lo: int, hi: int) -> SampleBlock:
@@ -45,8 +51,12 @@ def assert_columns_equal(a: BlockColumns, b: BlockColumns) -> None:
 
 @settings(max_examples=60, deadline=None)
 @pytest.mark.determinism
-@given(st.integers(1, 400), st.lists(st.integers(0, 400), max_size=6), st.lists(st.integers(0, 399), max_size=5),
-       st.lists(st.integers(0, 399), max_size=5))  # fmt: skip
+@given(
+    st.integers(1, 400),
+    st.lists(st.integers(0, 400), max_size=6),
+    st.lists(st.integers(0, 399), max_size=5),
+    st.lists(st.integers(0, 399), max_size=5),
+)
 def test_run_equals_step_for_any_split(n, cuts, missing, nan_at):
     samples = make_samples(n, missing=tuple(sorted(set(missing))), nan_at=tuple(i for i in nan_at if i < n))
     stepper = BlockAverager(0.1)

@@ -206,11 +206,25 @@ def test_the_fit_report_applies_the_model_as_the_compensator_does(short_model):
 
 
 def _assess(**kw):
-    args = dict(static_minutes=60.0, ring=np.array([0.0, 10.0]), rate=np.array([-1.0, 1.0]),
-                means=np.array([0.0, 1.0]), condition=1e3, fit=(0.2, 0.03), validate=(0.25, 0.04))  # fmt: skip
+    args = dict(
+        static_minutes=60.0,
+        ring=np.array([0.0, 10.0]),
+        rate=np.array([-1.0, 1.0]),
+        means=np.array([0.0, 1.0]),
+        condition=1e3,
+        fit=(0.2, 0.03),
+        validate=(0.25, 0.04),
+    )
     args.update(kw)
-    return assess(args["static_minutes"], args["ring"], args["rate"], args["means"], args["condition"], args["fit"],
-                  args["validate"])  # fmt: skip
+    return assess(
+        args["static_minutes"],
+        args["ring"],
+        args["rate"],
+        args["means"],
+        args["condition"],
+        args["fit"],
+        args["validate"],
+    )
 
 
 @pytest.mark.parametrize(
@@ -235,9 +249,14 @@ def test_each_check_fails_just_past_its_limit_and_only_it(change, failed):
 
 
 def test_the_limits_themselves_pass():
-    quality = _assess(static_minutes=MIN_FIT_MINUTES, ring=np.array([0.0, MIN_RING_SPAN_C]),
-                      rate=np.array([0.0, MIN_RATE_SPAN_C_PER_MIN]), means=np.array([0.0, MAX_TARGET_RANGE_DPH]),
-                      condition=MAX_CONDITION, validate=None)  # fmt: skip
+    quality = _assess(
+        static_minutes=MIN_FIT_MINUTES,
+        ring=np.array([0.0, MIN_RING_SPAN_C]),
+        rate=np.array([0.0, MIN_RATE_SPAN_C_PER_MIN]),
+        means=np.array([0.0, MAX_TARGET_RANGE_DPH]),
+        condition=MAX_CONDITION,
+        validate=None,
+    )
     assert quality.failed == [] and [c.name for c in quality.checks][-1] == "fit_residual"
 
 
@@ -282,20 +301,76 @@ def runs(tmp_path_factory):
     """A 10-minute paper-profile capture and a 1-hour fast-ramps run, at 10 Hz (simulated)."""
     d = tmp_path_factory.mktemp("c1")
     profiles = Path(__file__).resolve().parents[1] / "configs" / "profiles"
-    assert main(["simulate", "--profile", "paper", "--duration", "600", "--seed", "5", "--rate-hz", "10",
-                 "--out", str(d / "short.bin")]) == 0  # fmt: skip
-    assert main(["simulate", "--profile", str(profiles / "fast-ramps.yaml"), "--duration", "3600", "--seed", "6",
-                 "--rate-hz", "10", "--out", str(d / "fast.bin")]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "simulate",
+                "--profile",
+                "paper",
+                "--duration",
+                "600",
+                "--seed",
+                "5",
+                "--rate-hz",
+                "10",
+                "--out",
+                str(d / "short.bin"),
+            ]
+        )
+        == 0
+    )
+    assert (
+        main(
+            [
+                "simulate",
+                "--profile",
+                str(profiles / "fast-ramps.yaml"),
+                "--duration",
+                "3600",
+                "--seed",
+                "6",
+                "--rate-hz",
+                "10",
+                "--out",
+                str(d / "fast.bin"),
+            ]
+        )
+        == 0
+    )
     (d / "hold.yaml").write_text("name: hold\nstart_c: 20\nsegments:\n  - hold: {duration_min: 120}\n")
-    assert main(["simulate", "--profile", str(d / "hold.yaml"), "--seed", "4", "--rate-hz", "10",
-                 "--out", str(d / "hold.bin")]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "simulate",
+                "--profile",
+                str(d / "hold.yaml"),
+                "--seed",
+                "4",
+                "--rate-hz",
+                "10",
+                "--out",
+                str(d / "hold.bin"),
+            ]
+        )
+        == 0
+    )
     return d
 
 
 def test_cli_refuses_a_ten_minute_fit_writes_nothing_and_exits_65(runs, capsys):
     out = runs / "refused.yaml"
-    status = main(["fit", str(runs / "short.bin"), "--kind", "polynomial", "--validate", str(runs / "fast.bin"),
-                   "--out", str(out)])  # fmt: skip
+    status = main(
+        [
+            "fit",
+            str(runs / "short.bin"),
+            "--kind",
+            "polynomial",
+            "--validate",
+            str(runs / "fast.bin"),
+            "--out",
+            str(out),
+        ]
+    )
     captured = capsys.readouterr()
     assert status == 65 and not out.exists()
     assert captured.err.count("\n") == 1 and "--accept-weak-fit" in captured.err
@@ -314,8 +389,7 @@ def test_cli_refuses_a_two_hour_hold_at_one_temperature(runs, capsys):
 
 def test_cli_accepted_weak_fit_never_publishes_an_absurd_estimate(runs, capsys):
     model = runs / "weak.yaml"
-    assert main(["fit", str(runs / "short.bin"), "--kind", "polynomial", "--out", str(model),
-                 "--accept-weak-fit"]) == 0  # fmt: skip
+    assert main(["fit", str(runs / "short.bin"), "--kind", "polynomial", "--out", str(model), "--accept-weak-fit"]) == 0
     assert "warning: weak fit accepted" in capsys.readouterr().out
     out = runs / "fast.csv"
     assert main(["compensate", str(runs / "fast.bin"), "--model", str(model), "--out", str(out)]) == 0
@@ -332,8 +406,19 @@ def test_cli_an_old_model_without_a_domain_still_compensates_and_says_so(runs, c
     model_file = load_model(DATA / "golden" / "models" / "polynomial.yaml")
     assert model_file.domain is None
     out = runs / "old.csv"
-    assert main(["compensate", str(DATA / "sim-short.bin"), "--model", str(DATA / "golden" / "models" / "polynomial.yaml"),
-                 "--out", str(out)]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "compensate",
+                str(DATA / "sim-short.bin"),
+                "--model",
+                str(DATA / "golden" / "models" / "polynomial.yaml"),
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     assert "stores no fit range" in capsys.readouterr().out
 
 

@@ -27,13 +27,25 @@ from fog_driver.sim.capture import read_truth
 
 PROFILES = Path(__file__).resolve().parents[1] / "configs" / "profiles"
 HOT = "name: hot\nstart_c: 20\nsegments:\n" + "".join(
-    f"  - {s}\n" for s in ("hold: {duration_min: 30}", "ramp: {rate_c_per_min: 1, target_c: 30}",
-                           "hold: {duration_min: 15}", "ramp: {rate_c_per_min: 1, target_c: 40}",
-                           "hold: {duration_min: 15}", "ramp: {rate_c_per_min: 1, target_c: 55}",
-                           "hold: {duration_min: 15}", "ramp: {rate_c_per_min: 2, target_c: 20}",
-                           "hold: {duration_min: 15}"))  # fmt: skip
-COLD = HOT.replace("name: hot", "name: cold").replace("target_c: 30", "target_c: 0").replace(
-    "target_c: 40", "target_c: -20").replace("target_c: 55", "target_c: -40")  # fmt: skip
+    f"  - {s}\n"
+    for s in (
+        "hold: {duration_min: 30}",
+        "ramp: {rate_c_per_min: 1, target_c: 30}",
+        "hold: {duration_min: 15}",
+        "ramp: {rate_c_per_min: 1, target_c: 40}",
+        "hold: {duration_min: 15}",
+        "ramp: {rate_c_per_min: 1, target_c: 55}",
+        "hold: {duration_min: 15}",
+        "ramp: {rate_c_per_min: 2, target_c: 20}",
+        "hold: {duration_min: 15}",
+    )
+)
+COLD = (
+    HOT.replace("name: hot", "name: cold")
+    .replace("target_c: 30", "target_c: 0")
+    .replace("target_c: 40", "target_c: -20")
+    .replace("target_c: 55", "target_c: -40")
+)
 
 
 @pytest.fixture(scope="module")
@@ -42,10 +54,28 @@ def runs(tmp_path_factory):
     d = tmp_path_factory.mktemp("multi")
     (d / "hot.yaml").write_text(HOT)
     (d / "cold.yaml").write_text(COLD)
-    for name, profile, seed in (("paper", "paper", 1), ("hot", str(d / "hot.yaml"), 11),
-                                ("cold", str(d / "cold.yaml"), 12), ("soak", str(PROFILES / "soak-cycle.yaml"), 3)):
-        assert main(["simulate", "--profile", profile, "--seed", str(seed), "--rate-hz", "1",
-                     "--out", str(d / f"{name}.bin")]) == 0  # fmt: skip
+    for name, profile, seed in (
+        ("paper", "paper", 1),
+        ("hot", str(d / "hot.yaml"), 11),
+        ("cold", str(d / "cold.yaml"), 12),
+        ("soak", str(PROFILES / "soak-cycle.yaml"), 3),
+    ):
+        assert (
+            main(
+                [
+                    "simulate",
+                    "--profile",
+                    profile,
+                    "--seed",
+                    str(seed),
+                    "--rate-hz",
+                    "1",
+                    "--out",
+                    str(d / f"{name}.bin"),
+                ]
+            )
+            == 0
+        )
     return d
 
 
@@ -86,7 +116,9 @@ def test_one_intercept_for_all_captures_would_fail_the_same_check(runs, monkeypa
     """The check above can fail: with every capture's rows in one group the hot + cold polynomial is far off
     (measured 0.097 deg/h against 0.013 for the paper run alone and 0.007 for hot + cold done right)."""
     whole = truth_residual(fit_paths([runs / "paper.bin"], "polynomial"), runs / "soak.bin")
-    monkeypatch.setattr(fit, "capture_groups", lambda captures: np.zeros(sum(int(c.static.sum()) for c in captures), int))
+    monkeypatch.setattr(
+        fit, "capture_groups", lambda captures: np.zeros(sum(int(c.static.sum()) for c in captures), int)
+    )
     pooled = truth_residual(fit_paths([runs / "hot.bin", runs / "cold.bin"], "polynomial"), runs / "soak.bin")
     assert pooled > 3 * whole, (pooled, whole)
 
@@ -95,13 +127,28 @@ def piece(capture: CaptureData, lo: int, hi: int, config: FitConfig) -> CaptureD
     """Blocks lo..hi of a capture as a capture of their own (its target centred on its own static mean),
     as if the run had been recorded in pieces."""
     b = capture.blocks
-    blocks = BlockColumns(b.index[lo:hi] - lo, b.t_end_s[lo:hi] - b.t_end_s[lo] + 1.0, b.n_samples[lo:hi],
-                          b.rate_dph[lo:hi], b.temps_c[lo:hi], b.flags[lo:hi])  # fmt: skip
+    blocks = BlockColumns(
+        b.index[lo:hi] - lo,
+        b.t_end_s[lo:hi] - b.t_end_s[lo] + 1.0,
+        b.n_samples[lo:hi],
+        b.rate_dph[lo:hi],
+        b.temps_c[lo:hi],
+        b.flags[lo:hi],
+    )
     inputs, input_flags = FeatureExtractor(config.features).run(blocks.temps_c)
     static = static_mask(blocks, input_flags, config)
     target = blocks.rate_dph - blocks.rate_dph[static].mean()
-    return CaptureData(capture.path, capture.sha256, capture.serial, capture.frame_period_s, blocks, inputs,
-                       input_flags, static, target)  # fmt: skip
+    return CaptureData(
+        capture.path,
+        capture.sha256,
+        capture.serial,
+        capture.frame_period_s,
+        blocks,
+        inputs,
+        input_flags,
+        static,
+        target,
+    )
 
 
 @pytest.mark.parametrize("kind", ["polynomial", "wesn"])
@@ -139,16 +186,28 @@ def _with_motion(capture: CaptureData, add_dph: np.ndarray, config: FitConfig) -
     blocks = BlockColumns(b.index, b.t_end_s, b.n_samples, b.rate_dph + add_dph, b.temps_c, b.flags)
     static = static_mask(blocks, capture.input_flags, config)
     target = blocks.rate_dph - blocks.rate_dph[static].mean()
-    return CaptureData(capture.path, capture.sha256, capture.serial, capture.frame_period_s, blocks, capture.inputs,
-                       capture.input_flags, static, target)  # fmt: skip
+    return CaptureData(
+        capture.path,
+        capture.sha256,
+        capture.serial,
+        capture.frame_period_s,
+        blocks,
+        capture.inputs,
+        capture.input_flags,
+        static,
+        target,
+    )
 
 
-@pytest.mark.parametrize("what, rate_dph, seconds", [
-    ("a 40-s turn at 10 deg/s", 36000.0, 40),
-    ("a 10-min turn at 10 deg/s", 36000.0, 600),
-    ("a 30-min creep at 14.4 deg/h", 14.4, 1800),
-    ("a 3-min creep at 3 deg/h", 3.0, 180),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "what, rate_dph, seconds",
+    [
+        ("a 40-s turn at 10 deg/s", 36000.0, 40),
+        ("a 10-min turn at 10 deg/s", 36000.0, 600),
+        ("a 30-min creep at 14.4 deg/h", 14.4, 1800),
+        ("a 3-min creep at 3 deg/h", 3.0, 180),
+    ],
+)
 def test_steady_motion_and_slow_creeps_in_fit_data_are_not_fitted(runs, what, rate_dph, seconds):
     """The old detector (rate against a 61-s running median) passed every one of these as static."""
     config = FitConfig()
@@ -179,10 +238,25 @@ def test_block_noise_is_the_white_noise_sigma():
 def test_fit_reports_the_blocks_excluded_for_motion(runs, capsys):
     """A 40-s turn at 10 deg/s in the paper run (which once fitted into a 424 deg/h model with exit 0)."""
     paper = (PROFILES / "paper.yaml").read_text().split("\nmotion:")[0]
-    (runs / "turn.yaml").write_text(paper.rstrip() + "\nmotion:\n  kind: constant_rate\n  rate_dps: 10\n"
-                                    "  start_s: 13200\n  stop_s: 13240\n")  # fmt: skip
-    assert main(["simulate", "--profile", str(runs / "turn.yaml"), "--seed", "1", "--rate-hz", "1",
-                 "--out", str(runs / "turn.bin")]) == 0  # fmt: skip
+    (runs / "turn.yaml").write_text(
+        paper.rstrip() + "\nmotion:\n  kind: constant_rate\n  rate_dps: 10\n  start_s: 13200\n  stop_s: 13240\n"
+    )
+    assert (
+        main(
+            [
+                "simulate",
+                "--profile",
+                str(runs / "turn.yaml"),
+                "--seed",
+                "1",
+                "--rate-hz",
+                "1",
+                "--out",
+                str(runs / "turn.bin"),
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
     assert main(["fit", str(runs / "turn.bin"), "--kind", "polynomial", "--out", str(runs / "turn-model.yaml")]) == 0
     out = capsys.readouterr().out

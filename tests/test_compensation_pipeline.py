@@ -29,8 +29,7 @@ TEST_FIT = FitConfig(warmup_s=30.0)
 
 @pytest.fixture(scope="module", params=["polynomial", "wesn", "paper"])
 def model_path(request, tmp_path_factory) -> Path:
-    model_file, _ = fit_model_file([DATA / "sim-short.bin"], kind=request.param, config=TEST_FIT,
-                                   accept_weak=True)
+    model_file, _ = fit_model_file([DATA / "sim-short.bin"], kind=request.param, config=TEST_FIT, accept_weak=True)
     return save_model(tmp_path_factory.mktemp(request.param) / "m.yaml", model_file)
 
 
@@ -64,7 +63,9 @@ def test_compensator_run_in_any_chunks_equals_step(model_path, faulty_samples, c
     runner = Compensator(load_model(model_path), 0.1)
     bounds = sorted({0, n, *(min(c, n) for c in cuts)})
     parts = [runner.run(slice_block(faulty_samples, lo, hi)) for lo, hi in zip(bounds, bounds[1:])]
-    joined = CompensatedColumns(*(np.concatenate([getattr(p, f) for p in parts]) for f in CompensatedColumns.__dataclass_fields__))
+    joined = CompensatedColumns(
+        *(np.concatenate([getattr(p, f) for p in parts]) for f in CompensatedColumns.__dataclass_fields__)
+    )
     # repr is exact for floats and treats NaN (a faulted thermometer) as equal to itself.
     assert [repr(joined.sample(i)) for i in range(n)] == [repr(r) for r in reference]
 
@@ -88,8 +89,24 @@ def test_compensate_cli_rows_equal_a_live_replay_in_chunks(model_path, tmp_path)
     """The offline command and a live-style run (bytes fed in small chunks, sample by sample) agree exactly."""
     out = tmp_path / "out.csv"
     capture = DATA / "sim-faults.bin"
-    proc = subprocess.run([sys.executable, "-m", "fog_driver", "compensate", str(capture), "--model", str(model_path),
-                           "--out", str(out), "--every", "5"], capture_output=True, text=True, timeout=120)  # fmt: skip
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "fog_driver",
+            "compensate",
+            str(capture),
+            "--model",
+            str(model_path),
+            "--out",
+            str(out),
+            "--every",
+            "5",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 0, proc.stderr
     lines = out.read_text().splitlines()
     assert lines[0] == ",".join(ROW_COLUMNS)
@@ -156,7 +173,9 @@ def test_wesn_start_is_a_fixed_point_and_step_equals_run(order, coil_rate):
     reservoir = WESN_DEFAULTS.reservoir(1.0, 240.0, order)
     w_in = reservoir.matrices.w_in
     assert np.all(w_in[:, 2:] == 0) and np.array_equal(w_in[:, 0], w_in[:, 1])  # the ring mean only
-    assert reservoir.params.leaks().tolist() == [order / 240, 1 / 1800, 1 / 3600, 1 / 7200] + [order / 240] * (order - 1)
+    assert reservoir.params.leaks().tolist() == [order / 240, 1 / 1800, 1 / 3600, 1 / 7200] + [order / 240] * (
+        order - 1
+    )
     if order == 1:
         assert reservoir.contraction_bound < 1
     else:  # the coil (neuron 0) integrates the last inner stage, which the wavelet does not drive
@@ -191,8 +210,17 @@ def test_compensate_refuses_another_instruments_model_unless_forced(model_path, 
     doc["instrument_serial"] = "FOG-OTHER-0042"
     other = tmp_path / "other.yaml"
     other.write_text(yaml.safe_dump(doc))
-    args = [sys.executable, "-m", "fog_driver", "compensate", str(DATA / "sim-short.bin"), "--model", str(other),
-            "--out", str(tmp_path / "o.csv")]  # fmt: skip
+    args = [
+        sys.executable,
+        "-m",
+        "fog_driver",
+        "compensate",
+        str(DATA / "sim-short.bin"),
+        "--model",
+        str(other),
+        "--out",
+        str(tmp_path / "o.csv"),
+    ]
     proc = subprocess.run(args, capture_output=True, text=True, timeout=60)
     assert proc.returncode == 64 and "FOG-OTHER-0042" in proc.stderr and "--force" in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "o.csv").exists()
@@ -205,7 +233,9 @@ def test_motion_is_detected_and_excluded(tmp_path):
     from fog_driver.sim.profiles import load_profile
 
     out = tmp_path / "pos.bin"
-    simulate_to_file(Simulator(load_profile(ROOT / "configs" / "profiles" / "positioning.yaml"), rate_hz=20, seed=3), out)
+    simulate_to_file(
+        Simulator(load_profile(ROOT / "configs" / "profiles" / "positioning.yaml"), rate_hz=20, seed=3), out
+    )
     capture = load_capture(out, TEST_FIT)
     moving = np.abs(capture.blocks.rate_dph - np.median(capture.blocks.rate_dph)) > 1000
     assert moving.sum() >= 40  # ten moves of ~4 s
@@ -256,7 +286,9 @@ def test_adapting_compensator_step_equals_run_in_any_chunks(model_path):
         for hi in cuts:
             parts.append(runner.run(slice_block(samples, lo, hi)))
             lo = hi
-        joined = CompensatedColumns(*(np.concatenate([getattr(p, f) for p in parts]) for f in CompensatedColumns.__dataclass_fields__))
+        joined = CompensatedColumns(
+            *(np.concatenate([getattr(p, f) for p in parts]) for f in CompensatedColumns.__dataclass_fields__)
+        )
         assert [repr(joined.sample(i)) for i in range(n)] == [repr(r) for r in reference]
         assert runner.online.state_dict() == stepper.online.state_dict()
 
@@ -303,8 +335,9 @@ def test_a_restart_of_the_same_run_continues_exactly(model_path, tmp_path, cut):
     # a new run restores the readout only: the pipeline starts afresh (a new switch-on, a new clock)
     third = Compensator(load_model(model_path), 0.1, adapt=adapt_config(), reference_rate_dph=0.0)
     third.load_adaptation(path)
-    assert dump(third.pipeline_state()) == dump(Compensator(load_model(model_path), 0.1, adapt=adapt_config(),
-                                                           reference_rate_dph=0.0).pipeline_state())  # fmt: skip
+    assert dump(third.pipeline_state()) == dump(
+        Compensator(load_model(model_path), 0.1, adapt=adapt_config(), reference_rate_dph=0.0).pipeline_state()
+    )
 
 
 def test_a_pipeline_state_for_another_model_or_rate_is_refused_and_changes_nothing(model_path, tmp_path):
@@ -336,28 +369,44 @@ def test_a_pipeline_state_for_another_model_or_rate_is_refused_and_changes_nothi
 def test_compensate_cli_adapts_and_keeps_its_state(model_path, tmp_path):
     state = tmp_path / "adapt.yaml"
     base = [sys.executable, "-m", "fog_driver", "compensate", str(DATA / "sim-short.bin"), "--model", str(model_path)]
-    proc = subprocess.run(base + ["--out", str(tmp_path / "a.csv"), "--adapt-reference", "0", "--adapt-state", str(state)],
-                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    proc = subprocess.run(
+        base + ["--out", str(tmp_path / "a.csv"), "--adapt-reference", "0", "--adapt-state", str(state)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 0, proc.stderr
     assert yaml.safe_load(state.read_text())["format"] == "fog_driver adaptation state"
     # Defaults wait 5 minutes before adapting: the 300-s capture only captures, the flags say so.
     rows = (tmp_path / "a.csv").read_text().splitlines()[1:]
     assert len(rows) == 300 and "guard" not in "".join(rows)
-    again = subprocess.run(base + ["--out", str(tmp_path / "b.csv"), "--adapt-reference", "0", "--adapt-state", str(state)],
-                           capture_output=True, text=True, timeout=120)  # fmt: skip
+    again = subprocess.run(
+        base + ["--out", str(tmp_path / "b.csv"), "--adapt-reference", "0", "--adapt-state", str(state)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert again.returncode == 0, again.stderr
     # Without a reference: the state's adapted weights, frozen (a daemon that restored it), the file untouched.
     saved = state.read_bytes()
-    frozen = subprocess.run(base + ["--out", str(tmp_path / "c.csv"), "--adapt-state", str(state)],
-                            capture_output=True, text=True, timeout=60)  # fmt: skip
+    frozen = subprocess.run(
+        base + ["--out", str(tmp_path / "c.csv"), "--adapt-state", str(state)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert frozen.returncode == 0, frozen.stderr
     assert state.read_bytes() == saved
     plain = subprocess.run(base + ["--out", str(tmp_path / "e.csv")], capture_output=True, text=True, timeout=60)
     assert plain.returncode == 0, plain.stderr
     # 300 s never leave the bias capture (5 min): the restored weights are the frozen ones, bit for bit
     assert (tmp_path / "c.csv").read_text() == (tmp_path / "e.csv").read_text()
-    missing = subprocess.run(base + ["--out", str(tmp_path / "d.csv"), "--adapt-state", str(tmp_path / "none.yaml")],
-                             capture_output=True, text=True, timeout=60)  # fmt: skip
+    missing = subprocess.run(
+        base + ["--out", str(tmp_path / "d.csv"), "--adapt-state", str(tmp_path / "none.yaml")],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert missing.returncode == 65 and "no such adaptation state" in missing.stderr
 
 
@@ -367,8 +416,9 @@ def test_fit_config_rates_must_agree(tmp_path):
     with pytest.raises(InputFileError, match="sample_time_s"):
         dataclass_from_mapping(FitConfig, {"model_rate_hz": 2.0}, "fit.yaml")
     cfg = dataclass_from_mapping(FitConfig, {"model_rate_hz": 2.0, "features": {"sample_time_s": 0.5}}, "fit.yaml")
-    model_file, _ = fit_model_file([DATA / "sim-short.bin"], kind="polynomial", config=dataclasses.replace(cfg, warmup_s=30.0),
-                                   accept_weak=True)
+    model_file, _ = fit_model_file(
+        [DATA / "sim-short.bin"], kind="polynomial", config=dataclasses.replace(cfg, warmup_s=30.0), accept_weak=True
+    )
     assert model_file.model_rate_hz == 2.0
     cols = Compensator(model_file, 0.1).run(SampleStream().run(decode_file(DATA / "sim-short.bin")))
     held = cols.drift_dph[(cols.t_s - cols.t_s[0] > 10) & (cols.t_s - cols.t_s[0] < 11)]

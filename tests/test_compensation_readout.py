@@ -238,10 +238,19 @@ def test_bad_state_is_rejected(bad):
 
 @pytest.mark.parametrize(
     "kwargs",
-    [{"kappa": 2.0}, {"kappa": 0.0}, {"memory_time_s": 0.0}, {"filter_time_s": -1.0}, {"delta": 0.0},
-     {"sigma": -1.0}, {"fixed_gain": 0.0}, {"fixed_gain": math.inf}, {"precondition": 1},
-     {"precondition": True, "fixed_gain": 1.0}],
-)  # fmt: skip
+    [
+        {"kappa": 2.0},
+        {"kappa": 0.0},
+        {"memory_time_s": 0.0},
+        {"filter_time_s": -1.0},
+        {"delta": 0.0},
+        {"sigma": -1.0},
+        {"fixed_gain": 0.0},
+        {"fixed_gain": math.inf},
+        {"precondition": 1},
+        {"precondition": True, "fixed_gain": 1.0},
+    ],
+)
 def test_bad_params_are_rejected(kwargs):
     with pytest.raises(ValueError):
         AdaptiveLawParams(**kwargs)
@@ -279,8 +288,9 @@ def _ridge_reference(x, y, alpha, sw=None):
     t, n = x.shape
     sw = np.ones(t) if sw is None else sw
     r = np.sqrt(sw)
-    a = np.vstack([np.column_stack([x, np.ones(t)]) * r[:, None], np.column_stack([math.sqrt(alpha) * np.eye(n),
-                                                                                   np.zeros(n)])])  # fmt: skip
+    a = np.vstack(
+        [np.column_stack([x, np.ones(t)]) * r[:, None], np.column_stack([math.sqrt(alpha) * np.eye(n), np.zeros(n)])]
+    )
     sol = np.linalg.lstsq(a, np.concatenate([y * r, np.zeros(n)]), rcond=None)[0]
     return sol[:n], sol[n]
 
@@ -334,8 +344,9 @@ def test_ridge_weights_of_zero_drop_rows_and_integer_weights_repeat_them():
     x, y, _ = _problem(11, 60, 3, noise=0.5)
     sw = np.ones(60)
     sw[::3] = 0.0
-    np.testing.assert_allclose(ridge_fit(x, y, 2.0, sample_weight=sw)[0], ridge_fit(x[sw > 0], y[sw > 0], 2.0)[0],
-                               rtol=1e-10)  # fmt: skip
+    np.testing.assert_allclose(
+        ridge_fit(x, y, 2.0, sample_weight=sw)[0], ridge_fit(x[sw > 0], y[sw > 0], 2.0)[0], rtol=1e-10
+    )
     counts = np.random.default_rng(0).integers(1, 4, 60)
     w_rep, b_rep = ridge_fit(np.repeat(x, counts, axis=0), np.repeat(y, counts), 2.0)
     w_w, b_w = ridge_fit(x, y, 2.0, sample_weight=counts.astype(float))

@@ -201,8 +201,9 @@ def test_zero_feedback_scale_makes_y_prev_irrelevant():
     base = WaveletReservoir(params).run(u, np.zeros(400))
     for y in (np.random.default_rng(2).normal(0, 1e6, 400), np.full(400, np.nan), np.full(400, np.inf)):
         assert WaveletReservoir(params).run(u, y).tobytes() == base.tobytes()
-    with_feedback = WaveletReservoir(ReservoirParams(feedback_scale=0.5, leak_per_s=log_spaced_leaks(20),
-                                                     normalized_leak=True))  # fmt: skip
+    with_feedback = WaveletReservoir(
+        ReservoirParams(feedback_scale=0.5, leak_per_s=log_spaced_leaks(20), normalized_leak=True)
+    )
     assert not np.array_equal(with_feedback.run(u, np.zeros(400)), with_feedback.run(u, np.ones(400)))
 
 
@@ -213,8 +214,12 @@ def test_non_finite_input_holds_the_state():
     u = _inputs(3, 20, 8)
     res.run(u[:10], np.zeros(10))
     before = res.state
-    for bad_u, bad_y in ((np.full(8, np.nan), 0.0), (np.r_[np.inf, np.zeros(7)], 0.0), (u[10], np.nan),
-                         (np.full(8, 1e308), 0.0)):  # fmt: skip
+    for bad_u, bad_y in (
+        (np.full(8, np.nan), 0.0),
+        (np.r_[np.inf, np.zeros(7)], 0.0),
+        (u[10], np.nan),
+        (np.full(8, 1e308), 0.0),
+    ):
         x = res.step(bad_u, bad_y)
         assert x.tobytes() == before.x.tobytes() and res.state.y == before.y
     clean = WaveletReservoir(params, state=before)
@@ -227,8 +232,14 @@ def test_non_finite_input_holds_the_state():
 def test_feedforward_run_equals_steps_with_bad_rows_among_good_ones(normalized):
     """Without recurrence and feedback (the ring form) ``run`` computes every row's wavelet input at once:
     the same bits as stepping, bad rows skipped the same way, the same state (x and y) afterwards."""
-    params = ReservoirParams(spectral_radius=0.0, feedback_scale=0.0, leak_per_s=log_spaced_leaks(6, 60, 7200),
-                             n_neurons=6, normalized_leak=normalized, seed=4)  # fmt: skip
+    params = ReservoirParams(
+        spectral_radius=0.0,
+        feedback_scale=0.0,
+        leak_per_s=log_spaced_leaks(6, 60, 7200),
+        n_neurons=6,
+        normalized_leak=normalized,
+        seed=4,
+    )
     assert not WaveletReservoir(params)._recurrent
     u = _inputs(5, 300, 8, 2.0)
     u[[3, 150]] = np.nan
@@ -356,8 +367,11 @@ def _continuous_run(params: ReservoirParams, ts: float, duration_s: float) -> tu
         ReservoirParams(leak_per_s=1 / 120, spectral_radius=0.99, feedback_scale=0.3, seed=2),
         # the paper form is rate independent when it is an echo-state network (contraction_bound < 1)
         ReservoirParams(
-            leak_per_s=log_spaced_leaks(20, 30.0, 900.0), normalized_leak=False, spectral_radius=1e-3,
-            feedback_scale=0.3, seed=2,
+            leak_per_s=log_spaced_leaks(20, 30.0, 900.0),
+            normalized_leak=False,
+            spectral_radius=1e-3,
+            feedback_scale=0.3,
+            seed=2,
         ),
     ],
 )
@@ -432,15 +446,20 @@ def test_echo_state_property_different_initial_states_converge(params):
     y = 0.2 * np.sin(2 * np.pi * t / 1000.0)
     diff = np.abs(a.run(u, y) - b.run(u, y)).max(axis=1)
     assert diff[-1] < 1e-6 * diff[0]
-    assert diff[-1] <= diff[0] * a.contraction_bound ** 20_000 * (1 + 1e-9) + 1e-15
+    assert diff[-1] <= diff[0] * a.contraction_bound**20_000 * (1 + 1e-9) + 1e-15
 
 
 def test_paper_form_without_the_echo_state_property_depends_on_rate_and_initial_state():
     """Not a requirement but a warning, pinned: the paper's form with a slow leak and the usual
     recurrent gain (contraction_bound > 1) is chaotic: the same signal at 1 s and 0.1 s, or from two
     initial states, gives O(1) different states (relative to each neuron's range)."""
-    params = ReservoirParams(leak_per_s=log_spaced_leaks(20, 30.0, 900.0), normalized_leak=False,
-                             spectral_radius=0.9, feedback_scale=0.3, seed=2)  # fmt: skip
+    params = ReservoirParams(
+        leak_per_s=log_spaced_leaks(20, 30.0, 900.0),
+        normalized_leak=False,
+        spectral_radius=0.9,
+        feedback_scale=0.3,
+        seed=2,
+    )
     assert WaveletReservoir(params).contraction_bound > 1
     _, ref = _continuous_run(params, 0.1, 3000.0)
     _, coarse = _continuous_run(params, 1.0, 3000.0)
@@ -453,9 +472,16 @@ def test_paper_form_without_the_echo_state_property_depends_on_rate_and_initial_
 def _cascade(order: int, stage_s: float, ts: float = 0.1, n_inputs: int = 1) -> WaveletReservoir:
     """Neuron 0 driven by the wavelet, neurons 1..order-1 each integrating the one before."""
     chain = tuple([-1] + list(range(order - 1)))
-    params = ReservoirParams(n_neurons=order, n_inputs=n_inputs, sample_time_s=ts, leak_per_s=1.0 / stage_s,
-                             spectral_radius=0.0, chain_from=chain if order > 1 else (),
-                             translation_range=(0.0, 0.0), dilation_range=(1.0, 1.0))  # fmt: skip
+    params = ReservoirParams(
+        n_neurons=order,
+        n_inputs=n_inputs,
+        sample_time_s=ts,
+        leak_per_s=1.0 / stage_s,
+        spectral_radius=0.0,
+        chain_from=chain if order > 1 else (),
+        translation_range=(0.0, 0.0),
+        dilation_range=(1.0, 1.0),
+    )
     w_in = np.zeros((order, n_inputs))
     w_in[0, 0] = 1.0
     zeros = np.zeros(order)

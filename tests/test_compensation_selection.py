@@ -41,8 +41,9 @@ def staircase(step_c: float, ramp_c_per_min: float, hold_s: int, steps: int) -> 
     return np.concatenate(air)
 
 
-def synthetic_capture(coil_lag_s: float, air: np.ndarray, seed: int = 1, noise_dph: float = 0.02,
-                      stages: tuple[float, ...] | None = None):  # fmt: skip
+def synthetic_capture(
+    coil_lag_s: float, air: np.ndarray, seed: int = 1, noise_dph: float = 0.02, stages: tuple[float, ...] | None = None
+):
     """Block data of an instrument whose coil lags the ring by ``coil_lag_s`` (or through first-order
     ``stages`` in series); drift cubic in the coil temperature plus a Shupe term on its own rate; white
     noise on the target, 1/256-degC readings."""
@@ -149,18 +150,22 @@ def test_two_runs_fitted_together_do_at_least_as_well_as_one():
 
 # --- fog-driver fit: the default kind, its safety net, and what a short run can identify ------------------
 
+
 def _fit_cli(tmp_path, *extra: str):
     from fog_driver.cli import main
 
     config = tmp_path / "fit.yaml"
     config.write_text("warmup_s: 30\n")  # a 5-minute capture: keep almost all of it
     out = tmp_path / "model.yaml"
-    status = main(["fit", str(DATA / "sim-short.bin"), "--config", str(config), "--out", str(out), "--accept-weak-fit", *extra])
+    status = main(
+        ["fit", str(DATA / "sim-short.bin"), "--config", str(config), "--out", str(out), "--accept-weak-fit", *extra]
+    )
     return status, out
 
 
 def test_fit_without_a_kind_keeps_the_better_on_its_own_validation_and_says_what_a_short_run_cannot_identify(
-        tmp_path, capsys):  # fmt: skip
+    tmp_path, capsys
+):
     from fog_driver.compensation.model import load_model
 
     status, out = _fit_cli(tmp_path)
@@ -188,8 +193,11 @@ def test_a_wesn_worse_than_the_polynomial_on_its_own_validation_is_never_kept_si
     from fog_driver.compensation.model import load_model
 
     real = fit.own_validation
-    monkeypatch.setattr(fit, "own_validation",  # as if the wesn's structure extrapolated worse than the polynomial's
-                        lambda model, *a: real(model, *a) * (3.0 if hasattr(model, "reservoir") else 1.0))
+    monkeypatch.setattr(
+        fit,
+        "own_validation",  # as if the wesn's structure extrapolated worse than the polynomial's
+        lambda model, *a: real(model, *a) * (3.0 if hasattr(model, "reservoir") else 1.0),
+    )
     status, out = _fit_cli(tmp_path)
     printed = capsys.readouterr().out
     assert status == 0 and load_model(out).kind == "polynomial"
@@ -219,8 +227,14 @@ def test_every_kind_reports_its_phases_with_counts(kind):
     from fog_driver.compensation.fit import fit_model_file
 
     seen: list[str] = []
-    fit_model_file([DATA / "sim-short.bin"], kind=kind, config=FitConfig(warmup_s=30.0), accept_weak=True,
-                   validate_paths=[DATA / "sim-short.bin"], progress=seen.append)  # fmt: skip
+    fit_model_file(
+        [DATA / "sim-short.bin"],
+        kind=kind,
+        config=FitConfig(warmup_s=30.0),
+        accept_weak=True,
+        validate_paths=[DATA / "sim-short.bin"],
+        progress=seen.append,
+    )
     assert "decoding sim-short.bin 100 %" in seen
     assert "polynomial: ridge regression" in seen  # the baseline, fitted beside every kind
     assert any(t.startswith(f"validating {kind} on sim-short.bin (") for t in seen)
@@ -237,7 +251,10 @@ def test_every_kind_reports_its_phases_with_counts(kind):
 
         swarm = [t for t in own if t.startswith("pso-svr: iteration")]
         assert len(swarm) == S.n_particles * (S.iterations + 1)  # one line per evaluated particle
-        assert swarm[-1] == f"pso-svr: iteration {S.iterations}/{S.iterations}, particle {S.n_particles}/{S.n_particles} (100 %)"
+        assert (
+            swarm[-1]
+            == f"pso-svr: iteration {S.iterations}/{S.iterations}, particle {S.n_particles}/{S.n_particles} (100 %)"
+        )
         assert own[-1] == "pso-svr: the final fit at the swarm's best"
 
 
@@ -294,8 +311,14 @@ def test_fit_help_lists_every_kind_on_a_line_and_the_default_is_the_shipped_mode
 def test_the_marker_is_on_exactly_the_rows_worse_than_no_compensation():
     from fog_driver.compensation.fit import WORSE_MARKER, FitReport
 
-    report = FitReport([("before compensation", 0.2732, 0.2630), ("after, polynomial", 0.0238, 0.0242),
-                        ("after, pso-svr", 0.2800, 0.4226), ("after, wesn", 0.0237, None)])  # fmt: skip
+    report = FitReport(
+        [
+            ("before compensation", 0.2732, 0.2630),
+            ("after, polynomial", 0.0238, 0.0242),
+            ("after, pso-svr", 0.2800, 0.4226),
+            ("after, wesn", 0.0237, None),
+        ]
+    )
     assert report.worse() == {"after, pso-svr": ["fit", "validate"]}
     lines = report.format().splitlines()
     assert [WORSE_MARKER in line for line in lines] == [False, False, False, True, False]
@@ -313,8 +336,9 @@ def test_fit_marks_a_model_that_makes_validation_worse_and_names_the_noise_floor
     from fog_driver.sim.profiles import load_profile
 
     other = tmp_path / "other-temperatures.bin"
-    simulate_to_file(Simulator(load_profile(ROOT / "configs" / "profiles" / "positioning.yaml"), rate_hz=10, seed=3),
-                     other)  # fmt: skip
+    simulate_to_file(
+        Simulator(load_profile(ROOT / "configs" / "profiles" / "positioning.yaml"), rate_hz=10, seed=3), other
+    )
     status, out = _fit_cli(tmp_path, "--kind", "polynomial", "--validate", str(other))
     captured = capsys.readouterr()
     assert status == 0
@@ -346,7 +370,19 @@ def test_fit_marks_a_model_that_makes_validation_worse_and_names_the_noise_floor
     from fog_driver.cli import main
 
     config = tmp_path / "fit.yaml"
-    status = main(["fit", str(DATA / "sim-short.bin"), "--config", str(config), "--kind", "polynomial",
-                   "--validate", str(other), "--out", str(strict / "m.yaml")])  # fmt: skip
+    status = main(
+        [
+            "fit",
+            str(DATA / "sim-short.bin"),
+            "--config",
+            str(config),
+            "--kind",
+            "polynomial",
+            "--validate",
+            str(other),
+            "--out",
+            str(strict / "m.yaml"),
+        ]
+    )
     captured = capsys.readouterr()
     assert status == 65 and WORSE_MARKER in captured.out and not (strict / "m.yaml").exists()

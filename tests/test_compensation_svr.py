@@ -83,7 +83,9 @@ def test_pso_is_deterministic_per_seed_and_respects_the_box():
     assert all(-2.0 <= c[0] <= 2.0 and -1.0 <= c[1] <= 3.0 for c in calls)
     b = pso_minimize(rosenbrockish, [(-2.0, 2.0), (-1.0, 3.0)], n_particles=8, iterations=5, seed=11)
     with ThreadPoolExecutor(2) as pool:
-        c = pso_minimize(rosenbrockish, [(-2.0, 2.0), (-1.0, 3.0)], n_particles=8, iterations=5, seed=11, map_fn=pool.map)
+        c = pso_minimize(
+            rosenbrockish, [(-2.0, 2.0), (-1.0, 3.0)], n_particles=8, iterations=5, seed=11, map_fn=pool.map
+        )
     for other in (b, c):
         np.testing.assert_array_equal(a[0], other[0])
         assert a[1] == other[1]
@@ -263,8 +265,17 @@ def test_cli_fit_and_compensate(tmp_path):
     def cli(*args):
         return subprocess.run([sys.executable, "-m", "fog_driver", *args], capture_output=True, text=True, timeout=120)
 
-    proc = cli("fit", str(DATA / "sim-short.bin"), "--kind", "pso-svr", "--config", str(config), "--out", str(model),
-               "--accept-weak-fit")
+    proc = cli(
+        "fit",
+        str(DATA / "sim-short.bin"),
+        "--kind",
+        "pso-svr",
+        "--config",
+        str(config),
+        "--out",
+        str(model),
+        "--accept-weak-fit",
+    )
     assert proc.returncode == 0, proc.stderr
     assert "after, pso-svr" in proc.stdout
     proc = cli("compensate", str(DATA / "sim-short.bin"), "--model", str(model), "--out", str(tmp_path / "o.csv"))
@@ -282,12 +293,24 @@ def test_missing_scikit_learn_is_a_one_line_usage_error(monkeypatch, tmp_path, c
     with pytest.raises(UsageError) as info:
         fit_model_file([DATA / "sim-short.bin"], kind="pso-svr", config=TEST_FIT, accept_weak=True)
     assert str(info.value) == MISSING_SKLEARN
-    assert MISSING_SKLEARN == ("fitting a pso-svr model needs scikit-learn (the 'svr' extra); in the project's "
-                               "virtual environment: pip install -e '.[svr]'")
+    assert MISSING_SKLEARN == (
+        "fitting a pso-svr model needs scikit-learn (the 'svr' extra); in the project's "
+        "virtual environment: pip install -e '.[svr]'"
+    )
     config = tmp_path / "fit.yaml"
     config.write_text("warmup_s: 30.0\n")
-    status = main(["fit", str(DATA / "sim-short.bin"), "--kind", "pso-svr", "--config", str(config),
-                   "--out", str(tmp_path / "m.yaml")])  # fmt: skip
+    status = main(
+        [
+            "fit",
+            str(DATA / "sim-short.bin"),
+            "--kind",
+            "pso-svr",
+            "--config",
+            str(config),
+            "--out",
+            str(tmp_path / "m.yaml"),
+        ]
+    )
     err = capsys.readouterr().err
     assert status == 64 and err == f"fog-driver: error: {MISSING_SKLEARN}\n"
     assert not (tmp_path / "m.yaml").exists()

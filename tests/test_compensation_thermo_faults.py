@@ -74,8 +74,8 @@ def test_with_every_sensor_faulted_values_and_rates_are_held_then_flagged_stale(
     accepted = 1100 + int(FeatureParams().recover_s) - 1
     assert np.all(flags[1100:accepted] & FLAG_INPUT_STALE) and np.all(u[1100:accepted] == u[999])
     settle = int(RECOVERY_TAUS * FeatureParams().rate_tau_slow_s)
-    assert np.all(flags[accepted:accepted + settle] == FLAG_RECOVERING)
-    assert not flags[accepted + settle:].any()
+    assert np.all(flags[accepted : accepted + settle] == FLAG_RECOVERING)
+    assert not flags[accepted + settle :].any()
     assert np.abs(u[1100:, 3] - 1.0).max() < 0.03
 
 
@@ -93,10 +93,10 @@ def test_an_implausible_reading_is_rejected_and_substituted(glitch, seconds):
     temps = ramps()
     clean, _ = FeatureExtractor().run(temps)
     bad = temps.copy()
-    bad[1200:1200 + seconds, 0] = glitch
+    bad[1200 : 1200 + seconds, 0] = glitch
     u, flags = FeatureExtractor().run(bad)
     np.testing.assert_allclose(u, clean, atol=1e-9)
-    assert np.all(flags[1200:1200 + seconds] & FLAG_SUBSTITUTED) and not flags[1200 + seconds:].any()
+    assert np.all(flags[1200 : 1200 + seconds] & FLAG_SUBSTITUTED) and not flags[1200 + seconds :].any()
 
 
 def test_a_sensor_stuck_far_from_the_others_is_rejected_by_the_cross_sensor_check():
@@ -115,12 +115,12 @@ def test_a_sensor_that_comes_back_with_another_value_waits_then_is_flagged_recov
     temps[1300:, 0] += 2.0  # back 2 degC off (re-seated): it disagrees with its substitute
     u, flags = FeatureExtractor(p).run(temps)
     wait = int(p.recover_s)
-    assert np.all(flags[1300:1300 + wait - 1] & FLAG_SUBSTITUTED)
+    assert np.all(flags[1300 : 1300 + wait - 1] & FLAG_SUBSTITUTED)
     accepted = 1300 + wait - 1
     assert u[accepted, 0] == temps[accepted, 0]
     settle = int(RECOVERY_TAUS * p.rate_tau_slow_s)
-    assert np.all(flags[accepted:accepted + settle] & FLAG_RECOVERING)
-    assert not flags[accepted + settle:].any()
+    assert np.all(flags[accepted : accepted + settle] & FLAG_RECOVERING)
+    assert not flags[accepted + settle :].any()
     assert np.abs(u[accepted:, 3] - 1.0).max() < 0.02  # the smoothers shifted: no rate spike from the step
 
 
@@ -151,8 +151,8 @@ def test_a_sensor_stuck_at_a_plausible_value_is_caught_once_its_partners_move_an
     np.testing.assert_allclose(u[caught:, temperatures], clean[caught:, temperatures], atol=1e-9)  # exact offset
     np.testing.assert_allclose(u[caught:, 3:6], clean[caught:, 3:6], atol=0.005)  # the ramp's rate, no step
     settle = int(RECOVERY_TAUS * p.rate_tau_slow_s)
-    assert np.all(flags[caught:caught + settle] & FLAG_RECOVERING)  # the model ran on the stuck value
-    assert np.all(flags[caught + settle:1800] == FLAG_SUBSTITUTED)
+    assert np.all(flags[caught : caught + settle] & FLAG_RECOVERING)  # the model ran on the stuck value
+    assert np.all(flags[caught + settle : 1800] == FLAG_SUBSTITUTED)
     assert not flags[1800:].any()  # reading again: it agrees with its substitute, so it is back at once
 
 
@@ -256,11 +256,13 @@ def test_the_substitution_round_trips_through_the_model_file_and_old_files_load(
     from fog_driver.compensation.polynomial import N_POLY_FEATURES, PolynomialModel
     from fog_driver.compensation.readout import Standardizer
 
-    sub = Substitution(((None, (0.9, 1.5), (1.0, 0.0)), ((1.0, 0.1, 2.0, 0.0), (1.0, 0.0), (1.0, 0.0)),
-                        (None, (1.0, 0.0), (1.0, 0.0))))  # fmt: skip
+    sub = Substitution(
+        ((None, (0.9, 1.5), (1.0, 0.0)), ((1.0, 0.1, 2.0, 0.0), (1.0, 0.0), (1.0, 0.0)), (None, (1.0, 0.0), (1.0, 0.0)))
+    )
     model = PolynomialModel(np.zeros(N_POLY_FEATURES), 0.0)
-    mf = ModelFile("polynomial", "FOG-X", 1.0, FeatureParams(), Standardizer(np.zeros(8), np.ones(8)), model,
-                   substitution=sub)  # fmt: skip
+    mf = ModelFile(
+        "polynomial", "FOG-X", 1.0, FeatureParams(), Standardizer(np.zeros(8), np.ones(8)), model, substitution=sub
+    )
     path = save_model(tmp_path / "m.yaml", mf)
     assert load_model(path).substitution == sub
     doc = yaml.safe_load(path.read_text())
@@ -283,8 +285,24 @@ def test_the_new_flags_have_names_and_udp_bits():
 
 
 def test_a_saturated_sample_is_left_out_of_the_block_mean_and_flags_its_frame(tmp_path):
-    assert main(["simulate", "--profile", "paper", "--duration", "120", "--rate-hz", "10", "--seed", "4",
-                 "--out", str(tmp_path / "c.bin")]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "simulate",
+                "--profile",
+                "paper",
+                "--duration",
+                "120",
+                "--rate-hz",
+                "10",
+                "--seed",
+                "4",
+                "--out",
+                str(tmp_path / "c.bin"),
+            ]
+        )
+        == 0
+    )
     samples, period = read_capture_samples(tmp_path / "c.bin")
     glitched = samples.t_top_c.copy()
     glitched[55] = 127.99
@@ -305,17 +323,32 @@ def chamber(tmp_path_factory):
     """One simulated instrument at 1 Hz: fitted on the paper run, scored on fast ramps."""
     d = tmp_path_factory.mktemp("thermo")
     for name, profile, seed in (("paper", "paper", 1), ("fast", str(PROFILES / "fast-ramps.yaml"), 2)):
-        assert main(["simulate", "--profile", profile, "--seed", str(seed), "--rate-hz", "1",
-                     "--out", str(d / f"{name}.bin")]) == 0  # fmt: skip
-    models = {kind: fit_model_file([d / "paper.bin"], kind=kind, config=FitConfig())[0]
-              for kind in ("polynomial", "wesn")}  # fmt: skip
+        assert (
+            main(
+                [
+                    "simulate",
+                    "--profile",
+                    profile,
+                    "--seed",
+                    str(seed),
+                    "--rate-hz",
+                    "1",
+                    "--out",
+                    str(d / f"{name}.bin"),
+                ]
+            )
+            == 0
+        )
+    models = {
+        kind: fit_model_file([d / "paper.bin"], kind=kind, config=FitConfig())[0] for kind in ("polynomial", "wesn")
+    }
     return d, models
 
 
 def angle_error(drift_true, estimate, lo, n=1800):
     """The review's score: the residual zeroed over the 10 minutes before the fault, integrated from it."""
     r = drift_true - estimate
-    r = r - r[lo - 900:lo - 300].mean()
+    r = r - r[lo - 900 : lo - 300].mean()
     return float(np.cumsum(r[lo:])[n])
 
 
@@ -328,7 +361,8 @@ def estimates(model_file, samples, period):
 @pytest.mark.parametrize("kind", ["polynomial", "wesn"])
 @pytest.mark.parametrize("sensor", ["t_top_c", "t_bottom_c", "t_housing_c"])
 def test_one_thermometer_faulted_for_30_minutes_in_a_ramp_costs_less_than_a_quarter_of_no_compensation(
-        chamber, kind, sensor, fault):  # fmt: skip
+    chamber, kind, sensor, fault
+):
     """Invalid (NaN) for 30 minutes, or stuck at its reading of the fault's start (the wesn then gave -1,913"
     against -715" uncompensated: the model ran on a frozen temperature with its rate decaying to 0)."""
     d, models = chamber
@@ -347,10 +381,10 @@ def test_one_thermometer_faulted_for_30_minutes_in_a_ramp_costs_less_than_a_quar
     none_err = abs(angle_error(drift, np.zeros(n), lo))
     assert fault_err <= clean_err + 0.25 * none_err, (fault_err, clean_err, none_err)
     if fault == "invalid":
-        assert np.all(flags[lo + 1:hi] & FLAG_SUBSTITUTED)
+        assert np.all(flags[lo + 1 : hi] & FLAG_SUBSTITUTED)
     else:  # caught once the partners moved 2 degC (the ramp's ring lags the chamber: within 5 minutes)
         substituted = np.flatnonzero(flags[lo:hi] & FLAG_SUBSTITUTED)
-        assert substituted[0] < 300 and np.all(flags[lo + substituted[0]:hi] & FLAG_SUBSTITUTED)
+        assert substituted[0] < 300 and np.all(flags[lo + substituted[0] : hi] & FLAG_SUBSTITUTED)
     # after it: any estimate still off the clean one by more than 0.1 deg/h is flagged
     off = np.abs(faulted[hi:] - clean[hi:]) > 0.1
     assert np.all(flags[hi:][off] & (FLAG_SUBSTITUTED | FLAG_RECOVERING | FLAG_THERMOMETER_FAULT))

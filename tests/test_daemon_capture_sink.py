@@ -173,7 +173,11 @@ def test_no_descriptor_left_at_rotation_is_retried_not_fatal(tmp_path, monkeypat
     assert sink.close()
     assert [p.read_bytes() for p in sink.capture.files] == [b"0123456789", b"k"]
     assert read_provenance(sink.capture.files[1])["events"][0] == {
-        **read_provenance(sink.capture.files[1])["events"][0], "event": "bytes_lost", "bytes": 10, "at_byte": 0}
+        **read_provenance(sink.capture.files[1])["events"][0],
+        "event": "bytes_lost",
+        "bytes": 10,
+        "at_byte": 0,
+    }
     assert not list(tmp_path.glob("*.tmp"))
 
 
@@ -199,7 +203,9 @@ def test_the_next_run_numbers_its_files_after_the_repaired_ones(tmp_path):
     assert cap.files[0].name.startswith("fog-000042-")
 
 
-@pytest.mark.parametrize("kwargs", [{"max_queue_bytes": 0}, {"fsync_every_s": 0}, {"retry_first_s": 2, "retry_max_s": 1}])
+@pytest.mark.parametrize(
+    "kwargs", [{"max_queue_bytes": 0}, {"fsync_every_s": 0}, {"retry_first_s": 2, "retry_max_s": 1}]
+)
 def test_bad_sink_settings_are_value_errors(tmp_path, kwargs):
     with pytest.raises(ValueError):
         CaptureSink(RotatingCapture(tmp_path), **kwargs)

@@ -35,9 +35,14 @@ def ctl(capsys, daemon: Daemon, *args: str) -> tuple[int, str, str]:
 
 def ctl_process(daemon: Daemon, *args: str, env: dict | None = None) -> subprocess.Popen:
     host, port = daemon.address
-    return subprocess.Popen([sys.executable, "-m", "fog_driver", "ctl", "--connect", f"{host}:{port}", *args],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, stdin=subprocess.DEVNULL,
-                            env=env)  # fmt: skip
+    return subprocess.Popen(
+        [sys.executable, "-m", "fog_driver", "ctl", "--connect", f"{host}:{port}", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        stdin=subprocess.DEVNULL,
+        env=env,
+    )
 
 
 def test_ctl_zero_adapt_reload_status_save(tmp_path, capsys):
@@ -76,7 +81,10 @@ def test_ctl_with_a_token(tmp_path, capsys, monkeypatch):
             monkeypatch.delenv("FOG_DRIVER_TOKEN", raising=False)
             status, out, err = ctl(capsys, daemon, "zero")
             assert (status, out) == (77, "")
-            assert err == "fog-driver: error: the daemon needs a token for ?ZERO: set FOG_DRIVER_TOKEN or give --token-file\n"
+            assert (
+                err
+                == "fog-driver: error: the daemon needs a token for ?ZERO: set FOG_DRIVER_TOKEN or give --token-file\n"
+            )
             monkeypatch.setenv("FOG_DRIVER_TOKEN", "not-the-token")
             status, _, err = ctl(capsys, daemon, "status")
             assert status == 77 and err == "fog-driver: error: the daemon refused the token: bad token\n"
@@ -140,24 +148,50 @@ def test_ctl_on_a_daemon_that_is_not_there_is_one_line_and_69(tmp_path):
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))  # bound, never listening: refuses connections
         port = s.getsockname()[1]
-        proc = subprocess.run([sys.executable, "-m", "fog_driver", "ctl", "--connect", f"127.0.0.1:{port}", "zero"],
-                              capture_output=True, text=True, timeout=GUARD_S, stdin=subprocess.DEVNULL)  # fmt: skip
+        proc = subprocess.run(
+            [sys.executable, "-m", "fog_driver", "ctl", "--connect", f"127.0.0.1:{port}", "zero"],
+            capture_output=True,
+            text=True,
+            timeout=GUARD_S,
+            stdin=subprocess.DEVNULL,
+        )
     assert proc.returncode == 69 and proc.stdout == ""
-    assert proc.stderr == (f"fog-driver: error: could not connect to 127.0.0.1:{port}: Connection refused "
-                           "(is `fog-driver run` running?)\n")  # fmt: skip
+    assert proc.stderr == (
+        f"fog-driver: error: could not connect to 127.0.0.1:{port}: Connection refused (is `fog-driver run` running?)\n"
+    )
 
 
-@pytest.mark.parametrize(("command", "words", "expected"), [
-    ("zero", [], ("ZERO", None)), ("bias", [], ("BIAS", {"seconds": 60})), ("bias", ["2.5"], ("BIAS", {"seconds": 2.5})),
-    ("adapt", ["on"], ("ADAPT", {"enable": True, "reference_dph": 0.0})), ("adapt", ["off"], ("ADAPT", {"enable": False})),
-    ("reload", [], ("RELOAD", None)), ("status", [], ("STATUS", None)), ("save", [], ("SAVE", None))])  # fmt: skip
+@pytest.mark.parametrize(
+    ("command", "words", "expected"),
+    [
+        ("zero", [], ("ZERO", None)),
+        ("bias", [], ("BIAS", {"seconds": 60})),
+        ("bias", ["2.5"], ("BIAS", {"seconds": 2.5})),
+        ("adapt", ["on"], ("ADAPT", {"enable": True, "reference_dph": 0.0})),
+        ("adapt", ["off"], ("ADAPT", {"enable": False})),
+        ("reload", [], ("RELOAD", None)),
+        ("status", [], ("STATUS", None)),
+        ("save", [], ("SAVE", None)),
+    ],
+)
 def test_parse_request(command, words, expected):
     assert parse_request(command, words) == expected
 
 
-@pytest.mark.parametrize(("command", "words"), [("bias", ["0"]), ("bias", ["1e9"]), ("bias", ["nan"]), ("bias", ["x"]),
-                                                ("bias", ["1", "2"]), ("adapt", []), ("adapt", ["yes"]), ("zero", ["1"]),
-                                                ("nope", [])])  # fmt: skip
+@pytest.mark.parametrize(
+    ("command", "words"),
+    [
+        ("bias", ["0"]),
+        ("bias", ["1e9"]),
+        ("bias", ["nan"]),
+        ("bias", ["x"]),
+        ("bias", ["1", "2"]),
+        ("adapt", []),
+        ("adapt", ["yes"]),
+        ("zero", ["1"]),
+        ("nope", []),
+    ],
+)
 def test_parse_request_refuses(command, words):
     with pytest.raises(UsageError):
         parse_request(command, words)

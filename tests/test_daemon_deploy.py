@@ -48,12 +48,20 @@ def _environment_outside_the_source_tree() -> dict[str, str]:
 
 
 @contextlib.contextmanager
-def daemon_process(command: list[str], *, cwd: Path, log: Path, env: dict[str, str] | None = None,
-                   stdin: int = subprocess.DEVNULL, umask: int = -1) -> Iterator[subprocess.Popen]:  # fmt: skip
+def daemon_process(
+    command: list[str],
+    *,
+    cwd: Path,
+    log: Path,
+    env: dict[str, str] | None = None,
+    stdin: int = subprocess.DEVNULL,
+    umask: int = -1,
+) -> Iterator[subprocess.Popen]:
     """``command`` running with its stdout piped and its stderr in ``log``; killed if still running at the end."""
     with log.open("w") as stderr:
-        proc = subprocess.Popen(command, cwd=cwd, env=env, stdin=stdin, stdout=subprocess.PIPE, stderr=stderr,
-                                text=True, umask=umask)  # fmt: skip
+        proc = subprocess.Popen(
+            command, cwd=cwd, env=env, stdin=stdin, stdout=subprocess.PIPE, stderr=stderr, text=True, umask=umask
+        )
         try:
             yield proc
         finally:
@@ -62,8 +70,15 @@ def daemon_process(command: list[str], *, cwd: Path, log: Path, env: dict[str, s
                 proc.wait(GUARD_S)
 
 
-def run_until_ready_then_terminate(command: list[str], *, cwd: Path, log: Path, env: dict[str, str] | None = None,
-                                   stdin: int = subprocess.DEVNULL, umask: int = -1) -> str:  # fmt: skip
+def run_until_ready_then_terminate(
+    command: list[str],
+    *,
+    cwd: Path,
+    log: Path,
+    env: dict[str, str] | None = None,
+    stdin: int = subprocess.DEVNULL,
+    umask: int = -1,
+) -> str:
     """Start ``command``; once it prints its readiness line, SIGTERM it; the line (asserting exit 0)."""
     with daemon_process(command, cwd=cwd, log=log, env=env, stdin=stdin, umask=umask) as proc:
         line = proc.stdout.readline()
@@ -83,30 +98,56 @@ def test_a_wheel_installed_in_a_new_environment_runs_the_daemon_from_anywhere(tm
     shutil.copy2(ROOT / "README.md", source)
     shutil.copytree(ROOT / "fog_driver", source / "fog_driver", ignore=shutil.ignore_patterns("__pycache__"))
     wheels = tmp_path / "wheels"
-    subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", str(source), "-w", str(wheels)],
-                   check=True, timeout=INSTALL_GUARD_S, capture_output=True)  # fmt: skip
+    subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", str(source), "-w", str(wheels)],
+        check=True,
+        timeout=INSTALL_GUARD_S,
+        capture_output=True,
+    )
     (wheel,) = wheels.glob("fog_driver-*.whl")
     venv = tmp_path / "venv"
     subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, timeout=INSTALL_GUARD_S)
-    subprocess.run([str(venv / "bin" / "python"), "-m", "pip", "install", "-q", str(wheel)],
-                   check=True, timeout=INSTALL_GUARD_S, capture_output=True)  # fmt: skip
+    subprocess.run(
+        [str(venv / "bin" / "python"), "-m", "pip", "install", "-q", str(wheel)],
+        check=True,
+        timeout=INSTALL_GUARD_S,
+        capture_output=True,
+    )
 
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
     env = _environment_outside_the_source_tree()
-    where = subprocess.run([str(venv / "bin" / "python"), "-c",
-                            "import fog_driver, fog_driver.config as c; print(fog_driver.__file__); "
-                            "print(c.DEFAULT_MODEL); print(c.DEFAULT_MODEL.is_file())"],
-                           cwd=elsewhere, env=env, capture_output=True, text=True, check=True, timeout=GUARD_S)  # fmt: skip
+    where = subprocess.run(
+        [
+            str(venv / "bin" / "python"),
+            "-c",
+            "import fog_driver, fog_driver.config as c; print(fog_driver.__file__); "
+            "print(c.DEFAULT_MODEL); print(c.DEFAULT_MODEL.is_file())",
+        ],
+        cwd=elsewhere,
+        env=env,
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=GUARD_S,
+    )
     package_file, model, model_is_file = where.stdout.split("\n")[:3]
     assert Path(package_file).is_relative_to(venv) and Path(model).is_relative_to(venv), where.stdout
     assert model_is_file == "True"
 
     line = run_until_ready_then_terminate(
-        [str(venv / "bin" / "fog-driver"), "run", "--port", f"replay://{DATA / 'sim-short.bin'}?rate=100",
-         "--listen", "127.0.0.1:0"],
-        cwd=elsewhere, env=env, log=tmp_path / "daemon.log",
-    )  # fmt: skip
+        [
+            str(venv / "bin" / "fog-driver"),
+            "run",
+            "--port",
+            f"replay://{DATA / 'sim-short.bin'}?rate=100",
+            "--listen",
+            "127.0.0.1:0",
+        ],
+        cwd=elsewhere,
+        env=env,
+        log=tmp_path / "daemon.log",
+    )
     assert "raw capture in fog-captures/" in line
     assert (elsewhere / "fog-captures").is_dir()  # relative to the working directory
 
@@ -130,14 +171,17 @@ def test_no_port_without_a_terminal_is_a_one_line_config_error(tmp_path):
         status = proc.wait(GUARD_S)
     assert status == 78
     errors = [line for line in (tmp_path / "daemon.log").read_text().splitlines() if line.startswith("fog-driver:")]
-    assert errors == [f"fog-driver: error: no instrument port: set 'port' in {config} or give --port PORT_OR_URL "
-                      "(--simulate runs the built-in simulated instrument)"]  # fmt: skip
+    assert errors == [
+        f"fog-driver: error: no instrument port: set 'port' in {config} or give --port PORT_OR_URL "
+        "(--simulate runs the built-in simulated instrument)"
+    ]
     assert not (tmp_path / "c").exists()
 
 
 def test_simulate_runs_the_simulated_instrument_without_a_terminal(tmp_path):
-    line = run_until_ready_then_terminate(_run_command("--simulate", "--capture-dir", "c"), cwd=tmp_path,
-                                          log=tmp_path / "daemon.log")  # fmt: skip
+    line = run_until_ready_then_terminate(
+        _run_command("--simulate", "--capture-dir", "c"), cwd=tmp_path, log=tmp_path / "daemon.log"
+    )
     assert line.startswith("fog-driver ") and " /dev/pts/" in line.split("->")[0]
 
 
@@ -145,8 +189,9 @@ def test_on_a_terminal_no_port_still_runs_the_demonstration(tmp_path):
     """``fog-driver run`` with no arguments, typed at a terminal: the README's first command."""
     terminal, terminal_peer = os.openpty()
     try:
-        line = run_until_ready_then_terminate(_run_command(), cwd=tmp_path, log=tmp_path / "daemon.log",
-                                              stdin=terminal_peer)  # fmt: skip
+        line = run_until_ready_then_terminate(
+            _run_command(), cwd=tmp_path, log=tmp_path / "daemon.log", stdin=terminal_peer
+        )
     finally:
         os.close(terminal)
         os.close(terminal_peer)
@@ -155,8 +200,14 @@ def test_on_a_terminal_no_port_still_runs_the_demonstration(tmp_path):
 
 
 def test_simulate_and_port_together_are_a_usage_error(tmp_path):
-    proc = subprocess.run(_run_command("--simulate", "--port", "/dev/ttyUSB0"), cwd=tmp_path, capture_output=True,
-                          text=True, stdin=subprocess.DEVNULL, timeout=GUARD_S)  # fmt: skip
+    proc = subprocess.run(
+        _run_command("--simulate", "--port", "/dev/ttyUSB0"),
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        stdin=subprocess.DEVNULL,
+        timeout=GUARD_S,
+    )
     assert proc.returncode == 2 and "not allowed with argument" in proc.stderr
 
 
@@ -168,22 +219,53 @@ def test_a_listen_address_in_use_is_exit_75_so_systemd_tries_again(tmp_path):
     previous instance still closing, or another program for a while, stopped the unit for good."""
     with socket.create_server(("127.0.0.1", 0)) as holder:
         busy = f"127.0.0.1:{holder.getsockname()[1]}"
-        proc = subprocess.run([sys.executable, "-m", "fog_driver", "run", "--port", f"replay://{DATA / 'sim-short.bin'}",
-                               "--listen", busy, "--capture-dir", str(tmp_path / "c")],
-                              cwd=tmp_path, capture_output=True, text=True, stdin=subprocess.DEVNULL,
-                              timeout=GUARD_S)  # fmt: skip
+        proc = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "fog_driver",
+                "run",
+                "--port",
+                f"replay://{DATA / 'sim-short.bin'}",
+                "--listen",
+                busy,
+                "--capture-dir",
+                str(tmp_path / "c"),
+            ],
+            cwd=tmp_path,
+            capture_output=True,
+            text=True,
+            stdin=subprocess.DEVNULL,
+            timeout=GUARD_S,
+        )
     assert proc.returncode == 75, proc.stderr
     errors = [line for line in proc.stderr.splitlines() if line.startswith("fog-driver:")]
     assert len(errors) == 1 and errors[0].startswith(f"fog-driver: error: cannot listen on {busy}: ")
-    assert "address already in use (another fog-driver run? give this one another address: --listen" in errors[0].lower()
+    assert (
+        "address already in use (another fog-driver run? give this one another address: --listen" in errors[0].lower()
+    )
     assert "Traceback" not in proc.stderr
 
 
 def test_the_daemon_never_creates_world_writable_files(tmp_path):
     """Started with umask 0, the daemon's capture directory was 0777 (anyone could plant or replace files)."""
     run_until_ready_then_terminate(
-        [sys.executable, "-m", "fog_driver", "run", "--port", f"replay://{DATA / 'sim-short.bin'}", "--listen",
-         "127.0.0.1:0", "--capture-dir", "c"], cwd=tmp_path, log=tmp_path / "daemon.log", umask=0)  # fmt: skip
+        [
+            sys.executable,
+            "-m",
+            "fog_driver",
+            "run",
+            "--port",
+            f"replay://{DATA / 'sim-short.bin'}",
+            "--listen",
+            "127.0.0.1:0",
+            "--capture-dir",
+            "c",
+        ],
+        cwd=tmp_path,
+        log=tmp_path / "daemon.log",
+        umask=0,
+    )
     assert stat.S_IMODE((tmp_path / "c").stat().st_mode) == 0o775
     for path in (tmp_path / "c").iterdir():
         assert not path.stat().st_mode & 0o002, path
@@ -229,7 +311,11 @@ def test_the_unit_and_the_example_config_fit_together():
     service = unit_service_keys()
     assert service["Type"] == "notify"
     assert service["ExecStart"] == f"{INSTALLED_FOG_DRIVER} run --config /etc/fog-driver/%i.yaml"
-    assert (service["User"], service["Group"], service["SupplementaryGroups"]) == ("fog-driver", "fog-driver", "dialout")
+    assert (service["User"], service["Group"], service["SupplementaryGroups"]) == (
+        "fog-driver",
+        "fog-driver",
+        "dialout",
+    )
     assert service["StateDirectory"] == "fog-driver" and service["StateDirectoryMode"] == "0750"
     assert service["WorkingDirectory"] == service["ReadWritePaths"] == STATE_DIRECTORY
     assert service["UMask"] == "0027"
@@ -254,12 +340,17 @@ def test_systemd_analyze_verifies_the_unit(tmp_path):
             pytest.fail(message)
         pytest.skip(message)
     # The only change: ExecStart names a binary that exists here (verify checks that it is executable).
-    text = UNIT.read_text(encoding="utf-8").replace(f"ExecStart={INSTALLED_FOG_DRIVER} ",
-                                                    f"ExecStart={this_machines_fog_driver()} ")  # fmt: skip
+    text = UNIT.read_text(encoding="utf-8").replace(
+        f"ExecStart={INSTALLED_FOG_DRIVER} ", f"ExecStart={this_machines_fog_driver()} "
+    )
     assert text != UNIT.read_text(encoding="utf-8")
     (tmp_path / UNIT.name).write_text(text, encoding="utf-8")
-    proc = subprocess.run([analyze, "verify", "--man=no", str(tmp_path / f"fog-driver@{INSTANCE}.service")],
-                          capture_output=True, text=True, timeout=GUARD_S)  # fmt: skip
+    proc = subprocess.run(
+        [analyze, "verify", "--man=no", str(tmp_path / f"fog-driver@{INSTANCE}.service")],
+        capture_output=True,
+        text=True,
+        timeout=GUARD_S,
+    )
     about_the_unit = [line for line in (proc.stdout + proc.stderr).splitlines() if "fog-driver@" in line]
     assert proc.returncode == 0 and about_the_unit == [], proc.stdout + proc.stderr
 
@@ -290,8 +381,12 @@ def test_the_units_command_with_the_example_config_gets_ready_and_stops_cleanly(
     try:
         notify.bind(str(notify_dir / "notify"))
         notify.settimeout(GUARD_S)
-        env = {"PATH": SYSTEMD_PATH, "HOME": str(state), "NOTIFY_SOCKET": str(notify_dir / "notify"),
-               "WATCHDOG_USEC": str(int(service["WatchdogSec"]) * 1_000_000)}  # fmt: skip
+        env = {
+            "PATH": SYSTEMD_PATH,
+            "HOME": str(state),
+            "NOTIFY_SOCKET": str(notify_dir / "notify"),
+            "WATCHDOG_USEC": str(int(service["WatchdogSec"]) * 1_000_000),
+        }
         for assignment in shlex.split(service["Environment"]):
             key, value = assignment.split("=", 1)
             env[key] = value
@@ -302,8 +397,9 @@ def test_the_units_command_with_the_example_config_gets_ready_and_stops_cleanly(
             while not messages or wanted not in messages[-1].split("\n"):
                 messages.append(notify.recv(4096).decode())
 
-        with daemon_process(argv, cwd=state, log=tmp_path / "daemon.log", env=env,
-                            umask=int(service["UMask"], 8)) as proc:  # fmt: skip
+        with daemon_process(
+            argv, cwd=state, log=tmp_path / "daemon.log", env=env, umask=int(service["UMask"], 8)
+        ) as proc:
             wait_for("READY=1")
             wait_for("WATCHDOG=1")
             proc.send_signal(signal.SIGTERM)
@@ -346,8 +442,14 @@ def test_on_a_terminal_the_banner_comes_first_and_ctrl_c_stops_quietly(tmp_path)
     nothing follows it without ``-v``, and Ctrl-C ends with exit 0 and no warning or error."""
     terminal, terminal_peer = os.openpty()
     try:
-        proc = subprocess.Popen(_run_command("--simulate", "--capture-dir", "c"), cwd=tmp_path, stdin=terminal_peer,
-                                stdout=terminal_peer, stderr=terminal_peer, start_new_session=True)  # fmt: skip
+        proc = subprocess.Popen(
+            _run_command("--simulate", "--capture-dir", "c"),
+            cwd=tmp_path,
+            stdin=terminal_peer,
+            stdout=terminal_peer,
+            stderr=terminal_peer,
+            start_new_session=True,
+        )
         os.close(terminal_peer)
         try:
             shown = _read_terminal(terminal, lambda text: "(Ctrl-C to stop)" in text)

@@ -82,8 +82,11 @@ def test_a_full_disk_degrades_the_capture_and_never_the_live_angle(tmp_path):
         pty.write(SHORT[first:])
         angles += watch_all(client, N_SHORT - len(angles))  # the live angle never stopped
         assert angles[-1]["seq"] == angles[0]["seq"] + N_SHORT - 1
-        status = next_status(client, lambda s: s["capture_bytes"] + s["capture_bytes_lost"] >= len(SHORT),
-                             "every byte captured or counted lost")  # fmt: skip
+        status = next_status(
+            client,
+            lambda s: s["capture_bytes"] + s["capture_bytes_lost"] >= len(SHORT),
+            "every byte captured or counted lost",
+        )
         assert status["capture_state"] == "recording" and status["capture_bytes_lost"] > 0
         assert daemon.proc.poll() is None
         assert daemon.terminate() == 0

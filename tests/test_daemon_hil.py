@@ -41,11 +41,26 @@ class Daemon:
         self.log = self.log_path.open("w")  # a file: a full, unread pipe would block the daemon
         # PYTHONFAULTHANDLER: a hung daemon told SIGABRT writes every thread's stack to its log.
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "fog_driver", "run", "--port", port, "--listen", "127.0.0.1:0",
-             "--capture-dir", str(self.capture_dir), *extra],
-            stdout=subprocess.PIPE, stderr=self.log, text=True, stdin=subprocess.DEVNULL,
-            env={**os.environ, "PYTHONFAULTHANDLER": "1"}, preexec_fn=preexec,
-        )  # fmt: skip
+            [
+                sys.executable,
+                "-m",
+                "fog_driver",
+                "run",
+                "--port",
+                port,
+                "--listen",
+                "127.0.0.1:0",
+                "--capture-dir",
+                str(self.capture_dir),
+                *extra,
+            ],
+            stdout=subprocess.PIPE,
+            stderr=self.log,
+            text=True,
+            stdin=subprocess.DEVNULL,
+            env={**os.environ, "PYTHONFAULTHANDLER": "1"},
+            preexec_fn=preexec,
+        )
         line = self.proc.stdout.readline()  # the readiness line
         self.readiness = line
         assert "listening on" in line, (line, (tmp_path / "daemon.log").read_text())
@@ -282,14 +297,23 @@ def test_replay_url_into_the_daemon(tmp_path):
         daemon.kill()
 
 
-@pytest.mark.parametrize("args, needle", [(["--model", "/nonexistent/model.yaml"], "no such model file"),
-                                          (["--listen", "10.1.2.3:2948"], "token"),
-                                          (["--port", "nosuch://device"], "nosuch")])  # fmt: skip
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["--model", "/nonexistent/model.yaml"], "no such model file"),
+        (["--listen", "10.1.2.3:2948"], "token"),
+        (["--port", "nosuch://device"], "nosuch"),
+    ],
+)
 def test_bad_config_exits_78_with_one_line(tmp_path, args, needle):
     port = [] if "--port" in args else ["--port", "replay:///nonexistent.bin"]
-    proc = subprocess.run([sys.executable, "-m", "fog_driver", "run", *port,
-                           "--capture-dir", str(tmp_path / "c"), *args],
-                          capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)  # fmt: skip
+    proc = subprocess.run(
+        [sys.executable, "-m", "fog_driver", "run", *port, "--capture-dir", str(tmp_path / "c"), *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        stdin=subprocess.DEVNULL,
+    )
     assert proc.returncode == 78, proc.stderr
     assert needle in proc.stderr and "Traceback" not in proc.stderr
     assert len([line for line in proc.stderr.splitlines() if line.startswith("fog-driver: error:")]) == 1
@@ -299,8 +323,9 @@ def test_sighup_reloads_the_config_and_the_model(tmp_path):
     from fog_driver.compensation.fit import FitConfig, fit_model_file
     from fog_driver.compensation.model import save_model
 
-    model_file, _ = fit_model_file([DATA / "sim-short.bin"], kind="polynomial", config=FitConfig(warmup_s=30.0),
-                                   accept_weak=True)
+    model_file, _ = fit_model_file(
+        [DATA / "sim-short.bin"], kind="polynomial", config=FitConfig(warmup_s=30.0), accept_weak=True
+    )
     poly = save_model(tmp_path / "poly.yaml", model_file)
     config = tmp_path / "fog.yaml"
     config.write_text("status_every_s: 1.0\n")

@@ -74,8 +74,9 @@ class LogEvents:
 
     def wait_for(self, event: str, count: int = 1, timeout_s: float = TIMEOUT_S) -> bool:
         with self.changed:
-            return self.changed.wait_for(lambda: len([e for e in self.entries if e["event"] == event]) >= count,
-                                         timeout_s)
+            return self.changed.wait_for(
+                lambda: len([e for e in self.entries if e["event"] == event]) >= count, timeout_s
+            )
 
 
 @pytest.fixture
@@ -208,8 +209,11 @@ def test_watch_refuses_absurd_rates(make_hub, rate):
     attacker = Conn(address)
     attacker.greeting()
     attacker.send(f'?WATCH={{"enable":true,"rate_hz":{rate}}};\n')
-    assert attacker.line() == {"class": "ERROR", "message": "rate_hz must be a number > 0 and <= 10000",
-                               "command": "WATCH"}
+    assert attacker.line() == {
+        "class": "ERROR",
+        "message": "rate_hz must be a number > 0 and <= 10000",
+        "command": "WATCH",
+    }
     victim = Conn(address)
     victim.greeting()
     watch(victim)
@@ -272,8 +276,10 @@ def test_a_newline_flood_is_closed(make_hub):
     errors = 0
     with pytest.raises((EOFError, ConnectionResetError)):
         while True:
-            assert c.expect("ERROR")["message"] in ("more than 100 commands per second: refused",
-                                                    "1000 commands over the rate limit: closing")
+            assert c.expect("ERROR")["message"] in (
+                "more than 100 commands per second: refused",
+                "1000 commands over the rate limit: closing",
+            )
             errors += 1
     assert errors == 1000
 
@@ -425,16 +431,21 @@ def test_failed_auth_is_throttled_per_address_across_reconnects(make_hub, log_ev
     _, address, control = make_hub(token="s3cret-token", auth_backoff_base_s=30.0)
     guesser = Conn(address)
     guesser.expect("VERSION")
-    guesser.send('?AUTH={"token":"guess-1"};\n?AUTH={"token":"guess-2"};\n?AUTH={"token":"guess-3"};\n'
-                 '?AUTH={"token":"guess-4"};\n')
+    guesser.send(
+        '?AUTH={"token":"guess-1"};\n?AUTH={"token":"guess-2"};\n?AUTH={"token":"guess-3"};\n'
+        '?AUTH={"token":"guess-4"};\n'
+    )
     for _ in range(4):
         assert skip_until(guesser, "ERROR") == {"class": "ERROR", "message": "bad token", "command": "AUTH"}
     guesser.close()
     again = Conn(address)  # a new connection from the same address: still in its backoff
     again.expect("VERSION")
     again.send('?AUTH={"token":"s3cret-token"};\n')
-    assert skip_until(again, "ERROR") == {"class": "ERROR", "message": "too many failed attempts, retry in 30 s",
-                                          "command": "AUTH"}  # refused without looking at the token
+    assert skip_until(again, "ERROR") == {
+        "class": "ERROR",
+        "message": "too many failed attempts, retry in 30 s",
+        "command": "AUTH",
+    }  # refused without looking at the token
     again.send("?ECHO;\n")
     assert skip_until(again, "ERROR")["message"] == "unauthorized"
     assert [e["blocked_s"] for e in log_events.named("auth_failed")] == [0.0, 0.0, 0.0, 30.0]
@@ -494,8 +505,9 @@ def test_connection_floods_cost_a_few_log_lines_a_second(make_hub, log_events):
     deadline = time.monotonic() + TIMEOUT_S
     while total < 40:  # the summaries account for every line not logged
         assert time.monotonic() < deadline and log_events.wait_for("log_lines_suppressed", timeout_s=1.5)
-        total = logged + sum(e["count"] for e in log_events.named("log_lines_suppressed")
-                             if e["suppressed_event"] == "client_connected")
+        total = logged + sum(
+            e["count"] for e in log_events.named("log_lines_suppressed") if e["suppressed_event"] == "client_connected"
+        )
     assert total == 40 and logged < 40
 
 
@@ -539,10 +551,19 @@ def test_out_of_descriptors_the_hub_logs_little_and_serves_on(make_hub, log_even
 
 def test_limits_are_validated():
     kwargs = {"version": dict, "device": lambda: None, "control": lambda *a: None}
-    for bad in ({"max_clients": 0}, {"max_clients": 2.5}, {"max_clients_per_peer": 0}, {"max_clients": True},
-                {"auth_deadline_s": 0}, {"auth_deadline_s": float("inf")}, {"auth_backoff_base_s": 0},
-                {"auth_backoff_base_s": 20.0, "auth_backoff_max_s": 10.0}, {"log_lines_per_s": 0},
-                {"control_timeout_s": float("nan")}, {"token": "bad\ud800token"}):
+    for bad in (
+        {"max_clients": 0},
+        {"max_clients": 2.5},
+        {"max_clients_per_peer": 0},
+        {"max_clients": True},
+        {"auth_deadline_s": 0},
+        {"auth_deadline_s": float("inf")},
+        {"auth_backoff_base_s": 0},
+        {"auth_backoff_base_s": 20.0, "auth_backoff_max_s": 10.0},
+        {"log_lines_per_s": 0},
+        {"control_timeout_s": float("nan")},
+        {"token": "bad\ud800token"},
+    ):
         with pytest.raises(ValueError):
             Hub("127.0.0.1", 0, **kwargs, **bad)
     Hub("127.0.0.1", 0, **kwargs, auth_deadline_s=None, max_clients=1, max_clients_per_peer=1)
@@ -583,8 +604,7 @@ def test_a_new_token_closes_every_connection_and_only_it_authorizes(make_hub):
     operator.expect("ECHO")
     hub.set_token("new-token-2")
     for c in (operator, idle):
-        assert c.line() == {"class": "ERROR", "message": "the client token changed: connect again",
-                            "command": "AUTH"}
+        assert c.line() == {"class": "ERROR", "message": "the client token changed: connect again", "command": "AUTH"}
         with pytest.raises((EOFError, ConnectionResetError)):
             c.line()
     again = Conn(address)

@@ -171,24 +171,54 @@ def test_no_device_line_when_no_device(make_hub):
 
 
 def test_clean_drops_none_and_non_finite_recursively():
-    obj = {"a": None, "b": math.nan, "c": math.inf, "d": -math.inf, "e": 1.5, "f": 0, "g": False,
-           "h": {"x": None, "y": [1.0, math.nan, None, 2]}, "i": np.float64("nan"), "j": np.float32(2.5),
-           "k": np.int64(7), "l": np.array([1.0, np.nan]), "m": "text", "n": (None, 3)}
-    assert clean(obj) == {"e": 1.5, "f": 0, "g": False, "h": {"y": [1.0, 2]}, "j": 2.5, "k": 7, "l": [1.0],
-                          "m": "text", "n": [3]}
+    obj = {
+        "a": None,
+        "b": math.nan,
+        "c": math.inf,
+        "d": -math.inf,
+        "e": 1.5,
+        "f": 0,
+        "g": False,
+        "h": {"x": None, "y": [1.0, math.nan, None, 2]},
+        "i": np.float64("nan"),
+        "j": np.float32(2.5),
+        "k": np.int64(7),
+        "l": np.array([1.0, np.nan]),
+        "m": "text",
+        "n": (None, 3),
+    }
+    assert clean(obj) == {
+        "e": 1.5,
+        "f": 0,
+        "g": False,
+        "h": {"y": [1.0, 2]},
+        "j": 2.5,
+        "k": 7,
+        "l": [1.0],
+        "m": "text",
+        "n": [3],
+    }
     assert json.dumps(clean(obj), allow_nan=False)
 
 
 _LEAVES = st.one_of(
-    st.none(), st.booleans(), st.integers(-(2**70), 2**70), st.floats(allow_nan=True, allow_infinity=True),
-    st.text(max_size=12), st.sampled_from(["null", "a null here", "nullable"]),
-    st.floats(allow_nan=True, allow_infinity=True).map(np.float64), st.integers(-1000, 1000).map(np.int64),
+    st.none(),
+    st.booleans(),
+    st.integers(-(2**70), 2**70),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.text(max_size=12),
+    st.sampled_from(["null", "a null here", "nullable"]),
+    st.floats(allow_nan=True, allow_infinity=True).map(np.float64),
+    st.integers(-1000, 1000).map(np.int64),
     st.booleans().map(np.bool_),
 )
 _OBJECTS = st.dictionaries(
     st.text(max_size=8),
-    st.recursive(_LEAVES, lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=6), inner,
-                                                                                       max_size=4), max_leaves=12),
+    st.recursive(
+        _LEAVES,
+        lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=6), inner, max_size=4),
+        max_leaves=12,
+    ),
     max_size=8,
 )
 
@@ -208,12 +238,29 @@ def test_absent_values_are_omitted_in_output(make_hub):
     c.greeting()
     c.send('?WATCH={"enable":true}\n')
     c.expect("WATCH")
-    hub.publish_angles([angle(1, 1.0, t_top_c=math.nan, t_bottom_c=None, t_housing_c=20.25,
-                             drift_dph=math.inf, extra={"q": None, "r": [math.nan, 1]})])
+    hub.publish_angles(
+        [
+            angle(
+                1,
+                1.0,
+                t_top_c=math.nan,
+                t_bottom_c=None,
+                t_housing_c=20.25,
+                drift_dph=math.inf,
+                extra={"q": None, "r": [math.nan, 1]},
+            )
+        ]
+    )
     hub.publish({"class": "STATUS", "state": "running", "fault": None, "rate": math.nan})
     raw = c.raw_line()
-    assert json.loads(raw) == {"class": "ANGLE", "seq": 1, "t_s": 1.0, "angle_arcsec": 0.5, "t_housing_c": 20.25,
-                               "extra": {"r": [1]}}
+    assert json.loads(raw) == {
+        "class": "ANGLE",
+        "seq": 1,
+        "t_s": 1.0,
+        "angle_arcsec": 0.5,
+        "t_housing_c": 20.25,
+        "extra": {"r": [1]},
+    }
     assert b"null" not in raw and b"NaN" not in raw and b"Infinity" not in raw
     assert c.line() == {"class": "STATUS", "state": "running"}
 
@@ -222,7 +269,7 @@ def test_angle_objects_need_t_s(make_hub):
     hub, address, _ = make_hub()
     c = Conn(address)
     c.greeting()
-    c.send('?WATCH={}\n')
+    c.send("?WATCH={}\n")
     c.expect("WATCH")
     with pytest.raises(ValueError, match="t_s"):
         hub.publish_angles([{"seq": 1}])
@@ -309,7 +356,7 @@ def test_oversized_line_gives_error_and_connection_survives(make_hub):
     # an oversized line arriving in pieces gives one ERROR; its tail is discarded, not parsed
     c.send(b"?ECHO=" + b"y" * 3000)
     c.send(b"y" * 3000)
-    c.send(b"y" * 3000 + b"}\n?ECHO={\"ok\":1};\n")
+    c.send(b"y" * 3000 + b'}\n?ECHO={"ok":1};\n')
     assert "longer than" in c.expect("ERROR")["message"]
     assert c.expect("ECHO")["args"] == {"ok": 1}
     c.send("?ECHO=" + json.dumps({"pad": "z" * 4000}) + "\n")  # under the limit: fine
@@ -380,7 +427,7 @@ def test_client_half_close_still_gets_replies(make_hub):
     _, address, _ = make_hub()
     c = Conn(address)
     c.greeting()
-    c.send("?ECHO={\"n\":1};\n")
+    c.send('?ECHO={"n":1};\n')
     c.sock.shutdown(socket.SHUT_WR)
     assert c.expect("ECHO")["args"] == {"n": 1}
     with pytest.raises(EOFError):
@@ -595,14 +642,33 @@ def test_start_reports_bind_failure(make_hub):
 
 
 def test_udp_datagram_exact_bytes_and_round_trip():
-    data = encode_datagram(seq=123456789012, t_s=1234.5625, angle_arcsec=-3.25, angle_raw_arcsec=-3.5,
-                           rate_dph=15.041, drift_dph=0.0125, t_top_c=20.1, t_bottom_c=None, t_housing_c=19.875,
-                           flags=FLAG_GAP | FLAG_THERMOMETER_FAULT)
+    data = encode_datagram(
+        seq=123456789012,
+        t_s=1234.5625,
+        angle_arcsec=-3.25,
+        angle_raw_arcsec=-3.5,
+        rate_dph=15.041,
+        drift_dph=0.0125,
+        t_top_c=20.1,
+        t_bottom_c=None,
+        t_housing_c=19.875,
+        flags=FLAG_GAP | FLAG_THERMOMETER_FAULT,
+    )
     # independently: the documented layout, field by field
-    expected = (b"FOGA" + struct.pack(">H", 1) + struct.pack(">H", 3) + struct.pack(">Q", 123456789012)
-                + struct.pack(">d", 1234.5625) + struct.pack(">d", -3.25) + struct.pack(">d", -3.5)
-                + struct.pack(">d", 15.041) + struct.pack(">d", 0.0125)
-                + struct.pack(">f", 20.1) + bytes.fromhex("7fc00000") + struct.pack(">f", 19.875))
+    expected = (
+        b"FOGA"
+        + struct.pack(">H", 1)
+        + struct.pack(">H", 3)
+        + struct.pack(">Q", 123456789012)
+        + struct.pack(">d", 1234.5625)
+        + struct.pack(">d", -3.25)
+        + struct.pack(">d", -3.5)
+        + struct.pack(">d", 15.041)
+        + struct.pack(">d", 0.0125)
+        + struct.pack(">f", 20.1)
+        + bytes.fromhex("7fc00000")
+        + struct.pack(">f", 19.875)
+    )
     assert data == expected
     assert len(data) == DATAGRAM_SIZE == 68
     decoded = decode_datagram(data)
@@ -623,11 +689,33 @@ def test_udp_publisher_sends_one_datagram_per_sample_and_never_raises():
     try:
         pub = UdpPublisher(*rx.getsockname())
         assert pub.send(seq=1, t_s=0.01, angle_arcsec=1.0, t_top_c=20.0)
-        assert pub.send_many([{"class": "ANGLE", "seq": 2, "t_s": 0.02, "angle_arcsec": 2.0, "flags": 1,
-                               "t_housing_c": None, "unknown": "ignored"}]) == 1
+        assert (
+            pub.send_many(
+                [
+                    {
+                        "class": "ANGLE",
+                        "seq": 2,
+                        "t_s": 0.02,
+                        "angle_arcsec": 2.0,
+                        "flags": 1,
+                        "t_housing_c": None,
+                        "unknown": "ignored",
+                    }
+                ]
+            )
+            == 1
+        )
         # the service's ANGLE object: thermometers in temps_c, flags as names
-        assert pub.send({"class": "ANGLE", "seq": 3, "t_s": 0.03, "rate_dph": 1.5,
-                         "temps_c": {"top": 20.5, "housing": 19.5}, "flags": ["gap", "uncompensated", "new"]})
+        assert pub.send(
+            {
+                "class": "ANGLE",
+                "seq": 3,
+                "t_s": 0.03,
+                "rate_dph": 1.5,
+                "temps_c": {"top": 20.5, "housing": 19.5},
+                "flags": ["gap", "uncompensated", "new"],
+            }
+        )
         first = decode_datagram(rx.recv(2048))
         second_raw = rx.recv(2048)
         assert len(second_raw) == 68

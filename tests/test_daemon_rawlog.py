@@ -136,9 +136,7 @@ def test_write_after_close_is_an_error_and_close_is_idempotent(tmp_path):
     assert _concat(cap.files) == b"abc"
 
 
-@pytest.mark.parametrize(
-    "kwargs", [{"max_bytes": 0}, {"max_age_s": 0}, {"prefix": ""}, {"prefix": "a/b"}]
-)
+@pytest.mark.parametrize("kwargs", [{"max_bytes": 0}, {"max_age_s": 0}, {"prefix": ""}, {"prefix": "a/b"}])
 def test_bad_arguments_are_value_errors(tmp_path, kwargs):
     with pytest.raises(ValueError):
         RotatingCapture(tmp_path, **kwargs)
@@ -441,10 +439,13 @@ def test_sdnotify_watchdog_is_rate_limited_to_half_the_period(notify_socket, mon
     n2.close()
 
 
-@pytest.mark.parametrize("status_every_s, watchdog_usec, wait_s",
-                         [(3.0, 2_000_000, 0.5), (1.0, 10_000_000, 1.0), (10.0, 10_000_000, 2.5), (3.0, None, 3.0)])
-def test_sdnotify_loop_wait_is_the_status_period_or_a_quarter_of_the_watchdog(notify_socket, status_every_s,
-                                                                              watchdog_usec, wait_s):
+@pytest.mark.parametrize(
+    "status_every_s, watchdog_usec, wait_s",
+    [(3.0, 2_000_000, 0.5), (1.0, 10_000_000, 1.0), (10.0, 10_000_000, 2.5), (3.0, None, 3.0)],
+)
+def test_sdnotify_loop_wait_is_the_status_period_or_a_quarter_of_the_watchdog(
+    notify_socket, status_every_s, watchdog_usec, wait_s
+):
     path, _ = notify_socket
     assert Notifier(str(path), watchdog_usec).loop_wait_s(status_every_s) == wait_s
 

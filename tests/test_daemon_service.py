@@ -38,8 +38,16 @@ def test_published_angles_equal_offline_compensation(chunk):
     seqs = [o["seq"] for o in published]
     assert seqs == sorted(seqs) and len(seqs) == 2956
     first = published[0]
-    assert first["class"] == "ANGLE" and set(first) >= {"seq", "t_s", "angle_arcsec", "angle_raw_arcsec",
-                                                        "rate_dph", "drift_dph", "temps_c", "flags"}  # fmt: skip
+    assert first["class"] == "ANGLE" and set(first) >= {
+        "seq",
+        "t_s",
+        "angle_arcsec",
+        "angle_raw_arcsec",
+        "rate_dph",
+        "drift_dph",
+        "temps_c",
+        "flags",
+    }
     assert any("gap" in o["flags"] for o in published)
     assert any(len(o["temps_c"]) < 3 for o in published)  # a faulted thermometer is omitted, never NaN
     # STATUS counts the published samples per flag, as the offline flags do
@@ -59,7 +67,10 @@ def test_zero_and_bias_commands():
     assert service.status_object()["bias_captured"] is False
     started = service.control("BIAS", {"seconds": 5}, 0)  # answered at once; the result is an event later
     assert started == {"class": "BIAS", "state": "started", "capture_id": 1, "seconds": 5.0, "timeout_s": 35.0}
-    assert service.control("BIAS", {"seconds": 5}, 0) == {"class": "ERROR", "message": "a bias capture is already running"}
+    assert service.control("BIAS", {"seconds": 5}, 0) == {
+        "class": "ERROR",
+        "message": "a bias capture is already running",
+    }
     assert service.last_event is None and service.status_object()["bias_capture_target_s"] == 5.0
     service.process(data[half + 2600 :])
     result = service.last_event
@@ -71,7 +82,10 @@ def test_zero_and_bias_commands():
     assert service.control("NOPE", {}, 0)["class"] == "ERROR"
     assert service.control("ADAPT", {"enable": "yes"}, 0)["class"] == "ERROR"
     assert service.control("ADAPT", {"enable": True, "reference_dph": 0}, 0) == {
-        "class": "ADAPT", "enable": True, "reference_dph": 0.0}  # fmt: skip
+        "class": "ADAPT",
+        "enable": True,
+        "reference_dph": 0.0,
+    }
     status = service.control("STATUS", {}, 0)
     assert status["adapting"] is True and status["adapted_in_use"] is False  # nothing has been compared yet
     assert service.control("SAVE", {}, 0)["class"] == "ERROR"  # no adapt_state configured
@@ -107,14 +121,16 @@ def test_reload_config_applies_live_settings_and_keeps_the_rest(tmp_path):
     from fog_driver.compensation.fit import FitConfig, fit_model_file
     from fog_driver.compensation.model import save_model
 
-    model_file, _ = fit_model_file([DATA / "sim-short.bin"], kind="polynomial", config=FitConfig(warmup_s=30.0),
-                                   accept_weak=True)
+    model_file, _ = fit_model_file(
+        [DATA / "sim-short.bin"], kind="polynomial", config=FitConfig(warmup_s=30.0), accept_weak=True
+    )
     other = save_model(tmp_path / "poly.yaml", model_file)
     service = Service(DriverConfig(listen="127.0.0.1:2999"), port="unused")
     service.process((DATA / "sim-short.bin").read_bytes()[:5000])
     angle_before = service.compensator.angle_comp_arcsec
-    result = service.reload_config(DriverConfig(model=str(other), listen="0.0.0.0:1", adapt_reference_dph=0.0,
-                                                token="a-long-token"))  # fmt: skip
+    result = service.reload_config(
+        DriverConfig(model=str(other), listen="0.0.0.0:1", adapt_reference_dph=0.0, token="a-long-token")
+    )
     assert result["class"] == "RELOAD" and result["model"] == "polynomial"
     assert service.config.listen == "127.0.0.1:2999"  # needs a restart: kept
     assert service.config.token == "a-long-token" and service.config.model == str(other)
@@ -144,8 +160,9 @@ def test_reloading_the_same_model_mid_run_changes_nothing_published(cut):
 def test_reloading_another_model_keeps_the_block_grid_and_the_smoothers(tmp_path):
     from fog_driver.compensation.fit import FitConfig, fit_model_file
 
-    model_file, _ = fit_model_file([DATA / "sim-short.bin"], kind="polynomial", config=FitConfig(warmup_s=30.0),
-                                   accept_weak=True)
+    model_file, _ = fit_model_file(
+        [DATA / "sim-short.bin"], kind="polynomial", config=FitConfig(warmup_s=30.0), accept_weak=True
+    )
     data = (DATA / "sim-faults.bin").read_bytes()
     service = Service(DriverConfig(), port="unused")
     service.process(data[:20000])

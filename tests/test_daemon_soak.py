@@ -166,10 +166,12 @@ def test_soak_at_2_khz_with_churning_and_hostile_clients(tmp_path):
         finally:
             stop.set()
             daemon.kill()
-    print(f"\nsoak {SOAK_S:g} s at {RATE_HZ} Hz: {count} samples to the watcher, largest gap between its lines "
-          f"{1e3 * max_gap_s:.0f} ms (wall clock); RSS at each tenth, MB: {[round(r, 1) for r in rss]}; "
-          f"hostile connections {sum(h.connections for h in attackers)}, refused {sum(h.refused for h in attackers)}; "
-          f"churner sessions {sum(c.sessions for c in churners)}; dropped clients {status['dropped_clients']}")
+    print(
+        f"\nsoak {SOAK_S:g} s at {RATE_HZ} Hz: {count} samples to the watcher, largest gap between its lines "
+        f"{1e3 * max_gap_s:.0f} ms (wall clock); RSS at each tenth, MB: {[round(r, 1) for r in rss]}; "
+        f"hostile connections {sum(h.connections for h in attackers)}, refused {sum(h.refused for h in attackers)}; "
+        f"churner sessions {sum(c.sessions for c in churners)}; dropped clients {status['dropped_clients']}"
+    )
     assert seqs_ok and count == n  # every sample, in order, to the well-behaved watcher
     assert max(rss[1:]) - rss[1] < RSS_GROWTH_LIMIT_MB, rss
     assert daemon.raw_capture() == data  # every byte captured, across the rotations

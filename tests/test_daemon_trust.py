@@ -39,8 +39,15 @@ def publish(service: Service, data: bytes, chunk: int = 997) -> list[dict]:
 # -- M6: IDENTITY fields from the wire ------------------------------------------------------------
 
 
-@pytest.mark.parametrize("fields", [{"rate_hz": 0}, {"scale_arcsec_per_count": math.nan},
-                                    {"scale_arcsec_per_count": -0.01}, {"scale_arcsec_per_count": math.inf}])
+@pytest.mark.parametrize(
+    "fields",
+    [
+        {"rate_hz": 0},
+        {"scale_arcsec_per_count": math.nan},
+        {"scale_arcsec_per_count": -0.01},
+        {"scale_arcsec_per_count": math.inf},
+    ],
+)
 def test_an_implausible_identity_is_counted_and_ignored_the_angle_stays_finite(fields):
     """Rate 0 crashed the daemon (ZeroDivisionError); one NaN scale removed angle_arcsec from every later ANGLE."""
     half = len(SHORT) // 2
@@ -49,9 +56,13 @@ def test_an_implausible_identity_is_counted_and_ignored_the_angle_stays_finite(f
     published = publish(service, data)
     assert len(published) == 3000
     assert all(math.isfinite(o["angle_arcsec"]) and math.isfinite(o["rate_dph"]) for o in published)
-    assert service.status_object()["identities_rejected"] == sum(f.offset >= half for f in decode_bytes(data).identities)
+    assert service.status_object()["identities_rejected"] == sum(
+        f.offset >= half for f in decode_bytes(data).identities
+    )
     assert service.identity.rate_hz == 10  # the last plausible one stays in force
-    assert [o["angle_arcsec"] for o in published] == [o["angle_arcsec"] for o in publish(Service(DriverConfig(), port="u"), SHORT)]
+    assert [o["angle_arcsec"] for o in published] == [
+        o["angle_arcsec"] for o in publish(Service(DriverConfig(), port="u"), SHORT)
+    ]
 
 
 def test_an_implausible_first_identity_leaves_samples_waiting_for_a_plausible_one():
@@ -83,8 +94,11 @@ def test_a_rate_change_mid_run_rebuilds_the_pipeline_flags_it_and_offline_does_t
     published = publish(service, data)
     angles, flags = offline(path)
     assert [o["angle_arcsec"] for o in published] == angles  # live == offline through the change
-    first_after = next(i for i, o in enumerate(published) if o["seq"] and service.identity.rate_hz == 20
-                       and "gap" in o["flags"] and i > 100)  # fmt: skip
+    first_after = next(
+        i
+        for i, o in enumerate(published)
+        if o["seq"] and service.identity.rate_hz == 20 and "gap" in o["flags"] and i > 100
+    )
     assert flags[first_after] & FLAG_GAP
     assert service.status_object()["instrument_changes"] == 1
     assert service.compensator.frame_period_s == 1 / 20
@@ -106,8 +120,9 @@ def test_another_serial_mid_run_is_refused_like_at_the_start():
 
 @pytest.fixture(scope="module")
 def other_model(tmp_path_factory):
-    model_file, _ = fit_model_file([DATA / "sim-short.bin"], kind="polynomial", config=FitConfig(warmup_s=30.0),
-                                   accept_weak=True)
+    model_file, _ = fit_model_file(
+        [DATA / "sim-short.bin"], kind="polynomial", config=FitConfig(warmup_s=30.0), accept_weak=True
+    )
     return save_model(tmp_path_factory.mktemp("m") / "poly.yaml", model_file)
 
 
@@ -202,8 +217,10 @@ def test_a_reload_that_fails_changes_nothing(tmp_path, other_model):
 
 def test_a_model_for_another_instrument_is_refused_by_reload_and_nothing_changes(tmp_path, other_model):
     model_file = load_model(other_model)
-    foreign = save_model(tmp_path / "foreign.yaml", model_file.__class__(**{**model_file.__dict__,
-                                                                            "instrument_serial": "FOG-OTHER-9999"}))
+    foreign = save_model(
+        tmp_path / "foreign.yaml",
+        model_file.__class__(**{**model_file.__dict__, "instrument_serial": "FOG-OTHER-9999"}),
+    )
     service = Service(DriverConfig(), port="unused")
     publish(service, SHORT[:20000])
     before = service.model_file
@@ -236,8 +253,7 @@ def test_live_equals_offline_with_a_restored_adaptation_state(tmp_path):
     state.write_text(yaml.safe_dump(doc))
     service = Service(DriverConfig(adapt_state=str(state)), port="unused")  # frozen, with the adapted weights
     published = publish(service, SHORT)
-    angles, flags = offline(DATA / "sim-short.bin", adapt=AdaptConfig(), adapt_state=state,
-                                   save_adapt_state=False)  # fmt: skip
+    angles, flags = offline(DATA / "sim-short.bin", adapt=AdaptConfig(), adapt_state=state, save_adapt_state=False)
     assert [o["angle_arcsec"] for o in published] == angles
     assert [bool("adapting" in o["flags"]) for o in published] == [bool(f & FLAG_ADAPTING) for f in flags]
     assert state.read_text() == yaml.safe_dump(doc)  # only read: neither saved it

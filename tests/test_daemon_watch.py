@@ -34,17 +34,44 @@ from fog_driver.errors import DeviceError, UsageError
 
 GUARD_S = 30.0  # a hang guard only, never a synchronisation
 
-VERSION = {"class": "VERSION", "release": "0.1.0", "proto_major": 1, "proto_minor": 0,
-           "instrument": {"serial": "FOG-SYN-0001", "firmware": "1.2", "rate_hz": 100}}  # fmt: skip
-DEVICE = {"class": "DEVICE", "path": "/tmp/fog-driver-sim.tty", "state": "activated", "serial": "FOG-SYN-0001", "rate_hz": 100}
-STATUS = {"class": "STATUS", "frames": 4242, "crc_errors": 3, "missing_frames": 7, "clients": 1,
-          "cpu_percent": 2.5, "port_state": "open", "some_future_key": "x"}  # fmt: skip
+VERSION = {
+    "class": "VERSION",
+    "release": "0.1.0",
+    "proto_major": 1,
+    "proto_minor": 0,
+    "instrument": {"serial": "FOG-SYN-0001", "firmware": "1.2", "rate_hz": 100},
+}
+DEVICE = {
+    "class": "DEVICE",
+    "path": "/tmp/fog-driver-sim.tty",
+    "state": "activated",
+    "serial": "FOG-SYN-0001",
+    "rate_hz": 100,
+}
+STATUS = {
+    "class": "STATUS",
+    "frames": 4242,
+    "crc_errors": 3,
+    "missing_frames": 7,
+    "clients": 1,
+    "cpu_percent": 2.5,
+    "port_state": "open",
+    "some_future_key": "x",
+}
 
 
 def angle(seq: int, **extra) -> dict:
-    obj = {"class": "ANGLE", "seq": seq, "t_s": 12.34 + 0.1 * (seq - 1), "angle_arcsec": 3723.5 + seq,
-           "angle_raw_arcsec": -59.995 - seq, "rate_dph": 15.041, "drift_dph": 0.1234,
-           "temps_c": {"top": 20.25, "bottom": 19.88, "housing": 19.6}, "flags": ["gap"] if seq == 2 else []}  # fmt: skip
+    obj = {
+        "class": "ANGLE",
+        "seq": seq,
+        "t_s": 12.34 + 0.1 * (seq - 1),
+        "angle_arcsec": 3723.5 + seq,
+        "angle_raw_arcsec": -59.995 - seq,
+        "rate_dph": 15.041,
+        "drift_dph": 0.1234,
+        "temps_c": {"top": 20.25, "bottom": 19.88, "housing": 19.6},
+        "flags": ["gap"] if seq == 2 else [],
+    }
     obj.update(extra)
     return obj
 
@@ -77,7 +104,9 @@ class FakeDaemon:
                     if not data:
                         return
                     self.request += data
-                conn.sendall(ndjson({"class": "WATCH", "enable": True, "rate_hz": json.loads(self.request[7:-2])["rate_hz"]}))
+                conn.sendall(
+                    ndjson({"class": "WATCH", "enable": True, "rate_hz": json.loads(self.request[7:-2])["rate_hz"]})
+                )
                 for chunk in self.chunks:
                     conn.sendall(chunk)
                 if self.then == "wait":  # until the client hangs up
@@ -134,21 +163,23 @@ def test_count_reached_exits_0_with_the_latest_values():
     assert status == 0
     assert daemon.request == b'?WATCH={"enable":true,"rate_hz":10};\n'
     lines = text.splitlines()
-    assert lines[0] == ("connected to 127.0.0.1:2948: server 0.1.0, protocol 1.0; "
-                        "instrument serial FOG-SYN-0001, firmware 1.2, 100 Hz").replace("2948", str(daemon.port))  # fmt: skip
+    assert lines[0] == (
+        "connected to 127.0.0.1:2948: server 0.1.0, protocol 1.0; instrument serial FOG-SYN-0001, firmware 1.2, 100 Hz"
+    ).replace("2948", str(daemon.port))
     assert lines[1] == "device /tmp/fog-driver-sim.tty, activated, serial FOG-SYN-0001, 100 Hz"
     last = lines[-1]  # the final compact line: the third ANGLE (count=3), not the fourth
     assert "seq 3 |" in last and "t 12.540 s" in last
-    assert "angle 3726.50\" (1°02'06.50\")" in last
-    assert "raw -63.00\" (-0°01'03.00\")" in last  # -59.995 - 3 = -62.995..., rounded away from zero
+    assert 'angle 3726.50" (1°02\'06.50")' in last
+    assert 'raw -63.00" (-0°01\'03.00")' in last  # -59.995 - 3 = -62.995..., rounded away from zero
     # the mean rate over the ANGLEs since the gap (seq 2): 1" in 0.1 s of device time, not one sample's 15.041
     assert "rate 10.00 deg/h (mean over 0.1 s)" in last and "drift 0.1234 deg/h" in last
     assert "temps top 20.25 bottom 19.88 housing 19.60 degC" in last
     assert "flags none" in last
     assert "3 ANGLE" in last and "3 malformed" in last and "1 unknown class" in last  # WATCH is known
     assert "(WATCH 10 Hz)" in last
-    assert ("status clients=1 cpu_percent=2.5 crc_errors=3 frames=4242 missing_frames=7 "
-            "port_state=open some_future_key=x") in last  # fmt: skip
+    assert (
+        "status clients=1 cpu_percent=2.5 crc_errors=3 frames=4242 missing_frames=7 port_state=open some_future_key=x"
+    ) in last
     assert "None" not in text and "null" not in text
 
 
@@ -255,7 +286,7 @@ def test_terminal_view_redraws_a_block_in_place():
     assert len(frames) <= 2 + 10 * elapsed  # at most 10 redraws a second (+ the first and the last)
     last = frames[-1]
     assert "\x1b[K\n" in last and "\x1b[J" in last
-    assert "angle       3726.50\" (1°02'06.50\")" in last
+    assert 'angle       3726.50" (1°02\'06.50")' in last
     assert "temps       top 20.25  bottom 19.88  housing 19.60 degC" in last
     assert "device      /tmp/fog-driver-sim.tty, activated" in last
     assert text.endswith("\x1b[?25h")  # the cursor is shown again
@@ -312,8 +343,14 @@ def test_format_dms_ascii_degree():
 
 @pytest.mark.parametrize(
     ("arcsec", "text"),
-    [(1e30, "1e+30"), (-1e26, "-1e+26"), (1e15, "1000000000000000.0"), (10**400, "1.000000e+400"),
-     (-(10**400), "-1.000000e+400"), (float("inf"), "inf")],
+    [
+        (1e30, "1e+30"),
+        (-1e26, "-1e+26"),
+        (1e15, "1000000000000000.0"),
+        (10**400, "1.000000e+400"),
+        (-(10**400), "-1.000000e+400"),
+        (float("inf"), "inf"),
+    ],
     ids=["1e30", "-1e26", "1e15", "10**400", "-10**400", "inf"],
 )
 def test_absurd_angles_are_shown_plainly(arcsec, text):
@@ -323,10 +360,16 @@ def test_absurd_angles_are_shown_plainly(arcsec, text):
 
 
 def test_the_views_survive_absurd_values():
-    absurd = angle(2, angle_arcsec=1e30, angle_raw_arcsec=-(10**400), rate_dph=10**400, t_s=1e300,
-                   temps_c={"top": 10**400, "housing": 20.0})
+    absurd = angle(
+        2,
+        angle_arcsec=1e30,
+        angle_raw_arcsec=-(10**400),
+        rate_dph=10**400,
+        t_s=1e300,
+        temps_c={"top": 10**400, "housing": 20.0},
+    )
     lines = render({**FULL_STATE, "angle": absurd}, width=200)
-    assert "angle       1e+30\" (1e+30)    raw -1.000000e+400\" (-1.000000e+400)" in lines
+    assert 'angle       1e+30" (1e+30)    raw -1.000000e+400" (-1.000000e+400)' in lines
     assert "rate        1.000000e+400 deg/h (one sample)    drift 0.1234 deg/h" in lines
     assert "temps       top 1.000000e+400  bottom -  housing 20.00 degC" in lines
     assert "1e+30" in compact_line({**FULL_STATE, "angle": absurd})
@@ -369,10 +412,19 @@ def test_line_reader_limits_line_length_across_chunks():
 
 
 FULL_STATE = {
-    "address": "127.0.0.1:2948", "elapsed_s": 3.25, "version": VERSION, "device": DEVICE,
-    "angle": angle(2), "status": STATUS, "angles": 30, "angle_rate_hz": 10.0, "angle_age_s": 0.04,
-    "malformed": 2, "unknown": 1, "error": "port lost",
-}  # fmt: skip
+    "address": "127.0.0.1:2948",
+    "elapsed_s": 3.25,
+    "version": VERSION,
+    "device": DEVICE,
+    "angle": angle(2),
+    "status": STATUS,
+    "angles": 30,
+    "angle_rate_hz": 10.0,
+    "angle_age_s": 0.04,
+    "malformed": 2,
+    "unknown": 1,
+    "error": "port lost",
+}
 
 
 def test_render_full_state():
@@ -381,7 +433,7 @@ def test_render_full_state():
     assert lines[1:] == [
         "instrument  serial FOG-SYN-0001, firmware 1.2, 100 Hz",
         "device      /tmp/fog-driver-sim.tty, activated, serial FOG-SYN-0001, 100 Hz",
-        "angle       3725.50\" (1°02'05.50\")    raw -62.00\" (-0°01'02.00\")",  # the two forms agree
+        'angle       3725.50" (1°02\'05.50")    raw -62.00" (-0°01\'02.00")',  # the two forms agree
         "rate        15.0 deg/h (one sample)    drift 0.1234 deg/h",
         "temps       top 20.25  bottom 19.88  housing 19.60 degC",
         "flags       gap",
@@ -435,7 +487,10 @@ def test_render_missing_fields_show_a_dash():
 
 
 def test_render_flags_a_newer_protocol():
-    assert "protocol 2.0 (this client speaks 1.x)" in render({"version": {"class": "VERSION", "release": "9", "proto_major": 2}})[0]
+    assert (
+        "protocol 2.0 (this client speaks 1.x)"
+        in render({"version": {"class": "VERSION", "release": "9", "proto_major": 2}})[0]
+    )
 
 
 def test_compact_line_is_one_line():
@@ -462,8 +517,15 @@ def test_parse_address(text, expected):
     assert parse_address(text) == expected
 
 
-@pytest.mark.parametrize(("host", "text"), [("127.0.0.1", "127.0.0.1:2948"), ("gyro-pc", "gyro-pc:2948"),
-                                           ("::1", "[::1]:2948"), ("fe80::1%eth0", "[fe80::1%eth0]:2948")])
+@pytest.mark.parametrize(
+    ("host", "text"),
+    [
+        ("127.0.0.1", "127.0.0.1:2948"),
+        ("gyro-pc", "gyro-pc:2948"),
+        ("::1", "[::1]:2948"),
+        ("fe80::1%eth0", "[fe80::1%eth0]:2948"),
+    ],
+)
 def test_format_address_is_read_back_by_parse_address(host, text):
     assert format_address(host, 2948) == text
     assert parse_address(text) == (host, 2948)
@@ -475,7 +537,9 @@ def test_parse_address_rejects(text):
         parse_address(text)
 
 
-@pytest.mark.parametrize(("arcsec", "text"), [(3723.5, "3723.50"), (-59.995, "-60.00"), (-0.004, "0.00"), (2.675, "2.68")])
+@pytest.mark.parametrize(
+    ("arcsec", "text"), [(3723.5, "3723.50"), (-59.995, "-60.00"), (-0.004, "0.00"), (2.675, "2.68")]
+)
 def test_format_arcsec_agrees_with_format_dms(arcsec, text):
     assert format_arcsec(arcsec) == text
 
@@ -491,8 +555,11 @@ def test_log_view_prints_a_line_each_second():
 
 
 def test_server_text_cannot_inject_control_characters():
-    state = {"error": "bad\nline\x1b[2J", "status": {"class": "STATUS", "k\x1b[H": "v\r"},
-             "device": {"class": "DEVICE", "path": "/dev/tty\x07", "state": "activated"}}  # fmt: skip
+    state = {
+        "error": "bad\nline\x1b[2J",
+        "status": {"class": "STATUS", "k\x1b[H": "v\r"},
+        "device": {"class": "DEVICE", "path": "/dev/tty\x07", "state": "activated"},
+    }
     for text in ("\n".join(render(state)), compact_line(state)):
         assert "\x1b" not in text and "\r" not in text and "\x07" not in text
     assert "error       bad?line?[2J" in render(state)
@@ -500,9 +567,13 @@ def test_server_text_cannot_inject_control_characters():
 
 @pytest.mark.parametrize(
     ("policy", "shown"),
-    [({"enable": True, "rate_hz": 10}, "(WATCH 10 Hz)"), ({"enable": True, "rate_hz": None}, "(WATCH every sample)"),
-     ({"enable": True}, "(WATCH every sample)"), ({"enable": False}, "(WATCH disabled)")],
-)  # fmt: skip
+    [
+        ({"enable": True, "rate_hz": 10}, "(WATCH 10 Hz)"),
+        ({"enable": True, "rate_hz": None}, "(WATCH every sample)"),
+        ({"enable": True}, "(WATCH every sample)"),
+        ({"enable": False}, "(WATCH disabled)"),
+    ],
+)
 def test_render_shows_the_watch_policy_in_force(policy, shown):
     received = [line for line in render({"watch": {"class": "WATCH", **policy}}) if line.startswith("received")]
     assert received[0].endswith(shown)
@@ -516,9 +587,15 @@ def test_the_token_is_sent_first_so_a_token_daemon_keeps_the_watch():
     sends ?AUTH before ?WATCH (the token from FOG_DRIVER_TOKEN), and without it is closed."""
     from fog_driver.daemon.hub import Hub
 
-    hub = Hub("127.0.0.1", 0, version=lambda: {"release": "0.1.0", "proto_major": 1, "proto_minor": 0},
-              device=lambda: None, control=lambda name, args, cid: {"class": name}, token="a-long-token",
-              auth_deadline_s=0.3)  # fmt: skip
+    hub = Hub(
+        "127.0.0.1",
+        0,
+        version=lambda: {"release": "0.1.0", "proto_major": 1, "proto_minor": 0},
+        device=lambda: None,
+        control=lambda name, args, cid: {"class": name},
+        token="a-long-token",
+        auth_deadline_s=0.3,
+    )
     host, port = hub.start()
     stop = threading.Event()
 
@@ -579,8 +656,10 @@ def test_a_peer_that_closes_before_the_greeting_is_could_not_connect_at_once():
         server.join(GUARD_S)
         listener.close()
     assert time.monotonic() - started < 30  # not after --duration
-    assert str(info.value) == (f"could not connect to 127.0.0.1:{port}: the daemon closed the connection before the "
-                               "VERSION greeting (is `fog-driver run` running?)")  # fmt: skip
+    assert str(info.value) == (
+        f"could not connect to 127.0.0.1:{port}: the daemon closed the connection before the "
+        "VERSION greeting (is `fog-driver run` running?)"
+    )
     assert info.value.exit_status == 69
 
 
@@ -611,31 +690,46 @@ def test_the_daemons_rates_average_to_the_angle_difference(tmp_path):
         assert daemon.terminate() == 0
     window = [a for a in angles if "gap" not in a["flags"]][-11:]
     mean = sum(a["rate_dph"] for a in window[1:]) / 10
-    assert mean == pytest.approx((window[-1]["angle_arcsec"] - window[0]["angle_arcsec"])
-                                 / (window[-1]["t_s"] - window[0]["t_s"]), abs=1e-9)  # fmt: skip
+    assert mean == pytest.approx(
+        (window[-1]["angle_arcsec"] - window[0]["angle_arcsec"]) / (window[-1]["t_s"] - window[0]["t_s"]), abs=1e-9
+    )
 
 
-@pytest.mark.parametrize(("state", "banner"), [
-    ({"device": {"state": "deactivated"}}, "*** LINK DOWN: the daemon's instrument port is closed"),
-    ({"status": {"port_state": "lost"}}, "*** LINK DOWN"),
-    ({"elapsed_s": 7.2}, "*** NO DATA for 7 s ***"),
-    ({"angle": angle(1), "angle_age_s": 4.0}, "*** NO DATA for 4 s ***"),
-    ({"status": {"bias_captured": False}, "keys": True},
-     "bias not removed: at rest the angle climbs with Earth rate + bias; press b (or `fog-driver ctl bias 60`)"),
-    ({"status": {"bias_captured": False}, "address": "gyro-pc:2948"},
-     "bias not removed: at rest the angle climbs with Earth rate + bias; run `fog-driver ctl --connect gyro-pc:2948 bias 60`"),
-    ({"status": {"bias_captured": False, "bias_capture_s": 12.0, "bias_capture_target_s": 60.0}},
-     "capturing the bias: 12.0 / 60 s of data; keep the table still"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    ("state", "banner"),
+    [
+        ({"device": {"state": "deactivated"}}, "*** LINK DOWN: the daemon's instrument port is closed"),
+        ({"status": {"port_state": "lost"}}, "*** LINK DOWN"),
+        ({"elapsed_s": 7.2}, "*** NO DATA for 7 s ***"),
+        ({"angle": angle(1), "angle_age_s": 4.0}, "*** NO DATA for 4 s ***"),
+        (
+            {"status": {"bias_captured": False}, "keys": True},
+            "bias not removed: at rest the angle climbs with Earth rate + bias; press b (or `fog-driver ctl bias 60`)",
+        ),
+        (
+            {"status": {"bias_captured": False}, "address": "gyro-pc:2948"},
+            "bias not removed: at rest the angle climbs with Earth rate + bias; run `fog-driver ctl --connect gyro-pc:2948 bias 60`",
+        ),
+        (
+            {"status": {"bias_captured": False, "bias_capture_s": 12.0, "bias_capture_target_s": 60.0}},
+            "capturing the bias: 12.0 / 60 s of data; keep the table still",
+        ),
+    ],
+)
 def test_banners(state, banner):
     lines = render(state)
     assert any(line.startswith(banner) for line in lines[1:3]), lines  # right under the head line
     assert compact_line(state).split(" | ")[0].split("] ")[1] in banner  # and first in the log line
 
 
-@pytest.mark.parametrize("state", [{"status": {"bias_captured": True}, "elapsed_s": 1.0},
-                                   {"angle": angle(1), "angle_age_s": 0.5, "device": {"state": "activated"}},
-                                   {"status": {"bias_dph": 0.0}}])  # fmt: skip
+@pytest.mark.parametrize(
+    "state",
+    [
+        {"status": {"bias_captured": True}, "elapsed_s": 1.0},
+        {"angle": angle(1), "angle_age_s": 0.5, "device": {"state": "activated"}},
+        {"status": {"bias_dph": 0.0}},
+    ],
+)
 def test_no_banner_when_all_is_well(state):
     assert not any(line.startswith(("***", "bias", "capturing")) for line in render(state))
 
@@ -650,8 +744,12 @@ def test_watch_json_passes_the_daemons_lines_through_a_pipe_unchanged(tmp_path):
 
     with watched_daemon(tmp_path) as (pty, daemon, _):
         host, port = daemon.address
-        proc = subprocess.Popen([sys.executable, "-m", "fog_driver", "watch", f"{host}:{port}", "--json", "--rate-hz", "10"],
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL)  # fmt: skip
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "fog_driver", "watch", f"{host}:{port}", "--json", "--rate-hz", "10"],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            stdin=subprocess.DEVNULL,
+        )
         try:
             lines = [proc.stdout.readline()]
             assert json.loads(lines[0])["class"] == "VERSION"
@@ -736,8 +834,12 @@ def test_keys_z_b_q_on_a_terminal_and_the_terminal_restored(tmp_path):
         n_head = decode_bytes(SHORT[:head], final=False).counters.sample_frames
         watch_all(client, n_head)
         host, port = daemon.address
-        proc = subprocess.Popen([sys.executable, "-m", "fog_driver", "watch", f"{host}:{port}"],
-                                stdin=term.slave, stdout=term.slave, stderr=subprocess.PIPE)  # fmt: skip
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "fog_driver", "watch", f"{host}:{port}"],
+            stdin=term.slave,
+            stdout=term.slave,
+            stderr=subprocess.PIPE,
+        )
         try:
             term.wait_for("keys        q quit")
             term.wait_for("bias not removed: at rest the angle climbs with Earth rate + bias; press b")
@@ -784,9 +886,13 @@ def test_the_terminal_is_restored_when_a_signal_ends_or_suspends_the_watch(tmp_p
     before = termios.tcgetattr(term.slave)
     with watched_daemon(tmp_path) as (_, daemon, _client):
         host, port = daemon.address
-        proc = subprocess.Popen([sys.executable, "-m", "fog_driver", "watch", f"{host}:{port}"],
-                                stdin=term.slave, stdout=term.slave, stderr=subprocess.PIPE,
-                                **AS_A_SHELLS_FOREGROUND_JOB)  # fmt: skip
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "fog_driver", "watch", f"{host}:{port}"],
+            stdin=term.slave,
+            stdout=term.slave,
+            stderr=subprocess.PIPE,
+            **AS_A_SHELLS_FOREGROUND_JOB,
+        )
         try:
             term.wait_for("keys        q quit")
             assert termios.tcgetattr(term.slave) != before

@@ -34,10 +34,20 @@ TIMEOUT_S = 20.0
 
 def angle(seq: int, t_s: float, *, rate: float | None = None, **extra) -> dict:
     rate = 10.0 + math.sin(seq / 37.0) * 3 if rate is None else rate
-    return {"class": "ANGLE", "seq": seq, "t_s": t_s, "angle_arcsec": seq * 0.1 - 50.0,
-            "angle_raw_arcsec": seq * 0.11, "rate_dph": rate, "rate_raw_dph": rate + 1.5,
-            "drift_dph": -0.5 + seq * 1e-4, "temps_c": {"top": 20 + seq * 1e-3, "bottom": 21.0, "housing": 22.0},
-            "flags": [], "utc": f"2026-12-03T00:00:{seq % 60:02d}.000Z", **extra}  # fmt: skip
+    return {
+        "class": "ANGLE",
+        "seq": seq,
+        "t_s": t_s,
+        "angle_arcsec": seq * 0.1 - 50.0,
+        "angle_raw_arcsec": seq * 0.11,
+        "rate_dph": rate,
+        "rate_raw_dph": rate + 1.5,
+        "drift_dph": -0.5 + seq * 1e-4,
+        "temps_c": {"top": 20 + seq * 1e-3, "bottom": 21.0, "housing": 22.0},
+        "flags": [],
+        "utc": f"2026-12-03T00:00:{seq % 60:02d}.000Z",
+        **extra,
+    }
 
 
 def stream(n: int, rate_hz: float = 100.0, t0: float = 3.0) -> list[dict]:
@@ -82,7 +92,7 @@ def test_the_series_do_not_depend_on_how_the_samples_are_batched():
     i = 0
     while i < len(samples):
         n = int(rng.integers(1, 300))
-        pieces.add_angles(samples[i:i + n], 0.0)
+        pieces.add_angles(samples[i : i + n], 0.0)
         i += n
     one = ViewState()
     for s in samples:
@@ -175,28 +185,63 @@ def scrape(collector: DaemonCollector) -> dict:
 
 
 def test_metrics_carry_the_status_counters_and_the_latency_histogram():
-    status = {"uptime_s": 12.5, "port_state": "lost", "bytes_in": 123456, "frames": 4000, "crc_errors": 3,
-              "bytes_discarded": 77, "missing_frames": 12, "published": 3990, "clients": 2, "dropped_clients": 1,
-              "capture_state": "failed", "capture_bytes_lost": 999, "bias_dph": 0.25, "adapting": True,
-              "flagged": {"gap": 2, "extrapolating": 5}}  # fmt: skip
+    status = {
+        "uptime_s": 12.5,
+        "port_state": "lost",
+        "bytes_in": 123456,
+        "frames": 4000,
+        "crc_errors": 3,
+        "bytes_discarded": 77,
+        "missing_frames": 12,
+        "published": 3990,
+        "clients": 2,
+        "dropped_clients": 1,
+        "capture_state": "failed",
+        "capture_bytes_lost": 999,
+        "bias_dph": 0.25,
+        "adapting": True,
+        "flagged": {"gap": 2, "extrapolating": 5},
+    }
     latencies = np.random.default_rng(1).lognormal(np.log(0.002), 1.0, 5000)
     histogram = LatencyHistogram()
     for value in latencies:
         histogram.observe(float(value))
-    state = {"status": status, "device": {"format": "kvh-a", "serial": "S1", "firmware": "2"},
-             "version": {"release": "9.9"}, "reconnects": 4, "capture_failures": 6, "model_age_s": 86400.0,
-             "angle": {"drift_dph": -1.5, "temps_c": {"top": 30.5, "bottom": 31.0}, "flags": ["extrapolating"]},
-             "angle_age_s": 0.25, "rate_1s_dph": 14.9, "web_clients": 3, "web_dropped": 2}  # fmt: skip
+    state = {
+        "status": status,
+        "device": {"format": "kvh-a", "serial": "S1", "firmware": "2"},
+        "version": {"release": "9.9"},
+        "reconnects": 4,
+        "capture_failures": 6,
+        "model_age_s": 86400.0,
+        "angle": {"drift_dph": -1.5, "temps_c": {"top": 30.5, "bottom": 31.0}, "flags": ["extrapolating"]},
+        "angle_age_s": 0.25,
+        "rate_1s_dph": 14.9,
+        "web_clients": 3,
+        "web_dropped": 2,
+    }
     m = scrape(DaemonCollector(lambda: state, histogram))
     assert m[("fog_driver_info", (("firmware", "2"), ("format", "kvh-a"), ("release", "9.9"), ("serial", "S1")))] == 1
-    expected = {"fog_driver_bytes_total": 123456, "fog_driver_frames_total": 4000, "fog_driver_crc_errors_total": 3,
-                "fog_driver_bytes_discarded_total": 77, "fog_driver_missing_frames_total": 12,
-                "fog_driver_samples_published_total": 3990, "fog_driver_port_up": 0, "fog_driver_capture_up": 0,
-                "fog_driver_port_reconnects_total": 4, "fog_driver_capture_failures_total": 6,
-                "fog_driver_capture_bytes_lost_total": 999, "fog_driver_bias_dph": 0.25, "fog_driver_adapting": 1,
-                "fog_driver_model_age_seconds": 86400, "fog_driver_drift_dph": -1.5, "fog_driver_rate_dph": 14.9,
-                "fog_driver_last_sample_age_seconds": 0.25, "fog_driver_extrapolating": 1,
-                "fog_driver_uptime_seconds": 12.5}  # fmt: skip
+    expected = {
+        "fog_driver_bytes_total": 123456,
+        "fog_driver_frames_total": 4000,
+        "fog_driver_crc_errors_total": 3,
+        "fog_driver_bytes_discarded_total": 77,
+        "fog_driver_missing_frames_total": 12,
+        "fog_driver_samples_published_total": 3990,
+        "fog_driver_port_up": 0,
+        "fog_driver_capture_up": 0,
+        "fog_driver_port_reconnects_total": 4,
+        "fog_driver_capture_failures_total": 6,
+        "fog_driver_capture_bytes_lost_total": 999,
+        "fog_driver_bias_dph": 0.25,
+        "fog_driver_adapting": 1,
+        "fog_driver_model_age_seconds": 86400,
+        "fog_driver_drift_dph": -1.5,
+        "fog_driver_rate_dph": 14.9,
+        "fog_driver_last_sample_age_seconds": 0.25,
+        "fog_driver_extrapolating": 1,
+        "fog_driver_uptime_seconds": 12.5,
+    }
     for name, value in expected.items():
         assert m[(name, ())] == value, name
     assert m[("fog_driver_clients", (("listener", "ndjson"),))] == 2
@@ -273,9 +318,11 @@ class WsClient:
         self.sock.connect(address)
         key = base64.b64encode(os.urandom(16)).decode()
         extra = "".join(f"{h}\r\n" for h in headers) + (f"Origin: {origin}\r\n" if origin else "")
-        self.sock.sendall(f"GET /ws HTTP/1.1\r\nHost: {address[0]}:{address[1]}\r\nUpgrade: websocket\r\n"
-                          f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n"
-                          f"{extra}\r\n".encode())  # fmt: skip
+        self.sock.sendall(
+            f"GET /ws HTTP/1.1\r\nHost: {address[0]}:{address[1]}\r\nUpgrade: websocket\r\n"
+            f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n"
+            f"{extra}\r\n".encode()
+        )
         self.buffer = b""
         while b"\r\n\r\n" not in self.buffer:
             chunk = self.sock.recv(65536)
@@ -324,7 +371,7 @@ class WsClient:
 def test_the_page_its_assets_and_plotly_from_the_installed_package(web):
     view = web()
     status, headers, body = get(view.address, "/")
-    assert status == 200 and b"/static/plotly.min.js" in body and b"<script src=\"http" not in body
+    assert status == 200 and b"/static/plotly.min.js" in body and b'<script src="http' not in body
     assert "default-src 'self'" in headers["content-security-policy"]
     plotly = importlib.resources.files("plotly").joinpath("package_data/plotly.min.js").read_bytes()
     status, headers, body = get(view.address, "/static/plotly.min.js")
@@ -403,8 +450,10 @@ def test_beyond_loopback_every_request_needs_the_token(web):
     assert status == 302 and headers["location"] == "/login"  # a browser is sent to log in again
     assert get(address, "/metrics", "Authorization: Bearer another-token")[0] == 200
     form = b"token=nope"
-    request = (b"POST /login HTTP/1.1\r\nHost: x\r\nConnection: close\r\nContent-Type: application/x-www-form-"
-               b"urlencoded\r\nContent-Length: %d\r\n\r\n%s")  # fmt: skip
+    request = (
+        b"POST /login HTTP/1.1\r\nHost: x\r\nConnection: close\r\nContent-Type: application/x-www-form-"
+        b"urlencoded\r\nContent-Length: %d\r\n\r\n%s"
+    )
     codes = [http(address, request % (len(form), form))[0] for _ in range(AUTH_FAILURES_BEFORE_BACKOFF + 2)]
     assert codes == [401] * (AUTH_FAILURES_BEFORE_BACKOFF + 1) + [429]  # then this address waits
     assert get(address, "/metrics", "Authorization: Bearer another-token")[0] == 429  # even with the right one
@@ -426,8 +475,10 @@ def test_oversized_requests_get_a_clear_status(web):
     many = [f"X-H{i}: 1" for i in range(200)]
     assert get(view.address, "/", *many)[0] in (400, 431)
     body = b"token=" + b"a" * 5000
-    request = (b"POST /login HTTP/1.1\r\nHost: x\r\nConnection: close\r\nContent-Type: application/x-www-form-"
-               b"urlencoded\r\nContent-Length: %d\r\n\r\n%s") % (len(body), body)
+    request = (
+        b"POST /login HTTP/1.1\r\nHost: x\r\nConnection: close\r\nContent-Type: application/x-www-form-"
+        b"urlencoded\r\nContent-Length: %d\r\n\r\n%s"
+    ) % (len(body), body)
     view_beyond = web("0.0.0.0", token="s3cret-token")
     assert http(("127.0.0.1", view_beyond.address[1]), request)[0] == 413
 
@@ -553,14 +604,34 @@ def test_the_daemon_refuses_a_web_view_beyond_loopback_without_a_token_and_one_o
     from test_cli import assert_one_line_error, run_cli
 
     port = f"replay://{Path(__file__).resolve().parent / 'data' / 'sim-short.bin'}?rate=10"
-    proc = run_cli("run", "--port", port, "--listen", "127.0.0.1:0", "--http", "0.0.0.0:0",
-                   "--capture-dir", str(tmp_path / "c"), cwd=tmp_path)  # fmt: skip
+    proc = run_cli(
+        "run",
+        "--port",
+        port,
+        "--listen",
+        "127.0.0.1:0",
+        "--http",
+        "0.0.0.0:0",
+        "--capture-dir",
+        str(tmp_path / "c"),
+        cwd=tmp_path,
+    )
     assert_one_line_error(proc, 78, "http 0.0.0.0:0", "without a token")
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))
         busy.listen()
-        proc = run_cli("run", "--port", port, "--listen", "127.0.0.1:0", "--http", f"127.0.0.1:{busy.getsockname()[1]}",
-                       "--capture-dir", str(tmp_path / "c"), cwd=tmp_path)  # fmt: skip
+        proc = run_cli(
+            "run",
+            "--port",
+            port,
+            "--listen",
+            "127.0.0.1:0",
+            "--http",
+            f"127.0.0.1:{busy.getsockname()[1]}",
+            "--capture-dir",
+            str(tmp_path / "c"),
+            cwd=tmp_path,
+        )
     assert_one_line_error(proc, 75, "cannot listen on", "(http)")
 
 

@@ -88,7 +88,9 @@ def generated(generator: Path, tmp_path_factory: pytest.TempPathFactory) -> tupl
     """(golden.bin, golden.txt) as the generator writes them now."""
     out = tmp_path_factory.mktemp("fog_vectors")
     result = _run([str(generator), str(out / "golden.bin"), str(out / "golden.txt")])
-    assert result.returncode == 0, f"make_vectors failed ({result.returncode}): {result.stderr.decode(errors='replace')}"
+    assert result.returncode == 0, (
+        f"make_vectors failed ({result.returncode}): {result.stderr.decode(errors='replace')}"
+    )
     assert result.stderr == b""
     return (out / "golden.bin").read_bytes(), (out / "golden.txt").read_bytes()
 

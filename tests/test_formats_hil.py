@@ -78,8 +78,15 @@ def test_setup_commands_reach_a_kvh_device_on_open_and_its_frames_are_published(
     capture = simulate_to_file(sim, tmp_path / "fit.bin", duration_s=900).capture
     fitted, _ = fit_model_file([capture], kind="polynomial", config=FitConfig(warmup_s=30.0), accept_weak=True)
     model = save_model(tmp_path / "kvh.yaml", fitted)
-    config = daemon_config(tmp_path, "kvh-a", model, rate_hz=100, rot_units="rad", temp_units="c_100",
-                           setup=["=TEMPUNITS,C_100", "=DR,100"])  # fmt: skip
+    config = daemon_config(
+        tmp_path,
+        "kvh-a",
+        model,
+        rate_hz=100,
+        rot_units="rad",
+        temp_units="c_100",
+        setup=["=TEMPUNITS,C_100", "=DR,100"],
+    )
     with PtyPair() as pty, FakeKvhDevice(pty, rate_hz=100) as kvh:
         daemon = Daemon(tmp_path, pty.slave_path, "--config", str(config))
         try:
@@ -111,14 +118,18 @@ def test_setup_commands_reach_a_kvh_device_on_open_and_its_frames_are_published(
 def test_record_sends_the_setup_and_its_capture_reads_as_the_daemon_reads_it(tmp_path):
     from fog_driver.cli import main
 
-    config = daemon_config(tmp_path, "kvh-a", tmp_path / "unused.yaml", rate_hz=100, temp_units="c_100",
-                           setup=["=TEMPUNITS,C_100"])  # fmt: skip
+    config = daemon_config(
+        tmp_path, "kvh-a", tmp_path / "unused.yaml", rate_hz=100, temp_units="c_100", setup=["=TEMPUNITS,C_100"]
+    )
     out = tmp_path / "rec.bin"
     with PtyPair() as pty, FakeKvhDevice(pty, rate_hz=100) as kvh:
         # the device sends frames in whole degC until the setup changes it
         assert main(["record", pty.slave_path, "--config", str(config), "--duration", "1.5", "--out", str(out)]) == 0
         assert [c.upper() for c in [kvh.commands.get(timeout=5) for _ in range(3)]] == [
-            "=CONFIG,1", "=TEMPUNITS,C_100", "=CONFIG,0"]  # fmt: skip
+            "=CONFIG,1",
+            "=TEMPUNITS,C_100",
+            "=CONFIG,0",
+        ]
     doc = yaml.safe_load((tmp_path / "rec.bin.yaml").read_text())
     (event,) = doc["events"]
     assert event["event"] == "device_setup" and event["at_byte"] == 0 and event["bytes_not_decoded"] > 0

@@ -448,8 +448,10 @@ def test_a_false_header_of_unknown_size_does_not_hold_a_live_stream_back():
     false = bytearray(_resized(base, bytes(6), external_bit=23))
     size_at = 15  # v3: "IX", version, three 4-byte masks, then the telegram size
     struct.pack_into(">H", false, size_at, MAX_TELEGRAM_LEN)
-    good = [encode_stdbin(3, counter=k, validity_time_100us=100 * k, rotation_rate_dps=(1.0, 2.0, 3.0))
-            for k in range(10, 14)]  # fmt: skip
+    good = [
+        encode_stdbin(3, counter=k, validity_time_100us=100 * k, rotation_rate_dps=(1.0, 2.0, 3.0))
+        for k in range(10, 14)
+    ]
     decoder = StdbinDecoder()
     decoder.feed(bytes(false[:40]))
     for k, telegram in zip(range(10, 14), good):  # fed as they arrive: each comes out at once

@@ -409,7 +409,13 @@ def test_the_vector_encoder_writes_the_bytes_of_the_frame_encoder(fmt):
     tag = rng.integers(0, 2**32, n)
     rows = encode_kvh_frames(fmt, gyro, accel, status, seq, temp, tag if fmt == "b" else None)
     for k in range(n):
-        one = encode_kvh_frame(fmt, tuple(map(float, gyro[k])), tuple(map(float, accel[k])), int(status[k]),
-                               int(seq[k]) % 128, float(temp[k]) if fmt == "c" else int(temp[k]),
-                               time_tag_us=int(tag[k]) if fmt == "b" else 0)  # fmt: skip
+        one = encode_kvh_frame(
+            fmt,
+            tuple(map(float, gyro[k])),
+            tuple(map(float, accel[k])),
+            int(status[k]),
+            int(seq[k]) % 128,
+            float(temp[k]) if fmt == "c" else int(temp[k]),
+            time_tag_us=int(tag[k]) if fmt == "b" else 0,
+        )
         assert rows[k].tobytes() == one

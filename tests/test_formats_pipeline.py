@@ -150,11 +150,15 @@ def test_a_model_records_its_channels_and_refuses_other_formats(kvh_model, captu
     model = load_model(kvh_model)
     assert model.temperature_channels == ("sensor",)
     assert model.domain.names == ("t_sensor_c", "rate_sensor_c_per_min") and len(model.normalizer.mean) == 2
-    with pytest.raises(ModelMismatchError, match=r"fitted on the temperature channels sensor; .*fog-v1 frames carry "
-                                                  r"top, bottom, housing: it cannot be applied"):
+    with pytest.raises(
+        ModelMismatchError,
+        match=r"fitted on the temperature channels sensor; .*fog-v1 frames carry "
+        r"top, bottom, housing: it cannot be applied",
+    ):
         next(compensate_capture(captures["fog-v1"], model, force=True))
-    with pytest.raises(ModelMismatchError, match="top, bottom, housing; .*ixblue-stdbin frames carry fog, "
-                                                 "accelerometer, board"):
+    with pytest.raises(
+        ModelMismatchError, match="top, bottom, housing; .*ixblue-stdbin frames carry fog, accelerometer, board"
+    ):
         next(compensate_capture(captures["ixblue-stdbin"], load_model(DEFAULT_MODEL)))
     with pytest.raises(InputFileError, match="one model is fitted on one instrument's channels"):
         fit_model_file([captures["kvh-a"], captures["fog-v1"]], kind="polynomial", config=SHORT_FIT, accept_weak=True)
@@ -188,9 +192,14 @@ def test_the_daemon_publishes_what_offline_compensation_gives(fmt, chunk, captur
     path = captures[fmt]
     wire = wire_settings_for(path)
     model = kvh_model if fmt.startswith("kvh") else stdbin_model
-    config = DriverConfig(format=fmt, model=str(model), force_model=True,
-                          device=DeviceConfig(rate_hz=wire.rate_hz, rot_format=wire.rot_format,
-                                              rot_units=wire.rot_units, temp_units=wire.temp_units))  # fmt: skip
+    config = DriverConfig(
+        format=fmt,
+        model=str(model),
+        force_model=True,
+        device=DeviceConfig(
+            rate_hz=wire.rate_hz, rot_format=wire.rot_format, rot_units=wire.rot_units, temp_units=wire.temp_units
+        ),
+    )
     service = Service(config, port="unused")
     data = path.read_bytes()
     if chunk == 1:
@@ -200,8 +209,9 @@ def test_the_daemon_publishes_what_offline_compensation_gives(fmt, chunk, captur
         published += service.process(data[i : i + chunk])
     part = Path(str(path) + (".part.bin" if chunk == 1 else ".whole.bin"))
     part.write_bytes(data)
-    Path(str(part) + ".yaml").write_text(yaml.safe_dump({"wire_format": fmt, "wire_settings": wire.sidecar_fields()[
-        "wire_settings"]}))  # fmt: skip
+    Path(str(part) + ".yaml").write_text(
+        yaml.safe_dump({"wire_format": fmt, "wire_settings": wire.sidecar_fields()["wire_settings"]})
+    )
     offline = [a for _, cols in compensate_capture(part, load_model(model), force=True) for a in cols.angle_comp_arcsec]
     assert [o["angle_arcsec"] for o in published] == offline and len(offline) > 500
     temps = published[-1]["temps_c"]
@@ -212,8 +222,11 @@ def test_the_daemon_publishes_what_offline_compensation_gives(fmt, chunk, captur
 
 
 def test_the_daemon_refuses_a_model_of_other_channels_and_bad_device_settings(kvh_model):
-    with pytest.raises(ConfigError, match=r"the model .*default\.yaml was fitted on the temperature channels top, "
-                                          r"bottom, housing; the instrument's kvh-a frames carry sensor"):
+    with pytest.raises(
+        ConfigError,
+        match=r"the model .*default\.yaml was fitted on the temperature channels top, "
+        r"bottom, housing; the instrument's kvh-a frames carry sensor",
+    ):
         Service(DriverConfig(format="kvh-a", device=DeviceConfig(rate_hz=1000)), port="unused")
     with pytest.raises(InputFileError, match=r"x\.yaml: device\.rate_hz: kvh-b frames do not say"):
         parse_config({"format": "kvh-b"}, "x.yaml")
@@ -227,21 +240,76 @@ def test_fit_compensate_and_evaluate_a_kvh_chamber_run_from_the_command_line(tmp
     """The paper's 440-minute chamber run from a KVH DSP-1750 (1 Hz, Format A), fitted with the default kind and
     judged on another profile against the simulator's truth."""
     for name, profile, seed in (("chamber", "paper", 5), ("check", "fast-ramps", 6)):
-        assert main(["simulate", "--format", "kvh-a", "--profile", profile, "--rate-hz", "1", "--seed", str(seed),
-                     "--out", str(tmp_path / f"{name}.bin")]) == 0  # fmt: skip
+        assert (
+            main(
+                [
+                    "simulate",
+                    "--format",
+                    "kvh-a",
+                    "--profile",
+                    profile,
+                    "--rate-hz",
+                    "1",
+                    "--seed",
+                    str(seed),
+                    "--out",
+                    str(tmp_path / f"{name}.bin"),
+                ]
+            )
+            == 0
+        )
     assert main(["fit", str(tmp_path / "chamber.bin"), "--out", str(tmp_path / "m.yaml")]) == 0
     assert load_model(tmp_path / "m.yaml").temperature_channels == ("sensor",)
-    assert main(["compensate", str(tmp_path / "check.bin"), "--model", str(tmp_path / "m.yaml"), "--format", "kvh-a",
-                 "--out", str(tmp_path / "c.csv")]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "compensate",
+                str(tmp_path / "check.bin"),
+                "--model",
+                str(tmp_path / "m.yaml"),
+                "--format",
+                "kvh-a",
+                "--out",
+                str(tmp_path / "c.csv"),
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
-    assert main(["evaluate", str(tmp_path / "check.bin"), "--model", str(tmp_path / "m.yaml"), "--truth",
-                 str(tmp_path / "check.truth.csv"), "--out", str(tmp_path / "report"), "--json"]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "evaluate",
+                str(tmp_path / "check.bin"),
+                "--model",
+                str(tmp_path / "m.yaml"),
+                "--truth",
+                str(tmp_path / "check.truth.csv"),
+                "--out",
+                str(tmp_path / "report"),
+                "--json",
+            ]
+        )
+        == 0
+    )
     summary = yaml.safe_load(capsys.readouterr().out.strip().splitlines()[-1])
     raw, left = summary["truth"]["drift_rms_1min_dph"], summary["truth"]["residual_rms_1min_dph"]
     assert math.isfinite(raw) and left < 0.7 * raw, (raw, left)
     # the protocol v1 model cannot be applied to it, whatever --force says
-    assert main(["compensate", str(tmp_path / "check.bin"), "--model", str(DEFAULT_MODEL), "--force",
-                 "--out", str(tmp_path / "d.csv")]) == 64  # fmt: skip
+    assert (
+        main(
+            [
+                "compensate",
+                str(tmp_path / "check.bin"),
+                "--model",
+                str(DEFAULT_MODEL),
+                "--force",
+                "--out",
+                str(tmp_path / "d.csv"),
+            ]
+        )
+        == 64
+    )
     assert "cannot be applied" in capsys.readouterr().err
 
 
@@ -249,10 +317,11 @@ def test_the_daemon_can_publish_all_three_axes(captures, kvh_model):
     path = captures["kvh-a"]
     wire = wire_settings_for(path)
     device = DeviceConfig(rate_hz=wire.rate_hz, temp_units=wire.temp_units)
-    data = path.read_bytes()[:36 * 400]
+    data = path.read_bytes()[: 36 * 400]
     plain = Service(DriverConfig(format="kvh-a", model=str(kvh_model), device=device), port="unused").process(data)
-    axes = Service(DriverConfig(format="kvh-a", model=str(kvh_model), device=device, publish_axes=True),
-                   port="unused").process(data)  # fmt: skip
+    axes = Service(
+        DriverConfig(format="kvh-a", model=str(kvh_model), device=device, publish_axes=True), port="unused"
+    ).process(data)
     assert len(axes) == len(plain) == 400 and "axes_rate_raw_dph" not in plain[0]
     for a, p in zip(axes, plain):
         rates = a.pop("axes_rate_raw_dph")
@@ -265,8 +334,20 @@ def test_record_writes_the_format_and_device_settings_into_the_sidecar(captures,
     config = tmp_path / "kvh.yaml"
     config.write_text("format: kvh-a\ndevice: {rate_hz: 10, temp_units: c_100}\n")
     out = tmp_path / "rec.bin"
-    assert main(["record", f"replay://{captures['kvh-a']}?unplug=1", "--no-reconnect", "--config", str(config),
-                 "--out", str(out)]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "record",
+                f"replay://{captures['kvh-a']}?unplug=1",
+                "--no-reconnect",
+                "--config",
+                str(config),
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     assert "sample frames, 0 CRC errors" in capsys.readouterr().out
     assert out.read_bytes() == captures["kvh-a"].read_bytes()
     doc = yaml.safe_load((tmp_path / "rec.bin.yaml").read_text())
@@ -276,8 +357,12 @@ def test_record_writes_the_format_and_device_settings_into_the_sidecar(captures,
     n = sum(len(p.samples) for p in CaptureReader(out, wire).parts())
     assert doc["decoded_while_recording"]["sample_frames"] == n > 10000
     # a format that needs the device's settings, without them: one line, exit 64, nothing recorded
-    assert main(["record", f"replay://{captures['kvh-a']}?unplug=1", "--format", "kvh-b", "--out",
-                 str(tmp_path / "no.bin")]) == 64  # fmt: skip
+    assert (
+        main(
+            ["record", f"replay://{captures['kvh-a']}?unplug=1", "--format", "kvh-b", "--out", str(tmp_path / "no.bin")]
+        )
+        == 64
+    )
     assert "kvh-b frames do not say the device's output rate" in capsys.readouterr().err
     assert not (tmp_path / "no.bin").exists()
 
@@ -298,7 +383,7 @@ def test_a_port_configured_for_the_wrong_format_says_what_it_sees(captures, kvh_
 def test_format_auto_in_the_daemon_finds_the_format_and_publishes_as_configured_for_it(captures, kvh_model):
     wire = wire_settings_for(captures["kvh-a"])
     device = DeviceConfig(rate_hz=wire.rate_hz, temp_units=wire.temp_units)
-    data = captures["kvh-a"].read_bytes()[:36 * 3000]
+    data = captures["kvh-a"].read_bytes()[: 36 * 3000]
     auto = Service(DriverConfig(format="auto", model=str(kvh_model), device=device), port="unused")
     assert auto.device_object().get("format") is None  # not known before the first bytes
     got = [o for i in range(0, len(data), 500) for o in auto.process(data[i : i + 500])]
@@ -316,12 +401,18 @@ def test_a_float_word_that_passed_its_checksum_as_nan_never_poisons_the_angle(ca
 
     wire = wire_settings_for(captures["kvh-a"])
     data = bytearray(captures["kvh-a"].read_bytes()[: 36 * 300])
-    bad = [encode_kvh_frame("a", (0.0, 0.0, value), (0.0, 0.0, 1.0), seq=(100 + k) % 128, temp=2500)
-           for k, value in enumerate((math.nan, math.inf, -1e30))]  # fmt: skip
+    bad = [
+        encode_kvh_frame("a", (0.0, 0.0, value), (0.0, 0.0, 1.0), seq=(100 + k) % 128, temp=2500)
+        for k, value in enumerate((math.nan, math.inf, -1e30))
+    ]
     for k, frame in enumerate(bad):  # CRC-valid frames in place of three of the capture's
         data[36 * (100 + k) : 36 * (101 + k)] = frame
-    service = Service(DriverConfig(format="kvh-a", model=str(kvh_model), device=DeviceConfig(
-        rate_hz=wire.rate_hz, temp_units=wire.temp_units)), port="unused")  # fmt: skip
+    service = Service(
+        DriverConfig(
+            format="kvh-a", model=str(kvh_model), device=DeviceConfig(rate_hz=wire.rate_hz, temp_units=wire.temp_units)
+        ),
+        port="unused",
+    )
     published = service.process(bytes(data))
     assert len(published) == 300
     assert all(math.isfinite(o["angle_arcsec"]) and math.isfinite(o["rate_raw_dph"]) for o in published)
@@ -334,12 +425,13 @@ def test_a_float_word_that_passed_its_checksum_as_nan_never_poisons_the_angle(ca
 def test_sidecar_settings_of_the_wrong_kind_are_one_line_errors(captures, tmp_path):
     bare = tmp_path / "k.bin"
     bare.write_bytes(captures["kvh-a"].read_bytes()[:5000])
-    for text, expected in (("wire_format: kvh-z\n", r"wire_format: unknown frame format 'kvh-z'"),
-                           ("wire_format: kvh-a\nwire_settings: {rate_hz: true}\n", r"rate_hz: must be an integer"),
-                           ("wire_format: kvh-a\nwire_settings: [1, 2]\n", r"wire_settings: expected a mapping"),
-                           ("wire_format: kvh-a\nwire_settings: {rate_hz: 10, axis: w}\n", r"axis: must be one of"),
-                           ("wire_format: kvh-a\nwire_settings: {rate_hz: 10, serial: 7}\n", r"serial: at most 64"),
-                           ):  # fmt: skip
+    for text, expected in (
+        ("wire_format: kvh-z\n", r"wire_format: unknown frame format 'kvh-z'"),
+        ("wire_format: kvh-a\nwire_settings: {rate_hz: true}\n", r"rate_hz: must be an integer"),
+        ("wire_format: kvh-a\nwire_settings: [1, 2]\n", r"wire_settings: expected a mapping"),
+        ("wire_format: kvh-a\nwire_settings: {rate_hz: 10, axis: w}\n", r"axis: must be one of"),
+        ("wire_format: kvh-a\nwire_settings: {rate_hz: 10, serial: 7}\n", r"serial: at most 64"),
+    ):
         (tmp_path / "k.bin.yaml").write_text(text)
         with pytest.raises(InputFileError, match=expected):
             wire_settings_for(bare)
@@ -351,8 +443,13 @@ def test_sidecar_settings_of_the_wrong_kind_are_one_line_errors(captures, tmp_pa
 def test_the_kvh_batch_path_gives_the_streaming_samples_bit_for_bit(fmt, tmp_path):
     """Files are read by the numpy batch decoder, the daemon by the streaming one: the same samples, with
     drops, flips, garbage with false headers and link gaps, for any block size."""
-    sim = Simulator(load_profile("short-test"), rate_hz=50, seed=3, wire_format=fmt,
-                    faults=parse_fault_spec("drop=0.01,flip=2e-5,garbage=0.5,disconnect=5:2"))  # fmt: skip
+    sim = Simulator(
+        load_profile("short-test"),
+        rate_hz=50,
+        seed=3,
+        wire_format=fmt,
+        faults=parse_fault_spec("drop=0.01,flip=2e-5,garbage=0.5,disconnect=5:2"),
+    )
     path = simulate_to_file(sim, tmp_path / "f.bin", duration_s=120).capture
     wire = wire_settings_for(path)
     data = path.read_bytes()
@@ -383,6 +480,9 @@ def test_bytes_read_during_a_device_setup_are_left_out_offline_at_any_block_size
 
 def test_format_auto_finding_a_format_without_its_device_settings_is_a_config_error(captures):
     service = Service(DriverConfig(format="auto"), port="unused")
-    with pytest.raises(ConfigError, match=r"format auto: device\.rate_hz: kvh-a frames do not say the device's "
-                                          r"output rate"):  # fmt: skip
+    with pytest.raises(
+        ConfigError,
+        match=r"format auto: device\.rate_hz: kvh-a frames do not say the device's "
+        r"output rate",
+    ):
         service.process(captures["kvh-a"].read_bytes()[:10000])

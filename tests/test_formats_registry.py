@@ -18,12 +18,12 @@ DATA = Path(__file__).parent / "data"
 
 def fog_v1(n: int) -> bytes:
     return encode_identity("FOG-1", 0x0102, 100, 0.01) + b"".join(
-        encode_sample(k, 10_000 * k, k, 5000, 5001, 5002, 0) for k in range(n))  # fmt: skip
+        encode_sample(k, 10_000 * k, k, 5000, 5001, 5002, 0) for k in range(n)
+    )
 
 
 def kvh(fmt: str, n: int) -> bytes:
-    return b"".join(encode_kvh_frame(fmt, (1e-6, 2e-6, 3e-6), (0.0, 0.0, 1.0), seq=k % 128, temp=30)
-                    for k in range(n))  # fmt: skip
+    return b"".join(encode_kvh_frame(fmt, (1e-6, 2e-6, 3e-6), (0.0, 0.0, 1.0), seq=k % 128, temp=30) for k in range(n))
 
 
 STREAMS = {
@@ -61,5 +61,7 @@ def test_inspect_names_what_a_capture_of_another_format_is(tmp_path):
     with pytest.raises(InputFileError) as info:
         inspect_capture(capture)
     message = str(info.value)
-    assert message == (f"{capture}: not a protocol v1 capture: no valid frame in 7200 bytes; it looks like kvh-a "
-                       "(200 valid frames in the first 7,200 bytes): read it with --format kvh-a or auto")  # fmt: skip
+    assert message == (
+        f"{capture}: not a protocol v1 capture: no valid frame in 7200 bytes; it looks like kvh-a "
+        "(200 valid frames in the first 7,200 bytes): read it with --format kvh-a or auto"
+    )

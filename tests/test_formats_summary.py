@@ -16,8 +16,13 @@ DATA = Path(__file__).parent / "data"
 
 
 def kvh_capture(tmp_path: Path, faults: str = "", seconds: float = 60.0) -> tuple[Path, Simulator]:
-    sim = Simulator(load_profile("short-test"), rate_hz=50, seed=8, wire_format="kvh-a",
-                    faults=parse_fault_spec(faults) if faults else None)  # fmt: skip
+    sim = Simulator(
+        load_profile("short-test"),
+        rate_hz=50,
+        seed=8,
+        wire_format="kvh-a",
+        faults=parse_fault_spec(faults) if faults else None,
+    )
     capture = tmp_path / "kvh.bin"
     simulate_to_file(sim, capture, duration_s=seconds)
     return capture, sim
@@ -62,8 +67,10 @@ def test_a_format_the_sniffer_contradicts_is_one_line_naming_what_it_saw(tmp_pat
     capture, _ = kvh_capture(tmp_path, seconds=10.0)
     assert cli.main(["inspect", str(capture), "--format", "ixblue-stdbin"]) == 65
     (line,) = capsys.readouterr().err.splitlines()
-    assert line == (f"fog-driver: error: {capture}: --format ixblue-stdbin, but the sniffer saw kvh-a "
-                    "(500 valid frames in the first 18,000 bytes)")  # fmt: skip
+    assert line == (
+        f"fog-driver: error: {capture}: --format ixblue-stdbin, but the sniffer saw kvh-a "
+        "(500 valid frames in the first 18,000 bytes)"
+    )
     v1 = DATA / "sim-short.bin"
     assert cli.main(["inspect", str(v1), "--format", "kvh-a"]) == 65
     assert "but the sniffer saw fog-v1" in capsys.readouterr().err

@@ -168,8 +168,13 @@ print(json.dumps(out))
 def _child(env: dict[str, str] | None) -> dict[str, str]:
     import os
 
-    proc = subprocess.run([sys.executable, "-c", _CHILD, str(HERE / "data" / "golden" / "models")],
-                          capture_output=True, text=True, timeout=120, env={**os.environ, **(env or {})})  # fmt: skip
+    proc = subprocess.run(
+        [sys.executable, "-c", _CHILD, str(HERE / "data" / "golden" / "models")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, **(env or {})},
+    )
     assert proc.returncode == 0, proc.stderr
     return json.loads(proc.stdout)
 

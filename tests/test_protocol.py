@@ -375,9 +375,17 @@ def test_batch_decoder_fed_in_blocks_equals_streaming_decoder(case, sizes, cuts,
 
 
 def test_decode_file_in_small_blocks_equals_one_shot(tmp_path):
-    data = b"".join(
-        [b"\x00\xaa", *(encode_sample(i, i * 1000, i, 1, 2, 3) for i in range(200)), encode_identity("F", 1, 2, 3.0)]
-    ) * 3 + b"\xaa\x55\x01"
+    data = (
+        b"".join(
+            [
+                b"\x00\xaa",
+                *(encode_sample(i, i * 1000, i, 1, 2, 3) for i in range(200)),
+                encode_identity("F", 1, 2, 3.0),
+            ]
+        )
+        * 3
+        + b"\xaa\x55\x01"
+    )
     path = tmp_path / "c.bin"
     path.write_bytes(data)
     whole = decode_bytes(data)

@@ -15,8 +15,18 @@ import readme_block  # noqa: E402
 
 
 def test_the_block_key_is_the_command_less_the_cache_and_the_flag():
-    argv = ["--set", "dev", "--workdir", "/tmp/x", "--update-readme", "--workdir=/y", "--workers", "1",
-            "--workers=2", "--adapt"]
+    argv = [
+        "--set",
+        "dev",
+        "--workdir",
+        "/tmp/x",
+        "--update-readme",
+        "--workdir=/y",
+        "--workers",
+        "1",
+        "--workers=2",
+        "--adapt",
+    ]
     assert readme_block.block_key("benchmarks/bench_population.py", argv) == "bench_population.py --set dev --adapt"
 
 
@@ -33,7 +43,9 @@ def test_update_readme_writes_the_output_and_refuses_before_the_work_without_a_b
     readme.write_text("<!-- bench: b.py --k -->\n<!-- /bench -->\n")
     with readme_block.readme_output("b.py --k", update=True, readme=readme):
         print("figure 1.23")
-    assert readme_block.blocks(readme.read_text())["b.py --k"] == "```\n$ python benchmarks/b.py --k\nfigure 1.23\n```\n"
+    assert (
+        readme_block.blocks(readme.read_text())["b.py --k"] == "```\n$ python benchmarks/b.py --k\nfigure 1.23\n```\n"
+    )
     worked = []
     with pytest.raises(ValueError):
         with readme_block.readme_output("other.py", update=True, readme=readme):

@@ -21,15 +21,20 @@ READY_TIMEOUT_S = 60.0
 
 
 def test_markers_parse_into_steps_and_nonsense_is_refused():
-    text = ('<!-- walkthrough -->\n```sh\na --x \\\n  --y   # comment\n# only a comment\nb\n```\n'
-            '<!-- walkthrough: background, ready when "go" -->\n```sh\nserve\n```\n<!-- walkthrough: stop -->\n')  # fmt: skip
+    text = (
+        "<!-- walkthrough -->\n```sh\na --x \\\n  --y   # comment\n# only a comment\nb\n```\n"
+        '<!-- walkthrough: background, ready when "go" -->\n```sh\nserve\n```\n<!-- walkthrough: stop -->\n'
+    )
     assert walkthrough.steps(text) == [
         walkthrough.Step("run", ("a --x  --y   # comment", "b"), line=1),
         walkthrough.Step("background", ("serve",), "go", line=8),
         walkthrough.Step("stop", line=12),
     ]
-    for bad in ("<!-- walkthrough -->\nno block\n", "<!-- walkthrough: sometimes -->\n```sh\na\n```\n",
-                '<!-- walkthrough: background, ready when "x" -->\n```sh\na\nb\n```\n'):  # fmt: skip
+    for bad in (
+        "<!-- walkthrough -->\nno block\n",
+        "<!-- walkthrough: sometimes -->\n```sh\na\n```\n",
+        '<!-- walkthrough: background, ready when "x" -->\n```sh\na\nb\n```\n',
+    ):
         with pytest.raises(ValueError, match="README.md:1"):
             walkthrough.steps(bad)
 
@@ -38,9 +43,18 @@ def test_the_walkthrough_covers_the_newcomers_path():
     """Deleting a marker must not quietly shorten the walkthrough: the main job and every step of a
     calibration are in it, in this order."""
     commands = [c for step in walkthrough.steps(walkthrough.README.read_text()) for c in step.commands]
-    wanted = ["python3 -m venv .venv", "pip install -e", "fog-driver run", "fog-driver watch", "fog-driver ctl bias",
-              "fog-driver simulate", "fog-driver inspect", "fog-driver fit", "fog-driver compensate",
-              "fog-driver evaluate"]  # fmt: skip
+    wanted = [
+        "python3 -m venv .venv",
+        "pip install -e",
+        "fog-driver run",
+        "fog-driver watch",
+        "fog-driver ctl bias",
+        "fog-driver simulate",
+        "fog-driver inspect",
+        "fog-driver fit",
+        "fog-driver compensate",
+        "fog-driver evaluate",
+    ]
     positions = [next((i for i, c in enumerate(commands) if c.startswith(w)), None) for w in wanted]
     assert None not in positions, dict(zip(wanted, positions))
     assert positions == sorted(positions), dict(zip(wanted, positions))
@@ -48,8 +62,16 @@ def test_the_walkthrough_covers_the_newcomers_path():
 
 def fresh_copy(destination: Path) -> Path:
     """The files a fresh clone of this working tree would hold (tracked ones and new ones not ignored)."""
-    listed = subprocess.run(["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"], cwd=ROOT,
-                            capture_output=True, check=True).stdout.decode().split("\0")  # fmt: skip
+    listed = (
+        subprocess.run(
+            ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
+            cwd=ROOT,
+            capture_output=True,
+            check=True,
+        )
+        .stdout.decode()
+        .split("\0")
+    )
     for name in filter(None, listed):
         source = ROOT / name
         if source.is_file():  # a tracked file deleted in the working tree is not in the next commit
@@ -79,8 +101,9 @@ def test_the_readme_walkthrough_runs_as_written(tmp_path):
                 for command in step.commands:
                     timeout_s = INSTALL_TIMEOUT_S if walkthrough.INSTALL.match(command) else LINE_TIMEOUT_S
                     done = walkthrough.run_line(command, clone, walkthrough.environment(clone), timeout_s)
-                    assert done.returncode == 0, (f"{where}: {command!r} exited {done.returncode}\n"
-                                                  f"{done.stdout[-3000:]}\n{done.stderr[-3000:]}")  # fmt: skip
+                    assert done.returncode == 0, (
+                        f"{where}: {command!r} exited {done.returncode}\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}"
+                    )
         assert background is None, f"{background.command!r} was never stopped"
     finally:
         if background is not None:

@@ -31,13 +31,29 @@ def test_evaluate_measures_the_simulators_arw_within_10_percent(tmp_path):
     from fog_driver.sim.profiles import load_profile
 
     capture = tmp_path / "run.bin"
-    simulate_to_file(Simulator(load_profile(ROOT / "configs" / "profiles" / "short-test.yaml"), rate_hz=20, seed=4),
-                     capture)  # fmt: skip
+    simulate_to_file(
+        Simulator(load_profile(ROOT / "configs" / "profiles" / "short-test.yaml"), rate_hz=20, seed=4), capture
+    )
     out = tmp_path / "report"
-    proc = subprocess.run([sys.executable, "-m", "fog_driver", "evaluate", str(capture), "--model",
-                           str(DEFAULT_MODEL), "--out", str(out), "--json",
-                           "--truth", str(capture.with_suffix(".truth.csv"))],
-                          capture_output=True, text=True, timeout=300)  # fmt: skip
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "fog_driver",
+            "evaluate",
+            str(capture),
+            "--model",
+            str(DEFAULT_MODEL),
+            "--out",
+            str(out),
+            "--json",
+            "--truth",
+            str(capture.with_suffix(".truth.csv")),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stderr
     summary = json.loads(proc.stdout)
     assert summary == json.loads((out / "summary.json").read_text())
@@ -50,9 +66,22 @@ def test_evaluate_measures_the_simulators_arw_within_10_percent(tmp_path):
     report = (out / "report.md").read_text()
     assert "angle random walk" in report and "![allan](allan.png)" in report
     assert "No positioning sequences in this capture: the table is skipped." in report
-    again = subprocess.run([sys.executable, "-m", "fog_driver", "evaluate", str(capture), "--model",
-                            str(DEFAULT_MODEL), "--out", str(out)],
-                           capture_output=True, text=True, timeout=300)  # fmt: skip
+    again = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "fog_driver",
+            "evaluate",
+            str(capture),
+            "--model",
+            str(DEFAULT_MODEL),
+            "--out",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert again.returncode == 73 and "refusing to overwrite" in again.stderr
 
 
@@ -81,8 +110,22 @@ def test_evaluate_refuses_another_instruments_model(tmp_path):
     doc["instrument_serial"] = "FOG-OTHER-0001"
     other = tmp_path / "other.yaml"
     other.write_text(yaml.safe_dump(doc))
-    proc = subprocess.run([sys.executable, "-m", "fog_driver", "evaluate", str(DATA / "sim-short.bin"), "--model",
-                           str(other), "--out", str(tmp_path / "r")], capture_output=True, text=True, timeout=120)  # fmt: skip
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "fog_driver",
+            "evaluate",
+            str(DATA / "sim-short.bin"),
+            "--model",
+            str(other),
+            "--out",
+            str(tmp_path / "r"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 64 and "FOG-OTHER-0001" in proc.stderr and "Traceback" not in proc.stderr
 
 
@@ -103,8 +146,12 @@ def test_a_link_gap_never_shifts_the_seconds_against_the_drift_or_the_truth(tmp_
     summaries = {}
     for name, faults in (("clean", ""), ("gap", "disconnect=3000:900")):
         capture = tmp_path / f"{name}.bin"
-        sim = Simulator(load_profile(ROOT / "configs" / "profiles" / "fast-ramps.yaml"), rate_hz=10, seed=2,
-                        faults=parse_fault_spec(faults) if faults else None)  # fmt: skip
+        sim = Simulator(
+            load_profile(ROOT / "configs" / "profiles" / "fast-ramps.yaml"),
+            rate_hz=10,
+            seed=2,
+            faults=parse_fault_spec(faults) if faults else None,
+        )
         simulate_to_file(sim, capture, duration_s=7200)
         summaries[name], series, _ = evaluate(capture, model, truth=read_truth(capture.with_suffix(".truth.csv")))
         assert len(series.t_s) == len(series.drift_dph) == 7200
@@ -113,5 +160,7 @@ def test_a_link_gap_never_shifts_the_seconds_against_the_drift_or_the_truth(tmp_
     assert lost[3001:3900].all() and not lost[:3000].any() and not lost[3901:].any()
     assert not series.static[lost].any()
     clean, gap = summaries["clean"], summaries["gap"]
-    assert gap["compensated"]["drift_rms_1min_dph"] == pytest.approx(clean["compensated"]["drift_rms_1min_dph"], rel=0.25)
+    assert gap["compensated"]["drift_rms_1min_dph"] == pytest.approx(
+        clean["compensated"]["drift_rms_1min_dph"], rel=0.25
+    )
     assert gap["truth"]["residual_rms_1min_dph"] < 1.5 * clean["truth"]["residual_rms_1min_dph"]

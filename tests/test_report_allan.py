@@ -100,10 +100,28 @@ def test_the_csv_round_trips_the_table(tmp_path):
     assert read_csv(path) == r.table()
 
 
-def _evaluate(tmp_path, *extra: str, capture: Path = DATA / "sim-short.bin") -> tuple[subprocess.CompletedProcess, Path]:
+def _evaluate(
+    tmp_path, *extra: str, capture: Path = DATA / "sim-short.bin"
+) -> tuple[subprocess.CompletedProcess, Path]:
     out = tmp_path / "rep"
-    proc = subprocess.run([sys.executable, "-m", "fog_driver", "evaluate", str(capture), "--model", str(DEFAULT_MODEL),
-                           "--out", str(out), "--json", *extra], capture_output=True, text=True, timeout=300)  # fmt: skip
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "fog_driver",
+            "evaluate",
+            str(capture),
+            "--model",
+            str(DEFAULT_MODEL),
+            "--out",
+            str(out),
+            "--json",
+            *extra,
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stderr
     return proc, out
 
@@ -116,8 +134,10 @@ def test_a_short_capture_warns_and_compared_models_get_their_own_columns(tmp_pat
     summary = json.loads(proc.stdout)
     start, stop = summary["allan_stretch_s"]
     warnings = summary["warnings"]
-    assert any(w.startswith(f"short stretch: {stop - start} s") and f"above {(stop - start) / 10:.0f} s untrusted" in w
-               for w in warnings)  # fmt: skip
+    assert any(
+        w.startswith(f"short stretch: {stop - start} s") and f"above {(stop - start) / 10:.0f} s untrusted" in w
+        for w in warnings
+    )
     assert any(f"from {summary['static_minutes']} one-minute means is not reliable" in w for w in warnings)
     for w in warnings:
         assert f"warning: {w}" in proc.stderr
@@ -146,8 +166,9 @@ def test_evaluate_reports_its_progress_in_percent():
 
     model = load_model(DEFAULT_MODEL)
     seen: list[str] = []
-    evaluate(DATA / "sim-short.bin", model, label="default (wesn)", compare={"other (wesn)": model},
-             progress=seen.append)  # fmt: skip
+    evaluate(
+        DATA / "sim-short.bin", model, label="default (wesn)", compare={"other (wesn)": model}, progress=seen.append
+    )
     first = [t for t in seen if t.startswith("evaluating 1/2: decoding and compensating with default (wesn)")]
     second = [t for t in seen if t.startswith("evaluating 2/2: compensating with other (wesn)")]
     assert first and second and seen.index(second[0]) > seen.index(first[-1])

@@ -153,14 +153,19 @@ def write(tmp_path, text, name="ref.csv", encoding="utf-8"):
 
 
 def test_reference_csv_good(tmp_path):
-    text = ("# turntable reference\n\n"
-            "t_start_s, t_end_s, angle_deg   # the header\n"
-            "1500.0,1560.0,0\n"
-            "# a comment between rows\n"
-            "1563.8,1623.8,36  # trailing comment\n"
-            "1627.6,1687.6,72\n")  # fmt: skip
+    text = (
+        "# turntable reference\n\n"
+        "t_start_s, t_end_s, angle_deg   # the header\n"
+        "1500.0,1560.0,0\n"
+        "# a comment between rows\n"
+        "1563.8,1623.8,36  # trailing comment\n"
+        "1627.6,1687.6,72\n"
+    )
     assert read_reference_csv(write(tmp_path, text)) == [
-        Stop(1500.0, 1560.0, 0.0), Stop(1563.8, 1623.8, 36.0), Stop(1627.6, 1687.6, 72.0)]
+        Stop(1500.0, 1560.0, 0.0),
+        Stop(1563.8, 1623.8, 36.0),
+        Stop(1627.6, 1687.6, 72.0),
+    ]
     # any column order, extra columns, a BOM, touching dwells
     text = "angle_deg,t_end_s,note,t_start_s\n0,10,a,0\n-36,20,b,10\n"
     assert read_reference_csv(write(tmp_path, text, "b.csv", "utf-8-sig")) == [Stop(0, 10, 0), Stop(10, 20, -36)]
@@ -178,8 +183,10 @@ def test_reference_csv_format_text_is_documented():
         ("t_start_s,t_end_s,angle_deg\n0,10,zero\n", r"ref.csv:2: angle_deg is not a number: 'zero'"),
         ("t_start_s,t_end_s,angle_deg\n0,10,nan\n", "angle_deg must be finite"),
         ("t_start_s,t_end_s,angle_deg\n0,10,0\n5,20,36\n", r"ref.csv:3: times must increase"),
-        ("t_start_s,t_end_s,angle_deg\n0,10,0\n20,15,36\n",
-         r"ref.csv:3: t_end_s \(15\) must be after t_start_s \(20\)"),
+        (
+            "t_start_s,t_end_s,angle_deg\n0,10,0\n20,15,36\n",
+            r"ref.csv:3: t_end_s \(15\) must be after t_start_s \(20\)",
+        ),
         ("t_start_s,t_end_s,angle_deg\n-1,10,0\n", "must not be negative"),
         ("t_start_s,t_end_s,angle_deg\n0,10\n", "2 fields, the header has 3"),
         ("# only a comment\n\n", "reference CSV is empty"),
@@ -195,7 +202,11 @@ def test_reference_csv_bad(tmp_path, text, match):
 def test_reference_csv_bad_files(tmp_path):
     big = tmp_path / "big.csv"
     big.write_text("t_start_s,t_end_s,angle_deg\n" + "#" * MAX_REFERENCE_BYTES + "\n")
-    for path, match in ((big, "over the limit"), (tmp_path / "none.csv", "no such reference CSV"), (tmp_path, "is a directory")):
+    for path, match in (
+        (big, "over the limit"),
+        (tmp_path / "none.csv", "no such reference CSV"),
+        (tmp_path, "is a directory"),
+    ):
         with pytest.raises(InputFileError, match=match) as info:
             read_reference_csv(path)
         assert "\n" not in str(info.value)
@@ -278,8 +289,10 @@ def test_end_to_end_simulated_positioning(positioning_capture, default_model):
 def test_end_to_end_with_a_station_csv(positioning_capture, default_model, tmp_path):
     stops = stops_from_sidecar(positioning_capture)
     ref = tmp_path / "ref.csv"
-    ref.write_text("# reference\nt_start_s,t_end_s,angle_deg\n"
-                   + "".join(f"{s.t_start_s!r},{s.t_end_s!r},{s.angle_deg!r}\n" for s in stops))  # fmt: skip
+    ref.write_text(
+        "# reference\nt_start_s,t_end_s,angle_deg\n"
+        + "".join(f"{s.t_start_s!r},{s.t_end_s!r},{s.angle_deg!r}\n" for s in stops)
+    )
     assert load_stops(positioning_capture, ref) == stops
     a = positioning_table(positioning_capture, {"wesn": default_model}, stops, plateau_temps_c=[25])
     b = positioning_table(positioning_capture, {}, read_reference_csv(ref), bias_window_s=(60.0, 360.0))
@@ -295,8 +308,11 @@ def test_capture_without_stops_skips_the_table(tmp_path, default_model):
     from fog_driver.sim.profiles import load_profile
 
     out = tmp_path / "static.bin"
-    simulate_to_file(Simulator(load_profile(ROOT / "configs" / "profiles" / "short-test.yaml"), rate_hz=10, seed=2),
-                     out, duration_s=30)  # fmt: skip
+    simulate_to_file(
+        Simulator(load_profile(ROOT / "configs" / "profiles" / "short-test.yaml"), rate_hz=10, seed=2),
+        out,
+        duration_s=30,
+    )
     stops = load_stops(out)
     assert stops == []
     rows = positioning_table(out, {"wesn": default_model}, stops)
@@ -326,14 +342,33 @@ def test_evaluate_command_with_reference_and_compare(positioning_capture, tmp_pa
 
     stops = load_stops(positioning_capture)
     ref = tmp_path / "stops.csv"
-    ref.write_text("t_start_s,t_end_s,angle_deg\n"
-                   + "".join(f"{s.t_start_s!r},{s.t_end_s!r},{s.angle_deg!r}\n" for s in stops))  # fmt: skip
+    ref.write_text(
+        "t_start_s,t_end_s,angle_deg\n" + "".join(f"{s.t_start_s!r},{s.t_end_s!r},{s.angle_deg!r}\n" for s in stops)
+    )
     other = tmp_path / "other.yaml"
     other.write_bytes(Path(DEFAULT_MODEL).read_bytes())
     out = tmp_path / "rep"
-    proc = subprocess.run([sys.executable, "-m", "fog_driver", "evaluate", str(positioning_capture), "--model",
-                           str(DEFAULT_MODEL), "--out", str(out), "--reference", str(ref), "--compare", str(other),
-                           "--json"], capture_output=True, text=True, timeout=300)  # fmt: skip
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "fog_driver",
+            "evaluate",
+            str(positioning_capture),
+            "--model",
+            str(DEFAULT_MODEL),
+            "--out",
+            str(out),
+            "--reference",
+            str(ref),
+            "--compare",
+            str(other),
+            "--json",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stderr
     summary = json.loads(proc.stdout)
     row = summary["positioning"]["rows"][0]
@@ -344,24 +379,70 @@ def test_evaluate_command_with_reference_and_compare(positioning_capture, tmp_pa
     report = (out / "report.md").read_text()
     assert "| Temperature | moves | uncompensated mean" in report and "other (wesn) mean" in report
 
-    zeroed = subprocess.run([sys.executable, "-m", "fog_driver", "evaluate", str(positioning_capture), "--model",
-                             str(DEFAULT_MODEL), "--out", str(tmp_path / "rep-z"), "--zero-window", "400:700",
-                             "--json"], capture_output=True, text=True, timeout=300)  # fmt: skip
+    zeroed = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "fog_driver",
+            "evaluate",
+            str(positioning_capture),
+            "--model",
+            str(DEFAULT_MODEL),
+            "--out",
+            str(tmp_path / "rep-z"),
+            "--zero-window",
+            "400:700",
+            "--json",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert zeroed.returncode == 0, zeroed.stderr
     zrow = json.loads(zeroed.stdout)["positioning"]["rows"][0]
     assert zrow["bias_window_s"] == [400.0, 700.0] and row["bias_window_s"] != [400.0, 700.0]
     assert zrow["bias_dph"][main] != row["bias_dph"][main]
     for window in ("700:400", "abc", "-5:10", "5"):
-        proc = subprocess.run([sys.executable, "-m", "fog_driver", "evaluate", str(positioning_capture), "--model",
-                               str(DEFAULT_MODEL), "--out", str(tmp_path / "rep-bad"), "--zero-window", window],
-                              capture_output=True, text=True, timeout=300)  # fmt: skip
+        proc = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "fog_driver",
+                "evaluate",
+                str(positioning_capture),
+                "--model",
+                str(DEFAULT_MODEL),
+                "--out",
+                str(tmp_path / "rep-bad"),
+                "--zero-window",
+                window,
+            ],
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
         assert proc.returncode == 2 and "START:END" in proc.stderr and "Traceback" not in proc.stderr, window
 
     bad = tmp_path / "bad.csv"
     bad.write_text("t_start_s,t_end_s,angle_deg\n10,5,0\n")
-    proc = subprocess.run([sys.executable, "-m", "fog_driver", "evaluate", str(positioning_capture), "--model",
-                           str(DEFAULT_MODEL), "--out", str(tmp_path / "rep2"), "--reference", str(bad)],
-                          capture_output=True, text=True, timeout=300)  # fmt: skip
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "fog_driver",
+            "evaluate",
+            str(positioning_capture),
+            "--model",
+            str(DEFAULT_MODEL),
+            "--out",
+            str(tmp_path / "rep2"),
+            "--reference",
+            str(bad),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode != 0 and "Traceback" not in proc.stderr
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and "bad.csv:2: t_end_s (5) must be after t_start_s (10)" in lines[0], proc.stderr

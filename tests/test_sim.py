@@ -99,7 +99,9 @@ def test_quantization_carries_the_remainder(paper_run):
 def test_plateau_rate_std_matches_the_configured_arw():
     # The last 10 minutes of the paper's 55 degC hold (minutes 160 to 170).
     for arw in (0.003, 0.006):
-        config = dataclasses.replace(InstrumentConfig(), gyro=dataclasses.replace(InstrumentConfig().gyro, arw_deg_per_sqrt_h=arw))
+        config = dataclasses.replace(
+            InstrumentConfig(), gyro=dataclasses.replace(InstrumentConfig().gyro, arw_deg_per_sqrt_h=arw)
+        )
         sim = Simulator(load_profile("paper"), config, rate_hz=10, seed=3)
         rates = per_second_rates(capture_bytes(sim, 170 * 60 * 10, 6000), 10)
         plateau = rates[160 * 60 : 170 * 60]
@@ -125,7 +127,12 @@ def test_ramps_show_shupe_and_gradient_terms_in_the_measured_output(paper_run):
     truth, g = paper_run["truth"], InstrumentConfig().gyro
     measured = per_second_rates(paper_run["path"].read_bytes(), 4)
     m = len(measured)
-    known = truth["earth_dph"] + truth["constant_bias_dph"] + truth["drift_hysteresis_dph"] + truth["scale_factor_error_dph"]
+    known = (
+        truth["earth_dph"]
+        + truth["constant_bias_dph"]
+        + truth["drift_hysteresis_dph"]
+        + truth["scale_factor_error_dph"]
+    )
     y = measured - known[:m]
     dtemp = truth["fiber_c"][:m] - g.reference_temp_c
     rate = np.gradient(truth["fiber_c"])[:m] * 60.0  # degC per minute
@@ -231,8 +238,10 @@ def test_positioning_angles_from_the_capture_match_the_turntable(tmp_path):
     assert np.all(truth["input_dph"][: int(stops[0]["t_start_s"])] == 0)
     # Over whole device seconds from one dwell to the next, the capture's angle less every
     # non-input term (realized noise included, from truth) is the commanded step, to quantization.
-    not_input = sum(truth[f"{n}_dph"] for n in
-                    ("earth", "scale_factor_error", "constant_bias", "drift", "bias_instability", "rrw", "arw"))
+    not_input = sum(
+        truth[f"{n}_dph"]
+        for n in ("earth", "scale_factor_error", "constant_bias", "drift", "bias_instability", "rrw", "arw")
+    )
     for before, after in zip(stops, stops[1:]):
         s0 = int(0.5 * (before["t_start_s"] + before["t_end_s"]))
         s1 = int(0.5 * (after["t_start_s"] + after["t_end_s"]))
@@ -278,8 +287,21 @@ def run_cli(*args: str) -> subprocess.CompletedProcess:
 
 def test_simulate_cli_writes_capture_sidecar_and_truth(tmp_path):
     out = tmp_path / "run.bin"
-    proc = run_cli("simulate", "--profile", str(SHORT), "--out", str(out), "--rate-hz", "50", "--seed", "7",
-                   "--duration", "60", "--faults", "drop=0.001")
+    proc = run_cli(
+        "simulate",
+        "--profile",
+        str(SHORT),
+        "--out",
+        str(out),
+        "--rate-hz",
+        "50",
+        "--seed",
+        "7",
+        "--duration",
+        "60",
+        "--faults",
+        "drop=0.001",
+    )
     assert proc.returncode == 0, proc.stderr
     assert "3,000 frames" in proc.stdout
     provenance = read_provenance(out)
@@ -288,8 +310,21 @@ def test_simulate_cli_writes_capture_sidecar_and_truth(tmp_path):
     truth_lines = out.with_suffix(".truth.csv").read_text().splitlines()
     assert truth_lines[1] == ",".join(TRUTH_COLUMNS) and len(truth_lines) == 2 + 60
     again = tmp_path / "again.bin"
-    run_cli("simulate", "--profile", str(SHORT), "--out", str(again), "--rate-hz", "50", "--seed", "7",
-            "--duration", "60", "--faults", "drop=0.001")
+    run_cli(
+        "simulate",
+        "--profile",
+        str(SHORT),
+        "--out",
+        str(again),
+        "--rate-hz",
+        "50",
+        "--seed",
+        "7",
+        "--duration",
+        "60",
+        "--faults",
+        "drop=0.001",
+    )
     assert again.read_bytes() == out.read_bytes()
     inspected = run_cli("inspect", "--json", str(out))
     assert '"serial": "FOG-SIM-0001"' in inspected.stdout
@@ -306,8 +341,13 @@ def test_simulate_cli_writes_capture_sidecar_and_truth(tmp_path):
     ],
 )
 def test_simulate_cli_errors(tmp_path, args, status, needle):
-    proc = subprocess.run([sys.executable, "-m", "fog_driver", "simulate", *args], capture_output=True, text=True,
-                          cwd=tmp_path, timeout=60)
+    proc = subprocess.run(
+        [sys.executable, "-m", "fog_driver", "simulate", *args],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        timeout=60,
+    )
     assert proc.returncode == status, proc.stderr
     assert needle in proc.stderr and "Traceback" not in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1

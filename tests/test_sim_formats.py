@@ -44,8 +44,9 @@ def test_kvh_frames_decode_to_the_simulators_truth(fmt):
 
 
 def test_dropped_kvh_frames_are_counted_from_the_sequence():
-    sim = Simulator(load_profile("short-test"), rate_hz=100, seed=5, wire_format="kvh-a",
-                    faults=parse_fault_spec("drop=0.01"))  # fmt: skip
+    sim = Simulator(
+        load_profile("short-test"), rate_hz=100, seed=5, wire_format="kvh-a", faults=parse_fault_spec("drop=0.01")
+    )
     block, data = sim.stream(5000)
     samples, counters = decode(data, "a", 100)
     assert counters.crc_errors == 0 and counters.sample_frames == len(samples) == len(data) // 36
@@ -63,17 +64,37 @@ def test_protocol_v1_is_the_default_and_stays_what_it_was():
 def test_simulate_format_records_it_and_the_other_commands_say_what_the_capture_is(tmp_path):
     capture = tmp_path / "kvh.bin"
     run = [sys.executable, "-m", "fog_driver"]
-    done = subprocess.run(run + ["simulate", "--profile", "short-test", "--rate-hz", "10", "--duration", "120",
-                                 "--format", "kvh-c", "--out", str(capture)], capture_output=True, text=True)  # fmt: skip
+    done = subprocess.run(
+        run
+        + [
+            "simulate",
+            "--profile",
+            "short-test",
+            "--rate-hz",
+            "10",
+            "--duration",
+            "120",
+            "--format",
+            "kvh-c",
+            "--out",
+            str(capture),
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert done.returncode == 0, done.stderr
     sidecar = read_provenance(capture)
     assert sidecar["wire_format"] == "kvh-c" and sidecar["wire_settings"]["rot_units"] == "rad"
     inspected = subprocess.run(run + ["inspect", str(capture)], capture_output=True, text=True)
     assert inspected.returncode == 0 and "format        kvh-c: KVH" in inspected.stdout
     model = Path(__file__).resolve().parents[1] / "fog_driver" / "data" / "models" / "default.yaml"
-    refused = subprocess.run(run + ["compensate", str(capture), "--model", str(model), "--out", str(tmp_path / "c.csv")],
-                             capture_output=True, text=True)  # fmt: skip
+    refused = subprocess.run(
+        run + ["compensate", str(capture), "--model", str(model), "--out", str(tmp_path / "c.csv")],
+        capture_output=True,
+        text=True,
+    )
     # the shipped model was fitted on protocol v1's three thermometers; a KVH unit has one: refused on one line
     assert refused.returncode == 64
-    assert refused.stderr.strip().endswith("kvh.bin's kvh-c frames carry sensor: it cannot be applied (fit a model "
-                                           "on this instrument's captures)")  # fmt: skip
+    assert refused.stderr.strip().endswith(
+        "kvh.bin's kvh-c frames carry sensor: it cannot be applied (fit a model on this instrument's captures)"
+    )

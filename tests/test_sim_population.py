@@ -30,10 +30,31 @@ def drawn() -> list[InstrumentConfig]:
 def _values(name: str, c: InstrumentConfig) -> list[float]:
     """The drawn values of RANGES entry ``name`` in one instrument config."""
     th, g, s = c.thermal, c.gyro, c.thermometers
-    direct = {**{k: [getattr(th, k)] for k in ("tau_housing_s", "tau_top_s", "tau_bottom_s", "tau_ring_s",
-                                                "tau_mount_s", "tau_bottom_mount_s", "self_heating_c", "top_heating_c")},
-              **{k: [getattr(g, k)] for k in ("shupe_dph_per_c_per_min", "gradient_dph_per_c", "radial_gradient_dph_per_c",
-                                               "hysteresis_dph_per_c", "hysteresis_tau_s")}}  # fmt: skip
+    direct = {
+        **{
+            k: [getattr(th, k)]
+            for k in (
+                "tau_housing_s",
+                "tau_top_s",
+                "tau_bottom_s",
+                "tau_ring_s",
+                "tau_mount_s",
+                "tau_bottom_mount_s",
+                "self_heating_c",
+                "top_heating_c",
+            )
+        },
+        **{
+            k: [getattr(g, k)]
+            for k in (
+                "shupe_dph_per_c_per_min",
+                "gradient_dph_per_c",
+                "radial_gradient_dph_per_c",
+                "hysteresis_dph_per_c",
+                "hysteresis_tau_s",
+            )
+        },
+    }
     if name in direct:
         return direct[name]
     return {
@@ -63,9 +84,21 @@ def test_the_base_configuration_supplies_everything_not_drawn():
     assert c.thermal.tau_fiber_s != base.thermal.tau_fiber_s
 
 
-@pytest.mark.parametrize("name", [n for n in RANGES if n not in ("coil_weight_top", "coil_weight_bottom",
-                                                                  "coil_weight_housing", "bias_curve_excursion_dph",
-                                                                  "bias_curve_shape")])  # fmt: skip
+@pytest.mark.parametrize(
+    "name",
+    [
+        n
+        for n in RANGES
+        if n
+        not in (
+            "coil_weight_top",
+            "coil_weight_bottom",
+            "coil_weight_housing",
+            "bias_curve_excursion_dph",
+            "bias_curve_shape",
+        )
+    ],
+)
 def test_every_drawn_parameter_is_inside_its_range_and_the_draws_cover_it(name, drawn):
     r = RANGES[name]
     values = np.array([v for c in drawn for v in _values(name, c)])
@@ -131,8 +164,10 @@ def test_a_drawn_instrument_is_simulated_with_its_physics(tmp_path):
     k = next(k for k in SEEDS if len(draw_instrument(k).thermal.coil_inner_lags_s) == 2)
     config = draw_instrument(k)
     profile = load_profile("configs/profiles/short-test.yaml")
-    paths = [simulate_to_file(Simulator(profile, config, rate_hz=10, seed=3), tmp_path / f"p{i}.bin").capture
-             for i in range(2)]  # fmt: skip
+    paths = [
+        simulate_to_file(Simulator(profile, config, rate_hz=10, seed=3), tmp_path / f"p{i}.bin").capture
+        for i in range(2)
+    ]
     assert paths[0].read_bytes() == paths[1].read_bytes()
     side = read_provenance(paths[0])
     assert side["model"]["population_seed"] == k and side["instrument"]["serial"] == config.serial
@@ -144,13 +179,31 @@ def test_a_drawn_instrument_is_simulated_with_its_physics(tmp_path):
 
 def test_simulate_takes_an_instrument_seed(tmp_path):
     out = tmp_path / "pop.bin"
-    cmd = [sys.executable, "-m", "fog_driver", "simulate", "--profile", "configs/profiles/short-test.yaml",
-           "--rate-hz", "5", "--duration", "60", "--instrument-seed", "42", "--out", str(out)]  # fmt: skip
+    cmd = [
+        sys.executable,
+        "-m",
+        "fog_driver",
+        "simulate",
+        "--profile",
+        "configs/profiles/short-test.yaml",
+        "--rate-hz",
+        "5",
+        "--duration",
+        "60",
+        "--instrument-seed",
+        "42",
+        "--out",
+        str(out),
+    ]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     side = read_provenance(out)
     assert side["instrument"]["serial"] == "FOG-POP-00042"
     assert side["model"] == draw_instrument(42).as_dict()
-    bad = subprocess.run(cmd[:-4] + ["--instrument-seed", "-2", "--out", str(tmp_path / "x.bin")],
-                         capture_output=True, text=True, timeout=60)  # fmt: skip
+    bad = subprocess.run(
+        cmd[:-4] + ["--instrument-seed", "-2", "--out", str(tmp_path / "x.bin")],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert bad.returncode == 2 and "seed must be >= 0" in bad.stderr and "Traceback" not in bad.stderr

@@ -61,8 +61,9 @@ def test_ramps_reach_their_targets_at_the_right_times():
 def test_steps_are_instantaneous_and_right_continuous():
     prof = ChamberProfile("t", 20.0, (Hold(100.0), Step(35.0), Hold(100.0), Step(-5.0)))
     assert prof.duration_s == 200.0
-    np.testing.assert_array_equal(prof.air_temp_c([99.999, 100.0, 150.0, 199.999, 200.0, 300.0]),
-                                  [20, 35, 35, 35, -5, -5])
+    np.testing.assert_array_equal(
+        prof.air_temp_c([99.999, 100.0, 150.0, 199.999, 200.0, 300.0]), [20, 35, 35, 35, -5, -5]
+    )
     assert prof.step_times_s() == [100.0, 200.0]
     assert prof.plateaus() == [Plateau(0.0, 100.0, 20.0), Plateau(100.0, 200.0, 35.0)]
 
@@ -224,8 +225,11 @@ def test_random_profiles_duration_continuity_and_monotone_ramps(start_c, segs):
         assert b.start_c == a.end_c and b.t_start_s == a.t_end_s
     # continuity: on a dense grid the change between neighbours is bounded by the steepest slope,
     # except across a step
-    max_slope = max([s.rate_c_per_min / 60 for s in segs if isinstance(s, Ramp)]
-                    + [2 * math.pi * s.amplitude_c / s.period_s for s in segs if isinstance(s, Sinusoid)] + [0.0])
+    max_slope = max(
+        [s.rate_c_per_min / 60 for s in segs if isinstance(s, Ramp)]
+        + [2 * math.pi * s.amplitude_c / s.period_s for s in segs if isinstance(s, Sinusoid)]
+        + [0.0]
+    )
     t = np.linspace(-10.0, prof.duration_s + 10.0, 20_001)
     temp = prof.air_temp_c(t)
     jumps = np.abs(np.diff(temp)) > max_slope * (t[1] - t[0]) * (1 + 1e-9) + 1e-9
@@ -420,8 +424,10 @@ def test_builtin_profiles_round_trip(name):
 
 def test_durations_in_minutes_or_seconds_and_default_name(tmp_path):
     path = tmp_path / "my-run.yaml"
-    path.write_text("start_c: 5\nsegments:\n  - hold: {duration_s: 90}\n  - hold: {duration_min: 1.5}\n"
-                    "  - sinusoid: {amplitude_c: 1, period_s: 30, duration_min: 2}\n")
+    path.write_text(
+        "start_c: 5\nsegments:\n  - hold: {duration_s: 90}\n  - hold: {duration_min: 1.5}\n"
+        "  - sinusoid: {amplitude_c: 1, period_s: 30, duration_min: 2}\n"
+    )
     prof = load_profile(path)
     assert prof.name == "my-run" and prof.motion == MotionPlan.static()
     assert prof.chamber.segments == (Hold(90.0), Hold(90.0), Sinusoid(1.0, 30.0, 120.0))
@@ -434,16 +440,31 @@ GOOD = SEGS + "  - hold: {duration_min: 30}\n"
 @pytest.mark.parametrize(
     "text, needle",
     [
-        (SEGS + "  - ramp: {rate_c_per_min: -1, target_c: 30}\n", "segments[0] (ramp): rate_c_per_min must be positive, got -1"),
-        (SEGS + "  - hold: {duration_s: 5}\n  - ramp: {rate_c_per_min: 0, target_c: 30}\n", "segments[1] (ramp): rate_c_per_min must be positive"),
-        (SEGS + "  - ramp: {rate_c_per_min: fast, target_c: 30}\n", "rate_c_per_min must be a finite number, got 'fast'"),
+        (
+            SEGS + "  - ramp: {rate_c_per_min: -1, target_c: 30}\n",
+            "segments[0] (ramp): rate_c_per_min must be positive, got -1",
+        ),
+        (
+            SEGS + "  - hold: {duration_s: 5}\n  - ramp: {rate_c_per_min: 0, target_c: 30}\n",
+            "segments[1] (ramp): rate_c_per_min must be positive",
+        ),
+        (
+            SEGS + "  - ramp: {rate_c_per_min: fast, target_c: 30}\n",
+            "rate_c_per_min must be a finite number, got 'fast'",
+        ),
         (SEGS + "  - ramp: {rate_c_per_min: 1}\n", "segments[0] (ramp): missing target_c"),
         (SEGS + "  - hold: {duraton_min: 3}\n", "segments[0] (hold): unknown key 'duraton_min'"),
         (SEGS + "  - soak: {duration_min: 3}\n", "segments[0]: unknown segment kind 'soak'"),
-        (SEGS + "  - hold: {duration_min: 3, duration_s: 180}\n", "exactly one of duration_min and duration_s, not both"),
+        (
+            SEGS + "  - hold: {duration_min: 3, duration_s: 180}\n",
+            "exactly one of duration_min and duration_s, not both",
+        ),
         (SEGS + "  - hold: {}\n", "segments[0] (hold): give exactly one of duration_min and duration_s"),
         (SEGS + "  - hold: {duration_min: -3}\n", "duration_min must be positive"),
-        (SEGS + "  - sinusoid: {amplitude_c: -1, period_min: 3, duration_min: 3}\n", "amplitude_c must not be negative"),
+        (
+            SEGS + "  - sinusoid: {amplitude_c: -1, period_min: 3, duration_min: 3}\n",
+            "amplitude_c must not be negative",
+        ),
         (SEGS + "  - sinusoid: {amplitude_c: 1, duration_min: 3}\n", "exactly one of period_min and period_s"),
         (SEGS + "  - {hold: {duration_min: 3}, step: {target_c: 4}}\n", "segments[0]: expected a one-key mapping"),
         (SEGS + "  - hold\n", "segments[0]: expected a one-key mapping"),
@@ -460,7 +481,10 @@ GOOD = SEGS + "  - hold: {duration_min: 30}\n"
         (GOOD + "motion: {kind: spin}\n", "motion: unknown motion kind 'spin'"),
         (GOOD + "motion: {rate_dps: 3}\n", "motion: missing kind"),
         (GOOD + "motion: {kind: constant_rate}\n", "motion (constant_rate): missing rate_dps"),
-        (GOOD + "motion: {kind: constant_rate, rate_dps: 1, start_s: 50, stop_s: 10}\n", "stop_s (10) must be after start_s (50)"),
+        (
+            GOOD + "motion: {kind: constant_rate, rate_dps: 1, start_s: 50, stop_s: 10}\n",
+            "stop_s (10) must be after start_s (50)",
+        ),
         (GOOD + "motion: {kind: static, rate_dps: 1}\n", "motion (static): unknown key 'rate_dps'"),
         (GOOD + "motion: {kind: positioning}\n", "motion (positioning): give exactly one of start_s and at_plateau"),
         (GOOD + "motion: {kind: positioning, start_s: 0, at_plateau: 0}\n", "exactly one of start_s and at_plateau"),
@@ -469,8 +493,14 @@ GOOD = SEGS + "  - hold: {duration_min: 30}\n"
         (GOOD + "motion: {kind: positioning, at_plateau: 0, settle_s: 1200}\n", "would end at 1897.9"),
         (GOOD + "motion: {kind: positioning, start_s: 0, moves: 0}\n", "moves must be an integer >= 1, got 0"),
         (GOOD + "motion: {kind: positioning, start_s: 0, max_rate_dps: 0}\n", "max_rate_dps must be positive"),
-        (GOOD + "motion: {kind: positioning, start_s: 0, moves: 10, step_deg: 36, dwel_s: 60}\n", "unknown key 'dwel_s'"),
-        (GOOD + "motion:\n  - {kind: positioning, start_s: 0}\n  - {kind: positioning, start_s: 600}\n", "motion: positioning 10 x 36 deg from 600 s"),
+        (
+            GOOD + "motion: {kind: positioning, start_s: 0, moves: 10, step_deg: 36, dwel_s: 60}\n",
+            "unknown key 'dwel_s'",
+        ),
+        (
+            GOOD + "motion:\n  - {kind: positioning, start_s: 0}\n  - {kind: positioning, start_s: 600}\n",
+            "motion: positioning 10 x 36 deg from 600 s",
+        ),
         (GOOD + "motion:\n  - {kind: positioning, start_s: 0}\n  - 7\n", "motion[1]: expected a mapping"),
     ],
 )
@@ -532,7 +562,11 @@ def test_profile_names_resolve_from_configs_profiles(tmp_path, monkeypatch):
     assert load_profile("fast-ramps") == by_path
     assert {"paper", "paper-validation", "fast-ramps", "positioning", "soak-cycle"} <= set(profile_names())
     (tmp_path / "configs" / "profiles").mkdir(parents=True)  # the current directory's folder comes first
-    (tmp_path / "configs" / "profiles" / "fast-ramps.yaml").write_text("name: mine\nstart_c: 20\nsegments:\n  - hold: {duration_min: 5}\n")
+    (tmp_path / "configs" / "profiles" / "fast-ramps.yaml").write_text(
+        "name: mine\nstart_c: 20\nsegments:\n  - hold: {duration_min: 5}\n"
+    )
     assert load_profile("fast-ramps").name == "mine"
-    with pytest.raises(InputFileError, match=r"nope: no such profile \(profiles: paper, paper-validation, .*fast-ramps"):
+    with pytest.raises(
+        InputFileError, match=r"nope: no such profile \(profiles: paper, paper-validation, .*fast-ramps"
+    ):
         load_profile("nope")

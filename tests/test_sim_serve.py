@@ -125,13 +125,22 @@ def test_disconnect_windows_call_back_at_their_edges_and_bytes_still_match(tmp_p
     out: list[bytes] = []
     events: list[tuple[str, int]] = []
     stats = serve(
-        sim, out.append, duration_s=1.5, speed=8.0,
+        sim,
+        out.append,
+        duration_s=1.5,
+        speed=8.0,
         on_cut=lambda: events.append(("cut", sim.next_frame)),
         on_reconnect=lambda: events.append(("reconnect", sim.next_frame)),
-    )  # fmt: skip
+    )
     # on_cut once the window's first frame is out (next_frame = a + 1), on_reconnect at its end (b).
-    assert events == [("cut", 501), ("reconnect", 700), ("cut", 701), ("reconnect", 701), ("cut", 1301),
-                      ("reconnect", 1350)]  # fmt: skip
+    assert events == [
+        ("cut", 501),
+        ("reconnect", 700),
+        ("cut", 701),
+        ("reconnect", 701),
+        ("cut", 1301),
+        ("reconnect", 1350),
+    ]
     assert stats.cuts == 3
     assert b"".join(out) == capture_bytes(tmp_path, 1.5, faults=faults)
 
@@ -177,7 +186,9 @@ def test_disconnect_unplugs_the_pty_and_a_reader_reconnects_through_the_link(tmp
 
     states = [item.state for kind, item in items if kind == "state"]
     lost = [i for i, (kind, item) in enumerate(items) if kind == "state" and item.state == "lost"]
-    reopened = next(i for i, (kind, item) in enumerate(items) if i > lost[0] and kind == "state" and item.state == "open")
+    reopened = next(
+        i for i, (kind, item) in enumerate(items) if i > lost[0] and kind == "state" and item.state == "open"
+    )
     assert states[:2] == ["opening", "open"] and states.count("open") == 2
     before = b"".join(item for kind, item in items[: lost[0]] if kind == "data")
     after = b"".join(item for kind, item in items[reopened : lost[1]] if kind == "data")
@@ -268,10 +279,25 @@ def test_serve_to_a_nonexistent_device_is_a_one_line_device_error(tmp_path: Path
 def test_cli_serve_to_a_nonexistent_device_exits_69_with_one_line(tmp_path: Path) -> None:
     missing = str(tmp_path / "ttyUSB99")
     proc = subprocess.run(
-        [sys.executable, "-m", "fog_driver", "simulate", "--serve", missing, "--profile", str(SHORT_TEST),
-         "--duration", "1"],
-        check=False, capture_output=True, text=True, cwd=REPO, timeout=GUARD_S, stdin=subprocess.DEVNULL,
-    )  # fmt: skip
+        [
+            sys.executable,
+            "-m",
+            "fog_driver",
+            "simulate",
+            "--serve",
+            missing,
+            "--profile",
+            str(SHORT_TEST),
+            "--duration",
+            "1",
+        ],
+        check=False,
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        timeout=GUARD_S,
+        stdin=subprocess.DEVNULL,
+    )
     err = proc.stderr.strip().splitlines()
     assert proc.returncode == 69, proc.stderr
     assert len(err) == 1 and err[0].startswith("fog-driver: error: cannot open") and missing in err[0]
@@ -289,10 +315,24 @@ def test_serve_device_refuses_a_baud_rate_too_slow_for_the_stream() -> None:
 
 def _start_cli(*extra: str, link: Path) -> tuple[subprocess.Popen, queue.Queue]:
     proc = subprocess.Popen(
-        [sys.executable, "-m", "fog_driver", "simulate", "--serve", "pty", "--link", str(link),
-         "--profile", str(SHORT_TEST), *extra],
-        cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )  # fmt: skip
+        [
+            sys.executable,
+            "-m",
+            "fog_driver",
+            "simulate",
+            "--serve",
+            "pty",
+            "--link",
+            str(link),
+            "--profile",
+            str(SHORT_TEST),
+            *extra,
+        ],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     lines: queue.Queue = queue.Queue()
 
     def pump() -> None:

@@ -23,8 +23,9 @@ TELEGRAM_LEN = 67  # v5 header 27 + attitude 12 + rotation rate 12 + temperature
 
 
 def stdbin_sim(rate_hz: int = 100, seed: int = 4, faults: str = "none", profile: str = "short-test") -> Simulator:
-    return Simulator(load_profile(profile), rate_hz=rate_hz, seed=seed, wire_format="ixblue-stdbin",
-                     faults=parse_fault_spec(faults))  # fmt: skip
+    return Simulator(
+        load_profile(profile), rate_hz=rate_hz, seed=seed, wire_format="ixblue-stdbin", faults=parse_fault_spec(faults)
+    )
 
 
 def decode(data: bytes, rate_hz: int, splits: tuple[int, ...] = ()) -> tuple[list[ImuSample], object]:
@@ -81,11 +82,13 @@ def test_the_vectorized_telegrams_are_encode_stdbin_byte_for_byte():
         step_s = (time_100us - sim.stdbin_time_100us(k - 1)) * 1e-4
         temps = [np.nan if v == -32768 else v / 256.0 for v in block.t_raw[i].tolist()]
         expected = encode_stdbin(
-            STDBIN_VERSION, counter=sim.seq0 + k, validity_time_100us=int(time_100us),
+            STDBIN_VERSION,
+            counter=sim.seq0 + k,
+            validity_time_100us=int(time_100us),
             attitude_deg=(float(block.angle_deg[i]) % 360.0, 0.0, 0.0),
             rotation_rate_dps=(0.0, 0.0, float(truth_arcsec(block)[i]) / 3600.0 / step_s),
             temperatures_c=tuple(temps),
-        )  # fmt: skip
+        )
         assert rows[i].tobytes() == expected, i
 
 
@@ -212,15 +215,31 @@ def test_stdbin_refuses_a_rate_its_time_cannot_stamp():
 def test_simulate_format_ixblue_stdbin_writes_a_capture_inspect_reads(tmp_path):
     capture = tmp_path / "x.bin"
     run = [sys.executable, "-m", "fog_driver"]
-    done = subprocess.run(run + ["simulate", "--profile", "short-test", "--format", "ixblue-stdbin", "--duration", "5",
-                                 "--out", str(capture)], capture_output=True, text=True)  # fmt: skip
+    done = subprocess.run(
+        run
+        + [
+            "simulate",
+            "--profile",
+            "short-test",
+            "--format",
+            "ixblue-stdbin",
+            "--duration",
+            "5",
+            "--out",
+            str(capture),
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert done.returncode == 0, done.stderr
     assert capture.stat().st_size == 500 * TELEGRAM_LEN
     sidecar = read_provenance(capture)
     assert sidecar["wire_format"] == "ixblue-stdbin"
-    assert sidecar["wire_settings"] == {"rate_hz": 100, "version": 5,
-                                        "temperature_channels": {"fog": "top", "accelerometer": "bottom",
-                                                                 "board": "housing"}}  # fmt: skip
+    assert sidecar["wire_settings"] == {
+        "rate_hz": 100,
+        "version": 5,
+        "temperature_channels": {"fog": "top", "accelerometer": "bottom", "board": "housing"},
+    }
     inspected = subprocess.run(run + ["inspect", str(capture)], capture_output=True, text=True)
     assert inspected.returncode == 0, inspected.stderr
     assert "format        ixblue-stdbin: iXblue" in inspected.stdout

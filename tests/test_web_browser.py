@@ -60,7 +60,7 @@ class Instrument:
             if self.done.is_set():
                 break
             try:
-                self.pty.write(self.data[self.offset:self.offset + self.chunk])
+                self.pty.write(self.data[self.offset : self.offset + self.chunk])
             except OSError:  # unplugged between the check and the write: written again after the replug
                 continue
             self.offset += self.chunk
@@ -188,7 +188,7 @@ def test_the_page_shows_the_streams_numbers_live_plots_and_the_link_banner(tmp_p
             frames = float(re.search(r"^fog_driver_frames_total (\S+)$", metrics, re.M).group(1))
             latencies = float(re.search(r"^fog_driver_publish_latency_seconds_count (\S+)$", metrics, re.M).group(1))
             assert frames >= received > 0 and latencies > 0  # measured with a watcher
-            assert re.search(r'^fog_driver_port_up 1\.0$', metrics, re.M)
+            assert re.search(r"^fog_driver_port_up 1\.0$", metrics, re.M)
             for directory in shots:
                 directory.mkdir(parents=True, exist_ok=True)
                 shutil.copy(tmp_path / "web-view.png", directory / "web-view.png")

@@ -89,8 +89,10 @@ class AsyncClient(ClientBase):
             greeting = self.session.request("VERSION")[0]  # the greeting answers it (nothing is sent)
             hello = await self._read_until(greeting, "VERSION greeting (not a fog-driver daemon?)")
             if not isinstance(hello, Version):
-                raise ConnectError(f"could not connect to {self.address}: the daemon refused the connection: "
-                                   f"{getattr(hello, 'message', '')}")  # fmt: skip
+                raise ConnectError(
+                    f"could not connect to {self.address}: the daemon refused the connection: "
+                    f"{getattr(hello, 'message', '')}"
+                )
             if self.token is not None:
                 await self._direct("AUTH", {"token": self.token})
             if self._watch is not None:

@@ -20,8 +20,16 @@ from typing import Any
 
 from .errors import ConnectError, ConnectionLost, NoReply
 from .messages import Angle, Bias, ErrorReply, Message, Reply, Status, Version
-from .protocol import (MAX_BUFFERED_ANGLES, ClientBase, Reconnection, bias_args, check_bias, check_reply, control_args,
-                       printable)
+from .protocol import (
+    MAX_BUFFERED_ANGLES,
+    ClientBase,
+    Reconnection,
+    bias_args,
+    check_bias,
+    check_reply,
+    control_args,
+    printable,
+)
 from .session import Request
 from .wire import GREETING_TIMEOUT_S
 
@@ -107,16 +115,21 @@ class Client(ClientBase):
         while greeting.reply is None:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
-                raise ConnectError(f"could not connect to {self.address}: no VERSION greeting within "
-                                   f"{self.timeout_s:g} s (not a fog-driver daemon?)")  # fmt: skip
+                raise ConnectError(
+                    f"could not connect to {self.address}: no VERSION greeting within "
+                    f"{self.timeout_s:g} s (not a fog-driver daemon?)"
+                )
             try:
                 self._read_once(remaining)
             except _Lost as exc:
-                raise ConnectError(f"could not connect to {self.address}: {exc.reason} before the VERSION "
-                                   f"greeting {hint}") from None  # fmt: skip
+                raise ConnectError(
+                    f"could not connect to {self.address}: {exc.reason} before the VERSION greeting {hint}"
+                ) from None
         if isinstance(greeting.reply, ErrorReply):  # refused at once: too many clients
-            raise ConnectError(f"could not connect to {self.address}: the daemon refused the connection: "
-                               f"{printable(greeting.reply.message)}")  # fmt: skip
+            raise ConnectError(
+                f"could not connect to {self.address}: the daemon refused the connection: "
+                f"{printable(greeting.reply.message)}"
+            )
 
     def _close_socket(self) -> None:
         sock, self._sock = self._sock, None
@@ -229,8 +242,9 @@ class Client(ClientBase):
 
     # -- commands ---------------------------------------------------------------------------------------
 
-    def _wait(self, request: Request, timeout_s: float, what: str, *, keep: bool = False,
-              connecting: bool = False) -> Message:  # fmt: skip
+    def _wait(
+        self, request: Request, timeout_s: float, what: str, *, keep: bool = False, connecting: bool = False
+    ) -> Message:
         deadline = time.monotonic() + timeout_s
         while request.reply is None:
             remaining = deadline - time.monotonic()
@@ -251,8 +265,9 @@ class Client(ClientBase):
                 pass
         return reply
 
-    def _command(self, name: str, args: dict[str, Any] | None = None, *, connecting: bool = False,
-                 timeout_s: float | None = None) -> Message:  # fmt: skip
+    def _command(
+        self, name: str, args: dict[str, Any] | None = None, *, connecting: bool = False, timeout_s: float | None = None
+    ) -> Message:
         if self._sock is None:
             if connecting or self._closed.is_set():
                 raise ConnectionLost(f"{self.address}: not connected")
@@ -316,7 +331,11 @@ class Client(ClientBase):
         deadline = time.monotonic() + (started.timeout_s or seconds + 30.0) + 5.0
         while True:
             for held in self._inbox:
-                if isinstance(held, Bias) and held.state in ("done", "failed") and held.capture_id == started.capture_id:
+                if (
+                    isinstance(held, Bias)
+                    and held.state in ("done", "failed")
+                    and held.capture_id == started.capture_id
+                ):
                     self._inbox.remove(held)
                     return check_bias(held)
             remaining = deadline - time.monotonic()

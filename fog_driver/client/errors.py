@@ -7,8 +7,16 @@ import os
 
 from ..errors import DeviceError, FogDriverError
 
-__all__ = ["BiasFailed", "ClientError", "CommandRefused", "ConnectError", "ConnectionLost", "NoReply",
-           "Unauthorized", "UnknownCommand"]  # fmt: skip
+__all__ = [
+    "BiasFailed",
+    "ClientError",
+    "CommandRefused",
+    "ConnectError",
+    "ConnectionLost",
+    "NoReply",
+    "Unauthorized",
+    "UnknownCommand",
+]
 
 
 class ClientError(FogDriverError):

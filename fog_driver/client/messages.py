@@ -16,8 +16,19 @@ from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any
 
-__all__ = ["Angle", "Bias", "Device", "ErrorReply", "Gap", "Message", "Other", "Reply", "Status", "Version",
-           "message_from"]  # fmt: skip
+__all__ = [
+    "Angle",
+    "Bias",
+    "Device",
+    "ErrorReply",
+    "Gap",
+    "Message",
+    "Other",
+    "Reply",
+    "Status",
+    "Version",
+    "message_from",
+]
 
 _EMPTY: Mapping[str, Any] = MappingProxyType({})
 
@@ -217,26 +228,53 @@ def message_from(obj: Mapping[str, Any], line: bytes = b"") -> Message | None:
         flags = obj.get("flags")
         flags = tuple(f for f in flags if isinstance(f, str)) if isinstance(flags, list) else ()
         axes = _numbers(obj, "axes_rate_raw_dph") if "axes_rate_raw_dph" in obj else None
-        return Angle(**base, seq=seq, t_s=t_s, angle_arcsec=_number(obj, "angle_arcsec"),
-                     angle_raw_arcsec=_number(obj, "angle_raw_arcsec"), rate_dph=_number(obj, "rate_dph"),
-                     rate_raw_dph=_number(obj, "rate_raw_dph"), drift_dph=_number(obj, "drift_dph"),
-                     temps_c=_numbers(obj, "temps_c"), flags=flags, utc=_text(obj, "utc"),
-                     axes_rate_raw_dph=axes)  # fmt: skip
+        return Angle(
+            **base,
+            seq=seq,
+            t_s=t_s,
+            angle_arcsec=_number(obj, "angle_arcsec"),
+            angle_raw_arcsec=_number(obj, "angle_raw_arcsec"),
+            rate_dph=_number(obj, "rate_dph"),
+            rate_raw_dph=_number(obj, "rate_raw_dph"),
+            drift_dph=_number(obj, "drift_dph"),
+            temps_c=_numbers(obj, "temps_c"),
+            flags=flags,
+            utc=_text(obj, "utc"),
+            axes_rate_raw_dph=axes,
+        )
     if cls == "STATUS":
         return Status(**base, **{name: _read(obj, name, kind) for name, kind in _STATUS_FIELDS})
     if cls == "DEVICE":
-        return Device(**base, path=_text(obj, "path"), state=_text(obj, "state"), format=_text(obj, "format"),
-                      serial=_text(obj, "serial"), firmware=_integer(obj, "firmware"), rate_hz=_number(obj, "rate_hz"),
-                      scale_arcsec_per_count=_number(obj, "scale_arcsec_per_count"),
-                      capture=_text(obj, "capture"))  # fmt: skip
+        return Device(
+            **base,
+            path=_text(obj, "path"),
+            state=_text(obj, "state"),
+            format=_text(obj, "format"),
+            serial=_text(obj, "serial"),
+            firmware=_integer(obj, "firmware"),
+            rate_hz=_number(obj, "rate_hz"),
+            scale_arcsec_per_count=_number(obj, "scale_arcsec_per_count"),
+            capture=_text(obj, "capture"),
+        )
     if cls == "VERSION":
-        return Version(**base, release=_text(obj, "release"), proto_major=_integer(obj, "proto_major"),
-                       proto_minor=_integer(obj, "proto_minor"), model=_text(obj, "model"),
-                       instrument=_mapping(obj, "instrument"))  # fmt: skip
+        return Version(
+            **base,
+            release=_text(obj, "release"),
+            proto_major=_integer(obj, "proto_major"),
+            proto_minor=_integer(obj, "proto_minor"),
+            model=_text(obj, "model"),
+            instrument=_mapping(obj, "instrument"),
+        )
     if cls == "BIAS":
-        return Bias(**base, state=_text(obj, "state"), capture_id=_integer(obj, "capture_id"),
-                    seconds=_number(obj, "seconds"), timeout_s=_number(obj, "timeout_s"),
-                    bias_dph=_number(obj, "bias_dph"), reason=_text(obj, "reason"))  # fmt: skip
+        return Bias(
+            **base,
+            state=_text(obj, "state"),
+            capture_id=_integer(obj, "capture_id"),
+            seconds=_number(obj, "seconds"),
+            timeout_s=_number(obj, "timeout_s"),
+            bias_dph=_number(obj, "bias_dph"),
+            reason=_text(obj, "reason"),
+        )
     if cls == "ERROR":
         return ErrorReply(**base, message=_text(obj, "message") or "", command=_text(obj, "command"))
     if cls in _REPLY_CLASSES:
@@ -245,11 +283,25 @@ def message_from(obj: Mapping[str, Any], line: bytes = b"") -> Message | None:
 
 
 _STATUS_FIELDS = (
-    ("uptime_s", float), ("port_state", str), ("bytes_in", int), ("frames", int), ("crc_errors", int),
-    ("bytes_discarded", int), ("seq_gaps", int), ("missing_frames", int), ("published", int), ("clients", int),
-    ("dropped_clients", int), ("cpu_percent", float), ("rss_mb", float), ("bias_dph", float),
-    ("bias_captured", bool), ("adapting", bool), ("capture_state", str), ("capture_bytes_lost", int),
-)  # fmt: skip
+    ("uptime_s", float),
+    ("port_state", str),
+    ("bytes_in", int),
+    ("frames", int),
+    ("crc_errors", int),
+    ("bytes_discarded", int),
+    ("seq_gaps", int),
+    ("missing_frames", int),
+    ("published", int),
+    ("clients", int),
+    ("dropped_clients", int),
+    ("cpu_percent", float),
+    ("rss_mb", float),
+    ("bias_dph", float),
+    ("bias_captured", bool),
+    ("adapting", bool),
+    ("capture_state", str),
+    ("capture_bytes_lost", int),
+)
 
 
 def _read(obj: Mapping[str, Any], key: str, kind: type) -> Any:

@@ -13,8 +13,20 @@ from .messages import Bias, Device, ErrorReply, Message, Status, Version
 from .session import Session
 from .wire import DEFAULT_HOST, DEFAULT_PORT, GREETING_TIMEOUT_S, format_address, parse_address
 
-__all__ = ["MAX_BIAS_S", "MAX_BUFFERED_ANGLES", "MAX_REFERENCE_DPH", "REPLY_TIMEOUT_S", "ClientBase", "bias_args",
-           "Reconnection", "check_bias", "check_reply", "control_args", "parse_target", "printable"]  # fmt: skip
+__all__ = [
+    "MAX_BIAS_S",
+    "MAX_BUFFERED_ANGLES",
+    "MAX_REFERENCE_DPH",
+    "REPLY_TIMEOUT_S",
+    "ClientBase",
+    "bias_args",
+    "Reconnection",
+    "check_bias",
+    "check_reply",
+    "control_args",
+    "parse_target",
+    "printable",
+]
 
 log = structlog.get_logger("fog_driver.client")
 
@@ -31,9 +43,17 @@ class ClientBase:
     """What ``Client`` and ``AsyncClient`` hold alike: the address, the token, the timeouts and the reconnection
     policy (checked here), the ``Session``, the latest ``Version``/``Device``/``Status`` and the counters."""
 
-    def __init__(self, address: str | tuple[str, int] | None = None, *, token: str | None = None,
-                 timeout_s: float = GREETING_TIMEOUT_S, reconnect: bool = True, backoff_initial_s: float = 0.5,
-                 backoff_max_s: float = 30.0, reply_timeout_s: float = REPLY_TIMEOUT_S) -> None:  # fmt: skip
+    def __init__(
+        self,
+        address: str | tuple[str, int] | None = None,
+        *,
+        token: str | None = None,
+        timeout_s: float = GREETING_TIMEOUT_S,
+        reconnect: bool = True,
+        backoff_initial_s: float = 0.5,
+        backoff_max_s: float = 30.0,
+        reply_timeout_s: float = REPLY_TIMEOUT_S,
+    ) -> None:
         self.host, self.port = parse_target(address)
         self.address = format_address(self.host, self.port)
         if token is not None and (not isinstance(token, str) or not token):
@@ -88,13 +108,19 @@ class Reconnection:
     def failed(self, exc: BaseException) -> None:
         self.attempt += 1
         self.delay = min(self.delay * 2.0, self.client.backoff_max_s)
-        log.warning("reconnect_failed", address=self.client.address, attempt=self.attempt, reason=str(exc),
-                    retry_in_s=self.delay)  # fmt: skip
+        log.warning(
+            "reconnect_failed",
+            address=self.client.address,
+            attempt=self.attempt,
+            reason=str(exc),
+            retry_in_s=self.delay,
+        )
 
     def succeeded(self) -> None:
         self.client.reconnects += 1
-        log.info("reconnected", address=self.client.address, attempt=self.attempt + 1,
-                 reconnects=self.client.reconnects)  # fmt: skip
+        log.info(
+            "reconnected", address=self.client.address, attempt=self.attempt + 1, reconnects=self.client.reconnects
+        )
 
 
 def parse_target(address: str | tuple[str, int] | None) -> tuple[str, int]:
@@ -114,8 +140,12 @@ def control_args(enable: bool, reference_dph: float) -> dict[str, Any]:
         raise ValueError("enable must be true or false")
     if not enable:
         return {"enable": False}
-    if isinstance(reference_dph, bool) or not isinstance(reference_dph, (int, float)) \
-            or not math.isfinite(reference_dph) or abs(reference_dph) > MAX_REFERENCE_DPH:  # fmt: skip
+    if (
+        isinstance(reference_dph, bool)
+        or not isinstance(reference_dph, (int, float))
+        or not math.isfinite(reference_dph)
+        or abs(reference_dph) > MAX_REFERENCE_DPH
+    ):
         raise ValueError(f"reference_dph must be a number within +-{MAX_REFERENCE_DPH:g} deg/h")
     return {"enable": True, "reference_dph": float(reference_dph)}
 
@@ -132,8 +162,11 @@ def check_reply(name: str, reply: Message) -> Any:
         return reply
     message = reply.message
     if message == "unauthorized" or name == "AUTH":
-        raise Unauthorized(f"?{name}: the daemon {'refused the token' if name == 'AUTH' else 'needs a token'}: "
-                           f"{printable(message)}", message=message, command=name)  # fmt: skip
+        raise Unauthorized(
+            f"?{name}: the daemon {'refused the token' if name == 'AUTH' else 'needs a token'}: {printable(message)}",
+            message=message,
+            command=name,
+        )
     if message.startswith("unknown command"):
         raise UnknownCommand(f"the daemon does not know ?{name} (an older fog-driver?)", message=message, command=name)
     raise CommandRefused(f"?{name} refused: {printable(message)}", message=message, command=name)

@@ -102,7 +102,9 @@ class LineReader:
         return lines
 
 
-def parse_address(text: str | None, *, default_host: str = DEFAULT_HOST, default_port: int = DEFAULT_PORT) -> tuple[str, int]:
+def parse_address(
+    text: str | None, *, default_host: str = DEFAULT_HOST, default_port: int = DEFAULT_PORT
+) -> tuple[str, int]:
     """``HOST:PORT``, ``HOST``, ``:PORT``, ``PORT`` or ``[IPV6]:PORT`` -> ``(host, port)``; ``UsageError`` if bad."""
     try:
         return parse_host_port(text, default_host=default_host, default_port=default_port, allow_zero=False)
@@ -185,18 +187,23 @@ class Connection:
             while conn.version is None:
                 item = conn.read(max(0.0, deadline - time.monotonic()))
                 if item is None:
-                    raise DeviceError(f"could not connect to {address}: no VERSION greeting within {timeout_s:g} s "
-                                      f"(not a fog-driver daemon?)")  # fmt: skip
+                    raise DeviceError(
+                        f"could not connect to {address}: no VERSION greeting within {timeout_s:g} s "
+                        f"(not a fog-driver daemon?)"
+                    )
                 greeting.append(item)
                 if item[1]["class"] == "VERSION":
                     conn.version = item[1]
                 elif item[1]["class"] == "ERROR":  # refused at once: too many clients
-                    raise DeviceError(f"could not connect to {address}: the daemon refused the connection: "
-                                      f"{_text(item[1].get('message'))}")  # fmt: skip
+                    raise DeviceError(
+                        f"could not connect to {address}: the daemon refused the connection: "
+                        f"{_text(item[1].get('message'))}"
+                    )
         except ConnectionClosed as exc:
             conn.close()
-            raise DeviceError(f"could not connect to {address}: {exc.reason} before the VERSION greeting "
-                              f"{hint}") from None  # fmt: skip
+            raise DeviceError(
+                f"could not connect to {address}: {exc.reason} before the VERSION greeting {hint}"
+            ) from None
         except BaseException:
             conn.close()
             raise

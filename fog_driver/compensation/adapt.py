@@ -183,8 +183,10 @@ class AdaptConfig:
             raise ValueError(f"compare_min_gain must be finite and >= 0, got {self.compare_min_gain!r}")
         if not _finite(self.compare_memory_windows) or not self.compare_memory_windows >= 1:
             raise ValueError(f"compare_memory_windows must be finite and >= 1, got {self.compare_memory_windows!r}")
-        if isinstance(self.compare_min_windows, bool) or not isinstance(self.compare_min_windows, int) or (
-            self.compare_min_windows < 0
+        if (
+            isinstance(self.compare_min_windows, bool)
+            or not isinstance(self.compare_min_windows, int)
+            or (self.compare_min_windows < 0)
         ):
             raise ValueError(f"compare_min_windows must be an integer >= 0, got {self.compare_min_windows!r}")
 
@@ -250,8 +252,11 @@ class StaticDetector:
 
     def to_dict(self) -> dict[str, Any]:
         """Plain values (NaN rates are ``.nan`` in YAML): safe for ``yaml.safe_dump``, exact."""
-        return {"threshold_dph": self.threshold_dph, "window_blocks": self.window_blocks,
-                "rates": [float(r) for r in self._rates]}  # fmt: skip
+        return {
+            "threshold_dph": self.threshold_dph,
+            "window_blocks": self.window_blocks,
+            "rates": [float(r) for r in self._rates],
+        }
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> StaticDetector:
@@ -260,17 +265,38 @@ class StaticDetector:
             got = sorted(d) if isinstance(d, dict) else type(d).__name__
             raise ValueError(f"static detector state needs exactly the keys {sorted(keys)}, got {got}")
         rates = d["rates"]
-        if not isinstance(rates, list) or not all(isinstance(r, (int, float)) and not isinstance(r, bool) for r in rates):
+        if not isinstance(rates, list) or not all(
+            isinstance(r, (int, float)) and not isinstance(r, bool) for r in rates
+        ):
             raise ValueError("static detector state: 'rates' must be a list of numbers")
         return cls(d["threshold_dph"], d["window_blocks"], rates)
 
 
-_STATE_KEYS = ("n_features", "frozen_weights", "frozen_intercept", "law", "bias_sum_dph", "bias_count",
-               "bias_dph", "blocks", "gated_blocks", "updates", "guards")  # fmt: skip
+_STATE_KEYS = (
+    "n_features",
+    "frozen_weights",
+    "frozen_intercept",
+    "law",
+    "bias_sum_dph",
+    "bias_count",
+    "bias_dph",
+    "blocks",
+    "gated_blocks",
+    "updates",
+    "guards",
+)
 #: The comparison guard's state (states saved before it existed load without it: a fresh comparison).
-_COMPARE_KEYS = ("compare_blocks", "compare_sum_frozen_dph", "compare_sum_adapted_dph", "compare_gain",
-                 "compare_gain_sq", "compare_windows", "compare_weights", "compare_level_frozen_dph",
-                 "compare_level_adapted_dph")  # fmt: skip
+_COMPARE_KEYS = (
+    "compare_blocks",
+    "compare_sum_frozen_dph",
+    "compare_sum_adapted_dph",
+    "compare_gain",
+    "compare_gain_sq",
+    "compare_windows",
+    "compare_weights",
+    "compare_level_frozen_dph",
+    "compare_level_adapted_dph",
+)
 #: The adapted estimate is used when the comparison's mean gain exceeds this many standard errors.  One,
 #: with 300-s windows and 4 of them first, was chosen on the development population
 #: (``benchmarks/bench_population.py --set dev --adapt``): 2 sigmas or 600-s windows kept the frozen
@@ -343,8 +369,9 @@ class OnlineReadout:
         self._law = AdaptiveLaw(self.config.law, self.n_features + 1, sample_time_s)
         self.sample_time_s = self._law.sample_time_s
         self.bias_capture_blocks = _blocks(self.config.bias_capture_s, self.sample_time_s)
-        self.runaway_dph = float(self.config.runaway_dph if self.config.runaway_dph is not None
-                                 else runaway_for(fit_residual_dph))  # fmt: skip
+        self.runaway_dph = float(
+            self.config.runaway_dph if self.config.runaway_dph is not None else runaway_for(fit_residual_dph)
+        )
         self._runaway = self.runaway_dph
         self._min_gain = (self.config.compare_min_gain * self.runaway_dph / RUNAWAY_FIT_RESIDUALS) ** 2
         # the innovation's filter: GATE_FILTER_S; the noise's memory: NOISE_MEMORY_S
@@ -460,7 +487,9 @@ class OnlineReadout:
         with np.errstate(over="ignore", invalid="ignore"):
             return self._advance_guarded(f, measured, reference, static)
 
-    def _advance_guarded(self, f: np.ndarray, measured: float, reference: float | None, static: bool) -> tuple[float, int]:
+    def _advance_guarded(
+        self, f: np.ndarray, measured: float, reference: float | None, static: bool
+    ) -> tuple[float, int]:
         self.blocks += 1
         flags = 0
         y_frozen = float(numerics.dot(f, self.frozen_weights) + self.frozen_intercept)
@@ -484,7 +513,7 @@ class OnlineReadout:
             if self.gate_last_rate_dph is not None:  # the block noise, from successive gated rates, winsorized
                 step = measured - self.gate_last_rate_dph
                 var = self.gate_noise_var_dph2
-                cap = min(25.0 * var if var > 0 else math.inf, self.config.static_threshold_dph ** 2)
+                cap = min(25.0 * var if var > 0 else math.inf, self.config.static_threshold_dph**2)
                 self.gate_noise_var_dph2 += self._noise_a * (min(0.5 * step * step, cap) - var)
             self.gate_last_rate_dph = measured
             if self.bias_dph is None:
@@ -547,7 +576,9 @@ class OnlineReadout:
         # Running means that are plain means until the memory is full, then exponential.
         weight = 1.0 / min(self.compare_windows + 1, self.config.compare_memory_windows)
         if self.compare_windows:  # errors about their own running level: a constant offset is no drift
-            gain = (error_frozen - self.compare_level_frozen_dph) ** 2 - (error_adapted - self.compare_level_adapted_dph) ** 2
+            gain = (error_frozen - self.compare_level_frozen_dph) ** 2 - (
+                error_adapted - self.compare_level_adapted_dph
+            ) ** 2
             gain_weight = 1.0 / min(self.compare_windows, self.config.compare_memory_windows)
             self.compare_gain += gain_weight * (gain - self.compare_gain)
             self.compare_gain_sq += gain_weight * (gain * gain - self.compare_gain_sq)
@@ -618,8 +649,10 @@ class OnlineReadout:
         optional = set(_COMPARE_KEYS) | set(_GATE_KEYS)
         if not isinstance(d, dict) or not set(_STATE_KEYS) <= set(d) <= set(_STATE_KEYS) | optional:
             got = sorted(d) if isinstance(d, dict) else type(d).__name__
-            raise ValueError(f"adaptation state needs exactly the keys {sorted(_STATE_KEYS)} (and the comparison's "
-                             f"{sorted(_COMPARE_KEYS)} and the gate's {sorted(_GATE_KEYS)}), got {got}")  # fmt: skip
+            raise ValueError(
+                f"adaptation state needs exactly the keys {sorted(_STATE_KEYS)} (and the comparison's "
+                f"{sorted(_COMPARE_KEYS)} and the gate's {sorted(_GATE_KEYS)}), got {got}"
+            )
         gate = {k: d[k] for k in _GATE_KEYS if k in d}
         if gate and set(gate) != set(_GATE_KEYS):
             raise ValueError(f"adaptation state: the gate needs all of {sorted(_GATE_KEYS)}")
@@ -644,11 +677,18 @@ class OnlineReadout:
             weights = np.zeros(0)
         if compare and (weights.shape != (self.n_features + 1,) or not np.isfinite(weights).all()):
             raise ValueError(f"adaptation state: 'compare_weights' must be {self.n_features + 1} finite numbers")
-        for k in ("compare_sum_frozen_dph", "compare_sum_adapted_dph", "compare_gain", "compare_gain_sq",
-                  "compare_level_frozen_dph", "compare_level_adapted_dph"):
+        for k in (
+            "compare_sum_frozen_dph",
+            "compare_sum_adapted_dph",
+            "compare_gain",
+            "compare_gain_sq",
+            "compare_level_frozen_dph",
+            "compare_level_adapted_dph",
+        ):
             if k in compare and not (_finite(compare[k]) and (k != "compare_gain_sq" or compare[k] >= 0)):
-                raise ValueError(f"adaptation state: {k!r} must be a finite number (>= 0 for a mean square), "
-                                 f"got {compare[k]!r}")  # fmt: skip
+                raise ValueError(
+                    f"adaptation state: {k!r} must be a finite number (>= 0 for a mean square), got {compare[k]!r}"
+                )
         if d["n_features"] != self.n_features or isinstance(d["n_features"], bool):
             raise ValueError(f"adaptation state is for {d['n_features']!r} features, the model has {self.n_features}")
         try:
@@ -656,7 +696,11 @@ class OnlineReadout:
             b0 = float(d["frozen_intercept"])
         except (TypeError, ValueError) as exc:
             raise ValueError(f"adaptation state: frozen weights are not numbers: {exc}") from None
-        if w0.shape != self.frozen_weights.shape or not np.array_equal(w0, self.frozen_weights) or b0 != self.frozen_intercept:
+        if (
+            w0.shape != self.frozen_weights.shape
+            or not np.array_equal(w0, self.frozen_weights)
+            or b0 != self.frozen_intercept
+        ):
             raise ValueError("adaptation state was saved for another model (its frozen weights differ)")
         law = AdaptiveLawState.from_dict(d["law"])
         if law.n_features != self.n_features + 1:
@@ -688,14 +732,16 @@ class OnlineReadout:
             else:
                 setattr(self, k, v if k in ("compare_blocks", "compare_windows") else float(v))
 
-    def save_state(self, path: str | Path, detector: StaticDetector | None = None,
-                   pipeline: dict[str, Any] | None = None) -> Path:  # fmt: skip
+    def save_state(
+        self, path: str | Path, detector: StaticDetector | None = None, pipeline: dict[str, Any] | None = None
+    ) -> Path:
         """Write the state (and a static detector's, and the compensator's ``pipeline`` state, if given) as
         YAML; ``OutputFileError`` on failure."""
         return write_state_doc(path, self.state_document(detector, pipeline))
 
-    def state_document(self, detector: StaticDetector | None = None,
-                       pipeline: dict[str, Any] | None = None) -> dict[str, Any]:  # fmt: skip
+    def state_document(
+        self, detector: StaticDetector | None = None, pipeline: dict[str, Any] | None = None
+    ) -> dict[str, Any]:
         """What ``save_state`` writes, as a document of plain values (a snapshot: later steps do not change it)."""
         doc: dict[str, Any] = {
             "format": ADAPT_STATE_FORMAT,
@@ -717,12 +763,15 @@ class OnlineReadout:
         the file must have one with the same settings."""
         return self.load_state_doc(read_state_doc(path), str(path), detector)
 
-    def load_state_doc(self, doc: dict[str, Any], where: str, detector: StaticDetector | None = None
-                       ) -> StaticDetector | None:  # fmt: skip
+    def load_state_doc(
+        self, doc: dict[str, Any], where: str, detector: StaticDetector | None = None
+    ) -> StaticDetector | None:
         """``load_state_file`` of a document already read (``where`` names it in errors)."""
         if doc.get("sample_time_s") != self.sample_time_s:
-            raise InputFileError(f"{where}: adaptation state for sample time {doc.get('sample_time_s')!r} s, "
-                                 f"the readout runs at {self.sample_time_s!r} s")  # fmt: skip
+            raise InputFileError(
+                f"{where}: adaptation state for sample time {doc.get('sample_time_s')!r} s, "
+                f"the readout runs at {self.sample_time_s!r} s"
+            )
         try:
             found = StaticDetector.from_dict(doc["static_detector"]) if "static_detector" in doc else None
             if detector is not None:

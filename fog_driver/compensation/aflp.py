@@ -177,8 +177,10 @@ class AflpState:
         samples = d["samples"]
         order = len(arrays["phi"])
         if order < 1 or any(len(a) != order for a in arrays.values()):
-            raise ValueError(f"AFLP state: phi, history, ki2 and kei must have one equal length >= 1, got "
-                             f"{ {k: len(a) for k, a in arrays.items()} }")  # fmt: skip
+            raise ValueError(
+                f"AFLP state: phi, history, ki2 and kei must have one equal length >= 1, got "
+                f"{ {k: len(a) for k, a in arrays.items()} }"
+            )
         if not all(np.isfinite(a).all() for a in arrays.values()) or not math.isfinite(ke2):
             raise ValueError("AFLP state: values must be finite")
         if ke2 < 0 or (arrays["ki2"] < 0).any():
@@ -223,8 +225,14 @@ class AflpFilter:
     @property
     def state(self) -> AflpState:
         """A copy of the current state (changing it does not change the filter)."""
-        return AflpState(np.array(self._phi), np.array(self._hist), self._ke2[0], np.array(self._ki2),
-                         np.array(self._kei), self._samples)  # fmt: skip
+        return AflpState(
+            np.array(self._phi),
+            np.array(self._hist),
+            self._ke2[0],
+            np.array(self._ki2),
+            np.array(self._kei),
+            self._samples,
+        )
 
     def reset(self, state: AflpState | None = None) -> None:
         """Back to the initial all-zero state (or to ``state``)."""

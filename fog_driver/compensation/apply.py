@@ -39,7 +39,8 @@ def check_channels(model_file: ModelFile, wire, model_name: str = "the model", w
         raise ModelMismatchError(
             f"{model_name} was fitted on the temperature channels {', '.join(channels)}; {what}'s {wire.format} "
             f"frames carry {', '.join(wire.temperature_channels)}: it cannot be applied (fit a model on this "
-            f"instrument's captures)")  # fmt: skip
+            f"instrument's captures)"
+        )
 
 
 def _new_instrument(current: IdentityFrame | None, identity: IdentityFrame) -> bool:
@@ -55,9 +56,17 @@ class InstrumentCompensation:
     ``adapt_state``, when given and existing, is restored into the first compensator (as a new run).
     """
 
-    def __init__(self, model_file: ModelFile, *, force: bool = False, model_name: str = "the model",
-                 hint: str = "use --force to apply it anyway", adapt: AdaptConfig | None = None,
-                 reference_rate_dph: float | None = None, adapt_state: str | Path | None = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        model_file: ModelFile,
+        *,
+        force: bool = False,
+        model_name: str = "the model",
+        hint: str = "use --force to apply it anyway",
+        adapt: AdaptConfig | None = None,
+        reference_rate_dph: float | None = None,
+        adapt_state: str | Path | None = None,
+    ) -> None:
         self.model_file = model_file
         self.force = force
         self.model_name = model_name
@@ -78,8 +87,14 @@ class InstrumentCompensation:
         """Whether ``identity`` (plausible) builds or rebuilds the compensator."""
         return _new_instrument(self.identity, identity)
 
-    def check(self, identity: IdentityFrame, model_file: ModelFile | None = None, *, force: bool | None = None,
-              model_name: str | None = None) -> None:  # fmt: skip
+    def check(
+        self,
+        identity: IdentityFrame,
+        model_file: ModelFile | None = None,
+        *,
+        force: bool | None = None,
+        model_name: str | None = None,
+    ) -> None:
         """``ModelMismatchError`` when ``model_file`` (default: this one, named ``model_name``) was fitted for
         another serial, unless ``force`` (default: this binding's)."""
         model_file = model_file or self.model_file
@@ -131,8 +146,9 @@ class InstrumentCompensation:
         return out
 
 
-def split_at_identities(samples: SampleBlock, identities: list[IdentityFrame],
-                        binding: InstrumentCompensation) -> list[tuple[IdentityFrame | None, SampleBlock]]:  # fmt: skip
+def split_at_identities(
+    samples: SampleBlock, identities: list[IdentityFrame], binding: InstrumentCompensation
+) -> list[tuple[IdentityFrame | None, SampleBlock]]:
     """``samples`` cut where an IDENTITY among ``identities`` would change ``binding`` (plausible ones, in
     stream order): ``(identity to bind first or None, the samples after it)``; the first part has None."""
     parts: list[tuple[IdentityFrame | None, SampleBlock]] = []
@@ -177,8 +193,14 @@ def compensate_capture(
     wire = wire_settings_for(path, wire_format)
     check_channels(model_file, wire, model_name, str(path))
     reader = CaptureReader(path, wire, scale_override_arcsec_per_count)
-    binding = InstrumentCompensation(model_file, force=force, model_name=model_name, adapt=adapt,
-                                     reference_rate_dph=reference_rate_dph, adapt_state=adapt_state)  # fmt: skip
+    binding = InstrumentCompensation(
+        model_file,
+        force=force,
+        model_name=model_name,
+        adapt=adapt,
+        reference_rate_dph=reference_rate_dph,
+        adapt_state=adapt_state,
+    )
     pending: list[SampleBlock] = []  # samples before the first IDENTITY
     samples_seen = 0
     for part in reader.parts():

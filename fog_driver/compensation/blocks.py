@@ -80,8 +80,11 @@ class BlockColumns:
     @classmethod
     def from_blocks(cls, blocks: list[ModelBlock]) -> BlockColumns:
         if not blocks:
-            return cls(*(np.zeros(0, dtype=d) for d in (np.int64, np.float64, np.int64, np.float64)),
-                       np.zeros((0, 3)), np.zeros(0, np.int64))  # fmt: skip
+            return cls(
+                *(np.zeros(0, dtype=d) for d in (np.int64, np.float64, np.int64, np.float64)),
+                np.zeros((0, 3)),
+                np.zeros(0, np.int64),
+            )
         return cls(
             np.array([b.index for b in blocks], dtype=np.int64),
             np.array([b.t_end_s for b in blocks]),
@@ -122,14 +125,33 @@ class BlockAverager:
         self._flags = 0
         self._last_t_us = 0
 
-    _STATE_KEYS = ("frame_period_s", "block_us", "first_us", "current", "n", "sum_dtheta", "sum_t", "n_t", "flags",
-                   "last_t_us")  # fmt: skip
+    _STATE_KEYS = (
+        "frame_period_s",
+        "block_us",
+        "first_us",
+        "current",
+        "n",
+        "sum_dtheta",
+        "sum_t",
+        "n_t",
+        "flags",
+        "last_t_us",
+    )
 
     def get_state(self) -> dict:
         """The open block and the block grid, as plain YAML-safe values (exact)."""
-        return {"frame_period_s": self.frame_period_s, "block_us": self.block_us, "first_us": self._first_us,
-                "current": self._current, "n": self._n, "sum_dtheta": self._sum_dtheta, "sum_t": list(self._sum_t),
-                "n_t": list(self._n_t), "flags": self._flags, "last_t_us": self._last_t_us}  # fmt: skip
+        return {
+            "frame_period_s": self.frame_period_s,
+            "block_us": self.block_us,
+            "first_us": self._first_us,
+            "current": self._current,
+            "n": self._n,
+            "sum_dtheta": self._sum_dtheta,
+            "sum_t": list(self._sum_t),
+            "n_t": list(self._n_t),
+            "flags": self._flags,
+            "last_t_us": self._last_t_us,
+        }
 
     def set_state(self, state: dict) -> None:
         """Inverse of ``get_state``; ``ValueError`` for a state of another frame period or block length."""
@@ -141,8 +163,13 @@ class BlockAverager:
             first = None if state["first_us"] is None else int(state["first_us"])
             sum_t = [float(v) for v in state["sum_t"]]
             n_t = [int(v) for v in state["n_t"]]
-            values = (int(state["current"]), int(state["n"]), float(state["sum_dtheta"]), int(state["flags"]),
-                      int(state["last_t_us"]))  # fmt: skip
+            values = (
+                int(state["current"]),
+                int(state["n"]),
+                float(state["sum_dtheta"]),
+                int(state["flags"]),
+                int(state["last_t_us"]),
+            )
         except (TypeError, ValueError) as exc:
             raise ValueError(f"block averager state: not numbers: {exc}") from None
         if len(sum_t) != 3 or len(n_t) != 3:
@@ -215,8 +242,9 @@ class BlockAverager:
         sum_t = np.add.reduceat(np.where(valid, temps, 0.0), starts, axis=0)
         n_t = np.add.reduceat(valid.astype(np.int64), starts, axis=0)
         count = np.diff(np.r_[starts, n])
-        flags = np.where(np.logical_or.reduceat(~valid[:, : self.n_channels].all(axis=1), starts),
-                         FLAG_THERMOMETER_FAULT, 0)  # fmt: skip
+        flags = np.where(
+            np.logical_or.reduceat(~valid[:, : self.n_channels].all(axis=1), starts), FLAG_THERMOMETER_FAULT, 0
+        )
         flags |= np.where(
             np.logical_or.reduceat((samples.status & STATUS_THERMOMETER_FAULT) != 0, starts), FLAG_THERMOMETER_FAULT, 0
         )

@@ -99,10 +99,16 @@ class CompensatedColumns:
 
     def sample(self, i: int) -> CompensatedSample:
         return CompensatedSample(
-            int(self.seq[i]), float(self.t_s[i]), float(self.dtheta_arcsec[i]), float(self.drift_dph[i]),
-            float(self.dtheta_comp_arcsec[i]), float(self.angle_raw_arcsec[i]), float(self.angle_comp_arcsec[i]),
-            tuple(float(v) for v in self.temps_c[i]), int(self.flags[i]),
-        )  # fmt: skip
+            int(self.seq[i]),
+            float(self.t_s[i]),
+            float(self.dtheta_arcsec[i]),
+            float(self.drift_dph[i]),
+            float(self.dtheta_comp_arcsec[i]),
+            float(self.angle_raw_arcsec[i]),
+            float(self.angle_comp_arcsec[i]),
+            tuple(float(v) for v in self.temps_c[i]),
+            int(self.flags[i]),
+        )
 
 
 class Compensator:
@@ -126,8 +132,9 @@ class Compensator:
         self.frame_period_s = float(frame_period_s)
         self.n_channels = len(model_file.temperature_channels)
         self.averager = BlockAverager(frame_period_s, model_file.model_rate_hz, self.n_channels)
-        self.features = FeatureExtractor(model_file.features, substitution=model_file.substitution,
-                                         n_channels=self.n_channels)  # fmt: skip
+        self.features = FeatureExtractor(
+            model_file.features, substitution=model_file.substitution, n_channels=self.n_channels
+        )
         self._normalizer = model_file.normalizer
         self.domain = model_file.domain
         self._block_s = 1.0 / model_file.model_rate_hz
@@ -150,8 +157,13 @@ class Compensator:
         if adapt is not None:
             from .adapt import OnlineReadout, StaticDetector
 
-            self.online = OnlineReadout(self.model.weights, self.model.intercept, adapt, self._block_s,
-                                        fit_residual_dph=model_file.fit_residual_dph)  # fmt: skip
+            self.online = OnlineReadout(
+                self.model.weights,
+                self.model.intercept,
+                adapt,
+                self._block_s,
+                fit_residual_dph=model_file.fit_residual_dph,
+            )
             self.static_detector = StaticDetector.from_config(adapt, self._block_s)
 
     # -- block level: shared by step and run ---------------------------------------------------
@@ -244,23 +256,41 @@ class Compensator:
 
     def set_pipeline_state(self, state: dict) -> None:
         """Inverse of ``pipeline_state`` (``ValueError`` when it does not fit this model and frame rate)."""
-        keys = {"averager", "features", "model", "started", "blocks_seen", "estimate_dph", "estimate_flags",
-                "estimate_block", "last_index", "last_temps", "settle_until"}  # fmt: skip
+        keys = {
+            "averager",
+            "features",
+            "model",
+            "started",
+            "blocks_seen",
+            "estimate_dph",
+            "estimate_flags",
+            "estimate_block",
+            "last_index",
+            "last_temps",
+            "settle_until",
+        }
         if not isinstance(state, dict) or set(state) != keys:
             raise ValueError(f"pipeline state needs exactly the keys {sorted(keys)}")
         try:  # the scalars first, and every part on fresh objects: nothing changes when a part is bad
-            scalars = (bool(state["started"]), int(state["blocks_seen"]), float(state["estimate_dph"]),
-                       int(state["estimate_flags"]), int(state["estimate_block"]),
-                       None if state["last_index"] is None else int(state["last_index"]),
-                       tuple(float(v) for v in state["last_temps"]), int(state["settle_until"]))  # fmt: skip
+            scalars = (
+                bool(state["started"]),
+                int(state["blocks_seen"]),
+                float(state["estimate_dph"]),
+                int(state["estimate_flags"]),
+                int(state["estimate_block"]),
+                None if state["last_index"] is None else int(state["last_index"]),
+                tuple(float(v) for v in state["last_temps"]),
+                int(state["settle_until"]),
+            )
         except (TypeError, ValueError) as exc:
             raise ValueError(f"pipeline state: not numbers: {exc}") from None
         if len(scalars[6]) != 3:
             raise ValueError("pipeline state: last_temps needs 3 values")
         averager = BlockAverager(self.averager.frame_period_s, self.averager.model_rate_hz, self.n_channels)
         averager.set_state(state["averager"])
-        features = FeatureExtractor(self.features.params, substitution=self.features.substitution,
-                                    n_channels=self.n_channels)  # fmt: skip
+        features = FeatureExtractor(
+            self.features.params, substitution=self.features.substitution, n_channels=self.n_channels
+        )
         try:
             features.set_state(state["features"])
         except (KeyError, TypeError, ValueError) as exc:
@@ -278,8 +308,16 @@ class Compensator:
             raise ValueError("pipeline state: the model state is for another model")
         self.averager = averager
         self.features = features
-        (self._started, self.blocks_seen, self.estimate_dph, self.estimate_flags, self._estimate_block,
-         self._last_index, self._last_temps, self._settle_until) = scalars  # fmt: skip
+        (
+            self._started,
+            self.blocks_seen,
+            self.estimate_dph,
+            self.estimate_flags,
+            self._estimate_block,
+            self._last_index,
+            self._last_temps,
+            self._settle_until,
+        ) = scalars
 
     def continue_from(self, old: Compensator, *, same_model: bool) -> None:
         """Carry on from ``old`` (a model reloaded mid-run): with the same inputs (features, block length
@@ -287,8 +325,10 @@ class Compensator:
         substitutes' offsets where the new model predicts a sensor the same way; the others are tracked
         afresh); with the same model (``same_model``) also its memory and its adaptation.  A different model
         starts at rest at the next block's inputs, as at switch-on.  The angles are the caller's to carry."""
-        same_grid = (self.averager.block_us, self.averager.frame_period_s) == (old.averager.block_us,
-                                                                              old.averager.frame_period_s)  # fmt: skip
+        same_grid = (self.averager.block_us, self.averager.frame_period_s) == (
+            old.averager.block_us,
+            old.averager.frame_period_s,
+        )
         if self.features.params != old.features.params or not same_grid:
             return
         state = old.pipeline_state()
@@ -364,9 +404,16 @@ class Compensator:
                     flags |= FLAG_THERMOMETER_FAULT
                     break
         return CompensatedSample(
-            sample.seq, sample.t_s, sample.dtheta_arcsec, drift, dtheta_comp,
-            self.angle_raw_arcsec, self.angle_comp_arcsec, temps, flags,
-        )  # fmt: skip
+            sample.seq,
+            sample.t_s,
+            sample.dtheta_arcsec,
+            drift,
+            dtheta_comp,
+            self.angle_raw_arcsec,
+            self.angle_comp_arcsec,
+            temps,
+            flags,
+        )
 
     def run(self, samples: SampleBlock) -> CompensatedColumns:
         """Vector form of ``step`` over many samples: per-frame work vectorized, blocks in order."""
@@ -399,7 +446,9 @@ class Compensator:
         temps = np.column_stack([samples.t_top_c, samples.t_bottom_c, samples.t_housing_c])
         flags[samples.missing_before > 0] |= FLAG_GAP
         bad_temp = ~plausible_temps(temps[:, : self.n_channels]).all(axis=1) | (
-            (samples.status & STATUS_THERMOMETER_FAULT) != 0)  # fmt: skip
+            (samples.status & STATUS_THERMOMETER_FAULT) != 0
+        )
         flags[bad_temp] |= FLAG_THERMOMETER_FAULT
-        return CompensatedColumns(samples.seq, samples.t_s, dtheta, drift, dtheta_comp, angle_raw, angle_comp,
-                                  temps, flags)  # fmt: skip
+        return CompensatedColumns(
+            samples.seq, samples.t_s, dtheta, drift, dtheta_comp, angle_raw, angle_comp, temps, flags
+        )

@@ -49,6 +49,8 @@ def margins_for(n_inputs: int) -> tuple[float, ...]:
     """``MARGINS`` for an input vector of ``n_inputs`` (``features.input_names``: the temperatures first)."""
     n = channels_of(n_inputs)
     return (LEVEL_MARGIN,) * n + (LINEAR_MARGIN,) * (n_inputs - n)
+
+
 #: The estimate's bound, in multiples of the range of the fit target's 1-minute means.
 ESTIMATE_LIMIT_FACTOR = 3.0
 
@@ -88,16 +90,22 @@ class InputDomain:
         object.__setattr__(self, "_bounds", bounds)
 
     @classmethod
-    def from_fit(cls, inputs: np.ndarray, minute_means_dph: np.ndarray,
-                 names: tuple[str, ...] = INPUT_NAMES) -> InputDomain:  # fmt: skip
+    def from_fit(
+        cls, inputs: np.ndarray, minute_means_dph: np.ndarray, names: tuple[str, ...] = INPUT_NAMES
+    ) -> InputDomain:
         """The box of the fit's (rows, 8) raw inputs (finite values) and the bound from its target's
         1-minute means.  A target with no spread (a model of nothing) still gets a positive bound."""
         x = np.asarray(inputs, dtype=np.float64)
         x = np.where(np.isfinite(x), x, np.nan)
         means = np.asarray(minute_means_dph, dtype=np.float64)
         spread = float(np.ptp(means)) if len(means) else 0.0
-        return cls(tuple(np.nanmin(x, axis=0)), tuple(np.nanmax(x, axis=0)),
-                   ESTIMATE_LIMIT_FACTOR * max(spread, 1e-3), margins_for(len(names)), tuple(names))  # fmt: skip
+        return cls(
+            tuple(np.nanmin(x, axis=0)),
+            tuple(np.nanmax(x, axis=0)),
+            ESTIMATE_LIMIT_FACTOR * max(spread, 1e-3),
+            margins_for(len(names)),
+            tuple(names),
+        )
 
     @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
@@ -151,8 +159,9 @@ class InputDomain:
         n = channels_of(len(names))  # the names must be those of some temperature channels
         channels = tuple(v[2:-2] if v.startswith("t_") and v.endswith("_c") else "" for v in names[:n])
         if not all(channels) or list(input_names(channels)) != list(names):
-            raise ValueError(f"the domain's inputs must be named as a model's inputs ({', '.join(INPUT_NAMES)} for "
-                             f"protocol v1)")  # fmt: skip
+            raise ValueError(
+                f"the domain's inputs must be named as a model's inputs ({', '.join(INPUT_NAMES)} for protocol v1)"
+            )
         for key in ("low", "high", "margin"):
             if not isinstance(doc.get(key), list) or not all(
                 isinstance(v, (int, float)) and not isinstance(v, bool) for v in doc[key]

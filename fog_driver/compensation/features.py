@@ -77,8 +77,11 @@ def input_names(channels: tuple[str, ...] = V1_CHANNELS) -> tuple[str, ...]:
     three channels (protocol v1, STDBIN): the 8 inputs above; one channel (KVH): ``[T, dT/dt]``."""
     if not 1 <= len(channels) <= 3:
         raise ValueError(f"a model needs 1 to 3 temperature channels, not {len(channels)}")
-    return (tuple(f"t_{c}_c" for c in channels) + tuple(f"rate_{c}_c_per_min" for c in channels)
-            + tuple(f"grad_{channels[0]}_{c}_c" for c in channels[1:]))  # fmt: skip
+    return (
+        tuple(f"t_{c}_c" for c in channels)
+        + tuple(f"rate_{c}_c_per_min" for c in channels)
+        + tuple(f"grad_{channels[0]}_{c}_c" for c in channels[1:])
+    )
 
 
 def input_columns(n_channels: int) -> list[int]:
@@ -137,9 +140,13 @@ class Substitution:
         return cls(tuple((None, (1.0, 0.0), (1.0, 0.0)) for _ in range(3)))
 
     def to_dict(self) -> dict:
-        return {SENSOR_NAMES[k]: {"+".join(SENSOR_NAMES[j] for j in partners): None if c is None else list(c)
-                                  for partners, c in zip(PARTNER_SETS[k], self.coefficients[k])}
-                for k in range(3)}  # fmt: skip
+        return {
+            SENSOR_NAMES[k]: {
+                "+".join(SENSOR_NAMES[j] for j in partners): None if c is None else list(c)
+                for partners, c in zip(PARTNER_SETS[k], self.coefficients[k])
+            }
+            for k in range(3)
+        }
 
     @classmethod
     def from_dict(cls, doc: dict) -> Substitution:
@@ -168,8 +175,9 @@ class Substitution:
 RIDGE_ALPHA = 1e-6
 
 
-def fit_substitution(inputs: list[np.ndarray], usable: list[np.ndarray], block_s: float,
-                     chunk_s: float = 1200.0) -> Substitution:  # fmt: skip
+def fit_substitution(
+    inputs: list[np.ndarray], usable: list[np.ndarray], block_s: float, chunk_s: float = 1200.0
+) -> Substitution:
     """Fit ``Substitution`` on captures' inputs (rows of the 8 inputs; ``usable``: all three measured).
 
     Per sensor and partner set, least squares of T_k on the partners' temperatures and rates with one
@@ -251,8 +259,13 @@ class FeatureExtractor:
     """Block temperatures -> the inputs (``input_names`` of the first ``n_channels`` temperature places; 8 for
     three), with explicit state (smoothers, last valid values)."""
 
-    def __init__(self, params: FeatureParams | None = None, state: dict | None = None,
-                 substitution: Substitution | None = None, n_channels: int = 3) -> None:  # fmt: skip
+    def __init__(
+        self,
+        params: FeatureParams | None = None,
+        state: dict | None = None,
+        substitution: Substitution | None = None,
+        n_channels: int = 3,
+    ) -> None:
         if n_channels not in (1, 2, 3):
             raise ValueError(f"n_channels must be 1, 2 or 3, not {n_channels!r}")
         self.n_channels = n_channels
@@ -290,10 +303,20 @@ class FeatureExtractor:
         self._stuck_at = [math.nan] * 3  # a sensor caught stuck: the reading it is stuck at
 
     def get_state(self) -> dict:
-        return {"last": list(self._last), "stale_s": list(self._stale_s), "m1": list(self._m1), "m2": list(self._m2),
-                "faulted": list(self._faulted), "raw_prev": list(self._raw_prev), "good_s": list(self._good_s),
-                "offset": list(self._offset), "recovering_s": self._recovering_s, "anchor": list(self._anchor),
-                "anchor_offset": list(self._anchor_offset), "stuck_at": list(self._stuck_at)}  # fmt: skip
+        return {
+            "last": list(self._last),
+            "stale_s": list(self._stale_s),
+            "m1": list(self._m1),
+            "m2": list(self._m2),
+            "faulted": list(self._faulted),
+            "raw_prev": list(self._raw_prev),
+            "good_s": list(self._good_s),
+            "offset": list(self._offset),
+            "recovering_s": self._recovering_s,
+            "anchor": list(self._anchor),
+            "anchor_offset": list(self._anchor_offset),
+            "stuck_at": list(self._stuck_at),
+        }
 
     def set_state(self, state: dict) -> None:
         """Inverse of ``get_state``; a state saved before fault handling (no ``faulted`` ...) means healthy, one
@@ -306,8 +329,11 @@ class FeatureExtractor:
         anchor = [float(v) for v in state.get("anchor", [math.nan] * 9)]
         anchor_offset = [float(v) for v in state.get("anchor_offset", [math.nan] * 9)]
         stuck_at = [float(v) for v in state.get("stuck_at", [math.nan] * 3)]
-        if any(len(v) != 3 for v in values.values()) or len(stuck_at) != 3 or {len(offset), len(anchor),
-                                                                                 len(anchor_offset)} != {9}:  # fmt: skip
+        if (
+            any(len(v) != 3 for v in values.values())
+            or len(stuck_at) != 3
+            or {len(offset), len(anchor), len(anchor_offset)} != {9}
+        ):
             raise ValueError("feature state: 3 values per sensor (9 offsets and anchors)")
         values["offset"] = offset
         recovering_s = float(state.get("recovering_s", 0.0))
@@ -398,8 +424,11 @@ class FeatureExtractor:
                     continue
                 difference = t[k] - self._predict(partners, coef, t, rates)
                 i = 3 * k + s_index
-                self._offset[i] = difference if self._offset[i] != self._offset[i] else (
-                    self._offset[i] + self._a1 * (difference - self._offset[i]))  # fmt: skip
+                self._offset[i] = (
+                    difference
+                    if self._offset[i] != self._offset[i]
+                    else (self._offset[i] + self._a1 * (difference - self._offset[i]))
+                )
         if self._recovering_s > 0:
             flags |= FLAG_RECOVERING
             self._recovering_s = max(0.0, self._recovering_s - ts)
@@ -435,10 +464,10 @@ class FeatureExtractor:
         for k in range(3):
             if not healthy[k]:
                 continue
-            anchor = self._anchor[3 * k:3 * k + 3]
+            anchor = self._anchor[3 * k : 3 * k + 3]
             if not abs(raw[k] - anchor[k]) <= p.stuck_tol_c:  # it moved (or has no anchor yet): anchor here
-                self._anchor[3 * k:3 * k + 3] = [t[j] if healthy[j] else math.nan for j in range(3)]
-                self._anchor_offset[3 * k:3 * k + 3] = self._offset[3 * k:3 * k + 3]
+                self._anchor[3 * k : 3 * k + 3] = [t[j] if healthy[j] else math.nan for j in range(3)]
+                self._anchor_offset[3 * k : 3 * k + 3] = self._offset[3 * k : 3 * k + 3]
                 continue
             moved = []
             for j in range(3):
@@ -449,8 +478,8 @@ class FeatureExtractor:
             if moved and min(moved) > p.stuck_partner_c:
                 caught[k], healthy[k], self._faulted[k] = True, False, True
                 self._stuck_at[k], self._raw_prev[k], self._good_s[k] = raw[k], raw[k], 0.0
-                self._offset[3 * k:3 * k + 3] = self._anchor_offset[3 * k:3 * k + 3]
-                self._anchor[3 * k:3 * k + 3] = [math.nan] * 3
+                self._offset[3 * k : 3 * k + 3] = self._anchor_offset[3 * k : 3 * k + 3]
+                self._anchor[3 * k : 3 * k + 3] = [math.nan] * 3
                 self._recovering_s = RECOVERY_TAUS * p.rate_tau_slow_s
         return caught
 

@@ -129,15 +129,25 @@ def motion_mask(rate_dph: np.ndarray, config: FitConfig) -> np.ndarray:
     return moving
 
 
-def static_mask(blocks: BlockColumns, input_flags: np.ndarray, config: FitConfig,
-                moving: np.ndarray | None = None, n_channels: int = 3) -> np.ndarray:  # fmt: skip
+def static_mask(
+    blocks: BlockColumns,
+    input_flags: np.ndarray,
+    config: FitConfig,
+    moving: np.ndarray | None = None,
+    n_channels: int = 3,
+) -> np.ndarray:
     """Blocks to fit: no motion (``moving``, by default ``motion_mask``; widened by ``motion_margin_s``),
     fresh, measured (not substituted) and settled thermometers, no lost frames, past the warm-up."""
     return ~np.any(list(_exclusions(blocks, input_flags, config, moving, n_channels).values()), axis=0)
 
 
-def _exclusions(blocks: BlockColumns, input_flags: np.ndarray, config: FitConfig,
-                moving: np.ndarray | None = None, n_channels: int = 3) -> dict[str, np.ndarray]:  # fmt: skip
+def _exclusions(
+    blocks: BlockColumns,
+    input_flags: np.ndarray,
+    config: FitConfig,
+    moving: np.ndarray | None = None,
+    n_channels: int = 3,
+) -> dict[str, np.ndarray]:
     """Why each block is not fitted (``static_mask``): one mask per reason, named as ``no_static_reason``
     tells the user.  ``n_channels``: the temperature places the capture's format fills."""
     moving = motion_mask(blocks.rate_dph, config) if moving is None else moving
@@ -149,24 +159,33 @@ def _exclusions(blocks: BlockColumns, input_flags: np.ndarray, config: FitConfig
         "warm-up": blocks.t_end_s <= config.warmup_s,
         "table motion (with motion_margin_s either side)": moving,
         "no valid, settled thermometers": ((input_flags & DEGRADED_FLAGS) != 0)
-        | ~np.all(np.isfinite(blocks.temps_c[:, : n_channels]), axis=1),
+        | ~np.all(np.isfinite(blocks.temps_c[:, :n_channels]), axis=1),
         "lost frames": (blocks.flags & FLAG_GAP) != 0,
     }
 
 
-def no_static_reason(blocks: BlockColumns, input_flags: np.ndarray, config: FitConfig, moving: np.ndarray,
-                     warmup_setting: str, n_channels: int = 3) -> str:  # fmt: skip
+def no_static_reason(
+    blocks: BlockColumns,
+    input_flags: np.ndarray,
+    config: FitConfig,
+    moving: np.ndarray,
+    warmup_setting: str,
+    n_channels: int = 3,
+) -> str:
     """Why no block is static and valid, in the user's terms: the capture's length against the warm-up
     (named as ``warmup_setting``), or how many of the blocks after it each reason excluded."""
     length_s = float(blocks.t_end_s[-1]) if len(blocks) else 0.0
     reasons = _exclusions(blocks, input_flags, config, moving, n_channels)
     warmup = reasons.pop("warm-up")
     if warmup.all():
-        return (f"the capture is {length_s:.0f} s and its first {config.warmup_s:g} s are excluded as warm-up "
-                f"({warmup_setting})")  # fmt: skip
+        return (
+            f"the capture is {length_s:.0f} s and its first {config.warmup_s:g} s are excluded as warm-up "
+            f"({warmup_setting})"
+        )
     after = ~warmup
-    counts = ", ".join(f"{int(np.count_nonzero(mask & after)):,} {why}" for why, mask in reasons.items()
-                       if (mask & after).any())  # fmt: skip
+    counts = ", ".join(
+        f"{int(np.count_nonzero(mask & after)):,} {why}" for why, mask in reasons.items() if (mask & after).any()
+    )
     return f"of its {int(after.sum()):,} blocks after the {config.warmup_s:g}-s warm-up: {counts}"
 
 
@@ -179,9 +198,15 @@ def measured_rows(capture: CaptureData, config: FitConfig) -> np.ndarray:
     return ok & np.all(np.isfinite(capture.inputs), axis=1)
 
 
-def load_capture(path: str | Path, config: FitConfig, progress: Callable[[int, int], None] | None = None, *,
-                 purpose: str = "to fit", warmup_setting: str = "warmup_s in the fit config, fit --config FILE",
-                 wire_format: str = "auto") -> CaptureData:  # fmt: skip
+def load_capture(
+    path: str | Path,
+    config: FitConfig,
+    progress: Callable[[int, int], None] | None = None,
+    *,
+    purpose: str = "to fit",
+    warmup_setting: str = "warmup_s in the fit config, fit --config FILE",
+    wire_format: str = "auto",
+) -> CaptureData:
     """Decode a capture block by block and reduce it to the model rate; ``progress(bytes read, file size)``
     after every block read.  No static, valid block is an ``InputFileError`` saying why
     (``no_static_reason``; ``purpose`` and ``warmup_setting`` word it).  ``wire_format``: ``--format``
@@ -228,9 +253,20 @@ def load_capture(path: str | Path, config: FitConfig, progress: Callable[[int, i
         raise InputFileError(f"{path}: no static, valid block {purpose}: {reason}")
     target = blocks.rate_dph - blocks.rate_dph[static].mean()
     identity = reader.identity
-    return CaptureData(path, sha.hexdigest(), identity.serial if identity else None, averager.frame_period_s, blocks,
-                       inputs, input_flags, static, target, int(moving.sum()), wire.temperature_channels,
-                       wire.format)  # fmt: skip
+    return CaptureData(
+        path,
+        sha.hexdigest(),
+        identity.serial if identity else None,
+        averager.frame_period_s,
+        blocks,
+        inputs,
+        input_flags,
+        static,
+        target,
+        int(moving.sum()),
+        wire.temperature_channels,
+        wire.format,
+    )
 
 
 def minute_rms(residual_dph: np.ndarray, mask: np.ndarray, model_rate_hz: float = 1.0) -> float:
@@ -245,8 +281,9 @@ def fit_normalizer(captures: list[CaptureData]) -> Standardizer:
     return Standardizer.fit(np.vstack([c.inputs[c.static] for c in captures]))
 
 
-def applied_prediction(model, capture: CaptureData, normalizer: Standardizer,
-                       domain: InputDomain | None = None) -> np.ndarray:  # fmt: skip
+def applied_prediction(
+    model, capture: CaptureData, normalizer: Standardizer, domain: InputDomain | None = None
+) -> np.ndarray:
     """The drift the compensator would apply in each block: the model's output from the block before,
     the model started at rest at the first valid input (as ``Compensator`` does), its inputs clamped to
     ``domain`` and its output bounded by it (as ``Compensator`` does)."""
@@ -349,11 +386,15 @@ def bias_step_warning(step: dict, n_channels: int = 3) -> str | None:
         return None
     causes = "a bias jump, a turn-on transient longer than warmup_s, or a slow move"
     if n_channels == 1:
-        causes = (f"drift that one thermometer cannot follow (a gradient or a lag across the coil that this "
-                  f"format's single sensor does not see), {causes}")  # fmt: skip
-    return (f"the fit data hold a bias step of {step['step_dph']:+.3f} deg/h at minute {step['minute']} of "
-            f"{step['capture']} (it explains {100 * step['share']:.0f} % of what the temperatures leave): {causes}; "
-            f"the model absorbs it as drift. Fit the parts either side separately, or raise warmup_s")
+        causes = (
+            f"drift that one thermometer cannot follow (a gradient or a lag across the coil that this "
+            f"format's single sensor does not see), {causes}"
+        )
+    return (
+        f"the fit data hold a bias step of {step['step_dph']:+.3f} deg/h at minute {step['minute']} of "
+        f"{step['capture']} (it explains {100 * step['share']:.0f} % of what the temperatures leave): {causes}; "
+        f"the model absorbs it as drift. Fit the parts either side separately, or raise warmup_s"
+    )
 
 
 def static_rows(captures: list[CaptureData], model_rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
@@ -384,8 +425,11 @@ class FitReport:
         before = self.rows[0]
         out: dict[str, list[str]] = {}
         for what, fit_value, validate_value in self.rows[1:]:
-            cols = [col for col, v, b in (("fit", fit_value, before[1]), ("validate", validate_value, before[2]))
-                    if v is not None and b is not None and v > b]  # fmt: skip
+            cols = [
+                col
+                for col, v, b in (("fit", fit_value, before[1]), ("validate", validate_value, before[2]))
+                if v is not None and b is not None and v > b
+            ]
             if cols:
                 out[what] = cols
         return out
@@ -413,9 +457,11 @@ class FitReport:
             return None
         fit_floor, validate_floor = self.noise_floor
         also = f", {validate_floor:.4f} on the validation data" if validate_floor is not None else ""
-        return (f"noise floor of 1-min means: {fit_floor:.4f} deg/h on the fit data{also}: the gyro's white noise, "
-                f"which no model removes; differences between models well below it are not meaningful on measured "
-                f"data (evaluate --truth scores against the true drift)")
+        return (
+            f"noise floor of 1-min means: {fit_floor:.4f} deg/h on the fit data{also}: the gyro's white noise, "
+            f"which no model removes; differences between models well below it are not meaningful on measured "
+            f"data (evaluate --truth scores against the true drift)"
+        )
 
 
 def noise_floor_dph(captures: list[CaptureData], rate_hz: float) -> float:
@@ -432,9 +478,15 @@ def _pooled_minute_rms(captures: list[CaptureData], residuals: list[np.ndarray],
     return float(np.sqrt(np.mean(np.square(values)))) if values else float("nan")
 
 
-def report_for(models: dict[str, object], normalizer: Standardizer, fit_data: list[CaptureData],
-               validate: list[CaptureData], rate_hz: float, domain: InputDomain | None = None,
-               progress: Callable[[str], None] | None = None) -> FitReport:  # fmt: skip
+def report_for(
+    models: dict[str, object],
+    normalizer: Standardizer,
+    fit_data: list[CaptureData],
+    validate: list[CaptureData],
+    rate_hz: float,
+    domain: InputDomain | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> FitReport:
     """Drift RMS before and after each model, on the fit data and the validation data (each model applied
     as the compensator applies it: inputs clamped to ``domain``, estimates bounded), and the noise floor."""
     runs = len(models) * (len(fit_data) + len(validate))
@@ -455,8 +507,13 @@ def report_for(models: dict[str, object], normalizer: Standardizer, fit_data: li
     before_val = _pooled_minute_rms(validate, [c.target_dph for c in validate], rate_hz) if validate else None
     rows: list[tuple[str, float, float | None]] = [("before compensation", before_fit, before_val)]
     for name, model in models.items():
-        rows.append((f"after, {name}", rms_after(name, model, fit_data, "applying"),
-                     rms_after(name, model, validate, "validating")))  # fmt: skip
+        rows.append(
+            (
+                f"after, {name}",
+                rms_after(name, model, fit_data, "applying"),
+                rms_after(name, model, validate, "validating"),
+            )
+        )
     floor = (noise_floor_dph(fit_data, rate_hz), noise_floor_dph(validate, rate_hz) if validate else None)
     return FitReport(rows, floor)
 
@@ -467,8 +524,9 @@ def regressor_rows(model, captures: list[CaptureData], normalizer: Standardizer)
     from .polynomial import PolynomialModel, polynomial_features
 
     if isinstance(model, PolynomialModel):
-        return [polynomial_features(normalizer.transform(np.where(np.isfinite(c.inputs), c.inputs, 0.0)))
-                for c in captures]  # fmt: skip
+        return [
+            polynomial_features(normalizer.transform(np.where(np.isfinite(c.inputs), c.inputs, 0.0))) for c in captures
+        ]
     if getattr(model, "selection", None):  # the ring wesn (its structure chosen by the fit)
         from .wesn import _capture_regressors
 
@@ -547,8 +605,9 @@ def _fit_wesn(kind: str):
     from .wesn import PAPER_DEFAULTS, WESN_DEFAULTS, fit_wesn
 
     defaults = {"wesn": WESN_DEFAULTS, "paper": PAPER_DEFAULTS}[kind]
-    return lambda captures, normalizer, config, progress=None: fit_wesn(kind, defaults, captures, normalizer, config,
-                                                                         progress)  # fmt: skip
+    return lambda captures, normalizer, config, progress=None: fit_wesn(
+        kind, defaults, captures, normalizer, config, progress
+    )
 
 
 def _fit_pso_svr(captures: list[CaptureData], normalizer: Standardizer, config: FitConfig, progress=None):
@@ -559,8 +618,12 @@ def _fit_pso_svr(captures: list[CaptureData], normalizer: Standardizer, config: 
 
 #: Model kinds that can be fitted: name -> fit(captures, normalizer, config, progress=None) -> model
 #: (``progress(text)`` hears the phase and how far it is).
-FITTERS = {"polynomial": _fit_polynomial, "wesn": _fit_wesn("wesn"), "paper": _fit_wesn("paper"),
-           "pso-svr": _fit_pso_svr}  # fmt: skip
+FITTERS = {
+    "polynomial": _fit_polynomial,
+    "wesn": _fit_wesn("wesn"),
+    "paper": _fit_wesn("paper"),
+    "pso-svr": _fit_pso_svr,
+}
 
 #: One line per kind for ``fog-driver fit --help`` (every key of ``FITTERS``).
 KIND_HELP = {
@@ -601,18 +664,24 @@ def fit_model_file(
 
     def decoding(p):
         name = Path(p).name
-        return None if progress is None else lambda done, total: say(f"decoding {name} {100 * done / max(total, 1):.0f} %")
+        return (
+            None if progress is None else lambda done, total: say(f"decoding {name} {100 * done / max(total, 1):.0f} %")
+        )
 
     captures = [load_capture(p, config, decoding(p), wire_format=wire_format) for p in paths]
     validate = [load_capture(p, config, decoding(p), wire_format=wire_format) for p in validate_paths]
     for c in [*captures[1:], *validate]:
         if c.channels != captures[0].channels:
-            raise InputFileError(f"{c.path}: {c.wire_format} frames with temperature channels {', '.join(c.channels)}; "
-                                 f"{captures[0].path.name} has {', '.join(captures[0].channels)}: one model is "
-                                 f"fitted on one instrument's channels")  # fmt: skip
+            raise InputFileError(
+                f"{c.path}: {c.wire_format} frames with temperature channels {', '.join(c.channels)}; "
+                f"{captures[0].path.name} has {', '.join(captures[0].channels)}: one model is "
+                f"fitted on one instrument's channels"
+            )
     serials = {c.serial for c in captures}
     if len(serials) != 1:
-        raise InputFileError(f"the fit captures come from different instruments: {', '.join(sorted(map(str, serials)))}")
+        raise InputFileError(
+            f"the fit captures come from different instruments: {', '.join(sorted(map(str, serials)))}"
+        )
     normalizer = fit_normalizer(captures)
     models = {"polynomial": _fit_polynomial(captures, normalizer, config, progress)}
     if kind != "polynomial":
@@ -620,20 +689,35 @@ def fit_model_file(
     inputs, means = static_rows(captures, config.model_rate_hz)
     channels = captures[0].channels
     domain = InputDomain.from_fit(inputs, means, input_names(channels))  # the fit's box, and the estimate's bound
-    substitution = fit_substitution([c.inputs for c in captures], [measured_rows(c, config) for c in captures],
-                                    1.0 / config.model_rate_hz)  # fmt: skip
+    substitution = fit_substitution(
+        [c.inputs for c in captures], [measured_rows(c, config) for c in captures], 1.0 / config.model_rate_hz
+    )
     report = report_for(models, normalizer, captures, validate, config.model_rate_hz, domain, progress)
     provenance = {
-        "captures": [{"file": c.path.name, "sha256": c.sha256, "blocks": len(c.blocks),
-                      "static_blocks": int(c.static.sum()), "moving_blocks": c.moving_blocks}
-                     for c in captures],  # fmt: skip
+        "captures": [
+            {
+                "file": c.path.name,
+                "sha256": c.sha256,
+                "blocks": len(c.blocks),
+                "static_blocks": int(c.static.sum()),
+                "moving_blocks": c.moving_blocks,
+            }
+            for c in captures
+        ],
         "validate": [{"file": c.path.name, "sha256": c.sha256} for c in validate],
         "config": _plain(config),
-        "metrics": {what: {"fit": fit_v, **({"validate": val_v} if val_v is not None else {}),
-                           **({"worse_than_uncompensated": report.worse()[what]} if what in report.worse() else {})}
-                    for what, fit_v, val_v in report.rows},  # fmt: skip
-        "noise_floor_1min_dph": {"fit": report.noise_floor[0],
-                                 **({"validate": report.noise_floor[1]} if validate else {})},  # fmt: skip
+        "metrics": {
+            what: {
+                "fit": fit_v,
+                **({"validate": val_v} if val_v is not None else {}),
+                **({"worse_than_uncompensated": report.worse()[what]} if what in report.worse() else {}),
+            }
+            for what, fit_v, val_v in report.rows
+        },
+        "noise_floor_1min_dph": {
+            "fit": report.noise_floor[0],
+            **({"validate": report.noise_floor[1]} if validate else {}),
+        },
     }
     selection = getattr(models[kind], "selection", None)
     if selection:
@@ -656,12 +740,17 @@ def fit_model_file(
     say("bias step test")
     step = bias_step_scan(captures, normalizer, config.model_rate_hz)
     if step is not None:  # reported, not a check: see bias_step_warning
-        provenance["fit_quality"]["bias_step"] = {"capture": captures[step.capture].path.name, "minute": step.minute,
-                                                  "step_dph": step.step_dph, "share": step.share}  # fmt: skip
+        provenance["fit_quality"]["bias_step"] = {
+            "capture": captures[step.capture].path.name,
+            "minute": step.minute,
+            "step_dph": step.step_dph,
+            "share": step.share,
+        }
     rows = regressor_rows(models[kind], captures, normalizer)
     if rows is not None:  # for information: the model's own regressors (the review's M6)
         provenance["fit_quality"]["model_condition"] = condition_number(
-            np.vstack([r[c.static] for r, c in zip(rows, captures)]))  # fmt: skip
+            np.vstack([r[c.static] for r, c in zip(rows, captures)])
+        )
     model_file = ModelFile(
         kind=kind,
         instrument_serial=next(iter(serials)) or "",
@@ -690,8 +779,15 @@ class WeakFitError(InputFileError):
         self.quality, self.report, self.model_file = quality, report, model_file
 
 
-def _assess(inputs: np.ndarray, means: np.ndarray, validate: list[CaptureData], normalizer: Standardizer,
-            report: FitReport, kind: str, config: FitConfig) -> FitQuality:  # fmt: skip
+def _assess(
+    inputs: np.ndarray,
+    means: np.ndarray,
+    validate: list[CaptureData],
+    normalizer: Standardizer,
+    report: FitReport,
+    kind: str,
+    config: FitConfig,
+) -> FitQuality:
     """``quality.assess`` of this fit (``static_rows``: its static inputs and target minute means): their
     span and duration, the data's conditioning, and its report's before/after rows for the saved model."""
     from .polynomial import polynomial_features
@@ -705,8 +801,9 @@ def _assess(inputs: np.ndarray, means: np.ndarray, validate: list[CaptureData], 
     before, after = by_name["before compensation"], by_name[f"after, {kind}"]
     validated = (before[1], after[1]) if validate else None
     ring_c, ring_rate_c_per_min = ring_of(inputs)
-    return assess(len(inputs) / rate / 60.0, ring_c, ring_rate_c_per_min, means, condition, (before[0], after[0]),
-                  validated)  # fmt: skip
+    return assess(
+        len(inputs) / rate / 60.0, ring_c, ring_rate_c_per_min, means, condition, (before[0], after[0]), validated
+    )
 
 
 def _plain(obj):

@@ -54,8 +54,7 @@ class DriftModel(Protocol):
 
 
 #: Model kinds: name -> class with ``from_dict``.
-MODEL_KINDS: dict[str, Any] = {"polynomial": PolynomialModel, "wesn": WesnKind, "paper": PaperKind,
-                               "pso-svr": SvrModel}  # fmt: skip
+MODEL_KINDS: dict[str, Any] = {"polynomial": PolynomialModel, "wesn": WesnKind, "paper": PaperKind, "pso-svr": SvrModel}
 
 
 #: The drift model runs on block means of temperature, seconds to minutes apart: rates outside these are a
@@ -97,11 +96,15 @@ class ModelFile:
         lines = []
         quality = self.provenance.get("fit_quality") or {}
         if isinstance(quality, dict) and quality.get("accepted_weak"):
-            lines.append(f"{name} is a weak fit, accepted with --accept-weak-fit: "
-                         f"{'; '.join(map(str, quality.get('weak') or []))}")  # fmt: skip
+            lines.append(
+                f"{name} is a weak fit, accepted with --accept-weak-fit: "
+                f"{'; '.join(map(str, quality.get('weak') or []))}"
+            )
         if self.domain is None:
-            lines.append(f"{name} stores no fit range (made by an older fog-driver): extrapolation cannot be "
-                         f"flagged; refit it to get the range checks")  # fmt: skip
+            lines.append(
+                f"{name} stores no fit range (made by an older fog-driver): extrapolation cannot be "
+                f"flagged; refit it to get the range checks"
+            )
         return lines
 
     def to_doc(self) -> dict[str, Any]:
@@ -147,8 +150,11 @@ def load_model(path: str | Path) -> ModelFile:
         features = FeatureParams(**_require(doc, "features", dict, where))
         normalizer = Standardizer.from_dict(_require(doc, "normalizer", dict, where))
         channels = doc.get("temperature_channels", list(V1_CHANNELS))
-        if (not isinstance(channels, list) or not 1 <= len(channels) <= 3
-                or not all(isinstance(c, str) and c.isidentifier() for c in channels)):  # fmt: skip
+        if (
+            not isinstance(channels, list)
+            or not 1 <= len(channels) <= 3
+            or not all(isinstance(c, str) and c.isidentifier() for c in channels)
+        ):
             raise ValueError("temperature_channels must list 1 to 3 channel names")
         channels = tuple(channels)
         names = input_names(channels)
@@ -166,8 +172,10 @@ def load_model(path: str | Path) -> ModelFile:
     except (TypeError, ValueError, KeyError, IndexError) as exc:
         raise InputFileError(f"{where}: corrupt model: {exc}") from None
     if not np.all(np.isfinite(normalizer.scale)) or not MIN_MODEL_RATE_HZ <= rate <= MAX_MODEL_RATE_HZ:
-        raise InputFileError(f"{where}: corrupt model: non-finite normalizer, or a model rate outside "
-                             f"{MIN_MODEL_RATE_HZ:g}..{MAX_MODEL_RATE_HZ:g} Hz")  # fmt: skip
+        raise InputFileError(
+            f"{where}: corrupt model: non-finite normalizer, or a model rate outside "
+            f"{MIN_MODEL_RATE_HZ:g}..{MAX_MODEL_RATE_HZ:g} Hz"
+        )
     if abs(features.sample_time_s * rate - 1.0) > 1e-9:
         raise InputFileError(f"{where}: corrupt model: features.sample_time_s is not 1 / model_rate_hz")
     return ModelFile(

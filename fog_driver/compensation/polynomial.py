@@ -27,6 +27,7 @@ from . import numerics
 from .features import channels_of
 from .readout import ridge_fit
 
+
 def _basis(z: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[np.ndarray], list[np.ndarray]]:
     """R, dR, the levels after R ([G, H] for three channels) and the rates after dR ([dT3]), as columns.
 
@@ -105,12 +106,14 @@ class PolynomialModel(Memoryless):
         self.weights = np.asarray(weights, dtype=np.float64)
         self.intercept = float(intercept)
         if self.weights.shape not in ((9,), (7,), (6,)):
-            raise ValueError(f"a polynomial model has 9 weights (three channels), 7 (two) or 6 (one), got "
-                             f"{self.weights.shape}")  # fmt: skip
+            raise ValueError(
+                f"a polynomial model has 9 weights (three channels), 7 (two) or 6 (one), got {self.weights.shape}"
+            )
 
     @classmethod
-    def fit(cls, z: np.ndarray, target: np.ndarray, alpha: float | None = None,
-            groups: np.ndarray | None = None) -> PolynomialModel:  # fmt: skip
+    def fit(
+        cls, z: np.ndarray, target: np.ndarray, alpha: float | None = None, groups: np.ndarray | None = None
+    ) -> PolynomialModel:
         """Ridge on standardized regressors (one intercept per capture, ``groups``); ``alpha`` None: chosen by
         blocked cross-validation."""
         f = polynomial_features(z)
@@ -144,8 +147,9 @@ class PolynomialModel(Memoryless):
 ALPHA_GRID = (1e-6, 3e-6, 1e-5, 3e-5, 1e-4, 3e-4, 1e-3, 3e-3, 1e-2)
 
 
-def standardized_ridge(x: np.ndarray, y: np.ndarray, alpha: float, penalty: np.ndarray | None = None,
-                       groups: np.ndarray | None = None) -> tuple[np.ndarray, float]:  # fmt: skip
+def standardized_ridge(
+    x: np.ndarray, y: np.ndarray, alpha: float, penalty: np.ndarray | None = None, groups: np.ndarray | None = None
+) -> tuple[np.ndarray, float]:
     """Ridge on standardized columns (penalty ``alpha * rows``), weights folded back to raw columns.
 
     ``penalty``: a multiplier per column (default 1): column j's standardized weight is penalized by
@@ -169,9 +173,15 @@ def standardized_ridge(x: np.ndarray, y: np.ndarray, alpha: float, penalty: np.n
     return w_std / scale, float(b_std - (mean / scale) @ w_std)
 
 
-def cross_validated_alpha(x: np.ndarray, y: np.ndarray, folds: int = 5, average_rows: int = 60,
-                          grid: tuple[float, ...] = ALPHA_GRID, penalty: np.ndarray | None = None,
-                          groups: np.ndarray | None = None) -> tuple[float, dict[float, float]]:  # fmt: skip
+def cross_validated_alpha(
+    x: np.ndarray,
+    y: np.ndarray,
+    folds: int = 5,
+    average_rows: int = 60,
+    grid: tuple[float, ...] = ALPHA_GRID,
+    penalty: np.ndarray | None = None,
+    groups: np.ndarray | None = None,
+) -> tuple[float, dict[float, float]]:
     """The penalty with the smallest blocked cross-validation error.
 
     Rows are in time order; each fold is a contiguous stretch (another part of the thermal run,

@@ -53,7 +53,6 @@ class Check:
     message: str  #: what failing means, for the user (empty when passed)
 
 
-
 @dataclass(frozen=True)
 class FitQuality:
     checks: tuple[Check, ...]
@@ -66,8 +65,12 @@ class FitQuality:
         return format_checks(self.to_dict(False))
 
     def to_dict(self, accepted_weak: bool) -> dict:
-        doc = {"checks": {c.name: {"value": float(c.value), "limit": float(c.limit), "passed": bool(c.passed)}
-                          for c in self.checks}}  # fmt: skip
+        doc = {
+            "checks": {
+                c.name: {"value": float(c.value), "limit": float(c.limit), "passed": bool(c.passed)}
+                for c in self.checks
+            }
+        }
         if self.failed:
             doc["weak"] = [c.message for c in self.failed]
             doc["accepted_weak"] = bool(accepted_weak)
@@ -101,38 +104,84 @@ def _check(name: str, value: float, limit: float, passed: bool, message: str) ->
     return Check(name, float(value), float(limit), bool(passed), "" if passed else message)
 
 
-def assess(static_minutes: float, ring_c: np.ndarray, ring_rate_c_per_min: np.ndarray, target_minute_means: np.ndarray,
-           condition: float | None, fit_before_after: tuple[float, float],
-           validate_before_after: tuple[float, float] | None) -> FitQuality:  # fmt: skip
+def assess(
+    static_minutes: float,
+    ring_c: np.ndarray,
+    ring_rate_c_per_min: np.ndarray,
+    target_minute_means: np.ndarray,
+    condition: float | None,
+    fit_before_after: tuple[float, float],
+    validate_before_after: tuple[float, float] | None,
+) -> FitQuality:
     """The checks of the module docstring, from the fit's measured quantities."""
     ring_span = float(np.ptp(ring_c)) if len(ring_c) else 0.0
     rate_span = float(np.ptp(ring_rate_c_per_min)) if len(ring_rate_c_per_min) else 0.0
     target_range = float(np.ptp(target_minute_means)) if len(target_minute_means) else 0.0
     checks = [
-        _check("duration", static_minutes, MIN_FIT_MINUTES, static_minutes >= MIN_FIT_MINUTES,
-               f"only {static_minutes:.1f} min of static fit data (at least {MIN_FIT_MINUTES:g} needed): too short to "
-               f"average the gyro's noise below its drift"),
-        _check("ring_span", ring_span, MIN_RING_SPAN_C, ring_span >= MIN_RING_SPAN_C,
-               f"the ring temperature spans only {ring_span:.2f} degC (at least {MIN_RING_SPAN_C:g} needed): the model "
-               f"would extrapolate at any other temperature"),
-        _check("rate_span", rate_span, MIN_RATE_SPAN_C_PER_MIN, rate_span >= MIN_RATE_SPAN_C_PER_MIN,
-               f"the ring temperature's rate spans only {rate_span:.3f} degC/min (at least {MIN_RATE_SPAN_C_PER_MIN:g} "
-               f"needed): its rate terms are unidentified"),
-        _check("target_range", target_range, MAX_TARGET_RANGE_DPH, target_range <= MAX_TARGET_RANGE_DPH,
-               f"the fit target's 1-minute means span {target_range:.1f} deg/h (a thermal drift spans at most "
-               f"{MAX_TARGET_RANGE_DPH:g}): the table moved, or the gyro faulted, during the fit data"),
-    ]  # fmt: skip
+        _check(
+            "duration",
+            static_minutes,
+            MIN_FIT_MINUTES,
+            static_minutes >= MIN_FIT_MINUTES,
+            f"only {static_minutes:.1f} min of static fit data (at least {MIN_FIT_MINUTES:g} needed): too short to "
+            f"average the gyro's noise below its drift",
+        ),
+        _check(
+            "ring_span",
+            ring_span,
+            MIN_RING_SPAN_C,
+            ring_span >= MIN_RING_SPAN_C,
+            f"the ring temperature spans only {ring_span:.2f} degC (at least {MIN_RING_SPAN_C:g} needed): the model "
+            f"would extrapolate at any other temperature",
+        ),
+        _check(
+            "rate_span",
+            rate_span,
+            MIN_RATE_SPAN_C_PER_MIN,
+            rate_span >= MIN_RATE_SPAN_C_PER_MIN,
+            f"the ring temperature's rate spans only {rate_span:.3f} degC/min (at least {MIN_RATE_SPAN_C_PER_MIN:g} "
+            f"needed): its rate terms are unidentified",
+        ),
+        _check(
+            "target_range",
+            target_range,
+            MAX_TARGET_RANGE_DPH,
+            target_range <= MAX_TARGET_RANGE_DPH,
+            f"the fit target's 1-minute means span {target_range:.1f} deg/h (a thermal drift spans at most "
+            f"{MAX_TARGET_RANGE_DPH:g}): the table moved, or the gyro faulted, during the fit data",
+        ),
+    ]
     if condition is not None:
-        checks.append(_check("condition", condition, MAX_CONDITION, condition <= MAX_CONDITION,
-                             f"the data's condition number is {condition:.3g} (at most {MAX_CONDITION:g}): they do not "
-                             f"determine the weights"))  # fmt: skip
+        checks.append(
+            _check(
+                "condition",
+                condition,
+                MAX_CONDITION,
+                condition <= MAX_CONDITION,
+                f"the data's condition number is {condition:.3g} (at most {MAX_CONDITION:g}): they do not "
+                f"determine the weights",
+            )
+        )
     before, after = fit_before_after
-    checks.append(_check("fit_residual", after, before, after < before,
-                         f"on its own fit data the model leaves {after:.4f} deg/h, more than the {before:.4f} before "
-                         f"compensation"))  # fmt: skip
+    checks.append(
+        _check(
+            "fit_residual",
+            after,
+            before,
+            after < before,
+            f"on its own fit data the model leaves {after:.4f} deg/h, more than the {before:.4f} before compensation",
+        )
+    )
     if validate_before_after is not None:
         before, after = validate_before_after
-        checks.append(_check("validation", after, before, after < before,
-                             f"on the validation captures the model leaves {after:.4f} deg/h, more than the "
-                             f"{before:.4f} with no compensation"))  # fmt: skip
+        checks.append(
+            _check(
+                "validation",
+                after,
+                before,
+                after < before,
+                f"on the validation captures the model leaves {after:.4f} deg/h, more than the "
+                f"{before:.4f} with no compensation",
+            )
+        )
     return FitQuality(tuple(checks))

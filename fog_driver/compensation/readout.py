@@ -159,8 +159,13 @@ class AdaptiveLawState:
 
     def to_dict(self) -> dict[str, Any]:
         """Plain (nested) lists of floats: safe for ``yaml.safe_dump``, exact."""
-        return {"xf": self.xf.tolist(), "df": float(self.df), "h": self.h.tolist(), "i": self.i.tolist(),
-                "w": self.w.tolist()}  # fmt: skip
+        return {
+            "xf": self.xf.tolist(),
+            "df": float(self.df),
+            "h": self.h.tolist(),
+            "i": self.i.tolist(),
+            "w": self.w.tolist(),
+        }
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> AdaptiveLawState:
@@ -206,8 +211,7 @@ class AdaptiveLaw:
         lam = 1.0 / p.memory_time_s
         # Correctly rounded: the same coefficients on every machine (the C library's exp is not).
         self._alpha = numerics.exp_correctly_rounded(-ts / p.filter_time_s) if p.filter_time_s > 0 else 0.0
-        self._one_minus_alpha = (-numerics.expm1_correctly_rounded(-ts / p.filter_time_s) if p.filter_time_s > 0
-                                 else 1.0)  # fmt: skip
+        self._one_minus_alpha = -numerics.expm1_correctly_rounded(-ts / p.filter_time_s) if p.filter_time_s > 0 else 1.0
         self._beta = numerics.exp_correctly_rounded(-lam * ts)
         self._g = -numerics.expm1_correctly_rounded(-lam * ts) / lam
         self._sigma = float(p.sigma)

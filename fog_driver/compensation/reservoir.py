@@ -219,8 +219,9 @@ class ReservoirParams:
             raise ValueError(f"leak_per_s must be a number or one number per neuron, got {leak!r}")
         for v in self.leaks():
             if not 0.0 < v * self.sample_time_s <= 1.0:
-                raise ValueError(f"leak_per_s: need 0 < sample_time_s * leak <= 1, got leak {v!r} at Ts "
-                                 f"{self.sample_time_s!r}")  # fmt: skip
+                raise ValueError(
+                    f"leak_per_s: need 0 < sample_time_s * leak <= 1, got leak {v!r} at Ts {self.sample_time_s!r}"
+                )
         if not isinstance(self.normalized_leak, bool):
             raise ValueError(f"normalized_leak must be true or false, got {self.normalized_leak!r}")
         if not _is_real(self.spectral_radius) or not 0.0 <= self.spectral_radius < 1.0:
@@ -236,10 +237,15 @@ class ReservoirParams:
             raise ValueError(f"seed must be an integer >= 0, got {self.seed!r}")
         object.__setattr__(self, "seed", int(self.seed))
         chain = self.chain_from
-        if not isinstance(chain, (list, tuple)) or (chain and len(chain) != self.n_neurons) or not all(
-                _is_int(c) and -1 <= c < self.n_neurons and c != i for i, c in enumerate(chain)):  # fmt: skip
-            raise ValueError(f"chain_from: need () or {self.n_neurons} neuron indices (-1 for none, never the neuron "
-                             f"itself), got {chain!r}")  # fmt: skip
+        if (
+            not isinstance(chain, (list, tuple))
+            or (chain and len(chain) != self.n_neurons)
+            or not all(_is_int(c) and -1 <= c < self.n_neurons and c != i for i, c in enumerate(chain))
+        ):
+            raise ValueError(
+                f"chain_from: need () or {self.n_neurons} neuron indices (-1 for none, never the neuron "
+                f"itself), got {chain!r}"
+            )
         chain = tuple(int(c) for c in chain)
         if chain and not self.normalized_leak:
             raise ValueError("chain_from needs the normalized leak")
@@ -314,7 +320,9 @@ class ReservoirMatrices:
     def draw(cls, params: ReservoirParams) -> ReservoirMatrices:
         """Draw every matrix from ``params.seed`` (deterministic; see the module docstring)."""
         n, m = params.n_neurons, params.n_inputs
-        rng = {k: np.random.default_rng(c) for k, c in zip(_CHILD, np.random.SeedSequence(params.seed).spawn(_N_CHILDREN))}
+        rng = {
+            k: np.random.default_rng(c) for k, c in zip(_CHILD, np.random.SeedSequence(params.seed).spawn(_N_CHILDREN))
+        }
         w_in = rng["w_in"].uniform(-1.0, 1.0, (n, m)) * params.input_scale
         w_back = rng["w_back"].uniform(-1.0, 1.0, n) * params.feedback_scale
         dilation = rng["dilation"].uniform(*params.dilation_range, n)
@@ -400,8 +408,10 @@ class WaveletReservoir:
         self.params = params if params is not None else ReservoirParams()
         self.matrices = matrices if matrices is not None else ReservoirMatrices.draw(self.params)
         if (self.matrices.n_neurons, self.matrices.n_inputs) != (self.params.n_neurons, self.params.n_inputs):
-            raise ValueError(f"matrices are {self.matrices.n_neurons} neurons x {self.matrices.n_inputs} inputs, "
-                             f"params say {self.params.n_neurons} x {self.params.n_inputs}")  # fmt: skip
+            raise ValueError(
+                f"matrices are {self.matrices.n_neurons} neurons x {self.matrices.n_inputs} inputs, "
+                f"params say {self.params.n_neurons} x {self.params.n_inputs}"
+            )
         ts = float(self.params.sample_time_s)
         leaks = self.params.leaks()
         mat = self.matrices

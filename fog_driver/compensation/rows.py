@@ -22,8 +22,19 @@ import numpy as np
 
 from .compensator import CompensatedColumns, flag_names
 
-ROW_COLUMNS = ("t_s", "n_samples", "rate_raw_dph", "drift_dph", "rate_comp_dph", "angle_raw_arcsec",
-               "angle_comp_arcsec", "t_top_c", "t_bottom_c", "t_housing_c", "flags")  # fmt: skip
+ROW_COLUMNS = (
+    "t_s",
+    "n_samples",
+    "rate_raw_dph",
+    "drift_dph",
+    "rate_comp_dph",
+    "angle_raw_arcsec",
+    "angle_comp_arcsec",
+    "t_top_c",
+    "t_bottom_c",
+    "t_housing_c",
+    "flags",
+)
 
 
 class RowAggregator:
@@ -77,10 +88,19 @@ class RowAggregator:
         flags = np.bitwise_or.reduceat(cols.flags, starts)
         t_end = (t_us[ends] - self._first_us) / 1e6 + self.frame_period_s
         return [
-            (t_end[i], int(count[i]), rate_raw[i], drift[i], rate_comp[i], cols.angle_raw_arcsec[ends[i]],
-             cols.angle_comp_arcsec[ends[i]], *temps[i], "|".join(flag_names(int(flags[i]))))
+            (
+                t_end[i],
+                int(count[i]),
+                rate_raw[i],
+                drift[i],
+                rate_comp[i],
+                cols.angle_raw_arcsec[ends[i]],
+                cols.angle_comp_arcsec[ends[i]],
+                *temps[i],
+                "|".join(flag_names(int(flags[i]))),
+            )
             for i in range(len(starts))
-        ]  # fmt: skip
+        ]
 
 
 def compensated_rows(chunks: Iterable[tuple[float, CompensatedColumns]], every_s: float) -> Iterator[tuple]:
@@ -106,5 +126,4 @@ def _concat(a: CompensatedColumns, b: CompensatedColumns) -> CompensatedColumns:
 
 def format_row(row: tuple) -> str:
     t_s, n, raw, drift, comp, a_raw, a_comp, t1, t2, t3, flags = row
-    return (f"{t_s:.6f},{n},{raw:.6f},{drift:.6f},{comp:.6f},{a_raw:.6f},{a_comp:.6f},"
-            f"{t1:.4f},{t2:.4f},{t3:.4f},{flags}")  # fmt: skip
+    return f"{t_s:.6f},{n},{raw:.6f},{drift:.6f},{comp:.6f},{a_raw:.6f},{a_comp:.6f},{t1:.4f},{t2:.4f},{t3:.4f},{flags}"

@@ -150,7 +150,9 @@ class SvrModel(Memoryless):
         self.average_s = None if average_s is None else float(average_s)
         sv = self.support_vectors
         if sv.ndim != 2 or sv.shape[1] not in (8, 5, 2) or sv.shape[0] < 1:
-            raise ValueError(f"a pso-svr model needs support vectors of shape (n >= 1, 8, 5 or 2 inputs), got {sv.shape}")
+            raise ValueError(
+                f"a pso-svr model needs support vectors of shape (n >= 1, 8, 5 or 2 inputs), got {sv.shape}"
+            )
         self.n_inputs = sv.shape[1]
         if self.dual_coef.shape != (sv.shape[0],):
             raise ValueError(f"a pso-svr model needs {sv.shape[0]} dual coefficients, got {self.dual_coef.shape}")
@@ -231,18 +233,39 @@ class SvrModel(Memoryless):
         sv = d["support_vectors"]
         if not isinstance(sv, list) or not all(isinstance(row, list) for row in sv):
             raise ValueError("pso-svr: support_vectors must be a list of rows")
-        return cls(np.array(sv, dtype=np.float64), np.array(d["dual_coef"], dtype=np.float64), float(d["intercept"]),
-                   float(d["gamma"]), optional("C"), optional("epsilon"), optional("cv_rms_dph"),
-                   optional("average_s"))  # fmt: skip
+        return cls(
+            np.array(sv, dtype=np.float64),
+            np.array(d["dual_coef"], dtype=np.float64),
+            float(d["intercept"]),
+            float(d["gamma"]),
+            optional("C"),
+            optional("epsilon"),
+            optional("cv_rms_dph"),
+            optional("average_s"),
+        )
 
     @classmethod
-    def from_sklearn(cls, svr, C: float | None = None, epsilon: float | None = None,
-                     cv_rms_dph: float | None = None, average_s: float | None = None) -> SvrModel:  # fmt: skip
+    def from_sklearn(
+        cls,
+        svr,
+        C: float | None = None,
+        epsilon: float | None = None,
+        cv_rms_dph: float | None = None,
+        average_s: float | None = None,
+    ) -> SvrModel:
         """From a fitted ``sklearn.svm.SVR`` with an RBF kernel and a numeric gamma."""
         if svr.kernel != "rbf":
             raise ValueError(f"only an RBF kernel is supported, got {svr.kernel!r}")
-        return cls(svr.support_vectors_, svr.dual_coef_[0], float(svr.intercept_[0]), float(svr._gamma),
-                   C, epsilon, cv_rms_dph, average_s)  # fmt: skip
+        return cls(
+            svr.support_vectors_,
+            svr.dual_coef_[0],
+            float(svr.intercept_[0]),
+            float(svr._gamma),
+            C,
+            epsilon,
+            cv_rms_dph,
+            average_s,
+        )
 
 
 # -- fitting -----------------------------------------------------------------------------------------
@@ -286,8 +309,9 @@ def window_blocks(captures, model_rate_hz: float, average_s: float = 60.0, min_r
     return max(1, min(per, static_blocks // max(1, min_rows)))
 
 
-def minute_rows(captures, normalizer, model_rate_hz: float, average_s: float = 60.0,
-                per: int | None = None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+def minute_rows(
+    captures, normalizer, model_rate_hz: float, average_s: float = 60.0, per: int | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Averages of the standardized inputs and of the target over whole static windows of ``average_s``
     (or ``per`` blocks), aligned with each capture's first block, in time order, captures one after
     another: (z (m, 8), y (m,))."""
@@ -339,8 +363,9 @@ def fit_pso_svr(captures, normalizer, config, settings: PsoSvrConfig = PSO_SVR_D
         c, gamma, eps = (float(v) for v in 10.0 ** np.asarray(log_params))
         return lambda: SVR(kernel="rbf", C=c, gamma=gamma, epsilon=eps, max_iter=max_iter)
 
-    bounds = [tuple(math.log10(v) for v in b)
-              for b in (settings.c_bounds, settings.gamma_bounds, settings.epsilon_bounds_dph)]  # fmt: skip
+    bounds = [
+        tuple(math.log10(v) for v in b) for b in (settings.c_bounds, settings.gamma_bounds, settings.epsilon_bounds_dph)
+    ]
     n, total = settings.n_particles, settings.n_particles * (settings.iterations + 1)
     done = itertools.count()
     lock = threading.Lock()
@@ -350,15 +375,22 @@ def fit_pso_svr(captures, normalizer, config, settings: PsoSvrConfig = PSO_SVR_D
         if progress is not None:
             with lock:  # the pool's threads report one at a time
                 k = next(done)
-                progress(f"pso-svr: iteration {k // n}/{settings.iterations}, particle {k % n + 1}/{n} "
-                         f"({100 * (k + 1) / total:.0f} %)")  # fmt: skip
+                progress(
+                    f"pso-svr: iteration {k // n}/{settings.iterations}, particle {k % n + 1}/{n} "
+                    f"({100 * (k + 1) / total:.0f} %)"
+                )
         return value
 
     with warnings.catch_warnings(), ThreadPoolExecutor(max(1, settings.workers)) as pool:
         warnings.simplefilter("ignore", ConvergenceWarning)  # the iteration cap, by design
-        best, score = pso_minimize(score_of, bounds,
-                                   n_particles=settings.n_particles, iterations=settings.iterations,
-                                   seed=settings.seed, map_fn=pool.map)  # fmt: skip
+        best, score = pso_minimize(
+            score_of,
+            bounds,
+            n_particles=settings.n_particles,
+            iterations=settings.iterations,
+            seed=settings.seed,
+            map_fn=pool.map,
+        )
         if progress is not None:
             progress("pso-svr: the final fit at the swarm's best")
         svr = make(best, settings.final_max_iter)().fit(z, y)
@@ -366,9 +398,10 @@ def fit_pso_svr(captures, normalizer, config, settings: PsoSvrConfig = PSO_SVR_D
             offsets = np.zeros(len(captures))
             for _ in range(OFFSET_PASSES):
                 residual = y - svr.predict(z)
-                offsets = np.array([residual[group == k].mean() if (group == k).any() else 0.0
-                                    for k in range(len(captures))])  # fmt: skip
+                offsets = np.array(
+                    [residual[group == k].mean() if (group == k).any() else 0.0 for k in range(len(captures))]
+                )
                 offsets -= offsets[0]  # capture 0's level is the model's, as for the other kinds
                 svr = make(best, settings.final_max_iter)().fit(z, y - offsets[group])
-    c, _, eps = (float(v) for v in 10.0 ** best)
+    c, _, eps = (float(v) for v in 10.0**best)
     return SvrModel.from_sklearn(svr, C=c, epsilon=eps, cv_rms_dph=score, average_s=per / config.model_rate_hz)

@@ -129,8 +129,9 @@ _LINEAR_PATHS = {
 }
 
 
-def n_regressors(n_neurons: int, linear_path: str, state_powers: int, max_power: int = 3,
-                 coil_rate: bool = False, n_inputs: int = 8) -> int:  # fmt: skip
+def n_regressors(
+    n_neurons: int, linear_path: str, state_powers: int, max_power: int = 3, coil_rate: bool = False, n_inputs: int = 8
+) -> int:
     """Regressors of a WESN: neurons, powers, the coil's rate, and the linear path on ``n_inputs`` inputs."""
     path = _LINEAR_PATHS[linear_path]
     linear = path[0](np.zeros(n_inputs)).shape[-1] if path else 0
@@ -165,13 +166,20 @@ class WesnConfig:
     #: cross-validation on the fit data.
     ridge_alpha: float | None = None
     ridge_alpha_grid: tuple[float, ...] = (3e-6, 1e-5, 3e-5)
-    adaptive: AdaptiveLawParams = field(default_factory=lambda: AdaptiveLawParams(
-        filter_time_s=10.0, memory_time_s=7200.0, kappa=1.0, delta=1e-6))  # fmt: skip
+    adaptive: AdaptiveLawParams = field(
+        default_factory=lambda: AdaptiveLawParams(filter_time_s=10.0, memory_time_s=7200.0, kappa=1.0, delta=1e-6)
+    )
     adaptive_epochs: int = 3
     aflp_target: bool = False  #: fit to the stage-1 filtered drift instead of the raw one
 
-    def reservoir(self, sample_time_s: float, fiber_lag_s: float | None = None, coil_order: int = 1,
-                  ring_weights: tuple[float, ...] = (0.5, 0.5), n_inputs: int = 8) -> WaveletReservoir:
+    def reservoir(
+        self,
+        sample_time_s: float,
+        fiber_lag_s: float | None = None,
+        coil_order: int = 1,
+        ring_weights: tuple[float, ...] = (0.5, 0.5),
+        n_inputs: int = 8,
+    ) -> WaveletReservoir:
         """The ring form (``ring_input``): neuron 0, the coil, lags R by ``fiber_lag_s``, the history neurons
         1..H by ``history_s``; no recurrence, translation 0, dilation 1: each neuron a leaky memory of R near
         Psi's linear regime.  Each neuron's input is ``input_scale (w_top z_top + w_bottom z_bottom)``
@@ -197,10 +205,18 @@ class WesnConfig:
             if coil_order > 1:  # stage k (neuron h+k) integrates stage k-1; the coil (neuron 0) the last one
                 chain = tuple([n - 1] + [-1] * h + [-1] + [h + k for k in range(1, coil_order - 1)])
             params = ReservoirParams(
-                n_neurons=n, n_inputs=n_inputs, sample_time_s=sample_time_s, leak_per_s=tuple(1.0 / t for t in lags),
-                normalized_leak=True, spectral_radius=0.0, input_scale=self.input_scale, seed=self.seed,
-                translation_range=(0.0, 0.0), dilation_range=(1.0, 1.0), chain_from=chain,
-            )  # fmt: skip
+                n_neurons=n,
+                n_inputs=n_inputs,
+                sample_time_s=sample_time_s,
+                leak_per_s=tuple(1.0 / t for t in lags),
+                normalized_leak=True,
+                spectral_radius=0.0,
+                input_scale=self.input_scale,
+                seed=self.seed,
+                translation_range=(0.0, 0.0),
+                dilation_range=(1.0, 1.0),
+                chain_from=chain,
+            )
             w_in = np.zeros((n, n_inputs))
             for k, weight in enumerate(ring_weights):
                 w_in[:, k] = weight * self.input_scale
@@ -208,24 +224,44 @@ class WesnConfig:
                 w_in[0] = 0.0  # the coil is driven by its inner stage only
             matrices = ReservoirMatrices(w_in, np.zeros((n, n)), np.zeros(n), np.ones(n), np.zeros(n))
             return WaveletReservoir(params, matrices)
-        leaks = (1.0 / self.single_leak_s if self.single_leak_s else
-                 log_spaced_leaks(self.n_neurons, self.fastest_s, self.slowest_s))  # fmt: skip
+        leaks = (
+            1.0 / self.single_leak_s
+            if self.single_leak_s
+            else log_spaced_leaks(self.n_neurons, self.fastest_s, self.slowest_s)
+        )
         params = ReservoirParams(
-            n_neurons=self.n_neurons, n_inputs=n_inputs, sample_time_s=sample_time_s, leak_per_s=leaks,
-            normalized_leak=self.normalized_leak, spectral_radius=self.spectral_radius, input_scale=self.input_scale,
-            feedback_scale=self.feedback_scale, seed=self.seed, translation_range=self.translation_range,
+            n_neurons=self.n_neurons,
+            n_inputs=n_inputs,
+            sample_time_s=sample_time_s,
+            leak_per_s=leaks,
+            normalized_leak=self.normalized_leak,
+            spectral_radius=self.spectral_radius,
+            input_scale=self.input_scale,
+            feedback_scale=self.feedback_scale,
+            seed=self.seed,
+            translation_range=self.translation_range,
             dilation_range=self.dilation_range,
-        )  # fmt: skip
+        )
         return WaveletReservoir(params)
 
 
 #: The two forms' defaults.  ``wesn``: the ring form (module docstring); ``paper``: the reservoir as the
 #: paper writes it, with random matrices over all eight inputs.
 WESN_DEFAULTS = WesnConfig()
-PAPER_DEFAULTS = WesnConfig(ring_input=False, single_leak_s=60.0, normalized_leak=False, feedback_scale=0.2,
-                            linear_path="none", state_powers=0, readout="adaptive", aflp_target=True,
-                            input_scale=1.0, spectral_radius=0.9, translation_range=(-1.0, 1.0),
-                            dilation_range=(1.0, 3.0))  # fmt: skip
+PAPER_DEFAULTS = WesnConfig(
+    ring_input=False,
+    single_leak_s=60.0,
+    normalized_leak=False,
+    feedback_scale=0.2,
+    linear_path="none",
+    state_powers=0,
+    readout="adaptive",
+    aflp_target=True,
+    input_scale=1.0,
+    spectral_radius=0.9,
+    translation_range=(-1.0, 1.0),
+    dilation_range=(1.0, 3.0),
+)
 
 
 class WesnModel:
@@ -236,9 +272,17 @@ class WesnModel:
     ``"physical"`` (its 5 linear ones) or ``"none"``.
     """
 
-    def __init__(self, kind: str, reservoir: WaveletReservoir, weights: np.ndarray, intercept: float,
-                 linear_path: str = "none", state_powers: int = 0, max_power: int = 3,
-                 coil_rate: bool = False) -> None:  # fmt: skip
+    def __init__(
+        self,
+        kind: str,
+        reservoir: WaveletReservoir,
+        weights: np.ndarray,
+        intercept: float,
+        linear_path: str = "none",
+        state_powers: int = 0,
+        max_power: int = 3,
+        coil_rate: bool = False,
+    ) -> None:
         self.kind = kind
         self.reservoir = reservoir
         self.weights = np.asarray(weights, dtype=np.float64)
@@ -255,15 +299,18 @@ class WesnModel:
         if not isinstance(coil_rate, bool):
             raise ValueError(f"{kind} model: coil_rate must be true or false, got {coil_rate!r}")
         if coil_rate and ((reservoir.matrices.w != 0).any() or (reservoir.matrices.w_back != 0).any()):
-            raise ValueError(f"{kind} model: coil_rate needs a reservoir without recurrence or feedback (the ring form)")
+            raise ValueError(
+                f"{kind} model: coil_rate needs a reservoir without recurrence or feedback (the ring form)"
+            )
         self.coil_rate = coil_rate
         chain = reservoir.params.chain_from
         self._coil_source = chain[0] if chain else -1
         self._coil_leak = float(reservoir.params.leaks()[0])
         #: How the fit chose the structure (lag, penalty, scores), for the model file's provenance; None when loaded.
         self.selection: dict | None = None
-        expected = n_regressors(reservoir.params.n_neurons, linear_path, self.state_powers, max_power, coil_rate,
-                                reservoir.params.n_inputs)  # fmt: skip
+        expected = n_regressors(
+            reservoir.params.n_neurons, linear_path, self.state_powers, max_power, coil_rate, reservoir.params.n_inputs
+        )
         if self.weights.shape != (expected,):
             raise ValueError(f"{kind} model: {expected} weights expected, got {self.weights.shape}")
 
@@ -363,9 +410,16 @@ class WesnModel:
 
     @classmethod
     def from_dict_kind(cls, kind: str, d: dict) -> WesnModel:
-        return cls(kind, WaveletReservoir.from_dict(d["reservoir"]), np.array(d["weights"], dtype=np.float64),
-                   float(d["intercept"]), str(d["linear_path"]), int(d.get("state_powers", 0)),
-                   d.get("max_power", 3), d.get("coil_rate", False))  # fmt: skip
+        return cls(
+            kind,
+            WaveletReservoir.from_dict(d["reservoir"]),
+            np.array(d["weights"], dtype=np.float64),
+            float(d["intercept"]),
+            str(d["linear_path"]),
+            int(d.get("state_powers", 0)),
+            d.get("max_power", 3),
+            d.get("coil_rate", False),
+        )
 
 
 class WesnKind(WesnModel):
@@ -446,8 +500,9 @@ def fit_wesn(kind: str, defaults: WesnConfig, captures, normalizer, config, prog
         return _fit_ring_form(kind, defaults, captures, normalizer, config, say)
     wc = defaults
     reservoir = wc.reservoir(1.0 / config.model_rate_hz, n_inputs=len(normalizer.mean))
-    n_features = n_regressors(reservoir.params.n_neurons, wc.linear_path, wc.state_powers, wc.max_power,
-                              n_inputs=reservoir.params.n_inputs)  # fmt: skip
+    n_features = n_regressors(
+        reservoir.params.n_neurons, wc.linear_path, wc.state_powers, wc.max_power, n_inputs=reservoir.params.n_inputs
+    )
     model = WesnModel(kind, reservoir, np.zeros(n_features), 0.0, wc.linear_path, wc.state_powers, wc.max_power)
     regressors, targets = [], []
     for k, c in enumerate(captures):
@@ -501,10 +556,17 @@ def _fit_ring_form(kind: str, wc: WesnConfig, captures, normalizer, config, say=
         for lag in wc.fiber_lag_grid_s:
             say(f"{kind}: reservoir states, coil {len(per_coil) + 1}/{coils} ({100 * len(per_coil) / coils:.0f} %)")
             reservoir = wc.reservoir(1.0 / rate, lag, order, weights, len(normalizer.mean))
-            n_features = n_regressors(reservoir.params.n_neurons, wc.linear_path, wc.state_powers, wc.max_power,
-                                      wc.coil_rate, reservoir.params.n_inputs)  # fmt: skip
-            probe = WesnModel(kind, reservoir, np.zeros(n_features), 0.0, wc.linear_path, wc.state_powers,
-                              wc.max_power, wc.coil_rate)  # fmt: skip
+            n_features = n_regressors(
+                reservoir.params.n_neurons,
+                wc.linear_path,
+                wc.state_powers,
+                wc.max_power,
+                wc.coil_rate,
+                reservoir.params.n_inputs,
+            )
+            probe = WesnModel(
+                kind, reservoir, np.zeros(n_features), 0.0, wc.linear_path, wc.state_powers, wc.max_power, wc.coil_rate
+            )
             regressors = [_capture_regressors(probe, c, normalizer, None) for c in captures]
             no_history = np.r_[0, np.arange(1 + n_history, n_features)]  # every column but the history neurons'
             per_coil[lag, order] = (reservoir, regressors, no_history)
@@ -524,8 +586,9 @@ def _fit_ring_form(kind: str, wc: WesnConfig, captures, normalizer, config, say=
         tied = [lag for (lag, _), v in best_of_order.items() if v <= criteria[coil] * (1.0 + LAG_TIE_TOLERANCE)]
         _, regressors, columns = per_coil[coil]
         x = np.vstack([f[c.static][:, columns] for f, c in zip(regressors, captures)])
-        _, cv = cross_validated_alpha(x, y_fit, folds=4, average_rows=max(2, int(round(600 * rate))), grid=(alpha,),
-                                      groups=groups)  # fmt: skip
+        _, cv = cross_validated_alpha(
+            x, y_fit, folds=4, average_rows=max(2, int(round(600 * rate))), grid=(alpha,), groups=groups
+        )
         choices[alpha] = (cv[alpha], coil, criteria, tied)
     alpha = min(choices, key=lambda a: choices[a][0])
     _, (lag, order), criteria, tied = choices[alpha]
@@ -535,8 +598,7 @@ def _fit_ring_form(kind: str, wc: WesnConfig, captures, normalizer, config, say=
     penalty[1 : 1 + n_history] = wc.history_penalty
     x_fit = np.vstack([f[c.static] for f, c in zip(regressors, captures)])
     weights, intercept = standardized_ridge(x_fit, y_fit, alpha, penalty, groups)
-    model = WesnModel(kind, reservoir, weights, intercept, wc.linear_path, wc.state_powers, wc.max_power,
-                      wc.coil_rate)  # fmt: skip
+    model = WesnModel(kind, reservoir, weights, intercept, wc.linear_path, wc.state_powers, wc.max_power, wc.coil_rate)
     model.selection = {
         "coil_lag_s": float(lag),
         "coil_order": int(order),
@@ -599,26 +661,35 @@ def identifiable_structure(wc: WesnConfig, captures, model_rate_hz: float) -> tu
     limits = []
     lags = tuple(v for v in wc.fiber_lag_grid_s if v <= LAG_FRACTION * longest_s) or wc.fiber_lag_grid_s[:1]
     if max(lags) < NOTED_LAG_S and len(lags) < len(wc.fiber_lag_grid_s):  # said when it can matter
-        limits.append(f"the fit data last {minutes:.0f} min: coil lags above {max(lags) / 60:.1f} min cannot be "
-                      f"identified and were not tried")  # fmt: skip
+        limits.append(
+            f"the fit data last {minutes:.0f} min: coil lags above {max(lags) / 60:.1f} min cannot be "
+            f"identified and were not tried"
+        )
     orders = wc.coil_orders
     if max(lags) < NOTED_LAG_S and len(orders) > 1:  # telling stages apart takes more than telling lags apart
         orders = (1,)
-        limits.append(f"the fit data last {minutes:.0f} min: a coil of several stages in series cannot be told "
-                      f"from one stage (it takes {LAG_FRACTION**-1 * NOTED_LAG_S / 60:.0f} min), so one stage "
-                      f"was fitted")  # fmt: skip
+        limits.append(
+            f"the fit data last {minutes:.0f} min: a coil of several stages in series cannot be told "
+            f"from one stage (it takes {LAG_FRACTION**-1 * NOTED_LAG_S / 60:.0f} min), so one stage "
+            f"was fitted"
+        )
     history = tuple(v for v in wc.history_s if v <= HISTORY_FRACTION * longest_s)
     if len(history) < len(wc.history_s):
         dropped = ", ".join(f"{v / 60:g}" for v in wc.history_s if v not in history)
-        limits.append(f"the fit data last {minutes:.0f} min: thermal history over {dropped} min cannot be identified "
-                      f"(it needs runs three times as long): those neurons are left out")  # fmt: skip
+        limits.append(
+            f"the fit data last {minutes:.0f} min: thermal history over {dropped} min cannot be identified "
+            f"(it needs runs three times as long): those neurons are left out"
+        )
     powers = wc.state_powers
     if span_c < MIN_SPAN_C and powers:
         powers = 0
-        limits.append(f"the ring temperature spans {span_c:.1f} degC (under {MIN_SPAN_C:g}): the bias curve's shape "
-                      f"cannot be identified, so the model is linear in the coil temperature")  # fmt: skip
-    structure = dataclasses.replace(wc, fiber_lag_grid_s=lags, coil_orders=orders, history_s=history,
-                                    state_powers=powers)  # fmt: skip
+        limits.append(
+            f"the ring temperature spans {span_c:.1f} degC (under {MIN_SPAN_C:g}): the bias curve's shape "
+            f"cannot be identified, so the model is linear in the coil temperature"
+        )
+    structure = dataclasses.replace(
+        wc, fiber_lag_grid_s=lags, coil_orders=orders, history_s=history, state_powers=powers
+    )
     return structure, limits
 
 

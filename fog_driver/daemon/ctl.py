@@ -105,16 +105,22 @@ def describe(reply: dict) -> str:
     if cls == "BIAS":
         state = reply.get("state")
         if state == "started":
-            return (f"bias capture started: {_number(reply, 'seconds', 'g')} s of data; keep the table still "
-                    f"(result within {_number(reply, 'timeout_s', 'g')} s)")  # fmt: skip
+            return (
+                f"bias capture started: {_number(reply, 'seconds', 'g')} s of data; keep the table still "
+                f"(result within {_number(reply, 'timeout_s', 'g')} s)"
+            )
         if state == "done":
-            return (f"bias captured: {_number(reply, 'bias_dph', '.4f')} deg/h over {_number(reply, 'seconds', '.1f')} s; "
-                    "removed from rate_dph and angle_arcsec from now on")  # fmt: skip
+            return (
+                f"bias captured: {_number(reply, 'bias_dph', '.4f')} deg/h over {_number(reply, 'seconds', '.1f')} s; "
+                "removed from rate_dph and angle_arcsec from now on"
+            )
         return f"bias capture failed: {_word(reply, 'reason')}"
     if cls == "ADAPT":
         if reply.get("enable"):
-            return (f"adaptation on: the weights adapt while the table is static "
-                    f"(reference {_number(reply, 'reference_dph', 'g')} deg/h)")  # fmt: skip
+            return (
+                f"adaptation on: the weights adapt while the table is static "
+                f"(reference {_number(reply, 'reference_dph', 'g')} deg/h)"
+            )
         return "adaptation off: the weights are frozen"
     if cls == "RELOAD":
         if reply.get("changed"):
@@ -126,10 +132,12 @@ def describe(reply: dict) -> str:
         bias = "captured" if reply.get("bias_captured") else "not captured"
         if reply.get("bias_capture_target_s") is not None:
             bias = f"capturing {_number(reply, 'bias_capture_s', '.1f')} / {_number(reply, 'bias_capture_target_s', 'g')} s"
-        return (f"port {_word(reply, 'port_state')}, {_number(reply, 'frames', ',')} frames, "
-                f"{_number(reply, 'published', ',')} published, bias {_number(reply, 'bias_dph', '.4f')} deg/h ({bias}), "
-                f"adapting {'yes' if reply.get('adapting') else 'no'}, {_number(reply, 'clients', 'd')} clients, "
-                f"capture {_word(reply, 'capture_state')}, uptime {_number(reply, 'uptime_s', '.0f')} s")  # fmt: skip
+        return (
+            f"port {_word(reply, 'port_state')}, {_number(reply, 'frames', ',')} frames, "
+            f"{_number(reply, 'published', ',')} published, bias {_number(reply, 'bias_dph', '.4f')} deg/h ({bias}), "
+            f"adapting {'yes' if reply.get('adapting') else 'no'}, {_number(reply, 'clients', 'd')} clients, "
+            f"capture {_word(reply, 'capture_state')}, uptime {_number(reply, 'uptime_s', '.0f')} s"
+        )
     return _word(reply, "class")
 
 
@@ -144,14 +152,24 @@ def _refused(name: str, exc: CommandRefused) -> FogDriverError:
     return exc
 
 
-def run_ctl(host: str, port: int, name: str, args: dict | None, *, token: str | None = None, json_out: bool = False,
-            out: TextIO | None = None, progress_stream: TextIO | None = None,
-            timeout_s: float = DEFAULT_TIMEOUT_S) -> int:  # fmt: skip
+def run_ctl(
+    host: str,
+    port: int,
+    name: str,
+    args: dict | None,
+    *,
+    token: str | None = None,
+    json_out: bool = False,
+    out: TextIO | None = None,
+    progress_stream: TextIO | None = None,
+    timeout_s: float = DEFAULT_TIMEOUT_S,
+) -> int:
     """Send one command (``name``, ``args``) to the daemon at ``host:port`` and print its answer; for ``BIAS``
     wait for the capture's result too.  Returns 0; raises ``FogDriverError`` (one line, its exit status)."""
     out = sys.stdout if out is None else out
-    client = Client((host, port), token=token, timeout_s=min(timeout_s, 5.0), reconnect=False,
-                    reply_timeout_s=timeout_s)  # fmt: skip
+    client = Client(
+        (host, port), token=token, timeout_s=min(timeout_s, 5.0), reconnect=False, reply_timeout_s=timeout_s
+    )
     try:
         try:
             client.connect()  # ConnectError (69) at once; Unauthorized (77) for a refused token
@@ -187,13 +205,18 @@ def _wait_for_bias(client: Client, started: Bias, out: TextIO, json_out: bool, p
             if remaining <= 0:
                 raise NoReply(f"no result of the bias capture from {client.address} within the time allowed")
             message = client.poll(remaining)
-            if isinstance(message, Bias) and message.state in ("done", "failed") \
-                    and message.capture_id == started.capture_id:  # fmt: skip
+            if (
+                isinstance(message, Bias)
+                and message.state in ("done", "failed")
+                and message.capture_id == started.capture_id
+            ):
                 result = message
                 break
             if isinstance(message, Status) and message.raw.get("bias_capture_target_s") is not None:
-                progress.show(f"bias: {_number(message.raw, 'bias_capture_s', '.1f')} / "
-                              f"{_number(message.raw, 'bias_capture_target_s', 'g')} s of data (keep the table still)")
+                progress.show(
+                    f"bias: {_number(message.raw, 'bias_capture_s', '.1f')} / "
+                    f"{_number(message.raw, 'bias_capture_target_s', 'g')} s of data (keep the table still)"
+                )
     finally:
         progress.clear()
     _show(out, json_out, result)
@@ -201,9 +224,16 @@ def _wait_for_bias(client: Client, started: Bias, out: TextIO, json_out: bool, p
         raise BiasFailed(describe(dict(result.raw)), message=result.reason or "", command="BIAS")
 
 
-def ctl_command(command: str, words: list[str], *, address: str | None = None, token_file: str | None = None,
-                json_out: bool = False, reference_dph: float | None = None,
-                timeout_s: float = DEFAULT_TIMEOUT_S) -> int:  # fmt: skip
+def ctl_command(
+    command: str,
+    words: list[str],
+    *,
+    address: str | None = None,
+    token_file: str | None = None,
+    json_out: bool = False,
+    reference_dph: float | None = None,
+    timeout_s: float = DEFAULT_TIMEOUT_S,
+) -> int:
     """``fog-driver ctl``: parse the command and the address, read the token, run it on stdout."""
     name, args = parse_request(command, words, reference_dph=reference_dph)
     host, port = parse_address(address)

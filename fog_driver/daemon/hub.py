@@ -442,14 +442,33 @@ class _Client:
     """One connection: its policy, its outgoing queue and its two tasks."""
 
     __slots__ = (
-        "auth_deadline", "auth_failures", "authorized", "closing", "excess", "gone", "id", "inflight_t",
-        "last_bucket", "lines_queued", "peer", "peer_address", "queue", "rate_hz", "reader", "reader_task",
-        "wakeup", "watch",
-        "window_count", "window_start", "writer", "writer_task",
+        "auth_deadline",
+        "auth_failures",
+        "authorized",
+        "closing",
+        "excess",
+        "gone",
+        "id",
+        "inflight_t",
+        "last_bucket",
+        "lines_queued",
+        "peer",
+        "peer_address",
+        "queue",
+        "rate_hz",
+        "reader",
+        "reader_task",
+        "wakeup",
+        "watch",
+        "window_count",
+        "window_start",
+        "writer",
+        "writer_task",
     )
 
-    def __init__(self, cid: int, peer: Any, reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
-                 authorized: bool) -> None:
+    def __init__(
+        self, cid: int, peer: Any, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, authorized: bool
+    ) -> None:
         self.id = cid
         self.peer = peer
         self.peer_address = _peer_address(peer)
@@ -535,14 +554,20 @@ class Hub:
         _check_max_backlog_s(max_backlog_s)
         if not _is_positive_finite(control_timeout_s):
             raise ValueError("control_timeout_s must be a finite number of seconds > 0")
-        for name, count in (("max_clients", max_clients), ("max_clients_per_peer", max_clients_per_peer),
-                            ("log_lines_per_s", log_lines_per_s)):
+        for name, count in (
+            ("max_clients", max_clients),
+            ("max_clients_per_peer", max_clients_per_peer),
+            ("log_lines_per_s", log_lines_per_s),
+        ):
             if not isinstance(count, int) or isinstance(count, bool) or count < 1:
                 raise ValueError(f"{name} must be an integer >= 1")
         if auth_deadline_s is not None and not _is_positive_finite(auth_deadline_s):
             raise ValueError("auth_deadline_s must be a finite number of seconds > 0, or None")
-        if not (_is_positive_finite(auth_backoff_base_s) and _is_positive_finite(auth_backoff_max_s)
-                and auth_backoff_base_s <= auth_backoff_max_s):
+        if not (
+            _is_positive_finite(auth_backoff_base_s)
+            and _is_positive_finite(auth_backoff_max_s)
+            and auth_backoff_base_s <= auth_backoff_max_s
+        ):
             raise ValueError("auth backoff: need 0 < auth_backoff_base_s <= auth_backoff_max_s < inf")
         self.host = host
         self.port = port
@@ -677,7 +702,8 @@ class Hub:
         if self._thread is not None:
             raise RuntimeError("hub already started")
         self._control_pool = concurrent.futures.ThreadPoolExecutor(
-            CONTROL_WORKERS, thread_name_prefix="fog-hub-control")
+            CONTROL_WORKERS, thread_name_prefix="fog-hub-control"
+        )
         self._thread = threading.Thread(target=self._run, name="fog-hub", daemon=True)
         self._thread.start()
         self._ready.wait()
@@ -917,8 +943,16 @@ class Hub:
         if age > self.max_backlog_s:
             self._dropped += 1
             queued = sum(len(b) for _, b in client.queue if b is not None)
-            self._log("warning", "client_dropped", client=client.id, peer=str(client.peer), backlog_s=round(age, 3),
-                        queued_bytes=queued, reason="not reading", dropped_clients=self._dropped)
+            self._log(
+                "warning",
+                "client_dropped",
+                client=client.id,
+                peer=str(client.peer),
+                backlog_s=round(age, 3),
+                queued_bytes=queued,
+                reason="not reading",
+                dropped_clients=self._dropped,
+            )
             self._discard(client, "dropped")
 
     async def _write_loop(self, client: _Client) -> None:
@@ -975,8 +1009,14 @@ class Hub:
             client.writer.close()
         else:
             transport.abort()
-        self._log("info", "client_disconnected", client=client.id, peer=str(client.peer), reason=reason,
-                 lines_queued=client.lines_queued)
+        self._log(
+            "info",
+            "client_disconnected",
+            client=client.id,
+            peer=str(client.peer),
+            reason=reason,
+            lines_queued=client.lines_queued,
+        )
 
     # ------------------------------------------------------------------ per-client input
 
@@ -1004,7 +1044,8 @@ class Hub:
         client.writer_task = asyncio.create_task(self._write_loop(client))
         if not client.authorized and self.auth_deadline_s is not None:
             client.auth_deadline = asyncio.get_running_loop().call_later(
-                self.auth_deadline_s, self._auth_deadline_passed, client)
+                self.auth_deadline_s, self._auth_deadline_passed, client
+            )
         self._log("info", "client_connected", client=cid, peer=str(peer), clients=len(self._clients))
         try:
             self._send_version(client)
@@ -1032,8 +1073,9 @@ class Hub:
         client.auth_deadline = None
         if client.authorized or client.gone or client.closing:
             return
-        self._log("info", "client_unauthorized", client=client.id, peer=str(client.peer),
-                  deadline_s=self.auth_deadline_s)
+        self._log(
+            "info", "client_unauthorized", client=client.id, peer=str(client.peer), deadline_s=self.auth_deadline_s
+        )
         self._send_error(client, f"not authorized within {self.auth_deadline_s:g} s: closing", "AUTH")
         self._close_after_flush(client)
 
@@ -1067,8 +1109,7 @@ class Hub:
                     rest = chunk[start:]
                     unterminated += len(rest)
                     if unterminated > MAX_UNTERMINATED_BYTES:
-                        self._send_error(client, f"more than {MAX_UNTERMINATED_BYTES} bytes without a newline: "
-                                                 "closing")
+                        self._send_error(client, f"more than {MAX_UNTERMINATED_BYTES} bytes without a newline: closing")
                         self._close_after_flush(client)
                         return
                     if not discarding:
@@ -1183,14 +1224,21 @@ class Hub:
             return
         token = args.get("token")
         # surrogatepass: a lone surrogate ("\ud800") is a wrong token like any other, never an exception
-        if isinstance(token, str) and hmac.compare_digest(token.encode("utf-8", "surrogatepass"),
-                                                          self._token.encode("utf-8")):
+        if isinstance(token, str) and hmac.compare_digest(
+            token.encode("utf-8", "surrogatepass"), self._token.encode("utf-8")
+        ):
             self._auth_throttle.succeeded(client.peer_address)
             self._authorize(client)
             return
         blocked_s = self._auth_throttle.failed(client.peer_address, now)
-        self._log("warning", "auth_failed", client=client.id, peer=str(client.peer),
-                  failures=client.auth_failures + 1, blocked_s=blocked_s)
+        self._log(
+            "warning",
+            "auth_failed",
+            client=client.id,
+            peer=str(client.peer),
+            failures=client.auth_failures + 1,
+            blocked_s=blocked_s,
+        )
         self._refuse_auth(client, "bad token")
 
     def _authorize(self, client: _Client) -> None:

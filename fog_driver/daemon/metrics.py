@@ -22,7 +22,10 @@ LATENCY_BUCKETS_S = (0.0001, 0.00025, 0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0
 
 #: ``name: (type, help)`` of every metric this module exports (labels in the help text).
 METRICS: dict[str, tuple[str, str]] = {
-    "fog_driver_info": ("gauge", "1, labelled with the release, the frame format, the instrument's serial and firmware"),
+    "fog_driver_info": (
+        "gauge",
+        "1, labelled with the release, the frame format, the instrument's serial and firmware",
+    ),
     "fog_driver_uptime_seconds": ("gauge", "seconds since the daemon started"),
     "fog_driver_port_up": ("gauge", "1 while the instrument port is open, 0 while it is closed or lost"),
     "fog_driver_port_reconnects_total": ("counter", "times the port was opened again after it was lost"),
@@ -46,8 +49,10 @@ METRICS: dict[str, tuple[str, str]] = {
     "fog_driver_adapting": ("gauge", "1 while the weights adapt online, 0 while frozen"),
     "fog_driver_model_age_seconds": ("gauge", "seconds since the model in use was fitted"),
     "fog_driver_extrapolating": ("gauge", "1 while the last sample lies outside what the model was fitted on"),
-    "fog_driver_publish_latency_seconds": ("histogram", "from the read that completed a chunk of samples to their "
-                                                        "lines queued for every watching client"),
+    "fog_driver_publish_latency_seconds": (
+        "histogram",
+        "from the read that completed a chunk of samples to their lines queued for every watching client",
+    ),
 }
 
 
@@ -118,20 +123,30 @@ class DaemonCollector:
                 yield f
 
         info = family("fog_driver_info", ("release", "format", "serial", "firmware"))
-        info.add_metric([str(version.get("release", "")), str(device.get("format", "")),
-                         str(device.get("serial", "")), str(device.get("firmware", ""))], 1.0)  # fmt: skip
+        info.add_metric(
+            [
+                str(version.get("release", "")),
+                str(device.get("format", "")),
+                str(device.get("serial", "")),
+                str(device.get("firmware", "")),
+            ],
+            1.0,
+        )
         yield info
         yield from single("fog_driver_uptime_seconds", status.get("uptime_s"))
         if "port_state" in status:
             yield from single("fog_driver_port_up", 1 if status["port_state"] == "open" else 0)
         yield from single("fog_driver_port_reconnects_total", state.get("reconnects"))
-        for name, key in (("fog_driver_bytes_total", "bytes_in"), ("fog_driver_frames_total", "frames"),
-                          ("fog_driver_crc_errors_total", "crc_errors"),
-                          ("fog_driver_bytes_discarded_total", "bytes_discarded"),
-                          ("fog_driver_missing_frames_total", "missing_frames"),
-                          ("fog_driver_samples_published_total", "published"),
-                          ("fog_driver_capture_bytes_lost_total", "capture_bytes_lost"),
-                          ("fog_driver_bias_dph", "bias_dph")):  # fmt: skip
+        for name, key in (
+            ("fog_driver_bytes_total", "bytes_in"),
+            ("fog_driver_frames_total", "frames"),
+            ("fog_driver_crc_errors_total", "crc_errors"),
+            ("fog_driver_bytes_discarded_total", "bytes_discarded"),
+            ("fog_driver_missing_frames_total", "missing_frames"),
+            ("fog_driver_samples_published_total", "published"),
+            ("fog_driver_capture_bytes_lost_total", "capture_bytes_lost"),
+            ("fog_driver_bias_dph", "bias_dph"),
+        ):
             yield from single(name, status.get(key))
         flagged = status.get("flagged")
         if isinstance(flagged, Mapping):
@@ -143,8 +158,10 @@ class DaemonCollector:
         yield from single("fog_driver_last_sample_age_seconds", state.get("angle_age_s"))
         clients = family("fog_driver_clients", ("listener",))
         dropped = family("fog_driver_clients_dropped_total", ("listener",))
-        for listener, now, gone in (("ndjson", status.get("clients"), status.get("dropped_clients")),
-                                    ("web", state.get("web_clients"), state.get("web_dropped"))):  # fmt: skip
+        for listener, now, gone in (
+            ("ndjson", status.get("clients"), status.get("dropped_clients")),
+            ("web", state.get("web_clients"), state.get("web_dropped")),
+        ):
             if _is_number(now):
                 clients.add_metric([listener], float(now))
             if _is_number(gone):
@@ -170,8 +187,9 @@ class DaemonCollector:
         if isinstance(flags, list):
             yield from single("fog_driver_extrapolating", 1 if "extrapolating" in flags else 0)
         buckets, total_s = self._latency.snapshot()
-        h = HistogramMetricFamily("fog_driver_publish_latency_seconds",
-                                  METRICS["fog_driver_publish_latency_seconds"][1])  # fmt: skip
+        h = HistogramMetricFamily(
+            "fog_driver_publish_latency_seconds", METRICS["fog_driver_publish_latency_seconds"][1]
+        )
         h.add_metric([], buckets, total_s)
         yield h
 

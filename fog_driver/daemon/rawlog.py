@@ -341,8 +341,12 @@ class RotatingCapture:
                 continue
             total -= size
             deleted.append(path)
-            log.info("capture_pruned", capture=str(path), bytes=size,
-                     reason="older than capture_keep_days" if too_old else "over capture_max_gb")  # fmt: skip
+            log.info(
+                "capture_pruned",
+                capture=str(path),
+                bytes=size,
+                reason="older than capture_keep_days" if too_old else "over capture_max_gb",
+            )
         self.pruned += deleted
         return deleted
 
@@ -404,15 +408,29 @@ class CaptureSink:
     - ``close(timeout_s)``: writes what is queued, closes the file, joins the thread (bounded).
     """
 
-    def __init__(self, capture: RotatingCapture, *, max_queue_bytes: int = DEFAULT_MAX_QUEUE_BYTES,
-                 fsync_every_s: float = DEFAULT_FSYNC_EVERY_S, poll_s: float = 1.0,
-                 write_every_s: float = DEFAULT_WRITE_EVERY_S,
-                 retry_first_s: float = RETRY_FIRST_S, retry_max_s: float = RETRY_MAX_S,
-                 on_state: Callable[[str], None] | None = None) -> None:  # fmt: skip
-        if (max_queue_bytes <= 0 or not fsync_every_s > 0 or not poll_s > 0 or not write_every_s > 0
-                or not 0 < retry_first_s <= retry_max_s):  # fmt: skip
-            raise ValueError("max_queue_bytes, fsync_every_s, poll_s, write_every_s and retry_first_s <= retry_max_s "
-                             "must be positive")  # fmt: skip
+    def __init__(
+        self,
+        capture: RotatingCapture,
+        *,
+        max_queue_bytes: int = DEFAULT_MAX_QUEUE_BYTES,
+        fsync_every_s: float = DEFAULT_FSYNC_EVERY_S,
+        poll_s: float = 1.0,
+        write_every_s: float = DEFAULT_WRITE_EVERY_S,
+        retry_first_s: float = RETRY_FIRST_S,
+        retry_max_s: float = RETRY_MAX_S,
+        on_state: Callable[[str], None] | None = None,
+    ) -> None:
+        if (
+            max_queue_bytes <= 0
+            or not fsync_every_s > 0
+            or not poll_s > 0
+            or not write_every_s > 0
+            or not 0 < retry_first_s <= retry_max_s
+        ):
+            raise ValueError(
+                "max_queue_bytes, fsync_every_s, poll_s, write_every_s and retry_first_s <= retry_max_s "
+                "must be positive"
+            )
         self.write_every_s = float(write_every_s)
         self.retry_first_s = float(retry_first_s)
         self.retry_max_s = float(retry_max_s)
@@ -476,8 +494,12 @@ class CaptureSink:
 
     def status(self) -> dict[str, Any]:
         with self._cond:
-            out: dict[str, Any] = {"state": self._state, "bytes": self._bytes_captured, "bytes_lost": self.bytes_lost,
-                                   "failures": self.failures}  # fmt: skip
+            out: dict[str, Any] = {
+                "state": self._state,
+                "bytes": self._bytes_captured,
+                "bytes_lost": self.bytes_lost,
+                "failures": self.failures,
+            }
             if self._current is not None:
                 out["path"] = self._current
             if self._error is not None:
@@ -611,9 +633,13 @@ def repair_interrupted(directory: str | Path, prefix: str = "fog") -> list[Path]
                 sha.update(block)
         end = _dt.datetime.fromtimestamp(capture.stat().st_mtime, _dt.timezone.utc)
         fields = {k: v for k, v in doc.items() if k not in ("format", "schema_version", "capture")}
-        fields.update(status="interrupted", end_reason="the recording process ended without closing it",
-                      end_utc=end.isoformat(timespec="milliseconds").replace("+00:00", "Z"),
-                      bytes=capture.stat().st_size, sha256=sha.hexdigest())  # fmt: skip
+        fields.update(
+            status="interrupted",
+            end_reason="the recording process ended without closing it",
+            end_utc=end.isoformat(timespec="milliseconds").replace("+00:00", "Z"),
+            bytes=capture.stat().st_size,
+            sha256=sha.hexdigest(),
+        )
         try:
             write_provenance(capture, fields, sidecar=side)  # where it is: never a second sidecar
         except OutputFileError as exc:

@@ -119,9 +119,25 @@ class Service:
     """One instrument: its port, its model, its clients."""
 
     #: Settings that need a restart; every other one applies on SIGHUP (``reload_config``).
-    RESTART_KEYS = ("port", "baud", "listen", "udp", "http", "http_history_min", "capture_dir", "capture_rotate_mb", "capture_rotate_s",
-                    "capture_keep_days", "capture_max_gb", "scale_arcsec_per_count",
-                    "scale_override_arcsec_per_count", "format", "axis", "device", "publish_axes")  # fmt: skip
+    RESTART_KEYS = (
+        "port",
+        "baud",
+        "listen",
+        "udp",
+        "http",
+        "http_history_min",
+        "capture_dir",
+        "capture_rotate_mb",
+        "capture_rotate_s",
+        "capture_keep_days",
+        "capture_max_gb",
+        "scale_arcsec_per_count",
+        "scale_override_arcsec_per_count",
+        "format",
+        "axis",
+        "device",
+        "publish_axes",
+    )
 
     def __init__(self, config: DriverConfig, *, port: str, model_file: ModelFile | None = None) -> None:
         self.config = config
@@ -184,11 +200,15 @@ class Service:
             raise ConfigError(str(exc)) from None
 
     def _new_binding(self, model_file: ModelFile) -> InstrumentCompensation:
-        return InstrumentCompensation(model_file, force=self.config.force_model,
-                                      model_name=f"the model {self.config.model_path}",
-                                      hint="set force_model: true in the config to apply it anyway",
-                                      adapt=AdaptConfig(), reference_rate_dph=self.config.adapt_reference_dph,
-                                      adapt_state=self.config.adapt_state)  # fmt: skip
+        return InstrumentCompensation(
+            model_file,
+            force=self.config.force_model,
+            model_name=f"the model {self.config.model_path}",
+            hint="set force_model: true in the config to apply it anyway",
+            adapt=AdaptConfig(),
+            reference_rate_dph=self.config.adapt_reference_dph,
+            adapt_state=self.config.adapt_state,
+        )
 
     def _check_adapt_state(self, model_file: ModelFile) -> str | None:
         """The configured adaptation state, checked against the model before anything runs: a state saved for
@@ -206,8 +226,9 @@ class Service:
             try:
                 os.replace(path, aside)
             except OSError as move:
-                raise ConfigError(f"{path}: unusable adaptation state ({exc}) that cannot be set aside: "
-                                  f"{move.strerror or move}") from None  # fmt: skip
+                raise ConfigError(
+                    f"{path}: unusable adaptation state ({exc}) that cannot be set aside: {move.strerror or move}"
+                ) from None
             log.warning("adapt_state_set_aside", reason=str(exc), moved_to=str(aside))
             return None
         return _file_sha256(path)
@@ -215,20 +236,32 @@ class Service:
     # -- objects clients see -------------------------------------------------------------------
 
     def version_object(self) -> dict:
-        obj: dict[str, Any] = {"class": "VERSION", "release": __version__, "proto_major": PROTO_MAJOR,
-                               "proto_minor": PROTO_MINOR, "model": self.model_file.kind}  # fmt: skip
+        obj: dict[str, Any] = {
+            "class": "VERSION",
+            "release": __version__,
+            "proto_major": PROTO_MAJOR,
+            "proto_minor": PROTO_MINOR,
+            "model": self.model_file.kind,
+        }
         if self.identity is not None:
             obj["instrument"] = self._identity_fields()
         return obj
 
     def _identity_fields(self) -> dict:
         i = self.identity
-        return {"serial": i.serial, "firmware": i.firmware_version, "rate_hz": i.rate_hz,
-                "scale_arcsec_per_count": i.scale_arcsec_per_count}  # fmt: skip
+        return {
+            "serial": i.serial,
+            "firmware": i.firmware_version,
+            "rate_hz": i.rate_hz,
+            "scale_arcsec_per_count": i.scale_arcsec_per_count,
+        }
 
     def device_object(self) -> dict | None:
-        obj: dict[str, Any] = {"class": "DEVICE", "path": self.port_url,
-                               "state": "activated" if self.port_state == "open" else "deactivated"}  # fmt: skip
+        obj: dict[str, Any] = {
+            "class": "DEVICE",
+            "path": self.port_url,
+            "state": "activated" if self.port_state == "open" else "deactivated",
+        }
         if self.source.wire is not None:
             obj["format"] = self.source.wire.format
         if self.identity is not None:
@@ -390,8 +423,9 @@ class Service:
         detected = self.identity is None and self.config.format == "auto"  # the format is known from now on
         self.identity = identity
         if detected:
-            check_channels(self.model_file, self.source.wire, f"the model {self.config.model_path}",
-                           "the instrument")  # ModelMismatchError: exit 78, as below
+            check_channels(
+                self.model_file, self.source.wire, f"the model {self.config.model_path}", "the instrument"
+            )  # ModelMismatchError: exit 78, as below
             log.info("format_detected", format=self.source.wire.format)
             if self.capture is not None:
                 self.capture.update_provenance(self.source.wire.sidecar_fields())
@@ -440,8 +474,15 @@ class Service:
         self._bias_capture = None
         self._note("bias", bias_dph=self.bias_dph, seconds=capture["seconds"])
         log.info("bias_applied", capture_id=capture["capture_id"], bias_dph=self.bias_dph, seconds=capture["seconds"])
-        self._publish_event({"class": "BIAS", "state": "done", "capture_id": capture["capture_id"],
-                             "bias_dph": self.bias_dph, "seconds": capture["seconds"]})  # fmt: skip
+        self._publish_event(
+            {
+                "class": "BIAS",
+                "state": "done",
+                "capture_id": capture["capture_id"],
+                "bias_dph": self.bias_dph,
+                "seconds": capture["seconds"],
+            }
+        )
 
     def _publish_event(self, obj: dict) -> None:
         """An event for every authorized client (non-blocking), and kept as ``last_event`` (tests, STATUS-less
@@ -513,22 +554,26 @@ class Service:
         capture is then abandoned and the bias in use is kept.  One capture at a time."""
         seconds = args.get("seconds", DEFAULT_BIAS_S)
         if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or not 1 <= seconds <= MAX_BIAS_S:
-            return {"class": "ERROR", "message": f"?BIAS needs \"seconds\" between 1 and {MAX_BIAS_S}"}
+            return {"class": "ERROR", "message": f'?BIAS needs "seconds" between 1 and {MAX_BIAS_S}'}
         timeout_s = float(seconds) + BIAS_ANSWER_MARGIN_S
         with self.lock:
             if self._bias_capture is not None:
                 return {"class": "ERROR", "message": "a bias capture is already running"}
             self._bias_captures += 1
-            capture = {"capture_id": self._bias_captures, "target_s": float(seconds), "sum_arcsec": 0.0,
-                       "seconds": 0.0}  # fmt: skip
+            capture = {"capture_id": self._bias_captures, "target_s": float(seconds), "sum_arcsec": 0.0, "seconds": 0.0}
             timer = threading.Timer(timeout_s, self._bias_timed_out, args=(capture,))
             timer.daemon = True
             capture["timer"] = timer
             self._bias_capture = capture
             timer.start()
         log.info("bias_started", capture_id=capture["capture_id"], seconds=float(seconds))
-        return {"class": "BIAS", "state": "started", "capture_id": capture["capture_id"], "seconds": float(seconds),
-                "timeout_s": timeout_s}  # fmt: skip
+        return {
+            "class": "BIAS",
+            "state": "started",
+            "capture_id": capture["capture_id"],
+            "seconds": float(seconds),
+            "timeout_s": timeout_s,
+        }
 
     def _bias_timed_out(self, capture: dict) -> None:
         """The timer of a ``?BIAS`` capture: abandon it if it is still the one running (its own thread)."""
@@ -536,23 +581,28 @@ class Service:
             if self._bias_capture is not capture:
                 return  # completed (or replaced) meanwhile
             self._bias_capture = None
-            event = {"class": "BIAS", "state": "failed", "capture_id": capture["capture_id"],
-                     "seconds": capture["target_s"], "seconds_captured": capture["seconds"],
-                     "reason": f"only {capture['seconds']:.1f} of {capture['target_s']:g} s of data arrived within "
-                               f"{capture['target_s'] + BIAS_ANSWER_MARGIN_S:g} s (is the instrument sending?); "
-                               f"the bias in use is kept"}  # fmt: skip
+            event = {
+                "class": "BIAS",
+                "state": "failed",
+                "capture_id": capture["capture_id"],
+                "seconds": capture["target_s"],
+                "seconds_captured": capture["seconds"],
+                "reason": f"only {capture['seconds']:.1f} of {capture['target_s']:g} s of data arrived within "
+                f"{capture['target_s'] + BIAS_ANSWER_MARGIN_S:g} s (is the instrument sending?); "
+                f"the bias in use is kept",
+            }
             log.warning("bias_failed", capture_id=capture["capture_id"], reason=event["reason"])
             self._publish_event(event)
 
     def _cmd_adapt(self, args: dict) -> dict:
         enable = args.get("enable")
         if not isinstance(enable, bool):
-            return {"class": "ERROR", "message": "?ADAPT needs \"enable\": true or false"}
+            return {"class": "ERROR", "message": '?ADAPT needs "enable": true or false'}
         reference = args.get("reference_dph", 0.0)
         if isinstance(reference, bool) or not isinstance(reference, (int, float)) or not math.isfinite(reference):
-            return {"class": "ERROR", "message": "\"reference_dph\" must be a number (deg/h, 0 at rest)"}
+            return {"class": "ERROR", "message": '"reference_dph" must be a number (deg/h, 0 at rest)'}
         if abs(reference) > 1e7:
-            return {"class": "ERROR", "message": "\"reference_dph\" must be within +-1e7 deg/h"}
+            return {"class": "ERROR", "message": '"reference_dph" must be within +-1e7 deg/h'}
         with self.lock:
             if self.compensator is None:
                 return {"class": "ERROR", "message": "no samples yet: nothing to adapt"}
@@ -600,15 +650,18 @@ class Service:
             path = config.model_path
             digest = _file_sha256(path)
             if digest is not None and digest == self.model_sha256 and path == self.config.model_path:
-                return {"class": "RELOAD", "model": self.model_file.kind, "created_utc": self.model_file.created_utc,
-                        "changed": False}  # fmt: skip
+                return {
+                    "class": "RELOAD",
+                    "model": self.model_file.kind,
+                    "created_utc": self.model_file.created_utc,
+                    "changed": False,
+                }
             model_file = load_model(path)
             self._swap_model(model_file, digest, config.force_model)
             for line in model_file.warnings(str(path)):
                 log.warning("model_warning", message=line)
             log.info("model_reloaded", model=str(path), kind=model_file.kind, created_utc=model_file.created_utc)
-            return {"class": "RELOAD", "model": model_file.kind, "created_utc": model_file.created_utc,
-                    "changed": True}  # fmt: skip
+            return {"class": "RELOAD", "model": model_file.kind, "created_utc": model_file.created_utc, "changed": True}
 
     def reload_model(self, model_file: ModelFile) -> None:
         """Compensate with ``model_file`` from the next block on (see ``_swap_model``)."""
@@ -671,8 +724,11 @@ class Service:
             self.binding.force = new.force_model
             if new.adapt_reference_dph != old.adapt_reference_dph and self.compensator is not None:
                 self._set_reference(new.adapt_reference_dph)
-        applied = [f.name for f in dataclasses.fields(DriverConfig)
-                   if f.name not in self.RESTART_KEYS and getattr(new, f.name) != getattr(old, f.name)]  # fmt: skip
+        applied = [
+            f.name
+            for f in dataclasses.fields(DriverConfig)
+            if f.name not in self.RESTART_KEYS and getattr(new, f.name) != getattr(old, f.name)
+        ]
         if restart:
             log.warning("config_needs_restart", keys=restart)
         log.info("config_reloaded", applied=applied, restart_needed=restart)
@@ -698,19 +754,28 @@ class Service:
 
         host, port = parse_host_port(self.config.listen)
         try:
-            self.hub = Hub(host, port, version=self.version_object, device=self.device_object,
-                           control=self.control, token=self.config.token,
-                           max_backlog_s=self.config.max_client_backlog_s,
-                           sndbuf_bytes=256 * 1024,  # a non-reading client is noticed in seconds, not megabytes
-                           latency=self.latency)  # fmt: skip
+            self.hub = Hub(
+                host,
+                port,
+                version=self.version_object,
+                device=self.device_object,
+                control=self.control,
+                token=self.config.token,
+                max_backlog_s=self.config.max_client_backlog_s,
+                sndbuf_bytes=256 * 1024,  # a non-reading client is noticed in seconds, not megabytes
+                latency=self.latency,
+            )
         except ValueError as exc:
             raise ConfigError(f"listen {self.config.listen}: {exc}") from None
         try:
             address = self.hub.start()
         except OSError as exc:  # in use, or not on this host yet (the network coming up): may clear by itself
             error = TemporaryFailure if exc.errno in (errno.EADDRINUSE, errno.EADDRNOTAVAIL) else ConfigError
-            hint = (" (another fog-driver run? give this one another address: --listen or 'listen' in its config)"
-                    if exc.errno == errno.EADDRINUSE else "")  # fmt: skip
+            hint = (
+                " (another fog-driver run? give this one another address: --listen or 'listen' in its config)"
+                if exc.errno == errno.EADDRINUSE
+                else ""
+            )
             raise error(f"cannot listen on {self.config.listen}: {exc.strerror or exc}{hint}") from None
         try:
             capture = RotatingCapture(
@@ -734,8 +799,9 @@ class Service:
             raise
         setup = self.config.device.device_setup()
         on_open = None if setup is None else make_on_open(setup, on_result=self._on_device_setup)
-        self.reader = PortReader(self.port_url, baudrate=self.config.baud, backoff_max_s=1.0,
-                                 on_state=self._on_port_state, on_open=on_open)  # fmt: skip
+        self.reader = PortReader(
+            self.port_url, baudrate=self.config.baud, backoff_max_s=1.0, on_state=self._on_port_state, on_open=on_open
+        )
         if self.web is not None:
             from ..config import format_address
 
@@ -753,9 +819,15 @@ class Service:
 
         try:
             host, port = parse_host_port(self.config.http, default_port=DEFAULT_HTTP_PORT)
-            return WebView(host, port, token=self.config.token, read_status=self.metrics_state, latency=self.latency,
-                           max_backlog_s=self.config.max_client_backlog_s,
-                           history_min=self.config.http_history_min)  # fmt: skip
+            return WebView(
+                host,
+                port,
+                token=self.config.token,
+                read_status=self.metrics_state,
+                latency=self.latency,
+                max_backlog_s=self.config.max_client_backlog_s,
+                history_min=self.config.http_history_min,
+            )
         except (ValueError, WebUnavailable) as exc:
             raise ConfigError(f"http {self.config.http}: {exc}") from None
 
@@ -774,8 +846,11 @@ class Service:
         """What ``/metrics`` reads at each scrape (``metrics.DaemonCollector``): STATUS, DEVICE, VERSION and
         the counters STATUS does not carry (any thread)."""
         with self.lock:
-            out: dict[str, Any] = {"status": self.status_object(mark_cpu=False), "device": self.device_object(),
-                                   "version": self.version_object()}  # fmt: skip
+            out: dict[str, Any] = {
+                "status": self.status_object(mark_cpu=False),
+                "device": self.device_object(),
+                "version": self.version_object(),
+            }
         reader = self.reader
         if reader is not None:
             out["reconnects"] = max(0, reader.opens - 1)
@@ -793,14 +868,22 @@ class Service:
             "baud": c.baud,
             "fog_driver_version": __version__,
             "pid": os.getpid(),
-            "model": {"path": str(c.model_path), "sha256": self.model_sha256, "kind": self.model_file.kind,
-                      "created_utc": self.model_file.created_utc,
-                      "instrument_serial": self.model_file.instrument_serial},  # fmt: skip
+            "model": {
+                "path": str(c.model_path),
+                "sha256": self.model_sha256,
+                "kind": self.model_file.kind,
+                "created_utc": self.model_file.created_utc,
+                "instrument_serial": self.model_file.instrument_serial,
+            },
             **(self.source.wire.sidecar_fields() if self.source.wire is not None else {}),
-            "settings": {"scale_arcsec_per_count": c.scale_arcsec_per_count,
-                         "scale_override_arcsec_per_count": c.scale_override_arcsec_per_count,
-                         "force_model": c.force_model, "adapt_reference_dph": c.adapt_reference_dph,
-                         "adapt_state": c.adapt_state, "adapt_state_sha256": self.adapt_state_sha256},  # fmt: skip
+            "settings": {
+                "scale_arcsec_per_count": c.scale_arcsec_per_count,
+                "scale_override_arcsec_per_count": c.scale_override_arcsec_per_count,
+                "force_model": c.force_model,
+                "adapt_reference_dph": c.adapt_reference_dph,
+                "adapt_state": c.adapt_state,
+                "adapt_state_sha256": self.adapt_state_sha256,
+            },
         }
 
     def _making_progress(self) -> bool:
@@ -836,8 +919,10 @@ class Service:
                     status = self.status_object()
                 self._publish(status)
                 log.info("status", **{k: v for k, v in status.items() if k != "class"})
-                self.notifier.status(f"{status['port_state']}, {status['frames']} frames, "
-                                     f"{status.get('clients', 0)} clients, capture {status.get('capture_state')}")  # fmt: skip
+                self.notifier.status(
+                    f"{status['port_state']}, {status['frames']} frames, "
+                    f"{status.get('clients', 0)} clients, capture {status.get('capture_state')}"
+                )
                 if on_status:
                     on_status(status)
         finally:
@@ -903,7 +988,9 @@ def _age_s(created_utc: str) -> float | None:
 
 def _same_model(a: ModelFile, b: ModelFile) -> bool:
     """The same drift model (kind, normalization and every matrix): its memory and adaptation carry over."""
-    return a.kind == b.kind and a.normalizer.to_dict() == b.normalizer.to_dict() and a.model.to_dict() == b.model.to_dict()
+    return (
+        a.kind == b.kind and a.normalizer.to_dict() == b.normalizer.to_dict() and a.model.to_dict() == b.model.to_dict()
+    )
 
 
 __all__ = ["ConfigError", "Service", "stamp_utc"]

@@ -96,13 +96,31 @@ FLAG_GUARD = 1 << 5
 FLAG_EXTRAPOLATING = 1 << 6
 FLAG_SUBSTITUTED = 1 << 7
 FLAG_RECOVERING = 1 << 8
-FLAG_BITS = {"gap": FLAG_GAP, "thermometer_fault": FLAG_THERMOMETER_FAULT, "input_stale": FLAG_INPUT_STALE,
-             "uncompensated": FLAG_UNCOMPENSATED, "adapting": FLAG_ADAPTING, "guard": FLAG_GUARD,
-             "extrapolating": FLAG_EXTRAPOLATING, "substituted": FLAG_SUBSTITUTED, "recovering": FLAG_RECOVERING}
+FLAG_BITS = {
+    "gap": FLAG_GAP,
+    "thermometer_fault": FLAG_THERMOMETER_FAULT,
+    "input_stale": FLAG_INPUT_STALE,
+    "uncompensated": FLAG_UNCOMPENSATED,
+    "adapting": FLAG_ADAPTING,
+    "guard": FLAG_GUARD,
+    "extrapolating": FLAG_EXTRAPOLATING,
+    "substituted": FLAG_SUBSTITUTED,
+    "recovering": FLAG_RECOVERING,
+}
 
 #: The sample fields after magic and version, in datagram order.
-FIELDS = ("flags", "seq", "t_s", "angle_arcsec", "angle_raw_arcsec", "rate_dph", "drift_dph",
-          "t_top_c", "t_bottom_c", "t_housing_c")
+FIELDS = (
+    "flags",
+    "seq",
+    "t_s",
+    "angle_arcsec",
+    "angle_raw_arcsec",
+    "rate_dph",
+    "drift_dph",
+    "t_top_c",
+    "t_bottom_c",
+    "t_housing_c",
+)
 _FLOAT_FIELDS = FIELDS[2:]
 _NAN = math.nan
 
@@ -126,9 +144,18 @@ def encode_datagram(
 ) -> bytes:
     """One datagram; None (absent) becomes NaN, ``seq`` is taken modulo 2**64, ``flags`` modulo 2**16."""
     return _STRUCT.pack(
-        MAGIC, DATAGRAM_VERSION, int(flags) & 0xFFFF, int(seq) & 0xFFFF_FFFF_FFFF_FFFF,
-        _f(t_s), _f(angle_arcsec), _f(angle_raw_arcsec), _f(rate_dph), _f(drift_dph),
-        _f(t_top_c), _f(t_bottom_c), _f(t_housing_c),
+        MAGIC,
+        DATAGRAM_VERSION,
+        int(flags) & 0xFFFF,
+        int(seq) & 0xFFFF_FFFF_FFFF_FFFF,
+        _f(t_s),
+        _f(angle_arcsec),
+        _f(angle_raw_arcsec),
+        _f(rate_dph),
+        _f(drift_dph),
+        _f(t_top_c),
+        _f(t_bottom_c),
+        _f(t_housing_c),
     )
 
 

@@ -180,26 +180,30 @@ class ViewState:
     def _close_point(self, point: _Mean) -> None:
         last = point.last
         temps = last.get("temps_c") if isinstance(last.get("temps_c"), Mapping) else {}
-        self.points.append({
-            "t_s": last["t_s"],
-            "utc": last.get("utc"),
-            "drift_dph": _number(last.get("drift_dph")),
-            "angle_arcsec": _number(last.get("angle_arcsec")),
-            "rate_dph": point.rate_sum / point.n if point.n else None,
-            "temps_c": {str(k): _number(v) for k, v in temps.items()},
-        })
+        self.points.append(
+            {
+                "t_s": last["t_s"],
+                "utc": last.get("utc"),
+                "drift_dph": _number(last.get("drift_dph")),
+                "angle_arcsec": _number(last.get("angle_arcsec")),
+                "rate_dph": point.rate_sum / point.n if point.n else None,
+                "temps_c": {str(k): _number(v) for k, v in temps.items()},
+            }
+        )
         self._trim(self.points)
 
     def _close_minute(self, minute: _Mean) -> None:
         if not minute.n:
             return
-        self.minutes.append({
-            "t_s": minute.bucket * MEAN_EVERY_S,
-            "utc": minute.last.get("utc"),
-            "rate_dph": minute.rate_sum / minute.n,
-            "rate_raw_dph": minute.raw_sum / minute.n,
-            "samples": minute.n,
-        })
+        self.minutes.append(
+            {
+                "t_s": minute.bucket * MEAN_EVERY_S,
+                "utc": minute.last.get("utc"),
+                "rate_dph": minute.rate_sum / minute.n,
+                "rate_raw_dph": minute.raw_sum / minute.n,
+                "samples": minute.n,
+            }
+        )
         self._trim(self.minutes)
 
     def _trim(self, series: deque) -> None:
@@ -211,15 +215,23 @@ class ViewState:
 
     def snapshot(self, now_s: float) -> dict[str, Any]:
         """Everything a page needs when it connects: the full series and the current state."""
-        return {"type": "snapshot", "points": list(self.points), "minutes": list(self.minutes),
-                "events": list(self.events), "rows": [list(row) for row in STATUS_ROWS],
-                **self._current(now_s)}  # fmt: skip
+        return {
+            "type": "snapshot",
+            "points": list(self.points),
+            "minutes": list(self.minutes),
+            "events": list(self.events),
+            "rows": [list(row) for row in STATUS_ROWS],
+            **self._current(now_s),
+        }
 
     def update(self, now_s: float, points_after_s: float | None, minutes_after_s: float | None) -> dict[str, Any]:
         """The current state and the series' points newer than the device times given (None: all)."""
-        return {"type": "update",
-                "points": _newer(self.points, points_after_s), "minutes": _newer(self.minutes, minutes_after_s),
-                **self._current(now_s)}  # fmt: skip
+        return {
+            "type": "update",
+            "points": _newer(self.points, points_after_s),
+            "minutes": _newer(self.minutes, minutes_after_s),
+            **self._current(now_s),
+        }
 
     def _current(self, now_s: float) -> dict[str, Any]:
         if self._started_s is None:
@@ -234,12 +246,20 @@ class ViewState:
             "elapsed_s": now_s - self._started_s,
             "address": self.control_address,
         }
-        lines = [{"text": line.strip("* "), "level": "alarm" if line.startswith("***") else "notice"}
-                 for line in banners(state)]  # fmt: skip
+        lines = [
+            {"text": line.strip("* "), "level": "alarm" if line.startswith("***") else "notice"}
+            for line in banners(state)
+        ]
         missing = self._missing is not None and now_s - self._missing[0] <= MISSING_BANNER_S
         if missing:
-            lines.insert(0, {"text": f"SAMPLES MISSING: {self._missing[1]:,} frames missing since start, the last "
-                                     f"{now_s - self._missing[0]:.0f} s ago", "level": "alarm"})  # fmt: skip
+            lines.insert(
+                0,
+                {
+                    "text": f"SAMPLES MISSING: {self._missing[1]:,} frames missing since start, the last "
+                    f"{now_s - self._missing[0]:.0f} s ago",
+                    "level": "alarm",
+                },
+            )
         return {
             "angle": dict(angle),
             "rate_1s_dph": self.rate_1s_dph,

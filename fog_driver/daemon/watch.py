@@ -208,7 +208,7 @@ def _angle_text(value: Any, degree: str) -> str:
     if value is None:
         return _MISSING
     if _is_number(value):
-        return f"{format_arcsec(value)}\" ({format_dms(value, degree=degree)})"
+        return f'{format_arcsec(value)}" ({format_dms(value, degree=degree)})'
     return _show(value)
 
 
@@ -339,8 +339,10 @@ def banners(state: Mapping[str, Any]) -> list[str]:
     if _is_number(age) and age >= NO_DATA_S and _dict(state.get("watch")).get("enable", True) is not False:
         lines.append(f"*** NO DATA for {age:.0f} s ***")
     if _is_number(status.get("bias_capture_target_s")):
-        lines.append(f"capturing the bias: {_show(status.get('bias_capture_s'), '.1f')} / "
-                     f"{_show(status.get('bias_capture_target_s'), 'g')} s of data; keep the table still")  # fmt: skip
+        lines.append(
+            f"capturing the bias: {_show(status.get('bias_capture_s'), '.1f')} / "
+            f"{_show(status.get('bias_capture_target_s'), 'g')} s of data; keep the table still"
+        )
     elif status.get("bias_captured") is False:
         lines.append(f"bias not removed: at rest the angle climbs with Earth rate + bias; {_bias_hint(state)}")
     return lines
@@ -366,10 +368,11 @@ def render(state: Mapping[str, Any], *, width: int = 100, degree: str = _DEGREE)
     if not angle:
         lines.append(f"{'angle':<12}{_MISSING} (waiting for ANGLE)")
     else:
-        lines.append(f"{'angle':<12}{_angle_text(angle.get('angle_arcsec'), degree)}"
-                     f"    raw {_angle_text(angle.get('angle_raw_arcsec'), degree)}")  # fmt: skip
-        lines.append(f"{'rate':<12}{_rate_text(state, angle)}"
-                     f"    drift {_show(angle.get('drift_dph'), '.4f')} deg/h")  # fmt: skip
+        lines.append(
+            f"{'angle':<12}{_angle_text(angle.get('angle_arcsec'), degree)}"
+            f"    raw {_angle_text(angle.get('angle_raw_arcsec'), degree)}"
+        )
+        lines.append(f"{'rate':<12}{_rate_text(state, angle)}    drift {_show(angle.get('drift_dph'), '.4f')} deg/h")
         lines.append(f"{'temps':<12}{_temps(_dict(angle.get('temps_c')), '  ')}")
         lines.append(f"{'flags':<12}{_flags(angle.get('flags'))}")
         sample = f"seq {_show(angle.get('seq'))}  t {_show(angle.get('t_s'), '.3f')} s"
@@ -394,8 +397,9 @@ def compact_line(state: Mapping[str, Any], *, degree: str = _DEGREE) -> str:
     """One line of the latest state, for logs (the non-terminal view prints one a second)."""
     angle, status = _dict(state.get("angle")), _dict(state.get("status"))
     parts = [f"[{_show(state.get('elapsed_s'), '7.1f')} s]"]
-    parts += [line.strip("* ").split(":")[0] if line.startswith("***") else line.split(";")[0]
-              for line in banners(state)]  # fmt: skip
+    parts += [
+        line.strip("* ").split(":")[0] if line.startswith("***") else line.split(";")[0] for line in banners(state)
+    ]
     if not angle:
         parts.append("waiting for ANGLE")
     else:
@@ -541,8 +545,10 @@ class _Watch:
         if state == "started":
             self._action(f"bias capture started: {_show(obj.get('seconds'), 'g')} s of data; keep the table still")
         elif state == "done":
-            self._action(f"bias captured: {_show(obj.get('bias_dph'), '.4f')} deg/h over "
-                         f"{_show(obj.get('seconds'), '.1f')} s, removed from rate and angle from now on")  # fmt: skip
+            self._action(
+                f"bias captured: {_show(obj.get('bias_dph'), '.4f')} deg/h over "
+                f"{_show(obj.get('seconds'), '.1f')} s, removed from rate and angle from now on"
+            )
         elif state == "failed":
             self._action(f"bias capture failed: {_show(obj.get('reason'))}")
 
@@ -737,8 +743,9 @@ def run_watch(
         watch = _Watch(conn.address, out, started, keys=keys is not None)
         if keys is not None:
             key_reader = _Keys(keys, on_resume=watch.redraw_all)
-        return _view(conn, watch, key_reader, token, rate_hz, count,
-                     None if duration_s is None else started + duration_s, bias_s)  # fmt: skip
+        return _view(
+            conn, watch, key_reader, token, rate_hz, count, None if duration_s is None else started + duration_s, bias_s
+        )
     except KeyboardInterrupt:
         if watch is not None:
             try:
@@ -773,13 +780,22 @@ def _counts(watch: _Watch, conn: Client) -> None:
 
 def _lost(watch: _Watch, conn: Client, exc: ConnectionLost) -> int:
     what = "closed the connection" if exc.reason.endswith("closed the connection") else exc.reason
-    watch.finish(time.monotonic(), f"fog-driver watch: {conn.address} {what} "
-                                   f"({watch.state['angles']:,} ANGLE received)")  # fmt: skip
+    watch.finish(
+        time.monotonic(), f"fog-driver watch: {conn.address} {what} ({watch.state['angles']:,} ANGLE received)"
+    )
     return EXIT_CONNECTION_CLOSED
 
 
-def _view(conn: Client, watch: _Watch, keys: _Keys | None, token: str | None, rate_hz: float | None,
-          count: int | None, deadline: float | None, bias_s: float) -> int:  # fmt: skip
+def _view(
+    conn: Client,
+    watch: _Watch,
+    keys: _Keys | None,
+    token: str | None,
+    rate_hz: float | None,
+    count: int | None,
+    deadline: float | None,
+    bias_s: float,
+) -> int:
     """The view's loop: messages from the daemon, keys from the terminal, a redraw or a log line when due."""
     _greet(conn, token, rate_hz)
     watch.tick(time.monotonic())
@@ -815,8 +831,9 @@ def _view(conn: Client, watch: _Watch, keys: _Keys | None, token: str | None, ra
                         pass  # the next read says so
 
 
-def _pass_through(conn: Client, out: TextIO, token: str | None, rate_hz: float | None, count: int | None,
-                  deadline: float | None) -> int:  # fmt: skip
+def _pass_through(
+    conn: Client, out: TextIO, token: str | None, rate_hz: float | None, count: int | None, deadline: float | None
+) -> int:
     """``--json``: every protocol line of the daemon, unchanged, one per line, flushed (``gpspipe -w``);
     malformed lines are dropped.  Ends as the view does; a reader that went away (``| head -3``) is exit 0,
     with stdout pointed at /dev/null so the interpreter's last flush cannot complain."""
@@ -857,14 +874,30 @@ def _stdout_to_devnull(out: TextIO) -> None:
         pass
 
 
-def watch_command(address: str | None, *, rate_hz: float | None = 10.0, count: int | None = None,
-                  duration_s: float | None = None, json_lines: bool = False, token_file: str | None = None,
-                  bias_s: float = DEFAULT_BIAS_S) -> int:  # fmt: skip
+def watch_command(
+    address: str | None,
+    *,
+    rate_hz: float | None = 10.0,
+    count: int | None = None,
+    duration_s: float | None = None,
+    json_lines: bool = False,
+    token_file: str | None = None,
+    bias_s: float = DEFAULT_BIAS_S,
+) -> int:
     """``fog-driver watch [HOST:PORT]``: parse the address and run the watch on stdout (the token, if the daemon
     has one, from ``token_file`` or the environment variable ``FOG_DRIVER_TOKEN``).  Keys work when stdin and
     stdout are both terminals (and not with ``json_lines``)."""
     host, port = parse_address(address)
     token = read_token(token_file)
     keys = sys.stdin if not json_lines and _isatty(sys.stdin) and _isatty(sys.stdout) else None
-    return run_watch(host, port, rate_hz=rate_hz, count=count, duration_s=duration_s, token=token,
-                     json_lines=json_lines, keys=keys, bias_s=bias_s)  # fmt: skip
+    return run_watch(
+        host,
+        port,
+        rate_hz=rate_hz,
+        count=count,
+        duration_s=duration_s,
+        token=token,
+        json_lines=json_lines,
+        keys=keys,
+        bias_s=bias_s,
+    )

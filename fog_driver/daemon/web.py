@@ -57,8 +57,7 @@ from typing import Any
 
 import structlog
 
-from .hub import (DEFAULT_LOG_LINES_PER_S, _AuthThrottle, _check_token,
-                  _LogRateLimiter, encode, is_loopback_host)
+from .hub import DEFAULT_LOG_LINES_PER_S, _AuthThrottle, _check_token, _LogRateLimiter, encode, is_loopback_host
 from .metrics import DaemonCollector, LatencyHistogram
 from .view import DEFAULT_HISTORY_MIN, ViewState
 
@@ -86,7 +85,7 @@ ASSETS = {
 }
 _SECURITY_HEADERS = {
     "Content-Security-Policy": "default-src 'self'; img-src 'self' data:; style-src 'self' 'unsafe-inline'; "
-                               "connect-src 'self'; frame-ancestors 'none'",
+    "connect-src 'self'; frame-ancestors 'none'",
     "X-Content-Type-Options": "nosniff",
     "Referrer-Policy": "no-referrer",
     "Cache-Control": "no-store",
@@ -149,11 +148,19 @@ class WebView:
     ``metrics.DaemonCollector`` reads, without ``angle``/``web_*`` keys: those are filled in here.
     """
 
-    def __init__(self, host: str, port: int, *, token: str | None = None,
-                 read_status: Callable[[], Mapping[str, Any]] | None = None,
-                 latency: LatencyHistogram | None = None, max_backlog_s: float = 2.0,
-                 history_min: float = DEFAULT_HISTORY_MIN, update_hz: float = DEFAULT_UPDATE_HZ,
-                 control_address: str | None = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        host: str,
+        port: int,
+        *,
+        token: str | None = None,
+        read_status: Callable[[], Mapping[str, Any]] | None = None,
+        latency: LatencyHistogram | None = None,
+        max_backlog_s: float = 2.0,
+        history_min: float = DEFAULT_HISTORY_MIN,
+        update_hz: float = DEFAULT_UPDATE_HZ,
+        control_address: str | None = None,
+    ) -> None:
         check_web_extra()
         _check_web_token(token, host)
         if not (math.isfinite(update_hz) and 0 < update_hz <= 50):
@@ -266,6 +273,7 @@ class WebView:
         self._registry = CollectorRegistry(auto_describe=False)
         self._registry.register(DaemonCollector(self._metrics_state, self.latency))
         self._stop_event = asyncio.Event()
+
         @web.middleware
         async def guard(request: Any, handler: Callable) -> Any:
             return await self._guard(request, handler)
@@ -279,9 +287,16 @@ class WebView:
         app.router.add_get("/login", self._login_form)
         app.router.add_get("/favicon.ico", self._no_icon)
         app.router.add_post("/login", self._login)
-        runner = web.AppRunner(app, handle_signals=False, access_log=None, keepalive_timeout=KEEPALIVE_S,
-                               max_line_size=MAX_LINE_BYTES, max_field_size=MAX_LINE_BYTES,
-                               max_headers=MAX_HEADERS, shutdown_timeout=1.0)  # fmt: skip
+        runner = web.AppRunner(
+            app,
+            handle_signals=False,
+            access_log=None,
+            keepalive_timeout=KEEPALIVE_S,
+            max_line_size=MAX_LINE_BYTES,
+            max_field_size=MAX_LINE_BYTES,
+            max_headers=MAX_HEADERS,
+            shutdown_timeout=1.0,
+        )
         await runner.setup()
         loop = asyncio.get_running_loop()
         factory = runner.server
@@ -333,8 +348,10 @@ class WebView:
                 if self.view.restarts != self._sent_restarts:  # the series started afresh: the pages too
                     self._sent_after, self._sent_restarts = (None, None), self.view.restarts
                 update = self.view.update(now, *self._sent_after)
-                self._sent_after = (update["points"][-1]["t_s"] if update["points"] else self._sent_after[0],
-                                    update["minutes"][-1]["t_s"] if update["minutes"] else self._sent_after[1])
+                self._sent_after = (
+                    update["points"][-1]["t_s"] if update["points"] else self._sent_after[0],
+                    update["minutes"][-1]["t_s"] if update["minutes"] else self._sent_after[1],
+                )
                 text = _text(update)
                 for browser in list(self.browsers):
                     self._queue(browser, text, now)
@@ -407,9 +424,11 @@ class WebView:
         wait_s = self._throttle.blocked_for_s(peer, now)
         if wait_s <= 0:
             return None
-        return self._web().Response(status=429, text=f"429: too many wrong tokens from {peer}: try again in "
-                                                     f"{math.ceil(wait_s)} s\n",
-                                    headers={"Retry-After": str(math.ceil(wait_s))})  # fmt: skip
+        return self._web().Response(
+            status=429,
+            text=f"429: too many wrong tokens from {peer}: try again in {math.ceil(wait_s)} s\n",
+            headers={"Retry-After": str(math.ceil(wait_s))},
+        )
 
     def _web(self):
         from aiohttp import web
@@ -452,8 +471,9 @@ class WebView:
         if verdict == "wrong":
             self._throttle.failed(peer, now)
             self._log("warning", "web_token_refused", peer=peer, path=request.path)
-            return self._web().Response(status=401, text="401: wrong token\n",
-                                        headers={"WWW-Authenticate": 'Bearer realm="fog-driver"'})  # fmt: skip
+            return self._web().Response(
+                status=401, text="401: wrong token\n", headers={"WWW-Authenticate": 'Bearer realm="fog-driver"'}
+            )
         return await self._refuse(request)
 
     async def _refuse(self, request: Any) -> Any:
@@ -465,9 +485,11 @@ class WebView:
         if "text/html" in request.headers.get("Accept", "") and request.path == "/":
             raise web.HTTPFound("/login")
         self._log("info", "web_unauthorized", peer=peer, path=request.path)
-        return web.Response(status=401, text="401: this daemon's web view needs its token (Authorization: Bearer "
-                                             "<token>, or the form at /login)\n",
-                            headers={"WWW-Authenticate": 'Bearer realm="fog-driver"'})  # fmt: skip
+        return web.Response(
+            status=401,
+            text="401: this daemon's web view needs its token (Authorization: Bearer <token>, or the form at /login)\n",
+            headers={"WWW-Authenticate": 'Bearer realm="fog-driver"'},
+        )
 
     async def _check_login(self, request: Any, token: str) -> Any:
         web = self._web()
@@ -537,9 +559,13 @@ class WebView:
         self._drain()
         view = self.view
         now = time.monotonic()
-        state.update(angle=view.angle or {}, rate_1s_dph=view.rate_1s_dph, web_clients=len(self.browsers),
-                     web_dropped=self.dropped_browsers,
-                     angle_age_s=None if view.angle_host_s is None else now - view.angle_host_s)  # fmt: skip
+        state.update(
+            angle=view.angle or {},
+            rate_1s_dph=view.rate_1s_dph,
+            web_clients=len(self.browsers),
+            web_dropped=self.dropped_browsers,
+            angle_age_s=None if view.angle_host_s is None else now - view.angle_host_s,
+        )
         for cls, key in (("DEVICE", "device"), ("VERSION", "version")):
             state.setdefault(key, view.objects.get(cls, {}))
         return state
@@ -568,8 +594,10 @@ class WebView:
         now = time.monotonic()
         snapshot = self.view.snapshot(now)
         if not self.browsers:  # the first page: updates carry what comes after its snapshot
-            self._sent_after = (snapshot["points"][-1]["t_s"] if snapshot["points"] else None,
-                                snapshot["minutes"][-1]["t_s"] if snapshot["minutes"] else None)
+            self._sent_after = (
+                snapshot["points"][-1]["t_s"] if snapshot["points"] else None,
+                snapshot["minutes"][-1]["t_s"] if snapshot["minutes"] else None,
+            )
             self._sent_restarts = self.view.restarts
         browser.queue.append((now, _text(snapshot)))
         self.browsers.add(browser)
@@ -683,8 +711,10 @@ class _Counted(asyncio.Protocol):
 def _check_web_token(token: str | None, host: str) -> None:
     """ValueError unless there is a token, or ``host`` is loopback (as the NDJSON listener's rule)."""
     if token is None and not is_loopback_host(host):
-        raise ValueError(f"refusing to serve the web view on {host or 'every interface'!r} without a token: anyone "
-                         "on the network could read the instrument; set a token or bind 127.0.0.1")  # fmt: skip
+        raise ValueError(
+            f"refusing to serve the web view on {host or 'every interface'!r} without a token: anyone "
+            "on the network could read the instrument; set a token or bind 127.0.0.1"
+        )
     _check_token(token, "127.0.0.1")  # the token itself: non-empty text
 
 
@@ -704,12 +734,14 @@ def _peer(request: Any) -> str:
 
 def _login_page(problem: str | None) -> str:
     note = f'<p class="problem">{problem}</p>' if problem else ""
-    return ("<!doctype html><html><head><meta charset=utf-8><title>fog-driver: token</title>"
-            '<link rel=stylesheet href="/static/view.css"></head><body class=login><h1>fog-driver</h1>'
-            f"<p>This daemon's web view needs its token.</p>{note}"
-            '<form method=post action="/login"><input type=password name=token autofocus '
-            'autocomplete=current-password aria-label=token><button type=submit>Open</button></form>'
-            "</body></html>")  # fmt: skip
+    return (
+        "<!doctype html><html><head><meta charset=utf-8><title>fog-driver: token</title>"
+        '<link rel=stylesheet href="/static/view.css"></head><body class=login><h1>fog-driver</h1>'
+        f"<p>This daemon's web view needs its token.</p>{note}"
+        '<form method=post action="/login"><input type=password name=token autofocus '
+        "autocomplete=current-password aria-label=token><button type=submit>Open</button></form>"
+        "</body></html>"
+    )
 
 
 __all__ = ["DEFAULT_HTTP_PORT", "WebUnavailable", "WebView", "check_web_extra"]

@@ -101,16 +101,71 @@ COUNTER_MODULUS = 1 << 32
 
 #: Navigation-data block sizes in bytes by bit (``ixblue_stdbin_decoder`` memory_blocs_parsers/navigation_data).
 NAV_BLOCK_LEN = (
-    12, 12, 16, 8, 12, 12, 12, 21, 16, 12, 12, 8, 8, 4, 8, 16,  # 0..15
-    12, 4, 4, 12, 4, 12, 12, 12, 8, 12, 16, 12, 12, 12, 12,  # 16..30
-)  # fmt: skip
+    12,
+    12,
+    16,
+    8,
+    12,
+    12,
+    12,
+    21,
+    16,
+    12,
+    12,
+    8,
+    8,
+    4,
+    8,
+    16,  # 0..15
+    12,
+    4,
+    4,
+    12,
+    4,
+    12,
+    12,
+    12,
+    8,
+    12,
+    16,
+    12,
+    12,
+    12,
+    12,  # 16..30
+)
 #: Extended-navigation block sizes by bit (v3+).
 EXTNAV_BLOCK_LEN = (12, 12, 12, 12, 12, 21, 16)
 #: External-data block sizes by bit; None: a bit the reference decoder does not know (size unknown).
 EXTERNAL_BLOCK_LEN = (
-    5, 46, 46, 46, 13, 13, 49, 49, 49, 12, 37, 33, 8, 8, 41, 41,  # 0..15
-    41, 41, 9, 9, 9, 37, 33, None, 16, 17, 17, 12,  # 16..27
-)  # fmt: skip
+    5,
+    46,
+    46,
+    46,
+    13,
+    13,
+    49,
+    49,
+    49,
+    12,
+    37,
+    33,
+    8,
+    8,
+    41,
+    41,  # 0..15
+    41,
+    41,
+    9,
+    9,
+    9,
+    37,
+    33,
+    None,
+    16,
+    17,
+    17,
+    12,  # 16..27
+)
 
 BIT_ATTITUDE = 0
 BIT_ROTATION_RATE = 5
@@ -327,9 +382,16 @@ class StdbinDecoder(HuntingDecoder):
 
 
 _DECODED_BITS = frozenset(
-    (BIT_ATTITUDE, BIT_ROTATION_RATE, BIT_ACCELERATION, BIT_SENSOR_STATUS, BIT_INS_ALGORITHM_STATUS,
-     BIT_AHRS_ALGORITHM_STATUS, BIT_TEMPERATURES)
-)  # fmt: skip
+    (
+        BIT_ATTITUDE,
+        BIT_ROTATION_RATE,
+        BIT_ACCELERATION,
+        BIT_SENSOR_STATUS,
+        BIT_INS_ALGORITHM_STATUS,
+        BIT_AHRS_ALGORITHM_STATUS,
+        BIT_TEMPERATURES,
+    )
+)
 
 
 @functools.lru_cache(maxsize=256)
@@ -346,8 +408,9 @@ def _masks_len(nav_mask: int, extnav_mask: int, external_mask: int) -> tuple[int
 
 
 @functools.lru_cache(maxsize=256)
-def _layout(header_len: int, nav_mask: int, extnav_mask: int,
-            external_mask: int) -> tuple[MappingProxyType, int | None, int, int]:  # fmt: skip
+def _layout(
+    header_len: int, nav_mask: int, extnav_mask: int, external_mask: int
+) -> tuple[MappingProxyType, int | None, int, int]:
     """Where a telegram with these masks has its blocks: (decoded navigation bit -> offset in the telegram,
     the raw rotation rate block's offset or None, blocks skipped by size, set bits of unknown size).
     Cached (bounded) as ``_masks_len``."""

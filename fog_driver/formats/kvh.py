@@ -129,8 +129,14 @@ def crc32_mpeg2(data: bytes | bytearray | memoryview) -> int:
     ``mpeg2(d) = reverse32(crc32(reverse8(d)) ^ 0xFFFFFFFF)``.  ``crc32_mpeg2_reference`` is the table
     form it is tested against.
     """
-    reg = zlib.crc32(data.translate(_REVERSE_BITS8) if not isinstance(data, memoryview)
-                     else bytes(data).translate(_REVERSE_BITS8)) ^ 0xFFFFFFFF  # fmt: skip
+    reg = (
+        zlib.crc32(
+            data.translate(_REVERSE_BITS8)
+            if not isinstance(data, memoryview)
+            else bytes(data).translate(_REVERSE_BITS8)
+        )
+        ^ 0xFFFFFFFF
+    )
     # reverse32: the bytes in the opposite order, each bit-reversed
     return int.from_bytes(reg.to_bytes(4, "little").translate(_REVERSE_BITS8), "big")
 
@@ -229,17 +235,35 @@ def encode_kvh_frame(
 
 #: numpy dtypes of the frames up to the CRC (big-endian), by format
 _FRAME_DTYPE = {
-    "a": np.dtype([("header", "u1", 4), ("gyro", ">f4", 3), ("accel", ">f4", 3), ("status", "u1"), ("seq", "u1"),
-                   ("temp", ">i2")]),  # fmt: skip
-    "b": np.dtype([("header", "u1", 4), ("gyro", ">f4", 3), ("accel", ">f4", 3), ("time_tag_us", ">u4"),
-                   ("status", "u1"), ("seq", "u1"), ("temp", ">i2")]),  # fmt: skip
-    "c": np.dtype([("header", "u1", 4), ("gyro", ">f4", 3), ("accel", ">f4", 3), ("temp", ">f4"), ("status", "u1"),
-                   ("seq", "u1")]),  # fmt: skip
+    "a": np.dtype(
+        [("header", "u1", 4), ("gyro", ">f4", 3), ("accel", ">f4", 3), ("status", "u1"), ("seq", "u1"), ("temp", ">i2")]
+    ),
+    "b": np.dtype(
+        [
+            ("header", "u1", 4),
+            ("gyro", ">f4", 3),
+            ("accel", ">f4", 3),
+            ("time_tag_us", ">u4"),
+            ("status", "u1"),
+            ("seq", "u1"),
+            ("temp", ">i2"),
+        ]
+    ),
+    "c": np.dtype(
+        [("header", "u1", 4), ("gyro", ">f4", 3), ("accel", ">f4", 3), ("temp", ">f4"), ("status", "u1"), ("seq", "u1")]
+    ),
 }
 
 
-def encode_kvh_frames(fmt: str, gyro: np.ndarray, accel: np.ndarray, status: np.ndarray, seq: np.ndarray,
-                      temp: np.ndarray, time_tag_us: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+def encode_kvh_frames(
+    fmt: str,
+    gyro: np.ndarray,
+    accel: np.ndarray,
+    status: np.ndarray,
+    seq: np.ndarray,
+    temp: np.ndarray,
+    time_tag_us: np.ndarray | None = None,
+) -> np.ndarray:
     """Many frames at once: the vector form of ``encode_kvh_frame`` (identical bytes, tested).
 
     ``gyro`` and ``accel`` are ``(n, 3)`` words as sent; ``status``, ``seq`` (taken mod 128), ``temp`` (the raw
@@ -420,8 +444,9 @@ class KvhDecoder(HuntingDecoder):
             fmt = self._seconds[b3][0]
             values = _BODY[fmt].unpack_from(buf, pos + HEADER_LEN)
             seq_raw = values[-2] if fmt != "c" else values[-1]
-            events.append(_make_sample(self.config, fmt, values, self._unwrap.step(seq_raw % SEQ_MODULUS),
-                                       self._base + pos))  # fmt: skip
+            events.append(
+                _make_sample(self.config, fmt, values, self._unwrap.step(seq_raw % SEQ_MODULUS), self._base + pos)
+            )
             c.sample_frames += 1
         else:
             events.append(KvhBitFrame(self._base + pos, b3, bytes(buf[pos + HEADER_LEN : pos + n - 1])))
@@ -432,9 +457,7 @@ class KvhDecoder(HuntingDecoder):
 
 _DTYPES = {
     "a": np.dtype([("g", ">f4", 3), ("a", ">f4", 3), ("status", "u1"), ("seq", "u1"), ("temp", ">i2")]),
-    "b": np.dtype(
-        [("g", ">f4", 3), ("a", ">f4", 3), ("tag", ">u4"), ("status", "u1"), ("seq", "u1"), ("temp", ">i2")]
-    ),
+    "b": np.dtype([("g", ">f4", 3), ("a", ">f4", 3), ("tag", ">u4"), ("status", "u1"), ("seq", "u1"), ("temp", ">i2")]),
     "c": np.dtype([("g", ">f4", 3), ("a", ">f4", 3), ("mux", ">f4"), ("status", "u1"), ("seq", "u1")]),
 }
 
@@ -600,9 +623,7 @@ def decode_kvh_batch(data: bytes | bytearray | memoryview, **config) -> KvhBatch
     bit_results = {
         int(i): bytes(buf[starts[i] + HEADER_LEN : ends[i] - 1]) for i in np.flatnonzero(~is_sample).tolist()
     }
-    return KvhBatch(
-        cfg, counters, starts, kind, gyro, accel, status, seq_raw, seq, temp_raw, mux, tag, bit_results
-    )
+    return KvhBatch(cfg, counters, starts, kind, gyro, accel, status, seq_raw, seq, temp_raw, mux, tag, bit_results)
 
 
 __all__ = [

@@ -76,16 +76,45 @@ def _format_frames(counters: Any) -> int:
 FORMATS: dict[str, FrameFormat] = {
     f.name: f
     for f in (
-        FrameFormat("fog-v1", "fog_driver's own protocol v1 (firmware_protocol/PROTOCOL.md)", _fog_v1, _v1_frames,
-                    ("top", "bottom", "housing")),
-        FrameFormat("kvh-a", "KVH (EMCORE) DSP-1750/1760/1775 normal mode, Format A", _kvh("a"), _format_frames,
-                    ("sensor",), _KVH_SETTINGS),
-        FrameFormat("kvh-b", "KVH (EMCORE) DSP-1750/1760/1775 normal mode, Format B", _kvh("b"), _format_frames,
-                    ("sensor",), _KVH_SETTINGS),
-        FrameFormat("kvh-c", "KVH (EMCORE) DSP-1750/1760/1775 normal mode, Format C", _kvh("c"), _format_frames,
-                    ("sensor",), _KVH_SETTINGS),
-        FrameFormat("ixblue-stdbin", "iXblue (Exail) STDBIN v2..v5 (Phins, Octans, ...)", _ixblue, _format_frames,
-                    ("fog", "accelerometer", "board"), ("rate_hz",)),
+        FrameFormat(
+            "fog-v1",
+            "fog_driver's own protocol v1 (firmware_protocol/PROTOCOL.md)",
+            _fog_v1,
+            _v1_frames,
+            ("top", "bottom", "housing"),
+        ),
+        FrameFormat(
+            "kvh-a",
+            "KVH (EMCORE) DSP-1750/1760/1775 normal mode, Format A",
+            _kvh("a"),
+            _format_frames,
+            ("sensor",),
+            _KVH_SETTINGS,
+        ),
+        FrameFormat(
+            "kvh-b",
+            "KVH (EMCORE) DSP-1750/1760/1775 normal mode, Format B",
+            _kvh("b"),
+            _format_frames,
+            ("sensor",),
+            _KVH_SETTINGS,
+        ),
+        FrameFormat(
+            "kvh-c",
+            "KVH (EMCORE) DSP-1750/1760/1775 normal mode, Format C",
+            _kvh("c"),
+            _format_frames,
+            ("sensor",),
+            _KVH_SETTINGS,
+        ),
+        FrameFormat(
+            "ixblue-stdbin",
+            "iXblue (Exail) STDBIN v2..v5 (Phins, Octans, ...)",
+            _ixblue,
+            _format_frames,
+            ("fog", "accelerometer", "board"),
+            ("rate_hz",),
+        ),
     )
 }
 

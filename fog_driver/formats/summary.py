@@ -80,28 +80,46 @@ class FormatSummary:
     def problems(self) -> list[str]:
         c = self.counters
         found = []
-        for key, what in (("crc_errors", "checksum errors"), ("bytes_discarded", "bytes discarded"),
-                          ("missing_frames", "frames missing (sequence gaps)"),
-                          ("truncated_frames", "frames cut off")):  # fmt: skip
+        for key, what in (
+            ("crc_errors", "checksum errors"),
+            ("bytes_discarded", "bytes discarded"),
+            ("missing_frames", "frames missing (sequence gaps)"),
+            ("truncated_frames", "frames cut off"),
+        ):
             if c.get(key):
                 found.append(f"{c[key]:,} {what}")
         for channel, ch in self.temps_c.items():  # PLAUSIBLE_TEMP_C: a thermometer's range
             if ch.n and (ch.low < -55.0 or ch.high > 125.0):
-                found.append(f"temperature {channel} reads {ch.low:.2f} .. {ch.high:.2f} degC, outside -55 .. 125 "
-                             "(the device's temperature units? temp_units in wire_settings)")  # fmt: skip
+                found.append(
+                    f"temperature {channel} reads {ch.low:.2f} .. {ch.high:.2f} degC, outside -55 .. 125 "
+                    "(the device's temperature units? temp_units in wire_settings)"
+                )
         return found
 
     def as_json_dict(self) -> dict[str, Any]:
         def channel(ch: _Channel) -> dict[str, Any]:
             finite = ch.n > 0
-            return {"n": ch.n, "mean": ch.mean() if finite else None, "std": ch.std() if ch.n > 1 else None,
-                    "min": ch.low if finite else None, "max": ch.high if finite else None}  # fmt: skip
+            return {
+                "n": ch.n,
+                "mean": ch.mean() if finite else None,
+                "std": ch.std() if ch.n > 1 else None,
+                "min": ch.low if finite else None,
+                "max": ch.high if finite else None,
+            }
 
-        return {"path": self.path, "format": self.name, "settings": self.settings, "counters": self.counters,
-                "samples": self.samples, "seq": [self.first_seq, self.last_seq], "t_s": [self.first_t_s, self.last_t_s],
-                "rate_dph": {a: channel(ch) for a, ch in self.rate_dph.items()},
-                "temps_c": {k: channel(ch) for k, ch in self.temps_c.items()},
-                "flags": dict(self.flags), "problems": self.problems()}  # fmt: skip
+        return {
+            "path": self.path,
+            "format": self.name,
+            "settings": self.settings,
+            "counters": self.counters,
+            "samples": self.samples,
+            "seq": [self.first_seq, self.last_seq],
+            "t_s": [self.first_t_s, self.last_t_s],
+            "rate_dph": {a: channel(ch) for a, ch in self.rate_dph.items()},
+            "temps_c": {k: channel(ch) for k, ch in self.temps_c.items()},
+            "flags": dict(self.flags),
+            "problems": self.problems(),
+        }
 
 
 def summarize_format(path: str | Path, name: str, settings: dict[str, Any] | None = None) -> FormatSummary:
@@ -126,27 +144,35 @@ def summarize_format(path: str | Path, name: str, settings: dict[str, Any] | Non
 def format_format_summary(s: FormatSummary) -> str:
     """The text ``inspect`` prints for another format's capture."""
     c = s.counters
-    lines = [f"capture       {s.path}",
-             f"format        {s.name}: {FORMATS[s.name].description}",
-             f"settings      {', '.join(f'{k} {v}' for k, v in s.settings.items()) or 'the decoder defaults (no wire_settings in a sidecar)'}",
-             f"frames        {c.get('sample_frames', 0):,} samples, {c.get('other_frames', 0):,} other; "
-             f"{c.get('bytes_in_frames', 0):,} of {c.get('bytes_in', 0):,} bytes in frames",
-             f"integrity     {c.get('crc_errors', 0):,} checksum errors, {c.get('bytes_discarded', 0):,} bytes discarded, "
-             f"{c.get('resyncs', 0):,} resyncs, {c.get('truncated_frames', 0):,} cut off"]  # fmt: skip
+    lines = [
+        f"capture       {s.path}",
+        f"format        {s.name}: {FORMATS[s.name].description}",
+        f"settings      {', '.join(f'{k} {v}' for k, v in s.settings.items()) or 'the decoder defaults (no wire_settings in a sidecar)'}",
+        f"frames        {c.get('sample_frames', 0):,} samples, {c.get('other_frames', 0):,} other; "
+        f"{c.get('bytes_in_frames', 0):,} of {c.get('bytes_in', 0):,} bytes in frames",
+        f"integrity     {c.get('crc_errors', 0):,} checksum errors, {c.get('bytes_discarded', 0):,} bytes discarded, "
+        f"{c.get('resyncs', 0):,} resyncs, {c.get('truncated_frames', 0):,} cut off",
+    ]
     if s.first_seq is not None:
-        lines.append(f"sequence      {s.first_seq:,} .. {s.last_seq:,} (unwrapped); {c.get('seq_gaps', 0):,} gaps, "
-                     f"{c.get('missing_frames', 0):,} missing, {c.get('seq_repeats', 0):,} repeated")  # fmt: skip
+        lines.append(
+            f"sequence      {s.first_seq:,} .. {s.last_seq:,} (unwrapped); {c.get('seq_gaps', 0):,} gaps, "
+            f"{c.get('missing_frames', 0):,} missing, {c.get('seq_repeats', 0):,} repeated"
+        )
     if s.first_t_s is not None:
         lines.append(f"device time   {s.first_t_s:.3f} .. {s.last_t_s:.3f} s ({s.last_t_s - s.first_t_s:,.1f} s)")
     for axis, ch in s.rate_dph.items():
         if ch.n:
-            lines.append(f"{'rate ' + axis:13s} mean {ch.mean():.4f} deg/h, std {ch.std():.4f} deg/h over {ch.n:,} samples")
+            lines.append(
+                f"{'rate ' + axis:13s} mean {ch.mean():.4f} deg/h, std {ch.std():.4f} deg/h over {ch.n:,} samples"
+            )
     for channel, ch in s.temps_c.items():
         if ch.n:
             lines.append(f"{'temp ' + channel:13s} {ch.low:.2f} .. {ch.high:.2f} degC ({ch.n:,} readings)")
     if s.flags:
         lines.append("flags         " + ", ".join(f"{k} {v:,}" for k, v in sorted(s.flags.items())))
     problems = s.problems()
-    lines.append(f"verdict       {'clean' if not problems else '; '.join(problems)}; the other commands read "
-                 "protocol v1 captures only so far")  # fmt: skip
+    lines.append(
+        f"verdict       {'clean' if not problems else '; '.join(problems)}; the other commands read "
+        "protocol v1 captures only so far"
+    )
     return "\n".join(lines)

@@ -214,9 +214,7 @@ def _gather(data: bytes, at: np.ndarray, dtype: np.dtype) -> np.ndarray:
     return view[at].view(dtype)
 
 
-def _classify(
-    data: bytes, cand: np.ndarray, final: bool
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _classify(data: bytes, cand: np.ndarray, final: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Verdict and frame length of every sync candidate.
 
     Also returns the indices (into ``cand``) of the CRC-checked SAMPLE candidates
@@ -421,8 +419,13 @@ _SAMPLE_FRAME_DTYPE = np.dtype(
     {
         "names": ["sync", "type", "len", *SAMPLE_PAYLOAD_DTYPE.names, "crc"],
         "formats": ["<u2", "u1", "u1", *(SAMPLE_PAYLOAD_DTYPE.fields[n][0] for n in SAMPLE_PAYLOAD_DTYPE.names), "<u4"],
-        "offsets": [0, 2, 3, *(HEADER_LEN + SAMPLE_PAYLOAD_DTYPE.fields[n][1] for n in SAMPLE_PAYLOAD_DTYPE.names),
-                    HEADER_LEN + SAMPLE_PAYLOAD_LEN],
+        "offsets": [
+            0,
+            2,
+            3,
+            *(HEADER_LEN + SAMPLE_PAYLOAD_DTYPE.fields[n][1] for n in SAMPLE_PAYLOAD_DTYPE.names),
+            HEADER_LEN + SAMPLE_PAYLOAD_LEN,
+        ],
         "itemsize": HEADER_LEN + SAMPLE_PAYLOAD_LEN + 4,
     }
 )
@@ -490,8 +493,9 @@ def iter_decode_file(
         yield decoder.decode(block, final=final)
 
 
-def iter_file_blocks(path: str | Path, block_bytes: int = FILE_BLOCK_BYTES,
-                     on_block: Callable[[bytes], None] | None = None) -> Iterator[tuple[bytes, bool]]:  # fmt: skip
+def iter_file_blocks(
+    path: str | Path, block_bytes: int = FILE_BLOCK_BYTES, on_block: Callable[[bytes], None] | None = None
+) -> Iterator[tuple[bytes, bool]]:
     """A capture file's ``(block, final)`` pairs, ``final`` True for the last (an empty file: one empty
     block); ``on_block`` sees every block as read.  A file that cannot be opened is an ``InputFileError``."""
     try:
@@ -514,9 +518,7 @@ def concatenate(parts: list[DecodedCapture]) -> DecodedCapture:
     """One ``DecodedCapture`` from consecutive parts (counters and pending from the last)."""
     if not parts:
         return decode_bytes(b"")
-    columns = [
-        np.concatenate([getattr(p.samples, name) for p in parts]) for name in SampleArrays.__dataclass_fields__
-    ]
+    columns = [np.concatenate([getattr(p.samples, name) for p in parts]) for name in SampleArrays.__dataclass_fields__]
     return DecodedCapture(
         SampleArrays(*columns),
         [f for p in parts for f in p.identities],

@@ -141,4 +141,3 @@ class FrameDecoder(HuntingDecoder):
                 c.t_us_wraps += 1
         self._last_seq = seq
         self._last_t_us = t_us
-

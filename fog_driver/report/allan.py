@@ -139,10 +139,21 @@ class AllanResult:
 
     def table(self) -> list[dict]:
         """The full ADEV table, one dict per tau (``TABLE_COLUMNS``)."""
-        return [{"tau_s": float(t), "adev_dph": float(s), "lo_dph": float(lo), "hi_dph": float(hi),
-                 "n_pairs": int(n), "edf": float(e), "alpha": int(a), "trusted": bool(ok)}
-                for t, s, lo, hi, n, e, a, ok in zip(self.tau_s, self.sigma_dph, self.lo_dph, self.hi_dph,
-                                                     self.n_pairs, self.edf, self.alpha, self.trusted)]  # fmt: skip
+        return [
+            {
+                "tau_s": float(t),
+                "adev_dph": float(s),
+                "lo_dph": float(lo),
+                "hi_dph": float(hi),
+                "n_pairs": int(n),
+                "edf": float(e),
+                "alpha": int(a),
+                "trusted": bool(ok),
+            }
+            for t, s, lo, hi, n, e, a, ok in zip(
+                self.tau_s, self.sigma_dph, self.lo_dph, self.hi_dph, self.n_pairs, self.edf, self.alpha, self.trusted
+            )
+        ]
 
 
 def allan(rate_dph: np.ndarray, dt_s: float = 1.0) -> AllanResult:
@@ -184,8 +195,12 @@ def allan(rate_dph: np.ndarray, dt_s: float = 1.0) -> AllanResult:
         intercepts[name] = intercept
         return float(math.exp(intercept + slope * math.log(at_tau_s)))
 
-    readings = {"arw": read("arw", 1.0), "quantization": read("quantization", math.sqrt(3.0)),
-                "rrw": read("rrw", 3.0), "rate_ramp": read("rate_ramp", math.sqrt(2.0))}  # fmt: skip
+    readings = {
+        "arw": read("arw", 1.0),
+        "quantization": read("quantization", math.sqrt(3.0)),
+        "rrw": read("rrw", 3.0),
+        "rate_ramp": read("rate_ramp", math.sqrt(2.0)),
+    }
     # one region per stretch of the curve: of two regions sharing more than a corner, the shorter is dropped
     by_length = sorted(regions, key=lambda k: (-np.log2(regions[k][1] / regions[k][0]), list(SLOPES).index(k)))
     kept: list[str] = []
@@ -198,7 +213,15 @@ def allan(rate_dph: np.ndarray, dt_s: float = 1.0) -> AllanResult:
             kept.append(name)
     arw, q, rrw, ramp = (readings[k] for k in ("arw", "quantization", "rrw", "rate_ramp"))
     return AllanResult(
-        tau, sigma, bounds[:, 0], bounds[:, 1], np.asarray(n_pairs, dtype=np.int64), edf, alpha, trusted, record_s,
+        tau,
+        sigma,
+        bounds[:, 0],
+        bounds[:, 1],
+        np.asarray(n_pairs, dtype=np.int64),
+        edf,
+        alpha,
+        trusted,
+        record_s,
         arw_deg_per_rt_h=None if arw is None else arw / 60.0,
         bias_instability_dph=float(sigma[i_min] / FLICKER_FLOOR),
         bias_instability_tau_s=float(tau[i_min]),
@@ -262,7 +285,16 @@ def read_csv(path: Path) -> list[dict]:
         rows = list(csv.DictReader(f))
     out = []
     for r in rows:
-        out.append({"tau_s": float(r["tau_s"]), "adev_dph": float(r["adev_dph"]), "lo_dph": float(r["lo_dph"]),
-                    "hi_dph": float(r["hi_dph"]), "n_pairs": int(r["n_pairs"]), "edf": float(r["edf"]),
-                    "alpha": int(r["alpha"]), "trusted": r["trusted"] == "1"})  # fmt: skip
+        out.append(
+            {
+                "tau_s": float(r["tau_s"]),
+                "adev_dph": float(r["adev_dph"]),
+                "lo_dph": float(r["lo_dph"]),
+                "hi_dph": float(r["hi_dph"]),
+                "n_pairs": int(r["n_pairs"]),
+                "edf": float(r["edf"]),
+                "alpha": int(r["alpha"]),
+                "trusted": r["trusted"] == "1",
+            }
+        )
     return out

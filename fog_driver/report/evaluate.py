@@ -69,30 +69,51 @@ class Series:
         return self.rate_raw_dph - self.drift_dph
 
 
-def per_second(capture: Path, model_file: ModelFile, *, force: bool = False, adapt=None,
-               reference_rate_dph: float | None = None, progress: Callable[[int, int], None] | None = None,
-               wire_format: str = "auto") -> Series:  # fmt: skip
+def per_second(
+    capture: Path,
+    model_file: ModelFile,
+    *,
+    force: bool = False,
+    adapt=None,
+    reference_rate_dph: float | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    wire_format: str = "auto",
+) -> Series:
     """Block-average the capture and the drift the compensator applied, per device second (adapting
     against ``reference_rate_dph`` when ``adapt``, an ``AdaptConfig``, is given); ``progress(bytes done,
     bytes in all)`` over its two passes (decoding, compensating)."""
     # 1-s blocks and the static mask (motion excluded); 2 min of warm-up is enough to evaluate
     size = Path(capture).stat().st_size if Path(capture).is_file() else 0
-    data = load_capture(capture, FitConfig(warmup_s=EVALUATE_WARMUP_S),
-                        progress=None if progress is None else lambda done, _: progress(done, 2 * size),
-                        purpose="to evaluate", warmup_setting="evaluate's fixed warm-up",
-                        wire_format=wire_format)  # fmt: skip
+    data = load_capture(
+        capture,
+        FitConfig(warmup_s=EVALUATE_WARMUP_S),
+        progress=None if progress is None else lambda done, _: progress(done, 2 * size),
+        purpose="to evaluate",
+        warmup_setting="evaluate's fixed warm-up",
+        wire_format=wire_format,
+    )
     # One row per device second, the seconds no frame arrived in (a link gap) included as NaN, not static:
     # row k is second k for the drift a model applied and for a truth file's rows too, whatever was lost.
     index = np.asarray(data.blocks.index, dtype=np.int64)
     n = int(index[-1]) + 1 if index.size else 0
     drift, extrapolating = drift_per_second(
-        capture, model_file, n, force=force, adapt=adapt, reference_rate_dph=reference_rate_dph,
+        capture,
+        model_file,
+        n,
+        force=force,
+        adapt=adapt,
+        reference_rate_dph=reference_rate_dph,
         progress=None if progress is None else lambda done: progress(size + done, 2 * size),
-        wire_format=wire_format)  # fmt: skip
-    return Series(_on_grid(index, data.blocks.t_end_s, n, np.arange(1.0, n + 1.0)),
-                  _on_grid(index, data.blocks.rate_dph, n, np.nan),
-                  drift, _on_grid(index, data.blocks.temps_c, n, np.nan),
-                  _on_grid(index, data.static, n, False), extrapolating > 0)  # fmt: skip
+        wire_format=wire_format,
+    )
+    return Series(
+        _on_grid(index, data.blocks.t_end_s, n, np.arange(1.0, n + 1.0)),
+        _on_grid(index, data.blocks.rate_dph, n, np.nan),
+        drift,
+        _on_grid(index, data.blocks.temps_c, n, np.nan),
+        _on_grid(index, data.static, n, False),
+        extrapolating > 0,
+    )
 
 
 def _on_grid(index: np.ndarray, values: np.ndarray, n: int, missing) -> np.ndarray:
@@ -104,19 +125,34 @@ def _on_grid(index: np.ndarray, values: np.ndarray, n: int, missing) -> np.ndarr
     return grid
 
 
-def drift_per_second(capture: Path, model_file: ModelFile, n: int, *, force: bool = False, adapt=None,
-                     reference_rate_dph: float | None = None, model_name: str = "the model",
-                     progress: Callable[[int], None] | None = None,
-                     wire_format: str = "auto") -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+def drift_per_second(
+    capture: Path,
+    model_file: ModelFile,
+    n: int,
+    *,
+    force: bool = False,
+    adapt=None,
+    reference_rate_dph: float | None = None,
+    model_name: str = "the model",
+    progress: Callable[[int], None] | None = None,
+    wire_format: str = "auto",
+) -> tuple[np.ndarray, np.ndarray]:
     """The mean drift a model applied in each of the capture's first ``n`` device seconds, and how many of
     its frames were flagged extrapolating there (``progress(bytes decoded)``)."""
     sums: list[np.ndarray] = []
     counts: list[np.ndarray] = []
     flagged: list[np.ndarray] = []
     first = None
-    for _, cols in compensate_capture(capture, model_file, force=force, model_name=model_name, adapt=adapt,
-                                      reference_rate_dph=reference_rate_dph, progress=progress,
-                                      wire_format=wire_format):  # fmt: skip
+    for _, cols in compensate_capture(
+        capture,
+        model_file,
+        force=force,
+        model_name=model_name,
+        adapt=adapt,
+        reference_rate_dph=reference_rate_dph,
+        progress=progress,
+        wire_format=wire_format,
+    ):
         if first is None:
             first = cols.t_s[0]
         second = np.floor(cols.t_s - first + 1e-9).astype(np.int64)
@@ -165,19 +201,30 @@ def stretch_warnings(stretch_s: float, minutes: int) -> list[str]:
     """The short-stretch warnings (module docstring), one line each; [] when the data suffice."""
     out = []
     if stretch_s < SHORT_STRETCH_S:
-        out.append(f"short stretch: {stretch_s:.0f} s of static data in a row (under {SHORT_STRETCH_S:.0f} s); "
-                   f"Allan readings above {stretch_s / 10:.0f} s untrusted, and a bias-instability minimum beyond "
-                   f"that cannot be reached")  # fmt: skip
+        out.append(
+            f"short stretch: {stretch_s:.0f} s of static data in a row (under {SHORT_STRETCH_S:.0f} s); "
+            f"Allan readings above {stretch_s / 10:.0f} s untrusted, and a bias-instability minimum beyond "
+            f"that cannot be reached"
+        )
     if minutes < MIN_MINUTE_MEANS:
-        out.append(f"drift RMS from {minutes} one-minute means is not reliable (under {MIN_MINUTE_MEANS}: its "
-                   f"relative standard error is about {100 / np.sqrt(2 * max(minutes - 1, 1)):.0f} %)")  # fmt: skip
+        out.append(
+            f"drift RMS from {minutes} one-minute means is not reliable (under {MIN_MINUTE_MEANS}: its "
+            f"relative standard error is about {100 / np.sqrt(2 * max(minutes - 1, 1)):.0f} %)"
+        )
     return out
 
 
-def evaluate(capture: Path, model_file: ModelFile, *, truth: dict[str, np.ndarray] | None = None,
-             force: bool = False, label: str | None = None, compare: Mapping[str, ModelFile] | None = None,
-             progress: Callable[[str], None] | None = None, wire_format: str = "auto",
-             ) -> tuple[dict[str, Any], Series, dict[str, AllanResult]]:  # fmt: skip
+def evaluate(
+    capture: Path,
+    model_file: ModelFile,
+    *,
+    truth: dict[str, np.ndarray] | None = None,
+    force: bool = False,
+    label: str | None = None,
+    compare: Mapping[str, ModelFile] | None = None,
+    progress: Callable[[str], None] | None = None,
+    wire_format: str = "auto",
+) -> tuple[dict[str, Any], Series, dict[str, AllanResult]]:
     """The report's numbers: read points, drift RMS and ADEV tables of the raw rate, the rate compensated
     by ``model_file`` (named ``label``) and by each ``compare`` model (by label); ``progress(text)`` says
     which pass is running and how far it is."""
@@ -190,26 +237,43 @@ def evaluate(capture: Path, model_file: ModelFile, *, truth: dict[str, np.ndarra
             return None
         return lambda done, total: progress(f"evaluating {step}/{passes}: {what} {100.0 * done / max(total, 1):3.0f} %")
 
-    series = per_second(capture, model_file, force=force, progress=say(1, f"decoding and compensating with {label}"),
-                        wire_format=wire_format)
+    series = per_second(
+        capture,
+        model_file,
+        force=force,
+        progress=say(1, f"decoding and compensating with {label}"),
+        wire_format=wire_format,
+    )
     size = Path(capture).stat().st_size if Path(capture).is_file() else 0
     for k, (name, other) in enumerate(compare.items(), start=2):
         step = say(k, f"compensating with {name}")
         series.compared_drift_dph[name], _ = drift_per_second(
-            capture, other, len(series.t_s), force=force, model_name=f"model {name!r}", wire_format=wire_format,
-            progress=None if step is None else lambda done, step=step: step(done, size))  # fmt: skip
+            capture,
+            other,
+            len(series.t_s),
+            force=force,
+            model_name=f"model {name!r}",
+            wire_format=wire_format,
+            progress=None if step is None else lambda done, step=step: step(done, size),
+        )
     stretch = longest_run(series.static)
     if stretch.stop - stretch.start < 64:
-        raise UsageError(f"{capture}: the longest static stretch is {stretch.stop - stretch.start} s (the capture is "
-                         f"{len(series.t_s)} s, the first {EVALUATE_WARMUP_S:g} s excluded as warm-up); the Allan "
-                         f"deviation needs 64 s in a row")  # fmt: skip
+        raise UsageError(
+            f"{capture}: the longest static stretch is {stretch.stop - stretch.start} s (the capture is "
+            f"{len(series.t_s)} s, the first {EVALUATE_WARMUP_S:g} s excluded as warm-up); the Allan "
+            f"deviation needs 64 s in a row"
+        )
     rates = {"raw": series.rate_raw_dph, "compensated": series.rate_comp_dph}
     rates.update({name: series.rate_raw_dph - d for name, d in series.compared_drift_dph.items()})
     allans = {name: allan(rate[stretch]) for name, rate in rates.items()}
     summary: dict[str, Any] = {
         "capture": str(capture),
-        "model": {"kind": model_file.kind, "label": label, "instrument_serial": model_file.instrument_serial,
-                  "created_utc": model_file.created_utc},  # fmt: skip
+        "model": {
+            "kind": model_file.kind,
+            "label": label,
+            "instrument_serial": model_file.instrument_serial,
+            "created_utc": model_file.created_utc,
+        },
         "compared": {name: {"kind": m.kind, "instrument_serial": m.instrument_serial} for name, m in compare.items()},
         "seconds": int(len(series.t_s)),
         "static_seconds": int(series.static.sum()),
@@ -261,8 +325,9 @@ def _reading(value: float | None, fmt: str) -> str:
     return "not reached" if value is None else format(value, fmt)
 
 
-def plot(series: Series, allans: dict[str, AllanResult], out_dir: Path,
-         titles: Mapping[str, str] | None = None) -> list[Path]:  # fmt: skip
+def plot(
+    series: Series, allans: dict[str, AllanResult], out_dir: Path, titles: Mapping[str, str] | None = None
+) -> list[Path]:
     """The report's PNGs (matplotlib, Agg: no display needed); ``titles``: each series' legend name."""
     try:
         import matplotlib
@@ -299,8 +364,13 @@ def plot(series: Series, allans: dict[str, AllanResult], out_dir: Path,
         ax.plot(mm, per_min(drift), lw=1.5, label=f"estimated drift, {titles.get(name, name)}")
     for name, drift in drifts.items():
         comp = per_min(series.rate_raw_dph - drift)
-        ax.plot(mm[static_min], comp[static_min] - offset, ".", ms=3,
-                label=f"compensated rate, {titles.get(name, name)} (same offset)")  # fmt: skip
+        ax.plot(
+            mm[static_min],
+            comp[static_min] - offset,
+            ".",
+            ms=3,
+            label=f"compensated rate, {titles.get(name, name)} (same offset)",
+        )
     ax.set(xlabel="time, min", ylabel="deg/h", title="Drift before and after compensation (static minutes)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
@@ -312,13 +382,31 @@ def plot(series: Series, allans: dict[str, AllanResult], out_dir: Path,
         err = np.vstack([a.sigma_dph - a.lo_dph, a.hi_dph - a.sigma_dph])
         bi = a.bias_instability_dph
         reading = f"B {bi:.4f} deg/h" if a.minimum_reached else f"B < {bi:.4f} deg/h: minimum not reached, upper bound"
-        line = ax.errorbar(a.tau_s[ok], a.sigma_dph[ok], yerr=err[:, ok], fmt="o-", ms=3, capsize=2, lw=1,
-                           label=f"{titles.get(name, name)} ({reading})")  # fmt: skip
+        line = ax.errorbar(
+            a.tau_s[ok],
+            a.sigma_dph[ok],
+            yerr=err[:, ok],
+            fmt="o-",
+            ms=3,
+            capsize=2,
+            lw=1,
+            label=f"{titles.get(name, name)} ({reading})",
+        )
         color = line[0].get_color()
         tail = np.flatnonzero(ok)[-1:].tolist() + np.flatnonzero(~ok).tolist()
         if (~ok).any():  # past the trust limit: hollow, dashed, faded; never read
-            ax.errorbar(a.tau_s[tail], a.sigma_dph[tail], yerr=err[:, tail], fmt="o--", ms=4, mfc="none", capsize=2,
-                        lw=1, color=color, alpha=0.45)  # fmt: skip
+            ax.errorbar(
+                a.tau_s[tail],
+                a.sigma_dph[tail],
+                yerr=err[:, tail],
+                fmt="o--",
+                ms=4,
+                mfc="none",
+                capsize=2,
+                lw=1,
+                color=color,
+                alpha=0.45,
+            )
         if a.arw_deg_per_rt_h is not None:
             ax.plot([1.0], [a.arw_deg_per_rt_h * 60.0], "s", color=color, ms=9, mfc="none")
         if a.minimum_reached:
@@ -332,10 +420,13 @@ def plot(series: Series, allans: dict[str, AllanResult], out_dir: Path,
             ax.loglog(taus, a.line_dph(region, taus), ":", color=color, lw=2)
     ax.set_xscale("log")
     ax.set_yscale("log")
-    ax.set(xlabel="tau, s", ylabel="Allan deviation, deg/h",
-           title="Allan deviation with 68 % intervals; hollow, dashed: tau above a tenth of the stretch (not read)\n"
-                 "squares: ARW read at 1 s; diamonds: bias-instability floor; triangles: its upper bound\n"
-                 "(minimum not reached); dotted: the fitted RRW, rate-ramp and quantization lines")  # fmt: skip
+    ax.set(
+        xlabel="tau, s",
+        ylabel="Allan deviation, deg/h",
+        title="Allan deviation with 68 % intervals; hollow, dashed: tau above a tenth of the stretch (not read)\n"
+        "squares: ARW read at 1 s; diamonds: bias-instability floor; triangles: its upper bound\n"
+        "(minimum not reached); dotted: the fitted RRW, rate-ramp and quantization lines",
+    )
     ax.title.set_fontsize(8)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7)
@@ -352,8 +443,7 @@ def _save(fig, path: Path) -> Path:
     return path
 
 
-def markdown(summary: dict[str, Any], plots: list[Path], positioning_md: str | None,
-             tables: list[Path] = ()) -> str:  # fmt: skip
+def markdown(summary: dict[str, Any], plots: list[Path], positioning_md: str | None, tables: list[Path] = ()) -> str:
     names = series_names(summary)
     cols = [summary[n] for n in names]
     model = summary["model"]
@@ -372,24 +462,32 @@ def markdown(summary: dict[str, Any], plots: list[Path], positioning_md: str | N
     raw = summary["raw"]
     lines += [
         f"Allan deviation over the longest static stretch, {start:,} s to {stop:,} s ({stop - start:,} s): read "
-        f"only at tau <= {raw['trusted_tau_max_s']:g} s (a tenth of it); \"not reached\": the curve shows no "
+        f'only at tau <= {raw["trusted_tau_max_s"]:g} s (a tenth of it); "not reached": the curve shows no '
         "region of that slope there (IEEE 952 read points, `fog_driver/report/allan.py`).",
         "",
         "| | " + " | ".join(series_title(summary, n) for n in names) + " |",
         "|---|" + "---|" * len(names),
-        "| angle random walk N, deg/sqrt(h) | " + " | ".join(_reading(c["arw_deg_per_rt_h"], ".5f") for c in cols) + " |",
+        "| angle random walk N, deg/sqrt(h) | "
+        + " | ".join(_reading(c["arw_deg_per_rt_h"], ".5f") for c in cols)
+        + " |",
         "| bias instability B | " + " | ".join(format_bias_instability(c) for c in cols) + " |",
-        "| rate random walk K, deg/h/sqrt(h) | " + " | ".join(_reading(c["rrw_dph_per_rt_h"], ".5f") for c in cols)
+        "| rate random walk K, deg/h/sqrt(h) | "
+        + " | ".join(_reading(c["rrw_dph_per_rt_h"], ".5f") for c in cols)
         + " |",
         "| rate ramp R, deg/h/h | " + " | ".join(_reading(c["rate_ramp_dph_per_h"], ".5f") for c in cols) + " |",
         "| quantization Q, arcsec | " + " | ".join(_reading(c["quantization_arcsec"], ".4f") for c in cols) + " |",
         f"| drift RMS of {summary.get('static_minutes', 0)} 1-min means, deg/h | "
-        + " | ".join(f"{c['drift_rms_1min_dph']:.4f}" for c in cols) + " |",
+        + " | ".join(f"{c['drift_rms_1min_dph']:.4f}" for c in cols)
+        + " |",
         "",
     ]
     if tables:
-        lines += ["The full ADEV tables (tau, ADEV, 68 % interval, pairs, EDF, noise type, trusted): "
-                  + ", ".join(f"[{p.name}]({p.name})" for p in tables) + ".", ""]  # fmt: skip
+        lines += [
+            "The full ADEV tables (tau, ADEV, 68 % interval, pairs, EDF, noise type, trusted): "
+            + ", ".join(f"[{p.name}]({p.name})" for p in tables)
+            + ".",
+            "",
+        ]
     if "truth" in summary:
         t = summary["truth"]
         lines += [
@@ -398,7 +496,12 @@ def markdown(summary: dict[str, Any], plots: list[Path], positioning_md: str | N
             f"noise floor {t['noise_floor_rms_1min_dph']:.4f}.",
             "",
         ]
-    lines += ["## Positioning accuracy", "", positioning_md or "No positioning sequences in this capture: the table is skipped.", ""]
+    lines += [
+        "## Positioning accuracy",
+        "",
+        positioning_md or "No positioning sequences in this capture: the table is skipped.",
+        "",
+    ]
     lines += ["## Plots", ""] + [f"![{p.stem}]({p.name})" for p in plots] + [""]
     return "\n".join(lines)
 

@@ -147,13 +147,16 @@ def _finite(text: str, name: str, where: str) -> float:
 
 def _check_order(stops: list[Stop], start: float, end: float, where: str) -> None:
     if start < 0:
-        raise InputFileError(f"{where}: t_start_s must not be negative (device time from the first sample), "
-                             f"got {start:g}")
+        raise InputFileError(
+            f"{where}: t_start_s must not be negative (device time from the first sample), got {start:g}"
+        )
     if not end > start:
         raise InputFileError(f"{where}: t_end_s ({end:g}) must be after t_start_s ({start:g})")
     if stops and start < stops[-1].t_end_s:
-        raise InputFileError(f"{where}: times must increase: t_start_s {start:g} is before the previous "
-                             f"dwell's t_end_s {stops[-1].t_end_s:g}")  # fmt: skip
+        raise InputFileError(
+            f"{where}: times must increase: t_start_s {start:g} is before the previous "
+            f"dwell's t_end_s {stops[-1].t_end_s:g}"
+        )
 
 
 def read_reference_csv(path: str | Path) -> list[Stop]:
@@ -185,8 +188,10 @@ def read_reference_csv(path: str | Path) -> list[Stop]:
             header = cells
             missing = [c for c in COLUMNS if c not in header]
             if missing:
-                raise InputFileError(f"{where}: missing column{'s' if len(missing) > 1 else ''} "
-                                     f"{', '.join(missing)} (the header must name {','.join(COLUMNS)})")  # fmt: skip
+                raise InputFileError(
+                    f"{where}: missing column{'s' if len(missing) > 1 else ''} "
+                    f"{', '.join(missing)} (the header must name {','.join(COLUMNS)})"
+                )
             index = {c: header.index(c) for c in COLUMNS}
             continue
         if len(cells) != len(header):
@@ -228,9 +233,11 @@ def check_stops_within(stops: Sequence[Stop], span_s: float, where: str | Path, 
     seconds from its first sample): the reference of another capture, or times not counted from its start."""
     outside = [s for s in stops if s.t_end_s > span_s + 1.0]
     if outside:
-        raise InputFileError(f"{where}: {len(outside)} of {len(stops)} reference stops end after the capture does "
-                             f"(the last at {stops[-1].t_end_s:,.1f} s; {capture} holds {span_s:,.1f} s of device "
-                             f"time from its first sample): the reference of another capture?")  # fmt: skip
+        raise InputFileError(
+            f"{where}: {len(outside)} of {len(stops)} reference stops end after the capture does "
+            f"(the last at {stops[-1].t_end_s:,.1f} s; {capture} holds {span_s:,.1f} s of device "
+            f"time from its first sample): the reference of another capture?"
+        )
 
 
 def load_stops(capture: str | Path, reference_csv: str | Path | None = None) -> list[Stop]:
@@ -261,8 +268,9 @@ def _windows(stops: Sequence[Stop], trim_s: float) -> np.ndarray:
     short = np.flatnonzero(w[:, 1] <= w[:, 0])
     if len(short):
         s = stops[int(short[0])]
-        raise ValueError(f"the dwell {s.t_start_s:g}..{s.t_end_s:g} s is not longer than twice "
-                         f"dwell_trim_s ({trim_s:g} s)")
+        raise ValueError(
+            f"the dwell {s.t_start_s:g}..{s.t_end_s:g} s is not longer than twice dwell_trim_s ({trim_s:g} s)"
+        )
     return w
 
 
@@ -281,8 +289,8 @@ class _DwellSums:
         lo = np.searchsorted(t_s, self.windows[:, 0], side="left")
         hi = np.searchsorted(t_s, self.windows[:, 1], side="right")
         for k in np.flatnonzero(hi > lo):
-            self.sum_a[k] += angle[lo[k]:hi[k]].sum()
-            self.sum_t[k] += t_s[lo[k]:hi[k]].sum()
+            self.sum_a[k] += angle[lo[k] : hi[k]].sum()
+            self.sum_t[k] += t_s[lo[k] : hi[k]].sum()
             self.n[k] += hi[k] - lo[k]
 
     def means(self, bias_arcsec_per_s: float = 0.0) -> np.ndarray:
@@ -349,14 +357,16 @@ class _Pass:
     ready_s: float | None = None
 
 
-def _columns(capture: Path, model_file: ModelFile | None, force: bool, name: str, wire_format: str = "auto"
-             ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:  # fmt: skip
+def _columns(
+    capture: Path, model_file: ModelFile | None, force: bool, name: str, wire_format: str = "auto"
+) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
     """(t_s absolute, raw angle, method's angle, temps (n, 3), uncompensated mask) per chunk."""
     from ..sources import CaptureReader, wire_settings_for
 
     if model_file is not None:
-        for _, c in compensate_capture(capture, model_file, force=force, model_name=f"model {name!r}",
-                                       wire_format=wire_format):  # fmt: skip
+        for _, c in compensate_capture(
+            capture, model_file, force=force, model_name=f"model {name!r}", wire_format=wire_format
+        ):
             yield c.t_s, c.angle_raw_arcsec, c.angle_comp_arcsec, c.temps_c, (c.flags & FLAG_UNCOMPENSATED) != 0
         return
     angle = 0.0
@@ -376,7 +386,7 @@ def _seq_temps(t: np.ndarray, temps: np.ndarray, spans: np.ndarray, acc: np.ndar
     hi = np.searchsorted(t, spans[:, 1], side="right")
     for k in np.flatnonzero(hi > lo):
         for j, col in enumerate((2, 0)):  # housing, then top
-            v = temps[lo[k]:hi[k], col]
+            v = temps[lo[k] : hi[k], col]
             ok = ~np.isnan(v)
             acc[k, 2 * j] += v[ok].sum()
             acc[k, 2 * j + 1] += ok.sum()
@@ -495,7 +505,7 @@ def positioning_table(
     offset = 0
     for i, seq in enumerate(sequences):
         n = len(seq)
-        errors = {k: _move_errors(passes[k].sums.means(bias[k])[offset:offset + n], seq) for k in order}
+        errors = {k: _move_errors(passes[k].sums.means(bias[k])[offset : offset + n], seq) for k in order}
         offset += n
         house_sum, house_n, top_sum, top_n = temp_acc[i]
         temp_c = house_sum / house_n if house_n else (top_sum / top_n if top_n else None)
@@ -503,9 +513,19 @@ def positioning_table(
         finite = np.isfinite(errors[RAW])
         for k in order:
             finite &= np.isfinite(errors[k])
-        rows.append(Row(label, int(finite.sum()), {k: _stats(errors[k]) for k in order},
-                        None if temp_c is None else float(temp_c), seq[0].t_start_s, seq[-1].t_end_s,
-                        errors, {k: float(bias[k]) for k in order}, window))  # fmt: skip
+        rows.append(
+            Row(
+                label,
+                int(finite.sum()),
+                {k: _stats(errors[k]) for k in order},
+                None if temp_c is None else float(temp_c),
+                seq[0].t_start_s,
+                seq[-1].t_end_s,
+                errors,
+                {k: float(bias[k]) for k in order},
+                window,
+            )
+        )
     return rows
 
 
@@ -557,10 +577,17 @@ def summary_dict(rows: Sequence[Row]) -> list[dict[str, Any]]:
     def clean(x: float) -> float | None:
         return float(x) if math.isfinite(x) else None
 
-    return [{"label": r.label, "moves": r.n_moves, "temp_c": r.temp_c,
-             "methods": {m: {"mean_arcsec": clean(a), "std_arcsec": clean(b)} for m, (a, b) in r.stats.items()},
-             "bias_dph": r.bias_dph, "bias_window_s": list(r.bias_window_s) if r.bias_window_s else None}
-            for r in rows]  # fmt: skip
+    return [
+        {
+            "label": r.label,
+            "moves": r.n_moves,
+            "temp_c": r.temp_c,
+            "methods": {m: {"mean_arcsec": clean(a), "std_arcsec": clean(b)} for m, (a, b) in r.stats.items()},
+            "bias_dph": r.bias_dph,
+            "bias_window_s": list(r.bias_window_s) if r.bias_window_s else None,
+        }
+        for r in rows
+    ]
 
 
 def report_for(
@@ -609,10 +636,14 @@ def report_for(
     lines = [format_table(rows), ""]
     for m in models:
         per_row = ", ".join(f"{r.label} {p:.1f} %" for r, p in zip(rows, improvement_per_row(rows, m)))
-        lines.append(f"- {m}: precision improvement {improvement(rows, m):.1f} % over all temperatures "
-                     f"(per temperature: {per_row})")  # fmt: skip
+        lines.append(
+            f"- {m}: precision improvement {improvement(rows, m):.1f} % over all temperatures "
+            f"(per temperature: {per_row})"
+        )
     window = rows[0].bias_window_s
     if window is not None:
-        lines.append(f"- errors in arcsec; every method's mean rate over {window[0]:g}..{window[1]:g} s "
-                     f"(the bias: Earth rate, constant and turn-on bias) removed first")  # fmt: skip
+        lines.append(
+            f"- errors in arcsec; every method's mean rate over {window[0]:g}..{window[1]:g} s "
+            f"(the bias: Earth rate, constant and turn-on bias) removed first"
+        )
     return "\n".join(lines)

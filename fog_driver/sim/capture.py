@@ -35,11 +35,30 @@ from ..outputs import check_outputs, write_error
 from .instrument import COMPONENTS, STDBIN_TEMPERATURE_CHANNELS, STDBIN_VERSION, FrameBlock, Simulator
 
 TRUTH_COLUMNS = (
-    "second", "t_device_s", "t_true_s", "n_frames", "input_dph", "earth_dph", "scale_factor_error_dph",
-    "constant_bias_dph", "drift_dph", "drift_bias_temp_dph", "drift_shupe_dph", "drift_gradient_dph",
-    "drift_hysteresis_dph", "bias_instability_dph", "rrw_dph", "arw_dph", "measured_dph",
-    "air_c", "housing_c", "top_c", "bottom_c", "fiber_c", "angle_deg",
-)  # fmt: skip
+    "second",
+    "t_device_s",
+    "t_true_s",
+    "n_frames",
+    "input_dph",
+    "earth_dph",
+    "scale_factor_error_dph",
+    "constant_bias_dph",
+    "drift_dph",
+    "drift_bias_temp_dph",
+    "drift_shupe_dph",
+    "drift_gradient_dph",
+    "drift_hysteresis_dph",
+    "bias_instability_dph",
+    "rrw_dph",
+    "arw_dph",
+    "measured_dph",
+    "air_c",
+    "housing_c",
+    "top_c",
+    "bottom_c",
+    "fiber_c",
+    "angle_deg",
+)
 _DRIFT_PARTS = ("drift_bias_temp", "drift_shupe", "drift_gradient", "drift_hysteresis")
 #: Seconds of frames computed at once when writing files (any value gives the same bytes).
 BATCH_SECONDS = 10
@@ -70,14 +89,20 @@ def truth_rows(block: FrameBlock, rate_hz: int, scale_arcsec_per_count: float) -
         "t_device_s": second[starts].astype(np.float64),
         "t_true_s": block.t_true_s[starts],
         "n_frames": count,
-        **{f"{name}_dph" if name != "scale_factor_error" else "scale_factor_error_dph": rate(c[name])
-           for name in COMPONENTS if name != "input"},
+        **{
+            f"{name}_dph" if name != "scale_factor_error" else "scale_factor_error_dph": rate(c[name])
+            for name in COMPONENTS
+            if name != "input"
+        },
         "input_dph": rate(c["input"]),
         "drift_dph": rate(sum(c[name] for name in _DRIFT_PARTS)),
         "measured_dph": rate(block.dtheta_counts * scale_arcsec_per_count),
-        **{f"{name}": mean(block.truth_temps_c[name]) for name in ("air_c", "housing_c", "top_c", "bottom_c", "fiber_c")},
+        **{
+            f"{name}": mean(block.truth_temps_c[name])
+            for name in ("air_c", "housing_c", "top_c", "bottom_c", "fiber_c")
+        },
         "angle_deg": block.angle_deg[np.r_[starts[1:] - 1, n - 1]] if n else np.zeros(0),
-    }  # fmt: skip
+    }
     return np.column_stack([columns[name] for name in TRUTH_COLUMNS]) if n else np.zeros((0, len(TRUTH_COLUMNS)))
 
 
@@ -105,13 +130,15 @@ def read_truth(path: str | Path) -> dict[str, np.ndarray]:
     except ValueError as exc:
         raise InputFileError(f"{path}: not a truth file ({' '.join(str(exc).split())})") from None
     if data.shape[1] != len(TRUTH_COLUMNS) or not len(data) or not np.array_equal(data[:, 0], np.arange(len(data))):
-        raise InputFileError(f"{path}: not a truth file (expected {len(TRUTH_COLUMNS)} columns and one row per "
-                             f"device second from 0)")  # fmt: skip
+        raise InputFileError(
+            f"{path}: not a truth file (expected {len(TRUTH_COLUMNS)} columns and one row per device second from 0)"
+        )
     return {name: data[:, i] for i, name in enumerate(TRUTH_COLUMNS)}
 
 
-def check_truth_matches(truth: dict[str, np.ndarray], truth_file: str | Path, capture: str | Path,
-                        span_s: float | None = None) -> None:  # fmt: skip
+def check_truth_matches(
+    truth: dict[str, np.ndarray], truth_file: str | Path, capture: str | Path, span_s: float | None = None
+) -> None:
     """A one-line ``InputFileError`` when ``truth`` (read from ``truth_file``) is not the truth of ``capture``:
     the capture's sidecar names another truth file that is there (and differs), or the truth's seconds differ from the
     capture's (the sidecar's frames and rate, or ``span_s``, the capture's device time from its first sample)."""
@@ -125,11 +152,15 @@ def check_truth_matches(truth: dict[str, np.ndarray], truth_file: str | Path, ca
     if isinstance(frames, int) and isinstance(rate_hz, int) and rate_hz > 0:
         expected = -(-frames // rate_hz)
         if rows != expected:
-            raise InputFileError(f"{truth_file}: {rows:,} s of truth, but {capture} holds {expected:,} s ({frames:,} "
-                                 f"frames at {rate_hz} Hz, says its sidecar): the truth of another capture")  # fmt: skip
+            raise InputFileError(
+                f"{truth_file}: {rows:,} s of truth, but {capture} holds {expected:,} s ({frames:,} "
+                f"frames at {rate_hz} Hz, says its sidecar): the truth of another capture"
+            )
     if span_s is not None and abs(rows - math.ceil(span_s - 1e-6)) > 1:
-        raise InputFileError(f"{truth_file}: {rows:,} s of truth, but {capture} holds {span_s:,.0f} s of device time: "
-                             f"the truth of another capture")  # fmt: skip
+        raise InputFileError(
+            f"{truth_file}: {rows:,} s of truth, but {capture} holds {span_s:,.0f} s of device time: "
+            f"the truth of another capture"
+        )
 
 
 def truth_noise_dph(truth: dict[str, np.ndarray]) -> np.ndarray:
@@ -205,8 +236,17 @@ def _remove(*paths: Path) -> None:
         path.unlink(missing_ok=True)
 
 
-def _write_sidecar(sim: Simulator, out_path: Path, truth_file: Path, total: int, writer: CaptureWriter, sha,
-                   stops: list[dict], profile_source: str, faults_text: str) -> Path:  # fmt: skip
+def _write_sidecar(
+    sim: Simulator,
+    out_path: Path,
+    truth_file: Path,
+    total: int,
+    writer: CaptureWriter,
+    sha,
+    stops: list[dict],
+    profile_source: str,
+    faults_text: str,
+) -> Path:
     return write_provenance(
         out_path,
         {
@@ -249,9 +289,21 @@ def _wire_format(sim: Simulator) -> dict:
     if sim.wire_format == "fog-v1":
         return {}
     if sim.wire_format == "ixblue-stdbin":
-        return {"wire_format": sim.wire_format,
-                "wire_settings": {"rate_hz": sim.rate_hz, "version": STDBIN_VERSION,
-                                  "temperature_channels": dict(STDBIN_TEMPERATURE_CHANNELS)}}  # fmt: skip
-    return {"wire_format": sim.wire_format,
-            "wire_settings": {"rot_format": "delta", "rot_units": "rad", "temp_units": "c_100", "rate_hz": sim.rate_hz,
-                              "temperature_channel": "housing"}}  # fmt: skip
+        return {
+            "wire_format": sim.wire_format,
+            "wire_settings": {
+                "rate_hz": sim.rate_hz,
+                "version": STDBIN_VERSION,
+                "temperature_channels": dict(STDBIN_TEMPERATURE_CHANNELS),
+            },
+        }
+    return {
+        "wire_format": sim.wire_format,
+        "wire_settings": {
+            "rot_format": "delta",
+            "rot_units": "rad",
+            "temp_units": "c_100",
+            "rate_hz": sim.rate_hz,
+            "temperature_channel": "housing",
+        },
+    }

@@ -36,7 +36,10 @@ class FaultSpec:
     @property
     def any(self) -> bool:
         return bool(
-            self.drop_prob or self.flip_prob_per_byte or self.garbage_bursts_per_s or self.thermo_faults_per_s
+            self.drop_prob
+            or self.flip_prob_per_byte
+            or self.garbage_bursts_per_s
+            or self.thermo_faults_per_s
             or self.disconnects
         )
 
@@ -109,7 +112,9 @@ def parse_fault_spec(text: str | None) -> FaultSpec:
                     raise UsageError(f"fault spec item {item!r}: disconnects overlap")
             values[name] = {"disconnects": tuple(cuts)}
         else:
-            raise UsageError(f"fault spec item {item!r}: unknown fault {name!r} (drop, flip, garbage, thermo, disconnect)")
+            raise UsageError(
+                f"fault spec item {item!r}: unknown fault {name!r} (drop, flip, garbage, thermo, disconnect)"
+            )
     merged: dict = {}
     for entry in values.values():
         merged.update(entry)

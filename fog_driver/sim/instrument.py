@@ -148,11 +148,23 @@ class _SlowGrid:
     """
 
     COLUMNS = (
-        "air_c", "housing_c", "top_c", "bottom_c", "fiber_c", "mount_c", "history_c",
-        "sensor_top_c", "sensor_bottom_c", "sensor_housing_c",
-        "drift_bias_temp_dph", "drift_shupe_dph", "drift_gradient_dph", "drift_hysteresis_dph",
-        "bias_instability_dph", "rrw_dph",
-    )  # fmt: skip
+        "air_c",
+        "housing_c",
+        "top_c",
+        "bottom_c",
+        "fiber_c",
+        "mount_c",
+        "history_c",
+        "sensor_top_c",
+        "sensor_bottom_c",
+        "sensor_housing_c",
+        "drift_bias_temp_dph",
+        "drift_shupe_dph",
+        "drift_gradient_dph",
+        "drift_hysteresis_dph",
+        "bias_instability_dph",
+        "rrw_dph",
+    )
 
     def __init__(self, profile: SimProfile, config: InstrumentConfig, rng_noise: np.random.Generator) -> None:
         self.profile = profile
@@ -163,8 +175,9 @@ class _SlowGrid:
         x = self.thermal.state
         self._history = float(x[3])
         self._history_a = 1.0 - math.exp(-GRID_DT_S / config.gyro.hysteresis_tau_s)
-        self._sensor_a = np.array([1.0 if lag == 0 else 1.0 - math.exp(-GRID_DT_S / lag)
-                                   for lag in config.thermometers.lags()])  # fmt: skip
+        self._sensor_a = np.array(
+            [1.0 if lag == 0 else 1.0 - math.exp(-GRID_DT_S / lag) for lag in config.thermometers.lags()]
+        )
         self._sensors = np.array([x[1], x[2], x[0]])
         self.start = 0  # grid index of the first kept point
         self.data = {name: np.zeros(0) for name in self.COLUMNS}
@@ -189,8 +202,9 @@ class _SlowGrid:
         self._history, self._sensors = h, s
         p = self.config.thermal
         fiber_rate = p.fiber_rate_c_per_s(nodes)  # dTf/dt from the model
-        terms = drift_terms(self.config.gyro, nodes[:, 3], fiber_rate, nodes[:, 1], nodes[:, 2], history,
-                            p.boundary_c(nodes))  # fmt: skip
+        terms = drift_terms(
+            self.config.gyro, nodes[:, 3], fiber_rate, nodes[:, 1], nodes[:, 2], history, p.boundary_c(nodes)
+        )
         new = {
             "air_c": air_c,
             "housing_c": nodes[:, 0],
@@ -266,9 +280,18 @@ _THERMOMETER_COLUMN = {"top": 0, "bottom": 1, "housing": 2}  #: the thermometer'
 
 #: Per-frame angle components, in the order the truth file lists them.
 COMPONENTS = (
-    "input", "earth", "scale_factor_error", "constant_bias", "drift_bias_temp", "drift_shupe",
-    "drift_gradient", "drift_hysteresis", "bias_instability", "rrw", "arw",
-)  # fmt: skip
+    "input",
+    "earth",
+    "scale_factor_error",
+    "constant_bias",
+    "drift_bias_temp",
+    "drift_shupe",
+    "drift_gradient",
+    "drift_hysteresis",
+    "bias_instability",
+    "rrw",
+    "arw",
+)
 
 
 def _stdbin_layout() -> tuple[np.dtype, np.ndarray]:
@@ -277,13 +300,27 @@ def _stdbin_layout() -> tuple[np.dtype, np.ndarray]:
     from ..formats.ixblue import HEADER_LEN, encode_stdbin
 
     zeros = (0.0, 0.0, 0.0)
-    template = encode_stdbin(STDBIN_VERSION, counter=0, validity_time_100us=0, attitude_deg=zeros,
-                             rotation_rate_dps=zeros, temperatures_c=zeros)  # fmt: skip
+    template = encode_stdbin(
+        STDBIN_VERSION,
+        counter=0,
+        validity_time_100us=0,
+        attitude_deg=zeros,
+        rotation_rate_dps=zeros,
+        temperatures_c=zeros,
+    )
     fixed = HEADER_LEN[STDBIN_VERSION] - 8  # the validity time and the counter end the header
     # The blocks in ascending bit order (attitude 0, rotation rate 5, temperatures 25), as encode_stdbin puts them.
-    dtype = np.dtype([("prefix", "u1", (fixed,)), ("time", ">u4"), ("counter", ">u4"),
-                      ("attitude", ">f4", (3,)), ("rate", ">f4", (3,)), ("temps", ">f4", (3,)),
-                      ("checksum", ">u4")])  # fmt: skip
+    dtype = np.dtype(
+        [
+            ("prefix", "u1", (fixed,)),
+            ("time", ">u4"),
+            ("counter", ">u4"),
+            ("attitude", ">f4", (3,)),
+            ("rate", ">f4", (3,)),
+            ("temps", ">f4", (3,)),
+            ("checksum", ">u4"),
+        ]
+    )
     if dtype.itemsize != len(template):
         raise AssertionError(f"STDBIN layout of {dtype.itemsize} bytes, encode_stdbin says {len(template)}")
     return dtype, np.frombuffer(template[:fixed], dtype=np.uint8)
@@ -330,7 +367,9 @@ class Simulator:
         self.t_us0 = int(run[1] * 2**32)
         self.turn_on_bias_dph = g.turn_on_bias_sigma_dph * float(self._rng_run.standard_normal())
         sensors = self.config.thermometers
-        self.thermometer_offsets_c = np.array(sensors.offsets_c) + sensors.offset_sigma_c * self._rng_run.standard_normal(3)
+        self.thermometer_offsets_c = np.array(
+            sensors.offsets_c
+        ) + sensors.offset_sigma_c * self._rng_run.standard_normal(3)
         self._grid = _SlowGrid(profile, self.config, self._rng_slow)
         self.period_true_s = 1.0 / (rate_hz * (1.0 + self.config.clock_ppm * 1e-6))
         self._scale = self.config.scale_f32
@@ -414,9 +453,16 @@ class Simulator:
             self._grid.ensure(float(t_k[-1]))
         slow = self._grid.at(
             t_mid,
-            ("fiber_c", "drift_bias_temp_dph", "drift_shupe_dph", "drift_gradient_dph", "drift_hysteresis_dph",
-             "bias_instability_dph", "rrw_dph"),
-        )  # fmt: skip
+            (
+                "fiber_c",
+                "drift_bias_temp_dph",
+                "drift_shupe_dph",
+                "drift_gradient_dph",
+                "drift_hysteresis_dph",
+                "bias_instability_dph",
+                "rrw_dph",
+            ),
+        )
         temps = self._grid.at(t_k, ("air_c", "housing_c", "top_c", "bottom_c", "fiber_c"))
         motion = self.profile.motion
         angle_end = motion.angle_deg(t_k)
@@ -433,9 +479,11 @@ class Simulator:
             "drift_hysteresis": slow["drift_hysteresis_dph"] * period,
             "bias_instability": slow["bias_instability_dph"] * period,
             "rrw": slow["rrw_dph"] * period,
-            "arw": g.arw_deg_per_sqrt_h * ARCSEC_PER_SQRT_S_PER_DEG_PER_SQRT_H * math.sqrt(period)
+            "arw": g.arw_deg_per_sqrt_h
+            * ARCSEC_PER_SQRT_S_PER_DEG_PER_SQRT_H
+            * math.sqrt(period)
             * self._rng_arw.standard_normal(n),
-        }  # fmt: skip
+        }
         total_counts = sum(comp[name] for name in COMPONENTS) / self._scale
         # Exact remainder carry: running sum in integer 2^-24 counts.
         fixed = np.round(total_counts * _FIXED_ONE).astype(np.int64)
@@ -495,9 +543,14 @@ class Simulator:
         """
         if self.wire_format == "fog-v1":
             return encode_sample_frames(
-                block.seq, block.t_us, block.dtheta_counts,
-                block.t_raw[:, 0], block.t_raw[:, 1], block.t_raw[:, 2], block.status,
-            )  # fmt: skip
+                block.seq,
+                block.t_us,
+                block.dtheta_counts,
+                block.t_raw[:, 0],
+                block.t_raw[:, 1],
+                block.t_raw[:, 2],
+                block.status,
+            )
         if self.wire_format == "ixblue-stdbin":
             return self._encode_stdbin(block)
         from ..formats.kvh import ARCSEC_PER_RAD, encode_kvh_frames
@@ -551,8 +604,9 @@ class Simulator:
         rows["counter"] = (self.seq0 + k) % COUNTER_MODULUS
         rows["attitude"][:, 0] = np.mod(block.angle_deg, 360.0)
         rows["rate"][:, 2] = sum(block.components_arcsec.values()) / 3600.0 / step_s
-        raw = block.t_raw[:, [_THERMOMETER_COLUMN[STDBIN_TEMPERATURE_CHANNELS[c]]
-                              for c in ("fog", "accelerometer", "board")]]  # fmt: skip
+        raw = block.t_raw[
+            :, [_THERMOMETER_COLUMN[STDBIN_TEMPERATURE_CHANNELS[c]] for c in ("fog", "accelerometer", "board")]
+        ]
         rows["temps"] = np.where(raw == THERMOMETER_INVALID, np.nan, raw / THERMOMETER_COUNTS_PER_C)
         out = rows.view(np.uint8).reshape(n, dtype.itemsize)
         rows["checksum"] = out[:, :-CHECKSUM_LEN].sum(axis=1, dtype=np.uint64) & 0xFFFFFFFF

@@ -170,24 +170,51 @@ def draw_instrument(seed: int, base: InstrumentConfig | None = None) -> Instrume
     total = sum(weights)
     thermal = dataclasses.replace(
         base.thermal,
-        **{name: d.value(name) for name in ("tau_housing_s", "tau_top_s", "tau_bottom_s", "tau_ring_s",
-                                             "tau_mount_s", "tau_bottom_mount_s", "self_heating_c", "top_heating_c")},
+        **{
+            name: d.value(name)
+            for name in (
+                "tau_housing_s",
+                "tau_top_s",
+                "tau_bottom_s",
+                "tau_ring_s",
+                "tau_mount_s",
+                "tau_bottom_mount_s",
+                "self_heating_c",
+                "top_heating_c",
+            )
+        },
         tau_fiber_s=lags[-1],
         coil_inner_lags_s=tuple(lags[:-1]),
         coil_coupling=tuple(w / total for w in weights),
-    )  # fmt: skip
+    )
     gyro: GyroParams = dataclasses.replace(
         base.gyro,
         reference_temp_c=20.0,
-        bias_temp_coeffs_dph=_bias_coefficients(d.value("bias_curve_excursion_dph"), d.values("bias_curve_shape", 4), 20.0),
-        **{name: d.value(name) for name in ("shupe_dph_per_c_per_min", "gradient_dph_per_c", "radial_gradient_dph_per_c",
-                                             "hysteresis_dph_per_c", "hysteresis_tau_s")},
-    )  # fmt: skip
+        bias_temp_coeffs_dph=_bias_coefficients(
+            d.value("bias_curve_excursion_dph"), d.values("bias_curve_shape", 4), 20.0
+        ),
+        **{
+            name: d.value(name)
+            for name in (
+                "shupe_dph_per_c_per_min",
+                "gradient_dph_per_c",
+                "radial_gradient_dph_per_c",
+                "hysteresis_dph_per_c",
+                "hysteresis_tau_s",
+            )
+        },
+    )
     thermometers: ThermometerParams = dataclasses.replace(
         base.thermometers,
         sensor_lags_s=tuple(d.values("sensor_lag_s", 3)),
         offsets_c=tuple(d.values("sensor_offset_c", 3)),
         offset_sigma_c=PER_RUN_OFFSET_SIGMA_C,
     )
-    return dataclasses.replace(base, serial=SERIAL_FORMAT.format(seed), thermal=thermal, gyro=gyro,
-                               thermometers=thermometers, population_seed=seed)  # fmt: skip
+    return dataclasses.replace(
+        base,
+        serial=SERIAL_FORMAT.format(seed),
+        thermal=thermal,
+        gyro=gyro,
+        thermometers=thermometers,
+        population_seed=seed,
+    )

@@ -271,8 +271,15 @@ class ChamberProfile:
             elif isinstance(seg, Sinusoid):
                 amp[k], omega[k] = seg.amplitude_c, 2.0 * math.pi / seg.period_s
         t0[n + 1], base[n + 1] = self.duration_s, self.end_c
-        return {"starts": starts, "t0": t0, "base": base, "slope": slope, "amp": amp, "omega": omega,
-                "any_sin": np.array(bool(np.any(amp != 0)))}
+        return {
+            "starts": starts,
+            "t0": t0,
+            "base": base,
+            "slope": slope,
+            "amp": amp,
+            "omega": omega,
+            "any_sin": np.array(bool(np.any(amp != 0))),
+        }
 
     @property
     def duration_s(self) -> float:
@@ -311,8 +318,10 @@ class ChamberProfile:
 
     def segment_table(self) -> str:
         """A printable table: one line per segment with its times (min), temperatures and plateau index."""
-        lines = [f"profile {self.name}: start {self.start_c:g} degC, {self.duration_s / 60:g} min",
-                 "    #  kind      start_min    end_min   from_c     to_c  detail"]
+        lines = [
+            f"profile {self.name}: start {self.start_c:g} degC, {self.duration_s / 60:g} min",
+            "    #  kind      start_min    end_min   from_c     to_c  detail",
+        ]
         plateau = 0
         for s in self._spans:
             seg = s.segment
@@ -325,8 +334,10 @@ class ChamberProfile:
                 detail = f"+-{seg.amplitude_c:g} degC, period {seg.period_s / 60:g} min"
             else:
                 detail = "instantaneous"
-            lines.append(f"{s.index:5d}  {s.kind:8s} {s.t_start_s / 60:10.2f} {s.t_end_s / 60:10.2f}"
-                         f" {s.start_c:8.2f} {s.end_c:8.2f}  {detail}")
+            lines.append(
+                f"{s.index:5d}  {s.kind:8s} {s.t_start_s / 60:10.2f} {s.t_end_s / 60:10.2f}"
+                f" {s.start_c:8.2f} {s.end_c:8.2f}  {detail}"
+            )
         return "\n".join(lines)
 
 
@@ -446,8 +457,10 @@ class MotionPlan:
                 raise TypeError(f"not a motion item: {item!r}")
         for a, b in zip(items, items[1:]):
             if b.start_s < a.end_s:
-                raise ValueError(f"{_describe_item(b)} overlaps {_describe_item(a)}, which ends at "
-                                 f"{'infinity' if math.isinf(a.end_s) else f'{a.end_s:g} s'}")
+                raise ValueError(
+                    f"{_describe_item(b)} overlaps {_describe_item(a)}, which ends at "
+                    f"{'infinity' if math.isinf(a.end_s) else f'{a.end_s:g} s'}"
+                )
         object.__setattr__(self, "items", items)
         self._build()
 
@@ -487,7 +500,9 @@ class MotionPlan:
                 stops.append(Stop(t0 + t_m, dwell_end, end_deg))
             angle = base + item.moves * item.step_deg
         t0, theta, omega, alpha = (np.array(column, dtype=np.float64) for column in zip(*pieces))
-        object.__setattr__(self, "_pieces", {"starts": t0[1:], "t0": t0, "theta": theta, "omega": omega, "alpha": alpha})
+        object.__setattr__(
+            self, "_pieces", {"starts": t0[1:], "t0": t0, "theta": theta, "omega": omega, "alpha": alpha}
+        )
         object.__setattr__(self, "_stops", tuple(stops))
 
     @property
@@ -540,8 +555,10 @@ def _describe_item(item: MotionItem) -> str:
         stop = "on" if item.stop_s is None else f"to {item.stop_s:g} s"
         return f"constant rate {item.rate_dps:g} deg/s from {item.start_s:g} s {stop}"
     shape = "triangular" if item.triangular else "trapezoidal"
-    return (f"positioning {item.moves} x {item.step_deg:g} deg from {item.start_s:g} s to {item.end_s:g} s"
-            f" ({shape} moves of {item.move_time_s:.3f} s, dwell {item.dwell_s:g} s)")
+    return (
+        f"positioning {item.moves} x {item.step_deg:g} deg from {item.start_s:g} s to {item.end_s:g} s"
+        f" ({shape} moves of {item.move_time_s:.3f} s, dwell {item.dwell_s:g} s)"
+    )
 
 
 def positioning_at_plateau(
@@ -556,15 +573,18 @@ def positioning_at_plateau(
     if plateau >= len(plateaus):
         if not plateaus:
             raise ValueError(f"at_plateau {plateau} but the chamber profile has no hold segment")
-        raise ValueError(f"at_plateau {plateau} but the chamber profile has {len(plateaus)} plateaus "
-                         f"(0..{len(plateaus) - 1})")
+        raise ValueError(
+            f"at_plateau {plateau} but the chamber profile has {len(plateaus)} plateaus (0..{len(plateaus) - 1})"
+        )
     settle_s = _number("settle_s", settle_s, nonnegative=True)
     p = plateaus[plateau]
     seq = Positioning(start_s=p.t_start_s + settle_s, **kwargs)
     if seq.end_s > p.t_end_s:
-        raise ValueError(f"the sequence at plateau {plateau} ({p.temp_c:g} degC) would end at {seq.end_s:g} s, "
-                         f"after the plateau ends at {p.t_end_s:g} s "
-                         f"(it needs {settle_s + seq.duration_s:g} s of hold)")
+        raise ValueError(
+            f"the sequence at plateau {plateau} ({p.temp_c:g} degC) would end at {seq.end_s:g} s, "
+            f"after the plateau ends at {p.t_end_s:g} s "
+            f"(it needs {settle_s + seq.duration_s:g} s of hold)"
+        )
     return seq
 
 
@@ -612,8 +632,11 @@ def paper_validation_profile() -> SimProfile:
     for temp_c in PAPER_VALIDATION_TEMPS_C:
         segs += [Ramp(1.0, temp_c), Hold(VALIDATION_HOLD_S)]
     chamber = ChamberProfile("paper-validation", 20.0, tuple(segs))
-    motion = MotionPlan(tuple(positioning_at_plateau(chamber, k, VALIDATION_SETTLE_S)
-                              for k in range(1, len(PAPER_VALIDATION_TEMPS_C) + 1)))
+    motion = MotionPlan(
+        tuple(
+            positioning_at_plateau(chamber, k, VALIDATION_SETTLE_S) for k in range(1, len(PAPER_VALIDATION_TEMPS_C) + 1)
+        )
+    )
     return SimProfile("paper-validation", chamber, motion, "built-in")
 
 
@@ -631,8 +654,10 @@ _SEGMENT_KEYS = {
 _MOTION_KEYS = {
     "static": (set(), set()),
     "constant_rate": ({"rate_dps", "start_s", "stop_s"}, {"rate_dps"}),
-    "positioning": ({"start_s", "at_plateau", "settle_s", "moves", "step_deg", "dwell_s", "max_rate_dps", "accel_dps2"},
-                    set()),
+    "positioning": (
+        {"start_s", "at_plateau", "settle_s", "moves", "step_deg", "dwell_s", "max_rate_dps", "accel_dps2"},
+        set(),
+    ),
 }
 
 
@@ -676,7 +701,7 @@ def _seconds(doc: dict, where: str, stem: str) -> float:
 def _parse_segment(item: Any, where: str) -> Segment:
     if not isinstance(item, dict) or len(item) != 1:
         raise _Bad(f"{where}: expected a one-key mapping like {{hold: {{duration_min: 10}}}}")
-    (kind, body), = item.items()
+    ((kind, body),) = item.items()
     if kind not in _SEGMENT_KINDS:
         raise _Bad(f"{where}: unknown segment kind {kind!r} (known: {', '.join(_SEGMENT_KINDS)})")
     where = f"{where} ({kind})"
@@ -685,12 +710,17 @@ def _parse_segment(item: Any, where: str) -> Segment:
     if kind == "hold":
         return Hold(_seconds(body, where, "duration"))
     if kind == "ramp":
-        return Ramp(_field(where, "rate_c_per_min", body["rate_c_per_min"], positive=True),
-                    _field(where, "target_c", body["target_c"]))
+        return Ramp(
+            _field(where, "rate_c_per_min", body["rate_c_per_min"], positive=True),
+            _field(where, "target_c", body["target_c"]),
+        )
     if kind == "step":
         return Step(_field(where, "target_c", body["target_c"]))
-    return Sinusoid(_field(where, "amplitude_c", body["amplitude_c"], nonnegative=True),
-                    _seconds(body, where, "period"), _seconds(body, where, "duration"))
+    return Sinusoid(
+        _field(where, "amplitude_c", body["amplitude_c"], nonnegative=True),
+        _seconds(body, where, "period"),
+        _seconds(body, where, "duration"),
+    )
 
 
 def _parse_motion_item(doc: Any, where: str, chamber: ChamberProfile) -> MotionItem | None:
@@ -783,15 +813,21 @@ def load_profile(name_or_path: str | Path) -> SimProfile:
     if isinstance(name_or_path, str) and name_or_path in BUILTIN_PROFILES:
         return BUILTIN_PROFILES[name_or_path]()
     path = Path(name_or_path)
-    if isinstance(name_or_path, str) and "/" not in name_or_path and path.suffix not in (".yaml", ".yml") \
-            and not path.is_file():
+    if (
+        isinstance(name_or_path, str)
+        and "/" not in name_or_path
+        and path.suffix not in (".yaml", ".yml")
+        and not path.is_file()
+    ):
         for folder in profile_folders():
             if (folder / f"{name_or_path}.yaml").is_file():
                 path = folder / f"{name_or_path}.yaml"
                 break
         else:
-            raise InputFileError(f"{name_or_path}: no such profile (profiles: {', '.join(profile_names())}; "
-                                 "or give the path of a profile YAML file)")  # fmt: skip
+            raise InputFileError(
+                f"{name_or_path}: no such profile (profiles: {', '.join(profile_names())}; "
+                "or give the path of a profile YAML file)"
+            )
     doc = read_yaml(path, "profile file", hint=f" (profiles: {', '.join(profile_names())})")
     return parse_profile(doc, str(path), default_name=path.stem)
 
@@ -816,21 +852,33 @@ def profile_to_doc(profile: SimProfile) -> dict[str, Any]:
         elif isinstance(seg, Step):
             body = {"target_c": _plain(seg.target_c)}
         else:
-            body = {"amplitude_c": _plain(seg.amplitude_c), **_time_entry("period", seg.period_s),
-                    **_time_entry("duration", seg.duration_s)}
+            body = {
+                "amplitude_c": _plain(seg.amplitude_c),
+                **_time_entry("period", seg.period_s),
+                **_time_entry("duration", seg.duration_s),
+            }
         segments.append({_KIND_OF[type(seg)]: body})
     doc: dict[str, Any] = {"name": profile.name, "start_c": _plain(profile.chamber.start_c), "segments": segments}
     items = []
     for item in profile.motion.items:
         if isinstance(item, ConstantRate):
-            entry: dict[str, Any] = {"kind": "constant_rate", "rate_dps": _plain(item.rate_dps),
-                                     "start_s": _plain(item.start_s)}
+            entry: dict[str, Any] = {
+                "kind": "constant_rate",
+                "rate_dps": _plain(item.rate_dps),
+                "start_s": _plain(item.start_s),
+            }
             if item.stop_s is not None:
                 entry["stop_s"] = _plain(item.stop_s)
         else:
-            entry = {"kind": "positioning", "start_s": _plain(item.start_s), "moves": item.moves,
-                     "step_deg": _plain(item.step_deg), "dwell_s": _plain(item.dwell_s),
-                     "max_rate_dps": _plain(item.max_rate_dps), "accel_dps2": _plain(item.accel_dps2)}
+            entry = {
+                "kind": "positioning",
+                "start_s": _plain(item.start_s),
+                "moves": item.moves,
+                "step_deg": _plain(item.step_deg),
+                "dwell_s": _plain(item.dwell_s),
+                "max_rate_dps": _plain(item.max_rate_dps),
+                "accel_dps2": _plain(item.accel_dps2),
+            }
         items.append(entry)
     if items:
         doc["motion"] = items[0] if len(items) == 1 else items

@@ -154,8 +154,16 @@ def serve(
     stats = ServeStats()
     behind = False
 
-    log.info("serve_start", profile=sim.profile.name, rate_hz=rate, first_frame=k0, frames=max(0, end - k0),
-             speed=speed, frames_per_chunk=per_chunk, disconnects=len(windows))  # fmt: skip
+    log.info(
+        "serve_start",
+        profile=sim.profile.name,
+        rate_hz=rate,
+        first_frame=k0,
+        frames=max(0, end - k0),
+        speed=speed,
+        frames_per_chunk=per_chunk,
+        disconnects=len(windows),
+    )
     t_start = time.monotonic()
     cpu0, pcpu0 = time.thread_time(), time.process_time()
     t0: float | None = None  # when frame k0 is due: set once the first chunk is ready (its set-up is slow)
@@ -229,8 +237,15 @@ def serve(
         stats.wall_s = time.monotonic() - t_start
         stats.cpu_s = time.thread_time() - cpu0
         stats.process_cpu_s = time.process_time() - pcpu0
-    log.info("serve_end", frames=stats.frames, bytes=stats.bytes, wall_s=round(stats.wall_s, 3),
-             cpu_percent=round(stats.cpu_percent, 2), late_writes=stats.late_writes, stopped=stats.stopped)  # fmt: skip
+    log.info(
+        "serve_end",
+        frames=stats.frames,
+        bytes=stats.bytes,
+        wall_s=round(stats.wall_s, 3),
+        cpu_percent=round(stats.cpu_percent, 2),
+        late_writes=stats.late_writes,
+        stopped=stats.stopped,
+    )
     return stats
 
 
@@ -410,9 +425,15 @@ def serve_pty(
         if on_ready is not None:
             on_ready(server)
         stats = serve(
-            sim, server.write, duration_s=duration_s, stop=stop, speed=speed, chunk_s=chunk_s,
-            on_cut=server.cut, on_reconnect=server.reconnect,
-        )  # fmt: skip
+            sim,
+            server.write,
+            duration_s=duration_s,
+            stop=stop,
+            speed=speed,
+            chunk_s=chunk_s,
+            on_cut=server.cut,
+            on_reconnect=server.reconnect,
+        )
         if not stop.is_set():
             server.drain(drain_timeout_s, stop)
     stats.dropped_bytes += server.dropped_bytes
@@ -503,8 +524,9 @@ class ServeProgress:
     """A progress line while serving, on a terminal only: device time served of the total, and the bytes a
     pty dropped because nobody read them (a reader that never came, or one far behind)."""
 
-    def __init__(self, sim: Simulator, speed: float, duration_s: float | None, every_s: float = 0.5,
-                 stream: Any = None) -> None:  # fmt: skip
+    def __init__(
+        self, sim: Simulator, speed: float, duration_s: float | None, every_s: float = 0.5, stream: Any = None
+    ) -> None:
         from ..console import Progress
 
         self.display = Progress(stream)
@@ -525,9 +547,11 @@ class ServeProgress:
             while not self._done.wait(self.every_s):
                 served_s = min(self.total_s, (time.monotonic() - started) * self.speed)
                 dropped = server.dropped_bytes if server is not None else 0
-                self.display.show(f"served {served_s:,.0f} / {self.total_s:,.0f} s of device time"
-                                  + (f"; {dropped:,} bytes dropped (is anything reading?)" if dropped else ""),
-                                  force=True)  # fmt: skip
+                self.display.show(
+                    f"served {served_s:,.0f} / {self.total_s:,.0f} s of device time"
+                    + (f"; {dropped:,} bytes dropped (is anything reading?)" if dropped else ""),
+                    force=True,
+                )
 
         self._thread = threading.Thread(target=show, name="serve-progress", daemon=True)
         self._thread.start()
@@ -575,9 +599,14 @@ def serve_cli(sim: Simulator, args: Any) -> int:
                 progress.start(None)
 
             stats = serve_device(
-                sim, args.serve, baudrate=args.baud, duration_s=args.duration, stop=stop, speed=speed,
+                sim,
+                args.serve,
+                baudrate=args.baud,
+                duration_s=args.duration,
+                stop=stop,
+                speed=speed,
                 on_ready=device_ready,
-            )  # fmt: skip
+            )
     cpu_pct = 100.0 * stats.process_cpu_s / stats.wall_s if stats.wall_s > 0 else 0.0
     print(
         f"{'stopped after' if stats.stopped else 'served'} {stats.frames:,} frames "

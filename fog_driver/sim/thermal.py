@@ -70,8 +70,14 @@ class ThermalParams:
 
     def __post_init__(self) -> None:
         for name in (
-            "tau_housing_s", "tau_top_s", "tau_bottom_s", "tau_ring_s", "tau_fiber_s", "tau_mount_s", "tau_bottom_mount_s"
-        ):  # fmt: skip
+            "tau_housing_s",
+            "tau_top_s",
+            "tau_bottom_s",
+            "tau_ring_s",
+            "tau_fiber_s",
+            "tau_mount_s",
+            "tau_bottom_mount_s",
+        ):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0")
         w = tuple(float(v) for v in self.coil_coupling)

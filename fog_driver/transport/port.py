@@ -66,8 +66,12 @@ def read_available(port: serial.SerialBase) -> bytes:
     first byte and then the rest of its lump in one chunk.
     """
     fd = getattr(port, "fd", None)
-    if _PosixSerial is not None and isinstance(port, _PosixSerial) and isinstance(fd, int) \
-            and port.pipe_abort_read_r is not None:  # fmt: skip
+    if (
+        _PosixSerial is not None
+        and isinstance(port, _PosixSerial)
+        and isinstance(fd, int)
+        and port.pipe_abort_read_r is not None
+    ):
         cancel = port.pipe_abort_read_r
         try:
             ready = select.select([fd, cancel], [], [], port.timeout)[0]
@@ -82,8 +86,10 @@ def read_available(port: serial.SerialBase) -> bytes:
         except OSError as exc:
             raise serial.SerialException(f"read failed: {exc}") from exc
         if not data:
-            raise serial.SerialException("device reports readiness to read but returned no data "
-                                         "(device disconnected or multiple access on port?)")  # fmt: skip
+            raise serial.SerialException(
+                "device reports readiness to read but returned no data "
+                "(device disconnected or multiple access on port?)"
+            )
         return data
     waiting = port.in_waiting
     data = port.read(min(waiting or 1, MAX_READ_BYTES))

@@ -66,11 +66,12 @@ EVERY_S = 5.0
 #: A short run adapts soon (the defaults wait 5 min and capture the bias for 5 min).
 ADAPT = AdaptConfig(warmup_s=5.0, bias_capture_s=10.0, static_window_s=5.0)
 #: Golden model files beyond one per kind: name -> (kind, the wesn structure it is fitted with).
-EXTRA_MODELS = {"wesn-cascade": ("wesn", {"coil_orders": (3,), "fiber_lag_grid_s": (60.0,)}),
-                "polynomial-domain": ("polynomial", None)}
+EXTRA_MODELS = {
+    "wesn-cascade": ("wesn", {"coil_orders": (3,), "fiber_lag_grid_s": (60.0,)}),
+    "polynomial-domain": ("polynomial", None),
+}
 #: name -> (model file name, adapt against a reference of 0 deg/h)
-COMPENSATE_GOLDENS = ({kind: (kind, False) for kind in (*MODEL_KINDS, *EXTRA_MODELS)}
-                      | {"wesn-adapting": ("wesn", True)})  # fmt: skip
+COMPENSATE_GOLDENS = {kind: (kind, False) for kind in (*MODEL_KINDS, *EXTRA_MODELS)} | {"wesn-adapting": ("wesn", True)}
 
 
 def watch_lines(rate_hz: float = 1.0) -> list[bytes]:
@@ -97,8 +98,9 @@ def compensate_lines(name: str) -> list[bytes]:
     """``compensate --every 5`` of the capture with a golden model, one JSON object per row, full precision."""
     kind, adapting = COMPENSATE_GOLDENS[name]
     model_file = load_model(model_path(kind))
-    chunks = compensate_capture(CAPTURE, model_file, adapt=ADAPT if adapting else None,
-                                reference_rate_dph=0.0 if adapting else None)  # fmt: skip
+    chunks = compensate_capture(
+        CAPTURE, model_file, adapt=ADAPT if adapting else None, reference_rate_dph=0.0 if adapting else None
+    )
     lines = []
     for row in compensated_rows(chunks, EVERY_S):
         obj = {}
