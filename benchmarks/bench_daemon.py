@@ -73,6 +73,7 @@ No assertion anywhere: the figures are printed, each next to its target.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import platform
@@ -205,10 +206,8 @@ def cpu_s(pid: int, tid: int | None = None) -> float:
 def threads_cpu_s(pid: int) -> dict[int, float]:
     out = {}
     for tid in os.listdir(f"/proc/{pid}/task"):
-        try:
+        with contextlib.suppress(OSError):  # the thread ended meanwhile
             out[int(tid)] = cpu_s(pid, int(tid))
-        except OSError:  # the thread ended meanwhile
-            pass
     return out
 
 
@@ -558,19 +557,15 @@ class Watcher:
         self.closed = True
 
     def poll_status(self) -> None:
-        try:
+        with contextlib.suppress(OSError):
             self.sock.sendall(b"?STATUS;\n")
-        except OSError:
-            pass
 
     def frames(self) -> int:
         return self.status["frames"] if self.status else 0
 
     def close(self) -> None:
-        try:
+        with contextlib.suppress(OSError):
             self.sock.shutdown(socket.SHUT_RDWR)
-        except OSError:
-            pass
         self.sock.close()
 
 

@@ -132,7 +132,8 @@ def main() -> None:
     print(f"batch / baseline              {fps['batch'] / fps['baseline']:>12.1f} x")
     print(f"stream / baseline             {fps['stream'] / fps['baseline']:>12.2f} x")
     print(
-        f"batch / saturated 921600-baud link ({LINK_FRAMES_PER_S:,.0f} frames/s) {fps['batch'] / LINK_FRAMES_PER_S:.0f} x"
+        f"batch / saturated 921600-baud link ({LINK_FRAMES_PER_S:,.0f} frames/s) "
+        f"{fps['batch'] / LINK_FRAMES_PER_S:.0f} x"
     )
     print(f"batch decode peak memory      {peak / 1e6:>12.0f} MB  ({peak / len(data):.1f} x the capture size)")
 

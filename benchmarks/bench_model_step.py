@@ -119,9 +119,9 @@ def main() -> None:
             mf = models[kind]
             z = mf.normalizer.transform(rows)
             for label, fn in (
-                (f"model step, {kind}", lambda: time_model(mf, z)),
-                (f"block, {kind}", lambda: time_blocks(mf, blocks, False)),
-                (f"block adapting, {kind}", lambda: time_blocks(mf, blocks, True)),
+                (f"model step, {kind}", lambda mf=mf, z=z: time_model(mf, z)),
+                (f"block, {kind}", lambda mf=mf: time_blocks(mf, blocks, False)),
+                (f"block adapting, {kind}", lambda mf=mf: time_blocks(mf, blocks, True)),
             ):
                 if kind == "pso-svr" and "adapting" in label:
                     continue  # a kernel row of every support vector: not a readout to adapt in a daemon

@@ -1,8 +1,9 @@
 """Thermometer faults during a ramp, on a population of instruments: is compensation still better than none?
 
-    python benchmarks/bench_thermo_fault.py [--set eval3|dev|...] [--instruments N] [--first K] [--kinds auto,polynomial]
-                                            [--rate-hz 10] [--workers 2] [--workdir DIR] [--per-instrument]
-                                            [--offsets-only] [--fault invalid|stuck] [--update-readme]
+    python benchmarks/bench_thermo_fault.py [--set eval3|dev|...] [--instruments N] [--first K]
+                                            [--kinds auto,polynomial] [--rate-hz 10] [--workers 2] [--workdir DIR]
+                                            [--per-instrument] [--offsets-only] [--fault invalid|stuck]
+                                            [--update-readme]
 
 Per instrument (``bench_population``'s: the same seed sets and THE RULE, the same cached captures), the
 model that ``fog-driver fit`` makes without ``--kind`` (``auto``) is fitted on the ``paper`` run, then each

@@ -64,7 +64,9 @@ async def main(url):
         print("ready", flush=True)
         stop = asyncio.ensure_future(asyncio.get_running_loop().run_in_executor(None, sys.stdin.read))
         while not stop.done():
-            done, _ = await asyncio.wait({asyncio.ensure_future(ws.receive()), stop}, return_when=asyncio.FIRST_COMPLETED)
+            done, _ = await asyncio.wait(
+                {asyncio.ensure_future(ws.receive()), stop}, return_when=asyncio.FIRST_COMPLETED
+            )
             count += sum(1 for d in done if d is not stop)
     print(count, flush=True)
 
@@ -272,7 +274,8 @@ def main() -> None:
             table.add(
                 title if i == 1 else "",
                 f"NDJSON client {i}: lost / p50 / p99 / max latency, ms",
-                f"{c.lost} / {c.pct(50):.2f} / {c.pct(99):.2f} / {c.lat_ms.max() if c.lat_ms.size else float('nan'):.2f}",
+                f"{c.lost} / {c.pct(50):.2f} / {c.pct(99):.2f} / "
+                f"{c.lat_ms.max() if c.lat_ms.size else float('nan'):.2f}",
                 "0 lost, p99 <= 5",
                 ok(c.lost == 0 and c.pct(99) <= 5.0),
             )

@@ -206,7 +206,8 @@ def population(args: argparse.Namespace, workdir: Path) -> None:
     print()
     print(
         f"paper (printed, one instrument): overall {PAPER_PRINTED['overall']} %, over PSO-SVM "
-        f"{PAPER_PRINTED['over PSO-SVM']} %; recomputed from its Table 1: PSO-SVM overall {paper['PSO-SVM overall']:.1f} %"
+        f"{PAPER_PRINTED['over PSO-SVM']} %; recomputed from its Table 1: "
+        f"PSO-SVM overall {paper['PSO-SVM overall']:.1f} %"
     )
 
 

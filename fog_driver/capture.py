@@ -12,6 +12,7 @@ Sidecars are read with ``yaml.safe_load`` only.
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import hashlib
 import os
@@ -74,7 +75,7 @@ def find_sidecar(capture_path: str | Path) -> Path | None:
 
 
 def utc_now_iso() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+    return _dt.datetime.now(_dt.UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
 
 
 def _capture_size(path: Path) -> int:
@@ -174,10 +175,8 @@ class CaptureWriter:
         try:
             self.fsync()
         finally:
-            try:
+            with contextlib.suppress(OSError):  # the fsync above already reported it
                 self._file.close()
-            except OSError:
-                pass  # the fsync above already reported it
 
     @property
     def sha256(self) -> str:

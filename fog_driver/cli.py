@@ -461,8 +461,8 @@ def _read(value: float | None, fmt: str) -> str:
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from .compensation.model import load_model
-    from .report import positioning
     from .extras import require_extra
+    from .report import positioning
     from .report.evaluate import evaluate, format_bias_instability, model_label, series_names, write_report
     from .sim.capture import check_truth_matches, read_truth
 
@@ -531,7 +531,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         for name in series_names(summary)[1:]:
             a, b = summary["raw"], summary[name]
             print(
-                f"{summary['model']['label'] if name == 'compensated' else name}: ARW {_read(a['arw_deg_per_rt_h'], '.5f')} -> "
+                f"{summary['model']['label'] if name == 'compensated' else name}: "
+                f"ARW {_read(a['arw_deg_per_rt_h'], '.5f')} -> "
                 f"{_read(b['arw_deg_per_rt_h'], '.5f')} deg/sqrt(h); bias instability "
                 f"{format_bias_instability(a)} -> {format_bias_instability(b)}; 1-min drift RMS "
                 f"{a['drift_rms_1min_dph']:.4f} -> {b['drift_rms_1min_dph']:.4f} deg/h"

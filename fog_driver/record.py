@@ -9,6 +9,7 @@ described capture behind.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import threading
 import time
@@ -200,10 +201,9 @@ def record(
                     "rate_hz": identity.rate_hz,
                     "scale_arcsec_per_count": identity.scale_arcsec_per_count,
                 }
-            try:
+            # the disk is full: the write error on its way out says so
+            with contextlib.suppress(OSError, OutputFileError):
                 write_provenance(out_path, fields)
-            except (OSError, OutputFileError):
-                pass  # the disk is full: the write error on its way out says so
     if status != "complete":
         raise OutputFileError(status.removeprefix("failed: "))
     return RecordResult(out_path, sidecar, writer.bytes_written, writer.sha256, elapsed, decoder.counters, identity)

@@ -44,8 +44,14 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from .errors import InputFileError
-from .formats.common import AXES, FLAG_OVER_RANGE, FLAG_SENSOR_INVALID, FLAG_STARTUP, FLAG_TEMPERATURE_INVALID
-from .formats.common import ImuSample
+from .formats.common import (
+    AXES,
+    FLAG_OVER_RANGE,
+    FLAG_SENSOR_INVALID,
+    FLAG_STARTUP,
+    FLAG_TEMPERATURE_INVALID,
+    ImuSample,
+)
 from .formats.registry import FORMATS, SNIFF_BYTES, sniff
 from .protocol import (
     STATUS_LOOP_UNLOCKED,
@@ -209,10 +215,7 @@ class ImuSampleStream:
         if self.identity is None:
             self.identity = self.make_identity(event.offset)
         a = self.axis_index
-        if event.from_rate:
-            dtheta = event.rate_dph[a] / self.rate_hz
-        else:
-            dtheta = event.dtheta_arcsec[a]
+        dtheta = event.rate_dph[a] / self.rate_hz if event.from_rate else event.dtheta_arcsec[a]
         sensor_bad = 0
         if not abs(dtheta) * self.rate_hz <= MAX_RATE_DPH:  # NaN, infinite, or no gyro's: never integrated
             dtheta, sensor_bad = 0.0, STATUS_LOOP_UNLOCKED
@@ -220,10 +223,7 @@ class ImuSampleStream:
         seq = event.seq if event.seq is not None else (0 if self._last_seq is None else self._last_seq + 1)
         missing = 0 if self._last_seq is None else max(0, seq - self._last_seq - 1)
         self._last_seq = seq
-        if event.t_s is None or event.host_time:
-            t_us = seq * 1_000_000 // self.rate_hz
-        else:
-            t_us = round(event.t_s * 1e6)
+        t_us = seq * 1_000_000 // self.rate_hz if event.t_s is None or event.host_time else round(event.t_s * 1e6)
         temps = self._temps
         event_temps = event.temps_c
         for k, name in enumerate(self.channels):

@@ -13,6 +13,9 @@ settings.register_profile("default", deadline=None)
 settings.register_profile("ci", deadline=None, derandomize=True, print_blob=True)
 settings.load_profile("ci" if os.environ.get("CI") else "default")
 
+# Fixtures shared by several test modules live in plugin modules here (a test module imports no fixture).
+pytest_plugins = ["hub_fixtures"]
+
 
 @pytest.fixture(autouse=True)
 def _structlog_defaults():

@@ -241,11 +241,10 @@ def test_a_lost_connection_is_made_again_and_the_gap_reported(instrument):
 
 def test_without_reconnect_a_lost_connection_ends_the_iteration(instrument):
     inst = instrument()
-    with Client(inst.address, reconnect=False) as c:
-        with pytest.raises(ConnectionLost, match="closed the connection"):
-            for n, _ in enumerate(c.angles(), 1):
-                if n == 3:
-                    inst.close()
+    with Client(inst.address, reconnect=False) as c, pytest.raises(ConnectionLost, match="closed the connection"):
+        for n, _ in enumerate(c.angles(), 1):
+            if n == 3:
+                inst.close()
 
 
 def test_a_daemon_that_is_not_there_is_a_connect_error_at_once():
@@ -271,9 +270,8 @@ def test_a_token_daemon_refuses_a_wrong_token_and_serves_the_right_one(instrumen
     inst = instrument(token="a-long-token")
     with pytest.raises(Unauthorized):
         Client(inst.address, token="wrong-token").connect()
-    with Client(inst.address, reconnect=False) as c:  # no token: control is refused, typed
-        with pytest.raises(Unauthorized):
-            c.zero()
+    with Client(inst.address, reconnect=False) as c, pytest.raises(Unauthorized):  # no token: control is refused, typed
+        c.zero()
     with Client(inst.address, token="a-long-token") as c:
         assert isinstance(c.zero(), Reply)
         assert next(iter(c.angles())).seq > 0

@@ -295,7 +295,7 @@ def test_fit_help_lists_every_kind_on_a_line_and_the_default_is_the_shipped_mode
     from fog_driver.compensation.model import load_model
     from fog_driver.config import DEFAULT_MODEL
 
-    assert DEFAULT_FIT_KIND == load_model(DEFAULT_MODEL).kind  # the project's best: what it ships
+    assert load_model(DEFAULT_MODEL).kind == DEFAULT_FIT_KIND  # the project's best: what it ships
     with pytest.raises(SystemExit):
         build_parser().parse_args(["fit", "--help"])
     text = capsys.readouterr().out

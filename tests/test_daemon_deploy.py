@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import select
 import shlex
 import shutil
 import signal
@@ -16,7 +17,6 @@ import socket
 import stat
 import subprocess
 import sys
-import select
 import tempfile
 import time
 from collections.abc import Callable, Iterator

@@ -11,15 +11,17 @@ generous on purpose (a shared 2-core machine): they tell "delivered meanwhile" f
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import socket
 import threading
 import time
 
 import pytest
 import structlog
+from hub_fixtures import Control
+from test_daemon_hub import TIMEOUT_S, Conn, angle
 
 from fog_driver.daemon.hub import Hub
-from test_daemon_hub import TIMEOUT_S, Conn, Control, angle, make_hub  # noqa: F401 - make_hub is a fixture
 
 
 class Service(Control):
@@ -269,10 +271,8 @@ def test_a_newline_flood_is_closed(make_hub):
     _, address, _ = make_hub()
     c = Conn(address)
     c.greeting()
-    try:
+    with contextlib.suppress(BrokenPipeError, ConnectionResetError):
         c.send(b"\n" * 65536)
-    except (BrokenPipeError, ConnectionResetError):
-        pass
     errors = 0
     with pytest.raises((EOFError, ConnectionResetError)):
         while True:

@@ -6,7 +6,7 @@ timeouts are only failure guards) or on threading Events.
 
 from __future__ import annotations
 
-import concurrent.futures
+import contextlib
 import json
 import math
 import socket
@@ -17,6 +17,7 @@ import time
 import numpy as np
 import pytest
 import structlog
+from hub_fixtures import VERSION
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -34,8 +35,6 @@ from fog_driver.daemon.udp import (
 )
 
 TIMEOUT_S = 5.0
-VERSION = {"release": "9.9.9", "proto_major": 1, "proto_minor": 0, "serial": "FOG-TEST-0001"}
-DEVICE = {"path": "/dev/ttyFOG0", "serial": "FOG-TEST-0001", "rate_hz": 100, "activated": None}
 
 
 class Conn:
@@ -94,53 +93,6 @@ class Conn:
 
     def close(self) -> None:
         self.sock.close()
-
-
-class Control:
-    """The service side: records calls, answers ECHO/FAIL/SLOW/SYNC, knows nothing else."""
-
-    def __init__(self) -> None:
-        self.calls: list[tuple[str, dict, int]] = []
-        self.pending: concurrent.futures.Future | None = None
-        self.slow_called = threading.Event()
-        self.sync = threading.Event()
-
-    def __call__(self, name: str, args: dict, client_id: int):
-        self.calls.append((name, args, client_id))
-        if name == "ECHO":
-            return {"class": "ECHO", "args": args, "client": client_id, "nothing": None}
-        if name == "BARE":
-            return {"ok": True}
-        if name == "FAIL":
-            raise RuntimeError("the instrument is on fire")
-        if name == "SLOW":
-            self.pending = concurrent.futures.Future()
-            self.slow_called.set()
-            return self.pending
-        if name == "FUTFAIL":
-            fut: concurrent.futures.Future = concurrent.futures.Future()
-            fut.set_exception(ValueError("future failed"))
-            return fut
-        if name == "SYNC":
-            self.sync.set()
-            return {"class": "SYNC"}
-        return None
-
-
-@pytest.fixture
-def make_hub():
-    hubs: list[Hub] = []
-
-    def factory(**kwargs) -> tuple[Hub, tuple[str, int], Control]:
-        control = kwargs.pop("control", None) or Control()
-        device = kwargs.pop("device", lambda: DEVICE)
-        hub = Hub(version=lambda: VERSION, device=device, control=control, **kwargs)
-        hubs.append(hub)
-        return hub, hub.start(), control
-
-    yield factory
-    for hub in hubs:
-        hub.stop()
 
 
 def angle(seq: int, t_s: float, **extra) -> dict:
@@ -367,10 +319,8 @@ def test_64k_without_newline_disconnects(make_hub):
     _, address, _ = make_hub()
     c = Conn(address)
     c.greeting()
-    try:
+    with contextlib.suppress(BrokenPipeError, ConnectionResetError):
         c.send(b"?" + b"A" * (MAX_UNTERMINATED_BYTES + 10))
-    except (BrokenPipeError, ConnectionResetError):
-        pass
     lines = []
     try:
         while True:
@@ -737,7 +687,7 @@ def test_udp_publisher_sends_one_datagram_per_sample_and_never_raises():
 
 
 def test_udp_flag_bits_are_the_compensators():
-    assert FLAG_BITS == {name: bit for bit, name in FLAG_NAMES.items()}
+    assert {name: bit for bit, name in FLAG_NAMES.items()} == FLAG_BITS
 
 
 def test_a_client_hanging_up_is_logged_at_info_not_as_a_failure(make_hub):

@@ -17,8 +17,8 @@ import threading
 import time
 from pathlib import Path
 
-import pytest
 import hostile
+import pytest
 from test_daemon_hil import Daemon
 
 from fog_driver.protocol import SAMPLE_FRAME_LEN, decode_bytes

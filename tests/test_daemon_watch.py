@@ -439,7 +439,8 @@ def test_render_full_state():
         "flags       gap",
         "sample      seq 2  t 12.440 s  (received 0.0 s ago)",
         "received    10.0 ANGLE/s  30 ANGLE  2 malformed  1 unknown class",
-        "status      clients=1  cpu_percent=2.5  crc_errors=3  frames=4242  missing_frames=7  port_state=open  some_future_key=x",
+        "status      clients=1  cpu_percent=2.5  crc_errors=3  frames=4242  missing_frames=7  port_state=open  "
+        "some_future_key=x",
         "error       port lost",
     ]
 
@@ -708,7 +709,8 @@ def test_the_daemons_rates_average_to_the_angle_difference(tmp_path):
         ),
         (
             {"status": {"bias_captured": False}, "address": "gyro-pc:2948"},
-            "bias not removed: at rest the angle climbs with Earth rate + bias; run `fog-driver ctl --connect gyro-pc:2948 bias 60`",
+            "bias not removed: at rest the angle climbs with Earth rate + bias; "
+            "run `fog-driver ctl --connect gyro-pc:2948 bias 60`",
         ),
         (
             {"status": {"bias_captured": False, "bias_capture_s": 12.0, "bias_capture_target_s": 60.0}},

@@ -255,7 +255,7 @@ def test_metrics_carry_the_status_counters_and_the_latency_histogram():
     assert m[("fog_driver_publish_latency_seconds_count", ())] == len(latencies)
     assert m[("fog_driver_publish_latency_seconds_sum", ())] == pytest.approx(latencies.sum(), rel=1e-9)
     exported = {name for name, _ in m} | {name[: -len("_bucket")] for name, _ in m if name.endswith("_bucket")}
-    for name, (kind, _) in METRICS.items():  # every documented metric is there
+    for name, (_kind, _) in METRICS.items():  # every documented metric is there
         assert name in exported, name
 
 

@@ -385,9 +385,11 @@ def test_vectors_cover_the_required_cases(entries: list[Entry]) -> None:
     # IDENTITY between SAMPLE frames without advancing seq
     kinds = [e.kind for e in entries]
     for i in range(1, len(entries) - 1):
-        if kinds[i - 1 : i + 2] == ["SAMPLE", "IDENTITY", "SAMPLE"]:
-            if (entries[i + 1].int("seq") - entries[i - 1].int("seq")) % 65536 == 1:
-                break
+        if (
+            kinds[i - 1 : i + 2] == ["SAMPLE", "IDENTITY", "SAMPLE"]
+            and (entries[i + 1].int("seq") - entries[i - 1].int("seq")) % 65536 == 1
+        ):
+            break
     else:
         pytest.fail("no IDENTITY between consecutive SAMPLE frames")
 

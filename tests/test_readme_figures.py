@@ -47,9 +47,8 @@ def test_update_readme_writes_the_output_and_refuses_before_the_work_without_a_b
         readme_block.blocks(readme.read_text())["b.py --k"] == "```\n$ python benchmarks/b.py --k\nfigure 1.23\n```\n"
     )
     worked = []
-    with pytest.raises(ValueError):
-        with readme_block.readme_output("other.py", update=True, readme=readme):
-            worked.append(1)
+    with pytest.raises(ValueError), readme_block.readme_output("other.py", update=True, readme=readme):
+        worked.append(1)
     assert not worked
 
 

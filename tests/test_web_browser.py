@@ -107,7 +107,9 @@ class Watcher:
 SHOWN = """() => {
   const t = (id) => document.getElementById(id).textContent;
   const temps = {};
-  document.querySelectorAll("#temps [data-text]").forEach((el) => { temps[el.dataset.text.slice(5)] = el.textContent; });
+  document.querySelectorAll("#temps [data-text]").forEach((el) => {
+    temps[el.dataset.text.slice(5)] = el.textContent;
+  });
   return {seq: document.body.dataset.seq, angle: t("angle-arcsec"), dms: t("angle-dms"), raw: t("angle-raw-arcsec"),
           rate: t("rate"), drift: t("drift"), flags: t("flags"), temps};
 }"""

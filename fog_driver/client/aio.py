@@ -80,7 +80,7 @@ class AsyncClient(ClientBase):
         hint = "(is `fog-driver run` running?)"
         try:
             reader, writer = await asyncio.wait_for(asyncio.open_connection(self.host, self.port), self.timeout_s)
-        except (OSError, asyncio.TimeoutError) as exc:
+        except (TimeoutError, OSError) as exc:
             reason = "timed out" if isinstance(exc, asyncio.TimeoutError) else (exc.strerror or str(exc))
             raise ConnectError(f"could not connect to {self.address}: {reason} {hint}") from None
         self._reader, self._writer = reader, writer
@@ -116,7 +116,7 @@ class AsyncClient(ClientBase):
                 raise ConnectError(f"{self.address}: no {what} within {self.timeout_s:g} s")
             try:
                 data = await asyncio.wait_for(self._reader.read(_RECV_BYTES), remaining)
-            except asyncio.TimeoutError:
+            except TimeoutError:
                 continue
             except OSError as exc:
                 raise ConnectError(f"{self.address}: lost the connection while waiting for {what}: {exc}") from None
@@ -134,7 +134,7 @@ class AsyncClient(ClientBase):
         try:
             writer.write(data)
             await asyncio.wait_for(writer.drain(), self.timeout_s)
-        except (OSError, asyncio.TimeoutError) as exc:
+        except (TimeoutError, OSError) as exc:
             raise ConnectionLost(f"{self.address}: lost the connection: {exc or 'the daemon does not read'}") from None
 
     async def _drop(self) -> None:
@@ -197,9 +197,8 @@ class AsyncClient(ClientBase):
             return
 
     def _hand_on(self, message: Message) -> None:
-        if isinstance(message, Angle):
-            if _put_dropping(self._angles, message):
-                self.angles_dropped += 1
+        if isinstance(message, Angle) and _put_dropping(self._angles, message):
+            self.angles_dropped += 1
         if isinstance(message, Bias) and message.state in ("done", "failed"):
             self._bias_results[message.capture_id] = message
             if self._bias_changed is not None:
@@ -262,7 +261,7 @@ class AsyncClient(ClientBase):
         await self._send(data)
         try:
             reply = await asyncio.wait_for(future, self.reply_timeout_s)
-        except asyncio.TimeoutError:
+        except TimeoutError:
             raise NoReply(f"{self.address}: no answer to ?{name} within {self.reply_timeout_s:g} s") from None
         return check_reply(name, reply)
 

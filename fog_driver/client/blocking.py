@@ -10,6 +10,7 @@ may have been carried out).
 
 from __future__ import annotations
 
+import contextlib
 import select
 import socket
 import threading
@@ -134,10 +135,8 @@ class Client(ClientBase):
     def _close_socket(self) -> None:
         sock, self._sock = self._sock, None
         if sock is not None:
-            try:
+            with contextlib.suppress(OSError):
                 sock.close()
-            except OSError:
-                pass
 
     def _drop(self) -> None:
         self._close_socket()
@@ -259,10 +258,8 @@ class Client(ClientBase):
                 raise error(f"{self.address}: {exc.reason} while waiting for {what}") from None
         reply = request.reply
         if not keep:  # the answer is returned, not also queued for the iterators
-            try:
+            with contextlib.suppress(ValueError):
                 self._inbox.remove(reply)
-            except ValueError:
-                pass
         return reply
 
     def _command(

@@ -3,8 +3,8 @@
 ``message_from(obj, line)`` turns one parsed protocol line into an ``Angle``, ``Device``, ``Status``,
 ``Version``, ``Bias``, ``Reply`` (the answer to ``?WATCH``, ``?AUTH``, ``?ZERO``, ``?ADAPT``, ``?SAVE``,
 ``?RELOAD``), ``ErrorReply`` or, for a class this library does not know, ``Other`` (the protocol says a
-client ignores classes and keys it does not know: the sample iterators do).  A value that is absent, or of the wrong type, is
-``None`` in the typed field: the daemon omits absent values rather than sending ``null``.  Every message
+client ignores classes and keys it does not know: the sample iterators do).  A value that is absent, or of the wrong
+type, is ``None`` in the typed field: the daemon omits absent values rather than sending ``null``.  Every message
 keeps the daemon's object (``raw``) and its line as received (``line``), for keys a newer daemon adds.
 """
 

@@ -1,8 +1,8 @@
 """The client library's lowest layer: the daemon's NDJSON lines, its address and its token.
 
-One place for what every client of ``fog-driver run`` needs (``Client``, ``AsyncClient``, ``fog-driver ctl``): the address (``parse_address``,
-``format_address``, the default ``127.0.0.1:2948``), the token (``FOG_DRIVER_TOKEN`` or a token file,
-never a command-line argument: every user's ``ps`` shows those), the connection with its greeting
+One place for what every client of ``fog-driver run`` needs (``Client``, ``AsyncClient``, ``fog-driver ctl``): the
+address (``parse_address``, ``format_address``, the default ``127.0.0.1:2948``), the token (``FOG_DRIVER_TOKEN`` or a
+token file, never a command-line argument: every user's ``ps`` shows those), the connection with its greeting
 (``Connection.open``: a daemon that cannot be reached, or a peer that closes or says nothing before
 the ``VERSION`` line, is one ``DeviceError`` line, exit 69, at once), the command lines
 (``command_line``), and the defensive line reading (``LineReader``, ``parse_line``: a line is at most
@@ -11,6 +11,7 @@ the ``VERSION`` line, is one ``DeviceError`` line, exit 69, at once), the comman
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import select
@@ -256,10 +257,8 @@ class Connection:
                 self._pending.append((line.rstrip(b"\r"), obj))
 
     def close(self) -> None:
-        try:
+        with contextlib.suppress(OSError):
             self.sock.close()
-        except OSError:
-            pass
 
 
 class ConnectionClosed(Exception):

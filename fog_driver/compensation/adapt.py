@@ -19,8 +19,8 @@ it per capture by centring the target).  It is captured first: over the first ``
 blocks (below) the readout accumulates the mean of ``measured - reference - estimate`` (the estimate in
 use, which is the frozen estimate on a first run: W does not move before the capture is complete); W is
 not updated during the capture, and adaptation starts on the next gated block.  ``begin_run`` starts a
-new capture (a restored state on a new switch-on: the turn-on bias is new, the adapted W is kept).  Without the capture, the
-adapted intercept would absorb the run's bias (tens of deg/h), the output would stop being a drift and the
+new capture (a restored state on a new switch-on: the turn-on bias is new, the adapted W is kept).  Without the capture,
+the adapted intercept would absorb the run's bias (tens of deg/h), the output would stop being a drift and the
 runaway guard would fire at once (tested).  A consequence to know: whatever error the frozen model makes
 on average during the capture is taken as bias, so the adapted model learns the drift relative to the
 frozen model's mean error over the capture (the drift's slopes are learned; its offset over the capture
@@ -42,11 +42,11 @@ through an exponential mean over ``GATE_FILTER_S`` (120 s), and when that filter
 innovation is farther from 0 than the runaway bound plus ``innovation_sigmas`` (4) sigmas of its noise
 (``gate_limit_dph``; the block noise from half the squared differences of successive gated rates over
 ``NOISE_MEMORY_S``, each capped at 25 times the estimate so far and at the static detector's threshold
-squared so that a bad block cannot open the gate, through the same filter), the block is not learned (the neutral target, as for an
-ungated block), is counted (``rejected``) and flagged ``FLAG_GUARD``, and W is reset to the frozen
+squared so that a bad block cannot open the gate, through the same filter), the block is not learned (the neutral
+target, as for an ungated block), is counted (``rejected``) and flagged ``FLAG_GUARD``, and W is reset to the frozen
 weights as by a guard (what the law learned while the mismatch grew towards the bound is suspect too).
-No drift the law may learn is that far from the frozen model: the gyro disagrees with the reference.  The filter starts afresh after
-any ungated block.  A creep of a few deg/h is refused within seconds; one near the bound (0.2 deg/h on a
+No drift the law may learn is that far from the frozen model: the gyro disagrees with the reference.  The filter starts
+afresh after any ungated block.  A creep of a few deg/h is refused within seconds; one near the bound (0.2 deg/h on a
 model with 0.024 deg/h of fit residual) within minutes; a slower one is learned, and the runaway guard
 bounds what it does to the estimate.
 
@@ -73,12 +73,12 @@ would remove it and seem better for it), and the window's gain, ``dev_frozen^2 -
 into a running mean and mean square (memory ``compare_memory_windows``).  Both estimates see the same
 gyro noise n in a window, so the gain is ``(e_f - e_a)(2 n + e_f + e_a)``: the noise enters it
 linearly, with mean 0, and the mean gain is ``e_f^2 - e_a^2``.  The adapted weights are scored as they
-were when the window opened, so the window is out of sample for them.  The adapted estimate is returned only when the mean gain exceeds
-``COMPARE_SIGMAS`` (1) standard error and ``(compare_min_gain r)^2`` (r: the model's fit residual; a
+were when the window opened, so the window is out of sample for them.  The adapted estimate is returned only when the
+mean gain exceeds ``COMPARE_SIGMAS`` (1) standard error and ``(compare_min_gain r)^2`` (r: the model's fit residual; a
 gain that is significant but smaller than that is the gyro's slow noise being chased: measured on
 24 development instruments with a correct reference, every-minute score of a soak-cycle run, the
-worst adapting / frozen went from 1.40x to 1.11x at 0.5), after ``compare_min_windows`` windows; otherwise the frozen one
-is, and the law keeps adapting underneath (``adapted_in_use``).  A window's mean keeps the 1-s white
+worst adapting / frozen went from 1.40x to 1.11x at 0.5), after ``compare_min_windows`` windows; otherwise the frozen
+one is, and the law keeps adapting underneath (``adapted_in_use``).  A window's mean keeps the 1-s white
 noise from swamping the comparison.
 
 Order within ``step`` (the law's): the estimate uses W and the comparison's verdict before this block's

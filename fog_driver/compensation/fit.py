@@ -24,8 +24,8 @@ from ..errors import InputFileError
 from .blocks import FLAG_GAP, FLAG_THERMOMETER_FAULT, BlockAverager, BlockColumns
 from .domain import InputDomain
 from .features import (
-    V1_CHANNELS,
     DEGRADED_FLAGS,
+    V1_CHANNELS,
     FeatureExtractor,
     FeatureParams,
     fit_substitution,
@@ -447,7 +447,8 @@ class FitReport:
             if has_validate:
                 line += f" {validate_value:10.4f}" if validate_value is not None else f" {'':>10s}"
             if what in worse:
-                line += f"  {WORSE_MARKER} ({' and '.join('validation' if c == 'validate' else 'fit data' for c in worse[what])})"
+                where = " and ".join("validation" if c == "validate" else "fit data" for c in worse[what])
+                line += f"  {WORSE_MARKER} ({where})"
             lines.append(line)
         return "\n".join(lines)
 

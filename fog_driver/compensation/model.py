@@ -11,7 +11,6 @@ date).  A model fitted for another serial is refused unless forced.
 from __future__ import annotations
 
 import copy
-
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol

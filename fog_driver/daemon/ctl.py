@@ -131,7 +131,10 @@ def describe(reply: dict) -> str:
     if cls == "STATUS":
         bias = "captured" if reply.get("bias_captured") else "not captured"
         if reply.get("bias_capture_target_s") is not None:
-            bias = f"capturing {_number(reply, 'bias_capture_s', '.1f')} / {_number(reply, 'bias_capture_target_s', 'g')} s"
+            bias = (
+                f"capturing {_number(reply, 'bias_capture_s', '.1f')} / "
+                f"{_number(reply, 'bias_capture_target_s', 'g')} s"
+            )
         return (
             f"port {_word(reply, 'port_state')}, {_number(reply, 'frames', ',')} frames, "
             f"{_number(reply, 'published', ',')} published, bias {_number(reply, 'bias_dph', '.4f')} deg/h ({bias}), "

@@ -135,6 +135,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import concurrent.futures
+import contextlib
 import hmac
 import ipaddress
 import json
@@ -722,10 +723,8 @@ class Hub:
         if thread is None:
             return
         if loop is not None:
-            try:
+            with contextlib.suppress(RuntimeError):  # loop already closed
                 loop.call_soon_threadsafe(self._request_stop)
-            except RuntimeError:  # loop already closed
-                pass
         thread.join(timeout)
         self._thread = None
         self._shut_down_control_pool()
@@ -851,10 +850,8 @@ class Hub:
         loop = self._loop
         if loop is None:
             return
-        try:
+        with contextlib.suppress(RuntimeError):  # the loop closed between the check and the call: the hub is stopping
             loop.call_soon_threadsafe(fn, arg)
-        except RuntimeError:  # the loop closed between the check and the call: the hub is stopping
-            pass
 
     def _deliver_angles(self, batch: tuple[list[tuple[float, bytes]], float | None]) -> None:
         items, read_monotonic_s = batch
@@ -1033,10 +1030,8 @@ class Hub:
         self._next_id += 1
         sock = writer.get_extra_info("socket")
         if self.sndbuf_bytes is not None and sock is not None:
-            try:
+            with contextlib.suppress(OSError):
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self.sndbuf_bytes)
-            except OSError:
-                pass
         client = _Client(cid, peer, reader, writer, authorized=self._token is None)
         self._clients[cid] = client
         self._clients_per_peer[client.peer_address] += 1
@@ -1307,10 +1302,8 @@ class Hub:
         settled: asyncio.Future = loop.create_future()
 
         def on_done(_: concurrent.futures.Future) -> None:  # in whichever thread completed ``future``
-            try:
+            with contextlib.suppress(RuntimeError):  # the loop has closed: the hub stopped, nobody waits any more
                 loop.call_soon_threadsafe(_settle, settled)
-            except RuntimeError:  # the loop has closed: the hub stopped, nobody waits any more
-                pass
 
         if not future.done():
             future.add_done_callback(on_done)

@@ -49,6 +49,7 @@ Rules (the tests hold them):
 from __future__ import annotations
 
 import collections
+import contextlib
 import datetime as _dt
 import hashlib
 import os
@@ -273,10 +274,8 @@ class RotatingCapture:
         except OutputFileError:
             self._writer = None
             self._pending_events, self._events = self._events, []
-            try:
+            with contextlib.suppress(OutputFileError):
                 writer.close()
-            except OutputFileError:
-                pass
             path.unlink(missing_ok=True)  # an empty file nothing describes: leave nothing behind
             raise
         self._segment += 1
@@ -353,10 +352,8 @@ class RotatingCapture:
     def _fail(self, exc: OutputFileError) -> None:
         """A write or fsync failed: close what can be closed and describe the file as failed."""
         writer = self._detach()
-        try:
+        with contextlib.suppress(OutputFileError):  # the error being raised already says why
             writer.close()
-        except OutputFileError:
-            pass  # the error being raised already says why
         self._write_final(writer, f"failed: {exc}", "write failed", quiet=True)
 
     def _write_final(self, writer: CaptureWriter, status: str, reason: str, *, quiet: bool) -> None:
@@ -631,7 +628,7 @@ def repair_interrupted(directory: str | Path, prefix: str = "fog") -> list[Path]
         with capture.open("rb") as f:
             for block in iter(lambda: f.read(1 << 20), b""):
                 sha.update(block)
-        end = _dt.datetime.fromtimestamp(capture.stat().st_mtime, _dt.timezone.utc)
+        end = _dt.datetime.fromtimestamp(capture.stat().st_mtime, _dt.UTC)
         fields = {k: v for k, v in doc.items() if k not in ("format", "schema_version", "capture")}
         fields.update(
             status="interrupted",

@@ -29,8 +29,8 @@ the daemon's settings: ``--scale-override`` for ``scale_override_arcsec_per_coun
 ``force_model``, and with an ``adapt_state`` the state file as it was at the start with ``--adapt-state``
 (``--adapt-reference`` for ``adapt_reference_dph``), and when during the capture no ``?ZERO`` or ``?BIAS``
 offset was taken, no ``?ADAPT`` changed the reference and no different model was loaded.  (ANGLE's ``utc``, the
-host's clock when the sample was read, is the one key that cannot be reproduced offline; see ``stamp_utc``.)  Each of those
-is recorded in the capture's sidecar (``events``, with the byte of the file it took effect at), as are the
+host's clock when the sample was read, is the one key that cannot be reproduced offline; see ``stamp_utc``.)  Each of
+those is recorded in the capture's sidecar (``events``, with the byte of the file it took effect at), as are the
 model (path, SHA-256), the scale settings, the adaptation state's SHA-256 and the instrument.
 """
 
@@ -65,8 +65,8 @@ from ..errors import FogDriverError, TemporaryFailure
 from ..protocol import IdentityFrame
 from ..sources import make_source
 from ..stream import identity_is_plausible
-from ..transport.setup import make_on_open
 from ..transport import PortError, PortEvent, PortReader
+from ..transport.setup import make_on_open
 from .metrics import LatencyHistogram
 
 log = structlog.get_logger("fog_driver.daemon")
@@ -221,7 +221,7 @@ class Service:
             probe = Compensator(model_file, 0.01, adapt=AdaptConfig())
             probe.online.load_state_doc(read_state_doc(path), str(path), detector=probe.static_detector)
         except FogDriverError as exc:
-            stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+            stamp = _dt.datetime.now(_dt.UTC).strftime("%Y%m%dT%H%M%SZ")
             aside = Path(f"{path}.stale-{stamp}")
             try:
                 os.replace(path, aside)
@@ -982,8 +982,8 @@ def _age_s(created_utc: str) -> float | None:
     except (ValueError, AttributeError):
         return None
     if created.tzinfo is None:
-        created = created.replace(tzinfo=_dt.timezone.utc)
-    return (_dt.datetime.now(_dt.timezone.utc) - created).total_seconds()
+        created = created.replace(tzinfo=_dt.UTC)
+    return (_dt.datetime.now(_dt.UTC) - created).total_seconds()
 
 
 def _same_model(a: ModelFile, b: ModelFile) -> bool:

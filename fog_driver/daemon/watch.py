@@ -40,6 +40,7 @@ or never greets) is a one-line ``DeviceError`` at once.  ``format_dms``, ``rende
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -353,9 +354,9 @@ def render(state: Mapping[str, Any], *, width: int = 100, degree: str = _DEGREE)
 
     Keys read: ``address`` (text), ``elapsed_s``, ``version``/``device``/``angle``/``status``
     (the latest protocol object of that class), ``error`` (the last ERROR message),
-    ``watch`` (the server's WATCH answer), ``angles`` (ANGLE objects received), ``angle_rate_hz``, ``angle_age_s`` (seconds since the
-    last ANGLE), ``rate_mean_dph`` and ``rate_span_s`` (the averaged rate and the device time it spans),
-    ``keys`` (keys work: their line is shown), ``action`` (the last key's outcome), ``malformed``,
+    ``watch`` (the server's WATCH answer), ``angles`` (ANGLE objects received), ``angle_rate_hz``, ``angle_age_s``
+    (seconds since the last ANGLE), ``rate_mean_dph`` and ``rate_span_s`` (the averaged rate and the device time it
+    spans), ``keys`` (keys work: their line is shown), ``action`` (the last key's outcome), ``malformed``,
     ``oversized``, ``unknown``.
     """
     version, device = _dict(state.get("version")), _dict(state.get("device"))
@@ -627,10 +628,8 @@ class _Watch:
         """Show the cursor again (once), however the watch ends."""
         if self._cursor_hidden:
             self._cursor_hidden = False
-            try:
+            with contextlib.suppress(OSError, ValueError):
                 self._write(_SHOW_CURSOR)
-            except (OSError, ValueError):
-                pass
 
 
 class _Keys:
@@ -671,18 +670,14 @@ class _Keys:
             self._on_resume()
 
     def _set(self, attributes: list) -> None:
-        try:
+        with contextlib.suppress(OSError, self._termios.error):
             self._termios.tcsetattr(self.fd, self._termios.TCSADRAIN, attributes)
-        except (OSError, self._termios.error):
-            pass
 
     def restore(self) -> None:
         self._set(self._saved)
         if self._previous_tstp is not None:
-            try:
+            with contextlib.suppress(ValueError, OSError):
                 signal.signal(signal.SIGTSTP, self._previous_tstp)
-            except (ValueError, OSError):
-                pass
             self._previous_tstp = None
 
 
@@ -748,10 +743,8 @@ def run_watch(
         )
     except KeyboardInterrupt:
         if watch is not None:
-            try:
+            with contextlib.suppress(OSError, ValueError, KeyboardInterrupt):
                 watch.finish(time.monotonic())
-            except (OSError, ValueError, KeyboardInterrupt):
-                pass
         return EXIT_OK
     finally:
         if key_reader is not None:
@@ -825,10 +818,8 @@ def _view(
                 command = {"z": ("ZERO", None), "b": ("BIAS", {"seconds": bias_s})}.get(key)
                 if command is not None:
                     watch.state["action"] = f"?{command[0]} sent"
-                    try:
+                    with contextlib.suppress(ConnectionLost):  # the next read says so
                         conn.send(*command)
-                    except ConnectionLost:
-                        pass  # the next read says so
 
 
 def _pass_through(

@@ -43,6 +43,7 @@ is dropped when its oldest unsent update is older than ``max_client_backlog_s``,
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import gzip
 import hashlib
 import hmac
@@ -223,10 +224,8 @@ class WebView:
     def stop(self, timeout_s: float = 5.0) -> None:
         loop = self._loop
         if loop is not None and self._stop_event is not None:
-            try:
+            with contextlib.suppress(RuntimeError):
                 loop.call_soon_threadsafe(self._stop_event.set)
-            except RuntimeError:
-                pass
         if self._thread is not None:
             self._thread.join(timeout_s)
 

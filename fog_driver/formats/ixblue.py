@@ -59,7 +59,8 @@ previous telegram or the step is not positive, or NaN when ``rate_hz`` was not g
 counter unwrapped by ``SeqUnwrapper(2**32)``.  A telegram without the rotation-rate block gives no sample
 (``other_frames``).  An impossible header (unknown version, or a telegram size that differs from header +
 announced blocks + checksum, or, when a bit of unknown size is set, one too small for the known blocks or
-above ``MAX_UNVERIFIED_LEN``) costs one byte (``length_errors``).  STDBIN telegrams are variable-length: there is no fixed-stride batch path.
+above ``MAX_UNVERIFIED_LEN``) costs one byte (``length_errors``).  STDBIN telegrams are variable-length: there is no
+fixed-stride batch path.
 
 Answer telegrams (replies to commands), ``ixblue_stdbin_decoder`` ``parseHeader`` / ``ANSWER_HEADER_SIZE``::
 

@@ -144,10 +144,11 @@ def summarize_format(path: str | Path, name: str, settings: dict[str, Any] | Non
 def format_format_summary(s: FormatSummary) -> str:
     """The text ``inspect`` prints for another format's capture."""
     c = s.counters
+    settings = ", ".join(f"{k} {v}" for k, v in s.settings.items())
     lines = [
         f"capture       {s.path}",
         f"format        {s.name}: {FORMATS[s.name].description}",
-        f"settings      {', '.join(f'{k} {v}' for k, v in s.settings.items()) or 'the decoder defaults (no wire_settings in a sidecar)'}",
+        f"settings      {settings or 'the decoder defaults (no wire_settings in a sidecar)'}",
         f"frames        {c.get('sample_frames', 0):,} samples, {c.get('other_frames', 0):,} other; "
         f"{c.get('bytes_in_frames', 0):,} of {c.get('bytes_in', 0):,} bytes in frames",
         f"integrity     {c.get('crc_errors', 0):,} checksum errors, {c.get('bytes_discarded', 0):,} bytes discarded, "

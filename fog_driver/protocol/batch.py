@@ -29,6 +29,7 @@ import zlib
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
@@ -498,11 +499,7 @@ def iter_file_blocks(
 ) -> Iterator[tuple[bytes, bool]]:
     """A capture file's ``(block, final)`` pairs, ``final`` True for the last (an empty file: one empty
     block); ``on_block`` sees every block as read.  A file that cannot be opened is an ``InputFileError``."""
-    try:
-        f = Path(path).open("rb")
-    except OSError as exc:
-        raise InputFileError(f"{path}: cannot read the capture: {exc.strerror or exc}") from None
-    with f:
+    with _open_capture(path) as f:
         block = f.read(block_bytes)
         while True:
             following = f.read(block_bytes) if block else b""
@@ -512,6 +509,14 @@ def iter_file_blocks(
             if not following:
                 return
             block = following
+
+
+def _open_capture(path: str | Path) -> BinaryIO:
+    """``path`` opened for reading; one that cannot be opened is an ``InputFileError`` (one line)."""
+    try:
+        return Path(path).open("rb")
+    except OSError as exc:
+        raise InputFileError(f"{path}: cannot read the capture: {exc.strerror or exc}") from None
 
 
 def concatenate(parts: list[DecodedCapture]) -> DecodedCapture:

@@ -60,7 +60,6 @@ import numpy as np
 from ..errors import UsageError
 from ..extras import missing_message
 
-
 TRUST_FRACTION = 10.0
 NOISE_ID_MIN_POINTS = 100
 CONFIDENCE = 0.683

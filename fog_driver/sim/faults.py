@@ -15,7 +15,7 @@ A fault spec is a comma-separated list of ``name=value`` items, e.g.::
 ``none`` or an empty string means no faults.  Faults draw on their own random
 stream, so the same seed gives the same faults, and adding faults never
 changes the instrument's physics.
-"""
+"""  # noqa: E501 - a Markdown table row cannot be wrapped
 
 from __future__ import annotations
 

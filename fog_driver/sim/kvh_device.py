@@ -24,6 +24,7 @@ on ``commands`` (a queue, so a test waits for one without sleeping); everything 
 
 from __future__ import annotations
 
+import contextlib
 import os
 import queue
 import select
@@ -136,10 +137,9 @@ class FakeKvhDevice:
                 next_frame += period_s
 
     def _write_quietly(self, data: bytes) -> None:
-        try:
+        # unplugged or nobody reading: a real device would not notice either
+        with contextlib.suppress(OSError, TimeoutError):
             self._send(data)
-        except (OSError, TimeoutError):  # unplugged or nobody reading: a real device would not notice either
-            pass
 
     def _receive(self, data: bytes) -> None:
         self.received += data

@@ -73,7 +73,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Union
+from typing import Any
 
 import numpy as np
 import yaml
@@ -188,7 +188,7 @@ class Sinusoid:
         return self.amplitude_c * math.sin(2.0 * math.pi * self.duration_s / self.period_s)
 
 
-Segment = Union[Hold, Ramp, Step, Sinusoid]
+Segment = Hold | Ramp | Step | Sinusoid
 _SEGMENT_KINDS: dict[str, type] = {"hold": Hold, "ramp": Ramp, "step": Step, "sinusoid": Sinusoid}
 _KIND_OF = {cls: kind for kind, cls in _SEGMENT_KINDS.items()}
 
@@ -426,7 +426,7 @@ class Positioning:
         return self.start_s + self.dwell_s + k * (self.move_time_s + self.dwell_s)
 
 
-MotionItem = Union[ConstantRate, Positioning]
+MotionItem = ConstantRate | Positioning
 
 
 @dataclass(frozen=True)

@@ -35,7 +35,7 @@ import termios
 import threading
 import time
 from collections.abc import Callable
-from contextlib import nullcontext
+from contextlib import nullcontext, suppress
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Self
@@ -508,10 +508,8 @@ def serve_device(
             except (serial.SerialException, OSError, termios.error) as exc:
                 raise DeviceError(f"{device}: flush failed: {_one_line(exc)}") from None
     finally:
-        try:
+        with suppress(serial.SerialException, OSError, termios.error):
             port.close()
-        except (serial.SerialException, OSError, termios.error):
-            pass
     result.dropped_bytes += stats.dropped_bytes
     result.dropped_writes += stats.dropped_writes
     return result

@@ -14,6 +14,7 @@ an ``on_state`` callback as a ``PortEvent`` and logged with structlog.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import os
 import select
@@ -336,7 +337,5 @@ def open_error_text(url: str, exc: BaseException) -> str:
 
 def _close_quietly(port: serial.SerialBase) -> None:
     """Close a port that may already be dead; errors on the way out carry no news."""
-    try:
+    with contextlib.suppress(*PORT_ERRORS):
         port.close()
-    except PORT_ERRORS:
-        pass

@@ -33,11 +33,11 @@ Sources:
   ``CONFIG,1``; ``=DR,<n>\\r\\n`` until ``DR,``; ``=rotfmt,RATE\\r\\n`` until ``ROTFMT,RATE``; then
   ``=CONFIG,0\\r\\n``; an LCM publisher of ``senlcm_kvh1750_t`` whose repository the public code index
   did not name); Paradigm Hyperloop's ``imu_config/imu_config.c`` (github.com/ParadigmHyperloop/hyperloop:
-  ``CONFIG_CMD "=config,1\\r\\n"``, ``CONFIG_RES "CONFIG,1"``, read with a select() timeout); the ROS ``kvh_driver`` (``kvh_driver/src/helpers/kvh_imu.cpp`` in
-  github.com/jtukpah/wildfire_hyperdrive_ssrr_2024: ``=config,1\\n`` / ``=config,0\\n``, LF only, which the
-  manual also allows); an OpenDLV-derived P1775 configuration script (``=CONFIG,1``, ``=CONFIG,0``, each
-  ``\\r\\n``-terminated).  Those drivers either read without a deadline or sleep a fixed 200 ms between
-  commands; here each reply is waited for with a monotonic deadline instead.
+  ``CONFIG_CMD "=config,1\\r\\n"``, ``CONFIG_RES "CONFIG,1"``, read with a select() timeout); the ROS ``kvh_driver``
+  (``kvh_driver/src/helpers/kvh_imu.cpp`` in github.com/jtukpah/wildfire_hyperdrive_ssrr_2024: ``=config,1\\n`` /
+  ``=config,0\\n``, LF only, which the manual also allows); an OpenDLV-derived P1775 configuration script
+  (``=CONFIG,1``, ``=CONFIG,0``, each ``\\r\\n``-terminated).  Those drivers either read without a deadline or sleep a
+  fixed 200 ms between commands; here each reply is waited for with a monotonic deadline instead.
 
 Frames right after ``=CONFIG,0``: the output restarts, and a change of data rate or filter re-initializes
 the output filters (manual, table 8-4), so the first frames after a setup are start-up data.  No
@@ -313,7 +313,8 @@ def run_setup(
     ``SetupResult.raw``, and passed to ``on_bytes`` as it arrives).  With no commands, nothing is sent
     or read.  Raises ``DeviceSetupError`` (one line, naming the command; ``.raw`` has the bytes read) if a
     reply does not come in time or the device refuses a command, after sending ``=CONFIG,0`` (not
-    waited for) so the device is not left silent in configuration mode; ``OSError``/``serial.SerialException`` if the port fails.
+    waited for) so the device is not left silent in configuration mode; ``OSError``/``serial.SerialException`` if the
+    port fails.
     """
     exchanges = setup.wire()
     if not exchanges:

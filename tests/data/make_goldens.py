@@ -132,7 +132,9 @@ def refit_models(names=(*MODEL_KINDS, *EXTRA_MODELS)) -> None:
         fitters = dict(fit.FITTERS)
         if structure:  # the wesn fitter with a forced structure, for this file only
             wc = dataclasses.replace(WESN_DEFAULTS, **structure)
-            fit.FITTERS[kind] = lambda captures, normalizer, config: fit_wesn(kind, wc, captures, normalizer, config)
+            fit.FITTERS[kind] = lambda captures, normalizer, config, *, kind=kind, wc=wc: fit_wesn(
+                kind, wc, captures, normalizer, config
+            )
         try:
             model_file, _ = fit_model_file([FIT_CAPTURE], kind=kind, config=FIT_CONFIG, accept_weak=True)
         finally:
