@@ -320,8 +320,8 @@ def make_frames(rate_hz: int, seconds: float, seed: int = 1, wire_format: str = 
     n = round(rate_hz * seconds)
     block, data = sim.stream(n)
     if wire_format != "fog-v1":
-        from fog_driver.sources import SampleSource, WireSettings
-        from fog_driver.stream import Sample
+        from fog_driver.samples.sources import SampleSource, WireSettings
+        from fog_driver.samples.stream import Sample
 
         bounds = np.arange(n + 1, dtype=np.int64) * sim.frame_len_bytes
         assert bounds[-1] == len(data), "frames of another format are all one length"

@@ -43,12 +43,12 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from bench_daemon import LIVE_PROFILE, LiveResult, add_pacing_options, live_run  # noqa: E402
 
-from fog_driver.compensation.fit import FitConfig, fit_model_file  # noqa: E402
+from fog_driver.compensation.fitting.fit import FitConfig, fit_model_file  # noqa: E402
 from fog_driver.compensation.model import save_model  # noqa: E402
+from fog_driver.samples.sources import wire_settings_for  # noqa: E402
 from fog_driver.sim.capture import simulate_to_file  # noqa: E402
 from fog_driver.sim.instrument import Simulator  # noqa: E402
 from fog_driver.sim.profiles import load_profile  # noqa: E402
-from fog_driver.sources import wire_settings_for  # noqa: E402
 
 FIT_RATE_HZ = 10
 FIT_SECONDS = 900

@@ -49,11 +49,11 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from bench_population import FIT_PROFILE, SCORE_PROFILES, SEED_SETS, capture  # noqa: E402
 
-from fog_driver.compensation.compensator import Compensator  # noqa: E402
 from fog_driver.compensation.features import Substitution  # noqa: E402
-from fog_driver.compensation.fit import FitConfig, fit_model_file  # noqa: E402
+from fog_driver.compensation.fitting.fit import FitConfig, fit_model_file  # noqa: E402
+from fog_driver.compensation.pipeline import Compensator  # noqa: E402
+from fog_driver.samples.stream import SampleBlock, read_capture_samples  # noqa: E402
 from fog_driver.sim.capture import read_truth  # noqa: E402
-from fog_driver.stream import SampleBlock, read_capture_samples  # noqa: E402
 
 FAULT_S = 1800
 AFTER_S = 1800

@@ -47,7 +47,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from fog_driver.compensation.fit import FitConfig, fit_model_file  # noqa: E402
+from fog_driver.compensation.fitting.fit import FitConfig, fit_model_file  # noqa: E402
 from fog_driver.compensation.model import save_model  # noqa: E402
 from fog_driver.report.positioning import (  # noqa: E402
     Row,

@@ -18,10 +18,10 @@ import pytest
 import structlog
 import yaml
 
-from fog_driver.capture import inspect_capture, read_provenance, sidecar_path, summarize
 from fog_driver.console import Progress
 from fog_driver.protocol import decode_bytes, encode_sample
-from fog_driver.record import record
+from fog_driver.samples.captures import inspect_capture, read_provenance, sidecar_path, summarize
+from fog_driver.samples.record import record
 from fog_driver.transport import PtyPair
 
 DATA = Path(__file__).resolve().parent / "data"
@@ -308,9 +308,9 @@ def test_record_refuses_to_overwrite_a_capture_unless_forced(tmp_path):
 def test_record_disk_full_is_one_error_and_the_sidecar_says_how_far_it_got(tmp_path, monkeypatch):
     import errno
 
-    import fog_driver.record as record_module
-    from fog_driver.capture import CaptureWriter
+    import fog_driver.samples.record as record_module
     from fog_driver.errors import OutputFileError
+    from fog_driver.samples.captures import CaptureWriter
 
     class FullAfter:
         """A file that takes the first write, then fails like a full disk."""
@@ -419,7 +419,7 @@ def test_log_format_follows_where_the_lines_go(monkeypatch):
 
 
 def test_an_unexpected_exception_is_one_line_exit_70_and_a_logged_traceback(monkeypatch, capsys):
-    from fog_driver import cli
+    from fog_driver.cli import app as cli
 
     def broken_inspect(args):
         raise ValueError("a\nmulti-line message")
@@ -438,7 +438,7 @@ def test_an_unexpected_exception_is_one_line_exit_70_and_a_logged_traceback(monk
 def test_run_exits_70_when_acquisition_crashes_on_a_bug(tmp_path, monkeypatch, capsys):
     """An exception from a bug in the acquisition thread ended the daemon with exit 1 and no
     ``fog-driver: error:`` line; now 70 (EX_SOFTWARE), one line, and the traceback in the JSON log."""
-    from fog_driver import cli
+    from fog_driver.cli import app as cli
     from fog_driver.daemon.service import Service
 
     def broken_process(self, chunk):
@@ -467,7 +467,7 @@ def test_run_exits_70_when_acquisition_crashes_on_a_bug(tmp_path, monkeypatch, c
 def test_a_demo_that_fails_to_start_leaves_no_simulator_running(tmp_path):
     """A demonstration ``run`` whose listen address is taken had already started its simulator, which
     went on serving its pty after the failure; now it is stopped before the error is reported."""
-    from fog_driver import cli
+    from fog_driver.cli import app as cli
 
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))

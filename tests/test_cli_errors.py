@@ -26,7 +26,7 @@ from pathlib import Path
 
 import pytest
 
-from fog_driver.capture import sidecar_path
+from fog_driver.samples.captures import sidecar_path
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "tests" / "data"

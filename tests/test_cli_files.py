@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from fog_driver.capture import read_provenance, sidecar_path, write_provenance
 from fog_driver.daemon.rawlog import repair_interrupted
+from fog_driver.samples.captures import read_provenance, sidecar_path, write_provenance
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "tests" / "data"
@@ -82,7 +82,7 @@ def test_a_model_and_a_capture_can_share_a_stem(tmp_path):
 
 
 def test_an_old_named_sidecar_still_loads_and_a_model_there_is_not_taken_for_one(tmp_path):
-    from fog_driver.capture import find_sidecar, legacy_sidecar_path
+    from fog_driver.samples.captures import find_sidecar, legacy_sidecar_path
 
     capture = tmp_path / "old.bin"
     shutil.copy(DATA / "sim-short.bin", capture)
@@ -104,7 +104,7 @@ def test_an_old_named_sidecar_still_loads_and_a_model_there_is_not_taken_for_one
 
 
 def test_repair_interrupted_fixes_old_and_new_sidecars_where_they_are(tmp_path):
-    from fog_driver.capture import legacy_sidecar_path
+    from fog_driver.samples.captures import legacy_sidecar_path
 
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
     for name, side in (("fog-000000-x.bin", legacy_sidecar_path), ("fog-000001-x.bin", sidecar_path)):
@@ -335,7 +335,7 @@ def test_record_wait_says_so_once_and_an_interrupt_leaves_nothing(tmp_path):
 
 
 def test_describe_knows_each_kind_by_content(made, tmp_path):
-    from fog_driver.outputs import describe
+    from fog_driver.files.outputs import describe
 
     (tmp_path / "renamed.dat").write_bytes((made / "st.bin.yaml").read_bytes())
     assert describe(tmp_path / "renamed.dat") == "a capture's provenance sidecar (of st.bin)"

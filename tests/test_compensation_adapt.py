@@ -13,8 +13,8 @@ from fog_driver.compensation.adapt import (
     OnlineReadout,
     StaticDetector,
 )
-from fog_driver.compensation.compensator import FLAG_ADAPTING, FLAG_GUARD
 from fog_driver.compensation.numerics import dot
+from fog_driver.compensation.pipeline import FLAG_ADAPTING, FLAG_GUARD
 from fog_driver.compensation.readout import (
     AdaptiveLaw,
     AdaptiveLawParams,

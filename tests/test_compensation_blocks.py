@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from fog_driver.compensation.blocks import FLAG_GAP, FLAG_THERMOMETER_FAULT, BlockAverager, BlockColumns
 from fog_driver.compensation.features import FeatureExtractor, FeatureParams
-from fog_driver.stream import SampleBlock
+from fog_driver.samples.stream import SampleBlock
 
 
 def make_samples(n: int, rate_hz: int = 10, seed: int = 0, missing: tuple[int, ...] = (), nan_at: tuple[int, ...] = ()):

@@ -17,8 +17,7 @@ import pytest
 import yaml
 
 from fog_driver.cli import main
-from fog_driver.compensation.apply import compensate_capture
-from fog_driver.compensation.compensator import FLAG_NAMES
+from fog_driver.compensation.binding import compensate_capture
 from fog_driver.compensation.domain import (
     ESTIMATE_LIMIT_FACTOR,
     FLAG_EXTRAPOLATING,
@@ -27,7 +26,7 @@ from fog_driver.compensation.domain import (
     InputDomain,
 )
 from fog_driver.compensation.features import INPUT_NAMES
-from fog_driver.compensation.fit import (
+from fog_driver.compensation.fitting.fit import (
     FitConfig,
     WeakFitError,
     applied_prediction,
@@ -35,8 +34,7 @@ from fog_driver.compensation.fit import (
     load_capture,
     static_minute_means,
 )
-from fog_driver.compensation.model import load_model, save_model
-from fog_driver.compensation.quality import (
+from fog_driver.compensation.fitting.quality import (
     MAX_CONDITION,
     MAX_TARGET_RANGE_DPH,
     MIN_FIT_MINUTES,
@@ -45,6 +43,8 @@ from fog_driver.compensation.quality import (
     assess,
     condition_number,
 )
+from fog_driver.compensation.model import load_model, save_model
+from fog_driver.compensation.pipeline import FLAG_NAMES
 from fog_driver.daemon.udp import FLAG_BITS
 from fog_driver.errors import InputFileError
 

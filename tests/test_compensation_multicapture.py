@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 
 from fog_driver.cli import main
-from fog_driver.compensation import fit
 from fog_driver.compensation.blocks import BlockColumns
 from fog_driver.compensation.features import FeatureExtractor
-from fog_driver.compensation.fit import CaptureData, FitConfig, fit_model_file, load_capture, static_mask
+from fog_driver.compensation.fitting import fit
+from fog_driver.compensation.fitting.fit import CaptureData, FitConfig, fit_model_file, load_capture, static_mask
 from fog_driver.compensation.model import load_model
 from fog_driver.report.evaluate import minute_rms, per_second
 from fog_driver.sim.capture import read_truth
@@ -104,7 +104,7 @@ def test_a_hot_and_a_cold_run_fitted_together_do_as_well_as_one_run_over_both(ru
 def test_a_hot_and_a_cold_run_fitted_together_get_their_own_offsets_in_the_svr(runs, monkeypatch):
     """The RBF kernel has no column for a capture's intercept: its offsets are backfitted (measured on soak:
     0.077 deg/h, the paper run alone 0.067, without the offsets 0.111)."""
-    from fog_driver.compensation import svr
+    from fog_driver.compensation.models import svr
 
     pair = truth_residual(fit_paths([runs / "hot.bin", runs / "cold.bin"], "pso-svr"), runs / "soak.bin")
     monkeypatch.setattr(svr, "OFFSET_PASSES", 0)

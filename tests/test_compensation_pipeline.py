@@ -13,14 +13,14 @@ import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fog_driver.compensation.compensator import FLAG_UNCOMPENSATED, CompensatedColumns, Compensator
-from fog_driver.compensation.fit import FitConfig, fit_model_file, load_capture, static_mask
+from fog_driver.compensation.fitting.fit import FitConfig, fit_model_file, load_capture, static_mask
 from fog_driver.compensation.model import load_model, save_model
-from fog_driver.compensation.rows import ROW_COLUMNS, RowAggregator, format_row
-from fog_driver.config import DEFAULT_MODEL
+from fog_driver.compensation.pipeline import FLAG_UNCOMPENSATED, CompensatedColumns, Compensator
+from fog_driver.daemon.config import DEFAULT_MODEL
 from fog_driver.errors import InputFileError
+from fog_driver.offline.rows import ROW_COLUMNS, RowAggregator, format_row
 from fog_driver.protocol import FrameDecoder, decode_file
-from fog_driver.stream import SampleBlock, SampleStream
+from fog_driver.samples.stream import SampleBlock, SampleStream
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "tests" / "data"
@@ -168,7 +168,7 @@ def test_bad_model_files_are_one_line_errors(model_path, tmp_path, mutate, needl
 @pytest.mark.determinism
 @pytest.mark.parametrize("order, coil_rate", [(1, False), (1, True), (2, True), (3, False), (3, True)])
 def test_wesn_start_is_a_fixed_point_and_step_equals_run(order, coil_rate):
-    from fog_driver.compensation.wesn import WESN_DEFAULTS, WesnModel, n_regressors
+    from fog_driver.compensation.models.wesn import WESN_DEFAULTS, WesnModel, n_regressors
 
     reservoir = WESN_DEFAULTS.reservoir(1.0, 240.0, order)
     w_in = reservoir.matrices.w_in
@@ -246,14 +246,14 @@ def test_motion_is_detected_and_excluded(tmp_path):
 
 
 def test_shipped_fit_config_lists_the_defaults():
-    from fog_driver.yamlfile import dataclass_from_mapping, read_yaml
+    from fog_driver.files.yamlio import dataclass_from_mapping, read_yaml
 
     path = ROOT / "configs" / "fit.yaml"
     assert dataclass_from_mapping(FitConfig, read_yaml(path, "fit config"), str(path)) == FitConfig()
 
 
 def test_fit_config_optional_penalty_can_be_null(tmp_path):
-    from fog_driver.yamlfile import dataclass_from_mapping
+    from fog_driver.files.yamlio import dataclass_from_mapping
 
     cfg = dataclass_from_mapping(FitConfig, {"poly_alpha": None, "warmup_s": 60}, "test")
     assert cfg.poly_alpha is None and cfg.warmup_s == 60.0
@@ -273,7 +273,7 @@ def adapt_config():
 
 @pytest.mark.determinism
 def test_adapting_compensator_step_equals_run_in_any_chunks(model_path):
-    from fog_driver.compensation.compensator import FLAG_ADAPTING
+    from fog_driver.compensation.pipeline import FLAG_ADAPTING
 
     samples = SampleStream().run(decode_file(DATA / "sim-short.bin"))
     n = len(samples)
@@ -411,7 +411,7 @@ def test_compensate_cli_adapts_and_keeps_its_state(model_path, tmp_path):
 
 
 def test_fit_config_rates_must_agree(tmp_path):
-    from fog_driver.yamlfile import dataclass_from_mapping
+    from fog_driver.files.yamlio import dataclass_from_mapping
 
     with pytest.raises(InputFileError, match="sample_time_s"):
         dataclass_from_mapping(FitConfig, {"model_rate_hz": 2.0}, "fit.yaml")
@@ -451,7 +451,7 @@ def test_after_a_link_gap_every_estimate_off_by_more_than_a_trickle_is_flagged(r
     """A link loss during a 2 degC/min ramp: the features and the model step through the missing blocks
     (or, past 6 h, restart at rest), and the estimates are flagged ``gap`` until the smoothers settle.
     (The review measured 0.27 deg/h off for 65 s after a 600-s gap, one block of it flagged.)"""
-    from fog_driver.compensation.compensator import FLAG_GAP, SETTLE_TAUS
+    from fog_driver.compensation.pipeline import FLAG_GAP, SETTLE_TAUS
 
     model = DEFAULT_MODEL
     t = ramp_samples.t_s - ramp_samples.t_s[0]

@@ -13,8 +13,7 @@ import numpy as np
 import pytest
 import yaml
 
-from fog_driver.compensation.compensator import CompensatedColumns, Compensator
-from fog_driver.compensation.fit import (
+from fog_driver.compensation.fitting.fit import (
     FitConfig,
     applied_prediction,
     fit_model_file,
@@ -22,8 +21,7 @@ from fog_driver.compensation.fit import (
     minute_rms,
 )
 from fog_driver.compensation.model import MODEL_KINDS, load_model, save_model
-from fog_driver.compensation.numerics import dot
-from fog_driver.compensation.svr import (
+from fog_driver.compensation.models.svr import (
     MISSING_SKLEARN,
     PsoSvrConfig,
     SvrModel,
@@ -32,9 +30,11 @@ from fog_driver.compensation.svr import (
     pso_minimize,
     window_blocks,
 )
+from fog_driver.compensation.numerics import dot
+from fog_driver.compensation.pipeline import CompensatedColumns, Compensator
 from fog_driver.errors import InputFileError, UsageError
 from fog_driver.protocol import decode_file
-from fog_driver.stream import SampleBlock, SampleStream
+from fog_driver.samples.stream import SampleBlock, SampleStream
 
 #: Fitting needs the optional scikit-learn; the swarm, prediction, the model file and the error do not.
 needs_sklearn = pytest.mark.skipif(find_spec("sklearn") is None, reason="scikit-learn not installed")

@@ -18,7 +18,6 @@ import yaml
 
 from fog_driver.cli import main
 from fog_driver.compensation.blocks import FLAG_THERMOMETER_FAULT, PLAUSIBLE_TEMP_C, BlockAverager
-from fog_driver.compensation.compensator import FLAG_NAMES, Compensator
 from fog_driver.compensation.features import (
     FLAG_INPUT_STALE,
     FLAG_RECOVERING,
@@ -29,12 +28,13 @@ from fog_driver.compensation.features import (
     Substitution,
     fit_substitution,
 )
-from fog_driver.compensation.fit import FitConfig, fit_model_file
+from fog_driver.compensation.fitting.fit import FitConfig, fit_model_file
 from fog_driver.compensation.model import load_model, save_model
+from fog_driver.compensation.pipeline import FLAG_NAMES, Compensator
 from fog_driver.daemon.udp import FLAG_BITS
 from fog_driver.errors import InputFileError
+from fog_driver.samples.stream import read_capture_samples
 from fog_driver.sim.capture import read_truth
-from fog_driver.stream import read_capture_samples
 
 PROFILES = Path(__file__).resolve().parents[1] / "configs" / "profiles"
 
@@ -253,7 +253,7 @@ def test_too_little_data_keeps_the_plain_offsets():
 
 def test_the_substitution_round_trips_through_the_model_file_and_old_files_load(tmp_path):
     from fog_driver.compensation.model import ModelFile
-    from fog_driver.compensation.polynomial import N_POLY_FEATURES, PolynomialModel
+    from fog_driver.compensation.models.polynomial import N_POLY_FEATURES, PolynomialModel
     from fog_driver.compensation.readout import Standardizer
 
     sub = Substitution(

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from fog_driver.config import DriverConfig, load_config
+from fog_driver.daemon.config import DriverConfig, load_config
 from fog_driver.errors import InputFileError
 from fog_driver.protocol import IdentityFrame, SampleFrame
 

@@ -15,9 +15,9 @@ from pathlib import Path
 
 import pytest
 
-from fog_driver.capture import read_provenance, write_provenance
 from fog_driver.daemon import rawlog
 from fog_driver.daemon.rawlog import CaptureSink, RotatingCapture, repair_interrupted
+from fog_driver.samples.captures import read_provenance, write_provenance
 
 TIMEOUT_S = 20.0
 

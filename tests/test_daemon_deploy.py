@@ -25,7 +25,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from fog_driver.config import load_config
+from fog_driver.daemon.config import load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "tests" / "data"
@@ -121,7 +121,7 @@ def test_a_wheel_installed_in_a_new_environment_runs_the_daemon_from_anywhere(tm
         [
             str(venv / "bin" / "python"),
             "-c",
-            "import fog_driver, fog_driver.config as c; print(fog_driver.__file__); "
+            "import fog_driver, fog_driver.daemon.config as c; print(fog_driver.__file__); "
             "print(c.DEFAULT_MODEL); print(c.DEFAULT_MODEL.is_file())",
         ],
         cwd=elsewhere,

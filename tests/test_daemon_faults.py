@@ -19,8 +19,8 @@ import pytest
 from framegen import with_identities
 from test_daemon_hil import DATA, Client, Daemon, offline_angles
 
-from fog_driver.capture import read_provenance
 from fog_driver.protocol import decode_bytes
+from fog_driver.samples.captures import read_provenance
 from fog_driver.transport import PtyPair
 
 SHORT = (DATA / "sim-short.bin").read_bytes()
@@ -245,7 +245,7 @@ def test_the_watchdog_follows_watchdog_usec_not_the_status_period(tmp_path, monk
 
 
 def test_the_watchdog_is_not_pinged_when_the_reader_or_the_hub_is_stuck():
-    from fog_driver.config import DriverConfig
+    from fog_driver.daemon.config import DriverConfig
     from fog_driver.daemon.service import READER_STALL_S, Service
 
     class Alive:

@@ -21,7 +21,7 @@ from hub_fixtures import VERSION
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fog_driver.compensation.compensator import FLAG_NAMES
+from fog_driver.compensation.pipeline import FLAG_NAMES
 from fog_driver.daemon.hub import MAX_UNTERMINATED_BYTES, Hub, clean, encode, is_loopback_host
 from fog_driver.daemon.udp import (
     DATAGRAM_SIZE,

@@ -14,12 +14,12 @@ from pathlib import Path
 
 import pytest
 
-from fog_driver.capture import legacy_sidecar_path, read_provenance, sidecar_path
 from fog_driver.daemon import rawlog
 from fog_driver.daemon.rawlog import RotatingCapture
 from fog_driver.daemon.sdnotify import Notifier
 from fog_driver.errors import OutputFileError
 from fog_driver.protocol import decode_bytes, decode_file, encode_identity, encode_sample
+from fog_driver.samples.captures import legacy_sidecar_path, read_provenance, sidecar_path
 
 NAME = re.compile(r"^fog-(\d{6,})-(\d{8}T\d{6}Z)\.bin$")
 

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import yaml
 
-from fog_driver.compensation.apply import compensate_capture
-from fog_driver.compensation.compensator import FLAG_NAMES
+from fog_driver.compensation.binding import compensate_capture
 from fog_driver.compensation.model import load_model
-from fog_driver.config import DEFAULT_MODEL, DriverConfig
+from fog_driver.compensation.pipeline import FLAG_NAMES
+from fog_driver.daemon.config import DEFAULT_MODEL, DriverConfig
 from fog_driver.daemon.service import ConfigError, Service
 
 DATA = Path(__file__).resolve().parent / "data"
@@ -118,7 +118,7 @@ def test_samples_before_the_first_identity_are_kept_and_compensated():
 
 
 def test_reload_config_applies_live_settings_and_keeps_the_rest(tmp_path):
-    from fog_driver.compensation.fit import FitConfig, fit_model_file
+    from fog_driver.compensation.fitting.fit import FitConfig, fit_model_file
     from fog_driver.compensation.model import save_model
 
     model_file, _ = fit_model_file(
@@ -158,7 +158,7 @@ def test_reloading_the_same_model_mid_run_changes_nothing_published(cut):
 
 
 def test_reloading_another_model_keeps_the_block_grid_and_the_smoothers(tmp_path):
-    from fog_driver.compensation.fit import FitConfig, fit_model_file
+    from fog_driver.compensation.fitting.fit import FitConfig, fit_model_file
 
     model_file, _ = fit_model_file(
         [DATA / "sim-short.bin"], kind="polynomial", config=FitConfig(warmup_s=30.0), accept_weak=True

@@ -15,12 +15,12 @@ from framegen import with_identities
 from test_daemon_service import offline
 
 from fog_driver.compensation.adapt import AdaptConfig
-from fog_driver.compensation.apply import ModelMismatchError
+from fog_driver.compensation.binding import ModelMismatchError
 from fog_driver.compensation.blocks import FLAG_GAP
-from fog_driver.compensation.compensator import FLAG_ADAPTING
-from fog_driver.compensation.fit import FitConfig, fit_model_file
+from fog_driver.compensation.fitting.fit import FitConfig, fit_model_file
 from fog_driver.compensation.model import load_model, save_model
-from fog_driver.config import DriverConfig
+from fog_driver.compensation.pipeline import FLAG_ADAPTING
+from fog_driver.daemon.config import DriverConfig
 from fog_driver.daemon.service import Service
 from fog_driver.errors import InputFileError
 from fog_driver.protocol import decode_bytes

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from fog_driver.config import DriverConfig
+from fog_driver.daemon.config import DriverConfig
 from fog_driver.daemon.service import Service
 from fog_driver.daemon.udp import UdpPublisher, decode_datagram
 

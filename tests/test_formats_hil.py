@@ -12,15 +12,15 @@ import pytest
 import yaml
 from test_daemon_hil import Client, Daemon
 
-from fog_driver.compensation.apply import compensate_capture
-from fog_driver.compensation.fit import FitConfig, fit_model_file
+from fog_driver.compensation.binding import compensate_capture
+from fog_driver.compensation.fitting.fit import FitConfig, fit_model_file
 from fog_driver.compensation.model import load_model, save_model
+from fog_driver.samples.sources import SampleSource, wire_settings_for
+from fog_driver.samples.stream import Sample
 from fog_driver.sim.capture import simulate_to_file
 from fog_driver.sim.instrument import Simulator
 from fog_driver.sim.kvh_device import FakeKvhDevice
 from fog_driver.sim.profiles import load_profile
-from fog_driver.sources import SampleSource, wire_settings_for
-from fog_driver.stream import Sample
 from fog_driver.transport import PtyPair
 
 
@@ -134,7 +134,7 @@ def test_record_sends_the_setup_and_its_capture_reads_as_the_daemon_reads_it(tmp
     (event,) = doc["events"]
     assert event["event"] == "device_setup" and event["at_byte"] == 0 and event["bytes_not_decoded"] > 0
     wire = wire_settings_for(out)
-    from fog_driver.sources import CaptureReader
+    from fog_driver.samples.sources import CaptureReader
 
     temps = [t for p in CaptureReader(out, wire).parts() for t in p.samples.t_top_c.tolist()]
     assert len(temps) > 50 and set(temps) == {25.0}  # none of the frames before the setup read as 0.25 degC

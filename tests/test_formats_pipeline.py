@@ -14,18 +14,14 @@ import pytest
 import yaml
 
 from fog_driver.cli import main
-from fog_driver.compensation.apply import ModelMismatchError, compensate_capture
-from fog_driver.compensation.compensator import Compensator
-from fog_driver.compensation.fit import FitConfig, fit_model_file
+from fog_driver.compensation.binding import ModelMismatchError, compensate_capture
+from fog_driver.compensation.fitting.fit import FitConfig, fit_model_file
 from fog_driver.compensation.model import load_model, save_model
-from fog_driver.config import DEFAULT_MODEL, DeviceConfig, DriverConfig, parse_config
+from fog_driver.compensation.pipeline import Compensator
+from fog_driver.daemon.config import DEFAULT_MODEL, DeviceConfig, DriverConfig, parse_config
 from fog_driver.daemon.service import ConfigError, Service
 from fog_driver.errors import InputFileError
-from fog_driver.sim.capture import simulate_to_file
-from fog_driver.sim.faults import parse_fault_spec
-from fog_driver.sim.instrument import Simulator
-from fog_driver.sim.profiles import load_profile
-from fog_driver.sources import (
+from fog_driver.samples.sources import (
     DTHETA_GRID_ARCSEC,
     AutoSampleSource,
     CaptureReader,
@@ -33,7 +29,11 @@ from fog_driver.sources import (
     WireSettings,
     wire_settings_for,
 )
-from fog_driver.stream import Sample, SampleBlock
+from fog_driver.samples.stream import Sample, SampleBlock
+from fog_driver.sim.capture import simulate_to_file
+from fog_driver.sim.faults import parse_fault_spec
+from fog_driver.sim.instrument import Simulator
+from fog_driver.sim.profiles import load_profile
 
 OTHER_FORMATS = ("kvh-a", "kvh-b", "kvh-c", "ixblue-stdbin")
 SHORT_FIT = FitConfig(warmup_s=30.0)
@@ -467,7 +467,7 @@ def test_the_kvh_batch_path_gives_the_streaming_samples_bit_for_bit(fmt, tmp_pat
 
 
 def test_bytes_read_during_a_device_setup_are_left_out_offline_at_any_block_size():
-    from fog_driver.sources import _without
+    from fog_driver.samples.sources import _without
 
     data = bytes(range(256)) * 40
     ranges = [(0, 3), (100, 250), (251, 252), (5000, 7000), (10230, 10240)]

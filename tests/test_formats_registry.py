@@ -7,11 +7,11 @@ from pathlib import Path
 
 import pytest
 
-from fog_driver.capture import inspect_capture
 from fog_driver.errors import InputFileError
 from fog_driver.formats.kvh import encode_kvh_frame
 from fog_driver.formats.registry import FORMATS, MIN_FRAMES, sniff
 from fog_driver.protocol import encode_identity, encode_sample
+from fog_driver.samples.captures import inspect_capture
 
 DATA = Path(__file__).parent / "data"
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from fog_driver.capture import read_provenance
+from fog_driver.samples.captures import read_provenance
 
 HERE = Path(__file__).resolve().parent
 DATA = HERE / "data"

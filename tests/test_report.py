@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fog_driver.config import DEFAULT_MODEL
+from fog_driver.daemon.config import DEFAULT_MODEL
 from fog_driver.report.allan import allan
 
 ROOT = Path(__file__).resolve().parents[1]

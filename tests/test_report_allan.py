@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fog_driver.config import DEFAULT_MODEL
+from fog_driver.daemon.config import DEFAULT_MODEL
 from fog_driver.report.allan import TABLE_COLUMNS, allan, read_csv, write_csv
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -260,7 +260,7 @@ def positioning_capture(tmp_path_factory):
 @pytest.fixture(scope="module")
 def default_model():
     from fog_driver.compensation.model import load_model
-    from fog_driver.config import DEFAULT_MODEL
+    from fog_driver.daemon.config import DEFAULT_MODEL
 
     return load_model(DEFAULT_MODEL)
 
@@ -338,7 +338,7 @@ def test_evaluate_command_with_reference_and_compare(positioning_capture, tmp_pa
     import subprocess
     import sys
 
-    from fog_driver.config import DEFAULT_MODEL
+    from fog_driver.daemon.config import DEFAULT_MODEL
 
     stops = load_stops(positioning_capture)
     ref = tmp_path / "stops.csv"

@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fog_driver.capture import read_provenance
 from fog_driver.formats.kvh import KvhDecoder
 from fog_driver.formats.registry import sniff
+from fog_driver.samples.captures import read_provenance
 from fog_driver.sim.faults import parse_fault_spec
 from fog_driver.sim.instrument import Simulator
 from fog_driver.sim.profiles import load_profile

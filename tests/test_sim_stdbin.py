@@ -10,10 +10,10 @@ import sys
 import numpy as np
 import pytest
 
-from fog_driver.capture import read_provenance
 from fog_driver.formats.common import ImuSample
 from fog_driver.formats.ixblue import StdbinDecoder, encode_stdbin
 from fog_driver.formats.registry import sniff
+from fog_driver.samples.captures import read_provenance
 from fog_driver.sim.faults import parse_fault_spec
 from fog_driver.sim.instrument import STDBIN_VERSION, Simulator
 from fog_driver.sim.profiles import load_profile

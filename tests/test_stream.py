@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fog_driver.protocol import IdentityFrame, SampleArrays, SampleFrame, decode_bytes
-from fog_driver.stream import SampleBlock, SampleStream
+from fog_driver.samples.stream import SampleBlock, SampleStream
 
 
 def frame(seq: int, t_us: int, dtheta: int = 10, temps=(5120, 5000, 4900), status: int = 0) -> SampleFrame:

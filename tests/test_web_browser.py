@@ -24,7 +24,7 @@ from pathlib import Path
 from playwright.sync_api import expect, sync_playwright
 from test_daemon_hil import Client, Daemon
 
-from fog_driver.daemon.watch import format_arcsec, format_dms
+from fog_driver.tools.watch import format_arcsec, format_dms
 from fog_driver.transport import PtyPair
 
 DATA = Path(__file__).resolve().parent / "data"

@@ -10,9 +10,9 @@ import stat
 import pytest
 import yaml
 
-from fog_driver import yamlfile
 from fog_driver.errors import OutputFileError
-from fog_driver.yamlfile import write_yaml
+from fog_driver.files import yamlio as yamlfile
+from fog_driver.files.yamlio import write_yaml
 
 DOC = {"format": "test", "values": [1, 2, 3]}
 

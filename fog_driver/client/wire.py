@@ -21,7 +21,7 @@ from collections import deque
 from pathlib import Path
 from typing import Any
 
-from ..config import format_address, parse_host_port
+from ..daemon.config import format_address, parse_host_port
 from ..errors import DeviceError, InputFileError, UsageError
 
 __all__ = [

@@ -104,9 +104,9 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputFileError
-from ..yamlfile import read_tagged_yaml, require_known_keys, write_yaml
+from ..files.yamlio import read_tagged_yaml, require_known_keys, write_yaml
 from . import numerics
-from .compensator import FLAG_ADAPTING, FLAG_GUARD
+from .pipeline import FLAG_ADAPTING, FLAG_GUARD
 from .readout import AdaptiveLaw, AdaptiveLawParams, AdaptiveLawState
 
 __all__ = [

@@ -22,7 +22,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ..protocol import STATUS_THERMOMETER_FAULT
-from ..stream import Sample, SampleBlock
+from ..samples.stream import Sample, SampleBlock
 
 #: Block flags (the pipeline adds its own above these).
 FLAG_GAP = 1 << 0  #: frames were missing in this block

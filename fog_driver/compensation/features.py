@@ -186,7 +186,7 @@ def fit_substitution(
     of ``chunk_s``: the RMS of the residual within each held-out chunk, its chunk mean removed (what a
     substitute drifts off over a fault of that length).  A pair is kept only where it beats the better
     single.  Returns ``Substitution.offsets()`` where the data are too few (under 4 chunks)."""
-    from .polynomial import standardized_ridge
+    from .models.polynomial import standardized_ridge
 
     if any(u.shape[1] != N_INPUTS for u in inputs):  # fewer than three channels: none to predict from
         return Substitution.offsets()

@@ -18,15 +18,15 @@ from typing import Any, Protocol
 import numpy as np
 
 from .. import __version__
-from ..capture import utc_now_iso
 from ..errors import InputFileError
-from ..yamlfile import read_tagged_yaml, write_yaml
+from ..files.yamlio import read_tagged_yaml, write_yaml
+from ..samples.captures import utc_now_iso
 from .domain import InputDomain
 from .features import V1_CHANNELS, FeatureParams, Substitution, input_names, params_to_dict
-from .polynomial import PolynomialModel
+from .models.polynomial import PolynomialModel
+from .models.svr import SvrModel
+from .models.wesn import PaperKind, WesnKind
 from .readout import Standardizer
-from .svr import SvrModel
-from .wesn import PaperKind, WesnKind
 
 MODEL_FORMAT = "fog_driver drift model"
 MODEL_SCHEMA_VERSION = 1

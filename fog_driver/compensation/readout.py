@@ -70,7 +70,7 @@ from typing import Any
 
 import numpy as np
 
-from ..yamlfile import require_known_keys
+from ..files.yamlio import require_known_keys
 from . import numerics
 
 __all__ = ["AdaptiveLaw", "AdaptiveLawParams", "AdaptiveLawState", "Standardizer", "ridge_fit"]

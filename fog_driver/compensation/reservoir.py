@@ -98,7 +98,7 @@ from typing import Any
 
 import numpy as np
 
-from ..yamlfile import require_known_keys
+from ..files.yamlio import require_known_keys
 from . import numerics
 
 __all__ = [

@@ -149,7 +149,7 @@ from typing import Any, Self
 
 import structlog
 
-from .metrics import LatencyHistogram
+from .web.metrics import LatencyHistogram
 
 __all__ = [
     "DEFAULT_AUTH_BACKOFF_BASE_S",

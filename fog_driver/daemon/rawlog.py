@@ -4,7 +4,7 @@ Two layers:
 
 ``RotatingCapture`` appends the port's bytes exactly as read (garbage, partial frames and all) to
 ``<prefix>-<nnnnnn>-<UTC yyyymmddThhmmssZ>.bin`` files in one directory, each with the usual
-provenance sidecar ``<same name>.bin.yaml`` (see ``fog_driver.capture``; files from before have it at
+provenance sidecar ``<same name>.bin.yaml`` (see ``fog_driver.samples.captures``; files from before have it at
 ``<same name>.yaml``, and ``repair_interrupted`` reads and rewrites either).  The file itself is a
 ``CaptureWriter``: unbuffered, so size and SHA-256 count exactly the bytes the OS took.  It is not
 thread-safe: one thread owns it.
@@ -63,7 +63,8 @@ from typing import Any
 import structlog
 
 from .. import __version__
-from ..capture import (
+from ..errors import FogDriverError, OutputFileError
+from ..samples.captures import (
     CaptureWriter,
     find_sidecar,
     legacy_sidecar_path,
@@ -72,7 +73,6 @@ from ..capture import (
     utc_now_iso,
     write_provenance,
 )
-from ..errors import FogDriverError, OutputFileError
 
 log = structlog.get_logger("fog_driver.daemon")
 

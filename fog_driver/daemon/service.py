@@ -52,22 +52,22 @@ import structlog
 
 from .. import __version__
 from ..compensation.adapt import AdaptConfig, read_state_doc, write_state_doc
-from ..compensation.apply import InstrumentCompensation, ModelMismatchError, check_channels
-from ..compensation.compensator import (
+from ..compensation.binding import InstrumentCompensation, ModelMismatchError, check_channels
+from ..compensation.model import ModelFile, load_model
+from ..compensation.pipeline import (
     FLAG_NAMES,
     CompensatedSample,
     Compensator,
     flag_names,
 )
-from ..compensation.model import ModelFile, load_model
-from ..config import DriverConfig, parse_host_port
 from ..errors import FogDriverError, TemporaryFailure
 from ..protocol import IdentityFrame
-from ..sources import make_source
-from ..stream import identity_is_plausible
+from ..samples.sources import make_source
+from ..samples.stream import identity_is_plausible
 from ..transport import PortError, PortEvent, PortReader
 from ..transport.setup import make_on_open
-from .metrics import LatencyHistogram
+from .config import DriverConfig, parse_host_port
+from .web.metrics import LatencyHistogram
 
 log = structlog.get_logger("fog_driver.daemon")
 
@@ -803,7 +803,7 @@ class Service:
             self.port_url, baudrate=self.config.baud, backoff_max_s=1.0, on_state=self._on_port_state, on_open=on_open
         )
         if self.web is not None:
-            from ..config import format_address
+            from .config import format_address
 
             self.web.view.control_address = format_address(*address)  # the bias banner's ctl command
             log.info("web_listening", address=format_address(*self.web.address), token=self.web.need_token)
@@ -814,8 +814,8 @@ class Service:
     def _make_web(self):
         """The web view and /metrics on ``http``, not started (ConfigError: the extra is missing, no token
         beyond loopback)."""
-        from ..config import DEFAULT_HTTP_PORT
-        from .web import WebUnavailable, WebView
+        from .config import DEFAULT_HTTP_PORT
+        from .web.server import WebUnavailable, WebView
 
         try:
             host, port = parse_host_port(self.config.http, default_port=DEFAULT_HTTP_PORT)

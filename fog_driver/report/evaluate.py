@@ -31,9 +31,9 @@ from typing import Any
 
 import numpy as np
 
-from ..compensation.apply import compensate_capture
+from ..compensation.binding import compensate_capture
 from ..compensation.domain import FLAG_EXTRAPOLATING
-from ..compensation.fit import FitConfig, load_capture
+from ..compensation.fitting.fit import FitConfig, load_capture
 from ..compensation.model import ModelFile
 from ..errors import UsageError
 from ..extras import missing_message

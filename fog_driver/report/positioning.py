@@ -76,11 +76,11 @@ from typing import Any
 
 import numpy as np
 
-from ..capture import find_sidecar, read_provenance
-from ..compensation.apply import compensate_capture
-from ..compensation.compensator import FLAG_UNCOMPENSATED
+from ..compensation.binding import compensate_capture
 from ..compensation.model import ModelFile
+from ..compensation.pipeline import FLAG_UNCOMPENSATED
 from ..errors import InputFileError, UsageError, read_error
+from ..samples.captures import find_sidecar, read_provenance
 from ..sim.profiles import Stop
 
 __all__ = [
@@ -361,7 +361,7 @@ def _columns(
     capture: Path, model_file: ModelFile | None, force: bool, name: str, wire_format: str = "auto"
 ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
     """(t_s absolute, raw angle, method's angle, temps (n, 3), uncompensated mask) per chunk."""
-    from ..sources import CaptureReader, wire_settings_for
+    from ..samples.sources import CaptureReader, wire_settings_for
 
     if model_file is not None:
         for _, c in compensate_capture(

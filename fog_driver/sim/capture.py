@@ -29,9 +29,9 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..capture import CaptureWriter, read_provenance, sidecar_path, utc_now_iso, write_provenance
 from ..errors import InputFileError, OutputFileError, read_error
-from ..outputs import check_outputs, write_error
+from ..files.outputs import check_outputs, write_error
+from ..samples.captures import CaptureWriter, read_provenance, sidecar_path, utc_now_iso, write_provenance
 from .instrument import COMPONENTS, STDBIN_TEMPERATURE_CHANNELS, STDBIN_VERSION, FrameBlock, Simulator
 
 TRUTH_COLUMNS = (

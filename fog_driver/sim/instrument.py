@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from ..files.yamlio import dataclass_from_mapping, read_yaml
 from ..protocol import (
     SAMPLE_FRAME_LEN,
     STATUS_LIGHT_SOURCE_FAULT,
@@ -41,7 +42,6 @@ from ..protocol import (
     encode_identity,
     encode_sample_frames,
 )
-from ..yamlfile import dataclass_from_mapping, read_yaml
 from .faults import FaultSpec
 from .gyro import ARCSEC_PER_SQRT_S_PER_DEG_PER_SQRT_H, GyroParams, SlowNoise, drift_terms
 from .profiles import SimProfile

@@ -79,7 +79,7 @@ import numpy as np
 import yaml
 
 from ..errors import InputFileError
-from ..yamlfile import MAX_YAML_BYTES, read_yaml
+from ..files.yamlio import MAX_YAML_BYTES, read_yaml
 
 __all__ = [
     "BUILTIN_PROFILES",

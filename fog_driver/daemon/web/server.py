@@ -7,7 +7,7 @@ hub's loop.
 Routes (all read-only; the page offers no command):
 
 ====================  =========================================================================================
-``GET /``             the page (``web_static/index.html``, with ``view.js`` and ``view.css``)
+``GET /``             the page (``static/index.html``, with ``view.js`` and ``view.css``)
 ``GET /ws``           WebSocket: one ``snapshot`` when it opens, then an ``update`` every ``1/update_hz`` s
                       (``view.ViewState``: the latest sample, decimated here, the new plot points, the banners)
 ``GET /api/view``     the same snapshot as one JSON document (scripts, ``curl``)
@@ -58,7 +58,7 @@ from typing import Any
 
 import structlog
 
-from .hub import DEFAULT_LOG_LINES_PER_S, _AuthThrottle, _check_token, _LogRateLimiter, encode, is_loopback_host
+from ..hub import DEFAULT_LOG_LINES_PER_S, _AuthThrottle, _check_token, _LogRateLimiter, encode, is_loopback_host
 from .metrics import DaemonCollector, LatencyHistogram
 from .view import DEFAULT_HISTORY_MIN, ViewState
 
@@ -80,8 +80,8 @@ MAX_WS_MESSAGES_PER_S = 10
 COOKIE = "fog_driver_token"
 #: The page's assets: name -> (package, resource path, content type).
 ASSETS = {
-    "view.js": ("fog_driver.daemon", "web_static/view.js", "text/javascript"),
-    "view.css": ("fog_driver.daemon", "web_static/view.css", "text/css"),
+    "view.js": ("fog_driver.daemon.web", "static/view.js", "text/javascript"),
+    "view.css": ("fog_driver.daemon.web", "static/view.css", "text/css"),
     "plotly.min.js": ("plotly", "package_data/plotly.min.js", "text/javascript"),
 }
 _SECURITY_HEADERS = {
@@ -125,7 +125,7 @@ def _load_assets() -> dict[str, _Asset]:
 
 
 def _index_html() -> bytes:
-    return importlib.resources.files("fog_driver.daemon").joinpath("web_static/index.html").read_bytes()
+    return importlib.resources.files("fog_driver.daemon.web").joinpath("static/index.html").read_bytes()
 
 
 class _Browser:

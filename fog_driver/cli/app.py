@@ -20,12 +20,12 @@ from pathlib import Path
 
 import structlog
 
-from . import __version__
-from .capture import format_summary, inspect_capture
-from .console import LOG_FORMATS, Progress, configure_logging
-from .errors import FogDriverError, InputFileError, InternalError, OutputFileError, UsageError
-from .outputs import check_outputs, write_error
-from .signals import SignalDispatcher, stop_on_signals
+from .. import __version__
+from ..console import LOG_FORMATS, Progress, configure_logging
+from ..errors import FogDriverError, InputFileError, InternalError, OutputFileError, UsageError
+from ..files.outputs import check_outputs, write_error
+from ..samples.captures import format_summary, inspect_capture
+from ..signals import SignalDispatcher, stop_on_signals
 
 EXIT_PROBLEMS = 1  # inspect --strict found problems
 
@@ -51,13 +51,13 @@ def _baud(text: str) -> int:
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
-    from .sources import PROTOCOL_V1, capture_format
+    from ..samples.sources import PROTOCOL_V1, capture_format
 
     other, doc = PROTOCOL_V1, {}
     if args.format != PROTOCOL_V1 and os.path.isfile(args.capture) and os.access(args.capture, os.R_OK):
         other, doc = capture_format(args.capture, args.format)  # (an unreadable file: inspect's own words below)
     if other != PROTOCOL_V1:  # without a sidecar too: inspect is how one finds out what a capture holds
-        from .formats.summary import format_format_summary, summarize_format
+        from ..formats.summary import format_format_summary, summarize_format
 
         settings = doc.get("wire_settings") if doc.get("wire_format") == other else None
         settings = settings if isinstance(settings, dict) else {}
@@ -84,7 +84,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 def _record_wire(config_path: str | None, fmt: str | None):
     """What ``record [--config FILE] [--format NAME]`` says the port sends, and the device's setup commands
     (None, None: protocol v1, no setup)."""
-    from .config import DriverConfig, load_config
+    from ..daemon.config import DriverConfig, load_config
 
     if config_path is None and fmt in (None, "fog-v1"):
         return None, None
@@ -104,7 +104,7 @@ def _record_wire(config_path: str | None, fmt: str | None):
 
 
 def cmd_record(args: argparse.Namespace) -> int:
-    from .record import record  # imports the transport (pyserial) only when needed
+    from ..samples.record import record  # imports the transport (pyserial) only when needed
 
     if not args.out.endswith(".bin"):
         raise UsageError(f"--out {args.out!r}: a capture file name must end in .bin")
@@ -183,7 +183,7 @@ def _seed(text: str) -> int:
 
 
 def _instrument_seed(text: str) -> int:
-    from .sim.population import MAX_INSTRUMENT_SEED
+    from ..sim.population import MAX_INSTRUMENT_SEED
 
     value = _seed(text)
     if value > MAX_INSTRUMENT_SEED:
@@ -192,10 +192,10 @@ def _instrument_seed(text: str) -> int:
 
 
 def _simulator(args: argparse.Namespace):
-    from .sim.faults import parse_fault_spec
-    from .sim.instrument import Simulator, load_instrument_config
-    from .sim.population import draw_instrument
-    from .sim.profiles import load_profile
+    from ..sim.faults import parse_fault_spec
+    from ..sim.instrument import Simulator, load_instrument_config
+    from ..sim.population import draw_instrument
+    from ..sim.profiles import load_profile
 
     profile = load_profile(args.profile)
     config = load_instrument_config(args.instrument)
@@ -212,10 +212,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         raise UsageError("give exactly one of --out CAPTURE.bin (write a capture) or --serve pty|DEVICE (stream live)")
     sim, faults = _simulator(args)
     if args.serve is not None:
-        from .sim.serve import serve_cli
+        from ..sim.serve import serve_cli
 
         return serve_cli(sim, args)
-    from .sim.capture import simulate_to_file
+    from ..sim.capture import simulate_to_file
 
     if not args.out.endswith(".bin"):
         raise UsageError(f"--out {args.out!r}: a capture file name must end in .bin")
@@ -246,7 +246,7 @@ def _print_fit_report(report) -> None:
     """The fit's table, its noise-floor line, and a warning (with the fit's other warnings, on stdout: stderr
     keeps the one-line error of a refused fit) for each model row that leaves more drift than no compensation
     (marked in the table)."""
-    from .compensation.fit import WORSE_MARKER
+    from ..compensation.fitting.fit import WORSE_MARKER
 
     print(report.format())
     note = report.floor_note()
@@ -264,15 +264,15 @@ def _print_fit_report(report) -> None:
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
-    from .compensation.fit import FitConfig, WeakFitError, fit_model_file
-    from .compensation.model import save_model
-    from .compensation.quality import format_checks
-    from .yamlfile import dataclass_from_mapping, read_yaml
+    from ..compensation.fitting.fit import FitConfig, WeakFitError, fit_model_file
+    from ..compensation.fitting.quality import format_checks
+    from ..compensation.model import save_model
+    from ..files.yamlio import dataclass_from_mapping, read_yaml
 
     out = Path(args.out)
     check_outputs([out], force=args.force, inputs=[*args.captures, *args.validate, *filter(None, [args.config])])
     if args.kind == "pso-svr":
-        from .extras import require_extra
+        from ..extras import require_extra
 
         require_extra("svr", "fitting a pso-svr model")
     config = FitConfig()
@@ -355,7 +355,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     for message in quality.get("weak", []):
         print(f"warning: weak fit accepted (--accept-weak-fit): {message}")
     if "bias_step" in quality:
-        from .compensation.fit import bias_step_warning
+        from ..compensation.fitting.fit import bias_step_warning
 
         step = quality["bias_step"]
         print(
@@ -373,10 +373,10 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
 
 def cmd_compensate(args: argparse.Namespace) -> int:
-    from .capture import _capture_size
-    from .compensation.apply import compensate_capture
-    from .compensation.model import load_model
-    from .compensation.rows import ROW_COLUMNS, compensated_rows, format_row
+    from ..compensation.binding import compensate_capture
+    from ..compensation.model import load_model
+    from ..offline.rows import ROW_COLUMNS, compensated_rows, format_row
+    from ..samples.captures import _capture_size
 
     out = Path(args.out)
     inputs = [args.capture, args.model]
@@ -387,7 +387,7 @@ def cmd_compensate(args: argparse.Namespace) -> int:
     size = _capture_size(Path(args.capture))
     adapt = None
     if args.adapt_reference is not None or args.adapt_state is not None:
-        from .compensation.adapt import AdaptConfig
+        from ..compensation.adapt import AdaptConfig
 
         adapt = AdaptConfig()
     if args.adapt_state is not None and args.adapt_reference is None and not Path(args.adapt_state).exists():
@@ -442,7 +442,7 @@ def cmd_compensate(args: argparse.Namespace) -> int:
 def _check_adapt_state(path: Path, *, save: bool, inputs: list) -> None:
     """``compensate --adapt-state``: read when it exists, and (``save``) replaced at the end, so an existing
     file must be an adaptation state (by its content), and its directory must exist."""
-    from .outputs import describe
+    from ..files.outputs import describe
 
     if path.exists() and not path.is_dir() and (kind := describe(path)) != "an adaptation state":
         raise OutputFileError(
@@ -460,11 +460,11 @@ def _read(value: float | None, fmt: str) -> str:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from .compensation.model import load_model
-    from .extras import require_extra
-    from .report import positioning
-    from .report.evaluate import evaluate, format_bias_instability, model_label, series_names, write_report
-    from .sim.capture import check_truth_matches, read_truth
+    from ..compensation.model import load_model
+    from ..extras import require_extra
+    from ..report import positioning
+    from ..report.evaluate import evaluate, format_bias_instability, model_label, series_names, write_report
+    from ..sim.capture import check_truth_matches, read_truth
 
     require_extra("report", "evaluate's report (Allan deviation, plots)")
     out = Path(args.out)
@@ -568,7 +568,7 @@ def _positive_int(text: str) -> int:
 
 
 def cmd_watch(args: argparse.Namespace) -> int:
-    from .daemon.watch import watch_command
+    from ..tools.watch import watch_command
 
     previous = signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM ends it as Ctrl-C does
     try:
@@ -585,7 +585,7 @@ def cmd_watch(args: argparse.Namespace) -> int:
 
 
 def cmd_ctl(args: argparse.Namespace) -> int:
-    from .daemon.ctl import ctl_command
+    from ..tools.ctl import ctl_command
 
     return ctl_command(
         args.ctl_command,
@@ -601,9 +601,9 @@ def cmd_ctl(args: argparse.Namespace) -> int:
 def cmd_run(args: argparse.Namespace) -> int:
     import dataclasses
 
-    from .config import DriverConfig, load_config
-    from .daemon.service import ConfigError, Service
-    from .daemon.watch import format_address
+    from ..daemon.config import DriverConfig, load_config
+    from ..daemon.service import ConfigError, Service
+    from ..tools.watch import format_address
 
     # A service logs JSON lines to journald or a pipe (per-second summaries); at a terminal it is quiet.
     configure_logging(args.verbose, args.log_format, service=True)
@@ -686,9 +686,9 @@ def _stdin_is_a_terminal() -> bool:
 
 def _start_embedded_simulator(stop: threading.Event) -> tuple[threading.Thread, str]:
     """The demonstration instrument: the simulator on a pty in this process (the paper profile)."""
-    from .sim.instrument import Simulator
-    from .sim.profiles import load_profile
-    from .sim.serve import serve_pty
+    from ..sim.instrument import Simulator
+    from ..sim.profiles import load_profile
+    from ..sim.serve import serve_pty
 
     sim = Simulator(load_profile("paper"), rate_hz=100, seed=0)
     ready = threading.Event()
@@ -713,7 +713,7 @@ def _start_embedded_simulator(stop: threading.Event) -> tuple[threading.Thread, 
 
 
 def _format_option(p: argparse.ArgumentParser) -> None:
-    from .formats.registry import FORMATS
+    from ..formats.registry import FORMATS
 
     p.add_argument(
         "--format",
@@ -753,7 +753,7 @@ def build_parser() -> argparse.ArgumentParser:
     def add_parser(name: str, **kw) -> argparse.ArgumentParser:
         return sub.add_parser(name, parents=[logging_options], **kw)
 
-    from .formats.registry import FORMATS
+    from ..formats.registry import FORMATS
 
     FORMAT_NAMES = list(FORMATS)
     p = add_parser("inspect", help="check a capture file and summarize what it holds")
@@ -797,7 +797,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(func=cmd_record)
 
-    from .sim.instrument import WIRE_FORMATS
+    from ..sim.instrument import WIRE_FORMATS
 
     p = add_parser("simulate", help="simulate the instrument: write a capture with its truth, or serve it live")
     p.add_argument(
@@ -849,7 +849,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--baud", type=_baud, default=460800, metavar="B", help="--serve DEVICE: baud rate (default 460800)")
     p.set_defaults(func=cmd_simulate)
 
-    from .compensation.fit import FITTERS, KIND_HELP
+    from ..compensation.fitting.fit import FITTERS, KIND_HELP
 
     kinds = (
         [DEFAULT_FIT_KIND]

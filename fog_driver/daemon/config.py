@@ -13,9 +13,9 @@ from importlib.resources import files
 from pathlib import Path
 from typing import Any
 
-from .errors import InputFileError
-from .stream import DEFAULT_SCALE_ARCSEC_PER_COUNT, SampleStream
-from .yamlfile import dataclass_from_mapping, read_yaml
+from ..errors import InputFileError
+from ..files.yamlio import dataclass_from_mapping, read_yaml
+from ..samples.stream import DEFAULT_SCALE_ARCSEC_PER_COUNT, SampleStream
 
 #: The shipped drift model (``fog_driver/data/models/default.yaml``): package data, so a wheel or any
 #: other install finds it as a source checkout does.
@@ -83,7 +83,7 @@ class DeviceConfig:
     setup_reply_timeout_s: float = 1.0  #: how long to wait for the device's answer to each setup command
 
     def __post_init__(self) -> None:
-        from .transport.setup import validate_command
+        from ..transport.setup import validate_command
 
         for command in self.setup:
             validate_command(command)  # InvalidSetupCommand is a ValueError: "config: device: setup command ..."
@@ -92,7 +92,7 @@ class DeviceConfig:
 
     def device_setup(self):
         """``transport.setup.DeviceSetup`` of the commands, or None when there are none."""
-        from .transport.setup import DeviceSetup
+        from ..transport.setup import DeviceSetup
 
         return DeviceSetup(commands=self.setup, reply_timeout_s=self.setup_reply_timeout_s) if self.setup else None
 
@@ -161,7 +161,7 @@ class DriverConfig:
 
     def wire_settings(self, name: str | None = None):
         """``sources.WireSettings`` of the configured format (``name``: the one the bytes showed, for auto)."""
-        from .sources import WireSettings
+        from ..samples.sources import WireSettings
 
         name = name or self.format
         d = self.device

@@ -30,7 +30,7 @@ from collections import deque
 from collections.abc import Iterable, Mapping
 from typing import Any
 
-from .watch import NO_DATA_S, banners, format_arcsec, format_dms
+from ...tools.watch import NO_DATA_S, banners, format_arcsec, format_dms
 
 #: Device seconds per plotted point (at least), and per mean of the rate plot.
 POINT_EVERY_S = 1.0

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import yaml
 
-from .errors import OutputFileError
-from .protocol.wire import SYNC
+from ..errors import OutputFileError
+from ..protocol.wire import SYNC
 
 _SNIFF_BYTES = 1 << 20
 
@@ -25,11 +25,11 @@ _SNIFF_BYTES = 1 << 20
 def _kinds() -> tuple[tuple[tuple[str, str], ...], dict[str, str]]:
     """(the first line of each kind of text file the project writes, its name), and the ``format`` tags of
     its YAML files -> their names ({capture}: a sidecar's capture).  Imported here: only errors need them."""
-    from .capture import PROVENANCE_FORMAT
-    from .compensation.adapt import ADAPT_STATE_FORMAT
-    from .compensation.model import MODEL_FORMAT
-    from .compensation.rows import ROW_COLUMNS
-    from .sim.capture import TRUTH_HEADER
+    from ..compensation.adapt import ADAPT_STATE_FORMAT
+    from ..compensation.model import MODEL_FORMAT
+    from ..offline.rows import ROW_COLUMNS
+    from ..samples.captures import PROVENANCE_FORMAT
+    from ..sim.capture import TRUTH_HEADER
 
     text = ((TRUTH_HEADER, "a simulator truth file"), (",".join(ROW_COLUMNS), "a compensate CSV"))
     tags = {

@@ -49,9 +49,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import UsageError
-from ..extras import missing_message
-from . import numerics
+from ...errors import UsageError
+from ...extras import missing_message
+from .. import numerics
 from .polynomial import Memoryless
 
 _CHUNK_FLOATS = 1 << 20  #: ``run`` works in chunks of rows whose differences (rows x n_sv x 8) fit in 8 MB

@@ -12,7 +12,7 @@ from typing import Any
 
 import yaml
 
-from .errors import InputFileError, OutputFileError
+from ..errors import InputFileError, OutputFileError
 
 #: Every YAML file the project reads is small; a larger one is not what it claims to be.
 MAX_YAML_BYTES = 1 << 20

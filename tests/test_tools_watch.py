@@ -1,4 +1,4 @@
-"""Tests of fog_driver.daemon.watch: the `fog-driver watch` client of the daemon's NDJSON protocol.
+"""Tests of fog_driver.tools.watch: the `fog-driver watch` client of the daemon's NDJSON protocol.
 
 The daemon is a tiny fake server in a thread: a listening socket that is bound and listening
 before ``run_watch`` connects (the kernel's accept backlog is the readiness; nothing sleeps),
@@ -18,7 +18,8 @@ import time
 
 import pytest
 
-from fog_driver.daemon.watch import (
+from fog_driver.errors import DeviceError, UsageError
+from fog_driver.tools.watch import (
     MAX_LINE_BYTES,
     LineReader,
     compact_line,
@@ -30,7 +31,6 @@ from fog_driver.daemon.watch import (
     render,
     run_watch,
 )
-from fog_driver.errors import DeviceError, UsageError
 
 GUARD_S = 30.0  # a hang guard only, never a synchronisation
 
@@ -622,7 +622,7 @@ def test_the_token_is_sent_first_so_a_token_daemon_keeps_the_watch():
 
 
 def test_watch_command_takes_the_token_from_the_environment(monkeypatch):
-    from fog_driver.daemon import watch as watch_module
+    from fog_driver.tools import watch as watch_module
 
     seen = {}
     monkeypatch.setattr(watch_module, "run_watch", lambda host, port, **kwargs: seen.update(kwargs) or 0)

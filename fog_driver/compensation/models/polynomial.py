@@ -23,9 +23,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import numerics
-from .features import channels_of
-from .readout import ridge_fit
+from .. import numerics
+from ..features import channels_of
+from ..readout import ridge_fit
 
 
 def _basis(z: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[np.ndarray], list[np.ndarray]]:

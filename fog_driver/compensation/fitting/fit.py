@@ -20,10 +20,10 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from ..errors import InputFileError
-from .blocks import FLAG_GAP, FLAG_THERMOMETER_FAULT, BlockAverager, BlockColumns
-from .domain import InputDomain
-from .features import (
+from ...errors import InputFileError
+from ..blocks import FLAG_GAP, FLAG_THERMOMETER_FAULT, BlockAverager, BlockColumns
+from ..domain import InputDomain
+from ..features import (
     DEGRADED_FLAGS,
     V1_CHANNELS,
     FeatureExtractor,
@@ -32,11 +32,11 @@ from .features import (
     input_names,
     ring_of,
 )
+from ..readout import Standardizer
 from .quality import FitQuality, assess, condition_number
-from .readout import Standardizer
 
 if TYPE_CHECKING:
-    from .model import ModelFile
+    from ..model import ModelFile
 
 
 @dataclass(frozen=True)
@@ -211,7 +211,7 @@ def load_capture(
     after every block read.  No static, valid block is an ``InputFileError`` saying why
     (``no_static_reason``; ``purpose`` and ``warmup_setting`` word it).  ``wire_format``: ``--format``
     (``sources.wire_settings_for``: auto reads the sidecar, else sniffs)."""
-    from ..sources import CaptureReader, wire_settings_for
+    from ...samples.sources import CaptureReader, wire_settings_for
 
     path = Path(path)
     sha = hashlib.sha256()
@@ -240,7 +240,7 @@ def load_capture(
             averager = BlockAverager(1.0 / reader.identity.rate_hz, config.model_rate_hz, n_channels)
         parts.append(averager.run(samples))
     if averager is None:
-        from ..capture import what_it_is
+        from ...samples.captures import what_it_is
 
         raise InputFileError(f"{path}: no SAMPLE frames to fit{what_it_is(path)}")
     parts.append(BlockColumns.from_blocks(averager.flush()))
@@ -287,7 +287,7 @@ def applied_prediction(
     """The drift the compensator would apply in each block: the model's output from the block before,
     the model started at rest at the first valid input (as ``Compensator`` does), its inputs clamped to
     ``domain`` and its output bounded by it (as ``Compensator`` does)."""
-    from .wesn import first_valid_block
+    from ..models.wesn import first_valid_block
 
     u = np.where(np.isfinite(capture.inputs), capture.inputs, 0.0)
     if domain is not None:
@@ -329,7 +329,7 @@ def bias_step_scan(captures: list[CaptureData], normalizer: Standardizer, model_
     ``STEP_EDGE_MIN`` of its ends), with one step column more (0 before, 1 after).  Returns the boundary
     whose step reduces the residual sum of squares most: its size (the step column's weight) and the
     share of the residual it explains.  None when the data are too short to scan."""
-    from .polynomial import polynomial_features
+    from ..models.polynomial import polynomial_features
 
     per_minute = int(round(60 * model_rate_hz))
     xs, ys, minutes, groups = [], [], [], []
@@ -522,14 +522,14 @@ def report_for(
 def regressor_rows(model, captures: list[CaptureData], normalizer: Standardizer) -> list[np.ndarray] | None:
     """Each capture's regressor matrix (every block) for the models whose readout is a linear regression
     (the polynomial and the ring ``wesn``); None for the others."""
-    from .polynomial import PolynomialModel, polynomial_features
+    from ..models.polynomial import PolynomialModel, polynomial_features
 
     if isinstance(model, PolynomialModel):
         return [
             polynomial_features(normalizer.transform(np.where(np.isfinite(c.inputs), c.inputs, 0.0))) for c in captures
         ]
     if getattr(model, "selection", None):  # the ring wesn (its structure chosen by the fit)
-        from .wesn import _capture_regressors
+        from ..models.wesn import _capture_regressors
 
         return [_capture_regressors(model, c, normalizer, None) for c in captures]
     return None
@@ -549,7 +549,7 @@ def own_validation(model, captures: list[CaptureData], normalizer: Standardizer,
     fold is averaged over windows of half a chunk (10 minutes) inside it.  Returns the RMS of those means,
     each capture's and fold's mean removed.  For the polynomial and the ring ``wesn`` (the structures the
     fit compares); interleaved folds keep every temperature in each training set."""
-    from .polynomial import PolynomialModel, standardized_ridge
+    from ..models.polynomial import PolynomialModel, standardized_ridge
 
     rate = config.model_rate_hz
     longest = max(len(c.static) for c in captures)
@@ -587,7 +587,7 @@ def own_validation(model, captures: list[CaptureData], normalizer: Standardizer,
 
 
 def _fit_polynomial(captures: list[CaptureData], normalizer: Standardizer, config: FitConfig, progress=None):
-    from .polynomial import PolynomialModel
+    from ..models.polynomial import PolynomialModel
 
     if progress is not None:
         progress("polynomial: ridge regression")
@@ -603,7 +603,7 @@ def capture_groups(captures: list[CaptureData]) -> np.ndarray:
 
 
 def _fit_wesn(kind: str):
-    from .wesn import PAPER_DEFAULTS, WESN_DEFAULTS, fit_wesn
+    from ..models.wesn import PAPER_DEFAULTS, WESN_DEFAULTS, fit_wesn
 
     defaults = {"wesn": WESN_DEFAULTS, "paper": PAPER_DEFAULTS}[kind]
     return lambda captures, normalizer, config, progress=None: fit_wesn(
@@ -612,7 +612,7 @@ def _fit_wesn(kind: str):
 
 
 def _fit_pso_svr(captures: list[CaptureData], normalizer: Standardizer, config: FitConfig, progress=None):
-    from .svr import PSO_SVR_DEFAULTS, fit_pso_svr
+    from ..models.svr import PSO_SVR_DEFAULTS, fit_pso_svr
 
     return fit_pso_svr(captures, normalizer, config, PSO_SVR_DEFAULTS, progress)
 
@@ -657,7 +657,7 @@ def fit_model_file(
     4/20, particle 12/16 (21 %)", "validating wesn on fast.bin (75 %)").  ``wire_format``: ``--format`` (the
     captures' frame format; auto: each capture's sidecar, else sniffed); every capture must have the same
     temperature channels, which the model file records."""
-    from .model import ModelFile
+    from ..model import ModelFile
 
     if kind not in FITTERS:
         raise InputFileError(f"unknown model kind {kind!r} (known: {', '.join(sorted(FITTERS))})")
@@ -791,7 +791,7 @@ def _assess(
 ) -> FitQuality:
     """``quality.assess`` of this fit (``static_rows``: its static inputs and target minute means): their
     span and duration, the data's conditioning, and its report's before/after rows for the saved model."""
-    from .polynomial import polynomial_features
+    from ..models.polynomial import polynomial_features
 
     rate = config.model_rate_hz
 

@@ -20,7 +20,7 @@ from collections.abc import Iterable, Iterator
 
 import numpy as np
 
-from .compensator import CompensatedColumns, flag_names
+from ..compensation.pipeline import CompensatedColumns, flag_names
 
 ROW_COLUMNS = (
     "t_s",

@@ -43,8 +43,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from .errors import InputFileError
-from .formats.common import (
+from ..errors import InputFileError
+from ..formats.common import (
     AXES,
     FLAG_OVER_RANGE,
     FLAG_SENSOR_INVALID,
@@ -52,15 +52,15 @@ from .formats.common import (
     FLAG_TEMPERATURE_INVALID,
     ImuSample,
 )
-from .formats.registry import FORMATS, SNIFF_BYTES, sniff
-from .protocol import (
+from ..formats.registry import FORMATS, SNIFF_BYTES, sniff
+from ..protocol import (
     STATUS_LOOP_UNLOCKED,
     STATUS_OVER_RANGE,
     STATUS_STARTUP,
     STATUS_THERMOMETER_FAULT,
     IdentityFrame,
 )
-from .protocol.batch import FILE_BLOCK_BYTES, iter_file_blocks
+from ..protocol.batch import FILE_BLOCK_BYTES, iter_file_blocks
 from .stream import Sample, SampleBlock, SampleStream
 
 PROTOCOL_V1 = "fog-v1"
@@ -344,7 +344,7 @@ class AutoSampleSource:
     def __init__(
         self, make_wire: Callable[[str], WireSettings], v1_stream: SampleStream | None = None, keep_axes: bool = False
     ) -> None:
-        from .formats.common import FormatCounters
+        from ..formats.common import FormatCounters
 
         self._keep_axes = keep_axes
         self._make_wire = make_wire
@@ -449,7 +449,7 @@ class CaptureReader:
         self, on_block: Callable[[bytes], None] | None = None, block_bytes: int = FILE_BLOCK_BYTES
     ) -> Iterator[SamplePart]:
         if self.wire.format == PROTOCOL_V1:
-            from .protocol import iter_decode_file
+            from ..protocol import iter_decode_file
 
             for part in iter_decode_file(self.path, block_bytes, on_block=on_block):
                 self.counters = part.counters
@@ -472,7 +472,7 @@ def setup_byte_ranges(path: str | Path) -> list[tuple[int, int]]:
     """The ``(start, end)`` byte ranges of a capture that a daemon or ``record`` read during a device setup
     (the sidecar's ``device_setup`` events: ``at_byte``, ``bytes_not_decoded``): not decoded live, so not
     offline either (frames the device sent under its old settings, and its replies)."""
-    from .capture import read_provenance
+    from .captures import read_provenance
 
     events = (read_provenance(path) or {}).get("events") or []
     ranges = []
@@ -522,7 +522,7 @@ def kvh_batch_samples(
     """``ImuSampleStream.step`` over a ``formats.kvh.decode_kvh_batch`` result, vectorized: the same samples,
     bit for bit (tested).  ``base``: the file offset of the buffer decoded; ``stream``'s identity and
     ``increments_rejected`` are kept up to date."""
-    from .formats.kvh import _ARCSEC_PER_UNIT, _TEMP_SCALE, GYRO_VALID, SAMPLE_FORMATS
+    from ..formats.kvh import _ARCSEC_PER_UNIT, _TEMP_SCALE, GYRO_VALID, SAMPLE_FORMATS
 
     sample_kinds = np.array([b for b, _ in SAMPLE_FORMATS.values()], dtype=np.uint8)
     rows = np.flatnonzero(np.isin(batch.kind, sample_kinds))
@@ -584,7 +584,7 @@ def _kvh_file_parts(
     bytes carried from the one before; frames starting within the last ``_KVH_MAX_FRAME`` bytes of a block
     that is not the last wait for the next (they may be cut off), so every frame is decided on whole bytes,
     as the streaming decoder decides it."""
-    from .formats.kvh import BIT_FRAME_LEN, SAMPLE_FORMATS, decode_kvh_batch
+    from ..formats.kvh import BIT_FRAME_LEN, SAMPLE_FORMATS, decode_kvh_batch
 
     frame_len = {**dict(SAMPLE_FORMATS.values()), **BIT_FRAME_LEN}  # fourth header byte -> frame length
     wire = reader.wire
@@ -626,7 +626,7 @@ def capture_format(path: str | Path, requested: str = "auto") -> tuple[str, dict
     ``--format`` (``auto``: the sidecar's ``wire_format``, else what the sniffer finds in the first bytes, else
     protocol v1).  A requested format that the bytes contradict, or bytes without one frame of the format,
     are an ``InputFileError`` naming what the sniffer saw."""
-    from .capture import find_sidecar, read_provenance
+    from .captures import find_sidecar, read_provenance
 
     doc = read_provenance(path) or {}
     try:
@@ -655,7 +655,7 @@ def wire_settings_for(path: str | Path, requested: str = "auto") -> WireSettings
     """How to read the capture ``path`` (``capture_format``), with the device settings its sidecar recorded; a
     sidecar whose wire settings cannot be used, or a capture of another format without one, is an
     ``InputFileError``."""
-    from .capture import find_sidecar, sidecar_path
+    from .captures import find_sidecar, sidecar_path
 
     name, doc = capture_format(path, requested)
     if doc.get("wire_format") == name:

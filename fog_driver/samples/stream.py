@@ -25,7 +25,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .protocol import (
+from ..protocol import (
     SEQ_MODULUS,
     T_US_MODULUS,
     THERMOMETER_COUNTS_PER_C,
@@ -280,8 +280,8 @@ class SampleStream:
 def read_capture_samples(path) -> tuple[SampleBlock, float]:
     """A whole capture file's samples in memory and its frame period, s (from its IDENTITY frame): for
     tests and benchmarks that alter samples before compensating them.  ``InputFileError`` without one."""
-    from .errors import InputFileError
-    from .protocol import iter_decode_file
+    from ..errors import InputFileError
+    from ..protocol import iter_decode_file
 
     stream = SampleStream()
     parts = [stream.run(part) for part in iter_decode_file(path)]

@@ -18,12 +18,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from . import __version__
-from .capture import CaptureWriter, sidecar_path, utc_now_iso, write_provenance
-from .errors import DeviceError, OutputFileError
-from .outputs import check_outputs
-from .protocol import DecoderCounters, IdentityFrame
-from .transport import PortError, PortEvent, PortReader
+from .. import __version__
+from ..errors import DeviceError, OutputFileError
+from ..files.outputs import check_outputs
+from ..protocol import DecoderCounters, IdentityFrame
+from ..transport import PortError, PortEvent, PortReader
+from .captures import CaptureWriter, sidecar_path, utc_now_iso, write_provenance
 
 _FLUSH_EVERY_S = 1.0
 
@@ -112,7 +112,7 @@ def record(
     captured = [0]  # bytes written to the capture so far
     events: list[dict[str, Any]] = []  # device setups: the offline readers skip their bytes, as the daemon does
     if setup is not None:
-        from .transport.setup import make_on_open
+        from ..transport.setup import make_on_open
 
         def on_setup(result) -> None:  # before its bytes are yielded: they start at the bytes written so far
             events.append(

@@ -30,7 +30,7 @@ import numpy as np
 
 from ..errors import InputFileError
 from ..protocol import STATUS_THERMOMETER_FAULT
-from ..stream import Sample, SampleBlock
+from ..samples.stream import Sample, SampleBlock
 from .blocks import FLAG_GAP, FLAG_THERMOMETER_FAULT, PLAUSIBLE_TEMP_C, BlockAverager, ModelBlock, plausible_temps
 from .domain import FLAG_EXTRAPOLATING
 from .features import DEGRADED_FLAGS, FLAG_INPUT_STALE, FLAG_RECOVERING, FLAG_SUBSTITUTED, FeatureExtractor

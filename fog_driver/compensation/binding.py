@@ -20,11 +20,11 @@ import numpy as np
 
 from ..errors import InputFileError, UsageError
 from ..protocol import IdentityFrame
-from ..stream import SampleBlock, identity_is_plausible
+from ..samples.stream import SampleBlock, identity_is_plausible
 from .adapt import AdaptConfig
 from .blocks import FLAG_GAP
-from .compensator import CompensatedColumns, CompensatedSample, Compensator
 from .model import ModelFile
+from .pipeline import CompensatedColumns, CompensatedSample, Compensator
 
 
 class ModelMismatchError(UsageError):
@@ -188,7 +188,7 @@ def compensate_capture(
     ``scale_override_arcsec_per_count``: the daemon's setting of that name.  ``wire_format``: ``--format``
     (``sources.wire_settings_for``); a model fitted on other temperature channels is refused first.
     """
-    from ..sources import CaptureReader, wire_settings_for
+    from ..samples.sources import CaptureReader, wire_settings_for
 
     wire = wire_settings_for(path, wire_format)
     check_channels(model_file, wire, model_name, str(path))
@@ -221,7 +221,7 @@ def compensate_capture(
             if len(block):
                 yield binding.compensator.frame_period_s, binding.run(block)
     if not samples_seen:
-        from ..capture import what_it_is
+        from ..samples.captures import what_it_is
 
         raise InputFileError(f"{path}: no SAMPLE frames to compensate{what_it_is(path)}")
     if not binding.bound:

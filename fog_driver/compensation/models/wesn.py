@@ -80,9 +80,19 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import numerics
-from .aflp import AflpFilter, AflpParams
-from .features import channels_of, ring_of
+from .. import numerics
+from ..aflp import AflpFilter, AflpParams
+from ..features import channels_of, ring_of
+from ..readout import AdaptiveLaw, AdaptiveLawParams
+from ..reservoir import (
+    PSI_MAX,
+    ReservoirMatrices,
+    ReservoirParams,
+    ReservoirState,
+    WaveletReservoir,
+    log_spaced_leaks,
+    psi,
+)
 from .polynomial import (
     N_LEVEL_FEATURES,
     N_PHYSICAL_FEATURES,
@@ -92,16 +102,6 @@ from .polynomial import (
     physical_features,
     polynomial_features,
     standardized_ridge,
-)
-from .readout import AdaptiveLaw, AdaptiveLawParams
-from .reservoir import (
-    PSI_MAX,
-    ReservoirMatrices,
-    ReservoirParams,
-    ReservoirState,
-    WaveletReservoir,
-    log_spaced_leaks,
-    psi,
 )
 
 _SETTLE_ITERATIONS = 400
@@ -493,7 +493,7 @@ def _aflp_target(target: np.ndarray) -> np.ndarray:
 def fit_wesn(kind: str, defaults: WesnConfig, captures, normalizer, config, progress=None) -> WesnModel:
     """Fit a WESN model of the given form to the captures (see the module docstring); ``progress(text)``
     hears which phase runs and how far it is."""
-    from .fit import capture_groups  # (fit imports this module lazily: no cycle)
+    from ..fitting.fit import capture_groups  # (fit imports this module lazily: no cycle)
 
     say = progress or (lambda text: None)
     if defaults.ring_input and defaults.readout == "ridge":
@@ -541,7 +541,7 @@ def _fit_ring_form(kind: str, wc: WesnConfig, captures, normalizer, config, say=
     3. the final fit at that coil and penalty with the history neurons, penalized ``history_penalty``
        times more.
     """
-    from .fit import capture_groups
+    from ..fitting.fit import capture_groups
 
     rate = config.model_rate_hz
     wc, limits = identifiable_structure(wc, captures, rate)

@@ -23,8 +23,9 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
-from .errors import InputFileError, OutputFileError
-from .protocol import (
+from ..errors import InputFileError, OutputFileError
+from ..files.yamlio import read_yaml, write_yaml
+from ..protocol import (
     FILE_BLOCK_BYTES,
     IDENTITY_FRAME_LEN,
     OVERHEAD_LEN,
@@ -36,7 +37,6 @@ from .protocol import (
     iter_decode_file,
 )
 from .stream import SampleStream
-from .yamlfile import read_yaml, write_yaml
 
 PROVENANCE_FORMAT = "fog_driver capture provenance"
 PROVENANCE_SCHEMA_VERSION = 1
@@ -366,7 +366,7 @@ def _last_frame_end(decoded: DecodedCapture) -> int:
 def what_it_is(path: str | Path) -> str:
     """For a file that holds no protocol v1 frame: what the format sniffer sees in it, as the end of a one-line
     error ("; it looks like kvh-a (...): read it with --format kvh-a or auto"; "" when it cannot be read)."""
-    from .formats.registry import sniff_file
+    from ..formats.registry import sniff_file
 
     try:
         seen = sniff_file(str(path))

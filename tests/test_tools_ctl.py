@@ -15,9 +15,9 @@ from test_daemon_faults import N_SHORT, SHORT, next_status, watch_all, watched_d
 from test_daemon_hil import GUARD_S, Client, Daemon
 
 from fog_driver.cli import main
-from fog_driver.daemon.ctl import parse_request
 from fog_driver.errors import UsageError
 from fog_driver.protocol import decode_bytes
+from fog_driver.tools.ctl import parse_request
 from fog_driver.transport import PtyPair
 
 TOKEN = "a-long-token-for-ctl"

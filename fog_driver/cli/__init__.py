@@ -1,0 +1,5 @@
+"""The ``fog-driver`` command line."""
+
+from .app import main
+
+__all__ = ["main"]

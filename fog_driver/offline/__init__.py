@@ -1,0 +1,1 @@
+"""Files in, files out: fitting a model to captures, compensating a capture, the CSV rows."""
