@@ -262,7 +262,8 @@ def _tty_progress(monkeypatch):
     """A terminal for ``Progress``: a stream that says it is a tty, and no rate limit (no waiting in a test)."""
     import io
 
-    from fog_driver import cli, console
+    from fog_driver import console
+    from fog_driver.cli import app as cli
 
     class Tty(io.StringIO):
         def isatty(self) -> bool:
