@@ -10,6 +10,7 @@ than none."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 import re
 from pathlib import Path
 
@@ -94,9 +95,21 @@ def fit_paths(paths, kind):
     return model_file
 
 
+@functools.cache
+def paper_residual(runs: Path, kind: str) -> float:
+    """The paper run's own fit of ``kind`` scored on the soak run (several tests compare with it: fitted once)."""
+    return truth_residual(fit_paths([runs / "paper.bin"], kind), runs / "soak.bin")
+
+
+@functools.cache
+def raw_residual(runs: Path) -> float:
+    """No compensation at all, scored on the soak run."""
+    return truth_residual(_zero_model(fit_paths([runs / "paper.bin"], "polynomial")), runs / "soak.bin")
+
+
 @pytest.mark.parametrize("kind", ["polynomial", "wesn"])
 def test_a_hot_and_a_cold_run_fitted_together_do_as_well_as_one_run_over_both(runs, kind):
-    whole = truth_residual(fit_paths([runs / "paper.bin"], kind), runs / "soak.bin")
+    whole = paper_residual(runs, kind)
     pair = truth_residual(fit_paths([runs / "hot.bin", runs / "cold.bin"], kind), runs / "soak.bin")
     assert pair <= 1.5 * whole + 0.002, (pair, whole)
 
@@ -115,7 +128,7 @@ def test_a_hot_and_a_cold_run_fitted_together_get_their_own_offsets_in_the_svr(r
 def test_one_intercept_for_all_captures_would_fail_the_same_check(runs, monkeypatch):
     """The check above can fail: with every capture's rows in one group the hot + cold polynomial is far off
     (measured 0.097 deg/h against 0.013 for the paper run alone and 0.007 for hot + cold done right)."""
-    whole = truth_residual(fit_paths([runs / "paper.bin"], "polynomial"), runs / "soak.bin")
+    whole = paper_residual(runs, "polynomial")
     monkeypatch.setattr(
         fit, "capture_groups", lambda captures: np.zeros(sum(int(c.static.sum()) for c in captures), int)
     )
@@ -157,8 +170,8 @@ def test_a_run_split_in_pieces_fits_as_well_as_the_whole_run(runs, pieces, kind,
     """(With one intercept for all, the polynomial leaves 0.13 and 0.17 deg/h here: worse than 2 pieces' 0.011.)"""
     config = FitConfig()
     whole_capture = load_capture(runs / "paper.bin", config)
-    whole = truth_residual(fit_paths([runs / "paper.bin"], kind), runs / "soak.bin")
-    raw = truth_residual(_zero_model(fit_paths([runs / "paper.bin"], "polynomial")), runs / "soak.bin")
+    whole = paper_residual(runs, kind)
+    raw = raw_residual(runs)
     n = len(whole_capture.blocks)
     cuts = np.linspace(0, n, pieces + 1).astype(int)
     parts = [piece(whole_capture, a, b, config) for a, b in zip(cuts[:-1], cuts[1:])]
@@ -263,7 +276,7 @@ def test_fit_reports_the_blocks_excluded_for_motion(runs, capsys):
     found = re.search(r"note: (\d+) blocks of table motion were found and not fitted", out)
     assert found and 40 <= int(found[1]) <= 42, out
     turned = truth_residual(load_model(runs / "turn-model.yaml"), runs / "soak.bin")
-    clean = truth_residual(fit_paths([runs / "paper.bin"], "polynomial"), runs / "soak.bin")
+    clean = paper_residual(runs, "polynomial")
     assert turned < 1.2 * clean + 0.002, (turned, clean)
 
 

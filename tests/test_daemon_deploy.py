@@ -89,6 +89,7 @@ def run_until_ready_then_terminate(
 
 
 @pytest.mark.install
+@pytest.mark.serial
 def test_a_wheel_installed_in_a_new_environment_runs_the_daemon_from_anywhere(tmp_path):
     """The review's M5: from a wheel, the default model was looked for beside site-packages
     (``.../site-packages/configs/models/default.yaml``) and ``fog-driver run`` exited 78."""

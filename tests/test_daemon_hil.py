@@ -27,6 +27,8 @@ from fog_driver.protocol import decode_bytes, decode_file
 from fog_driver.tools.watch import parse_address
 from fog_driver.transport import PtyPair
 
+pytestmark = pytest.mark.serial  # pty timing and signals: run apart from the suite's parallel part
+
 DATA = Path(__file__).resolve().parent / "data"
 GOLDEN = DATA / "golden" / "sim-faults.watch-1hz.ndjson"
 GUARD_S = 30.0

@@ -320,6 +320,7 @@ class Flooder(threading.Thread):
                 self.cut_off += 1
 
 
+@pytest.mark.serial
 def test_a_watcher_keeps_its_angles_while_eight_clients_flood(make_hub):
     hub, address, _ = make_hub(token="s3cret-token")
     watcher = authorized(address, "s3cret-token")

@@ -23,6 +23,8 @@ from fog_driver.sim.kvh_device import FakeKvhDevice
 from fog_driver.sim.profiles import load_profile
 from fog_driver.transport import PtyPair
 
+pytestmark = pytest.mark.serial  # pty timing: run apart from the suite's parallel part
+
 
 def daemon_config(tmp_path: Path, fmt: str, model: Path, **device) -> Path:
     path = tmp_path / "fog.yaml"

@@ -21,11 +21,14 @@ import threading
 import time
 from pathlib import Path
 
+import pytest
 from playwright.sync_api import expect, sync_playwright
 from test_daemon_hil import Client, Daemon
 
 from fog_driver.tools.watch import format_arcsec, format_dms
 from fog_driver.transport import PtyPair
+
+pytestmark = pytest.mark.serial  # a browser: run apart from the suite's parallel part
 
 DATA = Path(__file__).resolve().parent / "data"
 CAPTURE = DATA / "sim-short.bin"  # 300 s at 10 Hz (its sidecar says how it was made)
