@@ -18,7 +18,8 @@ from fog_driver.compensation.model import load_model, save_model
 from fog_driver.compensation.pipeline import FLAG_UNCOMPENSATED, CompensatedColumns, Compensator
 from fog_driver.daemon.config import DEFAULT_MODEL
 from fog_driver.errors import InputFileError
-from fog_driver.offline.rows import ROW_COLUMNS, RowAggregator, format_row
+from fog_driver.files.kinds import ROW_COLUMNS
+from fog_driver.offline.rows import RowAggregator, format_row
 from fog_driver.protocol import FrameDecoder, decode_file
 from fog_driver.samples.stream import SampleBlock, SampleStream
 

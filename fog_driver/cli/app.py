@@ -375,7 +375,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
 def cmd_compensate(args: argparse.Namespace) -> int:
     from ..compensation.binding import compensate_capture
     from ..compensation.model import load_model
-    from ..offline.rows import ROW_COLUMNS, compensated_rows, format_row
+    from ..files.kinds import ROW_COLUMNS
+    from ..offline.rows import compensated_rows, format_row
     from ..samples.captures import _capture_size
 
     out = Path(args.out)

@@ -104,6 +104,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputFileError
+from ..files.kinds import ADAPT_STATE_FORMAT
 from ..files.yamlio import read_tagged_yaml, require_known_keys, write_yaml
 from . import numerics
 from .pipeline import FLAG_ADAPTING, FLAG_GUARD
@@ -117,7 +118,6 @@ __all__ = [
     "StaticDetector",
 ]
 
-ADAPT_STATE_FORMAT = "fog_driver adaptation state"
 ADAPT_STATE_SCHEMA_VERSION = 1
 
 

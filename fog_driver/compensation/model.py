@@ -19,6 +19,7 @@ import numpy as np
 
 from .. import __version__
 from ..errors import InputFileError
+from ..files.kinds import MODEL_FORMAT
 from ..files.yamlio import read_tagged_yaml, write_yaml
 from ..samples.captures import utc_now_iso
 from .domain import InputDomain
@@ -28,7 +29,6 @@ from .models.svr import SvrModel
 from .models.wesn import PaperKind, WesnKind
 from .readout import Standardizer
 
-MODEL_FORMAT = "fog_driver drift model"
 MODEL_SCHEMA_VERSION = 1
 
 

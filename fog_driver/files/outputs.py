@@ -18,19 +18,14 @@ import yaml
 
 from ..errors import OutputFileError
 from ..protocol.wire import SYNC
+from .kinds import ADAPT_STATE_FORMAT, MODEL_FORMAT, PROVENANCE_FORMAT, ROW_COLUMNS, TRUTH_HEADER
 
 _SNIFF_BYTES = 1 << 20
 
 
 def _kinds() -> tuple[tuple[tuple[str, str], ...], dict[str, str]]:
     """(the first line of each kind of text file the project writes, its name), and the ``format`` tags of
-    its YAML files -> their names ({capture}: a sidecar's capture).  Imported here: only errors need them."""
-    from ..compensation.adapt import ADAPT_STATE_FORMAT
-    from ..compensation.model import MODEL_FORMAT
-    from ..offline.rows import ROW_COLUMNS
-    from ..samples.captures import PROVENANCE_FORMAT
-    from ..sim.capture import TRUTH_HEADER
-
+    its YAML files -> their names ({capture}: a sidecar's capture)."""
     text = ((TRUTH_HEADER, "a simulator truth file"), (",".join(ROW_COLUMNS), "a compensate CSV"))
     tags = {
         PROVENANCE_FORMAT: "a capture's provenance sidecar (of {capture})",

@@ -22,20 +22,6 @@ import numpy as np
 
 from ..compensation.pipeline import CompensatedColumns, flag_names
 
-ROW_COLUMNS = (
-    "t_s",
-    "n_samples",
-    "rate_raw_dph",
-    "drift_dph",
-    "rate_comp_dph",
-    "angle_raw_arcsec",
-    "angle_comp_arcsec",
-    "t_top_c",
-    "t_bottom_c",
-    "t_housing_c",
-    "flags",
-)
-
 
 class RowAggregator:
     """Aggregates compensated frames into rows, carrying the open row across calls."""

@@ -24,6 +24,7 @@ from typing import Any, BinaryIO
 import numpy as np
 
 from ..errors import InputFileError, OutputFileError
+from ..files.kinds import PROVENANCE_FORMAT
 from ..files.yamlio import read_yaml, write_yaml
 from ..protocol import (
     FILE_BLOCK_BYTES,
@@ -38,7 +39,6 @@ from ..protocol import (
 )
 from .stream import SampleStream
 
-PROVENANCE_FORMAT = "fog_driver capture provenance"
 PROVENANCE_SCHEMA_VERSION = 1
 
 

@@ -30,6 +30,7 @@ import numpy as np
 
 from .. import __version__
 from ..errors import InputFileError, OutputFileError, read_error
+from ..files.kinds import TRUTH_HEADER
 from ..files.outputs import check_outputs, write_error
 from ..samples.captures import CaptureWriter, read_provenance, sidecar_path, utc_now_iso, write_provenance
 from .instrument import COMPONENTS, STDBIN_TEMPERATURE_CHANNELS, STDBIN_VERSION, FrameBlock, Simulator
@@ -104,10 +105,6 @@ def truth_rows(block: FrameBlock, rate_hz: int, scale_arcsec_per_count: float) -
         "angle_deg": block.angle_deg[np.r_[starts[1:] - 1, n - 1]] if n else np.zeros(0),
     }
     return np.column_stack([columns[name] for name in TRUTH_COLUMNS]) if n else np.zeros((0, len(TRUTH_COLUMNS)))
-
-
-#: The truth file's first line (``outputs.describe`` knows a truth file by it).
-TRUTH_HEADER = "# fog_driver simulator truth: one row per device second; see fog_driver/sim/capture.py"
 
 
 def write_truth_header(f) -> None:

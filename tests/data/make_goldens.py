@@ -53,7 +53,8 @@ from fog_driver.compensation.model import load_model, save_model  # noqa: E402
 from fog_driver.daemon.config import DriverConfig  # noqa: E402
 from fog_driver.daemon.hub import encode  # noqa: E402
 from fog_driver.daemon.service import Service  # noqa: E402
-from fog_driver.offline.rows import ROW_COLUMNS, compensated_rows  # noqa: E402
+from fog_driver.files.kinds import ROW_COLUMNS  # noqa: E402
+from fog_driver.offline.rows import compensated_rows  # noqa: E402
 
 GOLDEN_DIR = HERE / "golden"
 WATCH_GOLDEN = GOLDEN_DIR / "sim-faults.watch-1hz.ndjson"
