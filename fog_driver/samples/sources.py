@@ -50,8 +50,10 @@ from ..formats.common import (
     FLAG_SENSOR_INVALID,
     FLAG_STARTUP,
     FLAG_TEMPERATURE_INVALID,
+    FormatCounters,
     ImuSample,
 )
+from ..formats.kvh import _ARCSEC_PER_UNIT, _TEMP_SCALE, BIT_FRAME_LEN, GYRO_VALID, SAMPLE_FORMATS, decode_kvh_batch
 from ..formats.registry import FORMATS, SNIFF_BYTES, sniff
 from ..protocol import (
     STATUS_LOOP_UNLOCKED,
@@ -59,8 +61,10 @@ from ..protocol import (
     STATUS_STARTUP,
     STATUS_THERMOMETER_FAULT,
     IdentityFrame,
+    iter_decode_file,
 )
 from ..protocol.batch import FILE_BLOCK_BYTES, iter_file_blocks
+from .captures import find_sidecar, read_provenance, sidecar_path
 from .stream import Sample, SampleBlock, SampleStream
 
 PROTOCOL_V1 = "fog-v1"
@@ -344,8 +348,6 @@ class AutoSampleSource:
     def __init__(
         self, make_wire: Callable[[str], WireSettings], v1_stream: SampleStream | None = None, keep_axes: bool = False
     ) -> None:
-        from ..formats.common import FormatCounters
-
         self._keep_axes = keep_axes
         self._make_wire = make_wire
         self._v1_stream = v1_stream
@@ -449,8 +451,6 @@ class CaptureReader:
         self, on_block: Callable[[bytes], None] | None = None, block_bytes: int = FILE_BLOCK_BYTES
     ) -> Iterator[SamplePart]:
         if self.wire.format == PROTOCOL_V1:
-            from ..protocol import iter_decode_file
-
             for part in iter_decode_file(self.path, block_bytes, on_block=on_block):
                 self.counters = part.counters
                 yield SamplePart(self.stream.run(part), part.identities, part.counters.bytes_in)
@@ -472,8 +472,6 @@ def setup_byte_ranges(path: str | Path) -> list[tuple[int, int]]:
     """The ``(start, end)`` byte ranges of a capture that a daemon or ``record`` read during a device setup
     (the sidecar's ``device_setup`` events: ``at_byte``, ``bytes_not_decoded``): not decoded live, so not
     offline either (frames the device sent under its old settings, and its replies)."""
-    from .captures import read_provenance
-
     events = (read_provenance(path) or {}).get("events") or []
     ranges = []
     for event in events if isinstance(events, list) else []:
@@ -522,8 +520,6 @@ def kvh_batch_samples(
     """``ImuSampleStream.step`` over a ``formats.kvh.decode_kvh_batch`` result, vectorized: the same samples,
     bit for bit (tested).  ``base``: the file offset of the buffer decoded; ``stream``'s identity and
     ``increments_rejected`` are kept up to date."""
-    from ..formats.kvh import _ARCSEC_PER_UNIT, _TEMP_SCALE, GYRO_VALID, SAMPLE_FORMATS
-
     sample_kinds = np.array([b for b, _ in SAMPLE_FORMATS.values()], dtype=np.uint8)
     rows = np.flatnonzero(np.isin(batch.kind, sample_kinds))
     if not rows.size:
@@ -584,8 +580,6 @@ def _kvh_file_parts(
     bytes carried from the one before; frames starting within the last ``_KVH_MAX_FRAME`` bytes of a block
     that is not the last wait for the next (they may be cut off), so every frame is decided on whole bytes,
     as the streaming decoder decides it."""
-    from ..formats.kvh import BIT_FRAME_LEN, SAMPLE_FORMATS, decode_kvh_batch
-
     frame_len = {**dict(SAMPLE_FORMATS.values()), **BIT_FRAME_LEN}  # fourth header byte -> frame length
     wire = reader.wire
     config = dict(
@@ -626,8 +620,6 @@ def capture_format(path: str | Path, requested: str = "auto") -> tuple[str, dict
     ``--format`` (``auto``: the sidecar's ``wire_format``, else what the sniffer finds in the first bytes, else
     protocol v1).  A requested format that the bytes contradict, or bytes without one frame of the format,
     are an ``InputFileError`` naming what the sniffer saw."""
-    from .captures import find_sidecar, read_provenance
-
     doc = read_provenance(path) or {}
     try:
         with open(path, "rb") as f:
@@ -655,8 +647,6 @@ def wire_settings_for(path: str | Path, requested: str = "auto") -> WireSettings
     """How to read the capture ``path`` (``capture_format``), with the device settings its sidecar recorded; a
     sidecar whose wire settings cannot be used, or a capture of another format without one, is an
     ``InputFileError``."""
-    from .captures import find_sidecar, sidecar_path
-
     name, doc = capture_format(path, requested)
     if doc.get("wire_format") == name:
         try:
