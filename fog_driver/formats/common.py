@@ -9,12 +9,20 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 
-#: Flags a format maps its status bits to (a sample carries the set that applies).
-FLAG_SENSOR_INVALID = "sensor_invalid"  #: a gyro axis reported invalid by the device
-FLAG_STARTUP = "startup"  #: the device says its output is not yet valid (warm-up, just configured)
-FLAG_TEMPERATURE_INVALID = "temperature_invalid"  #: a temperature channel reported invalid
-FLAG_OVER_RANGE = "over_range"  #: a gyro axis beyond its range
-COMMON_FLAGS = (FLAG_SENSOR_INVALID, FLAG_STARTUP, FLAG_TEMPERATURE_INVALID, FLAG_OVER_RANGE)
+from ..flags import (
+    SAMPLE_FLAGS,
+    SAMPLE_OVER_RANGE,
+    SAMPLE_SENSOR_INVALID,
+    SAMPLE_STARTUP,
+    SAMPLE_TEMPERATURE_INVALID,
+)
+
+#: Flags a format maps its status bits to (a sample carries the set that applies); defined in ``fog_driver.flags``.
+FLAG_SENSOR_INVALID = SAMPLE_SENSOR_INVALID  #: a gyro axis reported invalid by the device
+FLAG_STARTUP = SAMPLE_STARTUP  #: the device says its output is not yet valid (warm-up, just configured)
+FLAG_TEMPERATURE_INVALID = SAMPLE_TEMPERATURE_INVALID  #: a temperature channel reported invalid
+FLAG_OVER_RANGE = SAMPLE_OVER_RANGE  #: a gyro axis beyond its range
+COMMON_FLAGS = SAMPLE_FLAGS
 
 AXES = ("x", "y", "z")
 
