@@ -70,11 +70,11 @@ from __future__ import annotations
 
 import math
 import struct
-import zlib
 from dataclasses import dataclass
 
 import numpy as np
 
+from ..protocol.crc import MPEG2_TABLE, crc32_mpeg2, crc32_mpeg2_reference, crc32_mpeg2_rows
 from ..protocol.hunting import HuntingDecoder
 from .common import FLAG_SENSOR_INVALID, FormatCounters, ImuSample, SeqUnwrapper
 
@@ -102,93 +102,8 @@ _BODY = {  # struct of the bytes after the header, up to the CRC
     "c": struct.Struct(">6ffBB"),
 }
 _U32 = struct.Struct(">I")
-
-# --- CRC-32/MPEG-2 ------------------------------------------------------------------------------------------
-
-
-def _make_crc_table() -> list[int]:
-    table = []
-    for byte in range(256):
-        crc = byte << 24
-        for _ in range(8):
-            crc = ((crc << 1) ^ 0x04C11DB7) & 0xFFFFFFFF if crc & 0x80000000 else (crc << 1) & 0xFFFFFFFF
-        table.append(crc)
-    return table
-
-
-CRC_TABLE = _make_crc_table()
-_CRC_TABLE_NP = np.array(CRC_TABLE, dtype=np.uint32)
-_REVERSE_BITS8 = bytes(int(f"{b:08b}"[::-1], 2) for b in range(256))
-
-
-def crc32_mpeg2(data: bytes | bytearray | memoryview) -> int:
-    """CRC-32/MPEG-2 of ``data``.
-
-    Computed with zlib's reflected CRC-32 on bit-reversed bytes: CRC-32 (ISO-HDLC) is the same register
-    with every byte and the result bit-reversed and a final xor of 0xFFFFFFFF, so
-    ``mpeg2(d) = reverse32(crc32(reverse8(d)) ^ 0xFFFFFFFF)``.  ``crc32_mpeg2_reference`` is the table
-    form it is tested against.
-    """
-    reg = (
-        zlib.crc32(
-            data.translate(_REVERSE_BITS8)
-            if not isinstance(data, memoryview)
-            else bytes(data).translate(_REVERSE_BITS8)
-        )
-        ^ 0xFFFFFFFF
-    )
-    # reverse32: the bytes in the opposite order, each bit-reversed
-    return int.from_bytes(reg.to_bytes(4, "little").translate(_REVERSE_BITS8), "big")
-
-
-def crc32_mpeg2_reference(data: bytes | bytearray | memoryview) -> int:
-    """The textbook MSB-first table-driven CRC-32/MPEG-2 (slow; the definition)."""
-    crc = 0xFFFFFFFF
-    for b in bytes(data):
-        crc = ((crc << 8) & 0xFFFFFFFF) ^ CRC_TABLE[((crc >> 24) ^ b) & 0xFF]
-    return crc
-
-
-_POSITION_TABLES: dict[int, tuple[np.ndarray, np.ndarray, int]] = {}
-
-
-def _position_tables(m: int) -> tuple[np.ndarray, np.ndarray, int]:
-    """For messages of m bytes: ``T[j, v]`` = CRC (register starting at 0) of the message with byte j = v
-    and every other byte 0; ``T2[k, lo | hi << 8] = T[2k, lo] ^ T[2k + 1, hi]`` (byte pairs, m even); and
-    ``c0`` = CRC (register starting at 0xFFFFFFFF) of m zero bytes."""
-    if m not in _POSITION_TABLES:
-        tables = np.empty((m, 256), dtype=np.uint32)
-        reg = _CRC_TABLE_NP.copy()  # one byte v, register from 0: the table itself
-        for j in range(m - 1, -1, -1):
-            tables[j] = reg
-            reg = (reg << np.uint32(8)) ^ _CRC_TABLE_NP[reg >> np.uint32(24)]  # one more zero byte after
-        pairs = (tables[0 : m - 1 : 2, None, :] ^ tables[1::2, :, None]).reshape(m // 2, 65536)
-        _POSITION_TABLES[m] = (tables, pairs, crc32_mpeg2_reference(bytes(m)))
-    return _POSITION_TABLES[m]
-
-
-def crc32_mpeg2_rows(rows: np.ndarray) -> np.ndarray:
-    """CRC-32/MPEG-2 of every row of a ``(n, m)`` uint8 array at once.
-
-    A CRC without final xor is affine in the message over GF(2): for a fixed length m,
-    ``crc(msg) = crc(m zero bytes) XOR T[0, msg[0]] XOR ... XOR T[m-1, msg[m-1]]`` where ``T[j, v]`` is the
-    CRC (register starting at 0) of the message holding v at byte j and zeros elsewhere.  So the CRCs of n
-    frames are m table gathers (one per column, vectorized across frames) xor-ed together; for even m the
-    gathers are over byte pairs (m / 2 lookups per frame in 65536-entry tables).
-    """
-    n, m = rows.shape
-    if n == 0:
-        return np.zeros(0, dtype=np.uint32)
-    tables, pairs, c0 = _position_tables(m)
-    if m % 2 == 0:  # columns of byte pairs lo | hi << 8 (whatever the host order), one gather per column
-        table, columns = pairs, np.ascontiguousarray(np.ascontiguousarray(rows).view("<u2").T)
-    else:
-        table, columns = tables, np.ascontiguousarray(rows.T)
-    crc = np.full(n, c0, dtype=np.uint32)
-    for k in range(columns.shape[0]):
-        crc ^= table[k].take(columns[k])
-    return crc
-
+#: The CRC-32/MPEG-2 byte table (``fog_driver.protocol.crc`` holds the CRCs of every format).
+CRC_TABLE = MPEG2_TABLE
 
 # --- events ----------------------------------------------------------------------------------------------
 

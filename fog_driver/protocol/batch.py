@@ -12,7 +12,7 @@ frame:
    a truncated frame and is discarded like a bad one);
 2. the SAMPLE-typed candidates' payloads are gathered in one indexing call
    (through a stride-1 structured view of the bytes) and their CRCs computed
-   together, by linearity (``_sample_crc_tables``);
+   together, by linearity (``crc.PairTables``);
    the few others use ``zlib``;
 3. the streaming scan accepts a valid frame and jumps over it, so a candidate
    inside an accepted frame is never looked at: the accepted frames are the
@@ -34,6 +34,7 @@ from typing import BinaryIO
 import numpy as np
 
 from ..errors import InputFileError
+from .crc import iso_hdlc_tables
 from .decoder import DecoderCounters
 from .wire import (
     HEADER_LEN,
@@ -77,47 +78,11 @@ _SAMPLE_TAIL_DTYPE = np.dtype(
 _TAIL_WORDS = _SAMPLE_TAIL_DTYPE.itemsize // 2
 
 
-def _crc32_table() -> np.ndarray:
-    table = np.arange(256, dtype=np.uint32)
-    for _ in range(8):
-        table = np.where(table & 1, (table >> 1) ^ np.uint32(0xEDB88320), table >> 1).astype(np.uint32)
-    return table
-
-
-_CRC_TABLE = _crc32_table()
-
-
-def _sample_crc_tables() -> tuple[int, list[np.ndarray]]:
-    """CRC-32 of a SAMPLE body (type, len, 9 payload words) by linearity over GF(2).
-
-    Without init and xorout the CRC is linear: ``raw(m) = XOR_k raw(byte k alone at
-    position k)``.  So for the 20-byte body ``01 12 w0 .. w8`` (w_j little-endian
-    u16)::
-
-        crc32(body) = C ^ XOR_j W_j[w_j]
-
-    where ``W_j[v]`` is the raw CRC of v placed at payload word j with zeros
-    elsewhere, and ``C = crc32(01 12 00 .. 00)`` carries init, xorout and the
-    fixed header.  9 table look-ups per frame instead of 20 table steps.
-    """
-    body_len = 2 + SAMPLE_PAYLOAD_LEN
-
-    def advance_zeros(state: np.ndarray, n: int) -> np.ndarray:
-        for _ in range(n):
-            state = _CRC_TABLE[state & 0xFF] ^ (state >> 8)
-        return state
-
-    byte_tables = [advance_zeros(_CRC_TABLE.copy(), body_len - 1 - k) for k in range(body_len)]
-    values = np.arange(1 << 16, dtype=np.uint32)
-    word_tables = [
-        byte_tables[2 + 2 * j][values & 0xFF] ^ byte_tables[3 + 2 * j][values >> 8]
-        for j in range(SAMPLE_PAYLOAD_LEN // 2)
-    ]
-    constant = zlib.crc32(bytes((TYPE_SAMPLE, SAMPLE_PAYLOAD_LEN)) + bytes(SAMPLE_PAYLOAD_LEN))
-    return constant, word_tables
-
-
-_SAMPLE_CRC_CONSTANT, _SAMPLE_CRC_WORD_TABLES = _sample_crc_tables()
+#: CRC-32 of a SAMPLE body (type, len, 9 payload words) by linearity over GF(2) (``crc.PairTables``):
+#: for the 20-byte body ``01 12 w0 .. w8`` (w_j little-endian u16), ``crc32(body) = C ^ XOR_j W_j[w_j]``
+#: where ``W_j[v]`` is the raw CRC of v placed at payload word j with zeros elsewhere, and ``C =
+#: crc32(01 12 00 .. 00)`` carries init, xorout and the fixed header: 9 table look-ups per frame.
+_SAMPLE_CRC = iso_hdlc_tables(2 + SAMPLE_PAYLOAD_LEN).with_fixed_prefix(bytes((TYPE_SAMPLE, SAMPLE_PAYLOAD_LEN)))
 _SAMPLE_WORDS = SAMPLE_PAYLOAD_LEN // 2  # 9 little-endian u16 words
 
 _VALID, _CRC_ERROR, _LENGTH_ERROR, _TRUNCATED = 0, 1, 2, 3
@@ -246,9 +211,7 @@ def _classify(data: bytes, cand: np.ndarray, final: bool) -> tuple[np.ndarray, n
     # Every SAMPLE candidate's payload and stored CRC, 22 bytes each, in one gather.
     tails = _gather(data, cand[sample_idx] + HEADER_LEN, _SAMPLE_TAIL_DTYPE)
     tail_words = tails.view(np.uint16).reshape(-1, _TAIL_WORDS)
-    crc = np.full(len(sample_idx), _SAMPLE_CRC_CONSTANT, dtype=np.uint32)
-    for j in range(_SAMPLE_WORDS):
-        crc ^= _SAMPLE_CRC_WORD_TABLES[j][tail_words[:, j]]
+    crc = _SAMPLE_CRC.of_words(tail_words[:, :_SAMPLE_WORDS])
     verdict[sample_idx[crc != tails["crc"]]] = _CRC_ERROR
     for i in np.flatnonzero(checkable & ~is_sample).tolist():
         p = int(cand[i])
@@ -463,10 +426,7 @@ def encode_sample_frames(
         frames[name] = values
     words = frames.view(np.uint16).reshape(len(frames), _SAMPLE_FRAME_DTYPE.itemsize // 2)
     words = words[:, HEADER_LEN // 2 : HEADER_LEN // 2 + _SAMPLE_WORDS]
-    crc = np.full(len(frames), _SAMPLE_CRC_CONSTANT, dtype=np.uint32)
-    for j in range(_SAMPLE_WORDS):
-        crc ^= _SAMPLE_CRC_WORD_TABLES[j][words[:, j]]
-    frames["crc"] = crc
+    frames["crc"] = _SAMPLE_CRC.of_words(words)
     return frames.view(np.uint8).reshape(len(frames), _SAMPLE_FRAME_DTYPE.itemsize)
 
 
