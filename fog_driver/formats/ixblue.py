@@ -80,6 +80,7 @@ from dataclasses import dataclass
 from types import MappingProxyType
 
 from ..protocol.hunting import HuntingDecoder
+from ..protocol.sequence import Unwrapper
 from .common import FLAG_STARTUP, FormatCounters, ImuSample, SeqUnwrapper
 
 SYNC = b"IX"
@@ -238,8 +239,7 @@ class StdbinDecoder(HuntingDecoder):
         self.rate_hz = rate_hz
         super().__init__(StdbinCounters())
         self._seq = SeqUnwrapper(COUNTER_MODULUS, self.counters)
-        self._last_time_raw: int | None = None
-        self._time_unwrapped = 0
+        self._time = Unwrapper(TIME_MODULUS, signed=True)
 
     def _find(self, buf: bytearray, pos: int) -> int:
         found = _SYNC_RE.search(buf, pos)
@@ -314,7 +314,7 @@ class StdbinDecoder(HuntingDecoder):
         time_raw, counter = struct.unpack_from(">II", t, HEADER_LEN[version] - 8)
         seq = self._seq.step(counter)
         dt_s = self._step_time(time_raw)
-        t_s = self._time_unwrapped * TIME_LSB_S
+        t_s = self._time.value * TIME_LSB_S
 
         blocks, raw_rate_at, skipped, unknown = _layout(HEADER_LEN[version], nav_mask, extnav_mask, external_mask)
         c.blocks_skipped += skipped
@@ -367,19 +367,13 @@ class StdbinDecoder(HuntingDecoder):
         )
 
     def _step_time(self, raw: int) -> float | None:
-        """Unwrap the validity time; return the step from the previous telegram in s (None: first)."""
-        if self._last_time_raw is None:
-            self._last_time_raw = raw
-            self._time_unwrapped = raw
-            return None
-        step = (raw - self._last_time_raw) % TIME_MODULUS
-        if step >= TIME_MODULUS // 2:
-            step -= TIME_MODULUS
-        elif raw < self._last_time_raw:
-            self.counters.time_wraps += 1
-        self._last_time_raw = raw
-        self._time_unwrapped += step
-        return step * TIME_LSB_S
+        """Unwrap the validity time (a step of half the range or more is a step back); return the step from
+        the previous telegram in s (None: first)."""
+        time = self._time
+        wraps = time.wraps
+        step = time.step(raw)
+        self.counters.time_wraps += time.wraps - wraps
+        return None if step is None else step * TIME_LSB_S
 
 
 _DECODED_BITS = frozenset(

@@ -76,6 +76,7 @@ import numpy as np
 
 from ..protocol.crc import MPEG2_TABLE, crc32_mpeg2, crc32_mpeg2_reference, crc32_mpeg2_rows
 from ..protocol.hunting import HuntingDecoder
+from ..protocol.sequence import Unwrapper, count_seq_steps
 from .common import FLAG_SENSOR_INVALID, FormatCounters, ImuSample, SeqUnwrapper
 
 SYNC = b"\xfe\x81"
@@ -526,13 +527,9 @@ def decode_kvh_batch(data: bytes | bytearray | memoryview, **config) -> KvhBatch
     seq = np.zeros(m, dtype=np.int64)
     s_idx = np.flatnonzero(is_sample)
     if s_idx.size:
-        raw = seq_raw[s_idx] % SEQ_MODULUS
-        step = (raw[1:] - raw[:-1]) % SEQ_MODULUS
-        seq[s_idx] = raw[0] + np.concatenate(([0], np.cumsum(step)))
-        counters.seq_repeats = int(np.count_nonzero(step == 0))
-        gaps = step > 1
-        counters.seq_gaps = int(np.count_nonzero(gaps))
-        counters.missing_frames = int((step[gaps] - 1).sum())
+        unwrapped = Unwrapper(SEQ_MODULUS).run(seq_raw[s_idx] % SEQ_MODULUS)
+        seq[s_idx] = unwrapped.value
+        count_seq_steps(counters, unwrapped.steps_taken)
     counters.sample_frames = int(s_idx.size)
     counters.other_frames = int(m - s_idx.size)
     bit_results = {

@@ -36,6 +36,7 @@ import numpy as np
 from ..errors import InputFileError
 from .crc import iso_hdlc_tables
 from .decoder import DecoderCounters
+from .sequence import Unwrapper, count_seq_steps
 from .wire import (
     HEADER_LEN,
     IDENTITY_PAYLOAD_LEN,
@@ -44,6 +45,7 @@ from .wire import (
     SEQ_MODULUS,
     SYNC0,
     SYNC1,
+    T_US_MODULUS,
     TYPE_IDENTITY,
     TYPE_SAMPLE,
     Event,
@@ -249,7 +251,7 @@ class BatchDecoder:
 
     ``decode(block)`` returns the frames the block completes, as columns; the
     undecided tail (at most one frame's worth) is carried into the next call,
-    together with the resync flag and the last seq and t_us, so decoding a
+    together with the resync flag and the seq and t_us unwrappers, so decoding a
     capture in blocks gives exactly what ``FrameDecoder`` gives for the same
     bytes in any chunks: the same frames at the same stream offsets and the
     same cumulative ``counters``.  ``decode(block, final=True)`` ends the stream.
@@ -260,8 +262,8 @@ class BatchDecoder:
         self._carry = b""
         self._base = 0  # stream offset of _carry[0]
         self._hunting = False
-        self._last_seq: int | None = None
-        self._last_t_us: int | None = None
+        self._seq = Unwrapper(SEQ_MODULUS)
+        self._t_us = Unwrapper(T_US_MODULUS)
         self._closed = False
 
     @property
@@ -363,19 +365,10 @@ class BatchDecoder:
     def _count_sequence(self, samples: SampleArrays) -> None:
         if not len(samples):
             return
-        seq, t_us = samples.seq, samples.t_us
-        if self._last_seq is not None:
-            seq = np.concatenate((np.array([self._last_seq], np.uint16), seq))
-            t_us = np.concatenate((np.array([self._last_t_us], np.uint32), t_us))
-        step = np.diff(seq)  # uint16 arithmetic wraps: (seq[n] - seq[n-1]) mod 2^16
-        gaps = step > 1
-        c = self.counters
-        c.seq_gaps += int(np.count_nonzero(gaps))
-        c.missing_frames += int(step[gaps].sum(dtype=np.int64)) - int(np.count_nonzero(gaps))
-        c.seq_repeats += int(np.count_nonzero(step == 0))
-        c.t_us_wraps += int(np.count_nonzero(t_us[1:] < t_us[:-1]))
-        self._last_seq = int(seq[-1])
-        self._last_t_us = int(t_us[-1])
+        count_seq_steps(self.counters, self._seq.advance(samples.seq).steps_taken)
+        wraps = self._t_us.wraps
+        self._t_us.advance(samples.t_us)
+        self.counters.t_us_wraps += self._t_us.wraps - wraps
 
 
 #: A whole SAMPLE frame, for the vectorized encoder.
