@@ -75,6 +75,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..protocol.crc import MPEG2_TABLE, crc32_mpeg2, crc32_mpeg2_reference, crc32_mpeg2_rows
+from ..protocol.greedy import greedy_accept
 from ..protocol.hunting import HuntingDecoder
 from ..protocol.sequence import Unwrapper, count_seq_steps
 from .common import FLAG_SENSOR_INVALID, FormatCounters, ImuSample, SeqUnwrapper
@@ -425,19 +426,6 @@ class KvhBatch:
         return out
 
 
-def _accept_greedy(starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
-    """Which valid frames the sequential decoder takes: the first, then the first starting at or after its end..."""
-    if starts.size == 0 or bool(np.all(starts[1:] >= ends[:-1])):
-        return np.ones(starts.size, dtype=bool)
-    keep = np.zeros(starts.size, dtype=bool)
-    edge = 0
-    for i, (s, e) in enumerate(zip(starts.tolist(), ends.tolist())):
-        if s >= edge:
-            keep[i] = True
-            edge = e
-    return keep
-
-
 def decode_kvh_batch(data: bytes | bytearray | memoryview, **config) -> KvhBatch:
     """Decode a complete buffer (as ``feed(data)`` then ``close()``) with numpy; same frames and counters.
 
@@ -481,7 +469,7 @@ def decode_kvh_batch(data: bytes | bytearray | memoryview, **config) -> KvhBatch
             sent = (sent[:, 0] << 24) | (sent[:, 1] << 16) | (sent[:, 2] << 8) | sent[:, 3]
             valid[sel] = crc32_mpeg2_rows(rows[:, :-4]) == sent
     vidx = np.flatnonzero(valid)
-    taken = vidx[_accept_greedy(cand[vidx], cand[vidx] + cand_len[vidx])]
+    taken = vidx[greedy_accept(cand[vidx], cand[vidx] + cand_len[vidx])]
     starts = cand[taken]
     ends = starts + cand_len[taken]
     # Candidates that failed, outside every taken frame, are the ones the sequential decoder reached.

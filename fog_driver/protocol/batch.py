@@ -18,7 +18,7 @@ frame:
    inside an accepted frame is never looked at: the accepted frames are the
    greedy, start-ordered, non-overlapping choice among valid candidates, which
    is every valid candidate except where intervals overlap (resolved by a
-   short loop over those few);
+   short loop over those few: ``greedy.greedy_accept``);
 4. rejected candidates outside accepted frames are the decoder's CRC and
    length errors; gaps between accepted frames are its discarded bytes.
 """
@@ -36,6 +36,7 @@ import numpy as np
 from ..errors import InputFileError
 from .crc import iso_hdlc_tables
 from .decoder import DecoderCounters
+from .greedy import greedy_accept
 from .sequence import Unwrapper, count_seq_steps
 from .wire import (
     HEADER_LEN,
@@ -223,29 +224,6 @@ def _classify(data: bytes, cand: np.ndarray, final: bool) -> tuple[np.ndarray, n
     return verdict, frame_len, sample_idx, tails
 
 
-def _greedy_accept(starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
-    """Mask of the intervals a left-to-right scan accepts (skipping any that start inside one accepted)."""
-    m = len(starts)
-    keep = np.ones(m, dtype=bool)
-    if m < 2:
-        return keep
-    running_end = np.maximum.accumulate(ends)
-    conflict = np.zeros(m, dtype=bool)
-    conflict[1:] = starts[1:] < running_end[:-1]
-    if not conflict.any():
-        return keep
-    # A non-conflicting interval starts after every earlier one ends: always accepted.
-    last_clean = np.maximum.accumulate(np.where(conflict, -1, np.arange(m)))
-    last_kept_conflict = -1
-    for k in np.flatnonzero(conflict).tolist():
-        last = max(int(last_clean[k]), last_kept_conflict)
-        if starts[k] < ends[last]:
-            keep[k] = False
-        else:
-            last_kept_conflict = k
-    return keep
-
-
 class BatchDecoder:
     """The batch decoder with explicit state, fed blocks of any size (``lfilter(zi)`` style).
 
@@ -298,7 +276,7 @@ class BatchDecoder:
         sel = np.flatnonzero(selectable)
         starts = cand[sel]
         ends = np.where(blocking[sel], _INFINITE_END, starts + frame_len[sel])
-        keep = _greedy_accept(starts, ends)
+        keep = greedy_accept(starts, ends)
         kept = sel[keep]
         kept_starts = starts[keep]
         kept_ends = ends[keep]
