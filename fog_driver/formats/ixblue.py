@@ -184,7 +184,7 @@ _U32 = struct.Struct(">I")
 _HEADER_TAIL = struct.Struct(">HII")  # telegram size, validity time, counter
 
 
-def _table(table: tuple, n: int) -> list[int | None]:
+def _table(table: tuple[int | None, ...], n: int) -> list[int | None]:
     return [table[b] if b < len(table) else None for b in range(n)]
 
 
@@ -228,7 +228,7 @@ class StdbinAnswer:
     payload: bytes
 
 
-class StdbinDecoder(HuntingDecoder):
+class StdbinDecoder(HuntingDecoder[ImuSample | StdbinAnswer, StdbinCounters]):
     """Streaming STDBIN decoder: bytes in, ``ImuSample`` events out.
 
     ``rate_hz``: the configured output rate, used for the increment of a telegram with no usable previous
@@ -248,7 +248,7 @@ class StdbinDecoder(HuntingDecoder):
     def _may_begin(self, byte: int) -> bool:
         return byte in _SYNC_FIRST
 
-    def _emit(self, buf: bytearray, pos: int, n: int, events: list) -> None:
+    def _emit(self, buf: bytearray, pos: int, n: int, events: list[ImuSample | StdbinAnswer]) -> None:
         c = self.counters
         telegram = bytes(buf[pos : pos + n])
         if telegram[0] == ANSWER_SYNC[0]:
@@ -356,8 +356,8 @@ class StdbinDecoder(HuntingDecoder):
         return ImuSample(
             seq=seq,
             t_s=t_s,
-            dtheta_arcsec=dtheta,  # type: ignore[arg-type]
-            rate_dph=rate_dph,  # type: ignore[arg-type]
+            dtheta_arcsec=dtheta,
+            rate_dph=rate_dph,
             temps_c=temps,
             flags=frozenset(flags),
             status=status,
@@ -405,7 +405,7 @@ def _masks_len(nav_mask: int, extnav_mask: int, external_mask: int) -> tuple[int
 @functools.lru_cache(maxsize=256)
 def _layout(
     header_len: int, nav_mask: int, extnav_mask: int, external_mask: int
-) -> tuple[MappingProxyType, int | None, int, int]:
+) -> tuple[MappingProxyType[int, int], int | None, int, int]:
     """Where a telegram with these masks has its blocks: (decoded navigation bit -> offset in the telegram,
     the raw rotation rate block's offset or None, blocks skipped by size, set bits of unknown size).
     Cached (bounded) as ``_masks_len``."""
@@ -433,7 +433,8 @@ def _layout(
                 else:
                     skipped += 1
                 if table is _EXTNAV and offset >= 0:
-                    offset = -1 if table[bit] is None else offset + table[bit]
+                    size = table[bit]
+                    offset = -1 if size is None else offset + size
     return MappingProxyType(blocks), raw_rate_at, skipped, unknown
 
 

@@ -71,6 +71,7 @@ from __future__ import annotations
 import math
 import struct
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -253,7 +254,7 @@ _VALID: frozenset[str] = frozenset()
 _INVALID = frozenset((FLAG_SENSOR_INVALID,))
 
 
-def _make_sample(cfg: KvhConfig, fmt: str, values: tuple, seq_unwrapped: int, offset: int) -> ImuSample:
+def _make_sample(cfg: KvhConfig, fmt: str, values: tuple[Any, ...], seq_unwrapped: int, offset: int) -> ImuSample:
     k = _ARCSEC_PER_UNIT[cfg.rot_units]
     gx, gy, gz = values[0:3]
     extra = {"accel_x_g": values[3], "accel_y_g": values[4], "accel_z_g": values[5]}
@@ -300,7 +301,7 @@ def _make_sample(cfg: KvhConfig, fmt: str, values: tuple, seq_unwrapped: int, of
 Event = ImuSample | KvhBitFrame
 
 
-class KvhDecoder(HuntingDecoder):
+class KvhDecoder(HuntingDecoder[Event, FormatCounters]):
     """Streaming KVH normal-mode decoder: ``feed(bytes) -> list[ImuSample | KvhBitFrame]``, ``close()``.
 
     >>> frame = encode_kvh_frame("a", (0.0, 0.0, 1e-6), (0.0, 0.0, 1.0), seq=5, temp=30)
@@ -354,7 +355,7 @@ class KvhDecoder(HuntingDecoder):
             return 0
         return frame_len
 
-    def _emit(self, buf: bytearray, pos: int, n: int, events: list) -> None:
+    def _emit(self, buf: bytearray, pos: int, n: int, events: list[Event]) -> None:
         c = self.counters
         b3 = buf[pos + 3]
         if buf[pos + 2] == 0xFF:
@@ -426,7 +427,7 @@ class KvhBatch:
         return out
 
 
-def decode_kvh_batch(data: bytes | bytearray | memoryview, **config) -> KvhBatch:
+def decode_kvh_batch(data: bytes | bytearray | memoryview, **config: Any) -> KvhBatch:
     """Decode a complete buffer (as ``feed(data)`` then ``close()``) with numpy; same frames and counters.
 
     Every position holding a known header is a candidate; the checks of all candidates are computed at

@@ -56,25 +56,28 @@ from .wire import (
     parse_identity_payload,
 )
 
-#: Packed little-endian layout of a SAMPLE payload (18 bytes).
-SAMPLE_PAYLOAD_DTYPE = np.dtype(
-    [
-        ("seq", "<u2"),
-        ("t_us", "<u4"),
-        ("dtheta_counts", "<i4"),
-        ("t_top_raw", "<i2"),
-        ("t_bottom_raw", "<i2"),
-        ("t_housing_raw", "<i2"),
-        ("status", "<u2"),
-    ]
+#: The fields of a SAMPLE payload, in wire order: (name, little-endian numpy type).
+_PAYLOAD_FIELDS: tuple[tuple[str, str], ...] = (
+    ("seq", "<u2"),
+    ("t_us", "<u4"),
+    ("dtheta_counts", "<i4"),
+    ("t_top_raw", "<i2"),
+    ("t_bottom_raw", "<i2"),
+    ("t_housing_raw", "<i2"),
+    ("status", "<u2"),
 )
+#: Packed little-endian layout of a SAMPLE payload (18 bytes).
+SAMPLE_PAYLOAD_DTYPE = np.dtype(list(_PAYLOAD_FIELDS))
 assert SAMPLE_PAYLOAD_DTYPE.itemsize == SAMPLE_PAYLOAD_LEN
+_PAYLOAD_NAMES = [name for name, _ in _PAYLOAD_FIELDS]
+_PAYLOAD_FORMATS = [fmt for _, fmt in _PAYLOAD_FIELDS]
+_PAYLOAD_OFFSETS = [sum(np.dtype(fmt).itemsize for fmt in _PAYLOAD_FORMATS[:k]) for k in range(len(_PAYLOAD_FORMATS))]
 #: A SAMPLE frame from its payload on: the payload fields, then the stored CRC (22 bytes).
 _SAMPLE_TAIL_DTYPE = np.dtype(
     {
-        "names": [*SAMPLE_PAYLOAD_DTYPE.names, "crc"],
-        "formats": [*(SAMPLE_PAYLOAD_DTYPE.fields[n][0] for n in SAMPLE_PAYLOAD_DTYPE.names), "<u4"],
-        "offsets": [*(SAMPLE_PAYLOAD_DTYPE.fields[n][1] for n in SAMPLE_PAYLOAD_DTYPE.names), SAMPLE_PAYLOAD_LEN],
+        "names": [*_PAYLOAD_NAMES, "crc"],
+        "formats": [*_PAYLOAD_FORMATS, "<u4"],
+        "offsets": [*_PAYLOAD_OFFSETS, SAMPLE_PAYLOAD_LEN],
         "itemsize": SAMPLE_PAYLOAD_LEN + 4,
     }
 )
@@ -114,7 +117,7 @@ class SampleArrays:
         """Columns from streaming events (the reference the batch path is tested against)."""
         rows = np.array([tuple(f[1:]) for f in frames], dtype=SAMPLE_PAYLOAD_DTYPE)
         offsets = np.array([f.offset for f in frames], dtype=np.int64)
-        return cls(offsets, *(np.ascontiguousarray(rows[name]) for name in SAMPLE_PAYLOAD_DTYPE.names))
+        return cls(offsets, *(np.ascontiguousarray(rows[name]) for name in _PAYLOAD_NAMES))
 
     def frame(self, i: int) -> SampleFrame:
         return SampleFrame(
@@ -180,7 +183,8 @@ def _gather(data: bytes, at: np.ndarray, dtype: np.dtype) -> np.ndarray:
     raw = np.dtype((np.void, dtype.itemsize))
     count = max(0, len(data) - dtype.itemsize + 1)
     view = np.ndarray(shape=(count,), dtype=raw, buffer=data, offset=0, strides=(1,))
-    return view[at].view(dtype)
+    gathered: np.ndarray = view[at].view(dtype)
+    return gathered
 
 
 def _classify(data: bytes, cand: np.ndarray, final: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -321,7 +325,7 @@ class BatchDecoder:
         else:
             tails = sample_tails[np.searchsorted(sample_idx, kept_samples)]
         samples = SampleArrays(
-            cand[kept_samples] + base, *(np.ascontiguousarray(tails[name]) for name in SAMPLE_PAYLOAD_DTYPE.names)
+            cand[kept_samples] + base, *(np.ascontiguousarray(tails[name]) for name in _PAYLOAD_NAMES)
         )
         identities = []
         unknown = []
@@ -352,15 +356,9 @@ class BatchDecoder:
 #: A whole SAMPLE frame, for the vectorized encoder.
 _SAMPLE_FRAME_DTYPE = np.dtype(
     {
-        "names": ["sync", "type", "len", *SAMPLE_PAYLOAD_DTYPE.names, "crc"],
-        "formats": ["<u2", "u1", "u1", *(SAMPLE_PAYLOAD_DTYPE.fields[n][0] for n in SAMPLE_PAYLOAD_DTYPE.names), "<u4"],
-        "offsets": [
-            0,
-            2,
-            3,
-            *(HEADER_LEN + SAMPLE_PAYLOAD_DTYPE.fields[n][1] for n in SAMPLE_PAYLOAD_DTYPE.names),
-            HEADER_LEN + SAMPLE_PAYLOAD_LEN,
-        ],
+        "names": ["sync", "type", "len", *_PAYLOAD_NAMES, "crc"],
+        "formats": ["<u2", "u1", "u1", *_PAYLOAD_FORMATS, "<u4"],
+        "offsets": [0, 2, 3, *(HEADER_LEN + offset for offset in _PAYLOAD_OFFSETS), HEADER_LEN + SAMPLE_PAYLOAD_LEN],
         "itemsize": HEADER_LEN + SAMPLE_PAYLOAD_LEN + 4,
     }
 )

@@ -34,6 +34,7 @@ from .wire import (
     SYNC0,
     TYPE_IDENTITY,
     TYPE_SAMPLE,
+    Event,
     SampleFrame,
     UnknownFrame,
     parse_identity_payload,
@@ -74,7 +75,7 @@ def seq_step(seq: int, previous_seq: int) -> int:
     return (seq - previous_seq) % SEQ_MODULUS
 
 
-class FrameDecoder(HuntingDecoder):
+class FrameDecoder(HuntingDecoder[Event, DecoderCounters]):
     """Streaming protocol v1 decoder.
 
     >>> from fog_driver.protocol import encode_sample
@@ -113,10 +114,11 @@ class FrameDecoder(HuntingDecoder):
             return 0
         return frame_len
 
-    def _emit(self, buf: bytearray, pos: int, n: int, events: list) -> None:
+    def _emit(self, buf: bytearray, pos: int, n: int, events: list[Event]) -> None:
         c = self.counters
         offset = self._base + pos
         frame_type = buf[pos + 2]
+        frame: Event
         if frame_type == TYPE_SAMPLE:
             frame = SampleFrame(offset, *_SAMPLE_UNPACK_FROM(buf, pos + HEADER_LEN))
             self._count_sample(frame.seq, frame.t_us)
