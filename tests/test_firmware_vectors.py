@@ -22,6 +22,7 @@ import subprocess
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from fog_driver.protocol import (
@@ -35,6 +36,7 @@ from fog_driver.protocol import (
     encode_identity,
     encode_sample,
 )
+from fog_driver.protocol.crc import ISO_HDLC_TABLE, crc32_reference, crc32_rows
 
 ROOT = Path(__file__).resolve().parents[1]
 C_DIR = ROOT / "firmware_protocol" / "c"
@@ -274,6 +276,29 @@ def test_c_crc_matches_python_on_random_data(generator: Path) -> None:
         result = _run([str(generator), "--crc-stdin"], input=data)
         assert result.returncode == 0, result.stderr.decode(errors="replace")
         assert int(result.stdout.decode().strip(), 16) == crc32(data), f"{size} bytes"
+
+
+def test_c_crc_table_is_the_crc_leaf_s() -> None:
+    """The C encoder's 256-entry table, read from its source, is ``protocol.crc``'s, entry for entry."""
+    source = (C_DIR / "fog_protocol.c").read_text()
+    body = source.split("fog_crc32_table[256] = {", 1)[1].split("};", 1)[0]
+    c_table = [int(word, 16) for word in re.findall(r"0x([0-9A-Fa-f]{8})ul", body)]
+    assert len(c_table) == 256
+    assert c_table == ISO_HDLC_TABLE.tolist()
+
+
+def test_c_crc_matches_the_vector_forms_at_every_length(generator: Path) -> None:
+    """``crc32_rows`` and the table reference against the C encoder, for every length 1..40 (odd and even)."""
+    rng = np.random.default_rng(20261204)
+    for m in range(1, 41):
+        rows = rng.integers(0, 256, (3, m), dtype=np.uint8)
+        c_crcs = []
+        for row in rows:
+            result = _run([str(generator), "--crc-stdin"], input=row.tobytes())
+            assert result.returncode == 0, result.stderr.decode(errors="replace")
+            c_crcs.append(int(result.stdout.decode().strip(), 16))
+        assert crc32_rows(rows).tolist() == c_crcs, f"{m} bytes"
+        assert [crc32_reference(row.tobytes()) for row in rows] == c_crcs, f"{m} bytes"
 
 
 def test_generator_rejects_bad_usage(generator: Path) -> None:

@@ -20,7 +20,6 @@ bit-identical results for any split of a capture (tested).
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,45 +28,27 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 
 from ..errors import InputFileError
+from ..flags import FLAG_NAMES as FLAG_NAMES  # re-exported: the names' home is fog_driver.flags
+from ..flags import Flag
+from ..flags import flag_names as flag_names
 from ..protocol import STATUS_THERMOMETER_FAULT
 from ..samples.stream import Sample, SampleBlock
 from .blocks import FLAG_GAP, FLAG_THERMOMETER_FAULT, PLAUSIBLE_TEMP_C, BlockAverager, ModelBlock, plausible_temps
 from .domain import FLAG_EXTRAPOLATING
-from .features import DEGRADED_FLAGS, FLAG_INPUT_STALE, FLAG_RECOVERING, FLAG_SUBSTITUTED, FeatureExtractor
+from .features import DEGRADED_FLAGS, FLAG_INPUT_STALE, FeatureExtractor
 from .model import ModelFile
 
 if TYPE_CHECKING:  # adapt.py imports this module's flags: import it lazily
     from .adapt import AdaptConfig, OnlineReadout, StaticDetector
 
-FLAG_UNCOMPENSATED = 1 << 3  #: no drift estimate applied (start-up, or inputs never valid)
-FLAG_ADAPTING = 1 << 4  #: the weights are adapting online, or adapted weights give the estimate
-FLAG_GUARD = 1 << 5  #: a runaway or non-finite estimate, or a reference the gyro disagrees with, was rejected
+FLAG_UNCOMPENSATED = int(Flag.UNCOMPENSATED)  #: no drift estimate applied (start-up, or inputs never valid)
+FLAG_ADAPTING = int(Flag.ADAPTING)  #: the weights are adapting online, or adapted weights give the estimate
+FLAG_GUARD = int(Flag.GUARD)  #: a runaway or non-finite estimate, or a reference the gyro disagrees with, was rejected
 #: A link gap longer than this restarts the pipeline at rest (the model's memory of before is stale);
 #: a shorter one is stepped through block by block.
 MAX_GAP_S = 6 * 3600.0
 #: After a gap the estimates are flagged ``gap`` for this many slow rate-smoother time constants.
 SETTLE_TAUS = 3.0
-FLAG_NAMES = {
-    FLAG_GAP: "gap",
-    FLAG_THERMOMETER_FAULT: "thermometer_fault",
-    FLAG_INPUT_STALE: "input_stale",
-    FLAG_UNCOMPENSATED: "uncompensated",
-    FLAG_ADAPTING: "adapting",
-    FLAG_GUARD: "guard",
-    FLAG_EXTRAPOLATING: "extrapolating",
-    FLAG_SUBSTITUTED: "substituted",
-    FLAG_RECOVERING: "recovering",
-}
-
-
-def flag_names(flags: int) -> list[str]:
-    """The names of the bits set in ``flags``, in ``FLAG_NAMES`` order (a new list each call)."""
-    return list(_flag_names(flags))
-
-
-@functools.lru_cache(maxsize=1024)
-def _flag_names(flags: int) -> tuple[str, ...]:
-    return tuple(name for bit, name in FLAG_NAMES.items() if flags & bit)
 
 
 class CompensatedSample(NamedTuple):

@@ -58,6 +58,20 @@ import time
 from collections.abc import Callable, Iterable, Mapping
 from typing import Any, Self
 
+# The compensator's flags, from the leaf that defines them (standard library only).
+from ..flags import (
+    FLAG_ADAPTING,
+    FLAG_BITS,
+    FLAG_EXTRAPOLATING,
+    FLAG_GAP,
+    FLAG_GUARD,
+    FLAG_INPUT_STALE,
+    FLAG_RECOVERING,
+    FLAG_SUBSTITUTED,
+    FLAG_THERMOMETER_FAULT,
+    FLAG_UNCOMPENSATED,
+)
+
 __all__ = [
     "DATAGRAM_FORMAT",
     "DATAGRAM_SIZE",
@@ -86,27 +100,6 @@ DATAGRAM_FORMAT = ">4sHHQdddddfff"
 _STRUCT = struct.Struct(DATAGRAM_FORMAT)
 DATAGRAM_SIZE = _STRUCT.size  # 68
 
-# The compensator's flags (fog_driver.compensation), repeated here so that this module stands alone.
-FLAG_GAP = 1 << 0
-FLAG_THERMOMETER_FAULT = 1 << 1
-FLAG_INPUT_STALE = 1 << 2
-FLAG_UNCOMPENSATED = 1 << 3
-FLAG_ADAPTING = 1 << 4
-FLAG_GUARD = 1 << 5
-FLAG_EXTRAPOLATING = 1 << 6
-FLAG_SUBSTITUTED = 1 << 7
-FLAG_RECOVERING = 1 << 8
-FLAG_BITS = {
-    "gap": FLAG_GAP,
-    "thermometer_fault": FLAG_THERMOMETER_FAULT,
-    "input_stale": FLAG_INPUT_STALE,
-    "uncompensated": FLAG_UNCOMPENSATED,
-    "adapting": FLAG_ADAPTING,
-    "guard": FLAG_GUARD,
-    "extrapolating": FLAG_EXTRAPOLATING,
-    "substituted": FLAG_SUBSTITUTED,
-    "recovering": FLAG_RECOVERING,
-}
 
 #: The sample fields after magic and version, in datagram order.
 FIELDS = (

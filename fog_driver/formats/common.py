@@ -9,12 +9,21 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 
-#: Flags a format maps its status bits to (a sample carries the set that applies).
-FLAG_SENSOR_INVALID = "sensor_invalid"  #: a gyro axis reported invalid by the device
-FLAG_STARTUP = "startup"  #: the device says its output is not yet valid (warm-up, just configured)
-FLAG_TEMPERATURE_INVALID = "temperature_invalid"  #: a temperature channel reported invalid
-FLAG_OVER_RANGE = "over_range"  #: a gyro axis beyond its range
-COMMON_FLAGS = (FLAG_SENSOR_INVALID, FLAG_STARTUP, FLAG_TEMPERATURE_INVALID, FLAG_OVER_RANGE)
+from ..flags import (
+    SAMPLE_FLAGS,
+    SAMPLE_OVER_RANGE,
+    SAMPLE_SENSOR_INVALID,
+    SAMPLE_STARTUP,
+    SAMPLE_TEMPERATURE_INVALID,
+)
+from ..protocol.sequence import Unwrapper, count_seq_step
+
+#: Flags a format maps its status bits to (a sample carries the set that applies); defined in ``fog_driver.flags``.
+FLAG_SENSOR_INVALID = SAMPLE_SENSOR_INVALID  #: a gyro axis reported invalid by the device
+FLAG_STARTUP = SAMPLE_STARTUP  #: the device says its output is not yet valid (warm-up, just configured)
+FLAG_TEMPERATURE_INVALID = SAMPLE_TEMPERATURE_INVALID  #: a temperature channel reported invalid
+FLAG_OVER_RANGE = SAMPLE_OVER_RANGE  #: a gyro axis beyond its range
+COMMON_FLAGS = SAMPLE_FLAGS
 
 AXES = ("x", "y", "z")
 
@@ -71,26 +80,16 @@ class FormatCounters:
 
 
 class SeqUnwrapper:
-    """Unwraps a counter that wraps at ``modulus`` and counts gaps and repeats into ``counters``."""
+    """Unwraps a counter that wraps at ``modulus`` (``protocol.sequence.Unwrapper``) and counts gaps and
+    repeats into ``counters``."""
 
     def __init__(self, modulus: int, counters: FormatCounters) -> None:
-        self.modulus = modulus
         self.counters = counters
-        self.last_raw: int | None = None
-        self.unwrapped = 0
+        self.unwrapper = Unwrapper(modulus)
 
     def step(self, raw: int) -> int:
         """The unwrapped sequence of the next frame whose counter reads ``raw``: ``(raw - previous) mod m``
         is 1 normally, 0 for a repeat, k > 1 when k - 1 frames are missing."""
-        if self.last_raw is None:
-            self.unwrapped = raw
-        else:
-            step = (raw - self.last_raw) % self.modulus
-            if step == 0:
-                self.counters.seq_repeats += 1
-            elif step > 1:
-                self.counters.seq_gaps += 1
-                self.counters.missing_frames += step - 1
-            self.unwrapped += step
-        self.last_raw = raw
-        return self.unwrapped
+        u = self.unwrapper
+        count_seq_step(self.counters, u.step(raw))
+        return u.value

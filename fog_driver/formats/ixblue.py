@@ -80,6 +80,7 @@ from dataclasses import dataclass
 from types import MappingProxyType
 
 from ..protocol.hunting import HuntingDecoder
+from ..protocol.sequence import Unwrapper
 from .common import FLAG_STARTUP, FormatCounters, ImuSample, SeqUnwrapper
 
 SYNC = b"IX"
@@ -183,7 +184,7 @@ _U32 = struct.Struct(">I")
 _HEADER_TAIL = struct.Struct(">HII")  # telegram size, validity time, counter
 
 
-def _table(table: tuple, n: int) -> list[int | None]:
+def _table(table: tuple[int | None, ...], n: int) -> list[int | None]:
     return [table[b] if b < len(table) else None for b in range(n)]
 
 
@@ -227,7 +228,7 @@ class StdbinAnswer:
     payload: bytes
 
 
-class StdbinDecoder(HuntingDecoder):
+class StdbinDecoder(HuntingDecoder[ImuSample | StdbinAnswer, StdbinCounters]):
     """Streaming STDBIN decoder: bytes in, ``ImuSample`` events out.
 
     ``rate_hz``: the configured output rate, used for the increment of a telegram with no usable previous
@@ -238,8 +239,7 @@ class StdbinDecoder(HuntingDecoder):
         self.rate_hz = rate_hz
         super().__init__(StdbinCounters())
         self._seq = SeqUnwrapper(COUNTER_MODULUS, self.counters)
-        self._last_time_raw: int | None = None
-        self._time_unwrapped = 0
+        self._time = Unwrapper(TIME_MODULUS, signed=True)
 
     def _find(self, buf: bytearray, pos: int) -> int:
         found = _SYNC_RE.search(buf, pos)
@@ -248,7 +248,7 @@ class StdbinDecoder(HuntingDecoder):
     def _may_begin(self, byte: int) -> bool:
         return byte in _SYNC_FIRST
 
-    def _emit(self, buf: bytearray, pos: int, n: int, events: list) -> None:
+    def _emit(self, buf: bytearray, pos: int, n: int, events: list[ImuSample | StdbinAnswer]) -> None:
         c = self.counters
         telegram = bytes(buf[pos : pos + n])
         if telegram[0] == ANSWER_SYNC[0]:
@@ -314,7 +314,7 @@ class StdbinDecoder(HuntingDecoder):
         time_raw, counter = struct.unpack_from(">II", t, HEADER_LEN[version] - 8)
         seq = self._seq.step(counter)
         dt_s = self._step_time(time_raw)
-        t_s = self._time_unwrapped * TIME_LSB_S
+        t_s = self._time.value * TIME_LSB_S
 
         blocks, raw_rate_at, skipped, unknown = _layout(HEADER_LEN[version], nav_mask, extnav_mask, external_mask)
         c.blocks_skipped += skipped
@@ -356,8 +356,8 @@ class StdbinDecoder(HuntingDecoder):
         return ImuSample(
             seq=seq,
             t_s=t_s,
-            dtheta_arcsec=dtheta,  # type: ignore[arg-type]
-            rate_dph=rate_dph,  # type: ignore[arg-type]
+            dtheta_arcsec=dtheta,
+            rate_dph=rate_dph,
             temps_c=temps,
             flags=frozenset(flags),
             status=status,
@@ -367,19 +367,13 @@ class StdbinDecoder(HuntingDecoder):
         )
 
     def _step_time(self, raw: int) -> float | None:
-        """Unwrap the validity time; return the step from the previous telegram in s (None: first)."""
-        if self._last_time_raw is None:
-            self._last_time_raw = raw
-            self._time_unwrapped = raw
-            return None
-        step = (raw - self._last_time_raw) % TIME_MODULUS
-        if step >= TIME_MODULUS // 2:
-            step -= TIME_MODULUS
-        elif raw < self._last_time_raw:
-            self.counters.time_wraps += 1
-        self._last_time_raw = raw
-        self._time_unwrapped += step
-        return step * TIME_LSB_S
+        """Unwrap the validity time (a step of half the range or more is a step back); return the step from
+        the previous telegram in s (None: first)."""
+        time = self._time
+        wraps = time.wraps
+        step = time.step(raw)
+        self.counters.time_wraps += time.wraps - wraps
+        return None if step is None else step * TIME_LSB_S
 
 
 _DECODED_BITS = frozenset(
@@ -411,7 +405,7 @@ def _masks_len(nav_mask: int, extnav_mask: int, external_mask: int) -> tuple[int
 @functools.lru_cache(maxsize=256)
 def _layout(
     header_len: int, nav_mask: int, extnav_mask: int, external_mask: int
-) -> tuple[MappingProxyType, int | None, int, int]:
+) -> tuple[MappingProxyType[int, int], int | None, int, int]:
     """Where a telegram with these masks has its blocks: (decoded navigation bit -> offset in the telegram,
     the raw rotation rate block's offset or None, blocks skipped by size, set bits of unknown size).
     Cached (bounded) as ``_masks_len``."""
@@ -439,7 +433,8 @@ def _layout(
                 else:
                     skipped += 1
                 if table is _EXTNAV and offset >= 0:
-                    offset = -1 if table[bit] is None else offset + table[bit]
+                    size = table[bit]
+                    offset = -1 if size is None else offset + size
     return MappingProxyType(blocks), raw_rate_at, skipped, unknown
 
 

@@ -70,12 +70,15 @@ from __future__ import annotations
 
 import math
 import struct
-import zlib
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+from ..protocol.crc import MPEG2_TABLE, crc32_mpeg2, crc32_mpeg2_reference, crc32_mpeg2_rows
+from ..protocol.greedy import greedy_accept
 from ..protocol.hunting import HuntingDecoder
+from ..protocol.sequence import Unwrapper, count_seq_steps
 from .common import FLAG_SENSOR_INVALID, FormatCounters, ImuSample, SeqUnwrapper
 
 SYNC = b"\xfe\x81"
@@ -102,93 +105,8 @@ _BODY = {  # struct of the bytes after the header, up to the CRC
     "c": struct.Struct(">6ffBB"),
 }
 _U32 = struct.Struct(">I")
-
-# --- CRC-32/MPEG-2 ------------------------------------------------------------------------------------------
-
-
-def _make_crc_table() -> list[int]:
-    table = []
-    for byte in range(256):
-        crc = byte << 24
-        for _ in range(8):
-            crc = ((crc << 1) ^ 0x04C11DB7) & 0xFFFFFFFF if crc & 0x80000000 else (crc << 1) & 0xFFFFFFFF
-        table.append(crc)
-    return table
-
-
-CRC_TABLE = _make_crc_table()
-_CRC_TABLE_NP = np.array(CRC_TABLE, dtype=np.uint32)
-_REVERSE_BITS8 = bytes(int(f"{b:08b}"[::-1], 2) for b in range(256))
-
-
-def crc32_mpeg2(data: bytes | bytearray | memoryview) -> int:
-    """CRC-32/MPEG-2 of ``data``.
-
-    Computed with zlib's reflected CRC-32 on bit-reversed bytes: CRC-32 (ISO-HDLC) is the same register
-    with every byte and the result bit-reversed and a final xor of 0xFFFFFFFF, so
-    ``mpeg2(d) = reverse32(crc32(reverse8(d)) ^ 0xFFFFFFFF)``.  ``crc32_mpeg2_reference`` is the table
-    form it is tested against.
-    """
-    reg = (
-        zlib.crc32(
-            data.translate(_REVERSE_BITS8)
-            if not isinstance(data, memoryview)
-            else bytes(data).translate(_REVERSE_BITS8)
-        )
-        ^ 0xFFFFFFFF
-    )
-    # reverse32: the bytes in the opposite order, each bit-reversed
-    return int.from_bytes(reg.to_bytes(4, "little").translate(_REVERSE_BITS8), "big")
-
-
-def crc32_mpeg2_reference(data: bytes | bytearray | memoryview) -> int:
-    """The textbook MSB-first table-driven CRC-32/MPEG-2 (slow; the definition)."""
-    crc = 0xFFFFFFFF
-    for b in bytes(data):
-        crc = ((crc << 8) & 0xFFFFFFFF) ^ CRC_TABLE[((crc >> 24) ^ b) & 0xFF]
-    return crc
-
-
-_POSITION_TABLES: dict[int, tuple[np.ndarray, np.ndarray, int]] = {}
-
-
-def _position_tables(m: int) -> tuple[np.ndarray, np.ndarray, int]:
-    """For messages of m bytes: ``T[j, v]`` = CRC (register starting at 0) of the message with byte j = v
-    and every other byte 0; ``T2[k, lo | hi << 8] = T[2k, lo] ^ T[2k + 1, hi]`` (byte pairs, m even); and
-    ``c0`` = CRC (register starting at 0xFFFFFFFF) of m zero bytes."""
-    if m not in _POSITION_TABLES:
-        tables = np.empty((m, 256), dtype=np.uint32)
-        reg = _CRC_TABLE_NP.copy()  # one byte v, register from 0: the table itself
-        for j in range(m - 1, -1, -1):
-            tables[j] = reg
-            reg = (reg << np.uint32(8)) ^ _CRC_TABLE_NP[reg >> np.uint32(24)]  # one more zero byte after
-        pairs = (tables[0 : m - 1 : 2, None, :] ^ tables[1::2, :, None]).reshape(m // 2, 65536)
-        _POSITION_TABLES[m] = (tables, pairs, crc32_mpeg2_reference(bytes(m)))
-    return _POSITION_TABLES[m]
-
-
-def crc32_mpeg2_rows(rows: np.ndarray) -> np.ndarray:
-    """CRC-32/MPEG-2 of every row of a ``(n, m)`` uint8 array at once.
-
-    A CRC without final xor is affine in the message over GF(2): for a fixed length m,
-    ``crc(msg) = crc(m zero bytes) XOR T[0, msg[0]] XOR ... XOR T[m-1, msg[m-1]]`` where ``T[j, v]`` is the
-    CRC (register starting at 0) of the message holding v at byte j and zeros elsewhere.  So the CRCs of n
-    frames are m table gathers (one per column, vectorized across frames) xor-ed together; for even m the
-    gathers are over byte pairs (m / 2 lookups per frame in 65536-entry tables).
-    """
-    n, m = rows.shape
-    if n == 0:
-        return np.zeros(0, dtype=np.uint32)
-    tables, pairs, c0 = _position_tables(m)
-    if m % 2 == 0:  # columns of byte pairs lo | hi << 8 (whatever the host order), one gather per column
-        table, columns = pairs, np.ascontiguousarray(np.ascontiguousarray(rows).view("<u2").T)
-    else:
-        table, columns = tables, np.ascontiguousarray(rows.T)
-    crc = np.full(n, c0, dtype=np.uint32)
-    for k in range(columns.shape[0]):
-        crc ^= table[k].take(columns[k])
-    return crc
-
+#: The CRC-32/MPEG-2 byte table (``fog_driver.protocol.crc`` holds the CRCs of every format).
+CRC_TABLE = MPEG2_TABLE
 
 # --- events ----------------------------------------------------------------------------------------------
 
@@ -336,7 +254,7 @@ _VALID: frozenset[str] = frozenset()
 _INVALID = frozenset((FLAG_SENSOR_INVALID,))
 
 
-def _make_sample(cfg: KvhConfig, fmt: str, values: tuple, seq_unwrapped: int, offset: int) -> ImuSample:
+def _make_sample(cfg: KvhConfig, fmt: str, values: tuple[Any, ...], seq_unwrapped: int, offset: int) -> ImuSample:
     k = _ARCSEC_PER_UNIT[cfg.rot_units]
     gx, gy, gz = values[0:3]
     extra = {"accel_x_g": values[3], "accel_y_g": values[4], "accel_z_g": values[5]}
@@ -383,7 +301,7 @@ def _make_sample(cfg: KvhConfig, fmt: str, values: tuple, seq_unwrapped: int, of
 Event = ImuSample | KvhBitFrame
 
 
-class KvhDecoder(HuntingDecoder):
+class KvhDecoder(HuntingDecoder[Event, FormatCounters]):
     """Streaming KVH normal-mode decoder: ``feed(bytes) -> list[ImuSample | KvhBitFrame]``, ``close()``.
 
     >>> frame = encode_kvh_frame("a", (0.0, 0.0, 1e-6), (0.0, 0.0, 1.0), seq=5, temp=30)
@@ -437,7 +355,7 @@ class KvhDecoder(HuntingDecoder):
             return 0
         return frame_len
 
-    def _emit(self, buf: bytearray, pos: int, n: int, events: list) -> None:
+    def _emit(self, buf: bytearray, pos: int, n: int, events: list[Event]) -> None:
         c = self.counters
         b3 = buf[pos + 3]
         if buf[pos + 2] == 0xFF:
@@ -509,20 +427,7 @@ class KvhBatch:
         return out
 
 
-def _accept_greedy(starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
-    """Which valid frames the sequential decoder takes: the first, then the first starting at or after its end..."""
-    if starts.size == 0 or bool(np.all(starts[1:] >= ends[:-1])):
-        return np.ones(starts.size, dtype=bool)
-    keep = np.zeros(starts.size, dtype=bool)
-    edge = 0
-    for i, (s, e) in enumerate(zip(starts.tolist(), ends.tolist())):
-        if s >= edge:
-            keep[i] = True
-            edge = e
-    return keep
-
-
-def decode_kvh_batch(data: bytes | bytearray | memoryview, **config) -> KvhBatch:
+def decode_kvh_batch(data: bytes | bytearray | memoryview, **config: Any) -> KvhBatch:
     """Decode a complete buffer (as ``feed(data)`` then ``close()``) with numpy; same frames and counters.
 
     Every position holding a known header is a candidate; the checks of all candidates are computed at
@@ -565,7 +470,7 @@ def decode_kvh_batch(data: bytes | bytearray | memoryview, **config) -> KvhBatch
             sent = (sent[:, 0] << 24) | (sent[:, 1] << 16) | (sent[:, 2] << 8) | sent[:, 3]
             valid[sel] = crc32_mpeg2_rows(rows[:, :-4]) == sent
     vidx = np.flatnonzero(valid)
-    taken = vidx[_accept_greedy(cand[vidx], cand[vidx] + cand_len[vidx])]
+    taken = vidx[greedy_accept(cand[vidx], cand[vidx] + cand_len[vidx])]
     starts = cand[taken]
     ends = starts + cand_len[taken]
     # Candidates that failed, outside every taken frame, are the ones the sequential decoder reached.
@@ -611,13 +516,9 @@ def decode_kvh_batch(data: bytes | bytearray | memoryview, **config) -> KvhBatch
     seq = np.zeros(m, dtype=np.int64)
     s_idx = np.flatnonzero(is_sample)
     if s_idx.size:
-        raw = seq_raw[s_idx] % SEQ_MODULUS
-        step = (raw[1:] - raw[:-1]) % SEQ_MODULUS
-        seq[s_idx] = raw[0] + np.concatenate(([0], np.cumsum(step)))
-        counters.seq_repeats = int(np.count_nonzero(step == 0))
-        gaps = step > 1
-        counters.seq_gaps = int(np.count_nonzero(gaps))
-        counters.missing_frames = int((step[gaps] - 1).sum())
+        unwrapped = Unwrapper(SEQ_MODULUS).run(seq_raw[s_idx] % SEQ_MODULUS)
+        seq[s_idx] = unwrapped.value
+        count_seq_steps(counters, unwrapped.steps_taken)
     counters.sample_frames = int(s_idx.size)
     counters.other_frames = int(m - s_idx.size)
     bit_results = {

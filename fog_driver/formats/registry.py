@@ -66,11 +66,11 @@ _KVH_SETTINGS = ("rot_format", "rot_units", "temp_units", "rate_hz")
 
 
 def _v1_frames(counters: Any) -> int:
-    return counters.sample_frames + counters.identity_frames + counters.unknown_frames
+    return int(counters.sample_frames + counters.identity_frames + counters.unknown_frames)
 
 
 def _format_frames(counters: Any) -> int:
-    return counters.sample_frames + counters.other_frames
+    return int(counters.sample_frames + counters.other_frames)
 
 
 FORMATS: dict[str, FrameFormat] = {

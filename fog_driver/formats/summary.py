@@ -61,7 +61,7 @@ class FormatSummary:
     last_t_s: float | None = None
     rate_dph: dict[str, _Channel] = field(default_factory=lambda: {a: _Channel() for a in AXES})
     temps_c: dict[str, _Channel] = field(default_factory=dict)
-    flags: Counter = field(default_factory=Counter)
+    flags: Counter[str] = field(default_factory=Counter)
 
     def add(self, sample: ImuSample) -> None:
         self.samples += 1
@@ -159,7 +159,7 @@ def format_format_summary(s: FormatSummary) -> str:
             f"sequence      {s.first_seq:,} .. {s.last_seq:,} (unwrapped); {c.get('seq_gaps', 0):,} gaps, "
             f"{c.get('missing_frames', 0):,} missing, {c.get('seq_repeats', 0):,} repeated"
         )
-    if s.first_t_s is not None:
+    if s.first_t_s is not None and s.last_t_s is not None:
         lines.append(f"device time   {s.first_t_s:.3f} .. {s.last_t_s:.3f} s ({s.last_t_s - s.first_t_s:,.1f} s)")
     for axis, ch in s.rate_dph.items():
         if ch.n:

@@ -11,6 +11,7 @@ from .batch import (
     encode_sample_frames,
     iter_decode_file,
 )
+from .crc import crc32
 from .decoder import DecoderCounters, FrameDecoder, seq_step
 from .wire import (
     IDENTITY_FRAME_LEN,
@@ -34,7 +35,6 @@ from .wire import (
     IdentityFrame,
     SampleFrame,
     UnknownFrame,
-    crc32,
     encode_event,
     encode_frame,
     encode_identity,

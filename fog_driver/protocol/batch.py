@@ -12,13 +12,13 @@ frame:
    a truncated frame and is discarded like a bad one);
 2. the SAMPLE-typed candidates' payloads are gathered in one indexing call
    (through a stride-1 structured view of the bytes) and their CRCs computed
-   together, by linearity (``_sample_crc_tables``);
+   together, by linearity (``crc.PairTables``);
    the few others use ``zlib``;
 3. the streaming scan accepts a valid frame and jumps over it, so a candidate
    inside an accepted frame is never looked at: the accepted frames are the
    greedy, start-ordered, non-overlapping choice among valid candidates, which
    is every valid candidate except where intervals overlap (resolved by a
-   short loop over those few);
+   short loop over those few: ``greedy.greedy_accept``);
 4. rejected candidates outside accepted frames are the decoder's CRC and
    length errors; gaps between accepted frames are its discarded bytes.
 """
@@ -34,7 +34,10 @@ from typing import BinaryIO
 import numpy as np
 
 from ..errors import InputFileError
+from .crc import iso_hdlc_tables
 from .decoder import DecoderCounters
+from .greedy import greedy_accept
+from .sequence import Unwrapper, count_seq_steps
 from .wire import (
     HEADER_LEN,
     IDENTITY_PAYLOAD_LEN,
@@ -43,6 +46,7 @@ from .wire import (
     SEQ_MODULUS,
     SYNC0,
     SYNC1,
+    T_US_MODULUS,
     TYPE_IDENTITY,
     TYPE_SAMPLE,
     Event,
@@ -52,72 +56,39 @@ from .wire import (
     parse_identity_payload,
 )
 
-#: Packed little-endian layout of a SAMPLE payload (18 bytes).
-SAMPLE_PAYLOAD_DTYPE = np.dtype(
-    [
-        ("seq", "<u2"),
-        ("t_us", "<u4"),
-        ("dtheta_counts", "<i4"),
-        ("t_top_raw", "<i2"),
-        ("t_bottom_raw", "<i2"),
-        ("t_housing_raw", "<i2"),
-        ("status", "<u2"),
-    ]
+#: The fields of a SAMPLE payload, in wire order: (name, little-endian numpy type).
+_PAYLOAD_FIELDS: tuple[tuple[str, str], ...] = (
+    ("seq", "<u2"),
+    ("t_us", "<u4"),
+    ("dtheta_counts", "<i4"),
+    ("t_top_raw", "<i2"),
+    ("t_bottom_raw", "<i2"),
+    ("t_housing_raw", "<i2"),
+    ("status", "<u2"),
 )
+#: Packed little-endian layout of a SAMPLE payload (18 bytes).
+SAMPLE_PAYLOAD_DTYPE = np.dtype(list(_PAYLOAD_FIELDS))
 assert SAMPLE_PAYLOAD_DTYPE.itemsize == SAMPLE_PAYLOAD_LEN
+_PAYLOAD_NAMES = [name for name, _ in _PAYLOAD_FIELDS]
+_PAYLOAD_FORMATS = [fmt for _, fmt in _PAYLOAD_FIELDS]
+_PAYLOAD_OFFSETS = [sum(np.dtype(fmt).itemsize for fmt in _PAYLOAD_FORMATS[:k]) for k in range(len(_PAYLOAD_FORMATS))]
 #: A SAMPLE frame from its payload on: the payload fields, then the stored CRC (22 bytes).
 _SAMPLE_TAIL_DTYPE = np.dtype(
     {
-        "names": [*SAMPLE_PAYLOAD_DTYPE.names, "crc"],
-        "formats": [*(SAMPLE_PAYLOAD_DTYPE.fields[n][0] for n in SAMPLE_PAYLOAD_DTYPE.names), "<u4"],
-        "offsets": [*(SAMPLE_PAYLOAD_DTYPE.fields[n][1] for n in SAMPLE_PAYLOAD_DTYPE.names), SAMPLE_PAYLOAD_LEN],
+        "names": [*_PAYLOAD_NAMES, "crc"],
+        "formats": [*_PAYLOAD_FORMATS, "<u4"],
+        "offsets": [*_PAYLOAD_OFFSETS, SAMPLE_PAYLOAD_LEN],
         "itemsize": SAMPLE_PAYLOAD_LEN + 4,
     }
 )
 _TAIL_WORDS = _SAMPLE_TAIL_DTYPE.itemsize // 2
 
 
-def _crc32_table() -> np.ndarray:
-    table = np.arange(256, dtype=np.uint32)
-    for _ in range(8):
-        table = np.where(table & 1, (table >> 1) ^ np.uint32(0xEDB88320), table >> 1).astype(np.uint32)
-    return table
-
-
-_CRC_TABLE = _crc32_table()
-
-
-def _sample_crc_tables() -> tuple[int, list[np.ndarray]]:
-    """CRC-32 of a SAMPLE body (type, len, 9 payload words) by linearity over GF(2).
-
-    Without init and xorout the CRC is linear: ``raw(m) = XOR_k raw(byte k alone at
-    position k)``.  So for the 20-byte body ``01 12 w0 .. w8`` (w_j little-endian
-    u16)::
-
-        crc32(body) = C ^ XOR_j W_j[w_j]
-
-    where ``W_j[v]`` is the raw CRC of v placed at payload word j with zeros
-    elsewhere, and ``C = crc32(01 12 00 .. 00)`` carries init, xorout and the
-    fixed header.  9 table look-ups per frame instead of 20 table steps.
-    """
-    body_len = 2 + SAMPLE_PAYLOAD_LEN
-
-    def advance_zeros(state: np.ndarray, n: int) -> np.ndarray:
-        for _ in range(n):
-            state = _CRC_TABLE[state & 0xFF] ^ (state >> 8)
-        return state
-
-    byte_tables = [advance_zeros(_CRC_TABLE.copy(), body_len - 1 - k) for k in range(body_len)]
-    values = np.arange(1 << 16, dtype=np.uint32)
-    word_tables = [
-        byte_tables[2 + 2 * j][values & 0xFF] ^ byte_tables[3 + 2 * j][values >> 8]
-        for j in range(SAMPLE_PAYLOAD_LEN // 2)
-    ]
-    constant = zlib.crc32(bytes((TYPE_SAMPLE, SAMPLE_PAYLOAD_LEN)) + bytes(SAMPLE_PAYLOAD_LEN))
-    return constant, word_tables
-
-
-_SAMPLE_CRC_CONSTANT, _SAMPLE_CRC_WORD_TABLES = _sample_crc_tables()
+#: CRC-32 of a SAMPLE body (type, len, 9 payload words) by linearity over GF(2) (``crc.PairTables``):
+#: for the 20-byte body ``01 12 w0 .. w8`` (w_j little-endian u16), ``crc32(body) = C ^ XOR_j W_j[w_j]``
+#: where ``W_j[v]`` is the raw CRC of v placed at payload word j with zeros elsewhere, and ``C =
+#: crc32(01 12 00 .. 00)`` carries init, xorout and the fixed header: 9 table look-ups per frame.
+_SAMPLE_CRC = iso_hdlc_tables(2 + SAMPLE_PAYLOAD_LEN).with_fixed_prefix(bytes((TYPE_SAMPLE, SAMPLE_PAYLOAD_LEN)))
 _SAMPLE_WORDS = SAMPLE_PAYLOAD_LEN // 2  # 9 little-endian u16 words
 
 _VALID, _CRC_ERROR, _LENGTH_ERROR, _TRUNCATED = 0, 1, 2, 3
@@ -146,7 +117,7 @@ class SampleArrays:
         """Columns from streaming events (the reference the batch path is tested against)."""
         rows = np.array([tuple(f[1:]) for f in frames], dtype=SAMPLE_PAYLOAD_DTYPE)
         offsets = np.array([f.offset for f in frames], dtype=np.int64)
-        return cls(offsets, *(np.ascontiguousarray(rows[name]) for name in SAMPLE_PAYLOAD_DTYPE.names))
+        return cls(offsets, *(np.ascontiguousarray(rows[name]) for name in _PAYLOAD_NAMES))
 
     def frame(self, i: int) -> SampleFrame:
         return SampleFrame(
@@ -212,7 +183,8 @@ def _gather(data: bytes, at: np.ndarray, dtype: np.dtype) -> np.ndarray:
     raw = np.dtype((np.void, dtype.itemsize))
     count = max(0, len(data) - dtype.itemsize + 1)
     view = np.ndarray(shape=(count,), dtype=raw, buffer=data, offset=0, strides=(1,))
-    return view[at].view(dtype)
+    gathered: np.ndarray = view[at].view(dtype)
+    return gathered
 
 
 def _classify(data: bytes, cand: np.ndarray, final: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -246,9 +218,7 @@ def _classify(data: bytes, cand: np.ndarray, final: bool) -> tuple[np.ndarray, n
     # Every SAMPLE candidate's payload and stored CRC, 22 bytes each, in one gather.
     tails = _gather(data, cand[sample_idx] + HEADER_LEN, _SAMPLE_TAIL_DTYPE)
     tail_words = tails.view(np.uint16).reshape(-1, _TAIL_WORDS)
-    crc = np.full(len(sample_idx), _SAMPLE_CRC_CONSTANT, dtype=np.uint32)
-    for j in range(_SAMPLE_WORDS):
-        crc ^= _SAMPLE_CRC_WORD_TABLES[j][tail_words[:, j]]
+    crc = _SAMPLE_CRC.of_words(tail_words[:, :_SAMPLE_WORDS])
     verdict[sample_idx[crc != tails["crc"]]] = _CRC_ERROR
     for i in np.flatnonzero(checkable & ~is_sample).tolist():
         p = int(cand[i])
@@ -258,35 +228,12 @@ def _classify(data: bytes, cand: np.ndarray, final: bool) -> tuple[np.ndarray, n
     return verdict, frame_len, sample_idx, tails
 
 
-def _greedy_accept(starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
-    """Mask of the intervals a left-to-right scan accepts (skipping any that start inside one accepted)."""
-    m = len(starts)
-    keep = np.ones(m, dtype=bool)
-    if m < 2:
-        return keep
-    running_end = np.maximum.accumulate(ends)
-    conflict = np.zeros(m, dtype=bool)
-    conflict[1:] = starts[1:] < running_end[:-1]
-    if not conflict.any():
-        return keep
-    # A non-conflicting interval starts after every earlier one ends: always accepted.
-    last_clean = np.maximum.accumulate(np.where(conflict, -1, np.arange(m)))
-    last_kept_conflict = -1
-    for k in np.flatnonzero(conflict).tolist():
-        last = max(int(last_clean[k]), last_kept_conflict)
-        if starts[k] < ends[last]:
-            keep[k] = False
-        else:
-            last_kept_conflict = k
-    return keep
-
-
 class BatchDecoder:
     """The batch decoder with explicit state, fed blocks of any size (``lfilter(zi)`` style).
 
     ``decode(block)`` returns the frames the block completes, as columns; the
     undecided tail (at most one frame's worth) is carried into the next call,
-    together with the resync flag and the last seq and t_us, so decoding a
+    together with the resync flag and the seq and t_us unwrappers, so decoding a
     capture in blocks gives exactly what ``FrameDecoder`` gives for the same
     bytes in any chunks: the same frames at the same stream offsets and the
     same cumulative ``counters``.  ``decode(block, final=True)`` ends the stream.
@@ -297,8 +244,8 @@ class BatchDecoder:
         self._carry = b""
         self._base = 0  # stream offset of _carry[0]
         self._hunting = False
-        self._last_seq: int | None = None
-        self._last_t_us: int | None = None
+        self._seq = Unwrapper(SEQ_MODULUS)
+        self._t_us = Unwrapper(T_US_MODULUS)
         self._closed = False
 
     @property
@@ -333,7 +280,7 @@ class BatchDecoder:
         sel = np.flatnonzero(selectable)
         starts = cand[sel]
         ends = np.where(blocking[sel], _INFINITE_END, starts + frame_len[sel])
-        keep = _greedy_accept(starts, ends)
+        keep = greedy_accept(starts, ends)
         kept = sel[keep]
         kept_starts = starts[keep]
         kept_ends = ends[keep]
@@ -378,7 +325,7 @@ class BatchDecoder:
         else:
             tails = sample_tails[np.searchsorted(sample_idx, kept_samples)]
         samples = SampleArrays(
-            cand[kept_samples] + base, *(np.ascontiguousarray(tails[name]) for name in SAMPLE_PAYLOAD_DTYPE.names)
+            cand[kept_samples] + base, *(np.ascontiguousarray(tails[name]) for name in _PAYLOAD_NAMES)
         )
         identities = []
         unknown = []
@@ -400,33 +347,18 @@ class BatchDecoder:
     def _count_sequence(self, samples: SampleArrays) -> None:
         if not len(samples):
             return
-        seq, t_us = samples.seq, samples.t_us
-        if self._last_seq is not None:
-            seq = np.concatenate((np.array([self._last_seq], np.uint16), seq))
-            t_us = np.concatenate((np.array([self._last_t_us], np.uint32), t_us))
-        step = np.diff(seq)  # uint16 arithmetic wraps: (seq[n] - seq[n-1]) mod 2^16
-        gaps = step > 1
-        c = self.counters
-        c.seq_gaps += int(np.count_nonzero(gaps))
-        c.missing_frames += int(step[gaps].sum(dtype=np.int64)) - int(np.count_nonzero(gaps))
-        c.seq_repeats += int(np.count_nonzero(step == 0))
-        c.t_us_wraps += int(np.count_nonzero(t_us[1:] < t_us[:-1]))
-        self._last_seq = int(seq[-1])
-        self._last_t_us = int(t_us[-1])
+        count_seq_steps(self.counters, self._seq.advance(samples.seq).steps_taken)
+        wraps = self._t_us.wraps
+        self._t_us.advance(samples.t_us)
+        self.counters.t_us_wraps += self._t_us.wraps - wraps
 
 
 #: A whole SAMPLE frame, for the vectorized encoder.
 _SAMPLE_FRAME_DTYPE = np.dtype(
     {
-        "names": ["sync", "type", "len", *SAMPLE_PAYLOAD_DTYPE.names, "crc"],
-        "formats": ["<u2", "u1", "u1", *(SAMPLE_PAYLOAD_DTYPE.fields[n][0] for n in SAMPLE_PAYLOAD_DTYPE.names), "<u4"],
-        "offsets": [
-            0,
-            2,
-            3,
-            *(HEADER_LEN + SAMPLE_PAYLOAD_DTYPE.fields[n][1] for n in SAMPLE_PAYLOAD_DTYPE.names),
-            HEADER_LEN + SAMPLE_PAYLOAD_LEN,
-        ],
+        "names": ["sync", "type", "len", *_PAYLOAD_NAMES, "crc"],
+        "formats": ["<u2", "u1", "u1", *_PAYLOAD_FORMATS, "<u4"],
+        "offsets": [0, 2, 3, *(HEADER_LEN + offset for offset in _PAYLOAD_OFFSETS), HEADER_LEN + SAMPLE_PAYLOAD_LEN],
         "itemsize": HEADER_LEN + SAMPLE_PAYLOAD_LEN + 4,
     }
 )
@@ -463,10 +395,7 @@ def encode_sample_frames(
         frames[name] = values
     words = frames.view(np.uint16).reshape(len(frames), _SAMPLE_FRAME_DTYPE.itemsize // 2)
     words = words[:, HEADER_LEN // 2 : HEADER_LEN // 2 + _SAMPLE_WORDS]
-    crc = np.full(len(frames), _SAMPLE_CRC_CONSTANT, dtype=np.uint32)
-    for j in range(_SAMPLE_WORDS):
-        crc ^= _SAMPLE_CRC_WORD_TABLES[j][words[:, j]]
-    frames["crc"] = crc
+    frames["crc"] = _SAMPLE_CRC.of_words(words)
     return frames.view(np.uint8).reshape(len(frames), _SAMPLE_FRAME_DTYPE.itemsize)
 
 

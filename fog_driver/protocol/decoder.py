@@ -23,6 +23,7 @@ import zlib
 from dataclasses import asdict, dataclass
 
 from .hunting import HuntingDecoder
+from .sequence import Unwrapper, count_seq_step
 from .wire import (
     CRC_LEN,
     HEADER_LEN,
@@ -33,6 +34,7 @@ from .wire import (
     SYNC0,
     TYPE_IDENTITY,
     TYPE_SAMPLE,
+    Event,
     SampleFrame,
     UnknownFrame,
     parse_identity_payload,
@@ -73,7 +75,7 @@ def seq_step(seq: int, previous_seq: int) -> int:
     return (seq - previous_seq) % SEQ_MODULUS
 
 
-class FrameDecoder(HuntingDecoder):
+class FrameDecoder(HuntingDecoder[Event, DecoderCounters]):
     """Streaming protocol v1 decoder.
 
     >>> from fog_driver.protocol import encode_sample
@@ -85,7 +87,7 @@ class FrameDecoder(HuntingDecoder):
 
     def __init__(self) -> None:
         super().__init__(DecoderCounters())
-        self._last_seq: int | None = None
+        self._seq = Unwrapper(SEQ_MODULUS)
         self._last_t_us: int | None = None
 
     def _find(self, buf: bytearray, pos: int) -> int:
@@ -112,10 +114,11 @@ class FrameDecoder(HuntingDecoder):
             return 0
         return frame_len
 
-    def _emit(self, buf: bytearray, pos: int, n: int, events: list) -> None:
+    def _emit(self, buf: bytearray, pos: int, n: int, events: list[Event]) -> None:
         c = self.counters
         offset = self._base + pos
         frame_type = buf[pos + 2]
+        frame: Event
         if frame_type == TYPE_SAMPLE:
             frame = SampleFrame(offset, *_SAMPLE_UNPACK_FROM(buf, pos + HEADER_LEN))
             self._count_sample(frame.seq, frame.t_us)
@@ -129,15 +132,12 @@ class FrameDecoder(HuntingDecoder):
         events.append(frame)
 
     def _count_sample(self, seq: int, t_us: int) -> None:
-        c = self.counters
-        if self._last_seq is not None:
-            step = seq_step(seq, self._last_seq)
-            if step == 0:
-                c.seq_repeats += 1
-            elif step != 1:
-                c.seq_gaps += 1
-                c.missing_frames += step - 1
-            if t_us < self._last_t_us:
-                c.t_us_wraps += 1
-        self._last_seq = seq
+        d = self._seq.step(seq)
+        if d != 1:  # (tested here: the call only on a gap or a repeat, off the per-frame path)
+            count_seq_step(self.counters, d)
+        # t_us is not unwrapped here, only its wraps counted, as ``Unwrapper`` counts them (a reading below
+        # the one before); inline: this runs once per frame.
+        last = self._last_t_us
+        if last is not None and t_us < last:
+            self.counters.t_us_wraps += 1
         self._last_t_us = t_us

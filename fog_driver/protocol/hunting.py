@@ -9,16 +9,32 @@ The loop keeps ``bytes_in == bytes_in_frames + bytes_discarded + pending`` in th
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Generic, Protocol, TypeVar
 
 #: Decided bytes are dropped from the buffer once this many have accumulated (or all are decided).
 COMPACT_AT = 1 << 16
 
 
-class HuntingDecoder:
-    """Base of the streaming decoders: protocol v1's ``FrameDecoder`` and the other formats'."""
+class HuntingCounters(Protocol):
+    """The counters the hunt keeps (a format's counters have these and more)."""
 
-    def __init__(self, counters: Any) -> None:
+    bytes_in: int
+    bytes_in_frames: int
+    bytes_discarded: int
+    resyncs: int
+    truncated_frames: int
+
+
+EventT = TypeVar("EventT")
+CountersT = TypeVar("CountersT", bound=HuntingCounters)
+
+
+class HuntingDecoder(Generic[EventT, CountersT]):
+    """Base of the streaming decoders: protocol v1's ``FrameDecoder`` and the other formats'.
+
+    ``EventT``: what ``feed`` returns a list of; ``CountersT``: the counters' class."""
+
+    def __init__(self, counters: CountersT) -> None:
         self.counters = counters
         self._buf = bytearray()
         self._pos = 0  # index in _buf of the first undecided byte
@@ -36,7 +52,7 @@ class HuntingDecoder:
         """Stream offset of the first undecided byte."""
         return self._base + self._pos
 
-    def feed(self, data: bytes | bytearray | memoryview) -> list:
+    def feed(self, data: bytes | bytearray | memoryview) -> list[EventT]:
         """Add bytes; return the events they complete, in stream order."""
         if self._closed:
             raise RuntimeError("feed() after close()")
@@ -45,7 +61,7 @@ class HuntingDecoder:
             self._buf += data
         return self._decode(final=False)
 
-    def close(self) -> list:
+    def close(self) -> list[EventT]:
         """End of stream: decide every pending byte; return the last events."""
         if self._closed:
             return []
@@ -102,7 +118,7 @@ class HuntingDecoder:
         frame); None to wait for more bytes.  It may look only at ``buf[pos:end]``."""
         raise NotImplementedError
 
-    def _emit(self, buf: bytearray, pos: int, n: int, events: list) -> None:
+    def _emit(self, buf: bytearray, pos: int, n: int, events: list[EventT]) -> None:
         """Decode the valid frame of ``n`` bytes at ``pos`` into ``events`` and count it."""
         raise NotImplementedError
 
@@ -113,13 +129,13 @@ class HuntingDecoder:
         self.counters.truncated_frames += 1
         return 0
 
-    def _decode(self, final: bool) -> list:
+    def _decode(self, final: bool) -> list[EventT]:
         """Every decision the bytes held allow: at each possible header the subclass's ``_judge`` says
         wait, no frame (ONE byte discarded, the hunt goes on from the next), or a frame (emitted, skipped)."""
         buf = self._buf
         pos = self._pos
         end = len(buf)
-        events: list = []
+        events: list[EventT] = []
         while True:
             at = self._find(buf, pos)
             pos = self._skip_to_header(pos, at, end, not final and end > pos and self._may_begin(buf[end - 1]))

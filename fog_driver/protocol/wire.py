@@ -12,8 +12,9 @@ with the CRC-32/ISO-HDLC (zlib's ``crc32``) computed over ``type``, ``len`` and
 from __future__ import annotations
 
 import struct
-import zlib
 from typing import NamedTuple
+
+from .crc import crc32
 
 SYNC = b"\xaa\x55"
 SYNC0 = 0xAA
@@ -99,11 +100,6 @@ class UnknownFrame(NamedTuple):
 
 
 Event = SampleFrame | IdentityFrame | UnknownFrame
-
-
-def crc32(data: bytes | bytearray | memoryview) -> int:
-    """CRC-32/ISO-HDLC: poly 0x04C11DB7 reflected, init and xorout 0xFFFFFFFF."""
-    return zlib.crc32(data) & 0xFFFFFFFF
 
 
 def encode_frame(frame_type: int, payload: bytes) -> bytes:

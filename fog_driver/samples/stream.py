@@ -25,6 +25,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ..errors import InputFileError
 from ..protocol import (
     SEQ_MODULUS,
     T_US_MODULUS,
@@ -35,7 +36,9 @@ from ..protocol import (
     IdentityFrame,
     SampleArrays,
     SampleFrame,
+    iter_decode_file,
 )
+from ..protocol.sequence import Unwrapper, missing_before
 
 #: Scale factor used before any IDENTITY frame when the configuration gives none.
 DEFAULT_SCALE_ARCSEC_PER_COUNT = 0.01
@@ -163,10 +166,8 @@ class SampleStream:
         self.identity: IdentityFrame | None = None  #: the latest IDENTITY frame
         self.identity_changes = 0  #: IDENTITY frames that differed from the one before
         self.identities_rejected = 0  #: implausible IDENTITY frames, ignored
-        self._last_seq_wire: int | None = None
-        self._last_t_us_wire = 0
-        self._seq = 0
-        self._t_us = 0
+        self._seq = Unwrapper(SEQ_MODULUS)
+        self._t_us = Unwrapper(T_US_MODULUS)
 
     @property
     def scale_arcsec_per_count(self) -> float:
@@ -194,26 +195,18 @@ class SampleStream:
         return None
 
     def _step_sample(self, frame: SampleFrame) -> Sample:
-        missing = 0
-        if self._last_seq_wire is None:
-            self._seq = frame.seq
-            self._t_us = frame.t_us
-        else:
-            step = (frame.seq - self._last_seq_wire) % SEQ_MODULUS
-            missing = step - 1 if step > 1 else 0
-            self._seq += step
-            self._t_us += (frame.t_us - self._last_t_us_wire) % T_US_MODULUS
-        self._last_seq_wire = frame.seq
-        self._last_t_us_wire = frame.t_us
+        seq, t_us = self._seq, self._t_us
+        step = seq.step(frame.seq)
+        t_us.step(frame.t_us)
         return Sample(
-            self._seq,
-            self._t_us / _US_PER_S,
+            seq.value,
+            t_us.value / _US_PER_S,
             frame.dtheta_counts * self.scale_arcsec_per_count,
             temperature_c(frame.t_top_raw),
             temperature_c(frame.t_bottom_raw),
             temperature_c(frame.t_housing_raw),
             frame.status,
-            missing,
+            step - 1 if step is not None and step > 1 else 0,
             frame.offset,
         )
 
@@ -242,37 +235,17 @@ class SampleStream:
             has_identity = latest >= 0
             scale[has_identity] = identity_scales[latest[has_identity]]
 
-        seq_wire = frames.seq.astype(np.int64)
-        t_us_wire = frames.t_us.astype(np.int64)
-        seq_step = np.empty(n, dtype=np.int64)
-        t_step = np.empty(n, dtype=np.int64)
-        if n:
-            if self._last_seq_wire is None:
-                seq_step[0] = 0
-                t_step[0] = 0
-                seq_start, t_start = int(seq_wire[0]), int(t_us_wire[0])
-            else:
-                seq_step[0] = (seq_wire[0] - self._last_seq_wire) % SEQ_MODULUS
-                t_step[0] = (t_us_wire[0] - self._last_t_us_wire) % T_US_MODULUS
-                seq_start, t_start = self._seq, self._t_us
-            seq_step[1:] = np.diff(seq_wire) % SEQ_MODULUS
-            t_step[1:] = np.diff(t_us_wire) % T_US_MODULUS
-            seq = seq_start + np.cumsum(seq_step)
-            t_us = t_start + np.cumsum(t_step)
-            self._seq, self._t_us = int(seq[-1]), int(t_us[-1])
-            self._last_seq_wire, self._last_t_us_wire = int(seq_wire[-1]), int(t_us_wire[-1])
-        else:
-            seq = t_us = np.zeros(0, dtype=np.int64)
-        missing = np.where(seq_step > 1, seq_step - 1, 0)
+        seq = self._seq.run(frames.seq)
+        t_us = self._t_us.run(frames.t_us)
         return SampleBlock(
-            seq=seq,
-            t_s=t_us / _US_PER_S,
+            seq=seq.value,
+            t_s=t_us.value / _US_PER_S,
             dtheta_arcsec=frames.dtheta_counts.astype(np.float64) * scale,
             t_top_c=temperature_c_array(frames.t_top_raw),
             t_bottom_c=temperature_c_array(frames.t_bottom_raw),
             t_housing_c=temperature_c_array(frames.t_housing_raw),
             status=frames.status.astype(np.uint16, copy=True),
-            missing_before=missing,
+            missing_before=missing_before(seq.step),
             offset=sample_offsets.astype(np.int64, copy=True),
         )
 
@@ -280,9 +253,6 @@ class SampleStream:
 def read_capture_samples(path) -> tuple[SampleBlock, float]:
     """A whole capture file's samples in memory and its frame period, s (from its IDENTITY frame): for
     tests and benchmarks that alter samples before compensating them.  ``InputFileError`` without one."""
-    from ..errors import InputFileError
-    from ..protocol import iter_decode_file
-
     stream = SampleStream()
     parts = [stream.run(part) for part in iter_decode_file(path)]
     if stream.identity is None:
