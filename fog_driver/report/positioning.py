@@ -81,7 +81,7 @@ from ..compensation.model import ModelFile
 from ..compensation.pipeline import FLAG_UNCOMPENSATED
 from ..errors import InputFileError, UsageError, read_error
 from ..samples.captures import find_sidecar, read_provenance
-from ..sim.profiles import Stop
+from ..sim.motion import Stop
 
 __all__ = [
     "BIAS_WINDOW_S",
