@@ -420,11 +420,12 @@ def test_log_format_follows_where_the_lines_go(monkeypatch):
 
 def test_an_unexpected_exception_is_one_line_exit_70_and_a_logged_traceback(monkeypatch, capsys):
     from fog_driver.cli import app as cli
+    from fog_driver.cli import captures
 
     def broken_inspect(args):
         raise ValueError("a\nmulti-line message")
 
-    monkeypatch.setattr(cli, "cmd_inspect", broken_inspect)
+    monkeypatch.setattr(captures, "cmd_inspect", broken_inspect)
     assert cli.main(["inspect", "x.bin"]) == 70
     lines = capsys.readouterr().err.splitlines()
     assert lines[-1] == "fog-driver: error: internal error: ValueError: a multi-line message"

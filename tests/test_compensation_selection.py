@@ -263,7 +263,7 @@ def _tty_progress(monkeypatch):
     import io
 
     from fog_driver import console
-    from fog_driver.cli import app as cli
+    from fog_driver.cli import calibration as cli
 
     class Tty(io.StringIO):
         def isatty(self) -> bool:
@@ -291,7 +291,8 @@ def test_fit_shows_a_progress_line_on_a_terminal_and_nothing_on_a_pipe(tmp_path,
 
 
 def test_fit_help_lists_every_kind_on_a_line_and_the_default_is_the_shipped_models_kind(capsys):
-    from fog_driver.cli.app import DEFAULT_FIT_KIND, build_parser
+    from fog_driver.cli.calibration import DEFAULT_FIT_KIND
+    from fog_driver.cli.parser import build_parser
     from fog_driver.compensation.fitting.fit import FITTERS, KIND_HELP
     from fog_driver.compensation.model import load_model
     from fog_driver.daemon.config import DEFAULT_MODEL

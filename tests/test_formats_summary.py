@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 
 from fog_driver import cli
-from fog_driver.cli.app import EXIT_PROBLEMS
+from fog_driver.cli.captures import EXIT_PROBLEMS
 from fog_driver.sim.capture import read_truth, simulate_to_file
 from fog_driver.sim.faults import parse_fault_spec
 from fog_driver.sim.instrument import Simulator

@@ -12,23 +12,9 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from fog_driver.errors import InputFileError
-from fog_driver.sim.profiles import (
-    MAX_SEGMENTS,
-    ChamberProfile,
-    ConstantRate,
-    Hold,
-    MotionPlan,
-    Plateau,
-    Positioning,
-    Ramp,
-    Sinusoid,
-    Step,
-    Stop,
-    dump_profile,
-    load_profile,
-    parse_profile,
-    positioning_at_plateau,
-)
+from fog_driver.sim.chamber import ChamberProfile, Hold, Plateau, Ramp, Sinusoid, Step
+from fog_driver.sim.motion import ConstantRate, MotionPlan, Positioning, Stop, positioning_at_plateau
+from fog_driver.sim.profiles import MAX_SEGMENTS, dump_profile, load_profile, parse_profile
 
 PROFILES = Path(__file__).resolve().parents[1] / "configs" / "profiles"
 SHIPPED = ("paper", "fast-ramps", "short-test", "positioning")

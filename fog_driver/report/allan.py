@@ -77,7 +77,7 @@ TABLE_COLUMNS = ("tau_s", "adev_dph", "lo_dph", "hi_dph", "n_pairs", "edf", "alp
 
 def _allantools():
     try:
-        import allantools
+        import allantools  # optional extra: report
     except ImportError:
         raise UsageError(missing_message("report", "Allan deviation", ["allantools"])) from None
     return allantools

@@ -330,10 +330,10 @@ def plot(
 ) -> list[Path]:
     """The report's PNGs (matplotlib, Agg: no display needed); ``titles``: each series' legend name."""
     try:
-        import matplotlib
+        import matplotlib  # optional extra: report
 
         matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+        import matplotlib.pyplot as plt  # optional extra: report
     except ImportError:
         raise UsageError(missing_message("report", "the report's plots", ["matplotlib"])) from None
     titles = dict(titles or {})
@@ -437,7 +437,7 @@ def plot(
 def _save(fig, path: Path) -> Path:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # optional extra: report (loaded by plot already)
 
     plt.close(fig)
     return path

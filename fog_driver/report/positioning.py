@@ -77,11 +77,12 @@ from typing import Any
 import numpy as np
 
 from ..compensation.binding import compensate_capture
-from ..compensation.model import ModelFile
+from ..compensation.model import ModelFile, load_model
 from ..compensation.pipeline import FLAG_UNCOMPENSATED
 from ..errors import InputFileError, UsageError, read_error
 from ..samples.captures import find_sidecar, read_provenance
-from ..sim.profiles import Stop
+from ..samples.sources import CaptureReader, wire_settings_for
+from ..sim.motion import Stop
 
 __all__ = [
     "BIAS_WINDOW_S",
@@ -361,8 +362,6 @@ def _columns(
     capture: Path, model_file: ModelFile | None, force: bool, name: str, wire_format: str = "auto"
 ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
     """(t_s absolute, raw angle, method's angle, temps (n, 3), uncompensated mask) per chunk."""
-    from ..samples.sources import CaptureReader, wire_settings_for
-
     if model_file is not None:
         for _, c in compensate_capture(
             capture, model_file, force=force, model_name=f"model {name!r}", wire_format=wire_format
@@ -610,8 +609,6 @@ def report_for(
     ``summary["positioning"]`` and returns the Markdown table with the improvement figures, or None (the
     table is skipped) when the capture has no sequence.
     """
-    from ..compensation.model import load_model
-
     capture = Path(capture)
     stops = load_stops(capture, reference)
     models: dict[str, ModelFile] = {label or model_file.kind: model_file}

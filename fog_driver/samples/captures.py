@@ -26,6 +26,7 @@ import numpy as np
 from ..errors import InputFileError, OutputFileError
 from ..files.kinds import PROVENANCE_FORMAT
 from ..files.yamlio import read_yaml, write_yaml
+from ..formats.registry import sniff_file
 from ..protocol import (
     FILE_BLOCK_BYTES,
     IDENTITY_FRAME_LEN,
@@ -366,8 +367,6 @@ def _last_frame_end(decoded: DecodedCapture) -> int:
 def what_it_is(path: str | Path) -> str:
     """For a file that holds no protocol v1 frame: what the format sniffer sees in it, as the end of a one-line
     error ("; it looks like kvh-a (...): read it with --format kvh-a or auto"; "" when it cannot be read)."""
-    from ..formats.registry import sniff_file
-
     try:
         seen = sniff_file(str(path))
     except OSError:

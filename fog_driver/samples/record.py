@@ -23,7 +23,9 @@ from ..errors import DeviceError, OutputFileError
 from ..files.outputs import check_outputs
 from ..protocol import DecoderCounters, IdentityFrame
 from ..transport import PortError, PortEvent, PortReader
+from ..transport.setup import make_on_open
 from .captures import CaptureWriter, sidecar_path, utc_now_iso, write_provenance
+from .sources import WireSettings
 
 _FLUSH_EVERY_S = 1.0
 
@@ -77,8 +79,6 @@ def record(
     decoder counts the frames, and the sidecar records it (``wire_format``, ``wire_settings``).  ``setup``: a
     ``transport.setup.DeviceSetup`` run on every open (its replies are in the capture, as every byte read).
     """
-    from .sources import WireSettings
-
     wire = wire or WireSettings()
     stop = stop or threading.Event()
     out_path = Path(out_path)
@@ -112,7 +112,6 @@ def record(
     captured = [0]  # bytes written to the capture so far
     events: list[dict[str, Any]] = []  # device setups: the offline readers skip their bytes, as the daemon does
     if setup is not None:
-        from ..transport.setup import make_on_open
 
         def on_setup(result) -> None:  # before its bytes are yielded: they start at the bytes written so far
             events.append(

@@ -31,6 +31,8 @@ from typing import Any
 import numpy as np
 
 from ..files.yamlio import dataclass_from_mapping, read_yaml
+from ..formats.ixblue import CHECKSUM_LEN, COUNTER_MODULUS, HEADER_LEN, TIME_LSB_S, TIME_MODULUS, encode_stdbin
+from ..formats.kvh import ARCSEC_PER_RAD, SAMPLE_FORMATS, encode_kvh_frames
 from ..protocol import (
     SAMPLE_FRAME_LEN,
     STATUS_LIGHT_SOURCE_FAULT,
@@ -297,8 +299,6 @@ COMPONENTS = (
 def _stdbin_layout() -> tuple[np.dtype, np.ndarray]:
     """The simulator's STDBIN telegram as a numpy record (big-endian fields) and its constant first bytes
     (sync, version, masks, navigation size, telegram size), both taken from ``encode_stdbin``."""
-    from ..formats.ixblue import HEADER_LEN, encode_stdbin
-
     zeros = (0.0, 0.0, 0.0)
     template = encode_stdbin(
         STDBIN_VERSION,
@@ -398,8 +398,6 @@ class Simulator:
             return SAMPLE_FRAME_LEN
         if self._stdbin_layout is not None:
             return self._stdbin_layout[0].itemsize
-        from ..formats.kvh import SAMPLE_FORMATS
-
         return SAMPLE_FORMATS[self.wire_format[-1]][1]
 
     def device_time_s(self, k: np.ndarray | int) -> np.ndarray | float:
@@ -553,8 +551,6 @@ class Simulator:
             )
         if self.wire_format == "ixblue-stdbin":
             return self._encode_stdbin(block)
-        from ..formats.kvh import ARCSEC_PER_RAD, encode_kvh_frames
-
         n = len(block.seq)
         fmt = self.wire_format[-1]
         gyro = np.zeros((n, 3), dtype=np.float32)
@@ -591,8 +587,6 @@ class Simulator:
         bits are protocol v1's seq).  No status block: the decoder maps no STDBIN status to ``sensor_invalid``
         (their bits have no public meaning), so light-source and loop faults are not represented.
         """
-        from ..formats.ixblue import CHECKSUM_LEN, COUNTER_MODULUS, TIME_LSB_S, TIME_MODULUS
-
         dtype, prefix = self._stdbin_layout
         n = len(block.seq)
         k = np.arange(block.k0, block.k0 + n, dtype=np.int64)

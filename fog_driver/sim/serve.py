@@ -43,6 +43,7 @@ from typing import Any, Self
 import serial
 import structlog
 
+from ..console import Progress
 from ..errors import DeviceError, OutputFileError, UsageError
 from ..protocol import IDENTITY_FRAME_LEN
 from ..signals import stop_on_signals
@@ -525,8 +526,6 @@ class ServeProgress:
     def __init__(
         self, sim: Simulator, speed: float, duration_s: float | None, every_s: float = 0.5, stream: Any = None
     ) -> None:
-        from ..console import Progress
-
         self.display = Progress(stream)
         self.total_s = (sim.total_frames() - sim.next_frame) / sim.rate_hz
         if duration_s is not None:

@@ -1,0 +1,426 @@
+"""``fog-driver fit``, ``compensate`` and ``evaluate``: fit a drift model, apply it to a capture, report on it."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from ..compensation.adapt import AdaptConfig
+from ..compensation.binding import compensate_capture
+from ..compensation.fitting.fit import (
+    FITTERS,
+    KIND_HELP,
+    WORSE_MARKER,
+    FitConfig,
+    WeakFitError,
+    bias_step_warning,
+    fit_model_file,
+)
+from ..compensation.fitting.quality import format_checks
+from ..compensation.model import load_model, save_model
+from ..console import Progress
+from ..errors import FogDriverError, InputFileError, OutputFileError
+from ..extras import require_extra
+from ..files.kinds import ROW_COLUMNS
+from ..files.outputs import check_outputs, describe, write_error
+from ..files.yamlio import dataclass_from_mapping, read_yaml
+from ..formats.registry import FORMATS
+from ..offline.rows import compensated_rows, format_row
+from ..report import positioning
+from ..report.evaluate import evaluate, format_bias_instability, model_label, series_names, write_report
+from ..samples.captures import _capture_size
+from ..sim.capture import check_truth_matches, read_truth
+from .argtypes import positive_float, time_window
+
+#: What ``fog-driver fit`` fits without ``--kind``: the project's best model (README, "Accuracy").
+DEFAULT_FIT_KIND = "wesn"
+
+
+def _print_fit_report(report) -> None:
+    """The fit's table, its noise-floor line, and a warning (with the fit's other warnings, on stdout: stderr
+    keeps the one-line error of a refused fit) for each model row that leaves more drift than no compensation
+    (marked in the table)."""
+    print(report.format())
+    note = report.floor_note()
+    if note:
+        print(f"note: {note}")
+    before = report.rows[0]
+    for what, fit_value, validate_value in report.rows[1:]:
+        for col in report.worse().get(what, []):
+            value, base = (fit_value, before[1]) if col == "fit" else (validate_value, before[2])
+            where = "its fit data" if col == "fit" else "the validation data"
+            print(
+                f"warning: {what.removeprefix('after, ')} is {WORSE_MARKER} on {where}: {value:.4f} deg/h "
+                f"against {base:.4f} deg/h before compensation"
+            )
+
+
+def cmd_fit(args: argparse.Namespace) -> int:
+    out = Path(args.out)
+    check_outputs([out], force=args.force, inputs=[*args.captures, *args.validate, *filter(None, [args.config])])
+    if args.kind == "pso-svr":
+        require_extra("svr", "fitting a pso-svr model")
+    config = FitConfig()
+    if args.config:
+        config = dataclass_from_mapping(FitConfig, read_yaml(args.config, "fit config") or {}, args.config)
+    kind = args.kind or DEFAULT_FIT_KIND
+    default = (
+        " (the default kind: the polynomial is saved instead if the wesn does worse on its own validation "
+        "split; --kind chooses)"
+        if args.kind is None
+        else ""
+    )
+    print(f"fitting a {kind} model{default}", flush=True)
+    progress = Progress()
+    try:
+        model_file, report = fit_model_file(
+            args.captures,
+            kind=kind,
+            config=config,
+            validate_paths=args.validate,
+            fall_back=args.kind is None,
+            accept_weak=args.accept_weak_fit,
+            progress=progress.show,
+            wire_format=args.format,
+        )
+    except WeakFitError as exc:
+        progress.clear()
+        _print_fit_report(exc.report)
+        print(exc.quality.format())
+        for check in exc.quality.failed:
+            print(f"error: {check.message}")
+        raise InputFileError(
+            f"{exc}; {out} not written (--accept-weak-fit writes it anyway, and the model file records that)"
+        ) from None
+    finally:
+        progress.clear()
+    save_model(out, model_file)
+    provenance = model_file.provenance
+    fitted = provenance["captures"]
+    print(
+        f"fitted a {model_file.kind} model for {model_file.instrument_serial} on {len(fitted)} capture(s) "
+        f"({sum(c['static_blocks'] for c in fitted):,} static blocks of {sum(c['blocks'] for c in fitted):,}) "
+        f"-> {out}"
+    )
+    moving = sum(c.get("moving_blocks", 0) for c in fitted)
+    if moving:
+        print(
+            f"note: {moving:,} blocks of table motion were found and not fitted (with {config.motion_margin_s:g} s "
+            f"on each side)"
+        )
+    selection = provenance.get("selection")
+    if selection and model_file.kind == kind:
+        history = (
+            (
+                f"history neurons {', '.join(f'{v:g}' for v in selection['history_s'])} s at "
+                f"{selection['history_penalty']:g}x the penalty"
+            )
+            if selection["history_s"]
+            else "no history neurons"
+        )
+        order = selection.get("coil_order", 1)
+        stages = f" in {order} stages" if order > 1 else ""
+        print(
+            f"structure chosen from the data: coil lag {selection['coil_lag_s']:g} s{stages}, ridge penalty "
+            f"{selection['ridge_alpha']:g}, {history}"
+            f"{'' if selection['state_powers'] else ', linear in the coil temperature'}"
+        )
+        for note in selection.get("limits", []):
+            print(f"note: {note}")
+        for key in ("warning", "warning_validation"):
+            if key in selection:
+                print(f"warning: {selection[key]}")
+    if "fell_back" in provenance:
+        print(f"note: {provenance['fell_back']}")
+    _print_fit_report(report)
+    quality = provenance["fit_quality"]
+    print(format_checks(quality))
+    if "model_condition" in quality:  # for information: a model's own basis may be collinear by design
+        print(f"{'model regressors, condition':34s} {quality['model_condition']:10.4g}  (information, not a check)")
+    for message in quality.get("weak", []):
+        print(f"warning: weak fit accepted (--accept-weak-fit): {message}")
+    if "bias_step" in quality:
+        step = quality["bias_step"]
+        print(
+            f"{'bias step test (largest step)':34s} {step['step_dph']:+10.4f} deg/h at minute {step['minute']} of "
+            f"{step['capture']}, {100 * step['share']:.0f} % of the temperature terms' residual"
+        )
+        warning = bias_step_warning(step, len(model_file.temperature_channels))
+        if warning:
+            print(f"warning: {warning}")
+    print(
+        f"the model's input box and estimate bound (+-{model_file.domain.estimate_limit_dph:.3g} deg/h) are in "
+        f"the file: outside them its estimate is flagged extrapolating"
+    )
+    return 0
+
+
+def cmd_compensate(args: argparse.Namespace) -> int:
+    out = Path(args.out)
+    inputs = [args.capture, args.model]
+    check_outputs([out], force=args.force, inputs=inputs)
+    if args.adapt_state is not None:
+        _check_adapt_state(Path(args.adapt_state), save=args.adapt_reference is not None, inputs=inputs + [out])
+    model_file = load_model(args.model)
+    size = _capture_size(Path(args.capture))
+    adapt = None
+    if args.adapt_reference is not None or args.adapt_state is not None:
+        adapt = AdaptConfig()
+    if args.adapt_state is not None and args.adapt_reference is None and not Path(args.adapt_state).exists():
+        raise InputFileError(
+            f"{args.adapt_state}: no such adaptation state (without --adapt-reference it is only read)"
+        )
+    for line in model_file.warnings(args.model):
+        print(f"warning: {line}")
+    progress = Progress()
+    written = 0
+    extrapolating_s, last_t_s = 0.0, 0.0
+    try:
+        with out.open("w", encoding="ascii") as f:
+            f.write(",".join(ROW_COLUMNS) + "\n")
+            chunks = compensate_capture(
+                args.capture,
+                model_file,
+                force=args.force,
+                model_name=args.model,
+                adapt=adapt,
+                reference_rate_dph=args.adapt_reference,
+                adapt_state=args.adapt_state,
+                save_adapt_state=args.adapt_reference is not None,
+                scale_override_arcsec_per_count=args.scale_override,
+                wire_format=args.format,
+                progress=lambda done: progress.show(f"compensating {100.0 * done / size:5.1f} %"),
+            )
+            for row in compensated_rows(chunks, args.every):
+                f.write(format_row(row) + "\n")
+                written += 1
+                extrapolating_s += row[0] - last_t_s if "extrapolating" in row[-1].split("|") else 0.0
+                last_t_s = row[0]
+    except (FogDriverError, OSError) as exc:
+        out.unlink(missing_ok=True)
+        if isinstance(exc, FogDriverError):
+            raise
+        raise write_error(out, "the compensated CSV", exc) from None
+    finally:
+        progress.clear()
+    print(
+        f"compensated {args.capture} with {args.model} ({model_file.kind}): {written:,} rows every "
+        f"{args.every:g} s -> {out}"
+    )
+    if extrapolating_s > 0:
+        print(
+            f"warning: the model extrapolated for {extrapolating_s / 60:.1f} of {last_t_s / 60:.1f} min (rows flagged "
+            f"extrapolating): the capture's inputs left the range it was fitted on, or its estimate was clipped"
+        )
+    return 0
+
+
+def _check_adapt_state(path: Path, *, save: bool, inputs: list) -> None:
+    """``compensate --adapt-state``: read when it exists, and (``save``) replaced at the end, so an existing
+    file must be an adaptation state (by its content), and its directory must exist."""
+    if path.exists() and not path.is_dir() and (kind := describe(path)) != "an adaptation state":
+        raise OutputFileError(
+            f"{path}: --adapt-state exists and is {kind}, not an adaptation state; refusing to read or replace it"
+        )
+    if save:
+        check_outputs([path], force=True, inputs=inputs)
+    elif path.is_dir():
+        raise InputFileError(f"{path}: is a directory, not an adaptation state")
+
+
+def _read(value: float | None, fmt: str) -> str:
+    """A read point for printing: the number, or "not reached"."""
+    return "not reached" if value is None else format(value, fmt)
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    require_extra("report", "evaluate's report (Allan deviation, plots)")
+    out = Path(args.out)
+    check_outputs(directories=[out], force=args.force)
+    model_file = load_model(args.model)
+    for line in model_file.warnings(args.model):
+        print(f"warning: {line}", file=sys.stderr if args.json else sys.stdout)  # --json: stdout is the summary
+    truth = None
+    if args.truth:
+        truth = read_truth(args.truth)
+        check_truth_matches(truth, args.truth, args.capture)
+    stops = positioning.read_reference_csv(args.reference) if args.reference else None
+    label = model_label(args.model, model_file)
+    compare = {}
+    for path in args.compare:
+        other = load_model(path)
+        name = model_label(path, other)
+        while name in compare or name in (label, "raw", "compensated"):
+            name += "'"
+        compare[name] = other
+    progress = Progress()
+    progress.show("evaluating...", force=True)
+    try:
+        summary, series, allans = evaluate(
+            Path(args.capture),
+            model_file,
+            truth=truth,
+            force=args.force,
+            label=label,
+            compare=compare,
+            progress=progress.show,
+            wire_format=args.format,
+        )
+        span_s = float(series.t_s[-1])
+        if truth is not None:
+            check_truth_matches(truth, args.truth, args.capture, span_s=span_s)
+        if stops is not None:
+            positioning.check_stops_within(stops, span_s, args.reference, args.capture)
+        progress.show("evaluating: positioning table", force=True)
+        positioning_md = positioning.report_for(
+            args.capture,
+            model_file,
+            summary,
+            reference=args.reference,
+            compare=compare,
+            zero_window_s=args.zero_window,
+            force=args.force,
+            label=label,
+            wire_format=args.format,
+        )
+        progress.show("evaluating: writing the report", force=True)
+        try:
+            report = write_report(out, summary, series, allans, positioning_md)
+        except OSError as exc:
+            raise write_error(out, "the report", exc) from None
+    finally:
+        progress.clear()
+    for warning in summary["warnings"]:
+        print(f"warning: {warning}", file=sys.stderr)
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(f"report: {report}  (summary.json, allan-*.csv and PNG plots beside it)")
+        for name in series_names(summary)[1:]:
+            a, b = summary["raw"], summary[name]
+            print(
+                f"{summary['model']['label'] if name == 'compensated' else name}: "
+                f"ARW {_read(a['arw_deg_per_rt_h'], '.5f')} -> "
+                f"{_read(b['arw_deg_per_rt_h'], '.5f')} deg/sqrt(h); bias instability "
+                f"{format_bias_instability(a)} -> {format_bias_instability(b)}; 1-min drift RMS "
+                f"{a['drift_rms_1min_dph']:.4f} -> {b['drift_rms_1min_dph']:.4f} deg/h"
+            )
+        if summary["extrapolating_seconds"]:
+            print(
+                f"warning: the model extrapolated for {summary['extrapolating_seconds'] / 60:.1f} of "
+                f"{summary['seconds'] / 60:.1f} min (inputs outside its fit range, or its estimate clipped)"
+            )
+    return 0
+
+
+def _format_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--format",
+        default="auto",
+        choices=["auto", *FORMATS],
+        metavar="FORMAT",
+        help=f"the capture's frame format: {', '.join(['auto', *FORMATS])} (default auto: the sidecar's, "
+        f"else sniffed from the first bytes); a format the bytes contradict is an error",
+    )
+
+
+def add_fit(p: argparse.ArgumentParser) -> None:
+    """``fog-driver fit``: its arguments, the model kinds below them, and its function."""
+    kinds = (
+        [DEFAULT_FIT_KIND]
+        + [k for k in KIND_HELP if k != DEFAULT_FIT_KIND]
+        + [k for k in FITTERS if k not in KIND_HELP]
+    )
+    p.formatter_class = argparse.RawDescriptionHelpFormatter
+    p.epilog = "model kinds (--kind):\n" + "\n".join(f"  {k:11s} {KIND_HELP.get(k, '')}" for k in kinds)
+    p.add_argument("captures", nargs="+", metavar="CAPTURE.bin")
+    p.add_argument("--out", required=True, metavar="MODEL.yaml")
+    p.add_argument(
+        "--kind",
+        default=None,
+        choices=kinds,
+        metavar="KIND",
+        help=f"{', '.join(kinds)} (below; default: {DEFAULT_FIT_KIND}, or the polynomial when the "
+        f"{DEFAULT_FIT_KIND} does worse on the fit's own validation split)",
+    )
+    p.add_argument("--config", metavar="CONFIG.yaml", help="fit settings (see configs/fit.yaml)")
+    p.add_argument(
+        "--validate",
+        action="append",
+        default=[],
+        metavar="CAPTURE.bin",
+        help="a held-out capture to report on (repeatable)",
+    )
+    p.add_argument("--force", action="store_true", help="overwrite an existing model file")
+    p.add_argument(
+        "--accept-weak-fit",
+        action="store_true",
+        help="write the model even when its data fail the fit's checks (too short, too little "
+        "temperature range, ...); the model file records it",
+    )
+    _format_option(p)
+    p.set_defaults(func=cmd_fit)
+
+
+def add_compensate(p: argparse.ArgumentParser) -> None:
+    """``fog-driver compensate``: its arguments and its function."""
+    p.add_argument("capture", metavar="CAPTURE.bin")
+    p.add_argument("--model", required=True, metavar="MODEL.yaml")
+    p.add_argument("--out", required=True, metavar="OUT.csv")
+    p.add_argument("--every", type=positive_float, default=1.0, metavar="SECONDS", help="row period (default 1 s)")
+    p.add_argument(
+        "--force", action="store_true", help="apply a model fitted for another instrument; overwrite OUT.csv"
+    )
+    p.add_argument(
+        "--adapt-reference",
+        type=float,
+        metavar="DPH",
+        help="adapt the weights online, against this known input rate while the table is static "
+        "(deg/h; 0 for a table at rest: Earth rate and bias are captured first)",
+    )
+    p.add_argument(
+        "--adapt-state",
+        metavar="STATE.yaml",
+        help="restore the adaptation state from here (with --adapt-reference: if it exists, and save it "
+        "at the end; without: its adapted weights give the estimate, as in a daemon that restored it)",
+    )
+    p.add_argument(
+        "--scale-override",
+        type=positive_float,
+        metavar="ARCSEC_PER_COUNT",
+        help="use this scale factor whatever the IDENTITY frames say (the daemon's scale_override_arcsec_per_count)",
+    )
+    _format_option(p)
+    p.set_defaults(func=cmd_compensate)
+
+
+def add_evaluate(p: argparse.ArgumentParser) -> None:
+    """``fog-driver evaluate``: its arguments and its function."""
+    p.add_argument("capture", metavar="CAPTURE.bin")
+    p.add_argument("--model", required=True, metavar="MODEL.yaml")
+    p.add_argument("--out", required=True, metavar="DIR", help="the report folder (report.md, summary.json, PNGs)")
+    p.add_argument("--truth", metavar="TRUTH.csv", help="a simulator truth file: score against the true drift")
+    p.add_argument(
+        "--reference", metavar="STOPS.csv", help="reference positioning stops (see the docs: reference/commands)"
+    )
+    p.add_argument(
+        "--compare",
+        action="append",
+        default=[],
+        metavar="MODEL.yaml",
+        help="another model to evaluate beside MODEL: its drift RMS, Allan curve and positioning column, "
+        "labelled by file stem and kind (repeatable)",
+    )
+    p.add_argument(
+        "--zero-window",
+        type=time_window,
+        metavar="START:END",
+        help="zero every method over this device-time window, seconds from the first sample "
+        "(default: the first 300 s of compensated output)",
+    )
+    p.add_argument("--json", action="store_true", help="also print summary.json on stdout")
+    p.add_argument("--force", action="store_true", help="overwrite the report folder; a model for another instrument")
+    _format_option(p)
+    p.set_defaults(func=cmd_evaluate)

@@ -1,0 +1,280 @@
+"""The turntable's motion plan: its rotation about the instrument's sensitive axis over one run
+(``MotionPlan.rate_dps(t_s)``, ``MotionPlan.angle_deg(t_s)``), exact closed forms vectorized over numpy arrays
+with one ``np.searchsorted`` over the pieces' boundaries.  Times are seconds from the start of the run.
+
+Turntable motion (the sensitive axis is parallel to the table axis); theta is the cumulative
+commanded table angle, 0 before the first move::
+
+    static          omega = 0
+    constant_rate   omega = rate_dps for start_s <= t < stop_s (stop_s None: for ever); the rate
+                    steps instantly, the angle stays continuous
+    positioning     dwell_s, then ``moves`` times (move of step_deg, dwell_s).  Each move is a
+                    trapezoid in omega with acceleration a and top rate v:
+                        t_a = v / a,  t_c = (|d| - v^2 / a) / v,  T = 2 t_a + t_c
+                    or a triangle when |d| < v^2 / a (the top rate is never reached):
+                        peak = sqrt(a |d|),  t_a = sqrt(|d| / a),  t_c = 0,  T = 2 t_a
+
+so theta(t) = theta_k + omega_k (t - t_k) + alpha_k (t - t_k)^2 / 2 on each piece k (piecewise
+quadratic), exactly the integral of omega: a frame's true angle increment is
+``angle_deg(t1) - angle_deg(t0)`` with no discretisation error.  During every dwell the angle is
+exactly ``base + k * step_deg``.  With the defaults (36 deg, 20 deg/s, 10 deg/s^2) a move is
+triangular: 36 < 20^2 / 10 = 40 deg, peak 18.97 deg/s, 3.795 s per move, and a 10-move sequence
+lasts 60 + 10 * (3.795 + 60) = 697.9 s.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .chamber import ChamberProfile
+from .checks import check_integer, check_number
+
+# --- turntable motion --------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ConstantRate:
+    """omega = ``rate_dps`` from ``start_s`` until ``stop_s`` (None: for ever)."""
+
+    rate_dps: float
+    start_s: float = 0.0
+    stop_s: float | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "rate_dps", check_number("rate_dps", self.rate_dps))
+        object.__setattr__(self, "start_s", check_number("start_s", self.start_s, nonnegative=True))
+        if self.stop_s is not None:
+            stop = check_number("stop_s", self.stop_s)
+            if stop <= self.start_s:
+                raise ValueError(f"stop_s ({stop:g}) must be after start_s ({self.start_s:g})")
+            object.__setattr__(self, "stop_s", stop)
+
+    @property
+    def end_s(self) -> float:
+        return math.inf if self.stop_s is None else self.stop_s
+
+
+@dataclass(frozen=True)
+class Positioning:
+    """From ``start_s``: dwell, then ``moves`` x (move of ``step_deg``, dwell); trapezoidal or triangular moves."""
+
+    start_s: float
+    moves: int = 10
+    step_deg: float = 36.0
+    dwell_s: float = 60.0
+    max_rate_dps: float = 20.0
+    accel_dps2: float = 10.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "start_s", check_number("start_s", self.start_s, nonnegative=True))
+        object.__setattr__(self, "moves", check_integer("moves", self.moves, 1))
+        step = check_number("step_deg", self.step_deg)
+        if step == 0:
+            raise ValueError("step_deg must not be 0")
+        object.__setattr__(self, "step_deg", step)
+        object.__setattr__(self, "dwell_s", check_number("dwell_s", self.dwell_s, positive=True))
+        object.__setattr__(self, "max_rate_dps", check_number("max_rate_dps", self.max_rate_dps, positive=True))
+        object.__setattr__(self, "accel_dps2", check_number("accel_dps2", self.accel_dps2, positive=True))
+
+    @property
+    def triangular(self) -> bool:
+        """True when a move is too short to reach ``max_rate_dps``: |step| < v^2 / a."""
+        return abs(self.step_deg) < self.max_rate_dps**2 / self.accel_dps2
+
+    @property
+    def peak_rate_dps(self) -> float:
+        """The highest |omega| in a move: v, or sqrt(a |d|) for a triangular move."""
+        return math.sqrt(self.accel_dps2 * abs(self.step_deg)) if self.triangular else self.max_rate_dps
+
+    @property
+    def accel_time_s(self) -> float:
+        return self.peak_rate_dps / self.accel_dps2
+
+    @property
+    def cruise_time_s(self) -> float:
+        if self.triangular:
+            return 0.0
+        return (abs(self.step_deg) - self.max_rate_dps**2 / self.accel_dps2) / self.max_rate_dps
+
+    @property
+    def move_time_s(self) -> float:
+        return 2.0 * self.accel_time_s + self.cruise_time_s
+
+    @property
+    def duration_s(self) -> float:
+        """dwell + moves * (move + dwell)."""
+        return self.dwell_s + self.moves * (self.move_time_s + self.dwell_s)
+
+    @property
+    def end_s(self) -> float:
+        return self.start_s + self.duration_s
+
+    def move_start_s(self, k: int) -> float:
+        """When move k (0-based) starts: start + dwell + k (move + dwell)."""
+        return self.start_s + self.dwell_s + k * (self.move_time_s + self.dwell_s)
+
+
+MotionItem = ConstantRate | Positioning
+
+
+@dataclass(frozen=True)
+class Stop:
+    """A dwell of a positioning sequence: the table is still from ``t_start_s`` to ``t_end_s`` at ``angle_deg``."""
+
+    t_start_s: float
+    t_end_s: float
+    angle_deg: float
+
+
+@dataclass(frozen=True)
+class MotionPlan:
+    """The turntable's motion: non-overlapping items in time order; the table is still between them."""
+
+    items: tuple[MotionItem, ...] = ()
+    _pieces: dict[str, np.ndarray] = field(init=False, repr=False, compare=False)
+    _stops: tuple[Stop, ...] = field(init=False, repr=False, compare=False)
+
+    @classmethod
+    def static(cls) -> MotionPlan:
+        return cls(())
+
+    def __post_init__(self) -> None:
+        items = tuple(sorted(self.items, key=lambda it: it.start_s))
+        for item in items:
+            if not isinstance(item, (ConstantRate, Positioning)):
+                raise TypeError(f"not a motion item: {item!r}")
+        for a, b in zip(items, items[1:]):
+            if b.start_s < a.end_s:
+                raise ValueError(
+                    f"{_describe_item(b)} overlaps {_describe_item(a)}, which ends at "
+                    f"{'infinity' if math.isinf(a.end_s) else f'{a.end_s:g} s'}"
+                )
+        object.__setattr__(self, "items", items)
+        self._build()
+
+    def _build(self) -> None:
+        # Pieces (t_k, theta_k, omega_k, alpha_k).  Piece 0 is the rest before the first item; piece
+        # k >= 1 starts at starts[k - 1].  Dwell pieces carry the commanded angle exactly.
+        pieces: list[tuple[float, float, float, float]] = [(0.0, 0.0, 0.0, 0.0)]
+        stops: list[Stop] = []
+        angle = 0.0
+
+        def piece(t: float, theta: float, omega: float, alpha: float) -> None:
+            pieces.append((t, theta, omega, alpha))
+
+        for item in self.items:
+            if isinstance(item, ConstantRate):
+                piece(item.start_s, angle, item.rate_dps, 0.0)
+                if item.stop_s is not None:
+                    angle = angle + item.rate_dps * (item.stop_s - item.start_s)
+                    piece(item.stop_s, angle, 0.0, 0.0)
+                continue
+            sign = math.copysign(1.0, item.step_deg)
+            a, peak = item.accel_dps2, item.peak_rate_dps
+            t_a, t_c, t_m = item.accel_time_s, item.cruise_time_s, item.move_time_s
+            half = 0.5 * a * t_a * t_a  # angle covered while accelerating (and while decelerating)
+            base = angle
+            piece(item.start_s, base, 0.0, 0.0)
+            stops.append(Stop(item.start_s, item.move_start_s(0), base))
+            for k in range(item.moves):
+                t0 = item.move_start_s(k)
+                start_deg, end_deg = base + k * item.step_deg, base + (k + 1) * item.step_deg
+                piece(t0, start_deg, 0.0, sign * a)
+                if t_c > 0:
+                    piece(t0 + t_a, start_deg + sign * half, sign * peak, 0.0)
+                piece(t0 + t_a + t_c, end_deg - sign * half, sign * peak, -sign * a)
+                dwell_end = item.move_start_s(k + 1) if k + 1 < item.moves else item.end_s
+                piece(t0 + t_m, end_deg, 0.0, 0.0)
+                stops.append(Stop(t0 + t_m, dwell_end, end_deg))
+            angle = base + item.moves * item.step_deg
+        t0, theta, omega, alpha = (np.array(column, dtype=np.float64) for column in zip(*pieces))
+        object.__setattr__(
+            self, "_pieces", {"starts": t0[1:], "t0": t0, "theta": theta, "omega": omega, "alpha": alpha}
+        )
+        object.__setattr__(self, "_stops", tuple(stops))
+
+    @property
+    def kind(self) -> str:
+        """``static``, ``constant_rate``, ``positioning``, or ``mixed``."""
+        kinds = {"constant_rate" if isinstance(it, ConstantRate) else "positioning" for it in self.items}
+        return "static" if not kinds else kinds.pop() if len(kinds) == 1 else "mixed"
+
+    @property
+    def duration_s(self) -> float:
+        """When the last item ends (its last dwell included; 0 for a static plan).
+
+        An open-ended constant rate counts as ending when it starts: from then on the rate stays
+        ``final_rate_dps`` for ever, so the duration stays finite.
+        """
+        ends = [it.end_s for it in self.items if math.isfinite(it.end_s)] + [it.start_s for it in self.items]
+        return max(ends, default=0.0)
+
+    @property
+    def final_rate_dps(self) -> float:
+        """The rate for ever after ``duration_s``: nonzero only when the plan ends with an open-ended constant rate."""
+        return float(self._pieces["omega"][-1])
+
+    def _lookup(self, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        t = np.asarray(t_s, dtype=np.float64)
+        k = np.searchsorted(self._pieces["starts"], t, side="right")
+        return k, t - self._pieces["t0"][k]
+
+    def rate_dps(self, t_s: np.ndarray) -> np.ndarray:
+        """The table rate omega(t) in deg/s at times ``t_s`` (any shape): omega_k + alpha_k (t - t_k)."""
+        k, dt = self._lookup(t_s)
+        return self._pieces["omega"][k] + self._pieces["alpha"][k] * dt
+
+    def angle_deg(self, t_s: np.ndarray) -> np.ndarray:
+        """The cumulative table angle theta(t) = theta_k + omega_k (t - t_k) + alpha_k (t - t_k)^2 / 2, exactly."""
+        k, dt = self._lookup(t_s)
+        p = self._pieces
+        return p["theta"][k] + dt * (p["omega"][k] + 0.5 * p["alpha"][k] * dt)
+
+    def stops(self) -> list[Stop]:
+        """Every dwell of every positioning sequence, in time order, with its commanded cumulative angle."""
+        return list(self._stops)
+
+    def describe(self) -> str:
+        return "static" if not self.items else "; ".join(_describe_item(it) for it in self.items)
+
+
+def _describe_item(item: MotionItem) -> str:
+    if isinstance(item, ConstantRate):
+        stop = "on" if item.stop_s is None else f"to {item.stop_s:g} s"
+        return f"constant rate {item.rate_dps:g} deg/s from {item.start_s:g} s {stop}"
+    shape = "triangular" if item.triangular else "trapezoidal"
+    return (
+        f"positioning {item.moves} x {item.step_deg:g} deg from {item.start_s:g} s to {item.end_s:g} s"
+        f" ({shape} moves of {item.move_time_s:.3f} s, dwell {item.dwell_s:g} s)"
+    )
+
+
+def positioning_at_plateau(
+    chamber: ChamberProfile, plateau: int, settle_s: float = 600.0, **kwargs: Any
+) -> Positioning:
+    """A ``Positioning`` starting ``settle_s`` after ``chamber.plateaus()[plateau]`` begins; it must end within it.
+
+    ``kwargs`` are the other ``Positioning`` fields (moves, step_deg, dwell_s, max_rate_dps, accel_dps2).
+    """
+    plateaus = chamber.plateaus()
+    plateau = check_integer("at_plateau", plateau, 0)
+    if plateau >= len(plateaus):
+        if not plateaus:
+            raise ValueError(f"at_plateau {plateau} but the chamber profile has no hold segment")
+        raise ValueError(
+            f"at_plateau {plateau} but the chamber profile has {len(plateaus)} plateaus (0..{len(plateaus) - 1})"
+        )
+    settle_s = check_number("settle_s", settle_s, nonnegative=True)
+    p = plateaus[plateau]
+    seq = Positioning(start_s=p.t_start_s + settle_s, **kwargs)
+    if seq.end_s > p.t_end_s:
+        raise ValueError(
+            f"the sequence at plateau {plateau} ({p.temp_c:g} degC) would end at {seq.end_s:g} s, "
+            f"after the plateau ends at {p.t_end_s:g} s "
+            f"(it needs {settle_s + seq.duration_s:g} s of hold)"
+        )
+    return seq
