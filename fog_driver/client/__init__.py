@@ -37,7 +37,8 @@ connections), ``blocking`` and ``aio`` (the sockets).  The protocol itself is th
 
 from __future__ import annotations
 
-from .aio import AsyncClient
+from typing import TYPE_CHECKING
+
 from .blocking import Client
 from .errors import (
     BiasFailed,
@@ -52,6 +53,9 @@ from .errors import (
 from .messages import Angle, Bias, Device, ErrorReply, Gap, Message, Other, Reply, Status, Version
 from .session import Session
 from .wire import DEFAULT_HOST, DEFAULT_PORT, TOKEN_ENV, read_token
+
+if TYPE_CHECKING:
+    from .aio import AsyncClient
 
 __all__ = [
     "DEFAULT_HOST",
@@ -80,3 +84,14 @@ __all__ = [
     "Version",
     "read_token",
 ]
+
+
+def __getattr__(name: str) -> object:
+    """``AsyncClient`` on first use: asyncio is most of the library's import time, and a blocking client
+    (``fog-driver watch``, ``ctl``) never needs it."""
+    if name == "AsyncClient":
+        from .aio import AsyncClient  # start-up time
+
+        globals()["AsyncClient"] = AsyncClient
+        return AsyncClient
+    raise AttributeError(f"module 'fog_driver.client' has no attribute {name!r}")

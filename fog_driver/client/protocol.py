@@ -3,10 +3,9 @@ arguments of the control commands, and turning the daemon's answers into values 
 
 from __future__ import annotations
 
+import logging
 import math
 from typing import Any
-
-import structlog
 
 from .errors import BiasFailed, CommandRefused, Unauthorized, UnknownCommand
 from .messages import Bias, Device, ErrorReply, Message, Status, Version
@@ -28,7 +27,20 @@ __all__ = [
     "printable",
 ]
 
-log = structlog.get_logger("fog_driver.client")
+#: The standard library's logger (no structlog here: the client needs the standard library only).  Each record's
+#: message is the event and its ``key=value`` pairs; the pairs are also the record's attributes (``extra``), so a
+#: structlog ``ProcessorFormatter`` with ``ExtraAdder`` routes them as fields.
+log = logging.getLogger("fog_driver.client")
+
+
+def _log(level: int, event: str, **fields: Any) -> None:
+    """One log line: ``event key=value ...`` (values as ``repr`` for strings, else as text), fields in ``extra``."""
+    if log.isEnabledFor(level):
+        pairs = " ".join(
+            f"{key}={value!r}" if isinstance(value, str) else f"{key}={value}" for key, value in fields.items()
+        )
+        log.log(level, "%s %s", event, pairs, extra={"event": event, **fields})
+
 
 MAX_BIAS_S = 86400
 MAX_REFERENCE_DPH = 1e7
@@ -103,12 +115,13 @@ class Reconnection:
         self.client = client
         self.delay = client.backoff_initial_s
         self.attempt = 0
-        log.warning("connection_lost", address=client.address, reason=reason, retry_in_s=self.delay)
+        _log(logging.WARNING, "connection_lost", address=client.address, reason=reason, retry_in_s=self.delay)
 
     def failed(self, exc: BaseException) -> None:
         self.attempt += 1
         self.delay = min(self.delay * 2.0, self.client.backoff_max_s)
-        log.warning(
+        _log(
+            logging.WARNING,
             "reconnect_failed",
             address=self.client.address,
             attempt=self.attempt,
@@ -118,8 +131,12 @@ class Reconnection:
 
     def succeeded(self) -> None:
         self.client.reconnects += 1
-        log.info(
-            "reconnected", address=self.client.address, attempt=self.attempt + 1, reconnects=self.client.reconnects
+        _log(
+            logging.INFO,
+            "reconnected",
+            address=self.client.address,
+            attempt=self.attempt + 1,
+            reconnects=self.client.reconnects,
         )
 
 
