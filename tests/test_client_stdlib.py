@@ -41,7 +41,7 @@ def _loaded_by(module: str) -> list[str]:
     return json.loads(proc.stdout.replace("'", '"'))
 
 
-@pytest.mark.parametrize("module", ["fog_driver", "fog_driver.client"])
+@pytest.mark.parametrize("module", ["fog_driver", "fog_driver.client", "fog_driver.client.udp"])
 def test_the_client_library_loads_no_third_party_package(module):
     assert _loaded_by(module) == []
 
