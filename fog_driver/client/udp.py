@@ -47,6 +47,7 @@ import struct
 __all__ = [
     "DATAGRAM_FORMAT",
     "DATAGRAM_SIZE",
+    "DATAGRAM_STRUCT",
     "DATAGRAM_VERSION",
     "FIELDS",
     "FLAG_ADAPTING",
@@ -66,8 +67,9 @@ __all__ = [
 MAGIC = b"FOGA"
 DATAGRAM_VERSION = 1
 DATAGRAM_FORMAT = ">4sHHQdddddfff"
-_STRUCT = struct.Struct(DATAGRAM_FORMAT)
-DATAGRAM_SIZE = _STRUCT.size  # 68
+#: The version-1 layout as a ``struct.Struct`` (the sender packs with it, the decoder unpacks).
+DATAGRAM_STRUCT = struct.Struct(DATAGRAM_FORMAT)
+DATAGRAM_SIZE = DATAGRAM_STRUCT.size  # 68
 
 # The compensator's flags (fog_driver.compensation), repeated here so that this module stands alone.
 FLAG_GAP = 1 << 0
@@ -113,7 +115,7 @@ def decode_datagram(data: bytes) -> dict:
     """
     if len(data) < DATAGRAM_SIZE:
         raise ValueError(f"datagram too short: {len(data)} bytes, a version-1 datagram has {DATAGRAM_SIZE}")
-    values = _STRUCT.unpack_from(data)
+    values = DATAGRAM_STRUCT.unpack_from(data)
     if values[0] != MAGIC:
         raise ValueError(f"bad magic {values[0]!r}, expected {MAGIC!r}")
     if values[1] != DATAGRAM_VERSION:

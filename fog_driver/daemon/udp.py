@@ -21,9 +21,9 @@ from collections.abc import Callable, Iterable, Mapping
 from typing import Any, Self
 
 from ..client.udp import (
-    _STRUCT,
     DATAGRAM_FORMAT,
     DATAGRAM_SIZE,
+    DATAGRAM_STRUCT,
     DATAGRAM_VERSION,
     FIELDS,
     FLAG_ADAPTING,
@@ -84,7 +84,7 @@ def encode_datagram(
     flags: int = 0,
 ) -> bytes:
     """One datagram; None (absent) becomes NaN, ``seq`` is taken modulo 2**64, ``flags`` modulo 2**16."""
-    return _STRUCT.pack(
+    return DATAGRAM_STRUCT.pack(
         MAGIC,
         DATAGRAM_VERSION,
         int(flags) & 0xFFFF,
