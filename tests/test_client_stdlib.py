@@ -41,8 +41,18 @@ def _loaded_by(module: str) -> list[str]:
     return json.loads(proc.stdout.replace("'", '"'))
 
 
-@pytest.mark.parametrize("module", ["fog_driver", "fog_driver.client", "fog_driver.client.udp"])
-def test_the_client_library_loads_no_third_party_package(module):
+@pytest.mark.parametrize(
+    "module",
+    [
+        "fog_driver",
+        "fog_driver.client",
+        "fog_driver.client.udp",
+        "fog_driver.client.display",
+        "fog_driver.tools.watch",
+        "fog_driver.tools.ctl",
+    ],
+)
+def test_the_client_library_and_the_operators_tools_load_no_third_party_package(module):
     assert _loaded_by(module) == []
 
 

@@ -30,8 +30,8 @@ import time
 from typing import TextIO
 
 from ..client import Bias, BiasFailed, Client, CommandRefused, Message, NoReply, Status, Unauthorized, UnknownCommand
+from ..client.display import Progress
 from ..client.wire import TOKEN_ENV, parse_address, read_token
-from ..console import Progress
 from ..errors import FogDriverError, UsageError
 
 __all__ = ["COMMANDS", "ctl_command", "parse_request", "run_ctl"]
