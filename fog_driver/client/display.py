@@ -16,7 +16,7 @@ import sys
 import time
 from collections.abc import Mapping
 from decimal import ROUND_HALF_UP, Decimal
-from typing import Any, TextIO
+from typing import Any, TextIO, TypeGuard
 
 from .address import DEFAULT_HOST, DEFAULT_PORT, format_address
 
@@ -103,7 +103,7 @@ def format_dms(arcsec: float, *, degree: str = DEGREE) -> str:
     return f"{sign}{degrees}{degree}{minutes:02d}'{seconds:02d}.{cents:02d}\""
 
 
-def is_number(value: Any) -> bool:
+def is_number(value: Any) -> TypeGuard[int | float]:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 

@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import logging
 import math
-from typing import Any
+from typing import Any, TypeVar, cast
 
 from .errors import BiasFailed, CommandRefused, Unauthorized, UnknownCommand
-from .messages import Bias, Device, ErrorReply, Message, Status, Version
+from .messages import Angle, Bias, Device, ErrorReply, Message, Other, Reply, Status, Version
 from .session import Session
 from .wire import DEFAULT_HOST, DEFAULT_PORT, GREETING_TIMEOUT_S, format_address, parse_address
 
@@ -18,6 +18,7 @@ __all__ = [
     "MAX_REFERENCE_DPH",
     "REPLY_TIMEOUT_S",
     "ClientBase",
+    "answer_as",
     "bias_args",
     "Reconnection",
     "check_bias",
@@ -173,7 +174,7 @@ def bias_args(seconds: float) -> dict[str, Any]:
     return {"seconds": int(seconds) if float(seconds).is_integer() else float(seconds)}
 
 
-def check_reply(name: str, reply: Message) -> Any:
+def check_reply(name: str, reply: Message) -> Message:
     """``reply`` when it is not an ``ERROR``; else the typed error for it."""
     if not isinstance(reply, ErrorReply):
         return reply
@@ -187,6 +188,16 @@ def check_reply(name: str, reply: Message) -> Any:
     if message.startswith("unknown command"):
         raise UnknownCommand(f"the daemon does not know ?{name} (an older fog-driver?)", message=message, command=name)
     raise CommandRefused(f"?{name} refused: {printable(message)}", message=message, command=name)
+
+
+_M = TypeVar("_M", Angle, Version, Device, Status, Bias, Reply, ErrorReply, Other)
+
+
+def answer_as(kind: type[_M], reply: Message) -> _M:
+    """``reply`` typed as the class ``Session`` pairs with the command: ``?STATUS`` is answered by a ``STATUS``,
+    ``?BIAS`` by a ``BIAS``, ``?ZERO``/``?ADAPT``/``?SAVE``/``?RELOAD``/``?WATCH`` by a ``Reply`` (an ``ERROR``
+    was raised by ``check_reply``).  For the type checker only: nothing is checked at run time."""
+    return cast(_M, reply)
 
 
 def check_bias(result: Bias) -> Bias:

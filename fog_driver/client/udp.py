@@ -43,6 +43,7 @@ the first 68 bytes of a longer datagram).  UDP may lose or reorder datagrams:
 from __future__ import annotations
 
 import struct
+from typing import Any
 
 __all__ = [
     "DATAGRAM_FORMAT",
@@ -108,7 +109,7 @@ FIELDS = (
 )
 
 
-def decode_datagram(data: bytes) -> dict:
+def decode_datagram(data: bytes) -> dict[str, Any]:
     """The fields of a version-1 datagram (NaN where absent); ValueError if it is not one.
 
     Bytes beyond the 68 of version 1 are ignored (room for appended fields).
