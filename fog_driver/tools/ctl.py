@@ -27,10 +27,12 @@ from __future__ import annotations
 import math
 import sys
 import time
-from typing import TextIO
+from collections.abc import Mapping
+from typing import Any, TextIO
 
 from ..client import Bias, BiasFailed, Client, CommandRefused, Message, NoReply, Status, Unauthorized, UnknownCommand
 from ..client.display import Progress
+from ..client.protocol import answer_as
 from ..client.wire import TOKEN_ENV, parse_address, read_token
 from ..errors import FogDriverError, UsageError
 
@@ -83,14 +85,14 @@ def parse_request(command: str, words: list[str], *, reference_dph: float | None
     return name, None
 
 
-def _number(obj: dict, key: str, spec: str) -> str:
+def _number(obj: Mapping[str, Any], key: str, spec: str) -> str:
     value = obj.get(key)
     if isinstance(value, (int, float)) and not isinstance(value, bool):
         return format(value, spec)
     return "-"
 
 
-def _word(obj: dict, key: str) -> str:
+def _word(obj: Mapping[str, Any], key: str) -> str:
     value = obj.get(key)
     text = value if isinstance(value, str) else "-" if value is None else str(value)
     text = "".join(ch if ch.isprintable() else "?" for ch in text)
@@ -184,7 +186,13 @@ def run_ctl(
             raise _refused(name, exc) from None
         _show(out, json_out, reply)
         if name == "BIAS":
-            _wait_for_bias(client, reply, out, json_out, progress_stream if progress_stream is not None else sys.stderr)
+            _wait_for_bias(
+                client,
+                answer_as(Bias, reply),
+                out,
+                json_out,
+                progress_stream if progress_stream is not None else sys.stderr,
+            )
         return 0
     finally:
         client.close()
