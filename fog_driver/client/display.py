@@ -135,6 +135,7 @@ def mapping(value: Any) -> Mapping[str, Any]:
 
 
 def finite_number(value: Any) -> float | None:
+    """``value`` as a float when it is a finite number (not a bool), else None."""
     if isinstance(value, (int, float)) and not isinstance(value, bool):
         value = float(value)
         return value if math.isfinite(value) else None
@@ -142,6 +143,7 @@ def finite_number(value: Any) -> float | None:
 
 
 def fixed(value: Any, digits: int) -> str:
+    """A finite number to ``digits`` decimals (``f"{value:.{digits}f}"``), else ``-`` (the web page's rule)."""
     number = finite_number(value)
     return "-" if number is None else f"{number:.{digits}f}"
 

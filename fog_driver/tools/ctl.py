@@ -31,8 +31,8 @@ from collections.abc import Mapping
 from typing import Any, TextIO
 
 from ..client import Bias, BiasFailed, Client, CommandRefused, Message, NoReply, Status, Unauthorized, UnknownCommand
-from ..client.display import Progress
-from ..client.protocol import answer_as
+from ..client.display import DEFAULT_BIAS_S, Progress
+from ..client.protocol import MAX_BIAS_S, MAX_REFERENCE_DPH, REPLY_TIMEOUT_S, answer_as
 from ..client.wire import TOKEN_ENV, parse_address, read_token
 from ..errors import FogDriverError, UsageError
 
@@ -42,12 +42,9 @@ __all__ = ["COMMANDS", "ctl_command", "parse_request", "run_ctl"]
 COMMANDS = {"zero": "ZERO", "bias": "BIAS", "adapt": "ADAPT", "reload": "RELOAD", "status": "STATUS", "save": "SAVE"}
 #: Seconds the result of a ``bias`` is waited for beyond the daemon's own deadline (``timeout_s`` of its reply).
 BIAS_WAIT_MARGIN_S = 5.0
-#: How long a reply is waited for by default: the daemon answers every control command within 30 s.
-DEFAULT_TIMEOUT_S = 35.0
-DEFAULT_BIAS_S = 60
-MAX_BIAS_S = 86400
-#: ``--reference-dph`` beyond this is refused (the daemon's own limit).
-MAX_REFERENCE_DPH = 1e7
+#: How long a reply is waited for by default: the client library's (the daemon answers every control command
+#: within 30 s).
+DEFAULT_TIMEOUT_S = REPLY_TIMEOUT_S
 
 
 def parse_request(command: str, words: list[str], *, reference_dph: float | None = None) -> tuple[str, dict | None]:
