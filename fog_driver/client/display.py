@@ -33,8 +33,8 @@ __all__ = [
     "format_dms",
     "is_number",
     "mapping",
-    "printable",
     "show",
+    "terminal_safe",
 ]
 
 #: No ANGLE for this long (s, host time) is the ``NO DATA`` banner.
@@ -121,10 +121,10 @@ def show(value: Any, spec: str = "") -> str:
     if isinstance(value, bool):
         return "true" if value else "false"
     text = value if isinstance(value, str) else json.dumps(value, separators=(",", ":"), default=str)
-    return printable(text if len(text) <= 60 else text[:57] + "...")
+    return terminal_safe(text if len(text) <= 60 else text[:57] + "...")
 
 
-def printable(text: str) -> str:
+def terminal_safe(text: str) -> str:
     """No control characters from the server reach the terminal (no newlines, no escape sequences)."""
     return text if text.isprintable() else "".join(ch if ch.isprintable() else "?" for ch in text)
 

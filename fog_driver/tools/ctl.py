@@ -32,7 +32,7 @@ from typing import Any, TextIO
 
 from ..client import Bias, BiasFailed, Client, CommandRefused, Message, NoReply, Status, Unauthorized, UnknownCommand
 from ..client.display import DEFAULT_BIAS_S, Progress
-from ..client.protocol import MAX_BIAS_S, MAX_REFERENCE_DPH, REPLY_TIMEOUT_S, answer_as
+from ..client.protocol import MAX_BIAS_S, MAX_REFERENCE_DPH, REPLY_TIMEOUT_S, answer_as, printable
 from ..client.wire import TOKEN_ENV, parse_address, read_token
 from ..errors import FogDriverError, UsageError
 
@@ -91,9 +91,7 @@ def _number(obj: Mapping[str, Any], key: str, spec: str) -> str:
 
 def _word(obj: Mapping[str, Any], key: str) -> str:
     value = obj.get(key)
-    text = value if isinstance(value, str) else "-" if value is None else str(value)
-    text = "".join(ch if ch.isprintable() else "?" for ch in text)
-    return text if len(text) <= 200 else text[:197] + "..."
+    return printable(value if isinstance(value, str) else "-" if value is None else str(value))
 
 
 def describe(reply: dict) -> str:

@@ -16,8 +16,8 @@ from ..client.display import (
     format_dms,
     is_number,
     mapping,
-    printable,
     show,
+    terminal_safe,
 )
 
 __all__ = ["compact_line", "device_text", "identity_text", "render", "server_text"]
@@ -91,7 +91,7 @@ def _status_items(status: Mapping[str, Any]) -> list[str]:
     for key in sorted(k for k in status if isinstance(k, str) and k != "class"):
         value = status[key]
         if isinstance(value, (str, int, float)):  # scalars only (bool is an int)
-            items.append(f"{printable(key)}={show(value, 'g' if isinstance(value, float) else '')}")
+            items.append(f"{terminal_safe(key)}={show(value, 'g' if isinstance(value, float) else '')}")
     return items
 
 
@@ -172,7 +172,7 @@ def render(state: Mapping[str, Any], *, width: int = 100, degree: str = DEGREE) 
     if state.get("error") is not None:
         lines.append(f"{'error':<12}{show(state.get('error'))}")
     if state.get("action") is not None:
-        lines.append(f"{'last key':<12}{printable(str(state.get('action')))}")
+        lines.append(f"{'last key':<12}{terminal_safe(str(state.get('action')))}")
     if state.get("keys"):
         lines.append(f"{'keys':<12}q quit   z zero the angle   b capture the bias ({DEFAULT_BIAS_S} s, table still)")
     return lines
