@@ -4,45 +4,12 @@ from __future__ import annotations
 
 import logging
 import sys
-import time
 from typing import TextIO
 
 import structlog
 from structlog.tracebacks import ExceptionDictTransformer
 
-
-class Progress:
-    """Rewrites one status line on a terminal (``\\r``); silent when the stream is not a tty (piped, CI)."""
-
-    def __init__(self, stream: TextIO | None = None, min_interval_s: float = 0.2) -> None:
-        self.stream = stream if stream is not None else sys.stderr
-        self.enabled = bool(getattr(self.stream, "isatty", lambda: False)())
-        self.min_interval_s = min_interval_s
-        self._last_shown = 0.0
-        self._width = 0
-
-    def show(self, text: str, force: bool = False) -> None:
-        if not self.enabled:
-            return
-        now = time.monotonic()
-        if not force and now - self._last_shown < self.min_interval_s:
-            return
-        self._last_shown = now
-        pad = max(0, self._width - len(text))
-        self.stream.write("\r" + text + " " * pad)
-        self.stream.flush()
-        self._width = len(text)
-
-    def clear(self) -> None:
-        if self.enabled and self._width:
-            self.stream.write("\r" + " " * self._width + "\r")
-            self.stream.flush()
-            self._width = 0
-
-    def bytes_done(self, done: int, total: int) -> None:
-        pct = 100.0 * done / total if total else 100.0
-        self.show(f"decoding {done / 1e6:.1f} / {total / 1e6:.1f} MB ({pct:.0f} %)")
-
+from .client.display import Progress as Progress  # re-exported: the commands' progress line
 
 LOG_FORMATS = ("auto", "human", "json")
 

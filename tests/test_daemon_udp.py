@@ -11,6 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from fog_driver.client import udp as client_udp
+from fog_driver.daemon import udp as daemon_udp
 from fog_driver.daemon.config import DriverConfig
 from fog_driver.daemon.service import Service
 from fog_driver.daemon.udp import UdpPublisher, decode_datagram
@@ -103,3 +105,9 @@ def test_the_daemon_starts_and_publishes_with_a_udp_name_that_does_not_resolve_y
     finally:
         service.stop.set()
         service.shutdown()
+
+
+def test_the_decoder_lives_in_the_client_library_and_the_daemon_re_exports_it():
+    for name in client_udp.__all__:
+        assert getattr(daemon_udp, name) is getattr(client_udp, name), name
+    assert set(client_udp.__all__) - {"DATAGRAM_STRUCT"} <= set(daemon_udp.__all__)

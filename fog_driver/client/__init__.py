@@ -23,21 +23,26 @@ for the capture's result), ``adapt(enable, reference_dph)``, ``save()``, ``reloa
 The objects are frozen dataclasses with units in their field names: ``Angle``, ``Device``, ``Status``,
 ``Version``, ``Bias``, ``Reply`` (``?ZERO``, ``?ADAPT`` ... answers), ``ErrorReply``, ``Other`` (a class this
 library does not know); each keeps the daemon's object (``raw``) for keys a newer daemon adds.  A lost
-connection is made again with backoff (0.5 s doubling up to 30 s, each attempt logged as a warning), never
+connection is made again with backoff (0.5 s doubling up to 30 s, each attempt logged as a warning through the
+standard ``logging`` module, logger ``fog_driver.client``), never
 silently: the first ``Angle`` after it carries ``gap_before`` (``Gap``: the sequence numbers either side, the
 samples missed, the time without a connection), and ``reconnects`` counts them.  ``reconnect=False`` raises
 ``ConnectionLost`` instead.  A daemon that cannot be reached at the first ``connect`` is a ``ConnectError`` at
 once.
 
-The layers: ``wire`` (lines, addresses, the token file), ``messages`` (typed objects), ``session`` (the
-protocol without I/O: bytes in, messages out, which answer belongs to which command, the gap across
-connections), ``blocking`` and ``aio`` (the sockets).  The protocol itself is the docstring of
+The layers: ``address`` (``HOST:PORT``), ``wire`` (lines, the token file, the connection), ``messages`` (typed
+objects), ``session`` (the protocol without I/O: bytes in, messages out, which answer belongs to which command,
+the gap across connections), ``blocking`` and ``aio`` (the sockets; ``AsyncClient`` and asyncio are imported on
+first use).  Beside them: ``udp`` (the UDP datagram's layout and decoder) and ``display`` (how the operator's
+views, ``fog-driver watch``, ``ctl`` and the web page, format the numbers).  The standard library only: no
+numpy, yaml or structlog.  The protocol itself is the docstring of
 ``fog_driver/daemon/hub.py``.
 """
 
 from __future__ import annotations
 
-from .aio import AsyncClient
+from typing import TYPE_CHECKING
+
 from .blocking import Client
 from .errors import (
     BiasFailed,
@@ -52,6 +57,9 @@ from .errors import (
 from .messages import Angle, Bias, Device, ErrorReply, Gap, Message, Other, Reply, Status, Version
 from .session import Session
 from .wire import DEFAULT_HOST, DEFAULT_PORT, TOKEN_ENV, read_token
+
+if TYPE_CHECKING:
+    from .aio import AsyncClient
 
 __all__ = [
     "DEFAULT_HOST",
@@ -80,3 +88,14 @@ __all__ = [
     "Version",
     "read_token",
 ]
+
+
+def __getattr__(name: str) -> object:
+    """``AsyncClient`` on first use: asyncio is most of the library's import time, and a blocking client
+    (``fog-driver watch``, ``ctl``) never needs it."""
+    if name == "AsyncClient":
+        from .aio import AsyncClient  # start-up time
+
+        globals()["AsyncClient"] = AsyncClient
+        return AsyncClient
+    raise AttributeError(f"module 'fog_driver.client' has no attribute {name!r}")

@@ -16,7 +16,16 @@ from typing import Any
 
 from .errors import ConnectError, ConnectionLost, NoReply
 from .messages import Angle, Bias, Message, Reply, Status, Version
-from .protocol import MAX_BUFFERED_ANGLES, ClientBase, Reconnection, bias_args, check_bias, check_reply, control_args
+from .protocol import (
+    MAX_BUFFERED_ANGLES,
+    ClientBase,
+    Reconnection,
+    answer_as,
+    bias_args,
+    check_bias,
+    check_reply,
+    control_args,
+)
 from .session import Request
 
 __all__ = ["AsyncClient"]
@@ -38,10 +47,10 @@ class AsyncClient(ClientBase):
         super().__init__(*args, **kwargs)
         self._reader: asyncio.StreamReader | None = None
         self._writer: asyncio.StreamWriter | None = None
-        self._task: asyncio.Task | None = None
-        self._waiting: list[tuple[Request, asyncio.Future]] = []
-        self._angles: asyncio.Queue = asyncio.Queue(MAX_BUFFERED_ANGLES)
-        self._messages: asyncio.Queue | None = None  # made by the first messages()
+        self._task: asyncio.Task[None] | None = None
+        self._waiting: list[tuple[Request, asyncio.Future[Message]]] = []
+        self._angles: asyncio.Queue[Any] = asyncio.Queue(MAX_BUFFERED_ANGLES)  # Angle, or _END
+        self._messages: asyncio.Queue[Any] | None = None  # made by the first messages()
         self._bias_results: dict[int | None, Bias] = {}
         self._bias_changed: asyncio.Event | None = None
         self._closed = False
@@ -63,7 +72,9 @@ class AsyncClient(ClientBase):
         await self._open()
         self._bias_changed = asyncio.Event()
         self._task = asyncio.create_task(self._read_loop(), name=f"fog-driver client {self.address}")
-        return self.session.version
+        version = self.session.version
+        assert version is not None  # _open read the greeting, or raised
+        return version
 
     async def close(self) -> None:
         """Close the connection and end the iterators (``ConnectionLost`` in whoever waits)."""
@@ -115,6 +126,7 @@ class AsyncClient(ClientBase):
             if remaining <= 0:
                 raise ConnectError(f"{self.address}: no {what} within {self.timeout_s:g} s")
             try:
+                assert self._reader is not None  # _open set it; nothing drops it meanwhile
                 data = await asyncio.wait_for(self._reader.read(_RECV_BYTES), remaining)
             except TimeoutError:
                 continue
@@ -149,6 +161,10 @@ class AsyncClient(ClientBase):
             if not future.done():
                 future.set_exception(ConnectionLost(f"{self.address}: the connection was lost before the answer"))
 
+    def _ended(self) -> BaseException:
+        """What the iterators raise after the last message: the failure ``_end`` was given."""
+        return self._failure if self._failure is not None else ConnectionLost(f"{self.address}: the client was closed")
+
     def _end(self, failure: BaseException) -> None:
         """No more messages: the iterators raise ``failure`` once they have taken what came before."""
         self._failure = failure
@@ -162,6 +178,7 @@ class AsyncClient(ClientBase):
 
     async def _read_loop(self) -> None:
         while True:
+            assert self._reader is not None  # _open set it; _drop below is followed by _open or the end
             try:
                 data = await self._reader.read(_RECV_BYTES)
                 reason = None if data else "the daemon closed the connection"
@@ -224,7 +241,7 @@ class AsyncClient(ClientBase):
             item = await self._angles.get()
             if item is _END:
                 _put_dropping(self._angles, _END)  # for the next reader too
-                raise self._failure
+                raise self._ended()
             yield item
 
     async def messages(self) -> AsyncIterator[Message]:
@@ -237,18 +254,18 @@ class AsyncClient(ClientBase):
             item = await self._messages.get()
             if item is _END:
                 _put_dropping(self._messages, _END)
-                raise self._failure
+                raise self._ended()
             yield item
 
     async def watch(self, rate_hz: float | None = None) -> Reply:
         args = self.session.watch_args(rate_hz)
-        reply = await self._command("WATCH", args)
+        reply = answer_as(Reply, await self._command("WATCH", args))
         self._watch = args
         return reply
 
     # -- commands ---------------------------------------------------------------------------------------
 
-    async def _command(self, name: str, args: dict[str, Any] | None = None) -> Any:
+    async def _command(self, name: str, args: dict[str, Any] | None = None) -> Message:
         if self._task is None:
             if self._closed:
                 raise ConnectionLost(f"{self.address}: the client was closed")
@@ -266,40 +283,42 @@ class AsyncClient(ClientBase):
         return check_reply(name, reply)
 
     async def status(self) -> Status:
-        return await self._command("STATUS")
+        return answer_as(Status, await self._command("STATUS"))
 
     async def zero(self) -> Reply:
-        return await self._command("ZERO")
+        return answer_as(Reply, await self._command("ZERO"))
 
     async def adapt(self, enable: bool = True, reference_dph: float = 0.0) -> Reply:
-        return await self._command("ADAPT", control_args(enable, reference_dph))
+        return answer_as(Reply, await self._command("ADAPT", control_args(enable, reference_dph)))
 
     async def save(self) -> Reply:
-        return await self._command("SAVE")
+        return answer_as(Reply, await self._command("SAVE"))
 
     async def reload(self) -> Reply:
-        return await self._command("RELOAD")
+        return answer_as(Reply, await self._command("RELOAD"))
 
     async def bias(self, seconds: float = 60.0, *, wait: bool = True) -> Bias:
         """As ``Client.bias``."""
-        started = await self._command("BIAS", bias_args(seconds))
+        started = answer_as(Bias, await self._command("BIAS", bias_args(seconds)))
         if not wait:
             return started
         loop = asyncio.get_running_loop()
         deadline = loop.time() + (started.timeout_s or seconds + 30.0) + 5.0
         while started.capture_id not in self._bias_results:
             if self._failure is not None:
-                raise self._failure
+                raise self._ended()
             remaining = deadline - loop.time()
             if remaining <= 0:
                 raise NoReply(f"{self.address}: no result of the bias capture {started.capture_id} in time")
-            self._bias_changed.clear()
+            changed = self._bias_changed
+            assert changed is not None  # connect made it, before any command
+            changed.clear()
             with contextlib.suppress(asyncio.TimeoutError):
-                await asyncio.wait_for(self._bias_changed.wait(), remaining)
+                await asyncio.wait_for(changed.wait(), remaining)
         return check_bias(self._bias_results.pop(started.capture_id))
 
 
-def _put_dropping(queue: asyncio.Queue, item: Any) -> bool:
+def _put_dropping(queue: asyncio.Queue[Any], item: Any) -> bool:
     """Put ``item``; when the queue is full, drop its oldest first.  True when one was dropped."""
     try:
         queue.put_nowait(item)

@@ -19,12 +19,13 @@ from collections import deque
 from collections.abc import Iterator
 from typing import Any
 
-from .errors import ConnectError, ConnectionLost, NoReply
+from .errors import ClientError, ConnectError, ConnectionLost, NoReply
 from .messages import Angle, Bias, ErrorReply, Message, Reply, Status, Version
 from .protocol import (
     MAX_BUFFERED_ANGLES,
     ClientBase,
     Reconnection,
+    answer_as,
     bias_args,
     check_bias,
     check_reply,
@@ -76,7 +77,9 @@ class Client(ClientBase):
         if self._closed.is_set():
             raise ConnectionLost(f"{self.address}: the client was closed")
         self._open()
-        return self.session.version
+        version = self.session.version
+        assert version is not None  # _open read the greeting, or raised
+        return version
 
     def close(self) -> None:
         """Close the connection (from any thread: an iteration or a reconnect wait in progress ends with
@@ -90,7 +93,8 @@ class Client(ClientBase):
             raise ConnectionLost(f"{self.address}: not connected")
         return self._sock.fileno()
 
-    def _open(self) -> None:
+    def _open(self) -> socket.socket:
+        """Connect, greet, authorize and watch again; the socket (also ``self._sock``), or an error raised."""
         hint = "(is `fog-driver run` running?)"
         try:
             sock = socket.create_connection((self.host, self.port), timeout=self.timeout_s)
@@ -108,6 +112,7 @@ class Client(ClientBase):
         except BaseException:
             self._drop()
             raise
+        return sock
 
     def _greeting(self, hint: str) -> None:
         """Read up to the VERSION greeting (kept with anything before it for ``messages``)."""
@@ -235,7 +240,7 @@ class Client(ClientBase):
     def watch(self, rate_hz: float | None = None) -> Reply:
         """Start (or change) the watch without reading samples yet (``angles`` does it for you)."""
         args = self.session.watch_args(rate_hz)
-        reply = self._command("WATCH", args)
+        reply = answer_as(Reply, self._command("WATCH", args))
         self._watch = args
         return reply
 
@@ -245,6 +250,7 @@ class Client(ClientBase):
         self, request: Request, timeout_s: float, what: str, *, keep: bool = False, connecting: bool = False
     ) -> Message:
         deadline = time.monotonic() + timeout_s
+        error: type[ClientError]
         while request.reply is None:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
@@ -265,13 +271,14 @@ class Client(ClientBase):
     def _command(
         self, name: str, args: dict[str, Any] | None = None, *, connecting: bool = False, timeout_s: float | None = None
     ) -> Message:
-        if self._sock is None:
+        sock = self._sock
+        if sock is None:
             if connecting or self._closed.is_set():
                 raise ConnectionLost(f"{self.address}: not connected")
-            self._open()
+            sock = self._open()
         request, data = self.session.request(name, args)
         try:
-            _send_all(self._sock, data)
+            _send_all(sock, data)
         except OSError as exc:
             self._drop()
             raise ConnectionLost(f"{self.address}: lost the connection: {_reason(exc)}") from None
@@ -299,30 +306,30 @@ class Client(ClientBase):
 
     def status(self) -> Status:
         """``?STATUS``: the daemon's state now."""
-        return self._command("STATUS")
+        return answer_as(Status, self._command("STATUS"))
 
     def zero(self) -> Reply:
         """``?ZERO``: the published angles start again from 0 here."""
-        return self._command("ZERO")
+        return answer_as(Reply, self._command("ZERO"))
 
     def adapt(self, enable: bool = True, reference_dph: float = 0.0) -> Reply:
         """``?ADAPT``: adapt the model's weights online against ``reference_dph`` (0: the table at rest), or
         freeze them again (``enable=False``)."""
-        return self._command("ADAPT", control_args(enable, reference_dph))
+        return answer_as(Reply, self._command("ADAPT", control_args(enable, reference_dph)))
 
     def save(self) -> Reply:
         """``?SAVE``: save the adaptation state to the daemon's configured file."""
-        return self._command("SAVE")
+        return answer_as(Reply, self._command("SAVE"))
 
     def reload(self) -> Reply:
         """``?RELOAD``: load the model file again (``reply.get("changed")`` says whether it was another)."""
-        return self._command("RELOAD")
+        return answer_as(Reply, self._command("RELOAD"))
 
     def bias(self, seconds: float = 60.0, *, wait: bool = True) -> Bias:
         """``?BIAS``: the mean compensated rate over ``seconds`` of device data (keep the table still) becomes
         the bias removed from then on.  With ``wait`` (default) returns the result (``state`` ``done``,
         ``bias_dph``), or raises ``BiasFailed``; else the acknowledgement (``state`` ``started``)."""
-        started = self._command("BIAS", bias_args(seconds))
+        started = answer_as(Bias, self._command("BIAS", bias_args(seconds)))
         if not wait:
             return started
         deadline = time.monotonic() + (started.timeout_s or seconds + 30.0) + 5.0

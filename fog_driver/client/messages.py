@@ -220,7 +220,7 @@ def message_from(obj: Mapping[str, Any], line: bytes = b"") -> Message | None:
     """The typed message of one protocol object (``class`` a string); None for an ``ANGLE`` without an
     integer ``seq`` and a finite ``t_s`` (not usable as a sample)."""
     cls = obj.get("class")
-    base = {"raw": MappingProxyType(dict(obj)), "line": bytes(line)}
+    base: dict[str, Any] = {"raw": MappingProxyType(dict(obj)), "line": bytes(line)}
     if cls == "ANGLE":
         seq, t_s = _integer(obj, "seq"), _number(obj, "t_s")
         if seq is None or t_s is None:

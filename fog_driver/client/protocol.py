@@ -3,13 +3,12 @@ arguments of the control commands, and turning the daemon's answers into values 
 
 from __future__ import annotations
 
+import logging
 import math
-from typing import Any
-
-import structlog
+from typing import Any, TypeVar, cast
 
 from .errors import BiasFailed, CommandRefused, Unauthorized, UnknownCommand
-from .messages import Bias, Device, ErrorReply, Message, Status, Version
+from .messages import Angle, Bias, Device, ErrorReply, Message, Other, Reply, Status, Version
 from .session import Session
 from .wire import DEFAULT_HOST, DEFAULT_PORT, GREETING_TIMEOUT_S, format_address, parse_address
 
@@ -19,6 +18,7 @@ __all__ = [
     "MAX_REFERENCE_DPH",
     "REPLY_TIMEOUT_S",
     "ClientBase",
+    "answer_as",
     "bias_args",
     "Reconnection",
     "check_bias",
@@ -28,7 +28,20 @@ __all__ = [
     "printable",
 ]
 
-log = structlog.get_logger("fog_driver.client")
+#: The standard library's logger (no structlog here: the client needs the standard library only).  Each record's
+#: message is the event and its ``key=value`` pairs; the pairs are also the record's attributes (``extra``), so a
+#: structlog ``ProcessorFormatter`` with ``ExtraAdder`` routes them as fields.
+log = logging.getLogger("fog_driver.client")
+
+
+def _log(level: int, event: str, **fields: Any) -> None:
+    """One log line: ``event key=value ...`` (values as ``repr`` for strings, else as text), fields in ``extra``."""
+    if log.isEnabledFor(level):
+        pairs = " ".join(
+            f"{key}={value!r}" if isinstance(value, str) else f"{key}={value}" for key, value in fields.items()
+        )
+        log.log(level, "%s %s", event, pairs, extra={"event": event, **fields})
+
 
 MAX_BIAS_S = 86400
 MAX_REFERENCE_DPH = 1e7
@@ -103,12 +116,13 @@ class Reconnection:
         self.client = client
         self.delay = client.backoff_initial_s
         self.attempt = 0
-        log.warning("connection_lost", address=client.address, reason=reason, retry_in_s=self.delay)
+        _log(logging.WARNING, "connection_lost", address=client.address, reason=reason, retry_in_s=self.delay)
 
     def failed(self, exc: BaseException) -> None:
         self.attempt += 1
         self.delay = min(self.delay * 2.0, self.client.backoff_max_s)
-        log.warning(
+        _log(
+            logging.WARNING,
             "reconnect_failed",
             address=self.client.address,
             attempt=self.attempt,
@@ -118,8 +132,12 @@ class Reconnection:
 
     def succeeded(self) -> None:
         self.client.reconnects += 1
-        log.info(
-            "reconnected", address=self.client.address, attempt=self.attempt + 1, reconnects=self.client.reconnects
+        _log(
+            logging.INFO,
+            "reconnected",
+            address=self.client.address,
+            attempt=self.attempt + 1,
+            reconnects=self.client.reconnects,
         )
 
 
@@ -156,7 +174,7 @@ def bias_args(seconds: float) -> dict[str, Any]:
     return {"seconds": int(seconds) if float(seconds).is_integer() else float(seconds)}
 
 
-def check_reply(name: str, reply: Message) -> Any:
+def check_reply(name: str, reply: Message) -> Message:
     """``reply`` when it is not an ``ERROR``; else the typed error for it."""
     if not isinstance(reply, ErrorReply):
         return reply
@@ -170,6 +188,16 @@ def check_reply(name: str, reply: Message) -> Any:
     if message.startswith("unknown command"):
         raise UnknownCommand(f"the daemon does not know ?{name} (an older fog-driver?)", message=message, command=name)
     raise CommandRefused(f"?{name} refused: {printable(message)}", message=message, command=name)
+
+
+_M = TypeVar("_M", Angle, Version, Device, Status, Bias, Reply, ErrorReply, Other)
+
+
+def answer_as(kind: type[_M], reply: Message) -> _M:
+    """``reply`` typed as the class ``Session`` pairs with the command: ``?STATUS`` is answered by a ``STATUS``,
+    ``?BIAS`` by a ``BIAS``, ``?ZERO``/``?ADAPT``/``?SAVE``/``?RELOAD``/``?WATCH`` by a ``Reply`` (an ``ERROR``
+    was raised by ``check_reply``).  For the type checker only: nothing is checked at run time."""
+    return cast(_M, reply)
 
 
 def check_bias(result: Bias) -> Bias:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
 
@@ -57,7 +58,7 @@ def answers(name: str, message: Message) -> bool:
 class Session:
     """See the module docstring.  ``clock`` (monotonic seconds) times the outages reported in ``Gap``."""
 
-    def __init__(self, clock=time.monotonic) -> None:
+    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
         self.clock = clock
         self.reader = LineReader()
         self.version: Version | None = None

@@ -21,8 +21,8 @@ from collections import deque
 from pathlib import Path
 from typing import Any
 
-from ..daemon.config import format_address, parse_host_port
 from ..errors import DeviceError, InputFileError, UsageError
+from .address import DEFAULT_HOST, DEFAULT_PORT, format_address, parse_host_port
 
 __all__ = [
     "DEFAULT_HOST",
@@ -39,8 +39,6 @@ __all__ = [
     "read_token",
 ]
 
-DEFAULT_HOST = "127.0.0.1"
-DEFAULT_PORT = 2948
 MAX_LINE_BYTES = 64 * 1024  # a protocol line longer than this (without its newline) is skipped
 #: The environment variable clients read a daemon's token from (never a command-line argument: those
 #: show in every user's process list).

@@ -27,11 +27,13 @@ from __future__ import annotations
 import math
 import sys
 import time
-from typing import TextIO
+from collections.abc import Mapping
+from typing import Any, TextIO
 
 from ..client import Bias, BiasFailed, Client, CommandRefused, Message, NoReply, Status, Unauthorized, UnknownCommand
+from ..client.display import DEFAULT_BIAS_S, Progress
+from ..client.protocol import MAX_BIAS_S, MAX_REFERENCE_DPH, REPLY_TIMEOUT_S, answer_as, printable
 from ..client.wire import TOKEN_ENV, parse_address, read_token
-from ..console import Progress
 from ..errors import FogDriverError, UsageError
 
 __all__ = ["COMMANDS", "ctl_command", "parse_request", "run_ctl"]
@@ -40,12 +42,9 @@ __all__ = ["COMMANDS", "ctl_command", "parse_request", "run_ctl"]
 COMMANDS = {"zero": "ZERO", "bias": "BIAS", "adapt": "ADAPT", "reload": "RELOAD", "status": "STATUS", "save": "SAVE"}
 #: Seconds the result of a ``bias`` is waited for beyond the daemon's own deadline (``timeout_s`` of its reply).
 BIAS_WAIT_MARGIN_S = 5.0
-#: How long a reply is waited for by default: the daemon answers every control command within 30 s.
-DEFAULT_TIMEOUT_S = 35.0
-DEFAULT_BIAS_S = 60
-MAX_BIAS_S = 86400
-#: ``--reference-dph`` beyond this is refused (the daemon's own limit).
-MAX_REFERENCE_DPH = 1e7
+#: How long a reply is waited for by default: the client library's (the daemon answers every control command
+#: within 30 s).
+DEFAULT_TIMEOUT_S = REPLY_TIMEOUT_S
 
 
 def parse_request(command: str, words: list[str], *, reference_dph: float | None = None) -> tuple[str, dict | None]:
@@ -83,18 +82,16 @@ def parse_request(command: str, words: list[str], *, reference_dph: float | None
     return name, None
 
 
-def _number(obj: dict, key: str, spec: str) -> str:
+def _number(obj: Mapping[str, Any], key: str, spec: str) -> str:
     value = obj.get(key)
     if isinstance(value, (int, float)) and not isinstance(value, bool):
         return format(value, spec)
     return "-"
 
 
-def _word(obj: dict, key: str) -> str:
+def _word(obj: Mapping[str, Any], key: str) -> str:
     value = obj.get(key)
-    text = value if isinstance(value, str) else "-" if value is None else str(value)
-    text = "".join(ch if ch.isprintable() else "?" for ch in text)
-    return text if len(text) <= 200 else text[:197] + "..."
+    return printable(value if isinstance(value, str) else "-" if value is None else str(value))
 
 
 def describe(reply: dict) -> str:
@@ -184,7 +181,13 @@ def run_ctl(
             raise _refused(name, exc) from None
         _show(out, json_out, reply)
         if name == "BIAS":
-            _wait_for_bias(client, reply, out, json_out, progress_stream if progress_stream is not None else sys.stderr)
+            _wait_for_bias(
+                client,
+                answer_as(Bias, reply),
+                out,
+                json_out,
+                progress_stream if progress_stream is not None else sys.stderr,
+            )
         return 0
     finally:
         client.close()

@@ -41,20 +41,15 @@ or never greets) is a one-line ``DeviceError`` at once.  ``format_dms``, ``rende
 from __future__ import annotations
 
 import contextlib
-import json
 import math
 import os
 import select
-import shutil
-import signal
 import sys
 import time
-from collections import deque
-from collections.abc import Mapping
-from decimal import ROUND_HALF_UP, Decimal
 from typing import Any, TextIO
 
 from ..client import Client, ConnectionLost
+from ..client.display import DEFAULT_BIAS_S, NO_DATA_S, format_arcsec, format_dms
 from ..client.wire import (
     DEFAULT_HOST,
     DEFAULT_PORT,
@@ -67,6 +62,9 @@ from ..client.wire import (
     read_token,
 )
 from ..errors import UsageError
+from .live import RATE_AVERAGE_S, LiveView
+from .render import compact_line, render
+from .terminal import Keys, isatty
 
 __all__ = [
     "DEFAULT_BIAS_S",
@@ -91,594 +89,7 @@ __all__ = [
 EXIT_OK = 0
 EXIT_CONNECTION_CLOSED = 1
 
-#: The rate shown is averaged over this much device time (s).
-RATE_AVERAGE_S = 1.0
-#: No ANGLE for this long (s, host time) is the ``NO DATA`` banner.
-NO_DATA_S = 3.0
-#: ``b``'s ``?BIAS`` seconds.
-DEFAULT_BIAS_S = 60
-
-_TTY_MIN_REDRAW_S = 0.1  # at most 10 redraws a second
-_TTY_REFRESH_S = 1.0  # redraw at least this often (ages and rates move even without data)
-_LINE_PERIOD_S = 1.0  # non-tty: one compact line per second
-_RATE_WINDOW_S = 2.0  # ANGLE objects per second, counted over this window
 _POLL_S = 0.1  # longest a wait for the socket or a key lasts before the view gets a chance to refresh
-
-_HIDE_CURSOR = "\x1b[?25l"
-_SHOW_CURSOR = "\x1b[?25h"
-_HOME = "\x1b[H"
-_CLEAR_SCREEN = "\x1b[2J"
-_CLEAR_EOL = "\x1b[K"
-_CLEAR_EOS = "\x1b[J"
-
-_MISSING = "-"
-_DEGREE = "\u00b0"
-
-
-# --------------------------------------------------------------------------- pure helpers
-
-
-#: From this size on (arcsec) an angle is shown as it is, not rounded to 0.01": a float's hundredths
-#: are noise there, and from 1e26 on the rounding's 28 decimal digits cannot even hold them.
-_ROUNDED_BELOW_ARCSEC = 1e15
-
-
-def _unrounded(arcsec: float) -> str | None:
-    """An angle that is not rounded to 0.01" as plain text (``nan``, ``inf``, ``-inf``, ``1e+30``,
-    ``1.000000e+400`` for an integer beyond float's range: any number too large for a float), or
-    None for one that is."""
-    try:
-        value = float(arcsec)
-    except OverflowError:
-        return f"{Decimal(arcsec):.6e}"
-    if math.isnan(value):
-        return "nan"
-    if math.isinf(value):
-        return "inf" if value > 0 else "-inf"
-    return repr(value) if abs(value) >= _ROUNDED_BELOW_ARCSEC else None
-
-
-def _hundredths(value: float) -> int:
-    """``round(value * 100)``, half away from zero, on the value's shortest decimal form (0.125 -> 13)."""
-    return int(Decimal(repr(float(value))).quantize(Decimal("0.01"), rounding=ROUND_HALF_UP).scaleb(2))
-
-
-def format_arcsec(arcsec: float) -> str:
-    """An angle in arcsec to 0.01, rounded as ``format_dms`` rounds it (so the two always agree);
-    NaN, infinities and angles of 1e15" or more are shown as they are."""
-    if (plain := _unrounded(arcsec)) is not None:
-        return plain
-    value = float(arcsec)
-    hundredths = _hundredths(abs(value))
-    sign = "-" if value < 0 and hundredths else ""
-    whole, cents = divmod(hundredths, 100)
-    return f"{sign}{whole}.{cents:02d}"
-
-
-def format_dms(arcsec: float, *, degree: str = _DEGREE) -> str:
-    """An angle in arcsec as degrees, minutes and seconds to 0.01": ``3723.5`` -> ``1°02'03.50"``.
-
-    The value is rounded (half away from zero, on its shortest decimal form, so 59.995" is
-    1'00.00") before it is split, so rounding carries into the minutes and degrees; a negative
-    angle gets one leading ``-`` (none when it rounds to zero).  Degrees are not wrapped (an
-    integrated angle can be many turns).  NaN, infinities and angles of 1e15" or more (beyond
-    any real rotation; a wrong scale factor) are shown as they are, not split.
-    """
-    if (plain := _unrounded(arcsec)) is not None:
-        return plain
-    value = float(arcsec)
-    hundredths = _hundredths(abs(value))
-    sign = "-" if value < 0 and hundredths else ""
-    degrees, rest = divmod(hundredths, 3600 * 100)
-    minutes, rest = divmod(rest, 60 * 100)
-    seconds, cents = divmod(rest, 100)
-    return f"{sign}{degrees}{degree}{minutes:02d}'{seconds:02d}.{cents:02d}\""
-
-
-def _is_number(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
-
-
-def _show(value: Any, spec: str = "") -> str:
-    """A value for the view: ``-`` when absent (or null), a number in ``spec``, other values as text."""
-    if value is None:
-        return _MISSING
-    if _is_number(value):
-        if isinstance(value, float) and not math.isfinite(value):
-            return str(value)
-        try:
-            return format(value, spec)
-        except OverflowError:  # an integer beyond float's range, in a float format
-            return str(_unrounded(value))
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    text = value if isinstance(value, str) else json.dumps(value, separators=(",", ":"), default=str)
-    return _printable(text if len(text) <= 60 else text[:57] + "...")
-
-
-def _printable(text: str) -> str:
-    """No control characters from the server reach the terminal (no newlines, no escape sequences)."""
-    return text if text.isprintable() else "".join(ch if ch.isprintable() else "?" for ch in text)
-
-
-def _dict(value: Any) -> Mapping[str, Any]:
-    return value if isinstance(value, Mapping) else {}
-
-
-def _angle_text(value: Any, degree: str) -> str:
-    if value is None:
-        return _MISSING
-    if _is_number(value):
-        return f'{format_arcsec(value)}" ({format_dms(value, degree=degree)})'
-    return _show(value)
-
-
-def _hz(value: Any) -> str:
-    return f"{_show(value, 'g')} Hz" if value is not None else _MISSING
-
-
-def _identity(version: Mapping[str, Any]) -> str:
-    inst = _dict(version.get("instrument"))
-    if not inst:
-        return _MISSING
-    parts = [f"serial {_show(inst.get('serial'))}"]
-    if inst.get("firmware") is not None:
-        parts.append(f"firmware {_show(inst.get('firmware'))}")
-    if inst.get("rate_hz") is not None:
-        parts.append(_hz(inst.get("rate_hz")))
-    return ", ".join(parts)
-
-
-def _device(device: Mapping[str, Any]) -> str:
-    if not device:
-        return _MISSING
-    parts = [_show(device.get("path")) if device.get("path") is not None else "(no path)"]
-    parts.append(_show(device.get("state")))
-    if device.get("serial") is not None:
-        parts.append(f"serial {_show(device.get('serial'))}")
-    if device.get("rate_hz") is not None:
-        parts.append(_hz(device.get("rate_hz")))
-    return ", ".join(parts)
-
-
-def _server(version: Mapping[str, Any]) -> str:
-    if not version:
-        return "waiting for VERSION"
-    text = f"server {_show(version.get('release'))}"
-    major, minor = version.get("proto_major"), version.get("proto_minor")
-    if major is not None:
-        text += f", protocol {_show(major)}.{_show(minor) if minor is not None else 0}"
-        if major != 1:
-            text += " (this client speaks 1.x)"
-    return text
-
-
-def _temps(temps: Mapping[str, Any], sep: str) -> str:
-    if not temps:
-        return _MISSING
-    names = ["top", "bottom", "housing"] + sorted(k for k in temps if k not in ("top", "bottom", "housing"))
-    return sep.join(f"{name} {_show(temps.get(name), '.2f')}" for name in names) + " degC"
-
-
-def _flags(flags: Any) -> str:
-    if flags is None:
-        return _MISSING
-    if isinstance(flags, list):
-        return ", ".join(_show(f) for f in flags) if flags else "none"
-    return _show(flags)
-
-
-def _status_items(status: Mapping[str, Any]) -> list[str]:
-    items = []
-    for key in sorted(k for k in status if isinstance(k, str) and k != "class"):
-        value = status[key]
-        if isinstance(value, (str, int, float)):  # scalars only (bool is an int)
-            items.append(f"{_printable(key)}={_show(value, 'g' if isinstance(value, float) else '')}")
-    return items
-
-
-def _wrap(label: str, items: list[str], width: int) -> list[str]:
-    """``label  a  b  c`` wrapped at ``width``, continuation lines indented under the first item."""
-    indent = " " * 12
-    lines, current = [], f"{label:<12}"
-    for item in items:
-        candidate = current + ("  " if current.strip() != label else "") + item
-        if len(candidate) > width and current.strip() != label:
-            lines.append(current)
-            current = indent + item
-        else:
-            current = candidate
-    lines.append(current)
-    return lines
-
-
-def _received(state: Mapping[str, Any]) -> str:
-    parts = [f"{_show(state.get('angle_rate_hz'), '.1f')} ANGLE/s", f"{_show(state.get('angles', 0), ',')} ANGLE"]
-    for key, name in (("malformed", "malformed"), ("oversized", "oversized"), ("unknown", "unknown class")):
-        if state.get(key):
-            parts.append(f"{_show(state.get(key), ',')} {name}")
-    policy = _dict(state.get("watch"))
-    if policy:
-        if policy.get("enable") is False:
-            parts.append("(WATCH disabled)")
-        else:
-            rate = policy.get("rate_hz")
-            parts.append(f"(WATCH {_show(rate, 'g')} Hz)" if rate is not None else "(WATCH every sample)")
-    return "  ".join(parts)
-
-
-def _rate_text(state: Mapping[str, Any], angle: Mapping[str, Any]) -> str:
-    """The rate: the mean over the last second of device time (0.01 deg/h), else the one sample's (0.1)."""
-    mean, span = state.get("rate_mean_dph"), state.get("rate_span_s")
-    if _is_number(mean) and _is_number(span):
-        return f"{_show(mean, '.2f')} deg/h (mean over {_show(span, '.1f')} s)"
-    return f"{_show(angle.get('rate_dph'), '.1f')} deg/h (one sample)"
-
-
-def _bias_hint(state: Mapping[str, Any]) -> str:
-    """How to capture the bias from here: the key (when keys work) and the ``ctl`` command for this daemon."""
-    address = state.get("address")
-    connect = "" if address in (None, format_address(DEFAULT_HOST, DEFAULT_PORT)) else f" --connect {address}"
-    command = f"`fog-driver ctl{connect} bias {DEFAULT_BIAS_S}`"
-    return f"press b (or {command})" if state.get("keys") else f"run {command}"
-
-
-def banners(state: Mapping[str, Any]) -> list[str]:
-    """What the operator must see first, most urgent first: LINK DOWN, NO DATA for N s, the bias.
-
-    ``LINK DOWN`` when DEVICE says ``deactivated`` (or STATUS's ``port_state`` is not ``open``); ``NO DATA
-    for N s`` when no ANGLE came for ``NO_DATA_S`` (``angle_age_s``, or ``elapsed_s`` before the first one);
-    the bias banner while STATUS says ``bias_captured: false`` (a daemon that does not say gets none), or a
-    running capture's progress (``bias_capture_s`` of ``bias_capture_target_s``).
-    """
-    lines = []
-    device, status = _dict(state.get("device")), _dict(state.get("status"))
-    port_state = status.get("port_state")
-    if device.get("state") == "deactivated" or (port_state is not None and port_state != "open"):
-        lines.append("*** LINK DOWN: the daemon's instrument port is closed; no samples, the angle holds ***")
-    age = state.get("angle_age_s") if state.get("angle") else state.get("elapsed_s")
-    if _is_number(age) and age >= NO_DATA_S and _dict(state.get("watch")).get("enable", True) is not False:
-        lines.append(f"*** NO DATA for {age:.0f} s ***")
-    if _is_number(status.get("bias_capture_target_s")):
-        lines.append(
-            f"capturing the bias: {_show(status.get('bias_capture_s'), '.1f')} / "
-            f"{_show(status.get('bias_capture_target_s'), 'g')} s of data; keep the table still"
-        )
-    elif status.get("bias_captured") is False:
-        lines.append(f"bias not removed: at rest the angle climbs with Earth rate + bias; {_bias_hint(state)}")
-    return lines
-
-
-def render(state: Mapping[str, Any], *, width: int = 100, degree: str = _DEGREE) -> list[str]:
-    """The live view's lines (no ANSI, no newlines) from a state mapping; every key may be absent.
-
-    Keys read: ``address`` (text), ``elapsed_s``, ``version``/``device``/``angle``/``status``
-    (the latest protocol object of that class), ``error`` (the last ERROR message),
-    ``watch`` (the server's WATCH answer), ``angles`` (ANGLE objects received), ``angle_rate_hz``, ``angle_age_s``
-    (seconds since the last ANGLE), ``rate_mean_dph`` and ``rate_span_s`` (the averaged rate and the device time it
-    spans), ``keys`` (keys work: their line is shown), ``action`` (the last key's outcome), ``malformed``,
-    ``oversized``, ``unknown``.
-    """
-    version, device = _dict(state.get("version")), _dict(state.get("device"))
-    angle, status = _dict(state.get("angle")), _dict(state.get("status"))
-    head = f"fog-driver watch {_show(state.get('address'))}  |  {_server(version)}"
-    if state.get("elapsed_s") is not None:
-        head += f"  |  {_show(state.get('elapsed_s'), '.1f')} s"
-    lines = [head, *banners(state)]
-    lines += [f"{'instrument':<12}{_identity(version)}", f"{'device':<12}{_device(device)}"]
-    if not angle:
-        lines.append(f"{'angle':<12}{_MISSING} (waiting for ANGLE)")
-    else:
-        lines.append(
-            f"{'angle':<12}{_angle_text(angle.get('angle_arcsec'), degree)}"
-            f"    raw {_angle_text(angle.get('angle_raw_arcsec'), degree)}"
-        )
-        lines.append(f"{'rate':<12}{_rate_text(state, angle)}    drift {_show(angle.get('drift_dph'), '.4f')} deg/h")
-        lines.append(f"{'temps':<12}{_temps(_dict(angle.get('temps_c')), '  ')}")
-        lines.append(f"{'flags':<12}{_flags(angle.get('flags'))}")
-        sample = f"seq {_show(angle.get('seq'))}  t {_show(angle.get('t_s'), '.3f')} s"
-        if angle.get("utc") is not None:
-            sample += f"  utc {_show(angle.get('utc'))}"
-        if state.get("angle_age_s") is not None:
-            sample += f"  (received {_show(state.get('angle_age_s'), '.1f')} s ago)"
-        lines.append(f"{'sample':<12}{sample}")
-    lines.append(f"{'received':<12}{_received(state)}")
-    items = _status_items(status)
-    lines.extend(_wrap("status", items, width) if items else [f"{'status':<12}{_MISSING}"])
-    if state.get("error") is not None:
-        lines.append(f"{'error':<12}{_show(state.get('error'))}")
-    if state.get("action") is not None:
-        lines.append(f"{'last key':<12}{_printable(str(state.get('action')))}")
-    if state.get("keys"):
-        lines.append(f"{'keys':<12}q quit   z zero the angle   b capture the bias ({DEFAULT_BIAS_S} s, table still)")
-    return lines
-
-
-def compact_line(state: Mapping[str, Any], *, degree: str = _DEGREE) -> str:
-    """One line of the latest state, for logs (the non-terminal view prints one a second)."""
-    angle, status = _dict(state.get("angle")), _dict(state.get("status"))
-    parts = [f"[{_show(state.get('elapsed_s'), '7.1f')} s]"]
-    parts += [
-        line.strip("* ").split(":")[0] if line.startswith("***") else line.split(";")[0] for line in banners(state)
-    ]
-    if not angle:
-        parts.append("waiting for ANGLE")
-    else:
-        parts += [
-            f"seq {_show(angle.get('seq'))}",
-            f"t {_show(angle.get('t_s'), '.3f')} s",
-            f"angle {_angle_text(angle.get('angle_arcsec'), degree)}",
-            f"raw {_angle_text(angle.get('angle_raw_arcsec'), degree)}",
-            f"rate {_rate_text(state, angle)}",
-            f"drift {_show(angle.get('drift_dph'), '.4f')} deg/h",
-            f"temps {_temps(_dict(angle.get('temps_c')), ' ')}",
-            f"flags {_flags(angle.get('flags')).replace(', ', ',')}",
-        ]
-    parts.append(_received(state))
-    items = _status_items(status)
-    if items:
-        parts.append("status " + " ".join(items))
-    return parts[0] + " " + " | ".join(parts[1:])
-
-
-# --------------------------------------------------------------------------- the stream
-
-
-def _degree_for(out: TextIO) -> str:
-    encoding = getattr(out, "encoding", None) or "utf-8"
-    try:
-        _DEGREE.encode(encoding)
-    except (UnicodeEncodeError, LookupError):
-        return "d"
-    return _DEGREE
-
-
-def _isatty(out: TextIO) -> bool:
-    try:
-        return bool(out.isatty())
-    except (AttributeError, ValueError, OSError):
-        return False
-
-
-def _terminal_size(out: TextIO) -> tuple[int, int]:
-    """(columns, lines) of the terminal ``out`` writes to; 80 x 24 when it does not say (0 x 0 ptys)."""
-    try:
-        size = os.get_terminal_size(out.fileno())
-    except (AttributeError, ValueError, OSError):  # io.UnsupportedOperation is both
-        size = shutil.get_terminal_size()
-    return size.columns or 80, size.lines or 24
-
-
-class _RateAverage:
-    """The mean rate over the last ``RATE_AVERAGE_S`` of device time, from the ANGLE objects' cumulative angle.
-
-    Keeps ``(t_s, angle_arcsec)`` pairs spanning just over the window; the mean is the angle difference over
-    the time difference (arcsec/s = deg/h), which counts every sample of the interval (the decimated ones
-    too).  ``reset`` starts again (after a gap, a ?ZERO, time going backwards)."""
-
-    def __init__(self) -> None:
-        self._points: deque[tuple[float, float]] = deque()
-
-    def reset(self) -> None:
-        self._points.clear()
-
-    def add(self, angle: Mapping[str, Any]) -> None:
-        t_s, arcsec = angle.get("t_s"), angle.get("angle_arcsec")
-        if not (_is_number(t_s) and _is_number(arcsec) and math.isfinite(t_s) and math.isfinite(arcsec)):
-            return
-        flags = angle.get("flags")
-        if (isinstance(flags, list) and "gap" in flags) or (self._points and t_s <= self._points[-1][0]):
-            self.reset()
-        self._points.append((float(t_s), float(arcsec)))
-        while len(self._points) > 2 and self._points[1][0] <= t_s - RATE_AVERAGE_S:
-            self._points.popleft()
-
-    def mean(self) -> tuple[float, float] | None:
-        """``(rate_dph, span_s)``, or None with fewer than two points."""
-        if len(self._points) < 2:
-            return None
-        (t0, a0), (t1, a1) = self._points[0], self._points[-1]
-        return (a1 - a0) / (t1 - t0), t1 - t0
-
-
-class _Watch:
-    """The client's state and its two views (terminal block, or log lines)."""
-
-    def __init__(self, address: str, out: TextIO, started: float, *, keys: bool = False) -> None:
-        self.out = out
-        self.tty = _isatty(out)
-        self.degree = _degree_for(out)
-        self.started = started
-        self.state: dict[str, Any] = {"address": address, "angles": 0, "malformed": 0, "unknown": 0, "keys": keys}
-        self._arrivals: deque[float] = deque()
-        self._rate = _RateAverage()
-        self._last_angle_at: float | None = None
-        self._dirty = True
-        self._last_draw: float | None = None
-        self._drawn = False
-        self._cursor_hidden = False
-        self._next_line = started + _LINE_PERIOD_S
-        self._angles_at_last_line = 0
-        self._lines_printed = 0
-
-    # -- input
-
-    def handle(self, obj: dict[str, Any], now: float) -> None:
-        cls = obj.get("class")
-        if cls == "ANGLE":
-            self.state["angle"] = obj
-            self.state["angles"] += 1
-            self._arrivals.append(now)
-            self._last_angle_at = now
-            self._rate.add(obj)
-        elif cls == "STATUS":
-            self.state["status"] = obj
-        elif cls == "VERSION":
-            self.state["version"] = obj
-            self._event(f"connected to {self.state['address']}: {_server(obj)}; instrument {_identity(obj)}")
-        elif cls == "DEVICE":
-            self.state["device"] = obj
-            down = "  *** LINK DOWN ***" if obj.get("state") == "deactivated" else ""
-            self._event(f"device {_device(obj)}{down}")
-        elif cls == "WATCH":  # the server's answer to ?WATCH: the policy in force
-            self.state["watch"] = obj
-        elif cls == "ERROR":
-            message = _show(obj.get("message")) if obj.get("message") is not None else "(no message)"
-            if obj.get("command") in ("ZERO", "BIAS"):
-                hint = f" (set {TOKEN_ENV} or --token-file)" if message == "unauthorized" else ""
-                self._action(f"?{obj['command']} refused: {message}{hint}")
-            else:
-                self.state["error"] = message
-                self._event(f"server error: {message}")
-        elif cls == "ZERO":
-            self._rate.reset()
-            self._action("zeroed: the angle starts again from 0 here")
-        elif cls == "BIAS":
-            self._bias(obj)
-        elif cls == "AUTH":
-            pass
-        else:
-            self.state["unknown"] += 1
-        self._dirty = True
-
-    def _bias(self, obj: Mapping[str, Any]) -> None:
-        state = obj.get("state")
-        if state == "started":
-            self._action(f"bias capture started: {_show(obj.get('seconds'), 'g')} s of data; keep the table still")
-        elif state == "done":
-            self._action(
-                f"bias captured: {_show(obj.get('bias_dph'), '.4f')} deg/h over "
-                f"{_show(obj.get('seconds'), '.1f')} s, removed from rate and angle from now on"
-            )
-        elif state == "failed":
-            self._action(f"bias capture failed: {_show(obj.get('reason'))}")
-
-    def _action(self, text: str) -> None:
-        self.state["action"] = text
-        self._event(text)
-
-    def malformed(self, n: int = 1) -> None:
-        self.state["malformed"] += n
-        self._dirty = True
-
-    # -- output
-
-    def _snapshot(self, now: float) -> dict[str, Any]:
-        while self._arrivals and self._arrivals[0] <= now - _RATE_WINDOW_S:
-            self._arrivals.popleft()
-        window = min(_RATE_WINDOW_S, now - self.started)
-        self.state["elapsed_s"] = now - self.started
-        self.state["angle_rate_hz"] = len(self._arrivals) / window if window > 0 else 0.0
-        if self._last_angle_at is not None:
-            self.state["angle_age_s"] = now - self._last_angle_at
-        mean = self._rate.mean()
-        self.state["rate_mean_dph"], self.state["rate_span_s"] = mean if mean is not None else (None, None)
-        return self.state
-
-    def _write(self, text: str) -> None:
-        self.out.write(text)
-        self.out.flush()
-
-    def _event(self, line: str) -> None:
-        if not self.tty:
-            self._write(line + "\n")
-
-    def _draw(self, now: float) -> None:
-        columns, rows = _terminal_size(self.out)
-        width, height = max(20, columns), max(3, rows)
-        lines = render(self._snapshot(now), width=width - 1, degree=self.degree)[: height - 1]
-        prefix = _HIDE_CURSOR + _HOME + _CLEAR_SCREEN if not self._drawn else _HOME
-        body = "".join(line[: width - 1] + _CLEAR_EOL + "\n" for line in lines)
-        self._drawn = self._cursor_hidden = True
-        self._write(prefix + body + _CLEAR_EOS)
-        self._last_draw = now
-        self._dirty = False
-
-    def redraw_all(self) -> None:
-        """Clear and draw the whole block at the next tick (after the terminal was given back to the shell)."""
-        self._drawn = False
-        self._last_draw = None
-
-    def _print_line(self, now: float) -> None:
-        self._write(compact_line(self._snapshot(now), degree=self.degree) + "\n")
-        self._angles_at_last_line = self.state["angles"]
-        self._lines_printed += 1
-
-    def tick(self, now: float) -> None:
-        if self.tty:
-            since = None if self._last_draw is None else now - self._last_draw
-            if since is None or (self._dirty and since >= _TTY_MIN_REDRAW_S) or since >= _TTY_REFRESH_S:
-                self._draw(now)
-        elif now >= self._next_line:
-            self._print_line(now)
-            # keep the one-a-second cadence; after a stall, start again from now
-            self._next_line = max(self._next_line + _LINE_PERIOD_S, now)
-
-    def finish(self, now: float, note: str | None = None) -> None:
-        """The last view (so a short run shows what it got), then the note, if any."""
-        if self.tty:
-            self._draw(now)
-            self.restore()
-        elif self.state["angles"] > self._angles_at_last_line or (self._lines_printed == 0 and note is None):
-            self._print_line(now)
-        if note:
-            self._write(note + "\n")
-
-    def restore(self) -> None:
-        """Show the cursor again (once), however the watch ends."""
-        if self._cursor_hidden:
-            self._cursor_hidden = False
-            with contextlib.suppress(OSError, ValueError):
-                self._write(_SHOW_CURSOR)
-
-
-class _Keys:
-    """Single keys from a terminal on stdin: cbreak mode (no echo, no line buffering; Ctrl-C still
-    interrupts) while the watch runs, the terminal's settings restored by ``restore`` (call it in a
-    ``finally``), and around Ctrl-Z (the shell gets its terminal back; ``fg`` resumes cbreak mode)."""
-
-    def __init__(self, stream: TextIO, on_resume: Any = None) -> None:
-        import termios
-        import tty
-
-        self._termios = termios
-        self.fd = stream.fileno()
-        self._saved = termios.tcgetattr(self.fd)
-        self._on_resume = on_resume
-        self._previous_tstp: Any = None
-        tty.setcbreak(self.fd, termios.TCSANOW)
-        try:
-            self._previous_tstp = signal.signal(signal.SIGTSTP, self._suspend)
-        except (ValueError, OSError):  # not the main thread: no job-control handling, the rest works
-            self._previous_tstp = None
-
-    def read(self) -> bytes:
-        try:
-            return os.read(self.fd, 64)
-        except OSError:
-            return b""
-
-    def _suspend(self, signum: int, frame: Any) -> None:
-        import tty
-
-        self._set(self._saved)
-        signal.signal(signal.SIGTSTP, signal.SIG_DFL)
-        os.kill(os.getpid(), signal.SIGTSTP)  # stopped here until SIGCONT
-        signal.signal(signal.SIGTSTP, self._suspend)
-        tty.setcbreak(self.fd, self._termios.TCSANOW)
-        if self._on_resume is not None:
-            self._on_resume()
-
-    def _set(self, attributes: list) -> None:
-        with contextlib.suppress(OSError, self._termios.error):
-            self._termios.tcsetattr(self.fd, self._termios.TCSADRAIN, attributes)
-
-    def restore(self) -> None:
-        self._set(self._saved)
-        if self._previous_tstp is not None:
-            with contextlib.suppress(ValueError, OSError):
-                signal.signal(signal.SIGTSTP, self._previous_tstp)
-            self._previous_tstp = None
 
 
 def _watch_request(rate_hz: float | None) -> dict[str, Any]:
@@ -729,15 +140,15 @@ def run_watch(
     _check_arguments(count, duration_s, rate_hz, bias_s)
     conn = Client((host, port), timeout_s=timeout_s, reconnect=False)
     conn.connect()  # ConnectError (a DeviceError): exit 69, at once
-    watch: _Watch | None = None
-    key_reader: _Keys | None = None
+    watch: LiveView | None = None
+    key_reader: Keys | None = None
     try:
         started = time.monotonic()
         if json_lines:
             return _pass_through(conn, out, token, rate_hz, count, None if duration_s is None else started + duration_s)
-        watch = _Watch(conn.address, out, started, keys=keys is not None)
+        watch = LiveView(conn.address, out, started, keys=keys is not None)
         if keys is not None:
-            key_reader = _Keys(keys, on_resume=watch.redraw_all)
+            key_reader = Keys(keys, on_resume=watch.redraw_all)
         return _view(
             conn, watch, key_reader, token, rate_hz, count, None if duration_s is None else started + duration_s, bias_s
         )
@@ -764,14 +175,14 @@ def _greet(conn: Client, token: str | None, rate_hz: float | None) -> None:
         pass  # the server went away at once: what it sent is still read, then EOF
 
 
-def _counts(watch: _Watch, conn: Client) -> None:
+def _counts(watch: LiveView, conn: Client) -> None:
     """The lines the client library skipped: malformed, and oversized among them."""
     watch.state["malformed"] = conn.malformed
     if conn.session.reader.oversized:
         watch.state["oversized"] = conn.session.reader.oversized
 
 
-def _lost(watch: _Watch, conn: Client, exc: ConnectionLost) -> int:
+def _lost(watch: LiveView, conn: Client, exc: ConnectionLost) -> int:
     what = "closed the connection" if exc.reason.endswith("closed the connection") else exc.reason
     watch.finish(
         time.monotonic(), f"fog-driver watch: {conn.address} {what} ({watch.state['angles']:,} ANGLE received)"
@@ -781,8 +192,8 @@ def _lost(watch: _Watch, conn: Client, exc: ConnectionLost) -> int:
 
 def _view(
     conn: Client,
-    watch: _Watch,
-    keys: _Keys | None,
+    watch: LiveView,
+    keys: Keys | None,
     token: str | None,
     rate_hz: float | None,
     count: int | None,
@@ -880,7 +291,7 @@ def watch_command(
     stdout are both terminals (and not with ``json_lines``)."""
     host, port = parse_address(address)
     token = read_token(token_file)
-    keys = sys.stdin if not json_lines and _isatty(sys.stdin) and _isatty(sys.stdout) else None
+    keys = sys.stdin if not json_lines and isatty(sys.stdin) and isatty(sys.stdout) else None
     return run_watch(
         host,
         port,

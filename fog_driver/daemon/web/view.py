@@ -30,7 +30,9 @@ from collections import deque
 from collections.abc import Iterable, Mapping
 from typing import Any
 
-from ...tools.watch import NO_DATA_S, banners, format_arcsec, format_dms
+from ...client.display import NO_DATA_S, banners, format_arcsec, format_dms
+from ...client.display import finite_number as _number
+from ...client.display import fixed as _fixed
 
 #: Device seconds per plotted point (at least), and per mean of the rate plot.
 POINT_EVERY_S = 1.0
@@ -62,18 +64,6 @@ STATUS_ROWS = (
     ("rss_mb", "daemon RSS (MB)"),
     ("uptime_s", "uptime (s)"),
 )
-
-
-def _number(value: Any) -> float | None:
-    if isinstance(value, (int, float)) and not isinstance(value, bool):
-        value = float(value)
-        return value if math.isfinite(value) else None
-    return None
-
-
-def _fixed(value: Any, digits: int) -> str:
-    number = _number(value)
-    return "-" if number is None else f"{number:.{digits}f}"
 
 
 class _Mean:
