@@ -149,6 +149,31 @@ from typing import Any, Self
 
 import structlog
 
+from .limits import (
+    AUTH_FAILURES_BEFORE_BACKOFF,
+    COMMAND_WINDOW_S,
+    CONTROL_WORKERS,
+    DEFAULT_AUTH_BACKOFF_BASE_S,
+    DEFAULT_AUTH_BACKOFF_MAX_S,
+    DEFAULT_AUTH_DEADLINE_S,
+    DEFAULT_CONTROL_TIMEOUT_S,
+    DEFAULT_LOG_LINES_PER_S,
+    DEFAULT_MAX_BACKLOG_S,
+    DEFAULT_MAX_CLIENTS,
+    DEFAULT_MAX_CLIENTS_PER_PEER,
+    DEFAULT_MAX_LINE_BYTES,
+    LOG_WINDOW_S,
+    MAX_AUTH_FAILURES,
+    MAX_COMMANDS_PER_S,
+    MAX_EXCESS_COMMANDS,
+    MAX_THROTTLED_PEERS,
+    MAX_UNTERMINATED_BYTES,
+    MAX_WATCH_RATE_HZ,
+    MIN_MAX_LINE_BYTES,
+    READ_CHUNK_BYTES,
+    SETTING_WAIT_S,
+    SWEEP_EVERY_S,
+)
 from .web.metrics import LatencyHistogram
 
 __all__ = [
@@ -170,40 +195,6 @@ __all__ = [
 
 log = structlog.get_logger("fog_driver.daemon")
 
-DEFAULT_MAX_LINE_BYTES = 4096
-DEFAULT_MAX_BACKLOG_S = 2.0
-#: Bytes without a newline after which a client is disconnected.
-MAX_UNTERMINATED_BYTES = 64 * 1024
-#: Lines per second per client (commands, empty or oversized lines) before the excess is refused.
-MAX_COMMANDS_PER_S = 100
-#: Refused (excess) lines after which a client is disconnected.
-MAX_EXCESS_COMMANDS = 1000
-#: Failed (or refused) ``?AUTH`` attempts after which a connection is closed.
-MAX_AUTH_FAILURES = 5
-#: Connected clients at most; one more gets one ERROR line and is closed.
-DEFAULT_MAX_CLIENTS = 64
-#: Connected clients from one peer address at most (an IPv4 address, or an IPv6 /64).
-DEFAULT_MAX_CLIENTS_PER_PEER = 16
-#: On a token-protected hub, seconds a client has to ``?AUTH`` after connecting before it is closed.
-DEFAULT_AUTH_DEADLINE_S = 10.0
-#: Failed ``?AUTH`` attempts from one peer address (across connections) before the backoff starts.
-AUTH_FAILURES_BEFORE_BACKOFF = 3
-#: The first backoff after a failed ``?AUTH`` (s); each further failure doubles it.
-DEFAULT_AUTH_BACKOFF_BASE_S = 1.0
-#: The longest backoff (s); an address is also forgotten this long after its last backoff ended.
-DEFAULT_AUTH_BACKOFF_MAX_S = 300.0
-#: Peer addresses whose failed ``?AUTH`` attempts are remembered at most (the least recent go first).
-MAX_THROTTLED_PEERS = 4096
-#: Log lines per second at most for each per-client event (connect, disconnect, auth failure, ...).
-DEFAULT_LOG_LINES_PER_S = 5
-#: How long a control command (the callback and a Future it returns) may take before the client gets an ERROR.
-DEFAULT_CONTROL_TIMEOUT_S = 30.0
-#: Worker threads that run the ``control`` callback (off the event loop).
-CONTROL_WORKERS = 2
-#: The highest ``?WATCH`` ``rate_hz``: above any instrument's rate, and far from float overflow.
-MAX_WATCH_RATE_HZ = 10_000
-
-_READ_CHUNK = 65536
 _COMMAND_RE = re.compile(r"\?([A-Z]+)(?:=(.*))?\Z", re.DOTALL)
 _HUB_COMMANDS = frozenset({"WATCH", "VERSION", "AUTH"})
 
@@ -361,7 +352,7 @@ class _LogRateLimiter:
     at most, and every suppressed line is counted in one.
     """
 
-    WINDOW_S = 1.0
+    WINDOW_S = LOG_WINDOW_S
 
     def __init__(self, lines_per_s: int) -> None:
         self.lines_per_s = lines_per_s
@@ -550,8 +541,8 @@ class Hub:
         latency: LatencyHistogram | None = None,
     ) -> None:
         _check_token(token, host)
-        if max_line_bytes < 16:
-            raise ValueError("max_line_bytes must be at least 16")
+        if max_line_bytes < MIN_MAX_LINE_BYTES:
+            raise ValueError(f"max_line_bytes must be at least {MIN_MAX_LINE_BYTES}")
         _check_max_backlog_s(max_backlog_s)
         if not _is_positive_finite(control_timeout_s):
             raise ValueError("control_timeout_s must be a finite number of seconds > 0")
@@ -684,7 +675,7 @@ class Hub:
         except RuntimeError:  # the loop closed meanwhile: no client is left to apply it to
             apply(*args)
             return
-        if not applied.wait(5.0):
+        if not applied.wait(SETTING_WAIT_S):
             log.warning("hub_setting_late", setting=getattr(apply, "__name__", repr(apply)))
 
     def _replace_token(self, token: str | None) -> None:
@@ -765,7 +756,7 @@ class Hub:
 
     async def _main(self, loop: asyncio.AbstractEventLoop) -> None:
         self._stop_event = asyncio.Event()
-        self._server = await asyncio.start_server(self._on_connect, self.host, self.port, limit=_READ_CHUNK)
+        self._server = await asyncio.start_server(self._on_connect, self.host, self.port, limit=READ_CHUNK_BYTES)
         sockname = self._server.sockets[0].getsockname()
         self._address = (sockname[0], sockname[1])
         self._loop = loop
@@ -789,7 +780,7 @@ class Hub:
     async def _sweep(self) -> None:
         """Drop stalled clients even when nothing new is being published; summarize suppressed log lines."""
         while True:
-            await asyncio.sleep(min(0.25, self.max_backlog_s / 4))
+            await asyncio.sleep(min(SWEEP_EVERY_S, self.max_backlog_s / 4))
             now = time.monotonic()
             for client in list(self._clients.values()):
                 self._check_backlog(client, now)
@@ -1093,7 +1084,7 @@ class Hub:
         unterminated = 0  # bytes since the last newline (discarded ones included)
         limit = self.max_line_bytes
         while not client.closing:
-            chunk = await client.reader.read(_READ_CHUNK)
+            chunk = await client.reader.read(READ_CHUNK_BYTES)
             if not chunk:  # the client closed its side: send what is queued (replies), then close
                 self._close_after_flush(client)
                 return
@@ -1142,7 +1133,7 @@ class Hub:
         may proceed; otherwise it is refused with ERROR (and after MAX_EXCESS_COMMANDS refusals the
         client is closed: ``client.closing``)."""
         now = time.monotonic()
-        if now - client.window_start >= 1.0:
+        if now - client.window_start >= COMMAND_WINDOW_S:
             client.window_start = now
             client.window_count = 0
         client.window_count += 1
