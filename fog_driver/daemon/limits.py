@@ -3,7 +3,43 @@
 A misbehaving client (NDJSON or web) costs the daemon a bounded amount and never delays anybody else; a slow
 disk or a silent port costs the acquisition nothing.  The numbers that bound each of those live here; the
 modules that enforce them (``connection.py``, ``hub.py``, ``service.py``, ``acquisition.py``, ``commands.py``,
-``web/server.py``) import them.  The hub's module docstring ("Limits") says what each NDJSON limit does.
+``web/server.py``) import them.
+
+The NDJSON hub's limits, as clients meet them.  Each is a constant here or a ``hub.Hub`` argument
+(named here, with its default):
+
+- a line longer than ``max_line_bytes`` (4096) is answered with ``ERROR`` and
+  discarded up to its newline; 64 KiB (``MAX_UNTERMINATED_BYTES``) without any
+  newline closes the connection;
+- invalid JSON, a JSON value that is not an object, a malformed line or an
+  unknown command: ``ERROR``, and the connection stays open;
+- at most 100 lines per second per client (``MAX_COMMANDS_PER_S``; commands,
+  and empty or oversized lines alike): the excess is answered with ``ERROR``,
+  and 1000 excess lines (``MAX_EXCESS_COMMANDS``) close the connection.  The hub
+  handles one 64 KiB chunk of a client's input at a time, then serves the others;
+- a client that does not read is dropped: when the oldest line queued for it
+  (not yet accepted by the kernel) is older than ``max_backlog_s`` (2 s) the
+  connection is closed, logged, and counted.  Data has a short shelf life: the
+  daemon never buffers old samples for a slow reader;
+- at most ``max_clients`` (64) connections, and ``max_clients_per_peer`` (16)
+  from one peer address (an IPv4 address; an IPv6 /64): one more gets one
+  ``ERROR`` line and is closed;
+- on a token-protected daemon a client that has not authorized within
+  ``auth_deadline_s`` (10 s) of connecting gets ``ERROR`` and is closed;
+- failed ``?AUTH`` attempts are counted per peer address, across connections:
+  after 3 (``AUTH_FAILURES_BEFORE_BACKOFF``) each further failure blocks the
+  address for ``auth_backoff_base_s`` (1 s), doubled each time up to
+  ``auth_backoff_max_s`` (300 s); while blocked, ``?AUTH`` is refused with
+  ``ERROR`` "too many failed attempts, retry in N s" without looking at the
+  token.  An address is forgotten after a success, and ``auth_backoff_max_s``
+  after its last failure or block ended (at most 4096 addresses are remembered,
+  ``MAX_THROTTLED_PEERS``; the least recently failed are forgotten first);
+- a control command waits ``control_timeout_s`` (30 s) for its answer;
+- per-client log lines (connected, disconnected, refused, dropped, failed,
+  auth failures, errors of the loop such as failed accepts when out of file
+  descriptors) are limited to ``log_lines_per_s`` (5) per event and second,
+  and the ones left out are counted in a ``log_lines_suppressed`` line (one a
+  second per event at most).
 
 Units: ``_BYTES`` bytes, ``_S`` seconds, ``_HZ`` per second, ``_PER_S`` events per second; a name without a
 unit is a count (clients, lines, attempts, samples, batches).

@@ -551,7 +551,11 @@ class Service:
         data did not arrive within N + ``BIAS_ANSWER_MARGIN_S`` seconds of host time (the port went away): the
         capture is then abandoned and the bias in use is kept.  One capture at a time."""
         seconds = args.get("seconds", DEFAULT_BIAS_S)
-        if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or not MIN_BIAS_S <= seconds <= MAX_BIAS_S:
+        if (
+            isinstance(seconds, bool)
+            or not isinstance(seconds, (int, float))
+            or not MIN_BIAS_S <= seconds <= MAX_BIAS_S
+        ):
             return {"class": "ERROR", "message": f'?BIAS needs "seconds" between {MIN_BIAS_S} and {MAX_BIAS_S}'}
         timeout_s = float(seconds) + BIAS_ANSWER_MARGIN_S
         with self.lock:

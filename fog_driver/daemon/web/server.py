@@ -58,10 +58,12 @@ from typing import Any
 
 import structlog
 
-from ..hub import DEFAULT_LOG_LINES_PER_S, _AuthThrottle, _check_token, _LogRateLimiter, encode, is_loopback_host
+from ...client.ndjson import encode
+from ..guards import AuthThrottle, LogRateLimiter, check_token, is_loopback_host
 from ..limits import (
     DEFAULT_AUTH_BACKOFF_BASE_S,
     DEFAULT_AUTH_BACKOFF_MAX_S,
+    DEFAULT_LOG_LINES_PER_S,
     WEB_DEFAULT_MAX_BACKLOG_S,
     WEB_DEFAULT_UPDATE_HZ,
     WEB_KEEPALIVE_S,
@@ -190,8 +192,8 @@ class WebView:
         self.requests = 0
         self.refused_connections = 0
         self._cookie_value = secrets.token_urlsafe(24)  # what the cookie holds: never the token itself
-        self._throttle = _AuthThrottle(DEFAULT_AUTH_BACKOFF_BASE_S, DEFAULT_AUTH_BACKOFF_MAX_S)
-        self._log_limiter = _LogRateLimiter(DEFAULT_LOG_LINES_PER_S)
+        self._throttle = AuthThrottle(DEFAULT_AUTH_BACKOFF_BASE_S, DEFAULT_AUTH_BACKOFF_MAX_S)
+        self._log_limiter = LogRateLimiter(DEFAULT_LOG_LINES_PER_S)
         self._assets: dict[str, _Asset] = {}
         self._index = b""
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -723,11 +725,11 @@ def _check_web_token(token: str | None, host: str) -> None:
             f"refusing to serve the web view on {host or 'every interface'!r} without a token: anyone "
             "on the network could read the instrument; set a token or bind 127.0.0.1"
         )
-    _check_token(token, "127.0.0.1")  # the token itself: non-empty text
+    check_token(token, "127.0.0.1")  # the token itself: non-empty text
 
 
 def _text(obj: dict) -> str:
-    """JSON as the NDJSON listener writes it (``hub.encode``: non-finite numbers and None left out)."""
+    """JSON as the NDJSON listener writes it (``ndjson.encode``: non-finite numbers and None left out)."""
     return encode(obj).decode().rstrip("\n")
 
 
