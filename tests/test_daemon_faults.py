@@ -246,7 +246,8 @@ def test_the_watchdog_follows_watchdog_usec_not_the_status_period(tmp_path, monk
 
 def test_the_watchdog_is_not_pinged_when_the_reader_or_the_hub_is_stuck():
     from fog_driver.daemon.config import DriverConfig
-    from fog_driver.daemon.service import READER_STALL_S, Service
+    from fog_driver.daemon.limits import READER_STALL_S
+    from fog_driver.daemon.service import Service
 
     class Alive:
         running = True

@@ -458,7 +458,8 @@ def test_failed_auth_is_throttled_per_address_across_reconnects(make_hub, log_ev
 
 
 def test_auth_backoff_doubles_is_capped_and_is_forgotten():
-    from fog_driver.daemon.hub import AUTH_FAILURES_BEFORE_BACKOFF, _AuthThrottle
+    from fog_driver.daemon.guards import AuthThrottle as _AuthThrottle
+    from fog_driver.daemon.limits import AUTH_FAILURES_BEFORE_BACKOFF
 
     throttle = _AuthThrottle(base_s=1.0, max_s=10.0)
     now = 1000.0

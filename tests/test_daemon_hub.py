@@ -22,7 +22,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fog_driver.compensation.pipeline import FLAG_NAMES
-from fog_driver.daemon.hub import MAX_UNTERMINATED_BYTES, Hub, clean, encode, is_loopback_host
+from fog_driver.daemon.hub import Hub, clean, encode, is_loopback_host
+from fog_driver.daemon.limits import MAX_UNTERMINATED_BYTES
 from fog_driver.daemon.udp import (
     DATAGRAM_SIZE,
     FLAG_BITS,

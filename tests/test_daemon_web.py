@@ -23,9 +23,11 @@ import numpy as np
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
-from fog_driver.daemon.hub import AUTH_FAILURES_BEFORE_BACKOFF
+from fog_driver.daemon.limits import AUTH_FAILURES_BEFORE_BACKOFF
+from fog_driver.daemon.limits import WEB_MAX_CONNECTIONS_PER_PEER as MAX_CONNECTIONS_PER_PEER
+from fog_driver.daemon.limits import WEB_MAX_WS_MESSAGES_PER_S as MAX_WS_MESSAGES_PER_S
 from fog_driver.daemon.web.metrics import LATENCY_BUCKETS_S, METRICS, DaemonCollector, LatencyHistogram
-from fog_driver.daemon.web.server import MAX_CONNECTIONS_PER_PEER, MAX_WS_MESSAGES_PER_S, WebView
+from fog_driver.daemon.web.server import WebView
 from fog_driver.daemon.web.view import MEAN_EVERY_S, MISSING_BANNER_S, ViewState
 from fog_driver.tools.watch import format_arcsec, format_dms
 
@@ -500,7 +502,7 @@ def test_connections_beyond_the_per_peer_limit_are_closed_at_once(web):
 
 
 def test_a_connection_that_sends_no_request_is_closed(web, monkeypatch):
-    monkeypatch.setattr("fog_driver.daemon.web.server.REQUEST_HEAD_TIMEOUT_S", 0.5)
+    monkeypatch.setattr("fog_driver.daemon.web.server.WEB_REQUEST_HEAD_TIMEOUT_S", 0.5)
     view = web()
     idle = socket.create_connection(view.address, timeout=TIMEOUT_S)
     idle.sendall(b"GET / HTTP/1.1\r\nHost: x\r\n")  # ...and never the blank line
@@ -511,7 +513,7 @@ def test_a_connection_that_sends_no_request_is_closed(web, monkeypatch):
 
 
 def test_a_kept_alive_connection_that_starts_a_request_and_never_ends_it_is_closed(web, monkeypatch):
-    monkeypatch.setattr("fog_driver.daemon.web.server.REQUEST_HEAD_TIMEOUT_S", 0.5)
+    monkeypatch.setattr("fog_driver.daemon.web.server.WEB_REQUEST_HEAD_TIMEOUT_S", 0.5)
     view = web()
     slow = socket.create_connection(view.address, timeout=TIMEOUT_S)
     slow.sendall(b"GET /favicon.ico HTTP/1.1\r\nHost: x\r\n\r\n")
@@ -524,7 +526,7 @@ def test_a_kept_alive_connection_that_starts_a_request_and_never_ends_it_is_clos
 
 
 def test_a_websocket_outlives_the_request_head_timeout(web, monkeypatch):
-    monkeypatch.setattr("fog_driver.daemon.web.server.REQUEST_HEAD_TIMEOUT_S", 0.2)
+    monkeypatch.setattr("fog_driver.daemon.web.server.WEB_REQUEST_HEAD_TIMEOUT_S", 0.2)
     view = web(update_hz=20.0)
     ws = WsClient(view.address)
     ws.message()

@@ -23,6 +23,7 @@ from typing import Any
 
 from ..errors import DeviceError, InputFileError, UsageError
 from .address import DEFAULT_HOST, DEFAULT_PORT, format_address, parse_host_port
+from .ndjson import OVERLONG, LineBuffer
 
 __all__ = [
     "DEFAULT_HOST",
@@ -72,32 +73,21 @@ def parse_line(line: bytes) -> dict[str, Any] | None:
 
 
 class LineReader:
-    """Splits a byte stream into lines of at most ``max_line`` bytes; longer ones are dropped and counted."""
+    """Splits a byte stream into lines of at most ``max_line`` bytes (plus a ``\\r``); longer ones are dropped and
+    counted (``oversized``): ``ndjson.LineBuffer``'s policy, with the client's limit."""
 
     def __init__(self, max_line: int = MAX_LINE_BYTES) -> None:
         self.max_line = max_line
         self.oversized = 0
-        self._buf = bytearray()
-        self._discarding = False  # inside an oversized line: drop bytes up to its newline
+        self._buffer = LineBuffer(max_line + 1)  # room for a "\r" before the newline
 
     def feed(self, data: bytes) -> list[bytes]:
         lines: list[bytes] = []
-        self._buf += data
-        start = 0
-        while (nl := self._buf.find(b"\n", start)) >= 0:
-            if self._discarding:
-                self._discarding = False
-            elif nl - start > self.max_line + 1:  # allow a "\r" before the newline
+        for item in self._buffer.feed(data):
+            if item is OVERLONG:
                 self.oversized += 1
             else:
-                lines.append(bytes(self._buf[start:nl]))
-            start = nl + 1
-        del self._buf[:start]
-        if len(self._buf) > self.max_line + 1:
-            if not self._discarding:
-                self.oversized += 1
-                self._discarding = True
-            self._buf.clear()
+                lines.append(item)
         return lines
 
 

@@ -67,26 +67,24 @@ from ..samples.stream import identity_is_plausible
 from ..transport import PortError, PortEvent, PortReader
 from ..transport.setup import make_on_open
 from .config import DriverConfig, parse_host_port
+from .limits import (
+    BIAS_ANSWER_MARGIN_S,
+    CLIENT_SNDBUF_BYTES,
+    DEFAULT_BIAS_S,
+    JOIN_TIMEOUT_S,
+    MAX_ADAPT_REFERENCE_DPH,
+    MAX_BIAS_S,
+    MAX_SAMPLES_BEFORE_IDENTITY,
+    MIN_BIAS_S,
+    PORT_BACKOFF_MAX_S,
+    READER_STALL_S,
+)
 from .web.metrics import LatencyHistogram
 
 log = structlog.get_logger("fog_driver.daemon")
 
 PROTO_MAJOR = 1
 PROTO_MINOR = 0
-#: Samples kept while no IDENTITY has arrived (the frame rate is unknown): 60 s at 2 kHz.  Older ones are
-#: dropped and counted (``samples_dropped_before_identity``).
-MAX_SAMPLES_BEFORE_IDENTITY = 120_000
-#: A ``?BIAS`` capture whose seconds of device time have not arrived within its seconds plus this margin (host
-#: time) is abandoned: a ``BIAS`` ``failed`` event, and the bias in use is kept.
-BIAS_ANSWER_MARGIN_S = 30.0
-#: ``?BIAS`` seconds when the command gives none, and the most it accepts.
-DEFAULT_BIAS_S = 60
-MAX_BIAS_S = 86400
-#: The port reader is stuck (no watchdog ping) when its loop has not come round for this long.
-READER_STALL_S = 10.0
-#: Shutdown budget: the acquisition join and the capture's close each get at most this long (the unit's
-#: ``TimeoutStopSec`` must exceed their sum plus the hub's stop).
-JOIN_TIMEOUT_S = 5.0
 
 
 def _current_rss_mb() -> float:
@@ -553,8 +551,12 @@ class Service:
         data did not arrive within N + ``BIAS_ANSWER_MARGIN_S`` seconds of host time (the port went away): the
         capture is then abandoned and the bias in use is kept.  One capture at a time."""
         seconds = args.get("seconds", DEFAULT_BIAS_S)
-        if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or not 1 <= seconds <= MAX_BIAS_S:
-            return {"class": "ERROR", "message": f'?BIAS needs "seconds" between 1 and {MAX_BIAS_S}'}
+        if (
+            isinstance(seconds, bool)
+            or not isinstance(seconds, (int, float))
+            or not MIN_BIAS_S <= seconds <= MAX_BIAS_S
+        ):
+            return {"class": "ERROR", "message": f'?BIAS needs "seconds" between {MIN_BIAS_S} and {MAX_BIAS_S}'}
         timeout_s = float(seconds) + BIAS_ANSWER_MARGIN_S
         with self.lock:
             if self._bias_capture is not None:
@@ -601,7 +603,7 @@ class Service:
         reference = args.get("reference_dph", 0.0)
         if isinstance(reference, bool) or not isinstance(reference, (int, float)) or not math.isfinite(reference):
             return {"class": "ERROR", "message": '"reference_dph" must be a number (deg/h, 0 at rest)'}
-        if abs(reference) > 1e7:
+        if abs(reference) > MAX_ADAPT_REFERENCE_DPH:
             return {"class": "ERROR", "message": '"reference_dph" must be within +-1e7 deg/h'}
         with self.lock:
             if self.compensator is None:
@@ -762,7 +764,7 @@ class Service:
                 control=self.control,
                 token=self.config.token,
                 max_backlog_s=self.config.max_client_backlog_s,
-                sndbuf_bytes=256 * 1024,  # a non-reading client is noticed in seconds, not megabytes
+                sndbuf_bytes=CLIENT_SNDBUF_BYTES,
                 latency=self.latency,
             )
         except ValueError as exc:
@@ -800,7 +802,11 @@ class Service:
         setup = self.config.device.device_setup()
         on_open = None if setup is None else make_on_open(setup, on_result=self._on_device_setup)
         self.reader = PortReader(
-            self.port_url, baudrate=self.config.baud, backoff_max_s=1.0, on_state=self._on_port_state, on_open=on_open
+            self.port_url,
+            baudrate=self.config.baud,
+            backoff_max_s=PORT_BACKOFF_MAX_S,
+            on_state=self._on_port_state,
+            on_open=on_open,
         )
         if self.web is not None:
             from .config import format_address

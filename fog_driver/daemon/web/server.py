@@ -18,7 +18,7 @@ Routes (all read-only; the page offers no command):
 
 Data in: the acquisition thread calls ``publish_angles(objs)`` with each published batch and ``publish(obj)``
 with every other object; both append to a deque and return (no wake-up, no lock); the listener's loop takes
-them ``update_hz`` times a second.  A loop that falls behind by more than ``MAX_INBOX`` batches loses the
+them ``update_hz`` times a second.  A loop that falls behind by more than ``WEB_MAX_INBOX_BATCHES`` batches loses the
 oldest (counted: ``inbox_dropped``), never the acquisition's time.
 
 Authorization.  Listening beyond loopback needs the daemon's ``token`` (the config refuses to start
@@ -29,14 +29,14 @@ Without it a request gets 401 (a browser: the login form); after ``AUTH_FAILURES
 an address it must wait (1 s, doubling up to 300 s: 429), as on the NDJSON listener.  WebSocket upgrades
 must come from the page's own origin (a foreign ``Origin``: 403).
 
-Limits (a misbehaving client costs itself, never the instrument): ``MAX_CONNECTIONS`` connections and
-``MAX_CONNECTIONS_PER_PEER`` per address (beyond them the connection is closed at once); request line and
-each header at most ``MAX_LINE_BYTES``, ``MAX_HEADERS`` headers (431/400), a body at most ``MAX_BODY_BYTES``
-(413); a request head must be complete within ``REQUEST_HEAD_TIMEOUT_S`` of the connection (the first) or of
+Limits (a misbehaving client costs itself, never the instrument): ``WEB_MAX_CONNECTIONS`` connections and
+``WEB_MAX_CONNECTIONS_PER_PEER`` per address (beyond them the connection is closed at once); request line and
+each header at most ``WEB_MAX_LINE_BYTES``, ``WEB_MAX_HEADERS`` headers (431/400), a body at most ``WEB_MAX_BODY_BYTES``
+(413); a request head must be complete within ``WEB_REQUEST_HEAD_TIMEOUT_S`` of the connection (the first) or of
 its first byte (the next ones on a kept-alive connection), and a request must be answered within
-``REQUEST_TIMEOUT_S`` (a client that does not read its response is closed); idle keep-alive connections
-close after ``KEEPALIVE_S``; a WebSocket peer may send at most ``MAX_WS_MESSAGE_BYTES`` per
-message and ``MAX_WS_MESSAGES_PER_S`` messages a second (the page sends none), and one that does not read
+``WEB_REQUEST_TIMEOUT_S`` (a client that does not read its response is closed); idle keep-alive connections
+close after ``WEB_KEEPALIVE_S``; a WebSocket peer may send at most ``WEB_MAX_WS_MESSAGE_BYTES`` per
+message and ``WEB_MAX_WS_MESSAGES_PER_S`` messages a second (the page sends none), and one that does not read
 is dropped when its oldest unsent update is older than ``max_client_backlog_s``, like an NDJSON client.
 """
 
@@ -58,25 +58,36 @@ from typing import Any
 
 import structlog
 
-from ..hub import DEFAULT_LOG_LINES_PER_S, _AuthThrottle, _check_token, _LogRateLimiter, encode, is_loopback_host
+from ...client.ndjson import encode
+from ..guards import AuthThrottle, LogRateLimiter, check_token, is_loopback_host
+from ..limits import (
+    DEFAULT_AUTH_BACKOFF_BASE_S,
+    DEFAULT_AUTH_BACKOFF_MAX_S,
+    DEFAULT_LOG_LINES_PER_S,
+    WEB_DEFAULT_MAX_BACKLOG_S,
+    WEB_DEFAULT_UPDATE_HZ,
+    WEB_KEEPALIVE_S,
+    WEB_MAX_BODY_BYTES,
+    WEB_MAX_CONNECTIONS,
+    WEB_MAX_CONNECTIONS_PER_PEER,
+    WEB_MAX_HEADERS,
+    WEB_MAX_INBOX_BATCHES,
+    WEB_MAX_LINE_BYTES,
+    WEB_MAX_UPDATE_HZ,
+    WEB_MAX_WS_MESSAGE_BYTES,
+    WEB_MAX_WS_MESSAGES_PER_S,
+    WEB_REQUEST_HEAD_TIMEOUT_S,
+    WEB_REQUEST_TIMEOUT_S,
+    WEB_START_TIMEOUT_S,
+    WEB_STOP_TIMEOUT_S,
+    WEB_WS_HEARTBEAT_S,
+)
 from .metrics import DaemonCollector, LatencyHistogram
 from .view import DEFAULT_HISTORY_MIN, ViewState
 
 log = structlog.get_logger("fog_driver.web")
 
 DEFAULT_HTTP_PORT = 8948
-DEFAULT_UPDATE_HZ = 2.0
-MAX_INBOX = 100_000
-MAX_CONNECTIONS = 64
-MAX_CONNECTIONS_PER_PEER = 24
-MAX_LINE_BYTES = 4096
-MAX_HEADERS = 40
-MAX_BODY_BYTES = 1024
-REQUEST_HEAD_TIMEOUT_S = 10.0
-REQUEST_TIMEOUT_S = 60.0
-KEEPALIVE_S = 15.0
-MAX_WS_MESSAGE_BYTES = 1024
-MAX_WS_MESSAGES_PER_S = 10
 COOKIE = "fog_driver_token"
 #: The page's assets: name -> (package, resource path, content type).
 ASSETS = {
@@ -157,14 +168,14 @@ class WebView:
         token: str | None = None,
         read_status: Callable[[], Mapping[str, Any]] | None = None,
         latency: LatencyHistogram | None = None,
-        max_backlog_s: float = 2.0,
+        max_backlog_s: float = WEB_DEFAULT_MAX_BACKLOG_S,
         history_min: float = DEFAULT_HISTORY_MIN,
-        update_hz: float = DEFAULT_UPDATE_HZ,
+        update_hz: float = WEB_DEFAULT_UPDATE_HZ,
         control_address: str | None = None,
     ) -> None:
         check_web_extra()
         _check_web_token(token, host)
-        if not (math.isfinite(update_hz) and 0 < update_hz <= 50):
+        if not (math.isfinite(update_hz) and 0 < update_hz <= WEB_MAX_UPDATE_HZ):
             raise ValueError(f"update_hz must be in (0, 50], got {update_hz!r}")
         self.host, self.port = host, port
         self.token = token
@@ -174,15 +185,15 @@ class WebView:
         self.max_backlog_s = max_backlog_s
         self.update_hz = update_hz
         self.view = ViewState(history_min, control_address)
-        self.inbox: deque[tuple[str, Any, float]] = deque(maxlen=MAX_INBOX)
+        self.inbox: deque[tuple[str, Any, float]] = deque(maxlen=WEB_MAX_INBOX_BATCHES)
         self.inbox_dropped = 0
         self.browsers: set[_Browser] = set()
         self.dropped_browsers = 0
         self.requests = 0
         self.refused_connections = 0
         self._cookie_value = secrets.token_urlsafe(24)  # what the cookie holds: never the token itself
-        self._throttle = _AuthThrottle(1.0, 300.0)
-        self._log_limiter = _LogRateLimiter(DEFAULT_LOG_LINES_PER_S)
+        self._throttle = AuthThrottle(DEFAULT_AUTH_BACKOFF_BASE_S, DEFAULT_AUTH_BACKOFF_MAX_S)
+        self._log_limiter = LogRateLimiter(DEFAULT_LOG_LINES_PER_S)
         self._assets: dict[str, _Asset] = {}
         self._index = b""
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -208,7 +219,7 @@ class WebView:
     def running(self) -> bool:
         return self._thread is not None and self._thread.is_alive()
 
-    def start(self, timeout_s: float = 30.0) -> tuple[str, int]:
+    def start(self, timeout_s: float = WEB_START_TIMEOUT_S) -> tuple[str, int]:
         """Load the assets, listen, serve in a thread; returns the address (OSError when it cannot listen)."""
         self._assets = _load_assets()
         self._index = _index_html()
@@ -221,7 +232,7 @@ class WebView:
         assert self._address is not None
         return self._address
 
-    def stop(self, timeout_s: float = 5.0) -> None:
+    def stop(self, timeout_s: float = WEB_STOP_TIMEOUT_S) -> None:
         loop = self._loop
         if loop is not None and self._stop_event is not None:
             with contextlib.suppress(RuntimeError):
@@ -240,7 +251,7 @@ class WebView:
     def publish_angles(self, objs: list[dict]) -> None:
         """A batch of published ANGLE objects: O(1), never waits (the objects must not change afterwards)."""
         if objs:
-            if len(self.inbox) == MAX_INBOX:
+            if len(self.inbox) == WEB_MAX_INBOX_BATCHES:
                 self.inbox_dropped += 1
             self.inbox.append(("angles", objs, time.monotonic()))
 
@@ -277,7 +288,7 @@ class WebView:
         async def guard(request: Any, handler: Callable) -> Any:
             return await self._guard(request, handler)
 
-        app = web.Application(client_max_size=MAX_BODY_BYTES, middlewares=[guard])
+        app = web.Application(client_max_size=WEB_MAX_BODY_BYTES, middlewares=[guard])
         app.router.add_get("/", self._page)
         app.router.add_get("/ws", self._websocket)
         app.router.add_get("/api/view", self._api_view)
@@ -290,10 +301,10 @@ class WebView:
             app,
             handle_signals=False,
             access_log=None,
-            keepalive_timeout=KEEPALIVE_S,
-            max_line_size=MAX_LINE_BYTES,
-            max_field_size=MAX_LINE_BYTES,
-            max_headers=MAX_HEADERS,
+            keepalive_timeout=WEB_KEEPALIVE_S,
+            max_line_size=WEB_MAX_LINE_BYTES,
+            max_field_size=WEB_MAX_LINE_BYTES,
+            max_headers=WEB_MAX_HEADERS,
             shutdown_timeout=1.0,
         )
         await runner.setup()
@@ -385,15 +396,15 @@ class WebView:
         """Close connections that send no request head in time, or whose request is not done in time;
         summarize the log lines left out."""
         while True:
-            await asyncio.sleep(min(1.0, REQUEST_HEAD_TIMEOUT_S / 2))
+            await asyncio.sleep(min(1.0, WEB_REQUEST_HEAD_TIMEOUT_S / 2))
             now = time.monotonic()
             for event, count in self._log_limiter.take_suppressed(now):
                 log.warning("log_lines_suppressed", suppressed_event=event, count=count)
             for handler, c in list(self._connections.items()):
-                if c.head_since_s is not None and now - c.head_since_s > REQUEST_HEAD_TIMEOUT_S:
-                    reason = f"no complete request head within {REQUEST_HEAD_TIMEOUT_S:g} s"
-                elif c.request_since_s is not None and now - c.request_since_s > REQUEST_TIMEOUT_S:
-                    reason = f"request not done within {REQUEST_TIMEOUT_S:g} s"
+                if c.head_since_s is not None and now - c.head_since_s > WEB_REQUEST_HEAD_TIMEOUT_S:
+                    reason = f"no complete request head within {WEB_REQUEST_HEAD_TIMEOUT_S:g} s"
+                elif c.request_since_s is not None and now - c.request_since_s > WEB_REQUEST_TIMEOUT_S:
+                    reason = f"request not done within {WEB_REQUEST_TIMEOUT_S:g} s"
                 else:
                     continue
                 self._log("info", "web_connection_closed", peer=c.peer, reason=reason)
@@ -517,7 +528,7 @@ class WebView:
         web = self._web()
         if not self.need_token:
             raise web.HTTPFound("/")
-        form = await request.post()  # at most MAX_BODY_BYTES (413 beyond)
+        form = await request.post()  # at most WEB_MAX_BODY_BYTES (413 beyond)
         token = form.get("token")
         if not isinstance(token, str) or not token:
             return web.Response(status=400, content_type="text/html", text=_login_page("no token given"))
@@ -581,7 +592,7 @@ class WebView:
         origin = request.headers.get("Origin")
         if origin is not None and origin.split("://", 1)[-1] != request.host:
             return web.Response(status=403, text="403: a WebSocket from another origin\n")
-        ws = web.WebSocketResponse(max_msg_size=MAX_WS_MESSAGE_BYTES, heartbeat=10.0, compress=False)
+        ws = web.WebSocketResponse(max_msg_size=WEB_MAX_WS_MESSAGE_BYTES, heartbeat=WEB_WS_HEARTBEAT_S, compress=False)
         if not ws.can_prepare(request).ok:
             return web.Response(status=400, text="400: /ws takes a WebSocket upgrade\n")
         await ws.prepare(request)
@@ -620,7 +631,7 @@ class WebView:
             if now - window_start >= 1.0:
                 window_start, count = now, 0
             count += 1
-            if count > MAX_WS_MESSAGES_PER_S:
+            if count > WEB_MAX_WS_MESSAGES_PER_S:
                 await browser.ws.close(code=1008, message=b"too many messages")
                 break
             del message  # read-only: nothing a page sends changes anything
@@ -655,7 +666,7 @@ class _Connection:
 class _Counted(asyncio.Protocol):
     """A connection's protocol: aiohttp's handler behind the connection limits, tracked for the sweeper.
 
-    Beyond ``MAX_CONNECTIONS`` (or ``MAX_CONNECTIONS_PER_PEER`` from one address) the connection is closed at
+    Beyond ``WEB_MAX_CONNECTIONS`` (or ``WEB_MAX_CONNECTIONS_PER_PEER`` from one address) the connection is closed at
     once, before aiohttp sees a byte of it."""
 
     def __init__(self, view: WebView, handler: Any) -> None:
@@ -666,7 +677,7 @@ class _Counted(asyncio.Protocol):
 
     def connection_made(self, transport: Any) -> None:
         view, peer = self.view, _peer_of(transport)
-        if len(view._connections) >= MAX_CONNECTIONS or view._peers.get(peer, 0) >= MAX_CONNECTIONS_PER_PEER:
+        if len(view._connections) >= WEB_MAX_CONNECTIONS or view._peers.get(peer, 0) >= WEB_MAX_CONNECTIONS_PER_PEER:
             view.refused_connections += 1
             transport.abort()
             return
@@ -680,7 +691,7 @@ class _Counted(asyncio.Protocol):
             return
         c = self.connection
         if c.request_since_s is None and c.head_since_s is None and not c.websocket:
-            c.head_since_s = time.monotonic()  # the next request's head begins: it has REQUEST_HEAD_TIMEOUT_S
+            c.head_since_s = time.monotonic()  # the next request's head begins: it has WEB_REQUEST_HEAD_TIMEOUT_S
         self.handler.data_received(data)
 
     def eof_received(self) -> bool | None:
@@ -714,11 +725,11 @@ def _check_web_token(token: str | None, host: str) -> None:
             f"refusing to serve the web view on {host or 'every interface'!r} without a token: anyone "
             "on the network could read the instrument; set a token or bind 127.0.0.1"
         )
-    _check_token(token, "127.0.0.1")  # the token itself: non-empty text
+    check_token(token, "127.0.0.1")  # the token itself: non-empty text
 
 
 def _text(obj: dict) -> str:
-    """JSON as the NDJSON listener writes it (``hub.encode``: non-finite numbers and None left out)."""
+    """JSON as the NDJSON listener writes it (``ndjson.encode``: non-finite numbers and None left out)."""
     return encode(obj).decode().rstrip("\n")
 
 

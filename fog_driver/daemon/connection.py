@@ -1,0 +1,435 @@
+"""One NDJSON client's connection as a state machine, sans-IO: what the client's bytes mean, and what to do.
+
+This docstring is the protocol's text; ``limits.py`` says how much of it a client may use.
+
+``Connection.receive(data)`` reads a client's bytes (``ndjson.LineBuffer``, limited to ``max_line_bytes``) and
+yields *actions*, in order, for the I/O layer (``hub.py``) to carry out: ``Send`` an object, ``SendVersion``,
+``SendDevice``, hand a ``Control`` command to the service (and send ``control_reply`` of its answer), ``Close``
+after what is queued, note that the client is ``Authorized`` or its ``WatchChanged``, or ``Log`` an event.  It
+keeps the client's policy (WATCH and its decimation on device time, ``keep_angles``), its authorization, and
+its rate limit.  No socket, no event loop: tests drive it with bytes and a clock.
+
+Client protocol (version 1)
+===========================
+
+Transport: TCP, by default on the loopback interface only.  Every message in
+either direction is one line of UTF-8 text ending in ``\\n``.
+
+Server to client: every line is one JSON object with a ``"class"`` key naming
+what it is.  Absent values are *omitted*, never ``null`` (a thermometer with no
+valid reading simply has no key); numbers are always finite.  Clients must
+ignore keys (and classes) they do not know: new keys may appear in any minor
+version, ``proto_major`` changes only when a key changes meaning or goes away.
+
+=========  =================================================================
+class      sent when
+=========  =================================================================
+VERSION    first line on every connection, and in answer to ``?VERSION;``:
+           ``release``, ``proto_major``, ``proto_minor`` and the instrument's
+           identity (filled in by the service)
+DEVICE     second line on connect when an instrument is known, and to every
+           authorized client whenever the instrument (or its link state)
+           changes; on a token-protected daemon, right after a successful
+           ``?AUTH`` instead of on connect
+STATUS     to every authorized client (watching or not), periodic summaries
+ANGLE      one per instrument sample, only to clients with an enabled WATCH,
+           decimated per client (see ``?WATCH``); always carries ``t_s``
+           (device time, s)
+WATCH      answer to ``?WATCH``: the client's policy now in force
+AUTH       answer to a successful ``?AUTH``: ``{"class":"AUTH","authorized":true}``
+ERROR      a command failed: ``message``, and ``command`` when the command's
+           name could be read
+(other)    answers to control commands (the service's; a reply without a
+           class takes the command's name as its class)
+=========  =================================================================
+
+Client to server: commands, one per line, ``?NAME;`` or ``?NAME={json object};``
+where NAME is upper-case ASCII letters and the trailing ``;`` is optional
+(``\\r`` before the newline is tolerated; empty lines are ignored, but count
+against the rate limit).  Every command is answered by exactly one line (its
+reply or an ``ERROR``), in the order the commands were sent; ANGLE/STATUS/DEVICE
+lines may be interleaved.
+
+- ``?WATCH;`` reports the current policy; ``?WATCH={"enable": true, "rate_hz": 10};``
+  sets it.  The object *is* the whole policy: ``enable`` defaults to true,
+  ``rate_hz`` omitted means every sample; otherwise it is a number with
+  ``0 < rate_hz <= 10000`` (``MAX_WATCH_RATE_HZ``).  With ``rate_hz`` the client
+  gets the first sample of each period ``[k / rate_hz, (k + 1) / rate_hz)`` of
+  device time ``t_s`` (``k = floor(t_s * rate_hz)``): a decimation on the
+  instrument's clock, not the host's.  A new ``?WATCH`` restarts the decimation.
+- ``?VERSION;`` sends the VERSION object again.
+- ``?AUTH={"token": "..."};`` authorizes this connection, needed only when the
+  daemon was configured with a token (which it must be to listen beyond
+  loopback).  Until then a client gets VERSION (and the answers to its
+  ``?WATCH``, ``?VERSION`` and ``?AUTH``, and ANGLE lines it watches) but no
+  DEVICE or STATUS, and every control command is refused.  Failed attempts are
+  throttled per peer address (see ``limits.py``); five failed or refused attempts
+  close the connection.  When the daemon's token changes, every connection is
+  closed (``ERROR`` "the client token changed: connect again").
+- Any other NAME is a control command handed to the service (for example
+  ``?ZERO;`` or ``?MARK={"label": "stop 3"};``); an unknown one is answered
+  with ``ERROR`` ``"unknown command ?NAME"``; without a prior successful
+  ``?AUTH`` on a token-protected daemon every one is refused with ``ERROR``
+  ``"unauthorized"``.  A command that gets no answer in time (``control_timeout_s``,
+  30 s, unless the service gave it a deadline of its own) is answered with
+  ``ERROR`` ``"no answer within N s"``; the command itself is not undone and
+  runs to its end.  A command that takes longer (``?BIAS`` over N seconds of
+  data) is answered at once (``"state": "started"``) and publishes its result
+  later as an event of its own class (``BIAS`` ``"state": "done"``): the hub
+  never holds a connection's answers for it.
+
+Example session (``nc 127.0.0.1 2948``)::
+
+    {"class":"VERSION","release":"0.1.0","proto_major":1,"proto_minor":0,...}
+    {"class":"DEVICE","serial":"FOG-SYN-0001",...}
+    ?WATCH={"enable":true,"rate_hz":1}
+    {"class":"WATCH","enable":true,"rate_hz":1}
+    {"class":"ANGLE","t_s":12.0,"angle_arcsec":3.25,...}
+
+``receive`` is lazy like ``LineBuffer.feed``: each line is read when the previous line's actions are done, so a
+``Control`` command is answered before the next line counts against the rate limit, as it always was.
+"""
+
+from __future__ import annotations
+
+import hmac
+import math
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+from ..client.ndjson import OVERLONG, UNTERMINATED, Command, CommandError, LineBuffer, parse_command
+from .guards import AuthThrottle, check_token
+from .limits import (
+    COMMAND_WINDOW_S,
+    MAX_AUTH_FAILURES,
+    MAX_COMMANDS_PER_S,
+    MAX_EXCESS_COMMANDS,
+    MAX_UNTERMINATED_BYTES,
+    MAX_WATCH_RATE_HZ,
+)
+
+__all__ = [
+    "HUB_COMMANDS",
+    "Action",
+    "AuthGate",
+    "Authorized",
+    "Close",
+    "Connection",
+    "Control",
+    "Log",
+    "Send",
+    "SendDevice",
+    "SendVersion",
+    "WatchChanged",
+    "control_error",
+    "control_reply",
+    "error",
+    "is_positive_finite",
+]
+
+
+# -- actions --------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class Send:
+    """Queue one object for the client (the I/O layer encodes it)."""
+
+    obj: dict
+
+
+@dataclass(frozen=True, slots=True)
+class SendVersion:
+    """Queue the VERSION object (the service's, made on the I/O layer's thread)."""
+
+
+@dataclass(frozen=True, slots=True)
+class SendDevice:
+    """Queue the current DEVICE object, when an instrument is known."""
+
+
+@dataclass(frozen=True, slots=True)
+class Control:
+    """Hand the command to the service; answer with ``control_reply`` (or ``control_error``) of its answer."""
+
+    name: str
+    args: dict
+
+
+@dataclass(frozen=True, slots=True)
+class Close:
+    """Send what is queued, then close the connection."""
+
+
+@dataclass(frozen=True, slots=True)
+class Authorized:
+    """The connection was authorized just now (its ``?AUTH`` deadline no longer applies)."""
+
+
+@dataclass(frozen=True, slots=True)
+class WatchChanged:
+    """The client's WATCH was turned on or off (the hub counts the watching clients)."""
+
+    enable: bool
+
+
+@dataclass(frozen=True, slots=True)
+class Log:
+    """A per-client log line (the I/O layer adds the client's id and peer, and rate-limits it)."""
+
+    level: str
+    event: str
+    fields: dict = field(default_factory=dict)
+
+
+Action = Send | SendVersion | SendDevice | Control | Close | Authorized | WatchChanged | Log
+
+
+def error(message: str, command: str | None = None) -> Send:
+    """An ERROR line (``command`` omitted when None)."""
+    return Send({"class": "ERROR", "message": message, "command": command})
+
+
+def is_positive_finite(value: Any) -> bool:
+    """True for an int or float (not a bool) with ``0 < value < inf``."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and 0 < value < math.inf
+
+
+def control_reply(name: str, reply: Any) -> dict:
+    """The line answering ``?NAME`` from the service's ``reply``: a dict gets ``class`` NAME when it has none,
+    an ERROR gets ``command`` NAME when it has none; ``None`` means an unknown command."""
+    if not isinstance(reply, dict):
+        message = f"unknown command ?{name}" if reply is None else "internal: bad reply"
+        return {"class": "ERROR", "message": message, "command": name}
+    if "class" not in reply:
+        return {"class": name, **reply}
+    if reply["class"] == "ERROR" and "command" not in reply:
+        return {**reply, "command": name}
+    return reply
+
+
+def control_error(name: str, exc: BaseException) -> dict:
+    """The ERROR line for a command whose service call raised ``exc``: its message, else its type's name."""
+    return {"class": "ERROR", "message": str(exc) or type(exc).__name__, "command": name}
+
+
+# -- authorization shared by the connections ------------------------------------------------------------------
+
+
+class AuthGate:
+    """The daemon's client token (None: every connection is authorized) and the per-peer backoff of failed
+    ``?AUTH`` attempts, shared by every connection of one hub."""
+
+    def __init__(self, token: str | None, throttle: AuthThrottle) -> None:
+        self.token = token
+        self.throttle = throttle
+
+    def attempt(self, peer: str, token: Any, now: float) -> tuple[str, float]:
+        """``("ok", 0)``, ``("blocked", seconds still to wait)`` or ``("wrong", seconds now blocked for)``.
+
+        A blocked peer's token is not even compared; a right one forgets the peer's failures."""
+        if self.token is None:
+            return "ok", 0.0
+        wait_s = self.throttle.blocked_for_s(peer, now)
+        if wait_s > 0:
+            return "blocked", wait_s
+        # surrogatepass: a lone surrogate ("\ud800") is a wrong token like any other, never an exception
+        if isinstance(token, str) and hmac.compare_digest(
+            token.encode("utf-8", "surrogatepass"), self.token.encode("utf-8")
+        ):
+            self.throttle.succeeded(peer)
+            return "ok", 0.0
+        return "wrong", self.throttle.failed(peer, now)
+
+    @staticmethod
+    def check(token: str | None, host: str) -> None:
+        """ValueError unless ``token`` may protect a listener on ``host`` (``guards.check_token``)."""
+        check_token(token, host)
+
+
+# -- one connection -------------------------------------------------------------------------------------------
+
+
+class Connection:
+    """One client's protocol state (see the module docstring).  ``clock``: monotonic seconds."""
+
+    def __init__(
+        self,
+        peer_address: str,
+        gate: AuthGate,
+        *,
+        max_line_bytes: int,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.peer_address = peer_address
+        self.gate = gate
+        self.clock = clock
+        self.max_line_bytes = max_line_bytes
+        self.lines = LineBuffer(max_line_bytes, MAX_UNTERMINATED_BYTES)
+        self.authorized = gate.token is None
+        self.auth_failures = 0
+        self.watch = False
+        self.rate_hz: float | None = None
+        self.last_bucket: int | None = None
+        self.window_start = clock()
+        self.window_count = 0
+        self.excess = 0
+        self.closing = False  #: a Close was given: nothing more is read
+
+    # -- events from the I/O layer ---------------------------------------------------------------------------
+
+    def greeting(self) -> list[Action]:
+        """What a new connection gets: VERSION, and DEVICE when it is authorized already."""
+        return [SendVersion(), SendDevice()] if self.authorized else [SendVersion()]
+
+    def receive(self, data: bytes) -> Iterator[Action]:
+        """The actions the client's ``data`` calls for, in order (lazily); none once the connection closes."""
+        for item in self.lines.feed(data):
+            if item is UNTERMINATED:
+                yield error(f"more than {MAX_UNTERMINATED_BYTES} bytes without a newline: closing")
+                yield from self._close()
+            elif item is OVERLONG:
+                admitted = self._admit()
+                if admitted is None:
+                    yield error(f"line longer than {self.max_line_bytes} bytes: discarded")
+                else:
+                    yield from admitted
+            else:
+                yield from self._line(item)
+            if self.closing:
+                return
+
+    def end_of_input(self) -> list[Action]:
+        """The client closed its side: send what is queued (the answers), then close."""
+        return self._close()
+
+    def auth_deadline_passed(self, deadline_s: float) -> list[Action]:
+        """The client did not authorize within ``deadline_s`` of connecting: ERROR, close."""
+        if self.authorized or self.closing:
+            return []
+        return [
+            Log("info", "client_unauthorized", {"deadline_s": deadline_s}),
+            error(f"not authorized within {deadline_s:g} s: closing", "AUTH"),
+            *self._close(),
+        ]
+
+    def token_changed(self) -> list[Action]:
+        """The daemon's token changed: no session authorized by the old one may outlive it."""
+        return [error("the client token changed: connect again", "AUTH"), *self._close()]
+
+    # -- the WATCH policy, on the publishing side ----------------------------------------------------------------
+
+    def keep_angles(self, items: list[tuple[float, bytes]]) -> list[bytes]:
+        """The ANGLE lines of one batch (``(t_s, line)``) this client's WATCH keeps: all of them without
+        ``rate_hz``, else the first of each period ``[k / rate_hz, (k + 1) / rate_hz)`` of device time,
+        ``k = floor(t_s * rate_hz)`` (the decimation carries over from batch to batch)."""
+        rate = self.rate_hz
+        if rate is None:
+            return [line for _, line in items]
+        kept = []
+        last = self.last_bucket
+        for t_s, line in items:
+            bucket = math.floor(t_s * rate)
+            if bucket != last:
+                kept.append(line)
+                last = bucket
+        self.last_bucket = last
+        return kept
+
+    # -- lines ---------------------------------------------------------------------------------------------------
+
+    def _close(self) -> list[Action]:
+        if self.closing:
+            return []
+        self.closing = True
+        return [Close()]
+
+    def _admit(self) -> list[Action] | None:
+        """Rate limit on every line received: None when it may proceed, else the actions refusing it (the
+        ``MAX_EXCESS_COMMANDS``-th refusal closes)."""
+        now = self.clock()
+        if now - self.window_start >= COMMAND_WINDOW_S:
+            self.window_start = now
+            self.window_count = 0
+        self.window_count += 1
+        if self.window_count <= MAX_COMMANDS_PER_S:
+            return None
+        self.excess += 1
+        if self.excess >= MAX_EXCESS_COMMANDS:
+            return [error(f"{MAX_EXCESS_COMMANDS} commands over the rate limit: closing"), *self._close()]
+        return [error(f"more than {MAX_COMMANDS_PER_S} commands per second: refused")]
+
+    def _line(self, raw: bytes) -> list[Action]:
+        refused = self._admit()  # every line counts, an empty or blank one too
+        if refused is not None:
+            return refused
+        command = parse_command(raw)
+        if command is None:
+            return []
+        if isinstance(command, CommandError):
+            return [error(command.message, command.command)]
+        handler = HUB_COMMANDS.get(command.name)
+        if handler is not None:
+            return handler(self, command)
+        if not self.authorized:
+            return [error("unauthorized", command.name)]
+        return [Control(command.name, command.args)]
+
+    def _watch(self, command: Command) -> list[Action]:
+        """``?WATCH;`` reports the policy; ``?WATCH={...};`` replaces it (``enable`` true unless given,
+        ``rate_hz`` every sample unless given) and restarts the decimation."""
+        actions: list[Action] = []
+        if command.has_args:
+            args = command.args
+            enable = args.get("enable", True)
+            if not isinstance(enable, bool):
+                return [error("enable must be true or false", "WATCH")]
+            rate = args.get("rate_hz")
+            if rate is not None and not (is_positive_finite(rate) and rate <= MAX_WATCH_RATE_HZ):
+                return [error(f"rate_hz must be a number > 0 and <= {MAX_WATCH_RATE_HZ}", "WATCH")]
+            if enable != self.watch:
+                actions.append(WatchChanged(enable))
+            self.watch = enable
+            self.rate_hz = rate
+            self.last_bucket = None
+        actions.append(Send({"class": "WATCH", "enable": self.watch, "rate_hz": self.rate_hz}))
+        return actions
+
+    def _version(self, command: Command) -> list[Action]:
+        return [SendVersion()]
+
+    def _auth(self, command: Command) -> list[Action]:
+        """``?AUTH``: compare the token (unless the peer address is in its backoff), authorize or refuse."""
+        verdict, seconds = self.gate.attempt(self.peer_address, command.args.get("token"), self.clock())
+        if verdict == "ok":
+            return self._authorize()
+        if verdict == "blocked":
+            return self._refuse_auth(f"too many failed attempts, retry in {math.ceil(seconds)} s")
+        log = Log("warning", "auth_failed", {"failures": self.auth_failures + 1, "blocked_s": seconds})
+        return [log, *self._refuse_auth("bad token")]
+
+    def _authorize(self) -> list[Action]:
+        """AUTH, then (when this authorized the client) the DEVICE it did not get before."""
+        newly = not self.authorized
+        self.authorized = True
+        actions: list[Action] = [Authorized(), Send({"class": "AUTH", "authorized": True})]
+        if newly:
+            actions.append(SendDevice())
+        return actions
+
+    def _refuse_auth(self, message: str) -> list[Action]:
+        """ERROR for a failed or refused ``?AUTH``; the ``MAX_AUTH_FAILURES``-th closes the connection."""
+        self.auth_failures += 1
+        if self.auth_failures >= MAX_AUTH_FAILURES:
+            return [error(f"{message}: closing", "AUTH"), *self._close()]
+        return [error(message, "AUTH")]
+
+
+#: The commands the hub answers itself (every other one goes to the service's table, ``commands.py``).
+HUB_COMMANDS: dict[str, Callable[[Connection, Command], list[Action]]] = {
+    "WATCH": Connection._watch,
+    "VERSION": Connection._version,
+    "AUTH": Connection._auth,
+}
