@@ -261,6 +261,15 @@ def test_every_command_and_option_is_in_the_commands_reference():
     assert not missing, f"not in their command's section of commands.md: {sorted(missing)}"
 
 
+def test_every_config_key_is_in_the_configuration_reference():
+    """Every key of configs/default.yaml (which lists them all), and the ``device`` mapping's, has its row."""
+    text = (ROOT / "docs" / "reference" / "config.md").read_text()
+    config = yaml.safe_load((ROOT / "configs" / "default.yaml").read_text())
+    missing = [key for key in config if f"`{key}`" not in text]
+    missing += [f"device.{key}" for key in config["device"] if f"`{key}`" not in text]
+    assert not missing, missing
+
+
 # --------------------------------------------------------------------------- data blocks
 
 
