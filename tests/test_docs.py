@@ -320,15 +320,15 @@ def test_mkdocs_builds_strict_and_the_site_loads_nothing_from_another_host(tmp_p
             for m in EXTERNAL.finditer(path.read_text(errors="replace")):
                 loaded.append(f"{path.relative_to(site)}: {m.group(0)}")
     assert not loaded, loaded[:20]
-    design = (site / "explanation" / "design" / "index.html").read_text()
+    design = (site / "explanation" / "design.html").read_text()
     assert design.count('<div class="d2-diagram"') == 2 and "<svg" in design  # the layers and the threads
     assert "```d2" not in design and "mermaid" not in design
-    api = (site / "reference" / "api" / "index.html").read_text()
+    api = (site / "reference" / "api.html").read_text()
     for name in ("fog_driver.client.Client", "fog_driver.client.AsyncClient", "fog_driver.protocol.FrameDecoder"):
         assert f'id="{name}"' in api, name
-    wire = (site / "reference" / "wire-protocol" / "index.html").read_text()
+    wire = (site / "reference" / "wire-protocol.html").read_text()
     assert "Type 0x01: SAMPLE" in wire  # firmware_protocol/PROTOCOL.md, included, not copied
-    assert "Map of the code" in (site / "explanation" / "design" / "index.html").read_text()
+    assert "Map of the code" in (site / "explanation" / "design.html").read_text()
 
 
 def test_the_external_check_sees_a_cdn():
