@@ -36,7 +36,7 @@ def one_pass(directory: Path, venv_bin: Path) -> dict[str, float]:
     times: dict[str, float] = {}
     background = None
     try:
-        for step in walkthrough.steps(walkthrough.README.read_text()):
+        for step in walkthrough.all_steps():
             if step.kind == "stop":
                 status = background.stop(READY_TIMEOUT_S)
                 if status != 0:

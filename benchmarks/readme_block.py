@@ -1,9 +1,10 @@
-"""The README's benchmark figures are written by the benchmarks, never copied by hand.
+"""The documentation's benchmark figures are written by the benchmarks, never copied by hand.
 
-Every benchmark takes ``--update-readme``: it prints as always and then replaces its block in README.md
-with ``$ COMMAND`` and what it printed.  A block is the fenced text between two markers named by the
-command that makes it (the script and its arguments, less ``--update-readme`` and ``--workdir DIR``,
-a cache that changes no figure)::
+The blocks live in the README and the documentation site's pages (``docs/**/*.md``; ``documents()``), each
+block in one of them.  Every benchmark takes ``--update-readme``: it prints as always and then replaces its
+block in the document that holds it with ``$ COMMAND`` and what it printed.  A block is the fenced text
+between two markers named by the command that makes it (the script and its arguments, less
+``--update-readme`` and ``--workdir DIR``, a cache that changes no figure)::
 
     <!-- bench: bench_population.py --adapt -->
     ```
@@ -12,7 +13,7 @@ a cache that changes no figure)::
     ```
     <!-- /bench -->
 
-A command without a block in the README is an error before any work is done: a new figure gets its
+A command without a block in any document is an error before any work is done: a new figure gets its
 block first, by hand, empty.
 """
 
@@ -25,7 +26,8 @@ import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
 END = "<!-- /bench -->"
 
 
@@ -60,6 +62,19 @@ def block_key(script: str, argv: list[str]) -> str:
     return " ".join([Path(script).name, *shown])
 
 
+def documents(root: Path = ROOT) -> list[Path]:
+    """The documents that may hold blocks: the README and every page of the documentation site."""
+    return [root / "README.md", *sorted((root / "docs").rglob("*.md"))]
+
+
+def document_with(key: str, root: Path = ROOT) -> Path:
+    """The document holding block ``key`` (``ValueError`` when none does)."""
+    for path in documents(root):
+        if f"<!-- bench: {key} -->\n" in path.read_text():
+            return path
+    raise ValueError(f"no document has a block <!-- bench: {key} -->: add it (empty) first")
+
+
 def blocks(text: str) -> dict[str, str]:
     """Every block of a README: key -> its text between the markers."""
     return {m.group(1): m.group(2) for m in re.finditer(r"<!-- bench: (.+?) -->\n(.*?)" + re.escape(END), text, re.S)}
@@ -75,18 +90,21 @@ def replace_block(text: str, key: str, body: str) -> str:
 
 
 @contextlib.contextmanager
-def readme_output(key: str, *, update: bool, readme: Path = README) -> Iterator[None]:
-    """Print as usual; with ``update``, on success also write ``$ command`` and the output into block ``key``."""
+def readme_output(key: str, *, update: bool, readme: Path | None = None) -> Iterator[None]:
+    """Print as usual; with ``update``, on success also write ``$ command`` and the output into block ``key``
+    (in ``readme``; by default the document that holds the block)."""
     if not update:
         yield
         return
+    if readme is None:
+        readme = document_with(key)
     replace_block(readme.read_text(), key, "")  # the block exists: checked before the work, not after it
     captured = io.StringIO()
     with contextlib.redirect_stdout(_Tee(sys.stdout, captured)):
         yield
     command = "python benchmarks/" + key
     readme.write_text(replace_block(readme.read_text(), key, f"$ {command}\n{captured.getvalue()}"))
-    print(f"README.md: block {key!r} updated", file=sys.stderr)
+    print(f"{readme.name}: block {key!r} updated", file=sys.stderr)
 
 
 def run_main(main: Callable[[], None]) -> None:
@@ -96,7 +114,7 @@ def run_main(main: Callable[[], None]) -> None:
     sys.argv[1:] = [a for a in sys.argv[1:] if a != "--update-readme"]
     if update:  # a missing block is refused before the work (readme_output checks it too)
         try:
-            replace_block(README.read_text(), key, "")
+            replace_block(document_with(key).read_text(), key, "")
         except ValueError as exc:
             raise SystemExit(f"{Path(sys.argv[0]).name}: {exc}") from None
     with readme_output(key, update=update):

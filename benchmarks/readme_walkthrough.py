@@ -1,4 +1,5 @@
-"""The README as an executable walkthrough: its marked command blocks, in order.
+"""The README and the tutorial as one executable walkthrough: their marked command blocks, in order
+(``DOCUMENTS``: the README's install and first session, then ``docs/tutorial.md``, in the same directory).
 
 A block runs when the line before its ```` ```sh ```` fence is a marker::
 
@@ -26,7 +27,10 @@ import subprocess
 import time
 from pathlib import Path
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
+#: The walkthrough's documents, in the order they run (paths relative to the repository).
+DOCUMENTS = ("README.md", "docs/tutorial.md")
 MARKER = re.compile(r"^<!-- walkthrough(?::\s*(?P<options>.*?))?\s*-->\n", re.M)
 FENCE = re.compile(r"[ \t\n]*```sh\n(?P<body>.*?)^```\n", re.S | re.M)
 READY = re.compile(r'^background, ready when "(?P<text>[^"]+)"$')
@@ -38,7 +42,8 @@ class Step:
     kind: str  # "run", "background" or "stop"
     commands: tuple[str, ...] = ()
     ready_text: str = ""
-    line: int = 0  # in the README, for messages
+    line: int = 0  # in its document, for messages
+    source: str = "README.md"  # the document, for messages
 
 
 def _commands(body: str) -> tuple[str, ...]:
@@ -46,27 +51,32 @@ def _commands(body: str) -> tuple[str, ...]:
     return tuple(line.strip() for line in joined.splitlines() if line.strip() and not line.lstrip().startswith("#"))
 
 
-def steps(text: str) -> list[Step]:
-    """The walkthrough's steps in README order; ``ValueError`` for a marker that makes no sense."""
+def all_steps(root: Path = ROOT) -> list[Step]:
+    """The whole walkthrough: every document's steps, the documents in ``DOCUMENTS`` order."""
+    return [step for name in DOCUMENTS for step in steps((root / name).read_text(), name)]
+
+
+def steps(text: str, source: str = "README.md") -> list[Step]:
+    """One document's steps in order; ``ValueError`` for a marker that makes no sense."""
     found = []
     for m in MARKER.finditer(text):
         line = text.count("\n", 0, m.start()) + 1
         options = m.group("options") or ""
         if options == "stop":
-            found.append(Step("stop", line=line))
+            found.append(Step("stop", line=line, source=source))
             continue
         fence = FENCE.match(text, m.end())
         if fence is None:
-            raise ValueError(f"README.md:{line}: a walkthrough marker without a ```sh block after it")
+            raise ValueError(f"{source}:{line}: a walkthrough marker without a ```sh block after it")
         commands = _commands(fence.group("body"))
         if options == "":
-            found.append(Step("run", commands, line=line))
+            found.append(Step("run", commands, line=line, source=source))
         elif ready := READY.match(options):
             if len(commands) != 1:
-                raise ValueError(f"README.md:{line}: a background step runs one command, not {len(commands)}")
-            found.append(Step("background", commands, ready.group("text"), line=line))
+                raise ValueError(f"{source}:{line}: a background step runs one command, not {len(commands)}")
+            found.append(Step("background", commands, ready.group("text"), line=line, source=source))
         else:
-            raise ValueError(f"README.md:{line}: unknown walkthrough marker options {options!r}")
+            raise ValueError(f"{source}:{line}: unknown walkthrough marker options {options!r}")
     return found
 
 

@@ -1,4 +1,4 @@
-"""The README's picture of the web view: ``docs/web-view.png``.
+"""The documentation's picture of the web view (docs/how-to/monitoring.md): ``docs/web-view.png``.
 
     python docs/make_screenshot.py [--profile short-test] [--minutes 18] [--speedup 20] [--out docs/web-view.png]
 

@@ -1,5 +1,6 @@
-"""The README's benchmark figures are blocks a benchmark writes (``--update-readme``), each named by the
-command that makes it: this checks the blocks are what their commands printed, in form."""
+"""The documentation's benchmark figures (the README and the site's pages) are blocks a benchmark writes
+(``--update-readme``), each named by the command that makes it: this checks the blocks are what their commands
+printed, in form."""
 
 from __future__ import annotations
 
@@ -52,9 +53,23 @@ def test_update_readme_writes_the_output_and_refuses_before_the_work_without_a_b
     assert not worked
 
 
+def test_a_block_is_found_in_the_document_that_holds_it(tmp_path):
+    (tmp_path / "docs" / "explanation").mkdir(parents=True)
+    (tmp_path / "README.md").write_text("no blocks\n")
+    page = tmp_path / "docs" / "explanation" / "page.md"
+    page.write_text("<!-- bench: b.py --k -->\n<!-- /bench -->\n")
+    assert readme_block.document_with("b.py --k", tmp_path) == page
+    with pytest.raises(ValueError, match="no document"):
+        readme_block.document_with("b.py", tmp_path)
+
+
 def test_every_readme_block_holds_its_own_command_and_a_script_that_can_write_it():
-    blocks = readme_block.blocks((ROOT / "README.md").read_text())
-    assert len(blocks) >= 6
+    blocks: dict[str, str] = {}
+    for path in readme_block.documents():
+        found = readme_block.blocks(path.read_text())
+        assert not set(found) & set(blocks), f"{path}: a block that another document holds too"
+        blocks.update(found)
+    assert len(blocks) >= 12
     for key, body in blocks.items():
         script = ROOT / "benchmarks" / key.split()[0]
         assert script.exists(), key

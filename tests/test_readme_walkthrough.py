@@ -1,5 +1,6 @@
-"""The README as an executable walkthrough: its marked blocks ("Start here", "A first session") run in
-order on a fresh copy of the repository, from the install on, and each must work as written."""
+"""The README and the tutorial as one executable walkthrough: their marked blocks (the README's install and
+first session, then docs/tutorial.md's calibration) run in order on a fresh copy of the repository, from the
+install on, and each must work as written."""
 
 from __future__ import annotations
 
@@ -39,10 +40,18 @@ def test_markers_parse_into_steps_and_nonsense_is_refused():
             walkthrough.steps(bad)
 
 
+def test_a_step_names_its_document():
+    text = "<!-- walkthrough: sometimes -->\n```sh\na\n```\n"
+    with pytest.raises(ValueError, match="docs/tutorial.md:1"):
+        walkthrough.steps(text, "docs/tutorial.md")
+    sources = {step.source for step in walkthrough.all_steps()}
+    assert sources == set(walkthrough.DOCUMENTS), sources
+
+
 def test_the_walkthrough_covers_the_newcomers_path():
     """Deleting a marker must not quietly shorten the walkthrough: the main job and every step of a
     calibration are in it, in this order."""
-    commands = [c for step in walkthrough.steps(walkthrough.README.read_text()) for c in step.commands]
+    commands = [c for step in walkthrough.all_steps() for c in step.commands]
     wanted = [
         "python3 -m venv .venv",
         "pip install -e",
@@ -54,6 +63,7 @@ def test_the_walkthrough_covers_the_newcomers_path():
         "fog-driver fit",
         "fog-driver compensate",
         "fog-driver evaluate",
+        "fog-driver run --model model.yaml",
     ]
     positions = [next((i for i, c in enumerate(commands) if c.startswith(w)), None) for w in wanted]
     assert None not in positions, dict(zip(wanted, positions))
@@ -85,8 +95,8 @@ def test_the_readme_walkthrough_runs_as_written(tmp_path):
     clone = fresh_copy(tmp_path / "fog_driver")
     background: walkthrough.Background | None = None
     try:
-        for step in walkthrough.steps((clone / "README.md").read_text()):
-            where = f"README.md:{step.line}"
+        for step in walkthrough.all_steps(clone):
+            where = f"{step.source}:{step.line}"
             env = walkthrough.environment(clone)
             if step.kind == "stop":
                 assert background is not None, f"{where}: stop without a background command"
