@@ -246,7 +246,7 @@ def _print_fit_report(report) -> None:
     """The fit's table, its noise-floor line, and a warning (with the fit's other warnings, on stdout: stderr
     keeps the one-line error of a refused fit) for each model row that leaves more drift than no compensation
     (marked in the table)."""
-    from ..compensation.fitting.fit import WORSE_MARKER
+    from ..compensation.fitting.report import WORSE_MARKER
 
     print(report.format())
     note = report.floor_note()
@@ -264,10 +264,12 @@ def _print_fit_report(report) -> None:
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
-    from ..compensation.fitting.fit import FitConfig, WeakFitError, fit_model_file
+    from ..compensation.fitting.data import FitConfig
+    from ..compensation.fitting.fit import WeakFitError
     from ..compensation.fitting.quality import format_checks
-    from ..compensation.model import save_model
     from ..files.yamlio import dataclass_from_mapping, read_yaml
+    from ..modelfiles import save_model
+    from ..offline.fit import fit_model_file
 
     out = Path(args.out)
     check_outputs([out], force=args.force, inputs=[*args.captures, *args.validate, *filter(None, [args.config])])
@@ -373,8 +375,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
 
 def cmd_compensate(args: argparse.Namespace) -> int:
-    from ..compensation.binding import compensate_capture
-    from ..compensation.model import load_model
+    from ..modelfiles import load_model
+    from ..offline.compensate import compensate_capture
     from ..offline.rows import ROW_COLUMNS, compensated_rows, format_row
     from ..samples.captures import _capture_size
 
@@ -460,8 +462,8 @@ def _read(value: float | None, fmt: str) -> str:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from ..compensation.model import load_model
     from ..extras import require_extra
+    from ..modelfiles import load_model
     from ..report import positioning
     from ..report.evaluate import evaluate, format_bias_instability, model_label, series_names, write_report
     from ..sim.capture import check_truth_matches, read_truth

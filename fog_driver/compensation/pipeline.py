@@ -23,7 +23,6 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
-from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
@@ -340,44 +339,38 @@ class Compensator:
             self.online.load_state(old.online.state_dict())
             self.static_detector = old.static_detector
 
-    def save_adaptation(self, path: str | Path) -> Path:
-        """The adaptation state as YAML (the readout, the static detector, and the pipeline's state, so that
-        a restart of the same run continues exactly); only when adapting."""
-        from .adapt import write_state_doc
-
-        return write_state_doc(path, self.adaptation_document())
-
     def adaptation_document(self) -> dict:
-        """What ``save_adaptation`` writes, as a snapshot of plain values (to take under a lock and write
-        outside it)."""
-        if self.online is None:
-            raise ValueError("this compensator is not adapting (no adapt config)")
+        """The adaptation state: the readout, the static detector, and the pipeline's state, so that a restart
+        of the same run continues exactly (``modelfiles.save_adaptation`` writes it), as a snapshot of plain
+        values (to take under a lock and write outside it); only when adapting."""
+        self.check_adapting()
         return self.online.state_document(detector=self.static_detector, pipeline=self.pipeline_state())
 
-    def load_adaptation(self, path: str | Path, *, new_run: bool = True) -> None:
-        """Restore ``save_adaptation``'s file (``InputFileError`` when it does not fit this model).  With
-        ``new_run`` (a new switch-on: a new turn-on bias, a new device clock) the bias is captured again and
-        only the readout is kept (the adapted W); without, the same run continues: the pipeline's state
-        (open block, smoothers, reservoir, held estimate) is restored too, and the output continues exactly
-        as if uninterrupted."""
-        from .adapt import read_state_doc
-
+    def check_adapting(self) -> None:
+        """``ValueError`` unless this compensator adapts (has an adapt config)."""
         if self.online is None:
             raise ValueError("this compensator is not adapting (no adapt config)")
-        doc = read_state_doc(path)
+
+    def restore_adaptation(self, doc: dict, where: str, *, new_run: bool = True) -> None:
+        """Restore ``adaptation_document``'s document (read from ``where``; ``InputFileError`` when it does not
+        fit this model).  With ``new_run`` (a new switch-on: a new turn-on bias, a new device clock) the bias
+        is captured again and only the readout is kept (the adapted W); without, the same run continues: the
+        pipeline's state (open block, smoothers, reservoir, held estimate) is restored too, and the output
+        continues exactly as if uninterrupted."""
+        self.check_adapting()
         if not new_run and "pipeline" in doc:  # checked before anything changes
             saved = self.pipeline_state()
             try:
                 self.set_pipeline_state(doc["pipeline"])
             except ValueError as exc:
-                raise InputFileError(f"{path}: corrupt adaptation state: {exc}") from None
+                raise InputFileError(f"{where}: corrupt adaptation state: {exc}") from None
             try:
-                self.online.load_state_doc(doc, str(path), detector=self.static_detector)
+                self.online.load_state_doc(doc, where, detector=self.static_detector)
             except InputFileError:
                 self.set_pipeline_state(saved)
                 raise
         else:
-            self.online.load_state_doc(doc, str(path), detector=self.static_detector)
+            self.online.load_state_doc(doc, where, detector=self.static_detector)
         if new_run:
             self.online.begin_run()
 

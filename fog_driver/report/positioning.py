@@ -76,10 +76,10 @@ from typing import Any
 
 import numpy as np
 
-from ..compensation.binding import compensate_capture
 from ..compensation.model import ModelFile
 from ..compensation.pipeline import FLAG_UNCOMPENSATED
 from ..errors import InputFileError, UsageError, read_error
+from ..offline.compensate import compensate_capture
 from ..samples.captures import find_sidecar, read_provenance
 from ..sim.profiles import Stop
 
@@ -610,7 +610,7 @@ def report_for(
     ``summary["positioning"]`` and returns the Markdown table with the improvement figures, or None (the
     table is skipped) when the capture has no sequence.
     """
-    from ..compensation.model import load_model
+    from ..modelfiles import load_model
 
     capture = Path(capture)
     stops = load_stops(capture, reference)
