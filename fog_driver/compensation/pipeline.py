@@ -30,7 +30,7 @@ import numpy as np
 from ..errors import InputFileError
 from ..protocol import STATUS_THERMOMETER_FAULT
 from ..samples.stream import Sample, SampleBlock
-from .blocks import FLAG_GAP, FLAG_THERMOMETER_FAULT, PLAUSIBLE_TEMP_C, BlockAverager, ModelBlock, plausible_temps
+from .blocks import FLAG_GAP, FLAG_THERMOMETER_FAULT, PLAUSIBLE_TEMP_C, BlockAverager, ModelBlock
 from .domain import FLAG_EXTRAPOLATING
 from .features import DEGRADED_FLAGS, FLAG_INPUT_STALE, FLAG_RECOVERING, FLAG_SUBSTITUTED, FeatureExtractor
 from .model import ModelFile
@@ -67,6 +67,24 @@ def flag_names(flags: int) -> list[str]:
 @functools.lru_cache(maxsize=1024)
 def _flag_names(flags: int) -> tuple[str, ...]:
     return tuple(name for bit, name in FLAG_NAMES.items() if flags & bit)
+
+
+def frame_flags(estimate_flags, estimate_block, frame_block, missing_before, status, temps_c):
+    """The flags of a frame, the one rule of ``Compensator.step`` (scalars) and ``Compensator.run`` (arrays,
+    element-wise)::
+
+        flags = the flags of the estimate it is compensated with
+              | gap                if frames were lost just before it (missing_before > 0), or its estimate is
+                                   from before a gap (0 <= estimate_block < frame_block)
+              | thermometer_fault  if its status says so, or a reading of ``temps_c`` (its format's channels,
+                                   a scalar or a column each) is NaN or outside ``PLAUSIBLE_TEMP_C``
+    """
+    low, high = PLAUSIBLE_TEMP_C
+    gap = (missing_before > 0) | ((estimate_block >= 0) & (frame_block > estimate_block))
+    fault = (status & STATUS_THERMOMETER_FAULT) != 0
+    for t in temps_c:
+        fault = fault | (t < low) | (t > high) | (t != t)  # not plausible: outside, or NaN
+    return estimate_flags | FLAG_GAP * gap | FLAG_THERMOMETER_FAULT * fault
 
 
 class CompensatedSample(NamedTuple):
@@ -380,22 +398,18 @@ class Compensator:
         for block in self.averager.step(sample):
             self._on_block(block)
         drift = self.estimate_dph
-        stale = 0 <= self._estimate_block < self.averager._current  # after a gap: the estimate is from before it
         dtheta_comp = sample.dtheta_arcsec - drift * self.frame_period_s
         self.angle_raw_arcsec += sample.dtheta_arcsec
         self.angle_comp_arcsec += dtheta_comp
         temps = (sample.t_top_c, sample.t_bottom_c, sample.t_housing_c)
-        flags = self.estimate_flags
-        if sample.missing_before or stale:
-            flags |= FLAG_GAP
-        if sample.status & STATUS_THERMOMETER_FAULT:
-            flags |= FLAG_THERMOMETER_FAULT
-        else:
-            low, high = PLAUSIBLE_TEMP_C
-            for t in temps[: self.n_channels]:
-                if not low <= t <= high:  # not plausible_temp(t): NaN or implausible
-                    flags |= FLAG_THERMOMETER_FAULT
-                    break
+        flags = frame_flags(
+            self.estimate_flags,
+            self._estimate_block,
+            self.averager._current,
+            sample.missing_before,
+            sample.status,
+            temps[: self.n_channels],
+        )
         return CompensatedSample(
             sample.seq,
             sample.t_s,
@@ -426,9 +440,6 @@ class Compensator:
         est_flags = np.array([held_before[1]] + [a[1] for a in after], dtype=np.int64)
         est_blocks = np.array([held_before[2]] + [a[2] for a in after], dtype=np.int64)
         drift = estimates[which + 1]
-        flags = est_flags[which + 1].copy()
-        held_block = est_blocks[which + 1]
-        flags[(held_block >= 0) & (frame_block > held_block)] |= FLAG_GAP  # after a gap: the estimate is from before it
         dtheta = samples.dtheta_arcsec
         dtheta_comp = dtheta - drift * self.frame_period_s
         angle_raw = np.cumsum(np.r_[self.angle_raw_arcsec, dtheta])[1:]
@@ -436,12 +447,16 @@ class Compensator:
         if n:
             self.angle_raw_arcsec = float(angle_raw[-1])
             self.angle_comp_arcsec = float(angle_comp[-1])
-        temps = np.column_stack([samples.t_top_c, samples.t_bottom_c, samples.t_housing_c])
-        flags[samples.missing_before > 0] |= FLAG_GAP
-        bad_temp = ~plausible_temps(temps[:, : self.n_channels]).all(axis=1) | (
-            (samples.status & STATUS_THERMOMETER_FAULT) != 0
+        columns = (samples.t_top_c, samples.t_bottom_c, samples.t_housing_c)
+        temps = np.column_stack(columns)
+        flags = frame_flags(
+            est_flags[which + 1],
+            est_blocks[which + 1],
+            frame_block,
+            samples.missing_before,
+            samples.status,
+            columns[: self.n_channels],
         )
-        flags[bad_temp] |= FLAG_THERMOMETER_FAULT
         return CompensatedColumns(
             samples.seq, samples.t_s, dtheta, drift, dtheta_comp, angle_raw, angle_comp, temps, flags
         )
