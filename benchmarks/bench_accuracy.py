@@ -44,8 +44,9 @@ sys.path.insert(0, str(ROOT))
 
 from fog_driver.compensation.adapt import AdaptConfig  # noqa: E402
 from fog_driver.compensation.aflp import AflpFilter, AflpParams  # noqa: E402
-from fog_driver.compensation.fitting.fit import FitConfig, fit_model_file, load_capture  # noqa: E402
-from fog_driver.compensation.model import load_model, save_model  # noqa: E402
+from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
+from fog_driver.modelfiles import load_model, save_model  # noqa: E402
+from fog_driver.offline.fit import fit_model_file, load_capture  # noqa: E402
 from fog_driver.report.evaluate import per_second  # noqa: E402
 from fog_driver.sim.capture import read_truth, simulate_to_file, truth_noise_dph  # noqa: E402
 from fog_driver.sim.instrument import Simulator  # noqa: E402

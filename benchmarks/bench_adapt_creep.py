@@ -43,9 +43,10 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from bench_population import FIT_PROFILE, SEED_SETS, SKIP_MINUTES, capture  # noqa: E402
 
 from fog_driver.compensation.adapt import AdaptConfig  # noqa: E402
-from fog_driver.compensation.binding import compensate_capture  # noqa: E402
-from fog_driver.compensation.fitting.fit import FitConfig, fit_model_file  # noqa: E402
+from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
 from fog_driver.compensation.pipeline import FLAG_GUARD  # noqa: E402
+from fog_driver.offline.compensate import compensate_capture  # noqa: E402
+from fog_driver.offline.fit import fit_model_file  # noqa: E402
 from fog_driver.sim.capture import read_truth, simulate_to_file  # noqa: E402
 from fog_driver.sim.instrument import Simulator  # noqa: E402
 from fog_driver.sim.population import draw_instrument  # noqa: E402

@@ -43,8 +43,9 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from bench_daemon import LIVE_PROFILE, LiveResult, add_pacing_options, live_run  # noqa: E402
 
-from fog_driver.compensation.fitting.fit import FitConfig, fit_model_file  # noqa: E402
-from fog_driver.compensation.model import save_model  # noqa: E402
+from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
+from fog_driver.modelfiles import save_model  # noqa: E402
+from fog_driver.offline.fit import fit_model_file  # noqa: E402
 from fog_driver.samples.sources import wire_settings_for  # noqa: E402
 from fog_driver.sim.capture import simulate_to_file  # noqa: E402
 from fog_driver.sim.instrument import Simulator  # noqa: E402

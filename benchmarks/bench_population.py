@@ -72,7 +72,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from fog_driver.compensation.adapt import AdaptConfig  # noqa: E402
-from fog_driver.compensation.fitting.fit import FitConfig, fit_model_file  # noqa: E402
+from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
+from fog_driver.offline.fit import fit_model_file  # noqa: E402
 from fog_driver.report.evaluate import minute_rms, per_second  # noqa: E402
 from fog_driver.sim.capture import read_truth, simulate_to_file, truth_noise_dph  # noqa: E402
 from fog_driver.sim.instrument import Simulator  # noqa: E402
@@ -156,7 +157,7 @@ def score_instrument(seed: int, kinds: tuple[str, ...], rate_hz: int, workdir: P
 
 
 def model_step_us(model_file, capture_path: Path, steps: int = 2000) -> float:
-    from fog_driver.compensation.fitting.fit import load_capture
+    from fog_driver.offline.fit import load_capture
 
     data = load_capture(capture_path, FitConfig())
     z = model_file.normalizer.transform(data.inputs[np.isfinite(data.inputs).all(axis=1)][:steps])

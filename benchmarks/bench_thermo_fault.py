@@ -50,8 +50,9 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from bench_population import FIT_PROFILE, SCORE_PROFILES, SEED_SETS, capture  # noqa: E402
 
 from fog_driver.compensation.features import Substitution  # noqa: E402
-from fog_driver.compensation.fitting.fit import FitConfig, fit_model_file  # noqa: E402
+from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
 from fog_driver.compensation.pipeline import Compensator  # noqa: E402
+from fog_driver.offline.fit import fit_model_file  # noqa: E402
 from fog_driver.samples.stream import SampleBlock, read_capture_samples  # noqa: E402
 from fog_driver.sim.capture import read_truth  # noqa: E402
 

@@ -47,8 +47,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from fog_driver.compensation.fitting.fit import FitConfig, fit_model_file  # noqa: E402
-from fog_driver.compensation.model import save_model  # noqa: E402
+from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
+from fog_driver.modelfiles import save_model  # noqa: E402
+from fog_driver.offline.fit import fit_model_file  # noqa: E402
 from fog_driver.report.positioning import (  # noqa: E402
     Row,
     format_table,

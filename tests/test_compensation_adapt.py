@@ -21,6 +21,7 @@ from fog_driver.compensation.readout import (
     AdaptiveLawState,
 )
 from fog_driver.errors import InputFileError, OutputFileError
+from fog_driver.modelfiles import load_readout_state, save_readout_state
 
 W0 = np.array([0.5, -0.3, 0.2])  # the frozen (stored) weights
 B0 = 0.1
@@ -276,10 +277,10 @@ def test_state_saved_and_restored_mid_stream_continues_bit_identically(tmp_path)
         a = OnlineReadout(W0, B0, config, 1.0)
         da = StaticDetector.from_config(config, 1.0)
         got = _run_detected(a, da, f, measured, 0, cut)
-        path = a.save_state(tmp_path / f"state-{cut}.yaml", detector=da)
+        path = save_readout_state(a, tmp_path / f"state-{cut}.yaml", detector=da)
         b = OnlineReadout(W0, B0, config, 1.0)
         db = StaticDetector.from_config(config, 1.0)
-        assert b.load_state_file(path, detector=db) is not None
+        assert load_readout_state(b, path, detector=db) is not None
         assert b.state_dict() == a.state_dict() and db.to_dict() == da.to_dict()
         got += _run_detected(b, db, f, measured, cut, len(f))
         assert got == expected  # estimates (floats) and flags, exactly
@@ -342,7 +343,7 @@ def test_reset_to_frozen_clears_the_laws_sums_keeps_the_bias_and_restarts_the_co
 
 def test_state_file_errors_are_one_line_input_file_errors(tmp_path):
     r, _, _ = _adapted()
-    good = r.save_state(tmp_path / "state.yaml")
+    good = save_readout_state(r, tmp_path / "state.yaml")
     doc = yaml.safe_load(good.read_text())
     assert doc["format"] == ADAPT_STATE_FORMAT and doc["schema_version"] == 1
 
@@ -371,19 +372,19 @@ def test_state_file_errors_are_one_line_input_file_errors(tmp_path):
     for name, path in cases.items():
         detector = StaticDetector(30.0, 60) if name == "detector" else None
         with pytest.raises(InputFileError) as info:
-            fresh.load_state_file(path, detector=detector)
+            load_readout_state(fresh, path, detector=detector)
         assert "\n" not in str(info.value) and str(path) in str(info.value), name
         assert fresh.state_dict() == untouched, name  # nothing half-loaded
     # a python object tag is never constructed
     (tmp_path / "evil.yaml").write_text("!!python/object/apply:os.system ['true']\n")
     with pytest.raises(InputFileError):
-        fresh.load_state_file(tmp_path / "evil.yaml")
+        load_readout_state(fresh, tmp_path / "evil.yaml")
 
 
 def test_an_unwritable_state_file_is_an_output_file_error(tmp_path):
     r = OnlineReadout(W0, B0, AdaptConfig(), 1.0)
     with pytest.raises(OutputFileError):
-        r.save_state(tmp_path / "no-such-dir" / "state.yaml")
+        save_readout_state(r, tmp_path / "no-such-dir" / "state.yaml")
 
 
 def test_config_validation_and_round_trip():

@@ -17,7 +17,6 @@ import pytest
 import yaml
 
 from fog_driver.cli import main
-from fog_driver.compensation.binding import compensate_capture
 from fog_driver.compensation.domain import (
     ESTIMATE_LIMIT_FACTOR,
     FLAG_EXTRAPOLATING,
@@ -26,14 +25,8 @@ from fog_driver.compensation.domain import (
     InputDomain,
 )
 from fog_driver.compensation.features import INPUT_NAMES
-from fog_driver.compensation.fitting.fit import (
-    FitConfig,
-    WeakFitError,
-    applied_prediction,
-    fit_model_file,
-    load_capture,
-    static_minute_means,
-)
+from fog_driver.compensation.fitting.data import FitConfig, static_minute_means
+from fog_driver.compensation.fitting.fit import WeakFitError
 from fog_driver.compensation.fitting.quality import (
     MAX_CONDITION,
     MAX_TARGET_RANGE_DPH,
@@ -43,10 +36,13 @@ from fog_driver.compensation.fitting.quality import (
     assess,
     condition_number,
 )
-from fog_driver.compensation.model import load_model, save_model
+from fog_driver.compensation.fitting.report import applied_prediction
 from fog_driver.compensation.pipeline import FLAG_NAMES
 from fog_driver.daemon.udp import FLAG_BITS
 from fog_driver.errors import InputFileError
+from fog_driver.modelfiles import load_model, save_model
+from fog_driver.offline.compensate import compensate_capture
+from fog_driver.offline.fit import fit_model_file, load_capture
 
 DATA = Path(__file__).resolve().parent / "data"
 SHORT_FIT = FitConfig(warmup_s=30.0)

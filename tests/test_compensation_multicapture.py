@@ -21,8 +21,10 @@ from fog_driver.cli import main
 from fog_driver.compensation.blocks import BlockColumns
 from fog_driver.compensation.features import FeatureExtractor
 from fog_driver.compensation.fitting import fit
-from fog_driver.compensation.fitting.fit import CaptureData, FitConfig, fit_model_file, load_capture, static_mask
-from fog_driver.compensation.model import load_model
+from fog_driver.compensation.fitting.data import CaptureData, FitConfig, static_mask
+from fog_driver.modelfiles import load_model
+from fog_driver.offline import fit as offline_fit
+from fog_driver.offline.fit import fit_model_file, load_capture
 from fog_driver.report.evaluate import minute_rms, per_second
 from fog_driver.sim.capture import read_truth
 
@@ -117,7 +119,7 @@ def test_a_hot_and_a_cold_run_fitted_together_do_as_well_as_one_run_over_both(ru
 def test_a_hot_and_a_cold_run_fitted_together_get_their_own_offsets_in_the_svr(runs, monkeypatch):
     """The RBF kernel has no column for a capture's intercept: its offsets are backfitted (measured on soak:
     0.077 deg/h, the paper run alone 0.067, without the offsets 0.111)."""
-    from fog_driver.compensation.models import svr
+    from fog_driver.compensation.fitting import svr
 
     pair = truth_residual(fit_paths([runs / "hot.bin", runs / "cold.bin"], "pso-svr"), runs / "soak.bin")
     monkeypatch.setattr(svr, "OFFSET_PASSES", 0)
@@ -175,7 +177,7 @@ def test_a_run_split_in_pieces_fits_as_well_as_the_whole_run(runs, pieces, kind,
     n = len(whole_capture.blocks)
     cuts = np.linspace(0, n, pieces + 1).astype(int)
     parts = [piece(whole_capture, a, b, config) for a, b in zip(cuts[:-1], cuts[1:])]
-    monkeypatch.setattr(fit, "load_capture", lambda path, cfg, *_, **__: parts[int(str(path))])
+    monkeypatch.setattr(offline_fit, "load_capture", lambda path, cfg, *_, **__: parts[int(str(path))])
     split = truth_residual(fit_paths([str(k) for k in range(pieces)], kind), runs / "soak.bin")
     # a wesn fitted on pieces shorter than 250 min may not try a cascade or the longest lags, and its
     # history neurons restart with each piece: it is held to 2x the whole run (measured 0.0100 vs 0.0061)

@@ -13,12 +13,13 @@ import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fog_driver.compensation.fitting.fit import FitConfig, fit_model_file, load_capture, static_mask
-from fog_driver.compensation.model import load_model, save_model
+from fog_driver.compensation.fitting.data import FitConfig, static_mask
 from fog_driver.compensation.pipeline import FLAG_UNCOMPENSATED, CompensatedColumns, Compensator
 from fog_driver.daemon.config import DEFAULT_MODEL
 from fog_driver.errors import InputFileError
 from fog_driver.files.kinds import ROW_COLUMNS
+from fog_driver.modelfiles import load_adaptation, load_model, save_adaptation, save_model
+from fog_driver.offline.fit import fit_model_file, load_capture
 from fog_driver.offline.rows import RowAggregator, format_row
 from fog_driver.protocol import FrameDecoder, decode_file
 from fog_driver.samples.stream import SampleBlock, SampleStream
@@ -305,13 +306,13 @@ def test_adaptation_state_saves_and_restores(model_path, tmp_path):
     samples = SampleStream().run(decode_file(DATA / "sim-short.bin"))
     first = Compensator(load_model(model_path), 0.1, adapt=adapt_config(), reference_rate_dph=0.0)
     first.run(samples)
-    path = first.save_adaptation(tmp_path / "adapt.yaml")
+    path = save_adaptation(first, tmp_path / "adapt.yaml")
     second = Compensator(load_model(model_path), 0.1, adapt=adapt_config(), reference_rate_dph=0.0)
-    second.load_adaptation(path)  # a new run: the bias is captured again, the learned weights kept
+    load_adaptation(second, path)  # a new run: the bias is captured again, the learned weights kept
     assert second.online.bias_dph is None
     np.testing.assert_array_equal(second.online.law.weights, first.online.law.weights)
     with pytest.raises(ValueError, match="not adapting"):
-        Compensator(load_model(model_path), 0.1).save_adaptation(tmp_path / "x.yaml")
+        save_adaptation(Compensator(load_model(model_path), 0.1), tmp_path / "x.yaml")
 
 
 @pytest.mark.parametrize("cut", [1, 1234, 2001, 2999])
@@ -325,9 +326,9 @@ def test_a_restart_of_the_same_run_continues_exactly(model_path, tmp_path, cut):
     reference = whole.run(samples)
     first = Compensator(load_model(model_path), 0.1, adapt=adapt_config(), reference_rate_dph=0.0)
     first.run(slice_block(samples, 0, cut))
-    path = first.save_adaptation(tmp_path / "adapt.yaml")
+    path = save_adaptation(first, tmp_path / "adapt.yaml")
     second = Compensator(load_model(model_path), 0.1, adapt=adapt_config(), reference_rate_dph=0.0)
-    second.load_adaptation(path, new_run=False)
+    load_adaptation(second, path, new_run=False)
     rest = second.run(slice_block(samples, cut, n))
     for name in ("drift_dph", "dtheta_comp_arcsec", "flags"):
         np.testing.assert_array_equal(getattr(rest, name), getattr(reference, name)[cut:], err_msg=name)
@@ -335,7 +336,7 @@ def test_a_restart_of_the_same_run_continues_exactly(model_path, tmp_path, cut):
     assert dump(second.pipeline_state()) == dump(whole.pipeline_state())  # NaN-aware: absent values are NaN
     # a new run restores the readout only: the pipeline starts afresh (a new switch-on, a new clock)
     third = Compensator(load_model(model_path), 0.1, adapt=adapt_config(), reference_rate_dph=0.0)
-    third.load_adaptation(path)
+    load_adaptation(third, path)
     assert dump(third.pipeline_state()) == dump(
         Compensator(load_model(model_path), 0.1, adapt=adapt_config(), reference_rate_dph=0.0).pipeline_state()
     )
@@ -347,14 +348,14 @@ def test_a_pipeline_state_for_another_model_or_rate_is_refused_and_changes_nothi
     samples = SampleStream().run(decode_file(DATA / "sim-short.bin"))
     first = Compensator(load_model(model_path), 0.1, adapt=adapt_config(), reference_rate_dph=0.0)
     first.run(slice_block(samples, 0, 1500))
-    path = first.save_adaptation(tmp_path / "adapt.yaml")
+    path = save_adaptation(first, tmp_path / "adapt.yaml")
     doc = yaml.safe_load(path.read_text())
     doc["pipeline"]["averager"]["frame_period_s"] = 0.01
     path.write_text(yaml.safe_dump(doc))
     other = Compensator(load_model(model_path), 0.1, adapt=adapt_config(), reference_rate_dph=0.0)
     before = (other.pipeline_state(), other.online.state_dict())
     with pytest.raises(FileError, match="corrupt adaptation state"):
-        other.load_adaptation(path, new_run=False)
+        load_adaptation(other, path, new_run=False)
     assert (other.pipeline_state(), other.online.state_dict()) == before
     doc["pipeline"]["averager"]["frame_period_s"] = 0.1
     if doc["pipeline"]["model"]:
@@ -363,7 +364,7 @@ def test_a_pipeline_state_for_another_model_or_rate_is_refused_and_changes_nothi
         doc["pipeline"]["features"]["m1"] = [1.0]
     path.write_text(yaml.safe_dump(doc))
     with pytest.raises(FileError, match="corrupt adaptation state"):
-        other.load_adaptation(path, new_run=False)
+        load_adaptation(other, path, new_run=False)
     assert (other.pipeline_state(), other.online.state_dict()) == before
 
 

@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 from fog_driver.compensation.features import FeatureExtractor
-from fog_driver.compensation.fitting.fit import FitConfig, fit_normalizer
-from fog_driver.compensation.models.wesn import COIL_LAG_GRID_S, WESN_DEFAULTS, fit_wesn
+from fog_driver.compensation.fitting.data import FitConfig, fit_normalizer
+from fog_driver.compensation.fitting.wesn import fit_wesn
+from fog_driver.compensation.models.wesn import COIL_LAG_GRID_S, WESN_DEFAULTS
 
 DATA = Path(__file__).resolve().parent / "data"
 ROOT = DATA.parents[1]
@@ -113,7 +114,7 @@ def test_a_run_that_cannot_tell_lags_apart_says_so():
 def test_captures_fitted_together_each_get_their_own_intercept():
     """Each capture's target is centred on its own mean (its own turn-on bias and mean drift): with one
     intercept per capture the pooled fit recovers the true weights; with one for all it cannot."""
-    from fog_driver.compensation.models.polynomial import standardized_ridge
+    from fog_driver.compensation.fitting.ridge import standardized_ridge
 
     rng = np.random.default_rng(3)
     x = [rng.normal(size=(2000, 3)) + [0.0, 1.0, 2.0], rng.normal(size=(2000, 3)) * 2 - 1.0]
@@ -166,7 +167,7 @@ def _fit_cli(tmp_path, *extra: str):
 def test_fit_without_a_kind_keeps_the_better_on_its_own_validation_and_says_what_a_short_run_cannot_identify(
     tmp_path, capsys
 ):
-    from fog_driver.compensation.model import load_model
+    from fog_driver.modelfiles import load_model
 
     status, out = _fit_cli(tmp_path)
     printed = capsys.readouterr().out
@@ -190,7 +191,7 @@ def test_fit_without_a_kind_keeps_the_better_on_its_own_validation_and_says_what
 
 def test_a_wesn_worse_than_the_polynomial_on_its_own_validation_is_never_kept_silently(tmp_path, capsys, monkeypatch):
     from fog_driver.compensation.fitting import fit
-    from fog_driver.compensation.model import load_model
+    from fog_driver.modelfiles import load_model
 
     real = fit.own_validation
     monkeypatch.setattr(
@@ -224,7 +225,7 @@ def _kinds_to_test() -> list[str]:
 @pytest.mark.parametrize("kind", _kinds_to_test())
 def test_every_kind_reports_its_phases_with_counts(kind):
     """Every kind says what it is doing and how far it is: decoding, its own phases with counts, validating."""
-    from fog_driver.compensation.fitting.fit import fit_model_file
+    from fog_driver.offline.fit import fit_model_file
 
     seen: list[str] = []
     fit_model_file(
@@ -247,7 +248,7 @@ def test_every_kind_reports_its_phases_with_counts(kind):
     elif kind == "paper":
         assert own[:2] == ["paper: reservoir states, capture 1/1 (0 %)", "paper: readout (adaptive)"]
     elif kind == "pso-svr":
-        from fog_driver.compensation.models.svr import PSO_SVR_DEFAULTS as S
+        from fog_driver.compensation.fitting.svr import PSO_SVR_DEFAULTS as S
 
         swarm = [t for t in own if t.startswith("pso-svr: iteration")]
         assert len(swarm) == S.n_particles * (S.iterations + 1)  # one line per evaluated particle
@@ -294,8 +295,8 @@ def test_fit_help_lists_every_kind_on_a_line_and_the_default_is_the_shipped_mode
     from fog_driver.cli.calibration import DEFAULT_FIT_KIND
     from fog_driver.cli.parser import build_parser
     from fog_driver.compensation.fitting.fit import FITTERS, KIND_HELP
-    from fog_driver.compensation.model import load_model
     from fog_driver.daemon.config import DEFAULT_MODEL
+    from fog_driver.modelfiles import load_model
 
     assert load_model(DEFAULT_MODEL).kind == DEFAULT_FIT_KIND  # the project's best: what it ships
     with pytest.raises(SystemExit):
@@ -311,7 +312,7 @@ def test_fit_help_lists_every_kind_on_a_line_and_the_default_is_the_shipped_mode
 
 
 def test_the_marker_is_on_exactly_the_rows_worse_than_no_compensation():
-    from fog_driver.compensation.fitting.fit import WORSE_MARKER, FitReport
+    from fog_driver.compensation.fitting.report import WORSE_MARKER, FitReport
 
     report = FitReport(
         [
@@ -331,8 +332,10 @@ def test_fit_marks_a_model_that_makes_validation_worse_and_names_the_noise_floor
     """Fitted on 5 minutes at one temperature and validated on a run over other temperatures, the models
     extrapolate and make the validation drift worse: marked in the table, a warning each beside the table, recorded
     in the model file; exit 0 with --accept-weak-fit, 65 without (the validation check, as before)."""
-    from fog_driver.compensation.fitting.fit import WORSE_MARKER, block_noise_dph, load_capture
-    from fog_driver.compensation.model import load_model
+    from fog_driver.compensation.fitting.data import block_noise_dph
+    from fog_driver.compensation.fitting.report import WORSE_MARKER
+    from fog_driver.modelfiles import load_model
+    from fog_driver.offline.fit import load_capture
     from fog_driver.sim.capture import simulate_to_file
     from fog_driver.sim.instrument import Simulator
     from fog_driver.sim.profiles import load_profile

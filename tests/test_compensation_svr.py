@@ -13,26 +13,23 @@ import numpy as np
 import pytest
 import yaml
 
-from fog_driver.compensation.fitting.fit import (
-    FitConfig,
-    applied_prediction,
-    fit_model_file,
-    load_capture,
-    minute_rms,
-)
-from fog_driver.compensation.model import MODEL_KINDS, load_model, save_model
-from fog_driver.compensation.models.svr import (
+from fog_driver.compensation.fitting.data import FitConfig
+from fog_driver.compensation.fitting.report import applied_prediction, minute_rms
+from fog_driver.compensation.fitting.svr import (
     MISSING_SKLEARN,
     PsoSvrConfig,
-    SvrModel,
     fit_pso_svr,
     minute_rows,
     pso_minimize,
     window_blocks,
 )
+from fog_driver.compensation.model import MODEL_KINDS
+from fog_driver.compensation.models.svr import SvrModel
 from fog_driver.compensation.numerics import dot
 from fog_driver.compensation.pipeline import CompensatedColumns, Compensator
 from fog_driver.errors import InputFileError, UsageError
+from fog_driver.modelfiles import load_model, save_model
+from fog_driver.offline.fit import fit_model_file, load_capture
 from fog_driver.protocol import decode_file
 from fog_driver.samples.stream import SampleBlock, SampleStream
 

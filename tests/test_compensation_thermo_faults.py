@@ -28,11 +28,12 @@ from fog_driver.compensation.features import (
     Substitution,
     fit_substitution,
 )
-from fog_driver.compensation.fitting.fit import FitConfig, fit_model_file
-from fog_driver.compensation.model import load_model, save_model
+from fog_driver.compensation.fitting.data import FitConfig
 from fog_driver.compensation.pipeline import FLAG_NAMES, Compensator
 from fog_driver.daemon.udp import FLAG_BITS
 from fog_driver.errors import InputFileError
+from fog_driver.modelfiles import load_model, save_model
+from fog_driver.offline.fit import fit_model_file
 from fog_driver.samples.stream import read_capture_samples
 from fog_driver.sim.capture import read_truth
 

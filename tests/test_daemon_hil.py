@@ -20,9 +20,9 @@ from pathlib import Path
 import golden
 import pytest
 
-from fog_driver.compensation.binding import compensate_capture
-from fog_driver.compensation.model import load_model
 from fog_driver.daemon.config import DEFAULT_MODEL
+from fog_driver.modelfiles import load_model
+from fog_driver.offline.compensate import compensate_capture
 from fog_driver.protocol import decode_bytes, decode_file
 from fog_driver.tools.watch import parse_address
 from fog_driver.transport import PtyPair
@@ -322,8 +322,9 @@ def test_bad_config_exits_78_with_one_line(tmp_path, args, needle):
 
 
 def test_sighup_reloads_the_config_and_the_model(tmp_path):
-    from fog_driver.compensation.fitting.fit import FitConfig, fit_model_file
-    from fog_driver.compensation.model import save_model
+    from fog_driver.compensation.fitting.data import FitConfig
+    from fog_driver.modelfiles import save_model
+    from fog_driver.offline.fit import fit_model_file
 
     model_file, _ = fit_model_file(
         [DATA / "sim-short.bin"], kind="polynomial", config=FitConfig(warmup_s=30.0), accept_weak=True

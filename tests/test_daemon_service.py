@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import yaml
 
-from fog_driver.compensation.binding import compensate_capture
-from fog_driver.compensation.model import load_model
 from fog_driver.compensation.pipeline import FLAG_NAMES
 from fog_driver.daemon.config import DEFAULT_MODEL, DriverConfig
 from fog_driver.daemon.service import ConfigError, Service
+from fog_driver.modelfiles import load_model
+from fog_driver.offline.compensate import compensate_capture
 
 DATA = Path(__file__).resolve().parent / "data"
 
@@ -118,8 +118,9 @@ def test_samples_before_the_first_identity_are_kept_and_compensated():
 
 
 def test_reload_config_applies_live_settings_and_keeps_the_rest(tmp_path):
-    from fog_driver.compensation.fitting.fit import FitConfig, fit_model_file
-    from fog_driver.compensation.model import save_model
+    from fog_driver.compensation.fitting.data import FitConfig
+    from fog_driver.modelfiles import save_model
+    from fog_driver.offline.fit import fit_model_file
 
     model_file, _ = fit_model_file(
         [DATA / "sim-short.bin"], kind="polynomial", config=FitConfig(warmup_s=30.0), accept_weak=True
@@ -144,7 +145,7 @@ def test_reloading_the_same_model_mid_run_changes_nothing_published(cut):
     """?RELOAD or SIGHUP of an unchanged model: the smoothers, the reservoir's memory and the adaptation
     carry on, so every later ANGLE is what the daemon would have published without it (the review found a
     permanent 0.61" offset and 0.12 deg/h transients when the pipeline restarted)."""
-    from fog_driver.compensation.model import load_model
+    from fog_driver.modelfiles import load_model
 
     data = (DATA / "sim-faults.bin").read_bytes()
     steady = Service(DriverConfig(), port="unused")
@@ -158,7 +159,8 @@ def test_reloading_the_same_model_mid_run_changes_nothing_published(cut):
 
 
 def test_reloading_another_model_keeps_the_block_grid_and_the_smoothers(tmp_path):
-    from fog_driver.compensation.fitting.fit import FitConfig, fit_model_file
+    from fog_driver.compensation.fitting.data import FitConfig
+    from fog_driver.offline.fit import fit_model_file
 
     model_file, _ = fit_model_file(
         [DATA / "sim-short.bin"], kind="polynomial", config=FitConfig(warmup_s=30.0), accept_weak=True

@@ -12,9 +12,10 @@ import pytest
 import yaml
 from test_daemon_hil import Client, Daemon
 
-from fog_driver.compensation.binding import compensate_capture
-from fog_driver.compensation.fitting.fit import FitConfig, fit_model_file
-from fog_driver.compensation.model import load_model, save_model
+from fog_driver.compensation.fitting.data import FitConfig
+from fog_driver.modelfiles import load_model, save_model
+from fog_driver.offline.compensate import compensate_capture
+from fog_driver.offline.fit import fit_model_file
 from fog_driver.samples.sources import SampleSource, wire_settings_for
 from fog_driver.samples.stream import Sample
 from fog_driver.sim.capture import simulate_to_file

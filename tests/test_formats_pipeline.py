@@ -14,13 +14,15 @@ import pytest
 import yaml
 
 from fog_driver.cli import main
-from fog_driver.compensation.binding import ModelMismatchError, compensate_capture
-from fog_driver.compensation.fitting.fit import FitConfig, fit_model_file
-from fog_driver.compensation.model import load_model, save_model
+from fog_driver.compensation.binding import ModelMismatchError
+from fog_driver.compensation.fitting.data import FitConfig
 from fog_driver.compensation.pipeline import Compensator
 from fog_driver.daemon.config import DEFAULT_MODEL, DeviceConfig, DriverConfig, parse_config
 from fog_driver.daemon.service import ConfigError, Service
 from fog_driver.errors import InputFileError
+from fog_driver.modelfiles import load_model, save_model
+from fog_driver.offline.compensate import compensate_capture
+from fog_driver.offline.fit import fit_model_file
 from fog_driver.samples.sources import (
     DTHETA_GRID_ARCSEC,
     AutoSampleSource,

@@ -150,7 +150,7 @@ _CHILD = """
 import json, sys
 import numpy as np
 from fog_driver.compensation import numerics
-from fog_driver.compensation.model import load_model
+from fog_driver.modelfiles import load_model
 rng = np.random.default_rng(8)
 x = rng.uniform(-30, 30, 20000)
 a, v = rng.normal(size=(40, 40)), rng.normal(size=40)

@@ -135,7 +135,7 @@ def test_a_link_gap_never_shifts_the_seconds_against_the_drift_or_the_truth(tmp_
     1-min drift RMS read 0.128 deg/h against 0.027 without the gap, the truth residual 0.157 against 0.016).
     Now the seconds without frames are rows of their own (NaN, not static): the gap changes the figures only
     by the minutes it removes."""
-    from fog_driver.compensation.model import load_model
+    from fog_driver.modelfiles import load_model
     from fog_driver.report.evaluate import evaluate, per_second
     from fog_driver.sim.capture import read_truth, simulate_to_file
     from fog_driver.sim.faults import parse_fault_spec

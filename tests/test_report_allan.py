@@ -161,7 +161,7 @@ def test_the_short_stretch_thresholds():
 
 
 def test_evaluate_reports_its_progress_in_percent():
-    from fog_driver.compensation.model import load_model
+    from fog_driver.modelfiles import load_model
     from fog_driver.report.evaluate import evaluate
 
     model = load_model(DEFAULT_MODEL)

@@ -259,8 +259,8 @@ def positioning_capture(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def default_model():
-    from fog_driver.compensation.model import load_model
     from fog_driver.daemon.config import DEFAULT_MODEL
+    from fog_driver.modelfiles import load_model
 
     return load_model(DEFAULT_MODEL)
 

@@ -8,18 +8,15 @@ import sys
 from pathlib import Path
 
 from ..compensation.adapt import AdaptConfig
-from ..compensation.binding import compensate_capture
 from ..compensation.fitting.fit import (
     FITTERS,
     KIND_HELP,
-    WORSE_MARKER,
     FitConfig,
     WeakFitError,
     bias_step_warning,
-    fit_model_file,
 )
 from ..compensation.fitting.quality import format_checks
-from ..compensation.model import load_model, save_model
+from ..compensation.fitting.report import WORSE_MARKER
 from ..console import Progress
 from ..errors import FogDriverError, InputFileError, OutputFileError
 from ..extras import require_extra
@@ -27,6 +24,9 @@ from ..files.kinds import ROW_COLUMNS
 from ..files.outputs import check_outputs, describe, write_error
 from ..files.yamlio import dataclass_from_mapping, read_yaml
 from ..formats.registry import FORMATS
+from ..modelfiles import load_model, save_model
+from ..offline.compensate import compensate_capture
+from ..offline.fit import fit_model_file
 from ..offline.rows import compensated_rows, format_row
 from ..report import positioning
 from ..report.evaluate import evaluate, format_bias_instability, model_label, series_names, write_report

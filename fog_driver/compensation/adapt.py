@@ -88,9 +88,10 @@ update (an honest a-priori estimate), then the guard, then the bias capture or t
 State.  ``state_dict`` / ``load_state`` give everything (the law's state, the bias capture, counters,
 and the frozen weights, so a state is never restored into another model) as plain YAML-safe values;
 floats round-trip exactly through ``yaml.safe_dump``, so a run saved and restored mid-stream continues bit
-for bit (tested).  ``save_state`` / ``load_state_file`` write and read a small YAML file with a format tag
-and a schema version (safe loading only, one-line ``InputFileError`` / ``OutputFileError``), optionally
-with a ``StaticDetector``'s state in the same file.
+for bit (tested).  ``state_document`` / ``load_state_doc`` give a document with a format tag
+(``modelfiles.save_readout_state`` / ``load_readout_state`` write and read it as a small YAML file
+and a schema version (safe loading only, one-line ``InputFileError`` / ``OutputFileError``)), optionally
+with a ``StaticDetector``'s state in the same document.
 """
 
 from __future__ import annotations
@@ -98,15 +99,14 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, field, fields
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from ..errors import InputFileError
 from ..files.kinds import ADAPT_STATE_FORMAT
-from ..files.yamlio import read_tagged_yaml, require_known_keys, write_yaml
 from . import numerics
+from .keys import require_known_keys
 from .pipeline import FLAG_ADAPTING, FLAG_GUARD
 from .readout import AdaptiveLaw, AdaptiveLawParams, AdaptiveLawState
 
@@ -319,16 +319,6 @@ GATE_FILTER_S = 120.0
 NOISE_MEMORY_S = 600.0
 #: Gate state (states saved before the gate existed load without it: a fresh gate).
 _GATE_KEYS = ("gate_noise_var_dph2", "gate_last_rate_dph", "gate_innovation_dph", "rejected")
-
-
-def read_state_doc(path: str | Path) -> dict[str, Any]:
-    """An adaptation state file's document (format and schema checked; one-line ``InputFileError``)."""
-    return read_tagged_yaml(path, "adaptation state", ADAPT_STATE_FORMAT, ADAPT_STATE_SCHEMA_VERSION)
-
-
-def write_state_doc(path: str | Path, doc: dict[str, Any]) -> Path:
-    """Write a ``state_document`` to ``path`` (atomically; ``OutputFileError`` on failure)."""
-    return write_yaml(Path(path), doc, "adaptation state")
 
 
 def runaway_for(fit_residual_dph: float | None) -> float:
@@ -732,17 +722,12 @@ class OnlineReadout:
             else:
                 setattr(self, k, v if k in ("compare_blocks", "compare_windows") else float(v))
 
-    def save_state(
-        self, path: str | Path, detector: StaticDetector | None = None, pipeline: dict[str, Any] | None = None
-    ) -> Path:
-        """Write the state (and a static detector's, and the compensator's ``pipeline`` state, if given) as
-        YAML; ``OutputFileError`` on failure."""
-        return write_state_doc(path, self.state_document(detector, pipeline))
-
     def state_document(
         self, detector: StaticDetector | None = None, pipeline: dict[str, Any] | None = None
     ) -> dict[str, Any]:
-        """What ``save_state`` writes, as a document of plain values (a snapshot: later steps do not change it)."""
+        """The state (and a static detector's, and the compensator's ``pipeline`` state, if given) as a
+        document of plain values, what ``modelfiles.save_readout_state`` writes (a snapshot: later steps do
+        not change it)."""
         doc: dict[str, Any] = {
             "format": ADAPT_STATE_FORMAT,
             "schema_version": ADAPT_STATE_SCHEMA_VERSION,
@@ -756,17 +741,13 @@ class OnlineReadout:
             doc["pipeline"] = pipeline
         return doc
 
-    def load_state_file(self, path: str | Path, detector: StaticDetector | None = None) -> StaticDetector | None:
-        """Restore the state from ``save_state``'s file; a corrupt, wrong-format or wrong-version file, or one
-        for another model, is a one-line ``InputFileError`` (and nothing is changed).  Returns the file's
-        static detector (None if it has none); with ``detector`` given its window is restored in place and
-        the file must have one with the same settings."""
-        return self.load_state_doc(read_state_doc(path), str(path), detector)
-
     def load_state_doc(
         self, doc: dict[str, Any], where: str, detector: StaticDetector | None = None
     ) -> StaticDetector | None:
-        """``load_state_file`` of a document already read (``where`` names it in errors)."""
+        """Restore the state from ``state_document``'s document (``where`` names it in errors); a corrupt one,
+        or one for another model, is a one-line ``InputFileError`` (and nothing is changed).  Returns the
+        document's static detector (None if it has none); with ``detector`` given its window is restored in
+        place and the document must have one with the same settings."""
         if doc.get("sample_time_s") != self.sample_time_s:
             raise InputFileError(
                 f"{where}: adaptation state for sample time {doc.get('sample_time_s')!r} s, "

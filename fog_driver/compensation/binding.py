@@ -13,12 +13,11 @@ The same rules live and offline, so that a capture compensated offline gives wha
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
-from pathlib import Path
+from collections.abc import Callable
 
 import numpy as np
 
-from ..errors import InputFileError, UsageError
+from ..errors import UsageError
 from ..protocol import IdentityFrame
 from ..samples.stream import SampleBlock, identity_is_plausible
 from .adapt import AdaptConfig
@@ -53,7 +52,8 @@ class InstrumentCompensation:
     """A model file bound to the instrument on a stream (see the module docstring).
 
     ``bind(identity)`` at every plausible IDENTITY, ``step``/``run`` for samples once ``bound``.
-    ``adapt_state``, when given and existing, is restored into the first compensator (as a new run).
+    ``restore_adaptation``, when given, is called with the first compensator (with ``adapt``) to restore its
+    adaptation state (``modelfiles.adaptation_restorer``: from a file, when it exists, as a new run).
     """
 
     def __init__(
@@ -65,7 +65,7 @@ class InstrumentCompensation:
         hint: str = "use --force to apply it anyway",
         adapt: AdaptConfig | None = None,
         reference_rate_dph: float | None = None,
-        adapt_state: str | Path | None = None,
+        restore_adaptation: Callable[[Compensator], None] | None = None,
     ) -> None:
         self.model_file = model_file
         self.force = force
@@ -73,7 +73,7 @@ class InstrumentCompensation:
         self.hint = hint
         self.adapt = adapt
         self.reference_rate_dph = reference_rate_dph
-        self.adapt_state = adapt_state
+        self.restore_adaptation = restore_adaptation
         self.compensator: Compensator | None = None
         self.identity: IdentityFrame | None = None  #: the identity the compensator was built for
         self.rebuilds = 0  #: compensators rebuilt for a new serial or rate
@@ -116,8 +116,8 @@ class InstrumentCompensation:
         new = Compensator(self.model_file, 1.0 / identity.rate_hz, adapt=self.adapt, reference_rate_dph=reference)
         self.identity = identity
         if old is None:
-            if self.adapt is not None and self.adapt_state is not None and Path(self.adapt_state).exists():
-                new.load_adaptation(self.adapt_state)
+            if self.adapt is not None and self.restore_adaptation is not None:
+                self.restore_adaptation(new)
             self.compensator = new
             return "bound"
         new.angle_raw_arcsec, new.angle_comp_arcsec = old.angle_raw_arcsec, old.angle_comp_arcsec
@@ -163,68 +163,3 @@ def split_at_identities(
             start, pending, current = cut, identity, identity
     parts.append((pending, samples.take(slice(start, len(samples)))))
     return parts
-
-
-def compensate_capture(
-    path: str | Path,
-    model_file: ModelFile,
-    *,
-    force: bool = False,
-    progress: Callable[[int], None] | None = None,
-    model_name: str = "the model",
-    adapt: AdaptConfig | None = None,
-    reference_rate_dph: float | None = None,
-    adapt_state: str | Path | None = None,
-    scale_override_arcsec_per_count: float | None = None,
-    save_adapt_state: bool = True,
-    wire_format: str = "auto",
-) -> Iterator[tuple[float, CompensatedColumns]]:
-    """Decode ``path`` block by block and yield (frame period s, compensated frames), bounded memory.
-
-    The binding rules of ``InstrumentCompensation`` (the module docstring).  With ``adapt`` the weights adapt
-    online against ``reference_rate_dph`` (None: frozen, but a restored state's adapted weights give the
-    estimate, as in the daemon); ``adapt_state`` is restored first when it exists (as a new run: the bias is
-    captured again) and, with ``save_adapt_state``, saved when the capture ends.
-    ``scale_override_arcsec_per_count``: the daemon's setting of that name.  ``wire_format``: ``--format``
-    (``sources.wire_settings_for``); a model fitted on other temperature channels is refused first.
-    """
-    from ..samples.sources import CaptureReader, wire_settings_for
-
-    wire = wire_settings_for(path, wire_format)
-    check_channels(model_file, wire, model_name, str(path))
-    reader = CaptureReader(path, wire, scale_override_arcsec_per_count)
-    binding = InstrumentCompensation(
-        model_file,
-        force=force,
-        model_name=model_name,
-        adapt=adapt,
-        reference_rate_dph=reference_rate_dph,
-        adapt_state=adapt_state,
-    )
-    pending: list[SampleBlock] = []  # samples before the first IDENTITY
-    samples_seen = 0
-    for part in reader.parts():
-        samples = part.samples
-        samples_seen += len(samples)
-        if progress:
-            progress(part.bytes_in)
-        for identity, block in split_at_identities(samples, part.identities, binding):
-            if identity is not None:
-                binding.bind(identity)
-            if not binding.bound:
-                if len(block):
-                    pending.append(block)
-                continue
-            for earlier in pending:
-                yield binding.compensator.frame_period_s, binding.run(earlier)
-            pending = []
-            if len(block):
-                yield binding.compensator.frame_period_s, binding.run(block)
-    if not samples_seen:
-        from ..samples.captures import what_it_is
-
-        raise InputFileError(f"{path}: no SAMPLE frames to compensate{what_it_is(path)}")
-    if not binding.bound:
-        raise InputFileError(f"{path}: no IDENTITY frame: frame rate unknown")
-    if adapt is not None and adapt_state is not None and save_adapt_state:
-        binding.compensator.save_adaptation(adapt_state)

@@ -65,6 +65,7 @@ import numpy as np
 from ..flags import Flag
 from . import numerics
 from .blocks import plausible_temp
+from .fitting.ridge import standardized_ridge
 
 #: Protocol v1's thermometers, in the order they fill a sample's three temperature places.
 V1_CHANNELS = ("top", "bottom", "housing")
@@ -187,8 +188,6 @@ def fit_substitution(
     of ``chunk_s``: the RMS of the residual within each held-out chunk, its chunk mean removed (what a
     substitute drifts off over a fault of that length).  A pair is kept only where it beats the better
     single.  Returns ``Substitution.offsets()`` where the data are too few (under 4 chunks)."""
-    from .models.polynomial import standardized_ridge
-
     if any(u.shape[1] != N_INPUTS for u in inputs):  # fewer than three channels: none to predict from
         return Substitution.offsets()
     chunk = max(1, int(round(chunk_s / block_s)))

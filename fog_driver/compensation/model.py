@@ -1,4 +1,5 @@
-"""The model file: a fitted drift model in YAML (safe loading only, never pickle).
+"""The model file's contents: a fitted drift model as plain numbers (``ModelFile``; read and written as
+YAML, safe loading only, never pickle, by ``fog_driver.modelfiles``).
 
 Everything needed to reproduce the outputs exactly on another machine is in
 the file as plain numbers (floats written by ``yaml.safe_dump`` round-trip
@@ -11,8 +12,8 @@ date).  A model fitted for another serial is refused unless forced.
 from __future__ import annotations
 
 import copy
+import datetime as _dt
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
@@ -20,8 +21,6 @@ import numpy as np
 from .. import __version__
 from ..errors import InputFileError
 from ..files.kinds import MODEL_FORMAT
-from ..files.yamlio import read_tagged_yaml, write_yaml
-from ..samples.captures import utc_now_iso
 from .domain import InputDomain
 from .features import V1_CHANNELS, FeatureParams, Substitution, input_names, params_to_dict
 from .models.polynomial import PolynomialModel
@@ -60,6 +59,12 @@ MODEL_KINDS: dict[str, Any] = {"polynomial": PolynomialModel, "wesn": WesnKind, 
 #: corrupt file (a block of under 1 ms would be 0 us long on the block grid).
 MIN_MODEL_RATE_HZ = 1e-3
 MAX_MODEL_RATE_HZ = 100.0
+
+
+def utc_now_iso() -> str:
+    """Now, UTC, ISO 8601 to the millisecond with a ``Z`` (as ``samples.captures.utc_now_iso``, which this
+    layer cannot import: it reads YAML sidecars)."""
+    return _dt.datetime.now(_dt.UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
 
 
 @dataclass
@@ -125,10 +130,6 @@ class ModelFile:
         }
 
 
-def save_model(path: str | Path, model_file: ModelFile) -> Path:
-    return write_yaml(path, model_file.to_doc(), "model")
-
-
 def _require(doc: dict, key: str, kind: type | tuple[type, ...], where: str) -> Any:
     if key not in doc:
         raise InputFileError(f"{where}: missing {key!r}")
@@ -138,10 +139,9 @@ def _require(doc: dict, key: str, kind: type | tuple[type, ...], where: str) -> 
     return value
 
 
-def load_model(path: str | Path) -> ModelFile:
-    """Read and validate a model file; a corrupt or wrong-version file is a one-line ``InputFileError``."""
-    where = str(path)
-    doc = read_tagged_yaml(path, "model file", MODEL_FORMAT, MODEL_SCHEMA_VERSION)
+def model_file_from_doc(doc: dict[str, Any], where: str) -> ModelFile:
+    """Validate a model file's document (its format and schema version already checked) and build the
+    ``ModelFile``; anything corrupt is a one-line ``InputFileError`` naming ``where``."""
     kind = _require(doc, "kind", str, where)
     if kind not in MODEL_KINDS:
         raise InputFileError(f"{where}: unknown model kind {kind!r} (known: {', '.join(sorted(MODEL_KINDS))})")

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
@@ -33,7 +32,7 @@ from ..flags import Flag
 from ..flags import flag_names as flag_names
 from ..protocol import STATUS_THERMOMETER_FAULT
 from ..samples.stream import Sample, SampleBlock
-from .blocks import FLAG_GAP, FLAG_THERMOMETER_FAULT, PLAUSIBLE_TEMP_C, BlockAverager, ModelBlock, plausible_temps
+from .blocks import FLAG_GAP, FLAG_THERMOMETER_FAULT, PLAUSIBLE_TEMP_C, BlockAverager, ModelBlock
 from .domain import FLAG_EXTRAPOLATING
 from .features import DEGRADED_FLAGS, FLAG_INPUT_STALE, FeatureExtractor
 from .model import ModelFile
@@ -49,6 +48,24 @@ FLAG_GUARD = int(Flag.GUARD)  #: a runaway or non-finite estimate, or a referenc
 MAX_GAP_S = 6 * 3600.0
 #: After a gap the estimates are flagged ``gap`` for this many slow rate-smoother time constants.
 SETTLE_TAUS = 3.0
+
+
+def frame_flags(estimate_flags, estimate_block, frame_block, missing_before, status, temps_c):
+    """The flags of a frame, the one rule of ``Compensator.step`` (scalars) and ``Compensator.run`` (arrays,
+    element-wise)::
+
+        flags = the flags of the estimate it is compensated with
+              | gap                if frames were lost just before it (missing_before > 0), or its estimate is
+                                   from before a gap (0 <= estimate_block < frame_block)
+              | thermometer_fault  if its status says so, or a reading of ``temps_c`` (its format's channels,
+                                   a scalar or a column each) is NaN or outside ``PLAUSIBLE_TEMP_C``
+    """
+    low, high = PLAUSIBLE_TEMP_C
+    gap = (missing_before > 0) | ((estimate_block >= 0) & (frame_block > estimate_block))
+    fault = (status & STATUS_THERMOMETER_FAULT) != 0
+    for t in temps_c:
+        fault = fault | (t < low) | (t > high) | (t != t)  # not plausible: outside, or NaN
+    return estimate_flags | FLAG_GAP * gap | FLAG_THERMOMETER_FAULT * fault
 
 
 class CompensatedSample(NamedTuple):
@@ -321,44 +338,38 @@ class Compensator:
             self.online.load_state(old.online.state_dict())
             self.static_detector = old.static_detector
 
-    def save_adaptation(self, path: str | Path) -> Path:
-        """The adaptation state as YAML (the readout, the static detector, and the pipeline's state, so that
-        a restart of the same run continues exactly); only when adapting."""
-        from .adapt import write_state_doc
-
-        return write_state_doc(path, self.adaptation_document())
-
     def adaptation_document(self) -> dict:
-        """What ``save_adaptation`` writes, as a snapshot of plain values (to take under a lock and write
-        outside it)."""
-        if self.online is None:
-            raise ValueError("this compensator is not adapting (no adapt config)")
+        """The adaptation state: the readout, the static detector, and the pipeline's state, so that a restart
+        of the same run continues exactly (``modelfiles.save_adaptation`` writes it), as a snapshot of plain
+        values (to take under a lock and write outside it); only when adapting."""
+        self.check_adapting()
         return self.online.state_document(detector=self.static_detector, pipeline=self.pipeline_state())
 
-    def load_adaptation(self, path: str | Path, *, new_run: bool = True) -> None:
-        """Restore ``save_adaptation``'s file (``InputFileError`` when it does not fit this model).  With
-        ``new_run`` (a new switch-on: a new turn-on bias, a new device clock) the bias is captured again and
-        only the readout is kept (the adapted W); without, the same run continues: the pipeline's state
-        (open block, smoothers, reservoir, held estimate) is restored too, and the output continues exactly
-        as if uninterrupted."""
-        from .adapt import read_state_doc
-
+    def check_adapting(self) -> None:
+        """``ValueError`` unless this compensator adapts (has an adapt config)."""
         if self.online is None:
             raise ValueError("this compensator is not adapting (no adapt config)")
-        doc = read_state_doc(path)
+
+    def restore_adaptation(self, doc: dict, where: str, *, new_run: bool = True) -> None:
+        """Restore ``adaptation_document``'s document (read from ``where``; ``InputFileError`` when it does not
+        fit this model).  With ``new_run`` (a new switch-on: a new turn-on bias, a new device clock) the bias
+        is captured again and only the readout is kept (the adapted W); without, the same run continues: the
+        pipeline's state (open block, smoothers, reservoir, held estimate) is restored too, and the output
+        continues exactly as if uninterrupted."""
+        self.check_adapting()
         if not new_run and "pipeline" in doc:  # checked before anything changes
             saved = self.pipeline_state()
             try:
                 self.set_pipeline_state(doc["pipeline"])
             except ValueError as exc:
-                raise InputFileError(f"{path}: corrupt adaptation state: {exc}") from None
+                raise InputFileError(f"{where}: corrupt adaptation state: {exc}") from None
             try:
-                self.online.load_state_doc(doc, str(path), detector=self.static_detector)
+                self.online.load_state_doc(doc, where, detector=self.static_detector)
             except InputFileError:
                 self.set_pipeline_state(saved)
                 raise
         else:
-            self.online.load_state_doc(doc, str(path), detector=self.static_detector)
+            self.online.load_state_doc(doc, where, detector=self.static_detector)
         if new_run:
             self.online.begin_run()
 
@@ -368,22 +379,18 @@ class Compensator:
         for block in self.averager.step(sample):
             self._on_block(block)
         drift = self.estimate_dph
-        stale = 0 <= self._estimate_block < self.averager._current  # after a gap: the estimate is from before it
         dtheta_comp = sample.dtheta_arcsec - drift * self.frame_period_s
         self.angle_raw_arcsec += sample.dtheta_arcsec
         self.angle_comp_arcsec += dtheta_comp
         temps = (sample.t_top_c, sample.t_bottom_c, sample.t_housing_c)
-        flags = self.estimate_flags
-        if sample.missing_before or stale:
-            flags |= FLAG_GAP
-        if sample.status & STATUS_THERMOMETER_FAULT:
-            flags |= FLAG_THERMOMETER_FAULT
-        else:
-            low, high = PLAUSIBLE_TEMP_C
-            for t in temps[: self.n_channels]:
-                if not low <= t <= high:  # not plausible_temp(t): NaN or implausible
-                    flags |= FLAG_THERMOMETER_FAULT
-                    break
+        flags = frame_flags(
+            self.estimate_flags,
+            self._estimate_block,
+            self.averager._current,
+            sample.missing_before,
+            sample.status,
+            temps[: self.n_channels],
+        )
         return CompensatedSample(
             sample.seq,
             sample.t_s,
@@ -414,9 +421,6 @@ class Compensator:
         est_flags = np.array([held_before[1]] + [a[1] for a in after], dtype=np.int64)
         est_blocks = np.array([held_before[2]] + [a[2] for a in after], dtype=np.int64)
         drift = estimates[which + 1]
-        flags = est_flags[which + 1].copy()
-        held_block = est_blocks[which + 1]
-        flags[(held_block >= 0) & (frame_block > held_block)] |= FLAG_GAP  # after a gap: the estimate is from before it
         dtheta = samples.dtheta_arcsec
         dtheta_comp = dtheta - drift * self.frame_period_s
         angle_raw = np.cumsum(np.r_[self.angle_raw_arcsec, dtheta])[1:]
@@ -424,12 +428,16 @@ class Compensator:
         if n:
             self.angle_raw_arcsec = float(angle_raw[-1])
             self.angle_comp_arcsec = float(angle_comp[-1])
-        temps = np.column_stack([samples.t_top_c, samples.t_bottom_c, samples.t_housing_c])
-        flags[samples.missing_before > 0] |= FLAG_GAP
-        bad_temp = ~plausible_temps(temps[:, : self.n_channels]).all(axis=1) | (
-            (samples.status & STATUS_THERMOMETER_FAULT) != 0
+        columns = (samples.t_top_c, samples.t_bottom_c, samples.t_housing_c)
+        temps = np.column_stack(columns)
+        flags = frame_flags(
+            est_flags[which + 1],
+            est_blocks[which + 1],
+            frame_block,
+            samples.missing_before,
+            samples.status,
+            columns[: self.n_channels],
         )
-        flags[bad_temp] |= FLAG_THERMOMETER_FAULT
         return CompensatedColumns(
             samples.seq, samples.t_s, dtheta, drift, dtheta_comp, angle_raw, angle_comp, temps, flags
         )

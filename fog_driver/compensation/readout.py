@@ -70,8 +70,8 @@ from typing import Any
 
 import numpy as np
 
-from ..files.yamlio import require_known_keys
 from . import numerics
+from .keys import require_known_keys
 
 __all__ = ["AdaptiveLaw", "AdaptiveLawParams", "AdaptiveLawState", "Standardizer", "ridge_fit"]
 

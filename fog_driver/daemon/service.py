@@ -51,9 +51,9 @@ from typing import Any
 import structlog
 
 from .. import __version__
-from ..compensation.adapt import AdaptConfig, read_state_doc, write_state_doc
+from ..compensation.adapt import AdaptConfig
 from ..compensation.binding import InstrumentCompensation, ModelMismatchError, check_channels
-from ..compensation.model import ModelFile, load_model
+from ..compensation.model import ModelFile
 from ..compensation.pipeline import (
     FLAG_NAMES,
     CompensatedSample,
@@ -61,6 +61,7 @@ from ..compensation.pipeline import (
     flag_names,
 )
 from ..errors import FogDriverError, TemporaryFailure
+from ..modelfiles import adaptation_restorer, load_model, read_state_doc, write_state_doc
 from ..protocol import IdentityFrame
 from ..samples.sources import make_source
 from ..samples.stream import identity_is_plausible
@@ -205,7 +206,7 @@ class Service:
             hint="set force_model: true in the config to apply it anyway",
             adapt=AdaptConfig(),
             reference_rate_dph=self.config.adapt_reference_dph,
-            adapt_state=self.config.adapt_state,
+            restore_adaptation=adaptation_restorer(self.config.adapt_state),
         )
 
     def _check_adapt_state(self, model_file: ModelFile) -> str | None:

@@ -31,12 +31,13 @@ from typing import Any
 
 import numpy as np
 
-from ..compensation.binding import compensate_capture
 from ..compensation.domain import FLAG_EXTRAPOLATING
-from ..compensation.fitting.fit import FitConfig, load_capture
+from ..compensation.fitting.data import FitConfig
 from ..compensation.model import ModelFile
 from ..errors import UsageError
 from ..extras import missing_message
+from ..offline.compensate import compensate_capture
+from ..offline.fit import load_capture
 from ..sim.capture import truth_noise_dph
 from .allan import FLICKER_FLOOR, AllanResult, allan, write_csv
 

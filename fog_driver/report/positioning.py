@@ -76,10 +76,11 @@ from typing import Any
 
 import numpy as np
 
-from ..compensation.binding import compensate_capture
-from ..compensation.model import ModelFile, load_model
+from ..compensation.model import ModelFile
 from ..compensation.pipeline import FLAG_UNCOMPENSATED
 from ..errors import InputFileError, UsageError, read_error
+from ..modelfiles import load_model
+from ..offline.compensate import compensate_capture
 from ..samples.captures import find_sidecar, read_provenance
 from ..samples.sources import CaptureReader, wire_settings_for
 from ..sim.motion import Stop

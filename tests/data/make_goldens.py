@@ -47,13 +47,14 @@ sys.path.insert(0, str(HERE.parent))
 import golden  # noqa: E402  (tests/golden.py: the comparison the tests make)
 
 from fog_driver.compensation.adapt import AdaptConfig  # noqa: E402
-from fog_driver.compensation.binding import compensate_capture  # noqa: E402
-from fog_driver.compensation.fitting.fit import FitConfig, fit_model_file  # noqa: E402
-from fog_driver.compensation.model import load_model, save_model  # noqa: E402
+from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
 from fog_driver.daemon.config import DriverConfig  # noqa: E402
 from fog_driver.daemon.hub import encode  # noqa: E402
 from fog_driver.daemon.service import Service  # noqa: E402
 from fog_driver.files.kinds import ROW_COLUMNS  # noqa: E402
+from fog_driver.modelfiles import load_model, save_model  # noqa: E402
+from fog_driver.offline.compensate import compensate_capture  # noqa: E402
+from fog_driver.offline.fit import fit_model_file  # noqa: E402
 from fog_driver.offline.rows import compensated_rows  # noqa: E402
 
 GOLDEN_DIR = HERE / "golden"
@@ -125,7 +126,8 @@ def refit_models(names=(*MODEL_KINDS, *EXTRA_MODELS)) -> None:
     import dataclasses
 
     from fog_driver.compensation.fitting import fit
-    from fog_driver.compensation.models.wesn import WESN_DEFAULTS, fit_wesn
+    from fog_driver.compensation.fitting.wesn import fit_wesn
+    from fog_driver.compensation.models.wesn import WESN_DEFAULTS
 
     MODEL_DIR.mkdir(parents=True, exist_ok=True)
     for name in names:
