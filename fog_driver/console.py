@@ -9,8 +9,6 @@ from typing import TextIO
 import structlog
 from structlog.tracebacks import ExceptionDictTransformer
 
-from .client.display import Progress as Progress  # re-exported: the commands' progress line
-
 LOG_FORMATS = ("auto", "human", "json")
 
 

@@ -18,7 +18,7 @@ import pytest
 import structlog
 import yaml
 
-from fog_driver.console import Progress
+from fog_driver.client.display import Progress
 from fog_driver.protocol import decode_bytes, encode_sample
 from fog_driver.samples.captures import inspect_capture, read_provenance, sidecar_path, summarize
 from fog_driver.samples.record import record

@@ -263,15 +263,15 @@ def _tty_progress(monkeypatch):
     """A terminal for ``Progress``: a stream that says it is a tty, and no rate limit (no waiting in a test)."""
     import io
 
-    from fog_driver import console
     from fog_driver.cli import calibration as cli
+    from fog_driver.client import display
 
     class Tty(io.StringIO):
         def isatty(self) -> bool:
             return True
 
     stream = Tty()
-    monkeypatch.setattr(cli, "Progress", lambda: console.Progress(stream, min_interval_s=0.0))
+    monkeypatch.setattr(cli, "Progress", lambda: display.Progress(stream, min_interval_s=0.0))
     return stream
 
 

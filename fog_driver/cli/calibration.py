@@ -7,6 +7,7 @@ import json
 import sys
 from pathlib import Path
 
+from ..client.display import Progress
 from ..compensation.adapt import AdaptConfig
 from ..compensation.fitting.fit import (
     FITTERS,
@@ -17,7 +18,6 @@ from ..compensation.fitting.fit import (
 )
 from ..compensation.fitting.quality import format_checks
 from ..compensation.fitting.report import WORSE_MARKER
-from ..console import Progress
 from ..errors import FogDriverError, InputFileError, OutputFileError
 from ..extras import require_extra
 from ..files.kinds import ROW_COLUMNS

@@ -8,7 +8,7 @@ import os
 import sys
 import threading
 
-from ..console import Progress
+from ..client.display import Progress
 from ..daemon.config import DriverConfig, load_config
 from ..errors import InputFileError, UsageError
 from ..formats.registry import FORMATS

@@ -43,7 +43,7 @@ from typing import Any, Self
 import serial
 import structlog
 
-from ..console import Progress
+from ..client.display import Progress
 from ..errors import DeviceError, OutputFileError, UsageError
 from ..protocol import IDENTITY_FRAME_LEN
 from ..signals import stop_on_signals
