@@ -91,5 +91,7 @@ class SeqUnwrapper:
         """The unwrapped sequence of the next frame whose counter reads ``raw``: ``(raw - previous) mod m``
         is 1 normally, 0 for a repeat, k > 1 when k - 1 frames are missing."""
         u = self.unwrapper
-        count_seq_step(self.counters, u.step(raw))
+        d = u.step(raw)
+        if d != 1:  # (tested here: the call only on a gap, a repeat or the first frame)
+            count_seq_step(self.counters, d)
         return u.value
