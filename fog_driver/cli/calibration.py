@@ -112,30 +112,46 @@ def cmd_fit(args: argparse.Namespace) -> int:
         )
     selection = provenance.get("selection")
     if selection and model_file.kind == kind:
-        history = (
-            (
-                f"history neurons {', '.join(f'{v:g}' for v in selection['history_s'])} s at "
-                f"{selection['history_penalty']:g}x the penalty"
-            )
-            if selection["history_s"]
-            else "no history neurons"
-        )
-        order = selection.get("coil_order", 1)
-        stages = f" in {order} stages" if order > 1 else ""
-        print(
-            f"structure chosen from the data: coil lag {selection['coil_lag_s']:g} s{stages}, ridge penalty "
-            f"{selection['ridge_alpha']:g}, {history}"
-            f"{'' if selection['state_powers'] else ', linear in the coil temperature'}"
-        )
-        for note in selection.get("limits", []):
-            print(f"note: {note}")
-        for key in ("warning", "warning_validation"):
-            if key in selection:
-                print(f"warning: {selection[key]}")
+        _print_structure(selection)
     if "fell_back" in provenance:
         print(f"note: {provenance['fell_back']}")
     _print_fit_report(report)
-    quality = provenance["fit_quality"]
+    _print_quality(provenance["fit_quality"], len(model_file.temperature_channels))
+    print(
+        f"the model's input box and estimate bound (+-{model_file.domain.estimate_limit_dph:.3g} deg/h) are in "
+        f"the file: outside them its estimate is flagged extrapolating"
+    )
+    return 0
+
+
+def _print_structure(selection: dict) -> None:
+    """The structure the fit chose from the data (the model file's ``provenance.selection``), its limits and
+    warnings."""
+    history = (
+        (
+            f"history neurons {', '.join(f'{v:g}' for v in selection['history_s'])} s at "
+            f"{selection['history_penalty']:g}x the penalty"
+        )
+        if selection["history_s"]
+        else "no history neurons"
+    )
+    order = selection.get("coil_order", 1)
+    stages = f" in {order} stages" if order > 1 else ""
+    print(
+        f"structure chosen from the data: coil lag {selection['coil_lag_s']:g} s{stages}, ridge penalty "
+        f"{selection['ridge_alpha']:g}, {history}"
+        f"{'' if selection['state_powers'] else ', linear in the coil temperature'}"
+    )
+    for note in selection.get("limits", []):
+        print(f"note: {note}")
+    for key in ("warning", "warning_validation"):
+        if key in selection:
+            print(f"warning: {selection[key]}")
+
+
+def _print_quality(quality: dict, temperature_channels: int) -> None:
+    """The fit's checks (the model file's ``provenance.fit_quality``), the model's condition for information,
+    the weaknesses accepted, and the bias step test."""
     print(format_checks(quality))
     if "model_condition" in quality:  # for information: a model's own basis may be collinear by design
         print(f"{'model regressors, condition':34s} {quality['model_condition']:10.4g}  (information, not a check)")
@@ -147,14 +163,9 @@ def cmd_fit(args: argparse.Namespace) -> int:
             f"{'bias step test (largest step)':34s} {step['step_dph']:+10.4f} deg/h at minute {step['minute']} of "
             f"{step['capture']}, {100 * step['share']:.0f} % of the temperature terms' residual"
         )
-        warning = bias_step_warning(step, len(model_file.temperature_channels))
+        warning = bias_step_warning(step, temperature_channels)
         if warning:
             print(f"warning: {warning}")
-    print(
-        f"the model's input box and estimate bound (+-{model_file.domain.estimate_limit_dph:.3g} deg/h) are in "
-        f"the file: outside them its estimate is flagged extrapolating"
-    )
-    return 0
 
 
 def cmd_compensate(args: argparse.Namespace) -> int:

@@ -339,16 +339,27 @@ def plot(
         raise UsageError(missing_message("report", "the report's plots", ["matplotlib"])) from None
     titles = dict(titles or {})
     minutes = series.t_s / 60.0
-    paths = []
+    return [
+        _save(_plot_temperatures(plt, series, minutes), out_dir / "temperatures.png"),
+        _save(_plot_drift(plt, series, minutes, titles), out_dir / "drift.png"),
+        _save(_plot_allan(plt, allans, titles), out_dir / "allan.png"),
+    ]
 
+
+def _plot_temperatures(plt: Any, series: Series, minutes: np.ndarray) -> Any:
+    """The three thermometers over the run."""
     fig, ax = plt.subplots(figsize=(9, 4))
     for k, name in enumerate(("ring top", "ring bottom", "housing")):
         ax.plot(minutes, series.temps_c[:, k], label=name, lw=1)
     ax.set(xlabel="time, min", ylabel="temperature, degC", title="Thermometers")
     ax.grid(alpha=0.3)
     ax.legend()
-    paths.append(_save(fig, out_dir / "temperatures.png"))
+    return fig
 
+
+def _plot_drift(plt: Any, series: Series, minutes: np.ndarray, titles: dict[str, str]) -> Any:
+    """The raw rate's static 1-min means (median removed), each model's estimated drift, and the compensated
+    rate with the same offset."""
     n = len(series.t_s) // 60 * 60
     mm = minutes[:n].reshape(-1, 60).mean(axis=1)
 
@@ -375,8 +386,12 @@ def plot(
     ax.set(xlabel="time, min", ylabel="deg/h", title="Drift before and after compensation (static minutes)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
-    paths.append(_save(fig, out_dir / "drift.png"))
+    return fig
 
+
+def _plot_allan(plt: Any, allans: dict[str, AllanResult], titles: dict[str, str]) -> Any:
+    """The Allan deviations with their 68 % intervals, the points read (ARW, bias instability) and the fitted
+    lines; past the trust limit hollow, dashed and faded."""
     fig, ax = plt.subplots(figsize=(7.5, 6))
     for name, a in allans.items():
         ok = a.trusted
@@ -431,8 +446,7 @@ def plot(
     ax.title.set_fontsize(8)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7)
-    paths.append(_save(fig, out_dir / "allan.png"))
-    return paths
+    return fig
 
 
 def _save(fig, path: Path) -> Path:

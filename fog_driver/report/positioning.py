@@ -422,6 +422,76 @@ def _stats(errors: np.ndarray) -> tuple[float, float]:
     return mean, std
 
 
+def _read_passes(
+    capture: Path,
+    model_files: Mapping[str, ModelFile],
+    windows: np.ndarray,
+    spans: np.ndarray,
+    temp_acc: np.ndarray,
+    force: bool,
+    wire_format: str,
+) -> dict[str, _Pass]:
+    """One pass over ``capture`` per model (the first also reads the raw angle and adds the sequences'
+    temperatures to ``temp_acc``): each method's dwell sums, its points once a second, and when it is ready."""
+    passes: dict[str, _Pass] = {}
+    methods = [(name, mf) for name, mf in model_files.items()] or [(None, None)]
+    for i, (name, mf) in enumerate(methods):
+        first = i == 0
+        targets = {name: _Pass(_DwellSums(windows))} if name is not None else {}
+        if first:
+            targets[RAW] = _Pass(_DwellSums(windows), ready_s=0.0)
+        t0: float | None = None
+        last_second = {key: -1 for key in targets}
+        for t_abs, raw, comp, temps, uncomp in _columns(capture, mf, force, name or "", wire_format):
+            if t0 is None:
+                t0 = float(t_abs[0])
+            t = t_abs - t0
+            for key, p in targets.items():
+                a = raw if key == RAW else comp
+                p.sums.add(t, a)
+                tp, ap, last_second[key] = _second_points(t, a, last_second[key])
+                p.t_points.append(tp)
+                p.a_points.append(ap)
+                if p.ready_s is None and not uncomp.all():
+                    p.ready_s = float(np.ceil(t[int(np.argmin(uncomp))]))
+            if first:
+                _seq_temps(t, temps, spans, temp_acc)
+        passes.update(targets)
+    return passes
+
+
+def _bias(
+    passes: dict[str, _Pass],
+    points: dict[str, tuple[np.ndarray, np.ndarray]],
+    remove_bias: bool,
+    bias_window_s: tuple[float, float] | None,
+    capture: Path,
+    flat: list[Stop],
+    stops: Sequence[Stop],
+    windows: np.ndarray,
+) -> tuple[tuple[float, float] | None, dict[str, float]]:
+    """The window the bias is read over and each method's bias rate on it (the module docstring): 0 without
+    ``remove_bias``."""
+    window: tuple[float, float] | None = None
+    bias = {k: 0.0 for k in passes}
+    if remove_bias:
+        if bias_window_s is not None:
+            window = (float(bias_window_s[0]), float(bias_window_s[1]))
+            if not window[1] > window[0]:
+                raise UsageError(f"bias window {window[0]:g}..{window[1]:g} s: the end must be after the start")
+        else:
+            never = [k for k, p in passes.items() if p.ready_s is None]
+            if never:
+                raise UsageError(f"model {never[0]!r} never produced a compensated sample on {capture}")
+            start = max(p.ready_s for p in passes.values())  # type: ignore[type-var]
+            end = min(start + BIAS_WINDOW_S, flat[0].t_start_s, stops[0].t_start_s)
+            window = (start, end)
+            if end - start < MIN_BIAS_WINDOW_S:
+                window = (float(windows[0, 0]), float(windows[0, 1]))
+        bias = {k: _rate(*points[k], window) for k in passes}
+    return window, bias
+
+
 def positioning_table(
     capture: str | Path,
     model_files: Mapping[str, ModelFile],
@@ -456,49 +526,10 @@ def positioning_table(
     spans = np.array([(seq[0].t_start_s, seq[-1].t_end_s) for seq in sequences])
     temp_acc = np.zeros((len(sequences), 4))
 
-    passes: dict[str, _Pass] = {}
-    methods = [(name, mf) for name, mf in model_files.items()] or [(None, None)]
-    for i, (name, mf) in enumerate(methods):
-        first = i == 0
-        targets = {name: _Pass(_DwellSums(windows))} if name is not None else {}
-        if first:
-            targets[RAW] = _Pass(_DwellSums(windows), ready_s=0.0)
-        t0: float | None = None
-        last_second = {key: -1 for key in targets}
-        for t_abs, raw, comp, temps, uncomp in _columns(capture, mf, force, name or "", wire_format):
-            if t0 is None:
-                t0 = float(t_abs[0])
-            t = t_abs - t0
-            for key, p in targets.items():
-                a = raw if key == RAW else comp
-                p.sums.add(t, a)
-                tp, ap, last_second[key] = _second_points(t, a, last_second[key])
-                p.t_points.append(tp)
-                p.a_points.append(ap)
-                if p.ready_s is None and not uncomp.all():
-                    p.ready_s = float(np.ceil(t[int(np.argmin(uncomp))]))
-            if first:
-                _seq_temps(t, temps, spans, temp_acc)
-        passes.update(targets)
+    passes = _read_passes(capture, model_files, windows, spans, temp_acc, force, wire_format)
 
     points = {k: (np.concatenate(p.t_points), np.concatenate(p.a_points)) for k, p in passes.items()}
-    window: tuple[float, float] | None = None
-    bias = {k: 0.0 for k in passes}
-    if remove_bias:
-        if bias_window_s is not None:
-            window = (float(bias_window_s[0]), float(bias_window_s[1]))
-            if not window[1] > window[0]:
-                raise UsageError(f"bias window {window[0]:g}..{window[1]:g} s: the end must be after the start")
-        else:
-            never = [k for k, p in passes.items() if p.ready_s is None]
-            if never:
-                raise UsageError(f"model {never[0]!r} never produced a compensated sample on {capture}")
-            start = max(p.ready_s for p in passes.values())  # type: ignore[type-var]
-            end = min(start + BIAS_WINDOW_S, flat[0].t_start_s, stops[0].t_start_s)
-            window = (start, end)
-            if end - start < MIN_BIAS_WINDOW_S:
-                window = (float(windows[0, 0]), float(windows[0, 1]))
-        bias = {k: _rate(*points[k], window) for k in passes}
+    window, bias = _bias(passes, points, remove_bias, bias_window_s, capture, flat, stops, windows)
 
     order = [RAW] + [k for k in model_files]
     rows: list[Row] = []

@@ -13,7 +13,7 @@ import contextlib
 import itertools
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -82,21 +82,7 @@ def record(
     wire = wire or WireSettings()
     stop = stop or threading.Event()
     out_path = Path(out_path)
-    decoder = wire.make_decoder()
-    identity: IdentityFrame | None = None
-    port_state = "opening"
-    port_events: list[dict[str, Any]] = []
-
-    def state_changed(event: PortEvent) -> None:
-        nonlocal port_state
-        port_state = event.state
-        entry = {"utc": utc_now_iso(), "state": event.state}
-        if event.detail:
-            entry["detail"] = event.detail
-        port_events.append(entry)
-        if on_state:
-            on_state(event)
-
+    recording = _Recording(wire, on_state)
     base_fields: dict[str, Any] = {
         "source": "record",
         "port": url,
@@ -108,30 +94,13 @@ def record(
     if notes:
         base_fields["notes"] = notes
     check_outputs([out_path, sidecar_path(out_path)], force=overwrite)  # say so now, not after waiting for the port
-    on_open = None
-    captured = [0]  # bytes written to the capture so far
-    events: list[dict[str, Any]] = []  # device setups: the offline readers skip their bytes, as the daemon does
-    if setup is not None:
-
-        def on_setup(result) -> None:  # before its bytes are yielded: they start at the bytes written so far
-            events.append(
-                {
-                    "event": "device_setup",
-                    "utc": utc_now_iso(),
-                    "at_byte": captured[0],
-                    "bytes_not_decoded": len(result.raw),
-                    "replies": list(result.replies),
-                }
-            )
-
-        on_open = make_on_open(setup, on_result=on_setup)
     reader = PortReader(
         url,
         baudrate=baudrate,
         reconnect=reconnect,
-        on_state=state_changed,
+        on_state=recording.state_changed,
         first_open="wait" if wait else "fail",
-        on_open=on_open,
+        on_open=None if setup is None else make_on_open(setup, on_result=recording.setup_done),
     )
     chunks = reader.chunks(stop)
     timer = threading.Timer(duration_s, stop.set) if duration_s is not None else None
@@ -139,37 +108,13 @@ def record(
         timer.daemon = True
         timer.start()
     started = time.monotonic()
-    try:
-        first = next(chunks, b"")
-    except PortError as exc:
-        if timer:
-            timer.cancel()
-        raise DeviceError(str(exc)) from None
-    if not first:  # stopped before the first byte: an empty capture would only block a rerun
-        if timer:
-            timer.cancel()
-        why = "never opened" if not reader.opens else "sent no bytes"
-        raise DeviceError(f"nothing recorded: {url} {why} in {time.monotonic() - started:.1f} s; no capture written")
-
-    last_flush = last_progress = started
+    first = _first_chunk(url, reader, chunks, timer, started)
     status = "complete"
     sidecar = sidecar_path(out_path)
     with CaptureWriter(out_path, overwrite=overwrite) as writer:
         write_provenance(out_path, {**base_fields, "status": "recording"})
         try:
-            for chunk in itertools.chain((first,), chunks):
-                writer.write(chunk)
-                captured[0] = writer.bytes_written
-                for event in decoder.feed(chunk):
-                    if isinstance(event, IdentityFrame):
-                        identity = event
-                now = time.monotonic()
-                if now - last_flush >= _FLUSH_EVERY_S:
-                    writer.flush()
-                    last_flush = now
-                if on_progress and now - last_progress >= progress_every_s:
-                    on_progress(RecordProgress(now - started, writer.bytes_written, decoder.counters, port_state))
-                    last_progress = now
+            _copy(itertools.chain((first,), chunks), writer, recording, started, on_progress, progress_every_s)
         except OutputFileError as exc:
             status = f"failed: {exc}"
             raise
@@ -182,27 +127,115 @@ def record(
                 writer.close()
             except OutputFileError as exc:
                 status = f"failed: {exc}"
-            fields = {
-                **base_fields,
-                "status": status,
-                "end_utc": utc_now_iso(),
-                "host_duration_s": round(elapsed, 3),
-                "bytes": writer.bytes_written,
-                "sha256": writer.sha256,
-                "port_events": port_events,
-                "decoded_while_recording": decoder.counters.as_dict(),
-                **({"events": events} if events else {}),
-            }
-            if identity is not None:
-                fields["instrument"] = {
-                    "serial": identity.serial,
-                    "firmware": identity.firmware_version,
-                    "rate_hz": identity.rate_hz,
-                    "scale_arcsec_per_count": identity.scale_arcsec_per_count,
-                }
             # the disk is full: the write error on its way out says so
             with contextlib.suppress(OSError, OutputFileError):
-                write_provenance(out_path, fields)
+                write_provenance(out_path, recording.sidecar_fields(base_fields, status, elapsed, writer))
     if status != "complete":
         raise OutputFileError(status.removeprefix("failed: "))
-    return RecordResult(out_path, sidecar, writer.bytes_written, writer.sha256, elapsed, decoder.counters, identity)
+    counters, identity = recording.decoder.counters, recording.identity
+    return RecordResult(out_path, sidecar, writer.bytes_written, writer.sha256, elapsed, counters, identity)
+
+
+class _Recording:
+    """What a recording learns as it goes, for its sidecar: the port's states, the device setups run on each
+    open (the offline readers skip their bytes, as the daemon does), the frames decoded and the identity."""
+
+    def __init__(self, wire: Any, on_state: Callable[[PortEvent], None] | None) -> None:
+        self.decoder = wire.make_decoder()
+        self.identity: IdentityFrame | None = None
+        self.port_state = "opening"
+        self.port_events: list[dict[str, Any]] = []
+        self.events: list[dict[str, Any]] = []
+        self.bytes_written = 0  # to the capture so far
+        self._on_state = on_state
+
+    def state_changed(self, event: PortEvent) -> None:
+        self.port_state = event.state
+        entry = {"utc": utc_now_iso(), "state": event.state}
+        if event.detail:
+            entry["detail"] = event.detail
+        self.port_events.append(entry)
+        if self._on_state:
+            self._on_state(event)
+
+    def setup_done(self, result: Any) -> None:
+        """A device setup ran (before its bytes are yielded: they start at the bytes written so far)."""
+        self.events.append(
+            {
+                "event": "device_setup",
+                "utc": utc_now_iso(),
+                "at_byte": self.bytes_written,
+                "bytes_not_decoded": len(result.raw),
+                "replies": list(result.replies),
+            }
+        )
+
+    def feed(self, chunk: bytes, bytes_written: int) -> None:
+        """A chunk written to the capture, which now holds ``bytes_written`` bytes: decode it."""
+        self.bytes_written = bytes_written
+        for event in self.decoder.feed(chunk):
+            if isinstance(event, IdentityFrame):
+                self.identity = event
+
+    def sidecar_fields(self, base_fields: dict[str, Any], status: str, elapsed_s: float, writer: CaptureWriter) -> dict:
+        """The sidecar at the end: ``base_fields``, how the recording ended, and what it learnt."""
+        fields = {
+            **base_fields,
+            "status": status,
+            "end_utc": utc_now_iso(),
+            "host_duration_s": round(elapsed_s, 3),
+            "bytes": writer.bytes_written,
+            "sha256": writer.sha256,
+            "port_events": self.port_events,
+            "decoded_while_recording": self.decoder.counters.as_dict(),
+            **({"events": self.events} if self.events else {}),
+        }
+        if self.identity is not None:
+            fields["instrument"] = {
+                "serial": self.identity.serial,
+                "firmware": self.identity.firmware_version,
+                "rate_hz": self.identity.rate_hz,
+                "scale_arcsec_per_count": self.identity.scale_arcsec_per_count,
+            }
+        return fields
+
+
+def _first_chunk(url: str, reader: PortReader, chunks: Iterator[bytes], timer: Any, started: float) -> bytes:
+    """The recording's first bytes; a port that fails to open, or a recording stopped before its first byte,
+    is a ``DeviceError`` (an empty capture would only block a rerun)."""
+    try:
+        first = next(chunks, b"")
+    except PortError as exc:
+        if timer:
+            timer.cancel()
+        raise DeviceError(str(exc)) from None
+    if not first:  # stopped before the first byte: an empty capture would only block a rerun
+        if timer:
+            timer.cancel()
+        why = "never opened" if not reader.opens else "sent no bytes"
+        raise DeviceError(f"nothing recorded: {url} {why} in {time.monotonic() - started:.1f} s; no capture written")
+    return first
+
+
+def _copy(
+    chunks: Iterator[bytes],
+    writer: CaptureWriter,
+    recording: _Recording,
+    started: float,
+    on_progress: Callable[[RecordProgress], None] | None,
+    progress_every_s: float,
+) -> None:
+    """Write every chunk to the capture and decode it; flush every ``_FLUSH_EVERY_S`` and report progress
+    every ``progress_every_s`` (host time)."""
+    last_flush = last_progress = started
+    for chunk in chunks:
+        writer.write(chunk)
+        recording.feed(chunk, writer.bytes_written)
+        now = time.monotonic()
+        if now - last_flush >= _FLUSH_EVERY_S:
+            writer.flush()
+            last_flush = now
+        if on_progress and now - last_progress >= progress_every_s:
+            counters = recording.decoder.counters
+            on_progress(RecordProgress(now - started, writer.bytes_written, counters, recording.port_state))
+            last_progress = now

@@ -119,6 +119,64 @@ def cut_windows(sim: Simulator, first: int, end: int) -> list[tuple[int, int]]:
     return windows
 
 
+def _check_pace(speed: float, chunk_s: float, duration_s: float | None) -> None:
+    """``serve``'s numbers: each finite and > 0 (``duration_s`` None: to the profile's end)."""
+    if not (math.isfinite(speed) and speed > 0):
+        raise ValueError(f"speed must be a finite number > 0, got {speed!r}")
+    if not (math.isfinite(chunk_s) and chunk_s > 0):
+        raise ValueError(f"chunk_s must be a finite number > 0, got {chunk_s!r}")
+    if duration_s is not None and not (math.isfinite(duration_s) and duration_s > 0):
+        raise ValueError(f"duration_s must be a finite number > 0, got {duration_s!r}")
+
+
+class _Pacer:
+    """Real-time pacing for ``serve``: frame k is due ``(k - k0) * frame_wall_s`` after the first chunk is ready;
+    a write more than ``late_after_s`` after it is late, and a run of late writes is one stall."""
+
+    def __init__(
+        self, stats: ServeStats, stop: threading.Event, k0: int, frame_wall_s: float, late_after_s: float
+    ) -> None:
+        self.stats, self.stop, self.k0 = stats, stop, k0
+        self.frame_wall_s, self.late_after_s = frame_wall_s, late_after_s
+        self.t0: float | None = None  # when frame k0 is due: set once the first chunk is ready (its set-up is slow)
+        self.behind = False
+        self.t_start = time.monotonic()
+        self.cpu0, self.pcpu0 = time.thread_time(), time.process_time()
+
+    def finish(self, frames: int) -> None:
+        """The run's accounting: ``frames`` generated, its wall time, the thread's and the process's CPU."""
+        self.stats.frames = frames
+        self.stats.wall_s = time.monotonic() - self.t_start
+        self.stats.cpu_s = time.thread_time() - self.cpu0
+        self.stats.process_cpu_s = time.process_time() - self.pcpu0
+
+    def wait_due(self, k: int) -> bool:
+        """Wait until frame ``k`` is due; False if stopped.  Tracks late writes and stalls."""
+        stats = self.stats
+        if self.t0 is None:
+            self.t0 = time.monotonic()
+        due = self.t0 + (k - self.k0) * self.frame_wall_s
+        delay = due - time.monotonic()
+        if delay > 0:
+            if self.behind:
+                self.behind = False
+                log.info("serve_caught_up", frame=k)
+            if self.stop.wait(delay):
+                stats.stopped = True
+                return False
+            return True
+        if -delay > self.late_after_s:
+            stats.late_writes += 1
+            if not self.behind:
+                self.behind = True
+                stats.stalls += 1
+                log.warning("serve_behind", frame=k, behind_s=round(-delay, 3), detail="writing at once to catch up")
+        if self.stop.is_set():
+            stats.stopped = True
+            return False
+        return True
+
+
 def serve(
     sim: Simulator,
     write: Callable[[bytes], Any],
@@ -136,12 +194,7 @@ def serve(
     end, or as soon as ``stop`` is set (the wait between chunks is ``stop.wait``).  Exceptions from
     ``write`` and the callbacks propagate.
     """
-    if not (math.isfinite(speed) and speed > 0):
-        raise ValueError(f"speed must be a finite number > 0, got {speed!r}")
-    if not (math.isfinite(chunk_s) and chunk_s > 0):
-        raise ValueError(f"chunk_s must be a finite number > 0, got {chunk_s!r}")
-    if duration_s is not None and not (math.isfinite(duration_s) and duration_s > 0):
-        raise ValueError(f"duration_s must be a finite number > 0, got {duration_s!r}")
+    _check_pace(speed, chunk_s, duration_s)
     stop = stop if stop is not None else threading.Event()
     rate = sim.rate_hz
     k0 = sim.next_frame
@@ -153,47 +206,10 @@ def serve(
     late_after_s = per_chunk * frame_wall_s  # a reader sees at least a double chunk
     windows = cut_windows(sim, k0, end)
     stats = ServeStats()
-    behind = False
 
-    log.info(
-        "serve_start",
-        profile=sim.profile.name,
-        rate_hz=rate,
-        first_frame=k0,
-        frames=max(0, end - k0),
-        speed=speed,
-        frames_per_chunk=per_chunk,
-        disconnects=len(windows),
-    )
-    t_start = time.monotonic()
-    cpu0, pcpu0 = time.thread_time(), time.process_time()
-    t0: float | None = None  # when frame k0 is due: set once the first chunk is ready (its set-up is slow)
-
-    def wait_due(k: int) -> bool:
-        """Wait until frame ``k`` is due; False if stopped.  Tracks late writes and stalls."""
-        nonlocal behind, t0
-        if t0 is None:
-            t0 = time.monotonic()
-        due = t0 + (k - k0) * frame_wall_s
-        delay = due - time.monotonic()
-        if delay > 0:
-            if behind:
-                behind = False
-                log.info("serve_caught_up", frame=k)
-            if stop.wait(delay):
-                stats.stopped = True
-                return False
-            return True
-        if -delay > late_after_s:
-            stats.late_writes += 1
-            if not behind:
-                behind = True
-                stats.stalls += 1
-                log.warning("serve_behind", frame=k, behind_s=round(-delay, 3), detail="writing at once to catch up")
-        if stop.is_set():
-            stats.stopped = True
-            return False
-        return True
+    _log_start(sim, k0, end, speed, per_chunk, len(windows))
+    pacer = _Pacer(stats, stop, k0, frame_wall_s, late_after_s)
+    wait_due = pacer.wait_due
 
     def send(data: bytes) -> None:
         if data:
@@ -234,10 +250,25 @@ def serve(
         if k < end and stop.is_set():
             stats.stopped = True
     finally:
-        stats.frames = k - k0
-        stats.wall_s = time.monotonic() - t_start
-        stats.cpu_s = time.thread_time() - cpu0
-        stats.process_cpu_s = time.process_time() - pcpu0
+        pacer.finish(k - k0)
+    _log_end(stats)
+    return stats
+
+
+def _log_start(sim: Simulator, k0: int, end: int, speed: float, per_chunk: int, disconnects: int) -> None:
+    log.info(
+        "serve_start",
+        profile=sim.profile.name,
+        rate_hz=sim.rate_hz,
+        first_frame=k0,
+        frames=max(0, end - k0),
+        speed=speed,
+        frames_per_chunk=per_chunk,
+        disconnects=disconnects,
+    )
+
+
+def _log_end(stats: ServeStats) -> None:
     log.info(
         "serve_end",
         frames=stats.frames,
@@ -247,7 +278,6 @@ def serve(
         late_writes=stats.late_writes,
         stopped=stats.stopped,
     )
-    return stats
 
 
 # -- a pty behind a stable symlink --------------------------------------------------------------
