@@ -14,7 +14,8 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import InputFileError
-from ..files.yamlio import dataclass_from_mapping, read_yaml
+from ..files.typed_mapping import dataclass_from_mapping
+from ..files.yamlio import read_yaml
 from ..samples.stream import DEFAULT_SCALE_ARCSEC_PER_COUNT, SampleStream
 
 #: The shipped drift model (``fog_driver/data/models/default.yaml``): package data, so a wheel or any

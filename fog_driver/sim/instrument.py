@@ -30,7 +30,8 @@ from typing import Any
 
 import numpy as np
 
-from ..files.yamlio import dataclass_from_mapping, read_yaml
+from ..files.typed_mapping import dataclass_from_mapping
+from ..files.yamlio import read_yaml
 from ..protocol import (
     SAMPLE_FRAME_LEN,
     STATUS_LIGHT_SOURCE_FAULT,
