@@ -78,3 +78,62 @@ def test_a_bad_value_names_the_file_then_the_key(tmp_path):
     with pytest.raises(InputFileError) as info:
         load_instrument_config(path)
     assert str(info.value).startswith(f"{path}: thermal.tau_top_s: expected")
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("baud: true\n", "baud: expected an integer, got True"),
+        ("baud: 9600.0\n", "baud: expected an integer, got 9600.0"),
+        ("force_model: 1\n", "force_model: expected true or false, got 1"),
+        ("scale_arcsec_per_count: .inf\n", "scale_arcsec_per_count: expected a finite number, got inf"),
+        ("1: 2\n", "unknown key 1 (known: "),
+        ("device: [1]\n", "device: expected a mapping"),
+        ("device: null\n", "device: expected a mapping"),
+        ("device: {rate: 1}\n", "device: unknown key 'rate' (known: rate_hz, rot_format, rot_units, serial, setup, "),
+        ("device: {rate_hz: 1.5}\n", "device.rate_hz: expected an integer, got 1.5"),
+        ("device: {setup: abc}\n", "device.setup: expected a list of strings, got 'abc'"),
+        ("device: {setup: ['=DR,1', 2]}\n", "device.setup: expected a list of strings, got ['=DR,1', 2]"),
+        ("device: {setup_reply_timeout_s: 99}\n", "device: setup_reply_timeout_s must be in (0, 30] s"),
+        ("format: kvh-a\n", "device.rate_hz: kvh-a frames do not say the device's output rate: give it"),
+    ],
+)
+def test_each_problem_names_the_file_then_the_key_path(tmp_path, text, message):
+    """The schema (msgspec) finds the problem; the message is the project's, naming the key's path."""
+    path = tmp_path / "c.yaml"
+    path.write_text(text)
+    with pytest.raises(InputFileError) as info:
+        load_config(path)
+    assert str(info.value).startswith(f"{path}: {message}")
+    assert "\n" not in str(info.value)
+
+
+def test_valid_values_are_held_as_before(tmp_path):
+    """Integers given for numbers become floats, lists become tuples, null unsets an optional key, and a key
+    the file leaves out keeps its default."""
+    path = tmp_path / "c.yaml"
+    path.write_text(
+        "scale_arcsec_per_count: 1\ncapture_keep_days: null\nformat: kvh-a\n"
+        "device: {rate_hz: 1000, setup: ['=DR,1000']}\n"
+    )
+    cfg = load_config(path)
+    assert cfg.scale_arcsec_per_count == 1.0 and type(cfg.scale_arcsec_per_count) is float
+    assert cfg.capture_keep_days is None and cfg.baud == DriverConfig().baud
+    assert cfg.device.setup == ("=DR,1000",) and cfg.device.rate_hz == 1000
+    assert cfg.device.setup_reply_timeout_s == 1.0
+
+
+def test_the_instrument_and_fit_configs_share_the_schema_checks(tmp_path):
+    from fog_driver.compensation.features import FeatureParams
+    from fog_driver.compensation.fitting.fit import FitConfig
+    from fog_driver.files.typed_mapping import dataclass_from_mapping
+    from fog_driver.sim.instrument import InstrumentConfig
+
+    with pytest.raises(InputFileError) as info:
+        dataclass_from_mapping(InstrumentConfig, {"thermal": {"coil_coupling": [1, True]}}, "i.yaml")
+    assert str(info.value) == "i.yaml: thermal.coil_coupling: expected a list of numbers, got [1, True]"
+    with pytest.raises(InputFileError) as info:
+        dataclass_from_mapping(FitConfig, {"features": {"rate_tau_fast_s": 100}}, "fit.yaml")
+    assert str(info.value) == "fit.yaml: features: need 0 < rate_tau_fast_s < rate_tau_slow_s"
+    fit = dataclass_from_mapping(FitConfig, {"features": {"hold_s": 5}, "poly_alpha": None}, "fit.yaml")
+    assert fit == FitConfig(features=FeatureParams(hold_s=5.0), poly_alpha=None)

@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import errno
 import os
+import re
 import stat
+from pathlib import Path
 
 import pytest
 import yaml
@@ -72,3 +74,16 @@ def test_a_failed_write_keeps_the_old_file_and_leaves_no_temporary(tmp_path, mon
         write_yaml(target, {"new": True}, "state")
     assert yaml.safe_load(target.read_text()) == {"old": True}
     assert [p.name for p in tmp_path.iterdir()] == ["state.yaml"]
+
+
+def test_the_package_reads_yaml_with_safe_load_only():
+    """Configs, profiles, sidecars and models: ``yaml.safe_load`` and nothing that can build a Python object."""
+    package = Path(yamlfile.__file__).resolve().parents[1]
+    unsafe = re.compile(r"yaml\.(load|load_all|full_load|unsafe_load|unsafe_load_all|Loader|FullLoader|UnsafeLoader)\b")
+    found = [
+        f"{path.relative_to(package)}:{n}"
+        for path in sorted(package.rglob("*.py"))
+        for n, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1)
+        if unsafe.search(line)
+    ]
+    assert found == []

@@ -1,8 +1,10 @@
-"""Driver configuration: a YAML file read with ``yaml.safe_load`` only, validated key by key.
+"""Driver configuration: a YAML file read with ``yaml.safe_load`` only, checked against ``DriverConfig``.
 
-``configs/default.yaml`` lists every key with its default.  Unknown keys are
-errors, so a typo never silently falls back to a default.  ``fog-driver run``
-flags override the file.
+``configs/default.yaml`` lists every key with its default.  The document's shape (unknown keys, types,
+finite numbers) is checked by a msgspec schema derived from the dataclasses below
+(``files.typed_mapping``); their ``__post_init__`` checks the ranges.  Unknown keys are errors, so a typo
+never silently falls back to a default; every problem is one line naming the file and the key path
+(``badval.yaml: baud: expected an integer, got 'fast'``).  ``fog-driver run`` flags override the file.
 """
 
 from __future__ import annotations
@@ -16,7 +18,8 @@ from typing import Any
 from ..client.address import DEFAULT_PORT, parse_host_port
 from ..client.address import format_address as format_address  # re-exported: service.py reads it here
 from ..errors import InputFileError
-from ..files.yamlio import dataclass_from_mapping, read_yaml
+from ..files.typed_mapping import dataclass_from_mapping
+from ..files.yamlio import read_yaml
 from ..samples.stream import DEFAULT_SCALE_ARCSEC_PER_COUNT, SampleStream
 
 #: The shipped drift model (``fog_driver/data/models/default.yaml``): package data, so a wheel or any

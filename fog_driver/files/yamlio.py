@@ -3,16 +3,16 @@
 from __future__ import annotations
 
 import errno
-import math
 import os
 import secrets
-from dataclasses import fields, is_dataclass
+from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
 import yaml
 
 from ..errors import InputFileError, OutputFileError
+from .typed_mapping import dataclass_from_mapping as dataclass_from_mapping  # re-export (the fit command reads it here)
 
 #: Every YAML file the project reads is small; a larger one is not what it claims to be.
 MAX_YAML_BYTES = 1 << 20
@@ -115,21 +115,6 @@ def read_tagged_yaml(path: str | Path, kind: str, format_tag: str, schema_versio
     return doc
 
 
-def _kind(default: Any, annotation: str) -> str:
-    """What a field holds: from its default, or (a None default) from its annotation."""
-    if is_dataclass(default):
-        return "dataclass"
-    if "tuple[str" in annotation:
-        return "strings"
-    for name, types in (("bool", bool), ("int", int), ("float", float), ("str", str), ("tuple", tuple)):
-        if isinstance(default, types):
-            return name
-    for name in ("bool", "int", "float", "str", "tuple"):
-        if name in annotation:
-            return name
-    raise TypeError(f"cannot read a {annotation!r} setting from YAML")
-
-
 def require_known_keys(cls: type, d: Any, what: str) -> None:
     """``ValueError`` unless ``d`` is a dict whose keys are all fields of the dataclass ``cls``
     (missing keys are allowed: they take the defaults).  For ``from_dict`` of model-file parts."""
@@ -137,61 +122,3 @@ def require_known_keys(cls: type, d: Any, what: str) -> None:
     if not isinstance(d, dict) or not set(d) <= known:
         extra = sorted(set(d) - known) if isinstance(d, dict) else type(d).__name__
         raise ValueError(f"{what}: unknown keys {extra}")
-
-
-def dataclass_from_mapping(cls: type, doc: Any, where: str, path: str = "") -> Any:
-    """Build a (nested) frozen dataclass from a YAML mapping, refusing unknown keys and wrong types.
-
-    A field's type comes from its default value (or, for a None default, its annotation); an
-    optional field (annotated ``... | None``) accepts null.  ``ValueError`` from the dataclass's
-    own checks becomes a one-line ``InputFileError`` naming ``where`` (the file) and the key's ``path``
-    within it: ``fit.yaml: aflp.order: expected an integer, got 'x'``.
-    """
-    at = f"{where}: {path}: " if path else f"{where}: "
-    if not isinstance(doc, dict):
-        raise InputFileError(f"{at}expected a mapping")
-    known = {f.name: f for f in fields(cls)}
-    defaults = cls()
-    values = {}
-    for key, value in doc.items():
-        if key not in known:
-            raise InputFileError(f"{at}unknown key {key!r} (known: {', '.join(sorted(known))})")
-        default = getattr(defaults, key)
-        annotation = str(known[key].type)
-        here = f"{where}: {path}.{key}" if path else f"{where}: {key}"
-        if value is None and "None" in annotation:  # an optional setting, explicitly unset
-            values[key] = None
-            continue
-        kind = _kind(default, annotation)
-        if kind == "dataclass":
-            values[key] = dataclass_from_mapping(type(default), value, where, f"{path}.{key}" if path else key)
-        elif kind == "bool":
-            if not isinstance(value, bool):
-                raise InputFileError(f"{here}: expected true or false, got {value!r}")
-            values[key] = value
-        elif kind == "int":
-            if isinstance(value, bool) or not isinstance(value, int):
-                raise InputFileError(f"{here}: expected an integer, got {value!r}")
-            values[key] = value
-        elif kind == "float":
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise InputFileError(f"{here}: expected a finite number, got {value!r}")
-            values[key] = float(value)
-        elif kind == "str":
-            if not isinstance(value, str):
-                raise InputFileError(f"{here}: expected a string, got {value!r}")
-            values[key] = value
-        elif kind == "strings":
-            if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
-                raise InputFileError(f"{here}: expected a list of strings, got {value!r}")
-            values[key] = tuple(value)
-        else:
-            if not isinstance(value, list) or not all(
-                isinstance(v, (int, float)) and not isinstance(v, bool) for v in value
-            ):
-                raise InputFileError(f"{here}: expected a list of numbers, got {value!r}")
-            values[key] = tuple(float(v) for v in value)
-    try:
-        return cls(**values)
-    except ValueError as exc:
-        raise InputFileError(f"{at}{exc}") from None

@@ -30,7 +30,8 @@ from typing import Any
 
 import numpy as np
 
-from ..files.yamlio import dataclass_from_mapping, read_yaml
+from ..files.typed_mapping import dataclass_from_mapping
+from ..files.yamlio import read_yaml
 from ..formats.ixblue import CHECKSUM_LEN, COUNTER_MODULUS, HEADER_LEN, TIME_LSB_S, TIME_MODULUS, encode_stdbin
 from ..formats.kvh import ARCSEC_PER_RAD, SAMPLE_FORMATS, encode_kvh_frames
 from ..protocol import (
