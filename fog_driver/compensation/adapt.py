@@ -97,18 +97,22 @@ with a ``StaticDetector``'s state in the same document.
 from __future__ import annotations
 
 import math
-from collections import deque
-from dataclasses import dataclass, field, fields
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
 from ..errors import InputFileError
 from ..files.kinds import ADAPT_STATE_FORMAT
 from . import numerics
-from .keys import require_known_keys
+from .adapt_config import AdaptConfig, StaticDetector, blocks_in, finite_number
+from .adapt_state import (
+    ADAPT_STATE_SCHEMA_VERSION,
+    check_state_keys,
+    checked_comparison,
+    checked_gate,
+)
 from .pipeline import FLAG_ADAPTING, FLAG_GUARD
-from .readout import AdaptiveLaw, AdaptiveLawParams, AdaptiveLawState
+from .readout import AdaptiveLaw, AdaptiveLawState
 
 __all__ = [
     "ADAPT_STATE_FORMAT",
@@ -118,185 +122,6 @@ __all__ = [
     "StaticDetector",
 ]
 
-ADAPT_STATE_SCHEMA_VERSION = 1
-
-
-def _finite(x: Any) -> bool:
-    return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool) and math.isfinite(x)
-
-
-def _default_law() -> AdaptiveLawParams:
-    # Drift in deg/h at 1 Hz: 10 s takes the edge off the 1-s noise, one hour of memory spans a thermal
-    # excursion, kappa 0.5 is half the fastest stable step (smoother than 1 against the target's noise).
-    return AdaptiveLawParams(filter_time_s=10.0, memory_time_s=3600.0, kappa=0.5, delta=1e-6)
-
-
-@dataclass(frozen=True)
-class AdaptConfig:
-    """Online adaptation settings (validated; ``ValueError`` when out of range).
-
-    * ``law``: the adaptive law's parameters.
-    * ``runaway_dph``: an adapted estimate further than this from the frozen one is a runaway; None (the
-      default): ``runaway_for`` the model's own fit residual.
-    * ``innovation_sigmas``: the innovation gate (module docstring): a filtered innovation beyond the
-      runaway bound plus this many of its noise sigmas is not learned.
-    * ``static_threshold_dph``, ``static_window_s``: the gyro's own static detector (``StaticDetector``).
-    * ``bias_capture_s``: gated time spent capturing the run's bias before W may move (0: no capture).
-    * ``warmup_s``: for the compensator's gate: blocks before it (rate smoother and instrument start-up)
-      are never gated, as in fitting (``FitConfig.warmup_s``).
-    * ``compare_window_s``, ``compare_memory_windows``, ``compare_min_windows``: the comparison guard
-      (module docstring): windows of gated time over which the frozen and the adapted estimates' mean
-      errors are compared, the memory of their running mean squares (in windows), and how many windows
-      must have been seen before the adapted estimate may be used.
-    * ``compare_min_gain``: the comparison's mean gain must also exceed ``(compare_min_gain r)^2``, r the
-      model's fit residual as the runaway bound has it (``runaway_dph / RUNAWAY_FIT_RESIDUALS``): the
-      adapted estimate is used only where it removes an error of at least that fraction of what the
-      frozen model left on its fit data, not the gyro's slow noise that a significant but tiny gain is.
-    """
-
-    law: AdaptiveLawParams = field(default_factory=_default_law)
-    runaway_dph: float | None = None
-    innovation_sigmas: float = 4.0
-    static_threshold_dph: float = 30.0
-    static_window_s: float = 60.0
-    bias_capture_s: float = 300.0
-    warmup_s: float = 300.0
-    compare_window_s: float = 300.0
-    compare_memory_windows: float = 12.0
-    compare_min_windows: int = 4
-    compare_min_gain: float = 0.5
-
-    def __post_init__(self) -> None:
-        if not isinstance(self.law, AdaptiveLawParams):
-            raise ValueError(f"law must be AdaptiveLawParams, got {type(self.law).__name__}")
-        if self.runaway_dph is not None and (not _finite(self.runaway_dph) or not self.runaway_dph > 0):
-            raise ValueError(f"runaway_dph must be finite and > 0 (or null: from the model), got {self.runaway_dph!r}")
-        for name in ("innovation_sigmas", "static_threshold_dph", "static_window_s", "compare_window_s"):
-            v = getattr(self, name)
-            if not _finite(v) or not v > 0:
-                raise ValueError(f"{name} must be finite and > 0, got {v!r}")
-        for name in ("bias_capture_s", "warmup_s"):
-            v = getattr(self, name)
-            if not _finite(v) or v < 0:
-                raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
-        if not _finite(self.compare_min_gain) or self.compare_min_gain < 0:
-            raise ValueError(f"compare_min_gain must be finite and >= 0, got {self.compare_min_gain!r}")
-        if not _finite(self.compare_memory_windows) or not self.compare_memory_windows >= 1:
-            raise ValueError(f"compare_memory_windows must be finite and >= 1, got {self.compare_memory_windows!r}")
-        if (
-            isinstance(self.compare_min_windows, bool)
-            or not isinstance(self.compare_min_windows, int)
-            or (self.compare_min_windows < 0)
-        ):
-            raise ValueError(f"compare_min_windows must be an integer >= 0, got {self.compare_min_windows!r}")
-
-    def to_dict(self) -> dict[str, Any]:
-        d: dict[str, Any] = {f.name: getattr(self, f.name) for f in fields(self)}
-        d["law"] = self.law.to_dict()
-        return d
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> AdaptConfig:
-        """Inverse of ``to_dict``; missing keys take their defaults, unknown keys are errors."""
-        require_known_keys(cls, d, "adapt config")
-        values = dict(d)
-        if "law" in values:
-            values["law"] = AdaptiveLawParams.from_dict(values["law"])
-        return cls(**values)
-
-
-def _blocks(seconds: float, sample_time_s: float) -> int:
-    return int(round(seconds / sample_time_s))
-
-
-class StaticDetector:
-    """Is the table static?  From the gyro's own block rates, causally, with explicit state.
-
-    ``step(rate_dph)`` is True when the last ``window_blocks`` block rates (this one included) are all
-    finite and all within ``threshold_dph`` of their median; False until the window has filled.  A
-    turntable move makes every window that contains one of its blocks non-static (the median is the
-    static rate, the moving blocks are far from it), so the detector turns static again a full window
-    after the move's last block.  Causal: the first block of a move counts as static when it moved
-    for so short a part of the block that its mean rate is still within the threshold.
-    """
-
-    def __init__(self, threshold_dph: float, window_blocks: int, rates: list[float] | None = None) -> None:
-        if not _finite(threshold_dph) or not threshold_dph > 0:
-            raise ValueError(f"threshold_dph must be finite and > 0, got {threshold_dph!r}")
-        if isinstance(window_blocks, bool) or not isinstance(window_blocks, (int, np.integer)) or window_blocks < 1:
-            raise ValueError(f"window_blocks must be an integer >= 1, got {window_blocks!r}")
-        self.threshold_dph = float(threshold_dph)
-        self.window_blocks = int(window_blocks)
-        self._rates: deque[float] = deque(maxlen=self.window_blocks)
-        if rates is not None:
-            if len(rates) > self.window_blocks:
-                raise ValueError(f"{len(rates)} rates for a window of {self.window_blocks} blocks")
-            self._rates.extend(float(r) for r in rates)
-
-    @classmethod
-    def from_config(cls, config: AdaptConfig, sample_time_s: float) -> StaticDetector:
-        return cls(config.static_threshold_dph, max(1, _blocks(config.static_window_s, sample_time_s)))
-
-    def step(self, rate_dph: float) -> bool:
-        self._rates.append(float(rate_dph))
-        if len(self._rates) < self.window_blocks:
-            return False
-        window = np.fromiter(self._rates, dtype=np.float64, count=self.window_blocks)
-        if not np.isfinite(window).all():
-            return False
-        return bool(np.all(np.abs(window - np.median(window)) <= self.threshold_dph))
-
-    def run(self, rate_dph: np.ndarray) -> np.ndarray:
-        """``step`` over many block rates."""
-        return np.array([self.step(r) for r in np.asarray(rate_dph, dtype=np.float64).tolist()], dtype=bool)
-
-    def to_dict(self) -> dict[str, Any]:
-        """Plain values (NaN rates are ``.nan`` in YAML): safe for ``yaml.safe_dump``, exact."""
-        return {
-            "threshold_dph": self.threshold_dph,
-            "window_blocks": self.window_blocks,
-            "rates": [float(r) for r in self._rates],
-        }
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> StaticDetector:
-        keys = {"threshold_dph", "window_blocks", "rates"}
-        if not isinstance(d, dict) or set(d) != keys:
-            got = sorted(d) if isinstance(d, dict) else type(d).__name__
-            raise ValueError(f"static detector state needs exactly the keys {sorted(keys)}, got {got}")
-        rates = d["rates"]
-        if not isinstance(rates, list) or not all(
-            isinstance(r, (int, float)) and not isinstance(r, bool) for r in rates
-        ):
-            raise ValueError("static detector state: 'rates' must be a list of numbers")
-        return cls(d["threshold_dph"], d["window_blocks"], rates)
-
-
-_STATE_KEYS = (
-    "n_features",
-    "frozen_weights",
-    "frozen_intercept",
-    "law",
-    "bias_sum_dph",
-    "bias_count",
-    "bias_dph",
-    "blocks",
-    "gated_blocks",
-    "updates",
-    "guards",
-)
-#: The comparison guard's state (states saved before it existed load without it: a fresh comparison).
-_COMPARE_KEYS = (
-    "compare_blocks",
-    "compare_sum_frozen_dph",
-    "compare_sum_adapted_dph",
-    "compare_gain",
-    "compare_gain_sq",
-    "compare_windows",
-    "compare_weights",
-    "compare_level_frozen_dph",
-    "compare_level_adapted_dph",
-)
 #: The adapted estimate is used when the comparison's mean gain exceeds this many standard errors.  One,
 #: with 300-s windows and 4 of them first, was chosen on the development population
 #: (``benchmarks/bench_population.py --set dev --adapt``): 2 sigmas or 600-s windows kept the frozen
@@ -317,15 +142,13 @@ GATE_FILTER_S = 120.0
 #: The innovation's noise: an exponential mean of half the squared differences of successive gated
 #: rates, over this time (the white noise of a block; a drift is smooth and does not enter it).
 NOISE_MEMORY_S = 600.0
-#: Gate state (states saved before the gate existed load without it: a fresh gate).
-_GATE_KEYS = ("gate_noise_var_dph2", "gate_last_rate_dph", "gate_innovation_dph", "rejected")
 
 
 def runaway_for(fit_residual_dph: float | None) -> float:
     """The adapted estimate's largest allowed departure from the frozen one, deg/h: ``RUNAWAY_FIT_RESIDUALS``
     times the model's fit residual, clipped to [``RUNAWAY_MIN_DPH``, ``RUNAWAY_MAX_DPH``];
     ``RUNAWAY_MAX_DPH`` when the model file does not say (made before fit metrics were recorded)."""
-    if fit_residual_dph is None or not _finite(fit_residual_dph) or fit_residual_dph <= 0:
+    if fit_residual_dph is None or not finite_number(fit_residual_dph) or fit_residual_dph <= 0:
         return RUNAWAY_MAX_DPH
     return min(max(RUNAWAY_FIT_RESIDUALS * float(fit_residual_dph), RUNAWAY_MIN_DPH), RUNAWAY_MAX_DPH)
 
@@ -349,7 +172,7 @@ class OnlineReadout:
         w0 = np.array(frozen_weights, dtype=np.float64)
         if w0.ndim != 1 or len(w0) < 1 or not np.isfinite(w0).all():
             raise ValueError(f"frozen_weights must be a vector of finite numbers, got shape {w0.shape}")
-        if not _finite(frozen_intercept):
+        if not finite_number(frozen_intercept):
             raise ValueError(f"frozen_intercept must be finite, got {frozen_intercept!r}")
         w0.flags.writeable = False
         self.frozen_weights = w0
@@ -358,7 +181,7 @@ class OnlineReadout:
         self._w_frozen = np.append(w0, self.frozen_intercept)
         self._law = AdaptiveLaw(self.config.law, self.n_features + 1, sample_time_s)
         self.sample_time_s = self._law.sample_time_s
-        self.bias_capture_blocks = _blocks(self.config.bias_capture_s, self.sample_time_s)
+        self.bias_capture_blocks = blocks_in(self.config.bias_capture_s, self.sample_time_s)
         self.runaway_dph = float(
             self.config.runaway_dph if self.config.runaway_dph is not None else runaway_for(fit_residual_dph)
         )
@@ -369,7 +192,7 @@ class OnlineReadout:
         self._noise_a = 1.0 - numerics.exp_correctly_rounded(-self._law.sample_time_s / NOISE_MEMORY_S)
         # an exponential mean of white noise of variance v has variance v a / (2 - a)
         self._gate_gain = math.sqrt(self._gate_a / (2.0 - self._gate_a))
-        self._compare_window_blocks = max(1, _blocks(self.config.compare_window_s, sample_time_s))
+        self._compare_window_blocks = max(1, blocks_in(self.config.compare_window_s, sample_time_s))
         self._x = np.empty(self.n_features + 1)
         self._x[-1] = 1.0
         self._start()
@@ -499,6 +322,7 @@ class OnlineReadout:
         update = False
         d = y  # the neutral target: no information, "stay"
         if gated:
+            reference = cast(float, reference)  # gated: a finite reference
             self.gated_blocks += 1
             if self.gate_last_rate_dph is not None:  # the block noise, from successive gated rates, winsorized
                 step = measured - self.gate_last_rate_dph
@@ -636,49 +460,9 @@ class OnlineReadout:
     def load_state(self, d: dict[str, Any]) -> None:
         """Inverse of ``state_dict``.  ``ValueError`` for missing or unknown keys, bad values, or a state
         saved for other frozen weights (another model); the readout is unchanged then."""
-        optional = set(_COMPARE_KEYS) | set(_GATE_KEYS)
-        if not isinstance(d, dict) or not set(_STATE_KEYS) <= set(d) <= set(_STATE_KEYS) | optional:
-            got = sorted(d) if isinstance(d, dict) else type(d).__name__
-            raise ValueError(
-                f"adaptation state needs exactly the keys {sorted(_STATE_KEYS)} (and the comparison's "
-                f"{sorted(_COMPARE_KEYS)} and the gate's {sorted(_GATE_KEYS)}), got {got}"
-            )
-        gate = {k: d[k] for k in _GATE_KEYS if k in d}
-        if gate and set(gate) != set(_GATE_KEYS):
-            raise ValueError(f"adaptation state: the gate needs all of {sorted(_GATE_KEYS)}")
-        if gate:
-            if not (_finite(gate["gate_noise_var_dph2"]) and gate["gate_noise_var_dph2"] >= 0):
-                raise ValueError("adaptation state: 'gate_noise_var_dph2' must be a finite number >= 0")
-            if not _finite(gate["gate_innovation_dph"]):
-                raise ValueError("adaptation state: 'gate_innovation_dph' must be a finite number")
-            if gate["gate_last_rate_dph"] is not None and not _finite(gate["gate_last_rate_dph"]):
-                raise ValueError("adaptation state: 'gate_last_rate_dph' must be a finite number or null")
-            if isinstance(gate["rejected"], bool) or not isinstance(gate["rejected"], int) or gate["rejected"] < 0:
-                raise ValueError("adaptation state: 'rejected' must be an integer >= 0")
-        compare = {k: d[k] for k in _COMPARE_KEYS if k in d}
-        if compare and set(compare) != set(_COMPARE_KEYS):
-            raise ValueError(f"adaptation state: the comparison needs all of {sorted(_COMPARE_KEYS)}")
-        for k in ("compare_blocks", "compare_windows"):
-            if k in compare and (isinstance(compare[k], bool) or not isinstance(compare[k], int) or compare[k] < 0):
-                raise ValueError(f"adaptation state: {k!r} must be an integer >= 0, got {compare[k]!r}")
-        try:
-            weights = np.array(compare.get("compare_weights", []), dtype=np.float64) if compare else None
-        except (TypeError, ValueError):
-            weights = np.zeros(0)
-        if compare and (weights.shape != (self.n_features + 1,) or not np.isfinite(weights).all()):
-            raise ValueError(f"adaptation state: 'compare_weights' must be {self.n_features + 1} finite numbers")
-        for k in (
-            "compare_sum_frozen_dph",
-            "compare_sum_adapted_dph",
-            "compare_gain",
-            "compare_gain_sq",
-            "compare_level_frozen_dph",
-            "compare_level_adapted_dph",
-        ):
-            if k in compare and not (_finite(compare[k]) and (k != "compare_gain_sq" or compare[k] >= 0)):
-                raise ValueError(
-                    f"adaptation state: {k!r} must be a finite number (>= 0 for a mean square), got {compare[k]!r}"
-                )
+        check_state_keys(d)
+        gate = checked_gate(d)
+        compare, weights = checked_comparison(d, self.n_features)
         if d["n_features"] != self.n_features or isinstance(d["n_features"], bool):
             raise ValueError(f"adaptation state is for {d['n_features']!r} features, the model has {self.n_features}")
         try:
@@ -699,10 +483,10 @@ class OnlineReadout:
         for k, v in counts.items():
             if isinstance(v, bool) or not isinstance(v, int) or v < 0:
                 raise ValueError(f"adaptation state: {k!r} must be an integer >= 0, got {v!r}")
-        if not _finite(d["bias_sum_dph"]):
+        if not finite_number(d["bias_sum_dph"]):
             raise ValueError(f"adaptation state: 'bias_sum_dph' must be a finite number, got {d['bias_sum_dph']!r}")
         bias = d["bias_dph"]
-        if bias is not None and not _finite(bias):
+        if bias is not None and not finite_number(bias):
             raise ValueError(f"adaptation state: 'bias_dph' must be a finite number or null, got {bias!r}")
         self._law.set_state(law)
         self.bias_sum_dph = float(d["bias_sum_dph"])
@@ -718,7 +502,7 @@ class OnlineReadout:
         self._reset_comparison()
         for k, v in compare.items():
             if k == "compare_weights":
-                self._compare_w = weights
+                self._compare_w = cast(np.ndarray, weights)  # given with the comparison
             else:
                 setattr(self, k, v if k in ("compare_blocks", "compare_windows") else float(v))
 

@@ -14,6 +14,7 @@ The same rules live and offline, so that a capture compensated offline gives wha
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import cast
 
 import numpy as np
 
@@ -132,14 +133,14 @@ class InstrumentCompensation:
         self.compensator = compensator
 
     def step(self, sample) -> CompensatedSample:
-        c = self.compensator.step(sample)
+        c = cast(Compensator, self.compensator).step(sample)  # bound
         if self._flag_next:
             self._flag_next = False
             c = c._replace(flags=c.flags | FLAG_GAP)
         return c
 
     def run(self, samples: SampleBlock) -> CompensatedColumns:
-        out = self.compensator.run(samples)
+        out = cast(Compensator, self.compensator).run(samples)  # bound
         if self._flag_next and len(out):
             self._flag_next = False
             out.flags[0] |= FLAG_GAP

@@ -47,11 +47,11 @@ def plausible_temps(temps_c: np.ndarray) -> np.ndarray:
 
 
 class ModelBlock(NamedTuple):
-    index: int  #: block number since the first sample
+    index: int  # type: ignore[assignment]  # (shadows tuple.index)  #: block number since the first sample
     t_end_s: float  #: device time at the end of the block, s from the first sample
     n_samples: int
     rate_dph: float  #: mean rate over the block's frames, deg/h
-    temps_c: tuple[float, float, float]  #: top, bottom, housing means (NaN: no valid reading)
+    temps_c: tuple[float, ...]  #: top, bottom, housing means (NaN: no valid reading)
     flags: int
 
 
@@ -83,7 +83,10 @@ class BlockColumns:
     def from_blocks(cls, blocks: list[ModelBlock]) -> BlockColumns:
         if not blocks:
             return cls(
-                *(np.zeros(0, dtype=d) for d in (np.int64, np.float64, np.int64, np.float64)),
+                np.zeros(0, dtype=np.int64),
+                np.zeros(0, dtype=np.float64),
+                np.zeros(0, dtype=np.int64),
+                np.zeros(0, dtype=np.float64),
                 np.zeros((0, 3)),
                 np.zeros(0, np.int64),
             )
@@ -180,6 +183,7 @@ class BlockAverager:
         self._current, self._n, self._sum_dtheta, self._flags, self._last_t_us = values
 
     def _close(self) -> ModelBlock:
+        assert self._first_us is not None  # set by the first sample, before any block closes
         temps = tuple(s / n if n else float("nan") for s, n in zip(self._sum_t, self._n_t))
         block = ModelBlock(
             self._current,

@@ -29,8 +29,8 @@ measuring.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Any
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -66,6 +66,8 @@ class InputDomain:
     estimate_limit_dph: float
     margin: tuple[float, ...] = MARGINS
     names: tuple[str, ...] = INPUT_NAMES
+    if TYPE_CHECKING:  # set in __post_init__, not a field
+        _bounds: tuple[np.ndarray, np.ndarray] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         low = tuple(float(v) for v in self.low)
@@ -113,7 +115,7 @@ class InputDomain:
         """(lower, upper): the box widened by the margin, the inputs are clamped to."""
         return self._bounds
 
-    def clamp(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def clamp(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray | np.bool_]:
         """``(u', outside)`` for one row (8,) or many (T, 8): u clamped to the widened box, and whether
         (per row) any input was outside it.  NaN stays NaN (and is not "outside")."""
         lower, upper = self._bounds

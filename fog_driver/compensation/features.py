@@ -59,6 +59,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import numpy as np
 
@@ -321,7 +322,7 @@ class FeatureExtractor:
     def set_state(self, state: dict) -> None:
         """Inverse of ``get_state``; a state saved before fault handling (no ``faulted`` ...) means healthy, one
         saved before the stuck check (no ``anchor`` ...) starts it afresh."""
-        values = {k: [float(v) for v in state[k]] for k in ("last", "stale_s", "m1", "m2")}
+        values: dict[str, list[Any]] = {k: [float(v) for v in state[k]] for k in ("last", "stale_s", "m1", "m2")}
         values["faulted"] = [bool(v) for v in state.get("faulted", [False] * 3)]
         for k, default in (("raw_prev", math.nan), ("good_s", 0.0)):
             values[k] = [float(v) for v in state.get(k, [default] * 3)]
@@ -342,7 +343,7 @@ class FeatureExtractor:
         self._offset, self._recovering_s = values["offset"], recovering_s
         self._anchor, self._anchor_offset, self._stuck_at = anchor, anchor_offset, stuck_at
 
-    def step(self, temps_c: tuple[float, float, float] | np.ndarray) -> tuple[list[float], int]:
+    def step(self, temps_c: tuple[float, ...] | np.ndarray) -> tuple[list[float], int]:
         """The input vector for one block and its flags (``FLAG_SUBSTITUTED``, ``FLAG_RECOVERING``,
         ``FLAG_INPUT_STALE``, or 0)."""
         p = self.params

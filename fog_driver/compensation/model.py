@@ -32,7 +32,8 @@ MODEL_SCHEMA_VERSION = 1
 
 
 class DriftModel(Protocol):
-    """What the compensator needs of a model: one step per block, or a batch; explicit state."""
+    """What the compensator needs of a model: one step per block, or a batch; explicit state; and to adapt, its
+    regressor row, weights and intercept (``D_hat = f . weights + intercept``), and the estimate used fed back."""
 
     kind: str
 
@@ -49,6 +50,16 @@ class DriftModel(Protocol):
     def reset(self) -> None: ...
 
     def to_dict(self) -> dict: ...
+
+    @property
+    def weights(self) -> np.ndarray: ...
+
+    @property
+    def intercept(self) -> float: ...
+
+    def regressors_step(self, z: np.ndarray) -> np.ndarray: ...
+
+    def feed_back(self, y: float) -> None: ...
 
 
 #: Model kinds: name -> class with ``from_dict``.

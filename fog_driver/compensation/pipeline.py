@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple, cast
 
 import numpy as np
 
@@ -76,7 +76,7 @@ class CompensatedSample(NamedTuple):
     dtheta_comp_arcsec: float
     angle_raw_arcsec: float
     angle_comp_arcsec: float
-    temps_c: tuple[float, float, float]
+    temps_c: tuple[float, ...]
     flags: int
 
 
@@ -138,7 +138,11 @@ class Compensator:
         self._block_s = 1.0 / model_file.model_rate_hz
         self._settle_blocks = int(math.ceil(SETTLE_TAUS * model_file.features.rate_tau_slow_s / self._block_s))
         self._last_index: int | None = None  # the last block seen (a gap: blocks missing after it)
-        self._last_temps = (math.nan, math.nan, math.nan)  # its temperatures (a gap is interpolated from them)
+        self._last_temps: tuple[float, ...] = (
+            math.nan,
+            math.nan,
+            math.nan,
+        )  # its temperatures (a gap is interpolated from them)
         self._settle_until = -1  # estimates up to this block are flagged gap (the smoothers catch up)
         self.estimate_dph = 0.0
         self.estimate_flags = FLAG_UNCOMPENSATED
@@ -194,6 +198,7 @@ class Compensator:
             self.estimate_flags |= FLAG_GAP
 
     def _process(self, block: ModelBlock) -> None:
+        u: Any  # the inputs: a list, an array once clamped
         u, flags = self.features.step(block.temps_c)
         flags |= block.flags & (FLAG_GAP | FLAG_THERMOMETER_FAULT)
         self.blocks_seen += 1
@@ -215,7 +220,7 @@ class Compensator:
             else:
                 clean = not flags & (FLAG_GAP | FLAG_THERMOMETER_FAULT | DEGRADED_FLAGS)
                 clean = clean and block.index > self._settle_until
-                gate = static and clean and block.t_end_s > self.adapt.warmup_s
+                gate = static and clean and block.t_end_s > self.online.config.warmup_s
                 f = self.model.regressors_step(z)
                 estimate, adapt_flags = self.online.step(f, block.rate_dph, self.reference_rate_dph, gate)
             if self.domain is not None:
@@ -342,13 +347,14 @@ class Compensator:
         """The adaptation state: the readout, the static detector, and the pipeline's state, so that a restart
         of the same run continues exactly (``modelfiles.save_adaptation`` writes it), as a snapshot of plain
         values (to take under a lock and write outside it); only when adapting."""
-        self.check_adapting()
-        return self.online.state_document(detector=self.static_detector, pipeline=self.pipeline_state())
+        online = self.check_adapting()
+        return online.state_document(detector=self.static_detector, pipeline=self.pipeline_state())
 
-    def check_adapting(self) -> None:
-        """``ValueError`` unless this compensator adapts (has an adapt config)."""
+    def check_adapting(self) -> OnlineReadout:
+        """The online readout; ``ValueError`` unless this compensator adapts (has an adapt config)."""
         if self.online is None:
             raise ValueError("this compensator is not adapting (no adapt config)")
+        return self.online
 
     def restore_adaptation(self, doc: dict, where: str, *, new_run: bool = True) -> None:
         """Restore ``adaptation_document``'s document (read from ``where``; ``InputFileError`` when it does not
@@ -356,7 +362,7 @@ class Compensator:
         is captured again and only the readout is kept (the adapted W); without, the same run continues: the
         pipeline's state (open block, smoothers, reservoir, held estimate) is restored too, and the output
         continues exactly as if uninterrupted."""
-        self.check_adapting()
+        online = self.check_adapting()
         if not new_run and "pipeline" in doc:  # checked before anything changes
             saved = self.pipeline_state()
             try:
@@ -364,14 +370,14 @@ class Compensator:
             except ValueError as exc:
                 raise InputFileError(f"{where}: corrupt adaptation state: {exc}") from None
             try:
-                self.online.load_state_doc(doc, where, detector=self.static_detector)
+                online.load_state_doc(doc, where, detector=self.static_detector)
             except InputFileError:
                 self.set_pipeline_state(saved)
                 raise
         else:
-            self.online.load_state_doc(doc, where, detector=self.static_detector)
+            online.load_state_doc(doc, where, detector=self.static_detector)
         if new_run:
-            self.online.begin_run()
+            online.begin_run()
 
     # -- frame level ---------------------------------------------------------------------------
 
@@ -414,7 +420,7 @@ class Compensator:
             self._on_block(blocks.block(i))
             after.append((self.estimate_dph, self.estimate_flags, self._estimate_block))
         # Which estimate each frame sees: the latest from a block with a smaller index.
-        first_us = self.averager._first_us
+        first_us = cast(int, self.averager._first_us)  # set: a block has closed, or these samples set it
         frame_block = (np.rint(samples.t_s * 1e6).astype(np.int64) - first_us) // self.averager.block_us
         which = np.searchsorted(blocks.index, frame_block, side="left") - 1  # -1: the estimate held before
         estimates = np.array([held_before[0]] + [a[0] for a in after])

@@ -94,7 +94,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, fields
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -474,7 +474,8 @@ class WaveletReservoir:
         one plus the number of neurons upstream in a cascade."""
         if self.params.normalized_leak:
             chain = self.params.chain_from
-            return np.array([PSI_MAX * (1 + chain_depth(chain, i)) for i in range(self.params.n_neurons)])
+            # validated chains have no loop: chain_depth is never None here
+            return np.array([PSI_MAX * (1 + cast(int, chain_depth(chain, i))) for i in range(self.params.n_neurons)])
         return PSI_MAX / self.params.leaks()
 
     @property
@@ -520,8 +521,9 @@ class WaveletReservoir:
         products = inputs.T[:, :, None] * self._w_in.T[:, None, :]  # (n_inputs, T, n_neurons)
         drive = self._activation(numerics.sum_first(products))  # (T, n_neurons)
         x, last_ok = self._x, None
-        chained, chain_gain = self._chained, (self._chain_gain if self._chained else None)
-        chain_src = self._chain_src if chained else None
+        chained = self._chained
+        chain_gain: Any = self._chain_gain if chained else None
+        chain_src: Any = self._chain_src if chained else None
         for k in range(len(inputs)):
             new = self._decay * x
             new += drive[k]

@@ -1,1 +1,2 @@
-"""Fitting the drift models: the fit data, structure and model choice, the ridge solver, the quality checks."""
+"""Fitting the drift models: the fit data (``data``), the ridge solver (``ridge``), each kind's fit and its
+structure choice (``wesn``, ``svr``, ``fit``), the report and the quality checks (``report``, ``quality``)."""

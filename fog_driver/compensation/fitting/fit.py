@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import fields, is_dataclass
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, cast
 
 import numpy as np
 
@@ -143,7 +143,7 @@ def own_validation(model, captures: list[CaptureData], normalizer: Standardizer,
     longest = max(len(c.static) for c in captures)
     window = max(1, min(int(round(VALIDATION_CHUNK_S * rate)), longest // (2 * VALIDATION_FOLDS)) // 2)
     chunk = 2 * window  # whole windows in every chunk
-    rows = regressor_rows(model, captures, normalizer)
+    rows = cast(list[np.ndarray], regressor_rows(model, captures, normalizer))  # these two kinds have them
     if isinstance(model, PolynomialModel):
         alpha, penalty = (config.poly_alpha if config.poly_alpha is not None else 1e-3), None
     else:
@@ -267,35 +267,13 @@ def fit_model(
     selection = getattr(models[kind], "selection", None)
     if selection:
         provenance["selection"] = selection
-        scores = {}
-        for name in ("polynomial", kind):
-            say(f"own validation split: {name}, {VALIDATION_FOLDS} folds")
-            scores[name] = own_validation(models[name], captures, normalizer, config)
-        selection["own_validation_rms_dph"] = scores
-        if scores[kind] > scores["polynomial"]:
-            selection["warning_validation"] = (
-                f"on its own validation split (interleaved {VALIDATION_CHUNK_S / 60:g}-min chunks of the fit data) the "
-                f"{kind} leaves {scores[kind]:.4f} deg/h, the polynomial {scores['polynomial']:.4f}"
-            )
-            if fall_back:
-                kind = "polynomial"
-                provenance["fell_back"] = f"{selection['warning_validation']}: the polynomial was saved instead"
+        worse = _own_validation_scores(selection, models, kind, captures, normalizer, config, say)
+        if worse and fall_back:
+            kind = "polynomial"
+            provenance["fell_back"] = f"{selection['warning_validation']}: the polynomial was saved instead"
     quality = _assess(inputs, means, validate, normalizer, report, kind, config)
     provenance["fit_quality"] = quality.to_dict(accept_weak)
-    say("bias step test")
-    step = bias_step_scan(captures, normalizer, config.model_rate_hz)
-    if step is not None:  # reported, not a check: see bias_step_warning
-        provenance["fit_quality"]["bias_step"] = {
-            "capture": captures[step.capture].path.name,
-            "minute": step.minute,
-            "step_dph": step.step_dph,
-            "share": step.share,
-        }
-    rows = regressor_rows(models[kind], captures, normalizer)
-    if rows is not None:  # for information: the model's own regressors (the review's M6)
-        provenance["fit_quality"]["model_condition"] = condition_number(
-            np.vstack([r[c.static] for r, c in zip(rows, captures)])
-        )
+    _add_findings(provenance["fit_quality"], models[kind], captures, normalizer, config, say)
     model_file = ModelFile(
         kind=kind,
         instrument_serial=next(iter(serials)) or "",
@@ -313,11 +291,62 @@ def fit_model(
     return model_file, report
 
 
+def _own_validation_scores(
+    selection: dict[str, Any],
+    models: dict[str, Any],
+    kind: str,
+    captures: list[CaptureData],
+    normalizer: Standardizer,
+    config: FitConfig,
+    say: Callable[[str], None],
+) -> bool:
+    """Score ``kind`` and the polynomial on the fit's own validation split (``own_validation``) into
+    ``selection``, with a warning when ``kind`` leaves more there; whether it does."""
+    scores = {}
+    for name in ("polynomial", kind):
+        say(f"own validation split: {name}, {VALIDATION_FOLDS} folds")
+        scores[name] = own_validation(models[name], captures, normalizer, config)
+    selection["own_validation_rms_dph"] = scores
+    if scores[kind] > scores["polynomial"]:
+        selection["warning_validation"] = (
+            f"on its own validation split (interleaved {VALIDATION_CHUNK_S / 60:g}-min chunks of the fit data) the "
+            f"{kind} leaves {scores[kind]:.4f} deg/h, the polynomial {scores['polynomial']:.4f}"
+        )
+        return True
+    return False
+
+
+def _add_findings(
+    fit_quality: dict[str, Any],
+    model: Any,
+    captures: list[CaptureData],
+    normalizer: Standardizer,
+    config: FitConfig,
+    say: Callable[[str], None],
+) -> None:
+    """What the fit reports beside its checks, into ``fit_quality``: the largest bias step
+    (``bias_step_scan``; a warning, not a check: ``bias_step_warning``) and, for information, the condition
+    number of the model's own regressors (the review's M6)."""
+    say("bias step test")
+    step = bias_step_scan(captures, normalizer, config.model_rate_hz)
+    if step is not None:  # reported, not a check: see bias_step_warning
+        fit_quality["bias_step"] = {
+            "capture": captures[step.capture].path.name,
+            "minute": step.minute,
+            "step_dph": step.step_dph,
+            "share": step.share,
+        }
+    rows = regressor_rows(model, captures, normalizer)
+    if rows is not None:  # for information: the model's own regressors (the review's M6)
+        fit_quality["model_condition"] = condition_number(np.vstack([r[c.static] for r, c in zip(rows, captures)]))
+
+
 def _provenance(
     captures: list[CaptureData], validate: list[CaptureData], config: FitConfig, report: FitReport
 ) -> dict[str, Any]:
     """The model file's provenance before the model's own parts: the captures (name, SHA-256, blocks), the
     validation captures, the fit config, the report's rows and the noise floor."""
+    floor = cast(tuple[float, float | None], report.noise_floor)  # report_for sets it
     return {
         "captures": [
             {
@@ -340,8 +369,8 @@ def _provenance(
             for what, fit_v, val_v in report.rows
         },
         "noise_floor_1min_dph": {
-            "fit": report.noise_floor[0],
-            **({"validate": report.noise_floor[1]} if validate else {}),
+            "fit": floor[0],
+            **({"validate": floor[1]} if validate else {}),
         },
     }
 
@@ -375,7 +404,7 @@ def _assess(
     condition = condition_number(polynomial_features(normalizer.transform(inputs)))
     by_name = {what: (fit_v, val_v) for what, fit_v, val_v in report.rows}
     before, after = by_name["before compensation"], by_name[f"after, {kind}"]
-    validated = (before[1], after[1]) if validate else None
+    validated = cast(tuple[float, float], (before[1], after[1])) if validate else None  # measured: validate given
     ring_c, ring_rate_c_per_min = ring_of(inputs)
     return assess(
         len(inputs) / rate / 60.0, ring_c, ring_rate_c_per_min, means, condition, (before[0], after[0]), validated

@@ -34,6 +34,7 @@ compensation on its own fit data or on a validation run is no model to deploy.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -65,7 +66,7 @@ class FitQuality:
         return format_checks(self.to_dict(False))
 
     def to_dict(self, accepted_weak: bool) -> dict:
-        doc = {
+        doc: dict[str, Any] = {
             "checks": {
                 c.name: {"value": float(c.value), "limit": float(c.limit), "passed": bool(c.passed)}
                 for c in self.checks

@@ -78,4 +78,4 @@ def cross_validated_alpha(
             total += float(np.sum((means - means.mean()) ** 2))
             count += len(means)
         scores[alpha] = float(np.sqrt(total / count)) if count else float("inf")
-    return min(scores, key=scores.get), scores
+    return min(scores, key=scores.__getitem__), scores

@@ -107,8 +107,8 @@ PSO_SVR_DEFAULTS = PsoSvrConfig()
 
 def _import_svr():
     try:
-        from sklearn.exceptions import ConvergenceWarning  # optional extra: svr
-        from sklearn.svm import SVR
+        from sklearn.exceptions import ConvergenceWarning  # type: ignore[import-untyped]  # optional extra: svr
+        from sklearn.svm import SVR  # type: ignore[import-untyped]
     except ImportError:
         raise UsageError(MISSING_SKLEARN) from None
     return SVR, ConvergenceWarning
@@ -177,7 +177,8 @@ def fit_pso_svr(captures, normalizer, config, settings: PsoSvrConfig = PSO_SVR_D
         return lambda: SVR(kernel="rbf", C=c, gamma=gamma, epsilon=eps, max_iter=max_iter)
 
     bounds = [
-        tuple(math.log10(v) for v in b) for b in (settings.c_bounds, settings.gamma_bounds, settings.epsilon_bounds_dph)
+        (math.log10(lo), math.log10(hi))
+        for lo, hi in (settings.c_bounds, settings.gamma_bounds, settings.epsilon_bounds_dph)
     ]
     n, total = settings.n_particles, settings.n_particles * (settings.iterations + 1)
     done = itertools.count()

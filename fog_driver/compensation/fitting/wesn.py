@@ -46,6 +46,7 @@ than the polynomial baseline (the README's accuracy section).
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import numpy as np
 
@@ -153,13 +154,13 @@ def _fit_ring_form(kind: str, wc: WesnConfig, captures, normalizer, config, say=
     targets = [c.target_dph for c in captures]
     y_fit = np.concatenate([t[c.static] for t, c in zip(targets, captures)])
     groups = capture_groups(captures)
-    per_coil = {}
-    weights = ring_weights_for(normalizer)
+    per_coil: dict[tuple[float, int], Any] = {}
+    ring_weights = ring_weights_for(normalizer)
     coils = len(wc.coil_orders) * len(wc.fiber_lag_grid_s)
     for order in wc.coil_orders:
         for lag in wc.fiber_lag_grid_s:
             say(f"{kind}: reservoir states, coil {len(per_coil) + 1}/{coils} ({100 * len(per_coil) / coils:.0f} %)")
-            reservoir = wc.reservoir(1.0 / rate, lag, order, weights, len(normalizer.mean))
+            reservoir = wc.reservoir(1.0 / rate, lag, order, ring_weights, len(normalizer.mean))
             n_features = n_regressors(
                 reservoir.params.n_neurons,
                 wc.linear_path,
@@ -241,9 +242,9 @@ def ring_weights_for(normalizer) -> tuple[float, ...]:
 def _chosen_coil(criteria: dict) -> tuple[float, int]:
     """The (lag, order) of smallest criterion, a higher order only when it beats every lower order's best
     by more than ``ORDER_TOLERANCE`` (more stages add regressors: they must earn them)."""
-    best = None
+    best: Any = None
     for order in sorted({m for _, m in criteria}):
-        coil = min((k for k in criteria if k[1] == order), key=criteria.get)
+        coil = min((k for k in criteria if k[1] == order), key=criteria.__getitem__)
         if best is None or criteria[coil] < criteria[best] * (1.0 - ORDER_TOLERANCE):
             best = coil
     return best

@@ -145,7 +145,7 @@ class WesnConfig:
             stage = lag / coil_order
             lags = (stage, *self.history_s, *([stage] * (coil_order - 1)))
             n = len(lags)
-            chain = ()
+            chain: tuple[int, ...] = ()
             if coil_order > 1:  # stage k (neuron h+k) integrates stage k-1; the coil (neuron 0) the last one
                 chain = tuple([n - 1] + [-1] * h + [-1] + [h + k for k in range(1, coil_order - 1)])
             params = ReservoirParams(
@@ -284,6 +284,7 @@ class WesnModel:
         the readout could form it from x_0 and its input, but only as a small difference of two large,
         nearly equal weights, which the ridge penalty shrinks (on a coil of known lag, 6x the residual
         of the unpenalized fit); as its own regressor it costs the penalty nothing."""
+        upstream: np.ndarray | float
         if self._coil_source >= 0:
             upstream = x[..., self._coil_source]
         elif coil_wavelet is not None:  # the same bits as below: the reservoir computed it from the same z
