@@ -65,10 +65,14 @@ from ..transport.setup import make_on_open
 from . import status
 from .acquisition import Acquisition, stamp_utc
 from .commands import run_command
-from .config import DriverConfig, parse_host_port
+from .config import DEFAULT_HTTP_PORT, DriverConfig, format_address, parse_host_port
 from .errors import ConfigError
+from .hub import Hub
 from .limits import CLIENT_SNDBUF_BYTES, JOIN_TIMEOUT_S, PORT_BACKOFF_MAX_S, READER_STALL_S
+from .rawlog import CaptureSink, RotatingCapture
+from .sdnotify import Notifier
 from .status import PROTO_MAJOR, PROTO_MINOR
+from .udp import UdpPublisher
 from .web.metrics import LatencyHistogram
 
 log = structlog.get_logger("fog_driver.daemon")
@@ -379,9 +383,6 @@ class Service:
             raise
 
     def _start_after_web(self) -> tuple[str, int]:
-        from .hub import Hub
-        from .rawlog import CaptureSink, RotatingCapture
-
         host, port = parse_host_port(self.config.listen)
         try:
             self.hub = Hub(
@@ -418,8 +419,6 @@ class Service:
             )
             self.capture = CaptureSink(capture, on_state=self._on_capture_state)
             if self.config.udp:
-                from .udp import UdpPublisher
-
                 self.udp = UdpPublisher(*parse_host_port(self.config.udp))
         except BaseException:  # a start that fails leaves nothing listening or running behind it
             if self.capture is not None:
@@ -437,8 +436,6 @@ class Service:
             on_open=on_open,
         )
         if self.web is not None:
-            from .config import format_address
-
             self.web.view.control_address = format_address(*address)  # the bias banner's ctl command
             log.info("web_listening", address=format_address(*self.web.address), token=self.web.need_token)
         self._acquisition = threading.Thread(target=self.acquisition.run, name="acquisition", daemon=True)
@@ -448,8 +445,7 @@ class Service:
     def _make_web(self):
         """The web view and /metrics on ``http``, not started (ConfigError: the extra is missing, no token
         beyond loopback)."""
-        from .config import DEFAULT_HTTP_PORT
-        from .web.server import WebUnavailable, WebView
+        from .web.server import WebUnavailable, WebView  # optional extra: web (aiohttp, plotly, prometheus-client)
 
         try:
             host, port = parse_host_port(self.config.http, default_port=DEFAULT_HTTP_PORT)
@@ -520,8 +516,6 @@ class Service:
     def run_until_stopped(self, on_status=None) -> int:
         """The main loop: STATUS and a log summary every ``status_every_s`` (read afresh each time, so a SIGHUP
         applies it), the watchdog at its own cadence, until ``stop``."""
-        from .sdnotify import Notifier
-
         self.notifier = Notifier.from_environment()
         self.notifier.ready(status=f"listening on {self.config.listen}")
         next_status = time.monotonic() + self.config.status_every_s
