@@ -15,7 +15,8 @@ continues from the last frame received and the first frame after the gap is flag
 
 The service is this room's owner: the acquisition reads its public names only (``config``, ``lock``,
 ``source``, ``binding``, ``model_file``, ``capture``, ``udp``, ``hub``, ``web``, ``reader``, ``stop``) and
-calls ``publish``, ``publish_event``, ``note`` and ``device_object``.
+calls ``process`` (its entry point for each chunk, which is ``Acquisition.process``), ``publish``,
+``publish_event``, ``note`` and ``device_object``.
 """
 
 from __future__ import annotations
@@ -91,7 +92,7 @@ class Acquisition:
         try:
             for chunk in service.reader.chunks(service.stop):
                 read_s = time.monotonic()
-                angles = self.process(chunk)
+                angles = service.process(chunk)  # the service's entry point (= self.process), where tests hook in
                 hub, web = service.hub, service.web
                 if angles and (hub is not None or web is not None):
                     stamp_utc(angles, time.time_ns())
