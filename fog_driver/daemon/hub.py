@@ -151,7 +151,7 @@ class _Client:
 
 
 class Hub:
-    """TCP server speaking the client protocol above; see the module docstring.
+    """TCP server speaking the client protocol (``connection.py``); see the module docstring.
 
     ``version()`` returns the VERSION object (the hub adds ``class``), ``device()``
     the current DEVICE object or None, ``control(name, args, client_id)`` answers
