@@ -65,6 +65,7 @@ from .limits import (
     DEFAULT_MAX_CLIENTS,
     DEFAULT_MAX_CLIENTS_PER_PEER,
     DEFAULT_MAX_LINE_BYTES,
+    HUB_STOP_TIMEOUT_S,
     MAX_WATCH_RATE_HZ,
     MIN_MAX_LINE_BYTES,
     READ_CHUNK_BYTES,
@@ -311,7 +312,7 @@ class Hub:
 
     def set_max_backlog_s(self, seconds: float) -> None:
         """The backlog age after which a client that does not read is dropped, from now on, for the
-        clients connected too (checked at least every 0.25 s); thread-safe, ValueError unless > 0."""
+        clients connected too (checked at least every ``SWEEP_EVERY_S``); thread-safe, ValueError unless > 0."""
         _check_max_backlog_s(seconds)
         self._apply_on_loop(setattr, self, "max_backlog_s", float(seconds))
 
@@ -365,7 +366,7 @@ class Hub:
         assert self._address is not None
         return self._address
 
-    def stop(self, timeout: float = 5.0) -> None:
+    def stop(self, timeout: float = HUB_STOP_TIMEOUT_S) -> None:
         """Close every client and the server, join the loop thread, and shut the control workers down
         without waiting for a command still running there (idempotent)."""
         loop, thread = self._loop, self._thread

@@ -79,9 +79,12 @@ from ..limits import (
     WEB_MAX_WS_MESSAGES_PER_S,
     WEB_REQUEST_HEAD_TIMEOUT_S,
     WEB_REQUEST_TIMEOUT_S,
+    WEB_SHUTDOWN_TIMEOUT_S,
     WEB_START_TIMEOUT_S,
     WEB_STOP_TIMEOUT_S,
+    WEB_SWEEP_EVERY_S,
     WEB_WS_HEARTBEAT_S,
+    WEB_WS_WINDOW_S,
 )
 from .connections import CountedProtocol, TrackedConnection
 from .metrics import DaemonCollector, LatencyHistogram
@@ -326,7 +329,7 @@ class WebView:
             max_line_size=WEB_MAX_LINE_BYTES,
             max_field_size=WEB_MAX_LINE_BYTES,
             max_headers=WEB_MAX_HEADERS,
-            shutdown_timeout=1.0,
+            shutdown_timeout=WEB_SHUTDOWN_TIMEOUT_S,
         )
         await runner.setup()
         loop = asyncio.get_running_loop()
@@ -417,7 +420,7 @@ class WebView:
         """Close connections that send no request head in time, or whose request is not done in time;
         summarize the log lines left out."""
         while True:
-            await asyncio.sleep(min(1.0, WEB_REQUEST_HEAD_TIMEOUT_S / 2))
+            await asyncio.sleep(min(WEB_SWEEP_EVERY_S, WEB_REQUEST_HEAD_TIMEOUT_S / 2))
             now = time.monotonic()
             for event, count in self._log_limiter.take_suppressed(now):
                 log.warning("log_lines_suppressed", suppressed_event=event, count=count)
@@ -649,7 +652,7 @@ class WebView:
         window_start, count = time.monotonic(), 0
         async for message in browser.ws:
             now = time.monotonic()
-            if now - window_start >= 1.0:
+            if now - window_start >= WEB_WS_WINDOW_S:
                 window_start, count = now, 0
             count += 1
             if count > WEB_MAX_WS_MESSAGES_PER_S:
