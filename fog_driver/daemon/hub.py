@@ -169,12 +169,7 @@ class Hub:
     loopback, megabytes: tens of seconds of ANGLE lines before the backlog age
     policy can even see the client is stuck).
 
-    ``max_clients`` and ``max_clients_per_peer`` cap connections (overall, and per
-    IPv4 address or IPv6 /64); ``auth_deadline_s`` (None: no deadline) is how long a
-    client of a token-protected hub may stay without ``?AUTH``;
-    ``auth_backoff_base_s`` and ``auth_backoff_max_s`` set the backoff on failed
-    ``?AUTH`` attempts per peer address; ``log_lines_per_s`` caps the log lines of
-    each per-client event.  ``limits.py`` says what each does.
+    The other arguments are the limits ``limits.py`` names and explains (``auth_deadline_s`` None: no deadline).
 
     While it runs, :meth:`set_token` and :meth:`set_max_backlog_s` change the token
     and the backlog limit from any thread (the service calls them on SIGHUP).
