@@ -278,7 +278,7 @@ def test_a_bias_capture_whose_client_left_completes_and_applies_without_an_error
 def test_a_bias_capture_without_data_fails_at_its_deadline_and_keeps_the_bias(monkeypatch):
     """The port went away: the capture is abandoned after its seconds plus the margin (a BIAS failed event),
     never applied later out of the blue; a new one may start."""
-    import fog_driver.daemon.service as service_module
+    import fog_driver.daemon.commands as service_module
 
     monkeypatch.setattr(service_module, "BIAS_ANSWER_MARGIN_S", 0.05)
     service = Service(DriverConfig(), port="unused")

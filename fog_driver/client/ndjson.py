@@ -79,10 +79,8 @@ class LineBuffer:
     def feed(self, data: bytes) -> Iterator[bytes | LineEvent]:
         """The lines (and ``OVERLONG`` / ``UNTERMINATED`` events) that ``data`` completes, in order."""
         limit = self.max_line_bytes
-        start = 0
-        while (nl := data.find(b"\n", start)) >= 0:
-            piece = data[start:nl]
-            start = nl + 1
+        *pieces, rest = bytes(data).split(b"\n")
+        for piece in pieces:  # each ends a line
             self._unterminated = 0
             if self._discarding:
                 self._discarding = False
@@ -92,9 +90,8 @@ class LineBuffer:
                 line = bytes(self._buf)
                 self._buf.clear()
             else:
-                line = bytes(piece)
+                line = piece
             yield OVERLONG if len(line) > limit else line
-        rest = data[start:]
         self._unterminated += len(rest)
         if self.max_unterminated_bytes is not None and self._unterminated > self.max_unterminated_bytes:
             yield UNTERMINATED

@@ -100,7 +100,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ..client.ndjson import OVERLONG, UNTERMINATED, Command, CommandError, LineBuffer, parse_command
-from .guards import AuthThrottle, check_token
+from .guards import AuthThrottle
 from .limits import (
     COMMAND_WINDOW_S,
     MAX_AUTH_FAILURES,
@@ -242,11 +242,6 @@ class AuthGate:
             self.throttle.succeeded(peer)
             return "ok", 0.0
         return "wrong", self.throttle.failed(peer, now)
-
-    @staticmethod
-    def check(token: str | None, host: str) -> None:
-        """ValueError unless ``token`` may protect a listener on ``host`` (``guards.check_token``)."""
-        check_token(token, host)
 
 
 # -- one connection -------------------------------------------------------------------------------------------

@@ -65,6 +65,7 @@ from .limits import (
     DEFAULT_MAX_CLIENTS,
     DEFAULT_MAX_CLIENTS_PER_PEER,
     DEFAULT_MAX_LINE_BYTES,
+    HUB_STOP_TIMEOUT_S,
     MAX_WATCH_RATE_HZ,
     MIN_MAX_LINE_BYTES,
     READ_CHUNK_BYTES,
@@ -151,7 +152,7 @@ class _Client:
 
 
 class Hub:
-    """TCP server speaking the client protocol above; see the module docstring.
+    """TCP server speaking the client protocol (``connection.py``); see the module docstring.
 
     ``version()`` returns the VERSION object (the hub adds ``class``), ``device()``
     the current DEVICE object or None, ``control(name, args, client_id)`` answers
@@ -168,12 +169,7 @@ class Hub:
     loopback, megabytes: tens of seconds of ANGLE lines before the backlog age
     policy can even see the client is stuck).
 
-    ``max_clients`` and ``max_clients_per_peer`` cap connections (overall, and per
-    IPv4 address or IPv6 /64); ``auth_deadline_s`` (None: no deadline) is how long a
-    client of a token-protected hub may stay without ``?AUTH``;
-    ``auth_backoff_base_s`` and ``auth_backoff_max_s`` set the backoff on failed
-    ``?AUTH`` attempts per peer address; ``log_lines_per_s`` caps the log lines of
-    each per-client event.  ``limits.py`` says what each does.
+    The other arguments are the limits ``limits.py`` names and explains (``auth_deadline_s`` None: no deadline).
 
     While it runs, :meth:`set_token` and :meth:`set_max_backlog_s` change the token
     and the backlog limit from any thread (the service calls them on SIGHUP).
@@ -311,7 +307,7 @@ class Hub:
 
     def set_max_backlog_s(self, seconds: float) -> None:
         """The backlog age after which a client that does not read is dropped, from now on, for the
-        clients connected too (checked at least every 0.25 s); thread-safe, ValueError unless > 0."""
+        clients connected too (checked at least every ``SWEEP_EVERY_S``); thread-safe, ValueError unless > 0."""
         _check_max_backlog_s(seconds)
         self._apply_on_loop(setattr, self, "max_backlog_s", float(seconds))
 
@@ -365,7 +361,7 @@ class Hub:
         assert self._address is not None
         return self._address
 
-    def stop(self, timeout: float = 5.0) -> None:
+    def stop(self, timeout: float = HUB_STOP_TIMEOUT_S) -> None:
         """Close every client and the server, join the loop thread, and shut the control workers down
         without waiting for a command still running there (idempotent)."""
         loop, thread = self._loop, self._thread

@@ -87,6 +87,8 @@ DEFAULT_MAX_CLIENTS_PER_PEER = 16
 CLIENT_SNDBUF_BYTES = 256 * 1024
 #: How long a setting changed from another thread (``set_token``, ...) may wait for the hub's loop (s).
 SETTING_WAIT_S = 5.0
+#: How long ``Hub.stop`` waits for the hub's thread (s).
+HUB_STOP_TIMEOUT_S = 5.0
 
 # -- authorization (the NDJSON hub and the web view) ----------------------------------------------------------
 
@@ -158,6 +160,12 @@ WEB_MAX_WS_MESSAGE_BYTES = 1024
 WEB_MAX_WS_MESSAGES_PER_S = 10
 #: The WebSocket ping interval (s).
 WEB_WS_HEARTBEAT_S = 10.0
+#: The window (s) of ``WEB_MAX_WS_MESSAGES_PER_S``.
+WEB_WS_WINDOW_S = 1.0
+#: The longest pause (s) between two sweeps for slow requests (shorter with a short head timeout).
+WEB_SWEEP_EVERY_S = 1.0
+#: How long the listener's shutdown waits for requests still running (s).
+WEB_SHUTDOWN_TIMEOUT_S = 1.0
 #: A page's oldest unsent update older than this (s) drops it, unless the daemon's config says otherwise.
 WEB_DEFAULT_MAX_BACKLOG_S = 2.0
 #: How long ``WebView.start`` waits for its listener (s), and ``stop`` for its thread (s).

@@ -102,13 +102,16 @@ class DaemonCollector:
         return []  # built at scrape time only: the registry must not call collect() when it is registered
 
     def collect(self) -> Iterator[Any]:
-        from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily
+        from prometheus_client.core import (  # optional extra: web
+            CounterMetricFamily,
+            GaugeMetricFamily,
+            HistogramMetricFamily,
+        )
 
         state = self._read()
         status: Mapping[str, Any] = state.get("status") or {}
         device: Mapping[str, Any] = state.get("device") or {}
         version: Mapping[str, Any] = state.get("version") or {}
-        angle: Mapping[str, Any] = state.get("angle") or {}
 
         def family(name: str, labels: tuple[str, ...] = ()):
             kind, text = METRICS[name]
@@ -156,6 +159,19 @@ class DaemonCollector:
                     f.add_metric([str(flag)], float(n))
             yield f
         yield from single("fog_driver_last_sample_age_seconds", state.get("angle_age_s"))
+        yield from self._listeners_and_readings(state, family, single)
+        buckets, total_s = self._latency.snapshot()
+        h = HistogramMetricFamily(
+            "fog_driver_publish_latency_seconds", METRICS["fog_driver_publish_latency_seconds"][1]
+        )
+        h.add_metric([], buckets, total_s)
+        yield h
+
+    @staticmethod
+    def _listeners_and_readings(state: Mapping[str, Any], family: Callable, single: Callable) -> Iterator[Any]:
+        """The clients of each listener, the capture, and the last sample's readings."""
+        status: Mapping[str, Any] = state.get("status") or {}
+        angle: Mapping[str, Any] = state.get("angle") or {}
         clients = family("fog_driver_clients", ("listener",))
         dropped = family("fog_driver_clients_dropped_total", ("listener",))
         for listener, now, gone in (
@@ -186,12 +202,6 @@ class DaemonCollector:
         flags = angle.get("flags")
         if isinstance(flags, list):
             yield from single("fog_driver_extrapolating", 1 if "extrapolating" in flags else 0)
-        buckets, total_s = self._latency.snapshot()
-        h = HistogramMetricFamily(
-            "fog_driver_publish_latency_seconds", METRICS["fog_driver_publish_latency_seconds"][1]
-        )
-        h.add_metric([], buckets, total_s)
-        yield h
 
 
 def _is_number(value: Any) -> bool:

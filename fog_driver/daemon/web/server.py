@@ -48,6 +48,7 @@ import gzip
 import hashlib
 import hmac
 import importlib.resources
+import importlib.util
 import math
 import secrets
 import threading
@@ -78,10 +79,14 @@ from ..limits import (
     WEB_MAX_WS_MESSAGES_PER_S,
     WEB_REQUEST_HEAD_TIMEOUT_S,
     WEB_REQUEST_TIMEOUT_S,
+    WEB_SHUTDOWN_TIMEOUT_S,
     WEB_START_TIMEOUT_S,
     WEB_STOP_TIMEOUT_S,
+    WEB_SWEEP_EVERY_S,
     WEB_WS_HEARTBEAT_S,
+    WEB_WS_WINDOW_S,
 )
+from .connections import CountedProtocol, TrackedConnection
 from .metrics import DaemonCollector, LatencyHistogram
 from .view import DEFAULT_HISTORY_MIN, ViewState
 
@@ -110,8 +115,6 @@ class WebUnavailable(RuntimeError):
 
 def check_web_extra() -> None:
     """WebUnavailable naming what is missing, unless aiohttp, plotly and prometheus-client import."""
-    import importlib.util
-
     missing = [name for name in ("aiohttp", "plotly", "prometheus_client") if importlib.util.find_spec(name) is None]
     if missing:
         raise WebUnavailable(f"the web view needs {', '.join(missing)}: pip install 'fog_driver[web]'")
@@ -202,7 +205,7 @@ class WebView:
         self._start_error: BaseException | None = None
         self._stop_event: asyncio.Event | None = None
         self._address: tuple[str, int] | None = None
-        self._connections: dict[Any, _Connection] = {}  # aiohttp's handler -> what the sweeper needs
+        self._connections: dict[Any, TrackedConnection] = {}  # aiohttp's handler -> what the sweeper needs
         self._peers: dict[str, int] = {}
         self._registry = None
         #: device times of the newest point and mean the pages were sent (a page dedups by device time)
@@ -246,6 +249,27 @@ class WebView:
         self.token = token
         self._cookie_value = secrets.token_urlsafe(24)
 
+    # ------------------------------------------------------------------ connections (the listener's loop)
+
+    def open_connection(self, handler: Any, peer: str) -> TrackedConnection | None:
+        """Track a new connection from ``peer``; None (counted in ``refused_connections``) beyond
+        ``WEB_MAX_CONNECTIONS`` or ``WEB_MAX_CONNECTIONS_PER_PEER``."""
+        if len(self._connections) >= WEB_MAX_CONNECTIONS or self._peers.get(peer, 0) >= WEB_MAX_CONNECTIONS_PER_PEER:
+            self.refused_connections += 1
+            return None
+        self._peers[peer] = self._peers.get(peer, 0) + 1
+        connection = self._connections[handler] = TrackedConnection(peer, time.monotonic())
+        return connection
+
+    def close_connection(self, handler: Any, peer: str) -> None:
+        """Forget a connection ``open_connection`` tracked."""
+        self._connections.pop(handler, None)
+        left = self._peers.get(peer, 1) - 1
+        if left > 0:
+            self._peers[peer] = left
+        else:
+            self._peers.pop(peer, None)
+
     # ------------------------------------------------------------------ data in (the acquisition's thread)
 
     def publish_angles(self, objs: list[dict]) -> None:
@@ -277,8 +301,8 @@ class WebView:
             loop.close()
 
     async def _main(self) -> None:
-        from aiohttp import web
-        from prometheus_client import CollectorRegistry
+        from aiohttp import web  # optional extra: web
+        from prometheus_client import CollectorRegistry  # optional extra: web
 
         self._registry = CollectorRegistry(auto_describe=False)
         self._registry.register(DaemonCollector(self._metrics_state, self.latency))
@@ -305,14 +329,14 @@ class WebView:
             max_line_size=WEB_MAX_LINE_BYTES,
             max_field_size=WEB_MAX_LINE_BYTES,
             max_headers=WEB_MAX_HEADERS,
-            shutdown_timeout=1.0,
+            shutdown_timeout=WEB_SHUTDOWN_TIMEOUT_S,
         )
         await runner.setup()
         loop = asyncio.get_running_loop()
         factory = runner.server
 
         def protocol() -> Any:
-            return _Counted(self, factory())
+            return CountedProtocol(self, factory())
 
         try:
             server = await loop.create_server(protocol, self.host, self.port, reuse_address=True)
@@ -396,7 +420,7 @@ class WebView:
         """Close connections that send no request head in time, or whose request is not done in time;
         summarize the log lines left out."""
         while True:
-            await asyncio.sleep(min(1.0, WEB_REQUEST_HEAD_TIMEOUT_S / 2))
+            await asyncio.sleep(min(WEB_SWEEP_EVERY_S, WEB_REQUEST_HEAD_TIMEOUT_S / 2))
             now = time.monotonic()
             for event, count in self._log_limiter.take_suppressed(now):
                 log.warning("log_lines_suppressed", suppressed_event=event, count=count)
@@ -441,7 +465,7 @@ class WebView:
         )
 
     def _web(self):
-        from aiohttp import web
+        from aiohttp import web  # optional extra: web
 
         return web
 
@@ -582,7 +606,7 @@ class WebView:
 
     async def _metrics(self, request: Any) -> Any:
         web = self._web()
-        from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+        from prometheus_client import CONTENT_TYPE_LATEST, generate_latest  # optional extra: web
 
         body = generate_latest(self._registry)
         return web.Response(body=body, headers={"Content-Type": CONTENT_TYPE_LATEST})
@@ -628,7 +652,7 @@ class WebView:
         window_start, count = time.monotonic(), 0
         async for message in browser.ws:
             now = time.monotonic()
-            if now - window_start >= 1.0:
+            if now - window_start >= WEB_WS_WINDOW_S:
                 window_start, count = now, 0
             count += 1
             if count > WEB_MAX_WS_MESSAGES_PER_S:
@@ -650,74 +674,6 @@ class WebView:
             pass
 
 
-class _Connection:
-    """What the sweeper knows of one connection: since when a request head is awaited (None: not now), since
-    when a request runs (None: none), whether it became a WebSocket."""
-
-    __slots__ = ("peer", "head_since_s", "request_since_s", "websocket")
-
-    def __init__(self, peer: str, connected_s: float) -> None:
-        self.peer = peer
-        self.head_since_s: float | None = connected_s  # a new connection owes its first request head
-        self.request_since_s: float | None = None
-        self.websocket = False
-
-
-class _Counted(asyncio.Protocol):
-    """A connection's protocol: aiohttp's handler behind the connection limits, tracked for the sweeper.
-
-    Beyond ``WEB_MAX_CONNECTIONS`` (or ``WEB_MAX_CONNECTIONS_PER_PEER`` from one address) the connection is closed at
-    once, before aiohttp sees a byte of it."""
-
-    def __init__(self, view: WebView, handler: Any) -> None:
-        self.view = view
-        self.handler = handler
-        self.peer: str | None = None
-        self.connection: _Connection | None = None
-
-    def connection_made(self, transport: Any) -> None:
-        view, peer = self.view, _peer_of(transport)
-        if len(view._connections) >= WEB_MAX_CONNECTIONS or view._peers.get(peer, 0) >= WEB_MAX_CONNECTIONS_PER_PEER:
-            view.refused_connections += 1
-            transport.abort()
-            return
-        self.peer = peer
-        view._peers[peer] = view._peers.get(peer, 0) + 1
-        view._connections[self.handler] = self.connection = _Connection(peer, time.monotonic())
-        self.handler.connection_made(transport)
-
-    def data_received(self, data: bytes) -> None:
-        if self.peer is None:
-            return
-        c = self.connection
-        if c.request_since_s is None and c.head_since_s is None and not c.websocket:
-            c.head_since_s = time.monotonic()  # the next request's head begins: it has WEB_REQUEST_HEAD_TIMEOUT_S
-        self.handler.data_received(data)
-
-    def eof_received(self) -> bool | None:
-        return self.handler.eof_received() if self.peer is not None else None
-
-    def pause_writing(self) -> None:
-        if self.peer is not None:
-            self.handler.pause_writing()
-
-    def resume_writing(self) -> None:
-        if self.peer is not None:
-            self.handler.resume_writing()
-
-    def connection_lost(self, exc: BaseException | None) -> None:
-        if self.peer is None:
-            return
-        view = self.view
-        view._connections.pop(self.handler, None)
-        left = view._peers.get(self.peer, 1) - 1
-        if left > 0:
-            view._peers[self.peer] = left
-        else:
-            view._peers.pop(self.peer, None)
-        self.handler.connection_lost(exc)
-
-
 def _check_web_token(token: str | None, host: str) -> None:
     """ValueError unless there is a token, or ``host`` is loopback (as the NDJSON listener's rule)."""
     if token is None and not is_loopback_host(host):
@@ -731,11 +687,6 @@ def _check_web_token(token: str | None, host: str) -> None:
 def _text(obj: dict) -> str:
     """JSON as the NDJSON listener writes it (``ndjson.encode``: non-finite numbers and None left out)."""
     return encode(obj).decode().rstrip("\n")
-
-
-def _peer_of(transport: Any) -> str:
-    peer = transport.get_extra_info("peername")
-    return str(peer[0]) if isinstance(peer, tuple) and peer else str(peer)
 
 
 def _peer(request: Any) -> str:

@@ -1,0 +1,209 @@
+"""What the daemon says about itself: the VERSION, DEVICE and STATUS objects, and the numbers ``/metrics`` reads.
+
+Each is built from the service's public state when asked (a client's ``?STATUS``, the periodic STATUS, a
+scrape), so nothing is counted twice.  The caller holds the service's ``lock`` where the pipeline's counters
+are read (``status_object``); ``metrics_state`` takes it itself.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import resource
+import time
+from typing import Any
+
+from .. import __version__
+from ..protocol import IdentityFrame
+
+__all__ = [
+    "PROTO_MAJOR",
+    "PROTO_MINOR",
+    "CpuMeter",
+    "age_s",
+    "current_rss_mb",
+    "device_object",
+    "identity_fields",
+    "metrics_state",
+    "status_object",
+    "version_object",
+]
+
+#: The NDJSON protocol's version (``connection.py``): the major changes only when a key changes meaning or goes.
+PROTO_MAJOR = 1
+PROTO_MINOR = 0
+
+
+class CpuMeter:
+    """The process's CPU share between two marks: ``100 * (cpu_s - cpu_mark_s) / (now_s - wall_mark_s)`` %."""
+
+    def __init__(self) -> None:
+        self._mark = (time.monotonic(), time.process_time())
+
+    def percent(self, now_s: float, *, mark: bool) -> float:
+        """The share since the last mark (rounded to 0.01 %); ``mark``: start the next interval now."""
+        cpu_s = time.process_time()
+        wall_mark_s, cpu_mark_s = self._mark
+        if mark:
+            self._mark = (now_s, cpu_s)
+        return round(100.0 * (cpu_s - cpu_mark_s) / max(now_s - wall_mark_s, 1e-9), 2)
+
+
+def current_rss_mb() -> float:
+    """The resident set size now (VmRSS; Linux), else the peak (``ru_maxrss``)."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return round(int(line.split()[1]) / 1024.0, 1)
+    except OSError:
+        pass
+    return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)
+
+
+def age_s(created_utc: str) -> float | None:
+    """Seconds since an ISO 8601 UTC time (a model's ``created_utc``), or None when it is not one."""
+    try:
+        created = _dt.datetime.fromisoformat(created_utc.replace("Z", "+00:00"))
+    except (ValueError, AttributeError):
+        return None
+    if created.tzinfo is None:
+        created = created.replace(tzinfo=_dt.UTC)
+    return (_dt.datetime.now(_dt.UTC) - created).total_seconds()
+
+
+def identity_fields(identity: IdentityFrame) -> dict:
+    """The instrument's identity as VERSION and DEVICE carry it."""
+    return {
+        "serial": identity.serial,
+        "firmware": identity.firmware_version,
+        "rate_hz": identity.rate_hz,
+        "scale_arcsec_per_count": identity.scale_arcsec_per_count,
+    }
+
+
+def version_object(service: Any) -> dict:
+    """VERSION: the release, the protocol's version, the model's kind and (once known) the instrument."""
+    obj: dict[str, Any] = {
+        "class": "VERSION",
+        "release": __version__,
+        "proto_major": PROTO_MAJOR,
+        "proto_minor": PROTO_MINOR,
+        "model": service.model_file.kind,
+    }
+    identity = service.acquisition.identity
+    if identity is not None:
+        obj["instrument"] = identity_fields(identity)
+    return obj
+
+
+def device_object(service: Any) -> dict:
+    """DEVICE: the port, its state, the frame format, the instrument and the raw capture's state."""
+    obj: dict[str, Any] = {
+        "class": "DEVICE",
+        "path": service.port_url,
+        "state": "activated" if service.port_state == "open" else "deactivated",
+    }
+    if service.source.wire is not None:
+        obj["format"] = service.source.wire.format
+    identity = service.acquisition.identity
+    if identity is not None:
+        obj.update(identity_fields(identity))
+    if service.capture is not None:
+        obj["capture"] = service.capture.state
+    return obj
+
+
+def status_object(service: Any, *, mark_cpu: bool = True) -> dict:
+    """STATUS now; ``mark_cpu``: the CPU share is over the time since the last marked call (the periodic
+    STATUS marks it; a client's ``?STATUS`` does not, so it cannot skew the periodic figure)."""
+    now = time.monotonic()
+    cpu_percent = service.cpu.percent(now, mark=mark_cpu)
+    acquisition = service.acquisition
+    c = service.source.counters
+    compensator = service.compensator
+    obj: dict[str, Any] = {
+        "class": "STATUS",
+        "uptime_s": round(now - service.started_monotonic, 3),
+        "port_state": service.port_state,
+        "bytes_in": c.bytes_in,
+        "frames": c.sample_frames,
+        "crc_errors": c.crc_errors,
+        "bytes_discarded": c.bytes_discarded,
+        "seq_gaps": c.seq_gaps,
+        "missing_frames": c.missing_frames,
+        "identities_rejected": service.source.identities_rejected,
+        "instrument_changes": service.binding.rebuilds,
+        "published": acquisition.samples_published,
+        "flagged": dict(acquisition.flagged),
+        "cpu_percent": cpu_percent,
+        "rss_mb": current_rss_mb(),
+        "bias_dph": acquisition.bias_dph,
+        "bias_captured": acquisition.bias_captured,
+        "adapting": bool(compensator and compensator.reference_rate_dph is not None),
+        "reloads": service.reloads,
+    }
+    obj.update(_pipeline_fields(service))
+    obj.update(_listener_fields(service))
+    return obj
+
+
+def _pipeline_fields(service: Any) -> dict[str, Any]:
+    """STATUS keys present only when they say something: a bias capture running, samples dropped before the
+    first IDENTITY, a format problem, rejected increments, whether the adapted weights are in use."""
+    acquisition = service.acquisition
+    obj: dict[str, Any] = {}
+    capture = acquisition.bias_capture
+    if capture is not None:  # a ?BIAS capture running: how far it is, in seconds of device time
+        obj["bias_capture_s"] = capture.seconds
+        obj["bias_capture_target_s"] = capture.target_s
+    if acquisition.samples_dropped_before_identity:
+        obj["samples_dropped_before_identity"] = acquisition.samples_dropped_before_identity
+    if service.source.format_problem is not None:
+        obj["format_problem"] = service.source.format_problem
+    if service.source.increments_rejected:  # another format's float words that were NaN or no gyro's
+        obj["increments_rejected"] = service.source.increments_rejected
+    online = service.compensator.online if service.compensator is not None else None
+    if online is not None:  # is the published drift the adapted weights' (the comparison guard's verdict)?
+        obj["adapted_in_use"] = online.adapted_in_use
+    return obj
+
+
+def _listener_fields(service: Any) -> dict[str, Any]:
+    """STATUS keys of the listeners and outputs that run: clients, web pages, the raw capture, UDP."""
+    obj: dict[str, Any] = {}
+    if service.hub is not None:
+        obj["clients"] = service.hub.clients
+        obj["dropped_clients"] = service.hub.dropped_clients
+    if service.web is not None:
+        obj["web_clients"] = len(service.web.browsers)
+        obj["web_dropped_clients"] = service.web.dropped_browsers
+    if service.capture is not None:
+        capture = service.capture.status()
+        obj["capture_state"] = capture["state"]
+        obj["capture_bytes"] = capture["bytes"]
+        obj["capture_bytes_lost"] = capture["bytes_lost"]
+        if "path" in capture:
+            obj["capture"] = capture["path"]
+        if "last_error" in capture:
+            obj["capture_error"] = capture["last_error"]
+    if service.udp is not None:
+        obj.update(service.udp.status_fields())
+    return obj
+
+
+def metrics_state(service: Any) -> dict[str, Any]:
+    """What ``/metrics`` reads at each scrape (``metrics.DaemonCollector``): STATUS, DEVICE, VERSION and
+    the counters STATUS does not carry (any thread)."""
+    with service.lock:
+        out: dict[str, Any] = {
+            "status": status_object(service, mark_cpu=False),
+            "device": device_object(service),
+            "version": version_object(service),
+        }
+    reader = service.reader
+    if reader is not None:
+        out["reconnects"] = max(0, reader.opens - 1)
+    if service.capture is not None:
+        out["capture_failures"] = service.capture.status()["failures"]
+    out["model_age_s"] = age_s(service.model_file.created_utc)
+    return out
