@@ -29,8 +29,8 @@ from typing import Any
 
 import structlog
 
-from ..compensation.adapt import write_state_doc
 from ..errors import FogDriverError
+from ..modelfiles import write_state_doc
 from .acquisition import BiasCapture
 from .limits import BIAS_ANSWER_MARGIN_S, DEFAULT_BIAS_S, MAX_ADAPT_REFERENCE_DPH, MAX_BIAS_S, MIN_BIAS_S
 
