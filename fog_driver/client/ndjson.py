@@ -154,7 +154,7 @@ def _clean_value(value: Any) -> Any:
 _ENCODER = json.JSONEncoder(separators=(",", ":"), allow_nan=False)
 
 
-def encode(obj: dict) -> bytes:
+def encode(obj: dict[str, Any]) -> bytes:
     """One protocol line: ``clean(obj)`` as compact JSON plus ``\\n`` (raises on unserializable values).
 
     Most objects are clean already (every ANGLE the daemon makes): they are encoded as they are, and
@@ -179,7 +179,7 @@ class Command(NamedTuple):
     """A command line read: its NAME, its argument object (``{}`` when none) and whether ``=...`` was given."""
 
     name: str
-    args: dict
+    args: dict[str, Any]
     has_args: bool
 
 

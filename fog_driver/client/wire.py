@@ -23,7 +23,7 @@ from typing import Any
 
 from ..errors import DeviceError, InputFileError, UsageError
 from .address import DEFAULT_HOST, DEFAULT_PORT, format_address, parse_host_port
-from .ndjson import OVERLONG, LineBuffer
+from .ndjson import LineBuffer
 
 __all__ = [
     "DEFAULT_HOST",
@@ -84,10 +84,10 @@ class LineReader:
     def feed(self, data: bytes) -> list[bytes]:
         lines: list[bytes] = []
         for item in self._buffer.feed(data):
-            if item is OVERLONG:
-                self.oversized += 1
-            else:
+            if isinstance(item, bytes):
                 lines.append(item)
+            else:  # OVERLONG
+                self.oversized += 1
         return lines
 
 
