@@ -264,12 +264,10 @@ def _print_fit_report(report) -> None:
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
-    from ..compensation.fitting.data import FitConfig
-    from ..compensation.fitting.fit import WeakFitError
     from ..compensation.fitting.quality import format_checks
     from ..files.yamlio import dataclass_from_mapping, read_yaml
     from ..modelfiles import save_model
-    from ..offline.fit import fit_model_file
+    from ..offline.fit import FitConfig, WeakFitError, fit_model_file
 
     out = Path(args.out)
     check_outputs([out], force=args.force, inputs=[*args.captures, *args.validate, *filter(None, [args.config])])
