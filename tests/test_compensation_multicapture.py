@@ -21,7 +21,7 @@ from fog_driver.cli import main
 from fog_driver.compensation.blocks import BlockColumns
 from fog_driver.compensation.features import FeatureExtractor
 from fog_driver.compensation.fitting import fit
-from fog_driver.compensation.fitting.data import CaptureData, FitConfig, static_mask
+from fog_driver.compensation.fitting.data import CaptureData, FitConfig, block_noise_dph, motion_mask, static_mask
 from fog_driver.modelfiles import load_model
 from fog_driver.offline import fit as offline_fit
 from fog_driver.offline.fit import fit_model_file, load_capture
@@ -238,7 +238,7 @@ def test_a_clean_chamber_run_loses_no_block_to_the_motion_detector(runs):
     """A thermal drift is not motion: on the paper run only the warm-up is excluded."""
     config = FitConfig()
     capture = load_capture(runs / "paper.bin", config)
-    assert not fit.motion_mask(capture.blocks.rate_dph, config).any()
+    assert not motion_mask(capture.blocks.rate_dph, config).any()
     assert capture.static.sum() == (capture.blocks.t_end_s > config.warmup_s).sum()
 
 
@@ -247,7 +247,7 @@ def test_block_noise_is_the_white_noise_sigma():
     drift = np.cumsum(rng.normal(0, 0.001, 20000))  # a slow wander
     rate = drift + rng.normal(0, 0.25, 20000)
     rate[5000:5040] += 36000.0  # a turn
-    assert fit.block_noise_dph(rate) == pytest.approx(0.25, rel=0.05)
+    assert block_noise_dph(rate) == pytest.approx(0.25, rel=0.05)
 
 
 def test_fit_reports_the_blocks_excluded_for_motion(runs, capsys):

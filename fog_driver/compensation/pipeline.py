@@ -32,13 +32,14 @@ from ..flags import Flag
 from ..flags import flag_names as flag_names
 from ..protocol import STATUS_THERMOMETER_FAULT
 from ..samples.stream import Sample, SampleBlock
+from .adapt_config import AdaptConfig, StaticDetector
 from .blocks import FLAG_GAP, FLAG_THERMOMETER_FAULT, PLAUSIBLE_TEMP_C, BlockAverager, ModelBlock
 from .domain import FLAG_EXTRAPOLATING
 from .features import DEGRADED_FLAGS, FLAG_INPUT_STALE, FeatureExtractor
 from .model import ModelFile
 
-if TYPE_CHECKING:  # adapt.py imports this module's flags: import it lazily
-    from .adapt import AdaptConfig, OnlineReadout, StaticDetector
+if TYPE_CHECKING:  # a cycle until fog_driver.flags: adapt.py imports FLAG_ADAPTING and FLAG_GUARD from here
+    from .adapt import OnlineReadout
 
 FLAG_UNCOMPENSATED = int(Flag.UNCOMPENSATED)  #: no drift estimate applied (start-up, or inputs never valid)
 FLAG_ADAPTING = int(Flag.ADAPTING)  #: the weights are adapting online, or adapted weights give the estimate
@@ -157,7 +158,7 @@ class Compensator:
         self.online: OnlineReadout | None = None
         self.static_detector: StaticDetector | None = None
         if adapt is not None:
-            from .adapt import OnlineReadout, StaticDetector
+            from .adapt import OnlineReadout  # the cycle above (adapt imports this module's flags)
 
             self.online = OnlineReadout(
                 self.model.weights,

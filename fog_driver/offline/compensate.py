@@ -9,11 +9,12 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import cast
 
 from ..compensation.adapt import AdaptConfig
 from ..compensation.binding import InstrumentCompensation, check_channels, split_at_identities
 from ..compensation.model import ModelFile
-from ..compensation.pipeline import CompensatedColumns
+from ..compensation.pipeline import CompensatedColumns, Compensator
 from ..errors import InputFileError
 from ..modelfiles import adaptation_restorer, save_adaptation
 from ..samples.captures import what_it_is
@@ -69,14 +70,15 @@ def compensate_capture(
                 if len(block):
                     pending.append(block)
                 continue
+            frame_period_s = cast(Compensator, binding.compensator).frame_period_s  # bound
             for earlier in pending:
-                yield binding.compensator.frame_period_s, binding.run(earlier)
+                yield frame_period_s, binding.run(earlier)
             pending = []
             if len(block):
-                yield binding.compensator.frame_period_s, binding.run(block)
+                yield frame_period_s, binding.run(block)
     if not samples_seen:
         raise InputFileError(f"{path}: no SAMPLE frames to compensate{what_it_is(path)}")
     if not binding.bound:
         raise InputFileError(f"{path}: no IDENTITY frame: frame rate unknown")
     if adapt is not None and adapt_state is not None and save_adapt_state:
-        save_adaptation(binding.compensator, adapt_state)
+        save_adaptation(cast(Compensator, binding.compensator), adapt_state)  # bound

@@ -15,14 +15,14 @@ import numpy as np
 
 from ..compensation.blocks import BlockAverager, BlockColumns
 from ..compensation.fitting.data import CaptureData, FitConfig, capture_data
-from ..compensation.fitting.fit import check_kind, fit_model
+from ..compensation.fitting.fit import WeakFitError, check_kind, fit_model
 from ..compensation.fitting.report import FitReport
 from ..compensation.model import ModelFile
 from ..errors import InputFileError
 from ..samples.captures import what_it_is
 from ..samples.sources import CaptureReader, wire_settings_for
 
-__all__ = ["FitConfig", "fit_model_file", "load_capture"]
+__all__ = ["FitConfig", "WeakFitError", "fit_model_file", "load_capture"]  # the fit at its edge
 
 
 def load_capture(
@@ -45,7 +45,7 @@ def load_capture(
     n_channels = len(wire.temperature_channels)
     averager: BlockAverager | None = None
     parts = []
-    on_block = sha.update
+    on_block: Callable[[bytes], None] = sha.update
     if progress is not None:
         size = path.stat().st_size if path.is_file() else 0
         done = [0]

@@ -17,6 +17,7 @@ period is a last row.  Columns::
 from __future__ import annotations
 
 from collections.abc import Iterable, Iterator
+from typing import cast
 
 import numpy as np
 
@@ -54,7 +55,8 @@ class RowAggregator:
             return []
         cols, self._pending = self._pending, None
         t_us = np.rint(cols.t_s * 1e6).astype(np.int64)
-        return self._rows(cols, (t_us - self._first_us) // self.every_us, t_us)
+        first_us = cast(int, self._first_us)  # set with the pending frames
+        return self._rows(cols, (t_us - first_us) // self.every_us, t_us)
 
     def _rows(self, cols: CompensatedColumns, row: np.ndarray, t_us: np.ndarray) -> list[tuple]:
         n = len(row)

@@ -204,7 +204,25 @@ def _fit_ring_form(kind: str, wc: WesnConfig, captures, normalizer, config, say=
     x_fit = np.vstack([f[c.static] for f, c in zip(regressors, captures)])
     weights, intercept = standardized_ridge(x_fit, y_fit, alpha, penalty, groups)
     model = WesnModel(kind, reservoir, weights, intercept, wc.linear_path, wc.state_powers, wc.max_power, wc.coil_rate)
-    model.selection = {
+    model.selection = _selection(wc, lag, order, alpha, choices, criteria, tied, limits)
+    return model
+
+
+def _selection(
+    wc: WesnConfig,
+    lag: float,
+    order: int,
+    alpha: float,
+    choices: dict[float, Any],
+    criteria: dict[tuple[float, int], float],
+    tied: list[float],
+    limits: list[str],
+) -> dict[str, Any]:
+    """The ring form's ``selection`` (the model file's provenance): the chosen coil (``lag``, ``order``) and
+    penalty ``alpha``, every penalty's cross-validation score (``choices``), every coil's in-sample residual
+    (``criteria``), the lags that explain the captures equally well (``tied``; a warning when they span more
+    than a factor 2), and what the data could not identify (``limits``)."""
+    selection: dict[str, Any] = {
         "coil_lag_s": float(lag),
         "coil_order": int(order),
         "ridge_alpha": float(alpha),
@@ -217,14 +235,14 @@ def _fit_ring_form(kind: str, wc: WesnConfig, captures, normalizer, config, say=
         "state_powers": wc.state_powers,
     }
     if limits:
-        model.selection["limits"] = limits
+        selection["limits"] = limits
     if max(tied) > 2.0 * min(tied):
-        model.selection["warning"] = (
+        selection["warning"] = (
             f"the coil's lag is poorly identified by these captures: {min(tied):g} s to {max(tied):g} s explain them "
             f"within {100 * LAG_TIE_TOLERANCE:g} % (the fit takes {lag:g} s); on faster ramps they would differ. A run "
             f"with faster ramps or steps, fitted together with this one, tells them apart"
         )
-    return model
+    return selection
 
 
 def ring_weights_for(normalizer) -> tuple[float, ...]:
