@@ -103,6 +103,7 @@ import numpy as np
 
 from ..errors import InputFileError
 from ..files.kinds import ADAPT_STATE_FORMAT
+from ..flags import FLAG_ADAPTING, FLAG_GUARD
 from . import numerics
 from .adapt_config import AdaptConfig, StaticDetector, blocks_in, finite_number
 from .adapt_state import (
@@ -111,7 +112,6 @@ from .adapt_state import (
     checked_comparison,
     checked_gate,
 )
-from .pipeline import FLAG_ADAPTING, FLAG_GUARD
 from .readout import AdaptiveLaw, AdaptiveLawState
 
 __all__ = [

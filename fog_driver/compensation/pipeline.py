@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, NamedTuple, cast
+from typing import Any, NamedTuple, cast
 
 import numpy as np
 
@@ -32,14 +32,12 @@ from ..flags import Flag
 from ..flags import flag_names as flag_names
 from ..protocol import STATUS_THERMOMETER_FAULT
 from ..samples.stream import Sample, SampleBlock
+from .adapt import OnlineReadout
 from .adapt_config import AdaptConfig, StaticDetector
 from .blocks import FLAG_GAP, FLAG_THERMOMETER_FAULT, PLAUSIBLE_TEMP_C, BlockAverager, ModelBlock
 from .domain import FLAG_EXTRAPOLATING
 from .features import DEGRADED_FLAGS, FLAG_INPUT_STALE, FeatureExtractor
 from .model import ModelFile
-
-if TYPE_CHECKING:  # a cycle until fog_driver.flags: adapt.py imports FLAG_ADAPTING and FLAG_GUARD from here
-    from .adapt import OnlineReadout
 
 FLAG_UNCOMPENSATED = int(Flag.UNCOMPENSATED)  #: no drift estimate applied (start-up, or inputs never valid)
 FLAG_ADAPTING = int(Flag.ADAPTING)  #: the weights are adapting online, or adapted weights give the estimate
@@ -158,8 +156,6 @@ class Compensator:
         self.online: OnlineReadout | None = None
         self.static_detector: StaticDetector | None = None
         if adapt is not None:
-            from .adapt import OnlineReadout  # the cycle above (adapt imports this module's flags)
-
             self.online = OnlineReadout(
                 self.model.weights,
                 self.model.intercept,

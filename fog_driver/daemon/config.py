@@ -20,7 +20,9 @@ from ..client.address import format_address as format_address  # re-exported: se
 from ..errors import InputFileError
 from ..files.typed_mapping import dataclass_from_mapping
 from ..files.yamlio import read_yaml
+from ..samples.sources import WireSettings
 from ..samples.stream import DEFAULT_SCALE_ARCSEC_PER_COUNT, SampleStream
+from ..transport.setup import DeviceSetup, validate_command
 
 #: The shipped drift model (``fog_driver/data/models/default.yaml``): package data, so a wheel or any
 #: other install finds it as a source checkout does.
@@ -45,8 +47,6 @@ class DeviceConfig:
     setup_reply_timeout_s: float = 1.0  #: how long to wait for the device's answer to each setup command
 
     def __post_init__(self) -> None:
-        from ..transport.setup import validate_command
-
         for command in self.setup:
             validate_command(command)  # InvalidSetupCommand is a ValueError: "config: device: setup command ..."
         if not 0 < self.setup_reply_timeout_s <= 30:
@@ -54,8 +54,6 @@ class DeviceConfig:
 
     def device_setup(self):
         """``transport.setup.DeviceSetup`` of the commands, or None when there are none."""
-        from ..transport.setup import DeviceSetup
-
         return DeviceSetup(commands=self.setup, reply_timeout_s=self.setup_reply_timeout_s) if self.setup else None
 
 
@@ -123,8 +121,6 @@ class DriverConfig:
 
     def wire_settings(self, name: str | None = None):
         """``sources.WireSettings`` of the configured format (``name``: the one the bytes showed, for auto)."""
-        from ..samples.sources import WireSettings
-
         name = name or self.format
         d = self.device
         try:

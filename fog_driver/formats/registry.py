@@ -12,6 +12,10 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from ..protocol import FrameDecoder
+from .ixblue import StdbinDecoder
+from .kvh import KvhDecoder
+
 #: Bytes ``sniff`` looks at by default: at 1 kHz, about 2 s of protocol v1 or KVH, a few STDBIN telegrams.
 SNIFF_BYTES = 64 * 1024
 #: Fewer checksum-valid frames than this in the bytes looked at is no verdict (a 32-bit CRC passes by chance
@@ -42,23 +46,17 @@ class FrameFormat:
 
 
 def _fog_v1() -> Any:
-    from ..protocol import FrameDecoder
-
     return FrameDecoder()
 
 
 def _kvh(fmt: str) -> Callable[..., Any]:
     def make(**settings: Any) -> Any:
-        from .kvh import KvhDecoder
-
         return KvhDecoder(format=fmt, **settings)
 
     return make
 
 
 def _ixblue(**settings: Any) -> Any:
-    from .ixblue import StdbinDecoder
-
     return StdbinDecoder(**settings)
 
 
