@@ -248,14 +248,15 @@ def test_motion_is_detected_and_excluded(tmp_path):
 
 
 def test_shipped_fit_config_lists_the_defaults():
-    from fog_driver.files.yamlio import dataclass_from_mapping, read_yaml
+    from fog_driver.files.typed_mapping import dataclass_from_mapping
+    from fog_driver.files.yamlio import read_yaml
 
     path = ROOT / "configs" / "fit.yaml"
     assert dataclass_from_mapping(FitConfig, read_yaml(path, "fit config"), str(path)) == FitConfig()
 
 
 def test_fit_config_optional_penalty_can_be_null(tmp_path):
-    from fog_driver.files.yamlio import dataclass_from_mapping
+    from fog_driver.files.typed_mapping import dataclass_from_mapping
 
     cfg = dataclass_from_mapping(FitConfig, {"poly_alpha": None, "warmup_s": 60}, "test")
     assert cfg.poly_alpha is None and cfg.warmup_s == 60.0
@@ -413,7 +414,7 @@ def test_compensate_cli_adapts_and_keeps_its_state(model_path, tmp_path):
 
 
 def test_fit_config_rates_must_agree(tmp_path):
-    from fog_driver.files.yamlio import dataclass_from_mapping
+    from fog_driver.files.typed_mapping import dataclass_from_mapping
 
     with pytest.raises(InputFileError, match="sample_time_s"):
         dataclass_from_mapping(FitConfig, {"model_rate_hz": 2.0}, "fit.yaml")

@@ -71,7 +71,7 @@ def test_the_same_seed_gives_the_same_instrument_and_another_seed_another():
     assert a.serial == "FOG-POP-00017" and a.population_seed == 17
     assert draw_instrument(18).as_dict() != a.as_dict()
     # Through YAML, as a sidecar stores it: the same instrument again.
-    from fog_driver.files.yamlio import dataclass_from_mapping
+    from fog_driver.files.typed_mapping import dataclass_from_mapping
 
     again = dataclass_from_mapping(InstrumentConfig, yaml.safe_load(yaml.safe_dump(a.as_dict())), "test")
     assert again == a

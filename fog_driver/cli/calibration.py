@@ -22,7 +22,8 @@ from ..errors import FogDriverError, InputFileError, OutputFileError
 from ..extras import require_extra
 from ..files.kinds import ROW_COLUMNS
 from ..files.outputs import check_outputs, describe, write_error
-from ..files.yamlio import dataclass_from_mapping, read_yaml
+from ..files.typed_mapping import dataclass_from_mapping
+from ..files.yamlio import read_yaml
 from ..formats.registry import FORMATS
 from ..modelfiles import load_model, save_model
 from ..offline.compensate import compensate_capture

@@ -12,7 +12,6 @@ from typing import Any
 import yaml
 
 from ..errors import InputFileError, OutputFileError
-from .typed_mapping import dataclass_from_mapping as dataclass_from_mapping  # re-export (the fit command reads it here)
 
 #: Every YAML file the project reads is small; a larger one is not what it claims to be.
 MAX_YAML_BYTES = 1 << 20
