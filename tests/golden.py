@@ -1,6 +1,6 @@
 """Comparing outputs with golden files: floats to a stated tolerance, everything else exactly.
 
-The project promises two things (README, "Same numbers on every machine"):
+The project promises two things (docs/explanation/determinism.md, "Same numbers on every machine"):
 
 * on one machine, bit-identical: live == offline replay, ``step`` == ``run``.  Those tests use ``==``;
 * on any machine, floats within ``REL_TOL`` of each other (or ``ABS_TOL`` in the field's own unit, for

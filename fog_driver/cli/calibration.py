@@ -35,7 +35,7 @@ from ..samples.captures import _capture_size
 from ..sim.capture import check_truth_matches, read_truth
 from .argtypes import positive_float, time_window
 
-#: What ``fog-driver fit`` fits without ``--kind``: the project's best model (README, "Accuracy").
+#: What ``fog-driver fit`` fits without ``--kind``: the project's best model (docs/explanation/accuracy.md).
 DEFAULT_FIT_KIND = "wesn"
 
 

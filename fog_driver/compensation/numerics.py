@@ -13,7 +13,7 @@ applies each elementwise operation as its own correctly rounded step (it never f
 and an add), so a function built from those alone depends on its inputs only.  Everything the
 compensator does per model block is built that way (``Compensator``, the drift models, the
 adaptive law), so a model file compensates a capture to the same bits on the bench PC and on the
-analysis workstation, whatever their CPUs; fitting (LAPACK, BLAS) is not, see the README.
+analysis workstation, whatever their CPUs; fitting (LAPACK, BLAS) is not (docs/explanation/determinism.md).
 
 * ``exp(x)``: fdlibm's ``e_exp.c`` (Sun, 1993; the algorithm of Java's ``StrictMath.exp``) in
   numpy operations: ``x = k ln2 + r`` with ``k = rint(x / ln2)``, ``|r| <= ln2 / 2``, ``ln2``

@@ -658,5 +658,5 @@ def wire_settings_for(path: str | Path, requested: str = "auto") -> WireSettings
     raise InputFileError(
         f"{path}: a {name} capture needs the device's settings (rate_hz ...) and has no sidecar "
         f"recording them: write {sidecar_path(path).name} with wire_format and "
-        f"wire_settings (see the README)"
+        f"wire_settings (see the documentation: how-to/instruments)"
     )

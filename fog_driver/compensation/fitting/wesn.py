@@ -40,7 +40,7 @@ ramps leaves 0.050 deg/h where the true lag would leave 0.026.
 ``fit.own_validation`` then compares it with the polynomial on the fit's own validation split, and
 ``fog-driver fit`` without ``--kind`` saves the polynomial when the wesn does worse there.
 Random reservoirs over all eight inputs fit the training profile's history and extrapolate worse
-than the polynomial baseline (the README's accuracy section).
+than the polynomial baseline (docs/explanation/accuracy.md).
 """
 
 from __future__ import annotations

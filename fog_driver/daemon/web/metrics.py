@@ -7,7 +7,7 @@ hub can fill it without the optional ``web`` extra installed).
 
 Names follow Prometheus' conventions (``_total`` counters, base units: ``_seconds``, ``_bytes``, the
 instrument's own units where there is no base unit: ``_dph`` degrees per hour, ``_celsius``).  The list,
-with what each means, is ``METRICS``; the README prints it.
+with what each means, is ``METRICS``; the documentation's monitoring guide (docs/how-to/monitoring.md) prints it.
 """
 
 from __future__ import annotations
