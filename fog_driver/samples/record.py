@@ -83,16 +83,7 @@ def record(
     stop = stop or threading.Event()
     out_path = Path(out_path)
     recording = _Recording(wire, on_state)
-    base_fields: dict[str, Any] = {
-        "source": "record",
-        "port": url,
-        "baud": baudrate,
-        "start_utc": utc_now_iso(),
-        "fog_driver_version": __version__,
-        **wire.sidecar_fields(),
-    }
-    if notes:
-        base_fields["notes"] = notes
+    base_fields = _base_fields(url, baudrate, wire, notes)
     check_outputs([out_path, sidecar_path(out_path)], force=overwrite)  # say so now, not after waiting for the port
     reader = PortReader(
         url,
@@ -134,6 +125,21 @@ def record(
         raise OutputFileError(status.removeprefix("failed: "))
     counters, identity = recording.decoder.counters, recording.identity
     return RecordResult(out_path, sidecar, writer.bytes_written, writer.sha256, elapsed, counters, identity)
+
+
+def _base_fields(url: str, baudrate: int, wire: Any, notes: str | None) -> dict[str, Any]:
+    """The sidecar's fields known when the recording starts: the port, the wire format, the notes."""
+    base_fields: dict[str, Any] = {
+        "source": "record",
+        "port": url,
+        "baud": baudrate,
+        "start_utc": utc_now_iso(),
+        "fog_driver_version": __version__,
+        **wire.sidecar_fields(),
+    }
+    if notes:
+        base_fields["notes"] = notes
+    return base_fields
 
 
 class _Recording:
