@@ -88,6 +88,7 @@ class FrameDecoder(HuntingDecoder[Event, DecoderCounters]):
     def __init__(self) -> None:
         super().__init__(DecoderCounters())
         self._seq = Unwrapper(SEQ_MODULUS)
+        self._seq_step = self._seq.step  # bound once: called for every frame
         self._last_t_us: int | None = None
 
     def _find(self, buf: bytearray, pos: int) -> int:
@@ -132,7 +133,7 @@ class FrameDecoder(HuntingDecoder[Event, DecoderCounters]):
         events.append(frame)
 
     def _count_sample(self, seq: int, t_us: int) -> None:
-        d = self._seq.step(seq)
+        d = self._seq_step(seq)
         if d != 1:  # (tested here: the call only on a gap or a repeat, off the per-frame path)
             count_seq_step(self.counters, d)
         # t_us is not unwrapped here, only its wraps counted, as ``Unwrapper`` counts them (a reading below

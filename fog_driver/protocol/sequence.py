@@ -95,7 +95,7 @@ class Unwrapper:
             self.value = raw
             return None
         d = (raw - last) % self.modulus
-        if self.signed and d >= self.half:
+        if d >= self.half and self.signed:
             d -= self.modulus
         elif raw < last:  # a forward step (d > 0) to a smaller reading: across the modulus
             self.wraps += 1
