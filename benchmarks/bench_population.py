@@ -102,7 +102,7 @@ def capture(workdir: Path, seed: int, profile: str, run_seed: int, rate_hz: int)
         source = profile if profile in BUILTIN_PROFILES else ROOT / "configs" / "profiles" / f"{profile}.yaml"
         sim = Simulator(load_profile(source), draw_instrument(seed), rate_hz=rate_hz, seed=run_seed)
         simulate_to_file(sim, out.with_suffix(".part.bin"))
-        for suffix in (".bin", ".yaml", ".truth.csv"):  # complete files only: an interrupted run redoes them
+        for suffix in (".bin", ".bin.yaml", ".truth.csv"):  # complete files only: an interrupted run redoes them
             out.with_suffix(".part" + suffix).rename(out.with_suffix(suffix))
     return out
 
