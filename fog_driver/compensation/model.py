@@ -12,7 +12,6 @@ date).  A model fitted for another serial is refused unless forced.
 from __future__ import annotations
 
 import copy
-import datetime as _dt
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -21,6 +20,7 @@ import numpy as np
 from .. import __version__
 from ..errors import InputFileError
 from ..files.kinds import MODEL_FORMAT
+from ..files.stamps import utc_now_iso
 from .domain import InputDomain
 from .features import V1_CHANNELS, FeatureParams, Substitution, input_names, params_to_dict
 from .models.polynomial import PolynomialModel
@@ -70,12 +70,6 @@ MODEL_KINDS: dict[str, Any] = {"polynomial": PolynomialModel, "wesn": WesnKind, 
 #: corrupt file (a block of under 1 ms would be 0 us long on the block grid).
 MIN_MODEL_RATE_HZ = 1e-3
 MAX_MODEL_RATE_HZ = 100.0
-
-
-def utc_now_iso() -> str:
-    """Now, UTC, ISO 8601 to the millisecond with a ``Z`` (as ``samples.captures.utc_now_iso``, which this
-    layer cannot import: it reads YAML sidecars)."""
-    return _dt.datetime.now(_dt.UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
 
 
 @dataclass

@@ -64,13 +64,13 @@ import structlog
 
 from .. import __version__
 from ..errors import FogDriverError, OutputFileError
+from ..files.stamps import utc_now_iso
 from ..samples.captures import (
     CaptureWriter,
     find_sidecar,
     legacy_sidecar_path,
     read_provenance,
     sidecar_path,
-    utc_now_iso,
     write_provenance,
 )
 

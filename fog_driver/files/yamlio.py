@@ -5,7 +5,6 @@ from __future__ import annotations
 import errno
 import os
 import secrets
-from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
@@ -112,12 +111,3 @@ def read_tagged_yaml(path: str | Path, kind: str, format_tag: str, schema_versio
             f"{where}: {kind} schema version {version!r}; this fog_driver reads version {schema_version}"
         )
     return doc
-
-
-def require_known_keys(cls: type, d: Any, what: str) -> None:
-    """``ValueError`` unless ``d`` is a dict whose keys are all fields of the dataclass ``cls``
-    (missing keys are allowed: they take the defaults).  For ``from_dict`` of model-file parts."""
-    known = {f.name for f in fields(cls)}
-    if not isinstance(d, dict) or not set(d) <= known:
-        extra = sorted(set(d) - known) if isinstance(d, dict) else type(d).__name__
-        raise ValueError(f"{what}: unknown keys {extra}")

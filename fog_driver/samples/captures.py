@@ -13,7 +13,6 @@ Sidecars are read with ``yaml.safe_load`` only.
 from __future__ import annotations
 
 import contextlib
-import datetime as _dt
 import hashlib
 import os
 from collections.abc import Callable
@@ -73,10 +72,6 @@ def find_sidecar(capture_path: str | Path) -> Path | None:
     except InputFileError:
         return None  # not readable YAML: not a sidecar this project wrote
     return legacy if is_provenance(doc) else None
-
-
-def utc_now_iso() -> str:
-    return _dt.datetime.now(_dt.UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
 
 
 def _capture_size(path: Path) -> int:

@@ -21,10 +21,11 @@ from typing import Any
 from .. import __version__
 from ..errors import DeviceError, OutputFileError
 from ..files.outputs import check_outputs
+from ..files.stamps import utc_now_iso
 from ..protocol import DecoderCounters, IdentityFrame
 from ..transport import PortError, PortEvent, PortReader
 from ..transport.setup import make_on_open
-from .captures import CaptureWriter, sidecar_path, utc_now_iso, write_provenance
+from .captures import CaptureWriter, sidecar_path, write_provenance
 from .sources import WireSettings
 
 _FLUSH_EVERY_S = 1.0

@@ -32,7 +32,8 @@ from .. import __version__
 from ..errors import InputFileError, OutputFileError, read_error
 from ..files.kinds import TRUTH_HEADER
 from ..files.outputs import check_outputs, write_error
-from ..samples.captures import CaptureWriter, read_provenance, sidecar_path, utc_now_iso, write_provenance
+from ..files.stamps import utc_now_iso
+from ..samples.captures import CaptureWriter, read_provenance, sidecar_path, write_provenance
 from .instrument import COMPONENTS, STDBIN_TEMPERATURE_CHANNELS, STDBIN_VERSION, FrameBlock, Simulator
 
 TRUTH_COLUMNS = (
