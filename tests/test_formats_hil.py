@@ -51,6 +51,9 @@ def test_pty_daemon_on_another_format_publishes_every_sample_and_replays_bit_ide
         try:
             client = Client(daemon.address)
             client.send('?WATCH={"enable":true};')
+            # the WATCH is answered before a byte is written: a command is handled off the loop, and a sample
+            # published before it took effect would never reach this client (a busy machine showed it)
+            assert client.next("WATCH")["enable"] is True
             client.wait_device("activated")
             pty.write(data)
             received = [client.next("ANGLE") for _ in range(n_samples)]
