@@ -77,6 +77,9 @@ class CompensatedSample(NamedTuple):
     angle_comp_arcsec: float
     temps_c: tuple[float, ...]
     flags: int
+    #: the 1-sigma of the drift estimate's error as a 1-min mean, about its mean over the run (deg/h);
+    #: NaN while there is no estimate (``uncertainty``)
+    drift_sigma_dph: float = math.nan
 
 
 @dataclass
@@ -90,6 +93,11 @@ class CompensatedColumns:
     angle_comp_arcsec: np.ndarray
     temps_c: np.ndarray  #: (n, 3)
     flags: np.ndarray
+    drift_sigma_dph: np.ndarray | None = None  #: as ``CompensatedSample.drift_sigma_dph``; None: all NaN
+
+    def __post_init__(self) -> None:
+        if self.drift_sigma_dph is None:
+            self.drift_sigma_dph = np.full(len(self.seq), math.nan)
 
     def __len__(self) -> int:
         return len(self.seq)
@@ -105,6 +113,7 @@ class CompensatedColumns:
             float(self.angle_comp_arcsec[i]),
             tuple(float(v) for v in self.temps_c[i]),
             int(self.flags[i]),
+            float(cast(np.ndarray, self.drift_sigma_dph)[i]),
         )
 
 
@@ -144,6 +153,7 @@ class Compensator:
         )  # its temperatures (a gap is interpolated from them)
         self._settle_until = -1  # estimates up to this block are flagged gap (the smoothers catch up)
         self.estimate_dph = 0.0
+        self.sigma_dph = math.nan  #: the held estimate's drift_sigma_dph
         self.estimate_flags = FLAG_UNCOMPENSATED
         self._estimate_block = -1  # the block index the estimate applies from
         self.angle_raw_arcsec = 0.0
@@ -404,18 +414,19 @@ class Compensator:
             self.angle_comp_arcsec,
             temps,
             flags,
+            self.sigma_dph,
         )
 
     def run(self, samples: SampleBlock) -> CompensatedColumns:
         """Vector form of ``step`` over many samples: per-frame work vectorized, blocks in order."""
         n = len(samples)
-        held_before = (self.estimate_dph, self.estimate_flags, self._estimate_block)
+        held_before = (self.estimate_dph, self.estimate_flags, self._estimate_block, self.sigma_dph)
         blocks = self.averager.run(samples)
         # The estimate each closed block leaves behind, in order.
         after = []
         for i in range(len(blocks)):
             self._on_block(blocks.block(i))
-            after.append((self.estimate_dph, self.estimate_flags, self._estimate_block))
+            after.append((self.estimate_dph, self.estimate_flags, self._estimate_block, self.sigma_dph))
         # Which estimate each frame sees: the latest from a block with a smaller index.
         first_us = cast(int, self.averager._first_us)  # set: a block has closed, or these samples set it
         frame_block = (np.rint(samples.t_s * 1e6).astype(np.int64) - first_us) // self.averager.block_us
@@ -423,6 +434,7 @@ class Compensator:
         estimates = np.array([held_before[0]] + [a[0] for a in after])
         est_flags = np.array([held_before[1]] + [a[1] for a in after], dtype=np.int64)
         est_blocks = np.array([held_before[2]] + [a[2] for a in after], dtype=np.int64)
+        sigmas = np.array([held_before[3]] + [a[3] for a in after], dtype=float)
         drift = estimates[which + 1]
         dtheta = samples.dtheta_arcsec
         dtheta_comp = dtheta - drift * self.frame_period_s
@@ -442,5 +454,5 @@ class Compensator:
             columns[: self.n_channels],
         )
         return CompensatedColumns(
-            samples.seq, samples.t_s, dtheta, drift, dtheta_comp, angle_raw, angle_comp, temps, flags
+            samples.seq, samples.t_s, dtheta, drift, dtheta_comp, angle_raw, angle_comp, temps, flags, sigmas[which + 1]
         )
