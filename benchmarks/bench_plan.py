@@ -27,7 +27,8 @@ chamber's 3 degC/min: ``paper`` (the paper's program: one rate, one direction pe
 15-minute soaks), ``cycle`` (every temperature crossed both ways, ramps at 3, 1.5 and 0.75 degC/min
 in each direction, 15-degree plateaus), ``cycle+soaks`` (and soaks of a tenth of the run at both
 extremes), ``calibration`` (and a rate that varies within the run: the return leg's ramps chained,
-a closing sinusoid: the shipped design).  Captures are cached in ``--workdir``; ``--reuse DIR`` reads
+a closing sinusoid: the shipped design), ``coarse`` (the same with plateaus 30 degrees apart: half as
+many transients, each ramp and hold twice as long against a long lag).  Captures are cached in ``--workdir``; ``--reuse DIR`` reads
 captures already simulated under ``bench_population.py``'s names (``DIR/i<K>/<profile>-r<seed>-<rate>hz.bin``)
 without writing there.  One worker by default.
 """
@@ -66,6 +67,7 @@ CANDIDATES: dict[str, Design | None] = {
     "cycle": Design(name="cycle", long_soaks=False, varying_rate=False),
     "cycle+soaks": Design(name="cycle+soaks", varying_rate=False),
     "calibration": DESIGN,
+    "coarse": Design(name="coarse", plateau_step_c=30.0),
 }
 SCORE_PROFILES = {"fast-ramps": 4, "soak-cycle": 2}  #: scoring profile -> run seed offset (10 K + offset)
 FIT_RUN_OFFSET = 1

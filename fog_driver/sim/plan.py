@@ -319,8 +319,8 @@ def identifiability_gaps(chamber: ChamberProfile) -> tuple[Gap, ...]:
         gaps.append(
             Gap(
                 f"coil lags above {_fmt_min(max(tried)) if tried else 'none'}".replace("above none", "(all)"),
-                f"the fit tries lags up to a tenth of the run ({_fmt_min(run_s)}); the model's go to "
-                f"{_fmt_min(max(COIL_LAG_GRID_S))}",
+                f"the fit tries lags up to a tenth of the run ({_fmt_min(run_s)}); the model's, up to "
+                f"{_fmt_min(max(COIL_LAG_GRID_S))}, need {_fmt_min(max(COIL_LAG_GRID_S) / LAG_FRACTION)}",
             )
         )
     shown = [lag for lag in tried if lag <= soak_s]
@@ -369,7 +369,7 @@ def identifiability_gaps(chamber: ChamberProfile) -> tuple[Gap, ...]:
                 Gap(
                     f"the temperature-rate terms {direction}",
                     f"the fastest {direction} ramp is {rates[-1]:.3g} degC/min; under {MIN_FAST_RATE_C_PER_MIN:g} "
-                    "a good coil's Shupe term stays under the gyro's 1-min noise",
+                    "degC/min a good coil's Shupe term stays under the gyro's 1-min noise",
                 )
             )
         elif rates[-1] < RATE_RATIO * rates[0]:
