@@ -28,9 +28,9 @@ chamber's 3 degC/min: ``paper`` (the paper's program: one rate, one direction pe
 in each direction, 15-degree plateaus), ``cycle+soaks`` (and soaks of a tenth of the run at both
 extremes), ``calibration`` (and a rate that varies within the run: the return leg's ramps chained,
 a closing sinusoid: the shipped design), ``coarse`` (the same with plateaus 30 degrees apart: half as
-many transients, each ramp and hold twice as long against a long lag).  Captures are cached in ``--workdir``; ``--reuse DIR`` reads
-captures already simulated under ``bench_population.py``'s names (``DIR/i<K>/<profile>-r<seed>-<rate>hz.bin``)
-without writing there.  One worker by default.
+many transients, each ramp and hold twice as long against a long lag).  Captures are cached in
+``--workdir``; ``--reuse DIR`` reads captures already simulated under ``bench_population.py``'s names
+(``DIR/i<K>/<profile>-r<seed>-<rate>hz.bin``) without writing there.  One worker by default.
 """
 
 from __future__ import annotations
