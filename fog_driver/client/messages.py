@@ -170,6 +170,7 @@ class Status(_Base):
     adapting: bool | None = None
     capture_state: str | None = None
     capture_bytes_lost: int | None = None
+    noise_1min_dph: float | None = None  #: the loaded model's gyro white noise at 1 min, deg/h (when it has one)
 
 
 @dataclass(frozen=True, slots=True)
@@ -301,6 +302,7 @@ _STATUS_FIELDS = (
     ("adapting", bool),
     ("capture_state", str),
     ("capture_bytes_lost", int),
+    ("noise_1min_dph", float),
 )
 
 

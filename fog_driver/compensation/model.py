@@ -12,6 +12,7 @@ date).  A model fitted for another serial is refused unless forced.
 from __future__ import annotations
 
 import copy
+import math
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -89,6 +90,9 @@ class ModelFile:
     #: the frame format's temperature channels the model was fitted on (``features.input_names`` of them are
     #: its inputs); files made before other formats existed: protocol v1's three
     temperature_channels: tuple[str, ...] = V1_CHANNELS
+    #: the gyro's white noise at 1 min on the fit data, deg/h (``report.noise_floor_dph``: the 1-s blocks'
+    #: robust noise over sqrt(60)); None in files made before it existed
+    noise_1min_dph: float | None = None
     created_utc: str = field(default_factory=utc_now_iso)
     fog_driver_version: str = __version__
 
@@ -131,6 +135,7 @@ class ModelFile:
             **({"domain": self.domain.to_dict()} if self.domain is not None else {}),
             "substitution": self.substitution.to_dict(),
             "temperature_channels": list(self.temperature_channels),
+            **({"noise_1min_dph": self.noise_1min_dph} if self.noise_1min_dph is not None else {}),
             "provenance": self.provenance,
         }
 
@@ -171,6 +176,11 @@ def model_file_from_doc(doc: dict[str, Any], where: str) -> ModelFile:
         substitution = Substitution.from_dict(doc["substitution"]) if "substitution" in doc else Substitution.offsets()
         if domain is not None and domain.names != names:
             raise ValueError(f"the domain's inputs must be {', '.join(names)}")
+        noise = doc.get("noise_1min_dph")
+        if "noise_1min_dph" in doc and (
+            not isinstance(noise, (int, float)) or isinstance(noise, bool) or not 0 <= noise < math.inf
+        ):
+            raise ValueError(f"noise_1min_dph must be a finite number >= 0 (deg/h), not {noise!r}")
     except InputFileError:
         raise
     except (TypeError, ValueError, KeyError, IndexError) as exc:
@@ -193,6 +203,7 @@ def model_file_from_doc(doc: dict[str, Any], where: str) -> ModelFile:
         domain=domain,
         substitution=substitution,
         temperature_channels=channels,
+        noise_1min_dph=float(noise) if noise is not None else None,
         created_utc=str(doc.get("created_utc", "")),
         fog_driver_version=str(doc.get("fog_driver_version", "")),
     )
