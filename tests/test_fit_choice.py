@@ -328,21 +328,18 @@ def test_a_model_file_without_noise_1min_dph_loads_and_a_bad_one_is_refused(tmp_
             model_file_from_doc({**doc, "noise_1min_dph": bad}, "m.yaml")
 
 
-def test_status_carries_the_loaded_models_noise_1min_dph_and_omits_it_without_one():
-    from types import SimpleNamespace
-
+def test_status_carries_the_loaded_models_noise_1min_dph_and_omits_it_without_one(tmp_path):
     from fog_driver.client.messages import message_from
-    from fog_driver.compensation.model import model_file_from_doc
-    from fog_driver.daemon.status import _pipeline_fields
+    from fog_driver.daemon.config import DriverConfig
+    from fog_driver.daemon.service import Service
 
-    service = SimpleNamespace(
-        acquisition=SimpleNamespace(bias_capture=None, samples_dropped_before_identity=0),
-        source=SimpleNamespace(format_problem=None, increments_rejected=0),
-        compensator=None,
-        model_file=model_file_from_doc({**_model_doc(), "noise_1min_dph": 0.0231}, "m.yaml"),
-    )
-    assert _pipeline_fields(service) == {"noise_1min_dph": 0.0231}
-    service.model_file = model_file_from_doc(_model_doc(), "old.yaml")
-    assert "noise_1min_dph" not in _pipeline_fields(service)
-    status = message_from({"class": "STATUS", "frames": 3, "noise_1min_dph": 0.0231})
-    assert status.noise_1min_dph == 0.0231
+    model = tmp_path / "m.yaml"
+    model.write_text(yaml.safe_dump({**_model_doc(), "noise_1min_dph": 0.0231}))
+    service = Service(DriverConfig(model=str(model)), port="unused")
+    status = service.control("STATUS", {}, 0)
+    assert status["noise_1min_dph"] == 0.0231 and service.status_object()["noise_1min_dph"] == 0.0231
+    assert message_from(status).noise_1min_dph == 0.0231  # the client library's Status
+    model.write_text(yaml.safe_dump(_model_doc()))  # a model file from before
+    service = Service(DriverConfig(model=str(model)), port="unused")
+    assert "noise_1min_dph" not in service.control("STATUS", {}, 0)
+    assert message_from(service.control("STATUS", {}, 0)).noise_1min_dph is None
