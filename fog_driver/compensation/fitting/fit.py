@@ -27,6 +27,7 @@ from .quality import FitQuality, assess, condition_number
 from .report import FitReport, report_for
 from .ridge import standardized_ridge
 from .svr import PSO_SVR_DEFAULTS, fit_pso_svr
+from .uncertainty import uncertainty_for
 from .wesn import capture_regressors, fit_wesn
 
 
@@ -294,6 +295,8 @@ def fit_model(
         elif paired(choice).b_better:  # asked for by name: kept, with the warning
             selection["warning_validation"] = f"{polynomial_lead(choice)}: without --kind it would be saved"
     quality = _assess(inputs, means, validate, normalizer, report, kind, config)
+    uncertainty = uncertainty_for(models[kind], kind, report, domain)
+    provenance["sigma_kind"] = uncertainty.sigma_kind
     provenance["fit_quality"] = quality.to_dict(accept_weak)
     _add_findings(provenance["fit_quality"], models[kind], captures, normalizer, config, say)
     model_file = ModelFile(
@@ -308,6 +311,7 @@ def fit_model(
         substitution=substitution,
         temperature_channels=channels,
         noise_1min_dph=report.noise_1min_dph,
+        uncertainty=uncertainty,
     )
     if quality.failed and not accept_weak:
         raise WeakFitError(quality, report, model_file)
