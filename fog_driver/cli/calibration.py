@@ -144,6 +144,14 @@ def _print_structure(selection: dict) -> None:
         f"{selection['ridge_alpha']:g}, {history}"
         f"{'' if selection['state_powers'] else ', linear in the coil temperature'}"
     )
+    lags = selection.get("lags_explaining_equally_s")
+    if lags:
+        coils = selection.get("coils_explaining_equally") or []
+        print(
+            f"coil lags explaining the data within the noise of the best: {min(lags):g} to {max(lags):g} s "
+            f"(a factor {max(lags) / min(lags):.2f}; {len(coils) or len(lags)} structures, "
+            f"the spread of up to 6 of them goes into drift_sigma_dph)"
+        )
     for note in selection.get("limits", []):
         print(f"note: {note}")
     for key in ("warning", "warning_validation"):
