@@ -13,6 +13,7 @@ from fog_driver.report.coverage import (
     BAND_Z,
     MinuteErrors,
     coverage_figures,
+    coverage_markdown,
     format_coverage,
     minute_errors,
 )
@@ -93,7 +94,8 @@ def test_figures_equal_a_plain_computation_of_the_issues_definition():
     assert got["top_quarter"]["coverage"] == pytest.approx(want["top_coverage"], rel=1e-12)
     assert got["top_quarter"]["minutes"] == want["top_minutes"]
     assert got["top_bottom_error_ratio"] == pytest.approx(want["ratio"], rel=1e-12)
-    assert got["extrapolating"] == {"minutes": 5, "coverage": pytest.approx(want["extrapolating_coverage"])}
+    assert got["extrapolating"]["minutes"] == 5
+    assert got["extrapolating"]["coverage"] == pytest.approx(want["extrapolating_coverage"], rel=1e-12)
     assert 0.0 < got["coverage"] < 1.0 and got["top_bottom_error_ratio"] > 1.5  # the series is built so
 
 
@@ -111,13 +113,19 @@ def test_a_hand_made_run_gives_the_counts_by_hand():
     assert got["sigma_median_dph"] == pytest.approx(0.3)  # sorted 0.1 0.1 0.1 0.1 0.5 0.6 0.6 1.0
     # the 75th percentile of the sigmas is 0.6: minutes 2, 3, 6 (errors 1, -1, 2; coverage 2 of 3);
     # the 25th is 0.1: minutes 0, 1, 4, 5 (errors 0): the ratio has nothing to divide by
-    assert got["top_quarter"] == {
-        "minutes": 3,
-        "coverage": pytest.approx(2 / 3),
-        "error_rms_1min_dph": pytest.approx(math.sqrt(6 / 3)),
-    }
+    top = got["top_quarter"]
+    assert (top["minutes"], top["coverage"]) == (3, pytest.approx(2 / 3))
+    assert top["error_rms_1min_dph"] == pytest.approx(math.sqrt(6 / 3)) and top["sigma_median_dph"] == pytest.approx(
+        0.6
+    )
     assert got["bottom_quarter"]["error_rms_1min_dph"] == 0.0 and got["top_bottom_error_ratio"] is None
-    assert got["extrapolating"] == {"minutes": 0, "coverage": None}
+    assert "(the top-sigma quarter 66.7 %; none extrapolating)" in format_coverage(got)
+    assert got["extrapolating"] == {
+        "minutes": 0,
+        "coverage": None,
+        "error_rms_1min_dph": None,
+        "sigma_median_dph": None,
+    }
 
 
 def test_a_constant_sigma_carries_no_information_ratio_one():
@@ -133,7 +141,11 @@ def test_no_finite_sigma_says_so_instead_of_numbers():
     assert got["minutes_with_sigma"] == 0 and got["static_minutes"] == 86
     assert "coverage" not in got and "sharpness" not in got
     assert "no finite drift_sigma_dph" in got["note"]
-    assert format_coverage(got).startswith("Uncertainty: no finite drift_sigma_dph in the 86 static minutes")
+    assert format_coverage(got).startswith("uncertainty: no finite drift_sigma_dph in the 86 static minutes")
+    assert coverage_markdown(got)[0].endswith(
+        "no finite drift_sigma_dph in the 86 static minutes: the model gives no uncertainty, so its coverage "
+        "cannot be reported."
+    )
 
 
 def test_pooled_runs_are_their_minutes_together_each_about_its_own_mean():
@@ -147,12 +159,23 @@ def test_pooled_runs_are_their_minutes_together_each_about_its_own_mean():
     assert coverage_figures(pooled)["coverage"] == pytest.approx(inside.mean())
 
 
-def test_the_paragraph_carries_the_figures():
+def test_the_line_and_the_table_carry_the_figures():
     got = coverage_figures(minute_errors(*_series()))
-    text = format_coverage(got)
-    assert f"covers the error on {100 * got['coverage']:.1f} % of 83 static minutes (3 more had no sigma)" in text
-    assert f"{got['sharpness']:.2f}x the error's RMS" in text
-    assert "on the 5 minutes flagged extrapolating" in text
+    top, outside = got["top_quarter"], got["extrapolating"]
+    assert format_coverage(got) == (
+        f"uncertainty: the +-1.96-sigma band covers {100 * got['coverage']:.1f} % of 83 static minutes (the "
+        f"top-sigma quarter {100 * top['coverage']:.1f} %; extrapolating {100 * outside['coverage']:.1f} % of 5); "
+        f"median sigma {got['sharpness']:.2f}x the error's RMS; the error's RMS on the top-sigma quarter "
+        f"{got['top_bottom_error_ratio']:.2f}x that on the bottom quarter"
+    )
+    lines = coverage_markdown(got)
+    assert "3 static minutes had no sigma." in lines[0]
+    assert lines[4] == (
+        f"| all with a sigma | 83 | {100 * got['coverage']:.1f} % | {got['error_rms_1min_dph']:.4f} | "
+        f"{got['sigma_median_dph']:.4f} |"
+    )
+    assert lines[5].startswith(f"| the quarter with the largest sigma | {top['minutes']} |")
+    assert lines[7].startswith(f"| flagged extrapolating | 5 | {100 * outside['coverage']:.1f} % |")
 
 
 # -- evaluate --truth, with a compensator whose sigma is set per block ---------------------------------
@@ -210,8 +233,8 @@ def test_evaluate_reports_the_coverage_of_the_sigma_the_compensator_carried(shor
         assert got[key] == pytest.approx(want[key], rel=1e-9), key
     assert got["top_bottom_error_ratio"] == pytest.approx(want["ratio"], rel=1e-9)
     report = write_report(tmp_path / "out", summary, series, allans, None).read_text()
-    assert format_coverage(got) in report
-    assert f"covers the error on {100 * got['coverage']:.1f} %" in report
+    assert "\n".join(coverage_markdown(got)) in report
+    assert f"| all with a sigma | {got['minutes_with_sigma']} | {100 * got['coverage']:.1f} % |" in report
 
 
 def test_evaluate_without_a_sigma_says_so_in_the_report(short_run, monkeypatch, tmp_path):
@@ -220,4 +243,5 @@ def test_evaluate_without_a_sigma_says_so_in_the_report(short_run, monkeypatch, 
     (summary, series, allans), _ = _evaluate(short_run, monkeypatch, lambda index: math.nan)
     assert summary["truth"]["sigma"]["minutes_with_sigma"] == 0
     report = write_report(tmp_path / "out", summary, series, allans, None).read_text()
-    assert "Uncertainty: no finite drift_sigma_dph in the" in report
+    assert "against its sigma (the 1-min mean of drift_sigma_dph" in report
+    assert "no finite drift_sigma_dph in the" in report

@@ -36,7 +36,7 @@ BAND_Z = 1.96
 #: Fewer minutes with a sigma than this give no quarter figures.
 MIN_QUARTER_MINUTES = 4
 #: How the per-minute sigma is formed, as the reports say it.
-SIGMA_PER_MINUTE = "the 1-min mean of drift_sigma_dph (held per 1-s block: the mean of the minute's 60 values)"
+SIGMA_PER_MINUTE = "the 1-min mean of drift_sigma_dph, held per 1-s block: the mean of the minute's 60 values"
 
 
 def whole_minutes(x: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -109,6 +109,16 @@ def _ratio(a: float | None, b: float | None) -> float | None:
     return None if a is None or b is None or b <= 0.0 else a / b
 
 
+def _group(m: MinuteErrors) -> dict[str, Any]:
+    """A group of minutes: how many, the band's coverage, the error's RMS and the median sigma (None: none)."""
+    return {
+        "minutes": len(m),
+        "coverage": _covered(m),
+        "error_rms_1min_dph": _rms(m.error_dph),
+        "sigma_median_dph": float(np.median(m.sigma_dph)) if len(m) else None,
+    }
+
+
 def coverage_figures(minutes: MinuteErrors) -> dict[str, Any]:
     """Coverage, sharpness and how the sigma follows the error (module docstring) over the minutes with a
     finite sigma; plain numbers (None where a figure has no minute), or, with no finite sigma at all, the
@@ -127,60 +137,77 @@ def coverage_figures(minutes: MinuteErrors) -> dict[str, Any]:
             "so its coverage cannot be reported"
         )
         return out
-    error_rms = _rms(m.error_dph)
-    sigma_median = float(np.median(m.sigma_dph))
-    out.update(
-        coverage=_covered(m),
-        error_rms_1min_dph=error_rms,
-        sigma_median_dph=sigma_median,
-        sharpness=_ratio(sigma_median, error_rms),
-    )
+    whole = _group(m)
+    del whole["minutes"]
+    out.update(whole, sharpness=_ratio(whole["sigma_median_dph"], whole["error_rms_1min_dph"]))
     if len(m) >= MIN_QUARTER_MINUTES:
-        top = m.only(m.sigma_dph >= np.quantile(m.sigma_dph, 0.75))
-        bottom = m.only(m.sigma_dph <= np.quantile(m.sigma_dph, 0.25))
-        top_rms, bottom_rms = _rms(top.error_dph), _rms(bottom.error_dph)
-        out["top_quarter"] = {"minutes": len(top), "coverage": _covered(top), "error_rms_1min_dph": top_rms}
-        out["bottom_quarter"] = {"minutes": len(bottom), "error_rms_1min_dph": bottom_rms}
-        out["top_bottom_error_ratio"] = _ratio(top_rms, bottom_rms)
+        top = _group(m.only(m.sigma_dph >= np.quantile(m.sigma_dph, 0.75)))
+        bottom = _group(m.only(m.sigma_dph <= np.quantile(m.sigma_dph, 0.25)))
+        out["top_quarter"], out["bottom_quarter"] = top, bottom
+        out["top_bottom_error_ratio"] = _ratio(top["error_rms_1min_dph"], bottom["error_rms_1min_dph"])
     else:
         out["top_quarter"] = out["bottom_quarter"] = out["top_bottom_error_ratio"] = None
-    outside = m.only(m.extrapolating)
-    out["extrapolating"] = {"minutes": len(outside), "coverage": _covered(outside)}
+    out["extrapolating"] = _group(m.only(m.extrapolating))
     return out
 
 
+def _pct(x: float | None) -> str:
+    return "-" if x is None else f"{100 * x:.1f} %"
+
+
+def _num(x: float | None, fmt: str) -> str:
+    return "-" if x is None else format(x, fmt)
+
+
 def format_coverage(figures: dict[str, Any]) -> str:
-    """One paragraph of ``coverage_figures``, as report.md and the benchmark print it."""
+    """One line of ``coverage_figures``, as ``evaluate`` prints it."""
     if "note" in figures:
-        return f"Uncertainty: {figures['note']}."
-
-    def pct(x: float | None) -> str:
-        return "-" if x is None else f"{100 * x:.1f} %"
-
-    def num(x: float | None, fmt: str) -> str:
-        return "-" if x is None else format(x, fmt)
-
-    n = figures["minutes_with_sigma"]
-    text = (
-        f"Uncertainty (sigma per minute: {figures['sigma_per_minute']}): the +-{figures['band_z']:g}-sigma band "
-        f"covers the error on {pct(figures['coverage'])} of {n} static minutes"
-    )
-    if n < figures["static_minutes"]:
-        text += f" ({figures['static_minutes'] - n} more had no sigma)"
-    text += (
-        f"; median sigma {figures['sigma_median_dph']:.4f} deg/h, "
-        f"{num(figures['sharpness'], '.2f')}x the error's RMS {figures['error_rms_1min_dph']:.4f} deg/h"
-    )
-    top = figures["top_quarter"]
-    if top is not None:
-        text += (
-            f"; on the quarter with the largest sigma ({top['minutes']} min) {pct(top['coverage'])}, its error's "
-            f"RMS {num(figures['top_bottom_error_ratio'], '.2f')}x that of the smallest-sigma quarter"
-        )
-    outside = figures["extrapolating"]
-    text += (
-        f"; on the {outside['minutes']} minutes flagged extrapolating {pct(outside['coverage'])}."
+        return f"uncertainty: {figures['note']}"
+    top, outside = figures["top_quarter"], figures["extrapolating"]
+    detail = [] if top is None else [f"the top-sigma quarter {_pct(top['coverage'])}"]
+    detail.append(
+        f"extrapolating {_pct(outside['coverage'])} of {outside['minutes']}"
         if outside["minutes"]
-        else "; no minute was flagged extrapolating."
+        else "none extrapolating"
     )
-    return text
+    return (
+        f"uncertainty: the +-{figures['band_z']:g}-sigma band covers {_pct(figures['coverage'])} of "
+        f"{figures['minutes_with_sigma']} static minutes ({'; '.join(detail)}); median sigma "
+        f"{_num(figures['sharpness'], '.2f')}x the error's RMS; the error's RMS on the top-sigma quarter "
+        f"{_num(figures['top_bottom_error_ratio'], '.2f')}x that on the bottom quarter"
+    )
+
+
+def coverage_markdown(figures: dict[str, Any]) -> list[str]:
+    """``coverage_figures`` as report.md's lines: a sentence, and a table by group of minutes."""
+    head = (
+        "Uncertainty of the drift estimate against the truth: each static minute's error (the 1-min mean of "
+        "estimate - true drift, about its mean over the run) against its sigma "
+        f"({figures['sigma_per_minute']})"
+    )
+    if "note" in figures:
+        return [f"{head}: {figures['note']}."]
+    lines = [
+        f"{head}. The +-{figures['band_z']:g}-sigma band should cover about 95 % of the minutes; the median sigma "
+        f"is {_num(figures['sharpness'], '.2f')}x the error's RMS (near 1: honest, not padded); the error's RMS on "
+        f"the quarter with the largest sigma is {_num(figures['top_bottom_error_ratio'], '.2f')}x that on the "
+        "quarter with the smallest (above 1: the sigma follows the error).",
+    ]
+    if figures["minutes_with_sigma"] < figures["static_minutes"]:
+        lines[0] += f" {figures['static_minutes'] - figures['minutes_with_sigma']} static minutes had no sigma."
+    lines += [
+        "",
+        f"| minutes | count | +-{figures['band_z']:g}-sigma coverage | error RMS, deg/h | median sigma, deg/h |",
+        "|---|---:|---:|---:|---:|",
+    ]
+    rows = [("all with a sigma", {**figures, "minutes": figures["minutes_with_sigma"]})]
+    if figures["top_quarter"] is not None:
+        rows += [("the quarter with the largest sigma", figures["top_quarter"])]
+        rows += [("the quarter with the smallest sigma", figures["bottom_quarter"])]
+    rows += [("flagged extrapolating", figures["extrapolating"])]
+    for name, g in rows:
+        lines.append(
+            f"| {name} | {g['minutes']} | {_pct(g['coverage'])} | {_num(g['error_rms_1min_dph'], '.4f')} | "
+            f"{_num(g['sigma_median_dph'], '.4f')} |"
+        )
+    return lines

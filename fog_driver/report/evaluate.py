@@ -42,7 +42,7 @@ from ..offline.compensate import compensate_capture
 from ..offline.fit import load_capture
 from ..sim.capture import truth_noise_dph
 from .allan import FLICKER_FLOOR, AllanResult, allan, write_csv
-from .coverage import coverage_figures, format_coverage, minute_errors, whole_minutes
+from .coverage import coverage_figures, coverage_markdown, minute_errors, whole_minutes
 
 EVALUATE_WARMUP_S = 120.0
 SHORT_STRETCH_S = 3600.0
@@ -537,7 +537,7 @@ def markdown(summary: dict[str, Any], plots: list[Path], positioning_md: str | N
             f"{t['drift_rms_1min_dph']:.4f}, residual after compensation {t['residual_rms_1min_dph']:.4f}, "
             f"noise floor {t['noise_floor_rms_1min_dph']:.4f}.",
             "",
-            format_coverage(t["sigma"]),
+            *coverage_markdown(t["sigma"]),
             "",
         ]
     lines += [
