@@ -245,3 +245,25 @@ def test_evaluate_without_a_sigma_says_so_in_the_report(short_run, monkeypatch, 
     report = write_report(tmp_path / "out", summary, series, allans, None).read_text()
     assert "against its sigma (the 1-min mean of drift_sigma_dph" in report
     assert "no finite drift_sigma_dph in the" in report
+
+
+def test_the_command_prints_the_coverage_line(short_run, monkeypatch, tmp_path, capsys):
+    import json
+
+    from fog_driver.cli import main
+    from fog_driver.compensation.pipeline import Compensator
+    from fog_driver.daemon.config import DEFAULT_MODEL
+
+    original = Compensator._on_block
+
+    def on_block(self, block):
+        original(self, block)
+        self.sigma_dph = _sigma_of_block(block.index)
+
+    monkeypatch.setattr(Compensator, "_on_block", on_block)
+    out = tmp_path / "rep"
+    truth = str(short_run.with_suffix(".truth.csv"))
+    assert main(["evaluate", str(short_run), "--model", str(DEFAULT_MODEL), "--out", str(out), "--truth", truth]) == 0
+    sigma = json.loads((out / "summary.json").read_text())["truth"]["sigma"]
+    assert sigma["minutes_with_sigma"] > 0
+    assert format_coverage(sigma) in capsys.readouterr().out.splitlines()
