@@ -26,6 +26,7 @@ from .quality import FitQuality, assess, condition_number
 from .report import FitReport, report_for
 from .ridge import standardized_ridge
 from .svr import PSO_SVR_DEFAULTS, fit_pso_svr
+from .uncertainty import uncertainty_for
 from .wesn import capture_regressors, fit_wesn
 
 
@@ -272,6 +273,8 @@ def fit_model(
             kind = "polynomial"
             provenance["fell_back"] = f"{selection['warning_validation']}: the polynomial was saved instead"
     quality = _assess(inputs, means, validate, normalizer, report, kind, config)
+    uncertainty = uncertainty_for(models[kind], kind, report, domain)
+    provenance["sigma_kind"] = uncertainty.sigma_kind
     provenance["fit_quality"] = quality.to_dict(accept_weak)
     _add_findings(provenance["fit_quality"], models[kind], captures, normalizer, config, say)
     model_file = ModelFile(
@@ -285,6 +288,7 @@ def fit_model(
         domain=domain,
         substitution=substitution,
         temperature_channels=channels,
+        uncertainty=uncertainty,
     )
     if quality.failed and not accept_weak:
         raise WeakFitError(quality, report, model_file)
