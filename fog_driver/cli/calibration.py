@@ -31,6 +31,7 @@ from ..offline.compensate import compensate_capture
 from ..offline.fit import fit_model_file
 from ..offline.rows import compensated_rows, format_row
 from ..report import positioning
+from ..report.coverage import format_coverage
 from ..report.evaluate import evaluate, format_bias_instability, model_label, series_names, write_report
 from ..samples.captures import _capture_size
 from ..sim.capture import check_truth_matches, read_truth
@@ -328,6 +329,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                 f"{format_bias_instability(a)} -> {format_bias_instability(b)}; 1-min drift RMS "
                 f"{a['drift_rms_1min_dph']:.4f} -> {b['drift_rms_1min_dph']:.4f} deg/h"
             )
+        if "truth" in summary:
+            print(format_coverage(summary["truth"]["sigma"]))
         if summary["extrapolating_seconds"]:
             print(
                 f"warning: the model extrapolated for {summary['extrapolating_seconds'] / 60:.1f} of "
