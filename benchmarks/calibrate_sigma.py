@@ -36,6 +36,7 @@ from bench_population import SKIP_MINUTES, capture  # noqa: E402
 
 from fog_driver.compensation.domain import FLAG_EXTRAPOLATING  # noqa: E402
 from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
+from fog_driver.compensation.fitting.uncertainty import model_error_dph  # noqa: E402
 from fog_driver.modelfiles import load_model, save_model  # noqa: E402
 from fog_driver.offline.compensate import compensate_capture  # noqa: E402
 from fog_driver.offline.fit import fit_model_file  # noqa: E402
@@ -99,7 +100,10 @@ def instrument(seed: int, workdir: Path) -> dict:
     else:
         model, _ = fit_model_file([fit_run], kind="wesn", config=FitConfig(), accept_weak=True)
         save_model(cached, model)
-    spec = model.sigma_spec
+    prov = model.provenance  # r as the fit makes it today, also for a model cached by an earlier version
+    minutes = sum(c["static_blocks"] for c in prov["captures"]) // 60
+    r = model_error_dph(prov["metrics"]["after, wesn"]["fit"], prov["noise_floor_1min_dph"]["fit"], minutes)
+    spec = dataclasses.replace(model.sigma_spec, residual_dph=r)
     out: dict = {"seed": seed, "err": [], "parts": [], "extra": [], "run": [], "n_candidates": len(spec.candidates)}
     for i, profile in enumerate(SCORE):
         path = run_capture(workdir, seed, profile, 10 * seed + 2 + i)

@@ -331,7 +331,7 @@ def test_a_restart_of_the_same_run_continues_exactly(model_path, tmp_path, cut):
     second = Compensator(load_model(model_path), 0.1, adapt=adapt_config(), reference_rate_dph=0.0)
     load_adaptation(second, path, new_run=False)
     rest = second.run(slice_block(samples, cut, n))
-    for name in ("drift_dph", "dtheta_comp_arcsec", "flags"):
+    for name in ("drift_dph", "dtheta_comp_arcsec", "flags", "drift_sigma_dph"):
         np.testing.assert_array_equal(getattr(rest, name), getattr(reference, name)[cut:], err_msg=name)
     assert second.online.state_dict() == whole.online.state_dict()
     assert dump(second.pipeline_state()) == dump(whole.pipeline_state())  # NaN-aware: absent values are NaN

@@ -27,7 +27,7 @@ from .quality import FitQuality, assess, condition_number
 from .report import FitReport, report_for
 from .ridge import standardized_ridge
 from .svr import PSO_SVR_DEFAULTS, fit_pso_svr
-from .uncertainty import uncertainty_for
+from .uncertainty import report_error_dph, uncertainty_for
 from .wesn import capture_regressors, fit_wesn
 
 
@@ -295,7 +295,9 @@ def fit_model(
         elif paired(choice).b_better:  # asked for by name: kept, with the warning
             selection["warning_validation"] = f"{polynomial_lead(choice)}: without --kind it would be saved"
     quality = _assess(inputs, means, validate, normalizer, report, kind, config)
-    uncertainty = uncertainty_for(models[kind], kind, report, domain)
+    validate_minutes = len(static_rows(validate, config.model_rate_hz)[1]) if validate else 0
+    r_dph = report_error_dph(report, kind, len(means), validate_minutes)
+    uncertainty = uncertainty_for(models[kind], r_dph, domain)
     provenance["sigma_kind"] = uncertainty.sigma_kind
     provenance["fit_quality"] = quality.to_dict(accept_weak)
     _add_findings(provenance["fit_quality"], models[kind], captures, normalizer, config, say)
