@@ -24,12 +24,14 @@ def stub_value(block_index: int) -> float:
     return STUB_BASE_DPH + STUB_STEP_DPH * (block_index % STUB_PERIOD)
 
 
-def stub_sigma(monkeypatch) -> None:
-    """Every ``Compensator`` from now on (this test) holds ``stub_value`` of each block it closes."""
+def stub_sigma(monkeypatch, *, none: bool = False) -> None:
+    """Every ``Compensator`` from now on (this test) holds ``stub_value`` of each block it closes (``none``:
+    NaN throughout, a model that gives no sigma)."""
     on_block = Compensator._on_block
 
     def with_sigma(self, block):
         on_block(self, block)
-        self.sigma_dph = math.nan if self.estimate_flags & FLAG_UNCOMPENSATED else stub_value(block.index)
+        no_estimate = none or self.estimate_flags & FLAG_UNCOMPENSATED
+        self.sigma_dph = math.nan if no_estimate else stub_value(block.index)
 
     monkeypatch.setattr(Compensator, "_on_block", with_sigma)
