@@ -201,6 +201,7 @@ def test_metrics_carry_the_status_counters_and_the_latency_histogram():
         "capture_state": "failed",
         "capture_bytes_lost": 999,
         "bias_dph": 0.25,
+        "bias_sigma_dph": 0.0125,
         "adapting": True,
         "flagged": {"gap": 2, "extrapolating": 5},
     }
@@ -215,7 +216,12 @@ def test_metrics_carry_the_status_counters_and_the_latency_histogram():
         "reconnects": 4,
         "capture_failures": 6,
         "model_age_s": 86400.0,
-        "angle": {"drift_dph": -1.5, "temps_c": {"top": 30.5, "bottom": 31.0}, "flags": ["extrapolating"]},
+        "angle": {
+            "drift_dph": -1.5,
+            "drift_sigma_dph": 0.0375,
+            "temps_c": {"top": 30.5, "bottom": 31.0},
+            "flags": ["extrapolating"],
+        },
         "angle_age_s": 0.25,
         "rate_1s_dph": 14.9,
         "web_clients": 3,
@@ -239,6 +245,8 @@ def test_metrics_carry_the_status_counters_and_the_latency_histogram():
         "fog_driver_adapting": 1,
         "fog_driver_model_age_seconds": 86400,
         "fog_driver_drift_dph": -1.5,
+        "fog_driver_drift_sigma_dph": 0.0375,
+        "fog_driver_bias_sigma_dph": 0.0125,
         "fog_driver_rate_dph": 14.9,
         "fog_driver_last_sample_age_seconds": 0.25,
         "fog_driver_extrapolating": 1,
@@ -264,6 +272,16 @@ def test_metrics_carry_the_status_counters_and_the_latency_histogram():
 def test_metrics_of_a_daemon_that_has_said_nothing_yet_are_still_valid():
     m = scrape(DaemonCollector(lambda: {}, LatencyHistogram()))
     assert m[("fog_driver_publish_latency_seconds_count", ())] == 0
+
+
+def test_no_sigma_gauges_without_an_estimate_or_a_bias_capture():
+    """A sample without drift_sigma_dph (no estimate, or a daemon whose model gives none) and a STATUS before
+    any ?BIAS: the gauges are absent, never NaN; the drift gauge is still there."""
+    state = {"status": {"bias_dph": 0.0, "bias_captured": False}, "angle": {"drift_dph": 0.0, "flags": []}}
+    m = scrape(DaemonCollector(lambda: state, LatencyHistogram()))
+    assert m[("fog_driver_drift_dph", ())] == 0.0 and m[("fog_driver_bias_dph", ())] == 0.0
+    names = {name for name, _ in m}
+    assert "fog_driver_drift_sigma_dph" not in names and "fog_driver_bias_sigma_dph" not in names
 
 
 # ---------------------------------------------------------------------------------------------- the listener
