@@ -480,6 +480,7 @@ def test_the_example_station_script_logs_the_angles_the_daemon_publishes(daemon,
         obj = published[int(row["seq"])]
         assert float(row["angle_arcsec"]) == obj["angle_arcsec"] and float(row["t_s"]) == obj["t_s"]
         assert row["utc"] == obj["utc"] and row["flags"] == " ".join(obj["flags"])
+        assert row["drift_sigma_dph"] == (repr(obj["drift_sigma_dph"]) if "drift_sigma_dph" in obj else "")
     assert daemon.terminate() == 0
 
 

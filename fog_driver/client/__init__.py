@@ -36,7 +36,7 @@ the gap across connections), ``blocking`` and ``aio`` (the sockets; ``AsyncClien
 first use).  Beside them: ``udp`` (the UDP datagram's layout and decoder) and ``display`` (how the operator's
 views, ``fog-driver watch``, ``ctl`` and the web page, format the numbers).  The standard library only: no
 numpy, yaml or structlog.  The protocol itself is the docstring of
-``fog_driver/daemon/hub.py``.
+``fog_driver/daemon/connection.py``.
 """
 
 from __future__ import annotations
