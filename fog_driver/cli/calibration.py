@@ -9,6 +9,7 @@ from pathlib import Path
 
 from ..client.display import Progress
 from ..compensation.adapt import AdaptConfig
+from ..compensation.fitting.choice import SE_MULTIPLE
 from ..compensation.fitting.fit import (
     FITTERS,
     KIND_HELP,
@@ -47,6 +48,8 @@ def _print_fit_report(report) -> None:
     note = report.floor_note()
     if note:
         print(f"note: {note}")
+    for line in report.lines():  # noise_1min_dph, and the model choice with its margin
+        print(line)
     before = report.rows[0]
     for what, fit_value, validate_value in report.rows[1:]:
         for col in report.worse().get(what, []):
@@ -68,8 +71,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
         config = dataclass_from_mapping(FitConfig, read_yaml(args.config, "fit config") or {}, args.config)
     kind = args.kind or DEFAULT_FIT_KIND
     default = (
-        " (the default kind: the polynomial is saved instead if the wesn does worse on its own validation "
-        "split; --kind chooses)"
+        f" (the default kind: the polynomial is saved instead only if it does better on the fit's own "
+        f"validation split by more than {SE_MULTIPLE:g} standard errors; --kind chooses)"
         if args.kind is None
         else ""
     )
@@ -114,8 +117,6 @@ def cmd_fit(args: argparse.Namespace) -> int:
     selection = provenance.get("selection")
     if selection and model_file.kind == kind:
         _print_structure(selection)
-    if "fell_back" in provenance:
-        print(f"note: {provenance['fell_back']}")
     _print_fit_report(report)
     _print_quality(provenance["fit_quality"], len(model_file.temperature_channels))
     print(

@@ -174,6 +174,7 @@ class Status(_Base):
     adapting: bool | None = None
     capture_state: str | None = None
     capture_bytes_lost: int | None = None
+    noise_1min_dph: float | None = None  #: the loaded model's gyro white noise at 1 min, deg/h (when it has one)
     #: the drift's sigma during the last ``?BIAS`` capture, sigma(t_b), deg/h (protocol 1.1; None: no capture,
     #: or no sigma then); ``since_bias_sigma_dph`` combines it with an ``Angle``'s
     bias_sigma_dph: float | None = None
@@ -323,6 +324,7 @@ _STATUS_FIELDS = (
     ("adapting", bool),
     ("capture_state", str),
     ("capture_bytes_lost", int),
+    ("noise_1min_dph", float),
     ("bias_sigma_dph", float),
 )
 

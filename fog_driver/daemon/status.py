@@ -152,7 +152,7 @@ def status_object(service: Any, *, mark_cpu: bool = True) -> dict:
 def _pipeline_fields(service: Any) -> dict[str, Any]:
     """STATUS keys present only when they say something: a bias capture running, the drift's sigma during the
     last one, samples dropped before the first IDENTITY, a format problem, rejected increments, whether the
-    adapted weights are in use."""
+    adapted weights are in use, the loaded model's ``noise_1min_dph``."""
     acquisition = service.acquisition
     obj: dict[str, Any] = {}
     capture = acquisition.bias_capture
@@ -170,6 +170,8 @@ def _pipeline_fields(service: Any) -> dict[str, Any]:
     online = service.compensator.online if service.compensator is not None else None
     if online is not None:  # is the published drift the adapted weights' (the comparison guard's verdict)?
         obj["adapted_in_use"] = online.adapted_in_use
+    if service.model_file.noise_1min_dph is not None:  # the loaded model's (files before it have none)
+        obj["noise_1min_dph"] = service.model_file.noise_1min_dph
     return obj
 
 
