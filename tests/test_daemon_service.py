@@ -32,27 +32,45 @@ def offline_sigmas(capture: Path, model_path: Path = DEFAULT_MODEL, **settings) 
     return [float(v) if math.isfinite(v) else None for cols in parts for v in cols.drift_sigma_dph]
 
 
+@pytest.fixture(scope="module")
+def fitted_wesn(tmp_path_factory) -> Path:
+    """A wesn fitted on the short capture: sim-faults.bin leaves its fit box, so its sigma moves."""
+    from fog_driver.compensation.fitting.data import FitConfig
+    from fog_driver.modelfiles import save_model
+    from fog_driver.offline.fit import fit_model_file
+
+    model_file, _ = fit_model_file(
+        [DATA / "sim-short.bin"], kind="wesn", config=FitConfig(warmup_s=30.0), accept_weak=True
+    )
+    return save_model(tmp_path_factory.mktemp("wesn") / "wesn.yaml", model_file)
+
+
 @pytest.mark.determinism
-@pytest.mark.parametrize("chunk, sigma", [(1, "model"), (97, "model"), (4096, "model"), (97, "stub")])
-def test_published_angles_equal_offline_compensation(chunk, sigma, monkeypatch):
-    """``sigma``: the model's own drift sigma, or a known one per block (``sigma_stub``), so that the key is
-    compared on finite values whatever the model gives."""
+@pytest.mark.parametrize(
+    "chunk, sigma", [(1, "default"), (97, "default"), (4096, "default"), (97, "fitted"), (97, "stub")]
+)
+def test_published_angles_equal_offline_compensation(chunk, sigma, monkeypatch, request):
+    """``sigma``: the drift sigma of the shipped model, of a model fitted here (one that moves), or a known one
+    per block (``sigma_stub``)."""
     if sigma == "stub":
         stub_sigma(monkeypatch)
+    model = request.getfixturevalue("fitted_wesn") if sigma == "fitted" else DEFAULT_MODEL
     capture = DATA / "sim-faults.bin"
-    service = Service(DriverConfig(), port="unused")
+    service = Service(DriverConfig(model=str(model)), port="unused")
     data = capture.read_bytes()
     published = []
     for i in range(0, len(data), chunk):
         published += service.process(data[i : i + chunk])
-    offline_angles_arcsec, offline_flags = offline(capture, DEFAULT_MODEL)
+    offline_angles_arcsec, offline_flags = offline(capture, model)
     assert [o["angle_arcsec"] for o in published] == offline_angles_arcsec
     # drift_sigma_dph: bit-identical where there is one, omitted (never NaN, never null) where there is none
-    offline_sigma = offline_sigmas(capture, DEFAULT_MODEL)
+    offline_sigma = offline_sigmas(capture, model)
     assert [o.get("drift_sigma_dph") for o in published] == offline_sigma
+    assert offline_sigma[0] is None and sum(v is not None for v in offline_sigma) > 2900  # from the 2nd block
     if sigma == "stub":
-        assert offline_sigma[0] is None and sum(v is not None for v in offline_sigma) > 2900
         assert {v for v in offline_sigma if v is not None} == {stub_value(j) for j in range(STUB_PERIOD)}
+    if sigma == "fitted":
+        assert len({v for v in offline_sigma if v is not None}) > 20  # it moves, and moves alike
     seqs = [o["seq"] for o in published]
     assert seqs == sorted(seqs) and len(seqs) == 2956
     first = published[0]

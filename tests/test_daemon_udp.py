@@ -13,7 +13,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from sigma_stub import stub_sigma
 
 from fog_driver.client import udp as client_udp
 from fog_driver.daemon import udp as daemon_udp
@@ -197,10 +196,9 @@ def test_an_unknown_version_is_refused_by_the_sender_and_the_config(version):
 
 
 @pytest.mark.parametrize("version", [1, 2])
-def test_the_daemon_sends_its_configured_version_with_the_angles_sigma(version, receiver, monkeypatch, tmp_path):
-    """Every datagram of the configured layout; in version 2 the sigma is the ANGLE's, as f32, and NaN
-    where the ANGLE omits it (no estimate yet)."""
-    stub_sigma(monkeypatch)
+def test_the_daemon_sends_its_configured_version_with_the_angles_sigma(version, receiver, tmp_path):
+    """Every datagram of the configured layout; in version 2 the sigma is the ANGLE's (the shipped model's),
+    as f32, and NaN where the ANGLE omits it (no estimate yet)."""
     udp = f"127.0.0.1:{receiver.getsockname()[1]}"
     config = DriverConfig(udp=udp, udp_version=version, listen="127.0.0.1:0", capture_dir=str(tmp_path / "c"))
     service = Service(config, port=str(tmp_path / "no-such-tty"))  # acquisition waits for the port

@@ -30,7 +30,8 @@ __all__ = [
 ]
 
 #: The NDJSON protocol's version (``connection.py``): the major changes only when a key changes meaning or goes,
-#: the minor when keys are added (1.1: ANGLE's ``drift_sigma_dph``, STATUS's and BIAS's ``bias_sigma_dph``).
+#: the minor when keys are added (1.1: ANGLE's ``drift_sigma_dph``, STATUS's and BIAS's ``bias_sigma_dph``,
+#: STATUS's ``noise_1min_dph``).
 PROTO_MAJOR = 1
 PROTO_MINOR = 1
 
