@@ -31,6 +31,7 @@ from ..offline.compensate import compensate_capture
 from ..offline.fit import fit_model_file
 from ..offline.rows import compensated_rows, format_row
 from ..report import positioning
+from ..report.coverage import format_coverage
 from ..report.evaluate import evaluate, format_bias_instability, model_label, series_names, write_report
 from ..samples.captures import _capture_size
 from ..sim.capture import check_truth_matches, read_truth
@@ -144,6 +145,14 @@ def _print_structure(selection: dict) -> None:
         f"{selection['ridge_alpha']:g}, {history}"
         f"{'' if selection['state_powers'] else ', linear in the coil temperature'}"
     )
+    lags = selection.get("lags_explaining_equally_s")
+    if lags:
+        coils = selection.get("coils_explaining_equally") or []
+        print(
+            f"coil lags explaining the data within the noise of the best: {min(lags):g} to {max(lags):g} s "
+            f"(a factor {max(lags) / min(lags):.2f}; {len(coils) or len(lags)} structures, "
+            f"the spread of up to 6 of them goes into drift_sigma_dph)"
+        )
     for note in selection.get("limits", []):
         print(f"note: {note}")
     for key in ("warning", "warning_validation"):
@@ -323,6 +332,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                 f"{format_bias_instability(a)} -> {format_bias_instability(b)}; 1-min drift RMS "
                 f"{a['drift_rms_1min_dph']:.4f} -> {b['drift_rms_1min_dph']:.4f} deg/h"
             )
+        if "truth" in summary:
+            print(format_coverage(summary["truth"]["sigma"]))
         if summary["extrapolating_seconds"]:
             print(
                 f"warning: the model extrapolated for {summary['extrapolating_seconds'] / 60:.1f} of "

@@ -42,8 +42,9 @@ the cascade made the gains, on coils of two or three stages, the largest 0.082 -
 Its misses are coils whose lag one paper run cannot pin down: on the worst, a single 171-s stage,
 every lag from 60 s to 18 min explains the run within 1.5 %, the fit takes 873 s, and on fast
 ramps leaves 0.050 deg/h where the true lag would leave 0.026.
-``fit.own_validation`` then compares it with the polynomial on the fit's own validation split, and
-``fog-driver fit`` without ``--kind`` saves the polynomial when the wesn does worse there.
+``fit.model_choice`` then compares it with the polynomial on the fit's own validation split, and
+``fog-driver fit`` without ``--kind`` saves the polynomial only when it leaves less there by more than
+two standard errors of the paired margin (``choice``).
 Random reservoirs over all eight inputs fit the training profile's history and extrapolate worse
 than the polynomial baseline (docs/explanation/accuracy.md).
 """
