@@ -179,6 +179,9 @@ def _print_quality(quality: dict, temperature_channels: int) -> None:
             print(f"warning: {warning}")
 
 
+_FLAGS = ROW_COLUMNS.index("flags")  # a compensate row's flags
+
+
 def cmd_compensate(args: argparse.Namespace) -> int:
     out = Path(args.out)
     inputs = [args.capture, args.model]
@@ -218,7 +221,7 @@ def cmd_compensate(args: argparse.Namespace) -> int:
             for row in compensated_rows(chunks, args.every):
                 f.write(format_row(row) + "\n")
                 written += 1
-                extrapolating_s += row[0] - last_t_s if "extrapolating" in row[-1].split("|") else 0.0
+                extrapolating_s += row[0] - last_t_s if "extrapolating" in row[_FLAGS].split("|") else 0.0
                 last_t_s = row[0]
     except (FogDriverError, OSError) as exc:
         out.unlink(missing_ok=True)
