@@ -220,8 +220,13 @@ def fit_kinds(fit_run: Path, kinds: Iterable[str]) -> tuple[dict, dict]:
     ``auto`` (what ``fog-driver fit`` does without ``--kind``) saved the polynomial."""
     models: dict = {}
     info: dict = {"fit_s": {}, "weak": {}}
-    for kind in kinds:
+    for kind in sorted(kinds, key=lambda k: k != "auto"):  # auto first: the default kind it kept is reused
         t0 = time.perf_counter()
+        if kind == DEFAULT_FIT_KIND and models.get("auto") is not None and models["auto"].kind == kind:
+            models[kind] = models["auto"]  # the same fit: `fit` without --kind kept the default kind
+            info["fit_s"][kind] = info["fit_s"]["auto"]
+            info["weak"][kind] = info["weak"]["auto"]
+            continue
         if kind == "auto":  # what `fog-driver fit` does without --kind: the default, or the polynomial it chose
             models[kind], _ = fit_model_file(
                 [fit_run], kind=DEFAULT_FIT_KIND, config=FitConfig(), fall_back=True, accept_weak=True
