@@ -1,11 +1,13 @@
 """Compensation on a population of instruments the models were not tuned on.
 
-    python benchmarks/bench_population.py [--set eval2|eval|dev] [--instruments N] [--kinds K,K] [--rate-hz 10]
+    python benchmarks/bench_population.py [--set eval2|eval4|eval|dev] [--instruments N] [--kinds K,K] [--rate-hz 10]
                                           [--workers 2] [--workdir DIR] [--per-instrument] [--adapt]
+                                          [--fit-profile NAME] [--score-profiles P,P] [--compare-programs]
 
 THE RULE.  Instrument seeds come in ranges.  ``dev`` (0 ..) is for developing and tuning: look at
-it as often as you like.  ``eval`` (10000 ..), ``eval2`` (20000 ..) and ``eval3`` (30000 .., first
-used by ``bench_thermo_fault.py``, which logs its runs) are reserved for evaluation:
+it as often as you like.  ``eval`` (10000 ..), ``eval2`` (20000 ..), ``eval3`` (30000 .., first
+used by ``bench_thermo_fault.py``, which logs its runs) and ``eval4`` (40000 .., for issue 30: the
+model choice, the drift's uncertainty and the calibration program) are reserved for evaluation:
 nobody looks at them while developing a model, choosing its settings or its structure; one is run
 to report a model that is finished, and what it shows is reported as it is, never fed back.  Each
 model version is evaluated on an evaluation range no earlier version was developed after: a range
@@ -26,17 +28,24 @@ runs:
   least gain (chosen on ``dev`` 0..23, evaluated once on ``eval2``).  It missed the creep target (0.2
   deg/h: worst 2.06x; correct reference 1.295x); ``dev`` 24..71 then drawn to find the same failures
   (worst 1.149x, a correct reference).  ``eval3`` is spent for adapting.
+* ``eval4`` (40000..40023): not run yet.  [The lead: replace this line with the first run's date, its
+  command(s), what was evaluated and what it showed, when it is made.]
 
 Individual evaluation instruments are not to be studied: to find what failed there, draw more
 development instruments (``--set dev --first 72``) and look for the same failure among them.
 
-Per instrument K (``fog_driver.sim.population.draw_instrument``), three runs of the simulated
-chamber, each with its own run seed (noise, turn-on bias):
+Per instrument K (``fog_driver.sim.population.draw_instrument``), runs of the simulated chamber, each
+with its own run seed ``10 K + j`` (noise, turn-on bias; ``j`` below):
 
-* fit on the ``paper`` profile (440 min, static);
-* score on ``soak-cycle`` (long soaks, 0.75-1.5 degC/min ramps, a slow thermal cycle) and
-  ``steps-moves`` (2-4 degC/min ramps, 10 degC steps, a fast drop, 36-degree positioning moves on
-  six plateaus), neither of them ever fitted on.
+* fit on the ``--fit-profile`` (default ``paper``, 440 min, static; j = 1);
+* score on the ``--score-profiles`` (default ``soak-cycle``, j = 2: long soaks, 0.75-1.5 degC/min ramps,
+  a slow thermal cycle; and ``steps-moves``, j = 3: 2-4 degC/min ramps, 10 degC steps, a fast drop,
+  36-degree positioning moves on six plateaus), neither of them ever fitted on (``chamber-cycle`` j = 4,
+  ``fast-ramps`` j = 6, any other 7, 8, 9 in the order given);
+* the run beyond the fit range (j = 5, ``beyond_profile``): from the fit program's start temperature, up at
+  1 degC/min to 10 degC above the program's hottest, a 60-min soak there, back down at 1 degC/min, 20 min
+  held; static.  It serves the uncertainty's coverage on ``extrapolating`` minutes only, and is reported
+  apart from the scoring runs' drift figures.
 
 Scores, against the simulator's truth, over the static minutes after the first ten (1-minute
 means, each series' mean removed; deg/h):
@@ -45,10 +54,31 @@ means, each series' mean removed; deg/h):
     f   = RMS of n                      the noise floor (bias instability, RRW, ARW, quantization)
     e   = sqrt(max(r^2 - f^2, 0))       the excess drift: what it leaves beyond what no model can remove
 
-Per instrument the two scoring runs are pooled (mean of the squares).  For each kind: the median
+Per instrument the scoring runs are pooled (mean of the squares).  For each kind: the median
 and the worst instrument of the reduction against raw (1 - r / r_raw), of the excess against the
 polynomial's (e / e_poly) and of the ratio to the noise floor (r / f); fit time; model step time.
 Targets (issue 10): median e / e_poly <= 0.5, worst <= 1; median r / f <= 1.3, worst <= 2.
+
+Issue 30's three parts, each with a PASS or MISS line per target (for ``auto``, the default):
+
+* The model choice (with ``auto``, ``wesn`` and ``polynomial`` among the kinds): ``auto``'s r / f at the
+  median and at the worst instrument, against the same of min(r_wesn, r_poly) / f per instrument; target:
+  within 5 %.
+* The uncertainty ``drift_sigma_dph`` of each of those kinds, by ``fog_driver.report.coverage`` (the
+  functions ``evaluate --truth`` reports with): the static minutes' error (D_hat - D, 1-min means, about
+  their run's mean) against the minute's mean sigma, pooled over every instrument's scoring runs and per
+  instrument.  Targets: the +-1.96-sigma band covers 95 +- 3 % pooled; at least 80 % on at least 22 of 24
+  instruments (the same share of any other number); at least 85 % on the pooled quarter of minutes with
+  the largest sigma, and on the minutes flagged extrapolating (the scoring runs' and the run beyond the fit
+  range's, at least 60 of them); the median sigma at most 1.5x the RMS of the error; the RMS error on an
+  instrument's top-sigma quarter at least 1.5x that on its bottom quarter, at the median over instruments.
+* ``--compare-programs``: the calibration program against the paper program.  Each of ``polynomial``,
+  ``wesn`` and ``auto`` is fitted on one run of ``--fit-profile`` (default here ``calibration``: the built-in
+  profile, else ``configs/profiles/calibration.yaml``) and on one run of ``paper`` (the same run seed), both
+  scored on the ``--score-profiles`` (default here ``steps-moves`` and ``chamber-cycle``).  Targets for
+  ``auto`` fitted on the program: the worst instrument's excess at most 1.0x that of the polynomial fitted
+  on the same run; the worst r / f at most 2; the median at most 1.15.
+
 With ``--adapt``, the polynomial, wesn and auto models also compensate the scoring runs adapting online
 (``AdaptConfig()`` defaults, reference rate 0, the gyro's static detector gating the moves out), and the
 ratio of the adapting to the frozen 1-min RMS is printed per kind.
@@ -60,9 +90,11 @@ printed, never asserted.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import tempfile
 import time
+from collections.abc import Iterable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -71,36 +103,105 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from fog_driver.cli.calibration import DEFAULT_FIT_KIND  # noqa: E402
 from fog_driver.compensation.adapt import AdaptConfig  # noqa: E402
 from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
+from fog_driver.errors import FogDriverError  # noqa: E402
 from fog_driver.offline.fit import fit_model_file  # noqa: E402
+from fog_driver.report.coverage import SIGMA_PER_MINUTE, MinuteErrors, coverage_figures, minute_errors  # noqa: E402
 from fog_driver.report.evaluate import minute_rms, per_second  # noqa: E402
 from fog_driver.sim.capture import read_truth, simulate_to_file, truth_noise_dph  # noqa: E402
+from fog_driver.sim.chamber import ChamberProfile, Hold, Ramp  # noqa: E402
 from fog_driver.sim.instrument import Simulator  # noqa: E402
+from fog_driver.sim.motion import MotionPlan  # noqa: E402
 from fog_driver.sim.population import draw_instrument  # noqa: E402
-from fog_driver.sim.profiles import BUILTIN_PROFILES, load_profile  # noqa: E402
+from fog_driver.sim.profiles import BUILTIN_PROFILES, SimProfile, load_profile  # noqa: E402
 
 SEED_SETS = {
     "dev": 0,
     "eval": 10_000,
     "eval2": 20_000,
     "eval3": 30_000,
+    "eval4": 40_000,
 }  #: first instrument seed of each set (THE RULE above)
-#: Model kinds; "auto" is what ``fog-driver fit`` fits without --kind (the wesn, or the polynomial when the
-#: wesn does worse on the fit's own validation split).
+#: Model kinds; "auto" is what ``fog-driver fit`` fits without --kind (the default's choice between the wesn
+#: and the polynomial).
 KINDS = ("polynomial", "wesn", "auto", "paper", "pso-svr")
+#: The kinds the model choice, the uncertainty and the program comparison are about.
+COMPARED_KINDS = ("polynomial", "wesn", "auto")
 FIT_PROFILE = "paper"
 SCORE_PROFILES = ("soak-cycle", "steps-moves")
+#: ``--compare-programs``: the program compared with the paper program, and where both are scored.
+PROGRAM = "calibration"
+PROGRAM_SCORE_PROFILES = ("steps-moves", "chamber-cycle")
 SKIP_MINUTES = 10
+#: Instrument K's run of a profile has the run seed 10 K + j (the module docstring).
+FIT_RUN = 1
+SCORE_RUNS = {"soak-cycle": 2, "steps-moves": 3, "chamber-cycle": 4, "fast-ramps": 6}
+BEYOND_RUN = 5
+OTHER_RUNS = (7, 8, 9)
+#: The run beyond the fit range: this far above the fit program's hottest, reached and left at this rate.
+BEYOND_C = 10.0
+BEYOND_RATE_C_PER_MIN = 1.0
+BEYOND_SOAK_MIN = 60.0
+BEYOND_HOLD_MIN = 20.0
+#: Issue 30's targets.
+CHOICE_TOLERANCE = 0.05
+COVERAGE_POOLED = (0.92, 0.98)
+COVERAGE_PER_INSTRUMENT = 0.80
+INSTRUMENTS_SHARE = 22 / 24
+COVERAGE_TOP_QUARTER = 0.85
+COVERAGE_EXTRAPOLATING = 0.85
+MIN_EXTRAPOLATING_MINUTES = 60
+MAX_SHARPNESS = 1.5
+MIN_TOP_BOTTOM_RATIO = 1.5
+PROGRAM_WORST_EXCESS = 1.0
+PROGRAM_WORST_FLOOR = 2.0
+PROGRAM_MEDIAN_FLOOR = 1.15
 
 
-def capture(workdir: Path, seed: int, profile: str, run_seed: int, rate_hz: int) -> Path:
-    """Instrument ``seed``'s run of ``profile`` (built-in, or ``configs/profiles/<profile>.yaml``), cached."""
-    out = workdir / f"i{seed}" / f"{profile}-r{run_seed}-{rate_hz}hz.bin"
+def resolve_profile(name: str) -> SimProfile:
+    """A profile by name: built-in, else ``configs/profiles/<name>.yaml`` (``calibration``: the built-in once it
+    ships, the file until then); a missing one is a one-line ``InputFileError``."""
+    return load_profile(name if name in BUILTIN_PROFILES else ROOT / "configs" / "profiles" / f"{name}.yaml")
+
+
+def beyond_profile(fit: SimProfile) -> SimProfile:
+    """The run that leaves the fit range (module docstring): from the fit program's start temperature T0, held
+    ``BEYOND_HOLD_MIN``; up at ``BEYOND_RATE_C_PER_MIN`` to T_max + ``BEYOND_C`` (T_max the program's hottest
+    air temperature, on a 1-s grid); ``BEYOND_SOAK_MIN`` there; back to T0 at the same rate; held
+    ``BEYOND_HOLD_MIN``.  Static table."""
+    chamber = fit.chamber
+    hottest_c = float(chamber.air_temp_c(np.arange(0.0, chamber.duration_s + 1.0)).max())
+    hold_s, rate = BEYOND_HOLD_MIN * 60.0, BEYOND_RATE_C_PER_MIN
+    segments = (
+        Hold(hold_s),
+        Ramp(rate, hottest_c + BEYOND_C),
+        Hold(BEYOND_SOAK_MIN * 60.0),
+        Ramp(rate, chamber.start_c),
+        Hold(hold_s),
+    )
+    name = f"beyond-{fit.name}"
+    return SimProfile(
+        name, ChamberProfile(name, chamber.start_c, segments), MotionPlan.static(), "generated by bench_population.py"
+    )
+
+
+def score_run_seeds(profiles: Sequence[str]) -> dict[str, int]:
+    """Each scoring profile's j (module docstring): its own when it has one, else the next of ``OTHER_RUNS``."""
+    others = iter(OTHER_RUNS)
+    return {p: SCORE_RUNS[p] if p in SCORE_RUNS else next(others) for p in profiles}
+
+
+def capture(workdir: Path, seed: int, profile: str | SimProfile, run_seed: int, rate_hz: int) -> Path:
+    """Instrument ``seed``'s run of ``profile`` (a name for ``resolve_profile``, or a profile made here), cached
+    by its name."""
+    name = profile if isinstance(profile, str) else profile.name
+    out = workdir / f"i{seed}" / f"{name}-r{run_seed}-{rate_hz}hz.bin"
     if not out.exists():
         out.parent.mkdir(parents=True, exist_ok=True)
-        source = profile if profile in BUILTIN_PROFILES else ROOT / "configs" / "profiles" / f"{profile}.yaml"
-        sim = Simulator(load_profile(source), draw_instrument(seed), rate_hz=rate_hz, seed=run_seed)
+        sim_profile = resolve_profile(profile) if isinstance(profile, str) else profile
+        sim = Simulator(sim_profile, draw_instrument(seed), rate_hz=rate_hz, seed=run_seed)
         simulate_to_file(sim, out.with_suffix(".part.bin"))
         for suffix in (".bin", ".bin.yaml", ".truth.csv"):  # complete files only: an interrupted run redoes them
             out.with_suffix(".part" + suffix).rename(out.with_suffix(suffix))
@@ -114,46 +215,93 @@ def static_minutes_mask(truth: dict[str, np.ndarray], n: int) -> np.ndarray:
     return mask
 
 
-def score_instrument(seed: int, kinds: tuple[str, ...], rate_hz: int, workdir: Path, adapt: bool = False) -> dict:
-    """Fit every kind on instrument ``seed``'s paper run; score each on the two other profiles."""
-    fit_run = capture(workdir, seed, FIT_PROFILE, 10 * seed + 1, rate_hz)
-    runs = [(p, capture(workdir, seed, p, 10 * seed + 2 + i, rate_hz)) for i, p in enumerate(SCORE_PROFILES)]
-    result: dict = {"seed": seed, "fit_s": {}, "step_us": {}}
-    models = {}
-    for kind in kinds:
+def fit_kinds(fit_run: Path, kinds: Iterable[str]) -> tuple[dict, dict]:
+    """Every kind fitted on one run, and what the fits say: their time, the checks they failed, whether
+    ``auto`` (what ``fog-driver fit`` does without ``--kind``) saved the polynomial."""
+    models: dict = {}
+    info: dict = {"fit_s": {}, "weak": {}}
+    for kind in sorted(kinds, key=lambda k: k != "auto"):  # auto first: the default kind it kept is reused
         t0 = time.perf_counter()
-        if kind == "auto":  # what `fog-driver fit` does without --kind: the wesn, or the polynomial it falls back to
+        if kind == DEFAULT_FIT_KIND and models.get("auto") is not None and models["auto"].kind == kind:
+            models[kind] = models["auto"]  # the same fit: `fit` without --kind kept the default kind
+            info["fit_s"][kind] = info["fit_s"]["auto"]
+            info["weak"][kind] = info["weak"]["auto"]
+            continue
+        if kind == "auto":  # what `fog-driver fit` does without --kind: the default, or the polynomial it chose
             models[kind], _ = fit_model_file(
-                [fit_run], kind="wesn", config=FitConfig(), fall_back=True, accept_weak=True
+                [fit_run], kind=DEFAULT_FIT_KIND, config=FitConfig(), fall_back=True, accept_weak=True
             )
-            result["fell_back"] = models[kind].kind == "polynomial"
+            info["fell_back"] = models[kind].kind == "polynomial"
         else:  # a fit that fails its checks is scored all the same (and counted: ``weak``)
             models[kind], _ = fit_model_file([fit_run], kind=kind, config=FitConfig(), accept_weak=True)
-        result["fit_s"][kind] = time.perf_counter() - t0
+        info["fit_s"][kind] = time.perf_counter() - t0
         checks = models[kind].provenance["fit_quality"]["checks"]
-        result.setdefault("weak", {})[kind] = [name for name, c in checks.items() if not c["passed"]]
-    adapting = [f"{k}+adapt" for k in kinds if adapt and k in ("wesn", "auto", "polynomial")]
-    sq = {name: [] for name in ("raw", "floor", *kinds, *adapting)}
-    for _profile, path in runs:
-        truth = read_truth(path.with_suffix(".truth.csv"))
-        noise = truth_noise_dph(truth)
-        for kind in (*kinds, *adapting):
-            if kind.endswith("+adapt"):  # the table is still between moves: adapt against a known rate of 0
-                series = per_second(
-                    path, models[kind.removesuffix("+adapt")], adapt=AdaptConfig(), reference_rate_dph=0.0
-                )
-            else:
-                series = per_second(path, models[kind])
-            n = min(len(series.drift_dph), len(truth["drift_dph"]))
-            mask = static_minutes_mask(truth, n)
-            if kind == kinds[0]:
-                sq["raw"].append(minute_rms(truth["drift_dph"][:n] + noise[:n], mask) ** 2)
-                sq["floor"].append(minute_rms(noise[:n], mask) ** 2)
-            sq[kind].append(minute_rms(truth["drift_dph"][:n] - series.drift_dph[:n] + noise[:n], mask) ** 2)
-    result["r"] = {name: float(np.sqrt(np.mean(v))) for name, v in sq.items()}
+        info["weak"][kind] = [name for name, c in checks.items() if not c["passed"]]
+    return models, info
+
+
+def score_run(path: Path, models: dict, names: Sequence[str]) -> tuple[dict[str, float], dict[str, MinuteErrors]]:
+    """One scoring run: the squared 1-min RMS each model leaves (``kind+adapt``: adapting online against a
+    known rate of 0), the raw and the floor's, and each model's static minutes (error and sigma)."""
+    truth = read_truth(path.with_suffix(".truth.csv"))
+    noise = truth_noise_dph(truth)
+    sq: dict[str, float] = {}
+    minutes: dict[str, MinuteErrors] = {}
+    for name in names:
+        if name.endswith("+adapt"):  # the table is still between moves: adapt against a known rate of 0
+            series = per_second(path, models[name.removesuffix("+adapt")], adapt=AdaptConfig(), reference_rate_dph=0.0)
+        else:
+            series = per_second(path, models[name])
+        n = min(len(series.drift_dph), len(truth["drift_dph"]))
+        mask = static_minutes_mask(truth, n)
+        drift = truth["drift_dph"][:n]
+        if not sq:
+            sq["raw"] = minute_rms(drift + noise[:n], mask) ** 2
+            sq["floor"] = minute_rms(noise[:n], mask) ** 2
+        sq[name] = minute_rms(drift - series.drift_dph[:n] + noise[:n], mask) ** 2
+        sigma = series.drift_sigma_dph if series.drift_sigma_dph is not None else np.full(n, np.nan)
+        minutes[name] = minute_errors(series.drift_dph[:n], drift, sigma[:n], mask, series.extrapolating[:n])
+    return sq, minutes
+
+
+def pooled_r(squares: Sequence[dict[str, float]]) -> dict[str, float]:
+    """Per name, the runs pooled: sqrt of the mean of the squares."""
+    return {name: float(np.sqrt(np.mean([sq[name] for sq in squares]))) for name in squares[0]}
+
+
+def score_instrument(
+    seed: int,
+    kinds: tuple[str, ...],
+    rate_hz: int,
+    workdir: Path,
+    adapt: bool = False,
+    fit_profile: str = FIT_PROFILE,
+    score_profiles: Sequence[str] = SCORE_PROFILES,
+    against: str | None = None,
+) -> dict:
+    """Fit every kind on instrument ``seed``'s run of ``fit_profile``; score each on the scoring profiles, and
+    the compared kinds' uncertainty on the run beyond the fit range too; with ``against`` (a program), fit the
+    compared kinds on a run of it as well and score them on the same runs."""
+    fit_run = capture(workdir, seed, fit_profile, 10 * seed + FIT_RUN, rate_hz)
+    run_seeds = score_run_seeds(score_profiles)
+    runs = [capture(workdir, seed, p, 10 * seed + run_seeds[p], rate_hz) for p in score_profiles]
+    models, info = fit_kinds(fit_run, kinds)
+    result: dict = {"seed": seed, **info}
+    adapting = [f"{k}+adapt" for k in kinds if adapt and k in COMPARED_KINDS]
+    scored = [score_run(path, models, (*kinds, *adapting)) for path in runs]
+    result["r"] = pooled_r([sq for sq, _ in scored])
+    compared = [k for k in kinds if k in COMPARED_KINDS]
+    result["minutes"] = {k: MinuteErrors.pooled(m[k] for _, m in scored) for k in compared}
+    if compared:
+        beyond = capture(workdir, seed, beyond_profile(resolve_profile(fit_profile)), 10 * seed + BEYOND_RUN, rate_hz)
+        sq, minutes = score_run(beyond, models, compared)
+        result["beyond"] = {"r": pooled_r([sq]), "minutes": minutes}
+    if against is not None:
+        ref_models, ref_info = fit_kinds(capture(workdir, seed, against, 10 * seed + FIT_RUN, rate_hz), compared)
+        result["against"] = {**ref_info, "r": pooled_r([score_run(path, ref_models, compared)[0] for path in runs])}
     result["step_us"] = {kind: model_step_us(models[kind], fit_run) for kind in kinds}
     result["adapting"] = adapting
-    return result  # plain numbers only
+    return result  # plain numbers and arrays only
 
 
 def model_step_us(model_file, capture_path: Path, steps: int = 2000) -> float:
@@ -170,10 +318,22 @@ def model_step_us(model_file, capture_path: Path, steps: int = 2000) -> float:
     return (time.perf_counter() - t0) / len(z) * 1e6
 
 
-def summarize(results: list[dict], kinds: tuple[str, ...]) -> None:
-    def excess(r: float, f: float) -> float:
-        return float(np.sqrt(max(r * r - f * f, 0.0)))
+def excess(r: float, f: float) -> float:
+    """e = sqrt(max(r^2 - f^2, 0)): what a model leaves beyond the noise floor."""
+    return float(np.sqrt(max(r * r - f * f, 0.0)))
 
+
+def excess_ratio(r: dict[str, float], kind: str) -> float:
+    """e_kind / e_polynomial on one instrument's pooled runs (``r`` with ``floor`` and ``polynomial``)."""
+    return excess(r[kind], r["floor"]) / max(excess(r["polynomial"], r["floor"]), 1e-12)
+
+
+def verdict(passed: bool, text: str) -> None:
+    """One target's line: PASS or MISS, then what was measured against what."""
+    print(f"  {'PASS' if passed else 'MISS'} {text}")
+
+
+def summarize(results: list[dict], kinds: tuple[str, ...]) -> None:
     header = (
         f"{'kind':12s} {'reduction vs raw':>22s} {'excess / polynomial':>22s} {'1-min RMS / floor':>22s} "
         f"{'fit s':>7s} {'step us':>8s}"
@@ -187,12 +347,7 @@ def summarize(results: list[dict], kinds: tuple[str, ...]) -> None:
         red = np.array([1 - x["r"][kind] / x["r"]["raw"] for x in results])
         ratio_floor = np.array([x["r"][kind] / x["r"]["floor"] for x in results])
         if "polynomial" in kinds:
-            ex = np.array(
-                [
-                    excess(x["r"][kind], x["r"]["floor"]) / max(excess(x["r"]["polynomial"], x["r"]["floor"]), 1e-12)
-                    for x in results
-                ]
-            )
+            ex = np.array([excess_ratio(x["r"], kind) for x in results])
             ex_text = f"{np.median(ex):10.2f}x{ex.max():10.2f}x"
         else:
             ex_text = f"{'-':>11s}{'-':>11s}"
@@ -239,13 +394,175 @@ def summarize_adapting(results: list[dict]) -> None:
         )
 
 
+def summarize_choice(results: list[dict]) -> None:
+    """Issue 30 item 1: the default (``auto``) against the better of the wesn and the polynomial on each
+    instrument, r / f at the median and the worst instrument, within ``CHOICE_TOLERANCE``."""
+    auto = np.array([x["r"]["auto"] / x["r"]["floor"] for x in results])
+    best = np.array([min(x["r"]["wesn"], x["r"]["polynomial"]) / x["r"]["floor"] for x in results])
+    tol = 1.0 + CHOICE_TOLERANCE
+    print(
+        "\nthe model choice: the default (auto) against the better of wesn and polynomial on each instrument "
+        "(1-min RMS / floor):"
+    )
+    print(f"  {'auto':22s} median {np.median(auto):.3f}x, worst {auto.max():.3f}x")
+    print(f"  {'better of the two':22s} median {np.median(best):.3f}x, worst {best.max():.3f}x")
+    chose = [x["seed"] for x in results if x.get("fell_back")]
+    worse = [x["seed"] for x, a, b in zip(results, auto, best) if a > tol * b]
+    print(
+        f"  auto saved the polynomial on {len(chose)} of {len(results)}; it left over {100 * CHOICE_TOLERANCE:g} % "
+        f"more than the better on {len(worse)}{': ' if worse else ''}" + ", ".join(map(str, worse))
+    )
+    for what, a, b in (("median", np.median(auto), np.median(best)), ("worst", auto.max(), best.max())):
+        verdict(
+            a <= tol * b,
+            f"{what} within {100 * CHOICE_TOLERANCE:g} % of the better: {a:.3f}x <= {tol:g} x {b:.3f}x "
+            f"= {tol * b:.3f}x",
+        )
+
+
+def _pct(x: float | None) -> str:
+    return "-" if x is None else f"{100 * x:.1f} %"
+
+
+def _times(x: float | None) -> str:
+    return "-" if x is None else f"{x:.2f}x"
+
+
+def summarize_coverage(results: list[dict], kinds: tuple[str, ...]) -> None:
+    """Issue 30 item 2: the uncertainty's coverage and sharpness (``fog_driver.report.coverage``), pooled over
+    every instrument's scoring runs and per instrument; the extrapolating minutes with the run beyond the fit
+    range's; that run apart."""
+    compared = [k for k in kinds if k in COMPARED_KINDS]
+    n = len(results)
+    need = math.ceil(INSTRUMENTS_SHARE * n - 1e-9)
+    print(
+        "\nthe uncertainty (drift_sigma_dph against the truth): the error of each static minute of the scoring "
+        f"runs against +-1.96 sigma; sigma per minute: {SIGMA_PER_MINUTE}"
+    )
+    print(
+        f"{'kind':12s} {'minutes':>8s} {'coverage':>9s} {'>=80 %':>9s} {'top quarter':>12s} {'extrapolating':>18s} "
+        f"{'sigma / RMS':>12s} {'top / bottom':>13s}"
+    )
+    print(
+        f"{'':12s} {'pooled':>8s} {'pooled':>9s} {'instr.':>9s} {'coverage':>12s} {'coverage (minutes)':>18s} "
+        f"{'median':>12s} {'median instr.':>13s}"
+    )
+    verdicts = {}
+    for kind in compared:
+        mains = [x["minutes"][kind] for x in results]
+        beyonds = [x["beyond"]["minutes"][kind] for x in results]
+        pooled = coverage_figures(MinuteErrors.pooled(mains))
+        if "note" in pooled:
+            print(f"{kind:12s} {pooled['note']}")
+            verdicts[kind] = None
+            continue
+        each = [coverage_figures(m) for m in mains]
+        covered = sum((f.get("coverage") or 0.0) >= COVERAGE_PER_INSTRUMENT for f in each)
+        ratios = [f["top_bottom_error_ratio"] for f in each if f.get("top_bottom_error_ratio") is not None]
+        ratio = float(np.median(ratios)) if ratios else None
+        outside = coverage_figures(MinuteErrors.pooled([*mains, *beyonds]))["extrapolating"]
+        top = pooled["top_quarter"] or {"coverage": None}
+        print(
+            f"{kind:12s} {pooled['minutes_with_sigma']:8d} {_pct(pooled['coverage']):>9s} {covered:>4d} of {n:<2d} "
+            f"{_pct(top['coverage']):>12s} {_pct(outside['coverage']):>10s} ({outside['minutes']:4d}) "
+            f"{_times(pooled['sharpness']):>12s} {_times(ratio):>13s}"
+        )
+        verdicts[kind] = (pooled, covered, top, outside, ratio)
+    kind = "auto" if "auto" in verdicts else compared[0]
+    beyond = MinuteErrors.pooled(x["beyond"]["minutes"][kind] for x in results)
+    floor = [x["beyond"]["r"] for x in results]
+    print(
+        f"the run beyond the fit range (j = {BEYOND_RUN}: a {BEYOND_SOAK_MIN:g}-min soak {BEYOND_C:g} degC above "
+        f"the fit program's hottest), apart: {len(beyond)} static minutes, {int(beyond.extrapolating.sum())} of "
+        f"them flagged extrapolating ({kind}); 1-min RMS / floor there, median: "
+        + ", ".join(f"{k} {np.median([r[k] / r['floor'] for r in floor]):.2f}x" for k in compared)
+    )
+    print(f"targets (issue 30, the uncertainty of {kind}):")
+    if verdicts[kind] is None:
+        verdict(False, f"{kind} gives no finite drift_sigma_dph: no coverage to judge")
+        return
+    pooled, covered, top, outside, ratio = verdicts[kind]
+    low, high = COVERAGE_POOLED
+    verdict(
+        low <= pooled["coverage"] <= high,
+        f"pooled coverage {_pct(pooled['coverage'])} within {_pct(low)}..{_pct(high)}",
+    )
+    verdict(
+        covered >= need,
+        f"coverage >= {_pct(COVERAGE_PER_INSTRUMENT)} on {covered} of {n} instruments (at least {need})",
+    )
+    verdict(
+        top["coverage"] is not None and top["coverage"] >= COVERAGE_TOP_QUARTER,
+        f"coverage on the top-sigma quarter {_pct(top['coverage'])} >= {_pct(COVERAGE_TOP_QUARTER)}",
+    )
+    verdict(
+        outside["coverage"] is not None
+        and outside["coverage"] >= COVERAGE_EXTRAPOLATING
+        and outside["minutes"] >= MIN_EXTRAPOLATING_MINUTES,
+        f"coverage on the {outside['minutes']} extrapolating minutes {_pct(outside['coverage'])} >= "
+        f"{_pct(COVERAGE_EXTRAPOLATING)} (at least {MIN_EXTRAPOLATING_MINUTES} minutes)",
+    )
+    verdict(
+        pooled["sharpness"] is not None and pooled["sharpness"] <= MAX_SHARPNESS,
+        f"median sigma {pooled['sigma_median_dph']:.4f} deg/h = {_times(pooled['sharpness'])} the error's RMS "
+        f"{pooled['error_rms_1min_dph']:.4f} deg/h, <= {MAX_SHARPNESS:g}x",
+    )
+    verdict(
+        ratio is not None and ratio >= MIN_TOP_BOTTOM_RATIO,
+        f"RMS error top-sigma quarter / bottom quarter within an instrument, median {_times(ratio)} >= "
+        f"{MIN_TOP_BOTTOM_RATIO:g}x",
+    )
+
+
+def summarize_programs(results: list[dict], fit_profile: str, against: str) -> None:
+    """Issue 30 item 3: the kinds fitted on one run of ``fit_profile`` against one run of ``against``, scored
+    on the same runs; the targets for ``auto`` fitted on ``fit_profile``."""
+    kinds = list(results[0]["against"]["r"].keys() - {"raw", "floor"})
+    kinds = [k for k in COMPARED_KINDS if k in kinds]
+    print(
+        f"\nthe programs: fitted on one run of {fit_profile} against one of {against} (the same run seed), scored "
+        "on the same runs; the excess against the polynomial fitted on the same run"
+    )
+    print(f"{'kind':12s} {'fitted on':14s} {'excess / polynomial':>22s} {'1-min RMS / floor':>22s} {'fit s':>7s}")
+    print(f"{'':12s} {'':14s} {'median':>11s}{'worst':>11s} {'median':>11s}{'worst':>11s} {'mean':>7s}")
+    figures = {}
+    for kind in kinds:
+        for program, pick in ((against, lambda x: x["against"]), (fit_profile, lambda x: x)):
+            ex = np.array([excess_ratio(pick(x)["r"], kind) for x in results])
+            rf = np.array([pick(x)["r"][kind] / pick(x)["r"]["floor"] for x in results])
+            fit = np.mean([pick(x)["fit_s"][kind] for x in results])
+            print(
+                f"{kind:12s} {program:14s} {np.median(ex):10.2f}x{ex.max():10.2f}x "
+                f"{np.median(rf):10.2f}x{rf.max():10.2f}x {fit:7.1f}"
+            )
+            figures[kind, program] = ex, rf
+    kind = "auto" if "auto" in kinds else kinds[-1]
+    ex, rf = figures[kind, fit_profile]
+    print(f"targets (issue 30, {kind} fitted on one run of {fit_profile}):")
+    verdict(
+        ex.max() <= PROGRAM_WORST_EXCESS,
+        f"worst excess {ex.max():.2f}x the polynomial's fitted on the same run, <= {PROGRAM_WORST_EXCESS:g}x",
+    )
+    verdict(rf.max() <= PROGRAM_WORST_FLOOR, f"worst 1-min RMS {rf.max():.2f}x the floor, <= {PROGRAM_WORST_FLOOR:g}x")
+    verdict(
+        np.median(rf) <= PROGRAM_MEDIAN_FLOOR,
+        f"median 1-min RMS {np.median(rf):.2f}x the floor, <= {PROGRAM_MEDIAN_FLOOR:g}x",
+    )
+
+
+def _names(text: str) -> tuple[str, ...]:
+    return tuple(k.strip() for k in text.split(",") if k.strip())
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--set", choices=SEED_SETS, default="eval2", help="which instruments (see THE RULE)")
     parser.add_argument("--instruments", type=int, default=24, help="how many instruments of the set")
     parser.add_argument("--first", type=int, default=0, help="start this many instruments into the set")
     parser.add_argument(
-        "--kinds", default=",".join(KINDS), help=f"comma-separated model kinds (default {','.join(KINDS)})"
+        "--kinds",
+        help=f"comma-separated model kinds (default {','.join(KINDS)}; with --compare-programs "
+        f"{','.join(COMPARED_KINDS)})",
     )
     parser.add_argument(
         "--rate-hz", type=int, default=10, help="frame rate of the simulated runs (the model runs at 1 Hz)"
@@ -259,14 +576,59 @@ def main() -> None:
         help="also compensate the scoring runs adapting online against a known rate of 0 (the table "
         "still between moves, the gyro's static detector gating)",
     )
+    parser.add_argument(
+        "--fit-profile",
+        help=f"the program fitted on (default {FIT_PROFILE}; with --compare-programs {PROGRAM}): a built-in "
+        "profile or the stem of a file in configs/profiles/",
+    )
+    parser.add_argument(
+        "--score-profiles",
+        help=f"comma-separated scoring profiles (default {','.join(SCORE_PROFILES)}; with --compare-programs "
+        f"{','.join(PROGRAM_SCORE_PROFILES)})",
+    )
+    parser.add_argument(
+        "--compare-programs",
+        action="store_true",
+        help=f"also fit {','.join(COMPARED_KINDS)} on one run of {FIT_PROFILE} and compare them with the fit on "
+        "--fit-profile, on the same scoring runs (issue 30's program targets)",
+    )
     args = parser.parse_args()
-    kinds = tuple(k.strip() for k in args.kinds.split(",") if k.strip())
+    programs = args.compare_programs
+    kinds = _names(args.kinds or ",".join(COMPARED_KINDS if programs else KINDS))
+    fit_profile = args.fit_profile or (PROGRAM if programs else FIT_PROFILE)
+    score_profiles = _names(args.score_profiles or ",".join(PROGRAM_SCORE_PROFILES if programs else SCORE_PROFILES))
+    against = FIT_PROFILE if programs else None
+    problem = None
+    if programs and fit_profile == FIT_PROFILE:
+        problem = f"--compare-programs compares --fit-profile with {FIT_PROFILE}: give another program"
+    elif programs and not {"polynomial", "auto"} <= set(kinds):
+        problem = (
+            "--compare-programs needs the kinds polynomial and auto (its targets are auto's against the polynomial)"
+        )
+    elif not kinds or not score_profiles:
+        problem = "--kinds and --score-profiles need at least one name each"
+    elif sum(p not in SCORE_RUNS for p in score_profiles) > len(OTHER_RUNS):
+        problem = f"at most {len(OTHER_RUNS)} scoring profiles besides {', '.join(SCORE_RUNS)}"
+    else:
+        try:
+            for name in (fit_profile, *score_profiles, *([against] if against else [])):
+                resolve_profile(name)
+        except FogDriverError as exc:
+            problem = f"profile: {exc}"
+    if problem:
+        print(f"error: {problem}", file=sys.stderr)
+        sys.exit(2)
     seeds = [SEED_SETS[args.set] + args.first + i for i in range(args.instruments)]
     with tempfile.TemporaryDirectory() as tmp:
         workdir = args.workdir or Path(tmp)
         t0 = time.perf_counter()
         with ProcessPoolExecutor(max_workers=args.workers) as pool:
-            futures = [pool.submit(score_instrument, s, kinds, args.rate_hz, workdir, args.adapt) for s in seeds]
+            futures = [
+                pool.submit(
+                    score_instrument, s, kinds, args.rate_hz, workdir, args.adapt, fit_profile, score_profiles, against
+                )
+                for s in seeds
+            ]
             results = []
             for f in futures:
                 results.append(f.result())
@@ -274,16 +636,28 @@ def main() -> None:
                 if args.per_instrument:
                     print(
                         f"instrument {x['seed']:5d}: raw {x['r']['raw']:.4f} floor {x['r']['floor']:.4f} "
-                        + " ".join(f"{k} {x['r'][k]:.4f}" for k in kinds),
+                        + " ".join(f"{k} {x['r'][k]:.4f}" for k in kinds)
+                        + (
+                            f" | fitted on {against}: "
+                            + " ".join(f"{k} {x['against']['r'][k]:.4f}" for k in x["against"]["fit_s"])
+                            if against
+                            else ""
+                        ),
                         flush=True,
                     )
         print(
-            f"\n{args.set} set: {len(seeds)} instruments (seeds {seeds[0]}..{seeds[-1]}), fitted on {FIT_PROFILE}, "
-            f"scored on {' and '.join(SCORE_PROFILES)} at {args.rate_hz} Hz  [{time.perf_counter() - t0:.0f} s]\n"
+            f"\n{args.set} set: {len(seeds)} instruments (seeds {seeds[0]}..{seeds[-1]}), fitted on {fit_profile}, "
+            f"scored on {' and '.join(score_profiles)} at {args.rate_hz} Hz  [{time.perf_counter() - t0:.0f} s]\n"
         )
         summarize(results, kinds)
         if args.adapt:
             summarize_adapting(results)
+        if {"auto", "wesn", "polynomial"} <= set(kinds):
+            summarize_choice(results)
+        if any(k in COMPARED_KINDS for k in kinds):
+            summarize_coverage(results, kinds)
+        if against:
+            summarize_programs(results, fit_profile, against)
 
 
 if __name__ == "__main__":

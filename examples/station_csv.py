@@ -3,7 +3,8 @@
     python examples/station_csv.py [HOST:PORT] --out angles.csv [--rate-hz 10] [--count N]
 
 --rate-hz 0 logs every sample.  The daemon's token, when it has one, comes from FOG_DRIVER_TOKEN.  A lost
-connection is made again by the library; the samples missed meanwhile are reported on stderr.
+connection is made again by the library; the samples missed meanwhile are reported on stderr.  drift_sigma_dph
+(the drift estimate's 1-sigma) is empty while there is no estimate, and from a daemon before protocol 1.1.
 """
 
 import argparse
@@ -22,11 +23,12 @@ args = parser.parse_args()
 try:
     with Client(args.address, token=read_token()) as client, open(args.out, "w", newline="") as f:
         rows = csv.writer(f)
-        rows.writerow(["seq", "t_s", "utc", "angle_arcsec", "rate_dph", "drift_dph", "flags"])
+        rows.writerow(["seq", "t_s", "utc", "angle_arcsec", "rate_dph", "drift_dph", "drift_sigma_dph", "flags"])
         for n, a in enumerate(client.angles(rate_hz=args.rate_hz or None), 1):
             if a.gap_before is not None:
                 print(f"reconnected: {a.gap_before.missed} samples missed before seq {a.seq}", file=sys.stderr)
-            rows.writerow([a.seq, a.t_s, a.utc, a.angle_arcsec, a.rate_dph, a.drift_dph, " ".join(a.flags)])
+            sigma = "" if a.drift_sigma_dph is None else a.drift_sigma_dph
+            rows.writerow([a.seq, a.t_s, a.utc, a.angle_arcsec, a.rate_dph, a.drift_dph, sigma, " ".join(a.flags)])
             f.flush()
             if n == args.count:
                 break

@@ -337,4 +337,9 @@ def test_describe_knows_each_kind_by_content(made, tmp_path):
     (tmp_path / "model.bin").write_text(MODEL.read_text())
     assert describe(tmp_path / "model.bin") != "a capture"
     assert describe(made / "st.csv") == "a compensate CSV"
+    assert (made / "st.csv").read_text().split("\n", 1)[0].endswith(",flags,drift_sigma_dph")
+    # one written before the drift_sigma_dph column is known too
+    old_header = "t_s,n_samples,rate_raw_dph,drift_dph,rate_comp_dph,angle_raw_arcsec,angle_comp_arcsec,"
+    (tmp_path / "old.csv").write_text(old_header + "t_top_c,t_bottom_c,t_housing_c,flags\n1.0,10,0,0,0,0,0,20,20,20,\n")
+    assert describe(tmp_path / "old.csv") == "a compensate CSV"
     assert describe(tmp_path) == "a directory"

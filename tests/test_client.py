@@ -38,6 +38,7 @@ from fog_driver.client import (
     Unauthorized,
     UnknownCommand,
     Version,
+    since_bias_sigma_dph,
 )
 from fog_driver.daemon.hub import Hub
 
@@ -87,7 +88,7 @@ def test_the_session_types_every_object_and_pairs_answers_with_requests():
     kinds = [type(m).__name__ for m in out]
     assert kinds == ["Version", "Device", "Reply", "Angle", "Other", "Reply", "Bias", "ErrorReply", "Status", "Angle"]
     version, device, watch, angle, other, zeroed, bias, error, stat, second = out
-    assert version == Version(release="0.1.0", proto_major=1, proto_minor=0, model="wesn")
+    assert version == Version(release="0.1.0", proto_major=1, proto_minor=0, model="wesn")  # a daemon before 1.1
     assert device.activated and device.format == "fog-v1" and device.rate_hz == 1000.0 and device.firmware is None
     assert watch.kind == "WATCH" and watch.get("enable") is True
     assert angle == Angle(
@@ -102,6 +103,7 @@ def test_the_session_types_every_object_and_pairs_answers_with_requests():
         flags=("gap",),
         utc="2026-12-02T14:56:26.123Z",
     )
+    assert angle.drift_sigma_dph is None and bias.bias_sigma_dph is None and stat.bias_sigma_dph is None
     assert angle.line == SCRIPT[3] and json.loads(angle.line) == dict(angle.raw)  # the \r is not part of it
     assert isinstance(other, Other) and other.kind == "FUTURE" and other.raw["x"] == 1
     assert (zero.reply, foo.reply, status.reply) == (zeroed, error, stat)  # in order, events in between skipped
@@ -114,6 +116,26 @@ def test_the_session_types_every_object_and_pairs_answers_with_requests():
     assert (session.version, session.device, session.status) == (version, device, stat)
     with pytest.raises(TypeError):
         angle.temps_c["top"] = 0.0  # read-only
+
+
+def test_protocol_1_1_sigma_keys_are_typed_and_combine_in_the_since_bias_form():
+    lines = [
+        b'{"class":"ANGLE","seq":1,"t_s":0.1,"drift_dph":0.05,"drift_sigma_dph":0.03,"flags":[]}',
+        b'{"class":"ANGLE","seq":2,"t_s":0.2,"drift_dph":0.0,"flags":["uncompensated"]}',  # no estimate: omitted
+        b'{"class":"ANGLE","seq":3,"t_s":0.3,"drift_sigma_dph":"small"}',  # the wrong type: absent
+        b'{"class":"BIAS","state":"done","capture_id":1,"bias_dph":9.5,"seconds":60.0,"bias_sigma_dph":0.04}',
+        b'{"class":"STATUS","bias_captured":true,"bias_dph":9.5,"bias_sigma_dph":0.04}',
+    ]
+    session = Session()
+    session.connection_made()
+    first, second, third, bias, status = session.receive(b"\n".join(lines) + b"\n")
+    assert (first.drift_sigma_dph, second.drift_sigma_dph, third.drift_sigma_dph) == (0.03, None, None)
+    assert bias.bias_sigma_dph == 0.04 and status.bias_sigma_dph == 0.04 and status.bias_captured is True
+    # sqrt(sigma(t)^2 + sigma(t_b)^2): 0.03 and 0.04 make 0.05; anything absent makes it absent
+    assert since_bias_sigma_dph(first.drift_sigma_dph, status.bias_sigma_dph) == pytest.approx(0.05, rel=1e-15)
+    assert since_bias_sigma_dph(5.0, 12.0) == 13.0
+    for a, b in ((second.drift_sigma_dph, 0.04), (0.03, None), (math.nan, 0.04), (0.03, True), (None, None)):
+        assert since_bias_sigma_dph(a, b) is None
 
 
 def test_the_session_gives_the_same_messages_byte_by_byte_and_at_every_split():
@@ -167,13 +189,19 @@ def test_watch_arguments_are_checked_before_anything_is_sent():
 
 
 class Instrument:
-    """A hub fed by a thread publishing samples at 100 Hz from ``first_seq`` (a pace, not a synchronization)."""
+    """A hub fed by a thread publishing samples at 100 Hz from ``first_seq`` (a pace, not a synchronization).
 
-    def __init__(self, port: int = 0, first_seq: int = 1, token: str | None = None, control=None) -> None:
+    ``proto_minor`` 1: its samples carry ``drift_sigma_dph`` = ``sigma_of(seq)``, omitted on every third
+    (no estimate); 0: a daemon from before that key."""
+
+    def __init__(
+        self, port: int = 0, first_seq: int = 1, token: str | None = None, control=None, proto_minor: int = 0
+    ) -> None:
+        self.proto_minor = proto_minor
         self.hub = Hub(
             "127.0.0.1",
             port,
-            version=lambda: {"release": "test", "proto_major": 1, "proto_minor": 0},
+            version=lambda: {"release": "test", "proto_major": 1, "proto_minor": proto_minor},
             device=lambda: {"path": "/dev/test", "state": "activated"},
             control=control or (lambda name, args, cid: {"class": name}),
             token=token,
@@ -184,19 +212,16 @@ class Instrument:
         self.thread = threading.Thread(target=self._publish, daemon=True)
         self.thread.start()
 
+    @staticmethod
+    def sigma_of(seq: int) -> float | None:
+        return None if seq % 3 == 0 else 0.01 + seq * 1e-6
+
     def _publish(self) -> None:
         while not self.stop.is_set():
-            self.hub.publish_angles(
-                [
-                    {
-                        "seq": self.seq,
-                        "t_s": self.seq / 100,
-                        "angle_arcsec": self.seq * 0.5,
-                        "temps_c": {"top": 25.0},
-                        "flags": [],
-                    }
-                ]
-            )
+            obj = {"seq": self.seq, "t_s": self.seq / 100, "angle_arcsec": self.seq * 0.5, "drift_dph": 0.25}
+            if self.proto_minor >= 1 and self.sigma_of(self.seq) is not None:
+                obj["drift_sigma_dph"] = self.sigma_of(self.seq)
+            self.hub.publish_angles([{**obj, "temps_c": {"top": 25.0}, "flags": []}])
             self.seq += 1
             self.stop.wait(0.01)
 
@@ -237,6 +262,32 @@ def test_a_lost_connection_is_made_again_and_the_gap_reported(instrument):
         gap = seen[-1].gap_before
         assert gap.last_seq == last and gap.missed == seen[-1].seq - last - 1 >= 1000
         assert c.reconnects == 1
+
+
+@pytest.mark.parametrize("proto_minor", [0, 1])
+def test_both_clients_read_the_drift_sigma_and_a_daemon_before_1_1_gives_none(instrument, proto_minor):
+    inst = instrument(proto_minor=proto_minor)
+
+    def expected(a):
+        return Instrument.sigma_of(a.seq) if proto_minor >= 1 else None
+
+    with Client(inst.address) as c:
+        assert c.version.proto_minor == proto_minor
+        got = [a for a, _ in zip(c.angles(), range(6))]
+    assert [a.drift_sigma_dph for a in got] == [expected(a) for a in got] and [a.drift_dph for a in got] == [0.25] * 6
+
+    async def main():
+        got = []
+        async with AsyncClient(inst.address) as c:
+            async for a in c.angles():
+                got.append(a)
+                if len(got) == 6:
+                    break
+        return got
+
+    got = asyncio.run(asyncio.wait_for(main(), GUARD_S))
+    assert [a.drift_sigma_dph for a in got] == [expected(a) for a in got]
+    assert any(v is None for v in map(expected, got)) and (proto_minor == 0 or any(map(expected, got)))
 
 
 def test_without_reconnect_a_lost_connection_ends_the_iteration(instrument):
@@ -429,6 +480,7 @@ def test_the_example_station_script_logs_the_angles_the_daemon_publishes(daemon,
         obj = published[int(row["seq"])]
         assert float(row["angle_arcsec"]) == obj["angle_arcsec"] and float(row["t_s"]) == obj["t_s"]
         assert row["utc"] == obj["utc"] and row["flags"] == " ".join(obj["flags"])
+        assert row["drift_sigma_dph"] == (repr(obj["drift_sigma_dph"]) if "drift_sigma_dph" in obj else "")
     assert daemon.terminate() == 0
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -12,9 +13,11 @@ import pytest
 import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from sigma_stub import stub_sigma, stub_value
 
+from fog_driver.cli.app import main
 from fog_driver.compensation.fitting.data import FitConfig, static_mask
-from fog_driver.compensation.pipeline import FLAG_UNCOMPENSATED, CompensatedColumns, Compensator
+from fog_driver.compensation.pipeline import FLAG_UNCOMPENSATED, CompensatedColumns, CompensatedSample, Compensator
 from fog_driver.daemon.config import DEFAULT_MODEL
 from fog_driver.errors import InputFileError
 from fog_driver.files.kinds import ROW_COLUMNS
@@ -122,15 +125,76 @@ def test_compensate_cli_rows_equal_a_live_replay_in_chunks(model_path, tmp_path)
         for event in decoder.feed(data[i : i + 333]):
             sample = stream.step(event)
             if sample is not None:
-                c = comp.step(sample)
-                cols = CompensatedColumns(*(np.array([v]) for v in c[:7]), np.array([c.temps_c]), np.array([c.flags]))
-                live += [format_row(r) for r in rows.add(cols)]
+                live += [format_row(r) for r in rows.add(one_frame(comp.step(sample)))]
     decoder.close()
     live += [format_row(r) for r in rows.finish()]
-    assert lines[1:] == live
+    assert lines[1:] == live  # the drift_sigma_dph column included
     assert len(live) == 60  # 300 s in 5-s rows
     t_s = [float(line.split(",")[0]) for line in live]
     assert t_s[0] == pytest.approx(5.0) and t_s[-1] == pytest.approx(300.0, abs=0.2)
+
+
+def one_frame(c: CompensatedSample) -> CompensatedColumns:
+    """A stepped sample as the columns of one frame."""
+    return CompensatedColumns(
+        *(np.array([v]) for v in c[:7]), np.array([c.temps_c]), np.array([c.flags]), np.array([c.drift_sigma_dph])
+    )
+
+
+def test_a_row_carries_the_mean_drift_sigma_of_its_frames_that_have_one():
+    """Rows of 5 frames: none with a sigma (nan), some (the mean of those), all (their mean)."""
+    sigma = [math.nan] * 5 + [math.nan, 0.01, 0.03, math.nan, 0.02] + [0.05] * 5 + [0.1, 0.2, 0.3, 0.4, 0.5]
+    n = len(sigma)
+    zeros = np.zeros(n)
+    cols = CompensatedColumns(
+        np.arange(n),
+        np.arange(n) * 0.1,
+        zeros,
+        np.full(n, 0.5),
+        zeros,
+        zeros,
+        zeros,
+        np.full((n, 3), 20.0),
+        np.zeros(n, dtype=np.int64),
+        np.array(sigma),
+    )  # seq, t_s, dtheta, drift, dtheta_comp, angle_raw, angle_comp, temps, flags, drift_sigma_dph
+    rows = RowAggregator(0.5, 0.1)
+    got = rows.add(cols) + rows.finish()
+    column = ROW_COLUMNS.index("drift_sigma_dph")
+    assert ROW_COLUMNS[-1] == "drift_sigma_dph" and column == len(got[0]) - 1  # appended: positions kept
+    assert math.isnan(got[0][column])
+    assert [r[column] for r in got[1:]] == [pytest.approx(v, rel=1e-15) for v in (0.02, 0.05, 0.3)]
+    assert [format_row(r).rsplit(",", 1)[1] for r in got] == ["nan", "0.020000", "0.050000", "0.300000"]
+    assert [r[ROW_COLUMNS.index("drift_dph")] for r in got] == [0.5] * 4
+    # Columns made without a sigma hold NaN: the rows say nan.
+    plain = CompensatedColumns(*(getattr(cols, f) for f in list(CompensatedColumns.__dataclass_fields__)[:9]))
+    assert [format_row(r).rsplit(",", 1)[1] for r in RowAggregator(0.5, 0.1).add(plain)] == ["nan"] * 3
+
+
+def test_compensate_writes_the_sigma_column_as_a_live_replay_gives_it(tmp_path, monkeypatch):
+    """With a known sigma per block (``sigma_stub``): the command's column equals a live replay's, and each
+    row's value is the mean of the sigma held over its frames, worked out here from the blocks."""
+    stub_sigma(monkeypatch)
+    capture, out = DATA / "sim-short.bin", tmp_path / "out.csv"
+    args = ["compensate", str(capture), "--model", str(DEFAULT_MODEL), "--out", str(out), "--every", "2"]
+    assert main(args) == 0
+    lines = out.read_text().splitlines()
+    assert lines[0].split(",") == list(ROW_COLUMNS)
+    samples = SampleStream().run(decode_file(capture))
+    comp, rows = Compensator(load_model(DEFAULT_MODEL), 0.1), RowAggregator(2.0, 0.1)
+    live = [format_row(r) for i in range(len(samples)) for r in rows.add(one_frame(comp.step(samples.sample(i))))]
+    assert lines[1:] == live + [format_row(r) for r in rows.finish()]
+    # Independently: frame k of block j (j = its second) holds the estimate of block j - 1, none in block 0.
+    block = np.floor(samples.t_s - samples.t_s[0] + 1e-9).astype(int)
+    held = np.array([math.nan if j == 0 else stub_value(j - 1) for j in block])
+    cells = [line.split(",")[-1] for line in lines[1:]]
+    for r, cell in enumerate(cells):
+        frames = held[
+            (samples.t_s - samples.t_s[0] >= 2 * r - 1e-9) & (samples.t_s - samples.t_s[0] < 2 * r + 2 - 1e-9)
+        ]
+        want = np.nanmean(frames) if np.isfinite(frames).any() else math.nan
+        assert cell == f"{want:.6f}", (r, cell, want)
+    assert cells[0] != "nan" and len({float(c) for c in cells}) > 10  # it moves, row by row
 
 
 def test_model_file_round_trip_is_exact(model_path, tmp_path):
@@ -331,7 +395,7 @@ def test_a_restart_of_the_same_run_continues_exactly(model_path, tmp_path, cut):
     second = Compensator(load_model(model_path), 0.1, adapt=adapt_config(), reference_rate_dph=0.0)
     load_adaptation(second, path, new_run=False)
     rest = second.run(slice_block(samples, cut, n))
-    for name in ("drift_dph", "dtheta_comp_arcsec", "flags"):
+    for name in ("drift_dph", "dtheta_comp_arcsec", "flags", "drift_sigma_dph"):
         np.testing.assert_array_equal(getattr(rest, name), getattr(reference, name)[cut:], err_msg=name)
     assert second.online.state_dict() == whole.online.state_dict()
     assert dump(second.pipeline_state()) == dump(whole.pipeline_state())  # NaN-aware: absent values are NaN

@@ -81,10 +81,16 @@ def test_the_fit_finds_a_known_coil_lag(coil_lag_s):
 @pytest.mark.parametrize("stages", [(279.4, 279.4), (186.3, 186.3, 186.3), (1200.0, 300.0)])
 def test_the_fit_finds_a_coil_of_several_stages(stages):
     """A coil of two or three first-order stages in series: the fit takes a cascade (order 2 or 3) with
-    about the right mean delay, and it explains the run better than any single lag does."""
+    about the right mean delay, and it explains the run better than any single lag does.  A 1200-s stage
+    behind a 300-s one is nearly one stage of 1500 s: on this run the cascade's gain (about 1 %) is within
+    the noise, so the fit keeps one stage and the cascade stays among its candidate structures."""
     capture = synthetic_capture(0.0, staircase(5.0, 1.0, 900, 7), stages=stages)
     model = fit_wesn("wesn", WESN_DEFAULTS, [capture], fit_normalizer([capture]), FitConfig())
     s = model.selection
+    if stages == (1200.0, 300.0):
+        assert s["coil_order"] == 1 and any(m >= 2 for _, m in s["coils_explaining_equally"]), s
+        assert abs(math.log(s["coil_lag_s"] / sum(stages))) <= math.log(1.25**1.5), s["coil_lag_s"]
+        return
     assert s["coil_order"] >= 2, s["order_rms_1min_dph"]
     assert abs(math.log(s["coil_lag_s"] / sum(stages))) <= math.log(1.25**1.5), s["coil_lag_s"]
     assert s["order_rms_1min_dph"][s["coil_order"]] < 0.99 * s["order_rms_1min_dph"][1]
@@ -164,16 +170,19 @@ def _fit_cli(tmp_path, *extra: str):
     return status, out
 
 
-def test_fit_without_a_kind_keeps_the_better_on_its_own_validation_and_says_what_a_short_run_cannot_identify(
-    tmp_path, capsys
-):
+def test_fit_without_a_kind_keeps_the_wesn_on_a_tie_and_says_what_a_short_run_cannot_identify(tmp_path, capsys):
+    """On the short run the polynomial leaves 0.0006 deg/h less on the fit's own validation split, 1.5
+    standard errors: noise, so the wesn is kept (the rule before issue 30 saved the polynomial here)."""
     from fog_driver.modelfiles import load_model
 
     status, out = _fit_cli(tmp_path)
     printed = capsys.readouterr().out
     assert status == 0
-    scores = load_model(out).provenance["selection"]["own_validation_rms_dph"]  # the wesn's, kept or not
-    assert load_model(out).kind == min(scores, key=scores.get)  # the wesn, unless the polynomial beat it
+    choice = load_model(out).provenance["selection"]["choice"]
+    assert choice["rms_dph"]["polynomial"] < choice["rms_dph"]["wesn"]  # less, but within its noise
+    assert 0 < choice["margin_dph"] < 2 * choice["se_dph"]
+    assert load_model(out).kind == "wesn" and choice["decision"] == "wesn kept"
+    assert "model choice: wesn kept: the polynomial leaves" in printed
     assert "after, polynomial" in printed and "after, wesn" in printed  # the baseline beside it, as always
     named = tmp_path / "named"
     named.mkdir()
@@ -189,26 +198,33 @@ def test_fit_without_a_kind_keeps_the_better_on_its_own_validation_and_says_what
     assert selection["coil_order"] == 1
 
 
-def test_a_wesn_worse_than_the_polynomial_on_its_own_validation_is_never_kept_silently(tmp_path, capsys, monkeypatch):
+def test_a_wesn_clearly_worse_than_the_polynomial_on_its_own_validation_is_never_kept_silently(
+    tmp_path, capsys, monkeypatch
+):
     from fog_driver.compensation.fitting import fit
     from fog_driver.modelfiles import load_model
 
-    real = fit.own_validation
+    real = fit.own_validation_squares
     monkeypatch.setattr(
         fit,
-        "own_validation",  # as if the wesn's structure extrapolated worse than the polynomial's
-        lambda model, *a: real(model, *a) * (3.0 if hasattr(model, "reservoir") else 1.0),
+        "own_validation_squares",  # as if the wesn's structure left 0.05 deg/h more in every chunk
+        lambda model, *a: real(model, *a) + (0.05**2 if hasattr(model, "reservoir") else 0.0),
     )
     status, out = _fit_cli(tmp_path)
     printed = capsys.readouterr().out
+    provenance = load_model(out).provenance
     assert status == 0 and load_model(out).kind == "polynomial"
-    assert "the polynomial was saved instead" in printed and "on its own validation split" in printed
+    assert provenance["selection"]["choice"]["decision"] == "polynomial saved"
+    assert "model choice: polynomial saved: the polynomial leaves" in printed
+    assert provenance["fell_back"].endswith("the polynomial was saved instead")
+    assert "on the fit's own validation split" in provenance["fell_back"]
     # Asked for by name, the wesn is kept, with the warning.
     named = tmp_path / "named"
     named.mkdir()
     status, out = _fit_cli(named, "--kind", "wesn")
     printed = capsys.readouterr().out
-    assert status == 0 and load_model(out).kind == "wesn" and "warning: on its own validation split" in printed
+    assert status == 0 and load_model(out).kind == "wesn" and "warning: the polynomial leaves" in printed
+    assert "without --kind it would be saved" in load_model(out).provenance["selection"]["warning_validation"]
 
 
 # --- fog-driver fit: progress, the kinds in --help, the worse-than-uncompensated marker, the noise floor ----

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
+from sigma_stub import STUB_BASE_DPH, STUB_PERIOD, stub_sigma, stub_value
 
 from fog_driver.compensation.pipeline import FLAG_NAMES
 from fog_driver.daemon.config import DEFAULT_MODEL, DriverConfig
@@ -24,17 +26,51 @@ def offline(capture: Path, model_path: Path = DEFAULT_MODEL, **settings) -> tupl
     return [float(a) for cols in parts for a in cols.angle_comp_arcsec], np.concatenate([c.flags for c in parts])
 
 
+def offline_sigmas(capture: Path, model_path: Path = DEFAULT_MODEL, **settings) -> list[float | None]:
+    """The drift sigma of ``fog-driver compensate``, sample by sample: None where it is NaN (no estimate)."""
+    parts = [cols for _, cols in compensate_capture(capture, load_model(model_path), **settings)]
+    return [float(v) if math.isfinite(v) else None for cols in parts for v in cols.drift_sigma_dph]
+
+
+@pytest.fixture(scope="module")
+def fitted_wesn(tmp_path_factory) -> Path:
+    """A wesn fitted on the short capture: sim-faults.bin leaves its fit box, so its sigma moves."""
+    from fog_driver.compensation.fitting.data import FitConfig
+    from fog_driver.modelfiles import save_model
+    from fog_driver.offline.fit import fit_model_file
+
+    model_file, _ = fit_model_file(
+        [DATA / "sim-short.bin"], kind="wesn", config=FitConfig(warmup_s=30.0), accept_weak=True
+    )
+    return save_model(tmp_path_factory.mktemp("wesn") / "wesn.yaml", model_file)
+
+
 @pytest.mark.determinism
-@pytest.mark.parametrize("chunk", [1, 97, 4096])
-def test_published_angles_equal_offline_compensation(chunk):
+@pytest.mark.parametrize(
+    "chunk, sigma", [(1, "default"), (97, "default"), (4096, "default"), (97, "fitted"), (97, "stub")]
+)
+def test_published_angles_equal_offline_compensation(chunk, sigma, monkeypatch, request):
+    """``sigma``: the drift sigma of the shipped model, of a model fitted here (one that moves), or a known one
+    per block (``sigma_stub``)."""
+    if sigma == "stub":
+        stub_sigma(monkeypatch)
+    model = request.getfixturevalue("fitted_wesn") if sigma == "fitted" else DEFAULT_MODEL
     capture = DATA / "sim-faults.bin"
-    service = Service(DriverConfig(), port="unused")
+    service = Service(DriverConfig(model=str(model)), port="unused")
     data = capture.read_bytes()
     published = []
     for i in range(0, len(data), chunk):
         published += service.process(data[i : i + chunk])
-    offline_angles_arcsec, offline_flags = offline(capture, DEFAULT_MODEL)
+    offline_angles_arcsec, offline_flags = offline(capture, model)
     assert [o["angle_arcsec"] for o in published] == offline_angles_arcsec
+    # drift_sigma_dph: bit-identical where there is one, omitted (never NaN, never null) where there is none
+    offline_sigma = offline_sigmas(capture, model)
+    assert [o.get("drift_sigma_dph") for o in published] == offline_sigma
+    assert offline_sigma[0] is None and sum(v is not None for v in offline_sigma) > 2900  # from the 2nd block
+    if sigma == "stub":
+        assert {v for v in offline_sigma if v is not None} == {stub_value(j) for j in range(STUB_PERIOD)}
+    if sigma == "fitted":
+        assert len({v for v in offline_sigma if v is not None}) > 20  # it moves, and moves alike
     seqs = [o["seq"] for o in published]
     assert seqs == sorted(seqs) and len(seqs) == 2956
     first = published[0]
@@ -89,6 +125,35 @@ def test_zero_and_bias_commands():
     status = service.control("STATUS", {}, 0)
     assert status["adapting"] is True and status["adapted_in_use"] is False  # nothing has been compared yet
     assert service.control("SAVE", {}, 0)["class"] == "ERROR"  # no adapt_state configured
+
+
+def test_a_bias_capture_keeps_the_drift_sigma_it_held_for_the_since_bias_form(monkeypatch):
+    """sigma(t_b): the mean of the drift_sigma_dph of the samples the capture took, in the BIAS event and in
+    STATUS from then on; absent before any capture, and when the capture's samples had none."""
+    stub_sigma(monkeypatch)
+    service = Service(DriverConfig(), port="unused")
+    data = (DATA / "sim-short.bin").read_bytes()
+    service.process(data[:20000])
+    assert "bias_sigma_dph" not in service.status_object()
+    service.control("BIAS", {"seconds": 5}, 0)
+    after = service.process(data[20000:])
+    done = service.last_event
+    assert done["state"] == "done" and done["seconds"] >= 5.0
+    taken = round(done["seconds"] / 0.1)  # the capture's samples: the first ones published after it started
+    want = sum(o["drift_sigma_dph"] for o in after[:taken]) / taken
+    assert done["bias_sigma_dph"] == pytest.approx(want, rel=1e-12)
+    assert STUB_BASE_DPH < want < stub_value(STUB_PERIOD - 1)
+    assert service.status_object()["bias_sigma_dph"] == done["bias_sigma_dph"]
+    # The same capture while the model gives no sigma: the event and STATUS say nothing of one.
+    monkeypatch.undo()
+    stub_sigma(monkeypatch, none=True)
+    plain = Service(DriverConfig(), port="unused")
+    plain.process(data[:20000])
+    plain.control("BIAS", {"seconds": 5}, 0)
+    assert not any("drift_sigma_dph" in o for o in plain.process(data[20000:]))
+    assert plain.last_event["state"] == "done" and "bias_sigma_dph" not in plain.last_event
+    status = plain.status_object()
+    assert status["bias_captured"] is True and "bias_sigma_dph" not in status
 
 
 def test_bad_model_is_a_config_error(tmp_path):

@@ -161,6 +161,49 @@ def test_banners_for_a_link_down_and_for_missing_frames():
     assert [b["level"] for b in notice] == ["notice"] and "fog-driver ctl bias 60" in notice[0]["text"]
 
 
+def test_the_drift_band_is_plain_sigma_before_a_bias_and_the_since_bias_form_after():
+    """Each point keeps its sample's sigma and the band half-width 1.96 sigma as shown then: sigma(t) before a
+    ?BIAS capture, sqrt(sigma(t)^2 + sigma(t_b)^2) once STATUS says one completed; none without a sigma."""
+    view = ViewState()
+    view.add_object({"class": "STATUS", "bias_captured": False, "bias_dph": 0.0}, 0.0)
+    sigma = [None if i < 150 else 0.03 for i in range(400)]  # no estimate for the first 1.5 s
+    view.add_angles(
+        [angle(i, 3.0 + i / 100, **({} if v is None else {"drift_sigma_dph": v})) for i, v in enumerate(sigma)], 0.0
+    )
+    plain = view.snapshot(0.1)
+    bands = [(p["t_s"], p["drift_sigma_dph"], p["drift_band_dph"], p["band_since_bias"]) for p in plain["points"]]
+    assert bands == [(3.99, None, None, False), (4.99, 0.03, 1.96 * 0.03, False), (5.99, 0.03, 1.96 * 0.03, False)]
+    assert plain["drift_sigma"] == {
+        "sigma_dph": 0.03,
+        "bias_sigma_dph": None,
+        "shown_dph": 0.03,
+        "since_bias": False,
+        "band_sigmas": 1.96,
+    }
+    assert (
+        plain["text"]["drift_sigma_dph"] == "0.0300" and plain["text"]["drift_band_label"] == "\u00b11.96\u03c3 (95 %)"
+    )
+    assert plain["text"]["drift_sigma_label"].startswith("1\u03c3 of the 1-min mean")
+    # A bias captured with sigma(t_b) = 0.04: from then on sqrt(0.03^2 + 0.04^2) = 0.05, band 0.098.
+    view.add_object({"class": "STATUS", "bias_captured": True, "bias_dph": 9.8, "bias_sigma_dph": 0.04}, 1.0)
+    view.add_angles([angle(i, 3.0 + i / 100, drift_sigma_dph=0.03) for i in range(400, 600)], 1.0)
+    after = view.snapshot(1.1)
+    assert [p["band_since_bias"] for p in after["points"]] == [False, False, False, True, True]
+    assert after["points"][-1]["drift_band_dph"] == pytest.approx(1.96 * 0.05, rel=1e-14)
+    assert after["points"][2]["drift_band_dph"] == 1.96 * 0.03  # a point keeps the band it closed with
+    assert after["drift_sigma"]["shown_dph"] == pytest.approx(0.05, rel=1e-14) and after["drift_sigma"]["since_bias"]
+    assert after["drift_sigma"]["bias_sigma_dph"] == 0.04
+    assert after["text"]["drift_sigma_dph"] == "0.0500" and "since the bias" in after["text"]["drift_band_label"]
+    assert after["text"]["drift_sigma_label"].startswith("1\u03c3 since the bias")
+    # No sigma in the samples (no estimate, a model without one): nothing shown, no band.
+    none = ViewState()
+    none.add_angles(stream(300), 0.0)
+    snapshot = none.snapshot(0.1)
+    assert all(p["drift_band_dph"] is None and p["drift_sigma_dph"] is None for p in snapshot["points"])
+    assert snapshot["drift_sigma"]["shown_dph"] is None and snapshot["text"]["drift_sigma_dph"] == "-"
+    assert snapshot["text"]["drift_sigma_label"].startswith("none")
+
+
 def test_an_update_carries_only_points_newer_than_asked_for():
     view = ViewState()
     view.add_angles(stream(100 * 10), 0.0)
@@ -201,6 +244,7 @@ def test_metrics_carry_the_status_counters_and_the_latency_histogram():
         "capture_state": "failed",
         "capture_bytes_lost": 999,
         "bias_dph": 0.25,
+        "bias_sigma_dph": 0.0125,
         "adapting": True,
         "flagged": {"gap": 2, "extrapolating": 5},
     }
@@ -215,7 +259,12 @@ def test_metrics_carry_the_status_counters_and_the_latency_histogram():
         "reconnects": 4,
         "capture_failures": 6,
         "model_age_s": 86400.0,
-        "angle": {"drift_dph": -1.5, "temps_c": {"top": 30.5, "bottom": 31.0}, "flags": ["extrapolating"]},
+        "angle": {
+            "drift_dph": -1.5,
+            "drift_sigma_dph": 0.0375,
+            "temps_c": {"top": 30.5, "bottom": 31.0},
+            "flags": ["extrapolating"],
+        },
         "angle_age_s": 0.25,
         "rate_1s_dph": 14.9,
         "web_clients": 3,
@@ -239,6 +288,8 @@ def test_metrics_carry_the_status_counters_and_the_latency_histogram():
         "fog_driver_adapting": 1,
         "fog_driver_model_age_seconds": 86400,
         "fog_driver_drift_dph": -1.5,
+        "fog_driver_drift_sigma_dph": 0.0375,
+        "fog_driver_bias_sigma_dph": 0.0125,
         "fog_driver_rate_dph": 14.9,
         "fog_driver_last_sample_age_seconds": 0.25,
         "fog_driver_extrapolating": 1,
@@ -264,6 +315,16 @@ def test_metrics_carry_the_status_counters_and_the_latency_histogram():
 def test_metrics_of_a_daemon_that_has_said_nothing_yet_are_still_valid():
     m = scrape(DaemonCollector(lambda: {}, LatencyHistogram()))
     assert m[("fog_driver_publish_latency_seconds_count", ())] == 0
+
+
+def test_no_sigma_gauges_without_an_estimate_or_a_bias_capture():
+    """A sample without drift_sigma_dph (no estimate, or a daemon whose model gives none) and a STATUS before
+    any ?BIAS: the gauges are absent, never NaN; the drift gauge is still there."""
+    state = {"status": {"bias_dph": 0.0, "bias_captured": False}, "angle": {"drift_dph": 0.0, "flags": []}}
+    m = scrape(DaemonCollector(lambda: state, LatencyHistogram()))
+    assert m[("fog_driver_drift_dph", ())] == 0.0 and m[("fog_driver_bias_dph", ())] == 0.0
+    names = {name for name, _ in m}
+    assert "fog_driver_drift_sigma_dph" not in names and "fog_driver_bias_sigma_dph" not in names
 
 
 # ---------------------------------------------------------------------------------------------- the listener
@@ -410,6 +471,18 @@ def test_the_websocket_sends_a_snapshot_then_decimated_updates(web):
             assert point["t_s"] > snapshot["points"][-1]["t_s"]
     assert len(set(seen)) >= 5 and max(seen) < sent
     ws.close()
+
+
+def test_api_view_carries_the_sigma_and_the_band(web):
+    view = web()
+    view.publish({"class": "STATUS", "bias_captured": True, "bias_sigma_dph": 0.04})
+    view.publish_angles([angle(i, 3.0 + i / 100, drift_sigma_dph=0.03) for i in range(300)])
+    status, headers, body = get(view.address, "/api/view")
+    doc = json.loads(body)
+    assert status == 200 and doc["angle"]["drift_sigma_dph"] == 0.03
+    assert doc["drift_sigma"]["since_bias"] is True and doc["drift_sigma"]["shown_dph"] == pytest.approx(0.05)
+    assert [p["drift_sigma_dph"] for p in doc["points"]] == [0.03, 0.03]
+    assert [p["drift_band_dph"] for p in doc["points"]] == [pytest.approx(1.96 * 0.05)] * 2
 
 
 def test_pages_start_their_series_afresh_when_the_instrument_restarts(web):

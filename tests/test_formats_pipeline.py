@@ -214,8 +214,11 @@ def test_the_daemon_publishes_what_offline_compensation_gives(fmt, chunk, captur
     Path(str(part) + ".yaml").write_text(
         yaml.safe_dump({"wire_format": fmt, "wire_settings": wire.sidecar_fields()["wire_settings"]})
     )
-    offline = [a for _, cols in compensate_capture(part, load_model(model), force=True) for a in cols.angle_comp_arcsec]
+    parts = [cols for _, cols in compensate_capture(part, load_model(model), force=True)]
+    offline = [a for cols in parts for a in cols.angle_comp_arcsec]
     assert [o["angle_arcsec"] for o in published] == offline and len(offline) > 500
+    sigmas = [float(v) if math.isfinite(v) else None for cols in parts for v in cols.drift_sigma_dph]
+    assert [o.get("drift_sigma_dph") for o in published] == sigmas  # omitted where NaN
     temps = published[-1]["temps_c"]
     assert set(temps) == ({"sensor"} if fmt.startswith("kvh") else {"fog", "accelerometer", "board"})
     status = service.status_object()

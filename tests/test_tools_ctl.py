@@ -17,7 +17,7 @@ from test_daemon_hil import GUARD_S, Client, Daemon
 from fog_driver.cli import main
 from fog_driver.errors import UsageError
 from fog_driver.protocol import decode_bytes
-from fog_driver.tools.ctl import parse_request
+from fog_driver.tools.ctl import describe, parse_request
 from fog_driver.transport import PtyPair
 
 TOKEN = "a-long-token-for-ctl"
@@ -176,6 +176,15 @@ def test_ctl_on_a_daemon_that_is_not_there_is_one_line_and_69(tmp_path):
 )
 def test_parse_request(command, words, expected):
     assert parse_request(command, words) == expected
+
+
+def test_a_bias_result_names_the_drift_sigma_when_the_daemon_gives_one():
+    done = {"class": "BIAS", "state": "done", "capture_id": 1, "bias_dph": 10.543, "seconds": 60.0}
+    plain = "bias captured: 10.5430 deg/h over 60.0 s; removed from rate_dph and angle_arcsec from now on"
+    assert describe(done) == plain  # protocol 1.0, or no sigma during the capture
+    assert describe({**done, "bias_sigma_dph": 0.01234}) == plain.replace(
+        " s;", " s (the drift's 1-sigma then 0.0123 deg/h);"
+    )
 
 
 @pytest.mark.parametrize(

@@ -487,6 +487,53 @@ def test_render_missing_fields_show_a_dash():
     assert "waiting for ANGLE" in "\n".join(render({}))
 
 
+@pytest.mark.parametrize(
+    "angle_sigma, status, shown",
+    [
+        (0.03, {"bias_captured": False}, "drift 0.1234 deg/h +- 0.0300 (1-sigma)"),  # before a bias: sigma(t)
+        (0.03, {}, "drift 0.1234 deg/h +- 0.0300 (1-sigma)"),  # no STATUS yet
+        # sqrt(0.03^2 + 0.04^2) = 0.05 once a bias was captured with sigma(t_b) = 0.04
+        (
+            0.03,
+            {"bias_captured": True, "bias_sigma_dph": 0.04},
+            "drift 0.1234 deg/h +- 0.0500 (1-sigma since the bias)",
+        ),
+        (
+            0.012,
+            {"bias_captured": True, "bias_sigma_dph": 0.005},
+            "drift 0.1234 deg/h +- 0.0130 (1-sigma since the bias)",
+        ),
+        (
+            0.03,
+            {"bias_captured": True},
+            "drift 0.1234 deg/h +- - (1-sigma since the bias: unknown, the bias was captured without one)",
+        ),
+        (None, {"bias_captured": True, "bias_sigma_dph": 0.04}, "drift 0.1234 deg/h"),  # no estimate, or 1.0
+    ],
+)
+def test_the_drift_sigma_is_shown_plain_before_a_bias_and_in_the_since_bias_form_after(angle_sigma, status, shown):
+    sample = angle(1) if angle_sigma is None else angle(1, drift_sigma_dph=angle_sigma)
+    state = {"angle": sample, "status": {"class": "STATUS", **status}}
+    rate_line = next(line for line in render(state) if line.startswith("rate "))
+    assert rate_line.endswith(f"    {shown}")
+    assert f"| {shown} |" in compact_line(state)
+    if angle_sigma is None:
+        assert "+-" not in compact_line(state) and "sigma" not in rate_line
+
+
+def test_watch_shows_the_since_bias_form_once_the_daemon_says_a_bias_was_captured():
+    before = {**STATUS, "bias_captured": False}
+    after = {**STATUS, "bias_captured": True, "bias_dph": 9.9, "bias_sigma_dph": 0.04}
+    chunks = [
+        ndjson(before, angle(1, drift_sigma_dph=0.03), angle(2, drift_sigma_dph=0.03)),
+        ndjson(after, angle(3, drift_sigma_dph=0.03)),
+    ]
+    daemon = FakeDaemon(chunks, then="wait")
+    status, text = watch(daemon, count=3, rate_hz=10)
+    assert status == 0
+    assert "drift 0.1234 deg/h +- 0.0500 (1-sigma since the bias)" in text.splitlines()[-1].split(" | ")
+
+
 def test_render_flags_a_newer_protocol():
     assert (
         "protocol 2.0 (this client speaks 1.x)"

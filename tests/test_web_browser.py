@@ -114,7 +114,7 @@ SHOWN = """() => {
     temps[el.dataset.text.slice(5)] = el.textContent;
   });
   return {seq: document.body.dataset.seq, angle: t("angle-arcsec"), dms: t("angle-dms"), raw: t("angle-raw-arcsec"),
-          rate: t("rate"), drift: t("drift"), flags: t("flags"), temps};
+          rate: t("rate"), drift: t("drift"), sigma: t("drift-sigma"), flags: t("flags"), temps};
 }"""
 
 
@@ -155,6 +155,8 @@ def test_the_page_shows_the_streams_numbers_live_plots_and_the_link_banner(tmp_p
                 assert shown["raw"] == format_arcsec(obj["angle_raw_arcsec"])
                 assert shown["rate"] == f"{obj['rate_dph']:.1f}"
                 assert shown["drift"] == f"{obj['drift_dph']:.3f}"
+                # no bias captured here: the sample's own sigma, "-" when the model gives none
+                assert shown["sigma"] == (f"{obj['drift_sigma_dph']:.4f}" if "drift_sigma_dph" in obj else "-")
                 assert shown["flags"] == (", ".join(obj["flags"]) or "none")
                 assert shown["temps"] == {k: f"{v:.3f}" for k, v in obj["temps_c"].items()}
                 assert set(shown["temps"]) == {"top", "bottom", "housing"}
@@ -164,7 +166,8 @@ def test_the_page_shows_the_streams_numbers_live_plots_and_the_link_banner(tmp_p
             points = drift.get_attribute("data-points")
             expect(drift).not_to_have_attribute("data-points", points, timeout=WAIT_MS)
             expect(page.locator("#plot-rate")).not_to_have_attribute("data-points", "0", timeout=WAIT_MS)
-            assert page.locator("#plot-drift .scatterlayer .trace").count() == 1
+            band = any("drift_sigma_dph" in a for a in list(watcher.by_seq.values()))  # the band: 2 more traces
+            assert page.locator("#plot-drift .scatterlayer .trace").count() == (3 if band else 1)
             assert page.locator("#plot-temps .scatterlayer .trace").count() == 3
             expect(page.locator("#banners .alarm")).to_have_count(0)
             page.screenshot(path=str(tmp_path / "web-view.png"), full_page=True)
@@ -205,3 +208,58 @@ def test_the_page_shows_the_streams_numbers_live_plots_and_the_link_banner(tmp_p
             instrument.stop()
         pty.close()
         daemon.kill()
+
+
+def test_the_page_draws_the_drift_band_and_switches_to_the_since_bias_form(tmp_path):
+    """A web listener in this process fed samples with a drift sigma: the page shows sigma(t) and a band of
+    1.96 sigma around the drift plot; once STATUS says a bias was captured, the since-bias form, labelled."""
+    from fog_driver.daemon.web.server import WebView
+
+    def samples(first: int, n: int) -> list[dict]:
+        return [
+            {
+                "class": "ANGLE",
+                "seq": i,
+                "t_s": 3.0 + i / 10,
+                "angle_arcsec": i * 0.1,
+                "angle_raw_arcsec": i * 0.11,
+                "rate_dph": 10.0,
+                "rate_raw_dph": 10.5,
+                "drift_dph": -0.5 + i * 1e-4,
+                "drift_sigma_dph": 0.03,
+                "temps_c": {"top": 20.0},
+                "flags": [],
+                "utc": f"2026-12-03T00:{i // 600:02d}:{i // 10 % 60:02d}.000Z",
+            }
+            for i in range(first, first + n)
+        ]
+
+    view = WebView("127.0.0.1", 0, update_hz=10.0)
+    view.start()
+    problems: list[str] = []
+    try:
+        view.publish({"class": "DEVICE", "state": "activated", "serial": "S1", "format": "fog-v1"})
+        view.publish({"class": "STATUS", "port_state": "open", "bias_captured": False, "bias_dph": 0.0})
+        view.publish_angles(samples(0, 100))
+        host, port = view.address
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=chromium(), args=["--no-sandbox"])
+            page = browser.new_page(viewport={"width": 1280, "height": 860})
+            page.on("console", lambda m: problems.append(m.text) if m.type in ("error", "warning") else None)
+            page.on("pageerror", lambda e: problems.append(str(e)))
+            page.goto(f"http://{host}:{port}/")
+            expect(page.locator("#drift-sigma")).to_have_text("0.0300", timeout=WAIT_MS)
+            expect(page.locator("#drift-sigma-label")).to_contain_text("1\u03c3 of the 1-min mean")
+            # the band (two traces: its edges, filled between) and the estimate
+            expect(page.locator("#plot-drift .scatterlayer .trace")).to_have_count(3, timeout=WAIT_MS)
+            expect(page.locator("#plot-drift .legend")).to_contain_text("band: \u00b11.96\u03c3 (95 %)")
+            view.publish({"class": "STATUS", "port_state": "open", "bias_captured": True, "bias_sigma_dph": 0.04})
+            view.publish_angles(samples(100, 100))
+            expect(page.locator("#drift-sigma")).to_have_text("0.0500", timeout=WAIT_MS)  # sqrt(0.03^2 + 0.04^2)
+            expect(page.locator("#drift-sigma-label")).to_contain_text("1\u03c3 since the bias")
+            expect(page.locator("#plot-drift .legend")).to_contain_text("since the bias", timeout=WAIT_MS)
+            page.screenshot(path=str(tmp_path / "web-view-sigma.png"), full_page=True)
+            browser.close()
+    finally:
+        view.stop()
+    assert problems == [], problems

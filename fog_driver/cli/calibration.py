@@ -9,6 +9,7 @@ from pathlib import Path
 
 from ..client.display import Progress
 from ..compensation.adapt import AdaptConfig
+from ..compensation.fitting.choice import SE_MULTIPLE
 from ..compensation.fitting.fit import (
     FITTERS,
     KIND_HELP,
@@ -30,6 +31,7 @@ from ..offline.compensate import compensate_capture
 from ..offline.fit import fit_model_file
 from ..offline.rows import compensated_rows, format_row
 from ..report import positioning
+from ..report.coverage import format_coverage
 from ..report.evaluate import evaluate, format_bias_instability, model_label, series_names, write_report
 from ..samples.captures import _capture_size
 from ..sim.capture import check_truth_matches, read_truth
@@ -47,6 +49,8 @@ def _print_fit_report(report) -> None:
     note = report.floor_note()
     if note:
         print(f"note: {note}")
+    for line in report.lines():  # noise_1min_dph, and the model choice with its margin
+        print(line)
     before = report.rows[0]
     for what, fit_value, validate_value in report.rows[1:]:
         for col in report.worse().get(what, []):
@@ -68,8 +72,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
         config = dataclass_from_mapping(FitConfig, read_yaml(args.config, "fit config") or {}, args.config)
     kind = args.kind or DEFAULT_FIT_KIND
     default = (
-        " (the default kind: the polynomial is saved instead if the wesn does worse on its own validation "
-        "split; --kind chooses)"
+        f" (the default kind: the polynomial is saved instead only if it does better on the fit's own "
+        f"validation split by more than {SE_MULTIPLE:g} standard errors; --kind chooses)"
         if args.kind is None
         else ""
     )
@@ -114,8 +118,6 @@ def cmd_fit(args: argparse.Namespace) -> int:
     selection = provenance.get("selection")
     if selection and model_file.kind == kind:
         _print_structure(selection)
-    if "fell_back" in provenance:
-        print(f"note: {provenance['fell_back']}")
     _print_fit_report(report)
     _print_quality(provenance["fit_quality"], len(model_file.temperature_channels))
     print(
@@ -143,6 +145,14 @@ def _print_structure(selection: dict) -> None:
         f"{selection['ridge_alpha']:g}, {history}"
         f"{'' if selection['state_powers'] else ', linear in the coil temperature'}"
     )
+    lags = selection.get("lags_explaining_equally_s")
+    if lags:
+        coils = selection.get("coils_explaining_equally") or []
+        print(
+            f"coil lags explaining the data within the noise of the best: {min(lags):g} to {max(lags):g} s "
+            f"(a factor {max(lags) / min(lags):.2f}; {len(coils) or len(lags)} structures, "
+            f"the spread of up to 6 of them goes into drift_sigma_dph)"
+        )
     for note in selection.get("limits", []):
         print(f"note: {note}")
     for key in ("warning", "warning_validation"):
@@ -167,6 +177,9 @@ def _print_quality(quality: dict, temperature_channels: int) -> None:
         warning = bias_step_warning(step, temperature_channels)
         if warning:
             print(f"warning: {warning}")
+
+
+_FLAGS = ROW_COLUMNS.index("flags")  # a compensate row's flags
 
 
 def cmd_compensate(args: argparse.Namespace) -> int:
@@ -208,7 +221,7 @@ def cmd_compensate(args: argparse.Namespace) -> int:
             for row in compensated_rows(chunks, args.every):
                 f.write(format_row(row) + "\n")
                 written += 1
-                extrapolating_s += row[0] - last_t_s if "extrapolating" in row[-1].split("|") else 0.0
+                extrapolating_s += row[0] - last_t_s if "extrapolating" in row[_FLAGS].split("|") else 0.0
                 last_t_s = row[0]
     except (FogDriverError, OSError) as exc:
         out.unlink(missing_ok=True)
@@ -319,6 +332,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                 f"{format_bias_instability(a)} -> {format_bias_instability(b)}; 1-min drift RMS "
                 f"{a['drift_rms_1min_dph']:.4f} -> {b['drift_rms_1min_dph']:.4f} deg/h"
             )
+        if "truth" in summary:
+            print(format_coverage(summary["truth"]["sigma"]))
         if summary["extrapolating_seconds"]:
             print(
                 f"warning: the model extrapolated for {summary['extrapolating_seconds'] / 60:.1f} of "

@@ -6,7 +6,7 @@ Blocking::
 
     with Client("127.0.0.1:2948", token=None) as c:     # token: the daemon's, when it has one
         for a in c.angles(rate_hz=10):                     # ?WATCH, decimated by device time
-            print(a.seq, a.t_s, a.angle_arcsec, a.drift_dph, a.temps_c, a.flags)
+            print(a.seq, a.t_s, a.angle_arcsec, a.drift_dph, a.drift_sigma_dph, a.temps_c, a.flags)
             if a.gap_before:                               # samples missed across a reconnect
                 print("missed", a.gap_before.missed)
 
@@ -36,7 +36,7 @@ the gap across connections), ``blocking`` and ``aio`` (the sockets; ``AsyncClien
 first use).  Beside them: ``udp`` (the UDP datagram's layout and decoder) and ``display`` (how the operator's
 views, ``fog-driver watch``, ``ctl`` and the web page, format the numbers).  The standard library only: no
 numpy, yaml or structlog.  The protocol itself is the docstring of
-``fog_driver/daemon/hub.py``.
+``fog_driver/daemon/connection.py``.
 """
 
 from __future__ import annotations
@@ -54,7 +54,19 @@ from .errors import (
     Unauthorized,
     UnknownCommand,
 )
-from .messages import Angle, Bias, Device, ErrorReply, Gap, Message, Other, Reply, Status, Version
+from .messages import (
+    Angle,
+    Bias,
+    Device,
+    ErrorReply,
+    Gap,
+    Message,
+    Other,
+    Reply,
+    Status,
+    Version,
+    since_bias_sigma_dph,
+)
 from .session import Session
 from .wire import DEFAULT_HOST, DEFAULT_PORT, TOKEN_ENV, read_token
 
@@ -87,6 +99,7 @@ __all__ = [
     "UnknownCommand",
     "Version",
     "read_token",
+    "since_bias_sigma_dph",
 ]
 
 

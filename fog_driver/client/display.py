@@ -5,7 +5,8 @@ Standard library only (this is part of the client library).  Angles: ``format_ar
 (deg, min, sec to 0.01"), rounded half away from zero on the value's shortest decimal form.  Other values:
 ``show`` (``-`` when absent, a number in a format spec, text made printable) for the terminal views, ``fixed``
 (``-`` unless a finite number) for the web page.  ``banners``: what the operator must see first (LINK DOWN, NO DATA,
-the bias), the same lines on the terminal and on the page.  ``Progress``: one status line rewritten on a terminal.
+the bias), the same lines on the terminal and on the page.  ``drift_sigma``: the drift's 1-sigma as both show it
+(the since-bias form once a bias was captured).  ``Progress``: one status line rewritten on a terminal.
 """
 
 from __future__ import annotations
@@ -19,14 +20,17 @@ from decimal import ROUND_HALF_UP, Decimal
 from typing import Any, TextIO, TypeGuard
 
 from .address import DEFAULT_HOST, DEFAULT_PORT, format_address
+from .messages import since_bias_sigma_dph
 
 __all__ = [
+    "BAND_SIGMAS",
     "DEFAULT_BIAS_S",
     "DEGREE",
     "MISSING",
     "NO_DATA_S",
     "Progress",
     "banners",
+    "drift_sigma",
     "finite_number",
     "fixed",
     "format_arcsec",
@@ -44,6 +48,8 @@ DEFAULT_BIAS_S = 60
 
 MISSING = "-"
 DEGREE = "\u00b0"
+#: The web view's band around the drift estimate: +- this many sigma (95 % of a normal error).
+BAND_SIGMAS = 1.96
 
 
 #: From this size on (arcsec) an angle is shown as it is, not rounded to 0.01": a float's hundredths
@@ -146,6 +152,23 @@ def fixed(value: Any, digits: int) -> str:
     """A finite number to ``digits`` decimals (``f"{value:.{digits}f}"``), else ``-`` (the web page's rule)."""
     number = finite_number(value)
     return "-" if number is None else f"{number:.{digits}f}"
+
+
+def drift_sigma(angle: Mapping[str, Any], status: Mapping[str, Any]) -> tuple[float | None, bool]:
+    """``(sigma_dph, since_bias)``: the drift's 1-sigma as the operator's views show it, from an ANGLE object and
+    the last STATUS.  Before a bias is captured, the sample's ``drift_sigma_dph``, sigma(t): the error of the
+    estimate's 1-min mean about its mean over the run (that mean is the bias).  Once STATUS says a ``?BIAS``
+    capture completed (``bias_captured``) with ``bias_sigma_dph`` = sigma(t_b), the error since then
+    (``since_bias`` True)::
+
+        sqrt(sigma(t)**2 + sigma(t_b)**2)
+
+    ``sigma_dph`` is None when the sample has none (no estimate, a daemon before protocol 1.1), and when a bias
+    was captured without one (its share of the error is unknown: no figure rather than one too small)."""
+    sigma = finite_number(angle.get("drift_sigma_dph"))
+    if sigma is None or status.get("bias_captured") is not True:
+        return sigma, False
+    return since_bias_sigma_dph(sigma, status.get("bias_sigma_dph")), True
 
 
 def _bias_hint(state: Mapping[str, Any]) -> str:

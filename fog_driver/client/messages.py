@@ -28,6 +28,7 @@ __all__ = [
     "Status",
     "Version",
     "message_from",
+    "since_bias_sigma_dph",
 ]
 
 _EMPTY: Mapping[str, Any] = MappingProxyType({})
@@ -108,6 +109,9 @@ class Angle(_Base):
     rate_dph: float | None = None  #: compensated rate of this sample, deg/h
     rate_raw_dph: float | None = None
     drift_dph: float | None = None  #: the model's drift estimate, deg/h
+    #: the 1-sigma of the drift estimate's error as a 1-min mean, about its mean over the run (the bias), deg/h;
+    #: None while there is no estimate, and from a daemon older than protocol 1.1 (keyword-only: added in 1.1)
+    drift_sigma_dph: float | None = field(default=None, kw_only=True)
     temps_c: Mapping[str, float] = field(default_factory=lambda: _EMPTY)  #: the format's temperature channels, degC
     flags: tuple[str, ...] = ()  #: e.g. gap, thermometer_fault, extrapolating
     utc: str | None = None  #: the host's UTC time when the daemon read the sample (ISO 8601)
@@ -170,6 +174,10 @@ class Status(_Base):
     adapting: bool | None = None
     capture_state: str | None = None
     capture_bytes_lost: int | None = None
+    noise_1min_dph: float | None = None  #: the loaded model's gyro white noise at 1 min, deg/h (when it has one)
+    #: the drift's sigma during the last ``?BIAS`` capture, sigma(t_b), deg/h (protocol 1.1; None: no capture,
+    #: or no sigma then); ``since_bias_sigma_dph`` combines it with an ``Angle``'s
+    bias_sigma_dph: float | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -182,6 +190,7 @@ class Bias(_Base):
     timeout_s: float | None = None  #: (started) the result comes within this many seconds
     bias_dph: float | None = None  #: (done) the bias now removed from rate_dph and angle_arcsec
     reason: str | None = None  #: (failed)
+    bias_sigma_dph: float | None = None  #: (done) the drift's sigma during the capture, deg/h (protocol 1.1)
 
 
 @dataclass(frozen=True, slots=True)
@@ -216,6 +225,18 @@ Message = Angle | Version | Device | Status | Bias | Reply | ErrorReply | Other
 _REPLY_CLASSES = frozenset({"WATCH", "AUTH", "ZERO", "ADAPT", "SAVE", "RELOAD"})
 
 
+def since_bias_sigma_dph(drift_sigma_dph: float | None, bias_sigma_dph: float | None) -> float | None:
+    """The 1-sigma of the drift error a station reads since it captured the bias at t_b (``?BIAS``)::
+
+        sigma_since_bias(t) = sqrt(sigma(t)**2 + sigma(t_b)**2)
+
+    ``drift_sigma_dph`` is sigma(t) (an ``Angle``'s), ``bias_sigma_dph`` sigma(t_b) (``Status``'s or the
+    ``Bias`` event's): the bias captured at t_b holds the drift estimate's error then, and the two errors are
+    taken as independent.  None when either is absent (or not a finite number)."""
+    a, b = _finite(drift_sigma_dph), _finite(bias_sigma_dph)
+    return None if a is None or b is None else math.hypot(a, b)
+
+
 def message_from(obj: Mapping[str, Any], line: bytes = b"") -> Message | None:
     """The typed message of one protocol object (``class`` a string); None for an ``ANGLE`` without an
     integer ``seq`` and a finite ``t_s`` (not usable as a sample)."""
@@ -237,6 +258,7 @@ def message_from(obj: Mapping[str, Any], line: bytes = b"") -> Message | None:
             rate_dph=_number(obj, "rate_dph"),
             rate_raw_dph=_number(obj, "rate_raw_dph"),
             drift_dph=_number(obj, "drift_dph"),
+            drift_sigma_dph=_number(obj, "drift_sigma_dph"),
             temps_c=_numbers(obj, "temps_c"),
             flags=flags,
             utc=_text(obj, "utc"),
@@ -274,6 +296,7 @@ def message_from(obj: Mapping[str, Any], line: bytes = b"") -> Message | None:
             timeout_s=_number(obj, "timeout_s"),
             bias_dph=_number(obj, "bias_dph"),
             reason=_text(obj, "reason"),
+            bias_sigma_dph=_number(obj, "bias_sigma_dph"),
         )
     if cls == "ERROR":
         return ErrorReply(**base, message=_text(obj, "message") or "", command=_text(obj, "command"))
@@ -301,6 +324,8 @@ _STATUS_FIELDS = (
     ("adapting", bool),
     ("capture_state", str),
     ("capture_bytes_lost", int),
+    ("noise_1min_dph", float),
+    ("bias_sigma_dph", float),
 )
 
 

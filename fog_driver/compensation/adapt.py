@@ -108,9 +108,11 @@ from . import numerics
 from .adapt_config import AdaptConfig, StaticDetector, blocks_in, finite_number
 from .adapt_state import (
     ADAPT_STATE_SCHEMA_VERSION,
+    SIGMA_KEY,
     check_state_keys,
     checked_comparison,
     checked_gate,
+    checked_sigma,
 )
 from .readout import AdaptiveLaw, AdaptiveLawState
 
@@ -225,6 +227,22 @@ class OnlineReadout:
         self.compare_level_frozen_dph = 0.0  # running means of the windows' mean errors (their constant part)
         self.compare_level_adapted_dph = 0.0
         self.compare_windows = 0
+        self.compare_dev_sq_adapted_dph2 = 0.0  # running mean square of the adapted windows' errors about their level
+
+    @property
+    def adapted_sigma_dph(self) -> float:
+        """The adapted estimate's error, from the law's own innovation statistics: the running mean square of
+        the comparison windows' mean errors of the adapted weights (``d - adapted``, out of sample, about
+        their running level: the bias is not error), less the gyro's white noise over a window::
+
+            sigma_a^2 = max(mean (e_a - level_a)^2 - noise_var / window_blocks, 0)
+
+        (``compare_window_s`` means, 5 min by default: the adapted error is a slow drift, the same at 1 min).
+        0 before two windows have closed."""
+        if self.compare_windows < 2:
+            return 0.0
+        noise = self.gate_noise_var_dph2 / self._compare_window_blocks
+        return math.sqrt(max(self.compare_dev_sq_adapted_dph2 - noise, 0.0))
 
     @property
     def adapted_in_use(self) -> bool:
@@ -396,6 +414,8 @@ class OnlineReadout:
             gain_weight = 1.0 / min(self.compare_windows, self.config.compare_memory_windows)
             self.compare_gain += gain_weight * (gain - self.compare_gain)
             self.compare_gain_sq += gain_weight * (gain * gain - self.compare_gain_sq)
+            dev = (error_adapted - self.compare_level_adapted_dph) ** 2
+            self.compare_dev_sq_adapted_dph2 += gain_weight * (dev - self.compare_dev_sq_adapted_dph2)
         self.compare_level_frozen_dph += weight * (error_frozen - self.compare_level_frozen_dph)
         self.compare_level_adapted_dph += weight * (error_adapted - self.compare_level_adapted_dph)
         self.compare_windows += 1
@@ -455,6 +475,7 @@ class OnlineReadout:
             "gate_last_rate_dph": None if self.gate_last_rate_dph is None else float(self.gate_last_rate_dph),
             "gate_innovation_dph": float(self.gate_innovation_dph),
             "rejected": int(self.rejected),
+            SIGMA_KEY: float(self.compare_dev_sq_adapted_dph2),
         }
 
     def load_state(self, d: dict[str, Any]) -> None:
@@ -462,6 +483,7 @@ class OnlineReadout:
         saved for other frozen weights (another model); the readout is unchanged then."""
         check_state_keys(d)
         gate = checked_gate(d)
+        sigma_sq = checked_sigma(d)
         compare, weights = checked_comparison(d, self.n_features)
         if d["n_features"] != self.n_features or isinstance(d["n_features"], bool):
             raise ValueError(f"adaptation state is for {d['n_features']!r} features, the model has {self.n_features}")
@@ -505,6 +527,7 @@ class OnlineReadout:
                 self._compare_w = cast(np.ndarray, weights)  # given with the comparison
             else:
                 setattr(self, k, v if k in ("compare_blocks", "compare_windows") else float(v))
+        self.compare_dev_sq_adapted_dph2 = sigma_sq
 
     def state_document(
         self, detector: StaticDetector | None = None, pipeline: dict[str, Any] | None = None

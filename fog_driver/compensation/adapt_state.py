@@ -47,10 +47,22 @@ COMPARE_KEYS = (
 GATE_KEYS = ("gate_noise_var_dph2", "gate_last_rate_dph", "gate_innovation_dph", "rejected")
 
 
+#: The adapted estimate's error statistic (``OnlineReadout.adapted_sigma_dph``); absent in states saved before it.
+SIGMA_KEY = "compare_dev_sq_adapted_dph2"
+
+
+def checked_sigma(d: dict[str, Any]) -> float:
+    """The state's ``SIGMA_KEY`` (0 when absent), checked: a finite number >= 0."""
+    v = d.get(SIGMA_KEY, 0.0)
+    if not (finite_number(v) and v >= 0):
+        raise ValueError(f"adaptation state: {SIGMA_KEY!r} must be a finite number >= 0, got {v!r}")
+    return float(v)
+
+
 def check_state_keys(d: Any) -> None:
     """``ValueError`` unless ``d`` is a dict with every key of ``STATE_KEYS`` and no key but those, the
     comparison's (``COMPARE_KEYS``) and the gate's (``GATE_KEYS``)."""
-    optional = set(COMPARE_KEYS) | set(GATE_KEYS)
+    optional = set(COMPARE_KEYS) | set(GATE_KEYS) | {SIGMA_KEY}
     if not isinstance(d, dict) or not set(STATE_KEYS) <= set(d) <= set(STATE_KEYS) | optional:
         got = sorted(d) if isinstance(d, dict) else type(d).__name__
         raise ValueError(

@@ -12,6 +12,7 @@ date).  A model fitted for another serial is refused unless forced.
 from __future__ import annotations
 
 import copy
+import math
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -27,6 +28,7 @@ from .models.polynomial import PolynomialModel
 from .models.svr import SvrModel
 from .models.wesn import PaperKind, WesnKind
 from .readout import Standardizer
+from .uncertainty import UncertaintySpec
 
 MODEL_SCHEMA_VERSION = 1
 
@@ -89,6 +91,12 @@ class ModelFile:
     #: the frame format's temperature channels the model was fitted on (``features.input_names`` of them are
     #: its inputs); files made before other formats existed: protocol v1's three
     temperature_channels: tuple[str, ...] = V1_CHANNELS
+    #: the gyro's white noise at 1 min on the fit data, deg/h (``report.noise_floor_dph``: the 1-s blocks'
+    #: robust noise over sqrt(60)); None in files made before it existed
+    noise_1min_dph: float | None = None
+    #: how ``drift_sigma_dph`` is made (``uncertainty``); None in files made before it existed: the fit
+    #: residual alone (``sigma_spec``)
+    uncertainty: UncertaintySpec | None = None
     created_utc: str = field(default_factory=utc_now_iso)
     fog_driver_version: str = __version__
 
@@ -100,6 +108,18 @@ class ModelFile:
         value = row.get("fit") if isinstance(row, dict) else None
         return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else None
 
+    @property
+    def sigma_spec(self) -> UncertaintySpec:
+        """How this model's ``drift_sigma_dph`` is made: its ``uncertainty`` section, or for a file without
+        one the fit residual alone (``sigma_kind: residual``)."""
+        if self.uncertainty is not None:
+            return self.uncertainty
+        return UncertaintySpec.residual_only(self.fit_residual_dph, self.domain)
+
+    def candidate_models(self) -> list[DriftModel]:
+        """Fresh instances of the candidate structures (``uncertainty``), of this model's kind."""
+        return [MODEL_KINDS[self.kind].from_dict(d) for d in self.sigma_spec.candidates]
+
     def warnings(self, name: str) -> list[str]:
         """What a user applying this model should know of its fit: a weak fit accepted, no stored range."""
         lines = []
@@ -108,6 +128,12 @@ class ModelFile:
             lines.append(
                 f"{name} is a weak fit, accepted with --accept-weak-fit: "
                 f"{'; '.join(map(str, quality.get('weak') or []))}"
+            )
+        if self.sigma_spec.sigma_kind == "residual":
+            lines.append(
+                f"{name} has no candidate structures: its drift_sigma_dph comes from the validation residual "
+                f"and the fit box alone, and does not follow what the fit data left undecided"
+                + ("" if self.uncertainty is not None else " (made by an older fog-driver: refit it)")
             )
         if self.domain is None:
             lines.append(
@@ -131,6 +157,8 @@ class ModelFile:
             **({"domain": self.domain.to_dict()} if self.domain is not None else {}),
             "substitution": self.substitution.to_dict(),
             "temperature_channels": list(self.temperature_channels),
+            **({"noise_1min_dph": self.noise_1min_dph} if self.noise_1min_dph is not None else {}),
+            **({"uncertainty": self.uncertainty.to_dict()} if self.uncertainty is not None else {}),
             "provenance": self.provenance,
         }
 
@@ -171,6 +199,15 @@ def model_file_from_doc(doc: dict[str, Any], where: str) -> ModelFile:
         substitution = Substitution.from_dict(doc["substitution"]) if "substitution" in doc else Substitution.offsets()
         if domain is not None and domain.names != names:
             raise ValueError(f"the domain's inputs must be {', '.join(names)}")
+        noise = doc.get("noise_1min_dph")
+        if "noise_1min_dph" in doc and (
+            not isinstance(noise, (int, float)) or isinstance(noise, bool) or not 0 <= noise < math.inf
+        ):
+            raise ValueError(f"noise_1min_dph must be a finite number >= 0 (deg/h), not {noise!r}")
+        uncertainty = UncertaintySpec.from_dict(doc["uncertainty"]) if "uncertainty" in doc else None
+        for candidate in uncertainty.candidates if uncertainty is not None else ():
+            m = MODEL_KINDS[kind].from_dict(candidate)
+            m.run(np.zeros((1, len(names))))  # a candidate of another input count fails here
     except InputFileError:
         raise
     except (TypeError, ValueError, KeyError, IndexError) as exc:
@@ -193,6 +230,8 @@ def model_file_from_doc(doc: dict[str, Any], where: str) -> ModelFile:
         domain=domain,
         substitution=substitution,
         temperature_channels=channels,
+        noise_1min_dph=float(noise) if noise is not None else None,
+        uncertainty=uncertainty,
         created_utc=str(doc.get("created_utc", "")),
         fog_driver_version=str(doc.get("fog_driver_version", "")),
     )

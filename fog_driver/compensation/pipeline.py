@@ -38,6 +38,7 @@ from .blocks import FLAG_GAP, FLAG_THERMOMETER_FAULT, PLAUSIBLE_TEMP_C, BlockAve
 from .domain import FLAG_EXTRAPOLATING
 from .features import DEGRADED_FLAGS, FLAG_INPUT_STALE, FeatureExtractor
 from .model import ModelFile
+from .uncertainty import DriftUncertainty
 
 FLAG_UNCOMPENSATED = int(Flag.UNCOMPENSATED)  #: no drift estimate applied (start-up, or inputs never valid)
 FLAG_ADAPTING = int(Flag.ADAPTING)  #: the weights are adapting online, or adapted weights give the estimate
@@ -161,6 +162,7 @@ class Compensator:
         self.blocks_seen = 0
         self._started = False
         self.model.reset()
+        self.uncertainty = DriftUncertainty(model_file.sigma_spec, model_file.candidate_models(), self.domain)
         self.adapt = adapt
         self.reference_rate_dph = None if reference_rate_dph is None else float(reference_rate_dph)
         self.online: OnlineReadout | None = None
@@ -190,6 +192,7 @@ class Compensator:
             if missing * self._block_s > MAX_GAP_S:
                 self.features.reset()
                 self.model.reset()
+                self.uncertainty.reset()
                 self._started = False
             else:  # the temperatures interpolated linearly across the gap (exact for a ramp)
                 before, now = self._last_temps, block.temps_c
@@ -214,13 +217,16 @@ class Compensator:
             self.estimate_flags = FLAG_UNCOMPENSATED | flags
         else:
             extrapolating = 0
+            raw = u
             if self.domain is not None:
                 u, outside = self.domain.clamp(u)
                 extrapolating = FLAG_EXTRAPOLATING if outside else 0
             z = self._normalizer.transform(u)
             if not self._started:  # the model starts at rest at its first valid input, as when fitted
                 self.model.start(z)
+                self.uncertainty.start(z)
                 self._started = True
+            f: Any = None
             if self.online is None:
                 estimate = self.model.step(z)
                 adapt_flags = 0
@@ -230,16 +236,20 @@ class Compensator:
                 gate = static and clean and block.t_end_s > self.online.config.warmup_s
                 f = self.model.regressors_step(z)
                 estimate, adapt_flags = self.online.step(f, block.rate_dph, self.reference_rate_dph, gate)
+            sigma = self.uncertainty.step(z, raw, estimate)
+            if self.online is not None and estimate != self.online.frozen_estimate(f):  # the adapted weights'
+                sigma = self.uncertainty.adapted(self.online.adapted_sigma_dph, raw)
             if self.domain is not None:
                 estimate, clipped = self.domain.bound(estimate)
                 extrapolating |= FLAG_EXTRAPOLATING if clipped else 0
             held = flags & FLAG_INPUT_STALE  # inputs frozen beyond hold_s: the estimate is held
             if held:
-                estimate = self.estimate_dph
+                estimate, sigma = self.estimate_dph, self.sigma_dph
             if self.online is not None:
                 self.model.feed_back(estimate)  # the estimate actually used (the WESN's output feedback)
             if math.isfinite(estimate):
                 self.estimate_dph = estimate
+                self.sigma_dph = sigma
                 self.estimate_flags = (flags & DEGRADED_FLAGS) | adapt_flags | extrapolating
             else:
                 self.estimate_flags = FLAG_GUARD | (flags & DEGRADED_FLAGS)
@@ -262,6 +272,8 @@ class Compensator:
             "last_index": self._last_index,
             "last_temps": list(self._last_temps),
             "settle_until": self._settle_until,
+            "sigma_dph": self.sigma_dph,
+            "uncertainty": self.uncertainty.get_state(),
         }
 
     def set_pipeline_state(self, state: dict) -> None:
@@ -279,8 +291,9 @@ class Compensator:
             "last_temps",
             "settle_until",
         }
-        if not isinstance(state, dict) or set(state) != keys:
-            raise ValueError(f"pipeline state needs exactly the keys {sorted(keys)}")
+        optional = {"sigma_dph", "uncertainty"}  # absent in states saved before drift_sigma_dph existed
+        if not isinstance(state, dict) or not keys <= set(state) <= keys | optional:
+            raise ValueError(f"pipeline state needs exactly the keys {sorted(keys)} (and {sorted(optional)})")
         try:  # the scalars first, and every part on fresh objects: nothing changes when a part is bad
             scalars = (
                 bool(state["started"]),
@@ -291,6 +304,7 @@ class Compensator:
                 None if state["last_index"] is None else int(state["last_index"]),
                 tuple(float(v) for v in state["last_temps"]),
                 int(state["settle_until"]),
+                float(state.get("sigma_dph", math.nan)),
             )
         except (TypeError, ValueError) as exc:
             raise ValueError(f"pipeline state: not numbers: {exc}") from None
@@ -316,6 +330,12 @@ class Compensator:
         }:
             self.model.set_state(before)
             raise ValueError("pipeline state: the model state is for another model")
+        if "uncertainty" in state:
+            try:
+                self.uncertainty.set_state(state["uncertainty"])
+            except (KeyError, TypeError, ValueError) as exc:
+                self.model.set_state(before)
+                raise ValueError(f"pipeline state: bad uncertainty state: {exc}") from None
         self.averager = averager
         self.features = features
         (
@@ -327,6 +347,7 @@ class Compensator:
             self._last_index,
             self._last_temps,
             self._settle_until,
+            self.sigma_dph,
         ) = scalars
 
     def continue_from(self, old: Compensator, *, same_model: bool) -> None:
@@ -345,6 +366,7 @@ class Compensator:
         state["features"] = self.features.adopt_state(state["features"], old.features.substitution)
         if not same_model:
             state["model"], state["started"] = self.model.get_state(), False
+            state["uncertainty"] = self.uncertainty.get_state()
         self.set_pipeline_state(state)
         if same_model and old.online is not None and self.online is not None:
             self.online.load_state(old.online.state_dict())

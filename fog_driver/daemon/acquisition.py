@@ -48,19 +48,30 @@ log = structlog.get_logger("fog_driver.daemon")
 class BiasCapture:
     """A ``?BIAS`` capture running: the compensated increments of ``target_s`` seconds of device time, summed.
 
-    The bias it measures is ``bias_dph = sum_arcsec / seconds`` (the mean compensated rate; arcsec/s is deg/h)."""
+    The bias it measures is ``bias_dph = sum_arcsec / seconds`` (the mean compensated rate; arcsec/s is deg/h).
+    The drift estimate's error during the capture went into it: its 1-sigma is ``sigma_dph``, the mean of the
+    ``drift_sigma_dph`` of the samples that had one, ``sigma_sum_dph / sigma_samples`` (NaN when none had)."""
 
     capture_id: int
     target_s: float
     sum_arcsec: float = 0.0
     seconds: float = 0.0
     timer: threading.Timer | None = None
+    sigma_sum_dph: float = 0.0
+    sigma_samples: int = 0
 
-    def add(self, dtheta_comp_arcsec: float, period_s: float) -> bool:
-        """One sample's increment; True once ``target_s`` seconds are in."""
+    def add(self, dtheta_comp_arcsec: float, period_s: float, drift_sigma_dph: float = math.nan) -> bool:
+        """One sample's increment (and its drift estimate's sigma); True once ``target_s`` seconds are in."""
         self.sum_arcsec += dtheta_comp_arcsec
         self.seconds += period_s
+        if math.isfinite(drift_sigma_dph):
+            self.sigma_sum_dph += drift_sigma_dph
+            self.sigma_samples += 1
         return self.seconds >= self.target_s
+
+    @property
+    def sigma_dph(self) -> float:
+        return self.sigma_sum_dph / self.sigma_samples if self.sigma_samples else math.nan
 
 
 class Acquisition:
@@ -80,6 +91,7 @@ class Acquisition:
         self.bias_capture: BiasCapture | None = None
         self.bias_captures = 0  # ?BIAS captures started (each one's capture_id)
         self.bias_captured = False  # a ?BIAS capture completed: bias_dph is a measured bias, not the default 0
+        self.bias_sigma_dph = math.nan  # the drift estimate's sigma during that capture (sigma(t_b)); NaN: none
         self.setup_bytes_left = 0  # bytes read during a device setup, still to be skipped by the decoder
         self._format_problem_said = False
 
@@ -198,7 +210,7 @@ class Acquisition:
         c = service.binding.step(sample)
         period = service.compensator.frame_period_s
         capture = self.bias_capture
-        if capture is not None and capture.add(c.dtheta_comp_arcsec, period):
+        if capture is not None and capture.add(c.dtheta_comp_arcsec, period, c.drift_sigma_dph):
             self._finish_bias(capture)
         self.bias_angle_arcsec += self.bias_dph * period
         obj = self.angle_object(c)
@@ -217,7 +229,7 @@ class Acquisition:
         period = self.service.compensator.frame_period_s
         rate_comp = c.dtheta_comp_arcsec / period - self.bias_dph
         temps = {name: t for name, t in zip(self.service.source.temperature_channels, c.temps_c) if t == t}
-        return {
+        obj = {
             "class": "ANGLE",
             "seq": c.seq,
             "t_s": c.t_s,
@@ -226,19 +238,26 @@ class Acquisition:
             "rate_dph": rate_comp,
             "rate_raw_dph": c.dtheta_arcsec / period,
             "drift_dph": c.drift_dph,
-            "temps_c": temps,
-            "flags": flag_names(c.flags),
         }
+        if math.isfinite(c.drift_sigma_dph):  # NaN while there is no estimate: omitted, as an absent thermometer
+            obj["drift_sigma_dph"] = c.drift_sigma_dph
+        obj["temps_c"] = temps
+        obj["flags"] = flag_names(c.flags)
+        return obj
 
     def _finish_bias(self, capture: BiasCapture) -> None:
         """A ``?BIAS`` capture is complete: apply it and publish its result (under ``lock``, in the acquisition
         thread; nobody waits on it, so a client that hung up meanwhile changes nothing)."""
         capture.timer.cancel()
         self.bias_dph = capture.sum_arcsec / capture.seconds
+        self.bias_sigma_dph = capture.sigma_dph
         self.bias_captured = True
         self.bias_capture = None
-        self.service.note("bias", bias_dph=self.bias_dph, seconds=capture.seconds)
-        log.info("bias_applied", capture_id=capture.capture_id, bias_dph=self.bias_dph, seconds=capture.seconds)
+        sigma = {"bias_sigma_dph": self.bias_sigma_dph} if math.isfinite(self.bias_sigma_dph) else {}
+        self.service.note("bias", bias_dph=self.bias_dph, seconds=capture.seconds, **sigma)
+        log.info(
+            "bias_applied", capture_id=capture.capture_id, bias_dph=self.bias_dph, seconds=capture.seconds, **sigma
+        )
         self.service.publish_event(
             {
                 "class": "BIAS",
@@ -246,6 +265,7 @@ class Acquisition:
                 "capture_id": capture.capture_id,
                 "bias_dph": self.bias_dph,
                 "seconds": capture.seconds,
+                **sigma,
             }
         )
 

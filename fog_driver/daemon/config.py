@@ -69,6 +69,7 @@ class DriverConfig:
     listen: str = f"127.0.0.1:{DEFAULT_PORT}"
     token: str | None = None  #: required for control commands when listening beyond loopback
     udp: str | None = None  #: HOST:PORT to send one datagram per sample to (None: off)
+    udp_version: int = 1  #: the datagram's layout: 1 (68 bytes) or 2 (72: with drift_sigma_dph)
     http: str | None = None  #: HOST:PORT of the web view and /metrics (None: off); beyond loopback needs token
     http_history_min: float = 60.0  #: minutes of plots the web view keeps
     capture_dir: str = "fog-captures"
@@ -105,6 +106,8 @@ class DriverConfig:
         parse_host_port(self.listen)
         if self.udp is not None:
             parse_host_port(self.udp, allow_zero=False)
+        if self.udp_version not in (1, 2):
+            raise ValueError(f"udp_version must be 1 or 2, got {self.udp_version!r}")
         if self.http is not None:
             parse_host_port(self.http, default_port=DEFAULT_HTTP_PORT)
         if not (math.isfinite(self.http_history_min) and 0 < self.http_history_min <= 24 * 60):

@@ -34,7 +34,8 @@ DEVICE     second line on connect when an instrument is known, and to every
 STATUS     to every authorized client (watching or not), periodic summaries
 ANGLE      one per instrument sample, only to clients with an enabled WATCH,
            decimated per client (see ``?WATCH``); always carries ``t_s``
-           (device time, s)
+           (device time, s); since 1.1 ``drift_sigma_dph`` beside ``drift_dph``
+           (omitted while there is no estimate)
 WATCH      answer to ``?WATCH``: the client's policy now in force
 AUTH       answer to a successful ``?AUTH``: ``{"class":"AUTH","authorized":true}``
 ERROR      a command failed: ``message``, and ``command`` when the command's
@@ -80,7 +81,7 @@ lines may be interleaved.
 
 Example session (``nc 127.0.0.1 2948``)::
 
-    {"class":"VERSION","release":"0.1.0","proto_major":1,"proto_minor":0,...}
+    {"class":"VERSION","release":"0.1.0","proto_major":1,"proto_minor":1,...}
     {"class":"DEVICE","serial":"FOG-SYN-0001",...}
     ?WATCH={"enable":true,"rate_hz":1}
     {"class":"WATCH","enable":true,"rate_hz":1}

@@ -96,6 +96,7 @@ class Service:
         "baud",
         "listen",
         "udp",
+        "udp_version",
         "http",
         "http_history_min",
         "capture_dir",
@@ -420,7 +421,7 @@ class Service:
             )
             self.capture = CaptureSink(capture, on_state=self._on_capture_state)
             if self.config.udp:
-                self.udp = UdpPublisher(*parse_host_port(self.config.udp))
+                self.udp = UdpPublisher(*parse_host_port(self.config.udp), version=self.config.udp_version)
         except BaseException:  # a start that fails leaves nothing listening or running behind it
             if self.capture is not None:
                 self.capture.close()

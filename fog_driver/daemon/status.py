@@ -8,6 +8,7 @@ are read (``status_object``); ``metrics_state`` takes it itself.
 from __future__ import annotations
 
 import datetime as _dt
+import math
 import resource
 import time
 from typing import Any
@@ -28,9 +29,11 @@ __all__ = [
     "version_object",
 ]
 
-#: The NDJSON protocol's version (``connection.py``): the major changes only when a key changes meaning or goes.
+#: The NDJSON protocol's version (``connection.py``): the major changes only when a key changes meaning or goes,
+#: the minor when keys are added (1.1: ANGLE's ``drift_sigma_dph``, STATUS's and BIAS's ``bias_sigma_dph``,
+#: STATUS's ``noise_1min_dph``).
 PROTO_MAJOR = 1
-PROTO_MINOR = 0
+PROTO_MINOR = 1
 
 
 class CpuMeter:
@@ -148,14 +151,17 @@ def status_object(service: Any, *, mark_cpu: bool = True) -> dict:
 
 
 def _pipeline_fields(service: Any) -> dict[str, Any]:
-    """STATUS keys present only when they say something: a bias capture running, samples dropped before the
-    first IDENTITY, a format problem, rejected increments, whether the adapted weights are in use."""
+    """STATUS keys present only when they say something: a bias capture running, the drift's sigma during the
+    last one, samples dropped before the first IDENTITY, a format problem, rejected increments, whether the
+    adapted weights are in use, the loaded model's ``noise_1min_dph``."""
     acquisition = service.acquisition
     obj: dict[str, Any] = {}
     capture = acquisition.bias_capture
     if capture is not None:  # a ?BIAS capture running: how far it is, in seconds of device time
         obj["bias_capture_s"] = capture.seconds
         obj["bias_capture_target_s"] = capture.target_s
+    if acquisition.bias_captured and math.isfinite(acquisition.bias_sigma_dph):
+        obj["bias_sigma_dph"] = acquisition.bias_sigma_dph  # sigma(t_b): the since-bias form's second term
     if acquisition.samples_dropped_before_identity:
         obj["samples_dropped_before_identity"] = acquisition.samples_dropped_before_identity
     if service.source.format_problem is not None:
@@ -165,6 +171,8 @@ def _pipeline_fields(service: Any) -> dict[str, Any]:
     online = service.compensator.online if service.compensator is not None else None
     if online is not None:  # is the published drift the adapted weights' (the comparison guard's verdict)?
         obj["adapted_in_use"] = online.adapted_in_use
+    if service.model_file.noise_1min_dph is not None:  # the loaded model's (files before it have none)
+        obj["noise_1min_dph"] = service.model_file.noise_1min_dph
     return obj
 
 

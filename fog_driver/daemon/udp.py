@@ -24,8 +24,13 @@ from ..client.udp import (
     DATAGRAM_FORMAT,
     DATAGRAM_SIZE,
     DATAGRAM_STRUCT,
+    DATAGRAM_V2_FORMAT,
+    DATAGRAM_V2_SIZE,
+    DATAGRAM_V2_STRUCT,
     DATAGRAM_VERSION,
+    DATAGRAM_VERSIONS,
     FIELDS,
+    FIELDS_V2,
     FLAG_ADAPTING,
     FLAG_BITS,
     FLAG_EXTRAPOLATING,
@@ -43,8 +48,14 @@ from ..client.udp import (
 __all__ = [
     "DATAGRAM_FORMAT",
     "DATAGRAM_SIZE",
+    "DATAGRAM_STRUCT",
+    "DATAGRAM_V2_FORMAT",
+    "DATAGRAM_V2_SIZE",
+    "DATAGRAM_V2_STRUCT",
     "DATAGRAM_VERSION",
+    "DATAGRAM_VERSIONS",
     "FIELDS",
+    "FIELDS_V2",
     "FLAG_ADAPTING",
     "FLAG_BITS",
     "FLAG_EXTRAPOLATING",
@@ -62,12 +73,20 @@ __all__ = [
     "fields_from_angle",
 ]
 
-_FLOAT_FIELDS = FIELDS[2:]
+_FLOAT_FIELDS = FIELDS_V2[2:]
 _NAN = math.nan
 
 
 def _f(value: Any) -> float:
     return _NAN if value is None else float(value)
+
+
+def _layout(version: int) -> Any:
+    """The ``struct.Struct`` of a datagram version; ValueError for a version this module does not send."""
+    layout = DATAGRAM_VERSIONS.get(version)
+    if layout is None:
+        raise ValueError(f"UDP datagram version must be one of {sorted(DATAGRAM_VERSIONS)}, got {version!r}")
+    return layout
 
 
 def encode_datagram(
@@ -82,11 +101,15 @@ def encode_datagram(
     t_bottom_c: float | None = None,
     t_housing_c: float | None = None,
     flags: int = 0,
+    drift_sigma_dph: float | None = None,
+    version: int = DATAGRAM_VERSION,
 ) -> bytes:
-    """One datagram; None (absent) becomes NaN, ``seq`` is taken modulo 2**64, ``flags`` modulo 2**16."""
-    return DATAGRAM_STRUCT.pack(
+    """One datagram of layout ``version`` (1: ``drift_sigma_dph`` is not sent; 2: appended); None (absent)
+    becomes NaN, ``seq`` is taken modulo 2**64, ``flags`` modulo 2**16."""
+    layout = _layout(version)
+    values = [
         MAGIC,
-        DATAGRAM_VERSION,
+        version,
         int(flags) & 0xFFFF,
         int(seq) & 0xFFFF_FFFF_FFFF_FFFF,
         _f(t_s),
@@ -97,7 +120,10 @@ def encode_datagram(
         _f(t_top_c),
         _f(t_bottom_c),
         _f(t_housing_c),
-    )
+    ]
+    if version >= 2:
+        values.append(_f(drift_sigma_dph))
+    return layout.pack(*values)
 
 
 def fields_from_angle(obj: Mapping[str, Any]) -> dict:
@@ -123,7 +149,8 @@ class UdpPublisher:
     """Sends one datagram per sample to ``(host, port)``, unicast or broadcast.
 
     ``send(angle_obj)`` takes an ANGLE object (see :func:`fields_from_angle`),
-    ``send(**fields)`` the keyword fields of :func:`encode_datagram`.  It never
+    ``send(**fields)`` the keyword fields of :func:`encode_datagram`, in layout ``version`` (1, the default,
+    or 2: with ``drift_sigma_dph``).  It never
     blocks nor raises on a network failure; ``sent`` and ``send_errors`` count
     datagrams, ``last_error`` describes the last failure (``status_fields()``
     gives all three for a STATUS object).
@@ -143,7 +170,10 @@ class UdpPublisher:
         broadcast: bool = True,
         retry_resolve_s: float = 5.0,
         clock: Callable[[], float] = time.monotonic,
+        version: int = DATAGRAM_VERSION,
     ) -> None:
+        _layout(version)  # ValueError now, not at the first sample
+        self.version = version
         self.host = host
         self.port = port
         self.broadcast = broadcast
@@ -205,7 +235,7 @@ class UdpPublisher:
         """Send one sample; True when the datagram left, False (counted) when sending failed."""
         if angle_obj is not None:
             fields = {**fields_from_angle(angle_obj), **fields}
-        return self.send_bytes(encode_datagram(**fields))
+        return self.send_bytes(encode_datagram(**fields, version=self.version))
 
     def send_many(self, objs: Iterable[Mapping[str, Any]]) -> int:
         """Send one datagram per ANGLE object; returns how many left."""

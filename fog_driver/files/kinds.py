@@ -13,6 +13,7 @@ ADAPT_STATE_FORMAT = "fog_driver adaptation state"
 #: The simulator's truth file: its first line.
 TRUTH_HEADER = "# fog_driver simulator truth: one row per device second; see fog_driver/sim/capture.py"
 #: The columns of a ``compensate`` CSV, in order (its header line is them joined by commas).
+#: ``drift_sigma_dph`` is the last: it came after the others, and a reader by position keeps working.
 ROW_COLUMNS = (
     "t_s",
     "n_samples",
@@ -25,4 +26,8 @@ ROW_COLUMNS = (
     "t_bottom_c",
     "t_housing_c",
     "flags",
+    "drift_sigma_dph",
 )
+#: The columns every ``compensate`` CSV starts with, those written before ``drift_sigma_dph`` included:
+#: ``outputs.describe`` recognises one by them.
+ROW_COLUMNS_FIRST = ROW_COLUMNS[: ROW_COLUMNS.index("flags") + 1]

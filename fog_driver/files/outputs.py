@@ -18,7 +18,7 @@ import yaml
 
 from ..errors import OutputFileError
 from ..protocol.wire import SYNC
-from .kinds import ADAPT_STATE_FORMAT, MODEL_FORMAT, PROVENANCE_FORMAT, ROW_COLUMNS, TRUTH_HEADER
+from .kinds import ADAPT_STATE_FORMAT, MODEL_FORMAT, PROVENANCE_FORMAT, ROW_COLUMNS_FIRST, TRUTH_HEADER
 
 _SNIFF_BYTES = 1 << 20
 
@@ -26,7 +26,7 @@ _SNIFF_BYTES = 1 << 20
 def _kinds() -> tuple[tuple[tuple[str, str], ...], dict[str, str]]:
     """(the first line of each kind of text file the project writes, its name), and the ``format`` tags of
     its YAML files -> their names ({capture}: a sidecar's capture)."""
-    text = ((TRUTH_HEADER, "a simulator truth file"), (",".join(ROW_COLUMNS), "a compensate CSV"))
+    text = ((TRUTH_HEADER, "a simulator truth file"), (",".join(ROW_COLUMNS_FIRST), "a compensate CSV"))
     tags = {
         PROVENANCE_FORMAT: "a capture's provenance sidecar (of {capture})",
         MODEL_FORMAT: "a fitted model",

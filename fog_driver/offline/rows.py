@@ -12,6 +12,8 @@ period is a last row.  Columns::
     angle_raw_arcsec, angle_comp_arcsec                          cumulative from the capture start to t_s
     t_top_c, t_bottom_c, t_housing_c                             means of the valid readings
     flags             the flags of any frame in the period, by name, joined by '|'
+    drift_sigma_dph   mean of the drift_sigma_dph of the frames that have one (the 1-sigma of the drift
+                      estimate's error as a 1-min mean); NaN (written ``nan``) when no frame has one
 """
 
 from __future__ import annotations
@@ -69,11 +71,9 @@ class RowAggregator:
         rate_raw = np.add.reduceat(cols.dtheta_arcsec, starts) / period
         rate_comp = np.add.reduceat(cols.dtheta_comp_arcsec, starts) / period
         drift = np.add.reduceat(cols.drift_dph, starts) / count
-        valid = ~np.isnan(cols.temps_c)
-        temps = np.add.reduceat(np.where(valid, cols.temps_c, 0.0), starts, axis=0)
-        n_valid = np.add.reduceat(valid.astype(np.int64), starts, axis=0)
-        temps = np.where(n_valid > 0, temps / np.maximum(n_valid, 1), np.nan)
+        temps = _valid_means(cols.temps_c, starts)
         flags = np.bitwise_or.reduceat(cols.flags, starts)
+        sigma = _valid_means(cast(np.ndarray, cols.drift_sigma_dph), starts)
         t_end = (t_us[ends] - self._first_us) / 1e6 + self.frame_period_s
         return [
             (
@@ -86,9 +86,19 @@ class RowAggregator:
                 cols.angle_comp_arcsec[ends[i]],
                 *temps[i],
                 "|".join(flag_names(int(flags[i]))),
+                sigma[i],
             )
             for i in range(len(starts))
         ]
+
+
+def _valid_means(values: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """Per row (rows begin at ``starts``; per column of a 2-D ``values``): the mean of the values that are not
+    NaN, ``sum(v_i) / n_valid``; NaN when the row has none (the temperatures, the drift's sigma)."""
+    valid = ~np.isnan(values)
+    total = np.add.reduceat(np.where(valid, values, 0.0), starts, axis=0)
+    n_valid = np.add.reduceat(valid.astype(np.int64), starts, axis=0)
+    return np.where(n_valid > 0, total / np.maximum(n_valid, 1), np.nan)
 
 
 def compensated_rows(chunks: Iterable[tuple[float, CompensatedColumns]], every_s: float) -> Iterator[tuple]:
@@ -113,5 +123,8 @@ def _concat(a: CompensatedColumns, b: CompensatedColumns) -> CompensatedColumns:
 
 
 def format_row(row: tuple) -> str:
-    t_s, n, raw, drift, comp, a_raw, a_comp, t1, t2, t3, flags = row
-    return f"{t_s:.6f},{n},{raw:.6f},{drift:.6f},{comp:.6f},{a_raw:.6f},{a_comp:.6f},{t1:.4f},{t2:.4f},{t3:.4f},{flags}"
+    t_s, n, raw, drift, comp, a_raw, a_comp, t1, t2, t3, flags, sigma = row
+    return (
+        f"{t_s:.6f},{n},{raw:.6f},{drift:.6f},{comp:.6f},{a_raw:.6f},{a_comp:.6f},{t1:.4f},{t2:.4f},{t3:.4f},{flags},"
+        f"{sigma:.6f}"
+    )

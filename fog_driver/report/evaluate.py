@@ -5,7 +5,9 @@ compensator applied (the same code as ``compensate``); over the static seconds
 (table motion excluded, as when fitting): the Allan deviation before and after
 with its IEEE 952 read points (``allan.py``), and the RMS of 1-minute means of
 the rate (mean removed); with ``--truth`` (a simulator truth file) the drift
-residual against the true drift and the noise floor; the positioning table
+residual against the true drift and the noise floor, and how honest the estimate's
+``drift_sigma_dph`` is against the true error (``coverage.py``: the +-1.96-sigma band's
+coverage, its sharpness, and whether it follows the error); the positioning table
 when the capture holds positioning sequences.  Writes ``summary.json``,
 ``report.md``, PNG plots and the ADEV tables (``allan-<series>.csv``) into the output folder.
 
@@ -27,7 +29,7 @@ import re
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -40,6 +42,7 @@ from ..offline.compensate import compensate_capture
 from ..offline.fit import load_capture
 from ..sim.capture import truth_noise_dph
 from .allan import FLICKER_FLOOR, AllanResult, allan, write_csv
+from .coverage import coverage_figures, coverage_markdown, minute_errors, whole_minutes
 
 EVALUATE_WARMUP_S = 120.0
 SHORT_STRETCH_S = 3600.0
@@ -64,6 +67,8 @@ class Series:
     extrapolating: np.ndarray | None = None
     #: the drift each ``--compare`` model applied, by label
     compared_drift_dph: dict[str, np.ndarray] = field(default_factory=dict)
+    #: the mean ``drift_sigma_dph`` of each second's frames (NaN where any frame had none, or no frame came)
+    drift_sigma_dph: np.ndarray | None = None
 
     @property
     def rate_comp_dph(self) -> np.ndarray:
@@ -97,7 +102,7 @@ def per_second(
     # row k is second k for the drift a model applied and for a truth file's rows too, whatever was lost.
     index = np.asarray(data.blocks.index, dtype=np.int64)
     n = int(index[-1]) + 1 if index.size else 0
-    drift, extrapolating = drift_per_second(
+    applied = drift_per_second(
         capture,
         model_file,
         n,
@@ -110,10 +115,11 @@ def per_second(
     return Series(
         _on_grid(index, data.blocks.t_end_s, n, np.arange(1.0, n + 1.0)),
         _on_grid(index, data.blocks.rate_dph, n, np.nan),
-        drift,
+        applied.drift_dph,
         _on_grid(index, data.blocks.temps_c, n, np.nan),
         _on_grid(index, data.static, n, False),
-        extrapolating > 0,
+        applied.extrapolating > 0,
+        drift_sigma_dph=applied.drift_sigma_dph,
     )
 
 
@@ -124,6 +130,14 @@ def _on_grid(index: np.ndarray, values: np.ndarray, n: int, missing) -> np.ndarr
     grid[...] = missing if np.ndim(missing) == 0 else np.reshape(missing, (n,) + (1,) * (values.ndim - 1))
     grid[index] = values
     return grid
+
+
+class Applied(NamedTuple):
+    """What a model applied per device second (``drift_per_second``)."""
+
+    drift_dph: np.ndarray  #: the mean drift of the second's frames (0 where none came)
+    extrapolating: np.ndarray  #: how many of its frames were flagged extrapolating
+    drift_sigma_dph: np.ndarray  #: the mean drift_sigma_dph of its frames (NaN where any is NaN, or none came)
 
 
 def drift_per_second(
@@ -137,10 +151,11 @@ def drift_per_second(
     model_name: str = "the model",
     progress: Callable[[int], None] | None = None,
     wire_format: str = "auto",
-) -> tuple[np.ndarray, np.ndarray]:
-    """The mean drift a model applied in each of the capture's first ``n`` device seconds, and how many of
-    its frames were flagged extrapolating there (``progress(bytes decoded)``)."""
+) -> Applied:
+    """The mean drift a model applied in each of the capture's first ``n`` device seconds, how many of its
+    frames were flagged extrapolating there, and their mean drift sigma (``progress(bytes decoded)``)."""
     sums: list[np.ndarray] = []
+    sigmas: list[np.ndarray] = []
     counts: list[np.ndarray] = []
     flagged: list[np.ndarray] = []
     first = None
@@ -158,17 +173,21 @@ def drift_per_second(
             first = cols.t_s[0]
         second = np.floor(cols.t_s - first + 1e-9).astype(np.int64)
         sums.append(np.bincount(second, weights=cols.drift_dph))
+        sigmas.append(np.bincount(second, weights=cols.drift_sigma_dph))  # NaN in, NaN out
         counts.append(np.bincount(second))
         flagged.append(np.bincount(second, weights=(cols.flags & FLAG_EXTRAPOLATING) != 0))
     drift = np.zeros(n)
+    sigma = np.zeros(n)
     count = np.zeros(n)
     extrapolating = np.zeros(n)
-    for s, c, e in zip(sums, counts, flagged):
+    for s, g, c, e in zip(sums, sigmas, counts, flagged):
         m = min(len(s), n)
         drift[:m] += s[:m]
+        sigma[:m] += g[:m]
         count[:m] += c[:m]
         extrapolating[:m] += e[:m]
-    return drift / np.maximum(count, 1), extrapolating
+    sigma[count == 0] = np.nan
+    return Applied(drift / np.maximum(count, 1), extrapolating, sigma / np.maximum(count, 1))
 
 
 def longest_run(mask: np.ndarray) -> slice:
@@ -186,16 +205,14 @@ def longest_run(mask: np.ndarray) -> slice:
 
 def minute_rms(x: np.ndarray, mask: np.ndarray) -> float:
     """RMS of the means of whole static minutes, their mean removed."""
-    n = len(x) // 60 * 60
-    full = mask[:n].reshape(-1, 60).all(axis=1)
-    means = x[:n].reshape(-1, 60).mean(axis=1)[full]
+    means, full = whole_minutes(x, mask)
+    means = means[full]
     return float(np.sqrt(np.mean((means - means.mean()) ** 2))) if len(means) > 1 else float("nan")
 
 
 def static_minutes(mask: np.ndarray) -> int:
     """The number of whole static minutes ``minute_rms`` averages."""
-    n = len(mask) // 60 * 60
-    return int(mask[:n].reshape(-1, 60).all(axis=1).sum())
+    return int(whole_minutes(np.zeros(len(mask)), mask)[1].sum())
 
 
 def stretch_warnings(stretch_s: float, minutes: int) -> list[str]:
@@ -248,7 +265,7 @@ def evaluate(
     size = Path(capture).stat().st_size if Path(capture).is_file() else 0
     for k, (name, other) in enumerate(compare.items(), start=2):
         step = say(k, f"compensating with {name}")
-        series.compared_drift_dph[name], _ = drift_per_second(
+        series.compared_drift_dph[name] = drift_per_second(
             capture,
             other,
             len(series.t_s),
@@ -256,7 +273,7 @@ def evaluate(
             model_name=f"model {name!r}",
             wire_format=wire_format,
             progress=None if step is None else lambda done, step=step: step(done, size),
-        )
+        ).drift_dph
     stretch = longest_run(series.static)
     if stretch.stop - stretch.start < 64:
         raise UsageError(
@@ -289,10 +306,20 @@ def evaluate(
     if truth is not None:
         n = min(len(truth["drift_dph"]), len(series.t_s))
         mask = series.static[:n]
+        sigma = series.drift_sigma_dph if series.drift_sigma_dph is not None else np.full(n, np.nan)
         summary["truth"] = {
             "drift_rms_1min_dph": minute_rms(truth["drift_dph"][:n], mask),
             "residual_rms_1min_dph": minute_rms(truth["drift_dph"][:n] - series.drift_dph[:n], mask),
             "noise_floor_rms_1min_dph": minute_rms(truth_noise_dph(truth)[:n], mask),
+            "sigma": coverage_figures(
+                minute_errors(
+                    series.drift_dph[:n],
+                    truth["drift_dph"][:n],
+                    sigma[:n],
+                    mask,
+                    series.extrapolating[:n] if series.extrapolating is not None else None,
+                )
+            ),
         }
     return summary, series, allans
 
@@ -509,6 +536,8 @@ def markdown(summary: dict[str, Any], plots: list[Path], positioning_md: str | N
             "Against the simulator's truth (1-min means, deg/h): true drift "
             f"{t['drift_rms_1min_dph']:.4f}, residual after compensation {t['residual_rms_1min_dph']:.4f}, "
             f"noise floor {t['noise_floor_rms_1min_dph']:.4f}.",
+            "",
+            *coverage_markdown(t["sigma"]),
             "",
         ]
     lines += [

@@ -107,9 +107,12 @@ def describe(reply: dict) -> str:
                 f"(result within {_number(reply, 'timeout_s', 'g')} s)"
             )
         if state == "done":
+            sigma = ""  # a daemon since protocol 1.1 with a drift sigma: the since-bias form's sigma(t_b)
+            if reply.get("bias_sigma_dph") is not None:
+                sigma = f" (the drift's 1-sigma then {_number(reply, 'bias_sigma_dph', '.4f')} deg/h)"
             return (
-                f"bias captured: {_number(reply, 'bias_dph', '.4f')} deg/h over {_number(reply, 'seconds', '.1f')} s; "
-                "removed from rate_dph and angle_arcsec from now on"
+                f"bias captured: {_number(reply, 'bias_dph', '.4f')} deg/h over {_number(reply, 'seconds', '.1f')} s"
+                f"{sigma}; removed from rate_dph and angle_arcsec from now on"
             )
         return f"bias capture failed: {_word(reply, 'reason')}"
     if cls == "ADAPT":

@@ -12,6 +12,8 @@ from ..client.display import (
     DEGREE,
     MISSING,
     banners,
+    drift_sigma,
+    finite_number,
     format_arcsec,
     format_dms,
     is_number,
@@ -133,6 +135,20 @@ def _rate_text(state: Mapping[str, Any], angle: Mapping[str, Any]) -> str:
     return f"{show(angle.get('rate_dph'), '.1f')} deg/h (one sample)"
 
 
+def _drift_text(angle: Mapping[str, Any], status: Mapping[str, Any]) -> str:
+    """The drift estimate and, when the sample has one, its 1-sigma (``display.drift_sigma``: since the bias
+    once one was captured, and labelled so)."""
+    text = f"{show(angle.get('drift_dph'), '.4f')} deg/h"
+    if finite_number(angle.get("drift_sigma_dph")) is None:
+        return text
+    sigma, since_bias = drift_sigma(angle, status)
+    if since_bias and sigma is None:
+        return text + " +- - (1-sigma since the bias: unknown, the bias was captured without one)"
+    if since_bias:
+        return text + f" +- {show(sigma, '.4f')} (1-sigma since the bias)"
+    return text + f" +- {show(sigma, '.4f')} (1-sigma)"
+
+
 def render(state: Mapping[str, Any], *, width: int = 100, degree: str = DEGREE) -> list[str]:
     """The live view's lines (no ANSI, no newlines) from a state mapping; every key may be absent.
 
@@ -157,7 +173,7 @@ def render(state: Mapping[str, Any], *, width: int = 100, degree: str = DEGREE) 
             f"{'angle':<12}{_angle_text(angle.get('angle_arcsec'), degree)}"
             f"    raw {_angle_text(angle.get('angle_raw_arcsec'), degree)}"
         )
-        lines.append(f"{'rate':<12}{_rate_text(state, angle)}    drift {show(angle.get('drift_dph'), '.4f')} deg/h")
+        lines.append(f"{'rate':<12}{_rate_text(state, angle)}    drift {_drift_text(angle, status)}")
         lines.append(f"{'temps':<12}{_temps(mapping(angle.get('temps_c')), '  ')}")
         lines.append(f"{'flags':<12}{_flags(angle.get('flags'))}")
         sample = f"seq {show(angle.get('seq'))}  t {show(angle.get('t_s'), '.3f')} s"
@@ -194,7 +210,7 @@ def compact_line(state: Mapping[str, Any], *, degree: str = DEGREE) -> str:
             f"angle {_angle_text(angle.get('angle_arcsec'), degree)}",
             f"raw {_angle_text(angle.get('angle_raw_arcsec'), degree)}",
             f"rate {_rate_text(state, angle)}",
-            f"drift {show(angle.get('drift_dph'), '.4f')} deg/h",
+            f"drift {_drift_text(angle, status)}",
             f"temps {_temps(mapping(angle.get('temps_c')), ' ')}",
             f"flags {_flags(angle.get('flags')).replace(', ', ',')}",
         ]

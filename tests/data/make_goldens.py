@@ -24,7 +24,7 @@ Goldens (floats compared within ``tests/golden.py``'s tolerance on any machine, 
 * ``sim-faults.compensate-<name>.ndjson``: ``fog-driver compensate`` of ``sim-faults.bin`` with
   those model files (one wesn run also adapting against a known rate of 0), one row every
   5 s as in ``compensate --every 5``, at full precision: one JSON object per row with the CSV's
-  columns (absent temperatures omitted, flags as a list).
+  columns (absent temperatures and an absent ``drift_sigma_dph`` omitted, flags as a list).
 
 A change of any published value (compensation, flags, formatting) shows up here.  When output
 changes on purpose, regenerate and check what this script prints: files it reports as changed
@@ -111,7 +111,7 @@ def compensate_lines(name: str) -> list[bytes]:
                 obj[key] = value.split("|") if value else []
             elif key == "n_samples":
                 obj[key] = int(value)
-            elif not math.isnan(value):  # a thermometer with no valid reading in the row: omitted
+            elif not math.isnan(value):  # a thermometer with no valid reading in the row, no sigma: omitted
                 obj[key] = float(value)
         lines.append(json.dumps(obj, separators=(",", ":")).encode() + b"\n")
     return lines

@@ -21,11 +21,13 @@ from ..model import ModelFile
 from ..models.polynomial import PolynomialModel, polynomial_features
 from ..models.wesn import PAPER_DEFAULTS, WESN_DEFAULTS
 from ..readout import Standardizer
+from .choice import block_squares, choose, paired, paired_margin, polynomial_lead
 from .data import CaptureData, FitConfig, capture_groups, fit_normalizer, measured_rows, static_rows
 from .quality import FitQuality, assess, condition_number
 from .report import FitReport, report_for
 from .ridge import standardized_ridge
 from .svr import PSO_SVR_DEFAULTS, fit_pso_svr
+from .uncertainty import report_error_dph, uncertainty_for
 from .wesn import capture_regressors, fit_wesn
 
 
@@ -130,15 +132,21 @@ VALIDATION_CHUNK_S = 1200.0
 VALIDATION_FOLDS = 4
 
 
-def own_validation(model, captures: list[CaptureData], normalizer: Standardizer, config: FitConfig) -> float:
-    """The drift a model's structure leaves on data it was not fitted on, from the fit data alone, deg/h.
+def own_validation_squares(
+    model, captures: list[CaptureData], normalizer: Standardizer, config: FitConfig
+) -> np.ndarray:
+    """What a model's structure leaves on data it was not fitted on, from the fit data alone: per chunk of
+    the fit's own validation split, the mean square of the held-out residual's 10-minute means, (deg/h)^2.
 
     Chunks of ``VALIDATION_CHUNK_S`` device time (shorter for captures under 4 chunks) are dealt in turn to
     ``VALIDATION_FOLDS`` folds; for each fold the model's readout is refitted, at its chosen structure and
     penalty and with one intercept per capture, on the other folds' static blocks, and its residual on the
-    fold is averaged over windows of half a chunk (10 minutes) inside it.  Returns the RMS of those means,
-    each capture's and fold's mean removed.  For the polynomial and the ring ``wesn`` (the structures the
-    fit compares); interleaved folds keep every temperature in each training set."""
+    fold is averaged over whole static windows of half a chunk (10 minutes) inside it.  Each capture's and
+    fold's mean of those window means is removed, and each chunk gives the mean square of its windows'
+    (``choice.block_squares``; one value per chunk, in the order of (capture, fold, chunk)).  The same
+    blocks for every model of the same captures and config, so two models' values pair
+    (``choice.paired_margin``).  For the polynomial and the ring ``wesn`` (the structures the fit
+    compares); interleaved folds keep every temperature in each training set."""
     rate = config.model_rate_hz
     longest = max(len(c.static) for c in captures)
     window = max(1, min(int(round(VALIDATION_CHUNK_S * rate)), longest // (2 * VALIDATION_FOLDS)) // 2)
@@ -157,21 +165,31 @@ def own_validation(model, captures: list[CaptureData], normalizer: Standardizer,
     group = np.concatenate([np.full(len(i), g) for g, i in enumerate(index)])
     block = np.concatenate(index)
     fold = (block // chunk) % VALIDATION_FOLDS
-    squares, count = 0.0, 0
+    residual = np.full(len(y), np.nan)
     for k in range(VALIDATION_FOLDS):
         train, test = fold != k, fold == k
         if not train.any() or not test.any():
             continue
         w, b = standardized_ridge(x[train], y[train], alpha, penalty, group[train])
-        residual = y[test] - (x[test] @ w + b)
-        for g in np.unique(group[test]):
-            mine = group[test] == g
-            windows, inverse, sizes = np.unique(block[test][mine] // window, return_inverse=True, return_counts=True)
-            means = np.bincount(inverse, weights=residual[mine])[sizes == window] / window
-            if len(means) > 1:
-                squares += float(np.sum((means - means.mean()) ** 2))
-                count += len(means)
-    return float(np.sqrt(squares / count)) if count else float("nan")
+        residual[test] = y[test] - (x[test] @ w + b)
+    # whole windows only: every block of the window static (so held out, and in the same fold)
+    _, in_window, filled = np.unique(
+        np.stack([group, block // window]).T, axis=0, return_inverse=True, return_counts=True
+    )
+    whole = (filled[in_window.ravel()] == window) & np.isfinite(residual)
+    return block_squares(
+        residual[whole],
+        (group * VALIDATION_FOLDS + fold)[whole],  # each capture and fold has its own intercept
+        (block // window)[whole],
+        (block // chunk)[whole],
+    )
+
+
+def own_validation(model, captures: list[CaptureData], normalizer: Standardizer, config: FitConfig) -> float:
+    """The drift a model's structure leaves on the fit's own validation split, deg/h: the RMS over its
+    chunks, ``sqrt(mean(s_b))`` of ``own_validation_squares`` (NaN when the split has no chunk)."""
+    squares = own_validation_squares(model, captures, normalizer, config)
+    return float(np.sqrt(squares.mean())) if len(squares) else float("nan")
 
 
 def _fit_polynomial(captures: list[CaptureData], normalizer: Standardizer, config: FitConfig, progress=None):
@@ -230,9 +248,11 @@ def fit_model(
     """Fit ``kind`` (and the polynomial baseline beside it) to captures' data; return the model file and the
     report (``offline.fit.fit_model_file`` reads the captures).
 
-    A ring ``wesn`` is compared with the polynomial on the fit's own validation split (``own_validation``);
-    when it does worse, its provenance says so, and with ``fall_back`` (``fog-driver fit`` without
-    ``--kind``) the polynomial's model file is returned instead.  The fit's data are checked
+    A ring ``wesn`` is compared with the polynomial on the fit's own validation split (``model_choice``):
+    with ``fall_back`` (``fog-driver fit`` without ``--kind``) the polynomial's model file is returned
+    instead when it leaves less there by more than ``choice.SE_MULTIPLE`` standard errors; without, the
+    ``wesn`` is kept and its provenance warns when the polynomial does that.  The decision and its margin
+    are in ``provenance.selection.choice`` and the report's ``choice``.  The fit's data are checked
     (``quality.assess``): a fit that fails a check raises ``WeakFitError`` unless ``accept_weak``, and
     then the model file's ``provenance.fit_quality`` records the failures and that they were accepted.
     ``progress(text)`` hears every phase and how far it is ("pso-svr: iteration 4/20, particle 12/16
@@ -267,11 +287,18 @@ def fit_model(
     selection = getattr(models[kind], "selection", None)
     if selection:
         provenance["selection"] = selection
-        worse = _own_validation_scores(selection, models, kind, captures, normalizer, config, say)
-        if worse and fall_back:
+        choice = model_choice(models, kind, captures, normalizer, config, fall_back=fall_back, say=say)
+        selection["choice"] = report.choice = choice
+        if choice["decision"] == "polynomial saved":
             kind = "polynomial"
-            provenance["fell_back"] = f"{selection['warning_validation']}: the polynomial was saved instead"
+            provenance["fell_back"] = f"{polynomial_lead(choice)}: the polynomial was saved instead"
+        elif paired(choice).b_better:  # asked for by name: kept, with the warning
+            selection["warning_validation"] = f"{polynomial_lead(choice)}: without --kind it would be saved"
     quality = _assess(inputs, means, validate, normalizer, report, kind, config)
+    validate_minutes = len(static_rows(validate, config.model_rate_hz)[1]) if validate else 0
+    r_dph = report_error_dph(report, kind, len(means), validate_minutes)
+    uncertainty = uncertainty_for(models[kind], r_dph, domain)
+    provenance["sigma_kind"] = uncertainty.sigma_kind
     provenance["fit_quality"] = quality.to_dict(accept_weak)
     _add_findings(provenance["fit_quality"], models[kind], captures, normalizer, config, say)
     model_file = ModelFile(
@@ -285,35 +312,33 @@ def fit_model(
         domain=domain,
         substitution=substitution,
         temperature_channels=channels,
+        noise_1min_dph=report.noise_1min_dph,
+        uncertainty=uncertainty,
     )
     if quality.failed and not accept_weak:
         raise WeakFitError(quality, report, model_file)
     return model_file, report
 
 
-def _own_validation_scores(
-    selection: dict[str, Any],
+def model_choice(
     models: dict[str, Any],
     kind: str,
     captures: list[CaptureData],
     normalizer: Standardizer,
     config: FitConfig,
-    say: Callable[[str], None],
-) -> bool:
-    """Score ``kind`` and the polynomial on the fit's own validation split (``own_validation``) into
-    ``selection``, with a warning when ``kind`` leaves more there; whether it does."""
-    scores = {}
-    for name in ("polynomial", kind):
+    *,
+    fall_back: bool,
+    say: Callable[[str], None] = lambda text: None,
+) -> dict[str, Any]:
+    """``kind`` against the polynomial on the fit's own validation split: both models' held-out residuals
+    over the same chunks (``own_validation_squares``), paired (``choice.paired_margin``), and the decision
+    (``choice.choose``: with ``fall_back``, the polynomial only when it leaves less by more than
+    ``SE_MULTIPLE`` standard errors)."""
+    squares = {}
+    for name in (kind, "polynomial"):
         say(f"own validation split: {name}, {VALIDATION_FOLDS} folds")
-        scores[name] = own_validation(models[name], captures, normalizer, config)
-    selection["own_validation_rms_dph"] = scores
-    if scores[kind] > scores["polynomial"]:
-        selection["warning_validation"] = (
-            f"on its own validation split (interleaved {VALIDATION_CHUNK_S / 60:g}-min chunks of the fit data) the "
-            f"{kind} leaves {scores[kind]:.4f} deg/h, the polynomial {scores['polynomial']:.4f}"
-        )
-        return True
-    return False
+        squares[name] = own_validation_squares(models[name], captures, normalizer, config)
+    return choose(paired_margin(squares[kind], squares["polynomial"]), kind, fall_back=fall_back)
 
 
 def _add_findings(

@@ -9,11 +9,13 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from ..domain import InputDomain
 from ..readout import Standardizer
+from .choice import describe
 from .data import CaptureData, block_noise_dph, first_valid_block, static_minute_means
 
 
@@ -61,6 +63,26 @@ class FitReport:
 
     rows: list[tuple[str, float, float | None]]  #: (what, on fit data, on validate data)
     noise_floor: tuple[float, float | None] | None = None
+    #: the model choice on the fit's own validation split (``choice.choose``), when the fit made one
+    choice: dict[str, Any] | None = None
+
+    @property
+    def noise_1min_dph(self) -> float | None:
+        """The gyro's white noise at 1 min on the fit data (``noise_floor_dph``), or None when unknown."""
+        value = self.noise_floor[0] if self.noise_floor is not None else None
+        return value if value is not None and math.isfinite(value) else None
+
+    def lines(self) -> list[str]:
+        """The lines after the table: the noise at 1 min, and the model choice with its margin."""
+        out = []
+        if self.noise_1min_dph is not None:
+            out.append(
+                f"noise_1min_dph: {self.noise_1min_dph:.4f} deg/h: the gyro's white noise at 1 min on the fit data "
+                f"(in the model file, and in the daemon's STATUS)"
+            )
+        if self.choice is not None:
+            out.append(describe(self.choice))
+        return out
 
     def worse(self) -> dict[str, list[str]]:
         """For each model row worse than no compensation: the columns ("fit", "validate") where it is."""

@@ -10,16 +10,21 @@ Fitting (``_fit_ring_form``), everything from the fit data alone:
    number of stages (1, 2 or 3), by the smallest in-sample residual in 1-minute means of the model
    WITHOUT the history neurons (with them, the fit can shape a multi-stage coil's response out of
    history neurons and then evaluate the bias powers at the wrong lag); more stages only when they
-   beat fewer by ``ORDER_TOLERANCE`` (1 %): each adds a regressor;
+   beat fewer by ``ORDER_TOLERANCE`` (1 %) and by more than two standard errors of the paired margin
+   (``choice``, over 20-minute chunks): each adds a regressor;
 2. the ridge penalty, from ``ridge_alpha_grid``, by blocked cross-validation (4 contiguous
    folds, 10-minute means of the held-out residual), each penalty with its own lag;
 3. the final fit with the history neurons, whose penalty is ``history_penalty`` (100) times the
    others': a prior that a thermal history must show clearly to be believed, because on one
    chamber profile it is confounded with the coil's lag.
 
-What one paper-profile run cannot do: tell some coils' lags apart.  Lags that explain the run
-within ``LAG_TIE_TOLERANCE`` of the best are listed in the model's provenance, and when they
-span more than a factor 2 the fit warns; on the default simulated instrument, fits on eight
+What one paper-profile run cannot do: tell some coils' lags apart.  The coils that explain the run
+within the noise of the best (``tied_coils``: not beaten by two standard errors of the paired margin)
+are listed in the model's provenance, and when their lags span more than ``LAG_INTERVAL_WARN`` (1.5)
+the fit warns and names the remedy (the calibration program, or a run with other ramp rates).  Up to
+``MAX_CANDIDATES`` of them, refitted as the chosen one is, ride in the model file as its candidate
+structures: where they disagree, the data did not decide (``drift_sigma_dph``).  Before the
+noise-aware tie, lags within 0.2 % of the best counted as tied; on the default simulated instrument, fits on eight
 independent paper runs chose either 229-286 s (its true lag is 240 s; residual on other
 profiles 0.001-0.010 deg/h) or 698-1091 s (0.05-0.08), the two explaining the run equally well.
 A second run with faster ramps, fitted together, resolves it.  Interleaved cross-validation,
@@ -37,8 +42,9 @@ the cascade made the gains, on coils of two or three stages, the largest 0.082 -
 Its misses are coils whose lag one paper run cannot pin down: on the worst, a single 171-s stage,
 every lag from 60 s to 18 min explains the run within 1.5 %, the fit takes 873 s, and on fast
 ramps leaves 0.050 deg/h where the true lag would leave 0.026.
-``fit.own_validation`` then compares it with the polynomial on the fit's own validation split, and
-``fog-driver fit`` without ``--kind`` saves the polynomial when the wesn does worse there.
+``fit.model_choice`` then compares it with the polynomial on the fit's own validation split, and
+``fog-driver fit`` without ``--kind`` saves the polynomial only when it leaves less there by more than
+two standard errors of the paired margin (``choice``).
 Random reservoirs over all eight inputs fit the training profile's history and extrapolate worse
 than the polynomial baseline (docs/explanation/accuracy.md).
 """
@@ -54,11 +60,12 @@ from ..aflp import AflpFilter, AflpParams
 from ..features import channels_of, ring_of
 from ..models.wesn import WesnConfig, WesnModel, n_regressors
 from ..readout import AdaptiveLaw
+from .choice import block_squares, paired_margin
 from .data import capture_groups, first_valid_block
 from .ridge import cross_validated_alpha, standardized_ridge
 
-#: Lags whose in-sample residual is within this fraction of the best explain a capture equally well.
-LAG_TIE_TOLERANCE = 0.002
+#: The fit warns, naming the remedy, when the lags that explain its data equally well span more than this factor.
+LAG_INTERVAL_WARN = 1.5
 
 
 #: A coil of more stages is chosen only when its in-sample residual beats the fewer stages' by this fraction.
@@ -180,15 +187,15 @@ def _fit_ring_form(kind: str, wc: WesnConfig, captures, normalizer, config, say=
     choices = {}
     for k, alpha in enumerate(alphas):
         say(f"{kind}: ridge penalty {k + 1}/{len(alphas)}, coil lags and cross-validation")
-        criteria = {}
+        criteria, squares = {}, {}
         for coil, (_, regressors, columns) in per_coil.items():
             x = np.vstack([f[c.static][:, columns] for f, c in zip(regressors, captures)])
             w, b = standardized_ridge(x, y_fit, alpha, groups=groups)
             residuals = [t - (f[:, columns] @ w + b) for f, t in zip(regressors, targets)]
             criteria[coil] = _averaged_residual(residuals, captures, minute)
-        coil = _chosen_coil(criteria)
-        best_of_order = {k: v for k, v in criteria.items() if k[1] == coil[1]}
-        tied = [lag for (lag, _), v in best_of_order.items() if v <= criteria[coil] * (1.0 + LAG_TIE_TOLERANCE)]
+            squares[coil] = minute_chunk_squares(residuals, captures, minute)
+        coil = _chosen_coil(criteria, squares)
+        tied = tied_coils(coil, squares)
         _, regressors, columns = per_coil[coil]
         x = np.vstack([f[c.static][:, columns] for f, c in zip(regressors, captures)])
         _, cv = cross_validated_alpha(
@@ -197,14 +204,21 @@ def _fit_ring_form(kind: str, wc: WesnConfig, captures, normalizer, config, say=
         choices[alpha] = (cv[alpha], coil, criteria, tied)
     alpha = min(choices, key=lambda a: choices[a][0])
     _, (lag, order), criteria, tied = choices[alpha]
-    reservoir, regressors, _ = per_coil[lag, order]
-    n_features = len(regressors[0][0])
-    penalty = np.ones(n_features)
-    penalty[1 : 1 + n_history] = wc.history_penalty
-    x_fit = np.vstack([f[c.static] for f, c in zip(regressors, captures)])
-    weights, intercept = standardized_ridge(x_fit, y_fit, alpha, penalty, groups)
-    model = WesnModel(kind, reservoir, weights, intercept, wc.linear_path, wc.state_powers, wc.max_power, wc.coil_rate)
+
+    def final(coil: tuple[float, int]) -> WesnModel:
+        reservoir, regressors, _ = per_coil[coil]
+        x_fit = np.vstack([f[c.static] for f, c in zip(regressors, captures)])
+        penalty = np.ones(x_fit.shape[1])
+        penalty[1 : 1 + n_history] = wc.history_penalty
+        weights, intercept = standardized_ridge(x_fit, y_fit, alpha, penalty, groups)
+        return WesnModel(
+            kind, reservoir, weights, intercept, wc.linear_path, wc.state_powers, wc.max_power, wc.coil_rate
+        )
+
+    model = final((lag, order))
     model.selection = _selection(wc, lag, order, alpha, choices, criteria, tied, limits)
+    say(f"{kind}: candidate structures ({len(tied)} explain the data equally well)")
+    model.candidates = [final(c) for c in spread_candidates(tied, (lag, order))]
     return model
 
 
@@ -215,13 +229,15 @@ def _selection(
     alpha: float,
     choices: dict[float, Any],
     criteria: dict[tuple[float, int], float],
-    tied: list[float],
+    tied: list[tuple[float, int]],
     limits: list[str],
 ) -> dict[str, Any]:
     """The ring form's ``selection`` (the model file's provenance): the chosen coil (``lag``, ``order``) and
     penalty ``alpha``, every penalty's cross-validation score (``choices``), every coil's in-sample residual
-    (``criteria``), the lags that explain the captures equally well (``tied``; a warning when they span more
-    than a factor 2), and what the data could not identify (``limits``)."""
+    (``criteria``), the coils that explain the captures equally well (``tied``: within the noise of the best,
+    ``tied_coils``; a warning naming the remedy when their lags span more than ``LAG_INTERVAL_WARN``), and
+    what the data could not identify (``limits``)."""
+    lags = sorted({float(v) for v, _ in tied})
     selection: dict[str, Any] = {
         "coil_lag_s": float(lag),
         "coil_order": int(order),
@@ -231,16 +247,18 @@ def _selection(
         "cv_rms_dph": {float(a): float(v[0]) for a, v in choices.items()},
         "lag_rms_1min_dph": {float(k): float(v) for (k, m), v in criteria.items() if m == order},
         "order_rms_1min_dph": {m: float(min(v for (_, o), v in criteria.items() if o == m)) for m in wc.coil_orders},
-        "lags_explaining_equally_s": [float(v) for v in sorted(tied)],
+        "lags_explaining_equally_s": lags,
+        "coils_explaining_equally": [[float(v), int(m)] for v, m in sorted(tied)],
         "state_powers": wc.state_powers,
     }
     if limits:
         selection["limits"] = limits
-    if max(tied) > 2.0 * min(tied):
+    if max(lags) > LAG_INTERVAL_WARN * min(lags):
         selection["warning"] = (
-            f"the coil's lag is poorly identified by these captures: {min(tied):g} s to {max(tied):g} s explain them "
-            f"within {100 * LAG_TIE_TOLERANCE:g} % (the fit takes {lag:g} s); on faster ramps they would differ. A run "
-            f"with faster ramps or steps, fitted together with this one, tells them apart"
+            f"the coil's lag is poorly identified by these captures: {min(lags):g} s to {max(lags):g} s explain them "
+            f"within the noise of the best (the fit takes {lag:g} s); on faster ramps they would differ, and "
+            f"drift_sigma_dph grows with that interval. Remedy: run the calibration program (`fog-driver plan`, "
+            f"or `--profile calibration`), or add a run with other ramp rates, and fit the runs together"
         )
     return selection
 
@@ -257,15 +275,64 @@ def ring_weights_for(normalizer) -> tuple[float, ...]:
     return s_top / (s_top + s_bottom), s_bottom / (s_top + s_bottom)
 
 
-def _chosen_coil(criteria: dict) -> tuple[float, int]:
+def _chosen_coil(criteria: dict, squares: dict) -> tuple[float, int]:
     """The (lag, order) of smallest criterion, a higher order only when it beats every lower order's best
-    by more than ``ORDER_TOLERANCE`` (more stages add regressors: they must earn them)."""
+    by more than ``ORDER_TOLERANCE`` and by more than ``choice.SE_MULTIPLE`` standard errors of the paired
+    margin (``minute_chunk_squares``): more stages add regressors, they must earn them beyond the noise."""
     best: Any = None
     for order in sorted({m for _, m in criteria}):
         coil = min((k for k in criteria if k[1] == order), key=criteria.__getitem__)
-        if best is None or criteria[coil] < criteria[best] * (1.0 - ORDER_TOLERANCE):
+        if best is None or (
+            criteria[coil] < criteria[best] * (1.0 - ORDER_TOLERANCE)
+            and paired_margin(squares[best], squares[coil]).b_better
+        ):
             best = coil
     return best
+
+
+#: In-sample residuals are compared over chunks of this many whole static minutes (long against the
+#: residual's correlation: a misfit of a ramp lasts its ramp).
+CHUNK_MINUTES = 20
+
+
+def minute_chunk_squares(residuals, captures, window: int) -> np.ndarray:
+    """The residual's means over whole static windows of ``window`` blocks (each capture's mean of them
+    removed, as ``_averaged_residual``), their mean square per chunk of ``CHUNK_MINUTES`` windows:
+    ``choice.block_squares`` of them, what ``choice.paired_margin`` pairs."""
+    rows, groups, windows = [], [], []
+    for g, (r, c) in enumerate(zip(residuals, captures)):
+        n = len(r) // window * window
+        ok = np.flatnonzero(c.static[:n].reshape(-1, window).all(axis=1))
+        if len(ok) < 2:
+            continue
+        rows.append(r[:n].reshape(-1, window)[ok].mean(axis=1))
+        groups.append(np.full(len(ok), g))
+        windows.append(ok)
+    if not rows:
+        return np.zeros(0)
+    w = np.concatenate(windows)
+    return block_squares(np.concatenate(rows), np.concatenate(groups), w, w // CHUNK_MINUTES)
+
+
+def tied_coils(chosen: tuple[float, int], squares: dict) -> list[tuple[float, int]]:
+    """The coils that explain the captures as well as ``chosen`` within the noise: those the chosen coil
+    does not beat by more than ``choice.SE_MULTIPLE`` standard errors of the paired margin (chosen included)."""
+    return sorted(k for k in squares if k == chosen or not paired_margin(squares[k], squares[chosen]).b_better)
+
+
+#: The candidate structures kept beside the chosen one, for ``drift_sigma_dph`` (``uncertainty``): at most
+#: this many of the tied coils, spread over their lags.
+MAX_CANDIDATES = 6
+
+
+def spread_candidates(tied: list[tuple[float, int]], chosen: tuple[float, int]) -> list[tuple[float, int]]:
+    """At most ``MAX_CANDIDATES`` of the ``tied`` coils other than ``chosen``, spread evenly over them in
+    order of (lag, order): the extremes of the interval always among them."""
+    others = [k for k in sorted(tied) if k != chosen]
+    if len(others) <= MAX_CANDIDATES:
+        return others
+    picks = np.unique(np.round(np.linspace(0, len(others) - 1, MAX_CANDIDATES)).astype(int))
+    return [others[i] for i in picks]
 
 
 def identifiable_structure(wc: WesnConfig, captures, model_rate_hz: float) -> tuple[WesnConfig, list[str]]:

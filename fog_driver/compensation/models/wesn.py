@@ -252,6 +252,9 @@ class WesnModel:
         self._coil_leak = float(reservoir.params.leaks()[0])
         #: How the fit chose the structure (lag, penalty, scores), for the model file's provenance; None when loaded.
         self.selection: dict | None = None
+        #: The structures the fit data cannot tell from this one (``fitting.wesn.tied_coils``), fitted alike;
+        #: the model file keeps them in its ``uncertainty`` section, not here.  Empty when loaded.
+        self.candidates: list[WesnModel] = []
         expected = n_regressors(
             reservoir.params.n_neurons, linear_path, self.state_powers, max_power, coil_rate, reservoir.params.n_inputs
         )

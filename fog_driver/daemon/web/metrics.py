@@ -43,9 +43,18 @@ METRICS: dict[str, tuple[str, str]] = {
     "fog_driver_capture_failures_total": ("counter", "raw capture write failures (each retried)"),
     "fog_driver_capture_bytes_lost_total": ("counter", "bytes the raw capture could not write"),
     "fog_driver_drift_dph": ("gauge", "the model's drift estimate in deg/h at the last sample"),
+    "fog_driver_drift_sigma_dph": (
+        "gauge",
+        "the 1-sigma of the drift estimate's error as a 1-min mean, in deg/h, at the last sample (absent while "
+        "there is no estimate)",
+    ),
     "fog_driver_rate_dph": ("gauge", "the compensated rate in deg/h, mean over the last full second"),
     "fog_driver_temperature_celsius": ("gauge", "the instrument's thermometers at the last sample, by channel"),
     "fog_driver_bias_dph": ("gauge", "the bias removed (?BIAS) in deg/h"),
+    "fog_driver_bias_sigma_dph": (
+        "gauge",
+        "the drift estimate's sigma in deg/h while the bias was captured (absent before a ?BIAS capture)",
+    ),
     "fog_driver_adapting": ("gauge", "1 while the weights adapt online, 0 while frozen"),
     "fog_driver_model_age_seconds": ("gauge", "seconds since the model in use was fitted"),
     "fog_driver_extrapolating": ("gauge", "1 while the last sample lies outside what the model was fitted on"),
@@ -149,6 +158,7 @@ class DaemonCollector:
             ("fog_driver_samples_published_total", "published"),
             ("fog_driver_capture_bytes_lost_total", "capture_bytes_lost"),
             ("fog_driver_bias_dph", "bias_dph"),
+            ("fog_driver_bias_sigma_dph", "bias_sigma_dph"),
         ):
             yield from single(name, status.get(key))
         flagged = status.get("flagged")
@@ -188,6 +198,7 @@ class DaemonCollector:
             yield from single("fog_driver_capture_up", 1 if status["capture_state"] in ("idle", "recording") else 0)
         yield from single("fog_driver_capture_failures_total", state.get("capture_failures"))
         yield from single("fog_driver_drift_dph", angle.get("drift_dph"))
+        yield from single("fog_driver_drift_sigma_dph", angle.get("drift_sigma_dph"))
         yield from single("fog_driver_rate_dph", state.get("rate_1s_dph"))
         temps = angle.get("temps_c")
         if isinstance(temps, Mapping):

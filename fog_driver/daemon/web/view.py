@@ -8,9 +8,12 @@ receives more than one sample per update, whatever the instrument's rate.
 Series kept for the plots (the last ``history_min`` minutes of device time):
 
 * ``points``: one per ``point_every_s`` of device time (1 s, longer for a history beyond an hour, so a
-  page never holds more than ``MAX_POINTS``), from the span's last sample: its UTC, drift estimate,
-  temperatures and angle, and the span's mean compensated rate ``rate_dph = (1/n) * sum_i rate_dph_i`` over
-  its n samples;
+  page never holds more than ``MAX_POINTS``), from the span's last sample: its UTC, drift estimate and its
+  ``drift_sigma_dph``, temperatures and angle, and the span's mean compensated rate
+  ``rate_dph = (1/n) * sum_i rate_dph_i`` over its n samples; and the half-width of the band the drift plot
+  draws, ``drift_band_dph = BAND_SIGMAS * sigma`` with sigma as shown then (``display.drift_sigma``: the
+  sample's sigma(t), or once STATUS says a bias was captured, sqrt(sigma(t)^2 + sigma(t_b)^2), and
+  ``band_since_bias`` true), None without a sigma;
 * ``minutes``: one per minute of device time, the minute's mean compensated and raw rates
   ``rate_dph = (1/n) * sum_i rate_dph_i`` (every sample, not the decimated ones: a mean of the published
   rates is the angle gained over the minute divided by its duration, unaffected by a ``?ZERO`` meanwhile).
@@ -30,7 +33,7 @@ from collections import deque
 from collections.abc import Iterable, Mapping
 from typing import Any
 
-from ...client.display import NO_DATA_S, banners, format_arcsec, format_dms
+from ...client.display import BAND_SIGMAS, NO_DATA_S, banners, drift_sigma, format_arcsec, format_dms
 from ...client.display import finite_number as _number
 from ...client.display import fixed as _fixed
 
@@ -170,11 +173,15 @@ class ViewState:
     def _close_point(self, point: _Mean) -> None:
         last = point.last
         temps = last.get("temps_c") if isinstance(last.get("temps_c"), Mapping) else {}
+        shown, since_bias = drift_sigma(last, self.objects.get("STATUS", {}))
         self.points.append(
             {
                 "t_s": last["t_s"],
                 "utc": last.get("utc"),
                 "drift_dph": _number(last.get("drift_dph")),
+                "drift_sigma_dph": _number(last.get("drift_sigma_dph")),
+                "drift_band_dph": None if shown is None else BAND_SIGMAS * shown,
+                "band_since_bias": since_bias,
                 "angle_arcsec": _number(last.get("angle_arcsec")),
                 "rate_dph": point.rate_sum / point.n if point.n else None,
                 "temps_c": {str(k): _number(v) for k, v in temps.items()},
@@ -250,8 +257,16 @@ class ViewState:
                     "level": "alarm",
                 },
             )
+        shown, since_bias = drift_sigma(angle, status)
         return {
             "angle": dict(angle),
+            "drift_sigma": {  # the sample's sigma(t), the capture's sigma(t_b), and the sigma shown
+                "sigma_dph": _number(angle.get("drift_sigma_dph")),
+                "bias_sigma_dph": _number(status.get("bias_sigma_dph")) if since_bias else None,
+                "shown_dph": shown,
+                "since_bias": since_bias,
+                "band_sigmas": BAND_SIGMAS,
+            },
             "rate_1s_dph": self.rate_1s_dph,
             "status": dict(status),
             "device": dict(self.objects.get("DEVICE", {})),
@@ -281,6 +296,7 @@ class ViewState:
             "rate_1s_dph": _fixed(self.rate_1s_dph, 2),
             "rate_raw_dph": _fixed(a.get("rate_raw_dph"), 1),
             "drift_dph": _fixed(a.get("drift_dph"), 3),
+            **_sigma_text(a, status),
             "flags": ", ".join(str(f) for f in flags) or "none",
             "age": "-" if angle_age_s is None else f"{angle_age_s:.1f} s ago",
             "link": {"activated": "link up", "deactivated": "link down"}.get(device.get("state"), "-"),
@@ -292,6 +308,22 @@ class ViewState:
             value = status.get(key)
             out[f"status_{key}"] = _status_text(value)
         return out
+
+
+def _sigma_text(angle: Mapping[str, Any], status: Mapping[str, Any]) -> dict[str, str]:
+    """The drift's 1-sigma as the page shows it (``display.drift_sigma``, as ``watch``), its label, and the label
+    of the band around the drift plot."""
+    shown, since_bias = drift_sigma(angle, status)
+    if _number(angle.get("drift_sigma_dph")) is None:
+        label = "none (no estimate yet, or a model without one)"
+    elif since_bias and shown is None:
+        label = "since the bias: unknown (the bias was captured without one)"
+    elif since_bias:
+        label = "1\u03c3 since the bias: \u221a(\u03c3(t)\u00b2 + \u03c3(t_b)\u00b2)"
+    else:
+        label = "1\u03c3 of the 1-min mean, about the run's mean (the bias)"
+    band = f"\u00b1{BAND_SIGMAS:g}\u03c3 (95 %)" + (", since the bias" if since_bias else "")
+    return {"drift_sigma_dph": _fixed(shown, 4), "drift_sigma_label": label, "drift_band_label": band}
 
 
 def _angle(value: Any, fmt: Any) -> str:

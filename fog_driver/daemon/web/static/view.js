@@ -10,6 +10,7 @@ const layoutBase = {
 };
 const plotConfig = { displayModeBar: false, responsive: true, staticPlot: false };
 let statusRows = null;
+let bandLabel = "";  // the drift band's legend, as the server words it (plain sigma, or since the bias)
 let socket = null;
 let retryMs = 1000;
 
@@ -88,8 +89,17 @@ function x(list, offsetS = 0) {
 function drawPlots() {
   if (typeof Plotly === "undefined") return;
   const pts = series.points, mins = series.minutes;
-  Plotly.react("plot-drift", [{ x: x(pts), y: pts.map((p) => p.drift_dph), name: "drift estimate", line: { color: "#3b5ba5" } }],
-    { ...layoutBase, title: { text: "drift estimate (deg/h)" } }, plotConfig);
+  // The band: drift +- drift_band_dph (BAND_SIGMAS sigma, as the server computed it for each point), drawn
+  // only once a point has one; a point without a sigma leaves a gap.
+  const band = (sign) => pts.map((p) => (p.drift_band_dph == null || p.drift_dph == null ? null : p.drift_dph + sign * p.drift_band_dph));
+  const drift = [{ x: x(pts), y: pts.map((p) => p.drift_dph), name: "drift estimate", line: { color: "#3b5ba5" } }];
+  if (pts.some((p) => p.drift_band_dph != null)) {
+    drift.unshift(
+      { x: x(pts), y: band(-1), name: bandLabel, mode: "lines", showlegend: false, hoverinfo: "skip", line: { width: 0 } },
+      { x: x(pts), y: band(1), name: bandLabel, mode: "lines", fill: "tonexty", fillcolor: "rgba(59, 91, 165, 0.18)", line: { width: 0 } },
+    );
+  }
+  Plotly.react("plot-drift", drift, { ...layoutBase, title: { text: "drift estimate (deg/h)" } }, plotConfig);
   Plotly.react("plot-rate", [
     { x: x(mins, 30), y: mins.map((m) => m.rate_dph), name: "compensated", mode: "lines+markers", line: { color: "#1f7a3a" } },
     { x: x(mins, 30), y: mins.map((m) => m.rate_raw_dph), name: "raw", mode: "lines+markers", line: { color: "#aaa" } },
@@ -118,6 +128,7 @@ function handle(msg) {
   merge(series.points, msg.points || []);
   merge(series.minutes, msg.minutes || []);
   if (msg.rows) statusRows = msg.rows;
+  if (msg.text && msg.text.drift_band_label) bandLabel = "band: " + msg.text.drift_band_label;
   const utcMs = msg.angle && msg.angle.utc ? Date.parse(msg.angle.utc) : NaN;
   if (Number.isFinite(utcMs) && typeof msg.angle.t_s === "number") anchorMs = utcMs - msg.angle.t_s * 1000;
   showStatus(statusRows, msg.text);
