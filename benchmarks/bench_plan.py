@@ -34,6 +34,9 @@ a closing sinusoid: the shipped design), ``coarse`` (the same with plateaus 30 d
 many transients, each ramp and hold twice as long against a long lag).  Captures are cached in
 ``--workdir``; ``--reuse DIR`` reads captures already simulated under ``bench_population.py``'s names
 (``DIR/i<K>/<profile>-r<seed>-<rate>hz.bin``) without writing there.  One worker by default.
+
+The figures of docs/explanation/accuracy.md ("The calibration program"): ``--instruments 24 --per-instrument``
+(with ``--workers 2``, 57 minutes on the shared two-core machine, the captures cached).
 """
 
 from __future__ import annotations
@@ -44,6 +47,7 @@ import sys
 import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -53,15 +57,14 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from bench_population import SEED_SETS, static_minutes_mask  # noqa: E402
+from bench_population import capture as population_capture  # noqa: E402
 
 from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
 from fog_driver.offline.fit import fit_model_file  # noqa: E402
 from fog_driver.report.evaluate import minute_rms, per_second  # noqa: E402
-from fog_driver.sim.capture import read_truth, simulate_to_file, truth_noise_dph  # noqa: E402
-from fog_driver.sim.instrument import Simulator  # noqa: E402
+from fog_driver.sim.capture import read_truth, truth_noise_dph  # noqa: E402
 from fog_driver.sim.motion import MotionPlan  # noqa: E402
 from fog_driver.sim.plan import DEFAULT_LIMITS, DESIGN, Design, design_program, identifiability_gaps  # noqa: E402
-from fog_driver.sim.population import draw_instrument  # noqa: E402
 from fog_driver.sim.profiles import SimProfile, dump_profile, load_profile  # noqa: E402
 
 #: name -> the design (None: the paper's program, the built-in profile ``paper``)
@@ -83,21 +86,18 @@ def candidate_profile(name: str) -> SimProfile:
     return SimProfile(design.name, design_program(DEFAULT_LIMITS, design).chamber, MotionPlan.static(), "bench_plan")
 
 
-def capture(workdir: Path, reuse: Path | None, seed: int, profile: SimProfile, run_seed: int, rate_hz: int) -> Path:
-    """Instrument ``seed``'s run of ``profile``: from ``reuse`` when there under the profile's name, else cached
-    in ``workdir`` under its name and a hash of its program (a changed design is simulated afresh)."""
-    name = f"{profile.name}-r{run_seed}-{rate_hz}hz.bin"
-    if reuse is not None and (reuse / f"i{seed}" / name).exists() and profile.source != "bench_plan":
-        return reuse / f"i{seed}" / name
-    digest = hashlib.sha256(dump_profile(profile).encode()).hexdigest()[:8]
-    out = workdir / f"i{seed}" / f"{profile.name}-{digest}-r{run_seed}-{rate_hz}hz.bin"
-    if not out.exists():
-        out.parent.mkdir(parents=True, exist_ok=True)
-        sim = Simulator(profile, draw_instrument(seed), rate_hz=rate_hz, seed=run_seed)
-        simulate_to_file(sim, out.with_suffix(".part.bin"))
-        for suffix in (".bin", ".bin.yaml", ".truth.csv"):  # complete files only: an interrupted run redoes them
-            out.with_suffix(".part" + suffix).rename(out.with_suffix(suffix))
-    return out
+def capture(workdir: Path, reuse: Path | None, seed: int, name: str, run_seed: int, rate_hz: int) -> Path:
+    """Instrument ``seed``'s run of profile or candidate ``name``: from ``reuse`` when there under
+    ``bench_population.py``'s name (not a candidate design: its program may have changed), else cached in
+    ``workdir`` by ``bench_population.capture``, a candidate under its name and a hash of its program."""
+    if name in CANDIDATES and CANDIDATES[name] is not None:
+        profile = candidate_profile(name)
+        digest = hashlib.sha256(dump_profile(profile).encode()).hexdigest()[:8]
+        return population_capture(workdir, seed, replace(profile, name=f"{name}-{digest}"), run_seed, rate_hz)
+    reused = reuse / f"i{seed}" / f"{name}-r{run_seed}-{rate_hz}hz.bin" if reuse is not None else None
+    if reused is not None and reused.exists():
+        return reused
+    return population_capture(workdir, seed, name, run_seed, rate_hz)
 
 
 def score_instrument(seed: int, designs: tuple[str, ...], rate_hz: int, workdir: Path, reuse: Path | None) -> dict:
@@ -105,7 +105,7 @@ def score_instrument(seed: int, designs: tuple[str, ...], rate_hz: int, workdir:
     scoring runs (module docstring)."""
     runs = []
     for profile, offset in SCORE_PROFILES.items():
-        path = capture(workdir, reuse, seed, load_profile(profile), 10 * seed + offset, rate_hz)
+        path = capture(workdir, reuse, seed, profile, 10 * seed + offset, rate_hz)
         truth = read_truth(path.with_suffix(".truth.csv"))
         runs.append((path, truth, truth_noise_dph(truth)))
     result: dict = {"seed": seed, "r": {}, "fit_s": {}}
@@ -118,7 +118,7 @@ def score_instrument(seed: int, designs: tuple[str, ...], rate_hz: int, workdir:
     result["r"]["floor"] = float(np.sqrt(np.mean(floor_sq)))
     result["r"]["raw"] = float(np.sqrt(np.mean(raw_sq)))
     for design in designs:
-        fit_run = capture(workdir, reuse, seed, candidate_profile(design), 10 * seed + FIT_RUN_OFFSET, rate_hz)
+        fit_run = capture(workdir, reuse, seed, design, 10 * seed + FIT_RUN_OFFSET, rate_hz)
         for kind in ("wesn", "polynomial"):
             t0 = time.perf_counter()
             model, _ = fit_model_file([fit_run], kind=kind, config=FitConfig(), accept_weak=True)
@@ -210,4 +210,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from readme_block import run_main  # --update-readme: the documentation's block for this command
+
+    run_main(main)

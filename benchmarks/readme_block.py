@@ -47,15 +47,15 @@ class _Tee(io.TextIOBase):
 
 def block_key(script: str, argv: list[str]) -> str:
     """The block's name: the script's file name and its arguments, less ``--update-readme``,
-    ``--workdir DIR`` and ``--workers N`` (or ``=``): where it works and how many processes it uses never
-    change a figure."""
+    ``--workdir DIR``, ``--reuse DIR`` and ``--workers N`` (or ``=``): where it works, which captures it reads
+    instead of simulating them again and how many processes it uses never change a figure."""
     shown, skip = [], False
     for arg in argv:
         if skip:
             skip = False
-        elif arg == "--update-readme" or arg.startswith(("--workdir=", "--workers=")):
+        elif arg == "--update-readme" or arg.startswith(("--workdir=", "--workers=", "--reuse=")):
             continue
-        elif arg in ("--workdir", "--workers"):
+        elif arg in ("--workdir", "--workers", "--reuse"):
             skip = True
         else:
             shown.append(arg)

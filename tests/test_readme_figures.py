@@ -26,6 +26,9 @@ def test_the_block_key_is_the_command_less_the_cache_and_the_flag():
         "--workers",
         "1",
         "--workers=2",
+        "--reuse",
+        "/z",
+        "--reuse=/w",
         "--adapt",
     ]
     assert readme_block.block_key("benchmarks/bench_population.py", argv) == "bench_population.py --set dev --adapt"
