@@ -100,6 +100,7 @@ CASES = [
     ("simulate-no-dir", SIM + ["--out", "nodir/s.bin"], 73, ["no such directory"]),
     ("record-no-dir", ["record", REPLAY, "--out", "nodir/r.bin", "--no-reconnect"], 73, ["no such directory"]),
     ("fit-no-dir", FIT + ["--out", "nodir/m.yaml"], 73, ["no such directory"]),
+    ("plan-no-dir", ["plan", "--out", "nodir/p.yaml"], 73, ["no such directory"]),
     ("compensate-no-dir", COMP + ["--out", "nodir/c.csv"], 73, ["no such directory"]),
     (
         "compensate-adapt-state-no-dir",
@@ -120,6 +121,7 @@ CASES = [
     ("evaluate-out-under-file", EVAL + ["--out", "plain.txt/report"], 73, ["not a directory"]),
     ("simulate-out-under-file", SIM + ["--out", "plain.txt/s.bin"], 73, ["not a directory"]),
     ("compensate-out-under-file", COMP + ["--out", "plain.txt/c.csv"], 73, ["not a directory"]),
+    ("plan-out-under-file", ["plan", "--out", "plain.txt/p.yaml"], 73, ["not a directory"]),
     ("run-capture-dir-is-file", RUN + ["--capture-dir", "plain.txt"], 73, ["not a directory"]),
     # an unreadable input: a directory, or a path under a regular file
     ("inspect-dir", ["inspect", "adir"], 65, ["adir"]),
@@ -170,6 +172,7 @@ FULL_DISK = [
     ("simulate", SIM + ["--out", "full.bin"], ["full.bin", "full.truth.csv", "full.bin.yaml"]),
     ("record", ["record", REPLAY, "--out", "full.bin", "--no-reconnect"], None),
     ("fit", FIT + ["--out", "full.yaml"], ["full.yaml"]),
+    ("plan", ["plan", "--out", "full.yaml"], ["full.yaml"]),
     ("compensate", COMP + ["--out", "full.csv"], ["full.csv"]),
     ("evaluate", EVAL + ["--out", "full-report"], None),
 ]

@@ -135,6 +135,16 @@ def test_a_wheel_installed_in_a_new_environment_runs_the_daemon_from_anywhere(tm
     package_file, model, model_is_file = where.stdout.split("\n")[:3]
     assert Path(package_file).is_relative_to(venv) and Path(model).is_relative_to(venv), where.stdout
     assert model_is_file == "True"
+    simulated = subprocess.run(  # the built-in calibration program needs no configs/ folder
+        [str(venv / "bin" / "fog-driver"), "simulate", "--profile", "calibration", "--rate-hz", "10"]
+        + ["--duration", "60", "--out", "calibration.bin"],
+        cwd=elsewhere,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=GUARD_S,
+    )
+    assert simulated.returncode == 0 and "simulated calibration at 10 Hz" in simulated.stdout, simulated.stderr
 
     line = run_until_ready_then_terminate(
         [

@@ -17,7 +17,7 @@ from fog_driver.sim.motion import ConstantRate, MotionPlan, Positioning, Stop, p
 from fog_driver.sim.profiles import MAX_SEGMENTS, dump_profile, load_profile, parse_profile
 
 PROFILES = Path(__file__).resolve().parents[1] / "configs" / "profiles"
-SHIPPED = ("paper", "fast-ramps", "short-test", "positioning")
+SHIPPED = ("paper", "fast-ramps", "short-test", "positioning", "calibration", "chamber-cycle")
 
 
 def move_breakpoints(seq: Positioning) -> np.ndarray:
@@ -150,6 +150,23 @@ def test_fast_ramps_is_a_different_profile_for_validation():
     off_grid = [p.temp_c for p in chamber.plateaus() if p.temp_c % 5 != 0]
     assert len(off_grid) >= 4
     assert chamber != load_profile("paper").chamber
+
+
+def test_chamber_cycle_is_a_scoring_profile_unlike_the_others():
+    """What its header says: 344.1 min, irregular ramps of 0.5 to 2.5 degC/min (two in a row), 0.6 of a
+    sinusoid's period, and a 10 x 36 degree sequence 10 min into each of plateaus 1 to 5."""
+    prof = load_profile(PROFILES / "chamber-cycle.yaml")
+    chamber = prof.chamber
+    assert chamber.duration_s == pytest.approx(344.1 * 60, abs=30)
+    rates = [s.rate_c_per_min for s in chamber.segments if isinstance(s, Ramp)]
+    assert min(rates) == 0.5 and max(rates) == 2.5 and len(set(rates)) == len(rates)
+    (sine,) = [s for s in chamber.segments if isinstance(s, Sinusoid)]
+    assert not sine.whole_periods and sine.end_offset_c() == pytest.approx(6 * math.sin(1.2 * math.pi))
+    plateaus = chamber.plateaus()
+    assert [m.start_s for m in prof.motion.items] == [plateaus[k].t_start_s + 600.0 for k in range(1, 6)]
+    assert all(m.moves == 10 and m.step_deg == 36.0 for m in prof.motion.items)
+    for other in ("paper", "fast-ramps", "soak-cycle", "steps-moves", "calibration"):
+        assert load_profile(other).chamber.segments != chamber.segments
 
 
 def test_short_test_profile_is_about_twenty_minutes():
@@ -401,7 +418,7 @@ def test_shipped_profiles_round_trip(name, tmp_path):
     assert again.chamber == prof.chamber and again.motion == prof.motion and again.name == prof.name
 
 
-@pytest.mark.parametrize("name", ["paper", "paper-validation"])
+@pytest.mark.parametrize("name", ["paper", "paper-validation", "calibration"])
 def test_builtin_profiles_round_trip(name):
     prof = load_profile(name)
     again = parse_profile(yaml.safe_load(dump_profile(prof)), "dumped")
@@ -502,7 +519,10 @@ def test_bad_profile_is_a_one_line_error_naming_the_file_and_item(tmp_path, text
 
 
 def test_bad_profile_files(tmp_path):
-    with pytest.raises(InputFileError, match=r"no such profile file \(profiles: paper, paper-validation, fast-ramps"):
+    with pytest.raises(
+        InputFileError,
+        match=r"no such profile file \(profiles: paper, paper-validation, calibration, chamber-cycle, fast-ramps",
+    ):
         load_profile(tmp_path / "nope.yaml")
     with pytest.raises(InputFileError, match=r"papper: no such profile \(profiles: paper, "):
         load_profile("papper")

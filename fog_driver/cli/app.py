@@ -5,8 +5,8 @@ exit status (see ``fog_driver.errors``); they never show a traceback.  Any other
 exception is a bug: one line ``fog-driver: error: internal error: <type>: <message>``,
 exit 70 (EX_SOFTWARE), and its traceback in the log on stderr.
 
-The commands live by group: ``captures`` (inspect, record, simulate), ``calibration`` (fit, compensate,
-evaluate), ``daemon`` (run), ``tools`` (watch, ctl); ``parser`` holds the argument tree.
+The commands live by group: ``captures`` (inspect, record, simulate), ``plan`` (plan), ``calibration`` (fit,
+compensate, evaluate), ``daemon`` (run), ``tools`` (watch, ctl); ``parser`` holds the argument tree.
 """
 
 from __future__ import annotations

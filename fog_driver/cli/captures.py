@@ -229,7 +229,7 @@ def add_simulate(p: argparse.ArgumentParser) -> None:
         "--profile",
         default="paper",
         metavar="NAME_OR_YAML",
-        help="a profile's name: built-in (paper, paper-validation) or a file's stem in configs/profiles/ "
+        help="a profile's name: built-in (paper, paper-validation, calibration) or a file's stem in configs/profiles/ "
         "(fast-ramps, positioning, ...); or a profile YAML file's path (default: paper)",
     )
     p.add_argument("--out", metavar="CAPTURE.bin", help="write the capture, its sidecar and CAPTURE.truth.csv")

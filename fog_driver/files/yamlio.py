@@ -16,9 +16,10 @@ from ..errors import InputFileError, OutputFileError
 MAX_YAML_BYTES = 1 << 20
 
 
-def write_yaml(path: str | Path, doc: Any, what: str) -> Path:
+def write_yaml(path: str | Path, doc: Any, what: str, header: str = "") -> Path:
     """Write ``doc`` with ``yaml.safe_dump``, atomically and durably: a crash or a full disk never leaves
-    half a file.  A failure is an ``OutputFileError`` naming ``what``.
+    half a file.  A failure is an ``OutputFileError`` naming ``what``.  ``header``: lines of text written
+    first, each as a ``# `` comment.
 
     The text goes to a new temporary file with a random name beside ``path``, created with
     ``O_CREAT | O_EXCL | O_NOFOLLOW`` (a file or symlink planted under any name is never opened, let
@@ -27,6 +28,7 @@ def write_yaml(path: str | Path, doc: Any, what: str) -> Path:
     """
     path = Path(path)
     text = yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=120, allow_unicode=False)
+    text = "".join(f"# {line}".rstrip() + "\n" for line in header.splitlines()) + text
     tmp: Path | None = None
     try:
         fd, tmp = _create_new_file_beside(path)

@@ -8,7 +8,7 @@ once).  Times are seconds from the start of the run.  The chamber program is in 
 motion plan in ``fog_driver.sim.motion``; this module holds the whole profile, the built-in ones and the profile
 files.
 
-Built-in profiles (``load_profile("paper")``, ``load_profile("paper-validation")``):
+Built-in profiles (``load_profile("paper")``, ``load_profile("paper-validation")``, ``load_profile("calibration")``):
 
 - ``paper``: the paper's 440-minute chamber experiment.  20 degC, 30 min warm-up; +1 degC/min to
   25, 30, ..., 55 degC with 15 min at each; back to 20 degC at 2 degC/min (the paper only says
@@ -20,6 +20,9 @@ Built-in profiles (``load_profile("paper")``, ``load_profile("paper-validation")
   cool-down, then always warming, so the chamber never overshoots back and forth); 75 min at each
   temperature: 60 min to settle, then the 10 x 36 deg positioning sequence (697.9 s), and 202 s of
   margin before the next ramp.  1010 min in total.
+- ``calibration``: the program ``fog-driver plan`` writes with its default options (the paper's -40..55 degC
+  and 440 min, ramps up to 3 degC/min; ``fog_driver.sim.plan``), from which the drift model's time scales
+  can be identified in one run.  Static table.  ``configs/profiles/calibration.yaml`` is the same profile.
 
 YAML profile files (read with ``yaml.safe_load``; unknown keys are errors; indices in messages and
 ``at_plateau`` count from 0, as ``plateaus()`` does)::
@@ -50,12 +53,14 @@ from ..files.yamlio import MAX_YAML_BYTES, read_yaml
 from .chamber import KIND_OF, SEGMENT_KINDS, ChamberProfile, Hold, Ramp, Segment, Sinusoid, Step
 from .checks import check_number
 from .motion import ConstantRate, MotionItem, MotionPlan, Positioning, positioning_at_plateau
+from .plan import design_program
 
 __all__ = [
     "BUILTIN_PROFILES",
     "MAX_PROFILE_BYTES",
     "MAX_SEGMENTS",
     "SimProfile",
+    "calibration_profile",
     "dump_profile",
     "load_profile",
     "paper_profile",
@@ -120,7 +125,16 @@ def paper_validation_profile() -> SimProfile:
     return SimProfile("paper-validation", chamber, motion, "built-in")
 
 
-BUILTIN_PROFILES = {"paper": paper_profile, "paper-validation": paper_validation_profile}
+def calibration_profile() -> SimProfile:
+    """The default calibration program: ``fog-driver plan`` with its default options (``fog_driver.sim.plan``)."""
+    return SimProfile("calibration", design_program().chamber, MotionPlan.static(), "built-in")
+
+
+BUILTIN_PROFILES = {
+    "paper": paper_profile,
+    "paper-validation": paper_validation_profile,
+    "calibration": calibration_profile,
+}
 
 
 # --- YAML ----------------------------------------------------------------------------------------
@@ -286,7 +300,7 @@ def profile_names() -> list[str]:
 def load_profile(name_or_path: str | Path) -> SimProfile:
     """A profile by name or a YAML profile file, validated.
 
-    A name is a built-in profile (``paper``, ``paper-validation``) or the stem of a file in
+    A name is a built-in profile (``paper``, ``paper-validation``, ``calibration``) or the stem of a file in
     ``configs/profiles/`` (see :func:`profile_folders`): ``fast-ramps`` is ``configs/profiles/fast-ramps.yaml``.
     Anything with a ``/`` or a ``.yaml`` suffix is a path.
     """
