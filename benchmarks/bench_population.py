@@ -28,8 +28,13 @@ runs:
   least gain (chosen on ``dev`` 0..23, evaluated once on ``eval2``).  It missed the creep target (0.2
   deg/h: worst 2.06x; correct reference 1.295x); ``dev`` 24..71 then drawn to find the same failures
   (worst 1.149x, a correct reference).  ``eval3`` is spent for adapting.
-* ``eval4`` (40000..40023): not run yet.  [The lead: replace this line with the first run's date, its
-  command(s), what was evaluated and what it showed, when it is made.]
+* 2026-12-04, ``eval4`` (40000..40023), first run, ``--kinds polynomial,wesn,auto --per-instrument``: the
+  model choice by two standard errors (issue 30's item 1) and ``drift_sigma_dph`` with its factors from
+  ``calibrate_sigma.py`` on ``dev`` 0..11 (item 2).  Every choice and uncertainty target passed (pooled
+  coverage 95.7 %, 22 of 24 instruments at 80 %, top quarter 97.0 %, 1407 extrapolating minutes 100 %,
+  sharpness 0.64x, top/bottom 3.65x; auto within 5 % of the better model, median and worst); the paper
+  fits' worst instrument 2.99x the floor, 1.40x the polynomial's excess.  The ``--compare-programs`` run
+  (item 3) is still to be made on ``eval4``.
 
 Individual evaluation instruments are not to be studied: to find what failed there, draw more
 development instruments (``--set dev --first 72``) and look for the same failure among them.

@@ -340,10 +340,13 @@ def chamber(tmp_path_factory):
             )
             == 0
         )
+    # the candidate structures only make drift_sigma_dph, which these tests do not read: left out, the
+    # compensations run at the model's own cost (the drift and the flags are the same bits)
     models = {
-        kind: fit_model_file([d / "paper.bin"], kind=kind, config=FitConfig())[0] for kind in ("polynomial", "wesn")
+        kind: dataclasses.replace(fit_model_file([d / "paper.bin"], kind=kind, config=FitConfig())[0], uncertainty=None)
+        for kind in ("polynomial", "wesn")
     }
-    return d, models
+    return d, models, {}
 
 
 def angle_error(drift_true, estimate, lo, n=1800):
@@ -366,14 +369,16 @@ def test_one_thermometer_faulted_for_30_minutes_in_a_ramp_costs_less_than_a_quar
 ):
     """Invalid (NaN) for 30 minutes, or stuck at its reading of the fault's start (the wesn then gave -1,913"
     against -715" uncompensated: the model ran on a frozen temperature with its rate decaying to 0)."""
-    d, models = chamber
+    d, models, clean_by_kind = chamber
     samples, period = read_capture_samples(d / "fast.bin")
     truth = read_truth(d / "fast.truth.csv")
     n = min(len(samples), len(truth["drift_dph"]))
     samples = dataclasses.replace(samples, **{f: getattr(samples, f)[:n] for f in samples.__dataclass_fields__})
     drift = np.asarray(truth["drift_dph"][:n], dtype=float)
     lo, hi = 1500, 3300  # 25 to 55 minutes: inside the first 2 degC/min ramp
-    clean, _ = estimates(models[kind], samples, period)
+    if kind not in clean_by_kind:  # the same for every sensor and fault
+        clean_by_kind[kind] = estimates(models[kind], samples, period)[0]
+    clean = clean_by_kind[kind]
     column = getattr(samples, sensor).copy()
     column[lo:hi] = np.nan if fault == "invalid" else column[lo]
     faulted, flags = estimates(models[kind], dataclasses.replace(samples, **{sensor: column}), period)
