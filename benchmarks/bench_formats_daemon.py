@@ -1,6 +1,7 @@
 """The daemon on other instruments' frame formats: does it keep up with a 1 kHz IMU at under 20 % of a core?
 
     python benchmarks/bench_formats_daemon.py [--quick] [--seconds S] [--tick-ms MS] [--warmup-s S]
+    python benchmarks/bench_formats_daemon.py --candidates [--pairs N] [--seconds S]
 
 Runs, each ``--seconds`` (default 20; ``--quick``: 5): fog-v1 at 1 kHz (the baseline), kvh-a and
 ixblue-stdbin at 1 kHz, and kvh-a at 2560 Hz (what a KVH link at 921600 baud carries of Format A).
@@ -21,6 +22,12 @@ CPU (utime + stime from /proc) as % of one core over the run after ``--warmup-s`
 the end, and the client's p99 latency from the write to the line's arrival.  The CPU of each run is also
 printed as a ratio to fog-v1 at 1 kHz measured in the same run.
 
+``--candidates``: what the uncertainty's candidate structures cost the daemon.  fog-v1 at 1 kHz with the
+shipped model (a ``wesn`` whose ``uncertainty`` section holds its candidates, each stepped once per model
+block), against the same model with the candidates removed (``sigma_kind: residual``, the model as it ran
+before the uncertainty existed), alternating ``--pairs`` times (default 3) in the same run; prints each run
+and the mean difference of the CPU, with candidates minus without, in percentage points of a core.
+
 Exits non-zero only when a sample was lost: the CPU figures are reported, never asserted (the machines
 are shared).
 """
@@ -28,8 +35,10 @@ are shared).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import platform
+import statistics
 import sys
 import tempfile
 import time
@@ -44,7 +53,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from bench_daemon import LIVE_PROFILE, LiveResult, add_pacing_options, live_run  # noqa: E402
 
 from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
-from fog_driver.modelfiles import save_model  # noqa: E402
+from fog_driver.daemon.config import DEFAULT_MODEL  # noqa: E402
+from fog_driver.modelfiles import load_model, save_model  # noqa: E402
 from fog_driver.offline.fit import fit_model_file  # noqa: E402
 from fog_driver.samples.sources import wire_settings_for  # noqa: E402
 from fog_driver.sim.capture import simulate_to_file  # noqa: E402
@@ -86,14 +96,61 @@ def line(fmt: str, r: LiveResult, base_cpu: float | None) -> str:
     )
 
 
+def candidates_run(args: argparse.Namespace) -> int:
+    """``--candidates`` (module docstring); returns the samples lost."""
+    shipped = load_model(DEFAULT_MODEL)
+    spec = shipped.sigma_spec
+    lost = 0
+    with tempfile.TemporaryDirectory(prefix="bench-candidates-") as tmp:
+        tmp_path = Path(tmp)
+        bare = dataclasses.replace(shipped, uncertainty=dataclasses.replace(spec, sigma_kind="residual", candidates=()))
+        models = {
+            f"with {len(spec.candidates)} candidates": DEFAULT_MODEL,
+            "without candidates": save_model(tmp_path / "bare.yaml", bare),
+        }
+        print(f"the shipped model ({shipped.kind}, {len(spec.candidates)} candidates) at 1 kHz, fog-v1", flush=True)
+        cpu: dict[str, list[float]] = {label: [] for label in models}
+        for _ in range(args.pairs):
+            for label, model in models.items():
+                config = write_config(tmp_path, "fog-v1", 1000, model, {})
+                r = live_run(
+                    "fog-v1",
+                    1000,
+                    args.seconds,
+                    args.tick_ms / 1e3,
+                    args.warmup_s,
+                    1,
+                    daemon_args=("--config", str(config)),
+                )
+                print(line(label, r, None).replace("  (baseline) ", ""), flush=True)
+                cpu[label].append(r.cpu_pct)
+                lost += r.clients[0].lost
+    with_c, without = cpu.values()
+    differences = [a - b for a, b in zip(with_c, without)]
+    spread = statistics.stdev(differences) / len(differences) ** 0.5 if len(differences) > 1 else float("nan")
+    print(
+        f"CPU with candidates minus without: {statistics.mean(differences):+.2f} percentage points of a core "
+        f"(standard error {spread:.2f}, {len(differences)} pairs); the target: within 1"
+    )
+    return lost
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="a short run: 5 s each")
     parser.add_argument("--seconds", type=float, default=20.0, help="length of each run (default 20)")
     add_pacing_options(parser, warmup_s=2.0)
+    parser.add_argument(
+        "--candidates", action="store_true", help="the shipped model with and without its candidates (docstring)"
+    )
+    parser.add_argument("--pairs", type=int, default=3, help="--candidates: runs of each (default 3)")
     args = parser.parse_args()
     if args.quick:
         args.seconds = 5.0
+    if args.candidates:
+        if candidates_run(args):
+            sys.exit("samples lost")
+        return
     print(
         f"daemon on other frame formats: {os.cpu_count()} cores, Python {platform.python_version()}, "
         f"{args.seconds:g} s per run, writer tick {args.tick_ms:g} ms, CPU after a {args.warmup_s:g} s warm-up, "

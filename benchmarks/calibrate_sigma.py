@@ -5,7 +5,7 @@
 Per development instrument K (``--first`` .. ``--first + --instruments - 1`` of the ``dev`` set; never an
 evaluation set: see ``bench_population.py``'s RULE), the wesn is fitted on its ``paper`` run, as
 ``bench_population.py`` does (same captures, same cache layout), and applied to three scoring runs:
-``soak-cycle``, ``steps-moves`` and a hot soak 10 degC above the fit program's hottest (``hot_soak``: the
+``soak-cycle``, ``steps-moves`` and a hot soak 10 degC above the fit program's hottest (``HOT_SOAK``: the
 minutes that leave the fit box).  For every static minute after the first ten it records the error
 ``e`` (the 1-min mean of estimate - true drift, both about their means over the run's static minutes)
 and the three parts of sigma unscaled (the spread s, the residual r, the box term d R: one compensation
@@ -40,65 +40,22 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from bench_population import SKIP_MINUTES, capture  # noqa: E402
+from bench_population import beyond_profile, capture, resolve_profile, static_minutes_mask  # noqa: E402
 
-from fog_driver.compensation.domain import FLAG_EXTRAPOLATING  # noqa: E402
 from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
 from fog_driver.compensation.fitting.uncertainty import model_error_dph  # noqa: E402
 from fog_driver.modelfiles import load_model, save_model  # noqa: E402
-from fog_driver.offline.compensate import compensate_capture  # noqa: E402
 from fog_driver.offline.fit import fit_model_file  # noqa: E402
-from fog_driver.sim.capture import read_truth, simulate_to_file  # noqa: E402
-from fog_driver.sim.chamber import ChamberProfile, Hold, Ramp  # noqa: E402
-from fog_driver.sim.instrument import Simulator  # noqa: E402
-from fog_driver.sim.motion import MotionPlan  # noqa: E402
-from fog_driver.sim.population import draw_instrument  # noqa: E402
-from fog_driver.sim.profiles import SimProfile  # noqa: E402
+from fog_driver.report.coverage import MinuteErrors, coverage_figures, minute_errors  # noqa: E402
+from fog_driver.report.evaluate import drift_per_second  # noqa: E402
+from fog_driver.sim.capture import read_truth  # noqa: E402
 
 PARTS = ("spread", "residual", "box")
 SCORE = ("soak-cycle", "steps-moves", "hot-soak")
-HOT_C = 65.0  #: the paper program's hottest (55 degC) + 10
+#: The paper program's run beyond its range: up at 1 degC/min to 10 degC above its hottest (55 degC), 120 min
+#: there, back down; 30 min held at 20 degC before and after.
+HOT_SOAK = beyond_profile(resolve_profile("paper"), soak_min=120.0, hold_min=30.0, name="hot-soak")
 COMMON_SCALES = (0.8, 0.85, 0.9, 0.95)
-
-
-def hot_soak() -> SimProfile:
-    """20 degC, 30 min; up at 1 degC/min to ``HOT_C``; 120 min there; down at 1 degC/min to 20."""
-    chamber = ChamberProfile(
-        "hot-soak", 20.0, (Hold(1800.0), Ramp(1.0, HOT_C), Hold(7200.0), Ramp(1.0, 20.0), Hold(1800.0))
-    )
-    return SimProfile("hot-soak", chamber, MotionPlan.static(), "generated")
-
-
-def run_capture(workdir: Path, seed: int, profile: str, run_seed: int) -> Path:
-    if profile != "hot-soak":
-        return capture(workdir, seed, profile, run_seed, 10)
-    out = workdir / f"i{seed}" / f"{profile}-r{run_seed}-10hz.bin"
-    if not out.exists():
-        out.parent.mkdir(parents=True, exist_ok=True)
-        sim = Simulator(hot_soak(), draw_instrument(seed), rate_hz=10, seed=run_seed)
-        simulate_to_file(sim, out.with_suffix(".part.bin"))
-        for suffix in (".bin", ".bin.yaml", ".truth.csv"):
-            out.with_suffix(".part" + suffix).rename(out.with_suffix(suffix))
-    return out
-
-
-def per_second(path: Path, model_file, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per device second: the mean drift estimate, the mean sigma^2, and whether any frame was extrapolating."""
-    drift, var, extra, count = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
-    first = None
-    for _, cols in compensate_capture(path, model_file):
-        if first is None:
-            first = cols.t_s[0]
-        second = np.floor(cols.t_s - first + 1e-9).astype(np.int64)
-        keep = second < n
-        s = second[keep]
-        sig = np.nan_to_num(cols.drift_sigma_dph[keep], nan=0.0)
-        drift += np.bincount(s, weights=cols.drift_dph[keep], minlength=n)[:n]
-        var += np.bincount(s, weights=sig**2, minlength=n)[:n]
-        extra += np.bincount(s, weights=(cols.flags[keep] & FLAG_EXTRAPOLATING) != 0, minlength=n)[:n]
-        count += np.bincount(s, minlength=n)[:n]
-    c = np.maximum(count, 1)
-    return drift / c, var / c, extra > 0
 
 
 def instrument(seed: int, workdir: Path) -> dict:
@@ -115,29 +72,25 @@ def instrument(seed: int, workdir: Path) -> dict:
     spec = dataclasses.replace(model.sigma_spec, residual_dph=r)
     out: dict = {"seed": seed, "err": [], "parts": [], "extra": [], "run": [], "n_candidates": len(spec.candidates)}
     for i, profile in enumerate(SCORE):
-        path = run_capture(workdir, seed, profile, 10 * seed + 2 + i)
+        path = capture(workdir, seed, HOT_SOAK if profile == "hot-soak" else profile, 10 * seed + 2 + i, 10)
         truth = read_truth(path.with_suffix(".truth.csv"))
         n = len(truth["drift_dph"]) // 60 * 60
+        static = static_minutes_mask(truth, n)
         parts = []
-        for k in range(3):
+        for k in range(3):  # each part alone (its factor 1, the others 0); minutes of its sigma^2
             scales = dict(zip(("spread_scale", "residual_scale", "box_scale"), np.eye(3)[k]))
             mf = dataclasses.replace(model, uncertainty=dataclasses.replace(spec, **scales))
-            drift, var, extra = per_second(path, mf, n)
-            parts.append(var)
-        static = truth["input_dph"][:n] == 0.0
-        static[: SKIP_MINUTES * 60] = False
-        full = static.reshape(-1, 60).all(axis=1)
-        err_s = drift - truth["drift_dph"][:n]
-        e = err_s.reshape(-1, 60).mean(axis=1)[full]
-        out["err"].append(e - e.mean())
-        out["parts"].append(np.array([p.reshape(-1, 60).mean(axis=1)[full] for p in parts]))
-        out["extra"].append(extra.reshape(-1, 60).any(axis=1)[full])
-        out["run"].append(np.full(full.sum(), i))
+            applied = drift_per_second(path, mf, n)
+            parts.append(
+                minute_errors(
+                    applied.drift_dph, truth["drift_dph"], applied.drift_sigma_dph**2, static, applied.extrapolating > 0
+                )
+            )
+        out["err"].append(parts[0].error_dph)  # the same drift in each: the factors change the sigma only
+        out["parts"].append(np.array([p.sigma_dph for p in parts]))
+        out["extra"].append(parts[0].extrapolating)
+        out["run"].append(np.full(len(parts[0]), i))
     return {k: (np.concatenate(v, axis=-1) if isinstance(v, list) else v) for k, v in out.items()}
-
-
-def coverage(err: np.ndarray, sigma: np.ndarray) -> float:
-    return float(np.mean(np.abs(err) <= 1.96 * sigma)) if len(err) else float("nan")
 
 
 def choose(results: list[dict]) -> tuple[float, float, float]:
@@ -158,33 +111,29 @@ def choose(results: list[dict]) -> tuple[float, float, float]:
 
 
 def report(results: list[dict], k: tuple[float, float, float]) -> None:
+    """The factors' coverage figures (``fog_driver.report.coverage``, as ``bench_population.py`` reports them)."""
     ks, kr, kb = k
     print(f"factors: spread {ks:.3g}, residual {kr:.3g}, box {kb:.3g}")
-    pooled_e, pooled_s, per, ratios = [], [], [], []
+    runs = []
     for r in results:
         sigma = np.sqrt(ks**2 * r["parts"][0] + kr**2 * r["parts"][1] + kb**2 * r["parts"][2])
-        main = r["run"] < 2
-        pooled_e.append(r["err"])
-        pooled_s.append(sigma)
-        per.append(coverage(r["err"][main], sigma[main]))
-        q = np.quantile(sigma[main], [0.25, 0.75])
-        lo, hi = r["err"][main][sigma[main] <= q[0]], r["err"][main][sigma[main] >= q[1]]
-        ratios.append(np.sqrt(np.mean(hi**2)) / max(np.sqrt(np.mean(lo**2)), 1e-12))
-    e, s = np.concatenate(pooled_e), np.concatenate(pooled_s)
-    run = np.concatenate([r["run"] for r in results])
-    extra = np.concatenate([r["extra"] for r in results])
-    main = run < 2
-    top = s[main] >= np.quantile(s[main], 0.75)
+        runs.append((MinuteErrors(r["err"], sigma, r["extra"]), r["run"]))
+    main_runs = [m.only(run < 2) for m, run in runs]  # soak-cycle and steps-moves
+    per = [coverage_figures(m) for m in main_runs]
+    pooled = coverage_figures(MinuteErrors.pooled(main_runs))
+    everything = MinuteErrors.pooled(m for m, _ in runs)
+    outside = coverage_figures(everything.only(everything.extrapolating))
+    hot = coverage_figures(MinuteErrors.pooled(m.only(run == 2) for m, run in runs))
+    cover = [f["coverage"] for f in per]
     print(
-        f"coverage pooled (soak-cycle, steps-moves) {100 * coverage(e[main], s[main]):.1f} %; per instrument "
-        f"min {100 * min(per):.1f} %, >= 80 % on {sum(p >= 0.8 for p in per)} of {len(per)}; top-sigma quarter "
-        f"{100 * coverage(e[main][top], s[main][top]):.1f} %; extrapolating minutes (all runs) "
-        f"{100 * coverage(e[extra], s[extra]):.1f} % of {int(extra.sum())}; hot soak "
-        f"{100 * coverage(e[run == 2], s[run == 2]):.1f} %"
+        f"coverage pooled (soak-cycle, steps-moves) {100 * pooled['coverage']:.1f} %; per instrument "
+        f"min {100 * min(cover):.1f} %, >= 80 % on {sum(c >= 0.8 for c in cover)} of {len(cover)}; top-sigma quarter "
+        f"{100 * pooled['top_quarter']['coverage']:.1f} %; extrapolating minutes (all runs) "
+        f"{100 * outside['coverage']:.1f} % of {outside['minutes_with_sigma']}; hot soak {100 * hot['coverage']:.1f} %"
     )
     print(
-        f"median sigma / RMS error {np.median(s[main]) / np.sqrt(np.mean(e[main] ** 2)):.2f}; top/bottom-quarter "
-        f"RMS error ratio, median over instruments {np.median(ratios):.2f}"
+        f"median sigma / RMS error {pooled['sharpness']:.2f}; top/bottom-quarter RMS error ratio, median over "
+        f"instruments {np.median([f['top_bottom_error_ratio'] for f in per]):.2f}"
     )
 
 

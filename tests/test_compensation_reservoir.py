@@ -522,6 +522,35 @@ def test_a_cascade_runs_as_it_steps_in_any_chunks(cuts):
     assert stepped[100].tobytes() == stepped[99].tobytes()
 
 
+@pytest.mark.determinism
+@pytest.mark.parametrize("chain", [(), (2, -1, 1, -1, 3), (-1, 0, -1, 2, 3)])
+def test_a_clean_ring_form_run_takes_the_column_path_and_gives_the_step_bits(chain, monkeypatch):
+    """Finite rows run the leak neuron by neuron (``_leak_columns``): sources stepped before the neurons that
+    integrate them, whatever their index, and unchained neurons among chained ones (with their ``+ 0 x``):
+    the same bits as stepping, from any state, in any chunks."""
+    params = ReservoirParams(
+        n_neurons=5,
+        spectral_radius=0.0,
+        feedback_scale=0.0,
+        leak_per_s=log_spaced_leaks(5, 30, 3000),
+        chain_from=chain,
+        seed=11,
+    )
+    taken = []
+    real = WaveletReservoir._leak_columns
+    monkeypatch.setattr(
+        WaveletReservoir, "_leak_columns", lambda self, d, o: taken.append(real(self, d, o)) or taken[-1]
+    )
+    u = _inputs(7, 2000, 8, 2.0)
+    start = ReservoirState(np.random.default_rng(8).normal(0.0, 0.3, 5), 0.0)
+    res, one = WaveletReservoir(params, state=start), WaveletReservoir(params, state=start)
+    stepped = np.array([one.step(row) for row in u])
+    ran = np.vstack([res.run(u[a:b]) for a, b in ((0, 1), (1, 777), (777, 2000))])
+    assert taken == [True, True, True]
+    assert ran.tobytes() == stepped.tobytes()
+    assert res.state.x.tobytes() == one.state.x.tobytes()
+
+
 def test_a_cascade_stays_inside_its_bound_and_forgets_its_start():
     res = _cascade(3, 30.0, 1.0)
     assert res.bounds.tolist() == pytest.approx([PSI_MAX, 2 * PSI_MAX, 3 * PSI_MAX])

@@ -208,6 +208,7 @@ class OnlineReadout:
         self.bias_dph: float | None = None
         self.begin_run()
         self.blocks = 0
+        self.used_adapted = False  # the last block's estimate came from the adapted weights (not state: per block)
         self.gated_blocks = 0
         self.updates = 0
         self.guards = 0
@@ -322,6 +323,7 @@ class OnlineReadout:
         self, f: np.ndarray, measured: float, reference: float | None, static: bool
     ) -> tuple[float, int]:
         self.blocks += 1
+        self.used_adapted = False
         flags = 0
         y_frozen = float(numerics.dot(f, self.frozen_weights) + self.frozen_intercept)
         w = self._law._w  # the law's live W (updated in place by the law)
@@ -380,6 +382,7 @@ class OnlineReadout:
                 flags |= FLAG_GUARD
         if use_adapted and y != y_frozen:  # the adapted weights' estimate is in use (restored ones too)
             flags |= FLAG_ADAPTING
+            self.used_adapted = True
             return y, flags
         return y_frozen, flags
 

@@ -237,7 +237,7 @@ class Compensator:
                 f = self.model.regressors_step(z)
                 estimate, adapt_flags = self.online.step(f, block.rate_dph, self.reference_rate_dph, gate)
             sigma = self.uncertainty.step(z, raw, estimate)
-            if self.online is not None and estimate != self.online.frozen_estimate(f):  # the adapted weights'
+            if self.online is not None and self.online.used_adapted:  # the adapted weights' estimate
                 sigma = self.uncertainty.adapted(self.online.adapted_sigma_dph, raw)
             if self.domain is not None:
                 estimate, clipped = self.domain.bound(estimate)

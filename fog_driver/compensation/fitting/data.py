@@ -185,12 +185,23 @@ def fit_normalizer(captures: list[CaptureData]) -> Standardizer:
     return Standardizer.fit(np.vstack([c.inputs[c.static] for c in captures]))
 
 
+def whole_static_minutes(mask: np.ndarray, model_rate_hz: float) -> np.ndarray:
+    """For each whole minute of blocks: True where all its blocks are in ``mask``."""
+    per_minute = int(round(60 * model_rate_hz))
+    n = len(mask) // per_minute * per_minute
+    return mask[:n].reshape(-1, per_minute).all(axis=1)
+
+
 def static_minute_means(values: np.ndarray, mask: np.ndarray, model_rate_hz: float) -> np.ndarray:
     """Means of ``values`` over the whole minutes whose blocks are all in ``mask``."""
+    full = whole_static_minutes(mask, model_rate_hz)
     per_minute = int(round(60 * model_rate_hz))
-    n = len(values) // per_minute * per_minute
-    full = mask[:n].reshape(-1, per_minute).all(axis=1)
-    return values[:n].reshape(-1, per_minute)[full].mean(axis=1)
+    return values[: len(full) * per_minute].reshape(-1, per_minute)[full].mean(axis=1)
+
+
+def static_minute_count(captures: list[CaptureData], model_rate_hz: float) -> int:
+    """How many whole static minutes the captures hold (as many as ``static_rows``' means)."""
+    return sum(int(whole_static_minutes(c.static, model_rate_hz).sum()) for c in captures)
 
 
 def static_rows(captures: list[CaptureData], model_rate_hz: float) -> tuple[np.ndarray, np.ndarray]:

@@ -22,7 +22,15 @@ from ..models.polynomial import PolynomialModel, polynomial_features
 from ..models.wesn import PAPER_DEFAULTS, WESN_DEFAULTS
 from ..readout import Standardizer
 from .choice import block_squares, choose, paired, paired_margin, polynomial_lead
-from .data import CaptureData, FitConfig, capture_groups, fit_normalizer, measured_rows, static_rows
+from .data import (
+    CaptureData,
+    FitConfig,
+    capture_groups,
+    fit_normalizer,
+    measured_rows,
+    static_minute_count,
+    static_rows,
+)
 from .quality import FitQuality, assess, condition_number
 from .report import FitReport, report_for
 from .ridge import standardized_ridge
@@ -295,7 +303,7 @@ def fit_model(
         elif paired(choice).b_better:  # asked for by name: kept, with the warning
             selection["warning_validation"] = f"{polynomial_lead(choice)}: without --kind it would be saved"
     quality = _assess(inputs, means, validate, normalizer, report, kind, config)
-    validate_minutes = len(static_rows(validate, config.model_rate_hz)[1]) if validate else 0
+    validate_minutes = static_minute_count(validate, config.model_rate_hz) if validate else 0
     r_dph = report_error_dph(report, kind, len(means), validate_minutes)
     uncertainty = uncertainty_for(models[kind], r_dph, domain)
     provenance["sigma_kind"] = uncertainty.sigma_kind
