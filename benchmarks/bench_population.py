@@ -33,8 +33,14 @@ runs:
   ``calibrate_sigma.py`` on ``dev`` 0..11 (item 2).  Every choice and uncertainty target passed (pooled
   coverage 95.7 %, 22 of 24 instruments at 80 %, top quarter 97.0 %, 1407 extrapolating minutes 100 %,
   sharpness 0.64x, top/bottom 3.65x; auto within 5 % of the better model, median and worst); the paper
-  fits' worst instrument 2.99x the floor, 1.40x the polynomial's excess.  The ``--compare-programs`` run
-  (item 3) is still to be made on ``eval4``.
+  fits' worst instrument 2.99x the floor, 1.40x the polynomial's excess.
+* 2026-12-04, ``eval4``, second run, ``--compare-programs --per-instrument`` (item 3): the ``calibration``
+  program, chosen by ``bench_plan.py`` on ``dev`` 0..23, against the paper program.  Better than the paper
+  run on every figure (median 1.06x the floor against 1.19x, worst 2.24x against 3.08x, worst excess 1.05x
+  the polynomial's against 1.22x); the median target passed, the two worst-case targets missed (2.24x
+  the floor on one instrument; 1.05x the polynomial's excess where both are within 10 % of the floor).
+  ``eval4`` is spent for the program: the failure is looked for on ``dev`` 24 and up, and a changed
+  program is evaluated on a set never used.
 
 Individual evaluation instruments are not to be studied: to find what failed there, draw more
 development instruments (``--set dev --first 72``) and look for the same failure among them.
