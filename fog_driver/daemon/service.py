@@ -99,6 +99,10 @@ class Service:
         "udp_version",
         "http",
         "http_history_min",
+        "http_hosts",
+        "http_trusted_proxies",
+        "http_secure_cookies",
+        "open_stream",
         "capture_dir",
         "capture_rotate_mb",
         "capture_rotate_s",
@@ -394,6 +398,7 @@ class Service:
                 device=self.device_object,
                 control=self.control,
                 token=self.config.token,
+                open_stream=self.config.open_stream,
                 max_backlog_s=self.config.max_client_backlog_s,
                 sndbuf_bytes=CLIENT_SNDBUF_BYTES,
                 latency=self.latency,
@@ -459,6 +464,10 @@ class Service:
                 latency=self.latency,
                 max_backlog_s=self.config.max_client_backlog_s,
                 history_min=self.config.http_history_min,
+                open_stream=self.config.open_stream,
+                http_hosts=self.config.http_hosts,
+                trusted_proxies=self.config.http_trusted_proxies,
+                secure_cookies=self.config.http_secure_cookies,
             )
         except (ValueError, WebUnavailable) as exc:
             raise ConfigError(f"http {self.config.http}: {exc}") from None
