@@ -137,6 +137,16 @@ def test_the_numbers_are_formatted_as_watch_formats_them():
     assert text["age"] == "0.5 s ago"
 
 
+def test_the_thermometers_come_in_watchs_order():
+    """The page sorted them by name (bottom, housing, top); ``fog-driver watch`` shows top, bottom, housing."""
+    view = ViewState()
+    assert view.snapshot(0.0)["temperatures"] == []  # no sample yet
+    view.add_angles([angle(1, 3.0, temps_c={"housing": 22.0, "aux": 1.0, "bottom": 21.0, "top": 20.0})], 0.0)
+    assert view.snapshot(0.1)["temperatures"] == ["top", "bottom", "housing", "aux"]
+    view.add_angles([angle(2, 3.1, temps_c={"bottom": 21.0})], 0.1)
+    assert view.update(0.2, None, None)["temperatures"] == ["bottom"]
+
+
 def test_banners_for_a_link_down_and_for_missing_frames():
     view = ViewState(control_address="127.0.0.1:2948")
     view.add_angles(stream(10), 0.0)

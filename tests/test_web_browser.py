@@ -263,3 +263,66 @@ def test_the_page_draws_the_drift_band_and_switches_to_the_since_bias_form(tmp_p
     finally:
         view.stop()
     assert problems == [], problems
+
+
+def test_the_page_waits_for_data_then_plots_one_point_with_axes_around_it(tmp_path):
+    """A newcomer saw '-' everywhere beside a green "live" pill before the first sample, a first point plotted on
+    an axis of milliseconds, and the temperatures sorted by name in degrees symbol: the page now says it waits,
+    puts a minute of time and a small band of values around a lone point, and lists the thermometers as
+    ``fog-driver watch`` does (top, bottom, housing; degC)."""
+    from fog_driver.daemon.web.server import WebView
+
+    def sample(seq: int, t_s: float) -> dict:
+        return {
+            "class": "ANGLE",
+            "seq": seq,
+            "t_s": t_s,
+            "angle_arcsec": 1.0,
+            "angle_raw_arcsec": 1.1,
+            "rate_dph": 10.0,
+            "rate_raw_dph": 10.5,
+            "drift_dph": -0.5,
+            "temps_c": {"housing": 22.0, "bottom": 21.0, "top": 20.0},
+            "flags": [],
+            "utc": f"2026-12-03T00:00:{int(t_s):02d}.000Z",
+        }
+
+    view = WebView("127.0.0.1", 0, update_hz=10.0)
+    view.start()
+    problems: list[str] = []
+    try:
+        host, port = view.address
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=chromium(), args=["--no-sandbox"])
+            page = browser.new_page(viewport={"width": 1280, "height": 860})
+            page.on("console", lambda m: problems.append(m.text) if m.type in ("error", "warning") else None)
+            page.on("pageerror", lambda e: problems.append(str(e)))
+            page.goto(f"http://{host}:{port}/")
+            expect(page.locator("#page-state")).to_have_text("waiting for data", timeout=WAIT_MS)
+            assert "ok" not in page.locator("#page-state").get_attribute("class")
+            expect(page.locator("#waiting")).to_be_visible()
+            expect(page.locator("#logout")).to_be_hidden()  # no token: nothing to log out of
+            view.publish_angles([sample(0, 3.0), sample(1, 4.0)])  # the first second closes: one point
+            expect(page.locator("#page-state")).to_have_text("live", timeout=WAIT_MS)
+            expect(page.locator("#plot-drift")).to_have_attribute("data-points", "1", timeout=WAIT_MS)
+            axes = page.evaluate(
+                """() => {
+                  const l = document.getElementById("plot-temps")._fullLayout;
+                  const d = document.getElementById("plot-drift")._fullLayout;
+                  const ms = (r) => new Date(r[1]).getTime() - new Date(r[0]).getTime();
+                  return {temps_x_ms: ms(l.xaxis.range), drift_x_ms: ms(d.xaxis.range), drift_y: d.yaxis.range};
+                }"""
+            )
+            assert axes["temps_x_ms"] == 60_000 and axes["drift_x_ms"] == 60_000, axes
+            low, high = axes["drift_y"]
+            assert low < -0.5 < high and high - low < 1.0, axes
+            rows = page.locator("#temps th").all_inner_texts()
+            assert rows == ["top temperature", "bottom temperature", "housing temperature"]
+            assert page.locator("#temps td").first.inner_text() == "20.000 degC"
+            legend = page.locator("#plot-temps .legend .legendtext").all_text_contents()
+            assert legend == ["top", "bottom", "housing"]
+            expect(page.locator("#plot-temps .gtitle")).to_have_text("temperatures (degC)")
+            browser.close()
+    finally:
+        view.stop()
+    assert problems == [], problems
