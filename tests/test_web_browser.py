@@ -43,6 +43,33 @@ def chromium() -> str:
     return path
 
 
+def open_page(playwright, problems: list[str]):
+    """Headless Chromium and a page whose console errors and warnings, and uncaught errors, go to ``problems``."""
+    browser = playwright.chromium.launch(executable_path=chromium(), args=["--no-sandbox"])
+    page = browser.new_page(viewport={"width": 1280, "height": 860})
+    page.on("console", lambda m: problems.append(m.text) if m.type in ("error", "warning") else None)
+    page.on("pageerror", lambda e: problems.append(str(e)))
+    return browser, page
+
+
+def sample(seq: int, t_s: float, **extra) -> dict:
+    """An ANGLE object as the daemon publishes it (a drift of -0.5 deg/h, three thermometers)."""
+    return {
+        "class": "ANGLE",
+        "seq": seq,
+        "t_s": t_s,
+        "angle_arcsec": seq * 0.1,
+        "angle_raw_arcsec": seq * 0.11,
+        "rate_dph": 10.0,
+        "rate_raw_dph": 10.5,
+        "drift_dph": -0.5,
+        "temps_c": {"top": 20.0, "bottom": 21.0, "housing": 22.0},
+        "flags": [],
+        "utc": f"2026-12-03T00:{int(t_s) // 60:02d}:{int(t_s) % 60:02d}.000Z",
+        **extra,
+    }
+
+
 class Instrument:
     """Writes the capture into the pty at ``SPEEDUP`` times its pace; ``flowing`` pauses it (unplugged)."""
 
@@ -132,10 +159,7 @@ def test_the_page_shows_the_streams_numbers_live_plots_and_the_link_banner(tmp_p
         instrument = Instrument(pty, data)
         problems: list[str] = []
         with sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=chromium(), args=["--no-sandbox"])
-            page = browser.new_page(viewport={"width": 1280, "height": 860})
-            page.on("console", lambda m: problems.append(m.text) if m.type in ("error", "warning") else None)
-            page.on("pageerror", lambda e: problems.append(str(e)))
+            browser, page = open_page(p, problems)
             page.goto(url)
             expect(page.locator("#page-state")).to_have_text("live", timeout=WAIT_MS)
             expect(page.locator("body")).to_have_attribute("data-seq", re.compile(r"^\d+$"), timeout=WAIT_MS)
@@ -217,20 +241,7 @@ def test_the_page_draws_the_drift_band_and_switches_to_the_since_bias_form(tmp_p
 
     def samples(first: int, n: int) -> list[dict]:
         return [
-            {
-                "class": "ANGLE",
-                "seq": i,
-                "t_s": 3.0 + i / 10,
-                "angle_arcsec": i * 0.1,
-                "angle_raw_arcsec": i * 0.11,
-                "rate_dph": 10.0,
-                "rate_raw_dph": 10.5,
-                "drift_dph": -0.5 + i * 1e-4,
-                "drift_sigma_dph": 0.03,
-                "temps_c": {"top": 20.0},
-                "flags": [],
-                "utc": f"2026-12-03T00:{i // 600:02d}:{i // 10 % 60:02d}.000Z",
-            }
+            sample(i, 3.0 + i / 10, drift_dph=-0.5 + i * 1e-4, drift_sigma_dph=0.03, temps_c={"top": 20.0})
             for i in range(first, first + n)
         ]
 
@@ -243,10 +254,7 @@ def test_the_page_draws_the_drift_band_and_switches_to_the_since_bias_form(tmp_p
         view.publish_angles(samples(0, 100))
         host, port = view.address
         with sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=chromium(), args=["--no-sandbox"])
-            page = browser.new_page(viewport={"width": 1280, "height": 860})
-            page.on("console", lambda m: problems.append(m.text) if m.type in ("error", "warning") else None)
-            page.on("pageerror", lambda e: problems.append(str(e)))
+            browser, page = open_page(p, problems)
             page.goto(f"http://{host}:{port}/")
             expect(page.locator("#drift-sigma")).to_have_text("0.0300", timeout=WAIT_MS)
             expect(page.locator("#drift-sigma-label")).to_contain_text("1\u03c3 of the 1-min mean")
@@ -272,37 +280,20 @@ def test_the_page_waits_for_data_then_plots_one_point_with_axes_around_it(tmp_pa
     ``fog-driver watch`` does (top, bottom, housing; degC)."""
     from fog_driver.daemon.web.server import WebView
 
-    def sample(seq: int, t_s: float) -> dict:
-        return {
-            "class": "ANGLE",
-            "seq": seq,
-            "t_s": t_s,
-            "angle_arcsec": 1.0,
-            "angle_raw_arcsec": 1.1,
-            "rate_dph": 10.0,
-            "rate_raw_dph": 10.5,
-            "drift_dph": -0.5,
-            "temps_c": {"housing": 22.0, "bottom": 21.0, "top": 20.0},
-            "flags": [],
-            "utc": f"2026-12-03T00:00:{int(t_s):02d}.000Z",
-        }
-
     view = WebView("127.0.0.1", 0, update_hz=10.0)
     view.start()
     problems: list[str] = []
     try:
         host, port = view.address
         with sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=chromium(), args=["--no-sandbox"])
-            page = browser.new_page(viewport={"width": 1280, "height": 860})
-            page.on("console", lambda m: problems.append(m.text) if m.type in ("error", "warning") else None)
-            page.on("pageerror", lambda e: problems.append(str(e)))
+            browser, page = open_page(p, problems)
             page.goto(f"http://{host}:{port}/")
             expect(page.locator("#page-state")).to_have_text("waiting for data", timeout=WAIT_MS)
             assert "ok" not in page.locator("#page-state").get_attribute("class")
             expect(page.locator("#waiting")).to_be_visible()
             expect(page.locator("#logout")).to_be_hidden()  # no token: nothing to log out of
-            view.publish_angles([sample(0, 3.0), sample(1, 4.0)])  # the first second closes: one point
+            housing_first = {"housing": 22.0, "bottom": 21.0, "top": 20.0}
+            view.publish_angles([sample(0, 3.0, temps_c=housing_first), sample(1, 4.0, temps_c=housing_first)])
             expect(page.locator("#page-state")).to_have_text("live", timeout=WAIT_MS)
             expect(page.locator("#plot-drift")).to_have_attribute("data-points", "1", timeout=WAIT_MS)
             axes = page.evaluate(
