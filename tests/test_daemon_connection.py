@@ -63,9 +63,13 @@ def test_a_new_connection_is_greeted_with_version_and_device_or_version_alone_be
 def test_behind_a_token_angles_need_auth_unless_the_stream_is_open():
     """A token protected the commands only: an unauthorized client got every ANGLE it watched."""
     conn, _ = connection("s3cret")
-    run(conn, b'?WATCH={"enable": true};\n')
-    assert conn.watch and not conn.reads_angles
+    assert sent(run(conn, b'?WATCH={"enable": true};\n')) == [
+        {"class": "ERROR", "message": "unauthorized", "command": "WATCH"}
+    ]
+    assert not conn.watch and not conn.reads_angles
+    assert sent(run(conn, b"?WATCH;\n")) == [{"class": "WATCH", "enable": False, "rate_hz": None}]  # asking is free
     run(conn, b'?AUTH={"token": "s3cret"};\n')
+    run(conn, b'?WATCH={"enable": true};\n')
     assert conn.reads_angles
     opened = AuthGate("s3cret", AuthThrottle(1.0, 300.0), open_stream=True)
     reader, _ = connection(gate=opened)

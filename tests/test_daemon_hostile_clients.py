@@ -608,17 +608,19 @@ def test_behind_a_token_reading_needs_it_too_unless_the_stream_is_open(make_hub)
     stranger = Conn(address)
     version = stranger.expect("VERSION")
     assert version == {"class": "VERSION", "release": "9.9.9", "proto_major": 1, "proto_minor": 0}  # no serial
-    watch(stranger)
+    stranger.send('?WATCH={"enable":true};\n')
+    assert stranger.line() == {"class": "ERROR", "message": "unauthorized", "command": "WATCH"}
     operator = authorized(address, "s3cret-token")
     watch(operator)
     hub.publish_angles([angle(1, 0.0)])
     hub.publish({"class": "STATUS", "n": 1})
     assert operator.expect("ANGLE")["seq"] == 1 and operator.expect("STATUS") == {"class": "STATUS", "n": 1}
     stranger.sync()  # nothing came before the answer: no ANGLE, no STATUS
-    stranger.send('?AUTH={"token":"s3cret-token"};\n?VERSION;\n')
+    stranger.send('?AUTH={"token":"s3cret-token"};\n?VERSION;\n?WATCH={"enable":true};\n')
     assert stranger.line() == {"class": "AUTH", "authorized": True}
     stranger.expect("DEVICE")
     assert stranger.expect("VERSION")["serial"] == "FOG-TEST-0001"  # once authorized, the whole greeting
+    stranger.expect("WATCH")
     hub.publish_angles([angle(2, 1.0)])
     assert stranger.expect("ANGLE")["seq"] == 2
 

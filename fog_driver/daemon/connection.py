@@ -66,8 +66,9 @@ lines may be interleaved.
   daemon was configured with a token (which it must be to listen beyond
   loopback; on loopback too, once it has one).  Until then a client gets
   VERSION without the instrument's identity, and the answers to its
-  ``?WATCH``, ``?VERSION`` and ``?AUTH``; no ANGLE (unless the daemon opens the
-  stream, ``open_stream``: then the ANGLE lines it watches), DEVICE or STATUS,
+  ``?VERSION`` and ``?AUTH``; no ANGLE (a ``?WATCH`` that enables it is
+  refused with ``ERROR`` "unauthorized", unless the daemon opens the stream,
+  ``open_stream``: then it gets the ANGLE lines it watches), DEVICE or STATUS,
   and every control command is refused.  Wrong tokens are throttled per peer
   address (see ``limits.py``), a right one is never refused; five failed or
   refused attempts close the connection.  When the daemon's token changes,
@@ -381,7 +382,8 @@ class Connection:
 
     def _watch(self, command: Command) -> list[Action]:
         """``?WATCH;`` reports the policy; ``?WATCH={...};`` replaces it (``enable`` true unless given,
-        ``rate_hz`` every sample unless given) and restarts the decimation."""
+        ``rate_hz`` every sample unless given) and restarts the decimation.  Enabling it needs the token on a
+        token-protected daemon (unless ``open_stream``): ``ERROR`` "unauthorized", the policy unchanged."""
         actions: list[Action] = []
         if command.has_args:
             args = command.args
@@ -391,6 +393,8 @@ class Connection:
             rate = args.get("rate_hz")
             if rate is not None and not (is_positive_finite(rate) and rate <= MAX_WATCH_RATE_HZ):
                 return [error(f"rate_hz must be a number > 0 and <= {MAX_WATCH_RATE_HZ}", "WATCH")]
+            if enable and not (self.authorized or self.gate.open_stream):
+                return [error("unauthorized", "WATCH")]  # reading needs the token: ?AUTH first
             if enable != self.watch:
                 actions.append(WatchChanged(enable))
             self.watch = enable

@@ -347,8 +347,10 @@ class Service:
         of ``RESTART_KEYS`` that changed are kept as they are and reported (``restart_needed``)."""
         restart = [k for k in self.RESTART_KEYS if getattr(config, k) != getattr(self.config, k)]
         new = dataclasses.replace(config, **{k: getattr(self.config, k) for k in self.RESTART_KEYS})
-        if self.hub is not None and new.token != self.config.token:
-            self.hub.check_token(new.token)  # ValueError (e.g. no token beyond loopback): nothing changed
+        if new.token != self.config.token:  # ValueError (e.g. no token beyond loopback): nothing changed
+            for listener in (self.hub, self.web):
+                if listener is not None:
+                    listener.check_token(new.token)
         result = self.reload_from_file(new)  # FogDriverError: nothing changed
         old = self.config
         self.config = new

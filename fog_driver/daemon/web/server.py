@@ -282,6 +282,10 @@ class WebView:
         """Every request but ``OPEN_PATHS`` needs the token: the daemon has one."""
         return self.token is not None
 
+    def check_token(self, token: str | None) -> None:
+        """``ValueError`` when ``set_token(token)`` would refuse it (checked before a reload applies anything)."""
+        _check_web_token(token, self.host)
+
     def set_token(self, token: str | None) -> None:
         """A new token (SIGHUP; any thread): the sessions and the connections of the old one end (a token is
         rotated because it may have leaked); the same token again changes nothing."""
