@@ -317,3 +317,33 @@ def test_the_page_waits_for_data_then_plots_one_point_with_axes_around_it(tmp_pa
     finally:
         view.stop()
     assert problems == [], problems
+
+
+def test_a_browser_logs_in_reads_the_page_and_logs_out(tmp_path):
+    """With a token the page needs it on loopback too: the browser is sent to the login form (styled: its CSS
+    needs no token), the form's post passes the Origin check, the session cookie opens the page and its
+    WebSocket, and "log out" ends the session (the page is the login form again)."""
+    from fog_driver.daemon.web.server import WebView
+
+    view = WebView("127.0.0.1", 0, token="s3cret-token", update_hz=10.0)
+    view.start()
+    problems: list[str] = []
+    try:
+        view.publish_angles([sample(0, 3.0), sample(1, 4.0)])
+        host, port = view.address
+        with sync_playwright() as p:
+            browser, page = open_page(p, problems)
+            page.goto(f"http://{host}:{port}/")
+            expect(page).to_have_url(f"http://{host}:{port}/login")
+            assert page.evaluate("getComputedStyle(document.body).maxWidth") != "none"  # view.css loaded
+            page.fill("input[name=token]", "s3cret-token")
+            page.click("button[type=submit]")
+            expect(page.locator("#page-state")).to_have_text("live", timeout=WAIT_MS)
+            expect(page.locator("#logout")).to_be_visible()
+            page.click("#logout button")
+            expect(page).to_have_url(f"http://{host}:{port}/login", timeout=WAIT_MS)
+            assert page.request.get(f"http://{host}:{port}/api/view").status == 401  # the session is over
+            browser.close()
+    finally:
+        view.stop()
+    assert [p for p in problems if "401" not in p] == [], problems

@@ -119,7 +119,7 @@ SECURITY_HEADERS = {
     "Content-Security-Policy": "default-src 'self'; img-src 'self' data:; style-src 'self' 'unsafe-inline'; "
     "connect-src 'self'; form-action 'self'; base-uri 'none'; frame-ancestors 'none'",
     "X-Content-Type-Options": "nosniff",
-    "Referrer-Policy": "no-referrer",
+    "Referrer-Policy": "same-origin",  # not no-referrer: its forms would post "Origin: null"
     "Cache-Control": "no-store",
 }
 #: What a request needs no token for: the login form, the logout, and what the form loads.
@@ -290,10 +290,8 @@ class WebView:
         """A new token (SIGHUP; any thread): the sessions and the connections of the old one end (a token is
         rotated because it may have leaked); the same token again changes nothing."""
         _check_web_token(token, self.host)
-        if token == self.token:
-            return
-        self.token = token
-        self._on_loop(self._token_changed)
+        if token != self.token:
+            self._on_loop(functools.partial(self._token_changed, token))
 
     def _on_loop(self, apply: Callable[[], None]) -> None:
         """``apply()`` on the listener's loop, waiting for it (``WEB_STOP_TIMEOUT_S`` at most); at once when the
@@ -317,7 +315,10 @@ class WebView:
             return
         done.wait(WEB_STOP_TIMEOUT_S)
 
-    def _token_changed(self) -> None:
+    def _token_changed(self, token: str | None) -> None:
+        """The token and the sessions change together, on the loop: no request sees the new token with an old
+        session, nor the old one after."""
+        self.token = token
         self._sessions.clear()
         closed = len(self._connections)
         for handler in list(self._connections):

@@ -200,6 +200,10 @@ function connect() {
   socket.onopen = () => { retryMs = 1000; pageState("waiting for data", null); };
   socket.onmessage = (event) => handle(JSON.parse(event.data));
   socket.onclose = () => {
+    // A session that ended (its 12 h, a new token, a log-out elsewhere) closes the socket too: log in again.
+    fetch("/api/view", { method: "HEAD", cache: "no-store" })
+      .then((answer) => { if (answer.status === 401) location.assign("/login"); })
+      .catch(() => {});
     pageState("no connection to the daemon: retrying", false);
     const box = document.getElementById("banners");
     const div = document.createElement("div");
