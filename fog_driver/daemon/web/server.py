@@ -331,7 +331,7 @@ class WebView:
         """Track a new connection from ``ip`` (``guards.Slots``: the oldest connection without the token may be
         closed to make room); None (counted in ``refused_connections``) when every slot in the way is held by
         authorized ones.  A trusted proxy's connection counts against its client's address from its first
-        request on (``_forwarded``)."""
+        request on (``_screen``)."""
         proxied = ip in self.trusted_proxies
         peer = peer_address(ip)
         admission = self.slots.admit(handler, None if proxied else peer, authorized=not self.need_token)
@@ -560,7 +560,7 @@ class WebView:
                 connection.first_request_s = now
         try:
             response, peer = self._screen(request, connection)
-            if peer != request.remote:  # behind a trusted proxy: the forwarded client, from here on
+            if connection is not None and connection.proxied:  # the forwarded client, from here on (``_peer``)
                 request = request.clone(remote=peer)
             if response is None and self.need_token and request.path not in OPEN_PATHS:
                 response = self._authorize(request, now)
