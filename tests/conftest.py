@@ -14,7 +14,7 @@ settings.register_profile("ci", deadline=None, derandomize=True, print_blob=True
 settings.load_profile("ci" if os.environ.get("CI") else "default")
 
 # Fixtures shared by several test modules live in plugin modules here (a test module imports no fixture).
-pytest_plugins = ["hub_fixtures"]
+pytest_plugins = ["hub_fixtures", "web_fixtures"]
 
 
 @pytest.fixture(autouse=True)

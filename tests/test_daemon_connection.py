@@ -52,7 +52,35 @@ def sent(actions) -> list[dict]:
 
 def test_a_new_connection_is_greeted_with_version_and_device_or_version_alone_behind_a_token():
     assert connection()[0].greeting() == [SendVersion(), SendDevice()]
-    assert connection("s3cret")[0].greeting() == [SendVersion()]
+    # behind a token: VERSION without the instrument's identity (its serial), until ?AUTH
+    conn, _ = connection("s3cret")
+    assert conn.greeting() == [SendVersion(identity=False)]
+    assert run(conn, b"?VERSION;\n") == [SendVersion(identity=False)]
+    run(conn, b'?AUTH={"token": "s3cret"};\n')
+    assert run(conn, b"?VERSION;\n") == [SendVersion(identity=True)]
+
+
+def test_behind_a_token_angles_need_auth_unless_the_stream_is_open():
+    """A token protected the commands only: an unauthorized client got every ANGLE it watched."""
+    conn, _ = connection("s3cret")
+    assert sent(run(conn, b'?WATCH={"enable": true};\n')) == [
+        {"class": "ERROR", "message": "unauthorized", "command": "WATCH"}
+    ]
+    assert not conn.watch and not conn.reads_angles
+    assert sent(run(conn, b"?WATCH;\n")) == [{"class": "WATCH", "enable": False, "rate_hz": None}]  # asking is free
+    run(conn, b'?AUTH={"token": "s3cret"};\n')
+    run(conn, b'?WATCH={"enable": true};\n')
+    assert conn.reads_angles
+    opened = AuthGate("s3cret", AuthThrottle(1.0, 300.0), open_stream=True)
+    reader, _ = connection(gate=opened)
+    assert not reader.reads_angles  # not watching
+    run(reader, b'?WATCH={"enable": true};\n')
+    assert reader.reads_angles and not reader.authorized
+    assert reader.auth_deadline_passed(10.0) == []  # a reader of the open stream needs no token
+    assert sent(run(reader, b"?ZERO;\n")) == [{"class": "ERROR", "message": "unauthorized", "command": "ZERO"}]
+    run(reader, b'?WATCH={"enable": false};\n')
+    assert reader.auth_deadline_passed(10.0)[-1] == Close()  # no longer reading: the deadline applies
+    assert connection()[0].reads_angles is False and connection()[0].authorized  # no token: watch to read
 
 
 def test_watch_sets_the_policy_and_reports_it():
@@ -151,11 +179,35 @@ def test_wrong_tokens_are_logged_refused_and_close_the_connection_at_the_last_at
         clock.now_s += 0.1
     assert messages[:AUTH_FAILURES_BEFORE_BACKOFF] == ["bad token"] * AUTH_FAILURES_BEFORE_BACKOFF
     assert messages[-1].endswith(": closing") and conn.closing
-    # the backoff is the peer's, across connections: a new one from the same address waits too
+    # the backoff is the peer's, across connections: a wrong guess from a new one from the same address waits too
     other, _ = connection(gate=gate)
     other.clock = clock
-    refused = sent(run(other, b'?AUTH={"token": "s3cret"};\n'))
+    refused = sent(run(other, b'?AUTH={"token": "guess"};\n'))
     assert refused[0]["message"].startswith("too many failed attempts, retry in")
+
+
+def test_the_backoff_never_refuses_the_right_token_and_answers_a_wrong_one_once_a_second():
+    """The backoff refused every attempt from a blocked address unread, the right token too: whoever shared the
+    address (every local user, a NAT, a proxy) could lock the operator out for up to 300 s."""
+    gate = AuthGate("s3cret", AuthThrottle(1.0, 300.0))
+    guesser, clock = connection(gate=gate)
+    for _ in range(AUTH_FAILURES_BEFORE_BACKOFF + 1):  # the backoff starts: the address is blocked for 1 s
+        assert sent(run(guesser, b'?AUTH={"token": "nope"};\n'))[0]["message"] == "bad token"
+    assert gate.throttle.blocked_for_s("10.0.0.1", clock.now_s) == 1.0
+    operator, _ = connection(gate=gate)  # the same address, at once
+    operator.clock = clock
+    assert sent(run(operator, b'?AUTH={"token": "s3cret"};\n')) == [{"class": "AUTH", "authorized": True}]
+    assert operator.authorized
+    # wrong guesses stay limited: once the backoff has started, beyond one a second they are refused unanswered
+    guesses = []
+    for _ in range(AUTH_FAILURES_BEFORE_BACKOFF + 2):
+        guesser, _ = connection(gate=gate)  # a new connection each time: the backoff is the address's
+        guesser.clock = clock
+        guesses += [m["message"] for m in sent(run(guesser, b'?AUTH={"token": "nope"};\n'))]
+    assert guesses == ["bad token"] * (AUTH_FAILURES_BEFORE_BACKOFF + 1) + ["too many failed attempts, retry in 1 s"]
+    clock.now_s += 1.0  # a second later the address is told "bad token" once more, and blocked for 2 s
+    assert sent(run(guesser, b'?AUTH={"token": "nope"};\n'))[0]["message"] == "bad token"
+    assert gate.throttle.blocked_for_s("10.0.0.1", clock.now_s) == 2.0
 
 
 def test_the_auth_deadline_and_a_token_change_close_the_connection():

@@ -305,10 +305,14 @@ def test_replay_url_into_the_daemon(tmp_path):
         (["--model", "/nonexistent/model.yaml"], "no such model file"),
         (["--listen", "10.1.2.3:2948"], "token"),
         (["--port", "nosuch://device"], "nosuch"),
+        (["--config", "http_trusted_proxies: [proxy.lab]\n"], "http_trusted_proxies: 'proxy.lab' is not an IP"),
     ],
 )
 def test_bad_config_exits_78_with_one_line(tmp_path, args, needle):
     port = [] if "--port" in args else ["--port", "replay:///nonexistent.bin"]
+    if args[0] == "--config":  # a config file of this text
+        (tmp_path / "bad.yaml").write_text(args[1])
+        args = ["--config", str(tmp_path / "bad.yaml")]
     proc = subprocess.run(
         [sys.executable, "-m", "fog_driver", "run", *port, "--capture-dir", str(tmp_path / "c"), *args],
         capture_output=True,

@@ -429,6 +429,8 @@ def test_no_auth_deadline_when_asked_or_without_a_token(make_hub):
 
 
 def test_failed_auth_is_throttled_per_address_across_reconnects(make_hub, log_events):
+    """Wrong guesses from a new connection of the address wait out its backoff; the right token never does (it
+    was refused unread while the address waited: anyone sharing it locked the operator out)."""
     _, address, control = make_hub(token="s3cret-token", auth_backoff_base_s=30.0)
     guesser = Conn(address)
     guesser.expect("VERSION")
@@ -441,20 +443,26 @@ def test_failed_auth_is_throttled_per_address_across_reconnects(make_hub, log_ev
     guesser.close()
     again = Conn(address)  # a new connection from the same address: still in its backoff
     again.expect("VERSION")
-    again.send('?AUTH={"token":"s3cret-token"};\n')
+    again.send('?AUTH={"token":"guess-5"};\n')
     assert skip_until(again, "ERROR") == {
         "class": "ERROR",
         "message": "too many failed attempts, retry in 30 s",
         "command": "AUTH",
-    }  # refused without looking at the token
+    }  # a wrong guess is refused, uncounted
     again.send("?ECHO;\n")
     assert skip_until(again, "ERROR")["message"] == "unauthorized"
     assert [e["blocked_s"] for e in log_events.named("auth_failed")] == [0.0, 0.0, 0.0, 30.0]
+    operator = Conn(address)  # the same address, in its backoff: the right token is served at once
+    operator.expect("VERSION")
+    operator.send('?AUTH={"token":"s3cret-token"};\n?ECHO;\n')
+    assert operator.line() == {"class": "AUTH", "authorized": True}
+    operator.expect("DEVICE")
+    assert operator.expect("ECHO")["args"] == {}
     elsewhere = connect_from(address, "127.0.0.2")  # another address is not in anybody's backoff
     elsewhere.expect("VERSION")
     elsewhere.send('?AUTH={"token":"s3cret-token"};\n')
     assert skip_until(elsewhere, "AUTH") == {"class": "AUTH", "authorized": True}
-    assert control.calls == []
+    assert [name for name, _, _ in control.calls] == ["ECHO"]
 
 
 def test_auth_backoff_doubles_is_capped_and_is_forgotten():
@@ -591,6 +599,71 @@ def test_unauthorized_clients_get_version_only_until_they_authenticate(make_hub)
     c.send('?AUTH={"token":"s3cret-token"};\n')  # again: AUTH, and no second DEVICE
     assert c.line() == {"class": "AUTH", "authorized": True}
     c.sync()
+
+
+def test_behind_a_token_reading_needs_it_too_unless_the_stream_is_open(make_hub):
+    """A token protected the commands only: an unauthorized client got every ANGLE it watched, and the serial in
+    its VERSION greeting."""
+    hub, address, _ = make_hub(token="s3cret-token")
+    stranger = Conn(address)
+    version = stranger.expect("VERSION")
+    assert version == {"class": "VERSION", "release": "9.9.9", "proto_major": 1, "proto_minor": 0}  # no serial
+    stranger.send('?WATCH={"enable":true};\n')
+    assert stranger.line() == {"class": "ERROR", "message": "unauthorized", "command": "WATCH"}
+    operator = authorized(address, "s3cret-token")
+    watch(operator)
+    hub.publish_angles([angle(1, 0.0)])
+    hub.publish({"class": "STATUS", "n": 1})
+    assert operator.expect("ANGLE")["seq"] == 1 and operator.expect("STATUS") == {"class": "STATUS", "n": 1}
+    stranger.sync()  # nothing came before the answer: no ANGLE, no STATUS
+    stranger.send('?AUTH={"token":"s3cret-token"};\n?VERSION;\n?WATCH={"enable":true};\n')
+    assert stranger.line() == {"class": "AUTH", "authorized": True}
+    stranger.expect("DEVICE")
+    assert stranger.expect("VERSION")["serial"] == "FOG-TEST-0001"  # once authorized, the whole greeting
+    stranger.expect("WATCH")
+    hub.publish_angles([angle(2, 1.0)])
+    assert stranger.expect("ANGLE")["seq"] == 2
+
+
+def test_open_stream_opens_the_angles_alone(make_hub):
+    hub, address, control = make_hub(token="s3cret-token", open_stream=True, auth_deadline_s=0.3)
+    reader = Conn(address)
+    assert "serial" not in reader.expect("VERSION")
+    watch(reader)
+    idle = Conn(address)  # neither authorized nor reading: the deadline closes it
+    idle.expect("VERSION")
+    assert idle.line()["message"] == "not authorized within 0.3 s: closing"
+    hub.publish({"class": "STATUS", "n": 1})
+    hub.publish_angles([angle(1, 0.0)])
+    assert reader.line()["seq"] == 1  # the ANGLE, and no STATUS before it; past the deadline, still open
+    reader.send("?ECHO;\n")
+    assert reader.line() == {"class": "ERROR", "message": "unauthorized", "command": "ECHO"}
+    assert control.calls == []
+
+
+def test_unauthorized_connections_cannot_starve_a_client_with_the_token(make_hub, log_events):
+    """100 connections that never authorize, kept open, filled the address's 16 places: the operator was refused.
+    Now they hold at most half, each newcomer closing the oldest, and the operator is served."""
+    hub, address, control = make_hub(token="s3cret-token")
+    idle = []
+    for _ in range(100):
+        c = Conn(address)
+        c.expect("VERSION")
+        idle.append(c)
+    operator = Conn(address)
+    operator.expect("VERSION")
+    operator.send('?AUTH={"token":"s3cret-token"};\n?ECHO;\n')
+    assert operator.line() == {"class": "AUTH", "authorized": True}
+    operator.expect("DEVICE")
+    assert operator.expect("ECHO")["args"] == {}
+    # the operator held one of the half (8) until it authorized; the 100 churned through the other 7
+    assert hub._slots.unauthorized("127.0.0.1") == 16 // 2 - 1 and hub.refused_clients == 0
+    assert idle[0].line() == {"class": "ERROR", "message": "closed to make room for a new client: authorize sooner"}
+    # the authorized never make room: 16 of them fill the address, and one more is refused
+    others = [authorized(address, "s3cret-token") for _ in range(15)]
+    refused_with(address, "too many connections from 127.0.0.1 (16): try again later")
+    for c in (operator, *others):
+        c.sync()
 
 
 # --------------------------------------------------------------------------- settings the service changes on SIGHUP

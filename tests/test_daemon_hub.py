@@ -435,8 +435,10 @@ def test_token_required_for_control_commands(make_hub):
     assert c.line() == {"class": "ERROR", "message": "unauthorized", "command": "ECHO"}
     c.send("?NOSUCH;\n")
     assert c.expect("ERROR")["message"] == "unauthorized"
-    c.send('?WATCH={"enable":true};\n')  # WATCH and VERSION need no AUTH
-    c.expect("WATCH")
+    c.send('?WATCH={"enable":true};\n')  # reading needs the token too (asking for the policy and VERSION do not)
+    assert c.line() == {"class": "ERROR", "message": "unauthorized", "command": "WATCH"}
+    c.send("?WATCH;\n")
+    assert c.expect("WATCH")["enable"] is False
     c.sync()
     c.send('?AUTH={"token":"wrong"};\n?AUTH;\n')
     assert c.expect("ERROR")["command"] == "AUTH"

@@ -216,6 +216,24 @@ def test_a_reload_that_fails_changes_nothing(tmp_path, other_model):
     assert reply["class"] == "RELOAD" and reply["changed"] is False
 
 
+def test_a_token_the_web_view_refuses_changes_nothing_on_either_listener():
+    """Only the NDJSON hub was asked: a web view beyond loopback refused the token's removal after the hub had
+    applied it (the hub then open, the web view still closed)."""
+
+    class LoopbackHub(FakeHub):
+        def check_token(self, token):
+            pass
+
+    class ExposedWeb(FakeHub):
+        max_backlog_s = 2.0
+
+    service = Service(DriverConfig(token="a-long-token", http="0.0.0.0:8948"), port="unused")
+    service.hub, service.web = LoopbackHub(), ExposedWeb()
+    with pytest.raises(ValueError):
+        service.reload_config(DriverConfig(token=None, http="0.0.0.0:8948"))
+    assert service.hub.calls == [] and service.web.calls == [] and service.config.token == "a-long-token"
+
+
 def test_a_model_for_another_instrument_is_refused_by_reload_and_nothing_changes(tmp_path, other_model):
     model_file = load_model(other_model)
     foreign = save_model(

@@ -137,6 +137,16 @@ def test_the_numbers_are_formatted_as_watch_formats_them():
     assert text["age"] == "0.5 s ago"
 
 
+def test_the_thermometers_come_in_watchs_order():
+    """The page sorted them by name (bottom, housing, top); ``fog-driver watch`` shows top, bottom, housing."""
+    view = ViewState()
+    assert view.snapshot(0.0)["temperatures"] == []  # no sample yet
+    view.add_angles([angle(1, 3.0, temps_c={"housing": 22.0, "aux": 1.0, "bottom": 21.0, "top": 20.0})], 0.0)
+    assert view.snapshot(0.1)["temperatures"] == ["top", "bottom", "housing", "aux"]
+    view.add_angles([angle(2, 3.1, temps_c={"bottom": 21.0})], 0.1)
+    assert view.update(0.2, None, None)["temperatures"] == ["bottom"]
+
+
 def test_banners_for_a_link_down_and_for_missing_frames():
     view = ViewState(control_address="127.0.0.1:2948")
     view.add_angles(stream(10), 0.0)
@@ -330,21 +340,6 @@ def test_no_sigma_gauges_without_an_estimate_or_a_bias_capture():
 # ---------------------------------------------------------------------------------------------- the listener
 
 
-@pytest.fixture
-def web():
-    started: list[WebView] = []
-
-    def make(host: str = "127.0.0.1", **kw) -> WebView:
-        view = WebView(host, 0, **kw)
-        view.start()
-        started.append(view)
-        return view
-
-    yield make
-    for view in started:
-        view.stop()
-
-
 def http(address, request: bytes, *, read_all: bool = True) -> tuple[int, dict, bytes]:
     with socket.create_connection(address, timeout=TIMEOUT_S) as s:
         s.sendall(request)
@@ -365,15 +360,42 @@ def http(address, request: bytes, *, read_all: bool = True) -> tuple[int, dict, 
     return int(lines[0].split()[1]), headers, body
 
 
-def get(address, path: str, *extra: str) -> tuple[int, dict, bytes]:
+def host_of(address) -> str:
+    """The ``Host`` header a browser sends to ``address`` (an IPv6 literal in brackets)."""
+    return f"[{address[0]}]:{address[1]}" if ":" in address[0] else f"{address[0]}:{address[1]}"
+
+
+def get(address, path: str, *extra: str, host: str | None = "") -> tuple[int, dict, bytes]:
+    """GET ``path`` with ``address``'s own Host (``host``: another one; None: no Host at all)."""
+    host_line = f"Host: {host or host_of(address)}\r\n" if host is not None else ""
     head = "".join(f"{h}\r\n" for h in extra)
-    return http(address, f"GET {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\n{head}\r\n".encode())
+    return http(address, f"GET {path} HTTP/1.1\r\n{host_line}Connection: close\r\n{head}\r\n".encode())
+
+
+def post(address, path: str, body: bytes = b"", *extra: str) -> tuple[int, dict, bytes]:
+    """POST a form ``body`` to ``path`` (its own Host)."""
+    head = "".join(f"{h}\r\n" for h in extra)
+    return http(
+        address,
+        f"POST {path} HTTP/1.1\r\nHost: {host_of(address)}\r\nConnection: close\r\n"
+        f"Content-Type: application/x-www-form-urlencoded\r\nContent-Length: {len(body)}\r\n{head}\r\n".encode()
+        + body,
+    )
+
+
+def login(address, token: str) -> str:
+    """Log in with the form: the session cookie (``name=value``)."""
+    status, headers, _ = post(address, "/login", b"token=" + token.encode())
+    assert status == 303 and headers["location"] == "/", status
+    return headers["set-cookie"].split(";")[0]
 
 
 class WsClient:
     """A minimal WebSocket client on a raw socket (the page's protocol as a browser speaks it)."""
 
-    def __init__(self, address, *, origin: str | None = None, rcvbuf: int | None = None, headers=()) -> None:
+    def __init__(
+        self, address, *, origin: str | None = None, rcvbuf: int | None = None, headers=(), host: str | None = None
+    ) -> None:
         self.sock = socket.socket()
         if rcvbuf:
             self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
@@ -382,7 +404,7 @@ class WsClient:
         key = base64.b64encode(os.urandom(16)).decode()
         extra = "".join(f"{h}\r\n" for h in headers) + (f"Origin: {origin}\r\n" if origin else "")
         self.sock.sendall(
-            f"GET /ws HTTP/1.1\r\nHost: {address[0]}:{address[1]}\r\nUpgrade: websocket\r\n"
+            f"GET /ws HTTP/1.1\r\nHost: {host or host_of(address)}\r\nUpgrade: websocket\r\n"
             f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n"
             f"{extra}\r\n".encode()
         )
@@ -422,10 +444,13 @@ class WsClient:
                 raise ConnectionError(f"closed by the server: {payload!r}")
 
     def send_text(self, text: str) -> None:
-        payload = text.encode()
+        self.send_frame(0x1, text.encode())
+
+    def send_frame(self, opcode: int, payload: bytes) -> None:
+        """One masked frame (a client's), FIN set: ``opcode`` 0x1 text, 0x9 ping, 0xA pong."""
         mask = os.urandom(4)
         masked = bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
-        self.sock.sendall(bytes([0x81, 0x80 | len(payload)]) + mask + masked)
+        self.sock.sendall(bytes([0x80 | opcode, 0x80 | len(payload)]) + mask + masked)
 
     def close(self) -> None:
         self.sock.close()
@@ -444,7 +469,7 @@ def test_the_page_its_assets_and_plotly_from_the_installed_package(web):
     assert get(view.address, "/static/plotly.min.js", f"If-None-Match: {headers['etag']}")[0] == 304
     assert get(view.address, "/static/../../etc/passwd")[0] == 404
     assert get(view.address, "/static/nothing.js")[0] == 404
-    assert http(view.address, b"DELETE / HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")[0] == 405
+    assert http(view.address, f"DELETE / HTTP/1.1\r\nHost: {host_of(view.address)}\r\n\r\n".encode())[0] == 405
     assert get(view.address, "/ws")[0] == 400  # not an upgrade
 
 
@@ -511,27 +536,23 @@ def test_beyond_loopback_every_request_needs_the_token(web):
     status, headers, _ = get(address, "/", "Accept: text/html")
     assert status == 302 and headers["location"] == "/login"
     assert WsClient(address).status == 401
-    status, headers, _ = get(address, "/?token=s3cret-token")
-    assert status == 303 and headers["location"] == "/"
-    cookie = headers["set-cookie"].split(";")[0]
-    assert "s3cret" not in cookie and "HttpOnly" in headers["set-cookie"] and "SameSite=Strict" in headers["set-cookie"]
+    cookie = login(address, "s3cret-token")
+    assert "s3cret" not in cookie
     assert get(address, "/api/view", f"Cookie: {cookie}")[0] == 200
     ws = WsClient(address, headers=[f"Cookie: {cookie}"])
     assert ws.status == 101 and ws.message()["type"] == "snapshot"
+    view.set_token("another-token")  # rotated: the old cookie no longer opens anything, the page is closed
+    with pytest.raises(ConnectionError):
+        while True:
+            ws.message()
     ws.close()
-    view.set_token("another-token")  # rotated: the old cookie no longer opens anything
     assert get(address, "/api/view", f"Cookie: {cookie}")[0] == 401
     status, headers, _ = get(address, "/", f"Cookie: {cookie}", "Accept: text/html")
     assert status == 302 and headers["location"] == "/login"  # a browser is sent to log in again
     assert get(address, "/metrics", "Authorization: Bearer another-token")[0] == 200
-    form = b"token=nope"
-    request = (
-        b"POST /login HTTP/1.1\r\nHost: x\r\nConnection: close\r\nContent-Type: application/x-www-form-"
-        b"urlencoded\r\nContent-Length: %d\r\n\r\n%s"
-    )
-    codes = [http(address, request % (len(form), form))[0] for _ in range(AUTH_FAILURES_BEFORE_BACKOFF + 2)]
+    codes = [post(address, "/login", b"token=nope")[0] for _ in range(AUTH_FAILURES_BEFORE_BACKOFF + 2)]
     assert codes == [401] * (AUTH_FAILURES_BEFORE_BACKOFF + 1) + [429]  # then this address waits
-    assert get(address, "/metrics", "Authorization: Bearer another-token")[0] == 429  # even with the right one
+    assert get(address, "/metrics", "Authorization: Bearer another-token")[0] == 200  # never with the right one
 
 
 def test_a_websocket_from_another_origin_is_refused(web):
@@ -549,13 +570,8 @@ def test_oversized_requests_get_a_clear_status(web):
     assert get(view.address, "/" + "a" * 10000)[0] in (400, 414)
     many = [f"X-H{i}: 1" for i in range(200)]
     assert get(view.address, "/", *many)[0] in (400, 431)
-    body = b"token=" + b"a" * 5000
-    request = (
-        b"POST /login HTTP/1.1\r\nHost: x\r\nConnection: close\r\nContent-Type: application/x-www-form-"
-        b"urlencoded\r\nContent-Length: %d\r\n\r\n%s"
-    ) % (len(body), body)
     view_beyond = web("0.0.0.0", token="s3cret-token")
-    assert http(("127.0.0.1", view_beyond.address[1]), request)[0] == 413
+    assert post(("127.0.0.1", view_beyond.address[1]), "/login", b"token=" + b"a" * 5000)[0] == 413
 
 
 def test_connections_beyond_the_per_peer_limit_are_closed_at_once(web):
@@ -563,7 +579,7 @@ def test_connections_beyond_the_per_peer_limit_are_closed_at_once(web):
     held = [socket.create_connection(view.address, timeout=TIMEOUT_S) for _ in range(MAX_CONNECTIONS_PER_PEER)]
     try:
         for s in held:  # each one answered: they are counted as open connections
-            s.sendall(b"GET /favicon.ico HTTP/1.1\r\nHost: x\r\n\r\n")
+            s.sendall(f"GET /favicon.ico HTTP/1.1\r\nHost: {host_of(view.address)}\r\n\r\n".encode())
             assert s.recv(4096).startswith(b"HTTP/1.1 204")
         extra = socket.create_connection(view.address, timeout=TIMEOUT_S)
         assert extra.recv(4096) == b""  # closed before a byte was read
@@ -589,7 +605,7 @@ def test_a_kept_alive_connection_that_starts_a_request_and_never_ends_it_is_clos
     monkeypatch.setattr("fog_driver.daemon.web.server.WEB_REQUEST_HEAD_TIMEOUT_S", 0.5)
     view = web()
     slow = socket.create_connection(view.address, timeout=TIMEOUT_S)
-    slow.sendall(b"GET /favicon.ico HTTP/1.1\r\nHost: x\r\n\r\n")
+    slow.sendall(f"GET /favicon.ico HTTP/1.1\r\nHost: {host_of(view.address)}\r\n\r\n".encode())
     assert slow.recv(4096).startswith(b"HTTP/1.1 204")
     slow.sendall(b"GET / HTTP/1.1\r\nHost: x\r\nX-Slow: 1")  # the second request's head, never finished
     started = time.monotonic()

@@ -43,6 +43,33 @@ def chromium() -> str:
     return path
 
 
+def open_page(playwright, problems: list[str]):
+    """Headless Chromium and a page whose console errors and warnings, and uncaught errors, go to ``problems``."""
+    browser = playwright.chromium.launch(executable_path=chromium(), args=["--no-sandbox"])
+    page = browser.new_page(viewport={"width": 1280, "height": 860})
+    page.on("console", lambda m: problems.append(m.text) if m.type in ("error", "warning") else None)
+    page.on("pageerror", lambda e: problems.append(str(e)))
+    return browser, page
+
+
+def sample(seq: int, t_s: float, **extra) -> dict:
+    """An ANGLE object as the daemon publishes it (a drift of -0.5 deg/h, three thermometers)."""
+    return {
+        "class": "ANGLE",
+        "seq": seq,
+        "t_s": t_s,
+        "angle_arcsec": seq * 0.1,
+        "angle_raw_arcsec": seq * 0.11,
+        "rate_dph": 10.0,
+        "rate_raw_dph": 10.5,
+        "drift_dph": -0.5,
+        "temps_c": {"top": 20.0, "bottom": 21.0, "housing": 22.0},
+        "flags": [],
+        "utc": f"2026-12-03T00:{int(t_s) // 60:02d}:{int(t_s) % 60:02d}.000Z",
+        **extra,
+    }
+
+
 class Instrument:
     """Writes the capture into the pty at ``SPEEDUP`` times its pace; ``flowing`` pauses it (unplugged)."""
 
@@ -132,10 +159,7 @@ def test_the_page_shows_the_streams_numbers_live_plots_and_the_link_banner(tmp_p
         instrument = Instrument(pty, data)
         problems: list[str] = []
         with sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=chromium(), args=["--no-sandbox"])
-            page = browser.new_page(viewport={"width": 1280, "height": 860})
-            page.on("console", lambda m: problems.append(m.text) if m.type in ("error", "warning") else None)
-            page.on("pageerror", lambda e: problems.append(str(e)))
+            browser, page = open_page(p, problems)
             page.goto(url)
             expect(page.locator("#page-state")).to_have_text("live", timeout=WAIT_MS)
             expect(page.locator("body")).to_have_attribute("data-seq", re.compile(r"^\d+$"), timeout=WAIT_MS)
@@ -217,20 +241,7 @@ def test_the_page_draws_the_drift_band_and_switches_to_the_since_bias_form(tmp_p
 
     def samples(first: int, n: int) -> list[dict]:
         return [
-            {
-                "class": "ANGLE",
-                "seq": i,
-                "t_s": 3.0 + i / 10,
-                "angle_arcsec": i * 0.1,
-                "angle_raw_arcsec": i * 0.11,
-                "rate_dph": 10.0,
-                "rate_raw_dph": 10.5,
-                "drift_dph": -0.5 + i * 1e-4,
-                "drift_sigma_dph": 0.03,
-                "temps_c": {"top": 20.0},
-                "flags": [],
-                "utc": f"2026-12-03T00:{i // 600:02d}:{i // 10 % 60:02d}.000Z",
-            }
+            sample(i, 3.0 + i / 10, drift_dph=-0.5 + i * 1e-4, drift_sigma_dph=0.03, temps_c={"top": 20.0})
             for i in range(first, first + n)
         ]
 
@@ -243,10 +254,7 @@ def test_the_page_draws_the_drift_band_and_switches_to_the_since_bias_form(tmp_p
         view.publish_angles(samples(0, 100))
         host, port = view.address
         with sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=chromium(), args=["--no-sandbox"])
-            page = browser.new_page(viewport={"width": 1280, "height": 860})
-            page.on("console", lambda m: problems.append(m.text) if m.type in ("error", "warning") else None)
-            page.on("pageerror", lambda e: problems.append(str(e)))
+            browser, page = open_page(p, problems)
             page.goto(f"http://{host}:{port}/")
             expect(page.locator("#drift-sigma")).to_have_text("0.0300", timeout=WAIT_MS)
             expect(page.locator("#drift-sigma-label")).to_contain_text("1\u03c3 of the 1-min mean")
@@ -263,3 +271,79 @@ def test_the_page_draws_the_drift_band_and_switches_to_the_since_bias_form(tmp_p
     finally:
         view.stop()
     assert problems == [], problems
+
+
+def test_the_page_waits_for_data_then_plots_one_point_with_axes_around_it(tmp_path):
+    """A newcomer saw '-' everywhere beside a green "live" pill before the first sample, a first point plotted on
+    an axis of milliseconds, and the temperatures sorted by name in degrees symbol: the page now says it waits,
+    puts a minute of time and a small band of values around a lone point, and lists the thermometers as
+    ``fog-driver watch`` does (top, bottom, housing; degC)."""
+    from fog_driver.daemon.web.server import WebView
+
+    view = WebView("127.0.0.1", 0, update_hz=10.0)
+    view.start()
+    problems: list[str] = []
+    try:
+        host, port = view.address
+        with sync_playwright() as p:
+            browser, page = open_page(p, problems)
+            page.goto(f"http://{host}:{port}/")
+            expect(page.locator("#page-state")).to_have_text("waiting for data", timeout=WAIT_MS)
+            assert "ok" not in page.locator("#page-state").get_attribute("class")
+            expect(page.locator("#waiting")).to_be_visible()
+            expect(page.locator("#logout")).to_be_hidden()  # no token: nothing to log out of
+            housing_first = {"housing": 22.0, "bottom": 21.0, "top": 20.0}
+            view.publish_angles([sample(0, 3.0, temps_c=housing_first), sample(1, 4.0, temps_c=housing_first)])
+            expect(page.locator("#page-state")).to_have_text("live", timeout=WAIT_MS)
+            expect(page.locator("#plot-drift")).to_have_attribute("data-points", "1", timeout=WAIT_MS)
+            axes = page.evaluate(
+                """() => {
+                  const l = document.getElementById("plot-temps")._fullLayout;
+                  const d = document.getElementById("plot-drift")._fullLayout;
+                  const ms = (r) => new Date(r[1]).getTime() - new Date(r[0]).getTime();
+                  return {temps_x_ms: ms(l.xaxis.range), drift_x_ms: ms(d.xaxis.range), drift_y: d.yaxis.range};
+                }"""
+            )
+            assert axes["temps_x_ms"] == 60_000 and axes["drift_x_ms"] == 60_000, axes
+            low, high = axes["drift_y"]
+            assert low < -0.5 < high and high - low < 1.0, axes
+            rows = page.locator("#temps th").all_inner_texts()
+            assert rows == ["top temperature", "bottom temperature", "housing temperature"]
+            assert page.locator("#temps td").first.inner_text() == "20.000 degC"
+            legend = page.locator("#plot-temps .legend .legendtext").all_text_contents()
+            assert legend == ["top", "bottom", "housing"]
+            expect(page.locator("#plot-temps .gtitle")).to_have_text("temperatures (degC)")
+            browser.close()
+    finally:
+        view.stop()
+    assert problems == [], problems
+
+
+def test_a_browser_logs_in_reads_the_page_and_logs_out(tmp_path):
+    """With a token the page needs it on loopback too: the browser is sent to the login form (styled: its CSS
+    needs no token), the form's post passes the Origin check, the session cookie opens the page and its
+    WebSocket, and "log out" ends the session (the page is the login form again)."""
+    from fog_driver.daemon.web.server import WebView
+
+    view = WebView("127.0.0.1", 0, token="s3cret-token", update_hz=10.0)
+    view.start()
+    problems: list[str] = []
+    try:
+        view.publish_angles([sample(0, 3.0), sample(1, 4.0)])
+        host, port = view.address
+        with sync_playwright() as p:
+            browser, page = open_page(p, problems)
+            page.goto(f"http://{host}:{port}/")
+            expect(page).to_have_url(f"http://{host}:{port}/login")
+            assert page.evaluate("getComputedStyle(document.body).maxWidth") != "none"  # view.css loaded
+            page.fill("input[name=token]", "s3cret-token")
+            page.click("button[type=submit]")
+            expect(page.locator("#page-state")).to_have_text("live", timeout=WAIT_MS)
+            expect(page.locator("#logout")).to_be_visible()
+            page.click("#logout button")
+            expect(page).to_have_url(f"http://{host}:{port}/login", timeout=WAIT_MS)
+            assert page.request.get(f"http://{host}:{port}/api/view").status == 401  # the session is over
+            browser.close()
+    finally:
+        view.stop()
+    assert [p for p in problems if "401" not in p] == [], problems

@@ -9,7 +9,9 @@ never silently falls back to a default; every problem is one line naming the fil
 
 from __future__ import annotations
 
+import ipaddress
 import math
+import re
 from dataclasses import dataclass
 from importlib.resources import files
 from pathlib import Path
@@ -31,6 +33,34 @@ DEFAULT_MODEL = Path(str(files("fog_driver").joinpath("data", "models", "default
 
 #: The web view's port when ``http`` gives a host only.
 DEFAULT_HTTP_PORT = 8948
+
+#: A DNS name ``http_hosts`` may list: dot-separated labels of letters, digits and inner hyphens.
+_HOST_NAME = re.compile(
+    r"(?=.{1,253}\.?$)([a-z0-9]([a-z0-9-]{0,61}[a-z0-9])?)(\.[a-z0-9]([a-z0-9-]{0,61}[a-z0-9])?)*\.?", re.I
+)
+
+
+def _check_http_host(name: str) -> None:
+    """ValueError unless ``name`` is a DNS name or an IP address (``http_hosts``)."""
+    try:
+        ipaddress.ip_address(name.strip("[]"))
+        return
+    except ValueError:
+        pass
+    if not _HOST_NAME.fullmatch(name):
+        raise ValueError(
+            f"http_hosts: {name!r} is not a host name (letters, digits, hyphens and dots) or an IP address"
+        )
+
+
+def _check_proxy(entry: str) -> None:
+    """ValueError unless ``entry`` is an IP address or network (``http_trusted_proxies``)."""
+    try:
+        ipaddress.ip_network(entry.strip(), strict=False)
+    except ValueError:
+        raise ValueError(
+            f"http_trusted_proxies: {entry!r} is not an IP address or network (10.0.0.5, 10.1.0.0/16, ::1)"
+        ) from None
 
 
 @dataclass(frozen=True)
@@ -67,11 +97,15 @@ class DriverConfig:
     scale_override_arcsec_per_count: float | None = None
     model: str | None = None  #: model file; None: the shipped default
     listen: str = f"127.0.0.1:{DEFAULT_PORT}"
-    token: str | None = None  #: required for control commands when listening beyond loopback
+    token: str | None = None  #: needed to read and to control (both listeners); required beyond loopback
+    open_stream: bool = False  #: with a token, ANGLE (alone) is open to clients without it, on both listeners
     udp: str | None = None  #: HOST:PORT to send one datagram per sample to (None: off)
     udp_version: int = 1  #: the datagram's layout: 1 (68 bytes) or 2 (72: with drift_sigma_dph)
     http: str | None = None  #: HOST:PORT of the web view and /metrics (None: off); beyond loopback needs token
     http_history_min: float = 60.0  #: minutes of plots the web view keeps
+    http_hosts: tuple[str, ...] = ()  #: names the web view answers to (Host), beyond its address and localhost
+    http_trusted_proxies: tuple[str, ...] = ()  #: addresses whose X-Forwarded-For is believed (a reverse proxy)
+    http_secure_cookies: bool = False  #: TLS is in front (a proxy): Secure cookies, https origins
     capture_dir: str = "fog-captures"
     capture_rotate_mb: float = 256.0
     capture_rotate_s: float = 3600.0
@@ -112,6 +146,10 @@ class DriverConfig:
             parse_host_port(self.http, default_port=DEFAULT_HTTP_PORT)
         if not (math.isfinite(self.http_history_min) and 0 < self.http_history_min <= 24 * 60):
             raise ValueError(f"http_history_min must be in (0, 1440] minutes, got {self.http_history_min!r}")
+        for name in self.http_hosts:
+            _check_http_host(name)
+        for entry in self.http_trusted_proxies:
+            _check_proxy(entry)
         if self.token is not None and len(self.token) < 8:
             raise ValueError("token must be at least 8 characters")
         if self.format != "auto":

@@ -26,14 +26,17 @@ class      sent when
 =========  =================================================================
 VERSION    first line on every connection, and in answer to ``?VERSION;``:
            ``release``, ``proto_major``, ``proto_minor`` and the instrument's
-           identity (filled in by the service)
+           identity (filled in by the service); on a token-protected daemon a
+           client that has not authorized gets the first three only
 DEVICE     second line on connect when an instrument is known, and to every
            authorized client whenever the instrument (or its link state)
            changes; on a token-protected daemon, right after a successful
            ``?AUTH`` instead of on connect
 STATUS     to every authorized client (watching or not), periodic summaries
 ANGLE      one per instrument sample, only to clients with an enabled WATCH,
-           decimated per client (see ``?WATCH``); always carries ``t_s``
+           decimated per client (see ``?WATCH``); on a token-protected daemon
+           only to authorized clients, unless it opens the stream to everyone
+           (``open_stream``); always carries ``t_s``
            (device time, s); since 1.1 ``drift_sigma_dph`` beside ``drift_dph``
            (omitted while there is no estimate)
 WATCH      answer to ``?WATCH``: the client's policy now in force
@@ -61,12 +64,15 @@ lines may be interleaved.
 - ``?VERSION;`` sends the VERSION object again.
 - ``?AUTH={"token": "..."};`` authorizes this connection, needed only when the
   daemon was configured with a token (which it must be to listen beyond
-  loopback).  Until then a client gets VERSION (and the answers to its
-  ``?WATCH``, ``?VERSION`` and ``?AUTH``, and ANGLE lines it watches) but no
-  DEVICE or STATUS, and every control command is refused.  Failed attempts are
-  throttled per peer address (see ``limits.py``); five failed or refused attempts
-  close the connection.  When the daemon's token changes, every connection is
-  closed (``ERROR`` "the client token changed: connect again").
+  loopback; on loopback too, once it has one).  Until then a client gets
+  VERSION without the instrument's identity, and the answers to its
+  ``?VERSION`` and ``?AUTH``; no ANGLE (a ``?WATCH`` that enables it is
+  refused with ``ERROR`` "unauthorized", unless the daemon opens the stream,
+  ``open_stream``: then it gets the ANGLE lines it watches), DEVICE or STATUS,
+  and every control command is refused.  Wrong tokens are throttled per peer
+  address (see ``limits.py``), a right one is never refused; five failed or
+  refused attempts close the connection.  When the daemon's token changes,
+  every connection is closed (``ERROR`` "the client token changed: connect again").
 - Any other NAME is a control command handed to the service (for example
   ``?ZERO;`` or ``?MARK={"label": "stop 3"};``); an unknown one is answered
   with ``ERROR`` ``"unknown command ?NAME"``; without a prior successful
@@ -93,7 +99,6 @@ Example session (``nc 127.0.0.1 2948``)::
 
 from __future__ import annotations
 
-import hmac
 import math
 import time
 from collections.abc import Callable, Iterator
@@ -101,7 +106,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ..client.ndjson import OVERLONG, UNTERMINATED, Command, CommandError, LineBuffer, parse_command
-from .guards import AuthThrottle
+from .guards import AuthThrottle, token_matches
 from .limits import (
     COMMAND_WINDOW_S,
     MAX_AUTH_FAILURES,
@@ -143,7 +148,10 @@ class Send:
 
 @dataclass(frozen=True, slots=True)
 class SendVersion:
-    """Queue the VERSION object (the service's, made on the I/O layer's thread)."""
+    """Queue the VERSION object (the service's, made on the I/O layer's thread); without ``identity``, its
+    release and protocol version only (a client that has not authorized on a token-protected daemon)."""
+
+    identity: bool = True
 
 
 @dataclass(frozen=True, slots=True)
@@ -220,29 +228,21 @@ def control_error(name: str, exc: BaseException) -> dict:
 
 
 class AuthGate:
-    """The daemon's client token (None: every connection is authorized) and the per-peer backoff of failed
-    ``?AUTH`` attempts, shared by every connection of one hub."""
+    """The daemon's client token (None: every connection is authorized), whether the ANGLE stream is open to
+    clients without it (``open_stream``), and the per-peer backoff of wrong ``?AUTH`` tokens, shared by every
+    connection of one hub."""
 
-    def __init__(self, token: str | None, throttle: AuthThrottle) -> None:
+    def __init__(self, token: str | None, throttle: AuthThrottle, *, open_stream: bool = False) -> None:
         self.token = token
         self.throttle = throttle
+        self.open_stream = open_stream
 
     def attempt(self, peer: str, token: Any, now: float) -> tuple[str, float]:
-        """``("ok", 0)``, ``("blocked", seconds still to wait)`` or ``("wrong", seconds now blocked for)``.
-
-        A blocked peer's token is not even compared; a right one forgets the peer's failures."""
+        """``("ok", 0)``, ``("blocked", seconds still to wait)`` or ``("wrong", seconds now blocked for)``
+        (``AuthThrottle.judge``: the token is always compared, and a right one is never refused)."""
         if self.token is None:
             return "ok", 0.0
-        wait_s = self.throttle.blocked_for_s(peer, now)
-        if wait_s > 0:
-            return "blocked", wait_s
-        # surrogatepass: a lone surrogate ("\ud800") is a wrong token like any other, never an exception
-        if isinstance(token, str) and hmac.compare_digest(
-            token.encode("utf-8", "surrogatepass"), self.token.encode("utf-8")
-        ):
-            self.throttle.succeeded(peer)
-            return "ok", 0.0
-        return "wrong", self.throttle.failed(peer, now)
+        return self.throttle.judge(peer, token_matches(token, self.token), now)
 
 
 # -- one connection -------------------------------------------------------------------------------------------
@@ -278,7 +278,7 @@ class Connection:
 
     def greeting(self) -> list[Action]:
         """What a new connection gets: VERSION, and DEVICE when it is authorized already."""
-        return [SendVersion(), SendDevice()] if self.authorized else [SendVersion()]
+        return [SendVersion(), SendDevice()] if self.authorized else [SendVersion(identity=False)]
 
     def receive(self, data: bytes) -> Iterator[Action]:
         """The actions the client's ``data`` calls for, in order (lazily); none once the connection closes."""
@@ -301,9 +301,16 @@ class Connection:
         """The client closed its side: send what is queued (the answers), then close."""
         return self._close()
 
+    @property
+    def reads_angles(self) -> bool:
+        """The client gets the ANGLE lines its WATCH asks for: it watches, and it is authorized or the daemon
+        opens the stream to everyone (``open_stream``)."""
+        return self.watch and (self.authorized or self.gate.open_stream)
+
     def auth_deadline_passed(self, deadline_s: float) -> list[Action]:
-        """The client did not authorize within ``deadline_s`` of connecting: ERROR, close."""
-        if self.authorized or self.closing:
+        """The client did not authorize within ``deadline_s`` of connecting: ERROR, close (unless it reads the
+        open stream: a reader needs no token there)."""
+        if self.authorized or self.closing or (self.gate.open_stream and self.watch):
             return []
         return [
             Log("info", "client_unauthorized", {"deadline_s": deadline_s}),
@@ -375,7 +382,8 @@ class Connection:
 
     def _watch(self, command: Command) -> list[Action]:
         """``?WATCH;`` reports the policy; ``?WATCH={...};`` replaces it (``enable`` true unless given,
-        ``rate_hz`` every sample unless given) and restarts the decimation."""
+        ``rate_hz`` every sample unless given) and restarts the decimation.  Enabling it needs the token on a
+        token-protected daemon (unless ``open_stream``): ``ERROR`` "unauthorized", the policy unchanged."""
         actions: list[Action] = []
         if command.has_args:
             args = command.args
@@ -385,6 +393,8 @@ class Connection:
             rate = args.get("rate_hz")
             if rate is not None and not (is_positive_finite(rate) and rate <= MAX_WATCH_RATE_HZ):
                 return [error(f"rate_hz must be a number > 0 and <= {MAX_WATCH_RATE_HZ}", "WATCH")]
+            if enable and not (self.authorized or self.gate.open_stream):
+                return [error("unauthorized", "WATCH")]  # reading needs the token: ?AUTH first
             if enable != self.watch:
                 actions.append(WatchChanged(enable))
             self.watch = enable
@@ -394,7 +404,7 @@ class Connection:
         return actions
 
     def _version(self, command: Command) -> list[Action]:
-        return [SendVersion()]
+        return [SendVersion(identity=self.authorized)]
 
     def _auth(self, command: Command) -> list[Action]:
         """``?AUTH``: compare the token (unless the peer address is in its backoff), authorize or refuse."""

@@ -1,16 +1,29 @@
-"""What the NDJSON hub and the web view share to guard themselves: the token rule, the backoff on failed
-attempts per peer address, peer addresses, and the log rate limit (sans-IO: times are arguments)."""
+"""What the NDJSON hub and the web view share to guard themselves: the token rule and its comparison, the
+backoff on wrong tokens per peer address, the connection slots (``Slots``: clients without the token never
+starve those with it), peer addresses, and the log rate limit (sans-IO: times are arguments)."""
 
 from __future__ import annotations
 
 import collections
+import hmac
 import ipaddress
 import socket
+from collections.abc import Hashable
+from dataclasses import dataclass
 from typing import Any
 
 from .limits import AUTH_FAILURES_BEFORE_BACKOFF, LOG_WINDOW_S, MAX_THROTTLED_PEERS
 
-__all__ = ["AuthThrottle", "LogRateLimiter", "check_token", "is_loopback_host", "peer_address"]
+__all__ = [
+    "Admission",
+    "AuthThrottle",
+    "LogRateLimiter",
+    "Slots",
+    "check_token",
+    "is_loopback_host",
+    "peer_address",
+    "token_matches",
+]
 
 
 def check_token(token: str | None, host: str) -> None:
@@ -28,6 +41,14 @@ def check_token(token: str | None, host: str) -> None:
         token.encode("utf-8")
     except UnicodeEncodeError:
         raise ValueError("the client token must be valid text (it has a lone surrogate)") from None
+
+
+def token_matches(given: Any, token: str | None) -> bool:
+    """True when ``given`` is the text ``token`` (compared in constant time); never for a ``None`` token, and a
+    ``given`` that is not text or has a lone surrogate is a wrong token like any other, never an exception."""
+    if token is None or not isinstance(given, str):
+        return False
+    return hmac.compare_digest(given.encode("utf-8", "surrogatepass"), token.encode("utf-8"))
 
 
 def is_loopback_host(host: str | None) -> bool:
@@ -120,20 +141,36 @@ class _PeerAuthFailures:
 
 
 class AuthThrottle:
-    """Failed ``?AUTH`` attempts per peer address across connections, with exponential backoff.
+    """Wrong tokens per peer address across connections (``?AUTH`` and the web listener's), with exponential
+    backoff; ``judge`` says what one attempt gets.
 
-    The first ``AUTH_FAILURES_BEFORE_BACKOFF`` failures of an address cost nothing; the
+    The first ``AUTH_FAILURES_BEFORE_BACKOFF`` wrong tokens of an address cost nothing; the
     next one blocks the address for ``base_s``, and each further one for twice as long as
-    the one before (at most ``max_s``).  While an address is blocked its attempts are
-    refused without comparing the token.  An address is forgotten on a successful
-    ``?AUTH`` from it and ``max_s`` after its last failure or block ended; at most
-    ``MAX_THROTTLED_PEERS`` addresses are remembered (the least recently failed go first).
+    the one before (at most ``max_s``).  While an address is blocked a wrong token is
+    refused ("retry in N s") and not counted: the address is answered "wrong" at most once
+    per ``base_s`` (a second) once its backoff has started.  A right token is never refused:
+    the backoff holds wrong guesses back, never the operator who shares the address (every
+    client of a host, a NAT or a proxy does).  An address is forgotten on a right token from
+    it and ``max_s`` after its last failure or block ended; at most ``MAX_THROTTLED_PEERS``
+    addresses are remembered (the least recently failed go first).
     """
 
     def __init__(self, base_s: float, max_s: float) -> None:
         self.base_s = base_s
         self.max_s = max_s
         self._peers: collections.OrderedDict[str, _PeerAuthFailures] = collections.OrderedDict()
+
+    def judge(self, peer: str, right: bool, now: float) -> tuple[str, float]:
+        """One attempt from ``peer`` whose token was ``right`` (``token_matches``): ``("ok", 0)``, ``("wrong",
+        seconds the address is now blocked for)`` (counted), or ``("blocked", seconds still to wait)`` for a
+        wrong token while the address is blocked (refused, not counted)."""
+        if right:
+            self.succeeded(peer)
+            return "ok", 0.0
+        wait_s = self.blocked_for_s(peer, now)
+        if wait_s > 0:
+            return "blocked", wait_s
+        return "wrong", self.failed(peer, now)
 
     def blocked_for_s(self, peer: str, now: float) -> float:
         """Seconds ``peer`` must still wait before its next attempt is compared (0: not blocked)."""
@@ -159,3 +196,147 @@ class AuthThrottle:
 
     def succeeded(self, peer: str) -> None:
         self._peers.pop(peer, None)
+
+
+# -- connection slots -------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class Admission:
+    """What ``Slots.admit`` decided: ``refused`` (None when let in: ``"total"`` or ``"peer"``, the cap reached),
+    and the connections to close to make room (already forgotten by the slots)."""
+
+    refused: str | None
+    evicted: tuple[Hashable, ...] = ()
+
+
+class _Slot:
+    __slots__ = ("authorized", "peer", "reader")
+
+    def __init__(self, peer: str, authorized: bool) -> None:
+        self.peer = peer
+        self.authorized = authorized
+        self.reader = False
+
+
+class Slots:
+    """The connection slots of one listener, shared so that clients without the token never starve those with it.
+
+    At most ``max_total`` connections, and ``max_per_peer`` from one address.  Connections not authorized (new
+    ones whose credentials are not known yet, ones refused, open-stream readers) hold at most half of either
+    (``max_total // 2``, ``max_per_peer // 2``, at least 1).  A new connection that finds a cap reached is let in
+    by closing the oldest unauthorized connection in the way (its address's when the address's cap is reached),
+    one that is no reader first; it is refused only when every slot in the way is held by an authorized
+    connection.  So an authorized client finds a slot while fewer than the maximum are authorized, whatever the
+    others hold.  A connection counts against its address's cap unless admitted with ``peer=None`` (a trusted
+    proxy's: ``move`` gives it its client's address once a request says which).  Keys are the listener's
+    connection objects; sans-IO.
+    """
+
+    def __init__(self, max_total: int, max_per_peer: int) -> None:
+        self.max_total = max_total
+        self.max_per_peer = max_per_peer
+        self.max_unauthorized = max(1, max_total // 2)
+        self.max_unauthorized_per_peer = max(1, max_per_peer // 2)
+        self._slots: dict[Hashable, _Slot] = {}  # in order of arrival: the oldest first
+        self._per_peer: collections.Counter[str] = collections.Counter()
+        self._unauthorized_per_peer: collections.Counter[str] = collections.Counter()
+        self._unauthorized = 0
+
+    def __len__(self) -> int:
+        return len(self._slots)
+
+    def __contains__(self, key: Hashable) -> bool:
+        return key in self._slots
+
+    def authorized(self, key: Hashable) -> bool:
+        slot = self._slots.get(key)
+        return slot is not None and slot.authorized
+
+    def unauthorized(self, peer: str | None = None) -> int:
+        """Connections not authorized, of ``peer`` (None: of every address)."""
+        return self._unauthorized if peer is None else self._unauthorized_per_peer[peer]
+
+    def admit(self, key: Hashable, peer: str | None, *, authorized: bool = False) -> Admission:
+        """Let a new connection in (see the class docstring), or say which cap refuses it."""
+        victims: list[Hashable] = []
+        if peer is not None:
+            peer_full = self._per_peer[peer] >= self.max_per_peer or (
+                not authorized and self._unauthorized_per_peer[peer] >= self.max_unauthorized_per_peer
+            )
+            if peer_full:
+                victim = self._victim(peer, victims)
+                if victim is None:
+                    return Admission("peer")
+                victims.append(victim)
+        total_full = len(self._slots) - len(victims) >= self.max_total or (
+            not authorized and self._unauthorized - len(victims) >= self.max_unauthorized
+        )
+        if total_full:
+            victim = self._victim(None, victims)
+            if victim is None:
+                return Admission("total")
+            victims.append(victim)
+        for victim in victims:
+            self.release(victim)
+        self._slots[key] = _Slot("" if peer is None else peer, authorized)
+        self._count(self._slots[key], 1)
+        return Admission(None, tuple(victims))
+
+    def move(self, key: Hashable, peer: str) -> Admission:
+        """Count a connection admitted without an address (a trusted proxy's) against ``peer``'s cap from now
+        on: as ``admit`` would let it in (closing the oldest of ``peer``'s unauthorized ones), or refused."""
+        slot = self._slots.get(key)
+        if slot is None or slot.peer:
+            return Admission(None)
+        authorized = slot.authorized
+        self.release(key)
+        admission = self.admit(key, peer, authorized=authorized)
+        if admission.refused is None:
+            self._slots[key].reader = slot.reader
+        return admission
+
+    def authorize(self, key: Hashable) -> None:
+        """The connection carried the token: it holds an authorized slot from now on."""
+        slot = self._slots.get(key)
+        if slot is not None and not slot.authorized:
+            self._count(slot, -1)
+            slot.authorized = True
+            self._count(slot, 1)
+
+    def set_reader(self, key: Hashable) -> None:
+        """The (unauthorized) connection reads the open stream: others are closed before it to make room."""
+        slot = self._slots.get(key)
+        if slot is not None:
+            slot.reader = True
+
+    def release(self, key: Hashable) -> None:
+        """Forget a connection (closed, or closed to make room)."""
+        slot = self._slots.pop(key, None)
+        if slot is not None:
+            self._count(slot, -1)
+
+    def _count(self, slot: _Slot, step: int) -> None:
+        if slot.peer:
+            self._per_peer[slot.peer] += step
+            if self._per_peer[slot.peer] <= 0:
+                del self._per_peer[slot.peer]
+        if not slot.authorized:
+            self._unauthorized += step
+            if slot.peer:
+                self._unauthorized_per_peer[slot.peer] += step
+                if self._unauthorized_per_peer[slot.peer] <= 0:
+                    del self._unauthorized_per_peer[slot.peer]
+
+    def _victim(self, peer: str | None, taken: list[Hashable]) -> Hashable | None:
+        """The oldest unauthorized connection (of ``peer``, None: of any address) not in ``taken``, one that is
+        no reader first; None when there is none."""
+        reader = None
+        for key, slot in self._slots.items():
+            if slot.authorized or key in taken or (peer is not None and slot.peer != peer):
+                continue
+            if not slot.reader:
+                return key
+            if reader is None:
+                reader = key
+        return reader

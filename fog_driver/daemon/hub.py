@@ -53,7 +53,7 @@ from .connection import (
     is_positive_finite,
 )
 from .control import control_answer
-from .guards import AuthThrottle, LogRateLimiter, check_token, is_loopback_host, peer_address
+from .guards import AuthThrottle, LogRateLimiter, Slots, check_token, is_loopback_host, peer_address
 from .limits import (
     CONTROL_WORKERS,
     DEFAULT_AUTH_BACKOFF_BASE_S,
@@ -92,6 +92,9 @@ __all__ = [
 ]
 
 log = structlog.get_logger("fog_driver.daemon")
+
+#: The VERSION keys a client that has not authorized on a token-protected hub gets (no instrument identity).
+PUBLIC_VERSION_KEYS = ("release", "proto_major", "proto_minor")
 
 
 def _check_max_backlog_s(seconds: float) -> None:
@@ -169,6 +172,9 @@ class Hub:
     loopback, megabytes: tens of seconds of ANGLE lines before the backlog age
     policy can even see the client is stuck).
 
+    ``open_stream``: on a token-protected hub, clients that have not authorized get the ANGLE lines they watch
+    too (and no auth deadline while they watch); nothing else opens with it.
+
     The other arguments are the limits ``limits.py`` names and explains (``auth_deadline_s`` None: no deadline).
 
     While it runs, :meth:`set_token` and :meth:`set_max_backlog_s` change the token
@@ -184,6 +190,7 @@ class Hub:
         device: Callable[[], dict | None],
         control: Callable[[str, dict, int], dict | concurrent.futures.Future | None],
         token: str | None = None,
+        open_stream: bool = False,
         max_line_bytes: int = DEFAULT_MAX_LINE_BYTES,
         max_backlog_s: float = DEFAULT_MAX_BACKLOG_S,
         control_timeout_s: float = DEFAULT_CONTROL_TIMEOUT_S,
@@ -229,12 +236,12 @@ class Hub:
         self.max_clients = max_clients
         self.max_clients_per_peer = max_clients_per_peer
         self.auth_deadline_s = auth_deadline_s
-        self._gate = AuthGate(token, AuthThrottle(auth_backoff_base_s, auth_backoff_max_s))
+        self._gate = AuthGate(token, AuthThrottle(auth_backoff_base_s, auth_backoff_max_s), open_stream=open_stream)
         self._log_limiter = LogRateLimiter(log_lines_per_s)
         self.latency = latency  #: frame-to-publish latency, observed once per published batch (None: not measured)
 
         self._clients: dict[int, _Client] = {}
-        self._clients_per_peer: collections.Counter[str] = collections.Counter()
+        self._slots = Slots(max_clients, max_clients_per_peer)  # by client id
         self._refused = 0
         self._next_id = 1
         self._watchers = 0
@@ -502,7 +509,7 @@ class Hub:
         items, read_monotonic_s = batch
         now = time.monotonic()
         for client in list(self._clients.values()):
-            if client.conn.watch and not client.closing:
+            if client.conn.reads_angles and not client.closing:
                 self._for_one_client(self._send_angles, client, items, now)
         if read_monotonic_s is not None and self.latency is not None:
             self.latency.observe(time.monotonic() - read_monotonic_s)
@@ -622,12 +629,9 @@ class Hub:
         client.queue.clear()
         if client.auth_deadline is not None:
             client.auth_deadline.cancel()
-        if self._clients.pop(client.id, None) is not None:
-            self._clients_per_peer[client.conn.peer_address] -= 1
-            if not self._clients_per_peer[client.conn.peer_address]:
-                del self._clients_per_peer[client.conn.peer_address]
-            if client.conn.watch:
-                self._watchers -= 1
+        self._slots.release(client.id)
+        if self._clients.pop(client.id, None) is not None and client.conn.watch:
+            self._watchers -= 1
         current = asyncio.current_task()
         for task in (client.reader_task, client.writer_task):
             if task is not None and task is not current and not task.done():
@@ -651,15 +655,18 @@ class Hub:
     async def _on_connect(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         peer = writer.get_extra_info("peername")
         address = peer_address(peer)
-        refusal = self._refusal(address)
-        if refusal is not None:
+        cid = self._next_id
+        admission = self._slots.admit(cid, address, authorized=self._gate.token is None)
+        if admission.refused is not None:
             self._refused += 1
+            refusal = self._refusal(admission.refused, address)
             self._log("warning", "client_refused", peer=str(peer), reason=refusal, refused_clients=self._refused)
             writer.write(encode({"class": "ERROR", "message": refusal}))
             writer.close()
             return
-        cid = self._next_id
         self._next_id += 1
+        for evicted in admission.evicted:
+            self._make_room(self._clients.get(evicted))
         sock = writer.get_extra_info("socket")
         if self.sndbuf_bytes is not None and sock is not None:
             with contextlib.suppress(OSError):
@@ -667,7 +674,6 @@ class Hub:
         conn = Connection(address, self._gate, max_line_bytes=self.max_line_bytes)
         client = _Client(cid, peer, reader, writer, conn)
         self._clients[cid] = client
-        self._clients_per_peer[client.conn.peer_address] += 1
         client.reader_task = asyncio.current_task()
         client.writer_task = asyncio.create_task(self._write_loop(client))
         if not client.conn.authorized and self.auth_deadline_s is not None:
@@ -687,13 +693,19 @@ class Hub:
                 self._discard(client, "client_closed")
             # after _close_after_flush the writer task sends what is queued, then closes
 
-    def _refusal(self, peer_address: str) -> str | None:
-        """Why a new connection from ``peer_address`` is refused (a cap is reached), or None."""
-        if len(self._clients) >= self.max_clients:
+    def _refusal(self, cap: str, peer_address: str) -> str:
+        """Why a new connection from ``peer_address`` is refused: the ``cap`` (``Slots.admit``) is reached."""
+        if cap == "total":
             return f"too many clients ({self.max_clients}): try again later"
-        if self._clients_per_peer[peer_address] >= self.max_clients_per_peer:
-            return f"too many connections from {peer_address} ({self.max_clients_per_peer}): try again later"
-        return None
+        return f"too many connections from {peer_address} ({self.max_clients_per_peer}): try again later"
+
+    def _make_room(self, client: _Client | None) -> None:
+        """Close the oldest unauthorized ``client``: a new connection needs its slot (``Slots``)."""
+        if client is None or client.gone or client.closing:
+            return
+        self._log("info", "client_made_room", client=client.id, peer=str(client.peer))
+        self._send_obj(client, {"class": "ERROR", "message": "closed to make room for a new client: authorize sooner"})
+        self._close_after_flush(client)
 
     def _auth_deadline_passed(self, client: _Client) -> None:
         client.auth_deadline = None
@@ -726,7 +738,7 @@ class Hub:
         if isinstance(action, Send):
             self._send_obj(client, action.obj)
         elif isinstance(action, SendVersion):
-            self._send_version(client)
+            self._send_version(client, action.identity)
         elif isinstance(action, SendDevice):
             device = self._device()
             if device:
@@ -734,19 +746,24 @@ class Hub:
         elif isinstance(action, Close):
             self._close_after_flush(client)
         elif isinstance(action, Authorized):
+            self._slots.authorize(client.id)
             if client.auth_deadline is not None:
                 client.auth_deadline.cancel()
                 client.auth_deadline = None
         elif isinstance(action, WatchChanged):
             self._watchers += 1 if action.enable else -1
+            if action.enable and self._gate.open_stream:
+                self._slots.set_reader(client.id)  # it reads the open stream: others make room first
         elif isinstance(action, Log):
             self._log(action.level, action.event, client=client.id, peer=str(client.peer), **action.fields)
         else:
             raise TypeError(f"not an action the hub performs here: {action!r}")
 
-    def _send_version(self, client: _Client) -> None:
+    def _send_version(self, client: _Client, identity: bool = True) -> None:
         try:
             obj = {"class": "VERSION", **self._version()}
+            if not identity:
+                obj = {key: value for key, value in obj.items() if key == "class" or key in PUBLIC_VERSION_KEYS}
         except Exception as exc:  # noqa: BLE001
             obj = {"class": "ERROR", "message": f"version unavailable: {exc}", "command": "VERSION"}
         self._send_obj(client, obj)

@@ -23,15 +23,22 @@ The NDJSON hub's limits, as clients meet them.  Each is a constant here or a ``h
   daemon never buffers old samples for a slow reader;
 - at most ``max_clients`` (64) connections, and ``max_clients_per_peer`` (16)
   from one peer address (an IPv4 address; an IPv6 /64): one more gets one
-  ``ERROR`` line and is closed;
+  ``ERROR`` line and is closed.  On a token-protected daemon clients that have
+  not authorized hold at most half of either (``guards.Slots``): a new
+  connection that finds no room closes the oldest of them (``ERROR`` "closed to
+  make room ..."), so a client with the token finds a slot while fewer than
+  the maximum have authorized;
 - on a token-protected daemon a client that has not authorized within
   ``auth_deadline_s`` (10 s) of connecting gets ``ERROR`` and is closed;
-- failed ``?AUTH`` attempts are counted per peer address, across connections:
-  after 3 (``AUTH_FAILURES_BEFORE_BACKOFF``) each further failure blocks the
+- wrong ``?AUTH`` tokens are counted per peer address, across connections:
+  after 3 (``AUTH_FAILURES_BEFORE_BACKOFF``) each further one blocks the
   address for ``auth_backoff_base_s`` (1 s), doubled each time up to
-  ``auth_backoff_max_s`` (300 s); while blocked, ``?AUTH`` is refused with
-  ``ERROR`` "too many failed attempts, retry in N s" without looking at the
-  token.  An address is forgotten after a success, and ``auth_backoff_max_s``
+  ``auth_backoff_max_s`` (300 s); while blocked, a wrong token is refused with
+  ``ERROR`` "too many failed attempts, retry in N s" (and not counted), so the
+  address is told "bad token" at most once a second once its backoff has
+  started; a right token is always accepted (the operator shares the address
+  with whoever guesses: a host's users, a NAT, a proxy).  An address is
+  forgotten after a right token, and ``auth_backoff_max_s``
   after its last failure or block ended (at most 4096 addresses are remembered,
   ``MAX_THROTTLED_PEERS``; the least recently failed are forgotten first);
 - a control command waits ``control_timeout_s`` (30 s) for its answer;
@@ -96,7 +103,7 @@ HUB_STOP_TIMEOUT_S = 5.0
 DEFAULT_AUTH_DEADLINE_S = 10.0
 #: Failed (or refused) ``?AUTH`` attempts after which a connection is closed.
 MAX_AUTH_FAILURES = 5
-#: Failed ``?AUTH`` attempts from one peer address (across connections) before the backoff starts.
+#: Wrong tokens from one peer address (across connections, and on the web listener) before the backoff starts.
 AUTH_FAILURES_BEFORE_BACKOFF = 3
 #: The first backoff after a failed ``?AUTH`` (s); each further failure doubles it.
 DEFAULT_AUTH_BACKOFF_BASE_S = 1.0
@@ -142,9 +149,16 @@ WEB_DEFAULT_UPDATE_HZ = 2.0
 WEB_MAX_UPDATE_HZ = 50.0
 #: Published batches waiting for the web listener's loop at most (the oldest go first, counted).
 WEB_MAX_INBOX_BATCHES = 100_000
-#: Connections at most, and from one peer address at most (beyond them the connection is closed at once).
+#: Connections at most, and from one peer address at most (beyond them the connection is closed at once); those
+#: without the token hold at most half of either (``guards.Slots``).
 WEB_MAX_CONNECTIONS = 64
 WEB_MAX_CONNECTIONS_PER_PEER = 24
+#: A connection without the token is closed this long (s) after its first request (an open-stream reader's
+#: WebSocket excepted).
+WEB_UNAUTHORIZED_LIFETIME_S = 10.0
+#: A login's session (its cookie's ``Max-Age``, s), and the sessions kept at most (the oldest end first).
+WEB_SESSION_MAX_AGE_S = 12 * 3600
+WEB_MAX_SESSIONS = 256
 #: The request line and each header at most (431/400), headers at most, a request body at most (413).
 WEB_MAX_LINE_BYTES = 4096
 WEB_MAX_HEADERS = 40
@@ -155,7 +169,8 @@ WEB_REQUEST_HEAD_TIMEOUT_S = 10.0
 WEB_REQUEST_TIMEOUT_S = 60.0
 #: Idle keep-alive connections close after this long (s).
 WEB_KEEPALIVE_S = 15.0
-#: A WebSocket peer's message at most, and its messages a second at most (the page sends none).
+#: A WebSocket peer's message at most, and its messages (pings and pongs included) a second at most (the page
+#: sends none; a browser answers the listener's ping every ``WEB_WS_HEARTBEAT_S``).
 WEB_MAX_WS_MESSAGE_BYTES = 1024
 WEB_MAX_WS_MESSAGES_PER_S = 10
 #: The WebSocket ping interval (s).

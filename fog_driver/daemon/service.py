@@ -99,6 +99,10 @@ class Service:
         "udp_version",
         "http",
         "http_history_min",
+        "http_hosts",
+        "http_trusted_proxies",
+        "http_secure_cookies",
+        "open_stream",
         "capture_dir",
         "capture_rotate_mb",
         "capture_rotate_s",
@@ -343,8 +347,10 @@ class Service:
         of ``RESTART_KEYS`` that changed are kept as they are and reported (``restart_needed``)."""
         restart = [k for k in self.RESTART_KEYS if getattr(config, k) != getattr(self.config, k)]
         new = dataclasses.replace(config, **{k: getattr(self.config, k) for k in self.RESTART_KEYS})
-        if self.hub is not None and new.token != self.config.token:
-            self.hub.check_token(new.token)  # ValueError (e.g. no token beyond loopback): nothing changed
+        if new.token != self.config.token:  # ValueError (e.g. no token beyond loopback): nothing changed
+            for listener in (self.hub, self.web):
+                if listener is not None:
+                    listener.check_token(new.token)
         result = self.reload_from_file(new)  # FogDriverError: nothing changed
         old = self.config
         self.config = new
@@ -394,6 +400,7 @@ class Service:
                 device=self.device_object,
                 control=self.control,
                 token=self.config.token,
+                open_stream=self.config.open_stream,
                 max_backlog_s=self.config.max_client_backlog_s,
                 sndbuf_bytes=CLIENT_SNDBUF_BYTES,
                 latency=self.latency,
@@ -459,6 +466,10 @@ class Service:
                 latency=self.latency,
                 max_backlog_s=self.config.max_client_backlog_s,
                 history_min=self.config.http_history_min,
+                open_stream=self.config.open_stream,
+                http_hosts=self.config.http_hosts,
+                trusted_proxies=self.config.http_trusted_proxies,
+                secure_cookies=self.config.http_secure_cookies,
             )
         except (ValueError, WebUnavailable) as exc:
             raise ConfigError(f"http {self.config.http}: {exc}") from None

@@ -11,24 +11,28 @@ __all__ = ["CountedProtocol", "TrackedConnection"]
 
 
 class TrackedConnection:
-    """What the sweeper knows of one connection: since when a request head is awaited (None: not now), since
-    when a request runs (None: none), whether it became a WebSocket."""
+    """What the sweeper knows of one connection: its client's address (``peer``: the socket's, or behind a
+    trusted proxy, ``proxied``, the forwarded one once a request said it), since when a request head is awaited
+    (None: not now), since when a request runs (None: none), when its first request came (None: not yet),
+    whether it became a WebSocket, and one that reads the open stream without the token (``reader``)."""
 
-    __slots__ = ("peer", "head_since_s", "request_since_s", "websocket")
+    __slots__ = ("peer", "proxied", "head_since_s", "request_since_s", "first_request_s", "websocket", "reader")
 
-    def __init__(self, peer: str, connected_s: float) -> None:
+    def __init__(self, peer: str, connected_s: float, *, proxied: bool = False) -> None:
         self.peer = peer
+        self.proxied = proxied
         self.head_since_s: float | None = connected_s  # a new connection owes its first request head
         self.request_since_s: float | None = None
+        self.first_request_s: float | None = None
         self.websocket = False
+        self.reader = False
 
 
 class CountedProtocol(asyncio.Protocol):
     """A connection's protocol: aiohttp's handler behind the connection limits, tracked for the sweeper.
 
-    ``view.open_connection`` says whether it may go on: beyond ``WEB_MAX_CONNECTIONS`` (or
-    ``WEB_MAX_CONNECTIONS_PER_PEER`` from one address) the connection is closed at once, before aiohttp sees a
-    byte of it."""
+    ``view.open_connection`` says whether it may go on (``guards.Slots``): when no slot is left for it the
+    connection is closed at once, before aiohttp sees a byte of it."""
 
     def __init__(self, view: Any, handler: Any) -> None:
         self.view = view
@@ -67,10 +71,11 @@ class CountedProtocol(asyncio.Protocol):
     def connection_lost(self, exc: BaseException | None) -> None:
         if self.peer is None:
             return
-        self.view.close_connection(self.handler, self.peer)
+        self.view.close_connection(self.handler)
         self.handler.connection_lost(exc)
 
 
 def peer_of(transport: Any) -> str:
+    """The IP address (text) a connection comes from."""
     peer = transport.get_extra_info("peername")
     return str(peer[0]) if isinstance(peer, tuple) and peer else str(peer)

@@ -13,7 +13,8 @@ Routes (all read-only; the page offers no command):
 ``GET /api/view``     the same snapshot as one JSON document (scripts, ``curl``)
 ``GET /metrics``      Prometheus text exposition (``metrics.DaemonCollector``)
 ``GET /static/...``   the page's assets; ``plotly.min.js`` comes from the installed ``plotly`` package (no CDN)
-``GET|POST /login``   the token form, when a token is needed (below)
+``GET|POST /login``   the token form, when the daemon has a token (below)
+``POST /logout``      ends the browser's session
 ====================  =========================================================================================
 
 Data in: the acquisition thread calls ``publish_angles(objs)`` with each published batch and ``publish(obj)``
@@ -21,22 +22,33 @@ with every other object; both append to a deque and return (no wake-up, no lock)
 them ``update_hz`` times a second.  A loop that falls behind by more than ``WEB_MAX_INBOX_BATCHES`` batches loses the
 oldest (counted: ``inbox_dropped``), never the acquisition's time.
 
-Authorization.  Listening beyond loopback needs the daemon's ``token`` (the config refuses to start
-otherwise), and then every request must carry it: ``Authorization: Bearer <token>`` (Prometheus'
-``authorization`` setting, ``curl -H``), or the cookie the ``/login`` form sets (a browser: open
-``/login``, or ``/?token=...`` once, which sets the cookie and redirects to a URL without the token).
-Without it a request gets 401 (a browser: the login form); after ``AUTH_FAILURES_BEFORE_BACKOFF`` wrong tokens from
-an address it must wait (1 s, doubling up to 300 s: 429), as on the NDJSON listener.  WebSocket upgrades
-must come from the page's own origin (a foreign ``Origin``: 403).
+Who may ask (``access.py`` has the rules).  Every request's ``Host`` must name this listener (400/421: no DNS
+rebinding), and a request carrying an ``Origin`` must come from the page's own (403).  Listening beyond loopback
+needs the daemon's ``token`` (the config refuses to start otherwise); once the daemon has one, on loopback too,
+every request must carry it: ``Authorization: Bearer <token>`` (the scheme in any case; Prometheus'
+``authorization`` setting, ``curl -H``), or the session cookie the ``/login`` form sets (a browser; never the
+token in a URL).  Open without it: the login form and what it loads (``OPEN_PATHS``); with ``open_stream``, a
+WebSocket that gets the angles only (``{"type": ..., "angle": {...}}``, the ANGLE object the page shows).
+Without it a request gets 401 (a browser asking for the page: the login form).  Wrong tokens are counted per
+address as on the NDJSON listener (``guards.AuthThrottle``: after ``AUTH_FAILURES_BEFORE_BACKOFF`` a wrong one is
+answered 429 while the address waits, 1 s doubling up to 300 s; a right one is never refused).  The session
+cookie is HttpOnly, SameSite=Strict, lasts ``WEB_SESSION_MAX_AGE_S``, is ``Secure`` when ``secure_cookies`` (the
+config's ``http_secure_cookies``: TLS is in front), and a new token voids every one.  Behind a reverse proxy
+listed in ``trusted_proxies`` the client's address is taken from ``X-Forwarded-For`` (for its slots and its
+backoff); from any other address the header is ignored.  Every answer carries ``SECURITY_HEADERS`` (a Content
+Security Policy, ``nosniff``, ``no-store``), redirects and errors included.
 
 Limits (a misbehaving client costs itself, never the instrument): ``WEB_MAX_CONNECTIONS`` connections and
-``WEB_MAX_CONNECTIONS_PER_PEER`` per address (beyond them the connection is closed at once); request line and
+``WEB_MAX_CONNECTIONS_PER_PEER`` per address (beyond them the connection is closed at once), of which those without
+the token hold at most half (``guards.Slots``: a newcomer closes the oldest of them, so a client with the token
+finds a slot) and each lives at most ``WEB_UNAUTHORIZED_LIFETIME_S`` after its first request; request line and
 each header at most ``WEB_MAX_LINE_BYTES``, ``WEB_MAX_HEADERS`` headers (431/400), a body at most ``WEB_MAX_BODY_BYTES``
 (413); a request head must be complete within ``WEB_REQUEST_HEAD_TIMEOUT_S`` of the connection (the first) or of
 its first byte (the next ones on a kept-alive connection), and a request must be answered within
 ``WEB_REQUEST_TIMEOUT_S`` (a client that does not read its response is closed); idle keep-alive connections
 close after ``WEB_KEEPALIVE_S``; a WebSocket peer may send at most ``WEB_MAX_WS_MESSAGE_BYTES`` per
-message and ``WEB_MAX_WS_MESSAGES_PER_S`` messages a second (the page sends none), and one that does not read
+message and ``WEB_MAX_WS_MESSAGES_PER_S`` messages a second, pings included (the page sends none; a flood is
+closed with 1008 rather than answered), and one that does not read
 is dropped when its oldest unsent update is older than ``max_client_backlog_s``, like an NDJSON client.
 """
 
@@ -44,13 +56,12 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import gzip
 import hashlib
-import hmac
 import importlib.resources
 import importlib.util
 import math
-import secrets
 import threading
 import time
 from collections import deque
@@ -60,7 +71,7 @@ from typing import Any
 import structlog
 
 from ...client.ndjson import encode
-from ..guards import AuthThrottle, LogRateLimiter, check_token, is_loopback_host
+from ..guards import AuthThrottle, LogRateLimiter, Slots, check_token, is_loopback_host, peer_address, token_matches
 from ..limits import (
     DEFAULT_AUTH_BACKOFF_BASE_S,
     DEFAULT_AUTH_BACKOFF_MAX_S,
@@ -79,13 +90,16 @@ from ..limits import (
     WEB_MAX_WS_MESSAGES_PER_S,
     WEB_REQUEST_HEAD_TIMEOUT_S,
     WEB_REQUEST_TIMEOUT_S,
+    WEB_SESSION_MAX_AGE_S,
     WEB_SHUTDOWN_TIMEOUT_S,
     WEB_START_TIMEOUT_S,
     WEB_STOP_TIMEOUT_S,
     WEB_SWEEP_EVERY_S,
+    WEB_UNAUTHORIZED_LIFETIME_S,
     WEB_WS_HEARTBEAT_S,
     WEB_WS_WINDOW_S,
 )
+from .access import AddressSet, Sessions, forwarded_client, host_name, normalize_name, origin_problem
 from .connections import CountedProtocol, TrackedConnection
 from .metrics import DaemonCollector, LatencyHistogram
 from .view import DEFAULT_HISTORY_MIN, ViewState
@@ -100,13 +114,18 @@ ASSETS = {
     "view.css": ("fog_driver.daemon.web", "static/view.css", "text/css"),
     "plotly.min.js": ("plotly", "package_data/plotly.min.js", "text/javascript"),
 }
-_SECURITY_HEADERS = {
+#: Every answer's headers (a static asset's ``Cache-Control`` excepted: it is revalidated by its ETag).
+SECURITY_HEADERS = {
     "Content-Security-Policy": "default-src 'self'; img-src 'self' data:; style-src 'self' 'unsafe-inline'; "
-    "connect-src 'self'; frame-ancestors 'none'",
+    "connect-src 'self'; form-action 'self'; base-uri 'none'; frame-ancestors 'none'",
     "X-Content-Type-Options": "nosniff",
-    "Referrer-Policy": "no-referrer",
+    "Referrer-Policy": "same-origin",  # not no-referrer: its forms would post "Origin: null"
     "Cache-Control": "no-store",
 }
+#: What a request needs no token for: the login form, the logout, and what the form loads.
+OPEN_PATHS = frozenset({"/login", "/logout", "/static/view.css", "/favicon.ico"})
+#: Names a ``Host`` header may always give (with the listener's own addresses).
+LOCAL_NAMES = frozenset({"localhost"})
 
 
 class WebUnavailable(RuntimeError):
@@ -143,14 +162,16 @@ def _index_html() -> bytes:
 
 
 class _Browser:
-    """One WebSocket peer: its queue of encoded updates (with the host time each was queued)."""
+    """One WebSocket peer: its queue of encoded updates (with the host time each was queued); ``full``: the page's
+    updates, else the angles only (an open-stream reader without the token)."""
 
-    __slots__ = ("peer", "queue", "wakeup", "ws", "transport", "gone")
+    __slots__ = ("peer", "queue", "wakeup", "ws", "transport", "gone", "full")
 
-    def __init__(self, peer: str, ws: Any, transport: Any) -> None:
+    def __init__(self, peer: str, ws: Any, transport: Any, full: bool = True) -> None:
         self.peer = peer
         self.ws = ws
         self.transport = transport
+        self.full = full
         self.queue: deque[tuple[float, str]] = deque()
         self.wakeup = asyncio.Event()
         self.gone = False
@@ -161,6 +182,11 @@ class WebView:
 
     ``read_status()`` (any thread; called on this listener's thread at each scrape) returns the mapping
     ``metrics.DaemonCollector`` reads, without ``angle``/``web_*`` keys: those are filled in here.
+
+    ``open_stream``: with a token, a WebSocket without it gets the angles only.  ``http_hosts``: names a ``Host``
+    header may give besides the listener's addresses and ``localhost``.  ``trusted_proxies``: addresses (or
+    networks) whose ``X-Forwarded-For`` is believed.  ``secure_cookies``: TLS is in front (a proxy): the cookie is
+    ``Secure`` and the page's origin is ``https``.
     """
 
     def __init__(
@@ -175,6 +201,10 @@ class WebView:
         history_min: float = DEFAULT_HISTORY_MIN,
         update_hz: float = WEB_DEFAULT_UPDATE_HZ,
         control_address: str | None = None,
+        open_stream: bool = False,
+        http_hosts: tuple[str, ...] = (),
+        trusted_proxies: tuple[str, ...] = (),
+        secure_cookies: bool = False,
     ) -> None:
         check_web_extra()
         _check_web_token(token, host)
@@ -182,7 +212,11 @@ class WebView:
             raise ValueError(f"update_hz must be in (0, 50], got {update_hz!r}")
         self.host, self.port = host, port
         self.token = token
-        self.need_token = not is_loopback_host(host)
+        self.open_stream = open_stream
+        self.secure_cookies = secure_cookies
+        self.trusted_proxies = AddressSet(trusted_proxies)
+        bound = () if host in ("", "0.0.0.0", "::") else (host,)
+        self.host_names = LOCAL_NAMES | {normalize_name(name) for name in (*bound, *http_hosts)}
         self.read_status = read_status or (lambda: {})
         self.latency = latency or LatencyHistogram()
         self.max_backlog_s = max_backlog_s
@@ -194,7 +228,7 @@ class WebView:
         self.dropped_browsers = 0
         self.requests = 0
         self.refused_connections = 0
-        self._cookie_value = secrets.token_urlsafe(24)  # what the cookie holds: never the token itself
+        self._sessions = Sessions()  # what the cookies hold: never the token itself
         self._throttle = AuthThrottle(DEFAULT_AUTH_BACKOFF_BASE_S, DEFAULT_AUTH_BACKOFF_MAX_S)
         self._log_limiter = LogRateLimiter(DEFAULT_LOG_LINES_PER_S)
         self._assets: dict[str, _Asset] = {}
@@ -206,7 +240,7 @@ class WebView:
         self._stop_event: asyncio.Event | None = None
         self._address: tuple[str, int] | None = None
         self._connections: dict[Any, TrackedConnection] = {}  # aiohttp's handler -> what the sweeper needs
-        self._peers: dict[str, int] = {}
+        self.slots = Slots(WEB_MAX_CONNECTIONS, WEB_MAX_CONNECTIONS_PER_PEER)  # by aiohttp's handler
         self._registry = None
         #: device times of the newest point and mean the pages were sent (a page dedups by device time)
         self._sent_after: tuple[float | None, float | None] = (None, None)
@@ -243,32 +277,89 @@ class WebView:
         if self._thread is not None:
             self._thread.join(timeout_s)
 
-    def set_token(self, token: str | None) -> None:
-        """A new token (SIGHUP): cookies given for the old one stop working."""
+    @property
+    def need_token(self) -> bool:
+        """Every request but ``OPEN_PATHS`` needs the token: the daemon has one."""
+        return self.token is not None
+
+    def check_token(self, token: str | None) -> None:
+        """``ValueError`` when ``set_token(token)`` would refuse it (checked before a reload applies anything)."""
         _check_web_token(token, self.host)
+
+    def set_token(self, token: str | None) -> None:
+        """A new token (SIGHUP; any thread): the sessions and the connections of the old one end (a token is
+        rotated because it may have leaked); the same token again changes nothing."""
+        _check_web_token(token, self.host)
+        if token != self.token:
+            self._on_loop(functools.partial(self._token_changed, token))
+
+    def _on_loop(self, apply: Callable[[], None]) -> None:
+        """``apply()`` on the listener's loop, waiting for it (``WEB_STOP_TIMEOUT_S`` at most); at once when the
+        listener does not run."""
+        loop = self._loop
+        if loop is None or not loop.is_running() or threading.current_thread() is self._thread:
+            apply()
+            return
+        done = threading.Event()
+
+        def run() -> None:
+            try:
+                apply()
+            finally:
+                done.set()
+
+        try:
+            loop.call_soon_threadsafe(run)
+        except RuntimeError:  # the loop closed meanwhile
+            apply()
+            return
+        done.wait(WEB_STOP_TIMEOUT_S)
+
+    def _token_changed(self, token: str | None) -> None:
+        """The token and the sessions change together, on the loop: no request sees the new token with an old
+        session, nor the old one after."""
         self.token = token
-        self._cookie_value = secrets.token_urlsafe(24)
+        self._sessions.clear()
+        closed = len(self._connections)
+        for handler in list(self._connections):
+            self._close(handler)
+        log.warning("web_token_changed", auth=self.token is not None, connections_closed=closed)
 
     # ------------------------------------------------------------------ connections (the listener's loop)
 
-    def open_connection(self, handler: Any, peer: str) -> TrackedConnection | None:
-        """Track a new connection from ``peer``; None (counted in ``refused_connections``) beyond
-        ``WEB_MAX_CONNECTIONS`` or ``WEB_MAX_CONNECTIONS_PER_PEER``."""
-        if len(self._connections) >= WEB_MAX_CONNECTIONS or self._peers.get(peer, 0) >= WEB_MAX_CONNECTIONS_PER_PEER:
+    def open_connection(self, handler: Any, ip: str) -> TrackedConnection | None:
+        """Track a new connection from ``ip`` (``guards.Slots``: the oldest connection without the token may be
+        closed to make room); None (counted in ``refused_connections``) when every slot in the way is held by
+        authorized ones.  A trusted proxy's connection counts against its client's address from its first
+        request on (``_screen``)."""
+        proxied = ip in self.trusted_proxies
+        peer = peer_address(ip)
+        admission = self.slots.admit(handler, None if proxied else peer, authorized=not self.need_token)
+        if admission.refused is not None:
             self.refused_connections += 1
+            self._log("warning", "web_connection_refused", peer=peer, cap=admission.refused)
             return None
-        self._peers[peer] = self._peers.get(peer, 0) + 1
-        connection = self._connections[handler] = TrackedConnection(peer, time.monotonic())
+        self._make_room(admission.evicted)
+        connection = self._connections[handler] = TrackedConnection(peer, time.monotonic(), proxied=proxied)
         return connection
 
-    def close_connection(self, handler: Any, peer: str) -> None:
+    def close_connection(self, handler: Any) -> None:
         """Forget a connection ``open_connection`` tracked."""
         self._connections.pop(handler, None)
-        left = self._peers.get(peer, 1) - 1
-        if left > 0:
-            self._peers[peer] = left
-        else:
-            self._peers.pop(peer, None)
+        self.slots.release(handler)
+
+    def _make_room(self, handlers: tuple[Any, ...]) -> None:
+        for handler in handlers:
+            connection = self._connections.get(handler)
+            self._log("info", "web_connection_closed", peer=connection and connection.peer, reason="made room")
+            self._close(handler)
+
+    def _close(self, handler: Any) -> None:
+        """Close a connection now (and forget it)."""
+        handler.force_close()
+        if handler.transport is not None:
+            handler.transport.abort()
+        self.close_connection(handler)
 
     # ------------------------------------------------------------------ data in (the acquisition's thread)
 
@@ -312,7 +403,11 @@ class WebView:
         async def guard(request: Any, handler: Callable) -> Any:
             return await self._guard(request, handler)
 
+        async def headers(request: Any, response: Any) -> None:
+            _add_security_headers(response)
+
         app = web.Application(client_max_size=WEB_MAX_BODY_BYTES, middlewares=[guard])
+        app.on_response_prepare.append(headers)  # every answer the app gives, redirects and errors included
         app.router.add_get("/", self._page)
         app.router.add_get("/ws", self._websocket)
         app.router.add_get("/api/view", self._api_view)
@@ -321,6 +416,7 @@ class WebView:
         app.router.add_get("/login", self._login_form)
         app.router.add_get("/favicon.ico", self._no_icon)
         app.router.add_post("/login", self._login)
+        app.router.add_post("/logout", self._logout)
         runner = web.AppRunner(
             app,
             handle_signals=False,
@@ -335,8 +431,12 @@ class WebView:
         loop = asyncio.get_running_loop()
         factory = runner.server
 
+        handler_class = _handler_class()
+
         def protocol() -> Any:
-            return CountedProtocol(self, factory())
+            handler = factory()
+            handler.__class__ = handler_class  # its own error answers (a malformed request) get the headers too
+            return CountedProtocol(self, handler)
 
         try:
             server = await loop.create_server(protocol, self.host, self.port, reuse_address=True)
@@ -387,8 +487,9 @@ class WebView:
                     update["minutes"][-1]["t_s"] if update["minutes"] else self._sent_after[1],
                 )
                 text = _text(update)
+                angles = _text(_angles_only(update)) if not all(b.full for b in self.browsers) else ""
                 for browser in list(self.browsers):
-                    self._queue(browser, text, now)
+                    self._queue(browser, text if browser.full else angles, now)
             except Exception:  # noqa: BLE001 - one bad object must not end the page's updates
                 self._log("exception", "web_update_failed")
 
@@ -420,7 +521,7 @@ class WebView:
         """Close connections that send no request head in time, or whose request is not done in time;
         summarize the log lines left out."""
         while True:
-            await asyncio.sleep(min(WEB_SWEEP_EVERY_S, WEB_REQUEST_HEAD_TIMEOUT_S / 2))
+            await asyncio.sleep(min(WEB_SWEEP_EVERY_S, WEB_REQUEST_HEAD_TIMEOUT_S / 2, WEB_UNAUTHORIZED_LIFETIME_S / 2))
             now = time.monotonic()
             for event, count in self._log_limiter.take_suppressed(now):
                 log.warning("log_lines_suppressed", suppressed_event=event, count=count)
@@ -429,40 +530,19 @@ class WebView:
                     reason = f"no complete request head within {WEB_REQUEST_HEAD_TIMEOUT_S:g} s"
                 elif c.request_since_s is not None and now - c.request_since_s > WEB_REQUEST_TIMEOUT_S:
                     reason = f"request not done within {WEB_REQUEST_TIMEOUT_S:g} s"
+                elif (
+                    c.first_request_s is not None
+                    and not c.reader
+                    and not self.slots.authorized(handler)
+                    and now - c.first_request_s > WEB_UNAUTHORIZED_LIFETIME_S
+                ):
+                    reason = f"no token within {WEB_UNAUTHORIZED_LIFETIME_S:g} s of its first request"
                 else:
                     continue
                 self._log("info", "web_connection_closed", peer=c.peer, reason=reason)
-                handler.force_close()
-                if handler.transport is not None:
-                    handler.transport.abort()
-                self._connections.pop(handler, None)
+                self._close(handler)
 
     # ------------------------------------------------------------------ requests
-
-    def _credentials(self, request: Any) -> str:
-        """``ok``, ``wrong`` (an ``Authorization`` token that does not match: counted against the address) or
-        ``none`` (no token, or only a cookie that is no longer valid)."""
-        header = request.headers.get("Authorization")
-        cookie = request.cookies.get(COOKIE)
-        if cookie and hmac.compare_digest(cookie.encode("utf-8", "replace"), self._cookie_value.encode()):
-            return "ok"
-        if header is None:  # no token; a stale cookie (a token rotated since) is no guess: log in again
-            return "none"
-        given = header[7:] if header.startswith("Bearer ") else ""
-        if self.token is not None and hmac.compare_digest(given.encode("utf-8", "replace"), self.token.encode()):
-            return "ok"
-        return "wrong"
-
-    def _wait_response(self, peer: str, now: float) -> Any:
-        """429 while ``peer`` is blocked for wrong tokens, else None."""
-        wait_s = self._throttle.blocked_for_s(peer, now)
-        if wait_s <= 0:
-            return None
-        return self._web().Response(
-            status=429,
-            text=f"429: too many wrong tokens from {peer}: try again in {math.ceil(wait_s)} s\n",
-            headers={"Retry-After": str(math.ceil(wait_s))},
-        )
 
     def _web(self):
         from aiohttp import web  # optional extra: web
@@ -470,77 +550,122 @@ class WebView:
         return web
 
     async def _guard(self, request: Any, handler: Callable) -> Any:
-        """Middleware: timing for the sweeper, authorization, security headers."""
-        web = self._web()
+        """Middleware: timing for the sweeper, then who may ask (``_screen``, ``_authorize``), then the route."""
         self.requests += 1
         connection = self._connections.get(request.protocol)
+        now = time.monotonic()
         if connection is not None:
-            connection.head_since_s, connection.request_since_s = None, time.monotonic()
+            connection.head_since_s, connection.request_since_s = None, now
+            if connection.first_request_s is None:
+                connection.first_request_s = now
         try:
-            if request.method not in ("GET", "HEAD", "POST"):
-                raise web.HTTPMethodNotAllowed(request.method, ["GET", "HEAD", "POST"])
-            response = None
-            if self.need_token and request.path != "/login":
-                response = await self._authorize(request)
+            response, peer = self._screen(request, connection)
+            if connection is not None and connection.proxied:  # the forwarded client, from here on (``_peer``)
+                request = request.clone(remote=peer)
+            if response is None and self.need_token and request.path not in OPEN_PATHS:
+                response = self._authorize(request, now)
             if response is None:
                 response = await handler(request)
-            if isinstance(response, web.StreamResponse) and not response.prepared:
-                for key, value in _SECURITY_HEADERS.items():
-                    response.headers.setdefault(key, value)
             return response
         finally:
             if connection is not None:
                 connection.request_since_s = None
 
-    async def _authorize(self, request: Any) -> Any:
-        """None when the request carries the token (or the login cookie); else the response refusing it."""
-        peer, now = _peer(request), time.monotonic()
-        waiting = self._wait_response(peer, now)
-        if waiting is not None:
-            return waiting
-        verdict = self._credentials(request)
-        if verdict == "ok":
-            self._throttle.succeeded(peer)
-            return None
-        if verdict == "wrong":
-            self._throttle.failed(peer, now)
-            self._log("warning", "web_token_refused", peer=peer, path=request.path)
-            return self._web().Response(
-                status=401, text="401: wrong token\n", headers={"WWW-Authenticate": 'Bearer realm="fog-driver"'}
-            )
-        return await self._refuse(request)
-
-    async def _refuse(self, request: Any) -> Any:
+    def _screen(self, request: Any, connection: TrackedConnection | None) -> tuple[Any, str]:
+        """What every request must pass, token or not: its method, its ``Host`` (400, 421), the client's address
+        behind a trusted proxy (400: a bad ``X-Forwarded-For``; 503: no slot for it), its ``Origin`` (403).
+        Returns the response refusing it (None: it passes) and the client's address (``_peer``)."""
         web = self._web()
         peer = _peer(request)
-        token = request.query.get("token")
-        if token is not None and request.path == "/":  # a link with the token: set the cookie, drop the token
-            return await self._check_login(request, token)
+        if request.method not in ("GET", "HEAD", "POST"):
+            raise web.HTTPMethodNotAllowed(request.method, ["GET", "HEAD", "POST"])
+        hosts = request.headers.getall("Host", [])
+        if len(hosts) != 1 or host_name(hosts[0]) is None:
+            return web.Response(status=400, text="400: a request needs one valid Host header\n"), peer
+        if not self._host_allowed(host_name(hosts[0]), request):
+            self._log("warning", "web_host_refused", peer=peer, host=hosts[0][:100])
+            return web.Response(status=421, text="421: this listener does not serve that Host (see http_hosts)\n"), peer
+        if connection is not None and connection.proxied:
+            client = forwarded_client(request.headers.getall("X-Forwarded-For", []), self.trusted_proxies)
+            if client is None:
+                return web.Response(status=400, text="400: X-Forwarded-For holds a hop that is no IP address\n"), peer
+            peer = client or peer
+            admission = self.slots.move(request.protocol, peer)
+            if admission.refused is not None:
+                self.refused_connections += 1
+                request.protocol.force_close()
+                return web.Response(status=503, text=f"503: too many connections from {peer}\n"), peer
+            self._make_room(admission.evicted)
+            connection.peer = peer
+        origin = request.headers.get("Origin")
+        problem = None if origin is None else origin_problem(origin, hosts[0], https=self.secure_cookies)
+        if problem is not None:
+            self._log("warning", "web_origin_refused", peer=peer, origin=origin[:100])
+            return web.Response(status=403, text=f"403: {problem}\n"), peer
+        return None, peer
+
+    def _host_allowed(self, name: str, request: Any) -> bool:
+        """``name`` (a ``Host`` header's) is this listener's: a configured name, or the address the connection came
+        in on."""
+        if name in self.host_names:
+            return True
+        transport = request.transport
+        local = transport.get_extra_info("sockname") if transport is not None else None
+        return isinstance(local, tuple) and bool(local) and name == normalize_name(str(local[0]).split("%")[0])
+
+    def _credentials(self, request: Any, now: float) -> str:
+        """``ok`` (a live session's cookie, or the token), ``wrong`` (an ``Authorization`` that is not the token:
+        counted against the address) or ``none`` (no credentials, or only a cookie that is no longer valid)."""
+        if self._sessions.valid(request.cookies.get(COOKIE), now):
+            return "ok"
+        header = request.headers.get("Authorization")
+        if header is None:  # no token; a stale cookie (a token rotated since) is no guess: log in again
+            return "none"
+        scheme, _, given = header.strip().partition(" ")
+        return "ok" if scheme.lower() == "bearer" and token_matches(given.strip(), self.token) else "wrong"
+
+    def _authorize(self, request: Any, now: float) -> Any:
+        """None when the request carries the token (or a session's cookie), or may read the open stream; else the
+        response refusing it."""
+        web = self._web()
+        peer = _peer(request)
+        verdict = self._credentials(request, now)
+        if verdict == "none":
+            return self._refuse(request)
+        judged, seconds = self._throttle.judge(peer, verdict == "ok", now)
+        if judged == "ok":
+            self.slots.authorize(request.protocol)
+            return None
+        if judged == "blocked":
+            return self._wait_response(peer, seconds)
+        self._log("warning", "web_token_refused", peer=peer, path=request.path)
+        return web.Response(
+            status=401, text="401: wrong token\n", headers={"WWW-Authenticate": 'Bearer realm="fog-driver"'}
+        )
+
+    def _refuse(self, request: Any) -> Any:
+        """A request without credentials: the open stream's reader passes; a browser asking for the page is sent to
+        the login form; anything else gets 401."""
+        web = self._web()
+        if self.open_stream and request.path == "/ws":
+            return None  # the angles only (``_websocket``)
         if "text/html" in request.headers.get("Accept", "") and request.path == "/":
             raise web.HTTPFound("/login")
-        self._log("info", "web_unauthorized", peer=peer, path=request.path)
+        self._log("info", "web_unauthorized", peer=_peer(request), path=request.path)
         return web.Response(
             status=401,
             text="401: this daemon's web view needs its token (Authorization: Bearer <token>, or the form at /login)\n",
             headers={"WWW-Authenticate": 'Bearer realm="fog-driver"'},
         )
 
-    async def _check_login(self, request: Any, token: str) -> Any:
-        web = self._web()
-        peer = _peer(request)
-        now = time.monotonic()
-        waiting = self._wait_response(peer, now)
-        if waiting is not None:
-            return waiting
-        if self.token is not None and hmac.compare_digest(token.encode("utf-8", "replace"), self.token.encode()):
-            self._throttle.succeeded(peer)
-            response = web.Response(status=303, headers={"Location": "/"})
-            response.set_cookie(COOKIE, self._cookie_value, httponly=True, samesite="Strict", path="/")
-            self._log("info", "web_login", peer=peer)
-            return response
-        self._throttle.failed(peer, now)
-        self._log("warning", "web_login_refused", peer=peer)
-        return web.Response(status=401, content_type="text/html", text=_login_page("wrong token"))
+    def _wait_response(self, peer: str, wait_s: float, *, page: bool = False) -> Any:
+        """429: ``peer`` is blocked for wrong tokens (``wait_s`` more seconds); the login form when ``page``."""
+        seconds = math.ceil(wait_s)
+        text = f"too many wrong tokens from {peer}: try again in {seconds} s"
+        headers = {"Retry-After": str(seconds)}
+        if page:
+            return self._web().Response(status=429, content_type="text/html", text=_login_page(text), headers=headers)
+        return self._web().Response(status=429, text=f"429: {text}\n", headers=headers)
 
     async def _login_form(self, request: Any) -> Any:
         web = self._web()
@@ -549,6 +674,7 @@ class WebView:
         return web.Response(content_type="text/html", text=_login_page(None))
 
     async def _login(self, request: Any) -> Any:
+        """The form's token: a session cookie and the page (303), or the form again saying why not."""
         web = self._web()
         if not self.need_token:
             raise web.HTTPFound("/")
@@ -556,13 +682,36 @@ class WebView:
         token = form.get("token")
         if not isinstance(token, str) or not token:
             return web.Response(status=400, content_type="text/html", text=_login_page("no token given"))
-        return await self._check_login(request, token)
+        peer, now = _peer(request), time.monotonic()
+        judged, seconds = self._throttle.judge(peer, token_matches(token, self.token), now)
+        if judged == "blocked":
+            return self._wait_response(peer, seconds, page=True)
+        if judged == "wrong":
+            self._log("warning", "web_login_refused", peer=peer)
+            return web.Response(status=401, content_type="text/html", text=_login_page("wrong token"))
+        self.slots.authorize(request.protocol)
+        response = web.Response(status=303, headers={"Location": "/"})
+        response.set_cookie(
+            COOKIE,
+            self._sessions.start(now),
+            max_age=WEB_SESSION_MAX_AGE_S,
+            path="/",
+            httponly=True,
+            samesite="Strict",
+            secure=self.secure_cookies,
+        )
+        self._log("info", "web_login", peer=peer)
+        return response
+
+    async def _logout(self, request: Any) -> Any:
+        """End the browser's session (its cookie is void here and deleted there); back to the login form."""
+        self._sessions.end(request.cookies.get(COOKIE))
+        response = self._web().Response(status=303, headers={"Location": "/login" if self.need_token else "/"})
+        response.del_cookie(COOKIE, path="/", httponly=True, samesite="Strict", secure=self.secure_cookies)
+        return response
 
     async def _page(self, request: Any) -> Any:
-        web = self._web()
-        if request.query.get("token") is not None:  # authorized already: keep the token out of the URL bar
-            raise web.HTTPSeeOther("/")
-        return web.Response(body=self._index, content_type="text/html", charset="utf-8")
+        return self._web().Response(body=self._index, content_type="text/html", charset="utf-8")
 
     async def _static(self, request: Any) -> Any:
         web = self._web()
@@ -612,18 +761,21 @@ class WebView:
         return web.Response(body=body, headers={"Content-Type": CONTENT_TYPE_LATEST})
 
     async def _websocket(self, request: Any) -> Any:
+        """The page's updates (the angles only for an open-stream reader without the token: ``_refuse``)."""
         web = self._web()
-        origin = request.headers.get("Origin")
-        if origin is not None and origin.split("://", 1)[-1] != request.host:
-            return web.Response(status=403, text="403: a WebSocket from another origin\n")
-        ws = web.WebSocketResponse(max_msg_size=WEB_MAX_WS_MESSAGE_BYTES, heartbeat=WEB_WS_HEARTBEAT_S, compress=False)
+        ws = web.WebSocketResponse(
+            max_msg_size=WEB_MAX_WS_MESSAGE_BYTES, heartbeat=WEB_WS_HEARTBEAT_S, compress=False, autoping=False
+        )
         if not ws.can_prepare(request).ok:
             return web.Response(status=400, text="400: /ws takes a WebSocket upgrade\n")
         await ws.prepare(request)
+        reader = self.need_token and self._credentials(request, time.monotonic()) != "ok"  # ``_refuse`` let it in
         connection = self._connections.get(request.protocol)
         if connection is not None:  # a WebSocket is a long exchange of frames, neither a slow request nor a head
-            connection.request_since_s, connection.websocket = None, True
-        browser = _Browser(_peer(request), ws, request.transport)
+            connection.request_since_s, connection.websocket, connection.reader = None, True, reader
+        if reader:
+            self.slots.set_reader(request.protocol)
+        browser = _Browser(_peer(request), ws, request.transport, full=not reader)
         self._drain()
         now = time.monotonic()
         snapshot = self.view.snapshot(now)
@@ -633,7 +785,8 @@ class WebView:
                 snapshot["minutes"][-1]["t_s"] if snapshot["minutes"] else None,
             )
             self._sent_restarts = self.view.restarts
-        browser.queue.append((now, _text(snapshot)))
+        first = {**snapshot, "login": self.need_token} if browser.full else _angles_only(snapshot)
+        browser.queue.append((now, _text(first)))
         self.browsers.add(browser)
         self._log("info", "web_client_connected", peer=browser.peer, clients=len(self.browsers))
         sender = asyncio.create_task(self._send_loop(browser))
@@ -648,7 +801,11 @@ class WebView:
         return ws
 
     async def _receive_loop(self, browser: _Browser) -> None:
-        """The page sends nothing; a peer that does is limited, then closed."""
+        """The page sends nothing but its answers to the heartbeat's pings; a peer that sends more (messages,
+        pings, pongs alike) is limited to ``WEB_MAX_WS_MESSAGES_PER_S``, then closed (1008): a flood is never
+        answered frame by frame."""
+        from aiohttp import WSMsgType  # optional extra: web
+
         window_start, count = time.monotonic(), 0
         async for message in browser.ws:
             now = time.monotonic()
@@ -656,9 +813,12 @@ class WebView:
                 window_start, count = now, 0
             count += 1
             if count > WEB_MAX_WS_MESSAGES_PER_S:
+                self._log("warning", "web_client_flood", peer=browser.peer, kind=message.type.name)
                 await browser.ws.close(code=1008, message=b"too many messages")
                 break
-            del message  # read-only: nothing a page sends changes anything
+            if message.type is WSMsgType.PING:
+                await browser.ws.pong(message.data)
+            # read-only: nothing else a page sends changes anything
 
     async def _send_loop(self, browser: _Browser) -> None:
         ws = browser.ws
@@ -690,7 +850,37 @@ def _text(obj: dict) -> str:
 
 
 def _peer(request: Any) -> str:
-    return str(request.remote or "?")
+    """The address a request's client is counted on (``guards.peer_address``; behind a trusted proxy, the
+    forwarded one: ``_guard`` puts it in ``remote``)."""
+    return peer_address(request.remote or "?")
+
+
+def _angles_only(message: dict) -> dict:
+    """What an open-stream reader without the token gets of a snapshot or an update: the latest ANGLE object."""
+    return {"type": message["type"], "angle": message["angle"]}
+
+
+def _add_security_headers(response: Any) -> None:
+    """``SECURITY_HEADERS`` on ``response``, unless it set one of them itself (a static asset's cache rule)."""
+    for key, value in SECURITY_HEADERS.items():
+        response.headers.setdefault(key, value)
+
+
+@functools.cache
+def _handler_class() -> type:
+    """aiohttp's connection handler, whose own error answers (a malformed request, before any route) carry
+    ``SECURITY_HEADERS`` too."""
+    from aiohttp.web_protocol import RequestHandler  # optional extra: web
+
+    class _Handler(RequestHandler):
+        __slots__ = ()
+
+        def handle_error(self, request: Any, status: int = 500, exc: Any = None, message: Any = None) -> Any:
+            response = super().handle_error(request, status, exc, message)
+            _add_security_headers(response)
+            return response
+
+    return _Handler
 
 
 def _login_page(problem: str | None) -> str:
@@ -705,4 +895,4 @@ def _login_page(problem: str | None) -> str:
     )
 
 
-__all__ = ["DEFAULT_HTTP_PORT", "WebUnavailable", "WebView", "check_web_extra"]
+__all__ = ["DEFAULT_HTTP_PORT", "OPEN_PATHS", "SECURITY_HEADERS", "WebUnavailable", "WebView", "check_web_extra"]

@@ -48,6 +48,9 @@ MAX_EVENTS = 20
 #: A STATUS whose ``missing_frames`` grew within this long (host s) shows the "samples missing" banner.
 MISSING_BANNER_S = 60.0
 
+#: The thermometers first shown, in ``fog-driver watch``'s order (``tools.render``); any other follows, sorted.
+TEMPERATURE_ORDER = ("top", "bottom", "housing")
+
 #: STATUS counters on the page, in this order: (key, label).
 STATUS_ROWS = (
     ("port_state", "port"),
@@ -272,6 +275,7 @@ class ViewState:
             "device": dict(self.objects.get("DEVICE", {})),
             "version": dict(self.objects.get("VERSION", {})),
             "banners": lines,
+            "temperatures": temperature_names(self.angle),
             "restarts": self.restarts,
             "alarm": any(line["level"] == "alarm" for line in lines),
             "text": self.text(state["angle_age_s"]),
@@ -308,6 +312,14 @@ class ViewState:
             value = status.get(key)
             out[f"status_{key}"] = _status_text(value)
         return out
+
+
+def temperature_names(angle: Mapping[str, Any] | None) -> list[str]:
+    """The sample's thermometers as the page lists and plots them: ``TEMPERATURE_ORDER``'s (as ``watch``), then any
+    other, sorted."""
+    temps = (angle or {}).get("temps_c")
+    names = [str(k) for k in temps] if isinstance(temps, Mapping) else []
+    return [n for n in TEMPERATURE_ORDER if n in names] + sorted(n for n in names if n not in TEMPERATURE_ORDER)
 
 
 def _sigma_text(angle: Mapping[str, Any], status: Mapping[str, Any]) -> dict[str, str]:
@@ -353,4 +365,13 @@ def _newer(series: deque, after_s: float | None) -> list[dict[str, Any]]:
     return out
 
 
-__all__ = ["DEFAULT_HISTORY_MIN", "MEAN_EVERY_S", "POINT_EVERY_S", "STATUS_ROWS", "ViewState", "NO_DATA_S"]
+__all__ = [
+    "DEFAULT_HISTORY_MIN",
+    "MEAN_EVERY_S",
+    "NO_DATA_S",
+    "POINT_EVERY_S",
+    "STATUS_ROWS",
+    "TEMPERATURE_ORDER",
+    "ViewState",
+    "temperature_names",
+]

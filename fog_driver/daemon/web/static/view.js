@@ -21,9 +21,12 @@ function setText(text) {
   });
 }
 
+// The thermometers in the server's order (msg.temperatures: top, bottom, housing, as `fog-driver watch`).
+let temperatureOrder = [];
+
 function showTemps(text) {
   const body = document.getElementById("temps");
-  const names = Object.keys(text).filter((k) => k.startsWith("temp_")).sort();
+  const names = temperatureOrder.map((n) => "temp_" + n).filter((k) => k in text);
   if (body.dataset.names !== names.join(",")) {
     body.replaceChildren(...names.map((key) => {
       const row = document.createElement("tr");
@@ -33,7 +36,7 @@ function showTemps(text) {
       const span = document.createElement("span");
       span.dataset.text = key;
       span.id = "temp-" + key.slice(5);
-      td.append(span, " \u00b0C");
+      td.append(span, " degC");
       row.append(th, td);
       return row;
     }));
@@ -86,6 +89,22 @@ function x(list, offsetS = 0) {
   return list.map((p) => new Date(anchorMs + (p.t_s + offsetS) * 1000));
 }
 
+// A plot of one point (or of points at one time or of one value) gets axes around it, a minute of time and a
+// small band of values, instead of Plotly's milliseconds and a unit-wide guess.
+function around(xs, ys, pad) {
+  const layout = {};
+  const times = xs.filter((t) => t !== null).map((t) => +new Date(t)).filter(Number.isFinite);
+  if (times.length && Math.max(...times) === Math.min(...times)) {
+    layout.xaxis = { type: "date", range: [new Date(times[0] - 30000), new Date(times[0] + 30000)], autorange: false };
+  }
+  const values = ys.filter((v) => v !== null && v !== undefined && Number.isFinite(v));
+  if (values.length && Math.max(...values) === Math.min(...values)) {
+    const half = Math.max(Math.abs(values[0]) * 0.05, pad);
+    layout.yaxis = { range: [values[0] - half, values[0] + half], autorange: false };
+  }
+  return layout;
+}
+
 function drawPlots() {
   if (typeof Plotly === "undefined") return;
   const pts = series.points, mins = series.minutes;
@@ -99,18 +118,24 @@ function drawPlots() {
       { x: x(pts), y: band(1), name: bandLabel, mode: "lines", fill: "tonexty", fillcolor: "rgba(59, 91, 165, 0.18)", line: { width: 0 } },
     );
   }
-  Plotly.react("plot-drift", drift, { ...layoutBase, title: { text: "drift estimate (deg/h)" } }, plotConfig);
+  const driftBand = drift.flatMap((trace) => trace.y);
+  Plotly.react("plot-drift", drift, { ...layoutBase, title: { text: "drift estimate (deg/h)" },
+    ...around(x(pts), driftBand, 0.01) }, plotConfig);
+  const rateAround = around(x(mins, 30), mins.flatMap((m) => [m.rate_dph, m.rate_raw_dph]), 0.1);
   Plotly.react("plot-rate", [
     { x: x(mins, 30), y: mins.map((m) => m.rate_dph), name: "compensated", mode: "lines+markers", line: { color: "#1f7a3a" } },
     { x: x(mins, 30), y: mins.map((m) => m.rate_raw_dph), name: "raw", mode: "lines+markers", line: { color: "#aaa" } },
   ], { ...layoutBase, title: { text: "rate, 1-minute means (deg/h)" },
     annotations: mins.length ? [] : [{ text: "the first mean comes after a full minute of data", showarrow: false,
       xref: "paper", yref: "paper", x: 0.5, y: 0.5 }],
-    xaxis: { ...layoutBase.xaxis, visible: mins.length > 0 }, yaxis: { visible: mins.length > 0 } }, plotConfig);
-  const names = new Set();
-  pts.forEach((p) => Object.keys(p.temps_c || {}).forEach((n) => names.add(n)));
-  Plotly.react("plot-temps", [...names].sort().map((n) => ({ x: x(pts), y: pts.map((p) => (p.temps_c || {})[n] ?? null), name: n })),
-    { ...layoutBase, title: { text: "temperatures (\u00b0C)" } }, plotConfig);
+    xaxis: { ...layoutBase.xaxis, ...rateAround.xaxis, visible: mins.length > 0 },
+    yaxis: { ...rateAround.yaxis, visible: mins.length > 0 } }, plotConfig);
+  const seen = new Set();
+  pts.forEach((p) => Object.keys(p.temps_c || {}).forEach((n) => seen.add(n)));
+  const names = [...temperatureOrder.filter((n) => seen.has(n)), ...[...seen].filter((n) => !temperatureOrder.includes(n)).sort()];
+  const temps = names.map((n) => ({ x: x(pts), y: pts.map((p) => (p.temps_c || {})[n] ?? null), name: n }));
+  Plotly.react("plot-temps", temps, { ...layoutBase, title: { text: "temperatures (degC)" },
+    ...around(x(pts), temps.flatMap((trace) => trace.y), 0.05) }, plotConfig);
   document.getElementById("plot-drift").dataset.points = String(pts.length);
   document.getElementById("plot-temps").dataset.points = String(pts.length);
   document.getElementById("plot-rate").dataset.points = String(mins.length);
@@ -128,6 +153,12 @@ function handle(msg) {
   merge(series.points, msg.points || []);
   merge(series.minutes, msg.minutes || []);
   if (msg.rows) statusRows = msg.rows;
+  if (msg.temperatures && msg.temperatures.length) temperatureOrder = msg.temperatures;
+  if (msg.type === "snapshot") document.getElementById("logout").hidden = !msg.login;
+  const sampled = Boolean(msg.angle && msg.angle.seq !== undefined);
+  pageState(sampled ? "live" : "waiting for data", sampled ? true : null);
+  document.getElementById("when").hidden = !sampled;
+  document.getElementById("waiting").hidden = sampled;
   if (msg.text && msg.text.drift_band_label) bandLabel = "band: " + msg.text.drift_band_label;
   const utcMs = msg.angle && msg.angle.utc ? Date.parse(msg.angle.utc) : NaN;
   if (Number.isFinite(utcMs) && typeof msg.angle.t_s === "number") anchorMs = utcMs - msg.angle.t_s * 1000;
@@ -156,18 +187,23 @@ function schedulePlots() {
   plotTimer = setTimeout(() => { plotTimer = null; plottedAt = Date.now(); drawPlots(); }, wait);
 }
 
+// ok: true (green), false (red), null (neither: waiting).
 function pageState(text, ok) {
   const el = document.getElementById("page-state");
-  el.textContent = text;
-  el.className = "pill " + (ok ? "ok" : "bad");
+  if (el.textContent !== text) el.textContent = text;
+  el.className = "pill" + (ok === null ? "" : ok ? " ok" : " bad");
 }
 
 function connect() {
   const scheme = location.protocol === "https:" ? "wss:" : "ws:";
   socket = new WebSocket(scheme + "//" + location.host + "/ws");
-  socket.onopen = () => { retryMs = 1000; pageState("live", true); };
+  socket.onopen = () => { retryMs = 1000; pageState("waiting for data", null); };
   socket.onmessage = (event) => handle(JSON.parse(event.data));
   socket.onclose = () => {
+    // A session that ended (its 12 h, a new token, a log-out elsewhere) closes the socket too: log in again.
+    fetch("/api/view", { method: "HEAD", cache: "no-store" })
+      .then((answer) => { if (answer.status === 401) location.assign("/login"); })
+      .catch(() => {});
     pageState("no connection to the daemon: retrying", false);
     const box = document.getElementById("banners");
     const div = document.createElement("div");
