@@ -21,6 +21,7 @@ from pathlib import Path
 import yaml
 
 from ..errors import OutputFileError, UsageError
+from ..protocol import decode_bytes
 from ..protocol.wire import SYNC
 from .kinds import (
     ADAPT_STATE_FORMAT,
@@ -75,8 +76,6 @@ def is_capture(path: str | Path) -> bool:
             head = f.read(_CAPTURE_HEAD_BYTES)
     except OSError:
         return False
-    from ..protocol import decode_bytes  # numpy: only when a file is checked
-
     counters = decode_bytes(head).counters
     return counters.sample_frames + counters.identity_frames > 0
 
