@@ -148,9 +148,8 @@ def _start_embedded_simulator(stop: threading.Event) -> tuple[threading.Thread, 
 
     def serve() -> None:
         try:
-            serve_pty(
-                sim, link=None, stop=stop, on_ready=on_ready, warn_behind=False
-            )  # a demo: no warnings about itself
+            # a demonstration does not warn about its own simulator's stalls (logged at info: -v)
+            serve_pty(sim, link=None, stop=stop, on_ready=on_ready, warn_behind=False)
         finally:
             ready.set()
 
