@@ -37,6 +37,8 @@ def one_pass(directory: Path, venv_bin: Path) -> dict[str, float]:
     background = None
     try:
         for step in walkthrough.all_steps():
+            if step.kind == "output":  # what a command printed: nothing to run
+                continue
             if step.kind == "stop":
                 status = background.stop(READY_TIMEOUT_S)
                 if status != 0:

@@ -8,6 +8,12 @@ A block runs when the line before its ```` ```sh ```` fence is a marker::
                                                            and runs on; ready once TEXT is on the screen
     <!-- walkthrough: stop -->                             (no block) Ctrl-C to the background command:
                                                            it must exit 0
+    <!-- walkthrough: output -->                           before an untagged block ``$ COMMAND`` and the
+                                                           lines it prints: COMMAND ran before, and its
+                                                           stdout is those lines but for the numbers in
+                                                           them (``same_but_numbers``: a fit's figures
+                                                           may differ in the last digit between machines,
+                                                           its words and lines may not)
 
 Lines run with bash in the walkthrough's directory, in the project's virtual environment once
 ``.venv/bin/activate`` exists there (as after ``source .venv/bin/activate``; with ``venv_bin`` given,
@@ -33,17 +39,30 @@ README = ROOT / "README.md"
 DOCUMENTS = ("README.md", "docs/tutorial.md")
 MARKER = re.compile(r"^<!-- walkthrough(?::\s*(?P<options>.*?))?\s*-->\n", re.M)
 FENCE = re.compile(r"[ \t\n]*```sh\n(?P<body>.*?)^```\n", re.S | re.M)
+TRANSCRIPT = re.compile(r"[ \t\n]*```\n\$ (?P<command>[^\n]*)\n(?P<output>.*?)^```\n", re.S | re.M)
+#: A number in a command's output: an integer (with thousands commas), a decimal, an exponent.
+NUMBER = re.compile(r"[-+]?\d[\d,]*(?:\.\d+)?(?:[eE][-+]?\d+)?")
 READY = re.compile(r'^background, ready when "(?P<text>[^"]+)"$')
 INSTALL = re.compile(r"^(python3 -m venv|pip install)\b")
 
 
 @dataclasses.dataclass(frozen=True)
 class Step:
-    kind: str  # "run", "background" or "stop"
+    kind: str  # "run", "background", "stop" or "output"
     commands: tuple[str, ...] = ()
     ready_text: str = ""
     line: int = 0  # in its document, for messages
     source: str = "README.md"  # the document, for messages
+    expected: str = ""  # "output": what the command prints
+
+
+def same_but_numbers(expected: str, actual: str) -> bool:
+    """Whether ``actual`` is ``expected`` but for the numbers in it (``NUMBER``), line by line, word by word."""
+
+    def shape(text: str) -> list[str]:
+        return [NUMBER.sub("#", line).rstrip() for line in text.strip("\n").splitlines()]
+
+    return shape(expected) == shape(actual)
 
 
 def _commands(body: str) -> tuple[str, ...]:
@@ -64,6 +83,13 @@ def steps(text: str, source: str = "README.md") -> list[Step]:
         options = m.group("options") or ""
         if options == "stop":
             found.append(Step("stop", line=line, source=source))
+            continue
+        if options == "output":
+            transcript = TRANSCRIPT.match(text, m.end())
+            if transcript is None:
+                raise ValueError(f"{source}:{line}: an output marker without a ``` block starting '$ COMMAND' after it")
+            command, expected = transcript.group("command").strip(), transcript.group("output")
+            found.append(Step("output", (command,), line=line, source=source, expected=expected))
             continue
         fence = FENCE.match(text, m.end())
         if fence is None:

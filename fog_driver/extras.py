@@ -1,5 +1,5 @@
-"""Optional extras (``pyproject.toml``'s ``report`` and ``svr``): checked before a command does any work,
-with the README's own install command in the message."""
+"""Optional extras (``pyproject.toml``'s ``report``, ``svr`` and ``web``): checked before a command does any
+work, with the README's own install command in the message."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ from .errors import UsageError
 EXTRAS = {
     "report": (("allantools", "allantools"), ("matplotlib", "matplotlib")),
     "svr": (("sklearn.svm", "scikit-learn"),),
+    "web": (("aiohttp", "aiohttp"), ("plotly", "plotly"), ("prometheus_client", "prometheus-client")),
 }
 
 

@@ -4,14 +4,17 @@ are checked against each other; ``record`` does not wait for a port that never o
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import shutil
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
+import yaml
 
 from fog_driver.daemon.rawlog import repair_interrupted
 from fog_driver.samples.captures import read_provenance, sidecar_path, write_provenance
@@ -30,6 +33,18 @@ def cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
         cwd=cwd,
         timeout=120,
         stdin=subprocess.DEVNULL,
+    )
+
+
+def started(*args: str, cwd: Path) -> subprocess.Popen:
+    """``fog-driver ARGS`` running, its stdout and stderr piped (text), stdin closed."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "fog_driver", *args],
+        cwd=cwd,
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
     )
 
 
@@ -135,6 +150,7 @@ def made(tmp_path_factory) -> Path:
     shutil.copy(DATA / "sim-short.bin", d / "short.bin")
     proc = cli("compensate", "st.bin", "--model", "model.yaml", "--out", "st.csv", "--every", "10", cwd=d)
     assert proc.returncode == 0, proc.stderr
+    shutil.copy(d / "st.csv.yaml", d / "st2.csv.yaml")  # a CSV's sidecar left behind, its CSV gone
     return d
 
 
@@ -144,8 +160,11 @@ def made(tmp_path_factory) -> Path:
         (["fit", "short.bin", "--out", "st.bin.yaml"], "is a capture's provenance sidecar (of st.bin)"),
         (["fit", "short.bin", "--out", "st.truth.csv"], "is a simulator truth file"),
         (["fit", "short.bin", "--out", "model.yaml"], "is a fitted model"),
-        (["fit", "short.bin", "--out", "st.bin"], "is a capture"),
         (["compensate", "st.bin", "--model", "model.yaml", "--out", "st.csv"], "is a compensate CSV"),
+        (
+            ["compensate", "st.bin", "--model", "model.yaml", "--out", "st2.csv"],
+            "st2.csv.yaml: exists and is a compensate CSV's provenance sidecar (of st.csv)",
+        ),
         (
             [
                 "compensate",
@@ -169,8 +188,8 @@ def made(tmp_path_factory) -> Path:
         "fit-sidecar",
         "fit-truth",
         "fit-model",
-        "fit-capture",
         "compensate-csv",
+        "compensate-sidecar",
         "adapt-state-model",
         "simulate-capture",
         "record-capture",
@@ -253,15 +272,140 @@ def test_evaluate_refuses_reference_stops_outside_the_capture(made, tmp_path):
     assert not (tmp_path / "r").exists()
 
 
-def test_a_model_for_another_instrument_is_refused(made, tmp_path):
+def test_a_model_for_another_instrument_takes_force_model_never_force(made, tmp_path):
+    """Before: ``--force`` both overwrote outputs and applied another instrument's model, silently; now
+    ``--force-model`` (the daemon's ``force_model``) does the second, with a warning naming both serials."""
     other = tmp_path / "other.yaml"
     other.write_text(MODEL.read_text().replace("instrument_serial: FOG-SIM-0001", "instrument_serial: FOG-LAB-0042"))
     for command in (
         ["compensate", "st.bin", "--out", str(tmp_path / "c.csv")],
         ["evaluate", "st.bin", "--out", str(tmp_path / "r")],
     ):
-        line = one_line(cli(*command, "--model", str(other), cwd=made), 64)
-        assert "FOG-LAB-0042" in line and "--force" in line
+        for force in ([], ["--force"]):
+            line = one_line(cli(*command, "--model", str(other), *force, cwd=made), 64)
+            assert "FOG-LAB-0042" in line and "FOG-SIM-0001" in line and "--force-model" in line, line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["other.yaml"]
+    warning = (
+        f"warning: --force-model: applying {other}, fitted for instrument 'FOG-LAB-0042', to st.bin, from "
+        f"instrument 'FOG-SIM-0001'"
+    )
+    # compensate: the warning on stderr, and the use in the CSV's provenance sidecar
+    proc = cli(
+        "compensate", "st.bin", "--model", str(other), "--out", str(tmp_path / "c.csv"), "--force-model", cwd=made
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr.splitlines() == [warning]
+    side = yaml.safe_load((tmp_path / "c.csv.yaml").read_text())
+    assert side["settings"]["force_model"] is True and side["warnings"] == [warning.removeprefix("warning: ")]
+    assert (
+        side["model"]["instrument_serial"] == "FOG-LAB-0042" and side["capture"]["instrument_serial"] == "FOG-SIM-0001"
+    )
+    assert side["model"]["sha256"] == hashlib.sha256(other.read_bytes()).hexdigest()
+    # evaluate: the warning on stderr, the use in summary.json and report.md
+    proc = cli("evaluate", "st.bin", "--model", str(other), "--out", str(tmp_path / "r"), "--force-model", cwd=made)
+    assert proc.returncode == 0, proc.stderr
+    assert warning in proc.stderr.splitlines()
+    summary = json.loads((tmp_path / "r" / "summary.json").read_text())
+    assert summary["force_model"] is True and summary["capture_serial"] == "FOG-SIM-0001"
+    assert summary["model"]["instrument_serial"] == "FOG-LAB-0042"
+    assert (
+        "**Warning: models of another instrument, applied with --force-model to this capture of FOG-SIM-0001: "
+        "`other (wesn)` for FOG-LAB-0042.**"
+    ) in (tmp_path / "r" / "report.md").read_text()
+
+
+def test_compensate_describes_its_csv_in_a_sidecar_and_the_csv_stays_plain(made):
+    csv_text = (made / "st.csv").read_text()
+    assert csv_text.startswith("t_s,n_samples,") and "#" not in csv_text
+    side = yaml.safe_load((made / "st.csv.yaml").read_text())
+    assert side["format"] == "fog_driver compensate provenance" and side["schema_version"] == 1
+    assert side["csv"] == "st.csv" and side["rows"] == len(csv_text.splitlines()) - 1
+    assert side["capture"] == {
+        "path": "st.bin",
+        "sha256": hashlib.sha256((made / "st.bin").read_bytes()).hexdigest(),
+        "instrument_serial": "FOG-SIM-0001",
+    }
+    assert side["model"]["path"] == "model.yaml" and side["model"]["instrument_serial"] == "FOG-SIM-0001"
+    assert side["model"]["sha256"] == hashlib.sha256((made / "model.yaml").read_bytes()).hexdigest()
+    assert side["settings"] == {
+        "every_s": 10.0,
+        "format": "auto",
+        "scale_override_arcsec_per_count": None,
+        "force_model": False,
+        "adapt_reference_dph": None,
+        "adapt_state": None,
+        "adapt_state_sha256": None,
+    }
+    assert "warnings" not in side
+
+
+# --- a raw capture is never replaced by another kind of file ------------------------------------
+
+
+def test_no_output_of_another_kind_replaces_a_capture_force_or_not(made, tmp_path):
+    """Before: ``compensate --out chamber.bin --force`` replaced a chamber run (hours, not to be had again)
+    with a CSV; now every output other than a new capture refuses a capture's path, --force or not (exit 64)."""
+    capture = (made / "st.bin").read_bytes()
+    (tmp_path / "chamber.bin").write_bytes(capture)  # no sidecar: its frames say what it is
+    (tmp_path / "program.yaml").write_bytes(capture)  # a capture under a profile's name
+    (tmp_path / "run.raw").write_bytes(b"\x00garbage before the first frame")  # an interrupted recording ...
+    write_provenance(tmp_path / "run.raw", {"source": "record", "status": "interrupted"})  # ... its sidecar says so
+    (tmp_path / "rep").mkdir()
+    (tmp_path / "rep" / "drift.png").write_bytes(capture)
+    (tmp_path / "new.bin.yaml").write_bytes(capture)  # where simulate --out new.bin puts its sidecar
+    (tmp_path / "t.truth.csv").write_bytes(capture)  # where simulate --out t.bin puts its truth
+    st, model, short = str(made / "st.bin"), str(made / "model.yaml"), str(made / "short.bin")
+    before = digests(tmp_path) | {"rep/drift.png": digests(tmp_path / "rep")["drift.png"]}
+    cases = [
+        (["compensate", st, "--model", model, "--out", "chamber.bin", "--force"], "chamber.bin"),
+        (["compensate", st, "--model", model, "--out", "chamber.bin"], "chamber.bin"),
+        (
+            [
+                "compensate",
+                st,
+                "--model",
+                model,
+                "--out",
+                "x.csv",
+                "--adapt-reference",
+                "0",
+                "--adapt-state",
+                "chamber.bin",
+            ],
+            "chamber.bin",
+        ),
+        (["fit", short, "--out", "chamber.bin", "--force"], "chamber.bin"),
+        (["fit", short, "--out", "run.raw", "--force"], "run.raw"),
+        (["plan", "--out", "program.yaml", "--force"], "program.yaml"),
+        (["evaluate", st, "--model", model, "--out", "rep", "--force"], str(Path("rep") / "drift.png")),
+        (["simulate", "--profile", str(PROFILE), "--duration", "10", "--out", "new.bin"], "new.bin.yaml"),
+        (["simulate", "--profile", str(PROFILE), "--duration", "10", "--out", "t.bin", "--force"], "t.truth.csv"),
+    ]
+    for args, name in cases:
+        line = one_line(cli(*args, cwd=tmp_path), 64)
+        assert line == (
+            f"fog-driver: error: {name}: is a raw capture; no output of another kind replaces one, --force or not "
+            f"(give another name)"
+        ), args
+    after = digests(tmp_path) | {"rep/drift.png": digests(tmp_path / "rep")["drift.png"]}
+    assert after == before and not (tmp_path / "x.csv").exists()
+    # a new capture replaces a capture with --force, as before
+    assert simulate(tmp_path, "chamber.bin", "--force", seconds=10).returncode == 0
+    assert read_provenance(tmp_path / "chamber.bin")["frames"] == 100
+
+
+def test_a_capture_given_for_a_yaml_file_is_named_so(made, tmp_path):
+    """Before: ``--model chamber.bin`` said "model file larger than 1048576 bytes" (or that it was not UTF-8)."""
+    big = tmp_path / "chamber.bin"
+    big.write_bytes((made / "st.bin").read_bytes() * 20)  # over 1 MB, as a chamber run is
+    assert big.stat().st_size > 1 << 20
+    for capture in (big, made / "st.bin"):
+        line = one_line(
+            cli("compensate", "st.bin", "--model", str(capture), "--out", str(tmp_path / "c.csv"), cwd=made), 65
+        )
+        assert line == f"fog-driver: error: {capture}: is a capture, not a model file"
+    line = one_line(cli("fit", "st.bin", "--config", str(big), "--out", str(tmp_path / "m.yaml"), cwd=made), 65)
+    assert line == f"fog-driver: error: {big}: is a capture, not a fit config"
 
 
 # --- short captures: the real cause -------------------------------------------------------------
@@ -270,7 +414,8 @@ def test_a_model_for_another_instrument_is_refused(made, tmp_path):
 def test_a_short_capture_names_the_warm_up(tmp_path):
     line = one_line(cli("fit", str(DATA / "sim-short.bin"), "--out", "m.yaml", cwd=tmp_path), 65)
     assert "the capture is 300 s and its first 300 s are excluded as warm-up (warmup_s in the fit config" in line
-    shutil.copy(MODEL, tmp_path / "model.yaml")
+    # the model of the capture's instrument: the serial is not what this test is about
+    (tmp_path / "model.yaml").write_text(MODEL.read_text().replace("FOG-SIM-0001", "FOG-SYN-0001"))
     line = one_line(
         cli("evaluate", str(DATA / "synthetic-clean.bin"), "--model", "model.yaml", "--out", "r", cwd=tmp_path), 65
     )
@@ -307,14 +452,7 @@ def test_record_fails_at_once_on_a_port_that_never_opened(tmp_path):
 
 def test_record_wait_says_so_once_and_an_interrupt_leaves_nothing(tmp_path):
     port = tmp_path / "ttyUSB9"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "fog_driver", "record", str(port), "--out", "r.bin", "--wait"],
-        cwd=tmp_path,
-        stdin=subprocess.DEVNULL,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    proc = started("record", str(port), "--out", "r.bin", "--wait", cwd=tmp_path)
     try:
         first = proc.stderr.readline()  # blocks until the recorder has tried once and said it waits
         assert first == f"waiting for {port} to appear (now: no such device); Ctrl-C to stop\n"
@@ -343,3 +481,55 @@ def test_describe_knows_each_kind_by_content(made, tmp_path):
     (tmp_path / "old.csv").write_text(old_header + "t_top_c,t_bottom_c,t_housing_c,flags\n1.0,10,0,0,0,0,0,20,20,20,\n")
     assert describe(tmp_path / "old.csv") == "a compensate CSV"
     assert describe(tmp_path) == "a directory"
+
+
+# --- an interrupted simulate keeps what it wrote, described as interrupted ----------------------------
+
+
+def test_an_interrupted_simulate_leaves_a_sidecar_that_says_so_and_inspect_reports_it(tmp_path):
+    """Before: Ctrl-C left run.bin and its truth without a sidecar (or, rerun, a capture no sidecar described);
+    now the sidecar says ``status: interrupted`` with what was written, as the daemon's captures do."""
+    out = tmp_path / "run.bin"
+    proc = started("simulate", "--profile", "paper", "--rate-hz", "100", "--out", "run.bin", cwd=tmp_path)
+    try:
+        deadline = time.monotonic() + 120
+        while not (out.exists() and out.stat().st_size > 0):  # the run is under way once the capture has bytes
+            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+            time.sleep(0.01)
+        proc.send_signal(signal.SIGINT)
+        stdout, stderr = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, stderr
+    assert stderr.startswith("fog-driver: interrupted: run.bin holds the first ") and "Traceback" not in stderr
+    side = read_provenance(out)
+    data = out.read_bytes()
+    assert side["status"] == "interrupted" and side["source"] == "simulate"
+    assert side["bytes"] == len(data) and side["sha256"] == hashlib.sha256(data).hexdigest()
+    assert 0 < side["frames"] < side["frames_planned"] and side["end_reason"].startswith("stopped after")
+    truth_rows = (tmp_path / "run.truth.csv").read_text().splitlines()[2:]  # its header line and the columns
+    assert len(truth_rows) == side["frames"] // 100  # the capture and its truth hold the same seconds
+    report = cli("inspect", "run.bin", "--strict", cwd=tmp_path)
+    assert report.returncode == 1  # not clean
+    lines = dict(line.split(None, 1) for line in report.stdout.splitlines())
+    assert lines["provenance"].startswith("source simulate, status interrupted")
+    assert lines["verdict"] == "sidecar status interrupted"
+    assert json.loads(cli("inspect", "run.bin", "--json", cwd=tmp_path).stdout)["problems"] == [
+        "sidecar status interrupted"
+    ]
+
+
+def test_a_keyboard_interrupt_mid_write_still_leaves_the_sidecar(tmp_path):
+    from fog_driver.sim.capture import simulate_to_file
+    from fog_driver.sim.instrument import Simulator
+    from fog_driver.sim.profiles import load_profile
+
+    def interrupt(done: int, total: int) -> None:
+        raise KeyboardInterrupt
+
+    sim = Simulator(load_profile(str(PROFILE)), rate_hz=10, seed=0)
+    with pytest.raises(KeyboardInterrupt):
+        simulate_to_file(sim, tmp_path / "k.bin", duration_s=60, progress=interrupt)
+    side = read_provenance(tmp_path / "k.bin")
+    assert side["status"] == "interrupted" and side["frames"] == 100 and side["frames_planned"] == 600
+    assert side["bytes"] == (tmp_path / "k.bin").stat().st_size

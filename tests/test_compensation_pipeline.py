@@ -287,10 +287,11 @@ def test_compensate_refuses_another_instruments_model_unless_forced(model_path, 
         "--out",
         str(tmp_path / "o.csv"),
     ]
-    proc = subprocess.run(args, capture_output=True, text=True, timeout=60)
-    assert proc.returncode == 64 and "FOG-OTHER-0042" in proc.stderr and "--force" in proc.stderr
-    assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "o.csv").exists()
-    assert subprocess.run(args + ["--force"], capture_output=True, timeout=60).returncode == 0
+    for refused in (args, args + ["--force"]):  # --force overwrites outputs: it applies no model
+        proc = subprocess.run(refused, capture_output=True, text=True, timeout=60)
+        assert proc.returncode == 64 and "FOG-OTHER-0042" in proc.stderr and "--force-model" in proc.stderr
+        assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "o.csv").exists()
+    assert subprocess.run(args + ["--force-model"], capture_output=True, timeout=60).returncode == 0
 
 
 def test_motion_is_detected_and_excluded(tmp_path):

@@ -157,7 +157,7 @@ def test_a_model_records_its_channels_and_refuses_other_formats(kvh_model, captu
         match=r"fitted on the temperature channels sensor; .*fog-v1 frames carry "
         r"top, bottom, housing: it cannot be applied",
     ):
-        next(compensate_capture(captures["fog-v1"], model, force=True))
+        next(compensate_capture(captures["fog-v1"], model, force_model=True))
     with pytest.raises(
         ModelMismatchError, match="top, bottom, housing; .*ixblue-stdbin frames carry fog, accelerometer, board"
     ):
@@ -214,7 +214,7 @@ def test_the_daemon_publishes_what_offline_compensation_gives(fmt, chunk, captur
     Path(str(part) + ".yaml").write_text(
         yaml.safe_dump({"wire_format": fmt, "wire_settings": wire.sidecar_fields()["wire_settings"]})
     )
-    parts = [cols for _, cols in compensate_capture(part, load_model(model), force=True)]
+    parts = [cols for _, cols in compensate_capture(part, load_model(model), force_model=True)]
     offline = [a for cols in parts for a in cols.angle_comp_arcsec]
     assert [o["angle_arcsec"] for o in published] == offline and len(offline) > 500
     sigmas = [float(v) if math.isfinite(v) else None for cols in parts for v in cols.drift_sigma_dph]
@@ -300,7 +300,7 @@ def test_fit_compensate_and_evaluate_a_kvh_chamber_run_from_the_command_line(tmp
     summary = yaml.safe_load(capsys.readouterr().out.strip().splitlines()[-1])
     raw, left = summary["truth"]["drift_rms_1min_dph"], summary["truth"]["residual_rms_1min_dph"]
     assert math.isfinite(raw) and left < 0.7 * raw, (raw, left)
-    # the protocol v1 model cannot be applied to it, whatever --force says
+    # the protocol v1 model cannot be applied to it, whatever --force-model says
     assert (
         main(
             [
@@ -308,7 +308,7 @@ def test_fit_compensate_and_evaluate_a_kvh_chamber_run_from_the_command_line(tmp
                 str(tmp_path / "check.bin"),
                 "--model",
                 str(DEFAULT_MODEL),
-                "--force",
+                "--force-model",
                 "--out",
                 str(tmp_path / "d.csv"),
             ]

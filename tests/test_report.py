@@ -164,3 +164,53 @@ def test_a_link_gap_never_shifts_the_seconds_against_the_drift_or_the_truth(tmp_
         clean["compensated"]["drift_rms_1min_dph"], rel=0.25
     )
     assert gap["truth"]["residual_rms_1min_dph"] < 1.5 * clean["truth"]["residual_rms_1min_dph"]
+
+
+def test_the_drift_plot_draws_every_curve_on_one_baseline_with_its_legend_clear_of_the_data():
+    """Before: the raw and compensated rates had the raw rate's median removed and the drift estimates none
+    (the estimate ran 10 deg/h away from the rate it explains), and the legend sat on the curves."""
+    pytest.importorskip("matplotlib")
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from fog_driver.report.evaluate import Series, _plot_drift
+
+    n = 3600
+    t = np.arange(1.0, n + 1.0)
+    drift = 0.5 * np.sin(t / 600.0) + 0.3  # the temperature drift, with a mean of its own
+    series = Series(
+        t_s=t,
+        rate_raw_dph=10.0 + drift,  # Earth rate and bias, plus the drift
+        drift_dph=drift - 0.3,  # an estimate right but for its constant
+        temps_c=np.full((n, 3), 20.0),
+        static=np.ones(n, dtype=bool),
+        compared_drift_dph={"other": 0.5 * drift},
+    )
+    fig = _plot_drift(plt, series, t / 60.0, {"compensated": "compensated, m (wesn)", "other": "other"})
+    try:
+        fig.canvas.draw()
+        (ax,) = fig.axes
+        curves = {
+            line.get_label(): np.asarray(line.get_ydata()) for line in ax.get_lines() if line.get_label()[0] != "_"
+        }
+        assert sorted(curves) == sorted(
+            [
+                "raw rate",
+                "estimated drift, compensated, m (wesn)",
+                "estimated drift, other",
+                "compensated rate, compensated, m (wesn)",
+                "compensated rate, other",
+            ]
+        )
+        for label, y in curves.items():
+            assert abs(np.median(y)) < 1e-9, label  # each on the baseline: its median over the static minutes
+        # where the model is right, its estimate lies on the raw rate and the compensated rate on 0
+        np.testing.assert_allclose(curves["estimated drift, compensated, m (wesn)"], curves["raw rate"], atol=1e-9)
+        np.testing.assert_allclose(curves["compensated rate, compensated, m (wesn)"], 0.0, atol=1e-9)
+        renderer = fig.canvas.get_renderer()
+        (legend,) = fig.legends
+        assert not legend.get_window_extent(renderer).overlaps(ax.get_window_extent(renderer))
+    finally:
+        plt.close(fig)

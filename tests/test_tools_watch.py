@@ -8,6 +8,7 @@ which sends a scripted conversation and closes.  The non-terminal view is what t
 from __future__ import annotations
 
 import io
+import itertools
 import json
 import os
 import re
@@ -370,7 +371,7 @@ def test_the_views_survive_absurd_values():
     )
     lines = render({**FULL_STATE, "angle": absurd}, width=200)
     assert 'angle       1e+30" (1e+30)    raw -1.000000e+400" (-1.000000e+400)' in lines
-    assert "rate        1.000000e+400 deg/h (one sample)    drift 0.1234 deg/h" in lines
+    assert "rate        1.000000e+400 deg/h (one sample)" in lines and "drift       0.1234 deg/h" in lines
     assert "temps       top 1.000000e+400  bottom -  housing 20.00 degC" in lines
     assert "1e+30" in compact_line({**FULL_STATE, "angle": absurd})
     daemon = FakeDaemon([ndjson(absurd)], then="wait")
@@ -434,7 +435,8 @@ def test_render_full_state():
         "instrument  serial FOG-SYN-0001, firmware 1.2, 100 Hz",
         "device      /tmp/fog-driver-sim.tty, activated, serial FOG-SYN-0001, 100 Hz",
         'angle       3725.50" (1°02\'05.50")    raw -62.00" (-0°01\'02.00")',  # the two forms agree
-        "rate        15.0 deg/h (one sample)    drift 0.1234 deg/h",
+        "rate        15.0 deg/h (one sample)",
+        "drift       0.1234 deg/h",
         "temps       top 20.25  bottom 19.88  housing 19.60 degC",
         "flags       gap",
         "sample      seq 2  t 12.440 s  (received 0.0 s ago)",
@@ -447,11 +449,48 @@ def test_render_full_state():
 
 def test_render_wraps_the_status_counters():
     lines = render(FULL_STATE, width=60)
-    status = [line for line in lines if line.startswith(("status", " " * 12))]
-    assert len(status) >= 2 and all(len(line) <= 60 for line in status)
+    first = next(i for i, line in enumerate(lines) if line.startswith("status"))
+    status = [lines[first]] + list(itertools.takewhile(lambda line: line.startswith(" " * 12), lines[first + 1 :]))
+    assert len(status) >= 2 and all(len(line) <= 60 for line in lines)
     assert " ".join(" ".join(status).split()) == (
         "status clients=1 cpu_percent=2.5 crc_errors=3 frames=4242 missing_frames=7 port_state=open some_future_key=x"
     )
+
+
+def test_the_terminal_view_fits_80_columns_and_loses_nothing():
+    """Before: at 80 columns the rate line lost its drift and sigma, the bias banner its command, the sample line
+    its time of day: lines were cut at the terminal's edge.  Now they fold, under the label."""
+    state = {
+        **FULL_STATE,
+        "address": "gyro-pc.lab.example.org:2948",
+        "keys": True,
+        "angle": angle(
+            2,
+            angle_arcsec=-1234567.891,
+            angle_raw_arcsec=-1234560.5,
+            drift_sigma_dph=0.0237,
+            utc="2026-12-04T11:05:07.123456Z",
+            temps_c={"housing": 19.6, "bottom": 19.88, "top": 20.25},  # sent in another order
+        ),
+        "angle_age_s": 0.1,
+        "rate_mean_dph": -10.6123,
+        "rate_span_s": 1.0,
+        "status": {**FULL_STATE["status"], "bias_captured": False, "bias_sigma_dph": 0.0051},
+    }
+    for width in (80, 79):  # the view draws at the terminal's width less one
+        lines = render(state, width=width)
+        assert all(len(line) <= width for line in lines), [line for line in lines if len(line) > width]
+        text = " ".join(" ".join(lines).split())
+        for shown in (
+            "press b (or `fog-driver ctl --connect gyro-pc.lab.example.org:2948 bias 60`)",
+            "rate -10.61 deg/h (mean over 1.0 s)",
+            "drift 0.1234 deg/h +- 0.0237 (1-sigma)",
+            "utc 2026-12-04T11:05:07.123456Z (received 0.1 s ago)",
+            "q quit z zero the angle b capture the bias (60 s, table still)",
+            "some_future_key=x",
+        ):
+            assert shown in text, shown
+        assert "temps       top 20.25  bottom 19.88  housing 19.60 degC" in lines  # top, bottom, housing
 
 
 @pytest.mark.parametrize(
@@ -514,11 +553,11 @@ def test_render_missing_fields_show_a_dash():
 def test_the_drift_sigma_is_shown_plain_before_a_bias_and_in_the_since_bias_form_after(angle_sigma, status, shown):
     sample = angle(1) if angle_sigma is None else angle(1, drift_sigma_dph=angle_sigma)
     state = {"angle": sample, "status": {"class": "STATUS", **status}}
-    rate_line = next(line for line in render(state) if line.startswith("rate "))
-    assert rate_line.endswith(f"    {shown}")
+    drift_line = next(line for line in render(state, width=200) if line.startswith("drift "))
+    assert drift_line == f"drift       {shown.removeprefix('drift ')}"
     assert f"| {shown} |" in compact_line(state)
     if angle_sigma is None:
-        assert "+-" not in compact_line(state) and "sigma" not in rate_line
+        assert "+-" not in compact_line(state) and "sigma" not in drift_line
 
 
 def test_watch_shows_the_since_bias_form_once_the_daemon_says_a_bias_was_captured():
@@ -767,7 +806,8 @@ def test_the_daemons_rates_average_to_the_angle_difference(tmp_path):
 )
 def test_banners(state, banner):
     lines = render(state)
-    assert any(line.startswith(banner) for line in lines[1:3]), lines  # right under the head line
+    shown = " ".join(" ".join(lines[1:4]).split())  # a long banner folds at 80 columns
+    assert shown.startswith(banner), lines  # right under the head line
     assert compact_line(state).split(" | ")[0].split("] ")[1] in banner  # and first in the log line
 
 

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import sys
 from pathlib import Path
 
+from .. import __version__
 from ..client.display import Progress
 from ..compensation.adapt import AdaptConfig
 from ..compensation.fitting.choice import SE_MULTIPLE
@@ -22,17 +24,25 @@ from ..compensation.fitting.report import WORSE_MARKER
 from ..errors import FogDriverError, InputFileError, OutputFileError
 from ..extras import require_extra
 from ..files.kinds import ROW_COLUMNS
-from ..files.outputs import check_outputs, describe, write_error
+from ..files.outputs import check_outputs, describe, refuse_captures, write_error
+from ..files.stamps import utc_now_iso
 from ..files.typed_mapping import dataclass_from_mapping
 from ..files.yamlio import read_yaml
 from ..formats.registry import FORMATS
 from ..modelfiles import load_model, save_model
-from ..offline.compensate import compensate_capture
+from ..offline.compensate import check_model, compensate_capture, csv_sidecar_path, write_csv_provenance
 from ..offline.fit import fit_model_file
 from ..offline.rows import compensated_rows, format_row
 from ..report import positioning
 from ..report.coverage import format_coverage
-from ..report.evaluate import evaluate, format_bias_instability, model_label, series_names, write_report
+from ..report.evaluate import (
+    evaluate,
+    format_bias_instability,
+    model_label,
+    report_file_names,
+    series_names,
+    write_report,
+)
 from ..samples.captures import _capture_size
 from ..sim.capture import check_truth_matches, read_truth
 from .argtypes import positive_float, time_window
@@ -184,10 +194,13 @@ _FLAGS = ROW_COLUMNS.index("flags")  # a compensate row's flags
 
 def cmd_compensate(args: argparse.Namespace) -> int:
     out = Path(args.out)
+    sidecar = csv_sidecar_path(out)
     inputs = [args.capture, args.model]
-    check_outputs([out], force=args.force, inputs=inputs)
+    check_outputs([out, sidecar], force=args.force, inputs=inputs)
     if args.adapt_state is not None:
-        _check_adapt_state(Path(args.adapt_state), save=args.adapt_reference is not None, inputs=inputs + [out])
+        _check_adapt_state(
+            Path(args.adapt_state), save=args.adapt_reference is not None, inputs=inputs + [out, sidecar]
+        )
     model_file = load_model(args.model)
     size = _capture_size(Path(args.capture))
     adapt = None
@@ -197,8 +210,15 @@ def cmd_compensate(args: argparse.Namespace) -> int:
         raise InputFileError(
             f"{args.adapt_state}: no such adaptation state (without --adapt-reference it is only read)"
         )
+    checked = check_model(
+        model_file, args.capture, model_name=args.model, force_model=args.force_model, wire_format=args.format
+    )
+    if checked.warning:
+        print(f"warning: {checked.warning}", file=sys.stderr)
     for line in model_file.warnings(args.model):
         print(f"warning: {line}")
+    provenance = _compensate_provenance(args, model_file, checked.capture_serial)  # the state file before it is saved
+    capture_sha = hashlib.sha256()
     progress = Progress()
     written = 0
     extrapolating_s, last_t_s = 0.0, 0.0
@@ -208,7 +228,7 @@ def cmd_compensate(args: argparse.Namespace) -> int:
             chunks = compensate_capture(
                 args.capture,
                 model_file,
-                force=args.force,
+                force_model=args.force_model,
                 model_name=args.model,
                 adapt=adapt,
                 reference_rate_dph=args.adapt_reference,
@@ -217,14 +237,21 @@ def cmd_compensate(args: argparse.Namespace) -> int:
                 scale_override_arcsec_per_count=args.scale_override,
                 wire_format=args.format,
                 progress=lambda done: progress.show(f"compensating {100.0 * done / size:5.1f} %"),
+                on_block=capture_sha.update,
             )
             for row in compensated_rows(chunks, args.every):
                 f.write(format_row(row) + "\n")
                 written += 1
                 extrapolating_s += row[0] - last_t_s if "extrapolating" in row[_FLAGS].split("|") else 0.0
                 last_t_s = row[0]
+        provenance["capture"]["sha256"] = capture_sha.hexdigest()
+        provenance.update(rows=written, extrapolating_s=round(float(extrapolating_s), 3))
+        if checked.warning:
+            provenance["warnings"] = [checked.warning]
+        write_csv_provenance(out, provenance)
     except (FogDriverError, OSError) as exc:
         out.unlink(missing_ok=True)
+        sidecar.unlink(missing_ok=True)  # never a sidecar describing a CSV that is not there
         if isinstance(exc, FogDriverError):
             raise
         raise write_error(out, "the compensated CSV", exc) from None
@@ -232,7 +259,7 @@ def cmd_compensate(args: argparse.Namespace) -> int:
         progress.clear()
     print(
         f"compensated {args.capture} with {args.model} ({model_file.kind}): {written:,} rows every "
-        f"{args.every:g} s -> {out}"
+        f"{args.every:g} s -> {out} (provenance in {sidecar.name})"
     )
     if extrapolating_s > 0:
         print(
@@ -242,9 +269,44 @@ def cmd_compensate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _file_sha256(path: str | Path) -> str:
+    """The SHA-256 of a whole (small) file: a model, an adaptation state."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def _compensate_provenance(args: argparse.Namespace, model_file, capture_serial: str | None) -> dict:
+    """The CSV's provenance sidecar, as known before the run (the capture's SHA-256 and the rows come after):
+    the capture, the model (path, SHA-256, serial), and the settings, named as the daemon's sidecar names them
+    so that the daemon's run and this one can be compared key by key."""
+    state = args.adapt_state
+    return {
+        "written_utc": utc_now_iso(),
+        "fog_driver_version": __version__,
+        "capture": {"path": str(args.capture), "sha256": None, "instrument_serial": capture_serial},
+        "model": {
+            "path": str(args.model),
+            "sha256": _file_sha256(args.model),
+            "kind": model_file.kind,
+            "created_utc": model_file.created_utc,
+            "instrument_serial": model_file.instrument_serial,
+        },
+        "settings": {
+            "every_s": args.every,
+            "format": args.format,
+            "scale_override_arcsec_per_count": args.scale_override,
+            "force_model": args.force_model,
+            "adapt_reference_dph": args.adapt_reference,
+            "adapt_state": state,
+            "adapt_state_sha256": _file_sha256(state) if state is not None and Path(state).is_file() else None,
+        },
+    }
+
+
 def _check_adapt_state(path: Path, *, save: bool, inputs: list) -> None:
     """``compensate --adapt-state``: read when it exists, and (``save``) replaced at the end, so an existing
     file must be an adaptation state (by its content), and its directory must exist."""
+    if save:
+        refuse_captures([path])  # a capture is never replaced, whatever it is called
     if path.exists() and not path.is_dir() and (kind := describe(path)) != "an adaptation state":
         raise OutputFileError(
             f"{path}: --adapt-state exists and is {kind}, not an adaptation state; refusing to read or replace it"
@@ -280,6 +342,16 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         while name in compare or name in (label, "raw", "compensated"):
             name += "'"
         compare[name] = other
+    if out.is_dir():  # --force: the report's files replace files of those names, never a capture
+        refuse_captures(out / name for name in report_file_names(list(compare)))
+    capture_serial = None
+    for path, model in [(args.model, model_file), *zip(args.compare, compare.values())]:
+        checked = check_model(
+            model, args.capture, model_name=path, force_model=args.force_model, wire_format=args.format
+        )
+        capture_serial = checked.capture_serial
+        if checked.warning:
+            print(f"warning: {checked.warning}", file=sys.stderr)
     progress = Progress()
     progress.show("evaluating...", force=True)
     try:
@@ -287,7 +359,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
             Path(args.capture),
             model_file,
             truth=truth,
-            force=args.force,
+            force_model=args.force_model,
+            capture_serial=capture_serial,
             label=label,
             compare=compare,
             progress=progress.show,
@@ -306,7 +379,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
             reference=args.reference,
             compare=compare,
             zero_window_s=args.zero_window,
-            force=args.force,
+            force_model=args.force_model,
             label=label,
             wire_format=args.format,
         )
@@ -350,6 +423,15 @@ def _format_option(p: argparse.ArgumentParser) -> None:
         metavar="FORMAT",
         help=f"the capture's frame format: {', '.join(['auto', *FORMATS])} (default auto: the sidecar's, "
         f"else sniffed from the first bytes); a format the bytes contradict is an error",
+    )
+
+
+def _force_model_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--force-model",
+        action="store_true",
+        help="apply a model fitted for another instrument serial than the capture's (the daemon's force_model): "
+        "warned on stderr and recorded in the outputs",
     )
 
 
@@ -397,9 +479,8 @@ def add_compensate(p: argparse.ArgumentParser) -> None:
     p.add_argument("--model", required=True, metavar="MODEL.yaml")
     p.add_argument("--out", required=True, metavar="OUT.csv")
     p.add_argument("--every", type=positive_float, default=1.0, metavar="SECONDS", help="row period (default 1 s)")
-    p.add_argument(
-        "--force", action="store_true", help="apply a model fitted for another instrument; overwrite OUT.csv"
-    )
+    p.add_argument("--force", action="store_true", help="overwrite OUT.csv and its sidecar OUT.csv.yaml")
+    _force_model_option(p)
     p.add_argument(
         "--adapt-reference",
         type=float,
@@ -448,6 +529,7 @@ def add_evaluate(p: argparse.ArgumentParser) -> None:
         "(default: the first 300 s of compensated output)",
     )
     p.add_argument("--json", action="store_true", help="also print summary.json on stdout")
-    p.add_argument("--force", action="store_true", help="overwrite the report folder; a model for another instrument")
+    p.add_argument("--force", action="store_true", help="write into a report folder that is not empty")
+    _force_model_option(p)
     _format_option(p)
     p.set_defaults(func=cmd_evaluate)

@@ -26,6 +26,7 @@ from ..sim.serve import serve_cli
 from .argtypes import baud, positive_float, rate_hz, seed
 
 EXIT_PROBLEMS = 1  # inspect --strict found problems
+EXIT_INTERRUPTED = 130  # stopped by Ctrl-C (SIGINT) or SIGTERM, as the shell reports a SIGINT
 FORMAT_NAMES = list(FORMATS)
 
 
@@ -160,21 +161,33 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if not args.out.endswith(".bin"):
         raise UsageError(f"--out {args.out!r}: a capture file name must end in .bin")
     progress = Progress()
+    stop = threading.Event()
     try:
-        result = simulate_to_file(
-            sim,
-            args.out,
-            duration_s=args.duration,
-            overwrite=args.force,
-            progress=lambda done, total: progress.show(f"simulating {100.0 * done / total:5.1f} % ({done:,} frames)"),
-            faults_text=faults.describe(),
-        )
+        with stop_on_signals(stop):  # Ctrl-C or SIGTERM: the run ends at the next batch, described as interrupted
+            result = simulate_to_file(
+                sim,
+                args.out,
+                duration_s=args.duration,
+                overwrite=args.force,
+                progress=lambda done, total: progress.show(
+                    f"simulating {100.0 * done / total:5.1f} % ({done:,} frames)"
+                ),
+                faults_text=faults.describe(),
+                stop=stop,
+            )
     finally:
         progress.clear()
     print(
         f"simulated {sim.profile.name} at {sim.rate_hz} Hz, seed {sim.seed}: {result.frames:,} frames, "
         f"{result.bytes:,} bytes -> {result.capture} (+ {result.sidecar.name}, {result.truth.name})"
     )
+    if result.interrupted:
+        print(
+            f"fog-driver: interrupted: {result.capture} holds the first {result.frames / sim.rate_hz:g} s "
+            f"(status: interrupted in {result.sidecar.name})",
+            file=sys.stderr,
+        )
+        return EXIT_INTERRUPTED
     return 0
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import errno
 import os
 import signal
 import sys
@@ -15,13 +16,15 @@ from .. import __version__
 from ..console import configure_logging
 from ..daemon.config import DriverConfig, load_config
 from ..daemon.service import ConfigError, Service
-from ..errors import FogDriverError, InternalError
+from ..errors import DeviceError, FogDriverError, InternalError, UsageError
+from ..extras import require_extra
 from ..formats.registry import FORMATS
 from ..signals import SignalDispatcher
 from ..sim.instrument import Simulator
 from ..sim.profiles import load_profile
 from ..sim.serve import serve_pty
 from ..tools.watch import format_address
+from ..transport.port import open_error_text
 
 FORMAT_NAMES = list(FORMATS)
 
@@ -35,7 +38,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         config = load_config(args.config) if args.config else DriverConfig()
         overrides = {
             k: getattr(args, k)
-            for k in ("port", "model", "listen", "http", "capture_dir", "format")
+            for k in ("port", "model", "listen", "http", "capture_dir", "format", "force_model")
             if getattr(args, k)
         }
         return dataclasses.replace(config, **overrides)
@@ -44,10 +47,16 @@ def cmd_run(args: argparse.Namespace) -> int:
         config = read_config()
     except (FogDriverError, ValueError) as exc:
         raise ConfigError(str(exc)) from None
+    if config.http:  # before any work (the simulator, the model): as every command checks its extras
+        try:
+            require_extra("web", f"the web view and /metrics (http {config.http})")
+        except UsageError as exc:
+            raise ConfigError(str(exc)) from None  # exit 78: restarting a service cannot install it
     stop = threading.Event()
     simulator = None
     port = config.port
-    if args.simulate or (port is None and _stdin_is_a_terminal()):
+    interactive = _at_a_terminal()
+    if args.simulate or (port is None and interactive):
         simulator, port = _start_embedded_simulator(stop)
     elif port is None:  # under systemd, or piped: a production daemon never falls back to a simulator
         where = f" in {args.config}" if args.config else ""
@@ -55,6 +64,8 @@ def cmd_run(args: argparse.Namespace) -> int:
             f"no instrument port: set 'port'{where} or give --port PORT_OR_URL "
             "(--simulate runs the built-in simulated instrument)"
         )
+    elif interactive:
+        _check_port(port, wait=args.wait)
     try:
         service = Service(config, port=port)
         service.stop = stop
@@ -101,9 +112,28 @@ def _never_world_writable() -> None:
     os.umask(os.umask(0o022) | 0o002)
 
 
-def _stdin_is_a_terminal() -> bool:
-    """True when a person runs the command at a terminal (not under systemd, cron or a pipe)."""
-    return sys.stdin is not None and sys.stdin.isatty()
+def _at_a_terminal() -> bool:
+    """True when a person runs the command at a terminal: stdin is a TTY and systemd did not start it (no
+    ``NOTIFY_SOCKET``).  Under systemd, cron or a pipe the daemon waits for its port and never serves the
+    simulated instrument in place of a real one."""
+    return sys.stdin is not None and sys.stdin.isatty() and not os.environ.get("NOTIFY_SOCKET")
+
+
+def _check_port(port: str, *, wait: bool) -> None:
+    """At a terminal: a device path that does not exist (a typo, an unplugged adapter) or cannot be opened is a
+    one-line ``DeviceError`` at once (exit 69, as ``record``), unless ``wait``: then a line says the daemon
+    waits for it.  A URL (``socket://``, ``rfc2217://``) is the transport's to judge."""
+    if "://" in port:
+        return
+    if os.path.exists(port):
+        if os.access(port, os.R_OK | os.W_OK):
+            return
+        problem = open_error_text(port, PermissionError(errno.EACCES, os.strerror(errno.EACCES)))
+    else:
+        problem = open_error_text(port, FileNotFoundError(errno.ENOENT, os.strerror(errno.ENOENT)))
+    if not wait:
+        raise DeviceError(f"{problem} (--wait waits for it)")
+    print(f"waiting for {port} (now: {problem.removeprefix(f'cannot open {port}: ')}); Ctrl-C to stop", file=sys.stderr)
 
 
 def _start_embedded_simulator(stop: threading.Event) -> tuple[threading.Thread, str]:
@@ -118,7 +148,8 @@ def _start_embedded_simulator(stop: threading.Event) -> tuple[threading.Thread, 
 
     def serve() -> None:
         try:
-            serve_pty(sim, link=None, stop=stop, on_ready=on_ready)
+            # a demonstration does not warn about its own simulator's stalls (logged at info: -v)
+            serve_pty(sim, link=None, stop=stop, on_ready=on_ready, warn_behind=False)
         finally:
             ready.set()
 
@@ -153,6 +184,17 @@ def add_run(p: argparse.ArgumentParser) -> None:
         help="serve the web view and /metrics here (overrides 'http'; needs the web extra; e.g. 127.0.0.1:8948)",
     )
     p.add_argument("--capture-dir", dest="capture_dir", metavar="DIR", help="raw capture directory")
+    p.add_argument(
+        "--wait",
+        action="store_true",
+        help="at a terminal, wait for a port that is not there yet (default: an error at once, exit 69); "
+        "under systemd, or without a terminal, the daemon always waits for its port",
+    )
+    p.add_argument(
+        "--force-model",
+        action="store_true",
+        help="apply the model even when it was fitted for another instrument serial (sets force_model)",
+    )
     p.add_argument(
         "--format",
         choices=["auto", *FORMAT_NAMES],

@@ -6,6 +6,8 @@ that write each kind take its mark from here.
 
 #: A capture's provenance sidecar (``CAPTURE.bin.yaml``): its ``format`` tag.
 PROVENANCE_FORMAT = "fog_driver capture provenance"
+#: The provenance sidecar ``compensate`` writes beside its CSV (``OUT.csv.yaml``): its ``format`` tag.
+COMPENSATE_PROVENANCE_FORMAT = "fog_driver compensate provenance"
 #: A fitted drift model file: its ``format`` tag.
 MODEL_FORMAT = "fog_driver drift model"
 #: An adaptation state file (``--adapt-state``): its ``format`` tag.

@@ -6,6 +6,10 @@ an output that is also an input, or an existing file without ``--force`` is a on
 ``OutputFileError`` (exit 73) that says what the existing file is, read from its content
 (``describe``): a capture's provenance sidecar, a fitted model, a truth file...  So a run never stops
 half-way with some outputs written and others refused.
+
+A raw capture (``is_capture``) is the one record of a run that cannot be made again: only a new capture
+(``record``, ``simulate``) may replace it, with ``--force``.  Any other output on a capture's path (a
+model, a CSV, a sidecar, a report) is a one-line ``UsageError`` (exit 64), ``--force`` or not.
 """
 
 from __future__ import annotations
@@ -16,11 +20,21 @@ from pathlib import Path
 
 import yaml
 
-from ..errors import OutputFileError
+from ..errors import OutputFileError, UsageError
+from ..protocol import decode_bytes
 from ..protocol.wire import SYNC
-from .kinds import ADAPT_STATE_FORMAT, MODEL_FORMAT, PROVENANCE_FORMAT, ROW_COLUMNS_FIRST, TRUTH_HEADER
+from .kinds import (
+    ADAPT_STATE_FORMAT,
+    COMPENSATE_PROVENANCE_FORMAT,
+    MODEL_FORMAT,
+    PROVENANCE_FORMAT,
+    ROW_COLUMNS_FIRST,
+    TRUTH_HEADER,
+)
 
 _SNIFF_BYTES = 1 << 20
+#: How much of a file ``is_capture`` decodes: a capture holds frames from its first bytes on.
+_CAPTURE_HEAD_BYTES = 64 * 1024
 
 
 def _kinds() -> tuple[tuple[tuple[str, str], ...], dict[str, str]]:
@@ -31,8 +45,49 @@ def _kinds() -> tuple[tuple[tuple[str, str], ...], dict[str, str]]:
         PROVENANCE_FORMAT: "a capture's provenance sidecar (of {capture})",
         MODEL_FORMAT: "a fitted model",
         ADAPT_STATE_FORMAT: "an adaptation state",
+        COMPENSATE_PROVENANCE_FORMAT: "a compensate CSV's provenance sidecar (of {csv})",
     }
     return text, tags
+
+
+def _names_capture(sidecar: Path, capture: Path) -> bool:
+    """Whether ``sidecar`` is a capture's provenance sidecar (its ``format`` tag) naming ``capture``."""
+    try:
+        if sidecar == capture or not sidecar.is_file() or sidecar.stat().st_size > _SNIFF_BYTES:
+            return False
+        doc = yaml.safe_load(sidecar.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        return False
+    return isinstance(doc, dict) and doc.get("format") == PROVENANCE_FORMAT and doc.get("capture") == capture.name
+
+
+def is_capture(path: str | Path) -> bool:
+    """Whether ``path`` is a raw capture: a file whose first 64 kB decode to at least one protocol v1 frame
+    (checksum verified), or one that a capture's provenance sidecar beside it names (``NAME.yaml``, or
+    ``STEM.yaml`` from before: a capture of another frame format always has one, which records the device
+    settings it is read with; an interrupted recording too, whatever its bytes)."""
+    path = Path(path)
+    if not path.is_file():
+        return False
+    if any(_names_capture(side, path) for side in (path.with_name(path.name + ".yaml"), path.with_suffix(".yaml"))):
+        return True
+    try:
+        with path.open("rb") as f:
+            head = f.read(_CAPTURE_HEAD_BYTES)
+    except OSError:
+        return False
+    counters = decode_bytes(head).counters
+    return counters.sample_frames + counters.identity_frames > 0
+
+
+def refuse_captures(paths: Iterable[str | Path]) -> None:
+    """A one-line ``UsageError`` (exit 64) for the first of ``paths`` that is a raw capture (``is_capture``):
+    outputs of another kind never replace one, ``--force`` or not."""
+    for path in map(Path, paths):
+        if is_capture(path):
+            raise UsageError(
+                f"{path}: is a raw capture; no output of another kind replaces one, --force or not (give another name)"
+            )
 
 
 def describe(path: str | Path) -> str:
@@ -55,8 +110,10 @@ def describe(path: str | Path) -> str:
         except (UnicodeDecodeError, yaml.YAMLError):
             doc = None
         if isinstance(doc, dict) and doc.get("format") in yaml_kinds:
-            return yaml_kinds[doc["format"]].format(capture=doc.get("capture", "a capture"))
-    if head.startswith(SYNC) or (path.suffix == ".bin" and head):  # raw bytes: garbage may come first
+            return yaml_kinds[doc["format"]].format(
+                capture=doc.get("capture", "a capture"), csv=doc.get("csv", "a compensate CSV")
+            )
+    if head.startswith(SYNC) or (path.suffix == ".bin" and head) or is_capture(path):  # garbage may come first
         return "a capture"
     return "a file" if head else "an empty file"
 
@@ -82,19 +139,25 @@ def check_outputs(
     *,
     force: bool = False,
     inputs: Iterable[str | Path] = (),
+    captures: Iterable[str | Path] = (),
 ) -> None:
     """Check every output of a command before it writes any; a problem is a one-line ``OutputFileError``.
 
     ``files``: files the command creates or replaces.  ``directories``: folders it writes files into: a
     folder may exist (it is created otherwise; its parent must exist), and without ``force`` it must be
     empty (a report never mixes with other files).  An output that is one of ``inputs`` is refused even
-    with ``force``.
+    with ``force``.  ``captures``: those of ``files`` that are new captures (``record``, ``simulate``): they
+    alone may replace a raw capture (with ``force``); any other file on a capture's path is a ``UsageError``
+    whatever ``force`` says (``refuse_captures``).
     """
     inputs = [Path(p) for p in inputs]
+    new_captures = [Path(p) for p in captures]
     for path in map(Path, files):
         for source in inputs:
             if _same_file(path, source):
                 raise OutputFileError(f"{path}: is also an input of this command; refusing to overwrite it")
+        if path not in new_captures:
+            refuse_captures([path])
         if path.is_dir():
             raise OutputFileError(f"{path}: is a directory; give a file name")
         _check_parent(path)

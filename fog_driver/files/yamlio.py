@@ -11,6 +11,7 @@ from typing import Any
 import yaml
 
 from ..errors import InputFileError, OutputFileError
+from .outputs import is_capture
 
 #: Every YAML file the project reads is small; a larger one is not what it claims to be.
 MAX_YAML_BYTES = 1 << 20
@@ -84,6 +85,7 @@ def read_yaml(path: str | Path, what: str, *, missing_ok: bool = False, hint: st
         if path.is_dir():
             raise InputFileError(f"{path}: is a directory, not a {what}")
         if path.stat().st_size > MAX_YAML_BYTES:
+            _not_a_capture(path, what)
             raise InputFileError(f"{path}: {what} larger than {MAX_YAML_BYTES} bytes")
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
@@ -91,13 +93,22 @@ def read_yaml(path: str | Path, what: str, *, missing_ok: bool = False, hint: st
             return None
         raise InputFileError(f"{path}: no such {what}{hint}") from None
     except (OSError, UnicodeDecodeError) as exc:
+        _not_a_capture(path, what)
         raise InputFileError(f"{path}: cannot read {what}: {exc}") from None
     try:
         return yaml.safe_load(text)
     except yaml.YAMLError as exc:
+        _not_a_capture(path, what)
         mark = getattr(exc, "problem_mark", None)
         at = f" at line {mark.line + 1}" if mark is not None else ""
         raise InputFileError(f"{path}: {what} is not valid YAML{at}") from None
+
+
+def _not_a_capture(path: Path, what: str) -> None:
+    """A file that is no YAML: when it is a raw capture (``outputs.is_capture``; a capture given where a model
+    or a config goes), the one-line ``InputFileError`` says so rather than what its bytes fail."""
+    if is_capture(path):
+        raise InputFileError(f"{path}: is a capture, not a {what}")
 
 
 def read_tagged_yaml(path: str | Path, kind: str, format_tag: str, schema_version: int) -> dict:

@@ -3,30 +3,84 @@
 ``compensate_capture`` decodes a capture block by block and compensates it with the daemon's binding rules
 (``compensation.binding.InstrumentCompensation``), so that a capture compensated offline gives what the
 daemon published; ``rows`` aggregates its frames into the CSV rows.
+
+A model fitted for another instrument serial than the capture's is refused (``ModelMismatchError``, exit 64)
+unless ``force_model`` (``--force-model``, the daemon's ``force_model``): ``check_model`` says so before any
+work, from the capture's first IDENTITY frame, and the binding checks every later one.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import cast
+from typing import Any, NamedTuple, cast
 
 from ..compensation.adapt import AdaptConfig
-from ..compensation.binding import InstrumentCompensation, check_channels, split_at_identities
+from ..compensation.binding import InstrumentCompensation, ModelMismatchError, check_channels, split_at_identities
 from ..compensation.model import ModelFile
 from ..compensation.pipeline import CompensatedColumns, Compensator
 from ..errors import InputFileError
+from ..files.kinds import COMPENSATE_PROVENANCE_FORMAT
+from ..files.yamlio import write_yaml
 from ..modelfiles import adaptation_restorer, save_adaptation
 from ..samples.captures import what_it_is
-from ..samples.sources import CaptureReader, wire_settings_for
-from ..samples.stream import SampleBlock
+from ..samples.sources import CaptureReader, WireSettings, wire_settings_for
+from ..samples.stream import SampleBlock, identity_is_plausible
+
+#: What a refusal of another instrument's model says to do (``--force-model``: the daemon's ``force_model``).
+FORCE_MODEL_HINT = "--force-model applies it anyway"
+#: ``first_serial`` reads this much at a time: a capture's first IDENTITY comes within its first frames.
+_FIRST_SERIAL_BLOCK_BYTES = 1 << 16
+
+
+def first_serial(path: str | Path, wire: WireSettings) -> str | None:
+    """The instrument serial of the capture's first plausible IDENTITY frame, read block by block until it comes
+    (``wire``: how to read it, ``sources.wire_settings_for``); None when the capture has none."""
+    reader = CaptureReader(path, wire)
+    for part in reader.parts(block_bytes=_FIRST_SERIAL_BLOCK_BYTES):
+        for identity in part.identities:
+            if identity_is_plausible(identity):
+                return identity.serial
+    return None
+
+
+class ModelCheck(NamedTuple):
+    """A model checked against a capture before any work (``check_model``)."""
+
+    capture_serial: str | None  #: the serial of the capture's first IDENTITY (None: it has none)
+    warning: str | None  #: with ``force_model``, the line that says another instrument's model is applied
+
+
+def check_model(
+    model_file: ModelFile, capture: str | Path, *, model_name: str, force_model: bool, wire_format: str = "auto"
+) -> ModelCheck:
+    """Whether ``model_file`` applies to ``capture``, before any work: fitted on the temperature channels its
+    frames carry (else ``ModelMismatchError``, whatever ``force_model`` says), and for the instrument its first
+    IDENTITY frame names (else ``ModelMismatchError`` naming both serials and ``--force-model``; with
+    ``force_model``, the warning line naming both)."""
+    wire = wire_settings_for(capture, wire_format)
+    check_channels(model_file, wire, model_name, str(capture))
+    capture_serial = first_serial(capture, wire)
+    model_serial = model_file.instrument_serial
+    if capture_serial is None or capture_serial == model_serial:
+        return ModelCheck(capture_serial, None)
+    if not force_model:
+        raise ModelMismatchError(
+            f"{model_name} was fitted for instrument {model_serial!r}, {capture} is from instrument "
+            f"{capture_serial!r} ({FORCE_MODEL_HINT})"
+        )
+    return ModelCheck(
+        capture_serial,
+        f"--force-model: applying {model_name}, fitted for instrument {model_serial!r}, to {capture}, from "
+        f"instrument {capture_serial!r}",
+    )
 
 
 def compensate_capture(
     path: str | Path,
     model_file: ModelFile,
     *,
-    force: bool = False,
+    force_model: bool = False,
     progress: Callable[[int], None] | None = None,
     model_name: str = "the model",
     adapt: AdaptConfig | None = None,
@@ -35,6 +89,7 @@ def compensate_capture(
     scale_override_arcsec_per_count: float | None = None,
     save_adapt_state: bool = True,
     wire_format: str = "auto",
+    on_block: Callable[[bytes], None] | None = None,
 ) -> Iterator[tuple[float, CompensatedColumns]]:
     """Decode ``path`` block by block and yield (frame period s, compensated frames), bounded memory.
 
@@ -43,22 +98,25 @@ def compensate_capture(
     estimate, as in the daemon); ``adapt_state`` is restored first when it exists (as a new run: the bias is
     captured again) and, with ``save_adapt_state``, saved when the capture ends.
     ``scale_override_arcsec_per_count``: the daemon's setting of that name.  ``wire_format``: ``--format``
-    (``sources.wire_settings_for``); a model fitted on other temperature channels is refused first.
+    (``sources.wire_settings_for``); a model fitted on other temperature channels is refused first, one fitted
+    for another instrument serial unless ``force_model``.  ``on_block(bytes)``: every block of the file as read
+    (a SHA-256 of the capture).
     """
     wire = wire_settings_for(path, wire_format)
     check_channels(model_file, wire, model_name, str(path))
     reader = CaptureReader(path, wire, scale_override_arcsec_per_count)
     binding = InstrumentCompensation(
         model_file,
-        force=force,
+        force=force_model,
         model_name=model_name,
+        hint=FORCE_MODEL_HINT,
         adapt=adapt,
         reference_rate_dph=reference_rate_dph,
         restore_adaptation=adaptation_restorer(adapt_state),
     )
     pending: list[SampleBlock] = []  # samples before the first IDENTITY
     samples_seen = 0
-    for part in reader.parts():
+    for part in reader.parts(on_block=on_block):
         samples = part.samples
         samples_seen += len(samples)
         if progress:
@@ -82,3 +140,25 @@ def compensate_capture(
         raise InputFileError(f"{path}: no IDENTITY frame: frame rate unknown")
     if adapt is not None and adapt_state is not None and save_adapt_state:
         save_adaptation(cast(Compensator, binding.compensator), adapt_state)  # bound
+
+
+#: The schema version of the provenance sidecar ``compensate`` writes beside its CSV.
+CSV_PROVENANCE_SCHEMA_VERSION = 1
+
+
+def csv_sidecar_path(csv_path: str | Path) -> Path:
+    """Where ``compensate`` describes its CSV: ``check.csv`` -> ``check.csv.yaml`` (the CSV itself stays plain)."""
+    csv_path = Path(csv_path)
+    return csv_path.with_name(csv_path.name + ".yaml")
+
+
+def write_csv_provenance(csv_path: str | Path, fields: dict[str, Any]) -> Path:
+    """Write the CSV's provenance sidecar (``csv_sidecar_path``) with ``yaml.safe_dump``, atomically: its
+    ``format`` tag, schema version and the CSV's name, then ``fields`` (docs: reference/file-formats)."""
+    doc = {
+        "format": COMPENSATE_PROVENANCE_FORMAT,
+        "schema_version": CSV_PROVENANCE_SCHEMA_VERSION,
+        "csv": Path(csv_path).name,
+        **fields,
+    }
+    return write_yaml(csv_sidecar_path(csv_path), doc, "the CSV's provenance sidecar")

@@ -45,6 +45,8 @@ from .allan import FLICKER_FLOOR, AllanResult, allan, write_csv
 from .coverage import coverage_figures, coverage_markdown, minute_errors, whole_minutes
 
 EVALUATE_WARMUP_S = 120.0
+#: The report's plots, in the order ``plot`` draws them.
+PLOT_NAMES = ("temperatures.png", "drift.png", "allan.png")
 SHORT_STRETCH_S = 3600.0
 MIN_MINUTE_MEANS = 30
 
@@ -79,7 +81,7 @@ def per_second(
     capture: Path,
     model_file: ModelFile,
     *,
-    force: bool = False,
+    force_model: bool = False,
     adapt=None,
     reference_rate_dph: float | None = None,
     progress: Callable[[int, int], None] | None = None,
@@ -106,7 +108,7 @@ def per_second(
         capture,
         model_file,
         n,
-        force=force,
+        force_model=force_model,
         adapt=adapt,
         reference_rate_dph=reference_rate_dph,
         progress=None if progress is None else lambda done: progress(size + done, 2 * size),
@@ -145,7 +147,7 @@ def drift_per_second(
     model_file: ModelFile,
     n: int,
     *,
-    force: bool = False,
+    force_model: bool = False,
     adapt=None,
     reference_rate_dph: float | None = None,
     model_name: str = "the model",
@@ -162,7 +164,7 @@ def drift_per_second(
     for _, cols in compensate_capture(
         capture,
         model_file,
-        force=force,
+        force_model=force_model,
         model_name=model_name,
         adapt=adapt,
         reference_rate_dph=reference_rate_dph,
@@ -237,7 +239,8 @@ def evaluate(
     model_file: ModelFile,
     *,
     truth: dict[str, np.ndarray] | None = None,
-    force: bool = False,
+    force_model: bool = False,
+    capture_serial: str | None = None,
     label: str | None = None,
     compare: Mapping[str, ModelFile] | None = None,
     progress: Callable[[str], None] | None = None,
@@ -245,7 +248,9 @@ def evaluate(
 ) -> tuple[dict[str, Any], Series, dict[str, AllanResult]]:
     """The report's numbers: read points, drift RMS and ADEV tables of the raw rate, the rate compensated
     by ``model_file`` (named ``label``) and by each ``compare`` model (by label); ``progress(text)`` says
-    which pass is running and how far it is."""
+    which pass is running and how far it is.  ``force_model``: models fitted for another instrument serial
+    are applied (``--force-model``); the summary records it with ``capture_serial`` (the capture's
+    instrument, ``offline.compensate.check_model``), and report.md warns of each such model."""
     compare = dict(compare or {})
     label = label or model_file.kind
     passes = 1 + len(compare)
@@ -258,7 +263,7 @@ def evaluate(
     series = per_second(
         capture,
         model_file,
-        force=force,
+        force_model=force_model,
         progress=say(1, f"decoding and compensating with {label}"),
         wire_format=wire_format,
     )
@@ -269,7 +274,7 @@ def evaluate(
             capture,
             other,
             len(series.t_s),
-            force=force,
+            force_model=force_model,
             model_name=f"model {name!r}",
             wire_format=wire_format,
             progress=None if step is None else lambda done, step=step: step(done, size),
@@ -286,6 +291,8 @@ def evaluate(
     allans = {name: allan(rate[stretch]) for name, rate in rates.items()}
     summary: dict[str, Any] = {
         "capture": str(capture),
+        "capture_serial": capture_serial,
+        "force_model": force_model,
         "model": {
             "kind": model_file.kind,
             "label": label,
@@ -322,6 +329,25 @@ def evaluate(
             ),
         }
     return summary, series, allans
+
+
+def report_file_names(compared: list[str]) -> list[str]:
+    """The files ``write_report`` writes into its folder, with ``compared`` the labels of the ``--compare``
+    models: report.md, summary.json, the plots and an ADEV table per series."""
+    series = ["raw", "compensated", *compared]
+    return ["report.md", "summary.json", *PLOT_NAMES, *(csv_name(name) for name in series)]
+
+
+def other_instruments(summary: dict[str, Any]) -> list[tuple[str, str]]:
+    """(label, serial) of every model in the report fitted for another instrument than the capture's (applied
+    with ``--force-model``); [] when the capture's serial is unknown."""
+    serial = summary.get("capture_serial")
+    if serial is None:
+        return []
+    model = summary["model"]
+    models = [(model.get("label", model["kind"]), model["instrument_serial"])]
+    models += [(name, m["instrument_serial"]) for name, m in summary.get("compared", {}).items()]
+    return [(label, s) for label, s in models if s != serial]
 
 
 def series_names(summary: dict[str, Any]) -> list[str]:
@@ -366,11 +392,12 @@ def plot(
         raise UsageError(missing_message("report", "the report's plots", ["matplotlib"])) from None
     titles = dict(titles or {})
     minutes = series.t_s / 60.0
-    return [
-        _save(_plot_temperatures(plt, series, minutes), out_dir / "temperatures.png"),
-        _save(_plot_drift(plt, series, minutes, titles), out_dir / "drift.png"),
-        _save(_plot_allan(plt, allans, titles), out_dir / "allan.png"),
-    ]
+    figures = (
+        _plot_temperatures(plt, series, minutes),
+        _plot_drift(plt, series, minutes, titles),
+        _plot_allan(plt, allans, titles),
+    )
+    return [_save(figure, out_dir / name) for figure, name in zip(figures, PLOT_NAMES)]
 
 
 def _plot_temperatures(plt: Any, series: Series, minutes: np.ndarray) -> Any:
@@ -385,8 +412,10 @@ def _plot_temperatures(plt: Any, series: Series, minutes: np.ndarray) -> Any:
 
 
 def _plot_drift(plt: Any, series: Series, minutes: np.ndarray, titles: dict[str, str]) -> Any:
-    """The raw rate's static 1-min means (median removed), each model's estimated drift, and the compensated
-    rate with the same offset."""
+    """The raw rate's static 1-min means, each model's estimated drift and the rate it leaves, on one baseline:
+    each curve less its own median over the static minutes (the raw rate's holds Earth rate and the bias, which
+    no temperature model estimates), so a drift estimate lies on the raw rate where it is right and the
+    compensated rate stays at 0.  The legend sits below the axes, clear of the data."""
     n = len(series.t_s) // 60 * 60
     mm = minutes[:n].reshape(-1, 60).mean(axis=1)
 
@@ -394,25 +423,26 @@ def _plot_drift(plt: Any, series: Series, minutes: np.ndarray, titles: dict[str,
         return x[:n].reshape(-1, 60).mean(axis=1)
 
     static_min = series.static[:n].reshape(-1, 60).all(axis=1)
-    raw = per_min(series.rate_raw_dph)
-    offset = np.median(raw[static_min]) if static_min.any() else 0.0
-    fig, ax = plt.subplots(figsize=(9, 4))
-    ax.plot(mm[static_min], raw[static_min] - offset, ".", ms=3, label="raw rate (1-min means, median removed)")
+
+    def on_baseline(x: np.ndarray) -> np.ndarray:
+        return x - (np.nanmedian(x[static_min]) if static_min.any() else 0.0)
+
+    fig, ax = plt.subplots(figsize=(9, 5.5), layout="constrained")
+    ax.plot(mm[static_min], on_baseline(per_min(series.rate_raw_dph))[static_min], ".", ms=3, label="raw rate")
     drifts = {"compensated": series.drift_dph, **series.compared_drift_dph}
     for name, drift in drifts.items():
-        ax.plot(mm, per_min(drift), lw=1.5, label=f"estimated drift, {titles.get(name, name)}")
+        ax.plot(mm, on_baseline(per_min(drift)), lw=1.5, label=f"estimated drift, {titles.get(name, name)}")
     for name, drift in drifts.items():
-        comp = per_min(series.rate_raw_dph - drift)
-        ax.plot(
-            mm[static_min],
-            comp[static_min] - offset,
-            ".",
-            ms=3,
-            label=f"compensated rate, {titles.get(name, name)} (same offset)",
-        )
-    ax.set(xlabel="time, min", ylabel="deg/h", title="Drift before and after compensation (static minutes)")
+        comp = on_baseline(per_min(series.rate_raw_dph - drift))
+        ax.plot(mm[static_min], comp[static_min], ".", ms=3, label=f"compensated rate, {titles.get(name, name)}")
+    ax.axhline(0.0, color="0.5", lw=0.8)
+    ax.set(
+        xlabel="time, min",
+        ylabel="deg/h, less each curve's static median",
+        title="Drift before and after compensation (1-min means of the static minutes)",
+    )
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
+    fig.legend(loc="outside lower center", ncol=2, fontsize=8)
     return fig
 
 
@@ -477,7 +507,8 @@ def _plot_allan(plt: Any, allans: dict[str, AllanResult], titles: dict[str, str]
 
 
 def _save(fig, path: Path) -> Path:
-    fig.tight_layout()
+    if fig.get_layout_engine() is None:  # the drift plot lays itself out (its legend below the axes)
+        fig.tight_layout()
     fig.savefig(path, dpi=110)
     import matplotlib.pyplot as plt  # optional extra: report (loaded by plot already)
 
@@ -498,6 +529,14 @@ def markdown(summary: dict[str, Any], plots: list[Path], positioning_md: str | N
         f"(inputs clamped or estimate clipped) for {summary['extrapolating_seconds']:,} s.",
         "",
     ]
+    others = other_instruments(summary)
+    if others:
+        fitted = ", ".join(f"`{label}` for {serial}" for label, serial in others)
+        lines += [
+            f"**Warning: models of another instrument, applied with --force-model to this capture of "
+            f"{summary['capture_serial']}: {fitted}.**",
+            "",
+        ]
     for warning in summary.get("warnings", []):
         lines += [f"**Warning: {warning}.**", ""]
     start, stop = summary["allan_stretch_s"]

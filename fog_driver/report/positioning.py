@@ -360,12 +360,12 @@ class _Pass:
 
 
 def _columns(
-    capture: Path, model_file: ModelFile | None, force: bool, name: str, wire_format: str = "auto"
+    capture: Path, model_file: ModelFile | None, force_model: bool, name: str, wire_format: str = "auto"
 ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
     """(t_s absolute, raw angle, method's angle, temps (n, 3), uncompensated mask) per chunk."""
     if model_file is not None:
         for _, c in compensate_capture(
-            capture, model_file, force=force, model_name=f"model {name!r}", wire_format=wire_format
+            capture, model_file, force_model=force_model, model_name=f"model {name!r}", wire_format=wire_format
         ):
             yield c.t_s, c.angle_raw_arcsec, c.angle_comp_arcsec, c.temps_c, (c.flags & FLAG_UNCOMPENSATED) != 0
         return
@@ -428,7 +428,7 @@ def _read_passes(
     windows: np.ndarray,
     spans: np.ndarray,
     temp_acc: np.ndarray,
-    force: bool,
+    force_model: bool,
     wire_format: str,
 ) -> dict[str, _Pass]:
     """One pass over ``capture`` per model (the first also reads the raw angle and adds the sequences'
@@ -442,7 +442,7 @@ def _read_passes(
             targets[RAW] = _Pass(_DwellSums(windows), ready_s=0.0)
         t0: float | None = None
         last_second = {key: -1 for key in targets}
-        for t_abs, raw, comp, temps, uncomp in _columns(capture, mf, force, name or "", wire_format):
+        for t_abs, raw, comp, temps, uncomp in _columns(capture, mf, force_model, name or "", wire_format):
             if t0 is None:
                 t0 = float(t_abs[0])
             t = t_abs - t0
@@ -502,13 +502,13 @@ def positioning_table(
     gap_s: float = DEFAULT_GAP_S,
     remove_bias: bool = True,
     bias_window_s: tuple[float, float] | None = None,
-    force: bool = False,
+    force_model: bool = False,
     wire_format: str = "auto",
 ) -> list[Row]:
     """The paper's Table 1 for ``capture``: one ``Row`` per positioning sequence ([] when there is none).
 
     ``"uncompensated"`` uses the raw angle; each named model its compensated angle
-    (``compensate_capture(capture, model, force=force)``, one pass per model; bounded memory).
+    (``compensate_capture(capture, model, force_model=force_model)``, one pass per model; bounded memory).
     Bias handling, labels and statistics: the module docstring.  ``format_table([])`` says the
     table is skipped (``NO_SEQUENCES``).
     """
@@ -526,7 +526,7 @@ def positioning_table(
     spans = np.array([(seq[0].t_start_s, seq[-1].t_end_s) for seq in sequences])
     temp_acc = np.zeros((len(sequences), 4))
 
-    passes = _read_passes(capture, model_files, windows, spans, temp_acc, force, wire_format)
+    passes = _read_passes(capture, model_files, windows, spans, temp_acc, force_model, wire_format)
 
     points = {k: (np.concatenate(p.t_points), np.concatenate(p.a_points)) for k, p in passes.items()}
     window, bias = _bias(passes, points, remove_bias, bias_window_s, capture, flat, stops, windows)
@@ -629,7 +629,7 @@ def report_for(
     reference: str | Path | None = None,
     compare: Sequence[str | Path] | Mapping[str, ModelFile] = (),
     zero_window_s: tuple[float, float] | None = None,
-    force: bool = False,
+    force_model: bool = False,
     wire_format: str = "auto",
     label: str | None = None,
 ) -> str | None:
@@ -654,7 +654,9 @@ def report_for(
         while name in models or name == RAW:
             name += "'"
         models[name] = other_file
-    rows = positioning_table(capture, models, stops, force=force, bias_window_s=zero_window_s, wire_format=wire_format)
+    rows = positioning_table(
+        capture, models, stops, force_model=force_model, bias_window_s=zero_window_s, wire_format=wire_format
+    )
     if not rows:
         summary["positioning"] = None
         return None

@@ -242,6 +242,9 @@ class CaptureSummary:
         found = [f"{n:,} {one if n == 1 else many}" for n, (one, many) in checks if n]
         if self.identity_frames == 0:
             found.append("no IDENTITY frame")
+        status = (self.provenance or {}).get("status")
+        if status is not None and status != "complete":  # interrupted, failed: ..., or still recording
+            found.append(f"sidecar status {status}")
         return found
 
     def as_json_dict(self) -> dict[str, Any]:
@@ -444,7 +447,9 @@ def format_summary(s: CaptureSummary) -> str:
         )
     if s.provenance:
         p = s.provenance
-        described = [f"{k} {p[k]}" for k in ("source", "port", "baud", "start_utc", "profile", "seed") if k in p]
+        described = [
+            f"{k} {p[k]}" for k in ("source", "status", "port", "baud", "start_utc", "profile", "seed") if k in p
+        ]
         lines.append("provenance    " + (", ".join(described) or "sidecar present"))
     else:
         lines.append("provenance    no sidecar")

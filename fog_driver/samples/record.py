@@ -85,7 +85,8 @@ def record(
     out_path = Path(out_path)
     recording = _Recording(wire, on_state)
     base_fields = _base_fields(url, baudrate, wire, notes)
-    check_outputs([out_path, sidecar_path(out_path)], force=overwrite)  # say so now, not after waiting for the port
+    # say so now, not after waiting for the port
+    check_outputs([out_path, sidecar_path(out_path)], force=overwrite, captures=[out_path])
     reader = PortReader(
         url,
         baudrate=baudrate,

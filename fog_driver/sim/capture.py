@@ -19,9 +19,10 @@ quantization (``measured - everything else``).
 
 from __future__ import annotations
 
+import contextlib
 import filecmp
-import hashlib
 import math
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -176,6 +177,7 @@ class SimulationResult:
     frames: int
     bytes: int
     sha256: str
+    interrupted: bool = False  #: stopped before the end (``stop``): the sidecar says ``status: interrupted``
 
 
 def simulate_to_file(
@@ -187,45 +189,50 @@ def simulate_to_file(
     progress: Callable[[int, int], None] | None = None,
     profile_source: str = "",
     faults_text: str = "none",
+    stop: threading.Event | None = None,
 ) -> SimulationResult:
     """Run ``sim`` over its profile (or ``duration_s`` device seconds) into capture, sidecar and truth.
 
     All three are checked first (``check_outputs``: none exists unless ``overwrite``); a failed write (disk
-    full) is an ``OutputFileError`` and removes the capture and truth file this run started."""
+    full) is an ``OutputFileError`` and removes the capture and truth file this run started.  The sidecar says
+    ``status: complete``; a run stopped before its end keeps what it wrote, described as the daemon describes
+    a capture its recorder did not close (``status: interrupted``, ``end_reason``, the frames, bytes and
+    SHA-256 written): ``stop`` set (checked between batches of ``BATCH_SECONDS``: the capture and the truth
+    hold the same seconds, the result's ``interrupted`` is True), or a ``KeyboardInterrupt`` (re-raised once
+    the sidecar is written)."""
     out_path = Path(out_path)
     total = sim.total_frames() if duration_s is None else int(round(duration_s * sim.rate_hz))
     batch = BATCH_SECONDS * sim.rate_hz
-    sha = hashlib.sha256()
     truth_file = truth_path(out_path)
-    check_outputs([out_path, sidecar_path(out_path), truth_file], force=overwrite)
+    check_outputs([out_path, sidecar_path(out_path), truth_file], force=overwrite, captures=[out_path])
     writer = CaptureWriter(out_path, overwrite=overwrite)  # fails before creating anything
+    written = 0  # frames in the capture
     try:
         with writer, truth_file.open("w", encoding="ascii") as tf:
             write_truth_header(tf)
             for block, data in sim.batches(batch, total):
                 writer.write(data)
-                sha.update(data)
+                written = sim.next_frame
                 write_truth_rows(tf, truth_rows(block, sim.rate_hz, sim.config.scale_f32))
                 if progress:
                     progress(sim.next_frame, total)
+                if stop is not None and stop.is_set() and written < total:
+                    break
     except (OSError, OutputFileError) as exc:
         _remove(out_path, truth_file)
         raise exc if isinstance(exc, OutputFileError) else write_error(truth_file, "truth file", exc) from None
-    ppm = 1.0 + sim.config.clock_ppm * 1e-6
-    stops = [
-        {
-            "t_start_s": round(stop.t_start_s * ppm, 6),
-            "t_end_s": round(stop.t_end_s * ppm, 6),
-            "angle_deg": float(stop.angle_deg),
-        }
-        for stop in sim.profile.motion.stops()
-    ]
+    except KeyboardInterrupt:
+        with contextlib.suppress(OutputFileError):
+            _write_sidecar(sim, out_path, truth_file, total, writer, written, profile_source, faults_text)
+        raise
     try:
-        sidecar = _write_sidecar(sim, out_path, truth_file, total, writer, sha, stops, profile_source, faults_text)
+        sidecar = _write_sidecar(sim, out_path, truth_file, total, writer, written, profile_source, faults_text)
     except OutputFileError:
         _remove(out_path, truth_file)
         raise
-    return SimulationResult(out_path, sidecar, truth_file, total, writer.bytes_written, sha.hexdigest())
+    return SimulationResult(
+        out_path, sidecar, truth_file, written, writer.bytes_written, writer.sha256, interrupted=written < total
+    )
 
 
 def _remove(*paths: Path) -> None:
@@ -240,15 +247,35 @@ def _write_sidecar(
     truth_file: Path,
     total: int,
     writer: CaptureWriter,
-    sha,
-    stops: list[dict],
+    written: int,
     profile_source: str,
     faults_text: str,
 ) -> Path:
+    """The capture's provenance sidecar: ``status: complete`` once all ``total`` frames are written, else
+    ``interrupted`` with the ``written`` frames (``simulate_to_file``); ``bytes`` and ``sha256`` are the
+    ``writer``'s: exactly what is on disk."""
+    ppm = 1.0 + sim.config.clock_ppm * 1e-6
+    stops = [
+        {
+            "t_start_s": round(stop.t_start_s * ppm, 6),
+            "t_end_s": round(stop.t_end_s * ppm, 6),
+            "angle_deg": float(stop.angle_deg),
+        }
+        for stop in sim.profile.motion.stops()
+    ]
+    ending: dict = {"status": "complete"}
+    if written < total:
+        ending = {
+            "status": "interrupted",
+            "end_reason": f"stopped after {written:,} of {total:,} frames ({written / sim.rate_hz:g} s of "
+            f"{total / sim.rate_hz:g} s)",
+            "frames_planned": total,
+        }
     return write_provenance(
         out_path,
         {
             "source": "simulate",
+            **ending,
             "generated_utc": utc_now_iso(),
             "fog_driver_version": __version__,
             "profile": sim.profile.name,
@@ -256,9 +283,9 @@ def _write_sidecar(
             "seed": sim.seed,
             "rate_hz": sim.rate_hz,
             "faults": faults_text,
-            "frames": total,
+            "frames": written,
             "bytes": writer.bytes_written,
-            "sha256": sha.hexdigest(),
+            "sha256": writer.sha256,
             "truth_file": truth_file.name,
             "instrument": {
                 "serial": sim.config.serial,

@@ -134,9 +134,16 @@ class _Pacer:
     a write more than ``late_after_s`` after it is late, and a run of late writes is one stall."""
 
     def __init__(
-        self, stats: ServeStats, stop: threading.Event, k0: int, frame_wall_s: float, late_after_s: float
+        self,
+        stats: ServeStats,
+        stop: threading.Event,
+        k0: int,
+        frame_wall_s: float,
+        late_after_s: float,
+        warn_behind: bool = True,
     ) -> None:
         self.stats, self.stop, self.k0 = stats, stop, k0
+        self.log_behind = log.warning if warn_behind else log.info
         self.frame_wall_s, self.late_after_s = frame_wall_s, late_after_s
         self.t0: float | None = None  # when frame k0 is due: set once the first chunk is ready (its set-up is slow)
         self.behind = False
@@ -170,7 +177,9 @@ class _Pacer:
             if not self.behind:
                 self.behind = True
                 stats.stalls += 1
-                log.warning("serve_behind", frame=k, behind_s=round(-delay, 3), detail="writing at once to catch up")
+                self.log_behind(
+                    "serve_behind", frame=k, behind_s=round(-delay, 3), detail="writing at once to catch up"
+                )
         if self.stop.is_set():
             stats.stopped = True
             return False
@@ -187,12 +196,15 @@ def serve(
     chunk_s: float = 0.02,
     on_cut: Callable[[], Any] | None = None,
     on_reconnect: Callable[[], Any] | None = None,
+    warn_behind: bool = True,
 ) -> ServeStats:
     """Stream ``sim`` through ``write(data)`` in real time (``speed`` times faster); see the module docstring.
 
     Stops after ``duration_s`` device seconds from where the simulator stands, at the profile's
     end, or as soon as ``stop`` is set (the wait between chunks is ``stop.wait``).  Exceptions from
-    ``write`` and the callbacks propagate.
+    ``write`` and the callbacks propagate.  ``warn_behind``: a stall (``serve_behind``) is logged as a
+    warning; False logs it at info (the daemon's demonstration: its own simulator, sharing its process, is
+    no news to the person running it; the daemon reports what a stall does to the stream).
     """
     _check_pace(speed, chunk_s, duration_s)
     stop = stop if stop is not None else threading.Event()
@@ -208,7 +220,7 @@ def serve(
     stats = ServeStats()
 
     _log_start(sim, k0, end, speed, per_chunk, len(windows))
-    pacer = _Pacer(stats, stop, k0, frame_wall_s, late_after_s)
+    pacer = _Pacer(stats, stop, k0, frame_wall_s, late_after_s, warn_behind)
     wait_due = pacer.wait_due
 
     def send(data: bytes) -> None:
@@ -438,6 +450,7 @@ def serve_pty(
     write_timeout_s: float | None = None,
     drain_timeout_s: float = DRAIN_TIMEOUT_S,
     on_ready: Callable[[PtyServer], Any] | None = None,
+    warn_behind: bool = True,
 ) -> ServeStats:
     """Serve ``sim`` on a new raw pty behind the symlink ``link`` (default ``DEFAULT_LINK``).
 
@@ -445,7 +458,7 @@ def serve_pty(
     (``server.slave_path``, ``server.link``).  Disconnect windows unplug the pty and bring up a new
     one after the window.  At the end the reader gets up to ``drain_timeout_s`` to take the last
     bytes, then the pty is unplugged and the symlink removed (also on an exception or a stop).
-    ``write_timeout_s`` defaults to half a chunk's wall time.
+    ``write_timeout_s`` defaults to half a chunk's wall time.  ``warn_behind``: ``serve``'s.
     """
     if not (math.isfinite(speed) and speed > 0):
         raise ValueError(f"speed must be a finite number > 0, got {speed!r}")
@@ -464,6 +477,7 @@ def serve_pty(
             chunk_s=chunk_s,
             on_cut=server.cut,
             on_reconnect=server.reconnect,
+            warn_behind=warn_behind,
         )
         if not stop.is_set():
             server.drain(drain_timeout_s, stop)

@@ -97,10 +97,14 @@ def _status_items(status: Mapping[str, Any]) -> list[str]:
     return items
 
 
+#: The terminal block's labels take this many columns; a wrapped line goes on under the text after them.
+_LABEL_COLUMNS = 12
+
+
 def _wrap(label: str, items: list[str], width: int) -> list[str]:
     """``label  a  b  c`` wrapped at ``width``, continuation lines indented under the first item."""
-    indent = " " * 12
-    lines, current = [], f"{label:<12}"
+    indent = " " * _LABEL_COLUMNS
+    lines, current = [], f"{label:<{_LABEL_COLUMNS}}"
     for item in items:
         candidate = current + ("  " if current.strip() != label else "") + item
         if len(candidate) > width and current.strip() != label:
@@ -110,6 +114,26 @@ def _wrap(label: str, items: list[str], width: int) -> list[str]:
             current = candidate
     lines.append(current)
     return lines
+
+
+def _fold(line: str, width: int) -> list[str]:
+    """A line longer than ``width`` cut into lines that fit, each after the first indented under the label's
+    text: between two items (a double space) where one fits, else at a space, else where it must be.  Nothing
+    is lost at the terminal's edge."""
+    indent = " " * _LABEL_COLUMNS if width > 2 * _LABEL_COLUMNS else ""
+    lines: list[str] = []
+    rest = line
+    while len(rest) > width:
+        start = len(indent) + 1  # past the label (or the indent): its padding is no place to cut
+        window = rest[: width + 1]
+        cut = window.rfind("  ", start)
+        if cut < start:
+            cut = window.rfind(" ", start)
+        if cut < start:
+            cut = width
+        lines.append(rest[:cut].rstrip())
+        rest = indent + rest[cut:].lstrip()
+    return [*lines, rest]
 
 
 def _received(state: Mapping[str, Any]) -> str:
@@ -149,8 +173,9 @@ def _drift_text(angle: Mapping[str, Any], status: Mapping[str, Any]) -> str:
     return text + f" +- {show(sigma, '.4f')} (1-sigma)"
 
 
-def render(state: Mapping[str, Any], *, width: int = 100, degree: str = DEGREE) -> list[str]:
-    """The live view's lines (no ANSI, no newlines) from a state mapping; every key may be absent.
+def render(state: Mapping[str, Any], *, width: int = 80, degree: str = DEGREE) -> list[str]:
+    """The live view's lines (no ANSI, no newlines) from a state mapping; every key may be absent.  Every line
+    fits in ``width`` columns (the terminal's; 80 by default): a longer one is folded at spaces (``_fold``).
 
     Keys read: ``address`` (text), ``elapsed_s``, ``version``/``device``/``angle``/``status``
     (the latest protocol object of that class), ``error`` (the last ERROR message),
@@ -173,7 +198,8 @@ def render(state: Mapping[str, Any], *, width: int = 100, degree: str = DEGREE) 
             f"{'angle':<12}{_angle_text(angle.get('angle_arcsec'), degree)}"
             f"    raw {_angle_text(angle.get('angle_raw_arcsec'), degree)}"
         )
-        lines.append(f"{'rate':<12}{_rate_text(state, angle)}    drift {_drift_text(angle, status)}")
+        lines.append(f"{'rate':<12}{_rate_text(state, angle)}")
+        lines.append(f"{'drift':<12}{_drift_text(angle, status)}")
         lines.append(f"{'temps':<12}{_temps(mapping(angle.get('temps_c')), '  ')}")
         lines.append(f"{'flags':<12}{_flags(angle.get('flags'))}")
         sample = f"seq {show(angle.get('seq'))}  t {show(angle.get('t_s'), '.3f')} s"
@@ -191,7 +217,7 @@ def render(state: Mapping[str, Any], *, width: int = 100, degree: str = DEGREE) 
         lines.append(f"{'last key':<12}{terminal_safe(str(state.get('action')))}")
     if state.get("keys"):
         lines.append(f"{'keys':<12}q quit   z zero the angle   b capture the bias ({DEFAULT_BIAS_S} s, table still)")
-    return lines
+    return [folded for line in lines for folded in _fold(line, width)]
 
 
 def compact_line(state: Mapping[str, Any], *, degree: str = DEGREE) -> str:
