@@ -29,7 +29,7 @@ Angles: ``angle_arcsec`` is the compensated angle integrated from the frames, le
 
 Live == offline.  The published ``angle_arcsec`` equals ``fog-driver compensate`` (``apply.compensate_capture``)
 on the daemon's raw capture (its files concatenated in name order), bit for bit, when the offline run is given
-the daemon's settings: ``--scale-override`` for ``scale_override_arcsec_per_count``, ``--force`` for
+the daemon's settings: ``--scale-override`` for ``scale_override_arcsec_per_count``, ``--force-model`` for
 ``force_model``, and with an ``adapt_state`` the state file as it was at the start with ``--adapt-state``
 (``--adapt-reference`` for ``adapt_reference_dph``), and when during the capture no ``?ZERO`` or ``?BIAS``
 offset was taken, no ``?ADAPT`` changed the reference and no different model was loaded.  (ANGLE's ``utc``, the
@@ -183,7 +183,7 @@ class Service:
             model_file,
             force=self.config.force_model,
             model_name=f"the model {self.config.model_path}",
-            hint="set force_model: true in the config to apply it anyway",
+            hint="set force_model: true in the config (fog-driver run --force-model) to apply it anyway",
             adapt=AdaptConfig(),
             reference_rate_dph=self.config.adapt_reference_dph,
             restore_adaptation=adaptation_restorer(self.config.adapt_state),
