@@ -358,8 +358,12 @@ def main() -> None:
         table.add(
             "",
             "watcher lateness p50 / p99 / max, ms",
-            f"{pct(lat, 50):.2f} / {pct(lat, 99):.2f} / {lat.max() if lat.size else float('nan'):.2f}",
+            f"{pct(lat, 50):.2f} / {pct(lat, 99):.2f} / {lat.max():.2f}" if lat.size else "none",
         )
+        if lat.size and pacing:
+            worst = int(k[measured][lat.argmax()])
+            written_late_ms = 1e3 * (pacing[0].written_t[worst] - pacing[0].written_t[0] - worst / rate)
+            table.add("", "  the max: at s, written late by ms", f"{worst / rate:.1f}, {written_late_ms:.1f}")
         table.add(
             "",
             "/metrics scrapes; p50 / max time, ms",
