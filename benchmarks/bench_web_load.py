@@ -45,10 +45,13 @@ token from its first request, and a process opens its pages one at a time): the 
 from one address (14 from 127.0.0.1 with the scraper's) and 51 in all, within them.  Other counts are checked
 before the run: beyond the limits it stops with a message (the limits are constants, not configuration).
 
-Printed: the setup, then per phase the watcher's samples and lateness p50 / p99 / max, the scrapes and their
-p50 / max time, the daemon's CPU and the machine's, the daemon's mean VmRSS over the first and last 10 s; under load
-the pages' updates received (in all, and the fewest and most per page), their worst gap between two updates and
-any page the daemon closed; the hostile clients' connections and refusals; then a PASS or MISS line per target.
+Printed: the setup, then per phase the watcher's samples and lateness p50 / p99 / max (with where the max falls
+and how late the writer wrote that frame), the scrapes and their p50 / max time, the daemon's CPU and the
+machine's, the daemon's mean VmRSS over the first and last 10 s; under load the pages' updates received (in all,
+and the fewest and most per page), their worst gap between two updates and any page the daemon closed; the
+daemon's CPU per thread, the first sample's lateness, the hostile clients' connections and refusals, the watcher's
+last STATUS (frames, missing, clients dropped), the scrapes that failed, how long the load took to go, the
+writer's worst tick; then a PASS or MISS line per target.
 No assertion: exits non-zero only when a sample never reached the watcher (or the run could not be set up).
 """
 
@@ -310,7 +313,7 @@ def main() -> None:
                     marks[name] = Mark.take(daemon.pid)
                     if name == "load1":  # the load goes: the baseline is the watcher and the scraper alone
                         collectors = [Collector(p) for p in [*pages, *([attackers] if attackers else [])]]
-                if collectors and load_gone_s != load_gone_s and not any(c.is_alive() for c in collectors):
+                if collectors and math.isnan(load_gone_s) and not any(c.is_alive() for c in collectors):
                     load_gone_s = now_s - load.end_s
                 if now_s >= next_rss_s:
                     rss.append((now_s, rss_mb(daemon.pid)[0]))
