@@ -103,22 +103,25 @@ SEQ_MODULUS = 65536
 CLK_TCK = os.sysconf("SC_CLK_TCK")
 GUARD_S = 30.0
 
-# A watching client (a process of its own): argv host port expected_angles out.npz [rate_hz].
-# Prints "ready" once its WATCH is in force and the port is activated, then records
-# (seq, monotonic time of the recv that completed the line) for every ANGLE line, until it has
-# `expected` of them or nothing came for 3 s after the first one.
+# A watching client (a process of its own): argv host port expected_angles out.npz [rate_hz|-] [token].
+# With a token it sends ?AUTH first.  Prints "ready" once its WATCH is in force and the port is activated, then
+# records (seq, device time t_s, monotonic time of the recv that completed the line) for every ANGLE line, until
+# it has `expected` of them or nothing came for 3 s after the first one.
 CLIENT = r"""
 import json, re, socket, sys, time
 from array import array
 import numpy as np
 host, port, expected, out = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), sys.argv[4]
 watch = {"enable": True}
-if len(sys.argv) > 5:
+if len(sys.argv) > 5 and sys.argv[5] != "-":
     watch["rate_hz"] = float(sys.argv[5])
 sock = socket.create_connection((host, port), timeout=30)
+if len(sys.argv) > 6:
+    sock.sendall(b"?AUTH=" + json.dumps({"token": sys.argv[6]}).encode() + b";\n")
 sock.sendall(b"?WATCH=" + json.dumps(watch).encode() + b";\n")
 SEQ = re.compile(rb'"seq":(\d+)')
-seqs, times = array("q"), array("d")
+DEVICE_T = re.compile(rb'"t_s":([-+0-9.eE]+)')
+seqs, device_t, times = array("q"), array("d"), array("d")
 buf = b""
 watching = activated = ready = False
 last_status = None
@@ -136,6 +139,7 @@ while len(seqs) < expected:
     for line in lines:
         if b'"class":"ANGLE"' in line:
             seqs.append(int(SEQ.search(line).group(1)))
+            device_t.append(float(DEVICE_T.search(line).group(1)))
             times.append(t)
             continue
         obj = json.loads(line)
@@ -154,7 +158,7 @@ while len(seqs) < expected:
     if seqs:
         sock.settimeout(3.0)
 np.savez(out, seq=np.frombuffer(seqs, dtype=np.int64), t=np.frombuffer(times, dtype=np.float64),
-         status=json.dumps(last_status), other=other)
+         device_t=np.frombuffer(device_t, dtype=np.float64), status=json.dumps(last_status), other=other)
 """
 
 # The pty alone: argv tty expected out.npz. Reads the slave raw, decodes, records (seq, time).
@@ -398,14 +402,20 @@ class Received:
         return float(np.percentile(self.lat_ms, q)) if self.lat_ms.size else float("nan")
 
 
+def frame_index(seq: np.ndarray, frames: Frames) -> tuple[np.ndarray, np.ndarray]:
+    """(k, steps): each received ``seq`` unwrapped across the u16 wrap into its frame's index k (0: the first
+    frame written), and the steps between successive ones (all 1 when in order, one at a time)."""
+    steps = np.diff(seq) % SEQ_MODULUS
+    return (int(seq[0]) - frames.seq0) % SEQ_MODULUS + np.concatenate([[0], np.cumsum(steps)]), steps
+
+
 def score(npz_path: Path, frames: Frames, pacing: Pacing, warmup_frames: int) -> Received:
     with np.load(npz_path) as z:
         seq, t = z["seq"], z["t"]
         status = json.loads(str(z["status"])) if "status" in z else None
     if seq.size == 0:
         return Received(frames.n, 0, 0, 0, np.array([]), status)
-    steps = np.diff(seq) % SEQ_MODULUS  # in order, one at a time: all 1
-    k = (int(seq[0]) - frames.seq0) % SEQ_MODULUS + np.concatenate([[0], np.cumsum(steps)])
+    k, steps = frame_index(seq, frames)
     inside = (k >= 0) & (k < frames.n)
     unique = np.unique(k[inside]).size
     measured = inside & (k >= warmup_frames)
@@ -413,11 +423,13 @@ def score(npz_path: Path, frames: Frames, pacing: Pacing, warmup_frames: int) ->
     return Received(frames.n, int(seq.size), unique, int(np.count_nonzero(steps != 1)), lat_ms, status)
 
 
-def start_readers(script: str, argvs: list[list[str]]) -> list[subprocess.Popen]:
+def start_readers(script: str, argvs: list[list[str]], stdin: int = subprocess.DEVNULL) -> list[subprocess.Popen]:
+    """A process per argv running ``script``, each started once it printed "ready" (``stdin``: ``PIPE`` for a
+    script that runs until its stdin closes)."""
     procs = []
     for argv in argvs:
         proc = subprocess.Popen(
-            [sys.executable, "-c", script, *argv], stdout=subprocess.PIPE, text=True, stdin=subprocess.DEVNULL, cwd=ROOT
+            [sys.executable, "-c", script, *argv], stdout=subprocess.PIPE, text=True, stdin=stdin, cwd=ROOT
         )
         procs.append(proc)
     for proc in procs:
@@ -425,6 +437,23 @@ def start_readers(script: str, argvs: list[list[str]]) -> list[subprocess.Popen]
         if line != "ready":
             sys.exit(f"a reader did not start (said {line!r})")
     return procs
+
+
+def start_hostile(address: tuple[str, int], n: int, token: str | None = None) -> subprocess.Popen:
+    """``tests/hostile.py``: ``n`` hostile clients of the NDJSON listener at ``address`` in a process of their own,
+    started (``token``: the daemon's, for the one that never reads).  Closing its stdin stops them; it then prints
+    one JSON line: connections and refusals per kind."""
+    proc = subprocess.Popen(
+        [sys.executable, str(ROOT / "tests" / "hostile.py"), address[0], str(address[1]), str(n)]
+        + ([token] if token is not None else []),
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    if proc.stdout.readline().strip() != "ready":
+        proc.kill()
+        sys.exit("the hostile clients did not start")
+    return proc
 
 
 def join_readers(procs: list[subprocess.Popen], timeout_s: float) -> None:
@@ -478,15 +507,7 @@ def live_run(
             host, port = daemon.address
             outs = [tmp_path / f"client{i}.npz" for i in range(n_clients)]
             readers = start_readers(CLIENT, [[host, str(port), str(frames.n), str(o)] for o in outs])
-            attackers = None
-            if hostile:
-                attackers = subprocess.Popen(
-                    [sys.executable, str(ROOT / "tests" / "hostile.py"), host, str(port), str(hostile)],
-                    stdin=subprocess.PIPE,
-                    stdout=subprocess.PIPE,
-                    text=True,
-                )
-                assert attackers.stdout.readline().strip() == "ready"
+            attackers = start_hostile(daemon.address, hostile) if hostile else None
             stop_companions = companions(daemon) if companions is not None else None
             pacing = pace(pty, frames, tick_s, warmup_s, daemon.pid)
             join_readers(readers, timeout_s=10.0)

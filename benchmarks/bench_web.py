@@ -49,28 +49,54 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from bench_daemon import Table, add_pacing_options, live_run, ok, stat_cpu_s, stat_fields  # noqa: E402
+from bench_daemon import (  # noqa: E402
+    Table,
+    add_pacing_options,
+    live_run,
+    ok,
+    start_readers,
+    stat_cpu_s,
+    stat_fields,
+)
 
-# A page's WebSocket without a browser (a process of its own): argv url.  Prints "ready" once the snapshot came,
-# then counts the updates until stdin closes, and prints the count.
+# Pages' WebSockets without a browser (a process of its own): argv url n [local_address|-] [token].  Opens n
+# WebSockets one after another (from local_address when given; with the token as "Authorization: Bearer"), prints
+# "ready" once each has its snapshot, then records each update's arrival (time.monotonic()) until stdin closes, and
+# prints one JSON line: per socket the arrival times and how the daemon ended it (null: it did not).
 WS_READER = r"""
-import asyncio, sys
+import asyncio, json, sys, time
 import aiohttp
 
-async def main(url):
-    count = 0
-    async with aiohttp.ClientSession() as session, session.ws_connect(url) as ws:
-        await ws.receive()
+async def main(url, n, address, token):
+    headers = {"Authorization": f"Bearer {token}"} if token else {}
+    connector = aiohttp.TCPConnector(limit=0, local_addr=(address, 0) if address else None)
+    async with aiohttp.ClientSession(connector=connector) as session:
+        sockets = []
+        for _ in range(n):  # one at a time: a connection holds an unauthorized slot until its request is read
+            ws = await session.ws_connect(url, headers=headers)
+            await ws.receive()  # the snapshot
+            sockets.append(ws)
         print("ready", flush=True)
-        stop = asyncio.ensure_future(asyncio.get_running_loop().run_in_executor(None, sys.stdin.read))
-        while not stop.done():
-            done, _ = await asyncio.wait(
-                {asyncio.ensure_future(ws.receive()), stop}, return_when=asyncio.FIRST_COMPLETED
-            )
-            count += sum(1 for d in done if d is not stop)
-    print(count, flush=True)
+        times, ends = [[] for _ in sockets], [None] * n
 
-asyncio.run(main(sys.argv[1]))
+        async def read(k):
+            while True:
+                message = await sockets[k].receive()
+                if message.type in (aiohttp.WSMsgType.CLOSE, aiohttp.WSMsgType.CLOSED, aiohttp.WSMsgType.ERROR):
+                    ends[k] = f"{message.type.name} {sockets[k].close_code}"
+                    return
+                times[k].append(time.monotonic())
+
+        readers = [asyncio.create_task(read(k)) for k in range(n)]
+        await asyncio.get_running_loop().run_in_executor(None, sys.stdin.read)
+        for task in readers:
+            task.cancel()
+        for ws in sockets:
+            await ws.close()
+    print(json.dumps({"times": times, "ends": ends}), flush=True)
+
+address = sys.argv[3] if len(sys.argv) > 3 and sys.argv[3] != "-" else None
+asyncio.run(main(sys.argv[1], int(sys.argv[2]), address, sys.argv[4] if len(sys.argv) > 4 else None))
 """
 
 # The browsers (a process of their own): argv chromium url n.  Prints "ready" once every page shows live
@@ -133,12 +159,19 @@ def chromium() -> str:
     return path
 
 
-class Scraper(threading.Thread):
-    """GET /metrics every ``every_s`` (host time), timing each."""
+def web_url(daemon) -> str:
+    """The web view's address (``http://HOST:PORT/``) from the daemon's readiness line."""
+    return re.search(r"web view on (http://\S+/)", daemon.readiness).group(1)
 
-    def __init__(self, url: str, every_s: float) -> None:
+
+class Scraper(threading.Thread):
+    """GET /metrics every ``every_s`` (host time), timing each (with ``token``: as ``Authorization: Bearer``)."""
+
+    def __init__(self, url: str, every_s: float, token: str | None = None) -> None:
         super().__init__(daemon=True)
         self.url, self.every_s = url, every_s
+        self.headers = {"Authorization": f"Bearer {token}"} if token else {}
+        self.started_s: list[float] = []  #: each successful scrape's start (monotonic s)
         self.times_ms: list[float] = []
         self.failures = 0
         self.last_error = ""
@@ -151,12 +184,14 @@ class Scraper(threading.Thread):
             next_s += self.every_s
             started = time.monotonic()
             try:
-                with urllib.request.urlopen(self.url, timeout=10) as response:
+                request = urllib.request.Request(self.url, headers=self.headers)
+                with urllib.request.urlopen(request, timeout=10) as response:
                     body = response.read()
                 if b"fog_driver_frames_total" not in body:
                     raise ValueError("no fog_driver_frames_total")
                 self.bytes = len(body)
                 self.times_ms.append((time.monotonic() - started) * 1e3)
+                self.started_s.append(started)
             except (OSError, ValueError) as exc:
                 self.failures += 1
                 self.last_error = repr(exc)
@@ -164,24 +199,12 @@ class Scraper(threading.Thread):
 
 def web_companions(n_browsers: int, scrape_every_s: float, mode: str):
     def start(daemon) -> callable:
-        url = re.search(r"web view on (http://\S+/)", daemon.readiness).group(1)
+        url = web_url(daemon)
         browsers = None
         readers = []
         if mode == "ws":  # the pages as WebSocket readers: what the daemon does for a browser on another desk
             host_port = url.split("//", 1)[1].rstrip("/")
-            readers = [
-                subprocess.Popen(
-                    [sys.executable, "-c", WS_READER, f"ws://{host_port}/ws"],
-                    stdout=subprocess.PIPE,
-                    stdin=subprocess.PIPE,
-                    text=True,
-                    cwd=ROOT,
-                )
-                for _ in range(n_browsers)
-            ]
-            for reader in readers:
-                if reader.stdout.readline().strip() != "ready":
-                    sys.exit("a WebSocket reader did not connect")
+            readers = start_readers(WS_READER, [[f"ws://{host_port}/ws", "1"]] * n_browsers, stdin=subprocess.PIPE)
         elif n_browsers:
             browsers = subprocess.Popen(
                 [sys.executable, "-c", BROWSERS, chromium(), url, str(n_browsers)],
@@ -206,7 +229,7 @@ def web_companions(n_browsers: int, scrape_every_s: float, mode: str):
             pages = {"updates": [], "points": [], "errors": []}
             for reader in readers:
                 out, _ = reader.communicate("", timeout=30)
-                pages["updates"].append(int(out.split()[-1]) if out.split() else 0)
+                pages["updates"].append(len(json.loads(out.splitlines()[-1])["times"][0]) if out.strip() else 0)
             browsers_cpu = float("nan")
             if browsers is not None:
                 browsers_cpu = 100 * (tree_cpu_s(browsers.pid) - started[1]) / (time.monotonic() - started[0])

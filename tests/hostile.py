@@ -2,10 +2,13 @@
 
 Each ``Hostile`` is a thread that misbehaves in one way (``KINDS``), from its own loopback address
 (127.0.0.10 + i: the daemon's per-address limits then fall on it, not on the well-behaved clients),
-paced at 50 rounds a second, and reconnects whenever it is thrown out.
+paced at 50 rounds a second, and reconnects whenever it is thrown out.  Given the daemon's token, the client
+that never reads authorizes first (a station whose reader hung: on a token-protected daemon the stream, and so
+the backlog it leaves behind, is for authorized clients only); the others never have it.
 
-    python tests/hostile.py HOST PORT N     # N of them (the kinds in turn) until stdin closes; prints "ready",
-                                            # then at the end one JSON line: connections and refusals per kind
+    python tests/hostile.py HOST PORT N [TOKEN]   # N of them (the kinds in turn) until stdin closes; prints
+                                                  # "ready", then at the end one JSON line: connections and
+                                                  # refusals per kind
 """
 
 from __future__ import annotations
@@ -22,9 +25,13 @@ KINDS = ("empty", "junk", "oversized", "badjson", "auth", "overflow", "nonreader
 class Hostile(threading.Thread):
     """One misbehaving client, reconnecting whenever it is thrown out, until ``stop``."""
 
-    def __init__(self, kind: str, address: tuple[str, int], source: str, stop: threading.Event) -> None:
+    def __init__(
+        self, kind: str, address: tuple[str, int], source: str, stop: threading.Event, token: str | None = None
+    ) -> None:
+        """``token``: the daemon's, sent by the ``nonreader`` alone before its ``?WATCH``."""
         super().__init__(name=f"hostile-{kind}", daemon=True)
         self.kind, self.address, self.source, self.stop = kind, address, source, stop
+        self.token = token
         self.connections = self.refused = 0
         self.rng = random.Random(kind)
 
@@ -59,6 +66,8 @@ class Hostile(threading.Thread):
             try:
                 if self.kind == "nonreader":
                     sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+                    if self.token is not None:
+                        sock.sendall(b"?AUTH=" + json.dumps({"token": self.token}).encode() + b";\n")
                 while not self.stop.is_set():
                     data = self.payload()
                     if data:
@@ -72,9 +81,9 @@ class Hostile(threading.Thread):
                 sock.close()
 
 
-def start(address: tuple[str, int], n: int, stop: threading.Event) -> list[Hostile]:
-    """``n`` hostile clients (the kinds in turn), started."""
-    clients = [Hostile(KINDS[i % len(KINDS)], address, f"127.0.0.{10 + i}", stop) for i in range(n)]
+def start(address: tuple[str, int], n: int, stop: threading.Event, token: str | None = None) -> list[Hostile]:
+    """``n`` hostile clients (the kinds in turn), started; ``token``: the daemon's, for the ``nonreader``."""
+    clients = [Hostile(KINDS[i % len(KINDS)], address, f"127.0.0.{10 + i}", stop, token) for i in range(n)]
     for client in clients:
         client.start()
     return clients
@@ -82,8 +91,9 @@ def start(address: tuple[str, int], n: int, stop: threading.Event) -> list[Hosti
 
 def main() -> None:
     host, port, n = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
+    token = sys.argv[4] if len(sys.argv) > 4 else None
     stop = threading.Event()
-    clients = start((host, port), n, stop)
+    clients = start((host, port), n, stop, token)
     print("ready", flush=True)
     sys.stdin.read()  # until the caller closes our stdin
     stop.set()
