@@ -18,8 +18,9 @@ write to the line's arrival, the daemon's CPU from /proc after ``--warmup-s``), 
    scraper thread here fetching ``/metrics`` every ``--scrape-every-s`` (1 s);
 3. the same with real headless Chromium instead (Playwright, one browser process tree each, all in a process
    of their own at nice 19, as an operator's browser on the instrument PC would be best started; each
-   page ready when it shows ``live`` and a sample).  Their CPU (every process of the tree, from /proc) is
-   reported; on a 2-core machine it competes with the daemon and its clients for the cores.
+   page ready once connected to the stream, then each must show a sample).  Their CPU (every process of the
+   tree, from /proc) is reported; on a 2-core machine it competes with the daemon and its clients for the
+   cores.
 
 Reported: per NDJSON client the samples lost and p50/p99/max latency, the daemon's CPU and its ratio to the
 baseline's, the pages' updates received, the scrapes done and their time.  Needs the ``web`` extra,
@@ -99,8 +100,8 @@ address = sys.argv[3] if len(sys.argv) > 3 and sys.argv[3] != "-" else None
 asyncio.run(main(sys.argv[1], int(sys.argv[2]), address, sys.argv[4] if len(sys.argv) > 4 else None))
 """
 
-# The browsers (a process of their own): argv chromium url n.  Prints "ready" once every page shows live
-# data, then waits for stdin to close and prints each page's updates received and any page error as JSON.
+# The browsers (a process of their own): argv chromium url n.  Prints "ready" once every page is connected
+# to the stream, then waits for stdin to close and prints each page's updates received and any page error as JSON.
 BROWSERS = r"""
 import json, re, sys
 from playwright.sync_api import expect, sync_playwright
@@ -113,7 +114,8 @@ with sync_playwright() as p:
         page = b.new_page(viewport={"width": 1280, "height": 860})
         page.on("pageerror", lambda e: errors.append(str(e)))
         page.goto(url)
-        expect(page.locator("#page-state")).to_have_text("live", timeout=30000)
+        # connected: "waiting for data" until the frames start (they start once every page is ready)
+        expect(page.locator("#page-state")).to_have_text(re.compile("waiting for data|live"), timeout=30000)
         pages.append(page)
     print("ready", flush=True)
     for page in pages:

@@ -106,7 +106,7 @@ def test_soak_at_2_khz_with_churning_and_hostile_clients(tmp_path):
                     break
             else:
                 pytest.fail("the port was never activated")
-            attackers = hostile.start(daemon.address, len(hostile.KINDS), stop)
+            attackers = hostile.start(daemon.address, len(hostile.KINDS), stop, TOKEN)  # the non-reader authorizes
             churners = [Churner(daemon.address, stop, seed) for seed in range(4)]
             for t in churners:
                 t.start()
