@@ -135,7 +135,10 @@ def guarded(client: Client, daemon: FakeDaemon) -> Iterator[Client]:
     """``client`` connected; after ``GUARD_S`` closed, and the daemon's ends of its connections too (a test that
     would hang fails instead)."""
 
+    gave_up = threading.Event()
+
     def give_up() -> None:
+        gave_up.set()
         client.close()
         for peer in daemon.peers:
             with contextlib.suppress(OSError):
@@ -148,6 +151,7 @@ def guarded(client: Client, daemon: FakeDaemon) -> Iterator[Client]:
             yield client
     finally:
         timer.cancel()
+    assert not gave_up.is_set(), f"the test did not end by itself within {GUARD_S:g} s"
 
 
 def run(coro):
@@ -192,14 +196,15 @@ def test_the_asyncio_client_drops_unknown_classes_and_holds_less_than_its_bound(
 
     async def main():
         async with AsyncClient(daemon.address) as c:
+            everything = c.messages(timeout_s=0.1)  # its queue fills too: with the samples' queue, within the bound
             got = []
             async for a in c.angles():
                 got.append(a.seq)
                 if len(got) == 3:
-                    return c, got
+                    return c, got, [type(m).__name__ async for m in everything]
 
-    c, got = run(main())
-    assert got == [1, 2, 3]
+    c, got, kinds = run(main())
+    assert got == [1, 2, 3] and kinds == ["Reply", "Angle", "Angle", "Angle"]
     assert c.unknown == N_UNKNOWN and c.messages_dropped == 0
     assert 0 < c.buffered_bytes_peak <= c.max_buffered_bytes
 
