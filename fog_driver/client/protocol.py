@@ -58,7 +58,7 @@ MAX_REFERENCE_DPH = 1e7
 REPLY_TIMEOUT_S = 35.0
 #: The bytes a client holds for its caller by default (``max_buffered_bytes``): the line being read and the
 #: messages received and not taken yet (a command waiting, a slow caller); beyond it the oldest messages are
-#: dropped and counted.  About 7,800 samples of 280 bytes: 8 s at 1 kHz, 13 min at 10 Hz.
+#: dropped and counted.  About 7,700 samples of 280 bytes: 7.7 s at 1 kHz, 13 min at 10 Hz.
 DEFAULT_MAX_BUFFERED_BYTES = 4 * 1024 * 1024
 #: What a held message counts beside its line's bytes: the objects made of it, so that many tiny lines cannot
 #: hold much more memory than a few large ones.
