@@ -1,13 +1,13 @@
 """``AsyncClient``: the asyncio client of ``fog-driver run`` (see ``fog_driver.client``).
 
 One reader task per client reads the connection, feeds the ``Session`` and hands each message on: samples
-to ``angles()``, every message to ``messages()`` (once someone iterates it), answers to the commands waiting
+to ``angles()``, every message to ``messages()`` (from its first call on), answers to the commands waiting
 for them, BIAS results to ``bias()``.  So a task can iterate the samples while another sends ``zero()``.  A
 lost connection is made again with backoff (each attempt logged), ``?AUTH`` and ``?WATCH`` are sent again,
 and the first sample after it carries the ``Gap``; commands waiting when it went raise ``ConnectionLost``.
 
 Bounded as ``Client`` is: the line being read and the two queues (the samples for ``angles()``, and every
-message for ``messages()`` once someone iterates it: then each queue gets half the room) hold at most
+message for ``messages()`` from its first call on: then each queue gets half the room) hold at most
 ``max_buffered_bytes`` together, the oldest dropped beyond it (counted); messages of an unknown class are
 dropped unless ``keep_unknown``; a line over 64 KiB is a ``ProtocolError`` the iterators raise in its place.
 While watching, no line of a known class for ``idle_timeout_s()`` is a dead daemon: the reader drops the
