@@ -170,11 +170,13 @@ def test_the_first_sample_after_a_reconnect_carries_the_gap():
     assert restarted.gap_before.down_s == 1.0
 
 
-def test_an_oversized_line_is_skipped_and_the_next_one_read():
+def test_an_oversized_line_is_a_protocol_error_in_its_place_and_the_next_one_read():
     session = Session()
     session.connection_made()
-    out = session.receive(b'{"class":"ANGLE","x":"' + b"y" * 70_000 + b'"}\n' + _angle_line(1))
-    assert [m.seq for m in out] == [1] and session.reader.oversized == 1
+    out = session.receive(_angle_line(0) + b'{"class":"ANGLE","x":"' + b"y" * 70_000 + b'"}\n' + _angle_line(1))
+    assert [type(m).__name__ for m in out] == ["Angle", "ProtocolError", "Angle"]
+    assert [out[0].seq, out[2].seq] == [0, 1] and session.reader.oversized == 1
+    assert "line over 65536 bytes" in str(out[1]) and out[1].exit_status == 76
 
 
 def test_watch_arguments_are_checked_before_anything_is_sent():

@@ -17,8 +17,9 @@ asyncio::
             ...
 
 Control, each returning the daemon's answer or raising a typed error (``CommandRefused``, ``Unauthorized``,
-``UnknownCommand``, ``BiasFailed``, ``ConnectionLost``, ``NoReply``): ``zero()``, ``bias(seconds)`` (waits
-for the capture's result), ``adapt(enable, reference_dph)``, ``save()``, ``reload()``, ``status()``.
+``UnknownCommand``, ``BiasFailed``, ``ConnectionLost``, ``NoReply``, ``ProtocolError``): ``zero()``,
+``bias(seconds)`` (waits for the capture's result), ``adapt(enable, reference_dph)``, ``save()``, ``reload()``,
+``status()``.
 
 The objects are frozen dataclasses with units in their field names: ``Angle``, ``Device``, ``Status``,
 ``Version``, ``Bias``, ``Reply`` (``?ZERO``, ``?ADAPT`` ... answers), ``ErrorReply``, ``Other`` (a class this
@@ -30,7 +31,15 @@ samples missed, the time without a connection), and ``reconnects`` counts them. 
 ``ConnectionLost`` instead.  A daemon that cannot be reached at the first ``connect`` is a ``ConnectError`` at
 once.
 
-The layers: ``address`` (``HOST:PORT``), ``wire`` (lines, the token file, the connection), ``messages`` (typed
+Bounded memory and time: a client holds at most ``max_buffered_bytes`` (4 MiB by default) for its caller, the
+oldest messages dropped beyond it (``angles_dropped``, ``messages_dropped``); messages of an unknown class are
+dropped, not queued (``keep_unknown=True`` queues them for ``messages()``); a line over 64 KiB is a
+``ProtocolError`` in its place (the connection stays; no reconnection for it).  Every wait has a deadline that
+bytes arriving do not extend, ``angles(timeout_s=...)`` in both clients; while watching, a daemon that sends no
+line for ``idle_timeout_s()`` (``max(idle_min_s, idle_periods * the period between samples)``, 5 s at least
+by default) is taken for dead and handled as a lost connection.
+
+The layers: ``address`` (``HOST:PORT``), ``wire`` (lines, the token file), ``messages`` (typed
 objects), ``session`` (the protocol without I/O: bytes in, messages out, which answer belongs to which command,
 the gap across connections), ``blocking`` and ``aio`` (the sockets; ``AsyncClient`` and asyncio are imported on
 first use).  Beside them: ``udp`` (the UDP datagram's layout and decoder) and ``display`` (how the operator's
@@ -51,6 +60,7 @@ from .errors import (
     ConnectError,
     ConnectionLost,
     NoReply,
+    ProtocolError,
     Unauthorized,
     UnknownCommand,
 )
@@ -92,6 +102,7 @@ __all__ = [
     "Message",
     "NoReply",
     "Other",
+    "ProtocolError",
     "Reply",
     "Session",
     "Status",

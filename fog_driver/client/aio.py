@@ -1,24 +1,32 @@
 """``AsyncClient``: the asyncio client of ``fog-driver run`` (see ``fog_driver.client``).
 
 One reader task per client reads the connection, feeds the ``Session`` and hands each message on: samples
-to ``angles()``, every message to ``messages()`` (once someone iterates it), answers to the commands waiting
+to ``angles()``, every message to ``messages()`` (from its first call on), answers to the commands waiting
 for them, BIAS results to ``bias()``.  So a task can iterate the samples while another sends ``zero()``.  A
 lost connection is made again with backoff (each attempt logged), ``?AUTH`` and ``?WATCH`` are sent again,
 and the first sample after it carries the ``Gap``; commands waiting when it went raise ``ConnectionLost``.
+
+Bounded as ``Client`` is: the line being read and the two queues (the samples for ``angles()``, and every
+message for ``messages()`` from its first call on: then each queue gets half the room) hold at most
+``max_buffered_bytes`` together, the oldest dropped beyond it (counted); messages of an unknown class are
+dropped unless ``keep_unknown``; a line over 64 KiB is a ``ProtocolError`` the iterators raise in its place.
+While watching, no line of a known class for ``idle_timeout_s()`` is a dead daemon: the reader drops the
+connection and makes it again (or ends the iterators with ``ConnectionLost`` when ``reconnect=False``).
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import time
 from collections.abc import AsyncIterator
 from typing import Any
 
-from .errors import ConnectError, ConnectionLost, NoReply
+from .errors import ConnectError, ConnectionLost, NoReply, ProtocolError
 from .messages import Angle, Bias, Message, Reply, Status, Version
 from .protocol import (
-    MAX_BUFFERED_ANGLES,
     ClientBase,
+    MessageQueue,
     Reconnection,
     answer_as,
     bias_args,
@@ -26,12 +34,57 @@ from .protocol import (
     check_reply,
     control_args,
 )
-from .session import Request
+from .session import Received, Request
 
 __all__ = ["AsyncClient"]
 
 _RECV_BYTES = 65536
-_END = object()  # put in the queues when the client closed or the connection went for good
+
+
+class _End:
+    """What a queue gives once it was ended (the client closed, or the connection went for good) and drained."""
+
+
+_END = _End()
+
+
+class _Inbox:
+    """A ``MessageQueue`` a coroutine can wait on, and its end."""
+
+    def __init__(self, max_bytes: int) -> None:
+        self.queue = MessageQueue(max_bytes)
+        self.ended = False
+        self._changed = asyncio.Event()
+
+    def put(self, item: Received) -> list[Message]:
+        """Hold ``item``; the messages dropped to make room (``MessageQueue.put``)."""
+        dropped = self.queue.put(item)
+        self._changed.set()
+        return dropped
+
+    def end(self) -> None:
+        """Nothing more comes: ``get`` gives ``_END`` once the queue is drained."""
+        self.ended = True
+        self._changed.set()
+
+    async def get(self, timeout_s: float | None) -> Received | _End | None:
+        """The next item, waiting up to ``timeout_s`` (None: no limit); None when none came in time."""
+        loop = asyncio.get_running_loop()
+        deadline = None if timeout_s is None else loop.time() + timeout_s
+        while not self.queue:
+            if self.ended:
+                return _END
+            self._changed.clear()
+            if deadline is None:
+                await self._changed.wait()
+                continue
+            remaining = deadline - loop.time()
+            if remaining <= 0:
+                return None
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(remaining):
+                    await self._changed.wait()
+        return self.queue.popleft()
 
 
 class AsyncClient(ClientBase):
@@ -41,7 +94,8 @@ class AsyncClient(ClientBase):
             async for a in c.angles(rate_hz=10):
                 ...
 
-    Every method is a coroutine but ``angles`` and ``messages`` (async iterators)."""
+    Every method is a coroutine but ``angles`` and ``messages`` (async iterators).  The parameters, the
+    counters and ``buffered_bytes`` are ``Client``'s."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
@@ -49,12 +103,14 @@ class AsyncClient(ClientBase):
         self._writer: asyncio.StreamWriter | None = None
         self._task: asyncio.Task[None] | None = None
         self._waiting: list[tuple[Request, asyncio.Future[Message]]] = []
-        self._angles: asyncio.Queue[Any] = asyncio.Queue(MAX_BUFFERED_ANGLES)  # Angle, or _END
-        self._messages: asyncio.Queue[Any] | None = None  # made by the first messages()
-        self._bias_results: dict[int | None, Bias] = {}
+        self._angles = _Inbox(self._queue_budget())  # Angle and ProtocolError
+        self._messages: _Inbox | None = None  # made by the first messages()
         self._bias_changed: asyncio.Event | None = None
         self._closed = False
         self._failure: BaseException | None = None
+
+    def _queues(self) -> list[MessageQueue]:
+        return [self._angles.queue] + ([] if self._messages is None else [self._messages.queue])
 
     async def __aenter__(self) -> AsyncClient:
         await self.connect()
@@ -82,20 +138,23 @@ class AsyncClient(ClientBase):
         task, self._task = self._task, None
         if task is not None and task is not asyncio.current_task():
             task.cancel()
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await task
+            await asyncio.wait({task})  # its end (a cancellation of this task still ends this task)
+            if not task.cancelled():
+                task.exception()  # retrieved: _end gave it to the iterators
         await self._drop()
         self._end(ConnectionLost(f"{self.address}: the client was closed"))
 
     async def _open(self) -> None:
         hint = "(is `fog-driver run` running?)"
         try:
-            reader, writer = await asyncio.wait_for(asyncio.open_connection(self.host, self.port), self.timeout_s)
+            async with asyncio.timeout(self.timeout_s):
+                reader, writer = await asyncio.open_connection(self.host, self.port)
         except (TimeoutError, OSError) as exc:
-            reason = "timed out" if isinstance(exc, asyncio.TimeoutError) else (exc.strerror or str(exc))
+            reason = "timed out" if isinstance(exc, TimeoutError) else (exc.strerror or str(exc))
             raise ConnectError(f"could not connect to {self.address}: {reason} {hint}") from None
         self._reader, self._writer = reader, writer
         self.session.connection_made()
+        self._connected()
         try:
             greeting = self.session.request("VERSION")[0]  # the greeting answers it (nothing is sent)
             hello = await self._read_until(greeting, "VERSION greeting (not a fog-driver daemon?)")
@@ -127,16 +186,18 @@ class AsyncClient(ClientBase):
                 raise ConnectError(f"{self.address}: no {what} within {self.timeout_s:g} s")
             try:
                 assert self._reader is not None  # _open set it; nothing drops it meanwhile
-                data = await asyncio.wait_for(self._reader.read(_RECV_BYTES), remaining)
+                async with asyncio.timeout(remaining):
+                    data = await self._reader.read(_RECV_BYTES)
             except TimeoutError:
                 continue
             except OSError as exc:
                 raise ConnectError(f"{self.address}: lost the connection while waiting for {what}: {exc}") from None
             if not data:
                 raise ConnectError(f"{self.address}: the daemon closed the connection before the {what}")
-            for message in self.session.receive(data):
-                if message is not request.reply:
-                    self._hand_on(message)
+            for item in self._received(data):
+                if item is not request.reply:
+                    self._hand_on(item)
+            self._note_peak()
         return request.reply
 
     async def _send(self, data: bytes) -> None:
@@ -145,7 +206,8 @@ class AsyncClient(ClientBase):
             raise ConnectionLost(f"{self.address}: not connected")
         try:
             writer.write(data)
-            await asyncio.wait_for(writer.drain(), self.timeout_s)
+            async with asyncio.timeout(self.timeout_s):
+                await writer.drain()
         except (TimeoutError, OSError) as exc:
             raise ConnectionLost(f"{self.address}: lost the connection: {exc or 'the daemon does not read'}") from None
 
@@ -154,7 +216,8 @@ class AsyncClient(ClientBase):
         if writer is not None:
             writer.close()
             with contextlib.suppress(Exception):
-                await asyncio.wait_for(writer.wait_closed(), 1.0)
+                async with asyncio.timeout(1.0):
+                    await writer.wait_closed()
         self.session.connection_lost()
         waiting, self._waiting = self._waiting, []
         for _, future in waiting:
@@ -168,9 +231,9 @@ class AsyncClient(ClientBase):
     def _end(self, failure: BaseException) -> None:
         """No more messages: the iterators raise ``failure`` once they have taken what came before."""
         self._failure = failure
-        for queue in (self._angles, self._messages):
-            if queue is not None:
-                _put_dropping(queue, _END)
+        self._angles.end()
+        if self._messages is not None:
+            self._messages.end()
         if self._bias_changed is not None:
             self._bias_changed.set()
 
@@ -178,16 +241,29 @@ class AsyncClient(ClientBase):
 
     async def _read_loop(self) -> None:
         while True:
-            assert self._reader is not None  # _open set it; _drop below is followed by _open or the end
+            reader = self._reader
+            assert reader is not None  # _open set it; _drop below is followed by _open or the end
+            idle_s = self.idle_timeout_s()
+            reason = None
             try:
-                data = await self._reader.read(_RECV_BYTES)
+                # asyncio.timeout, not wait_for: wait_for can drop a cancellation that comes as the read ends
+                async with asyncio.timeout(
+                    None if idle_s is None else max(0.0, self._heard_at + idle_s - time.monotonic())
+                ):
+                    data = await reader.read(_RECV_BYTES)
                 reason = None if data else "the daemon closed the connection"
+            except TimeoutError:
+                data = b""
             except OSError as exc:
                 data, reason = b"", f"lost the connection: {exc.strerror or exc}"
-            if reason is None:
-                for message in self.session.receive(data):
-                    self._hand_on(message)
+            if data:
+                for item in self._received(data):
+                    self._hand_on(item)
+                self._note_peak()
                 self._answer()
+            if reason is None and idle_s is not None and time.monotonic() >= self._heard_at + idle_s:
+                reason = self._idle_reason(idle_s)
+            if reason is None:
                 continue
             await self._drop()
             if not self.reconnect or self._closed:
@@ -213,15 +289,16 @@ class AsyncClient(ClientBase):
             backoff.succeeded()
             return
 
-    def _hand_on(self, message: Message) -> None:
-        if isinstance(message, Angle) and _put_dropping(self._angles, message):
-            self.angles_dropped += 1
-        if isinstance(message, Bias) and message.state in ("done", "failed"):
-            self._bias_results[message.capture_id] = message
-            if self._bias_changed is not None:
-                self._bias_changed.set()
+    def _hand_on(self, item: Received) -> None:
+        """``item`` to the queues: a sample (or a ``ProtocolError``) to ``angles()``'s, everything to
+        ``messages()``'s once someone iterates it; a BIAS result wakes ``bias()``."""
+        if isinstance(item, (Angle, ProtocolError)):
+            self._dropped(self._angles.put(item))
+        if isinstance(item, Bias) and item.state in ("done", "failed") and self._bias_changed is not None:
+            self._bias_changed.set()
         if self._messages is not None:
-            _put_dropping(self._messages, message)
+            dropped = self._messages.put(item)
+            self.messages_dropped += len(dropped)
 
     def _answer(self) -> None:
         still = []
@@ -234,27 +311,38 @@ class AsyncClient(ClientBase):
 
     # -- iterators --------------------------------------------------------------------------------------
 
-    async def angles(self, rate_hz: float | None = None) -> AsyncIterator[Angle]:
-        """Watch the samples (decimated by the daemon to ``rate_hz``; None: every sample) and yield them."""
+    async def angles(self, rate_hz: float | None = None, *, timeout_s: float | None = None) -> AsyncIterator[Angle]:
+        """Watch the samples (decimated by the daemon to ``rate_hz``; None: every sample) and yield them; ends
+        when no sample came for ``timeout_s`` (None: never), whatever else came.  ``ProtocolError`` for a line
+        over 64 KiB (after the samples before it; not reconnected); ``ConnectionLost`` when the connection went
+        for good."""
         await self.watch(rate_hz)
-        while True:
-            item = await self._angles.get()
-            if item is _END:
-                _put_dropping(self._angles, _END)  # for the next reader too
-                raise self._ended()
-            yield item
+        async for item in self._take(self._angles, timeout_s):
+            if isinstance(item, Angle):
+                yield item
 
-    async def messages(self) -> AsyncIterator[Message]:
-        """Every message from now on, as it comes."""
+    def messages(self, *, timeout_s: float | None = None) -> AsyncIterator[Message]:
+        """Every message from this call on, as it comes; ends when nothing came for ``timeout_s`` (None: never).
+        From the first call on, the samples' queue and this one share ``max_buffered_bytes`` half and half."""
         if self._messages is None:
-            self._messages = asyncio.Queue(MAX_BUFFERED_ANGLES)
+            half = self._queue_budget() // 2
+            self._messages = _Inbox(half)
+            self._angles.queue.max_bytes = half
+            self._dropped(self._angles.queue.trim())
             if self._failure is not None:
-                _put_dropping(self._messages, _END)
+                self._messages.end()
+        return self._take(self._messages, timeout_s)
+
+    async def _take(self, inbox: _Inbox, timeout_s: float | None) -> AsyncIterator[Message]:
+        """The messages of ``inbox`` as they come, until none came for ``timeout_s``; raises what ended it."""
         while True:
-            item = await self._messages.get()
-            if item is _END:
-                _put_dropping(self._messages, _END)
+            item = await inbox.get(timeout_s)
+            if item is None:
+                return
+            if isinstance(item, _End):
                 raise self._ended()
+            if isinstance(item, ProtocolError):
+                raise item
             yield item
 
     async def watch(self, rate_hz: float | None = None) -> Reply:
@@ -277,7 +365,8 @@ class AsyncClient(ClientBase):
         self._waiting.append((request, future))
         await self._send(data)
         try:
-            reply = await asyncio.wait_for(future, self.reply_timeout_s)
+            async with asyncio.timeout(self.reply_timeout_s):
+                reply = await future
         except TimeoutError:
             raise NoReply(f"{self.address}: no answer to ?{name} within {self.reply_timeout_s:g} s") from None
         return check_reply(name, reply)
@@ -313,18 +402,7 @@ class AsyncClient(ClientBase):
             changed = self._bias_changed
             assert changed is not None  # connect made it, before any command
             changed.clear()
-            with contextlib.suppress(asyncio.TimeoutError):
-                await asyncio.wait_for(changed.wait(), remaining)
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(remaining):
+                    await changed.wait()
         return check_bias(self._bias_results.pop(started.capture_id))
-
-
-def _put_dropping(queue: asyncio.Queue[Any], item: Any) -> bool:
-    """Put ``item``; when the queue is full, drop its oldest first.  True when one was dropped."""
-    try:
-        queue.put_nowait(item)
-        return False
-    except asyncio.QueueFull:
-        with contextlib.suppress(asyncio.QueueEmpty):
-            queue.get_nowait()
-        queue.put_nowait(item)
-        return True

@@ -6,6 +6,13 @@ connection while iterating is made again with backoff (``backoff_initial_s`` dou
 each attempt logged), ``?AUTH`` and ``?WATCH`` are sent again, and the first sample after it carries the
 ``Gap``; a lost connection while a command waits raises ``ConnectionLost`` (the command is not sent again: it
 may have been carried out).
+
+Bounded: what the client holds for its caller (the line being read, the messages not taken yet) is at most
+``max_buffered_bytes``, the oldest messages dropped beyond it (counted); messages of a class the library does
+not know are dropped (counted in ``unknown``) unless ``keep_unknown``; a line over 64 KiB is a
+``ProtocolError``.  Every wait has a deadline that holds while bytes keep arriving: a daemon trickling junk
+keeps no call alive.  While watching, a daemon that sends no line of a known class for ``idle_timeout_s()``
+is taken for dead: the connection is dropped and made again (``ConnectionLost`` with ``reconnect=False``).
 """
 
 from __future__ import annotations
@@ -15,15 +22,14 @@ import select
 import socket
 import threading
 import time
-from collections import deque
 from collections.abc import Iterator
 from typing import Any
 
-from .errors import ClientError, ConnectError, ConnectionLost, NoReply
+from .errors import ClientError, ConnectError, ConnectionLost, NoReply, ProtocolError
 from .messages import Angle, Bias, ErrorReply, Message, Reply, Status, Version
 from .protocol import (
-    MAX_BUFFERED_ANGLES,
     ClientBase,
+    MessageQueue,
     Reconnection,
     answer_as,
     bias_args,
@@ -33,7 +39,6 @@ from .protocol import (
     printable,
 )
 from .session import Request
-from .wire import GREETING_TIMEOUT_S
 
 __all__ = ["Client"]
 
@@ -48,19 +53,28 @@ class Client(ClientBase):
             for a in c.angles(rate_hz=10):
                 print(a.seq, a.angle_arcsec, a.drift_dph)
 
-    Parameters (``ClientBase``): ``address``; ``token`` (sent with ``?AUTH`` on every connection);
-    ``timeout_s`` (5: to connect and for the greeting); ``reconnect`` (True); ``backoff_initial_s`` (0.5) and
-    ``backoff_max_s`` (30); ``reply_timeout_s`` (35: for a command's answer).  ``version``, ``device`` and
-    ``status_seen`` hold the latest of each the daemon sent.  Counters: ``reconnects``, ``angles_dropped``
-    (samples the caller did not take in time), ``malformed`` and ``unknown`` lines.
+    Parameters (``ClientBase``): ``address``; ``token`` (sent with ``?AUTH`` on every connection, before
+    ``?WATCH``); ``timeout_s`` (5: to connect, for the greeting, ``?AUTH`` and sending a command);
+    ``reconnect`` (True); ``backoff_initial_s`` (0.5) and ``backoff_max_s`` (30); ``reply_timeout_s`` (35: for
+    a command's answer); ``max_buffered_bytes`` (4 MiB, at least 256 KiB: the line being read and the
+    messages not taken yet, each counting its line and 256 bytes; beyond it the oldest are dropped);
+    ``idle_periods`` (5; None: no idle timeout) and ``idle_min_s`` (5): while watching, no line of a known
+    class for ``max(idle_min_s, idle_periods * period)`` (``idle_timeout_s()``) is a dead daemon, handled as a
+    lost connection; ``keep_unknown`` (False: messages of an unknown class are dropped, not queued; True:
+    ``messages`` and ``poll`` give them as ``Other``).  ``version``, ``device`` and ``status_seen`` hold the
+    latest of each the daemon sent.  Counters: ``reconnects``, ``angles_dropped`` (samples the caller did not
+    take in time), ``messages_dropped`` (of every class), ``malformed`` and ``unknown`` lines;
+    ``buffered_bytes`` (now) and ``buffered_bytes_peak``.
     """
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self._sock: socket.socket | None = None
-        self._inbox: deque[Message] = deque()
-        self._angles_held = 0
+        self._inbox = MessageQueue(self._queue_budget())
         self._closed = threading.Event()
+
+    def _queues(self) -> list[MessageQueue]:
+        return [self._inbox]
 
     # -- connection -------------------------------------------------------------------------------------
 
@@ -103,6 +117,7 @@ class Client(ClientBase):
         sock.setblocking(False)
         self._sock = sock
         self.session.connection_made()
+        self._connected()
         try:
             self._greeting(hint)
             if self.token is not None:
@@ -141,6 +156,8 @@ class Client(ClientBase):
         sock, self._sock = self._sock, None
         if sock is not None:
             with contextlib.suppress(OSError):
+                sock.shutdown(socket.SHUT_RDWR)  # wakes a select on it in another thread (close alone does not)
+            with contextlib.suppress(OSError):
                 sock.close()
 
     def _drop(self) -> None:
@@ -150,7 +167,9 @@ class Client(ClientBase):
     def _reconnect(self, reason: str) -> None:
         """Connect again with backoff until it works or the client is closed (``ConnectionLost`` then)."""
         self._drop()
-        if not self.reconnect or self._closed.is_set():
+        if self._closed.is_set():  # by close(), maybe from another thread: the reason is that
+            raise ConnectionLost(f"{self.address}: the client was closed")
+        if not self.reconnect:
             raise ConnectionLost(f"{self.address}: {reason}", reason)
         backoff = Reconnection(self, reason)
         while True:
@@ -182,41 +201,37 @@ class Client(ClientBase):
             raise _Lost(f"lost the connection: {_reason(exc) if isinstance(exc, OSError) else 'closed'}") from None
         if not data:
             raise _Lost("the daemon closed the connection")
-        for message in self.session.receive(data):
-            self._keep(message)
+        for item in self._received(data):
+            self._dropped(self._inbox.put(item))
+        self._note_peak()
         return True
 
-    def _keep(self, message: Message) -> None:
-        if isinstance(message, Angle):
-            if self._angles_held >= MAX_BUFFERED_ANGLES:
-                self._drop_oldest_angle()
-            self._angles_held += 1
-        self._inbox.append(message)
-
-    def _drop_oldest_angle(self) -> None:
-        for i, held in enumerate(self._inbox):
-            if isinstance(held, Angle):
-                del self._inbox[i]
-                self._angles_held -= 1
-                self.angles_dropped += 1
-                return
-
     def _next(self, timeout_s: float | None) -> Message | None:
-        """The next message received (None when none within ``timeout_s``); reconnects when allowed."""
+        """The next message received (None when none within ``timeout_s``, however many bytes came meanwhile);
+        reconnects when allowed, also when the daemon is idle while watching (``idle_timeout_s``).
+        ``ProtocolError`` in the place of an over-long line."""
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         while not self._inbox:
             if self._closed.is_set():
                 raise ConnectionLost(f"{self.address}: the client was closed")
-            wait = None if deadline is None else max(0.0, deadline - time.monotonic())
+            idle_s = self.idle_timeout_s()
+            ends = [end for end in (deadline, None if idle_s is None else self._heard_at + idle_s) if end is not None]
             try:
-                if not self._read_once(wait) and deadline is not None and time.monotonic() >= deadline:
-                    return None
+                self._read_once(None if not ends else max(0.0, min(ends) - time.monotonic()))
             except _Lost as exc:
                 self._reconnect(exc.reason)
-        message = self._inbox.popleft()
-        if isinstance(message, Angle):
-            self._angles_held -= 1
-        return message
+                continue
+            if self._inbox:
+                break
+            now = time.monotonic()
+            if idle_s is not None and now >= self._heard_at + idle_s:
+                self._reconnect(self._idle_reason(idle_s))
+            elif deadline is not None and now >= deadline:
+                return None
+        item = self._inbox.popleft()
+        if isinstance(item, ProtocolError):
+            raise item
+        return item
 
     def poll(self, timeout_s: float | None = 0.0) -> Message | None:
         """The next message of any kind, waiting up to ``timeout_s`` (0: only what has arrived; None: no limit)."""
@@ -230,12 +245,21 @@ class Client(ClientBase):
 
     def angles(self, rate_hz: float | None = None, *, timeout_s: float | None = None) -> Iterator[Angle]:
         """Watch the samples (``?WATCH``, decimated by the daemon to ``rate_hz`` by device time; None: every
-        sample) and yield them; ends when none came for ``timeout_s`` (None: never).  Other messages update
-        ``device`` and ``status_seen``; a BIAS result is kept for ``bias``."""
+        sample) and yield them; ends when no sample came for ``timeout_s`` (None: never), whatever else
+        came.  Other messages update ``device`` and ``status_seen``; a BIAS result is kept for ``bias``.
+        ``ProtocolError`` for a line over 64 KiB (after the samples before it; not reconnected)."""
         self.watch(rate_hz)
-        while (message := self._next(timeout_s)) is not None:
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        while True:
+            message = self._next(None if deadline is None else max(0.0, deadline - time.monotonic()))
+            if message is None:
+                return
             if isinstance(message, Angle):
                 yield message
+                if timeout_s is not None:
+                    deadline = time.monotonic() + timeout_s
+            elif deadline is not None and time.monotonic() >= deadline:
+                return
 
     def watch(self, rate_hz: float | None = None) -> Reply:
         """Start (or change) the watch without reading samples yet (``angles`` does it for you)."""
@@ -264,8 +288,7 @@ class Client(ClientBase):
                 raise error(f"{self.address}: {exc.reason} while waiting for {what}") from None
         reply = request.reply
         if not keep:  # the answer is returned, not also queued for the iterators
-            with contextlib.suppress(ValueError):
-                self._inbox.remove(reply)
+            self._inbox.remove(reply)
         return reply
 
     def _command(
@@ -278,7 +301,7 @@ class Client(ClientBase):
             sock = self._open()
         request, data = self.session.request(name, args)
         try:
-            _send_all(sock, data)
+            _send_all(sock, data, self.timeout_s)
         except OSError as exc:
             self._drop()
             raise ConnectionLost(f"{self.address}: lost the connection: {_reason(exc)}") from None
@@ -293,7 +316,7 @@ class Client(ClientBase):
             raise ConnectionLost(f"{self.address}: not connected")
         request, data = self.session.request(name, args)
         try:
-            _send_all(self._sock, data)
+            _send_all(self._sock, data, self.timeout_s)
         except OSError as exc:
             raise ConnectionLost(f"{self.address}: lost the connection: {_reason(exc)}") from None
         if name == "WATCH" and args is not None:
@@ -334,14 +357,10 @@ class Client(ClientBase):
             return started
         deadline = time.monotonic() + (started.timeout_s or seconds + 30.0) + 5.0
         while True:
-            for held in self._inbox:
-                if (
-                    isinstance(held, Bias)
-                    and held.state in ("done", "failed")
-                    and held.capture_id == started.capture_id
-                ):
-                    self._inbox.remove(held)
-                    return check_bias(held)
+            result = self._bias_results.pop(started.capture_id, None)
+            if result is not None:
+                self._inbox.remove(result)  # returned, not also queued for the iterators
+                return check_bias(result)
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 raise NoReply(f"{self.address}: no result of the bias capture {started.capture_id} in time")
@@ -358,11 +377,13 @@ class _Lost(Exception):
         self.reason = reason
 
 
-def _send_all(sock: socket.socket, data: bytes) -> None:
-    """``sendall`` on a non-blocking socket: wait for room between sends (a command line is small)."""
+def _send_all(sock: socket.socket, data: bytes, timeout_s: float) -> None:
+    """``sendall`` on a non-blocking socket within ``timeout_s``: wait for room between sends (a command line
+    is small); ``TimeoutError`` when the daemon does not read it in time."""
+    deadline = time.monotonic() + timeout_s
     view = memoryview(data)
     while view:
-        if not select.select([], [sock], [], GREETING_TIMEOUT_S)[1]:
+        if not select.select([], [sock], [], max(0.0, deadline - time.monotonic()))[1]:
             raise TimeoutError("the daemon does not read")
         try:
             sent = sock.send(view)

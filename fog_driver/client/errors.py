@@ -14,6 +14,7 @@ __all__ = [
     "ConnectError",
     "ConnectionLost",
     "NoReply",
+    "ProtocolError",
     "Unauthorized",
     "UnknownCommand",
 ]
@@ -42,6 +43,16 @@ class ConnectionLost(ClientError, DeviceError):
 
 class NoReply(ClientError):
     """No answer within the time allowed."""
+
+
+class ProtocolError(ClientError):
+    """The daemon broke the protocol: a line over 64 KiB (``wire.MAX_LINE_BYTES``), or that many bytes without
+    a newline.  The line is dropped up to its newline, the connection stays open and is not made again for it
+    (a peer that sends such lines would send them again): the reading call raises it once, in the place of
+    the line, after the messages that came before it; a caller that wants to may go on reading.  Exit 76
+    (EX_PROTOCOL)."""
+
+    exit_status = os.EX_PROTOCOL  # 76
 
 
 class CommandRefused(ClientError):

@@ -72,6 +72,11 @@ class LineBuffer:
         self._unterminated = 0  # bytes since the last newline, dropped ones included
 
     @property
+    def buffered_bytes(self) -> int:
+        """Bytes held for the line being read (at most ``max_line_bytes``: an over-long line's are dropped)."""
+        return len(self._buf)
+
+    @property
     def unterminated_bytes(self) -> int:
         """Bytes received since the last newline (an over-long line's dropped bytes included)."""
         return self._unterminated

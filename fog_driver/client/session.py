@@ -5,9 +5,11 @@ and keeps what a client must: the latest ``Version``, ``Device`` and ``Status``;
 which request (the daemon answers each command with one line, in order; events such as a ``BIAS`` result
 or the periodic ``STATUS`` come in between); and the sequence of the samples across connections, so the
 first ``Angle`` after a reconnect carries the ``Gap`` (``connection_made`` and ``connection_lost`` say when
-the I/O layer's connection changed).  Defensive as the protocol asks: a line over 64 KiB, a line that is not
-a JSON object with a string ``class``, and an unusable ``ANGLE`` are skipped and counted (``malformed``);
-objects of classes this library does not know are counted (``unknown``) and passed on as ``Other``.
+the I/O layer's connection changed).  Defensive as the protocol asks: a line that is not a JSON object with a
+string ``class``, and an unusable ``ANGLE``, are skipped and counted (``malformed``); objects of classes this
+library does not know are counted (``unknown``) and passed on as ``Other`` (the clients drop them); a line over
+64 KiB (or that many bytes without a newline) is dropped up to its newline and passed on, in its place, as a
+``ProtocolError`` for the client to raise.  The bytes held for a line being read are at most 64 KiB + 1.
 """
 
 from __future__ import annotations
@@ -18,10 +20,14 @@ from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
 
+from .errors import ProtocolError
 from .messages import Angle, Bias, Device, ErrorReply, Gap, Message, Other, Reply, Status, Version, message_from
-from .wire import LineReader, command_line, parse_line
+from .wire import MAX_LINE_BYTES, LineReader, command_line, parse_line
 
-__all__ = ["Request", "Session"]
+__all__ = ["Received", "Request", "Session"]
+
+#: What ``Session.receive`` gives: a message, or the ``ProtocolError`` of an over-long line in its place.
+Received = Message | ProtocolError
 
 
 class Request:
@@ -100,10 +106,16 @@ class Session:
 
     # -- received bytes -------------------------------------------------------------------------------
 
-    def receive(self, data: bytes) -> list[Message]:
-        """The messages in ``data`` (bytes as read; a line may be split anywhere), in order."""
-        out: list[Message] = []
-        for line in self.reader.feed(data):
+    def receive(self, data: bytes) -> list[Received]:
+        """The messages in ``data`` (bytes as read; a line may be split anywhere), in order, with a
+        ``ProtocolError`` in the place of each line over ``MAX_LINE_BYTES``."""
+        out: list[Received] = []
+        for line in self.reader.events(data):
+            if not isinstance(line, bytes):  # OVERLONG: at its newline, or once its bytes passed the bound
+                out.append(
+                    ProtocolError(f"the daemon sent a line over {MAX_LINE_BYTES} bytes (not the protocol; dropped)")
+                )
+                continue
             if not line.strip():
                 continue  # an empty line is a keep-alive, not an error
             obj = parse_line(line)

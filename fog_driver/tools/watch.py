@@ -26,7 +26,8 @@ a log file, a test) it prints one line when the server says who it is, one per `
 ``ERROR`` and ``BIAS`` event, and one compact line per second.  With ``json_lines`` it prints the
 daemon's lines themselves, unchanged, one per line and flushed (like ``gpspipe -w``).
 
-The reader is defensive: a line is at most 64 KiB (longer ones are skipped up to their newline), lines
+The reader is defensive: a line is at most 64 KiB (longer ones, which the client library reports as a
+``ProtocolError``, are skipped up to their newline and counted), lines
 that are not a JSON object with a string ``"class"`` are skipped and counted, unknown classes are
 counted and ignored, unknown keys are ignored (except in ``STATUS``, whose scalar keys are all shown),
 and absent or ``null`` values show as ``-``, never ``None``.
@@ -48,7 +49,7 @@ import sys
 import time
 from typing import Any, TextIO
 
-from ..client import Client, ConnectionLost
+from ..client import Client, ConnectionLost, Message, ProtocolError
 from ..client.display import DEFAULT_BIAS_S, NO_DATA_S, format_arcsec, format_dms
 from ..client.wire import (
     DEFAULT_HOST,
@@ -138,7 +139,9 @@ def run_watch(
     if out is None:
         out = sys.stdout
     _check_arguments(count, duration_s, rate_hz, bias_s)
-    conn = Client((host, port), timeout_s=timeout_s, reconnect=False)
+    # keep_unknown: the view counts unknown classes and --json passes them on; idle_periods None: the view shows
+    # how long no data came (NO DATA) and waits on, as an operator watching a stopped daemon wants
+    conn = Client((host, port), timeout_s=timeout_s, reconnect=False, keep_unknown=True, idle_periods=None)
     conn.connect()  # ConnectError (a DeviceError): exit 69, at once
     watch: LiveView | None = None
     key_reader: Keys | None = None
@@ -182,6 +185,15 @@ def _counts(watch: LiveView, conn: Client) -> None:
         watch.state["oversized"] = conn.session.reader.oversized
 
 
+def _poll(conn: Client, timeout_s: float | None) -> Message | None:
+    """``conn.poll``; None for an over-long line too (skipped: the client library counts it in
+    ``session.reader.oversized``)."""
+    try:
+        return conn.poll(timeout_s)
+    except ProtocolError:
+        return None
+
+
 def _lost(watch: LiveView, conn: Client, exc: ConnectionLost) -> int:
     what = "closed the connection" if exc.reason.endswith("closed the connection") else exc.reason
     watch.finish(
@@ -206,12 +218,13 @@ def _view(
     while True:
         now = time.monotonic()
         try:
-            while (message := conn.poll(0)) is not None:  # what has arrived, without waiting
+            while (message := _poll(conn, 0)) is not None:  # what has arrived, without waiting
                 _counts(watch, conn)
                 watch.handle(dict(message.raw), now)
                 if count is not None and watch.state["angles"] >= count:
                     watch.finish(now)
                     return EXIT_OK
+            _counts(watch, conn)
         except ConnectionLost as exc:
             _counts(watch, conn)
             return _lost(watch, conn, exc)
@@ -247,7 +260,7 @@ def _pass_through(
             if deadline is not None and now >= deadline:
                 return EXIT_OK
             try:
-                message = conn.poll(None if deadline is None else max(0.001, deadline - now))
+                message = _poll(conn, None if deadline is None else max(0.001, deadline - now))
             except ConnectionLost as exc:
                 print(f"fog-driver watch: {conn.address} {exc.reason}", file=sys.stderr)
                 return EXIT_CONNECTION_CLOSED
