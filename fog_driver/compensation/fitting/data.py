@@ -189,7 +189,7 @@ def whole_static_minutes(mask: np.ndarray, model_rate_hz: float) -> np.ndarray:
     """For each whole minute of blocks: True where all its blocks are in ``mask``."""
     per_minute = int(round(60 * model_rate_hz))
     n = len(mask) // per_minute * per_minute
-    return mask[:n].reshape(-1, per_minute).all(axis=1)
+    return np.asarray(mask[:n].reshape(-1, per_minute).all(axis=1), dtype=bool)
 
 
 def static_minute_means(values: np.ndarray, mask: np.ndarray, model_rate_hz: float) -> np.ndarray:
