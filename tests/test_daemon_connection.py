@@ -153,8 +153,21 @@ def test_the_rate_limit_counts_every_line_refuses_the_excess_and_closes_at_the_l
     assert run(conn, b"?ZERO;\n") == [Control("ZERO", {})]  # a new second
     actions = run(conn, b"\n" * (MAX_COMMANDS_PER_S + MAX_EXCESS_COMMANDS + 10))
     assert actions[-1] == Close()
-    assert len(sent(actions)) == MAX_EXCESS_COMMANDS - 1  # the excess lines before it: nothing after the close
-    assert sent(actions)[-1]["message"] == f"{MAX_EXCESS_COMMANDS} commands over the rate limit: closing"
+    # one refusal a second, whatever the flood (before: one ERROR line written for every line received),
+    # then the closing line; nothing after the close
+    assert [m["message"] for m in sent(actions)] == [
+        f"more than {MAX_COMMANDS_PER_S} commands per second: refused",
+        f"{MAX_EXCESS_COMMANDS} commands over the rate limit: closing",
+    ]
+
+
+def test_an_excess_line_is_answered_once_a_second():
+    conn, clock = connection()
+    run(conn, b"\n" * MAX_COMMANDS_PER_S)
+    assert len(sent(run(conn, b"\n" * 50))) == 1  # the first excess line told, the others dropped
+    assert run(conn, b"?ZERO;\n") == []  # refused without an answer: still the same second
+    clock.now_s += 1.0
+    assert run(conn, b"?ZERO;\n") == [Control("ZERO", {})]
 
 
 def test_behind_a_token_commands_are_refused_until_auth_and_then_device_follows():

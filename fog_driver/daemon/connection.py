@@ -350,8 +350,10 @@ class Connection:
         return [Close()]
 
     def _admit(self) -> list[Action] | None:
-        """Rate limit on every line received: None when it may proceed, else the actions refusing it (the
-        ``MAX_EXCESS_COMMANDS``-th refusal closes)."""
+        """Rate limit on every line received: None when it may proceed, else the actions refusing it.  The
+        first excess line of a window is answered with ``ERROR``, the others of that window are dropped
+        without an answer (a flood must not make the daemon write a line for each of its lines), and the
+        ``MAX_EXCESS_COMMANDS``-th excess line closes."""
         now = self.clock()
         if now - self.window_start >= COMMAND_WINDOW_S:
             self.window_start = now
@@ -362,6 +364,8 @@ class Connection:
         self.excess += 1
         if self.excess >= MAX_EXCESS_COMMANDS:
             return [error(f"{MAX_EXCESS_COMMANDS} commands over the rate limit: closing"), *self._close()]
+        if self.window_count > MAX_COMMANDS_PER_S + 1:
+            return []  # refused, already told in this window
         return [error(f"more than {MAX_COMMANDS_PER_S} commands per second: refused")]
 
     def _line(self, raw: bytes) -> list[Action]:

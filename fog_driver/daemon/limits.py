@@ -14,8 +14,10 @@ The NDJSON hub's limits, as clients meet them.  Each is a constant here or a ``h
 - invalid JSON, a JSON value that is not an object, a malformed line or an
   unknown command: ``ERROR``, and the connection stays open;
 - at most 100 lines per second per client (``MAX_COMMANDS_PER_S``; commands,
-  and empty or oversized lines alike): the excess is answered with ``ERROR``,
-  and 1000 excess lines (``MAX_EXCESS_COMMANDS``) close the connection.  The hub
+  and empty or oversized lines alike): the excess is refused, its first line in
+  each second answered with ``ERROR`` and the rest dropped without an answer (a
+  flood costs the daemon no line written per line received), and 1000 excess
+  lines (``MAX_EXCESS_COMMANDS``) close the connection.  The hub
   handles one 64 KiB chunk of a client's input at a time, then serves the others;
 - a client that does not read is dropped: when the oldest line queued for it
   (not yet accepted by the kernel) is older than ``max_backlog_s`` (2 s) the
