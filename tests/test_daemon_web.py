@@ -469,7 +469,8 @@ def test_the_page_its_assets_and_plotly_from_the_installed_package(web):
     assert get(view.address, "/static/plotly.min.js", f"If-None-Match: {headers['etag']}")[0] == 304
     assert get(view.address, "/static/../../etc/passwd")[0] == 404
     assert get(view.address, "/static/nothing.js")[0] == 404
-    assert http(view.address, f"DELETE / HTTP/1.1\r\nHost: {host_of(view.address)}\r\nConnection: close\r\n\r\n".encode())[0] == 405
+    delete = f"DELETE / HTTP/1.1\r\nHost: {host_of(view.address)}\r\nConnection: close\r\n\r\n"
+    assert http(view.address, delete.encode())[0] == 405
     assert get(view.address, "/ws")[0] == 400  # not an upgrade
 
 
