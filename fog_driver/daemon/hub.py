@@ -28,6 +28,7 @@ import asyncio
 import collections
 import concurrent.futures
 import contextlib
+import functools
 import math
 import socket
 import threading
@@ -72,6 +73,7 @@ from .limits import (
     SETTING_WAIT_S,
     SWEEP_EVERY_S,
 )
+from .loops import apply_on_loop
 from .web.metrics import LatencyHistogram
 
 __all__ = [
@@ -320,24 +322,7 @@ class Hub:
 
     def _apply_on_loop(self, apply: Callable[..., None], *args: Any) -> None:
         """``apply(*args)`` on the loop thread, waiting for it (5 s at most); directly when no loop runs."""
-        loop, thread = self._loop, self._thread
-        if loop is None or threading.current_thread() is thread:
-            apply(*args)
-            return
-        applied = threading.Event()
-
-        def run() -> None:
-            try:
-                apply(*args)
-            finally:
-                applied.set()
-
-        try:
-            loop.call_soon_threadsafe(run)
-        except RuntimeError:  # the loop closed meanwhile: no client is left to apply it to
-            apply(*args)
-            return
-        if not applied.wait(SETTING_WAIT_S):
+        if not apply_on_loop(self._loop, self._thread, functools.partial(apply, *args), SETTING_WAIT_S):
             log.warning("hub_setting_late", setting=getattr(apply, "__name__", repr(apply)))
 
     def _replace_token(self, token: str | None) -> None:

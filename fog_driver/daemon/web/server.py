@@ -99,6 +99,7 @@ from ..limits import (
     WEB_WS_HEARTBEAT_S,
     WEB_WS_WINDOW_S,
 )
+from ..loops import apply_on_loop
 from .access import AddressSet, Sessions, forwarded_client, host_name, normalize_name, origin_problem
 from .connections import CountedProtocol, TrackedConnection
 from .metrics import DaemonCollector, LatencyHistogram
@@ -296,24 +297,7 @@ class WebView:
     def _on_loop(self, apply: Callable[[], None]) -> None:
         """``apply()`` on the listener's loop, waiting for it (``WEB_STOP_TIMEOUT_S`` at most); at once when the
         listener does not run."""
-        loop = self._loop
-        if loop is None or not loop.is_running() or threading.current_thread() is self._thread:
-            apply()
-            return
-        done = threading.Event()
-
-        def run() -> None:
-            try:
-                apply()
-            finally:
-                done.set()
-
-        try:
-            loop.call_soon_threadsafe(run)
-        except RuntimeError:  # the loop closed meanwhile
-            apply()
-            return
-        done.wait(WEB_STOP_TIMEOUT_S)
+        apply_on_loop(self._loop, self._thread, apply, WEB_STOP_TIMEOUT_S)
 
     def _token_changed(self, token: str | None) -> None:
         """The token and the sessions change together, on the loop: no request sees the new token with an old
