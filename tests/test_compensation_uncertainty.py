@@ -172,3 +172,53 @@ def test_the_adapted_sigma_comes_from_the_laws_window_statistics():
     assert again.compare_dev_sq_adapted_dph2 == 0.0004
     del state["compare_dev_sq_adapted_dph2"]  # a state saved before it existed
     assert OnlineReadout(np.array([1.0, -0.5]), 0.1, AdaptConfig(), 1.0, state=state).adapted_sigma_dph >= 0.0
+
+
+def _joined(parts):
+    from fog_driver.compensation.pipeline import CompensatedColumns
+
+    return CompensatedColumns(
+        *(np.concatenate([getattr(p, f) for p in parts]) for f in CompensatedColumns.__dataclass_fields__)
+    )
+
+
+@pytest.mark.determinism
+@pytest.mark.parametrize("adapting", [False, True])
+def test_run_takes_the_candidates_in_runs_and_gives_the_bits_of_step(wesn, adapting):
+    """``Compensator.run`` steps the candidate structures after its block loop, in runs of blocks
+    (``DriftUncertainty.defer``): the sigmas, the flags and the candidates' states are step's, bit for bit,
+    in any chunks, across thermometer faults and a gap long enough to restart the pipeline at rest."""
+    from fog_driver.compensation.pipeline import MAX_GAP_S
+
+    faulty = SampleStream().run(decode_file(DATA / "sim-faults.bin"))
+    half = len(faulty) // 2
+    t_s = faulty.t_s.copy()
+    t_s[half:] += MAX_GAP_S + 3600.0  # a gap past MAX_GAP_S: the pipeline and the candidates restart at rest
+    samples = dataclasses.replace(faulty, t_s=t_s)
+    adapt = AdaptConfig(warmup_s=5.0, bias_capture_s=10.0, static_window_s=5.0) if adapting else None
+    extra = {"adapt": adapt, "reference_rate_dph": 0.0} if adapting else {}
+    stepper = Compensator(wesn, 0.1, **extra)
+    reference = [stepper.step(samples.sample(i)) for i in range(len(samples))]
+    assert len(stepper.uncertainty.candidates) == 2
+    sigmas = np.array([r.drift_sigma_dph for r in reference])
+    assert np.isfinite(sigmas).sum() > 0.8 * len(sigmas) and np.nanmin(sigmas) >= 0
+    for cuts in (
+        [len(samples)],
+        [1, 777, half, half + 3, len(samples)],
+        [*range(401, len(samples), 997), len(samples)],
+    ):
+        runner = Compensator(wesn, 0.1, **extra)
+        lo, parts = 0, []
+        for hi in cuts:
+            parts.append(
+                runner.run(
+                    dataclasses.replace(
+                        samples, **{f: getattr(samples, f)[lo:hi] for f in SampleBlock.__dataclass_fields__}
+                    )
+                )
+            )
+            lo = hi
+        joined = _joined(parts)
+        assert [repr(joined.sample(i)) for i in range(len(samples))] == [repr(r) for r in reference]
+        assert runner.uncertainty.get_state() == stepper.uncertainty.get_state()
+        assert runner.uncertainty._deferred is None

@@ -444,11 +444,18 @@ class Compensator:
         n = len(samples)
         held_before = (self.estimate_dph, self.estimate_flags, self._estimate_block, self.sigma_dph)
         blocks = self.averager.run(samples)
-        # The estimate each closed block leaves behind, in order.
+        # The estimate each closed block leaves behind, in order; the candidate structures' steps are
+        # taken after the loop, in runs (``DriftUncertainty.defer``), and their sigmas put in place.
         after = []
-        for i in range(len(blocks)):
-            self._on_block(blocks.block(i))
-            after.append((self.estimate_dph, self.estimate_flags, self._estimate_block, self.sigma_dph))
+        self.uncertainty.defer()
+        try:
+            for i in range(len(blocks)):
+                self._on_block(blocks.block(i))
+                after.append((self.estimate_dph, self.estimate_flags, self._estimate_block, self.sigma_dph))
+        finally:
+            resolved = self.uncertainty.resolve()
+            after = [(*a[:3], _resolved(a[3], resolved)) for a in after]
+            self.sigma_dph = _resolved(self.sigma_dph, resolved)
         # Which estimate each frame sees: the latest from a block with a smaller index.
         first_us = cast(int, self.averager._first_us)  # set: a block has closed, or these samples set it
         frame_block = (np.rint(samples.t_s * 1e6).astype(np.int64) - first_us) // self.averager.block_us
@@ -478,3 +485,8 @@ class Compensator:
         return CompensatedColumns(
             samples.seq, samples.t_s, dtheta, drift, dtheta_comp, angle_raw, angle_comp, temps, flags, sigmas[which + 1]
         )
+
+
+def _resolved(sigma: float, resolved: np.ndarray) -> float:
+    """A sigma of ``DriftUncertainty.step`` while deferring: placeholder ``-k`` is ``resolved[k - 1]``."""
+    return float(resolved[int(-sigma) - 1]) if sigma < 0 else sigma

@@ -155,18 +155,39 @@ class DriftUncertainty:
         self.domain = domain
         self._fixed_sq = (spec.residual_scale * spec.residual_dph) ** 2
         self._box = spec.box_scale * spec.target_range_dph
+        self._deferred: list[list[Any]] | None = None  # between defer() and resolve(): the candidates' work
 
     def reset(self) -> None:
+        if self._deferred is not None and self.candidates:
+            self._deferred.append(["reset"])
+            return
         for c in self.candidates:
             c.reset()
 
     def start(self, z: np.ndarray) -> None:
+        if self._deferred is not None and self.candidates:
+            self._deferred.append(["start", np.array(z, dtype=np.float64)])
+            return
         for c in self.candidates:
             c.start(z)
 
     def step(self, z: np.ndarray, u: Any, estimate_dph: float) -> float:
         """The sigma of ``estimate_dph``, the model's output on the standardized inputs ``z`` (as the model
-        saw them) whose raw row, before clamping, is ``u``.  Finite whenever the estimate is."""
+        saw them) whose raw row, before clamping, is ``u``.  Finite whenever the estimate is.
+
+        Between ``defer`` and ``resolve`` it returns a placeholder instead (a negative number, which no
+        sigma is), resolved to the sigma by ``resolve``."""
+        box = self._box * box_distance(self.domain, u)
+        if self._deferred is not None and self.candidates:
+            last = self._deferred[-1] if self._deferred else None
+            if last is None or last[0] != "step":
+                last = ["step", [], [], [], self._placeholders]
+                self._deferred.append(last)
+            last[1].append(np.array(z, dtype=np.float64))
+            last[2].append(estimate_dph)
+            last[3].append(box)
+            self._placeholders += 1
+            return -float(self._placeholders)
         spread_sq = 0.0
         if self.candidates:
             total = 0.0
@@ -174,9 +195,43 @@ class DriftUncertainty:
                 dev = c.step(z) - estimate_dph
                 total += dev * dev
             spread_sq = total / len(self.candidates)
-        box = self._box * box_distance(self.domain, u)
         sigma = math.sqrt((self.spec.spread_scale**2) * spread_sq + self._fixed_sq + box * box)
         return sigma if math.isfinite(sigma) else math.sqrt(self._fixed_sq + box * box)
+
+    def defer(self) -> None:
+        """Collect the candidates' steps instead of taking them one block at a time, for ``resolve`` to take
+        in runs (``WesnModel.run``, bit-identical to its steps): the compensator's ``run`` over many blocks.
+        ``step`` returns placeholders meanwhile."""
+        self._deferred = []
+        self._placeholders = 0
+
+    def resolve(self) -> np.ndarray:
+        """Take the collected work in order, each run of steps as one ``run`` of every candidate, and end
+        deferring; returns the sigmas, placeholder ``-k`` at index ``k - 1``.  The arithmetic is ``step``'s,
+        element by element, so the sigmas and the candidates' states are those of the steps."""
+        work, self._deferred = self._deferred or [], None
+        sigmas = np.empty(self._placeholders if work else 0)
+        for item in work:
+            if item[0] == "reset":
+                for c in self.candidates:
+                    c.reset()
+            elif item[0] == "start":
+                for c in self.candidates:
+                    c.start(item[1])
+            else:
+                _, z, estimates, boxes, first = item
+                z, estimate, box = np.array(z), np.array(estimates), np.array(boxes)
+                total = np.zeros(len(z))
+                for c in self.candidates:
+                    dev = c.run(z) - estimate
+                    total = total + dev * dev
+                spread_sq = total / len(self.candidates)
+                fixed = self._fixed_sq + box * box
+                with np.errstate(invalid="ignore", over="ignore"):
+                    sigma = np.sqrt((self.spec.spread_scale**2) * spread_sq + self._fixed_sq + box * box)
+                sigma = np.where(np.isfinite(sigma), sigma, np.sqrt(fixed))
+                sigmas[first : first + len(z)] = sigma
+        return sigmas
 
     def adapted(self, adapted_sigma_dph: float, u: Any) -> float:
         """The sigma of an adapted estimate (``adapt.OnlineReadout.adapted_sigma_dph``, from the law's own
