@@ -78,6 +78,28 @@ def test_the_fit_finds_a_known_coil_lag(coil_lag_s):
     assert "warning" not in model.selection
 
 
+@pytest.mark.parametrize("coil_lag_s", [558.8, 1705.3, 5000.0])
+def test_lags_past_a_tenth_of_the_run_are_tried_only_when_the_residual_still_falls_there(coil_lag_s):
+    """A 255-min run: lags up to a tenth of it (22.7 min) are tried; a coil lagging longer leaves the best
+    of them at that edge, and then lags up to a fifth (44.4 min) are tried too and taken when they beat the
+    edge beyond the noise.  A coil lagging longer still is reported as lagging at least the longest lag tried."""
+    capture = synthetic_capture(coil_lag_s, staircase(5.0, 1.0, 600, 5))
+    model = fit_wesn("wesn", WESN_DEFAULTS, [capture], fit_normalizer([capture]), FitConfig())
+    s = model.selection
+    limits = " | ".join(s["limits"])
+    tenth = max(v for v in COIL_LAG_GRID_S if v <= 0.1 * 15300)
+    fifth = max(v for v in COIL_LAG_GRID_S if v <= 0.2 * 15300)
+    if coil_lag_s < tenth:  # interior: nothing beyond the tenth is tried
+        assert s["coil_lag_s"] == coil_lag_s and max(s["lag_rms_1min_dph"]) == tenth
+        assert "were not tried" in limits and "a fifth" not in limits
+        return
+    assert max(s["lag_rms_1min_dph"]) == fifth and "a fifth" in limits and "were not tried" not in limits
+    if coil_lag_s <= fifth:
+        assert s["coil_lag_s"] == coil_lag_s and "at least" not in limits
+    else:
+        assert s["coil_lag_s"] == fifth and f"at least {fifth / 60:.1f} min" in limits
+
+
 @pytest.mark.parametrize("stages", [(279.4, 279.4), (186.3, 186.3, 186.3), (1200.0, 300.0)])
 def test_the_fit_finds_a_coil_of_several_stages(stages):
     """A coil of two or three first-order stages in series: the fit takes a cascade (order 2 or 3) with

@@ -5,7 +5,7 @@ What the ``wesn`` model fits, and what a run must hold for the fit to tell it ap
 (``fog_driver.compensation.fitting.wesn``; ``fog_driver.compensation.models.wesn``):
 
 * the coil's lag, from ``COIL_LAG_GRID_S`` (1 to 87 min), tried only up to ``LAG_FRACTION`` (a tenth)
-  of the run.  A first-order lag tau shows in the settling after the temperature stops moving,
+  of the run (a fifth when the residual still falls at the tenth: not to be planned on).  A first-order lag tau shows in the settling after the temperature stops moving,
   ``exp(-t / tau)``: a soak after a ramp, as long as the lag (``soak >= tau``) sees 63 % of it;
   a fast ramp into the soak makes its start step-like (the largest transient per degC);
 * the coil's stages in series (2 or 3): tried only in runs of ``NOTED_LAG_S / LAG_FRACTION`` (250 min);
@@ -319,8 +319,9 @@ def identifiability_gaps(chamber: ChamberProfile) -> tuple[Gap, ...]:
         gaps.append(
             Gap(
                 f"coil lags above {_fmt_min(max(tried)) if tried else 'none'}".replace("above none", "(all)"),
-                f"the fit tries lags up to a tenth of the run ({_fmt_min(run_s)}); the model's, up to "
-                f"{_fmt_min(max(COIL_LAG_GRID_S))}, need {_fmt_min(max(COIL_LAG_GRID_S) / LAG_FRACTION)}",
+                f"the fit tries lags up to a tenth of the run ({_fmt_min(run_s)}), a fifth only when the "
+                f"residual still falls there; the model's, up to {_fmt_min(max(COIL_LAG_GRID_S))}, need "
+                f"{_fmt_min(max(COIL_LAG_GRID_S) / LAG_FRACTION)}",
             )
         )
     shown = [lag for lag in tried if lag <= soak_s]

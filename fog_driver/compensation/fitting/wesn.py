@@ -5,7 +5,11 @@ Fitting (``_fit_ring_form``), everything from the fit data alone:
 
 0. the structure cut down to what the data can identify (``identifiable_structure``: lags up to a
    tenth of the longest capture, a coil of several stages only in runs of 250 min, history up to a
-   third, the bias powers only over 5 degC), each cut said in ``selection["limits"]``;
+   third, the bias powers only over 5 degC), each cut said in ``selection["limits"]``.  When the best
+   coil sits at the longest lag tried, lags up to a fifth (``EDGE_LAG_FRACTION``) are tried too, and
+   one of them is taken only when it beats that edge as more stages must beat fewer (below); a lag
+   at the top of those is said as "at least" (on development instrument 30 a 3-stage coil of 44 min:
+   the edge at 35.5 min left 1.58x the noise floor on other profiles, 1.09x with the lag found);
 1. the coil: its lag (mean delay) from ``COIL_LAG_GRID_S`` (60 s to 87 min, 25 % apart) and its
    number of stages (1, 2 or 3), by the smallest in-sample residual in 1-minute means of the model
    WITHOUT the history neurons (with them, the fit can shape a multi-stage coil's response out of
@@ -75,6 +79,10 @@ ORDER_TOLERANCE = 0.01
 #: What a fit can identify: coil lags up to this fraction of its longest capture, history neurons up to
 #: HISTORY_FRACTION of it, and the bias curve's powers only over a ring temperature span of MIN_SPAN_C.
 LAG_FRACTION = 0.1
+
+
+#: When the residual still falls at the longest lag LAG_FRACTION allows, lags up to this fraction are tried too.
+EDGE_LAG_FRACTION = 0.2
 
 
 HISTORY_FRACTION = 1.0 / 3.0
@@ -156,6 +164,7 @@ def _fit_ring_form(kind: str, wc: WesnConfig, captures, normalizer, config, say=
     """
 
     rate = config.model_rate_hz
+    grid_s = wc.fiber_lag_grid_s
     wc, limits = identifiable_structure(wc, captures, rate)
     n_history = len(wc.history_s)
     targets = [c.target_dph for c in captures]
@@ -163,10 +172,11 @@ def _fit_ring_form(kind: str, wc: WesnConfig, captures, normalizer, config, say=
     groups = capture_groups(captures)
     per_coil: dict[tuple[float, int], Any] = {}
     ring_weights = ring_weights_for(normalizer)
-    coils = len(wc.coil_orders) * len(wc.fiber_lag_grid_s)
-    for order in wc.coil_orders:
-        for lag in wc.fiber_lag_grid_s:
-            say(f"{kind}: reservoir states, coil {len(per_coil) + 1}/{coils} ({100 * len(per_coil) / coils:.0f} %)")
+
+    def add_coils(lags: tuple[float, ...]) -> None:
+        coils = len(wc.coil_orders) * len(lags)
+        for n, (order, lag) in enumerate((m, v) for m in wc.coil_orders for v in lags):
+            say(f"{kind}: reservoir states, coil {n + 1}/{coils} ({100 * n / coils:.0f} %)")
             reservoir = wc.reservoir(1.0 / rate, lag, order, ring_weights, len(normalizer.mean))
             n_features = n_regressors(
                 reservoir.params.n_neurons,
@@ -182,28 +192,50 @@ def _fit_ring_form(kind: str, wc: WesnConfig, captures, normalizer, config, say=
             regressors = [capture_regressors(probe, c, normalizer, None) for c in captures]
             no_history = np.r_[0, np.arange(1 + n_history, n_features)]  # every column but the history neurons'
             per_coil[lag, order] = (reservoir, regressors, no_history)
+
     alphas = (wc.ridge_alpha,) if wc.ridge_alpha is not None else wc.ridge_alpha_grid
     minute = max(2, int(round(60 * rate)))
-    choices = {}
-    for k, alpha in enumerate(alphas):
-        say(f"{kind}: ridge penalty {k + 1}/{len(alphas)}, coil lags and cross-validation")
-        criteria, squares = {}, {}
-        for coil, (_, regressors, columns) in per_coil.items():
+    edge_s = max(wc.fiber_lag_grid_s)
+
+    def choose_coils() -> dict[float, Any]:
+        choices = {}
+        for k, alpha in enumerate(alphas):
+            say(f"{kind}: ridge penalty {k + 1}/{len(alphas)}, coil lags and cross-validation")
+            criteria, squares = {}, {}
+            for coil, (_, regressors, columns) in per_coil.items():
+                x = np.vstack([f[c.static][:, columns] for f, c in zip(regressors, captures)])
+                w, b = standardized_ridge(x, y_fit, alpha, groups=groups)
+                residuals = [t - (f[:, columns] @ w + b) for f, t in zip(regressors, targets)]
+                criteria[coil] = _averaged_residual(residuals, captures, minute)
+                squares[coil] = minute_chunk_squares(residuals, captures, minute)
+            coil = _beyond_edge(edge_s, criteria, squares)
+            tied = tied_coils(coil, squares)
+            _, regressors, columns = per_coil[coil]
             x = np.vstack([f[c.static][:, columns] for f, c in zip(regressors, captures)])
-            w, b = standardized_ridge(x, y_fit, alpha, groups=groups)
-            residuals = [t - (f[:, columns] @ w + b) for f, t in zip(regressors, targets)]
-            criteria[coil] = _averaged_residual(residuals, captures, minute)
-            squares[coil] = minute_chunk_squares(residuals, captures, minute)
-        coil = _chosen_coil(criteria, squares)
-        tied = tied_coils(coil, squares)
-        _, regressors, columns = per_coil[coil]
-        x = np.vstack([f[c.static][:, columns] for f, c in zip(regressors, captures)])
-        _, cv = cross_validated_alpha(
-            x, y_fit, folds=4, average_rows=max(2, int(round(600 * rate))), grid=(alpha,), groups=groups
+            _, cv = cross_validated_alpha(
+                x, y_fit, folds=4, average_rows=max(2, int(round(600 * rate))), grid=(alpha,), groups=groups
+            )
+            choices[alpha] = (cv[alpha], coil, criteria, tied)
+        return choices
+
+    add_coils(wc.fiber_lag_grid_s)
+    choices = choose_coils()
+    beyond = tuple(v for v in grid_s if edge_s < v <= EDGE_LAG_FRACTION * _longest_s(captures, rate))
+    if beyond and any(v[1][0] == edge_s for v in choices.values()):  # the residual still falls at the edge
+        add_coils(beyond)
+        choices = choose_coils()
+        limits = [t for t in limits if LAG_LIMIT not in t]
+        limits.append(
+            f"the residual still fell at the longest coil lag tried first ({edge_s / 60:.1f} min, a tenth of the "
+            f"longest capture), so lags up to {max(beyond) / 60:.1f} min (a fifth) were tried too"
         )
-        choices[alpha] = (cv[alpha], coil, criteria, tied)
     alpha = min(choices, key=lambda a: choices[a][0])
     _, (lag, order), criteria, tied = choices[alpha]
+    if lag == max(v for v, _ in per_coil) and lag < max(grid_s):
+        limits.append(
+            f"the coil's lag is at least {lag / 60:.1f} min: the residual still falls at the longest lag tried, "
+            f"and longer lags are beyond what these captures can identify"
+        )
 
     def final(coil: tuple[float, int]) -> WesnModel:
         reservoir, regressors, _ = per_coil[coil]
@@ -275,6 +307,23 @@ def ring_weights_for(normalizer) -> tuple[float, ...]:
     return s_top / (s_top + s_bottom), s_bottom / (s_top + s_bottom)
 
 
+def _beyond_edge(edge_s: float, criteria: dict, squares: dict) -> tuple[float, int]:
+    """``_chosen_coil`` among the lags up to ``edge_s``; a longer lag (tried only when the residual still
+    falls at the edge) only when it beats that choice by more than ``ORDER_TOLERANCE`` and by more than
+    ``choice.SE_MULTIPLE`` standard errors of the paired margin, as more stages must."""
+    coil = _chosen_coil({k: v for k, v in criteria.items() if k[0] <= edge_s}, squares)
+    if len(criteria) == sum(k[0] <= edge_s for k in criteria):
+        return coil
+    longer = _chosen_coil(criteria, squares)
+    if (
+        longer[0] > edge_s
+        and criteria[longer] < criteria[coil] * (1.0 - ORDER_TOLERANCE)
+        and paired_margin(squares[coil], squares[longer]).b_better
+    ):
+        return longer
+    return coil
+
+
 def _chosen_coil(criteria: dict, squares: dict) -> tuple[float, int]:
     """The (lag, order) of smallest criterion, a higher order only when it beats every lower order's best
     by more than ``ORDER_TOLERANCE`` and by more than ``choice.SE_MULTIPLE`` standard errors of the paired
@@ -335,6 +384,13 @@ def spread_candidates(tied: list[tuple[float, int]], chosen: tuple[float, int]) 
     return [others[i] for i in picks]
 
 
+LAG_LIMIT = "coil lags above"
+
+
+def _longest_s(captures, model_rate_hz: float) -> float:
+    return max(len(c.static) for c in captures) / model_rate_hz
+
+
 def identifiable_structure(wc: WesnConfig, captures, model_rate_hz: float) -> tuple[WesnConfig, list[str]]:
     """The ring form's structure cut down to what the captures can identify, and what was cut, in words.
 
@@ -343,7 +399,7 @@ def identifiable_structure(wc: WesnConfig, captures, model_rate_hz: float) -> tu
     (250 min), history neurons beyond ``HISTORY_FRACTION`` of it are left out; the
     bias curve's powers need the ring temperature to span ``MIN_SPAN_C``, else the model is linear in
     the coil temperature (``state_powers`` 0)."""
-    longest_s = max(len(c.static) for c in captures) / model_rate_hz
+    longest_s = _longest_s(captures, model_rate_hz)
     ring = np.concatenate([ring_of(c.inputs[c.static])[0] for c in captures])
     ring = ring[np.isfinite(ring)]
     span_c = float(ring.max() - ring.min()) if len(ring) else 0.0
@@ -352,7 +408,7 @@ def identifiable_structure(wc: WesnConfig, captures, model_rate_hz: float) -> tu
     lags = tuple(v for v in wc.fiber_lag_grid_s if v <= LAG_FRACTION * longest_s) or wc.fiber_lag_grid_s[:1]
     if max(lags) < NOTED_LAG_S and len(lags) < len(wc.fiber_lag_grid_s):  # said when it can matter
         limits.append(
-            f"the fit data last {minutes:.0f} min: coil lags above {max(lags) / 60:.1f} min cannot be "
+            f"the fit data last {minutes:.0f} min: {LAG_LIMIT} {max(lags) / 60:.1f} min cannot be "
             f"identified and were not tried"
         )
     orders = wc.coil_orders
