@@ -5,7 +5,8 @@ What the ``wesn`` model fits, and what a run must hold for the fit to tell it ap
 (``fog_driver.compensation.fitting.wesn``; ``fog_driver.compensation.models.wesn``):
 
 * the coil's lag, from ``COIL_LAG_GRID_S`` (1 to 87 min), tried only up to ``LAG_FRACTION`` (a tenth)
-  of the run (a fifth when the residual still falls at the tenth: not to be planned on).  A first-order lag tau shows in the settling after the temperature stops moving,
+  of the run (a fifth when the residual still falls at the tenth: not to be planned on).  A first-order
+  lag tau shows in the settling after the temperature stops moving,
   ``exp(-t / tau)``: a soak after a ramp, as long as the lag (``soak >= tau``) sees 63 % of it;
   a fast ramp into the soak makes its start step-like (the largest transient per degC);
 * the coil's stages in series (2 or 3): tried only in runs of ``NOTED_LAG_S / LAG_FRACTION`` (250 min);
