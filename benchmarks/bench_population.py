@@ -1,13 +1,15 @@
 """Compensation on a population of instruments the models were not tuned on.
 
-    python benchmarks/bench_population.py [--set eval2|eval4|eval|dev] [--instruments N] [--kinds K,K] [--rate-hz 10]
+    python benchmarks/bench_population.py [--set eval2|eval4|eval6|dev] [--instruments N] [--kinds K,K] [--rate-hz 10]
                                           [--workers 2] [--workdir DIR] [--per-instrument] [--adapt]
                                           [--fit-profile NAME] [--score-profiles P,P] [--compare-programs]
 
 THE RULE.  Instrument seeds come in ranges.  ``dev`` (0 ..) is for developing and tuning: look at
 it as often as you like.  ``eval`` (10000 ..), ``eval2`` (20000 ..), ``eval3`` (30000 .., first
-used by ``bench_thermo_fault.py``, which logs its runs) and ``eval4`` (40000 .., for issue 30: the
-model choice, the drift's uncertainty and the calibration program) are reserved for evaluation:
+used by ``bench_thermo_fault.py``, which logs its runs), ``eval4`` (40000 .., for issue 30: the
+model choice, the drift's uncertainty and the calibration program), ``eval5`` (50000 .., for issue
+32: adapting from the table's angles) and ``eval6`` (60000 .., for issue 30's fit once ``eval4`` was
+spent) are reserved for evaluation:
 nobody looks at them while developing a model, choosing its settings or its structure; one is run
 to report a model that is finished, and what it shows is reported as it is, never fed back.  Each
 model version is evaluated on an evaluation range no earlier version was developed after: a range
@@ -134,6 +136,8 @@ SEED_SETS = {
     "eval2": 20_000,
     "eval3": 30_000,
     "eval4": 40_000,
+    "eval5": 50_000,
+    "eval6": 60_000,
 }  #: first instrument seed of each set (THE RULE above)
 #: Model kinds; "auto" is what ``fog-driver fit`` fits without --kind (the default's choice between the wesn
 #: and the polynomial).

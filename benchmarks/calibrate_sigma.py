@@ -23,6 +23,16 @@ on the constant residual part and left the worst instrument at 82.8 % and the ho
 unit factors covered 98.3 % pooled (over the 95 +- 3 % band), worst instrument 89.8 %; a common 0.85
 covers 97.1 % pooled, worst instrument 82.8 %, the top-sigma quarter 99.0 %, every extrapolating minute
 (1436), median sigma 0.84x the error's RMS, top/bottom-quarter error ratio 3.28 (median).
+
+Checked again once the calibration program was the recipe (``--fit-profile calibration``, and pooled,
+``--fit-profile paper,calibration``: each instrument's two fits count as two; 2026-12-04, with the fit's
+longer lags at the edge): fitted on ``calibration``, the common 0.85 covers 98.8 % pooled (0.8 over the
+band's top: a better-pinned model leaves errors with heavier tails about a smaller spread), worst
+instrument 93.3 %, median sigma 0.81x the error's RMS, top/bottom 2.25; the paper fits 97.1 % as before.
+Pooled over both, 0.85 covers 97.9 %, every one of the 24 fits at 80 % or more (worst 82.8 %), the hot
+soaks 89.5 %.  A smaller factor would bring the calibration fits inside the band (0.7: 97.2 %) but takes
+the paper fits' worst instruments under 80 % (0.7 pooled: 22 of 24, worst 77.4 %), and on ``eval4`` the
+paper fits with 0.85 were already at 95.7 % and 22 of 24: 0.85 stays.
 """
 
 from __future__ import annotations
@@ -55,12 +65,17 @@ SCORE = ("soak-cycle", "steps-moves", "hot-soak")
 #: The paper program's run beyond its range: up at 1 degC/min to 10 degC above its hottest (55 degC), 120 min
 #: there, back down; 30 min held at 20 degC before and after.
 HOT_SOAK = beyond_profile(resolve_profile("paper"), soak_min=120.0, hold_min=30.0, name="hot-soak")
-COMMON_SCALES = (0.8, 0.85, 0.9, 0.95)
+COMMON_SCALES = (0.7, 0.75, 0.8, 0.85, 0.9)
 
 
-def instrument(seed: int, workdir: Path) -> dict:
-    fit_run = capture(workdir, seed, "paper", 10 * seed + 1, 10)
-    cached = workdir / f"i{seed}" / "wesn-sigma.yaml"
+def hot_soak(fit_profile: str):
+    """The fit program's run beyond its range (``HOT_SOAK`` for the paper program)."""
+    return beyond_profile(resolve_profile(fit_profile), soak_min=120.0, hold_min=30.0, name=f"hot-soak-{fit_profile}")
+
+
+def instrument(seed: int, workdir: Path, fit_profile: str = "paper") -> dict:
+    fit_run = capture(workdir, seed, fit_profile, 10 * seed + 1, 10)
+    cached = workdir / f"i{seed}" / ("wesn-sigma.yaml" if fit_profile == "paper" else f"wesn-sigma-{fit_profile}.yaml")
     if cached.exists():
         model = load_model(cached)
     else:
@@ -72,7 +87,8 @@ def instrument(seed: int, workdir: Path) -> dict:
     spec = dataclasses.replace(model.sigma_spec, residual_dph=r)
     out: dict = {"seed": seed, "err": [], "parts": [], "extra": [], "run": [], "n_candidates": len(spec.candidates)}
     for i, profile in enumerate(SCORE):
-        path = capture(workdir, seed, HOT_SOAK if profile == "hot-soak" else profile, 10 * seed + 2 + i, 10)
+        hot = HOT_SOAK if fit_profile == "paper" else hot_soak(fit_profile)
+        path = capture(workdir, seed, hot if profile == "hot-soak" else profile, 10 * seed + 2 + i, 10)
         truth = read_truth(path.with_suffix(".truth.csv"))
         n = len(truth["drift_dph"]) // 60 * 60
         static = static_minutes_mask(truth, n)
@@ -143,19 +159,30 @@ def main() -> None:
     parser.add_argument("--instruments", type=int, default=24)
     parser.add_argument("--workdir", type=Path, required=True)
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument(
+        "--fit-profile",
+        default="paper",
+        help="the program each wesn is fitted on (default paper); several, comma-separated, are pooled: each "
+        "instrument's fit on each program counts as one instrument",
+    )
     args = parser.parse_args()
     t0 = time.perf_counter()
     seeds = range(args.first, args.first + args.instruments)
+    programs = args.fit_profile.split(",")
+    jobs = [(seed, program) for program in programs for seed in seeds]
     with ProcessPoolExecutor(max_workers=args.workers) as pool:
-        results = list(pool.map(instrument, seeds, [args.workdir] * len(seeds)))
-    print(f"dev instruments {seeds[0]}..{seeds[-1]}  [{time.perf_counter() - t0:.0f} s]")
+        results = list(pool.map(instrument, [s for s, _ in jobs], [args.workdir] * len(jobs), [p for _, p in jobs]))
+    print(f"dev instruments {seeds[0]}..{seeds[-1]}, fitted on {args.fit_profile}  [{time.perf_counter() - t0:.0f} s]")
     print("candidates per model: " + ", ".join(str(r["n_candidates"]) for r in results))
     report(results, (1.0, 1.0, 1.0))
     k = choose(results)
     report(results, k)
     for c in COMMON_SCALES:  # the shipped choice: one common factor on the spread and the residual, box 1
         report(results, (c, c, 1.0))
-    np.savez(args.workdir / "sigma_parts.npz", **{f"{k}_{r['seed']}": r[k] for r in results for k in r if k != "seed"})
+    np.savez(
+        args.workdir / f"sigma_parts-{'+'.join(programs)}.npz",
+        **{f"{k}_{p}_{r['seed']}": r[k] for (_, p), r in zip(jobs, results) for k in r if k != "seed"},
+    )
 
 
 if __name__ == "__main__":

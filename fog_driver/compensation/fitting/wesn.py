@@ -8,8 +8,11 @@ Fitting (``_fit_ring_form``), everything from the fit data alone:
    third, the bias powers only over 5 degC), each cut said in ``selection["limits"]``.  When the best
    coil sits at the longest lag tried, lags up to a fifth (``EDGE_LAG_FRACTION``) are tried too, and
    one of them is taken only when it beats that edge as more stages must beat fewer (below); a lag
-   at the top of those is said as "at least" (on development instrument 30 a 3-stage coil of 44 min:
-   the edge at 35.5 min left 1.58x the noise floor on other profiles, 1.09x with the lag found);
+   at the top of those is said as "at least".  On development instruments 0..47 fitted on both
+   programs (96 fits), the longer lags were tried in 14 fits and taken in one: instrument 30's
+   calibration run, a 3-stage coil of 44 min, where the edge at 35.5 min left 1.58x the noise floor on
+   fast-ramps and soak-cycle and the lag found 1.09x; in the other 13 the edge held and the longer
+   lags that tie with it joined the candidate structures;
 1. the coil: its lag (mean delay) from ``COIL_LAG_GRID_S`` (60 s to 87 min, 25 % apart) and its
    number of stages (1, 2 or 3), by the smallest in-sample residual in 1-minute means of the model
    WITHOUT the history neurons (with them, the fit can shape a multi-stage coil's response out of
