@@ -43,6 +43,13 @@ runs:
   the floor on one instrument; 1.05x the polynomial's excess where both are within 10 % of the floor).
   ``eval4`` is spent for the program: the failure is looked for on ``dev`` 24 and up, and a changed
   program is evaluated on a set never used.
+* 2026-12-04, ``eval6`` (60000..60023), first run, ``--compare-programs --per-instrument``: the same program
+  with the fit changed on ``dev`` (lags up to a fifth of the run when the best sits at a tenth, found on
+  ``dev`` 30; the sigma factors checked on fits of the program, kept).  Every target passed: the choice
+  (auto the better model everywhere), the uncertainty (pooled coverage 95.5 %, 22 of 24 instruments at
+  80 %, top quarter 99.4 %, 1185 extrapolating minutes 100 %, sharpness 0.81x, top/bottom 1.87x) and the
+  program (median 1.06x the floor, worst 1.69x, worst excess 0.91x the polynomial's; one paper run 1.26x,
+  2.68x, 1.05x).
 
 Individual evaluation instruments are not to be studied: to find what failed there, draw more
 development instruments (``--set dev --first 72``) and look for the same failure among them.
