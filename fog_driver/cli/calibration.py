@@ -30,7 +30,13 @@ from ..files.typed_mapping import dataclass_from_mapping
 from ..files.yamlio import read_yaml
 from ..formats.registry import FORMATS
 from ..modelfiles import load_model, save_model
-from ..offline.compensate import check_model, compensate_capture, csv_sidecar_path, write_csv_provenance
+from ..offline.compensate import (
+    capture_facts,
+    check_model,
+    compensate_capture,
+    csv_sidecar_path,
+    write_csv_provenance,
+)
 from ..offline.fit import fit_model_file
 from ..offline.rows import compensated_rows, format_row
 from ..report import positioning
@@ -345,10 +351,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if out.is_dir():  # --force: the report's files replace files of those names, never a capture
         refuse_captures(out / name for name in report_file_names(list(compare)))
     capture_serial = None
+    facts = capture_facts(args.capture, args.format)  # read once for every model
     for path, model in [(args.model, model_file), *zip(args.compare, compare.values())]:
-        checked = check_model(
-            model, args.capture, model_name=path, force_model=args.force_model, wire_format=args.format
-        )
+        checked = check_model(model, args.capture, model_name=path, force_model=args.force_model, facts=facts)
         capture_serial = checked.capture_serial
         if checked.warning:
             print(f"warning: {checked.warning}", file=sys.stderr)

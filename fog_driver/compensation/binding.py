@@ -49,6 +49,14 @@ def _new_instrument(current: IdentityFrame | None, identity: IdentityFrame) -> b
     return current is None or (identity.serial, identity.rate_hz) != (current.serial, current.rate_hz)
 
 
+def another_instruments_model(model_name: str, model_file: ModelFile, instrument: str, hint: str) -> ModelMismatchError:
+    """The one refusal of a model fitted for another serial, live (``instrument``: "the instrument is 'S'") and
+    offline ("C is from instrument 'S'"), ``hint`` saying how to apply it anyway."""
+    return ModelMismatchError(
+        f"{model_name} was fitted for instrument {model_file.instrument_serial!r}, {instrument} ({hint})"
+    )
+
+
 class InstrumentCompensation:
     """A model file bound to the instrument on a stream (see the module docstring).
 
@@ -101,9 +109,8 @@ class InstrumentCompensation:
         model_file = model_file or self.model_file
         force = self.force if force is None else force
         if identity.serial != model_file.instrument_serial and not force:
-            raise ModelMismatchError(
-                f"{model_name or self.model_name} was fitted for instrument {model_file.instrument_serial!r}, "
-                f"the instrument is {identity.serial!r} ({self.hint})"
+            raise another_instruments_model(
+                model_name or self.model_name, model_file, f"the instrument is {identity.serial!r}", self.hint
             )
 
     def bind(self, identity: IdentityFrame) -> str | None:

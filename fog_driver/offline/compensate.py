@@ -16,7 +16,12 @@ from pathlib import Path
 from typing import Any, NamedTuple, cast
 
 from ..compensation.adapt import AdaptConfig
-from ..compensation.binding import InstrumentCompensation, ModelMismatchError, check_channels, split_at_identities
+from ..compensation.binding import (
+    InstrumentCompensation,
+    another_instruments_model,
+    check_channels,
+    split_at_identities,
+)
 from ..compensation.model import ModelFile
 from ..compensation.pipeline import CompensatedColumns, Compensator
 from ..errors import InputFileError
@@ -51,28 +56,44 @@ class ModelCheck(NamedTuple):
     warning: str | None  #: with ``force_model``, the line that says another instrument's model is applied
 
 
+class CaptureFacts(NamedTuple):
+    """What ``check_model`` reads of a capture, once for every model checked against it (``capture_facts``)."""
+
+    wire: WireSettings
+    serial: str | None  #: the serial of its first plausible IDENTITY (None: it has none)
+
+
+def capture_facts(capture: str | Path, wire_format: str = "auto") -> CaptureFacts:
+    wire = wire_settings_for(capture, wire_format)
+    return CaptureFacts(wire, first_serial(capture, wire))
+
+
 def check_model(
-    model_file: ModelFile, capture: str | Path, *, model_name: str, force_model: bool, wire_format: str = "auto"
+    model_file: ModelFile,
+    capture: str | Path,
+    *,
+    model_name: str,
+    force_model: bool,
+    wire_format: str = "auto",
+    facts: CaptureFacts | None = None,
 ) -> ModelCheck:
     """Whether ``model_file`` applies to ``capture``, before any work: fitted on the temperature channels its
     frames carry (else ``ModelMismatchError``, whatever ``force_model`` says), and for the instrument its first
     IDENTITY frame names (else ``ModelMismatchError`` naming both serials and ``--force-model``; with
-    ``force_model``, the warning line naming both)."""
-    wire = wire_settings_for(capture, wire_format)
-    check_channels(model_file, wire, model_name, str(capture))
-    capture_serial = first_serial(capture, wire)
-    model_serial = model_file.instrument_serial
-    if capture_serial is None or capture_serial == model_serial:
+    ``force_model``, the warning line naming both).  ``facts``: the capture's, when read already."""
+    facts = facts or capture_facts(capture, wire_format)
+    check_channels(model_file, facts.wire, model_name, str(capture))
+    capture_serial = facts.serial
+    if capture_serial is None or capture_serial == model_file.instrument_serial:
         return ModelCheck(capture_serial, None)
     if not force_model:
-        raise ModelMismatchError(
-            f"{model_name} was fitted for instrument {model_serial!r}, {capture} is from instrument "
-            f"{capture_serial!r} ({FORCE_MODEL_HINT})"
+        raise another_instruments_model(
+            model_name, model_file, f"{capture} is from instrument {capture_serial!r}", FORCE_MODEL_HINT
         )
     return ModelCheck(
         capture_serial,
-        f"--force-model: applying {model_name}, fitted for instrument {model_serial!r}, to {capture}, from "
-        f"instrument {capture_serial!r}",
+        f"--force-model: applying {model_name}, fitted for instrument {model_file.instrument_serial!r}, to "
+        f"{capture}, from instrument {capture_serial!r}",
     )
 
 
