@@ -52,6 +52,8 @@ def _values(name: str, c: InstrumentConfig) -> list[float]:
                 "radial_gradient_dph_per_c",
                 "hysteresis_dph_per_c",
                 "hysteresis_tau_s",
+                "scale_factor_ppm",
+                "scale_factor_ppm_per_c",
             )
         },
     }
@@ -207,3 +209,19 @@ def test_simulate_takes_an_instrument_seed(tmp_path):
         timeout=60,
     )
     assert bad.returncode == 2 and "seed must be >= 0" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_the_drawn_scale_factor_error_reaches_the_truth(tmp_path):
+    """s(Tf) = (s0 + s1 (Tf - 20)) 1e-6 with the drawn offset and slope: the truth's scale-factor term is
+    s times the true input (table and Earth), second by second, against the truth's own fiber temperature."""
+    k = next(k for k in SEEDS if draw_instrument(k).gyro.scale_factor_ppm < -30)
+    config = draw_instrument(k)
+    g = config.gyro
+    assert 5 <= abs(g.scale_factor_ppm) <= 50 and 0.1 <= g.scale_factor_ppm_per_c <= 1.0
+    profile = load_profile("configs/profiles/short-test.yaml")
+    capture = simulate_to_file(Simulator(profile, config, rate_hz=10, seed=3), tmp_path / "sf.bin").capture
+    truth = read_truth(capture.with_suffix(".truth.csv"))
+    s = (g.scale_factor_ppm + g.scale_factor_ppm_per_c * (truth["fiber_c"] - 20.0)) * 1e-6
+    expected = s * (truth["input_dph"] + truth["earth_dph"])
+    np.testing.assert_allclose(truth["scale_factor_error_dph"], expected, rtol=1e-4, atol=1e-9)
+    assert np.abs(truth["scale_factor_error_dph"]).max() > 30e-6 * truth["earth_dph"].min()

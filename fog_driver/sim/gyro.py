@@ -12,7 +12,7 @@ Output rate, deg/h (1 deg/h = 1 arcsec/s)::
       + k_G (Tt - Tb) + k_R (Tc - Tf)                  axial gradient across the ring; radial, coil boundary to fiber
       + k_H (Tf - Th)                                  thermal history: Th is Tf lagged by tau_H (hysteresis)
 
-    s(Tf) = (s1 (Tf - Tref) + s2 (Tf - Tref)^2) * 1e-6   scale-factor error
+    s(Tf) = (s0 + s1 (Tf - Tref) + s2 (Tf - Tref)^2) * 1e-6   scale-factor error
 
 Default values and why (a navigation-grade FOG in an arcsecond angle
 instrument; each is a configuration key in ``configs/sim/instrument.yaml``):
@@ -35,9 +35,12 @@ instrument; each is a configuration key in ``configs/sim/instrument.yaml``):
   coil's boundary above its fiber (``thermal.py``: Tc - Tf, a ramp's rate times the coil's lag).
 * Thermal history ``0.003`` deg/h per degC with a 1 h lag: the part of the
   drift that depends on where the temperature came from, not just where it is.
-* Scale factor ``0.05`` ppm/degC: a calibrated, temperature-compensated scale
-  factor; with much more, the paper's sub-arcsecond positioning errors over
-  36-degree moves (0.05-0.86 arcsec) would be impossible.
+* Scale factor ``0.05`` ppm/degC and no offset (``scale_factor_ppm`` 0): a calibrated,
+  temperature-compensated scale factor; with much more, the paper's sub-arcsecond positioning errors
+  over 36-degree moves (0.05-0.86 arcsec) would be impossible.  The population's instruments are not
+  calibrated so well (``population.py``: an offset of 5 to 50 ppm, a slope of 0.1 to 1 ppm/degC): a
+  36-degree move then reads 0.6 to 6.5 arcsec off, what adapting from the table's angles must tell
+  from drift.
 * Constant bias ``0.5`` deg/h and turn-on bias ``0.05`` deg/h (1 sigma, drawn
   per run); Earth rate 15.041 deg/h x sin(latitude), latitude 40 deg by default.
 """
@@ -68,6 +71,7 @@ class GyroParams:
     bias_instability_dph: float = 0.005
     bias_instability_tau_s: float = 300.0
     rrw_dph_per_sqrt_h: float = 0.0003
+    scale_factor_ppm: float = 0.0
     scale_factor_ppm_per_c: float = 0.05
     scale_factor_ppm_per_c2: float = 0.0
     constant_bias_dph: float = 0.5
@@ -101,9 +105,11 @@ class GyroParams:
         return out
 
     def scale_factor_error(self, fiber_c: np.ndarray) -> np.ndarray:
-        """Relative scale-factor error ``s(Tf)`` (dimensionless)."""
+        """Relative scale-factor error ``s(Tf) = (s0 + s1 dT + s2 dT^2) 1e-6`` (dimensionless), dT = Tf - Tref."""
         dt = np.asarray(fiber_c) - self.reference_temp_c
-        return (self.scale_factor_ppm_per_c * dt + self.scale_factor_ppm_per_c2 * dt * dt) * 1e-6
+        return (
+            self.scale_factor_ppm + self.scale_factor_ppm_per_c * dt + self.scale_factor_ppm_per_c2 * dt * dt
+        ) * 1e-6
 
 
 @dataclass

@@ -5,8 +5,8 @@ on many instruments, not on the one ``configs/sim/instrument.yaml`` describes.  
 (``fog-driver simulate --instrument-seed K``) gives instrument K: the same K gives the same instrument,
 on every machine (uniform draws and decimal arithmetic only), and every parameter is drawn from its own
 stream (keyed by its name), so adding a parameter later changes no other.  The noise (ARW, bias
-instability, rate random walk), the scale factor, the clock and the Earth rate come from the base
-configuration; the serial is ``FOG-POP-K``.
+instability, rate random walk), the scale factor's curvature, the clock and the Earth rate come from the
+base configuration; the serial is ``FOG-POP-K``.
 
 The ranges and why (``RANGES``; "log" is log-uniform, "+-" a random sign on the magnitude):
 
@@ -45,6 +45,15 @@ FOG drift (``gyro.py``; deg/h):
   order as the Shupe term, as it should be.
 * ``hysteresis_dph_per_c`` +-log 0.0005..0.005 with ``hysteresis_tau_s`` log 600..10800: the bias
   depends on where the temperature came from (stress relaxation in the potting, 10 min to 3 h).
+
+Scale factor (``gyro.py``: ``s(Tf) = (s0 + s1 (Tf - 20)) 1e-6``):
+
+* ``scale_factor_ppm`` (s0) +- 5..50: the residual of a factory calibration, of either sign; a
+  36-degree move reads 0.6 to 6.5 arcsec off.
+* ``scale_factor_ppm_per_c`` (s1) 0.1..1: the source's wavelength drifts with temperature
+  (a few ppm/degC uncompensated) and a compensated instrument keeps a fraction of it.
+  Added after the drift ranges, each from its own stream: no other instrument parameter changed.
+  At rest they act on the Earth rate alone (at most 50 ppm of 9.7 deg/h, 0.0005 deg/h).
 
 Together (``fast-ramps`` profile, development seeds 0-15) these give a 1-min drift RMS of 0.03 to
 0.48 deg/h, median 0.19, no term dominating, about the 0.27 of the default instrument and the
@@ -112,6 +121,8 @@ RANGES: dict[str, Range] = {
     "radial_gradient_dph_per_c": Range(0.002, 0.02, log=True, signed=True),
     "hysteresis_dph_per_c": Range(0.0005, 0.005, log=True, signed=True),
     "hysteresis_tau_s": Range(600.0, 10800.0, log=True),
+    "scale_factor_ppm": Range(5.0, 50.0, signed=True),
+    "scale_factor_ppm_per_c": Range(0.1, 1.0),
     "sensor_lag_s": Range(5.0, 90.0, log=True),  # each sensor
     "sensor_offset_c": Range(-0.3, 0.3),  # each sensor
 }
@@ -201,6 +212,8 @@ def draw_instrument(seed: int, base: InstrumentConfig | None = None) -> Instrume
                 "radial_gradient_dph_per_c",
                 "hysteresis_dph_per_c",
                 "hysteresis_tau_s",
+                "scale_factor_ppm",
+                "scale_factor_ppm_per_c",
             )
         },
     )
