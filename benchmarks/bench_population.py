@@ -52,8 +52,9 @@ runs:
   2.68x, 1.05x).
 * 2026-12-04, after it: the population draws a scale-factor error per instrument (issue 32: an offset of
   5 to 50 ppm, a slope of 0.1 to 1 ppm/degC; every other parameter as before, from its own stream).  The
-  runs above were made without it; at rest it acts on the Earth rate alone (at most about 0.0005 deg/h
-  over a run's temperatures), so their static-minute figures would move in the last digits.
+  runs above were made without it; at rest it acts on the Earth rate alone (a constant of at most 0.0005
+  deg/h, which the bias takes, and at most 0.001 deg/h across -40..55 degC), so their static-minute
+  figures would move in the last digits.
 
 Individual evaluation instruments are not to be studied: to find what failed there, draw more
 development instruments (``--set dev --first 72``) and look for the same failure among them.

@@ -53,7 +53,8 @@ Scale factor (``gyro.py``: ``s(Tf) = (s0 + s1 (Tf - 20)) 1e-6``):
 * ``scale_factor_ppm_per_c`` (s1) 0.1..1: the source's wavelength drifts with temperature
   (a few ppm/degC uncompensated) and a compensated instrument keeps a fraction of it.
   Added after the drift ranges, each from its own stream: no other instrument parameter changed.
-  At rest they act on the Earth rate alone (at most 50 ppm of 9.7 deg/h, 0.0005 deg/h).
+  At rest they act on the Earth rate alone: a constant of at most 50 ppm of 9.7 deg/h (0.0005
+  deg/h, taken by the bias) and at most 0.001 deg/h across -40..55 degC.
 
 Together (``fast-ramps`` profile, development seeds 0-15) these give a 1-min drift RMS of 0.03 to
 0.48 deg/h, median 0.19, no term dominating, about the 0.27 of the default instrument and the
