@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from fog_driver.errors import InputFileError
 from fog_driver.sim.chamber import ChamberProfile, Hold, Plateau, Ramp, Sinusoid, Step
 from fog_driver.sim.motion import ConstantRate, MotionPlan, Positioning, Stop, positioning_at_plateau
-from fog_driver.sim.profiles import MAX_SEGMENTS, dump_profile, load_profile, parse_profile
+from fog_driver.sim.profiles import MAX_SEGMENTS, SimProfile, dump_profile, load_profile, parse_profile
 
 PROFILES = Path(__file__).resolve().parents[1] / "configs" / "profiles"
 SHIPPED = ("paper", "fast-ramps", "short-test", "positioning", "calibration", "chamber-cycle")
@@ -24,8 +24,8 @@ def move_breakpoints(seq: Positioning) -> np.ndarray:
     """Every time the rate's slope changes in ``seq`` (from its public timing properties)."""
     t = [seq.start_s, seq.end_s]
     for k in range(seq.moves):
-        t0 = seq.move_start_s(k)
-        t += [t0, t0 + seq.accel_time_s, t0 + seq.accel_time_s + seq.cruise_time_s, t0 + seq.move_time_s]
+        t0, move = seq.move_start_s(k), seq.shape(k)
+        t += [t0, t0 + move.accel_time_s, t0 + move.accel_time_s + move.cruise_time_s, t0 + move.move_time_s]
     return np.array(sorted(t))
 
 
@@ -292,8 +292,9 @@ def test_trapezoidal_moves_cruise_at_the_top_rate():
         Positioning(start_s=10.0),
         Positioning(start_s=0.0, moves=4, step_deg=90.0, max_rate_dps=15.0, accel_dps2=5.0, dwell_s=20.0),
         Positioning(start_s=3.0, moves=5, step_deg=-7.5, max_rate_dps=50.0, accel_dps2=2.0, dwell_s=10.0),
+        Positioning(start_s=2.0, moves=7, step_deg=[36.0, -72.0, 10.0, -5.0], dwell_s=15.0),
     ],
-    ids=["default-triangular", "trapezoidal", "negative-triangular"],
+    ids=["default-triangular", "trapezoidal", "negative-triangular", "list-of-steps"],
 )
 def test_positioning_angle_is_the_exact_integral_of_the_rate(seq):
     plan = MotionPlan((seq,))
@@ -576,3 +577,29 @@ def test_profile_names_resolve_from_configs_profiles(tmp_path, monkeypatch):
         InputFileError, match=r"nope: no such profile \(profiles: paper, paper-validation, .*fast-ramps"
     ):
         load_profile("nope")
+
+
+def test_a_list_of_steps_is_taken_in_turn_with_each_moves_own_shape():
+    """Moves of both signs and several sizes: move k steps step_deg[k % len]; each move's shape (triangle or
+    trapezoid) from its own size; the dwells' angles are the running sums; the sequence's duration adds
+    each move's time; through YAML and back the same plan."""
+    seq = Positioning(start_s=5.0, moves=5, step_deg=[36.0, -72.0, 45.0], dwell_s=12.0)
+    assert seq.steps_deg == (36.0, -72.0, 45.0, 36.0, -72.0)
+    shapes = [seq.shape(k) for k in range(seq.moves)]
+    assert [m.triangular for m in shapes] == [True, False, False, True, False]  # 40 deg = 20^2 / 10
+    assert shapes[1].move_time_s == pytest.approx(2 * 2.0 + (72.0 - 40.0) / 20.0)
+    assert seq.duration_s == pytest.approx(12.0 + sum(m.move_time_s + 12.0 for m in shapes))
+    plan = MotionPlan((seq,))
+    stops = plan.stops()
+    assert [s.angle_deg for s in stops] == [0.0, 36.0, -36.0, 9.0, 45.0, -27.0]
+    t = np.array([(s.t_start_s + s.t_end_s) / 2 for s in stops])
+    np.testing.assert_array_equal(plan.angle_deg(t), [s.angle_deg for s in stops])
+    assert np.abs(plan.rate_dps(np.arange(0.0, seq.end_s, 0.01))).max() <= 20.0
+    doc = yaml.safe_load(dump_profile(SimProfile("p", ChamberProfile("p", 20.0, (Hold(seq.end_s + 10),)), plan, "t")))
+    assert doc["motion"]["step_deg"] == [36, -72, 45]
+    again = parse_profile(doc)
+    assert again.motion.stops() == stops
+    with pytest.raises(ValueError, match="step_deg"):
+        Positioning(start_s=0.0, step_deg=[36.0, 0.0])
+    with pytest.raises(ValueError, match="empty"):
+        Positioning(start_s=0.0, step_deg=[])

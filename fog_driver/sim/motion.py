@@ -8,7 +8,8 @@ commanded table angle, 0 before the first move::
     static          omega = 0
     constant_rate   omega = rate_dps for start_s <= t < stop_s (stop_s None: for ever); the rate
                     steps instantly, the angle stays continuous
-    positioning     dwell_s, then ``moves`` times (move of step_deg, dwell_s).  Each move is a
+    positioning     dwell_s, then ``moves`` times (move of step_deg, dwell_s); step_deg may be a list,
+                    taken in turn (move k: step_deg[k % len]), each move shaped by its own size.  Each move is a
                     trapezoid in omega with acceleration a and top rate v:
                         t_a = v / a,  t_c = (|d| - v^2 / a) / v,  T = 2 t_a + t_c
                     or a triangle when |d| < v^2 / a (the top rate is never reached):
@@ -59,12 +60,41 @@ class ConstantRate:
 
 
 @dataclass(frozen=True)
+class MoveShape:
+    """One move of ``step_deg`` at top rate v and acceleration a: a trapezoid in omega, or a triangle when
+    |d| < v^2 / a (the top rate is never reached)."""
+
+    step_deg: float
+    peak_rate_dps: float  #: v, or sqrt(a |d|) for a triangular move
+    accel_time_s: float  #: t_a = peak / a
+    cruise_time_s: float  #: t_c = (|d| - v^2 / a) / v, 0 for a triangle
+    triangular: bool
+
+    @classmethod
+    def of(cls, step_deg: float, max_rate_dps: float, accel_dps2: float) -> MoveShape:
+        d = abs(step_deg)
+        triangular = d < max_rate_dps**2 / accel_dps2
+        peak = math.sqrt(accel_dps2 * d) if triangular else max_rate_dps
+        cruise = 0.0 if triangular else (d - max_rate_dps**2 / accel_dps2) / max_rate_dps
+        return cls(step_deg, peak, peak / accel_dps2, cruise, triangular)
+
+    @property
+    def move_time_s(self) -> float:
+        """T = 2 t_a + t_c."""
+        return 2.0 * self.accel_time_s + self.cruise_time_s
+
+
+@dataclass(frozen=True)
 class Positioning:
-    """From ``start_s``: dwell, then ``moves`` x (move of ``step_deg``, dwell); trapezoidal or triangular moves."""
+    """From ``start_s``: dwell, then ``moves`` x (move, dwell); trapezoidal or triangular moves.
+
+    ``step_deg`` is one step for every move, or a list of steps (both signs, several sizes) taken in
+    turn: move k steps ``step_deg[k % len(step_deg)]``, so a scale-factor error can be told from a
+    drift over the dwells between them."""
 
     start_s: float
     moves: int = 10
-    step_deg: float = 36.0
+    step_deg: float | tuple[float, ...] = 36.0
     dwell_s: float = 60.0
     max_rate_dps: float = 20.0
     accel_dps2: float = 10.0
@@ -72,8 +102,15 @@ class Positioning:
     def __post_init__(self) -> None:
         object.__setattr__(self, "start_s", check_number("start_s", self.start_s, nonnegative=True))
         object.__setattr__(self, "moves", check_integer("moves", self.moves, 1))
-        step = check_number("step_deg", self.step_deg)
-        if step == 0:
+        if isinstance(self.step_deg, (list, tuple)):
+            if not self.step_deg:
+                raise ValueError("step_deg must not be an empty list")
+            steps = tuple(check_number("step_deg", v) for v in self.step_deg)
+            step: float | tuple[float, ...] = steps[0] if len(steps) == 1 else steps
+        else:
+            step = check_number("step_deg", self.step_deg)
+            steps = (step,)
+        if any(v == 0 for v in steps):
             raise ValueError("step_deg must not be 0")
         object.__setattr__(self, "step_deg", step)
         object.__setattr__(self, "dwell_s", check_number("dwell_s", self.dwell_s, positive=True))
@@ -81,41 +118,67 @@ class Positioning:
         object.__setattr__(self, "accel_dps2", check_number("accel_dps2", self.accel_dps2, positive=True))
 
     @property
+    def steps_deg(self) -> tuple[float, ...]:
+        """Each move's step, in order (``moves`` of them)."""
+        cycle = self.step_deg if isinstance(self.step_deg, tuple) else (self.step_deg,)
+        return tuple(cycle[k % len(cycle)] for k in range(self.moves))
+
+    def shape(self, k: int) -> MoveShape:
+        """Move k's shape (0-based)."""
+        return MoveShape.of(self.steps_deg[k], self.max_rate_dps, self.accel_dps2)
+
+    @property
+    def shapes(self) -> tuple[MoveShape, ...]:
+        cycle = self.step_deg if isinstance(self.step_deg, tuple) else (self.step_deg,)
+        once = [MoveShape.of(v, self.max_rate_dps, self.accel_dps2) for v in cycle]
+        return tuple(once[k % len(once)] for k in range(self.moves))
+
+    # The first move's shape: every move's when step_deg is one number.
+    @property
     def triangular(self) -> bool:
-        """True when a move is too short to reach ``max_rate_dps``: |step| < v^2 / a."""
-        return abs(self.step_deg) < self.max_rate_dps**2 / self.accel_dps2
+        """True when move 0 is too short to reach ``max_rate_dps``: |step| < v^2 / a."""
+        return self.shape(0).triangular
 
     @property
     def peak_rate_dps(self) -> float:
-        """The highest |omega| in a move: v, or sqrt(a |d|) for a triangular move."""
-        return math.sqrt(self.accel_dps2 * abs(self.step_deg)) if self.triangular else self.max_rate_dps
+        """The highest |omega| of any move: v, or sqrt(a |d|) for triangular moves."""
+        return max(s.peak_rate_dps for s in self.shapes)
 
     @property
     def accel_time_s(self) -> float:
-        return self.peak_rate_dps / self.accel_dps2
+        return self.shape(0).accel_time_s
 
     @property
     def cruise_time_s(self) -> float:
-        if self.triangular:
-            return 0.0
-        return (abs(self.step_deg) - self.max_rate_dps**2 / self.accel_dps2) / self.max_rate_dps
+        return self.shape(0).cruise_time_s
 
     @property
     def move_time_s(self) -> float:
-        return 2.0 * self.accel_time_s + self.cruise_time_s
+        return self.shape(0).move_time_s
 
     @property
     def duration_s(self) -> float:
-        """dwell + moves * (move + dwell)."""
-        return self.dwell_s + self.moves * (self.move_time_s + self.dwell_s)
+        """dwell + moves (move + dwell), or over a list of steps dwell + the sum of (move + dwell)."""
+        if not isinstance(self.step_deg, tuple):
+            return self.dwell_s + self.moves * (self.move_time_s + self.dwell_s)
+        total = self.dwell_s
+        for move in self.shapes:
+            total += move.move_time_s + self.dwell_s
+        return total
 
     @property
     def end_s(self) -> float:
         return self.start_s + self.duration_s
 
     def move_start_s(self, k: int) -> float:
-        """When move k (0-based) starts: start + dwell + k (move + dwell)."""
-        return self.start_s + self.dwell_s + k * (self.move_time_s + self.dwell_s)
+        """When move k (0-based) starts: start + dwell + k (move + dwell), or over a list of steps
+        start + dwell + the (move + dwell) of the moves before it, summed in order (``moves``: the end)."""
+        if not isinstance(self.step_deg, tuple):
+            return self.start_s + self.dwell_s + k * (self.move_time_s + self.dwell_s)
+        t = self.start_s + self.dwell_s
+        for move in self.shapes[:k]:
+            t += move.move_time_s + self.dwell_s
+        return t
 
 
 MotionItem = ConstantRate | Positioning
@@ -173,24 +236,26 @@ class MotionPlan:
                     angle = angle + item.rate_dps * (item.stop_s - item.start_s)
                     piece(item.stop_s, angle, 0.0, 0.0)
                 continue
-            sign = math.copysign(1.0, item.step_deg)
-            a, peak = item.accel_dps2, item.peak_rate_dps
-            t_a, t_c, t_m = item.accel_time_s, item.cruise_time_s, item.move_time_s
-            half = 0.5 * a * t_a * t_a  # angle covered while accelerating (and while decelerating)
+            a = item.accel_dps2
             base = angle
             piece(item.start_s, base, 0.0, 0.0)
             stops.append(Stop(item.start_s, item.move_start_s(0), base))
-            for k in range(item.moves):
+            shapes = item.shapes
+            for k, move in enumerate(shapes):
                 t0 = item.move_start_s(k)
-                start_deg, end_deg = base + k * item.step_deg, base + (k + 1) * item.step_deg
+                sign = math.copysign(1.0, move.step_deg)
+                peak, t_a, t_c, t_m = move.peak_rate_dps, move.accel_time_s, move.cruise_time_s, move.move_time_s
+                half = 0.5 * a * t_a * t_a  # angle covered while accelerating (and while decelerating)
+                start_deg = angle
+                end_deg = _move_end(base, item, k)
                 piece(t0, start_deg, 0.0, sign * a)
                 if t_c > 0:
                     piece(t0 + t_a, start_deg + sign * half, sign * peak, 0.0)
                 piece(t0 + t_a + t_c, end_deg - sign * half, sign * peak, -sign * a)
-                dwell_end = item.move_start_s(k + 1) if k + 1 < item.moves else item.end_s
+                dwell_end = item.move_start_s(k + 1) if k + 1 < len(shapes) else item.end_s
                 piece(t0 + t_m, end_deg, 0.0, 0.0)
                 stops.append(Stop(t0 + t_m, dwell_end, end_deg))
-            angle = base + item.moves * item.step_deg
+                angle = end_deg
         t0, theta, omega, alpha = (np.array(column, dtype=np.float64) for column in zip(*pieces))
         object.__setattr__(
             self, "_pieces", {"starts": t0[1:], "t0": t0, "theta": theta, "omega": omega, "alpha": alpha}
@@ -242,10 +307,27 @@ class MotionPlan:
         return "static" if not self.items else "; ".join(_describe_item(it) for it in self.items)
 
 
+def _move_end(base: float, item: Positioning, k: int) -> float:
+    """The commanded angle after move k: ``base + (k + 1) step`` for one step (as before lists of steps:
+    the same bits), else ``base`` plus the steps so far, summed in order."""
+    if not isinstance(item.step_deg, tuple):
+        return base + (k + 1) * item.step_deg
+    total = base
+    for v in item.steps_deg[: k + 1]:
+        total += v
+    return total
+
+
 def _describe_item(item: MotionItem) -> str:
     if isinstance(item, ConstantRate):
         stop = "on" if item.stop_s is None else f"to {item.stop_s:g} s"
         return f"constant rate {item.rate_dps:g} deg/s from {item.start_s:g} s {stop}"
+    if isinstance(item.step_deg, tuple):
+        steps = ", ".join(f"{v:g}" for v in item.step_deg)
+        return (
+            f"positioning {item.moves} moves of [{steps}] deg in turn from {item.start_s:g} s to {item.end_s:g} s"
+            f" (dwell {item.dwell_s:g} s)"
+        )
     shape = "triangular" if item.triangular else "trapezoidal"
     return (
         f"positioning {item.moves} x {item.step_deg:g} deg from {item.start_s:g} s to {item.end_s:g} s"

@@ -38,6 +38,7 @@ YAML profile files (read with ``yaml.safe_load``; unknown keys are errors; indic
       kind: positioning               # static | constant_rate | positioning
       at_plateau: 1                   # or start_s; settle_s (default 600) after the plateau starts
       moves: 10                       # step_deg 36, dwell_s 60, max_rate_dps 20, accel_dps2 10
+      step_deg: [36, -72, 10]         # or a list of steps, taken in turn (both signs, several sizes)
 """
 
 from __future__ import annotations
@@ -368,7 +369,9 @@ def profile_to_doc(profile: SimProfile) -> dict[str, Any]:
                 "kind": "positioning",
                 "start_s": _plain(item.start_s),
                 "moves": item.moves,
-                "step_deg": _plain(item.step_deg),
+                "step_deg": [_plain(v) for v in item.step_deg]
+                if isinstance(item.step_deg, tuple)
+                else _plain(item.step_deg),
                 "dwell_s": _plain(item.dwell_s),
                 "max_rate_dps": _plain(item.max_rate_dps),
                 "accel_dps2": _plain(item.accel_dps2),
