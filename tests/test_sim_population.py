@@ -225,3 +225,46 @@ def test_the_drawn_scale_factor_error_reaches_the_truth(tmp_path):
     expected = s * (truth["input_dph"] + truth["earth_dph"])
     np.testing.assert_allclose(truth["scale_factor_error_dph"], expected, rtol=1e-4, atol=1e-9)
     assert np.abs(truth["scale_factor_error_dph"]).max() > 30e-6 * truth["earth_dph"].min()
+
+
+def test_the_simulator_writes_a_table_log_of_its_dwells_with_the_tables_true_angles(tmp_path):
+    """``run.table.csv``: the dwells of the motion in device time, the format ``evaluate --reference`` reads
+    (the same stops as the sidecar's), and under a creep the table's true angle at each dwell's start and
+    end, as the truth's own angle column has it."""
+    from fog_driver.report.positioning import read_reference_csv, stops_from_sidecar
+    from fog_driver.sim.chamber import ChamberProfile, Hold
+    from fog_driver.sim.motion import Creep, MotionPlan, Positioning
+    from fog_driver.sim.profiles import SimProfile
+
+    seq = Positioning(start_s=60.0, moves=6, step_deg=[36.0, -72.0, 10.0], dwell_s=20.0)
+    creep = Creep(rate_dph=720.0, start_s=100.0, stop_s=170.0)  # 0.2 deg/s: far above the gyro's noise
+    profile = SimProfile(
+        "creeping", ChamberProfile("creeping", 20.0, (Hold(seq.end_s + 30.0),)), MotionPlan((seq, creep)), "test"
+    )
+    config = draw_instrument(7)
+    result = simulate_to_file(Simulator(profile, config, rate_hz=10, seed=3), tmp_path / "c.bin")
+    assert result.table_log == tmp_path / "c.table.csv" and result.table_log.is_file()
+    assert read_provenance(result.capture)["table_log"] == "c.table.csv"
+    logged = read_reference_csv(result.table_log)
+    assert [(s.t_start_s, s.t_end_s, s.angle_deg) for s in logged] == [
+        (s.t_start_s, s.t_end_s, s.angle_deg) for s in stops_from_sidecar(result.capture)
+    ]
+    rows = result.table_log.read_text().splitlines()
+    assert rows[1] == "t_start_s,t_end_s,angle_deg,angle_end_deg" and len(rows) == 2 + seq.moves + 1
+    ends = [float(r.split(",")[3]) for r in rows[2:]]
+    truth = read_truth(result.truth)
+    ppm = 1.0 + config.clock_ppm * 1e-6
+    plan = profile.motion
+    for stop, end in zip(logged, ends):  # the plan's true angles, which the truth's angle column also has
+        # (the log's times are rounded to the microsecond: 0.2 deg/s moves 2e-7 deg in that)
+        assert stop.angle_deg == pytest.approx(float(plan.angle_deg(stop.t_start_s / ppm)), abs=1e-6)
+        assert end == pytest.approx(float(plan.angle_deg(stop.t_end_s / ppm)), abs=1e-6)
+        inside = (truth["second"] + 1 > stop.t_start_s) & (truth["second"] + 1 < stop.t_end_s)
+        t_true = (truth["second"][inside] + 0.9) / ppm  # the second's last frame (10 Hz), k / rate / ppm
+        np.testing.assert_allclose(truth["angle_deg"][inside], plan.angle_deg(t_true), rtol=0, atol=1e-7)  # 7 places
+    turned = [end - s.angle_deg for s, end in zip(logged, ends)]
+    assert max(turned) > 0.05 and min(turned) == 0.0  # dwells under the creep turned, the others did not
+    # a profile without dwells writes none
+    static = SimProfile("still", ChamberProfile("still", 20.0, (Hold(30.0),)), MotionPlan(()), "test")
+    assert simulate_to_file(Simulator(static, config, rate_hz=10, seed=3), tmp_path / "s.bin").table_log is None
+    assert not (tmp_path / "s.table.csv").exists()

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from fog_driver.errors import InputFileError
 from fog_driver.sim.chamber import ChamberProfile, Hold, Plateau, Ramp, Sinusoid, Step
-from fog_driver.sim.motion import ConstantRate, MotionPlan, Positioning, Stop, positioning_at_plateau
+from fog_driver.sim.motion import ConstantRate, Creep, MotionPlan, Positioning, Stop, positioning_at_plateau
 from fog_driver.sim.profiles import MAX_SEGMENTS, SimProfile, dump_profile, load_profile, parse_profile
 
 PROFILES = Path(__file__).resolve().parents[1] / "configs" / "profiles"
@@ -603,3 +603,38 @@ def test_a_list_of_steps_is_taken_in_turn_with_each_moves_own_shape():
         Positioning(start_s=0.0, step_deg=[36.0, 0.0])
     with pytest.raises(ValueError, match="empty"):
         Positioning(start_s=0.0, step_deg=[])
+
+
+def test_a_creep_is_motion_that_adds_to_the_other_items_and_moves_the_dwells():
+    """A creep of rate_dph over its span: the angle gains rate (clip(t) - start) on top of the positioning it
+    overlaps, the rate is its integral's derivative, and the dwells it covers turn from angle_deg to
+    angle_end_deg (the table log's truth); stops outside it keep their commanded angle."""
+    seq = Positioning(start_s=100.0, moves=4, step_deg=[36.0, -18.0], dwell_s=30.0)
+    creep = Creep(rate_dph=20.0, start_s=150.0, stop_s=260.0)
+    plan, still = MotionPlan((seq, creep)), MotionPlan((seq,))
+    t = np.union1d(np.arange(0.0, seq.end_s + 60.0, 1e-3), [*move_breakpoints(seq), 150.0, 260.0])
+    extra = plan.angle_deg(t) - still.angle_deg(t)
+    np.testing.assert_allclose(extra, 20.0 / 3600.0 * (np.clip(t, 150.0, 260.0) - 150.0), rtol=0, atol=1e-12)
+    # the rate steps at the creep's ends: the trapezoid rule errs by at most half a step times 1 ms at each
+    np.testing.assert_allclose(plan.angle_deg(t), cumulative_trapezoid(t, plan.rate_dps(t)), rtol=0, atol=6e-6)
+    assert plan.rate_dps(np.array([149.999, 150.0, 259.999, 260.0])).tolist() == pytest.approx(
+        [still.rate_dps(np.array([149.999]))[0], *(still.rate_dps(np.array([150.0, 259.999])) + 20.0 / 3600.0), 0.0]
+    )
+    for a, b in zip(plan.stops(), still.stops()):
+        assert (a.t_start_s, a.t_end_s) == (b.t_start_s, b.t_end_s)
+        covered = min(a.t_end_s, 260.0) - max(a.t_start_s, 150.0)
+        start_gain = 20.0 / 3600.0 * (min(max(a.t_start_s, 150.0), 260.0) - 150.0)
+        assert a.angle_deg == pytest.approx(b.angle_deg + start_gain, abs=1e-12)
+        assert a.angle_end_deg - a.angle_deg == pytest.approx(20.0 / 3600.0 * max(covered, 0.0), abs=1e-12)
+    assert plan.kind == "mixed" and MotionPlan((creep,)).kind == "creep"
+    assert plan.duration_s == seq.end_s and MotionPlan((creep,)).duration_s == 260.0
+    doc = yaml.safe_load(dump_profile(SimProfile("p", ChamberProfile("p", 20.0, (Hold(600.0),)), plan, "t")))
+    assert parse_profile(doc).motion.stops() == plan.stops()
+    with pytest.raises(InputFileError, match="missing start_s"):
+        parse_profile(
+            {"start_c": 20, "segments": [{"hold": {"duration_s": 60}}], "motion": {"kind": "creep", "rate_dph": 1}}
+        )
+    with pytest.raises(ValueError, match="after start_s"):
+        Creep(rate_dph=1.0, start_s=10.0, stop_s=10.0)
+    with pytest.raises(ValueError, match="rate_dph"):
+        Creep(rate_dph=math.nan, start_s=0.0, stop_s=10.0)

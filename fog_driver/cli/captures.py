@@ -179,7 +179,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         progress.clear()
     print(
         f"simulated {sim.profile.name} at {sim.rate_hz} Hz, seed {sim.seed}: {result.frames:,} frames, "
-        f"{result.bytes:,} bytes -> {result.capture} (+ {result.sidecar.name}, {result.truth.name})"
+        f"{result.bytes:,} bytes -> {result.capture} (+ {result.sidecar.name}, {result.truth.name}"
+        f"{', ' + result.table_log.name if result.table_log else ''})"
     )
     if result.interrupted:
         print(
@@ -245,7 +246,12 @@ def add_simulate(p: argparse.ArgumentParser) -> None:
         help="a profile's name: built-in (paper, paper-validation, calibration) or a file's stem in configs/profiles/ "
         "(fast-ramps, positioning, ...); or a profile YAML file's path (default: paper)",
     )
-    p.add_argument("--out", metavar="CAPTURE.bin", help="write the capture, its sidecar and CAPTURE.truth.csv")
+    p.add_argument(
+        "--out",
+        metavar="CAPTURE.bin",
+        help="write the capture, its sidecar, CAPTURE.truth.csv and, when the profile has positioning dwells, "
+        "CAPTURE.table.csv (the table log)",
+    )
     p.add_argument("--serve", metavar="pty|DEVICE", help="stream in real time on a new pty, or to a serial device")
     p.add_argument("--rate-hz", type=rate_hz, default=100, metavar="R", help="SAMPLE frame rate (default 100)")
     p.add_argument("--seed", type=seed, default=0, metavar="N", help="random seed (same seed, same bytes)")

@@ -72,6 +72,41 @@ def truth_path(capture_path: str | Path) -> Path:
     return Path(capture_path).with_suffix(".truth.csv")
 
 
+def table_log_path(capture_path: str | Path) -> Path:
+    """``run.bin`` -> ``run.table.csv``: the table log of a simulated run with positioning dwells."""
+    return Path(capture_path).with_suffix(".table.csv")
+
+
+def device_stops(sim: Simulator) -> list[dict]:
+    """The motion's dwells in device time (s from the first sample: the instrument's clock runs
+    ``clock_ppm`` fast), with the table's true angles; ``angle_end_deg`` where a creep turned it."""
+    ppm = 1.0 + sim.config.clock_ppm * 1e-6
+    out = []
+    for stop in sim.profile.motion.stops():
+        entry = {
+            "t_start_s": round(stop.t_start_s * ppm, 6),
+            "t_end_s": round(stop.t_end_s * ppm, 6),
+            "angle_deg": float(stop.angle_deg),
+        }
+        if stop.angle_end_deg is not None:
+            entry["angle_end_deg"] = float(stop.angle_end_deg)
+        out.append(entry)
+    return out
+
+
+def write_table_log(path: Path, stops: list[dict], capture_name: str) -> None:
+    """The table log: one dwell per row, ``t_start_s,t_end_s,angle_deg`` (the format ``evaluate --reference``
+    reads) and ``angle_end_deg`` when a creep turned the table within a dwell; angles cumulative, degrees,
+    at full precision (``repr``)."""
+    columns = ["t_start_s", "t_end_s", "angle_deg"] + (
+        ["angle_end_deg"] if any("angle_end_deg" in s for s in stops) else []
+    )
+    lines = [f"# table log of {capture_name}: the simulated table's true angles (device time)", ",".join(columns)]
+    for stop in stops:
+        lines.append(",".join(repr(float(stop.get(c, stop["angle_deg"]))) for c in columns))
+    path.write_text("\n".join(lines) + "\n", encoding="ascii")
+
+
 def truth_rows(block: FrameBlock, rate_hz: int, scale_arcsec_per_count: float) -> np.ndarray:
     """Per-device-second truth of a block that starts on a second boundary, shape (seconds, columns)."""
     n = len(block.seq)
@@ -178,6 +213,7 @@ class SimulationResult:
     bytes: int
     sha256: str
     interrupted: bool = False  #: stopped before the end (``stop``): the sidecar says ``status: interrupted``
+    table_log: Path | None = None  #: the table log (``write_table_log``), when the motion has dwells
 
 
 def simulate_to_file(
@@ -204,7 +240,13 @@ def simulate_to_file(
     total = sim.total_frames() if duration_s is None else int(round(duration_s * sim.rate_hz))
     batch = BATCH_SECONDS * sim.rate_hz
     truth_file = truth_path(out_path)
-    check_outputs([out_path, sidecar_path(out_path), truth_file], force=overwrite, captures=[out_path])
+    stops = device_stops(sim)
+    table_file = table_log_path(out_path) if stops else None
+    check_outputs(
+        [out_path, sidecar_path(out_path), truth_file, *([table_file] if table_file else [])],
+        force=overwrite,
+        captures=[out_path],
+    )
     writer = CaptureWriter(out_path, overwrite=overwrite)  # fails before creating anything
     written = 0  # frames in the capture
     try:
@@ -222,17 +264,37 @@ def simulate_to_file(
         _remove(out_path, truth_file)
         raise exc if isinstance(exc, OutputFileError) else write_error(truth_file, "truth file", exc) from None
     except KeyboardInterrupt:
-        with contextlib.suppress(OutputFileError):
+        with contextlib.suppress(OSError, OutputFileError):
+            if table_file is not None:
+                write_table_log(table_file, _held(stops, written, sim), out_path.name)
             _write_sidecar(sim, out_path, truth_file, total, writer, written, profile_source, faults_text)
         raise
+    if table_file is not None:
+        try:
+            write_table_log(table_file, _held(stops, written, sim), out_path.name)
+        except OSError as exc:
+            _remove(out_path, truth_file, table_file)
+            raise write_error(table_file, "table log", exc) from None
     try:
         sidecar = _write_sidecar(sim, out_path, truth_file, total, writer, written, profile_source, faults_text)
     except OutputFileError:
-        _remove(out_path, truth_file)
+        _remove(out_path, truth_file, *([table_file] if table_file else []))
         raise
     return SimulationResult(
-        out_path, sidecar, truth_file, written, writer.bytes_written, writer.sha256, interrupted=written < total
+        out_path,
+        sidecar,
+        truth_file,
+        written,
+        writer.bytes_written,
+        writer.sha256,
+        interrupted=written < total,
+        table_log=table_file,
     )
+
+
+def _held(stops: list[dict], frames: int, sim: Simulator) -> list[dict]:
+    """The dwells that end within the ``frames`` written (an interrupted run logs the dwells it holds)."""
+    return [s for s in stops if s["t_end_s"] <= frames / sim.rate_hz]
 
 
 def _remove(*paths: Path) -> None:
@@ -254,15 +316,7 @@ def _write_sidecar(
     """The capture's provenance sidecar: ``status: complete`` once all ``total`` frames are written, else
     ``interrupted`` with the ``written`` frames (``simulate_to_file``); ``bytes`` and ``sha256`` are the
     ``writer``'s: exactly what is on disk."""
-    ppm = 1.0 + sim.config.clock_ppm * 1e-6
-    stops = [
-        {
-            "t_start_s": round(stop.t_start_s * ppm, 6),
-            "t_end_s": round(stop.t_end_s * ppm, 6),
-            "angle_deg": float(stop.angle_deg),
-        }
-        for stop in sim.profile.motion.stops()
-    ]
+    stops = device_stops(sim)
     ending: dict = {"status": "complete"}
     if written < total:
         ending = {
@@ -287,6 +341,7 @@ def _write_sidecar(
             "bytes": writer.bytes_written,
             "sha256": writer.sha256,
             "truth_file": truth_file.name,
+            **({"table_log": table_log_path(out_path).name} if stops else {}),
             "instrument": {
                 "serial": sim.config.serial,
                 "firmware": f"{sim.config.firmware >> 8}.{sim.config.firmware & 0xFF}",

@@ -37,6 +37,17 @@ from .checks import check_integer, check_number
 # --- turntable motion --------------------------------------------------------------------------
 
 
+def _check_rate_span(item: Any, rate_name: str) -> None:
+    """A rate item's fields checked in place: a finite rate, ``start_s`` >= 0, ``stop_s`` (None: open) after it."""
+    object.__setattr__(item, rate_name, check_number(rate_name, getattr(item, rate_name)))
+    object.__setattr__(item, "start_s", check_number("start_s", item.start_s, nonnegative=True))
+    if item.stop_s is not None:
+        stop = check_number("stop_s", item.stop_s)
+        if stop <= item.start_s:
+            raise ValueError(f"stop_s ({stop:g}) must be after start_s ({item.start_s:g})")
+        object.__setattr__(item, "stop_s", stop)
+
+
 @dataclass(frozen=True)
 class ConstantRate:
     """omega = ``rate_dps`` from ``start_s`` until ``stop_s`` (None: for ever)."""
@@ -46,13 +57,7 @@ class ConstantRate:
     stop_s: float | None = None
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "rate_dps", check_number("rate_dps", self.rate_dps))
-        object.__setattr__(self, "start_s", check_number("start_s", self.start_s, nonnegative=True))
-        if self.stop_s is not None:
-            stop = check_number("stop_s", self.stop_s)
-            if stop <= self.start_s:
-                raise ValueError(f"stop_s ({stop:g}) must be after start_s ({self.start_s:g})")
-            object.__setattr__(self, "stop_s", stop)
+        _check_rate_span(self, "rate_dps")
 
     @property
     def end_s(self) -> float:
@@ -181,25 +186,53 @@ class Positioning:
         return t
 
 
-MotionItem = ConstantRate | Positioning
+@dataclass(frozen=True)
+class Creep:
+    """The table creeping at ``rate_dph`` (deg/h) from ``start_s`` to ``stop_s``: motion, not a link fault
+    (the table really turns).  It may overlap any other item: its angle adds to theirs, so a positioning's
+    dwells then drift by ``rate_dph`` while the station believes the table still."""
+
+    rate_dph: float
+    start_s: float
+    stop_s: float
+
+    def __post_init__(self) -> None:
+        if self.stop_s is None:
+            raise ValueError("stop_s: a creep lasts a span of time")
+        _check_rate_span(self, "rate_dph")
+
+    @property
+    def end_s(self) -> float:
+        return self.stop_s
+
+    @property
+    def rate_dps(self) -> float:
+        return self.rate_dph / 3600.0
+
+
+MotionItem = ConstantRate | Positioning | Creep
 
 
 @dataclass(frozen=True)
 class Stop:
-    """A dwell of a positioning sequence: the table is still from ``t_start_s`` to ``t_end_s`` at ``angle_deg``."""
+    """A dwell of a positioning sequence: the table is still from ``t_start_s`` to ``t_end_s`` at ``angle_deg``;
+    under a creep it turns during the dwell, from ``angle_deg`` to ``angle_end_deg`` (None: it does not)."""
 
     t_start_s: float
     t_end_s: float
     angle_deg: float
+    angle_end_deg: float | None = None
 
 
 @dataclass(frozen=True)
 class MotionPlan:
-    """The turntable's motion: non-overlapping items in time order; the table is still between them."""
+    """The turntable's motion: non-overlapping items in time order, the table still between them, and
+    creeps (``Creep``) on top of them, overlapping anything."""
 
     items: tuple[MotionItem, ...] = ()
     _pieces: dict[str, np.ndarray] = field(init=False, repr=False, compare=False)
     _stops: tuple[Stop, ...] = field(init=False, repr=False, compare=False)
+    _creeps: tuple[Creep, ...] = field(init=False, repr=False, compare=False)
 
     @classmethod
     def static(cls) -> MotionPlan:
@@ -208,9 +241,10 @@ class MotionPlan:
     def __post_init__(self) -> None:
         items = tuple(sorted(self.items, key=lambda it: it.start_s))
         for item in items:
-            if not isinstance(item, (ConstantRate, Positioning)):
+            if not isinstance(item, (ConstantRate, Positioning, Creep)):
                 raise TypeError(f"not a motion item: {item!r}")
-        for a, b in zip(items, items[1:]):
+        moving = [it for it in items if not isinstance(it, Creep)]
+        for a, b in zip(moving, moving[1:]):
             if b.start_s < a.end_s:
                 raise ValueError(
                     f"{_describe_item(b)} overlaps {_describe_item(a)}, which ends at "
@@ -230,6 +264,8 @@ class MotionPlan:
             pieces.append((t, theta, omega, alpha))
 
         for item in self.items:
+            if isinstance(item, Creep):  # added on top of the pieces (``_creep_deg``)
+                continue
             if isinstance(item, ConstantRate):
                 piece(item.start_s, angle, item.rate_dps, 0.0)
                 if item.stop_s is not None:
@@ -260,12 +296,19 @@ class MotionPlan:
         object.__setattr__(
             self, "_pieces", {"starts": t0[1:], "t0": t0, "theta": theta, "omega": omega, "alpha": alpha}
         )
+        creeps = [it for it in self.items if isinstance(it, Creep)]
+        object.__setattr__(self, "_creeps", tuple(creeps))
+        if creeps:  # the dwells' true angles, creep included
+            stops = [
+                Stop(s.t_start_s, s.t_end_s, float(self.angle_deg(s.t_start_s)), float(self.angle_deg(s.t_end_s)))
+                for s in stops
+            ]
         object.__setattr__(self, "_stops", tuple(stops))
 
     @property
     def kind(self) -> str:
-        """``static``, ``constant_rate``, ``positioning``, or ``mixed``."""
-        kinds = {"constant_rate" if isinstance(it, ConstantRate) else "positioning" for it in self.items}
+        """``static``, ``constant_rate``, ``positioning``, ``creep``, or ``mixed``."""
+        kinds = {_KIND[type(it)] for it in self.items}
         return "static" if not kinds else kinds.pop() if len(kinds) == 1 else "mixed"
 
     @property
@@ -289,18 +332,29 @@ class MotionPlan:
         return k, t - self._pieces["t0"][k]
 
     def rate_dps(self, t_s: np.ndarray) -> np.ndarray:
-        """The table rate omega(t) in deg/s at times ``t_s`` (any shape): omega_k + alpha_k (t - t_k)."""
+        """The table rate omega(t) in deg/s at times ``t_s`` (any shape): omega_k + alpha_k (t - t_k), plus
+        each creep's rate while it lasts (``start_s <= t < stop_s``)."""
         k, dt = self._lookup(t_s)
-        return self._pieces["omega"][k] + self._pieces["alpha"][k] * dt
+        omega = self._pieces["omega"][k] + self._pieces["alpha"][k] * dt
+        for c in self._creeps:
+            t = np.asarray(t_s, dtype=np.float64)
+            omega = omega + np.where((t >= c.start_s) & (t < c.stop_s), c.rate_dps, 0.0)
+        return omega
 
     def angle_deg(self, t_s: np.ndarray) -> np.ndarray:
-        """The cumulative table angle theta(t) = theta_k + omega_k (t - t_k) + alpha_k (t - t_k)^2 / 2, exactly."""
+        """The cumulative table angle theta(t) = theta_k + omega_k (t - t_k) + alpha_k (t - t_k)^2 / 2, exactly,
+        plus each creep's ``rate (clip(t, start, stop) - start)``."""
         k, dt = self._lookup(t_s)
         p = self._pieces
-        return p["theta"][k] + dt * (p["omega"][k] + 0.5 * p["alpha"][k] * dt)
+        theta = p["theta"][k] + dt * (p["omega"][k] + 0.5 * p["alpha"][k] * dt)
+        for c in self._creeps:
+            t = np.asarray(t_s, dtype=np.float64)
+            theta = theta + c.rate_dps * (np.clip(t, c.start_s, c.stop_s) - c.start_s)
+        return theta
 
     def stops(self) -> list[Stop]:
-        """Every dwell of every positioning sequence, in time order, with its commanded cumulative angle."""
+        """Every dwell of every positioning sequence, in time order, with its commanded cumulative angle; under
+        a creep, the true angles at the dwell's start and end (``angle_end_deg``)."""
         return list(self._stops)
 
     def describe(self) -> str:
@@ -318,7 +372,12 @@ def _move_end(base: float, item: Positioning, k: int) -> float:
     return total
 
 
+_KIND = {ConstantRate: "constant_rate", Positioning: "positioning", Creep: "creep"}
+
+
 def _describe_item(item: MotionItem) -> str:
+    if isinstance(item, Creep):
+        return f"creep {item.rate_dph:g} deg/h from {item.start_s:g} s to {item.stop_s:g} s"
     if isinstance(item, ConstantRate):
         stop = "on" if item.stop_s is None else f"to {item.stop_s:g} s"
         return f"constant rate {item.rate_dps:g} deg/s from {item.start_s:g} s {stop}"

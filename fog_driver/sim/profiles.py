@@ -35,10 +35,12 @@ YAML profile files (read with ``yaml.safe_load``; unknown keys are errors; indic
       - step: {target_c: 30}
       - sinusoid: {amplitude_c: 5, period_min: 30, duration_min: 60}
     motion:                           # optional, default static; a mapping or a list of them
-      kind: positioning               # static | constant_rate | positioning
+      kind: positioning               # static | constant_rate | positioning | creep
       at_plateau: 1                   # or start_s; settle_s (default 600) after the plateau starts
       moves: 10                       # step_deg 36, dwell_s 60, max_rate_dps 20, accel_dps2 10
       step_deg: [36, -72, 10]         # or a list of steps, taken in turn (both signs, several sizes)
+    # a creep (rate_dph, start_s, stop_s: all required) is an item of the list that may overlap the others:
+    #   - {kind: creep, rate_dph: 0.2, start_s: 3600, stop_s: 7200}
 """
 
 from __future__ import annotations
@@ -53,7 +55,7 @@ from ..errors import InputFileError
 from ..files.yamlio import MAX_YAML_BYTES, read_yaml
 from .chamber import KIND_OF, SEGMENT_KINDS, ChamberProfile, Hold, Ramp, Segment, Sinusoid, Step
 from .checks import check_number
-from .motion import ConstantRate, MotionItem, MotionPlan, Positioning, positioning_at_plateau
+from .motion import ConstantRate, Creep, MotionItem, MotionPlan, Positioning, positioning_at_plateau
 from .plan import design_program
 
 __all__ = [
@@ -149,6 +151,7 @@ _SEGMENT_KEYS = {
 _MOTION_KEYS = {
     "static": (set(), set()),
     "constant_rate": ({"rate_dps", "start_s", "stop_s"}, {"rate_dps"}),
+    "creep": ({"rate_dph", "start_s", "stop_s"}, {"rate_dph", "start_s", "stop_s"}),
     "positioning": (
         {"start_s", "at_plateau", "settle_s", "moves", "step_deg", "dwell_s", "max_rate_dps", "accel_dps2"},
         set(),
@@ -220,9 +223,9 @@ def _parse_segment(item: Any, where: str) -> Segment:
 
 def _parse_motion_item(doc: Any, where: str, chamber: ChamberProfile) -> MotionItem | None:
     if not isinstance(doc, dict):
-        raise _Bad(f"{where}: expected a mapping with a kind (static, constant_rate, positioning)")
+        raise _Bad(f"{where}: expected a mapping with a kind (static, constant_rate, positioning, creep)")
     if "kind" not in doc:
-        raise _Bad(f"{where}: missing kind (static, constant_rate, positioning)")
+        raise _Bad(f"{where}: missing kind (static, constant_rate, positioning, creep)")
     kind = doc["kind"]
     if kind not in _MOTION_KEYS:
         raise _Bad(f"{where}: unknown motion kind {kind!r} (known: {', '.join(_MOTION_KEYS)})")
@@ -234,6 +237,8 @@ def _parse_motion_item(doc: Any, where: str, chamber: ChamberProfile) -> MotionI
             return None
         if kind == "constant_rate":
             return ConstantRate(**body)
+        if kind == "creep":
+            return Creep(**body)
         if ("start_s" in body) == ("at_plateau" in body):
             raise _Bad(f"{where}: give exactly one of start_s and at_plateau")
         if "start_s" in body:
@@ -356,8 +361,15 @@ def profile_to_doc(profile: SimProfile) -> dict[str, Any]:
     doc: dict[str, Any] = {"name": profile.name, "start_c": _plain(profile.chamber.start_c), "segments": segments}
     items = []
     for item in profile.motion.items:
-        if isinstance(item, ConstantRate):
+        if isinstance(item, Creep):
             entry: dict[str, Any] = {
+                "kind": "creep",
+                "rate_dph": _plain(item.rate_dph),
+                "start_s": _plain(item.start_s),
+                "stop_s": _plain(item.stop_s),
+            }
+        elif isinstance(item, ConstantRate):
+            entry = {
                 "kind": "constant_rate",
                 "rate_dps": _plain(item.rate_dps),
                 "start_s": _plain(item.start_s),
