@@ -16,6 +16,7 @@ from fog_driver.report.positioning import (
     REFERENCE_CSV_FORMAT,
     Row,
     Stop,
+    dwell_reference_deg,
     format_table,
     group_sequences,
     improvement,
@@ -169,6 +170,39 @@ def test_reference_csv_good(tmp_path):
     # any column order, extra columns, a BOM, touching dwells
     text = "angle_deg,t_end_s,note,t_start_s\n0,10,a,0\n-36,20,b,10\n"
     assert read_reference_csv(write(tmp_path, text, "b.csv", "utf-8-sig")) == [Stop(0, 10, 0), Stop(10, 20, -36)]
+
+
+def test_a_dwell_the_table_moved_in_is_held_against_its_mean_angle(tmp_path):
+    """A table creeping through some dwells (the log gives each dwell's start and end angle): the measured
+    angle, exactly the table's, leaves zero error when the reference is the dwell's mean angle
+    (``angle_end_deg``, read from the CSV), and the creep's own angle over a dwell without it."""
+    creep = 0.3  # deg/h... as arcsec/s: 0.3 arcsec/s, a creep the dwell means show clearly
+    plain = make_stops()
+    t = np.arange(int((plain[-1].t_end_s + 20.0) * RATE_HZ)) / RATE_HZ
+    t_a, t_b = plain[3].t_start_s + 10.0, plain[6].t_end_s - 20.0  # the creep's span, through dwells 3..6
+    base = synthetic(plain)[1] / 3600.0
+    table_deg = base + creep / 3600.0 * (np.clip(t, t_a, t_b) - t_a)
+    lagged = [
+        Stop(
+            s.t_start_s,
+            s.t_end_s,
+            float(np.interp(s.t_start_s, t, table_deg)),
+            float(np.interp(s.t_end_s, t, table_deg)),
+        )
+        for s in plain
+    ]
+    rows = "".join(f"{s.t_start_s!r},{s.t_end_s!r},{s.angle_deg!r},{s.angle_end_deg!r}\n" for s in lagged)
+    logged = read_reference_csv(write(tmp_path, "t_start_s,t_end_s,angle_deg,angle_end_deg\n" + rows))
+    assert logged == lagged
+    angle = table_deg * 3600.0
+    with_end = positioning_errors(t, angle, logged)
+    # dwells fully inside the creep's span are linear: exact; the two it starts or ends in are not
+    inside = [k for k in range(len(plain) - 1) if t_a <= plain[k].t_start_s and plain[k + 1].t_end_s <= t_b]
+    assert inside and np.abs(with_end[inside]).max() < 1e-6
+    for k in inside:  # the reference is the table's own mean over the trimmed window
+        window = (t >= logged[k].t_start_s + 5.0) & (t <= logged[k].t_end_s - 5.0)
+        assert dwell_reference_deg(logged[k]) == pytest.approx(table_deg[window].mean(), abs=1e-9)
+    assert dwell_reference_deg(plain[0]) == plain[0].angle_deg  # no angle_end_deg: the dwell's angle
 
 
 def test_reference_csv_format_text_is_documented():

@@ -7,7 +7,9 @@ positioning error, uncompensated and compensated.
 
 Reference stops
     ``Stop(t_start_s, t_end_s, angle_deg)``: the table is still from ``t_start_s`` to ``t_end_s``
-    (device time, seconds from the capture's first sample) at the cumulative angle ``angle_deg``.
+    (device time, seconds from the capture's first sample) at the cumulative angle ``angle_deg``; with
+    ``angle_end_deg`` it moved within the dwell (a creep), linearly to that angle, and the dwell's
+    reference is the mean over its trimmed window (``dwell_reference_deg``).
     They come from the simulator's sidecar (``positioning_stops``) or from a station's reference
     CSV (``read_reference_csv``, format below).  ``load_stops`` picks one.
 
@@ -117,6 +119,8 @@ MAX_REFERENCE_BYTES = 1_000_000
 NO_SEQUENCES = "no positioning sequences in this capture: the table is skipped"
 ARCSEC_PER_DEG = 3600.0
 COLUMNS = ("t_start_s", "t_end_s", "angle_deg")
+#: Optional: where the table's angle ended when it moved within the dwell (a creep the log saw).
+END_COLUMN = "angle_end_deg"
 
 REFERENCE_CSV_FORMAT = """\
 Turntable reference CSV: one dwell (the table still) per row, in time order.
@@ -124,6 +128,8 @@ Turntable reference CSV: one dwell (the table still) per row, in time order.
   t_start_s when the dwell starts, t_end_s when it ends: device time, seconds from the
             capture's first sample; t_end_s > t_start_s >= the previous row's t_end_s
   angle_deg the table's cumulative angle during the dwell, degrees (360 is not 0)
+  angle_end_deg  (optional column) the angle at the dwell's end, when the table moved within it:
+            the dwell's angle is then taken as changing linearly from angle_deg to angle_end_deg
   '#' starts a comment (a whole line or the rest of one); blank lines are ignored;
   UTF-8, at most 1 MB, at least one row.
 Example:
@@ -194,13 +200,14 @@ def read_reference_csv(path: str | Path) -> list[Stop]:
                     f"{where}: missing column{'s' if len(missing) > 1 else ''} "
                     f"{', '.join(missing)} (the header must name {','.join(COLUMNS)})"
                 )
-            index = {c: header.index(c) for c in COLUMNS}
+            index = {c: header.index(c) for c in (*COLUMNS, END_COLUMN) if c in header}
             continue
         if len(cells) != len(header):
             raise InputFileError(f"{where}: {len(cells)} fields, the header has {len(header)}")
         start, end, angle = (_finite(cells[index[c]], c, where) for c in COLUMNS)
         _check_order(stops, start, end, where)
-        stops.append(Stop(start, end, angle))
+        angle_end = _finite(cells[index[END_COLUMN]], END_COLUMN, where) if END_COLUMN in index else None
+        stops.append(Stop(start, end, angle, angle_end))
     if header is None:
         raise InputFileError(f"{path}: reference CSV is empty (expected the header {','.join(COLUMNS)})")
     if not stops:
@@ -226,7 +233,12 @@ def stops_from_sidecar(capture: str | Path) -> list[Stop]:
                 raise InputFileError(f"{where}[{i}]: {c} must be a finite number, got {v!r}")
             values.append(float(v))
         _check_order(stops, values[0], values[1], f"{where}[{i}]")
-        stops.append(Stop(*values))
+        angle_end = entry.get(END_COLUMN)
+        if angle_end is not None and (
+            isinstance(angle_end, bool) or not isinstance(angle_end, (int, float)) or not math.isfinite(angle_end)
+        ):
+            raise InputFileError(f"{where}[{i}]: {END_COLUMN} must be a finite number, got {angle_end!r}")
+        stops.append(Stop(*values, None if angle_end is None else float(angle_end)))
     return stops
 
 
@@ -301,8 +313,14 @@ class _DwellSums:
             return (self.sum_a - bias_arcsec_per_s * self.sum_t) / self.n
 
 
+def dwell_reference_deg(stop: Stop) -> float:
+    """The table's mean angle over the dwell's trimmed window: ``angle_deg``, or with ``angle_end_deg`` (the
+    table moved within the dwell, taken as linear) the mean of the two, the window being symmetric."""
+    return stop.angle_deg if stop.angle_end_deg is None else 0.5 * (stop.angle_deg + stop.angle_end_deg)
+
+
 def _move_errors(means: np.ndarray, stops: Sequence[Stop]) -> np.ndarray:
-    reference = np.array([s.angle_deg for s in stops], dtype=np.float64) * ARCSEC_PER_DEG
+    reference = np.array([dwell_reference_deg(s) for s in stops], dtype=np.float64) * ARCSEC_PER_DEG
     return np.diff(means) - np.diff(reference)
 
 
