@@ -453,7 +453,11 @@ class Compensator:
                 self._on_block(blocks.block(i))
                 after.append((self.estimate_dph, self.estimate_flags, self._estimate_block, self.sigma_dph))
         finally:
-            resolved = self.uncertainty.resolve()
+            try:
+                resolved = self.uncertainty.resolve()
+            except BaseException:
+                self.sigma_dph = math.nan if self.sigma_dph < 0 else self.sigma_dph  # never a placeholder held
+                raise
             after = [(*a[:3], _resolved(a[3], resolved)) for a in after]
             self.sigma_dph = _resolved(self.sigma_dph, resolved)
         # Which estimate each frame sees: the latest from a block with a smaller index.

@@ -160,6 +160,7 @@ class DriftUncertainty:
         self._fixed_sq = (spec.residual_scale * spec.residual_dph) ** 2
         self._box = spec.box_scale * spec.target_range_dph
         self._deferred: list[list[Any]] | None = None  # between defer() and resolve(): the candidates' work
+        self._placeholders = 0  # placeholders handed out since defer()
 
     def reset(self) -> None:
         if self._deferred is not None and self.candidates:

@@ -234,7 +234,8 @@ def _fit_ring_form(kind: str, wc: WesnConfig, captures, normalizer, config, say=
         )
     alpha = min(choices, key=lambda a: choices[a][0])
     _, (lag, order), criteria, tied = choices[alpha]
-    if lag == max(v for v, _ in per_coil) and lag < max(grid_s):
+    tried = {v for v, _ in per_coil}
+    if len(tried) > 1 and lag == max(tried) and lag < max(grid_s):
         limits.append(
             f"the coil's lag is at least {lag / 60:.1f} min: the residual still falls at the longest lag tried, "
             f"and longer lags are beyond what these captures can identify"
