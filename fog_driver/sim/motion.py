@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -132,8 +133,9 @@ class Positioning:
         """Move k's shape (0-based)."""
         return MoveShape.of(self.steps_deg[k], self.max_rate_dps, self.accel_dps2)
 
-    @property
+    @cached_property
     def shapes(self) -> tuple[MoveShape, ...]:
+        """Each move's shape, in order (computed once: the sequence is frozen)."""
         cycle = self.step_deg if isinstance(self.step_deg, tuple) else (self.step_deg,)
         once = [MoveShape.of(v, self.max_rate_dps, self.accel_dps2) for v in cycle]
         return tuple(once[k % len(once)] for k in range(self.moves))
@@ -180,10 +182,17 @@ class Positioning:
         start + dwell + the (move + dwell) of the moves before it, summed in order (``moves``: the end)."""
         if not isinstance(self.step_deg, tuple):
             return self.start_s + self.dwell_s + k * (self.move_time_s + self.dwell_s)
+        return self._list_move_starts[k]
+
+    @cached_property
+    def _list_move_starts(self) -> tuple[float, ...]:
+        """``move_start_s(k)`` for k = 0..moves over a list of steps, summed once, in order."""
         t = self.start_s + self.dwell_s
-        for move in self.shapes[:k]:
+        starts = [t]
+        for move in self.shapes:
             t += move.move_time_s + self.dwell_s
-        return t
+            starts.append(t)
+        return tuple(starts)
 
 
 @dataclass(frozen=True)
