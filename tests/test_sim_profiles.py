@@ -638,3 +638,44 @@ def test_a_creep_is_motion_that_adds_to_the_other_items_and_moves_the_dwells():
         Creep(rate_dph=1.0, start_s=10.0, stop_s=10.0)
     with pytest.raises(ValueError, match="rate_dph"):
         Creep(rate_dph=math.nan, start_s=0.0, stop_s=10.0)
+
+
+@pytest.mark.parametrize(
+    "motion, segments, match",
+    [
+        (None, [{"hold": {"duration_s": 1e300}}], "the chamber program lasts .* more than the limit of 31 days"),
+        ({"kind": "creep", "rate_dph": 0.2, "start_s": 10, "stop_s": 1e300}, None, "the motion lasts .* 31 days"),
+        ({"kind": "constant_rate", "rate_dps": 1e9}, None, "rate_dps 1e\\+09 is beyond a turntable's 1000 deg/s"),
+        ({"kind": "creep", "rate_dph": -1e12, "start_s": 0, "stop_s": 5}, None, "rate_dph -1e\\+12 is beyond"),
+        ({"kind": "positioning", "start_s": 0, "max_rate_dps": 5000}, None, "max_rate_dps 5000 is beyond"),
+        ({"kind": "positioning", "start_s": 0, "moves": 10**8}, None, "must not exceed 10,000"),
+        ({"kind": "positioning", "start_s": 0, "step_deg": [1.0] * 10_001}, None, "must not exceed 10,000"),
+    ],
+)
+def test_a_profile_that_would_never_end_or_turn_beyond_a_table_is_one_line_and_refused_at_once(motion, segments, match):
+    """Absurd numbers in a profile are refused when it is read (a run of 1e300 s would fill the disk; a
+    sequence of 1e8 moves would take minutes to plan), each as one line naming the place."""
+    doc = {"start_c": 20, "segments": segments or [{"hold": {"duration_s": 60}}]}
+    if motion is not None:
+        doc["motion"] = motion
+    with pytest.raises(InputFileError, match=match) as info:
+        parse_profile(doc)
+    assert "\n" not in str(info.value)
+
+
+def test_a_rate_that_overflows_a_frame_is_a_usage_error_and_leaves_no_files(tmp_path):
+    """1000 deg/s is a table's rate, but at 0.0001 arcsec per count one 10-Hz frame of it overflows the i32
+    dtheta field: a one-line usage error, and the run's capture and truth are removed."""
+    from fog_driver.errors import UsageError
+    from fog_driver.sim.capture import simulate_to_file
+    from fog_driver.sim.instrument import InstrumentConfig, Simulator
+
+    doc = {
+        "start_c": 20,
+        "segments": [{"hold": {"duration_s": 60}}],
+        "motion": {"kind": "constant_rate", "rate_dps": 1000},
+    }
+    sim = Simulator(parse_profile(doc), InstrumentConfig(scale_arcsec_per_count=1e-4), rate_hz=10, seed=1)
+    with pytest.raises(UsageError, match="overflows the frame's i32 dtheta field"):
+        simulate_to_file(sim, tmp_path / "fast.bin")
+    assert list(tmp_path.iterdir()) == []

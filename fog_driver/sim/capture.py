@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..errors import InputFileError, OutputFileError, read_error
+from ..errors import FogDriverError, InputFileError, OutputFileError, UsageError, read_error
 from ..files.kinds import TRUTH_HEADER
 from ..files.outputs import check_outputs, write_error
 from ..files.stamps import utc_now_iso
@@ -260,9 +260,9 @@ def simulate_to_file(
                     progress(sim.next_frame, total)
                 if stop is not None and stop.is_set() and written < total:
                     break
-    except (OSError, OutputFileError) as exc:
+    except (OSError, OutputFileError, UsageError) as exc:  # UsageError: what the profile asks overflows a frame
         _remove(out_path, truth_file)
-        raise exc if isinstance(exc, OutputFileError) else write_error(truth_file, "truth file", exc) from None
+        raise exc if isinstance(exc, FogDriverError) else write_error(truth_file, "truth file", exc) from None
     except KeyboardInterrupt:
         with contextlib.suppress(OSError, OutputFileError):
             if table_file is not None:

@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from ..errors import UsageError
 from ..files.typed_mapping import dataclass_from_mapping
 from ..files.yamlio import read_yaml
 from ..formats.ixblue import CHECKSUM_LEN, COUNTER_MODULUS, HEADER_LEN, TIME_LSB_S, TIME_MODULUS, encode_stdbin
@@ -492,7 +493,10 @@ class Simulator:
         if n:
             self._remainder_fixed = int(running[-1] - whole[-1] * _FIXED_ONE)
         if np.any(np.abs(counts) > 2**31 - 1):
-            raise ValueError("angle increment overflows the i32 dtheta field: lower the rate or raise the scale")
+            raise UsageError(
+                "an angle increment overflows the frame's i32 dtheta field: lower the table's rate, or raise the "
+                "frame rate or the scale"
+            )
 
         # Thermometers: the latest reading at each frame's time.
         t_cfg = cfg.thermometers

@@ -38,9 +38,22 @@ from .checks import check_integer, check_number
 # --- turntable motion --------------------------------------------------------------------------
 
 
+#: A turntable's rate: at most this (deg/s), for every item; a positioning sequence has at most MAX_MOVES moves.
+MAX_TABLE_RATE_DPS = 1000.0
+MAX_MOVES = 10_000
+
+
+def _check_table_rate(name: str, rate_dps: float, shown: float) -> None:
+    if abs(rate_dps) > MAX_TABLE_RATE_DPS:
+        raise ValueError(f"{name} {shown:g} is beyond a turntable's {MAX_TABLE_RATE_DPS:g} deg/s")
+
+
 def _check_rate_span(item: Any, rate_name: str) -> None:
-    """A rate item's fields checked in place: a finite rate, ``start_s`` >= 0, ``stop_s`` (None: open) after it."""
-    object.__setattr__(item, rate_name, check_number(rate_name, getattr(item, rate_name)))
+    """A rate item's fields checked in place: a finite rate a table can turn at, ``start_s`` >= 0, ``stop_s``
+    (None: open) after it."""
+    rate = check_number(rate_name, getattr(item, rate_name))
+    _check_table_rate(rate_name, rate / 3600.0 if rate_name == "rate_dph" else rate, rate)
+    object.__setattr__(item, rate_name, rate)
     object.__setattr__(item, "start_s", check_number("start_s", item.start_s, nonnegative=True))
     if item.stop_s is not None:
         stop = check_number("stop_s", item.stop_s)
@@ -108,6 +121,8 @@ class Positioning:
     def __post_init__(self) -> None:
         object.__setattr__(self, "start_s", check_number("start_s", self.start_s, nonnegative=True))
         object.__setattr__(self, "moves", check_integer("moves", self.moves, 1))
+        if self.moves > MAX_MOVES or (isinstance(self.step_deg, (list, tuple)) and len(self.step_deg) > MAX_MOVES):
+            raise ValueError(f"moves and the list of steps must not exceed {MAX_MOVES:,}")
         if isinstance(self.step_deg, (list, tuple)):
             if not self.step_deg:
                 raise ValueError("step_deg must not be an empty list")
@@ -121,6 +136,7 @@ class Positioning:
         object.__setattr__(self, "step_deg", step)
         object.__setattr__(self, "dwell_s", check_number("dwell_s", self.dwell_s, positive=True))
         object.__setattr__(self, "max_rate_dps", check_number("max_rate_dps", self.max_rate_dps, positive=True))
+        _check_table_rate("max_rate_dps", self.max_rate_dps, self.max_rate_dps)
         object.__setattr__(self, "accel_dps2", check_number("accel_dps2", self.accel_dps2, positive=True))
 
     @property

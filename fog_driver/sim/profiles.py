@@ -61,6 +61,7 @@ from .plan import design_program
 __all__ = [
     "BUILTIN_PROFILES",
     "MAX_PROFILE_BYTES",
+    "MAX_PROFILE_S",
     "MAX_SEGMENTS",
     "SimProfile",
     "calibration_profile",
@@ -74,6 +75,9 @@ __all__ = [
 
 MAX_PROFILE_BYTES = MAX_YAML_BYTES
 MAX_SEGMENTS = 10_000
+#: A run longer than this (the chamber program or the motion) is refused: 31 days of frames would fill a disk
+#: long before, and a typo (a hold of 1e300 s) must not start a run that never ends.
+MAX_PROFILE_S = 31 * 86400.0
 
 
 # --- the whole profile -------------------------------------------------------------------------
@@ -276,6 +280,11 @@ def parse_profile(doc: Any, where: str = "profile", default_name: str = "profile
                 motion = MotionPlan(tuple(p for p in parsed if p is not None))
             except ValueError as exc:
                 raise _Bad(f"motion: {exc}") from None
+        for part, seconds in (("the chamber program", chamber.duration_s), ("the motion", motion.duration_s)):
+            if seconds > MAX_PROFILE_S:
+                raise _Bad(
+                    f"{part} lasts {seconds / 86400:.3g} days, more than the limit of {MAX_PROFILE_S / 86400:g} days"
+                )
     except _Bad as exc:
         raise InputFileError(f"{where}: {exc}") from None
     return SimProfile(name, chamber, motion, where)
