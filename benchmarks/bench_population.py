@@ -135,6 +135,7 @@ from fog_driver.errors import FogDriverError  # noqa: E402
 from fog_driver.offline.fit import fit_model_file  # noqa: E402
 from fog_driver.report.coverage import SIGMA_PER_MINUTE, MinuteErrors, coverage_figures, minute_errors  # noqa: E402
 from fog_driver.report.evaluate import minute_rms, per_second  # noqa: E402
+from fog_driver.samples.captures import read_provenance  # noqa: E402
 from fog_driver.sim.capture import read_truth, simulate_to_file, truth_noise_dph  # noqa: E402
 from fog_driver.sim.chamber import ChamberProfile, Hold, Ramp  # noqa: E402
 from fog_driver.sim.instrument import Simulator  # noqa: E402
@@ -224,13 +225,17 @@ def score_run_seeds(profiles: Sequence[str]) -> dict[str, int]:
 
 def capture(workdir: Path, seed: int, profile: str | SimProfile, run_seed: int, rate_hz: int) -> Path:
     """Instrument ``seed``'s run of ``profile`` (a name for ``resolve_profile``, or a profile made here), cached
-    by its name."""
+    by its name, and simulated again when the cached one's sidecar holds another instrument K (a cache made
+    before the population changed)."""
     name = profile if isinstance(profile, str) else profile.name
     out = workdir / f"i{seed}" / f"{name}-r{run_seed}-{rate_hz}hz.bin"
+    config = draw_instrument(seed)
+    if out.exists() and (read_provenance(out) or {}).get("model") != config.as_dict():
+        out.unlink()  # simulated by a version whose instrument K differed (e.g. before its scale-factor draws)
     if not out.exists():
         out.parent.mkdir(parents=True, exist_ok=True)
         sim_profile = resolve_profile(profile) if isinstance(profile, str) else profile
-        sim = Simulator(sim_profile, draw_instrument(seed), rate_hz=rate_hz, seed=run_seed)
+        sim = Simulator(sim_profile, config, rate_hz=rate_hz, seed=run_seed)
         simulate_to_file(sim, out.with_suffix(".part.bin"))
         for suffix in (".bin", ".bin.yaml", ".truth.csv"):  # complete files only: an interrupted run redoes them
             out.with_suffix(".part" + suffix).rename(out.with_suffix(suffix))
