@@ -261,7 +261,7 @@ def simulate_to_file(
                 if stop is not None and stop.is_set() and written < total:
                     break
     except (OSError, OutputFileError, UsageError) as exc:  # UsageError: what the profile asks overflows a frame
-        _remove(out_path, truth_file)
+        _remove(out_path, truth_file, *([table_file] if table_file else []))  # (an older run's log with --force)
         raise exc if isinstance(exc, FogDriverError) else write_error(truth_file, "truth file", exc) from None
     except KeyboardInterrupt:
         with contextlib.suppress(OSError, OutputFileError):
