@@ -22,12 +22,16 @@ from typing import Any, TextIO, TypeGuard
 from .address import DEFAULT_HOST, DEFAULT_PORT, format_address
 from .messages import since_bias_sigma_dph
 
+#: The thermometers in the order every view lists them (``watch``, the web view); any other follows, sorted.
+TEMPERATURE_ORDER = ("top", "bottom", "housing")
+
 __all__ = [
     "BAND_SIGMAS",
     "DEFAULT_BIAS_S",
     "DEGREE",
     "MISSING",
     "NO_DATA_S",
+    "TEMPERATURE_ORDER",
     "Progress",
     "banners",
     "drift_sigma",

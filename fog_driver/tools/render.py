@@ -11,6 +11,7 @@ from ..client.display import (
     DEFAULT_BIAS_S,
     DEGREE,
     MISSING,
+    TEMPERATURE_ORDER,
     banners,
     drift_sigma,
     finite_number,
@@ -76,7 +77,7 @@ def server_text(version: Mapping[str, Any]) -> str:
 def _temps(temps: Mapping[str, Any], sep: str) -> str:
     if not temps:
         return MISSING
-    names = ["top", "bottom", "housing"] + sorted(k for k in temps if k not in ("top", "bottom", "housing"))
+    names = [*TEMPERATURE_ORDER] + sorted(k for k in temps if k not in TEMPERATURE_ORDER)
     return sep.join(f"{name} {show(temps.get(name), '.2f')}" for name in names) + " degC"
 
 

@@ -33,7 +33,15 @@ from collections import deque
 from collections.abc import Iterable, Mapping
 from typing import Any
 
-from ...client.display import BAND_SIGMAS, NO_DATA_S, banners, drift_sigma, format_arcsec, format_dms
+from ...client.display import (
+    BAND_SIGMAS,
+    NO_DATA_S,
+    TEMPERATURE_ORDER,
+    banners,
+    drift_sigma,
+    format_arcsec,
+    format_dms,
+)
 from ...client.display import finite_number as _number
 from ...client.display import fixed as _fixed
 
@@ -48,8 +56,6 @@ MAX_EVENTS = 20
 #: A STATUS whose ``missing_frames`` grew within this long (host s) shows the "samples missing" banner.
 MISSING_BANNER_S = 60.0
 
-#: The thermometers first shown, in ``fog-driver watch``'s order (``tools.render``); any other follows, sorted.
-TEMPERATURE_ORDER = ("top", "bottom", "housing")
 
 #: STATUS counters on the page, in this order: (key, label).
 STATUS_ROWS = (
