@@ -569,3 +569,33 @@ def test_retention_by_age_at_start_and_never_a_live_recording(tmp_path):
 def test_retention_limits_must_be_positive(tmp_path, kwargs):
     with pytest.raises(ValueError, match="must be positive"):
         RotatingCapture(tmp_path, **kwargs)
+
+
+def test_events_past_the_limit_are_summarized_and_the_sidecar_stays_bounded(tmp_path, monkeypatch):
+    """A client repeating a command: the first MAX_EVENTS_PER_FILE events are listed, the rest counted per kind
+    with their first and last byte, so the sidecar (rewritten at each listed event) stays bounded; a new file
+    starts its own list, and events noted before any file opens are bounded the same way."""
+    monkeypatch.setattr(rawlog, "MAX_EVENTS_PER_FILE", 5)
+    cap = RotatingCapture(tmp_path, max_bytes=1000, clock=FakeClock())
+    for _ in range(7):  # before any byte: pending for the first file
+        cap.note({"event": "zero"})
+    cap.write(b"x" * 10)
+    for k in range(20):
+        cap.note({"event": "zero" if k % 2 else "bias", "k": k})
+        cap.write(b"y")
+    size_then = sidecar_path(cap.current_path).stat().st_size
+    for _ in range(200):
+        cap.note({"event": "zero"})
+        cap.write(b"z")
+    assert sidecar_path(cap.current_path).stat().st_size == size_then  # past the limit: not rewritten per event
+    first = cap.current_path
+    cap.write(b"w" * 1000)  # rotates: the next file lists its own events
+    cap.note({"event": "adapt"})
+    cap.close()
+    doc = read_provenance(first)
+    assert [e["event"] for e in doc["events"]] == ["zero"] * 5 and [e["at_byte"] for e in doc["events"]] == [0] * 5
+    summary = doc["events_summary"]
+    assert summary["zero"] == {"count": 2 + 10 + 200, "first_at_byte": 0, "last_at_byte": 10 + 20 + 199}
+    assert summary["bias"] == {"count": 10, "first_at_byte": 10, "last_at_byte": 10 + 18}
+    later = read_provenance(cap.files[-1])
+    assert [e["event"] for e in later["events"]] == ["adapt"] and "events_summary" not in later

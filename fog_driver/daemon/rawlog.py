@@ -77,6 +77,10 @@ from ..samples.captures import (
 log = structlog.get_logger("fog_driver.daemon")
 
 DEFAULT_MAX_BYTES = 256 * 2**20
+#: A file's sidecar lists at most this many events; past it they are summarized per kind (``events_summary``:
+#: count, first and last ``at_byte``), so a client repeating a command cannot grow the sidecar, which is
+#: rewritten at each listed event, without bound.
+MAX_EVENTS_PER_FILE = 1000
 DEFAULT_MAX_AGE_S = 3600.0
 #: The sink fsyncs the current file this often (a power cut loses at most about this much).
 DEFAULT_FSYNC_EVERY_S = 5.0
@@ -136,6 +140,8 @@ class RotatingCapture:
         self._writer: CaptureWriter | None = None
         self._fields: dict[str, Any] = {}  # the current file's own sidecar fields (segment, start_utc...)
         self._events: list[dict[str, Any]] = []  # the current file's events
+        self._summary: dict[str, dict[str, int]] = {}  # events past MAX_EVENTS_PER_FILE, per kind
+        self._pending_summary: dict[str, dict[str, int]] = {}
         self._pending_events: list[dict[str, Any]] = []  # events for the next file (none open now)
         self._opened_at = 0.0
         self._bytes_closed = 0  # bytes in files already closed
@@ -216,11 +222,18 @@ class RotatingCapture:
     def note(self, event: dict[str, Any]) -> None:
         """Record ``event`` in the sidecar of the file the next byte goes to, with ``at_byte``: the bytes
         of that file before it (a model reload, ADAPT, an identity change, bytes that were not captured)."""
-        if self._writer is None:
-            self._pending_events.append({**event, "at_byte": 0})
+        pending = self._writer is None
+        at = 0 if self._writer is None else self._writer.bytes_written
+        events, summary = (self._pending_events, self._pending_summary) if pending else (self._events, self._summary)
+        if len(events) >= MAX_EVENTS_PER_FILE:  # summarized; written with the sidecar's next rewrite
+            kind = str(event.get("event", "?"))
+            entry = summary.setdefault(kind, {"count": 0, "first_at_byte": at, "last_at_byte": at})
+            entry["count"] += 1
+            entry["last_at_byte"] = at
             return
-        self._events.append({**event, "at_byte": self._writer.bytes_written})
-        self._rewrite_recording()
+        events.append({**event, "at_byte": at})
+        if not pending:
+            self._rewrite_recording()
 
     def close(self) -> None:
         """Fsync and close the current file and write its final sidecar; idempotent."""
@@ -269,11 +282,13 @@ class RotatingCapture:
             self._fields["previous_capture"] = previous
         self._writer = writer
         self._events, self._pending_events = self._pending_events, []
+        self._summary, self._pending_summary = self._pending_summary, {}
         try:
             write_provenance(path, self._sidecar("recording"))
         except OutputFileError:
             self._writer = None
             self._pending_events, self._events = self._events, []
+            self._pending_summary, self._summary = self._summary, {}
             with contextlib.suppress(OutputFileError):
                 writer.close()
             path.unlink(missing_ok=True)  # an empty file nothing describes: leave nothing behind
@@ -377,6 +392,8 @@ class RotatingCapture:
         }
         if self._events:
             doc["events"] = list(self._events)
+        if self._summary:
+            doc["events_summary"] = {kind: dict(v) for kind, v in self._summary.items()}
         return doc
 
 
