@@ -588,6 +588,8 @@ def test_events_past_the_limit_are_summarized_and_the_sidecar_stays_bounded(tmp_
         cap.note({"event": "zero"})
         cap.write(b"z")
     assert sidecar_path(cap.current_path).stat().st_size == size_then  # past the limit: not rewritten per event
+    for _ in range(3):  # lost bytes past the limit keep their total, so the file still says what it misses
+        cap.note({"event": "bytes_lost", "bytes": 7})
     first = cap.current_path
     cap.write(b"w" * 1000)  # rotates: the next file lists its own events
     cap.note({"event": "adapt"})
@@ -597,5 +599,6 @@ def test_events_past_the_limit_are_summarized_and_the_sidecar_stays_bounded(tmp_
     summary = doc["events_summary"]
     assert summary["zero"] == {"count": 2 + 10 + 200, "first_at_byte": 0, "last_at_byte": 10 + 20 + 199}
     assert summary["bias"] == {"count": 10, "first_at_byte": 10, "last_at_byte": 10 + 18}
+    assert summary["bytes_lost"] == {"count": 3, "first_at_byte": 230, "last_at_byte": 230, "bytes": 21}
     later = read_provenance(cap.files[-1])
     assert [e["event"] for e in later["events"]] == ["adapt"] and "events_summary" not in later

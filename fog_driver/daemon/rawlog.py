@@ -230,6 +230,8 @@ class RotatingCapture:
             entry = summary.setdefault(kind, {"count": 0, "first_at_byte": at, "last_at_byte": at})
             entry["count"] += 1
             entry["last_at_byte"] = at
+            if isinstance(event.get("bytes"), int):  # bytes_lost: the total, so the files still say what they miss
+                entry["bytes"] = entry.get("bytes", 0) + event["bytes"]
             return
         events.append({**event, "at_byte": at})
         if not pending:
