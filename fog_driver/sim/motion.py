@@ -139,15 +139,15 @@ class Positioning:
         _check_table_rate("max_rate_dps", self.max_rate_dps, self.max_rate_dps)
         object.__setattr__(self, "accel_dps2", check_number("accel_dps2", self.accel_dps2, positive=True))
 
-    @property
+    @cached_property
     def steps_deg(self) -> tuple[float, ...]:
-        """Each move's step, in order (``moves`` of them)."""
+        """Each move's step, in order (``moves`` of them; computed once: the sequence is frozen)."""
         cycle = self.step_deg if isinstance(self.step_deg, tuple) else (self.step_deg,)
         return tuple(cycle[k % len(cycle)] for k in range(self.moves))
 
     def shape(self, k: int) -> MoveShape:
         """Move k's shape (0-based)."""
-        return MoveShape.of(self.steps_deg[k], self.max_rate_dps, self.accel_dps2)
+        return self.shapes[k]
 
     @cached_property
     def shapes(self) -> tuple[MoveShape, ...]:
@@ -308,7 +308,8 @@ class MotionPlan:
                 peak, t_a, t_c, t_m = move.peak_rate_dps, move.accel_time_s, move.cruise_time_s, move.move_time_s
                 half = 0.5 * a * t_a * t_a  # angle covered while accelerating (and while decelerating)
                 start_deg = angle
-                end_deg = _move_end(base, item, k)
+                # one step: base + (k + 1) step, as before lists of steps (the same bits); a list: the running sum
+                end_deg = angle + move.step_deg if isinstance(item.step_deg, tuple) else base + (k + 1) * item.step_deg
                 piece(t0, start_deg, 0.0, sign * a)
                 if t_c > 0:
                     piece(t0 + t_a, start_deg + sign * half, sign * peak, 0.0)
@@ -384,17 +385,6 @@ class MotionPlan:
 
     def describe(self) -> str:
         return "static" if not self.items else "; ".join(_describe_item(it) for it in self.items)
-
-
-def _move_end(base: float, item: Positioning, k: int) -> float:
-    """The commanded angle after move k: ``base + (k + 1) step`` for one step (as before lists of steps:
-    the same bits), else ``base`` plus the steps so far, summed in order."""
-    if not isinstance(item.step_deg, tuple):
-        return base + (k + 1) * item.step_deg
-    total = base
-    for v in item.steps_deg[: k + 1]:
-        total += v
-    return total
 
 
 _KIND = {ConstantRate: "constant_rate", Positioning: "positioning", Creep: "creep"}
