@@ -200,25 +200,34 @@ def _fit_ring_form(kind: str, wc: WesnConfig, captures, normalizer, config, say=
     minute = max(2, int(round(60 * rate)))
     edge_s = max(wc.fiber_lag_grid_s)
 
+    scored: dict[tuple[float, tuple[float, int]], tuple[float, np.ndarray]] = {}  # kept when the lags extend
+    cv_of: dict[tuple[float, tuple[float, int]], float] = {}
+
     def choose_coils() -> dict[float, Any]:
         choices = {}
         for k, alpha in enumerate(alphas):
             say(f"{kind}: ridge penalty {k + 1}/{len(alphas)}, coil lags and cross-validation")
-            criteria, squares = {}, {}
             for coil, (_, regressors, columns) in per_coil.items():
-                x = np.vstack([f[c.static][:, columns] for f, c in zip(regressors, captures)])
-                w, b = standardized_ridge(x, y_fit, alpha, groups=groups)
-                residuals = [t - (f[:, columns] @ w + b) for f, t in zip(regressors, targets)]
-                criteria[coil] = _averaged_residual(residuals, captures, minute)
-                squares[coil] = minute_chunk_squares(residuals, captures, minute)
+                if (alpha, coil) not in scored:
+                    x = np.vstack([f[c.static][:, columns] for f, c in zip(regressors, captures)])
+                    w, b = standardized_ridge(x, y_fit, alpha, groups=groups)
+                    residuals = [t - (f[:, columns] @ w + b) for f, t in zip(regressors, targets)]
+                    scored[alpha, coil] = (
+                        _averaged_residual(residuals, captures, minute),
+                        minute_chunk_squares(residuals, captures, minute),
+                    )
+            criteria = {coil: scored[alpha, coil][0] for coil in per_coil}
+            squares = {coil: scored[alpha, coil][1] for coil in per_coil}
             coil = _beyond_edge(edge_s, criteria, squares)
             tied = tied_coils(coil, squares)
-            _, regressors, columns = per_coil[coil]
-            x = np.vstack([f[c.static][:, columns] for f, c in zip(regressors, captures)])
-            _, cv = cross_validated_alpha(
-                x, y_fit, folds=4, average_rows=max(2, int(round(600 * rate))), grid=(alpha,), groups=groups
-            )
-            choices[alpha] = (cv[alpha], coil, criteria, tied)
+            if (alpha, coil) not in cv_of:
+                _, regressors, columns = per_coil[coil]
+                x = np.vstack([f[c.static][:, columns] for f, c in zip(regressors, captures)])
+                _, cv = cross_validated_alpha(
+                    x, y_fit, folds=4, average_rows=max(2, int(round(600 * rate))), grid=(alpha,), groups=groups
+                )
+                cv_of[alpha, coil] = cv[alpha]
+            choices[alpha] = (cv_of[alpha, coil], coil, criteria, tied)
         return choices
 
     add_coils(wc.fiber_lag_grid_s)
@@ -316,8 +325,6 @@ def _beyond_edge(edge_s: float, criteria: dict, squares: dict) -> tuple[float, i
     falls at the edge) only when it beats that choice by more than ``ORDER_TOLERANCE`` and by more than
     ``choice.SE_MULTIPLE`` standard errors of the paired margin, as more stages must."""
     coil = _chosen_coil({k: v for k, v in criteria.items() if k[0] <= edge_s}, squares)
-    if len(criteria) == sum(k[0] <= edge_s for k in criteria):
-        return coil
     longer = _chosen_coil(criteria, squares)
     if (
         longer[0] > edge_s
