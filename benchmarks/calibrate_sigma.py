@@ -5,7 +5,7 @@
 Per development instrument K (``--first`` .. ``--first + --instruments - 1`` of the ``dev`` set; never an
 evaluation set: see ``bench_population.py``'s RULE), the wesn is fitted on its ``paper`` run, as
 ``bench_population.py`` does (same captures, same cache layout), and applied to three scoring runs:
-``soak-cycle``, ``steps-moves`` and a hot soak 10 degC above the fit program's hottest (``HOT_SOAK``: the
+``soak-cycle``, ``steps-moves`` and a hot soak 10 degC above the fit program's hottest (``hot_soak``: the
 minutes that leave the fit box).  For every static minute after the first ten it records the error
 ``e`` (the 1-min mean of estimate - true drift, both about their means over the run's static minutes)
 and the three parts of sigma unscaled (the spread s, the residual r, the box term d R: one compensation
@@ -64,13 +64,14 @@ PARTS = ("spread", "residual", "box")
 SCORE = ("soak-cycle", "steps-moves", "hot-soak")
 #: The paper program's run beyond its range: up at 1 degC/min to 10 degC above its hottest (55 degC), 120 min
 #: there, back down; 30 min held at 20 degC before and after.
-HOT_SOAK = beyond_profile(resolve_profile("paper"), soak_min=120.0, hold_min=30.0, name="hot-soak")
 COMMON_SCALES = (0.7, 0.75, 0.8, 0.85, 0.9)
 
 
 def hot_soak(fit_profile: str):
-    """The fit program's run beyond its range (``HOT_SOAK`` for the paper program)."""
-    return beyond_profile(resolve_profile(fit_profile), soak_min=120.0, hold_min=30.0, name=f"hot-soak-{fit_profile}")
+    """The fit program's run beyond its range: up at 1 degC/min to 10 degC above its hottest, 120 min there, back
+    down, 30 min held before and after (named ``hot-soak`` for the paper program, as the captures it cached)."""
+    name = "hot-soak" if fit_profile == "paper" else f"hot-soak-{fit_profile}"
+    return beyond_profile(resolve_profile(fit_profile), soak_min=120.0, hold_min=30.0, name=name)
 
 
 def instrument(seed: int, workdir: Path, fit_profile: str = "paper") -> dict:
@@ -87,8 +88,9 @@ def instrument(seed: int, workdir: Path, fit_profile: str = "paper") -> dict:
     spec = dataclasses.replace(model.sigma_spec, residual_dph=r)
     out: dict = {"seed": seed, "err": [], "parts": [], "extra": [], "run": [], "n_candidates": len(spec.candidates)}
     for i, profile in enumerate(SCORE):
-        hot = HOT_SOAK if fit_profile == "paper" else hot_soak(fit_profile)
-        path = capture(workdir, seed, hot if profile == "hot-soak" else profile, 10 * seed + 2 + i, 10)
+        path = capture(
+            workdir, seed, hot_soak(fit_profile) if profile == "hot-soak" else profile, 10 * seed + 2 + i, 10
+        )
         truth = read_truth(path.with_suffix(".truth.csv"))
         n = len(truth["drift_dph"]) // 60 * 60
         static = static_minutes_mask(truth, n)

@@ -215,6 +215,13 @@ def read_reference_csv(path: str | Path) -> list[Stop]:
     return stops
 
 
+def _sidecar_number(entry: dict, name: str, where: str) -> float:
+    v = entry[name]
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise InputFileError(f"{where}: {name} must be a finite number, got {v!r}")
+    return float(v)
+
+
 def stops_from_sidecar(capture: str | Path) -> list[Stop]:
     """The ``positioning_stops`` of the capture's provenance sidecar; [] without a sidecar or stops."""
     provenance = read_provenance(capture) or {}
@@ -226,19 +233,10 @@ def stops_from_sidecar(capture: str | Path) -> list[Stop]:
     for i, entry in enumerate(entries):
         if not isinstance(entry, dict) or any(c not in entry for c in COLUMNS):
             raise InputFileError(f"{where}[{i}]: expected a mapping with {', '.join(COLUMNS)}")
-        values = []
-        for c in COLUMNS:
-            v = entry[c]
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                raise InputFileError(f"{where}[{i}]: {c} must be a finite number, got {v!r}")
-            values.append(float(v))
-        _check_order(stops, values[0], values[1], f"{where}[{i}]")
-        angle_end = entry.get(END_COLUMN)
-        if angle_end is not None and (
-            isinstance(angle_end, bool) or not isinstance(angle_end, (int, float)) or not math.isfinite(angle_end)
-        ):
-            raise InputFileError(f"{where}[{i}]: {END_COLUMN} must be a finite number, got {angle_end!r}")
-        stops.append(Stop(*values, None if angle_end is None else float(angle_end)))
+        start, end, angle = (_sidecar_number(entry, c, f"{where}[{i}]") for c in COLUMNS)
+        _check_order(stops, start, end, f"{where}[{i}]")
+        has_end = entry.get(END_COLUMN) is not None  # optional
+        stops.append(Stop(start, end, angle, _sidecar_number(entry, END_COLUMN, f"{where}[{i}]") if has_end else None))
     return stops
 
 

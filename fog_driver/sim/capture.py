@@ -267,7 +267,7 @@ def simulate_to_file(
         with contextlib.suppress(OSError, OutputFileError):
             if table_file is not None:
                 write_table_log(table_file, _held(stops, written, sim), out_path.name)
-            _write_sidecar(sim, out_path, truth_file, total, writer, written, profile_source, faults_text)
+            _write_sidecar(sim, out_path, truth_file, total, writer, written, profile_source, faults_text, stops)
         raise
     if table_file is not None:
         try:
@@ -276,7 +276,7 @@ def simulate_to_file(
             _remove(out_path, truth_file, table_file)
             raise write_error(table_file, "table log", exc) from None
     try:
-        sidecar = _write_sidecar(sim, out_path, truth_file, total, writer, written, profile_source, faults_text)
+        sidecar = _write_sidecar(sim, out_path, truth_file, total, writer, written, profile_source, faults_text, stops)
     except OutputFileError:
         _remove(out_path, truth_file, *([table_file] if table_file else []))
         raise
@@ -312,11 +312,11 @@ def _write_sidecar(
     written: int,
     profile_source: str,
     faults_text: str,
+    stops: list[dict],
 ) -> Path:
     """The capture's provenance sidecar: ``status: complete`` once all ``total`` frames are written, else
     ``interrupted`` with the ``written`` frames (``simulate_to_file``); ``bytes`` and ``sha256`` are the
-    ``writer``'s: exactly what is on disk."""
-    stops = device_stops(sim)
+    ``writer``'s: exactly what is on disk; ``stops``: ``device_stops(sim)``."""
     ending: dict = {"status": "complete"}
     if written < total:
         ending = {
