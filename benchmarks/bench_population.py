@@ -237,8 +237,10 @@ def capture(workdir: Path, seed: int, profile: str | SimProfile, run_seed: int, 
         sim_profile = resolve_profile(profile) if isinstance(profile, str) else profile
         sim = Simulator(sim_profile, config, rate_hz=rate_hz, seed=run_seed)
         simulate_to_file(sim, out.with_suffix(".part.bin"))
-        for suffix in (".bin", ".bin.yaml", ".truth.csv"):  # complete files only: an interrupted run redoes them
-            out.with_suffix(".part" + suffix).rename(out.with_suffix(suffix))
+        for suffix in (".bin", ".bin.yaml", ".truth.csv", ".table.csv"):  # complete files only: an interrupted
+            part = out.with_suffix(".part" + suffix)  # run redoes them (a table log only with dwells)
+            if suffix != ".table.csv" or part.exists():
+                part.rename(out.with_suffix(suffix))
     return out
 
 

@@ -15,7 +15,8 @@ Two vocabularies, both fixed by what is already on the wire and in files:
       bit 6 extrapolating      inputs outside the model's fit box, or its estimate clipped
       bit 7 substituted        a faulted thermometer replaced by a healthy one plus their offset
       bit 8 recovering         the model settling after a faulted thermometer came back
-      bits 9..15               reserved, zero
+      bit 9 scale_factor       the scale factor learned from table angles corrects the angle
+      bits 10..15              reserved, zero
 
   ``FLAG_NAMES`` maps each bit to its name (``Flag.GAP`` -> ``"gap"``), in bit order;
   ``flag_names(bits)`` and ``flags_from_names(names)`` go between the two forms.  The ``FLAG_*``
@@ -47,6 +48,7 @@ class Flag(enum.IntFlag):
     EXTRAPOLATING = 1 << 6
     SUBSTITUTED = 1 << 7
     RECOVERING = 1 << 8
+    SCALE_FACTOR = 1 << 9
 
 
 #: The same bits as plain ints.
@@ -59,6 +61,7 @@ FLAG_GUARD: Final = int(Flag.GUARD)
 FLAG_EXTRAPOLATING: Final = int(Flag.EXTRAPOLATING)
 FLAG_SUBSTITUTED: Final = int(Flag.SUBSTITUTED)
 FLAG_RECOVERING: Final = int(Flag.RECOVERING)
+FLAG_SCALE_FACTOR: Final = int(Flag.SCALE_FACTOR)
 
 #: bit -> name, in bit order: ``{1: "gap", 2: "thermometer_fault", ..., 256: "recovering"}``.
 FLAG_NAMES: Final[dict[int, str]] = {int(bit): str(bit.name).lower() for bit in Flag}
@@ -103,6 +106,7 @@ __all__ = [
     "FLAG_INPUT_STALE",
     "FLAG_NAMES",
     "FLAG_RECOVERING",
+    "FLAG_SCALE_FACTOR",
     "FLAG_SUBSTITUTED",
     "FLAG_THERMOMETER_FAULT",
     "FLAG_UNCOMPENSATED",

@@ -335,6 +335,8 @@ def test_compensate_describes_its_csv_in_a_sidecar_and_the_csv_stays_plain(made)
         "adapt_reference_dph": None,
         "adapt_state": None,
         "adapt_state_sha256": None,
+        "table_log": None,
+        "table_log_sha256": None,
     }
     assert "warnings" not in side
 

@@ -25,6 +25,7 @@ DOCUMENTED = {
     1 << 6: "extrapolating",
     1 << 7: "substituted",
     1 << 8: "recovering",
+    1 << 9: "scale_factor",
 }
 
 
@@ -61,10 +62,10 @@ def test_name_maps_are_the_leaf_s() -> None:
 
 
 def test_flag_names_every_word_against_a_loop() -> None:
-    for bits in range(1 << 10):
-        expected = [DOCUMENTED[1 << k] for k in range(9) if bits >> k & 1]
+    for bits in range(1 << 11):
+        expected = [DOCUMENTED[1 << k] for k in range(10) if bits >> k & 1]
         assert flag_names(bits) == expected
-        assert int(flags_from_names(expected)) == bits & 0x1FF
+        assert int(flags_from_names(expected)) == bits & 0x3FF
     assert flag_names(Flag.GAP | Flag.GUARD) == ["gap", "guard"]
     first = flag_names(3)
     first.append("x")

@@ -21,7 +21,8 @@ from ..compensation.fitting.fit import (
 )
 from ..compensation.fitting.quality import format_checks
 from ..compensation.fitting.report import WORSE_MARKER
-from ..errors import FogDriverError, InputFileError, OutputFileError
+from ..compensation.pipeline import Compensator
+from ..errors import FogDriverError, InputFileError, OutputFileError, UsageError
 from ..extras import require_extra
 from ..files.kinds import ROW_COLUMNS
 from ..files.outputs import check_outputs, describe, refuse_captures, write_error
@@ -39,6 +40,7 @@ from ..offline.compensate import (
 )
 from ..offline.fit import fit_model_file
 from ..offline.rows import compensated_rows, format_row
+from ..offline.table import check_table_log_used, table_dwells, table_provenance, table_summary_lines
 from ..report import positioning
 from ..report.coverage import format_coverage
 from ..report.evaluate import (
@@ -207,10 +209,18 @@ def cmd_compensate(args: argparse.Namespace) -> int:
         _check_adapt_state(
             Path(args.adapt_state), save=args.adapt_reference is not None, inputs=inputs + [out, sidecar]
         )
+    if args.table_log is not None and args.adapt_reference is not None:
+        raise UsageError(
+            "--table-log and --adapt-reference are two signals to adapt from: give one (--table-log learns from "
+            "the table's angles, --adapt-reference from a declared rate)"
+        )
+    if args.table_log is not None and args.adapt_state is not None:
+        raise UsageError("--adapt-state goes with --adapt-reference; adapting from a table log starts afresh")
+    dwells = None if args.table_log is None else table_dwells(positioning.read_reference_csv(args.table_log))
     model_file = load_model(args.model)
     size = _capture_size(Path(args.capture))
     adapt = None
-    if args.adapt_reference is not None or args.adapt_state is not None:
+    if args.adapt_reference is not None or args.adapt_state is not None or dwells is not None:
         adapt = AdaptConfig()
     if args.adapt_state is not None and args.adapt_reference is None and not Path(args.adapt_state).exists():
         raise InputFileError(
@@ -228,6 +238,7 @@ def cmd_compensate(args: argparse.Namespace) -> int:
     progress = Progress()
     written = 0
     extrapolating_s, last_t_s = 0.0, 0.0
+    done: list[Compensator] = []
     try:
         with out.open("w", encoding="ascii") as f:
             f.write(",".join(ROW_COLUMNS) + "\n")
@@ -244,6 +255,8 @@ def cmd_compensate(args: argparse.Namespace) -> int:
                 wire_format=args.format,
                 progress=lambda done: progress.show(f"compensating {100.0 * done / size:5.1f} %"),
                 on_block=capture_sha.update,
+                table_dwells=dwells,
+                on_done=done.append,
             )
             for row in compensated_rows(chunks, args.every):
                 f.write(format_row(row) + "\n")
@@ -252,6 +265,9 @@ def cmd_compensate(args: argparse.Namespace) -> int:
                 last_t_s = row[0]
         provenance["capture"]["sha256"] = capture_sha.hexdigest()
         provenance.update(rows=written, extrapolating_s=round(float(extrapolating_s), 3))
+        if args.table_log is not None:
+            table = check_table_log_used(done[0], args.table_log, args.capture)
+            provenance["table"] = table_provenance(table)
         if checked.warning:
             provenance["warnings"] = [checked.warning]
         write_csv_provenance(out, provenance)
@@ -267,6 +283,9 @@ def cmd_compensate(args: argparse.Namespace) -> int:
         f"compensated {args.capture} with {args.model} ({model_file.kind}): {written:,} rows every "
         f"{args.every:g} s -> {out} (provenance in {sidecar.name})"
     )
+    if args.table_log is not None:
+        for line in table_summary_lines(done[0]):
+            print(line)
     if extrapolating_s > 0:
         print(
             f"warning: the model extrapolated for {extrapolating_s / 60:.1f} of {last_t_s / 60:.1f} min (rows flagged "
@@ -304,6 +323,8 @@ def _compensate_provenance(args: argparse.Namespace, model_file, capture_serial:
             "adapt_reference_dph": args.adapt_reference,
             "adapt_state": state,
             "adapt_state_sha256": _file_sha256(state) if state is not None and Path(state).is_file() else None,
+            "table_log": args.table_log,
+            "table_log_sha256": _file_sha256(args.table_log) if args.table_log is not None else None,
         },
     }
 
@@ -492,6 +513,12 @@ def add_compensate(p: argparse.ArgumentParser) -> None:
         metavar="DPH",
         help="adapt the weights online, against this known input rate while the table is static "
         "(deg/h; 0 for a table at rest: Earth rate and bias are captured first)",
+    )
+    p.add_argument(
+        "--table-log",
+        metavar="STOPS.csv",
+        help="adapt the weights online from the table's angles at its dwells (the stops CSV evaluate reads: "
+        "t_start_s,t_end_s,angle_deg[,angle_end_deg]); learns the scale factor too.  Not with --adapt-reference",
     )
     p.add_argument(
         "--adapt-state",

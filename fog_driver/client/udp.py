@@ -19,8 +19,9 @@ offset  type   field             meaning
                                  outside the model's fit range, or its estimate
                                  clipped), 7 substituted (a faulted thermometer
                                  replaced from a healthy one), 8 recovering (the
-                                 model settling after a thermometer fault); other
-                                 bits reserved, zero
+                                 model settling after a thermometer fault), 9
+                                 scale_factor (the scale factor learned from table
+                                 angles corrects the angle); other bits reserved, zero
 8       u64    seq               sample sequence number (unwrapped, monotonic)
 16      f64    t_s               device time, s
 24      f64    angle_arcsec      compensated angle, arcsec
@@ -59,6 +60,7 @@ from ..flags import (
     FLAG_GUARD,
     FLAG_INPUT_STALE,
     FLAG_RECOVERING,
+    FLAG_SCALE_FACTOR,
     FLAG_SUBSTITUTED,
     FLAG_THERMOMETER_FAULT,
     FLAG_UNCOMPENSATED,
@@ -82,6 +84,7 @@ __all__ = [
     "FLAG_GUARD",
     "FLAG_INPUT_STALE",
     "FLAG_RECOVERING",
+    "FLAG_SCALE_FACTOR",
     "FLAG_SUBSTITUTED",
     "FLAG_THERMOMETER_FAULT",
     "FLAG_UNCOMPENSATED",

@@ -155,7 +155,49 @@ def runaway_for(fit_residual_dph: float | None) -> float:
     return min(max(RUNAWAY_FIT_RESIDUALS * float(fit_residual_dph), RUNAWAY_MIN_DPH), RUNAWAY_MAX_DPH)
 
 
-class OnlineReadout:
+class ComparisonGuard:
+    """The comparison guard's running figures (module docstring), shared by the rate path and the table's
+    (``table.TableLaw``): each window's (or interval's) mean errors of the frozen and the adapted estimate
+    in, the verdict out.  The host has ``config`` (an ``AdaptConfig``) and ``_min_gain``."""
+
+    config: AdaptConfig
+    _min_gain: float
+    compare_windows: int
+    compare_gain: float
+    compare_gain_sq: float
+    compare_level_frozen_dph: float
+    compare_level_adapted_dph: float
+    compare_dev_sq_adapted_dph2: float
+
+    def _add_window(self, error_frozen: float, error_adapted: float) -> None:
+        """One window's mean errors: the gain about their running levels into the running mean and mean square
+        (plain means until the memory is full, then exponential)."""
+        weight = 1.0 / min(self.compare_windows + 1, self.config.compare_memory_windows)
+        if self.compare_windows:  # errors about their own running level: a constant offset is no drift
+            gain = (error_frozen - self.compare_level_frozen_dph) ** 2 - (
+                error_adapted - self.compare_level_adapted_dph
+            ) ** 2
+            gain_weight = 1.0 / min(self.compare_windows, self.config.compare_memory_windows)
+            self.compare_gain += gain_weight * (gain - self.compare_gain)
+            self.compare_gain_sq += gain_weight * (gain * gain - self.compare_gain_sq)
+            dev = (error_adapted - self.compare_level_adapted_dph) ** 2
+            self.compare_dev_sq_adapted_dph2 += gain_weight * (dev - self.compare_dev_sq_adapted_dph2)
+        self.compare_level_frozen_dph += weight * (error_frozen - self.compare_level_frozen_dph)
+        self.compare_level_adapted_dph += weight * (error_adapted - self.compare_level_adapted_dph)
+        self.compare_windows += 1
+
+    def _comparison_passes(self) -> bool:
+        """Over the recent windows the adapted estimate's squared error was smaller than the frozen one's by
+        more than ``COMPARE_SIGMAS`` standard errors of that gain, and by more than the least gain worth
+        having (``AdaptConfig.compare_min_gain``)."""
+        n = min(self.compare_windows - 1, self.config.compare_memory_windows)  # windows that gave a gain
+        if self.compare_windows < max(3, self.config.compare_min_windows):
+            return False
+        variance = max(self.compare_gain_sq - self.compare_gain**2, 0.0)
+        return bool(self.compare_gain > max(COMPARE_SIGMAS * math.sqrt(variance / n), self._min_gain))
+
+
+class OnlineReadout(ComparisonGuard):
     """The adaptive law over ``[f, 1]`` from the frozen weights, gated, guarded (see the module docstring).
 
     ``step(f, measured_rate_dph, reference_rate_dph, static) -> (estimate_dph, flags)``.
@@ -250,11 +292,7 @@ class OnlineReadout:
         """The comparison guard's verdict: over the recent windows the adapted estimate's squared error was
         smaller than the frozen one's by more than ``COMPARE_SIGMAS`` standard errors of that gain, and by
         more than the least gain worth having (``AdaptConfig.compare_min_gain``)."""
-        n = min(self.compare_windows - 1, self.config.compare_memory_windows)  # windows that gave a gain
-        if self.compare_windows < max(3, self.config.compare_min_windows):
-            return False
-        variance = max(self.compare_gain_sq - self.compare_gain**2, 0.0)
-        return self.compare_gain > max(COMPARE_SIGMAS * math.sqrt(variance / n), self._min_gain)
+        return self._comparison_passes()
 
     # -- inspection --------------------------------------------------------------------------------
 
@@ -408,20 +446,7 @@ class OnlineReadout:
             return
         error_frozen = self.compare_sum_frozen_dph / self.compare_blocks
         error_adapted = self.compare_sum_adapted_dph / self.compare_blocks
-        # Running means that are plain means until the memory is full, then exponential.
-        weight = 1.0 / min(self.compare_windows + 1, self.config.compare_memory_windows)
-        if self.compare_windows:  # errors about their own running level: a constant offset is no drift
-            gain = (error_frozen - self.compare_level_frozen_dph) ** 2 - (
-                error_adapted - self.compare_level_adapted_dph
-            ) ** 2
-            gain_weight = 1.0 / min(self.compare_windows, self.config.compare_memory_windows)
-            self.compare_gain += gain_weight * (gain - self.compare_gain)
-            self.compare_gain_sq += gain_weight * (gain * gain - self.compare_gain_sq)
-            dev = (error_adapted - self.compare_level_adapted_dph) ** 2
-            self.compare_dev_sq_adapted_dph2 += gain_weight * (dev - self.compare_dev_sq_adapted_dph2)
-        self.compare_level_frozen_dph += weight * (error_frozen - self.compare_level_frozen_dph)
-        self.compare_level_adapted_dph += weight * (error_adapted - self.compare_level_adapted_dph)
-        self.compare_windows += 1
+        self._add_window(error_frozen, error_adapted)
         self.compare_blocks = 0
         self.compare_sum_frozen_dph = self.compare_sum_adapted_dph = 0.0
 

@@ -23,6 +23,7 @@ from ..protocol import IdentityFrame
 from ..samples.stream import SampleBlock, identity_is_plausible
 from .adapt import AdaptConfig
 from .blocks import FLAG_GAP
+from .dwell import Dwell
 from .model import ModelFile
 from .pipeline import CompensatedColumns, CompensatedSample, Compensator
 
@@ -75,8 +76,10 @@ class InstrumentCompensation:
         adapt: AdaptConfig | None = None,
         reference_rate_dph: float | None = None,
         restore_adaptation: Callable[[Compensator], None] | None = None,
+        table_dwells: list[Dwell] | None = None,
     ) -> None:
         self.model_file = model_file
+        self.table_dwells = table_dwells  #: adapting from table angles: the table log (first compensator only)
         self.force = force
         self.model_name = model_name
         self.hint = hint
@@ -121,9 +124,14 @@ class InstrumentCompensation:
         self.check(identity)
         old = self.compensator
         reference = old.reference_rate_dph if old is not None else self.reference_rate_dph
-        new = Compensator(self.model_file, 1.0 / identity.rate_hz, adapt=self.adapt, reference_rate_dph=reference)
+        table = self.table_dwells is not None
+        new = Compensator(
+            self.model_file, 1.0 / identity.rate_hz, adapt=self.adapt, reference_rate_dph=reference, table=table
+        )
         self.identity = identity
         if old is None:
+            if self.table_dwells:
+                new.add_dwells(list(self.table_dwells))
             if self.adapt is not None and self.restore_adaptation is not None:
                 self.restore_adaptation(new)
             self.compensator = new

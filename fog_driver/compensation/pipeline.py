@@ -36,12 +36,15 @@ from .adapt import OnlineReadout
 from .adapt_config import AdaptConfig, StaticDetector
 from .blocks import FLAG_GAP, FLAG_THERMOMETER_FAULT, PLAUSIBLE_TEMP_C, BlockAverager, ModelBlock
 from .domain import FLAG_EXTRAPOLATING
+from .dwell import Dwell
 from .features import DEGRADED_FLAGS, FLAG_INPUT_STALE, FeatureExtractor
 from .model import ModelFile
+from .table import TableLaw, TableOutcome
 from .uncertainty import DriftUncertainty
 
 FLAG_UNCOMPENSATED = int(Flag.UNCOMPENSATED)  #: no drift estimate applied (start-up, or inputs never valid)
 FLAG_ADAPTING = int(Flag.ADAPTING)  #: the weights are adapting online, or adapted weights give the estimate
+FLAG_SCALE_FACTOR = int(Flag.SCALE_FACTOR)  #: the learned scale factor corrects the angle (table angles)
 FLAG_GUARD = int(Flag.GUARD)  #: a runaway or non-finite estimate, or a reference the gyro disagrees with, was rejected
 #: A link gap longer than this restarts the pipeline at rest (the model's memory of before is stale);
 #: a shorter one is stepped through block by block.
@@ -133,6 +136,7 @@ class Compensator:
         frame_period_s: float,
         adapt: AdaptConfig | None = None,
         reference_rate_dph: float | None = None,
+        table: bool = False,
     ) -> None:
         self.model_file = model_file
         self.model = model_file.model
@@ -167,7 +171,24 @@ class Compensator:
         self.reference_rate_dph = None if reference_rate_dph is None else float(reference_rate_dph)
         self.online: OnlineReadout | None = None
         self.static_detector: StaticDetector | None = None
-        if adapt is not None:
+        #: adapting from table angles (``table``): the law, the dwells waiting for their blocks to close, and
+        #: the scale factor (ppm) held with the estimate
+        self.table: TableLaw | None = None
+        self._dwells: list[Dwell] = []
+        self.scale_ppm = 0.0
+        self._t_ring_c = math.nan
+        if table:
+            if reference_rate_dph is not None:
+                raise ValueError("adapting from table angles and against a reference rate exclude each other")
+            self.table = TableLaw(
+                self.model.weights,
+                self.model.intercept,
+                self._block_s,
+                adapt if adapt is not None else AdaptConfig(),
+                fit_residual_dph=model_file.fit_residual_dph,
+                coil=self.model.coil_lag() if hasattr(self.model, "coil_lag") else None,
+            )
+        elif adapt is not None:
             self.online = OnlineReadout(
                 self.model.weights,
                 self.model.intercept,
@@ -213,6 +234,7 @@ class Compensator:
         flags |= block.flags & (FLAG_GAP | FLAG_THERMOMETER_FAULT)
         self.blocks_seen += 1
         static = self.static_detector.step(block.rate_dph) if self.static_detector is not None else False
+        f: Any = None
         if any(v != v for v in u):  # a thermometer never read valid yet: nothing to model
             self.estimate_flags = FLAG_UNCOMPENSATED | flags
         else:
@@ -226,8 +248,10 @@ class Compensator:
                 self.model.start(z)
                 self.uncertainty.start(z)
                 self._started = True
-            f: Any = None
-            if self.online is None:
+            if self.table is not None:
+                f = self.model.regressors_step(z)
+                _, estimate, adapt_flags = self.table.estimate(f)
+            elif self.online is None:
                 estimate = self.model.step(z)
                 adapt_flags = 0
             else:
@@ -245,7 +269,7 @@ class Compensator:
             held = flags & FLAG_INPUT_STALE  # inputs frozen beyond hold_s: the estimate is held
             if held:
                 estimate, sigma = self.estimate_dph, self.sigma_dph
-            if self.online is not None:
+            if self.online is not None or self.table is not None:
                 self.model.feed_back(estimate)  # the estimate actually used (the WESN's output feedback)
             if math.isfinite(estimate):
                 self.estimate_dph = estimate
@@ -253,7 +277,51 @@ class Compensator:
                 self.estimate_flags = (flags & DEGRADED_FLAGS) | adapt_flags | extrapolating
             else:
                 self.estimate_flags = FLAG_GUARD | (flags & DEGRADED_FLAGS)
+        if self.table is not None:
+            self._table_block(block, f, flags)
         self._estimate_block = block.index + 1
+
+    # -- table angles ----------------------------------------------------------------------------
+
+    def _table_block(self, block: ModelBlock, f: Any, flags: int) -> None:
+        """The block into the table law, then the dwells whose blocks have all closed; the scale factor
+        held with the estimate."""
+        table = cast(TableLaw, self.table)
+        temps = block.temps_c
+        ring = 0.5 * (temps[0] + temps[1]) if self.n_channels >= 2 else temps[0]
+        clean = not flags & (FLAG_GAP | FLAG_THERMOMETER_FAULT | DEGRADED_FLAGS) and block.index > self._settle_until
+        clean = clean and block.t_end_s > table.config.warmup_s
+        if math.isfinite(ring):
+            self._t_ring_c = ring
+        else:
+            ring, clean = self._t_ring_c, False
+        table.block(block.index, f, block.rate_dph, block.n_samples * self.frame_period_s, ring, clean)
+        end_s = (block.index + 1) * self._block_s
+        while self._dwells and self._dwells[0].t_end_s <= end_s + 1e-9:
+            table.observe(self._dwells.pop(0))
+        self.scale_ppm = table.scale_ppm_at(table.coil_temperature_c)
+        if self.scale_ppm:
+            self.estimate_flags |= FLAG_SCALE_FACTOR
+
+    def add_dwells(self, dwells: list[Dwell]) -> None:
+        """Dwells (device time from the first sample) for the table law, taken as their blocks close."""
+        if self.table is None:
+            raise ValueError("this compensator does not adapt from table angles")
+        self._dwells.extend(dwells)
+
+    def break_table_chain(self) -> None:
+        """No interval is learned across this point (``?ZERO``, an identity change)."""
+        if self.table is not None:
+            self.table._break()
+
+    @property
+    def pending_dwells(self) -> list[Dwell]:
+        """Dwells given whose blocks have not all closed yet."""
+        return list(self._dwells)
+
+    @property
+    def table_outcomes(self) -> list[TableOutcome]:
+        return [] if self.table is None else self.table.outcomes
 
     # -- adaptation state ----------------------------------------------------------------------
 
@@ -415,6 +483,8 @@ class Compensator:
             self._on_block(block)
         drift = self.estimate_dph
         dtheta_comp = sample.dtheta_arcsec - drift * self.frame_period_s
+        if self.table is not None:
+            dtheta_comp -= (1e-6 * self.scale_ppm) * sample.dtheta_arcsec
         self.angle_raw_arcsec += sample.dtheta_arcsec
         self.angle_comp_arcsec += dtheta_comp
         temps = (sample.t_top_c, sample.t_bottom_c, sample.t_housing_c)
@@ -442,7 +512,7 @@ class Compensator:
     def run(self, samples: SampleBlock) -> CompensatedColumns:
         """Vector form of ``step`` over many samples: per-frame work vectorized, blocks in order."""
         n = len(samples)
-        held_before = (self.estimate_dph, self.estimate_flags, self._estimate_block, self.sigma_dph)
+        held_before = (self.estimate_dph, self.estimate_flags, self._estimate_block, self.sigma_dph, self.scale_ppm)
         blocks = self.averager.run(samples)
         # The estimate each closed block leaves behind, in order; the candidate structures' steps are
         # taken after the loop, in runs (``DriftUncertainty.defer``), and their sigmas put in place.
@@ -451,14 +521,16 @@ class Compensator:
         try:
             for i in range(len(blocks)):
                 self._on_block(blocks.block(i))
-                after.append((self.estimate_dph, self.estimate_flags, self._estimate_block, self.sigma_dph))
+                after.append(
+                    (self.estimate_dph, self.estimate_flags, self._estimate_block, self.sigma_dph, self.scale_ppm)
+                )
         finally:
             try:
                 resolved = self.uncertainty.resolve()
             except BaseException:
                 self.sigma_dph = math.nan if self.sigma_dph < 0 else self.sigma_dph  # never a placeholder held
                 raise
-            after = [(*a[:3], _resolved(a[3], resolved)) for a in after]
+            after = [(*a[:3], _resolved(a[3], resolved), a[4]) for a in after]
             self.sigma_dph = _resolved(self.sigma_dph, resolved)
         # Which estimate each frame sees: the latest from a block with a smaller index.
         first_us = cast(int, self.averager._first_us)  # set: a block has closed, or these samples set it
@@ -471,6 +543,9 @@ class Compensator:
         drift = estimates[which + 1]
         dtheta = samples.dtheta_arcsec
         dtheta_comp = dtheta - drift * self.frame_period_s
+        if self.table is not None:
+            scales = np.array([held_before[4]] + [a[4] for a in after], dtype=float)
+            dtheta_comp = dtheta_comp - (1e-6 * scales[which + 1]) * dtheta
         angle_raw = np.cumsum(np.r_[self.angle_raw_arcsec, dtheta])[1:]
         angle_comp = np.cumsum(np.r_[self.angle_comp_arcsec, dtheta_comp])[1:]
         if n:

@@ -22,6 +22,7 @@ from ..compensation.binding import (
     check_channels,
     split_at_identities,
 )
+from ..compensation.dwell import Dwell
 from ..compensation.model import ModelFile
 from ..compensation.pipeline import CompensatedColumns, Compensator
 from ..errors import InputFileError
@@ -111,6 +112,8 @@ def compensate_capture(
     save_adapt_state: bool = True,
     wire_format: str = "auto",
     on_block: Callable[[bytes], None] | None = None,
+    table_dwells: list[Dwell] | None = None,
+    on_done: Callable[[Compensator], None] | None = None,
 ) -> Iterator[tuple[float, CompensatedColumns]]:
     """Decode ``path`` block by block and yield (frame period s, compensated frames), bounded memory.
 
@@ -121,7 +124,9 @@ def compensate_capture(
     ``scale_override_arcsec_per_count``: the daemon's setting of that name.  ``wire_format``: ``--format``
     (``sources.wire_settings_for``); a model fitted on other temperature channels is refused first, one fitted
     for another instrument serial unless ``force_model``.  ``on_block(bytes)``: every block of the file as read
-    (a SHA-256 of the capture).
+    (a SHA-256 of the capture).  ``table_dwells``: adapt from the table's angles (``compensation.table``),
+    these dwells in device time from the capture's first sample.  ``on_done(compensator)`` once the capture
+    is through (its table law's outcomes, say).
     """
     wire = wire_settings_for(path, wire_format)
     check_channels(model_file, wire, model_name, str(path))
@@ -134,6 +139,7 @@ def compensate_capture(
         adapt=adapt,
         reference_rate_dph=reference_rate_dph,
         restore_adaptation=adaptation_restorer(adapt_state),
+        table_dwells=table_dwells,
     )
     pending: list[SampleBlock] = []  # samples before the first IDENTITY
     samples_seen = 0
@@ -161,6 +167,8 @@ def compensate_capture(
         raise InputFileError(f"{path}: no IDENTITY frame: frame rate unknown")
     if adapt is not None and adapt_state is not None and save_adapt_state:
         save_adaptation(cast(Compensator, binding.compensator), adapt_state)  # bound
+    if on_done is not None:
+        on_done(cast(Compensator, binding.compensator))  # bound
 
 
 #: The schema version of the provenance sidecar ``compensate`` writes beside its CSV.

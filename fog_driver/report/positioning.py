@@ -78,6 +78,7 @@ from typing import Any
 
 import numpy as np
 
+from ..compensation.dwell import DWELL_TRIM_S, reference_deg, trimmed_window
 from ..compensation.model import ModelFile
 from ..compensation.pipeline import FLAG_UNCOMPENSATED
 from ..errors import InputFileError, UsageError, read_error
@@ -112,7 +113,7 @@ __all__ = [
 
 RAW = "uncompensated"
 DEFAULT_GAP_S = 120.0
-DEFAULT_TRIM_S = 5.0
+DEFAULT_TRIM_S = DWELL_TRIM_S
 BIAS_WINDOW_S = 300.0
 MIN_BIAS_WINDOW_S = 30.0
 MAX_REFERENCE_BYTES = 1_000_000
@@ -275,15 +276,9 @@ def group_sequences(stops: Sequence[Stop], gap_s: float = DEFAULT_GAP_S) -> list
 
 
 def _windows(stops: Sequence[Stop], trim_s: float) -> np.ndarray:
-    """(n, 2) trimmed dwell windows; a dwell not longer than 2 trims is a ``ValueError``."""
-    w = np.array([(s.t_start_s + trim_s, s.t_end_s - trim_s) for s in stops], dtype=np.float64).reshape(-1, 2)
-    short = np.flatnonzero(w[:, 1] <= w[:, 0])
-    if len(short):
-        s = stops[int(short[0])]
-        raise ValueError(
-            f"the dwell {s.t_start_s:g}..{s.t_end_s:g} s is not longer than twice dwell_trim_s ({trim_s:g} s)"
-        )
-    return w
+    """(n, 2) trimmed dwell windows (``dwell.trimmed_window``: the table law's too); a dwell not longer than
+    2 trims is a ``ValueError``."""
+    return np.array([trimmed_window(s.t_start_s, s.t_end_s, trim_s) for s in stops], dtype=np.float64).reshape(-1, 2)
 
 
 class _DwellSums:
@@ -312,9 +307,9 @@ class _DwellSums:
 
 
 def dwell_reference_deg(stop: Stop) -> float:
-    """The table's mean angle over the dwell's trimmed window: ``angle_deg``, or with ``angle_end_deg`` (the
-    table moved within the dwell, taken as linear) the mean of the two, the window being symmetric."""
-    return stop.angle_deg if stop.angle_end_deg is None else 0.5 * (stop.angle_deg + stop.angle_end_deg)
+    """The table's mean angle over the dwell's trimmed window (``dwell.reference_deg``, as the table law holds
+    it): ``angle_deg``, or with ``angle_end_deg`` the mean of the two."""
+    return reference_deg(stop.angle_deg, stop.angle_end_deg)
 
 
 def _move_errors(means: np.ndarray, stops: Sequence[Stop]) -> np.ndarray:

@@ -250,6 +250,7 @@ class WesnModel:
         chain = reservoir.params.chain_from
         self._coil_source = chain[0] if chain else -1
         self._coil_leak = float(reservoir.params.leaks()[0])
+        self._ring_form = not (reservoir.matrices.w != 0).any() and not (reservoir.matrices.w_back != 0).any()
         #: How the fit chose the structure (lag, penalty, scores), for the model file's provenance; None when loaded.
         self.selection: dict | None = None
         #: The structures the fit data cannot tell from this one (``fitting.wesn.tied_coils``), fitted alike;
@@ -304,6 +305,17 @@ class WesnModel:
     def start(self, z: np.ndarray) -> None:
         """Put the reservoir at rest for input ``z``: its fixed point, with the output fed back."""
         settle(self.reservoir, np.asarray(z, dtype=np.float64), lambda x: float(self._output(self.regressors(x, z))))
+
+    def coil_lag(self) -> tuple[float, int] | None:
+        """The coil the fit found, ``(stage time s, number of equal stages m)`` (mean delay ``m`` stages), for the
+        ring form; None for a random reservoir (no coil neuron)."""
+        if not self._ring_form or not self._coil_leak > 0:
+            return None
+        stages, chain, i = 1, self.reservoir.params.chain_from, 0
+        while chain and chain[i] >= 0 and stages <= len(chain):
+            i = chain[i]
+            stages += 1
+        return 1.0 / self._coil_leak, stages
 
     def regressors_step(self, z: np.ndarray) -> np.ndarray:
         """Advance the reservoir one block and return the regressor row f (``D_hat = f . w + b``).

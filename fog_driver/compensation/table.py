@@ -1,0 +1,603 @@
+"""Adapting from the turntable's angles: the readout learns from dwell-to-dwell intervals.
+
+A station that knows its table's angle at every dwell (an encoder, or a polygon and an autocollimator)
+gives the law a learning signal that a creeping table cannot fool: the table's own angle changes with
+the creep, so the gyro's angle change minus the table's is what the compensation left, whatever the
+table did.  (The rate path of ``adapt.OnlineReadout`` learns the rate against a declared rate: a slow
+creep there cannot be told from drift.)
+
+The observation.  Dwells a and b (``dwell.Dwell``), and between them the blocks j of the model (length
+``block_s``), with regressors f_j, measured rates m_j (deg/h = arcsec/s) and ring temperature T_j (the
+mean of the top and bottom thermometers; the only one when a format has one).  The gyro's angle
+measured at a dwell is the mean, over the whole blocks inside its trimmed window (``dwell``), of the
+cumulative angle at each block's middle; the same mean is taken of every cumulative regressor.  Their
+difference between b and a is an integral under a kernel K(t) that rises linearly over a's window,
+is 1 between the windows and falls over b's::
+
+    theta = sum_j K_j m_j dur_j        x = sum_j K_j f_j B        T_eff = sum_j K_j B
+    T_int = sum_j K_j T_j B / T_eff                               (B = block_s, dur_j the frames' time)
+
+With A the table's reference angles (``dwell.reference_deg``, arcsec), dA = A_b - A_a (a whole-turn
+ambiguity resolved against the gyro, below) and the frozen model ``D_hat = f . w0 + b0``::
+
+    r = theta - dA - (x . w0 + T_eff b0) - bias T_eff
+      = x . dw + T_eff db + 1e-6 dA s0 + 1e-6 dA (T_int - SF_REF_C) s1 + e
+
+the drift the frozen model missed, as weights dw and an offset db on its own regressors, and the scale
+factor error ``s(T) = s0 + s1 (T - 25 degC)`` ppm times the move (a 36-degree move at 25 ppm is 3.2
+arcsec, as large as the drift integral: the two are estimated jointly, told apart by moves of both signs
+and several sizes).  ``bias`` is everything constant (the Earth rate, the turn-on bias), captured first:
+the T_eff-weighted mean of ``r / T_eff`` over the first intervals spanning ``bias_capture_s``.
+
+The noise of r: the gyro's white noise under the kernel, ``N^2 int K^2 = N^2 (L_a / 3 + G + L_b / 3)``
+(L the windows' lengths, G the time between them; N^2 from the block rates at the dwells: half the
+mean squared difference of successive block rates, times B), and the frozen model's own uncertainty over
+the interval, ``(MODEL_NOISE_SHARE sigma_D T_eff)^2`` (sigma_D the compensator's ``drift_sigma_dph``):
+``R``.
+
+The law.  The paper's sums (``readout``: ``dH/dt = -l H + X X^T``, ``dI/dt = -l I + X D``) with the
+intervals as impulses weighted by their inverse noise, ``H = k k^T o H + phi phi^T / R``, ``I = k o I + phi
+r / R`` (phi the row above; k = sqrt(beta) on the drift's rows, ``beta = exp(-dt / TABLE_MEMORY_S)``, and 1 on the
+scale factor's: the drift forgets, the scale factor, a constant of the coil, does not), and the law's fixed point with a
+leakage towards the frozen weights, ``(H + L0) delta = I``: each interval is taken to the point the law
+``dW/dt = -K (H W - I + L0 (W - W0))`` converges to, and ``P = (H + L0)^-1`` is the estimate's
+covariance.  The leakage L0 is a prior: on the correction's variation, ``F C / s_D^2`` with C the covariance of the
+regressors over the blocks (so the adapted drift's shape departs from the frozen one's by about s_D,
+``PRIOR_RUNAWAYS`` times the runaway bound, where the data say nothing); on its mean level ``m . dw + db``
+(m the regressors' mean), the runaway bound (the table's angles see the level, which the rate path cannot);
+on the scale factor, ``SF_PRIOR_PPM`` and ``SF_SLOPE_PRIOR_PPM_PER_C``.
+
+Safe by construction.  A dwell is refused (out of time order, a window without a whole block, a window
+reaching back past a break) or rejected and flagged ``guard`` (the gyro saw motion during the dwell: a
+block rate farther than ``static_threshold_dph`` from the window's median; the interval disagrees with
+the gyro by more than ``TABLE_SIGMAS`` sigmas of its innovation, ``sqrt(c (R + phi P phi^T))``, c the
+running mean of the squared normalized innovations, capped, over ``CALIBRATION_INTERVALS``; a move more
+than ``AMBIGUOUS_DEG`` from every whole turn of the gyro's); nothing is learned from it.  After a rejected
+interval the next one starts from the last dwell accepted, so a single wrong angle costs no interval;
+after two rejections in a row the chain starts again from the latest dwell.  An interval is not learned
+across a break: a link gap, a non-finite input (the chain starts again), or blocks with degraded inputs
+(thermometer fault, stale, settling: the interval is skipped, its end is the next start).
+
+The comparison guard and the runaway bound stay (``adapt``): each accepted interval compares, out of
+sample, the frozen and the adapted drift's errors over it (``r - scale factor part`` against ``r - phi .
+delta``, in deg/h over T_eff, about their running levels); the adapted drift is published only when its
+mean gain exceeds ``COMPARE_SIGMAS`` standard errors and ``(compare_min_gain r)^2`` after
+``compare_min_windows`` intervals, and never farther than the runaway bound from the frozen one (else
+the law is reset to the frozen weights and the block flagged ``guard``).
+
+The scale factor.  Once the bias is captured and s0 is known to ``SF_APPLY_SIGMA_PPM`` (its posterior
+sigma), the angle is corrected by it: ``dtheta_comp = dtheta - D_hat dt - 1e-6 s(T) dtheta``, flagged
+``scale_factor``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from ..flags import FLAG_ADAPTING, FLAG_GUARD
+from . import numerics
+from .adapt import RUNAWAY_FIT_RESIDUALS, ComparisonGuard, runaway_for
+from .adapt_config import AdaptConfig, blocks_in
+from .dwell import Dwell, blocks_within, reference_deg, trimmed_window
+
+__all__ = ["SF_REF_C", "TABLE_SIGMAS", "TableLaw", "TableOutcome"]
+
+ARCSEC_PER_DEG = 3600.0
+TURN_ARCSEC = 360.0 * ARCSEC_PER_DEG
+#: The rejection threshold, in sigmas of the interval's innovation.
+TABLE_SIGMAS = 3.0
+#: A move farther than this from every whole turn of the gyro's own is ambiguous: refused.
+AMBIGUOUS_DEG = 90.0
+#: The scale factor's reference temperature: s(T) = s0 + s1 (T - SF_REF_C).
+SF_REF_C = 25.0
+SF_PRIOR_PPM = 100.0
+SF_SLOPE_PRIOR_PPM_PER_C = 2.0
+#: The learned scale factor is applied once its offset is known to this (posterior sigma, ppm).
+SF_APPLY_SIGMA_PPM = 5.0
+#: The memory of the law's sums (the exponential forgetting of old intervals).
+TABLE_MEMORY_S = 4 * 3600.0
+#: The drift prior's scale: this many runaway bounds (s_D).
+PRIOR_RUNAWAYS = 0.1
+#: The share of the frozen model's drift sigma counted as the interval's noise.
+MODEL_NOISE_SHARE = 0.5
+#: The innovation calibration's memory (intervals), its prior weight (intervals at 1), and the cap on
+#: one interval's squared normalized innovation (a liar must not widen the threshold much).
+CALIBRATION_INTERVALS = 20.0
+CALIBRATION_PRIOR = 4.0
+CALIBRATION_CAP = 16.0
+#: The most of a dwell's window the law looks back over (the ring of blocks it keeps).
+MAX_WINDOW_S = 3600.0
+#: The motion check looks at the whole blocks inside the dwell less this at each end: a station's clock and
+#: the frames' time stamps may be a few tenths of a second off the table's; a message 1 s late or more is
+#: still seen moving.
+MOTION_MARGIN_S = 0.5
+#: The gram of the regressors: its memory.
+GRAM_MEMORY_S = TABLE_MEMORY_S
+
+
+def _motion_dph(rates: np.ndarray) -> float:
+    """How far the block rates stray from a steady drift: the largest deviation from their straight line
+    (fitted robustly: through the medians of the two halves), deg/h."""
+    n = len(rates)
+    if n < 4:
+        return float(np.max(np.abs(rates - np.median(rates)))) if n else 0.0
+    half = n // 2
+    k = np.arange(n, dtype=np.float64)
+    first, second = float(np.median(rates[:half])), float(np.median(rates[n - half :]))
+    slope = (second - first) / (n - half)
+    line = first + slope * (k - (half - 1) / 2.0)
+    return float(np.max(np.abs(rates - line)))
+
+
+class TableOutcome(NamedTuple):
+    """What became of one dwell.  ``status``: ``anchor`` (the start of a chain), ``bias`` (an interval of the
+    bias capture), ``learned``, ``skipped`` (degraded inputs in the interval: not learned, not a fault),
+    ``rejected`` (flagged ``guard``) or ``refused`` (bad input: nothing changed)."""
+
+    t_end_s: float
+    status: str
+    reason: str = ""
+    innovation_arcsec: float = math.nan
+    sigma_arcsec: float = math.nan
+    move_deg: float = math.nan
+    interval_s: float = math.nan
+
+
+def _outcome(dwell: Dwell, status: str, reason: str, values: dict[str, float] | None) -> TableOutcome:
+    v = values or {}
+    return TableOutcome(
+        dwell.t_end_s,
+        status,
+        reason,
+        v.get("innovation_arcsec", math.nan),
+        v.get("sigma_arcsec", math.nan),
+        v.get("move_deg", math.nan),
+        v.get("interval_s", math.nan),
+    )
+
+
+class _Anchor(NamedTuple):
+    summary: np.ndarray  # the window means of the cumulative columns
+    angle_arcsec: float
+    window_blocks: int
+    first_block: int
+    end_block: int
+    epoch: int
+
+
+class TableLaw(ComparisonGuard):
+    """The readout's law from table angles (module docstring): ``estimate(f)`` per block (a priori),
+    ``block(...)`` to record it, ``observe(dwell)`` when a dwell's blocks have closed."""
+
+    def __init__(
+        self,
+        frozen_weights: np.ndarray,
+        frozen_intercept: float,
+        block_s: float,
+        config: AdaptConfig | None = None,
+        fit_residual_dph: float | None = None,
+        coil: tuple[float, int] | None = None,
+    ) -> None:
+        self.config = config if config is not None else AdaptConfig()
+        #: the coil's lag as the model found it (stage time, stages): the scale factor's temperature lags the
+        #: ring's by it; None: the ring's own temperature
+        self.coil = coil
+        self._coil_a = 0.0 if coil is None else 1.0 - math.exp(-float(block_s) / coil[0])
+        self.coil_c: list[float] = []
+        self.w0 = np.array(frozen_weights, dtype=np.float64)
+        self.b0 = float(frozen_intercept)
+        self.n_features = f = len(self.w0)
+        self.block_s = float(block_s)
+        self.runaway_dph = float(
+            self.config.runaway_dph if self.config.runaway_dph is not None else runaway_for(fit_residual_dph)
+        )
+        self.prior_dph = PRIOR_RUNAWAYS * self.runaway_dph
+        #: the frozen model's error scale over an interval: its fit residual (1-min RMS), as the runaway bound has it
+        self.model_sigma_dph = self.runaway_dph / RUNAWAY_FIT_RESIDUALS
+        self._min_gain = (self.config.compare_min_gain * self.runaway_dph / RUNAWAY_FIT_RESIDUALS) ** 2
+        self._cap = max(2, int(math.ceil(MAX_WINDOW_S / self.block_s)) + 2)
+        self._width = f + 4  # cumulative: f (F), 1, T, theta, degraded blocks
+        self._ring_mid = np.zeros((self._cap, self._width))
+        self._ring_rate = np.zeros(self._cap)
+        self._gram_a = 1.0 - math.exp(-self.block_s / GRAM_MEMORY_S)
+        self.bias_capture_s = blocks_in(self.config.bias_capture_s, self.block_s) * self.block_s
+        self.outcomes: list[TableOutcome] = []  #: every dwell's outcome, in order (the caller may clear it)
+        self._last_ring_c = math.nan
+        self._start()
+
+    def _start(self) -> None:
+        n = self.n_features + 3
+        self.h = np.zeros((n, n))
+        self.i = np.zeros(n)
+        self.delta = np.zeros(n)
+        self.cov = np.zeros((n, n))  # P, from the first update on
+        self.gram = np.zeros((self.n_features + 1, self.n_features + 1))
+        self.gram_weight = 0.0
+        self.noise_var_dph2 = math.nan  # the block rates' white noise variance (deg/h)^2
+        self.noise_dwells = 0
+        self.calibration_sum = 0.0
+        self.calibration_n = 0.0
+        self.last_update_s: float | None = None
+        self.accepted = self.rejected = self.refused = self.skipped = 0
+        self.guards = 0
+        self.rejections_in_row = 0
+        self._flag_pending = 0
+        self._reset_comparison()
+        self.begin_run()
+
+    def begin_run(self) -> None:
+        """A new switch-on: the bias is captured again, the chain of dwells starts afresh (the law's sums and
+        weights are kept)."""
+        self.bias_dph: float | None = None if self.bias_capture_s > 0 else 0.0
+        self.bias_sum_arcsec = 0.0
+        self.bias_time_s = 0.0
+        self.bias_rates: list[tuple[float, float]] = []
+        self._epoch = 0
+        self._break()
+        self.last_dwell_end_s: float | None = None
+
+    def _break(self) -> None:
+        """The chain is broken (a gap, a restart, ``?ZERO``): no interval is learned across it."""
+        self._epoch += 1
+        self._cum = np.zeros(self._width)
+        self._ring_first: int | None = None  # the block index at ring position _ring_pos0
+        self._ring_len = 0
+        self._ring_pos0 = 0
+        self._ring_full_since = False  # blocks were dropped off the ring's old end (not a break)
+        self.anchor: _Anchor | None = None
+
+    def _reset_comparison(self) -> None:
+        self.compare_windows = 0
+        self.compare_gain = 0.0
+        self.compare_gain_sq = 0.0
+        self.compare_level_frozen_dph = 0.0
+        self.compare_level_adapted_dph = 0.0
+        self.compare_dev_sq_adapted_dph2 = 0.0
+
+    def reset_to_frozen(self) -> None:
+        """The adapted weights back to the frozen ones, the law's information cleared (a runaway)."""
+        n = self.n_features + 3
+        self.h = np.zeros((n, n))
+        self.i = np.zeros(n)
+        self.delta = np.zeros(n)
+        self.cov = np.zeros((n, n))
+        self._reset_comparison()
+
+    # -- per block -------------------------------------------------------------------------------
+
+    @property
+    def adapted_in_use(self) -> bool:
+        """The comparison guard's verdict (``adapt.ComparisonGuard``), once the bias is captured."""
+        return self.bias_dph is not None and self._comparison_passes()
+
+    @property
+    def scale_factor_applied(self) -> bool:
+        return bool(
+            self.bias_dph is not None
+            and self.accepted > 0
+            and 0.0 < self.cov[self.n_features + 1, self.n_features + 1] <= SF_APPLY_SIGMA_PPM**2
+        )
+
+    @property
+    def scale_factor_ppm(self) -> tuple[float, float]:
+        """The learned (s0 ppm, s1 ppm/degC)."""
+        return float(self.delta[self.n_features + 1]), float(self.delta[self.n_features + 2])
+
+    def scale_ppm_at(self, t_ring_c: float) -> float:
+        """``s(T)`` in ppm when applied, else 0."""
+        if not self.scale_factor_applied or not math.isfinite(t_ring_c):
+            return 0.0
+        s0, s1 = self.scale_factor_ppm
+        return s0 + s1 * (t_ring_c - SF_REF_C)
+
+    def estimate(self, f: np.ndarray) -> tuple[float, float, int]:
+        """``(frozen estimate, estimate in use, flags)`` from this block's regressors (the weights before any
+        dwell this block delivers).  The runaway bound resets the law (``guard``)."""
+        y_frozen = float(numerics.dot(f, self.w0) + self.b0)  # the frozen estimate bit for bit (``adapt``)
+        flags, self._flag_pending = self._flag_pending, 0
+        if not math.isfinite(y_frozen):
+            return y_frozen, y_frozen, FLAG_GUARD
+        f_n = self.n_features
+        change = float(np.dot(f, self.delta[:f_n]) + self.delta[f_n])
+        if not math.isfinite(change) or abs(change) > self.runaway_dph:
+            self.reset_to_frozen()
+            self.guards += 1
+            return y_frozen, y_frozen, flags | FLAG_GUARD
+        if self.adapted_in_use and change != 0.0:
+            return y_frozen, y_frozen + change, flags | FLAG_ADAPTING
+        return y_frozen, y_frozen, flags
+
+    def block(
+        self, index: int, f: np.ndarray | None, rate_dph: float, frames_s: float, t_ring_c: float, clean: bool
+    ) -> None:
+        """Record a closed block: its regressors ``f`` (None: no estimate), mean rate, the time its frames
+        span, the ring temperature, and whether its inputs are clean.  A block that cannot be integrated
+        (a gap's block, non-finite values) breaks the chain."""
+        b = self.block_s
+        t_ring_c = self._coil_temperature(t_ring_c)
+        self._last_ring_c = t_ring_c
+        finite = math.isfinite(rate_dph) and math.isfinite(t_ring_c) and math.isfinite(frames_s)
+        if f is None or not finite or not np.isfinite(f).all():
+            self._break()
+            return
+        if self._ring_first is not None and index != self._ring_first + self._ring_len:
+            self._break()  # blocks missing in between
+        f_n = self.n_features
+        inc = np.empty(self._width)
+        inc[:f_n] = f
+        inc[:f_n] *= b
+        inc[f_n] = b
+        inc[f_n + 1] = t_ring_c * b
+        inc[f_n + 2] = rate_dph * frames_s
+        inc[f_n + 3] = 0.0 if clean else 1.0
+        mid = self._cum + 0.5 * inc
+        self._cum += inc
+        if self._ring_first is None:
+            self._ring_first, self._ring_pos0, self._ring_len = index, 0, 0
+        if self._ring_len == self._cap:  # the oldest block drops off
+            self._ring_pos0 = (self._ring_pos0 + 1) % self._cap
+            self._ring_first += 1
+            self._ring_len -= 1
+            self._ring_full_since = True
+        pos = (self._ring_pos0 + self._ring_len) % self._cap
+        self._ring_mid[pos] = mid
+        self._ring_rate[pos] = rate_dph
+        self._ring_len += 1
+        if clean:  # the regressors' gram, for the prior
+            g = np.append(f, 1.0)
+            self.gram_weight += self._gram_a * (1.0 - self.gram_weight)
+            self.gram += self._gram_a * (np.outer(g, g) - self.gram)
+
+    def _coil_temperature(self, t_ring_c: float) -> float:
+        """The coil's temperature: the ring's through the model's coil stages (each
+        ``s_k += a (s_(k-1) - s_k)``, ``a = 1 - exp(-B / stage)``, s_0 the ring), started at the first finite
+        ring temperature, held while it is not finite."""
+        if self.coil is None:
+            return t_ring_c
+        if not math.isfinite(t_ring_c):
+            return self.coil_c[-1] if self.coil_c else t_ring_c
+        if not self.coil_c:
+            self.coil_c = [t_ring_c] * self.coil[1]
+            return t_ring_c
+        upstream = t_ring_c
+        for k in range(len(self.coil_c)):
+            self.coil_c[k] += self._coil_a * (upstream - self.coil_c[k])
+            upstream = self.coil_c[k]
+        return upstream
+
+    @property
+    def coil_temperature_c(self) -> float:
+        """The temperature the scale factor is taken at now (the coil's, else the last ring reading)."""
+        return self.coil_c[-1] if self.coil_c else self._last_ring_c
+
+    @property
+    def last_block(self) -> int | None:
+        """The index of the newest block recorded since the last break (None: none)."""
+        return None if self._ring_first is None else self._ring_first + self._ring_len - 1
+
+    def _rows(self, first: int, end: int) -> np.ndarray:
+        assert self._ring_first is not None
+        pos = (self._ring_pos0 + np.arange(first - self._ring_first, end - self._ring_first)) % self._cap
+        return pos
+
+    # -- per dwell -------------------------------------------------------------------------------
+
+    def _refuse(self, dwell: Dwell, reason: str) -> TableOutcome:
+        self.refused += 1
+        return self._note(TableOutcome(dwell.t_end_s, "refused", reason))
+
+    def _note(self, outcome: TableOutcome) -> TableOutcome:
+        self.outcomes.append(outcome)
+        return outcome
+
+    def check_order(self, dwell: Dwell) -> str | None:
+        """Why ``dwell`` cannot follow the dwells before it (None: it can)."""
+        if self.last_dwell_end_s is not None and dwell.t_start_s < self.last_dwell_end_s - 1e-9:
+            return (
+                f"out of time order: the dwell starts at {dwell.t_start_s:.3f} s, before the previous one "
+                f"ended ({self.last_dwell_end_s:.3f} s)"
+            )
+        return None
+
+    def observe(self, dwell: Dwell) -> TableOutcome:
+        """One dwell, once the blocks up to its end have closed.  Returns (and records in ``outcomes``) what
+        became of it."""
+        order = self.check_order(dwell)
+        if order is not None:
+            return self._refuse(dwell, order)
+        self.last_dwell_end_s = dwell.t_end_s
+        try:
+            t0, t1 = trimmed_window(dwell.t_start_s, dwell.t_end_s)
+        except ValueError as exc:
+            return self._refuse(dwell, str(exc))
+        b = self.block_s
+        first, end = blocks_within(t0, t1, b)
+        if self._ring_first is None or self.last_block is None:
+            return self._refuse(dwell, "no block since the last break (a gap, a restart, a zero)")
+        if first < self._ring_first:
+            if not self._ring_full_since:
+                return self._refuse(dwell, "the dwell reaches back past a break (a gap, a restart, a zero)")
+            first = self._ring_first  # a dwell longer than the ring: its last MAX_WINDOW_S
+        if end > self.last_block + 1:
+            return self._refuse(dwell, "the dwell ends after the last block closed")
+        if end <= first:
+            return self._refuse(dwell, "no whole block inside the dwell's trimmed window")
+        # motion: every block of the untrimmed dwell still on the ring within the threshold of their median
+        lo, hi = blocks_within(dwell.t_start_s + MOTION_MARGIN_S, dwell.t_end_s - MOTION_MARGIN_S, b)
+        lo, hi = max(lo, self._ring_first), min(hi, self.last_block + 1)
+        rates = self._ring_rate[self._rows(lo, hi)]
+        spread = _motion_dph(rates)
+        if spread > self.config.static_threshold_dph:
+            return self._reject(
+                dwell, f"the gyro shows motion during the dwell ({spread:.0f} deg/h off a steady drift)"
+            )
+        if len(rates) >= 3:  # the white noise of a block rate, from successive differences
+            v = 0.5 * float(np.mean(np.diff(rates) ** 2))
+            self.noise_dwells += 1
+            old = 0.0 if math.isnan(self.noise_var_dph2) else self.noise_var_dph2
+            self.noise_var_dph2 = old + (v - old) / min(self.noise_dwells, CALIBRATION_INTERVALS)
+        summary = self._ring_mid[self._rows(first, end)].mean(axis=0)
+        angle = reference_deg(dwell.angle_deg, dwell.angle_end_deg) * ARCSEC_PER_DEG
+        here = _Anchor(summary, angle, end - first, first, end, self._epoch)
+        anchor = self.anchor
+        if anchor is None or anchor.epoch != self._epoch:
+            self.anchor = here
+            return self._note(TableOutcome(dwell.t_end_s, "anchor"))
+        return self._interval(dwell, anchor, here)
+
+    def _reject(self, dwell: Dwell, reason: str, values: dict[str, float] | None = None) -> TableOutcome:
+        self.rejected += 1
+        self._flag_pending |= FLAG_GUARD
+        self.rejections_in_row += 1
+        return self._note(_outcome(dwell, "rejected", reason, values))
+
+    def _interval(self, dwell: Dwell, a: _Anchor, bb: _Anchor) -> TableOutcome:
+        f_n = self.n_features
+        b = self.block_s
+        d = bb.summary - a.summary
+        t_eff = float(d[f_n])
+        x = d[:f_n]
+        if d[f_n + 3] > 0.5:  # blocks with degraded inputs in it: not learned; the chain goes on from here
+            self.anchor = bb
+            self.skipped += 1
+            return self._note(TableOutcome(dwell.t_end_s, "skipped", "degraded inputs in the interval"))
+        t_int = float(d[f_n + 1]) / t_eff
+        theta = float(d[f_n + 2])
+        move = bb.angle_arcsec - a.angle_arcsec
+        predicted = float(np.dot(x, self.w0) + t_eff * self.b0)
+        bias = 0.0 if self.bias_dph is None else self.bias_dph
+        adapted = float(np.dot(x, self.delta[:f_n]) + t_eff * self.delta[f_n])
+        gyro_move = theta - bias * t_eff - predicted - adapted
+        turns = round((gyro_move - move) / TURN_ARCSEC)
+        move += turns * TURN_ARCSEC
+        off_deg = (gyro_move - move) / ARCSEC_PER_DEG
+        if abs(off_deg) > AMBIGUOUS_DEG:
+            return self._reject(dwell, f"the move is {off_deg:+.1f} deg from every whole turn of the gyro's: ambiguous")
+        la, lb = a.window_blocks * b, bb.window_blocks * b
+        gap = (bb.first_block - a.end_block) * b
+        k2 = la / 3.0 + gap + lb / 3.0
+        noise = self.noise_var_dph2 * b if math.isfinite(self.noise_var_dph2) else 0.0
+        model = MODEL_NOISE_SHARE * self.model_sigma_dph * t_eff
+        r_var = noise * k2 + model * model
+        r = theta - move - predicted
+        values = {"move_deg": move / ARCSEC_PER_DEG, "interval_s": t_eff}
+        if self.bias_dph is None:  # the bias capture: the T_eff-weighted mean rate left
+            return self._capture(dwell, bb, r, t_eff, r_var, values)
+        r -= self.bias_dph * t_eff
+        phi = np.empty(f_n + 3)
+        phi[:f_n] = x
+        phi[f_n] = t_eff
+        phi[f_n + 1] = 1e-6 * move
+        phi[f_n + 2] = 1e-6 * move * (t_int - SF_REF_C)
+        e = r - float(np.dot(phi, self.delta))
+        s_raw = r_var + float(phi @ self.cov @ phi) if self.accepted else r_var + self._prior_var(phi)
+        calibration = (CALIBRATION_PRIOR + self.calibration_sum) / (CALIBRATION_PRIOR + self.calibration_n)
+        sigma = math.sqrt(max(s_raw, 1e-30) * calibration)
+        z2 = e * e / max(s_raw, 1e-30)
+        keep = 1.0 - 1.0 / CALIBRATION_INTERVALS
+        self.calibration_sum = keep * self.calibration_sum + min(z2, CALIBRATION_CAP)
+        self.calibration_n = keep * self.calibration_n + 1.0
+        values.update(innovation_arcsec=e, sigma_arcsec=sigma)
+        if abs(e) > TABLE_SIGMAS * sigma:
+            outcome = self._reject(dwell, f"disagrees with the gyro by {abs(e) / sigma:.1f} sigma", values)
+            if self.rejections_in_row >= 2:  # the anchor itself may be the wrong one: start again here
+                self.anchor = bb
+                self.rejections_in_row = 0
+            return outcome
+        self.rejections_in_row = 0
+        sf = phi[f_n + 1] * self.delta[f_n + 1] + phi[f_n + 2] * self.delta[f_n + 2]
+        self._add_window((r - sf) / t_eff, e / t_eff)
+        t_now = bb.end_block * b
+        beta = 1.0 if self.last_update_s is None else math.exp(-max(t_now - self.last_update_s, 0.0) / TABLE_MEMORY_S)
+        self.last_update_s = t_now
+        weight = 1.0 / max(r_var, 1e-30)
+        forget = np.ones(f_n + 3)  # the drift forgets, the scale factor (a constant of the coil) does not
+        forget[: f_n + 1] = math.sqrt(beta)
+        self.h *= np.outer(forget, forget)
+        self.h += weight * np.outer(phi, phi)
+        self.i *= forget
+        self.i += (weight * r) * phi
+        precision = self.h + self._prior()
+        try:
+            self.cov = np.linalg.inv(precision)
+            self.delta = self.cov @ self.i
+        except np.linalg.LinAlgError:
+            self.reset_to_frozen()
+            self.guards += 1
+            self._flag_pending |= FLAG_GUARD
+        self.accepted += 1
+        self.anchor = bb
+        return self._note(_outcome(dwell, "learned", "", values))
+
+    def _capture(
+        self, dwell: Dwell, bb: _Anchor, r: float, t_eff: float, r_var: float, values: dict[str, float]
+    ) -> TableOutcome:
+        rate = r / t_eff
+        if self.bias_time_s > 0:  # consistent with the capture so far?
+            mean = self.bias_sum_arcsec / self.bias_time_s
+            spread = [q for q, _ in self.bias_rates]
+            between = float(np.var(spread)) if len(spread) >= 2 else 0.0
+            sf = 1e-6 * SF_PRIOR_PPM * values["move_deg"] * ARCSEC_PER_DEG / t_eff  # the scale factor, not yet known
+            sigma = math.sqrt(r_var / t_eff**2 + between + self.prior_dph**2 + sf * sf)
+            if abs(rate - mean) > TABLE_SIGMAS * sigma:
+                values.update(innovation_arcsec=(rate - mean) * t_eff, sigma_arcsec=sigma * t_eff)
+                return self._reject(
+                    dwell, f"disagrees with the bias captured so far by {abs(rate - mean) / sigma:.1f} sigma", values
+                )
+        self.rejections_in_row = 0
+        self.bias_rates.append((rate, t_eff))
+        self.bias_sum_arcsec += r
+        self.bias_time_s += t_eff
+        if self.bias_time_s >= self.bias_capture_s:
+            self.bias_dph = self.bias_sum_arcsec / self.bias_time_s
+        self.anchor = bb
+        return self._note(_outcome(dwell, "bias", "", values))
+
+    def _prior(self) -> np.ndarray:
+        """L0: the correction's variation over the blocks seen (``dw`` through the regressors' covariance C)
+        within ``s_D``, its mean level (``m . dw + db``, m the regressors' mean) within the runaway bound (the
+        table's angles see the level: only the runaway bound limits it), the scale factor within its priors."""
+        f_n = self.n_features
+        n = f_n + 3
+        out = np.zeros((n, n))
+        if self.gram_weight > 0:
+            g = self.gram / self.gram_weight
+            mean = g[f_n, :f_n]
+            cov = g[:f_n, :f_n] - np.outer(mean, mean)
+        else:
+            mean, cov = np.zeros(f_n), np.eye(f_n)
+        ridge = 1e-6 * float(np.trace(cov)) / max(f_n, 1) + 1e-12
+        level = 1.0 / self.runaway_dph**2
+        out[:f_n, :f_n] = f_n * (cov + ridge * np.eye(f_n)) / self.prior_dph**2 + level * np.outer(mean, mean)
+        out[:f_n, f_n] = out[f_n, :f_n] = level * mean
+        out[f_n, f_n] = level
+        out[f_n + 1, f_n + 1] = 1.0 / SF_PRIOR_PPM**2
+        out[f_n + 2, f_n + 2] = 1.0 / SF_SLOPE_PRIOR_PPM_PER_C**2
+        return out
+
+    def _prior_var(self, phi: np.ndarray) -> float:
+        try:
+            return float(phi @ np.linalg.solve(self._prior(), phi))
+        except np.linalg.LinAlgError:
+            return 0.0
+
+    def summary(self) -> dict[str, Any]:
+        """Counts and the scale factor, for STATUS and reports."""
+        s0, s1 = self.scale_factor_ppm
+        p = self.n_features + 1
+        return {
+            "accepted": self.accepted,
+            "rejected": self.rejected,
+            "refused": self.refused,
+            "skipped": self.skipped,
+            "guards": self.guards,
+            "bias_dph": self.bias_dph,
+            "adapted_in_use": self.adapted_in_use,
+            "scale_factor_ppm": s0,
+            "scale_factor_ppm_per_c": s1,
+            "scale_factor_sigma_ppm": math.sqrt(self.cov[p, p]) if self.accepted else SF_PRIOR_PPM,
+            "scale_factor_applied": self.scale_factor_applied,
+        }

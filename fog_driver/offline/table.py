@@ -1,0 +1,67 @@
+"""``compensate --table-log``: the table log's dwells into the compensator, and what became of them."""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+from ..compensation.dwell import Dwell
+from ..compensation.pipeline import Compensator
+from ..compensation.table import TableLaw
+from ..errors import InputFileError
+
+__all__ = ["check_table_log_used", "table_dwells", "table_provenance", "table_summary_lines"]
+
+
+def table_dwells(stops: Iterable[Any]) -> list[Dwell]:
+    """Stops read from a table log (``t_start_s``, ``t_end_s``, ``angle_deg``, ``angle_end_deg``) as dwells."""
+    return [Dwell(s.t_start_s, s.t_end_s, s.angle_deg, s.angle_end_deg) for s in stops]
+
+
+def check_table_log_used(compensator: Compensator, table_log: str | Path, capture: str | Path) -> TableLaw:
+    """The compensator's table law, once the capture is through; a one-line ``InputFileError`` when dwells of
+    the log were never reached (they end after the capture does: the log of another capture)."""
+    law = compensator.table
+    if law is None:
+        raise ValueError("the compensator did not adapt from table angles")
+    left = compensator.pending_dwells
+    if left:
+        raise InputFileError(
+            f"{table_log}: {len(left)} dwells end after {capture} does (the first at {left[0].t_end_s:,.1f} s of "
+            f"device time from its first sample): the table log of another capture?"
+        )
+    return law
+
+
+def table_provenance(law: TableLaw) -> dict[str, Any]:
+    """What the table law did, for the CSV's sidecar: counts by outcome and the scale factor."""
+    return {k: float(v) if isinstance(v, float) else v for k, v in law.summary().items()}
+
+
+def table_summary_lines(compensator: Compensator) -> list[str]:
+    """The report ``compensate --table-log`` prints: the dwells by outcome, the reasons of the rejected and
+    refused ones, the scale factor."""
+    law = compensator.table
+    if law is None:
+        return []
+    counts = Counter(o.status for o in law.outcomes)
+    total = len(law.outcomes)
+    order = ("anchor", "bias", "learned", "skipped", "rejected", "refused")
+    parts = ", ".join(f"{counts[k]} {k}" for k in order if counts[k])
+    lines = [f"table log: {total} dwells: {parts or 'none reached'}"]
+    for status in ("rejected", "refused"):
+        reasons = Counter(o.reason.split(" (")[0].split(" by ")[0] for o in law.outcomes if o.status == status)
+        for reason, n in reasons.most_common():
+            first = next(o for o in law.outcomes if o.status == status and o.reason.startswith(reason))
+            lines.append(f"  {n} {status}: {reason} (the first ending at {first.t_end_s:,.1f} s: {first.reason})")
+    s = law.summary()
+    applied = "applied to the angle" if s["scale_factor_applied"] else "not applied (not yet known to 5 ppm)"
+    lines.append(
+        f"scale factor: {s['scale_factor_ppm']:+.1f} +- {s['scale_factor_sigma_ppm']:.1f} ppm at 25 degC, "
+        f"{s['scale_factor_ppm_per_c']:+.2f} ppm/degC; {applied}"
+    )
+    state = "the adapted drift in use" if s["adapted_in_use"] else "the frozen drift in use"
+    lines.append(f"at the end: {state}; runaway resets {s['guards']}")
+    return lines

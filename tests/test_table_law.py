@@ -1,0 +1,255 @@
+"""Adapting from the table's angles (``compensation.table``): the law against the simulator's truth, its
+safety (a lie, a late angle, motion, order, wrapped and ambiguous angles, gaps), step == run, and the CLI."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fog_driver.cli.app import main
+from fog_driver.compensation.dwell import Dwell, blocks_within, reference_deg, trimmed_window
+from fog_driver.compensation.pipeline import FLAG_GUARD, FLAG_SCALE_FACTOR, Compensator
+from fog_driver.compensation.table import SF_REF_C, TableOutcome
+from fog_driver.daemon.config import DEFAULT_MODEL
+from fog_driver.modelfiles import load_model
+from fog_driver.protocol import decode_file
+from fog_driver.report.positioning import read_reference_csv
+from fog_driver.samples.stream import SampleBlock, SampleStream
+from fog_driver.sim.capture import read_truth, simulate_to_file
+from fog_driver.sim.instrument import InstrumentConfig, Simulator
+from fog_driver.sim.profiles import parse_profile
+
+S0_PPM, S1_PPM_PER_C = 40.0, 0.5
+RATE_HZ = 5
+PROFILE = {
+    "name": "table-law-test",
+    "start_c": 20,
+    "segments": [
+        {"hold": {"duration_min": 20}},
+        {"ramp": {"rate_c_per_min": 1, "target_c": 40}},
+        {"hold": {"duration_min": 30}},
+        {"ramp": {"rate_c_per_min": 1, "target_c": 5}},
+        {"hold": {"duration_min": 30}},
+    ],
+    "motion": {
+        "kind": "positioning",
+        "start_s": 300,
+        "moves": 58,
+        "step_deg": [36, 90, -36, 180, -90, 10, -180, -10],
+        "dwell_s": 120,
+    },
+}
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    """A 135-min run of an instrument with a 40-ppm, 0.5-ppm/degC scale-factor error, the table dwelling 120 s
+    between moves of both signs and several sizes; its samples, table log and truth."""
+    out = tmp_path_factory.mktemp("table") / "run.bin"
+    base = InstrumentConfig()
+    config = dataclasses.replace(
+        base,
+        gyro=dataclasses.replace(base.gyro, scale_factor_ppm=S0_PPM, scale_factor_ppm_per_c=S1_PPM_PER_C),
+    )
+    simulate_to_file(Simulator(parse_profile(PROFILE), config, rate_hz=RATE_HZ, seed=11), out)
+    samples = SampleStream().run(decode_file(out))
+    stops = read_reference_csv(out.with_suffix(".table.csv"))
+    dwells = [Dwell(s.t_start_s, s.t_end_s, s.angle_deg, s.angle_end_deg) for s in stops]
+    return samples, dwells, read_truth(out.with_suffix(".truth.csv")), config, out
+
+
+def first(samples: SampleBlock, dwells: list[Dwell], seconds: float) -> tuple[SampleBlock, list[Dwell]]:
+    """The run's first ``seconds`` and the dwells that end within them."""
+    n = int(np.searchsorted(samples.t_s - samples.t_s[0], seconds))
+    return samples.take(slice(0, n)), [d for d in dwells if d.t_end_s < seconds]
+
+
+def compensate(samples: SampleBlock, dwells: list[Dwell]) -> tuple[Compensator, object]:
+    comp = Compensator(load_model(DEFAULT_MODEL), 1.0 / RATE_HZ, table=True)
+    comp.add_dwells(dwells)
+    return comp, comp.run(samples)
+
+
+def test_the_shared_dwell_definition():
+    assert trimmed_window(10.0, 40.0) == (15.0, 35.0)
+    with pytest.raises(ValueError, match="not longer than twice"):
+        trimmed_window(10.0, 20.0)
+    assert blocks_within(15.0, 35.0, 1.0) == (15, 35)
+    assert blocks_within(15.2, 34.9, 1.0) == (16, 34)  # whole blocks only
+    assert reference_deg(36.0, None) == 36.0
+    assert reference_deg(36.0, 36.1) == pytest.approx(36.05)
+
+
+def test_the_scale_factor_is_found_against_the_simulators_truth(run):
+    """Within 5 ppm of the truth at every temperature of the run's plateaus (the coil's true temperature),
+    and applied to the angle (flagged) once known."""
+    samples, dwells, truth, config, _ = run
+    comp, cols = compensate(samples, dwells)
+    law = comp.table
+    s0, s1 = law.scale_factor_ppm
+    for lo, hi in ((900, 1200), (2700, 3000), (6300, 8100)):  # the plateaus at 20, 40 and 5 degC, settled
+        fiber = truth["fiber_c"][lo:hi]
+        true_ppm = float(np.mean(config.gyro.scale_factor_error(fiber))) * 1e6
+        found = s0 + s1 * (float(np.mean(fiber)) - SF_REF_C)
+        assert abs(found - true_ppm) < 5.0, (lo, found, true_ppm)
+    assert law.scale_factor_applied
+    assert cols.flags[-1] & FLAG_SCALE_FACTOR
+    counts = {s: sum(o.status == s for o in law.outcomes) for s in ("learned", "rejected", "refused")}
+    assert counts["rejected"] == counts["refused"] == 0, law.outcomes
+    assert counts["learned"] >= len(dwells) - 4
+    # the angle: over a move, the compensated angle takes away s(T) times it (beside the drift), s the truth's
+    k = max(range(len(dwells) - 10, len(dwells) - 1), key=lambda i: abs(dwells[i + 1].angle_deg - dwells[i].angle_deg))
+    a, b = dwells[k], dwells[k + 1]  # a 180-degree move near the end
+    t = cols.t_s - cols.t_s[0]
+    sel = (t > a.t_end_s) & (t < b.t_start_s)
+    taken = float(np.sum(cols.dtheta_arcsec[sel] - cols.drift_dph[sel] / RATE_HZ - cols.dtheta_comp_arcsec[sel]))
+    move = (b.angle_deg - a.angle_deg) * 3600.0
+    true_ppm = float(np.mean(config.gyro.scale_factor_error(truth["fiber_c"][int(a.t_end_s) : int(b.t_start_s)])))
+    assert abs(true_ppm * move) > 10.0  # a move the scale factor shows in
+    assert taken == pytest.approx(true_ppm * move, abs=5e-6 * abs(move))
+
+
+def test_step_equals_run_with_dwells(run):
+    samples, dwells, *_ = run
+    part, use = first(samples, dwells, 2400.0)
+    runner, whole = compensate(part, use)
+    stepper = Compensator(load_model(DEFAULT_MODEL), 1.0 / RATE_HZ, table=True)
+    stepper.add_dwells(use)
+    stepped = [stepper.step(part.sample(i)) for i in range(len(part))]
+    assert [repr(whole.sample(i)) for i in range(len(part))] == [repr(s) for s in stepped]
+    assert [repr(o) for o in runner.table.outcomes] == [repr(o) for o in stepper.table.outcomes]
+    assert sum(o.status == "learned" for o in runner.table.outcomes) >= 8
+
+
+def _outcome_at(outcomes: list[TableOutcome], dwell: Dwell) -> TableOutcome:
+    return next(o for o in outcomes if o.t_end_s == dwell.t_end_s)
+
+
+def test_a_lie_of_five_sigmas_is_rejected_flagged_and_the_chain_goes_on(run):
+    samples, dwells, *_ = run
+    comp, _ = compensate(samples, dwells)
+    k = 30
+    honest = _outcome_at(comp.table.outcomes, dwells[k])
+    assert honest.status == "learned"
+    off_deg = 5.0 * honest.sigma_arcsec / 3600.0
+    lied = list(dwells)
+    lied[k] = dataclasses.replace(dwells[k], angle_deg=dwells[k].angle_deg + off_deg)
+    comp2, cols = compensate(samples, lied)
+    assert _outcome_at(comp2.table.outcomes, lied[k]).status == "rejected"
+    assert _outcome_at(comp2.table.outcomes, lied[k + 1]).status == "learned"  # from the last good dwell
+    t = cols.t_s - cols.t_s[0]
+    after = (t > lied[k].t_end_s) & (t < lied[k].t_end_s + 3.0)
+    assert (cols.flags[after] & FLAG_GUARD).any()
+    assert not (cols.flags[(t > 600) & (t < lied[k].t_end_s)] & FLAG_GUARD).any()
+
+
+def assert_rejected(samples: SampleBlock, dwells: list[Dwell], k: int, why: str, **change: float) -> None:
+    """Dwell ``k`` changed by ``change`` is rejected, and ``why`` is in the reason."""
+    changed = list(dwells)
+    changed[k] = dataclasses.replace(dwells[k], **change)
+    comp, _ = compensate(samples, changed)
+    outcome = _outcome_at(comp.table.outcomes, changed[k])
+    assert outcome.status == "rejected" and why in outcome.reason, outcome
+
+
+def test_an_angle_sent_late_is_rejected_the_gyro_sees_the_move(run):
+    samples, dwells, *_ = run
+    assert_rejected(samples, dwells, 20, "motion", t_end_s=dwells[20].t_end_s + 2.0)
+
+
+def test_wrapped_angles_give_the_same_outcomes_and_an_ambiguous_one_is_rejected(run):
+    samples, dwells, *_ = run
+    part, use = first(samples, dwells, 3000.0)
+    cumulative, _ = compensate(part, use)
+    wrapped, _ = compensate(part, [dataclasses.replace(d, angle_deg=d.angle_deg % 360.0) for d in use])
+    assert [(o.status, o.innovation_arcsec) for o in cumulative.table.outcomes] == [
+        (o.status, o.innovation_arcsec) for o in wrapped.table.outcomes
+    ]
+    assert_rejected(part, use, 10, "ambiguous", angle_deg=use[10].angle_deg + 180.0)
+
+
+def test_dwells_out_of_order_are_refused(run):
+    samples, dwells, *_ = run
+    part, use = first(samples, dwells, 1500.0)
+    overlapping = Dwell(use[3].t_start_s - 30.0, use[3].t_start_s + 20.0, use[2].angle_deg)
+    comp = Compensator(load_model(DEFAULT_MODEL), 1.0 / RATE_HZ, table=True)
+    comp.add_dwells([*use[:3], overlapping])
+    comp.run(part)
+    assert comp.table.outcomes[-1].status == "refused"
+    assert "out of time order" in comp.table.outcomes[-1].reason
+
+
+def test_a_link_gap_breaks_the_chain(run):
+    samples, dwells, *_ = run
+    t = samples.t_s - samples.t_s[0]
+    d = dwells[8]
+    lo, hi = d.t_end_s + 1.0, d.t_end_s + 4.0  # frames lost during the move after dwell 8
+    keep = np.flatnonzero((t < 3000.0) & ((t < lo) | (t >= hi)))
+    cut = SampleBlock(*(getattr(samples, f)[keep] for f in SampleBlock.__dataclass_fields__))
+    comp, _ = compensate(cut, [x for x in dwells if x.t_end_s < 3000.0])
+    assert _outcome_at(comp.table.outcomes, dwells[9]).status == "anchor"  # not learned across the gap
+    later = [o.status for o in comp.table.outcomes if o.t_end_s > dwells[9].t_end_s]
+    assert "learned" in later  # once the smoothers have settled after the gap (until then: skipped)
+    assert set(later[: later.index("learned")]) <= {"skipped"}
+    # a dwell that reaches back past the gap is refused
+    across = Dwell(d.t_start_s, hi + 30.0, d.angle_deg)
+    comp2, _ = compensate(cut, [*dwells[:8], across])
+    assert comp2.table.outcomes[-1].status == "refused"
+
+
+def test_compensate_table_log_cli(run, tmp_path, capsys):
+    samples, dwells, truth, config, capture = run
+    model = tmp_path / "model.yaml"
+    model.write_bytes(Path(DEFAULT_MODEL).read_bytes())
+    out = tmp_path / "out.csv"
+    log = capture.with_suffix(".table.csv")
+    args = ["compensate", str(capture), "--model", str(model), "--out", str(out), "--table-log", str(log)]
+    assert main(args) == 0
+    text = capsys.readouterr().out
+    assert "table log:" in text and "learned" in text and "scale factor: +" in text
+    assert "scale_factor" in out.read_text()
+    # with --adapt-reference: a usage error, one line, nothing written
+    out2 = tmp_path / "out2.csv"
+    code = main([*args[:5], str(out2), "--table-log", str(log), "--adapt-reference", "0"])
+    assert code == 64 and not out2.exists()
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--table-log" in err[0]
+    # the log of a longer capture: refused, nothing left behind
+    other = tmp_path / "other.csv"
+    span = float(truth["second"][-1])
+    other.write_text(f"t_start_s,t_end_s,angle_deg\n100,200,0\n{span + 50},{span + 200},36\n")
+    out3 = tmp_path / "out3.csv"
+    code = main([*args[:5], str(out3), "--table-log", str(other)])
+    assert code != 0 and not out3.exists()
+    assert "another capture" in capsys.readouterr().err
+    assert math.isfinite(span)
+
+
+def test_the_commands_reference_example_prints_what_it_shows(tmp_path, monkeypatch, capsys):
+    """The ``compensate --table-log`` session of the commands reference, run as shown."""
+    root = Path(__file__).resolve().parents[1]
+    text = (root / "docs" / "reference" / "commands.md").read_text()
+    start = text.index("$ fog-driver simulate --profile configs/profiles/table-run.yaml")
+    block = text[start : text.index("```", start)].strip().splitlines()
+    commands = [line[2:].split() for line in block if line.startswith("$ ")]
+    shown = [line for line in block if not line.startswith("$ ")]
+    for name in ("configs", "fog_driver"):
+        (tmp_path / name).symlink_to(root / name)
+    monkeypatch.chdir(tmp_path)
+    assert main(commands[0][1:]) == 0
+    capsys.readouterr()
+    assert main(commands[1][1:]) == 0
+    assert capsys.readouterr().out.strip().splitlines() == shown
+
+
+def test_without_dwells_the_table_law_publishes_the_frozen_model_bit_for_bit(run):
+    samples, dwells, *_ = run
+    part, _ = first(samples, dwells, 1200.0)
+    frozen = Compensator(load_model(DEFAULT_MODEL), 1.0 / RATE_HZ).run(part)
+    table = Compensator(load_model(DEFAULT_MODEL), 1.0 / RATE_HZ, table=True).run(part)
+    for name in ("drift_dph", "angle_comp_arcsec", "flags", "drift_sigma_dph"):
+        assert np.array_equal(getattr(frozen, name), getattr(table, name), equal_nan=True), name
