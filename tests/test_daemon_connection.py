@@ -254,3 +254,18 @@ def test_a_service_answer_becomes_one_line():
     assert control_reply("NOPE", None) == {"class": "ERROR", "message": "unknown command ?NOPE", "command": "NOPE"}
     assert control_reply("ZERO", 3)["message"] == "internal: bad reply"
     assert control_error("ZERO", ValueError()) == {"class": "ERROR", "message": "ValueError", "command": "ZERO"}
+
+
+def test_one_table_angle_per_two_seconds_per_client():
+    conn, clock = connection()
+    line = b'?TABLE={"angle_deg": 36, "dwell_s": 60};\n'
+    assert run(conn, line) == [Control("TABLE", {"angle_deg": 36, "dwell_s": 60})]
+    clock.now_s += 1.9
+    assert sent(run(conn, line)) == [
+        {"class": "ERROR", "message": "at most one ?TABLE per 2 s: refused", "command": "TABLE"}
+    ]
+    assert run(conn, b"?ZERO;\n") == [Control("ZERO", {})]  # other commands are not held back
+    clock.now_s += 0.1
+    assert run(conn, line) == [Control("TABLE", {"angle_deg": 36, "dwell_s": 60})]  # 2 s after the one taken
+    other, _ = connection()  # another client has its own allowance
+    assert run(other, line) == [Control("TABLE", {"angle_deg": 36, "dwell_s": 60})]

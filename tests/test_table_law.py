@@ -253,3 +253,50 @@ def test_without_dwells_the_table_law_publishes_the_frozen_model_bit_for_bit(run
     table = Compensator(load_model(DEFAULT_MODEL), 1.0 / RATE_HZ, table=True).run(part)
     for name in ("drift_dph", "angle_comp_arcsec", "flags", "drift_sigma_dph"):
         assert np.array_equal(getattr(frozen, name), getattr(table, name), equal_nan=True), name
+
+
+def test_table_angles_live_through_the_daemon(run):
+    """``?TABLE`` at each dwell's end, the bytes fed as the port gives them: refusals are one-line ERRORs, the
+    dwells are learned, STATUS says so, and the scale factor is found as offline."""
+    from fog_driver.daemon.config import DriverConfig
+    from fog_driver.daemon.service import Service
+
+    samples, dwells, truth, config, capture = run
+    data = capture.read_bytes()
+    t = samples.t_s - samples.t_s[0]
+    service = Service(DriverConfig(), port="unused")
+    refused = service.control("TABLE", {"angle_deg": 0.0, "dwell_s": 60.0}, 0)
+    assert refused["class"] == "ERROR" and "no samples yet" in refused["message"]
+    fed = 0
+    answers = []
+    for k, d in enumerate(dwells):
+        i = int(np.searchsorted(t, d.t_end_s))  # the first frame after the dwell: the angle is sent then
+        end = int(samples.offset[i]) if i < len(samples) else len(data)
+        service.process(data[fed:end])
+        fed = end
+        if k == 3:  # bad input: one line each, nothing learned
+            for bad in ({"angle_deg": math.nan, "dwell_s": 60}, {"angle_deg": 1e7, "dwell_s": 60}):
+                assert service.control("TABLE", bad, 0)["class"] == "ERROR"
+            short = service.control("TABLE", {"angle_deg": d.angle_deg, "dwell_s": 5}, 0)
+            assert short["class"] == "ERROR" and "12" in short["message"]
+        answers.append(service.control("TABLE", {"angle_deg": d.angle_deg, "dwell_s": d.t_end_s - d.t_start_s}, 0))
+        if k == 5:  # a second angle for a dwell already given: out of order
+            again = service.control("TABLE", {"angle_deg": d.angle_deg, "dwell_s": 60}, 0)
+            assert again["class"] == "ERROR" and "out of time order" in again["message"]
+            on = service.control("ADAPT", {"enable": True, "reference_dph": 0}, 0)
+            assert on["class"] == "ERROR" and "table" in on["message"]
+    service.process(data[fed:])
+    assert all(a["class"] == "TABLE" for a in answers), [a for a in answers if a["class"] != "TABLE"][:1]
+    table = service.status_object()["table"]
+    assert table["engaged"] is True and table["rejected"] == 0 and table["accepted"] >= len(dwells) - 6
+    assert table["scale_factor_applied"] is True
+    fiber = truth["fiber_c"][6300:8100]
+    true_ppm = float(np.mean(config.gyro.scale_factor_error(fiber))) * 1e6
+    found = table["scale_factor_ppm"] + table["scale_factor_ppm_per_c"] * (float(np.mean(fiber)) - SF_REF_C)
+    assert abs(found - true_ppm) < 5.0
+    # a zero breaks the chain: a dwell reaching back past it is refused; ?ADAPT off ends it
+    assert service.control("ZERO", {}, 0)["class"] == "ZERO"
+    past = service.control("TABLE", {"angle_deg": 0.0, "dwell_s": 60}, 0)
+    assert past["class"] == "ERROR" and "reaches back past a break" in past["message"]
+    assert service.control("ADAPT", {"enable": False}, 0)["class"] == "ADAPT"
+    assert service.status_object()["table"]["engaged"] is False

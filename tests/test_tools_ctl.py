@@ -7,6 +7,7 @@ bounded by GUARD_S."""
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 
@@ -62,11 +63,16 @@ def test_ctl_zero_adapt_reload_status_save(tmp_path, capsys):
         assert status == 0 and reply["class"] == "STATUS" and reply["adapting"] is True
         assert reply["bias_captured"] is False
         assert ctl(capsys, daemon, "adapt", "off")[:2] == (0, "adaptation off: the weights are frozen\n")
+        status, out, err = ctl(capsys, daemon, "table", "36", "--dwell", "12")  # no data since the zero
+        assert status == 65 and out == "" and "reaches back past a break in the data" in err
         status, out, err = ctl(capsys, daemon, "save")  # no adapt_state configured: refused, 65
         assert (status, out) == (65, "") and err == "fog-driver: error: ?SAVE refused: no adapt_state file configured\n"
         pty.write(SHORT[HEAD:])
         angles = watch_all(client, N_SHORT - N_HEAD)
         assert abs(angles[0]["angle_arcsec"]) < 5.0  # zeroed
+        status, out, err = ctl(capsys, daemon, "table", "36", "--dwell", "12")
+        assert status == 0 and out.startswith("table angle 36 deg taken for the dwell ") and err == "", err
+        assert ctl(capsys, daemon, "adapt", "off")[0] == 0  # ends adapting from table angles too
         assert daemon.terminate() == 0
 
 
@@ -172,6 +178,7 @@ def test_ctl_on_a_daemon_that_is_not_there_is_one_line_and_69(tmp_path):
         ("reload", [], ("RELOAD", None)),
         ("status", [], ("STATUS", None)),
         ("save", [], ("SAVE", None)),
+        ("table", ["-36"], ("TABLE", {"angle_deg": -36.0, "dwell_s": 12.0})),
     ],
 )
 def test_parse_request(command, words, expected):
@@ -199,8 +206,25 @@ def test_a_bias_result_names_the_drift_sigma_when_the_daemon_gives_one():
         ("adapt", ["yes"]),
         ("zero", ["1"]),
         ("nope", []),
+        ("table", []),
+        ("table", ["x"]),
+        ("table", ["nan"]),
+        ("table", ["1e7"]),
+        ("table", ["1", "2"]),
     ],
 )
 def test_parse_request_refuses(command, words):
     with pytest.raises(UsageError):
         parse_request(command, words)
+
+
+def test_parse_request_table_options():
+    assert parse_request("table", ["36"], dwell_s=60, angle_start_deg=35.9) == (
+        "TABLE",
+        {"angle_deg": 36.0, "dwell_s": 60.0, "angle_start_deg": 35.9},
+    )
+    for bad in ({"dwell_s": 5}, {"dwell_s": math.inf}, {"angle_start_deg": math.nan}):
+        with pytest.raises(UsageError):
+            parse_request("table", ["36"], **bad)
+    with pytest.raises(UsageError, match="go with `table` only"):
+        parse_request("zero", [], dwell_s=60)

@@ -34,6 +34,8 @@ def cmd_ctl(args: argparse.Namespace) -> int:
         json_out=args.json,
         reference_dph=args.reference_dph,
         timeout_s=args.timeout,
+        dwell_s=args.dwell,
+        angle_start_deg=args.angle_start,
     )
 
 
@@ -71,17 +73,22 @@ def add_watch(p: argparse.ArgumentParser) -> None:
 def add_ctl(p: argparse.ArgumentParser) -> None:
     """``fog-driver ctl``: its arguments, the exit statuses in its description, and its function."""
     p.description = (
-        "zero | bias [SECONDS] | adapt on|off | reload | status | save.  Exit 0 done; "
+        "zero | bias [SECONDS] | adapt on|off | table ANGLE | reload | status | save.  Exit 0 done; "
         "64 unknown to the daemon; 65 refused or the bias capture failed; 69 unreachable "
         "or the connection lost; 77 the token refused or needed."
     )
     p.add_argument(
         "ctl_command",
         metavar="COMMAND",
-        choices=["zero", "bias", "adapt", "reload", "status", "save"],
-        help="zero, bias, adapt, reload, status or save",
+        choices=["zero", "bias", "adapt", "table", "reload", "status", "save"],
+        help="zero, bias, adapt, table, reload, status or save",
     )
-    p.add_argument("ctl_args", nargs="*", metavar="ARG", help="bias: SECONDS (default 60, 1..86400); adapt: on or off")
+    p.add_argument(
+        "ctl_args",
+        nargs="*",
+        metavar="ARG",
+        help="bias: SECONDS (default 60, 1..86400); adapt: on or off; table: the table's ANGLE (degrees)",
+    )
     p.add_argument(
         "--connect",
         metavar="HOST:PORT",
@@ -100,6 +107,18 @@ def add_ctl(p: argparse.ArgumentParser) -> None:
         type=float,
         metavar="DPH",
         help="adapt on: the known input rate while static (deg/h; default 0, a table at rest)",
+    )
+    p.add_argument(
+        "--dwell",
+        type=float,
+        metavar="S",
+        help="table: the seconds the table has stood at ANGLE (default 12, the least a dwell may be)",
+    )
+    p.add_argument(
+        "--angle-start",
+        type=float,
+        metavar="DEG",
+        help="table: the angle the dwell began at, when the table moved within it (a creep)",
     )
     p.add_argument(
         "--timeout",

@@ -33,6 +33,7 @@ from .protocol import (
     check_bias,
     check_reply,
     control_args,
+    table_args,
 )
 from .session import Received, Request
 
@@ -379,6 +380,10 @@ class AsyncClient(ClientBase):
 
     async def adapt(self, enable: bool = True, reference_dph: float = 0.0) -> Reply:
         return answer_as(Reply, await self._command("ADAPT", control_args(enable, reference_dph)))
+
+    async def table(self, angle_deg: float, dwell_s: float, angle_start_deg: float | None = None) -> Reply:
+        """As ``Client.table``."""
+        return answer_as(Reply, await self._command("TABLE", table_args(angle_deg, dwell_s, angle_start_deg)))
 
     async def save(self) -> Reply:
         return answer_as(Reply, await self._command("SAVE"))

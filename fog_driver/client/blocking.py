@@ -37,6 +37,7 @@ from .protocol import (
     check_reply,
     control_args,
     printable,
+    table_args,
 )
 from .session import Request
 
@@ -339,6 +340,13 @@ class Client(ClientBase):
         """``?ADAPT``: adapt the model's weights online against ``reference_dph`` (0: the table at rest), or
         freeze them again (``enable=False``)."""
         return answer_as(Reply, self._command("ADAPT", control_args(enable, reference_dph)))
+
+    def table(self, angle_deg: float, dwell_s: float, angle_start_deg: float | None = None) -> Reply:
+        """``?TABLE``: the table has stood at ``angle_deg`` (cumulative, or the encoder's [0, 360)) for the last
+        ``dwell_s`` seconds (12 or more; moving from ``angle_start_deg`` when given): the daemon adapts from the
+        table's angles.  The reply has the dwell's device times (``t_start_s``, ``t_end_s``); what the gyro said
+        of it is in STATUS ``table`` a second later.  At most one per 2 s."""
+        return answer_as(Reply, self._command("TABLE", table_args(angle_deg, dwell_s, angle_start_deg)))
 
     def save(self) -> Reply:
         """``?SAVE``: save the adaptation state to the daemon's configured file."""

@@ -222,7 +222,7 @@ class Other(_Base):
 
 Message = Angle | Version | Device | Status | Bias | Reply | ErrorReply | Other
 
-_REPLY_CLASSES = frozenset({"WATCH", "AUTH", "ZERO", "ADAPT", "SAVE", "RELOAD"})
+_REPLY_CLASSES = frozenset({"WATCH", "AUTH", "ZERO", "ADAPT", "TABLE", "SAVE", "RELOAD"})
 
 
 def since_bias_sigma_dph(drift_sigma_dph: float | None, bias_sigma_dph: float | None) -> float | None:

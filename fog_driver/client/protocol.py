@@ -22,6 +22,9 @@ __all__ = [
     "DEFAULT_MAX_BUFFERED_BYTES",
     "MAX_BIAS_S",
     "MAX_REFERENCE_DPH",
+    "MAX_TABLE_ANGLE_DEG",
+    "MAX_TABLE_DWELL_S",
+    "MIN_TABLE_DWELL_S",
     "MESSAGE_OVERHEAD_BYTES",
     "MIN_BUFFERED_BYTES",
     "REPLY_TIMEOUT_S",
@@ -29,6 +32,7 @@ __all__ = [
     "MessageQueue",
     "answer_as",
     "bias_args",
+    "table_args",
     "Reconnection",
     "check_bias",
     "check_reply",
@@ -54,6 +58,10 @@ def _log(level: int, event: str, **fields: Any) -> None:
 
 MAX_BIAS_S = 86400
 MAX_REFERENCE_DPH = 1e7
+#: ``?TABLE``: the largest angle (deg), the shortest and longest dwell (s), as the daemon checks them.
+MAX_TABLE_ANGLE_DEG = 1e6
+MIN_TABLE_DWELL_S = 12.0
+MAX_TABLE_DWELL_S = 86400.0
 #: How long a command's answer is waited for by default: the daemon answers every control command within 30 s.
 REPLY_TIMEOUT_S = 35.0
 #: The bytes a client holds for its caller by default (``max_buffered_bytes``): the line being read and the
@@ -359,6 +367,25 @@ def control_args(enable: bool, reference_dph: float) -> dict[str, Any]:
     ):
         raise ValueError(f"reference_dph must be a number within +-{MAX_REFERENCE_DPH:g} deg/h")
     return {"enable": True, "reference_dph": float(reference_dph)}
+
+
+def table_args(angle_deg: float, dwell_s: float, angle_start_deg: float | None = None) -> dict[str, Any]:
+    """``?TABLE``'s argument object, checked as the daemon checks it (``ValueError`` when it would refuse)."""
+
+    def number(v: Any) -> bool:
+        return not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v)
+
+    for name, v in (("angle_deg", angle_deg), ("angle_start_deg", angle_start_deg)):
+        if v is None and name == "angle_start_deg":
+            continue
+        if not (number(v) and abs(float(v)) <= MAX_TABLE_ANGLE_DEG):  # type: ignore[arg-type]  # a number
+            raise ValueError(f"{name} must be a number within +-{MAX_TABLE_ANGLE_DEG:g} degrees")
+    if not (number(dwell_s) and MIN_TABLE_DWELL_S <= dwell_s <= MAX_TABLE_DWELL_S):
+        raise ValueError(f"dwell_s must be a number of seconds from {MIN_TABLE_DWELL_S:g} to {MAX_TABLE_DWELL_S:g}")
+    args: dict[str, Any] = {"angle_deg": float(angle_deg), "dwell_s": float(dwell_s)}
+    if angle_start_deg is not None:
+        args["angle_start_deg"] = float(angle_start_deg)
+    return args
 
 
 def bias_args(seconds: float) -> dict[str, Any]:

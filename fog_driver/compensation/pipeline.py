@@ -36,7 +36,7 @@ from .adapt import OnlineReadout
 from .adapt_config import AdaptConfig, StaticDetector
 from .blocks import FLAG_GAP, FLAG_THERMOMETER_FAULT, PLAUSIBLE_TEMP_C, BlockAverager, ModelBlock
 from .domain import FLAG_EXTRAPOLATING
-from .dwell import Dwell
+from .dwell import MIN_LIVE_DWELL_S, Dwell
 from .features import DEGRADED_FLAGS, FLAG_INPUT_STALE, FeatureExtractor
 from .model import ModelFile
 from .table import TableLaw, TableOutcome
@@ -177,9 +177,10 @@ class Compensator:
         self._dwells: list[Dwell] = []
         self.scale_ppm = 0.0
         self._t_ring_c = math.nan
+        #: the table law records every block; it gives the estimate once engaged (a dwell was given) and no
+        #: reference rate is set (the two signals exclude each other)
+        self.table_engaged = False
         if table:
-            if reference_rate_dph is not None:
-                raise ValueError("adapting from table angles and against a reference rate exclude each other")
             self.table = TableLaw(
                 self.model.weights,
                 self.model.intercept,
@@ -188,7 +189,7 @@ class Compensator:
                 fit_residual_dph=model_file.fit_residual_dph,
                 coil=self.model.coil_lag() if hasattr(self.model, "coil_lag") else None,
             )
-        elif adapt is not None:
+        if adapt is not None:
             self.online = OnlineReadout(
                 self.model.weights,
                 self.model.intercept,
@@ -248,9 +249,10 @@ class Compensator:
                 self.model.start(z)
                 self.uncertainty.start(z)
                 self._started = True
-            if self.table is not None:
+            by_table = self.table is not None and (self.online is None or self._table_leads)
+            if by_table:
                 f = self.model.regressors_step(z)
-                _, estimate, adapt_flags = self.table.estimate(f)
+                _, estimate, adapt_flags = cast(TableLaw, self.table).estimate(f)
             elif self.online is None:
                 estimate = self.model.step(z)
                 adapt_flags = 0
@@ -261,7 +263,7 @@ class Compensator:
                 f = self.model.regressors_step(z)
                 estimate, adapt_flags = self.online.step(f, block.rate_dph, self.reference_rate_dph, gate)
             sigma = self.uncertainty.step(z, raw, estimate)
-            if self.online is not None and self.online.used_adapted:  # the adapted weights' estimate
+            if not by_table and self.online is not None and self.online.used_adapted:  # the adapted weights' estimate
                 sigma = self.uncertainty.adapted(self.online.adapted_sigma_dph, raw)
             if self.domain is not None:
                 estimate, clipped = self.domain.bound(estimate)
@@ -303,11 +305,68 @@ class Compensator:
         if self.scale_ppm:
             self.estimate_flags |= FLAG_SCALE_FACTOR
 
+    @property
+    def _table_leads(self) -> bool:
+        """The table law gives the estimate: engaged (a dwell was given) and no reference rate set; until then
+        the rate path does, as before (its restored adapted weights included)."""
+        return self.table_engaged and self.reference_rate_dph is None
+
     def add_dwells(self, dwells: list[Dwell]) -> None:
-        """Dwells (device time from the first sample) for the table law, taken as their blocks close."""
+        """Dwells (device time from the first sample) for the table law, taken as their blocks close; the table
+        law gives the estimate from now on."""
         if self.table is None:
             raise ValueError("this compensator does not adapt from table angles")
+        if self.reference_rate_dph is not None:
+            raise ValueError("adapting against a reference rate: table angles are the other signal")
         self._dwells.extend(dwells)
+        self.table_engaged = True
+
+    @property
+    def device_time_s(self) -> float | None:
+        """The device time at the end of the latest frame, s from the first (None: no frame yet)."""
+        first = self.averager._first_us
+        if first is None:
+            return None
+        return (self.averager._last_t_us - first) / 1e6 + self.frame_period_s
+
+    def table_dwell(self, angle_deg: float, dwell_s: float, angle_start_deg: float | None = None) -> Dwell:
+        """A live dwell: the table has stood at ``angle_deg`` for the last ``dwell_s`` seconds (from
+        ``angle_start_deg`` when it moved within the dwell).  Checked here (``ValueError``, one line: nothing
+        changed) for what can be told at once: no frame yet, a dwell shorter than ``MIN_LIVE_DWELL_S``, longer
+        than the time since the chain's last break (a gap, a restart, ``?ZERO``), or starting before the
+        previous dwell ended; what the gyro says of it is the law's verdict once its blocks have closed."""
+        if self.table is None:
+            raise ValueError("this compensator does not adapt from table angles")
+        now = self.device_time_s
+        if now is None:
+            raise ValueError("no samples yet: no dwell to hold the angle against")
+        if not dwell_s >= MIN_LIVE_DWELL_S:
+            raise ValueError(f"a dwell must last at least {MIN_LIVE_DWELL_S:g} s, got {dwell_s:g}")
+        start = now - dwell_s
+        since = self.table.chain_start_s
+        if since is None or start < since - 1e-9:
+            held = 0.0 if since is None else now - since
+            raise ValueError(
+                f"the dwell ({dwell_s:g} s) reaches back past a break in the data (a gap, a restart, a zero): "
+                f"{held:.1f} s since"
+            )
+        previous = self._dwells[-1].t_end_s if self._dwells else self.table.last_dwell_end_s
+        if previous is not None and start < previous - 1e-9:
+            raise ValueError(
+                f"out of time order: the dwell starts {previous - start:.1f} s before the previous one ended"
+            )
+        if angle_start_deg is None:
+            dwell = Dwell(start, now, angle_deg)
+        else:
+            dwell = Dwell(start, now, angle_start_deg, angle_deg)
+        self.add_dwells([dwell])
+        return dwell
+
+    def stop_table(self) -> None:
+        """Adapting from table angles ends: the estimate is the rate path's again (frozen without a reference);
+        dwells not yet taken are dropped, the law keeps recording (and its weights) for a later ``?TABLE``."""
+        self.table_engaged = False
+        self._dwells.clear()
 
     def break_table_chain(self) -> None:
         """No interval is learned across this point (``?ZERO``, an identity change)."""
@@ -321,7 +380,7 @@ class Compensator:
 
     @property
     def table_outcomes(self) -> list[TableOutcome]:
-        return [] if self.table is None else self.table.outcomes
+        return [] if self.table is None else list(self.table.outcomes)
 
     # -- adaptation state ----------------------------------------------------------------------
 
@@ -439,6 +498,11 @@ class Compensator:
         if same_model and old.online is not None and self.online is not None:
             self.online.load_state(old.online.state_dict())
             self.static_detector = old.static_detector
+        if old.table is not None and self.table is not None:  # adapting from table angles carries on
+            self.table_engaged = old.table_engaged
+            if same_model:  # the same law, its chain and the dwells waiting (another model: a new law)
+                self.table, self._dwells = old.table, old._dwells
+                self.scale_ppm, self._t_ring_c = old.scale_ppm, old._t_ring_c
 
     def adaptation_document(self) -> dict:
         """The adaptation state: the readout, the static detector, and the pipeline's state, so that a restart

@@ -73,6 +73,7 @@ sigma), the angle is corrected by it: ``dtheta_comp = dtheta - D_hat dt - 1e-6 s
 from __future__ import annotations
 
 import math
+from collections import deque
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -114,6 +115,8 @@ MAX_WINDOW_S = 3600.0
 #: the frames' time stamps may be a few tenths of a second off the table's; a message 1 s late or more is
 #: still seen moving.
 MOTION_MARGIN_S = 0.5
+#: The outcomes kept (a daemon runs for months; the counters count every dwell).
+MAX_OUTCOMES = 10_000
 #: The gram of the regressors: its memory.
 GRAM_MEMORY_S = TABLE_MEMORY_S
 
@@ -204,7 +207,8 @@ class TableLaw(ComparisonGuard):
         self._ring_rate = np.zeros(self._cap)
         self._gram_a = 1.0 - math.exp(-self.block_s / GRAM_MEMORY_S)
         self.bias_capture_s = blocks_in(self.config.bias_capture_s, self.block_s) * self.block_s
-        self.outcomes: list[TableOutcome] = []  #: every dwell's outcome, in order (the caller may clear it)
+        #: the dwells' outcomes, in order, the last ``MAX_OUTCOMES`` (the counters count them all)
+        self.outcomes: deque[TableOutcome] = deque(maxlen=MAX_OUTCOMES)
         self._last_ring_c = math.nan
         self._start()
 
@@ -247,6 +251,8 @@ class TableLaw(ComparisonGuard):
         self._ring_len = 0
         self._ring_pos0 = 0
         self._ring_full_since = False  # blocks were dropped off the ring's old end (not a break)
+        #: device time the chain of blocks began at (its first block's start), None before a block
+        self.chain_start_s: float | None = None
         self.anchor: _Anchor | None = None
 
     def _reset_comparison(self) -> None:
@@ -337,6 +343,7 @@ class TableLaw(ComparisonGuard):
         self._cum += inc
         if self._ring_first is None:
             self._ring_first, self._ring_pos0, self._ring_len = index, 0, 0
+            self.chain_start_s = index * b
         if self._ring_len == self._cap:  # the oldest block drops off
             self._ring_pos0 = (self._ring_pos0 + 1) % self._cap
             self._ring_first += 1

@@ -14,6 +14,8 @@ STATUS     none                                                the STATUS object
 ZERO       none                                                zero the published angles (raw and comp)
 BIAS       ``seconds`` (1..86400, default 60)                  capture the residual bias, then remove it
 ADAPT      ``enable`` (bool), ``reference_dph`` (default 0)    adapt the weights online, or freeze them
+TABLE      ``angle_deg``, ``dwell_s`` (12..86400),              the table has stood at the angle for the
+           ``angle_start_deg`` (optional)                      last seconds: adapt from table angles
 SAVE       none                                                write the adaptation state file
 RELOAD     none                                                load the model file again
 =========  ==================================================  =========================================
@@ -32,7 +34,15 @@ import structlog
 from ..errors import FogDriverError
 from ..modelfiles import write_state_doc
 from .acquisition import BiasCapture
-from .limits import BIAS_ANSWER_MARGIN_S, DEFAULT_BIAS_S, MAX_ADAPT_REFERENCE_DPH, MAX_BIAS_S, MIN_BIAS_S
+from .limits import (
+    BIAS_ANSWER_MARGIN_S,
+    DEFAULT_BIAS_S,
+    MAX_ADAPT_REFERENCE_DPH,
+    MAX_BIAS_S,
+    MAX_TABLE_ANGLE_DEG,
+    MAX_TABLE_DWELL_S,
+    MIN_BIAS_S,
+)
 
 __all__ = ["COMMANDS", "Arg", "Command", "run_command"]
 
@@ -93,6 +103,7 @@ def zero(service: Any) -> dict:
         acquisition = service.acquisition
         acquisition.zero_raw_arcsec = compensator.angle_raw_arcsec
         acquisition.zero_comp_arcsec = compensator.angle_comp_arcsec - acquisition.bias_angle_arcsec
+        compensator.break_table_chain()  # no table interval is learned across a zero
         service.note("zero")
     return {"class": "ZERO", "zeroed": True}
 
@@ -148,12 +159,38 @@ def _bias_timed_out(service: Any, capture: BiasCapture) -> None:
 
 
 def adapt(service: Any, enable: bool, reference_dph: float) -> dict:
-    """Adapt the model's weights online against ``reference_dph`` (0: the table at rest), or freeze them."""
+    """Adapt the model's weights online against ``reference_dph`` (0: the table at rest), or freeze them (which
+    also ends adapting from table angles)."""
     with service.lock:
         if service.compensator is None:
             return {"class": "ERROR", "message": "no samples yet: nothing to adapt"}
+        if enable and service.compensator.table_engaged:
+            return {
+                "class": "ERROR",
+                "message": "adapting from table angles (?TABLE): a reference rate is the other signal; "
+                '?ADAPT={"enable":false} first',
+            }
         service.set_reference(float(reference_dph) if enable else None)
     return {"class": "ADAPT", "enable": enable, **({"reference_dph": float(reference_dph)} if enable else {})}
+
+
+def table(service: Any, angle_deg: float, dwell_s: float, angle_start_deg: float | None) -> dict:
+    """The table has stood at ``angle_deg`` for the last ``dwell_s`` seconds (moving from ``angle_start_deg``
+    when given): adapt from the table's angles (``compensation.table``).  Refused at once when it cannot be
+    a dwell (no samples, shorter than 12 s, longer than the data since a break, out of order, while adapting
+    against a reference rate); what the gyro says of it comes once its last block closes (STATUS ``table``)."""
+    with service.lock:
+        if service.compensator is None:
+            return {"class": "ERROR", "message": "no samples yet: no dwell to hold the angle against"}
+        try:
+            dwell = service.table_dwell(float(angle_deg), float(dwell_s), angle_start_deg)
+        except ValueError as exc:
+            return {"class": "ERROR", "message": str(exc)}
+    return {"class": "TABLE", "angle_deg": float(angle_deg), "t_start_s": dwell.t_start_s, "t_end_s": dwell.t_end_s}
+
+
+def _angle(v: Any) -> bool:
+    return _is_number(v) and math.isfinite(v) and abs(v) <= MAX_TABLE_ANGLE_DEG
 
 
 def save(service: Any) -> dict:
@@ -211,6 +248,22 @@ COMMANDS: dict[str, Command] = {
                 lambda v: abs(v) <= MAX_ADAPT_REFERENCE_DPH,
                 '"reference_dph" must be within +-1e7 deg/h',
                 0.0,
+            ),
+        ),
+    ),
+    "TABLE": Command(
+        table,
+        (
+            Arg("angle_deg", _angle, f'?TABLE needs "angle_deg": a number within +-{MAX_TABLE_ANGLE_DEG:g} degrees'),
+            Arg(
+                "dwell_s",
+                lambda v: _is_number(v) and 12 <= v <= MAX_TABLE_DWELL_S,
+                f'?TABLE needs "dwell_s": the seconds the table has stood there, 12 to {MAX_TABLE_DWELL_S:g}',
+            ),
+            Arg(
+                "angle_start_deg",
+                lambda v: v is None or _angle(v),
+                f'"angle_start_deg" must be a number within +-{MAX_TABLE_ANGLE_DEG:g} degrees',
             ),
         ),
     ),

@@ -114,6 +114,7 @@ from .limits import (
     MAX_EXCESS_COMMANDS,
     MAX_UNTERMINATED_BYTES,
     MAX_WATCH_RATE_HZ,
+    TABLE_INTERVAL_S,
 )
 
 __all__ = [
@@ -272,6 +273,7 @@ class Connection:
         self.window_start = clock()
         self.window_count = 0
         self.excess = 0
+        self.last_table: float | None = None  #: when this client's last ?TABLE was taken (its clock)
         self.closing = False  #: a Close was given: nothing more is read
 
     # -- events from the I/O layer ---------------------------------------------------------------------------
@@ -382,6 +384,11 @@ class Connection:
             return handler(self, command)
         if not self.authorized:
             return [error("unauthorized", command.name)]
+        if command.name == "TABLE":  # one dwell per TABLE_INTERVAL_S from one client: a dwell lasts 12 s or more
+            now = self.clock()
+            if self.last_table is not None and now - self.last_table < TABLE_INTERVAL_S:
+                return [error(f"at most one ?TABLE per {TABLE_INTERVAL_S:g} s: refused", command.name)]
+            self.last_table = now
         return [Control(command.name, command.args)]
 
     def _watch(self, command: Command) -> list[Action]:

@@ -135,6 +135,11 @@ MIN_BIAS_S = 1
 MAX_BIAS_S = 86400
 #: The largest ``?ADAPT`` ``reference_dph`` (deg/h, either sign).
 MAX_ADAPT_REFERENCE_DPH = 1e7
+#: ``?TABLE``: the largest angle (deg, either sign; cumulative angles of a table that turned for years stay
+#: far below), the longest dwell (s), and the least time between two from one client (more get ERROR).
+MAX_TABLE_ANGLE_DEG = 1e6
+MAX_TABLE_DWELL_S = 86400.0
+TABLE_INTERVAL_S = 2.0
 #: The port reader is stuck (no watchdog ping) when its loop has not come round for this long.
 READER_STALL_S = 10.0
 #: Shutdown budget: the acquisition join and the capture's close each get at most this long (the unit's

@@ -55,6 +55,7 @@ import structlog
 from .. import __version__
 from ..compensation.adapt import AdaptConfig
 from ..compensation.binding import InstrumentCompensation, ModelMismatchError, check_channels
+from ..compensation.dwell import Dwell
 from ..compensation.model import ModelFile
 from ..compensation.pipeline import CompensatedSample, Compensator
 from ..errors import FogDriverError, TemporaryFailure
@@ -187,6 +188,7 @@ class Service:
             adapt=AdaptConfig(),
             reference_rate_dph=self.config.adapt_reference_dph,
             restore_adaptation=adaptation_restorer(self.config.adapt_state),
+            table_dwells=[],  # the table law records from the start, for the first ?TABLE
         )
 
     def _check_adapt_state(self, model_file: ModelFile) -> str | None:
@@ -272,13 +274,27 @@ class Service:
         return run_command(self, name, args)
 
     def set_reference(self, reference: float | None) -> None:
-        """Adapt against ``reference`` (None: frozen) from the next block (under ``lock``)."""
+        """Adapt against ``reference`` (None: frozen, which also ends adapting from table angles) from the next
+        block (under ``lock``)."""
+        if reference is None and self.compensator.table_engaged:
+            self.compensator.stop_table()
+            self.note("adapt", reference_dph=None)
+            return
         if reference == self.compensator.reference_rate_dph:
             return
         self.compensator.reference_rate_dph = reference
         self.binding.reference_rate_dph = reference
         self._adapt_touched = self._adapt_touched or reference is not None
         self.note("adapt", reference_dph=reference)
+
+    def table_dwell(self, angle_deg: float, dwell_s: float, angle_start_deg: float | None) -> Dwell:
+        """A live dwell into the table law (``Compensator.table_dwell``; ``ValueError`` when refused), noted in
+        the capture's sidecar (under ``lock``)."""
+        if self.compensator.reference_rate_dph is not None:
+            raise ValueError('adapting against a reference rate (?ADAPT): ?ADAPT={"enable":false} first')
+        dwell = self.compensator.table_dwell(angle_deg, dwell_s, angle_start_deg)
+        self.note("table", angle_deg=angle_deg, dwell_s=dwell_s, angle_start_deg=angle_start_deg)
+        return dwell
 
     # -- reloads ---------------------------------------------------------------------------------
 
@@ -320,11 +336,11 @@ class Service:
             self._check_channels(model_file, self.source.wire, "the new model")
         new = None
         if identity is not None:
-            new = Compensator(model_file, 1.0 / identity.rate_hz, adapt=AdaptConfig())
+            new = Compensator(model_file, 1.0 / identity.rate_hz, adapt=AdaptConfig(), table=True)
         with self.lock:  # O(state): the pipeline state is copied, nothing is parsed
             old = self.compensator
             if old is not None and (new is None or new.frame_period_s != old.frame_period_s):
-                new = Compensator(model_file, old.frame_period_s, adapt=AdaptConfig())  # the rate changed meanwhile
+                new = Compensator(model_file, old.frame_period_s, adapt=AdaptConfig(), table=True)  # the rate changed
             if old is not None:
                 new.reference_rate_dph = old.reference_rate_dph
                 new.angle_raw_arcsec, new.angle_comp_arcsec = old.angle_raw_arcsec, old.angle_comp_arcsec

@@ -171,9 +171,29 @@ def _pipeline_fields(service: Any) -> dict[str, Any]:
     online = service.compensator.online if service.compensator is not None else None
     if online is not None:  # is the published drift the adapted weights' (the comparison guard's verdict)?
         obj["adapted_in_use"] = online.adapted_in_use
+    compensator = service.compensator
+    if (
+        compensator is not None
+        and compensator.table is not None
+        and (compensator.table_engaged or compensator.table.outcomes)
+    ):
+        obj["table"] = table_fields(compensator)
     if service.model_file.noise_1min_dph is not None:  # the loaded model's (files before it have none)
         obj["noise_1min_dph"] = service.model_file.noise_1min_dph
     return obj
+
+
+def table_fields(compensator: Any) -> dict[str, Any]:
+    """STATUS ``table``: adapting from table angles (``compensation.table``): whether it gives the estimate,
+    the dwells by outcome, the last one's outcome, the scale factor."""
+    law = compensator.table
+    summary = law.summary()
+    out: dict[str, Any] = {"engaged": bool(compensator.table_engaged), "pending": len(compensator.pending_dwells)}
+    out.update({k: (float(v) if isinstance(v, float) else v) for k, v in summary.items()})
+    if law.outcomes:
+        last = law.outcomes[-1]
+        out["last"] = {"t_end_s": last.t_end_s, "status": last.status, "reason": last.reason}
+    return out
 
 
 def _listener_fields(service: Any) -> dict[str, Any]:

@@ -8,6 +8,8 @@
                        result event is waited for (SECONDS of device data plus the daemon's margin,
                        and 5 s more); on a terminal a progress line shows on stderr
 ``adapt on|off``       ``?ADAPT``: adapt the model's weights online (``--reference-dph``, 0 at rest)
+``table ANGLE``        ``?TABLE``: the table has stood at ANGLE degrees for the last ``--dwell`` seconds
+                       (default 12, the least), from ``--angle-start`` when it moved within the dwell
 ``reload``             ``?RELOAD``: load the model file again (unchanged: nothing happens)
 ``status``             ``?STATUS``: one line of the daemon's state
 ``save``               ``?SAVE``: save the adaptation state to the configured file
@@ -32,14 +34,30 @@ from typing import Any, TextIO
 
 from ..client import Bias, BiasFailed, Client, CommandRefused, Message, NoReply, Status, Unauthorized, UnknownCommand
 from ..client.display import DEFAULT_BIAS_S, Progress
-from ..client.protocol import MAX_BIAS_S, MAX_REFERENCE_DPH, REPLY_TIMEOUT_S, answer_as, printable
+from ..client.protocol import (
+    MAX_BIAS_S,
+    MAX_REFERENCE_DPH,
+    MIN_TABLE_DWELL_S,
+    REPLY_TIMEOUT_S,
+    answer_as,
+    printable,
+    table_args,
+)
 from ..client.wire import TOKEN_ENV, parse_address, read_token
 from ..errors import FogDriverError, UsageError
 
 __all__ = ["COMMANDS", "ctl_command", "parse_request", "run_ctl"]
 
 #: ``fog-driver ctl`` commands -> the protocol's command names.
-COMMANDS = {"zero": "ZERO", "bias": "BIAS", "adapt": "ADAPT", "reload": "RELOAD", "status": "STATUS", "save": "SAVE"}
+COMMANDS = {
+    "zero": "ZERO",
+    "bias": "BIAS",
+    "adapt": "ADAPT",
+    "table": "TABLE",
+    "reload": "RELOAD",
+    "status": "STATUS",
+    "save": "SAVE",
+}
 #: Seconds the result of a ``bias`` is waited for beyond the daemon's own deadline (``timeout_s`` of its reply).
 BIAS_WAIT_MARGIN_S = 5.0
 #: How long a reply is waited for by default: the client library's (the daemon answers every control command
@@ -47,13 +65,33 @@ BIAS_WAIT_MARGIN_S = 5.0
 DEFAULT_TIMEOUT_S = REPLY_TIMEOUT_S
 
 
-def parse_request(command: str, words: list[str], *, reference_dph: float | None = None) -> tuple[str, dict | None]:
+def parse_request(
+    command: str,
+    words: list[str],
+    *,
+    reference_dph: float | None = None,
+    dwell_s: float | None = None,
+    angle_start_deg: float | None = None,
+) -> tuple[str, dict | None]:
     """``ctl``'s COMMAND and ARGS -> ``(protocol name, argument object or None)``; ``UsageError`` when bad."""
     name = COMMANDS.get(command)
     if name is None:
         raise UsageError(f"unknown command {command!r}: one of {', '.join(COMMANDS)}")
     if reference_dph is not None and name != "ADAPT":
         raise UsageError("--reference-dph goes with `adapt on` only")
+    if (dwell_s is not None or angle_start_deg is not None) and name != "TABLE":
+        raise UsageError("--dwell and --angle-start go with `table` only")
+    if name == "TABLE":
+        if len(words) != 1:
+            raise UsageError("table takes one argument: the table's angle in degrees")
+        try:
+            angle = float(words[0])
+        except ValueError:
+            raise UsageError(f"table ANGLE: not a number: {words[0]!r}") from None
+        try:
+            return name, table_args(angle, MIN_TABLE_DWELL_S if dwell_s is None else dwell_s, angle_start_deg)
+        except ValueError as exc:
+            raise UsageError(f"table: {exc}") from None
     if name == "BIAS":
         if len(words) > 1:
             raise UsageError("bias takes at most one argument: the seconds of data (default 60)")
@@ -122,6 +160,12 @@ def describe(reply: dict) -> str:
                 f"(reference {_number(reply, 'reference_dph', 'g')} deg/h)"
             )
         return "adaptation off: the weights are frozen"
+    if cls == "TABLE":
+        return (
+            f"table angle {_number(reply, 'angle_deg', 'g')} deg taken for the dwell "
+            f"{_number(reply, 't_start_s', '.1f')}..{_number(reply, 't_end_s', '.1f')} s of device time "
+            f"(its verdict: fog-driver ctl status)"
+        )
     if cls == "RELOAD":
         if reply.get("changed"):
             return f"reloaded the model: {_word(reply, 'model')} (created {_word(reply, 'created_utc')})"
@@ -242,9 +286,13 @@ def ctl_command(
     json_out: bool = False,
     reference_dph: float | None = None,
     timeout_s: float = DEFAULT_TIMEOUT_S,
+    dwell_s: float | None = None,
+    angle_start_deg: float | None = None,
 ) -> int:
     """``fog-driver ctl``: parse the command and the address, read the token, run it on stdout."""
-    name, args = parse_request(command, words, reference_dph=reference_dph)
+    name, args = parse_request(
+        command, words, reference_dph=reference_dph, dwell_s=dwell_s, angle_start_deg=angle_start_deg
+    )
     host, port = parse_address(address)
     token = read_token(token_file)
     return run_ctl(host, port, name, args, token=token, json_out=json_out, timeout_s=timeout_s)
