@@ -300,3 +300,59 @@ def test_table_angles_live_through_the_daemon(run):
     assert past["class"] == "ERROR" and "reaches back past a break" in past["message"]
     assert service.control("ADAPT", {"enable": False}, 0)["class"] == "ADAPT"
     assert service.status_object()["table"]["engaged"] is False
+
+
+def test_a_daemon_capture_with_table_and_adapt_events_compensates_offline_as_published(run, tmp_path, capsys):
+    """Live == offline with control events: the daemon records its raw bytes and notes each ?TABLE and ?ADAPT
+    with where it took effect; ``compensate`` of the capture replays them and gives the published angles and
+    drifts bit for bit."""
+    from fog_driver.daemon.config import DriverConfig
+    from fog_driver.daemon.rawlog import CaptureSink, RotatingCapture
+    from fog_driver.daemon.service import Service
+    from fog_driver.offline.compensate import compensate_capture
+    from fog_driver.offline.replay import control_events
+    from fog_driver.samples.captures import read_provenance
+
+    samples, dwells, _, _, capture = run
+    data = capture.read_bytes()
+    t = samples.t_s - samples.t_s[0]
+    service = Service(DriverConfig(), port="unused")
+    service.capture = CaptureSink(RotatingCapture(tmp_path / "cap", provenance=service._provenance()))
+    published: list[dict] = []
+    fed = taken = 0
+    for k, d in enumerate(dwells[:40]):
+        i = int(np.searchsorted(t, d.t_end_s)) + 3 * k % 7  # a few frames late, as a station's message is
+        end = int(samples.offset[i]) + (5 if k % 3 == 0 else 0)  # and in the middle of a frame, sometimes
+        published += service.process(data[fed:end])
+        fed = end
+        if k == 25:  # the operator stops adapting from the table, adapts against a rate, stops, table again
+            assert service.control("ADAPT", {"enable": False}, 0)["class"] == "ADAPT"
+        elif k == 27:
+            assert service.control("ADAPT", {"enable": True, "reference_dph": 0.0}, 0)["class"] == "ADAPT"
+        elif k == 30:
+            assert service.control("ADAPT", {"enable": False}, 0)["class"] == "ADAPT"
+        elif not 25 < k < 31:
+            reply = service.control("TABLE", {"angle_deg": d.angle_deg % 360.0, "dwell_s": d.t_end_s - d.t_start_s}, 0)
+            assert reply["class"] == "TABLE", reply
+            taken += 1
+    published += service.process(data[fed:])
+    service.capture.close()
+    (recorded,) = sorted((tmp_path / "cap").glob("*.bin"))
+    assert recorded.read_bytes() == data
+    table = service.status_object()["table"]
+    assert table["accepted"] > 15 and table["scale_factor_applied"]
+    out = tmp_path / "out.csv"
+    assert main(["compensate", str(recorded), "--model", str(DEFAULT_MODEL), "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert f"replayed the daemon's control events where they took effect: {taken} table, 3 adapt" in printed
+    assert "table log:" in printed and "warning" not in printed
+    events = control_events(read_provenance(recorded))
+    assert [e.kind for e in events].count("table") == taken == 34
+    cols = [c for _, c in compensate_capture(recorded, load_model(DEFAULT_MODEL), events=events)]
+    angle = np.concatenate([c.angle_comp_arcsec for c in cols])
+    drift = np.concatenate([c.drift_dph for c in cols])
+    assert angle.tolist() == [o["angle_arcsec"] for o in published]
+    assert drift.tolist() == [o["drift_dph"] for o in published]
+    # without the replay the angles differ (the scale factor learned from the dwells): the events matter
+    plain = np.concatenate([c.angle_comp_arcsec for _, c in compensate_capture(recorded, load_model(DEFAULT_MODEL))])
+    assert np.max(np.abs(plain - angle)) > 1.0

@@ -39,6 +39,7 @@ from ..offline.compensate import (
     write_csv_provenance,
 )
 from ..offline.fit import fit_model_file
+from ..offline.replay import REPLAYED, control_events, unreplayed
 from ..offline.rows import compensated_rows, format_row
 from ..offline.table import check_table_log_used, table_dwells, table_provenance, table_summary_lines
 from ..report import positioning
@@ -51,7 +52,7 @@ from ..report.evaluate import (
     series_names,
     write_report,
 )
-from ..samples.captures import _capture_size
+from ..samples.captures import _capture_size, read_provenance
 from ..sim.capture import check_truth_matches, read_truth
 from .argtypes import positive_float, time_window
 
@@ -217,10 +218,17 @@ def cmd_compensate(args: argparse.Namespace) -> int:
     if args.table_log is not None and args.adapt_state is not None:
         raise UsageError("--adapt-state goes with --adapt-reference; adapting from a table log starts afresh")
     dwells = None if args.table_log is None else table_dwells(positioning.read_reference_csv(args.table_log))
+    sidecar_doc = read_provenance(args.capture)
+    events = control_events(sidecar_doc)  # a daemon capture: the operator's ?TABLE and ?ADAPT, replayed
+    if dwells is not None and any(e.kind == "table" for e in events):
+        raise UsageError(
+            f"{args.capture}: its sidecar holds the daemon's ?TABLE dwells, which are replayed; --table-log would "
+            f"give the table's angles twice"
+        )
     model_file = load_model(args.model)
     size = _capture_size(Path(args.capture))
     adapt = None
-    if args.adapt_reference is not None or args.adapt_state is not None or dwells is not None:
+    if args.adapt_reference is not None or args.adapt_state is not None or dwells is not None or events:
         adapt = AdaptConfig()
     if args.adapt_state is not None and args.adapt_reference is None and not Path(args.adapt_state).exists():
         raise InputFileError(
@@ -257,6 +265,7 @@ def cmd_compensate(args: argparse.Namespace) -> int:
                 on_block=capture_sha.update,
                 table_dwells=dwells,
                 on_done=done.append,
+                events=list(events),
             )
             for row in compensated_rows(chunks, args.every):
                 f.write(format_row(row) + "\n")
@@ -283,7 +292,14 @@ def cmd_compensate(args: argparse.Namespace) -> int:
         f"compensated {args.capture} with {args.model} ({model_file.kind}): {written:,} rows every "
         f"{args.every:g} s -> {out} (provenance in {sidecar.name})"
     )
-    if args.table_log is not None:
+    if events:
+        kinds = ", ".join(
+            f"{sum(e.kind == k for e in events)} {k}" for k in REPLAYED if any(e.kind == k for e in events)
+        )
+        print(f"replayed the daemon's control events where they took effect: {kinds}")
+    for missing in unreplayed(sidecar_doc):
+        print(f"warning: the capture's sidecar has {missing}: these rows are not what the daemon published after them")
+    if args.table_log is not None or any(e.kind == "table" for e in events):
         for line in table_summary_lines(done[0]):
             print(line)
     if extrapolating_s > 0:

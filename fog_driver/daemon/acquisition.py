@@ -83,6 +83,8 @@ class Acquisition:
         self.samples_before_identity: list = []
         self.samples_dropped_before_identity = 0
         self.samples_published = 0
+        #: the sequence number of the last sample compensated (the sidecar's events say where they took effect)
+        self.last_seq: int | None = None
         self.flagged = dict.fromkeys(FLAG_NAMES.values(), 0)  # published samples per flag, since start
         self.zero_raw_arcsec = 0.0
         self.zero_comp_arcsec = 0.0
@@ -208,6 +210,7 @@ class Acquisition:
     def _compensate(self, sample: Any) -> dict:
         service = self.service
         c = service.binding.step(sample)
+        self.last_seq = c.seq
         period = service.compensator.frame_period_s
         capture = self.bias_capture
         if capture is not None and capture.add(c.dtheta_comp_arcsec, period, c.drift_sigma_dph):

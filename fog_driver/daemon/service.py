@@ -230,9 +230,11 @@ class Service:
         return self.acquisition.angle_object(c)
 
     def note(self, event: str, **fields: Any) -> None:
-        """An event for the capture's sidecar, in order with the bytes (call under ``lock``)."""
+        """An event for the capture's sidecar, in order with the bytes (call under ``lock``), with ``seq``: the
+        last sample compensated before it took effect (``offline.replay`` finds it there)."""
         if self.capture is not None:
-            self.capture.note({"event": event, **fields})
+            seq = self.acquisition.last_seq
+            self.capture.note({"event": event, **fields, **({"seq": seq} if seq is not None else {})})
 
     # -- acquisition ---------------------------------------------------------------------------
 

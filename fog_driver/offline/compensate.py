@@ -32,6 +32,7 @@ from ..modelfiles import adaptation_restorer, save_adaptation
 from ..samples.captures import what_it_is
 from ..samples.sources import CaptureReader, WireSettings, wire_settings_for
 from ..samples.stream import SampleBlock, identity_is_plausible
+from .replay import ControlEvent, split_at_events
 
 #: What a refusal of another instrument's model says to do (``--force-model``: the daemon's ``force_model``).
 FORCE_MODEL_HINT = "--force-model applies it anyway"
@@ -114,6 +115,7 @@ def compensate_capture(
     on_block: Callable[[bytes], None] | None = None,
     table_dwells: list[Dwell] | None = None,
     on_done: Callable[[Compensator], None] | None = None,
+    events: list[ControlEvent] | None = None,
 ) -> Iterator[tuple[float, CompensatedColumns]]:
     """Decode ``path`` block by block and yield (frame period s, compensated frames), bounded memory.
 
@@ -126,8 +128,15 @@ def compensate_capture(
     for another instrument serial unless ``force_model``.  ``on_block(bytes)``: every block of the file as read
     (a SHA-256 of the capture).  ``table_dwells``: adapt from the table's angles (``compensation.table``),
     these dwells in device time from the capture's first sample.  ``on_done(compensator)`` once the capture
-    is through (its table law's outcomes, say).
+    is through (its table law's outcomes, say).  ``events``: a daemon capture's control events to replay where
+    they took effect (``replay.control_events``); with any, the compensator is built as the daemon builds it
+    (adapting ready, the table law recording).
     """
+    events = list(events or [])
+    if events and table_dwells is None:  # as the daemon builds it: the table law records from the start
+        table_dwells = []
+    if events and adapt is None:
+        adapt = AdaptConfig()
     wire = wire_settings_for(path, wire_format)
     check_channels(model_file, wire, model_name, str(path))
     reader = CaptureReader(path, wire, scale_override_arcsec_per_count)
@@ -156,11 +165,13 @@ def compensate_capture(
                     pending.append(block)
                 continue
             frame_period_s = cast(Compensator, binding.compensator).frame_period_s  # bound
-            for earlier in pending:
-                yield frame_period_s, binding.run(earlier)
+            for earlier in [*pending, block]:
+                for part, event in split_at_events(earlier, events):
+                    if len(part):
+                        yield frame_period_s, binding.run(part)
+                    if event is not None:
+                        event.apply(binding)
             pending = []
-            if len(block):
-                yield frame_period_s, binding.run(block)
     if not samples_seen:
         raise InputFileError(f"{path}: no SAMPLE frames to compensate{what_it_is(path)}")
     if not binding.bound:

@@ -1,0 +1,127 @@
+"""The daemon's control events, replayed offline where they took effect (``compensate`` of a daemon capture).
+
+The daemon notes in a capture's sidecar every control event that changes the compensator, in order with the
+bytes: ``at_byte`` (the bytes of the file before it) and ``seq`` (the sequence number of the last sample it
+had compensated).  A command runs between two chunks of bytes, so it took effect after that sample: the last
+sample starting before ``at_byte`` whose 16-bit sequence number is ``seq``'s (a frame cut by the chunk's end
+starts before ``at_byte`` too, and is not it).  Replayed here:
+
+    table   ``?TABLE``: the dwell into the table law (``Compensator.table_dwell``), as the daemon took it
+    adapt   ``?ADAPT``: the reference rate (``reference_dph``), or (null) frozen and the table law's end
+
+``zero``, ``bias`` and ``model`` events change what the daemon publishes (its offsets, its model) and are not
+replayed yet: ``unreplayed`` names them.  A sidecar whose events were summarized past its limit
+(``events_summary``) cannot be replayed exactly: ``unreplayed`` names those too.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Any, cast
+
+import numpy as np
+
+from ..compensation.binding import InstrumentCompensation
+from ..compensation.pipeline import Compensator
+from ..samples.stream import SampleBlock
+
+__all__ = ["REPLAYED", "ControlEvent", "control_events", "split_at_events", "unreplayed"]
+
+#: The events ``compensate`` replays.
+REPLAYED = ("table", "adapt")
+#: The events that change what the daemon publishes and are not replayed (yet).
+NOT_REPLAYED = ("zero", "bias", "model")
+SEQ_MODULUS = 1 << 16
+#: How far back from ``at_byte`` the sample of ``seq`` is looked for.
+MAX_WALK_BACK = 8
+
+
+@dataclass(frozen=True)
+class ControlEvent:
+    """One replayable event of a sidecar: its kind, where it took effect and what it carried."""
+
+    kind: str
+    at_byte: int
+    seq: int
+    fields: dict[str, Any]
+
+    def apply(self, binding: InstrumentCompensation) -> None:
+        """Do to the binding's compensator what the daemon did (a dwell it took is taken here: a refusal is a
+        bug); a reference rate is the binding's too, for a compensator rebuilt later (as ``Service.set_reference``)."""
+        compensator = cast(Compensator, binding.compensator)
+        if self.kind == "table":
+            compensator.table_dwell(
+                float(self.fields["angle_deg"]), float(self.fields["dwell_s"]), self.fields.get("angle_start_deg")
+            )
+        elif self.kind == "adapt":
+            reference = self.fields.get("reference_dph")
+            if reference is None and compensator.table_engaged:
+                compensator.stop_table()
+            else:
+                compensator.reference_rate_dph = None if reference is None else float(reference)
+                binding.reference_rate_dph = compensator.reference_rate_dph
+
+
+def _int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool) and v >= 0
+
+
+def control_events(provenance: dict[str, Any] | None) -> list[ControlEvent]:
+    """The sidecar's replayable events, in order (those without a position, from a daemon before positions
+    were noted, are left out: ``unreplayed`` says so)."""
+    out = []
+    for e in (provenance or {}).get("events") or []:
+        if isinstance(e, dict) and e.get("event") in REPLAYED and _int(e.get("at_byte")) and _int(e.get("seq")):
+            fields = {k: v for k, v in e.items() if k not in ("event", "at_byte", "seq", "utc")}
+            out.append(ControlEvent(str(e["event"]), int(e["at_byte"]), int(e["seq"]), fields))
+    return out
+
+
+def unreplayed(provenance: dict[str, Any] | None) -> list[str]:
+    """What a replay of this sidecar's events misses, one phrase each ([]: it gives what the daemon published)."""
+    provenance = provenance or {}
+    events = [e for e in provenance.get("events") or [] if isinstance(e, dict)]
+    out = []
+    for kind in NOT_REPLAYED:
+        n = sum(e.get("event") == kind for e in events)
+        if n:
+            out.append(f"{n} {kind} event{'s' if n > 1 else ''} (not replayed)")
+    n = sum(e.get("event") in REPLAYED and not _int(e.get("seq")) for e in events)
+    if n:
+        out.append(f"{n} control events without a sample position (a daemon before they were noted)")
+    summary = provenance.get("events_summary") or {}
+    if isinstance(summary, dict):
+        for kind in (*REPLAYED, *NOT_REPLAYED):
+            entry = summary.get(kind)
+            if isinstance(entry, dict) and entry.get("count"):
+                out.append(f"{entry['count']} {kind} events past the sidecar's limit (summarized, not replayable)")
+    return out
+
+
+def _cut_after(samples: SampleBlock, event: ControlEvent) -> int | None:
+    """The index of the sample ``event`` took effect after, when it lies in ``samples`` and a later sample
+    shows the cut is here (-1: before the first); None: not yet known (every sample starts before it)."""
+    k = int(np.searchsorted(samples.offset, event.at_byte))
+    if k >= len(samples):
+        return None
+    target = event.seq % SEQ_MODULUS
+    for j in range(k - 1, max(k - 1 - MAX_WALK_BACK, -1), -1):
+        if int(samples.seq[j]) % SEQ_MODULUS == target:
+            return j
+    return k - 1
+
+
+def split_at_events(
+    samples: SampleBlock, events: list[ControlEvent]
+) -> Iterator[tuple[SampleBlock, ControlEvent | None]]:
+    """``samples`` cut where the pending ``events`` (consumed from the front) took effect: each part with the
+    event to apply after it (None for the last part, whose events, if any, lie in later samples)."""
+    start = 0
+    while events:
+        j = _cut_after(samples, events[0])
+        if j is None:
+            break
+        yield samples.take(slice(start, max(j + 1, start))), events.pop(0)
+        start = max(j + 1, start)
+    yield samples.take(slice(start, len(samples))), None
