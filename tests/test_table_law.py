@@ -356,3 +356,35 @@ def test_a_daemon_capture_with_table_and_adapt_events_compensates_offline_as_pub
     # without the replay the angles differ (the scale factor learned from the dwells): the events matter
     plain = np.concatenate([c.angle_comp_arcsec for _, c in compensate_capture(recorded, load_model(DEFAULT_MODEL))])
     assert np.max(np.abs(plain - angle)) > 1.0
+
+
+def test_a_daemon_capture_with_zero_and_bias_compensates_offline_as_published(tmp_path, capsys):
+    """``?ZERO`` and a ``?BIAS`` capture's result, replayed where they took effect (the bias in the middle of
+    a chunk of bytes): the published angles, raw and compensated, bit for bit."""
+    from fog_driver.daemon.config import DriverConfig
+    from fog_driver.daemon.rawlog import CaptureSink, RotatingCapture
+    from fog_driver.daemon.service import Service
+    from fog_driver.offline.compensate import compensate_capture
+    from fog_driver.offline.replay import control_events
+    from fog_driver.samples.captures import read_provenance
+
+    data = (Path(__file__).parent / "data" / "sim-short.bin").read_bytes()
+    service = Service(DriverConfig(), port="unused")
+    service.capture = CaptureSink(RotatingCapture(tmp_path / "cap", provenance=service._provenance()))
+    published = service.process(data[:20003])
+    assert service.control("ZERO", {}, 0)["class"] == "ZERO"
+    published += service.process(data[20003:30011])
+    assert service.control("BIAS", {"seconds": 5}, 0)["state"] == "started"
+    published += service.process(data[30011:])  # the capture completes inside this chunk
+    assert service.last_event["state"] == "done"
+    service.capture.close()
+    (recorded,) = sorted((tmp_path / "cap").glob("*.bin"))
+    events = control_events(read_provenance(recorded))
+    assert [e.kind for e in events] == ["zero", "bias"]
+    cols = [c for _, c in compensate_capture(recorded, load_model(DEFAULT_MODEL), events=events)]
+    for key, name in (("angle_arcsec", "angle_comp_arcsec"), ("angle_raw_arcsec", "angle_raw_arcsec")):
+        assert np.concatenate([getattr(c, name) for c in cols]).tolist() == [o[key] for o in published], key
+    out = tmp_path / "out.csv"
+    assert main(["compensate", str(recorded), "--model", str(DEFAULT_MODEL), "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "replayed the daemon's control events where they took effect: 1 zero, 1 bias" in printed

@@ -30,6 +30,7 @@ from typing import Any
 import structlog
 
 from ..compensation.binding import ModelMismatchError, check_channels
+from ..compensation.offsets import PublishOffsets
 from ..compensation.pipeline import FLAG_NAMES, CompensatedSample, flag_names
 from ..errors import FogDriverError
 from ..protocol import IdentityFrame
@@ -86,10 +87,7 @@ class Acquisition:
         #: the sequence number of the last sample compensated (the sidecar's events say where they took effect)
         self.last_seq: int | None = None
         self.flagged = dict.fromkeys(FLAG_NAMES.values(), 0)  # published samples per flag, since start
-        self.zero_raw_arcsec = 0.0
-        self.zero_comp_arcsec = 0.0
-        self.bias_dph = 0.0
-        self.bias_angle_arcsec = 0.0
+        self.offsets = PublishOffsets()  #: what ?ZERO and ?BIAS do to the published angles (a replay does the same)
         self.bias_capture: BiasCapture | None = None
         self.bias_captures = 0  # ?BIAS captures started (each one's capture_id)
         self.bias_captured = False  # a ?BIAS capture completed: bias_dph is a measured bias, not the default 0
@@ -215,7 +213,7 @@ class Acquisition:
         capture = self.bias_capture
         if capture is not None and capture.add(c.dtheta_comp_arcsec, period, c.drift_sigma_dph):
             self._finish_bias(capture)
-        self.bias_angle_arcsec += self.bias_dph * period
+        self.offsets.advance(period)
         obj = self.angle_object(c)
         axes = getattr(sample, "axes_rate_dph", None)  # publish_axes, a three-axis format
         if axes is not None:
@@ -230,14 +228,15 @@ class Acquisition:
     def angle_object(self, c: CompensatedSample) -> dict:
         """The ANGLE object of one compensated sample (see the module docstring for the offsets)."""
         period = self.service.compensator.frame_period_s
-        rate_comp = c.dtheta_comp_arcsec / period - self.bias_dph
+        offsets = self.offsets
+        rate_comp = offsets.rate_dph(c.dtheta_comp_arcsec, period)
         temps = {name: t for name, t in zip(self.service.source.temperature_channels, c.temps_c) if t == t}
         obj = {
             "class": "ANGLE",
             "seq": c.seq,
             "t_s": c.t_s,
-            "angle_arcsec": c.angle_comp_arcsec - self.zero_comp_arcsec - self.bias_angle_arcsec,
-            "angle_raw_arcsec": c.angle_raw_arcsec - self.zero_raw_arcsec,
+            "angle_arcsec": offsets.angle_arcsec(c.angle_comp_arcsec),
+            "angle_raw_arcsec": offsets.angle_raw_arcsec(c.angle_raw_arcsec),
             "rate_dph": rate_comp,
             "rate_raw_dph": c.dtheta_arcsec / period,
             "drift_dph": c.drift_dph,
@@ -252,21 +251,19 @@ class Acquisition:
         """A ``?BIAS`` capture is complete: apply it and publish its result (under ``lock``, in the acquisition
         thread; nobody waits on it, so a client that hung up meanwhile changes nothing)."""
         capture.timer.cancel()
-        self.bias_dph = capture.sum_arcsec / capture.seconds
+        self.offsets.bias_dph = bias_dph = capture.sum_arcsec / capture.seconds
         self.bias_sigma_dph = capture.sigma_dph
         self.bias_captured = True
         self.bias_capture = None
         sigma = {"bias_sigma_dph": self.bias_sigma_dph} if math.isfinite(self.bias_sigma_dph) else {}
-        self.service.note("bias", bias_dph=self.bias_dph, seconds=capture.seconds, **sigma)
-        log.info(
-            "bias_applied", capture_id=capture.capture_id, bias_dph=self.bias_dph, seconds=capture.seconds, **sigma
-        )
+        self.service.note("bias", bias_dph=bias_dph, seconds=capture.seconds, **sigma)
+        log.info("bias_applied", capture_id=capture.capture_id, bias_dph=bias_dph, seconds=capture.seconds, **sigma)
         self.service.publish_event(
             {
                 "class": "BIAS",
                 "state": "done",
                 "capture_id": capture.capture_id,
-                "bias_dph": self.bias_dph,
+                "bias_dph": bias_dph,
                 "seconds": capture.seconds,
                 **sigma,
             }

@@ -101,8 +101,7 @@ def zero(service: Any) -> dict:
         if compensator is None:
             return {"class": "ERROR", "message": "no samples yet: nothing to zero"}
         acquisition = service.acquisition
-        acquisition.zero_raw_arcsec = compensator.angle_raw_arcsec
-        acquisition.zero_comp_arcsec = compensator.angle_comp_arcsec - acquisition.bias_angle_arcsec
+        acquisition.offsets.zero(compensator.angle_raw_arcsec, compensator.angle_comp_arcsec)
         compensator.break_table_chain()  # no table interval is learned across a zero
         service.note("zero")
     return {"class": "ZERO", "zeroed": True}

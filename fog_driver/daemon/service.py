@@ -169,7 +169,7 @@ class Service:
     @property
     def bias_dph(self) -> float:
         """The bias removed from the published rate (deg/h): 0 until a ``?BIAS`` capture completes."""
-        return self.acquisition.bias_dph
+        return self.acquisition.offsets.bias_dph
 
     @staticmethod
     def _check_channels(model_file: ModelFile, wire, model_name: str = "the model") -> None:

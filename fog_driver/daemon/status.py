@@ -140,7 +140,7 @@ def status_object(service: Any, *, mark_cpu: bool = True) -> dict:
         "flagged": dict(acquisition.flagged),
         "cpu_percent": cpu_percent,
         "rss_mb": current_rss_mb(),
-        "bias_dph": acquisition.bias_dph,
+        "bias_dph": acquisition.offsets.bias_dph,
         "bias_captured": acquisition.bias_captured,
         "adapting": bool(compensator and compensator.reference_rate_dph is not None),
         "reloads": service.reloads,

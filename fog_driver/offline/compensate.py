@@ -24,6 +24,7 @@ from ..compensation.binding import (
 )
 from ..compensation.dwell import Dwell
 from ..compensation.model import ModelFile
+from ..compensation.offsets import PublishOffsets
 from ..compensation.pipeline import CompensatedColumns, Compensator
 from ..errors import InputFileError
 from ..files.kinds import COMPENSATE_PROVENANCE_FORMAT
@@ -133,6 +134,8 @@ def compensate_capture(
     (adapting ready, the table law recording).
     """
     events = list(events or [])
+    replaying = bool(events)  # the daemon's ?ZERO and ?BIAS offsets on the angles (none: the angles as they are)
+    offsets = PublishOffsets()
     if events and table_dwells is None:  # as the daemon builds it: the table law records from the start
         table_dwells = []
     if events and adapt is None:
@@ -168,9 +171,10 @@ def compensate_capture(
             for earlier in [*pending, block]:
                 for part, event in split_at_events(earlier, events):
                     if len(part):
-                        yield frame_period_s, binding.run(part)
+                        cols = binding.run(part)
+                        yield frame_period_s, offsets.published(cols, frame_period_s) if replaying else cols
                     if event is not None:
-                        event.apply(binding)
+                        event.apply(binding, offsets)
             pending = []
     if not samples_seen:
         raise InputFileError(f"{path}: no SAMPLE frames to compensate{what_it_is(path)}")

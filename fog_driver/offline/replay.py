@@ -8,9 +8,12 @@ starts before ``at_byte`` too, and is not it).  Replayed here:
 
     table   ``?TABLE``: the dwell into the table law (``Compensator.table_dwell``), as the daemon took it
     adapt   ``?ADAPT``: the reference rate (``reference_dph``), or (null) frozen and the table law's end
+    zero    ``?ZERO``: the published angles' zero (``offsets.PublishOffsets``), and the table law's chain breaks
+    bias    a ``?BIAS`` capture's result (``bias_dph``): removed from the published rate and angle from the
+            sample that completed the capture on (that sample included: the event took effect before it)
 
-``zero``, ``bias`` and ``model`` events change what the daemon publishes (its offsets, its model) and are not
-replayed yet: ``unreplayed`` names them.  A sidecar whose events were summarized past its limit
+``model`` events (a reload) are not replayed (the model file is not in the capture): ``unreplayed`` names
+them.  A sidecar whose events were summarized past its limit
 (``events_summary``) cannot be replayed exactly: ``unreplayed`` names those too.
 """
 
@@ -23,18 +26,21 @@ from typing import Any, cast
 import numpy as np
 
 from ..compensation.binding import InstrumentCompensation
+from ..compensation.offsets import PublishOffsets
 from ..compensation.pipeline import Compensator
 from ..samples.stream import SampleBlock
 
 __all__ = ["REPLAYED", "ControlEvent", "control_events", "split_at_events", "unreplayed"]
 
 #: The events ``compensate`` replays.
-REPLAYED = ("table", "adapt")
-#: The events that change what the daemon publishes and are not replayed (yet).
-NOT_REPLAYED = ("zero", "bias", "model")
+REPLAYED = ("table", "adapt", "zero", "bias")
+#: The events that change what the daemon publishes and are not replayed.
+NOT_REPLAYED = ("model",)
 SEQ_MODULUS = 1 << 16
-#: How far back from ``at_byte`` the sample of ``seq`` is looked for.
-MAX_WALK_BACK = 8
+#: How far back from ``at_byte`` the sample of ``seq`` is looked for: a command took effect at the end of the
+#: bytes read (a frame or two back), a bias capture at any sample of the chunk it completed in (one sequence
+#: number is unique within 2^16 samples).
+MAX_WALK_BACK = SEQ_MODULUS - 1
 
 
 @dataclass(frozen=True)
@@ -46,11 +52,16 @@ class ControlEvent:
     seq: int
     fields: dict[str, Any]
 
-    def apply(self, binding: InstrumentCompensation) -> None:
+    def apply(self, binding: InstrumentCompensation, offsets: PublishOffsets) -> None:
         """Do to the binding's compensator what the daemon did (a dwell it took is taken here: a refusal is a
         bug); a reference rate is the binding's too, for a compensator rebuilt later (as ``Service.set_reference``)."""
         compensator = cast(Compensator, binding.compensator)
-        if self.kind == "table":
+        if self.kind == "zero":
+            offsets.zero(compensator.angle_raw_arcsec, compensator.angle_comp_arcsec)
+            compensator.break_table_chain()
+        elif self.kind == "bias":
+            offsets.bias_dph = float(self.fields["bias_dph"])
+        elif self.kind == "table":
             compensator.table_dwell(
                 float(self.fields["angle_deg"]), float(self.fields["dwell_s"]), self.fields.get("angle_start_deg")
             )
@@ -102,14 +113,14 @@ def unreplayed(provenance: dict[str, Any] | None) -> list[str]:
 def _cut_after(samples: SampleBlock, event: ControlEvent) -> int | None:
     """The index of the sample ``event`` took effect after, when it lies in ``samples`` and a later sample
     shows the cut is here (-1: before the first); None: not yet known (every sample starts before it)."""
-    k = int(np.searchsorted(samples.offset, event.at_byte))
-    if k >= len(samples):
-        return None
+    k = int(np.searchsorted(samples.offset, event.at_byte))  # samples before it: [0, k)
     target = event.seq % SEQ_MODULUS
-    for j in range(k - 1, max(k - 1 - MAX_WALK_BACK, -1), -1):
-        if int(samples.seq[j]) % SEQ_MODULUS == target:
-            return j
-    return k - 1
+    before = 1 if event.kind == "bias" else 0  # a bias took effect at its sample, the others after theirs
+    lo = max(k - MAX_WALK_BACK, 0)
+    found = np.flatnonzero(samples.seq[lo:k] % SEQ_MODULUS == target)
+    if len(found):  # its sample (a sequence number is unique within 2^16 samples)
+        return lo + int(found[-1]) - before
+    return None if k >= len(samples) else k - 1 - before  # its sample may be in the next part; else the bytes
 
 
 def split_at_events(
