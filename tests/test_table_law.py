@@ -388,3 +388,42 @@ def test_a_daemon_capture_with_zero_and_bias_compensates_offline_as_published(tm
     assert main(["compensate", str(recorded), "--model", str(DEFAULT_MODEL), "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "replayed the daemon's control events where they took effect: 1 zero, 1 bias" in printed
+
+
+def test_what_the_table_law_learned_persists_across_a_restart(run, tmp_path):
+    """The adaptation state carries the table law (weights, covariance, scale factor) exactly through YAML; a
+    restored law starts a new run (its bias and chain afresh) and one for another model is refused."""
+    import yaml
+
+    from fog_driver.errors import InputFileError
+
+    samples, dwells, *_ = run
+    part, use = first(samples, dwells, 4000.0)
+    comp, _ = compensate(part, use)
+    saved = comp.table.state_dict()
+    doc = yaml.safe_load(yaml.safe_dump(comp.adaptation_document()))
+    restored = Compensator(load_model(DEFAULT_MODEL), 1.0 / RATE_HZ, table=True, adapt=comp.adapt)
+    restored.restore_adaptation(doc, "state.yaml")
+    assert restored.table.state_dict() == saved
+    assert restored.table.scale_factor_ppm == comp.table.scale_factor_ppm
+    assert restored.table.bias_dph is None and restored.table.anchor is None  # a new run
+    other = dict(doc)
+    other["table"] = {**doc["table"], "frozen_intercept": doc["table"]["frozen_intercept"] + 1.0}
+    fresh = Compensator(load_model(DEFAULT_MODEL), 1.0 / RATE_HZ, table=True, adapt=comp.adapt)
+    with pytest.raises(InputFileError, match="another model"):
+        fresh.restore_adaptation(other, "state.yaml")
+    assert fresh.table.accepted == 0  # nothing changed
+
+
+def test_compensate_table_log_saves_and_restores_the_state(run, tmp_path, capsys):
+    samples, dwells, truth, config, capture = run
+    state = tmp_path / "state.yaml"
+    log = capture.with_suffix(".table.csv")
+    base = ["compensate", str(capture), "--model", str(DEFAULT_MODEL), "--table-log", str(log)]
+    assert main([*base, "--out", str(tmp_path / "a.csv"), "--adapt-state", str(state)]) == 0
+    first_run = capsys.readouterr().out
+    assert state.exists()
+    assert main([*base, "--out", str(tmp_path / "b.csv"), "--adapt-state", str(state)]) == 0
+    second_run = capsys.readouterr().out
+    sf = [line for line in (first_run + second_run).splitlines() if line.startswith("scale factor:")]
+    assert len(sf) == 2 and sf[0] != sf[1]  # the second run went on from what the first learned

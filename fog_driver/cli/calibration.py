@@ -208,15 +208,15 @@ def cmd_compensate(args: argparse.Namespace) -> int:
     check_outputs([out, sidecar], force=args.force, inputs=inputs)
     if args.adapt_state is not None:
         _check_adapt_state(
-            Path(args.adapt_state), save=args.adapt_reference is not None, inputs=inputs + [out, sidecar]
+            Path(args.adapt_state),
+            save=args.adapt_reference is not None or args.table_log is not None,
+            inputs=inputs + [out, sidecar],
         )
     if args.table_log is not None and args.adapt_reference is not None:
         raise UsageError(
             "--table-log and --adapt-reference are two signals to adapt from: give one (--table-log learns from "
             "the table's angles, --adapt-reference from a declared rate)"
         )
-    if args.table_log is not None and args.adapt_state is not None:
-        raise UsageError("--adapt-state goes with --adapt-reference; adapting from a table log starts afresh")
     dwells = None if args.table_log is None else table_dwells(positioning.read_reference_csv(args.table_log))
     sidecar_doc = read_provenance(args.capture)
     events = control_events(sidecar_doc)  # a daemon capture: the operator's ?TABLE and ?ADAPT, replayed
@@ -230,9 +230,10 @@ def cmd_compensate(args: argparse.Namespace) -> int:
     adapt = None
     if args.adapt_reference is not None or args.adapt_state is not None or dwells is not None or events:
         adapt = AdaptConfig()
-    if args.adapt_state is not None and args.adapt_reference is None and not Path(args.adapt_state).exists():
+    adapting = args.adapt_reference is not None or args.table_log is not None  # the state is saved at the end
+    if args.adapt_state is not None and not adapting and not Path(args.adapt_state).exists():
         raise InputFileError(
-            f"{args.adapt_state}: no such adaptation state (without --adapt-reference it is only read)"
+            f"{args.adapt_state}: no such adaptation state (without --adapt-reference or --table-log it is only read)"
         )
     checked = check_model(
         model_file, args.capture, model_name=args.model, force_model=args.force_model, wire_format=args.format
@@ -258,7 +259,7 @@ def cmd_compensate(args: argparse.Namespace) -> int:
                 adapt=adapt,
                 reference_rate_dph=args.adapt_reference,
                 adapt_state=args.adapt_state,
-                save_adapt_state=args.adapt_reference is not None,
+                save_adapt_state=adapting,
                 scale_override_arcsec_per_count=args.scale_override,
                 wire_format=args.format,
                 progress=lambda done: progress.show(f"compensating {100.0 * done / size:5.1f} %"),

@@ -167,6 +167,8 @@ class Compensator:
         self._started = False
         self.model.reset()
         self.uncertainty = DriftUncertainty(model_file.sigma_spec, model_file.candidate_models(), self.domain)
+        if table and adapt is None:  # adapting from table angles is adapting: its settings, and the rate path's
+            adapt = AdaptConfig()
         self.adapt = adapt
         self.reference_rate_dph = None if reference_rate_dph is None else float(reference_rate_dph)
         self.online: OnlineReadout | None = None
@@ -509,7 +511,10 @@ class Compensator:
         of the same run continues exactly (``modelfiles.save_adaptation`` writes it), as a snapshot of plain
         values (to take under a lock and write outside it); only when adapting."""
         online = self.check_adapting()
-        return online.state_document(detector=self.static_detector, pipeline=self.pipeline_state())
+        doc = online.state_document(detector=self.static_detector, pipeline=self.pipeline_state())
+        if self.table is not None and (self.table_engaged or self.table.accepted):
+            doc["table"] = self.table.state_dict()  # what it learned from the table's angles (a new run restores it)
+        return doc
 
     def check_adapting(self) -> OnlineReadout:
         """The online readout; ``ValueError`` unless this compensator adapts (has an adapt config)."""
@@ -524,6 +529,11 @@ class Compensator:
         pipeline's state (open block, smoothers, reservoir, held estimate) is restored too, and the output
         continues exactly as if uninterrupted."""
         online = self.check_adapting()
+        if self.table is not None and "table" in doc:  # checked first: a refusal changes nothing
+            try:
+                self.table.load_state(doc["table"])
+            except ValueError as exc:
+                raise InputFileError(f"{where}: corrupt adaptation state: {exc}") from None
         if not new_run and "pipeline" in doc:  # checked before anything changes
             saved = self.pipeline_state()
             try:

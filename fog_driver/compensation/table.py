@@ -591,6 +591,64 @@ class TableLaw(ComparisonGuard):
         except np.linalg.LinAlgError:
             return 0.0
 
+    # -- state ---------------------------------------------------------------------------------------
+
+    _ARRAYS = ("h", "i", "delta", "cov", "gram")
+    _FLOATS = (
+        "gram_weight",
+        "noise_var_dph2",
+        "calibration_sum",
+        "calibration_n",
+        "compare_gain",
+        "compare_gain_sq",
+        "compare_level_frozen_dph",
+        "compare_level_adapted_dph",
+        "compare_dev_sq_adapted_dph2",
+    )
+    _COUNTS = ("noise_dwells", "accepted", "rejected", "refused", "skipped", "guards", "compare_windows")
+
+    def state_dict(self) -> dict[str, Any]:
+        """What the law learned, as plain YAML-safe values (exact): its sums, weights, covariance and the
+        regressors' gram, the noise and innovation calibration, the comparison, the counters, and the frozen
+        weights it was learned against.  Not the run's own chain (the ring of blocks, the bias, the anchor):
+        a restored law starts a new run (``begin_run``)."""
+        d: dict[str, Any] = {"frozen_weights": [float(v) for v in self.w0], "frozen_intercept": self.b0}
+        d.update({k: np.asarray(getattr(self, k)).tolist() for k in self._ARRAYS})
+        d.update({k: float(getattr(self, k)) for k in self._FLOATS})
+        d.update({k: int(getattr(self, k)) for k in self._COUNTS})
+        return d
+
+    def load_state(self, d: dict[str, Any]) -> None:
+        """Inverse of ``state_dict``, as a new run; ``ValueError`` (nothing changed) for missing or unknown keys,
+        bad values, or a state learned against other frozen weights (another model)."""
+        keys = {"frozen_weights", "frozen_intercept", *self._ARRAYS, *self._FLOATS, *self._COUNTS}
+        if not isinstance(d, dict) or set(d) != keys:
+            got = sorted(d) if isinstance(d, dict) else type(d).__name__
+            raise ValueError(f"table law state needs exactly the keys {sorted(keys)}, got {got}")
+        try:
+            w0 = np.array(d["frozen_weights"], dtype=np.float64)
+            arrays = {k: np.array(d[k], dtype=np.float64) for k in self._ARRAYS}
+            floats = {k: float(d[k]) for k in self._FLOATS}
+            b0 = float(d["frozen_intercept"])
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"table law state: not numbers: {exc}") from None
+        if w0.shape != self.w0.shape or not np.array_equal(w0, self.w0) or b0 != self.b0:
+            raise ValueError("table law state was learned against another model (its frozen weights differ)")
+        n = self.n_features
+        shapes = {"h": (n + 3, n + 3), "i": (n + 3,), "delta": (n + 3,), "cov": (n + 3, n + 3), "gram": (n + 1, n + 1)}
+        for k, shape in shapes.items():
+            if arrays[k].shape != shape or not np.isfinite(arrays[k]).all():
+                raise ValueError(f"table law state: {k} must be {shape} finite numbers")
+        if not all(math.isfinite(v) or (k == "noise_var_dph2" and math.isnan(v)) for k, v in floats.items()):
+            raise ValueError("table law state: values must be finite")
+        counts = {k: d[k] for k in self._COUNTS}
+        if any(isinstance(v, bool) or not isinstance(v, int) or v < 0 for v in counts.values()):
+            raise ValueError("table law state: counts must be integers >= 0")
+        for k, v in {**arrays, **floats, **counts}.items():
+            setattr(self, k, v)
+        self.last_update_s = None
+        self.begin_run()
+
     def summary(self) -> dict[str, Any]:
         """Counts and the scale factor, for STATUS and reports."""
         s0, s1 = self.scale_factor_ppm

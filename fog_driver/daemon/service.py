@@ -199,8 +199,8 @@ class Service:
         if not path or not Path(path).exists():
             return None
         try:
-            probe = Compensator(model_file, 0.01, adapt=AdaptConfig())
-            probe.online.load_state_doc(read_state_doc(path), str(path), detector=probe.static_detector)
+            probe = Compensator(model_file, 0.01, adapt=AdaptConfig(), table=True)
+            probe.restore_adaptation(read_state_doc(path), str(path))
         except FogDriverError as exc:
             stamp = _dt.datetime.now(_dt.UTC).strftime("%Y%m%dT%H%M%SZ")
             aside = Path(f"{path}.stale-{stamp}")
@@ -295,6 +295,7 @@ class Service:
         if self.compensator.reference_rate_dph is not None:
             raise ValueError('adapting against a reference rate (?ADAPT): ?ADAPT={"enable":false} first')
         dwell = self.compensator.table_dwell(angle_deg, dwell_s, angle_start_deg)
+        self._adapt_touched = True  # the state (what the table law learned) is saved at exit
         self.note("table", angle_deg=angle_deg, dwell_s=dwell_s, angle_start_deg=angle_start_deg)
         return dwell
 
