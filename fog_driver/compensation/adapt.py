@@ -162,6 +162,8 @@ class ComparisonGuard:
 
     config: AdaptConfig
     _min_gain: float
+    #: the standard errors the mean gain must exceed (``COMPARE_SIGMAS`` for the rate path)
+    compare_sigmas: float = COMPARE_SIGMAS
     compare_windows: int
     compare_gain: float
     compare_gain_sq: float
@@ -188,13 +190,13 @@ class ComparisonGuard:
 
     def _comparison_passes(self) -> bool:
         """Over the recent windows the adapted estimate's squared error was smaller than the frozen one's by
-        more than ``COMPARE_SIGMAS`` standard errors of that gain, and by more than the least gain worth
+        more than ``compare_sigmas`` standard errors of that gain, and by more than the least gain worth
         having (``AdaptConfig.compare_min_gain``)."""
         n = min(self.compare_windows - 1, self.config.compare_memory_windows)  # windows that gave a gain
         if self.compare_windows < max(3, self.config.compare_min_windows):
             return False
         variance = max(self.compare_gain_sq - self.compare_gain**2, 0.0)
-        return bool(self.compare_gain > max(COMPARE_SIGMAS * math.sqrt(variance / n), self._min_gain))
+        return bool(self.compare_gain > max(self.compare_sigmas * math.sqrt(variance / n), self._min_gain))
 
 
 class OnlineReadout(ComparisonGuard):
