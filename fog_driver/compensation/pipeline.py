@@ -303,7 +303,8 @@ class Compensator:
         end_s = (block.index + 1) * self._block_s
         while self._dwells and self._dwells[0].t_end_s <= end_s + 1e-9:
             table.observe(self._dwells.pop(0))
-        self.scale_ppm = table.scale_ppm_at(table.coil_temperature_c)
+        # the scale factor corrects the angle while adapting from table angles (not after ?ADAPT off)
+        self.scale_ppm = table.scale_ppm_at(table.coil_temperature_c) if self._table_leads else 0.0
         if self.scale_ppm:
             self.estimate_flags |= FLAG_SCALE_FACTOR
 

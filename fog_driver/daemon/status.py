@@ -190,6 +190,7 @@ def table_fields(compensator: Any) -> dict[str, Any]:
     summary = law.summary()
     out: dict[str, Any] = {"engaged": bool(compensator.table_engaged), "pending": len(compensator.pending_dwells)}
     out.update({k: (float(v) if isinstance(v, float) else v) for k, v in summary.items()})
+    out["scale_factor_applied"] = bool(summary["scale_factor_applied"] and compensator.table_engaged)
     if law.outcomes:
         last = law.outcomes[-1]
         out["last"] = {"t_end_s": last.t_end_s, "status": last.status, "reason": last.reason}
