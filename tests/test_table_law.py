@@ -427,3 +427,32 @@ def test_compensate_table_log_saves_and_restores_the_state(run, tmp_path, capsys
     second_run = capsys.readouterr().out
     sf = [line for line in (first_run + second_run).splitlines() if line.startswith("scale factor:")]
     assert len(sf) == 2 and sf[0] != sf[1]  # the second run went on from what the first learned
+
+
+def test_a_sidecar_event_that_cannot_be_replayed_is_a_one_line_error(tmp_path, capsys):
+    """A hand-edited sidecar (a ?TABLE with a dwell longer than the data): one line, exit 65, nothing written."""
+    import yaml
+
+    from fog_driver.daemon.config import DriverConfig
+    from fog_driver.daemon.rawlog import CaptureSink, RotatingCapture
+    from fog_driver.daemon.service import Service
+    from fog_driver.samples.captures import find_sidecar
+
+    data = (Path(__file__).parent / "data" / "sim-short.bin").read_bytes()
+    service = Service(DriverConfig(), port="unused")
+    service.capture = CaptureSink(RotatingCapture(tmp_path / "cap", provenance=service._provenance()))
+    service.process(data[:40000])
+    assert service.control("TABLE", {"angle_deg": 10.0, "dwell_s": 20.0}, 0)["class"] == "TABLE"
+    service.process(data[40000:])
+    service.capture.close()
+    (recorded,) = sorted((tmp_path / "cap").glob("*.bin"))
+    sidecar = find_sidecar(recorded)
+    doc = yaml.safe_load(sidecar.read_text())
+    (event,) = [e for e in doc["events"] if e["event"] == "table"]
+    event["dwell_s"] = 1e5  # longer than the data
+    sidecar.write_text(yaml.safe_dump(doc))
+    out = tmp_path / "out.csv"
+    assert main(["compensate", str(recorded), "--model", str(DEFAULT_MODEL), "--out", str(out)]) == 65
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "table event at byte" in err[0] and "cannot be replayed" in err[0]
+    assert not out.exists()

@@ -174,7 +174,13 @@ def compensate_capture(
                         cols = binding.run(part)
                         yield frame_period_s, offsets.published(cols, frame_period_s) if replaying else cols
                     if event is not None:
-                        event.apply(binding, offsets)
+                        try:
+                            event.apply(binding, offsets)
+                        except (TypeError, ValueError, KeyError) as exc:  # a sidecar edited by hand
+                            raise InputFileError(
+                                f"{path}: its sidecar's {event.kind} event at byte {event.at_byte:,} cannot be "
+                                f"replayed: {exc}"
+                            ) from None
             pending = []
     if not samples_seen:
         raise InputFileError(f"{path}: no SAMPLE frames to compensate{what_it_is(path)}")

@@ -26,7 +26,8 @@ def check_table_log_used(compensator: Compensator, table_log: str | Path, captur
     law = compensator.table
     if law is None:
         raise ValueError("the compensator did not adapt from table angles")
-    left = compensator.pending_dwells
+    end = compensator.device_time_s or 0.0
+    left = [d for d in compensator.pending_dwells if d.t_end_s > end + 1.0]  # within the last block: not reached
     if left:
         raise InputFileError(
             f"{table_log}: {len(left)} dwells end after {capture} does (the first at {left[0].t_end_s:,.1f} s of "
