@@ -169,9 +169,9 @@ def compensate_capture(
                 continue
             frame_period_s = cast(Compensator, binding.compensator).frame_period_s  # bound
             for earlier in [*pending, block]:
-                for part, event in split_at_events(earlier, events):
-                    if len(part):
-                        cols = binding.run(part)
+                for piece, event in split_at_events(earlier, events):
+                    if len(piece):
+                        cols = binding.run(piece)
                         yield frame_period_s, offsets.published(cols, frame_period_s) if replaying else cols
                     if event is not None:
                         try:
