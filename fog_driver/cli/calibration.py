@@ -41,7 +41,7 @@ from ..offline.compensate import (
 from ..offline.fit import fit_model_file
 from ..offline.replay import REPLAYED, control_events, unreplayed
 from ..offline.rows import compensated_rows, format_row
-from ..offline.table import check_table_log_used, table_dwells, table_provenance, table_summary_lines
+from ..offline.table import check_table_log_used, table_dwells, table_summary_lines
 from ..report import positioning
 from ..report.coverage import format_coverage
 from ..report.evaluate import (
@@ -277,7 +277,7 @@ def cmd_compensate(args: argparse.Namespace) -> int:
         provenance.update(rows=written, extrapolating_s=round(float(extrapolating_s), 3))
         if args.table_log is not None:
             table = check_table_log_used(done[0], args.table_log, args.capture)
-            provenance["table"] = table_provenance(table)
+            provenance["table"] = table.summary()  # plain values
         if checked.warning:
             provenance["warnings"] = [checked.warning]
         write_csv_provenance(out, provenance)

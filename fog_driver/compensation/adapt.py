@@ -161,6 +161,7 @@ class ComparisonGuard:
     in, the verdict out.  The host has ``config`` (an ``AdaptConfig``) and ``_min_gain``."""
 
     config: AdaptConfig
+    runaway_dph: float
     _min_gain: float
     #: the standard errors the mean gain must exceed (``COMPARE_SIGMAS`` for the rate path)
     compare_sigmas: float = COMPARE_SIGMAS
@@ -170,6 +171,13 @@ class ComparisonGuard:
     compare_level_frozen_dph: float
     compare_level_adapted_dph: float
     compare_dev_sq_adapted_dph2: float
+
+    def _set_bounds(self, fit_residual_dph: float | None) -> None:
+        """``runaway_dph`` (the config's, else ``runaway_for`` the model's fit residual) and the comparison's
+        least gain, ``(compare_min_gain r)^2`` with r = ``runaway_dph / RUNAWAY_FIT_RESIDUALS``."""
+        configured = self.config.runaway_dph
+        self.runaway_dph = float(configured if configured is not None else runaway_for(fit_residual_dph))
+        self._min_gain = (self.config.compare_min_gain * self.runaway_dph / RUNAWAY_FIT_RESIDUALS) ** 2
 
     def _add_window(self, error_frozen: float, error_adapted: float) -> None:
         """One window's mean errors: the gain about their running levels into the running mean and mean square
@@ -228,11 +236,8 @@ class OnlineReadout(ComparisonGuard):
         self._law = AdaptiveLaw(self.config.law, self.n_features + 1, sample_time_s)
         self.sample_time_s = self._law.sample_time_s
         self.bias_capture_blocks = blocks_in(self.config.bias_capture_s, self.sample_time_s)
-        self.runaway_dph = float(
-            self.config.runaway_dph if self.config.runaway_dph is not None else runaway_for(fit_residual_dph)
-        )
+        self._set_bounds(fit_residual_dph)
         self._runaway = self.runaway_dph
-        self._min_gain = (self.config.compare_min_gain * self.runaway_dph / RUNAWAY_FIT_RESIDUALS) ** 2
         # the innovation's filter: GATE_FILTER_S; the noise's memory: NOISE_MEMORY_S
         self._gate_a = 1.0 - numerics.exp_correctly_rounded(-self._law.sample_time_s / GATE_FILTER_S)
         self._noise_a = 1.0 - numerics.exp_correctly_rounded(-self._law.sample_time_s / NOISE_MEMORY_S)

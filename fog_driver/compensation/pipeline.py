@@ -187,7 +187,7 @@ class Compensator:
                 self.model.weights,
                 self.model.intercept,
                 self._block_s,
-                adapt if adapt is not None else AdaptConfig(),
+                adapt,
                 fit_residual_dph=model_file.fit_residual_dph,
                 coil=self.model.coil_lag() if hasattr(self.model, "coil_lag") else None,
             )
@@ -251,7 +251,7 @@ class Compensator:
                 self.model.start(z)
                 self.uncertainty.start(z)
                 self._started = True
-            by_table = self.table is not None and (self.online is None or self._table_leads)
+            by_table = self._table_leads
             if by_table:
                 f = self.model.regressors_step(z)
                 _, estimate, adapt_flags = cast(TableLaw, self.table).estimate(f)

@@ -80,7 +80,7 @@ import numpy as np
 
 from ..flags import FLAG_ADAPTING, FLAG_GUARD
 from . import numerics
-from .adapt import RUNAWAY_FIT_RESIDUALS, ComparisonGuard, runaway_for
+from .adapt import RUNAWAY_FIT_RESIDUALS, ComparisonGuard
 from .adapt_config import AdaptConfig, blocks_in
 from .dwell import Dwell, blocks_within, reference_deg, trimmed_window
 
@@ -202,13 +202,10 @@ class TableLaw(ComparisonGuard):
         self.b0 = float(frozen_intercept)
         self.n_features = f = len(self.w0)
         self.block_s = float(block_s)
-        self.runaway_dph = float(
-            self.config.runaway_dph if self.config.runaway_dph is not None else runaway_for(fit_residual_dph)
-        )
+        self._set_bounds(fit_residual_dph)
         self.prior_dph = PRIOR_RUNAWAYS * self.runaway_dph
         #: the frozen model's error scale over an interval: its fit residual (1-min RMS), as the runaway bound has it
         self.model_sigma_dph = self.runaway_dph / RUNAWAY_FIT_RESIDUALS
-        self._min_gain = (self.config.compare_min_gain * self.runaway_dph / RUNAWAY_FIT_RESIDUALS) ** 2
         self._cap = max(2, int(math.ceil(MAX_WINDOW_S / self.block_s)) + 2)
         self._width = f + 4  # cumulative: f (F), 1, T, theta, degraded blocks
         self._ring_mid = np.zeros((self._cap, self._width))
@@ -221,11 +218,7 @@ class TableLaw(ComparisonGuard):
         self._start()
 
     def _start(self) -> None:
-        n = self.n_features + 3
-        self.h = np.zeros((n, n))
-        self.i = np.zeros(n)
-        self.delta = np.zeros(n)
-        self.cov = np.zeros((n, n))  # P, from the first update on
+        self.reset_to_frozen()  # H, I, the weights' change and its covariance P (from the first update on)
         self.gram = np.zeros((self.n_features + 1, self.n_features + 1))
         self.gram_weight = 0.0
         self.noise_var_dph2 = math.nan  # the block rates' white noise variance (deg/h)^2
@@ -237,7 +230,6 @@ class TableLaw(ComparisonGuard):
         self.guards = 0
         self.rejections_in_row = 0
         self._flag_pending = 0
-        self._reset_comparison()
         self.begin_run()
 
     def begin_run(self) -> None:

@@ -189,7 +189,7 @@ def table_fields(compensator: Any) -> dict[str, Any]:
     law = compensator.table
     summary = law.summary()
     out: dict[str, Any] = {"engaged": bool(compensator.table_engaged), "pending": len(compensator.pending_dwells)}
-    out.update({k: (float(v) if isinstance(v, float) else v) for k, v in summary.items()})
+    out.update(summary)
     out["scale_factor_applied"] = bool(summary["scale_factor_applied"] and compensator.table_engaged)
     if law.outcomes:
         last = law.outcomes[-1]

@@ -12,7 +12,7 @@ from ..compensation.pipeline import Compensator
 from ..compensation.table import TableLaw
 from ..errors import InputFileError
 
-__all__ = ["check_table_log_used", "table_dwells", "table_provenance", "table_summary_lines"]
+__all__ = ["check_table_log_used", "table_dwells", "table_summary_lines"]
 
 
 def table_dwells(stops: Iterable[Any]) -> list[Dwell]:
@@ -34,11 +34,6 @@ def check_table_log_used(compensator: Compensator, table_log: str | Path, captur
             f"device time from its first sample): the table log of another capture?"
         )
     return law
-
-
-def table_provenance(law: TableLaw) -> dict[str, Any]:
-    """What the table law did, for the CSV's sidecar: counts by outcome and the scale factor."""
-    return {k: float(v) if isinstance(v, float) else v for k, v in law.summary().items()}
 
 
 def table_summary_lines(compensator: Compensator) -> list[str]:
