@@ -24,6 +24,7 @@ __all__ = [
     "MIN_LIVE_DWELL_S",
     "Dwell",
     "blocks_within",
+    "out_of_order",
     "reference_deg",
     "trimmed_window",
 ]
@@ -43,6 +44,17 @@ class Dwell:
     t_end_s: float
     angle_deg: float
     angle_end_deg: float | None = None
+
+
+def out_of_order(t_start_s: float, previous_end_s: float | None) -> str | None:
+    """Why a dwell starting at ``t_start_s`` cannot follow one that ended at ``previous_end_s`` (None: it can;
+    dwells are one stream in time order, whoever sends them)."""
+    if previous_end_s is not None and t_start_s < previous_end_s - 1e-9:
+        return (
+            f"out of time order: the dwell starts at {t_start_s:.3f} s, {previous_end_s - t_start_s:.1f} s before "
+            f"the previous one ended ({previous_end_s:.3f} s)"
+        )
+    return None
 
 
 def reference_deg(angle_deg: float, angle_end_deg: float | None) -> float:

@@ -36,7 +36,7 @@ from .adapt import OnlineReadout
 from .adapt_config import AdaptConfig, StaticDetector
 from .blocks import FLAG_GAP, FLAG_THERMOMETER_FAULT, PLAUSIBLE_TEMP_C, BlockAverager, ModelBlock
 from .domain import FLAG_EXTRAPOLATING
-from .dwell import MIN_LIVE_DWELL_S, Dwell
+from .dwell import MIN_LIVE_DWELL_S, Dwell, out_of_order
 from .features import DEGRADED_FLAGS, FLAG_INPUT_STALE, FeatureExtractor
 from .model import ModelFile
 from .table import TableLaw, TableOutcome
@@ -353,11 +353,9 @@ class Compensator:
                 f"the dwell ({dwell_s:g} s) reaches back past a break in the data (a gap, a restart, a zero): "
                 f"{held:.1f} s since"
             )
-        previous = self._dwells[-1].t_end_s if self._dwells else self.table.last_dwell_end_s
-        if previous is not None and start < previous - 1e-9:
-            raise ValueError(
-                f"out of time order: the dwell starts {previous - start:.1f} s before the previous one ended"
-            )
+        order = out_of_order(start, self._dwells[-1].t_end_s if self._dwells else self.table.last_dwell_end_s)
+        if order is not None:
+            raise ValueError(order)
         if angle_start_deg is None:
             dwell = Dwell(start, now, angle_deg)
         else:

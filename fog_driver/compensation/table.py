@@ -49,7 +49,8 @@ on the scale factor, ``SF_PRIOR_PPM`` and ``SF_SLOPE_PRIOR_PPM_PER_C``.
 
 Safe by construction.  A dwell is refused (out of time order, a window without a whole block, a window
 reaching back past a break) or rejected and flagged ``guard`` (the gyro saw motion during the dwell: a
-block rate farther than ``static_threshold_dph`` from the window's median; the interval disagrees with
+block rate farther than ``static_threshold_dph`` from a steady drift, a robust straight line through the
+dwell's blocks, ``MOTION_MARGIN_S`` at each end excepted; the interval disagrees with
 the gyro by more than ``TABLE_SIGMAS`` sigmas of its innovation, ``sqrt(c (R + phi P phi^T))``, c the
 running mean of the squared normalized innovations, capped, over ``CALIBRATION_INTERVALS``; a move more
 than ``AMBIGUOUS_DEG`` from every whole turn of the gyro's); nothing is learned from it.  After a rejected
@@ -82,7 +83,7 @@ from ..flags import FLAG_ADAPTING, FLAG_GUARD
 from . import numerics
 from .adapt import RUNAWAY_FIT_RESIDUALS, ComparisonGuard
 from .adapt_config import AdaptConfig, blocks_in
-from .dwell import Dwell, blocks_within, reference_deg, trimmed_window
+from .dwell import Dwell, blocks_within, out_of_order, reference_deg, trimmed_window
 
 __all__ = ["SF_REF_C", "TABLE_SIGMAS", "TableLaw", "TableOutcome"]
 
@@ -400,19 +401,10 @@ class TableLaw(ComparisonGuard):
         self.outcomes.append(outcome)
         return outcome
 
-    def check_order(self, dwell: Dwell) -> str | None:
-        """Why ``dwell`` cannot follow the dwells before it (None: it can)."""
-        if self.last_dwell_end_s is not None and dwell.t_start_s < self.last_dwell_end_s - 1e-9:
-            return (
-                f"out of time order: the dwell starts at {dwell.t_start_s:.3f} s, before the previous one "
-                f"ended ({self.last_dwell_end_s:.3f} s)"
-            )
-        return None
-
     def observe(self, dwell: Dwell) -> TableOutcome:
         """One dwell, once the blocks up to its end have closed.  Returns (and records in ``outcomes``) what
         became of it."""
-        order = self.check_order(dwell)
+        order = out_of_order(dwell.t_start_s, self.last_dwell_end_s)
         if order is not None:
             return self._refuse(dwell, order)
         self.last_dwell_end_s = dwell.t_end_s
