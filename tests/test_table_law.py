@@ -13,13 +13,13 @@ import pytest
 from fog_driver.cli.app import main
 from fog_driver.compensation.dwell import Dwell, blocks_within, reference_deg, trimmed_window
 from fog_driver.compensation.pipeline import FLAG_GUARD, FLAG_SCALE_FACTOR, Compensator
-from fog_driver.compensation.table import SF_REF_C, TableOutcome
+from fog_driver.compensation.table import SF_REF_C, TableLaw, TableOutcome
 from fog_driver.daemon.config import DEFAULT_MODEL
 from fog_driver.modelfiles import load_model
 from fog_driver.protocol import decode_file
 from fog_driver.report.positioning import read_reference_csv
 from fog_driver.samples.stream import SampleBlock, SampleStream
-from fog_driver.sim.capture import read_truth, simulate_to_file
+from fog_driver.sim.capture import read_truth, simulate_to_file, truth_noise_dph
 from fog_driver.sim.instrument import InstrumentConfig, Simulator
 from fog_driver.sim.profiles import parse_profile
 
@@ -111,6 +111,75 @@ def test_the_scale_factor_is_found_against_the_simulators_truth(run):
     true_ppm = float(np.mean(config.gyro.scale_factor_error(truth["fiber_c"][int(a.t_end_s) : int(b.t_start_s)])))
     assert abs(true_ppm * move) > 10.0  # a move the scale factor shows in
     assert taken == pytest.approx(true_ppm * move, abs=5e-6 * abs(move))
+
+
+def drift_error_dph(cols, truth: dict, dwells: list[Dwell], skip_s: float = 1800.0) -> float:
+    """The drift estimate's error against the truth as the benchmark scores it: 1-min means of the true drift
+    and the gyro's own noise (the floor no estimate goes below) less the estimate, their mean removed, over
+    the minutes after ``skip_s`` that hold no table move."""
+    t = cols.t_s - cols.t_s[0]
+    second = np.floor(t).astype(np.int64)
+    n = min(int(second[-1]) + 1, len(truth["drift_dph"]))
+    keep = second < n
+    estimate = np.bincount(second[keep], weights=cols.drift_dph[keep], minlength=n) / np.maximum(
+        np.bincount(second[keep], minlength=n), 1
+    )
+    moving = np.zeros(n, dtype=bool)
+    for a, b in zip(dwells, dwells[1:]):
+        moving[int(a.t_end_s) : int(math.ceil(b.t_start_s))] = True
+    m = n // 60
+    measured = truth["drift_dph"][: m * 60] + truth_noise_dph(truth)[: m * 60]
+    error = (measured - estimate[: m * 60]).reshape(m, 60).mean(axis=1)
+    scored = ~moving[: m * 60].reshape(m, 60).any(axis=1) & (np.arange(m) * 60 >= skip_s)
+    e = error[scored]
+    return float(np.sqrt(np.mean((e - e.mean()) ** 2)))
+
+
+def test_a_right_model_keeps_its_shape_a_wrong_one_is_corrected(run, tmp_path):
+    """The weighing of the prior scales, against the simulator's truth: on the instrument the default model
+    was made for, the frozen shape keeps most of the weight and the error stays the frozen one's (within 2 %);
+    on one whose temperature-rate (Shupe) and gradient drifts are 1.3 times the model's, the weight moves to the
+    adapted shapes and the error falls by more than half."""
+    samples, dwells, truth, config, _ = run
+    frozen = Compensator(load_model(DEFAULT_MODEL), 1.0 / RATE_HZ).run(samples)
+    comp, cols = compensate(samples, dwells)
+    assert comp.table.frozen_weight > 0.5
+    assert drift_error_dph(cols, truth, dwells) <= 1.02 * drift_error_dph(frozen, truth, dwells)
+
+    off = dataclasses.replace(
+        config,
+        gyro=dataclasses.replace(
+            config.gyro,
+            shupe_dph_per_c_per_min=1.3 * config.gyro.shupe_dph_per_c_per_min,
+            gradient_dph_per_c=1.3 * config.gyro.gradient_dph_per_c,
+        ),
+    )
+    out = tmp_path / "off.bin"
+    simulate_to_file(Simulator(parse_profile(PROFILE), off, rate_hz=RATE_HZ, seed=12), out)
+    off_samples = SampleStream().run(decode_file(out))
+    off_truth = read_truth(out.with_suffix(".truth.csv"))
+    off_dwells = [
+        Dwell(s.t_start_s, s.t_end_s, s.angle_deg, s.angle_end_deg)
+        for s in read_reference_csv(out.with_suffix(".table.csv"))
+    ]
+    off_frozen = Compensator(load_model(DEFAULT_MODEL), 1.0 / RATE_HZ).run(off_samples)
+    off_comp, off_cols = compensate(off_samples, off_dwells)
+    assert off_comp.table.frozen_weight < 0.5
+    assert drift_error_dph(off_cols, off_truth, off_dwells) < 0.6 * drift_error_dph(off_frozen, off_truth, off_dwells)
+
+
+def test_the_comparison_guard_publishes_the_frozen_drift_again_when_the_adapted_one_is_worse():
+    """The backstop behind the weighing: intervals whose adapted errors are 3 times the frozen ones' put the
+    frozen drift back; equal errors do not (no switch on chance)."""
+    rng = np.random.default_rng(5)
+    verdicts = {}
+    for name, adapted_sigma in (("worse", 3.0), ("equal", 1.0), ("better", 0.3)):
+        law = TableLaw(np.zeros(4), 0.0, 1.0, fit_residual_dph=0.02)
+        law.bias_dph = 0.0  # captured
+        for _ in range(60):
+            law._add_window(rng.normal(0.0, 0.01), rng.normal(0.0, 0.01 * adapted_sigma))
+        verdicts[name] = law.adapted_in_use
+    assert verdicts == {"worse": False, "equal": True, "better": True}
 
 
 def test_step_equals_run_with_dwells(run):

@@ -179,15 +179,20 @@ class ComparisonGuard:
         self.runaway_dph = float(configured if configured is not None else runaway_for(fit_residual_dph))
         self._min_gain = (self.config.compare_min_gain * self.runaway_dph / RUNAWAY_FIT_RESIDUALS) ** 2
 
+    def _compare_memory(self) -> float:
+        """The comparison's memory, in windows (the config's)."""
+        return float(self.config.compare_memory_windows)
+
     def _add_window(self, error_frozen: float, error_adapted: float) -> None:
         """One window's mean errors: the gain about their running levels into the running mean and mean square
         (plain means until the memory is full, then exponential)."""
-        weight = 1.0 / min(self.compare_windows + 1, self.config.compare_memory_windows)
+        memory = self._compare_memory()
+        weight = 1.0 / min(self.compare_windows + 1, memory)
         if self.compare_windows:  # errors about their own running level: a constant offset is no drift
             gain = (error_frozen - self.compare_level_frozen_dph) ** 2 - (
                 error_adapted - self.compare_level_adapted_dph
             ) ** 2
-            gain_weight = 1.0 / min(self.compare_windows, self.config.compare_memory_windows)
+            gain_weight = 1.0 / min(self.compare_windows, memory)
             self.compare_gain += gain_weight * (gain - self.compare_gain)
             self.compare_gain_sq += gain_weight * (gain * gain - self.compare_gain_sq)
             dev = (error_adapted - self.compare_level_adapted_dph) ** 2
@@ -196,15 +201,27 @@ class ComparisonGuard:
         self.compare_level_adapted_dph += weight * (error_adapted - self.compare_level_adapted_dph)
         self.compare_windows += 1
 
+    def _gain_and_error(self) -> tuple[float, float] | None:
+        """The recent windows' mean gain (the frozen estimate's squared error less the adapted one's) and its
+        standard error; None before ``compare_min_windows`` windows."""
+        if self.compare_windows < max(3, self.config.compare_min_windows):
+            return None
+        n = min(self.compare_windows - 1, self._compare_memory())  # windows that gave a gain
+        variance = max(self.compare_gain_sq - self.compare_gain**2, 0.0)
+        return self.compare_gain, math.sqrt(variance / n)
+
     def _comparison_passes(self) -> bool:
         """Over the recent windows the adapted estimate's squared error was smaller than the frozen one's by
         more than ``compare_sigmas`` standard errors of that gain, and by more than the least gain worth
         having (``AdaptConfig.compare_min_gain``)."""
-        n = min(self.compare_windows - 1, self.config.compare_memory_windows)  # windows that gave a gain
-        if self.compare_windows < max(3, self.config.compare_min_windows):
-            return False
-        variance = max(self.compare_gain_sq - self.compare_gain**2, 0.0)
-        return bool(self.compare_gain > max(self.compare_sigmas * math.sqrt(variance / n), self._min_gain))
+        g = self._gain_and_error()
+        return g is not None and g[0] > max(self.compare_sigmas * g[1], self._min_gain)
+
+    def _comparison_fails(self) -> bool:
+        """The other way round: over the recent windows the adapted estimate's squared error was larger than the
+        frozen one's by more than ``compare_sigmas`` standard errors of that gain."""
+        g = self._gain_and_error()
+        return g is not None and g[0] < -self.compare_sigmas * g[1]
 
 
 class OnlineReadout(ComparisonGuard):

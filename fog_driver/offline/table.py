@@ -58,6 +58,12 @@ def table_summary_lines(compensator: Compensator) -> list[str]:
         f"scale factor: {s['scale_factor_ppm']:+.1f} +- {s['scale_factor_sigma_ppm']:.1f} ppm at 25 degC, "
         f"{s['scale_factor_ppm_per_c']:+.2f} ppm/degC; {applied}"
     )
-    state = "the adapted drift in use" if s["adapted_in_use"] else "the frozen drift in use"
+    if s["adapted_in_use"]:
+        w = s["frozen_weight"]
+        state = f"the drift in use: the frozen model's at weight {w:.2f}, the adapted ones' at {1 - w:.2f}"
+    elif s["bias_dph"] is None:
+        state = "the frozen drift in use (the bias not yet captured)"
+    else:
+        state = "the frozen drift in use (the comparison guard found the adapted one worse)"
     lines.append(f"at the end: {state}; runaway resets {s['guards']}")
     return lines
