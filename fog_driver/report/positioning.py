@@ -371,12 +371,22 @@ class _Pass:
 
 
 def _columns(
-    capture: Path, model_file: ModelFile | None, force_model: bool, name: str, wire_format: str = "auto"
+    capture: Path,
+    model_file: ModelFile | None,
+    force_model: bool,
+    name: str,
+    wire_format: str = "auto",
+    options: Mapping[str, Any] | None = None,
 ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
     """(t_s absolute, raw angle, method's angle, temps (n, 3), uncompensated mask) per chunk."""
     if model_file is not None:
         for _, c in compensate_capture(
-            capture, model_file, force_model=force_model, model_name=f"model {name!r}", wire_format=wire_format
+            capture,
+            model_file,
+            force_model=force_model,
+            model_name=f"model {name!r}",
+            wire_format=wire_format,
+            **(options or {}),
         ):
             yield c.t_s, c.angle_raw_arcsec, c.angle_comp_arcsec, c.temps_c, (c.flags & FLAG_UNCOMPENSATED) != 0
         return
@@ -441,6 +451,7 @@ def _read_passes(
     temp_acc: np.ndarray,
     force_model: bool,
     wire_format: str,
+    options: Mapping[str, Mapping[str, Any]],
 ) -> dict[str, _Pass]:
     """One pass over ``capture`` per model (the first also reads the raw angle and adds the sequences'
     temperatures to ``temp_acc``): each method's dwell sums, its points once a second, and when it is ready."""
@@ -453,7 +464,8 @@ def _read_passes(
             targets[RAW] = _Pass(_DwellSums(windows), ready_s=0.0)
         t0: float | None = None
         last_second = {key: -1 for key in targets}
-        for t_abs, raw, comp, temps, uncomp in _columns(capture, mf, force_model, name or "", wire_format):
+        extra = options.get(name or "", {})
+        for t_abs, raw, comp, temps, uncomp in _columns(capture, mf, force_model, name or "", wire_format, extra):
             if t0 is None:
                 t0 = float(t_abs[0])
             t = t_abs - t0
@@ -515,11 +527,14 @@ def positioning_table(
     bias_window_s: tuple[float, float] | None = None,
     force_model: bool = False,
     wire_format: str = "auto",
+    options: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> list[Row]:
     """The paper's Table 1 for ``capture``: one ``Row`` per positioning sequence ([] when there is none).
 
     ``"uncompensated"`` uses the raw angle; each named model its compensated angle
-    (``compensate_capture(capture, model, force_model=force_model)``, one pass per model; bounded memory).
+    (``compensate_capture(capture, model, force_model=force_model, **options[name])``, one pass per model;
+    bounded memory): ``options`` gives a method more of ``compensate_capture``'s keywords, such as adapting
+    from a table log (``adapt=AdaptConfig(), table_dwells=...``), so one model can be two methods.
     Bias handling, labels and statistics: the module docstring.  ``format_table([])`` says the
     table is skipped (``NO_SEQUENCES``).
     """
@@ -537,7 +552,7 @@ def positioning_table(
     spans = np.array([(seq[0].t_start_s, seq[-1].t_end_s) for seq in sequences])
     temp_acc = np.zeros((len(sequences), 4))
 
-    passes = _read_passes(capture, model_files, windows, spans, temp_acc, force_model, wire_format)
+    passes = _read_passes(capture, model_files, windows, spans, temp_acc, force_model, wire_format, options or {})
 
     points = {k: (np.concatenate(p.t_points), np.concatenate(p.a_points)) for k, p in passes.items()}
     window, bias = _bias(passes, points, remove_bias, bias_window_s, capture, flat, stops, windows)
