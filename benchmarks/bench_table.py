@@ -63,6 +63,7 @@ from fog_driver.sim.capture import read_truth, truth_noise_dph  # noqa: E402
 from fog_driver.sim.motion import Creep, MotionPlan  # noqa: E402
 from fog_driver.sim.population import draw_instrument  # noqa: E402
 from fog_driver.sim.profiles import SimProfile, load_profile  # noqa: E402
+from fog_driver.sim.tablelog import late, lie  # noqa: E402
 
 SCORE_PROFILE = "table-run"
 TABLE_RUN = 7  #: the positioning run's seed: 10 K + 7
@@ -190,22 +191,12 @@ def score_instrument(seed: int, creeps: tuple[float, ...], rate_hz: int, workdir
     if len(learned) > LIE_DWELL:
         k = learned[LIE_DWELL]
         o = outcomes[k]
-        lied = list(log)
-        d = lied[k]
-        off_deg = LIE_SIGMAS * o.sigma_arcsec / 3600.0
-        lied[k] = dataclasses.replace(
-            d,
-            angle_deg=d.angle_deg + off_deg,
-            angle_end_deg=None if d.angle_end_deg is None else d.angle_end_deg + off_deg,
-        )
+        lied = lie(log, k, LIE_SIGMAS * o.sigma_arcsec / 3600.0)
         drift, _, c = per_second(path, model_file, n, adapt=AdaptConfig(), table_dwells=lied)
         out["lie"] = score(truth, drift, mask)
         out["lie_rejected"] = c is not None and c.table is not None and c.table.outcomes[k].status == "rejected"
     if len(log) > LATE_DWELL:
-        late = list(log)
-        d = late[LATE_DWELL]
-        late[LATE_DWELL] = dataclasses.replace(d, t_end_s=d.t_end_s + LATE_S)
-        drift, _, c = per_second(path, model_file, n, adapt=AdaptConfig(), table_dwells=late)
+        drift, _, c = per_second(path, model_file, n, adapt=AdaptConfig(), table_dwells=late(log, LATE_DWELL, LATE_S))
         out["late"] = score(truth, drift, mask)
         out["late_rejected"] = (
             c is not None and c.table is not None and c.table.outcomes[LATE_DWELL].status == "rejected"

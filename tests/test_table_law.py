@@ -22,6 +22,7 @@ from fog_driver.samples.stream import SampleBlock, SampleStream
 from fog_driver.sim.capture import read_truth, simulate_to_file, truth_noise_dph
 from fog_driver.sim.instrument import InstrumentConfig, Simulator
 from fog_driver.sim.profiles import parse_profile
+from fog_driver.sim.tablelog import late, lie
 
 S0_PPM, S1_PPM_PER_C = 40.0, 0.5
 RATE_HZ = 5
@@ -72,6 +73,29 @@ def compensate(samples: SampleBlock, dwells: list[Dwell]) -> tuple[Compensator, 
     comp = Compensator(load_model(DEFAULT_MODEL), 1.0 / RATE_HZ, table=True)
     comp.add_dwells(dwells)
     return comp, comp.run(samples)
+
+
+def test_the_lying_and_late_logs_against_the_simulators_truth(run):
+    """``sim.tablelog``: one dwell off the simulator's true angle by exactly the lie (start and end angles under a
+    creep alike), one ending late; the rest of the log the truth, untouched."""
+    from fog_driver.sim.motion import Stop
+
+    *_, out = run
+    truth = read_reference_csv(out.with_suffix(".table.csv"))
+    lied = lie(truth, 7, 0.01)
+    assert [d.angle_deg - t.angle_deg for d, t in zip(lied, truth)] == [0.0] * 7 + [
+        lied[7].angle_deg - truth[7].angle_deg
+    ] + [0.0] * (len(truth) - 8)
+    assert lied[7].angle_deg - truth[7].angle_deg == pytest.approx(0.01, abs=1e-12)
+    crept = lie([Stop(0.0, 60.0, 36.0, 36.001)], 0, -0.5)[0]
+    assert (crept.angle_deg, crept.angle_end_deg) == (35.5, pytest.approx(35.501))
+    delayed = late(truth, 3, 2.0)
+    assert delayed[3].t_end_s == truth[3].t_end_s + 2.0 and delayed[3].angle_deg == truth[3].angle_deg
+    assert delayed[:3] == truth[:3] and delayed[4:] == truth[4:]
+    with pytest.raises(ValueError, match="dwell 99"):
+        lie(truth[:5], 99, 0.01)
+    with pytest.raises(ValueError, match="finite"):
+        late(truth, 0, math.nan)
 
 
 def test_the_shared_dwell_definition():
@@ -204,9 +228,7 @@ def test_a_lie_of_five_sigmas_is_rejected_flagged_and_the_chain_goes_on(run):
     k = 30
     honest = _outcome_at(comp.table.outcomes, dwells[k])
     assert honest.status == "learned"
-    off_deg = 5.0 * honest.sigma_arcsec / 3600.0
-    lied = list(dwells)
-    lied[k] = dataclasses.replace(dwells[k], angle_deg=dwells[k].angle_deg + off_deg)
+    lied = lie(dwells, k, 5.0 * honest.sigma_arcsec / 3600.0)
     comp2, cols = compensate(samples, lied)
     assert _outcome_at(comp2.table.outcomes, lied[k]).status == "rejected"
     assert _outcome_at(comp2.table.outcomes, lied[k + 1]).status == "learned"  # from the last good dwell
@@ -227,7 +249,10 @@ def assert_rejected(samples: SampleBlock, dwells: list[Dwell], k: int, why: str,
 
 def test_an_angle_sent_late_is_rejected_the_gyro_sees_the_move(run):
     samples, dwells, *_ = run
-    assert_rejected(samples, dwells, 20, "motion", t_end_s=dwells[20].t_end_s + 2.0)
+    sent_late = late(dwells, 20, 2.0)
+    comp, _ = compensate(samples, sent_late)
+    outcome = _outcome_at(comp.table.outcomes, sent_late[20])
+    assert outcome.status == "rejected" and "motion" in outcome.reason, outcome
 
 
 def test_wrapped_angles_give_the_same_outcomes_and_an_ambiguous_one_is_rejected(run):
@@ -482,6 +507,13 @@ def test_what_the_table_law_learned_persists_across_a_restart(run, tmp_path):
     with pytest.raises(InputFileError, match="another model"):
         fresh.restore_adaptation(other, "state.yaml")
     assert fresh.table.accepted == 0  # nothing changed
+    # a state saved before the weighing of prior scales (no evidence): restored, the weighing afresh
+    older = dict(doc)
+    older["table"] = {k: v for k, v in doc["table"].items() if k != "evidence"}
+    upgraded = Compensator(load_model(DEFAULT_MODEL), 1.0 / RATE_HZ, table=True, adapt=comp.adapt)
+    upgraded.restore_adaptation(older, "state.yaml")
+    assert upgraded.table.accepted == comp.table.accepted and not upgraded.table.evidence.any()
+    assert np.array_equal(upgraded.table.h, comp.table.h)
 
 
 def test_compensate_table_log_saves_and_restores_the_state(run, tmp_path, capsys):
