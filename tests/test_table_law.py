@@ -192,6 +192,39 @@ def test_a_right_model_keeps_its_shape_a_wrong_one_is_corrected(run, tmp_path):
     assert drift_error_dph(off_cols, off_truth, off_dwells) < 0.6 * drift_error_dph(off_frozen, off_truth, off_dwells)
 
 
+def test_a_model_far_off_is_held_at_the_runaway_bound_not_reset(run, tmp_path):
+    """An instrument whose temperature-rate and gradient drifts are twice the model's: the correction it needs
+    passes the runaway bound.  The drift published stays within the bound of the frozen one, held there and
+    flagged ``guard``; the law is not reset, and the error still falls against the truth."""
+    samples, dwells, truth, config, _ = run
+    far = dataclasses.replace(
+        config,
+        gyro=dataclasses.replace(
+            config.gyro,
+            shupe_dph_per_c_per_min=2 * config.gyro.shupe_dph_per_c_per_min,
+            gradient_dph_per_c=2 * config.gyro.gradient_dph_per_c,
+        ),
+    )
+    out = tmp_path / "far.bin"
+    simulate_to_file(Simulator(parse_profile(PROFILE), far, rate_hz=RATE_HZ, seed=13), out)
+    far_samples = SampleStream().run(decode_file(out))
+    far_truth = read_truth(out.with_suffix(".truth.csv"))
+    far_dwells = [
+        Dwell(s.t_start_s, s.t_end_s, s.angle_deg, s.angle_end_deg)
+        for s in read_reference_csv(out.with_suffix(".table.csv"))
+    ]
+    frozen = Compensator(load_model(DEFAULT_MODEL), 1.0 / RATE_HZ).run(far_samples)
+    comp, cols = compensate(far_samples, far_dwells)
+    law = comp.table
+    assert law.clamped_blocks > 0 and law.guards == 0
+    change = cols.drift_dph - frozen.drift_dph
+    assert np.nanmax(np.abs(change)) <= law.runaway_dph * (1 + 1e-12)
+    held = np.abs(np.abs(change) - law.runaway_dph) < 1e-9
+    assert held.any() and (cols.flags[held] & FLAG_GUARD).all()
+    assert law.summary()["clamped_blocks"] == law.clamped_blocks
+    assert drift_error_dph(cols, far_truth, far_dwells) < 0.8 * drift_error_dph(frozen, far_truth, far_dwells)
+
+
 def test_the_comparison_guard_publishes_the_frozen_drift_again_when_the_adapted_one_is_worse():
     """The backstop behind the weighing: intervals whose adapted errors are 3 times the frozen ones' put the
     frozen drift back; equal errors do not (no switch on chance)."""

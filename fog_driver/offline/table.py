@@ -65,5 +65,5 @@ def table_summary_lines(compensator: Compensator) -> list[str]:
         state = "the frozen drift in use (the bias not yet captured)"
     else:
         state = "the frozen drift in use (the comparison guard found the adapted one worse)"
-    lines.append(f"at the end: {state}; runaway resets {s['guards']}")
+    lines.append(f"at the end: {state}; blocks held at the runaway bound {s['clamped_blocks']:,}, resets {s['guards']}")
     return lines
