@@ -63,6 +63,13 @@ runs:
   at, against the rule above: the runaway bound reset the law up to six times in a run, each reset throwing
   away the scale factor and putting a step in the drift.  ``eval5`` is spent; the table law holds the drift at
   the bound instead, and goes to ``eval7``.
+* 2026-12-05, ``eval7`` (70000..70023), first run, ``bench_table.py --set eval7 --creeps 0.2,2,20
+  --per-instrument``: the table law holding the drift at the runaway bound.  Median 0.915x frozen, worst
+  1.019x; the median excess cut by 35.1 % (median of the cuts 28.7 %); worst 1.019x rate-0's; a lie and a
+  late angle rejected on 24 of 24 (worst 1.019x, 1.018x); creeps of 0.2 and 20 deg/h worst 1.017x and 1.045x;
+  missed: a creep of 2 deg/h 1.462x on one instrument, the scale factor within 5 ppm on 195 of 199 plateaus
+  (worst 11.2 ppm).  The Table-1 improvement 78.3 % frozen and adapting (medians).  ``eval7`` is spent for
+  the table law: the creep failure is looked for on ``dev`` 48 and up.
 
 Individual evaluation instruments are not to be studied: to find what failed there, draw more
 development instruments (``--set dev --first 72``) and look for the same failure among them.
