@@ -359,8 +359,8 @@ class TableLaw(ComparisonGuard):
             self.guards += 1
             return y_frozen, y_frozen, flags | FLAG_GUARD
         if abs(change) > self.runaway_dph:  # held at the bound, flagged; what the law learned is kept
-            self.clamped_blocks += 1
             if self.adapted_in_use:
+                self.clamped_blocks += 1
                 return y_frozen, y_frozen + math.copysign(self.runaway_dph, change), flags | FLAG_GUARD | FLAG_ADAPTING
             return y_frozen, y_frozen, flags | FLAG_GUARD
         if self.adapted_in_use and change != 0.0:
