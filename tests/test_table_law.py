@@ -56,11 +56,31 @@ def run(tmp_path_factory):
         base,
         gyro=dataclasses.replace(base.gyro, scale_factor_ppm=S0_PPM, scale_factor_ppm_per_c=S1_PPM_PER_C),
     )
-    simulate_to_file(Simulator(parse_profile(PROFILE), config, rate_hz=RATE_HZ, seed=11), out)
+    samples, dwells, truth = simulate_run(config, 11, out)
+    return samples, dwells, truth, config, out
+
+
+def simulate_run(config: InstrumentConfig, seed: int, out: Path) -> tuple[SampleBlock, list[Dwell], dict]:
+    """``PROFILE`` simulated for ``config`` into ``out``: its samples, table log (as dwells) and truth."""
+    simulate_to_file(Simulator(parse_profile(PROFILE), config, rate_hz=RATE_HZ, seed=seed), out)
     samples = SampleStream().run(decode_file(out))
     stops = read_reference_csv(out.with_suffix(".table.csv"))
     dwells = [Dwell(s.t_start_s, s.t_end_s, s.angle_deg, s.angle_end_deg) for s in stops]
-    return samples, dwells, read_truth(out.with_suffix(".truth.csv")), config, out
+    return samples, dwells, read_truth(out.with_suffix(".truth.csv"))
+
+
+def rate_and_gradient_drift_scaled(config: InstrumentConfig, factor: float) -> InstrumentConfig:
+    """``config`` with its temperature-rate (Shupe) and gradient drifts ``factor`` times: the model made for the
+    default instrument is off for it."""
+    gyro = config.gyro
+    return dataclasses.replace(
+        config,
+        gyro=dataclasses.replace(
+            gyro,
+            shupe_dph_per_c_per_min=factor * gyro.shupe_dph_per_c_per_min,
+            gradient_dph_per_c=factor * gyro.gradient_dph_per_c,
+        ),
+    )
 
 
 def first(samples: SampleBlock, dwells: list[Dwell], seconds: float) -> tuple[SampleBlock, list[Dwell]]:
@@ -170,22 +190,8 @@ def test_a_right_model_keeps_its_shape_a_wrong_one_is_corrected(run, tmp_path):
     assert comp.table.frozen_weight > 0.5
     assert drift_error_dph(cols, truth, dwells) <= 1.02 * drift_error_dph(frozen, truth, dwells)
 
-    off = dataclasses.replace(
-        config,
-        gyro=dataclasses.replace(
-            config.gyro,
-            shupe_dph_per_c_per_min=1.3 * config.gyro.shupe_dph_per_c_per_min,
-            gradient_dph_per_c=1.3 * config.gyro.gradient_dph_per_c,
-        ),
-    )
-    out = tmp_path / "off.bin"
-    simulate_to_file(Simulator(parse_profile(PROFILE), off, rate_hz=RATE_HZ, seed=12), out)
-    off_samples = SampleStream().run(decode_file(out))
-    off_truth = read_truth(out.with_suffix(".truth.csv"))
-    off_dwells = [
-        Dwell(s.t_start_s, s.t_end_s, s.angle_deg, s.angle_end_deg)
-        for s in read_reference_csv(out.with_suffix(".table.csv"))
-    ]
+    off = rate_and_gradient_drift_scaled(config, 1.3)
+    off_samples, off_dwells, off_truth = simulate_run(off, 12, tmp_path / "off.bin")
     off_frozen = Compensator(load_model(DEFAULT_MODEL), 1.0 / RATE_HZ).run(off_samples)
     off_comp, off_cols = compensate(off_samples, off_dwells)
     assert off_comp.table.frozen_weight < 0.5
@@ -197,22 +203,8 @@ def test_a_model_far_off_is_held_at_the_runaway_bound_not_reset(run, tmp_path):
     passes the runaway bound.  The drift published stays within the bound of the frozen one, held there and
     flagged ``guard``; the law is not reset, and the error still falls against the truth."""
     samples, dwells, truth, config, _ = run
-    far = dataclasses.replace(
-        config,
-        gyro=dataclasses.replace(
-            config.gyro,
-            shupe_dph_per_c_per_min=2 * config.gyro.shupe_dph_per_c_per_min,
-            gradient_dph_per_c=2 * config.gyro.gradient_dph_per_c,
-        ),
-    )
-    out = tmp_path / "far.bin"
-    simulate_to_file(Simulator(parse_profile(PROFILE), far, rate_hz=RATE_HZ, seed=13), out)
-    far_samples = SampleStream().run(decode_file(out))
-    far_truth = read_truth(out.with_suffix(".truth.csv"))
-    far_dwells = [
-        Dwell(s.t_start_s, s.t_end_s, s.angle_deg, s.angle_end_deg)
-        for s in read_reference_csv(out.with_suffix(".table.csv"))
-    ]
+    far = rate_and_gradient_drift_scaled(config, 2.0)
+    far_samples, far_dwells, far_truth = simulate_run(far, 13, tmp_path / "far.bin")
     frozen = Compensator(load_model(DEFAULT_MODEL), 1.0 / RATE_HZ).run(far_samples)
     comp, cols = compensate(far_samples, far_dwells)
     law = comp.table

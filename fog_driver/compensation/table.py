@@ -633,9 +633,8 @@ class TableLaw(ComparisonGuard):
                 cov[:] = np.linalg.inv(self.h + self._prior(scale * self.runaway_dph))
                 delta[:] = cov @ self.i
             else:
-                own = slice(f_n, f_n + 3)  # the level and the scale factor
-                prior = np.diag([1.0 / self.runaway_dph**2, 1.0 / SF_PRIOR_PPM**2, 1.0 / SF_SLOPE_PRIOR_PPM_PER_C**2])
-                cov[own, own] = np.linalg.inv(self.h[own, own] + prior)
+                own = slice(f_n, f_n + 3)  # the level and the scale factor: L0's block of them (dw = 0)
+                cov[own, own] = np.linalg.inv(self.h[own, own] + self._prior(self.runaway_dph)[own, own])
                 delta[own] = cov[own, own] @ self.i[own]
             out.append((delta, cov))
         return out
