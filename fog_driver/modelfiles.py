@@ -20,7 +20,8 @@ from typing import Any
 from .compensation.adapt import ADAPT_STATE_FORMAT, ADAPT_STATE_SCHEMA_VERSION, OnlineReadout, StaticDetector
 from .compensation.model import MODEL_FORMAT, MODEL_SCHEMA_VERSION, ModelFile, model_file_from_doc
 from .compensation.pipeline import Compensator
-from .files.yamlio import read_tagged_yaml, write_yaml
+from .errors import InputFileError
+from .files.yamlio import MAX_YAML_BYTES, read_tagged_yaml, write_yaml, yaml_text
 
 # -- model files ---------------------------------------------------------------------------------------
 
@@ -34,6 +35,29 @@ def load_model(path: str | Path) -> ModelFile:
     """Read and validate a model file; a corrupt or wrong-version file is a one-line ``InputFileError``."""
     doc = read_tagged_yaml(path, "model file", MODEL_FORMAT, MODEL_SCHEMA_VERSION)
     return model_file_from_doc(doc, str(path))
+
+
+def _read_bytes(path: str | Path) -> bytes | None:
+    try:
+        return Path(path).read_bytes() if Path(path).stat().st_size <= MAX_YAML_BYTES else None
+    except OSError:
+        return None
+
+
+def read_model(path: str | Path, attempts: int = 3) -> tuple[ModelFile, bytes]:
+    """The model file at ``path`` and the bytes it was read from (the daemon keeps a copy of them beside its
+    captures): read again when the file changed meanwhile (a fit writing it); one-line ``InputFileError``s."""
+    for _ in range(attempts):
+        before = _read_bytes(path)
+        model_file = load_model(path)  # the one-line error of a file that cannot be used
+        if before is not None and _read_bytes(path) == before:
+            return model_file, before
+    raise InputFileError(f"{path}: the model file kept changing while it was read (being written?): try again")
+
+
+def model_bytes(model_file: ModelFile) -> bytes:
+    """The bytes of a model given as an object (not read from a file): the text ``save_model`` writes."""
+    return yaml_text(model_file.to_doc()).encode("utf-8")
 
 
 # -- adaptation state files ----------------------------------------------------------------------------

@@ -602,3 +602,39 @@ def test_events_past_the_limit_are_summarized_and_the_sidecar_stays_bounded(tmp_
     assert summary["bytes_lost"] == {"count": 3, "first_at_byte": 230, "last_at_byte": 230, "bytes": 21}
     later = read_provenance(cap.files[-1])
     assert [e["event"] for e in later["events"]] == ["adapt"] and "events_summary" not in later
+
+
+def test_kept_models_go_when_no_capture_left_names_them(tmp_path):
+    """``keep_model``: each model once, by its SHA-256, its bytes checked; the retention deletes a kept model
+    once the captures whose sidecars named it are gone, and keeps the one the captures left still name."""
+    import hashlib
+
+    from fog_driver.samples.captures import kept_model_path
+
+    old, new = b"format: old model\n", b"format: new model\n"
+    sha_old, sha_new = hashlib.sha256(old).hexdigest(), hashlib.sha256(new).hexdigest()
+    with RotatingCapture(tmp_path, max_bytes=1000, max_total_bytes=3500) as cap:
+        with pytest.raises(ValueError, match="SHA-256"):
+            cap.keep_model(sha_old, new)
+        cap.write(b"x" * 100)
+        cap.note({"event": "model", "sha256": sha_old})
+        assert cap.keep_model(sha_old, old).read_bytes() == old
+        assert cap.keep_model(sha_old, old) == kept_model_path(cap.current_path, sha_old)  # once
+        cap.write(b"x" * 900)
+        cap.note({"event": "model", "sha256": sha_new})
+        cap.update_provenance({"model": {"sha256": sha_new}}, current_file=False)  # in every later sidecar
+        cap.keep_model(sha_new, new)
+        for _ in range(3):
+            cap.write(b"y" * 1000)  # the first files go: no sidecar left names the old model
+            assert kept_model_path(tmp_path / "f.bin", sha_new).exists()
+    assert cap.pruned and not kept_model_path(tmp_path / "f.bin", sha_old).exists()
+    assert all(read_provenance(p)["model"]["sha256"] == sha_new for p in tmp_path.glob("fog-*.bin"))
+    assert sorted(p.name for p in (tmp_path / "models").iterdir()) == [f"{sha_new}.yaml"]
+
+
+def test_provenance_for_later_files_leaves_the_current_one_as_it_began(tmp_path):
+    with RotatingCapture(tmp_path, max_bytes=1000, provenance={"model": {"sha256": "a"}}) as cap:
+        cap.write(b"x" * 600)
+        cap.update_provenance({"model": {"sha256": "b"}}, current_file=False)
+        cap.write(b"x" * 600)
+    assert [read_provenance(p)["model"]["sha256"] for p in cap.files] == ["a", "b"]

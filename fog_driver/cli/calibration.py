@@ -219,7 +219,7 @@ def cmd_compensate(args: argparse.Namespace) -> int:
         )
     dwells = None if args.table_log is None else table_dwells(positioning.read_reference_csv(args.table_log))
     sidecar_doc = read_provenance(args.capture)
-    events = control_events(sidecar_doc)  # a daemon capture: the operator's ?TABLE and ?ADAPT, replayed
+    events = control_events(sidecar_doc, args.capture)  # a daemon capture: the operator's commands, replayed
     if dwells is not None and any(e.kind == "table" for e in events):
         raise UsageError(
             f"{args.capture}: its sidecar holds the daemon's ?TABLE dwells, which are replayed; --table-log would "
@@ -298,7 +298,7 @@ def cmd_compensate(args: argparse.Namespace) -> int:
             f"{sum(e.kind == k for e in events)} {k}" for k in REPLAYED if any(e.kind == k for e in events)
         )
         print(f"replayed the daemon's control events where they took effect: {kinds}")
-    for missing in unreplayed(sidecar_doc):
+    for missing in unreplayed(sidecar_doc, args.capture):
         print(f"warning: the capture's sidecar has {missing}: these rows are not what the daemon published after them")
     if args.table_log is not None or any(e.kind == "table" for e in events):
         for line in table_summary_lines(done[0]):

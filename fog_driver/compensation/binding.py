@@ -44,6 +44,13 @@ def check_channels(model_file: ModelFile, wire, model_name: str = "the model", w
         )
 
 
+def same_model(a: ModelFile, b: ModelFile) -> bool:
+    """The same drift model (kind, normalization and every matrix): its memory and adaptation carry over."""
+    return (
+        a.kind == b.kind and a.normalizer.to_dict() == b.normalizer.to_dict() and a.model.to_dict() == b.model.to_dict()
+    )
+
+
 def _new_instrument(current: IdentityFrame | None, identity: IdentityFrame) -> bool:
     """Whether ``identity`` names another instrument than ``current`` for the pipeline: a serial or a rate of
     its own (a scale factor alone is the stream's business), or the first one."""
@@ -142,10 +149,29 @@ class InstrumentCompensation:
         self._flag_next = True
         return "rebuilt"
 
-    def replace_model(self, model_file: ModelFile, compensator: Compensator) -> None:
-        """Use ``model_file`` through ``compensator`` (built for it and continued from the current one) from now on."""
+    def compensator_for(self, model_file: ModelFile, frame_period_s: float) -> Compensator:
+        """A compensator for ``model_file`` built as this binding builds them (its adapt config; recording the
+        table's angles when it adapts from them)."""
+        return Compensator(model_file, frame_period_s, adapt=self.adapt, table=self.table_dwells is not None)
+
+    def swap_model(self, model_file: ModelFile, new: Compensator | None = None) -> None:
+        """Compensate with ``model_file`` from the next sample on (a model reload; the daemon's and its replay's):
+        ``new`` (``compensator_for``, built beforehand; rebuilt when None or for another frame period) carries
+        on from the current compensator: the angles, the reference rate, the open block and the feature
+        smoothers; with the same model (``same_model``) also its memory (reservoir) and its adaptation; a
+        different model starts at rest at the current inputs (as at switch-on) and adapts afresh.  Unbound: the
+        model the first IDENTITY binds."""
+        old = self.compensator
+        if old is None:
+            self.model_file = model_file
+            return
+        if new is None or new.frame_period_s != old.frame_period_s:
+            new = self.compensator_for(model_file, old.frame_period_s)
+        new.reference_rate_dph = old.reference_rate_dph
+        new.angle_raw_arcsec, new.angle_comp_arcsec = old.angle_raw_arcsec, old.angle_comp_arcsec
+        new.continue_from(old, same_model=same_model(old.model_file, model_file))
         self.model_file = model_file
-        self.compensator = compensator
+        self.compensator = new
 
     def step(self, sample) -> CompensatedSample:
         c = cast(Compensator, self.compensator).step(sample)  # bound

@@ -39,6 +39,9 @@ Rules (the tests hold them):
   ``start_utc``, ``end_utc``, ``end_reason`` (``max_bytes``, ``max_age_s`` or ``close``), the segment
   number, the previous file's name, ``events`` (``note``: what happened at which byte of the file),
   plus the ``provenance`` mapping given (port, instrument, model...).
+- ``keep_model``: a copy of each model the daemon compensates with, ``models/<sha256>.yaml`` in the directory
+  (once per content, atomic), for ``compensate`` to replay a reload; ``prune`` deletes the copies no sidecar
+  left names.
 - A sidecar a killed process left at ``status: recording`` is set right by ``repair_interrupted``
   (``status: interrupted``, the file's true size and SHA-256) before the next run writes.
 - A failed write (disk full) raises the ``CaptureWriter``'s one-line ``OutputFileError`` after the
@@ -65,9 +68,12 @@ import structlog
 from .. import __version__
 from ..errors import FogDriverError, OutputFileError
 from ..files.stamps import utc_now_iso
+from ..files.yamlio import write_text
 from ..samples.captures import (
+    KEPT_MODELS_DIR,
     CaptureWriter,
     find_sidecar,
+    kept_model_path,
     legacy_sidecar_path,
     read_provenance,
     sidecar_path,
@@ -130,7 +136,8 @@ class RotatingCapture:
         self.prefix = prefix
         self.max_bytes = int(max_bytes)
         self.max_age_s = float(max_age_s)
-        self._provenance: dict[str, Any] = dict(provenance or {})
+        self._provenance: dict[str, Any] = dict(provenance or {})  # for the files to come
+        self._file_provenance: dict[str, Any] = dict(self._provenance)  # the current file's
         self._clock = clock
         _make_directory(self.directory)
 
@@ -213,11 +220,14 @@ class RotatingCapture:
             self._fail(exc)
             raise
 
-    def update_provenance(self, fields: dict[str, Any]) -> None:
+    def update_provenance(self, fields: dict[str, Any], *, current_file: bool = True) -> None:
         """Merge ``fields`` (e.g. the instrument's identity, once its IDENTITY frame arrives) into the
-        provenance of the current file (its sidecar is rewritten now) and of every later one."""
+        provenance of the current file (its sidecar is rewritten now; not with ``current_file`` False: the model
+        a reload put in use, which the current file's events note) and of every later one."""
         self._provenance.update(fields)
-        self._rewrite_recording()
+        if current_file or self._writer is None:
+            self._file_provenance.update(fields)
+            self._rewrite_recording()
 
     def note(self, event: dict[str, Any]) -> None:
         """Record ``event`` in the sidecar of the file the next byte goes to, with ``at_byte``: the bytes
@@ -236,6 +246,21 @@ class RotatingCapture:
         events.append({**event, "at_byte": at})
         if not pending:
             self._rewrite_recording()
+
+    def keep_model(self, sha256: str, data: bytes) -> Path:
+        """Keep a copy of the model file ``data`` (of SHA-256 ``sha256``) the daemon compensates with from
+        here on, at ``kept_model_path`` (once per content; atomic), so that ``compensate`` can replay a reload.
+        ``OutputFileError`` when it cannot be written; ``ValueError`` when ``data`` is not of ``sha256``."""
+        if hashlib.sha256(data).hexdigest() != sha256:
+            raise ValueError("the model's bytes are not those of its SHA-256")
+        path = kept_model_path(self.directory / "capture.bin", sha256)
+        if not path.exists():
+            try:
+                path.parent.mkdir(exist_ok=True)
+            except OSError as exc:
+                raise OutputFileError(f"{path.parent}: cannot keep the model: {exc.strerror or exc}") from None
+            write_text(path, data, "the model's copy")
+        return path
 
     def close(self) -> None:
         """Fsync and close the current file and write its final sidecar; idempotent."""
@@ -283,6 +308,7 @@ class RotatingCapture:
         if previous is not None:
             self._fields["previous_capture"] = previous
         self._writer = writer
+        self._file_provenance = dict(self._provenance)
         self._events, self._pending_events = self._pending_events, []
         self._summary, self._pending_summary = self._pending_summary, {}
         try:
@@ -364,7 +390,29 @@ class RotatingCapture:
                 reason="older than capture_keep_days" if too_old else "over capture_max_gb",
             )
         self.pruned += deleted
+        if deleted:
+            self._prune_models()
         return deleted
+
+    def _prune_models(self) -> None:
+        """Delete the kept models (``keep_model``) that no capture sidecar left in the directory names (a sidecar
+        names its models by SHA-256: at the start and at each reload)."""
+        directory = self.directory / KEPT_MODELS_DIR
+        if not directory.is_dir():
+            return
+        named = ""
+        for sidecar in self.directory.glob("*.yaml"):
+            with contextlib.suppress(OSError, UnicodeDecodeError):
+                named += sidecar.read_text(encoding="utf-8")
+        for path in directory.glob("*.yaml"):
+            if path.stem in named:
+                continue
+            try:
+                path.unlink()
+            except OSError as exc:
+                log.error("model_copy_prune_failed", model=str(path), reason=exc.strerror or str(exc))
+                continue
+            log.info("model_copy_pruned", model=str(path))
 
     def _fail(self, exc: OutputFileError) -> None:
         """A write or fsync failed: close what can be closed and describe the file as failed."""
@@ -387,7 +435,7 @@ class RotatingCapture:
         doc = {
             "source": "daemon",
             "fog_driver_version": __version__,
-            **self._provenance,
+            **self._file_provenance,
             "status": status,
             **self._fields,
             "rotation": {"max_bytes": self.max_bytes, "max_age_s": self.max_age_s},
@@ -501,11 +549,19 @@ class CaptureSink:
             self._queue.append(("note", {**event, "utc": utc_now_iso()}))
             self._cond.notify()
 
-    def update_provenance(self, fields: dict[str, Any]) -> None:
+    def update_provenance(self, fields: dict[str, Any], *, current_file: bool = True) -> None:
         with self._cond:
             if self._closing:
                 return
-            self._queue.append(("provenance", dict(fields)))
+            self._queue.append(("provenance", (dict(fields), current_file)))
+            self._cond.notify()
+
+    def keep_model(self, sha256: str, data: bytes) -> None:
+        """``RotatingCapture.keep_model``, on the sink's thread (a failure is logged: the capture goes on)."""
+        with self._cond:
+            if self._closing:
+                return
+            self._queue.append(("model", (sha256, data)))
             self._cond.notify()
 
     def status(self) -> dict[str, Any]:
@@ -614,7 +670,13 @@ class CaptureSink:
         elif kind == "note":
             self._guard(self.capture.note, item)
         elif kind == "provenance":
-            self._guard(self.capture.update_provenance, item)
+            fields, current_file = item
+            self._guard(lambda: self.capture.update_provenance(fields, current_file=current_file))
+        elif kind == "model":
+            try:
+                self.capture.keep_model(*item)
+            except (OutputFileError, ValueError) as exc:  # the capture goes on; a replay will say it is missing
+                log.error("model_copy_failed", reason=str(exc))
 
     def _guard(self, action: Callable[..., None], *args: Any) -> bool:
         """Run one capture action; an ``OutputFileError`` fails the capture (logged, retried later)."""

@@ -27,15 +27,17 @@ A model reload parses and builds the new compensator outside it, then swaps it i
 Angles: ``angle_arcsec`` is the compensated angle integrated from the frames, less the offsets ``?ZERO`` and
 ``?BIAS`` introduce (``acquisition.py`` says how).
 
-Live == offline.  The published ``angle_arcsec`` equals ``fog-driver compensate`` (``apply.compensate_capture``)
+Live == offline.  The published ``angle_arcsec`` equals ``fog-driver compensate`` (``offline.compensate``)
 on the daemon's raw capture (its files concatenated in name order), bit for bit, when the offline run is given
 the daemon's settings: ``--scale-override`` for ``scale_override_arcsec_per_count``, ``--force-model`` for
 ``force_model``, and with an ``adapt_state`` the state file as it was at the start with ``--adapt-state``
-(``--adapt-reference`` for ``adapt_reference_dph``), and when during the capture no ``?ZERO`` or ``?BIAS``
-offset was taken, no ``?ADAPT`` changed the reference and no different model was loaded.  (ANGLE's ``utc``, the
-host's clock when the sample was read, is the one key that cannot be reproduced offline; see ``stamp_utc``.)  Each of
-those is recorded in the capture's sidecar (``events``, with the byte of the file it took effect at), as are the
-model (path, SHA-256), the scale settings, the adaptation state's SHA-256 and the instrument.
+(``--adapt-reference`` for ``adapt_reference_dph``).  The control events that change what is published
+(``?TABLE``, ``?ADAPT``, ``?ZERO``, ``?BIAS``, a model reload) are noted in the capture's sidecar (``events``,
+with the byte of the file and the sample they took effect at) and replayed there by ``compensate``
+(``offline.replay``); a copy of each model used is kept beside the captures (``models/<sha256>.yaml``).  (ANGLE's
+``utc``, the host's clock when the sample was read, is the one key that cannot be reproduced offline; see
+``stamp_utc``.)  The sidecar also records the model (path, SHA-256), the scale settings, the adaptation state's
+SHA-256 and the instrument.
 """
 
 from __future__ import annotations
@@ -59,7 +61,7 @@ from ..compensation.dwell import Dwell
 from ..compensation.model import ModelFile
 from ..compensation.pipeline import CompensatedSample, Compensator
 from ..errors import FogDriverError, TemporaryFailure
-from ..modelfiles import adaptation_restorer, load_model, read_state_doc, write_state_doc
+from ..modelfiles import adaptation_restorer, model_bytes, read_model, read_state_doc, write_state_doc
 from ..protocol import IdentityFrame
 from ..samples.sources import make_source
 from ..transport import PortEvent, PortReader
@@ -121,10 +123,14 @@ class Service:
         self.config = config
         self.port_url = port
         try:
-            self.model_file = model_file or load_model(config.model_path)
+            self.model_file, self.model_bytes = (
+                (model_file, model_bytes(model_file)) if model_file is not None else read_model(config.model_path)
+            )
         except FogDriverError as exc:
             raise ConfigError(str(exc)) from None
-        self.model_sha256 = None if model_file is not None else _file_sha256(config.model_path)
+        #: the SHA-256 of the model's bytes (of its file, or of the text ``save_model`` writes for an object)
+        self.model_sha256 = hashlib.sha256(self.model_bytes).hexdigest()
+        self.model_path: str | None = None if model_file is not None else str(config.model_path)  #: None: an object
         for line in self.model_file.warnings(str(config.model_path)):
             log.warning("model_warning", message=line)
         self.lock = threading.Lock()  # the in-memory pipeline only
@@ -315,8 +321,8 @@ class Service:
                     "created_utc": self.model_file.created_utc,
                     "changed": False,
                 }
-            model_file = load_model(path)
-            self._swap_model(model_file, digest, config.force_model)
+            model_file, data = read_model(path)
+            self._swap_model(model_file, data, config.force_model, str(path))
             for line in model_file.warnings(str(path)):
                 log.warning("model_warning", message=line)
             log.info("model_reloaded", model=str(path), kind=model_file.kind, created_utc=model_file.created_utc)
@@ -325,37 +331,29 @@ class Service:
     def reload_model(self, model_file: ModelFile) -> None:
         """Compensate with ``model_file`` from the next block on (see ``_swap_model``)."""
         with self._reload_lock:
-            self._swap_model(model_file, None, self.config.force_model)
+            self._swap_model(model_file, model_bytes(model_file), self.config.force_model, None)
 
-    def _swap_model(self, model_file: ModelFile, digest: str | None, force: bool) -> None:
-        """Build the compensator for ``model_file`` outside the lock, then swap it in: the angles, the open
-        block and the feature smoothers carry on; the same model also keeps its memory (reservoir) and its
-        adaptation; a different model starts at rest at the current inputs (as at switch-on) and adapts afresh.
-        A model fitted for another instrument than the one on the port is refused (unless ``force``)."""
+    def _swap_model(self, model_file: ModelFile, data: bytes, force: bool, path: str | None) -> None:
+        """Build the compensator for ``model_file`` (read from ``data``) outside the lock, then swap it in
+        (``InstrumentCompensation.swap_model``: what carries on).  A model fitted for another instrument than the
+        one on the port is refused (unless ``force``).  With a capture, the reload is noted in its sidecar with
+        the model's SHA-256, and a copy of the model is kept beside it, so that ``compensate`` replays it."""
         identity = self.binding.identity
         if identity is not None:
             self.binding.check(identity, model_file, force=force, model_name="the new model")
         if self.source.wire is not None:
             self._check_channels(model_file, self.source.wire, "the new model")
-        new = None
-        if identity is not None:
-            new = Compensator(model_file, 1.0 / identity.rate_hz, adapt=AdaptConfig(), table=True)
+        new = self.binding.compensator_for(model_file, 1.0 / identity.rate_hz) if identity is not None else None
+        digest = hashlib.sha256(data).hexdigest()
         with self.lock:  # O(state): the pipeline state is copied, nothing is parsed
-            old = self.compensator
-            if old is not None and (new is None or new.frame_period_s != old.frame_period_s):
-                new = Compensator(model_file, old.frame_period_s, adapt=AdaptConfig(), table=True)  # the rate changed
-            if old is not None:
-                new.reference_rate_dph = old.reference_rate_dph
-                new.angle_raw_arcsec, new.angle_comp_arcsec = old.angle_raw_arcsec, old.angle_comp_arcsec
-                new.continue_from(old, same_model=_same_model(old.model_file, model_file))
-                self.binding.replace_model(model_file, new)
-            else:
-                self.binding.model_file = model_file
+            self.binding.swap_model(model_file, new)
             self.binding.force = force
-            self.model_file = model_file
-            self.model_sha256 = digest
+            self.model_file, self.model_bytes, self.model_sha256, self.model_path = model_file, data, digest, path
             self.reloads += 1
             self.note("model", kind=model_file.kind, created_utc=model_file.created_utc, sha256=digest)
+            if self.capture is not None:
+                self.capture.keep_model(digest, data)
+                self.capture.update_provenance({"model": self._model_provenance()}, current_file=False)
 
     def reload_config(self, config: DriverConfig) -> dict:
         """SIGHUP: apply every setting that can change live, all or nothing, and say which need a restart.
@@ -446,6 +444,7 @@ class Service:
                 max_total_bytes=None if self.config.capture_max_gb is None else int(self.config.capture_max_gb * 1e9),
             )
             self.capture = CaptureSink(capture, on_state=self._on_capture_state)
+            self.capture.keep_model(self.model_sha256, self.model_bytes)  # the model the capture starts with
             if self.config.udp:
                 self.udp = UdpPublisher(*parse_host_port(self.config.udp), version=self.config.udp_version)
         except BaseException:  # a start that fails leaves nothing listening or running behind it
@@ -517,13 +516,7 @@ class Service:
             "baud": c.baud,
             "fog_driver_version": __version__,
             "pid": os.getpid(),
-            "model": {
-                "path": str(c.model_path),
-                "sha256": self.model_sha256,
-                "kind": self.model_file.kind,
-                "created_utc": self.model_file.created_utc,
-                "instrument_serial": self.model_file.instrument_serial,
-            },
+            "model": self._model_provenance(),
             **(self.source.wire.sidecar_fields() if self.source.wire is not None else {}),
             "settings": {
                 "scale_arcsec_per_count": c.scale_arcsec_per_count,
@@ -533,6 +526,16 @@ class Service:
                 "adapt_state": c.adapt_state,
                 "adapt_state_sha256": self.adapt_state_sha256,
             },
+        }
+
+    def _model_provenance(self) -> dict[str, Any]:
+        """The model in use, as a capture's sidecar records it (a copy is kept beside the captures)."""
+        return {
+            "path": self.model_path,
+            "sha256": self.model_sha256,
+            "kind": self.model_file.kind,
+            "created_utc": self.model_file.created_utc,
+            "instrument_serial": self.model_file.instrument_serial,
         }
 
     def _making_progress(self) -> bool:
@@ -606,13 +609,6 @@ class Service:
             self.web.stop()
         if self.udp is not None:
             self.udp.close()
-
-
-def _same_model(a: ModelFile, b: ModelFile) -> bool:
-    """The same drift model (kind, normalization and every matrix): its memory and adaptation carry over."""
-    return (
-        a.kind == b.kind and a.normalizer.to_dict() == b.normalizer.to_dict() and a.model.to_dict() == b.model.to_dict()
-    )
 
 
 __all__ = ["PROTO_MAJOR", "PROTO_MINOR", "ConfigError", "Service", "stamp_utc"]

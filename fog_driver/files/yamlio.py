@@ -27,14 +27,25 @@ def write_yaml(path: str | Path, doc: Any, what: str, header: str = "") -> Path:
     alone written through), and with the process's umask; it is fsynced, renamed onto ``path`` (a
     symlink at ``path`` is replaced, its target untouched), and the directory is fsynced.
     """
-    path = Path(path)
+    return write_text(path, yaml_text(doc, header), what)
+
+
+def yaml_text(doc: Any, header: str = "") -> str:
+    """The text ``write_yaml`` writes for ``doc`` (``header``: lines of ``# `` comments first)."""
     text = yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=120, allow_unicode=False)
-    text = "".join(f"# {line}".rstrip() + "\n" for line in header.splitlines()) + text
+    return "".join(f"# {line}".rstrip() + "\n" for line in header.splitlines()) + text
+
+
+def write_text(path: str | Path, text: str | bytes, what: str) -> Path:
+    """Write ``text`` (UTF-8; bytes as they are) to ``path`` atomically and durably, as ``write_yaml`` does
+    (its docstring)."""
+    path = Path(path)
+    data = text.encode("utf-8") if isinstance(text, str) else text
     tmp: Path | None = None
     try:
         fd, tmp = _create_new_file_beside(path)
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)

@@ -18,6 +18,7 @@ from typing import Any, NamedTuple, cast
 from ..compensation.adapt import AdaptConfig
 from ..compensation.binding import (
     InstrumentCompensation,
+    ModelMismatchError,
     another_instruments_model,
     check_channels,
     split_at_identities,
@@ -175,8 +176,10 @@ def compensate_capture(
                         yield frame_period_s, offsets.published(cols, frame_period_s) if replaying else cols
                     if event is not None:
                         try:
+                            if event.kind == "model":  # the daemon checked it against the port's frames
+                                check_channels(event.fields["model_file"], wire, "the model reloaded", str(path))
                             event.apply(binding, offsets)
-                        except (TypeError, ValueError, KeyError) as exc:  # a sidecar edited by hand
+                        except (TypeError, ValueError, KeyError, ModelMismatchError) as exc:  # a sidecar edited by hand
                             raise InputFileError(
                                 f"{path}: its sidecar's {event.kind} event at byte {event.at_byte:,} cannot be "
                                 f"replayed: {exc}"

@@ -12,30 +12,37 @@ starts before ``at_byte`` too, and is not it).  Replayed here:
     bias    a ``?BIAS`` capture's result (``bias_dph``): removed from the published rate and angle from the
             sample that completed the capture on (that sample included: the event took effect before it)
 
-``model`` events (a reload) are not replayed (the model file is not in the capture): ``unreplayed`` names
-them.  A sidecar whose events were summarized past its limit
-(``events_summary``) cannot be replayed exactly: ``unreplayed`` names those too.
+    model   a model reload: the model the daemon kept beside its captures (``captures.kept_model_path``, named
+            by the SHA-256 the event carries; its bytes checked against it), swapped in as the daemon swaps it
+            (``InstrumentCompensation.swap_model``)
+
+A reload whose model's copy is not there (or not of its SHA-256), and a sidecar whose events were summarized
+past its limit (``events_summary``), cannot be replayed exactly: ``unreplayed`` names them.
 """
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Iterator
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, cast
 
 import numpy as np
 
 from ..compensation.binding import InstrumentCompensation
+from ..compensation.model import ModelFile
 from ..compensation.offsets import PublishOffsets
 from ..compensation.pipeline import Compensator
+from ..errors import FogDriverError
+from ..modelfiles import load_model
+from ..samples.captures import kept_model_path
 from ..samples.stream import SampleBlock
 
 __all__ = ["REPLAYED", "ControlEvent", "control_events", "split_at_events", "unreplayed"]
 
-#: The events ``compensate`` replays.
-REPLAYED = ("table", "adapt", "zero", "bias")
-#: The events that change what the daemon publishes and are not replayed.
-NOT_REPLAYED = ("model",)
+#: The events ``compensate`` replays (``model``: when the daemon's copy of the model is beside the capture).
+REPLAYED = ("table", "adapt", "zero", "bias", "model")
 SEQ_MODULUS = 1 << 16
 #: How far back from ``at_byte`` the sample of ``seq`` is looked for: a command took effect at the end of the
 #: bytes read (a frame or two back), a bias capture at any sample of the chunk it completed in (one sequence
@@ -56,7 +63,12 @@ class ControlEvent:
         """Do to the binding's compensator what the daemon did (a dwell it took is taken here: a refusal is a
         bug); a reference rate is the binding's too, for a compensator rebuilt later (as ``Service.set_reference``)."""
         compensator = cast(Compensator, binding.compensator)
-        if self.kind == "zero":
+        if self.kind == "model":
+            model_file = cast(ModelFile, self.fields["model_file"])
+            if binding.identity is not None:
+                binding.check(binding.identity, model_file, model_name=f"the model reloaded ({self.fields['sha256']})")
+            binding.swap_model(model_file)
+        elif self.kind == "zero":
             offsets.zero(compensator.angle_raw_arcsec, compensator.angle_comp_arcsec)
             compensator.break_table_chain()
         elif self.kind == "bias":
@@ -78,32 +90,57 @@ def _int(v: Any) -> bool:
     return isinstance(v, int) and not isinstance(v, bool) and v >= 0
 
 
-def control_events(provenance: dict[str, Any] | None) -> list[ControlEvent]:
-    """The sidecar's replayable events, in order (those without a position, from a daemon before positions
-    were noted, are left out: ``unreplayed`` says so)."""
+def kept_model(capture_path: str | Path | None, sha256: Any) -> ModelFile | None:
+    """The model of SHA-256 ``sha256`` the daemon kept beside ``capture_path`` (``captures.kept_model_path``),
+    when it is there, of that SHA-256, and a model file; else None."""
+    if capture_path is None or not isinstance(sha256, str) or len(sha256) != 64 or not sha256.isalnum():
+        return None
+    path = kept_model_path(capture_path, sha256)
+    try:
+        if hashlib.sha256(path.read_bytes()).hexdigest() != sha256:
+            return None
+        return load_model(path)
+    except (OSError, FogDriverError):
+        return None
+
+
+def _replayable(e: Any, capture_path: str | Path | None) -> bool:
+    if not (isinstance(e, dict) and e.get("event") in REPLAYED and _int(e.get("at_byte")) and _int(e.get("seq"))):
+        return False
+    return e["event"] != "model" or kept_model(capture_path, e.get("sha256")) is not None
+
+
+def control_events(provenance: dict[str, Any] | None, capture_path: str | Path | None = None) -> list[ControlEvent]:
+    """The sidecar's replayable events, in order; a ``model`` event's ``fields["model_file"]`` is the model
+    kept beside ``capture_path`` (those that cannot be replayed are left out: ``unreplayed`` says which)."""
     out = []
     for e in (provenance or {}).get("events") or []:
-        if isinstance(e, dict) and e.get("event") in REPLAYED and _int(e.get("at_byte")) and _int(e.get("seq")):
+        if _replayable(e, capture_path):
             fields = {k: v for k, v in e.items() if k not in ("event", "at_byte", "seq", "utc")}
+            if e["event"] == "model":
+                fields["model_file"] = kept_model(capture_path, e["sha256"])
             out.append(ControlEvent(str(e["event"]), int(e["at_byte"]), int(e["seq"]), fields))
     return out
 
 
-def unreplayed(provenance: dict[str, Any] | None) -> list[str]:
+def unreplayed(provenance: dict[str, Any] | None, capture_path: str | Path | None = None) -> list[str]:
     """What a replay of this sidecar's events misses, one phrase each ([]: it gives what the daemon published)."""
     provenance = provenance or {}
     events = [e for e in provenance.get("events") or [] if isinstance(e, dict)]
     out = []
-    for kind in NOT_REPLAYED:
-        n = sum(e.get("event") == kind for e in events)
-        if n:
-            out.append(f"{n} {kind} event{'s' if n > 1 else ''} (not replayed)")
+    models = [e for e in events if e.get("event") == "model" and _int(e.get("seq"))]
+    n = sum(not _replayable(e, capture_path) for e in models)
+    if n:
+        out.append(
+            f"{n} model reload{'s' if n > 1 else ''} whose model is not kept beside the capture (in "
+            f"{kept_model_path(capture_path or '.', 'SHA256').parent}/, named by its SHA-256)"
+        )
     n = sum(e.get("event") in REPLAYED and not _int(e.get("seq")) for e in events)
     if n:
         out.append(f"{n} control events without a sample position (a daemon before they were noted)")
     summary = provenance.get("events_summary") or {}
     if isinstance(summary, dict):
-        for kind in (*REPLAYED, *NOT_REPLAYED):
+        for kind in REPLAYED:
             entry = summary.get(kind)
             if isinstance(entry, dict) and entry.get("count"):
                 out.append(f"{entry['count']} {kind} events past the sidecar's limit (summarized, not replayable)")

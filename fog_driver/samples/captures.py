@@ -53,6 +53,16 @@ def legacy_sidecar_path(capture_path: str | Path) -> Path:
     return Path(capture_path).with_suffix(".yaml")
 
 
+#: The directory beside a daemon's captures where it keeps a copy of every model it compensated with.
+KEPT_MODELS_DIR = "models"
+
+
+def kept_model_path(capture_path: str | Path, sha256: str) -> Path:
+    """Where the daemon keeps the model of SHA-256 ``sha256`` it used for the capture ``capture_path``:
+    ``<capture's directory>/models/<sha256>.yaml`` (named by its content: each model once)."""
+    return Path(capture_path).parent / KEPT_MODELS_DIR / f"{sha256}.yaml"
+
+
 def is_provenance(doc: Any) -> bool:
     """Whether a loaded YAML document is a capture's provenance sidecar (by its ``format`` tag)."""
     return isinstance(doc, dict) and doc.get("format") == PROVENANCE_FORMAT
