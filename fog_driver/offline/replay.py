@@ -35,6 +35,7 @@ from ..compensation.model import ModelFile
 from ..compensation.offsets import PublishOffsets
 from ..compensation.pipeline import Compensator
 from ..errors import FogDriverError
+from ..files.yamlio import MAX_YAML_BYTES
 from ..modelfiles import load_model
 from ..samples.captures import kept_model_path
 from ..samples.stream import SampleBlock
@@ -97,7 +98,7 @@ def kept_model(capture_path: str | Path | None, sha256: Any) -> ModelFile | None
         return None
     path = kept_model_path(capture_path, sha256)
     try:
-        if hashlib.sha256(path.read_bytes()).hexdigest() != sha256:
+        if path.stat().st_size > MAX_YAML_BYTES or hashlib.sha256(path.read_bytes()).hexdigest() != sha256:
             return None
         return load_model(path)
     except (OSError, FogDriverError):
