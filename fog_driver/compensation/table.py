@@ -60,7 +60,10 @@ for its spread.
 Safe by construction.  A dwell is refused (out of time order, a window without a whole block, a window
 reaching back past a break) or rejected and flagged ``guard`` (the gyro saw motion during the dwell: a
 block rate farther than ``static_threshold_dph`` from a steady drift, a robust straight line through the
-dwell's blocks, ``MOTION_MARGIN_S`` at each end excepted; the interval disagrees with
+dwell's blocks, ``MOTION_MARGIN_S`` at each end excepted; its rate changed within the dwell, a quarter of its
+block rates off their least-squares line by more than ``STEADY_SIGMAS`` standard errors (``_unsteady_sigmas``: a
+table that began to creep or slipped within the dwell, whose mean angle the log's start and end angles do not
+give); the interval disagrees with
 the gyro by more than ``TABLE_SIGMAS`` sigmas of its innovation, ``sqrt(c (R + phi P phi^T))``, c the
 running mean of the squared normalized innovations, capped, over ``CALIBRATION_INTERVALS``; a move more
 than ``AMBIGUOUS_DEG`` from every whole turn of the gyro's); nothing is learned from it.  After a rejected
@@ -149,6 +152,11 @@ MAX_WINDOW_S = 3600.0
 #: the frames' time stamps may be a few tenths of a second off the table's; a message 1 s late or more is
 #: still seen moving.
 MOTION_MARGIN_S = 0.5
+#: The steadiness test of a dwell: its block rates in this many equal segments; rejected when a segment's mean
+#: strays from the rates' straight line by more than ``STEADY_SIGMAS`` standard errors (motion the log does not
+#: declare: a table that began to creep, or slipped, within the dwell).
+STEADY_SEGMENTS = 4
+STEADY_SIGMAS = 6.0
 #: The outcomes kept (a daemon runs for months; the counters count every dwell).
 MAX_OUTCOMES = 10_000
 #: The gram of the regressors: its memory.
@@ -167,6 +175,30 @@ def _motion_dph(rates: np.ndarray) -> float:
     slope = (second - first) / (n - half)
     line = first + slope * (k - (half - 1) / 2.0)
     return float(np.max(np.abs(rates - line)))
+
+
+def _unsteady_sigmas(rates: np.ndarray) -> float:
+    """How far a dwell's rate departs from a steady one, in standard errors.  Steady: a straight line in time
+    (the drift, plus the constant rate of a move the log declares with ``angle_end_deg``).  The rates' least-squares
+    line ``a + b k``; the mean residual of each of ``STEADY_SEGMENTS`` equal segments over its standard error
+    ``sqrt(v / n_seg)``, v the white noise of a block rate (half the mean squared successive difference); the
+    largest.  0 below two blocks a segment.  A rate that steps by s within the dwell leaves segment means of
+    about s / 4: a 1 deg/h step is tens of standard errors; the drift's own curvature over a dwell, a few
+    hundredths of a deg/h, about one."""
+    n = len(rates)
+    if n < 2 * STEADY_SEGMENTS:
+        return 0.0
+    k = np.arange(n, dtype=np.float64)
+    k_mean, r_mean = numerics.total(k) / n, numerics.total(rates) / n
+    dk = k - k_mean
+    slope = numerics.total(dk * (rates - r_mean)) / numerics.total(dk * dk)
+    resid = rates - (r_mean + slope * dk)
+    v = 0.5 * numerics.total(np.diff(rates) ** 2) / (n - 1)
+    if not v > 0.0:
+        return 0.0
+    return max(
+        abs(numerics.total(seg)) / len(seg) / math.sqrt(v / len(seg)) for seg in np.array_split(resid, STEADY_SEGMENTS)
+    )
 
 
 class TableOutcome(NamedTuple):
@@ -482,6 +514,11 @@ class TableLaw(ComparisonGuard):
         if spread > self.config.static_threshold_dph:
             return self._reject(
                 dwell, f"the gyro shows motion during the dwell ({spread:.0f} deg/h off a steady drift)"
+            )
+        unsteady = _unsteady_sigmas(rates)
+        if unsteady > STEADY_SIGMAS:
+            return self._reject(
+                dwell, f"the gyro's rate changed during the dwell ({unsteady:.0f} standard errors off a steady one)"
             )
         if len(rates) >= 3:  # the white noise of a block rate, from successive differences
             v = 0.5 * float(np.mean(np.diff(rates) ** 2))
