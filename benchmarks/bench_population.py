@@ -78,6 +78,13 @@ runs:
   late angle rejected on 24 of 24 (worst 1.009x, 1.017x); the scale factor within 5 ppm on 174 of 174 plateaus
   (worst 3.9 ppm); the Table-1 improvement 81.1 % frozen, 86.3 % adapting (medians).  Missed: a creep of
   2 deg/h 1.153x on one instrument (the others at most 1.010x).  ``eval8`` is spent for the table law.
+* 2026-12-05, ``eval9`` (90000..90023), first run, ``bench_table.py --set eval9 --creeps 0.2,2,20
+  --per-instrument``: the table law with the steadiness test (a dwell whose rate changed within it is rejected;
+  found on ``dev`` 0..23 with a creep of 1 deg/h beginning within a dwell, 1.23x).  Median 0.856x frozen, worst
+  1.011x; the median excess cut by 47.8 % (median of the cuts 34.9 %); worst 1.011x rate-0's; creeps of 0.2, 2
+  and 20 deg/h worst 1.012x, 1.011x and 1.038x; a lie and a late angle rejected on 24 of 24 (worst 1.012x,
+  1.011x); the Table-1 improvement 78.8 % frozen, 84.7 % adapting (medians).  Missed: the scale factor within
+  5 ppm on 179 of 181 plateaus (worst 8.7 ppm).
 
 Individual evaluation instruments are not to be studied: to find what failed there, draw more
 development instruments (``--set dev --first 72``) and look for the same failure among them.
