@@ -281,9 +281,10 @@ def test_a_creep_that_begins_within_a_dwell_is_rejected_there_and_only_there(run
     samples, dwells, *_ = run
     k = 20
     start_s = 0.5 * (dwells[k].t_start_s + dwells[k].t_end_s)
+    end_s = parse_profile(PROFILE).chamber.duration_s  # to the run's end (not beyond: the simulator runs to it)
     profile = {
         **PROFILE,
-        "motion": [PROFILE["motion"], {"kind": "creep", "rate_dph": 2.0, "start_s": start_s, "stop_s": 1e5}],
+        "motion": [PROFILE["motion"], {"kind": "creep", "rate_dph": 2.0, "start_s": start_s, "stop_s": end_s}],
     }
     out = tmp_path / "creep.bin"
     simulate_to_file(Simulator(parse_profile(profile), InstrumentConfig(), rate_hz=RATE_HZ, seed=11), out)
