@@ -105,21 +105,17 @@ def kept_model(capture_path: str | Path | None, sha256: Any) -> ModelFile | None
         return None
 
 
-def _replayable(e: Any, capture_path: str | Path | None) -> bool:
-    if not (isinstance(e, dict) and e.get("event") in REPLAYED and _int(e.get("at_byte")) and _int(e.get("seq"))):
-        return False
-    return e["event"] != "model" or kept_model(capture_path, e.get("sha256")) is not None
-
-
 def control_events(provenance: dict[str, Any] | None, capture_path: str | Path | None = None) -> list[ControlEvent]:
     """The sidecar's replayable events, in order; a ``model`` event's ``fields["model_file"]`` is the model
     kept beside ``capture_path`` (those that cannot be replayed are left out: ``unreplayed`` says which)."""
     out = []
     for e in (provenance or {}).get("events") or []:
-        if _replayable(e, capture_path):
+        if isinstance(e, dict) and e.get("event") in REPLAYED and _int(e.get("at_byte")) and _int(e.get("seq")):
             fields = {k: v for k, v in e.items() if k not in ("event", "at_byte", "seq", "utc")}
             if e["event"] == "model":
-                fields["model_file"] = kept_model(capture_path, e["sha256"])
+                fields["model_file"] = kept_model(capture_path, e.get("sha256"))  # read and checked once
+                if fields["model_file"] is None:
+                    continue
             out.append(ControlEvent(str(e["event"]), int(e["at_byte"]), int(e["seq"]), fields))
     return out
 
@@ -130,7 +126,7 @@ def unreplayed(provenance: dict[str, Any] | None, capture_path: str | Path | Non
     events = [e for e in provenance.get("events") or [] if isinstance(e, dict)]
     out = []
     models = [e for e in events if e.get("event") == "model" and _int(e.get("seq"))]
-    n = sum(not _replayable(e, capture_path) for e in models)
+    n = sum(not _int(e.get("at_byte")) or kept_model(capture_path, e.get("sha256")) is None for e in models)
     if n:
         out.append(
             f"{n} model reload{'s' if n > 1 else ''} whose model is not kept beside the capture (in "
