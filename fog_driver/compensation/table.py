@@ -177,11 +177,11 @@ def _motion_dph(rates: np.ndarray) -> float:
     return float(np.max(np.abs(rates - line)))
 
 
-def _unsteady_sigmas(rates: np.ndarray) -> float:
+def _unsteady_sigmas(rates: np.ndarray, v: float) -> float:
     """How far a dwell's rate departs from a steady one, in standard errors.  Steady: a straight line in time
     (the drift, plus the constant rate of a move the log declares with ``angle_end_deg``).  The rates' least-squares
     line ``a + b k``; the mean residual of each of ``STEADY_SEGMENTS`` equal segments over its standard error
-    ``sqrt(v / n_seg)``, v the white noise of a block rate (half the mean squared successive difference); the
+    ``sqrt(v / n_seg)``, v the white noise variance of a block rate (``_white_var_dph2``); the
     largest.  0 below two blocks a segment.  On the simulated gyro (0.003 deg/sqrt(h)), a creep of 1 deg/h
     beginning mid-dwell gives 14; the 828 dwells of 12 development instruments' runs without one, the drift's own
     curvature included, at most 3.2 (95 % below 2.0)."""
@@ -193,12 +193,16 @@ def _unsteady_sigmas(rates: np.ndarray) -> float:
     dk = k - k_mean
     slope = numerics.total(dk * (rates - r_mean)) / numerics.total(dk * dk)
     resid = rates - (r_mean + slope * dk)
-    v = 0.5 * numerics.total(np.diff(rates) ** 2) / (n - 1)
     if not v > 0.0:
         return 0.0
     return max(
         abs(numerics.total(seg)) / len(seg) / math.sqrt(v / len(seg)) for seg in np.array_split(resid, STEADY_SEGMENTS)
     )
+
+
+def _white_var_dph2(rates: np.ndarray) -> float:
+    """The white noise variance of a block rate, from successive differences: half their mean square."""
+    return 0.5 * float(np.mean(np.diff(rates) ** 2))
 
 
 class TableOutcome(NamedTuple):
@@ -515,13 +519,13 @@ class TableLaw(ComparisonGuard):
             return self._reject(
                 dwell, f"the gyro shows motion during the dwell ({spread:.0f} deg/h off a steady drift)"
             )
-        unsteady = _unsteady_sigmas(rates)
+        v = _white_var_dph2(rates) if len(rates) >= 3 else math.nan
+        unsteady = _unsteady_sigmas(rates, v)
         if unsteady > STEADY_SIGMAS:
             return self._reject(
                 dwell, f"the gyro's rate changed during the dwell ({unsteady:.0f} standard errors off a steady one)"
             )
-        if len(rates) >= 3:  # the white noise of a block rate, from successive differences
-            v = 0.5 * float(np.mean(np.diff(rates) ** 2))
+        if len(rates) >= 3:  # the white noise of a block rate
             self.noise_dwells += 1
             old = 0.0 if math.isnan(self.noise_var_dph2) else self.noise_var_dph2
             self.noise_var_dph2 = old + (v - old) / min(self.noise_dwells, CALIBRATION_INTERVALS)
