@@ -17,7 +17,7 @@ from fog_driver.sim.motion import ConstantRate, Creep, MotionPlan, Positioning, 
 from fog_driver.sim.profiles import MAX_SEGMENTS, SimProfile, dump_profile, load_profile, parse_profile
 
 PROFILES = Path(__file__).resolve().parents[1] / "configs" / "profiles"
-SHIPPED = ("paper", "fast-ramps", "short-test", "positioning", "calibration", "chamber-cycle")
+SHIPPED = tuple(sorted(path.stem for path in PROFILES.glob("*.yaml")))  #: every profile the project ships
 
 
 def move_breakpoints(seq: Positioning) -> np.ndarray:
@@ -417,6 +417,34 @@ def test_shipped_profiles_round_trip(name, tmp_path):
     path.write_text(dump_profile(prof))
     again = load_profile(path)
     assert again.chamber == prof.chamber and again.motion == prof.motion and again.name == prof.name
+
+
+def test_every_profile_named_in_the_docs_is_shipped():
+    assert {"paper", "fast-ramps", "short-test", "positioning", "calibration", "chamber-cycle"} <= set(SHIPPED)
+    assert {"steps-moves", "soak-cycle", "table-run", "scale-factor-run"} <= set(SHIPPED)
+
+
+@pytest.mark.parametrize("name", SHIPPED)
+def test_a_shipped_profiles_table_motion_ends_within_its_chamber_program(name):
+    prof = load_profile(PROFILES / f"{name}.yaml")
+    assert prof.motion.duration_s <= prof.chamber.duration_s
+
+
+def test_the_scale_factor_run_lets_the_coil_settle_and_moves_both_ways_at_every_hold():
+    """What its comment promises: holds of 60 min or more at 20, 45, -15 and 20 degC, and dwells all through
+    them between moves of both signs that sum to 0 (so a scale factor is told from a drift)."""
+    prof = load_profile(PROFILES / "scale-factor-run.yaml")
+    plateaus = prof.chamber.plateaus()
+    assert [round(p.temp_c) for p in plateaus] == [20, 45, -15, 20]
+    assert all(p.t_end_s - p.t_start_s >= 40 * 60 for p in plateaus)
+    assert all(p.t_end_s - p.t_start_s >= 60 * 60 for p in plateaus[1:])
+    (positioning,) = prof.motion.items
+    assert sum(positioning.step_deg) == 0 and min(positioning.step_deg) < 0 < max(positioning.step_deg)
+    stops = prof.motion.stops()
+    for p in plateaus:
+        inside = [s for s in stops if p.t_start_s + 300 <= s.t_start_s and s.t_end_s <= p.t_end_s]
+        moves = np.diff([s.angle_deg for s in inside])
+        assert len(inside) >= 6 and (moves > 0).any() and (moves < 0).any()
 
 
 @pytest.mark.parametrize("name", ["paper", "paper-validation", "calibration"])
