@@ -85,6 +85,16 @@ runs:
   and 20 deg/h worst 1.012x, 1.011x and 1.038x; a lie and a late angle rejected on 24 of 24 (worst 1.012x,
   1.011x); the Table-1 improvement 78.8 % frozen, 84.7 % adapting (medians).  Missed: the scale factor within
   5 ppm on 179 of 181 plateaus (worst 8.7 ppm).
+* 2026-12-05, ``eval10`` (95000..95023), first run, ``bench_table.py --set eval10 --creeps 0.2,2,20
+  --per-instrument``: the same table law as ``eval9``'s; the benchmark also scores the scale factor on a run
+  made to calibrate it (``scale-factor-run``: holds of 40 to 75 min), chosen on ``dev`` 0..71 (the misses at
+  the extremes of ``table-run`` came from the coil's temperature on holds shorter than its lag).  Median 0.889x
+  frozen, worst 1.001x; the median excess cut by 27.6 % (median of the cuts 37.8 %); worst 1.001x rate-0's;
+  creeps of 0.2, 2 and 20 deg/h worst 1.003x, 1.004x and 1.012x; a late angle rejected on 24 of 24 (worst
+  1.001x), the lie on 23 of 24 (worst 1.003x; the one let through 0.994x); the scale factor within 5 ppm on
+  182 of 182 plateaus of ``table-run`` (worst 4.3 ppm) and 78 of 78 of ``scale-factor-run`` (worst 3.5 ppm);
+  the Table-1 improvement 76.7 % frozen, 80.4 % adapting (medians; one instrument 7.7 % frozen, -16.9 %
+  adapting).  Missed: the lie rejected within its interval on one instrument of 24.
 
 Individual evaluation instruments are not to be studied: to find what failed there, draw more
 development instruments (``--set dev --first 72``) and look for the same failure among them.
