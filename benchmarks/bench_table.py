@@ -26,7 +26,7 @@ move (creeping minutes count).  Printed: per variant the median and worst ratio 
 excess ``sqrt(r^2 - f^2)`` cut; the ratio to rate-0 adapting; whether the lie and the late angle were
 rejected; the learned scale factor against the truth on each plateau where the truth is at least
 ``SF_MIN_PPM``, on this run and on a scale-factor run (``configs/profiles/scale-factor-run.yaml``: holds of
-60 to 75 min, long enough for the coil to settle, with the same moves; adapting from its table log); the
+40 to 75 min, long enough for the coil to come near the chamber's temperature, with the same moves; adapting from its table log); the
 paper's Table-1 "precision improvement" (``report.positioning``: one row per plateau of the chamber program,
 its dwells after the first 300 s), frozen and adapting from the table log.  Figures are printed, never
 asserted.
@@ -165,7 +165,7 @@ def score_instrument(seed: int, creeps: tuple[float, ...], rate_hz: int, workdir
         s: sum(o.status == s for o in outcomes) for s in ("anchor", "bias", "learned", "skipped", "rejected", "refused")
     }
     out["plateaus"] = sf_plateaus(law, truth, config, table_profile())
-    # the scale factor calibrated on its own run (long holds: the coil settles)
+    # the scale factor calibrated on its own run (long holds: the coil comes near each temperature)
     sf_profile = load_profile(ROOT / "configs" / "profiles" / f"{SF_PROFILE}.yaml")
     sf_path = capture(workdir, seed, sf_profile, 10 * seed + SF_RUN, rate_hz)
     sf_truth = read_truth(sf_path.with_suffix(".truth.csv"))

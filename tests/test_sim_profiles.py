@@ -430,7 +430,7 @@ def test_a_shipped_profiles_table_motion_ends_within_its_chamber_program(name):
     assert prof.motion.duration_s <= prof.chamber.duration_s
 
 
-def test_the_scale_factor_run_lets_the_coil_settle_and_moves_both_ways_at_every_hold():
+def test_the_scale_factor_run_holds_long_and_moves_both_ways_at_every_hold():
     """What its comment promises: holds of 60 min or more at 20, 45, -15 and 20 degC, and dwells all through
     them between moves of both signs that sum to 0 (so a scale factor is told from a drift)."""
     prof = load_profile(PROFILES / "scale-factor-run.yaml")
