@@ -26,10 +26,10 @@ move (creeping minutes count).  Printed: per variant the median and worst ratio 
 excess ``sqrt(r^2 - f^2)`` cut; the ratio to rate-0 adapting; whether the lie and the late angle were
 rejected; the learned scale factor against the truth on each plateau where the truth is at least
 ``SF_MIN_PPM``, on this run and on a scale-factor run (``configs/profiles/scale-factor-run.yaml``: holds of
-40 to 75 min, long enough for the coil to come near the chamber's temperature, with the same moves; adapting from its table log); the
-paper's Table-1 "precision improvement" (``report.positioning``: one row per plateau of the chamber program,
-its dwells after the first 300 s), frozen and adapting from the table log.  Figures are printed, never
-asserted.
+40 to 75 min, long enough for the coil to come near the chamber's temperature, with the same moves; adapting
+from its table log); the paper's Table-1 "precision improvement" (``report.positioning``: one row per plateau
+of the chamber program, its dwells after the first 300 s), frozen and adapting from the table log.  Figures
+are printed, never asserted.
 """
 
 from __future__ import annotations

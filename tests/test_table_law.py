@@ -257,10 +257,61 @@ def test_a_lie_of_five_sigmas_is_rejected_flagged_and_the_chain_goes_on(run):
     comp2, cols = compensate(samples, lied)
     assert _outcome_at(comp2.table.outcomes, lied[k]).status == "rejected"
     assert _outcome_at(comp2.table.outcomes, lied[k + 1]).status == "learned"  # from the last good dwell
+    assert _outcome_at(comp2.table.outcomes, lied[k - 1]).status == "learned"  # its honest neighbour not blamed
+    assert comp2.table.rejected == comp.table.rejected + 1
     t = cols.t_s - cols.t_s[0]
     after = (t > lied[k].t_end_s) & (t < lied[k].t_end_s + 3.0)
     assert (cols.flags[after] & FLAG_GUARD).any()
     assert not (cols.flags[(t > 600) & (t < lied[k].t_end_s)] & FLAG_GUARD).any()
+
+
+def test_a_lie_its_own_interval_lets_through_is_undone_by_the_next(run, monkeypatch):
+    """A wrong angle L at dwell k gives innovations +L over (k-1, k) and -L over (k, k+1).  A lie that its own
+    interval's gate lets through (the interval's own error the other way) is caught by the next: the interval
+    learned from it is undone, (k-1, k+1) learned in its place, dwell k rejected and the estimate flagged.  The
+    drift afterwards is the one of the log without dwell k, not the lie's."""
+    samples, dwells, *_ = run
+    part, use = first(samples, dwells, 3000.0)
+    honest, _ = compensate(part, use)
+    by_end = {o.t_end_s: o for o in honest.table.outcomes}
+    found = []
+    for k in range(8, len(use) - 3):
+        ok, nxt = by_end.get(use[k].t_end_s), by_end.get(use[k + 1].t_end_s)
+        if ok and nxt and ok.status == nxt.status == "learned":
+            off = 2.9 * ok.sigma_arcsec + ok.innovation_arcsec  # an angle L too large: its interval's -L
+            if nxt.innovation_arcsec + off > 3.5 * nxt.sigma_arcsec:  # passes at -2.9 sigmas, the next's +L not
+                found.append((k, off))
+    assert found, "the run has no dwell whose interval's own error hides a lie"
+    k, off_arcsec = found[0]
+    assert off_arcsec > 2.9 * by_end[use[k].t_end_s].sigma_arcsec  # a lie larger than the gate
+    lied = lie(use, k, off_arcsec / 3600.0)
+    without = use[:k] + use[k + 1 :]
+    comp, cols = compensate(part, lied)
+    outcome = _outcome_at(comp.table.outcomes, lied[k])
+    assert outcome.status == "rejected" and "both neighbours" in outcome.reason, outcome
+    assert _outcome_at(comp.table.outcomes, lied[k + 1]).status == "learned"
+    assert comp.table.rejected == honest.table.rejected + 1
+    assert comp.table.accepted == honest.table.accepted - 1
+    t = cols.t_s - cols.t_s[0]
+    caught = (t > lied[k + 1].t_end_s) & (t < lied[k + 1].t_end_s + 3.0)
+    assert (cols.flags[caught] & FLAG_GUARD).any()
+    assert not (cols.flags[(t > 600) & (t < lied[k].t_end_s)] & FLAG_GUARD).any()
+    # the drift after it: the log without dwell k's, far from the one learned from the lie
+    _, ref = compensate(part, without)
+    with monkeypatch.context() as m:
+        m.setattr(TableLaw, "_judge_by_neighbours", lambda *a: None)
+        kept_lie, fooled = compensate(part, lied)
+    assert _outcome_at(kept_lie.table.outcomes, lied[k]).status == "learned"  # the gate alone is fooled
+    later = t > lied[k + 1].t_end_s + 1.0
+    undone = np.sqrt(np.mean((cols.drift_dph[later] - ref.drift_dph[later]) ** 2))
+    learned = np.sqrt(np.mean((fooled.drift_dph[later] - ref.drift_dph[later]) ** 2))
+    assert learned > 0 and undone < 0.2 * learned, (undone, learned)
+    # step equals run through the undo
+    stepper = Compensator(load_model(DEFAULT_MODEL), 1.0 / RATE_HZ, table=True)
+    stepper.add_dwells(lied)
+    stepped = [stepper.step(part.sample(i)) for i in range(len(part))]
+    assert [repr(cols.sample(i)) for i in range(len(part))] == [repr(x) for x in stepped]
+    assert [repr(o) for o in comp.table.outcomes] == [repr(o) for o in stepper.table.outcomes]
 
 
 def assert_rejected(samples: SampleBlock, dwells: list[Dwell], k: int, why: str, **change: float) -> None:

@@ -68,7 +68,11 @@ the gyro by more than ``TABLE_SIGMAS`` sigmas of its innovation, ``sqrt(c (R + p
 running mean of the squared normalized innovations, capped, over ``CALIBRATION_INTERVALS``; a move more
 than ``AMBIGUOUS_DEG`` from every whole turn of the gyro's); nothing is learned from it.  After a rejected
 interval the next one starts from the last dwell accepted, so a single wrong angle costs no interval;
-after two rejections in a row the chain starts again from the latest dwell.  An interval is not learned
+after two rejections in a row the chain starts again from the latest dwell.  A dwell is also judged by its
+neighbours: a wrong angle gives innovations of opposite signs to its two intervals, and its own can pass the
+gate when that interval's error points the other way; when the interval learned last was off by
+``NEIGHBOUR_SIGMAS`` and the next one, rejected, cancels it, the last is undone and the interval around its
+dwell is learned in their place (``_judge_by_neighbours``).  An interval is not learned
 across a break: a link gap, a non-finite input (the chain starts again), or blocks with degraded inputs
 (thermometer fault, stale, settling: the interval is skipped, its end is the next start).
 
@@ -118,6 +122,9 @@ TABLE_COMPARE_SIGMAS = 3.0
 TABLE_COMPARE_MEMORY_INTERVALS = 48.0
 #: The rejection threshold, in sigmas of the interval's innovation.
 TABLE_SIGMAS = 3.0
+#: A dwell is judged by its neighbours (``TableLaw._judge_by_neighbours``) when the interval learned up to it was
+#: off by this many of its sigmas and the next one's innovation cancels it to within this many.
+NEIGHBOUR_SIGMAS = 2.0
 #: A move farther than this from every whole turn of the gyro's own is ambiguous: refused.
 AMBIGUOUS_DEG = 90.0
 #: The scale factor's reference temperature: s(T) = s0 + s1 (T - SF_REF_C).
@@ -241,6 +248,13 @@ class _Anchor(NamedTuple):
     epoch: int
 
 
+class _Undo(NamedTuple):
+    before: dict[str, Any]  # the law before the interval was learned (``TableLaw._snapshot``)
+    t_end_s: float  # the dwell it ended at
+    innovation_arcsec: float
+    sigma_arcsec: float
+
+
 class TableLaw(ComparisonGuard):
     """The readout's law from table angles (module docstring): ``estimate(f)`` per block (a priori),
     ``block(...)`` to record it, ``observe(dwell)`` when a dwell's blocks have closed."""
@@ -283,6 +297,7 @@ class TableLaw(ComparisonGuard):
         self.bias_capture_s = blocks_in(self.config.bias_capture_s, self.block_s) * self.block_s
         #: the dwells' outcomes, in order, the last ``MAX_OUTCOMES`` (the counters count them all)
         self.outcomes: deque[TableOutcome] = deque(maxlen=MAX_OUTCOMES)
+        self._noted = 0  # outcomes ever noted
         self._last_ring_c = math.nan
         self._start()
 
@@ -324,6 +339,8 @@ class TableLaw(ComparisonGuard):
         #: device time the chain of blocks began at (its first block's start), None before a block
         self.chain_start_s: float | None = None
         self.anchor: _Anchor | None = None
+        #: the last interval learned, while it may still be undone (``_judge_by_neighbours``)
+        self._undo: _Undo | None = None
 
     def _reset_comparison(self) -> None:
         self.compare_windows = 0
@@ -485,6 +502,7 @@ class TableLaw(ComparisonGuard):
 
     def _note(self, outcome: TableOutcome) -> TableOutcome:
         self.outcomes.append(outcome)
+        self._noted += 1
         return outcome
 
     def observe(self, dwell: Dwell) -> TableOutcome:
@@ -577,6 +595,7 @@ class TableLaw(ComparisonGuard):
         if self.bias_dph is None:  # the bias capture: the T_eff-weighted mean rate left
             return self._capture(dwell, bb, r, t_eff, r_var, values)
         r -= self.bias_dph * t_eff
+        before = self._snapshot(a)
         phi = np.empty(f_n + 3)
         phi[:f_n] = x
         phi[f_n] = t_eff
@@ -598,10 +617,14 @@ class TableLaw(ComparisonGuard):
         self.calibration_n = keep * self.calibration_n + 1.0
         values.update(innovation_arcsec=e, sigma_arcsec=sigma)
         if abs(e) > TABLE_SIGMAS * sigma:
+            undone = self._judge_by_neighbours(dwell, bb, e, sigma, before)
+            if undone is not None:
+                return undone
             outcome = self._reject(dwell, f"disagrees with the gyro by {abs(e) / sigma:.1f} sigma", values)
             if self.rejections_in_row >= 2:  # the anchor itself may be the wrong one: start again here
                 self.anchor = bb
                 self.rejections_in_row = 0
+                self._undo = None
             return outcome
         self.rejections_in_row = 0
         sf = phi[f_n + 1] * self.delta[f_n + 1] + phi[f_n + 2] * self.delta[f_n + 2]
@@ -626,6 +649,7 @@ class TableLaw(ComparisonGuard):
             return self._singular(dwell, bb)
         self.accepted += 1
         self.anchor = bb
+        self._undo = _Undo(before, dwell.t_end_s, e, sigma)
         return self._note(_outcome(dwell, "learned", "", values))
 
     def _singular(self, dwell: Dwell, bb: _Anchor) -> TableOutcome:
@@ -637,6 +661,84 @@ class TableLaw(ComparisonGuard):
         return self._note(
             _outcome(dwell, "skipped", "the law's equations are singular: reset to the frozen weights", None)
         )
+
+    #: what learning an interval changes (``_snapshot``): the sums, the estimate, the evidence, the calibration,
+    #: the comparison, the counters and the chain's anchor
+    _LEARNED = (
+        "h",
+        "i",
+        "delta",
+        "cov",
+        "evidence",
+        "calibration_sum",
+        "calibration_n",
+        "compare_windows",
+        "compare_gain",
+        "compare_gain_sq",
+        "compare_level_frozen_dph",
+        "compare_level_adapted_dph",
+        "compare_dev_sq_adapted_dph2",
+        "last_update_s",
+        "accepted",
+        "rejected",
+        "skipped",
+        "guards",
+        "rejections_in_row",
+        "_flag_pending",
+    )
+
+    def _snapshot(self, anchor: _Anchor) -> dict[str, Any]:
+        """The law's state before an interval from ``anchor``, to return to (``_restore``)."""
+        out = {k: np.copy(v) if isinstance(v, np.ndarray) else v for k, v in vars(self).items() if k in self._LEARNED}
+        out["anchor"] = anchor
+        return out
+
+    def _restore(self, snapshot: dict[str, Any]) -> None:
+        for k in self._LEARNED:
+            v = snapshot[k]
+            setattr(self, k, np.copy(v) if isinstance(v, np.ndarray) else v)
+        self.anchor = snapshot["anchor"]
+
+    def _judge_by_neighbours(
+        self, dwell: Dwell, bb: _Anchor, e: float, sigma: float, before: dict[str, Any]
+    ) -> TableOutcome | None:
+        """A dwell that disagrees with the gyro over its interval from the last one learned: was that one the
+        wrong one?  A single wrong angle L at dwell k shows as innovations ``+L`` over (k-1, k) and ``-L`` over
+        (k, k+1); the first can pass the gate when the interval's own error points the other way.  Dwell k is the
+        suspect when the interval learned last was itself off by ``NEIGHBOUR_SIGMAS`` of its sigmas or more and
+        the two innovations cancel, ``|e_k + e_k+1| <= NEIGHBOUR_SIGMAS sqrt(s_k^2 + s_k+1^2)`` (a wrong dwell
+        k+1 leaves e_k at noise and their sum at its own error).  Then the interval learned last is undone and the
+        one around dwell k, (k-1, k+1), is judged in its place: if it is learned, dwell k is rejected (flagged
+        ``guard`` now: what was published in between used it) and the outcome of (k-1, k+1) is returned.
+        Otherwise the law is as it was, and None is returned."""
+        undo = self._undo
+        if undo is None or undo.before["anchor"].epoch != bb.epoch:
+            return None
+        e_k, s_k = undo.innovation_arcsec, undo.sigma_arcsec
+        if abs(e_k) < NEIGHBOUR_SIGMAS * s_k or abs(e_k + e) > NEIGHBOUR_SIGMAS * math.hypot(s_k, sigma):
+            return None
+        after = self._snapshot(before["anchor"])
+        noted = self._noted
+        self._undo = None
+        self._restore(undo.before)
+        merged = self._interval(dwell, undo.before["anchor"], bb)
+        if merged.status != "learned":  # (k-1, k+1) does not agree either: the law as it was
+            for _ in range(self._noted - noted):  # the trial's outcome
+                self.outcomes.pop()
+            self._noted = noted
+            self._restore(after)
+            self._undo = undo
+            return None
+        for n in range(len(self.outcomes) - 2, -1, -1):  # dwell k's outcome, now rejected
+            if self.outcomes[n].t_end_s == undo.t_end_s and self.outcomes[n].status == "learned":
+                old = self.outcomes[n]
+                self.outcomes[n] = old._replace(
+                    status="rejected", reason="disagrees with both neighbours: the interval around it agrees"
+                )
+                break
+        self.rejected += 1
+        self._flag_pending |= FLAG_GUARD
+        return merged
 
     def _capture(
         self, dwell: Dwell, bb: _Anchor, r: float, t_eff: float, r_var: float, values: dict[str, float]
