@@ -662,8 +662,8 @@ class TableLaw(ComparisonGuard):
             _outcome(dwell, "skipped", "the law's equations are singular: reset to the frozen weights", None)
         )
 
-    #: what learning an interval changes (``_snapshot``): the sums, the estimate, the evidence, the calibration,
-    #: the comparison, the counters and the chain's anchor
+    #: what learning an interval changes (``_snapshot``): the sums, the estimate, the evidence, the calibration and
+    #: the comparison; then the counters (``_COUNTERS``) and the chain's anchor
     _LEARNED = (
         "h",
         "i",
@@ -679,22 +679,20 @@ class TableLaw(ComparisonGuard):
         "compare_level_adapted_dph",
         "compare_dev_sq_adapted_dph2",
         "last_update_s",
-        "accepted",
-        "rejected",
-        "skipped",
-        "guards",
-        "rejections_in_row",
-        "_flag_pending",
     )
+    _COUNTERS = ("accepted", "rejected", "skipped", "guards", "rejections_in_row", "_flag_pending")
 
     def _snapshot(self, anchor: _Anchor) -> dict[str, Any]:
         """The law's state before an interval from ``anchor``, to return to (``_restore``)."""
-        out = {k: np.copy(v) if isinstance(v, np.ndarray) else v for k, v in vars(self).items() if k in self._LEARNED}
+        keys = (*self._LEARNED, *self._COUNTERS)
+        out = {k: np.copy(v) if isinstance(v, np.ndarray) else v for k, v in vars(self).items() if k in keys}
         out["anchor"] = anchor
         return out
 
-    def _restore(self, snapshot: dict[str, Any]) -> None:
-        for k in self._LEARNED:
+    def _restore(self, snapshot: dict[str, Any], counters: bool) -> None:
+        """Back to ``snapshot``'s learning state and anchor, and its counters when ``counters`` (else they stay:
+        what happened since, a dwell rejected for motion say, still happened)."""
+        for k in (*self._LEARNED, *self._COUNTERS) if counters else self._LEARNED:
             v = snapshot[k]
             setattr(self, k, np.copy(v) if isinstance(v, np.ndarray) else v)
         self.anchor = snapshot["anchor"]
@@ -720,13 +718,13 @@ class TableLaw(ComparisonGuard):
         after = self._snapshot(before["anchor"])
         noted = self._noted
         self._undo = None
-        self._restore(undo.before)
+        self._restore(undo.before, counters=False)
         merged = self._interval(dwell, undo.before["anchor"], bb)
         if merged.status != "learned":  # (k-1, k+1) does not agree either: the law as it was
             for _ in range(self._noted - noted):  # the trial's outcome
                 self.outcomes.pop()
             self._noted = noted
-            self._restore(after)
+            self._restore(after, counters=True)
             self._undo = undo
             return None
         for n in range(len(self.outcomes) - 2, -1, -1):  # dwell k's outcome, now rejected
@@ -736,6 +734,7 @@ class TableLaw(ComparisonGuard):
                     status="rejected", reason="disagrees with both neighbours: the interval around it agrees"
                 )
                 break
+        self.accepted -= 1  # dwell k's interval, undone
         self.rejected += 1
         self._flag_pending |= FLAG_GUARD
         return merged
