@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from fog_driver.cli.app import main
-from fog_driver.compensation.dwell import Dwell, blocks_within, reference_deg, trimmed_window
+from fog_driver.compensation.dwell import Dwell, angle_at_deg, blocks_within, reference_deg, trimmed_window
 from fog_driver.compensation.pipeline import FLAG_GUARD, FLAG_SCALE_FACTOR, Compensator
 from fog_driver.compensation.table import SF_REF_C, TableLaw, TableOutcome
 from fog_driver.daemon.config import DEFAULT_MODEL
@@ -323,6 +323,19 @@ def assert_rejected(samples: SampleBlock, dwells: list[Dwell], k: int, why: str,
     assert outcome.status == "rejected" and why in outcome.reason, outcome
 
 
+def creeping_run(out: Path, rate_dph: float, start_s: float, seed: int) -> tuple[SampleBlock, list[Dwell]]:
+    """``PROFILE`` with the table creeping at ``rate_dph`` from ``start_s`` to the run's end (not beyond: the
+    simulator runs to it), simulated for the default instrument into ``out``: its samples and table log."""
+    end_s = parse_profile(PROFILE).chamber.duration_s
+    creep = {"kind": "creep", "rate_dph": rate_dph, "start_s": start_s, "stop_s": end_s}
+    profile = {**PROFILE, "motion": [PROFILE["motion"], creep]}
+    simulate_to_file(Simulator(parse_profile(profile), InstrumentConfig(), rate_hz=RATE_HZ, seed=seed), out)
+    stops = read_reference_csv(out.with_suffix(".table.csv"))
+    return SampleStream().run(decode_file(out)), [
+        Dwell(s.t_start_s, s.t_end_s, s.angle_deg, s.angle_end_deg) for s in stops
+    ]
+
+
 def test_a_creep_that_begins_within_a_dwell_is_rejected_there_and_only_there(run, tmp_path):
     """A table that begins to creep (2 deg/h) in the middle of a dwell: the log gives the dwell's start and end
     angles, whose mean is not the table's mean angle over it (off by tens of arcseconds, which the innovation
@@ -332,18 +345,7 @@ def test_a_creep_that_begins_within_a_dwell_is_rejected_there_and_only_there(run
     samples, dwells, *_ = run
     k = 20
     start_s = 0.5 * (dwells[k].t_start_s + dwells[k].t_end_s)
-    end_s = parse_profile(PROFILE).chamber.duration_s  # to the run's end (not beyond: the simulator runs to it)
-    profile = {
-        **PROFILE,
-        "motion": [PROFILE["motion"], {"kind": "creep", "rate_dph": 2.0, "start_s": start_s, "stop_s": end_s}],
-    }
-    out = tmp_path / "creep.bin"
-    simulate_to_file(Simulator(parse_profile(profile), InstrumentConfig(), rate_hz=RATE_HZ, seed=11), out)
-    creeping = SampleStream().run(decode_file(out))
-    log = [
-        Dwell(s.t_start_s, s.t_end_s, s.angle_deg, s.angle_end_deg)
-        for s in read_reference_csv(out.with_suffix(".table.csv"))
-    ]
+    creeping, log = creeping_run(tmp_path / "creep.bin", 2.0, start_s, seed=11)
     assert log[k].angle_end_deg is not None and log[k].angle_end_deg != log[k].angle_deg
     comp, _ = compensate(creeping, log)
     unsteady = [i for i, o in enumerate(comp.table.outcomes) if "rate changed" in o.reason]
@@ -351,6 +353,35 @@ def test_a_creep_that_begins_within_a_dwell_is_rejected_there_and_only_there(run
     assert all(o.status == "learned" for o in list(comp.table.outcomes)[k + 2 :])
     plain, _ = compensate(samples, dwells)
     assert not any("rate changed" in o.reason for o in plain.table.outcomes)
+
+
+def test_a_fast_creep_is_learned_against_the_tables_angle_at_the_windows_mean_time(tmp_path, monkeypatch):
+    """A table creeping at 20 deg/h (20 arcsec/s) all through the dwells: the gyro's angle at a dwell is the mean
+    over the whole blocks of its trimmed window, whose mean time is not the dwell's middle; the table's angle is
+    taken at that time (``dwell.angle_at_deg``).  Every dwell is learned, and the innovations are the noise's;
+    with the mean of the start and end angles instead (the dwell's middle) they are tens of arcseconds off."""
+    creeping, log = creeping_run(tmp_path / "creep20.bin", 20.0, 0.0, seed=12)
+    assert all(d.angle_end_deg is not None and d.angle_end_deg - d.angle_deg > 0.6 for d in log)  # 120 s at 20 deg/h
+    comp, _ = compensate(creeping, log)
+    learned = [o for o in comp.table.outcomes if o.status == "learned"]
+    assert len(learned) >= 0.9 * len(log) and comp.table.rejected <= 1
+    z = np.array([o.innovation_arcsec / o.sigma_arcsec for o in learned])
+    assert np.sqrt(np.mean(z**2)) < 1.5, z
+    import fog_driver.compensation.table as table_module
+
+    monkeypatch.setattr(table_module, "angle_at_deg", lambda a, e, t0, t1, t: reference_deg(a, e))
+    middle, _ = compensate(creeping, log)
+    rms = np.sqrt(np.mean(np.array([o.innovation_arcsec for o in learned]) ** 2))
+    off = np.array([o.innovation_arcsec for o in middle.table.outcomes if math.isfinite(o.innovation_arcsec)])
+    assert np.sqrt(np.mean(off**2)) > 2.0 * rms, (off, rms)
+
+
+def test_the_tables_angle_at_a_time_within_a_dwell():
+    assert angle_at_deg(36.0, None, 100.0, 220.0, 150.0) == 36.0
+    assert angle_at_deg(36.0, 37.2, 100.0, 220.0, 100.0) == 36.0
+    assert angle_at_deg(36.0, 37.2, 100.0, 220.0, 220.0) == pytest.approx(37.2)
+    assert angle_at_deg(36.0, 37.2, 100.0, 220.0, 130.0) == pytest.approx(36.3)
+    assert angle_at_deg(36.0, 37.2, 100.0, 220.0, 160.0) == pytest.approx(reference_deg(36.0, 37.2))
 
 
 def test_an_angle_sent_late_is_rejected_the_gyro_sees_the_move(run):

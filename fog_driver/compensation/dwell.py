@@ -25,6 +25,7 @@ __all__ = [
     "Dwell",
     "blocks_within",
     "out_of_order",
+    "angle_at_deg",
     "reference_deg",
     "trimmed_window",
 ]
@@ -61,6 +62,17 @@ def reference_deg(angle_deg: float, angle_end_deg: float | None) -> float:
     """The table's mean angle over the dwell's trimmed window: ``angle_deg``, or with ``angle_end_deg`` the mean
     of the two (a linear move within the dwell, over a window symmetric in it)."""
     return angle_deg if angle_end_deg is None else 0.5 * (angle_deg + angle_end_deg)
+
+
+def angle_at_deg(angle_deg: float, angle_end_deg: float | None, t_start_s: float, t_end_s: float, t_s: float) -> float:
+    """The table's angle at ``t_s`` within the dwell: ``angle_deg``, or with ``angle_end_deg`` the straight line
+    from one to the other over ``t_start_s..t_end_s`` (a creep).  The mean over instants whose mean time is
+    ``t_s``: the table law's window is whole blocks, not symmetric in the dwell, and at 20 deg/h half a second
+    off its middle is 10 arcsec."""
+    if angle_end_deg is None:
+        return angle_deg
+    span = t_end_s - t_start_s
+    return angle_deg + (angle_end_deg - angle_deg) * ((t_s - t_start_s) / span if span > 0 else 0.5)
 
 
 def trimmed_window(t_start_s: float, t_end_s: float, trim_s: float = DWELL_TRIM_S) -> tuple[float, float]:

@@ -17,7 +17,8 @@ is 1 between the windows and falls over b's::
     theta = sum_j K_j m_j dur_j        x = sum_j K_j f_j B        T_eff = sum_j K_j B
     T_int = sum_j K_j T_j B / T_eff                               (B = block_s, dur_j the frames' time)
 
-With A the table's reference angles (``dwell.reference_deg``, arcsec), dA = A_b - A_a (a whole-turn
+With A the table's angles at the windows' mean times (``dwell.angle_at_deg``, arcsec: for a dwell whose angle
+changed, its mean over the window's block middles), dA = A_b - A_a (a whole-turn
 ambiguity resolved against the gyro, below) and the frozen model ``D_hat = f . w0 + b0``::
 
     r = theta - dA - (x . w0 + T_eff b0) - bias T_eff
@@ -104,7 +105,7 @@ from ..flags import FLAG_ADAPTING, FLAG_GUARD
 from . import numerics
 from .adapt import RUNAWAY_FIT_RESIDUALS, ComparisonGuard
 from .adapt_config import AdaptConfig, blocks_in
-from .dwell import Dwell, blocks_within, out_of_order, reference_deg, trimmed_window
+from .dwell import Dwell, angle_at_deg, blocks_within, out_of_order, trimmed_window
 
 __all__ = ["SF_REF_C", "TABLE_SIGMAS", "TableLaw", "TableOutcome"]
 
@@ -548,7 +549,9 @@ class TableLaw(ComparisonGuard):
             old = 0.0 if math.isnan(self.noise_var_dph2) else self.noise_var_dph2
             self.noise_var_dph2 = old + (v - old) / min(self.noise_dwells, CALIBRATION_INTERVALS)
         summary = self._ring_mid[self._rows(first, end)].mean(axis=0)
-        angle = reference_deg(dwell.angle_deg, dwell.angle_end_deg) * ARCSEC_PER_DEG
+        t_mid_s = 0.5 * (first + end) * b  # the mean time of the window's block middles
+        angle = angle_at_deg(dwell.angle_deg, dwell.angle_end_deg, dwell.t_start_s, dwell.t_end_s, t_mid_s)
+        angle *= ARCSEC_PER_DEG
         here = _Anchor(summary, angle, end - first, first, end, self._epoch)
         anchor = self.anchor
         if anchor is None or anchor.epoch != self._epoch:
