@@ -105,6 +105,14 @@ runs:
   1.055x, 1.085x and 1.184x on three instruments; the scale factor within 5 ppm on 176 of 180 plateaus of
   ``table-run`` (worst 8.8 ppm) and 82 of 83 of ``scale-factor-run`` (worst 10.6 ppm).  ``eval11`` is spent
   for the table law: the creep failure is looked for on ``dev`` 48 and up.
+* 2026-12-05, ``eval12`` (97000..97023), first run, ``bench_table.py --set eval12 --creeps 0.2,2,20
+  --per-instrument``: the table law taking a creeping table's angle at the mean time of the gyro's window
+  (found on ``dev`` 49: a creep of 20 deg/h 1.077x, then 1.012x; ``dev`` 48..71 at most 1.012x).  Median 0.887x
+  frozen, worst 1.009x; the median excess cut by 39.7 % (median of the cuts 25.7 %); worst 1.009x rate-0's;
+  creeps of 0.2, 2 and 20 deg/h worst 1.010x; a late angle rejected on 24 of 24; the scale factor within 5 ppm
+  on all 85 plateaus of ``scale-factor-run`` (worst 3.9 ppm); the Table-1 improvement 80.1 % frozen, 84.3 %
+  adapting (medians).  Missed: the lie rejected on 23 of 24 (worst 1.009x); the scale factor on ``table-run``
+  within 5 ppm on 192 of 194 plateaus (worst 5.4 ppm).
 
 Individual evaluation instruments are not to be studied: to find what failed there, draw more
 development instruments (``--set dev --first 72``) and look for the same failure among them.
