@@ -8,6 +8,7 @@ pacing must pace); upper bounds on time would measure the machine, not the code.
 
 from __future__ import annotations
 
+import math
 import os
 import queue
 import subprocess
@@ -255,11 +256,13 @@ def test_serve_device_writes_the_stream_to_a_tty(tmp_path: Path) -> None:
         done = threading.Event()
 
         def drain_master() -> None:
-            while not done.is_set() or len(got) < len(expected):
-                chunk = pair.read_available(0.02)
-                got.extend(chunk)
-                if done.is_set() and not chunk:
-                    return
+            # until every byte has come through, or GUARD_S after the writer finished: a pty under load hands
+            # the last bytes over after the writer has returned, so an empty read is no end of stream
+            deadline = math.inf
+            while len(got) < len(expected) and time.monotonic() < deadline:
+                got.extend(pair.read_available(0.02))
+                if done.is_set() and deadline == math.inf:
+                    deadline = time.monotonic() + GUARD_S
 
         thread = threading.Thread(target=drain_master, daemon=True)
         thread.start()
