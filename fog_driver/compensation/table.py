@@ -249,6 +249,11 @@ class _Anchor(NamedTuple):
     epoch: int
 
 
+def _copied(value: Any) -> Any:
+    """An array copied (the law updates its arrays in place), anything else as it is."""
+    return np.copy(value) if isinstance(value, np.ndarray) else value
+
+
 class _Undo(NamedTuple):
     before: dict[str, Any]  # the law before the interval was learned (``TableLaw._snapshot``)
     t_end_s: float  # the dwell it ended at
@@ -687,8 +692,7 @@ class TableLaw(ComparisonGuard):
 
     def _snapshot(self, anchor: _Anchor) -> dict[str, Any]:
         """The law's state before an interval from ``anchor``, to return to (``_restore``)."""
-        keys = (*self._LEARNED, *self._COUNTERS)
-        out = {k: np.copy(v) if isinstance(v, np.ndarray) else v for k, v in vars(self).items() if k in keys}
+        out: dict[str, Any] = {k: _copied(getattr(self, k)) for k in (*self._LEARNED, *self._COUNTERS)}
         out["anchor"] = anchor
         return out
 
@@ -696,8 +700,7 @@ class TableLaw(ComparisonGuard):
         """Back to ``snapshot``'s learning state and anchor, and its counters when ``counters`` (else they stay:
         what happened since, a dwell rejected for motion say, still happened)."""
         for k in (*self._LEARNED, *self._COUNTERS) if counters else self._LEARNED:
-            v = snapshot[k]
-            setattr(self, k, np.copy(v) if isinstance(v, np.ndarray) else v)
+            setattr(self, k, _copied(snapshot[k]))  # a copy: a snapshot kept for a later undo stays as it was
         self.anchor = snapshot["anchor"]
 
     def _judge_by_neighbours(
