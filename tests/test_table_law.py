@@ -265,17 +265,18 @@ def test_a_lie_of_five_sigmas_is_rejected_flagged_and_the_chain_goes_on(run):
     assert not (cols.flags[(t > 600) & (t < lied[k].t_end_s)] & FLAG_GUARD).any()
 
 
-def test_a_lie_its_own_interval_lets_through_is_undone_by_the_next(run, monkeypatch):
+def test_a_lie_its_own_interval_lets_through_is_undone_two_dwells_later(run, monkeypatch):
     """A wrong angle L at dwell k gives innovations +L over (k-1, k) and -L over (k, k+1).  A lie that its own
-    interval's gate lets through (the interval's own error the other way) is caught by the next: the interval
-    learned from it is undone, (k-1, k+1) learned in its place, dwell k rejected and the estimate flagged.  The
-    drift afterwards is the one of the log without dwell k, not the lie's."""
+    interval's gate lets through (the interval's own error the other way) is learned; the next interval is
+    rejected; at dwell k+2 the interval (k+1, k+2) agrees, so dwell k, not k+1, was the wrong one: the interval
+    learned from it is undone, (k-1, k+1) and (k+1, k+2) learned in its place, dwell k rejected and the estimate
+    flagged.  The drift afterwards is the one of the log without dwell k, not the lie's."""
     samples, dwells, *_ = run
     part, use = first(samples, dwells, 3000.0)
     honest, _ = compensate(part, use)
     by_end = {o.t_end_s: o for o in honest.table.outcomes}
     found = []
-    for k in range(8, len(use) - 3):
+    for k in range(8, len(use) - 4):
         ok, nxt = by_end.get(use[k].t_end_s), by_end.get(use[k + 1].t_end_s)
         if ok and nxt and ok.status == nxt.status == "learned":
             off = 2.9 * ok.sigma_arcsec + ok.innovation_arcsec  # an angle L too large: its interval's -L
@@ -289,11 +290,12 @@ def test_a_lie_its_own_interval_lets_through_is_undone_by_the_next(run, monkeypa
     comp, cols = compensate(part, lied)
     outcome = _outcome_at(comp.table.outcomes, lied[k])
     assert outcome.status == "rejected" and "both neighbours" in outcome.reason, outcome
-    assert _outcome_at(comp.table.outcomes, lied[k + 1]).status == "learned"
+    assert _outcome_at(comp.table.outcomes, lied[k + 1]).status == "learned"  # as (k-1, k+1)
+    assert _outcome_at(comp.table.outcomes, lied[k + 2]).status == "learned"
     assert comp.table.rejected == honest.table.rejected + 1
     assert comp.table.accepted == honest.table.accepted - 1
     t = cols.t_s - cols.t_s[0]
-    caught = (t > lied[k + 1].t_end_s) & (t < lied[k + 1].t_end_s + 3.0)
+    caught = (t > lied[k + 2].t_end_s) & (t < lied[k + 2].t_end_s + 3.0)
     assert (cols.flags[caught] & FLAG_GUARD).any()
     assert not (cols.flags[(t > 600) & (t < lied[k].t_end_s)] & FLAG_GUARD).any()
     # the drift after it: the log without dwell k's, far from the one learned from the lie
@@ -302,7 +304,7 @@ def test_a_lie_its_own_interval_lets_through_is_undone_by_the_next(run, monkeypa
         m.setattr(TableLaw, "_judge_by_neighbours", lambda *a: None)
         kept_lie, fooled = compensate(part, lied)
     assert _outcome_at(kept_lie.table.outcomes, lied[k]).status == "learned"  # the gate alone is fooled
-    later = t > lied[k + 1].t_end_s + 1.0
+    later = t > lied[k + 2].t_end_s + 1.0
     undone = np.sqrt(np.mean((cols.drift_dph[later] - ref.drift_dph[later]) ** 2))
     learned = np.sqrt(np.mean((fooled.drift_dph[later] - ref.drift_dph[later]) ** 2))
     assert learned > 0 and undone < 0.2 * learned, (undone, learned)
@@ -312,6 +314,35 @@ def test_a_lie_its_own_interval_lets_through_is_undone_by_the_next(run, monkeypa
     stepped = [stepper.step(part.sample(i)) for i in range(len(part))]
     assert [repr(cols.sample(i)) for i in range(len(part))] == [repr(x) for x in stepped]
     assert [repr(o) for o in comp.table.outcomes] == [repr(o) for o in stepper.table.outcomes]
+
+
+def test_the_honest_dwell_before_a_lie_is_not_blamed(run):
+    """The case that one rejected interval cannot tell from a lie the gate let through: dwell k's own interval
+    2 sigmas or more off, then a 5-sigma lie at dwell k+1 against it, so that (k, k+1)'s innovation cancels
+    dwell k's to within twice their spreads (the judgement on one rejected interval blamed dwell k here).
+    Dwell k+2 settles it: (k+1, k+2) disagrees as much the other way, so dwell k+1 is rejected and dwell k
+    stays learned."""
+    part, use, *_ = run
+    honest, _ = compensate(part, use)
+    by_end = {o.t_end_s: o for o in honest.table.outcomes}
+    z = {
+        k: by_end[use[k].t_end_s].innovation_arcsec / by_end[use[k].t_end_s].sigma_arcsec
+        for k in range(8, len(use) - 4)
+        if all(by_end.get(use[k + j].t_end_s, TableOutcome(0.0, "")).status == "learned" for j in range(3))
+    }
+    k = max(z, key=lambda j: abs(z[j]))
+    assert abs(z[k]) >= 2.0, z[k]  # off by as much as a lie its gate lets through
+    a, nxt = by_end[use[k].t_end_s], by_end[use[k + 1].t_end_s]
+    # the lie at k+1 puts (k, k+1)'s innovation at 5 sigmas of it, against dwell k's sign: they nearly cancel
+    target = -math.copysign(5.0 * nxt.sigma_arcsec, a.innovation_arcsec)
+    off_arcsec = nxt.innovation_arcsec - target  # an angle off_arcsec too large takes it off r
+    assert abs(a.innovation_arcsec + target) < 2.0 * math.hypot(a.sigma_arcsec, nxt.sigma_arcsec)
+    lied = lie(use, k + 1, off_arcsec / 3600.0)
+    comp, _ = compensate(part, lied)
+    assert _outcome_at(comp.table.outcomes, lied[k]).status == "learned"
+    assert _outcome_at(comp.table.outcomes, lied[k + 1]).status == "rejected"
+    assert _outcome_at(comp.table.outcomes, lied[k + 2]).status == "learned"
+    assert comp.table.rejected == honest.table.rejected + 1
 
 
 def assert_rejected(samples: SampleBlock, dwells: list[Dwell], k: int, why: str, **change: float) -> None:

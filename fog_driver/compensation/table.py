@@ -70,10 +70,10 @@ running mean of the squared normalized innovations, capped, over ``CALIBRATION_I
 than ``AMBIGUOUS_DEG`` from every whole turn of the gyro's); nothing is learned from it.  After a rejected
 interval the next one starts from the last dwell accepted, so a single wrong angle costs no interval;
 after two rejections in a row the chain starts again from the latest dwell.  A dwell is also judged by its
-neighbours: a wrong angle gives innovations of opposite signs to its two intervals, and its own can pass the
-gate when that interval's error points the other way; when the interval learned last was off by
-``NEIGHBOUR_SIGMAS`` and the next one, rejected, cancels it, the last is undone and the interval around its
-dwell is learned in their place (``_judge_by_neighbours``).  An interval is not learned
+neighbours: a wrong angle shows in every interval from it, and its own can pass the gate when that interval's
+error points the other way; when the gate rejects the intervals to the next two dwells from the one learned
+last, the interval learned up to it is undone and the one around it and the next is learned in their place, if
+the gate lets it through (``_judge_by_neighbours``).  An interval is not learned
 across a break: a link gap, a non-finite input (the chain starts again), or blocks with degraded inputs
 (thermometer fault, stale, settling: the interval is skipped, its end is the next start).
 
@@ -123,9 +123,6 @@ TABLE_COMPARE_SIGMAS = 3.0
 TABLE_COMPARE_MEMORY_INTERVALS = 48.0
 #: The rejection threshold, in sigmas of the interval's innovation.
 TABLE_SIGMAS = 3.0
-#: A dwell is judged by its neighbours (``TableLaw._judge_by_neighbours``) when the interval learned up to it was
-#: off by this many of its sigmas and the next one's innovation cancels it to within this many.
-NEIGHBOUR_SIGMAS = 2.0
 #: A move farther than this from every whole turn of the gyro's own is ambiguous: refused.
 AMBIGUOUS_DEG = 90.0
 #: The scale factor's reference temperature: s(T) = s0 + s1 (T - SF_REF_C).
@@ -254,9 +251,37 @@ def _copied(value: Any) -> Any:
     return np.copy(value) if isinstance(value, np.ndarray) else value
 
 
+class _Prediction(NamedTuple):
+    """One interval as an observation of the law (``TableLaw._predict``)."""
+
+    phi: np.ndarray
+    r_arcsec: float
+    r_var: float
+    move_deg: float
+    off_deg: float
+    degraded: bool
+
+    @property
+    def t_eff_s(self) -> float:
+        return float(self.phi[-3])
+
+
 class _Undo(NamedTuple):
+    """The interval learned last, while it may still be undone (``TableLaw._judge_by_neighbours``)."""
+
     before: dict[str, Any]  # the law before the interval was learned (``TableLaw._snapshot``)
     t_end_s: float  # the dwell it ended at
+    anchor: _Anchor  # that dwell's anchor
+    innovation_arcsec: float
+    sigma_arcsec: float
+
+
+class _Doubt(NamedTuple):
+    """The interval the gate rejected last (``TableLaw._judge_by_neighbours``)."""
+
+    start: _Anchor
+    end: _Anchor
+    dwell: Dwell
     innovation_arcsec: float
     sigma_arcsec: float
 
@@ -347,6 +372,8 @@ class TableLaw(ComparisonGuard):
         self.anchor: _Anchor | None = None
         #: the last interval learned, while it may still be undone (``_judge_by_neighbours``)
         self._undo: _Undo | None = None
+        #: the interval the gate rejected last (``_judge_by_neighbours``)
+        self._doubted: _Doubt | None = None
 
     def _reset_comparison(self) -> None:
         self.compare_windows = 0
@@ -570,16 +597,17 @@ class TableLaw(ComparisonGuard):
         self.rejections_in_row += 1
         return self._note(_outcome(dwell, "rejected", reason, values))
 
-    def _interval(self, dwell: Dwell, a: _Anchor, bb: _Anchor) -> TableOutcome:
+    def _predict(self, a: _Anchor, bb: _Anchor) -> _Prediction:
+        """The interval from anchor ``a`` to ``bb`` as an observation (module docstring): its regressors ``phi``
+        (the block regressors' sums, ``T_eff``, and the scale factor's ``1e-6 m`` and ``1e-6 m (T_int - T_ref)``),
+        the angle error left after the frozen drift and the bias (once captured), ``r = theta - m - w0 . x -
+        b0 T_eff - bias T_eff``, in arcsec, and its variance ``R`` from the gyro's white noise and the model's
+        share; no state changes."""
         f_n = self.n_features
         b = self.block_s
         d = bb.summary - a.summary
         t_eff = float(d[f_n])
         x = d[:f_n]
-        if d[f_n + 3] > 0.5:  # blocks with degraded inputs in it: not learned; the chain goes on from here
-            self.anchor = bb
-            self.skipped += 1
-            return self._note(TableOutcome(dwell.t_end_s, "skipped", "degraded inputs in the interval"))
         t_int = float(d[f_n + 1]) / t_eff
         theta = float(d[f_n + 2])
         move = bb.angle_arcsec - a.angle_arcsec
@@ -589,27 +617,50 @@ class TableLaw(ComparisonGuard):
         gyro_move = theta - bias * t_eff - predicted - adapted
         turns = round((gyro_move - move) / TURN_ARCSEC)
         move += turns * TURN_ARCSEC
-        off_deg = (gyro_move - move) / ARCSEC_PER_DEG
-        if abs(off_deg) > AMBIGUOUS_DEG:
-            return self._reject(dwell, f"the move is {off_deg:+.1f} deg from every whole turn of the gyro's: ambiguous")
         la, lb = a.window_blocks * b, bb.window_blocks * b
         gap = (bb.first_block - a.end_block) * b
         k2 = la / 3.0 + gap + lb / 3.0
         noise = self.noise_var_dph2 * b if math.isfinite(self.noise_var_dph2) else 0.0
         model = MODEL_NOISE_SHARE * self.model_sigma_dph * t_eff
-        r_var = noise * k2 + model * model
-        r = theta - move - predicted
-        values = {"move_deg": move / ARCSEC_PER_DEG, "interval_s": t_eff}
-        if self.bias_dph is None:  # the bias capture: the T_eff-weighted mean rate left
-            return self._capture(dwell, bb, r, t_eff, r_var, values)
-        r -= self.bias_dph * t_eff
-        before = self._snapshot(a)
         phi = np.empty(f_n + 3)
         phi[:f_n] = x
         phi[f_n] = t_eff
         phi[f_n + 1] = 1e-6 * move
         phi[f_n + 2] = 1e-6 * move * (t_int - SF_REF_C)
-        calibration = (CALIBRATION_PRIOR + self.calibration_sum) / (CALIBRATION_PRIOR + self.calibration_n)
+        return _Prediction(
+            phi=phi,
+            r_arcsec=theta - move - predicted - bias * t_eff,
+            r_var=noise * k2 + model * model,
+            move_deg=move / ARCSEC_PER_DEG,
+            off_deg=(gyro_move - move) / ARCSEC_PER_DEG,
+            degraded=bool(d[f_n + 3] > 0.5),
+        )
+
+    def _calibration(self) -> float:
+        """``c``, the running mean of the squared normalized innovations (module docstring)."""
+        return (CALIBRATION_PRIOR + self.calibration_sum) / (CALIBRATION_PRIOR + self.calibration_n)
+
+    def _interval(self, dwell: Dwell, a: _Anchor, bb: _Anchor) -> TableOutcome:
+        f_n = self.n_features
+        b = self.block_s
+        p = self._predict(a, bb)
+        if p.degraded:  # blocks with degraded inputs in it: not learned; the chain goes on from here
+            self.anchor = bb
+            self.skipped += 1
+            return self._note(TableOutcome(dwell.t_end_s, "skipped", "degraded inputs in the interval"))
+        if abs(p.off_deg) > AMBIGUOUS_DEG:
+            return self._reject(
+                dwell, f"the move is {p.off_deg:+.1f} deg from every whole turn of the gyro's: ambiguous"
+            )
+        phi, r, r_var, t_eff = p.phi, p.r_arcsec, p.r_var, p.t_eff_s
+        values = {"move_deg": p.move_deg, "interval_s": t_eff}
+        if self.bias_dph is None:  # the bias capture: the T_eff-weighted mean rate left
+            return self._capture(dwell, bb, r, t_eff, r_var, values)
+        judged = self._judge_by_neighbours(dwell, a, bb)
+        if judged is not None:
+            return judged
+        before = self._snapshot(a)
+        calibration = self._calibration()
         try:
             candidates = self._candidates()
         except np.linalg.LinAlgError:
@@ -625,10 +676,8 @@ class TableLaw(ComparisonGuard):
         self.calibration_n = keep * self.calibration_n + 1.0
         values.update(innovation_arcsec=e, sigma_arcsec=sigma)
         if abs(e) > TABLE_SIGMAS * sigma:
-            undone = self._judge_by_neighbours(dwell, bb, e, sigma, before)
-            if undone is not None:
-                return undone
             outcome = self._reject(dwell, f"disagrees with the gyro by {abs(e) / sigma:.1f} sigma", values)
+            self._doubted = _Doubt(a, bb, dwell, e, sigma)
             if self.rejections_in_row >= 2:  # the anchor itself may be the wrong one: start again here
                 self.anchor = bb
                 self.rejections_in_row = 0
@@ -657,7 +706,7 @@ class TableLaw(ComparisonGuard):
             return self._singular(dwell, bb)
         self.accepted += 1
         self.anchor = bb
-        self._undo = _Undo(before, dwell.t_end_s, e, sigma)
+        self._undo = _Undo(before, dwell.t_end_s, bb, e, sigma)
         return self._note(_outcome(dwell, "learned", "", values))
 
     def _singular(self, dwell: Dwell, bb: _Anchor) -> TableOutcome:
@@ -703,47 +752,64 @@ class TableLaw(ComparisonGuard):
             setattr(self, k, _copied(snapshot[k]))  # a copy: a snapshot kept for a later undo stays as it was
         self.anchor = snapshot["anchor"]
 
-    def _judge_by_neighbours(
-        self, dwell: Dwell, bb: _Anchor, e: float, sigma: float, before: dict[str, Any]
-    ) -> TableOutcome | None:
-        """A dwell that disagrees with the gyro over its interval from the last one learned: was that one the
-        wrong one?  A single wrong angle L at dwell k shows as innovations ``+L`` over (k-1, k) and ``-L`` over
-        (k, k+1); the first can pass the gate when the interval's own error points the other way.  Dwell k is the
-        suspect when the interval learned last was itself off by ``NEIGHBOUR_SIGMAS`` of its sigmas or more and
-        the two innovations cancel, ``|e_k + e_k+1| <= NEIGHBOUR_SIGMAS sqrt(s_k^2 + s_k+1^2)`` (a wrong dwell
-        k+1 leaves e_k at noise and their sum at its own error).  Then the interval learned last is undone and the
-        one around dwell k, (k-1, k+1), is judged in its place: if it is learned, dwell k is rejected (flagged
-        ``guard`` now: what was published in between used it) and the outcome of (k-1, k+1) is returned.
-        Otherwise the law is as it was, and None is returned."""
-        undo = self._undo
-        if undo is None or undo.before["anchor"].epoch != bb.epoch:
+    def _judge_by_neighbours(self, dwell: Dwell, a: _Anchor, bb: _Anchor) -> TableOutcome | None:
+        """Dwell k+2 (``bb``) has come after the gate rejected (k, k+1), k the dwell learned last (``a``): which
+        of dwells k and k+1 was wrong?  A wrong angle L at a dwell shows in the two intervals around it, as
+        innovations ``+L`` and ``-L``; the first can pass the gate when the interval's own error points the other
+        way (a 5-sigma lie, about 2 % of the time).  With the innovations e and sigmas s of A = (k-1, k) (learned),
+        B = (k, k+1) (rejected) and C = (k+1, k+2) (predicted now, nothing learned), each hypothesis with its L at
+        its best:
+
+            k wrong:    chi2_k  = (e_A + e_B)^2 / (s_A^2 + s_B^2) + (e_C / s_C)^2
+            k+1 wrong:  chi2_k1 = (e_A / s_A)^2 + (e_B + e_C)^2 / (s_B^2 + s_C^2)
+
+        When ``chi2_k < chi2_k1``, A is undone and (k-1, k+1) judged in its place: if it is learned, dwell k is
+        rejected (flagged ``guard`` now: what was published in between used it), dwell k+1's outcome is that
+        interval's, and C is judged as usual; its outcome is returned.  Otherwise (or when A and B are not the
+        last learned and rejected from ``a``, or C has degraded inputs or an ambiguous move) the law is as it was
+        and None is returned: the interval (k, k+2) is judged as usual.  (Judged on B alone, with e_A and e_B
+        cancelling, the honest dwell before a lie was blamed as often as a lie was caught: on B alone the two
+        cannot be told apart.)"""
+        undo, doubt = self._undo, self._doubted
+        if undo is None or doubt is None or undo.anchor is not a or doubt.start is not a:
             return None
-        e_k, s_k = undo.innovation_arcsec, undo.sigma_arcsec
-        if abs(e_k) < NEIGHBOUR_SIGMAS * s_k or abs(e_k + e) > NEIGHBOUR_SIGMAS * math.hypot(s_k, sigma):
+        c = self._predict(doubt.end, bb)
+        if c.degraded or abs(c.off_deg) > AMBIGUOUS_DEG:
             return None
-        after = self._snapshot(before["anchor"])
+        e_c = c.r_arcsec - float(np.dot(c.phi, self.delta))
+        s_c = math.sqrt(max(c.r_var + float(c.phi @ self.cov @ c.phi), 1e-30) * self._calibration())
+        e_a, s_a, e_b, s_b = undo.innovation_arcsec, undo.sigma_arcsec, doubt.innovation_arcsec, doubt.sigma_arcsec
+        chi2_k = (e_a + e_b) ** 2 / (s_a * s_a + s_b * s_b) + (e_c / s_c) ** 2
+        chi2_k1 = (e_a / s_a) ** 2 + (e_b + e_c) ** 2 / (s_b * s_b + s_c * s_c)
+        chi2_none = (e_a / s_a) ** 2 + (e_b / s_b) ** 2 + (e_c / s_c) ** 2
+        if chi2_k >= chi2_k1 or chi2_k + TABLE_SIGMAS**2 >= chi2_none:
+            return None
+        after = self._snapshot(a)
         noted = self._noted
-        self._undo = None
+        self._undo = self._doubted = None
         self._restore(undo.before, counters=False)
-        merged = self._interval(dwell, undo.before["anchor"], bb)
+        merged = self._interval(doubt.dwell, undo.before["anchor"], doubt.end)
         if merged.status != "learned":  # (k-1, k+1) does not agree either: the law as it was
             for _ in range(self._noted - noted):  # the trial's outcome
                 self.outcomes.pop()
             self._noted = noted
             self._restore(after, counters=True)
-            self._undo = undo
+            self._undo, self._doubted = undo, doubt
             return None
-        for n in range(len(self.outcomes) - 2, -1, -1):  # dwell k's outcome, now rejected
-            if self.outcomes[n].t_end_s == undo.t_end_s and self.outcomes[n].status == "learned":
-                old = self.outcomes[n]
-                self.outcomes[n] = old._replace(
-                    status="rejected", reason="disagrees with both neighbours: the interval around it agrees"
+        self.outcomes.pop()  # (k-1, k+1)'s outcome goes to dwell k+1, dwell k's becomes rejected
+        self._noted -= 1
+        for n in range(len(self.outcomes) - 1, -1, -1):
+            o = self.outcomes[n]
+            if o.t_end_s == doubt.dwell.t_end_s and o.status == "rejected":
+                self.outcomes[n] = merged
+            elif o.t_end_s == undo.t_end_s and o.status == "learned":
+                self.outcomes[n] = o._replace(
+                    status="rejected", reason="disagrees with both neighbours: the intervals around it agree"
                 )
                 break
-        self.accepted -= 1  # dwell k's interval, undone
-        self.rejected += 1
+        self.accepted -= 1  # dwell k's interval, undone (dwell k+1's rejection becomes dwell k's)
         self._flag_pending |= FLAG_GUARD
-        return merged
+        return self._interval(dwell, doubt.end, bb)
 
     def _capture(
         self, dwell: Dwell, bb: _Anchor, r: float, t_eff: float, r_var: float, values: dict[str, float]
