@@ -113,6 +113,15 @@ runs:
   on all 85 plateaus of ``scale-factor-run`` (worst 3.9 ppm); the Table-1 improvement 80.1 % frozen, 84.3 %
   adapting (medians).  Missed: the lie rejected on 23 of 24 (worst 1.009x); the scale factor on ``table-run``
   within 5 ppm on 192 of 194 plateaus (worst 5.4 ppm).
+* 2026-12-05, ``eval13`` (98000..98023), first run, ``bench_table.py --set eval13 --creeps 0.2,2,20
+  --per-instrument``: the table law judging a dwell by the next two (after a rejected interval, the interval after
+  it decides which dwell was wrong; chosen on ``dev`` 0..23 with a lie at every dwell, ``bench_table_lies.py``).
+  Median 0.832x frozen; the median excess cut by 49.3 % (median of the cuts 38.0 %); creeps of 0.2, 2 and
+  20 deg/h worst 1.038x, 1.031x and 1.031x; a lie and a late angle rejected on 24 of 24 (worst 1.041x,
+  1.045x); the scale factor within 5 ppm on all 80 plateaus of ``scale-factor-run`` (worst 4.9 ppm); the
+  Table-1 improvement 70.8 % frozen, 76.3 % adapting (medians).  Missed: worst 1.045x frozen with correct
+  angles (one instrument; the next 1.013x), as ``dev`` 29 (1.046x); the scale factor on ``table-run`` within
+  5 ppm on 184 of 186 plateaus (worst 8.1 ppm).  ``eval13`` is spent for the table law.
 
 Individual evaluation instruments are not to be studied: to find what failed there, draw more
 development instruments (``--set dev --first 72``) and look for the same failure among them.
@@ -215,6 +224,7 @@ SEED_SETS = {
     "eval10": 95_000,
     "eval11": 96_000,
     "eval12": 97_000,
+    "eval13": 98_000,
 }  #: first instrument seed of each set (THE RULE above)
 #: Model kinds; "auto" is what ``fog-driver fit`` fits without --kind (the default's choice between the wesn
 #: and the polynomial).

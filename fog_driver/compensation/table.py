@@ -70,10 +70,11 @@ running mean of the squared normalized innovations, capped, over ``CALIBRATION_I
 than ``AMBIGUOUS_DEG`` from every whole turn of the gyro's); nothing is learned from it.  After a rejected
 interval the next one starts from the last dwell accepted, so a single wrong angle costs no interval;
 after two rejections in a row the chain starts again from the latest dwell.  A dwell is also judged by its
-neighbours: a wrong angle shows in every interval from it, and its own can pass the gate when that interval's
-error points the other way; when the gate rejects the intervals to the next two dwells from the one learned
-last, the interval learned up to it is undone and the one around it and the next is learned in their place, if
-the gate lets it through (``_judge_by_neighbours``).  An interval is not learned
+neighbours: a wrong angle shows in both intervals around its dwell, and the first can pass the gate when that
+interval's own error points the other way.  The gate then rejects the next one, which cannot say which of its
+two dwells was wrong; the dwell after it decides, by which single wrong dwell explains the three intervals best.
+When it is the dwell learned last, its interval is undone and the one around it learned in its place, if the
+gate lets it through (``_judge_by_neighbours``).  An interval is not learned
 across a break: a link gap, a non-finite input (the chain starts again), or blocks with degraded inputs
 (thermometer fault, stale, settling: the interval is skipped, its end is the next start).
 
