@@ -44,7 +44,9 @@ def _full_disk(limit_bytes: int):
     return preexec
 
 
-def run_cli(args: list[str], cwd: Path, fsize: int | None = None) -> subprocess.CompletedProcess:
+def run_cli(
+    args: list[str], cwd: Path, fsize: int | None = None, env: dict[str, str] | None = None
+) -> subprocess.CompletedProcess:
     return subprocess.run(
         [sys.executable, "-m", "fog_driver", *args],
         capture_output=True,
@@ -53,7 +55,20 @@ def run_cli(args: list[str], cwd: Path, fsize: int | None = None) -> subprocess.
         timeout=60,
         stdin=subprocess.DEVNULL,
         preexec_fn=_full_disk(fsize) if fsize else None,
+        env=env,
     )
+
+
+def fontconfig_cache_made(where: Path) -> dict[str, str]:
+    """An environment whose fontconfig cache is in ``where``, made there first, and whose matplotlib cache is not
+    made yet: on a full disk, matplotlib's first run cannot save its font list (a warning the report silences),
+    and fontconfig, a C library matplotlib runs, would say on stderr that it cannot write its own cache, which no
+    Python code can keep to one line."""
+    env = {**os.environ, "XDG_CACHE_HOME": str(where / "cache")}
+    warm = "import matplotlib; matplotlib.use('Agg'); import matplotlib.pyplot"
+    made = {**env, "MPLCONFIGDIR": str(where / "mpl-made")}
+    subprocess.run([sys.executable, "-c", warm], env=made, check=True, timeout=120, capture_output=True)
+    return {**env, "MPLCONFIGDIR": str(where / "mpl")}
 
 
 def assert_one_line(proc: subprocess.CompletedProcess, status: int, *needles: str, json_log: bool = False) -> str:
@@ -182,7 +197,8 @@ FULL_DISK = [
 def test_a_full_disk_is_one_line_and_exit_73(tmp_path, work, args, removed):
     for name in ("cap.bin", "cap.bin.yaml", "cap.truth.csv", "model.yaml", "fit.yaml"):
         os.link(work / name, tmp_path / name)  # the inputs, in a folder of the test's own
-    line = assert_one_line(run_cli(args, tmp_path, fsize=1024), 73)
+    env = fontconfig_cache_made(tmp_path / "fonts") if args[0] == "evaluate" else None
+    line = assert_one_line(run_cli(args, tmp_path, fsize=1024, env=env), 73)
     assert "File too large" in line or "cannot" in line
     for name in removed or ():
         assert not (tmp_path / name).exists(), name

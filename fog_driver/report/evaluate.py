@@ -25,6 +25,7 @@ standard error, about 1 / sqrt(2 (n - 1)), exceeds 13 % (50 % from 3 means).  Bo
 from __future__ import annotations
 
 import json
+import logging
 import re
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -383,6 +384,8 @@ def plot(
     series: Series, allans: dict[str, AllanResult], out_dir: Path, titles: Mapping[str, str] | None = None
 ) -> list[Path]:
     """The report's PNGs (matplotlib, Agg: no display needed); ``titles``: each series' legend name."""
+    # matplotlib's own warnings (its font cache not saved on a full disk, say) are not the report's: errors only
+    logging.getLogger("matplotlib").setLevel(logging.ERROR)
     try:
         import matplotlib  # optional extra: report
 
