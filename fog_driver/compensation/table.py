@@ -637,6 +637,11 @@ class TableLaw(ComparisonGuard):
             degraded=bool(d[f_n + 3] > 0.5),
         )
 
+    def _innovation(self, p: _Prediction) -> tuple[float, float]:
+        """The interval's innovation against the estimate in use, ``e = r - phi . delta``, and its variance before
+        the calibration, ``R + phi P phi^T``."""
+        return p.r_arcsec - float(np.dot(p.phi, self.delta)), p.r_var + float(p.phi @ self.cov @ p.phi)
+
     def _calibration(self) -> float:
         """``c``, the running mean of the squared normalized innovations (module docstring)."""
         return (CALIBRATION_PRIOR + self.calibration_sum) / (CALIBRATION_PRIOR + self.calibration_n)
@@ -668,8 +673,7 @@ class TableLaw(ComparisonGuard):
             return self._singular(dwell, bb)
         if not self.h.any():  # nothing learned yet (or since a reset): the priors' spread
             self._blend(candidates)
-        e = r - float(np.dot(phi, self.delta))
-        s_raw = r_var + float(phi @ self.cov @ phi)
+        e, s_raw = self._innovation(p)
         sigma = math.sqrt(max(s_raw, 1e-30) * calibration)
         z2 = e * e / max(s_raw, 1e-30)
         keep = 1.0 - 1.0 / CALIBRATION_INTERVALS
@@ -763,22 +767,24 @@ class TableLaw(ComparisonGuard):
 
             k wrong:    chi2_k  = (e_A + e_B)^2 / (s_A^2 + s_B^2) + (e_C / s_C)^2
             k+1 wrong:  chi2_k1 = (e_A / s_A)^2 + (e_B + e_C)^2 / (s_B^2 + s_C^2)
+            neither:    chi2_0  = (e_A / s_A)^2 + (e_B / s_B)^2 + (e_C / s_C)^2
 
-        When ``chi2_k < chi2_k1``, A is undone and (k-1, k+1) judged in its place: if it is learned, dwell k is
-        rejected (flagged ``guard`` now: what was published in between used it), dwell k+1's outcome is that
-        interval's, and C is judged as usual; its outcome is returned.  Otherwise (or when A and B are not the
-        last learned and rejected from ``a``, or C has degraded inputs or an ambiguous move) the law is as it was
-        and None is returned: the interval (k, k+2) is judged as usual.  (Judged on B alone, with e_A and e_B
-        cancelling, the honest dwell before a lie was blamed as often as a lie was caught: on B alone the two
-        cannot be told apart.)"""
+        When ``chi2_k < chi2_k1`` and ``chi2_k + TABLE_SIGMAS^2 < chi2_0`` (a wrong dwell costs what the gate
+        charges one; without it, an honest run's hard stretch had its dwells blamed), A is undone and (k-1, k+1)
+        judged in its place: if it is learned, dwell k is rejected (flagged ``guard`` now: what was published in
+        between used it), dwell k+1's outcome is that interval's, and C is judged as usual; its outcome is
+        returned.  Otherwise (or when A and B are not the last learned and rejected from ``a``, or C has degraded
+        inputs or an ambiguous move) the law is as it was and None is returned: the interval (k, k+2) is judged
+        as usual.  (Judged on B alone, with e_A and e_B cancelling, the honest dwell before a lie was blamed as
+        often as a lie was caught: on B alone the two cannot be told apart.)"""
         undo, doubt = self._undo, self._doubted
         if undo is None or doubt is None or undo.anchor is not a or doubt.start is not a:
             return None
         c = self._predict(doubt.end, bb)
         if c.degraded or abs(c.off_deg) > AMBIGUOUS_DEG:
             return None
-        e_c = c.r_arcsec - float(np.dot(c.phi, self.delta))
-        s_c = math.sqrt(max(c.r_var + float(c.phi @ self.cov @ c.phi), 1e-30) * self._calibration())
+        e_c, s_c_raw = self._innovation(c)
+        s_c = math.sqrt(max(s_c_raw, 1e-30) * self._calibration())
         e_a, s_a, e_b, s_b = undo.innovation_arcsec, undo.sigma_arcsec, doubt.innovation_arcsec, doubt.sigma_arcsec
         chi2_k = (e_a + e_b) ** 2 / (s_a * s_a + s_b * s_b) + (e_c / s_c) ** 2
         chi2_k1 = (e_a / s_a) ** 2 + (e_b + e_c) ** 2 / (s_b * s_b + s_c * s_c)
