@@ -1,7 +1,7 @@
 """Adapting from the table's angles, on a population (issue 32).
 
     python benchmarks/bench_table.py [--set dev|eval5|...] [--instruments N] [--first K] [--creeps 0.2,2,20]
-                                     [--rate-hz 10] [--workers 2] [--workdir DIR] [--per-instrument]
+                                     [--days 1] [--rate-hz 10] [--workers 2] [--workdir DIR] [--per-instrument]
 
 Per instrument K of a set (the seed ranges and THE RULE of ``bench_population.py``): the default model
 (``fog-driver fit`` without ``--kind``) fitted on its paper run; then a positioning run outside the fit,
@@ -19,6 +19,10 @@ simulator's table log (its true angles) is the station's.  Compensated:
                     innovation (as the correct run's law computed it), at dwell ``LIE_DWELL``
     late            the table log with one dwell's end ``LATE_S`` later than the table's (the angle sent
                     after the table began to move), at dwell ``LATE_DWELL``
+    day D           with ``--days N``, D = 2..N: the positioning run again (the same program, another run of
+                    the noise: seed ``10 K + 7 + 1,000,000 (D - 1)``), frozen, and adapting from its table log
+                    with the law's state carried from day D - 1 through the adaptation state file, as the
+                    daemon carries it across a restart (the law left on)
 
 Scored against the simulator's truth: 1-min means of the drift estimate's error (the truth's noise
 added: the floor), mean removed, over every minute after the first ``SKIP_MINUTES`` without a table
@@ -78,6 +82,7 @@ LIE_DWELL = 30
 LATE_S = 2.0
 LATE_DWELL = 40
 SF_MIN_PPM = 10.0
+DAY_SEED_STEP = 1_000_000  #: day D's positioning run: seed 10 K + 7 + DAY_SEED_STEP (D - 1) (no other run's)
 #: issue 32's targets
 CORRECT_WORST = 1.02
 EXCESS_CUT = 0.20
@@ -137,7 +142,7 @@ def score(truth: dict, drift: np.ndarray, mask: np.ndarray) -> float:
     return minute_rms(truth["drift_dph"][:n] - drift[:n] + noise, mask[:n])
 
 
-def score_instrument(seed: int, creeps: tuple[float, ...], rate_hz: int, workdir: Path) -> dict:
+def score_instrument(seed: int, creeps: tuple[float, ...], rate_hz: int, workdir: Path, days: int = 1) -> dict:
     fit_run = capture(workdir, seed, FIT_PROFILE, 10 * seed + FIT_RUN, rate_hz)
     model_file, _ = fit_model_file(
         [fit_run], kind=DEFAULT_FIT_KIND, config=FitConfig(), fall_back=True, accept_weak=True
@@ -155,7 +160,9 @@ def score_instrument(seed: int, creeps: tuple[float, ...], rate_hz: int, workdir
     out["frozen"] = score(truth, frozen, mask)
     rate0, _, _ = per_second(path, model_file, n, adapt=AdaptConfig(), reference_rate_dph=0.0)
     out["rate0"] = score(truth, rate0, mask)
-    table, _, comp = per_second(path, model_file, n, adapt=AdaptConfig(), table_dwells=log)
+    state = workdir / f"i{seed}" / "table-law-state.yaml"  # the law carried from day to day (``--days``)
+    state.unlink(missing_ok=True)
+    table, _, comp = per_second(path, model_file, n, adapt=AdaptConfig(), table_dwells=log, adapt_state=state)
     out["table"] = score(truth, table, mask)
     law = comp.table if comp is not None else None
     assert law is not None
@@ -203,6 +210,22 @@ def score_instrument(seed: int, creeps: tuple[float, ...], rate_hz: int, workdir
         out["late_rejected"] = (
             c is not None and c.table is not None and c.table.outcomes[LATE_DWELL].status == "rejected"
         )
+    out["days"] = []
+    for day in range(2, days + 1):  # the law left on: its state carried from the day before
+        dpath = capture(workdir, seed, table_profile(), 10 * seed + TABLE_RUN + DAY_SEED_STEP * (day - 1), rate_hz)
+        dtruth = read_truth(dpath.with_suffix(".truth.csv"))
+        dlog = read_table_log(dpath.with_suffix(".table.csv"))
+        dn = len(dtruth["second"])
+        dmask = scored_mask(dlog, dn)
+        df, _, _ = per_second(dpath, model_file, dn)
+        dt, _, _ = per_second(dpath, model_file, dn, adapt=AdaptConfig(), table_dwells=dlog, adapt_state=state)
+        out["days"].append(
+            {
+                "floor": minute_rms(truth_noise_dph(dtruth), dmask),
+                "frozen": score(dtruth, df, dmask),
+                "table": score(dtruth, dt, dmask),
+            }
+        )
     for creep in creeps:
         cpath = capture(workdir, seed, table_profile(creep), 10 * seed + TABLE_RUN, rate_hz)
         ctruth = read_truth(cpath.with_suffix(".truth.csv"))
@@ -248,6 +271,7 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--workdir", type=Path)
     parser.add_argument("--per-instrument", action="store_true")
+    parser.add_argument("--days", type=int, default=1, help="positioning runs with the law carried (default 1)")
     args = parser.parse_args()
     creeps = tuple(float(c) for c in args.creeps.split(",") if c.strip())
     seeds = [SEED_SETS[args.set] + args.first + k for k in range(args.instruments)]
@@ -257,7 +281,12 @@ def main() -> None:
         with ProcessPoolExecutor(args.workers) as pool:
             results = list(
                 pool.map(
-                    score_instrument, seeds, [creeps] * len(seeds), [args.rate_hz] * len(seeds), [workdir] * len(seeds)
+                    score_instrument,
+                    seeds,
+                    [creeps] * len(seeds),
+                    [args.rate_hz] * len(seeds),
+                    [workdir] * len(seeds),
+                    [args.days] * len(seeds),
                 )
             )
     elapsed = time.perf_counter() - t0
@@ -274,6 +303,7 @@ def main() -> None:
                 f"sf off {sf_worst(x['plateaus']):.1f}/{sf_worst(x['sf_run']):.1f} ppm "
                 f"T1 {x['table1']['frozen']:.1f}/{x['table1']['table']:.1f} % ({x['table1']['rows']} rows) "
                 + " ".join(f"c{c:g} {v['table'] / v['frozen']:.3f}x" for c, v in x["creep"].items())
+                + "".join(f" day{d} {v['table'] / v['frozen']:.3f}x" for d, v in enumerate(x["days"], start=2))
             )
     ratio = np.array([x["table"] / x["frozen"] for x in results])
     cut = np.array([1 - excess(x["table"], x["floor"]) / max(excess(x["frozen"], x["floor"]), 1e-12) for x in results])
@@ -290,6 +320,15 @@ def main() -> None:
     )
     print(f"table / rate-0      median {np.median(vs0):.3f}x worst {vs0.max():.3f}x (target <= {AGAINST_RATE0})")
     print(f"rate-0 / frozen     median {np.median(r0):.3f}x worst {r0.max():.3f}x")
+    for day in range(2, args.days + 1):
+        days = [x["days"][day - 2] for x in results]
+        dr = np.array([v["table"] / v["frozen"] for v in days])
+        d_f = np.median([excess(v["frozen"], v["floor"]) for v in days])
+        d_t = np.median([excess(v["table"], v["floor"]) for v in days])
+        print(
+            f"day {day} (law carried) median {np.median(dr):.3f}x worst {dr.max():.3f}x (target <= {CORRECT_WORST}), "
+            f"median excess cut {100 * (1 - d_t / d_f):.1f} %"
+        )
     for c in creeps:
         cr = np.array([x["creep"][c]["table"] / x["creep"][c]["frozen"] for x in results])
         print(f"creep {c:5g} deg/h   median {np.median(cr):.3f}x worst {cr.max():.3f}x (target <= {CREEP_WORST})")
