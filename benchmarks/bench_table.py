@@ -273,6 +273,8 @@ def main() -> None:
     parser.add_argument("--per-instrument", action="store_true")
     parser.add_argument("--days", type=int, default=1, help="positioning runs with the law carried (default 1)")
     args = parser.parse_args()
+    if args.days < 1:
+        parser.error("--days must be at least 1")
     creeps = tuple(float(c) for c in args.creeps.split(",") if c.strip())
     seeds = [SEED_SETS[args.set] + args.first + k for k in range(args.instruments)]
     t0 = time.perf_counter()
