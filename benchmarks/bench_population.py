@@ -186,7 +186,7 @@ import math
 import sys
 import tempfile
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -295,6 +295,27 @@ def score_run_seeds(profiles: Sequence[str]) -> dict[str, int]:
     """Each scoring profile's j (module docstring): its own when it has one, else the next of ``OTHER_RUNS``."""
     others = iter(OTHER_RUNS)
     return {p: SCORE_RUNS[p] if p in SCORE_RUNS else next(others) for p in profiles}
+
+
+def instrument_arguments(parser: argparse.ArgumentParser, instruments: int) -> None:
+    """The instruments a population benchmark runs on: ``--set`` (default dev), ``--first``, ``--instruments``,
+    and how: ``--workers``, ``--workdir`` (captures kept there; default a temporary directory)."""
+    parser.add_argument("--set", choices=SEED_SETS, default="dev")
+    parser.add_argument("--first", type=int, default=0)
+    parser.add_argument("--instruments", type=int, default=instruments)
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--workdir", type=Path)
+
+
+def over_instruments(args: argparse.Namespace, score: Callable[..., dict], *same: object) -> tuple[list[int], list]:
+    """``score(seed, *same, workdir)`` for each instrument of ``args`` (``instrument_arguments``), ``--workers``
+    at a time; returns the seeds and the results, in order."""
+    seeds = [SEED_SETS[args.set] + args.first + k for k in range(args.instruments)]
+    with tempfile.TemporaryDirectory() as tmp:
+        workdir = args.workdir or Path(tmp)
+        with ProcessPoolExecutor(args.workers) as pool:
+            columns = [[value] * len(seeds) for value in same]
+            return seeds, list(pool.map(score, seeds, *columns, [workdir] * len(seeds)))
 
 
 def capture(workdir: Path, seed: int, profile: str | SimProfile, run_seed: int, rate_hz: int) -> Path:

@@ -21,10 +21,8 @@ import argparse
 import contextlib
 import copy
 import sys
-import tempfile
 import time
 from collections.abc import Iterator
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -32,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from bench_population import FIT_PROFILE, FIT_RUN, SEED_SETS, capture  # noqa: E402
+from bench_population import FIT_PROFILE, FIT_RUN, capture, instrument_arguments, over_instruments  # noqa: E402
 from bench_table import TABLE_RUN, per_second, read_table_log, table_profile  # noqa: E402
 
 from fog_driver.cli.calibration import DEFAULT_FIT_KIND  # noqa: E402
@@ -129,19 +127,11 @@ def lies_of(seed: int, sigmas: float, workdir: Path) -> dict[str, Any]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--set", choices=SEED_SETS, default="dev")
-    parser.add_argument("--first", type=int, default=0)
-    parser.add_argument("--instruments", type=int, default=12)
+    instrument_arguments(parser, instruments=12)
     parser.add_argument("--sigmas", type=float, default=5.0)
-    parser.add_argument("--workers", type=int, default=2)
-    parser.add_argument("--workdir", type=Path)
     args = parser.parse_args()
-    seeds = [SEED_SETS[args.set] + args.first + k for k in range(args.instruments)]
     t0 = time.perf_counter()
-    with tempfile.TemporaryDirectory() as tmp:
-        workdir = args.workdir or Path(tmp)
-        with ProcessPoolExecutor(args.workers) as pool:
-            results = list(pool.map(lies_of, seeds, [args.sigmas] * len(seeds), [workdir] * len(seeds)))
+    seeds, results = over_instruments(args, lies_of, args.sigmas)
     print(
         f"set {args.set}: {len(seeds)} instruments from {seeds[0]}, lies of {args.sigmas:g} sigmas, "
         f"{time.perf_counter() - t0:.0f} s"
