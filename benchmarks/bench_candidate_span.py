@@ -40,12 +40,8 @@ from bench_table import TABLE_RUN, per_second, read_table_log, scored_mask, tabl
 from fog_driver.cli.calibration import DEFAULT_FIT_KIND  # noqa: E402
 from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
 from fog_driver.offline.fit import fit_model_file  # noqa: E402
+from fog_driver.report.coverage import whole_minutes  # noqa: E402
 from fog_driver.sim.capture import read_truth  # noqa: E402
-
-
-def minute_means(x: np.ndarray, minutes: int) -> np.ndarray:
-    """1-min means of per-second values (rows), the first ``minutes`` whole minutes."""
-    return x[: minutes * 60].reshape(minutes, 60, *x.shape[1:]).mean(axis=1)
 
 
 def span_instrument(seed: int, rate_hz: int, workdir: Path) -> dict:
@@ -63,11 +59,10 @@ def span_instrument(seed: int, rate_hz: int, workdir: Path) -> dict:
         as_model = dataclasses.replace(model_file, model=candidate, uncertainty=None)
         drift, _, _ = per_second(path, as_model, n)
         departures.append(drift - frozen)
-    minutes = n // 60
-    scored = np.flatnonzero(minute_means(mask.astype(float), minutes) == 1.0)
-    e = minute_means(truth["drift_dph"][:n] - frozen, minutes)[scored]
-    x = np.column_stack([*(minute_means(d, minutes)[scored] for d in departures), np.ones(len(scored))])
-    half = len(scored) // 2
+    e_minutes, scored = whole_minutes(truth["drift_dph"][:n] - frozen, mask)
+    e = e_minutes[scored]
+    x = np.column_stack([*(whole_minutes(d, mask)[0][scored] for d in departures), np.ones(len(e))])
+    half = len(e) // 2
     parts = (slice(0, half), slice(half, None))
     left, before = [], []
     for fit, apply in (parts, parts[::-1]):

@@ -42,9 +42,7 @@ import argparse
 import dataclasses
 import math
 import sys
-import tempfile
 import time
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -53,7 +51,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from bench_population import FIT_PROFILE, FIT_RUN, SEED_SETS, capture  # noqa: E402
+from bench_population import FIT_PROFILE, FIT_RUN, capture, instrument_arguments, over_instruments  # noqa: E402
 
 from fog_driver.cli.calibration import DEFAULT_FIT_KIND  # noqa: E402
 from fog_driver.compensation.adapt import AdaptConfig  # noqa: E402
@@ -142,7 +140,7 @@ def score(truth: dict, drift: np.ndarray, mask: np.ndarray) -> float:
     return minute_rms(truth["drift_dph"][:n] - drift[:n] + noise, mask[:n])
 
 
-def score_instrument(seed: int, creeps: tuple[float, ...], rate_hz: int, workdir: Path, days: int = 1) -> dict:
+def score_instrument(seed: int, creeps: tuple[float, ...], rate_hz: int, days: int, workdir: Path) -> dict:
     fit_run = capture(workdir, seed, FIT_PROFILE, 10 * seed + FIT_RUN, rate_hz)
     model_file, _ = fit_model_file(
         [fit_run], kind=DEFAULT_FIT_KIND, config=FitConfig(), fall_back=True, accept_weak=True
@@ -210,32 +208,34 @@ def score_instrument(seed: int, creeps: tuple[float, ...], rate_hz: int, workdir
         out["late_rejected"] = (
             c is not None and c.table is not None and c.table.outcomes[LATE_DWELL].status == "rejected"
         )
-    out["days"] = []
-    for day in range(2, days + 1):  # the law left on: its state carried from the day before
-        dpath = capture(workdir, seed, table_profile(), 10 * seed + TABLE_RUN + DAY_SEED_STEP * (day - 1), rate_hz)
-        dtruth = read_truth(dpath.with_suffix(".truth.csv"))
-        dlog = read_table_log(dpath.with_suffix(".table.csv"))
-        dn = len(dtruth["second"])
-        dmask = scored_mask(dlog, dn)
-        df, _, _ = per_second(dpath, model_file, dn)
-        dt, _, _ = per_second(dpath, model_file, dn, adapt=AdaptConfig(), table_dwells=dlog, adapt_state=state)
-        out["days"].append(
-            {
-                "floor": minute_rms(truth_noise_dph(dtruth), dmask),
-                "frozen": score(dtruth, df, dmask),
-                "table": score(dtruth, dt, dmask),
-            }
+    out["days"] = [  # the law left on: its state carried from the day before
+        frozen_and_table(
+            capture(workdir, seed, table_profile(), 10 * seed + TABLE_RUN + DAY_SEED_STEP * (day - 1), rate_hz),
+            model_file,
+            adapt_state=state,
         )
+        for day in range(2, days + 1)
+    ]
     for creep in creeps:
         cpath = capture(workdir, seed, table_profile(creep), 10 * seed + TABLE_RUN, rate_hz)
-        ctruth = read_truth(cpath.with_suffix(".truth.csv"))
-        clog = read_table_log(cpath.with_suffix(".table.csv"))
-        cn = len(ctruth["second"])
-        cmask = scored_mask(clog, cn)
-        cf, _, _ = per_second(cpath, model_file, cn)
-        ct, _, _ = per_second(cpath, model_file, cn, adapt=AdaptConfig(), table_dwells=clog)
-        out["creep"][creep] = {"frozen": score(ctruth, cf, cmask), "table": score(ctruth, ct, cmask)}
+        out["creep"][creep] = frozen_and_table(cpath, model_file)
     return out
+
+
+def frozen_and_table(path: Path, model_file, **table: object) -> dict[str, float]:
+    """A positioning run scored: its noise floor, frozen, and adapting from its own table log (``table``: more
+    ``compensate_capture`` settings for that, such as the state to start from)."""
+    truth = read_truth(path.with_suffix(".truth.csv"))
+    log = read_table_log(path.with_suffix(".table.csv"))
+    n = len(truth["second"])
+    mask = scored_mask(log, n)
+    frozen, _, _ = per_second(path, model_file, n)
+    adapted, _, _ = per_second(path, model_file, n, adapt=AdaptConfig(), table_dwells=log, **table)
+    return {
+        "floor": minute_rms(truth_noise_dph(truth), mask),
+        "frozen": score(truth, frozen, mask),
+        "table": score(truth, adapted, mask),
+    }
 
 
 def sf_plateaus(law, truth: dict, config, profile: SimProfile) -> list[tuple[float, float, float]]:
@@ -263,34 +263,17 @@ def excess(r: float, f: float) -> float:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--set", choices=SEED_SETS, default="dev")
-    parser.add_argument("--instruments", type=int, default=24)
-    parser.add_argument("--first", type=int, default=0)
+    instrument_arguments(parser, instruments=24)
     parser.add_argument("--creeps", default="0.2,2,20")
     parser.add_argument("--rate-hz", type=int, default=10)
-    parser.add_argument("--workers", type=int, default=2)
-    parser.add_argument("--workdir", type=Path)
     parser.add_argument("--per-instrument", action="store_true")
     parser.add_argument("--days", type=int, default=1, help="positioning runs with the law carried (default 1)")
     args = parser.parse_args()
     if args.days < 1:
         parser.error("--days must be at least 1")
     creeps = tuple(float(c) for c in args.creeps.split(",") if c.strip())
-    seeds = [SEED_SETS[args.set] + args.first + k for k in range(args.instruments)]
     t0 = time.perf_counter()
-    with tempfile.TemporaryDirectory() as tmp:
-        workdir = args.workdir or Path(tmp)
-        with ProcessPoolExecutor(args.workers) as pool:
-            results = list(
-                pool.map(
-                    score_instrument,
-                    seeds,
-                    [creeps] * len(seeds),
-                    [args.rate_hz] * len(seeds),
-                    [workdir] * len(seeds),
-                    [args.days] * len(seeds),
-                )
-            )
+    seeds, results = over_instruments(args, score_instrument, creeps, args.rate_hz, args.days)
     elapsed = time.perf_counter() - t0
     print(f"set {args.set}: {len(seeds)} instruments from {seeds[0]}, {args.rate_hz} Hz, {elapsed:.0f} s")
     if args.per_instrument:
