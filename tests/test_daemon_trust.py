@@ -139,6 +139,25 @@ def test_a_state_saved_for_another_model_is_set_aside_at_start_with_a_warning(tm
     assert len(publish(refit, SHORT)) == 3000
 
 
+def test_a_table_state_an_earlier_version_learned_on_the_models_own_regressors_is_set_aside(tmp_path):
+    """The table law learns on the shipped model's candidate structures; a state learned on its own regressors
+    (saved before, without ``shape``) cannot be carried on: set aside at start, the daemon runs."""
+    from fog_driver.compensation.table import TableLaw
+    from fog_driver.daemon.config import DEFAULT_MODEL
+
+    state = tmp_path / "adapt.yaml"
+    first = Service(DriverConfig(adapt_state=str(state), adapt_reference_dph=0.0), port="unused")
+    publish(first, SHORT)
+    first.shutdown()
+    model = load_model(DEFAULT_MODEL).model
+    earlier = TableLaw(model.weights, model.intercept, 1.0, shape="regressors").state_dict()
+    del earlier["shape"]
+    doc = yaml.safe_load(state.read_text())
+    state.write_text(yaml.safe_dump({**doc, "table": earlier}))
+    Service(DriverConfig(adapt_state=str(state), adapt_reference_dph=0.0), port="unused")
+    assert not state.exists() and len(list(tmp_path.glob("adapt.yaml.stale-*"))) == 1
+
+
 def test_the_state_is_saved_at_exit_only_when_adaptation_ran(tmp_path):
     state = tmp_path / "adapt.yaml"
     frozen = Service(DriverConfig(adapt_state=str(state)), port="unused")

@@ -12,7 +12,7 @@ import pytest
 
 from fog_driver.cli.app import main
 from fog_driver.compensation.dwell import Dwell, angle_at_deg, blocks_within, reference_deg, trimmed_window
-from fog_driver.compensation.pipeline import FLAG_GUARD, FLAG_SCALE_FACTOR, Compensator
+from fog_driver.compensation.pipeline import FLAG_ADAPTING, FLAG_GUARD, FLAG_SCALE_FACTOR, Compensator
 from fog_driver.compensation.table import SF_REF_C, TableLaw, TableOutcome
 from fog_driver.daemon.config import DEFAULT_MODEL
 from fog_driver.modelfiles import load_model
@@ -89,10 +89,15 @@ def first(samples: SampleBlock, dwells: list[Dwell], seconds: float) -> tuple[Sa
     return samples.take(slice(0, n)), [d for d in dwells if d.t_end_s < seconds]
 
 
-def compensate(samples: SampleBlock, dwells: list[Dwell]) -> tuple[Compensator, object]:
-    comp = Compensator(load_model(DEFAULT_MODEL), 1.0 / RATE_HZ, table=True)
+def compensate(samples: SampleBlock, dwells: list[Dwell], model_file=None) -> tuple[Compensator, object]:
+    comp = Compensator(model_file or load_model(DEFAULT_MODEL), 1.0 / RATE_HZ, table=True)
     comp.add_dwells(dwells)
     return comp, comp.run(samples)
+
+
+def without_candidates():
+    """The default model file without its candidate structures (as a polynomial or an older file has none)."""
+    return dataclasses.replace(load_model(DEFAULT_MODEL), uncertainty=None)
 
 
 def test_the_lying_and_late_logs_against_the_simulators_truth(run):
@@ -231,16 +236,81 @@ def test_the_comparison_guard_publishes_the_frozen_drift_again_when_the_adapted_
     assert verdicts == {"worse": False, "equal": True, "better": True}
 
 
-def test_step_equals_run_with_dwells(run):
+@pytest.mark.parametrize("shape", ["candidates", "regressors"])
+def test_step_equals_run_with_dwells(run, shape):
     samples, dwells, *_ = run
     part, use = first(samples, dwells, 2400.0)
-    runner, whole = compensate(part, use)
-    stepper = Compensator(load_model(DEFAULT_MODEL), 1.0 / RATE_HZ, table=True)
+    model_file = load_model(DEFAULT_MODEL) if shape == "candidates" else without_candidates()
+    runner, whole = compensate(part, use, model_file)
+    assert runner.table.shape == shape
+    stepper = Compensator(model_file, 1.0 / RATE_HZ, table=True)
     stepper.add_dwells(use)
     stepped = [stepper.step(part.sample(i)) for i in range(len(part))]
     assert [repr(whole.sample(i)) for i in range(len(part))] == [repr(s) for s in stepped]
     assert [repr(o) for o in runner.table.outcomes] == [repr(o) for o in stepper.table.outcomes]
     assert sum(o.status == "learned" for o in runner.table.outcomes) >= 8
+
+
+def test_the_shape_regressors_are_the_candidates_departures_from_the_frozen_drift(run, monkeypatch):
+    """With a model file that has candidate structures, the law's shape regressors of each block are the
+    candidates' drifts less the frozen one's: checked against each candidate compensating the run as the model
+    (frozen, its own compensator), and the frozen drift against the model's."""
+    samples, dwells, *_ = run
+    part, _ = first(samples, dwells, 1500.0)
+    model_file = load_model(DEFAULT_MODEL)
+    seen: dict[int, tuple[float, np.ndarray]] = {}
+    original = TableLaw.block
+
+    def block(self, index, y_frozen, g, *args):
+        seen[index] = (y_frozen, None if g is None else np.array(g))
+        return original(self, index, y_frozen, g, *args)
+
+    monkeypatch.setattr(TableLaw, "block", block)
+    comp = Compensator(model_file, 1.0 / RATE_HZ, table=True)  # no dwells: the law records, the frozen drift is out
+    comp.run(part)
+    monkeypatch.undo()
+    candidates = model_file.candidate_models()
+    assert comp.table.shape == "candidates" and comp.table.n_features == len(candidates) >= 2
+
+    def block_drifts(mf) -> dict[int, float]:
+        """The drift each block left (applied from the next block's first frame), by a frozen compensator."""
+        cols = Compensator(mf, 1.0 / RATE_HZ).run(part)
+        block_s = 1.0 / mf.model_rate_hz
+        k = np.floor((cols.t_s - cols.t_s[0]) / block_s + 1e-9).astype(int)
+        first_frame = np.r_[True, k[1:] != k[:-1]]
+        return {int(b) - 1: float(d) for b, d in zip(k[first_frame], cols.drift_dph[first_frame]) if b >= 1}
+
+    frozen = block_drifts(model_file)
+    blocks = sorted(i for i in seen if seen[i][1] is not None and i in frozen)
+    assert len(blocks) > 1000
+    assert np.array_equal([seen[i][0] for i in blocks], [frozen[i] for i in blocks])
+    for c, candidate in enumerate(candidates):
+        drift = block_drifts(dataclasses.replace(model_file, model=candidate, uncertainty=None))
+        got = np.array([seen[i][1][c] for i in blocks])
+        want = np.array([drift[i] - frozen[i] for i in blocks])
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+    assert np.std([seen[i][1] for i in blocks], axis=0).min() > 1e-4  # the candidates do depart
+
+
+def test_the_drift_in_use_is_the_frozen_one_and_the_shapes_change_not_the_level():
+    """``D_hat + g . dw``: the level db is the bias's, learned but not published."""
+    law = TableLaw(np.zeros(11), 0.0, 1.0, fit_residual_dph=0.02, shape="candidates", n_shape=3)
+    law.bias_dph = 0.0  # captured
+    law.delta = np.array([0.01, -0.02, 0.005, 0.3, 1.0, 0.1])  # dw, db, s0, s1
+    g = np.array([0.5, 0.25, -1.0])
+    frozen, in_use, flags = law.estimate(0.7, g)
+    assert frozen == 0.7 and in_use == pytest.approx(0.7 + 0.005 - 0.005 - 0.005, abs=1e-15)
+    assert flags & FLAG_ADAPTING
+    law.delta[3] = math.inf  # a non-finite level still resets the law
+    assert law.estimate(0.7, g)[1] == 0.7 and law.guards == 1 and not law.delta.any()
+
+
+def test_without_candidates_the_law_learns_on_the_models_own_regressors(run):
+    samples, dwells, *_ = run
+    part, use = first(samples, dwells, 1500.0)
+    comp, _ = compensate(part, use, without_candidates())
+    assert comp.table.shape == "regressors" and comp.table.n_features == len(comp.model.weights)
+    assert comp.table.summary()["shape"] == "regressors"
 
 
 def _outcome_at(outcomes: list[TableOutcome], dwell: Dwell) -> TableOutcome:
@@ -682,6 +752,16 @@ def test_what_the_table_law_learned_persists_across_a_restart(run, tmp_path):
     upgraded.restore_adaptation(older, "state.yaml")
     assert upgraded.table.accepted == comp.table.accepted and not upgraded.table.evidence.any()
     assert np.array_equal(upgraded.table.h, comp.table.h)
+    # a state of an earlier version, learned on the model's own regressors (no shape): refused by a law on the
+    # candidates (the daemon sets it aside and starts afresh), restored by one without candidates
+    own, _ = compensate(part, use, without_candidates())
+    earlier = {k: v for k, v in yaml.safe_load(yaml.safe_dump(own.table.state_dict())).items() if k != "shape"}
+    with pytest.raises(InputFileError, match="'regressors' shape regressors, this law's are 'candidates'"):
+        fresh.restore_adaptation({**doc, "table": earlier}, "state.yaml")
+    assert fresh.table.accepted == 0
+    plain = Compensator(without_candidates(), 1.0 / RATE_HZ, table=True, adapt=comp.adapt)
+    plain.restore_adaptation({**doc, "table": earlier}, "state.yaml")
+    assert plain.table.accepted == own.table.accepted and np.array_equal(plain.table.h, own.table.h)
 
 
 def test_compensate_table_log_saves_and_restores_the_state(run, tmp_path, capsys):

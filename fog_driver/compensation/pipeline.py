@@ -32,6 +32,7 @@ from ..flags import Flag
 from ..flags import flag_names as flag_names
 from ..protocol import STATUS_THERMOMETER_FAULT
 from ..samples.stream import Sample, SampleBlock
+from . import numerics
 from .adapt import OnlineReadout
 from .adapt_config import AdaptConfig, StaticDetector
 from .blocks import FLAG_GAP, FLAG_THERMOMETER_FAULT, PLAUSIBLE_TEMP_C, BlockAverager, ModelBlock
@@ -39,7 +40,7 @@ from .domain import FLAG_EXTRAPOLATING
 from .dwell import MIN_LIVE_DWELL_S, Dwell, out_of_order
 from .features import DEGRADED_FLAGS, FLAG_INPUT_STALE, FeatureExtractor
 from .model import ModelFile
-from .table import TableLaw, TableOutcome
+from .table import SHAPE_CANDIDATES, SHAPE_REGRESSORS, TableLaw, TableOutcome
 from .uncertainty import DriftUncertainty
 
 FLAG_UNCOMPENSATED = int(Flag.UNCOMPENSATED)  #: no drift estimate applied (start-up, or inputs never valid)
@@ -182,7 +183,8 @@ class Compensator:
         #: the table law records every block; it gives the estimate once engaged (a dwell was given) and no
         #: reference rate is set (the two signals exclude each other)
         self.table_engaged = False
-        if table:
+        if table:  # its shape regressors: the candidate structures' departures, else the model's own regressors
+            n_candidates = len(self.uncertainty.candidates)
             self.table = TableLaw(
                 self.model.weights,
                 self.model.intercept,
@@ -190,6 +192,8 @@ class Compensator:
                 adapt,
                 fit_residual_dph=model_file.fit_residual_dph,
                 coil=self.model.coil_lag() if hasattr(self.model, "coil_lag") else None,
+                shape=SHAPE_CANDIDATES if n_candidates else SHAPE_REGRESSORS,
+                n_shape=n_candidates or None,
             )
         if adapt is not None:
             self.online = OnlineReadout(
@@ -238,6 +242,7 @@ class Compensator:
         self.blocks_seen += 1
         static = self.static_detector.step(block.rate_dph) if self.static_detector is not None else False
         f: Any = None
+        drifts: list[float] | None = None  # the candidates' drifts, when the table law needs them first
         if any(v != v for v in u):  # a thermometer never read valid yet: nothing to model
             self.estimate_flags = FLAG_UNCOMPENSATED | flags
         else:
@@ -252,9 +257,14 @@ class Compensator:
                 self.uncertainty.start(z)
                 self._started = True
             by_table = self._table_leads
+            if self.table is not None and self.table.shape == SHAPE_CANDIDATES:
+                drifts = self.uncertainty.advance(z)
             if by_table:
                 f = self.model.regressors_step(z)
-                _, estimate, adapt_flags = cast(TableLaw, self.table).estimate(f)
+                y_frozen = self._frozen_of(f)
+                _, estimate, adapt_flags = cast(TableLaw, self.table).estimate(
+                    y_frozen, self._shape_of(f, y_frozen, drifts)
+                )
             elif self.online is None:
                 estimate = self.model.step(z)
                 adapt_flags = 0
@@ -264,7 +274,10 @@ class Compensator:
                 gate = static and clean and block.t_end_s > self.online.config.warmup_s
                 f = self.model.regressors_step(z)
                 estimate, adapt_flags = self.online.step(f, block.rate_dph, self.reference_rate_dph, gate)
-            sigma = self.uncertainty.step(z, raw, estimate)
+            if drifts is None:
+                sigma = self.uncertainty.step(z, raw, estimate)
+            else:
+                sigma = self.uncertainty.sigma_of(drifts, raw, estimate)
             if not by_table and self.online is not None and self.online.used_adapted:  # the adapted weights' estimate
                 sigma = self.uncertainty.adapted(self.online.adapted_sigma_dph, raw)
             if self.domain is not None:
@@ -282,12 +295,21 @@ class Compensator:
             else:
                 self.estimate_flags = FLAG_GUARD | (flags & DEGRADED_FLAGS)
         if self.table is not None:
-            self._table_block(block, f, flags)
+            self._table_block(block, f, drifts, flags)
         self._estimate_block = block.index + 1
 
     # -- table angles ----------------------------------------------------------------------------
 
-    def _table_block(self, block: ModelBlock, f: Any, flags: int) -> None:
+    def _frozen_of(self, f: np.ndarray) -> float:
+        """The frozen drift from the regressors, bit for bit the model's (``D_hat = f . w0 + b0``)."""
+        return float(numerics.dot(f, self.model.weights) + self.model.intercept)
+
+    def _shape_of(self, f: np.ndarray, y_frozen: float, drifts: list[float] | None) -> np.ndarray:
+        """The table law's shape regressors (``table``): the candidates' departures from the frozen drift,
+        ``D_c - D_hat``, or the model's own regressors."""
+        return f if drifts is None else np.asarray(drifts, dtype=np.float64) - y_frozen
+
+    def _table_block(self, block: ModelBlock, f: Any, drifts: list[float] | None, flags: int) -> None:
         """The block into the table law, then the dwells whose blocks have all closed; the scale factor
         held with the estimate."""
         table = cast(TableLaw, self.table)
@@ -299,7 +321,9 @@ class Compensator:
             self._t_ring_c = ring
         else:
             ring, clean = self._t_ring_c, False
-        table.block(block.index, f, block.rate_dph, block.n_samples * self.frame_period_s, ring, clean)
+        y_frozen = math.nan if f is None else self._frozen_of(f)
+        g = None if f is None else self._shape_of(f, y_frozen, drifts)
+        table.block(block.index, y_frozen, g, block.rate_dph, block.n_samples * self.frame_period_s, ring, clean)
         end_s = (block.index + 1) * self._block_s
         while self._dwells and self._dwells[0].t_end_s <= end_s + 1e-9:
             table.observe(self._dwells.pop(0))
@@ -588,9 +612,11 @@ class Compensator:
         held_before = (self.estimate_dph, self.estimate_flags, self._estimate_block, self.sigma_dph, self.scale_ppm)
         blocks = self.averager.run(samples)
         # The estimate each closed block leaves behind, in order; the candidate structures' steps are
-        # taken after the loop, in runs (``DriftUncertainty.defer``), and their sigmas put in place.
+        # taken after the loop, in runs (``DriftUncertainty.defer``), and their sigmas put in place; not with
+        # a table law (its shape regressors need them in the block).
         after = []
-        self.uncertainty.defer()
+        if self.table is None:
+            self.uncertainty.defer()
         try:
             for i in range(len(blocks)):
                 self._on_block(blocks.block(i))

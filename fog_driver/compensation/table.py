@@ -7,28 +7,43 @@ table did.  (The rate path of ``adapt.OnlineReadout`` learns the rate against a 
 creep there cannot be told from drift.)
 
 The observation.  Dwells a and b (``dwell.Dwell``), and between them the blocks j of the model (length
-``block_s``), with regressors f_j, measured rates m_j (deg/h = arcsec/s) and ring temperature T_j (the
-mean of the top and bottom thermometers; the only one when a format has one).  The gyro's angle
+``block_s``), with the frozen drift D_hat_j, shape regressors g_j (below), measured rates m_j (deg/h =
+arcsec/s) and ring temperature T_j (the mean of the top and bottom thermometers; the only one when a format
+has one).  The gyro's angle
 measured at a dwell is the mean, over the whole blocks inside its trimmed window (``dwell``), of the
 cumulative angle at each block's middle; the same mean is taken of every cumulative regressor.  Their
 difference between b and a is an integral under a kernel K(t) that rises linearly over a's window,
 is 1 between the windows and falls over b's::
 
-    theta = sum_j K_j m_j dur_j        x = sum_j K_j f_j B        T_eff = sum_j K_j B
-    T_int = sum_j K_j T_j B / T_eff                               (B = block_s, dur_j the frames' time)
+    theta = sum_j K_j m_j dur_j        x = sum_j K_j g_j B        T_eff = sum_j K_j B
+    T_int = sum_j K_j T_j B / T_eff    F = sum_j K_j D_hat_j B    (B = block_s, dur_j the frames' time)
 
 With A the table's angles at the windows' mean times (``dwell.angle_at_deg``, arcsec: for a dwell whose angle
 changed, its mean over the window's block middles), dA = A_b - A_a (a whole-turn
-ambiguity resolved against the gyro, below) and the frozen model ``D_hat = f . w0 + b0``::
+ambiguity resolved against the gyro, below)::
 
-    r = theta - dA - (x . w0 + T_eff b0) - bias T_eff
+    r = theta - dA - F - bias T_eff
       = x . dw + T_eff db + 1e-6 dA s0 + 1e-6 dA (T_int - SF_REF_C) s1 + e
 
-the drift the frozen model missed, as weights dw and an offset db on its own regressors, and the scale
+the drift the frozen model missed, as weights dw on the shape regressors and a level db, and the scale
 factor error ``s(T) = s0 + s1 (T - 25 degC)`` ppm times the move (a 36-degree move at 25 ppm is 3.2
 arcsec, as large as the drift integral: the two are estimated jointly, told apart by moves of both signs
 and several sizes).  ``bias`` is everything constant (the Earth rate, the turn-on bias), captured first:
-the T_eff-weighted mean of ``r / T_eff`` over the first intervals spanning ``bias_capture_s``.
+the T_eff-weighted mean of ``r / T_eff`` over the first intervals spanning ``bias_capture_s``.  The level db is
+the bias's too, and like it is not published: the drift in use is ``D_hat + g . dw``.  It absorbs the capture's
+error (a few minutes of intervals) and the frozen drift's mean error, which a station's ``?BIAS`` or zero window
+removes with the bias; learned from the intervals as they come, it moved the published drift with their
+noise (on a development instrument at the noise floor, 1.030x frozen published, 1.006x not).
+
+The shape regressors (``SHAPES``).  With a model file that has candidate structures (the coils that explain the
+fit data within the noise of the chosen one, which ``uncertainty`` runs beside the model), g_j are their drifts'
+departures from the frozen one, ``g_cj = D_c,j - D_hat_j``: the adapted drift ``D_hat + sum_c dw_c (D_c -
+D_hat)`` is a blend of the structures the fit could not tell apart, a handful of coefficients.  Against the
+simulator's truth they span most of the frozen model's error on a run outside the fit (``bench_candidate_span``:
+a median 0.29x of it left on development instruments, with coefficients from the other half of the run); the
+model's own regressors (tens of them) let the intervals' noise in where the model was already good (an instrument
+at the noise floor 1.046x frozen, 0.94x on the candidates).  Without candidates (a polynomial, an older model
+file) g_j are the model's own regressors f_j (``D_hat = f . w0 + b0``).
 
 The noise of r: the gyro's white noise under the kernel, ``N^2 int K^2 = N^2 (L_a / 3 + G + L_b / 3)``
 (L the windows' lengths, G the time between them; N^2 from the block rates at the dwells: half the
@@ -167,6 +182,11 @@ STEADY_SIGMAS = 6.0
 MAX_OUTCOMES = 10_000
 #: The gram of the regressors: its memory.
 GRAM_MEMORY_S = TABLE_MEMORY_S
+#: The law's shape regressors (module docstring): the candidate structures' departures from the frozen drift
+#: (a model file with candidates), or the model's own regressors (without).
+SHAPE_CANDIDATES = "candidates"
+SHAPE_REGRESSORS = "regressors"
+SHAPES = (SHAPE_CANDIDATES, SHAPE_REGRESSORS)
 
 
 def _motion_dph(rates: np.ndarray) -> float:
@@ -305,7 +325,14 @@ class TableLaw(ComparisonGuard):
         config: AdaptConfig | None = None,
         fit_residual_dph: float | None = None,
         coil: tuple[float, int] | None = None,
+        shape: str = SHAPE_REGRESSORS,
+        n_shape: int | None = None,
     ) -> None:
+        if shape not in SHAPES:
+            raise ValueError(f"the table law's shape regressors are one of {', '.join(SHAPES)}, got {shape!r}")
+        #: what the law's shape regressors g are (module docstring): the candidate structures' departures from
+        #: the frozen drift, or the model's own regressors
+        self.shape = shape
         self.config = config if config is not None else AdaptConfig()
         #: the coil's lag as the model found it (stage time, stages): the scale factor's temperature lags the
         #: ring's by it; None: the ring's own temperature
@@ -314,7 +341,8 @@ class TableLaw(ComparisonGuard):
         self.coil_c: list[float] = []
         self.w0 = np.array(frozen_weights, dtype=np.float64)
         self.b0 = float(frozen_intercept)
-        self.n_features = f = len(self.w0)
+        #: the shape regressors' count (the frozen weights' when they are the model's own)
+        self.n_features = f = len(self.w0) if n_shape is None else int(n_shape)
         self.block_s = float(block_s)
         self._set_bounds(fit_residual_dph)
         #: the drift's spread the bias capture allows for (the middle of the prior scales)
@@ -322,7 +350,7 @@ class TableLaw(ComparisonGuard):
         #: the frozen model's error scale over an interval: its fit residual (1-min RMS), as the runaway bound has it
         self.model_sigma_dph = self.runaway_dph / RUNAWAY_FIT_RESIDUALS
         self._cap = max(2, int(math.ceil(MAX_WINDOW_S / self.block_s)) + 2)
-        self._width = f + 4  # cumulative: f (F), 1, T, theta, degraded blocks
+        self._width = f + 5  # cumulative: g (f), 1, T, theta, degraded blocks, the frozen drift
         self._ring_mid = np.zeros((self._cap, self._width))
         self._ring_rate = np.zeros(self._cap)
         self._gram_a = 1.0 - math.exp(-self.block_s / GRAM_MEMORY_S)
@@ -431,17 +459,17 @@ class TableLaw(ComparisonGuard):
         s0, s1 = self.scale_factor_ppm
         return s0 + s1 * (t_ring_c - SF_REF_C)
 
-    def estimate(self, f: np.ndarray) -> tuple[float, float, int]:
-        """``(frozen estimate, estimate in use, flags)`` from this block's regressors (the weights before any
-        dwell this block delivers).  A change beyond the runaway bound is held at it (``guard``); a non-finite one
-        resets the law."""
-        y_frozen = float(numerics.dot(f, self.w0) + self.b0)  # the frozen estimate bit for bit (``adapt``)
+    def estimate(self, y_frozen: float, g: np.ndarray) -> tuple[float, float, int]:
+        """``(frozen estimate, estimate in use, flags)`` from this block's frozen drift and shape regressors ``g``
+        (the weights before any dwell this block delivers): ``y_frozen + g . dw``, without the level ``db``, which
+        is the bias's (module docstring).  A change beyond the runaway bound is held at it (``guard``); a
+        non-finite one resets the law."""
         flags, self._flag_pending = self._flag_pending, 0
         if not math.isfinite(y_frozen):
             return y_frozen, y_frozen, FLAG_GUARD
         f_n = self.n_features
-        change = float(np.dot(f, self.delta[:f_n]) + self.delta[f_n])
-        if not math.isfinite(change):
+        change = float(np.dot(g, self.delta[:f_n]))
+        if not math.isfinite(change) or not math.isfinite(self.delta[f_n]):
             self.reset_to_frozen()
             self.guards += 1
             return y_frozen, y_frozen, flags | FLAG_GUARD
@@ -455,28 +483,36 @@ class TableLaw(ComparisonGuard):
         return y_frozen, y_frozen, flags
 
     def block(
-        self, index: int, f: np.ndarray | None, rate_dph: float, frames_s: float, t_ring_c: float, clean: bool
+        self,
+        index: int,
+        y_frozen: float,
+        g: np.ndarray | None,
+        rate_dph: float,
+        frames_s: float,
+        t_ring_c: float,
+        clean: bool,
     ) -> None:
-        """Record a closed block: its regressors ``f`` (None: no estimate), mean rate, the time its frames
-        span, the ring temperature, and whether its inputs are clean.  A block that cannot be integrated
-        (a gap's block, non-finite values) breaks the chain."""
+        """Record a closed block: its frozen drift and shape regressors ``g`` (None: no estimate), mean rate,
+        the time its frames span, the ring temperature, and whether its inputs are clean.  A block that cannot
+        be integrated (a gap's block, non-finite values) breaks the chain."""
         b = self.block_s
         t_ring_c = self._coil_temperature(t_ring_c)
         self._last_ring_c = t_ring_c
         finite = math.isfinite(rate_dph) and math.isfinite(t_ring_c) and math.isfinite(frames_s)
-        if f is None or not finite or not np.isfinite(f).all():
+        if g is None or not finite or not math.isfinite(y_frozen) or not np.isfinite(g).all():
             self._break()
             return
         if self._ring_first is not None and index != self._ring_first + self._ring_len:
             self._break()  # blocks missing in between
         f_n = self.n_features
         inc = np.empty(self._width)
-        inc[:f_n] = f
+        inc[:f_n] = g
         inc[:f_n] *= b
         inc[f_n] = b
         inc[f_n + 1] = t_ring_c * b
         inc[f_n + 2] = rate_dph * frames_s
         inc[f_n + 3] = 0.0 if clean else 1.0
+        inc[f_n + 4] = y_frozen * b
         mid = self._cum + 0.5 * inc
         self._cum += inc
         if self._ring_first is None:
@@ -492,9 +528,9 @@ class TableLaw(ComparisonGuard):
         self._ring_rate[pos] = rate_dph
         self._ring_len += 1
         if clean:  # the regressors' gram, for the prior
-            g = np.append(f, 1.0)
+            row = np.append(g, 1.0)
             self.gram_weight += self._gram_a * (1.0 - self.gram_weight)
-            self.gram += self._gram_a * (np.outer(g, g) - self.gram)
+            self.gram += self._gram_a * (np.outer(row, row) - self.gram)
 
     def _coil_temperature(self, t_ring_c: float) -> float:
         """The coil's temperature: the ring's through the model's coil stages (each
@@ -600,9 +636,9 @@ class TableLaw(ComparisonGuard):
 
     def _predict(self, a: _Anchor, bb: _Anchor) -> _Prediction:
         """The interval from anchor ``a`` to ``bb`` as an observation (module docstring): its regressors ``phi``
-        (the block regressors' sums, ``T_eff``, and the scale factor's ``1e-6 m`` and ``1e-6 m (T_int - T_ref)``),
-        the angle error left after the frozen drift and the bias (once captured), ``r = theta - m - w0 . x -
-        b0 T_eff - bias T_eff``, in arcsec, and its variance ``R`` from the gyro's white noise and the model's
+        (the shape regressors' sums, ``T_eff``, and the scale factor's ``1e-6 m`` and ``1e-6 m (T_int - T_ref)``),
+        the angle error left after the frozen drift and the bias (once captured), ``r = theta - m - sum_j K_j
+        D_hat_j B - bias T_eff``, in arcsec, and its variance ``R`` from the gyro's white noise and the model's
         share; no state changes."""
         f_n = self.n_features
         b = self.block_s
@@ -612,7 +648,7 @@ class TableLaw(ComparisonGuard):
         t_int = float(d[f_n + 1]) / t_eff
         theta = float(d[f_n + 2])
         move = bb.angle_arcsec - a.angle_arcsec
-        predicted = float(np.dot(x, self.w0) + t_eff * self.b0)
+        predicted = float(d[f_n + 4])
         bias = 0.0 if self.bias_dph is None else self.bias_dph
         adapted = float(np.dot(x, self.delta[:f_n]) + t_eff * self.delta[f_n])
         gyro_move = theta - bias * t_eff - predicted - adapted
@@ -920,14 +956,22 @@ class TableLaw(ComparisonGuard):
         "compare_windows",
     )
     #: keys a state saved by an earlier version lacks, and what they start from
-    _ADDED = {"evidence": lambda: [0.0] * len(PRIOR_SCALES), "clamped_blocks": lambda: 0}
+    _ADDED = {
+        "evidence": lambda: [0.0] * len(PRIOR_SCALES),
+        "clamped_blocks": lambda: 0,
+        "shape": lambda: SHAPE_REGRESSORS,
+    }
 
     def state_dict(self) -> dict[str, Any]:
         """What the law learned, as plain YAML-safe values (exact): its sums, weights, covariance and the
         regressors' gram, the noise and innovation calibration, the comparison, the counters, and the frozen
         weights it was learned against.  Not the run's own chain (the ring of blocks, the bias, the anchor):
         a restored law starts a new run (``begin_run``)."""
-        d: dict[str, Any] = {"frozen_weights": [float(v) for v in self.w0], "frozen_intercept": self.b0}
+        d: dict[str, Any] = {
+            "frozen_weights": [float(v) for v in self.w0],
+            "frozen_intercept": self.b0,
+            "shape": self.shape,
+        }
         d.update({k: np.asarray(getattr(self, k)).tolist() for k in self._ARRAYS})
         d.update({k: float(getattr(self, k)) for k in self._FLOATS})
         d.update({k: int(getattr(self, k)) for k in self._COUNTS})
@@ -936,7 +980,7 @@ class TableLaw(ComparisonGuard):
     def load_state(self, d: dict[str, Any]) -> None:
         """Inverse of ``state_dict``, as a new run; ``ValueError`` (nothing changed) for missing or unknown keys,
         bad values, or a state learned against other frozen weights (another model)."""
-        keys = {"frozen_weights", "frozen_intercept", *self._ARRAYS, *self._FLOATS, *self._COUNTS}
+        keys = {"frozen_weights", "frozen_intercept", "shape", *self._ARRAYS, *self._FLOATS, *self._COUNTS}
         if isinstance(d, dict) and keys - set(d) <= set(self._ADDED) and set(d) <= keys:
             d = {**{k: make() for k, make in self._ADDED.items() if k not in d}, **d}  # saved by an earlier version
         if not isinstance(d, dict) or set(d) != keys:
@@ -951,6 +995,11 @@ class TableLaw(ComparisonGuard):
             raise ValueError(f"table law state: not numbers: {exc}") from None
         if w0.shape != self.w0.shape or not np.array_equal(w0, self.w0) or b0 != self.b0:
             raise ValueError("table law state was learned against another model (its frozen weights differ)")
+        if d["shape"] != self.shape:
+            raise ValueError(
+                f"table law state was learned on the {d['shape']!r} shape regressors, this law's are {self.shape!r}"
+                " (a state of an earlier version)"
+            )
         n = self.n_features
         shapes = {
             "h": (n + 3, n + 3),
@@ -987,6 +1036,8 @@ class TableLaw(ComparisonGuard):
             "bias_dph": self.bias_dph,
             "adapted_in_use": self.adapted_in_use,
             "frozen_weight": self.frozen_weight,
+            "shape": self.shape,
+            "shape_regressors": self.n_features,
             "scale_factor_ppm": s0,
             "scale_factor_ppm_per_c": s1,
             "scale_factor_sigma_ppm": math.sqrt(self.cov[p, p]) if self.accepted else SF_PRIOR_PPM,

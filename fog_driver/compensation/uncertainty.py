@@ -182,8 +182,8 @@ class DriftUncertainty:
 
         Between ``defer`` and ``resolve`` it returns a placeholder instead (a negative number, which no
         sigma is), resolved to the sigma by ``resolve``."""
-        box = self._box * box_distance(self.domain, u)
         if self._deferred is not None and self.candidates:
+            box = self._box * box_distance(self.domain, u)
             last = self._deferred[-1] if self._deferred else None
             if last is None or last[0] != "step":
                 last = ["step", [], [], [], self._placeholders]
@@ -193,13 +193,27 @@ class DriftUncertainty:
             last[3].append(box)
             self._placeholders += 1
             return -float(self._placeholders)
+        return self.sigma_of(self.advance(z), u, estimate_dph)
+
+    def advance(self, z: np.ndarray) -> list[float]:
+        """Step every candidate one block on ``z`` and return their drifts ``D_c`` (deg/h): the first half of
+        ``step``, for a caller that needs them before its estimate (the table law's shape regressors); not
+        while deferring."""
+        if self._deferred is not None and self.candidates:
+            raise RuntimeError("the candidates are deferred: their drifts come with resolve()")
+        return [c.step(z) for c in self.candidates]
+
+    def sigma_of(self, drifts_dph: list[float], u: Any, estimate_dph: float) -> float:
+        """The second half of ``step``: the sigma of ``estimate_dph`` from the candidates' drifts of this block
+        (``advance``) and the raw inputs ``u``."""
+        box = self._box * box_distance(self.domain, u)
         spread_sq = 0.0
-        if self.candidates:
+        if drifts_dph:
             total = 0.0
-            for c in self.candidates:
-                dev = c.step(z) - estimate_dph
+            for d in drifts_dph:
+                dev = d - estimate_dph
                 total += dev * dev
-            spread_sq = total / len(self.candidates)
+            spread_sq = total / len(drifts_dph)
         sigma = math.sqrt((self.spec.spread_scale**2) * spread_sq + self._fixed_sq + box * box)
         return sigma if math.isfinite(sigma) else math.sqrt(self._fixed_sq + box * box)
 

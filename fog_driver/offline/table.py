@@ -9,7 +9,7 @@ from typing import Any
 
 from ..compensation.dwell import Dwell
 from ..compensation.pipeline import Compensator
-from ..compensation.table import TableLaw
+from ..compensation.table import SHAPE_CANDIDATES, TableLaw
 from ..errors import InputFileError
 
 __all__ = ["check_table_log_used", "table_dwells", "table_summary_lines"]
@@ -60,7 +60,12 @@ def table_summary_lines(compensator: Compensator) -> list[str]:
     )
     if s["adapted_in_use"]:
         w = s["frozen_weight"]
-        state = f"the drift in use: the frozen model's at weight {w:.2f}, the adapted ones' at {1 - w:.2f}"
+        on = (
+            f"blending the fit's {s['shape_regressors']} candidate structures"
+            if s["shape"] == SHAPE_CANDIDATES
+            else "on the model's own regressors"
+        )
+        state = f"the drift in use: the frozen model's at weight {w:.2f}, the adapted ones' ({on}) at {1 - w:.2f}"
     elif s["bias_dph"] is None:
         state = "the frozen drift in use (the bias not yet captured)"
     else:
