@@ -225,6 +225,7 @@ SEED_SETS = {
     "eval11": 96_000,
     "eval12": 97_000,
     "eval13": 98_000,
+    "eval14": 99_000,
 }  #: first instrument seed of each set (THE RULE above)
 #: Model kinds; "auto" is what ``fog-driver fit`` fits without --kind (the default's choice between the wesn
 #: and the polynomial).

@@ -378,8 +378,9 @@ class TableLaw(ComparisonGuard):
         self.begin_run()
 
     def begin_run(self) -> None:
-        """A new switch-on: the bias is captured again, the chain of dwells starts afresh (the law's sums and
-        weights are kept)."""
+        """A new switch-on: the bias is captured again, the chain of dwells starts afresh, and the level, the
+        bias's, is a new one too (``_new_level``); the law's sums on the shape and the scale factor are kept."""
+        self._new_level()
         self.bias_dph: float | None = None if self.bias_capture_s > 0 else 0.0
         self.bias_sum_arcsec = 0.0
         self.bias_time_s = 0.0
@@ -387,6 +388,28 @@ class TableLaw(ComparisonGuard):
         self._epoch = 0
         self._break()
         self.last_dwell_end_s: float | None = None
+
+    def _new_level(self) -> None:
+        """The level db out of the sums, marginalized: with l its index, ``H <- H - H[:, l] H[l, :] / H[l, l]``,
+        ``I <- I - H[:, l] I[l] / H[l, l]`` (row and column l then 0), so what the intervals said of the shape
+        and the scale factor, whatever the level was, stays, and the level is learned afresh.  Each switch-on has
+        its own turn-on bias, and a level carried from the run before was wrong for the next; held in the sums, it
+        bent the shape's weights (an instrument at the noise floor 1.035x frozen on its third run, carried)."""
+        lvl = self.n_features
+        h_ll = float(self.h[lvl, lvl])
+        if not h_ll > 0:
+            return
+        col = self.h[:, lvl].copy()
+        self.i -= col * (self.i[lvl] / h_ll)
+        self.h -= np.outer(col, col) / h_ll
+        self.h[lvl, :] = 0.0
+        self.h[:, lvl] = 0.0
+        self.i[lvl] = 0.0
+        try:
+            self._blend(self._candidates())
+        except np.linalg.LinAlgError:
+            self.reset_to_frozen()
+            self.guards += 1
 
     def _break(self) -> None:
         """The chain is broken (a gap, a restart, ``?ZERO``): no interval is learned across it."""
