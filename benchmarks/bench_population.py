@@ -122,6 +122,16 @@ runs:
   Table-1 improvement 70.8 % frozen, 76.3 % adapting (medians).  Missed: worst 1.045x frozen with correct
   angles (one instrument; the next 1.013x), as ``dev`` 29 (1.046x); the scale factor on ``table-run`` within
   5 ppm on 184 of 186 plateaus (worst 8.1 ppm).  ``eval13`` is spent for the table law.
+* 2026-12-05, ``eval14`` (99000..99023), first run, ``bench_table.py --set eval14 --creeps 0.2,2,20 --days 3
+  --per-instrument``: the table law learning the drift's shape on the fit's candidate structures, its level (the
+  bias's) not published and learned afresh at a restart (chosen on ``dev`` 0..47: worst 1.008x first runs and
+  left on).  Median 0.871x frozen, worst 1.007x; the median excess cut by 39.9 % (median of the cuts 42.7 %);
+  worst 1.007x rate-0's; left on, the second and third runs worst 1.004x and 1.004x (median excess cut 59.0 %
+  and 69.3 %); creeps of 0.2, 2 and 20 deg/h worst 1.007x, 1.007x and 1.006x; a lie and a late angle rejected on
+  24 of 24 (worst 1.006x, 1.011x); the scale factor within 5 ppm on all 85 plateaus of ``scale-factor-run``
+  (worst 2.5 ppm); the Table-1 improvement 81.2 % frozen, 89.6 % adapting (medians; one instrument at the noise
+  floor -12.9 % and -52.3 %, its drift error 0.931x frozen).  Missed: the scale factor on ``table-run`` within
+  5 ppm on 188 of 190 plateaus (worst 5.7 ppm, at the extremes of its short holds).  ``eval14`` is spent.
 
 Individual evaluation instruments are not to be studied: to find what failed there, draw more
 development instruments (``--set dev --first 72``) and look for the same failure among them.
