@@ -1021,7 +1021,7 @@ class TableLaw(ComparisonGuard):
         if d["shape"] != self.shape:
             raise ValueError(
                 f"table law state was learned on the {d['shape']!r} shape regressors, this law's are {self.shape!r}"
-                " (a state of an earlier version)"
+                " (saved by an earlier version, or with the model file's candidates removed or added)"
             )
         n = self.n_features
         shapes = {
