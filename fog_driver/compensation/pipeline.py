@@ -32,7 +32,6 @@ from ..flags import Flag
 from ..flags import flag_names as flag_names
 from ..protocol import STATUS_THERMOMETER_FAULT
 from ..samples.stream import Sample, SampleBlock
-from . import numerics
 from .adapt import OnlineReadout
 from .adapt_config import AdaptConfig, StaticDetector
 from .blocks import FLAG_GAP, FLAG_THERMOMETER_FAULT, PLAUSIBLE_TEMP_C, BlockAverager, ModelBlock
@@ -243,6 +242,7 @@ class Compensator:
         static = self.static_detector.step(block.rate_dph) if self.static_detector is not None else False
         f: Any = None
         drifts: list[float] | None = None  # the candidates' drifts, when the table law needs them first
+        y_frozen, g = math.nan, None  # the table law's inputs: the frozen drift and the shape regressors
         if any(v != v for v in u):  # a thermometer never read valid yet: nothing to model
             self.estimate_flags = FLAG_UNCOMPENSATED | flags
         else:
@@ -261,10 +261,8 @@ class Compensator:
                 drifts = self.uncertainty.advance(z)
             if by_table:
                 f = self.model.regressors_step(z)
-                y_frozen = self._frozen_of(f)
-                _, estimate, adapt_flags = cast(TableLaw, self.table).estimate(
-                    y_frozen, self._shape_of(f, y_frozen, drifts)
-                )
+                y_frozen, g = self._table_inputs(f, drifts)
+                _, estimate, adapt_flags = cast(TableLaw, self.table).estimate(y_frozen, g)
             elif self.online is None:
                 estimate = self.model.step(z)
                 adapt_flags = 0
@@ -295,21 +293,21 @@ class Compensator:
             else:
                 self.estimate_flags = FLAG_GUARD | (flags & DEGRADED_FLAGS)
         if self.table is not None:
-            self._table_block(block, f, drifts, flags)
+            if g is None and f is not None:
+                y_frozen, g = self._table_inputs(f, drifts)
+            self._table_block(block, y_frozen, g, flags)
         self._estimate_block = block.index + 1
 
     # -- table angles ----------------------------------------------------------------------------
 
-    def _frozen_of(self, f: np.ndarray) -> float:
-        """The frozen drift from the regressors, bit for bit the model's (``D_hat = f . w0 + b0``)."""
-        return float(numerics.dot(f, self.model.weights) + self.model.intercept)
+    def _table_inputs(self, f: np.ndarray, drifts: list[float] | None) -> tuple[float, np.ndarray]:
+        """The table law's inputs from the model's regressors ``f``: the frozen drift, bit for bit the model's
+        (``D_hat = f . w0 + b0``, the rate path's ``frozen_estimate``: a table law always has one), and the shape
+        regressors (``table``): the candidates' departures from it, ``D_c - D_hat``, or ``f`` itself."""
+        y_frozen = cast(OnlineReadout, self.online).frozen_estimate(f)
+        return y_frozen, f if drifts is None else np.asarray(drifts, dtype=np.float64) - y_frozen
 
-    def _shape_of(self, f: np.ndarray, y_frozen: float, drifts: list[float] | None) -> np.ndarray:
-        """The table law's shape regressors (``table``): the candidates' departures from the frozen drift,
-        ``D_c - D_hat``, or the model's own regressors."""
-        return f if drifts is None else np.asarray(drifts, dtype=np.float64) - y_frozen
-
-    def _table_block(self, block: ModelBlock, f: Any, drifts: list[float] | None, flags: int) -> None:
+    def _table_block(self, block: ModelBlock, y_frozen: float, g: np.ndarray | None, flags: int) -> None:
         """The block into the table law, then the dwells whose blocks have all closed; the scale factor
         held with the estimate."""
         table = cast(TableLaw, self.table)
@@ -321,8 +319,6 @@ class Compensator:
             self._t_ring_c = ring
         else:
             ring, clean = self._t_ring_c, False
-        y_frozen = math.nan if f is None else self._frozen_of(f)
-        g = None if f is None else self._shape_of(f, y_frozen, drifts)
         table.block(block.index, y_frozen, g, block.rate_dph, block.n_samples * self.frame_period_s, ring, clean)
         end_s = (block.index + 1) * self._block_s
         while self._dwells and self._dwells[0].t_end_s <= end_s + 1e-9:
