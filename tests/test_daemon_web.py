@@ -21,12 +21,19 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from prometheus_client.parser import text_string_to_metric_families
 
 from fog_driver.daemon.limits import AUTH_FAILURES_BEFORE_BACKOFF
 from fog_driver.daemon.limits import WEB_MAX_CONNECTIONS_PER_PEER as MAX_CONNECTIONS_PER_PEER
 from fog_driver.daemon.limits import WEB_MAX_WS_MESSAGES_PER_S as MAX_WS_MESSAGES_PER_S
-from fog_driver.daemon.web.metrics import LATENCY_BUCKETS_S, METRICS, DaemonCollector, LatencyHistogram
+from fog_driver.daemon.web.metrics import (
+    DEPRECATED_NAMES,
+    LATENCY_BUCKETS_S,
+    METRICS,
+    DaemonCollector,
+    LatencyHistogram,
+)
 from fog_driver.daemon.web.server import WebView
 from fog_driver.daemon.web.view import MEAN_EVERY_S, MISSING_BANNER_S, ViewState
 from fog_driver.tools.watch import format_arcsec, format_dms
@@ -239,47 +246,60 @@ def scrape(collector: DaemonCollector) -> dict:
     return out
 
 
+#: STATUS's ``model_file`` in the collector's tests (a path with a space and a quote: labels are escaped).
+MODEL_FILE = {
+    "path": '/etc/fog-driver/"bench 1"/model.yaml',
+    "sha256": "0123456789abcdef" * 4,
+    "kind": "wesn",
+    "created_utc": "2026-12-04T14:19:12.370Z",
+    "serial": "FOG-SIM-0001",
+}
+#: What the collector reads at a scrape, with every metric present (test_metric_names.py scrapes it too).
+SCRAPED_STATUS = {
+    "uptime_s": 12.5,
+    "port_state": "lost",
+    "bytes_in": 123456,
+    "frames": 4000,
+    "crc_errors": 3,
+    "bytes_discarded": 77,
+    "missing_frames": 12,
+    "published": 3990,
+    "clients": 2,
+    "dropped_clients": 1,
+    "capture_state": "failed",
+    "capture_bytes_lost": 999,
+    "bias_dph": 0.25,
+    "bias_sigma_dph": 0.0125,
+    "adapting": True,
+    "flagged": {"gap": 2, "extrapolating": 5},
+    "model_file": MODEL_FILE,
+}
+SCRAPED_STATE = {
+    "status": SCRAPED_STATUS,
+    "device": {"format": "kvh-a", "serial": "S1", "firmware": "2"},
+    "version": {"release": "9.9"},
+    "reconnects": 4,
+    "capture_failures": 6,
+    "model_age_s": 86400.0,
+    "angle": {
+        "drift_dph": -1.5,
+        "drift_sigma_dph": 0.0375,
+        "temps_c": {"top": 30.5, "bottom": 31.0},
+        "flags": ["extrapolating"],
+    },
+    "angle_age_s": 0.25,
+    "rate_1s_dph": 14.9,
+    "web_clients": 3,
+    "web_dropped": 2,
+}
+
+
 def test_metrics_carry_the_status_counters_and_the_latency_histogram():
-    status = {
-        "uptime_s": 12.5,
-        "port_state": "lost",
-        "bytes_in": 123456,
-        "frames": 4000,
-        "crc_errors": 3,
-        "bytes_discarded": 77,
-        "missing_frames": 12,
-        "published": 3990,
-        "clients": 2,
-        "dropped_clients": 1,
-        "capture_state": "failed",
-        "capture_bytes_lost": 999,
-        "bias_dph": 0.25,
-        "bias_sigma_dph": 0.0125,
-        "adapting": True,
-        "flagged": {"gap": 2, "extrapolating": 5},
-    }
     latencies = np.random.default_rng(1).lognormal(np.log(0.002), 1.0, 5000)
     histogram = LatencyHistogram()
     for value in latencies:
         histogram.observe(float(value))
-    state = {
-        "status": status,
-        "device": {"format": "kvh-a", "serial": "S1", "firmware": "2"},
-        "version": {"release": "9.9"},
-        "reconnects": 4,
-        "capture_failures": 6,
-        "model_age_s": 86400.0,
-        "angle": {
-            "drift_dph": -1.5,
-            "drift_sigma_dph": 0.0375,
-            "temps_c": {"top": 30.5, "bottom": 31.0},
-            "flags": ["extrapolating"],
-        },
-        "angle_age_s": 0.25,
-        "rate_1s_dph": 14.9,
-        "web_clients": 3,
-        "web_dropped": 2,
-    }
+    state = SCRAPED_STATE
     m = scrape(DaemonCollector(lambda: state, histogram))
     assert m[("fog_driver_info", (("firmware", "2"), ("format", "kvh-a"), ("release", "9.9"), ("serial", "S1")))] == 1
     expected = {
@@ -294,19 +314,22 @@ def test_metrics_carry_the_status_counters_and_the_latency_histogram():
         "fog_driver_port_reconnects_total": 4,
         "fog_driver_capture_failures_total": 6,
         "fog_driver_capture_bytes_lost_total": 999,
-        "fog_driver_bias_dph": 0.25,
+        "fog_driver_bias_degrees_per_hour": 0.25,
         "fog_driver_adapting": 1,
         "fog_driver_model_age_seconds": 86400,
-        "fog_driver_drift_dph": -1.5,
-        "fog_driver_drift_sigma_dph": 0.0375,
-        "fog_driver_bias_sigma_dph": 0.0125,
-        "fog_driver_rate_dph": 14.9,
+        "fog_driver_drift_degrees_per_hour": -1.5,
+        "fog_driver_drift_sigma_degrees_per_hour": 0.0375,
+        "fog_driver_bias_sigma_degrees_per_hour": 0.0125,
+        "fog_driver_rate_degrees_per_hour": 14.9,
         "fog_driver_last_sample_age_seconds": 0.25,
         "fog_driver_extrapolating": 1,
         "fog_driver_uptime_seconds": 12.5,
     }
     for name, value in expected.items():
         assert m[(name, ())] == value, name
+    for old, new in DEPRECATED_NAMES.items():  # kept for a release: the same value under the old name
+        assert m[(old, ())] == m[(new, ())], old
+    assert m[("fog_driver_model_info", tuple(sorted(MODEL_FILE.items())))] == 1
     assert m[("fog_driver_clients", (("listener", "ndjson"),))] == 2
     assert m[("fog_driver_clients", (("listener", "web"),))] == 3
     assert m[("fog_driver_clients_dropped_total", (("listener", "web"),))] == 2
@@ -332,9 +355,10 @@ def test_no_sigma_gauges_without_an_estimate_or_a_bias_capture():
     any ?BIAS: the gauges are absent, never NaN; the drift gauge is still there."""
     state = {"status": {"bias_dph": 0.0, "bias_captured": False}, "angle": {"drift_dph": 0.0, "flags": []}}
     m = scrape(DaemonCollector(lambda: state, LatencyHistogram()))
-    assert m[("fog_driver_drift_dph", ())] == 0.0 and m[("fog_driver_bias_dph", ())] == 0.0
+    assert m[("fog_driver_drift_degrees_per_hour", ())] == 0.0 and m[("fog_driver_bias_degrees_per_hour", ())] == 0.0
     names = {name for name, _ in m}
-    assert "fog_driver_drift_sigma_dph" not in names and "fog_driver_bias_sigma_dph" not in names
+    for name in ("fog_driver_drift_sigma_degrees_per_hour", "fog_driver_bias_sigma_degrees_per_hour"):
+        assert name not in names and {v: k for k, v in DEPRECATED_NAMES.items()}[name] not in names
 
 
 # ---------------------------------------------------------------------------------------------- the listener
@@ -676,7 +700,9 @@ def test_the_shipped_prometheus_and_grafana_configs_name_only_metrics_that_exist
     root = Path(__file__).resolve().parents[1] / "configs" / "monitoring"
     dashboard = json.loads(root.joinpath("grafana-dashboard.json").read_text())
     exprs = [t["expr"] for panel in dashboard["panels"] for t in panel["targets"]]
-    exprs += [line for line in root.joinpath("prometheus.yml").read_text().splitlines() if "expr:" in line]
+    rules = yaml.safe_load(root.joinpath("fog-driver-rules.yml").read_text())
+    exprs += [rule["expr"] for group in rules["groups"] for rule in group["rules"]]
+    assert "fog-driver-rules.yml" in yaml.safe_load(root.joinpath("prometheus.yml").read_text())["rule_files"]
     used = {re.sub(r"_(bucket|count|sum)$", "", name) for e in exprs for name in re.findall(r"fog_driver_\w+", e)}
     assert used and used <= set(METRICS), used - set(METRICS)
     assert {"fog_driver_port_up", "fog_driver_missing_frames_total", "fog_driver_publish_latency_seconds"} <= used

@@ -6,8 +6,11 @@ latency histogram, one observation per published chunk (``LatencyHistogram``, st
 hub can fill it without the optional ``web`` extra installed).
 
 Names follow Prometheus' conventions (``_total`` counters, base units: ``_seconds``, ``_bytes``, the
-instrument's own units where there is no base unit: ``_dph`` degrees per hour, ``_celsius``).  The list,
+instrument's own units spelled out where there is no base unit: ``_degrees_per_hour``, ``_celsius``).  The list,
 with what each means, is ``METRICS``; the documentation's monitoring guide (docs/how-to/monitoring.md) prints it.
+
+The names in deg/h used to end in ``_dph``: ``DEPRECATED_NAMES`` maps each old name to its new one, and the old
+one is still exported beside it, the same value, for one release (its help text says so and names the new one).
 """
 
 from __future__ import annotations
@@ -42,20 +45,25 @@ METRICS: dict[str, tuple[str, str]] = {
     "fog_driver_capture_up": ("gauge", "1 while the raw capture records (or waits for its first byte), 0 when failed"),
     "fog_driver_capture_failures_total": ("counter", "raw capture write failures (each retried)"),
     "fog_driver_capture_bytes_lost_total": ("counter", "bytes the raw capture could not write"),
-    "fog_driver_drift_dph": ("gauge", "the model's drift estimate in deg/h at the last sample"),
-    "fog_driver_drift_sigma_dph": (
+    "fog_driver_drift_degrees_per_hour": ("gauge", "the model's drift estimate in deg/h at the last sample"),
+    "fog_driver_drift_sigma_degrees_per_hour": (
         "gauge",
         "the 1-sigma of the drift estimate's error as a 1-min mean, in deg/h, at the last sample (absent while "
         "there is no estimate)",
     ),
-    "fog_driver_rate_dph": ("gauge", "the compensated rate in deg/h, mean over the last full second"),
+    "fog_driver_rate_degrees_per_hour": ("gauge", "the compensated rate in deg/h, mean over the last full second"),
     "fog_driver_temperature_celsius": ("gauge", "the instrument's thermometers at the last sample, by channel"),
-    "fog_driver_bias_dph": ("gauge", "the bias removed (?BIAS) in deg/h"),
-    "fog_driver_bias_sigma_dph": (
+    "fog_driver_bias_degrees_per_hour": ("gauge", "the bias removed (?BIAS) in deg/h"),
+    "fog_driver_bias_sigma_degrees_per_hour": (
         "gauge",
         "the drift estimate's sigma in deg/h while the bias was captured (absent before a ?BIAS capture)",
     ),
     "fog_driver_adapting": ("gauge", "1 while the weights adapt online, 0 while frozen"),
+    "fog_driver_model_info": (
+        "gauge",
+        "1, labelled with the model in use: its file's path and SHA-256, its kind, when it was fitted "
+        "(created_utc) and the instrument serial it was fitted for",
+    ),
     "fog_driver_model_age_seconds": ("gauge", "seconds since the model in use was fitted"),
     "fog_driver_extrapolating": ("gauge", "1 while the last sample lies outside what the model was fitted on"),
     "fog_driver_publish_latency_seconds": (
@@ -63,6 +71,26 @@ METRICS: dict[str, tuple[str, str]] = {
         "from the read that completed a chunk of samples to their lines queued for every watching client",
     ),
 }
+
+#: The names in deg/h as they were (``_dph``) -> their names now; each old one is still exported for one release,
+#: the same value, its help text saying it is deprecated (``deprecated_help``).
+DEPRECATED_NAMES: dict[str, str] = {
+    "fog_driver_drift_dph": "fog_driver_drift_degrees_per_hour",
+    "fog_driver_drift_sigma_dph": "fog_driver_drift_sigma_degrees_per_hour",
+    "fog_driver_rate_dph": "fog_driver_rate_degrees_per_hour",
+    "fog_driver_bias_dph": "fog_driver_bias_degrees_per_hour",
+    "fog_driver_bias_sigma_dph": "fog_driver_bias_sigma_degrees_per_hour",
+}
+
+
+#: A name now -> its deprecated name (``DEPRECATED_NAMES`` turned round).
+OLD_NAMES: dict[str, str] = {new: old for old, new in DEPRECATED_NAMES.items()}
+
+
+def deprecated_help(old: str) -> str:
+    """The help text of a deprecated name: what it is, and which name to use instead."""
+    new = DEPRECATED_NAMES[old]
+    return f"deprecated, removed in the next release: use {new} ({METRICS[new][1]})"
 
 
 class LatencyHistogram:
@@ -133,6 +161,10 @@ class DaemonCollector:
                 f = family(name)
                 f.add_metric([], float(value))
                 yield f
+                if name in OLD_NAMES:  # the same value under its deprecated name
+                    deprecated = GaugeMetricFamily(OLD_NAMES[name], deprecated_help(OLD_NAMES[name]))
+                    deprecated.add_metric([], float(value))
+                    yield deprecated
 
         info = family("fog_driver_info", ("release", "format", "serial", "firmware"))
         info.add_metric(
@@ -145,6 +177,12 @@ class DaemonCollector:
             1.0,
         )
         yield info
+        model_file = status.get("model_file")
+        if isinstance(model_file, Mapping):
+            labels = ("path", "sha256", "kind", "created_utc", "serial")
+            model = family("fog_driver_model_info", labels)
+            model.add_metric([str(model_file.get(label, "")) for label in labels], 1.0)
+            yield model
         yield from single("fog_driver_uptime_seconds", status.get("uptime_s"))
         if "port_state" in status:
             yield from single("fog_driver_port_up", 1 if status["port_state"] == "open" else 0)
@@ -157,8 +195,8 @@ class DaemonCollector:
             ("fog_driver_missing_frames_total", "missing_frames"),
             ("fog_driver_samples_published_total", "published"),
             ("fog_driver_capture_bytes_lost_total", "capture_bytes_lost"),
-            ("fog_driver_bias_dph", "bias_dph"),
-            ("fog_driver_bias_sigma_dph", "bias_sigma_dph"),
+            ("fog_driver_bias_degrees_per_hour", "bias_dph"),
+            ("fog_driver_bias_sigma_degrees_per_hour", "bias_sigma_dph"),
         ):
             yield from single(name, status.get(key))
         flagged = status.get("flagged")
@@ -197,9 +235,9 @@ class DaemonCollector:
         if "capture_state" in status:
             yield from single("fog_driver_capture_up", 1 if status["capture_state"] in ("idle", "recording") else 0)
         yield from single("fog_driver_capture_failures_total", state.get("capture_failures"))
-        yield from single("fog_driver_drift_dph", angle.get("drift_dph"))
-        yield from single("fog_driver_drift_sigma_dph", angle.get("drift_sigma_dph"))
-        yield from single("fog_driver_rate_dph", state.get("rate_1s_dph"))
+        yield from single("fog_driver_drift_degrees_per_hour", angle.get("drift_dph"))
+        yield from single("fog_driver_drift_sigma_degrees_per_hour", angle.get("drift_sigma_dph"))
+        yield from single("fog_driver_rate_degrees_per_hour", state.get("rate_1s_dph"))
         temps = angle.get("temps_c")
         if isinstance(temps, Mapping):
             f = family("fog_driver_temperature_celsius", ("channel",))
@@ -219,4 +257,4 @@ def _is_number(value: Any) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
-__all__ = ["LATENCY_BUCKETS_S", "METRICS", "DaemonCollector", "LatencyHistogram"]
+__all__ = ["DEPRECATED_NAMES", "LATENCY_BUCKETS_S", "METRICS", "DaemonCollector", "LatencyHistogram", "deprecated_help"]
