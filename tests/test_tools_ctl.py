@@ -51,7 +51,7 @@ def test_ctl_zero_adapt_reload_status_save(tmp_path, capsys):
         pty.write(SHORT[:HEAD])
         watch_all(client, N_HEAD)
         status, out, err = ctl(capsys, daemon, "status")
-        assert status == 0 and err == "" and len(out.splitlines()) == 1
+        assert status == 0 and err == "" and len(out.splitlines()) == 3  # the state, the model, its SHA-256
         assert "port open" in out and "bias 0.0000 deg/h (not captured)" in out and "adapting no" in out
         assert ctl(capsys, daemon, "zero")[:2] == (0, "zeroed: the published angle starts again from 0 here\n")
         assert ctl(capsys, daemon, "adapt", "on")[0] == 0

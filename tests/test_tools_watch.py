@@ -433,6 +433,7 @@ def test_render_full_state():
     assert lines[0] == "fog-driver watch 127.0.0.1:2948  |  server 0.1.0, protocol 1.0  |  3.2 s"
     assert lines[1:] == [
         "instrument  serial FOG-SYN-0001, firmware 1.2, 100 Hz",
+        "model       -",  # a daemon before protocol 1.2 does not say
         "device      /tmp/fog-driver-sim.tty, activated, serial FOG-SYN-0001, 100 Hz",
         'angle       3725.50" (1°02\'05.50")    raw -62.00" (-0°01\'02.00")',  # the two forms agree
         "rate        15.0 deg/h (one sample)",

@@ -89,13 +89,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     try:
         with SignalDispatcher((signal.SIGINT, signal.SIGTERM, signal.SIGHUP), on_signal):
             # The readiness line comes after the handlers: a signal sent on seeing it is handled.
-            address = format_address(host, listen_port)  # an IPv6 address in brackets: [::1]:2948
-            web = "" if service.web is None else f"; web view on http://{format_address(*service.web.address)}/"
-            print(
-                f"fog-driver {__version__}: {port} -> listening on {address}{web}; raw capture in "
-                f"{config.capture_dir}/; connect with: fog-driver watch {address}  (Ctrl-C to stop)",
-                flush=True,
-            )
+            print(_readiness_line(service, port, host, listen_port), flush=True)
             status = service.run_until_stopped()
     finally:
         if simulator is not None:
@@ -103,6 +97,20 @@ def cmd_run(args: argparse.Namespace) -> int:
     if status != 0 and service.failure is not None and not isinstance(service.failure, FogDriverError):
         raise InternalError.from_exception(service.failure)  # the acquisition thread logged its traceback
     return status
+
+
+def _readiness_line(service: Service, port: str, host: str, listen_port: int) -> str:
+    """The line that says the daemon is ready: the port, where clients connect, the model in use (its file and the
+    instrument serial it was fitted for), the raw capture, and the two commands that connect to it; it ends
+    ``(Ctrl-C to stop)`` (what a script waiting for it looks for)."""
+    address = format_address(host, listen_port)  # an IPv6 address in brackets: [::1]:2948
+    web = "" if service.web is None else f"; web view on http://{format_address(*service.web.address)}/"
+    model = service.model_fields
+    return (
+        f"fog-driver {__version__}: {port} -> listening on {address}{web}; model {model.get('path', '-')} "
+        f"(fitted for {model.get('serial', '-')}); raw capture in {service.config.capture_dir}/; "
+        f"connect with: fog-driver watch {address} or fog-driver ctl {address} status  (Ctrl-C to stop)"
+    )
 
 
 def _never_world_writable() -> None:

@@ -21,9 +21,10 @@ Control, each returning the daemon's answer or raising a typed error (``CommandR
 ``bias(seconds)`` (waits for the capture's result), ``adapt(enable, reference_dph)``, ``save()``, ``reload()``,
 ``status()``.
 
-The objects are frozen dataclasses with units in their field names: ``Angle``, ``Device``, ``Status``,
-``Version``, ``Bias``, ``Reply`` (``?ZERO``, ``?ADAPT`` ... answers), ``ErrorReply``, ``Other`` (a class this
-library does not know); each keeps the daemon's object (``raw``) for keys a newer daemon adds.  A lost
+The objects are frozen dataclasses with units in their field names: ``Angle``, ``Device``, ``Status`` and
+``Version`` (both name the model in use: ``model_file``, a ``ModelInUse``), ``Bias``, ``Reply`` (``?ZERO``,
+``?ADAPT`` ... answers), ``ErrorReply``, ``Other`` (a class this library does not know); each keeps the
+daemon's object (``raw``) for keys a newer daemon adds.  A lost
 connection is made again with backoff (0.5 s doubling up to 30 s, each attempt logged as a warning through the
 standard ``logging`` module, logger ``fog_driver.client``), never
 silently: the first ``Angle`` after it carries ``gap_before`` (``Gap``: the sequence numbers either side, the
@@ -71,6 +72,7 @@ from .messages import (
     ErrorReply,
     Gap,
     Message,
+    ModelInUse,
     Other,
     Reply,
     Status,
@@ -100,6 +102,7 @@ __all__ = [
     "ErrorReply",
     "Gap",
     "Message",
+    "ModelInUse",
     "NoReply",
     "Other",
     "ProtocolError",

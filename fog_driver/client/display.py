@@ -6,7 +6,8 @@ Standard library only (this is part of the client library).  Angles: ``format_ar
 ``show`` (``-`` when absent, a number in a format spec, text made printable) for the terminal views, ``fixed``
 (``-`` unless a finite number) for the web page.  ``banners``: what the operator must see first (LINK DOWN, NO DATA,
 the bias), the same lines on the terminal and on the page.  ``drift_sigma``: the drift's 1-sigma as both show it
-(the since-bias form once a bias was captured).  ``Progress``: one status line rewritten on a terminal.
+(the since-bias form once a bias was captured).  ``model_in_use`` and ``model_text``: the model the daemon runs,
+as every view names it.  ``Progress``: one status line rewritten on a terminal.
 """
 
 from __future__ import annotations
@@ -41,6 +42,8 @@ __all__ = [
     "format_dms",
     "is_number",
     "mapping",
+    "model_in_use",
+    "model_text",
     "show",
     "terminal_safe",
 ]
@@ -173,6 +176,30 @@ def drift_sigma(angle: Mapping[str, Any], status: Mapping[str, Any]) -> tuple[fl
     if sigma is None or status.get("bias_captured") is not True:
         return sigma, False
     return since_bias_sigma_dph(sigma, status.get("bias_sigma_dph")), True
+
+
+def model_in_use(status: Mapping[str, Any], version: Mapping[str, Any]) -> Mapping[str, Any]:
+    """The model the daemon runs (``model_file``: path, sha256, kind, created_utc, serial): STATUS's, which a
+    reload changes from the next one on, else VERSION's (the greeting), else empty (a daemon before protocol
+    1.2, or one with a token before ``?AUTH``)."""
+    return mapping(mapping(status).get("model_file")) or mapping(mapping(version).get("model_file"))
+
+
+def model_text(model_file: Mapping[str, Any]) -> str:
+    """The model in one line, as ``watch``, ``ctl status`` and the web page name it: ``PATH (KIND, fitted
+    CREATED_UTC, for SERIAL)``, the path whole (made printable, never shortened); ``-`` when unknown.  The
+    SHA-256 is each view's to show (``ctl status`` prints it whole on a line of its own)."""
+    model_file = mapping(model_file)
+    if not model_file:
+        return MISSING
+    path = model_file.get("path")
+    details = [show(model_file.get("kind"))]
+    if model_file.get("created_utc") is not None:
+        details.append(f"fitted {show(model_file.get('created_utc'))}")
+    if model_file.get("serial") is not None:
+        details.append(f"for {show(model_file.get('serial'))}")
+    where = terminal_safe(path) if isinstance(path, str) else "(not from a file)"
+    return f"{where} ({', '.join(details)})"
 
 
 def _bias_hint(state: Mapping[str, Any]) -> str:

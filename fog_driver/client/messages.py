@@ -1,11 +1,12 @@
 """The daemon's protocol objects as typed, frozen values (units in the field names).
 
-``message_from(obj, line)`` turns one parsed protocol line into an ``Angle``, ``Device``, ``Status``,
-``Version``, ``Bias``, ``Reply`` (the answer to ``?WATCH``, ``?AUTH``, ``?ZERO``, ``?ADAPT``, ``?SAVE``,
-``?RELOAD``), ``ErrorReply`` or, for a class this library does not know, ``Other`` (the protocol says a
-client ignores classes and keys it does not know: the sample iterators do).  A value that is absent, or of the wrong
-type, is ``None`` in the typed field: the daemon omits absent values rather than sending ``null``.  Every message
-keeps the daemon's object (``raw``) and its line as received (``line``), for keys a newer daemon adds.
+``message_from(obj, line)`` turns one parsed protocol line into an ``Angle``, ``Device``, ``Status`` or
+``Version`` (both with the model in use, a ``ModelInUse``), ``Bias``, ``Reply`` (the answer to ``?WATCH``,
+``?AUTH``, ``?ZERO``, ``?ADAPT``, ``?SAVE``, ``?RELOAD``), ``ErrorReply`` or, for a class this library does not
+know, ``Other`` (the protocol says a client ignores classes and keys it does not know: the sample iterators do).
+A value that is absent, or of the wrong type, is ``None`` in the typed field: the daemon omits absent values
+rather than sending ``null``.  Every message keeps the daemon's object (``raw``) and its line as received
+(``line``), for keys a newer daemon adds.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ __all__ = [
     "ErrorReply",
     "Gap",
     "Message",
+    "ModelInUse",
     "Other",
     "Reply",
     "Status",
@@ -124,6 +126,27 @@ class Angle(_Base):
 
 
 @dataclass(frozen=True, slots=True)
+class ModelInUse:
+    """The model the daemon compensates with (STATUS's and VERSION's ``model_file``, protocol 1.2): after a
+    reload, the next STATUS names the new one."""
+
+    path: str | None = None  #: the model file, an absolute path on the daemon's host
+    sha256: str | None = None  #: of the file's bytes (hex)
+    kind: str | None = None  #: wesn, polynomial, ...
+    created_utc: str | None = None  #: when it was fitted (ISO 8601)
+    serial: str | None = None  #: the instrument serial it was fitted for
+
+
+def _model_file(obj: Mapping[str, Any]) -> ModelInUse | None:
+    """``model_file`` as a ``ModelInUse``; None when absent (a daemon before protocol 1.2, or on a daemon with a
+    token a VERSION before ``?AUTH``) or not an object."""
+    value = obj.get("model_file")
+    if not isinstance(value, Mapping):
+        return None
+    return ModelInUse(**{name: _text(value, name) for name in ("path", "sha256", "kind", "created_utc", "serial")})
+
+
+@dataclass(frozen=True, slots=True)
 class Version(_Base):
     """The greeting (``VERSION``)."""
 
@@ -132,6 +155,8 @@ class Version(_Base):
     proto_minor: int | None = None
     model: str | None = None  #: the kind of drift model in use
     instrument: Mapping[str, Any] | None = None  #: serial, firmware, rate_hz, scale_arcsec_per_count
+    #: the model in use (protocol 1.2; None from an older daemon, and before ``?AUTH`` on one with a token)
+    model_file: ModelInUse | None = field(default=None, kw_only=True)
 
 
 @dataclass(frozen=True, slots=True)
@@ -178,6 +203,8 @@ class Status(_Base):
     #: the drift's sigma during the last ``?BIAS`` capture, sigma(t_b), deg/h (protocol 1.1; None: no capture,
     #: or no sigma then); ``since_bias_sigma_dph`` combines it with an ``Angle``'s
     bias_sigma_dph: float | None = None
+    #: the model in use (protocol 1.2; None from an older daemon)
+    model_file: ModelInUse | None = field(default=None, kw_only=True)
 
 
 @dataclass(frozen=True, slots=True)
@@ -265,7 +292,8 @@ def message_from(obj: Mapping[str, Any], line: bytes = b"") -> Message | None:
             axes_rate_raw_dph=axes,
         )
     if cls == "STATUS":
-        return Status(**base, **{name: _read(obj, name, kind) for name, kind in _STATUS_FIELDS})
+        fields = {name: _read(obj, name, kind) for name, kind in _STATUS_FIELDS}
+        return Status(**base, **fields, model_file=_model_file(obj))
     if cls == "DEVICE":
         return Device(
             **base,
@@ -286,6 +314,7 @@ def message_from(obj: Mapping[str, Any], line: bytes = b"") -> Message | None:
             proto_minor=_integer(obj, "proto_minor"),
             model=_text(obj, "model"),
             instrument=_mapping(obj, "instrument"),
+            model_file=_model_file(obj),
         )
     if cls == "BIAS":
         return Bias(

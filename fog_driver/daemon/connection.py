@@ -25,14 +25,18 @@ version, ``proto_major`` changes only when a key changes meaning or goes away.
 class      sent when
 =========  =================================================================
 VERSION    first line on every connection, and in answer to ``?VERSION;``:
-           ``release``, ``proto_major``, ``proto_minor`` and the instrument's
-           identity (filled in by the service); on a token-protected daemon a
-           client that has not authorized gets the first three only
+           ``release``, ``proto_major``, ``proto_minor``, the model in use
+           (``model``, its kind; since 1.2 ``model_file``: ``path``,
+           ``sha256``, ``kind``, ``created_utc``, ``serial``) and the
+           instrument's identity (filled in by the service); on a
+           token-protected daemon a client that has not authorized gets the
+           first three only
 DEVICE     second line on connect when an instrument is known, and to every
            authorized client whenever the instrument (or its link state)
            changes; on a token-protected daemon, right after a successful
            ``?AUTH`` instead of on connect
 STATUS     to every authorized client (watching or not), periodic summaries
+           (since 1.2 with VERSION's ``model_file``, new after a reload)
 ANGLE      one per instrument sample, only to clients with an enabled WATCH,
            decimated per client (see ``?WATCH``); on a token-protected daemon
            only to authorized clients, unless it opens the stream to everyone
@@ -87,7 +91,7 @@ lines may be interleaved.
 
 Example session (``nc 127.0.0.1 2948``)::
 
-    {"class":"VERSION","release":"0.1.0","proto_major":1,"proto_minor":1,...}
+    {"class":"VERSION","release":"0.1.0","proto_major":1,"proto_minor":2,...}
     {"class":"DEVICE","serial":"FOG-SYN-0001",...}
     ?WATCH={"enable":true,"rate_hz":1}
     {"class":"WATCH","enable":true,"rate_hz":1}

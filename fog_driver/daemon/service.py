@@ -131,6 +131,9 @@ class Service:
         #: the SHA-256 of the model's bytes (of its file, or of the text ``save_model`` writes for an object)
         self.model_sha256 = hashlib.sha256(self.model_bytes).hexdigest()
         self.model_path: str | None = None if model_file is not None else str(config.model_path)  #: None: an object
+        #: STATUS's and VERSION's ``model_file`` (path, SHA-256, kind, fit date, serial), one object replaced whole
+        #: by a reload, so no reader sees one model's path with another's digest
+        self.model_fields = status.model_file_fields(self.model_file, self.model_path, self.model_sha256)
         for line in self.model_file.warnings(str(config.model_path)):
             log.warning("model_warning", message=line)
         self.lock = threading.Lock()  # the in-memory pipeline only
@@ -325,7 +328,7 @@ class Service:
             self._swap_model(model_file, data, config.force_model, str(path))
             for line in model_file.warnings(str(path)):
                 log.warning("model_warning", message=line)
-            log.info("model_reloaded", model=str(path), kind=model_file.kind, created_utc=model_file.created_utc)
+            log.info("model_reloaded", model=str(path), **self.model_fields)
             return {"class": "RELOAD", "model": model_file.kind, "created_utc": model_file.created_utc, "changed": True}
 
     def reload_model(self, model_file: ModelFile) -> None:
@@ -349,11 +352,14 @@ class Service:
             self.binding.swap_model(model_file, new)
             self.binding.force = force
             self.model_file, self.model_bytes, self.model_sha256, self.model_path = model_file, data, digest, path
+            self.model_fields = status.model_file_fields(model_file, path, digest)
             self.reloads += 1
             self.note("model", kind=model_file.kind, created_utc=model_file.created_utc, sha256=digest)
             if self.capture is not None:
                 self.capture.keep_model(digest, data)
                 self.capture.update_provenance({"model": self._model_provenance()}, current_file=False)
+        if self.web is not None:  # the page's VERSION names the new model too (STATUS does from its next one)
+            self.web.publish(self.version_object())
 
     def reload_config(self, config: DriverConfig) -> dict:
         """SIGHUP: apply every setting that can change live, all or nothing, and say which need a restart.
@@ -400,12 +406,14 @@ class Service:
         if self.config.http is not None:  # first: its errors come before anything else listens or logs
             self._start_web(self._make_web())
         try:
-            return self._start_after_web()
+            address = self._start_after_web()
         except BaseException:
             if self.web is not None:
                 self.web.stop()
                 self.web = None
             raise
+        log.info("model_in_use", **self.model_fields)  # a reload logs model_reloaded
+        return address
 
     def _start_after_web(self) -> tuple[str, int]:
         host, port = parse_host_port(self.config.listen)
@@ -568,7 +576,8 @@ class Service:
                 with self.lock:
                     status = self.status_object()
                 self.publish(status)
-                log.info("status", **{k: v for k, v in status.items() if k != "class"})
+                # the model is logged when the daemon starts (model_in_use) and reloads it, not every second
+                log.info("status", **{k: v for k, v in status.items() if k not in ("class", "model_file")})
                 self.notifier.status(
                     f"{status['port_state']}, {status['frames']} frames, "
                     f"{status.get('clients', 0)} clients, capture {status.get('capture_state')}"

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import math
+import os
 import resource
 import time
 from typing import Any
@@ -25,15 +26,16 @@ __all__ = [
     "device_object",
     "identity_fields",
     "metrics_state",
+    "model_file_fields",
     "status_object",
     "version_object",
 ]
 
 #: The NDJSON protocol's version (``connection.py``): the major changes only when a key changes meaning or goes,
 #: the minor when keys are added (1.1: ANGLE's ``drift_sigma_dph``, STATUS's and BIAS's ``bias_sigma_dph``,
-#: STATUS's ``noise_1min_dph``).
+#: STATUS's ``noise_1min_dph``; 1.2: STATUS's and VERSION's ``model_file``).
 PROTO_MAJOR = 1
-PROTO_MINOR = 1
+PROTO_MINOR = 2
 
 
 class CpuMeter:
@@ -84,14 +86,32 @@ def identity_fields(identity: IdentityFrame) -> dict:
     }
 
 
+def model_file_fields(model_file: Any, path: str | None, sha256: str) -> dict[str, str]:
+    """STATUS's and VERSION's ``model_file``: the model in use, ``path`` (absolute; None for a model given as an
+    object), ``sha256`` of the bytes it was read from, ``kind``, ``created_utc`` (its fit date) and ``serial`` (the
+    instrument serial it was fitted for); an empty value is omitted.  The service keeps it as ``model_fields``,
+    made again by each reload, so every view names the model in use."""
+    fields = {
+        "path": None if path is None else os.path.abspath(path),
+        "sha256": sha256,
+        "kind": model_file.kind,
+        "created_utc": model_file.created_utc,
+        "serial": model_file.instrument_serial,
+    }
+    return {key: value for key, value in fields.items() if value}
+
+
 def version_object(service: Any) -> dict:
-    """VERSION: the release, the protocol's version, the model's kind and (once known) the instrument."""
+    """VERSION: the release, the protocol's version, the model's kind and file (``model_file_fields``) and (once
+    known) the instrument.  A client that has not authorized on a token-protected daemon gets the first three
+    only (``hub.PUBLIC_VERSION_KEYS``)."""
     obj: dict[str, Any] = {
         "class": "VERSION",
         "release": __version__,
         "proto_major": PROTO_MAJOR,
         "proto_minor": PROTO_MINOR,
         "model": service.model_file.kind,
+        "model_file": dict(service.model_fields),
     }
     identity = service.acquisition.identity
     if identity is not None:
@@ -144,6 +164,7 @@ def status_object(service: Any, *, mark_cpu: bool = True) -> dict:
         "bias_captured": acquisition.bias_captured,
         "adapting": bool(compensator and compensator.reference_rate_dph is not None),
         "reloads": service.reloads,
+        "model_file": dict(service.model_fields),
     }
     obj.update(_pipeline_fields(service))
     obj.update(_listener_fields(service))

@@ -11,13 +11,15 @@
 ``table ANGLE``        ``?TABLE``: the table has stood at ANGLE degrees for the last ``--dwell`` seconds
                        (default 12, the least), from ``--angle-start`` when it moved within the dwell
 ``reload``             ``?RELOAD``: load the model file again (unchanged: nothing happens)
-``status``             ``?STATUS``: one line of the daemon's state
+``status``             ``?STATUS``: one line of the daemon's state, then the model in use (its
+                       file, kind, fit date and serial) and ``sha256: HEX`` of its file
 ``save``               ``?SAVE``: save the adaptation state to the configured file
 =====================  =========================================================================
 
 It is built on the client library (``fog_driver.client.Client``, without reconnecting); the token comes
 from ``FOG_DRIVER_TOKEN`` or ``--token-file`` and ``?AUTH`` is sent first.  Output: one human-readable line per
-answer on stdout, or with ``--json`` the daemon's own lines (the reply, and for ``bias`` the result event).
+answer on stdout (``status``: three, with the model's), or with ``--json`` the daemon's own lines (the reply,
+and for ``bias`` the result event).
 Exit statuses (sysexits), each failure one line on stderr: 0 done; 64 the daemon does not know the
 command (an older daemon), or bad arguments; 65 the daemon refused the command or the bias capture
 failed; 69 the daemon cannot be reached or the connection was lost; 77 the token was refused or is
@@ -33,7 +35,7 @@ from collections.abc import Mapping
 from typing import Any, TextIO
 
 from ..client import Bias, BiasFailed, Client, CommandRefused, Message, NoReply, Status, Unauthorized, UnknownCommand
-from ..client.display import DEFAULT_BIAS_S, Progress
+from ..client.display import DEFAULT_BIAS_S, Progress, mapping, model_text
 from ..client.protocol import (
     MAX_BIAS_S,
     MAX_REFERENCE_DPH,
@@ -133,7 +135,7 @@ def _word(obj: Mapping[str, Any], key: str) -> str:
 
 
 def describe(reply: dict) -> str:
-    """One human-readable line for a daemon's answer (or BIAS event)."""
+    """The human-readable text of a daemon's answer (or BIAS event): one line, but for STATUS's model lines."""
     cls = reply.get("class")
     if cls == "ZERO":
         return "zeroed: the published angle starts again from 0 here"
@@ -179,13 +181,23 @@ def describe(reply: dict) -> str:
                 f"capturing {_number(reply, 'bias_capture_s', '.1f')} / "
                 f"{_number(reply, 'bias_capture_target_s', 'g')} s"
             )
-        return (
+        line = (
             f"port {_word(reply, 'port_state')}, {_number(reply, 'frames', ',')} frames, "
             f"{_number(reply, 'published', ',')} published, bias {_number(reply, 'bias_dph', '.4f')} deg/h ({bias}), "
             f"adapting {'yes' if reply.get('adapting') else 'no'}, {_number(reply, 'clients', 'd')} clients, "
             f"capture {_word(reply, 'capture_state')}, uptime {_number(reply, 'uptime_s', '.0f')} s"
         )
+        return "\n".join([line, *_model_lines(reply)])
     return _word(reply, "class")
+
+
+def _model_lines(status: Mapping[str, Any]) -> list[str]:
+    """STATUS's model in use (protocol 1.2): ``model PATH (KIND, fitted ..., for SERIAL)`` and ``sha256: HEX``;
+    none from an older daemon."""
+    model_file = mapping(status.get("model_file"))
+    if not model_file:
+        return []
+    return [f"model {model_text(model_file)}", f"sha256: {_word(model_file, 'sha256')}"]
 
 
 def _refused(name: str, exc: CommandRefused) -> FogDriverError:

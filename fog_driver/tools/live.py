@@ -14,9 +14,9 @@ from collections import deque
 from collections.abc import Mapping
 from typing import Any, TextIO
 
-from ..client.display import is_number, show
+from ..client.display import is_number, model_in_use, show
 from ..client.wire import TOKEN_ENV
-from .render import compact_line, device_text, identity_text, render, server_text
+from .render import compact_line, device_text, identity_text, model_line, render, server_text
 from .terminal import (
     CLEAR_EOL,
     CLEAR_EOS,
@@ -99,6 +99,7 @@ class LiveView:
         self._next_line = started + LINE_PERIOD_S
         self._angles_at_last_line = 0
         self._lines_printed = 0
+        self._model_shown: dict[str, Any] | None = None  #: the model a line named last (off a terminal)
 
     # -- input
 
@@ -112,9 +113,11 @@ class LiveView:
             self._rate.add(obj)
         elif cls == "STATUS":
             self.state["status"] = obj
+            self._model_changed()
         elif cls == "VERSION":
             self.state["version"] = obj
             self._event(f"connected to {self.state['address']}: {server_text(obj)}; instrument {identity_text(obj)}")
+            self._model_changed()
         elif cls == "DEVICE":
             self.state["device"] = obj
             down = "  *** LINK DOWN ***" if obj.get("state") == "deactivated" else ""
@@ -139,6 +142,13 @@ class LiveView:
         else:
             self.state["unknown"] += 1
         self._dirty = True
+
+    def _model_changed(self) -> None:
+        """Off a terminal, a line naming the model in use when it is first known and after each reload."""
+        model_file = dict(model_in_use(self.state.get("status") or {}, self.state.get("version") or {}))
+        if model_file and model_file != self._model_shown:
+            self._model_shown = model_file
+            self._event(f"model {model_line(model_file)}")
 
     def _bias(self, obj: Mapping[str, Any]) -> None:
         state = obj.get("state")
@@ -185,7 +195,7 @@ class LiveView:
     def _draw(self, now: float) -> None:
         columns, rows = terminal_size(self.out)
         width, height = max(20, columns), max(3, rows)
-        lines = render(self._snapshot(now), width=width - 1, degree=self.degree)[: height - 1]
+        lines = render(self._snapshot(now), width=width - 1, degree=self.degree, height=height - 1)[: height - 1]
         prefix = HIDE_CURSOR + HOME + CLEAR_SCREEN if not self._drawn else HOME
         body = "".join(line[: width - 1] + CLEAR_EOL + "\n" for line in lines)
         self._drawn = self._cursor_hidden = True

@@ -19,11 +19,13 @@ from ..client.display import (
     format_dms,
     is_number,
     mapping,
+    model_in_use,
+    model_text,
     show,
     terminal_safe,
 )
 
-__all__ = ["compact_line", "device_text", "identity_text", "render", "server_text"]
+__all__ = ["compact_line", "device_text", "identity_text", "model_line", "render", "server_text"]
 
 
 def _angle_text(value: Any, degree: str) -> str:
@@ -60,6 +62,19 @@ def device_text(device: Mapping[str, Any]) -> str:
     if device.get("rate_hz") is not None:
         parts.append(_hz(device.get("rate_hz")))
     return ", ".join(parts)
+
+
+#: The hex digits of the model file's SHA-256 ``watch`` shows (``fog-driver ctl status`` prints them all).
+MODEL_SHA256_DIGITS = 12
+
+
+def model_line(model_file: Mapping[str, Any]) -> str:
+    """The model in use (``display.model_text``) and the first ``MODEL_SHA256_DIGITS`` of its SHA-256."""
+    text = model_text(model_file)
+    sha256 = mapping(model_file).get("sha256")
+    if isinstance(sha256, str):
+        text += f"  sha256 {terminal_safe(sha256[:MODEL_SHA256_DIGITS])}"
+    return text
 
 
 def server_text(version: Mapping[str, Any]) -> str:
@@ -174,12 +189,16 @@ def _drift_text(angle: Mapping[str, Any], status: Mapping[str, Any]) -> str:
     return text + f" +- {show(sigma, '.4f')} (1-sigma)"
 
 
-def render(state: Mapping[str, Any], *, width: int = 80, degree: str = DEGREE) -> list[str]:
+def render(state: Mapping[str, Any], *, width: int = 80, degree: str = DEGREE, height: int | None = None) -> list[str]:
     """The live view's lines (no ANSI, no newlines) from a state mapping; every key may be absent.  Every line
     fits in ``width`` columns (the terminal's; 80 by default): a longer one is folded at spaces (``_fold``).
+    With ``height`` (the terminal's lines), a block that would not fit loses the end of its STATUS counters (the
+    last line kept says how many more there are), never the lines after them: the error, the last key's outcome,
+    the keys.
 
     Keys read: ``address`` (text), ``elapsed_s``, ``version``/``device``/``angle``/``status``
-    (the latest protocol object of that class), ``error`` (the last ERROR message),
+    (the latest protocol object of that class; the model in use is STATUS's, else VERSION's), ``error`` (the last
+    ERROR message),
     ``watch`` (the server's WATCH answer), ``angles`` (ANGLE objects received), ``angle_rate_hz``, ``angle_age_s``
     (seconds since the last ANGLE), ``rate_mean_dph`` and ``rate_span_s`` (the averaged rate and the device time it
     spans), ``keys`` (keys work: their line is shown), ``action`` (the last key's outcome), ``malformed``,
@@ -191,7 +210,11 @@ def render(state: Mapping[str, Any], *, width: int = 80, degree: str = DEGREE) -
     if state.get("elapsed_s") is not None:
         head += f"  |  {show(state.get('elapsed_s'), '.1f')} s"
     lines = [head, *banners(state)]
-    lines += [f"{'instrument':<12}{identity_text(version)}", f"{'device':<12}{device_text(device)}"]
+    lines += [
+        f"{'instrument':<12}{identity_text(version)}",
+        f"{'model':<12}{model_line(model_in_use(status, version))}",
+        f"{'device':<12}{device_text(device)}",
+    ]
     if not angle:
         lines.append(f"{'angle':<12}{MISSING} (waiting for ANGLE)")
     else:
@@ -211,13 +234,25 @@ def render(state: Mapping[str, Any], *, width: int = 80, degree: str = DEGREE) -
         lines.append(f"{'sample':<12}{sample}")
     lines.append(f"{'received':<12}{_received(state)}")
     items = _status_items(status)
-    lines.extend(_wrap("status", items, width) if items else [f"{'status':<12}{MISSING}"])
+    counters = _wrap("status", items, width) if items else [f"{'status':<12}{MISSING}"]
+    after = []
     if state.get("error") is not None:
-        lines.append(f"{'error':<12}{show(state.get('error'))}")
+        after.append(f"{'error':<12}{show(state.get('error'))}")
     if state.get("action") is not None:
-        lines.append(f"{'last key':<12}{terminal_safe(str(state.get('action')))}")
+        after.append(f"{'last key':<12}{terminal_safe(str(state.get('action')))}")
     if state.get("keys"):
-        lines.append(f"{'keys':<12}q quit   z zero the angle   b capture the bias ({DEFAULT_BIAS_S} s, table still)")
+        after.append(f"{'keys':<12}q quit   z zero the angle   b capture the bias ({DEFAULT_BIAS_S} s, table still)")
+    before, after = _folded(lines, width), _folded(after, width)
+    counters = _folded(counters, width)
+    if height is not None and len(before) + len(counters) + len(after) > height:
+        room = max(1, height - len(before) - len(after))
+        hidden = len(counters) - room + 1
+        label = "status" if room == 1 else ""
+        counters = [*counters[: room - 1], f"{label:<12}... {hidden} more line(s) of counters (a taller terminal)"]
+    return before + counters + after
+
+
+def _folded(lines: list[str], width: int) -> list[str]:
     return [folded for line in lines for folded in _fold(line, width)]
 
 

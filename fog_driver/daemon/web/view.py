@@ -23,7 +23,8 @@ closes when the first sample of the next one arrives.  Device time that goes bac
 instrument restarted, another one plugged in) starts the series afresh.
 
 The numbers shown are formatted here (``text``), with ``watch``'s rules (``format_arcsec``,
-``format_dms``), so the page, ``fog-driver watch`` and a script formatting an ANGLE line all agree.
+``format_dms``), so the page, ``fog-driver watch`` and a script formatting an ANGLE line all agree; so is the
+model in use (``model``, ``model_sha256``: STATUS's ``model_file``, new after a reload, else VERSION's).
 """
 
 from __future__ import annotations
@@ -41,6 +42,8 @@ from ...client.display import (
     drift_sigma,
     format_arcsec,
     format_dms,
+    model_in_use,
+    model_text,
 )
 from ...client.display import finite_number as _number
 from ...client.display import fixed as _fixed
@@ -311,6 +314,7 @@ class ViewState:
             "age": "-" if angle_age_s is None else f"{angle_age_s:.1f} s ago",
             "link": {"activated": "link up", "deactivated": "link down"}.get(device.get("state"), "-"),
             "instrument": " ".join(str(device[k]) for k in ("serial", "format") if k in device) or "-",
+            **_model_texts(model_in_use(status, self.objects.get("VERSION", {}))),
         }
         for name, value in temps.items():
             out[f"temp_{name}"] = _fixed(value, 3)
@@ -342,6 +346,13 @@ def _sigma_text(angle: Mapping[str, Any], status: Mapping[str, Any]) -> dict[str
         label = "1\u03c3 of the 1-min mean, about the run's mean (the bias)"
     band = f"\u00b1{BAND_SIGMAS:g}\u03c3 (95 %)" + (", since the bias" if since_bias else "")
     return {"drift_sigma_dph": _fixed(shown, 4), "drift_sigma_label": label, "drift_band_label": band}
+
+
+def _model_texts(model_file: Mapping[str, Any]) -> dict[str, str]:
+    """The model in use as the page names it: ``display.model_text`` (as ``watch`` and ``ctl status``) and the
+    whole SHA-256 of its file."""
+    sha256 = model_file.get("sha256")
+    return {"model": model_text(model_file), "model_sha256": sha256 if isinstance(sha256, str) else "-"}
 
 
 def _angle(value: Any, fmt: Any) -> str:
