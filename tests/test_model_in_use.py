@@ -267,3 +267,30 @@ def test_the_web_page_shows_the_model_and_the_new_one_after_a_reload(tmp_path):
     finally:
         view.stop()
     assert problems == [], problems
+
+
+def test_on_an_80x24_terminal_the_model_line_leaves_the_keys_and_the_last_key_on_screen():
+    """The model line (two lines at 80 columns) pushed the last key's outcome and the keys off a 24-line
+    terminal: ``b``'s "bias captured" was never seen.  A block that does not fit loses the end of its STATUS
+    counters instead, and says how many lines of them."""
+    model = expected(DEFAULT_MODEL)
+    status = {"class": "STATUS", "model_file": model, **{f"counter_{i:02d}": i for i in range(60)}}
+    state = {
+        "address": "127.0.0.1:2948",
+        "version": {"proto_major": 1, "proto_minor": 2, "model_file": model},
+        "status": status,
+        "angle": {"seq": 1, "t_s": 1.0, "angle_arcsec": 1.0, "angle_raw_arcsec": 1.0, "flags": []},
+        "action": "bias captured: 10.2883 deg/h over 60.0 s, removed from rate and angle from now on",
+        "keys": True,
+    }
+    whole = render(state, width=79)
+    lines = render(state, width=79, height=23)
+    assert len(whole) > 23 and len(lines) == 23
+    (cut,) = [i for i, line in enumerate(lines) if "more line(s) of counters" in line]
+    hidden = int(re.search(r"\.\.\. (\d+) more line\(s\) of counters", lines[cut]).group(1))
+    tail = lines[cut + 1 :]
+    assert tail == whole[len(whole) - len(tail) :]  # the last key's outcome and the keys, whole
+    assert tail[0].startswith("last key") and tail[-1].startswith("keys")
+    assert lines[:cut] == whole[:cut]  # everything above the cut as it was, the model's lines included
+    assert [line for line in lines if line.startswith("model")][0].startswith(f"model       {model['path']} (")
+    assert hidden == len(whole) - len(tail) - cut  # the counters' lines it left out, counted right
