@@ -81,7 +81,32 @@ def test_minute_means_are_every_samples_mean_and_points_one_per_second():
         assert p["t_s"] == last["t_s"] and p["drift_dph"] == last["drift_dph"]
         assert p["temps_c"] == last["temps_c"]
         assert p["rate_dph"] == pytest.approx(rate[second == k].mean(), rel=1e-12)
-    assert view.rate_1s_dph == pytest.approx(rate[second == closed_s[-1]].mean(), rel=1e-12)
+    assert view.rate_1s_dph == pytest.approx(rate[t > t[-1] - 1.0].mean(), rel=1e-12)  # the last second's
+
+
+def test_the_rate_1s_mean_is_watchs_every_samples_mean_over_the_last_second_through_a_zero_and_a_gap():
+    """The page and ``fog-driver watch`` show the 1-s mean with one piece of code (``display.RateAverage``): over
+    every sample it is the mean of their ``rate_dph`` in the last second of device time; a ``?ZERO`` (the angles
+    jump to 0) does not disturb it, and after frames lost (a replug) it starts again from the first sample after
+    them, averaging on through the samples flagged ``gap`` while the estimate settles."""
+    from fog_driver.client.display import RateAverage
+
+    samples = stream(100 * 5)  # 5 s at 100 Hz from t = 3 s
+    for s in samples[-50:]:  # a ?ZERO half a second before the end
+        s["angle_arcsec"] -= samples[-51]["angle_arcsec"]
+    view = ViewState()
+    view.add_angles(samples, 0.0)
+    t = np.array([s["t_s"] for s in samples])
+    rate = np.array([s["rate_dph"] for s in samples])
+    assert view.rate_1s_dph == pytest.approx(rate[t > t[-1] - 1.0].mean(), rel=1e-12)
+    # 145 s of frames lost, then 0.5 s of samples all flagged gap: the mean of those after the first
+    after = [angle(14500 + i, 150.0 + i / 100, flags=["gap"]) for i in range(50)]
+    view.add_angles(after, 1.0)
+    assert view.rate_1s_dph == pytest.approx(np.mean([s["rate_dph"] for s in after[1:]]), rel=1e-12)
+    watch = RateAverage()
+    for s in samples + after:
+        watch.add(s)
+    assert watch.mean() == (view.rate_1s_dph, pytest.approx(0.49, rel=1e-9))
 
 
 @pytest.mark.determinism

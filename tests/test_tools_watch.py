@@ -10,6 +10,7 @@ from __future__ import annotations
 import io
 import itertools
 import json
+import math
 import os
 import re
 import signal
@@ -172,8 +173,9 @@ def test_count_reached_exits_0_with_the_latest_values():
     assert "seq 3 |" in last and "t 12.540 s" in last
     assert 'angle 3726.50" (1°02\'06.50")' in last
     assert 'raw -63.00" (-0°01\'03.00")' in last  # -59.995 - 3 = -62.995..., rounded away from zero
-    # the mean rate over the ANGLEs since the gap (seq 2): 1" in 0.1 s of device time, not one sample's 15.041
-    assert "rate 10.00 deg/h (mean over 0.1 s)" in last and "drift 0.1234 deg/h" in last
+    # the mean rate since the gap (seq 2, after seq 1 unflagged: frames lost between them): seq 2 to 3 are adjacent
+    # frames, so the mean over them is frame 3's own rate
+    assert "rate 15.04 deg/h (mean over 0.1 s)" in last and "drift 0.1234 deg/h" in last
     assert "temps top 20.25 bottom 19.88 housing 19.60 degC" in last
     assert "flags none" in last
     assert "3 ANGLE" in last and "3 malformed" in last and "1 unknown class" in last  # WATCH is known
@@ -1006,3 +1008,51 @@ def test_the_terminal_is_restored_when_a_signal_ends_or_suspends_the_watch(tmp_p
         assert daemon.terminate() == 0
     assert termios.tcgetattr(term.slave) == before
     term.close()
+
+
+def frames_after_a_replug(rng_seed: int = 13) -> tuple[list[dict], list[int], list[float]]:
+    """A 100 Hz instrument's frames as the daemon publishes them around a replug: 3 s, then 145 s of frames that
+    never arrived (the angle holds, device time runs on), then 5 s all flagged ``gap`` while the estimate
+    settles.  Each frame's rate is a whole number of deg/h (one count per frame), its angle the running sum of
+    rate x 0.01 s.  Returns the frames and each one's seq and rate (the reference)."""
+    import numpy as np
+
+    rng = np.random.default_rng(rng_seed)
+    seqs = [*range(0, 300), *range(14800, 15300)]
+    frames, rates, arcsec = [], [], 1000.0
+    for seq in seqs:
+        rate = float(rng.integers(6, 15))
+        arcsec += rate * 0.01  # deg/h = arcsec/s
+        flags = ["gap"] if seq >= 14800 else []
+        frames.append(angle(seq, t_s=50.0 + seq / 100, angle_arcsec=arcsec, rate_dph=rate, flags=flags))
+        rates.append(rate)
+    return frames, seqs, rates
+
+
+def decimated(frames: list[dict], rate_hz: float) -> list[dict]:
+    """The daemon's decimation (``Connection.keep_angles``): the first frame of each 1/rate_hz of device time."""
+    kept, last = [], None
+    for frame in frames:
+        bucket = math.floor(frame["t_s"] * rate_hz)
+        if bucket != last:
+            kept.append(frame)
+            last = bucket
+    return kept
+
+
+def test_watch_after_a_replug_shows_the_one_second_mean_while_the_samples_are_flagged_gap():
+    """The review's finding 13: for the minutes after a replug every sample is flagged ``gap`` (the estimate
+    settling), and watch showed one sample's rate (``8.0 deg/h (one sample)``, 1 deg/h steps) where the web view
+    kept the 1-s mean.  The mean over the last second of device time is every frame's rate in it, the frames
+    the decimation dropped included."""
+    frames, seqs, rates = frames_after_a_replug()
+    kept = decimated(frames, 10.0)
+    daemon = FakeDaemon([ndjson(*kept)], then="wait")
+    status, text = watch(daemon, count=len(kept), rate_hz=10)
+    assert status == 0
+    last = kept[-1]
+    first = max((k for k in kept if k["t_s"] <= last["t_s"] - 1.0), key=lambda k: k["t_s"])  # the window's start
+    window = [r for s, r in zip(seqs, rates) if first["seq"] < s <= last["seq"]]
+    assert len(window) == 100
+    mean = sum(window) / len(window)
+    assert f"rate {mean:.2f} deg/h (mean over {last['t_s'] - first['t_s']:.1f} s)" in text.splitlines()[-1]

@@ -6,7 +6,8 @@ Standard library only (this is part of the client library).  Angles: ``format_ar
 ``show`` (``-`` when absent, a number in a format spec, text made printable) for the terminal views, ``fixed``
 (``-`` unless a finite number) for the web page.  ``banners``: what the operator must see first (LINK DOWN, NO DATA,
 the bias), the same lines on the terminal and on the page.  ``drift_sigma``: the drift's 1-sigma as both show it
-(the since-bias form once a bias was captured).  ``Progress``: one status line rewritten on a terminal.
+(the since-bias form once a bias was captured).  ``RateAverage``: the rate's mean over the last second of device
+time, which both show.  ``Progress``: one status line rewritten on a terminal.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import json
 import math
 import sys
 import time
+from collections import deque
 from collections.abc import Mapping
 from decimal import ROUND_HALF_UP, Decimal
 from typing import Any, TextIO, TypeGuard
@@ -31,8 +33,10 @@ __all__ = [
     "DEGREE",
     "MISSING",
     "NO_DATA_S",
+    "RATE_AVERAGE_S",
     "TEMPERATURE_ORDER",
     "Progress",
+    "RateAverage",
     "banners",
     "drift_sigma",
     "finite_number",
@@ -54,6 +58,8 @@ MISSING = "-"
 DEGREE = "\u00b0"
 #: The web view's band around the drift estimate: +- this many sigma (95 % of a normal error).
 BAND_SIGMAS = 1.96
+#: The rate shown is averaged over this much device time (s): ``watch`` and the web view.
+RATE_AVERAGE_S = 1.0
 
 
 #: From this size on (arcsec) an angle is shown as it is, not rounded to 0.01": a float's hundredths
@@ -173,6 +179,70 @@ def drift_sigma(angle: Mapping[str, Any], status: Mapping[str, Any]) -> tuple[fl
     if sigma is None or status.get("bias_captured") is not True:
         return sigma, False
     return since_bias_sigma_dph(sigma, status.get("bias_sigma_dph")), True
+
+
+class RateAverage:
+    """The compensated rate's mean over the last ``RATE_AVERAGE_S`` of device time: the mean of *every* frame's
+    ``rate_dph`` in it, from ANGLE objects in the order they come, all of them (the web view) or one per
+    ``1/rate_hz`` of a decimated ``?WATCH`` (``fog-driver watch``).  One sample's ``rate_dph`` is quantized to
+    one count per frame period (1 deg/h steps at 100 Hz); the mean is not.
+
+    Two ANGLE objects ``a``, ``b`` in a row bound a segment of ``n = b.seq - a.seq`` frames; its mean rate is
+    ``b.rate_dph`` when ``n == 1`` (adjacent frames: the frame's own rate, which no ``?ZERO`` can disturb), else
+    the angle's difference over the device time, ``(b.angle_arcsec - a.angle_arcsec) / (b.t_s - a.t_s)``
+    (1 arcsec/s = 1 deg/h: every frame between them counted, the decimated ones too).  The mean is over the
+    segments ending in the last ``RATE_AVERAGE_S`` of device time, weighted by their frames::
+
+        rate_dph = sum(rate_k * n_k) / sum(n_k)        span_s = t_last - t_start of the first segment
+
+    The average starts again (no segment across) where the angle is not the sum of the frames' rates: device
+    time or ``seq`` going back (the instrument restarted, another one plugged in); frames lost between two
+    objects, seen as ``b`` flagged ``gap`` where ``a`` was not (the first frame after a gap is flagged, and its
+    successors while the estimate settles: those are averaged as any others), or a step of more than
+    ``RATE_AVERAGE_S`` to a ``gap`` sample (a second gap while settling); and ``reset`` (``watch`` calls it at its
+    own ``?ZERO``).  A shorter second gap while the first settles, or another client's ``?ZERO`` between two
+    decimated objects, is not seen: the mean is off for one second.  Objects without a finite ``t_s`` or an
+    integer ``seq`` are ignored."""
+
+    def __init__(self) -> None:
+        self._segments: deque[tuple[float, float, int, float]] = deque()  # (t_start, t_end, frames, rate x frames)
+        self._last: tuple[float, int, float | None, bool] | None = None  # (t_s, seq, angle_arcsec, flagged gap)
+
+    def reset(self) -> None:
+        """Start again from the next ANGLE object."""
+        self._segments.clear()
+        self._last = None
+
+    def add(self, angle: Mapping[str, Any]) -> None:
+        t_s, seq = finite_number(angle.get("t_s")), angle.get("seq")
+        if t_s is None or not isinstance(seq, int) or isinstance(seq, bool):
+            return
+        arcsec = finite_number(angle.get("angle_arcsec"))
+        flags = angle.get("flags")
+        gap = isinstance(flags, list) and "gap" in flags
+        previous, self._last = self._last, (t_s, seq, arcsec, gap)
+        if previous is None:
+            return
+        t_before, seq_before, arcsec_before, gap_before = previous
+        dt_s, frames = t_s - t_before, seq - seq_before
+        rate_dph = finite_number(angle.get("rate_dph")) if frames == 1 else None
+        if rate_dph is None and arcsec is not None and arcsec_before is not None and dt_s > 0:
+            rate_dph = (arcsec - arcsec_before) / dt_s
+        lost = gap and (not gap_before or dt_s > RATE_AVERAGE_S)
+        if dt_s <= 0 or frames <= 0 or lost or rate_dph is None:
+            self._segments.clear()
+            return
+        self._segments.append((t_before, t_s, frames, rate_dph * frames))
+        while self._segments[0][1] <= t_s - RATE_AVERAGE_S:
+            self._segments.popleft()
+
+    def mean(self) -> tuple[float, float] | None:
+        """``(rate_dph, span_s)``, or None before a segment (fewer than two objects since the start or a break)."""
+        if not self._segments:
+            return None
+        frames = sum(segment[2] for segment in self._segments)
+        total = math.fsum(segment[3] for segment in self._segments)
+        return total / frames, self._segments[-1][1] - self._segments[0][0]
 
 
 def _bias_hint(state: Mapping[str, Any]) -> str:

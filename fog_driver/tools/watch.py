@@ -12,11 +12,13 @@ closed), ``NO DATA for N s`` (no ANGLE for ``NO_DATA_S`` or more), and ``bias no
 daemon's STATUS says no ``?BIAS`` capture was made (at rest the angle then climbs with Earth rate plus
 the gyro's bias), or how far a running capture is.
 
-The rate shown is ``(angle_arcsec[last] - angle_arcsec[first]) / (t_s[last] - t_s[first])`` over the
-ANGLE objects of the last ``RATE_AVERAGE_S`` (1 s) of device time (1 arcsec/s = 1 deg/h): the mean of
-*every* sample's rate in that second, the decimated ones included, which a single sample's ``rate_dph``
-(quantized to one count per frame period: 1 deg/h steps at 100 Hz) is not.  It is shown to 0.01 deg/h.
-The average starts again after a ``gap`` flag, device time going backwards, and this watch's ``?ZERO``.
+The rate shown is the mean of *every* frame's rate over the last ``RATE_AVERAGE_S`` (1 s) of device time, the
+decimated ones included (``client.display.RateAverage``, the web view's code too: between two decimated ANGLE
+objects the angle's difference over the device time, 1 arcsec/s = 1 deg/h), which a single sample's
+``rate_dph`` (quantized to one count per frame period: 1 deg/h steps at 100 Hz) is not.  It is shown to
+0.01 deg/h.  The average starts again after frames were lost (the first sample flagged ``gap``; the samples
+flagged while the estimate settles afterwards are averaged), device time going backwards, and this watch's
+``?ZERO``.
 
 On a terminal the view is a fixed block redrawn in place (cursor home, clear to end of line and of
 screen; at most 10 redraws a second), and when stdin is a terminal too, keys act at once (stdin in

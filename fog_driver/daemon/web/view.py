@@ -18,9 +18,10 @@ Series kept for the plots (the last ``history_min`` minutes of device time):
   ``rate_dph = (1/n) * sum_i rate_dph_i`` (every sample, not the decimated ones: a mean of the published
   rates is the angle gained over the minute divided by its duration, unaffected by a ``?ZERO`` meanwhile).
 
-Also ``rate_1s_dph``, the same mean over the last full second (shown, and exported as a metric).  A span
-closes when the first sample of the next one arrives.  Device time that goes back (the
-instrument restarted, another one plugged in) starts the series afresh.
+Also ``rate_1s_dph``, the compensated rate's mean over the last second of device time (shown, and exported as a
+metric), computed by ``display.RateAverage``, the code ``fog-driver watch`` shows its rate with: fed every
+sample, it is the mean of their ``rate_dph``.  A span closes when the first sample of the next one arrives.
+Device time that goes back (the instrument restarted, another one plugged in) starts the series afresh.
 
 The numbers shown are formatted here (``text``), with ``watch``'s rules (``format_arcsec``,
 ``format_dms``), so the page, ``fog-driver watch`` and a script formatting an ANGLE line all agree.
@@ -37,6 +38,7 @@ from ...client.display import (
     BAND_SIGMAS,
     NO_DATA_S,
     TEMPERATURE_ORDER,
+    RateAverage,
     banners,
     drift_sigma,
     format_arcsec,
@@ -104,12 +106,11 @@ class ViewState:
         self.minutes: deque[dict[str, Any]] = deque()
         self.angle: Mapping[str, Any] | None = None
         self.angle_host_s: float | None = None
-        self.rate_1s_dph: float | None = None
+        self._rate = RateAverage()
         self.objects: dict[str, Mapping[str, Any]] = {}  # the last STATUS, DEVICE, VERSION by class
         self.events: deque[Mapping[str, Any]] = deque(maxlen=MAX_EVENTS)
         self.samples = 0
         self.restarts = 0
-        self._second: _Mean | None = None
         self._point: _Mean | None = None
         self._minute: _Mean | None = None
         self._missing: tuple[float, int] | None = None  # (host s it last grew, the count then)
@@ -151,16 +152,18 @@ class ViewState:
     def _restart(self) -> None:
         self.points.clear()
         self.minutes.clear()
-        self._second = self._point = self._minute = None
-        self.rate_1s_dph = None
+        self._point = self._minute = None
+        self._rate.reset()
         self.restarts += 1
 
+    @property
+    def rate_1s_dph(self) -> float | None:
+        """The compensated rate's mean over the last second of device time (``display.RateAverage``), or None."""
+        mean = self._rate.mean()
+        return None if mean is None else mean[0]
+
     def _add(self, obj: Mapping[str, Any], t_s: float) -> None:
-        second = math.floor(t_s)
-        if self._second is None or second != self._second.bucket:
-            if self._second is not None and self._second.n:
-                self.rate_1s_dph = self._second.rate_sum / self._second.n
-            self._second = _Mean(second)
+        self._rate.add(obj)
         point = math.floor(t_s / self.point_every_s)
         if self._point is None or point != self._point.bucket:
             if self._point is not None:
@@ -172,7 +175,7 @@ class ViewState:
                 self._close_minute(self._minute)
             self._minute = _Mean(minute)
         rate, raw = _number(obj.get("rate_dph")), _number(obj.get("rate_raw_dph"))
-        for mean in (self._second, self._point, self._minute):
+        for mean in (self._point, self._minute):
             if rate is not None and raw is not None:
                 mean.n += 1
                 mean.rate_sum += rate
