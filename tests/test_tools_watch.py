@@ -15,19 +15,23 @@ import os
 import re
 import signal
 import socket
+import subprocess
+import sys
 import threading
 import time
 
 import pytest
 
-from fog_driver.errors import DeviceError, UsageError
+from fog_driver.errors import DeviceError, TemporaryFailure, UsageError
 from fog_driver.tools.watch import (
+    DEFAULT_IDLE_S,
     MAX_LINE_BYTES,
     LineReader,
     compact_line,
     format_address,
     format_arcsec,
     format_dms,
+    idle_limit_s,
     parse_address,
     parse_line,
     render,
@@ -906,11 +910,28 @@ class Terminal:
         self._os.close(self.slave)
 
 
+def popen_watch_in(term: Terminal, address: tuple[str, int], **popen) -> subprocess.Popen:
+    """``fog-driver watch HOST:PORT`` started in ``term`` (its stdin and stdout), stderr piped."""
+    host, port = address
+    return subprocess.Popen(
+        [sys.executable, "-m", "fog_driver", "watch", f"{host}:{port}"],
+        stdin=term.slave,
+        stdout=term.slave,
+        stderr=subprocess.PIPE,
+        **popen,
+    )
+
+
+def press_q(term: Terminal, proc: subprocess.Popen) -> None:
+    """q: the watch ends, exit 0, nothing on stderr."""
+    term.type(b"q")
+    assert proc.wait(GUARD_S) == 0
+    assert proc.stderr.read() == b""
+
+
 def test_keys_z_b_q_on_a_terminal_and_the_terminal_restored(tmp_path):
     """z sends ?ZERO, b ?BIAS (60 s) with its result in the banner, q quits with exit 0; stdin was in cbreak
     mode meanwhile and has its settings back afterwards."""
-    import subprocess
-    import sys
     import termios
 
     from test_daemon_faults import N_SHORT, SHORT, watch_all, watched_daemon
@@ -924,13 +945,7 @@ def test_keys_z_b_q_on_a_terminal_and_the_terminal_restored(tmp_path):
         pty.write(SHORT[:head])
         n_head = decode_bytes(SHORT[:head], final=False).counters.sample_frames
         watch_all(client, n_head)
-        host, port = daemon.address
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "fog_driver", "watch", f"{host}:{port}"],
-            stdin=term.slave,
-            stdout=term.slave,
-            stderr=subprocess.PIPE,
-        )
+        proc = popen_watch_in(term, daemon.address)
         try:
             term.wait_for("keys        q quit")
             term.wait_for("bias not removed: at rest the angle climbs with Earth rate + bias; press b")
@@ -941,9 +956,7 @@ def test_keys_z_b_q_on_a_terminal_and_the_terminal_restored(tmp_path):
             term.wait_for("bias capture started: 60 s of data; keep the table still")
             pty.write(SHORT[head:])  # 270 s of device data: the capture completes
             term.wait_for("bias captured: ")
-            term.type(b"q")
-            assert proc.wait(GUARD_S) == 0
-            assert proc.stderr.read() == b""
+            press_q(term, proc)
         finally:
             proc.kill()
             proc.wait(GUARD_S)
@@ -967,8 +980,6 @@ AS_A_SHELLS_FOREGROUND_JOB = {"preexec_fn": _default_ctrl_c, "process_group": 0}
 
 @pytest.mark.parametrize("how", ["SIGTERM", "SIGINT", "SIGTSTP"])
 def test_the_terminal_is_restored_when_a_signal_ends_or_suspends_the_watch(tmp_path, how):
-    import subprocess
-    import sys
     import termios
 
     from test_daemon_faults import watched_daemon
@@ -976,14 +987,7 @@ def test_the_terminal_is_restored_when_a_signal_ends_or_suspends_the_watch(tmp_p
     term = Terminal()
     before = termios.tcgetattr(term.slave)
     with watched_daemon(tmp_path) as (_, daemon, _client):
-        host, port = daemon.address
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "fog_driver", "watch", f"{host}:{port}"],
-            stdin=term.slave,
-            stdout=term.slave,
-            stderr=subprocess.PIPE,
-            **AS_A_SHELLS_FOREGROUND_JOB,
-        )
+        proc = popen_watch_in(term, daemon.address, **AS_A_SHELLS_FOREGROUND_JOB)
         try:
             term.wait_for("keys        q quit")
             assert termios.tcgetattr(term.slave) != before
@@ -1056,3 +1060,117 @@ def test_watch_after_a_replug_shows_the_one_second_mean_while_the_samples_are_fl
     assert len(window) == 100
     mean = sum(window) / len(window)
     assert f"rate {mean:.2f} deg/h (mean over {last['t_s'] - first['t_s']:.1f} s)" in text.splitlines()[-1]
+
+
+# --------------------------------------------------------------------------- no samples
+
+
+@pytest.mark.parametrize("out", [io.StringIO, FakeTty], ids=["not at a terminal", "at a terminal"])
+@pytest.mark.parametrize("bound", [{"count": 10}, {"duration_s": 600.0}], ids=["count", "duration"])
+def test_watch_count_while_the_daemons_link_is_down_ends_with_75_after_idle_s(out, bound):
+    """The review's finding 2: ``watch --count 10`` hung for 10 minutes while the daemon's link was down.  A
+    bounded watch ends after ``idle_s`` without a sample, saying so and why, at a terminal or not."""
+    lost = dict(DEVICE, state="deactivated")
+    daemon = FakeDaemon([ndjson(angle(1), lost, dict(STATUS, port_state="lost"))], then="wait")
+    stream = out()
+    with pytest.raises(TemporaryFailure) as info:
+        run_watch("127.0.0.1", daemon.port, out=stream, idle_s=0.5, **bound)
+    daemon.join()
+    assert info.value.exit_status == 75
+    assert re.fullmatch(rf"no samples for 0\.5 s from 127\.0\.0\.1:{daemon.port}: link down", str(info.value))
+    assert "seq 1" in stream.getvalue()  # the last view was shown first
+    if out is FakeTty:
+        assert stream.getvalue().endswith("\x1b[?25h")  # the cursor is back
+
+
+def test_a_watch_without_count_or_duration_waits_on_and_says_why_no_samples_come():
+    """Not bounded, not at a terminal (a log): one line a second says no data came and why, and the watch goes on
+    (only Ctrl-C, the server or an explicit ``idle_s`` end it)."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+
+        class CtrlCOnNoData(io.StringIO):
+            def write(self, text: str) -> int:
+                n = super().write(text)
+                if "NO DATA for" in text:
+                    signal.raise_signal(signal.SIGINT)
+                return n
+
+        lost = dict(DEVICE, state="deactivated")
+        daemon = FakeDaemon([ndjson(lost, dict(STATUS, port_state="lost"))], then="wait")
+        out = CtrlCOnNoData()
+        assert run_watch("127.0.0.1", daemon.port, out=out) == 0
+        daemon.join()
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    line = next(line for line in out.getvalue().splitlines() if "NO DATA" in line)
+    assert re.search(r"\| NO DATA for \d s \(link down\) \|", line), line
+
+
+@pytest.mark.parametrize(
+    ("count", "duration_s", "idle_s", "limit"),
+    [(10, None, None, DEFAULT_IDLE_S), (None, 5.0, None, DEFAULT_IDLE_S), (None, None, None, None), (None, None, 3, 3)],
+)
+def test_the_idle_limit_is_10_s_for_a_bounded_watch_and_none_otherwise_unless_given(count, duration_s, idle_s, limit):
+    assert DEFAULT_IDLE_S == 10.0
+    assert idle_limit_s(count, duration_s, idle_s) == limit
+
+
+def test_watch_idle_s_is_parsed_and_refused_when_not_positive():
+    from fog_driver.cli.parser import build_parser
+
+    parser = build_parser(["watch"])
+    assert parser.parse_args(["watch", "--count", "10"]).idle_s is None  # idle_limit_s makes it 10
+    assert parser.parse_args(["watch", "--idle-s", "2.5"]).idle_s == 2.5
+    with pytest.raises(UsageError, match="--idle-s"):
+        run_watch("127.0.0.1", 1, out=io.StringIO(), idle_s=math.inf)
+
+
+def run_fog_driver_watch(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "fog_driver", "watch", *args],
+        stdin=subprocess.DEVNULL,
+        capture_output=True,
+        text=True,
+        timeout=GUARD_S,
+    )
+
+
+@pytest.mark.parametrize("json_lines", [False, True], ids=["view", "json"])
+def test_fog_driver_watch_count_from_a_daemon_whose_instrument_sends_nothing_exits_75(tmp_path, json_lines):
+    """A real daemon on a pty that sends no frame: the port is open, no sample comes; ``watch --count 10`` ends
+    with one line and exit 75, its view (or the daemon's lines, with ``--json``) printed first."""
+    from test_daemon_faults import watched_daemon
+
+    with watched_daemon(tmp_path) as (_, daemon, _client):
+        host, port = daemon.address
+        done = run_fog_driver_watch(
+            f"{host}:{port}", "--count", "10", "--idle-s", "1", *(["--json"] if json_lines else [])
+        )
+        assert daemon.terminate() == 0
+    assert done.returncode == 75, done.stderr
+    assert done.stderr.splitlines() == [
+        f"fog-driver: error: no samples for 1.0 s from {host}:{port}: port open, no samples from the instrument"
+    ]
+    if json_lines:
+        assert [json.loads(line)["class"] for line in done.stdout.splitlines()][:2] == ["VERSION", "DEVICE"]
+    else:
+        assert "device " in done.stdout and "waiting for ANGLE" in done.stdout
+
+
+def test_fog_driver_watch_at_a_terminal_without_count_waits_and_says_why_on_its_status_line(tmp_path):
+    """At a terminal without --count or --duration it keeps waiting, the reason on the banner line; q ends it."""
+    from test_daemon_faults import watched_daemon
+
+    term = Terminal()
+    with watched_daemon(tmp_path) as (_, daemon, _client):
+        proc = popen_watch_in(term, daemon.address)
+        try:
+            term.wait_for("(port open, no samples from the instrument) ***")
+            press_q(term, proc)
+        finally:
+            proc.kill()
+            proc.wait(GUARD_S)
+        assert daemon.terminate() == 0
+    assert re.search(r"\*\*\* NO DATA for \d+ s \(port open, no samples from the instrument\) \*\*\*", term.screen)
+    term.close()

@@ -20,6 +20,7 @@ def cmd_watch(args: argparse.Namespace) -> int:
             duration_s=args.duration,
             json_lines=args.json,
             token_file=args.token_file,
+            idle_s=args.idle_s,
         )
     finally:
         signal.signal(signal.SIGTERM, previous)
@@ -56,6 +57,13 @@ def add_watch(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--count", type=positive_int, metavar="N", help="stop after N ANGLE updates")
     p.add_argument("--duration", type=positive_float, metavar="S", help="stop after S seconds")
+    p.add_argument(
+        "--idle-s",
+        type=positive_float,
+        metavar="S",
+        help="end with exit 75 after S seconds without a sample (default 10 with --count or --duration; "
+        "without them it waits on, unless given)",
+    )
     p.add_argument("--connect", metavar="HOST:PORT", help="the daemon's client address (as the positional HOST:PORT)")
     p.add_argument(
         "--json",

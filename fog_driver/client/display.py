@@ -45,6 +45,7 @@ __all__ = [
     "format_dms",
     "is_number",
     "mapping",
+    "no_samples_reason",
     "show",
     "terminal_safe",
 ]
@@ -253,22 +254,45 @@ def _bias_hint(state: Mapping[str, Any]) -> str:
     return f"press b (or {command})" if state.get("keys") else f"run {command}"
 
 
+def _link_down(state: Mapping[str, Any]) -> bool:
+    """DEVICE says ``deactivated``, or STATUS's ``port_state`` is there and not ``open``."""
+    port_state = mapping(state.get("status")).get("port_state")
+    return mapping(state.get("device")).get("state") == "deactivated" or port_state not in (None, "open")
+
+
+def no_samples_reason(state: Mapping[str, Any]) -> str | None:
+    """Why no sample comes, from what the daemon said last (the same keys as ``banners``; ``watch_refused``: the
+    message of an ``ERROR`` to ``?WATCH``): ``?WATCH refused, MESSAGE``; ``link down`` (DEVICE ``deactivated``
+    or STATUS ``port_state`` not ``open``); ``port open, no samples from the instrument`` (DEVICE
+    ``activated`` or STATUS ``port_state`` ``open``); None when the daemon said neither (no DEVICE, no STATUS:
+    a daemon that withholds them before ``?AUTH``)."""
+    refused = state.get("watch_refused")
+    if refused is not None:
+        return f"?WATCH refused, {show(refused)}"
+    if _link_down(state):
+        return "link down"
+    if mapping(state.get("device")).get("state") == "activated" or mapping(state.get("status")).get("port_state"):
+        return "port open, no samples from the instrument"
+    return None
+
+
 def banners(state: Mapping[str, Any]) -> list[str]:
     """What the operator must see first, most urgent first: LINK DOWN, NO DATA for N s, the bias.
 
     ``LINK DOWN`` when DEVICE says ``deactivated`` (or STATUS's ``port_state`` is not ``open``); ``NO DATA
-    for N s`` when no ANGLE came for ``NO_DATA_S`` (``angle_age_s``, or ``elapsed_s`` before the first one);
+    for N s (REASON)`` when no ANGLE came for ``NO_DATA_S`` (``angle_age_s``, or ``elapsed_s`` before the first
+    one), with ``no_samples_reason`` when there is one;
     the bias banner while STATUS says ``bias_captured: false`` (a daemon that does not say gets none), or a
     running capture's progress (``bias_capture_s`` of ``bias_capture_target_s``).
     """
     lines = []
-    device, status = mapping(state.get("device")), mapping(state.get("status"))
-    port_state = status.get("port_state")
-    if device.get("state") == "deactivated" or (port_state is not None and port_state != "open"):
+    status = mapping(state.get("status"))
+    if _link_down(state):
         lines.append("*** LINK DOWN: the daemon's instrument port is closed; no samples, the angle holds ***")
     age = state.get("angle_age_s") if state.get("angle") else state.get("elapsed_s")
     if is_number(age) and age >= NO_DATA_S and mapping(state.get("watch")).get("enable", True) is not False:
-        lines.append(f"*** NO DATA for {age:.0f} s ***")
+        reason = no_samples_reason(state)
+        lines.append(f"*** NO DATA for {age:.0f} s{f' ({reason})' if reason else ''} ***")
     if is_number(status.get("bias_capture_target_s")):
         lines.append(
             f"capturing the bias: {show(status.get('bias_capture_s'), '.1f')} / "

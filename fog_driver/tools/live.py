@@ -84,9 +84,14 @@ class LiveView:
             self._event(f"device {device_text(obj)}{down}")
         elif cls == "WATCH":  # the server's answer to ?WATCH: the policy in force
             self.state["watch"] = obj
+            self.state.pop("watch_refused", None)
         elif cls == "ERROR":
             message = show(obj.get("message")) if obj.get("message") is not None else "(no message)"
-            if obj.get("command") in ("ZERO", "BIAS"):
+            if obj.get("command") == "WATCH":
+                self.state["watch_refused"] = message
+                hint = f" (set {TOKEN_ENV} or --token-file)" if message == "unauthorized" else ""
+                self._event(f"?WATCH refused: {message}{hint}")
+            elif obj.get("command") in ("ZERO", "BIAS"):
                 hint = f" (set {TOKEN_ENV} or --token-file)" if message == "unauthorized" else ""
                 self._action(f"?{obj['command']} refused: {message}{hint}")
             else:
@@ -118,6 +123,10 @@ class LiveView:
     def _action(self, text: str) -> None:
         self.state["action"] = text
         self._event(text)
+
+    def idle_s(self, now: float) -> float:
+        """Host seconds since the last ANGLE (since the watch started, before the first)."""
+        return now - (self.started if self._last_angle_at is None else self._last_angle_at)
 
     def malformed(self, n: int = 1) -> None:
         self.state["malformed"] += n
