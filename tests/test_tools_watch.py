@@ -488,7 +488,7 @@ def test_the_terminal_view_fits_80_columns_and_loses_nothing():
         assert all(len(line) <= width for line in lines), [line for line in lines if len(line) > width]
         text = " ".join(" ".join(lines).split())
         for shown in (
-            "press b (or `fog-driver ctl --connect gyro-pc.lab.example.org:2948 bias 60`)",
+            "press b (or `fog-driver ctl gyro-pc.lab.example.org:2948 bias 60`)",
             "rate -10.61 deg/h (mean over 1.0 s)",
             "drift 0.1234 deg/h +- 0.0237 (1-sigma)",
             "utc 2026-12-04T11:05:07.123456Z (received 0.1 s ago)",
@@ -802,7 +802,7 @@ def test_the_daemons_rates_average_to_the_angle_difference(tmp_path):
         (
             {"status": {"bias_captured": False}, "address": "gyro-pc:2948"},
             "bias not removed: at rest the angle climbs with Earth rate + bias; "
-            "run `fog-driver ctl --connect gyro-pc:2948 bias 60`",
+            "run `fog-driver ctl gyro-pc:2948 bias 60`",
         ),
         (
             {"status": {"bias_captured": False, "bias_capture_s": 12.0, "bias_capture_target_s": 60.0}},

@@ -28,8 +28,7 @@ def cmd_watch(args: argparse.Namespace) -> int:
 
 def cmd_ctl(args: argparse.Namespace) -> int:
     return ctl_command(
-        args.ctl_command,
-        args.ctl_args,
+        [args.ctl_first, *args.ctl_args] if args.ctl_first is not None else [],
         address=args.connect,
         token_file=args.token_file,
         json_out=args.json,
@@ -81,15 +80,18 @@ def add_watch(p: argparse.ArgumentParser) -> None:
 def add_ctl(p: argparse.ArgumentParser) -> None:
     """``fog-driver ctl``: its arguments, the exit statuses in its description, and its function."""
     p.description = (
-        "zero | bias [SECONDS] | adapt on|off | table ANGLE | reload | status | save.  Exit 0 done; "
-        "64 unknown to the daemon; 65 refused or the bias capture failed; 69 unreachable "
-        "or the connection lost; 77 the token refused or needed."
+        "zero | bias [SECONDS] | adapt on|off | table ANGLE | reload | status | save, after the daemon's "
+        "HOST:PORT when given (as watch takes it; or --connect).  Exit 0 done; 64 bad arguments or unknown to "
+        "the daemon; 65 refused or the bias capture failed; 69 unreachable or the connection lost; 77 the "
+        "token refused or needed."
     )
+    p.usage = "%(prog)s [options] [HOST:PORT] COMMAND [ARG ...]"
     p.add_argument(
-        "ctl_command",
-        metavar="COMMAND",
-        choices=["zero", "bias", "adapt", "table", "reload", "status", "save"],
-        help="zero, bias, adapt, table, reload, status or save",
+        "ctl_first",
+        nargs="?",
+        metavar="[HOST:PORT] COMMAND",
+        help="the daemon's client address (default 127.0.0.1:2948; also HOST, :PORT, [IPV6]:PORT) when the first "
+        "word is not a command, then COMMAND: zero, bias, adapt, table, reload, status or save",
     )
     p.add_argument(
         "ctl_args",
@@ -100,7 +102,7 @@ def add_ctl(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--connect",
         metavar="HOST:PORT",
-        help="the daemon's client address (default 127.0.0.1:2948; also HOST, :PORT, [IPV6]:PORT)",
+        help="the daemon's client address (as the first word HOST:PORT)",
     )
     p.add_argument(
         "--token-file",

@@ -249,8 +249,8 @@ class RateAverage:
 def _bias_hint(state: Mapping[str, Any]) -> str:
     """How to capture the bias from here: the key (when keys work) and the ``ctl`` command for this daemon."""
     address = state.get("address")
-    connect = "" if address in (None, format_address(DEFAULT_HOST, DEFAULT_PORT)) else f" --connect {address}"
-    command = f"`fog-driver ctl{connect} bias {DEFAULT_BIAS_S}`"
+    at = "" if address in (None, format_address(DEFAULT_HOST, DEFAULT_PORT)) else f" {address}"
+    command = f"`fog-driver ctl{at} bias {DEFAULT_BIAS_S}`"
     return f"press b (or {command})" if state.get("keys") else f"run {command}"
 
 
