@@ -7,7 +7,8 @@ Standard library only (this is part of the client library).  Angles: ``format_ar
 (``-`` unless a finite number) for the web page.  ``banners``: what the operator must see first (LINK DOWN, NO DATA,
 the bias), the same lines on the terminal and on the page.  ``drift_sigma``: the drift's 1-sigma as both show it
 (the since-bias form once a bias was captured).  ``RateAverage``: the rate's mean over the last second of device
-time, which both show.  ``Progress``: one status line rewritten on a terminal.
+time, which both show.  ``format_duration``: a duration as ``21 min 4 s``.  ``Progress``: one status line
+rewritten on a terminal.
 """
 
 from __future__ import annotations
@@ -43,7 +44,9 @@ __all__ = [
     "fixed",
     "format_arcsec",
     "format_dms",
+    "format_duration",
     "is_number",
+    "link_down",
     "mapping",
     "no_samples_reason",
     "show",
@@ -246,6 +249,25 @@ class RateAverage:
         return total / frames, self._segments[-1][1] - self._segments[0][0]
 
 
+def format_duration(seconds: Any) -> str:
+    """A duration as a person reads it, to the second: ``4 s``, ``21 min 4 s``, ``3 h 07 min``, ``2 d 5 h``;
+    ``-`` unless a finite number >= 0."""
+    value = finite_number(seconds)
+    if value is None or value < 0:
+        return MISSING
+    whole = int(value)
+    days, rest = divmod(whole, 86400)
+    hours, rest = divmod(rest, 3600)
+    minutes, secs = divmod(rest, 60)
+    if days:
+        return f"{days} d {hours} h"
+    if hours:
+        return f"{hours} h {minutes:02d} min"
+    if minutes:
+        return f"{minutes} min {secs} s"
+    return f"{secs} s"
+
+
 def _bias_hint(state: Mapping[str, Any]) -> str:
     """How to capture the bias from here: the key (when keys work) and the ``ctl`` command for this daemon."""
     address = state.get("address")
@@ -254,7 +276,7 @@ def _bias_hint(state: Mapping[str, Any]) -> str:
     return f"press b (or {command})" if state.get("keys") else f"run {command}"
 
 
-def _link_down(state: Mapping[str, Any]) -> bool:
+def link_down(state: Mapping[str, Any]) -> bool:
     """DEVICE says ``deactivated``, or STATUS's ``port_state`` is there and not ``open``."""
     port_state = mapping(state.get("status")).get("port_state")
     return mapping(state.get("device")).get("state") == "deactivated" or port_state not in (None, "open")
@@ -269,7 +291,7 @@ def no_samples_reason(state: Mapping[str, Any]) -> str | None:
     refused = state.get("watch_refused")
     if refused is not None:
         return f"?WATCH refused, {show(refused)}"
-    if _link_down(state):
+    if link_down(state):
         return "link down"
     if mapping(state.get("device")).get("state") == "activated" or mapping(state.get("status")).get("port_state"):
         return "port open, no samples from the instrument"
@@ -287,7 +309,7 @@ def banners(state: Mapping[str, Any]) -> list[str]:
     """
     lines = []
     status = mapping(state.get("status"))
-    if _link_down(state):
+    if link_down(state):
         lines.append("*** LINK DOWN: the daemon's instrument port is closed; no samples, the angle holds ***")
     age = state.get("angle_age_s") if state.get("angle") else state.get("elapsed_s")
     if is_number(age) and age >= NO_DATA_S and mapping(state.get("watch")).get("enable", True) is not False:
