@@ -24,6 +24,7 @@ import pytest
 import yaml
 from prometheus_client.parser import text_string_to_metric_families
 
+from fog_driver.client.display import format_duration
 from fog_driver.daemon.limits import AUTH_FAILURES_BEFORE_BACKOFF
 from fog_driver.daemon.limits import WEB_MAX_CONNECTIONS_PER_PEER as MAX_CONNECTIONS_PER_PEER
 from fog_driver.daemon.limits import WEB_MAX_WS_MESSAGES_PER_S as MAX_WS_MESSAGES_PER_S
@@ -74,7 +75,7 @@ def test_minute_means_are_every_samples_mean_and_points_one_per_second():
     rate = np.array([s["rate_dph"] for s in samples])
     raw = np.array([s["rate_raw_dph"] for s in samples])
     minute = np.floor(t / MEAN_EVERY_S)
-    closed = np.unique(minute)[:-1]  # the last minute is still open
+    closed = np.unique(minute)[1:-1]  # the first began 3 s in (not a whole minute), the last is still open
     assert [m["t_s"] for m in view.minutes] == [k * MEAN_EVERY_S for k in closed]
     for m, k in zip(view.minutes, closed):
         assert m["rate_dph"] == pytest.approx(rate[minute == k].mean(), rel=1e-12)
@@ -88,7 +89,113 @@ def test_minute_means_are_every_samples_mean_and_points_one_per_second():
         assert p["t_s"] == last["t_s"] and p["drift_dph"] == last["drift_dph"]
         assert p["temps_c"] == last["temps_c"]
         assert p["rate_dph"] == pytest.approx(rate[second == k].mean(), rel=1e-12)
-    assert view.rate_1s_dph == pytest.approx(rate[second == closed_s[-1]].mean(), rel=1e-12)
+    assert view.rate_1s_dph == pytest.approx(rate[t > t[-1] - 1.0].mean(), rel=1e-12)  # the last second's
+
+
+def test_the_rate_1s_mean_is_watchs_every_samples_mean_over_the_last_second_through_a_zero_and_a_gap():
+    """The page and ``fog-driver watch`` show the 1-s mean with one piece of code (``display.RateAverage``): over
+    every sample it is the mean of their ``rate_dph`` in the last second of device time; a ``?ZERO`` (the angles
+    jump to 0) does not disturb it, and after frames lost (a replug) it starts again from the first sample after
+    them, averaging on through the samples flagged ``gap`` while the estimate settles."""
+    from fog_driver.client.display import RateAverage
+
+    samples = stream(100 * 5)  # 5 s at 100 Hz from t = 3 s
+    for s in samples[-50:]:  # a ?ZERO half a second before the end
+        s["angle_arcsec"] -= samples[-51]["angle_arcsec"]
+    view = ViewState()
+    view.add_angles(samples, 0.0)
+    t = np.array([s["t_s"] for s in samples])
+    rate = np.array([s["rate_dph"] for s in samples])
+    assert view.rate_1s_dph == pytest.approx(rate[t > t[-1] - 1.0].mean(), rel=1e-12)
+    # 145 s of frames lost, then 0.5 s of samples all flagged gap: the mean of those after the first
+    after = [angle(14500 + i, 150.0 + i / 100, flags=["gap"]) for i in range(50)]
+    view.add_angles(after, 1.0)
+    assert view.rate_1s_dph == pytest.approx(np.mean([s["rate_dph"] for s in after[1:]]), rel=1e-12)
+    watch = RateAverage()
+    for s in samples + after:
+        watch.add(s)
+    assert watch.mean() == (view.rate_1s_dph, pytest.approx(0.49, rel=1e-9))
+
+
+def test_a_one_minute_mean_is_plotted_only_for_a_minute_the_samples_cover():
+    """The review's finding 15: a one-minute mean was plotted before the daemon started (the first minute's,
+    begun part-way, drawn at its middle).  A minute is plotted when its samples begin within its first second and
+    end within its last: not the first one after the start, nor one a link gap cut short at either end; one with
+    a short gap inside is the mean of the samples that came."""
+    view = ViewState()
+    first = [angle(i, 30.0 + i / 100) for i in range(100 * 90)]  # 30 s .. 120 s: minute 0 from 30 s, minute 1 whole
+    inside = [s for s in first if not 70.0 <= s["t_s"] < 75.0]  # 5 s lost inside minute 1: kept
+    tail = [angle(20000 + i, 170.0 + i / 100) for i in range(100 * 80)]  # 120 s .. 170 s lost: minute 2 cut short
+    view.add_angles(inside + tail, 0.0)
+    assert [m["t_s"] for m in view.minutes] == [60.0, 180.0]  # minutes 1 and 3 (minute 4 still open)
+    minute_1 = [s["rate_dph"] for s in inside if 60.0 <= s["t_s"] < 120.0]
+    assert view.minutes[0]["rate_dph"] == pytest.approx(np.mean(minute_1), rel=1e-12)
+    assert view.minutes[0]["samples"] == len(minute_1) == 5500
+
+
+def test_the_drift_plot_starts_at_the_first_estimate_not_from_0():
+    """The review's finding 15: the drift plot began with a spike from 0 (the samples before the first estimate
+    carry ``drift_dph`` 0, flagged ``uncompensated``).  Their points have no drift: the line starts at the first
+    estimate; their temperatures are plotted."""
+    view = ViewState()
+    samples = stream(100 * 5)
+    for s in samples[:250]:
+        s.update(drift_dph=0.0, flags=["uncompensated"])
+    view.add_angles(samples, 0.0)
+    points = view.snapshot(0.1)["points"]
+    assert [p["drift_dph"] for p in points] == [None, None, samples[299]["drift_dph"], samples[399]["drift_dph"]]
+    assert all(p["drift_band_dph"] is None for p in points[:2]) and points[0]["temps_c"] == samples[99]["temps_c"]
+
+
+def test_stale_figures_are_marked_and_the_pill_says_so_while_the_link_is_down_or_no_data_comes():
+    """The review's finding 15: a green "live" pill beside "link down", the stale rate and drift not greyed.  The
+    page state says what the figures are: live, or stale and why (the page greys them); waiting before any."""
+    view = ViewState()
+    assert view.snapshot(0.0)["page_state"] == {"text": "waiting for data", "level": "waiting", "stale": False}
+    view.add_object({"class": "DEVICE", "state": "activated"}, 0.0)
+    view.add_angles(stream(10), 0.0)
+    assert view.snapshot(0.5)["page_state"] == {"text": "live", "level": "ok", "stale": False}
+    view.add_object({"class": "DEVICE", "state": "deactivated"}, 1.0)
+    assert view.snapshot(1.5)["page_state"] == {"text": "link down: figures stale", "level": "bad", "stale": True}
+    view.add_object({"class": "DEVICE", "state": "activated"}, 2.0)
+    assert view.update(2.0 + 5.2, None, None)["page_state"] == {
+        "text": "no data for 7 s: figures stale",
+        "level": "bad",
+        "stale": True,
+    }
+    view.add_angles([angle(10, 4.0)], 8.0)
+    assert view.update(8.1, None, None)["page_state"]["text"] == "live"
+
+
+@pytest.mark.parametrize(
+    ("seconds", "text"),
+    [
+        (0, "0 s"),
+        (59.99, "59 s"),
+        (1264.747, "21 min 4 s"),
+        (3600, "1 h 00 min"),
+        (11_230.5, "3 h 07 min"),
+        (2 * 86400 + 5 * 3600 + 59, "2 d 5 h"),
+        (None, "-"),
+        (-1.0, "-"),
+        (math.nan, "-"),
+        ("12", "-"),
+    ],
+)
+def test_a_duration_is_shown_as_a_person_reads_it(seconds, text):
+    assert format_duration(seconds) == text
+
+
+def test_the_status_table_shows_the_uptime_formatted_and_the_web_pages_beside_the_ndjson_clients():
+    """The review's finding 15: uptime ``1264.747``; "clients 0" with the page open.  A page counts among the web
+    listener's clients (STATUS ``web_clients``), shown beside the NDJSON clients (``clients``)."""
+    view = ViewState()
+    view.add_object({"class": "STATUS", "uptime_s": 1264.747, "clients": 0, "web_clients": 1}, 0.0)
+    snapshot = view.snapshot(0.0)
+    rows = dict((key, label) for key, label in snapshot["rows"])
+    assert rows["uptime_s"] == "uptime" and rows["clients"] == "NDJSON clients" and rows["web_clients"] == "web pages"
+    assert snapshot["text"]["status_uptime_s"] == "21 min 4 s"
+    assert (snapshot["text"]["status_clients"], snapshot["text"]["status_web_clients"]) == ("0", "1")
 
 
 @pytest.mark.determinism

@@ -228,3 +228,65 @@ def test_parse_request_table_options():
             parse_request("table", ["36"], **bad)
     with pytest.raises(UsageError, match="go with `table` only"):
         parse_request("zero", [], dwell_s=60)
+
+
+def test_ctl_takes_the_daemons_address_as_watch_does(tmp_path, capsys):
+    """The review's finding 10: ``fog-driver ctl 127.0.0.1:13014 status`` said ``invalid choice``; ``watch`` takes
+    the address as its first word.  A first word that is not a command is the address; ``--connect`` still
+    works, and both forms give the same answer."""
+    with watched_daemon(tmp_path) as (pty, daemon, client):
+        pty.write(SHORT[:HEAD])
+        watch_all(client, N_HEAD)
+        host, port = daemon.address
+        status, out, err = run_main(capsys, "ctl", "--json", f"{host}:{port}", "status")
+        assert (status, err) == (0, "") and json.loads(out)["class"] == "STATUS"
+        assert run_main(capsys, "ctl", f"{host}:{port}", "zero")[:2] == (
+            0,
+            "zeroed: the published angle starts again from 0 here\n",
+        )
+        assert run_main(capsys, "ctl", f"{host}:{port}", "adapt", "on")[:2] == ctl(capsys, daemon, "adapt", "on")[:2]
+        assert run_main(capsys, "ctl", f"{host}:{port}", "adapt", "off")[:2] == (
+            0,
+            "adaptation off: the weights are frozen\n",
+        )
+        assert ctl(capsys, daemon, "zero")[:2] == run_main(capsys, "ctl", f"{host}:{port}", "zero")[:2]
+        assert daemon.terminate() == 0
+
+
+def run_main(capsys, *args: str) -> tuple[int, str, str]:
+    status = main(list(args))
+    out, err = capsys.readouterr()
+    return status, out, err
+
+
+COMMAND_NAMES = "zero, bias, adapt, table, reload, status, save"
+
+
+@pytest.mark.parametrize(
+    ("words", "message"),
+    [
+        (["stauts"], f"'stauts' is not a command ({COMMAND_NAMES}), and no command follows it"),
+        (["bais", "60"], f"neither 'bais' nor '60' is a command ({COMMAND_NAMES})"),
+        (
+            ["127.0.0.1:99999", "status"],
+            f"'127.0.0.1:99999': port 99999 is out of range (and not a command: {COMMAND_NAMES})",
+        ),
+        (["foo:bar", "zero"], f"'foo:bar': port 'bar' is not a number (and not a command: {COMMAND_NAMES})"),
+        (
+            ["--connect", "127.0.0.1:1", "127.0.0.1:2", "zero"],
+            "the daemon's address given twice: '127.0.0.1:2' and --connect 127.0.0.1:1",
+        ),
+    ],
+)
+def test_ctl_with_a_first_word_that_is_neither_a_command_nor_an_address_is_one_line_and_64(words, message):
+    """Checked after argparse (its grammar cannot say ``[HOST:PORT] COMMAND``), so one line and 64, the exit of
+    every other bad ctl argument (``bias abc``, ``adapt maybe``), never a connection attempt."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "fog_driver", "ctl", *words],
+        capture_output=True,
+        text=True,
+        timeout=GUARD_S,
+        stdin=subprocess.DEVNULL,
+    )
+    assert (proc.returncode, proc.stdout) == (64, "")
+    assert proc.stderr == f"fog-driver: error: {message}\n"

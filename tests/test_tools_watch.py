@@ -10,23 +10,28 @@ from __future__ import annotations
 import io
 import itertools
 import json
+import math
 import os
 import re
 import signal
 import socket
+import subprocess
+import sys
 import threading
 import time
 
 import pytest
 
-from fog_driver.errors import DeviceError, UsageError
+from fog_driver.errors import DeviceError, TemporaryFailure, UsageError
 from fog_driver.tools.watch import (
+    DEFAULT_IDLE_S,
     MAX_LINE_BYTES,
     LineReader,
     compact_line,
     format_address,
     format_arcsec,
     format_dms,
+    idle_limit_s,
     parse_address,
     parse_line,
     render,
@@ -172,8 +177,9 @@ def test_count_reached_exits_0_with_the_latest_values():
     assert "seq 3 |" in last and "t 12.540 s" in last
     assert 'angle 3726.50" (1°02\'06.50")' in last
     assert 'raw -63.00" (-0°01\'03.00")' in last  # -59.995 - 3 = -62.995..., rounded away from zero
-    # the mean rate over the ANGLEs since the gap (seq 2): 1" in 0.1 s of device time, not one sample's 15.041
-    assert "rate 10.00 deg/h (mean over 0.1 s)" in last and "drift 0.1234 deg/h" in last
+    # the mean rate since the gap (seq 2, after seq 1 unflagged: frames lost between them): seq 2 to 3 are adjacent
+    # frames, so the mean over them is frame 3's own rate
+    assert "rate 15.04 deg/h (mean over 0.1 s)" in last and "drift 0.1234 deg/h" in last
     assert "temps top 20.25 bottom 19.88 housing 19.60 degC" in last
     assert "flags none" in last
     assert "3 ANGLE" in last and "3 malformed" in last and "1 unknown class" in last  # WATCH is known
@@ -483,7 +489,7 @@ def test_the_terminal_view_fits_80_columns_and_loses_nothing():
         assert all(len(line) <= width for line in lines), [line for line in lines if len(line) > width]
         text = " ".join(" ".join(lines).split())
         for shown in (
-            "press b (or `fog-driver ctl --connect gyro-pc.lab.example.org:2948 bias 60`)",
+            "press b (or `fog-driver ctl gyro-pc.lab.example.org:2948 bias 60`)",
             "rate -10.61 deg/h (mean over 1.0 s)",
             "drift 0.1234 deg/h +- 0.0237 (1-sigma)",
             "utc 2026-12-04T11:05:07.123456Z (received 0.1 s ago)",
@@ -797,7 +803,7 @@ def test_the_daemons_rates_average_to_the_angle_difference(tmp_path):
         (
             {"status": {"bias_captured": False}, "address": "gyro-pc:2948"},
             "bias not removed: at rest the angle climbs with Earth rate + bias; "
-            "run `fog-driver ctl --connect gyro-pc:2948 bias 60`",
+            "run `fog-driver ctl gyro-pc:2948 bias 60`",
         ),
         (
             {"status": {"bias_captured": False, "bias_capture_s": 12.0, "bias_capture_target_s": 60.0}},
@@ -905,11 +911,28 @@ class Terminal:
         self._os.close(self.slave)
 
 
+def popen_watch_in(term: Terminal, address: tuple[str, int], **popen) -> subprocess.Popen:
+    """``fog-driver watch HOST:PORT`` started in ``term`` (its stdin and stdout), stderr piped."""
+    host, port = address
+    return subprocess.Popen(
+        [sys.executable, "-m", "fog_driver", "watch", f"{host}:{port}"],
+        stdin=term.slave,
+        stdout=term.slave,
+        stderr=subprocess.PIPE,
+        **popen,
+    )
+
+
+def press_q(term: Terminal, proc: subprocess.Popen) -> None:
+    """q: the watch ends, exit 0, nothing on stderr."""
+    term.type(b"q")
+    assert proc.wait(GUARD_S) == 0
+    assert proc.stderr.read() == b""
+
+
 def test_keys_z_b_q_on_a_terminal_and_the_terminal_restored(tmp_path):
     """z sends ?ZERO, b ?BIAS (60 s) with its result in the banner, q quits with exit 0; stdin was in cbreak
     mode meanwhile and has its settings back afterwards."""
-    import subprocess
-    import sys
     import termios
 
     from test_daemon_faults import N_SHORT, SHORT, watch_all, watched_daemon
@@ -923,13 +946,7 @@ def test_keys_z_b_q_on_a_terminal_and_the_terminal_restored(tmp_path):
         pty.write(SHORT[:head])
         n_head = decode_bytes(SHORT[:head], final=False).counters.sample_frames
         watch_all(client, n_head)
-        host, port = daemon.address
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "fog_driver", "watch", f"{host}:{port}"],
-            stdin=term.slave,
-            stdout=term.slave,
-            stderr=subprocess.PIPE,
-        )
+        proc = popen_watch_in(term, daemon.address)
         try:
             term.wait_for("keys        q quit")
             term.wait_for("bias not removed: at rest the angle climbs with Earth rate + bias; press b")
@@ -940,9 +957,7 @@ def test_keys_z_b_q_on_a_terminal_and_the_terminal_restored(tmp_path):
             term.wait_for("bias capture started: 60 s of data; keep the table still")
             pty.write(SHORT[head:])  # 270 s of device data: the capture completes
             term.wait_for("bias captured: ")
-            term.type(b"q")
-            assert proc.wait(GUARD_S) == 0
-            assert proc.stderr.read() == b""
+            press_q(term, proc)
         finally:
             proc.kill()
             proc.wait(GUARD_S)
@@ -966,8 +981,6 @@ AS_A_SHELLS_FOREGROUND_JOB = {"preexec_fn": _default_ctrl_c, "process_group": 0}
 
 @pytest.mark.parametrize("how", ["SIGTERM", "SIGINT", "SIGTSTP"])
 def test_the_terminal_is_restored_when_a_signal_ends_or_suspends_the_watch(tmp_path, how):
-    import subprocess
-    import sys
     import termios
 
     from test_daemon_faults import watched_daemon
@@ -975,14 +988,7 @@ def test_the_terminal_is_restored_when_a_signal_ends_or_suspends_the_watch(tmp_p
     term = Terminal()
     before = termios.tcgetattr(term.slave)
     with watched_daemon(tmp_path) as (_, daemon, _client):
-        host, port = daemon.address
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "fog_driver", "watch", f"{host}:{port}"],
-            stdin=term.slave,
-            stdout=term.slave,
-            stderr=subprocess.PIPE,
-            **AS_A_SHELLS_FOREGROUND_JOB,
-        )
+        proc = popen_watch_in(term, daemon.address, **AS_A_SHELLS_FOREGROUND_JOB)
         try:
             term.wait_for("keys        q quit")
             assert termios.tcgetattr(term.slave) != before
@@ -1006,4 +1012,166 @@ def test_the_terminal_is_restored_when_a_signal_ends_or_suspends_the_watch(tmp_p
             proc.wait(GUARD_S)
         assert daemon.terminate() == 0
     assert termios.tcgetattr(term.slave) == before
+    term.close()
+
+
+def frames_after_a_replug(rng_seed: int = 13) -> tuple[list[dict], list[int], list[float]]:
+    """A 100 Hz instrument's frames as the daemon publishes them around a replug: 3 s, then 145 s of frames that
+    never arrived (the angle holds, device time runs on), then 5 s all flagged ``gap`` while the estimate
+    settles.  Each frame's rate is a whole number of deg/h (one count per frame), its angle the running sum of
+    rate x 0.01 s.  Returns the frames and each one's seq and rate (the reference)."""
+    import numpy as np
+
+    rng = np.random.default_rng(rng_seed)
+    seqs = [*range(0, 300), *range(14800, 15300)]
+    frames, rates, arcsec = [], [], 1000.0
+    for seq in seqs:
+        rate = float(rng.integers(6, 15))
+        arcsec += rate * 0.01  # deg/h = arcsec/s
+        flags = ["gap"] if seq >= 14800 else []
+        frames.append(angle(seq, t_s=50.0 + seq / 100, angle_arcsec=arcsec, rate_dph=rate, flags=flags))
+        rates.append(rate)
+    return frames, seqs, rates
+
+
+def decimated(frames: list[dict], rate_hz: float) -> list[dict]:
+    """The daemon's decimation (``Connection.keep_angles``): the first frame of each 1/rate_hz of device time."""
+    kept, last = [], None
+    for frame in frames:
+        bucket = math.floor(frame["t_s"] * rate_hz)
+        if bucket != last:
+            kept.append(frame)
+            last = bucket
+    return kept
+
+
+def test_watch_after_a_replug_shows_the_one_second_mean_while_the_samples_are_flagged_gap():
+    """The review's finding 13: for the minutes after a replug every sample is flagged ``gap`` (the estimate
+    settling), and watch showed one sample's rate (``8.0 deg/h (one sample)``, 1 deg/h steps) where the web view
+    kept the 1-s mean.  The mean over the last second of device time is every frame's rate in it, the frames
+    the decimation dropped included."""
+    frames, seqs, rates = frames_after_a_replug()
+    kept = decimated(frames, 10.0)
+    daemon = FakeDaemon([ndjson(*kept)], then="wait")
+    status, text = watch(daemon, count=len(kept), rate_hz=10)
+    assert status == 0
+    last = kept[-1]
+    first = max((k for k in kept if k["t_s"] <= last["t_s"] - 1.0), key=lambda k: k["t_s"])  # the window's start
+    window = [r for s, r in zip(seqs, rates) if first["seq"] < s <= last["seq"]]
+    assert len(window) == 100
+    mean = sum(window) / len(window)
+    assert f"rate {mean:.2f} deg/h (mean over {last['t_s'] - first['t_s']:.1f} s)" in text.splitlines()[-1]
+
+
+# --------------------------------------------------------------------------- no samples
+
+
+@pytest.mark.parametrize("out", [io.StringIO, FakeTty], ids=["not at a terminal", "at a terminal"])
+@pytest.mark.parametrize("bound", [{"count": 10}, {"duration_s": 600.0}], ids=["count", "duration"])
+def test_watch_count_while_the_daemons_link_is_down_ends_with_75_after_idle_s(out, bound):
+    """The review's finding 2: ``watch --count 10`` hung for 10 minutes while the daemon's link was down.  A
+    bounded watch ends after ``idle_s`` without a sample, saying so and why, at a terminal or not."""
+    lost = dict(DEVICE, state="deactivated")
+    daemon = FakeDaemon([ndjson(angle(1), lost, dict(STATUS, port_state="lost"))], then="wait")
+    stream = out()
+    with pytest.raises(TemporaryFailure) as info:
+        run_watch("127.0.0.1", daemon.port, out=stream, idle_s=0.5, **bound)
+    daemon.join()
+    assert info.value.exit_status == 75
+    assert re.fullmatch(rf"no samples for 0\.5 s from 127\.0\.0\.1:{daemon.port}: link down", str(info.value))
+    assert "seq 1" in stream.getvalue()  # the last view was shown first
+    if out is FakeTty:
+        assert stream.getvalue().endswith("\x1b[?25h")  # the cursor is back
+
+
+def test_a_watch_without_count_or_duration_waits_on_and_says_why_no_samples_come():
+    """Not bounded, not at a terminal (a log): one line a second says no data came and why, and the watch goes on
+    (only Ctrl-C, the server or an explicit ``idle_s`` end it)."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+
+        class CtrlCOnNoData(io.StringIO):
+            def write(self, text: str) -> int:
+                n = super().write(text)
+                if "NO DATA for" in text:
+                    signal.raise_signal(signal.SIGINT)
+                return n
+
+        lost = dict(DEVICE, state="deactivated")
+        daemon = FakeDaemon([ndjson(lost, dict(STATUS, port_state="lost"))], then="wait")
+        out = CtrlCOnNoData()
+        assert run_watch("127.0.0.1", daemon.port, out=out) == 0
+        daemon.join()
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    line = next(line for line in out.getvalue().splitlines() if "NO DATA" in line)
+    assert re.search(r"\| NO DATA for \d s \(link down\) \|", line), line
+
+
+@pytest.mark.parametrize(
+    ("count", "duration_s", "idle_s", "limit"),
+    [(10, None, None, DEFAULT_IDLE_S), (None, 5.0, None, DEFAULT_IDLE_S), (None, None, None, None), (None, None, 3, 3)],
+)
+def test_the_idle_limit_is_10_s_for_a_bounded_watch_and_none_otherwise_unless_given(count, duration_s, idle_s, limit):
+    assert DEFAULT_IDLE_S == 10.0
+    assert idle_limit_s(count, duration_s, idle_s) == limit
+
+
+def test_watch_idle_s_is_parsed_and_refused_when_not_positive():
+    from fog_driver.cli.parser import build_parser
+
+    parser = build_parser(["watch"])
+    assert parser.parse_args(["watch", "--count", "10"]).idle_s is None  # idle_limit_s makes it 10
+    assert parser.parse_args(["watch", "--idle-s", "2.5"]).idle_s == 2.5
+    with pytest.raises(UsageError, match="--idle-s"):
+        run_watch("127.0.0.1", 1, out=io.StringIO(), idle_s=math.inf)
+
+
+def run_fog_driver_watch(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "fog_driver", "watch", *args],
+        stdin=subprocess.DEVNULL,
+        capture_output=True,
+        text=True,
+        timeout=GUARD_S,
+    )
+
+
+@pytest.mark.parametrize("json_lines", [False, True], ids=["view", "json"])
+def test_fog_driver_watch_count_from_a_daemon_whose_instrument_sends_nothing_exits_75(tmp_path, json_lines):
+    """A real daemon on a pty that sends no frame: the port is open, no sample comes; ``watch --count 10`` ends
+    with one line and exit 75, its view (or the daemon's lines, with ``--json``) printed first."""
+    from test_daemon_faults import watched_daemon
+
+    with watched_daemon(tmp_path) as (_, daemon, _client):
+        host, port = daemon.address
+        done = run_fog_driver_watch(
+            f"{host}:{port}", "--count", "10", "--idle-s", "1", *(["--json"] if json_lines else [])
+        )
+        assert daemon.terminate() == 0
+    assert done.returncode == 75, done.stderr
+    assert done.stderr.splitlines() == [
+        f"fog-driver: error: no samples for 1.0 s from {host}:{port}: port open, no samples from the instrument"
+    ]
+    if json_lines:
+        assert [json.loads(line)["class"] for line in done.stdout.splitlines()][:2] == ["VERSION", "DEVICE"]
+    else:
+        assert "device " in done.stdout and "waiting for ANGLE" in done.stdout
+
+
+def test_fog_driver_watch_at_a_terminal_without_count_waits_and_says_why_on_its_status_line(tmp_path):
+    """At a terminal without --count or --duration it keeps waiting, the reason on the banner line; q ends it."""
+    from test_daemon_faults import watched_daemon
+
+    term = Terminal()
+    with watched_daemon(tmp_path) as (_, daemon, _client):
+        proc = popen_watch_in(term, daemon.address)
+        try:
+            term.wait_for("(port open, no samples from the instrument) ***")
+            press_q(term, proc)
+        finally:
+            proc.kill()
+            proc.wait(GUARD_S)
+        assert daemon.terminate() == 0
+    assert re.search(r"\*\*\* NO DATA for \d+ s \(port open, no samples from the instrument\) \*\*\*", term.screen)
     term.close()

@@ -145,6 +145,18 @@ SHOWN = """() => {
 }"""
 
 
+#: What the plots hold: the drift estimate's values (how many, how many exactly 0), and the times of the first
+#: plotted point and of the first one-minute mean (ms since the epoch).
+PLOTTED = """() => {
+  const drift = document.getElementById("plot-drift").data;
+  const estimate = drift[drift.length - 1].y.filter((v) => v !== null && v !== undefined);
+  const first = (id) => +new Date(document.getElementById(id).data[0].x[0]);
+  return {drift_values: estimate.length, drift_zeros: estimate.filter((v) => v === 0).length,
+          first_point_ms: first("plot-drift"), first_minute_ms: first("plot-rate")};
+}"""
+OPACITY = "(selector) => getComputedStyle(document.querySelector(selector)).opacity"
+
+
 def test_the_page_shows_the_streams_numbers_live_plots_and_the_link_banner(tmp_path):
     data = CAPTURE.read_bytes()
     link = tmp_path / "ttyFOG0"
@@ -194,6 +206,15 @@ def test_the_page_shows_the_streams_numbers_live_plots_and_the_link_banner(tmp_p
             assert page.locator("#plot-drift .scatterlayer .trace").count() == (3 if band else 1)
             assert page.locator("#plot-temps .scatterlayer .trace").count() == 3
             expect(page.locator("#banners .alarm")).to_have_count(0)
+            # The review's finding 15: the page counted among the clients (STATUS web_clients: this one), the
+            # uptime as a person reads it, no drift plotted from 0 before the first estimate, and no one-minute
+            # mean drawn before the first sample.
+            expect(page.locator("#status-web_clients")).to_have_text("1", timeout=WAIT_MS)
+            expect(page.locator("#status-uptime_s")).to_have_text(re.compile(r"^(\d+ min )?\d+ s$"))
+            plotted = page.evaluate(PLOTTED)
+            assert plotted["drift_zeros"] == 0 and plotted["drift_values"] > 0, plotted
+            assert plotted["first_minute_ms"] >= plotted["first_point_ms"], plotted
+            assert page.locator("body").get_attribute("data-stale") == "0"
             page.screenshot(path=str(tmp_path / "web-view.png"), full_page=True)
 
             # Unplugged: the banner says so; back: it goes.
@@ -201,6 +222,11 @@ def test_the_page_shows_the_streams_numbers_live_plots_and_the_link_banner(tmp_p
             pty.unplug()
             expect(page.locator("#banners .alarm").first).to_contain_text("LINK DOWN", timeout=WAIT_MS)
             expect(page.locator("#link")).to_have_text("link down")
+            # the pill says the figures are stale (not a green "live" beside "link down"), and they are greyed
+            expect(page.locator("#page-state")).to_have_text("link down: figures stale", timeout=WAIT_MS)
+            expect(page.locator("#page-state")).to_have_class(re.compile(r"\bbad\b"))
+            expect(page.locator("body")).to_have_attribute("data-stale", "1")
+            assert float(page.evaluate(OPACITY, "section.numbers")) < 1.0
             page.screenshot(path=str(tmp_path / "web-view-link-down.png"), full_page=True)
             pty.close()
             pty = PtyPair()  # the adapter comes back: a new /dev/pts behind the same link
@@ -208,6 +234,9 @@ def test_the_page_shows_the_streams_numbers_live_plots_and_the_link_banner(tmp_p
             instrument.pty = pty
             instrument.flowing.set()
             expect(page.locator("#link")).to_have_text("link up", timeout=WAIT_MS)
+            expect(page.locator("#page-state")).to_have_text("live", timeout=WAIT_MS)
+            expect(page.locator("body")).to_have_attribute("data-stale", "0")
+            assert float(page.evaluate(OPACITY, "section.numbers")) == 1.0
             expect(page.locator("#banners")).not_to_contain_text("LINK DOWN", timeout=WAIT_MS)
             banners = page.locator("#banners").inner_text()
             missing = re.search(r"SAMPLES MISSING: ([\d,]+) frames", banners)

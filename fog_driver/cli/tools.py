@@ -20,6 +20,7 @@ def cmd_watch(args: argparse.Namespace) -> int:
             duration_s=args.duration,
             json_lines=args.json,
             token_file=args.token_file,
+            idle_s=args.idle_s,
         )
     finally:
         signal.signal(signal.SIGTERM, previous)
@@ -27,8 +28,7 @@ def cmd_watch(args: argparse.Namespace) -> int:
 
 def cmd_ctl(args: argparse.Namespace) -> int:
     return ctl_command(
-        args.ctl_command,
-        args.ctl_args,
+        [args.ctl_first, *args.ctl_args] if args.ctl_first is not None else [],
         address=args.connect,
         token_file=args.token_file,
         json_out=args.json,
@@ -56,6 +56,13 @@ def add_watch(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--count", type=positive_int, metavar="N", help="stop after N ANGLE updates")
     p.add_argument("--duration", type=positive_float, metavar="S", help="stop after S seconds")
+    p.add_argument(
+        "--idle-s",
+        type=positive_float,
+        metavar="S",
+        help="end with exit 75 after S seconds without a sample (default 10 with --count or --duration; "
+        "without them it waits on, unless given)",
+    )
     p.add_argument("--connect", metavar="HOST:PORT", help="the daemon's client address (as the positional HOST:PORT)")
     p.add_argument(
         "--json",
@@ -73,15 +80,18 @@ def add_watch(p: argparse.ArgumentParser) -> None:
 def add_ctl(p: argparse.ArgumentParser) -> None:
     """``fog-driver ctl``: its arguments, the exit statuses in its description, and its function."""
     p.description = (
-        "zero | bias [SECONDS] | adapt on|off | table ANGLE | reload | status | save.  Exit 0 done; "
-        "64 unknown to the daemon; 65 refused or the bias capture failed; 69 unreachable "
-        "or the connection lost; 77 the token refused or needed."
+        "zero | bias [SECONDS] | adapt on|off | table ANGLE | reload | status | save, after the daemon's "
+        "HOST:PORT when given (as watch takes it; or --connect).  Exit 0 done; 64 bad arguments or unknown to "
+        "the daemon; 65 refused or the bias capture failed; 69 unreachable or the connection lost; 77 the "
+        "token refused or needed."
     )
+    p.usage = "%(prog)s [options] [HOST:PORT] COMMAND [ARG ...]"
     p.add_argument(
-        "ctl_command",
-        metavar="COMMAND",
-        choices=["zero", "bias", "adapt", "table", "reload", "status", "save"],
-        help="zero, bias, adapt, table, reload, status or save",
+        "ctl_first",
+        nargs="?",
+        metavar="[HOST:PORT] COMMAND",
+        help="the daemon's client address (default 127.0.0.1:2948; also HOST, :PORT, [IPV6]:PORT) when the first "
+        "word is not a command, then COMMAND: zero, bias, adapt, table, reload, status or save",
     )
     p.add_argument(
         "ctl_args",
@@ -92,7 +102,7 @@ def add_ctl(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--connect",
         metavar="HOST:PORT",
-        help="the daemon's client address (default 127.0.0.1:2948; also HOST, :PORT, [IPV6]:PORT)",
+        help="the daemon's client address (as the first word HOST:PORT)",
     )
     p.add_argument(
         "--token-file",

@@ -7,7 +7,8 @@ Standard library only (this is part of the client library).  Angles: ``format_ar
 (``-`` unless a finite number) for the web page.  ``banners``: what the operator must see first (LINK DOWN, NO DATA,
 the bias), the same lines on the terminal and on the page.  ``drift_sigma``: the drift's 1-sigma as both show it
 (the since-bias form once a bias was captured).  ``model_in_use`` and ``model_text``: the model the daemon runs,
-as every view names it.  ``Progress``: one status line rewritten on a terminal.
+as every view names it.  ``RateAverage``: the rate's mean over the last second of device time, which both show.
+``format_duration``: a duration as ``21 min 4 s``.  ``Progress``: one status line rewritten on a terminal.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import json
 import math
 import sys
 import time
+from collections import deque
 from collections.abc import Mapping
 from decimal import ROUND_HALF_UP, Decimal
 from typing import Any, TextIO, TypeGuard
@@ -32,18 +34,23 @@ __all__ = [
     "DEGREE",
     "MISSING",
     "NO_DATA_S",
+    "RATE_AVERAGE_S",
     "TEMPERATURE_ORDER",
     "Progress",
+    "RateAverage",
     "banners",
     "drift_sigma",
     "finite_number",
     "fixed",
     "format_arcsec",
     "format_dms",
+    "format_duration",
     "is_number",
+    "link_down",
     "mapping",
     "model_in_use",
     "model_text",
+    "no_samples_reason",
     "show",
     "terminal_safe",
 ]
@@ -57,6 +64,8 @@ MISSING = "-"
 DEGREE = "\u00b0"
 #: The web view's band around the drift estimate: +- this many sigma (95 % of a normal error).
 BAND_SIGMAS = 1.96
+#: The rate shown is averaged over this much device time (s): ``watch`` and the web view.
+RATE_AVERAGE_S = 1.0
 
 
 #: From this size on (arcsec) an angle is shown as it is, not rounded to 0.01": a float's hundredths
@@ -202,30 +211,136 @@ def model_text(model_file: Mapping[str, Any]) -> str:
     return f"{where} ({', '.join(details)})"
 
 
+class RateAverage:
+    """The compensated rate's mean over the last ``RATE_AVERAGE_S`` of device time: the mean of *every* frame's
+    ``rate_dph`` in it, from ANGLE objects in the order they come, all of them (the web view) or one per
+    ``1/rate_hz`` of a decimated ``?WATCH`` (``fog-driver watch``).  One sample's ``rate_dph`` is quantized to
+    one count per frame period (1 deg/h steps at 100 Hz); the mean is not.
+
+    Two ANGLE objects ``a``, ``b`` in a row bound a segment of ``n = b.seq - a.seq`` frames; its mean rate is
+    ``b.rate_dph`` when ``n == 1`` (adjacent frames: the frame's own rate, which no ``?ZERO`` can disturb), else
+    the angle's difference over the device time, ``(b.angle_arcsec - a.angle_arcsec) / (b.t_s - a.t_s)``
+    (1 arcsec/s = 1 deg/h: every frame between them counted, the decimated ones too).  The mean is over the
+    segments ending in the last ``RATE_AVERAGE_S`` of device time, weighted by their frames::
+
+        rate_dph = sum(rate_k * n_k) / sum(n_k)        span_s = t_last - t_start of the first segment
+
+    The average starts again (no segment across) where the angle is not the sum of the frames' rates: device
+    time or ``seq`` going back (the instrument restarted, another one plugged in); frames lost between two
+    objects, seen as ``b`` flagged ``gap`` where ``a`` was not (the first frame after a gap is flagged, and its
+    successors while the estimate settles: those are averaged as any others), or a step of more than
+    ``RATE_AVERAGE_S`` to a ``gap`` sample (a second gap while settling); and ``reset`` (``watch`` calls it at its
+    own ``?ZERO``).  A shorter second gap while the first settles, or another client's ``?ZERO`` between two
+    decimated objects, is not seen: the mean is off for one second.  Objects without a finite ``t_s`` or an
+    integer ``seq`` are ignored."""
+
+    def __init__(self) -> None:
+        self._segments: deque[tuple[float, float, int, float]] = deque()  # (t_start, t_end, frames, rate x frames)
+        self._last: tuple[float, int, float | None, bool] | None = None  # (t_s, seq, angle_arcsec, flagged gap)
+
+    def reset(self) -> None:
+        """Start again from the next ANGLE object."""
+        self._segments.clear()
+        self._last = None
+
+    def add(self, angle: Mapping[str, Any]) -> None:
+        t_s, seq = finite_number(angle.get("t_s")), angle.get("seq")
+        if t_s is None or not isinstance(seq, int) or isinstance(seq, bool):
+            return
+        arcsec = finite_number(angle.get("angle_arcsec"))
+        flags = angle.get("flags")
+        gap = isinstance(flags, list) and "gap" in flags
+        previous, self._last = self._last, (t_s, seq, arcsec, gap)
+        if previous is None:
+            return
+        t_before, seq_before, arcsec_before, gap_before = previous
+        dt_s, frames = t_s - t_before, seq - seq_before
+        rate_dph = finite_number(angle.get("rate_dph")) if frames == 1 else None
+        if rate_dph is None and arcsec is not None and arcsec_before is not None and dt_s > 0:
+            rate_dph = (arcsec - arcsec_before) / dt_s
+        lost = gap and (not gap_before or dt_s > RATE_AVERAGE_S)
+        if dt_s <= 0 or frames <= 0 or lost or rate_dph is None:
+            self._segments.clear()
+            return
+        self._segments.append((t_before, t_s, frames, rate_dph * frames))
+        while self._segments[0][1] <= t_s - RATE_AVERAGE_S:
+            self._segments.popleft()
+
+    def mean(self) -> tuple[float, float] | None:
+        """``(rate_dph, span_s)``, or None before a segment (fewer than two objects since the start or a break)."""
+        if not self._segments:
+            return None
+        frames = sum(segment[2] for segment in self._segments)
+        total = math.fsum(segment[3] for segment in self._segments)
+        return total / frames, self._segments[-1][1] - self._segments[0][0]
+
+
+def format_duration(seconds: Any) -> str:
+    """A duration as a person reads it, to the second: ``4 s``, ``21 min 4 s``, ``3 h 07 min``, ``2 d 5 h``;
+    ``-`` unless a finite number >= 0."""
+    value = finite_number(seconds)
+    if value is None or value < 0:
+        return MISSING
+    whole = int(value)
+    days, rest = divmod(whole, 86400)
+    hours, rest = divmod(rest, 3600)
+    minutes, secs = divmod(rest, 60)
+    if days:
+        return f"{days} d {hours} h"
+    if hours:
+        return f"{hours} h {minutes:02d} min"
+    if minutes:
+        return f"{minutes} min {secs} s"
+    return f"{secs} s"
+
+
 def _bias_hint(state: Mapping[str, Any]) -> str:
     """How to capture the bias from here: the key (when keys work) and the ``ctl`` command for this daemon."""
     address = state.get("address")
-    connect = "" if address in (None, format_address(DEFAULT_HOST, DEFAULT_PORT)) else f" --connect {address}"
-    command = f"`fog-driver ctl{connect} bias {DEFAULT_BIAS_S}`"
+    at = "" if address in (None, format_address(DEFAULT_HOST, DEFAULT_PORT)) else f" {address}"
+    command = f"`fog-driver ctl{at} bias {DEFAULT_BIAS_S}`"
     return f"press b (or {command})" if state.get("keys") else f"run {command}"
+
+
+def link_down(state: Mapping[str, Any]) -> bool:
+    """DEVICE says ``deactivated``, or STATUS's ``port_state`` is there and not ``open``."""
+    port_state = mapping(state.get("status")).get("port_state")
+    return mapping(state.get("device")).get("state") == "deactivated" or port_state not in (None, "open")
+
+
+def no_samples_reason(state: Mapping[str, Any]) -> str | None:
+    """Why no sample comes, from what the daemon said last (the same keys as ``banners``; ``watch_refused``: the
+    message of an ``ERROR`` to ``?WATCH``): ``?WATCH refused, MESSAGE``; ``link down`` (DEVICE ``deactivated``
+    or STATUS ``port_state`` not ``open``); ``port open, no samples from the instrument`` (DEVICE
+    ``activated`` or STATUS ``port_state`` ``open``); None when the daemon said neither (no DEVICE, no STATUS:
+    a daemon that withholds them before ``?AUTH``)."""
+    refused = state.get("watch_refused")
+    if refused is not None:
+        return f"?WATCH refused, {show(refused)}"
+    if link_down(state):
+        return "link down"
+    if mapping(state.get("device")).get("state") == "activated" or mapping(state.get("status")).get("port_state"):
+        return "port open, no samples from the instrument"
+    return None
 
 
 def banners(state: Mapping[str, Any]) -> list[str]:
     """What the operator must see first, most urgent first: LINK DOWN, NO DATA for N s, the bias.
 
     ``LINK DOWN`` when DEVICE says ``deactivated`` (or STATUS's ``port_state`` is not ``open``); ``NO DATA
-    for N s`` when no ANGLE came for ``NO_DATA_S`` (``angle_age_s``, or ``elapsed_s`` before the first one);
+    for N s (REASON)`` when no ANGLE came for ``NO_DATA_S`` (``angle_age_s``, or ``elapsed_s`` before the first
+    one), with ``no_samples_reason`` when there is one;
     the bias banner while STATUS says ``bias_captured: false`` (a daemon that does not say gets none), or a
     running capture's progress (``bias_capture_s`` of ``bias_capture_target_s``).
     """
     lines = []
-    device, status = mapping(state.get("device")), mapping(state.get("status"))
-    port_state = status.get("port_state")
-    if device.get("state") == "deactivated" or (port_state is not None and port_state != "open"):
+    status = mapping(state.get("status"))
+    if link_down(state):
         lines.append("*** LINK DOWN: the daemon's instrument port is closed; no samples, the angle holds ***")
     age = state.get("angle_age_s") if state.get("angle") else state.get("elapsed_s")
     if is_number(age) and age >= NO_DATA_S and mapping(state.get("watch")).get("enable", True) is not False:
-        lines.append(f"*** NO DATA for {age:.0f} s ***")
+        reason = no_samples_reason(state)
+        lines.append(f"*** NO DATA for {age:.0f} s{f' ({reason})' if reason else ''} ***")
     if is_number(status.get("bias_capture_target_s")):
         lines.append(
             f"capturing the bias: {show(status.get('bias_capture_s'), '.1f')} / "

@@ -1,6 +1,7 @@
 """``fog-driver ctl``: one control command to a running daemon (``fog-driver run``), like gpsd's ``gpsctl``.
 
-``fog-driver ctl [--connect HOST:PORT] [--token-file FILE] [--json] COMMAND [ARGS]`` with COMMAND one of:
+``fog-driver ctl [HOST:PORT] [--token-file FILE] [--json] COMMAND [ARGS]`` (or ``--connect HOST:PORT``, as
+``watch`` takes the address: a first word that is not a command is the daemon's address) with COMMAND one of:
 
 =====================  =========================================================================
 ``zero``               ``?ZERO``: the published angles start again from 0 here
@@ -21,9 +22,11 @@ from ``FOG_DRIVER_TOKEN`` or ``--token-file`` and ``?AUTH`` is sent first.  Outp
 answer on stdout (``status``: three, with the model's), or with ``--json`` the daemon's own lines (the reply,
 and for ``bias`` the result event).
 Exit statuses (sysexits), each failure one line on stderr: 0 done; 64 the daemon does not know the
-command (an older daemon), or bad arguments; 65 the daemon refused the command or the bias capture
-failed; 69 the daemon cannot be reached or the connection was lost; 77 the token was refused or is
-needed.
+command (an older daemon), or bad arguments (a first word that is neither a command nor followed by one, an
+address that is not HOST:PORT, the address given twice: checked after argparse, whose grammar cannot say
+``[HOST:PORT] COMMAND``, so one line and 64 like every other bad argument of ctl, not argparse's 2); 65 the
+daemon refused the command or the bias capture failed; 69 the daemon cannot be reached or the connection was
+lost; 77 the token was refused or is needed.
 """
 
 from __future__ import annotations
@@ -48,7 +51,7 @@ from ..client.protocol import (
 from ..client.wire import TOKEN_ENV, parse_address, read_token
 from ..errors import FogDriverError, UsageError
 
-__all__ = ["COMMANDS", "ctl_command", "parse_request", "run_ctl"]
+__all__ = ["COMMANDS", "ctl_command", "parse_request", "run_ctl", "split_words"]
 
 #: ``fog-driver ctl`` commands -> the protocol's command names.
 COMMANDS = {
@@ -65,6 +68,30 @@ BIAS_WAIT_MARGIN_S = 5.0
 #: How long a reply is waited for by default: the client library's (the daemon answers every control command
 #: within 30 s).
 DEFAULT_TIMEOUT_S = REPLY_TIMEOUT_S
+
+
+def split_words(words: list[str], address: str | None = None) -> tuple[str | None, str, list[str]]:
+    """``[HOST:PORT] COMMAND [ARG ...]`` -> ``(address, command, args)``: a first word that is a command is the
+    command (and ``address``, from ``--connect``, the address), any other the daemon's address, followed by the
+    command.  ``UsageError`` (one line naming the commands) for a first word that is neither a command nor an
+    address followed by one, for a malformed address, and for an address given twice."""
+    names = ", ".join(COMMANDS)
+    if not words:
+        raise UsageError(f"no command: one of {names}")
+    first, rest = words[0], words[1:]
+    if first in COMMANDS:
+        return address, first, rest
+    if not rest:
+        raise UsageError(f"{first!r} is not a command ({names}), and no command follows it")
+    if rest[0] not in COMMANDS:
+        raise UsageError(f"neither {first!r} nor {rest[0]!r} is a command ({names})")
+    try:
+        parse_address(first)
+    except UsageError as exc:
+        raise UsageError(f"{exc} (and not a command: {names})") from None
+    if address is not None:
+        raise UsageError(f"the daemon's address given twice: {first!r} and --connect {address}")
+    return first, rest[0], rest[1:]
 
 
 def parse_request(
@@ -290,7 +317,6 @@ def _wait_for_bias(client: Client, started: Bias, out: TextIO, json_out: bool, p
 
 
 def ctl_command(
-    command: str,
     words: list[str],
     *,
     address: str | None = None,
@@ -301,9 +327,11 @@ def ctl_command(
     dwell_s: float | None = None,
     angle_start_deg: float | None = None,
 ) -> int:
-    """``fog-driver ctl``: parse the command and the address, read the token, run it on stdout."""
+    """``fog-driver ctl [HOST:PORT] COMMAND [ARG ...]`` (``words``; ``address``: ``--connect``): split the words
+    (``split_words``), parse the command and the address, read the token, run it on stdout."""
+    address, command, arguments = split_words(words, address)
     name, args = parse_request(
-        command, words, reference_dph=reference_dph, dwell_s=dwell_s, angle_start_deg=angle_start_deg
+        command, arguments, reference_dph=reference_dph, dwell_s=dwell_s, angle_start_deg=angle_start_deg
     )
     host, port = parse_address(address)
     token = read_token(token_file)

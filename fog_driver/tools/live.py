@@ -1,20 +1,18 @@
 """``fog-driver watch``'s live state and its two outputs: on a terminal a block redrawn in place (at most
 10 times a second, at least once a second), anywhere else one line per event and one compact line a second.
 
-``LiveView.handle`` takes each protocol object; the rate shown is ``RateAverage``'s mean over the last
-``RATE_AVERAGE_S`` of device time: ``(angle_arcsec[last] - angle_arcsec[first]) / (t_s[last] - t_s[first])``
-(arcsec/s = deg/h), counting every sample of the interval, the decimated ones too.
+``LiveView.handle`` takes each protocol object; the rate shown is ``client.display.RateAverage``'s mean over the
+last ``RATE_AVERAGE_S`` of device time (every frame's rate in it, the decimated ones too), as the web view's.
 """
 
 from __future__ import annotations
 
 import contextlib
-import math
 from collections import deque
 from collections.abc import Mapping
 from typing import Any, TextIO
 
-from ..client.display import is_number, model_in_use, show
+from ..client.display import RATE_AVERAGE_S, RateAverage, model_in_use, show
 from ..client.wire import TOKEN_ENV
 from .render import compact_line, device_text, identity_text, model_line, render, server_text
 from .terminal import (
@@ -39,45 +37,10 @@ __all__ = [
     "RateAverage",
 ]
 
-#: The rate shown is averaged over this much device time (s).
-RATE_AVERAGE_S = 1.0
-
 TTY_MIN_REDRAW_S = 0.1  # at most 10 redraws a second
 TTY_REFRESH_S = 1.0  # redraw at least this often (ages and rates move even without data)
 LINE_PERIOD_S = 1.0  # non-tty: one compact line per second
 RATE_WINDOW_S = 2.0  # ANGLE objects per second, counted over this window
-
-
-class RateAverage:
-    """The mean rate over the last ``RATE_AVERAGE_S`` of device time, from the ANGLE objects' cumulative angle.
-
-    Keeps ``(t_s, angle_arcsec)`` pairs spanning just over the window; the mean is the angle difference over
-    the time difference (arcsec/s = deg/h), which counts every sample of the interval (the decimated ones
-    too).  ``reset`` starts again (after a gap, a ?ZERO, time going backwards)."""
-
-    def __init__(self) -> None:
-        self._points: deque[tuple[float, float]] = deque()
-
-    def reset(self) -> None:
-        self._points.clear()
-
-    def add(self, angle: Mapping[str, Any]) -> None:
-        t_s, arcsec = angle.get("t_s"), angle.get("angle_arcsec")
-        if not (is_number(t_s) and is_number(arcsec) and math.isfinite(t_s) and math.isfinite(arcsec)):
-            return
-        flags = angle.get("flags")
-        if (isinstance(flags, list) and "gap" in flags) or (self._points and t_s <= self._points[-1][0]):
-            self.reset()
-        self._points.append((float(t_s), float(arcsec)))
-        while len(self._points) > 2 and self._points[1][0] <= t_s - RATE_AVERAGE_S:
-            self._points.popleft()
-
-    def mean(self) -> tuple[float, float] | None:
-        """``(rate_dph, span_s)``, or None with fewer than two points."""
-        if len(self._points) < 2:
-            return None
-        (t0, a0), (t1, a1) = self._points[0], self._points[-1]
-        return (a1 - a0) / (t1 - t0), t1 - t0
 
 
 class LiveView:
@@ -124,9 +87,14 @@ class LiveView:
             self._event(f"device {device_text(obj)}{down}")
         elif cls == "WATCH":  # the server's answer to ?WATCH: the policy in force
             self.state["watch"] = obj
+            self.state.pop("watch_refused", None)
         elif cls == "ERROR":
             message = show(obj.get("message")) if obj.get("message") is not None else "(no message)"
-            if obj.get("command") in ("ZERO", "BIAS"):
+            if obj.get("command") == "WATCH":
+                self.state["watch_refused"] = message
+                hint = f" (set {TOKEN_ENV} or --token-file)" if message == "unauthorized" else ""
+                self._event(f"?WATCH refused: {message}{hint}")
+            elif obj.get("command") in ("ZERO", "BIAS"):
                 hint = f" (set {TOKEN_ENV} or --token-file)" if message == "unauthorized" else ""
                 self._action(f"?{obj['command']} refused: {message}{hint}")
             else:
@@ -165,6 +133,10 @@ class LiveView:
     def _action(self, text: str) -> None:
         self.state["action"] = text
         self._event(text)
+
+    def idle_s(self, now: float) -> float:
+        """Host seconds since the last ANGLE (since the watch started, before the first)."""
+        return now - (self.started if self._last_angle_at is None else self._last_angle_at)
 
     def malformed(self, n: int = 1) -> None:
         self.state["malformed"] += n

@@ -13,14 +13,22 @@ Series kept for the plots (the last ``history_min`` minutes of device time):
   ``rate_dph = (1/n) * sum_i rate_dph_i`` over its n samples; and the half-width of the band the drift plot
   draws, ``drift_band_dph = BAND_SIGMAS * sigma`` with sigma as shown then (``display.drift_sigma``: the
   sample's sigma(t), or once STATUS says a bias was captured, sqrt(sigma(t)^2 + sigma(t_b)^2), and
-  ``band_since_bias`` true), None without a sigma;
-* ``minutes``: one per minute of device time, the minute's mean compensated and raw rates
-  ``rate_dph = (1/n) * sum_i rate_dph_i`` (every sample, not the decimated ones: a mean of the published
-  rates is the angle gained over the minute divided by its duration, unaffected by a ``?ZERO`` meanwhile).
+  ``band_since_bias`` true), None without a sigma; ``drift_dph`` and the band None while the sample is flagged
+  ``uncompensated`` (no estimate yet: its ``drift_dph`` is 0, which the plot would draw as a spike from 0);
+* ``minutes``: one per minute of device time that the samples cover (the first within ``MINUTE_COVER_S`` of its
+  start, the last within it of its end: not the minute the daemon started in, nor one a link gap cut short),
+  the minute's mean compensated and raw rates ``rate_dph = (1/n) * sum_i rate_dph_i`` (every sample, not the
+  decimated ones: a mean of the published rates is the angle gained over the minute divided by its duration,
+  unaffected by a ``?ZERO`` meanwhile).
 
-Also ``rate_1s_dph``, the same mean over the last full second (shown, and exported as a metric).  A span
-closes when the first sample of the next one arrives.  Device time that goes back (the
-instrument restarted, another one plugged in) starts the series afresh.
+``page_state``: what the figures are (live; stale while the link is down or no data comes, which the page greys;
+waiting before the first sample), for the page's pill.  STATUS counters in ``STATUS_ROWS``; the uptime as
+``display.format_duration`` shows it.
+
+Also ``rate_1s_dph``, the compensated rate's mean over the last second of device time (shown, and exported as a
+metric), computed by ``display.RateAverage``, the code ``fog-driver watch`` shows its rate with: fed every
+sample, it is the mean of their ``rate_dph``.  A span closes when the first sample of the next one arrives.
+Device time that goes back (the instrument restarted, another one plugged in) starts the series afresh.
 
 The numbers shown are formatted here (``text``), with ``watch``'s rules (``format_arcsec``,
 ``format_dms``), so the page, ``fog-driver watch`` and a script formatting an ANGLE line all agree; so is the
@@ -38,10 +46,13 @@ from ...client.display import (
     BAND_SIGMAS,
     NO_DATA_S,
     TEMPERATURE_ORDER,
+    RateAverage,
     banners,
     drift_sigma,
     format_arcsec,
     format_dms,
+    format_duration,
+    link_down,
     model_in_use,
     model_text,
 )
@@ -56,6 +67,9 @@ MAX_POINTS = 3600
 DEFAULT_HISTORY_MIN = 60.0
 #: Events (BIAS results, ...) kept for a page that connects later.
 MAX_EVENTS = 20
+#: A minute is plotted when its samples begin within this long (device s) of its start and end within this long
+#: of its end (the first minute after a start, or one a link gap cut, is not a minute's mean).
+MINUTE_COVER_S = 1.0
 #: A STATUS whose ``missing_frames`` grew within this long (host s) shows the "samples missing" banner.
 MISSING_BANNER_S = 60.0
 
@@ -69,28 +83,31 @@ STATUS_ROWS = (
     ("bytes_discarded", "bytes discarded"),
     ("seq_gaps", "sequence gaps"),
     ("published", "published"),
-    ("clients", "clients"),
-    ("dropped_clients", "dropped clients"),
+    ("clients", "NDJSON clients"),
+    ("dropped_clients", "dropped NDJSON clients"),
+    ("web_clients", "web pages"),
+    ("web_dropped_clients", "dropped web pages"),
     ("capture_state", "capture"),
     ("capture_bytes", "capture bytes"),
     ("bias_dph", "bias removed (deg/h)"),
     ("adapting", "adapting"),
     ("cpu_percent", "daemon CPU (%)"),
     ("rss_mb", "daemon RSS (MB)"),
-    ("uptime_s", "uptime (s)"),
+    ("uptime_s", "uptime"),
 )
 
 
 class _Mean:
     """Running sums of one bucket (a second or a minute of device time)."""
 
-    __slots__ = ("bucket", "n", "rate_sum", "raw_sum", "last")
+    __slots__ = ("bucket", "n", "rate_sum", "raw_sum", "first_t_s", "last")
 
     def __init__(self, bucket: int) -> None:
         self.bucket = bucket
         self.n = 0
         self.rate_sum = 0.0
         self.raw_sum = 0.0
+        self.first_t_s: float | None = None  # device time of its first sample
         self.last: Mapping[str, Any] | None = None
 
 
@@ -107,12 +124,11 @@ class ViewState:
         self.minutes: deque[dict[str, Any]] = deque()
         self.angle: Mapping[str, Any] | None = None
         self.angle_host_s: float | None = None
-        self.rate_1s_dph: float | None = None
+        self._rate = RateAverage()
         self.objects: dict[str, Mapping[str, Any]] = {}  # the last STATUS, DEVICE, VERSION by class
         self.events: deque[Mapping[str, Any]] = deque(maxlen=MAX_EVENTS)
         self.samples = 0
         self.restarts = 0
-        self._second: _Mean | None = None
         self._point: _Mean | None = None
         self._minute: _Mean | None = None
         self._missing: tuple[float, int] | None = None  # (host s it last grew, the count then)
@@ -154,16 +170,18 @@ class ViewState:
     def _restart(self) -> None:
         self.points.clear()
         self.minutes.clear()
-        self._second = self._point = self._minute = None
-        self.rate_1s_dph = None
+        self._point = self._minute = None
+        self._rate.reset()
         self.restarts += 1
 
+    @property
+    def rate_1s_dph(self) -> float | None:
+        """The compensated rate's mean over the last second of device time (``display.RateAverage``), or None."""
+        mean = self._rate.mean()
+        return None if mean is None else mean[0]
+
     def _add(self, obj: Mapping[str, Any], t_s: float) -> None:
-        second = math.floor(t_s)
-        if self._second is None or second != self._second.bucket:
-            if self._second is not None and self._second.n:
-                self.rate_1s_dph = self._second.rate_sum / self._second.n
-            self._second = _Mean(second)
+        self._rate.add(obj)
         point = math.floor(t_s / self.point_every_s)
         if self._point is None or point != self._point.bucket:
             if self._point is not None:
@@ -175,24 +193,28 @@ class ViewState:
                 self._close_minute(self._minute)
             self._minute = _Mean(minute)
         rate, raw = _number(obj.get("rate_dph")), _number(obj.get("rate_raw_dph"))
-        for mean in (self._second, self._point, self._minute):
+        for mean in (self._point, self._minute):
             if rate is not None and raw is not None:
                 mean.n += 1
                 mean.rate_sum += rate
                 mean.raw_sum += raw
+            if mean.first_t_s is None:
+                mean.first_t_s = t_s
             mean.last = obj
 
     def _close_point(self, point: _Mean) -> None:
         last = point.last
         temps = last.get("temps_c") if isinstance(last.get("temps_c"), Mapping) else {}
         shown, since_bias = drift_sigma(last, self.objects.get("STATUS", {}))
+        flags = last.get("flags")
+        estimated = not (isinstance(flags, list) and "uncompensated" in flags)  # no estimate yet: drift_dph is 0
         self.points.append(
             {
                 "t_s": last["t_s"],
                 "utc": last.get("utc"),
-                "drift_dph": _number(last.get("drift_dph")),
+                "drift_dph": None if estimated is False else _number(last.get("drift_dph")),
                 "drift_sigma_dph": _number(last.get("drift_sigma_dph")),
-                "drift_band_dph": None if shown is None else BAND_SIGMAS * shown,
+                "drift_band_dph": None if shown is None or estimated is False else BAND_SIGMAS * shown,
                 "band_since_bias": since_bias,
                 "angle_arcsec": _number(last.get("angle_arcsec")),
                 "rate_dph": point.rate_sum / point.n if point.n else None,
@@ -202,7 +224,13 @@ class ViewState:
         self._trim(self.points)
 
     def _close_minute(self, minute: _Mean) -> None:
-        if not minute.n:
+        start_s = minute.bucket * MEAN_EVERY_S
+        covered = (
+            minute.first_t_s is not None
+            and minute.first_t_s < start_s + MINUTE_COVER_S
+            and minute.last["t_s"] >= start_s + MEAN_EVERY_S - MINUTE_COVER_S
+        )
+        if not minute.n or not covered:  # begun part-way (the start, a link gap) or cut short: not a minute's mean
             return
         self.minutes.append(
             {
@@ -287,6 +315,7 @@ class ViewState:
             "temperatures": temperature_names(self.angle),
             "restarts": self.restarts,
             "alarm": any(line["level"] == "alarm" for line in lines),
+            "page_state": page_state(state),
             "text": self.text(state["angle_age_s"]),
         }
 
@@ -320,8 +349,25 @@ class ViewState:
             out[f"temp_{name}"] = _fixed(value, 3)
         for key, _label in STATUS_ROWS:
             value = status.get(key)
-            out[f"status_{key}"] = _status_text(value)
+            out[f"status_{key}"] = (
+                format_duration(value) if key == "uptime_s" and value is not None else _status_text(value)
+            )
         return out
+
+
+def page_state(state: Mapping[str, Any]) -> dict[str, Any]:
+    """What the page's figures are, for its pill and its greying (``stale``): ``waiting for data`` before the
+    first sample; ``link down: figures stale`` (``display.link_down``: DEVICE ``deactivated``, STATUS
+    ``port_state`` not ``open``); ``no data for N s: figures stale`` after ``NO_DATA_S`` without a sample; else
+    ``live``.  ``level``: ``waiting``, ``bad`` or ``ok`` (grey, red, green)."""
+    if not state.get("angle"):
+        return {"text": "waiting for data", "level": "waiting", "stale": False}
+    if link_down(state):
+        return {"text": "link down: figures stale", "level": "bad", "stale": True}
+    age = state.get("angle_age_s")
+    if age is not None and age >= NO_DATA_S:
+        return {"text": f"no data for {age:.0f} s: figures stale", "level": "bad", "stale": True}
+    return {"text": "live", "level": "ok", "stale": False}
 
 
 def temperature_names(angle: Mapping[str, Any] | None) -> list[str]:
@@ -390,5 +436,6 @@ __all__ = [
     "STATUS_ROWS",
     "TEMPERATURE_ORDER",
     "ViewState",
+    "page_state",
     "temperature_names",
 ]

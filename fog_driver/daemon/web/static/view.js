@@ -156,7 +156,11 @@ function handle(msg) {
   if (msg.temperatures && msg.temperatures.length) temperatureOrder = msg.temperatures;
   if (msg.type === "snapshot") document.getElementById("logout").hidden = !msg.login;
   const sampled = Boolean(msg.angle && msg.angle.seq !== undefined);
-  pageState(sampled ? "live" : "waiting for data", sampled ? true : null);
+  // What the figures are, as the server judged them (view.page_state): live, stale (link down, no data: greyed
+  // by the stylesheet) or waiting; a reader of the angles only gets no judgement.
+  const state = msg.page_state || { text: sampled ? "live" : "waiting for data", level: sampled ? "ok" : "waiting" };
+  pageState(state.text, state.level === "ok" ? true : state.level === "bad" ? false : null);
+  document.body.dataset.stale = state.stale ? "1" : "0";
   document.getElementById("when").hidden = !sampled;
   document.getElementById("waiting").hidden = sampled;
   if (msg.text && msg.text.drift_band_label) bandLabel = "band: " + msg.text.drift_band_label;
@@ -205,6 +209,7 @@ function connect() {
       .then((answer) => { if (answer.status === 401) location.assign("/login"); })
       .catch(() => {});
     pageState("no connection to the daemon: retrying", false);
+    document.body.dataset.stale = "1";
     const box = document.getElementById("banners");
     const div = document.createElement("div");
     div.textContent = "NO CONNECTION to the daemon's web listener: the numbers below are stale";
