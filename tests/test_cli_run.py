@@ -151,3 +151,20 @@ def test_the_demonstration_does_not_warn_about_its_own_simulator(monkeypatch):
     thread, path = daemon._start_embedded_simulator(stop)
     thread.join(GUARD_S)
     assert path == "/dev/pts/test" and seen["warn_behind"] is False
+
+
+def test_the_demonstrations_log_names_the_pty_it_reads_and_no_link():
+    """Before: ``run --simulate -v`` logged ``pty_ready link=/tmp/fog-driver-sim.tty``, a name nobody reads (the
+    daemon reads the pty itself) and that another simulator may hold; now the pty's own path, and no link."""
+    from structlog.testing import capture_logs
+
+    from fog_driver.cli import daemon
+
+    stop = threading.Event()
+    with capture_logs() as logs:
+        thread, path = daemon._start_embedded_simulator(stop)
+        stop.set()
+        thread.join(GUARD_S)
+    ready = [entry for entry in logs if entry["event"] == "pty_ready"]
+    assert ready == [{"event": "pty_ready", "log_level": "info", "slave": path}]
+    assert path.startswith("/dev/pts/")
