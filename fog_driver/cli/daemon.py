@@ -16,7 +16,7 @@ from .. import __version__
 from ..console import configure_logging
 from ..daemon.config import DriverConfig, load_config
 from ..daemon.service import ConfigError, Service
-from ..errors import DeviceError, FogDriverError, InternalError, UsageError
+from ..errors import DeviceError, FogDriverError, InternalError
 from ..extras import require_extra
 from ..formats.registry import FORMATS
 from ..signals import SignalDispatcher
@@ -48,10 +48,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     except (FogDriverError, ValueError) as exc:
         raise ConfigError(str(exc)) from None
     if config.http:  # before any work (the simulator, the model): as every command checks its extras
-        try:
-            require_extra("web", f"the web view and /metrics (http {config.http})")
-        except UsageError as exc:
-            raise ConfigError(str(exc)) from None  # exit 78: restarting a service cannot install it
+        # exit 64, as every command's missing extra (the unit's RestartPreventExitStatus= has it: a restart
+        # cannot install it)
+        require_extra("web", f"the web view and /metrics (http {config.http})")
     stop = threading.Event()
     simulator = None
     port = config.port
