@@ -81,6 +81,50 @@ def test_at_a_terminal_a_missing_port_is_an_error_at_once(tmp_path):
     assert not (tmp_path / "c").exists()  # nothing started, nothing written
 
 
+@pytest.mark.parametrize("what", ["/dev/null", "a regular file", "a directory"])
+@pytest.mark.parametrize("wait", [False, True])
+def test_run_port_dev_null_at_a_terminal_is_an_error_at_once(tmp_path, what, wait):
+    """The review's finding 11: ``run --port /dev/null`` at a terminal retried for ever with "(25,
+    'Inappropriate ioctl for device')".  A path that is there but is no serial device: one line, exit 69, at
+    once, even with --wait (waiting cannot make it one)."""
+    kinds = {
+        "/dev/null": "a character device that is not a terminal",
+        "a regular file": "a regular file",
+        "a directory": "a directory",
+    }
+    port = Path("/dev/null") if what == "/dev/null" else tmp_path / "ttyUSB0"
+    if what == "a regular file":
+        port.write_bytes(b"\xaa\x55" * 100)
+    elif what == "a directory":
+        port.mkdir()
+    with _terminal() as stdin:
+        proc = subprocess.run(
+            _run("--port", str(port), *(["--wait"] if wait else [])),
+            cwd=tmp_path,
+            stdin=stdin,
+            capture_output=True,
+            text=True,
+            env=_environment(),
+            timeout=GUARD_S,
+        )
+    assert proc.returncode == 69, proc.stderr
+    assert proc.stdout == ""
+    assert proc.stderr.splitlines() == [f"fog-driver: error: cannot open {port}: {kinds[what]}, not a serial device"]
+    assert not (tmp_path / "c").exists()
+
+
+def test_at_a_terminal_a_pty_is_a_serial_device(tmp_path):
+    """The tests and ``--simulate`` serve on ptys: at a terminal a pty's path is taken as a port."""
+    from fog_driver.transport import PtyPair
+
+    with (
+        PtyPair() as pty,
+        _terminal() as stdin,
+        _started(_run("--port", pty.slave_path), cwd=tmp_path, stdin=stdin, env=_environment()) as proc,
+    ):
+        _ready_then_terminated(proc)
+
+
 def test_at_a_terminal_wait_waits_for_the_port_and_says_so_once(tmp_path):
     port = tmp_path / "ttyUSB9"
     with (

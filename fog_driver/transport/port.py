@@ -18,6 +18,7 @@ import contextlib
 import errno
 import os
 import select
+import stat
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -333,6 +334,38 @@ def open_error_text(url: str, exc: BaseException) -> str:
     else:
         reason = " ".join(str(exc).split()) or type(exc).__name__
     return f"cannot open {url}: {reason}"
+
+
+def not_a_serial_device(path: str) -> str | None:
+    """Why the existing ``path`` can never be a serial port, as one line ("cannot open /dev/null: a character
+    device that is not a terminal, not a serial device"), or None: it is a terminal device (a serial port, a
+    USB adapter, a pty), or it does not exist or cannot be opened now (``open_error_text``'s to say; waiting
+    may help with those, never with this).
+
+    A character device is opened (read-write, non-blocking, not as the controlling terminal) and closed
+    again to ask whether it is a terminal (``isatty``: what pyserial's ``tcgetattr`` needs)."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return None
+    if stat.S_ISCHR(mode):
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK | os.O_CLOEXEC)
+        except OSError:
+            return None
+        try:
+            if os.isatty(fd):
+                return None
+        finally:
+            os.close(fd)
+        kind = "a character device that is not a terminal"
+    elif stat.S_ISREG(mode):
+        kind = "a regular file"
+    elif stat.S_ISDIR(mode):
+        kind = "a directory"
+    else:
+        kind = "not a device"
+    return f"cannot open {path}: {kind}, not a serial device"
 
 
 def _close_quietly(port: serial.SerialBase) -> None:
