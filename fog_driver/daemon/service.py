@@ -247,6 +247,7 @@ class Service:
 
     def _on_port_state(self, event: PortEvent) -> None:
         self.port_state = event.state
+        self.acquisition.port_changed(event.state, event.url, time.monotonic())
         if event.state in ("open", "lost"):
             self.publish(self.device_object())
 
