@@ -13,6 +13,7 @@ from a compensator, the pipeline's state): a run saved and restored continues bi
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -21,20 +22,121 @@ from .compensation.adapt import ADAPT_STATE_FORMAT, ADAPT_STATE_SCHEMA_VERSION, 
 from .compensation.model import MODEL_FORMAT, MODEL_SCHEMA_VERSION, ModelFile, model_file_from_doc
 from .compensation.pipeline import Compensator
 from .errors import InputFileError
-from .files.yamlio import MAX_YAML_BYTES, read_tagged_yaml, write_yaml, yaml_text
+from .files.yamlio import (
+    MAX_YAML_BYTES,
+    check_tagged,
+    parse_yaml,
+    read_tagged_yaml,
+    read_yaml_text,
+    write_text,
+    write_yaml,
+    yaml_text,
+)
 
 # -- model files ---------------------------------------------------------------------------------------
 
+#: A model file's first and last lines (YAML comments: the document is ``to_doc``'s, whatever reads it).  A
+#: file that starts with the first and does not end with the last was cut short (a copy interrupted, a disk
+#: full): ``load_model`` says so, wherever the cut is.
+MODEL_FIRST_LINE = "# fog_driver drift model; a file without its last line (below) is incomplete"
+MODEL_LAST_LINE = "# end of the model file"
+#: The top-level keys ``ModelFile.to_doc`` writes, in order (``provenance`` last, in every version); those of
+#: ``MODEL_OPTIONAL_KEYS`` only when the model has them, and files made before the first and last lines existed
+#: may also lack those of ``MODEL_LATER_KEYS`` (they came later).
+MODEL_KEYS = (
+    "format",
+    "schema_version",
+    "kind",
+    "instrument_serial",
+    "created_utc",
+    "fog_driver_version",
+    "model_rate_hz",
+    "features",
+    "normalizer",
+    "model",
+    "domain",
+    "substitution",
+    "temperature_channels",
+    "noise_1min_dph",
+    "uncertainty",
+    "provenance",
+)
+MODEL_OPTIONAL_KEYS = frozenset({"domain", "noise_1min_dph", "uncertainty"})
+MODEL_LATER_KEYS = frozenset({"substitution", "temperature_channels"})
+
+
+def model_text(model_file: ModelFile) -> str:
+    """The text of a model file: ``MODEL_FIRST_LINE``, ``to_doc()`` as YAML, ``MODEL_LAST_LINE``."""
+    return f"{MODEL_FIRST_LINE}\n{yaml_text(model_file.to_doc())}{MODEL_LAST_LINE}\n"
+
 
 def save_model(path: str | Path, model_file: ModelFile) -> Path:
-    """Write ``model_file.to_doc()`` to ``path`` (atomically; ``OutputFileError`` on failure)."""
-    return write_yaml(path, model_file.to_doc(), "model")
+    """Write ``model_text(model_file)`` to ``path`` (atomically; ``OutputFileError`` on failure)."""
+    return write_text(path, model_text(model_file), "model")
 
 
 def load_model(path: str | Path) -> ModelFile:
-    """Read and validate a model file; a corrupt or wrong-version file is a one-line ``InputFileError``."""
-    doc = read_tagged_yaml(path, "model file", MODEL_FORMAT, MODEL_SCHEMA_VERSION)
-    return model_file_from_doc(doc, str(path))
+    """Read and validate a model file; a truncated, corrupt or wrong-version file is a one-line ``InputFileError``.
+
+    A file cut short says "model file truncated or incomplete: 'KEY' missing (it ends in or after 'LAST')"
+    (``truncation``) before anything its missing part would make fail."""
+    where = str(path)
+    text = read_yaml_text(path, "model file") or ""
+    if not text.strip():
+        raise InputFileError(f"{where}: the model file is empty")
+    if _begins_as_written(text) and not _has_last_line(text):  # ours, cut short: no need to parse it
+        raise InputFileError(f"{where}: {truncation(_top_level_keys(text), written_with_last_line=True)}")
+    doc = parse_yaml(text, path, "model file")
+    if isinstance(doc, dict) and doc.get("format") == MODEL_FORMAT and "provenance" not in doc:
+        raise InputFileError(f"{where}: {truncation(list(doc), written_with_last_line=False)}")
+    check_tagged(doc, path, "model file", MODEL_FORMAT, MODEL_SCHEMA_VERSION)
+    return model_file_from_doc(doc, where)
+
+
+#: A top-level key of a model file as ``yaml_text`` writes it: at the start of a line, then a colon.
+_TOP_LEVEL_KEY = re.compile(r"^([A-Za-z_]\w*):", re.MULTILINE)
+
+
+def _top_level_keys(text: str) -> list[str]:
+    """The top-level keys of a model file's text as written (``key:`` at a line's start), in file order."""
+    return _TOP_LEVEL_KEY.findall(text)
+
+
+def _begins_as_written(text: str) -> bool:
+    """The text starts with ``MODEL_FIRST_LINE`` (or is a start of it: cut inside it)."""
+    first = MODEL_FIRST_LINE + "\n"
+    return text.startswith(first) or first.startswith(text)
+
+
+def _has_last_line(text: str) -> bool:
+    """``MODEL_LAST_LINE`` is a whole line, and only blank or comment lines follow it (a note added by hand)."""
+    at = text.rfind("\n" + MODEL_LAST_LINE + "\n")
+    if at < 0:
+        return False
+    rest = text[at + len(MODEL_LAST_LINE) + 2 :]
+    return all(not line.strip() or line.lstrip().startswith("#") for line in rest.splitlines())
+
+
+def truncation(present: list[str], *, written_with_last_line: bool) -> str:
+    """What a model file cut short lacks, given the top-level keys ``present`` (in file order): "model file
+    truncated or incomplete: 'KEY' missing (it ends in or after 'LAST')", KEY the first key ``to_doc`` always
+    writes after the last one present, LAST (files without the first and last lines, older ones, may lack
+    those of ``MODEL_LATER_KEYS``: they are not named).  With every key there the cut is inside the last
+    one's value (provenance) or in the last line.
+
+    Which files are cut short: one that starts with ``MODEL_FIRST_LINE`` and lacks ``MODEL_LAST_LINE``, or one
+    that names itself a model file (``format``) and lacks ``provenance``, the last key in every version.  A file
+    written before the first and last lines existed and cut inside its ``provenance`` cannot be told from a
+    whole one: it is read, with every number the model needs intact."""
+    known = [k for k in present if k in MODEL_KEYS]
+    if not known:
+        return "model file truncated or incomplete: 'format' missing (it ends before its first key)"
+    last = known[-1]
+    maybe_absent = MODEL_OPTIONAL_KEYS if written_with_last_line else MODEL_OPTIONAL_KEYS | MODEL_LATER_KEYS
+    after = MODEL_KEYS[MODEL_KEYS.index(last) + 1 :]
+    missing = next((k for k in after if k not in present and k not in maybe_absent), None)
+    what = f"the end of {last!r} and the line {MODEL_LAST_LINE!r}" if missing is None else repr(missing)
+    return f"model file truncated or incomplete: {what} missing (it ends in or after {last!r})"
 
 
 def _read_bytes(path: str | Path) -> bytes | None:
@@ -57,7 +159,7 @@ def read_model(path: str | Path, attempts: int = 3) -> tuple[ModelFile, bytes]:
 
 def model_bytes(model_file: ModelFile) -> bytes:
     """The bytes of a model given as an object (not read from a file): the text ``save_model`` writes."""
-    return yaml_text(model_file.to_doc()).encode("utf-8")
+    return model_text(model_file).encode("utf-8")
 
 
 # -- adaptation state files ----------------------------------------------------------------------------

@@ -488,9 +488,8 @@ def test_describe_knows_each_kind_by_content(made, tmp_path):
 # --- an interrupted simulate keeps what it wrote, described as interrupted ----------------------------
 
 
-def test_an_interrupted_simulate_leaves_a_sidecar_that_says_so_and_inspect_reports_it(tmp_path):
-    """Before: Ctrl-C left run.bin and its truth without a sidecar (or, rerun, a capture no sidecar described);
-    now the sidecar says ``status: interrupted`` with what was written, as the daemon's captures do."""
+def _simulate_interrupted_by_ctrl_c(tmp_path: Path) -> tuple[int, str, str]:
+    """``simulate --out run.bin`` of the paper profile, SIGINT once the capture has bytes: (status, stdout, stderr)."""
     out = tmp_path / "run.bin"
     proc = started("simulate", "--profile", "paper", "--rate-hz", "100", "--out", "run.bin", cwd=tmp_path)
     try:
@@ -502,7 +501,28 @@ def test_an_interrupted_simulate_leaves_a_sidecar_that_says_so_and_inspect_repor
         stdout, stderr = proc.communicate(timeout=120)
     finally:
         proc.kill()
-    assert proc.returncode == 130, stderr
+    return proc.returncode, stdout, stderr
+
+
+def test_ctrl_c_during_simulate_out_prints_only_the_interrupted_line(tmp_path):
+    """The review's finding 12: Ctrl-C printed the success line ("simulated paper ... frames") and then
+    "interrupted: big.bin holds the first 19860 s"; now the interrupted line alone, exit 130."""
+    status, stdout, stderr = _simulate_interrupted_by_ctrl_c(tmp_path)
+    assert status == 130, stderr
+    assert stdout == ""
+    side = read_provenance(tmp_path / "run.bin")
+    assert stderr.splitlines() == [
+        f"fog-driver: interrupted: run.bin holds the first {side['frames'] / 100:g} s "
+        "(status: interrupted in run.bin.yaml)"
+    ]
+
+
+def test_an_interrupted_simulate_leaves_a_sidecar_that_says_so_and_inspect_reports_it(tmp_path):
+    """Before: Ctrl-C left run.bin and its truth without a sidecar (or, rerun, a capture no sidecar described);
+    now the sidecar says ``status: interrupted`` with what was written, as the daemon's captures do."""
+    out = tmp_path / "run.bin"
+    status, stdout, stderr = _simulate_interrupted_by_ctrl_c(tmp_path)
+    assert status == 130, stderr
     assert stderr.startswith("fog-driver: interrupted: run.bin holds the first ") and "Traceback" not in stderr
     side = read_provenance(out)
     data = out.read_bytes()

@@ -81,6 +81,50 @@ def test_at_a_terminal_a_missing_port_is_an_error_at_once(tmp_path):
     assert not (tmp_path / "c").exists()  # nothing started, nothing written
 
 
+@pytest.mark.parametrize("what", ["/dev/null", "a regular file", "a directory"])
+@pytest.mark.parametrize("wait", [False, True])
+def test_run_port_dev_null_at_a_terminal_is_an_error_at_once(tmp_path, what, wait):
+    """The review's finding 11: ``run --port /dev/null`` at a terminal retried for ever with "(25,
+    'Inappropriate ioctl for device')".  A path that is there but is no serial device: one line, exit 69, at
+    once, even with --wait (waiting cannot make it one)."""
+    kinds = {
+        "/dev/null": "a character device that is not a terminal",
+        "a regular file": "a regular file",
+        "a directory": "a directory",
+    }
+    port = Path("/dev/null") if what == "/dev/null" else tmp_path / "ttyUSB0"
+    if what == "a regular file":
+        port.write_bytes(b"\xaa\x55" * 100)
+    elif what == "a directory":
+        port.mkdir()
+    with _terminal() as stdin:
+        proc = subprocess.run(
+            _run("--port", str(port), *(["--wait"] if wait else [])),
+            cwd=tmp_path,
+            stdin=stdin,
+            capture_output=True,
+            text=True,
+            env=_environment(),
+            timeout=GUARD_S,
+        )
+    assert proc.returncode == 69, proc.stderr
+    assert proc.stdout == ""
+    assert proc.stderr.splitlines() == [f"fog-driver: error: cannot open {port}: {kinds[what]}, not a serial device"]
+    assert not (tmp_path / "c").exists()
+
+
+def test_at_a_terminal_a_pty_is_a_serial_device(tmp_path):
+    """The tests and ``--simulate`` serve on ptys: at a terminal a pty's path is taken as a port."""
+    from fog_driver.transport import PtyPair
+
+    with (
+        PtyPair() as pty,
+        _terminal() as stdin,
+        _started(_run("--port", pty.slave_path), cwd=tmp_path, stdin=stdin, env=_environment()) as proc,
+    ):
+        _ready_then_terminated(proc)
+
+
 def test_at_a_terminal_wait_waits_for_the_port_and_says_so_once(tmp_path):
     port = tmp_path / "ttyUSB9"
     with (
@@ -124,7 +168,7 @@ def test_run_http_without_the_web_extra_is_refused_before_any_work(tmp_path, mon
     status = app.main(
         ["run", "--simulate", "--http", "127.0.0.1:0", "--listen", "127.0.0.1:0", "--capture-dir", str(tmp_path / "c")]
     )
-    assert status == 78
+    assert status == 64  # a missing extra, as for every command (was 78)
     assert capsys.readouterr().err == (
         "fog-driver: error: the web view and /metrics (http 127.0.0.1:0) needs aiohttp (the 'web' extra); "
         "in the project's virtual environment: pip install -e '.[web]'\n"
@@ -151,3 +195,20 @@ def test_the_demonstration_does_not_warn_about_its_own_simulator(monkeypatch):
     thread, path = daemon._start_embedded_simulator(stop)
     thread.join(GUARD_S)
     assert path == "/dev/pts/test" and seen["warn_behind"] is False
+
+
+def test_the_demonstrations_log_names_the_pty_it_reads_and_no_link():
+    """Before: ``run --simulate -v`` logged ``pty_ready link=/tmp/fog-driver-sim.tty``, a name nobody reads (the
+    daemon reads the pty itself) and that another simulator may hold; now the pty's own path, and no link."""
+    from structlog.testing import capture_logs
+
+    from fog_driver.cli import daemon
+
+    stop = threading.Event()
+    with capture_logs() as logs:
+        thread, path = daemon._start_embedded_simulator(stop)
+        stop.set()
+        thread.join(GUARD_S)
+    ready = [entry for entry in logs if entry["event"] == "pty_ready"]
+    assert ready == [{"event": "pty_ready", "log_level": "info", "slave": path}]
+    assert path.startswith("/dev/pts/")

@@ -94,7 +94,7 @@ def test_a_bad_value_names_the_file_then_the_key(tmp_path):
         ("1: 2\n", "unknown key 1 (known: "),
         ("device: [1]\n", "device: expected a mapping"),
         ("device: null\n", "device: expected a mapping"),
-        ("device: {rate: 1}\n", "device: unknown key 'rate' (known: rate_hz, rot_format, rot_units, serial, setup, "),
+        ("device: {xyz: 1}\n", "device: unknown key 'xyz' (known: rate_hz, rot_format, rot_units, serial, setup, "),
         ("device: {rate_hz: 1.5}\n", "device.rate_hz: expected an integer, got 1.5"),
         ("device: {setup: abc}\n", "device.setup: expected a list of strings, got 'abc'"),
         ("device: {setup: ['=DR,1', 2]}\n", "device.setup: expected a list of strings, got ['=DR,1', 2]"),
@@ -141,3 +141,80 @@ def test_the_instrument_and_fit_configs_share_the_schema_checks(tmp_path):
     assert str(info.value) == "fit.yaml: features: need 0 < rate_tau_fast_s < rate_tau_slow_s"
     fit = dataclass_from_mapping(FitConfig, {"features": {"hold_s": 5}, "poly_alpha": None}, "fit.yaml")
     assert fit == FitConfig(features=FeatureParams(hold_s=5.0), poly_alpha=None)
+
+
+def _config(path: Path):
+    return load_config(path)
+
+
+def _fit_config(path: Path):
+    import yaml
+
+    from fog_driver.compensation.fitting.data import FitConfig
+    from fog_driver.files.typed_mapping import dataclass_from_mapping
+
+    return dataclass_from_mapping(FitConfig, yaml.safe_load(path.read_text()), str(path))
+
+
+def _instrument(path: Path):
+    from fog_driver.sim.instrument import load_instrument_config
+
+    return load_instrument_config(path)
+
+
+def _profile(path: Path):
+    from fog_driver.sim.profiles import load_profile
+
+    return load_profile(str(path))
+
+
+@pytest.mark.parametrize(
+    "read, text, message",
+    [
+        (_config, "lisen: 127.0.0.1:2948\n", "unknown key 'lisen' (did you mean 'listen'?)"),
+        (_config, "Listen: 127.0.0.1:2948\n", "unknown key 'Listen' (did you mean 'listen'?)"),
+        (_config, "device: {rate: 100}\n", "device: unknown key 'rate' (did you mean 'rate_hz'?)"),
+        (_fit_config, "warmup: 30\n", "unknown key 'warmup' (did you mean 'warmup_s'?)"),
+        (_fit_config, "features: {hold: 30}\n", "features: unknown key 'hold' (did you mean 'hold_s'?)"),
+        (
+            _instrument,
+            "gyro: {arw_deg_per_sqrt: 1}\n",
+            "gyro: unknown key 'arw_deg_per_sqrt' (did you mean 'arw_deg_per_sqrt_h'?)",
+        ),
+        (
+            _profile,
+            "stat_c: 20\nsegments:\n  - hold: {duration_min: 3}\n",
+            "unknown key 'stat_c' (did you mean 'start_c'?)",
+        ),
+        (
+            _profile,
+            "start_c: 20\nsegments:\n  - hold: {duraton_min: 3}\n",
+            "segments[0] (hold): unknown key 'duraton_min' (did you mean 'duration_min'?)",
+        ),
+    ],
+)
+def test_a_typo_in_a_key_of_a_yaml_file_asks_did_you_mean(tmp_path, read, text, message):
+    """The review's finding 19: an unknown config key got the list of every known key and no "did you mean";
+    now the close one is named, in every YAML file a user writes (config, fit config, instrument, profile)."""
+    path = tmp_path / "f.yaml"
+    path.write_text(text)
+    with pytest.raises(InputFileError) as info:
+        read(path)
+    assert str(info.value) == f"{path}: {message}"
+
+
+def test_run_with_a_config_key_misspelt_says_did_you_mean_and_exits_78(tmp_path):
+    import subprocess
+    import sys
+
+    (tmp_path / "fog.yaml").write_text("lisen: 127.0.0.1:0\n")
+    proc = subprocess.run(
+        [sys.executable, "-m", "fog_driver", "run", "--config", "fog.yaml", "--simulate"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        stdin=subprocess.DEVNULL,
+        timeout=120,
+    )
+    assert proc.returncode == 78
+    assert proc.stderr == "fog-driver: error: fog.yaml: unknown key 'lisen' (did you mean 'listen'?)\n"

@@ -177,18 +177,18 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             )
     finally:
         progress.clear()
-    print(
-        f"simulated {sim.profile.name} at {sim.rate_hz} Hz, seed {sim.seed}: {result.frames:,} frames, "
-        f"{result.bytes:,} bytes -> {result.capture} (+ {result.sidecar.name}, {result.truth.name}"
-        f"{', ' + result.table_log.name if result.table_log else ''})"
-    )
-    if result.interrupted:
+    if result.interrupted:  # the interrupted line only: the success line would say the run completed
         print(
             f"fog-driver: interrupted: {result.capture} holds the first {result.frames / sim.rate_hz:g} s "
             f"(status: interrupted in {result.sidecar.name})",
             file=sys.stderr,
         )
         return EXIT_INTERRUPTED
+    print(
+        f"simulated {sim.profile.name} at {sim.rate_hz} Hz, seed {sim.seed}: {result.frames:,} frames, "
+        f"{result.bytes:,} bytes -> {result.capture} (+ {result.sidecar.name}, {result.truth.name}"
+        f"{', ' + result.table_log.name if result.table_log else ''})"
+    )
     return 0
 
 

@@ -16,7 +16,7 @@ from .. import __version__
 from ..console import configure_logging
 from ..daemon.config import DriverConfig, load_config
 from ..daemon.service import ConfigError, Service
-from ..errors import DeviceError, FogDriverError, InternalError, UsageError
+from ..errors import DeviceError, FogDriverError, InternalError
 from ..extras import require_extra
 from ..formats.registry import FORMATS
 from ..signals import SignalDispatcher
@@ -24,7 +24,7 @@ from ..sim.instrument import Simulator
 from ..sim.profiles import load_profile
 from ..sim.serve import serve_pty
 from ..tools.watch import format_address
-from ..transport.port import open_error_text
+from ..transport.port import not_a_serial_device, open_error_text
 
 FORMAT_NAMES = list(FORMATS)
 
@@ -48,10 +48,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     except (FogDriverError, ValueError) as exc:
         raise ConfigError(str(exc)) from None
     if config.http:  # before any work (the simulator, the model): as every command checks its extras
-        try:
-            require_extra("web", f"the web view and /metrics (http {config.http})")
-        except UsageError as exc:
-            raise ConfigError(str(exc)) from None  # exit 78: restarting a service cannot install it
+        # exit 64, as every command's missing extra (the unit's RestartPreventExitStatus= has it: a restart
+        # cannot install it)
+        require_extra("web", f"the web view and /metrics (http {config.http})")
     stop = threading.Event()
     simulator = None
     port = config.port
@@ -130,9 +129,14 @@ def _at_a_terminal() -> bool:
 def _check_port(port: str, *, wait: bool) -> None:
     """At a terminal: a device path that does not exist (a typo, an unplugged adapter) or cannot be opened is a
     one-line ``DeviceError`` at once (exit 69, as ``record``), unless ``wait``: then a line says the daemon
-    waits for it.  A URL (``socket://``, ``rfc2217://``) is the transport's to judge."""
+    waits for it.  A path that is there but is no serial device (``/dev/null``, a regular file, a directory:
+    ``not_a_serial_device``; a pty is one) is a ``DeviceError`` at once even with ``wait``: waiting cannot make
+    it one.  A URL (``socket://``, ``rfc2217://``) is the transport's to judge."""
     if "://" in port:
         return
+    unusable = not_a_serial_device(port)
+    if unusable is not None:
+        raise DeviceError(unusable)
     if os.path.exists(port):
         if os.access(port, os.R_OK | os.W_OK):
             return
@@ -195,7 +199,8 @@ def add_run(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--wait",
         action="store_true",
-        help="at a terminal, wait for a port that is not there yet (default: an error at once, exit 69); "
+        help="at a terminal, wait for a port that is not there yet (default: an error at once, exit 69; a path "
+        "that is there but no serial device, such as /dev/null, is one even with --wait); "
         "under systemd, or without a terminal, the daemon always waits for its port",
     )
     p.add_argument(

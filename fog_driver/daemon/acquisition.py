@@ -40,7 +40,7 @@ from .errors import ConfigError
 from .limits import MAX_SAMPLES_BEFORE_IDENTITY
 from .status import identity_fields
 
-__all__ = ["Acquisition", "BiasCapture", "stamp_utc"]
+__all__ = ["Acquisition", "BiasCapture", "PortOutage", "stamp_utc"]
 
 log = structlog.get_logger("fog_driver.daemon")
 
@@ -94,6 +94,7 @@ class Acquisition:
         self.bias_sigma_dph = math.nan  # the drift estimate's sigma during that capture (sigma(t_b)); NaN: none
         self.setup_bytes_left = 0  # bytes read during a device setup, still to be skipped by the decoder
         self._format_problem_said = False
+        self.outage: PortOutage | None = None  #: the port lost, not yet delivering samples again
 
     # -- the thread ------------------------------------------------------------------------------------------
 
@@ -126,6 +127,31 @@ class Acquisition:
         self.service.failure = failure
         self.service.stop.set()
 
+    # -- the port's outages ------------------------------------------------------------------------------------
+
+    def port_changed(self, state: str, url: str, now_s: float) -> None:
+        """A port state (the acquisition thread, from the reader): an outage starts at the first "lost" and its
+        length is taken at the next "open" (``PortOutage``); ``now_s``: monotonic seconds."""
+        if state == "lost" and self.outage is None:
+            self.outage = PortOutage(url, now_s)
+        elif state == "open" and self.outage is not None and self.outage.open_s is None:
+            self.outage.open_s = now_s
+
+    def _outage_over(self, sample: Any) -> None:
+        """The first sample decoded after a reopen: ``port_recovered`` with the outage's length and the frames it
+        cost (the sample's ``missing_before``: the sequence gap across the outage).  A warning, as the loss was:
+        a person at a terminal reads it after the retries."""
+        outage = self.outage
+        if outage is None or outage.open_s is None:
+            return
+        self.outage = None
+        log.warning(
+            "port_recovered",
+            url=outage.url,
+            down_s=round(outage.open_s - outage.lost_s, 1),
+            frames_missing=int(getattr(sample, "missing_before", 0)),
+        )
+
     # -- bytes -> ANGLE objects --------------------------------------------------------------------------------
 
     def process(self, chunk: bytes) -> list[dict]:
@@ -150,6 +176,8 @@ class Acquisition:
                 if isinstance(sample, IdentityFrame):
                     self._on_identity(angles, sample)
                     continue
+                if self.outage is not None:
+                    self._outage_over(sample)
                 if not service.binding.bound:  # frame period unknown until the first IDENTITY
                     self.samples_before_identity.append(sample)
                     if len(self.samples_before_identity) > MAX_SAMPLES_BEFORE_IDENTITY:
@@ -268,6 +296,15 @@ class Acquisition:
                 **sigma,
             }
         )
+
+
+@dataclass(eq=False)
+class PortOutage:
+    """The port ``url`` lost at ``lost_s`` (monotonic s), open again at ``open_s`` (None: not yet)."""
+
+    url: str
+    lost_s: float
+    open_s: float | None = None
 
 
 def stamp_utc(angles: list[dict], now_ns: int) -> None:

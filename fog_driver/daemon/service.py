@@ -60,7 +60,8 @@ from ..compensation.binding import InstrumentCompensation, ModelMismatchError, c
 from ..compensation.dwell import Dwell
 from ..compensation.model import ModelFile
 from ..compensation.pipeline import CompensatedSample, Compensator
-from ..errors import FogDriverError, TemporaryFailure
+from ..errors import FogDriverError, TemporaryFailure, UsageError
+from ..extras import require_extra
 from ..modelfiles import adaptation_restorer, model_bytes, read_model, read_state_doc, write_state_doc
 from ..protocol import IdentityFrame
 from ..samples.sources import make_source
@@ -249,6 +250,7 @@ class Service:
 
     def _on_port_state(self, event: PortEvent) -> None:
         self.port_state = event.state
+        self.acquisition.port_changed(event.state, event.url, time.monotonic())
         if event.state in ("open", "lost"):
             self.publish(self.device_object())
 
@@ -478,8 +480,10 @@ class Service:
         return address
 
     def _make_web(self):
-        """The web view and /metrics on ``http``, not started (ConfigError: the extra is missing, no token
-        beyond loopback)."""
+        """The web view and /metrics on ``http``, not started (UsageError, exit 64 as for every command: the
+        web extra is missing; ConfigError: no token beyond loopback, a bad address)."""
+        what = f"the web view and /metrics (http {self.config.http})"
+        require_extra("web", what)
         from .web.server import WebUnavailable, WebView  # optional extra: web (aiohttp, plotly, prometheus-client)
 
         try:
@@ -497,7 +501,9 @@ class Service:
                 trusted_proxies=self.config.http_trusted_proxies,
                 secure_cookies=self.config.http_secure_cookies,
             )
-        except (ValueError, WebUnavailable) as exc:
+        except WebUnavailable as exc:  # (a module found by require_extra but not by the web view's own check)
+            raise UsageError(f"{what}: {exc}") from None
+        except ValueError as exc:
             raise ConfigError(f"http {self.config.http}: {exc}") from None
 
     def _start_web(self, web) -> None:

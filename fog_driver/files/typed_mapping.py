@@ -18,19 +18,22 @@ What each annotation accepts::
 
 Every problem is an ``InputFileError`` naming the file, then the key's path within it, then what was
 wrong: ``badval.yaml: baud: expected an integer, got 'fast'``, ``sim.yaml: thermal: unknown key 'x'
-(known: ...)``, ``fit.yaml: features: need 0 < rate_tau_fast_s < rate_tau_slow_s`` (a dataclass's own
-``ValueError``).  msgspec's ``ValidationError`` gives the path (``... - at `$.thermal.tau_top_s```); the
-message is the project's, chosen by the field's kind, with the document's value.
+(known: ...)`` (``fog.yaml: unknown key 'lisen' (did you mean 'listen'?)`` when a known key is close),
+``fit.yaml: features: need 0 < rate_tau_fast_s < rate_tau_slow_s`` (a dataclass's own ``ValueError``).
+msgspec's ``ValidationError`` gives the path (``... - at `$.thermal.tau_top_s```); the message is the
+project's, chosen by the field's kind, with the document's value.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import functools
 import re
 import sys
 import types
 import typing
+from collections.abc import Iterable
 from typing import Annotated, Any
 
 import msgspec
@@ -176,5 +179,18 @@ def _one_line(cls: type, doc: Any, where: str, path: str, message: str) -> str:
         known = field_types(cls)
         for key in node:
             if key not in known:
-                return f"{_at(where, path)}unknown key {key!r} (known: {', '.join(sorted(known))})"
+                return f"{_at(where, path)}{unknown_key(key, known)}"
     return f"{_at(where, path)}{message}"
+
+
+def unknown_key(key: Any, known: Iterable[str]) -> str:
+    """What to say of a key no schema has: "unknown key 'lisen' (did you mean 'listen'?)" when one known key is
+    close to it (``difflib.get_close_matches``, its default cutoff 0.6, case ignored), else the known keys:
+    "unknown key 'x' (known: a, b)".  Every YAML file a user writes says it so (configs, fit configs,
+    instrument configs, profiles)."""
+    names = sorted(known)
+    by_folded = {name.lower(): name for name in names}
+    close = difflib.get_close_matches(str(key).lower(), list(by_folded), n=1)
+    if close:
+        return f"unknown key {key!r} (did you mean {by_folded[close[0]]!r}?)"
+    return f"unknown key {key!r} (known: {', '.join(names) or 'none'})"

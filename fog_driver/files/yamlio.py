@@ -91,6 +91,12 @@ def read_yaml(path: str | Path, what: str, *, missing_ok: bool = False, hint: st
     have been (``"config file"``, ``"profile file"``...); a missing file gives
     None with ``missing_ok``.  ``hint`` is appended to the missing-file message.
     """
+    text = read_yaml_text(path, what, missing_ok=missing_ok, hint=hint)
+    return None if text is None else parse_yaml(text, path, what)
+
+
+def read_yaml_text(path: str | Path, what: str, *, missing_ok: bool = False, hint: str = "") -> str | None:
+    """A YAML file's text (UTF-8, at most ``MAX_YAML_BYTES``), with ``read_yaml``'s one-line errors."""
     path = Path(path)
     try:
         if path.is_dir():
@@ -98,7 +104,7 @@ def read_yaml(path: str | Path, what: str, *, missing_ok: bool = False, hint: st
         if path.stat().st_size > MAX_YAML_BYTES:
             _not_a_capture(path, what)
             raise InputFileError(f"{path}: {what} larger than {MAX_YAML_BYTES} bytes")
-        text = path.read_text(encoding="utf-8")
+        return path.read_text(encoding="utf-8")
     except FileNotFoundError:
         if missing_ok:
             return None
@@ -106,10 +112,14 @@ def read_yaml(path: str | Path, what: str, *, missing_ok: bool = False, hint: st
     except (OSError, UnicodeDecodeError) as exc:
         _not_a_capture(path, what)
         raise InputFileError(f"{path}: cannot read {what}: {exc}") from None
+
+
+def parse_yaml(text: str, path: str | Path, what: str) -> Any:
+    """``yaml.safe_load`` of ``text`` read from ``path``: "PATH: WHAT is not valid YAML at line N" if it is not."""
     try:
         return yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        _not_a_capture(path, what)
+        _not_a_capture(Path(path), what)
         mark = getattr(exc, "problem_mark", None)
         at = f" at line {mark.line + 1}" if mark is not None else ""
         raise InputFileError(f"{path}: {what} is not valid YAML{at}") from None
@@ -125,8 +135,14 @@ def _not_a_capture(path: Path, what: str) -> None:
 def read_tagged_yaml(path: str | Path, kind: str, format_tag: str, schema_version: int) -> dict:
     """A project file that names itself: a mapping with ``format: <format_tag>`` and the expected
     ``schema_version``; anything else is a one-line ``InputFileError`` saying which."""
+    return check_tagged(
+        read_yaml(path, f"{kind} file" if not kind.endswith("file") else kind), path, kind, format_tag, schema_version
+    )
+
+
+def check_tagged(doc: Any, path: str | Path, kind: str, format_tag: str, schema_version: int) -> dict:
+    """``read_tagged_yaml``'s checks of a document read from ``path``."""
     where = str(path)
-    doc = read_yaml(path, f"{kind} file" if not kind.endswith("file") else kind)
     if not isinstance(doc, dict) or doc.get("format") != format_tag:
         raise InputFileError(f"{where}: not a fog_driver {kind} (no 'format: {format_tag}')")
     version = doc.get("schema_version")

@@ -2,7 +2,11 @@
 
 The bytes go to disk exactly as read; a ``FrameDecoder`` watches the same
 bytes only to report progress and to note the instrument's identity in the
-sidecar.  The sidecar is written when recording starts (``status:
+sidecar, and to end the recording on a frame boundary: when the duration
+passes or a signal stops it, the port is read on, a byte at a time, while the
+decoder holds part of a frame (at most ``READ_ON_S``; a port that gives no more
+in that time, or is lost, leaves the capture ending as the port did).  No
+byte the port delivered is ever left out.  The sidecar is written when recording starts (``status:
 recording``) and rewritten when it ends, so even a killed recorder leaves a
 described capture behind.
 """
@@ -29,6 +33,9 @@ from .captures import CaptureWriter, sidecar_path, write_provenance
 from .sources import WireSettings
 
 _FLUSH_EVERY_S = 1.0
+#: After a stop, how long the rest of a frame may take to come (a frame's bytes come back to back: well
+#: under a millisecond at the instrument's baud rates; a network port may hold them longer).
+READ_ON_S = 1.0
 
 
 @dataclass
@@ -68,7 +75,8 @@ def record(
     setup: Any = None,
 ) -> RecordResult:
     """Copy bytes from ``url`` into ``out_path`` until ``duration_s`` (host time) passes, ``stop`` is set,
-    or (with ``reconnect=False``) the port is lost.
+    or (with ``reconnect=False``) the port is lost; a duration or a stop ends on a frame boundary (the module
+    docstring).
 
     A port that cannot be opened the first time raises ``DeviceError`` at once (reconnecting is for a port
     that worked), unless ``wait``: then it is retried until it appears.  A recording that ends before
@@ -95,7 +103,7 @@ def record(
         first_open="wait" if wait else "fail",
         on_open=None if setup is None else make_on_open(setup, on_result=recording.setup_done),
     )
-    chunks = reader.chunks(stop)
+    chunks = reader.chunks(stop, read_on=recording.bytes_to_frame_boundary, read_on_s=READ_ON_S)
     timer = threading.Timer(duration_s, stop.set) if duration_s is not None else None
     if timer:
         timer.daemon = True
@@ -177,6 +185,11 @@ class _Recording:
                 "replies": list(result.replies),
             }
         )
+
+    def bytes_to_frame_boundary(self) -> int:
+        """How many bytes to read at most before the next look: 1 while the decoder holds part of a possible
+        frame (it cannot say how long the rest is before it has it), 0 at a frame boundary."""
+        return 1 if self.decoder.pending else 0
 
     def feed(self, chunk: bytes, bytes_written: int) -> None:
         """A chunk written to the capture, which now holds ``bytes_written`` bytes: decode it."""

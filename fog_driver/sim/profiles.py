@@ -52,6 +52,7 @@ from typing import Any
 import yaml
 
 from ..errors import InputFileError
+from ..files.typed_mapping import unknown_key
 from ..files.yamlio import MAX_YAML_BYTES, read_yaml
 from .chamber import KIND_OF, SEGMENT_KINDS, ChamberProfile, Hold, Ramp, Segment, Sinusoid, Step
 from .checks import check_number
@@ -177,7 +178,7 @@ def _check_keys(doc: Any, where: str, known: set[str], required: set[str]) -> di
         raise _Bad(f"{_at(where)}expected a mapping" + ("" if where else " with start_c and segments") + f", got {got}")
     for key in doc:
         if key not in known:
-            raise _Bad(f"{_at(where)}unknown key {key!r} (known: {', '.join(sorted(known)) or 'none'})")
+            raise _Bad(f"{_at(where)}{unknown_key(key, known)}")
     for key in sorted(required):
         if key not in doc:
             raise _Bad(f"{_at(where)}missing {key}")

@@ -20,7 +20,8 @@ cable came out) and ``on_reconnect()`` when the first frame after the window is 
 rule's ``/dev/ttyFOG0``): a disconnect window unplugs the pty (readers get EIO,
 exactly as from a pulled USB adapter) and removes the symlink; after the window
 a new pty is made and the symlink points at it, so a reader that reconnects
-through the symlink gets the stream again.  ``serve_device`` writes to a serial
+through the symlink gets the stream again.  Without a link (``link=None``: the
+daemon's own demonstration, which reads the pty it made) there is no symlink.  ``serve_device`` writes to a serial
 device or pyserial URL.  ``serve_cli`` is ``fog-driver simulate --serve``.
 """
 
@@ -301,7 +302,8 @@ def _unread_bytes(fd: int) -> int:
 
 
 class PtyServer:
-    """A raw pty for the simulated instrument, reachable through the stable symlink ``link``.
+    """A raw pty for the simulated instrument, reachable through the stable symlink ``link`` (None: no symlink,
+    the pty's own path only).
 
     ``write`` never waits longer than ``write_timeout_s``: bytes the pty does not accept in time
     (nobody reading, or a reader far behind) are lost, as on a real UART, and counted.
@@ -309,8 +311,8 @@ class PtyServer:
     the symlink at it.  ``close()`` unplugs and removes the symlink (if it is still ours).
     """
 
-    def __init__(self, link: str | os.PathLike[str] = DEFAULT_LINK, *, write_timeout_s: float = 0.01) -> None:
-        self.link = Path(link)
+    def __init__(self, link: str | os.PathLike[str] | None = DEFAULT_LINK, *, write_timeout_s: float = 0.01) -> None:
+        self.link = Path(link) if link is not None else None
         self.write_timeout_s = write_timeout_s
         self.dropped_bytes = 0
         self.dropped_writes = 0
@@ -323,6 +325,8 @@ class PtyServer:
     # -- the symlink ------------------------------------------------------------------------
 
     def _check_link(self) -> None:
+        if self.link is None:
+            return
         try:
             st = os.lstat(self.link)
         except FileNotFoundError:
@@ -333,7 +337,9 @@ class PtyServer:
             raise OutputFileError(f"--link {self.link}: exists and is not a symlink; refusing to replace it")
 
     def _point_link(self, target: str) -> None:
-        """Make ``link`` point at ``target`` atomically (readers never see it half made)."""
+        """Make ``link`` point at ``target`` atomically (readers never see it half made); no link: nothing."""
+        if self.link is None:
+            return
         self._check_link()
         tmp = self.link.with_name(f".{self.link.name}.{os.getpid()}.tmp")
         try:
@@ -346,7 +352,7 @@ class PtyServer:
 
     def _remove_link(self) -> None:
         """Remove the symlink if it still points at our pty (another server may have taken the name)."""
-        if self.pty is None:
+        if self.pty is None or self.link is None:
             return
         try:
             if os.readlink(self.link) == self.pty.slave_path:
@@ -368,7 +374,7 @@ class PtyServer:
             self.pty.close()
             self.pty = None
             raise
-        log.info("pty_ready", slave=self.pty.slave_path, link=str(self.link))
+        log.info("pty_ready", slave=self.pty.slave_path, **({"link": str(self.link)} if self.link is not None else {}))
 
     @property
     def slave_path(self) -> str | None:
@@ -442,7 +448,7 @@ class PtyServer:
 def serve_pty(
     sim: Simulator,
     *,
-    link: str | os.PathLike[str] | None = None,
+    link: str | os.PathLike[str] | None = DEFAULT_LINK,
     duration_s: float | None = None,
     stop: threading.Event | None = None,
     speed: float = 1.0,
@@ -452,7 +458,7 @@ def serve_pty(
     on_ready: Callable[[PtyServer], Any] | None = None,
     warn_behind: bool = True,
 ) -> ServeStats:
-    """Serve ``sim`` on a new raw pty behind the symlink ``link`` (default ``DEFAULT_LINK``).
+    """Serve ``sim`` on a new raw pty behind the symlink ``link`` (default ``DEFAULT_LINK``; None: no symlink).
 
     ``on_ready(server)`` is called once the pty and the symlink exist, before the first byte
     (``server.slave_path``, ``server.link``).  Disconnect windows unplug the pty and bring up a new
@@ -465,7 +471,7 @@ def serve_pty(
     if write_timeout_s is None:
         write_timeout_s = 0.5 * chunk_s / speed
     stop = stop if stop is not None else threading.Event()
-    with PtyServer(link if link is not None else DEFAULT_LINK, write_timeout_s=write_timeout_s) as server:
+    with PtyServer(link, write_timeout_s=write_timeout_s) as server:
         if on_ready is not None:
             on_ready(server)
         stats = serve(
@@ -632,6 +638,7 @@ def serve_cli(sim: Simulator, args: Any) -> int:
                 print(f"serving {where} on {server.slave_path} (link {server.link})", flush=True)
                 progress.start(server)
 
+            link = link if link is not None else DEFAULT_LINK
             stats = serve_pty(sim, link=link, duration_s=args.duration, stop=stop, speed=speed, on_ready=pty_ready)
         else:
 

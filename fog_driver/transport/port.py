@@ -18,6 +18,7 @@ import contextlib
 import errno
 import os
 import select
+import stat
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -53,9 +54,9 @@ PORT_ERRORS: tuple[type[BaseException], ...] = (OSError, *_TERMIOS_ERRORS)
 PortState = Literal["opening", "open", "lost", "retry_wait", "closed"]
 
 
-def read_available(port: serial.SerialBase) -> bytes:
-    """Every byte the port holds, up to ``MAX_READ_BYTES``, after waiting up to the port's timeout for the
-    first (``b""`` at the timeout).
+def read_available(port: serial.SerialBase, limit: int = MAX_READ_BYTES) -> bytes:
+    """Every byte the port holds, up to ``limit`` (at most ``MAX_READ_BYTES``), after waiting up to the port's
+    timeout for the first (``b""`` at the timeout).
 
     A POSIX serial device (a tty, a pty, a USB adapter) is read directly: one ``select`` on its descriptor
     and pyserial's cancel pipe, then one ``read(2)`` of whatever the kernel has.  That is two system calls
@@ -81,7 +82,7 @@ def read_available(port: serial.SerialBase) -> bytes:
                 return b""
             if not ready:
                 return b""
-            data = os.read(fd, MAX_READ_BYTES)
+            data = os.read(fd, limit)
         except BlockingIOError:  # EAGAIN and its kin: nothing after all (EINTR is retried by Python)
             return b""
         except OSError as exc:
@@ -93,12 +94,12 @@ def read_available(port: serial.SerialBase) -> bytes:
             )
         return data
     waiting = port.in_waiting
-    data = port.read(min(waiting or 1, MAX_READ_BYTES))
-    if not waiting and data:  # woken by a first byte: the rest of its lump with it
+    data = port.read(min(waiting or 1, limit))
+    if not waiting and data and limit > len(data):  # woken by a first byte: the rest of its lump with it
         try:
             waiting = port.in_waiting
             if waiting:
-                data += port.read(min(waiting, MAX_READ_BYTES - 1))
+                data += port.read(min(waiting, limit - len(data)))
         except PORT_ERRORS:
             pass  # the byte read is returned; the next read meets the error and reports it
     return data
@@ -147,7 +148,11 @@ class PortReader:
     ``chunks(stop)`` yields non-empty ``bytes`` exactly as the port delivered
     them and returns when ``stop`` is set (within one read timeout).  With
     ``reconnect=False`` it also returns at the first loss, and raises
-    ``PortError`` if the very first open fails.
+    ``PortError`` if the very first open fails.  ``chunks(stop, read_on=f)``
+    reads on after ``stop`` while the port is open: each read takes at most
+    ``f()`` bytes, until ``f()`` is 0, the port is lost, or ``read_on_s`` pass
+    (a recorder that ends on a frame boundary asks for one byte at a time while
+    its decoder holds part of a frame).
 
     Backoff: the first wait after a loss or a failed open is
     ``backoff_initial_s``; each further failure doubles it up to
@@ -230,8 +235,11 @@ class PortReader:
         level = log.warning if state in ("lost", "retry_wait") and not waiting else log.info
         level("port_state", state=state, url=self.url, detail=detail, attempt=attempt, retry_in_s=retry_in_s)
 
-    def chunks(self, stop: threading.Event) -> Iterator[bytes]:
-        """Yield byte chunks from the port until ``stop`` is set (see the class docstring)."""
+    def chunks(
+        self, stop: threading.Event, *, read_on: Callable[[], int] | None = None, read_on_s: float = 1.0
+    ) -> Iterator[bytes]:
+        """Yield byte chunks from the port until ``stop`` is set, then, with ``read_on``, while ``read_on()``
+        wants more (see the class docstring)."""
         attempt = 0
         delay_s = self.backoff_initial_s
         detail = ""
@@ -278,9 +286,22 @@ class PortReader:
                             self.bytes_read += len(setup_bytes)
                             delivered = True
                             yield bytes(setup_bytes)
-                        while not stop.is_set():
+                        read_on_until: float | None = None  # set at the stop, with read_on
+                        while True:
+                            limit = MAX_READ_BYTES
+                            if stop.is_set():
+                                if read_on is None:
+                                    detail = ""
+                                    return  # stopped while open
+                                now = time.monotonic()
+                                read_on_until = now + read_on_s if read_on_until is None else read_on_until
+                                wanted = read_on()
+                                if wanted <= 0 or now >= read_on_until:
+                                    detail = ""
+                                    return  # stopped while open, and the consumer has what it wanted
+                                limit = min(wanted, MAX_READ_BYTES)
                             try:
-                                data = read_available(port)
+                                data = read_available(port, limit)
                             except PORT_ERRORS as exc:
                                 detail = str(exc) or type(exc).__name__
                                 break
@@ -289,9 +310,6 @@ class PortReader:
                                 self.bytes_read += len(data)
                                 delivered = True
                                 yield data
-                        else:
-                            detail = ""
-                            return  # stopped while open
                     finally:
                         _close_quietly(port)
                     if stop.is_set():  # the far end closed as we were stopping (a demo's simulator): no loss
@@ -333,6 +351,38 @@ def open_error_text(url: str, exc: BaseException) -> str:
     else:
         reason = " ".join(str(exc).split()) or type(exc).__name__
     return f"cannot open {url}: {reason}"
+
+
+def not_a_serial_device(path: str) -> str | None:
+    """Why the existing ``path`` can never be a serial port, as one line ("cannot open /dev/null: a character
+    device that is not a terminal, not a serial device"), or None: it is a terminal device (a serial port, a
+    USB adapter, a pty), or it does not exist or cannot be opened now (``open_error_text``'s to say; waiting
+    may help with those, never with this).
+
+    A character device is opened (read-write, non-blocking, not as the controlling terminal) and closed
+    again to ask whether it is a terminal (``isatty``: what pyserial's ``tcgetattr`` needs)."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return None
+    if stat.S_ISCHR(mode):
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK | os.O_CLOEXEC)
+        except OSError:
+            return None
+        try:
+            if os.isatty(fd):
+                return None
+        finally:
+            os.close(fd)
+        kind = "a character device that is not a terminal"
+    elif stat.S_ISREG(mode):
+        kind = "a regular file"
+    elif stat.S_ISDIR(mode):
+        kind = "a directory"
+    else:
+        kind = "not a device"
+    return f"cannot open {path}: {kind}, not a serial device"
 
 
 def _close_quietly(port: serial.SerialBase) -> None:
