@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import html as html_lib
 import io
 import json
 import os
@@ -259,6 +260,39 @@ def test_every_command_and_option_is_in_the_commands_reference():
             if not option.endswith("-") and not re.search(rf"{option}(?![\w-])", section):  # "-": wrapped
                 missing.append(f"fog-driver {sub} {option}")
     assert not missing, f"not in their command's section of commands.md: {sorted(missing)}"
+
+
+def test_a_newcomer_on_the_site_gets_the_readmes_install_and_first_session():
+    """docs/getting-started.md includes the README's install and first session (pymdownx.snippets, one source):
+    rendered as the site renders it, it holds every command the walkthrough runs from the README (so what
+    tests/test_readme_walkthrough.py runs is what the page shows), and a section that is not in the README
+    fails the build instead of leaving a hole."""
+    import markdown
+    from pymdownx.snippets import SnippetMissingError
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import readme_walkthrough
+
+    def rendered(text: str) -> str:
+        page = markdown.markdown(
+            text,
+            extensions=["pymdownx.snippets", "pymdownx.superfences"],
+            extension_configs={"pymdownx.snippets": {"base_path": [str(ROOT)], "check_paths": True}},
+        )
+        return html_lib.unescape(re.sub(r"<[^>]+>", "", page))
+
+    source = (ROOT / "docs" / "getting-started.md").read_text()
+    assert '--8<-- "README.md:install"' in source and '--8<-- "README.md:first-session"' in source
+    page = rendered(source)
+    commands = [c for step in readme_walkthrough.steps((ROOT / "README.md").read_text()) for c in step.commands]
+    assert {"fog-driver run", "fog-driver watch --count 20", "fog-driver ctl status"} <= {
+        c.split("#")[0].strip() for c in commands
+    }
+    missing = [c for c in commands if c not in page]
+    assert not missing, f"README walkthrough commands not on the getting-started page: {missing}"
+    assert "--8<--" not in page and "[start:" not in page  # the markers are gone from what the site shows
+    with pytest.raises(SnippetMissingError):
+        rendered('--8<-- "README.md:no-such-section"')
 
 
 def test_every_config_key_is_in_the_configuration_reference():
