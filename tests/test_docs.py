@@ -267,12 +267,13 @@ def option_table(text: str, where: str) -> set[str]:
 
 
 def parser_options(parser: argparse.ArgumentParser, leave_out: set[str] = frozenset()) -> set[str]:
-    """A parser's option strings and its positionals' metavars (their names in usage), but ``leave_out``'s."""
+    """A parser's option strings and its positionals' metavars (their names in usage; the first word, as the
+    table's: ``ctl``'s ``[HOST:PORT] COMMAND`` is ``[HOST:PORT]``), but ``leave_out``'s."""
     names: set[str] = set()
     for action in parser._actions:
         if isinstance(action, argparse._SubParsersAction) or action.dest in leave_out:
             continue
-        names |= set(action.option_strings) or {action.metavar or action.dest.upper()}
+        names |= set(action.option_strings) or {(action.metavar or action.dest.upper()).split()[0]}
     return names
 
 
