@@ -129,6 +129,14 @@ def lag_warning(*args):
     return lag_warning(*args)
 
 
+def test_fit_profile_that_is_no_profile_is_one_line_and_exit_65(tmp_path, capsys):
+    out = tmp_path / "m.yaml"
+    assert main(["fit", str(DATA / "sim-short.bin"), "--out", str(out), "--profile", "no-such-program"]) == 65
+    (line,) = capsys.readouterr().err.splitlines()
+    assert line.startswith("fog-driver: error: no-such-program: no such profile (profiles: paper, ")
+    assert not out.exists()
+
+
 def _calibration_interval() -> list[float]:
     """The lags one simulated calibration run leaves tied (seed 1 at 10 Hz: 117.2 to 286.1 s, a factor 2.44)."""
     return _grid(117.0, 287.0)

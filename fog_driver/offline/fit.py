@@ -222,6 +222,8 @@ def fit_model_file(
             None if progress is None else lambda done, total: say(f"decoding {name} {100 * done / max(total, 1):.0f} %")
         )
 
+    for profile in dict.fromkeys(profiles):  # a profile that is not one: refused before any capture is decoded
+        load_profile(profile)
     captures = [load_capture(p, config, decoding(p), wire_format=wire_format) for p in paths]
     given = list(profiles) * len(paths) if len(profiles) == 1 else list(profiles) or [None] * len(paths)
     for capture, profile in zip(captures, given):
