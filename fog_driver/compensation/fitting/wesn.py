@@ -74,7 +74,7 @@ from .data import capture_groups, first_valid_block
 from .program import RATE_TERMS_SLOW, RunProgram, lag_gaps
 from .ridge import cross_validated_alpha, standardized_ridge
 
-#: The fit warns, naming the remedy, when the lags that explain its data equally well span more than this factor.
+#: The fit warns (``lag_warning``) when the lags that explain its data equally well span more than this factor.
 LAG_INTERVAL_WARN = 1.5
 
 
@@ -285,7 +285,7 @@ def _selection(
     """The ring form's ``selection`` (the model file's provenance): the chosen coil (``lag``, ``order``) and
     penalty ``alpha``, every penalty's cross-validation score (``choices``), every coil's in-sample residual
     (``criteria``), the coils that explain the captures equally well (``tied``: within the noise of the best,
-    ``tied_coils``; a warning naming the remedy when their lags span more than ``LAG_INTERVAL_WARN``), and
+    ``tied_coils``; ``lag_warning`` when their lags span more than ``LAG_INTERVAL_WARN``), and
     what the data could not identify (``limits``)."""
     lags = sorted({float(v) for v, _ in tied})
     selection: dict[str, Any] = {
