@@ -130,6 +130,8 @@ def lag_warning(*args):
 
 
 def test_fit_profile_that_is_no_profile_is_one_line_and_exit_65(tmp_path, capsys):
+    """The profile is refused before any capture is decoded: sim-short.bin (300 s) is all warm-up under the
+    default fit config, so a capture decoded first would be refused for that instead."""
     out = tmp_path / "m.yaml"
     assert main(["fit", str(DATA / "sim-short.bin"), "--out", str(out), "--profile", "no-such-program"]) == 65
     (line,) = capsys.readouterr().err.splitlines()
