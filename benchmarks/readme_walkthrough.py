@@ -1,5 +1,6 @@
-"""The README and the tutorial as one executable walkthrough: their marked command blocks, in order
-(``DOCUMENTS``: the README's install and first session, then ``docs/tutorial.md``, in the same directory).
+"""The README, the tutorial and the calibration how-to as one executable walkthrough: their marked command
+blocks, in order (``DOCUMENTS``: the README's install and first session, then ``docs/tutorial.md``, then
+``docs/how-to/calibration.md``, in the same directory).
 
 A block runs when the line before its ```` ```sh ```` fence is a marker::
 
@@ -36,7 +37,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
 #: The walkthrough's documents, in the order they run (paths relative to the repository).
-DOCUMENTS = ("README.md", "docs/tutorial.md")
+DOCUMENTS = ("README.md", "docs/tutorial.md", "docs/how-to/calibration.md")
 MARKER = re.compile(r"^<!-- walkthrough(?::\s*(?P<options>.*?))?\s*-->\n", re.M)
 FENCE = re.compile(r"[ \t\n]*```sh\n(?P<body>.*?)^```\n", re.S | re.M)
 TRANSCRIPT = re.compile(r"[ \t\n]*```\n\$ (?P<command>[^\n]*)\n(?P<output>.*?)^```\n", re.S | re.M)

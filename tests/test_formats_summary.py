@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import argparse
 import json
+import shutil
 from pathlib import Path
+
+import pytest
 
 from fog_driver import cli
 from fog_driver.cli.captures import EXIT_PROBLEMS
@@ -15,15 +19,17 @@ from fog_driver.sim.profiles import load_profile
 DATA = Path(__file__).parent / "data"
 
 
-def kvh_capture(tmp_path: Path, faults: str = "", seconds: float = 60.0) -> tuple[Path, Simulator]:
+def kvh_capture(
+    tmp_path: Path, faults: str = "", seconds: float = 60.0, wire_format: str = "kvh-a"
+) -> tuple[Path, Simulator]:
     sim = Simulator(
         load_profile("short-test"),
         rate_hz=50,
         seed=8,
-        wire_format="kvh-a",
+        wire_format=wire_format,
         faults=parse_fault_spec(faults) if faults else None,
     )
-    capture = tmp_path / "kvh.bin"
+    capture = tmp_path / ("kvh.bin" if wire_format == "kvh-a" else f"{wire_format}.bin")
     simulate_to_file(sim, capture, duration_s=seconds)
     return capture, sim
 
@@ -45,7 +51,10 @@ def test_inspect_summarizes_a_kvh_capture_against_the_simulators_truth(tmp_path,
     assert cli.main(["inspect", str(capture)]) == 0
     text = capsys.readouterr().out
     assert "format        kvh-a: KVH (EMCORE) DSP-1750/1760/1775 normal mode, Format A" in text
-    assert text.rstrip().endswith("verdict       clean; the other commands read protocol v1 captures only so far")
+    assert text.rstrip().endswith(
+        "verdict       clean; fit, compensate and evaluate read it (a model applies to captures of the "
+        "temperature channels it was fitted on; kvh-a has sensor)"
+    )
 
 
 def test_inspect_strict_fails_a_kvh_capture_with_gaps(tmp_path, capsys):
@@ -84,3 +93,58 @@ def test_a_temperature_read_in_the_wrong_units_is_a_problem(tmp_path, capsys):
     (tmp_path / "kvh.bin.yaml").unlink()  # no wire_settings: the defaults
     assert cli.main(["inspect", str(capture), "--strict"]) == EXIT_PROBLEMS
     assert "outside -55 .. 125 (the device's temperature units? temp_units in wire_settings)" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("wire_format", ["kvh-a", "ixblue-stdbin"])
+def test_inspect_of_a_kvh_or_stdbin_capture_says_what_fit_compensate_and_evaluate_do_with_it(
+    tmp_path, capsys, wire_format
+):
+    """What the verdict says the commands do, they do: with its sidecar, fit, compensate and evaluate read the
+    capture; a copy without one, they refuse for the reason the verdict gives."""
+    capture, _ = kvh_capture(tmp_path, seconds=300.0, wire_format=wire_format)
+    config = tmp_path / "fit.yaml"
+    config.write_text("warmup_s: 5\n")
+    model = tmp_path / "model.yaml"
+
+    def verdict(path: Path) -> str:
+        assert cli.main(["inspect", str(path)]) == 0
+        return capsys.readouterr().out.splitlines()[-1]
+
+    assert verdict(capture).startswith("verdict       clean; fit, compensate and evaluate read it")
+    fit = ["fit", str(capture), "--config", str(config), "--out", str(model), "--kind", "polynomial"]
+    assert cli.main([*fit, "--accept-weak-fit"]) == 0
+    assert cli.main(["compensate", str(capture), "--model", str(model), "--out", str(tmp_path / "c.csv")]) == 0
+    assert cli.main(["evaluate", str(capture), "--model", str(model), "--out", str(tmp_path / "report")]) == 0
+    capsys.readouterr()
+    bare = tmp_path / "by-hand.bin"
+    shutil.copy(capture, bare)
+    said = verdict(bare)
+    assert f"fit, compensate and evaluate read {wire_format} captures, but not this one as it is: " in said
+    reason = said.split("but not this one as it is: ")[1]
+    for command in (
+        ["fit", str(bare), "--out", str(tmp_path / "m2.yaml")],
+        ["compensate", str(bare), "--model", str(model), "--out", str(tmp_path / "c2.csv")],
+        ["evaluate", str(bare), "--model", str(model), "--out", str(tmp_path / "report2")],
+    ):
+        assert cli.main(command) == 65
+        (line,) = capsys.readouterr().err.splitlines()
+        assert line == f"fog-driver: error: {bare}: {reason}"
+
+
+def test_the_commands_inspect_names_are_every_command_that_reads_any_format():
+    """``CAPTURE_READERS`` (what inspect's verdict names) is every command that takes a capture file and a
+    --format of every format (``run`` takes a port)."""
+    from fog_driver.cli.captures import CAPTURE_READERS
+    from fog_driver.cli.parser import build_parser
+    from fog_driver.formats.registry import FORMATS
+
+    parser = build_parser()
+    (sub,) = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    readers = set()
+    for name, command in sub.choices.items():
+        takes_capture = any(not a.option_strings and a.metavar == "CAPTURE.bin" for a in command._actions)
+        for action in command._actions:
+            every_format = list(action.choices or ()) == ["auto", *FORMATS]
+            if takes_capture and "--format" in action.option_strings and every_format:
+                readers.add(name)
+    assert readers - {"inspect"} == set(CAPTURE_READERS), readers

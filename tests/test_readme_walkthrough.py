@@ -1,6 +1,7 @@
-"""The README and the tutorial as one executable walkthrough: their marked blocks (the README's install and
-first session, then docs/tutorial.md's calibration) run in order on a fresh copy of the repository, from the
-install on, and each must work as written."""
+"""The README, the tutorial and the calibration how-to as one executable walkthrough: their marked blocks (the
+README's install and first session, then docs/tutorial.md's calibration, then docs/how-to/calibration.md's
+program and simulated calibration run) run in order on a fresh copy of the repository, from the install on,
+and each must work as written and print what the documents show."""
 
 from __future__ import annotations
 
@@ -79,6 +80,9 @@ def test_the_walkthrough_covers_the_newcomers_path():
         "fog-driver compensate",
         "fog-driver evaluate",
         "fog-driver run --model model.yaml",
+        "fog-driver plan",
+        "fog-driver simulate --profile calibration",
+        "fog-driver fit calibration.bin",
     ]
     positions = [next((i for i, c in enumerate(commands) if c.startswith(w)), None) for w in wanted]
     assert None not in positions, dict(zip(wanted, positions))
@@ -100,7 +104,8 @@ def test_what_the_walkthrough_writes_is_ignored_by_git():
                     written.add(out)
                 else:  # evaluate's report folder
                     written.add(f"{out}/report.md")
-    assert {"chamber.bin", "check.csv.yaml", "model.yaml", "report/report.md"} <= written
+    assert {"chamber.bin", "check.csv.yaml", "model.yaml", "report/report.md", "my-chamber.yaml"} <= written
+    assert {"calibration.bin", "calibration.bin.yaml", "calibration-model.yaml"} <= written
     ignored = subprocess.run(
         ["git", "check-ignore", "--no-index", "--stdin"],
         cwd=ROOT,

@@ -83,7 +83,10 @@ def _print_fit_report(report) -> None:
 
 def cmd_fit(args: argparse.Namespace) -> int:
     out = Path(args.out)
-    check_outputs([out], force=args.force, inputs=[*args.captures, *args.validate, *filter(None, [args.config])])
+    profile_files = [p for p in args.profile if Path(p).is_file()]
+    check_outputs(
+        [out], force=args.force, inputs=[*args.captures, *args.validate, *filter(None, [args.config]), *profile_files]
+    )
     if args.kind == "pso-svr":
         require_extra("svr", "fitting a pso-svr model")
     config = FitConfig()
@@ -108,6 +111,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
             accept_weak=args.accept_weak_fit,
             progress=progress.show,
             wire_format=args.format,
+            profiles=args.profile,
         )
     except WeakFitError as exc:
         progress.clear()
@@ -504,6 +508,15 @@ def add_fit(p: argparse.ArgumentParser) -> None:
         default=[],
         metavar="CAPTURE.bin",
         help="a held-out capture to report on (repeatable)",
+    )
+    p.add_argument(
+        "--profile",
+        action="append",
+        default=[],
+        metavar="NAME_OR_YAML",
+        help="the chamber program the fit captures ran, for captures whose sidecar records none (a recording made "
+        "by hand): a built-in profile's name or a profile file, as simulate --profile takes; once for every "
+        "capture, or once per capture in order.  The fit judges what it leaves unidentified",
     )
     p.add_argument("--force", action="store_true", help="overwrite an existing model file")
     p.add_argument(

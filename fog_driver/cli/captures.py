@@ -15,7 +15,7 @@ from ..formats.registry import FORMATS
 from ..formats.summary import format_format_summary, summarize_format
 from ..samples.captures import format_summary, inspect_capture
 from ..samples.record import record
-from ..samples.sources import PROTOCOL_V1, capture_format
+from ..samples.sources import PROTOCOL_V1, capture_format, wire_settings_for
 from ..signals import stop_on_signals
 from ..sim.capture import simulate_to_file
 from ..sim.faults import parse_fault_spec
@@ -30,6 +30,29 @@ EXIT_INTERRUPTED = 130  # stopped by Ctrl-C (SIGINT) or SIGTERM, as the shell re
 FORMAT_NAMES = list(FORMATS)
 
 
+#: The commands that read a capture of any frame format (``FORMATS``), each the same way: ``--format``
+#: (``calibration._format_option``) and ``samples.sources.wire_settings_for`` (the device's settings from the capture's
+#: sidecar).  ``inspect`` says so of a capture of another format than protocol v1 (``capture_use``).
+CAPTURE_READERS = ("fit", "compensate", "evaluate")
+
+
+def capture_use(path: str, fmt: str) -> str:
+    """What ``CAPTURE_READERS`` do with the capture ``path`` of format ``fmt`` (not protocol v1), in words: they
+    read it, a model applying to captures of its temperature channels; or why they cannot yet
+    (``wire_settings_for``'s reason: no sidecar with the device's settings)."""
+    commands = f"{', '.join(CAPTURE_READERS[:-1])} and {CAPTURE_READERS[-1]}"
+    try:
+        wire_settings_for(path, fmt)
+    except InputFileError as exc:
+        reason = str(exc).removeprefix(f"{path}: ")
+        return f"{commands} read {fmt} captures, but not this one as it is: {reason}"
+    channels = ", ".join(FORMATS[fmt].temperature_channels)
+    return (
+        f"{commands} read it (a model applies to captures of the temperature channels it was fitted on; "
+        f"{fmt} has {channels})"
+    )
+
+
 def cmd_inspect(args: argparse.Namespace) -> int:
     other, doc = PROTOCOL_V1, {}
     if args.format != PROTOCOL_V1 and os.path.isfile(args.capture) and os.access(args.capture, os.R_OK):
@@ -41,7 +64,11 @@ def cmd_inspect(args: argparse.Namespace) -> int:
             found = summarize_format(args.capture, other, settings if isinstance(settings, dict) else {})
         except (TypeError, ValueError) as exc:  # wire_settings the decoder cannot take
             raise InputFileError(f"{args.capture}: its sidecar's wire_settings do not fit {other}: {exc}") from None
-        print(json.dumps(found.as_json_dict()) if args.json else format_format_summary(found))
+        print(
+            json.dumps(found.as_json_dict())
+            if args.json
+            else format_format_summary(found, capture_use(args.capture, other))
+        )
         return EXIT_PROBLEMS if args.strict and found.problems() else 0
     progress = Progress()
     try:

@@ -141,8 +141,9 @@ def summarize_format(path: str | Path, name: str, settings: dict[str, Any] | Non
     return summary
 
 
-def format_format_summary(s: FormatSummary) -> str:
-    """The text ``inspect`` prints for another format's capture."""
+def format_format_summary(s: FormatSummary, use: str = "") -> str:
+    """The text ``inspect`` prints for another format's capture; ``use``, what the other commands do with it,
+    ends the verdict."""
     c = s.counters
     settings = ", ".join(f"{k} {v}" for k, v in s.settings.items())
     lines = [
@@ -172,8 +173,5 @@ def format_format_summary(s: FormatSummary) -> str:
     if s.flags:
         lines.append("flags         " + ", ".join(f"{k} {v:,}" for k, v in sorted(s.flags.items())))
     problems = s.problems()
-    lines.append(
-        f"verdict       {'clean' if not problems else '; '.join(problems)}; the other commands read "
-        "protocol v1 captures only so far"
-    )
+    lines.append(f"verdict       {'clean' if not problems else '; '.join(problems)}" + (f"; {use}" if use else ""))
     return "\n".join(lines)

@@ -36,6 +36,7 @@ from ..files.outputs import check_outputs, write_error
 from ..files.stamps import utc_now_iso
 from ..samples.captures import CaptureWriter, read_provenance, sidecar_path, write_provenance
 from .instrument import COMPONENTS, STDBIN_TEMPERATURE_CHANNELS, STDBIN_VERSION, FrameBlock, Simulator
+from .profiles import profile_to_doc
 
 TRUTH_COLUMNS = (
     "second",
@@ -316,7 +317,9 @@ def _write_sidecar(
 ) -> Path:
     """The capture's provenance sidecar: ``status: complete`` once all ``total`` frames are written, else
     ``interrupted`` with the ``written`` frames (``simulate_to_file``); ``bytes`` and ``sha256`` are the
-    ``writer``'s: exactly what is on disk; ``stops``: ``device_stops(sim)``."""
+    ``writer``'s: exactly what is on disk; ``stops``: ``device_stops(sim)``; ``program``: the profile run, in
+    the profile-file format (``profiles.profile_to_doc``: ``name``, ``start_c``, ``segments``, ``motion``),
+    from the capture's first frame, whatever part of it the capture holds."""
     ending: dict = {"status": "complete"}
     if written < total:
         ending = {
@@ -334,6 +337,7 @@ def _write_sidecar(
             "fog_driver_version": __version__,
             "profile": sim.profile.name,
             "profile_source": profile_source or sim.profile.source,
+            "program": profile_to_doc(sim.profile),  # the whole program, as a profile file: fit judges it
             "seed": sim.seed,
             "rate_hz": sim.rate_hz,
             "faults": faults_text,

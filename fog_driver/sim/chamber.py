@@ -20,7 +20,7 @@ is at ``start_c``; after the end it stays at the last value.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -201,6 +201,26 @@ class ChamberProfile:
             if len(on):
                 out[on] = tab["base"][k[on]] + amp[on] * np.sin(tab["omega"][k[on]] * dt[on])
         return out.reshape(t.shape)
+
+    def until(self, t_s: float) -> ChamberProfile:
+        """The program's first ``t_s`` seconds as a program of its own: the segments that end by then, and the one
+        running at ``t_s`` cut there (a hold or a sinusoid shortened, a ramp ending where the air is at ``t_s``);
+        the whole program when it ends by ``t_s``."""
+        if t_s >= self.duration_s:
+            return self
+        segments: list[Segment] = []
+        for s in self._spans:
+            if s.t_end_s <= t_s:
+                segments.append(s.segment)
+                continue
+            left_s = t_s - s.t_start_s
+            seg = s.segment
+            if left_s > 0 and isinstance(seg, Hold | Sinusoid):
+                segments.append(replace(seg, duration_s=left_s))
+            elif left_s > 0 and isinstance(seg, Ramp):
+                segments.append(Ramp(seg.rate_c_per_min, float(self.air_temp_c(np.array(t_s)))))
+            break
+        return ChamberProfile(self.name, self.start_c, tuple(segments))
 
     def spans(self) -> list[SegmentSpan]:
         """Every segment with its start and end time and temperature."""

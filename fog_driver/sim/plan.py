@@ -43,6 +43,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 
+from ..compensation.fitting import program as terms
 from ..compensation.fitting.wesn import HISTORY_FRACTION, LAG_FRACTION, MIN_SPAN_C, NOTED_LAG_S
 from ..compensation.models.wesn import COIL_LAG_GRID_S, WESN_DEFAULTS
 from .chamber import ChamberProfile, Hold, Ramp, Segment, Sinusoid
@@ -121,10 +122,14 @@ DESIGN = Design()
 
 @dataclass(frozen=True)
 class Gap:
-    """A time scale or term a program leaves unidentified: what, and why."""
+    """A time scale or term a program leaves unidentified: what, and why; ``term``, what it is about (one of
+    ``compensation.fitting.program``'s terms), and for coil lags the range of them (``lags_s``: the first and
+    the last of ``COIL_LAG_GRID_S`` left unidentified), which the fit's lag warning weighs."""
 
     what: str
     why: str
+    term: str = ""
+    lags_s: tuple[float, float] | None = None
 
     def __str__(self) -> str:
         return f"{self.what}: {self.why}"
@@ -323,6 +328,8 @@ def identifiability_gaps(chamber: ChamberProfile) -> tuple[Gap, ...]:
                 f"the fit tries lags up to a tenth of the run ({_fmt_min(run_s)}), a fifth only when the "
                 f"residual still falls there; the model's, up to {_fmt_min(max(COIL_LAG_GRID_S))}, need "
                 f"{_fmt_min(max(COIL_LAG_GRID_S) / LAG_FRACTION)}",
+                terms.LAGS_UNTRIED,
+                (min(lag for lag in COIL_LAG_GRID_S if lag not in tried), max(COIL_LAG_GRID_S)),
             )
         )
     shown = [lag for lag in tried if lag <= soak_s]
@@ -332,6 +339,8 @@ def identifiability_gaps(chamber: ChamberProfile) -> tuple[Gap, ...]:
                 f"coil lags {_fmt_min(min(lag for lag in tried if lag > soak_s))} to {_fmt_min(max(tried))}",
                 f"the longest soak after a ramp lasts {_fmt_min(soak_s)}: a lag shows in the settling a soak "
                 "as long as it sees",
+                terms.LAGS_UNSETTLED,
+                (min(lag for lag in tried if lag > soak_s), max(tried)),
             )
         )
     if run_s < NOTED_LAG_S / LAG_FRACTION:
@@ -339,6 +348,7 @@ def identifiability_gaps(chamber: ChamberProfile) -> tuple[Gap, ...]:
             Gap(
                 "a coil of several stages in series",
                 f"the fit tries it in runs of {_fmt_min(NOTED_LAG_S / LAG_FRACTION)} or more",
+                terms.COIL_STAGES,
             )
         )
     for history_s in WESN_DEFAULTS.history_s:
@@ -347,6 +357,7 @@ def identifiability_gaps(chamber: ChamberProfile) -> tuple[Gap, ...]:
                 Gap(
                     f"thermal history at {_fmt_min(history_s)}",
                     f"it needs a run {1 / HISTORY_FRACTION:g} times as long ({_fmt_min(history_s / HISTORY_FRACTION)})",
+                    terms.HISTORY,
                 )
             )
     temps = [s.start_c for s in spans] + [s.end_c for s in spans]
@@ -359,19 +370,23 @@ def identifiability_gaps(chamber: ChamberProfile) -> tuple[Gap, ...]:
                 "the bias curve's shape",
                 f"the program spans {high - low:.3g} degC; the fit needs the ring to span {MIN_SPAN_C:g} degC and "
                 "the ring lags the air",
+                terms.BIAS_SHAPE,
             )
         )
     ramps = [s for s in spans if isinstance(s.segment, Ramp) and s.end_c != s.start_c]
     for direction, sign in (("warming", 1.0), ("cooling", -1.0)):
         rates = sorted({s.segment.rate_c_per_min for s in ramps if (s.end_c - s.start_c) * sign > 0})
         if not rates:
-            gaps.append(Gap(f"the temperature-rate terms {direction}", f"the program has no {direction} ramp"))
+            gaps.append(
+                Gap(f"the temperature-rate terms {direction}", f"the program has no {direction} ramp", terms.RATE_TERMS)
+            )
         elif rates[-1] < MIN_FAST_RATE_C_PER_MIN:
             gaps.append(
                 Gap(
                     f"the temperature-rate terms {direction}",
                     f"the fastest {direction} ramp is {rates[-1]:.3g} degC/min; under {MIN_FAST_RATE_C_PER_MIN:g} "
                     "degC/min a good coil's Shupe term stays under the gyro's 1-min noise",
+                    terms.RATE_TERMS_SLOW,
                 )
             )
         elif rates[-1] < RATE_RATIO * rates[0]:
@@ -380,6 +395,7 @@ def identifiability_gaps(chamber: ChamberProfile) -> tuple[Gap, ...]:
                     f"the temperature-rate terms {direction}",
                     f"its ramps run at {', '.join(f'{r:.3g}' for r in rates)} degC/min: a rate term is told from a "
                     f"lag by rates at least {RATE_RATIO:g}x apart",
+                    terms.RATE_TERMS,
                 )
             )
     changes = bool(sines) or any(
@@ -397,6 +413,7 @@ def identifiability_gaps(chamber: ChamberProfile) -> tuple[Gap, ...]:
                 "a rate that varies within the run",
                 "no sinusoid and no two ramps in a row at different rates: the coil's rate is seen only at "
                 "steady ramps",
+                terms.RATE_CHANGE,
             )
         )
     up = [(s.start_c, s.end_c) for s in ramps if s.end_c > s.start_c]
@@ -408,6 +425,7 @@ def identifiability_gaps(chamber: ChamberProfile) -> tuple[Gap, ...]:
                 "the thermal history against the bias curve (hysteresis)",
                 f"warming and cooling ramps cross the same temperatures over {overlap:.3g} of the program's "
                 f"{high - low:.3g} degC; a temperature reached both ways tells them apart",
+                terms.HYSTERESIS,
             )
         )
     return tuple(gaps)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -20,6 +21,9 @@ from ...errors import InputFileError
 from ..blocks import FLAG_GAP, FLAG_THERMOMETER_FAULT, BlockColumns
 from ..features import DEGRADED_FLAGS, V1_CHANNELS, FeatureExtractor, FeatureParams
 from ..readout import Standardizer
+
+if TYPE_CHECKING:
+    from .program import RunProgram
 
 
 @dataclass(frozen=True)
@@ -63,6 +67,8 @@ class CaptureData:
     #: its frame format's temperature channels (the inputs are ``features.input_names`` of them)
     channels: tuple[str, ...] = V1_CHANNELS
     wire_format: str = "fog-v1"
+    #: the chamber program its run followed, judged (``program.RunProgram``), when the fit was told it
+    program: RunProgram | None = None
 
     @property
     def minutes(self) -> float:

@@ -276,10 +276,7 @@ def fit_model(
                 f"fitted on one instrument's channels"
             )
     serials = {c.serial for c in captures}
-    if len(serials) != 1:
-        raise InputFileError(
-            f"the fit captures come from different instruments: {', '.join(sorted(map(str, serials)))}"
-        )
+    check_one_instrument(captures, validate)
     normalizer = fit_normalizer(captures)
     models = {"polynomial": _fit_polynomial(captures, normalizer, config, progress)}
     if kind != "polynomial":
@@ -326,6 +323,28 @@ def fit_model(
     if quality.failed and not accept_weak:
         raise WeakFitError(quality, report, model_file)
     return model_file, report
+
+
+def check_one_instrument(captures: list[CaptureData], validate: list[CaptureData]) -> None:
+    """An ``InputFileError`` naming each instrument's captures when the fit captures and the validation
+    captures (``--validate``) do not all come from one instrument (their IDENTITY serial): a model is fitted
+    and judged on its own instrument's data."""
+    serials = {c.serial for c in [*captures, *validate]}
+    if len(serials) == 1:
+        return
+    fitted = {c.serial for c in captures}
+    by_serial = {
+        serial: ", ".join(
+            [c.path.name for c in captures if c.serial == serial]
+            + [f"{c.path.name} (--validate)" for c in validate if c.serial == serial]
+        )
+        for serial in sorted(serials, key=str)
+    }
+    which = "fit captures" if len(fitted) > 1 else "fit and validation captures"
+    raise InputFileError(
+        f"the {which} come from different instruments: "
+        + "; ".join(f"{serial or 'no serial'}: {names}" for serial, names in by_serial.items())
+    )
 
 
 def model_choice(
@@ -377,8 +396,9 @@ def _add_findings(
 def _provenance(
     captures: list[CaptureData], validate: list[CaptureData], config: FitConfig, report: FitReport
 ) -> dict[str, Any]:
-    """The model file's provenance before the model's own parts: the captures (name, SHA-256, blocks), the
-    validation captures, the fit config, the report's rows and the noise floor."""
+    """The model file's provenance before the model's own parts: the captures (name, SHA-256, blocks, and the
+    chamber program of its run when the fit was told it: its name and where it was learned), the validation
+    captures, the fit config, the report's rows and the noise floor."""
     floor = cast(tuple[float, float | None], report.noise_floor)  # report_for sets it
     return {
         "captures": [
@@ -388,6 +408,7 @@ def _provenance(
                 "blocks": len(c.blocks),
                 "static_blocks": int(c.static.sum()),
                 "moving_blocks": c.moving_blocks,
+                **({"program": {"name": c.program.name, "from": c.program.source}} if c.program else {}),
             }
             for c in captures
         ],

@@ -78,11 +78,28 @@ class FitQuality:
         return doc
 
 
+#: Each check's unit and the way its limit goes (the value must be ``>=``, ``<=`` or ``<`` the limit), for
+#: ``format_checks``; the module docstring's table.
+CHECK_UNITS = {
+    "duration": (">=", "min"),
+    "ring_span": (">=", "degC"),
+    "rate_span": (">=", "degC/min"),
+    "target_range": ("<=", "deg/h"),
+    "condition": ("<=", ""),
+    "fit_residual": ("<", "deg/h"),
+    "validation": ("<", "deg/h"),
+}
+
+
 def format_checks(doc: dict) -> str:
-    """The fit-quality section of ``fog-driver fit``'s report, from ``FitQuality.to_dict``."""
-    lines = [f"{'fit checks':34s} {'value':>10s} {'limit':>10s}"]
+    """The fit-quality section of ``fog-driver fit``'s report, from ``FitQuality.to_dict``: each check's value
+    and its limit with their unit, the limit with the way it goes (``CHECK_UNITS``; the residual checks' limit
+    is the drift before compensation)."""
+    lines = [f"{'fit checks':34s} {'value':>10s} {'':9s}limit"]
     for name, c in doc["checks"].items():
-        lines.append(f"{name:34s} {c['value']:10.4g} {c['limit']:10.4g}  {'ok' if c['passed'] else 'FAILS'}")
+        relation, unit = CHECK_UNITS.get(name, ("", ""))
+        limit = f"{relation} {c['limit']:.4g} {unit}".strip()
+        lines.append(f"{name:34s} {c['value']:10.4g} {unit:8s} {limit:20s} {'ok' if c['passed'] else 'FAILS'}")
     return "\n".join(lines)
 
 

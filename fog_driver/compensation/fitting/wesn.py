@@ -28,7 +28,8 @@ Fitting (``_fit_ring_form``), everything from the fit data alone:
 What one paper-profile run cannot do: tell some coils' lags apart.  The coils that explain the run
 within the noise of the best (``tied_coils``: not beaten by two standard errors of the paired margin)
 are listed in the model's provenance, and when their lags span more than ``LAG_INTERVAL_WARN`` (1.5)
-the fit warns and names the remedy (the calibration program, or a run with other ramp rates).  Up to
+the fit warns (``lag_warning``), and, when it knows the runs' programs (``fitting.program``), says what
+they leave unidentified that bears on the lag and what would narrow the interval.  Up to
 ``MAX_CANDIDATES`` of them, refitted as the chosen one is, ride in the model file as its candidate
 structures: where they disagree, the data did not decide (``drift_sigma_dph``).  Before the
 noise-aware tie, lags within 0.2 % of the best counted as tied; on the default simulated instrument, fits on eight
@@ -59,6 +60,7 @@ than the polynomial baseline (docs/explanation/accuracy.md).
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -69,9 +71,10 @@ from ..models.wesn import WesnConfig, WesnModel, n_regressors
 from ..readout import AdaptiveLaw
 from .choice import block_squares, paired_margin
 from .data import capture_groups, first_valid_block
+from .program import RATE_TERMS_SLOW, RunProgram, lag_gaps
 from .ridge import cross_validated_alpha, standardized_ridge
 
-#: The fit warns, naming the remedy, when the lags that explain its data equally well span more than this factor.
+#: The fit warns (``lag_warning``) when the lags that explain its data equally well span more than this factor.
 LAG_INTERVAL_WARN = 1.5
 
 
@@ -261,7 +264,8 @@ def _fit_ring_form(kind: str, wc: WesnConfig, captures, normalizer, config, say=
         )
 
     model = final((lag, order))
-    model.selection = _selection(wc, lag, order, alpha, choices, criteria, tied, limits)
+    programs = [getattr(c, "program", None) for c in captures]  # the runs' programs, when known (``fitting.program``)
+    model.selection = _selection(wc, lag, order, alpha, choices, criteria, tied, limits, programs)
     say(f"{kind}: candidate structures ({len(tied)} explain the data equally well)")
     model.candidates = [final(c) for c in spread_candidates(tied, (lag, order))]
     return model
@@ -276,11 +280,12 @@ def _selection(
     criteria: dict[tuple[float, int], float],
     tied: list[tuple[float, int]],
     limits: list[str],
+    programs: Sequence[RunProgram | None] = (),
 ) -> dict[str, Any]:
     """The ring form's ``selection`` (the model file's provenance): the chosen coil (``lag``, ``order``) and
     penalty ``alpha``, every penalty's cross-validation score (``choices``), every coil's in-sample residual
     (``criteria``), the coils that explain the captures equally well (``tied``: within the noise of the best,
-    ``tied_coils``; a warning naming the remedy when their lags span more than ``LAG_INTERVAL_WARN``), and
+    ``tied_coils``; ``lag_warning`` when their lags span more than ``LAG_INTERVAL_WARN``), and
     what the data could not identify (``limits``)."""
     lags = sorted({float(v) for v, _ in tied})
     selection: dict[str, Any] = {
@@ -298,14 +303,91 @@ def _selection(
     }
     if limits:
         selection["limits"] = limits
-    if max(lags) > LAG_INTERVAL_WARN * min(lags):
-        selection["warning"] = (
-            f"the coil's lag is poorly identified by these captures: {min(lags):g} s to {max(lags):g} s explain them "
-            f"within the noise of the best (the fit takes {lag:g} s); on faster ramps they would differ, and "
-            f"drift_sigma_dph grows with that interval. Remedy: run the calibration program (`fog-driver plan`, "
-            f"or `--profile calibration`), or add a run with other ramp rates, and fit the runs together"
-        )
+    warning = lag_warning(lags, lag, programs)
+    if warning:
+        selection["warning"] = warning
     return selection
+
+
+def _programs_text(programs: Sequence[RunProgram]) -> str:
+    """The captures' programs, named, with where each was learned and, for a capture that holds only part of its
+    program, how much, and the verb: "their program, paper (chamber.bin's sidecar), leaves"."""
+
+    def one(p: RunProgram) -> str:
+        cut = f", its first {p.held_min:.0f} of {p.program_min:.0f} min" if p.cut else ""
+        return f"{p.name} ({p.source}{cut})"
+
+    if len(programs) == 1:
+        return f"their program, {one(programs[0])}, leaves"
+    return f"their programs, {', '.join(one(p) for p in programs)}, leave"
+
+
+def lag_warning(lags_s: Sequence[float], lag_s: float, programs: Sequence[RunProgram | None] = ()) -> str | None:
+    """The warning when the coil lags that explain the fit captures equally well (``lags_s``; the fit takes
+    ``lag_s``) span more than ``LAG_INTERVAL_WARN``, else None.  It gives the interval and, from the captures'
+    programs (``programs``, one per capture, ``fitting.program``), what would narrow it:
+
+    * a program not known (None, or no programs): the interval only, and how to give the program;
+    * programs that leave something bearing on the lag unidentified (``program.lag_gaps``, left by every
+      capture's program: the runs are fitted together): those gaps, and the calibration program for the
+      user's chamber; when every program is ``fog-driver plan``'s own for its limits, what its limits would
+      have to be instead (a longer program, a faster chamber); when a capture holds only part of its program,
+      the whole program;
+    * programs that leave nothing bearing on the lag: the interval is the noise's, and what else narrows
+      it, more data (another run fitted together) or slower ramps (``RunProgram.slower_max_rate_c_per_min``).
+
+    Never the program just run."""
+    if not lags_s or max(lags_s) <= LAG_INTERVAL_WARN * min(lags_s):
+        return None
+    interval = (min(lags_s), max(lags_s))
+    head = (
+        f"the coil's lag is poorly identified by these captures: {interval[0]:g} s to {interval[1]:g} s explain "
+        f"them within the noise of the best (the fit takes {lag_s:g} s); on faster ramps they would differ, and "
+        f"drift_sigma_dph grows with that interval"
+    )
+    known = [p for p in programs if p is not None]
+    if not known or len(known) < len(programs):
+        return (
+            f"{head}. The program the captures ran is not known (no sidecar records it): with fit --profile the "
+            f"fit judges it and says what would narrow the interval"
+        )
+    shared = set.intersection(*({g.term for g in lag_gaps(p, interval)} for p in known))
+    gaps = [g for g in lag_gaps(known[0], interval) if g.term in shared]
+    named = _programs_text(known)
+    if gaps:
+        left = f"{head}; {named} unidentified: {'; '.join(g.what for g in gaps)}"
+        if any(p.cut for p in known):
+            return f"{left}. Remedy: record the whole program, and fit it"
+        if all(p.planned for p in known):
+            remedies = []
+            if shared - {RATE_TERMS_SLOW}:  # what a short budget gave up: long soaks, plateaus, rates, rate steps
+                longest = max(p.held_min for p in known)
+                remedies.append(
+                    f"a longer program (`fog-driver plan --minutes` over {longest:.0f}: its soaks last a tenth "
+                    f"of the run, and it gives up less of the design)"
+                )
+            if RATE_TERMS_SLOW in shared:
+                remedies.append("a chamber that ramps faster (`fog-driver plan --max-rate-c-per-min`)")
+            return (
+                f"{left}: {'it is' if len(known) == 1 else 'they are'} `fog-driver plan`'s program for the chamber's "
+                f"limits, which leave these. Remedy: "
+                f"{' or '.join(remedies)}, or add a run with other ramp rates and fit the runs together"
+            )
+        return (
+            f"{left}. Remedy: run the calibration program `fog-driver plan` writes for your chamber (on the "
+            f"simulator, `--profile calibration`), or add a run with other ramp rates, and fit the runs together"
+        )
+    slower = [p.slower_max_rate_c_per_min for p in known]
+    ramps = (
+        ""
+        if None in slower
+        else f", or a program with slower ramps (`fog-driver plan --max-rate-c-per-min "
+        f"{max(r for r in slower if r is not None):g}`: its ramps last longer)"
+    )
+    return (
+        f"{head}; {named} nothing that bears on the lag unidentified: the gyro's noise leaves this interval. "
+        f"What narrows it: another run, fitted together with these captures{ramps}"
+    )
 
 
 def ring_weights_for(normalizer) -> tuple[float, ...]:
