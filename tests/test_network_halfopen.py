@@ -359,3 +359,16 @@ def test_the_daemon_takes_a_silent_network_port_as_lost_and_reconnects(tmp_path)
 def _frames(data: bytes) -> list:
     decoder = FrameDecoder()
     return decoder.feed(data) + decoder.close()
+
+
+def test_a_config_reload_changes_the_running_readers_silence(tmp_path):
+    """``port_silence_s`` is applied by SIGHUP or ``ctl reload`` (the reader reads it at each read)."""
+    from fog_driver.daemon.config import DriverConfig
+    from fog_driver.daemon.service import Service
+
+    service = Service(DriverConfig(), port="unused")
+    service.reader = PortReader("loop://", silence_s=service.config.port_silence_s)
+    result = service.reload_config(DriverConfig(port_silence_s=SILENCE_S))
+    assert service.reader.silence_s == SILENCE_S and "port_silence_s" in result["applied"]
+    result = service.reload_config(DriverConfig(port_silence_s=None))
+    assert service.reader.silence_s is None and "port_silence_s" in result["applied"]
