@@ -24,10 +24,11 @@ import pytest
 import serial
 import serial.rfc2217
 import yaml
+from readerthread import Reader
 
 from fog_driver.protocol import FrameDecoder, SampleFrame
 from fog_driver.samples.record import record
-from fog_driver.transport import PortReader, open_port
+from fog_driver.transport import PortReader
 from fog_driver.transport.port import (
     KEEPALIVE_IDLE_S,
     KEEPALIVE_INTERVAL_S,
@@ -180,20 +181,78 @@ def test_a_network_port_has_tcp_keepalive_on_when_it_opens(rfc2217):
     assert seen == (expected if hasattr(socket, "TCP_KEEPIDLE") else {})
 
 
-def test_a_local_port_has_no_network_socket_so_no_silence_rule():
-    """The silence rule and keepalive are for network ports: a tty's silence is the instrument's."""
+class SteppingClock:
+    """``port.py``'s clock in a test: each reading is 1 s after the one before (so any read that finds nothing
+    comes after more than ``SILENCE_S`` of silence), and a test can wait until it has been read ``n`` times."""
+
+    def __init__(self) -> None:
+        self.now_s = 0.0
+        self.reads = 0
+        self.changed = threading.Condition()
+
+    def monotonic(self) -> float:
+        with self.changed:
+            self.now_s += 1.0
+            self.reads += 1
+            self.changed.notify_all()
+            return self.now_s
+
+    def wait_reads(self, n: int) -> None:
+        with self.changed:
+            assert self.changed.wait_for(lambda: self.reads >= n, GUARD_S)
+
+
+@pytest.mark.parametrize("kind", ["tty", "socket"])
+def test_a_silent_usb_adapter_stays_open_and_a_silent_network_port_is_lost(monkeypatch, kind):
+    """The choice for a local tty: its silence is the instrument's (switched off behind a USB adapter), which a
+    reopen cannot end, so it is no loss.  The same silence on a network port is."""
+
+    import fog_driver.transport.port as port_module
     from fog_driver.transport import PtyPair
 
-    pty = PtyPair()
+    first, second = b"\xaa" * 64, b"\x55" * 64
+    clock = SteppingClock()
+    monkeypatch.setattr(port_module, "time", clock)
+    pty = server = None
+    if kind == "tty":
+        pty = PtyPair()
+        url = pty.slave_path
+    else:
+        server = HalfOpenServer([first])
+        url = server.url
+    reader = Reader(url, silence_s=SILENCE_S)
     try:
-        for url in (pty.slave_path, "loop://"):
-            port = open_port(url)
-            try:
-                assert network_socket(port) is None
-            finally:
-                port.close()
+        assert reader.opened.wait(GUARD_S)
+        if pty is not None:
+            pty.write(first)
+        else:
+            server.port_opened()
+        states, got = [], b""
+        while len(got) < len(first):
+            what, item = reader.next_item()
+            if what == "data":
+                got += item
+            else:
+                states.append(item)
+        clock.wait_reads(clock.reads + 2)  # a read that found nothing, and its silence check, are done
+        if pty is not None:
+            pty.write(second)
+            while len(got) < len(first) + len(second):
+                what, item = reader.next_item()
+                if what == "data":
+                    got += item
+                else:
+                    states.append(item)
+            assert got == first + second and [e.state for e in states] == ["opening", "open"]  # no loss
+        else:
+            events, _ = reader.until_state("lost")
+            assert got == first and events[-1].detail == silence_text(SILENCE_S)
     finally:
-        pty.close()
+        reader.join()
+        if pty is not None:
+            pty.close()
+        if server is not None:
+            server.close()
 
 
 # -- record ----------------------------------------------------------------------------------------------------
