@@ -76,7 +76,7 @@ class HalfOpenServer:
     then nothing more, its socket held open until the reader closes it (the server never closes first).
 
     ``rfc2217``: the server speaks RFC 2217 (pyserial's ``PortManager`` answers the client's negotiation; the
-    part goes out escaped).  ``accepted`` counts the connections; ``sockets`` keeps the accepted ones."""
+    part goes out escaped).  ``accepted`` counts the connections."""
 
     def __init__(self, parts: list[bytes], *, rfc2217: bool = False) -> None:
         self.parts = parts
@@ -88,7 +88,6 @@ class HalfOpenServer:
         self.accepted = 0
         self.accept_seen = threading.Condition()
         self.closing = threading.Event()
-        self.sockets: list[socket.socket] = []
         self.thread = threading.Thread(target=self._serve, daemon=True)
         self.thread.start()
 
@@ -109,7 +108,6 @@ class HalfOpenServer:
                 return
             with self.accept_seen:
                 self.accepted += 1
-                self.sockets.append(connection)
                 self.accept_seen.notify_all()
             self._hold(connection, part)
             if self.closing.is_set():
@@ -118,9 +116,8 @@ class HalfOpenServer:
     def _hold(self, connection: socket.socket, part: bytes) -> None:
         """Send ``part`` once the port is open, then read (answering RFC 2217 negotiation) until the peer
         closes: the half-open peer that stopped writing."""
-        manager = (
-            serial.rfc2217.PortManager(serial.serial_for_url("loop://"), _Telnet(connection)) if self.rfc2217 else None
-        )
+        line = serial.serial_for_url("loop://")  # the serial side of an RFC 2217 server (unused: no data)
+        manager = serial.rfc2217.PortManager(line, _Telnet(connection)) if self.rfc2217 else None
         peer_closed = threading.Event()
 
         def read_until_closed() -> None:
@@ -141,6 +138,7 @@ class HalfOpenServer:
                 connection.sendall(b"".join(manager.escape(part)) if manager is not None else part)
             peer_closed.wait(GUARD_S)  # silent from here on; the reader closes, not us
             reader.join(GUARD_S)
+        line.close()
 
     def close(self) -> None:
         self.closing.set()
