@@ -2,7 +2,7 @@
 port (``socat``, ``ser2net``) is killed and started again.  ``docs/how-to/network-serial.md`` quotes its output.
 
     python benchmarks/bench_network_reconnect.py [--servers socat,ser2net-raw,ser2net-rfc2217] [--down-s 0.5,1,2,5,10]
-        [--repeat 2] [--rate-hz 100]
+        [--repeat 2] [--rate-hz 100] [--half-open]
 
 Method
 ------
@@ -36,6 +36,12 @@ have flowed for ``SETTLE_S`` after the reconnection: the first bytes after it ma
 server was away, up to its buffer's size, and the gap comes after them).  At the end the daemon is
 stopped and ``fog-driver inspect --json`` reads its raw capture (the files concatenated in name order): it finds
 the gaps the daemon counted, from the bytes alone.
+
+``--half-open``: the server is cut off without closing its connection, as by a cable pulled between the host and
+the device server: it gets SIGSTOP (it holds its connection open and sends nothing more; the kernel still answers
+TCP keepalive, so the daemon's silence rule, ``port_silence_s``, is what ends the connection).  Once the daemon has
+seen the loss, the stopped server gets SIGKILL and the outage goes on as above; "loss seen after" runs from the
+SIGSTOP, and "down" is from the SIGSTOP to the server listening again (at least the loss and the kill).
 
 Needs ``socat`` and ``ser2net`` on the PATH (``apt-get install socat ser2net``); a server that is missing is skipped
 and said so.  No assertion: the figures are printed.
@@ -118,6 +124,7 @@ class Server:
     def __init__(self, kind: str, link: Path, port: int, workdir: Path) -> None:
         self.kind, self.link, self.port = kind, link, port
         self.proc: subprocess.Popen | None = None
+        self.frozen = False  # stopped by freeze(): only SIGKILL ends it
         self.log = (workdir / f"{kind}.log").open("a")
         if kind == "socat":
             self.argv = ["socat", f"TCP-LISTEN:{port},bind=127.0.0.1,reuseaddr", f"FILE:{link},raw,echo=0"]
@@ -146,19 +153,31 @@ class Server:
 
         return wait_until(up, f"{self.kind} to listen on {self.port}")
 
+    def freeze(self) -> float:
+        """SIGSTOP: the server holds its connections open and sends nothing more (a half-open peer); the monotonic
+        time of the signal."""
+        assert self.proc is not None
+        t_freeze = time.monotonic()
+        self.proc.send_signal(signal.SIGSTOP)
+        self.frozen = True
+        return t_freeze
+
     def kill(self) -> float:
-        """SIGTERM and wait for it; the monotonic time of the signal."""
+        """SIGTERM (SIGKILL when frozen) and wait for it; the monotonic time of the signal."""
         assert self.proc is not None
         t_kill = time.monotonic()
-        self.proc.terminate()
+        if self.frozen:
+            self.proc.kill()
+            self.frozen = False
+        else:
+            self.proc.terminate()
         self.proc.wait(GUARD_S)
         wait_until(lambda: not serving(self.port), f"{self.kind} to stop serving")
         return t_kill
 
     def close(self) -> None:
         if self.proc is not None and self.proc.poll() is None:
-            self.proc.terminate()
-            self.proc.wait(GUARD_S)
+            self.kill()
         self.log.close()
 
 
@@ -244,7 +263,7 @@ def status_after(watcher: Watcher, after: float) -> dict:
 
 
 def run_server(
-    kind: str, link: Path, downs: list[float], workdir: Path, rng: random.Random
+    kind: str, link: Path, downs: list[float], workdir: Path, rng: random.Random, *, half_open: bool = False
 ) -> tuple[list[Outage], dict, dict]:
     port = free_port()
     server = Server(kind, link, port, workdir)
@@ -260,10 +279,14 @@ def run_server(
             down_s = planned_s + rng.uniform(0.0, JITTER_S)
             flowing, _ = watcher.first("ANGLE", time.monotonic())  # samples flow before each outage
             before = status_after(watcher, flowing)
-            t_kill = server.kill()
+            t_kill = server.freeze() if half_open else server.kill()
             t_lost, _ = watcher.first("DEVICE", t_kill, lambda obj: obj.get("state") == "deactivated")
+            if half_open:
+                server.kill()
             time.sleep(max(0.0, t_kill + down_s - time.monotonic()))  # the outage itself: the server stays away
             t_up = server.start()
+            if half_open:
+                down_s = t_up - t_kill
             t_back, _ = watcher.first("ANGLE", t_up)
             t_last, _ = watcher.last("ANGLE", t_kill)
             settled, _ = watcher.first("ANGLE", t_back + SETTLE_S)  # the pty's backlog read, the gap seen
@@ -333,6 +356,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeat", type=int, default=2, help="how many times the outages are run (each server)")
     parser.add_argument("--rate-hz", type=float, default=100.0, help="the simulated instrument's frame rate")
     parser.add_argument("--seed", type=int, default=1, help="the seed of the outages' draws of 0 to 1 s")
+    parser.add_argument(
+        "--half-open", action="store_true", help="cut each server off without closing (SIGSTOP) instead of killing it"
+    )
     args = parser.parse_args(argv)
     if args.repeat < 1:
         parser.error("--repeat must be at least 1")
@@ -349,6 +375,11 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"python {platform.python_version()}, {os.cpu_count()} CPUs; outages of {args.down_s} s"
         f" (each plus 0 to {JITTER_S:g} s, seed {args.seed}), {args.repeat} time(s)"
+        + (
+            "; half-open: each server stopped (SIGSTOP), not killed, until the daemon sees the loss"
+            if args.half_open
+            else ""
+        )
     )
     for program in ("socat", "ser2net"):
         if shutil.which(program):
@@ -374,7 +405,9 @@ def main(argv: list[str] | None = None) -> int:
                 if not shutil.which(program):
                     print(f"{kind}: skipped, {program} is not installed (apt-get install {program})")
                     continue
-                outages, final, inspected = run_server(kind, link, downs, workdir, random.Random(args.seed))
+                outages, final, inspected = run_server(
+                    kind, link, downs, workdir, random.Random(args.seed), half_open=args.half_open
+                )
                 print(describe(kind, outages, final, inspected, args.rate_hz))
         finally:
             sim.send_signal(signal.SIGTERM)

@@ -100,6 +100,12 @@ def test_a_bad_value_names_the_file_then_the_key(tmp_path):
         ("device: {setup: ['=DR,1', 2]}\n", "device.setup: expected a list of strings, got ['=DR,1', 2]"),
         ("device: {setup_reply_timeout_s: 99}\n", "device: setup_reply_timeout_s must be in (0, 30] s"),
         ("format: kvh-a\n", "device.rate_hz: kvh-a frames do not say the device's output rate: give it"),
+        ("port_silence_s: 0\n", "port_silence_s must be a number of seconds > 0 (or null: never), got 0.0"),
+        ("port_silence_s: .nan\n", "port_silence_s: expected a finite number, got nan"),
+        (
+            "port_silence_s: 1.5\nformat: kvh-a\ndevice: {rate_hz: 1}\n",
+            "port_silence_s 1.5 s is shorter than two frame periods at device.rate_hz 1 (2 s)",
+        ),
     ],
 )
 def test_each_problem_names_the_file_then_the_key_path(tmp_path, text, message):
@@ -125,6 +131,10 @@ def test_valid_values_are_held_as_before(tmp_path):
     assert cfg.capture_keep_days is None and cfg.baud == DriverConfig().baud
     assert cfg.device.setup == ("=DR,1000",) and cfg.device.rate_hz == 1000
     assert cfg.device.setup_reply_timeout_s == 1.0
+    path.write_text("port_silence_s: 2\n")
+    assert load_config(path).port_silence_s == 2.0
+    path.write_text("port_silence_s: null\n")  # never
+    assert load_config(path).port_silence_s is None
 
 
 def test_the_instrument_and_fit_configs_share_the_schema_checks(tmp_path):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 import threading
@@ -23,6 +24,7 @@ from ..sim.instrument import WIRE_FORMATS, Simulator, load_instrument_config
 from ..sim.population import MAX_INSTRUMENT_SEED, draw_instrument
 from ..sim.profiles import load_profile
 from ..sim.serve import serve_cli
+from ..transport import DEFAULT_SILENCE_S
 from .argtypes import baud, positive_float, rate_hz, seed
 
 EXIT_PROBLEMS = 1  # inspect --strict found problems
@@ -84,12 +86,12 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     return 0
 
 
-def _record_wire(config_path: str | None, fmt: str | None):
+def _record_wire(config_path: str | None, config: DriverConfig | None, fmt: str | None):
     """What ``record [--config FILE] [--format NAME]`` says the port sends, and the device's setup commands
-    (None, None: protocol v1, no setup)."""
-    if config_path is None and fmt in (None, "fog-v1"):
+    (None, None: protocol v1, no setup); ``config``: the file's, read."""
+    if config is None and fmt in (None, "fog-v1"):
         return None, None
-    config = load_config(config_path) if config_path else DriverConfig()
+    config = config or DriverConfig()
     name = fmt or config.format
     if name == "auto":
         raise UsageError(
@@ -104,10 +106,26 @@ def _record_wire(config_path: str | None, fmt: str | None):
     return wire, config.device.device_setup()
 
 
+def silence_seconds(text: str) -> float:
+    """``record --silence-s``: seconds >= 0 (0: no silence rule), finite."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number of seconds: {text!r}") from None
+    if not 0 <= value < math.inf:
+        raise argparse.ArgumentTypeError(f"must be a number of seconds >= 0 (0: never): {text!r}")
+    return value
+
+
 def cmd_record(args: argparse.Namespace) -> int:
     if not args.out.endswith(".bin"):
         raise UsageError(f"--out {args.out!r}: a capture file name must end in .bin")
-    wire, setup = _record_wire(args.config, args.format)
+    config = load_config(args.config) if args.config else None
+    wire, setup = _record_wire(args.config, config, args.format)
+    if args.silence_s is not None:  # the option over the config's port_silence_s; 0: never
+        silence_s = args.silence_s or None
+    else:
+        silence_s = config.port_silence_s if config is not None else DEFAULT_SILENCE_S
     progress = Progress()
     stop = threading.Event()
 
@@ -149,6 +167,7 @@ def cmd_record(args: argparse.Namespace) -> int:
                 wait=args.wait,
                 wire=wire,
                 setup=setup,
+                silence_s=silence_s,
             )
     finally:
         progress.clear()
@@ -245,6 +264,14 @@ def add_record(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="wait for a port that is not there yet (default: a port that does not open is an error at "
         "once; a port lost after it worked is always reopened, unless --no-reconnect)",
+    )
+    p.add_argument(
+        "--silence-s",
+        type=silence_seconds,
+        metavar="S",
+        help="a network port (socket://, rfc2217://) that sends no byte for S seconds after it has sent some "
+        "is taken as lost (and reopened, unless --no-reconnect); 0: never (default: the config's port_silence_s, "
+        f"else {DEFAULT_SILENCE_S:g})",
     )
     p.add_argument("--notes", help="free text stored in the provenance sidecar")
     p.add_argument("--force", action="store_true", help="overwrite an existing capture file")

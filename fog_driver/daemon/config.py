@@ -24,6 +24,7 @@ from ..files.typed_mapping import dataclass_from_mapping
 from ..files.yamlio import read_yaml
 from ..samples.sources import WireSettings
 from ..samples.stream import DEFAULT_SCALE_ARCSEC_PER_COUNT, SampleStream
+from ..transport.port import DEFAULT_SILENCE_S, check_silence_s
 from ..transport.setup import DeviceSetup, validate_command
 
 #: The shipped drift model (``fog_driver/data/models/default.yaml``): package data, so a wheel or any
@@ -93,6 +94,8 @@ class DriverConfig:
 
     port: str | None = None  #: device path or URL; None: none (``fog-driver run`` needs ``--port``, or ``--simulate``)
     baud: int = 460800
+    #: a network port (socket://, rfc2217://) silent this long after bytes is taken as lost (None: never)
+    port_silence_s: float | None = DEFAULT_SILENCE_S
     scale_arcsec_per_count: float = DEFAULT_SCALE_ARCSEC_PER_COUNT
     scale_override_arcsec_per_count: float | None = None
     model: str | None = None  #: model file; None: the shipped default
@@ -126,6 +129,7 @@ class DriverConfig:
             raise ValueError("port must be a device path or URL string")
         if not 50 <= self.baud <= 12_000_000:
             raise ValueError(f"baud must be an integer baud rate, got {self.baud!r}")
+        self._check_port_silence()
         for name in ("scale_arcsec_per_count", "scale_override_arcsec_per_count"):
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):
@@ -158,6 +162,18 @@ class DriverConfig:
             raise ValueError(
                 f"device.setup: setup commands are sent to a KVH device (format kvh-a, kvh-b or kvh-c), "
                 f"not with format {self.format}"
+            )
+
+    def _check_port_silence(self) -> None:
+        """``port_silence_s``: null, or seconds > 0 and, when ``device.rate_hz`` says the device's rate, at least
+        two of its frame periods (a shorter silence is the device's own pace, not a lost connection)."""
+        silence_s = self.port_silence_s
+        check_silence_s(silence_s, "port_silence_s")
+        rate_hz = self.device.rate_hz
+        if silence_s is not None and isinstance(rate_hz, int) and rate_hz > 0 and silence_s * rate_hz < 2:
+            raise ValueError(
+                f"port_silence_s {silence_s:g} s is shorter than two frame periods at device.rate_hz {rate_hz} "
+                f"({2 / rate_hz:g} s): the device's own pace would be taken for a lost connection"
             )
 
     def wire_settings(self, name: str | None = None):

@@ -387,6 +387,8 @@ class Service:
             if new.token != old.token:
                 self.web.set_token(new.token)
             self.web.max_backlog_s = new.max_client_backlog_s
+        if self.reader is not None:
+            self.reader.silence_s = new.port_silence_s  # read at the reader's next read
         with self.lock:
             self.binding.force = new.force_model
             if new.adapt_reference_dph != old.adapt_reference_dph and self.compensator is not None:
@@ -471,6 +473,7 @@ class Service:
             backoff_max_s=PORT_BACKOFF_MAX_S,
             on_state=self._on_port_state,
             on_open=on_open,
+            silence_s=self.config.port_silence_s,
         )
         if self.web is not None:
             self.web.view.control_address = format_address(*address)  # the bias banner's ctl command

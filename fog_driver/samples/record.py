@@ -27,7 +27,7 @@ from ..errors import DeviceError, OutputFileError
 from ..files.outputs import check_outputs
 from ..files.stamps import utc_now_iso
 from ..protocol import DecoderCounters, IdentityFrame
-from ..transport import PortError, PortEvent, PortReader
+from ..transport import DEFAULT_SILENCE_S, PortError, PortEvent, PortReader
 from ..transport.setup import make_on_open
 from .captures import CaptureWriter, sidecar_path, write_provenance
 from .sources import WireSettings
@@ -73,6 +73,7 @@ def record(
     wait: bool = False,
     wire: Any = None,
     setup: Any = None,
+    silence_s: float | None = DEFAULT_SILENCE_S,
 ) -> RecordResult:
     """Copy bytes from ``url`` into ``out_path`` until ``duration_s`` (host time) passes, ``stop`` is set,
     or (with ``reconnect=False``) the port is lost; a duration or a stop ends on a frame boundary (the module
@@ -87,6 +88,8 @@ def record(
     far the capture got.  ``wire``: what the port sends (``sources.WireSettings``, default protocol v1): its
     decoder counts the frames, and the sidecar records it (``wire_format``, ``wire_settings``).  ``setup``: a
     ``transport.setup.DeviceSetup`` run on every open (its replies are in the capture, as every byte read).
+    ``silence_s``: a network port (``socket://``, ``rfc2217://``) that gives no byte for this long after it has
+    given some is taken as lost (``PortReader``), and reopened unless ``reconnect=False``; None: never.
     """
     wire = wire or WireSettings()
     stop = stop or threading.Event()
@@ -102,6 +105,7 @@ def record(
         on_state=recording.state_changed,
         first_open="wait" if wait else "fail",
         on_open=None if setup is None else make_on_open(setup, on_result=recording.setup_done),
+        silence_s=silence_s,
     )
     chunks = reader.chunks(stop, read_on=recording.bytes_to_frame_boundary, read_on_s=READ_ON_S)
     timer = threading.Timer(duration_s, stop.set) if duration_s is not None else None

@@ -15,12 +15,22 @@ _HANDLER_PACKAGE = "fog_driver.transport"
 if _HANDLER_PACKAGE not in serial.protocol_handler_packages:  # idempotent across re-imports
     serial.protocol_handler_packages.append(_HANDLER_PACKAGE)
 
-from .port import DEFAULT_BAUDRATE, PortError, PortEvent, PortReader, PortSetupError, PortState, open_port  # noqa: E402
+from .port import (  # noqa: E402
+    DEFAULT_BAUDRATE,
+    DEFAULT_SILENCE_S,
+    PortError,
+    PortEvent,
+    PortReader,
+    PortSetupError,
+    PortState,
+    open_port,
+)
 from .protocol_replay import ReplayOptions, parse_replay_url, replay_schedule  # noqa: E402
 from .setup import DeviceSetup, DeviceSetupError, InvalidSetupCommand, SetupResult, make_on_open, run_setup  # noqa: E402
 
 __all__ = [
     "DEFAULT_BAUDRATE",
+    "DEFAULT_SILENCE_S",
     "DeviceSetup",
     "DeviceSetupError",
     "InvalidSetupCommand",

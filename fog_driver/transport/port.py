@@ -10,14 +10,21 @@ hands out raw byte chunks, and when the port disappears (a USB adapter pulled
 out, a replay with ``unplug=1`` at its end) it closes it, reports the loss, waits
 with exponential backoff and opens it again.  Every state change is reported to
 an ``on_state`` callback as a ``PortEvent`` and logged with structlog.
+
+A network port (``socket://``, ``rfc2217://``) can die without a word: a cable pulled between the host and
+the device server, a server losing power, a NAT forgetting the flow leave the connection open and silent.
+``PortReader`` turns TCP keepalive on for it and takes a silence of ``silence_s`` on a connection that has
+delivered bytes as its loss (an instrument streams without pause: at 1 Hz at the slowest the driver reads).
 """
 
 from __future__ import annotations
 
 import contextlib
 import errno
+import math
 import os
 import select
+import socket
 import stat
 import threading
 import time
@@ -38,7 +45,16 @@ except ImportError:  # pragma: no cover - non-POSIX
     _TERMIOS_ERRORS = ()
     _PosixSerial = None
 
-__all__ = ["DEFAULT_BAUDRATE", "PortError", "PortEvent", "PortReader", "PortSetupError", "PortState", "open_port"]
+__all__ = [
+    "DEFAULT_BAUDRATE",
+    "DEFAULT_SILENCE_S",
+    "PortError",
+    "PortEvent",
+    "PortReader",
+    "PortSetupError",
+    "PortState",
+    "open_port",
+]
 
 log = structlog.get_logger("fog_driver.transport")
 
@@ -52,6 +68,59 @@ MAX_READ_BYTES = 64 * 1024
 PORT_ERRORS: tuple[type[BaseException], ...] = (OSError, *_TERMIOS_ERRORS)
 
 PortState = Literal["opening", "open", "lost", "retry_wait", "closed"]
+
+#: How long a network port that has delivered bytes may then give none before its connection is taken as lost
+#: (s).  Five frame periods of the slowest instrument the driver reads: protocol v1 sends an IDENTITY frame a
+#: second whatever its SAMPLE rate, and a KVH or STDBIN device's ``rate_hz`` is at least 1 Hz (KVH's ``=DR``
+#: goes no lower); 1 kHz is the usual rate.
+DEFAULT_SILENCE_S = 5.0
+#: TCP keepalive on a network port: the first probe after this much idle time (s), then one every
+#: ``KEEPALIVE_INTERVAL_S``; ``KEEPALIVE_PROBES`` unanswered ones end the connection (about 11 s of a dead
+#: peer in all, which ``TCP_USER_TIMEOUT`` also bounds for bytes sent and not acknowledged).  It covers what
+#: the silence rule cannot: a connection that has delivered nothing yet (the device server up, the
+#: instrument off), and the server's side of the connection, freed sooner when the daemon's end goes.
+KEEPALIVE_IDLE_S = 5
+KEEPALIVE_INTERVAL_S = 2
+KEEPALIVE_PROBES = 3
+
+
+def network_socket(port: serial.SerialBase) -> socket.socket | None:
+    """The TCP connection under a network port (pyserial's ``socket://`` and ``rfc2217://`` keep it in
+    ``_socket``; it has no public accessor), or None for any other port (a tty, ``loop://``, ``replay://``)."""
+    sock = getattr(port, "_socket", None)
+    return sock if isinstance(sock, socket.socket) and sock.type == socket.SOCK_STREAM else None
+
+
+def enable_keepalive(sock: socket.socket) -> None:
+    """Turn TCP keepalive on with the ``KEEPALIVE_*`` timing, each option where the platform has it (Linux has
+    them all; macOS names the idle time ``TCP_KEEPALIVE``; elsewhere the system's own, slow, timing)."""
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
+    idle_name = "TCP_KEEPIDLE" if hasattr(socket, "TCP_KEEPIDLE") else "TCP_KEEPALIVE"
+    dead_ms = (KEEPALIVE_IDLE_S + KEEPALIVE_INTERVAL_S * KEEPALIVE_PROBES) * 1000
+    for name, value in (
+        (idle_name, KEEPALIVE_IDLE_S),
+        ("TCP_KEEPINTVL", KEEPALIVE_INTERVAL_S),
+        ("TCP_KEEPCNT", KEEPALIVE_PROBES),
+        ("TCP_USER_TIMEOUT", dead_ms),
+    ):
+        option = getattr(socket, name, None)
+        if option is not None:
+            with contextlib.suppress(OSError):  # an option the running kernel lacks: the others still help
+                sock.setsockopt(socket.IPPROTO_TCP, option, value)
+
+
+def silence_text(silence_s: float) -> str:
+    """The reason of a loss by silence, as ``lost`` and ``retry_wait`` report it."""
+    return f"no bytes for {silence_s:g} s: the connection is taken as lost"
+
+
+def check_silence_s(silence_s: float | None, name: str = "silence_s") -> None:
+    """ValueError (naming the setting ``name``) unless ``silence_s`` is None (no silence rule) or a finite number
+    of seconds > 0."""
+    if silence_s is not None and (
+        isinstance(silence_s, bool) or not isinstance(silence_s, int | float) or not 0 < silence_s < math.inf
+    ):
+        raise ValueError(f"{name} must be a number of seconds > 0 (or null: never), got {silence_s!r}")
 
 
 def read_available(port: serial.SerialBase, limit: int = MAX_READ_BYTES) -> bytes:
@@ -187,6 +256,14 @@ class PortReader:
     ``PortError`` under ``reconnect=False`` or ``first_open="fail"`` before any
     open succeeded), and the bytes of the exception's ``raw`` attribute are yielded
     before the report.  The ``"open"`` state is reported after ``on_open`` returns.
+
+    A network port (``socket://``, ``rfc2217://``: ``network_socket``) gets TCP keepalive (``enable_keepalive``)
+    right after it opens, before ``on_open``, and the silence rule: once the connection has delivered a byte,
+    ``silence_s`` without one is its loss (reason ``silence_text``), counted, reported and reopened as any
+    other; a connection that has delivered nothing yet is left to keepalive.  ``silence_s=None``: no silence
+    rule.  A local port (a tty) never gets it: its silence is the instrument's (switched off, its cable out of
+    the adapter), which reopening the tty cannot end, and the kernel already reports an unplugged adapter.
+    ``silence_s`` is read at each read, so it may be changed while the reader runs (a config reload).
     """
 
     def __init__(
@@ -201,6 +278,7 @@ class PortReader:
         on_state: Callable[[PortEvent], None] | None = None,
         first_open: Literal["retry", "fail", "wait"] = "retry",
         on_open: Callable[[serial.SerialBase], bytes] | None = None,
+        silence_s: float | None = DEFAULT_SILENCE_S,
     ) -> None:
         if read_timeout_s <= 0:
             raise ValueError(f"read_timeout_s must be > 0 so a stop is seen between reads, got {read_timeout_s}")
@@ -217,6 +295,8 @@ class PortReader:
             raise ValueError(f"first_open must be 'retry', 'fail' or 'wait', got {first_open!r}")
         self.first_open = first_open
         self.on_open = on_open
+        check_silence_s(silence_s)
+        self.silence_s = silence_s
         self.bytes_read = 0
         self.opens = 0
         self.losses = 0
@@ -249,6 +329,7 @@ class PortReader:
                 delivered = False
                 self._report("opening", attempt=attempt)
                 port: serial.SerialBase | None = None
+                sock: socket.socket | None = None  # the network port's connection (None: a tty, a replay)
                 setup_bytes = b""
                 try:
                     port = open_port(self.url, baudrate=self.baudrate, timeout_s=self.read_timeout_s)
@@ -261,6 +342,10 @@ class PortReader:
                     if not self.reconnect or (self.first_open == "fail" and not self.opens):
                         raise PortError(detail) from exc
                 else:
+                    sock = network_socket(port)
+                    if sock is not None:
+                        with contextlib.suppress(OSError):  # a socket that died already: the first read says so
+                            enable_keepalive(sock)
                     if self.on_open is not None:
                         try:
                             setup_bytes = self.on_open(port)
@@ -287,6 +372,7 @@ class PortReader:
                             delivered = True
                             yield bytes(setup_bytes)
                         read_on_until: float | None = None  # set at the stop, with read_on
+                        last_byte_s = time.monotonic()  # (the silence rule counts from the last byte)
                         while True:
                             limit = MAX_READ_BYTES
                             if stop.is_set():
@@ -305,11 +391,17 @@ class PortReader:
                             except PORT_ERRORS as exc:
                                 detail = str(exc) or type(exc).__name__
                                 break
-                            self.last_activity_monotonic = time.monotonic()
+                            now = self.last_activity_monotonic = time.monotonic()
                             if data:
+                                last_byte_s = now
                                 self.bytes_read += len(data)
                                 delivered = True
                                 yield data
+                            elif delivered and sock is not None:
+                                silence_s = self.silence_s  # (once: a reload may change it meanwhile)
+                                if silence_s is not None and now - last_byte_s >= silence_s:
+                                    detail = silence_text(silence_s)
+                                    break
                     finally:
                         _close_quietly(port)
                     if stop.is_set():  # the far end closed as we were stopping (a demo's simulator): no loss
