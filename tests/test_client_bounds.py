@@ -513,6 +513,8 @@ def token_daemon(peer: Peer, n: int) -> None:
             peer.send({"class": "AUTH", "authorized": True} if authorized else {"class": "ERROR", "message": "no"})
             if authorized:
                 peer.send(DEVICE, {"class": "STATUS", "frames": 3})
+        elif name == "VERSION":  # after ?AUTH, the instrument too (as the daemon's)
+            peer.send({**VERSION, "instrument": {"serial": "FOG-7"}} if authorized else VERSION)
         elif name == "WATCH":
             peer.send({"class": "WATCH", **args})
             if authorized:
@@ -522,7 +524,9 @@ def token_daemon(peer: Peer, n: int) -> None:
 def test_both_clients_authorize_before_watching_a_daemon_that_greets_without_the_instrument(fake):
     daemon = fake(token_daemon)
     with guarded(Client(daemon.address, token=TOKEN), daemon) as c:
-        assert c.version.instrument is None and c.version.release == "test"
+        # the greeting held no instrument; the VERSION asked for after ?AUTH does
+        assert c.version.instrument is not None and c.version.instrument["serial"] == "FOG-7"
+        assert c.version.release == "test"
         assert [a.seq for _, a in zip(range(2), c.angles())] == [1, 2]
         assert c.device.serial == "FOG-7"
 
@@ -535,8 +539,8 @@ def test_both_clients_authorize_before_watching_a_daemon_that_greets_without_the
                     return c.version, seqs
 
     version, seqs = run(main())
-    assert version.instrument is None and seqs == [1, 2]
-    assert [peer.commands for peer in daemon.peers] == [["AUTH", "WATCH"]] * 2
+    assert version.instrument is not None and version.instrument["serial"] == "FOG-7" and seqs == [1, 2]
+    assert [peer.commands for peer in daemon.peers] == [["AUTH", "VERSION", "WATCH"]] * 2
 
 
 def test_a_watch_without_the_token_ends_with_a_hint_not_a_hang(fake):

@@ -867,5 +867,7 @@ def test_without_the_web_extra_the_error_says_what_to_install(monkeypatch):
 
     real = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "plotly" else real(name, *a))
-    with pytest.raises(web_module.WebUnavailable, match=r"needs plotly: pip install 'fog_driver\[web\]'"):
+    with pytest.raises(
+        web_module.WebUnavailable, match=r"needs plotly \(the 'web' extra\); .*pip install -e '\.\[web\]'"
+    ):
         web_module.check_web_extra()

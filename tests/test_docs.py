@@ -15,8 +15,10 @@ What each kind of block gets:
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import csv
+import html as html_lib
 import io
 import json
 import os
@@ -32,6 +34,7 @@ import pytest
 import yaml
 
 from fog_driver.cli import main as cli_main
+from fog_driver.cli.parser import COMMANDS, build_parser
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCUMENTS = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
@@ -244,21 +247,111 @@ def test_the_option_check_catches_what_does_not_exist():
     check_fog_driver_line(["fog-driver", "-v", "ctl", "adapt", "on", "--reference-dph", "0"], "x")
 
 
-def test_every_command_and_option_is_in_the_commands_reference():
-    """The reference names every sub-command and every option the parser has."""
+OPTION_TABLE = "| option | meaning | default |"
+
+
+def option_table(text: str, where: str) -> set[str]:
+    """What the one options table of ``text`` lists: the first word of each backticked span of its first column
+    (`` `--port PORT_OR_URL` `` gives ``--port``, `` `-v`, `--verbose` `` both, `` `CAPTURE.bin` `` a positional)."""
+    lines = text.splitlines()
+    assert lines.count(OPTION_TABLE) == 1, (
+        f"{where}: one options table ({OPTION_TABLE!r}), not {lines.count(OPTION_TABLE)}"
+    )
+    listed: set[str] = set()
+    for line in lines[lines.index(OPTION_TABLE) + 2 :]:
+        if not line.startswith("|"):
+            break
+        for span in re.findall(r"`([^`]+)`", re.split(r"(?<!\\)\|", line)[1]):  # a cell may hold an escaped \|
+            listed.add(span.split()[0].split("=")[0])
+    return listed
+
+
+def parser_options(parser: argparse.ArgumentParser, leave_out: set[str] = frozenset()) -> set[str]:
+    """A parser's option strings and its positionals' metavars (their names in usage; the first word, as the
+    table's: ``ctl``'s ``[HOST:PORT] COMMAND`` is ``[HOST:PORT]``), but ``leave_out``'s."""
+    names: set[str] = set()
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction) or action.dest in leave_out:
+            continue
+        names |= set(action.option_strings) or {(action.metavar or action.dest.upper()).split()[0]}
+    return names
+
+
+def command_sections(text: str) -> dict[str, str]:
+    """commands.md's sections by command: the text under each ``## `fog-driver NAME` `` heading."""
+    parts = re.split(r"^## `fog-driver ([a-z-]+)`\n", text, flags=re.M)
+    return dict(zip(parts[1::2], parts[2::2], strict=True))
+
+
+def test_the_commands_reference_lists_exactly_the_parsers_options():
+    """docs/reference/commands.md: a table of every command at the top, a section per command, and in each section
+    one options table listing exactly the parser's options and positionals (build_parser: an option added to,
+    renamed in or removed from the parser without its row fails here); the options every command takes are in
+    the table before the first command's section."""
     text = (ROOT / "docs" / "reference" / "commands.md").read_text()
-    every_command = set(re.findall(r"(?<![\w-])(--[\w][\w-]*)", help_text(())))  # -v, --log-format, ...
+    parser = build_parser()
+    commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
     intro = text.split("\n## `fog-driver ", 1)[0]
-    for option in every_command - {"--help", "--version"}:
-        assert option in intro, f"{option} (every command's) is not in the introduction of commands.md"
-    missing = []
-    for sub in sorted(subcommands(())):
-        assert f"## `fog-driver {sub}`" in text, sub
-        section = text.split(f"## `fog-driver {sub}`", 1)[1].split("\n## `fog-driver ", 1)[0]
-        for option in set(re.findall(r"(?<![\w-])(--[\w][\w-]*)", help_text((sub,)))) - every_command:
-            if not option.endswith("-") and not re.search(rf"{option}(?![\w-])", section):  # "-": wrapped
-                missing.append(f"fog-driver {sub} {option}")
-    assert not missing, f"not in their command's section of commands.md: {sorted(missing)}"
+    table = re.findall(r"^\| \[`fog-driver ([a-z-]+)`\]\(#fog-driver-\1\) \|", intro, re.M)
+    assert sorted(table) == sorted(COMMANDS) and len(set(table)) == len(table), f"the table of commands: {table}"
+    assert option_table(intro, "commands.md's introduction") == parser_options(parser), "every command's options"
+    sections = command_sections(text)
+    assert sorted(sections) == sorted(commands), sorted(sections)
+    wrong = {}
+    for name, sub in commands.items():
+        listed = option_table(sections[name], f"fog-driver {name}")
+        expected = parser_options(sub, leave_out={"help", "verbose", "log_format"})
+        if listed != expected:
+            wrong[name] = {
+                "not in the table": sorted(expected - listed),
+                "not in the parser": sorted(listed - expected),
+            }
+    assert not wrong, wrong
+
+
+def test_the_options_table_check_sees_a_missing_and_an_extra_option():
+    parser = argparse.ArgumentParser()
+    parser.add_argument("capture", metavar="CAPTURE.bin")
+    parser.add_argument("--out")
+    section = f"{OPTION_TABLE}\n|---|---|---|\n| `CAPTURE.bin` | in | |\n| `--out FILE\\|-` | out | |\n\nmore\n"
+    assert option_table(section, "x") == parser_options(parser, {"help"}) == {"CAPTURE.bin", "--out"}
+    parser.add_argument("--count")
+    assert option_table(section, "x") != parser_options(parser, {"help"})
+    with pytest.raises(AssertionError, match="one options table"):
+        option_table(section + section, "x")
+
+
+def test_a_newcomer_on_the_site_gets_the_readmes_install_and_first_session():
+    """docs/getting-started.md includes the README's install and first session (pymdownx.snippets, one source):
+    rendered as the site renders it, it holds every command the walkthrough runs from the README (so what
+    tests/test_readme_walkthrough.py runs is what the page shows), and a section that is not in the README
+    fails the build instead of leaving a hole."""
+    import markdown
+    from pymdownx.snippets import SnippetMissingError
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import readme_walkthrough
+
+    def rendered(text: str) -> str:
+        page = markdown.markdown(
+            text,
+            extensions=["pymdownx.snippets", "pymdownx.superfences"],
+            extension_configs={"pymdownx.snippets": {"base_path": [str(ROOT)], "check_paths": True}},
+        )
+        return html_lib.unescape(re.sub(r"<[^>]+>", "", page))
+
+    source = (ROOT / "docs" / "getting-started.md").read_text()
+    assert '--8<-- "README.md:install"' in source and '--8<-- "README.md:first-session"' in source
+    page = rendered(source)
+    commands = [c for step in readme_walkthrough.steps((ROOT / "README.md").read_text()) for c in step.commands]
+    assert {"fog-driver run", "fog-driver watch --count 20", "fog-driver ctl status"} <= {
+        c.split("#")[0].strip() for c in commands
+    }
+    missing = [c for c in commands if c not in page]
+    assert not missing, f"README walkthrough commands not on the getting-started page: {missing}"
+    assert "--8<--" not in page and "[start:" not in page  # the markers are gone from what the site shows
+    with pytest.raises(SnippetMissingError):
+        rendered('--8<-- "README.md:no-such-section"')
 
 
 def test_every_config_key_is_in_the_configuration_reference():

@@ -12,6 +12,7 @@ next one (both are published by the same thread, in order).  No sleeps.
 
 from __future__ import annotations
 
+import asyncio
 import hashlib
 import json
 import os
@@ -31,6 +32,7 @@ from test_daemon_hil import GUARD_S, Client, Daemon
 from test_metric_names import check_exposition
 
 from fog_driver.cli import main
+from fog_driver.client import AsyncClient as AsyncStationClient
 from fog_driver.client import Client as StationClient
 from fog_driver.client import ModelInUse
 from fog_driver.daemon.config import DEFAULT_MODEL
@@ -196,7 +198,7 @@ def test_a_station_sees_the_model_file_everywhere_and_the_new_one_after_ctl_relo
         daemon.kill()
 
 
-def test_version_names_the_model_file_only_after_auth_on_a_daemon_with_a_token(tmp_path, capsys):
+def test_version_names_the_model_file_only_after_auth_on_a_daemon_with_a_token_and_a_station_sees_it(tmp_path, capsys):
     """Like the instrument's serial: a client without the token gets the release and protocol only; after
     ``?AUTH`` VERSION names the model (here the shipped default, by its real path)."""
     config = tmp_path / "fog.yaml"
@@ -217,9 +219,18 @@ def test_version_names_the_model_file_only_after_auth_on_a_daemon_with_a_token(t
         assert client.next("VERSION")["model_file"] == shipped
         client.send("?STATUS;")
         assert client.next("STATUS")["model_file"] == shipped
+        # the client libraries ask for VERSION again after ?AUTH: the greeting before it held the release only
         with StationClient(daemon.address, token=TOKEN, reconnect=False) as station:
-            assert station.version.model_file is None  # the greeting came before ?AUTH
+            assert station.version.model_file == ModelInUse(**shipped)
+            assert station.version.instrument is not None
             assert station.status().model_file == ModelInUse(**shipped)
+
+        async def station_async():
+            async with AsyncStationClient(daemon.address, token=TOKEN, reconnect=False) as station:
+                return station.version
+
+        version = asyncio.run(station_async())
+        assert version.model_file == ModelInUse(**shipped) and version.instrument is not None
         assert daemon.terminate() == 0
     finally:
         daemon.kill()

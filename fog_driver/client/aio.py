@@ -166,13 +166,15 @@ class AsyncClient(ClientBase):
                 )
             if self.token is not None:
                 await self._direct("AUTH", {"token": self.token})
+                # the greeting before ?AUTH held the release only: VERSION again, whole (model, instrument)
+                await self._direct("VERSION")
             if self._watch is not None:
                 await self._direct("WATCH", self._watch)
         except BaseException:
             await self._drop()
             raise
 
-    async def _direct(self, name: str, args: dict[str, Any]) -> Message:
+    async def _direct(self, name: str, args: dict[str, Any] | None = None) -> Message:
         """A command while connecting (the reader task is not reading): sent and read here."""
         request, data = self.session.request(name, args)
         await self._send(data)

@@ -87,8 +87,9 @@ class Client(ClientBase):
         self.close()
 
     def connect(self) -> Version:
-        """Connect, read the VERSION greeting, authorize with the token; ``ConnectError`` when the daemon cannot
-        be reached (at once: a first connection is not retried), ``Unauthorized`` when it refuses the token."""
+        """Connect, read the VERSION greeting, authorize with the token (and then ask for VERSION again: the
+        greeting before ``?AUTH`` held the release only); ``ConnectError`` when the daemon cannot be reached (at
+        once: a first connection is not retried), ``Unauthorized`` when it refuses the token."""
         if self._closed.is_set():
             raise ConnectionLost(f"{self.address}: the client was closed")
         self._open()
@@ -123,6 +124,8 @@ class Client(ClientBase):
             self._greeting(hint)
             if self.token is not None:
                 self._command("AUTH", {"token": self.token}, connecting=True)
+                # the greeting before ?AUTH held the release only: VERSION again, whole (model, instrument)
+                self._command("VERSION", connecting=True)
             if self._watch is not None:
                 self._command("WATCH", self._watch, connecting=True)
         except BaseException:

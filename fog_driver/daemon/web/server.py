@@ -71,6 +71,7 @@ from typing import Any
 import structlog
 
 from ...client.ndjson import encode
+from ...extras import EXTRAS, missing_message
 from ..guards import AuthThrottle, LogRateLimiter, Slots, check_token, is_loopback_host, peer_address, token_matches
 from ..limits import (
     DEFAULT_AUTH_BACKOFF_BASE_S,
@@ -135,9 +136,9 @@ class WebUnavailable(RuntimeError):
 
 def check_web_extra() -> None:
     """WebUnavailable naming what is missing, unless aiohttp, plotly and prometheus-client import."""
-    missing = [name for name in ("aiohttp", "plotly", "prometheus_client") if importlib.util.find_spec(name) is None]
+    missing = [name for module, name in EXTRAS["web"] if importlib.util.find_spec(module) is None]
     if missing:
-        raise WebUnavailable(f"the web view needs {', '.join(missing)}: pip install 'fog_driver[web]'")
+        raise WebUnavailable(missing_message("web", "the web view", missing))
 
 
 class _Asset:
