@@ -23,6 +23,7 @@ import contextlib
 import io
 import json
 import math
+import os
 import re
 import shutil
 import tempfile
@@ -60,26 +61,28 @@ KVH_CONFIG = ROOT / "configs" / "kvh-dsp1750.yaml"
 DOCUMENTED_ERRORS = {64, 65, 69, 73, 75, 77, 78}
 USAGE = 2  # argparse
 
-#: The examples per command, and the settings every property here runs with.
-EXAMPLES = 50
+#: The examples per command, and the settings every property here runs with: the same examples at every run
+#: (``FOG_OPTIONS_EXAMPLES=N``: N examples, new ones at each run, to look further).
+EXAMPLES = int(os.environ.get("FOG_OPTIONS_EXAMPLES", "50"))
 PROPERTY = settings(
     max_examples=EXAMPLES,
-    derandomize=True,
+    derandomize="FOG_OPTIONS_EXAMPLES" not in os.environ,
     database=None,
     deadline=None,
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large, HealthCheck.filter_too_much],
 )
 
-#: Frames a drawn simulation or capture may make: about a second of work.
+#: Frames and device seconds a drawn simulation may make, and the wall seconds a drawn real-time run
+#: (``simulate --serve``, ``record``) may take: about a second of work at most.
 FRAME_BUDGET = 20_000
-#: Wall seconds a drawn real-time run (simulate --serve, record) may take.
-WALL_BUDGET_S = 0.4
+DEVICE_S_BUDGET = 6_000.0
+WALL_BUDGET_S = 0.2
 
 
 # --- running a command in-process ---------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, repr=False)
 class Outcome:
     argv: tuple[str, ...]
     status: int
@@ -87,9 +90,10 @@ class Outcome:
     stderr: str
     warnings: tuple[str, ...]
 
-    def __str__(self) -> str:
+    def __repr__(self) -> str:  # what an assertion shows: the whole run
         argv = " ".join(self.argv)
-        return f"fog-driver {argv}\n-> exit {self.status}\nstdout:\n{self.stdout}\nstderr:\n{self.stderr}"
+        text = f"fog-driver {argv}\n-> exit {self.status}\nstdout:\n{self.stdout}\nstderr:\n{self.stderr}"
+        return text + (f"Python warnings: {self.warnings}" if self.warnings else "")
 
 
 def run_main(argv: list[str]) -> Outcome:
@@ -126,7 +130,7 @@ def check_outcome(outcome: Outcome, *, strict: bool = False) -> str:
     assert "Traceback" not in outcome.stderr, outcome
     assert "internal_error" not in outcome.stderr and "internal error" not in outcome.stderr, outcome
     assert outcome.status != 70, outcome
-    assert not outcome.warnings, f"{outcome}\nPython warnings: {outcome.warnings}"
+    assert not outcome.warnings, outcome
     if outcome.status == 0 or (strict and outcome.status == 1):
         assert error_lines(outcome) == [], outcome
         return "ok" if outcome.status == 0 else "problems"
@@ -185,54 +189,13 @@ ODD_WORK_FLOATS = tuple(
 #: Integer texts: zero, negative, the edges of u16, i32, u64, a hundred-digit number, and no integer at all.
 ODD_INTS = ("0", "-1", "-0", "1", "65535", "65536", "2147483648", "18446744073709551616", "1" + "0" * 100)
 ODD_INTS += ("1.5", "1e3", "nan", "", "x", " 7 ", "1_0")
+#: Odd words for a choice option.
+ODD_CHOICES = ("bogus", "", "AUTO", "fog-v1 ")
 
 
 def log_uniform(lo: float, hi: float) -> st.SearchStrategy[float]:
     """Floats from ``lo`` to ``hi`` (both > 0), as many in each decade."""
     return st.floats(math.log10(lo), math.log10(hi)).map(lambda e: min(max(10.0**e, lo), hi))
-
-
-#: How often an option's text is valid, odd (``ODD_FLOATS``) or any float at all: mostly valid, so that
-#: combinations of valid values are tried too.
-_KINDS = st.sampled_from(["valid"] * 6 + ["odd"] * 3 + ["any"])
-
-
-@st.composite
-def float_text(draw, valid: st.SearchStrategy[float], odd: tuple[str, ...] = ODD_FLOATS) -> str:
-    """An option's text: a valid value, an odd one, or any float at all."""
-    kind = draw(_KINDS)
-    if kind == "odd":
-        return draw(st.sampled_from(odd))
-    return repr(draw(valid if kind == "valid" else st.floats()))
-
-
-@st.composite
-def int_text(draw, valid: st.SearchStrategy[int], odd: tuple[str, ...] = ODD_INTS) -> str:
-    kind = draw(_KINDS)
-    if kind == "odd":
-        return draw(st.sampled_from(odd))
-    return str(draw(valid if kind == "valid" else st.integers()))
-
-
-def option(name: str, value: str) -> str:
-    """``--name=value``: a value starting with ``-`` is the option's, not another option."""
-    return f"{name}={value}"
-
-
-@st.composite
-def logging_options(draw) -> list[str]:
-    """``-v`` up to three times and ``--log-format``, before the command or after it."""
-    words = ["-v"] * draw(st.integers(0, 3))
-    if draw(st.booleans()):
-        words.append(option("--log-format", draw(st.sampled_from(["auto", "human", "json", "xml"]))))
-    return words
-
-
-@st.composite
-def with_logging(draw, command: list[str]) -> list[str]:
-    """``command`` with logging options drawn before or after its name."""
-    words = draw(logging_options())
-    return words + command if draw(st.booleans()) else command[:1] + words + command[1:]
 
 
 def as_float(text: str) -> float | None:
@@ -253,43 +216,109 @@ def parsed(argtype, text: str | None):
         return None
 
 
-@st.composite
-def work_float_text(draw, hi: float, lo: float = 1e-3) -> str:
-    """The text of an option that sizes the work: valid up to ``hi`` (what finishes in about a second), odd
-    (``ODD_WORK_FLOATS``: non-positive, tiny, NaN, no number) or any float up to ``hi``."""
-    kind = draw(_KINDS)
-    if kind == "odd":
-        text = draw(st.sampled_from(ODD_WORK_FLOATS))
+def option(name: str, value: str) -> str:
+    """``--name=value``: a value starting with ``-`` is the option's, not another option."""
+    return f"{name}={value}"
+
+
+def options(values: dict[str, object]) -> list[str]:
+    """``--name=value`` for each option given (not None)."""
+    return [option(k, str(v)) for k, v in values.items() if v is not None]
+
+
+class Drawer:
+    """An example's draws.  Each option's text is valid, or odd with the example's ``odds`` (drawn first:
+    none in half the examples, so that combinations of valid values are tried as often as odd ones)."""
+
+    def __init__(self, data) -> None:
+        self.data = data
+        #: how many in twenty of the example's options are odd
+        self.odds = data.draw(st.sampled_from([0, 0, 0, 1, 3, 6]), "odds")
+
+    def __call__(self, strategy: st.SearchStrategy, label: str | None = None):
+        return self.data.draw(strategy, label)
+
+    def odd(self) -> bool:
+        """Whether the next option is odd (a list, not a float below the odds: hypothesis draws the ends of a
+        range far more often than their share, and shrinks to its first element, valid)."""
+        return self.odds > 0 and self(st.sampled_from([False] * (20 - self.odds) + [True] * self.odds))
+
+    def given(self) -> bool:
+        """An optional option: given or not."""
+        return self(st.booleans())
+
+    def float(self, valid: st.SearchStrategy[float], odd: tuple[str, ...] = ODD_FLOATS) -> str:
+        """A float option's text: valid, or odd (one of ``odd``, or any float at all)."""
+        if not self.odd():
+            return repr(self(valid))
+        return self(st.sampled_from(odd)) if self.given() else repr(self(st.floats()))
+
+    def work(self, hi: float, lo: float = 1e-3) -> str:
+        """The text of an option that sizes the work: valid up to ``hi`` (what finishes in about a second),
+        or odd (``ODD_WORK_FLOATS``: non-positive, tiny, NaN, no number; or any float up to ``hi``)."""
+        if not self.odd():
+            return repr(self(log_uniform(min(lo, hi), hi)))
+        if self.given():
+            return repr(self(st.floats(max_value=hi)))
+        text = self(st.sampled_from(ODD_WORK_FLOATS))
         value = as_float(text)
         return repr(hi) if value is not None and value > hi else text  # ("1_0" is 10)
-    if kind == "any":
-        return repr(draw(st.floats(max_value=hi)))
-    return repr(draw(log_uniform(min(lo, hi), hi)))
+
+    def int(self, valid: st.SearchStrategy[int], odd: tuple[str, ...] = ODD_INTS) -> str:
+        if not self.odd():
+            return str(self(valid))
+        return self(st.sampled_from(odd)) if self.given() else str(self(st.integers()))
+
+    def file(self, paths: list[Path], others: list[Path]) -> Path:
+        """One of ``paths``, or (odd) one of ``others``."""
+        return self(st.sampled_from(others if self.odd() else paths))
+
+    def choice(self, choices) -> str | None:
+        """A choice option: not given, one of ``choices``, or (odd) a word that is none of them."""
+        if self.odd():
+            return self(st.sampled_from(ODD_CHOICES))
+        return self(st.sampled_from([None, *choices]))
+
+    def format_for(self, formats: set[str], auto: bool = True) -> str | None:
+        """``--format`` for inputs in ``formats``: not given, ``auto``, or theirs (when they share one); or
+        (odd) any format, or a word that is none."""
+        if self.odd():
+            return self(st.sampled_from([*FORMATS, *ODD_CHOICES]))
+        return self(st.sampled_from([None, *(["auto"] if auto else []), *(formats if len(formats) == 1 else ())]))
+
+    def flags(self, *names: str) -> list[str]:
+        """Each flag, or not."""
+        return [name for name in names if self.given()]
+
+    def logging(self, command: list[str]) -> list[str]:
+        """``command`` with ``-v`` up to three times and ``--log-format`` before or after its name."""
+        words = ["-v"] * self(st.integers(0, 3))
+        if self.given():
+            words.append(option("--log-format", self.choice(["auto", "human", "json"]) or "auto"))
+        return words + command if self.given() else command[:1] + words + command[1:]
+
+    def output(self, here: Path, name: str) -> tuple[Path, list[str]]:
+        """An output path: new, or (odd) already there (a file; a directory for a name without a suffix),
+        with ``--force`` or not."""
+        path = here / name
+        if self.odd():
+            path.write_text("already here\n") if "." in name else path.mkdir()
+        return path, self.flags("--force")
 
 
-def maybe(strategy: st.SearchStrategy) -> st.SearchStrategy:
-    """``strategy``'s value, or None (the option not given)."""
-    return st.one_of(st.none(), strategy)
+def unchanged(path: Path, before: bytes | None) -> bool:
+    """A file that was there is as it was; one that was not is still not there (a refused run writes nothing)."""
+    return path.read_bytes() == before if before is not None else not path.is_file()
 
 
-def options(values: dict[str, str | None]) -> list[str]:
-    """``--name=value`` for each option given."""
-    return [option(k, v) for k, v in values.items() if v is not None]
-
-
-def flags(draw, *names: str) -> list[str]:
-    """Each flag, or not."""
-    return [name for name in names if draw(st.booleans())]
-
-
-def choice_text(choices) -> st.SearchStrategy[str | None]:
-    """A choice option: not given, one of ``choices``, or a word that is none of them."""
-    return st.one_of(st.none(), st.sampled_from([*choices, "bogus", ""]))
+def contents(path: Path) -> bytes | None:
+    return path.read_bytes() if path.is_file() else None
 
 
 # --- the fixtures: the short captures in tests/data, and what is made of them once -----------------------
 
 CAPTURES = ("sim-short", "sim-faults", "synthetic-clean", "synthetic-faults")
+IXBLUE = sorted((DATA / "ixblue").glob("*.log"))[:2]
 
 
 @dataclass(frozen=True)
@@ -301,6 +330,7 @@ class Files:
     other_serial: Path  # a model of another instrument
     positioning: Path  # a simulated positioning run, 5 Hz, with its table log and truth
     kvh: Path  # a simulated KVH capture
+    kvh_model: Path  # fitted on it
     not_a_capture: Path  # a text file
     minute: Path  # a profile of one minute
     bad_instrument: Path  # an instrument file with a negative time constant
@@ -321,6 +351,23 @@ class Files:
     @property
     def table_log(self) -> Path:
         return self.positioning.with_suffix(".table.csv")
+
+    @property
+    def truths(self) -> list[Path]:
+        return [c.with_suffix(".truth.csv") for c in self.captures if c.with_suffix(".truth.csv").is_file()]
+
+    def models_for(self, capture: Path) -> list[Path]:
+        """The models of the capture's instrument (none for the synthetic captures' FOG-SYN-0001)."""
+        if capture == self.kvh:
+            return [self.kvh_model]
+        return [] if capture.name.startswith("synthetic") else [m for m in self.models if m != self.other_serial]
+
+    def format_of(self, capture: Path) -> str:
+        return "kvh-a" if capture == self.kvh else "fog-v1"
+
+    def truth_of(self, capture: Path) -> Path | None:
+        truth = capture.with_suffix(".truth.csv")
+        return truth if truth.is_file() else None
 
     @property
     def others(self) -> list[Path]:
@@ -348,9 +395,10 @@ def files(tmp_path_factory) -> Files:
     other_serial.write_text(yaml.safe_dump(doc, sort_keys=False))
     assert load_model(other_serial).instrument_serial == "FOG-SIM-9999"
     positioning = base / "pos.bin"
-    made(["simulate", "--profile", "positioning", "--rate-hz", "5", "--duration", "900", "--out", str(positioning)])
-    kvh = base / "kvh.bin"
+    made(["simulate", "--profile", "positioning", "--rate-hz", "5", "--out", str(positioning)])
+    kvh, kvh_model = base / "kvh.bin", base / "kvh.yaml"
     made(["simulate", "--profile", "short-test", "--format", "kvh-a", "--rate-hz", "10", "--out", str(kvh)])
+    made(["fit", str(kvh), "--config", str(fit_config), "--accept-weak-fit", "--out", str(kvh_model)])
     not_a_capture = base / "notes.txt"
     not_a_capture.write_text("a text file, not a capture\n")
     minute = base / "minute.yaml"
@@ -359,28 +407,18 @@ def files(tmp_path_factory) -> Files:
     bad_instrument = base / "bad-instrument.yaml"
     bad_instrument.write_text("thermal:\n  tau_housing_s: -480\n")
     return Files(
-        base, fit_config, wesn, polynomial, other_serial, positioning, kvh, not_a_capture, minute, bad_instrument
+        base,
+        fit_config,
+        wesn,
+        polynomial,
+        other_serial,
+        positioning,
+        kvh,
+        kvh_model,
+        not_a_capture,
+        minute,
+        bad_instrument,
     )
-
-
-@st.composite
-def output(draw, here: Path, name: str, force: bool = True) -> tuple[Path, list[str]]:
-    """An output path (new, or already there: a file, or a directory for a name without a suffix) and
-    ``--force`` or not."""
-    path = here / name
-    if draw(st.booleans()):
-        path.write_text("already here\n") if "." in name else path.mkdir()
-    return path, ["--force"] if force and draw(st.booleans()) else []
-
-
-def file_choice(paths: list[Path], others: list[Path]) -> st.SearchStrategy[Path]:
-    """One of ``paths`` mostly, else one of ``others``."""
-    return st.one_of(st.sampled_from(paths), st.sampled_from(paths), st.sampled_from(others))
-
-
-def unchanged(path: Path, before: bytes | None) -> bool:
-    """A file that was there is as it was; one that was not is still not there (a refused run writes nothing)."""
-    return path.read_bytes() == before if before is not None else not path.is_file()
 
 
 # --- plan ----------------------------------------------------------------------------------------------
@@ -399,16 +437,12 @@ PLAN_OPTIONS = {
 }
 
 
-@st.composite
-def plan_limits(draw) -> dict[str, str]:
+def plan_limits(d: Drawer) -> dict[str, str]:
     """The options given, each as text; a narrow range (max just above min) as often as a wide one."""
-    given_ = {}
-    for name, valid in PLAN_OPTIONS.items():
-        if draw(st.booleans()):
-            given_[name] = draw(float_text(valid))
-    if "--min-c" in given_ and draw(st.booleans()) and (low := as_float(given_["--min-c"])) is not None:
-        given_["--max-c"] = repr(low + draw(log_uniform(1e-6, 20)))
-    return given_
+    limits = {name: d.float(valid) for name, valid in PLAN_OPTIONS.items() if d.given()}
+    if "--min-c" in limits and d.given() and (low := as_float(limits["--min-c"])) is not None:
+        limits["--max-c"] = repr(low + d(log_uniform(1e-6, 20)))
+    return limits
 
 
 def check_program(path: Path, limits: dict[str, float]) -> None:
@@ -418,8 +452,7 @@ def check_program(path: Path, limits: dict[str, float]) -> None:
     chamber = load_profile(path).chamber
     lo, hi, rate, minutes = (limits[k] for k in ("--min-c", "--max-c", "--max-rate-c-per-min", "--minutes"))
     tol = 1e-9 * max(1.0, abs(lo), abs(hi))
-    assert chamber.duration_s <= minutes * 60.0 * (1 + 1e-12), (chamber.duration_s, minutes)
-    assert chamber.duration_s > 0
+    assert 0 < chamber.duration_s <= minutes * 60.0 * (1 + 1e-12), (chamber.duration_s, minutes)
     assert lo - tol <= chamber.start_c <= hi + tol
     for span in chamber.spans():
         segment = span.segment
@@ -441,13 +474,12 @@ def check_program(path: Path, limits: dict[str, float]) -> None:
 @given(st.data())
 @PROPERTY
 def test_plan_with_any_limits_writes_a_program_within_them_or_says_why_not(files, data):
+    d = Drawer(data)
     with example_dir(files.base) as here:
-        limits = data.draw(plan_limits(), "limits")
-        name = data.draw(st.sampled_from(["p.yaml", "p.yml", "p.txt"]), "out")
-        out, force = data.draw(output(here, name), "output")
-        before = out.read_bytes() if out.is_file() else None
-        argv = ["plan", option("--out", str(out)), *options(limits), *force]
-        outcome = run_main(data.draw(with_logging(argv), "argv"))
+        limits = plan_limits(d)
+        out, force = d.output(here, d(st.sampled_from(["p.yaml", "p.yaml", "p.yml", "p.txt"])))
+        before = contents(out)
+        outcome = run_main(d.logging(["plan", option("--out", str(out)), *options(limits), *force]))
         if check_outcome(outcome) == "ok":
             values = {k: float(limits.get(k, getattr(DEFAULT_LIMITS, f))) for k, f in PLAN_FIELDS.items()}
             check_program(out, values)
@@ -458,84 +490,72 @@ def test_plan_with_any_limits_writes_a_program_within_them_or_says_why_not(files
 
 # --- simulate ------------------------------------------------------------------------------------------
 
-#: Frames and device seconds a drawn simulation may make, and the wall seconds a drawn real-time run may
-#: take: about a second of work at most.
-FRAME_BUDGET = 20_000
-DEVICE_S_BUDGET = 6_000.0
-WALL_BUDGET_S = 0.2
 
-
-@st.composite
-def fault_spec(draw) -> str | None:
+def fault_spec(d: Drawer) -> str | None:
     """``--faults``: not given, a malformed spec, or some of the five faults with numbers drawn wide (the
     garbage and thermometer rates size the work: drawn valid up to a few a second)."""
-    if draw(st.integers(0, 4)) == 0:
-        return draw(st.sampled_from([None, "none", "", "drop", "drop=", "bogus=1", "drop=0.1,drop=0.2", "x" * 5000]))
+    if d.odd():
+        return d(st.sampled_from(["drop", "drop=", "bogus=1", "drop=0.1,drop=0.2", "disconnect=5", "x" * 5000]))
     items = []
-    for name in draw(st.lists(st.sampled_from(["drop", "flip", "garbage", "thermo", "disconnect"]), unique=True)):
+    for name in d(st.lists(st.sampled_from(["drop", "flip", "garbage", "thermo", "disconnect"]), unique=True)):
         if name in ("drop", "flip"):
-            value = draw(float_text(st.floats(0, 1)))
+            value = d.float(st.floats(0, 1))
         elif name == "garbage":
-            value = draw(work_float_text(10.0))
+            value = d.work(10.0)
         elif name == "thermo":
-            value = draw(work_float_text(1.0))
-            if draw(st.booleans()):
-                value += ":" + draw(float_text(st.floats(0, 100)))
+            value = d.work(1.0) + (":" + d.float(st.floats(0.1, 100)) if d.given() else "")
         else:
-            cuts = draw(st.lists(st.tuples(float_text(st.floats(0, 600)), float_text(st.floats(0, 60))), min_size=1))
-            value = "+".join(f"{t}:{d}" for t, d in cuts[:3])
+            starts = sorted(d(st.lists(st.floats(0, 600), min_size=1, max_size=3, unique=True)))
+            ends = [*starts[1:], math.inf]  # each cut shorter than the time to the next: none overlap
+            value = "+".join(f"{t!r}:{d.float(st.floats(0, min(60, (e - t) / 2)))}" for t, e in zip(starts, ends))
         items.append(f"{name}={value}")
-    return ",".join(items)
+    return ",".join(items) or d(st.sampled_from([None, "none", ""]))
 
 
 def profile_seconds(profile: str) -> float | None:
-    """The length of a profile ``--profile`` names, or None when it names none."""
+    """The length of the profile ``--profile`` names, or None when it names none."""
     try:
         return load_profile(profile).chamber.duration_s
     except Exception:
         return None
 
 
-@st.composite
-def simulate_case(draw, files: Files, here: Path) -> tuple[list[str], dict]:
-    """``simulate``'s argv and what it asks for (the mode, the capture's path, the rate, the duration)."""
-    profiles = [str(files.minute), "short-test", "positioning", "paper", "no-such-profile", str(files.not_a_capture)]
-    profile = draw(maybe(st.sampled_from(profiles)))
-    mode = draw(st.sampled_from(["out"] * 5 + ["pty"] * 2 + ["device", "both", "neither"]))
+def simulate_case(d: Drawer, files: Files, here: Path) -> tuple[list[str], dict]:
+    """``simulate``'s argv and what it asks for (the mode, the capture's path, the rate)."""
+    profiles = [str(files.minute), "short-test", "positioning", None]
+    profile = d.file(profiles, ["no-such-profile", str(files.not_a_capture)])
+    mode = "out" if not d.odd() and d(st.integers(0, 3)) else d(st.sampled_from(["pty", "device", "both", "neither"]))
     values: dict[str, str | None] = {
         "--profile": profile,
-        "--rate-hz": draw(maybe(int_text(st.integers(1, 2000)))),
-        "--seed": draw(maybe(int_text(st.integers(0, 2**64)))),
-        "--format": draw(choice_text(WIRE_FORMATS)),
-        "--faults": draw(fault_spec()),
-        "--instrument": draw(maybe(st.sampled_from([str(INSTRUMENT), str(files.bad_instrument), "missing.yaml"]))),
-        "--instrument-seed": draw(maybe(int_text(st.integers(0, MAX_INSTRUMENT_SEED)))),
+        "--rate-hz": d.int(st.integers(1, 2000)) if d.given() else None,
+        "--seed": d.int(st.integers(0, 2**64)) if d.given() else None,
+        "--format": d.choice(WIRE_FORMATS),
+        "--faults": fault_spec(d),
+        "--instrument": d.file([None, str(INSTRUMENT)], [str(files.bad_instrument), "missing.yaml"]),
+        "--instrument-seed": d.int(st.integers(0, MAX_INSTRUMENT_SEED)) if d.given() else None,
     }
-    out, force = draw(output(here, draw(st.sampled_from(["run.bin", "run.dat"]))))
+    out, force = d.output(here, d.file(["run.bin"], ["run.dat"]))
     if mode in ("out", "both"):
         values["--out"] = str(out)
     serving = mode in ("pty", "device", "both")
     if serving:
-        values["--serve"] = "pty" if mode != "device" else draw(st.sampled_from(["/dev/null", str(here / "no-tty")]))
-        values["--speed"] = draw(maybe(float_text(log_uniform(1e2, 1e7))))
-        values["--baud"] = draw(maybe(int_text(st.sampled_from([9600, 115200, 460800, 921600]))))
-    if mode != "device":  # the link, never the default's /tmp/fog-driver-sim.tty (other runs may serve there)
-        link = draw(st.sampled_from(["sim.tty", "notes.txt", ".", "no-dir/sim.tty"]))
+        values["--serve"] = "pty" if mode != "device" else d(st.sampled_from(["/dev/null", str(here / "no-tty")]))
+        values["--speed"] = d.float(log_uniform(1e3, 1e6)) if d.given() else None
+        values["--baud"] = d.int(st.sampled_from([9600, 115200, 460800, 921600])) if d.given() else None
+    if mode in ("pty", "both") or d.odd():  # the link, never the default /tmp/fog-driver-sim.tty (others' runs)
+        link = d.file(["sim.tty"], ["notes.txt", ".", "no-dir/sim.tty"])
         if link == "notes.txt":
             (here / link).write_text("not a link\n")
-        if mode in ("pty", "both") or draw(st.booleans()):
-            values["--link"] = str(here / link)
+        values["--link"] = str(here / link)
     # the work: the duration, drawn valid up to what the budgets allow at the rate (and the speed) drawn
     rate = 100 if values["--rate-hz"] is None else parsed(rate_hz, values["--rate-hz"])  # None: refused
     speed = parsed(positive_float, values.get("--speed")) or 1.0
     bound = min(FRAME_BUDGET / (rate or 100), DEVICE_S_BUDGET, WALL_BUDGET_S * speed if serving else math.inf)
     length = profile_seconds(profile or "paper")
-    duration = draw(maybe(work_float_text(bound)))
-    if duration is None and length is not None and length > bound:
-        duration = repr(draw(log_uniform(min(1e-3, bound), bound)))
+    duration = d.work(bound) if d.given() or length is None or length > bound else None
     values["--duration"] = duration
     words = ["simulate", *options(values), *(force if mode in ("out", "both") else [])]
-    return words, {"mode": mode, "out": out, "rate": rate, "duration": parsed(positive_float, duration)}
+    return words, {"mode": mode, "out": out, "rate": rate}
 
 
 def check_simulated(outcome: Outcome, case: dict) -> None:
@@ -553,11 +573,12 @@ def check_simulated(outcome: Outcome, case: dict) -> None:
 @given(st.data())
 @PROPERTY
 def test_simulate_with_any_options_writes_a_capture_or_serves_or_says_why_not(files, data):
+    d = Drawer(data)
     with example_dir(files.base) as here:
-        words, case = data.draw(simulate_case(files, here), "case")
+        words, case = simulate_case(d, files, here)
         out = case["out"]
-        before = out.read_bytes() if out.is_file() else None
-        outcome = run_main(data.draw(with_logging(words), "argv"))
+        before = contents(out)
+        outcome = run_main(d.logging(words))
         kind = check_outcome(outcome)
         if kind == "ok" and case["mode"] == "out":
             check_simulated(outcome, case)
@@ -574,20 +595,19 @@ def test_simulate_with_any_options_writes_a_capture_or_serves_or_says_why_not(fi
 FIT_KINDS = ("wesn", "polynomial", "paper", "pso-svr")
 
 
-@st.composite
-def fit_config(draw, files: Files, here: Path) -> str | None:
-    """``--config``: none, the fixtures' (a 30-s warm-up), a missing file, a text file, an unknown key, or a
-    warm-up drawn wide (YAML's own spellings of NaN and infinity included)."""
-    kind = draw(st.sampled_from(["none", "fixture", "fixture", "missing", "text", "unknown", "drawn"]))
-    if kind in ("none", "fixture"):
-        return None if kind == "none" else str(files.fit_config)
-    if kind in ("missing", "text"):
-        return str(here / "missing.yaml" if kind == "missing" else files.not_a_capture)
+def fit_config(d: Drawer, files: Files, here: Path) -> str | None:
+    """``--config``: none, the fixtures' (a 30-s warm-up), or (odd) a missing file, a text file, an unknown
+    key, or a warm-up drawn wide (YAML's own spellings of NaN and infinity included)."""
+    if not d.odd():
+        return str(files.fit_config)
+    kind = d(st.sampled_from(["none", "missing", "text", "unknown", "drawn", "drawn"]))
+    if kind in ("none", "missing", "text"):
+        return {"none": None, "missing": str(here / "missing.yaml"), "text": str(files.not_a_capture)}[kind]
     path = here / "fit.yaml"
     if kind == "unknown":
         path.write_text("warmup: 30\n")
     else:
-        value = draw(st.sampled_from([".nan", ".inf", "-.inf", "1e400", "-5", "0", "30", "1e300", "x", "[]"]))
+        value = d(st.sampled_from([".nan", ".inf", "-.inf", "1e400", "-5", "0", "30", "1e300", "x", "[]"]))
         path.write_text(f"warmup_s: {value}\n")
     return str(path)
 
@@ -595,35 +615,34 @@ def fit_config(draw, files: Files, here: Path) -> str | None:
 @given(st.data())
 @PROPERTY
 def test_fit_with_any_options_writes_a_model_or_says_why_not(files, data):
+    d = Drawer(data)
     with example_dir(files.base) as here:
-        pool = file_choice(files.captures, files.others)
-        captures = data.draw(st.lists(pool, min_size=1, max_size=2), "captures")
-        validate = data.draw(st.lists(pool, max_size=2), "validate")
+        # the captures of one instrument (else another's, a capture too short to fit, or no capture)
+        instrument = d(
+            st.sampled_from([[DATA / "sim-short.bin", DATA / "sim-faults.bin", files.positioning], [files.kvh]])
+        )
+        others = [*files.others, DATA / "synthetic-clean.bin", files.kvh, DATA / "sim-short.bin"]
+        captures = [d.file(instrument, others) for _ in range(d(st.integers(1, 2)))]
+        validate = [d.file(instrument, others) for _ in range(d(st.integers(0, 2)))]
         copy = here / "copy.bin"  # a capture as --out: never overwritten, whatever --force says
         shutil.copyfile(DATA / "sim-short.bin", copy)
-        name = data.draw(st.sampled_from(["model.yaml", "model.yaml", "model", "copy.bin"]), "out")
-        out, force = (
-            (copy, data.draw(st.sampled_from([[], ["--force"]])))
-            if name == "copy.bin"
-            else data.draw(output(here, name))
-        )
-        before = out.read_bytes() if out.is_file() else None
+        out, force = (copy, d.flags("--force")) if d.odd() else d.output(here, d.file(["model.yaml"], ["model"]))
+        before = contents(out)
         values = {
-            "--out": str(out),
-            "--kind": data.draw(choice_text(FIT_KINDS), "kind"),
-            "--config": data.draw(fit_config(files, here), "config"),
-            "--format": data.draw(choice_text(FORMATS), "format"),
+            "--out": out,
+            "--kind": d.choice(FIT_KINDS),
+            "--config": fit_config(d, files, here),
+            "--format": d.format_for({files.format_of(c) for c in [*captures, *validate]}),
         }
         words = ["fit", *map(str, captures), *options(values), *(option("--validate", str(v)) for v in validate)]
-        words += [*force, *flags(data.draw, "--accept-weak-fit")]
-        outcome = run_main(data.draw(with_logging(words), "argv"))
+        words += [*force, *(["--accept-weak-fit"] if not d.odd() else d.flags("--accept-weak-fit"))]
+        outcome = run_main(d.logging(words))
         if check_outcome(outcome) == "ok":
             model = load_model(out)
-            said = re.search(r"^fitted a (\S+) model for (\S+) on (\d+) capture\(s\)", outcome.stdout, re.M)
+            said = re.search(r"^fitted a (\S+) model for (\S*) on (\d+) capture\(s\)", outcome.stdout, re.M)
             assert said and (said[1], said[2]) == (model.kind, model.instrument_serial), outcome
             assert int(said[3]) == len(captures)
-            if values["--kind"] is not None:
-                assert model.kind == values["--kind"]
+            assert model.kind in ((values["--kind"],) if values["--kind"] else ("wesn", "polynomial"))
         else:
             assert unchanged(out, before), outcome
         assert copy.read_bytes() == (DATA / "sim-short.bin").read_bytes()
@@ -633,7 +652,7 @@ def test_fit_with_any_options_writes_a_model_or_says_why_not(files, data):
 
 
 def read_rows(path: Path) -> tuple[list[str], np.ndarray]:
-    """A compensate CSV's header and its numeric columns (t_s, n_samples)."""
+    """A compensate CSV's header and its first two columns (t_s, n_samples)."""
     lines = path.read_text().splitlines()
     rows = [line.split(",") for line in lines[1:]]
     return lines[0].split(","), np.array([[float(r[0]), float(r[1])] for r in rows]).reshape(-1, 2)
@@ -642,31 +661,34 @@ def read_rows(path: Path) -> tuple[list[str], np.ndarray]:
 @given(st.data())
 @PROPERTY
 def test_compensate_with_any_options_writes_rows_or_says_why_not(files, data):
+    d = Drawer(data)
     with example_dir(files.base) as here:
-        capture = data.draw(file_choice(files.captures, files.others), "capture")
-        model = data.draw(file_choice(files.models, files.others), "model")
-        out, force = data.draw(output(here, data.draw(st.sampled_from(["out.csv", "out.csv", "out"]))), "out")
-        before = out.read_bytes() if out.is_file() else None
+        capture = d.file(files.captures, files.others)
+        model = d.file(files.models_for(capture) or files.models, [*files.models, *files.others])
+        out, force = d.output(here, d.file(["out.csv"], ["out"]))
+        before = contents(out)
         state = here / "state.yaml"
-        state_kind = data.draw(st.sampled_from(["none", "none", "new", "text", "directory"]), "adapt state")
+        state_kind = d.file(["none", "new"], ["text", "directory"])
         if state_kind == "text":
             state.write_text("not a state\n")
         elif state_kind == "directory":
             state.mkdir()
-        every = data.draw(maybe(float_text(log_uniform(1e-3, 1e4))), "every")
+        adapting = d(st.sampled_from(["frozen", "frozen", "reference", "table"]))  # (the table: the positioning run's)
+        if capture != files.positioning and adapting == "table" and not d.odd():
+            adapting = "frozen"
         values = {
-            "--model": str(model),
-            "--out": str(out),
-            "--every": every,
-            "--adapt-reference": data.draw(maybe(float_text(st.floats(-1e3, 1e3))), "adapt reference"),
-            "--table-log": data.draw(maybe(file_choice([files.table_log], files.others)), "table log"),
-            "--adapt-state": None if state_kind == "none" else str(state),
-            "--scale-override": data.draw(maybe(float_text(log_uniform(1e-4, 1.0))), "scale override"),
-            "--format": data.draw(choice_text(FORMATS), "format"),
+            "--model": model,
+            "--out": out,
+            "--every": d.float(log_uniform(1e-3, 1e4)) if d.given() else None,
+            "--adapt-reference": d.float(st.floats(-1e3, 1e3)) if adapting == "reference" or d.odd() else None,
+            "--table-log": d.file([files.table_log], files.others) if adapting == "table" or d.odd() else None,
+            "--adapt-state": None if state_kind == "none" else state,
+            "--scale-override": d.float(log_uniform(1e-4, 1.0)) if d.given() else None,
+            "--format": d.format_for({files.format_of(capture)}),
         }
-        values["--table-log"] = None if values["--table-log"] is None else str(values["--table-log"])
-        words = ["compensate", str(capture), *options(values), *force, *flags(data.draw, "--force-model")]
-        outcome = run_main(data.draw(with_logging(words), "argv"))
+        force_model = ["--force-model"] if model not in files.models_for(capture) else d.flags("--force-model")
+        words = ["compensate", str(capture), *options(values), *force, *(force_model if not d.odd() else [])]
+        outcome = run_main(d.logging(words))
         if check_outcome(outcome) == "ok":
             header, rows = read_rows(out)
             assert tuple(header) == ROW_COLUMNS
@@ -683,47 +705,50 @@ def test_compensate_with_any_options_writes_rows_or_says_why_not(files, data):
 # --- evaluate ------------------------------------------------------------------------------------------
 
 
-@st.composite
-def zero_window(draw) -> str | None:
-    """``--zero-window START:END``: not given, two numbers drawn wide, or no window at all."""
-    kind = draw(st.sampled_from(["none", "drawn", "drawn", "odd"]))
-    if kind == "none":
+def zero_window(d: Drawer) -> str | None:
+    """``--zero-window START:END``: not given, two numbers drawn wide, or (odd) no window at all."""
+    if d.odd():
+        return d(st.sampled_from(["", ":", "10", "10:", ":10", "1:2:3", "a:b", "nan:10", "0:inf", "10:5", "5:5"]))
+    if not d.given():
         return None
-    if kind == "odd":
-        return draw(st.sampled_from(["", ":", "10", "10:", ":10", "1:2:3", "a:b", "nan:10", "0:inf", "10:5", "5:5"]))
-    start = draw(float_text(st.floats(0, 400)))
-    return f"{start}:{draw(float_text(st.floats(0, 600)))}"
+    start = d(st.floats(0, 280))
+    return f"{d.float(st.just(start))}:{d.float(st.floats(start + 1, 600))}"
 
 
 @given(st.data())
 @PROPERTY
 def test_evaluate_with_any_options_writes_a_report_or_says_why_not(files, data):
+    d = Drawer(data)
     with example_dir(files.base) as here:
-        capture = data.draw(file_choice(files.captures, files.others), "capture")
-        truths = [c.with_suffix(".truth.csv") for c in files.captures if c.with_suffix(".truth.csv").is_file()]
+        evaluated = [DATA / "sim-short.bin", files.positioning, files.kvh]  # (the others: too short, or moving)
+        capture = d.file(evaluated, [*files.captures, *files.others])
         report = here / "report"
-        kind = data.draw(st.sampled_from(["new", "new", "empty", "full", "file"]), "report folder")
-        if kind == "empty":
+        kind = d.file(["new", "empty"], ["full", "file"])
+        if kind in ("empty", "full"):
             report.mkdir()
-        elif kind == "full":
-            report.mkdir()
+        if kind == "full":
             (report / "notes.txt").write_text("a file of the user's\n")
         elif kind == "file":
             report.write_text("a file, not a folder\n")
         before = sorted(p.name for p in report.iterdir()) if report.is_dir() else None
+        models = files.models_for(capture) or files.models
+        truth, reference = files.truth_of(capture), files.table_log if capture == files.positioning else None
         values = {
-            "--model": str(data.draw(file_choice(files.models, files.others), "model")),
-            "--out": str(report),
-            "--truth": data.draw(maybe(file_choice(truths, files.others)), "truth"),
-            "--reference": data.draw(maybe(file_choice([files.table_log], files.others)), "reference"),
-            "--zero-window": data.draw(zero_window(), "zero window"),
-            "--format": data.draw(choice_text(FORMATS), "format"),
+            "--model": d.file(models, [*files.models, *files.others]),
+            "--out": report,
+            "--truth": d.file([truth], [*files.truths, *files.others]) if d.given() else None,
+            "--reference": d.file([reference], [files.table_log, *files.others]) if d.given() else None,
+            "--zero-window": zero_window(d),
+            "--format": d.format_for({files.format_of(capture)}),
         }
-        values = {k: None if v is None else str(v) for k, v in values.items()}
-        compare = data.draw(st.lists(file_choice(files.models, files.others), max_size=2), "compare")
+        compare = [d.file(models, [*files.models, *files.others]) for _ in range(d(st.integers(0, 2)))]
         words = ["evaluate", str(capture), *options(values), *(option("--compare", str(m)) for m in compare)]
-        words += flags(data.draw, "--json", "--force", "--force-model")
-        outcome = run_main(data.draw(with_logging(words), "argv"))
+        words += d.flags("--json", "--force")
+        if any(m not in files.models_for(capture) for m in [values["--model"], *compare]):
+            words += ["--force-model"] if not d.odd() else []
+        else:
+            words += d.flags("--force-model")
+        outcome = run_main(d.logging(words))
         if check_outcome(outcome) == "ok":
             summary = json.loads((report / "summary.json").read_text())
             assert (report / "report.md").is_file()
@@ -737,16 +762,16 @@ def test_evaluate_with_any_options_writes_a_report_or_says_why_not(files, data):
 
 # --- inspect -------------------------------------------------------------------------------------------
 
-IXBLUE = sorted((DATA / "ixblue").glob("*.log"))
-
 
 @given(st.data())
 @PROPERTY
 def test_inspect_with_any_options_reports_or_says_why_not(files, data):
-    capture = data.draw(file_choice([*files.captures, *IXBLUE[:2]], files.others), "capture")
-    values = {"--format": data.draw(choice_text(["auto", *FORMATS]), "format")}
-    words = ["inspect", str(capture), *options(values), *flags(data.draw, "--json", "--strict")]
-    outcome = run_main(data.draw(with_logging(words), "argv"))
+    d = Drawer(data)
+    capture = d.file([*files.captures, *IXBLUE], files.others)
+    own = {"fog-v1"} if capture in files.captures[:-1] else {"kvh-a"} if capture == files.kvh else {"ixblue-stdbin"}
+    words = ["inspect", str(capture), *options({"--format": d.format_for(own)})]
+    words += d.flags("--json", "--strict")
+    outcome = run_main(d.logging(words))
     if check_outcome(outcome, strict="--strict" in words) in ("ok", "problems"):
         if "--json" in words:
             found = json.loads(outcome.stdout)
@@ -754,7 +779,7 @@ def test_inspect_with_any_options_reports_or_says_why_not(files, data):
         else:
             verdict = re.search(r"^verdict +(.*)$", outcome.stdout, re.M)
             assert verdict, outcome
-            problems = [] if verdict[1] == "clean" else [verdict[1]]
+            problems = [] if verdict[1].startswith("clean") else [verdict[1]]  # (clean; a note on the format)
         if problems is not None and "--strict" in words:
             assert (outcome.status == 1) == bool(problems), outcome
 
@@ -762,57 +787,66 @@ def test_inspect_with_any_options_reports_or_says_why_not(files, data):
 # --- record --------------------------------------------------------------------------------------------
 
 
-@st.composite
-def record_port(draw, files: Files, here: Path) -> tuple[str, Path | None, bool]:
-    """A port: a capture replayed (paced or not, unplugged at its end or idle), a missing capture or
-    device, ``/dev/null``, a malformed URL; with the fixture it replays, and whether it surely ends by
+def record_port(d: Drawer, files: Files, here: Path) -> tuple[str, Path | None, bool]:
+    """A port: a capture replayed (paced or not, unplugged at its end or idle), or (odd) a missing capture
+    or device, ``/dev/null``, a malformed URL; with the capture it replays, and whether it surely ends by
     itself (unplugged at its end, unpaced) rather than going idle."""
-    kind = draw(st.sampled_from(["replay"] * 6 + ["missing-replay", "missing-device", "null", "bad-url"]))
-    if kind == "replay":
-        capture = draw(st.sampled_from([*files.captures[:4], files.kvh]))
-        query = {}
-        if draw(st.booleans()):
-            query["unplug"] = draw(st.sampled_from(["1", "1", "0", "2", ""]))
-        if draw(st.integers(0, 3)) == 0:  # paced (a rate too slow to end: with a --duration, below)
-            query["rate"] = draw(float_text(log_uniform(2e5, 1e7)))
-        url = f"replay://{capture}" + ("?" + "&".join(f"{k}={v}" for k, v in query.items()) if query else "")
-        return url, capture, query.get("unplug") == "1" and "rate" not in query
-    port = {
-        "missing-replay": f"replay://{here / 'missing.bin'}",
-        "missing-device": str(here / "ttyUSB9"),
-        "null": "/dev/null",
-        "bad-url": draw(st.sampled_from(["replay://", "nosuch://x", "replay://x?rate=", "socket://127.0.0.1:0"])),
-    }[kind]
-    return port, None, False
+    if d.odd():
+        return (
+            d(
+                st.sampled_from(
+                    [
+                        f"replay://{here / 'missing.bin'}",
+                        str(here / "ttyUSB9"),
+                        "/dev/null",
+                        "replay://",
+                        "nosuch://x",
+                        f"replay://{DATA / 'sim-short.bin'}?rate=",
+                        f"replay://{DATA / 'sim-short.bin'}?rate=0",
+                        f"replay://{DATA / 'sim-short.bin'}?unplug=2",
+                    ]
+                )
+            ),
+            None,
+            False,
+        )
+    capture = d(st.sampled_from([*files.captures[:4], files.kvh]))
+    query = {"unplug": d(st.sampled_from(["1", "1", "0"]))} if d(st.integers(0, 3)) else {}
+    if not d(st.integers(0, 3)):  # paced (never slower than the budget: a drawn duration ends it)
+        query["rate"] = d.float(log_uniform(2e5, 1e7))
+    url = f"replay://{capture}" + ("?" + "&".join(f"{k}={v}" for k, v in query.items()) if query else "")
+    return url, capture, query.get("unplug") == "1" and "rate" not in query
 
 
 @given(st.data())
 @PROPERTY
 def test_record_with_any_options_records_or_says_why_not(files, data):
+    d = Drawer(data)
     with example_dir(files.base) as here:
-        port, replayed, unplugged = data.draw(record_port(files, here), "port")
-        out, force = data.draw(output(here, data.draw(st.sampled_from(["rec.bin", "rec.bin", "rec.dat"]))), "out")
-        before = out.read_bytes() if out.is_file() else None
-        words = flags(data.draw, "--no-reconnect", "--wait")
+        port, replayed, unplugged = record_port(d, files, here)
+        out, force = d.output(here, d.file(["rec.bin"], ["rec.dat"]))
+        before = contents(out)
+        words = d.flags("--no-reconnect", "--wait")
         ends = unplugged and "--no-reconnect" in words  # else it records until --duration
-        duration = data.draw(maybe(work_float_text(WALL_BUDGET_S)) if ends else work_float_text(WALL_BUDGET_S))
         values = {
-            "--out": str(out),
-            "--duration": duration,
-            "--baud": data.draw(maybe(int_text(st.sampled_from([9600, 115200, 460800, 921600]))), "baud"),
-            "--notes": data.draw(maybe(st.text(max_size=200)), "notes"),
-            "--config": data.draw(maybe(st.sampled_from([str(KVH_CONFIG), str(files.not_a_capture), "missing.yaml"]))),
-            "--format": data.draw(choice_text(FORMATS), "format"),
+            "--out": out,
+            "--duration": d.work(WALL_BUDGET_S) if not ends or d.given() else None,
+            "--baud": d.int(st.sampled_from([9600, 115200, 460800, 921600])) if d.given() else None,
+            "--notes": d(st.text(max_size=200)) if d.given() else None,
+            "--config": d.file(
+                [None], [KVH_CONFIG, files.not_a_capture, here / "missing.yaml"]
+            ),  # (no setup on a replay)
+            "--format": d.format_for({"fog-v1"}, auto=False),  # (another needs --config's device: settings)
         }
-        words = ["record", port, *options(values), *words, *force]
-        outcome = run_main(data.draw(with_logging(words), "argv"))
+        outcome = run_main(d.logging(["record", port, *options(values), *words, *force]))
         if check_outcome(outcome) == "ok":
             said = re.match(r"recorded ([\d,]+) bytes in \S+ s to (.+) \(", outcome.stdout)
             assert said and said[2] == str(out), outcome
             recorded = out.read_bytes()
             assert len(recorded) == int(said[1].replace(",", "")) > 0
-            if replayed is not None:  # the port's bytes, as they came
-                assert replayed.read_bytes().startswith(recorded), outcome
+            if replayed is not None:  # the port's bytes, as they came (from the start again after a reopen)
+                source = replayed.read_bytes()
+                assert (source * (len(recorded) // len(source) + 1)).startswith(recorded), outcome
             assert read_provenance(out) is not None
         else:
             assert unchanged(out, before), outcome

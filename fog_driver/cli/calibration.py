@@ -54,7 +54,7 @@ from ..report.evaluate import (
 )
 from ..samples.captures import _capture_size, read_provenance
 from ..sim.capture import check_truth_matches, read_truth
-from .argtypes import positive_float, time_window
+from .argtypes import finite_float, period_s, positive_float, time_window
 
 #: What ``fog-driver fit`` fits without ``--kind``: the project's best model (docs/explanation/accuracy.md).
 DEFAULT_FIT_KIND = "wesn"
@@ -521,12 +521,12 @@ def add_compensate(p: argparse.ArgumentParser) -> None:
     p.add_argument("capture", metavar="CAPTURE.bin")
     p.add_argument("--model", required=True, metavar="MODEL.yaml")
     p.add_argument("--out", required=True, metavar="OUT.csv")
-    p.add_argument("--every", type=positive_float, default=1.0, metavar="SECONDS", help="row period (default 1 s)")
+    p.add_argument("--every", type=period_s, default=1.0, metavar="SECONDS", help="row period (default 1 s)")
     p.add_argument("--force", action="store_true", help="overwrite OUT.csv and its sidecar OUT.csv.yaml")
     _force_model_option(p)
     p.add_argument(
         "--adapt-reference",
-        type=float,
+        type=finite_float,
         metavar="DPH",
         help="adapt the weights online, against this known input rate while the table is static "
         "(deg/h; 0 for a table at rest: Earth rate and bias are captured first)",
