@@ -29,6 +29,21 @@ def positive_float(text: str) -> float:
     return value
 
 
+F32_TINY = 2.0**-126  #: the smallest normal float32 ...
+F32_MAX = (2.0 - 2.0**-23) * 2.0**127  #: ... and the largest
+
+
+def scale_arcsec_per_count(text: str) -> float:
+    """A scale factor as an IDENTITY frame carries it: a float32, ``F32_TINY`` to ``F32_MAX`` arcsec per count
+    (a larger number is infinite as a float32, a smaller one 0 or subnormal)."""
+    value = positive_float(text)
+    if not F32_TINY <= value <= F32_MAX:
+        raise argparse.ArgumentTypeError(
+            f"a scale factor is a float32, {F32_TINY:.4g} to {F32_MAX:.4g} arcsec per count: {text!r}"
+        )
+    return value
+
+
 MIN_PERIOD_S = 1e-6  #: rows are cut in whole microseconds of device time
 MAX_PERIOD_S = 1e9  #: longer than any capture (31 years)
 

@@ -54,7 +54,7 @@ from ..report.evaluate import (
 )
 from ..samples.captures import _capture_size, read_provenance
 from ..sim.capture import check_truth_matches, read_truth
-from .argtypes import finite_float, period_s, positive_float, time_window
+from .argtypes import finite_float, period_s, scale_arcsec_per_count, time_window
 
 #: What ``fog-driver fit`` fits without ``--kind``: the project's best model (docs/explanation/accuracy.md).
 DEFAULT_FIT_KIND = "wesn"
@@ -545,7 +545,7 @@ def add_compensate(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--scale-override",
-        type=positive_float,
+        type=scale_arcsec_per_count,
         metavar="ARCSEC_PER_COUNT",
         help="use this scale factor whatever the IDENTITY frames say (the daemon's scale_override_arcsec_per_count)",
     )
