@@ -26,16 +26,21 @@ import math
 import os
 import re
 import shutil
+import signal
+import subprocess
+import sys
 import tempfile
+import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
+from subprocess import PIPE
 
 import numpy as np
 import pytest
 import structlog
 import yaml
-from hypothesis import HealthCheck, event, given, settings
+from hypothesis import HealthCheck, currently_in_test_context, event, given, settings
 from hypothesis import strategies as st
 
 from fog_driver.cli import main
@@ -126,7 +131,8 @@ def check_outcome(outcome: Outcome, *, strict: bool = False) -> str:
     """The outcome is one the module docstring allows: "ok", "error" (one line, a documented status) or
     "usage" (argparse's exit 2); with ``strict`` (``inspect --strict``) also "problems": exit 1 with the
     report and no error line."""
-    event(f"{command_in(outcome.argv)}: exit {outcome.status}")
+    if currently_in_test_context():  # (hypothesis' statistics: what the examples ended in)
+        event(f"{command_in(outcome.argv)}: exit {outcome.status}")
     assert "Traceback" not in outcome.stderr, outcome
     assert "internal_error" not in outcome.stderr and "internal error" not in outcome.stderr, outcome
     assert outcome.status != 70, outcome
@@ -850,3 +856,190 @@ def test_record_with_any_options_records_or_says_why_not(files, data):
             assert read_provenance(out) is not None
         else:
             assert unchanged(out, before), outcome
+
+
+# --- what the property tests found: each a one-line refusal now, or a run -------------------------------
+
+
+def refused(argv: list[str], here: Path) -> Outcome:
+    """``argv`` run in ``here``: one line (argparse's: after its usage) and a documented status, no traceback,
+    no warning, nothing written."""
+    outcome = run_main(argv)
+    lines = outcome.stderr.strip().splitlines()
+    if check_outcome(outcome) == "usage":
+        assert lines[-1].startswith(f"fog-driver {argv[0]}: error: argument "), outcome
+    else:
+        assert len(lines) == 1, outcome
+    assert list(here.iterdir()) == [], outcome
+    return outcome
+
+
+@pytest.mark.parametrize(
+    "words, status, needle",
+    [
+        ("simulate --profile short-test --out s.bin --duration=inf", 2, "--duration: must be > 0 and finite"),
+        ("compensate {short} --model {model} --out c.csv --every=inf", 2, "--every: must be > 0 and finite"),
+        ("compensate {short} --model {model} --out c.csv --every=1e-9", 2, "rows are cut in whole microseconds"),
+        ("compensate {short} --model {model} --out c.csv --every=1e300", 2, "to 1e+09 s: '1e300'"),
+        ("compensate {short} --model {model} --out c.csv --adapt-reference=nan", 2, "must be a finite number"),
+        ("compensate {short} --model {model} --out c.csv --scale-override=1e300", 2, "a scale factor is a float32"),
+        ("compensate {short} --model {model} --out c.csv --scale-override=1e-300", 2, "a scale factor is a float32"),
+        ("simulate --serve pty --link l.tty --speed=1e-300", 64, "--speed 1e-300: a stream runs 0.001 to 1e+06"),
+        ("simulate --profile short-test --out s.bin --duration=1e300", 64, "more than the 31 days"),
+        ("simulate --out s.bin --faults=thermo=1:1e300", 64, "a fault lasts > 0 s and at most 31 days"),
+        ("evaluate {short} --model {model} --out report --truth {text}", 65, "not a truth file"),
+    ],
+    ids=[
+        "simulate --duration inf",
+        "compensate --every inf",
+        "compensate --every 1e-9",
+        "compensate --every 1e300",
+        "compensate --adapt-reference nan",
+        "compensate --scale-override 1e300",
+        "compensate --scale-override 1e-300",
+        "simulate --serve pty --speed 1e-300",
+        "simulate --duration 1e300",
+        "simulate --faults thermo=1:1e300",
+        "evaluate --truth a-text-file",
+    ],
+)
+def test_an_option_value_that_crashed_or_ran_for_ever_is_one_line(files, tmp_path, monkeypatch, words, status, needle):
+    """Before: exit 70 (a traceback at a terminal) for inf, 1e300, 1e-300 or a flip probability of 1e-212;
+    ``--duration 1e300`` ran until the disk was full; ``--every 1e-9`` cut every row in 0 us;
+    ``--adapt-reference nan`` and ``--scale-override 1e-300`` ran on NaN or a zero scale; the empty truth
+    file added numpy's warning to the one line."""
+    monkeypatch.chdir(tmp_path)
+    argv = words.format(short=DATA / "sim-short.bin", model=files.wesn, text=files.not_a_capture).split()
+    outcome = refused(argv, tmp_path)
+    assert outcome.status == status and needle in outcome.stderr, outcome
+
+
+def test_simulate_with_a_vanishing_flip_probability_writes_the_fault_free_capture(tmp_path):
+    """``--faults flip=2e-212`` (exit 70 before: 1 - p rounded to 1, a division by zero): no byte of a
+    short run is flipped, so the capture is the one without faults."""
+    run = ["simulate", "--profile", "short-test", "--rate-hz", "10", "--duration", "60"]
+    for name, faults in (("flip.bin", "flip=2e-212"), ("clean.bin", "none")):
+        outcome = run_main([*run, "--faults", faults, "--out", str(tmp_path / name)])
+        assert check_outcome(outcome) == "ok", outcome
+    assert (tmp_path / "flip.bin").read_bytes() == (tmp_path / "clean.bin").read_bytes()
+
+
+def test_compensate_every_microsecond_writes_a_row_per_frame(files, tmp_path):
+    """The shortest period ``--every`` takes (1 us, the rows' grid): each frame its own row."""
+    out = tmp_path / "c.csv"
+    outcome = run_main(["compensate", str(DATA / "sim-short.bin"), "--model", str(files.wesn), "--out", str(out)])
+    assert check_outcome(outcome) == "ok", outcome
+    outcome = run_main([*outcome.argv, "--every", "1e-6", "--force"])
+    assert check_outcome(outcome) == "ok", outcome
+    _, rows = read_rows(out)
+    assert np.all(rows[:, 1] == 1) and len(rows) == inspect_capture(DATA / "sim-short.bin").sample_frames
+
+
+# --- huge work: refused at once, or stopped by Ctrl-C -------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "words, status",
+    [
+        ("plan --out p.yaml --minutes=1e300", 64),
+        ("simulate --profile paper --out s.bin --duration=2.7e6", 64),  # (31 days: 2,678,400 s)
+        ("simulate --serve pty --link l.tty --duration=1e300", 64),
+        ("simulate --profile paper --out s.bin --rate-hz=1e9", 2),
+        ("simulate --profile paper --out s.bin --rate-hz=65536", 2),
+        ("simulate --out s.bin --faults=thermo=1:1e300", 64),
+        ("compensate {short} --model {model} --out c.csv --every=5e-324", 2),
+        ("record {replay} --out r.bin --baud=1e12", 2),
+    ],
+    ids=lambda v: v if isinstance(v, str) else None,
+)
+def test_huge_work_is_refused_at_once_in_one_line(files, tmp_path, monkeypatch, words, status):
+    monkeypatch.chdir(tmp_path)
+    replay = f"replay://{DATA / 'sim-short.bin'}"
+    argv = words.format(short=DATA / "sim-short.bin", model=files.wesn, replay=replay).split()
+    assert refused(argv, tmp_path).status == status
+
+
+def started(argv: list[str], cwd: Path) -> subprocess.Popen:
+    """``fog-driver ARGV`` running, its stdout and stderr piped (text), stdin closed."""
+    command = [sys.executable, "-m", "fog_driver", *argv]
+    return subprocess.Popen(command, cwd=cwd, stdin=subprocess.DEVNULL, stdout=PIPE, stderr=PIPE, text=True)
+
+
+def interrupted(proc: subprocess.Popen, ready) -> tuple[int, str, str]:
+    """SIGINT to ``proc`` once ``ready()`` (the readiness signal: a line read, a file with bytes) says it is
+    under way; its status, stdout and stderr."""
+    try:
+        deadline = time.monotonic() + 120
+        while not ready():
+            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+        proc.send_signal(signal.SIGINT)
+        stdout, stderr = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    return proc.returncode, stdout, stderr
+
+
+def has_bytes(path: Path) -> bool:
+    """Whether ``path`` has bytes yet: the readiness of a command that writes a file (a short wait between
+    looks: the file, not the clock, says when)."""
+    if path.exists() and path.stat().st_size > 0:
+        return True
+    time.sleep(0.01)
+    return False
+
+
+def test_huge_work_simulated_to_a_file_is_stopped_by_ctrl_c_in_one_line(tmp_path):
+    """30 days at 1 kHz (2.6e9 frames, 70 GB): allowed (under the 31 days), and Ctrl-C ends it with the
+    interrupted line alone, exit 130, the sidecar saying what the capture holds."""
+    out = tmp_path / "big.bin"
+    proc = started(
+        ["simulate", "--profile", "paper", "--rate-hz", "1000", "--duration", "2.592e6", "--out", "big.bin"], tmp_path
+    )
+    status, stdout, stderr = interrupted(proc, lambda: has_bytes(out))
+    assert status == 130 and stdout == "", stderr
+    side = read_provenance(out)
+    assert side["status"] == "interrupted" and side["bytes"] == out.stat().st_size
+    held_s = side["frames"] / 1000
+    assert stderr.splitlines() == [
+        f"fog-driver: interrupted: big.bin holds the first {held_s:g} s (status: interrupted in big.bin.yaml)"
+    ]
+
+
+def test_huge_work_served_live_is_stopped_by_ctrl_c_in_one_line(tmp_path):
+    """30 days served in real time: Ctrl-C stops the stream (exit 0, as documented: a stream is stopped so),
+    its summary line after the readiness line, the link removed, nothing on stderr."""
+    link = tmp_path / "sim.tty"
+    argv = [
+        "simulate",
+        "--profile",
+        "paper",
+        "--rate-hz",
+        "10",
+        "--duration",
+        "2.592e6",
+        "--serve",
+        "pty",
+        "--link",
+        str(link),
+    ]
+    proc = started(argv, tmp_path)
+    ready = proc.stdout.readline()  # blocks until the pty is up
+    assert ready.startswith("serving paper at 10 Hz on /dev/pts/") and f"(link {link})" in ready, ready
+    status, stdout, stderr = interrupted(proc, lambda: True)
+    assert status == 0 and stderr == "", stderr
+    assert re.fullmatch(r"stopped after [\d,]+ frames \(.*\), .* disconnects\n", stdout), stdout
+    assert not link.is_symlink()
+
+
+def test_a_recording_of_huge_duration_is_stopped_by_ctrl_c_in_one_line(tmp_path):
+    """``record --duration 1e300`` records until stopped: Ctrl-C ends it cleanly (exit 0, as documented), its
+    one line on stdout, nothing on stderr, and the capture what the port sent."""
+    out = tmp_path / "r.bin"
+    port = f"replay://{DATA / 'sim-short.bin'}?rate=100"
+    proc = started(["record", port, "--out", "r.bin", "--duration", "1e300"], tmp_path)
+    status, stdout, stderr = interrupted(proc, lambda: has_bytes(out))
+    assert status == 0 and "Traceback" not in stderr and error_lines(Outcome((), status, stdout, stderr, ())) == []
+    assert re.fullmatch(r"recorded [\d,]+ bytes in \S+ s to r\.bin \(.*\); provenance in r\.bin\.yaml\n", stdout), (
+        stdout
+    )
+    assert (DATA / "sim-short.bin").read_bytes().startswith(out.read_bytes())
