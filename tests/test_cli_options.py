@@ -76,6 +76,8 @@ PROPERTY = settings(
     deadline=None,
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large, HealthCheck.filter_too_much],
 )
+#: ``evaluate``'s: fewer, as each report it writes draws its plots (0.7 s a report, four in five examples).
+EVALUATE = settings(PROPERTY, max_examples=EXAMPLES * 3 // 5)
 
 #: Frames and device seconds a drawn simulation may make, and the wall seconds a drawn real-time run
 #: (``simulate --serve``, ``record``) may take: about a second of work at most.
@@ -722,7 +724,7 @@ def zero_window(d: Drawer) -> str | None:
 
 
 @given(st.data())
-@PROPERTY
+@EVALUATE
 def test_evaluate_with_any_options_writes_a_report_or_says_why_not(files, data):
     d = Drawer(data)
     with example_dir(files.base) as here:
