@@ -138,6 +138,56 @@ def test_limits_that_cannot_identify_everything_write_the_best_program_and_say_w
     assert "#   - thermal history at 30 min" in text
 
 
+def test_plan_with_a_narrow_range_and_a_slow_ramp_writes_a_program(tmp_path):
+    """The review's finding: 20..25 degC at 0.1 degC/min in 60 min (exit 70, a ZeroDivisionError, before).  A
+    whole cycle takes 100 min of ramps: the program written is a smaller cycle within the limits, and says so."""
+    limits = ["--min-c", "20", "--max-c", "25", "--max-rate-c-per-min", "0.1", "--minutes", "60"]
+    proc = run_cli("plan", *limits, "--out", "w.yaml", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr == ""
+    chamber = load_profile(tmp_path / "w.yaml").chamber
+    assert math.isclose(chamber.duration_s, 3600.0, rel_tol=1e-12)
+    _, temp = air_c(chamber, 0.5)
+    assert temp.min() >= 20.0 and temp.max() <= 25.0
+    # the last resort's cycle: ramps at 0.1 degC/min for 0.6 of the 57 min after the 3-min warm-up, out and back
+    assert temp.max() - temp.min() == pytest.approx(0.6 * (60 - 3) * 0.1 / 2, rel=0.01)
+    ramps = [s for s in chamber.spans() if isinstance(s.segment, Ramp)]
+    assert {s.end_c > s.start_c for s in ramps} == {True, False}
+    assert all(s.segment.rate_c_per_min <= 0.1 for s in ramps)
+    assert "simplified to fit the limits: " in proc.stdout and "the cycle shrunk to" in proc.stdout
+    assert "  - the bias curve's shape: the program spans" in proc.stdout
+
+
+@pytest.mark.parametrize(
+    "low, high", [("20", "40"), ("0", "20")], ids=["room temperature at the bottom", "room temperature at the top"]
+)
+def test_plan_with_room_temperature_at_a_limit_and_little_time_writes_a_program(tmp_path, low, high):
+    """Room temperature (the start) at a limit of the range: one leg out, one back, and (no time for a
+    sinusoid) no short hold to take the spare time (exit 70 before: a ZeroDivisionError)."""
+    proc = run_cli("plan", "--min-c", low, "--max-c", high, "--minutes", "30", "--out", "p.yaml", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    chamber = load_profile(tmp_path / "p.yaml").chamber
+    assert math.isclose(chamber.duration_s, 1800.0, rel_tol=1e-12)
+    _, temp = air_c(chamber, 0.5)
+    assert float(low) <= temp.min() and temp.max() <= float(high)
+    assert temp.max() - temp.min() > 1.0
+
+
+@pytest.mark.parametrize(
+    "args, needles",
+    [
+        (["--minutes", "1e-6"], ["--minutes 1e-06 at --max-rate-c-per-min 3", "no program is possible"]),
+        (["--max-rate-c-per-min", "1e-300"], ["--max-rate-c-per-min 1e-300", "no program is possible"]),
+        (["--min-c", "20", "--max-c", "20.01"], ["--min-c 20 .. --max-c 20.01 span 0.01 degC", "no program"]),
+    ],
+    ids=["a minute's millionth", "a rate of 1e-300", "a range of 0.01 degC"],
+)
+def test_plan_with_limits_that_leave_no_room_to_move_says_why_in_one_line(tmp_path, args, needles):
+    proc = run_cli("plan", "--out", "p.yaml", *args, cwd=tmp_path)
+    assert_one_line_error(proc, 64, "plan: impossible limits: ", *needles)
+    assert list(tmp_path.iterdir()) == []
+
+
 @pytest.mark.parametrize(
     "args, needle",
     [

@@ -7,13 +7,54 @@ import argparse
 import math
 
 
-def positive_float(text: str) -> float:
+def finite_float(text: str) -> float:
+    """Any number but NaN and the infinities (which Python's ``float`` takes)."""
     try:
         value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"must be > 0: {text!r}")
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number: {text!r}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """A finite number > 0 (a duration, a rate, a scale: infinity is none of them)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not value > 0 or not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be > 0 and finite: {text!r}")
+    return value
+
+
+F32_TINY = 2.0**-126  #: the smallest normal float32 ...
+F32_MAX = (2.0 - 2.0**-23) * 2.0**127  #: ... and the largest
+
+
+def scale_arcsec_per_count(text: str) -> float:
+    """A scale factor as an IDENTITY frame carries it: a float32, ``F32_TINY`` to ``F32_MAX`` arcsec per count
+    (a larger number is infinite as a float32, a smaller one 0 or subnormal)."""
+    value = positive_float(text)
+    if not F32_TINY <= value <= F32_MAX:
+        raise argparse.ArgumentTypeError(
+            f"a scale factor is a float32, {F32_TINY:.4g} to {F32_MAX:.4g} arcsec per count: {text!r}"
+        )
+    return value
+
+
+MIN_PERIOD_S = 1e-6  #: rows are cut in whole microseconds of device time
+MAX_PERIOD_S = 1e9  #: longer than any capture (31 years)
+
+
+def period_s(text: str) -> float:
+    """A row period in seconds, ``MIN_PERIOD_S`` to ``MAX_PERIOD_S``."""
+    value = positive_float(text)
+    if not MIN_PERIOD_S <= value <= MAX_PERIOD_S:
+        raise argparse.ArgumentTypeError(
+            f"a period must be {MIN_PERIOD_S:g} s (rows are cut in whole microseconds) to {MAX_PERIOD_S:g} s: {text!r}"
+        )
     return value
 
 

@@ -54,7 +54,7 @@ from ..report.evaluate import (
 )
 from ..samples.captures import _capture_size, read_provenance
 from ..sim.capture import check_truth_matches, read_truth
-from .argtypes import positive_float, time_window
+from .argtypes import finite_float, period_s, scale_arcsec_per_count, time_window
 
 #: What ``fog-driver fit`` fits without ``--kind``: the project's best model (docs/explanation/accuracy.md).
 DEFAULT_FIT_KIND = "wesn"
@@ -534,12 +534,12 @@ def add_compensate(p: argparse.ArgumentParser) -> None:
     p.add_argument("capture", metavar="CAPTURE.bin")
     p.add_argument("--model", required=True, metavar="MODEL.yaml")
     p.add_argument("--out", required=True, metavar="OUT.csv")
-    p.add_argument("--every", type=positive_float, default=1.0, metavar="SECONDS", help="row period (default 1 s)")
+    p.add_argument("--every", type=period_s, default=1.0, metavar="SECONDS", help="row period (default 1 s)")
     p.add_argument("--force", action="store_true", help="overwrite OUT.csv and its sidecar OUT.csv.yaml")
     _force_model_option(p)
     p.add_argument(
         "--adapt-reference",
-        type=float,
+        type=finite_float,
         metavar="DPH",
         help="adapt the weights online, against this known input rate while the table is static "
         "(deg/h; 0 for a table at rest: Earth rate and bias are captured first)",
@@ -558,7 +558,7 @@ def add_compensate(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--scale-override",
-        type=positive_float,
+        type=scale_arcsec_per_count,
         metavar="ARCSEC_PER_COUNT",
         help="use this scale factor whatever the IDENTITY frames say (the daemon's scale_override_arcsec_per_count)",
     )

@@ -22,7 +22,7 @@ from ..sim.capture import simulate_to_file
 from ..sim.faults import parse_fault_spec
 from ..sim.instrument import WIRE_FORMATS, Simulator, load_instrument_config
 from ..sim.population import MAX_INSTRUMENT_SEED, draw_instrument
-from ..sim.profiles import load_profile
+from ..sim.profiles import MAX_PROFILE_S, load_profile
 from ..sim.serve import serve_cli
 from ..transport import DEFAULT_SILENCE_S
 from .argtypes import baud, positive_float, rate_hz, seed
@@ -201,6 +201,10 @@ def _simulator(args: argparse.Namespace):
 def cmd_simulate(args: argparse.Namespace) -> int:
     if (args.out is None) == (args.serve is None):
         raise UsageError("give exactly one of --out CAPTURE.bin (write a capture) or --serve pty|DEVICE (stream live)")
+    if args.duration is not None and args.duration > MAX_PROFILE_S:  # as a profile that long is refused
+        raise UsageError(
+            f"--duration {args.duration:g} s: more than the {MAX_PROFILE_S / 86400:g} days a simulated run may last"
+        )
     sim, faults = _simulator(args)
     if args.serve is not None:
         return serve_cli(sim, args)

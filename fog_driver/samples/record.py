@@ -108,7 +108,9 @@ def record(
         silence_s=silence_s,
     )
     chunks = reader.chunks(stop, read_on=recording.bytes_to_frame_boundary, read_on_s=READ_ON_S)
-    timer = threading.Timer(duration_s, stop.set) if duration_s is not None else None
+    # (a duration past threading.TIMEOUT_MAX, 292 years, never ends a recording: no timer, whose wait would overflow)
+    timed = duration_s is not None and duration_s < threading.TIMEOUT_MAX
+    timer = threading.Timer(duration_s, stop.set) if timed else None
     if timer:
         timer.daemon = True
         timer.start()

@@ -23,6 +23,7 @@ import contextlib
 import filecmp
 import math
 import threading
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -159,7 +160,9 @@ def read_truth(path: str | Path) -> dict[str, np.ndarray]:
     """The truth file as named columns (plain numbers; no pickle, no code); a missing, unreadable or
     malformed file is a one-line ``InputFileError``."""
     try:
-        data = np.loadtxt(path, delimiter=",", comments="#", skiprows=2, ndmin=2)
+        with warnings.catch_warnings():  # a file with no rows: numpy's warning besides the one line below
+            warnings.simplefilter("ignore", UserWarning)
+            data = np.loadtxt(path, delimiter=",", comments="#", skiprows=2, ndmin=2)
     except OSError as exc:
         raise read_error(path, "truth file", exc) from None
     except ValueError as exc:

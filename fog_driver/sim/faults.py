@@ -22,6 +22,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from ..errors import UsageError
+from .profiles import MAX_PROFILE_S
+
+#: The longest a thermometer fault may last: no simulated run lasts longer.
+MAX_THERMO_FAULT_S = MAX_PROFILE_S
 
 
 @dataclass(frozen=True)
@@ -96,8 +100,10 @@ def parse_fault_spec(text: str | None) -> FaultSpec:
             entry = {"thermo_faults_per_s": _number(rate, item)}
             if seconds:
                 entry["thermo_fault_s"] = _number(seconds, item)
-                if entry["thermo_fault_s"] == 0:
-                    raise UsageError(f"fault spec item {item!r}: a fault lasts > 0 s")
+                if not 0 < entry["thermo_fault_s"] <= MAX_THERMO_FAULT_S:
+                    raise UsageError(
+                        f"fault spec item {item!r}: a fault lasts > 0 s and at most {MAX_THERMO_FAULT_S / 86400:g} days"
+                    )
             values[name] = entry
         elif name == "disconnect":
             cuts = []

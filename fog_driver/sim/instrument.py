@@ -531,7 +531,9 @@ class Simulator:
         if p >= 1:
             return 0
         u = float(self._rng_flip.random())
-        return int(math.log(1.0 - u) / math.log(1.0 - p))  # bytes passed before the next flip (geometric)
+        per_byte = math.log(1.0 - p) if 1.0 - p < 1.0 else math.log1p(-p)  # (a p under 1e-16 rounds 1 - p to 1)
+        gap = math.log(1.0 - u) / per_byte  # bytes passed before the next flip (geometric)
+        return int(min(gap, 2.0**62))  # (a p of 1e-300: none in any run)
 
     def encode(self, block: FrameBlock) -> np.ndarray:
         """``block``'s frames in the wire format, one row each (``(n, frame length)`` uint8).

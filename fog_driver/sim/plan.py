@@ -72,6 +72,7 @@ RAMP_SHARE = 0.6  #: a cycle shrunk to fit a short budget ramps for at most this
 RATE_RATIO = 2.0  #: two ramp rates tell a rate term from a lag when at least this far apart
 MIN_FAST_RATE_C_PER_MIN = 1.0  #: the fastest ramp makes a good coil's Shupe term show above the 1-min noise
 SINE_MAX_AMPLITUDE_C = 8.0
+MIN_CYCLE_C = 0.1  #: a cycle spanning less is no program: about what a chamber's control holds a temperature to
 
 
 @dataclass(frozen=True)
@@ -99,6 +100,31 @@ class ChamberLimits:
             )
         if not 0 < self.minutes <= MAX_MINUTES:
             raise ValueError(f"minutes must be in (0, {MAX_MINUTES:g}] (a week), got {self.minutes:g}")
+        span = self.max_c - self.min_c
+        if span < MIN_CYCLE_C:
+            raise ValueError(
+                f"min_c {self.min_c:g} .. max_c {self.max_c:g} span {span:.3g} degC, under the {MIN_CYCLE_C:g} degC "
+                "a chamber holds a temperature to: no program is possible"
+            )
+        reach = _smallest_cycle_c(self)
+        if reach < MIN_CYCLE_C:
+            raise ValueError(
+                f"minutes {self.minutes:g} at max_rate_c_per_min {self.max_rate_c_per_min:g}: a cycle ramping for "
+                f"{RAMP_SHARE:g} of the time spans {reach:.3g} degC, under the {MIN_CYCLE_C:g} degC a chamber holds a "
+                "temperature to: no program is possible (more minutes, or a faster max_rate_c_per_min)"
+            )
+
+
+def _warmup_min(total_min: float) -> float:
+    """The warm-up hold of a run of ``total_min``: ``WARMUP_MIN``, at most ``WARMUP_FRACTION`` of the run."""
+    return min(WARMUP_MIN, WARMUP_FRACTION * total_min)
+
+
+def _smallest_cycle_c(limits: ChamberLimits) -> float:
+    """The span of the design's last resort (``_layouts``): the whole range, or the cycle whose ramps at the
+    fastest rate (out, through, back: twice the span) take ``RAMP_SHARE`` of the time after the warm-up."""
+    ramp_min = RAMP_SHARE * (limits.minutes - _warmup_min(limits.minutes))
+    return min(limits.max_c - limits.min_c, ramp_min * limits.max_rate_c_per_min / 2.0)
 
 
 #: The paper's chamber range and program length, and a chamber's usual fastest ramp.
@@ -189,7 +215,7 @@ def _layout_segments(limits: ChamberLimits, layout: _Layout) -> tuple[float, lis
     start = min(max(ROOM_C, lo), hi)
     top = start + layout.span_scale * (hi - start)
     bottom = start - layout.span_scale * (start - lo)
-    warmup = min(WARMUP_MIN, WARMUP_FRACTION * total)
+    warmup = _warmup_min(total)
     soak = layout.soak_scale * LAG_FRACTION * total
     min_hold = min(MIN_HOLD_MIN, total / 40.0)
     # (kind, value): ("ramp", (rate, target)), ("short", None), ("long", None), ("sine", (amplitude, period))
@@ -235,9 +261,15 @@ def _layout_segments(limits: ChamberLimits, layout: _Layout) -> tuple[float, lis
         elif kind == "sine":
             fixed += value[1]  # type: ignore[index]
     shorts = sum(kind == "short" for kind, _ in plan)
-    hold = (total - fixed) / shorts
-    if hold < min_hold and not (layout.span_scale < 1.0 and hold > 0):
-        return None
+    spare = total - fixed
+    if not shorts:  # only long soaks (room temperature at a limit, no sinusoid): the last takes the spare time
+        if spare < 0:
+            return None
+        hold = 0.0
+    else:
+        hold = spare / shorts
+        if hold < min_hold and not (layout.span_scale < 1.0 and hold > 0):
+            return None
     if hold >= 1.0:  # whole tenths of a minute, the last hold taking what is left
         hold = math.floor(hold * 10.0) / 10.0
     segments: list[Segment] = [Hold(warmup * 60.0)] if warmup > 0 else []
@@ -272,13 +304,9 @@ def _layouts(limits: ChamberLimits, design: Design):
             yield replace(layout, soak_scale=scale), (*said, f"soaks at the extremes cut to {scale:g} of their length")
         layout, said = replace(layout, long_soaks=False), (*said, "no long soaks")
         yield layout, said
-    # the last resort: a smaller cycle whose ramps take RAMP_SHARE of the run
-    total = limits.minutes
-    start = min(max(ROOM_C, limits.min_c), limits.max_c)
-    travel = 2.0 * (limits.max_c - limits.min_c)  # start -> top -> bottom -> start
-    ramp_min = RAMP_SHARE * (total - min(WARMUP_MIN, WARMUP_FRACTION * total))
-    scale = min(1.0, ramp_min * ladder[0] / travel) if travel else 1.0
-    del start
+    # the last resort: a smaller cycle whose ramps take RAMP_SHARE of the run (ChamberLimits refuses limits
+    # that leave it under MIN_CYCLE_C)
+    scale = _smallest_cycle_c(limits) / span
     yield replace(layout, span_scale=scale * 0.999), (*said, f"the cycle shrunk to {100 * scale:.0f} % of the range")
 
 

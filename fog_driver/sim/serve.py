@@ -67,6 +67,10 @@ log = structlog.get_logger("fog_driver.sim")
 DEFAULT_LINK = "/tmp/fog-driver-sim.tty"
 #: How long the end of a stream may wait for the reader to take the last bytes out of the pty.
 DRAIN_TIMEOUT_S = 1.0
+#: The speeds a stream may run at, times real time: slower waits too long for any clock (a speed of 1e-300 puts
+#: the next frame past the platform's time_t), faster is only late writes.
+MIN_SPEED = 1e-3
+MAX_SPEED = 1e6
 #: Bits per byte on a serial line at 8N1 (start + 8 data + stop).
 _BITS_PER_BYTE = 10
 
@@ -121,9 +125,10 @@ def cut_windows(sim: Simulator, first: int, end: int) -> list[tuple[int, int]]:
 
 
 def _check_pace(speed: float, chunk_s: float, duration_s: float | None) -> None:
-    """``serve``'s numbers: each finite and > 0 (``duration_s`` None: to the profile's end)."""
-    if not (math.isfinite(speed) and speed > 0):
-        raise ValueError(f"speed must be a finite number > 0, got {speed!r}")
+    """``serve``'s numbers: each finite and > 0, ``speed`` from ``MIN_SPEED`` to ``MAX_SPEED`` (``duration_s``
+    None: to the profile's end)."""
+    if not MIN_SPEED <= speed <= MAX_SPEED:
+        raise ValueError(f"speed must be {MIN_SPEED:g} to {MAX_SPEED:g}, got {speed!r}")
     if not (math.isfinite(chunk_s) and chunk_s > 0):
         raise ValueError(f"chunk_s must be a finite number > 0, got {chunk_s!r}")
     if duration_s is not None and not (math.isfinite(duration_s) and duration_s > 0):
@@ -622,8 +627,8 @@ def serve_cli(sim: Simulator, args: Any) -> int:
     """
     speed = getattr(args, "speed", None)
     speed = 1.0 if speed is None else float(speed)
-    if not (math.isfinite(speed) and speed > 0):
-        raise UsageError(f"--speed must be a finite number > 0, got {speed!r}")
+    if not MIN_SPEED <= speed <= MAX_SPEED:
+        raise UsageError(f"--speed {speed:g}: a stream runs {MIN_SPEED:g} to {MAX_SPEED:g} times as fast as real time")
     link = getattr(args, "link", None)
     if args.serve != "pty" and link is not None:
         raise UsageError("--link applies to --serve pty only")
