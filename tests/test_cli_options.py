@@ -601,6 +601,9 @@ def test_simulate_with_any_options_writes_a_capture_or_serves_or_says_why_not(fi
 # --- fit -----------------------------------------------------------------------------------------------
 
 FIT_KINDS = ("wesn", "polynomial", "paper", "pso-svr")
+#: ``fit --profile``'s: built-in names and a file's stem; (odd) names that are none
+FIT_PROFILES: list[str | Path] = ["calibration", "paper", "short-test", "positioning"]
+FIT_BAD_PROFILES: list[str | Path] = ["no-such-profile", ""]
 
 
 def fit_config(d: Drawer, files: Files, here: Path) -> str | None:
@@ -642,7 +645,17 @@ def test_fit_with_any_options_writes_a_model_or_says_why_not(files, data):
             "--config": fit_config(d, files, here),
             "--format": d.format_for({files.format_of(c) for c in [*captures, *validate]}),
         }
+        # --profile: none (the sidecars' programs), once for all or once per capture; (odd) a name that is
+        # none, a text file, or one too many
+        profiles = (
+            []
+            if not d.given()
+            else [str(d.file(FIT_PROFILES + [files.minute], FIT_BAD_PROFILES + [files.not_a_capture]))]
+        )
+        if profiles and d.given():
+            profiles += [str(d.file(FIT_PROFILES, FIT_BAD_PROFILES)) for _ in range(len(captures) - 1 + d.odd())]
         words = ["fit", *map(str, captures), *options(values), *(option("--validate", str(v)) for v in validate)]
+        words += [option("--profile", profile) for profile in profiles]
         words += [*force, *(["--accept-weak-fit"] if not d.odd() else d.flags("--accept-weak-fit"))]
         outcome = run_main(d.logging(words))
         if check_outcome(outcome) == "ok":
@@ -840,6 +853,7 @@ def test_record_with_any_options_records_or_says_why_not(files, data):
             "--out": out,
             "--duration": d.work(WALL_BUDGET_S) if not ends or d.given() else None,
             "--baud": d.int(st.sampled_from([9600, 115200, 460800, 921600])) if d.given() else None,
+            "--silence-s": d.float(st.floats(0, 30)) if d.given() else None,  # (a replay is no network port)
             "--notes": d(st.text(max_size=200)) if d.given() else None,
             "--config": d.file(
                 [None], [KVH_CONFIG, files.not_a_capture, here / "missing.yaml"]
