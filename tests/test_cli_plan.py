@@ -251,3 +251,27 @@ def test_simulate_runs_the_written_program(tmp_path):
     # each second's mean over frames at t, t + 0.1, ... t + 0.9 s
     expected = np.mean([chamber.air_temp_c(truth["t_true_s"][whole] + k / 10) for k in range(10)], axis=0)
     np.testing.assert_allclose(truth["air_c"][whole], expected, atol=1e-6)
+
+
+def plan_transcripts() -> list[tuple[str, str, str]]:
+    """Each ``$ fog-driver plan ...`` transcript in the docs: (where, the command's words, what it shows)."""
+    found = []
+    for doc in (ROOT / "docs" / "reference" / "commands.md", ROOT / "docs" / "how-to" / "calibration.md"):
+        lines = doc.read_text().splitlines()
+        for i, line in enumerate(lines):
+            if line.startswith("$ fog-driver plan "):
+                shown = []
+                for rest in lines[i + 1 :]:
+                    if rest.startswith("```"):
+                        break
+                    shown.append(rest + "\n")
+                found.append((f"{doc.name}:{i + 1}", line.removeprefix("$ fog-driver "), "".join(shown)))
+    return found
+
+
+@pytest.mark.parametrize("where, words, shown", plan_transcripts(), ids=lambda v: v if ":" in str(v) else "")
+def test_the_docs_plan_transcripts_are_what_plan_prints(tmp_path, where, words, shown):
+    """``plan`` is deterministic: the docs show its output word for word and number for number."""
+    proc = run_cli(*words.split(), cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout == shown, where
