@@ -61,20 +61,19 @@ def _ready_then_terminated(proc: subprocess.Popen) -> None:
     assert proc.wait(GUARD_S) == 0
 
 
+def _run_at_a_terminal(cwd: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    """``fog-driver run ARGS`` to its end, its stdin a terminal (as a user types it)."""
+    with _terminal() as stdin:
+        return subprocess.run(
+            _run(*args), cwd=cwd, stdin=stdin, capture_output=True, text=True, env=_environment(), timeout=GUARD_S
+        )
+
+
 def test_at_a_terminal_a_missing_port_is_an_error_at_once(tmp_path):
     """Before: at a terminal, ``run --port /dev/ttyUSB9`` (a typo, an adapter not plugged in) printed its
     readiness line and retried for ever, a warning every 2 s; ``record`` says so at once (exit 69)."""
     port = tmp_path / "ttyUSB9"
-    with _terminal() as stdin:
-        proc = subprocess.run(
-            _run("--port", str(port)),
-            cwd=tmp_path,
-            stdin=stdin,
-            capture_output=True,
-            text=True,
-            env=_environment(),
-            timeout=GUARD_S,
-        )
+    proc = _run_at_a_terminal(tmp_path, "--port", str(port))
     assert proc.returncode == 69, proc.stderr
     assert proc.stdout == ""
     assert proc.stderr.splitlines() == [f"fog-driver: error: cannot open {port}: no such device (--wait waits for it)"]
@@ -97,16 +96,7 @@ def test_run_port_dev_null_at_a_terminal_is_an_error_at_once(tmp_path, what, wai
         port.write_bytes(b"\xaa\x55" * 100)
     elif what == "a directory":
         port.mkdir()
-    with _terminal() as stdin:
-        proc = subprocess.run(
-            _run("--port", str(port), *(["--wait"] if wait else [])),
-            cwd=tmp_path,
-            stdin=stdin,
-            capture_output=True,
-            text=True,
-            env=_environment(),
-            timeout=GUARD_S,
-        )
+    proc = _run_at_a_terminal(tmp_path, "--port", str(port), *(["--wait"] if wait else []))
     assert proc.returncode == 69, proc.stderr
     assert proc.stdout == ""
     assert proc.stderr.splitlines() == [f"fog-driver: error: cannot open {port}: {kinds[what]}, not a serial device"]
