@@ -18,6 +18,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import yaml
+
 from .compensation.adapt import ADAPT_STATE_FORMAT, ADAPT_STATE_SCHEMA_VERSION, OnlineReadout, StaticDetector
 from .compensation.model import MODEL_FORMAT, MODEL_SCHEMA_VERSION, ModelFile, model_file_from_doc
 from .compensation.pipeline import Compensator
@@ -86,11 +88,34 @@ def load_model(path: str | Path) -> ModelFile:
         raise InputFileError(f"{where}: the model file is empty")
     if _begins_as_written(text) and not _has_last_line(text):  # ours, cut short: no need to parse it
         raise InputFileError(f"{where}: {truncation(_top_level_keys(text), written_with_last_line=True)}")
-    doc = parse_yaml(text, path, "model file")
+    try:
+        doc = parse_yaml(text, path, "model file", loader=ModelLoader)
+    except AliasInModel as exc:
+        raise InputFileError(f"{where}: corrupt model: {exc}") from None
     if isinstance(doc, dict) and doc.get("format") == MODEL_FORMAT and "provenance" not in doc:
         raise InputFileError(f"{where}: {truncation(list(doc), written_with_last_line=False)}")
     check_tagged(doc, path, "model file", MODEL_FORMAT, MODEL_SCHEMA_VERSION)
     return model_file_from_doc(doc, where)
+
+
+class AliasInModel(Exception):
+    """A YAML anchor or alias in a model file (``ModelLoader``)."""
+
+
+class ModelLoader(yaml.SafeLoader):
+    """The safe loader of model files, which also refuses every YAML anchor (``&a``) and alias (``*a``) as the
+    composer meets it, before anything is built: the fit never writes one, and an alias lets a small file
+    stand for a large document (10,000 candidates in 48 KB)."""
+
+    def compose_node(self, parent: Any, index: Any) -> Any:
+        event = self.peek_event()
+        if isinstance(event, yaml.AliasEvent) or getattr(event, "anchor", None) is not None:
+            what = "alias" if isinstance(event, yaml.AliasEvent) else "anchor"
+            raise AliasInModel(
+                f"a YAML {what} ({'*' if what == 'alias' else '&'}{event.anchor}) at line "
+                f"{event.start_mark.line + 1}: a model file has none (the fit never writes one)"
+            )
+        return super().compose_node(parent, index)
 
 
 #: A top-level key of a model file as ``yaml_text`` writes it: at the start of a line, then a colon.

@@ -45,9 +45,14 @@ def check_channels(model_file: ModelFile, wire, model_name: str = "the model", w
 
 
 def same_model(a: ModelFile, b: ModelFile) -> bool:
-    """The same drift model (kind, normalization and every matrix): its memory and adaptation carry over."""
+    """The same drift model (kind, normalization, every matrix, and the candidate structures beside it): its
+    memory, its candidates' memory and its adaptation (the table law's shape is the candidates') carry over.
+    A model that differs in its candidates alone is another model: it starts at rest, as at switch-on."""
     return (
-        a.kind == b.kind and a.normalizer.to_dict() == b.normalizer.to_dict() and a.model.to_dict() == b.model.to_dict()
+        a.kind == b.kind
+        and a.normalizer.to_dict() == b.normalizer.to_dict()
+        and a.model.to_dict() == b.model.to_dict()
+        and a.sigma_spec.candidates == b.sigma_spec.candidates
     )
 
 

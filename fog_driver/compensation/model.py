@@ -24,6 +24,7 @@ from ..files.kinds import MODEL_FORMAT
 from ..files.stamps import utc_now_iso
 from .domain import InputDomain
 from .features import V1_CHANNELS, FeatureParams, Substitution, input_names, params_to_dict
+from .model_checks import check_model_numbers
 from .models.polynomial import PolynomialModel
 from .models.svr import SvrModel
 from .models.wesn import PaperKind, WesnKind
@@ -174,11 +175,14 @@ def _require(doc: dict, key: str, kind: type | tuple[type, ...], where: str) -> 
 
 def model_file_from_doc(doc: dict[str, Any], where: str) -> ModelFile:
     """Validate a model file's document (its format and schema version already checked) and build the
-    ``ModelFile``; anything corrupt is a one-line ``InputFileError`` naming ``where``."""
+    ``ModelFile``; anything corrupt is a one-line ``InputFileError`` naming ``where``.  Every number is
+    checked first (``model_checks.check_model_numbers``: finite, within bounds), then the counts and shapes
+    as each part is built (at most ``MAX_CANDIDATES`` candidates, ``MAX_NEURONS`` neurons)."""
     kind = _require(doc, "kind", str, where)
     if kind not in MODEL_KINDS:
         raise InputFileError(f"{where}: unknown model kind {kind!r} (known: {', '.join(sorted(MODEL_KINDS))})")
     try:
+        check_model_numbers(doc)
         features = FeatureParams(**_require(doc, "features", dict, where))
         normalizer = Standardizer.from_dict(_require(doc, "normalizer", dict, where))
         channels = doc.get("temperature_channels", list(V1_CHANNELS))

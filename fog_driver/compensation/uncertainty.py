@@ -53,6 +53,10 @@ BOX_SCALE = 1.0
 
 SIGMA_KINDS = ("candidates", "residual")
 
+#: The candidate structures a fit keeps beside the chosen one (``fitting.wesn.spread_candidates``: at most this
+#: many of the tied coils, spread over their lags); a model file with more is refused (``UncertaintySpec``).
+MAX_CANDIDATES = 6
+
 
 @dataclass(frozen=True)
 class UncertaintySpec:
@@ -76,6 +80,10 @@ class UncertaintySpec:
                 raise ValueError(f"uncertainty: {name} must be a finite number >= 0, got {v!r}")
         if self.sigma_kind == "residual" and self.candidates:
             raise ValueError("uncertainty: a 'residual' sigma has no candidates")
+        if len(self.candidates) > MAX_CANDIDATES:
+            raise ValueError(
+                f"uncertainty.candidates: {len(self.candidates)} candidates; a fit writes at most {MAX_CANDIDATES}"
+            )
 
     def to_dict(self) -> dict[str, Any]:
         return {

@@ -114,10 +114,11 @@ def read_yaml_text(path: str | Path, what: str, *, missing_ok: bool = False, hin
         raise InputFileError(f"{path}: cannot read {what}: {exc}") from None
 
 
-def parse_yaml(text: str, path: str | Path, what: str) -> Any:
-    """``yaml.safe_load`` of ``text`` read from ``path``: "PATH: WHAT is not valid YAML at line N" if it is not."""
+def parse_yaml(text: str, path: str | Path, what: str, loader: type[yaml.SafeLoader] = yaml.SafeLoader) -> Any:
+    """``yaml.safe_load`` of ``text`` read from ``path`` (or ``loader``'s, a ``SafeLoader`` that refuses more):
+    "PATH: WHAT is not valid YAML at line N" if it is not."""
     try:
-        return yaml.safe_load(text)
+        return yaml.load(text, Loader=loader)  # noqa: S506 (a SafeLoader: never a Python object)
     except yaml.YAMLError as exc:
         _not_a_capture(Path(path), what)
         mark = getattr(exc, "problem_mark", None)

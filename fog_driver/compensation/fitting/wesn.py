@@ -69,6 +69,7 @@ from ..aflp import AflpFilter, AflpParams
 from ..features import channels_of, ring_of
 from ..models.wesn import WesnConfig, WesnModel, n_regressors
 from ..readout import AdaptiveLaw
+from ..uncertainty import MAX_CANDIDATES
 from .choice import block_squares, paired_margin
 from .data import capture_groups, first_valid_block
 from .program import RATE_TERMS_SLOW, RunProgram, lag_gaps
@@ -460,11 +461,6 @@ def tied_coils(chosen: tuple[float, int], squares: dict) -> list[tuple[float, in
     """The coils that explain the captures as well as ``chosen`` within the noise: those the chosen coil
     does not beat by more than ``choice.SE_MULTIPLE`` standard errors of the paired margin (chosen included)."""
     return sorted(k for k in squares if k == chosen or not paired_margin(squares[k], squares[chosen]).b_better)
-
-
-#: The candidate structures kept beside the chosen one, for ``drift_sigma_dph`` (``uncertainty``): at most
-#: this many of the tied coils, spread over their lags.
-MAX_CANDIDATES = 6
 
 
 def spread_candidates(tied: list[tuple[float, int]], chosen: tuple[float, int]) -> list[tuple[float, int]]:

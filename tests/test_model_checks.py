@@ -1,0 +1,193 @@
+"""A model file is checked whole before it is used: every number finite and within ``MAX_MODEL_NUMBER``, at
+most ``MAX_CANDIDATES`` candidates and ``MAX_NEURONS`` neurons, and no YAML anchor or alias.  The same one
+line at start-up (exit 78), on ``?RELOAD`` (refused, the old model goes on) and offline (exit 65)."""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from fog_driver.compensation.model_checks import MAX_MODEL_NUMBER
+from fog_driver.compensation.uncertainty import MAX_CANDIDATES
+from fog_driver.daemon.config import DEFAULT_MODEL
+from fog_driver.errors import InputFileError
+from fog_driver.modelfiles import load_model
+
+DATA = Path(__file__).resolve().parent / "data"
+
+
+def _doc() -> dict:
+    return yaml.safe_load(DEFAULT_MODEL.read_text())
+
+
+def _write(path: Path, doc: dict) -> Path:
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return path
+
+
+def _refused(path: Path) -> str:
+    with pytest.raises(InputFileError) as info:
+        load_model(path)
+    message = str(info.value)
+    assert "\n" not in message and message.startswith(f"{path}: ")
+    return message
+
+
+def _aliased_candidates(n: int) -> str:
+    """The review's hostile model: ``uncertainty.candidates`` as ``n`` aliases of the first candidate."""
+    doc = _doc()
+    first = doc["uncertainty"]["candidates"][0]
+    doc["uncertainty"]["candidates"] = [first] * n  # safe_dump writes the repeats as aliases of one anchor
+    text = yaml.safe_dump(doc, sort_keys=False)
+    assert "*id001" in text
+    return text
+
+
+def test_a_model_whose_candidates_are_ten_thousand_aliases_is_refused_before_they_are_expanded(tmp_path):
+    path = tmp_path / "aliases.yaml"
+    path.write_text(_aliased_candidates(10_000))
+    message = _refused(path)
+    assert "corrupt model: a YAML anchor (&id001)" in message and "a model file has none" in message
+
+
+@pytest.mark.parametrize(
+    "where, value, needle",
+    [
+        (("model", "weights", 3), float("nan"), "model.weights[3] is not a finite number (nan)"),
+        (("model", "weights", 0), 1e308, "model.weights[0] is 1e308: beyond 1e9"),
+        (("model", "intercept"), float("inf"), "model.intercept is not a finite number (inf)"),
+        (("noise_1min_dph",), -1e300, "noise_1min_dph is -1e300: beyond 1e9"),
+        (("model", "weights", 1), 10**400, "an integer of 401 digits"),
+    ],
+    ids=["nan-weight", "1e308-weight", "inf-intercept", "huge-noise", "400-digit-weight"],
+)
+def test_a_model_with_a_non_finite_or_absurd_number_is_refused_naming_the_key(tmp_path, where, value, needle):
+    doc = _doc()
+    node = doc
+    for key in where[:-1]:
+        node = node[key]
+    if isinstance(node.get(where[-1]) if isinstance(node, dict) else node[where[-1]], list):
+        node[where[-1]][0] = value
+    else:
+        node[where[-1]] = value
+    text = yaml.safe_dump(doc, sort_keys=False)
+    if isinstance(value, int):  # safe_dump writes a big int as digits; the loader reads it back as one
+        assert str(value) in text
+    path = tmp_path / "bad.yaml"
+    path.write_text(text)
+    assert needle in _refused(path)
+
+
+def test_the_shipped_model_and_the_golden_ones_hold_numbers_far_inside_the_bound():
+    """What fits write stays under a thousandth of the bound (so the bound refuses only what no fit wrote)."""
+    for path in [DEFAULT_MODEL, *sorted((DATA / "golden" / "models").glob("*.yaml"))]:
+        load_model(path)
+        biggest = 0.0
+        stack = [v for k, v in yaml.safe_load(path.read_text()).items() if k != "provenance"]
+        while stack:
+            v = stack.pop()
+            if isinstance(v, dict):
+                stack.extend(v.values())
+            elif isinstance(v, list):
+                stack.extend(v)
+            elif isinstance(v, (int, float)) and not isinstance(v, bool):
+                biggest = max(biggest, abs(v))
+        assert biggest < MAX_MODEL_NUMBER / 1000, (path, biggest)
+
+
+def test_a_model_with_more_candidates_than_a_fit_writes_is_refused(tmp_path):
+    doc = _doc()
+    candidates = doc["uncertainty"]["candidates"]
+    assert len(candidates) == MAX_CANDIDATES
+    doc["uncertainty"]["candidates"] = [copy.deepcopy(c) for c in candidates + candidates[:1]]
+    message = _refused(_write(tmp_path / "seven.yaml", doc))
+    assert f"7 candidates; a fit writes at most {MAX_CANDIDATES}" in message
+
+
+def _cli(cwd: Path, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "fog_driver", *args],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        stdin=subprocess.DEVNULL,
+        timeout=120,
+    )
+
+
+def test_run_and_compensate_with_a_nan_weight_are_one_line_78_and_65(tmp_path):
+    """The review: a NaN weight ended ``run`` in exit 70 after its banner; ``compensate`` ran on it."""
+    doc = _doc()
+    doc["model"]["weights"][3] = float("nan")
+    model = _write(tmp_path / "nan.yaml", doc)
+    expected = f"fog-driver: error: {model}: corrupt model: model.weights[3] is not a finite number (nan)\n"
+    start = _cli(
+        tmp_path,
+        "run",
+        "--port",
+        "replay://x.bin",
+        "--model",
+        str(model),
+        "--listen",
+        "127.0.0.1:0",
+        "--capture-dir",
+        "c",
+    )
+    assert (start.returncode, start.stderr, start.stdout) == (78, expected, "")
+    offline = _cli(tmp_path, "compensate", str(DATA / "sim-short.bin"), "--model", str(model), "--out", "o.csv")
+    assert (offline.returncode, offline.stderr) == (65, expected)
+    assert not (tmp_path / "o.csv").exists()
+
+
+@contextlib.contextmanager
+def _watching(tmp_path: Path, model: Path):
+    """A daemon on ``model`` (the shipped default's copy) replaying a capture, and a client that has its first
+    ANGLE; the daemon killed at the end whatever happened."""
+    from test_daemon_hil import Client, Daemon
+
+    model.write_bytes(DEFAULT_MODEL.read_bytes())
+    daemon = Daemon(tmp_path, f"replay://{DATA / 'sim-short.bin'}?rate=100", "--model", str(model))
+    try:
+        client = Client(daemon.address)
+        client.send('?WATCH={"enable":true};')
+        client.next("ANGLE")
+        yield daemon, client
+    finally:
+        daemon.kill()
+
+
+def test_a_reload_of_the_alias_model_is_refused_and_the_angle_goes_on(tmp_path):
+    model = tmp_path / "m.yaml"
+    with _watching(tmp_path, model) as (daemon, client):
+        model.write_text(_aliased_candidates(10_000))
+        client.send("?RELOAD;")
+        assert "a YAML anchor (&id001)" in client.next("ERROR")["message"]
+        before = client.next("ANGLE")["t_s"]
+        assert client.next("ANGLE")["t_s"] > before  # the old model publishes on
+        assert daemon.terminate() == 0
+
+
+@pytest.mark.parametrize("kept", [5, 0])
+def test_a_reload_of_a_model_that_differs_only_in_its_candidates_is_accepted(tmp_path, kept):
+    """The review's finding 11: 5 (or 0) candidates instead of 6 was refused ("uncertainty state needs 5
+    candidate states"); it is another model now, started at rest, and reloads."""
+    model = tmp_path / "m.yaml"
+    with _watching(tmp_path, model) as (daemon, client):
+        doc = _doc()
+        doc["uncertainty"]["candidates"] = doc["uncertainty"]["candidates"][:kept]
+        if not kept:
+            doc["uncertainty"]["sigma_kind"] = "residual"
+        _write(model, doc)
+        assert len(load_model(model).sigma_spec.candidates) == kept
+        client.send("?RELOAD;")
+        answer = client.next()
+        while answer["class"] not in ("RELOAD", "ERROR"):
+            answer = client.next()
+        assert answer["class"] == "RELOAD", answer
+        assert daemon.terminate() == 0
