@@ -64,8 +64,9 @@ def test_a_model_whose_candidates_are_ten_thousand_aliases_is_refused_before_the
         (("model", "intercept"), float("inf"), "model.intercept is not a finite number (inf)"),
         (("noise_1min_dph",), -1e300, "noise_1min_dph is -1e300: beyond 1e9"),
         (("model", "weights", 1), 10**400, "an integer of 401 digits"),
+        (("model", "reservoir", "n_neurons"), 1_000_000, "model.reservoir.n_neurons: 1000000 neurons; a fit makes"),
     ],
-    ids=["nan-weight", "1e308-weight", "inf-intercept", "huge-noise", "400-digit-weight"],
+    ids=["nan-weight", "1e308-weight", "inf-intercept", "huge-noise", "400-digit-weight", "a-million-neurons"],
 )
 def test_a_model_with_a_non_finite_or_absurd_number_is_refused_naming_the_key(tmp_path, where, value, needle):
     doc = _doc()

@@ -10,14 +10,17 @@ whose regressor is small), the golden models' weights stay under 300, their inte
 the inputs' means, scales and fit box (degC, degC/min) under 100, the estimate's bound under 4 deg/h,
 time constants of minutes to hours (leaks 1e-4 to 1e-1 per s) and seeds single digits.  A number beyond
 1e9 is a corrupt or hostile file, not a fit.  The counts are bounded where the fit bounds them, each by
-the fit's own constant: at most ``uncertainty.MAX_CANDIDATES`` candidates, at most
-``reservoir.MAX_NEURONS`` neurons; every array's shape is checked against the model's as it is built.
+the fit's own constant: at most ``uncertainty.MAX_CANDIDATES`` candidates (``UncertaintySpec``), at most
+``reservoir.MAX_NEURONS`` neurons in any reservoir (here: every ``n_neurons``); every array's shape is checked
+against the model's as it is built.
 """
 
 from __future__ import annotations
 
 import math
 from typing import Any
+
+from .reservoir import MAX_NEURONS
 
 #: The largest magnitude of any number in a model file outside ``provenance`` (module docstring).
 MAX_MODEL_NUMBER = 1e9
@@ -29,7 +32,8 @@ UNCHECKED_KEYS = frozenset({"provenance"})
 def check_model_numbers(doc: dict[str, Any]) -> None:
     """``ValueError`` naming the first number of ``doc`` (a model file's document) outside
     ``UNCHECKED_KEYS`` that is not finite ("model.weights[3] is not a finite number (nan)") or whose
-    magnitude exceeds ``MAX_MODEL_NUMBER``; booleans are not numbers here (their keys check them)."""
+    magnitude exceeds ``MAX_MODEL_NUMBER``, or any ``n_neurons`` over ``MAX_NEURONS``; booleans are not numbers
+    here (their keys check them)."""
     for key, value in doc.items():
         if key not in UNCHECKED_KEYS:
             _check(value, str(key))
@@ -49,6 +53,8 @@ def _check(value: Any, where: str) -> None:
             raise ValueError(f"{where} is not a finite number ({value!r})")
         elif isinstance(value, (int, float)) and abs(value) > MAX_MODEL_NUMBER:
             raise ValueError(f"{where} is {_shown(value)}: beyond {_shown(MAX_MODEL_NUMBER)}, more than any fit writes")
+        elif where.endswith(".n_neurons") and isinstance(value, int) and value > MAX_NEURONS:
+            raise ValueError(f"{where}: {value} neurons; a fit makes at most {MAX_NEURONS}")
 
 
 def _shown(value: float) -> str:

@@ -158,7 +158,7 @@ def _range(name: str, value: Any, positive: bool = False) -> tuple[float, float]
 
 
 #: The largest reservoir a fit makes: the paper's 20 neurons (``wesn.PAPER_DEFAULTS``; the ring form has at most
-#: 1 + 3 history + 2 coil stages).  A model file with more is refused (``ReservoirParams``).
+#: 1 + 3 history + 2 coil stages).  A model file with more is refused (``model_checks.check_model_counts``).
 MAX_NEURONS = 20
 
 
@@ -166,7 +166,7 @@ MAX_NEURONS = 20
 class ReservoirParams:
     """How to build a reservoir (validated; ``ValueError`` when out of range).
 
-    * ``n_neurons`` (the paper: 20, at most ``MAX_NEURONS``), ``n_inputs`` (8: three temperatures, their
+    * ``n_neurons`` (the paper: 20; a model file at most ``MAX_NEURONS``), ``n_inputs`` (8: three temperatures, their
       rates, two gradients).
     * ``sample_time_s``: Ts, the model rate's sample time (1 s in the pipeline).
     * ``leak_per_s``: leak = 1 - a, one value for all neurons (the paper) or a tuple, one per neuron;
@@ -212,8 +212,6 @@ class ReservoirParams:
         for name in ("n_neurons", "n_inputs"):
             if not _is_int(getattr(self, name)) or getattr(self, name) < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {getattr(self, name)!r}")
-        if self.n_neurons > MAX_NEURONS:
-            raise ValueError(f"n_neurons: {self.n_neurons} neurons; a fit makes at most {MAX_NEURONS}")
         if not _is_real(self.sample_time_s) or not self.sample_time_s > 0:
             raise ValueError(f"sample_time_s must be finite and > 0, got {self.sample_time_s!r}")
         leak = self.leak_per_s

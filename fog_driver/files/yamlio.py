@@ -118,7 +118,13 @@ def parse_yaml(text: str, path: str | Path, what: str, loader: type[yaml.SafeLoa
     """``yaml.safe_load`` of ``text`` read from ``path`` (or ``loader``'s, a ``SafeLoader`` that refuses more):
     "PATH: WHAT is not valid YAML at line N" if it is not."""
     try:
-        return yaml.load(text, Loader=loader)  # noqa: S506 (a SafeLoader: never a Python object)
+        if not issubclass(loader, yaml.SafeLoader):  # (safe_load's own steps, with a stricter SafeLoader)
+            raise TypeError(f"{loader!r} is no SafeLoader")
+        parser = loader(text)
+        try:
+            return parser.get_single_data()
+        finally:
+            parser.dispose()
     except yaml.YAMLError as exc:
         _not_a_capture(Path(path), what)
         mark = getattr(exc, "problem_mark", None)
