@@ -192,3 +192,20 @@ def test_a_reload_of_a_model_that_differs_only_in_its_candidates_is_accepted(tmp
             answer = client.next()
         assert answer["class"] == "RELOAD", answer
         assert daemon.terminate() == 0
+
+
+def test_a_model_or_a_config_with_an_integer_of_5000_digits_is_one_line(tmp_path):
+    """Python reads no integer of over 4,300 digits from text: that was exit 70 for every YAML file."""
+    text = DEFAULT_MODEL.read_text()
+    weights = "weights: ["
+    assert weights in text
+    model = tmp_path / "digits.yaml"
+    model.write_text(text.replace(weights, weights + "1" * 5000 + ", ", 1))
+    assert _refused(model) == f"{model}: model file holds an integer of over 4,300 digits"
+    config = tmp_path / "fog.yaml"
+    config.write_text("status_every_s: " + "1" * 5000 + "\n")
+    start = _cli(tmp_path, "run", "--config", str(config), "--port", "replay://x.bin")
+    assert start.returncode == 78, start.stderr
+    assert start.stderr.splitlines() == [
+        f"fog-driver: error: {config}: config file holds an integer of over 4,300 digits"
+    ]

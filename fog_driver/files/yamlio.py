@@ -116,7 +116,7 @@ def read_yaml_text(path: str | Path, what: str, *, missing_ok: bool = False, hin
 
 def parse_yaml(text: str, path: str | Path, what: str, loader: type[yaml.SafeLoader] = yaml.SafeLoader) -> Any:
     """``yaml.safe_load`` of ``text`` read from ``path`` (or ``loader``'s, a ``SafeLoader`` that refuses more):
-    "PATH: WHAT is not valid YAML at line N" if it is not."""
+    "PATH: WHAT is not valid YAML at line N" if it is not, and one line for an integer too long to read."""
     try:
         if not issubclass(loader, yaml.SafeLoader):  # (safe_load's own steps, with a stricter SafeLoader)
             raise TypeError(f"{loader!r} is no SafeLoader")
@@ -130,6 +130,10 @@ def parse_yaml(text: str, path: str | Path, what: str, loader: type[yaml.SafeLoa
         mark = getattr(exc, "problem_mark", None)
         at = f" at line {mark.line + 1}" if mark is not None else ""
         raise InputFileError(f"{path}: {what} is not valid YAML{at}") from None
+    except ValueError as exc:  # an integer of over 4,300 digits (Python's int-from-text limit): no number of ours
+        if "integer string conversion" not in str(exc):
+            raise
+        raise InputFileError(f"{path}: {what} holds an integer of over 4,300 digits") from None
 
 
 def _not_a_capture(path: Path, what: str) -> None:
