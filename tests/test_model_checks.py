@@ -6,12 +6,12 @@ from __future__ import annotations
 
 import contextlib
 import copy
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import yaml
+from test_cli import run_cli
+from test_model_truncated import assert_start_up_and_offline_refuse
 
 from fog_driver.compensation.model_checks import MAX_MODEL_NUMBER
 from fog_driver.compensation.uncertainty import MAX_CANDIDATES
@@ -111,39 +111,13 @@ def test_a_model_with_more_candidates_than_a_fit_writes_is_refused(tmp_path):
     assert f"7 candidates; a fit writes at most {MAX_CANDIDATES}" in message
 
 
-def _cli(cwd: Path, *args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "fog_driver", *args],
-        cwd=cwd,
-        capture_output=True,
-        text=True,
-        stdin=subprocess.DEVNULL,
-        timeout=120,
-    )
-
-
 def test_run_and_compensate_with_a_nan_weight_are_one_line_78_and_65(tmp_path):
     """The review: a NaN weight ended ``run`` in exit 70 after its banner; ``compensate`` ran on it."""
     doc = _doc()
     doc["model"]["weights"][3] = float("nan")
     model = _write(tmp_path / "nan.yaml", doc)
     expected = f"fog-driver: error: {model}: corrupt model: model.weights[3] is not a finite number (nan)\n"
-    start = _cli(
-        tmp_path,
-        "run",
-        "--port",
-        "replay://x.bin",
-        "--model",
-        str(model),
-        "--listen",
-        "127.0.0.1:0",
-        "--capture-dir",
-        "c",
-    )
-    assert (start.returncode, start.stderr, start.stdout) == (78, expected, "")
-    offline = _cli(tmp_path, "compensate", str(DATA / "sim-short.bin"), "--model", str(model), "--out", "o.csv")
-    assert (offline.returncode, offline.stderr) == (65, expected)
-    assert not (tmp_path / "o.csv").exists()
+    assert_start_up_and_offline_refuse(model, tmp_path, expected)
 
 
 @contextlib.contextmanager
@@ -204,7 +178,7 @@ def test_a_model_or_a_config_with_an_integer_of_5000_digits_is_one_line(tmp_path
     assert _refused(model) == f"{model}: model file holds an integer of over 4,300 digits"
     config = tmp_path / "fog.yaml"
     config.write_text("status_every_s: " + "1" * 5000 + "\n")
-    start = _cli(tmp_path, "run", "--config", str(config), "--port", "replay://x.bin")
+    start = run_cli("run", "--config", str(config), "--port", "replay://x.bin", cwd=tmp_path)
     assert start.returncode == 78, start.stderr
     assert start.stderr.splitlines() == [
         f"fog-driver: error: {config}: config file holds an integer of over 4,300 digits"

@@ -5,12 +5,11 @@ line at the daemon's start-up, in ``ctl reload`` (``?RELOAD``) and in ``compensa
 from __future__ import annotations
 
 import re
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import yaml
+from test_cli import run_cli
 
 from fog_driver.daemon.config import DEFAULT_MODEL
 from fog_driver.errors import InputFileError
@@ -113,19 +112,24 @@ def test_a_truncated_model_is_the_same_line_at_start_up_in_ctl_reload_and_in_com
     finally:
         daemon.kill()
 
-    def cli(*args: str) -> subprocess.CompletedProcess:
-        return subprocess.run(
-            [sys.executable, "-m", "fog_driver", *args],
-            cwd=tmp_path,
-            capture_output=True,
-            text=True,
-            stdin=subprocess.DEVNULL,
-            timeout=120,
-        )
+    assert_start_up_and_offline_refuse(model, tmp_path, f"fog-driver: error: {expected}\n")
 
-    start = cli(
-        "run", "--port", "replay://x.bin", "--model", str(model), "--listen", "127.0.0.1:0", "--capture-dir", "c2"
+
+def assert_start_up_and_offline_refuse(model: Path, cwd: Path, stderr: str) -> None:
+    """``run`` with ``model`` exits 78 and ``compensate`` 65, each with ``stderr`` alone, writing nothing."""
+    start = run_cli(
+        "run",
+        "--port",
+        "replay://x.bin",
+        "--model",
+        str(model),
+        "--listen",
+        "127.0.0.1:0",
+        "--capture-dir",
+        "c",
+        cwd=cwd,
     )
-    assert (start.returncode, start.stderr) == (78, f"fog-driver: error: {expected}\n")
-    offline = cli("compensate", str(DATA / "sim-short.bin"), "--model", str(model), "--out", "o.csv")
-    assert (offline.returncode, offline.stderr) == (65, f"fog-driver: error: {expected}\n")
+    assert (start.returncode, start.stderr, start.stdout) == (78, stderr, "")
+    offline = run_cli("compensate", str(DATA / "sim-short.bin"), "--model", str(model), "--out", "o.csv", cwd=cwd)
+    assert (offline.returncode, offline.stderr) == (65, stderr)
+    assert not (cwd / "o.csv").exists()
