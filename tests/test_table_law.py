@@ -801,8 +801,9 @@ def test_compensate_table_log_saves_and_restores_the_state(run, tmp_path, capsys
     assert len(sf) == 2 and sf[0] != sf[1]  # the second run went on from what the first learned
 
 
-def test_a_sidecar_event_that_cannot_be_replayed_is_a_one_line_error(tmp_path, capsys):
-    """A hand-edited sidecar (a ?TABLE with a dwell longer than the data): one line, exit 65, nothing written."""
+def recorded_capture_with_a_table_event(tmp_path: Path) -> tuple[Path, Path, dict]:
+    """``sim-short.bin`` through the daemon (recording its capture) with one ``?TABLE``: the capture, its
+    sidecar and the sidecar's document."""
     import yaml
 
     from fog_driver.daemon.config import DriverConfig
@@ -819,12 +820,38 @@ def test_a_sidecar_event_that_cannot_be_replayed_is_a_one_line_error(tmp_path, c
     service.capture.close()
     (recorded,) = sorted((tmp_path / "cap").glob("*.bin"))
     sidecar = find_sidecar(recorded)
-    doc = yaml.safe_load(sidecar.read_text())
+    return recorded, sidecar, yaml.safe_load(sidecar.read_text())
+
+
+def compensate_edited_sidecar(tmp_path: Path, capsys, **change) -> tuple[int, list[str], Path, Path]:
+    """The recorded capture's table event changed by ``change`` in its sidecar, then ``compensate``: the exit
+    status, the lines on stderr, the capture and the output path."""
+    import yaml
+
+    recorded, sidecar, doc = recorded_capture_with_a_table_event(tmp_path)
     (event,) = [e for e in doc["events"] if e["event"] == "table"]
-    event["dwell_s"] = 1e5  # longer than the data
+    event.update(change)
     sidecar.write_text(yaml.safe_dump(doc))
     out = tmp_path / "out.csv"
-    assert main(["compensate", str(recorded), "--model", str(DEFAULT_MODEL), "--out", str(out)]) == 65
-    err = capsys.readouterr().err.strip().splitlines()
+    code = main(["compensate", str(recorded), "--model", str(DEFAULT_MODEL), "--out", str(out)])
+    return code, capsys.readouterr().err.strip().splitlines(), recorded, out
+
+
+def test_a_sidecar_event_that_cannot_be_replayed_is_a_one_line_error(tmp_path, capsys):
+    """A hand-edited sidecar (a ?TABLE with a dwell longer than the data): one line, exit 65, nothing written."""
+    code, err, _, out = compensate_edited_sidecar(tmp_path, capsys, dwell_s=1e5)  # longer than the data
+    assert code == 65
     assert len(err) == 1 and "table event at byte" in err[0] and "cannot be replayed" in err[0]
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("angle", [math.nan, math.inf, 1e308, True])
+def test_compensate_of_a_capture_whose_sidecar_table_event_has_a_nan_angle_is_a_one_line_error(tmp_path, capsys, angle):
+    """A hand-edited sidecar whose ``?TABLE`` event says ``angle_deg: .nan`` (or infinite, 1e308, true): the
+    replay checks it as ``?TABLE`` did (``dwell.table_angle_deg``), one line naming the capture's event,
+    exit 65, nothing written (a NaN ended in exit 70, or was taken as a dwell)."""
+    code, err, recorded, out = compensate_edited_sidecar(tmp_path, capsys, angle_deg=angle)
+    assert code == 65 and len(err) == 1 and "internal error" not in err[0], err
+    assert str(recorded) in err[0] and "table event at byte" in err[0]
+    assert "angle_deg must be a number within +-1e+06 degrees" in err[0]
     assert not out.exists()

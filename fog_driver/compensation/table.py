@@ -112,7 +112,8 @@ sigma), the angle is corrected by it: ``dtheta_comp = dtheta - D_hat dt - 1e-6 s
 from __future__ import annotations
 
 import math
-from collections import deque
+import re
+from collections import Counter, deque
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -123,7 +124,7 @@ from .adapt import RUNAWAY_FIT_RESIDUALS, ComparisonGuard
 from .adapt_config import AdaptConfig, blocks_in
 from .dwell import Dwell, angle_at_deg, blocks_within, out_of_order, trimmed_window
 
-__all__ = ["SF_REF_C", "TABLE_SIGMAS", "TableLaw", "TableOutcome"]
+__all__ = ["SF_REF_C", "TABLE_SIGMAS", "OutcomeTally", "TableLaw", "TableOutcome", "reason_kind"]
 
 ARCSEC_PER_DEG = 3600.0
 TURN_ARCSEC = 360.0 * ARCSEC_PER_DEG
@@ -245,6 +246,44 @@ class TableOutcome(NamedTuple):
     interval_s: float = math.nan
 
 
+#: A number in a reason (``reason_kind`` leaves them out).
+_NUMBER = re.compile(r"[-+]?\d[\d,]*(?:\.\d+)?(?:e[-+]?\d+)?|\bnan\b|\binf\b")
+
+
+def reason_kind(reason: str) -> str:
+    """What a reason says, its numbers left out (``#``): the outcomes of one kind, whatever their figures."""
+    return _NUMBER.sub("#", reason)
+
+
+class OutcomeTally:
+    """Every outcome counted, by status and by status and reason kind (``reason_kind``), with the first
+    ``EXAMPLES`` outcomes of each kind."""
+
+    EXAMPLES = 3
+
+    def __init__(self) -> None:
+        self.by_status: Counter[str] = Counter()
+        #: (status, reason kind) -> [count, the first outcomes], in the order the kinds first came
+        self.by_reason: dict[tuple[str, str], tuple[list[int], list[TableOutcome]]] = {}
+
+    def add(self, outcome: TableOutcome) -> None:
+        self.by_status[outcome.status] += 1
+        count, examples = self.by_reason.setdefault((outcome.status, reason_kind(outcome.reason)), ([0], []))
+        count[0] += 1
+        if len(examples) < self.EXAMPLES:
+            examples.append(outcome)
+
+    @property
+    def total(self) -> int:
+        return sum(self.by_status.values())
+
+    def copy(self) -> OutcomeTally:
+        out = OutcomeTally()
+        out.by_status = Counter(self.by_status)
+        out.by_reason = {k: ([n[0]], list(e)) for k, (n, e) in self.by_reason.items()}
+        return out
+
+
 def _outcome(dwell: Dwell, status: str, reason: str, values: dict[str, float] | None) -> TableOutcome:
     v = values or {}
     return TableOutcome(
@@ -350,13 +389,15 @@ class TableLaw(ComparisonGuard):
         #: the frozen model's error scale over an interval: its fit residual (1-min RMS), as the runaway bound has it
         self.model_sigma_dph = self.runaway_dph / RUNAWAY_FIT_RESIDUALS
         self._cap = max(2, int(math.ceil(MAX_WINDOW_S / self.block_s)) + 2)
-        self._width = f + 5  # cumulative: g (f), 1, T, theta, degraded blocks, the frozen drift
+        self._width = f + 6  # cumulative: g (f), 1, T, theta, degraded blocks, the frozen drift, warm-up blocks
         self._ring_mid = np.zeros((self._cap, self._width))
         self._ring_rate = np.zeros(self._cap)
         self._gram_a = 1.0 - math.exp(-self.block_s / GRAM_MEMORY_S)
         self.bias_capture_s = blocks_in(self.config.bias_capture_s, self.block_s) * self.block_s
-        #: the dwells' outcomes, in order, the last ``MAX_OUTCOMES`` (the counters count them all)
+        #: the dwells' outcomes, in order, the last ``MAX_OUTCOMES`` (``tally`` counts them all)
         self.outcomes: deque[TableOutcome] = deque(maxlen=MAX_OUTCOMES)
+        #: the outcomes that fell off ``outcomes``' old end, counted (none is changed once that far back)
+        self._dropped = OutcomeTally()
         self._noted = 0  # outcomes ever noted
         self._last_ring_c = math.nan
         self._start()
@@ -594,9 +635,18 @@ class TableLaw(ComparisonGuard):
         return self._note(TableOutcome(dwell.t_end_s, "refused", reason))
 
     def _note(self, outcome: TableOutcome) -> TableOutcome:
+        if len(self.outcomes) == self.outcomes.maxlen:
+            self._dropped.add(self.outcomes[0])
         self.outcomes.append(outcome)
         self._noted += 1
         return outcome
+
+    def tally(self) -> OutcomeTally:
+        """Every dwell's outcome since the law was made, counted (``outcomes`` keeps the last ``MAX_OUTCOMES``)."""
+        out = self._dropped.copy()
+        for outcome in self.outcomes:
+            out.add(outcome)
+        return out
 
     def observe(self, dwell: Dwell) -> TableOutcome:
         """One dwell, once the blocks up to its end have closed.  Returns (and records in ``outcomes``) what
