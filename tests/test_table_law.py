@@ -801,6 +801,50 @@ def test_compensate_table_log_saves_and_restores_the_state(run, tmp_path, capsys
     assert len(sf) == 2 and sf[0] != sf[1]  # the second run went on from what the first learned
 
 
+def test_live_table_dwells_in_the_first_300_s_are_skipped_for_the_warm_up_and_say_so(run):
+    """``?TABLE`` in the daemon's first minutes: the law learns nothing from blocks before ``warmup_s`` (300 s of
+    device time), and the dwells there were ``skipped: degraded inputs in the interval``, which is not what was
+    wrong.  Their reason now says the warm-up and when it ends; the intervals after it are learned."""
+    from fog_driver.compensation.adapt_config import AdaptConfig
+    from fog_driver.daemon.config import DriverConfig
+    from fog_driver.daemon.service import Service
+
+    samples, dwells, _, _, capture = run
+    warmup_s = AdaptConfig().warmup_s
+    data = capture.read_bytes()
+    t = samples.t_s - samples.t_s[0]
+    service = Service(DriverConfig(), port="unused")
+    fed, reasons = 0, []
+    ends_s = np.arange(40.0, 290.0, 25.0)  # the table still before the run's first move (300 s)
+    for end_s in ends_s:
+        i = int(np.searchsorted(t, end_s))
+        service.process(data[fed : int(samples.offset[i])])
+        fed = int(samples.offset[i])
+        assert service.control("TABLE", {"angle_deg": 0.0, "dwell_s": 20.0}, 0)["class"] == "TABLE"
+        service.process(data[fed : int(samples.offset[i + 5 * RATE_HZ])])  # the dwell's last block closes
+        fed = int(samples.offset[i + 5 * RATE_HZ])
+        last = service.status_object()["table"]["last"]
+        reasons.append((last["status"], last["reason"]))
+    assert reasons[0] == ("anchor", "")
+    assert set(reasons[1:]) == {
+        (
+            "skipped",
+            f"the warm-up: nothing is learned from the first {warmup_s:g} s of "
+            f"device time (warmup_s), until {warmup_s:g} s",
+        )
+    }
+    assert len(reasons) == len(ends_s) and 0 < ends_s[-1] < warmup_s
+    for d in dwells[:4]:  # the table log's first dwells, after the warm-up: the bias is captured from them
+        i = int(np.searchsorted(t, d.t_end_s))
+        service.process(data[fed : int(samples.offset[i])])
+        fed = int(samples.offset[i])
+        args = {"angle_deg": d.angle_deg, "dwell_s": d.t_end_s - d.t_start_s}
+        assert service.control("TABLE", args, 0)["class"] == "TABLE"
+    service.process(data[fed:])
+    after = [o.status for o in service.compensator.table_outcomes[len(ends_s) :]]
+    assert after[0] == "skipped" and after[1:] == ["bias"] * 3  # the first interval holds warm-up blocks
+
+
 def recorded_capture_with_a_table_event(tmp_path: Path) -> tuple[Path, Path, dict]:
     """``sim-short.bin`` through the daemon (recording its capture) with one ``?TABLE``: the capture, its
     sidecar and the sidecar's document."""

@@ -314,12 +314,14 @@ class Compensator:
         temps = block.temps_c
         ring = 0.5 * (temps[0] + temps[1]) if self.n_channels >= 2 else temps[0]
         clean = not flags & (FLAG_GAP | FLAG_THERMOMETER_FAULT | DEGRADED_FLAGS) and block.index > self._settle_until
-        clean = clean and block.t_end_s > table.config.warmup_s
         if math.isfinite(ring):
             self._t_ring_c = ring
         else:
             ring, clean = self._t_ring_c, False
-        table.block(block.index, y_frozen, g, block.rate_dph, block.n_samples * self.frame_period_s, ring, clean)
+        warming_up = clean and not block.t_end_s > table.config.warmup_s  # not learned from, for the warm-up alone
+        clean = clean and not warming_up
+        frames_s = block.n_samples * self.frame_period_s
+        table.block(block.index, y_frozen, g, block.rate_dph, frames_s, ring, clean, warming_up)
         end_s = (block.index + 1) * self._block_s
         while self._dwells and self._dwells[0].t_end_s <= end_s + 1e-9:
             table.observe(self._dwells.pop(0))

@@ -91,7 +91,8 @@ two dwells was wrong; the dwell after it decides, by which single wrong dwell ex
 When it is the dwell learned last, its interval is undone and the one around it learned in its place, if the
 gate lets it through (``_judge_by_neighbours``).  An interval is not learned
 across a break: a link gap, a non-finite input (the chain starts again), or blocks with degraded inputs
-(thermometer fault, stale, settling: the interval is skipped, its end is the next start).
+(thermometer fault, stale, settling: the interval is skipped, its end is the next start), or the warm-up's
+(the first ``warmup_s`` of device time: skipped too, its reason says "the warm-up" and when it ends).
 
 The comparison guard and the runaway bound stay (``adapt``): each accepted interval compares, out of
 sample, the frozen and the adapted drift's errors over it (``r - scale factor part`` against ``r - phi .
@@ -234,7 +235,8 @@ def _white_var_dph2(rates: np.ndarray) -> float:
 
 class TableOutcome(NamedTuple):
     """What became of one dwell.  ``status``: ``anchor`` (the start of a chain), ``bias`` (an interval of the
-    bias capture), ``learned``, ``skipped`` (degraded inputs in the interval: not learned, not a fault),
+    bias capture), ``learned``, ``skipped`` (degraded inputs in the interval, or the warm-up's blocks,
+    ``AdaptConfig.warmup_s``: not learned, not a fault),
     ``rejected`` (flagged ``guard``) or ``refused`` (bad input: nothing changed)."""
 
     t_end_s: float
@@ -320,6 +322,7 @@ class _Prediction(NamedTuple):
     move_deg: float
     off_deg: float
     degraded: bool
+    warming_up: bool  # degraded by the warm-up alone (``AdaptConfig.warmup_s``)
 
     @property
     def t_eff_s(self) -> float:
@@ -555,10 +558,12 @@ class TableLaw(ComparisonGuard):
         frames_s: float,
         t_ring_c: float,
         clean: bool,
+        warming_up: bool = False,
     ) -> None:
         """Record a closed block: its frozen drift and shape regressors ``g`` (None: no estimate), mean rate,
-        the time its frames span, the ring temperature, and whether its inputs are clean.  A block that cannot
-        be integrated (a gap's block, non-finite values) breaks the chain."""
+        the time its frames span, the ring temperature, and whether its inputs are clean (``warming_up``: not
+        clean for the warm-up alone, ``config.warmup_s``).  A block that cannot be integrated (a gap's block,
+        non-finite values) breaks the chain."""
         b = self.block_s
         t_ring_c = self._coil_temperature(t_ring_c)
         self._last_ring_c = t_ring_c
@@ -577,6 +582,7 @@ class TableLaw(ComparisonGuard):
         inc[f_n + 2] = rate_dph * frames_s
         inc[f_n + 3] = 0.0 if clean else 1.0
         inc[f_n + 4] = y_frozen * b
+        inc[f_n + 5] = 1.0 if warming_up and not clean else 0.0
         mid = self._cum + 0.5 * inc
         self._cum += inc
         if self._ring_first is None:
@@ -744,6 +750,7 @@ class TableLaw(ComparisonGuard):
             move_deg=move / ARCSEC_PER_DEG,
             off_deg=(gyro_move - move) / ARCSEC_PER_DEG,
             degraded=bool(d[f_n + 3] > 0.5),
+            warming_up=bool(d[f_n + 3] - d[f_n + 5] < 0.5),
         )
 
     def _innovation(self, p: _Prediction) -> tuple[float, float]:
@@ -762,7 +769,12 @@ class TableLaw(ComparisonGuard):
         if p.degraded:  # blocks with degraded inputs in it: not learned; the chain goes on from here
             self.anchor = bb
             self.skipped += 1
-            return self._note(TableOutcome(dwell.t_end_s, "skipped", "degraded inputs in the interval"))
+            if p.warming_up:
+                w = self.config.warmup_s
+                why = f"the warm-up: nothing is learned from the first {w:g} s of device time (warmup_s), until {w:g} s"
+            else:
+                why = "degraded inputs in the interval"
+            return self._note(TableOutcome(dwell.t_end_s, "skipped", why))
         if abs(p.off_deg) > AMBIGUOUS_DEG:
             return self._reject(
                 dwell, f"the move is {p.off_deg:+.1f} deg from every whole turn of the gyro's: ambiguous"
