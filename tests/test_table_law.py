@@ -437,6 +437,101 @@ def creeping_run(out: Path, rate_dph: float, start_s: float, seed: int) -> tuple
     ]
 
 
+def claimed_creep(dwells: list[Dwell], deg: float, every: int = 1, from_k: int = 0) -> list[Dwell]:
+    """The log ``attack-round-3`` lied with: every dwell declares a creep (``angle_end_deg``), ``deg`` degrees at
+    every ``every``-th dwell from ``from_k`` on, none at the others (``angle_end_deg = angle_deg``), the table
+    truly still in all of them."""
+    lied = {k for k in range(from_k, len(dwells), every)}
+    return [
+        dataclasses.replace(d, angle_end_deg=d.angle_deg + (deg if k in lied else 0.0)) for k, d in enumerate(dwells)
+    ]
+
+
+def creep_rejections(outcomes: list[TableOutcome]) -> list[TableOutcome]:
+    return [o for o in outcomes if o.status == "rejected" and "the creep it declares" in o.reason]
+
+
+@pytest.mark.parametrize("deg", [2.0, 5.0])
+def test_a_table_log_claiming_a_creep_the_gyro_never_saw_teaches_the_law_nothing(run, deg):
+    """Every dwell of the log declares that the table crept ``deg`` degrees while it stood still: the dwells'
+    mean angles are all off by the same ``deg / 2``, so the intervals between them agree with the gyro, and the
+    law learned from them (5 degrees: a scale factor of +11.4 ppm applied where the truthful log gives +0.4).
+    The gyro's rate within each dwell says the table stood: from the first interval on (the bias it is judged
+    against) every dwell is rejected, at thousands of sigma; nothing is learned, the scale factor is not
+    applied and the drift published is the frozen model's."""
+    samples, dwells, *_ = run
+    lying = claimed_creep(dwells, deg)
+    comp, cols = compensate(samples, lying)
+    outcomes = list(comp.table.outcomes)
+    assert [o.status for o in outcomes[:2]] == ["anchor", "bias"]  # no bias yet to judge the first two by
+    assert creep_rejections(outcomes) == outcomes[2:] and len(outcomes) == len(dwells)
+    z = [o.innovation_arcsec / o.sigma_arcsec for o in outcomes[2:]]
+    assert min(z) < -100.0 and max(z) < -100.0  # the gyro saw less than the creep declared, by far
+    assert all(f"{abs(o.innovation_arcsec) / o.sigma_arcsec:.1f} sigma" in o.reason for o in outcomes[2:])
+    assert comp.table.accepted == 0 and not comp.table.scale_factor_applied and comp.table.bias_dph is None
+    frozen = Compensator(load_model(DEFAULT_MODEL), 1.0 / RATE_HZ).run(samples)
+    assert np.array_equal(cols.drift_dph, frozen.drift_dph) and np.array_equal(
+        cols.angle_comp_arcsec, frozen.angle_comp_arcsec
+    )
+
+
+@pytest.mark.parametrize("deg", [2.0, 5.0])
+def test_a_table_log_lying_about_every_other_dwells_creep_keeps_the_truthful_scale_factor(run, deg):
+    """From dwell 6 on every other dwell declares a creep of ``deg`` degrees the gyro never saw, the others none
+    (as the truth): exactly the lying dwells are rejected for it, the chain goes on from the honest ones, and the
+    scale factor found is within the truthful log's interval (its value +- 2 sigma) and applied."""
+    samples, dwells, *_ = run
+    truthful, _ = compensate(samples, claimed_creep(dwells, 0.0))
+    lying = claimed_creep(dwells, deg, every=2, from_k=6)
+    comp, _ = compensate(samples, lying)
+    rejected = [k for k, o in enumerate(comp.table.outcomes) if o.status == "rejected"]
+    assert rejected == list(range(6, len(dwells), 2))
+    assert len(creep_rejections(list(comp.table.outcomes))) == len(rejected)
+    assert comp.table.accepted >= len(rejected) - 2
+    s0, s0_truthful = comp.table.summary(), truthful.table.summary()
+    assert s0_truthful["scale_factor_applied"] and s0["scale_factor_applied"]
+    assert abs(s0["scale_factor_ppm"] - s0_truthful["scale_factor_ppm"]) < 2.0 * s0_truthful["scale_factor_sigma_ppm"]
+    assert abs(s0["scale_factor_ppm_per_c"] - s0_truthful["scale_factor_ppm_per_c"]) < 0.2
+
+
+def live_outcomes(run, dwells: list[Dwell]) -> list[TableOutcome]:
+    """``dwells`` sent as ``?TABLE`` at each one's end (``angle_start_deg`` its declared start), the capture's
+    bytes fed to the daemon as the port gives them: the law's outcomes."""
+    from fog_driver.daemon.config import DriverConfig
+    from fog_driver.daemon.service import Service
+
+    samples, _, _, _, capture = run
+    data = capture.read_bytes()
+    t = samples.t_s - samples.t_s[0]
+    service = Service(DriverConfig(), port="unused")
+    fed = 0
+    for d in dwells:
+        i = int(np.searchsorted(t, d.t_end_s))  # the first frame after the dwell: the angle is sent then
+        end = int(samples.offset[i]) if i < len(samples) else len(data)
+        service.process(data[fed:end])
+        fed = end
+        args = {"angle_deg": d.angle_end_deg, "dwell_s": d.t_end_s - d.t_start_s, "angle_start_deg": d.angle_deg}
+        assert service.control("TABLE", args, 0)["class"] == "TABLE"
+    service.process(data[fed:])
+    return service.compensator.table_outcomes
+
+
+def test_the_same_claimed_creep_log_is_judged_alike_live_and_offline(run):
+    """The claimed-creep log of every other dwell, offline (``compensate --table-log``'s law) and live
+    (``?TABLE`` with ``angle_start_deg``): each dwell's outcome and its reason's kind are the same, the lying
+    dwells rejected for their creep in both."""
+    from fog_driver.compensation.table import reason_kind
+
+    samples, dwells, *_ = run
+    lying = claimed_creep(dwells, 5.0, every=2, from_k=6)
+    offline, _ = compensate(samples, lying)
+    live = live_outcomes(run, lying)
+    assert [(o.status, reason_kind(o.reason)) for o in live] == [
+        (o.status, reason_kind(o.reason)) for o in offline.table.outcomes
+    ]
+    assert len(creep_rejections(live)) == len(range(6, len(dwells), 2))
+
+
 def test_a_creep_that_begins_within_a_dwell_is_rejected_there_and_only_there(run, tmp_path):
     """A table that begins to creep (2 deg/h) in the middle of a dwell: the log gives the dwell's start and end
     angles, whose mean is not the table's mean angle over it (off by tens of arcseconds, which the innovation

@@ -79,7 +79,9 @@ block rate farther than ``static_threshold_dph`` from a steady drift, a robust s
 dwell's blocks, ``MOTION_MARGIN_S`` at each end excepted; its rate changed within the dwell, a quarter of its
 block rates off their least-squares line by more than ``STEADY_SIGMAS`` standard errors (``_unsteady_sigmas``: a
 table that began to creep or slipped within the dwell, whose mean angle the log's start and end angles do not
-give); the interval disagrees with
+give); the creep it declares (``angle_end_deg``) is farther than ``CREEP_SIGMAS`` sigmas from what the gyro saw
+within it (``_creep_disagreement``: the same creep declared at every dwell moves their mean angles alike, which
+the intervals do not see, but the gyro's rate within them does); the interval disagrees with
 the gyro by more than ``TABLE_SIGMAS`` sigmas of its innovation, ``sqrt(c (R + phi P phi^T))``, c the
 running mean of the squared normalized innovations, capped, over ``CALIBRATION_INTERVALS``; a move more
 than ``AMBIGUOUS_DEG`` from every whole turn of the gyro's); nothing is learned from it.  After a rejected
@@ -180,6 +182,9 @@ MOTION_MARGIN_S = 0.5
 #: declare: a table that began to creep, or slipped, within the dwell).
 STEADY_SEGMENTS = 4
 STEADY_SIGMAS = 6.0
+#: A dwell whose declared creep (``angle_end_deg``) is farther than this, in sigmas, from what the gyro saw
+#: within it is rejected (``TableLaw._creep_disagreement``).
+CREEP_SIGMAS = TABLE_SIGMAS
 #: The outcomes kept (a daemon runs for months; the counters count every dwell).
 MAX_OUTCOMES = 10_000
 #: The gram of the regressors: its memory.
@@ -692,6 +697,16 @@ class TableLaw(ComparisonGuard):
             return self._reject(
                 dwell, f"the gyro's rate changed during the dwell ({unsteady:.0f} standard errors off a steady one)"
             )
+        if dwell.angle_end_deg is not None:  # the creep it declares, against the gyro's rate within it
+            creep = self._creep_disagreement(dwell, first, end, v)
+            if creep is not None and abs(creep[0]) > CREEP_SIGMAS * creep[1]:
+                e, sigma, declared = creep
+                return self._reject(
+                    dwell,
+                    f"the creep it declares ({declared:+.1f} arcsec over the window) disagrees with the gyro's rate "
+                    f"within the dwell by {abs(e) / sigma:.1f} sigma",
+                    {"innovation_arcsec": e, "sigma_arcsec": sigma},
+                )
         if len(rates) >= 3:  # the white noise of a block rate
             self.noise_dwells += 1
             old = 0.0 if math.isnan(self.noise_var_dph2) else self.noise_var_dph2
@@ -706,6 +721,48 @@ class TableLaw(ComparisonGuard):
             self.anchor = here
             return self._note(TableOutcome(dwell.t_end_s, "anchor"))
         return self._interval(dwell, anchor, here)
+
+    def _creep_disagreement(self, dwell: Dwell, first: int, end: int, v: float) -> tuple[float, float, float] | None:
+        """A dwell that declares a creep (``angle_end_deg``) against the gyro within its window, from the middle of
+        its first whole block to the middle of its last (span S): the declared creep c over S (the table's
+        angle at the two, ``angle_at_deg``), the gyro's angle change less the frozen drift, the bias and the
+        adapted drift over S, and their difference ``e = theta - F - bias S - phi . delta - c`` (phi: the
+        shape regressors' and the level's sums over S, and the scale factor's ``1e-6 c``); its variance the
+        gyro's white noise over S, the frozen model's share (as an interval's), the estimate's ``phi P phi``,
+        the bias's spread (``prior_dph``, and the capture's between-interval variance while it runs) and the
+        scale factor's prior times c.  Returns ``(e, sigma, c)`` in arcsec; None when it cannot be judged: no
+        bias yet (the run's first interval not taken) or a window of one block."""
+        if end - first < 2:
+            return None
+        if self.bias_dph is not None:
+            bias, bias_var = self.bias_dph, 0.0
+        elif self.bias_time_s > 0:  # the capture so far
+            bias = self.bias_sum_arcsec / self.bias_time_s
+            spread = [q for q, _ in self.bias_rates]
+            bias_var = float(np.var(spread)) if len(spread) >= 2 else 0.0
+        else:
+            return None
+        f_n = self.n_features
+        b = self.block_s
+        rows = self._ring_mid[self._rows(first, end)]
+        d = rows[-1] - rows[0]  # from the first block's middle to the last's
+        span = float(d[f_n])
+        t0, t1 = (first + 0.5) * b, (end - 0.5) * b
+        at = [angle_at_deg(dwell.angle_deg, dwell.angle_end_deg, dwell.t_start_s, dwell.t_end_s, t) for t in (t0, t1)]
+        declared = (at[1] - at[0]) * ARCSEC_PER_DEG
+        t_int = float(d[f_n + 1]) / span
+        phi = np.empty(f_n + 3)
+        phi[:f_n] = d[:f_n]
+        phi[f_n] = span
+        phi[f_n + 1] = 1e-6 * declared
+        phi[f_n + 2] = 1e-6 * declared * (t_int - SF_REF_C)
+        e = float(d[f_n + 2]) - float(d[f_n + 4]) - bias * span - float(np.dot(phi, self.delta)) - declared
+        white = self.noise_var_dph2 if math.isfinite(self.noise_var_dph2) else v if math.isfinite(v) else 0.0
+        model = MODEL_NOISE_SHARE * self.model_sigma_dph * span
+        sf = 1e-6 * SF_PRIOR_PPM * declared
+        var = white * b * span + model * model + float(phi @ self.cov @ phi) + sf * sf
+        var += (self.prior_dph**2 + bias_var) * span * span
+        return e, math.sqrt(max(var, 1e-30)), declared
 
     def _reject(self, dwell: Dwell, reason: str, values: dict[str, float] | None = None) -> TableOutcome:
         self.rejected += 1
