@@ -437,6 +437,101 @@ def creeping_run(out: Path, rate_dph: float, start_s: float, seed: int) -> tuple
     ]
 
 
+def claimed_creep(dwells: list[Dwell], deg: float, every: int = 1, from_k: int = 0) -> list[Dwell]:
+    """The log ``attack-round-3`` lied with: every dwell declares a creep (``angle_end_deg``), ``deg`` degrees at
+    every ``every``-th dwell from ``from_k`` on, none at the others (``angle_end_deg = angle_deg``), the table
+    truly still in all of them."""
+    lied = {k for k in range(from_k, len(dwells), every)}
+    return [
+        dataclasses.replace(d, angle_end_deg=d.angle_deg + (deg if k in lied else 0.0)) for k, d in enumerate(dwells)
+    ]
+
+
+def creep_rejections(outcomes: list[TableOutcome]) -> list[TableOutcome]:
+    return [o for o in outcomes if o.status == "rejected" and "the creep it declares" in o.reason]
+
+
+@pytest.mark.parametrize("deg", [2.0, 5.0])
+def test_a_table_log_claiming_a_creep_the_gyro_never_saw_teaches_the_law_nothing(run, deg):
+    """Every dwell of the log declares that the table crept ``deg`` degrees while it stood still: the dwells'
+    mean angles are all off by the same ``deg / 2``, so the intervals between them agree with the gyro, and the
+    law learned from them (5 degrees: a scale factor of +11.4 ppm applied where the truthful log gives +0.4).
+    The gyro's rate within each dwell says the table stood: from the first interval on (the bias it is judged
+    against) every dwell is rejected, at thousands of sigma; nothing is learned, the scale factor is not
+    applied and the drift published is the frozen model's."""
+    samples, dwells, *_ = run
+    lying = claimed_creep(dwells, deg)
+    comp, cols = compensate(samples, lying)
+    outcomes = list(comp.table.outcomes)
+    assert [o.status for o in outcomes[:2]] == ["anchor", "bias"]  # no bias yet to judge the first two by
+    assert creep_rejections(outcomes) == outcomes[2:] and len(outcomes) == len(dwells)
+    z = [o.innovation_arcsec / o.sigma_arcsec for o in outcomes[2:]]
+    assert min(z) < -100.0 and max(z) < -100.0  # the gyro saw less than the creep declared, by far
+    assert all(f"{abs(o.innovation_arcsec) / o.sigma_arcsec:.1f} sigma" in o.reason for o in outcomes[2:])
+    assert comp.table.accepted == 0 and not comp.table.scale_factor_applied and comp.table.bias_dph is None
+    frozen = Compensator(load_model(DEFAULT_MODEL), 1.0 / RATE_HZ).run(samples)
+    assert np.array_equal(cols.drift_dph, frozen.drift_dph) and np.array_equal(
+        cols.angle_comp_arcsec, frozen.angle_comp_arcsec
+    )
+
+
+@pytest.mark.parametrize("deg", [2.0, 5.0])
+def test_a_table_log_lying_about_every_other_dwells_creep_keeps_the_truthful_scale_factor(run, deg):
+    """From dwell 6 on every other dwell declares a creep of ``deg`` degrees the gyro never saw, the others none
+    (as the truth): exactly the lying dwells are rejected for it, the chain goes on from the honest ones, and the
+    scale factor found is within the truthful log's interval (its value +- 2 sigma) and applied."""
+    samples, dwells, *_ = run
+    truthful, _ = compensate(samples, claimed_creep(dwells, 0.0))
+    lying = claimed_creep(dwells, deg, every=2, from_k=6)
+    comp, _ = compensate(samples, lying)
+    rejected = [k for k, o in enumerate(comp.table.outcomes) if o.status == "rejected"]
+    assert rejected == list(range(6, len(dwells), 2))
+    assert len(creep_rejections(list(comp.table.outcomes))) == len(rejected)
+    assert comp.table.accepted >= len(rejected) - 2
+    s0, s0_truthful = comp.table.summary(), truthful.table.summary()
+    assert s0_truthful["scale_factor_applied"] and s0["scale_factor_applied"]
+    assert abs(s0["scale_factor_ppm"] - s0_truthful["scale_factor_ppm"]) < 2.0 * s0_truthful["scale_factor_sigma_ppm"]
+    assert abs(s0["scale_factor_ppm_per_c"] - s0_truthful["scale_factor_ppm_per_c"]) < 0.2
+
+
+def live_outcomes(run, dwells: list[Dwell]) -> list[TableOutcome]:
+    """``dwells`` sent as ``?TABLE`` at each one's end (``angle_start_deg`` its declared start), the capture's
+    bytes fed to the daemon as the port gives them: the law's outcomes."""
+    from fog_driver.daemon.config import DriverConfig
+    from fog_driver.daemon.service import Service
+
+    samples, _, _, _, capture = run
+    data = capture.read_bytes()
+    t = samples.t_s - samples.t_s[0]
+    service = Service(DriverConfig(), port="unused")
+    fed = 0
+    for d in dwells:
+        i = int(np.searchsorted(t, d.t_end_s))  # the first frame after the dwell: the angle is sent then
+        end = int(samples.offset[i]) if i < len(samples) else len(data)
+        service.process(data[fed:end])
+        fed = end
+        args = {"angle_deg": d.angle_end_deg, "dwell_s": d.t_end_s - d.t_start_s, "angle_start_deg": d.angle_deg}
+        assert service.control("TABLE", args, 0)["class"] == "TABLE"
+    service.process(data[fed:])
+    return service.compensator.table_outcomes
+
+
+def test_the_same_claimed_creep_log_is_judged_alike_live_and_offline(run):
+    """The claimed-creep log of every other dwell, offline (``compensate --table-log``'s law) and live
+    (``?TABLE`` with ``angle_start_deg``): each dwell's outcome and its reason's kind are the same, the lying
+    dwells rejected for their creep in both."""
+    from fog_driver.compensation.table import reason_kind
+
+    samples, dwells, *_ = run
+    lying = claimed_creep(dwells, 5.0, every=2, from_k=6)
+    offline, _ = compensate(samples, lying)
+    live = live_outcomes(run, lying)
+    assert [(o.status, reason_kind(o.reason)) for o in live] == [
+        (o.status, reason_kind(o.reason)) for o in offline.table.outcomes
+    ]
+    assert len(creep_rejections(live)) == len(range(6, len(dwells), 2))
+
+
 def test_a_creep_that_begins_within_a_dwell_is_rejected_there_and_only_there(run, tmp_path):
     """A table that begins to creep (2 deg/h) in the middle of a dwell: the log gives the dwell's start and end
     angles, whose mean is not the table's mean angle over it (off by tens of arcseconds, which the innovation
@@ -801,8 +896,53 @@ def test_compensate_table_log_saves_and_restores_the_state(run, tmp_path, capsys
     assert len(sf) == 2 and sf[0] != sf[1]  # the second run went on from what the first learned
 
 
-def test_a_sidecar_event_that_cannot_be_replayed_is_a_one_line_error(tmp_path, capsys):
-    """A hand-edited sidecar (a ?TABLE with a dwell longer than the data): one line, exit 65, nothing written."""
+def test_live_table_dwells_in_the_first_300_s_are_skipped_for_the_warm_up_and_say_so(run):
+    """``?TABLE`` in the daemon's first minutes: the law learns nothing from blocks before ``warmup_s`` (300 s of
+    device time), and the dwells there were ``skipped: degraded inputs in the interval``, which is not what was
+    wrong.  Their reason now says the warm-up and when it ends; the intervals after it are learned."""
+    from fog_driver.compensation.adapt_config import AdaptConfig
+    from fog_driver.daemon.config import DriverConfig
+    from fog_driver.daemon.service import Service
+
+    samples, dwells, _, _, capture = run
+    warmup_s = AdaptConfig().warmup_s
+    data = capture.read_bytes()
+    t = samples.t_s - samples.t_s[0]
+    service = Service(DriverConfig(), port="unused")
+    fed, reasons = 0, []
+    ends_s = np.arange(40.0, 290.0, 25.0)  # the table still before the run's first move (300 s)
+    for end_s in ends_s:
+        i = int(np.searchsorted(t, end_s))
+        service.process(data[fed : int(samples.offset[i])])
+        fed = int(samples.offset[i])
+        assert service.control("TABLE", {"angle_deg": 0.0, "dwell_s": 20.0}, 0)["class"] == "TABLE"
+        service.process(data[fed : int(samples.offset[i + 5 * RATE_HZ])])  # the dwell's last block closes
+        fed = int(samples.offset[i + 5 * RATE_HZ])
+        last = service.status_object()["table"]["last"]
+        reasons.append((last["status"], last["reason"]))
+    assert reasons[0] == ("anchor", "")
+    assert set(reasons[1:]) == {
+        (
+            "skipped",
+            f"the warm-up: nothing is learned from the first {warmup_s:g} s of "
+            f"device time (warmup_s), until {warmup_s:g} s",
+        )
+    }
+    assert len(reasons) == len(ends_s) and 0 < ends_s[-1] < warmup_s
+    for d in dwells[:4]:  # the table log's first dwells, after the warm-up: the bias is captured from them
+        i = int(np.searchsorted(t, d.t_end_s))
+        service.process(data[fed : int(samples.offset[i])])
+        fed = int(samples.offset[i])
+        args = {"angle_deg": d.angle_deg, "dwell_s": d.t_end_s - d.t_start_s}
+        assert service.control("TABLE", args, 0)["class"] == "TABLE"
+    service.process(data[fed:])
+    after = [o.status for o in service.compensator.table_outcomes[len(ends_s) :]]
+    assert after[0] == "skipped" and after[1:] == ["bias"] * 3  # the first interval holds warm-up blocks
+
+
+def recorded_capture_with_a_table_event(tmp_path: Path) -> tuple[Path, Path, dict]:
+    """``sim-short.bin`` through the daemon (recording its capture) with one ``?TABLE``: the capture, its
+    sidecar and the sidecar's document."""
     import yaml
 
     from fog_driver.daemon.config import DriverConfig
@@ -819,12 +959,38 @@ def test_a_sidecar_event_that_cannot_be_replayed_is_a_one_line_error(tmp_path, c
     service.capture.close()
     (recorded,) = sorted((tmp_path / "cap").glob("*.bin"))
     sidecar = find_sidecar(recorded)
-    doc = yaml.safe_load(sidecar.read_text())
+    return recorded, sidecar, yaml.safe_load(sidecar.read_text())
+
+
+def compensate_edited_sidecar(tmp_path: Path, capsys, **change) -> tuple[int, list[str], Path, Path]:
+    """The recorded capture's table event changed by ``change`` in its sidecar, then ``compensate``: the exit
+    status, the lines on stderr, the capture and the output path."""
+    import yaml
+
+    recorded, sidecar, doc = recorded_capture_with_a_table_event(tmp_path)
     (event,) = [e for e in doc["events"] if e["event"] == "table"]
-    event["dwell_s"] = 1e5  # longer than the data
+    event.update(change)
     sidecar.write_text(yaml.safe_dump(doc))
     out = tmp_path / "out.csv"
-    assert main(["compensate", str(recorded), "--model", str(DEFAULT_MODEL), "--out", str(out)]) == 65
-    err = capsys.readouterr().err.strip().splitlines()
+    code = main(["compensate", str(recorded), "--model", str(DEFAULT_MODEL), "--out", str(out)])
+    return code, capsys.readouterr().err.strip().splitlines(), recorded, out
+
+
+def test_a_sidecar_event_that_cannot_be_replayed_is_a_one_line_error(tmp_path, capsys):
+    """A hand-edited sidecar (a ?TABLE with a dwell longer than the data): one line, exit 65, nothing written."""
+    code, err, _, out = compensate_edited_sidecar(tmp_path, capsys, dwell_s=1e5)  # longer than the data
+    assert code == 65
     assert len(err) == 1 and "table event at byte" in err[0] and "cannot be replayed" in err[0]
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("angle", [math.nan, math.inf, 1e308, True])
+def test_compensate_of_a_capture_whose_sidecar_table_event_has_a_nan_angle_is_a_one_line_error(tmp_path, capsys, angle):
+    """A hand-edited sidecar whose ``?TABLE`` event says ``angle_deg: .nan`` (or infinite, 1e308, true): the
+    replay checks it as ``?TABLE`` did (``dwell.table_angle_deg``), one line naming the capture's event,
+    exit 65, nothing written (a NaN ended in exit 70, or was taken as a dwell)."""
+    code, err, recorded, out = compensate_edited_sidecar(tmp_path, capsys, angle_deg=angle)
+    assert code == 65 and len(err) == 1 and "internal error" not in err[0], err
+    assert str(recorded) in err[0] and "table event at byte" in err[0]
+    assert "angle_deg must be a number within +-1e+06 degrees" in err[0]
     assert not out.exists()

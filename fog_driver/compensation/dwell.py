@@ -21,8 +21,10 @@ from dataclasses import dataclass
 
 __all__ = [
     "DWELL_TRIM_S",
+    "MAX_TABLE_ANGLE_DEG",
     "MIN_LIVE_DWELL_S",
     "Dwell",
+    "table_angle_deg",
     "blocks_within",
     "out_of_order",
     "angle_at_deg",
@@ -34,6 +36,28 @@ __all__ = [
 DWELL_TRIM_S = 5.0
 #: The shortest dwell a live ``?TABLE`` may claim: two trims and two whole 1-s blocks.
 MIN_LIVE_DWELL_S = 12.0
+#: The largest table angle a dwell may give, degrees either sign: live (``?TABLE``), in a table log and in a
+#: sidecar's table events alike (``table_angle_deg``).  Cumulative angles of a table that turned for years stay
+#: far below; 1e308 would overflow the law's arcseconds.
+MAX_TABLE_ANGLE_DEG = 1e6
+
+
+def table_angle_deg(value: object, name: str = "angle_deg") -> float:
+    """``value`` as a dwell's table angle: a number (not a bool), finite and within +-``MAX_TABLE_ANGLE_DEG``;
+    else a one-line ``ValueError`` naming ``name``.  The one check of a table angle, wherever it comes from."""
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+    try:
+        ok = ok and math.isfinite(value) and abs(value) <= MAX_TABLE_ANGLE_DEG  # type: ignore[arg-type]  # a number
+    except OverflowError:  # an int too large for a float
+        ok = False
+    if not ok:
+        try:
+            shown = repr(value)
+        except ValueError:  # an int of more digits than Python converts
+            shown = "an integer of thousands of digits"
+        shown = shown if len(shown) <= 40 else shown[:40] + "..."
+        raise ValueError(f"{name} must be a number within +-{MAX_TABLE_ANGLE_DEG:g} degrees, got {shown}")
+    return float(value)  # type: ignore[arg-type]  # a number
 
 
 @dataclass(frozen=True)

@@ -36,7 +36,7 @@ from .adapt import OnlineReadout
 from .adapt_config import AdaptConfig, StaticDetector
 from .blocks import FLAG_GAP, FLAG_THERMOMETER_FAULT, PLAUSIBLE_TEMP_C, BlockAverager, ModelBlock
 from .domain import FLAG_EXTRAPOLATING
-from .dwell import MIN_LIVE_DWELL_S, Dwell, out_of_order
+from .dwell import MIN_LIVE_DWELL_S, Dwell, out_of_order, table_angle_deg
 from .features import DEGRADED_FLAGS, FLAG_INPUT_STALE, FeatureExtractor
 from .model import ModelFile
 from .table import SHAPE_CANDIDATES, SHAPE_REGRESSORS, TableLaw, TableOutcome
@@ -314,12 +314,14 @@ class Compensator:
         temps = block.temps_c
         ring = 0.5 * (temps[0] + temps[1]) if self.n_channels >= 2 else temps[0]
         clean = not flags & (FLAG_GAP | FLAG_THERMOMETER_FAULT | DEGRADED_FLAGS) and block.index > self._settle_until
-        clean = clean and block.t_end_s > table.config.warmup_s
         if math.isfinite(ring):
             self._t_ring_c = ring
         else:
             ring, clean = self._t_ring_c, False
-        table.block(block.index, y_frozen, g, block.rate_dph, block.n_samples * self.frame_period_s, ring, clean)
+        warming_up = clean and not block.t_end_s > table.config.warmup_s  # not learned from, for the warm-up alone
+        clean = clean and not warming_up
+        frames_s = block.n_samples * self.frame_period_s
+        table.block(block.index, y_frozen, g, block.rate_dph, frames_s, ring, clean, warming_up)
         end_s = (block.index + 1) * self._block_s
         while self._dwells and self._dwells[0].t_end_s <= end_s + 1e-9:
             table.observe(self._dwells.pop(0))
@@ -355,11 +357,15 @@ class Compensator:
     def table_dwell(self, angle_deg: float, dwell_s: float, angle_start_deg: float | None = None) -> Dwell:
         """A live dwell: the table has stood at ``angle_deg`` for the last ``dwell_s`` seconds (from
         ``angle_start_deg`` when it moved within the dwell).  Checked here (``ValueError``, one line: nothing
-        changed) for what can be told at once: no frame yet, a dwell shorter than ``MIN_LIVE_DWELL_S``, longer
+        changed) for what can be told at once: an angle that is not a table angle (``dwell.table_angle_deg``: the
+        bound ``?TABLE`` and a table log apply), no frame yet, a dwell shorter than ``MIN_LIVE_DWELL_S``, longer
         than the time since the chain's last break (a gap, a restart, ``?ZERO``), or starting before the
         previous dwell ended; what the gyro says of it is the law's verdict once its blocks have closed."""
         if self.table is None:
             raise ValueError("this compensator does not adapt from table angles")
+        angle_deg = table_angle_deg(angle_deg, "angle_deg")
+        if angle_start_deg is not None:
+            angle_start_deg = table_angle_deg(angle_start_deg, "angle_start_deg")
         now = self.device_time_s
         if now is None:
             raise ValueError("no samples yet: no dwell to hold the angle against")

@@ -79,7 +79,9 @@ block rate farther than ``static_threshold_dph`` from a steady drift, a robust s
 dwell's blocks, ``MOTION_MARGIN_S`` at each end excepted; its rate changed within the dwell, a quarter of its
 block rates off their least-squares line by more than ``STEADY_SIGMAS`` standard errors (``_unsteady_sigmas``: a
 table that began to creep or slipped within the dwell, whose mean angle the log's start and end angles do not
-give); the interval disagrees with
+give); the creep it declares (``angle_end_deg``) is farther than ``CREEP_SIGMAS`` sigmas from what the gyro saw
+within it (``_creep_disagreement``: the same creep declared at every dwell moves their mean angles alike, which
+the intervals do not see, but the gyro's rate within them does); the interval disagrees with
 the gyro by more than ``TABLE_SIGMAS`` sigmas of its innovation, ``sqrt(c (R + phi P phi^T))``, c the
 running mean of the squared normalized innovations, capped, over ``CALIBRATION_INTERVALS``; a move more
 than ``AMBIGUOUS_DEG`` from every whole turn of the gyro's); nothing is learned from it.  After a rejected
@@ -91,7 +93,8 @@ two dwells was wrong; the dwell after it decides, by which single wrong dwell ex
 When it is the dwell learned last, its interval is undone and the one around it learned in its place, if the
 gate lets it through (``_judge_by_neighbours``).  An interval is not learned
 across a break: a link gap, a non-finite input (the chain starts again), or blocks with degraded inputs
-(thermometer fault, stale, settling: the interval is skipped, its end is the next start).
+(thermometer fault, stale, settling: the interval is skipped, its end is the next start), or the warm-up's
+(the first ``warmup_s`` of device time: skipped too, its reason says "the warm-up" and when it ends).
 
 The comparison guard and the runaway bound stay (``adapt``): each accepted interval compares, out of
 sample, the frozen and the adapted drift's errors over it (``r - scale factor part`` against ``r - phi .
@@ -112,7 +115,8 @@ sigma), the angle is corrected by it: ``dtheta_comp = dtheta - D_hat dt - 1e-6 s
 from __future__ import annotations
 
 import math
-from collections import deque
+import re
+from collections import Counter, deque
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -123,7 +127,7 @@ from .adapt import RUNAWAY_FIT_RESIDUALS, ComparisonGuard
 from .adapt_config import AdaptConfig, blocks_in
 from .dwell import Dwell, angle_at_deg, blocks_within, out_of_order, trimmed_window
 
-__all__ = ["SF_REF_C", "TABLE_SIGMAS", "TableLaw", "TableOutcome"]
+__all__ = ["SF_REF_C", "TABLE_SIGMAS", "OutcomeTally", "TableLaw", "TableOutcome", "reason_kind"]
 
 ARCSEC_PER_DEG = 3600.0
 TURN_ARCSEC = 360.0 * ARCSEC_PER_DEG
@@ -178,6 +182,9 @@ MOTION_MARGIN_S = 0.5
 #: declare: a table that began to creep, or slipped, within the dwell).
 STEADY_SEGMENTS = 4
 STEADY_SIGMAS = 6.0
+#: A dwell whose declared creep (``angle_end_deg``) is farther than this, in sigmas, from what the gyro saw
+#: within it is rejected (``TableLaw._creep_disagreement``).
+CREEP_SIGMAS = TABLE_SIGMAS
 #: The outcomes kept (a daemon runs for months; the counters count every dwell).
 MAX_OUTCOMES = 10_000
 #: The gram of the regressors: its memory.
@@ -233,7 +240,8 @@ def _white_var_dph2(rates: np.ndarray) -> float:
 
 class TableOutcome(NamedTuple):
     """What became of one dwell.  ``status``: ``anchor`` (the start of a chain), ``bias`` (an interval of the
-    bias capture), ``learned``, ``skipped`` (degraded inputs in the interval: not learned, not a fault),
+    bias capture), ``learned``, ``skipped`` (degraded inputs in the interval, or the warm-up's blocks,
+    ``AdaptConfig.warmup_s``: not learned, not a fault),
     ``rejected`` (flagged ``guard``) or ``refused`` (bad input: nothing changed)."""
 
     t_end_s: float
@@ -243,6 +251,44 @@ class TableOutcome(NamedTuple):
     sigma_arcsec: float = math.nan
     move_deg: float = math.nan
     interval_s: float = math.nan
+
+
+#: A number in a reason (``reason_kind`` leaves them out).
+_NUMBER = re.compile(r"[-+]?\d[\d,]*(?:\.\d+)?(?:e[-+]?\d+)?|\bnan\b|\binf\b")
+
+
+def reason_kind(reason: str) -> str:
+    """What a reason says, its numbers left out (``#``): the outcomes of one kind, whatever their figures."""
+    return _NUMBER.sub("#", reason)
+
+
+class OutcomeTally:
+    """Every outcome counted, by status and by status and reason kind (``reason_kind``), with the first
+    ``EXAMPLES`` outcomes of each kind."""
+
+    EXAMPLES = 3
+
+    def __init__(self) -> None:
+        self.by_status: Counter[str] = Counter()
+        #: (status, reason kind) -> [count, the first outcomes], in the order the kinds first came
+        self.by_reason: dict[tuple[str, str], tuple[list[int], list[TableOutcome]]] = {}
+
+    def add(self, outcome: TableOutcome) -> None:
+        self.by_status[outcome.status] += 1
+        count, examples = self.by_reason.setdefault((outcome.status, reason_kind(outcome.reason)), ([0], []))
+        count[0] += 1
+        if len(examples) < self.EXAMPLES:
+            examples.append(outcome)
+
+    @property
+    def total(self) -> int:
+        return sum(self.by_status.values())
+
+    def copy(self) -> OutcomeTally:
+        out = OutcomeTally()
+        out.by_status = Counter(self.by_status)
+        out.by_reason = {k: ([n[0]], list(e)) for k, (n, e) in self.by_reason.items()}
+        return out
 
 
 def _outcome(dwell: Dwell, status: str, reason: str, values: dict[str, float] | None) -> TableOutcome:
@@ -281,6 +327,7 @@ class _Prediction(NamedTuple):
     move_deg: float
     off_deg: float
     degraded: bool
+    warming_up: bool  # degraded by the warm-up alone (``AdaptConfig.warmup_s``)
 
     @property
     def t_eff_s(self) -> float:
@@ -350,13 +397,15 @@ class TableLaw(ComparisonGuard):
         #: the frozen model's error scale over an interval: its fit residual (1-min RMS), as the runaway bound has it
         self.model_sigma_dph = self.runaway_dph / RUNAWAY_FIT_RESIDUALS
         self._cap = max(2, int(math.ceil(MAX_WINDOW_S / self.block_s)) + 2)
-        self._width = f + 5  # cumulative: g (f), 1, T, theta, degraded blocks, the frozen drift
+        self._width = f + 6  # cumulative: g (f), 1, T, theta, degraded blocks, the frozen drift, warm-up blocks
         self._ring_mid = np.zeros((self._cap, self._width))
         self._ring_rate = np.zeros(self._cap)
         self._gram_a = 1.0 - math.exp(-self.block_s / GRAM_MEMORY_S)
         self.bias_capture_s = blocks_in(self.config.bias_capture_s, self.block_s) * self.block_s
-        #: the dwells' outcomes, in order, the last ``MAX_OUTCOMES`` (the counters count them all)
+        #: the dwells' outcomes, in order, the last ``MAX_OUTCOMES`` (``tally`` counts them all)
         self.outcomes: deque[TableOutcome] = deque(maxlen=MAX_OUTCOMES)
+        #: the outcomes that fell off ``outcomes``' old end, counted (none is changed once that far back)
+        self._dropped = OutcomeTally()
         self._noted = 0  # outcomes ever noted
         self._last_ring_c = math.nan
         self._start()
@@ -514,10 +563,12 @@ class TableLaw(ComparisonGuard):
         frames_s: float,
         t_ring_c: float,
         clean: bool,
+        warming_up: bool = False,
     ) -> None:
         """Record a closed block: its frozen drift and shape regressors ``g`` (None: no estimate), mean rate,
-        the time its frames span, the ring temperature, and whether its inputs are clean.  A block that cannot
-        be integrated (a gap's block, non-finite values) breaks the chain."""
+        the time its frames span, the ring temperature, and whether its inputs are clean (``warming_up``: not
+        clean for the warm-up alone, ``config.warmup_s``).  A block that cannot be integrated (a gap's block,
+        non-finite values) breaks the chain."""
         b = self.block_s
         t_ring_c = self._coil_temperature(t_ring_c)
         self._last_ring_c = t_ring_c
@@ -536,6 +587,7 @@ class TableLaw(ComparisonGuard):
         inc[f_n + 2] = rate_dph * frames_s
         inc[f_n + 3] = 0.0 if clean else 1.0
         inc[f_n + 4] = y_frozen * b
+        inc[f_n + 5] = 1.0 if warming_up and not clean else 0.0
         mid = self._cum + 0.5 * inc
         self._cum += inc
         if self._ring_first is None:
@@ -594,9 +646,18 @@ class TableLaw(ComparisonGuard):
         return self._note(TableOutcome(dwell.t_end_s, "refused", reason))
 
     def _note(self, outcome: TableOutcome) -> TableOutcome:
+        if len(self.outcomes) == self.outcomes.maxlen:
+            self._dropped.add(self.outcomes[0])
         self.outcomes.append(outcome)
         self._noted += 1
         return outcome
+
+    def tally(self) -> OutcomeTally:
+        """Every dwell's outcome since the law was made, counted (``outcomes`` keeps the last ``MAX_OUTCOMES``)."""
+        out = self._dropped.copy()
+        for outcome in self.outcomes:
+            out.add(outcome)
+        return out
 
     def observe(self, dwell: Dwell) -> TableOutcome:
         """One dwell, once the blocks up to its end have closed.  Returns (and records in ``outcomes``) what
@@ -636,6 +697,16 @@ class TableLaw(ComparisonGuard):
             return self._reject(
                 dwell, f"the gyro's rate changed during the dwell ({unsteady:.0f} standard errors off a steady one)"
             )
+        if dwell.angle_end_deg is not None:  # the creep it declares, against the gyro's rate within it
+            creep = self._creep_disagreement(dwell, first, end, v)
+            if creep is not None and abs(creep[0]) > CREEP_SIGMAS * creep[1]:
+                e, sigma, declared = creep
+                return self._reject(
+                    dwell,
+                    f"the creep it declares ({declared:+.1f} arcsec over the window) disagrees with the gyro's rate "
+                    f"within the dwell by {abs(e) / sigma:.1f} sigma",
+                    {"innovation_arcsec": e, "sigma_arcsec": sigma},
+                )
         if len(rates) >= 3:  # the white noise of a block rate
             self.noise_dwells += 1
             old = 0.0 if math.isnan(self.noise_var_dph2) else self.noise_var_dph2
@@ -650,6 +721,48 @@ class TableLaw(ComparisonGuard):
             self.anchor = here
             return self._note(TableOutcome(dwell.t_end_s, "anchor"))
         return self._interval(dwell, anchor, here)
+
+    def _creep_disagreement(self, dwell: Dwell, first: int, end: int, v: float) -> tuple[float, float, float] | None:
+        """A dwell that declares a creep (``angle_end_deg``) against the gyro within its window, from the middle of
+        its first whole block to the middle of its last (span S): the declared creep c over S (the table's
+        angle at the two, ``angle_at_deg``), the gyro's angle change less the frozen drift, the bias and the
+        adapted drift over S, and their difference ``e = theta - F - bias S - phi . delta - c`` (phi: the
+        shape regressors' and the level's sums over S, and the scale factor's ``1e-6 c``); its variance the
+        gyro's white noise over S, the frozen model's share (as an interval's), the estimate's ``phi P phi``,
+        the bias's spread (``prior_dph``, and the capture's between-interval variance while it runs) and the
+        scale factor's prior times c.  Returns ``(e, sigma, c)`` in arcsec; None when it cannot be judged: no
+        bias yet (the run's first interval not taken) or a window of one block."""
+        if end - first < 2:
+            return None
+        if self.bias_dph is not None:
+            bias, bias_var = self.bias_dph, 0.0
+        elif self.bias_time_s > 0:  # the capture so far
+            bias = self.bias_sum_arcsec / self.bias_time_s
+            spread = [q for q, _ in self.bias_rates]
+            bias_var = float(np.var(spread)) if len(spread) >= 2 else 0.0
+        else:
+            return None
+        f_n = self.n_features
+        b = self.block_s
+        rows = self._ring_mid[self._rows(first, end)]
+        d = rows[-1] - rows[0]  # from the first block's middle to the last's
+        span = float(d[f_n])
+        t0, t1 = (first + 0.5) * b, (end - 0.5) * b
+        at = [angle_at_deg(dwell.angle_deg, dwell.angle_end_deg, dwell.t_start_s, dwell.t_end_s, t) for t in (t0, t1)]
+        declared = (at[1] - at[0]) * ARCSEC_PER_DEG
+        t_int = float(d[f_n + 1]) / span
+        phi = np.empty(f_n + 3)
+        phi[:f_n] = d[:f_n]
+        phi[f_n] = span
+        phi[f_n + 1] = 1e-6 * declared
+        phi[f_n + 2] = 1e-6 * declared * (t_int - SF_REF_C)
+        e = float(d[f_n + 2]) - float(d[f_n + 4]) - bias * span - float(np.dot(phi, self.delta)) - declared
+        white = self.noise_var_dph2 if math.isfinite(self.noise_var_dph2) else v if math.isfinite(v) else 0.0
+        model = MODEL_NOISE_SHARE * self.model_sigma_dph * span
+        sf = 1e-6 * SF_PRIOR_PPM * declared
+        var = white * b * span + model * model + float(phi @ self.cov @ phi) + sf * sf
+        var += (self.prior_dph**2 + bias_var) * span * span
+        return e, math.sqrt(max(var, 1e-30)), declared
 
     def _reject(self, dwell: Dwell, reason: str, values: dict[str, float] | None = None) -> TableOutcome:
         self.rejected += 1
@@ -694,6 +807,7 @@ class TableLaw(ComparisonGuard):
             move_deg=move / ARCSEC_PER_DEG,
             off_deg=(gyro_move - move) / ARCSEC_PER_DEG,
             degraded=bool(d[f_n + 3] > 0.5),
+            warming_up=bool(d[f_n + 3] - d[f_n + 5] < 0.5),
         )
 
     def _innovation(self, p: _Prediction) -> tuple[float, float]:
@@ -712,7 +826,12 @@ class TableLaw(ComparisonGuard):
         if p.degraded:  # blocks with degraded inputs in it: not learned; the chain goes on from here
             self.anchor = bb
             self.skipped += 1
-            return self._note(TableOutcome(dwell.t_end_s, "skipped", "degraded inputs in the interval"))
+            if p.warming_up:
+                w = self.config.warmup_s
+                why = f"the warm-up: nothing is learned from the first {w:g} s of device time (warmup_s), until {w:g} s"
+            else:
+                why = "degraded inputs in the interval"
+            return self._note(TableOutcome(dwell.t_end_s, "skipped", why))
         if abs(p.off_deg) > AMBIGUOUS_DEG:
             return self._reject(
                 dwell, f"the move is {p.off_deg:+.1f} deg from every whole turn of the gyro's: ambiguous"

@@ -31,6 +31,7 @@ from typing import Any
 
 import structlog
 
+from ..compensation.dwell import table_angle_deg
 from ..errors import FogDriverError
 from ..modelfiles import write_state_doc
 from .acquisition import BiasCapture
@@ -189,7 +190,12 @@ def table(service: Any, angle_deg: float, dwell_s: float, angle_start_deg: float
 
 
 def _angle(v: Any) -> bool:
-    return _is_number(v) and math.isfinite(v) and abs(v) <= MAX_TABLE_ANGLE_DEG
+    """A table angle as every reader of one checks it (``dwell.table_angle_deg``)."""
+    try:
+        table_angle_deg(v)
+    except ValueError:
+        return False
+    return True
 
 
 def save(service: Any) -> dict:

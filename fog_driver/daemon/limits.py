@@ -56,6 +56,8 @@ unit is a count (clients, lines, attempts, samples, batches).
 
 from __future__ import annotations
 
+from ..compensation.dwell import MAX_TABLE_ANGLE_DEG as MAX_TABLE_ANGLE_DEG  # the one bound, with the dwell
+
 # -- the NDJSON hub: lines ------------------------------------------------------------------------------------
 
 #: A command line longer than this (without its newline) is answered with ERROR and discarded up to its newline.
@@ -135,9 +137,8 @@ MIN_BIAS_S = 1
 MAX_BIAS_S = 86400
 #: The largest ``?ADAPT`` ``reference_dph`` (deg/h, either sign).
 MAX_ADAPT_REFERENCE_DPH = 1e7
-#: ``?TABLE``: the largest angle (deg, either sign; cumulative angles of a table that turned for years stay
-#: far below), the longest dwell (s), and the least time between two from one client (more get ERROR).
-MAX_TABLE_ANGLE_DEG = 1e6
+#: ``?TABLE``: the largest angle (deg, either sign: ``dwell.MAX_TABLE_ANGLE_DEG``, a table log's and a sidecar's
+#: too), the longest dwell (s), and the least time between two from one client (more get ERROR).
 MAX_TABLE_DWELL_S = 86400.0
 TABLE_INTERVAL_S = 2.0
 #: The port reader is stuck (no watchdog ping) when its loop has not come round for this long.

@@ -75,8 +75,8 @@ class ControlEvent:
         elif self.kind == "bias":
             offsets.bias_dph = float(self.fields["bias_dph"])
         elif self.kind == "table":
-            compensator.table_dwell(
-                float(self.fields["angle_deg"]), float(self.fields["dwell_s"]), self.fields.get("angle_start_deg")
+            compensator.table_dwell(  # the angles checked there as ?TABLE checks them (``dwell.table_angle_deg``)
+                self.fields["angle_deg"], float(self.fields["dwell_s"]), self.fields.get("angle_start_deg")
             )
         elif self.kind == "adapt":
             reference = self.fields.get("reference_dph")

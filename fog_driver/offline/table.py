@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from collections import Counter
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
@@ -37,21 +36,23 @@ def check_table_log_used(compensator: Compensator, table_log: str | Path, captur
 
 
 def table_summary_lines(compensator: Compensator) -> list[str]:
-    """The report ``compensate --table-log`` prints: the dwells by outcome, the reasons of the rejected and
-    refused ones, the scale factor."""
+    """The report ``compensate --table-log`` prints: every dwell counted by outcome; the rejected and refused
+    ones grouped by reason (``table.reason_kind``), one line a reason with its count, the first one's reason in
+    full and when the first few ended; the scale factor."""
     law = compensator.table
     if law is None:
         return []
-    counts = Counter(o.status for o in law.outcomes)
-    total = len(law.outcomes)
+    tally = law.tally()
+    counts = tally.by_status
     order = ("anchor", "bias", "learned", "skipped", "rejected", "refused")
-    parts = ", ".join(f"{counts[k]} {k}" for k in order if counts[k])
-    lines = [f"table log: {total} dwells: {parts or 'none reached'}"]
+    parts = ", ".join(f"{counts[k]:,} {k}" for k in order if counts[k])
+    lines = [f"table log: {tally.total:,} dwells: {parts or 'none reached'}"]
     for status in ("rejected", "refused"):
-        reasons = Counter(o.reason.split(" (")[0].split(" by ")[0] for o in law.outcomes if o.status == status)
-        for reason, n in reasons.most_common():
-            first = next(o for o in law.outcomes if o.status == status and o.reason.startswith(reason))
-            lines.append(f"  {n} {status}: {reason} (the first ending at {first.t_end_s:,.1f} s: {first.reason})")
+        kinds = [(n[0], examples) for (st, _), (n, examples) in tally.by_reason.items() if st == status]
+        for n, examples in sorted(kinds, key=lambda k: -k[0]):
+            ends = ", ".join(f"{o.t_end_s:,.1f}" for o in examples)
+            more = ", ..." if n > len(examples) else ""
+            lines.append(f"  {n:,} {status}: {examples[0].reason} (the dwells ending at {ends}{more} s)")
     s = law.summary()
     applied = "applied to the angle" if s["scale_factor_applied"] else "not applied (not yet known to 5 ppm)"
     lines.append(

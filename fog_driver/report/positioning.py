@@ -22,8 +22,9 @@ Reference CSV format (``REFERENCE_CSV_FORMAT`` holds the same text for help and 
     ...                                               cumulative, in degrees (360 is not 0)
 
     Rows are in time order: t_end_s > t_start_s and each t_start_s >= the previous row's t_end_s.
-    UTF-8 (a BOM is allowed), at most 1 MB, at least one row.  Every problem is a one-line
-    ``InputFileError`` naming the file and the line.
+    Angles within +-1e6 degrees (``dwell.MAX_TABLE_ANGLE_DEG``, the bound ``?TABLE`` applies).
+    UTF-8 (a BOM is allowed), lines ended by LF, CRLF or CR, at most 1 MB, at least one row.  Every
+    problem is a one-line ``InputFileError`` naming the file and the line.
 
 Sequences (``group_sequences``)
     Consecutive stops belong to one sequence while one dwell's end and the next one's start are less
@@ -69,8 +70,8 @@ Statistics and improvement
 from __future__ import annotations
 
 import csv
-import io
 import math
+import re
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -78,7 +79,7 @@ from typing import Any
 
 import numpy as np
 
-from ..compensation.dwell import DWELL_TRIM_S, reference_deg, trimmed_window
+from ..compensation.dwell import DWELL_TRIM_S, reference_deg, table_angle_deg, trimmed_window
 from ..compensation.model import ModelFile
 from ..compensation.pipeline import FLAG_UNCOMPENSATED
 from ..errors import InputFileError, UsageError, read_error
@@ -120,6 +121,8 @@ MAX_REFERENCE_BYTES = 1_000_000
 NO_SEQUENCES = "no positioning sequences in this capture: the table is skipped"
 ARCSEC_PER_DEG = 3600.0
 COLUMNS = ("t_start_s", "t_end_s", "angle_deg")
+#: What ends a line of a reference CSV: LF, CRLF, or CR alone (an old Mac's).
+LINE_END = re.compile(r"\r\n|\r|\n")
 #: Optional: where the table's angle ended when it moved within the dwell (a creep the log saw).
 END_COLUMN = "angle_end_deg"
 
@@ -128,7 +131,7 @@ Turntable reference CSV: one dwell (the table still) per row, in time order.
   header    t_start_s,t_end_s,angle_deg   (any order; other columns are ignored)
   t_start_s when the dwell starts, t_end_s when it ends: device time, seconds from the
             capture's first sample; t_end_s > t_start_s >= the previous row's t_end_s
-  angle_deg the table's cumulative angle during the dwell, degrees (360 is not 0)
+  angle_deg the table's cumulative angle during the dwell, degrees (360 is not 0), within +-1e6
   angle_end_deg  (optional column) the angle at the dwell's end, when the table moved within it:
             the dwell's angle is then taken as changing linearly from angle_deg to angle_end_deg
   '#' starts a comment (a whole line or the rest of one); blank lines are ignored;
@@ -152,6 +155,14 @@ def _finite(text: str, name: str, where: str) -> float:
     if not math.isfinite(value):
         raise InputFileError(f"{where}: {name} must be finite, got {text.strip()!r}")
     return value
+
+
+def _angle(text: str, name: str, where: str) -> float:
+    """A table angle of a row: finite, within the bound ``?TABLE`` applies (``dwell.table_angle_deg``)."""
+    try:
+        return table_angle_deg(_finite(text, name, where), name)
+    except ValueError as exc:
+        raise InputFileError(f"{where}: {exc} (the bound ?TABLE applies)") from None
 
 
 def _check_order(stops: list[Stop], start: float, end: float, where: str) -> None:
@@ -187,12 +198,15 @@ def read_reference_csv(path: str | Path) -> list[Stop]:
     header: list[str] | None = None
     index: dict[str, int] = {}
     stops: list[Stop] = []
-    for lineno, line in enumerate(io.StringIO(text), start=1):
+    for lineno, line in enumerate(LINE_END.split(text), start=1):  # \n, \r\n or \r alone end a line
         line = line.split("#", 1)[0].strip()
         if not line:
             continue
         where = f"{path}:{lineno}"
-        cells = [c.strip() for c in next(csv.reader([line]))]
+        try:
+            cells = [c.strip() for c in next(csv.reader([line]))]
+        except csv.Error as exc:  # a field over csv's limit, a stray quote
+            raise InputFileError(f"{where}: not a CSV row: {exc}") from None
         if header is None:
             header = cells
             missing = [c for c in COLUMNS if c not in header]
@@ -205,9 +219,10 @@ def read_reference_csv(path: str | Path) -> list[Stop]:
             continue
         if len(cells) != len(header):
             raise InputFileError(f"{where}: {len(cells)} fields, the header has {len(header)}")
-        start, end, angle = (_finite(cells[index[c]], c, where) for c in COLUMNS)
+        start, end = (_finite(cells[index[c]], c, where) for c in COLUMNS[:2])
+        angle = _angle(cells[index["angle_deg"]], "angle_deg", where)
         _check_order(stops, start, end, where)
-        angle_end = _finite(cells[index[END_COLUMN]], END_COLUMN, where) if END_COLUMN in index else None
+        angle_end = _angle(cells[index[END_COLUMN]], END_COLUMN, where) if END_COLUMN in index else None
         stops.append(Stop(start, end, angle, angle_end))
     if header is None:
         raise InputFileError(f"{path}: reference CSV is empty (expected the header {','.join(COLUMNS)})")
@@ -218,6 +233,11 @@ def read_reference_csv(path: str | Path) -> list[Stop]:
 
 def _sidecar_number(entry: dict, name: str, where: str) -> float:
     v = entry[name]
+    if name.startswith("angle"):  # the bound ?TABLE applies
+        try:
+            return table_angle_deg(v, name)
+        except ValueError as exc:
+            raise InputFileError(f"{where}: {exc}") from None
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
         raise InputFileError(f"{where}: {name} must be a finite number, got {v!r}")
     return float(v)
