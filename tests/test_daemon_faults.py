@@ -16,6 +16,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+import structlog
 from framegen import with_identities
 from test_daemon_hil import DATA, Client, Daemon, offline_angles
 
@@ -267,3 +268,27 @@ def test_the_watchdog_is_not_pinged_when_the_reader_or_the_hub_is_stuck():
     service.reader.last_activity_monotonic = time.monotonic()
     service.hub.running = False  # the hub's thread died
     assert not service._making_progress()
+
+
+def test_a_daemon_started_with_a_12_character_token_warns_of_the_16_character_minimum(log_events_here):
+    """A 12-character token was taken silently; the minimum is now 16 (shorter ones accepted this release)."""
+    from fog_driver.daemon.config import TOKEN_MIN_CHARS, DriverConfig
+    from fog_driver.daemon.service import Service
+
+    Service(DriverConfig(token="twelve-chars"), port="unused")
+    Service(DriverConfig(token="sixteen-chars-ok"), port="unused")
+    warned = [e for e in log_events_here if e["event"] == "token_too_short"]
+    assert len(warned) == 1 and f"minimum is now {TOKEN_MIN_CHARS}" in warned[0]["message"]
+    assert f"has {len('twelve-chars')} characters" in warned[0]["message"]
+
+
+@pytest.fixture
+def log_events_here():
+    events: list[dict] = []
+
+    def keep(_logger, _name, event_dict):
+        events.append(dict(event_dict))
+        raise structlog.DropEvent
+
+    structlog.configure(processors=[keep])
+    return events  # conftest resets structlog after the test

@@ -31,6 +31,21 @@ from ..transport.setup import DeviceSetup, validate_command
 #: other install finds it as a source checkout does.
 DEFAULT_MODEL = Path(str(files("fog_driver").joinpath("data", "models", "default.yaml")))
 
+#: A token's minimum length: a shorter one is accepted with a warning this release (``token_warnings``), and
+#: one under ``TOKEN_REFUSED_BELOW_CHARS`` is refused.
+TOKEN_MIN_CHARS = 16
+TOKEN_REFUSED_BELOW_CHARS = 8
+
+
+def token_warnings(token: str | None) -> list[str]:
+    """The warning a token shorter than ``TOKEN_MIN_CHARS`` gets at start (none for a long enough one)."""
+    if token is None or len(token) >= TOKEN_MIN_CHARS:
+        return []
+    return [
+        f"the client token has {len(token)} characters; the minimum is now {TOKEN_MIN_CHARS} "
+        "(accepted in this release, refused in the next): make one with `openssl rand -hex 16`"
+    ]
+
 
 #: The web view's port when ``http`` gives a host only.
 DEFAULT_HTTP_PORT = 8948
@@ -154,8 +169,8 @@ class DriverConfig:
             _check_http_host(name)
         for entry in self.http_trusted_proxies:
             _check_proxy(entry)
-        if self.token is not None and len(self.token) < 8:
-            raise ValueError("token must be at least 8 characters")
+        if self.token is not None and len(self.token) < TOKEN_REFUSED_BELOW_CHARS:
+            raise ValueError(f"token must be at least {TOKEN_REFUSED_BELOW_CHARS} characters")
         if self.format != "auto":
             self.wire_settings(self.format)  # a format other than fog-v1 needs device.rate_hz, ...
         if self.device.setup and not self.format.startswith("kvh-"):

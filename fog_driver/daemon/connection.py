@@ -74,7 +74,8 @@ lines may be interleaved.
   refused with ``ERROR`` "unauthorized", unless the daemon opens the stream,
   ``open_stream``: then it gets the ANGLE lines it watches), DEVICE or STATUS,
   and every control command is refused.  Wrong tokens are throttled per peer
-  address (see ``limits.py``), a right one is never refused; five failed or
+  address (see ``limits.py``); while the address waits no token is compared,
+  the right one is refused alike ("retry in N s"); five failed or
   refused attempts close the connection.  When the daemon's token changes,
   every connection is closed (``ERROR`` "the client token changed: connect again").
 - Any other NAME is a control command handed to the service (for example
@@ -244,10 +245,11 @@ class AuthGate:
 
     def attempt(self, peer: str, token: Any, now: float) -> tuple[str, float]:
         """``("ok", 0)``, ``("blocked", seconds still to wait)`` or ``("wrong", seconds now blocked for)``
-        (``AuthThrottle.judge``: the token is always compared, and a right one is never refused)."""
+        (``AuthThrottle.judge``: while the address is blocked the token is not compared, right or wrong)."""
         if self.token is None:
             return "ok", 0.0
-        return self.throttle.judge(peer, token_matches(token, self.token), now)
+        expected = self.token
+        return self.throttle.judge(peer, lambda: token_matches(token, expected), now)
 
 
 # -- one connection -------------------------------------------------------------------------------------------
@@ -422,7 +424,7 @@ class Connection:
         return [SendVersion(identity=self.authorized)]
 
     def _auth(self, command: Command) -> list[Action]:
-        """``?AUTH``: compare the token (unless the peer address is in its backoff), authorize or refuse."""
+        """``?AUTH``: compare the token (never while the peer address is in its backoff), authorize or refuse."""
         verdict, seconds = self.gate.attempt(self.peer_address, command.args.get("token"), self.clock())
         if verdict == "ok":
             return self._authorize()

@@ -8,7 +8,7 @@ import collections
 import hmac
 import ipaddress
 import socket
-from collections.abc import Hashable
+from collections.abc import Callable, Hashable
 from dataclasses import dataclass
 from typing import Any
 
@@ -146,13 +146,16 @@ class AuthThrottle:
 
     The first ``AUTH_FAILURES_BEFORE_BACKOFF`` wrong tokens of an address cost nothing; the
     next one blocks the address for ``base_s``, and each further one for twice as long as
-    the one before (at most ``max_s``).  While an address is blocked a wrong token is
-    refused ("retry in N s") and not counted: the address is answered "wrong" at most once
-    per ``base_s`` (a second) once its backoff has started.  A right token is never refused:
-    the backoff holds wrong guesses back, never the operator who shares the address (every
-    client of a host, a NAT or a proxy does).  An address is forgotten on a right token from
-    it and ``max_s`` after its last failure or block ended; at most ``MAX_THROTTLED_PEERS``
-    addresses are remembered (the least recently failed go first).
+    the one before (at most ``max_s``).  While an address is blocked no token from it is
+    compared, right or wrong: every attempt is refused alike ("retry in N s") and not
+    counted, so the answer tells a guesser nothing and its guesses are held to one per
+    block (with 1 s doubling to 300 s: 288 a day once at the cap, at most 2,142 a day
+    from one address whatever it does, ``guesses_per_day``).  The backoff is the
+    address's alone: a guesser elsewhere cannot lock out a station, one sharing its
+    address (a host's users, a NAT, a proxy) can, for as long as it guesses.  An address
+    is forgotten on a right token from it and ``max_s`` after its last failure or block
+    ended; at most ``MAX_THROTTLED_PEERS`` addresses are remembered (the least recently
+    failed go first).
     """
 
     def __init__(self, base_s: float, max_s: float) -> None:
@@ -160,16 +163,16 @@ class AuthThrottle:
         self.max_s = max_s
         self._peers: collections.OrderedDict[str, _PeerAuthFailures] = collections.OrderedDict()
 
-    def judge(self, peer: str, right: bool, now: float) -> tuple[str, float]:
-        """One attempt from ``peer`` whose token was ``right`` (``token_matches``): ``("ok", 0)``, ``("wrong",
-        seconds the address is now blocked for)`` (counted), or ``("blocked", seconds still to wait)`` for a
-        wrong token while the address is blocked (refused, not counted)."""
-        if right:
-            self.succeeded(peer)
-            return "ok", 0.0
+    def judge(self, peer: str, right: Callable[[], bool], now: float) -> tuple[str, float]:
+        """One attempt from ``peer``: ``("blocked", seconds still to wait)`` while the address is blocked (the
+        token not compared: ``right`` is not called; refused, not counted); else ``right()`` (``token_matches``)
+        decides: ``("ok", 0)`` or ``("wrong", seconds the address is now blocked for)`` (counted)."""
         wait_s = self.blocked_for_s(peer, now)
         if wait_s > 0:
             return "blocked", wait_s
+        if right():
+            self.succeeded(peer)
+            return "ok", 0.0
         return "wrong", self.failed(peer, now)
 
     def blocked_for_s(self, peer: str, now: float) -> float:

@@ -35,12 +35,11 @@ The NDJSON hub's limits, as clients meet them.  Each is a constant here or a ``h
 - wrong ``?AUTH`` tokens are counted per peer address, across connections:
   after 3 (``AUTH_FAILURES_BEFORE_BACKOFF``) each further one blocks the
   address for ``auth_backoff_base_s`` (1 s), doubled each time up to
-  ``auth_backoff_max_s`` (300 s); while blocked, a wrong token is refused with
-  ``ERROR`` "too many failed attempts, retry in N s" (and not counted), so the
-  address is told "bad token" at most once a second once its backoff has
-  started; a right token is always accepted (the operator shares the address
-  with whoever guesses: a host's users, a NAT, a proxy).  An address is
-  forgotten after a right token, and ``auth_backoff_max_s``
+  ``auth_backoff_max_s`` (300 s); while blocked, no token from the address is
+  compared, right or wrong: each is refused with ``ERROR`` "too many failed
+  attempts, retry in N s" (and not counted), so the answer tells a guesser
+  nothing (one address: at most 2,142 guesses a day, 288 once at the cap).
+  An address is forgotten after a right token, and ``auth_backoff_max_s``
   after its last failure or block ended (at most 4096 addresses are remembered,
   ``MAX_THROTTLED_PEERS``; the least recently failed are forgotten first);
 - a control command waits ``control_timeout_s`` (30 s) for its answer;

@@ -70,7 +70,7 @@ from ..transport.setup import make_on_open
 from . import status
 from .acquisition import Acquisition, stamp_utc
 from .commands import run_command
-from .config import DEFAULT_HTTP_PORT, DriverConfig, format_address, parse_host_port
+from .config import DEFAULT_HTTP_PORT, DriverConfig, format_address, parse_host_port, token_warnings
 from .errors import ConfigError
 from .hub import Hub
 from .limits import CLIENT_SNDBUF_BYTES, JOIN_TIMEOUT_S, PORT_BACKOFF_MAX_S, READER_STALL_S
@@ -137,6 +137,8 @@ class Service:
         self.model_fields = status.model_file_fields(self.model_file, self.model_path, self.model_sha256)
         for line in self.model_file.warnings(str(config.model_path)):
             log.warning("model_warning", message=line)
+        for line in token_warnings(config.token):
+            log.warning("token_too_short", message=line)
         self.lock = threading.Lock()  # the in-memory pipeline only
         self._reload_lock = threading.Lock()  # one reload at a time, never held with ``lock`` while parsing
         self.stop = threading.Event()

@@ -30,8 +30,9 @@ every request must carry it: ``Authorization: Bearer <token>`` (the scheme in an
 token in a URL).  Open without it: the login form and what it loads (``OPEN_PATHS``); with ``open_stream``, a
 WebSocket that gets the angles only (``{"type": ..., "angle": {...}}``, the ANGLE object the page shows).
 Without it a request gets 401 (a browser asking for the page: the login form).  Wrong tokens are counted per
-address as on the NDJSON listener (``guards.AuthThrottle``: after ``AUTH_FAILURES_BEFORE_BACKOFF`` a wrong one is
-answered 429 while the address waits, 1 s doubling up to 300 s; a right one is never refused).  The session
+address as on the NDJSON listener (``guards.AuthThrottle``: after ``AUTH_FAILURES_BEFORE_BACKOFF`` the address
+waits 1 s, doubling up to 300 s, and while it waits every token from it, the right one too, is answered 429 unread).
+The session
 cookie is HttpOnly, SameSite=Strict, lasts ``WEB_SESSION_MAX_AGE_S``, is ``Secure`` when ``secure_cookies`` (the
 config's ``http_secure_cookies``: TLS is in front), and a new token voids every one.  Behind a reverse proxy
 listed in ``trusted_proxies`` the client's address is taken from ``X-Forwarded-For`` (for its slots and its
@@ -599,25 +600,32 @@ class WebView:
         return isinstance(local, tuple) and bool(local) and name == normalize_name(str(local[0]).split("%")[0])
 
     def _credentials(self, request: Any, now: float) -> str:
-        """``ok`` (a live session's cookie, or the token), ``wrong`` (an ``Authorization`` that is not the token:
-        counted against the address) or ``none`` (no credentials, or only a cookie that is no longer valid)."""
+        """``session`` (a live session's cookie: no guess of the token), ``bearer`` (an ``Authorization`` header:
+        its token is judged by ``_bearer``) or ``none`` (no credentials, or only a cookie no longer valid)."""
         if self._sessions.valid(request.cookies.get(COOKIE), now):
-            return "ok"
-        header = request.headers.get("Authorization")
-        if header is None:  # no token; a stale cookie (a token rotated since) is no guess: log in again
+            return "session"
+        if request.headers.get("Authorization") is None:  # no token; a stale cookie (a token rotated) is no guess
             return "none"
-        scheme, _, given = header.strip().partition(" ")
-        return "ok" if scheme.lower() == "bearer" and token_matches(given.strip(), self.token) else "wrong"
+        return "bearer"
+
+    def _bearer_matches(self, request: Any) -> bool:
+        """The request's ``Authorization`` is ``Bearer <the token>`` (the scheme in any case)."""
+        scheme, _, given = request.headers.get("Authorization", "").strip().partition(" ")
+        return scheme.lower() == "bearer" and token_matches(given.strip(), self.token)
 
     def _authorize(self, request: Any, now: float) -> Any:
         """None when the request carries the token (or a session's cookie), or may read the open stream; else the
-        response refusing it."""
+        response refusing it.  A token is judged by the backoff (``guards.AuthThrottle``): while the address
+        waits it is not compared, and the right one gets the same 429 as a wrong one."""
         web = self._web()
         peer = _peer(request)
         verdict = self._credentials(request, now)
         if verdict == "none":
             return self._refuse(request)
-        judged, seconds = self._throttle.judge(peer, verdict == "ok", now)
+        if verdict == "session":
+            self.slots.authorize(request.protocol)
+            return None
+        judged, seconds = self._throttle.judge(peer, functools.partial(self._bearer_matches, request), now)
         if judged == "ok":
             self.slots.authorize(request.protocol)
             return None
@@ -668,7 +676,8 @@ class WebView:
         if not isinstance(token, str) or not token:
             return web.Response(status=400, content_type="text/html", text=_login_page("no token given"))
         peer, now = _peer(request), time.monotonic()
-        judged, seconds = self._throttle.judge(peer, token_matches(token, self.token), now)
+        expected = self.token
+        judged, seconds = self._throttle.judge(peer, lambda: token_matches(token, expected), now)
         if judged == "blocked":
             return self._wait_response(peer, seconds, page=True)
         if judged == "wrong":
@@ -754,7 +763,7 @@ class WebView:
         if not ws.can_prepare(request).ok:
             return web.Response(status=400, text="400: /ws takes a WebSocket upgrade\n")
         await ws.prepare(request)
-        reader = self.need_token and self._credentials(request, time.monotonic()) != "ok"  # ``_refuse`` let it in
+        reader = self.need_token and self._credentials(request, time.monotonic()) == "none"  # ``_refuse`` let it in
         connection = self._connections.get(request.protocol)
         if connection is not None:  # a WebSocket is a long exchange of frames, neither a slow request nor a head
             connection.request_since_s, connection.websocket, connection.reader = None, True, reader
