@@ -116,8 +116,8 @@ def bad_request(exc: BaseException, head_start: bytes) -> tuple[int, str, dict[s
     ======================================  ======  ====================================================
 
     aiohttp says "line too long" for both the request line and a header, with the start of the line it met:
-    it is the request line when that start is in the head's first line (``head_start``, the head's first
-    bytes as the client sent them).
+    it is the request line when the head's first line (``head_start``, the head's first bytes as the client
+    sent them), or its target, starts with it.
     """
     from aiohttp.http_exceptions import LineTooLong  # optional extra: web
 
@@ -126,7 +126,8 @@ def bad_request(exc: BaseException, head_start: bytes) -> tuple[int, str, dict[s
         line = exc.args[0] if exc.args else b""
         met = (line.encode("latin-1", "replace") if isinstance(line, str) else bytes(line)).removesuffix(b"...")[:32]
         first_line = head_start.split(b"\n", 1)[0]
-        if met and met in first_line:
+        target = first_line.split(b" ", 1)[-1]
+        if met and (target.startswith(met) or first_line.startswith(met)):
             return 414, "web_request_line_too_long", {}
         return 431, "web_request_header_too_long", {}
     if message.startswith("Too many headers"):
