@@ -37,15 +37,23 @@ cookie is HttpOnly, SameSite=Strict, lasts ``WEB_SESSION_MAX_AGE_S``, is ``Secur
 config's ``http_secure_cookies``: TLS is in front), and a new token voids every one.  Behind a reverse proxy
 listed in ``trusted_proxies`` the client's address is taken from ``X-Forwarded-For`` (for its slots and its
 backoff); from any other address the header is ignored.  Every answer carries ``SECURITY_HEADERS`` (a Content
-Security Policy, ``nosniff``, ``no-store``), redirects and errors included.
+Security Policy, ``nosniff``, ``no-store``) and ``Server: fog-driver``, redirects and errors included.  The CSP
+allows inline styles: plotly sets them (``style`` attributes, inserted ``<style>`` rules); the page's own are
+in ``view.css``.
+
+Logs: every client-caused event is one structlog line of its kind through ``_log`` (``guards.LogRateLimiter``,
+as the NDJSON listener's: ``DEFAULT_LOG_LINES_PER_S`` a second per event, the rest counted in
+``log_lines_suppressed``); a request aiohttp cannot parse included (``_handler_class``), and whatever aiohttp's
+loggers say (``_AiohttpLogBridge``): never a traceback on stderr.
 
 Limits (a misbehaving client costs itself, never the instrument): ``WEB_MAX_CONNECTIONS`` connections and
 ``WEB_MAX_CONNECTIONS_PER_PEER`` per address (beyond them the connection is closed at once), of which those without
 the token hold at most half (``guards.Slots``: a newcomer closes the oldest of them, so a client with the token
 finds a slot) and each lives at most ``WEB_UNAUTHORIZED_LIFETIME_S`` after its first request; request line and
-each header at most ``WEB_MAX_LINE_BYTES``, ``WEB_MAX_HEADERS`` headers (431/400), a body at most ``WEB_MAX_BODY_BYTES``
-(413); a request head must be complete within ``WEB_REQUEST_HEAD_TIMEOUT_S`` of the connection (the first) or of
-its first byte (the next ones on a kept-alive connection), and a request must be answered within
+each header at most ``WEB_MAX_LINE_BYTES``, ``WEB_MAX_HEADERS`` headers (414 for the request line, 431 for the
+headers; a malformed head 400: ``connections.bad_request``), a body at most ``WEB_MAX_BODY_BYTES`` (413); a
+request head must be complete within ``WEB_REQUEST_HEAD_TIMEOUT_S`` of the connection (the first) or of its first
+byte (the next ones on a kept-alive connection), and a request must be answered within
 ``WEB_REQUEST_TIMEOUT_S`` (a client that does not read its response is closed); idle keep-alive connections
 close after ``WEB_KEEPALIVE_S``; a WebSocket peer may send at most ``WEB_MAX_WS_MESSAGE_BYTES`` per
 message and ``WEB_MAX_WS_MESSAGES_PER_S`` messages a second, pings included (the page sends none; a flood is
