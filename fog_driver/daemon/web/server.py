@@ -457,7 +457,7 @@ class WebView:
                 browser.wakeup.set()
                 await browser.ws.close()
             await runner.cleanup()
-            self._summarize_suppressed(math.inf)  # the last counts too: every line left out is counted once
+            self._log_limiter.log_suppressed(log, math.inf)  # the last counts too: every line left out is counted once
 
     def _drain(self) -> None:
         view, inbox = self.view, self.inbox
@@ -516,18 +516,13 @@ class WebView:
         if self._log_limiter.allow(event, time.monotonic()):
             getattr(log, level)(event, **fields)
 
-    def _summarize_suppressed(self, now: float) -> None:
-        """One ``log_lines_suppressed`` line per event with lines left out since its last (``math.inf``: all)."""
-        for event, count in self._log_limiter.take_suppressed(now):
-            log.warning("log_lines_suppressed", suppressed_event=event, count=count)
-
     async def _sweep(self) -> None:
         """Close connections that send no request head in time, or whose request is not done in time;
         summarize the log lines left out."""
         while True:
             await asyncio.sleep(min(WEB_SWEEP_EVERY_S, WEB_REQUEST_HEAD_TIMEOUT_S / 2, WEB_UNAUTHORIZED_LIFETIME_S / 2))
             now = time.monotonic()
-            self._summarize_suppressed(now)
+            self._log_limiter.log_suppressed(log, now)
             for handler, c in list(self._connections.items()):
                 if c.head_since_s is not None and now - c.head_since_s > WEB_REQUEST_HEAD_TIMEOUT_S:
                     reason = f"no complete request head within {WEB_REQUEST_HEAD_TIMEOUT_S:g} s"
