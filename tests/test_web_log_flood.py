@@ -191,3 +191,46 @@ def test_an_oversized_header_gets_431_as_documented_and_a_long_request_line_414(
     assert get(d.address, "/" + long_value, f"X-Junk: {long_value}")[0] == 414
     assert get(d.address, "/?" + "a" * (WEB_MAX_LINE_BYTES - 100), f"X-Junk: {long_value}")[0] == 431
     d.stop()
+
+
+def test_what_aiohttp_itself_logs_and_a_failing_route_are_one_json_line_each(capsys, monkeypatch):
+    """aiohttp's loggers had no handler: Python's last resort printed each record and its traceback on stderr.
+    A route that raised was one of them ("Error handling request", then the traceback)."""
+    import logging
+
+    import structlog
+
+    from fog_driver.daemon.web.server import WebView
+
+    events: list[dict] = []
+
+    def keep(_logger, _name, event_dict):
+        events.append(dict(event_dict))
+        raise structlog.DropEvent
+
+    structlog.configure(processors=[keep])  # conftest resets structlog after the test
+    view = WebView("127.0.0.1", 0)
+
+    async def broken(request):
+        raise RuntimeError("a bug in a route")
+
+    monkeypatch.setattr(view, "_api_view", broken)
+    view.start()
+    try:
+        status, headers, body = get(view.address, "/api/view")
+        try:
+            raise ValueError("inside aiohttp")
+        except ValueError:
+            logging.getLogger("aiohttp.server").exception("Unhandled exception")
+        logging.getLogger("aiohttp.access").warning("an access line")
+    finally:
+        view.stop()
+    assert capsys.readouterr().err == ""
+    assert status == 500 and headers["server"] == "fog-driver" and b"internal error" in body
+    failed = [e for e in events if e["event"] == "web_request_failed"]
+    assert [(e["path"], e["error"]) for e in failed] == [("/api/view", "RuntimeError('a bug in a route')")]
+    said = [e for e in events if e["event"] == "web_aiohttp_message"]
+    assert [(e["logger"], e["message"], e["error"]) for e in said] == [
+        ("aiohttp.server", "Unhandled exception", "ValueError('inside aiohttp')"),
+        ("aiohttp.access", "an access line", None),
+    ]

@@ -457,6 +457,8 @@ class WebView:
                 browser.wakeup.set()
                 await browser.ws.close()
             await runner.cleanup()
+            if _AIOHTTP_LOGS.view is self:
+                _AIOHTTP_LOGS.view = None
             self._log_limiter.log_suppressed(log, math.inf)  # the last counts too: every line left out is counted once
 
     def _drain(self) -> None:
