@@ -532,6 +532,20 @@ def test_connection_floods_cost_a_few_log_lines_a_second(make_hub, log_events):
     assert total == 40 and logged < 40
 
 
+def test_a_connection_flood_just_before_the_hub_stops_is_counted_whole(make_hub, log_events):
+    """The lines left out in the last second before a stop were never counted: the sweeper summarizes once a
+    second, and the hub stopped first.  Stopping summarizes what is left."""
+    hub, address, _ = make_hub()
+    for _ in range(40):
+        Conn(address).greeting()  # accepted (its greeting came), closed at once
+    hub.stop()
+    logged = len(log_events.named("client_connected"))
+    suppressed = sum(
+        e["count"] for e in log_events.named("log_lines_suppressed") if e["suppressed_event"] == "client_connected"
+    )
+    assert logged + suppressed == 40 and logged < 40, (logged, suppressed)
+
+
 def test_out_of_descriptors_the_hub_logs_little_and_serves_on(make_hub, log_events):
     # before: asyncio's default handler logged a traceback for every failed accept (up to 100 a tick)
     import os

@@ -698,10 +698,10 @@ def test_a_websocket_from_another_origin_is_refused(web):
 def test_oversized_requests_get_a_clear_status(web):
     view = web()
     long_header = "X-Junk: " + "a" * 10000
-    assert get(view.address, "/", long_header)[0] in (400, 431)
-    assert get(view.address, "/" + "a" * 10000)[0] in (400, 414)
+    assert get(view.address, "/", long_header)[0] == 431
+    assert get(view.address, "/" + "a" * 10000)[0] == 414
     many = [f"X-H{i}: 1" for i in range(200)]
-    assert get(view.address, "/", *many)[0] in (400, 431)
+    assert get(view.address, "/", *many)[0] == 431
     view_beyond = web("0.0.0.0", token="s3cret-token")
     assert post(("127.0.0.1", view_beyond.address[1]), "/login", b"token=" + b"a" * 5000)[0] == 413
 

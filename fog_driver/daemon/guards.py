@@ -131,6 +131,12 @@ class LogRateLimiter:
                 window.summarized_s = now
         return taken
 
+    def log_suppressed(self, log: Any, now: float) -> None:
+        """One ``log_lines_suppressed`` warning on ``log`` (a structlog logger) per event with lines left out
+        since its last (``take_suppressed``); ``now=math.inf`` (a listener stopping): every count left."""
+        for event, count in self.take_suppressed(now):
+            log.warning("log_lines_suppressed", suppressed_event=event, count=count)
+
 
 class _PeerAuthFailures:
     __slots__ = ("blocked_until", "failures")

@@ -421,6 +421,7 @@ class Hub:
             if tasks:
                 await asyncio.gather(*tasks, return_exceptions=True)
             await self._server.wait_closed()
+            self._log_limiter.log_suppressed(log, math.inf)  # the last counts too: every line left out is counted once
             log.info("hub_stopped", dropped_clients=self._dropped, bytes_sent=self._bytes_sent)
 
     async def _sweep(self) -> None:
@@ -430,8 +431,7 @@ class Hub:
             now = time.monotonic()
             for client in list(self._clients.values()):
                 self._check_backlog(client, now)
-            for event, count in self._log_limiter.take_suppressed(now):
-                log.warning("log_lines_suppressed", suppressed_event=event, count=count)
+            self._log_limiter.log_suppressed(log, now)
 
     def _log(self, level: str, event: str, **fields: Any) -> None:
         """Log a per-client ``event``, unless ``log_lines_per_s`` of it were logged in this second (then count it).

@@ -37,15 +37,23 @@ cookie is HttpOnly, SameSite=Strict, lasts ``WEB_SESSION_MAX_AGE_S``, is ``Secur
 config's ``http_secure_cookies``: TLS is in front), and a new token voids every one.  Behind a reverse proxy
 listed in ``trusted_proxies`` the client's address is taken from ``X-Forwarded-For`` (for its slots and its
 backoff); from any other address the header is ignored.  Every answer carries ``SECURITY_HEADERS`` (a Content
-Security Policy, ``nosniff``, ``no-store``), redirects and errors included.
+Security Policy, ``nosniff``, ``no-store``) and ``Server: fog-driver``, redirects and errors included.  The CSP
+allows inline styles: plotly sets them (``style`` attributes, inserted ``<style>`` rules); the page's own are
+in ``view.css``.
+
+Logs: every client-caused event is one structlog line of its kind through ``_log`` (``guards.LogRateLimiter``,
+as the NDJSON listener's: ``DEFAULT_LOG_LINES_PER_S`` a second per event, the rest counted in
+``log_lines_suppressed``); a request aiohttp cannot parse included (``_handler_class``), and whatever aiohttp's
+loggers say (``_AiohttpLogBridge``): never a traceback on stderr.
 
 Limits (a misbehaving client costs itself, never the instrument): ``WEB_MAX_CONNECTIONS`` connections and
 ``WEB_MAX_CONNECTIONS_PER_PEER`` per address (beyond them the connection is closed at once), of which those without
 the token hold at most half (``guards.Slots``: a newcomer closes the oldest of them, so a client with the token
 finds a slot) and each lives at most ``WEB_UNAUTHORIZED_LIFETIME_S`` after its first request; request line and
-each header at most ``WEB_MAX_LINE_BYTES``, ``WEB_MAX_HEADERS`` headers (431/400), a body at most ``WEB_MAX_BODY_BYTES``
-(413); a request head must be complete within ``WEB_REQUEST_HEAD_TIMEOUT_S`` of the connection (the first) or of
-its first byte (the next ones on a kept-alive connection), and a request must be answered within
+each header at most ``WEB_MAX_LINE_BYTES``, ``WEB_MAX_HEADERS`` headers (414 for the request line, 431 for the
+headers; a malformed head 400: ``connections.bad_request``), a body at most ``WEB_MAX_BODY_BYTES`` (413); a
+request head must be complete within ``WEB_REQUEST_HEAD_TIMEOUT_S`` of the connection (the first) or of its first
+byte (the next ones on a kept-alive connection), and a request must be answered within
 ``WEB_REQUEST_TIMEOUT_S`` (a client that does not read its response is closed); idle keep-alive connections
 close after ``WEB_KEEPALIVE_S``; a WebSocket peer may send at most ``WEB_MAX_WS_MESSAGE_BYTES`` per
 message and ``WEB_MAX_WS_MESSAGES_PER_S`` messages a second, pings included (the page sends none; a flood is
@@ -62,6 +70,7 @@ import gzip
 import hashlib
 import importlib.resources
 import importlib.util
+import logging
 import math
 import threading
 import time
@@ -103,7 +112,7 @@ from ..limits import (
 )
 from ..loops import apply_on_loop
 from .access import AddressSet, Sessions, forwarded_client, host_name, normalize_name, origin_problem
-from .connections import CountedProtocol, TrackedConnection
+from .connections import CountedProtocol, TrackedConnection, bad_request
 from .metrics import DaemonCollector, LatencyHistogram
 from .view import DEFAULT_HISTORY_MIN, ViewState
 
@@ -125,6 +134,8 @@ SECURITY_HEADERS = {
     "Referrer-Policy": "same-origin",  # not no-referrer: its forms would post "Origin: null"
     "Cache-Control": "no-store",
 }
+#: Every answer's ``Server`` header (aiohttp's own would name Python's and aiohttp's versions).
+SERVER_HEADER = "fog-driver"
 #: What a request needs no token for: the login form, the logout, and what the form loads.
 OPEN_PATHS = frozenset({"/login", "/logout", "/static/view.css", "/favicon.ico"})
 #: Names a ``Host`` header may always give (with the listener's own addresses).
@@ -417,7 +428,8 @@ class WebView:
         loop = asyncio.get_running_loop()
         factory = runner.server
 
-        handler_class = _handler_class()
+        handler_class = _handler_class(self)
+        _route_aiohttp_logs(self)
 
         def protocol() -> Any:
             handler = factory()
@@ -445,6 +457,9 @@ class WebView:
                 browser.wakeup.set()
                 await browser.ws.close()
             await runner.cleanup()
+            if _AIOHTTP_LOGS.view is self:
+                _AIOHTTP_LOGS.view = None
+            self._log_limiter.log_suppressed(log, math.inf)  # the last counts too: every line left out is counted once
 
     def _drain(self) -> None:
         view, inbox = self.view, self.inbox
@@ -509,8 +524,7 @@ class WebView:
         while True:
             await asyncio.sleep(min(WEB_SWEEP_EVERY_S, WEB_REQUEST_HEAD_TIMEOUT_S / 2, WEB_UNAUTHORIZED_LIFETIME_S / 2))
             now = time.monotonic()
-            for event, count in self._log_limiter.take_suppressed(now):
-                log.warning("log_lines_suppressed", suppressed_event=event, count=count)
+            self._log_limiter.log_suppressed(log, now)
             for handler, c in list(self._connections.items()):
                 if c.head_since_s is not None and now - c.head_since_s > WEB_REQUEST_HEAD_TIMEOUT_S:
                     reason = f"no complete request head within {WEB_REQUEST_HEAD_TIMEOUT_S:g} s"
@@ -558,13 +572,18 @@ class WebView:
                 connection.request_since_s = None
 
     def _screen(self, request: Any, connection: TrackedConnection | None) -> tuple[Any, str]:
-        """What every request must pass, token or not: its method, its ``Host`` (400, 421), the client's address
-        behind a trusted proxy (400: a bad ``X-Forwarded-For``; 503: no slot for it), its ``Origin`` (403).
+        """What every request must pass, token or not: its method (405), its target (400 unless a path: an
+        absolute-form target names an authority the ``Host`` check never saw), its ``Host`` (400, 421), the
+        client's address behind a trusted proxy (400: a bad ``X-Forwarded-For``; 503: no slot for it), its
+        ``Origin`` (403).
         Returns the response refusing it (None: it passes) and the client's address (``_peer``)."""
         web = self._web()
         peer = _peer(request)
         if request.method not in ("GET", "HEAD", "POST"):
             raise web.HTTPMethodNotAllowed(request.method, ["GET", "HEAD", "POST"])
+        if not request.raw_path.startswith("/"):  # absolute form (``GET http://host/path``): another authority
+            self._log("warning", "web_absolute_target_refused", peer=peer, target=request.raw_path[:100])
+            return web.Response(status=400, text="400: a request target must be a path (no scheme, no host)\n"), peer
         hosts = request.headers.getall("Host", [])
         if len(hosts) != 1 or host_name(hosts[0]) is None:
             return web.Response(status=400, text="400: a request needs one valid Host header\n"), peer
@@ -855,26 +874,94 @@ def _angles_only(message: dict) -> dict:
 
 
 def _add_security_headers(response: Any) -> None:
-    """``SECURITY_HEADERS`` on ``response``, unless it set one of them itself (a static asset's cache rule)."""
+    """``SECURITY_HEADERS`` on ``response``, unless it set one of them itself (a static asset's cache rule), and
+    ``Server: fog-driver`` in place of aiohttp's."""
     for key, value in SECURITY_HEADERS.items():
         response.headers.setdefault(key, value)
+    response.headers["Server"] = SERVER_HEADER
 
 
-@functools.cache
-def _handler_class() -> type:
-    """aiohttp's connection handler, whose own error answers (a malformed request, before any route) carry
-    ``SECURITY_HEADERS`` too."""
+def _handler_class(view: WebView) -> type:
+    """aiohttp's connection handler for ``view``'s connections, with its own error answers: a request aiohttp
+    could not parse (before any route) gets its status (``connections.bad_request``: 400, 414 or 431) and one
+    line of its kind through ``view._log`` (rate-limited), never aiohttp's traceback; a route that failed (500)
+    or timed out (504) gets one rate-limited line too.  Every such answer carries ``SECURITY_HEADERS``."""
+    from aiohttp import web  # optional extra: web
+    from aiohttp.http_exceptions import HttpProcessingError  # optional extra: web
     from aiohttp.web_protocol import RequestHandler  # optional extra: web
 
     class _Handler(RequestHandler):
-        __slots__ = ()
+        __slots__ = ()  # the instance is aiohttp's, its class swapped: the same layout
 
         def handle_error(self, request: Any, status: int = 500, exc: Any = None, message: Any = None) -> Any:
-            response = super().handle_error(request, status, exc, message)
+            if request.writer.output_size > 0:  # (as aiohttp's) a response began: none can follow
+                raise ConnectionError("a response was sent already: no error answer can follow it")
+            peer = peer_address(request.remote or "?")
+            if isinstance(exc, HttpProcessingError):
+                connection = view._connections.get(self)
+                status, event, fields = bad_request(exc, connection.head_start if connection else b"")
+                view._log("warning", event, peer=peer, status=status, **fields)
+                text = f"{status}: {_BAD_REQUEST_TEXT.get(event, 'a malformed request')}\n"
+            elif status == 504:
+                view._log("warning", "web_request_timed_out", peer=peer, path=request.path[:100])
+                text = "504: the request was not answered in time\n"
+            else:
+                view._log("error", "web_request_failed", peer=peer, path=request.path[:100], error=repr(exc)[:300])
+                text = f"{status}: internal error (the daemon's log says which)\n"
+            response = web.Response(status=status, text=text)
+            response.force_close()
             _add_security_headers(response)
             return response
 
     return _Handler
+
+
+#: What a request aiohttp could not parse is told, by its log event (``connections.bad_request``).
+_BAD_REQUEST_TEXT = {
+    "web_request_line_too_long": f"the request line is over {WEB_MAX_LINE_BYTES} bytes",
+    "web_request_header_too_long": f"a header is over {WEB_MAX_LINE_BYTES} bytes",
+    "web_request_too_many_headers": f"more than {WEB_MAX_HEADERS} headers",
+    "web_request_without_host": "a request needs one valid Host header",
+    "web_request_duplicate_header": "a header that may come once came twice",
+}
+
+
+class _AiohttpLogBridge(logging.Handler):
+    """What aiohttp itself logs (its ``aiohttp`` loggers: ``aiohttp.server``, ``aiohttp.access``,
+    ``aiohttp.web``, ``aiohttp.websocket``, ``aiohttp.internal``), as one rate-limited JSON line each
+    (``web_aiohttp_message``, through the running listener's ``_log``), never a traceback: unconfigured,
+    Python's last-resort handler would print each record and its traceback on stderr."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.view: WebView | None = None
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            message = record.getMessage()
+        except Exception:  # noqa: BLE001 - a record that cannot format itself is still one line
+            message = str(record.msg)
+        error = record.exc_info[1] if record.exc_info else None
+        fields = {"logger": record.name, "message": message[:300], "error": repr(error)[:300] if error else None}
+        level = "error" if record.levelno >= logging.ERROR else "warning"
+        view = self.view
+        if view is not None:
+            view._log(level, "web_aiohttp_message", **fields)
+        else:
+            getattr(log, level)("web_aiohttp_message", **fields)
+
+
+_AIOHTTP_LOGS = _AiohttpLogBridge()
+
+
+def _route_aiohttp_logs(view: WebView) -> None:
+    """Send aiohttp's own log records to ``_AIOHTTP_LOGS`` (on ``view``'s rate limit), and nowhere else."""
+    aiohttp_log = logging.getLogger("aiohttp")
+    if _AIOHTTP_LOGS not in aiohttp_log.handlers:
+        aiohttp_log.addHandler(_AIOHTTP_LOGS)
+    aiohttp_log.propagate = False
+    aiohttp_log.setLevel(logging.WARNING)
+    _AIOHTTP_LOGS.view = view
 
 
 def _login_page(problem: str | None) -> str:
