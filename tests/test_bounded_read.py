@@ -86,13 +86,35 @@ def _not_regular(tmp_path: Path, kind: str, unix_socket: Path) -> tuple[Path, st
     return link, "a character device"
 
 
-@pytest.mark.parametrize("kind", ["dev-zero", "fifo", "directory", "socket"])
-def test_a_yaml_file_that_is_dev_zero_a_fifo_a_directory_or_a_socket_is_one_line_at_once(tmp_path, kind, unix_socket):
+@pytest.mark.parametrize("kind", ["fifo", "directory", "socket"])
+def test_a_yaml_file_that_is_a_fifo_a_directory_or_a_socket_is_one_line_at_once(tmp_path, kind, unix_socket):
     path, what = _not_regular(tmp_path, kind, unix_socket)
     outcome = _returned_within_the_guard(lambda: read_yaml_text(path, "adaptation state file"), path)
     assert isinstance(outcome, InputFileError), outcome
     assert str(outcome) == f"{path}: not a regular file (it is {what}): an adaptation state file must be one"
     assert stat.S_ISREG(os.stat(path).st_mode) is False  # (what was refused is indeed no regular file)
+
+
+def test_a_yaml_file_that_is_a_symlink_to_dev_zero_is_one_line(tmp_path, unix_socket):
+    """In a process of its own, under the address space limit: the reader of before read /dev/zero until the
+    memory ran out."""
+    path, _ = _not_regular(tmp_path, "dev-zero", unix_socket)
+    read = (
+        "import sys\nfrom fog_driver.files.yamlio import read_yaml_text\n"
+        "try:\n    read_yaml_text(sys.argv[1], 'state file')\nexcept Exception as exc:\n    print(exc)\n"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", read, str(path)],
+        capture_output=True,
+        text=True,
+        timeout=GUARD_S,
+        preexec_fn=_limit_address_space,
+    )
+    assert (proc.returncode, proc.stdout, proc.stderr) == (
+        0,
+        f"{path}: not a regular file (it is a character device): a state file must be one\n",
+        "",
+    )
 
 
 def test_a_file_larger_than_the_limit_is_refused_and_a_symlink_to_a_regular_file_is_read(tmp_path):
@@ -173,6 +195,15 @@ def test_a_capture_or_a_table_log_that_is_a_fifo_dev_zero_or_a_directory_is_one_
     proc = _command(*(a.format(capture=path) for a in command), cwd=tmp_path)
     assert_one_line_error(proc, 65, f"{path}: not a regular file (it is {what})")
     assert not (tmp_path / "o.csv").exists() and not (tmp_path / "m.yaml").exists()
+
+
+@pytest.mark.parametrize("command", ["ctl", "watch"])
+def test_ctl_or_watch_with_a_token_file_that_is_a_fifo_is_one_line_65(tmp_path, command, unix_socket):
+    """Before: the client waited for a writer of the FIFO, for ever, before it connected."""
+    fifo, _ = _not_regular(tmp_path, "fifo", unix_socket)
+    args = ["status"] if command == "ctl" else ["--count", "1"]
+    proc = _command(command, "--token-file", str(fifo), *args, cwd=tmp_path)
+    assert_one_line_error(proc, 65, f"{fifo}: not a regular file: a token file must be one")
 
 
 def _run_daemon(tmp_path: Path, config: Path) -> subprocess.CompletedProcess:
