@@ -283,3 +283,16 @@ def test_a_reload_of_a_model_path_that_became_a_fifo_is_refused_and_the_old_mode
         assert daemon.terminate() == 0
     finally:
         daemon.kill()
+
+
+@pytest.mark.parametrize("kind", ["fifo", "dev-zero", "directory"])
+def test_a_replay_port_on_a_fifo_dev_zero_or_a_directory_cannot_be_opened_and_never_waits(tmp_path, kind, unix_socket):
+    """Before: ``run --port replay://FIFO`` waited in the port's open for ever (the port stayed ``opening``)."""
+    import serial
+
+    import fog_driver.transport  # noqa: F401 (registers replay://)
+
+    path, _ = _not_regular(tmp_path, kind, unix_socket)
+    outcome = _returned_within_the_guard(lambda: serial.serial_for_url(f"replay://{path}"), path)
+    assert isinstance(outcome, serial.SerialException), outcome
+    assert str(outcome).endswith("not a regular file")
