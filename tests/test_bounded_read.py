@@ -197,6 +197,19 @@ def test_a_capture_or_a_table_log_that_is_a_fifo_dev_zero_or_a_directory_is_one_
     assert not (tmp_path / "o.csv").exists() and not (tmp_path / "m.yaml").exists()
 
 
+@pytest.mark.parametrize("kind", ["fifo", "dev-zero"])
+def test_compensate_with_an_adapt_state_on_a_fifo_or_dev_zero_refuses_it_as_an_output_73(tmp_path, kind, unix_socket):
+    """``--adapt-state`` names an input and an output: what is there is told by its content first, and a FIFO was
+    opened blocking for that look (a hang); now it is never opened."""
+    state, _ = _not_regular(tmp_path, kind, unix_socket)
+    proc = _command(
+        "compensate", str(CAPTURE), "--model", str(DEFAULT_MODEL), "--out", "o.csv", "--adapt-state", str(state),
+        cwd=tmp_path,
+    )  # fmt: skip
+    assert_one_line_error(proc, 73, f"{state}: --adapt-state exists and is not a regular file, not an adaptation state")
+    assert not (tmp_path / "o.csv").exists() and os.path.lexists(state)
+
+
 @pytest.mark.parametrize("command", ["ctl", "watch"])
 def test_ctl_or_watch_with_a_token_file_that_is_a_fifo_is_one_line_65(tmp_path, command, unix_socket):
     """Before: the client waited for a writer of the FIFO, for ever, before it connected."""
