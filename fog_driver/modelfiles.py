@@ -25,7 +25,6 @@ from .compensation.model import MODEL_FORMAT, MODEL_SCHEMA_VERSION, ModelFile, m
 from .compensation.pipeline import Compensator
 from .errors import InputFileError
 from .files.yamlio import (
-    MAX_YAML_BYTES,
     check_tagged,
     parse_yaml,
     read_tagged_yaml,
@@ -82,8 +81,12 @@ def load_model(path: str | Path) -> ModelFile:
 
     A file cut short says "model file truncated or incomplete: 'KEY' missing (it ends in or after 'LAST')"
     (``truncation``) before anything its missing part would make fail."""
+    return model_from_text(read_yaml_text(path, "model file") or "", path)
+
+
+def model_from_text(text: str, path: str | Path) -> ModelFile:
+    """The model in ``text`` read from ``path``, with ``load_model``'s checks and one-line errors."""
     where = str(path)
-    text = read_yaml_text(path, "model file") or ""
     if not text.strip():
         raise InputFileError(f"{where}: the model file is empty")
     if _begins_as_written(text) and not _has_last_line(text):  # ours, cut short: no need to parse it
@@ -164,22 +167,13 @@ def truncation(present: list[str], *, written_with_last_line: bool) -> str:
     return f"model file truncated or incomplete: {what} missing (it ends in or after {last!r})"
 
 
-def _read_bytes(path: str | Path) -> bytes | None:
-    try:
-        return Path(path).read_bytes() if Path(path).stat().st_size <= MAX_YAML_BYTES else None
-    except OSError:
-        return None
-
-
-def read_model(path: str | Path, attempts: int = 3) -> tuple[ModelFile, bytes]:
+def read_model(path: str | Path) -> tuple[ModelFile, bytes]:
     """The model file at ``path`` and the bytes it was read from (the daemon keeps a copy of them beside its
-    captures): read again when the file changed meanwhile (a fit writing it); one-line ``InputFileError``s."""
-    for _ in range(attempts):
-        before = _read_bytes(path)
-        model_file = load_model(path)  # the one-line error of a file that cannot be used
-        if before is not None and _read_bytes(path) == before:
-            return model_file, before
-    raise InputFileError(f"{path}: the model file kept changing while it was read (being written?): try again")
+    captures), from one bounded read (``read_yaml_text``): the model is the one those bytes hold, however the
+    file changes meanwhile (valid UTF-8 encodes back to the bytes it was decoded from); one-line
+    ``InputFileError``s."""
+    text = read_yaml_text(path, "model file") or ""
+    return model_from_text(text, path), text.encode("utf-8")
 
 
 def model_bytes(model_file: ModelFile) -> bytes:

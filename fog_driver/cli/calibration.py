@@ -24,11 +24,12 @@ from ..compensation.fitting.report import WORSE_MARKER
 from ..compensation.pipeline import Compensator
 from ..errors import FogDriverError, InputFileError, OutputFileError, UsageError
 from ..extras import require_extra
+from ..files.bounded import read_regular
 from ..files.kinds import ROW_COLUMNS
 from ..files.outputs import check_outputs, describe, refuse_captures, write_error
 from ..files.stamps import utc_now_iso
 from ..files.typed_mapping import dataclass_from_mapping
-from ..files.yamlio import read_yaml
+from ..files.yamlio import MAX_YAML_BYTES, read_yaml
 from ..formats.registry import FORMATS
 from ..modelfiles import load_model, save_model
 from ..offline.compensate import (
@@ -316,8 +317,9 @@ def cmd_compensate(args: argparse.Namespace) -> int:
 
 
 def _file_sha256(path: str | Path) -> str:
-    """The SHA-256 of a whole (small) file: a model, an adaptation state."""
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    """The SHA-256 of a whole (small) file: a model, an adaptation state, a table log (``bounded.read_regular``:
+    a regular file of at most ``MAX_YAML_BYTES``, the largest of their limits; else a one-line error)."""
+    return hashlib.sha256(read_regular(path, "file", MAX_YAML_BYTES) or b"").hexdigest()
 
 
 def _compensate_provenance(args: argparse.Namespace, model_file, capture_serial: str | None) -> dict:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import stat
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -105,13 +106,17 @@ def parse_address(
 
 def read_token(token_file: str | None = None) -> str | None:
     """The daemon's client token: the first line of ``token_file`` when given, else ``$FOG_DRIVER_TOKEN``
-    (None when neither is set).  A token file that is missing, unreadable, larger than ``MAX_TOKEN_BYTES``,
-    not UTF-8 or empty is an ``InputFileError`` (exit 65)."""
+    (None when neither is set).  A token file that is missing, unreadable, not a regular file (a FIFO, a
+    directory: never waited on), larger than ``MAX_TOKEN_BYTES``, not UTF-8 or empty is an ``InputFileError``
+    (exit 65)."""
     if token_file is None:
         return os.environ.get(TOKEN_ENV) or None
     path = Path(token_file)
-    try:
-        with path.open("rb") as f:
+    try:  # (the rule of ``files.bounded``, which this stdlib-only package cannot import: no FIFO holds the open)
+        with os.fdopen(os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC), "rb") as f:
+            if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+                raise InputFileError(f"{path}: not a regular file: a token file must be one")
+            os.set_blocking(f.fileno(), True)
             data = f.read(MAX_TOKEN_BYTES + 1)
     except OSError as exc:
         raise InputFileError(f"{path}: cannot read the token file: {exc.strerror or exc}") from None

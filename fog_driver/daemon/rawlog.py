@@ -67,8 +67,9 @@ import structlog
 
 from .. import __version__
 from ..errors import FogDriverError, OutputFileError
+from ..files.bounded import read_regular
 from ..files.stamps import utc_now_iso
-from ..files.yamlio import write_text
+from ..files.yamlio import MAX_YAML_BYTES, write_text
 from ..samples.captures import (
     KEPT_MODELS_DIR,
     CaptureWriter,
@@ -401,9 +402,9 @@ class RotatingCapture:
         if not directory.is_dir():
             return
         named = ""
-        for sidecar in self.directory.glob("*.yaml"):
-            with contextlib.suppress(OSError, UnicodeDecodeError):
-                named += sidecar.read_text(encoding="utf-8")
+        for sidecar in self.directory.glob("*.yaml"):  # (a FIFO or a huge file there: never waited on, never read)
+            with contextlib.suppress(FogDriverError, UnicodeDecodeError):
+                named += (read_regular(sidecar, "sidecar", MAX_YAML_BYTES) or b"").decode("utf-8")
         for path in directory.glob("*.yaml"):
             if path.stem in named:
                 continue

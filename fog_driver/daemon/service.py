@@ -62,6 +62,8 @@ from ..compensation.model import ModelFile
 from ..compensation.pipeline import CompensatedSample, Compensator
 from ..errors import FogDriverError, TemporaryFailure, UsageError
 from ..extras import require_extra
+from ..files.bounded import NotARegularFile, read_regular
+from ..files.yamlio import MAX_YAML_BYTES
 from ..modelfiles import adaptation_restorer, model_bytes, read_model, read_state_doc, write_state_doc
 from ..protocol import IdentityFrame
 from ..samples.sources import make_source
@@ -84,11 +86,13 @@ log = structlog.get_logger("fog_driver.daemon")
 
 
 def _file_sha256(path: str | Path) -> str | None:
-    """A file's SHA-256, or None when it cannot be read."""
+    """A model's or a state file's SHA-256, or None when it cannot be read (``bounded.read_regular``: not a regular
+    file, or larger than ``MAX_YAML_BYTES``)."""
     try:
-        return hashlib.sha256(Path(path).read_bytes()).hexdigest()
-    except OSError:
+        data = read_regular(path, "file", MAX_YAML_BYTES)
+    except FogDriverError:
         return None
+    return None if data is None else hashlib.sha256(data).hexdigest()
 
 
 class Service:
@@ -213,6 +217,8 @@ class Service:
         try:
             probe = Compensator(model_file, 0.01, adapt=AdaptConfig(), table=True)
             probe.restore_adaptation(read_state_doc(path), str(path))
+        except NotARegularFile as exc:  # (a FIFO, /dev/zero, a directory: never read, nor set aside)
+            raise ConfigError(str(exc)) from None
         except FogDriverError as exc:
             stamp = _dt.datetime.now(_dt.UTC).strftime("%Y%m%dT%H%M%SZ")
             aside = Path(f"{path}.stale-{stamp}")

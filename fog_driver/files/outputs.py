@@ -23,6 +23,7 @@ import yaml
 from ..errors import OutputFileError, UsageError
 from ..protocol import decode_bytes
 from ..protocol.wire import SYNC
+from .bounded import read_head
 from .kinds import (
     ADAPT_STATE_FORMAT,
     COMPENSATE_PROVENANCE_FORMAT,
@@ -52,11 +53,12 @@ def _kinds() -> tuple[tuple[tuple[str, str], ...], dict[str, str]]:
 
 def _names_capture(sidecar: Path, capture: Path) -> bool:
     """Whether ``sidecar`` is a capture's provenance sidecar (its ``format`` tag) naming ``capture``."""
+    head = None if sidecar == capture else read_head(sidecar, _SNIFF_BYTES + 1)
+    if head is None or len(head) > _SNIFF_BYTES:
+        return False
     try:
-        if sidecar == capture or not sidecar.is_file() or sidecar.stat().st_size > _SNIFF_BYTES:
-            return False
-        doc = yaml.safe_load(sidecar.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        doc = yaml.safe_load(head.decode("utf-8"))
+    except (UnicodeDecodeError, yaml.YAMLError):
         return False
     return isinstance(doc, dict) and doc.get("format") == PROVENANCE_FORMAT and doc.get("capture") == capture.name
 
@@ -71,10 +73,8 @@ def is_capture(path: str | Path) -> bool:
         return False
     if any(_names_capture(side, path) for side in (path.with_name(path.name + ".yaml"), path.with_suffix(".yaml"))):
         return True
-    try:
-        with path.open("rb") as f:
-            head = f.read(_CAPTURE_HEAD_BYTES)
-    except OSError:
+    head = read_head(path, _CAPTURE_HEAD_BYTES)
+    if head is None:
         return False
     counters = decode_bytes(head).counters
     return counters.sample_frames + counters.identity_frames > 0
@@ -95,10 +95,10 @@ def describe(path: str | Path) -> str:
     path = Path(path)
     if path.is_dir():
         return "a directory"
-    try:
-        with path.open("rb") as f:
-            head = f.read(_SNIFF_BYTES + 1)
-    except OSError:
+    if path.exists() and not path.is_file():  # never opened: a FIFO would hold the open, a device never end
+        return "not a regular file"
+    head = read_head(path, _SNIFF_BYTES + 1)
+    if head is None:
         return "a file"
     text_kinds, yaml_kinds = _kinds()
     for start, kind in text_kinds:

@@ -11,6 +11,7 @@ from typing import Any
 import yaml
 
 from ..errors import InputFileError, OutputFileError
+from .bounded import FileTooLarge, read_regular
 from .outputs import is_capture
 
 #: Every YAML file the project reads is small; a larger one is not what it claims to be.
@@ -96,21 +97,19 @@ def read_yaml(path: str | Path, what: str, *, missing_ok: bool = False, hint: st
 
 
 def read_yaml_text(path: str | Path, what: str, *, missing_ok: bool = False, hint: str = "") -> str | None:
-    """A YAML file's text (UTF-8, at most ``MAX_YAML_BYTES``), with ``read_yaml``'s one-line errors."""
-    path = Path(path)
+    """A YAML file's text (UTF-8, at most ``MAX_YAML_BYTES``), with ``read_yaml``'s one-line errors: read by
+    ``bounded.read_regular`` (a regular file only, never more than the limit read, whatever ``stat`` says)."""
     try:
-        if path.is_dir():
-            raise InputFileError(f"{path}: is a directory, not a {what}")
-        if path.stat().st_size > MAX_YAML_BYTES:
-            _not_a_capture(path, what)
-            raise InputFileError(f"{path}: {what} larger than {MAX_YAML_BYTES} bytes")
-        return path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        if missing_ok:
-            return None
-        raise InputFileError(f"{path}: no such {what}{hint}") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        _not_a_capture(path, what)
+        data = read_regular(path, what, MAX_YAML_BYTES, missing_ok=missing_ok, hint=hint)
+    except FileTooLarge:
+        _not_a_capture(Path(path), what)
+        raise
+    if data is None:
+        return None
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        _not_a_capture(Path(path), what)
         raise InputFileError(f"{path}: cannot read {what}: {exc}") from None
 
 

@@ -35,8 +35,9 @@ from ..compensation.model import ModelFile
 from ..compensation.offsets import PublishOffsets
 from ..compensation.pipeline import Compensator
 from ..errors import FogDriverError
+from ..files.bounded import read_regular
 from ..files.yamlio import MAX_YAML_BYTES
-from ..modelfiles import load_model
+from ..modelfiles import model_from_text
 from ..samples.captures import kept_model_path
 from ..samples.stream import SampleBlock
 
@@ -98,10 +99,11 @@ def kept_model(capture_path: str | Path | None, sha256: Any) -> ModelFile | None
         return None
     path = kept_model_path(capture_path, sha256)
     try:
-        if path.stat().st_size > MAX_YAML_BYTES or hashlib.sha256(path.read_bytes()).hexdigest() != sha256:
+        data = read_regular(path, "model file", MAX_YAML_BYTES, missing_ok=True)
+        if data is None or hashlib.sha256(data).hexdigest() != sha256:
             return None
-        return load_model(path)
-    except (OSError, FogDriverError):
+        return model_from_text(data.decode("utf-8"), path)
+    except (UnicodeDecodeError, FogDriverError):
         return None
 
 

@@ -82,7 +82,8 @@ import numpy as np
 from ..compensation.dwell import DWELL_TRIM_S, reference_deg, table_angle_deg, trimmed_window
 from ..compensation.model import ModelFile
 from ..compensation.pipeline import FLAG_UNCOMPENSATED
-from ..errors import InputFileError, UsageError, read_error
+from ..errors import InputFileError, UsageError
+from ..files.bounded import read_regular
 from ..modelfiles import load_model
 from ..offline.compensate import compensate_capture
 from ..samples.captures import find_sidecar, read_provenance
@@ -182,15 +183,8 @@ def _check_order(stops: list[Stop], start: float, end: float, where: str) -> Non
 def read_reference_csv(path: str | Path) -> list[Stop]:
     """A station's turntable reference (format: the module docstring, ``REFERENCE_CSV_FORMAT``)."""
     path = Path(path)
-    try:
-        size = path.stat().st_size
-        if size > MAX_REFERENCE_BYTES:
-            raise InputFileError(f"{path}: reference CSV is {size:,} bytes, over the limit of {MAX_REFERENCE_BYTES:,}")
-        data = path.read_bytes()
-    except InputFileError:
-        raise
-    except OSError as exc:
-        raise read_error(path, "reference CSV", exc) from None
+    over = f"reference CSV over the limit of {MAX_REFERENCE_BYTES:,} bytes"
+    data = read_regular(path, "reference CSV", MAX_REFERENCE_BYTES, too_large=over) or b""
     try:
         text = data.decode("utf-8-sig")
     except UnicodeDecodeError:

@@ -23,6 +23,7 @@ from typing import Any, BinaryIO
 import numpy as np
 
 from ..errors import InputFileError, OutputFileError
+from ..files.bounded import open_regular
 from ..files.kinds import PROVENANCE_FORMAT
 from ..files.yamlio import read_yaml, write_yaml
 from ..formats.registry import sniff_file
@@ -85,19 +86,10 @@ def find_sidecar(capture_path: str | Path) -> Path | None:
 
 
 def _capture_size(path: Path) -> int:
-    """The size of a capture file, with a clear ``InputFileError`` for a missing, unreadable or empty one."""
-    try:
-        if path.is_dir():
-            raise InputFileError(f"{path}: is a directory, not a capture file")
-        size = path.stat().st_size
-        with path.open("rb"):
-            pass
-    except FileNotFoundError:
-        raise InputFileError(f"{path}: no such capture file") from None
-    except PermissionError:
-        raise InputFileError(f"{path}: permission denied") from None
-    except OSError as exc:
-        raise InputFileError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    """The size of a capture file, with a clear ``InputFileError`` for a missing, unreadable or empty one, or one
+    that is not a regular file (``bounded.open_regular``: a directory, a FIFO, a device such as ``/dev/zero``)."""
+    with open_regular(path, "capture file") as f:
+        size = os.fstat(f.fileno()).st_size
     if size == 0:
         raise InputFileError(f"{path}: empty file, not a capture")
     return size

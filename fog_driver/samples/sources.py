@@ -44,6 +44,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from ..errors import InputFileError
+from ..files.bounded import open_regular
 from ..formats.common import (
     AXES,
     FLAG_OVER_RANGE,
@@ -622,7 +623,7 @@ def capture_format(path: str | Path, requested: str = "auto") -> tuple[str, dict
     are an ``InputFileError`` naming what the sniffer saw."""
     doc = read_provenance(path) or {}
     try:
-        with open(path, "rb") as f:
+        with open_regular(path, "capture file") as f:  # (a FIFO, a device, a directory: one line)
             head = f.read(SNIFF_BYTES)
     except OSError as exc:
         raise InputFileError(f"{path}: cannot read the capture: {exc.strerror or exc}") from None

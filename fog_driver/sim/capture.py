@@ -32,6 +32,7 @@ import numpy as np
 
 from .. import __version__
 from ..errors import FogDriverError, InputFileError, OutputFileError, UsageError, read_error
+from ..files.bounded import open_regular
 from ..files.kinds import TRUTH_HEADER
 from ..files.outputs import check_outputs, write_error
 from ..files.stamps import utc_now_iso
@@ -158,11 +159,12 @@ def write_truth_rows(f, rows: np.ndarray) -> None:
 
 def read_truth(path: str | Path) -> dict[str, np.ndarray]:
     """The truth file as named columns (plain numbers; no pickle, no code); a missing, unreadable or
-    malformed file is a one-line ``InputFileError``."""
+    malformed file, or one that is not a regular file (``bounded.open_regular``), is a one-line
+    ``InputFileError``.  Read as it streams (one row a device second: no size limit)."""
     try:
-        with warnings.catch_warnings():  # a file with no rows: numpy's warning besides the one line below
-            warnings.simplefilter("ignore", UserWarning)
-            data = np.loadtxt(path, delimiter=",", comments="#", skiprows=2, ndmin=2)
+        with open_regular(path, "truth file") as f, warnings.catch_warnings():  # (numpy's warning of no rows:
+            warnings.simplefilter("ignore", UserWarning)  # the one line below says it)
+            data = np.loadtxt(f, delimiter=",", comments="#", skiprows=2, ndmin=2)
     except OSError as exc:
         raise read_error(path, "truth file", exc) from None
     except ValueError as exc:

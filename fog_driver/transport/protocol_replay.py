@@ -52,6 +52,7 @@ import math
 import mmap
 import numbers
 import os
+import stat
 import threading
 import time
 import urllib.parse
@@ -141,8 +142,14 @@ def replay_schedule(capture: bytes | str | Path) -> np.ndarray:
 
 
 def _map_file(path: Path) -> bytes | mmap.mmap:
-    """The file's bytes, memory-mapped read-only (the OS pages a long capture in as it is read)."""
-    with path.open("rb") as f:
+    """The file's bytes, memory-mapped read-only (the OS pages a long capture in as it is read).  A path that is not a
+    regular file (a FIFO, a device, a directory) is an ``OSError``: opened without blocking, never waited on (the
+    rule of ``files.bounded``, a layer this one cannot import)."""
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise OSError(errno.EINVAL, "not a regular file")
+    with os.fdopen(fd, "rb") as f:
         if os.fstat(f.fileno()).st_size == 0:
             return b""
         return mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
