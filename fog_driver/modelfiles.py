@@ -72,8 +72,19 @@ def model_text(model_file: ModelFile) -> str:
 
 
 def save_model(path: str | Path, model_file: ModelFile) -> Path:
-    """Write ``model_text(model_file)`` to ``path`` (atomically; ``OutputFileError`` on failure)."""
-    return write_text(path, model_text(model_file), "model")
+    """Write ``model_text(model_file)`` to ``path`` (atomically; ``OutputFileError`` on failure).
+
+    The text is first read back with ``model_from_text``, the checks every reader applies (every number finite
+    and within ``model_checks.MAX_MODEL_NUMBER``, the counts within what a model may hold): a model that would
+    not load is not written (``InputFileError``: what the data made of it), so no file the daemon would refuse
+    is ever saved."""
+    text = model_text(model_file)
+    try:
+        model_from_text(text, path)
+    except InputFileError as exc:
+        reason = str(exc).removeprefix(f"{path}: ")
+        raise InputFileError(f"{path} not written: the fitted model would not load ({reason})") from None
+    return write_text(path, text, "model")
 
 
 def load_model(path: str | Path) -> ModelFile:

@@ -183,3 +183,28 @@ def test_a_model_or_a_config_with_an_integer_of_5000_digits_is_one_line(tmp_path
     assert start.stderr.splitlines() == [
         f"fog-driver: error: {config}: config file holds an integer of over 4,300 digits"
     ]
+
+
+@pytest.mark.parametrize("weight", [MAX_MODEL_NUMBER * 10, float("nan")])
+def test_a_fit_whose_model_would_not_load_writes_no_file_and_says_why(tmp_path, weight):
+    """``save_model`` reads its own text back with every reader's checks: the fit never writes a model that
+    the daemon would refuse at start (a weight beyond the bound, or NaN, made by degenerate data)."""
+    from fog_driver.modelfiles import save_model
+
+    model_file = load_model(DEFAULT_MODEL)
+    model_file.model.weights[0] = weight
+    out = tmp_path / "fitted.yaml"
+    with pytest.raises(InputFileError) as info:
+        save_model(out, model_file)
+    message = str(info.value)
+    assert message.startswith(f"{out} not written: the fitted model would not load (") and "\n" not in message
+    assert "weights" in message
+    assert not out.exists() and list(tmp_path.iterdir()) == []
+
+
+def test_a_fitted_model_within_the_bounds_is_written_and_reads_back_the_same(tmp_path):
+    from fog_driver.modelfiles import model_text, save_model
+
+    model_file = load_model(DEFAULT_MODEL)
+    out = save_model(tmp_path / "fitted.yaml", model_file)
+    assert model_text(load_model(out)) == model_text(model_file)
