@@ -113,3 +113,51 @@ def test_a_first_signal_never_forces_even_when_stop_is_already_set():
         os.kill(os.getpid(), signal.SIGUSR1)  # the first: a clean stop, never KeyboardInterrupt
         with pytest.raises(KeyboardInterrupt):
             os.kill(os.getpid(), signal.SIGUSR1)  # the second forces
+
+
+@pytest.fixture
+def hangups_restored(monkeypatch):
+    """``defer_hangups`` in this process: SIGHUP's handler and the count given back after the test."""
+    from fog_driver import signals
+
+    previous = signal.getsignal(signal.SIGHUP)
+    monkeypatch.setattr(signals, "_hangups", None)
+    yield
+    signal.signal(signal.SIGHUP, previous)
+
+
+def test_sighups_before_the_dispatcher_are_counted_and_one_action_is_delivered(hangups_restored):
+    """What ``run`` does with SIGHUPs that come while it starts: counted (not its default action, the end of
+    the process), then one action queued in the dispatcher once it is in place."""
+    from fog_driver.signals import defer_hangups, deferred_hangups
+
+    assert deferred_hangups() is None
+    defer_hangups()
+    os.kill(os.getpid(), signal.SIGHUP)  # the Python-level handler has run when this returns
+    os.kill(os.getpid(), signal.SIGHUP)
+    defer_hangups()  # again (the command line's two steps): the count goes on
+    assert deferred_hangups() == 2
+    counting = signal.getsignal(signal.SIGHUP)
+    seen: list[tuple[int, bool]] = []
+    done = threading.Event()
+
+    def on_signal(signum: int) -> None:
+        seen.append((signum, threading.current_thread() is threading.main_thread()))
+        done.set()
+
+    with SignalDispatcher([signal.SIGHUP], on_signal) as dispatcher:
+        dispatcher.deliver(signal.SIGHUP)
+        assert done.wait(GUARD_S)
+    assert seen == [(signal.SIGHUP, False)]
+    assert signal.getsignal(signal.SIGHUP) is counting  # given back: a SIGHUP at the exit is counted, not fatal
+
+
+def test_a_dispatcher_for_a_process_that_ends_leaves_its_signals_ignored():
+    """``run``'s: a second Ctrl-C once the stop is done (the process exiting) must not end it by SIGINT."""
+    before = signal.getsignal(signal.SIGUSR1)
+    try:
+        with SignalDispatcher([signal.SIGUSR1], lambda s: None, ignore_after=True):
+            pass
+        assert signal.getsignal(signal.SIGUSR1) == signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGUSR1, before)

@@ -217,14 +217,15 @@ def test_disconnect_unplugs_the_pty_and_a_reader_reconnects_through_the_link(tmp
 def test_link_refuses_to_replace_a_regular_file(tmp_path: Path) -> None:
     path = tmp_path / "not-a-link"
     path.write_text("precious")
-    with pytest.raises(OutputFileError, match="not a symlink"):
+    with pytest.raises(OutputFileError, match="the path is a regular file, not a link of ours"):
         PtyServer(path)
     assert path.read_text() == "precious"
 
 
-def test_link_replaces_an_existing_symlink_and_is_removed_on_close(tmp_path: Path) -> None:
+def test_link_replaces_a_stale_symlink_and_is_removed_on_close(tmp_path: Path) -> None:
+    """A symlink whose target is gone (the pty of a run that ended without removing its link) is replaced."""
     link = tmp_path / "ttyFOG0"
-    link.symlink_to("/dev/null")
+    link.symlink_to(tmp_path / "pts-of-a-run-that-ended")
     with PtyServer(link) as server:
         assert os.readlink(link) == server.slave_path
         server.cut()

@@ -18,13 +18,23 @@ import structlog
 
 from ..console import configure_logging
 from ..errors import FogDriverError, InternalError
+from ..signals import defer_hangups, undefer_hangups
 from .parser import build_parser, command_in
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Parse ``argv`` (default: the process's arguments), run the command, and return the exit status."""
+    """Parse ``argv`` (default: the process's arguments), run the command, and return the exit status.
+
+    With no ``argv`` this is the whole process (the ``fog-driver`` command, ``python -m fog_driver``): ``run``
+    then defers SIGHUP before its modules load (its default action would end the daemon while it loads; see
+    ``fog_driver.signals.defer_hangups``).  Called with ``argv`` (in-process) no signal handler is touched here."""
+    whole_process = argv is None
     argv = sys.argv[1:] if argv is None else list(argv)
     command = command_in(argv)
+    if whole_process and command == "run":
+        defer_hangups()  # before the daemon's modules load (about 0.4 s); fog_driver.cli.main may have already
+    elif whole_process:
+        undefer_hangups()  # "run" was only a word (a file's name): SIGHUP's default action again
     parser = build_parser([] if command is None else [command])
     args = parser.parse_args(argv)
     configure_logging(args.verbose, args.log_format)

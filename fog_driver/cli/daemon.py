@@ -19,7 +19,7 @@ from ..daemon.service import ConfigError, Service
 from ..errors import DeviceError, FogDriverError, InternalError
 from ..extras import require_extra
 from ..formats.registry import FORMATS
-from ..signals import SignalDispatcher
+from ..signals import SignalDispatcher, deferred_hangups
 from ..sim.instrument import Simulator
 from ..sim.profiles import load_profile
 from ..sim.serve import serve_pty
@@ -75,18 +75,36 @@ def cmd_run(args: argparse.Namespace) -> int:
             simulator.join(timeout=10)
         raise
 
+    log = structlog.get_logger("fog_driver.daemon")
+    stopping_said = [False]
+
     def on_signal(signum: int) -> None:
-        """In the signal dispatcher's thread: a reload never runs inside a handler, nor twice at once."""
+        """In the signal dispatcher's thread: a reload never runs inside a handler, nor twice at once.  Once
+        stopping, every signal is left to the stop under way (said once): a second Ctrl-C must not cut it short."""
+        if stop.is_set():
+            if not stopping_said[0]:
+                stopping_said[0] = True
+                log.info("already_stopping", signal=signal.Signals(signum).name, detail="the stop under way completes")
+            return
         if signum == signal.SIGHUP:  # reload the config file and the model, without stopping
             try:
                 service.reload_config(read_config())
             except (FogDriverError, ValueError) as exc:  # keep running with what is in use
-                structlog.get_logger("fog_driver.daemon").error("config_reload_failed", reason=str(exc))
+                log.error("config_reload_failed", reason=str(exc))
             return
         stop.set()
 
+    # The fog-driver command (``defer_hangups`` ran): the process ends with this function, and from the stop on
+    # no signal may end it halfway; in-process (a test) the handlers are given back.
+    whole_process = deferred_hangups() is not None
     try:
-        with SignalDispatcher((signal.SIGINT, signal.SIGTERM, signal.SIGHUP), on_signal):
+        with SignalDispatcher(
+            (signal.SIGINT, signal.SIGTERM, signal.SIGHUP), on_signal, ignore_after=whole_process
+        ) as dispatcher:
+            hangups = deferred_hangups()
+            if hangups:  # SIGHUPs while starting: one reload now that it runs (the files may have changed since)
+                log.info("sighup_during_start", count=hangups, detail="reloading once, now that the daemon runs")
+                dispatcher.deliver(signal.SIGHUP)
             # The readiness line comes after the handlers: a signal sent on seeing it is handled.
             print(_readiness_line(service, port, host, listen_port), flush=True)
             status = service.run_until_stopped()

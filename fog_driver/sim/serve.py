@@ -16,13 +16,16 @@ bytes are already missing from ``sim.stream``), ``on_cut()`` is called once the
 window's first frame is due (after the half frame that was on the wire when the
 cable came out) and ``on_reconnect()`` when the first frame after the window is due.
 
-``serve_pty`` serves on a fresh raw pty behind a stable symlink (like a udev
-rule's ``/dev/ttyFOG0``): a disconnect window unplugs the pty (readers get EIO,
-exactly as from a pulled USB adapter) and removes the symlink; after the window
-a new pty is made and the symlink points at it, so a reader that reconnects
-through the symlink gets the stream again.  Without a link (``link=None``: the
-daemon's own demonstration, which reads the pty it made) there is no symlink.  ``serve_device`` writes to a serial
-device or pyserial URL.  ``serve_cli`` is ``fog-driver simulate --serve``.
+``serve_pty`` serves on a fresh raw pty, behind a stable symlink only when given one (``link``, like a udev
+rule's ``/dev/ttyFOG0``; ``fog-driver simulate --serve pty`` gives ``DEFAULT_LINK`` or ``--link``): a
+disconnect window unplugs the pty (readers get EIO, exactly as from a pulled USB adapter) and removes the
+symlink; after the window a new pty is made and the symlink points at it, so a reader that reconnects
+through the symlink gets the stream again.  Without a link (``link=None``, the default: the daemon's own
+demonstration, which reads the pty it made) no symlink is made, re-pointed or removed.  A link path may only
+be missing or a stale symlink (its target gone: a run that ended without removing it); a regular file, a
+directory or a symlink to something that exists (another simulator's pty, a device) is in the way: a one-line
+``OutputFileError`` (exit 73), nothing replaced.  ``serve_device`` writes to a serial device or pyserial URL.
+``serve_cli`` is ``fog-driver simulate --serve``.
 """
 
 from __future__ import annotations
@@ -55,6 +58,7 @@ __all__ = [
     "DEFAULT_LINK",
     "PtyServer",
     "ServeStats",
+    "check_link_path",
     "serve",
     "serve_cli",
     "serve_device",
@@ -301,14 +305,44 @@ def _log_end(stats: ServeStats) -> None:
 # -- a pty behind a stable symlink --------------------------------------------------------------
 
 
+def check_link_path(link: str | os.PathLike[str]) -> None:
+    """Refuse a link path that is in the way (``OutputFileError``, exit 73, one line): the path may be missing
+    or a stale symlink, whose target is gone (a run that ended without removing its link: replaced).  A regular
+    file, a directory or anything else, and a symlink to something that exists (another simulator's pty, a
+    device, a file) are not ours to replace."""
+    in_the_way = None
+    try:
+        st = os.lstat(link)
+    except FileNotFoundError:
+        return
+    except OSError as exc:
+        raise OutputFileError(f"--link {link}: {exc.strerror or exc}") from None
+    if stat.S_ISLNK(st.st_mode):
+        target = os.readlink(link)
+        if os.path.exists(link):
+            in_the_way = f"a symlink to {target}, which exists (another simulator's pty?)"
+    elif stat.S_ISDIR(st.st_mode):
+        in_the_way = "a directory"
+    elif stat.S_ISREG(st.st_mode):
+        in_the_way = "a regular file"
+    else:
+        in_the_way = "not a symlink"
+    if in_the_way is not None:
+        raise OutputFileError(
+            f"--link {link}: the path is {in_the_way}, not a link of ours; "
+            "remove it or give another --link PATH (nothing was replaced)"
+        )
+
+
 def _unread_bytes(fd: int) -> int:
     """Bytes waiting in a tty's input queue (``FIONREAD``)."""
     return struct.unpack("i", fcntl.ioctl(fd, termios.FIONREAD, b"\0\0\0\0"))[0]
 
 
 class PtyServer:
-    """A raw pty for the simulated instrument, reachable through the stable symlink ``link`` (None: no symlink,
-    the pty's own path only).
+    """A raw pty for the simulated instrument, reachable through the stable symlink ``link`` (None, the default:
+    no symlink, the pty's own path only).  A path in the link's way (anything but nothing or a stale symlink,
+    ``check_link_path``) is a one-line ``OutputFileError``.
 
     ``write`` never waits longer than ``write_timeout_s``: bytes the pty does not accept in time
     (nobody reading, or a reader far behind) are lost, as on a real UART, and counted.
@@ -316,7 +350,7 @@ class PtyServer:
     the symlink at it.  ``close()`` unplugs and removes the symlink (if it is still ours).
     """
 
-    def __init__(self, link: str | os.PathLike[str] | None = DEFAULT_LINK, *, write_timeout_s: float = 0.01) -> None:
+    def __init__(self, link: str | os.PathLike[str] | None = None, *, write_timeout_s: float = 0.01) -> None:
         self.link = Path(link) if link is not None else None
         self.write_timeout_s = write_timeout_s
         self.dropped_bytes = 0
@@ -330,16 +364,8 @@ class PtyServer:
     # -- the symlink ------------------------------------------------------------------------
 
     def _check_link(self) -> None:
-        if self.link is None:
-            return
-        try:
-            st = os.lstat(self.link)
-        except FileNotFoundError:
-            return
-        except OSError as exc:
-            raise OutputFileError(f"--link {self.link}: {exc.strerror or exc}") from None
-        if not stat.S_ISLNK(st.st_mode):
-            raise OutputFileError(f"--link {self.link}: exists and is not a symlink; refusing to replace it")
+        if self.link is not None:
+            check_link_path(self.link)
 
     def _point_link(self, target: str) -> None:
         """Make ``link`` point at ``target`` atomically (readers never see it half made); no link: nothing."""
@@ -453,7 +479,7 @@ class PtyServer:
 def serve_pty(
     sim: Simulator,
     *,
-    link: str | os.PathLike[str] | None = DEFAULT_LINK,
+    link: str | os.PathLike[str] | None = None,
     duration_s: float | None = None,
     stop: threading.Event | None = None,
     speed: float = 1.0,
@@ -463,7 +489,7 @@ def serve_pty(
     on_ready: Callable[[PtyServer], Any] | None = None,
     warn_behind: bool = True,
 ) -> ServeStats:
-    """Serve ``sim`` on a new raw pty behind the symlink ``link`` (default ``DEFAULT_LINK``; None: no symlink).
+    """Serve ``sim`` on a new raw pty, behind the symlink ``link`` if given (None, the default: no symlink).
 
     ``on_ready(server)`` is called once the pty and the symlink exist, before the first byte
     (``server.slave_path``, ``server.link``).  Disconnect windows unplug the pty and bring up a new
@@ -622,8 +648,10 @@ def serve_cli(sim: Simulator, args: Any) -> int:
     """``fog-driver simulate --serve pty|DEVICE``: a readiness line, the stream, a summary line.
 
     The readiness line (stdout, flushed) is ``serving <profile> at <rate> Hz on <path> (link <link>)``
-    for a pty and ``serving <profile> at <rate> Hz on <device> at <baud> baud`` for a device.
-    SIGINT and SIGTERM end the stream cleanly (a second one interrupts at once).
+    for a pty and ``serving <profile> at <rate> Hz on <device> at <baud> baud`` for a device.  The pty's link is
+    ``--link PATH`` (default ``DEFAULT_LINK``); a path in its way (``check_link_path``) is one line, exit 73, before
+    any pty is made.  SIGINT and SIGTERM end the stream cleanly (a second one interrupts at once) and remove the
+    link if it still points at the pty.
     """
     speed = getattr(args, "speed", None)
     speed = 1.0 if speed is None else float(speed)
