@@ -203,8 +203,8 @@ STATE_FIRST_LINE = f"format: {ADAPT_STATE_FORMAT}\n"
 def not_a_state_file(path: str | Path) -> str | None:
     """What the file at ``path`` is when it is not an adaptation state, judged by its content: None when nothing
     is there (nor a symlink's target) or it is an adaptation state, else what it is ("a fitted model", "a
-    capture", "a capture's provenance sidecar (of run1.bin)", "a directory", "not a regular file", "an empty
-    file", "a file without 'format: ...'": ``outputs.describe``'s names).
+    capture", "a capture's provenance sidecar (of run1.bin)", "a directory", "an empty file", "a file without
+    'format: ...'": ``outputs.describe``'s names; "a FIFO, a socket or a device (not a regular file)").
 
     An adaptation state is a file that begins with ``STATE_FIRST_LINE``, as ``write_state_doc`` writes every
     one (whatever follows: a state cut short, or corrupt in its fields, is still one), or a YAML mapping tagged
@@ -217,7 +217,7 @@ def not_a_state_file(path: str | Path) -> str | None:
     if path.is_dir():
         return "a directory"
     if not path.is_file():
-        return "not a regular file"
+        return "a FIFO, a socket or a device (not a regular file)"
     try:
         with path.open("rb") as f:
             if f.read(len(STATE_FIRST_LINE)) == STATE_FIRST_LINE.encode():

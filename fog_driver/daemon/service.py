@@ -253,11 +253,12 @@ class Service:
             return None
         return _file_sha256(path)
 
-    def save_adapt_state(self, doc: dict) -> None:
+    def save_adapt_state(self, doc: dict, *, log_failure: bool = True) -> None:
         """Write the adaptation state ``doc`` (a snapshot) to ``adapt_state`` (``modelfiles.write_state_doc``:
         atomically, never over a file that is not an adaptation state), outside the lock.  An
         ``OutputFileError`` when it cannot be written, or when the state is in memory only
-        (``adapt_state_in_memory``); each distinct failure is logged once (``adapt_state_not_saved``)."""
+        (``adapt_state_in_memory``); with ``log_failure`` (``?SAVE``: else only the client would see its ERROR) each
+        distinct failure is logged once (``adapt_state_not_saved``)."""
         path = str(self.config.adapt_state)
         try:
             if path == self.adapt_state_in_memory:
@@ -267,7 +268,7 @@ class Service:
                 )
             write_state_doc(path, doc)
         except OutputFileError as exc:
-            if str(exc) not in self._save_failures_logged:
+            if log_failure and str(exc) not in self._save_failures_logged:
                 self._save_failures_logged.add(str(exc))
                 log.error("adapt_state_not_saved", reason=str(exc))
             raise
@@ -654,10 +655,12 @@ class Service:
                     on_status(status)
         finally:
             self.shutdown()
+        if self.adapt_state_not_saved is not None:
+            if self.failure is None:
+                raise self.adapt_state_not_saved  # exit 73, on one line: the state this run adapted is lost
+            log.error("adapt_state_not_saved", reason=str(self.adapt_state_not_saved))
         if isinstance(self.failure, FogDriverError):
             raise self.failure  # the CLI prints it on one line, with its exit status
-        if self.failure is None and self.adapt_state_not_saved is not None:
-            raise self.adapt_state_not_saved  # exit 73: the state this run adapted is lost
         return 0 if self.failure is None else 1
 
     def shutdown(self) -> None:
@@ -680,7 +683,7 @@ class Service:
                 doc = self.compensator.adaptation_document()
         if doc is not None:
             try:
-                self.save_adapt_state(doc)
+                self.save_adapt_state(doc, log_failure=False)  # the run ends in it (``run_until_stopped``)
             except OutputFileError as exc:
                 self.adapt_state_not_saved = exc
         if self.capture is not None and not self.capture.close(JOIN_TIMEOUT_S):
