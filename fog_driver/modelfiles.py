@@ -23,7 +23,9 @@ import yaml
 from .compensation.adapt import ADAPT_STATE_FORMAT, ADAPT_STATE_SCHEMA_VERSION, OnlineReadout, StaticDetector
 from .compensation.model import MODEL_FORMAT, MODEL_SCHEMA_VERSION, ModelFile, model_file_from_doc
 from .compensation.pipeline import Compensator
-from .errors import InputFileError
+from .errors import InputFileError, OutputFileError
+from .files.bounded import read_head
+from .files.outputs import describe
 from .files.yamlio import (
     check_tagged,
     parse_yaml,
@@ -200,8 +202,46 @@ def read_state_doc(path: str | Path) -> dict[str, Any]:
     return read_tagged_yaml(path, "adaptation state", ADAPT_STATE_FORMAT, ADAPT_STATE_SCHEMA_VERSION)
 
 
+#: The first line of every adaptation state file ``write_state_doc`` writes (its document's first key).
+STATE_FIRST_LINE = f"format: {ADAPT_STATE_FORMAT}\n"
+
+
+def not_a_state_file(path: str | Path) -> str | None:
+    """What the file at ``path`` is when it is not an adaptation state, judged by its content: None when nothing
+    is there (nor a symlink's target) or it is an adaptation state, else what it is ("a fitted model", "a
+    capture", "a capture's provenance sidecar (of run1.bin)", "a directory", "an empty file", "a file without
+    'format: ...'": ``outputs.describe``'s names; "a FIFO, a socket or a device (not a regular file)").
+
+    An adaptation state is a file that begins with ``STATE_FIRST_LINE``, as ``write_state_doc`` writes every
+    one (whatever follows: a state cut short, or corrupt in its fields, is still one), or a YAML mapping tagged
+    ``format: fog_driver adaptation state`` (one written by hand).  Only such a file may be read, set aside
+    or replaced as a state: the daemon's start check and ``compensate --adapt-state`` both ask here.  A
+    directory, a FIFO, a socket or a device is never opened."""
+    path = Path(path)
+    if not path.exists():
+        return None
+    if path.is_dir():
+        return "a directory"
+    if not path.is_file():
+        return "a FIFO, a socket or a device (not a regular file)"
+    head = read_head(path, len(STATE_FIRST_LINE))  # (opened without waiting: swapped for a FIFO, never blocks)
+    if head is None:
+        return "a file that cannot be read" if path.is_file() else "a FIFO, a socket or a device (not a regular file)"
+    if head == STATE_FIRST_LINE.encode():
+        return None
+    kind = describe(path)
+    if kind == "an adaptation state":
+        return None
+    return f"a file without {STATE_FIRST_LINE.strip()!r}" if kind == "a file" else kind
+
+
 def write_state_doc(path: str | Path, doc: dict[str, Any]) -> Path:
-    """Write a ``state_document`` to ``path`` (atomically; ``OutputFileError`` on failure)."""
+    """Write a ``state_document`` to ``path`` (atomically; ``OutputFileError`` on failure), never over a file
+    that is not an adaptation state (``not_a_state_file``): that is an ``OutputFileError`` too, "PATH: is
+    WHAT, not an adaptation state: not replaced", and the file is left as it was."""
+    kind = not_a_state_file(path)
+    if kind is not None:
+        raise OutputFileError(f"{path}: is {kind}, not an adaptation state: not replaced")
     return write_yaml(Path(path), doc, "adaptation state")
 
 

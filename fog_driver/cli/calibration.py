@@ -26,12 +26,12 @@ from ..errors import FogDriverError, InputFileError, OutputFileError, UsageError
 from ..extras import require_extra
 from ..files.bounded import read_regular
 from ..files.kinds import ROW_COLUMNS
-from ..files.outputs import check_outputs, describe, refuse_captures, write_error
+from ..files.outputs import check_outputs, refuse_captures, write_error
 from ..files.stamps import utc_now_iso
 from ..files.typed_mapping import dataclass_from_mapping
 from ..files.yamlio import MAX_YAML_BYTES, read_yaml
 from ..formats.registry import FORMATS
-from ..modelfiles import load_model, save_model
+from ..modelfiles import load_model, not_a_state_file, save_model
 from ..offline.compensate import (
     capture_facts,
     check_model,
@@ -354,10 +354,11 @@ def _compensate_provenance(args: argparse.Namespace, model_file, capture_serial:
 
 def _check_adapt_state(path: Path, *, save: bool, inputs: list) -> None:
     """``compensate --adapt-state``: read when it exists, and (``save``) replaced at the end, so an existing
-    file must be an adaptation state (by its content), and its directory must exist."""
+    file must be an adaptation state (by its content: ``modelfiles.not_a_state_file``, as the daemon's
+    ``adapt_state``), and its directory must exist."""
     if save:
         refuse_captures([path])  # a capture is never replaced, whatever it is called
-    if path.exists() and not path.is_dir() and (kind := describe(path)) != "an adaptation state":
+    if (kind := not_a_state_file(path)) not in (None, "a directory"):
         raise OutputFileError(
             f"{path}: --adapt-state exists and is {kind}, not an adaptation state; refusing to read or replace it"
         )

@@ -33,7 +33,6 @@ import structlog
 
 from ..compensation.dwell import table_angle_deg
 from ..errors import FogDriverError
-from ..modelfiles import write_state_doc
 from .acquisition import BiasCapture
 from .limits import (
     BIAS_ANSWER_MARGIN_S,
@@ -199,7 +198,8 @@ def _angle(v: Any) -> bool:
 
 
 def save(service: Any) -> dict:
-    """Write the adaptation state (a snapshot taken under the lock) to the configured file."""
+    """Write the adaptation state (a snapshot taken under the lock) to the configured file
+    (``Service.save_adapt_state``: never over a file that is not an adaptation state; a failure is an ERROR)."""
     path = service.config.adapt_state
     if not path:
         return {"class": "ERROR", "message": "no adapt_state file configured"}
@@ -208,7 +208,7 @@ def save(service: Any) -> dict:
             return {"class": "ERROR", "message": "no samples yet: nothing to save"}
         doc = service.compensator.adaptation_document()  # a snapshot; written outside the lock
     try:
-        write_state_doc(path, doc)
+        service.save_adapt_state(doc)
     except FogDriverError as exc:
         return {"class": "ERROR", "message": str(exc)}
     return {"class": "SAVE", "path": str(path)}

@@ -60,11 +60,18 @@ from ..compensation.binding import InstrumentCompensation, ModelMismatchError, c
 from ..compensation.dwell import Dwell
 from ..compensation.model import ModelFile
 from ..compensation.pipeline import CompensatedSample, Compensator
-from ..errors import FogDriverError, TemporaryFailure, UsageError
+from ..errors import FogDriverError, OutputFileError, TemporaryFailure, UsageError
 from ..extras import require_extra
 from ..files.bounded import NotARegularFile, read_regular
 from ..files.yamlio import MAX_YAML_BYTES
-from ..modelfiles import adaptation_restorer, model_bytes, read_model, read_state_doc, write_state_doc
+from ..modelfiles import (
+    adaptation_restorer,
+    model_bytes,
+    not_a_state_file,
+    read_model,
+    read_state_doc,
+    write_state_doc,
+)
 from ..protocol import IdentityFrame
 from ..samples.sources import make_source
 from ..transport import PortEvent, PortReader
@@ -147,6 +154,9 @@ class Service:
         self._reload_lock = threading.Lock()  # one reload at a time, never held with ``lock`` while parsing
         self.stop = threading.Event()
         self.started_monotonic = time.monotonic()
+        #: the ``adapt_state`` path whose stale state could not be set aside: the state is in memory only
+        #: (restored from nothing, never saved there), said once at start (``adapt_state_in_memory``)
+        self.adapt_state_in_memory: str | None = None
         self.adapt_state_sha256 = self._check_adapt_state(self.model_file)
         self.source = make_source(config)
         if config.format != "auto":
@@ -166,6 +176,9 @@ class Service:
         self.reader: PortReader | None = None
         self._acquisition: threading.Thread | None = None
         self.failure: BaseException | None = None
+        #: the save at exit that failed (``shutdown``): ``run_until_stopped`` then ends in it (exit 73)
+        self.adapt_state_not_saved: OutputFileError | None = None
+        self._save_failures_logged: set[str] = set()
         self.cpu = status.CpuMeter()
 
     @property
@@ -203,16 +216,24 @@ class Service:
             hint="set force_model: true in the config (fog-driver run --force-model) to apply it anyway",
             adapt=AdaptConfig(),
             reference_rate_dph=self.config.adapt_reference_dph,
-            restore_adaptation=adaptation_restorer(self.config.adapt_state),
+            restore_adaptation=None if self.adapt_state_in_memory else adaptation_restorer(self.config.adapt_state),
             table_dwells=[],  # the table law records from the start, for the first ?TABLE
         )
 
     def _check_adapt_state(self, model_file: ModelFile) -> str | None:
-        """The configured adaptation state, checked against the model before anything runs: a state saved for
-        another model (a re-fit) or a corrupt one is set aside (renamed ``.stale-<UTC>``) with a warning, so
-        it can never stop the daemon after it said it was ready.  Returns the usable state's SHA-256."""
+        """The configured adaptation state, checked against the model before anything runs, so it can never stop
+        the daemon after it said it was ready.  Returns the usable state's SHA-256.
+
+        A path naming a file that is not an adaptation state (``modelfiles.not_a_state_file``: a model, a
+        capture, a sidecar, a config...) is a ``ConfigError`` (exit 78), and nothing is renamed.  A state file
+        saved for another model (a re-fit) or corrupt is set aside (renamed ``.stale-<UTC>``) with a warning;
+        one that cannot be set aside (a read-only directory) is let be: the daemon runs with its state in
+        memory, starting at rest, never saving it there, and says so once (``adapt_state_in_memory``)."""
         path = self.config.adapt_state
-        if not path or not Path(path).exists():
+        if not path:
+            return None
+        self._refuse_a_foreign_state_path(path)
+        if not Path(path).exists():
             return None
         try:
             probe = Compensator(model_file, 0.01, adapt=AdaptConfig(), table=True)
@@ -225,12 +246,47 @@ class Service:
             try:
                 os.replace(path, aside)
             except OSError as move:
-                raise ConfigError(
-                    f"{path}: unusable adaptation state ({exc}) that cannot be set aside: {move.strerror or move}"
-                ) from None
+                self.adapt_state_in_memory = str(path)
+                log.warning(
+                    "adapt_state_in_memory",
+                    path=str(path),
+                    reason=f"unusable adaptation state ({exc}) that cannot be set aside ({move.strerror or move}): "
+                    "the state is kept in memory, starting at rest, and not saved there (?SAVE and the save at "
+                    "exit are off until a restart)",
+                )
+                return None
             log.warning("adapt_state_set_aside", reason=str(exc), moved_to=str(aside))
             return None
         return _file_sha256(path)
+
+    def save_adapt_state(self, doc: dict, *, log_failure: bool = True) -> None:
+        """Write the adaptation state ``doc`` (a snapshot) to ``adapt_state`` (``modelfiles.write_state_doc``:
+        atomically, never over a file that is not an adaptation state), outside the lock.  An
+        ``OutputFileError`` when it cannot be written, or when the state is in memory only
+        (``adapt_state_in_memory``); with ``log_failure`` (``?SAVE``: else only the client would see its ERROR) each
+        distinct failure is logged once (``adapt_state_not_saved``)."""
+        path = str(self.config.adapt_state)
+        try:
+            if path == self.adapt_state_in_memory:
+                raise OutputFileError(
+                    f"{path}: not saved: the adaptation state is in memory only (the unusable state there could "
+                    "not be set aside at start)"
+                )
+            write_state_doc(path, doc)
+        except OutputFileError as exc:
+            if log_failure and str(exc) not in self._save_failures_logged:
+                self._save_failures_logged.add(str(exc))
+                log.error("adapt_state_not_saved", reason=str(exc))
+            raise
+
+    @staticmethod
+    def _refuse_a_foreign_state_path(path: str) -> None:
+        """An ``adapt_state`` that names a file of another kind (``modelfiles.not_a_state_file``): exit 78."""
+        kind = not_a_state_file(path)
+        if kind is not None:
+            raise ConfigError(
+                f"{path}: adapt_state is {kind}, not an adaptation state; refusing to read, set aside or replace it"
+            )
 
     # -- objects clients see -------------------------------------------------------------------
 
@@ -384,6 +440,8 @@ class Service:
             for listener in (self.hub, self.web):
                 if listener is not None:
                     listener.check_token(new.token)
+        if new.adapt_state and new.adapt_state != self.config.adapt_state:
+            self._refuse_a_foreign_state_path(new.adapt_state)  # ConfigError: nothing changed
         result = self.reload_from_file(new)  # FogDriverError: nothing changed
         old = self.config
         self.config = new
@@ -603,13 +661,19 @@ class Service:
                     on_status(status)
         finally:
             self.shutdown()
+        if self.adapt_state_not_saved is not None:
+            if self.failure is None:
+                raise self.adapt_state_not_saved  # exit 73, on one line: the state this run adapted is lost
+            log.error("adapt_state_not_saved", reason=str(self.adapt_state_not_saved))
         if isinstance(self.failure, FogDriverError):
             raise self.failure  # the CLI prints it on one line, with its exit status
         return 0 if self.failure is None else 1
 
     def shutdown(self) -> None:
-        """Stop acquiring, save the adaptation (only if it ran), close the capture and the hub (SIGTERM ends
-        here, exit 0).  Each wait is bounded: ``JOIN_TIMEOUT_S`` for the acquisition and for the capture."""
+        """Stop acquiring, save the adaptation (only if it ran, and not when it is in memory only), close the
+        capture and the hub (SIGTERM ends here, exit 0; a state that cannot be saved is kept in
+        ``adapt_state_not_saved``, and the run ends in it: exit 73).  Each wait is bounded: ``JOIN_TIMEOUT_S``
+        for the acquisition and for the capture."""
         self.stop.set()
         with self.lock:
             if self.acquisition.bias_capture is not None:  # its result would come after the clients are gone
@@ -620,13 +684,14 @@ class Service:
             self._acquisition.join(timeout=JOIN_TIMEOUT_S)
         doc = None
         with self.lock:
-            if self.compensator is not None and self.config.adapt_state and self._adapt_touched:
+            path = self.config.adapt_state
+            if self.compensator is not None and path and path != self.adapt_state_in_memory and self._adapt_touched:
                 doc = self.compensator.adaptation_document()
         if doc is not None:
             try:
-                write_state_doc(self.config.adapt_state, doc)
-            except FogDriverError as exc:
-                log.error("adapt_state_not_saved", reason=str(exc))
+                self.save_adapt_state(doc, log_failure=False)  # the run ends in it (``run_until_stopped``)
+            except OutputFileError as exc:
+                self.adapt_state_not_saved = exc
         if self.capture is not None and not self.capture.close(JOIN_TIMEOUT_S):
             log.error("capture_not_closed", reason=f"the capture thread did not finish within {JOIN_TIMEOUT_S} s")
         if self.hub is not None:
