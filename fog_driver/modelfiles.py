@@ -24,7 +24,7 @@ from .compensation.adapt import ADAPT_STATE_FORMAT, ADAPT_STATE_SCHEMA_VERSION, 
 from .compensation.model import MODEL_FORMAT, MODEL_SCHEMA_VERSION, ModelFile, model_file_from_doc
 from .compensation.pipeline import Compensator
 from .errors import InputFileError, OutputFileError
-from .files.bounded import read_head
+from .files.bounded import not_regular_kind, read_head
 from .files.outputs import describe
 from .files.yamlio import (
     check_tagged,
@@ -210,7 +210,7 @@ def not_a_state_file(path: str | Path) -> str | None:
     """What the file at ``path`` is when it is not an adaptation state, judged by its content: None when nothing
     is there (nor a symlink's target) or it is an adaptation state, else what it is ("a fitted model", "a
     capture", "a capture's provenance sidecar (of run1.bin)", "a directory", "an empty file", "a file without
-    'format: ...'": ``outputs.describe``'s names; "a FIFO, a socket or a device (not a regular file)").
+    'format: ...'": ``outputs.describe``'s names; "not a regular file (it is a FIFO)" for a FIFO, a socket, a device).
 
     An adaptation state is a file that begins with ``STATE_FIRST_LINE``, as ``write_state_doc`` writes every
     one (whatever follows: a state cut short, or corrupt in its fields, is still one), or a YAML mapping tagged
@@ -220,13 +220,11 @@ def not_a_state_file(path: str | Path) -> str | None:
     path = Path(path)
     if not path.exists():
         return None
-    if path.is_dir():
-        return "a directory"
-    if not path.is_file():
-        return "a FIFO, a socket or a device (not a regular file)"
+    if (other := not_regular_kind(path)) is not None:
+        return other if other == "a directory" else f"not a regular file (it is {other})"
     head = read_head(path, len(STATE_FIRST_LINE))  # (opened without waiting: swapped for a FIFO, never blocks)
     if head is None:
-        return "a file that cannot be read" if path.is_file() else "a FIFO, a socket or a device (not a regular file)"
+        return "a file that cannot be read"
     if head == STATE_FIRST_LINE.encode():
         return None
     kind = describe(path)

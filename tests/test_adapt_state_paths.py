@@ -52,6 +52,8 @@ def _start(directory: Path, model: Path, config: Path):
 
 
 def _refusal(path: Path, kind: str) -> str:
+    if kind.startswith("not a regular file"):  # the words every file reader gives (``files.bounded``)
+        return f"fog-driver: error: {path}: {kind}: an adaptation state file must be one\n"
     refusing = "refusing to read, set aside or replace it"
     return f"fog-driver: error: {path}: adapt_state is {kind}, not an adaptation state; {refusing}\n"
 
@@ -111,7 +113,7 @@ def _a_directory(d: Path) -> tuple[Path, str]:
 def _a_fifo(d: Path) -> tuple[Path, str]:
     fifo = d / "adapt.yaml"
     os.mkfifo(fifo)
-    return fifo, "a FIFO, a socket or a device (not a regular file)"
+    return fifo, "not a regular file (it is a FIFO)"
 
 
 def _snapshot(path: Path) -> object:

@@ -283,6 +283,8 @@ class Service:
     def _refuse_a_foreign_state_path(path: str) -> None:
         """An ``adapt_state`` that names a file of another kind (``modelfiles.not_a_state_file``): exit 78."""
         kind = not_a_state_file(path)
+        if kind is not None and kind.startswith("not a regular file"):  # the words every reader gives
+            raise ConfigError(f"{path}: {kind}: an adaptation state file must be one")
         if kind is not None:
             raise ConfigError(
                 f"{path}: adapt_state is {kind}, not an adaptation state; refusing to read, set aside or replace it"

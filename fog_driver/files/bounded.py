@@ -59,6 +59,17 @@ def _check_regular(mode: int, path: Path, what: str) -> None:
         raise NotARegularFile(f"{path}: not a regular file (it is {_kind(mode)}): {_article(what)} {what} must be one")
 
 
+def not_regular_kind(path: str | Path) -> str | None:
+    """What ``path`` is when it exists and is not a regular file (a symlink followed): "a directory", "a FIFO",
+    "a socket", "a character device", ...; None for a regular file or nothing there.  Only ``stat``: nothing
+    is opened."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return None
+    return None if stat.S_ISREG(mode) else _kind(mode)
+
+
 def _open_fd(path: Path, what: str) -> int:
     """``path`` opened read-only without blocking, checked to be a regular file (on the descriptor): the
     descriptor, in blocking mode again.  ``FileNotFoundError`` passes; any other problem is a one-line
