@@ -1067,6 +1067,20 @@ def refused(argv: list[str], here: Path) -> Outcome:
         ("simulate --profile short-test --out s.bin --duration=1e300", 64, "more than the 31 days"),
         ("simulate --out s.bin --faults=thermo=1:1e300", 64, "a fault lasts > 0 s and at most 31 days"),
         ("evaluate {short} --model {model} --out report --truth {text}", 65, "not a truth file"),
+        # the third review's findings 10, 15 and 16, as its script ran them
+        ("plan --out p.yaml --max-rate-c-per-min=1e-308", 64, "plan: impossible limits: --minutes 440"),
+        ("plan --out p.yaml --max-rate-c-per-min=5e-324", 64, "plan: impossible limits: --minutes 440"),
+        ("simulate --profile short-test --out f.bin --rate-hz 10 --duration=1e308", 64, "more than the 31 days"),
+        (
+            "simulate --profile short-test --out f.bin --rate-hz 10 --duration 5 --faults=thermo=1e308:1e308",
+            64,
+            "a fault lasts > 0 s and at most 31 days",
+        ),
+        ("simulate --serve pty --link tty --rate-hz 10 --duration 3 --speed=1e-308", 64, "a stream runs 0.001 to"),
+        ("ctl --connect 127.0.0.1:1 --timeout 1e10 status", 2, "at most 86400 s (a day): '1e10'"),
+        ("watch 127.0.0.1:1 --rate-hz 20000", 2, "at most 10000 ANGLE updates a second: '20000'"),
+        ("simulate --profile short-test --duration 1e9 --out f.bin", 64, "--duration 1e+09 s: more than the 31 days"),
+        ("simulate --profile short-test --duration 1e9 --serve pty --link tty", 64, "more than the 31 days"),
     ],
     ids=[
         "simulate --duration inf",
@@ -1080,45 +1094,27 @@ def refused(argv: list[str], here: Path) -> Outcome:
         "simulate --duration 1e300",
         "simulate --faults thermo=1:1e300",
         "evaluate --truth a-text-file",
+        "plan --max-rate-c-per-min 1e-308",
+        "plan --max-rate-c-per-min 5e-324",
+        "simulate --duration 1e308",
+        "simulate --faults thermo=1e308:1e308",
+        "simulate --serve pty --speed 1e-308",
+        "ctl --timeout 1e10",
+        "watch --rate-hz 20000",
+        "simulate --profile short-test --duration 1e9",
+        "simulate --serve pty --profile short-test --duration 1e9",
     ],
 )
 def test_an_option_value_that_crashed_or_ran_for_ever_is_one_line(files, tmp_path, monkeypatch, words, status, needle):
     """Before: exit 70 (a traceback at a terminal) for inf, 1e300, 1e-300 or a flip probability of 1e-212;
     ``--duration 1e300`` ran until the disk was full; ``--every 1e-9`` cut every row in 0 us;
     ``--adapt-reference nan`` and ``--scale-override 1e-300`` ran on NaN or a zero scale; the empty truth
-    file added numpy's warning to the one line."""
+    file added numpy's warning to the one line.  The third review's: exit 70 (``ZeroDivisionError``,
+    ``OverflowError``), ``--duration 1e9`` ran 610,030 s of device time in 40 s, ``watch --rate-hz 20000``
+    waited for ever."""
     monkeypatch.chdir(tmp_path)
     argv = words.format(short=DATA / "sim-short.bin", model=files.wesn, text=files.not_a_capture).split()
     outcome = refused(argv, tmp_path)
-    assert outcome.status == status and needle in outcome.stderr, outcome
-
-
-@pytest.mark.parametrize(
-    "words, status, needle",
-    [
-        ("plan --out p.yaml --max-rate-c-per-min=1e-308", 64, "plan: impossible limits: --minutes 440"),
-        ("plan --out p.yaml --max-rate-c-per-min=5e-324", 64, "plan: impossible limits: --minutes 440"),
-        ("simulate --profile short-test --out f.bin --rate-hz 10 --duration=1e308", 64, "more than the 31 days"),
-        ("simulate --profile short-test --out f.bin --rate-hz 10 --duration=inf", 2, "must be > 0 and finite"),
-        (
-            "simulate --profile short-test --out f.bin --rate-hz 10 --duration 5 --faults=thermo=1e308:1e308",
-            64,
-            "a fault lasts > 0 s and at most 31 days",
-        ),
-        ("simulate --serve pty --link tty --rate-hz 10 --duration 3 --speed=1e-308", 64, "a stream runs 0.001 to"),
-        ("ctl --connect 127.0.0.1:1 --timeout 1e10 status", 2, "at most 86400 s (a day): '1e10'"),
-        ("watch 127.0.0.1:1 --rate-hz 20000", 2, "at most 10000 ANGLE updates a second: '20000'"),
-        ("simulate --profile short-test --duration 1e9 --out f.bin", 64, "--duration 1e+09 s: more than the 31 days"),
-        ("simulate --profile short-test --duration 1e9 --serve pty --link tty", 64, "more than the 31 days"),
-    ],
-    ids=lambda v: v if isinstance(v, str) and " " in v else None,
-)
-def test_the_third_reviews_extreme_options_are_one_line_each(tmp_path, monkeypatch, words, status, needle):
-    """The third review's findings 10, 15 and 16, as its script ran them: exit 70 before (``ZeroDivisionError``,
-    ``OverflowError``) or ran on (``--duration 1e9``: 610,030 s of device time in 40 s; ``watch --rate-hz 20000``
-    waited for ever); now one line (argparse's after its usage) and 64 or 2, nothing written."""
-    monkeypatch.chdir(tmp_path)
-    outcome = refused(words.split(), tmp_path)
     assert outcome.status == status and needle in outcome.stderr, outcome
 
 
