@@ -1,7 +1,10 @@
-"""No command crashes on any combination of its options: for each of ``plan``, ``simulate``, ``fit``,
-``compensate``, ``evaluate``, ``record`` and ``inspect``, hypothesis draws every numeric and choice option
-from wide ranges (zero, negative, tiny, huge, NaN and infinity where a float is parsed, and valid values) and
-the flags in any combination, and runs ``fog_driver.cli.main`` in-process.  Each run must end in one of:
+"""No command crashes on any combination of its options: for each of ``plan``, ``simulate`` (and ``simulate
+--serve`` on its own), ``fit``, ``compensate``, ``evaluate``, ``record``, ``inspect``, ``ctl`` and ``watch``,
+hypothesis draws every numeric and choice option from wide ranges (zero, negative, tiny, subnormal, huge, NaN
+and infinity where a float is parsed, and valid values) and the flags in any combination, and runs
+``fog_driver.cli.main`` in-process.  ``ctl`` and ``watch`` talk to a closed loopback port: their exit status
+is predicted from their documented rules (argparse's 2, 64, or 69: the daemon not there).  Each run must end
+in one of:
 
 * exit 0 with the command's documented output, checked where it can be (a file written and read back);
 * one ``fog-driver: error: ...`` line on stderr and a documented non-zero exit (README's table, never 70);
@@ -27,6 +30,7 @@ import os
 import re
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -78,6 +82,10 @@ PROPERTY = settings(
 )
 #: ``evaluate``'s: fewer, as each report it writes draws its plots (0.7 s a report, four in five examples).
 EVALUATE = settings(PROPERTY, max_examples=EXAMPLES * 3 // 5)
+#: ``ctl``'s and ``watch``'s against a closed port: more, as each takes some 10 ms (a refused connection).
+CLIENT = settings(PROPERTY, max_examples=EXAMPLES * 4)
+#: ``simulate --serve``'s: fewer, as a stream drawn valid runs for up to ``WALL_BUDGET_S``.
+SERVE = settings(PROPERTY, max_examples=EXAMPLES * 2 // 5)
 
 #: Frames and device seconds a drawn simulation may make, and the wall seconds a drawn real-time run
 #: (``simulate --serve``, ``record``) may take: about a second of work at most.
@@ -172,9 +180,11 @@ ODD_FLOATS = (
     "-1",
     "-1e-300",
     "1e-300",
+    "1e-308",
     "5e-324",
     "1e-9",
     "1e300",
+    "1e308",
     "1.7976931348623157e308",
     "1e400",
     "-1e400",
@@ -192,7 +202,7 @@ ODD_FLOATS = (
 )
 #: The same, without the huge ones: for options that size the work (huge ones: their own test below).
 ODD_WORK_FLOATS = tuple(
-    x for x in ODD_FLOATS if x not in ("1e300", "1.7976931348623157e308", "1e400", "inf", "Infinity")
+    x for x in ODD_FLOATS if x not in ("1e300", "1e308", "1.7976931348623157e308", "1e400", "inf", "Infinity")
 )
 #: Integer texts: zero, negative, the edges of u16, i32, u64, a hundred-digit number, and no integer at all.
 ODD_INTS = ("0", "-1", "-0", "1", "65535", "65536", "2147483648", "18446744073709551616", "1" + "0" * 100)
@@ -528,11 +538,17 @@ def profile_seconds(profile: str) -> float | None:
         return None
 
 
-def simulate_case(d: Drawer, files: Files, here: Path) -> tuple[list[str], dict]:
-    """``simulate``'s argv and what it asks for (the mode, the capture's path, the rate)."""
+def simulate_case(d: Drawer, files: Files, here: Path, *, serving: bool = False) -> tuple[list[str], dict]:
+    """``simulate``'s argv and what it asks for (the mode, the capture's path, the rate); with ``serving`` a
+    ``--serve`` always (a pty, a device that is none, or both it and ``--out``)."""
     profiles = [str(files.minute), "short-test", "positioning", None]
     profile = d.file(profiles, ["no-such-profile", str(files.not_a_capture)])
-    mode = "out" if not d.odd() and d(st.integers(0, 3)) else d(st.sampled_from(["pty", "device", "both", "neither"]))
+    if serving:
+        mode = d(st.sampled_from(["pty", "pty", "device", "both"]))
+    else:
+        mode = (
+            "out" if not d.odd() and d(st.integers(0, 3)) else d(st.sampled_from(["pty", "device", "both", "neither"]))
+        )
     values: dict[str, str | None] = {
         "--profile": profile,
         "--rate-hz": d.int(st.integers(1, 2000)) if d.given() else None,
@@ -547,7 +563,10 @@ def simulate_case(d: Drawer, files: Files, here: Path) -> tuple[list[str], dict]
         values["--out"] = str(out)
     serving = mode in ("pty", "device", "both")
     if serving:
-        values["--serve"] = "pty" if mode != "device" else d(st.sampled_from(["/dev/null", str(here / "no-tty")]))
+        devices = ["/dev/null", str(here / "no-tty"), str(here), str(here / "notes.txt")]  # (none is a tty)
+        values["--serve"] = "pty" if mode != "device" else d(st.sampled_from(devices))
+        if values["--serve"] == str(here / "notes.txt"):
+            (here / "notes.txt").write_text("not a tty\n")
         values["--speed"] = d.float(log_uniform(1e3, 1e6)) if d.given() else None
         values["--baud"] = d.int(st.sampled_from([9600, 115200, 460800, 921600])) if d.given() else None
     if mode in ("pty", "both") or d.odd():  # the link, never the default /tmp/fog-driver-sim.tty (others' runs)
@@ -578,12 +597,10 @@ def check_simulated(outcome: Outcome, case: dict) -> None:
     assert out.with_suffix(".truth.csv").is_file()
 
 
-@given(st.data())
-@PROPERTY
-def test_simulate_with_any_options_writes_a_capture_or_serves_or_says_why_not(files, data):
-    d = Drawer(data)
+def check_simulate(d: Drawer, files: Files, *, serving: bool = False) -> None:
+    """One ``simulate`` example: drawn, run, and its outcome checked (a capture, a stream, or a refusal)."""
     with example_dir(files.base) as here:
-        words, case = simulate_case(d, files, here)
+        words, case = simulate_case(d, files, here, serving=serving)
         out = case["out"]
         before = contents(out)
         outcome = run_main(d.logging(words))
@@ -596,6 +613,21 @@ def test_simulate_with_any_options_writes_a_capture_or_serves_or_says_why_not(fi
             assert not (here / "sim.tty").is_symlink(), outcome
         else:
             assert unchanged(out, before), outcome
+
+
+@given(st.data())
+@PROPERTY
+def test_simulate_with_any_options_writes_a_capture_or_serves_or_says_why_not(files, data):
+    check_simulate(Drawer(data), files)
+
+
+@given(st.data())
+@SERVE
+def test_simulate_serve_with_any_options_streams_briefly_or_says_why_not(files, data):
+    """``simulate --serve`` alone: a pty (or a device that is none: /dev/null, a missing path, a directory, a
+    text file) with ``--speed`` (1e-308, 5e-324, 1e308, inf, nan among the odd), ``--baud``, ``--link`` and
+    the rest; a stream drawn valid lasts at most ``WALL_BUDGET_S`` (its duration drawn for it at its speed)."""
+    check_simulate(Drawer(data), files, serving=True)
 
 
 # --- fit -----------------------------------------------------------------------------------------------
@@ -874,6 +906,137 @@ def test_record_with_any_options_records_or_says_why_not(files, data):
             assert unchanged(out, before), outcome
 
 
+# --- ctl and watch: against a closed loopback port ----------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def closed_port():
+    """A loopback port bound and never listening (so no other program takes it): every connection refused."""
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        yield sock.getsockname()[1]
+
+
+def refused_connection(outcome: Outcome, port: int) -> bool:
+    """The one line of a daemon that is not there (exit 69)."""
+    return outcome.status == 69 and error_lines(outcome) == [
+        f"fog-driver: error: could not connect to 127.0.0.1:{port}: Connection refused (is `fog-driver run` running?)"
+    ]
+
+
+def logging_read(argv: tuple[str, ...]) -> bool:
+    """Whether argparse reads the ``--log-format`` of ``argv`` (``Drawer.logging``'s; an odd one it refuses)."""
+    return all(w.partition("=")[2] in ("auto", "human", "json") for w in argv if w.startswith("--log-format="))
+
+
+def within(text: str | None, lo: float, hi: float) -> bool:
+    """``text`` (Python's float of it) is a number from ``lo`` to ``hi``."""
+    value = None if text is None else as_float(text)
+    return value is not None and lo <= value <= hi
+
+
+#: ``ctl``'s numeric options -> their valid draws.
+CTL_OPTIONS = {
+    "--timeout": log_uniform(1e-3, 86400.0),
+    "--reference-dph": st.floats(-1e7, 1e7),
+    "--dwell": st.floats(12.0, 86400.0),
+    "--angle-start": st.floats(-1e6, 1e6),
+}
+
+
+def ctl_status(command: str, args: list[str], values: dict[str, str | None]) -> int:
+    """The exit status ``fog-driver ctl`` must end in against a closed port, from ctl's documented rules (not its
+    code): 2 for an option argparse cannot read (a ``--timeout`` not > 0 and at most a day, a float that is
+    none), 64 for arguments the command does not take (ranges as the daemon checks them), else 69."""
+    timeout, reference, dwell, start = (values.get(name) for name in CTL_OPTIONS)
+    if timeout is not None and not (within(timeout, 0.0, 86400.0) and as_float(timeout) > 0):
+        return USAGE
+    if any(text is not None and as_float(text) is None for text in (reference, dwell, start)):
+        return USAGE
+    if command not in ("zero", "bias", "adapt", "table", "reload", "status", "save"):
+        return 64
+    if reference is not None and (command, args) != ("adapt", ["on"]):
+        return 64
+    if (dwell is not None or start is not None) and command != "table":
+        return 64
+    if command == "bias":
+        ok = not args or (len(args) == 1 and within(args[0], 1.0, 86400.0))
+    elif command == "adapt":
+        ok = args in (["on"], ["off"]) and (reference is None or within(reference, -1e7, 1e7))
+    elif command == "table":
+        ok = len(args) == 1 and within(args[0], -1e6, 1e6) and (dwell is None or within(dwell, 12.0, 86400.0))
+        ok = ok and (start is None or within(start, -1e6, 1e6))
+    else:
+        ok = not args
+    return 69 if ok else 64
+
+
+@given(st.data())
+@CLIENT
+def test_ctl_with_any_command_and_options_to_a_closed_port_is_one_line(closed_port, data):
+    """``ctl`` with every command, its numeric arguments and options drawn wide (``--timeout``, ``bias
+    SECONDS``, ``table ANGLE --dwell --angle-start``, ``adapt on --reference-dph``): a refusal of its
+    arguments (64, or argparse's 2) before any connection, else the one line of a daemon not there (69)."""
+    d = Drawer(data)
+    command = d(st.sampled_from(["zero", "bias", "adapt", "table", "reload", "status", "save"]))
+    if d.odd():
+        command = d(st.sampled_from(["stauts", "", "ZERO"]))
+    args: list[str] = {
+        "bias": [d.float(st.floats(1.0, 86400.0))] if d.given() else [],
+        "adapt": [d(st.sampled_from(["on", "off"])) if not d.odd() else d(st.sampled_from(["maybe", "1", ""]))],
+        "table": [d.float(st.floats(-1e6, 1e6))],
+    }.get(command, [])
+    if d.odd():
+        args.append(d.float(st.floats()))  # one argument too many
+    own = {"adapt": ("--reference-dph",), "table": ("--dwell", "--angle-start")}.get(command, ())
+    values = {  # the command's own options, or not; another's only as an odd one
+        name: d.float(valid)
+        for name, valid in CTL_OPTIONS.items()
+        if (d.given() if name in own or name == "--timeout" else d.odd())
+    }
+    words = ["ctl", "--connect", f"127.0.0.1:{closed_port}", *options(values), *d.flags("--json"), command]
+    outcome = run_main(d.logging([*words, "--", *args] if args else words))
+    check_outcome(outcome)
+    expected = ctl_status(command, args, values) if logging_read(outcome.argv) else USAGE
+    assert outcome.status == expected, outcome
+    assert outcome.stdout == "", outcome
+    if expected == 69:
+        assert refused_connection(outcome, closed_port), outcome
+
+
+#: ``watch``'s float options -> their draws (a rate past the protocol's 10000 in a third of them).
+WATCH_OPTIONS = {
+    "--rate-hz": log_uniform(1e-3, 1e6),
+    "--duration": log_uniform(1e-3, 1e9),
+    "--idle-s": log_uniform(1e-3, 1e9),
+}
+
+
+@given(st.data())
+@CLIENT
+def test_watch_with_any_options_to_a_closed_port_is_one_line(closed_port, data):
+    """``watch`` with ``--rate-hz`` (0 < R <= 10000, the protocol's bound), ``--count``, ``--duration`` and
+    ``--idle-s`` drawn wide, ``--json`` or not: argparse's refusal (2) of a value out of range, else the one
+    line of a daemon not there (69), at once."""
+    d = Drawer(data)
+    values: dict[str, str | None] = {name: d.float(valid) for name, valid in WATCH_OPTIONS.items() if d.given()}
+    values["--count"] = d.int(st.integers(1, 10**6)) if d.given() else None
+    address = f"127.0.0.1:{closed_port}"
+    words = ["watch", *(["--connect", address] if d.given() else [address]), *options(values), *d.flags("--json")]
+    outcome = run_main(d.logging(words))
+    check_outcome(outcome)
+    floats_ok = all(
+        text is None or (within(text, 0.0, 1e4 if name == "--rate-hz" else math.inf) and 0 < as_float(text) < math.inf)
+        for name, text in values.items()
+        if name != "--count"
+    )
+    count = values["--count"]
+    count_ok = count is None or (re.fullmatch(r"\s*[+-]?[\d_]+\s*", count) is not None and int(count) >= 1)
+    assert outcome.status == (69 if floats_ok and count_ok and logging_read(outcome.argv) else USAGE), outcome
+    if outcome.status == 69:
+        assert refused_connection(outcome, closed_port) and outcome.stdout == "", outcome
+
+
 # --- what the property tests found: each a one-line refusal now, or a run -------------------------------
 
 
@@ -904,6 +1067,20 @@ def refused(argv: list[str], here: Path) -> Outcome:
         ("simulate --profile short-test --out s.bin --duration=1e300", 64, "more than the 31 days"),
         ("simulate --out s.bin --faults=thermo=1:1e300", 64, "a fault lasts > 0 s and at most 31 days"),
         ("evaluate {short} --model {model} --out report --truth {text}", 65, "not a truth file"),
+        # the third review's findings 10, 15 and 16, as its script ran them
+        ("plan --out p.yaml --max-rate-c-per-min=1e-308", 64, "plan: impossible limits: --minutes 440"),
+        ("plan --out p.yaml --max-rate-c-per-min=5e-324", 64, "plan: impossible limits: --minutes 440"),
+        ("simulate --profile short-test --out f.bin --rate-hz 10 --duration=1e308", 64, "more than the 31 days"),
+        (
+            "simulate --profile short-test --out f.bin --rate-hz 10 --duration 5 --faults=thermo=1e308:1e308",
+            64,
+            "a fault lasts > 0 s and at most 31 days",
+        ),
+        ("simulate --serve pty --link tty --rate-hz 10 --duration 3 --speed=1e-308", 64, "a stream runs 0.001 to"),
+        ("ctl --connect 127.0.0.1:1 --timeout 1e10 status", 2, "at most 86400 s (a day): '1e10'"),
+        ("watch 127.0.0.1:1 --rate-hz 20000", 2, "at most 10000 ANGLE updates a second: '20000'"),
+        ("simulate --profile short-test --duration 1e9 --out f.bin", 64, "--duration 1e+09 s: more than the 31 days"),
+        ("simulate --profile short-test --duration 1e9 --serve pty --link tty", 64, "more than the 31 days"),
     ],
     ids=[
         "simulate --duration inf",
@@ -917,13 +1094,24 @@ def refused(argv: list[str], here: Path) -> Outcome:
         "simulate --duration 1e300",
         "simulate --faults thermo=1:1e300",
         "evaluate --truth a-text-file",
+        "plan --max-rate-c-per-min 1e-308",
+        "plan --max-rate-c-per-min 5e-324",
+        "simulate --duration 1e308",
+        "simulate --faults thermo=1e308:1e308",
+        "simulate --serve pty --speed 1e-308",
+        "ctl --timeout 1e10",
+        "watch --rate-hz 20000",
+        "simulate --profile short-test --duration 1e9",
+        "simulate --serve pty --profile short-test --duration 1e9",
     ],
 )
 def test_an_option_value_that_crashed_or_ran_for_ever_is_one_line(files, tmp_path, monkeypatch, words, status, needle):
     """Before: exit 70 (a traceback at a terminal) for inf, 1e300, 1e-300 or a flip probability of 1e-212;
     ``--duration 1e300`` ran until the disk was full; ``--every 1e-9`` cut every row in 0 us;
     ``--adapt-reference nan`` and ``--scale-override 1e-300`` ran on NaN or a zero scale; the empty truth
-    file added numpy's warning to the one line."""
+    file added numpy's warning to the one line.  The third review's: exit 70 (``ZeroDivisionError``,
+    ``OverflowError``), ``--duration 1e9`` ran 610,030 s of device time in 40 s, ``watch --rate-hz 20000``
+    waited for ever."""
     monkeypatch.chdir(tmp_path)
     argv = words.format(short=DATA / "sim-short.bin", model=files.wesn, text=files.not_a_capture).split()
     outcome = refused(argv, tmp_path)

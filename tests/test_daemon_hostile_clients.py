@@ -21,7 +21,9 @@ import structlog
 from hub_fixtures import Control
 from test_daemon_hub import TIMEOUT_S, Conn, angle
 
+from fog_driver.daemon.config import DriverConfig
 from fog_driver.daemon.hub import Hub
+from fog_driver.daemon.service import Service as DaemonService
 
 
 class Service(Control):
@@ -222,6 +224,54 @@ def test_watch_refuses_absurd_rates(make_hub, rate):
     assert hub.watchers == 1
     hub.publish_angles([angle(1, 1e6)])  # device time far from 0: t_s * rate would overflow
     assert victim.expect("ANGLE")["seq"] == 1
+
+
+HUGE = "1" + "0" * 400  # a JSON integer no float can hold: int too large to convert to float
+
+
+@pytest.mark.parametrize(
+    "line, message",
+    [
+        (
+            f'?ADAPT={{"enable":true,"reference_dph":{HUGE}}};',
+            '"reference_dph" must be a number within +-1e+07 deg/h (0 at rest)',
+        ),
+        (
+            f'?ADAPT={{"enable":true,"reference_dph":-{HUGE}}};',
+            '"reference_dph" must be a number within +-1e+07 deg/h (0 at rest)',
+        ),
+        (
+            '?ADAPT={"enable":true,"reference_dph":NaN};',
+            '"reference_dph" must be a number within +-1e+07 deg/h (0 at rest)',
+        ),
+        (
+            '?ADAPT={"enable":true,"reference_dph":1e400};',
+            '"reference_dph" must be a number within +-1e+07 deg/h (0 at rest)',
+        ),
+        (
+            '?ADAPT={"enable":true,"reference_dph":10000001};',
+            '"reference_dph" must be a number within +-1e+07 deg/h (0 at rest)',
+        ),
+        (f'?TABLE={{"angle_deg":{HUGE},"dwell_s":60}};', '?TABLE needs "angle_deg": a number within +-1e+06 degrees'),
+        (
+            f'?TABLE={{"angle_deg":0,"dwell_s":60,"angle_start_deg":{HUGE}}};',
+            '"angle_start_deg" must be a number within +-1e+06 degrees',
+        ),
+    ],
+    ids=["adapt huge", "adapt -huge", "adapt NaN", "adapt 1e400", "adapt 1e7+1", "table huge", "table start huge"],
+)
+def test_an_integer_of_400_digits_in_adapt_or_table_gets_the_argument_rule(make_hub, line, message):
+    """Finding 13: ``?ADAPT={"reference_dph":1<400 zeros>}`` was answered ``int too large to convert to float``
+    (Python's words, not the rule); now the rule's line, as for every other value out of range."""
+    service = DaemonService(DriverConfig(), port="unused")
+    _, address, _ = make_hub(control=service.control)
+    c = Conn(address)
+    c.greeting()
+    command = line[1:].split("=", 1)[0]
+    c.send(line + "\n")
+    assert c.line() == {"class": "ERROR", "message": message, "command": command}
+    c.send('?ADAPT={"enable":true,"reference_dph":10000000};\n')  # the bound itself: past the rule, no data yet
+    assert c.line() == {"class": "ERROR", "message": "no samples yet: nothing to adapt", "command": "ADAPT"}
 
 
 def test_watch_accepts_the_fastest_rate(make_hub):

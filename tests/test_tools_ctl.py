@@ -6,6 +6,7 @@ bounded by GUARD_S."""
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import subprocess
@@ -18,7 +19,7 @@ from test_daemon_hil import GUARD_S, Client, Daemon
 from fog_driver.cli import main
 from fog_driver.errors import UsageError
 from fog_driver.protocol import decode_bytes
-from fog_driver.tools.ctl import describe, parse_request
+from fog_driver.tools.ctl import describe, parse_request, run_ctl
 from fog_driver.transport import PtyPair
 
 TOKEN = "a-long-token-for-ctl"
@@ -290,3 +291,34 @@ def test_ctl_with_a_first_word_that_is_neither_a_command_nor_an_address_is_one_l
     )
     assert (proc.returncode, proc.stdout) == (64, "")
     assert proc.stderr == f"fog-driver: error: {message}\n"
+
+
+@pytest.mark.parametrize(
+    ("timeout", "message"),
+    [
+        ("1e10", "an answer is waited for at most 86400 s (a day): '1e10'"),
+        ("86400.5", "an answer is waited for at most 86400 s (a day): '86400.5'"),
+        ("inf", "must be > 0 and finite: 'inf'"),
+        ("nan", "must be > 0 and finite: 'nan'"),
+        ("0", "must be > 0 and finite: '0'"),
+    ],
+)
+def test_ctl_with_a_timeout_beyond_a_day_is_refused_before_connecting(capsys, timeout, message):
+    """Finding 10: ``ctl --timeout 1e10 status`` ended in exit 70 (``OverflowError: timestamp out of range for
+    platform time_t``, from ``select``); the timeout is > 0 and at most a day, checked by argparse (exit 2)."""
+    with pytest.raises(SystemExit) as exc:
+        main(["ctl", "--connect", "127.0.0.1:1", f"--timeout={timeout}", "status"])
+    out, err = capsys.readouterr()
+    assert exc.value.code == 2 and out == ""
+    assert err.splitlines()[-1] == f"fog-driver ctl: error: argument --timeout: {message}"
+
+
+@pytest.mark.parametrize("timeout_s", [86400.0, 1e10, math.inf])
+def test_a_command_waiting_longer_than_select_can_wait_gets_its_answer(make_hub, timeout_s):
+    """The longest ``--timeout`` (a day) and, through the library, 1e10 s and no limit at all: the answer comes
+    (before: 1e10 s and infinity raised ``OverflowError`` out of ``select``, whatever the daemon answered)."""
+    calls = []
+    _, (host, port), _ = make_hub(control=lambda name, args, client: calls.append(name) or {"class": "ZERO"})
+    out = io.StringIO()
+    assert run_ctl(host, port, "ZERO", None, out=out, timeout_s=timeout_s) == 0
+    assert out.getvalue() == "zeroed: the published angle starts again from 0 here\n" and calls == ["ZERO"]

@@ -22,6 +22,8 @@ import time
 
 import pytest
 
+from fog_driver.cli import main
+from fog_driver.client import CommandRefused
 from fog_driver.errors import DeviceError, TemporaryFailure, UsageError
 from fog_driver.tools.watch import (
     DEFAULT_IDLE_S,
@@ -315,6 +317,52 @@ def test_connection_refused_is_a_one_line_device_error():
 def test_bad_arguments_are_usage_errors(kwargs):
     with pytest.raises(UsageError):
         run_watch("127.0.0.1", 1, out=io.StringIO(), **kwargs)
+
+
+@pytest.mark.parametrize("json_lines", [False, True], ids=["view", "json"])
+def test_watch_at_a_rate_the_daemon_refuses_ends_with_its_error_line(make_hub, json_lines):
+    """Finding 15: ``watch --rate-hz 20000`` (through the library: the command line bounds it now) waited for
+    ever on ``waiting for ANGLE`` while the daemon had answered ``rate_hz must be ... <= 10000``; it ends at
+    once with that line (exit 65, a command the daemon refused), the view (or the ERROR line) shown first."""
+    hub, (host, port), _ = make_hub()
+    out = io.StringIO()
+    with pytest.raises(CommandRefused) as info:  # idle_s a hang guard only (before: TemporaryFailure after it)
+        run_watch(host, port, rate_hz=20000, out=out, json_lines=json_lines, timeout_s=GUARD_S, idle_s=GUARD_S)
+    daemon_said = "rate_hz must be a number > 0 and <= 10000"
+    assert str(info.value) == f"the daemon at {host}:{port} refused ?WATCH: {daemon_said}"
+    assert info.value.exit_status == 65 and info.value.message == daemon_said
+    if json_lines:
+        assert json.loads(out.getvalue().splitlines()[-1]) == {
+            "class": "ERROR",
+            "message": daemon_said,
+            "command": "WATCH",
+        }
+    else:
+        assert f"?WATCH refused: {daemon_said}" in out.getvalue()
+    assert hub.watchers == 0
+
+
+def test_watch_without_the_token_a_daemon_needs_still_waits_saying_why(make_hub):
+    """An ``unauthorized`` ?WATCH is not such a refusal: the watch waits on (the documented form), here bounded
+    by --idle-s, and says why no sample came."""
+    _, (host, port), _ = make_hub(token="a-token-of-sixteen-chars")
+    with pytest.raises(TemporaryFailure) as info:
+        run_watch(host, port, out=io.StringIO(), idle_s=0.5, timeout_s=GUARD_S)
+    assert str(info.value) == f"no samples for 0.5 s from {host}:{port}: ?WATCH refused, unauthorized"
+
+
+@pytest.mark.parametrize("rate", ["20000", "10000.5", "1e308", "inf", "nan", "0", "-1"])
+def test_watch_with_a_rate_no_daemon_takes_is_refused_before_connecting(capsys, rate):
+    """``--rate-hz`` is bounded as the protocol documents ``?WATCH``'s ``rate_hz``: 0 < R <= 10000 (argparse,
+    exit 2; the address is a closed port, never tried)."""
+    with pytest.raises(SystemExit) as exc:
+        main(["watch", "127.0.0.1:1", f"--rate-hz={rate}", "--count", "1"])
+    out, err = capsys.readouterr()
+    assert (
+        exc.value.code == 2
+        and out == ""
+        and err.splitlines()[-1].startswith("fog-driver watch: error: argument --rate-hz: ")
+    )
 
 
 # --------------------------------------------------------------------------- pure functions

@@ -6,6 +6,8 @@ from __future__ import annotations
 import argparse
 import math
 
+from ..client.protocol import MAX_WATCH_RATE_HZ
+
 
 def finite_float(text: str) -> float:
     """Any number but NaN and the infinities (which Python's ``float`` takes)."""
@@ -26,6 +28,26 @@ def positive_float(text: str) -> float:
         raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
     if not value > 0 or not math.isfinite(value):
         raise argparse.ArgumentTypeError(f"must be > 0 and finite: {text!r}")
+    return value
+
+
+#: The longest ``ctl --timeout``: a day (beyond every answer and bias capture; 1e10 s overflowed ``select``).
+MAX_REPLY_TIMEOUT_S = 86400.0
+
+
+def reply_timeout_s(text: str) -> float:
+    """How long to wait for a daemon's answer: a finite number of seconds, > 0 and at most ``MAX_REPLY_TIMEOUT_S``."""
+    value = positive_float(text)
+    if value > MAX_REPLY_TIMEOUT_S:
+        raise argparse.ArgumentTypeError(f"an answer is waited for at most {MAX_REPLY_TIMEOUT_S:g} s (a day): {text!r}")
+    return value
+
+
+def watch_rate_hz(text: str) -> float:
+    """``watch --rate-hz``: ANGLE updates a second, > 0 and at most ``MAX_WATCH_RATE_HZ`` (what a daemon takes)."""
+    value = positive_float(text)
+    if value > MAX_WATCH_RATE_HZ:
+        raise argparse.ArgumentTypeError(f"a daemon sends at most {MAX_WATCH_RATE_HZ} ANGLE updates a second: {text!r}")
     return value
 
 

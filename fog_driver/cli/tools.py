@@ -7,7 +7,7 @@ import signal
 
 from ..tools.ctl import ctl_command
 from ..tools.watch import watch_command
-from .argtypes import positive_float, positive_int
+from .argtypes import MAX_REPLY_TIMEOUT_S, positive_float, positive_int, reply_timeout_s, watch_rate_hz
 
 
 def cmd_watch(args: argparse.Namespace) -> int:
@@ -49,10 +49,10 @@ def add_watch(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--rate-hz",
-        type=positive_float,
+        type=watch_rate_hz,
         default=10.0,
         metavar="R",
-        help="ANGLE updates a second to ask the daemon for (default 10)",
+        help="ANGLE updates a second to ask the daemon for, > 0 and at most 10000 (default 10)",
     )
     p.add_argument("--count", type=positive_int, metavar="N", help="stop after N ANGLE updates")
     p.add_argument("--duration", type=positive_float, metavar="S", help="stop after S seconds")
@@ -132,9 +132,10 @@ def add_ctl(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--timeout",
-        type=positive_float,
+        type=reply_timeout_s,
         default=35.0,
         metavar="S",
-        help="how long to wait for the answer (default 35 s; bias waits for its result besides)",
+        help=f"how long to wait for the answer, > 0 and at most {MAX_REPLY_TIMEOUT_S:g} s (default 35 s; bias waits "
+        "for its result besides)",
     )
     p.set_defaults(func=cmd_ctl)

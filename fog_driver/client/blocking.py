@@ -44,6 +44,9 @@ from .session import Request
 __all__ = ["Client"]
 
 _RECV_BYTES = 65536
+#: The longest one wait on the socket lasts; a longer timeout is waited in several (``select`` takes no timeout
+#: beyond the platform's ``time_t``: 1e10 s was an ``OverflowError``, and infinity is none).
+_LONGEST_WAIT_S = 3600.0
 
 
 class Client(ClientBase):
@@ -113,7 +116,7 @@ class Client(ClientBase):
         """Connect, greet, authorize and watch again; the socket (also ``self._sock``), or an error raised."""
         hint = "(is `fog-driver run` running?)"
         try:
-            sock = socket.create_connection((self.host, self.port), timeout=self.timeout_s)
+            sock = socket.create_connection((self.host, self.port), timeout=min(self.timeout_s, _LONGEST_WAIT_S))
         except OSError as exc:
             raise ConnectError(f"could not connect to {self.address}: {_reason(exc)} {hint}") from None
         sock.setblocking(False)
@@ -190,13 +193,15 @@ class Client(ClientBase):
     # -- reading ----------------------------------------------------------------------------------------
 
     def _read_once(self, timeout_s: float | None) -> bool:
-        """Read what the socket holds, waiting up to ``timeout_s`` for it; False when nothing came.
-        ``_Lost`` when the connection went."""
+        """Read what the socket holds, waiting up to ``timeout_s`` for it (at most ``_LONGEST_WAIT_S``: the
+        callers wait again until their deadline); False when nothing came.  ``_Lost`` when the connection went."""
         sock = self._sock
         if sock is None:
             raise _Lost("not connected")
         try:
-            if not select.select([sock], [], [], timeout_s)[0]:
+            if not select.select(
+                [sock], [], [], _LONGEST_WAIT_S if timeout_s is None else min(timeout_s, _LONGEST_WAIT_S)
+            )[0]:
                 return False
             data = sock.recv(_RECV_BYTES)
         except BlockingIOError:
@@ -394,7 +399,10 @@ def _send_all(sock: socket.socket, data: bytes, timeout_s: float) -> None:
     deadline = time.monotonic() + timeout_s
     view = memoryview(data)
     while view:
-        if not select.select([], [sock], [], max(0.0, deadline - time.monotonic()))[1]:
+        wait_s = min(max(0.0, deadline - time.monotonic()), _LONGEST_WAIT_S)
+        if not select.select([], [sock], [], wait_s)[1]:
+            if time.monotonic() < deadline:
+                continue
             raise TimeoutError("the daemon does not read")
         try:
             sent = sock.send(view)

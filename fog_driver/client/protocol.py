@@ -13,7 +13,7 @@ from typing import Any, TypeVar, cast
 
 from .errors import BiasFailed, CommandRefused, ProtocolError, Unauthorized, UnknownCommand
 from .messages import Angle, Bias, Device, ErrorReply, Message, Other, Reply, Status, Version
-from .session import Received, Session
+from .session import MAX_WATCH_RATE_HZ, Received, Session
 from .wire import DEFAULT_HOST, DEFAULT_PORT, GREETING_TIMEOUT_S, MAX_LINE_BYTES, format_address, parse_address
 
 __all__ = [
@@ -24,6 +24,7 @@ __all__ = [
     "MAX_REFERENCE_DPH",
     "MAX_TABLE_ANGLE_DEG",
     "MAX_TABLE_DWELL_S",
+    "MAX_WATCH_RATE_HZ",
     "MIN_TABLE_DWELL_S",
     "MESSAGE_OVERHEAD_BYTES",
     "MIN_BUFFERED_BYTES",

@@ -24,7 +24,10 @@ from .errors import ProtocolError
 from .messages import Angle, Bias, Device, ErrorReply, Gap, Message, Other, Reply, Status, Version, message_from
 from .wire import MAX_LINE_BYTES, LineReader, command_line, parse_line
 
-__all__ = ["Received", "Request", "Session"]
+__all__ = ["MAX_WATCH_RATE_HZ", "Received", "Request", "Session"]
+
+#: The highest ``?WATCH`` ``rate_hz`` a daemon takes (the protocol's bound, ``0 < rate_hz <= 10000``).
+MAX_WATCH_RATE_HZ = 10_000
 
 #: What ``Session.receive`` gives: a message, or the ``ProtocolError`` of an over-long line in its place.
 Received = Message | ProtocolError
@@ -164,6 +167,8 @@ class Session:
         """``?WATCH``'s argument for a watch at ``rate_hz`` (None: every sample)."""
         if rate_hz is None:
             return {"enable": True}
-        if not (isinstance(rate_hz, (int, float)) and not isinstance(rate_hz, bool) and 0 < rate_hz <= 10_000):
-            raise ValueError(f"rate_hz must be a number, 0 < rate_hz <= 10000, not {rate_hz!r}")
+        if not (
+            isinstance(rate_hz, (int, float)) and not isinstance(rate_hz, bool) and 0 < rate_hz <= MAX_WATCH_RATE_HZ
+        ):
+            raise ValueError(f"rate_hz must be a number, 0 < rate_hz <= {MAX_WATCH_RATE_HZ}, not {rate_hz!r}")
         return {"enable": True, "rate_hz": rate_hz}

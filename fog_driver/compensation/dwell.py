@@ -24,6 +24,7 @@ __all__ = [
     "MAX_TABLE_ANGLE_DEG",
     "MIN_LIVE_DWELL_S",
     "Dwell",
+    "number_within",
     "table_angle_deg",
     "blocks_within",
     "out_of_order",
@@ -42,15 +43,23 @@ MIN_LIVE_DWELL_S = 12.0
 MAX_TABLE_ANGLE_DEG = 1e6
 
 
-def table_angle_deg(value: object, name: str = "angle_deg") -> float:
-    """``value`` as a dwell's table angle: a number (not a bool), finite and within +-``MAX_TABLE_ANGLE_DEG``;
-    else a one-line ``ValueError`` naming ``name``.  The one check of a table angle, wherever it comes from."""
-    ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+def number_within(value: object, bound: float) -> bool:
+    """Whether ``value`` is a number (an int or a float, not a bool), finite and within +-``bound``: the check of
+    a number read from JSON or YAML, whose integers may have any number of digits (one too large for a float is
+    out of bounds, and raises nothing)."""
+    if not isinstance(value, (int, float)) or isinstance(value, bool):
+        return False
     try:
-        ok = ok and math.isfinite(value) and abs(value) <= MAX_TABLE_ANGLE_DEG  # type: ignore[arg-type]  # a number
+        return math.isfinite(value) and abs(value) <= bound
     except OverflowError:  # an int too large for a float
-        ok = False
-    if not ok:
+        return False
+
+
+def table_angle_deg(value: object, name: str = "angle_deg") -> float:
+    """``value`` as a dwell's table angle: a number (not a bool), finite and within +-``MAX_TABLE_ANGLE_DEG``
+    (``number_within``); else a one-line ``ValueError`` naming ``name``.  The one check of a table angle,
+    wherever it comes from."""
+    if not number_within(value, MAX_TABLE_ANGLE_DEG):
         try:
             shown = repr(value)
         except ValueError:  # an int of more digits than Python converts

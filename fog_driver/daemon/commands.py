@@ -13,7 +13,8 @@ command    arguments                                           does
 STATUS     none                                                the STATUS object now
 ZERO       none                                                zero the published angles (raw and comp)
 BIAS       ``seconds`` (1..86400, default 60)                  capture the residual bias, then remove it
-ADAPT      ``enable`` (bool), ``reference_dph`` (default 0)    adapt the weights online, or freeze them
+ADAPT      ``enable`` (bool), ``reference_dph``                adapt the weights online, or freeze them
+           (+-1e7 deg/h, default 0)
 TABLE      ``angle_deg``, ``dwell_s`` (12..86400),              the table has stood at the angle for the
            ``angle_start_deg`` (optional)                      last seconds: adapt from table angles
 SAVE       none                                                write the adaptation state file
@@ -23,7 +24,6 @@ RELOAD     none                                                load the model fi
 
 from __future__ import annotations
 
-import math
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -31,7 +31,7 @@ from typing import Any
 
 import structlog
 
-from ..compensation.dwell import table_angle_deg
+from ..compensation.dwell import number_within, table_angle_deg
 from ..errors import FogDriverError
 from .acquisition import BiasCapture
 from .limits import (
@@ -244,14 +244,8 @@ COMMANDS: dict[str, Command] = {
             Arg("enable", lambda v: isinstance(v, bool), '?ADAPT needs "enable": true or false'),
             Arg(
                 "reference_dph",
-                lambda v: _is_number(v) and math.isfinite(v),
-                '"reference_dph" must be a number (deg/h, 0 at rest)',
-                0.0,
-            ),
-            Arg(
-                "reference_dph",
-                lambda v: abs(v) <= MAX_ADAPT_REFERENCE_DPH,
-                '"reference_dph" must be within +-1e7 deg/h',
+                lambda v: number_within(v, MAX_ADAPT_REFERENCE_DPH),
+                f'"reference_dph" must be a number within +-{MAX_ADAPT_REFERENCE_DPH:g} deg/h (0 at rest)',
                 0.0,
             ),
         ),

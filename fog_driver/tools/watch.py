@@ -47,9 +47,11 @@ is given: then it bounds that watch too.
 
 ``run_watch`` returns 0 when ``count`` ANGLE objects were shown, ``duration_s`` elapsed, the user pressed
 ``q`` or Ctrl-C, or the reader of ``--json`` output went away; 1 (after a one-line note) when the
-server closed or lost the connection.  A daemon that cannot be reached (refused, or a peer that closes
-or never greets) is a one-line ``DeviceError`` at once.  ``format_dms``, ``render`` and
-``compact_line`` are pure and tested on their own.
+server closed or lost the connection.  A daemon that refuses the ``?WATCH`` itself (its ``rate_hz``, say: a
+daemon takes ``0 < rate_hz <= 10000``) ends it at once with a ``CommandRefused`` (exit 65) ``the daemon at
+HOST:PORT refused ?WATCH: MESSAGE``, after the view's last line; ``unauthorized`` does not (above).  A
+daemon that cannot be reached (refused, or a peer that closes or never greets) is a one-line ``DeviceError``
+at once.  ``format_dms``, ``render`` and ``compact_line`` are pure and tested on their own.
 """
 
 from __future__ import annotations
@@ -60,11 +62,13 @@ import os
 import select
 import sys
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, TextIO
 
-from ..client import Client, ConnectionLost, Message, ProtocolError
+from ..client import Client, CommandRefused, ConnectionLost, Message, ProtocolError
 from ..client.display import DEFAULT_BIAS_S, NO_DATA_S, format_arcsec, format_dms, no_samples_reason
+from ..client.protocol import printable
 from ..client.wire import (
     DEFAULT_HOST,
     DEFAULT_PORT,
@@ -174,7 +178,8 @@ def run_watch(
     an ANGLE that end the watch (``idle_limit_s``: 10 with ``count`` or ``duration_s``, else none unless given).
     Returns 0 (count reached, duration elapsed, ``q``, Ctrl-C, the reader of ``json_lines`` gone) or 1 (the
     server closed or lost the connection; a one-line note says so).  Raises ``DeviceError`` when the daemon
-    cannot be reached, ``TemporaryFailure`` (exit 75) after ``idle_s`` without a sample, ``UsageError`` for bad
+    cannot be reached, ``TemporaryFailure`` (exit 75) after ``idle_s`` without a sample, ``CommandRefused``
+    (exit 65) when the daemon refuses the ``?WATCH`` (but for ``unauthorized``), ``UsageError`` for bad
     arguments.
     """
     if out is None:
@@ -221,6 +226,19 @@ class _Ends:
     def wait_s(self, now: float) -> float:
         """How long a wait for the socket or a key may last (``_POLL_S``, less before the deadline)."""
         return _POLL_S if self.deadline is None else max(0.001, min(_POLL_S, self.deadline - now))
+
+
+def _refused(conn: Client, obj: Mapping[str, Any]) -> CommandRefused | None:
+    """The daemon's ``ERROR`` to ``?WATCH`` as the error that ends the watch (exit 65, ``the daemon at ADDRESS
+    refused ?WATCH: MESSAGE``: asked again it would refuse again), or None: another line, or ``unauthorized``
+    (the watch waits on, saying so, as for a link that is down)."""
+    if not (obj.get("class") == "ERROR" and obj.get("command") == "WATCH"):
+        return None
+    message = obj.get("message")
+    if message == "unauthorized":
+        return None
+    shown = printable(message) if isinstance(message, str) else "(no message)"
+    return CommandRefused(f"the daemon at {conn.address} refused ?WATCH: {shown}", message=shown, command="WATCH")
 
 
 def _greet(conn: Client, token: str | None, rate_hz: float | None) -> None:
@@ -275,6 +293,9 @@ def _view(
             while (message := _poll(conn, 0)) is not None:  # what has arrived, without waiting
                 _counts(watch, conn)
                 watch.handle(dict(message.raw), now)
+                if (refusal := _refused(conn, message.raw)) is not None:
+                    watch.finish(now)
+                    raise refusal
                 if ends.count is not None and watch.state["angles"] >= ends.count:
                     watch.finish(now)
                     return EXIT_OK
@@ -335,6 +356,8 @@ def _pass_through(
             if cls in ("DEVICE", "STATUS"):
                 said[str(cls).lower()] = dict(message.raw)
             elif cls == "ERROR" and message.raw.get("command") == "WATCH":
+                if (refusal := _refused(conn, message.raw)) is not None:
+                    raise refusal
                 said["watch_refused"] = message.raw.get("message")
             elif cls == "ANGLE":
                 last_angle_at = time.monotonic()
