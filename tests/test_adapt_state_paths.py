@@ -160,9 +160,16 @@ def test_compensate_and_the_daemon_say_the_same_of_a_file_that_is_not_a_state(tm
     model = tmp_path / "model.yaml"
     model.write_bytes(DEFAULT_MODEL.read_bytes())
     offline = run_cli(
-        "compensate", str(DATA / "sim-short.bin"), "--model", str(model), "--out", "o.csv",
-        "--adapt-state", str(model), cwd=tmp_path,
-    )  # fmt: skip
+        "compensate",
+        str(DATA / "sim-short.bin"),
+        "--model",
+        str(model),
+        "--out",
+        "o.csv",
+        "--adapt-state",
+        str(model),
+        cwd=tmp_path,
+    )
     assert offline.returncode == 73
     assert offline.stderr == (
         f"fog-driver: error: {model}: --adapt-state exists and is {not_a_state_file(model)}, not an adaptation "

@@ -203,9 +203,16 @@ def test_compensate_with_an_adapt_state_on_a_fifo_or_dev_zero_refuses_it_as_an_o
     opened blocking for that look (a hang); now it is never opened."""
     state, _ = _not_regular(tmp_path, kind, unix_socket)
     proc = _command(
-        "compensate", str(CAPTURE), "--model", str(DEFAULT_MODEL), "--out", "o.csv", "--adapt-state", str(state),
+        "compensate",
+        str(CAPTURE),
+        "--model",
+        str(DEFAULT_MODEL),
+        "--out",
+        "o.csv",
+        "--adapt-state",
+        str(state),
         cwd=tmp_path,
-    )  # fmt: skip
+    )
     what = "a FIFO" if kind == "fifo" else "a character device"
     assert_one_line_error(proc, 73, f"{state}: --adapt-state exists and is not a regular file (it is {what}), not an")
     assert not (tmp_path / "o.csv").exists() and os.path.lexists(state)

@@ -22,6 +22,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     default action would end the daemon while it loads); ``app.main`` undoes it for any other command."""
     if argv is None and "run" in sys.argv[1:]:
         defer_hangups()
-    from .app import main as command  # the command line's imports (structlog, argparse)
+    from .app import main as command  # start-up time: the command line's imports (structlog, argparse)
 
     return command(argv)
