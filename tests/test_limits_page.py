@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from fog_driver.cli import argtypes
-from fog_driver.client import wire
+from fog_driver.client import session, wire
 from fog_driver.compensation import dwell, model, model_checks, reservoir, uncertainty
 from fog_driver.daemon import config, limits
 from fog_driver.files import yamlio
@@ -94,6 +94,8 @@ EXPECTED: dict[str, list[str]] = {
     "`plan`'s temperatures": [f"{plan.ABSOLUTE_ZERO_C:g} to {_n(plan.MAX_LIMIT_C)} degC"],
     "`plan`'s ramp rate": [f"{_n(plan.MAX_RATE_C_PER_MIN)} degC/min"],
     "`plan --minutes`": [f"({_n(plan.MAX_MINUTES)} min)"],
+    "`ctl --timeout`": [f"at most {_n(argtypes.MAX_REPLY_TIMEOUT_S)} s"],
+    "`watch --rate-hz`": [f"at most {_n(session.MAX_WATCH_RATE_HZ)}"],
     "`compensate --every`": [f"{_g(argtypes.MIN_PERIOD_S)} to {_g(argtypes.MAX_PERIOD_S)} s"],
 }
 
@@ -138,3 +140,8 @@ def test_the_arguments_bounds_the_page_quotes_are_the_parsers() -> None:
         for text in outside:
             with pytest.raises(argparse.ArgumentTypeError):
                 parse(text)
+
+
+def test_the_watch_rate_bound_is_one_on_both_sides_of_the_wire():
+    """The client library refuses before asking what the daemon would refuse: the same bound."""
+    assert session.MAX_WATCH_RATE_HZ == limits.MAX_WATCH_RATE_HZ
