@@ -273,15 +273,10 @@ def _log_events(log: Path, keys: Iterable[str]) -> list[dict]:
 def test_a_reload_of_a_model_path_that_became_a_fifo_is_refused_and_the_old_model_goes_on(tmp_path):
     """``?RELOAD`` and SIGHUP read the model the same way (``Service.reload_from_file``): a FIFO is one line, at
     once, and the angle goes on with the model in use."""
-    from test_daemon_hil import Client, Daemon
+    from test_model_checks import watching
 
     model = tmp_path / "m.yaml"
-    model.write_bytes(DEFAULT_MODEL.read_bytes())
-    daemon = Daemon(tmp_path, f"replay://{CAPTURE}?rate=100", "--model", str(model))
-    try:
-        client = Client(daemon.address)
-        client.send('?WATCH={"enable":true};')
-        client.next("ANGLE")
+    with watching(tmp_path, model) as (daemon, client):
         client.send("?STATUS;")
         in_use = client.next("STATUS")["model_file"]
         model.unlink()
@@ -302,8 +297,6 @@ def test_a_reload_of_a_model_path_that_became_a_fifo_is_refused_and_the_old_mode
         client.send("?STATUS;")
         assert client.next("STATUS")["model_file"] == in_use
         assert daemon.terminate() == 0
-    finally:
-        daemon.kill()
 
 
 @pytest.mark.parametrize("kind", ["fifo", "dev-zero", "directory"])

@@ -121,7 +121,7 @@ def test_run_and_compensate_with_a_nan_weight_are_one_line_78_and_65(tmp_path):
 
 
 @contextlib.contextmanager
-def _watching(tmp_path: Path, model: Path):
+def watching(tmp_path: Path, model: Path):
     """A daemon on ``model`` (the shipped default's copy) replaying a capture, and a client that has its first
     ANGLE; the daemon killed at the end whatever happened."""
     from test_daemon_hil import Client, Daemon
@@ -139,7 +139,7 @@ def _watching(tmp_path: Path, model: Path):
 
 def test_a_reload_of_the_alias_model_is_refused_and_the_angle_goes_on(tmp_path):
     model = tmp_path / "m.yaml"
-    with _watching(tmp_path, model) as (daemon, client):
+    with watching(tmp_path, model) as (daemon, client):
         model.write_text(_aliased_candidates(10_000))
         client.send("?RELOAD;")
         assert "a YAML anchor (&id001)" in client.next("ERROR")["message"]
@@ -153,7 +153,7 @@ def test_a_reload_of_a_model_that_differs_only_in_its_candidates_is_accepted(tmp
     """The review's finding 11: 5 (or 0) candidates instead of 6 was refused ("uncertainty state needs 5
     candidate states"); it is another model now, started at rest, and reloads."""
     model = tmp_path / "m.yaml"
-    with _watching(tmp_path, model) as (daemon, client):
+    with watching(tmp_path, model) as (daemon, client):
         doc = _doc()
         doc["uncertainty"]["candidates"] = doc["uncertainty"]["candidates"][:kept]
         if not kept:
