@@ -84,7 +84,7 @@ EXPECTED: dict[str, list[str]] = {
     "sessions": [_n(limits.WEB_MAX_SESSIONS)],
     "a WebSocket message from the page": [f"{_n(limits.WEB_MAX_WS_MESSAGE_BYTES)} bytes"],
     "WebSocket messages a second from the page": [_n(limits.WEB_MAX_WS_MESSAGES_PER_S)],
-    "`simulate --duration`, a profile, a fault": [f"{_n(profiles.MAX_PROFILE_S / 86400)} days"],
+    "`simulate --duration`, a fault, a profile": [f"{_n(profiles.MAX_PROFILE_S / 86400)} days"],
     "`simulate --speed` (with `--serve`)": [f"{_g(serve.MIN_SPEED)} to {_g(serve.MAX_SPEED)}"],
     "`--rate-hz` (`simulate`)": ["1 to 65,535 Hz"],
     "`--baud`": ["50 to 12,000,000"],
