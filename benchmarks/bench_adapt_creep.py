@@ -44,7 +44,7 @@ from bench_population import FIT_PROFILE, SEED_SETS, SKIP_MINUTES, capture  # no
 
 from fog_driver.compensation.adapt import AdaptConfig  # noqa: E402
 from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
-from fog_driver.compensation.pipeline import FLAG_GUARD  # noqa: E402
+from fog_driver.flags import FLAG_GUARD  # noqa: E402
 from fog_driver.offline.compensate import compensate_capture  # noqa: E402
 from fog_driver.offline.fit import fit_model_file  # noqa: E402
 from fog_driver.sim.capture import read_truth, simulate_to_file  # noqa: E402

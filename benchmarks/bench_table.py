@@ -57,8 +57,9 @@ from fog_driver.cli.calibration import DEFAULT_FIT_KIND  # noqa: E402
 from fog_driver.compensation.adapt import AdaptConfig  # noqa: E402
 from fog_driver.compensation.dwell import Dwell  # noqa: E402
 from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
-from fog_driver.compensation.pipeline import FLAG_GUARD, Compensator  # noqa: E402
+from fog_driver.compensation.pipeline import Compensator  # noqa: E402
 from fog_driver.compensation.table import SF_REF_C  # noqa: E402
+from fog_driver.flags import FLAG_GUARD  # noqa: E402
 from fog_driver.offline.compensate import compensate_capture  # noqa: E402
 from fog_driver.offline.fit import fit_model_file  # noqa: E402
 from fog_driver.report.evaluate import minute_rms  # noqa: E402

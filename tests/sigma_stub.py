@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import math
 
-from fog_driver.compensation.pipeline import FLAG_UNCOMPENSATED, Compensator
+from fog_driver.compensation.pipeline import Compensator
+from fog_driver.flags import FLAG_UNCOMPENSATED
 
 STUB_BASE_DPH = 0.01
 STUB_STEP_DPH = 0.0001

@@ -14,13 +14,13 @@ from fog_driver.compensation.adapt import (
     StaticDetector,
 )
 from fog_driver.compensation.numerics import dot
-from fog_driver.compensation.pipeline import FLAG_ADAPTING, FLAG_GUARD
 from fog_driver.compensation.readout import (
     AdaptiveLaw,
     AdaptiveLawParams,
     AdaptiveLawState,
 )
 from fog_driver.errors import InputFileError, OutputFileError
+from fog_driver.flags import FLAG_ADAPTING, FLAG_GUARD
 from fog_driver.modelfiles import load_readout_state, save_readout_state
 
 W0 = np.array([0.5, -0.3, 0.2])  # the frozen (stored) weights

@@ -7,8 +7,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fog_driver.compensation.blocks import FLAG_GAP, FLAG_THERMOMETER_FAULT, BlockAverager, BlockColumns
+from fog_driver.compensation.blocks import BlockAverager, BlockColumns
 from fog_driver.compensation.features import FeatureExtractor, FeatureParams
+from fog_driver.flags import FLAG_GAP, FLAG_THERMOMETER_FAULT
 from fog_driver.samples.stream import SampleBlock
 
 

@@ -17,13 +17,7 @@ import pytest
 import yaml
 
 from fog_driver.cli import main
-from fog_driver.compensation.domain import (
-    ESTIMATE_LIMIT_FACTOR,
-    FLAG_EXTRAPOLATING,
-    LEVEL_MARGIN,
-    LINEAR_MARGIN,
-    InputDomain,
-)
+from fog_driver.compensation.domain import ESTIMATE_LIMIT_FACTOR, LEVEL_MARGIN, LINEAR_MARGIN, InputDomain
 from fog_driver.compensation.features import INPUT_NAMES
 from fog_driver.compensation.fitting.data import FitConfig, static_minute_means
 from fog_driver.compensation.fitting.fit import WeakFitError
@@ -37,9 +31,8 @@ from fog_driver.compensation.fitting.quality import (
     condition_number,
 )
 from fog_driver.compensation.fitting.report import applied_prediction
-from fog_driver.compensation.pipeline import FLAG_NAMES
-from fog_driver.daemon.udp import FLAG_BITS
 from fog_driver.errors import InputFileError
+from fog_driver.flags import FLAG_BITS, FLAG_EXTRAPOLATING, FLAG_NAMES
 from fog_driver.modelfiles import load_model, save_model
 from fog_driver.offline.compensate import compensate_capture
 from fog_driver.offline.fit import fit_model_file, load_capture

@@ -17,10 +17,11 @@ from sigma_stub import stub_sigma, stub_value
 
 from fog_driver.cli.app import main
 from fog_driver.compensation.fitting.data import FitConfig, static_mask
-from fog_driver.compensation.pipeline import FLAG_UNCOMPENSATED, CompensatedColumns, CompensatedSample, Compensator
+from fog_driver.compensation.pipeline import CompensatedColumns, CompensatedSample, Compensator
 from fog_driver.daemon.config import DEFAULT_MODEL
 from fog_driver.errors import InputFileError
 from fog_driver.files.kinds import ROW_COLUMNS
+from fog_driver.flags import FLAG_UNCOMPENSATED
 from fog_driver.modelfiles import load_adaptation, load_model, save_adaptation, save_model
 from fog_driver.offline.fit import fit_model_file, load_capture
 from fog_driver.offline.rows import RowAggregator, format_row
@@ -341,7 +342,7 @@ def adapt_config():
 
 @pytest.mark.determinism
 def test_adapting_compensator_step_equals_run_in_any_chunks(model_path):
-    from fog_driver.compensation.pipeline import FLAG_ADAPTING
+    from fog_driver.flags import FLAG_ADAPTING
 
     samples = SampleStream().run(decode_file(DATA / "sim-short.bin"))
     n = len(samples)
@@ -519,7 +520,8 @@ def test_after_a_link_gap_every_estimate_off_by_more_than_a_trickle_is_flagged(r
     """A link loss during a 2 degC/min ramp: the features and the model step through the missing blocks
     (or, past 6 h, restart at rest), and the estimates are flagged ``gap`` until the smoothers settle.
     (The review measured 0.27 deg/h off for 65 s after a 600-s gap, one block of it flagged.)"""
-    from fog_driver.compensation.pipeline import FLAG_GAP, SETTLE_TAUS
+    from fog_driver.compensation.pipeline import SETTLE_TAUS
+    from fog_driver.flags import FLAG_GAP
 
     model = DEFAULT_MODEL
     t = ramp_samples.t_s - ramp_samples.t_s[0]

@@ -17,11 +17,8 @@ import pytest
 import yaml
 
 from fog_driver.cli import main
-from fog_driver.compensation.blocks import FLAG_THERMOMETER_FAULT, PLAUSIBLE_TEMP_C, BlockAverager
+from fog_driver.compensation.blocks import PLAUSIBLE_TEMP_C, BlockAverager
 from fog_driver.compensation.features import (
-    FLAG_INPUT_STALE,
-    FLAG_RECOVERING,
-    FLAG_SUBSTITUTED,
     RECOVERY_TAUS,
     FeatureExtractor,
     FeatureParams,
@@ -29,9 +26,16 @@ from fog_driver.compensation.features import (
     fit_substitution,
 )
 from fog_driver.compensation.fitting.data import FitConfig
-from fog_driver.compensation.pipeline import FLAG_NAMES, Compensator
-from fog_driver.daemon.udp import FLAG_BITS
+from fog_driver.compensation.pipeline import Compensator
 from fog_driver.errors import InputFileError
+from fog_driver.flags import (
+    FLAG_BITS,
+    FLAG_INPUT_STALE,
+    FLAG_NAMES,
+    FLAG_RECOVERING,
+    FLAG_SUBSTITUTED,
+    FLAG_THERMOMETER_FAULT,
+)
 from fog_driver.modelfiles import load_model, save_model
 from fog_driver.offline.fit import fit_model_file
 from fog_driver.samples.stream import read_capture_samples

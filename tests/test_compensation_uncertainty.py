@@ -15,8 +15,9 @@ from fog_driver.compensation.domain import InputDomain
 from fog_driver.compensation.fitting.data import FitConfig
 from fog_driver.compensation.fitting.uncertainty import model_error_dph
 from fog_driver.compensation.model import MODEL_KINDS, model_file_from_doc
-from fog_driver.compensation.pipeline import FLAG_UNCOMPENSATED, Compensator
+from fog_driver.compensation.pipeline import Compensator
 from fog_driver.compensation.uncertainty import UncertaintySpec, box_distance
+from fog_driver.flags import FLAG_UNCOMPENSATED
 from fog_driver.offline.fit import fit_model_file
 from fog_driver.protocol import decode_file
 from fog_driver.samples.stream import SampleBlock, SampleStream

@@ -21,19 +21,10 @@ from hub_fixtures import VERSION
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fog_driver.compensation.pipeline import FLAG_NAMES
 from fog_driver.daemon.hub import Hub, clean, encode, is_loopback_host
 from fog_driver.daemon.limits import MAX_UNTERMINATED_BYTES
-from fog_driver.daemon.udp import (
-    DATAGRAM_SIZE,
-    FLAG_BITS,
-    FLAG_GAP,
-    FLAG_THERMOMETER_FAULT,
-    FLAG_UNCOMPENSATED,
-    UdpPublisher,
-    decode_datagram,
-    encode_datagram,
-)
+from fog_driver.daemon.udp import DATAGRAM_SIZE, UdpPublisher, decode_datagram, encode_datagram
+from fog_driver.flags import FLAG_BITS, FLAG_GAP, FLAG_NAMES, FLAG_THERMOMETER_FAULT, FLAG_UNCOMPENSATED
 
 TIMEOUT_S = 5.0
 

@@ -10,9 +10,9 @@ import pytest
 import yaml
 from sigma_stub import STUB_BASE_DPH, STUB_PERIOD, stub_sigma, stub_value
 
-from fog_driver.compensation.pipeline import FLAG_NAMES
 from fog_driver.daemon.config import DEFAULT_MODEL, DriverConfig
 from fog_driver.daemon.service import ConfigError, Service
+from fog_driver.flags import FLAG_NAMES
 from fog_driver.modelfiles import load_model
 from fog_driver.offline.compensate import compensate_capture
 

@@ -16,12 +16,11 @@ from test_daemon_service import offline
 
 from fog_driver.compensation.adapt import AdaptConfig
 from fog_driver.compensation.binding import ModelMismatchError
-from fog_driver.compensation.blocks import FLAG_GAP
 from fog_driver.compensation.fitting.data import FitConfig
-from fog_driver.compensation.pipeline import FLAG_ADAPTING
 from fog_driver.daemon.config import DriverConfig
 from fog_driver.daemon.service import Service
 from fog_driver.errors import InputFileError
+from fog_driver.flags import FLAG_ADAPTING, FLAG_GAP
 from fog_driver.modelfiles import load_model, save_model
 from fog_driver.offline.fit import fit_model_file
 from fog_driver.protocol import decode_bytes

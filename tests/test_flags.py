@@ -1,18 +1,15 @@
-"""The flag vocabulary's leaf: one IntFlag, its names, and every old name an alias of the same value."""
+"""The flag vocabulary's leaf: one IntFlag, its names, and no other home for a flag."""
 
 from __future__ import annotations
 
+import ast
 import itertools
 import subprocess
 import sys
-
-import pytest
+from pathlib import Path
 
 from fog_driver import flags
-from fog_driver.compensation import blocks, domain, features, pipeline
-from fog_driver.daemon import udp
 from fog_driver.flags import FLAG_BITS, FLAG_NAMES, Flag, flag_names, flags_from_names
-from fog_driver.formats import common
 
 #: The flag word as documented before the leaf existed (the UDP datagram's table, the NDJSON names).
 DOCUMENTED = {
@@ -37,28 +34,40 @@ def test_bits_and_names_are_the_documented_ones_in_bit_order() -> None:
     assert all(type(bit) is int for bit in FLAG_NAMES)
 
 
-@pytest.mark.parametrize(
-    ("module", "names"),
-    [
-        (blocks, ["FLAG_GAP", "FLAG_THERMOMETER_FAULT"]),
-        (features, ["FLAG_INPUT_STALE", "FLAG_SUBSTITUTED", "FLAG_RECOVERING"]),
-        (domain, ["FLAG_EXTRAPOLATING"]),
-        (pipeline, ["FLAG_UNCOMPENSATED", "FLAG_ADAPTING", "FLAG_GUARD"]),
-        (udp, [f"FLAG_{f.name}" for f in Flag]),
-        (flags, [f"FLAG_{f.name}" for f in Flag]),
-    ],
-)
-def test_old_names_are_plain_int_aliases(module: object, names: list[str]) -> None:
-    for name in names:
-        value = getattr(module, name)
-        assert type(value) is int, name
-        assert value == int(Flag[name.removeprefix("FLAG_")]), name
+def test_the_int_forms_are_plain_ints_of_the_same_bits() -> None:
+    for flag in Flag:
+        value = getattr(flags, f"FLAG_{flag.name}")
+        assert type(value) is int and value == int(flag), flag.name
 
 
-def test_name_maps_are_the_leaf_s() -> None:
-    assert pipeline.FLAG_NAMES is FLAG_NAMES
-    assert pipeline.flag_names is flag_names
-    assert udp.FLAG_BITS == FLAG_BITS
+def _binds_a_leaf_name(value: ast.expr | None, leaf_names: set[str]) -> bool:
+    """A module-level value that is one of the leaf's flags under another name: ``FLAG_GAP``, ``Flag.GAP``,
+    ``int(Flag.GAP)``, ``SAMPLE_STARTUP`` (a set, a mapping or a combination of flags is a thing of its own)."""
+    if isinstance(value, ast.Call) and isinstance(value.func, ast.Name) and value.func.id == "int" and value.args:
+        value = value.args[0]
+    if isinstance(value, ast.Name):
+        return value.id in leaf_names
+    return isinstance(value, ast.Attribute) and isinstance(value.value, ast.Name) and value.value.id in leaf_names
+
+
+def test_no_module_but_the_leaf_binds_a_flag_to_a_name_of_its_own() -> None:
+    """Flag bits and the sample flags come from ``fog_driver.flags`` alone: no module assigns one to a
+    module-level name (``FLAG_GAP = int(Flag.GAP)``, ``GAP = Flag.GAP``, ``FLAG_STARTUP = SAMPLE_STARTUP``), and
+    none imports one from anywhere but the leaf (a re-export through another module is an alias too)."""
+    root = Path(flags.__file__).resolve().parent
+    leaf_names = {n for n in vars(flags) if n.startswith(("FLAG_", "SAMPLE_")) or n in ("Flag", "flag_names")}
+    found = []
+    for path in sorted(root.rglob("*.py")):
+        if path == root / "flags.py":
+            continue
+        where = path.relative_to(root.parent)
+        for node in ast.parse(path.read_text(encoding="utf-8")).body:
+            if isinstance(node, (ast.Assign, ast.AnnAssign)) and _binds_a_leaf_name(node.value, leaf_names):
+                found.append(f"{where}:{node.lineno}")
+            imported = {a.name for a in node.names} & leaf_names if isinstance(node, ast.ImportFrom) else set()
+            if imported and (node.module or "").split(".")[-1] != "flags":
+                found.append(f"{where}:{node.lineno} imports {sorted(imported)} from {node.module}")
+    assert found == []
 
 
 def test_flag_names_every_word_against_a_loop() -> None:
@@ -80,11 +89,9 @@ def test_flags_from_names_ignores_unknown_and_repeated_names() -> None:
 
 
 def test_sample_flags_are_the_formats_names() -> None:
-    assert (
-        common.COMMON_FLAGS == flags.SAMPLE_FLAGS == ("sensor_invalid", "startup", "temperature_invalid", "over_range")
-    )
-    assert common.FLAG_SENSOR_INVALID == "sensor_invalid" and common.FLAG_STARTUP == "startup"
-    assert common.FLAG_TEMPERATURE_INVALID == "temperature_invalid" and common.FLAG_OVER_RANGE == "over_range"
+    assert flags.SAMPLE_FLAGS == ("sensor_invalid", "startup", "temperature_invalid", "over_range")
+    assert flags.SAMPLE_SENSOR_INVALID == "sensor_invalid" and flags.SAMPLE_STARTUP == "startup"
+    assert flags.SAMPLE_TEMPERATURE_INVALID == "temperature_invalid" and flags.SAMPLE_OVER_RANGE == "over_range"
     assert all(type(name) is str for name in flags.SAMPLE_FLAGS)
 
 

@@ -17,7 +17,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from fog_driver.formats.common import FLAG_STARTUP, ImuSample
+from fog_driver.flags import SAMPLE_STARTUP
+from fog_driver.formats.common import ImuSample
 from fog_driver.formats.ixblue import (
     EXTNAV_BLOCK_LEN,
     MAX_TELEGRAM_LEN,
@@ -147,7 +148,7 @@ def test_real_telegram_decodes_to_the_values_the_vendor_test_asserts(name):
     assert (s.extra["sensor_status_1"], s.extra["sensor_status_2"]) == expected["sensor"]
     assert _ins_words(s.status) == expected["ins"]
     # INS algorithm status word 1 bit 1 is ALIGNMENT (ixblue_stdbin_decoder INSAlgorithmStatus::Status1)
-    assert (FLAG_STARTUP in s.flags) == bool(expected["ins"][0] >> 1 & 1)
+    assert (SAMPLE_STARTUP in s.flags) == bool(expected["ins"][0] >> 1 & 1)
     assert s.temps_c == {
         "fog": _approx(expected["temps"][0]),
         "accelerometer": _approx(expected["temps"][1]),
@@ -295,7 +296,7 @@ def test_encode_decode_round_trip_each_version(version):
         assert s.extra["accel_z_mps2"] == 9.75 and s.extra["ahrs_algorithm_status"] == 7.0
         assert (s.extra["sensor_status_1"], s.extra["sensor_status_2"]) == (1.0, 2.0)
         assert _ins_words(s.status) == ((0b10 if k == 0 else 0b01), 3, 4, 5)
-        assert s.flags == (frozenset({FLAG_STARTUP}) if k == 0 else frozenset())
+        assert s.flags == (frozenset({SAMPLE_STARTUP}) if k == 0 else frozenset())
         assert s.temps_c == {"fog": 25.5, "accelerometer": 30.25, "board": 40.0}
         if version > 2:
             assert (s.extra["raw_rate_x_dph"], s.extra["raw_rate_z_dph"]) == (0.25 * 3600, -3600.0)

@@ -30,7 +30,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from fog_driver.formats.common import FLAG_SENSOR_INVALID, FormatCounters
+from fog_driver.flags import SAMPLE_SENSOR_INVALID
+from fog_driver.formats.common import FormatCounters
 from fog_driver.formats.kvh import (
     KvhBitFrame,
     KvhDecoder,
@@ -219,7 +220,7 @@ def test_format_c_mux_word_follows_the_sequence():
 @pytest.mark.parametrize("status,invalid", [(0x77, False), (0x07, False), (0x76, True), (0x73, True), (0x00, True)])
 def test_a_cleared_gyro_valid_bit_flags_the_sample(status, invalid):
     (s,), _ = run(encode_kvh_frame("a", GYRO, ACCEL, status=status))
-    assert (FLAG_SENSOR_INVALID in s.flags) is invalid and s.status == status
+    assert (SAMPLE_SENSOR_INVALID in s.flags) is invalid and s.status == status
 
 
 def test_format_filter_skips_the_other_headers():

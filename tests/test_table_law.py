@@ -12,9 +12,10 @@ import pytest
 
 from fog_driver.cli.app import main
 from fog_driver.compensation.dwell import Dwell, angle_at_deg, blocks_within, reference_deg, trimmed_window
-from fog_driver.compensation.pipeline import FLAG_ADAPTING, FLAG_GUARD, FLAG_SCALE_FACTOR, Compensator
+from fog_driver.compensation.pipeline import Compensator
 from fog_driver.compensation.table import SF_REF_C, TableLaw, TableOutcome
 from fog_driver.daemon.config import DEFAULT_MODEL
+from fog_driver.flags import FLAG_ADAPTING, FLAG_GUARD, FLAG_SCALE_FACTOR
 from fog_driver.modelfiles import load_model
 from fog_driver.protocol import decode_file
 from fog_driver.report.positioning import read_reference_csv

@@ -51,21 +51,6 @@ import math
 import struct
 from typing import Any
 
-# The compensator's flags, from the leaf that defines them (standard library only).
-from ..flags import (
-    FLAG_ADAPTING,
-    FLAG_BITS,
-    FLAG_EXTRAPOLATING,
-    FLAG_GAP,
-    FLAG_GUARD,
-    FLAG_INPUT_STALE,
-    FLAG_RECOVERING,
-    FLAG_SCALE_FACTOR,
-    FLAG_SUBSTITUTED,
-    FLAG_THERMOMETER_FAULT,
-    FLAG_UNCOMPENSATED,
-)
-
 __all__ = [
     "DATAGRAM_FORMAT",
     "DATAGRAM_SIZE",
@@ -77,17 +62,6 @@ __all__ = [
     "DATAGRAM_VERSIONS",
     "FIELDS",
     "FIELDS_V2",
-    "FLAG_ADAPTING",
-    "FLAG_BITS",
-    "FLAG_EXTRAPOLATING",
-    "FLAG_GAP",
-    "FLAG_GUARD",
-    "FLAG_INPUT_STALE",
-    "FLAG_RECOVERING",
-    "FLAG_SCALE_FACTOR",
-    "FLAG_SUBSTITUTED",
-    "FLAG_THERMOMETER_FAULT",
-    "FLAG_UNCOMPENSATED",
     "MAGIC",
     "decode_datagram",
 ]

@@ -19,10 +19,10 @@ from typing import cast
 import numpy as np
 
 from ..errors import UsageError
+from ..flags import FLAG_GAP
 from ..protocol import IdentityFrame
 from ..samples.stream import SampleBlock, identity_is_plausible
 from .adapt import AdaptConfig
-from .blocks import FLAG_GAP
 from .dwell import Dwell
 from .model import ModelFile
 from .pipeline import CompensatedColumns, CompensatedSample, Compensator

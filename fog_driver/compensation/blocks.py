@@ -21,14 +21,10 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ..flags import Flag
+from ..flags import FLAG_GAP, FLAG_THERMOMETER_FAULT
 from ..protocol import STATUS_THERMOMETER_FAULT
 from ..samples.stream import Sample, SampleBlock
 
-#: Block flags (the pipeline adds its own above these).
-FLAG_GAP = int(Flag.GAP)  #: frames were missing in this block
-#: a thermometer read NaN or implausibly (or its fault bit was set) in this block
-FLAG_THERMOMETER_FAULT = int(Flag.THERMOMETER_FAULT)
 #: Readings outside this range (degC) are implausible for the instrument's thermometers (a saturated 127.99 degC
 #: is a fault, not a temperature): they count as invalid.
 PLAUSIBLE_TEMP_C = (-55.0, 125.0)

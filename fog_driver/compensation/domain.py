@@ -34,11 +34,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..flags import Flag
 from .features import INPUT_NAMES, channels_of, input_names
 
-#: Set on blocks whose inputs left the fit box (widened by its margin) or whose estimate was clipped.
-FLAG_EXTRAPOLATING = int(Flag.EXTRAPOLATING)
 #: The widening of the fit box on each side, in multiples of the fit data's span of that input
 #: (module docstring): T1, T2, T3, then the three rates and the two gradients.
 LEVEL_MARGIN = 0.1

@@ -63,7 +63,7 @@ from typing import Any
 
 import numpy as np
 
-from ..flags import Flag
+from ..flags import FLAG_INPUT_STALE, FLAG_RECOVERING, FLAG_SUBSTITUTED
 from . import numerics
 from .blocks import plausible_temp
 from .fitting.ridge import standardized_ridge
@@ -112,13 +112,6 @@ def ring_of(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 INPUT_NAMES = input_names()
 N_INPUTS = len(INPUT_NAMES)
-#: Set when a thermometer's value is frozen (no valid reading, no healthy partner) for longer than ``hold_s``,
-#: or was never valid.
-FLAG_INPUT_STALE = int(Flag.INPUT_STALE)
-#: Set when a faulted thermometer is replaced by a healthy one plus their last offset.
-FLAG_SUBSTITUTED = int(Flag.SUBSTITUTED)
-#: Set while the model settles after a faulted thermometer came back with a different value.
-FLAG_RECOVERING = int(Flag.RECOVERING)
 #: The flags of a degraded input (frozen, substituted, or settling after a fault): carried by the estimate,
 #: never fitted or learned from.
 DEGRADED_FLAGS = FLAG_INPUT_STALE | FLAG_SUBSTITUTED | FLAG_RECOVERING

@@ -27,25 +27,26 @@ from typing import Any, NamedTuple, cast
 import numpy as np
 
 from ..errors import InputFileError
-from ..flags import FLAG_NAMES as FLAG_NAMES  # re-exported: the names' home is fog_driver.flags
-from ..flags import Flag
-from ..flags import flag_names as flag_names
+from ..flags import (
+    FLAG_EXTRAPOLATING,
+    FLAG_GAP,
+    FLAG_GUARD,
+    FLAG_INPUT_STALE,
+    FLAG_SCALE_FACTOR,
+    FLAG_THERMOMETER_FAULT,
+    FLAG_UNCOMPENSATED,
+)
 from ..protocol import STATUS_THERMOMETER_FAULT
 from ..samples.stream import Sample, SampleBlock
 from .adapt import OnlineReadout
 from .adapt_config import AdaptConfig, StaticDetector
-from .blocks import FLAG_GAP, FLAG_THERMOMETER_FAULT, PLAUSIBLE_TEMP_C, BlockAverager, ModelBlock
-from .domain import FLAG_EXTRAPOLATING
+from .blocks import PLAUSIBLE_TEMP_C, BlockAverager, ModelBlock
 from .dwell import MIN_LIVE_DWELL_S, Dwell, out_of_order, table_angle_deg
-from .features import DEGRADED_FLAGS, FLAG_INPUT_STALE, FeatureExtractor
+from .features import DEGRADED_FLAGS, FeatureExtractor
 from .model import ModelFile
 from .table import SHAPE_CANDIDATES, SHAPE_REGRESSORS, TableLaw, TableOutcome
 from .uncertainty import DriftUncertainty
 
-FLAG_UNCOMPENSATED = int(Flag.UNCOMPENSATED)  #: no drift estimate applied (start-up, or inputs never valid)
-FLAG_ADAPTING = int(Flag.ADAPTING)  #: the weights are adapting online, or adapted weights give the estimate
-FLAG_SCALE_FACTOR = int(Flag.SCALE_FACTOR)  #: the learned scale factor corrects the angle (table angles)
-FLAG_GUARD = int(Flag.GUARD)  #: a runaway or non-finite estimate, or a reference the gyro disagrees with, was rejected
 #: A link gap longer than this restarts the pipeline at rest (the model's memory of before is stale);
 #: a shorter one is stepped through block by block.
 MAX_GAP_S = 6 * 3600.0

@@ -31,8 +31,9 @@ import structlog
 
 from ..compensation.binding import ModelMismatchError, check_channels
 from ..compensation.offsets import PublishOffsets
-from ..compensation.pipeline import FLAG_NAMES, CompensatedSample, flag_names
+from ..compensation.pipeline import CompensatedSample
 from ..errors import FogDriverError
+from ..flags import FLAG_NAMES, flag_names
 from ..protocol import IdentityFrame
 from ..samples.stream import identity_is_plausible
 from ..transport import PortError

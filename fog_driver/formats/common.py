@@ -9,21 +9,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 
-from ..flags import (
-    SAMPLE_FLAGS,
-    SAMPLE_OVER_RANGE,
-    SAMPLE_SENSOR_INVALID,
-    SAMPLE_STARTUP,
-    SAMPLE_TEMPERATURE_INVALID,
-)
 from ..protocol.sequence import Unwrapper, count_seq_step
-
-#: Flags a format maps its status bits to (a sample carries the set that applies); defined in ``fog_driver.flags``.
-FLAG_SENSOR_INVALID = SAMPLE_SENSOR_INVALID  #: a gyro axis reported invalid by the device
-FLAG_STARTUP = SAMPLE_STARTUP  #: the device says its output is not yet valid (warm-up, just configured)
-FLAG_TEMPERATURE_INVALID = SAMPLE_TEMPERATURE_INVALID  #: a temperature channel reported invalid
-FLAG_OVER_RANGE = SAMPLE_OVER_RANGE  #: a gyro axis beyond its range
-COMMON_FLAGS = SAMPLE_FLAGS
 
 AXES = ("x", "y", "z")
 
@@ -38,7 +24,7 @@ class ImuSample:
     per axis (x, y, z; NaN for an axis the device does not send): from a delta-angle output directly, or
     ``rate x period`` for a rate output (``from_rate`` True).  ``rate_dph`` is the mean rate over the sample
     (``dtheta_arcsec / period_s``, or the rate as sent).  ``temps_c`` maps the format's named temperature
-    channels to degC (NaN: invalid this sample).  ``flags`` holds common flags (``COMMON_FLAGS``) that apply;
+    channels to degC (NaN: invalid this sample).  ``flags`` holds common flags (``SAMPLE_FLAGS``) that apply;
     ``status`` the raw status bits as sent, kept, not interpreted further.
     """
 

@@ -79,9 +79,10 @@ import struct
 from dataclasses import dataclass
 from types import MappingProxyType
 
+from ..flags import SAMPLE_STARTUP
 from ..protocol.hunting import HuntingDecoder
 from ..protocol.sequence import Unwrapper
-from .common import FLAG_STARTUP, FormatCounters, ImuSample, SeqUnwrapper
+from .common import FormatCounters, ImuSample, SeqUnwrapper
 
 SYNC = b"IX"
 ANSWER_SYNC = b"AN"
@@ -348,7 +349,7 @@ class StdbinDecoder(HuntingDecoder[ImuSample | StdbinAnswer, StdbinCounters]):
             words = struct.unpack_from(">4I", t, blocks[BIT_INS_ALGORITHM_STATUS])
             status = sum(w << (32 * k) for k, w in enumerate(words))
             if words[0] & INS_ALGO1_ALIGNMENT:
-                flags.add(FLAG_STARTUP)
+                flags.add(SAMPLE_STARTUP)
         temps: dict[str, float] = {}
         if BIT_TEMPERATURES in blocks:
             temps = dict(zip(("fog", "accelerometer", "board"), _F3.unpack_from(t, blocks[BIT_TEMPERATURES])))

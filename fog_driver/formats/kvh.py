@@ -20,7 +20,7 @@ every byte before the CRC, header included (check value of ``b"123456789"``: 0x0
 sum of every byte before it, header included, modulo 256.
 
 Status byte: bit 0/1/2 = gyro x/y/z valid, bit 4/5/6 = accelerometer x/y/z valid (0x77: all valid).  A gyro
-axis whose bit is clear gets ``FLAG_SENSOR_INVALID``; the raw byte is kept in ``ImuSample.status``.
+axis whose bit is clear gets ``SAMPLE_SENSOR_INVALID``; the raw byte is kept in ``ImuSample.status``.
 
 Format C's mux word carries, by ``sequence mod 4``: 0 -> temperature (degC, f32), 1/2/3 -> magnetometer
 x/y/z (gauss).  The sequence counter is 7 bits (0..127); a CRC-valid frame whose sequence byte is above 127
@@ -75,11 +75,12 @@ from typing import Any
 
 import numpy as np
 
+from ..flags import SAMPLE_SENSOR_INVALID
 from ..protocol.crc import MPEG2_TABLE, crc32_mpeg2, crc32_mpeg2_reference, crc32_mpeg2_rows
 from ..protocol.greedy import greedy_accept
 from ..protocol.hunting import HuntingDecoder
 from ..protocol.sequence import Unwrapper, count_seq_steps
-from .common import FLAG_SENSOR_INVALID, FormatCounters, ImuSample, SeqUnwrapper
+from .common import FormatCounters, ImuSample, SeqUnwrapper
 
 SYNC = b"\xfe\x81"
 SYNC0 = 0xFE
@@ -251,7 +252,7 @@ class KvhConfig:
 
 
 _VALID: frozenset[str] = frozenset()
-_INVALID = frozenset((FLAG_SENSOR_INVALID,))
+_INVALID = frozenset((SAMPLE_SENSOR_INVALID,))
 
 
 def _make_sample(cfg: KvhConfig, fmt: str, values: tuple[Any, ...], seq_unwrapped: int, offset: int) -> ImuSample:

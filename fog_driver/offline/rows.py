@@ -23,7 +23,8 @@ from typing import cast
 
 import numpy as np
 
-from ..compensation.pipeline import CompensatedColumns, flag_names
+from ..compensation.pipeline import CompensatedColumns
+from ..flags import flag_names
 
 
 class RowAggregator:

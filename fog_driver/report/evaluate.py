@@ -34,11 +34,11 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from ..compensation.domain import FLAG_EXTRAPOLATING
 from ..compensation.fitting.data import FitConfig
 from ..compensation.model import ModelFile
 from ..errors import UsageError
 from ..extras import missing_message
+from ..flags import FLAG_EXTRAPOLATING
 from ..offline.compensate import compensate_capture
 from ..offline.fit import load_capture
 from ..sim.capture import truth_noise_dph

@@ -81,9 +81,9 @@ import numpy as np
 
 from ..compensation.dwell import DWELL_TRIM_S, reference_deg, table_angle_deg, trimmed_window
 from ..compensation.model import ModelFile
-from ..compensation.pipeline import FLAG_UNCOMPENSATED
 from ..errors import InputFileError, UsageError
 from ..files.bounded import read_regular
+from ..flags import FLAG_UNCOMPENSATED
 from ..modelfiles import load_model
 from ..offline.compensate import compensate_capture
 from ..samples.captures import find_sidecar, read_provenance

@@ -45,15 +45,8 @@ import numpy as np
 
 from ..errors import InputFileError
 from ..files.bounded import open_regular
-from ..formats.common import (
-    AXES,
-    FLAG_OVER_RANGE,
-    FLAG_SENSOR_INVALID,
-    FLAG_STARTUP,
-    FLAG_TEMPERATURE_INVALID,
-    FormatCounters,
-    ImuSample,
-)
+from ..flags import SAMPLE_OVER_RANGE, SAMPLE_SENSOR_INVALID, SAMPLE_STARTUP, SAMPLE_TEMPERATURE_INVALID
+from ..formats.common import AXES, FormatCounters, ImuSample
 from ..formats.kvh import _ARCSEC_PER_UNIT, _TEMP_SCALE, BIT_FRAME_LEN, GYRO_VALID, SAMPLE_FORMATS, decode_kvh_batch
 from ..formats.registry import FORMATS, SNIFF_BYTES, sniff
 from ..protocol import (
@@ -73,10 +66,10 @@ PROTOCOL_V1 = "fog-v1"
 DTHETA_GRID_ARCSEC = 2.0**-24
 TEMP_GRID_C = 2.0**-16
 _FLAG_STATUS = {
-    FLAG_SENSOR_INVALID: STATUS_LOOP_UNLOCKED,
-    FLAG_STARTUP: STATUS_STARTUP,
-    FLAG_OVER_RANGE: STATUS_OVER_RANGE,
-    FLAG_TEMPERATURE_INVALID: STATUS_THERMOMETER_FAULT,
+    SAMPLE_SENSOR_INVALID: STATUS_LOOP_UNLOCKED,
+    SAMPLE_STARTUP: STATUS_STARTUP,
+    SAMPLE_OVER_RANGE: STATUS_OVER_RANGE,
+    SAMPLE_TEMPERATURE_INVALID: STATUS_THERMOMETER_FAULT,
 }
 #: Keys a sidecar's ``wire_settings`` may hold that describe the simulation, not the device: ignored here.
 _DESCRIPTIVE_KEYS = ("temperature_channel", "temperature_channels", "version")

@@ -18,7 +18,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ...errors import InputFileError
-from ..blocks import FLAG_GAP, FLAG_THERMOMETER_FAULT, BlockColumns
+from ...flags import FLAG_GAP, FLAG_THERMOMETER_FAULT
+from ..blocks import BlockColumns
 from ..features import DEGRADED_FLAGS, V1_CHANNELS, FeatureExtractor, FeatureParams
 from ..readout import Standardizer
 
