@@ -11,8 +11,8 @@ Kinds (``fog-driver fit --kind``):
   forcing while fitting, reservoir states only, the readout trained by the
   adaptive law on the stage-1 (AFLP) filtered drift.
 * ``wesn``: the ring form, what it takes to generalize to coils whose thermal behaviour nobody wrote
-  down, found on a population of simulated instruments (``fog_driver.sim.population``; development
-  seeds only, ``benchmarks/bench_population.py``), scored on profiles never fitted on.  Wavelet
+  down, on a population of simulated instruments (``fog_driver.sim.population``;
+  ``benchmarks/bench_population.py``), scored on profiles never fitted on.  Wavelet
   neurons near their linear regime (translation 0, dilation 1, small inputs, normalized leak, no
   recurrence, no feedback) that integrate the ring mean R (in degC, ``ring_weights_for``): the "coil
   neuron" at the coil's lag, as one first-order stage or as two or three equal stages in series
