@@ -212,9 +212,8 @@ def _unsteady_sigmas(rates: np.ndarray, v: float) -> float:
     (the drift, plus the constant rate of a move the log declares with ``angle_end_deg``).  The rates' least-squares
     line ``a + b k``; the mean residual of each of ``STEADY_SEGMENTS`` equal segments over its standard error
     ``sqrt(v / n_seg)``, v the white noise variance of a block rate (``_white_var_dph2``); the
-    largest.  0 below two blocks a segment.  On the simulated gyro (0.003 deg/sqrt(h)), a creep of 1 deg/h
-    beginning mid-dwell gives 14; the 828 dwells of 12 development instruments' runs without one, the drift's own
-    curvature included, at most 3.2 (95 % below 2.0)."""
+    largest.  0 below two blocks a segment.  ``STEADY_SIGMAS`` lies between what a steady dwell and a creeping
+    one give (docs/decisions/2026-12-07-steady-dwell-threshold.md)."""
     n = len(rates)
     if n < 2 * STEADY_SEGMENTS:
         return 0.0

@@ -286,8 +286,8 @@ class WesnModel:
         is what it integrates: its upstream stage's state (a cascade) or its wavelet input
         ``Psi((w_in,0 . z - t_0) / s_0)``.  The Shupe and radial-gradient terms are the coil's rate:
         the readout could form it from x_0 and its input, but only as a small difference of two large,
-        nearly equal weights, which the ridge penalty shrinks (on a coil of known lag, 6x the residual
-        of the unpenalized fit); as its own regressor it costs the penalty nothing."""
+        nearly equal weights, which the ridge penalty shrinks (docs/decisions/2026-12-07-wesn-ring-form.md); as
+        its own regressor it costs the penalty nothing."""
         upstream: np.ndarray | float
         if self._coil_source >= 0:
             upstream = x[..., self._coil_source]
