@@ -1,11 +1,15 @@
 """The layout's rules that no linter keeps: no import cycle (imports inside functions counted), imports inside
-functions only for an optional extra or start-up time, a short README, one formatter's style.
+functions only for an optional extra or start-up time, a short README, one formatter's style, no results of
+evaluation runs in the package's docstrings and comments (they go to ``docs/decisions/``).
 
 The layers themselves are import-linter's contracts (``pyproject.toml``, ``lint-imports`` in CI)."""
 
 from __future__ import annotations
 
 import ast
+import io
+import re
+import tokenize
 from pathlib import Path
 
 import grimp
@@ -15,6 +19,8 @@ PACKAGE = ROOT / "fog_driver"
 #: The issue that set the layout allows at most this many imports of the package's own modules inside functions.
 MAX_IMPORTS_IN_FUNCTIONS = 10
 REASONS = ("# optional extra", "# start-up time")
+#: An evaluation set's name ("eval5") or a run's ratio ("1.10x frozen"): history, which docs/decisions/ holds.
+RUN_HISTORY = re.compile(r"\beval[0-9]+\b|\b[0-9]+\.[0-9]+x\b")
 
 
 def import_cycles(graph: grimp.ImportGraph) -> list[list[str]]:
@@ -101,3 +107,33 @@ def test_one_formatter_keeps_the_style():
     marker = "# fmt: " + "skip"  # (spelled apart so that this file holds none)
     assert [str(p) for p, t in zip(files, text) if marker in t] == []
     assert sum(t.count("# fmt: " + "off") for t in text) <= 20
+
+
+def docstrings_and_comments(source: str) -> list[tuple[int, str]]:
+    """Every comment (by the tokenizer) and every string standing alone as a statement (by the AST: module, class
+    and function docstrings and the ones after an assignment), each as (first line, text)."""
+    found = [
+        (tok.start[0], tok.string)
+        for tok in tokenize.generate_tokens(io.StringIO(source).readline)
+        if tok.type == tokenize.COMMENT
+    ]
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Expr) and isinstance(node.value, ast.Constant) and isinstance(node.value.value, str):
+            found.append((node.lineno, node.value.value))
+    return found
+
+
+def test_docstrings_and_comments_carry_no_evaluation_runs():
+    found = [
+        f"{path.relative_to(ROOT)}:{line}: {match.group()}"
+        for path in sorted(PACKAGE.rglob("*.py"))
+        for line, text in docstrings_and_comments(path.read_text())
+        for match in RUN_HISTORY.finditer(text)
+    ]
+    assert found == []
+
+
+def test_the_history_finder_finds_a_ratio_and_a_set_name():
+    source = '"""On eval5 it was 1.10x frozen."""\nX = 1  # 0.73x at the bound\nY = "1.10x in code is no history"\n'
+    found = [match.group() for _, text in docstrings_and_comments(source) for match in RUN_HISTORY.finditer(text)]
+    assert found == ["0.73x", "eval5", "1.10x"]

@@ -75,9 +75,8 @@ gyro noise n in a window, so the gain is ``(e_f - e_a)(2 n + e_f + e_a)``: the n
 linearly, with mean 0, and the mean gain is ``e_f^2 - e_a^2``.  The adapted weights are scored as they
 were when the window opened, so the window is out of sample for them.  The adapted estimate is returned only when the
 mean gain exceeds ``COMPARE_SIGMAS`` (1) standard error and ``(compare_min_gain r)^2`` (r: the model's fit residual; a
-gain that is significant but smaller than that is the gyro's slow noise being chased: measured on
-24 development instruments with a correct reference, every-minute score of a soak-cycle run, the
-worst adapting / frozen went from 1.40x to 1.11x at 0.5), after ``compare_min_windows`` windows; otherwise the frozen
+gain that is significant but smaller than that is the gyro's slow noise being chased;
+``benchmarks/bench_population.py --adapt`` measures it), after ``compare_min_windows`` windows; otherwise the frozen
 one is, and the law keeps adapting underneath (``adapted_in_use``).  A window's mean keeps the 1-s white
 noise from swamping the comparison.
 
@@ -124,10 +123,9 @@ __all__ = [
     "StaticDetector",
 ]
 
-#: The adapted estimate is used when the comparison's mean gain exceeds this many standard errors.  One,
-#: with 300-s windows and 4 of them first, was chosen on the development population
-#: (``benchmarks/bench_population.py --set dev --adapt``): 2 sigmas or 600-s windows kept the frozen
-#: estimate nearly always; no guard made 1 in 24 instruments worse, as did 0 sigmas with 3 windows.
+#: The adapted estimate is used when the comparison's mean gain exceeds this many standard errors (with
+#: 300-s windows and 4 of them first; ``benchmarks/bench_population.py --adapt``;
+#: docs/decisions/2026-12-07-rate-comparison-guard.md).
 COMPARE_SIGMAS = 1.0
 
 

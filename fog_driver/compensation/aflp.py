@@ -47,11 +47,8 @@ of the input, not only on its noise:
   B0 first, as the method says (r = D + N).
 
 The default ``forgetting = 0.99`` reproduces the paper's ratio of 4 on the
-static case with drift, and is the best of 0.95..0.99 on one simulated
-``paper`` run (seed 1, B0 and Earth rate removed, 440 min at 1 Hz: std about
-the true drift 2.75x lower, 2.43x at 0.97, 2.78x at 0.995); 0.97 reproduces
-the ratio on drift-free noise.  A step of 2 deg/h (11 sigma) is followed
-within 25 % after 7-13 samples, within 5 % on average after 20.
+static case with drift; 0.97 reproduces the ratio on drift-free noise
+(docs/decisions/2026-12-07-aflp-forgetting.md).
 
 Non-finite input (NaN, +-inf) is treated as a missing sample: the output is
 the prediction ``Phi(n)^T R(n)`` (which never depends on r(n)), and the state
@@ -88,9 +85,9 @@ class AflpParams:
     * ``delta``: regularizer of the NLMS normalization ``delta + R^T R``, > 0,
       in the input's units squared ((deg/h)^2 in the pipeline).  Negligible for
       N = 10; for very small orders (N = 1..3) ``R^T R`` is often near 0 and a
-      tiny delta lets single steps kick Phi far away (seen on an AR(2) with
-      N = 2: error variance 2x the innovation at 1e-9, 1.03x at delta = 1,
-      plain NLMS alike): use a delta of the order of N x the input variance.
+      tiny delta lets single steps kick Phi far away (plain NLMS alike;
+      docs/decisions/2026-12-07-aflp-forgetting.md): use a delta of the order
+      of N x the input variance.
     * ``tiny``: added under the square root of ``Pi``'s denominator, > 0, so that
       0 / 0 (no error or no input yet) gives ``Pi = 0``.
     * ``fixed_step``: when set, ``L(n)`` is this constant mu, 0 < mu < 2: plain

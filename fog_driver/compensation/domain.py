@@ -1,8 +1,8 @@
 """What a model was fitted on, and what the compensator does outside it.
 
 A drift model is a regression: inside the range of its fit data it interpolates, outside it
-extrapolates, and a polynomial in standardized inputs extrapolates without bound (a model fitted on
-ten minutes, applied to a chamber run, once estimated 530,000 deg/h).  So the model file stores the
+extrapolates, and a polynomial in standardized inputs extrapolates without bound
+(docs/decisions/2026-12-07-fit-box-and-checks.md).  So the model file stores the
 box of every input over the fit's static blocks and a bound on the estimate, and in operation::
 
     m_k      = margin_k * (high_k - low_k)                   (per input, a multiple of the fit's span)

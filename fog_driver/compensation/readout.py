@@ -27,9 +27,8 @@ gain tuned on one data set can diverge on another.
 Preconditioned (``precondition``, with the normalized gain): ``Gamma = kappa / n diag(1 / (H_ii + sigma
 + delta / n))``, one gain per direction: the same law on regressors standardized by their windowed
 scale (``x_i / sqrt(H_ii)``), whose H has a unit diagonal and trace n, so it is stable for the same
-kappa.  It equalizes the columns' scales, not their correlation.  Measured for the online readout
-(``OnlineReadout``, 24 development instruments, adapting / frozen): polynomial median 0.92x -> 0.94x
-(best 0.72x -> 0.83x), wesn worst 1.02x -> 1.04x: not better, so not its default.
+kappa.  It equalizes the columns' scales, not their correlation.  The online readout (``OnlineReadout``)
+does not use it by default (docs/decisions/2026-12-07-readout-preconditioning.md).
 
 Convergence is per eigen-direction of H: along eigenvalue lambda_j the error shrinks by
 ``1 - Gamma lambda_j`` per step, i.e. with the normalized gain a time constant of

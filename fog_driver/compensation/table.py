@@ -32,17 +32,17 @@ and several sizes).  ``bias`` is everything constant (the Earth rate, the turn-o
 the T_eff-weighted mean of ``r / T_eff`` over the first intervals spanning ``bias_capture_s``.  The level db is
 the bias's too, and like it is not published: the drift in use is ``D_hat + g . dw``.  It absorbs the capture's
 error (a few minutes of intervals) and the frozen drift's mean error, which a station's ``?BIAS`` or zero window
-removes with the bias; learned from the intervals as they come, it moved the published drift with their
-noise (on a development instrument at the noise floor, 1.030x frozen published, 1.006x not).
+removes with the bias; published, it would move the drift with the intervals' noise (``benchmarks/bench_table.py``;
+docs/decisions/2026-12-07-table-law-level.md).
 
 The shape regressors (``SHAPES``).  With a model file that has candidate structures (the coils that explain the
 fit data within the noise of the chosen one, which ``uncertainty`` runs beside the model), g_j are their drifts'
 departures from the frozen one, ``g_cj = D_c,j - D_hat_j``: the adapted drift ``D_hat + sum_c dw_c (D_c -
 D_hat)`` is a blend of the structures the fit could not tell apart, a handful of coefficients.  Against the
-simulator's truth they span most of the frozen model's error on a run outside the fit (``bench_candidate_span``:
-a median 0.29x of it left on development instruments, with coefficients from the other half of the run); the
-model's own regressors (tens of them) let the intervals' noise in where the model was already good (an instrument
-at the noise floor 1.046x frozen, 0.94x on the candidates).  Without candidates (a polynomial, an older model
+simulator's truth they span most of the frozen model's error on a run outside the fit
+(``benchmarks/bench_candidate_span.py``); the model's own regressors (tens of them) let the intervals' noise in
+where the model was already good (``benchmarks/bench_table.py``; docs/decisions/2026-12-07-table-law-shapes.md).
+Without candidates (a polynomial, an older model
 file) g_j are the model's own regressors f_j (``D_hat = f . w0 + b0``).
 
 The noise of r: the gyro's white noise under the kernel, ``N^2 int K^2 = N^2 (L_a / 3 + G + L_b / 3)``
@@ -104,8 +104,8 @@ one's mean gain falls below minus ``TABLE_COMPARE_SIGMAS`` standard errors after
 intervals.  The adapted drift published is never farther than the runaway bound from the frozen one: beyond it,
 it is held at the bound and flagged ``guard`` (``clamped_blocks``), and the law keeps what it learned.  (The rate
 path resets its law there, against a reference it cannot check; the table law's intervals are each checked
-against the gyro, and a reset threw away what a model far off for the run needed most: on the evaluation set
-eval5 six resets in one run made it 1.10x frozen, held at the bound 0.73x.)  A non-finite number resets the law.
+against the gyro, and a reset would throw away what a model far off for the run needs most:
+docs/decisions/2026-12-07-table-law-guard.md.)  A non-finite number resets the law.
 
 The scale factor.  Once the bias is captured and s0 is known to ``SF_APPLY_SIGMA_PPM`` (its posterior
 sigma), the angle is corrected by it: ``dtheta_comp = dtheta - D_hat dt - 1e-6 s(T) dtheta``, flagged
@@ -133,10 +133,8 @@ ARCSEC_PER_DEG = 3600.0
 TURN_ARCSEC = 360.0 * ARCSEC_PER_DEG
 #: The comparison guard's significance for the table law, in standard errors of the mean gain: the frozen drift
 #: is published again when the adapted one is worse by more than this (``TableLaw.adapted_in_use``), a backstop
-#: behind the weighing.  With 2 it switched on an instrument at the noise floor (1.024x frozen, against 1.004x:
-#: a switch puts steps in the drift); with 3 it never did on the development instruments.  As a gate the other
-#: way (the adapted drift published only when better by 2 standard errors) it kept the frozen drift on the
-#: median development instrument.
+#: behind the weighing (a switch puts steps in the drift).  ``benchmarks/bench_table.py`` measures it;
+#: docs/decisions/2026-12-07-table-law-guard.md.
 TABLE_COMPARE_SIGMAS = 3.0
 #: The comparison guard's memory for the table law, in intervals (about 4 h of 5-min intervals): over the
 #: rate path's 12 a gain of squared errors cannot reach 3 standard errors, however much worse the adapted drift.
@@ -151,16 +149,15 @@ SF_PRIOR_PPM = 100.0
 SF_SLOPE_PRIOR_PPM_PER_C = 2.0
 #: The learned scale factor is applied once its offset is known to this (posterior sigma, ppm).
 SF_APPLY_SIGMA_PPM = 5.0
-#: The memory of the law's sums and of the evidence (the exponential forgetting of old intervals).  4 h:
-#: the level wandered with the intervals' noise (the median per-instrument cut 19 %, not 25 %).
+#: The memory of the law's sums and of the evidence (the exponential forgetting of old intervals), 24 h
+#: (``benchmarks/bench_table.py``; docs/decisions/2026-12-07-table-law-prior.md).
 TABLE_MEMORY_S = 24 * 3600.0
 #: The drift prior's scales the law weighs (s_D, in runaway bounds); 0 is the frozen shape (the level and the
-#: scale factor learned).  One scale of 0.1 for all: development instruments at the noise floor up to 1.048x
-#: frozen, with gains elsewhere; the weighing: 1.011x at worst (``bench_table.py --set dev``).
+#: scale factor learned), weighed by their evidence rather than one scale for all (``benchmarks/bench_table.py``;
+#: docs/decisions/2026-12-07-table-law-prior.md).
 PRIOR_SCALES = (0.0, 0.025, 0.05, 0.1, 0.2)
 #: The frozen shape's prior log odds against each of the others (e^3: a prior weight of 0.83 among five):
-#: the evidence must earn a departure.  With a 4-h memory: 2 gave a worst of 1.019x frozen, 4 a median
-#: per-instrument cut of 11 % (3: 18 %).
+#: the evidence must earn a departure (``benchmarks/bench_table.py``; docs/decisions/2026-12-07-table-law-prior.md).
 FROZEN_LOG_ODDS = 3.0
 #: The drift's spread the bias capture allows for, in runaway bounds.
 CAPTURE_PRIOR_RUNAWAYS = 0.1
@@ -215,9 +212,8 @@ def _unsteady_sigmas(rates: np.ndarray, v: float) -> float:
     (the drift, plus the constant rate of a move the log declares with ``angle_end_deg``).  The rates' least-squares
     line ``a + b k``; the mean residual of each of ``STEADY_SEGMENTS`` equal segments over its standard error
     ``sqrt(v / n_seg)``, v the white noise variance of a block rate (``_white_var_dph2``); the
-    largest.  0 below two blocks a segment.  On the simulated gyro (0.003 deg/sqrt(h)), a creep of 1 deg/h
-    beginning mid-dwell gives 14; the 828 dwells of 12 development instruments' runs without one, the drift's own
-    curvature included, at most 3.2 (95 % below 2.0)."""
+    largest.  0 below two blocks a segment.  ``STEADY_SIGMAS`` lies between what a steady dwell and a creeping
+    one give (docs/decisions/2026-12-07-steady-dwell-threshold.md)."""
     n = len(rates)
     if n < 2 * STEADY_SEGMENTS:
         return 0.0
@@ -442,8 +438,8 @@ class TableLaw(ComparisonGuard):
         """The level db out of the sums, marginalized: with l its index, ``H <- H - H[:, l] H[l, :] / H[l, l]``,
         ``I <- I - H[:, l] I[l] / H[l, l]`` (row and column l then 0), so what the intervals said of the shape
         and the scale factor, whatever the level was, stays, and the level is learned afresh.  Each switch-on has
-        its own turn-on bias, and a level carried from the run before was wrong for the next; held in the sums, it
-        bent the shape's weights (an instrument at the noise floor 1.035x frozen on its third run, carried)."""
+        its own turn-on bias, and a level carried from the run before is wrong for the next; held in the sums, it
+        would bend the shape's weights (docs/decisions/2026-12-07-table-law-level.md)."""
         lvl = self.n_features
         h_ll = float(self.h[lvl, lvl])
         if not h_ll > 0:

@@ -1,8 +1,8 @@
 """The drift estimate's uncertainty, ``drift_sigma_dph``: the 1-sigma of the error of the estimate as a
 1-min mean, about the error's mean over the run (that mean is the bias, which a zero window removes).
 
-Built from what the fit knows, in three parts, each scaled by a factor calibrated on the development
-population (``SPREAD_SCALE``, ``RESIDUAL_SCALE``, ``BOX_SCALE``; the model file keeps the factors it was
+Built from what the fit knows, in three parts, each scaled by a factor calibrated on simulated
+instruments (``SPREAD_SCALE``, ``RESIDUAL_SCALE``, ``BOX_SCALE``; the model file keeps the factors it was
 made with)::
 
     sigma^2 = (k_s s)^2 + (k_r r)^2 + (k_b d R)^2
@@ -42,11 +42,9 @@ import numpy as np
 from .domain import ESTIMATE_LIMIT_FACTOR, InputDomain
 from .features import channels_of
 
-#: The calibrated factors (module docstring), chosen on development instruments 0..11, each fitted on a
-#: paper run and scored on soak-cycle, steps-moves and a soak 10 degC above the fit's hottest
-#: (``benchmarks/calibrate_sigma.py``, whose docstring has the figures): one common factor on the spread
-#: and the residual, the box's 1; checked again on fits of the calibration program (98.8 % covered there,
-#: 97.9 % pooled with the paper fits).  A model file keeps the factors it was made with.
+#: The calibrated factors (module docstring): one common factor on the spread and the residual, the box's 1
+#: (``benchmarks/calibrate_sigma.py``; docs/decisions/2026-12-07-uncertainty-factors.md).  A model file keeps
+#: the factors it was made with.
 SPREAD_SCALE = 0.85
 RESIDUAL_SCALE = 0.85
 BOX_SCALE = 1.0

@@ -24,7 +24,7 @@ What the ``wesn`` model fits, and what a run must hold for the fit to tell it ap
 * the thermal history against the bias curve: the same temperature reached warming and cooling
   (hysteresis; a one-way staircase, as the paper's, confounds it with the bias curve).
 
-The design (``design_program``; the knobs in ``Design``, chosen on development instruments by
+The design (``design_program``; the knobs in ``Design``, measured by
 ``benchmarks/bench_plan.py``): start at room temperature (20 degC, or the nearest limit), a
 warm-up hold, then one whole cycle, up to the maximum, down to the minimum, back to the start, so
 that every temperature is crossed in both directions.  Each leg is cut into ramps ``plateau_step_c``

@@ -56,9 +56,8 @@ Scale factor (``gyro.py``: ``s(Tf) = (s0 + s1 (Tf - 20)) 1e-6``):
   At rest they act on the Earth rate alone: a constant of at most 50 ppm of 9.7 deg/h (0.0005
   deg/h, taken by the bias) and at most 0.001 deg/h across -40..55 degC.
 
-Together (``fast-ramps`` profile, development seeds 0-15) these give a 1-min drift RMS of 0.03 to
-0.48 deg/h, median 0.19, no term dominating, about the 0.27 of the default instrument and the
-0.13-0.19 of independently simulated coils.
+Together these give a 1-min drift RMS of the order of the default instrument's, no term dominating
+(``benchmarks/bench_population.py``; docs/decisions/2026-12-07-population-ranges.md).
 
 Thermometers (``instrument.ThermometerParams``):
 

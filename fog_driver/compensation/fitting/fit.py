@@ -104,9 +104,9 @@ STEP_WARN_SHARE = 0.25
 
 def bias_step_warning(step: dict, n_channels: int = 3) -> str | None:
     """The warning for ``provenance.fit_quality.bias_step``, or None when the step is within what the
-    temperature terms' misfit alone produces.  Not a failing check: without a step, the 12 development
-    instruments' paper runs (the polynomial's misfit of a coil lag) show steps up to 0.07 deg/h explaining
-    up to 20 % of the residual; a 0.1 deg/h step mid-run explains 32 %.  ``n_channels``: the thermometers the
+    temperature terms' misfit alone produces (the polynomial's misfit of a coil lag looks like a small step;
+    ``STEP_WARN_DPH`` and ``STEP_WARN_SHARE`` lie above it: docs/decisions/2026-12-07-bias-step-warning.md).
+    Not a failing check.  ``n_channels``: the thermometers the
     model has; with one (a KVH unit), drift it cannot follow (a gradient across the coil) looks like a step."""
     if abs(step["step_dph"]) < STEP_WARN_DPH or step["share"] < STEP_WARN_SHARE:
         return None

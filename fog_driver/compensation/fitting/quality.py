@@ -1,8 +1,8 @@
 """Whether a fit's data can support its model: the checks every fit runs, and what they found.
 
 A regression fitted on data that cannot determine it still returns numbers, and on its own data they
-look excellent (a 10-minute capture fitted to 0.0018 deg/h and then estimated 160,000 deg/h on
-another run).  So every fit measures its data against documented minima, and a fit that fails one
+look excellent, and off it they can be anything (docs/decisions/2026-12-07-fit-box-and-checks.md).
+So every fit measures its data against documented minima, and a fit that fails one
 is refused unless the user accepts a weak fit (``fog-driver fit --accept-weak-fit``), which the
 model file then records:
 

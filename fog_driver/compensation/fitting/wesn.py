@@ -8,11 +8,8 @@ Fitting (``_fit_ring_form``), everything from the fit data alone:
    third, the bias powers only over 5 degC), each cut said in ``selection["limits"]``.  When the best
    coil sits at the longest lag tried, lags up to a fifth (``EDGE_LAG_FRACTION``) are tried too, and
    one of them is taken only when it beats that edge as more stages must beat fewer (below); a lag
-   at the top of those is said as "at least".  On development instruments 0..47 fitted on both
-   programs (96 fits), the longer lags were tried in 14 fits and taken in one: instrument 30's
-   calibration run, a 3-stage coil of 44 min, where the edge at 35.5 min left 1.58x the noise floor on
-   fast-ramps and soak-cycle and the lag found 1.09x; in the other 13 the edge held and the longer
-   lags that tie with it joined the candidate structures;
+   at the top of those is said as "at least"; longer lags that tie with the edge join the candidate
+   structures (docs/decisions/2026-12-07-wesn-edge-lags.md);
 1. the coil: its lag (mean delay) from ``COIL_LAG_GRID_S`` (60 s to 87 min, 25 % apart) and its
    number of stages (1, 2 or 3), by the smallest in-sample residual in 1-minute means of the model
    WITHOUT the history neurons (with them, the fit can shape a multi-stage coil's response out of
@@ -31,25 +28,10 @@ are listed in the model's provenance, and when their lags span more than ``LAG_I
 the fit warns (``lag_warning``), and, when it knows the runs' programs (``fitting.program``), says what
 they leave unidentified that bears on the lag and what would narrow the interval.  Up to
 ``MAX_CANDIDATES`` of them, refitted as the chosen one is, ride in the model file as its candidate
-structures: where they disagree, the data did not decide (``drift_sigma_dph``).  Before the
-noise-aware tie, lags within 0.2 % of the best counted as tied; on the default simulated instrument, fits on eight
-independent paper runs chose either 229-286 s (its true lag is 240 s; residual on other
-profiles 0.001-0.010 deg/h) or 698-1091 s (0.05-0.08), the two explaining the run equally well.
-A second run with faster ramps, fitted together, resolves it.  Interleaved cross-validation,
-the fastest transient alone, repeated or combined criteria, and cross-validated history
-selection were all tried on the development population and each traded one failure for
-another; the simple criterion above was the most robust.
-
-The first ring form (one lag up to 16 min, powers 2..3, history neurons at the same penalty, a
-linear path with rates) reached 98 % on the default simulated instrument and 0.45x the
-polynomial's excess drift (median) but 2.96x (worst) on the population; the second (one stage,
-no coil-rate regressor) 0.29x and 1.58x on development instruments 0..71, its 1-min RMS 1.19x the
-noise floor (median) and 5.15x (worst); this one, with the cascade and the coil's rate, 0.26x and
-1.75x, 1.17x and 3.62x (better than the second by more than 3 % on 24 instruments, worse on 11;
-the cascade made the gains, on coils of two or three stages, the largest 0.082 -> 0.037 deg/h).
-Its misses are coils whose lag one paper run cannot pin down: on the worst, a single 171-s stage,
-every lag from 60 s to 18 min explains the run within 1.5 %, the fit takes 873 s, and on fast
-ramps leaves 0.050 deg/h where the true lag would leave 0.026.
+structures: where they disagree, the data did not decide (``drift_sigma_dph``).  A second run with
+faster ramps, fitted together, resolves a lag one paper run leaves open.  The ring form's misses are coils
+whose lag one paper run cannot pin down.  ``benchmarks/bench_population.py`` measures the form against the
+polynomial; the forms and criteria tried before this one: docs/decisions/2026-12-07-wesn-ring-form.md.
 ``fit.model_choice`` then compares it with the polynomial on the fit's own validation split, and
 ``fog-driver fit`` without ``--kind`` saves the polynomial only when it leaves less there by more than
 two standard errors of the paired margin (``choice``).

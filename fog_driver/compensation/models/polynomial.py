@@ -14,7 +14,8 @@ a cubic in the ring temperature with the cross terms a lagged fiber
 temperature produces, linear in the gradients and rates: what a calibration
 engineer fits today.  (A cubic in each of T1, T2, T3 fits the same physics
 but its regressors are nearly collinear: two fits to runs differing only in
-white noise then disagree by 2x on another profile.)  No memory, so ``step``
+white noise then disagree on another profile; docs/decisions/2026-12-07-polynomial-ring-cubic.md.)
+No memory, so ``step``
 and ``run`` agree trivially; fitted by ridge regression with an unpenalized
 intercept (``fitting.ridge.standardized_ridge``).
 """

@@ -11,8 +11,8 @@ Kinds (``fog-driver fit --kind``):
   forcing while fitting, reservoir states only, the readout trained by the
   adaptive law on the stage-1 (AFLP) filtered drift.
 * ``wesn``: the ring form, what it takes to generalize to coils whose thermal behaviour nobody wrote
-  down, found on a population of simulated instruments (``fog_driver.sim.population``; development
-  seeds only, ``benchmarks/bench_population.py``), scored on profiles never fitted on.  Wavelet
+  down, on a population of simulated instruments (``fog_driver.sim.population``;
+  ``benchmarks/bench_population.py``), scored on profiles never fitted on.  Wavelet
   neurons near their linear regime (translation 0, dilation 1, small inputs, normalized leak, no
   recurrence, no feedback) that integrate the ring mean R (in degC, ``ring_weights_for``): the "coil
   neuron" at the coil's lag, as one first-order stage or as two or three equal stages in series
@@ -286,8 +286,8 @@ class WesnModel:
         is what it integrates: its upstream stage's state (a cascade) or its wavelet input
         ``Psi((w_in,0 . z - t_0) / s_0)``.  The Shupe and radial-gradient terms are the coil's rate:
         the readout could form it from x_0 and its input, but only as a small difference of two large,
-        nearly equal weights, which the ridge penalty shrinks (on a coil of known lag, 6x the residual
-        of the unpenalized fit); as its own regressor it costs the penalty nothing."""
+        nearly equal weights, which the ridge penalty shrinks (docs/decisions/2026-12-07-wesn-ring-form.md); as
+        its own regressor it costs the penalty nothing."""
         upstream: np.ndarray | float
         if self._coil_source >= 0:
             upstream = x[..., self._coil_source]
