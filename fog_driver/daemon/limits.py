@@ -55,6 +55,7 @@ unit is a count (clients, lines, attempts, samples, batches).
 
 from __future__ import annotations
 
+from ..client.session import MAX_WATCH_RATE_HZ as MAX_WATCH_RATE_HZ  # ?WATCH's rate_hz: the protocol's one bound
 from ..compensation.dwell import MAX_TABLE_ANGLE_DEG as MAX_TABLE_ANGLE_DEG  # the one bound, with the dwell
 
 # -- the NDJSON hub: lines ------------------------------------------------------------------------------------
@@ -76,8 +77,6 @@ MAX_COMMANDS_PER_S = 100
 COMMAND_WINDOW_S = 1.0
 #: Refused (excess) lines after which a client is disconnected.
 MAX_EXCESS_COMMANDS = 1000
-#: The highest ``?WATCH`` ``rate_hz``: above any instrument's rate, and far from float overflow.
-MAX_WATCH_RATE_HZ = 10_000
 #: How long a control command (the callback and a Future it returns) may take before the client gets an ERROR.
 DEFAULT_CONTROL_TIMEOUT_S = 30.0
 #: Worker threads that run the ``control`` callback (off the event loop).
