@@ -24,7 +24,7 @@ from ..compensation.fitting.report import WORSE_MARKER
 from ..compensation.pipeline import Compensator
 from ..errors import FogDriverError, InputFileError, OutputFileError, UsageError
 from ..extras import require_extra
-from ..files.bounded import read_regular
+from ..files.bounded import file_sha256
 from ..files.kinds import ROW_COLUMNS
 from ..files.outputs import check_outputs, refuse_captures, write_error
 from ..files.stamps import utc_now_iso
@@ -317,9 +317,9 @@ def cmd_compensate(args: argparse.Namespace) -> int:
 
 
 def _file_sha256(path: str | Path) -> str:
-    """The SHA-256 of a whole (small) file: a model, an adaptation state, a table log (``bounded.read_regular``:
-    a regular file of at most ``MAX_YAML_BYTES``, the largest of their limits; else a one-line error)."""
-    return hashlib.sha256(read_regular(path, "file", MAX_YAML_BYTES) or b"").hexdigest()
+    """The SHA-256 of a whole (small) file: a model, an adaptation state, a table log (a regular file of at most
+    ``MAX_YAML_BYTES``, the largest of their limits; else a one-line error)."""
+    return file_sha256(path, "file", MAX_YAML_BYTES)
 
 
 def _compensate_provenance(args: argparse.Namespace, model_file, capture_serial: str | None) -> dict:

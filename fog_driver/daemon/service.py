@@ -62,7 +62,7 @@ from ..compensation.model import ModelFile
 from ..compensation.pipeline import CompensatedSample, Compensator
 from ..errors import FogDriverError, OutputFileError, TemporaryFailure, UsageError
 from ..extras import require_extra
-from ..files.bounded import NotARegularFile, read_regular
+from ..files.bounded import NotARegularFile, file_sha256
 from ..files.yamlio import MAX_YAML_BYTES
 from ..modelfiles import (
     adaptation_restorer,
@@ -93,13 +93,12 @@ log = structlog.get_logger("fog_driver.daemon")
 
 
 def _file_sha256(path: str | Path) -> str | None:
-    """A model's or a state file's SHA-256, or None when it cannot be read (``bounded.read_regular``: not a regular
+    """A model's or a state file's SHA-256, or None when it cannot be read (``bounded.file_sha256``: not a regular
     file, or larger than ``MAX_YAML_BYTES``)."""
     try:
-        data = read_regular(path, "file", MAX_YAML_BYTES)
+        return file_sha256(path, "file", MAX_YAML_BYTES)
     except FogDriverError:
         return None
-    return None if data is None else hashlib.sha256(data).hexdigest()
 
 
 class Service:

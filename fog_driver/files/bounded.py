@@ -15,6 +15,7 @@ looked into to tell what it is (``outputs.describe``, ``is_capture``) by ``read_
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import os
 import stat
 from pathlib import Path
@@ -123,6 +124,11 @@ def read_regular(
     if total > limit:
         raise FileTooLarge(f"{path}: {too_large or f'{what} larger than {limit} bytes'}")
     return b"".join(chunks)
+
+
+def file_sha256(path: str | Path, what: str, limit: int) -> str:
+    """The SHA-256 of the regular file ``path``, read whole through ``read_regular`` (its one-line errors)."""
+    return hashlib.sha256(read_regular(path, what, limit) or b"").hexdigest()
 
 
 def open_regular(path: str | Path, what: str) -> BinaryIO:
