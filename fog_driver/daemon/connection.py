@@ -110,7 +110,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..client.ndjson import OVERLONG, UNTERMINATED, Command, CommandError, LineBuffer, parse_command
+from ..ndjson import OVERLONG, UNTERMINATED, Command, CommandError, LineBuffer, parse_command
 from .guards import AuthThrottle, token_matches
 from .limits import (
     COMMAND_WINDOW_S,

@@ -38,7 +38,7 @@ from typing import Any, Self
 
 import structlog
 
-from ..client.ndjson import clean, encode
+from ..ndjson import clean, encode
 from .connection import (
     Action,
     AuthGate,
