@@ -7,6 +7,7 @@ from the page, fails too, so the page and the code cannot drift apart.
 
 from __future__ import annotations
 
+import ast
 import csv
 import re
 from pathlib import Path
@@ -14,6 +15,7 @@ from pathlib import Path
 import pytest
 
 from fog_driver.cli import argtypes
+from fog_driver.client import protocol as client_protocol
 from fog_driver.client import session, wire
 from fog_driver.compensation import dwell, model, model_checks, reservoir, uncertainty
 from fog_driver.daemon import config, limits
@@ -145,3 +147,28 @@ def test_the_arguments_bounds_the_page_quotes_are_the_parsers() -> None:
 def test_the_watch_rate_bound_is_one_on_both_sides_of_the_wire():
     """The client library refuses before asking what the daemon would refuse: the same bound."""
     assert session.MAX_WATCH_RATE_HZ == limits.MAX_WATCH_RATE_HZ
+
+
+def test_the_bias_and_dwell_bounds_are_defined_once_in_the_client_library():
+    """``?BIAS`` seconds and the ``?TABLE`` dwell: bound to a value in ``client/protocol.py`` alone (by the AST),
+    so the daemon refuses exactly what the client library refuses before sending."""
+    package = Path(__file__).resolve().parents[1] / "fog_driver"
+    names = {"MAX_BIAS_S", "MAX_TABLE_DWELL_S"}
+    bound: dict[str, list[str]] = {name: [] for name in names}
+    for path in sorted(package.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            targets = (
+                node.targets
+                if isinstance(node, ast.Assign)
+                else [node.target]
+                if isinstance(node, ast.AnnAssign)
+                else []
+            )
+            for target in targets:
+                if isinstance(target, ast.Name) and target.id in names:
+                    bound[target.id].append(path.relative_to(package).as_posix())
+    assert bound == {name: ["client/protocol.py"] for name in names}
+    assert (limits.MAX_BIAS_S, limits.MAX_TABLE_DWELL_S) == (
+        client_protocol.MAX_BIAS_S,
+        client_protocol.MAX_TABLE_DWELL_S,
+    )

@@ -1,7 +1,8 @@
 """The daemon's client multiplexer: JSON lines over TCP, in the manner of gpsd.
 
-The protocol clients speak (what each line means, the commands and the answers) is the docstring of
-``connection.py``, its state machine, sans-IO; its limits are in ``limits.py``.  This module is the I/O only:
+The protocol clients speak (what each line means, the commands and the answers) is written in
+``docs/reference/ndjson.md``; ``connection.py`` is its state machine, sans-IO, and its limits are in
+``limits.py``.  This module is the I/O only:
 it listens, reads each client's bytes and hands them to the client's ``Connection``, carries out the actions
 that come back (queue a line, run a control command in a worker thread, close), and writes each client's
 queue, dropping a client that does not read.
@@ -38,7 +39,7 @@ from typing import Any, Self
 
 import structlog
 
-from ..client.ndjson import clean, encode
+from ..ndjson import clean, encode
 from .connection import (
     Action,
     AuthGate,

@@ -80,8 +80,8 @@ from typing import Any
 
 import structlog
 
-from ...client.ndjson import encode
 from ...extras import EXTRAS, missing_message
+from ...ndjson import encode
 from ..guards import AuthThrottle, LogRateLimiter, Slots, check_token, is_loopback_host, peer_address, token_matches
 from ..limits import (
     DEFAULT_AUTH_BACKOFF_BASE_S,
