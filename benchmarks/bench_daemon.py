@@ -908,6 +908,6 @@ def main() -> None:
 
 if __name__ == "__main__":
     sys.path.insert(0, str(ROOT / "benchmarks"))
-    from readme_block import run_main  # --update-readme: the README's block for this command
+    from _harness import run_main  # --update-readme: the README's block for this command
 
     run_main(main)

@@ -106,6 +106,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    from readme_block import run_main
+    from _harness import run_main
 
     run_main(main)

@@ -239,6 +239,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    from readme_block import run_main  # --update-readme: the README's block for this command
+    from _harness import run_main  # --update-readme: the README's block for this command
 
     run_main(main)

@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 
 import readme_walkthrough as walkthrough
-from readme_block import run_main
+from _harness import run_main
 
 ROOT = Path(__file__).resolve().parents[1]
 #: Commands the README gives a time for outside the walkthrough, run after it in the same directory.

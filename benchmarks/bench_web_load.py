@@ -437,6 +437,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    from readme_block import run_main  # --update-readme: the block in docs/explanation/performance.md
+    from _harness import run_main  # --update-readme: the block in docs/explanation/performance.md
 
     run_main(main)

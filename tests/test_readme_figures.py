@@ -12,7 +12,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-import readme_block  # noqa: E402
+import _harness  # noqa: E402
 
 
 def test_the_block_key_is_the_command_less_the_cache_and_the_flag():
@@ -31,27 +31,25 @@ def test_the_block_key_is_the_command_less_the_cache_and_the_flag():
         "--reuse=/w",
         "--adapt",
     ]
-    assert readme_block.block_key("benchmarks/bench_population.py", argv) == "bench_population.py --set dev --adapt"
+    assert _harness.block_key("benchmarks/bench_population.py", argv) == "bench_population.py --set dev --adapt"
 
 
 def test_a_block_is_replaced_in_place_and_a_missing_one_is_an_error():
     text = "a\n<!-- bench: x.py --n 1 -->\n```\nold\n```\n<!-- /bench -->\nb\n<!-- bench: x.py -->\n<!-- /bench -->\n"
-    new = readme_block.replace_block(text, "x.py", "$ cmd\nfigures")
-    assert readme_block.blocks(new) == {"x.py --n 1": "```\nold\n```\n", "x.py": "```\n$ cmd\nfigures\n```\n"}
+    new = _harness.replace_block(text, "x.py", "$ cmd\nfigures")
+    assert _harness.blocks(new) == {"x.py --n 1": "```\nold\n```\n", "x.py": "```\n$ cmd\nfigures\n```\n"}
     with pytest.raises(ValueError, match="no block"):
-        readme_block.replace_block(text, "y.py", "z")
+        _harness.replace_block(text, "y.py", "z")
 
 
 def test_update_readme_writes_the_output_and_refuses_before_the_work_without_a_block(tmp_path, capsys):
     readme = tmp_path / "README.md"
     readme.write_text("<!-- bench: b.py --k -->\n<!-- /bench -->\n")
-    with readme_block.readme_output("b.py --k", update=True, readme=readme):
+    with _harness.readme_output("b.py --k", update=True, readme=readme):
         print("figure 1.23")
-    assert (
-        readme_block.blocks(readme.read_text())["b.py --k"] == "```\n$ python benchmarks/b.py --k\nfigure 1.23\n```\n"
-    )
+    assert _harness.blocks(readme.read_text())["b.py --k"] == "```\n$ python benchmarks/b.py --k\nfigure 1.23\n```\n"
     worked = []
-    with pytest.raises(ValueError), readme_block.readme_output("other.py", update=True, readme=readme):
+    with pytest.raises(ValueError), _harness.readme_output("other.py", update=True, readme=readme):
         worked.append(1)
     assert not worked
 
@@ -61,15 +59,15 @@ def test_a_block_is_found_in_the_document_that_holds_it(tmp_path):
     (tmp_path / "README.md").write_text("no blocks\n")
     page = tmp_path / "docs" / "explanation" / "page.md"
     page.write_text("<!-- bench: b.py --k -->\n<!-- /bench -->\n")
-    assert readme_block.document_with("b.py --k", tmp_path) == page
+    assert _harness.document_with("b.py --k", tmp_path) == page
     with pytest.raises(ValueError, match="no document"):
-        readme_block.document_with("b.py", tmp_path)
+        _harness.document_with("b.py", tmp_path)
 
 
 def test_every_readme_block_holds_its_own_command_and_a_script_that_can_write_it():
     blocks: dict[str, str] = {}
-    for path in readme_block.documents():
-        found = readme_block.blocks(path.read_text())
+    for path in _harness.documents():
+        found = _harness.blocks(path.read_text())
         assert not set(found) & set(blocks), f"{path}: a block that another document holds too"
         blocks.update(found)
     assert len(blocks) >= 12
