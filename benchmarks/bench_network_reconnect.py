@@ -1,7 +1,7 @@
 """A serial port over the network: how soon the daemon's samples flow again when the server that carries the
 port (``socat``, ``ser2net``) is killed and started again.  ``docs/how-to/network-serial.md`` quotes its output.
 
-    python benchmarks/bench_network_reconnect.py [--servers socat,ser2net-raw,ser2net-rfc2217] [--down-s 0.5,1,2,5,10]
+    python -m benchmarks.bench_network_reconnect [--servers socat,ser2net-raw,ser2net-rfc2217] [--down-s 0.5,1,2,5,10]
         [--repeat 2] [--rate-hz 100] [--half-open]
 
 Method

@@ -1,6 +1,6 @@
 """Compensation on a population of instruments the models were not tuned on.
 
-    python benchmarks/bench_population.py [--set eval2|eval4|eval6|dev] [--instruments N] [--kinds K,K] [--rate-hz 10]
+    python -m benchmarks.bench_population [--set eval2|eval4|eval6|dev] [--instruments N] [--kinds K,K] [--rate-hz 10]
                                           [--workers 2] [--workdir DIR] [--per-instrument] [--adapt]
                                           [--fit-profile NAME] [--score-profiles P,P] [--compare-programs]
 
@@ -194,62 +194,45 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-import tempfile
 import time
-from collections.abc import Callable, Iterable, Sequence
-from concurrent.futures import ProcessPoolExecutor
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from benchmarks._harness import (
+    FIT_PROFILE,
+    FIT_RUN,
+    SCORE_PROFILES,
+    SEED_SETS,
+    capture,
+    in_pool,
+    instrument_seeds,
+    kept_or_temporary,
+    resolve_profile,
+    static_minutes_mask,
+)
+from fog_driver.cli.calibration import DEFAULT_FIT_KIND
+from fog_driver.compensation.adapt import AdaptConfig
+from fog_driver.compensation.fitting.data import FitConfig
+from fog_driver.errors import FogDriverError
+from fog_driver.offline.fit import fit_model_file
+from fog_driver.report.coverage import SIGMA_PER_MINUTE, MinuteErrors, coverage_figures, minute_errors
+from fog_driver.report.evaluate import minute_rms, per_second
+from fog_driver.sim.capture import read_truth, truth_noise_dph
+from fog_driver.sim.chamber import ChamberProfile, Hold, Ramp
+from fog_driver.sim.motion import MotionPlan
+from fog_driver.sim.profiles import SimProfile
 
-from fog_driver.cli.calibration import DEFAULT_FIT_KIND  # noqa: E402
-from fog_driver.compensation.adapt import AdaptConfig  # noqa: E402
-from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
-from fog_driver.errors import FogDriverError  # noqa: E402
-from fog_driver.offline.fit import fit_model_file  # noqa: E402
-from fog_driver.report.coverage import SIGMA_PER_MINUTE, MinuteErrors, coverage_figures, minute_errors  # noqa: E402
-from fog_driver.report.evaluate import minute_rms, per_second  # noqa: E402
-from fog_driver.samples.captures import read_provenance  # noqa: E402
-from fog_driver.sim.capture import read_truth, simulate_to_file, truth_noise_dph  # noqa: E402
-from fog_driver.sim.chamber import ChamberProfile, Hold, Ramp  # noqa: E402
-from fog_driver.sim.instrument import Simulator  # noqa: E402
-from fog_driver.sim.motion import MotionPlan  # noqa: E402
-from fog_driver.sim.population import draw_instrument  # noqa: E402
-from fog_driver.sim.profiles import BUILTIN_PROFILES, SimProfile, load_profile  # noqa: E402
-
-SEED_SETS = {
-    "dev": 0,
-    "eval": 10_000,
-    "eval2": 20_000,
-    "eval3": 30_000,
-    "eval4": 40_000,
-    "eval5": 50_000,
-    "eval6": 60_000,
-    "eval7": 70_000,
-    "eval8": 80_000,
-    "eval9": 90_000,
-    "eval10": 95_000,
-    "eval11": 96_000,
-    "eval12": 97_000,
-    "eval13": 98_000,
-    "eval14": 99_000,
-}  #: first instrument seed of each set (THE RULE above)
 #: Model kinds; "auto" is what ``fog-driver fit`` fits without --kind (the default's choice between the wesn
 #: and the polynomial).
 KINDS = ("polynomial", "wesn", "auto", "paper", "pso-svr")
 #: The kinds the model choice, the uncertainty and the program comparison are about.
 COMPARED_KINDS = ("polynomial", "wesn", "auto")
-FIT_PROFILE = "paper"
-SCORE_PROFILES = ("soak-cycle", "steps-moves")
 #: ``--compare-programs``: the program compared with the paper program, and where both are scored.
 PROGRAM = "calibration"
 PROGRAM_SCORE_PROFILES = ("steps-moves", "chamber-cycle")
-SKIP_MINUTES = 10
 #: Instrument K's run of a profile has the run seed 10 K + j (the module docstring).
-FIT_RUN = 1
 SCORE_RUNS = {"soak-cycle": 2, "steps-moves": 3, "chamber-cycle": 4, "fast-ramps": 6}
 BEYOND_RUN = 5
 OTHER_RUNS = (7, 8, 9)
@@ -271,12 +254,6 @@ MIN_TOP_BOTTOM_RATIO = 1.5
 PROGRAM_WORST_EXCESS = 1.0
 PROGRAM_WORST_FLOOR = 2.0
 PROGRAM_MEDIAN_FLOOR = 1.15
-
-
-def resolve_profile(name: str) -> SimProfile:
-    """A profile by name: built-in, else ``configs/profiles/<name>.yaml`` (``calibration``: the built-in once it
-    ships, the file until then); a missing one is a one-line ``InputFileError``."""
-    return load_profile(name if name in BUILTIN_PROFILES else ROOT / "configs" / "profiles" / f"{name}.yaml")
 
 
 def beyond_profile(
@@ -306,55 +283,6 @@ def score_run_seeds(profiles: Sequence[str]) -> dict[str, int]:
     """Each scoring profile's j (module docstring): its own when it has one, else the next of ``OTHER_RUNS``."""
     others = iter(OTHER_RUNS)
     return {p: SCORE_RUNS[p] if p in SCORE_RUNS else next(others) for p in profiles}
-
-
-def instrument_arguments(parser: argparse.ArgumentParser, instruments: int) -> None:
-    """The instruments a population benchmark runs on: ``--set`` (default dev), ``--first``, ``--instruments``,
-    and how: ``--workers``, ``--workdir`` (captures kept there; default a temporary directory)."""
-    parser.add_argument("--set", choices=SEED_SETS, default="dev")
-    parser.add_argument("--first", type=int, default=0)
-    parser.add_argument("--instruments", type=int, default=instruments)
-    parser.add_argument("--workers", type=int, default=2)
-    parser.add_argument("--workdir", type=Path)
-
-
-def over_instruments(args: argparse.Namespace, score: Callable[..., dict], *same: object) -> tuple[list[int], list]:
-    """``score(seed, *same, workdir)`` for each instrument of ``args`` (``instrument_arguments``), ``--workers``
-    at a time; returns the seeds and the results, in order."""
-    seeds = [SEED_SETS[args.set] + args.first + k for k in range(args.instruments)]
-    with tempfile.TemporaryDirectory() as tmp:
-        workdir = args.workdir or Path(tmp)
-        with ProcessPoolExecutor(args.workers) as pool:
-            columns = [[value] * len(seeds) for value in same]
-            return seeds, list(pool.map(score, seeds, *columns, [workdir] * len(seeds)))
-
-
-def capture(workdir: Path, seed: int, profile: str | SimProfile, run_seed: int, rate_hz: int) -> Path:
-    """Instrument ``seed``'s run of ``profile`` (a name for ``resolve_profile``, or a profile made here), cached
-    by its name, and simulated again when the cached one's sidecar holds another instrument K (a cache made
-    before the population changed)."""
-    name = profile if isinstance(profile, str) else profile.name
-    out = workdir / f"i{seed}" / f"{name}-r{run_seed}-{rate_hz}hz.bin"
-    config = draw_instrument(seed)
-    if out.exists() and (read_provenance(out) or {}).get("model") != config.as_dict():
-        out.unlink()  # simulated by a version whose instrument K differed (e.g. before its scale-factor draws)
-    if not out.exists():
-        out.parent.mkdir(parents=True, exist_ok=True)
-        sim_profile = resolve_profile(profile) if isinstance(profile, str) else profile
-        sim = Simulator(sim_profile, config, rate_hz=rate_hz, seed=run_seed)
-        simulate_to_file(sim, out.with_suffix(".part.bin"))
-        for suffix in (".bin", ".bin.yaml", ".truth.csv", ".table.csv"):  # complete files only: an interrupted
-            part = out.with_suffix(".part" + suffix)  # run redoes them (a table log only with dwells)
-            if suffix != ".table.csv" or part.exists():
-                part.rename(out.with_suffix(suffix))
-    return out
-
-
-def static_minutes_mask(truth: dict[str, np.ndarray], n: int) -> np.ndarray:
-    """Seconds that count: no table motion (true input rate 0) and after the first SKIP_MINUTES."""
-    mask = truth["input_dph"][:n] == 0.0
-    mask[: SKIP_MINUTES * 60] = False
-    return mask
 
 
 def fit_kinds(fit_run: Path, kinds: Iterable[str]) -> tuple[dict, dict]:
@@ -760,33 +688,25 @@ def main() -> None:
     if problem:
         print(f"error: {problem}", file=sys.stderr)
         sys.exit(2)
-    seeds = [SEED_SETS[args.set] + args.first + i for i in range(args.instruments)]
-    with tempfile.TemporaryDirectory() as tmp:
-        workdir = args.workdir or Path(tmp)
+    seeds = instrument_seeds(args.set, args.first, args.instruments)
+    with kept_or_temporary(args.workdir) as workdir:
         t0 = time.perf_counter()
-        with ProcessPoolExecutor(max_workers=args.workers) as pool:
-            futures = [
-                pool.submit(
-                    score_instrument, s, kinds, args.rate_hz, workdir, args.adapt, fit_profile, score_profiles, against
+        same = (kinds, args.rate_hz, workdir, args.adapt, fit_profile, score_profiles, against)
+        results = []
+        for x in in_pool(score_instrument, args.workers, seeds, *([value] * len(seeds) for value in same)):
+            results.append(x)
+            if args.per_instrument:
+                print(
+                    f"instrument {x['seed']:5d}: raw {x['r']['raw']:.4f} floor {x['r']['floor']:.4f} "
+                    + " ".join(f"{k} {x['r'][k]:.4f}" for k in kinds)
+                    + (
+                        f" | fitted on {against}: "
+                        + " ".join(f"{k} {x['against']['r'][k]:.4f}" for k in x["against"]["fit_s"])
+                        if against
+                        else ""
+                    ),
+                    flush=True,
                 )
-                for s in seeds
-            ]
-            results = []
-            for f in futures:
-                results.append(f.result())
-                x = results[-1]
-                if args.per_instrument:
-                    print(
-                        f"instrument {x['seed']:5d}: raw {x['r']['raw']:.4f} floor {x['r']['floor']:.4f} "
-                        + " ".join(f"{k} {x['r'][k]:.4f}" for k in kinds)
-                        + (
-                            f" | fitted on {against}: "
-                            + " ".join(f"{k} {x['against']['r'][k]:.4f}" for k in x["against"]["fit_s"])
-                            if against
-                            else ""
-                        ),
-                        flush=True,
-                    )
         print(
             f"\n{args.set} set: {len(seeds)} instruments (seeds {seeds[0]}..{seeds[-1]}), fitted on {fit_profile}, "
             f"scored on {' and '.join(score_profiles)} at {args.rate_hz} Hz  [{time.perf_counter() - t0:.0f} s]\n"
@@ -803,6 +723,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    from _harness import run_main  # --update-readme: the README's block for this command
+    from benchmarks._harness import run_main  # --update-readme: the documentation's block for this command
 
     run_main(main)

@@ -4,15 +4,13 @@ printed, in form."""
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "benchmarks"))
+from benchmarks import _harness
 
-import _harness  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_the_block_key_is_the_command_less_the_cache_and_the_flag():
@@ -47,7 +45,7 @@ def test_update_readme_writes_the_output_and_refuses_before_the_work_without_a_b
     readme.write_text("<!-- bench: b.py --k -->\n<!-- /bench -->\n")
     with _harness.readme_output("b.py --k", update=True, readme=readme):
         print("figure 1.23")
-    assert _harness.blocks(readme.read_text())["b.py --k"] == "```\n$ python benchmarks/b.py --k\nfigure 1.23\n```\n"
+    assert _harness.blocks(readme.read_text())["b.py --k"] == "```\n$ python -m benchmarks.b --k\nfigure 1.23\n```\n"
     worked = []
     with pytest.raises(ValueError), _harness.readme_output("other.py", update=True, readme=readme):
         worked.append(1)
@@ -77,4 +75,4 @@ def test_every_readme_block_holds_its_own_command_and_a_script_that_can_write_it
         assert "run_main(main)" in script.read_text(), f"{script.name} cannot --update-readme"
         lines = body.splitlines()
         assert lines[0] == "```" and lines[-1] == "```" and len(lines) > 3, key
-        assert lines[1] == f"$ python benchmarks/{key}", key
+        assert lines[1] == f"$ {_harness.command_of(key)}", key
