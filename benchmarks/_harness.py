@@ -151,8 +151,9 @@ def readme_output(key: str, *, update: bool, readme: Path | None = None) -> Iter
     print(f"{readme.name}: block {key!r} updated", file=sys.stderr)
 
 
-def run_main(main: Callable[[], None]) -> None:
-    """A benchmark's entry point: ``main()``, with ``--update-readme`` taken off the command line first."""
+def run_main(main: Callable[[], int | None]) -> None:
+    """A benchmark's entry point: ``main()``, with ``--update-readme`` taken off the command line first; a
+    non-zero status ``main`` returns is the process's exit status, and its block is left as it was."""
     update = "--update-readme" in sys.argv[1:]
     key = block_key(sys.argv[0], sys.argv[1:])
     sys.argv[1:] = [a for a in sys.argv[1:] if a != "--update-readme"]
@@ -162,7 +163,9 @@ def run_main(main: Callable[[], None]) -> None:
         except ValueError as exc:
             raise SystemExit(f"{Path(sys.argv[0]).name}: {exc}") from None
     with readme_output(key, update=update):
-        main()
+        status = main()
+        if status:
+            raise SystemExit(status)
 
 
 SEED_SETS = {

@@ -416,4 +416,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from benchmarks._harness import run_main  # --update-readme: the documentation's block for this command
+
+    run_main(main)

@@ -76,3 +76,33 @@ def test_every_readme_block_holds_its_own_command_and_a_script_that_can_write_it
         lines = body.splitlines()
         assert lines[0] == "```" and lines[-1] == "```" and len(lines) > 3, key
         assert lines[1] == f"$ {_harness.command_of(key)}", key
+
+
+def test_every_block_is_named_once_in_the_quick_or_the_long_list_of_python_m_benchmarks():
+    from benchmarks.__main__ import LONG, QUICK
+
+    listed = [e.key for e in (*QUICK, *LONG)]
+    assert len(listed) == len(set(listed)), "an entry named twice"
+    held = {key for path in _harness.documents() for key in _harness.blocks(path.read_text())}
+    assert set(listed) == held, (
+        f"listed without a block: {set(listed) - held}; a block not listed: {held - set(listed)}"
+    )
+    assert all(e.run_s > 0 for e in (*QUICK, *LONG))
+
+
+def test_python_m_benchmarks_runs_the_chosen_quick_entries_with_update_readme_from_the_top(monkeypatch):
+    from benchmarks import __main__ as runner
+
+    ran = []
+
+    def fake_run(command, cwd):
+        ran.append((command[1:], cwd))
+        return runner.subprocess.CompletedProcess(command, 0)
+
+    monkeypatch.setattr(runner.subprocess, "run", fake_run)
+    monkeypatch.setattr(runner.sys, "argv", ["benchmarks", "--only", "bench_decode,paper_experiment"])
+    runner.main()
+    assert ran == [
+        (["-m", "benchmarks.bench_decode", "--update-readme"], _harness.ROOT),
+        (["-m", "benchmarks.paper_experiment", "--update-readme"], _harness.ROOT),
+    ]
