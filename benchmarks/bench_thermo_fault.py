@@ -24,12 +24,7 @@ and faulted sensor:
 Printed: how many cases meet each, the largest (worst_fault - worst_clean) / worst_uncompensated, and
 the glitch's largest |D_hat - D_hat_clean|.  Figures are printed, never asserted.
 
-Log of the runs (see THE RULE in _harness.py):
-
-* 2026-12-02, ``eval3`` (30000..30011), first run: substitution from the fitted thermal coupling (issue 11), 220 s;
-  all 72 cases meet the target (the README's figures).
-* 2026-12-02, ``eval3``, ``--fault stuck``, first run: the stuck-reading check (thresholds set from the
-  physics, no false alarm on 12 clean development instruments x 4 profiles).
+Its runs, and what they decided: docs/decisions/2026-12-02-thermometer-substitution.md.
 """
 
 from __future__ import annotations

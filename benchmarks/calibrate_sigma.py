@@ -17,22 +17,8 @@ Gaussian likelihood of the pooled errors,
 on a grid, and the coverage of the +-1.96 sigma band is printed; then the same for a common factor c on
 the spread and the residual (``COMMON_SCALES``, the box's factor 1).  Figures are printed, never asserted.
 
-The shipped factors (``compensation.uncertainty``), from the run on development instruments 0..11
-(``--first 0 --instruments 12``, 2026-12-04): the likelihood's factors (0.368, 1.47, 0.232) put the weight
-on the constant residual part and left the worst instrument at 82.8 % and the hot soak at 89 %; the
-unit factors covered 98.3 % pooled (over the 95 +- 3 % band), worst instrument 89.8 %; a common 0.85
-covers 97.1 % pooled, worst instrument 82.8 %, the top-sigma quarter 99.0 %, every extrapolating minute
-(1436), median sigma 0.84x the error's RMS, top/bottom-quarter error ratio 3.28 (median).
-
-Checked again once the calibration program was the recipe (``--fit-profile calibration``, and pooled,
-``--fit-profile paper,calibration``: each instrument's two fits count as two; 2026-12-04, with the fit's
-longer lags at the edge): fitted on ``calibration``, the common 0.85 covers 98.8 % pooled (0.8 over the
-band's top: a better-pinned model leaves errors with heavier tails about a smaller spread), worst
-instrument 93.3 %, median sigma 0.81x the error's RMS, top/bottom 2.25; the paper fits 97.1 % as before.
-Pooled over both, 0.85 covers 97.9 %, every one of the 24 fits at 80 % or more (worst 82.8 %), the hot
-soaks 89.5 %.  A smaller factor would bring the calibration fits inside the band (0.7: 97.2 %) but takes
-the paper fits' worst instruments under 80 % (0.7 pooled: 22 of 24, worst 77.4 %), and on ``eval4`` the
-paper fits with 0.85 were already at 95.7 % and 22 of 24: 0.85 stays.
+The shipped factors (``compensation.uncertainty``) and the runs that chose them:
+docs/decisions/2026-12-07-uncertainty-factors.md.
 """
 
 from __future__ import annotations
