@@ -1,6 +1,6 @@
 """The simulator: generating captures, and serving a live stream in real time.
 
-    python benchmarks/bench_sim.py [--serve-seconds S] [--rate-hz R] [--skip-generate]
+    python -m benchmarks.bench_sim [--serve-seconds S] [--rate-hz R] [--skip-generate]
 
 (a) Generation: the ``paper`` profile (440 minutes) at 100 Hz to a capture file
     (with its sidecar and truth file, as ``fog-driver simulate --out`` writes it;
@@ -142,4 +142,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from benchmarks._harness import run_main  # --update-readme: the documentation's block for this command
+
+    run_main(main)

@@ -1,9 +1,9 @@
 """Adapting from the table's angles, on a population (issue 32).
 
-    python benchmarks/bench_table.py [--set dev|eval5|...] [--instruments N] [--first K] [--creeps 0.2,2,20]
+    python -m benchmarks.bench_table [--set dev|eval5|...] [--instruments N] [--first K] [--creeps 0.2,2,20]
                                      [--days 1] [--rate-hz 10] [--workers 2] [--workdir DIR] [--per-instrument]
 
-Per instrument K of a set (the seed ranges and THE RULE of ``bench_population.py``): the default model
+Per instrument K of a set (the seed ranges and THE RULE of ``_harness.py``): the default model
 (``fog-driver fit`` without ``--kind``) fitted on its paper run; then a positioning run outside the fit,
 as in the paper's validation experiment but all through the run: ``configs/profiles/table-run.yaml``,
 the ``steps-moves`` chamber program (ramps of 2 to 4 degC/min, steps, a fast drop, -20..50 degC) with the
@@ -41,34 +41,30 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from benchmarks._harness import FIT_PROFILE, FIT_RUN, capture, instrument_arguments, over_instruments
+from fog_driver.cli.calibration import DEFAULT_FIT_KIND
+from fog_driver.compensation.adapt import AdaptConfig
+from fog_driver.compensation.dwell import Dwell
+from fog_driver.compensation.fitting.data import FitConfig
+from fog_driver.compensation.pipeline import Compensator
+from fog_driver.compensation.table import SF_REF_C
+from fog_driver.flags import FLAG_GUARD
+from fog_driver.offline.compensate import compensate_capture
+from fog_driver.offline.fit import fit_model_file
+from fog_driver.report.evaluate import minute_rms
+from fog_driver.report.positioning import improvement, positioning_table, read_reference_csv
+from fog_driver.sim.capture import read_truth, truth_noise_dph
+from fog_driver.sim.motion import Creep, MotionPlan
+from fog_driver.sim.population import draw_instrument
+from fog_driver.sim.profiles import SimProfile, load_profile
+from fog_driver.sim.tablelog import late, lie
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-from bench_population import FIT_PROFILE, FIT_RUN, capture, instrument_arguments, over_instruments  # noqa: E402
-
-from fog_driver.cli.calibration import DEFAULT_FIT_KIND  # noqa: E402
-from fog_driver.compensation.adapt import AdaptConfig  # noqa: E402
-from fog_driver.compensation.dwell import Dwell  # noqa: E402
-from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
-from fog_driver.compensation.pipeline import Compensator  # noqa: E402
-from fog_driver.compensation.table import SF_REF_C  # noqa: E402
-from fog_driver.flags import FLAG_GUARD  # noqa: E402
-from fog_driver.offline.compensate import compensate_capture  # noqa: E402
-from fog_driver.offline.fit import fit_model_file  # noqa: E402
-from fog_driver.report.evaluate import minute_rms  # noqa: E402
-from fog_driver.report.positioning import improvement, positioning_table, read_reference_csv  # noqa: E402
-from fog_driver.sim.capture import read_truth, truth_noise_dph  # noqa: E402
-from fog_driver.sim.motion import Creep, MotionPlan  # noqa: E402
-from fog_driver.sim.population import draw_instrument  # noqa: E402
-from fog_driver.sim.profiles import SimProfile, load_profile  # noqa: E402
-from fog_driver.sim.tablelog import late, lie  # noqa: E402
 
 SCORE_PROFILE = "table-run"
 TABLE_RUN = 7  #: the positioning run's seed: 10 K + 7
