@@ -454,7 +454,9 @@ class CaptureSink:
     - ``put(chunk)`` (any thread, O(1)): the bytes join a queue the writer thread empties in order.
       The thread writes the first chunk after a pause at once, and then, while bytes keep coming, what
       has arrived every ``write_every_s`` (20 ms) or as soon as ``WRITE_AT_BYTES`` wait: one wake-up per
-      batch rather than per chunk, which at 1 kHz in 5 ms lumps was 3 % of a core.  A killed daemon
+      batch rather than per chunk, so while bytes flow the thread's wake-ups follow ``write_every_s`` (and
+      ``WRITE_AT_BYTES``), not how finely the port hands its bytes over (``benchmarks/bench_daemon.py``
+      measures the daemon's CPU per thread, the capture thread's included).  A killed daemon
       (SIGKILL) loses at most the batch being gathered; a stopped one writes everything.
       When ``max_queue_bytes`` are already waiting (a disk that stalls) or the capture has failed, the
       chunk is not captured: it is counted in ``bytes_lost`` and the gap is noted in the sidecar of the
@@ -462,12 +464,12 @@ class CaptureSink:
       say exactly what they hold.
     - ``note(event)`` (any thread): an event for the sidecar, in order with the bytes put before it.
     - A write, fsync or file-open error (a full disk, EIO, no descriptor left) is logged once, the file
-      is closed as ``failed`` (its sidecar counts the bytes on disk), ``state`` becomes ``failed`` and
+      is closed as ``failed`` (its sidecar counts the bytes on disk), ``status`` becomes ``failed`` and
       the sink tries a new file after ``retry_first_s`` (1 s), doubling up to ``retry_max_s`` (60 s); the first file
-      that opens again sets ``state`` back to ``recording`` (``on_state`` is called at each change).
+      that opens again sets ``status`` back to ``recording`` (``on_status`` is called at each change).
     - Every ``fsync_every_s`` the current file is fsynced; ``poll_s`` is the thread's housekeeping tick
       (age rotation of a quiet port).
-    - ``status()``: a snapshot for STATUS: ``state`` (``idle`` before the first byte, ``recording``, ``failed``,
+    - ``status_fields()``: a snapshot for STATUS: ``status`` (``idle`` before the first byte, ``recording``, ``failed``,
       ``retrying``: the next chunk tries a new file, ``closed``), the file, bytes captured and lost, failures,
       the last error.
     - ``close(timeout_s)``: writes what is queued, closes the file, joins the thread (bounded).
@@ -483,7 +485,7 @@ class CaptureSink:
         write_every_s: float = DEFAULT_WRITE_EVERY_S,
         retry_first_s: float = RETRY_FIRST_S,
         retry_max_s: float = RETRY_MAX_S,
-        on_state: Callable[[str], None] | None = None,
+        on_status: Callable[[str], None] | None = None,
     ) -> None:
         if (
             max_queue_bytes <= 0
@@ -503,13 +505,13 @@ class CaptureSink:
         self.max_queue_bytes = int(max_queue_bytes)
         self.fsync_every_s = float(fsync_every_s)
         self.poll_s = float(poll_s)
-        self._on_state = on_state
+        self._on_status = on_status
         self._cond = threading.Condition()
         self._queue: collections.deque[tuple[str, Any]] = collections.deque()
         self._queued_bytes = 0
         self._idle = False  # the writer waits for bytes (not gathering a batch): the next put wakes it
         self._closing = False
-        self._state = "idle"  # idle (no byte yet), recording, failed, closed
+        self._status = "idle"  # idle (no byte yet), recording, failed, closed
         self._error: str | None = None
         self._retry_at = 0.0
         self._retry_s = self.retry_first_s
@@ -523,15 +525,16 @@ class CaptureSink:
         self._thread.start()
 
     @property
-    def state(self) -> str:
-        return self._state
+    def status(self) -> str:
+        """The capture's status now: ``idle`` (no byte yet), ``recording``, ``failed``, ``retrying``, ``closed``."""
+        return self._status
 
     def put(self, chunk: bytes) -> None:
         if not chunk:
             return
         with self._cond:
             self.bytes_put += len(chunk)
-            if self._closing or self._state == "failed" or self._queued_bytes + len(chunk) > self.max_queue_bytes:
+            if self._closing or self._status == "failed" or self._queued_bytes + len(chunk) > self.max_queue_bytes:
                 self.bytes_lost += len(chunk)
                 self._lost_pending += len(chunk)
                 return
@@ -565,10 +568,10 @@ class CaptureSink:
             self._queue.append(("model", (sha256, data)))
             self._cond.notify()
 
-    def status(self) -> dict[str, Any]:
+    def status_fields(self) -> dict[str, Any]:
         with self._cond:
             out: dict[str, Any] = {
-                "state": self._state,
+                "status": self._status,
                 "bytes": self._bytes_captured,
                 "bytes_lost": self.bytes_lost,
                 "failures": self.failures,
@@ -589,17 +592,17 @@ class CaptureSink:
 
     # -- the writer thread ---------------------------------------------------------------------------
 
-    def _set_state(self, state: str, error: str | None = None) -> None:
+    def _set_status(self, status: str, error: str | None = None) -> None:
         with self._cond:
-            changed = state != self._state
-            self._state = state
+            changed = status != self._status
+            self._status = status
             if error is not None:
                 self._error = error
             self._current = str(self.capture.current_path) if self.capture.current_path is not None else None
             self._bytes_captured = self.capture.bytes_written
-        if changed and self._on_state is not None:
+        if changed and self._on_status is not None:
             try:
-                self._on_state(state)
+                self._on_status(status)
             except Exception:  # noqa: BLE001 - a listener's bug must not stop the capture
                 log.exception("capture_state_listener_failed")
 
@@ -615,7 +618,7 @@ class CaptureSink:
                         self._cond.wait(self.write_every_s)  # put() does not wake it: one write per batch
                     elif not self._queue and not self._closing:
                         wait_s = self.poll_s
-                        if self._state == "failed":
+                        if self._status == "failed":
                             wait_s = max(0.0, min(wait_s, self._retry_at - time.monotonic()))
                         self._idle = True
                         self._cond.wait(wait_s)
@@ -628,19 +631,19 @@ class CaptureSink:
                     self._apply(kind, item)
                 gather = any(kind == "bytes" for kind, _ in items)
                 now = time.monotonic()
-                if self._state == "failed" and now >= self._retry_at:
-                    self._set_state("retrying")  # put() queues again; the next chunk tries a new file
-                elif self._state == "recording":
+                if self._status == "failed" and now >= self._retry_at:
+                    self._set_status("retrying")  # put() queues again; the next chunk tries a new file
+                elif self._status == "recording":
                     self._guard(self.capture.poll)
                     if now - last_sync >= self.fsync_every_s:
                         self._guard(self.capture.sync)
                         last_sync = now
-                self._set_state(self._state)
+                self._set_status(self._status)
                 if closing:
                     break
         except Exception as exc:  # noqa: BLE001 - a bug: the capture stops, the daemon goes on
             log.exception("capture_crashed", reason=str(exc))
-            self._set_state("failed", f"internal error: {exc}")
+            self._set_status("failed", f"internal error: {exc}")
         finally:
             try:
                 self.capture.close()
@@ -648,11 +651,11 @@ class CaptureSink:
                 log.error("capture_close_failed", reason=str(exc))
             with self._cond:
                 self._closing = True
-            self._set_state("closed")
+            self._set_status("closed")
 
     def _apply(self, kind: str, item: Any) -> None:
         if kind == "bytes":
-            if self._state == "failed":  # queued before the failure: not captured
+            if self._status == "failed":  # queued before the failure: not captured
                 with self._cond:
                     self.bytes_lost += len(item)
                     self._lost_pending += len(item)
@@ -664,10 +667,10 @@ class CaptureSink:
                     self.bytes_lost += missed
                     self._lost_pending += missed
             else:
-                if self._state != "recording":
+                if self._status != "recording":
                     log.info("capture_recording", path=str(self.capture.current_path))
                     self._retry_s = self.retry_first_s
-                self._set_state("recording")
+                self._set_status("recording")
         elif kind == "note":
             self._guard(self.capture.note, item)
         elif kind == "provenance":
@@ -688,7 +691,7 @@ class CaptureSink:
             log.error("capture_failed", reason=str(exc), retry_in_s=self._retry_s, failures=self.failures)
             self._retry_at = time.monotonic() + self._retry_s
             self._retry_s = min(2 * self._retry_s, self.retry_max_s)
-            self._set_state("failed", str(exc))
+            self._set_status("failed", str(exc))
             return False
         return True
 
