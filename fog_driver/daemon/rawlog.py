@@ -40,8 +40,8 @@ Rules (the tests hold them):
   number, the previous file's name, ``events`` (``note``: what happened at which byte of the file),
   plus the ``provenance`` mapping given (port, instrument, model...).
 - ``keep_model``: a copy of each model the daemon compensates with, ``models/<sha256>.yaml`` in the directory
-  (once per content, atomic), for ``compensate`` to replay a reload; ``prune`` deletes the copies no sidecar
-  left names.
+  (once per content, atomic), for ``compensate`` to replay a reload; ``prune`` deletes the copies no capture
+  left names (``modelstore.KeptModels``: by its index, never by reading the sidecars).
 - A sidecar a killed process left at ``status: recording`` is set right by ``repair_interrupted``
   (``status: interrupted``, the file's true size and SHA-256) before the next run writes.
 - A failed write (disk full) raises the ``CaptureWriter``'s one-line ``OutputFileError`` after the
@@ -67,19 +67,16 @@ import structlog
 
 from .. import __version__
 from ..errors import FogDriverError, OutputFileError
-from ..files.bounded import read_regular
 from ..files.stamps import utc_now_iso
-from ..files.yamlio import MAX_YAML_BYTES, write_text
 from ..samples.captures import (
-    KEPT_MODELS_DIR,
     CaptureWriter,
     find_sidecar,
-    kept_model_path,
     legacy_sidecar_path,
     read_provenance,
     sidecar_path,
     write_provenance,
 )
+from .modelstore import CAPTURE_NUMBER_DIGITS, KeptModels, numbered_captures
 
 log = structlog.get_logger("fog_driver.daemon")
 
@@ -101,7 +98,6 @@ WRITE_AT_BYTES = 64 * 1024
 #: After a failed write the sink tries a new file after this long, doubling up to the maximum.
 RETRY_FIRST_S = 1.0
 RETRY_MAX_S = 60.0
-_INDEX_DIGITS = 6
 
 
 class RotatingCapture:
@@ -155,6 +151,7 @@ class RotatingCapture:
         self._bytes_closed = 0  # bytes in files already closed
         self._closed = False
         self.pruned: list[Path] = []  # captures deleted by the retention limits, oldest first
+        self.models = KeptModels(self.directory, prefix)  #: the kept models (``modelstore``)
         self.prune()
 
     # -- what the daemon reads -------------------------------------------------------------------
@@ -250,18 +247,9 @@ class RotatingCapture:
 
     def keep_model(self, sha256: str, data: bytes) -> Path:
         """Keep a copy of the model file ``data`` (of SHA-256 ``sha256``) the daemon compensates with from
-        here on, at ``kept_model_path`` (once per content; atomic), so that ``compensate`` can replay a reload.
-        ``OutputFileError`` when it cannot be written; ``ValueError`` when ``data`` is not of ``sha256``."""
-        if hashlib.sha256(data).hexdigest() != sha256:
-            raise ValueError("the model's bytes are not those of its SHA-256")
-        path = kept_model_path(self.directory / "capture.bin", sha256)
-        if not path.exists():
-            try:
-                path.parent.mkdir(exist_ok=True)
-            except OSError as exc:
-                raise OutputFileError(f"{path.parent}: cannot keep the model: {exc.strerror or exc}") from None
-            write_text(path, data, "the model's copy")
-        return path
+        here on, naming the file being written (or the next one): ``KeptModels.keep`` (``OutputFileError``,
+        ``ValueError`` as it says)."""
+        return self.models.keep(sha256, data)
 
     def close(self) -> None:
         """Fsync and close the current file and write its final sidecar; idempotent."""
@@ -295,7 +283,7 @@ class RotatingCapture:
     def _next_path(self, start: _dt.datetime) -> Path:
         stamp = start.strftime("%Y%m%dT%H%M%SZ")
         while True:
-            path = self.directory / f"{self.prefix}-{self._index:0{_INDEX_DIGITS}d}-{stamp}.bin"
+            path = self.directory / f"{self.prefix}-{self._index:0{CAPTURE_NUMBER_DIGITS}d}-{stamp}.bin"
             self._index += 1
             if not any(p.exists() for p in (path, sidecar_path(path), legacy_sidecar_path(path))):
                 return path
@@ -325,6 +313,7 @@ class RotatingCapture:
         self._segment += 1
         self._files.append(path)
         self._opened_at = now
+        self.models.capture_opened(path)
 
     def _detach(self) -> CaptureWriter:
         """Take the current file out of use, counting its bytes as closed."""
@@ -332,6 +321,7 @@ class RotatingCapture:
         assert writer is not None
         self._writer = None
         self._bytes_closed += writer.bytes_written
+        self.models.capture_closed()
         return writer
 
     def _finish(self, reason: str) -> None:
@@ -358,7 +348,7 @@ class RotatingCapture:
             return []
         current = self.current_path
         captures = []  # (path, size, mtime), oldest first
-        for path in _numbered_captures(self.directory, self.prefix):
+        for _, path in sorted(numbered_captures(self.directory).get(self.prefix, {}).items()):
             try:
                 st = path.stat()
             except OSError:
@@ -392,28 +382,8 @@ class RotatingCapture:
             )
         self.pruned += deleted
         if deleted:
-            self._prune_models()
+            self.models.prune()
         return deleted
-
-    def _prune_models(self) -> None:
-        """Delete the kept models (``keep_model``) that no capture sidecar left in the directory names (a sidecar
-        names its models by SHA-256: at the start and at each reload)."""
-        directory = self.directory / KEPT_MODELS_DIR
-        if not directory.is_dir():
-            return
-        named = ""
-        for sidecar in self.directory.glob("*.yaml"):  # (a FIFO or a huge file there: never waited on, never read)
-            with contextlib.suppress(FogDriverError, UnicodeDecodeError):
-                named += (read_regular(sidecar, "sidecar", MAX_YAML_BYTES) or b"").decode("utf-8")
-        for path in directory.glob("*.yaml"):
-            if path.stem in named:
-                continue
-            try:
-                path.unlink()
-            except OSError as exc:
-                log.error("model_copy_prune_failed", model=str(path), reason=exc.strerror or str(exc))
-                continue
-            log.info("model_copy_pruned", model=str(path))
 
     def _fail(self, exc: OutputFileError) -> None:
         """A write or fsync failed: close what can be closed and describe the file as failed."""
@@ -744,13 +714,6 @@ def _alive(pid: Any) -> bool:
     return True
 
 
-def _numbered_captures(directory: Path, prefix: str) -> list[Path]:
-    """The ``<prefix>-<nnnnnn>-<UTC>.bin`` captures in ``directory``, in number order (oldest first)."""
-    pattern = re.compile(rf"^{re.escape(prefix)}-(\d{{{_INDEX_DIGITS},}})-[0-9TZ]+\.bin$")
-    found = [(int(m.group(1)), p) for p in directory.iterdir() if (m := pattern.match(p.name)) and p.is_file()]
-    return [p for _, p in sorted(found)]
-
-
 def _recording_elsewhere(capture: Path) -> bool:
     """Whether ``capture``'s sidecar says another live process is still writing it."""
     try:
@@ -762,7 +725,7 @@ def _recording_elsewhere(capture: Path) -> bool:
 
 def _next_index(directory: Path, prefix: str) -> int:
     """One more than the highest ``<prefix>-<nnnnnn>-`` number in ``directory`` (0 when there is none)."""
-    pattern = re.compile(rf"^{re.escape(prefix)}-(\d{{{_INDEX_DIGITS},}})-")
+    pattern = re.compile(rf"^{re.escape(prefix)}-(\d{{{CAPTURE_NUMBER_DIGITS},}})-")
     numbers = [int(m.group(1)) for p in directory.iterdir() if (m := pattern.match(p.name))]
     return max(numbers, default=-1) + 1
 
