@@ -225,8 +225,8 @@ def _listener_fields(service: Any) -> dict[str, Any]:
         obj["clients"] = service.hub.clients
         obj["dropped_clients"] = service.hub.dropped_clients
     if service.web is not None:
-        obj["web_clients"] = len(service.web.browsers)
-        obj["web_dropped_clients"] = service.web.dropped_browsers
+        obj["web_clients"] = len(service.web.fanout.browsers)
+        obj["web_dropped_clients"] = service.web.fanout.dropped_browsers
     if service.capture is not None:
         capture = service.capture.status_fields()
         obj["capture_state"] = capture["status"]
