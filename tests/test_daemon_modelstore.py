@@ -160,6 +160,7 @@ def test_a_copy_the_index_does_not_list_is_indexed_from_the_sidecars(tmp_path):
         cap.write(b"x" * 10)
     (tmp_path / "models").mkdir()
     (tmp_path / "models" / f"{SHAS[3]}.yaml").write_bytes(MODELS[3])
+    (tmp_path / "models" / "notes.yaml").write_text("not a kept model: no SHA-256 names it\n")
     (tmp_path / "models" / INDEX_NAME).write_text(
         json.dumps({"format": "fog-driver-kept-models", "version": 1, "models": {}})
     )
@@ -167,4 +168,6 @@ def test_a_copy_the_index_does_not_list_is_indexed_from_the_sidecars(tmp_path):
     with capture_logs() as logs:
         assert store.prune() == []
     assert [entry["event"] for entry in logs] == ["kept_models_index_rebuilt"]
-    assert kept(tmp_path) == {SHAS[3]}
+    with capture_logs() as logs:
+        assert store.prune() == []  # indexed now: no second rebuild
+    assert logs == [] and kept(tmp_path) == {SHAS[3], "notes"}

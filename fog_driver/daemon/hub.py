@@ -338,8 +338,6 @@ class Hub(Listener):
     def stop(self, timeout: float = HUB_STOP_TIMEOUT_S) -> None:
         """Close every client and the server, join the loop thread, and shut the control workers down
         without waiting for a command still running there (idempotent)."""
-        if self._thread is None:
-            return
         self._stop_thread(timeout)
         self._shut_down_control_pool()
 

@@ -133,7 +133,11 @@ class KeptModels:
         if not self.models_dir.is_dir():
             return []
         index = self._load()
-        captures = numbered_captures(self.directory)
+        try:
+            captures = numbered_captures(self.directory)
+        except OSError as exc:  # what the captures name is not known: nothing goes
+            log.error("model_copy_prune_failed", model=str(self.models_dir), reason=exc.strerror or str(exc))
+            return []
         deleted = []
         for sha256 in sorted(index):
             if sha256 == self.in_use or _named(index[sha256]["captures"], captures):
@@ -154,10 +158,10 @@ class KeptModels:
     # -- the index -------------------------------------------------------------------------------
 
     def _copies(self) -> set[str]:
-        """The SHA-256 of every copy in ``models/``."""
+        """The SHA-256 of every copy in ``models/`` (a file not named by a SHA-256 is none: it is left alone)."""
         if not self.models_dir.is_dir():
             return set()
-        return {path.stem for path in self.models_dir.glob("*.yaml")}
+        return {path.stem for path in self.models_dir.glob("*.yaml") if _SHA256.match(path.stem)}
 
     def _load(self) -> dict[str, dict[str, Any]]:
         """The index (sha256 -> entry) of the copies in ``models/``: read, or rebuilt when it cannot serve."""
@@ -191,7 +195,11 @@ class KeptModels:
             with contextlib.suppress(OSError):
                 st = path.stat()
                 index[sha256] = {"bytes": st.st_size, "kept_utc": _utc(st.st_mtime), "captures": {}}
-        for prefix, numbered in numbered_captures(self.directory).items():
+        try:
+            captures = numbered_captures(self.directory)
+        except OSError:  # none to read: a prune cannot list them either, so it deletes nothing
+            captures = {}
+        for prefix, numbered in captures.items():
             for number in sorted(numbered):
                 text = ""
                 with contextlib.suppress(FogDriverError, UnicodeDecodeError):
