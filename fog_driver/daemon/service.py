@@ -2,8 +2,9 @@
 
 The rooms: ``acquisition.py`` (the hot loop: port -> decoder -> compensator -> publish, and the pipeline state),
 ``commands.py`` (the control commands, a table), ``status.py`` (VERSION, DEVICE, STATUS and the numbers
-``/metrics`` reads), ``hub.py`` with ``connection.py`` (the NDJSON clients), ``rawlog.py`` (the raw capture),
-``web/`` (the web view and metrics), ``udp.py``, ``sdnotify.py``; ``limits.py`` holds their limits.  This
+``/metrics`` reads), ``hub.py`` with ``connection.py`` (the NDJSON clients), ``rawlog.py`` (the raw capture)
+with ``modelstore.py`` (the models kept beside it), ``web/`` (the web view and metrics; both listeners stand on
+``listener.py``), ``udp.py``, ``sdnotify.py``; ``limits.py`` holds their limits.  This
 module builds them, starts and stops them, and applies reloads (the model file, SIGHUP's config).
 
 Threads and who owns what:
