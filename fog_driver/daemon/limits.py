@@ -3,7 +3,7 @@
 A misbehaving client (NDJSON or web) costs the daemon a bounded amount and never delays anybody else; a slow
 disk or a silent port costs the acquisition nothing.  The numbers that bound each of those live here; the
 modules that enforce them (``connection.py``, ``hub.py``, ``service.py``, ``acquisition.py``, ``commands.py``,
-``web/server.py``) import them.
+``web/``) import them.
 
 The NDJSON hub's limits, as clients meet them.  Each is a constant here or a ``hub.Hub`` argument
 (named here, with its default):
