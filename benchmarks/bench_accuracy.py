@@ -45,12 +45,12 @@ sys.path.insert(0, str(ROOT))
 from fog_driver.compensation.adapt import AdaptConfig  # noqa: E402
 from fog_driver.compensation.aflp import AflpFilter, AflpParams  # noqa: E402
 from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
+from fog_driver.lab.profiles import load_profile  # noqa: E402
 from fog_driver.modelfiles import load_model, save_model  # noqa: E402
 from fog_driver.offline.fit import fit_model_file, load_capture  # noqa: E402
 from fog_driver.report.evaluate import per_second  # noqa: E402
 from fog_driver.sim.capture import read_truth, simulate_to_file, truth_noise_dph  # noqa: E402
 from fog_driver.sim.instrument import Simulator  # noqa: E402
-from fog_driver.sim.profiles import load_profile  # noqa: E402
 
 KINDS = ("polynomial", "wesn", "paper", "pso-svr")  # pso-svr: the paper's comparator (the svr extra)
 TESTS = (("fast-ramps", 2, "development"), ("soak-cycle", 3, "held out"))

@@ -45,12 +45,12 @@ from bench_population import FIT_PROFILE, SEED_SETS, SKIP_MINUTES, capture  # no
 from fog_driver.compensation.adapt import AdaptConfig  # noqa: E402
 from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
 from fog_driver.flags import FLAG_GUARD  # noqa: E402
+from fog_driver.lab.profiles import ConstantRate, MotionPlan, load_profile  # noqa: E402
 from fog_driver.offline.compensate import compensate_capture  # noqa: E402
 from fog_driver.offline.fit import fit_model_file  # noqa: E402
 from fog_driver.sim.capture import read_truth, simulate_to_file  # noqa: E402
 from fog_driver.sim.instrument import Simulator  # noqa: E402
 from fog_driver.sim.population import draw_instrument  # noqa: E402
-from fog_driver.sim.profiles import ConstantRate, MotionPlan, load_profile  # noqa: E402
 
 SCORE_PROFILE = "soak-cycle"
 CREEP_START_S = 3600.0

@@ -93,9 +93,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from fog_driver.lab.profiles import load_profile  # noqa: E402
 from fog_driver.protocol import SAMPLE_FRAME_LEN, decode_bytes  # noqa: E402
 from fog_driver.sim.instrument import Simulator  # noqa: E402
-from fog_driver.sim.profiles import load_profile  # noqa: E402
 from fog_driver.transport import PtyPair  # noqa: E402
 
 LIVE_PROFILE = ROOT / "configs" / "profiles" / "short-test.yaml"

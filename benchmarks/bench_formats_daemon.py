@@ -54,12 +54,12 @@ from bench_daemon import LIVE_PROFILE, LiveResult, add_pacing_options, live_run 
 
 from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
 from fog_driver.daemon.config import DEFAULT_MODEL  # noqa: E402
+from fog_driver.lab.profiles import load_profile  # noqa: E402
 from fog_driver.modelfiles import load_model, save_model  # noqa: E402
 from fog_driver.offline.fit import fit_model_file  # noqa: E402
 from fog_driver.samples.sources import wire_settings_for  # noqa: E402
 from fog_driver.sim.capture import simulate_to_file  # noqa: E402
 from fog_driver.sim.instrument import Simulator  # noqa: E402
-from fog_driver.sim.profiles import load_profile  # noqa: E402
 
 FIT_RATE_HZ = 10
 FIT_SECONDS = 900

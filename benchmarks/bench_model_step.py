@@ -33,10 +33,10 @@ sys.path.insert(0, str(ROOT))
 from fog_driver.compensation.adapt import AdaptConfig  # noqa: E402
 from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
 from fog_driver.compensation.pipeline import Compensator  # noqa: E402
+from fog_driver.lab.profiles import load_profile  # noqa: E402
 from fog_driver.offline.fit import fit_model_file, load_capture  # noqa: E402
 from fog_driver.sim.capture import simulate_to_file  # noqa: E402
 from fog_driver.sim.instrument import Simulator  # noqa: E402
-from fog_driver.sim.profiles import load_profile  # noqa: E402
 
 KINDS = ("polynomial", "wesn", "paper", "pso-svr")
 PASSES = 5

@@ -60,12 +60,12 @@ from bench_population import SEED_SETS, static_minutes_mask  # noqa: E402
 from bench_population import capture as population_capture  # noqa: E402
 
 from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
+from fog_driver.lab.motion import MotionPlan  # noqa: E402
+from fog_driver.lab.plan import DEFAULT_LIMITS, DESIGN, Design, design_program, identifiability_gaps  # noqa: E402
+from fog_driver.lab.profiles import SimProfile, dump_profile, load_profile  # noqa: E402
 from fog_driver.offline.fit import fit_model_file  # noqa: E402
 from fog_driver.report.evaluate import minute_rms, per_second  # noqa: E402
 from fog_driver.sim.capture import read_truth, truth_noise_dph  # noqa: E402
-from fog_driver.sim.motion import MotionPlan  # noqa: E402
-from fog_driver.sim.plan import DEFAULT_LIMITS, DESIGN, Design, design_program, identifiability_gaps  # noqa: E402
-from fog_driver.sim.profiles import SimProfile, dump_profile, load_profile  # noqa: E402
 
 #: name -> the design (None: the paper's program, the built-in profile ``paper``)
 CANDIDATES: dict[str, Design | None] = {

@@ -209,16 +209,16 @@ from fog_driver.cli.calibration import DEFAULT_FIT_KIND  # noqa: E402
 from fog_driver.compensation.adapt import AdaptConfig  # noqa: E402
 from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
 from fog_driver.errors import FogDriverError  # noqa: E402
+from fog_driver.lab.motion import MotionPlan  # noqa: E402
+from fog_driver.lab.profiles import BUILTIN_PROFILES, SimProfile, load_profile  # noqa: E402
+from fog_driver.lab.program import ChamberProfile, Hold, Ramp  # noqa: E402
 from fog_driver.offline.fit import fit_model_file  # noqa: E402
 from fog_driver.report.coverage import SIGMA_PER_MINUTE, MinuteErrors, coverage_figures, minute_errors  # noqa: E402
 from fog_driver.report.evaluate import minute_rms, per_second  # noqa: E402
 from fog_driver.samples.captures import read_provenance  # noqa: E402
 from fog_driver.sim.capture import read_truth, simulate_to_file, truth_noise_dph  # noqa: E402
-from fog_driver.sim.chamber import ChamberProfile, Hold, Ramp  # noqa: E402
 from fog_driver.sim.instrument import Simulator  # noqa: E402
-from fog_driver.sim.motion import MotionPlan  # noqa: E402
 from fog_driver.sim.population import draw_instrument  # noqa: E402
-from fog_driver.sim.profiles import BUILTIN_PROFILES, SimProfile, load_profile  # noqa: E402
 
 SEED_SETS = {
     "dev": 0,

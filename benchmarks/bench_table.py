@@ -60,14 +60,14 @@ from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
 from fog_driver.compensation.pipeline import Compensator  # noqa: E402
 from fog_driver.compensation.table import SF_REF_C  # noqa: E402
 from fog_driver.flags import FLAG_GUARD  # noqa: E402
+from fog_driver.lab.motion import Creep, MotionPlan  # noqa: E402
+from fog_driver.lab.profiles import SimProfile, load_profile  # noqa: E402
 from fog_driver.offline.compensate import compensate_capture  # noqa: E402
 from fog_driver.offline.fit import fit_model_file  # noqa: E402
 from fog_driver.report.evaluate import minute_rms  # noqa: E402
 from fog_driver.report.positioning import improvement, positioning_table, read_reference_csv  # noqa: E402
 from fog_driver.sim.capture import read_truth, truth_noise_dph  # noqa: E402
-from fog_driver.sim.motion import Creep, MotionPlan  # noqa: E402
 from fog_driver.sim.population import draw_instrument  # noqa: E402
-from fog_driver.sim.profiles import SimProfile, load_profile  # noqa: E402
 from fog_driver.sim.tablelog import late, lie  # noqa: E402
 
 SCORE_PROFILE = "table-run"

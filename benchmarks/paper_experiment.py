@@ -48,6 +48,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
+from fog_driver.lab.profiles import PAPER_VALIDATION_TEMPS_C, load_profile  # noqa: E402
 from fog_driver.modelfiles import save_model  # noqa: E402
 from fog_driver.offline.fit import fit_model_file  # noqa: E402
 from fog_driver.report.positioning import (  # noqa: E402
@@ -59,7 +60,6 @@ from fog_driver.report.positioning import (  # noqa: E402
 )
 from fog_driver.sim.capture import simulate_to_file  # noqa: E402
 from fog_driver.sim.instrument import Simulator  # noqa: E402
-from fog_driver.sim.profiles import PAPER_VALIDATION_TEMPS_C, load_profile  # noqa: E402
 
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from bench_population import SEED_SETS, capture  # noqa: E402

@@ -14,8 +14,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import bench_population as bench  # noqa: E402
 
+from fog_driver.lab.profiles import load_profile  # noqa: E402
 from fog_driver.report.coverage import MinuteErrors  # noqa: E402
-from fog_driver.sim.profiles import load_profile  # noqa: E402
 
 
 def test_the_run_beyond_the_fit_range_soaks_10_degc_above_the_programs_hottest():

@@ -13,10 +13,10 @@ import yaml
 from fog_driver.cli import main
 from fog_driver.compensation.fitting.wesn import LAG_INTERVAL_WARN
 from fog_driver.compensation.models.wesn import COIL_LAG_GRID_S
+from fog_driver.lab.plan import ChamberLimits, design_program, identifiability_gaps
+from fog_driver.lab.profiles import load_profile, parse_profile
 from fog_driver.modelfiles import load_model
 from fog_driver.samples.captures import read_provenance
-from fog_driver.sim.plan import ChamberLimits, design_program, identifiability_gaps
-from fog_driver.sim.profiles import load_profile, parse_profile
 
 DATA = Path(__file__).parent / "data"
 

@@ -18,8 +18,9 @@ from fog_driver.client import session, wire
 from fog_driver.compensation import dwell, model, model_checks, reservoir, uncertainty
 from fog_driver.daemon import config, limits
 from fog_driver.files import yamlio
+from fog_driver.lab import motion, plan, profiles
 from fog_driver.report import positioning
-from fog_driver.sim import motion, plan, profiles, serve
+from fog_driver.sim import serve
 
 PAGE = Path(__file__).resolve().parents[1] / "docs" / "reference" / "limits.md"
 

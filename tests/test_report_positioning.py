@@ -281,9 +281,9 @@ def test_format_table():
 
 @pytest.fixture(scope="module")
 def positioning_capture(tmp_path_factory):
+    from fog_driver.lab.profiles import load_profile
     from fog_driver.sim.capture import simulate_to_file
     from fog_driver.sim.instrument import Simulator
-    from fog_driver.sim.profiles import load_profile
 
     out = tmp_path_factory.mktemp("pos") / "positioning.bin"
     sim = Simulator(load_profile(ROOT / "configs" / "profiles" / "positioning.yaml"), rate_hz=RATE_HZ, seed=1)
@@ -337,9 +337,9 @@ def test_end_to_end_with_a_station_csv(positioning_capture, default_model, tmp_p
 
 
 def test_capture_without_stops_skips_the_table(tmp_path, default_model):
+    from fog_driver.lab.profiles import load_profile
     from fog_driver.sim.capture import simulate_to_file
     from fog_driver.sim.instrument import Simulator
-    from fog_driver.sim.profiles import load_profile
 
     out = tmp_path / "static.bin"
     simulate_to_file(

@@ -12,9 +12,9 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from fog_driver.errors import InputFileError
-from fog_driver.sim.chamber import ChamberProfile, Hold, Plateau, Ramp, Sinusoid, Step
-from fog_driver.sim.motion import ConstantRate, Creep, MotionPlan, Positioning, Stop, positioning_at_plateau
-from fog_driver.sim.profiles import MAX_SEGMENTS, SimProfile, dump_profile, load_profile, parse_profile
+from fog_driver.lab.motion import ConstantRate, Creep, MotionPlan, Positioning, Stop, positioning_at_plateau
+from fog_driver.lab.profiles import MAX_SEGMENTS, SimProfile, dump_profile, load_profile, parse_profile
+from fog_driver.lab.program import ChamberProfile, Hold, Plateau, Ramp, Sinusoid, Step
 
 PROFILES = Path(__file__).resolve().parents[1] / "configs" / "profiles"
 SHIPPED = tuple(sorted(path.stem for path in PROFILES.glob("*.yaml")))  #: every profile the project ships
@@ -589,7 +589,7 @@ def test_profile_names_resolve_from_configs_profiles(tmp_path, monkeypatch):
     """``--profile fast-ramps`` failed ("built-in profiles: paper, paper-validation"); a name now also
     means ``configs/profiles/<name>.yaml``, from the current directory or the source tree."""
     from fog_driver.errors import InputFileError
-    from fog_driver.sim.profiles import load_profile, profile_names
+    from fog_driver.lab.profiles import load_profile, profile_names
 
     repo = Path(__file__).resolve().parents[1]
     by_path = load_profile(str(repo / "configs" / "profiles" / "fast-ramps.yaml"))

@@ -16,13 +16,13 @@ from fog_driver.compensation.pipeline import Compensator
 from fog_driver.compensation.table import SF_REF_C, TableLaw, TableOutcome
 from fog_driver.daemon.config import DEFAULT_MODEL
 from fog_driver.flags import FLAG_ADAPTING, FLAG_GUARD, FLAG_SCALE_FACTOR
+from fog_driver.lab.profiles import parse_profile
 from fog_driver.modelfiles import load_model
 from fog_driver.protocol import decode_file
 from fog_driver.report.positioning import read_reference_csv
 from fog_driver.samples.stream import SampleBlock, SampleStream
 from fog_driver.sim.capture import read_truth, simulate_to_file, truth_noise_dph
 from fog_driver.sim.instrument import InstrumentConfig, Simulator
-from fog_driver.sim.profiles import parse_profile
 from fog_driver.sim.tablelog import late, lie
 
 S0_PPM, S1_PPM_PER_C = 40.0, 0.5
@@ -104,7 +104,7 @@ def without_candidates():
 def test_the_lying_and_late_logs_against_the_simulators_truth(run):
     """``sim.tablelog``: one dwell off the simulator's true angle by exactly the lie (start and end angles under a
     creep alike), one ending late; the rest of the log the truth, untouched."""
-    from fog_driver.sim.motion import Stop
+    from fog_driver.lab.motion import Stop
 
     *_, out = run
     truth = read_reference_csv(out.with_suffix(".table.csv"))

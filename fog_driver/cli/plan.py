@@ -10,10 +10,10 @@ from pathlib import Path
 from ..errors import UsageError
 from ..files.outputs import check_outputs
 from ..files.yamlio import write_yaml
-from ..sim.chamber import Ramp
-from ..sim.motion import MotionPlan
-from ..sim.plan import DEFAULT_LIMITS, DESIGN, ChamberLimits, Plan, design_program
-from ..sim.profiles import SimProfile, profile_to_doc
+from ..lab.motion import MotionPlan
+from ..lab.plan import DEFAULT_LIMITS, DESIGN, ChamberLimits, Plan, design_program
+from ..lab.profiles import SimProfile, profile_to_doc
+from ..lab.program import Ramp
 
 #: The options, each a field of ``ChamberLimits``.
 _OPTIONS = {

@@ -24,10 +24,7 @@ from ..compensation.fitting.program import RunProgram
 from ..compensation.fitting.report import FitReport
 from ..compensation.model import ModelFile
 from ..errors import InputFileError, UsageError
-from ..samples.captures import find_sidecar, read_provenance, what_it_is
-from ..samples.sources import CaptureReader, wire_settings_for
-from ..sim.chamber import ChamberProfile, Hold, Ramp, Sinusoid
-from ..sim.plan import (
+from ..lab.plan import (
     DESIGN,
     MIN_FAST_RATE_C_PER_MIN,
     WARMUP_FRACTION,
@@ -36,7 +33,10 @@ from ..sim.plan import (
     design_program,
     identifiability_gaps,
 )
-from ..sim.profiles import load_profile, parse_profile
+from ..lab.profiles import load_profile, parse_profile
+from ..lab.program import ChamberProfile, Hold, Ramp, Sinusoid
+from ..samples.captures import find_sidecar, read_provenance, what_it_is
+from ..samples.sources import CaptureReader, wire_settings_for
 
 __all__ = [
     "FitConfig",

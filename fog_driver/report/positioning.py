@@ -84,11 +84,11 @@ from ..compensation.model import ModelFile
 from ..errors import InputFileError, UsageError
 from ..files.bounded import read_regular
 from ..flags import FLAG_UNCOMPENSATED
+from ..lab.motion import Stop
 from ..modelfiles import load_model
 from ..offline.compensate import compensate_capture
 from ..samples.captures import find_sidecar, read_provenance
 from ..samples.sources import CaptureReader, wire_settings_for
-from ..sim.motion import Stop
 
 __all__ = [
     "BIAS_WINDOW_S",

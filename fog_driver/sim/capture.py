@@ -36,9 +36,9 @@ from ..files.bounded import open_regular
 from ..files.kinds import TRUTH_HEADER
 from ..files.outputs import check_outputs, write_error
 from ..files.stamps import utc_now_iso
+from ..lab.profiles import profile_to_doc
 from ..samples.captures import CaptureWriter, read_provenance, sidecar_path, write_provenance
 from .instrument import COMPONENTS, STDBIN_TEMPERATURE_CHANNELS, STDBIN_VERSION, FrameBlock, Simulator
-from .profiles import profile_to_doc
 
 TRUTH_COLUMNS = (
     "second",

@@ -54,10 +54,10 @@ import yaml
 from ..errors import InputFileError
 from ..files.typed_mapping import unknown_key
 from ..files.yamlio import MAX_YAML_BYTES, read_yaml
-from .chamber import KIND_OF, SEGMENT_KINDS, ChamberProfile, Hold, Ramp, Segment, Sinusoid, Step
 from .checks import check_number
 from .motion import ConstantRate, Creep, MotionItem, MotionPlan, Positioning, positioning_at_plateau
 from .plan import design_program
+from .program import KIND_OF, SEGMENT_KINDS, ChamberProfile, Hold, Ramp, Segment, Sinusoid, Step
 
 __all__ = [
     "BUILTIN_PROFILES",

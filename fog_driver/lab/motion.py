@@ -32,8 +32,8 @@ from typing import Any
 
 import numpy as np
 
-from .chamber import ChamberProfile
 from .checks import check_integer, check_number
+from .program import ChamberProfile
 
 # --- turntable motion --------------------------------------------------------------------------
 

@@ -1,0 +1,1 @@
+"""The lab's side of a calibration: chamber programs, turntable motion plans, the profiles and their YAML, ``plan``."""
