@@ -25,7 +25,7 @@ evaluation range, for the program chosen here): worst e / e_poly <= 1.0, worst r
 1.15. Figures are printed, never asserted.
 
 The candidates (``CANDIDATES``), each adding one element the identifiability argument of
-``fog_driver/sim/plan.py`` asks for, all within the paper's limits (-40..55 degC, 440 min) and a
+``fog_driver/lab/plan.py`` asks for, all within the paper's limits (-40..55 degC, 440 min) and a
 chamber's 3 degC/min: ``paper`` (the paper's program: one rate, one direction per temperature,
 15-minute soaks), ``cycle`` (every temperature crossed both ways, ramps at 3, 1.5 and 0.75 degC/min
 in each direction, 15-degree plateaus), ``cycle+soaks`` (and soaks of a tenth of the run at both

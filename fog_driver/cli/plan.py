@@ -1,4 +1,4 @@
-"""``fog-driver plan``: a calibration program for the user's chamber (``fog_driver.sim.plan``), written as a
+"""``fog-driver plan``: a calibration program for the user's chamber (``fog_driver.lab.plan``), written as a
 profile file that ``simulate --profile`` runs and a chamber is programmed from."""
 
 from __future__ import annotations
