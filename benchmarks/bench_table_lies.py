@@ -31,13 +31,13 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from bench_population import FIT_PROFILE, FIT_RUN, capture, instrument_arguments, over_instruments  # noqa: E402
-from bench_table import TABLE_RUN, per_second, read_table_log, table_profile  # noqa: E402
+from bench_table import TABLE_RUN, per_second, table_profile  # noqa: E402
 
 from fog_driver.cli.calibration import DEFAULT_FIT_KIND  # noqa: E402
 from fog_driver.compensation.adapt import AdaptConfig  # noqa: E402
-from fog_driver.compensation.dwell import Dwell  # noqa: E402
 from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
 from fog_driver.compensation.table import TableLaw, TableOutcome  # noqa: E402
+from fog_driver.dwells import Dwell, read_table_log  # noqa: E402
 from fog_driver.offline.fit import fit_model_file  # noqa: E402
 from fog_driver.sim.capture import read_truth  # noqa: E402
 from fog_driver.sim.tablelog import lie  # noqa: E402

@@ -11,8 +11,9 @@ import yaml
 from hypothesis import given
 from hypothesis import strategies as st
 
+from fog_driver.dwells import Dwell
 from fog_driver.errors import InputFileError
-from fog_driver.lab.motion import ConstantRate, Creep, MotionPlan, Positioning, Stop, positioning_at_plateau
+from fog_driver.lab.motion import ConstantRate, Creep, MotionPlan, Positioning, positioning_at_plateau
 from fog_driver.lab.profiles import MAX_SEGMENTS, SimProfile, dump_profile, load_profile, parse_profile
 from fog_driver.lab.program import ChamberProfile, Hold, Plateau, Ramp, Sinusoid, Step
 
@@ -324,7 +325,7 @@ def test_each_move_turns_exactly_step_deg_and_dwells_are_exact(seq):
     plan = MotionPlan((seq,))
     stops = plan.stops()
     assert len(stops) == seq.moves + 1
-    assert stops[0] == Stop(seq.start_s, seq.move_start_s(0), 0.0)
+    assert stops[0] == Dwell(seq.start_s, seq.move_start_s(0), 0.0)
     assert [s.angle_deg for s in stops] == [k * seq.step_deg for k in range(seq.moves + 1)]
     assert sum(b.angle_deg - a.angle_deg for a, b in zip(stops, stops[1:])) == seq.moves * seq.step_deg
     assert stops[-1].t_end_s == seq.end_s == plan.duration_s

@@ -56,7 +56,7 @@ unit is a count (clients, lines, attempts, samples, batches).
 from __future__ import annotations
 
 from ..client.session import MAX_WATCH_RATE_HZ as MAX_WATCH_RATE_HZ  # ?WATCH's rate_hz: the protocol's one bound
-from ..compensation.dwell import MAX_TABLE_ANGLE_DEG as MAX_TABLE_ANGLE_DEG  # the one bound, with the dwell
+from ..dwells import MAX_TABLE_ANGLE_DEG as MAX_TABLE_ANGLE_DEG  # the one bound, with the dwell
 
 # -- the NDJSON hub: lines ------------------------------------------------------------------------------------
 
@@ -135,7 +135,7 @@ MIN_BIAS_S = 1
 MAX_BIAS_S = 86400
 #: The largest ``?ADAPT`` ``reference_dph`` (deg/h, either sign).
 MAX_ADAPT_REFERENCE_DPH = 1e7
-#: ``?TABLE``: the largest angle (deg, either sign: ``dwell.MAX_TABLE_ANGLE_DEG``, a table log's and a sidecar's
+#: ``?TABLE``: the largest angle (deg, either sign: ``dwells.MAX_TABLE_ANGLE_DEG``, a table log's and a sidecar's
 #: too), the longest dwell (s), and the least time between two from one client (more get ERROR).
 MAX_TABLE_DWELL_S = 86400.0
 TABLE_INTERVAL_S = 2.0
