@@ -63,7 +63,7 @@ def test_simulate_records_the_whole_program_in_the_sidecar(tmp_path):
         profile = load_profile(name)
         assert recorded.name == name and recorded.chamber.start_c == profile.chamber.start_c
         assert recorded.chamber.segments == profile.chamber.segments  # every segment, the whole run
-        assert recorded.motion.stops() == profile.motion.stops()
+        assert recorded.motion.dwells() == profile.motion.dwells()
 
 
 def test_fit_of_a_simulated_run_names_what_its_recorded_program_leaves_unidentified(slow_run, tmp_path, capsys):

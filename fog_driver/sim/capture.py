@@ -86,7 +86,7 @@ def device_stops(sim: Simulator) -> list[dict]:
     ``clock_ppm`` fast), with the table's true angles; ``angle_end_deg`` where a creep turned it."""
     ppm = 1.0 + sim.config.clock_ppm * 1e-6
     out = []
-    for stop in sim.profile.motion.stops():
+    for stop in sim.profile.motion.dwells():
         entry = {
             "t_start_s": round(stop.t_start_s * ppm, 6),
             "t_end_s": round(stop.t_end_s * ppm, 6),
