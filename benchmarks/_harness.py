@@ -58,11 +58,11 @@ from typing import Any
 
 import numpy as np
 
+from fog_driver.lab.profiles import BUILTIN_PROFILES, SimProfile, load_profile
 from fog_driver.samples.captures import read_provenance
 from fog_driver.sim.capture import simulate_to_file
 from fog_driver.sim.instrument import Simulator
 from fog_driver.sim.population import draw_instrument
-from fog_driver.sim.profiles import BUILTIN_PROFILES, SimProfile, load_profile
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"

@@ -42,12 +42,12 @@ from benchmarks._harness import kept_or_temporary
 from fog_driver.compensation.adapt import AdaptConfig
 from fog_driver.compensation.aflp import AflpFilter, AflpParams
 from fog_driver.compensation.fitting.data import FitConfig
+from fog_driver.lab.profiles import load_profile
 from fog_driver.modelfiles import load_model, save_model
 from fog_driver.offline.fit import fit_model_file, load_capture
 from fog_driver.report.evaluate import per_second
 from fog_driver.sim.capture import read_truth, simulate_to_file, truth_noise_dph
 from fog_driver.sim.instrument import Simulator
-from fog_driver.sim.profiles import load_profile
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -45,12 +45,12 @@ from benchmarks._harness import (
 from fog_driver.compensation.adapt import AdaptConfig
 from fog_driver.compensation.fitting.data import FitConfig
 from fog_driver.flags import FLAG_GUARD
+from fog_driver.lab.profiles import ConstantRate, MotionPlan, load_profile
 from fog_driver.offline.compensate import compensate_capture
 from fog_driver.offline.fit import fit_model_file
 from fog_driver.sim.capture import read_truth, simulate_to_file
 from fog_driver.sim.instrument import Simulator
 from fog_driver.sim.population import draw_instrument
-from fog_driver.sim.profiles import ConstantRate, MotionPlan, load_profile
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -30,9 +30,10 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks._harness import FIT_PROFILE, FIT_RUN, capture, instrument_arguments, over_instruments
-from benchmarks.bench_table import TABLE_RUN, per_second, read_table_log, scored_mask, table_profile
+from benchmarks.bench_table import TABLE_RUN, per_second, scored_mask, table_profile
 from fog_driver.cli.calibration import DEFAULT_FIT_KIND
 from fog_driver.compensation.fitting.data import FitConfig
+from fog_driver.dwells import read_table_log
 from fog_driver.offline.fit import fit_model_file
 from fog_driver.report.coverage import whole_minutes
 from fog_driver.sim.capture import read_truth

@@ -49,12 +49,12 @@ import yaml
 from benchmarks.bench_daemon import LIVE_PROFILE, LiveResult, add_pacing_options, live_run
 from fog_driver.compensation.fitting.data import FitConfig
 from fog_driver.daemon.config import DEFAULT_MODEL
+from fog_driver.lab.profiles import load_profile
 from fog_driver.modelfiles import load_model, save_model
 from fog_driver.offline.fit import fit_model_file
 from fog_driver.samples.sources import wire_settings_for
 from fog_driver.sim.capture import simulate_to_file
 from fog_driver.sim.instrument import Simulator
-from fog_driver.sim.profiles import load_profile
 
 FIT_RATE_HZ = 10
 FIT_SECONDS = 900

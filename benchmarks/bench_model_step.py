@@ -29,10 +29,10 @@ from benchmarks._harness import kept_or_temporary
 from fog_driver.compensation.adapt import AdaptConfig
 from fog_driver.compensation.fitting.data import FitConfig
 from fog_driver.compensation.pipeline import Compensator
+from fog_driver.lab.profiles import load_profile
 from fog_driver.offline.fit import fit_model_file, load_capture
 from fog_driver.sim.capture import simulate_to_file
 from fog_driver.sim.instrument import Simulator
-from fog_driver.sim.profiles import load_profile
 
 KINDS = ("polynomial", "wesn", "paper", "pso-svr")
 PASSES = 5

@@ -25,7 +25,7 @@ evaluation range, for the program chosen here): worst e / e_poly <= 1.0, worst r
 1.15. Figures are printed, never asserted.
 
 The candidates (``CANDIDATES``), each adding one element the identifiability argument of
-``fog_driver/sim/plan.py`` asks for, all within the paper's limits (-40..55 degC, 440 min) and a
+``fog_driver/lab/plan.py`` asks for, all within the paper's limits (-40..55 degC, 440 min) and a
 chamber's 3 degC/min: ``paper`` (the paper's program: one rate, one direction per temperature,
 15-minute soaks), ``cycle`` (every temperature crossed both ways, ramps at 3, 1.5 and 0.75 degC/min
 in each direction, 15-degree plateaus), ``cycle+soaks`` (and soaks of a tenth of the run at both
@@ -52,12 +52,12 @@ import numpy as np
 from benchmarks._harness import capture as population_capture
 from benchmarks._harness import in_pool, instrument_seeds, kept_or_temporary, static_minutes_mask
 from fog_driver.compensation.fitting.data import FitConfig
+from fog_driver.lab.motion import MotionPlan
+from fog_driver.lab.plan import DEFAULT_LIMITS, DESIGN, Design, design_program, identifiability_gaps
+from fog_driver.lab.profiles import SimProfile, dump_profile, load_profile
 from fog_driver.offline.fit import fit_model_file
 from fog_driver.report.evaluate import minute_rms, per_second
 from fog_driver.sim.capture import read_truth, truth_noise_dph
-from fog_driver.sim.motion import MotionPlan
-from fog_driver.sim.plan import DEFAULT_LIMITS, DESIGN, Design, design_program, identifiability_gaps
-from fog_driver.sim.profiles import SimProfile, dump_profile, load_profile
 
 #: name -> the design (None: the paper's program, the built-in profile ``paper``)
 CANDIDATES: dict[str, Design | None] = {

@@ -89,13 +89,13 @@ from fog_driver.cli.calibration import DEFAULT_FIT_KIND
 from fog_driver.compensation.adapt import AdaptConfig
 from fog_driver.compensation.fitting.data import FitConfig
 from fog_driver.errors import FogDriverError
+from fog_driver.lab.motion import MotionPlan
+from fog_driver.lab.profiles import SimProfile
+from fog_driver.lab.program import ChamberProfile, Hold, Ramp
 from fog_driver.offline.fit import fit_model_file
 from fog_driver.report.coverage import SIGMA_PER_MINUTE, MinuteErrors, coverage_figures, minute_errors
 from fog_driver.report.evaluate import minute_rms, per_second
 from fog_driver.sim.capture import read_truth, truth_noise_dph
-from fog_driver.sim.chamber import ChamberProfile, Hold, Ramp
-from fog_driver.sim.motion import MotionPlan
-from fog_driver.sim.profiles import SimProfile
 
 #: Model kinds; "auto" is what ``fog-driver fit`` fits without --kind (the default's choice between the wesn
 #: and the polynomial).

@@ -27,11 +27,11 @@ import time
 from pathlib import Path
 
 from fog_driver.console import configure_logging
+from fog_driver.lab.profiles import load_profile
 from fog_driver.protocol import SAMPLE_FRAME_LEN, decode_bytes
 from fog_driver.sim.capture import simulate_to_file
 from fog_driver.sim.faults import FaultSpec
 from fog_driver.sim.instrument import Simulator
-from fog_driver.sim.profiles import load_profile
 from fog_driver.sim.serve import PtyServer, ServeStats, serve_pty
 
 # The reader: opens the pty (through the link) raw, says "ready", reads until the pty is unplugged.

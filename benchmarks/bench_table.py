@@ -49,19 +49,19 @@ import numpy as np
 from benchmarks._harness import FIT_PROFILE, FIT_RUN, capture, instrument_arguments, over_instruments
 from fog_driver.cli.calibration import DEFAULT_FIT_KIND
 from fog_driver.compensation.adapt import AdaptConfig
-from fog_driver.compensation.dwell import Dwell
 from fog_driver.compensation.fitting.data import FitConfig
 from fog_driver.compensation.pipeline import Compensator
 from fog_driver.compensation.table import SF_REF_C
+from fog_driver.dwells import Dwell, read_table_log
 from fog_driver.flags import FLAG_GUARD
+from fog_driver.lab.motion import Creep, MotionPlan
+from fog_driver.lab.profiles import SimProfile, load_profile
 from fog_driver.offline.compensate import compensate_capture
 from fog_driver.offline.fit import fit_model_file
 from fog_driver.report.evaluate import minute_rms
-from fog_driver.report.positioning import improvement, positioning_table, read_reference_csv
+from fog_driver.report.positioning import improvement, positioning_table
 from fog_driver.sim.capture import read_truth, truth_noise_dph
-from fog_driver.sim.motion import Creep, MotionPlan
 from fog_driver.sim.population import draw_instrument
-from fog_driver.sim.profiles import SimProfile, load_profile
 from fog_driver.sim.tablelog import late, lie
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -97,12 +97,6 @@ def table_profile(creep_dph: float = 0.0) -> SimProfile:
     return dataclasses.replace(
         base, name=f"{base.name}-creep{creep_dph:g}", motion=MotionPlan((*base.motion.items, creep))
     )
-
-
-def read_table_log(path: Path) -> list[Dwell]:
-    from fog_driver.report.positioning import read_reference_csv
-
-    return [Dwell(s.t_start_s, s.t_end_s, s.angle_deg, s.angle_end_deg) for s in read_reference_csv(path)]
 
 
 def per_second(path: Path, model_file, n: int, **kwargs) -> tuple[np.ndarray, np.ndarray, Compensator | None]:
@@ -179,7 +173,7 @@ def score_instrument(seed: int, creeps: tuple[float, ...], rate_hz: int, days: i
     holds = [(p.t_start_s + 300.0, p.t_end_s) for p in table_profile().chamber.plateaus()]
     stops = [
         s
-        for s in read_reference_csv(path.with_suffix(".table.csv"))
+        for s in read_table_log(path.with_suffix(".table.csv"))
         if any(a <= s.t_start_s and s.t_end_s <= b for a, b in holds)
     ]
     rows = positioning_table(

@@ -29,9 +29,9 @@ from benchmarks._harness import FIT_PROFILE, FIT_RUN, capture, instrument_argume
 from benchmarks.bench_table import TABLE_RUN, per_second, read_table_log, table_profile
 from fog_driver.cli.calibration import DEFAULT_FIT_KIND
 from fog_driver.compensation.adapt import AdaptConfig
-from fog_driver.compensation.dwell import Dwell
 from fog_driver.compensation.fitting.data import FitConfig
 from fog_driver.compensation.table import TableLaw, TableOutcome
+from fog_driver.dwells import Dwell
 from fog_driver.offline.fit import fit_model_file
 from fog_driver.sim.capture import read_truth
 from fog_driver.sim.tablelog import lie

@@ -43,6 +43,7 @@ import numpy as np
 
 from benchmarks._harness import SEED_SETS, capture, in_pool, instrument_seeds, kept_or_temporary
 from fog_driver.compensation.fitting.data import FitConfig
+from fog_driver.lab.profiles import PAPER_VALIDATION_TEMPS_C, load_profile
 from fog_driver.modelfiles import save_model
 from fog_driver.offline.fit import fit_model_file
 from fog_driver.report.positioning import (
@@ -54,7 +55,6 @@ from fog_driver.report.positioning import (
 )
 from fog_driver.sim.capture import simulate_to_file
 from fog_driver.sim.instrument import Simulator
-from fog_driver.sim.profiles import PAPER_VALIDATION_TEMPS_C, load_profile
 
 #: The paper's Table 1 (arcsec): temperature -> (raw mean, raw std, PSO-SVM mean, std, proposed mean, std).
 PAPER_TABLE_1 = {

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from benchmarks import bench_population as bench
+from fog_driver.lab.profiles import load_profile
 from fog_driver.report.coverage import MinuteErrors
-from fog_driver.sim.profiles import load_profile
 
 
 def test_the_run_beyond_the_fit_range_soaks_10_degc_above_the_programs_hottest():

@@ -296,9 +296,9 @@ def test_compensate_refuses_another_instruments_model_unless_forced(model_path, 
 
 
 def test_motion_is_detected_and_excluded(tmp_path):
+    from fog_driver.lab.profiles import load_profile
     from fog_driver.sim.capture import simulate_to_file
     from fog_driver.sim.instrument import Simulator
-    from fog_driver.sim.profiles import load_profile
 
     out = tmp_path / "pos.bin"
     simulate_to_file(
@@ -500,9 +500,9 @@ def test_fit_config_rates_must_agree(tmp_path):
 @pytest.fixture(scope="module")
 def ramp_samples(tmp_path_factory) -> SampleBlock:
     """The first 75 minutes of fast-ramps at 2 Hz: a 20-minute hold, then 2 degC/min down."""
+    from fog_driver.lab.profiles import load_profile
     from fog_driver.sim.capture import simulate_to_file
     from fog_driver.sim.instrument import Simulator
-    from fog_driver.sim.profiles import load_profile
 
     out = tmp_path_factory.mktemp("gap") / "ramp.bin"
     profile = load_profile(ROOT / "configs" / "profiles" / "fast-ramps.yaml")

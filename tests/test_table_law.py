@@ -11,18 +11,18 @@ import numpy as np
 import pytest
 
 from fog_driver.cli.app import main
-from fog_driver.compensation.dwell import Dwell, angle_at_deg, blocks_within, reference_deg, trimmed_window
+from fog_driver.compensation.dwell import angle_at_deg, blocks_within, reference_deg, trimmed_window
 from fog_driver.compensation.pipeline import Compensator
 from fog_driver.compensation.table import SF_REF_C, TableLaw, TableOutcome
 from fog_driver.daemon.config import DEFAULT_MODEL
+from fog_driver.dwells import Dwell, read_table_log
 from fog_driver.flags import FLAG_ADAPTING, FLAG_GUARD, FLAG_SCALE_FACTOR
+from fog_driver.lab.profiles import parse_profile
 from fog_driver.modelfiles import load_model
 from fog_driver.protocol import decode_file
-from fog_driver.report.positioning import read_reference_csv
 from fog_driver.samples.stream import SampleBlock, SampleStream
 from fog_driver.sim.capture import read_truth, simulate_to_file, truth_noise_dph
 from fog_driver.sim.instrument import InstrumentConfig, Simulator
-from fog_driver.sim.profiles import parse_profile
 from fog_driver.sim.tablelog import late, lie
 
 S0_PPM, S1_PPM_PER_C = 40.0, 0.5
@@ -65,8 +65,7 @@ def simulate_run(config: InstrumentConfig, seed: int, out: Path) -> tuple[Sample
     """``PROFILE`` simulated for ``config`` into ``out``: its samples, table log (as dwells) and truth."""
     simulate_to_file(Simulator(parse_profile(PROFILE), config, rate_hz=RATE_HZ, seed=seed), out)
     samples = SampleStream().run(decode_file(out))
-    stops = read_reference_csv(out.with_suffix(".table.csv"))
-    dwells = [Dwell(s.t_start_s, s.t_end_s, s.angle_deg, s.angle_end_deg) for s in stops]
+    dwells = read_table_log(out.with_suffix(".table.csv"))
     return samples, dwells, read_truth(out.with_suffix(".truth.csv"))
 
 
@@ -104,16 +103,14 @@ def without_candidates():
 def test_the_lying_and_late_logs_against_the_simulators_truth(run):
     """``sim.tablelog``: one dwell off the simulator's true angle by exactly the lie (start and end angles under a
     creep alike), one ending late; the rest of the log the truth, untouched."""
-    from fog_driver.sim.motion import Stop
-
     *_, out = run
-    truth = read_reference_csv(out.with_suffix(".table.csv"))
+    truth = read_table_log(out.with_suffix(".table.csv"))
     lied = lie(truth, 7, 0.01)
     assert [d.angle_deg - t.angle_deg for d, t in zip(lied, truth)] == [0.0] * 7 + [
         lied[7].angle_deg - truth[7].angle_deg
     ] + [0.0] * (len(truth) - 8)
     assert lied[7].angle_deg - truth[7].angle_deg == pytest.approx(0.01, abs=1e-12)
-    crept = lie([Stop(0.0, 60.0, 36.0, 36.001)], 0, -0.5)[0]
+    crept = lie([Dwell(0.0, 60.0, 36.0, 36.001)], 0, -0.5)[0]
     assert (crept.angle_deg, crept.angle_end_deg) == (35.5, pytest.approx(35.501))
     delayed = late(truth, 3, 2.0)
     assert delayed[3].t_end_s == truth[3].t_end_s + 2.0 and delayed[3].angle_deg == truth[3].angle_deg
@@ -432,10 +429,7 @@ def creeping_run(out: Path, rate_dph: float, start_s: float, seed: int) -> tuple
     creep = {"kind": "creep", "rate_dph": rate_dph, "start_s": start_s, "stop_s": end_s}
     profile = {**PROFILE, "motion": [PROFILE["motion"], creep]}
     simulate_to_file(Simulator(parse_profile(profile), InstrumentConfig(), rate_hz=RATE_HZ, seed=seed), out)
-    stops = read_reference_csv(out.with_suffix(".table.csv"))
-    return SampleStream().run(decode_file(out)), [
-        Dwell(s.t_start_s, s.t_end_s, s.angle_deg, s.angle_end_deg) for s in stops
-    ]
+    return SampleStream().run(decode_file(out)), read_table_log(out.with_suffix(".table.csv"))
 
 
 def claimed_creep(dwells: list[Dwell], deg: float, every: int = 1, from_k: int = 0) -> list[Dwell]:
@@ -988,7 +982,7 @@ def test_a_sidecar_event_that_cannot_be_replayed_is_a_one_line_error(tmp_path, c
 @pytest.mark.parametrize("angle", [math.nan, math.inf, 1e308, True])
 def test_compensate_of_a_capture_whose_sidecar_table_event_has_a_nan_angle_is_a_one_line_error(tmp_path, capsys, angle):
     """A hand-edited sidecar whose ``?TABLE`` event says ``angle_deg: .nan`` (or infinite, 1e308, true): the
-    replay checks it as ``?TABLE`` did (``dwell.table_angle_deg``), one line naming the capture's event,
+    replay checks it as ``?TABLE`` did (``dwells.table_angle_deg``), one line naming the capture's event,
     exit 65, nothing written (a NaN ended in exit 70, or was taken as a dwell)."""
     code, err, recorded, out = compensate_edited_sidecar(tmp_path, capsys, angle_deg=angle)
     assert code == 65 and len(err) == 1 and "internal error" not in err[0], err

@@ -26,6 +26,7 @@ from typing import Any, NamedTuple, cast
 
 import numpy as np
 
+from ..dwells import Dwell, table_angle_deg
 from ..errors import InputFileError
 from ..flags import (
     FLAG_EXTRAPOLATING,
@@ -41,7 +42,7 @@ from ..samples.stream import Sample, SampleBlock
 from .adapt import OnlineReadout
 from .adapt_config import AdaptConfig, StaticDetector
 from .blocks import PLAUSIBLE_TEMP_C, BlockAverager, ModelBlock
-from .dwell import MIN_LIVE_DWELL_S, Dwell, out_of_order, table_angle_deg
+from .dwell import MIN_LIVE_DWELL_S, out_of_order
 from .features import DEGRADED_FLAGS, FeatureExtractor
 from .model import ModelFile
 from .table import SHAPE_CANDIDATES, SHAPE_REGRESSORS, TableLaw, TableOutcome

@@ -6,7 +6,7 @@ the creep, so the gyro's angle change minus the table's is what the compensation
 table did.  (The rate path of ``adapt.OnlineReadout`` learns the rate against a declared rate: a slow
 creep there cannot be told from drift.)
 
-The observation.  Dwells a and b (``dwell.Dwell``), and between them the blocks j of the model (length
+The observation.  Dwells a and b (``dwells.Dwell``), and between them the blocks j of the model (length
 ``block_s``), with the frozen drift D_hat_j, shape regressors g_j (below), measured rates m_j (deg/h =
 arcsec/s) and ring temperature T_j (the mean of the top and bottom thermometers; the only one when a format
 has one).  The gyro's angle
@@ -121,11 +121,12 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from ..dwells import Dwell
 from ..flags import FLAG_ADAPTING, FLAG_GUARD
 from . import numerics
 from .adapt import RUNAWAY_FIT_RESIDUALS, ComparisonGuard
 from .adapt_config import AdaptConfig, blocks_in
-from .dwell import Dwell, angle_at_deg, blocks_within, out_of_order, trimmed_window
+from .dwell import angle_at_deg, blocks_within, out_of_order, trimmed_window
 
 __all__ = ["SF_REF_C", "TABLE_SIGMAS", "OutcomeTally", "TableLaw", "TableOutcome", "reason_kind"]
 

@@ -59,7 +59,7 @@ from __future__ import annotations
 from ..client.protocol import MAX_BIAS_S as MAX_BIAS_S  # ?BIAS seconds, at most
 from ..client.protocol import MAX_TABLE_DWELL_S as MAX_TABLE_DWELL_S  # ?TABLE dwell_s, at most
 from ..client.session import MAX_WATCH_RATE_HZ as MAX_WATCH_RATE_HZ  # ?WATCH's rate_hz: the protocol's one bound
-from ..compensation.dwell import MAX_TABLE_ANGLE_DEG as MAX_TABLE_ANGLE_DEG  # the one bound, with the dwell
+from ..dwells import MAX_TABLE_ANGLE_DEG as MAX_TABLE_ANGLE_DEG  # the one bound, with the dwell
 
 # -- the NDJSON hub: lines ------------------------------------------------------------------------------------
 
@@ -137,7 +137,7 @@ DEFAULT_BIAS_S = 60
 MIN_BIAS_S = 1
 #: The largest ``?ADAPT`` ``reference_dph`` (deg/h, either sign).
 MAX_ADAPT_REFERENCE_DPH = 1e7
-#: ``?TABLE``: the largest angle (deg, either sign: ``dwell.MAX_TABLE_ANGLE_DEG``, a table log's and a sidecar's
+#: ``?TABLE``: the largest angle (deg, either sign: ``dwells.MAX_TABLE_ANGLE_DEG``, a table log's and a sidecar's
 #: too) and the longest dwell (``MAX_TABLE_DWELL_S``) are imported above; the least time between two from one
 #: client (more get ERROR):
 TABLE_INTERVAL_S = 2.0

@@ -58,9 +58,9 @@ import structlog
 from .. import __version__
 from ..compensation.adapt import AdaptConfig
 from ..compensation.binding import InstrumentCompensation, ModelMismatchError, check_channels
-from ..compensation.dwell import Dwell
 from ..compensation.model import ModelFile
 from ..compensation.pipeline import CompensatedSample, Compensator
+from ..dwells import Dwell
 from ..errors import FogDriverError, OutputFileError, TemporaryFailure, UsageError
 from ..extras import require_extra
 from ..files.bounded import NotARegularFile, file_sha256
