@@ -399,7 +399,7 @@ class Compensator:
     def break_table_chain(self) -> None:
         """No interval is learned across this point (``?ZERO``, an identity change)."""
         if self.table is not None:
-            self.table._break()
+            self.table.break_chain()
 
     @property
     def pending_dwells(self) -> list[Dwell]:
@@ -412,7 +412,7 @@ class Compensator:
 
     # -- adaptation state ----------------------------------------------------------------------
 
-    def pipeline_state(self) -> dict:
+    def get_state(self) -> dict:
         """Everything but the readout the estimate depends on: the open block, the feature smoothers and
         held values, the model's memory (reservoir), the held estimate.  Plain YAML-safe values, exact."""
         return {
@@ -431,8 +431,8 @@ class Compensator:
             "uncertainty": self.uncertainty.get_state(),
         }
 
-    def set_pipeline_state(self, state: dict) -> None:
-        """Inverse of ``pipeline_state`` (``ValueError`` when it does not fit this model and frame rate)."""
+    def set_state(self, state: dict) -> None:
+        """Inverse of ``get_state`` (``ValueError`` when it does not fit this model and frame rate)."""
         keys = {
             "averager",
             "features",
@@ -517,14 +517,14 @@ class Compensator:
         )
         if self.features.params != old.features.params or not same_grid:
             return
-        state = old.pipeline_state()
+        state = old.get_state()
         state["features"] = self.features.adopt_state(state["features"], old.features.substitution)
         if not same_model:
             state["model"], state["started"] = self.model.get_state(), False
             state["uncertainty"] = self.uncertainty.get_state()
-        self.set_pipeline_state(state)
+        self.set_state(state)
         if same_model and old.online is not None and self.online is not None:
-            self.online.load_state(old.online.state_dict())
+            self.online.set_state(old.online.get_state())
             self.static_detector = old.static_detector
         if old.table is not None and self.table is not None:  # adapting from table angles carries on
             self.table_engaged = old.table_engaged
@@ -537,9 +537,9 @@ class Compensator:
         of the same run continues exactly (``modelfiles.save_adaptation`` writes it), as a snapshot of plain
         values (to take under a lock and write outside it); only when adapting."""
         online = self.check_adapting()
-        doc = online.state_document(detector=self.static_detector, pipeline=self.pipeline_state())
+        doc = online.state_document(detector=self.static_detector, pipeline=self.get_state())
         if self.table is not None and (self.table_engaged or self.table.accepted):
-            doc["table"] = self.table.state_dict()  # what it learned from the table's angles (a new run restores it)
+            doc["table"] = self.table.get_state()  # what it learned from the table's angles (a new run restores it)
         return doc
 
     def check_adapting(self) -> OnlineReadout:
@@ -557,19 +557,19 @@ class Compensator:
         online = self.check_adapting()
         if self.table is not None and "table" in doc:  # checked first: a refusal changes nothing
             try:
-                self.table.load_state(doc["table"])
+                self.table.set_state(doc["table"])
             except ValueError as exc:
                 raise InputFileError(f"{where}: corrupt adaptation state: {exc}") from None
         if not new_run and "pipeline" in doc:  # checked before anything changes
-            saved = self.pipeline_state()
+            saved = self.get_state()
             try:
-                self.set_pipeline_state(doc["pipeline"])
+                self.set_state(doc["pipeline"])
             except ValueError as exc:
                 raise InputFileError(f"{where}: corrupt adaptation state: {exc}") from None
             try:
                 online.load_state_doc(doc, where, detector=self.static_detector)
             except InputFileError:
-                self.set_pipeline_state(saved)
+                self.set_state(saved)
                 raise
         else:
             online.load_state_doc(doc, where, detector=self.static_detector)
