@@ -29,8 +29,8 @@ reference that already contains every constant.
 
 The gate.  W is updated only on gated blocks: a reference is given AND the table is ``static`` (a known
 input rate while nothing moves; ``StaticDetector`` tells it from the gyro itself) AND the measured rate is
-finite.  On every other block the law still runs with ``update=False`` (its filters and the sums H, I go
-on, so re-enabling is seamless), with a neutral target: the current estimate ``W . x`` itself.  While W is
+finite.  On every other block the law tracks with W held (``AdaptiveLaw.track``: its filters and the sums
+H, I go on, so re-enabling is seamless), with a neutral target: the current estimate ``W . x`` itself.  While W is
 fixed the filtered neutral target is exactly ``W . Xf``, so those blocks add nothing to ``M = H W - I`` at
 the current W: they carry no information and say "stay" (they still weigh in H, a mild pull towards the
 W of that time for one memory window).  The same neutral target is used during the bias capture.
@@ -80,9 +80,11 @@ gain that is significant but smaller than that is the gyro's slow noise being ch
 one is, and the law keeps adapting underneath (``adapted_in_use``).  A window's mean keeps the 1-s white
 noise from swamping the comparison.
 
-Order within ``step`` (the law's): the estimate uses W and the comparison's verdict before this block's
-update (an honest a-priori estimate), then the guard, then the bias capture or the update.  ``run`` is
-``step`` row by row.
+Order within ``step``: the estimate uses W and the comparison's verdict before this block's update (an
+honest a-priori estimate, the law's ``predict``), then the guard, then the bias capture, then the law learns
+(``learn``) or tracks with W held (``track``).  The readout's ``step`` keeps predicting and learning in one
+call: the estimate it returns is the guard's and the gate's verdict on this same block.  ``run`` is ``step``
+row by row.
 
 State.  ``get_state`` / ``set_state`` give everything (the law's state, the bias capture, counters,
 and the frozen weights, so a state is never restored into another model) as plain YAML-safe values;
