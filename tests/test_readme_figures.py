@@ -7,9 +7,12 @@ A figure quoted in prose (``prose_figures``): a number with a unit of what the b
 us, MB, kB, GB and their binary kin, %, frames/s, deg/h, arcsec, ppm, and a ratio written ``1.23x``) in a
 document's prose: the README and ``docs/**/*.md`` but the changelog and ``docs/decisions/`` (dated records of
 past runs, never rewritten), outside fenced code, inline code, HTML comments, benchmark blocks and tables under a
-``<!-- constants -->`` line (reference constants: limits, defaults, formats), and not a bound (after ``<=``,
-``at most``, ``under``, ``within``, ``up to`` and the like: a target or a limit).  Such a number must appear in a
-benchmark block of some document."""
+``<!-- constants -->`` line (reference constants: limits, defaults, formats), not a bound (after ``<=``,
+``at most``, ``under``, ``within``, ``up to`` and the like: a target or a limit), and not a setting its paragraph
+declares: ``<!-- settings: 64 kB, 20 ms -->`` anywhere in a paragraph (lines without a blank one between; a table
+is one) says those figures of it are constants of the code or of its inputs (a default, a limit, a threshold, a
+simulator's parameter), not measured; each figure it names must stand in that paragraph's prose.  Such a number
+must appear in a benchmark block of some document."""
 
 from __future__ import annotations
 
@@ -129,6 +132,7 @@ BOUND = re.compile(
     r"(?:<=|>=|≤|≥|<|>|\bat most|\bat least|\bunder|\bup to|\bwithin|\blimit(?:ed)? (?:of|to)|\bno more than)\s*$"
 )
 CONSTANTS = "<!-- constants -->"
+SETTINGS = re.compile(r"<!-- settings: (.*?) -->")
 #: Pages other changes of issue 47 rewrite (method.md and accuracy.md: their figures move into blocks there;
 #: commands.md: its constants into code or a constants table): each must pass once it has (strict).
 BEING_REWRITTEN = {"docs/explanation/method.md", "docs/explanation/accuracy.md", "docs/reference/commands.md"}
@@ -166,14 +170,42 @@ def _unit(figure: str, number: str) -> str:
     return figure[len(number) :].strip()
 
 
+def _key(match: re.Match) -> tuple[str, str]:
+    return match.group("number"), _unit(match.group(0), match.group("number"))
+
+
+def paragraph_settings(text: str) -> tuple[list[int], dict[int, set[tuple[str, str]]]]:
+    """Each line's paragraph (by line number - 1), and the figures each paragraph declares settings
+    (``<!-- settings: ... -->``, comma-separated); a declared item that is not a figure is an error."""
+    paragraph, of_line, declared = 0, [], {}
+    for line in text.splitlines():
+        paragraph += not line.strip()
+        of_line.append(paragraph)
+        for listed in SETTINGS.findall(line):
+            for item in re.split(r",\s+", listed.strip()):
+                match = FIGURE.fullmatch(item)
+                assert match, f"<!-- settings: {listed} -->: {item!r} is not a figure"
+                declared.setdefault(paragraph, set()).add(_key(match))
+    return of_line, declared
+
+
 def prose_figures(text: str) -> list[tuple[int, str, tuple[str, str]]]:
-    """(line number, figure, (its number, its unit)) of every figure ``text`` quotes in its prose."""
-    found = []
+    """(line number, figure, (its number, its unit)) of every figure ``text`` quotes in its prose (an
+    ``AssertionError`` when a paragraph declares a setting its prose does not quote)."""
+    of_line, declared = paragraph_settings(text)
+    found, used = [], set()
     for number, line in prose_lines(text):
         for match in FIGURE.finditer(line):
             if not BOUND.search(line[: match.start()][-16:]):
-                figure, value = match.group(0), match.group("number")
-                found.append((number, figure, (value, _unit(figure, value))))
+                key, paragraph = _key(match), of_line[number - 1]
+                if key in declared.get(paragraph, ()):
+                    used.add((paragraph, key))
+                else:
+                    found.append((number, match.group(0), key))
+    unused = sorted(
+        f"{n} {u} (paragraph {p})" for p, keys in declared.items() for n, u in keys if (p, (n, u)) not in used
+    )
+    assert not unused, f"settings declared that their paragraph does not quote: {unused}"
     return found
 
 
@@ -211,6 +243,18 @@ def test_a_prose_figure_is_a_number_with_a_unit_outside_code_blocks_constants_an
         (15, "2.5 %"),
         (15, "0.13 deg/h"),
     ]
+
+
+def test_a_setting_its_paragraph_declares_is_not_a_figure_and_a_stale_declaration_fails():
+    text = (
+        "Files rotate at 256 MB; the daemon\nused 94.2 MB. <!-- settings: 256 MB -->\n\n"
+        "Here 256 MB is measured, and a warning above 0.05 deg/h <!-- settings: 0.05 deg/h -->.\n"
+    )
+    assert [(n, f) for n, f, _ in prose_figures(text)] == [(2, "94.2 MB"), (4, "256 MB")]
+    with pytest.raises(AssertionError, match="does not quote"):
+        prose_figures("A limit of 1 MB. <!-- settings: 2 MB -->\n")
+    with pytest.raises(AssertionError, match="not a figure"):
+        prose_figures("A limit of 1 MB. <!-- settings: one MB -->\n")
 
 
 @pytest.mark.parametrize("path", _figure_pages())
