@@ -8,11 +8,11 @@ us, MB, kB, GB and their binary kin, %, frames/s, deg/h, arcsec, ppm, and a rati
 document's prose: the README and ``docs/**/*.md`` but the changelog and ``docs/decisions/`` (dated records of
 past runs, never rewritten), outside fenced code, inline code, HTML comments, benchmark blocks and tables under a
 ``<!-- constants -->`` line (reference constants: limits, defaults, formats), not a bound (after ``<=``,
-``at most``, ``under``, ``within``, ``up to`` and the like: a target or a limit), and not a setting its paragraph
-declares: ``<!-- settings: 64 kB, 20 ms -->`` anywhere in a paragraph (lines without a blank one between; a table
-is one) says those figures of it are constants of the code or of its inputs (a default, a limit, a threshold, a
-simulator's parameter), not measured; each figure it names must stand in that paragraph's prose.  Such a number
-must appear in a benchmark block of some document."""
+``at most``, ``under``, ``within``, ``up to`` and the like: a target or a limit), and not a constant its paragraph
+declares: ``<!-- constants: 64 kB, 20 ms -->`` anywhere in a paragraph (lines without a blank one between; a table
+is one) says those figures of it are not measured: constants of the code or of its inputs (a default, a limit, a
+threshold, a simulator's parameter) or arithmetic on them (a worked example); each figure it names must stand in
+that paragraph's prose.  Such a number must appear in a benchmark block of some document."""
 
 from __future__ import annotations
 
@@ -132,7 +132,7 @@ BOUND = re.compile(
     r"(?:<=|>=|≤|≥|<|>|\bat most|\bat least|\bunder|\bup to|\bwithin|\blimit(?:ed)? (?:of|to)|\bno more than)\s*$"
 )
 CONSTANTS = "<!-- constants -->"
-SETTINGS = re.compile(r"<!-- settings: (.*?) -->")
+DECLARED = re.compile(r"<!-- constants: (.*?) -->")
 #: Pages other changes of issue 47 rewrite (method.md and accuracy.md: their figures move into blocks there;
 #: commands.md: its constants into code or a constants table): each must pass once it has (strict).
 BEING_REWRITTEN = {"docs/explanation/method.md", "docs/explanation/accuracy.md", "docs/reference/commands.md"}
@@ -174,17 +174,17 @@ def _key(match: re.Match) -> tuple[str, str]:
     return match.group("number"), _unit(match.group(0), match.group("number"))
 
 
-def paragraph_settings(text: str) -> tuple[list[int], dict[int, set[tuple[str, str]]]]:
-    """Each line's paragraph (by line number - 1), and the figures each paragraph declares settings
-    (``<!-- settings: ... -->``, comma-separated); a declared item that is not a figure is an error."""
+def paragraph_constants(text: str) -> tuple[list[int], dict[int, set[tuple[str, str]]]]:
+    """Each line's paragraph (by line number - 1), and the figures each paragraph declares constants
+    (``<!-- constants: ... -->``, comma-separated); a declared item that is not a figure is an error."""
     paragraph, of_line, declared = 0, [], {}
     for line in text.splitlines():
         paragraph += not line.strip()
         of_line.append(paragraph)
-        for listed in SETTINGS.findall(line):
+        for listed in DECLARED.findall(line):
             for item in re.split(r",\s+", listed.strip()):
                 match = FIGURE.fullmatch(item)
-                assert match, f"<!-- settings: {listed} -->: {item!r} is not a figure"
+                assert match, f"<!-- constants: {listed} -->: {item!r} is not a figure"
                 declared.setdefault(paragraph, set()).add(_key(match))
     return of_line, declared
 
@@ -192,7 +192,7 @@ def paragraph_settings(text: str) -> tuple[list[int], dict[int, set[tuple[str, s
 def prose_figures(text: str) -> list[tuple[int, str, tuple[str, str]]]:
     """(line number, figure, (its number, its unit)) of every figure ``text`` quotes in its prose (an
     ``AssertionError`` when a paragraph declares a setting its prose does not quote)."""
-    of_line, declared = paragraph_settings(text)
+    of_line, declared = paragraph_constants(text)
     found, used = [], set()
     for number, line in prose_lines(text):
         for match in FIGURE.finditer(line):
@@ -205,7 +205,7 @@ def prose_figures(text: str) -> list[tuple[int, str, tuple[str, str]]]:
     unused = sorted(
         f"{n} {u} (paragraph {p})" for p, keys in declared.items() for n, u in keys if (p, (n, u)) not in used
     )
-    assert not unused, f"settings declared that their paragraph does not quote: {unused}"
+    assert not unused, f"constants declared that their paragraph does not quote: {unused}"
     return found
 
 
@@ -245,16 +245,16 @@ def test_a_prose_figure_is_a_number_with_a_unit_outside_code_blocks_constants_an
     ]
 
 
-def test_a_setting_its_paragraph_declares_is_not_a_figure_and_a_stale_declaration_fails():
+def test_a_constant_its_paragraph_declares_is_not_a_figure_and_a_stale_declaration_fails():
     text = (
-        "Files rotate at 256 MB; the daemon\nused 94.2 MB. <!-- settings: 256 MB -->\n\n"
-        "Here 256 MB is measured, and a warning above 0.05 deg/h <!-- settings: 0.05 deg/h -->.\n"
+        "Files rotate at 256 MB; the daemon\nused 94.2 MB. <!-- constants: 256 MB -->\n\n"
+        "Here 256 MB is measured, and a warning above 0.05 deg/h <!-- constants: 0.05 deg/h -->.\n"
     )
     assert [(n, f) for n, f, _ in prose_figures(text)] == [(2, "94.2 MB"), (4, "256 MB")]
     with pytest.raises(AssertionError, match="does not quote"):
-        prose_figures("A limit of 1 MB. <!-- settings: 2 MB -->\n")
+        prose_figures("A limit of 1 MB. <!-- constants: 2 MB -->\n")
     with pytest.raises(AssertionError, match="not a figure"):
-        prose_figures("A limit of 1 MB. <!-- settings: one MB -->\n")
+        prose_figures("A limit of 1 MB. <!-- constants: one MB -->\n")
 
 
 @pytest.mark.parametrize("path", _figure_pages())
