@@ -13,7 +13,8 @@ paragraph declares: ``<!-- constants: 64 kB, 20 ms -->`` anywhere in a paragraph
 a table is one) says those figures of it are not measured: constants of the code or of its inputs (a default, a
 limit, a threshold, a simulator's parameter) or arithmetic on them (a worked example); each figure it names must
 stand in that paragraph's prose.  Such a figure must appear in a benchmark block of some document: with its unit,
-or, a number of 3 significant digits or more, as a bare number (a table's column whose header names the unit)."""
+or, a decimal fraction of 3 significant digits or more, as a bare number in a block of its own document (a table's
+column whose header names the unit)."""
 
 from __future__ import annotations
 
@@ -130,14 +131,11 @@ BLOCK_FIGURE = re.compile(
     r"(?<![\w.+\-/])(?P<number>(?:\d{1,3}(?:,\d{3})+|\d+)(?:\.\d+)?)\s?(?:" + UNITS + r"|x)(?![\w/])"
 )
 BOUND = re.compile(
-    r"(?:<=|>=|≤|≥|<|>|\bat most|\bat least|\bunder|\bup to|\bwithin|\blimit(?:ed)? (?:of|to)|\b(?:more|less) than)"
-    r"\s*$"
+    r"(?:<=|>=|≤|≥|<|(?<!-)>|\bat most|\bat least|\bunder|\bup to|\bwithin|\blimit(?:ed)? (?:of|to)"
+    r"|\b(?:more|less) than)\s*$"  # (?<!-): an arrow, ``0.238 -> 0.0256 deg/h``, is no bound
 )
 CONSTANTS = "<!-- constants -->"
 DECLARED = re.compile(r"<!-- constants: (.*?) -->")
-#: Pages other changes of issue 47 rewrite (method.md and accuracy.md: their figures move into blocks there;
-#: commands.md: its constants into code or a constants table): each must pass once it has (strict).
-BEING_REWRITTEN = {"docs/reference/commands.md"}
 
 
 def prose_lines(text: str) -> list[tuple[int, str]]:
@@ -216,15 +214,17 @@ BARE_NUMBER = re.compile(r"(?<![\w.+\-/])(?P<number>(?:\d{1,3}(?:,\d{3})+|\d+)(?
 
 
 def significant_digits(number: str) -> int:
-    return len(number.replace(",", "").replace(".", "").lstrip("0"))
+    """The digits of a decimal fraction, leading zeros left out (``0.0360``: 3); 0 for a whole number (``100``:
+    its zeros may be padding)."""
+    return len(number.replace(",", "").replace(".", "").lstrip("0")) if "." in number else 0
 
 
-def printed_figures() -> set[tuple[str, str]]:
-    """(number, unit) of every figure the benchmark blocks of every document print (a ratio as ``1.2x`` or
-    ``1.2 x``), and (number, "") of every number of 3 significant digits or more they print, unit or not (a
-    column of a table whose header names the unit): a prose figure with such a number stands in the block."""
+def printed_figures(documents: list[Path] | None = None) -> set[tuple[str, str]]:
+    """(number, unit) of every figure the benchmark blocks of ``documents`` (by default every document) print (a
+    ratio as ``1.2x`` or ``1.2 x``), and (number, "") of every decimal fraction of 3 significant digits or more
+    they print, unit or not (a column of a table whose header names the unit)."""
     printed = set()
-    for document in _harness.documents():
+    for document in _harness.documents() if documents is None else documents:
         for body in _harness.blocks(document.read_text()).values():
             for match in BLOCK_FIGURE.finditer(body):
                 printed.add((match.group("number"), _unit(match.group(0), match.group("number"))))
@@ -234,10 +234,11 @@ def printed_figures() -> set[tuple[str, str]]:
     return printed
 
 
-def stands_in_a_block(key: tuple[str, str], printed: set[tuple[str, str]]) -> bool:
-    """Figure ``key`` (number, unit) stands in a block: printed with its unit, or its number of 3 significant
-    digits or more printed (``printed_figures``)."""
-    return key in printed or (significant_digits(key[0]) >= 3 and (key[0], "") in printed)
+def stands_in_a_block(key: tuple[str, str], printed: set[tuple[str, str]], its_own: set[tuple[str, str]]) -> bool:
+    """Figure ``key`` (number, unit) stands in a block: printed with its unit in any document's (``printed``), or
+    its number, a decimal fraction of 3 significant digits or more, printed bare in its own document's
+    (``its_own``: ``printed_figures([document])``, where the block's header says the unit)."""
+    return key in printed or (significant_digits(key[0]) >= 3 and (key[0], "") in its_own)
 
 
 def _figure_pages() -> list:
@@ -246,8 +247,7 @@ def _figure_pages() -> list:
         name = path.relative_to(_harness.ROOT).as_posix()
         if name == "docs/changelog.md" or name.startswith("docs/decisions/"):
             continue
-        marks = [pytest.mark.xfail(strict=True, reason="its figures move into blocks in its rewrite")]
-        pages.append(pytest.param(path, id=name, marks=marks if name in BEING_REWRITTEN else ()))
+        pages.append(pytest.param(path, id=name))
     return pages
 
 
@@ -265,12 +265,19 @@ def test_a_prose_figure_is_a_number_with_a_unit_outside_code_blocks_constants_an
     ]
 
 
+def test_a_figure_after_an_arrow_or_more_than_is_a_figure_and_a_bound():
+    text = "RMS 0.238 -> 0.0256 deg/h; warned when more than 5 deg/h off, not 6 deg/h.\n"
+    assert [f for _, f, _ in prose_figures(text)] == ["0.0256 deg/h", "6 deg/h"]
+
+
 def test_a_prose_figure_stands_in_a_block_by_its_unit_or_by_three_significant_digits():
-    printed = {("0.0360", ""), ("1.2", "x"), ("12", "")}
-    assert stands_in_a_block(("0.0360", "deg/h"), printed)
-    assert stands_in_a_block(("1.2", "x"), printed)
-    assert not stands_in_a_block(("12", "%"), printed)
-    assert not stands_in_a_block(("0.036", "deg/h"), printed)
+    anywhere, here = {("1.2", "x"), ("0.0250", "")}, {("0.0360", ""), ("12", "")}
+    assert stands_in_a_block(("0.0360", "deg/h"), anywhere, here)
+    assert stands_in_a_block(("1.2", "x"), anywhere, here)
+    assert not stands_in_a_block(("0.0250", "deg/h"), anywhere, here)  # bare in another document's block
+    assert not stands_in_a_block(("12", "%"), anywhere, here)
+    assert not stands_in_a_block(("0.036", "deg/h"), anywhere, here)
+    assert not stands_in_a_block(("100", "GB"), anywhere, {("100", "")})
 
 
 def test_a_constant_its_paragraph_declares_is_not_a_figure_and_a_stale_declaration_fails():
@@ -287,8 +294,10 @@ def test_a_constant_its_paragraph_declares_is_not_a_figure_and_a_stale_declarati
 
 @pytest.mark.parametrize("path", _figure_pages())
 def test_every_figure_the_prose_quotes_stands_in_a_benchmark_block(path):
-    printed = printed_figures()
+    printed, its_own = printed_figures(), printed_figures([path])
     missing = [
-        f"{n}: {figure}" for n, figure, key in prose_figures(path.read_text()) if not stands_in_a_block(key, printed)
+        f"{n}: {figure}"
+        for n, figure, key in prose_figures(path.read_text())
+        if not stands_in_a_block(key, printed, its_own)
     ]
     assert not missing, f"{path.name}: figures quoted in prose that no benchmark block prints: {missing}"
