@@ -138,9 +138,9 @@ CONSTANTS = "<!-- constants -->"
 DECLARED = re.compile(r"<!-- constants: (.*?) -->")
 
 
-def prose_lines(text: str) -> list[tuple[int, str]]:
+def prose_lines(text: str, comments: bool = False) -> list[tuple[int, str]]:
     """(line number, text) of a document's prose: outside fences, benchmark blocks and tables under
-    ``<!-- constants -->``, with inline code and HTML comments taken out."""
+    ``<!-- constants -->``, with inline code and HTML comments (unless ``comments``) taken out."""
     lines: list[tuple[int, str]] = []
     fence, in_block, constants = "", False, ""
     for number, line in enumerate(text.splitlines(), 1):
@@ -162,7 +162,7 @@ def prose_lines(text: str) -> list[tuple[int, str]]:
             continue
         constants = ""
         if not in_block:
-            lines.append((number, re.sub(r"`[^`]*`|<!--.*?-->", "", line)))
+            lines.append((number, re.sub(r"`[^`]*`" if comments else r"`[^`]*`|<!--.*?-->", "", line)))
     return lines
 
 
@@ -181,6 +181,8 @@ def paragraph_constants(text: str) -> tuple[list[int], dict[int, set[tuple[str, 
     for line in text.splitlines():
         paragraph += not line.strip()
         of_line.append(paragraph)
+    for number, line in prose_lines(text, comments=True):  # a declaration in code is an example of one
+        paragraph = of_line[number - 1]
         for listed in DECLARED.findall(line):
             for item in re.split(r",\s+", listed.strip()):
                 match = FIGURE.fullmatch(item)
@@ -290,6 +292,7 @@ def test_a_constant_its_paragraph_declares_is_not_a_figure_and_a_stale_declarati
         prose_figures("A limit of 1 MB. <!-- constants: 2 MB -->\n")
     with pytest.raises(AssertionError, match="not a figure"):
         prose_figures("A limit of 1 MB. <!-- constants: one MB -->\n")
+    assert prose_figures("Declare them: `<!-- constants: 2 MB -->`.\n") == []
 
 
 @pytest.mark.parametrize("path", _figure_pages())
