@@ -3,18 +3,18 @@
 printed, in form, that ``python -m benchmarks`` names every one, and that every figure the prose quotes stands in
 one of them.
 
-A figure quoted in prose (``prose_figures``): a number with a unit of what the benchmarks measure (``UNITS``: ms,
-us, MB, kB, GB and their binary kin, %, frames/s, deg/h, arcsec, ppm, and a ratio written ``1.23x``) in a document's
-prose: the README and ``docs/**/*.md`` but the changelog and ``docs/decisions/`` (dated records of past runs, never
-rewritten), outside fenced code, inline code, HTML comments, benchmark blocks and tables under a
-``<!-- constants -->`` line (reference constants: limits, defaults, formats), not a bound (after ``<=``, ``at
-most``, ``under``, ``within``, ``up to``, ``more than`` and the like: a target or a limit), and not a constant its
-paragraph declares: ``<!-- constants: 64 kB, 20 ms -->`` anywhere in a paragraph (lines without a blank one between;
-a table is one) says those figures of it are not measured: constants of the code or of its inputs (a default, a
-limit, a threshold, a simulator's parameter) or arithmetic on them (a worked example); each figure it names must
-stand in that paragraph's prose.  Such a figure must appear in a benchmark block of some document: with its unit,
-or, a decimal fraction of 3 significant digits or more, as a bare number in a block of its own document (a table's
-column whose header names the unit)."""
+A figure quoted in prose (``prose_figures``): a number (its sign kept) with a unit of what the benchmarks measure
+(``UNITS``: ms, us, MB, kB, GB and their binary kin, %, frames/s, deg/h, arcsec, ppm, and a ratio written ``1.23x``)
+in a document's prose: the README and ``docs/**/*.md`` but the changelog and ``docs/decisions/`` (dated records of
+past runs, never rewritten), outside fenced code, inline code, HTML comments, benchmark blocks and tables under a
+``<!-- constants -->`` line (reference constants: limits, defaults, formats), not a bound (after ``<=``,
+``at most``, ``under``, ``within``, ``up to``, ``more than`` and the like: a target or a limit), and not a constant
+its paragraph declares: ``<!-- constants: 64 kB, 20 ms -->`` anywhere in a paragraph (lines without a blank one
+between; a table is one) says those figures of it are not measured: constants of the code or of its inputs (a
+default, a limit, a threshold, a simulator's parameter) or arithmetic on them (a worked example); each figure it
+names must stand in that paragraph's prose.  Such a figure must appear in a benchmark block of some document: with
+its unit, or, a decimal fraction of 3 significant digits or more, as a bare number in a block of its own document (a
+table's column whose header names the unit)."""
 
 from __future__ import annotations
 
@@ -125,10 +125,10 @@ def test_python_m_benchmarks_runs_the_chosen_quick_entries_with_update_readme_fr
 
 UNITS = r"(?:ms|us|µs|ns|MB|MiB|kB|KiB|GB|GiB|%|frames/s|samples/s|deg/h|arcsec|ppm)"
 FIGURE = re.compile(
-    r"(?<![\w.+\-/])(?P<number>(?:\d{1,3}(?:,\d{3})+|\d+)(?:\.\d+)?)(?:\s?" + UNITS + r"(?![\w/])|x(?![\w/]))"
+    r"(?<![\w.+\-/^])(?P<number>-?(?:\d{1,3}(?:,\d{3})+|\d+)(?:\.\d+)?)(?:\s?" + UNITS + r"(?![\w/])|x(?![\w/]))"
 )
 BLOCK_FIGURE = re.compile(
-    r"(?<![\w.+\-/])(?P<number>(?:\d{1,3}(?:,\d{3})+|\d+)(?:\.\d+)?)\s?(?:" + UNITS + r"|x)(?![\w/])"
+    r"(?<![\w.+\-/^])(?P<number>-?(?:\d{1,3}(?:,\d{3})+|\d+)(?:\.\d+)?)\s?(?:" + UNITS + r"|x)(?![\w/])"
 )
 BOUND = re.compile(
     r"(?:<=|>=|≤|≥|<|(?<!-)>|\bat most|\bat least|\bunder|\bup to|\bwithin|\blimit(?:ed)? (?:of|to)"
@@ -212,13 +212,13 @@ def prose_figures(text: str) -> list[tuple[int, str, tuple[str, str]]]:
     return found
 
 
-BARE_NUMBER = re.compile(r"(?<![\w.+\-/])(?P<number>(?:\d{1,3}(?:,\d{3})+|\d+)(?:\.\d+)?)(?![\w.]*\d)")
+BARE_NUMBER = re.compile(r"(?<![\w.+\-/^])(?P<number>-?(?:\d{1,3}(?:,\d{3})+|\d+)(?:\.\d+)?)(?![\w.]*\d)")
 
 
 def significant_digits(number: str) -> int:
     """The digits of a decimal fraction, leading zeros left out (``0.0360``: 3); 0 for a whole number (``100``:
     its zeros may be padding)."""
-    return len(number.replace(",", "").replace(".", "").lstrip("0")) if "." in number else 0
+    return len(number.replace(",", "").replace(".", "").lstrip("-0")) if "." in number else 0
 
 
 def printed_figures(documents: list[Path] | None = None) -> set[tuple[str, str]]:
@@ -267,9 +267,10 @@ def test_a_prose_figure_is_a_number_with_a_unit_outside_code_blocks_constants_an
     ]
 
 
-def test_a_figure_after_an_arrow_or_more_than_is_a_figure_and_a_bound():
-    text = "RMS 0.238 -> 0.0256 deg/h; warned when more than 5 deg/h off, not 6 deg/h.\n"
-    assert [f for _, f, _ in prose_figures(text)] == ["0.0256 deg/h", "6 deg/h"]
+def test_a_figure_after_an_arrow_or_a_negative_one_is_a_figure_and_after_more_than_a_bound():
+    text = "RMS 0.238 -> 0.0256 deg/h; warned when more than 5 deg/h off, not 6 deg/h; -0.024 deg/h, 2^-24 arcsec.\n"
+    assert [f for _, f, _ in prose_figures(text)] == ["0.0256 deg/h", "6 deg/h", "-0.024 deg/h"]
+    assert significant_digits("-0.0360") == 3
 
 
 def test_a_prose_figure_stands_in_a_block_by_its_unit_or_by_three_significant_digits():
