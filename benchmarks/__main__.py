@@ -57,6 +57,10 @@ LONG = (
     Entry("bench_population.py --set eval4 --compare-programs --per-instrument", 2600),
     Entry("bench_population.py --set eval4 --kinds polynomial,wesn,auto --per-instrument", 2680),
     Entry("bench_plan.py --instruments 24 --per-instrument", 3440),
+    Entry("bench_table.py --instruments 24 --creeps 0.2,2,20 --days 3", 1210),
+    Entry("bench_table.py --instruments 24 --creeps= --days 3", 860),
+    Entry("bench_table.py --first 24 --creeps= --days 3", 1100),
+    Entry("bench_table.py --set eval14 --instruments 24 --creeps 0.2,2,20 --days 3", 1330),
 )
 
 

@@ -2,6 +2,10 @@
 
     python -m benchmarks.bench_table [--set dev|eval5|...] [--instruments N] [--first K] [--creeps 0.2,2,20]
                                      [--days 1] [--rate-hz 10] [--workers 2] [--workdir DIR] [--per-instrument]
+                                     [--update-readme]
+
+``--creeps=`` runs no creep; ``--update-readme`` rewrites this command's block in ``docs/explanation/accuracy.md``
+(``benchmarks/_harness.py``).
 
 Per instrument K of a set (the seed ranges and THE RULE of ``_harness.py``): the default model
 (``fog-driver fit`` without ``--kind``) fitted on its paper run; then a positioning run outside the fit,
@@ -331,4 +335,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from benchmarks._harness import run_main  # --update-readme: the documentation's block for this command
+
+    run_main(main)
