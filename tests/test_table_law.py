@@ -564,7 +564,7 @@ def test_a_fast_creep_is_learned_against_the_tables_angle_at_the_windows_mean_ti
     assert len(learned) >= 0.9 * len(log) and comp.table.rejected <= 1
     z = np.array([o.innovation_arcsec / o.sigma_arcsec for o in learned])
     assert np.sqrt(np.mean(z**2)) < 1.5, z
-    import fog_driver.compensation.table as table_module
+    import fog_driver.compensation.table.law as table_module
 
     monkeypatch.setattr(table_module, "angle_at_deg", lambda a, e, t0, t1, t: reference_deg(a, e))
     middle, _ = compensate(creeping, log)

@@ -121,11 +121,11 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from ..flags import FLAG_ADAPTING, FLAG_GUARD
-from . import numerics
-from .adapt import RUNAWAY_FIT_RESIDUALS, ComparisonGuard
-from .adapt_config import AdaptConfig, blocks_in
-from .dwell import Dwell, angle_at_deg, blocks_within, out_of_order, trimmed_window
+from ...flags import FLAG_ADAPTING, FLAG_GUARD
+from .. import numerics
+from ..adapt import RUNAWAY_FIT_RESIDUALS, ComparisonGuard
+from ..adapt_config import AdaptConfig, blocks_in
+from ..dwell import Dwell, angle_at_deg, blocks_within, out_of_order, trimmed_window
 
 __all__ = ["SF_REF_C", "TABLE_SIGMAS", "OutcomeTally", "TableLaw", "TableOutcome", "reason_kind"]
 
