@@ -564,9 +564,11 @@ def test_a_fast_creep_is_learned_against_the_tables_angle_at_the_windows_mean_ti
     assert len(learned) >= 0.9 * len(log) and comp.table.rejected <= 1
     z = np.array([o.innovation_arcsec / o.sigma_arcsec for o in learned])
     assert np.sqrt(np.mean(z**2)) < 1.5, z
-    import fog_driver.compensation.table.law as table_module
+    import fog_driver.compensation.table.law as table_law
+    import fog_driver.compensation.table.screen as table_screen
 
-    monkeypatch.setattr(table_module, "angle_at_deg", lambda a, e, t0, t1, t: reference_deg(a, e))
+    for module in (table_law, table_screen):  # the anchor's angle, and the creep a dwell declares
+        monkeypatch.setattr(module, "angle_at_deg", lambda a, e, t0, t1, t: reference_deg(a, e))
     middle, _ = compensate(creeping, log)
     rms = np.sqrt(np.mean(np.array([o.innovation_arcsec for o in learned]) ** 2))
     off = np.array([o.innovation_arcsec for o in middle.table.outcomes if math.isfinite(o.innovation_arcsec)])
@@ -828,7 +830,7 @@ def test_what_the_table_law_learned_persists_across_a_restart(run, tmp_path):
     samples, dwells, *_ = run
     part, use = first(samples, dwells, 4000.0)
     comp, _ = compensate(part, use)
-    saved = comp.table.state_dict()
+    saved = comp.table.get_state()
     doc = yaml.safe_load(yaml.safe_dump(comp.adaptation_document()))
     restored = Compensator(load_model(DEFAULT_MODEL), 1.0 / RATE_HZ, table=True, adapt=comp.adapt)
     restored.restore_adaptation(doc, "state.yaml")
@@ -838,7 +840,7 @@ def test_what_the_table_law_learned_persists_across_a_restart(run, tmp_path):
     h = np.array(saved["h"])
     assert h[lvl, lvl] > 0 and abs(np.delete(h[:, lvl], lvl)).max() > 0  # there was a level, tied to the rest
     assert_level_marginalized(restored.table, saved)
-    rest = {k: v for k, v in restored.table.state_dict().items() if k not in ("h", "i", "delta", "cov")}
+    rest = {k: v for k, v in restored.table.get_state().items() if k not in ("h", "i", "delta", "cov")}
     assert rest == {k: v for k, v in saved.items() if k not in ("h", "i", "delta", "cov")}
     # the scale factor as learned, within what the level's own uncertainty moved it by
     assert restored.table.scale_factor_ppm == pytest.approx(comp.table.scale_factor_ppm, abs=0.01)
@@ -859,14 +861,14 @@ def test_what_the_table_law_learned_persists_across_a_restart(run, tmp_path):
     # a state of an earlier version, learned on the model's own regressors (no shape): refused by a law on the
     # candidates (the daemon sets it aside and starts afresh), restored by one without candidates
     own, _ = compensate(part, use, without_candidates())
-    earlier = {k: v for k, v in yaml.safe_load(yaml.safe_dump(own.table.state_dict())).items() if k != "shape"}
+    earlier = {k: v for k, v in yaml.safe_load(yaml.safe_dump(own.table.get_state())).items() if k != "shape"}
     with pytest.raises(InputFileError, match="'regressors' shape regressors, this law's are 'candidates'"):
         fresh.restore_adaptation({**doc, "table": earlier}, "state.yaml")
     assert fresh.table.accepted == 0
     plain = Compensator(without_candidates(), 1.0 / RATE_HZ, table=True, adapt=comp.adapt)
     plain.restore_adaptation({**doc, "table": earlier}, "state.yaml")
     assert plain.table.accepted == own.table.accepted
-    assert_level_marginalized(plain.table, own.table.state_dict())
+    assert_level_marginalized(plain.table, own.table.get_state())
 
 
 def assert_level_marginalized(law: TableLaw, saved: dict) -> None:

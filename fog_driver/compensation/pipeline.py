@@ -399,7 +399,7 @@ class Compensator:
     def break_table_chain(self) -> None:
         """No interval is learned across this point (``?ZERO``, an identity change)."""
         if self.table is not None:
-            self.table._break()
+            self.table.break_chain()
 
     @property
     def pending_dwells(self) -> list[Dwell]:
@@ -539,7 +539,7 @@ class Compensator:
         online = self.check_adapting()
         doc = online.state_document(detector=self.static_detector, pipeline=self.pipeline_state())
         if self.table is not None and (self.table_engaged or self.table.accepted):
-            doc["table"] = self.table.state_dict()  # what it learned from the table's angles (a new run restores it)
+            doc["table"] = self.table.get_state()  # what it learned from the table's angles (a new run restores it)
         return doc
 
     def check_adapting(self) -> OnlineReadout:
@@ -557,7 +557,7 @@ class Compensator:
         online = self.check_adapting()
         if self.table is not None and "table" in doc:  # checked first: a refusal changes nothing
             try:
-                self.table.load_state(doc["table"])
+                self.table.set_state(doc["table"])
             except ValueError as exc:
                 raise InputFileError(f"{where}: corrupt adaptation state: {exc}") from None
         if not new_run and "pipeline" in doc:  # checked before anything changes
