@@ -997,3 +997,50 @@ def test_compensate_of_a_capture_whose_sidecar_table_event_has_a_nan_angle_is_a_
     assert str(recorded) in err[0] and "table event at byte" in err[0]
     assert "angle_deg must be a number within +-1e+06 degrees" in err[0]
     assert not out.exists()
+
+
+def test_a_dwell_blamed_by_its_neighbours_gives_a_new_outcome_log_and_leaves_the_one_read_before_as_it_was():
+    """The judge's verdict (``table.judge``): dwell 2, learned, was the wrong one; dwell 3, rejected, has the
+    interval (1, 3).  The revised log has them so, dwell 2's figures kept; the log and the outcomes a reader
+    held before are unchanged, and each log's tally counts its own outcomes."""
+    from fog_driver.compensation.table.judge import BLAMED_REASON
+    from fog_driver.compensation.table.outcomes import OutcomeLog, OutcomeStatus, Revision, outcome
+
+    dwells = [Dwell(100.0 * k, 100.0 * k + 60.0, 36.0 * k) for k in range(4)]
+    statuses = [OutcomeStatus.ANCHOR, OutcomeStatus.LEARNED, OutcomeStatus.LEARNED, OutcomeStatus.REJECTED]
+    log = OutcomeLog()
+    for k, status in enumerate(statuses):
+        log.note(outcome(dwells[k], status, "" if k < 3 else "disagrees", {"innovation_arcsec": 1.0 + k}))
+    held, before = log.recent, list(log.recent)
+    merged = outcome(dwells[3], OutcomeStatus.LEARNED, "", {"innovation_arcsec": -0.5})
+    revised = log.revised(Revision(dwells[2].t_end_s, merged, BLAMED_REASON))
+    assert log.recent is held and list(held) == before
+    assert list(revised.recent) == [
+        before[0],
+        before[1],
+        before[2]._replace(status=OutcomeStatus.REJECTED, reason=BLAMED_REASON),
+        merged,
+    ]
+    assert revised.recent[2].innovation_arcsec == before[2].innovation_arcsec == 3.0
+    assert dict(log.tally().by_status) == {"anchor": 1, "learned": 2, "rejected": 1}
+    assert dict(revised.tally().by_status) == {"anchor": 1, "learned": 2, "rejected": 1}
+    assert revised.tally().by_reason[("rejected", BLAMED_REASON)][0] == [1]
+
+
+def test_a_dwells_status_is_written_as_its_word_in_json_csv_and_text():
+    """``OutcomeStatus`` is a ``StrEnum``: every way an outcome is written (STATUS's NDJSON, a CSV, a report
+    line) gives the bare word, as the strings it replaced did."""
+    import csv
+    import io
+    import json
+
+    from fog_driver.compensation.table import OutcomeStatus
+
+    for status in OutcomeStatus:
+        word = status.value
+        assert json.dumps({"status": status}) == json.dumps({"status": word})
+        assert f"{status} {status:>9}" == f"{word} {word:>9}" and str(status) == word
+        out = io.StringIO()
+        csv.writer(out).writerow([status])
+        assert out.getvalue() == f"{word}\r\n"
+        assert status == word and {word: 1}[status] == 1

@@ -468,10 +468,9 @@ class TableLaw(ComparisonGuard):
         allowed spread and the scale factor's prior times the move); else into the T_eff-weighted mean, the bias
         once it spans ``bias_capture_s``."""
         rate = r / t_eff
-        if self.bias_time_s > 0:  # consistent with the capture so far?
-            mean = self.bias_sum_arcsec / self.bias_time_s
-            spread = [q for q, _ in self.bias_rates]
-            between = float(np.var(spread)) if len(spread) >= 2 else 0.0
+        so_far = self._bias_so_far()
+        if so_far is not None:  # consistent with the capture so far?
+            mean, between = so_far
             sf = 1e-6 * SF_PRIOR_PPM * values["move_deg"] * ARCSEC_PER_DEG / t_eff  # the scale factor, not yet known
             sigma = math.sqrt(r_var / t_eff**2 + between + self.prior_dph**2 + sf * sf)
             if abs(rate - mean) > TABLE_SIGMAS * sigma:
