@@ -27,7 +27,9 @@ seen, ``gram``), on its mean level ``m . dw + db`` the runaway bound, on the sca
 The evidence.  Before an interval is learned, each scale predicts it, ``N(phi . delta_k, c (R + phi P_k
 phi^T))``, and ``E_k = beta E_k + log p_k(r)``.  The estimate in use is the mixture's mean, ``delta = sum_k
 w_k delta_k``, ``w_k ~ exp(E_k)`` with prior odds ``exp(FROZEN_LOG_ODDS)`` for the frozen shape, and P the
-mixture's covariance ``sum_k w_k (P_k + (delta_k - delta)(delta_k - delta)^T)``.  ``c`` (``calibration``) is
+mixture's covariance ``sum_k w_k (P_k + (delta_k - delta)(delta_k - delta)^T)``: the weights move smoothly,
+so the drift has no steps, and a model that is right keeps its shape (a wider prior predicts the intervals no
+better and pays for its spread).  ``c`` (``calibration``) is
 the running mean of the squared normalized innovations ``z^2 = e^2 / (R + phi P phi^T)``, each capped at
 ``CALIBRATION_CAP``, over ``CALIBRATION_INTERVALS`` with a prior of ``CALIBRATION_PRIOR`` intervals at 1.
 """

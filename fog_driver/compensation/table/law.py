@@ -14,6 +14,7 @@ The rooms, in the order a dwell goes through them:
   creep the gyro did not see.
 - ``estimate``: the interval as an observation ``r = x . dw + T_eff db + 1e-6 dA s(T_int) + e``, the sums
   H and I, the prior scales' mixture and the estimate in use, ``D_hat + g . dw``.
+- ``bias``: the run's bias, captured from its first intervals.
 - ``judge``: which of two dwells was wrong, by the intervals around them.
 - ``outcomes``: what became of each dwell (``OutcomeStatus``), the log and its tally.
 - ``state``: what the law learned, saved and restored.
@@ -25,12 +26,11 @@ the fit could not tell apart (``benchmarks/bench_candidate_span.py``; docs/decis
 Without candidates (a polynomial, an older model file) g_j are the model's own regressors f_j (``D_hat = f . w0 +
 b0``).
 
-The bias.  ``bias`` is everything constant (the Earth rate, the turn-on bias), captured first: the
-T_eff-weighted mean of ``r / T_eff`` over the first intervals spanning ``bias_capture_s``, an interval farther than
-``TABLE_SIGMAS`` sigmas from the capture so far rejected.  The level db is the bias's too, and like it is not
-published: it absorbs the capture's error and the frozen drift's mean error, which a station's ``?BIAS`` or
-zero window removes with the bias (``benchmarks/bench_table.py``; docs/decisions/2026-12-07-table-law-level.md).
-Each switch-on (``begin_run``) captures the bias again and marginalizes the level out of the sums.
+The bias and the level.  The bias (everything constant) is captured first (``bias``, over ``bias_capture_s``).
+The level db is the bias's too, and like it is not published: the drift in use is ``D_hat + g . dw``.  It absorbs
+the capture's error and the frozen drift's mean error, which a station's ``?BIAS`` or zero window removes with the
+bias (``benchmarks/bench_table.py``; docs/decisions/2026-12-07-table-law-level.md).  Each switch-on
+(``begin_run``) captures the bias again and marginalizes the level out of the sums.
 
 The chain.  An interval is rejected and flagged ``guard`` when its innovation is farther than ``TABLE_SIGMAS``
 sigmas, ``sqrt(c (R + phi P phi^T))``, or its move more than ``AMBIGUOUS_DEG`` from every whole turn of the
@@ -65,6 +65,7 @@ from ..adapt import ComparisonGuard
 from ..adapt_config import AdaptConfig, blocks_in
 from ..dwell import Dwell, angle_at_deg, out_of_order
 from . import judge
+from .bias import BiasCapture
 from .estimate import (
     AMBIGUOUS_DEG,
     ARCSEC_PER_DEG,
@@ -159,10 +160,7 @@ class TableLaw(ComparisonGuard):
         except np.linalg.LinAlgError:
             self.reset_to_frozen()
             self.guards += 1
-        self.bias_dph: float | None = None if self.bias_capture_s > 0 else 0.0
-        self.bias_sum_arcsec = 0.0
-        self.bias_time_s = 0.0
-        self.bias_rates: list[tuple[float, float]] = []
+        self.bias = BiasCapture(self.bias_capture_s)
         self.break_chain()
         self.last_dwell_end_s: float | None = None
 
@@ -189,6 +187,15 @@ class TableLaw(ComparisonGuard):
         self._reset_comparison()
 
     # -- what the law holds ----------------------------------------------------------------------
+
+    @property
+    def bias_dph(self) -> float | None:
+        """The run's bias (``bias``), None while it is captured."""
+        return self.bias.bias_dph
+
+    @bias_dph.setter
+    def bias_dph(self, value: float | None) -> None:
+        self.bias.bias_dph = value
 
     @property
     def h(self) -> np.ndarray:
@@ -361,7 +368,7 @@ class TableLaw(ComparisonGuard):
         if isinstance(screened, Rejected):
             return self._reject(dwell, screened.reason)
         if dwell.angle_end_deg is not None:  # the creep it declares, against the gyro's rate within it
-            creep = creep_disagreement(dwell, self.window, screened, self.law, self._bias_so_far(), self.prior_dph)
+            creep = creep_disagreement(dwell, self.window, screened, self.law, self.bias.so_far(), self.prior_dph)
             if creep is not None and abs(creep[0]) > CREEP_SIGMAS * creep[1]:
                 e, sigma, declared = creep
                 return self._reject(
@@ -383,16 +390,6 @@ class TableLaw(ComparisonGuard):
             self.anchor = here
             return TableOutcome(dwell.t_end_s, OutcomeStatus.ANCHOR)
         return self._interval(dwell, anchor, here)
-
-    def _bias_so_far(self) -> tuple[float, float] | None:
-        """The bias and its between-interval variance: the captured one (variance 0), else the capture's so far;
-        None before its first interval."""
-        if self.bias_dph is not None:
-            return self.bias_dph, 0.0
-        if self.bias_time_s > 0:
-            spread = [q for q, _ in self.bias_rates]
-            return self.bias_sum_arcsec / self.bias_time_s, float(np.var(spread)) if len(spread) >= 2 else 0.0
-        return None
 
     def _refuse(self, dwell: Dwell, reason: str) -> TableOutcome:
         self.refused += 1
@@ -463,27 +460,17 @@ class TableLaw(ComparisonGuard):
     def _capture(
         self, dwell: Dwell, bb: Anchor, r: float, t_eff: float, r_var: float, values: dict[str, float]
     ) -> TableOutcome:
-        """An interval of the bias capture: rejected when its rate ``r / T_eff`` is farther than ``TABLE_SIGMAS``
-        sigmas from the capture's mean so far (sigma from the interval's noise, the capture's spread, the drift's
-        allowed spread and the scale factor's prior times the move); else into the T_eff-weighted mean, the bias
-        once it spans ``bias_capture_s``."""
-        rate = r / t_eff
-        so_far = self._bias_so_far()
-        if so_far is not None:  # consistent with the capture so far?
-            mean, between = so_far
-            sf = 1e-6 * SF_PRIOR_PPM * values["move_deg"] * ARCSEC_PER_DEG / t_eff  # the scale factor, not yet known
-            sigma = math.sqrt(r_var / t_eff**2 + between + self.prior_dph**2 + sf * sf)
-            if abs(rate - mean) > TABLE_SIGMAS * sigma:
-                values.update(innovation_arcsec=(rate - mean) * t_eff, sigma_arcsec=sigma * t_eff)
-                return self._reject(
-                    dwell, f"disagrees with the bias captured so far by {abs(rate - mean) / sigma:.1f} sigma", values
-                )
+        """An interval of the bias capture (``bias``): rejected when it disagrees with the capture so far, else
+        taken."""
+        off = self.bias.disagreement(r, t_eff, r_var, values["move_deg"], self.prior_dph)
+        if off is not None:
+            rate_off, sigma = off
+            values.update(innovation_arcsec=rate_off * t_eff, sigma_arcsec=sigma * t_eff)
+            return self._reject(
+                dwell, f"disagrees with the bias captured so far by {abs(rate_off) / sigma:.1f} sigma", values
+            )
         self.rejections_in_row = 0
-        self.bias_rates.append((rate, t_eff))
-        self.bias_sum_arcsec += r
-        self.bias_time_s += t_eff
-        if self.bias_time_s >= self.bias_capture_s:
-            self.bias_dph = self.bias_sum_arcsec / self.bias_time_s
+        self.bias.add(r, t_eff)
         self.anchor = bb
         return outcome(dwell, OutcomeStatus.BIAS, "", values)
 
