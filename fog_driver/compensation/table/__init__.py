@@ -1,9 +1,9 @@
 """Adapting from the turntable's angles: the readout learns from dwell-to-dwell intervals (``law.TableLaw``).
 
 The package's rooms: ``window`` (the blocks' sums by named column), ``screen`` (what a dwell is refused or
-rejected for), ``estimate`` (the law's sums and estimate), ``judge`` (a dwell judged by its neighbours),
-``outcomes`` (what became of each dwell), ``state`` (what the law learned, saved and restored), and ``law``,
-the ``TableLaw`` in front of them.
+rejected for), ``estimate`` (the law's sums and estimate), ``bias`` (the run's bias capture), ``judge`` (a
+dwell judged by its neighbours), ``outcomes`` (what became of each dwell), ``state`` (what the law learned,
+saved and restored), and ``law``, the ``TableLaw`` in front of them.
 """
 
 from .estimate import SF_REF_C, SHAPE_CANDIDATES, SHAPE_REGRESSORS, TABLE_SIGMAS

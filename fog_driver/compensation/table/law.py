@@ -78,7 +78,7 @@ from .estimate import (
 )
 from .outcomes import OutcomeLog, OutcomeStatus, OutcomeTally, TableOutcome, outcome
 from .screen import CREEP_SIGMAS, Refused, Rejected, creep_disagreement, screen
-from .state import LAW_KEYS, checked_state, state_of
+from .state import MIXTURE_KEYS, checked_state, state_of
 from .window import Anchor, BlockWindow
 
 __all__ = ["TableLaw"]
@@ -139,7 +139,7 @@ class TableLaw(ComparisonGuard):
         self.prior_dph = CAPTURE_PRIOR_RUNAWAYS * self.runaway_dph
         self.bias_capture_s = blocks_in(self.config.bias_capture_s, self.block_s) * self.block_s
         #: the estimate: the sums, the prior scales' mixture, the noise and the calibration
-        self.law = MixtureLaw(self.n_features, self.block_s, self.runaway_dph)
+        self.mixture = MixtureLaw(self.n_features, self.block_s, self.runaway_dph)
         self.window = BlockWindow(self.n_features, self.block_s)
         self._log = OutcomeLog()
         self._last_ring_c = math.nan
@@ -156,7 +156,7 @@ class TableLaw(ComparisonGuard):
         bias's, is a new one too (``MixtureLaw.new_level``); the law's sums on the shape and the scale factor are
         kept."""
         try:
-            self.law.new_level()
+            self.mixture.new_level()
         except np.linalg.LinAlgError:
             self.reset_to_frozen()
             self.guards += 1
@@ -183,7 +183,7 @@ class TableLaw(ComparisonGuard):
 
     def reset_to_frozen(self) -> None:
         """The adapted weights back to the frozen ones, the law's information cleared (non-finite numbers)."""
-        self.law.reset()
+        self.mixture.reset()
         self._reset_comparison()
 
     # -- what the law holds ----------------------------------------------------------------------
@@ -199,28 +199,28 @@ class TableLaw(ComparisonGuard):
 
     @property
     def h(self) -> np.ndarray:
-        return self.law.h
+        return self.mixture.h
 
     @property
     def i(self) -> np.ndarray:
-        return self.law.i
+        return self.mixture.i
 
     @property
     def delta(self) -> np.ndarray:
         """The estimate in use (``estimate.Layout``: dw, db, s0, s1)."""
-        return self.law.delta
+        return self.mixture.delta
 
     @delta.setter
     def delta(self, value: np.ndarray) -> None:
-        self.law.delta = value
+        self.mixture.delta = value
 
     @property
     def cov(self) -> np.ndarray:
-        return self.law.cov
+        return self.mixture.cov
 
     @property
     def evidence(self) -> np.ndarray:
-        return self.law.evidence
+        return self.mixture.evidence
 
     @property
     def outcomes(self) -> deque[TableOutcome]:
@@ -251,21 +251,23 @@ class TableLaw(ComparisonGuard):
     @property
     def frozen_weight(self) -> float:
         """The frozen drift's weight among the prior scales (1 before any interval is learned)."""
-        return self.law.frozen_weight
+        return self.mixture.frozen_weight
 
     @property
     def scale_factor_applied(self) -> bool:
         """Once the bias is captured and an interval learned, s0's posterior variance at most
         ``SF_APPLY_SIGMA_PPM^2``."""
-        sf0 = self.law.layout.sf0
+        sf0 = self.mixture.layout.sf0
         return bool(
-            self.bias_dph is not None and self.accepted > 0 and 0.0 < self.law.cov[sf0, sf0] <= SF_APPLY_SIGMA_PPM**2
+            self.bias_dph is not None
+            and self.accepted > 0
+            and 0.0 < self.mixture.cov[sf0, sf0] <= SF_APPLY_SIGMA_PPM**2
         )
 
     @property
     def scale_factor_ppm(self) -> tuple[float, float]:
         """The learned (s0 ppm, s1 ppm/degC)."""
-        return self.law.scale_factor_ppm
+        return self.mixture.scale_factor_ppm
 
     def scale_ppm_at(self, t_ring_c: float) -> float:
         """``s(T) = s0 + s1 (T - SF_REF_C)`` in ppm when applied, else 0."""
@@ -284,9 +286,9 @@ class TableLaw(ComparisonGuard):
         flags, self._flag_pending = self._flag_pending, 0
         if not math.isfinite(y_frozen):
             return y_frozen, y_frozen, FLAG_GUARD
-        lay = self.law.layout
-        change = float(np.dot(g, self.law.delta[lay.shape]))
-        if not math.isfinite(change) or not math.isfinite(self.law.delta[lay.level]):
+        lay = self.mixture.layout
+        change = float(np.dot(g, self.mixture.delta[lay.shape]))
+        if not math.isfinite(change) or not math.isfinite(self.mixture.delta[lay.level]):
             self.reset_to_frozen()
             self.guards += 1
             return y_frozen, y_frozen, flags | FLAG_GUARD
@@ -325,7 +327,7 @@ class TableLaw(ComparisonGuard):
         inc = self.window.columns.increment(g, y_frozen, self.block_s, t_ring_c, rate_dph, frames_s, clean, warming_up)
         self.window.add(index, inc, rate_dph)
         if clean:  # the regressors' gram, for the prior
-            self.law.add_to_gram(g)
+            self.mixture.add_to_gram(g)
 
     def _coil_temperature(self, t_ring_c: float) -> float:
         """The coil's temperature: the ring's through the model's coil stages (each
@@ -368,7 +370,7 @@ class TableLaw(ComparisonGuard):
         if isinstance(screened, Rejected):
             return self._reject(dwell, screened.reason)
         if dwell.angle_end_deg is not None:  # the creep it declares, against the gyro's rate within it
-            creep = creep_disagreement(dwell, self.window, screened, self.law, self.bias.so_far(), self.prior_dph)
+            creep = creep_disagreement(dwell, self.window, screened, self.mixture, self.bias.so_far(), self.prior_dph)
             if creep is not None and abs(creep[0]) > CREEP_SIGMAS * creep[1]:
                 e, sigma, declared = creep
                 return self._reject(
@@ -379,7 +381,7 @@ class TableLaw(ComparisonGuard):
                 )
         first, end = screened.first, screened.end
         if len(screened.rates) >= 3:  # the white noise of a block rate
-            self.law.add_noise(screened.white_var_dph2)
+            self.mixture.add_noise(screened.white_var_dph2)
         summary = self.window.means(first, end)
         t_mid_s = 0.5 * (first + end) * self.block_s  # the mean time of the window's block middles
         angle = angle_at_deg(dwell.angle_deg, dwell.angle_end_deg, dwell.t_start_s, dwell.t_end_s, t_mid_s)
@@ -404,7 +406,7 @@ class TableLaw(ComparisonGuard):
     def _interval(self, dwell: Dwell, a: Anchor, bb: Anchor) -> TableOutcome:
         """The interval from ``a`` to ``bb``, ending at ``dwell``: skipped, rejected, an interval of the bias
         capture, or judged by the neighbours (``_judge_by_neighbours``), gated and learned."""
-        p = self.law.predict(a, bb, self.window.columns, self.bias_dph)
+        p = self.mixture.predict(a, bb, self.window.columns, self.bias_dph)
         if p.degraded:  # blocks with degraded inputs in it: not learned; the chain goes on from here
             self.anchor = bb
             self.skipped += 1
@@ -426,16 +428,16 @@ class TableLaw(ComparisonGuard):
         if judged is not None:
             return judged
         before = self._snapshot(a)
-        calibration = self.law.calibration()
+        calibration = self.mixture.calibration()
         try:
-            candidates = self.law.candidates()
+            candidates = self.mixture.candidates()
         except np.linalg.LinAlgError:
             return self._singular(dwell, bb)
-        if not self.law.h.any():  # nothing learned yet (or since a reset): the priors' spread
-            self.law.blend(candidates)
-        e, s_raw = self.law.innovation(p)
+        if not self.mixture.h.any():  # nothing learned yet (or since a reset): the priors' spread
+            self.mixture.blend(candidates)
+        e, s_raw = self.mixture.innovation(p)
         sigma = math.sqrt(max(s_raw, 1e-30) * calibration)
-        self.law.calibrate(e * e / max(s_raw, 1e-30))
+        self.mixture.calibrate(e * e / max(s_raw, 1e-30))
         values.update(innovation_arcsec=e, sigma_arcsec=sigma)
         if abs(e) > TABLE_SIGMAS * sigma:
             rejected = self._reject(dwell, f"disagrees with the gyro by {abs(e) / sigma:.1f} sigma", values)
@@ -446,10 +448,10 @@ class TableLaw(ComparisonGuard):
                 self._learned = None
             return rejected
         self.rejections_in_row = 0
-        sf = self.law.scale_factor_part(p.phi)
+        sf = self.mixture.scale_factor_part(p.phi)
         self._add_window((r - sf) / t_eff, e / t_eff)
         try:
-            self.law.learn(p, candidates, calibration, bb.end_block * self.block_s)
+            self.mixture.learn(p, candidates, calibration, bb.end_block * self.block_s)
         except np.linalg.LinAlgError:
             return self._singular(dwell, bb)
         self.accepted += 1
@@ -501,7 +503,7 @@ class TableLaw(ComparisonGuard):
     def _snapshot(self, anchor: Anchor) -> dict[str, Any]:
         """The law's state before an interval from ``anchor``, to return to (``_restore``)."""
         return {
-            "law": self.law.snapshot(),
+            "law": self.mixture.snapshot(),
             **{k: getattr(self, k) for k in (*self._COMPARISON, *self._COUNTERS)},
             "anchor": anchor,
         }
@@ -509,7 +511,7 @@ class TableLaw(ComparisonGuard):
     def _restore(self, snapshot: dict[str, Any], counters: bool) -> None:
         """Back to ``snapshot``'s learning state and anchor, and its counters when ``counters`` (else they stay:
         what happened since, a dwell rejected for motion say, still happened)."""
-        self.law.restore(snapshot["law"])
+        self.mixture.restore(snapshot["law"])
         for k in (*self._COMPARISON, *self._COUNTERS) if counters else self._COMPARISON:
             setattr(self, k, snapshot[k])
         self.anchor = snapshot["anchor"]
@@ -525,11 +527,11 @@ class TableLaw(ComparisonGuard):
         learned, doubted = self._learned, self._doubted
         if learned is None or doubted is None or learned.anchor is not a or doubted.start is not a:
             return None
-        c = self.law.predict(doubted.end, bb, self.window.columns, self.bias_dph)
+        c = self.mixture.predict(doubted.end, bb, self.window.columns, self.bias_dph)
         if c.degraded or abs(c.off_deg) > AMBIGUOUS_DEG:
             return None
-        e_c, s_c_raw = self.law.innovation(c)
-        s_c = math.sqrt(max(s_c_raw, 1e-30) * self.law.calibration())
+        e_c, s_c_raw = self.mixture.innovation(c)
+        s_c = math.sqrt(max(s_c_raw, 1e-30) * self.mixture.calibration())
         if not judge.blames_the_learned(learned, doubted, e_c, s_c):
             return None
         after = self._snapshot(a)
@@ -552,21 +554,21 @@ class TableLaw(ComparisonGuard):
         the regressors' gram, the noise and innovation calibration, the comparison, the counters, and the frozen
         weights it was learned against.  Not the run's own chain (the ring of blocks, the bias, the anchor):
         a restored law starts a new run (``begin_run``)."""
-        return state_of(self.w0, self.b0, self.shape, lambda k: getattr(self.law if k in LAW_KEYS else self, k))
+        return state_of(self.w0, self.b0, self.shape, lambda k: getattr(self.mixture if k in MIXTURE_KEYS else self, k))
 
     def set_state(self, state: dict[str, Any]) -> None:
         """Inverse of ``get_state``, as a new run; ``ValueError`` (nothing changed) for missing or unknown keys,
         bad values, or a state learned against other frozen weights (another model)."""
         values = checked_state(state, self.w0, self.b0, self.shape, self.n_features)
         for k, v in values.items():
-            setattr(self.law if k in LAW_KEYS else self, k, v)
-        self.law.last_update_s = None
+            setattr(self.mixture if k in MIXTURE_KEYS else self, k, v)
+        self.mixture.last_update_s = None
         self.begin_run()
 
     def summary(self) -> dict[str, Any]:
         """Counts and the scale factor, for STATUS and reports."""
         s0, s1 = self.scale_factor_ppm
-        sf0 = self.law.layout.sf0
+        sf0 = self.mixture.layout.sf0
         return {
             "accepted": self.accepted,
             "rejected": self.rejected,
@@ -581,6 +583,6 @@ class TableLaw(ComparisonGuard):
             "shape_regressors": self.n_features,
             "scale_factor_ppm": s0,
             "scale_factor_ppm_per_c": s1,
-            "scale_factor_sigma_ppm": math.sqrt(self.law.cov[sf0, sf0]) if self.accepted else SF_PRIOR_PPM,
+            "scale_factor_sigma_ppm": math.sqrt(self.mixture.cov[sf0, sf0]) if self.accepted else SF_PRIOR_PPM,
             "scale_factor_applied": self.scale_factor_applied,
         }

@@ -143,7 +143,7 @@ def creep_disagreement(
     dwell: Dwell,
     window: BlockWindow,
     screened: Screened,
-    law: MixtureLaw,
+    mixture: MixtureLaw,
     bias: tuple[float, float] | None,
     prior_dph: float,
 ) -> tuple[float, float, float] | None:
@@ -173,12 +173,12 @@ def creep_disagreement(
     at = [angle_at_deg(dwell.angle_deg, dwell.angle_end_deg, dwell.t_start_s, dwell.t_end_s, t) for t in (t0, t1)]
     declared = (at[1] - at[0]) * ARCSEC_PER_DEG
     t_int = d.temperature_c_s / span
-    phi = law.layout.row(d.shape, span, declared, t_int)
-    e = d.angle_arcsec - d.frozen_arcsec - bias_dph * span - float(np.dot(phi, law.delta)) - declared
+    phi = mixture.layout.row(d.shape, span, declared, t_int)
+    e = d.angle_arcsec - d.frozen_arcsec - bias_dph * span - float(np.dot(phi, mixture.delta)) - declared
     v = screened.white_var_dph2
-    white = law.noise_var_dph2 if math.isfinite(law.noise_var_dph2) else v if math.isfinite(v) else 0.0
-    model = MODEL_NOISE_SHARE * law.model_sigma_dph * span
+    white = mixture.noise_var_dph2 if math.isfinite(mixture.noise_var_dph2) else v if math.isfinite(v) else 0.0
+    model = MODEL_NOISE_SHARE * mixture.model_sigma_dph * span
     sf = 1e-6 * SF_PRIOR_PPM * declared
-    var = white * b * span + model * model + float(phi @ law.cov @ phi) + sf * sf
+    var = white * b * span + model * model + float(phi @ mixture.cov @ phi) + sf * sf
     var += (prior_dph**2 + bias_var) * span * span
     return e, math.sqrt(max(var, 1e-30)), declared

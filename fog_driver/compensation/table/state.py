@@ -17,7 +17,7 @@ import numpy as np
 
 from .estimate import PRIOR_SCALES, SHAPE_REGRESSORS
 
-__all__ = ["ARRAYS", "COUNTS", "FLOATS", "LAW_KEYS", "checked_state", "state_of"]
+__all__ = ["ARRAYS", "COUNTS", "FLOATS", "MIXTURE_KEYS", "checked_state", "state_of"]
 
 ARRAYS = ("h", "i", "delta", "cov", "gram", "evidence")
 FLOATS = (
@@ -42,7 +42,7 @@ COUNTS = (
     "compare_windows",
 )
 #: the keys held by the law's estimate (``estimate.MixtureLaw``); the others by the table law itself
-LAW_KEYS = frozenset(
+MIXTURE_KEYS = frozenset(
     ("h", "i", "delta", "cov", "gram", "evidence", "gram_weight", "noise_var_dph2", "calibration_sum")
     + ("calibration_n", "noise_dwells")
 )
