@@ -558,9 +558,11 @@ def test_a_fast_creep_is_learned_against_the_tables_angle_at_the_windows_mean_ti
     assert len(learned) >= 0.9 * len(log) and comp.table.rejected <= 1
     z = np.array([o.innovation_arcsec / o.sigma_arcsec for o in learned])
     assert np.sqrt(np.mean(z**2)) < 1.5, z
-    import fog_driver.compensation.table as table_module
+    import fog_driver.compensation.table.law as table_law
+    import fog_driver.compensation.table.screen as table_screen
 
-    monkeypatch.setattr(table_module, "angle_at_deg", lambda a, e, t0, t1, t: reference_deg(a, e))
+    for module in (table_law, table_screen):  # the anchor's angle, and the creep a dwell declares
+        monkeypatch.setattr(module, "angle_at_deg", lambda a, e, t0, t1, t: reference_deg(a, e))
     middle, _ = compensate(creeping, log)
     rms = np.sqrt(np.mean(np.array([o.innovation_arcsec for o in learned]) ** 2))
     off = np.array([o.innovation_arcsec for o in middle.table.outcomes if math.isfinite(o.innovation_arcsec)])
@@ -822,7 +824,7 @@ def test_what_the_table_law_learned_persists_across_a_restart(run, tmp_path):
     samples, dwells, *_ = run
     part, use = first(samples, dwells, 4000.0)
     comp, _ = compensate(part, use)
-    saved = comp.table.state_dict()
+    saved = comp.table.get_state()
     doc = yaml.safe_load(yaml.safe_dump(comp.adaptation_document()))
     restored = Compensator(load_model(DEFAULT_MODEL), 1.0 / RATE_HZ, table=True, adapt=comp.adapt)
     restored.restore_adaptation(doc, "state.yaml")
@@ -832,7 +834,7 @@ def test_what_the_table_law_learned_persists_across_a_restart(run, tmp_path):
     h = np.array(saved["h"])
     assert h[lvl, lvl] > 0 and abs(np.delete(h[:, lvl], lvl)).max() > 0  # there was a level, tied to the rest
     assert_level_marginalized(restored.table, saved)
-    rest = {k: v for k, v in restored.table.state_dict().items() if k not in ("h", "i", "delta", "cov")}
+    rest = {k: v for k, v in restored.table.get_state().items() if k not in ("h", "i", "delta", "cov")}
     assert rest == {k: v for k, v in saved.items() if k not in ("h", "i", "delta", "cov")}
     # the scale factor as learned, within what the level's own uncertainty moved it by
     assert restored.table.scale_factor_ppm == pytest.approx(comp.table.scale_factor_ppm, abs=0.01)
@@ -853,14 +855,14 @@ def test_what_the_table_law_learned_persists_across_a_restart(run, tmp_path):
     # a state of an earlier version, learned on the model's own regressors (no shape): refused by a law on the
     # candidates (the daemon sets it aside and starts afresh), restored by one without candidates
     own, _ = compensate(part, use, without_candidates())
-    earlier = {k: v for k, v in yaml.safe_load(yaml.safe_dump(own.table.state_dict())).items() if k != "shape"}
+    earlier = {k: v for k, v in yaml.safe_load(yaml.safe_dump(own.table.get_state())).items() if k != "shape"}
     with pytest.raises(InputFileError, match="'regressors' shape regressors, this law's are 'candidates'"):
         fresh.restore_adaptation({**doc, "table": earlier}, "state.yaml")
     assert fresh.table.accepted == 0
     plain = Compensator(without_candidates(), 1.0 / RATE_HZ, table=True, adapt=comp.adapt)
     plain.restore_adaptation({**doc, "table": earlier}, "state.yaml")
     assert plain.table.accepted == own.table.accepted
-    assert_level_marginalized(plain.table, own.table.state_dict())
+    assert_level_marginalized(plain.table, own.table.get_state())
 
 
 def assert_level_marginalized(law: TableLaw, saved: dict) -> None:
@@ -989,3 +991,50 @@ def test_compensate_of_a_capture_whose_sidecar_table_event_has_a_nan_angle_is_a_
     assert str(recorded) in err[0] and "table event at byte" in err[0]
     assert "angle_deg must be a number within +-1e+06 degrees" in err[0]
     assert not out.exists()
+
+
+def test_a_dwell_blamed_by_its_neighbours_gives_a_new_outcome_log_and_leaves_the_one_read_before_as_it_was():
+    """The judge's verdict (``table.judge``): dwell 2, learned, was the wrong one; dwell 3, rejected, has the
+    interval (1, 3).  The revised log has them so, dwell 2's figures kept; the log and the outcomes a reader
+    held before are unchanged, and each log's tally counts its own outcomes."""
+    from fog_driver.compensation.table.judge import BLAMED_REASON
+    from fog_driver.compensation.table.outcomes import OutcomeLog, OutcomeStatus, Revision, outcome
+
+    dwells = [Dwell(100.0 * k, 100.0 * k + 60.0, 36.0 * k) for k in range(4)]
+    statuses = [OutcomeStatus.ANCHOR, OutcomeStatus.LEARNED, OutcomeStatus.LEARNED, OutcomeStatus.REJECTED]
+    log = OutcomeLog()
+    for k, status in enumerate(statuses):
+        log.note(outcome(dwells[k], status, "" if k < 3 else "disagrees", {"innovation_arcsec": 1.0 + k}))
+    held, before = log.recent, list(log.recent)
+    merged = outcome(dwells[3], OutcomeStatus.LEARNED, "", {"innovation_arcsec": -0.5})
+    revised = log.revised(Revision(dwells[2].t_end_s, merged, BLAMED_REASON))
+    assert log.recent is held and list(held) == before
+    assert list(revised.recent) == [
+        before[0],
+        before[1],
+        before[2]._replace(status=OutcomeStatus.REJECTED, reason=BLAMED_REASON),
+        merged,
+    ]
+    assert revised.recent[2].innovation_arcsec == before[2].innovation_arcsec == 3.0
+    assert dict(log.tally().by_status) == {"anchor": 1, "learned": 2, "rejected": 1}
+    assert dict(revised.tally().by_status) == {"anchor": 1, "learned": 2, "rejected": 1}
+    assert revised.tally().by_reason[("rejected", BLAMED_REASON)][0] == [1]
+
+
+def test_a_dwells_status_is_written_as_its_word_in_json_csv_and_text():
+    """``OutcomeStatus`` is a ``StrEnum``: every way an outcome is written (STATUS's NDJSON, a CSV, a report
+    line) gives the bare word, as the strings it replaced did."""
+    import csv
+    import io
+    import json
+
+    from fog_driver.compensation.table import OutcomeStatus
+
+    for status in OutcomeStatus:
+        word = status.value
+        assert json.dumps({"status": status}) == json.dumps({"status": word})
+        assert f"{status} {status:>9}" == f"{word} {word:>9}" and str(status) == word
+        out = io.StringIO()
+        csv.writer(out).writerow([status])
+        assert out.getvalue() == f"{word}\r\n"
+        assert status == word and {word: 1}[status] == 1
