@@ -15,9 +15,10 @@ from pathlib import Path
 
 import pytest
 import yaml
+from cli_run import run_cli
+from daemon_hil import SHORT
+from service_in_process import publish
 from structlog.testing import capture_logs
-from test_cli import run_cli
-from test_daemon_trust import SHORT, publish
 
 from fog_driver.daemon.config import DEFAULT_MODEL, DriverConfig
 from fog_driver.daemon.service import ConfigError, Service
@@ -257,7 +258,7 @@ def test_a_reload_that_points_adapt_state_at_the_model_is_refused_and_changes_no
 
 def _adapting(tmp_path: Path, state: Path):
     """A daemon replaying a capture with ``adapt_state`` = ``state``, adapting (the first ANGLE seen)."""
-    from test_daemon_hil import Client, Daemon
+    from daemon_hil import Client, Daemon
 
     daemon = Daemon(tmp_path, REPLAY, "--config", str(_config(tmp_path, state)))
     client = Client(daemon.address)

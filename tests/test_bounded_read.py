@@ -25,7 +25,7 @@ from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 import pytest
-from test_cli import assert_one_line_error
+from cli_run import assert_one_line_error
 
 from fog_driver.daemon.config import DEFAULT_MODEL
 from fog_driver.errors import InputFileError
@@ -273,7 +273,7 @@ def _log_events(log: Path, keys: Iterable[str]) -> list[dict]:
 def test_a_reload_of_a_model_path_that_became_a_fifo_is_refused_and_the_old_model_goes_on(tmp_path):
     """``?RELOAD`` and SIGHUP read the model the same way (``Service.reload_from_file``): a FIFO is one line, at
     once, and the angle goes on with the model in use."""
-    from test_model_checks import watching
+    from model_refusals import watching
 
     model = tmp_path / "m.yaml"
     with watching(tmp_path, model) as (daemon, client):

@@ -8,7 +8,6 @@ import json
 import os
 import re
 import socket
-import subprocess
 import sys
 import threading
 from pathlib import Path
@@ -17,6 +16,7 @@ import numpy as np
 import pytest
 import structlog
 import yaml
+from cli_run import assert_one_line_error, run_cli
 
 from fog_driver.client.display import Progress
 from fog_driver.protocol import decode_bytes, encode_sample
@@ -26,27 +26,6 @@ from fog_driver.transport import PtyPair
 
 DATA = Path(__file__).resolve().parent / "data"
 FIXTURES = ("synthetic-clean", "synthetic-faults")
-
-
-def run_cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "fog_driver", *args],
-        capture_output=True,
-        text=True,
-        cwd=cwd,
-        timeout=120,
-        stdin=subprocess.DEVNULL,
-    )
-
-
-def assert_one_line_error(proc: subprocess.CompletedProcess, status: int, *needles: str) -> None:
-    assert proc.returncode == status, proc.stderr
-    assert "Traceback" not in proc.stderr
-    lines = proc.stderr.strip().splitlines()
-    assert len(lines) == 1, proc.stderr
-    assert lines[0].startswith("fog-driver: error: ")
-    for needle in needles:
-        assert needle in lines[0]
 
 
 # --- fixtures ----------------------------------------------------------------------------------

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_cli import assert_one_line_error, run_cli
+from cli_run import assert_one_line_error, run_cli
 
 from fog_driver.sim.capture import read_truth
 from fog_driver.sim.chamber import Hold, Ramp, Sinusoid

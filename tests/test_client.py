@@ -18,8 +18,8 @@ import threading
 from pathlib import Path
 
 import pytest
-from test_daemon_hil import Client as RawClient
-from test_daemon_hil import Daemon
+from daemon_hil import Client as RawClient
+from daemon_hil import Daemon
 
 from fog_driver.client import (
     Angle,

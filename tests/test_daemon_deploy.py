@@ -7,7 +7,6 @@ the test listens on: never from sleeps.
 
 from __future__ import annotations
 
-import contextlib
 import os
 import select
 import shlex
@@ -19,11 +18,12 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 import yaml
+from daemon_process import GUARD_S, daemon_process
 
 from fog_driver.daemon.config import load_config
 
@@ -38,36 +38,12 @@ INSTANCE = "bench1"
 DAEMON_SHUTDOWN_BUDGET_S = 15.0
 #: The environment systemd gives a service (no virtual environment on the PATH), before the unit's own.
 SYSTEMD_PATH = "/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin"
-GUARD_S = 60.0
 INSTALL_GUARD_S = 600.0  # building a wheel and installing its dependencies into a new virtual environment
 
 
 def _environment_outside_the_source_tree() -> dict[str, str]:
     """This process's environment less anything that would make Python import this source tree."""
     return {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV")}
-
-
-@contextlib.contextmanager
-def daemon_process(
-    command: list[str],
-    *,
-    cwd: Path,
-    log: Path,
-    env: dict[str, str] | None = None,
-    stdin: int = subprocess.DEVNULL,
-    umask: int = -1,
-) -> Iterator[subprocess.Popen]:
-    """``command`` running with its stdout piped and its stderr in ``log``; killed if still running at the end."""
-    with log.open("w") as stderr:
-        proc = subprocess.Popen(
-            command, cwd=cwd, env=env, stdin=stdin, stdout=subprocess.PIPE, stderr=stderr, text=True, umask=umask
-        )
-        try:
-            yield proc
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait(GUARD_S)
 
 
 def run_until_ready_then_terminate(
@@ -371,7 +347,7 @@ def test_systemctl_reload_runs_the_units_exec_reload_and_the_daemon_reloads_its_
     """The review: `systemctl reload` was not defined (the unit had no ExecReload=).  Its command, as systemd
     runs it ($MAINPID the daemon's pid), makes the daemon read its config again: a new token closes every
     connection authorized by the old one ("the client token changed")."""
-    from test_daemon_hil import Client, Daemon
+    from daemon_hil import Client, Daemon
 
     command = unit_service_keys()["ExecReload"]
     config = tmp_path / "fog.yaml"

@@ -7,61 +7,30 @@ capture intact.  Readiness from the daemon's own lines, never sleeps (see test_d
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import resource
 import signal
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 import structlog
+from daemon_hil import (
+    N_SHORT,
+    SHORT,
+    Client,
+    Daemon,
+    next_status,
+    offline_angles,
+    start_watching,
+    watch_all,
+    watched_daemon,
+)
 from framegen import with_identities
-from test_daemon_hil import DATA, Client, Daemon, offline_angles
 
 from fog_driver.protocol import decode_bytes
 from fog_driver.samples.captures import read_provenance
 from fog_driver.transport import PtyPair
-
-SHORT = (DATA / "sim-short.bin").read_bytes()
-N_SHORT = decode_bytes(SHORT).counters.sample_frames
-
-
-def next_status(client: Client, until, what: str, limit: int = 120) -> dict:
-    """The first STATUS for which ``until(status)`` holds, within ``limit`` of them (one a second)."""
-    for _ in range(limit):
-        status = client.next("STATUS")
-        if until(status):
-            return status
-    pytest.fail(f"no STATUS with {what} within {limit} of them")
-
-
-def watch_all(client: Client, n: int) -> list[dict]:
-    """``n`` consecutive ANGLE lines; the seqs must have no hole (nothing was lost on the way)."""
-    angles = [client.next("ANGLE") for _ in range(n)]
-    seqs = [a["seq"] for a in angles]
-    assert seqs == list(range(seqs[0], seqs[0] + n)), "a sample was not published"
-    return angles
-
-
-def start_watching(daemon: Daemon) -> Client:
-    client = Client(daemon.address)
-    client.send('?WATCH={"enable":true};')
-    client.next("WATCH")
-    client.wait_device("activated")
-    return client
-
-
-@contextlib.contextmanager
-def watched_daemon(tmp_path: Path, *extra: str, preexec=None) -> Iterator[tuple[PtyPair, Daemon, Client]]:
-    """A daemon on a pty with a client watching every sample, the port open; killed if still running at the end."""
-    with PtyPair() as pty:
-        daemon = Daemon(tmp_path, pty.slave_path, *extra, preexec=preexec)
-        try:
-            yield pty, daemon, start_watching(daemon)
-        finally:
-            daemon.kill()
 
 
 def test_a_full_disk_degrades_the_capture_and_never_the_live_angle(tmp_path):

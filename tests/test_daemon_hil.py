@@ -14,118 +14,18 @@ import signal
 import socket
 import subprocess
 import sys
-import time
-from pathlib import Path
 
 import golden
 import pytest
+from daemon_hil import DATA, GUARD_S, Client, Daemon, offline_angles
 
-from fog_driver.daemon.config import DEFAULT_MODEL
-from fog_driver.modelfiles import load_model
-from fog_driver.offline.compensate import compensate_capture
 from fog_driver.protocol import decode_bytes, decode_file
 from fog_driver.tools.watch import parse_address
 from fog_driver.transport import PtyPair
 
 pytestmark = pytest.mark.serial  # pty timing and signals: run apart from the suite's parallel part
 
-DATA = Path(__file__).resolve().parent / "data"
 GOLDEN = DATA / "golden" / "sim-faults.watch-1hz.ndjson"
-GUARD_S = 30.0
-
-
-class Daemon:
-    """``fog-driver run`` in a subprocess, listening on a free loopback port."""
-
-    def __init__(self, tmp_path: Path, port: str, *extra: str, preexec=None) -> None:
-        self.capture_dir = tmp_path / "captures"
-        self.log_path = tmp_path / "daemon.log"
-        self.log = self.log_path.open("w")  # a file: a full, unread pipe would block the daemon
-        # PYTHONFAULTHANDLER: a hung daemon told SIGABRT writes every thread's stack to its log.
-        self.proc = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "fog_driver",
-                "run",
-                "--port",
-                port,
-                "--listen",
-                "127.0.0.1:0",
-                "--capture-dir",
-                str(self.capture_dir),
-                *extra,
-            ],
-            stdout=subprocess.PIPE,
-            stderr=self.log,
-            text=True,
-            stdin=subprocess.DEVNULL,
-            env={**os.environ, "PYTHONFAULTHANDLER": "1"},
-            preexec_fn=preexec,
-        )
-        line = self.proc.stdout.readline()  # the readiness line
-        self.readiness = line
-        assert "listening on" in line, (line, (tmp_path / "daemon.log").read_text())
-        address = line.split("listening on ")[1].split(";")[0]
-        host, _, number = address.rpartition(":")
-        self.address = (host, int(number))
-
-    def terminate(self) -> int:
-        self.proc.send_signal(signal.SIGTERM)
-        return self.wait()
-
-    def wait(self) -> int:
-        """The exit status; a daemon still running after GUARD_S fails with its thread stacks and log."""
-        try:
-            return self.proc.wait(GUARD_S)
-        except subprocess.TimeoutExpired:
-            self.proc.send_signal(signal.SIGABRT)  # faulthandler dumps every thread, then the process dies
-            self.proc.wait(GUARD_S)
-            pytest.fail(f"the daemon did not exit within {GUARD_S} s; its log:\n{self.log_path.read_text()[-20000:]}")
-
-    def raw_capture(self) -> bytes:
-        return b"".join(p.read_bytes() for p in sorted(self.capture_dir.glob("*.bin")))
-
-    def kill(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait(GUARD_S)
-
-
-class Client:
-    def __init__(self, address: tuple[str, int]) -> None:
-        self.sock = socket.create_connection(address, timeout=GUARD_S)
-        self.file = self.sock.makefile("rb")
-        self.device_state: str | None = None
-
-    def send(self, line: str) -> None:
-        self.sock.sendall(line.encode() + b"\n")
-
-    def next(self, cls: str | None = None) -> dict:
-        """The next line (of class ``cls``, skipping others); a hang guard fails the test after GUARD_S."""
-        deadline = time.monotonic() + GUARD_S
-        while True:
-            assert time.monotonic() < deadline, f"no {cls or 'line'} within {GUARD_S} s"
-            raw = self.file.readline()
-            assert raw, "the daemon closed the connection"
-            obj = json.loads(raw)
-            assert "class" in obj and None not in obj.values()
-            if obj["class"] == "DEVICE":
-                self.device_state = obj.get("state")
-            if cls is None or obj["class"] == cls:
-                return obj
-
-    def wait_device(self, state: str) -> None:
-        """Until the port is in ``state`` (from a DEVICE line already passed, or the next ones)."""
-        while self.device_state != state:
-            self.next("DEVICE")
-
-    def close(self) -> None:
-        """Hang up (the file made by makefile holds the socket open until it is closed too)."""
-        self.file.close()
-        self.sock.close()
-
-
 #: ANGLE's ``utc``: ISO 8601 UTC to the millisecond.
 UTC_RE = re.compile(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z")
 
@@ -135,15 +35,6 @@ def without_utc(raw: bytes) -> str:
     obj = json.loads(raw)
     assert UTC_RE.fullmatch(obj.pop("utc")), raw
     return json.dumps(obj)
-
-
-def offline_angles(capture_bytes: bytes, tmp_path: Path) -> dict[int, float]:
-    path = tmp_path / "offline.bin"
-    path.write_bytes(capture_bytes)
-    angles = {}
-    for _, cols in compensate_capture(path, load_model(DEFAULT_MODEL)):
-        angles.update(zip(cols.seq.tolist(), cols.angle_comp_arcsec.tolist()))
-    return angles
 
 
 @pytest.mark.determinism

@@ -18,8 +18,7 @@ import time
 
 import pytest
 import structlog
-from hub_fixtures import Control
-from test_daemon_hub import TIMEOUT_S, Conn, angle
+from hub_fixtures import TIMEOUT_S, Conn, Control, angle
 
 from fog_driver.daemon.config import DriverConfig
 from fog_driver.daemon.hub import Hub

@@ -17,7 +17,7 @@ import time
 import numpy as np
 import pytest
 import structlog
-from hub_fixtures import VERSION
+from hub_fixtures import TIMEOUT_S, VERSION, Conn, angle
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -25,71 +25,6 @@ from fog_driver.daemon.hub import Hub, clean, encode, is_loopback_host
 from fog_driver.daemon.limits import MAX_UNTERMINATED_BYTES
 from fog_driver.daemon.udp import DATAGRAM_SIZE, UdpPublisher, decode_datagram, encode_datagram
 from fog_driver.flags import FLAG_BITS, FLAG_GAP, FLAG_NAMES, FLAG_THERMOMETER_FAULT, FLAG_UNCOMPENSATED
-
-TIMEOUT_S = 5.0
-
-
-class Conn:
-    """A test client: line reader with a timeout as failure guard; every line must be JSON with a class."""
-
-    def __init__(self, address: tuple[str, int], rcvbuf: int | None = None) -> None:
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        if rcvbuf is not None:
-            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
-        self.sock.settimeout(TIMEOUT_S)
-        self.sock.connect(address)
-        self.buf = b""
-
-    def send(self, data: bytes | str) -> None:
-        self.sock.sendall(data.encode() if isinstance(data, str) else data)
-
-    def raw_line(self) -> bytes:
-        while b"\n" not in self.buf:
-            chunk = self.sock.recv(65536)
-            if not chunk:
-                raise EOFError("connection closed")
-            self.buf += chunk
-        line, _, self.buf = self.buf.partition(b"\n")
-        return line
-
-    def line(self) -> dict:
-        raw = self.raw_line()
-        obj = json.loads(raw)
-        assert isinstance(obj, dict) and isinstance(obj.get("class"), str), raw
-        assert b"null" not in raw and b"NaN" not in raw and b"Infinity" not in raw, raw
-        return obj
-
-    def expect(self, cls: str) -> dict:
-        obj = self.line()
-        assert obj["class"] == cls, obj
-        return obj
-
-    def greeting(self) -> None:
-        self.expect("VERSION")
-        self.expect("DEVICE")
-
-    def sync(self) -> None:
-        """Round trip: every line the server queued for this client before now precedes the answer."""
-        self.send("?VERSION;\n")
-        self.expect("VERSION")
-
-    def wait_closed(self) -> None:
-        """Read (and discard) until the server closes the connection."""
-        while True:
-            try:
-                chunk = self.sock.recv(65536)
-            except ConnectionResetError:
-                return
-            if not chunk:
-                return
-
-    def close(self) -> None:
-        self.sock.close()
-
-
-def angle(seq: int, t_s: float, **extra) -> dict:
-    return {"class": "ANGLE", "seq": seq, "t_s": t_s, "angle_arcsec": seq * 0.5, **extra}
-
 
 # --------------------------------------------------------------------------- greeting, clean
 

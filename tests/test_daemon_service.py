@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from service_in_process import offline
 from sigma_stub import STUB_BASE_DPH, STUB_PERIOD, stub_sigma, stub_value
 
 from fog_driver.daemon.config import DEFAULT_MODEL, DriverConfig
@@ -17,13 +18,6 @@ from fog_driver.modelfiles import load_model
 from fog_driver.offline.compensate import compensate_capture
 
 DATA = Path(__file__).resolve().parent / "data"
-
-
-def offline(capture: Path, model_path: Path = DEFAULT_MODEL, **settings) -> tuple[list[float], np.ndarray]:
-    """The compensated angles and the flags of ``fog-driver compensate`` (with ``settings``: the keyword
-    arguments of ``compensate_capture``), sample by sample."""
-    parts = [cols for _, cols in compensate_capture(capture, load_model(model_path), **settings)]
-    return [float(a) for cols in parts for a in cols.angle_comp_arcsec], np.concatenate([c.flags for c in parts])
 
 
 def offline_sigmas(capture: Path, model_path: Path = DEFAULT_MODEL, **settings) -> list[float | None]:

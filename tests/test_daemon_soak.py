@@ -19,7 +19,7 @@ from pathlib import Path
 
 import hostile
 import pytest
-from test_daemon_hil import Daemon
+from daemon_hil import Daemon
 
 from fog_driver.protocol import SAMPLE_FRAME_LEN, decode_bytes
 from fog_driver.sim.instrument import Simulator

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import yaml
 from framegen import with_identities
-from test_daemon_service import offline
+from service_in_process import offline, publish
 
 from fog_driver.compensation.adapt import AdaptConfig
 from fog_driver.compensation.binding import ModelMismatchError
@@ -27,13 +27,6 @@ from fog_driver.protocol import decode_bytes
 
 DATA = Path(__file__).resolve().parent / "data"
 SHORT = (DATA / "sim-short.bin").read_bytes()
-
-
-def publish(service: Service, data: bytes, chunk: int = 997) -> list[dict]:
-    out: list[dict] = []
-    for i in range(0, len(data), chunk):
-        out += service.process(data[i : i + chunk])
-    return out
 
 
 # -- M6: IDENTITY fields from the wire ------------------------------------------------------------

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 import yaml
-from test_daemon_hil import Client, Daemon
+from daemon_hil import Client, Daemon
 
 from fog_driver.compensation.fitting.data import FitConfig
 from fog_driver.modelfiles import load_model, save_model

@@ -99,7 +99,7 @@ def test_at_a_terminal_the_log_is_limited_too(capsys):
 def test_the_daemon_says_when_its_port_is_open_again_and_how_many_frames_the_outage_cost(tmp_path):
     """A pty unplugged, then a new one on the same link, the stream going on some frames later: the daemon's
     human log has "port open again after N s, K frames missing" with K the frames the stream skipped."""
-    from test_daemon_hil import Client, Daemon
+    from daemon_hil import Client, Daemon
 
     frames = [f for f in FrameDecoder().feed(SHORT) if isinstance(f, SampleFrame)]
     before, after = frames[100], frames[140]  # the last frame sent before the unplug, the first after it

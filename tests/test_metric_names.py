@@ -13,8 +13,7 @@ from pathlib import Path
 
 import yaml
 from prometheus_client import CollectorRegistry, generate_latest
-from prometheus_client.parser import text_string_to_metric_families
-from test_daemon_web import SCRAPED_STATE
+from web_helpers import SCRAPED_STATE, check_exposition
 
 from fog_driver.daemon.web.metrics import DEPRECATED_NAMES, METRICS, DaemonCollector, LatencyHistogram
 
@@ -25,16 +24,6 @@ def exposition(state: dict) -> str:
     registry = CollectorRegistry(auto_describe=False)
     registry.register(DaemonCollector(lambda: state, LatencyHistogram()))
     return generate_latest(registry).decode()
-
-
-def check_exposition(text: str) -> list:
-    """``promtool check metrics`` on ``text`` when it is installed (it must pass, lint included), and the
-    prometheus-client parser always; the families parsed."""
-    promtool = shutil.which("promtool")
-    if promtool is not None:
-        done = subprocess.run([promtool, "check", "metrics"], input=text, capture_output=True, text=True, timeout=60)
-        assert done.returncode == 0, done.stdout + done.stderr
-    return list(text_string_to_metric_families(text))
 
 
 def test_a_scrape_names_no_metric_in_dph_but_the_deprecated_duplicates():

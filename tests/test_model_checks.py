@@ -4,14 +4,13 @@ line at start-up (exit 78), on ``?RELOAD`` (refused, the old model goes on) and 
 
 from __future__ import annotations
 
-import contextlib
 import copy
 from pathlib import Path
 
 import pytest
 import yaml
-from test_cli import run_cli
-from test_model_truncated import assert_start_up_and_offline_refuse
+from cli_run import run_cli
+from model_refusals import assert_start_up_and_offline_refuse, watching
 
 from fog_driver.compensation.model_checks import MAX_MODEL_NUMBER
 from fog_driver.compensation.uncertainty import MAX_CANDIDATES
@@ -118,23 +117,6 @@ def test_run_and_compensate_with_a_nan_weight_are_one_line_78_and_65(tmp_path):
     model = _write(tmp_path / "nan.yaml", doc)
     expected = f"fog-driver: error: {model}: corrupt model: model.weights[3] is not a finite number (nan)\n"
     assert_start_up_and_offline_refuse(model, tmp_path, expected)
-
-
-@contextlib.contextmanager
-def watching(tmp_path: Path, model: Path):
-    """A daemon on ``model`` (the shipped default's copy) replaying a capture, and a client that has its first
-    ANGLE; the daemon killed at the end whatever happened."""
-    from test_daemon_hil import Client, Daemon
-
-    model.write_bytes(DEFAULT_MODEL.read_bytes())
-    daemon = Daemon(tmp_path, f"replay://{DATA / 'sim-short.bin'}?rate=100", "--model", str(model))
-    try:
-        client = Client(daemon.address)
-        client.send('?WATCH={"enable":true};')
-        client.next("ANGLE")
-        yield daemon, client
-    finally:
-        daemon.kill()
 
 
 def test_a_reload_of_the_alias_model_is_refused_and_the_angle_goes_on(tmp_path):

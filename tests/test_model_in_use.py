@@ -28,8 +28,8 @@ from pathlib import Path
 
 import pytest
 import yaml
-from test_daemon_hil import GUARD_S, Client, Daemon
-from test_metric_names import check_exposition
+from daemon_hil import GUARD_S, Client, Daemon
+from web_helpers import check_exposition
 
 from fog_driver.cli import main
 from fog_driver.client import AsyncClient as AsyncStationClient
@@ -258,7 +258,7 @@ def test_watchs_terminal_header_names_the_model_statuss_over_the_greetings():
 @pytest.mark.serial  # a browser
 def test_the_web_page_shows_the_model_and_the_new_one_after_a_reload(tmp_path):
     from playwright.sync_api import expect, sync_playwright
-    from test_web_browser import WAIT_MS, open_page
+    from web_helpers import WAIT_MS, open_page
 
     from fog_driver.daemon.web.server import WebView
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 import yaml
-from test_cli import run_cli
+from model_refusals import assert_start_up_and_offline_refuse
 
 from fog_driver.daemon.config import DEFAULT_MODEL
 from fog_driver.errors import InputFileError
@@ -94,7 +94,7 @@ def test_a_model_file_of_an_older_fog_driver_cut_short_names_provenance_missing(
 
 
 def test_a_truncated_model_is_the_same_line_at_start_up_in_ctl_reload_and_in_compensate(tmp_path, written):
-    from test_daemon_hil import Client, Daemon
+    from daemon_hil import Client, Daemon
 
     model = tmp_path / "m.yaml"
     model.write_bytes(written.read_bytes())
@@ -113,23 +113,3 @@ def test_a_truncated_model_is_the_same_line_at_start_up_in_ctl_reload_and_in_com
         daemon.kill()
 
     assert_start_up_and_offline_refuse(model, tmp_path, f"fog-driver: error: {expected}\n")
-
-
-def assert_start_up_and_offline_refuse(model: Path, cwd: Path, stderr: str) -> None:
-    """``run`` with ``model`` exits 78 and ``compensate`` 65, each with ``stderr`` alone, writing nothing."""
-    start = run_cli(
-        "run",
-        "--port",
-        "replay://x.bin",
-        "--model",
-        str(model),
-        "--listen",
-        "127.0.0.1:0",
-        "--capture-dir",
-        "c",
-        cwd=cwd,
-    )
-    assert (start.returncode, start.stderr, start.stdout) == (78, stderr, "")
-    offline = run_cli("compensate", str(DATA / "sim-short.bin"), "--model", str(model), "--out", "o.csv", cwd=cwd)
-    assert (offline.returncode, offline.stderr) == (65, stderr)
-    assert not (cwd / "o.csv").exists()

@@ -18,7 +18,7 @@ import threading
 from pathlib import Path
 
 import pytest
-from test_sim_serve import GUARD_S, REPO, SHORT_TEST, _next_line, _start_cli
+from sim_serving import GUARD_S, REPO, SHORT_TEST, _next_line, _start_cli
 
 from fog_driver.transport import PtyPair
 

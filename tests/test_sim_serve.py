@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import math
 import os
-import queue
 import subprocess
 import sys
 import threading
@@ -21,6 +20,7 @@ import numpy as np
 import pytest
 import structlog.testing
 from readerthread import Reader
+from sim_serving import GUARD_S, REPO, SHORT_TEST, _next_line, _start_cli
 
 from fog_driver.errors import DeviceError, OutputFileError
 from fog_driver.protocol import MAX_FRAME_LEN, SEQ_MODULUS, decode_bytes
@@ -31,9 +31,6 @@ from fog_driver.sim.profiles import load_profile
 from fog_driver.sim.serve import PtyServer, serve, serve_device, serve_pty
 from fog_driver.transport import PtyPair
 
-REPO = Path(__file__).resolve().parent.parent
-SHORT_TEST = REPO / "configs" / "profiles" / "short-test.yaml"
-GUARD_S = 30.0  # failure guard only: nothing is expected to take anywhere near this long
 SERIAL = "FOG-SIM-0001"  # the default instrument's serial
 
 
@@ -319,47 +316,6 @@ def test_serve_device_refuses_a_baud_rate_too_slow_for_the_stream() -> None:
 
 # ---------------------------------------------------------------------------------------------
 # fog-driver simulate --serve pty, as a separate process
-
-
-def _start_cli(*extra: str, link: Path) -> tuple[subprocess.Popen, queue.Queue]:
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "fog_driver",
-            "simulate",
-            "--serve",
-            "pty",
-            "--link",
-            str(link),
-            "--profile",
-            str(SHORT_TEST),
-            *extra,
-        ],
-        cwd=REPO,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    lines: queue.Queue = queue.Queue()
-
-    def pump() -> None:
-        for line in proc.stdout:
-            lines.put(line)
-        lines.put(None)
-
-    threading.Thread(target=pump, daemon=True).start()
-    return proc, lines
-
-
-def _next_line(proc: subprocess.Popen, lines: queue.Queue) -> str:
-    try:
-        line = lines.get(timeout=GUARD_S)
-    except queue.Empty:
-        proc.kill()
-        raise
-    assert line is not None, f"no more output; stderr: {proc.stderr.read()}"
-    return line
 
 
 def test_cli_serves_a_pty_that_a_reader_opens_through_the_link(tmp_path: Path) -> None:

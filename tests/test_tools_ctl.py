@@ -13,8 +13,7 @@ import subprocess
 import sys
 
 import pytest
-from test_daemon_faults import N_SHORT, SHORT, next_status, watch_all, watched_daemon
-from test_daemon_hil import GUARD_S, Client, Daemon
+from daemon_hil import GUARD_S, N_SHORT, SHORT, Client, Daemon, next_status, watch_all, watched_daemon
 
 from fog_driver.cli import main
 from fog_driver.errors import UsageError

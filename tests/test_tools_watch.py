@@ -822,7 +822,7 @@ def test_the_rate_shown_is_the_mean_over_the_last_second_not_one_sample():
 def test_the_daemons_rates_average_to_the_angle_difference(tmp_path):
     """What the averaged rate rests on: over every published sample, the mean of ``rate_dph`` is the angle's
     difference over the device time (1 arcsec/s = 1 deg/h)."""
-    from test_daemon_faults import SHORT, watch_all, watched_daemon
+    from daemon_hil import SHORT, watch_all, watched_daemon
 
     from fog_driver.protocol import decode_bytes
 
@@ -884,7 +884,7 @@ def test_watch_json_passes_the_daemons_lines_through_a_pipe_unchanged(tmp_path):
     import subprocess
     import sys
 
-    from test_daemon_faults import SHORT, watched_daemon
+    from daemon_hil import SHORT, watched_daemon
 
     with watched_daemon(tmp_path) as (pty, daemon, _):
         host, port = daemon.address
@@ -983,7 +983,7 @@ def test_keys_z_b_q_on_a_terminal_and_the_terminal_restored(tmp_path):
     mode meanwhile and has its settings back afterwards."""
     import termios
 
-    from test_daemon_faults import N_SHORT, SHORT, watch_all, watched_daemon
+    from daemon_hil import N_SHORT, SHORT, watch_all, watched_daemon
 
     from fog_driver.protocol import decode_bytes
 
@@ -1031,7 +1031,7 @@ AS_A_SHELLS_FOREGROUND_JOB = {"preexec_fn": _default_ctrl_c, "process_group": 0}
 def test_the_terminal_is_restored_when_a_signal_ends_or_suspends_the_watch(tmp_path, how):
     import termios
 
-    from test_daemon_faults import watched_daemon
+    from daemon_hil import watched_daemon
 
     term = Terminal()
     before = termios.tcgetattr(term.slave)
@@ -1189,7 +1189,7 @@ def run_fog_driver_watch(*args: str) -> subprocess.CompletedProcess:
 def test_fog_driver_watch_count_from_a_daemon_whose_instrument_sends_nothing_exits_75(tmp_path, json_lines):
     """A real daemon on a pty that sends no frame: the port is open, no sample comes; ``watch --count 10`` ends
     with one line and exit 75, its view (or the daemon's lines, with ``--json``) printed first."""
-    from test_daemon_faults import watched_daemon
+    from daemon_hil import watched_daemon
 
     with watched_daemon(tmp_path) as (_, daemon, _client):
         host, port = daemon.address
@@ -1209,7 +1209,7 @@ def test_fog_driver_watch_count_from_a_daemon_whose_instrument_sends_nothing_exi
 
 def test_fog_driver_watch_at_a_terminal_without_count_waits_and_says_why_on_its_status_line(tmp_path):
     """At a terminal without --count or --duration it keeps waiting, the reason on the banner line; q ends it."""
-    from test_daemon_faults import watched_daemon
+    from daemon_hil import watched_daemon
 
     term = Terminal()
     with watched_daemon(tmp_path) as (_, daemon, _client):

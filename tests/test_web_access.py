@@ -12,7 +12,7 @@ from __future__ import annotations
 import socket
 
 import pytest
-from test_daemon_web import TIMEOUT_S, WsClient, get, host_of, http, login, post, stream
+from web_helpers import TIMEOUT_S, WsClient, get, host_of, http, login, post, stream
 
 from fog_driver.daemon.limits import AUTH_FAILURES_BEFORE_BACKOFF, WEB_MAX_WS_MESSAGES_PER_S
 from fog_driver.daemon.limits import WEB_MAX_CONNECTIONS_PER_PEER as MAX_PER_PEER

@@ -22,8 +22,9 @@ import time
 from pathlib import Path
 
 import pytest
+from daemon_hil import Client, Daemon
 from playwright.sync_api import expect, sync_playwright
-from test_daemon_hil import Client, Daemon
+from web_helpers import WAIT_MS, open_page
 
 from fog_driver.tools.watch import format_arcsec, format_dms
 from fog_driver.transport import PtyPair
@@ -34,22 +35,6 @@ DATA = Path(__file__).resolve().parent / "data"
 CAPTURE = DATA / "sim-short.bin"  # 300 s at 10 Hz (its sidecar says how it was made)
 FRAME_BYTES = 29
 SPEEDUP = 10
-WAIT_MS = 20_000
-
-
-def chromium() -> str:
-    path = os.environ.get("FOG_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
-    assert path, "the browser test needs Chromium: apt-get install chromium (or FOG_CHROMIUM=/path/to/chrome)"
-    return path
-
-
-def open_page(playwright, problems: list[str]):
-    """Headless Chromium and a page whose console errors and warnings, and uncaught errors, go to ``problems``."""
-    browser = playwright.chromium.launch(executable_path=chromium(), args=["--no-sandbox"])
-    page = browser.new_page(viewport={"width": 1280, "height": 860})
-    page.on("console", lambda m: problems.append(m.text) if m.type in ("error", "warning") else None)
-    page.on("pageerror", lambda e: problems.append(str(e)))
-    return browser, page
 
 
 def sample(seq: int, t_s: float, **extra) -> dict:

@@ -18,8 +18,8 @@ from collections import Counter
 from pathlib import Path
 
 import pytest
-from test_daemon_deploy import GUARD_S, daemon_process
-from test_daemon_web import get, host_of, http
+from daemon_process import GUARD_S, daemon_process
+from web_helpers import get, host_of, http
 
 from fog_driver.daemon.limits import DEFAULT_LOG_LINES_PER_S, LOG_WINDOW_S, WEB_MAX_HEADERS, WEB_MAX_LINE_BYTES
 
