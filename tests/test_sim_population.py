@@ -6,12 +6,15 @@ from __future__ import annotations
 import math
 import subprocess
 import sys
+import zlib
 
 import numpy as np
 import pytest
 import yaml
 
+from fog_driver.protocol import decode_file
 from fog_driver.samples.captures import read_provenance
+from fog_driver.samples.stream import temperature_c_array
 from fog_driver.sim import population
 from fog_driver.sim.capture import read_truth, simulate_to_file
 from fog_driver.sim.instrument import InstrumentConfig, Simulator
@@ -160,11 +163,43 @@ def test_the_coil_stages_lag_the_fiber_behind_its_boundary():
     assert lags[0] < lags[1] < lags[2]
 
 
+def _documented_draws(seed: int, name: str, n: int) -> list[float]:
+    """Instrument ``seed``'s ``n`` values of RANGES entry ``name`` by the module's rule, computed here: the stream
+    keyed by (seed, CRC-32 of the name) gives (value, sign) uniform pairs, each value uniform or log-uniform in
+    its range."""
+    r = RANGES[name]
+    u = np.random.default_rng(np.random.SeedSequence([seed, zlib.crc32(name.encode())])).random(2 * n)
+    if r.log:
+        values = np.exp(math.log(r.lo) + u[0::2] * (math.log(r.hi) - math.log(r.lo)))
+    else:
+        values = r.lo + u[0::2] * (r.hi - r.lo)
+    return np.where(r.signed & (u[1::2] < 0.5), -values, values).tolist()
+
+
+def _first_order_lags(u: np.ndarray, taus_s: list[float], dt_s: float = 1.0) -> np.ndarray:
+    """``u`` through first-order lags in series (time constants ``taus_s``, outermost first), each stage started
+    where the first input is (an instrument at one temperature at power-on), stepped exactly for an input held
+    over each ``dt_s``: the lagged series, one value per input, before that input's step."""
+    stages = [float(u[0])] * len(taus_s)
+    gains = [1.0 - math.exp(-dt_s / tau) for tau in taus_s]
+    out = np.empty(len(u))
+    for n, x in enumerate(u.tolist()):
+        out[n] = stages[-1]
+        for i, gain in enumerate(gains):
+            stages[i] += gain * (x - stages[i])
+            x = stages[i]
+    return out
+
+
 def test_a_drawn_instrument_is_simulated_with_its_physics(tmp_path):
     """The capture of instrument K is the same every time, and its truth shows the drawn coil: the fiber lags
-    the ring by the drawn stages, and the thermometers carry the drawn offsets."""
+    the coil's boundary by the drawn stages, and the thermometers carry the drawn offsets."""
     k = next(k for k in SEEDS if len(draw_instrument(k).thermal.coil_inner_lags_s) == 2)
     config = draw_instrument(k)
+    lags_s = [*config.thermal.coil_inner_lags_s, config.thermal.tau_fiber_s]
+    offsets_c = config.thermometers.offsets_c
+    assert lags_s == pytest.approx(_documented_draws(k, "coil_lag_s", 3), rel=1e-12)
+    assert list(offsets_c) == pytest.approx(_documented_draws(k, "sensor_offset_c", 3), rel=1e-12)
     profile = load_profile("configs/profiles/short-test.yaml")
     paths = [
         simulate_to_file(Simulator(profile, config, rate_hz=10, seed=3), tmp_path / f"p{i}.bin").capture
@@ -177,6 +212,26 @@ def test_a_drawn_instrument_is_simulated_with_its_physics(tmp_path):
     default = simulate_to_file(Simulator(profile, rate_hz=10, seed=3), tmp_path / "d.bin").capture
     assert read_truth(default.with_suffix(".truth.csv"))["fiber_c"].tolist() != truth["fiber_c"].tolist()
     assert np.isfinite(truth["drift_dph"]).all() and truth["drift_dph"].std() > 0
+    # The fiber is the coil's boundary (the drawn coupling of the ring's top, bottom and the housing) through the
+    # drawn stages, stepped here on the truth's seconds: within 0.03 degC over the ramp, where a tenth more or
+    # less on every stage, or their sum as one stage, is more than 0.3 degC off.
+    top, bottom, housing = config.thermal.coil_coupling
+    boundary_c = top * truth["top_c"] + bottom * truth["bottom_c"] + housing * truth["housing_c"]
+    assert np.abs(_first_order_lags(boundary_c, lags_s) - truth["fiber_c"]).max() < 0.03
+    for wrong_s in ([v * 0.9 for v in lags_s], [v * 1.1 for v in lags_s], [sum(lags_s)]):
+        assert np.abs(_first_order_lags(boundary_c, wrong_s) - truth["fiber_c"]).max() > 0.3
+    # Each thermometer reads its node through its drawn lag plus its drawn offset: over the run, the frames'
+    # readings less the lagged truth average to the offset within five sigmas of the per-run part.
+    samples = decode_file(paths[0]).samples
+    second = np.repeat(truth["second"].astype(int), truth["n_frames"].astype(int))
+    assert len(second) == len(samples.t_top_raw)
+    readings = (samples.t_top_raw, samples.t_bottom_raw, samples.t_housing_raw)
+    for node, raw, lag_s, offset_c in zip(
+        ("top_c", "bottom_c", "housing_c"), readings, config.thermometers.lags(), offsets_c
+    ):
+        read_c = np.bincount(second, weights=temperature_c_array(raw)) / np.bincount(second)
+        lagged_c = _first_order_lags(truth[node], [lag_s])
+        assert float(np.mean(read_c - lagged_c)) == pytest.approx(offset_c, abs=5 * population.PER_RUN_OFFSET_SIGMA_C)
 
 
 def test_simulate_takes_an_instrument_seed(tmp_path):
