@@ -1,6 +1,6 @@
 """Compensation accuracy against simulator truth, and compensation speed.
 
-    python benchmarks/bench_accuracy.py [--rate-hz 100] [--skip-1khz] [--workdir DIR]
+    python -m benchmarks.bench_accuracy [--rate-hz 100] [--skip-1khz] [--workdir DIR]
 
 Protocol (issue 4): fit each model kind on the ``paper`` profile (seed 1), then
 compensate runs of DIFFERENT profiles with other seeds and score the drift
@@ -33,24 +33,23 @@ from __future__ import annotations
 import argparse
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from benchmarks._harness import kept_or_temporary
+from fog_driver.compensation.adapt import AdaptConfig
+from fog_driver.compensation.aflp import AflpFilter, AflpParams
+from fog_driver.compensation.fitting.data import FitConfig
+from fog_driver.lab.profiles import load_profile
+from fog_driver.modelfiles import load_model, save_model
+from fog_driver.offline.fit import fit_model_file, load_capture
+from fog_driver.report.evaluate import per_second
+from fog_driver.sim.capture import read_truth, simulate_to_file, truth_noise_dph
+from fog_driver.sim.instrument import Simulator
 
-from fog_driver.compensation.adapt import AdaptConfig  # noqa: E402
-from fog_driver.compensation.aflp import AflpFilter, AflpParams  # noqa: E402
-from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
-from fog_driver.modelfiles import load_model, save_model  # noqa: E402
-from fog_driver.offline.fit import fit_model_file, load_capture  # noqa: E402
-from fog_driver.report.evaluate import per_second  # noqa: E402
-from fog_driver.sim.capture import read_truth, simulate_to_file, truth_noise_dph  # noqa: E402
-from fog_driver.sim.instrument import Simulator  # noqa: E402
-from fog_driver.sim.profiles import load_profile  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 KINDS = ("polynomial", "wesn", "paper", "pso-svr")  # pso-svr: the paper's comparator (the svr extra)
 TESTS = (("fast-ramps", 2, "development"), ("soak-cycle", 3, "held out"))
@@ -145,8 +144,7 @@ def main() -> None:
     parser.add_argument("--skip-1khz", action="store_true", help="skip the 1 kHz consistency check (slow)")
     parser.add_argument("--workdir", type=Path, help="keep simulated captures here (default: a temporary dir)")
     args = parser.parse_args()
-    with tempfile.TemporaryDirectory() as tmp:
-        workdir = args.workdir or Path(tmp)
+    with kept_or_temporary(args.workdir) as workdir:
         workdir.mkdir(parents=True, exist_ok=True)
         t0 = time.perf_counter()
         fit_capture = simulate(workdir, "paper", 1, args.rate_hz)
@@ -267,6 +265,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    from readme_block import run_main  # --update-readme: the README's block for this command
+    from benchmarks._harness import run_main  # --update-readme: the documentation's block for this command
 
     run_main(main)

@@ -1,12 +1,12 @@
 """Adapting against a wrong reference: a table that creeps while the reference says it stands still.
 
-    python benchmarks/bench_adapt_creep.py [--set dev|eval2|...] [--instruments N] [--creeps 0.2,2,20]
+    python -m benchmarks.bench_adapt_creep [--set dev|eval2|...] [--instruments N] [--creeps 0.2,2,20]
                                            [--rate-hz 10] [--workers 2] [--workdir DIR] [--per-instrument]
 
 Adapting learns whatever the gyro reports beyond the reference as drift.  If the table creeps (a
 loose clamp, a drive that holds with a small rate) and the reference stays 0, a careless law learns
 the creep and publishes it as a correction.  Per instrument K of a population set (the seed ranges
-and THE RULE of ``bench_population.py``): the default model (``fog-driver fit`` without ``--kind``)
+and THE RULE of ``_harness.py``): the default model (``fog-driver fit`` without ``--kind``)
 is fitted on the instrument's paper run; its ``soak-cycle`` run is simulated again with the table
 creeping at C deg/h from t = 3600 s to the end, and compensated frozen and adapting against a
 reference of 0 (``AdaptConfig()`` defaults).  Scores, against the simulator's truth, over every
@@ -28,29 +28,31 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import sys
-import tempfile
 import time
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
+from benchmarks._harness import (
+    FIT_PROFILE,
+    SEED_SETS,
+    SKIP_MINUTES,
+    capture,
+    in_pool,
+    instrument_seeds,
+    kept_or_temporary,
+)
+from fog_driver.compensation.adapt import AdaptConfig
+from fog_driver.compensation.fitting.data import FitConfig
+from fog_driver.flags import FLAG_GUARD
+from fog_driver.lab.profiles import ConstantRate, MotionPlan, load_profile
+from fog_driver.offline.compensate import compensate_capture
+from fog_driver.offline.fit import fit_model_file
+from fog_driver.sim.capture import read_truth, simulate_to_file
+from fog_driver.sim.instrument import Simulator
+from fog_driver.sim.population import draw_instrument
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-from bench_population import FIT_PROFILE, SEED_SETS, SKIP_MINUTES, capture  # noqa: E402
-
-from fog_driver.compensation.adapt import AdaptConfig  # noqa: E402
-from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
-from fog_driver.flags import FLAG_GUARD  # noqa: E402
-from fog_driver.offline.compensate import compensate_capture  # noqa: E402
-from fog_driver.offline.fit import fit_model_file  # noqa: E402
-from fog_driver.sim.capture import read_truth, simulate_to_file  # noqa: E402
-from fog_driver.sim.instrument import Simulator  # noqa: E402
-from fog_driver.sim.population import draw_instrument  # noqa: E402
-from fog_driver.sim.profiles import ConstantRate, MotionPlan, load_profile  # noqa: E402
 
 SCORE_PROFILE = "soak-cycle"
 CREEP_START_S = 3600.0
@@ -120,7 +122,7 @@ def score_instrument(seed: int, creeps: tuple[float, ...], rate_hz: int, workdir
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--set", choices=SEED_SETS, default="dev", help="which instruments (bench_population's RULE)")
+    parser.add_argument("--set", choices=SEED_SETS, default="dev", help="which instruments (THE RULE of _harness.py)")
     parser.add_argument("--instruments", type=int, default=24)
     parser.add_argument("--first", type=int, default=0)
     parser.add_argument("--creeps", default="0,0.2,2,20", help="table creep rates, deg/h (0: a correct reference)")
@@ -130,25 +132,23 @@ def main() -> None:
     parser.add_argument("--per-instrument", action="store_true")
     args = parser.parse_args()
     creeps = tuple(float(c) for c in args.creeps.split(","))
-    seeds = [SEED_SETS[args.set] + args.first + i for i in range(args.instruments)]
-    with tempfile.TemporaryDirectory() as tmp:
-        workdir = args.workdir or Path(tmp)
+    seeds = instrument_seeds(args.set, args.first, args.instruments)
+    with kept_or_temporary(args.workdir) as workdir:
         t0 = time.perf_counter()
-        with ProcessPoolExecutor(max_workers=args.workers) as pool:
-            results = []
-            for future in [pool.submit(score_instrument, s, creeps, args.rate_hz, workdir) for s in seeds]:
-                results.append(future.result())
-                x = results[-1]
-                if args.per_instrument:
-                    print(
-                        f"instrument {x['seed']:5d} ({x['kind']}): "
-                        + "  ".join(
-                            f"{c:g}: {v['frozen']:.4f} -> {v['adapting']:.4f} flagged {100 * v['flagged_share']:.0f}% "
-                            f"after {v['first_flag_s']:.0f} s"
-                            for c, v in x["creep"].items()
-                        ),
-                        flush=True,
-                    )
+        n = len(seeds)
+        results = []
+        for x in in_pool(score_instrument, args.workers, seeds, [creeps] * n, [args.rate_hz] * n, [workdir] * n):
+            results.append(x)
+            if args.per_instrument:
+                print(
+                    f"instrument {x['seed']:5d} ({x['kind']}): "
+                    + "  ".join(
+                        f"{c:g}: {v['frozen']:.4f} -> {v['adapting']:.4f} flagged {100 * v['flagged_share']:.0f}% "
+                        f"after {v['first_flag_s']:.0f} s"
+                        for c, v in x["creep"].items()
+                    ),
+                    flush=True,
+                )
     print(
         f"\n{args.set} set: {len(seeds)} instruments (seeds {seeds[0]}..{seeds[-1]}), {SCORE_PROFILE} at "
         f"{args.rate_hz} Hz, table creeping from {CREEP_START_S:g} s, adapting against 0  "
@@ -178,6 +178,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    from readme_block import run_main  # --update-readme: the README's block for this command
+    from benchmarks._harness import run_main  # --update-readme: the documentation's block for this command
 
     run_main(main)

@@ -1,9 +1,9 @@
 """How much of the frozen model's error its candidate structures span, against the truth (issue 32).
 
-    python benchmarks/bench_candidate_span.py [--set dev|eval5|...] [--first K] [--instruments N] [--workers 2]
+    python -m benchmarks.bench_candidate_span [--set dev|eval5|...] [--first K] [--instruments N] [--workers 2]
                                               [--workdir DIR] [--per-instrument]
 
-Per instrument K of a set (``bench_population.py``'s seed ranges and its rule): the default model fitted on its
+Per instrument K of a set (the seed ranges and THE RULE of ``_harness.py``): the default model fitted on its
 paper run and the positioning run ``table-run``, as in ``bench_table.py``.  The model file keeps the candidate
 structures of its fit (the coils that explain the fit data within the noise of the chosen one, ``uncertainty``);
 each is run on the same capture as the model, and its drift's departure from the model's, ``d_c = D_c -
@@ -24,24 +24,19 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-from bench_population import FIT_PROFILE, FIT_RUN, capture, instrument_arguments, over_instruments  # noqa: E402
-from bench_table import TABLE_RUN, per_second, read_table_log, scored_mask, table_profile  # noqa: E402
-
-from fog_driver.cli.calibration import DEFAULT_FIT_KIND  # noqa: E402
-from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
-from fog_driver.offline.fit import fit_model_file  # noqa: E402
-from fog_driver.report.coverage import whole_minutes  # noqa: E402
-from fog_driver.sim.capture import read_truth  # noqa: E402
+from benchmarks._harness import FIT_PROFILE, FIT_RUN, capture, instrument_arguments, over_instruments
+from benchmarks.bench_table import TABLE_RUN, per_second, scored_mask, table_profile
+from fog_driver.cli.calibration import DEFAULT_FIT_KIND
+from fog_driver.compensation.fitting.data import FitConfig
+from fog_driver.dwells import read_table_log
+from fog_driver.offline.fit import fit_model_file
+from fog_driver.report.coverage import whole_minutes
+from fog_driver.sim.capture import read_truth
 
 
 def span_instrument(seed: int, rate_hz: int, workdir: Path) -> dict:

@@ -1,6 +1,6 @@
 """The daemon (``fog-driver run``) end to end: latency, loss, CPU and memory (issue #5's targets).
 
-    python benchmarks/bench_daemon.py [--quick] [--seconds S] [--stress-seconds S] [--hostile N] [--frames N] ...
+    python -m benchmarks.bench_daemon [--quick] [--seconds S] [--stress-seconds S] [--hostile N] [--frames N] ...
 
 Targets: frames written into a pty at 2 kHz (and in a stress run at 4 kHz) with two
 clients watching: no sample lost, p99 latency from frame written to line received
@@ -90,13 +90,12 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from fog_driver.lab.profiles import load_profile
+from fog_driver.protocol import SAMPLE_FRAME_LEN, decode_bytes
+from fog_driver.sim.instrument import Simulator
+from fog_driver.transport import PtyPair
 
-from fog_driver.protocol import SAMPLE_FRAME_LEN, decode_bytes  # noqa: E402
-from fog_driver.sim.instrument import Simulator  # noqa: E402
-from fog_driver.sim.profiles import load_profile  # noqa: E402
-from fog_driver.transport import PtyPair  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 LIVE_PROFILE = ROOT / "configs" / "profiles" / "short-test.yaml"
 SEQ_MODULUS = 65536
@@ -907,7 +906,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    from readme_block import run_main  # --update-readme: the README's block for this command
+    from benchmarks._harness import run_main  # --update-readme: the documentation's block for this command
 
     run_main(main)

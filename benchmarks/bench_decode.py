@@ -1,6 +1,6 @@
 """Decode throughput: batch (numpy), streaming (64-byte chunks), and a straightforward baseline.
 
-    python benchmarks/bench_decode.py [--frames N] [--repeat R]
+    python -m benchmarks.bench_decode [--frames N] [--repeat R]
 
 Generates a capture of N SAMPLE frames (with an IDENTITY frame every 1000 and
 no corruption) in memory, checks every decoder's output against the
@@ -14,18 +14,14 @@ from __future__ import annotations
 
 import argparse
 import struct
-import sys
 import time
 import tracemalloc
 import zlib
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from fog_driver.protocol import FrameDecoder, decode_bytes, encode_identity  # noqa: E402
-from fog_driver.protocol.batch import SAMPLE_PAYLOAD_DTYPE  # noqa: E402
+from fog_driver.protocol import FrameDecoder, decode_bytes, encode_identity
+from fog_driver.protocol.batch import SAMPLE_PAYLOAD_DTYPE
 
 LINK_FRAMES_PER_S = 921600 / 10 / 26  # 8N1: 10 bits per byte, 26-byte SAMPLE frames
 
@@ -139,4 +135,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from benchmarks._harness import run_main  # --update-readme: the documentation's block for this command
+
+    run_main(main)

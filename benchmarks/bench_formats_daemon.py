@@ -1,7 +1,7 @@
 """The daemon on other instruments' frame formats: does it keep up with a 1 kHz IMU at under 20 % of a core?
 
-    python benchmarks/bench_formats_daemon.py [--quick] [--seconds S] [--tick-ms MS] [--warmup-s S]
-    python benchmarks/bench_formats_daemon.py --candidates [--pairs N] [--seconds S]
+    python -m benchmarks.bench_formats_daemon [--quick] [--seconds S] [--tick-ms MS] [--warmup-s S]
+    python -m benchmarks.bench_formats_daemon --candidates [--pairs N] [--seconds S]
 
 Runs, each ``--seconds`` (default 20; ``--quick``: 5): fog-v1 at 1 kHz (the baseline), kvh-a and
 ixblue-stdbin at 1 kHz, and kvh-a at 2560 Hz (what a KVH link at 921600 baud carries of Format A).
@@ -46,20 +46,15 @@ from pathlib import Path
 
 import yaml
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-from bench_daemon import LIVE_PROFILE, LiveResult, add_pacing_options, live_run  # noqa: E402
-
-from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
-from fog_driver.daemon.config import DEFAULT_MODEL  # noqa: E402
-from fog_driver.modelfiles import load_model, save_model  # noqa: E402
-from fog_driver.offline.fit import fit_model_file  # noqa: E402
-from fog_driver.samples.sources import wire_settings_for  # noqa: E402
-from fog_driver.sim.capture import simulate_to_file  # noqa: E402
-from fog_driver.sim.instrument import Simulator  # noqa: E402
-from fog_driver.sim.profiles import load_profile  # noqa: E402
+from benchmarks.bench_daemon import LIVE_PROFILE, LiveResult, add_pacing_options, live_run
+from fog_driver.compensation.fitting.data import FitConfig
+from fog_driver.daemon.config import DEFAULT_MODEL
+from fog_driver.lab.profiles import load_profile
+from fog_driver.modelfiles import load_model, save_model
+from fog_driver.offline.fit import fit_model_file
+from fog_driver.samples.sources import wire_settings_for
+from fog_driver.sim.capture import simulate_to_file
+from fog_driver.sim.instrument import Simulator
 
 FIT_RATE_HZ = 10
 FIT_SECONDS = 900
@@ -191,6 +186,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    from readme_block import run_main  # --update-readme: the README's block for this command
+    from benchmarks._harness import run_main  # --update-readme: the documentation's block for this command
 
     run_main(main)

@@ -1,6 +1,6 @@
 """`fog-driver inspect` on a paper-sized capture: wall time and peak memory.
 
-    python benchmarks/bench_inspect.py [--frames N] [--keep PATH]
+    python -m benchmarks.bench_inspect [--frames N] [--keep PATH]
 
 Writes a capture of N SAMPLE frames (default 2,640,000: the paper's 440-minute
 profile at 100 Hz; 26,400,000 is the same run at 1 kHz) to a temporary file,
@@ -22,10 +22,9 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "benchmarks"))
+from benchmarks.bench_decode import make_capture
 
-from bench_decode import make_capture  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 # Peak RSS from VmHWM: per address space, reset at exec (ru_maxrss keeps the forking parent's peak).
 PEAK_KB = "int(next(l for l in open('/proc/self/status') if l.startswith('VmHWM')).split()[1])"
@@ -92,4 +91,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from benchmarks._harness import run_main  # --update-readme: the documentation's block for this command
+
+    run_main(main)

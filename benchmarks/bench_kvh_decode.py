@@ -1,6 +1,6 @@
 """KVH normal-mode decode throughput: numpy batch vs a straightforward struct-per-frame loop (same run).
 
-    python benchmarks/bench_kvh_decode.py [--frames N] [--repeat R] [--format a|b|c]
+    python -m benchmarks.bench_kvh_decode [--frames N] [--repeat R] [--format a|b|c]
 
 Generates N frames of one format (a BIT reply every 1000 frames, no corruption), checks that the batch
 path and the baseline agree on every frame, and prints frames/s for: the batch path to arrays
@@ -14,17 +14,11 @@ from __future__ import annotations
 
 import argparse
 import struct
-import sys
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from bench_decode import best_time  # noqa: E402
-
-from fog_driver.formats.kvh import (  # noqa: E402
+from benchmarks.bench_decode import best_time
+from fog_driver.formats.kvh import (
     SAMPLE_FORMATS,
     KvhDecoder,
     crc32_mpeg2,
@@ -106,6 +100,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    from readme_block import run_main
+    from benchmarks._harness import run_main
 
     run_main(main)

@@ -1,6 +1,6 @@
 """The per-block cost of each drift model, and what the machine-independent arithmetic costs.
 
-    python benchmarks/bench_model_step.py [--rate-hz 10] [--steps 3000] [--workdir DIR]
+    python -m benchmarks.bench_model_step [--rate-hz 10] [--steps 3000] [--workdir DIR]
 
 Fits every model kind on a simulated ``paper`` run (seed 1), then times, over the run's own
 standardized inputs (the values a live daemon feeds):
@@ -20,23 +20,19 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import sys
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from fog_driver.compensation.adapt import AdaptConfig  # noqa: E402
-from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
-from fog_driver.compensation.pipeline import Compensator  # noqa: E402
-from fog_driver.offline.fit import fit_model_file, load_capture  # noqa: E402
-from fog_driver.sim.capture import simulate_to_file  # noqa: E402
-from fog_driver.sim.instrument import Simulator  # noqa: E402
-from fog_driver.sim.profiles import load_profile  # noqa: E402
+from benchmarks._harness import kept_or_temporary
+from fog_driver.compensation.adapt import AdaptConfig
+from fog_driver.compensation.fitting.data import FitConfig
+from fog_driver.compensation.pipeline import Compensator
+from fog_driver.lab.profiles import load_profile
+from fog_driver.offline.fit import fit_model_file, load_capture
+from fog_driver.sim.capture import simulate_to_file
+from fog_driver.sim.instrument import Simulator
 
 KINDS = ("polynomial", "wesn", "paper", "pso-svr")
 PASSES = 5
@@ -97,8 +93,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=3000, help="model blocks per timed pass")
     parser.add_argument("--workdir", type=Path, help="keep the simulated capture here (default: a temporary dir)")
     args = parser.parse_args()
-    with tempfile.TemporaryDirectory() as tmp:
-        workdir = args.workdir or Path(tmp)
+    with kept_or_temporary(args.workdir) as workdir:
         workdir.mkdir(parents=True, exist_ok=True)
         capture = workdir / f"paper-s1-{args.rate_hz}hz.bin"
         if not capture.exists():
@@ -134,4 +129,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from benchmarks._harness import run_main  # --update-readme: the documentation's block for this command
+
+    run_main(main)

@@ -1,7 +1,7 @@
 """A serial port over the network: how soon the daemon's samples flow again when the server that carries the
 port (``socat``, ``ser2net``) is killed and started again.  ``docs/how-to/network-serial.md`` quotes its output.
 
-    python benchmarks/bench_network_reconnect.py [--servers socat,ser2net-raw,ser2net-rfc2217] [--down-s 0.5,1,2,5,10]
+    python -m benchmarks.bench_network_reconnect [--servers socat,ser2net-raw,ser2net-rfc2217] [--down-s 0.5,1,2,5,10]
         [--repeat 2] [--rate-hz 100] [--half-open]
 
 Method
@@ -416,4 +416,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from benchmarks._harness import run_main  # --update-readme: the documentation's block for this command
+
+    run_main(main)

@@ -1,9 +1,9 @@
 """Choosing the calibration program (``fog-driver plan``, the built-in ``calibration``) on development instruments.
 
-    python benchmarks/bench_plan.py [--instruments 12] [--first 0] [--designs NAME,NAME] [--rate-hz 10]
+    python -m benchmarks.bench_plan [--instruments 12] [--first 0] [--designs NAME,NAME] [--rate-hz 10]
                                     [--workers 1] [--workdir DIR] [--reuse DIR] [--per-instrument]
 
-Development instruments only (``dev``, seeds 0 ..; THE RULE in ``bench_population.py``: no evaluation
+Development instruments only (``dev``, seeds 0 ..; THE RULE in ``_harness.py``: no evaluation
 seed set is ever used for a choice, so this script has no ``--set``).  Per instrument K
 (``fog_driver.sim.population.draw_instrument``) and per candidate design: one run of the design's program
 (run seed 10 K + 1, as ``bench_population.py``'s paper run: the same noise draws for every design), the
@@ -25,7 +25,7 @@ evaluation range, for the program chosen here): worst e / e_poly <= 1.0, worst r
 1.15. Figures are printed, never asserted.
 
 The candidates (``CANDIDATES``), each adding one element the identifiability argument of
-``fog_driver/sim/plan.py`` asks for, all within the paper's limits (-40..55 degC, 440 min) and a
+``fog_driver/lab/plan.py`` asks for, all within the paper's limits (-40..55 degC, 440 min) and a
 chamber's 3 degC/min: ``paper`` (the paper's program: one rate, one direction per temperature,
 15-minute soaks), ``cycle`` (every temperature crossed both ways, ramps at 3, 1.5 and 0.75 degC/min
 in each direction, 15-degree plateaus), ``cycle+soaks`` (and soaks of a tenth of the run at both
@@ -43,29 +43,21 @@ from __future__ import annotations
 
 import argparse
 import hashlib
-import sys
-import tempfile
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-from bench_population import SEED_SETS, static_minutes_mask  # noqa: E402
-from bench_population import capture as population_capture  # noqa: E402
-
-from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
-from fog_driver.offline.fit import fit_model_file  # noqa: E402
-from fog_driver.report.evaluate import minute_rms, per_second  # noqa: E402
-from fog_driver.sim.capture import read_truth, truth_noise_dph  # noqa: E402
-from fog_driver.sim.motion import MotionPlan  # noqa: E402
-from fog_driver.sim.plan import DEFAULT_LIMITS, DESIGN, Design, design_program, identifiability_gaps  # noqa: E402
-from fog_driver.sim.profiles import SimProfile, dump_profile, load_profile  # noqa: E402
+from benchmarks._harness import capture as population_capture
+from benchmarks._harness import in_pool, instrument_seeds, kept_or_temporary, static_minutes_mask
+from fog_driver.compensation.fitting.data import FitConfig
+from fog_driver.lab.motion import MotionPlan
+from fog_driver.lab.plan import DEFAULT_LIMITS, DESIGN, Design, design_program, identifiability_gaps
+from fog_driver.lab.profiles import SimProfile, dump_profile, load_profile
+from fog_driver.offline.fit import fit_model_file
+from fog_driver.report.evaluate import minute_rms, per_second
+from fog_driver.sim.capture import read_truth, truth_noise_dph
 
 #: name -> the design (None: the paper's program, the built-in profile ``paper``)
 CANDIDATES: dict[str, Design | None] = {
@@ -181,26 +173,25 @@ def main() -> None:
     unknown = [d for d in designs if d not in CANDIDATES]
     if unknown:
         parser.error(f"unknown designs {', '.join(unknown)} (known: {', '.join(CANDIDATES)})")
-    seeds = [SEED_SETS["dev"] + args.first + i for i in range(args.instruments)]
-    with tempfile.TemporaryDirectory() as tmp:
-        workdir = args.workdir or Path(tmp)
+    seeds = instrument_seeds("dev", args.first, args.instruments)
+    with kept_or_temporary(args.workdir) as workdir:
         t0 = time.perf_counter()
-        with ProcessPoolExecutor(max_workers=args.workers) as pool:
-            futures = [pool.submit(score_instrument, s, designs, args.rate_hz, workdir, args.reuse) for s in seeds]
-            results = []
-            for f in futures:
-                results.append(f.result())
-                x = results[-1]
-                if args.per_instrument:
-                    print(
-                        f"instrument {x['seed']:3d}: floor {x['r']['floor']:.4f} raw {x['r']['raw']:.4f} "
-                        + " ".join(
-                            f"{d} {x['r'][d, 'wesn']:.4f}/{x['r'][d, 'polynomial']:.4f} "
-                            f"(lag {x['lag_s'][d]:g} s, x{x['lag_span'][d]:.2f})"
-                            for d in designs
-                        ),
-                        flush=True,
-                    )
+        n = len(seeds)
+        results = []
+        for x in in_pool(
+            score_instrument, args.workers, seeds, [designs] * n, [args.rate_hz] * n, [workdir] * n, [args.reuse] * n
+        ):
+            results.append(x)
+            if args.per_instrument:
+                print(
+                    f"instrument {x['seed']:3d}: floor {x['r']['floor']:.4f} raw {x['r']['raw']:.4f} "
+                    + " ".join(
+                        f"{d} {x['r'][d, 'wesn']:.4f}/{x['r'][d, 'polynomial']:.4f} "
+                        f"(lag {x['lag_s'][d]:g} s, x{x['lag_span'][d]:.2f})"
+                        for d in designs
+                    ),
+                    flush=True,
+                )
         print(
             f"\ndev set: {len(seeds)} instruments (seeds {seeds[0]}..{seeds[-1]}); each design's run fitted "
             f"(wesn and polynomial), scored on {' and '.join(SCORE_PROFILES)} at {args.rate_hz} Hz  "
@@ -210,6 +201,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    from readme_block import run_main  # --update-readme: the documentation's block for this command
+    from benchmarks._harness import run_main  # --update-readme: the documentation's block for this command
 
     run_main(main)

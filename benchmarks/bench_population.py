@@ -1,140 +1,13 @@
 """Compensation on a population of instruments the models were not tuned on.
 
-    python benchmarks/bench_population.py [--set eval2|eval4|eval6|dev] [--instruments N] [--kinds K,K] [--rate-hz 10]
+    python -m benchmarks.bench_population [--set eval2|eval4|eval6|dev] [--instruments N] [--kinds K,K] [--rate-hz 10]
                                           [--workers 2] [--workdir DIR] [--per-instrument] [--adapt]
                                           [--fit-profile NAME] [--score-profiles P,P] [--compare-programs]
 
-THE RULE.  Instrument seeds come in ranges.  ``dev`` (0 ..) is for developing and tuning: look at
-it as often as you like.  ``eval`` (10000 ..), ``eval2`` (20000 ..), ``eval3`` (30000 .., first
-used by ``bench_thermo_fault.py``, which logs its runs), ``eval4`` (40000 .., for issue 30: the
-model choice, the drift's uncertainty and the calibration program), ``eval5`` (50000 .., for issue
-32: adapting from the table's angles), ``eval6`` (60000 .., for issue 30's fit once ``eval4`` was
-spent), ``eval7`` (70000 .., for issue 32's table law once ``eval5`` was spent), ``eval8`` (80000 ..),
-``eval9`` (90000 ..), ``eval10`` (95000 ..), ``eval11`` (96000 ..) and ``eval12`` (97000 ..) are reserved
-for evaluation:
-nobody looks at them while developing a model, choosing its settings or its structure; one is run
-to report a model that is finished, and what it shows is reported as it is, never fed back.  Each
-model version is evaluated on an evaluation range no earlier version was developed after: a range
-whose results have steered development is spent, and the next version goes to a fresh one.
-Results quoted in the README come from the newest range, ``--set eval2`` (the default).  Log of the
-runs:
-
-* 2026-12-01, ``eval`` (10000..10023), first run: the wesn ring form of one coil stage, the
-  ``auto`` fallback and the adapting comparison guard.  Its two misses (worst excess and worst
-  ratio to the floor) led to drawing 48 more development instruments, whose misses were mostly
-  coils of two or three stages: the next version's cascade.  ``eval`` is spent.
-* 2026-12-01, ``eval2`` (20000..20023), first run: the wesn with the coil cascade and the coil's
-  rate (the README's figures).
-* 2026-12-02, ``eval2``, second run, ``--adapt``: the adapting guards of issue 11 (innovation gate,
-  runaway bound from the fit residual), developed on ``dev`` 0..23; the frozen models are the
-  first run's, and so are their figures, bit for bit.
-* 2026-12-02, ``eval3`` (30000..30023), ``bench_adapt_creep.py``, first creep run: the comparison guard's
-  least gain (chosen on ``dev`` 0..23, evaluated once on ``eval2``).  It missed the creep target (0.2
-  deg/h: worst 2.06x; correct reference 1.295x); ``dev`` 24..71 then drawn to find the same failures
-  (worst 1.149x, a correct reference).  ``eval3`` is spent for adapting.
-* 2026-12-04, ``eval4`` (40000..40023), first run, ``--kinds polynomial,wesn,auto --per-instrument``: the
-  model choice by two standard errors (issue 30's item 1) and ``drift_sigma_dph`` with its factors from
-  ``calibrate_sigma.py`` on ``dev`` 0..11 (item 2).  Every choice and uncertainty target passed (pooled
-  coverage 95.7 %, 22 of 24 instruments at 80 %, top quarter 97.0 %, 1407 extrapolating minutes 100 %,
-  sharpness 0.64x, top/bottom 3.65x; auto within 5 % of the better model, median and worst); the paper
-  fits' worst instrument 2.99x the floor, 1.40x the polynomial's excess.
-* 2026-12-04, ``eval4``, second run, ``--compare-programs --per-instrument`` (item 3): the ``calibration``
-  program, chosen by ``bench_plan.py`` on ``dev`` 0..23, against the paper program.  Better than the paper
-  run on every figure (median 1.06x the floor against 1.19x, worst 2.24x against 3.08x, worst excess 1.05x
-  the polynomial's against 1.22x); the median target passed, the two worst-case targets missed (2.24x
-  the floor on one instrument; 1.05x the polynomial's excess where both are within 10 % of the floor).
-  ``eval4`` is spent for the program: the failure is looked for on ``dev`` 24 and up, and a changed
-  program is evaluated on a set never used.
-* 2026-12-04, ``eval6`` (60000..60023), first run, ``--compare-programs --per-instrument``: the same program
-  with the fit changed on ``dev`` (lags up to a fifth of the run when the best sits at a tenth, found on
-  ``dev`` 30; the sigma factors checked on fits of the program, kept).  Every target passed: the choice
-  (auto the better model everywhere), the uncertainty (pooled coverage 95.5 %, 22 of 24 instruments at
-  80 %, top quarter 99.4 %, 1185 extrapolating minutes 100 %, sharpness 0.81x, top/bottom 1.87x) and the
-  program (median 1.06x the floor, worst 1.69x, worst excess 0.91x the polynomial's; one paper run 1.26x,
-  2.68x, 1.05x).
-* 2026-12-04, after it: the population draws a scale-factor error per instrument (issue 32: an offset of
-  5 to 50 ppm, a slope of 0.1 to 1 ppm/degC; every other parameter as before, from its own stream).  The
-  runs above were made without it; at rest it acts on the Earth rate alone (a constant of at most 0.0005
-  deg/h, which the bias takes, and at most 0.001 deg/h across -40..55 degC), so their static-minute
-  figures would move in the last digits.
-* 2026-12-05, ``eval5`` (50000..50023), first run, ``bench_table.py --set eval5 --creeps 0.2,2,20
-  --per-instrument``: the table law with the prior scales weighed.  Median 0.901x frozen, the median excess
-  cut by 37.8 % (median of the cuts 28.3 %); missed: worst 1.101x frozen (three instruments over 1.02x),
-  creeps worst 1.055x and 1.102x, a lie 1.080x and a late angle 1.111x (each rejected on 24 of 24), the scale
-  factor within 5 ppm on 156 of 197 plateaus (worst 43.7 ppm).  The failing instruments were then looked
-  at, against the rule above: the runaway bound reset the law up to six times in a run, each reset throwing
-  away the scale factor and putting a step in the drift.  ``eval5`` is spent; the table law holds the drift at
-  the bound instead, and goes to ``eval7``.
-* 2026-12-05, ``eval7`` (70000..70023), first run, ``bench_table.py --set eval7 --creeps 0.2,2,20
-  --per-instrument``: the table law holding the drift at the runaway bound.  Median 0.915x frozen, worst
-  1.019x; the median excess cut by 35.1 % (median of the cuts 28.7 %); worst 1.019x rate-0's; a lie and a
-  late angle rejected on 24 of 24 (worst 1.019x, 1.018x); creeps of 0.2 and 20 deg/h worst 1.017x and 1.045x;
-  missed: a creep of 2 deg/h 1.462x on one instrument, the scale factor within 5 ppm on 195 of 199 plateaus
-  (worst 11.2 ppm).  The Table-1 improvement 78.3 % frozen and adapting (medians).  ``eval7`` is spent for
-  the table law: the creep failure is looked for on ``dev`` 48 and up.
-* 2026-12-05, ``eval8`` (80000..80023), first run, ``bench_table.py --set eval8 --creeps 0.2,2,20
-  --per-instrument``: the same table law as ``eval7``'s (unchanged since; ``dev`` 48..71 then showed no creep
-  failure: 2 deg/h at most 1.012x).  Median 0.904x frozen, worst 1.019x; the median excess cut by 39.0 % (median
-  of the cuts 32.1 %); worst 1.019x rate-0's; creeps of 0.2 and 20 deg/h worst 1.016x and 1.022x; a lie and a
-  late angle rejected on 24 of 24 (worst 1.009x, 1.017x); the scale factor within 5 ppm on 174 of 174 plateaus
-  (worst 3.9 ppm); the Table-1 improvement 81.1 % frozen, 86.3 % adapting (medians).  Missed: a creep of
-  2 deg/h 1.153x on one instrument (the others at most 1.010x).  ``eval8`` is spent for the table law.
-* 2026-12-05, ``eval9`` (90000..90023), first run, ``bench_table.py --set eval9 --creeps 0.2,2,20
-  --per-instrument``: the table law with the steadiness test (a dwell whose rate changed within it is rejected;
-  found on ``dev`` 0..23 with a creep of 1 deg/h beginning within a dwell, 1.23x).  Median 0.856x frozen, worst
-  1.011x; the median excess cut by 47.8 % (median of the cuts 34.9 %); worst 1.011x rate-0's; creeps of 0.2, 2
-  and 20 deg/h worst 1.012x, 1.011x and 1.038x; a lie and a late angle rejected on 24 of 24 (worst 1.012x,
-  1.011x); the Table-1 improvement 78.8 % frozen, 84.7 % adapting (medians).  Missed: the scale factor within
-  5 ppm on 179 of 181 plateaus (worst 8.7 ppm).
-* 2026-12-05, ``eval10`` (95000..95023), first run, ``bench_table.py --set eval10 --creeps 0.2,2,20
-  --per-instrument``: the same table law as ``eval9``'s; the benchmark also scores the scale factor on a run
-  made to calibrate it (``scale-factor-run``: holds of 40 to 75 min), chosen on ``dev`` 0..71 (the misses at
-  the extremes of ``table-run`` came from the coil's temperature on holds shorter than its lag).  Median 0.889x
-  frozen, worst 1.001x; the median excess cut by 27.6 % (median of the cuts 37.8 %); worst 1.001x rate-0's;
-  creeps of 0.2, 2 and 20 deg/h worst 1.003x, 1.004x and 1.012x; a late angle rejected on 24 of 24 (worst
-  1.001x), the lie on 23 of 24 (worst 1.003x; the one let through 0.994x); the scale factor within 5 ppm on
-  182 of 182 plateaus of ``table-run`` (worst 4.3 ppm) and 78 of 78 of ``scale-factor-run`` (worst 3.5 ppm);
-  the Table-1 improvement 76.7 % frozen, 80.4 % adapting (medians; one instrument 7.7 % frozen, -16.9 %
-  adapting).  Missed: the lie rejected within its interval on one instrument of 24.
-* 2026-12-05, ``eval11`` (96000..96023), first run, ``bench_table.py --set eval11 --creeps 0.2,2,20
-  --per-instrument``: the table law judging a dwell by its neighbours (an interval learned from a lie that its
-  gate let through is undone when the next interval cancels it; chosen on ``dev`` 0..23 and 49).  Median
-  0.838x frozen, worst 1.016x; the median excess cut by 46.7 % (median of the cuts 37.6 %); worst 1.016x
-  rate-0's; a lie and a late angle rejected on 24 of 24 (worst 1.017x); creeps of 0.2 and 2 deg/h worst 1.022x
-  and 1.016x; the Table-1 improvement 78.9 % frozen, 84.5 % adapting (medians).  Missed: a creep of 20 deg/h
-  1.055x, 1.085x and 1.184x on three instruments; the scale factor within 5 ppm on 176 of 180 plateaus of
-  ``table-run`` (worst 8.8 ppm) and 82 of 83 of ``scale-factor-run`` (worst 10.6 ppm).  ``eval11`` is spent
-  for the table law: the creep failure is looked for on ``dev`` 48 and up.
-* 2026-12-05, ``eval12`` (97000..97023), first run, ``bench_table.py --set eval12 --creeps 0.2,2,20
-  --per-instrument``: the table law taking a creeping table's angle at the mean time of the gyro's window
-  (found on ``dev`` 49: a creep of 20 deg/h 1.077x, then 1.012x; ``dev`` 48..71 at most 1.012x).  Median 0.887x
-  frozen, worst 1.009x; the median excess cut by 39.7 % (median of the cuts 25.7 %); worst 1.009x rate-0's;
-  creeps of 0.2, 2 and 20 deg/h worst 1.010x; a late angle rejected on 24 of 24; the scale factor within 5 ppm
-  on all 85 plateaus of ``scale-factor-run`` (worst 3.9 ppm); the Table-1 improvement 80.1 % frozen, 84.3 %
-  adapting (medians).  Missed: the lie rejected on 23 of 24 (worst 1.009x); the scale factor on ``table-run``
-  within 5 ppm on 192 of 194 plateaus (worst 5.4 ppm).
-* 2026-12-05, ``eval13`` (98000..98023), first run, ``bench_table.py --set eval13 --creeps 0.2,2,20
-  --per-instrument``: the table law judging a dwell by the next two (after a rejected interval, the interval after
-  it decides which dwell was wrong; chosen on ``dev`` 0..23 with a lie at every dwell, ``bench_table_lies.py``).
-  Median 0.832x frozen; the median excess cut by 49.3 % (median of the cuts 38.0 %); creeps of 0.2, 2 and
-  20 deg/h worst 1.038x, 1.031x and 1.031x; a lie and a late angle rejected on 24 of 24 (worst 1.041x,
-  1.045x); the scale factor within 5 ppm on all 80 plateaus of ``scale-factor-run`` (worst 4.9 ppm); the
-  Table-1 improvement 70.8 % frozen, 76.3 % adapting (medians).  Missed: worst 1.045x frozen with correct
-  angles (one instrument; the next 1.013x), as ``dev`` 29 (1.046x); the scale factor on ``table-run`` within
-  5 ppm on 184 of 186 plateaus (worst 8.1 ppm).  ``eval13`` is spent for the table law.
-* 2026-12-05, ``eval14`` (99000..99023), first run, ``bench_table.py --set eval14 --creeps 0.2,2,20 --days 3
-  --per-instrument``: the table law learning the drift's shape on the fit's candidate structures, its level (the
-  bias's) not published and learned afresh at a restart (chosen on ``dev`` 0..47: worst 1.008x first runs and
-  left on).  Median 0.871x frozen, worst 1.007x; the median excess cut by 39.9 % (median of the cuts 42.7 %);
-  worst 1.007x rate-0's; left on, the second and third runs worst 1.004x and 1.004x (median excess cut 59.0 %
-  and 69.3 %); creeps of 0.2, 2 and 20 deg/h worst 1.007x, 1.007x and 1.006x; a lie and a late angle rejected on
-  24 of 24 (worst 1.006x, 1.011x); the scale factor within 5 ppm on all 85 plateaus of ``scale-factor-run``
-  (worst 2.5 ppm); the Table-1 improvement 81.2 % frozen, 89.6 % adapting (medians; one instrument at the noise
-  floor -12.9 % and -52.3 %, its drift error 0.931x frozen).  Missed: the scale factor on ``table-run`` within
-  5 ppm on 188 of 190 plateaus (worst 5.7 ppm, at the extremes of its short holds).  ``eval14`` is spent.
-
-Individual evaluation instruments are not to be studied: to find what failed there, draw more
-development instruments (``--set dev --first 72``) and look for the same failure among them.
+The instruments: ``--instruments`` of the seed set ``--set`` (``eval2`` unless given), under THE RULE of the
+seed sets (``benchmarks/_harness.py``: ``dev`` for developing, every other set reserved for evaluating a finished
+model, once).  Which run spent which set, and what it decided: ``docs/decisions/`` (the pages dated 2026-12-01
+to 2026-12-05).
 
 Per instrument K (``fog_driver.sim.population.draw_instrument``), runs of the simulated chamber, each
 with its own run seed ``10 K + j`` (noise, turn-on bias; ``j`` below):
@@ -194,62 +67,45 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-import tempfile
 import time
-from collections.abc import Callable, Iterable, Sequence
-from concurrent.futures import ProcessPoolExecutor
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from benchmarks._harness import (
+    FIT_PROFILE,
+    FIT_RUN,
+    SCORE_PROFILES,
+    SEED_SETS,
+    capture,
+    in_pool,
+    instrument_seeds,
+    kept_or_temporary,
+    resolve_profile,
+    static_minutes_mask,
+)
+from fog_driver.cli.calibration import DEFAULT_FIT_KIND
+from fog_driver.compensation.adapt import AdaptConfig
+from fog_driver.compensation.fitting.data import FitConfig
+from fog_driver.errors import FogDriverError
+from fog_driver.lab.motion import MotionPlan
+from fog_driver.lab.profiles import SimProfile
+from fog_driver.lab.program import ChamberProfile, Hold, Ramp
+from fog_driver.offline.fit import fit_model_file
+from fog_driver.report.coverage import SIGMA_PER_MINUTE, MinuteErrors, coverage_figures, minute_errors
+from fog_driver.report.evaluate import minute_rms, per_second
+from fog_driver.sim.capture import read_truth, truth_noise_dph
 
-from fog_driver.cli.calibration import DEFAULT_FIT_KIND  # noqa: E402
-from fog_driver.compensation.adapt import AdaptConfig  # noqa: E402
-from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
-from fog_driver.errors import FogDriverError  # noqa: E402
-from fog_driver.offline.fit import fit_model_file  # noqa: E402
-from fog_driver.report.coverage import SIGMA_PER_MINUTE, MinuteErrors, coverage_figures, minute_errors  # noqa: E402
-from fog_driver.report.evaluate import minute_rms, per_second  # noqa: E402
-from fog_driver.samples.captures import read_provenance  # noqa: E402
-from fog_driver.sim.capture import read_truth, simulate_to_file, truth_noise_dph  # noqa: E402
-from fog_driver.sim.chamber import ChamberProfile, Hold, Ramp  # noqa: E402
-from fog_driver.sim.instrument import Simulator  # noqa: E402
-from fog_driver.sim.motion import MotionPlan  # noqa: E402
-from fog_driver.sim.population import draw_instrument  # noqa: E402
-from fog_driver.sim.profiles import BUILTIN_PROFILES, SimProfile, load_profile  # noqa: E402
-
-SEED_SETS = {
-    "dev": 0,
-    "eval": 10_000,
-    "eval2": 20_000,
-    "eval3": 30_000,
-    "eval4": 40_000,
-    "eval5": 50_000,
-    "eval6": 60_000,
-    "eval7": 70_000,
-    "eval8": 80_000,
-    "eval9": 90_000,
-    "eval10": 95_000,
-    "eval11": 96_000,
-    "eval12": 97_000,
-    "eval13": 98_000,
-    "eval14": 99_000,
-}  #: first instrument seed of each set (THE RULE above)
 #: Model kinds; "auto" is what ``fog-driver fit`` fits without --kind (the default's choice between the wesn
 #: and the polynomial).
 KINDS = ("polynomial", "wesn", "auto", "paper", "pso-svr")
 #: The kinds the model choice, the uncertainty and the program comparison are about.
 COMPARED_KINDS = ("polynomial", "wesn", "auto")
-FIT_PROFILE = "paper"
-SCORE_PROFILES = ("soak-cycle", "steps-moves")
 #: ``--compare-programs``: the program compared with the paper program, and where both are scored.
 PROGRAM = "calibration"
 PROGRAM_SCORE_PROFILES = ("steps-moves", "chamber-cycle")
-SKIP_MINUTES = 10
 #: Instrument K's run of a profile has the run seed 10 K + j (the module docstring).
-FIT_RUN = 1
 SCORE_RUNS = {"soak-cycle": 2, "steps-moves": 3, "chamber-cycle": 4, "fast-ramps": 6}
 BEYOND_RUN = 5
 OTHER_RUNS = (7, 8, 9)
@@ -271,12 +127,6 @@ MIN_TOP_BOTTOM_RATIO = 1.5
 PROGRAM_WORST_EXCESS = 1.0
 PROGRAM_WORST_FLOOR = 2.0
 PROGRAM_MEDIAN_FLOOR = 1.15
-
-
-def resolve_profile(name: str) -> SimProfile:
-    """A profile by name: built-in, else ``configs/profiles/<name>.yaml`` (``calibration``: the built-in once it
-    ships, the file until then); a missing one is a one-line ``InputFileError``."""
-    return load_profile(name if name in BUILTIN_PROFILES else ROOT / "configs" / "profiles" / f"{name}.yaml")
 
 
 def beyond_profile(
@@ -306,55 +156,6 @@ def score_run_seeds(profiles: Sequence[str]) -> dict[str, int]:
     """Each scoring profile's j (module docstring): its own when it has one, else the next of ``OTHER_RUNS``."""
     others = iter(OTHER_RUNS)
     return {p: SCORE_RUNS[p] if p in SCORE_RUNS else next(others) for p in profiles}
-
-
-def instrument_arguments(parser: argparse.ArgumentParser, instruments: int) -> None:
-    """The instruments a population benchmark runs on: ``--set`` (default dev), ``--first``, ``--instruments``,
-    and how: ``--workers``, ``--workdir`` (captures kept there; default a temporary directory)."""
-    parser.add_argument("--set", choices=SEED_SETS, default="dev")
-    parser.add_argument("--first", type=int, default=0)
-    parser.add_argument("--instruments", type=int, default=instruments)
-    parser.add_argument("--workers", type=int, default=2)
-    parser.add_argument("--workdir", type=Path)
-
-
-def over_instruments(args: argparse.Namespace, score: Callable[..., dict], *same: object) -> tuple[list[int], list]:
-    """``score(seed, *same, workdir)`` for each instrument of ``args`` (``instrument_arguments``), ``--workers``
-    at a time; returns the seeds and the results, in order."""
-    seeds = [SEED_SETS[args.set] + args.first + k for k in range(args.instruments)]
-    with tempfile.TemporaryDirectory() as tmp:
-        workdir = args.workdir or Path(tmp)
-        with ProcessPoolExecutor(args.workers) as pool:
-            columns = [[value] * len(seeds) for value in same]
-            return seeds, list(pool.map(score, seeds, *columns, [workdir] * len(seeds)))
-
-
-def capture(workdir: Path, seed: int, profile: str | SimProfile, run_seed: int, rate_hz: int) -> Path:
-    """Instrument ``seed``'s run of ``profile`` (a name for ``resolve_profile``, or a profile made here), cached
-    by its name, and simulated again when the cached one's sidecar holds another instrument K (a cache made
-    before the population changed)."""
-    name = profile if isinstance(profile, str) else profile.name
-    out = workdir / f"i{seed}" / f"{name}-r{run_seed}-{rate_hz}hz.bin"
-    config = draw_instrument(seed)
-    if out.exists() and (read_provenance(out) or {}).get("model") != config.as_dict():
-        out.unlink()  # simulated by a version whose instrument K differed (e.g. before its scale-factor draws)
-    if not out.exists():
-        out.parent.mkdir(parents=True, exist_ok=True)
-        sim_profile = resolve_profile(profile) if isinstance(profile, str) else profile
-        sim = Simulator(sim_profile, config, rate_hz=rate_hz, seed=run_seed)
-        simulate_to_file(sim, out.with_suffix(".part.bin"))
-        for suffix in (".bin", ".bin.yaml", ".truth.csv", ".table.csv"):  # complete files only: an interrupted
-            part = out.with_suffix(".part" + suffix)  # run redoes them (a table log only with dwells)
-            if suffix != ".table.csv" or part.exists():
-                part.rename(out.with_suffix(suffix))
-    return out
-
-
-def static_minutes_mask(truth: dict[str, np.ndarray], n: int) -> np.ndarray:
-    """Seconds that count: no table motion (true input rate 0) and after the first SKIP_MINUTES."""
-    mask = truth["input_dph"][:n] == 0.0
-    mask[: SKIP_MINUTES * 60] = False
-    return mask
 
 
 def fit_kinds(fit_run: Path, kinds: Iterable[str]) -> tuple[dict, dict]:
@@ -760,33 +561,25 @@ def main() -> None:
     if problem:
         print(f"error: {problem}", file=sys.stderr)
         sys.exit(2)
-    seeds = [SEED_SETS[args.set] + args.first + i for i in range(args.instruments)]
-    with tempfile.TemporaryDirectory() as tmp:
-        workdir = args.workdir or Path(tmp)
+    seeds = instrument_seeds(args.set, args.first, args.instruments)
+    with kept_or_temporary(args.workdir) as workdir:
         t0 = time.perf_counter()
-        with ProcessPoolExecutor(max_workers=args.workers) as pool:
-            futures = [
-                pool.submit(
-                    score_instrument, s, kinds, args.rate_hz, workdir, args.adapt, fit_profile, score_profiles, against
+        same = (kinds, args.rate_hz, workdir, args.adapt, fit_profile, score_profiles, against)
+        results = []
+        for x in in_pool(score_instrument, args.workers, seeds, *([value] * len(seeds) for value in same)):
+            results.append(x)
+            if args.per_instrument:
+                print(
+                    f"instrument {x['seed']:5d}: raw {x['r']['raw']:.4f} floor {x['r']['floor']:.4f} "
+                    + " ".join(f"{k} {x['r'][k]:.4f}" for k in kinds)
+                    + (
+                        f" | fitted on {against}: "
+                        + " ".join(f"{k} {x['against']['r'][k]:.4f}" for k in x["against"]["fit_s"])
+                        if against
+                        else ""
+                    ),
+                    flush=True,
                 )
-                for s in seeds
-            ]
-            results = []
-            for f in futures:
-                results.append(f.result())
-                x = results[-1]
-                if args.per_instrument:
-                    print(
-                        f"instrument {x['seed']:5d}: raw {x['r']['raw']:.4f} floor {x['r']['floor']:.4f} "
-                        + " ".join(f"{k} {x['r'][k]:.4f}" for k in kinds)
-                        + (
-                            f" | fitted on {against}: "
-                            + " ".join(f"{k} {x['against']['r'][k]:.4f}" for k in x["against"]["fit_s"])
-                            if against
-                            else ""
-                        ),
-                        flush=True,
-                    )
         print(
             f"\n{args.set} set: {len(seeds)} instruments (seeds {seeds[0]}..{seeds[-1]}), fitted on {fit_profile}, "
             f"scored on {' and '.join(score_profiles)} at {args.rate_hz} Hz  [{time.perf_counter() - t0:.0f} s]\n"
@@ -803,6 +596,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    from readme_block import run_main  # --update-readme: the README's block for this command
+    from benchmarks._harness import run_main  # --update-readme: the documentation's block for this command
 
     run_main(main)

@@ -1,6 +1,6 @@
 """The simulator: generating captures, and serving a live stream in real time.
 
-    python benchmarks/bench_sim.py [--serve-seconds S] [--rate-hz R] [--skip-generate]
+    python -m benchmarks.bench_sim [--serve-seconds S] [--rate-hz R] [--skip-generate]
 
 (a) Generation: the ``paper`` profile (440 minutes) at 100 Hz to a capture file
     (with its sidecar and truth file, as ``fog-driver simulate --out`` writes it;
@@ -27,11 +27,11 @@ import time
 from pathlib import Path
 
 from fog_driver.console import configure_logging
+from fog_driver.lab.profiles import load_profile
 from fog_driver.protocol import SAMPLE_FRAME_LEN, decode_bytes
 from fog_driver.sim.capture import simulate_to_file
 from fog_driver.sim.faults import FaultSpec
 from fog_driver.sim.instrument import Simulator
-from fog_driver.sim.profiles import load_profile
 from fog_driver.sim.serve import PtyServer, ServeStats, serve_pty
 
 # The reader: opens the pty (through the link) raw, says "ready", reads until the pty is unplugged.
@@ -142,4 +142,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from benchmarks._harness import run_main  # --update-readme: the documentation's block for this command
+
+    run_main(main)

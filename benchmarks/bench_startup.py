@@ -1,6 +1,6 @@
 """Start-up cost of config validation: the daemon's start, the config module, and the two candidate libraries.
 
-    python benchmarks/bench_startup.py [--runs N]
+    python -m benchmarks.bench_startup [--runs N]
 
 Each figure is the median of N fresh interpreters (wall time, ms), so every import is paid in full:
 

@@ -1,9 +1,13 @@
 """Adapting from the table's angles, on a population (issue 32).
 
-    python benchmarks/bench_table.py [--set dev|eval5|...] [--instruments N] [--first K] [--creeps 0.2,2,20]
+    python -m benchmarks.bench_table [--set dev|eval5|...] [--instruments N] [--first K] [--creeps 0.2,2,20]
                                      [--days 1] [--rate-hz 10] [--workers 2] [--workdir DIR] [--per-instrument]
+                                     [--update-readme]
 
-Per instrument K of a set (the seed ranges and THE RULE of ``bench_population.py``): the default model
+``--creeps=`` runs no creep; ``--update-readme`` rewrites this command's block in ``docs/explanation/accuracy.md``
+(``benchmarks/_harness.py``).
+
+Per instrument K of a set (the seed ranges and THE RULE of ``_harness.py``): the default model
 (``fog-driver fit`` without ``--kind``) fitted on its paper run; then a positioning run outside the fit,
 as in the paper's validation experiment but all through the run: ``configs/profiles/table-run.yaml``,
 the ``steps-moves`` chamber program (ramps of 2 to 4 degC/min, steps, a fast drop, -20..50 degC) with the
@@ -41,34 +45,30 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from benchmarks._harness import FIT_PROFILE, FIT_RUN, capture, instrument_arguments, over_instruments
+from fog_driver.cli.calibration import DEFAULT_FIT_KIND
+from fog_driver.compensation.adapt import AdaptConfig
+from fog_driver.compensation.fitting.data import FitConfig
+from fog_driver.compensation.pipeline import Compensator
+from fog_driver.compensation.table import SF_REF_C
+from fog_driver.dwells import Dwell, read_table_log
+from fog_driver.flags import FLAG_GUARD
+from fog_driver.lab.motion import Creep, MotionPlan
+from fog_driver.lab.profiles import SimProfile, load_profile
+from fog_driver.offline.compensate import compensate_capture
+from fog_driver.offline.fit import fit_model_file
+from fog_driver.report.evaluate import minute_rms
+from fog_driver.report.positioning import improvement, positioning_table
+from fog_driver.sim.capture import read_truth, truth_noise_dph
+from fog_driver.sim.population import draw_instrument
+from fog_driver.sim.tablelog import late, lie
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-from bench_population import FIT_PROFILE, FIT_RUN, capture, instrument_arguments, over_instruments  # noqa: E402
-
-from fog_driver.cli.calibration import DEFAULT_FIT_KIND  # noqa: E402
-from fog_driver.compensation.adapt import AdaptConfig  # noqa: E402
-from fog_driver.compensation.dwell import Dwell  # noqa: E402
-from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
-from fog_driver.compensation.pipeline import Compensator  # noqa: E402
-from fog_driver.compensation.table import SF_REF_C  # noqa: E402
-from fog_driver.flags import FLAG_GUARD  # noqa: E402
-from fog_driver.offline.compensate import compensate_capture  # noqa: E402
-from fog_driver.offline.fit import fit_model_file  # noqa: E402
-from fog_driver.report.evaluate import minute_rms  # noqa: E402
-from fog_driver.report.positioning import improvement, positioning_table, read_reference_csv  # noqa: E402
-from fog_driver.sim.capture import read_truth, truth_noise_dph  # noqa: E402
-from fog_driver.sim.motion import Creep, MotionPlan  # noqa: E402
-from fog_driver.sim.population import draw_instrument  # noqa: E402
-from fog_driver.sim.profiles import SimProfile, load_profile  # noqa: E402
-from fog_driver.sim.tablelog import late, lie  # noqa: E402
 
 SCORE_PROFILE = "table-run"
 TABLE_RUN = 7  #: the positioning run's seed: 10 K + 7
@@ -101,12 +101,6 @@ def table_profile(creep_dph: float = 0.0) -> SimProfile:
     return dataclasses.replace(
         base, name=f"{base.name}-creep{creep_dph:g}", motion=MotionPlan((*base.motion.items, creep))
     )
-
-
-def read_table_log(path: Path) -> list[Dwell]:
-    from fog_driver.report.positioning import read_reference_csv
-
-    return [Dwell(s.t_start_s, s.t_end_s, s.angle_deg, s.angle_end_deg) for s in read_reference_csv(path)]
 
 
 def per_second(path: Path, model_file, n: int, **kwargs) -> tuple[np.ndarray, np.ndarray, Compensator | None]:
@@ -183,7 +177,7 @@ def score_instrument(seed: int, creeps: tuple[float, ...], rate_hz: int, days: i
     holds = [(p.t_start_s + 300.0, p.t_end_s) for p in table_profile().chamber.plateaus()]
     stops = [
         s
-        for s in read_reference_csv(path.with_suffix(".table.csv"))
+        for s in read_table_log(path.with_suffix(".table.csv"))
         if any(a <= s.t_start_s and s.t_end_s <= b for a, b in holds)
     ]
     rows = positioning_table(
@@ -341,4 +335,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from benchmarks._harness import run_main  # --update-readme: the documentation's block for this command
+
+    run_main(main)

@@ -1,9 +1,9 @@
 """How often a wrong table angle is learned: a lie at every dwell in turn (issue 32).
 
-    python benchmarks/bench_table_lies.py [--set dev|eval5|...] [--first K] [--instruments N] [--sigmas 5]
+    python -m benchmarks.bench_table_lies [--set dev|eval5|...] [--first K] [--instruments N] [--sigmas 5]
                                           [--workers 2] [--workdir DIR]
 
-Per instrument K of a set (``bench_population.py``'s seed ranges and its rule): the default model fitted on its
+Per instrument K of a set (the seed ranges and THE RULE of ``_harness.py``): the default model fitted on its
 paper run and the positioning run ``table-run`` with its table log, as in ``bench_table.py``.  The table law's
 inputs (its blocks, the dwells it observes and the breaks, in order) are recorded once from the compensator
 adapting from the true log; the law alone, replayed from its state before the first block, gives the same
@@ -20,27 +20,21 @@ from __future__ import annotations
 import argparse
 import contextlib
 import copy
-import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-from bench_population import FIT_PROFILE, FIT_RUN, capture, instrument_arguments, over_instruments  # noqa: E402
-from bench_table import TABLE_RUN, per_second, read_table_log, table_profile  # noqa: E402
-
-from fog_driver.cli.calibration import DEFAULT_FIT_KIND  # noqa: E402
-from fog_driver.compensation.adapt import AdaptConfig  # noqa: E402
-from fog_driver.compensation.dwell import Dwell  # noqa: E402
-from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
-from fog_driver.compensation.table import TableLaw, TableOutcome  # noqa: E402
-from fog_driver.offline.fit import fit_model_file  # noqa: E402
-from fog_driver.sim.capture import read_truth  # noqa: E402
-from fog_driver.sim.tablelog import lie  # noqa: E402
+from benchmarks._harness import FIT_PROFILE, FIT_RUN, capture, instrument_arguments, over_instruments
+from benchmarks.bench_table import TABLE_RUN, per_second, read_table_log, table_profile
+from fog_driver.cli.calibration import DEFAULT_FIT_KIND
+from fog_driver.compensation.adapt import AdaptConfig
+from fog_driver.compensation.fitting.data import FitConfig
+from fog_driver.compensation.table import TableLaw, TableOutcome
+from fog_driver.dwells import Dwell
+from fog_driver.offline.fit import fit_model_file
+from fog_driver.sim.capture import read_truth
+from fog_driver.sim.tablelog import lie
 
 SKIP_FIRST = 5  #: learned dwells left out at the start (the bias capture, the law's first intervals)
 

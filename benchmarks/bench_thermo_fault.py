@@ -1,11 +1,11 @@
 """Thermometer faults during a ramp, on a population of instruments: is compensation still better than none?
 
-    python benchmarks/bench_thermo_fault.py [--set eval3|dev|...] [--instruments N] [--first K]
+    python -m benchmarks.bench_thermo_fault [--set eval3|dev|...] [--instruments N] [--first K]
                                             [--kinds auto,polynomial] [--rate-hz 10] [--workers 2] [--workdir DIR]
                                             [--per-instrument] [--offsets-only] [--fault invalid|stuck]
                                             [--update-readme]
 
-Per instrument (``bench_population``'s: the same seed sets and THE RULE, the same cached captures), the
+Per instrument (``_harness.py``'s seed sets, THE RULE and capture cache), the
 model that ``fog-driver fit`` makes without ``--kind`` (``auto``) is fitted on the ``paper`` run, then each
 scoring run (``soak-cycle``, ``steps-moves``) is compensated five times from its frames: clean; with each
 one thermometer invalid (NaN, as the protocol's "no valid reading"; ``--fault stuck``: reading its value
@@ -24,37 +24,32 @@ and faulted sensor:
 Printed: how many cases meet each, the largest (worst_fault - worst_clean) / worst_uncompensated, and
 the glitch's largest |D_hat - D_hat_clean|.  Figures are printed, never asserted.
 
-Log of the runs (see THE RULE in bench_population.py):
-
-* 2026-12-02, ``eval3`` (30000..30011), first run: substitution from the fitted thermal coupling (issue 11), 220 s;
-  all 72 cases meet the target (the README's figures).
-* 2026-12-02, ``eval3``, ``--fault stuck``, first run: the stuck-reading check (thresholds set from the
-  physics, no false alarm on 12 clean development instruments x 4 profiles).
+Its runs, and what they decided: docs/decisions/2026-12-02-thermometer-substitution.md.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
-import sys
-import tempfile
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-from bench_population import FIT_PROFILE, SCORE_PROFILES, SEED_SETS, capture  # noqa: E402
-
-from fog_driver.compensation.features import Substitution  # noqa: E402
-from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
-from fog_driver.compensation.pipeline import Compensator  # noqa: E402
-from fog_driver.offline.fit import fit_model_file  # noqa: E402
-from fog_driver.samples.stream import SampleBlock, read_capture_samples  # noqa: E402
-from fog_driver.sim.capture import read_truth  # noqa: E402
+from benchmarks._harness import (
+    FIT_PROFILE,
+    SCORE_PROFILES,
+    SEED_SETS,
+    capture,
+    in_pool,
+    instrument_seeds,
+    kept_or_temporary,
+)
+from fog_driver.compensation.features import Substitution
+from fog_driver.compensation.fitting.data import FitConfig
+from fog_driver.compensation.pipeline import Compensator
+from fog_driver.offline.fit import fit_model_file
+from fog_driver.samples.stream import SampleBlock, read_capture_samples
+from fog_driver.sim.capture import read_truth
 
 FAULT_S = 1800
 AFTER_S = 1800
@@ -215,22 +210,11 @@ def main() -> None:
     )
     args = parser.parse_args()
     kinds = tuple(args.kinds.split(","))
-    seeds = [SEED_SETS[args.set] + args.first + i for i in range(args.instruments)]
-    with tempfile.TemporaryDirectory() as tmp:
-        workdir = args.workdir or Path(tmp)
+    seeds = instrument_seeds(args.set, args.first, args.instruments)
+    with kept_or_temporary(args.workdir) as workdir:
         workdir.mkdir(parents=True, exist_ok=True)
-        with ProcessPoolExecutor(args.workers) as pool:
-            results = list(
-                pool.map(
-                    score_instrument,
-                    seeds,
-                    [kinds] * len(seeds),
-                    [args.rate_hz] * len(seeds),
-                    [workdir] * len(seeds),
-                    [args.offsets_only] * len(seeds),
-                    [args.fault] * len(seeds),
-                )
-            )
+        same = (kinds, args.rate_hz, workdir, args.offsets_only, args.fault)
+        results = list(in_pool(score_instrument, args.workers, seeds, *([value] * len(seeds) for value in same)))
     print(
         f"{args.set}: instruments {seeds[0]}..{seeds[-1]}, {args.rate_hz} Hz, one thermometer {args.fault} for "
         f"{FAULT_S // 60} min from the first ramp\n"
@@ -239,6 +223,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    from readme_block import run_main  # --update-readme: the README's block for this command
+    from benchmarks._harness import run_main  # --update-readme: the documentation's block for this command
 
     run_main(main)

@@ -1,6 +1,6 @@
 """The web view's cost: the daemon at 2 kHz with the page open in two browsers and Prometheus scraping every second.
 
-    python benchmarks/bench_web.py [--quick] [--seconds S] [--browsers N] [--scrape-every-s S] [--tick-ms MS]
+    python -m benchmarks.bench_web [--quick] [--seconds S] [--browsers N] [--scrape-every-s S] [--tick-ms MS]
 
 Target: with the web view open in two browsers and a scrape of ``/metrics`` every second, the daemon at
 2 kHz keeps the p99 latency from frame written to NDJSON line received under 5 ms and its CPU under 25 % of
@@ -46,11 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-from bench_daemon import (  # noqa: E402
+from benchmarks.bench_daemon import (
     Table,
     add_pacing_options,
     live_run,
@@ -59,6 +55,8 @@ from bench_daemon import (  # noqa: E402
     stat_cpu_s,
     stat_fields,
 )
+
+ROOT = Path(__file__).resolve().parents[1]
 
 # Pages' WebSockets without a browser (a process of its own): argv url n [local_address|-] [token].  Opens n
 # WebSockets one after another (from local_address when given; with the token as "Authorization: Bearer"), prints
@@ -350,6 +348,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    from readme_block import run_main  # --update-readme: the README's block for this command
+    from benchmarks._harness import run_main  # --update-readme: the documentation's block for this command
 
     run_main(main)

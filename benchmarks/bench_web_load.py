@@ -1,6 +1,6 @@
 """The token-protected daemon under load: 50 pages, 8 hostile NDJSON clients, a watcher timing every sample.
 
-    python benchmarks/bench_web_load.py [--seconds S] [--warmup-s S] [--settle-s S] [--rate-hz HZ]
+    python -m benchmarks.bench_web_load [--seconds S] [--warmup-s S] [--settle-s S] [--rate-hz HZ]
                                         [--ws-clients N] [--ws-addresses N] [--hostile N] [--tick-ms MS]
 
 Targets: under the load below, every sample reaches a watching NDJSON client; its p99 lateness is at most twice
@@ -73,11 +73,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-from bench_daemon import (  # noqa: E402
+from benchmarks.bench_daemon import (
     CLIENT,
     CLK_TCK,
     GUARD_S,
@@ -94,10 +90,9 @@ from bench_daemon import (  # noqa: E402
     start_hostile,
     start_readers,
 )
-from bench_web import WS_READER, Scraper, web_url  # noqa: E402
-
-from fog_driver.daemon.limits import WEB_MAX_CONNECTIONS, WEB_MAX_CONNECTIONS_PER_PEER  # noqa: E402
-from fog_driver.transport import PtyPair  # noqa: E402
+from benchmarks.bench_web import WS_READER, Scraper, web_url
+from fog_driver.daemon.limits import WEB_MAX_CONNECTIONS, WEB_MAX_CONNECTIONS_PER_PEER
+from fog_driver.transport import PtyPair
 
 #: ``/metrics`` is scraped this often (s), as Prometheus would.
 SCRAPE_EVERY_S = 1.0
@@ -437,6 +432,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    from readme_block import run_main  # --update-readme: the block in docs/explanation/performance.md
+    from benchmarks._harness import run_main  # --update-readme: the block in docs/explanation/performance.md
 
     run_main(main)

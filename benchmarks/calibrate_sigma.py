@@ -1,9 +1,9 @@
 """Calibrating ``drift_sigma_dph``'s three factors on development instruments (``compensation.uncertainty``).
 
-    python benchmarks/calibrate_sigma.py --first 0 --instruments 24 --workdir /tmp/pop
+    python -m benchmarks.calibrate_sigma --first 0 --instruments 24 --workdir /tmp/pop
 
 Per development instrument K (``--first`` .. ``--first + --instruments - 1`` of the ``dev`` set; never an
-evaluation set: see ``bench_population.py``'s RULE), the wesn is fitted on its ``paper`` run, as
+evaluation set: see THE RULE of ``_harness.py``), the wesn is fitted on its ``paper`` run, as
 ``bench_population.py`` does (same captures, same cache layout), and applied to three scoring runs:
 ``soak-cycle``, ``steps-moves`` and a hot soak 10 degC above the fit program's hottest (``hot_soak``: the
 minutes that leave the fit box).  For every static minute after the first ten it records the error
@@ -17,48 +17,28 @@ Gaussian likelihood of the pooled errors,
 on a grid, and the coverage of the +-1.96 sigma band is printed; then the same for a common factor c on
 the spread and the residual (``COMMON_SCALES``, the box's factor 1).  Figures are printed, never asserted.
 
-The shipped factors (``compensation.uncertainty``), from the run on development instruments 0..11
-(``--first 0 --instruments 12``, 2026-12-04): the likelihood's factors (0.368, 1.47, 0.232) put the weight
-on the constant residual part and left the worst instrument at 82.8 % and the hot soak at 89 %; the
-unit factors covered 98.3 % pooled (over the 95 +- 3 % band), worst instrument 89.8 %; a common 0.85
-covers 97.1 % pooled, worst instrument 82.8 %, the top-sigma quarter 99.0 %, every extrapolating minute
-(1436), median sigma 0.84x the error's RMS, top/bottom-quarter error ratio 3.28 (median).
-
-Checked again once the calibration program was the recipe (``--fit-profile calibration``, and pooled,
-``--fit-profile paper,calibration``: each instrument's two fits count as two; 2026-12-04, with the fit's
-longer lags at the edge): fitted on ``calibration``, the common 0.85 covers 98.8 % pooled (0.8 over the
-band's top: a better-pinned model leaves errors with heavier tails about a smaller spread), worst
-instrument 93.3 %, median sigma 0.81x the error's RMS, top/bottom 2.25; the paper fits 97.1 % as before.
-Pooled over both, 0.85 covers 97.9 %, every one of the 24 fits at 80 % or more (worst 82.8 %), the hot
-soaks 89.5 %.  A smaller factor would bring the calibration fits inside the band (0.7: 97.2 %) but takes
-the paper fits' worst instruments under 80 % (0.7 pooled: 22 of 24, worst 77.4 %), and on ``eval4`` the
-paper fits with 0.85 were already at 95.7 % and 22 of 24: 0.85 stays.
+The shipped factors (``compensation.uncertainty``) and the runs that chose them:
+docs/decisions/2026-12-07-uncertainty-factors.md.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
-import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-from bench_population import beyond_profile, capture, resolve_profile, static_minutes_mask  # noqa: E402
-
-from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
-from fog_driver.compensation.fitting.uncertainty import model_error_dph  # noqa: E402
-from fog_driver.modelfiles import load_model, save_model  # noqa: E402
-from fog_driver.offline.fit import fit_model_file  # noqa: E402
-from fog_driver.report.coverage import MinuteErrors, coverage_figures, minute_errors  # noqa: E402
-from fog_driver.report.evaluate import drift_per_second  # noqa: E402
-from fog_driver.sim.capture import read_truth  # noqa: E402
+from benchmarks._harness import capture, in_pool, instrument_seeds, resolve_profile, static_minutes_mask
+from benchmarks.bench_population import beyond_profile
+from fog_driver.compensation.fitting.data import FitConfig
+from fog_driver.compensation.fitting.uncertainty import model_error_dph
+from fog_driver.modelfiles import load_model, save_model
+from fog_driver.offline.fit import fit_model_file
+from fog_driver.report.coverage import MinuteErrors, coverage_figures, minute_errors
+from fog_driver.report.evaluate import drift_per_second
+from fog_driver.sim.capture import read_truth
 
 PARTS = ("spread", "residual", "box")
 SCORE = ("soak-cycle", "steps-moves", "hot-soak")
@@ -169,11 +149,12 @@ def main() -> None:
     )
     args = parser.parse_args()
     t0 = time.perf_counter()
-    seeds = range(args.first, args.first + args.instruments)
+    seeds = instrument_seeds("dev", args.first, args.instruments)
     programs = args.fit_profile.split(",")
     jobs = [(seed, program) for program in programs for seed in seeds]
-    with ProcessPoolExecutor(max_workers=args.workers) as pool:
-        results = list(pool.map(instrument, [s for s, _ in jobs], [args.workdir] * len(jobs), [p for _, p in jobs]))
+    results = list(
+        in_pool(instrument, args.workers, [s for s, _ in jobs], [args.workdir] * len(jobs), [p for _, p in jobs])
+    )
     print(f"dev instruments {seeds[0]}..{seeds[-1]}, fitted on {args.fit_profile}  [{time.perf_counter() - t0:.0f} s]")
     print("candidates per model: " + ", ".join(str(r["n_candidates"]) for r in results))
     report(results, (1.0, 1.0, 1.0))

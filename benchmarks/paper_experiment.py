@@ -1,12 +1,12 @@
 """The paper's whole experiment on simulated data: its Table 1 and improvement figures.
 
-    python benchmarks/paper_experiment.py [--rate-hz 10] [--seed 1] [--workdir DIR] [--no-svr]
-    python benchmarks/paper_experiment.py --instruments N [--set eval2|eval|dev] [--workers 2] [--per-instrument]
+    python -m benchmarks.paper_experiment [--rate-hz 10] [--seed 1] [--workdir DIR] [--no-svr]
+    python -m benchmarks.paper_experiment --instruments N [--set eval2|eval|dev] [--workers 2] [--per-instrument]
                                           [--rate-hz 10] [--workdir DIR] [--no-svr]
 
 Without ``--instruments``: the default simulated instrument, one draw (below).  With it: the same
 experiment on N instruments of the population (``fog_driver.sim.population``; the seed sets and THE
-RULE of ``bench_population.py``: the evaluation ranges are reported, never developed on), and the improvements as
+RULE of ``_harness.py``: the evaluation ranges are reported, never developed on), and the improvements as
 a distribution over them (median, quartiles, range) instead of a single draw.  Instrument K fits on
 its ``paper`` run (run seed 10 K + 1, the same capture ``bench_population.py`` fits on) and is
 scored on its ``paper-validation`` run (run seed 10 K + 5).
@@ -36,33 +36,25 @@ default 10 Hz: a few minutes (the README quotes the measured figure).
 from __future__ import annotations
 
 import argparse
-import sys
-import tempfile
 import time
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from fog_driver.compensation.fitting.data import FitConfig  # noqa: E402
-from fog_driver.modelfiles import save_model  # noqa: E402
-from fog_driver.offline.fit import fit_model_file  # noqa: E402
-from fog_driver.report.positioning import (  # noqa: E402
+from benchmarks._harness import SEED_SETS, capture, in_pool, instrument_seeds, kept_or_temporary
+from fog_driver.compensation.fitting.data import FitConfig
+from fog_driver.lab.profiles import PAPER_VALIDATION_TEMPS_C, load_profile
+from fog_driver.modelfiles import save_model
+from fog_driver.offline.fit import fit_model_file
+from fog_driver.report.positioning import (
     Row,
     format_table,
     improvement,
     load_stops,
     positioning_table,
 )
-from fog_driver.sim.capture import simulate_to_file  # noqa: E402
-from fog_driver.sim.instrument import Simulator  # noqa: E402
-from fog_driver.sim.profiles import PAPER_VALIDATION_TEMPS_C, load_profile  # noqa: E402
-
-sys.path.insert(0, str(ROOT / "benchmarks"))
-from bench_population import SEED_SETS, capture  # noqa: E402
+from fog_driver.sim.capture import simulate_to_file
+from fog_driver.sim.instrument import Simulator
 
 #: The paper's Table 1 (arcsec): temperature -> (raw mean, raw std, PSO-SVM mean, std, proposed mean, std).
 PAPER_TABLE_1 = {
@@ -176,14 +168,10 @@ def population_instrument(seed: int, kinds: list[str], rate_hz: int, workdir: Pa
 
 def population(args: argparse.Namespace, workdir: Path) -> None:
     kinds = svr_kinds(args.no_svr)
-    seeds = [SEED_SETS[args.set] + args.first + i for i in range(args.instruments)]
+    seeds = instrument_seeds(args.set, args.first, args.instruments)
     t0 = time.perf_counter()
-    with ProcessPoolExecutor(max_workers=args.workers) as pool:
-        results = list(
-            pool.map(
-                population_instrument, seeds, [kinds] * len(seeds), [args.rate_hz] * len(seeds), [workdir] * len(seeds)
-            )
-        )
+    n = len(seeds)
+    results = list(in_pool(population_instrument, args.workers, seeds, [kinds] * n, [args.rate_hz] * n, [workdir] * n))
     names = [k for k in results[0] if k != "seed"]
     if args.per_instrument:
         print("instrument  " + "  ".join(f"{n:>24s}" for n in names))
@@ -226,8 +214,7 @@ def main() -> None:
     args = parser.parse_args()
     if args.instruments is not None and args.instruments < 1:
         parser.error("--instruments must be at least 1")
-    with tempfile.TemporaryDirectory() as tmp:
-        workdir = args.workdir or Path(tmp)
+    with kept_or_temporary(args.workdir) as workdir:
         workdir.mkdir(parents=True, exist_ok=True)
         if args.instruments is not None:
             population(args, workdir)
@@ -260,6 +247,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    from readme_block import run_main  # --update-readme: the README's block for this command
+    from benchmarks._harness import run_main  # --update-readme: the documentation's block for this command
 
     run_main(main)

@@ -1,7 +1,8 @@
 """fog_driver: instrument driver and streaming temperature-drift compensator for a fiber-optic gyro.
 
 Importing the package imports nothing else: ``import fog_driver.client`` needs the standard library only.
-``__version__`` is looked up on first use (``importlib.metadata`` costs ~25 ms of start-up).
+``__version__`` is looked up on first use: ``importlib.metadata`` is imported only then, off the start-up path
+(``benchmarks/bench_startup.py`` times the start-up).
 """
 
 from __future__ import annotations

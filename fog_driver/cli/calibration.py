@@ -22,6 +22,7 @@ from ..compensation.fitting.fit import (
 from ..compensation.fitting.quality import format_checks
 from ..compensation.fitting.report import WORSE_MARKER
 from ..compensation.pipeline import Compensator
+from ..dwells import read_table_log
 from ..errors import FogDriverError, InputFileError, OutputFileError, UsageError
 from ..extras import require_extra
 from ..files.bounded import file_sha256
@@ -42,7 +43,7 @@ from ..offline.compensate import (
 from ..offline.fit import fit_model_file
 from ..offline.replay import REPLAYED, control_events, unreplayed
 from ..offline.rows import compensated_rows, format_row
-from ..offline.table import check_table_log_used, table_dwells, table_summary_lines
+from ..offline.table import check_table_log_used, table_summary_lines
 from ..report import positioning
 from ..report.coverage import format_coverage
 from ..report.evaluate import (
@@ -222,7 +223,7 @@ def cmd_compensate(args: argparse.Namespace) -> int:
             "--table-log and --adapt-reference are two signals to adapt from: give one (--table-log learns from "
             "the table's angles, --adapt-reference from a declared rate)"
         )
-    dwells = None if args.table_log is None else table_dwells(positioning.read_reference_csv(args.table_log))
+    dwells = None if args.table_log is None else read_table_log(args.table_log)
     sidecar_doc = read_provenance(args.capture)
     events = control_events(sidecar_doc, args.capture)  # a daemon capture: the operator's commands, replayed
     if dwells is not None and any(e.kind == "table" for e in events):
@@ -384,7 +385,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if args.truth:
         truth = read_truth(args.truth)
         check_truth_matches(truth, args.truth, args.capture)
-    stops = positioning.read_reference_csv(args.reference) if args.reference else None
+    stops = read_table_log(args.reference) if args.reference else None
     label = model_label(args.model, model_file)
     compare = {}
     for path in args.compare:

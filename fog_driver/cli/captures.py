@@ -14,6 +14,7 @@ from ..daemon.config import DriverConfig, load_config
 from ..errors import InputFileError, UsageError
 from ..formats.registry import FORMATS
 from ..formats.summary import format_format_summary, summarize_format
+from ..lab.profiles import MAX_PROFILE_S, load_profile
 from ..samples.captures import format_summary, inspect_capture
 from ..samples.record import record
 from ..samples.sources import PROTOCOL_V1, capture_format, wire_settings_for
@@ -22,7 +23,6 @@ from ..sim.capture import simulate_to_file
 from ..sim.faults import parse_fault_spec
 from ..sim.instrument import WIRE_FORMATS, Simulator, load_instrument_config
 from ..sim.population import MAX_INSTRUMENT_SEED, draw_instrument
-from ..sim.profiles import MAX_PROFILE_S, load_profile
 from ..sim.serve import serve_cli
 from ..transport import DEFAULT_SILENCE_S
 from .argtypes import baud, positive_float, rate_hz, seed

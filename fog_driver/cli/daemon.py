@@ -19,9 +19,9 @@ from ..daemon.service import ConfigError, Service
 from ..errors import DeviceError, FogDriverError, InternalError
 from ..extras import require_extra
 from ..formats.registry import FORMATS
+from ..lab.profiles import load_profile
 from ..signals import SignalDispatcher, deferred_hangups
 from ..sim.instrument import Simulator
-from ..sim.profiles import load_profile
 from ..sim.serve import serve_pty
 from ..tools.watch import format_address
 from ..transport.port import not_a_serial_device, open_error_text

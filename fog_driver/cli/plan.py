@@ -1,4 +1,4 @@
-"""``fog-driver plan``: a calibration program for the user's chamber (``fog_driver.sim.plan``), written as a
+"""``fog-driver plan``: a calibration program for the user's chamber (``fog_driver.lab.plan``), written as a
 profile file that ``simulate --profile`` runs and a chamber is programmed from."""
 
 from __future__ import annotations
@@ -10,10 +10,10 @@ from pathlib import Path
 from ..errors import UsageError
 from ..files.outputs import check_outputs
 from ..files.yamlio import write_yaml
-from ..sim.chamber import Ramp
-from ..sim.motion import MotionPlan
-from ..sim.plan import DEFAULT_LIMITS, DESIGN, ChamberLimits, Plan, design_program
-from ..sim.profiles import SimProfile, profile_to_doc
+from ..lab.motion import MotionPlan
+from ..lab.plan import DEFAULT_LIMITS, DESIGN, ChamberLimits, Plan, design_program
+from ..lab.profiles import SimProfile, profile_to_doc
+from ..lab.program import Ramp
 
 #: The options, each a field of ``ChamberLimits``.
 _OPTIONS = {

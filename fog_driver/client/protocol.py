@@ -57,9 +57,11 @@ def _log(level: int, event: str, **fields: Any) -> None:
         log.log(level, "%s %s", event, pairs, extra={"event": event, **fields})
 
 
+#: ``?BIAS``: the most seconds of a capture; the daemon's bound too (``daemon.limits`` imports it).
 MAX_BIAS_S = 86400
 MAX_REFERENCE_DPH = 1e7
-#: ``?TABLE``: the largest angle (deg), the shortest and longest dwell (s), as the daemon checks them.
+#: ``?TABLE``: the largest angle (deg), the shortest and longest dwell (s), as the daemon checks them (the longest
+#: is the daemon's own bound: ``daemon.limits`` imports it).
 MAX_TABLE_ANGLE_DEG = 1e6
 MIN_TABLE_DWELL_S = 12.0
 MAX_TABLE_DWELL_S = 86400.0

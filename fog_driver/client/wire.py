@@ -17,8 +17,8 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import InputFileError, UsageError
+from ..ndjson import OVERLONG, LineBuffer, LineEvent
 from .address import DEFAULT_HOST, DEFAULT_PORT, format_address, parse_host_port
-from .ndjson import OVERLONG, LineBuffer, LineEvent
 
 __all__ = [
     "DEFAULT_HOST",

@@ -29,8 +29,8 @@ reference that already contains every constant.
 
 The gate.  W is updated only on gated blocks: a reference is given AND the table is ``static`` (a known
 input rate while nothing moves; ``StaticDetector`` tells it from the gyro itself) AND the measured rate is
-finite.  On every other block the law still runs with ``update=False`` (its filters and the sums H, I go
-on, so re-enabling is seamless), with a neutral target: the current estimate ``W . x`` itself.  While W is
+finite.  On every other block the law tracks with W held (``AdaptiveLaw.track``: its filters and the sums
+H, I go on, so re-enabling is seamless), with a neutral target: the current estimate ``W . x`` itself.  While W is
 fixed the filtered neutral target is exactly ``W . Xf``, so those blocks add nothing to ``M = H W - I`` at
 the current W: they carry no information and say "stay" (they still weigh in H, a mild pull towards the
 W of that time for one memory window).  The same neutral target is used during the bias capture.
@@ -80,11 +80,13 @@ gain that is significant but smaller than that is the gyro's slow noise being ch
 one is, and the law keeps adapting underneath (``adapted_in_use``).  A window's mean keeps the 1-s white
 noise from swamping the comparison.
 
-Order within ``step`` (the law's): the estimate uses W and the comparison's verdict before this block's
-update (an honest a-priori estimate), then the guard, then the bias capture or the update.  ``run`` is
-``step`` row by row.
+Order within ``step``: the estimate uses W and the comparison's verdict before this block's update (an
+honest a-priori estimate, the law's ``predict``), then the guard, then the bias capture, then the law learns
+(``learn``) or tracks with W held (``track``).  The readout's ``step`` keeps predicting and learning in one
+call: the estimate it returns is the guard's and the gate's verdict on this same block.  ``run`` is ``step``
+row by row.
 
-State.  ``state_dict`` / ``load_state`` give everything (the law's state, the bias capture, counters,
+State.  ``get_state`` / ``set_state`` give everything (the law's state, the bias capture, counters,
 and the frozen weights, so a state is never restored into another model) as plain YAML-safe values;
 floats round-trip exactly through ``yaml.safe_dump``, so a run saved and restored mid-stream continues bit
 for bit (tested).  ``state_document`` / ``load_state_doc`` give a document with a format tag
@@ -263,7 +265,7 @@ class OnlineReadout(ComparisonGuard):
         self._x[-1] = 1.0
         self._start()
         if state is not None:
-            self.load_state(state)
+            self.set_state(state)
 
     def _start(self) -> None:
         self._law.set_state(AdaptiveLawState.zeros(self.n_features + 1, weights=self._w_frozen))
@@ -283,7 +285,7 @@ class OnlineReadout(ComparisonGuard):
         self._reset_comparison()
 
     def _reset_comparison(self) -> None:
-        self._compare_w = self._law._w.copy()  # the adapted weights when the open window began
+        self._compare_w = self._law.weights_view.copy()  # the adapted weights when the open window began
         self.compare_blocks = 0  # gated update blocks in the open window
         self.compare_sum_frozen_dph = 0.0  # sums of (d - frozen estimate) and (d - adapted estimate) in it
         self.compare_sum_adapted_dph = 0.0
@@ -326,11 +328,11 @@ class OnlineReadout(ComparisonGuard):
     @property
     def weights(self) -> np.ndarray:
         """A copy of the adapted weights on f, shape (F,)."""
-        return self._law._w[:-1].copy()
+        return self._law.weights_view[:-1].copy()
 
     @property
     def intercept(self) -> float:
-        return float(self._law._w[-1])
+        return float(self._law.weights_view[-1])
 
     @property
     def adapting(self) -> bool:
@@ -386,7 +388,7 @@ class OnlineReadout(ComparisonGuard):
         self.used_adapted = False
         flags = 0
         y_frozen = float(numerics.dot(f, self.frozen_weights) + self.frozen_intercept)
-        w = self._law._w  # the law's live W (updated in place by the law)
+        w = self._law.weights_view  # the law's live W (updated in place by the law)
         y = float(numerics.dot(f, w[:-1]) + w[-1])
         if not math.isfinite(y_frozen):  # non-finite regressors: nothing to revert to, nothing to learn
             return y_frozen, FLAG_GUARD
@@ -432,14 +434,16 @@ class OnlineReadout(ComparisonGuard):
         else:  # the gate starts afresh after any block it did not see
             self.gate_last_rate_dph = None
             self.gate_innovation_dph = 0.0
-        self._law.step(x, d, update)
         if update:
+            self._law.learn(x, d)
             self.updates += 1
             flags |= FLAG_ADAPTING
-            if not np.isfinite(self._law._w).all():
+            if not np.isfinite(self._law.weights_view).all():
                 self.reset_to_frozen()
                 self.guards += 1
                 flags |= FLAG_GUARD
+        else:
+            self._law.track(x, d)
         if use_adapted and y != y_frozen:  # the adapted weights' estimate is in use (restored ones too)
             flags |= FLAG_ADAPTING
             self.used_adapted = True
@@ -459,7 +463,7 @@ class OnlineReadout(ComparisonGuard):
         learned from a window's noise would otherwise seem to predict it); a full window's gain into the
         running mean and mean square (``compare_memory_windows`` of memory)."""
         if self.compare_blocks == 0:
-            self._compare_w = self._law._w.copy()
+            self._compare_w = self._law.weights_view.copy()
         w = self._compare_w
         self.compare_blocks += 1
         self.compare_sum_frozen_dph += d - y_frozen
@@ -498,13 +502,13 @@ class OnlineReadout(ComparisonGuard):
 
     # -- state -------------------------------------------------------------------------------------
 
-    def state_dict(self) -> dict[str, Any]:
+    def get_state(self) -> dict[str, Any]:
         """Everything the readout carries between blocks, as plain YAML-safe values (exact)."""
         return {
             "n_features": self.n_features,
             "frozen_weights": [float(v) for v in self.frozen_weights],
             "frozen_intercept": self.frozen_intercept,
-            "law": self._law.state.to_dict(),
+            "law": self._law.get_state().to_dict(),
             "bias_sum_dph": float(self.bias_sum_dph),
             "bias_count": int(self.bias_count),
             "bias_dph": None if self.bias_dph is None else float(self.bias_dph),
@@ -528,8 +532,8 @@ class OnlineReadout(ComparisonGuard):
             SIGMA_KEY: float(self.compare_dev_sq_adapted_dph2),
         }
 
-    def load_state(self, d: dict[str, Any]) -> None:
-        """Inverse of ``state_dict``.  ``ValueError`` for missing or unknown keys, bad values, or a state
+    def set_state(self, d: dict[str, Any]) -> None:
+        """Inverse of ``get_state``.  ``ValueError`` for missing or unknown keys, bad values, or a state
         saved for other frozen weights (another model); the readout is unchanged then."""
         check_state_keys(d)
         gate = checked_gate(d)
@@ -590,7 +594,7 @@ class OnlineReadout(ComparisonGuard):
             "schema_version": ADAPT_STATE_SCHEMA_VERSION,
             "sample_time_s": self.sample_time_s,
             "config": self.config.to_dict(),  # for information: the state is loaded whatever the config
-            "readout": self.state_dict(),
+            "readout": self.get_state(),
         }
         if detector is not None:
             doc["static_detector"] = detector.to_dict()
@@ -619,9 +623,9 @@ class OnlineReadout(ComparisonGuard):
                     raise ValueError("the static detector's settings differ from the file's")
             if "readout" not in doc:
                 raise ValueError("missing 'readout'")
-            self.load_state(doc["readout"])
+            self.set_state(doc["readout"])
         except ValueError as exc:
             raise InputFileError(f"{where}: corrupt adaptation state: {exc}") from None
         if detector is not None and found is not None:
-            detector._rates = found._rates
+            detector.set_state(found.get_state())
         return found

@@ -157,6 +157,18 @@ class StaticDetector:
             "rates": [float(r) for r in self._rates],
         }
 
+    def get_state(self) -> dict[str, Any]:
+        """The detector's state: ``to_dict``'s document (its settings and the window's rates)."""
+        return self.to_dict()
+
+    def set_state(self, state: dict[str, Any]) -> None:
+        """The detector continues from ``get_state``'s document; ``ValueError`` (nothing changed) for a bad one
+        or one with other settings."""
+        found = StaticDetector.from_dict(state)
+        if (found.threshold_dph, found.window_blocks) != (self.threshold_dph, self.window_blocks):
+            raise ValueError("the static detector's settings differ from the state's")
+        self._rates = found._rates
+
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> StaticDetector:
         keys = {"threshold_dph", "window_blocks", "rates"}

@@ -13,7 +13,7 @@ from .adapt_config import finite_number
 ADAPT_STATE_SCHEMA_VERSION = 1
 
 
-#: The readout's state (``OnlineReadout.state_dict``): every key required.
+#: The readout's state (``OnlineReadout.get_state``): every key required.
 STATE_KEYS = (
     "n_features",
     "frozen_weights",

@@ -211,7 +211,8 @@ class AflpFilter:
     def _load(self, state: AflpState) -> None:
         if state.order != self.params.order:
             raise ValueError(f"state has order {state.order}, the filter's is {self.params.order}")
-        # Plain Python lists of floats: the same float64 values, ~10x faster to update one by one than numpy.
+        # Plain Python lists of floats: the same float64 values, updated one by one without numpy's per-call
+        # overhead (a sample touches N values; ``benchmarks/bench_accuracy.py`` runs the filter).
         self._phi = [float(v) for v in state.phi]
         self._hist = [float(v) for v in state.history]
         self._ki2 = [float(v) for v in state.ki2]
@@ -219,8 +220,7 @@ class AflpFilter:
         self._ke2 = [float(state.ke2)]  # a one-element list so ``_advance`` can update it in place
         self._samples = int(state.samples)
 
-    @property
-    def state(self) -> AflpState:
+    def get_state(self) -> AflpState:
         """A copy of the current state (changing it does not change the filter)."""
         return AflpState(
             np.array(self._phi),
@@ -231,9 +231,13 @@ class AflpFilter:
             self._samples,
         )
 
-    def reset(self, state: AflpState | None = None) -> None:
-        """Back to the initial all-zero state (or to ``state``)."""
-        self._load(state if state is not None else AflpState.zeros(self.params.order))
+    def set_state(self, state: AflpState) -> None:
+        """The filter continues from ``state`` (``get_state``'s; ``ValueError`` for another order)."""
+        self._load(state)
+
+    def reset(self) -> None:
+        """Back to the initial all-zero state."""
+        self._load(AflpState.zeros(self.params.order))
 
     def correlations(self) -> np.ndarray:
         """Pi(n) of the last update, shape (N,), each in [-1, 1] (zeros before any update)."""

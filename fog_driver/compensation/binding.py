@@ -18,12 +18,12 @@ from typing import cast
 
 import numpy as np
 
+from ..dwells import Dwell
 from ..errors import UsageError
 from ..flags import FLAG_GAP
 from ..protocol import IdentityFrame
 from ..samples.stream import SampleBlock, identity_is_plausible
 from .adapt import AdaptConfig
-from .dwell import Dwell
 from .model import ModelFile
 from .pipeline import CompensatedColumns, CompensatedSample, Compensator
 

@@ -17,7 +17,7 @@ whatever the summation order; the vectorized ``run`` and the per-sample
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import NamedTuple, cast
 
 import numpy as np
 
@@ -178,12 +178,35 @@ class BlockAverager:
         self._first_us, self._sum_t, self._n_t = first, sum_t, n_t
         self._current, self._n, self._sum_dtheta, self._flags, self._last_t_us = values
 
+    @property
+    def first_us(self) -> int | None:
+        """The first sample's device time, us: the block grid's origin (None before any sample)."""
+        return self._first_us
+
+    @property
+    def open_block(self) -> int:
+        """The index of the open block, the latest sample's (-1 before any sample)."""
+        return self._current
+
+    @property
+    def device_time_s(self) -> float | None:
+        """The device time at the end of the latest frame, s from the first (None: no frame yet)."""
+        if self._first_us is None:
+            return None
+        return (self._last_t_us - self._first_us) / 1e6 + self.frame_period_s
+
+    def blocks_of(self, t_s: np.ndarray) -> np.ndarray:
+        """The block index of each frame time ``t_s`` (s, int64), on the grid the samples set: ``(t_us - first_us)
+        // block_us``, as ``step`` and ``run`` place frames (the grid's origin is set: call after ``run``)."""
+        first_us = cast(int, self._first_us)
+        return (np.rint(t_s * 1e6).astype(np.int64) - first_us) // self.block_us
+
     def _close(self) -> ModelBlock:
         assert self._first_us is not None  # set by the first sample, before any block closes
         temps = tuple(s / n if n else float("nan") for s, n in zip(self._sum_t, self._n_t))
         block = ModelBlock(
             self._current,
-            (self._last_t_us - self._first_us) / 1e6 + self.frame_period_s,
+            cast(float, self.device_time_s),
             self._n,
             self._sum_dtheta / (self._n * self.frame_period_s),
             temps,

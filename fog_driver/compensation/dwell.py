@@ -1,9 +1,9 @@
-"""A dwell of the turntable, and the one definition of what the gyro measured over it (a leaf).
+"""The one definition of what the gyro measured over a dwell of the turntable (a leaf of compensation).
 
-A dwell: the table stood from ``t_start_s`` to ``t_end_s`` (device time, seconds from the capture's first
-sample) at ``angle_deg``, cumulative (360 is not 0); with ``angle_end_deg`` it moved within the dwell (a
-creep), linearly to that angle.  A station's table log holds one per row (``t_start_s,t_end_s,angle_deg``
-and an optional ``angle_end_deg``); the daemon's ``?TABLE`` gives one live.
+A dwell (``fog_driver.dwells.Dwell``): the table stood from ``t_start_s`` to ``t_end_s`` (device time, seconds
+from the capture's first sample) at ``angle_deg``, cumulative (360 is not 0); with ``angle_end_deg`` it moved
+within the dwell (a creep), linearly to that angle.  A station's table log holds one per row
+(``fog_driver.dwells.read_table_log``); the daemon's ``?TABLE`` gives one live.
 
 The measurement, shared by ``evaluate``'s positioning table and the table-angle law
 (``compensation.table``): the mean of the gyro's angle over the dwell's trimmed window, ``DWELL_TRIM_S``
@@ -17,15 +17,10 @@ the window; the law, which lives at the model's block rate, the whole model bloc
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 __all__ = [
     "DWELL_TRIM_S",
-    "MAX_TABLE_ANGLE_DEG",
     "MIN_LIVE_DWELL_S",
-    "Dwell",
-    "number_within",
-    "table_angle_deg",
     "blocks_within",
     "out_of_order",
     "angle_at_deg",
@@ -37,47 +32,6 @@ __all__ = [
 DWELL_TRIM_S = 5.0
 #: The shortest dwell a live ``?TABLE`` may claim: two trims and two whole 1-s blocks.
 MIN_LIVE_DWELL_S = 12.0
-#: The largest table angle a dwell may give, degrees either sign: live (``?TABLE``), in a table log and in a
-#: sidecar's table events alike (``table_angle_deg``).  Cumulative angles of a table that turned for years stay
-#: far below; 1e308 would overflow the law's arcseconds.
-MAX_TABLE_ANGLE_DEG = 1e6
-
-
-def number_within(value: object, bound: float) -> bool:
-    """Whether ``value`` is a number (an int or a float, not a bool), finite and within +-``bound``: the check of
-    a number read from JSON or YAML, whose integers may have any number of digits (one too large for a float is
-    out of bounds, and raises nothing)."""
-    if not isinstance(value, (int, float)) or isinstance(value, bool):
-        return False
-    try:
-        return math.isfinite(value) and abs(value) <= bound
-    except OverflowError:  # an int too large for a float
-        return False
-
-
-def table_angle_deg(value: object, name: str = "angle_deg") -> float:
-    """``value`` as a dwell's table angle: a number (not a bool), finite and within +-``MAX_TABLE_ANGLE_DEG``
-    (``number_within``); else a one-line ``ValueError`` naming ``name``.  The one check of a table angle,
-    wherever it comes from."""
-    if not number_within(value, MAX_TABLE_ANGLE_DEG):
-        try:
-            shown = repr(value)
-        except ValueError:  # an int of more digits than Python converts
-            shown = "an integer of thousands of digits"
-        shown = shown if len(shown) <= 40 else shown[:40] + "..."
-        raise ValueError(f"{name} must be a number within +-{MAX_TABLE_ANGLE_DEG:g} degrees, got {shown}")
-    return float(value)  # type: ignore[arg-type]  # a number
-
-
-@dataclass(frozen=True)
-class Dwell:
-    """The table stood from ``t_start_s`` to ``t_end_s`` at ``angle_deg`` (cumulative); with ``angle_end_deg``
-    it moved within the dwell, linearly to that angle."""
-
-    t_start_s: float
-    t_end_s: float
-    angle_deg: float
-    angle_end_deg: float | None = None
 
 
 def out_of_order(t_start_s: float, previous_end_s: float | None) -> str | None:

@@ -36,7 +36,8 @@ MODEL_SCHEMA_VERSION = 1
 
 class DriftModel(Protocol):
     """What the compensator needs of a model: one step per block, or a batch; explicit state; and to adapt, its
-    regressor row, weights and intercept (``D_hat = f . weights + intercept``), and the estimate used fed back."""
+    regressor row, weights and intercept (``D_hat = f . weights + intercept``), the estimate used fed back, and the
+    coil's lag the fit found (the table law's scale factor follows the coil's temperature)."""
 
     kind: str
 
@@ -63,6 +64,10 @@ class DriftModel(Protocol):
     def regressors_step(self, z: np.ndarray) -> np.ndarray: ...
 
     def feed_back(self, y: float) -> None: ...
+
+    def coil_lag(self) -> tuple[float, int] | None:
+        """The coil's lag the fit found, ``(stage time s, stages)``, for the table law's scale factor; None: none."""
+        ...
 
 
 #: Model kinds: name -> class with ``from_dict``.

@@ -30,11 +30,12 @@ analysis workstation, whatever their CPUs; fitting (LAPACK, BLAS) is not (docs/e
   order (a cumulative sum for short rows; one vectorized add per index for wide ones).
 * ``exp_correctly_rounded(x)``, ``expm1_correctly_rounded(x)``: Python floats, correctly rounded
   (40-digit decimal arithmetic, then one rounding to binary), for constants computed once
-  (filter coefficients); about 10 us a call.
+  (filter coefficients), not for data.
 
-Cost (``benchmarks/bench_model_step.py``): ``exp`` is about 28 numpy calls, some 12 us on a
-small array where ``np.exp`` takes 0.3 us, so the wesn's model step takes about 28 us against 14
-with the platform's math; a model block is a second of data.
+Cost: ``exp`` is a few dozen numpy calls where ``np.exp`` is one, so on the small arrays of a model
+step the calls' overhead dominates and a step costs more than with the platform's math; a model
+block is a second of data.  ``benchmarks/bench_model_step.py`` times both (as shipped and with the
+platform's math patched in).
 """
 
 from __future__ import annotations

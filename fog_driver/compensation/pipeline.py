@@ -26,13 +26,13 @@ from typing import Any, NamedTuple, cast
 
 import numpy as np
 
+from ..dwells import Dwell, table_angle_deg
 from ..errors import InputFileError
 from ..flags import (
     FLAG_EXTRAPOLATING,
     FLAG_GAP,
     FLAG_GUARD,
     FLAG_INPUT_STALE,
-    FLAG_SCALE_FACTOR,
     FLAG_THERMOMETER_FAULT,
     FLAG_UNCOMPENSATED,
 )
@@ -41,10 +41,11 @@ from ..samples.stream import Sample, SampleBlock
 from .adapt import OnlineReadout
 from .adapt_config import AdaptConfig, StaticDetector
 from .blocks import PLAUSIBLE_TEMP_C, BlockAverager, ModelBlock
-from .dwell import MIN_LIVE_DWELL_S, Dwell, out_of_order, table_angle_deg
+from .dwell import MIN_LIVE_DWELL_S, out_of_order
+from .estimate_sources import BlockInputs, EstimateSource, FrozenSource, RateSource, TableSource
 from .features import DEGRADED_FLAGS, FeatureExtractor
 from .model import ModelFile
-from .table import SHAPE_CANDIDATES, SHAPE_REGRESSORS, TableLaw, TableOutcome
+from .table import TableLaw, TableOutcome
 from .uncertainty import DriftUncertainty
 
 #: A link gap longer than this restarts the pipeline at rest (the model's memory of before is stale);
@@ -123,12 +124,10 @@ class CompensatedColumns:
 
 
 class Compensator:
-    """A model file applied to a sample stream: frozen weights, or (``adapt``) adapting online.
-
-    Adapting (``adapt.OnlineReadout``): the readout keeps running the adaptive law from the stored weights,
-    updated on blocks where ``reference_rate_dph`` is given (the table's known rate, 0 at rest) and the gyro's
-    own static detector says the table is static, after ``adapt.warmup_s``, on blocks with no gap, no
-    thermometer fault and fresh inputs.  Frames carry ``FLAG_ADAPTING`` / ``FLAG_GUARD`` from the estimate.
+    """A model file applied to a sample stream, the estimate from one source (``estimate_sources``): the frozen
+    weights; adapting online (``adapt``: the rate path, learning where ``reference_rate_dph`` is given, the table's
+    known rate, 0 at rest); or adapting from table angles too (``table``: the table law beside the rate path).
+    Frames carry ``FLAG_ADAPTING`` / ``FLAG_GUARD`` / ``FLAG_SCALE_FACTOR`` from the estimate.
     """
 
     def __init__(
@@ -172,38 +171,45 @@ class Compensator:
             adapt = AdaptConfig()
         self.adapt = adapt
         self.reference_rate_dph = None if reference_rate_dph is None else float(reference_rate_dph)
-        self.online: OnlineReadout | None = None
-        self.static_detector: StaticDetector | None = None
-        #: adapting from table angles (``table``): the law, the dwells waiting for their blocks to close, and
-        #: the scale factor (ppm) held with the estimate
-        self.table: TableLaw | None = None
-        self._dwells: list[Dwell] = []
-        self.scale_ppm = 0.0
-        self._t_ring_c = math.nan
-        #: the table law records every block; it gives the estimate once engaged (a dwell was given) and no
-        #: reference rate is set (the two signals exclude each other)
-        self.table_engaged = False
-        if table:  # its shape regressors: the candidate structures' departures, else the model's own regressors
-            n_candidates = len(self.uncertainty.candidates)
-            self.table = TableLaw(
-                self.model.weights,
-                self.model.intercept,
-                self._block_s,
-                adapt,
-                fit_residual_dph=model_file.fit_residual_dph,
-                coil=self.model.coil_lag() if hasattr(self.model, "coil_lag") else None,
-                shape=SHAPE_CANDIDATES if n_candidates else SHAPE_REGRESSORS,
-                n_shape=n_candidates or None,
-            )
-        if adapt is not None:
-            self.online = OnlineReadout(
-                self.model.weights,
-                self.model.intercept,
-                adapt,
-                self._block_s,
-                fit_residual_dph=model_file.fit_residual_dph,
-            )
-            self.static_detector = StaticDetector.from_config(adapt, self._block_s)
+        #: where the estimate comes from: the frozen weights, the rate path, or the table law beside it
+        self.source: EstimateSource
+        if adapt is None:
+            self.source = FrozenSource(self.model, self.uncertainty)
+        else:
+            rate = RateSource(self.model, self.uncertainty, adapt, self._block_s, model_file.fit_residual_dph)
+            if table:
+                self.source = TableSource(rate, model_file.fit_residual_dph, self.frame_period_s, self.n_channels)
+            else:
+                self.source = rate
+
+    @property
+    def online(self) -> OnlineReadout | None:
+        """The online readout when adapting (the rate path's), else None."""
+        rate = self.source.rate_path
+        return None if rate is None else rate.online
+
+    @property
+    def static_detector(self) -> StaticDetector | None:
+        rate = self.source.rate_path
+        return None if rate is None else rate.static_detector
+
+    @property
+    def table(self) -> TableLaw | None:
+        """The table law when adapting from table angles, else None."""
+        path = self.source.table_path
+        return None if path is None else path.table
+
+    @property
+    def table_engaged(self) -> bool:
+        """The table law records every block; it gives the estimate once engaged (a dwell was given) and no
+        reference rate is set (the two signals exclude each other)."""
+        path = self.source.table_path
+        return path is not None and path.engaged
+
+    @property
+    def scale_ppm(self) -> float:
+        """The scale factor (ppm) held with the estimate (adapting from table angles; else 0)."""
+        return self.source.scale_ppm
 
     # -- block level: shared by step and run ---------------------------------------------------
 
@@ -240,10 +246,9 @@ class Compensator:
         u, flags = self.features.step(block.temps_c)
         flags |= block.flags & (FLAG_GAP | FLAG_THERMOMETER_FAULT)
         self.blocks_seen += 1
-        static = self.static_detector.step(block.rate_dph) if self.static_detector is not None else False
-        f: Any = None
-        drifts: list[float] | None = None  # the candidates' drifts, when the table law needs them first
-        y_frozen, g = math.nan, None  # the table law's inputs: the frozen drift and the shape regressors
+        source = self.source
+        source.begin_block(block, self.reference_rate_dph)
+        clean = not flags & (FLAG_GAP | FLAG_THERMOMETER_FAULT | DEGRADED_FLAGS) and block.index > self._settle_until
         if any(v != v for v in u):  # a thermometer never read valid yet: nothing to model
             self.estimate_flags = FLAG_UNCOMPENSATED | flags
         else:
@@ -257,35 +262,14 @@ class Compensator:
                 self.model.start(z)
                 self.uncertainty.start(z)
                 self._started = True
-            by_table = self._table_leads
-            if self.table is not None and self.table.shape == SHAPE_CANDIDATES:
-                drifts = self.uncertainty.advance(z)
-            if by_table:
-                f = self.model.regressors_step(z)
-                y_frozen, g = self._table_inputs(f, drifts)
-                _, estimate, adapt_flags = cast(TableLaw, self.table).estimate(y_frozen, g)
-            elif self.online is None:
-                estimate = self.model.step(z)
-                adapt_flags = 0
-            else:
-                clean = not flags & (FLAG_GAP | FLAG_THERMOMETER_FAULT | DEGRADED_FLAGS)
-                clean = clean and block.index > self._settle_until
-                gate = static and clean and block.t_end_s > self.online.config.warmup_s
-                f = self.model.regressors_step(z)
-                estimate, adapt_flags = self.online.step(f, block.rate_dph, self.reference_rate_dph, gate)
-            if drifts is None:
-                sigma = self.uncertainty.step(z, raw, estimate)
-            else:
-                sigma = self.uncertainty.sigma_of(drifts, raw, estimate)
-            if not by_table and self.online is not None and self.online.used_adapted:  # the adapted weights' estimate
-                sigma = self.uncertainty.adapted(self.online.adapted_sigma_dph, raw)
+            estimate, adapt_flags, sigma = source.estimate(BlockInputs(block, z, raw, clean))
             if self.domain is not None:
                 estimate, clipped = self.domain.bound(estimate)
                 extrapolating |= FLAG_EXTRAPOLATING if clipped else 0
             held = flags & FLAG_INPUT_STALE  # inputs frozen beyond hold_s: the estimate is held
             if held:
                 estimate, sigma = self.estimate_dph, self.sigma_dph
-            if self.online is not None or self.table is not None:
+            if source.feeds_back:
                 self.model.feed_back(estimate)  # the estimate actually used (the WESN's output feedback)
             if math.isfinite(estimate):
                 self.estimate_dph = estimate
@@ -293,67 +277,31 @@ class Compensator:
                 self.estimate_flags = (flags & DEGRADED_FLAGS) | adapt_flags | extrapolating
             else:
                 self.estimate_flags = FLAG_GUARD | (flags & DEGRADED_FLAGS)
-        if self.table is not None:
-            if g is None and f is not None:
-                y_frozen, g = self._table_inputs(f, drifts)
-            self._table_block(block, y_frozen, g, flags)
+        self.estimate_flags |= source.end_block(block, clean)
         self._estimate_block = block.index + 1
 
     # -- table angles ----------------------------------------------------------------------------
 
-    def _table_inputs(self, f: np.ndarray, drifts: list[float] | None) -> tuple[float, np.ndarray]:
-        """The table law's inputs from the model's regressors ``f``: the frozen drift, bit for bit the model's
-        (``D_hat = f . w0 + b0``, the rate path's ``frozen_estimate``: a table law always has one), and the shape
-        regressors (``table``): the candidates' departures from it, ``D_c - D_hat``, or ``f`` itself."""
-        y_frozen = cast(OnlineReadout, self.online).frozen_estimate(f)
-        return y_frozen, f if drifts is None else np.asarray(drifts, dtype=np.float64) - y_frozen
-
-    def _table_block(self, block: ModelBlock, y_frozen: float, g: np.ndarray | None, flags: int) -> None:
-        """The block into the table law, then the dwells whose blocks have all closed; the scale factor
-        held with the estimate."""
-        table = cast(TableLaw, self.table)
-        temps = block.temps_c
-        ring = 0.5 * (temps[0] + temps[1]) if self.n_channels >= 2 else temps[0]
-        clean = not flags & (FLAG_GAP | FLAG_THERMOMETER_FAULT | DEGRADED_FLAGS) and block.index > self._settle_until
-        if math.isfinite(ring):
-            self._t_ring_c = ring
-        else:
-            ring, clean = self._t_ring_c, False
-        warming_up = clean and not block.t_end_s > table.config.warmup_s  # not learned from, for the warm-up alone
-        clean = clean and not warming_up
-        frames_s = block.n_samples * self.frame_period_s
-        table.block(block.index, y_frozen, g, block.rate_dph, frames_s, ring, clean, warming_up)
-        end_s = (block.index + 1) * self._block_s
-        while self._dwells and self._dwells[0].t_end_s <= end_s + 1e-9:
-            table.observe(self._dwells.pop(0))
-        # the scale factor corrects the angle while adapting from table angles (not after ?ADAPT off)
-        self.scale_ppm = table.scale_ppm_at(table.coil_temperature_c) if self._table_leads else 0.0
-        if self.scale_ppm:
-            self.estimate_flags |= FLAG_SCALE_FACTOR
-
-    @property
-    def _table_leads(self) -> bool:
-        """The table law gives the estimate: engaged (a dwell was given) and no reference rate set; until then
-        the rate path does, as before (its restored adapted weights included)."""
-        return self.table_engaged and self.reference_rate_dph is None
+    def _table_path(self) -> TableSource:
+        """The table path; ``ValueError`` unless this compensator adapts from table angles."""
+        path = self.source.table_path
+        if path is None:
+            raise ValueError("this compensator does not adapt from table angles")
+        return path
 
     def add_dwells(self, dwells: list[Dwell]) -> None:
         """Dwells (device time from the first sample) for the table law, taken as their blocks close; the table
         law gives the estimate from now on."""
-        if self.table is None:
-            raise ValueError("this compensator does not adapt from table angles")
+        path = self._table_path()
         if self.reference_rate_dph is not None:
             raise ValueError("adapting against a reference rate: table angles are the other signal")
-        self._dwells.extend(dwells)
-        self.table_engaged = True
+        path.dwells.extend(dwells)
+        path.engaged = True
 
     @property
     def device_time_s(self) -> float | None:
         """The device time at the end of the latest frame, s from the first (None: no frame yet)."""
-        first = self.averager._first_us
-        if first is None:
-            return None
-        return (self.averager._last_t_us - first) / 1e6 + self.frame_period_s
+        return self.averager.device_time_s
 
     def table_dwell(self, angle_deg: float, dwell_s: float, angle_start_deg: float | None = None) -> Dwell:
         """A live dwell: the table has stood at ``angle_deg`` for the last ``dwell_s`` seconds (from
@@ -362,8 +310,7 @@ class Compensator:
         bound ``?TABLE`` and a table log apply), no frame yet, a dwell shorter than ``MIN_LIVE_DWELL_S``, longer
         than the time since the chain's last break (a gap, a restart, ``?ZERO``), or starting before the
         previous dwell ended; what the gyro says of it is the law's verdict once its blocks have closed."""
-        if self.table is None:
-            raise ValueError("this compensator does not adapt from table angles")
+        path = self._table_path()
         angle_deg = table_angle_deg(angle_deg, "angle_deg")
         if angle_start_deg is not None:
             angle_start_deg = table_angle_deg(angle_start_deg, "angle_start_deg")
@@ -373,14 +320,14 @@ class Compensator:
         if not dwell_s >= MIN_LIVE_DWELL_S:
             raise ValueError(f"a dwell must last at least {MIN_LIVE_DWELL_S:g} s, got {dwell_s:g}")
         start = now - dwell_s
-        since = self.table.chain_start_s
+        since = path.table.chain_start_s
         if since is None or start < since - 1e-9:
             held = 0.0 if since is None else now - since
             raise ValueError(
                 f"the dwell ({dwell_s:g} s) reaches back past a break in the data (a gap, a restart, a zero): "
                 f"{held:.1f} s since"
             )
-        order = out_of_order(start, self._dwells[-1].t_end_s if self._dwells else self.table.last_dwell_end_s)
+        order = out_of_order(start, path.dwells[-1].t_end_s if path.dwells else path.table.last_dwell_end_s)
         if order is not None:
             raise ValueError(order)
         if angle_start_deg is None:
@@ -393,18 +340,21 @@ class Compensator:
     def stop_table(self) -> None:
         """Adapting from table angles ends: the estimate is the rate path's again (frozen without a reference);
         dwells not yet taken are dropped, the law keeps recording (and its weights) for a later ``?TABLE``."""
-        self.table_engaged = False
-        self._dwells.clear()
+        path = self.source.table_path
+        if path is not None:
+            path.engaged = False
+            path.dwells.clear()
 
     def break_table_chain(self) -> None:
         """No interval is learned across this point (``?ZERO``, an identity change)."""
         if self.table is not None:
-            self.table._break()
+            self.table.break_chain()
 
     @property
     def pending_dwells(self) -> list[Dwell]:
         """Dwells given whose blocks have not all closed yet."""
-        return list(self._dwells)
+        path = self.source.table_path
+        return [] if path is None else list(path.dwells)
 
     @property
     def table_outcomes(self) -> list[TableOutcome]:
@@ -412,7 +362,7 @@ class Compensator:
 
     # -- adaptation state ----------------------------------------------------------------------
 
-    def pipeline_state(self) -> dict:
+    def get_state(self) -> dict:
         """Everything but the readout the estimate depends on: the open block, the feature smoothers and
         held values, the model's memory (reservoir), the held estimate.  Plain YAML-safe values, exact."""
         return {
@@ -431,8 +381,8 @@ class Compensator:
             "uncertainty": self.uncertainty.get_state(),
         }
 
-    def set_pipeline_state(self, state: dict) -> None:
-        """Inverse of ``pipeline_state`` (``ValueError`` when it does not fit this model and frame rate)."""
+    def set_state(self, state: dict) -> None:
+        """Inverse of ``get_state`` (``ValueError`` when it does not fit this model and frame rate)."""
         keys = {
             "averager",
             "features",
@@ -517,29 +467,27 @@ class Compensator:
         )
         if self.features.params != old.features.params or not same_grid:
             return
-        state = old.pipeline_state()
+        state = old.get_state()
         state["features"] = self.features.adopt_state(state["features"], old.features.substitution)
         if not same_model:
             state["model"], state["started"] = self.model.get_state(), False
             state["uncertainty"] = self.uncertainty.get_state()
-        self.set_pipeline_state(state)
-        if same_model and old.online is not None and self.online is not None:
-            self.online.load_state(old.online.state_dict())
-            self.static_detector = old.static_detector
-        if old.table is not None and self.table is not None:  # adapting from table angles carries on
-            self.table_engaged = old.table_engaged
-            if same_model:  # the same law, its chain and the dwells waiting (another model: a new law)
-                self.table, self._dwells = old.table, old._dwells
-                self.scale_ppm, self._t_ring_c = old.scale_ppm, old._t_ring_c
+        self.set_state(state)
+        rate, old_rate = self.source.rate_path, old.source.rate_path
+        if same_model and old_rate is not None and rate is not None:
+            rate.carry_on(old_rate)
+        path, old_path = self.source.table_path, old.source.table_path
+        if old_path is not None and path is not None:  # adapting from table angles carries on
+            path.carry_on(old_path, same_model)
 
     def adaptation_document(self) -> dict:
         """The adaptation state: the readout, the static detector, and the pipeline's state, so that a restart
         of the same run continues exactly (``modelfiles.save_adaptation`` writes it), as a snapshot of plain
         values (to take under a lock and write outside it); only when adapting."""
         online = self.check_adapting()
-        doc = online.state_document(detector=self.static_detector, pipeline=self.pipeline_state())
+        doc = online.state_document(detector=self.static_detector, pipeline=self.get_state())
         if self.table is not None and (self.table_engaged or self.table.accepted):
-            doc["table"] = self.table.state_dict()  # what it learned from the table's angles (a new run restores it)
+            doc["table"] = self.table.get_state()  # what it learned from the table's angles (a new run restores it)
         return doc
 
     def check_adapting(self) -> OnlineReadout:
@@ -557,19 +505,19 @@ class Compensator:
         online = self.check_adapting()
         if self.table is not None and "table" in doc:  # checked first: a refusal changes nothing
             try:
-                self.table.load_state(doc["table"])
+                self.table.set_state(doc["table"])
             except ValueError as exc:
                 raise InputFileError(f"{where}: corrupt adaptation state: {exc}") from None
         if not new_run and "pipeline" in doc:  # checked before anything changes
-            saved = self.pipeline_state()
+            saved = self.get_state()
             try:
-                self.set_pipeline_state(doc["pipeline"])
+                self.set_state(doc["pipeline"])
             except ValueError as exc:
                 raise InputFileError(f"{where}: corrupt adaptation state: {exc}") from None
             try:
                 online.load_state_doc(doc, where, detector=self.static_detector)
             except InputFileError:
-                self.set_pipeline_state(saved)
+                self.set_state(saved)
                 raise
         else:
             online.load_state_doc(doc, where, detector=self.static_detector)
@@ -583,7 +531,7 @@ class Compensator:
             self._on_block(block)
         drift = self.estimate_dph
         dtheta_comp = sample.dtheta_arcsec - drift * self.frame_period_s
-        if self.table is not None:
+        if self.source.corrects_scale:
             dtheta_comp -= (1e-6 * self.scale_ppm) * sample.dtheta_arcsec
         self.angle_raw_arcsec += sample.dtheta_arcsec
         self.angle_comp_arcsec += dtheta_comp
@@ -591,7 +539,7 @@ class Compensator:
         flags = frame_flags(
             self.estimate_flags,
             self._estimate_block,
-            self.averager._current,
+            self.averager.open_block,
             sample.missing_before,
             sample.status,
             temps[: self.n_channels],
@@ -618,7 +566,7 @@ class Compensator:
         # taken after the loop, in runs (``DriftUncertainty.defer``), and their sigmas put in place; not with
         # a table law (its shape regressors need them in the block).
         after = []
-        if self.table is None:
+        if not self.source.needs_sigmas_in_block:
             self.uncertainty.defer()
         try:
             for i in range(len(blocks)):
@@ -635,8 +583,9 @@ class Compensator:
             after = [(*a[:3], _resolved(a[3], resolved), a[4]) for a in after]
             self.sigma_dph = _resolved(self.sigma_dph, resolved)
         # Which estimate each frame sees: the latest from a block with a smaller index.
-        first_us = cast(int, self.averager._first_us)  # set: a block has closed, or these samples set it
-        frame_block = (np.rint(samples.t_s * 1e6).astype(np.int64) - first_us) // self.averager.block_us
+        frame_block = self.averager.blocks_of(
+            samples.t_s
+        )  # the grid is set: a block has closed, or these samples set it
         which = np.searchsorted(blocks.index, frame_block, side="left") - 1  # -1: the estimate held before
         estimates = np.array([held_before[0]] + [a[0] for a in after])
         est_flags = np.array([held_before[1]] + [a[1] for a in after], dtype=np.int64)
@@ -645,7 +594,7 @@ class Compensator:
         drift = estimates[which + 1]
         dtheta = samples.dtheta_arcsec
         dtheta_comp = dtheta - drift * self.frame_period_s
-        if self.table is not None:
+        if self.source.corrects_scale:
             scales = np.array([held_before[4]] + [a[4] for a in after], dtype=float)
             dtheta_comp = dtheta_comp - (1e-6 * scales[which + 1]) * dtheta
         angle_raw = np.cumsum(np.r_[self.angle_raw_arcsec, dtheta])[1:]

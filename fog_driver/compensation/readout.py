@@ -9,7 +9,7 @@ The adaptive law, continuous form: ``k dXf/dt + Xf = X``, ``k dDf/dt + Df = D``,
     Xf = alpha Xf + (1 - alpha) X            Df = alpha Df + (1 - alpha) D
     H  = beta H + g Xf Xf^T                  I  = beta I + g Xf Df
     M  = H W - I
-    W  = W - Gamma (M + sigma W)             only when the step's ``update`` is true
+    W  = W - Gamma (M + sigma W)             only when learning (``learn``, not ``track``)
 
 X is the regressor vector (reservoir states plus whatever the caller appends: a constant 1, the
 raw inputs; the law does not care), D the target (the drift).  ``k = filter_time_s`` (0: no
@@ -41,18 +41,20 @@ sigma.  The paper tunes "sigma = 0.152" without defining it; the usual reading i
 leakage, ``dW/dt = -K (M + sigma W)``.  Its fixed point is ``(H + sigma I) W = I``: a ridge penalty
 on the windowed normal equations, in H's units (H ~ memory_time_s * mean(Xf^2)).  Default 0.
 
-Order within a step: the prediction ``y_hat = W^T x`` uses W BEFORE this step's update (an honest
-a-priori prediction: d(n) has not been used yet), then Xf, Df, H, I advance (always), then W (only
-when ``update``).  Xf, Df, H, I never depend on W, so freezing (``update=False``) and unfreezing is
-seamless: the sums keep running and an unfrozen W moves towards the fit over the recent window.
+Predicting apart from learning: ``predict(x)`` is ``y_hat = W^T x`` with the state untouched; called
+before ``learn(x, d)`` it is the honest a-priori prediction (d(n) not used yet).  ``learn`` advances Xf,
+Df, H, I, then moves W; ``track`` advances Xf, Df, H, I with W held.  Xf, Df, H, I never depend on W, so
+holding W (``track``) and learning again is seamless: the sums keep running and W then moves towards the
+fit over the recent window.
 
-Non-finite values: when x or d holds NaN or +-inf the step is skipped entirely (state unchanged,
-no filter, no sums, no W step), and the prediction is returned (NaN when x is not finite; a finite
-``W^T x`` when only d is missing).  In operation, with no measured drift, use ``predict(x)``.
+Non-finite values: when x or d holds NaN or +-inf, ``learn`` and ``track`` change nothing (no filter, no
+sums, no W step); ``predict`` is NaN when x is not finite.  In operation, with no measured drift, only
+``predict``.
 
-``step`` and ``run`` share one update (``_advance``), so ``run`` is bit-identical to repeated
-``step`` and to any chunks (tested).  A 30-feature step costs about 11 us (7.5 us frozen) on the
-development machine.
+``run(x, d, learn)`` is ``predict`` then ``learn`` (or ``track`` where the mask is false) row by row, the
+same private steps, so it is bit-identical to the single calls and to any chunks (tested).  The cost of
+a step is the pipeline's adapting block in ``benchmarks/bench_model_step.py`` (an outer product and a
+matrix-vector product of n features: O(n^2)).
 
 Ridge regression, ``ridge_fit``: the closed form with an unpenalized intercept (X and y are centred
 with the weighted means, the penalty applies to w only), solved as the least-squares problem
@@ -188,9 +190,9 @@ class AdaptiveLawState:
 
 
 class AdaptiveLaw:
-    """The adaptive readout over a stream: ``step`` one sample, ``run`` many, same state.
-
-    ``step(x, d, update)`` returns ``y_hat = W^T x`` with W before this step's update.
+    """The adaptive readout over a stream, predicting apart from learning: ``predict(x)`` is ``y_hat = W^T x``
+    (the state untouched), ``learn(x, d)`` advances the sums and moves W, ``track(x, d)`` advances the sums
+    with W held; ``run`` does the three over many rows, same state.
     """
 
     def __init__(
@@ -222,8 +224,7 @@ class AdaptiveLaw:
 
     # --- state -----------------------------------------------------------------------------------
 
-    @property
-    def state(self) -> AdaptiveLawState:
+    def get_state(self) -> AdaptiveLawState:
         """A copy of the current state."""
         return AdaptiveLawState(self._xf.copy(), self._df, self._h.copy(), self._i.copy(), self._w.copy())
 
@@ -237,6 +238,11 @@ class AdaptiveLaw:
     def weights(self) -> np.ndarray:
         """A copy of W, shape (n_features,)."""
         return self._w.copy()
+
+    @property
+    def weights_view(self) -> np.ndarray:
+        """W itself, shape (n_features,), not a copy: to read without copying (``learn`` changes it in place)."""
+        return self._w
 
     @property
     def gain(self) -> float:
@@ -254,13 +260,18 @@ class AdaptiveLaw:
         """``W^T x``; the state is not touched."""
         return float(numerics.dot(np.asarray(x, dtype=np.float64), self._w))
 
-    # --- stepping --------------------------------------------------------------------------------
+    # --- predicting and learning ----------------------------------------------------------------
 
-    def _advance(self, x: np.ndarray, d: float, update: bool) -> float:
-        w = self._w
-        y_hat = float(numerics.dot(x, w))
+    def _row(self, x: np.ndarray) -> np.ndarray:
+        x = np.asarray(x, dtype=np.float64)
+        if x.shape != (self.n_features,):
+            raise ValueError(f"x must have shape ({self.n_features},), got {x.shape}")
+        return x
+
+    def _accumulate(self, x: np.ndarray, d: float) -> bool:
+        """Xf, Df, H and I advance by (x, d); False (nothing changed) when x or d is not finite."""
         if not (math.isfinite(d) and math.isfinite(x.sum())):
-            return y_hat
+            return False
         xf = self._xf
         xf *= self._alpha
         xf += self._one_minus_alpha * x
@@ -273,42 +284,48 @@ class AdaptiveLaw:
         i = self._i
         i *= self._beta
         i += (self._g * df) * xf
-        if update:
-            m = numerics.matvec(h, w)
-            m -= i
-            if self._sigma:
-                m += self._sigma * w
-            if self._precondition:  # per direction: kappa / (n (H_ii + delta + sigma)), the standardized law
-                m *= self._kappa / (self.n_features * (h.diagonal() + (self._norm_offset / self.n_features)))
-            elif self._fixed is not None:
-                m *= self._fixed
-            else:
-                m *= self._kappa / (self._norm_offset + numerics.total(h.diagonal()))
-            w -= m
-        return y_hat
+        return True
 
-    def step(self, x: np.ndarray, d: float, update: bool = True) -> float:
-        """One sample: returns ``W^T x`` (W before the update), then learns from (x, d).
+    def _move_weights(self) -> None:
+        """W moves by ``-Gamma (M + sigma W)`` with ``M = H W - I`` from the current sums."""
+        w, h = self._w, self._h
+        m = numerics.matvec(h, w)
+        m -= self._i
+        if self._sigma:
+            m += self._sigma * w
+        if self._precondition:  # per direction: kappa / (n (H_ii + delta + sigma)), the standardized law
+            m *= self._kappa / (self.n_features * (h.diagonal() + (self._norm_offset / self.n_features)))
+        elif self._fixed is not None:
+            m *= self._fixed
+        else:
+            m *= self._kappa / (self._norm_offset + numerics.total(h.diagonal()))
+        w -= m
 
-        ``update=False`` keeps W frozen while Xf, Df, H and I advance as usual.
-        """
-        x = np.asarray(x, dtype=np.float64)
-        if x.shape != (self.n_features,):
-            raise ValueError(f"x must have shape ({self.n_features},), got {x.shape}")
-        return self._advance(x, float(d), bool(update))
+    def learn(self, x: np.ndarray, d: float) -> None:
+        """One sample learned: Xf, Df, H and I advance by (x, d), then W moves (predict first for the a-priori
+        estimate).  A non-finite x or d changes nothing."""
+        if self._accumulate(self._row(x), float(d)):
+            self._move_weights()
 
-    def run(self, x: np.ndarray, d: np.ndarray, update: np.ndarray | bool = True) -> np.ndarray:
-        """``step`` for each row of ``x`` (T, n_features) with targets ``d`` (T,) and ``update``
-        (a bool or a (T,) mask).  Returns the predictions (T,)."""
+    def track(self, x: np.ndarray, d: float) -> None:
+        """One sample followed with W held: Xf, Df, H and I advance by (x, d) as in ``learn``, W does not move
+        (freezing and unfreezing is seamless).  A non-finite x or d changes nothing."""
+        self._accumulate(self._row(x), float(d))
+
+    def run(self, x: np.ndarray, d: np.ndarray, learn: np.ndarray | bool = True) -> np.ndarray:
+        """Per row of ``x`` (T, n_features), in order: ``predict``, then ``learn`` where ``learn`` (a bool or a
+        (T,) mask) is true, else ``track``, with the targets ``d`` (T,).  Returns the predictions (T,)."""
         x = np.asarray(x, dtype=np.float64)
         d = np.asarray(d, dtype=np.float64)
         if x.ndim != 2 or x.shape[1] != self.n_features or d.shape != (len(x),):
             raise ValueError(f"need x (T, {self.n_features}) and d (T,), got {x.shape} and {d.shape}")
-        mask = np.broadcast_to(np.asarray(update, dtype=bool), (len(x),)).tolist()
+        mask = np.broadcast_to(np.asarray(learn, dtype=bool), (len(x),)).tolist()
         dl = d.tolist()
         out = np.empty(len(x))
         for k in range(len(x)):
-            out[k] = self._advance(x[k], dl[k], mask[k])
+            out[k] = float(numerics.dot(x[k], self._w))
+            if self._accumulate(x[k], dl[k]) and mask[k]:
+                self._move_weights()
         return out
 
 

@@ -84,9 +84,10 @@ bit, on every CPU (``numerics``; tested by ``tests/compensation/test_numerics.py
 ``step`` and ``run`` share one update (``_advance``), so ``run`` is bit-identical to repeated
 ``step`` and to running in any chunks (tested).  Without recurrence and feedback (the ring form)
 ``run`` computes every row's wavelet input at once with the same elementwise operations and steps
-only the leak row by row (``_run_feedforward``): the same bits, about 10x faster, which is what
-fitting (one run per candidate lag) spends its time on.  A step costs about 20 us (4 or 20
-neurons alike: numpy's per-call overhead dominates; ``benchmarks/bench_model_step.py``).
+only the leak row by row (``_run_feedforward``): the same bits with one numpy call per operation
+over all rows instead of one per row, which is what fitting (one run per candidate lag) spends its
+time on.  A step is a fixed chain of numpy calls on n neurons, so for small n its cost is numpy's
+per-call overhead, not n (``benchmarks/bench_model_step.py`` measures it).
 """
 
 from __future__ import annotations
@@ -437,8 +438,7 @@ class WaveletReservoir:
 
     # --- state -----------------------------------------------------------------------------------
 
-    @property
-    def state(self) -> ReservoirState:
+    def get_state(self) -> ReservoirState:
         """A copy of the current state."""
         return ReservoirState(self._x.copy(), self._y)
 
@@ -523,7 +523,7 @@ class WaveletReservoir:
         """``run`` without recurrence and feedback (the ring form): the wavelet input of a row does not
         depend on the state, so it is computed for all rows at once with the same elementwise operations
         as ``_advance`` (``W_in u`` summed over the inputs in the same order), and only the leak is
-        stepped row by row: bit-identical to ``_advance`` row by row, and many times faster."""
+        stepped row by row: bit-identical to ``_advance`` row by row, one numpy call per operation for all rows."""
         products = inputs.T[:, :, None] * self._w_in.T[:, None, :]  # (n_inputs, T, n_neurons)
         drive = self._activation(numerics.sum_first(products))  # (T, n_neurons)
         if len(inputs) and self._leak_columns(drive, out):

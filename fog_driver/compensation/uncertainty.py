@@ -27,8 +27,8 @@ other two parts only, and a warning when it loads.  The candidates step once a b
 model sees (clamped to the box), from rest at the same first input: ``step`` and ``run`` of the
 compensator see the same values, and so does a capture replayed offline.  The compensator's ``run``
 collects their steps during its block loop and takes them afterwards in runs of blocks (``defer``,
-``resolve``: each candidate's ``run``, bit-identical to its steps), which makes offline compensation
-about three times faster with six candidates.
+``resolve``: each candidate's ``run``, bit-identical to its steps), so offline compensation pays the
+per-call overhead once per run of blocks rather than once per block and candidate.
 """
 
 from __future__ import annotations

@@ -31,7 +31,7 @@ from typing import Any
 
 import structlog
 
-from ..compensation.dwell import number_within, table_angle_deg
+from ..dwells import number_within, table_angle_deg
 from ..errors import FogDriverError
 from .acquisition import BiasCapture
 from .limits import (
@@ -189,7 +189,7 @@ def table(service: Any, angle_deg: float, dwell_s: float, angle_start_deg: float
 
 
 def _angle(v: Any) -> bool:
-    """A table angle as every reader of one checks it (``dwell.table_angle_deg``)."""
+    """A table angle as every reader of one checks it (``dwells.table_angle_deg``)."""
     try:
         table_angle_deg(v)
     except ValueError:

@@ -1,6 +1,7 @@
 """One NDJSON client's connection as a state machine, sans-IO: what the client's bytes mean, and what to do.
 
-This docstring is the protocol's text; ``limits.py`` says how much of it a client may use.
+The protocol it speaks is written in ``docs/reference/ndjson.md`` (the lines, classes, commands and their
+answers); ``limits.py`` holds how much of it a client may use.
 
 ``Connection.receive(data)`` reads a client's bytes (``ndjson.LineBuffer``, limited to ``max_line_bytes``) and
 yields *actions*, in order, for the I/O layer (``hub.py``) to carry out: ``Send`` an object, ``SendVersion``,
@@ -9,97 +10,8 @@ after what is queued, note that the client is ``Authorized`` or its ``WatchChang
 keeps the client's policy (WATCH and its decimation on device time, ``keep_angles``), its authorization, and
 its rate limit.  No socket, no event loop: tests drive it with bytes and a clock.
 
-Client protocol (version 1)
-===========================
-
-Transport: TCP, by default on the loopback interface only.  Every message in
-either direction is one line of UTF-8 text ending in ``\\n``.
-
-Server to client: every line is one JSON object with a ``"class"`` key naming
-what it is.  Absent values are *omitted*, never ``null`` (a thermometer with no
-valid reading simply has no key); numbers are always finite.  Clients must
-ignore keys (and classes) they do not know: new keys may appear in any minor
-version, ``proto_major`` changes only when a key changes meaning or goes away.
-
-=========  =================================================================
-class      sent when
-=========  =================================================================
-VERSION    first line on every connection, and in answer to ``?VERSION;``:
-           ``release``, ``proto_major``, ``proto_minor``, the model in use
-           (``model``, its kind; since 1.2 ``model_file``: ``path``,
-           ``sha256``, ``kind``, ``created_utc``, ``serial``) and the
-           instrument's identity (filled in by the service); on a
-           token-protected daemon a client that has not authorized gets the
-           first three only
-DEVICE     second line on connect when an instrument is known, and to every
-           authorized client whenever the instrument (or its link state)
-           changes; on a token-protected daemon, right after a successful
-           ``?AUTH`` instead of on connect
-STATUS     to every authorized client (watching or not), periodic summaries
-           (since 1.2 with VERSION's ``model_file``, new after a reload)
-ANGLE      one per instrument sample, only to clients with an enabled WATCH,
-           decimated per client (see ``?WATCH``); on a token-protected daemon
-           only to authorized clients, unless it opens the stream to everyone
-           (``open_stream``); always carries ``t_s``
-           (device time, s); since 1.1 ``drift_sigma_dph`` beside ``drift_dph``
-           (omitted while there is no estimate)
-WATCH      answer to ``?WATCH``: the client's policy now in force
-AUTH       answer to a successful ``?AUTH``: ``{"class":"AUTH","authorized":true}``
-ERROR      a command failed: ``message``, and ``command`` when the command's
-           name could be read
-(other)    answers to control commands (the service's; a reply without a
-           class takes the command's name as its class)
-=========  =================================================================
-
-Client to server: commands, one per line, ``?NAME;`` or ``?NAME={json object};``
-where NAME is upper-case ASCII letters and the trailing ``;`` is optional
-(``\\r`` before the newline is tolerated; empty lines are ignored, but count
-against the rate limit).  Every command is answered by exactly one line (its
-reply or an ``ERROR``), in the order the commands were sent; ANGLE/STATUS/DEVICE
-lines may be interleaved.
-
-- ``?WATCH;`` reports the current policy; ``?WATCH={"enable": true, "rate_hz": 10};``
-  sets it.  The object *is* the whole policy: ``enable`` defaults to true,
-  ``rate_hz`` omitted means every sample; otherwise it is a number with
-  ``0 < rate_hz <= 10000`` (``MAX_WATCH_RATE_HZ``).  With ``rate_hz`` the client
-  gets the first sample of each period ``[k / rate_hz, (k + 1) / rate_hz)`` of
-  device time ``t_s`` (``k = floor(t_s * rate_hz)``): a decimation on the
-  instrument's clock, not the host's.  A new ``?WATCH`` restarts the decimation.
-- ``?VERSION;`` sends the VERSION object again.
-- ``?AUTH={"token": "..."};`` authorizes this connection, needed only when the
-  daemon was configured with a token (which it must be to listen beyond
-  loopback; on loopback too, once it has one).  Until then a client gets
-  VERSION without the instrument's identity, and the answers to its
-  ``?VERSION`` and ``?AUTH``; no ANGLE (a ``?WATCH`` that enables it is
-  refused with ``ERROR`` "unauthorized", unless the daemon opens the stream,
-  ``open_stream``: then it gets the ANGLE lines it watches), DEVICE or STATUS,
-  and every control command is refused.  Wrong tokens are throttled per peer
-  address (see ``limits.py``); while the address waits no token is compared,
-  the right one is refused alike ("retry in N s"); five failed or
-  refused attempts close the connection.  When the daemon's token changes,
-  every connection is closed (``ERROR`` "the client token changed: connect again").
-- Any other NAME is a control command handed to the service (for example
-  ``?ZERO;`` or ``?MARK={"label": "stop 3"};``); an unknown one is answered
-  with ``ERROR`` ``"unknown command ?NAME"``; without a prior successful
-  ``?AUTH`` on a token-protected daemon every one is refused with ``ERROR``
-  ``"unauthorized"``.  A command that gets no answer in time (``control_timeout_s``,
-  30 s, unless the service gave it a deadline of its own) is answered with
-  ``ERROR`` ``"no answer within N s"``; the command itself is not undone and
-  runs to its end.  A command that takes longer (``?BIAS`` over N seconds of
-  data) is answered at once (``"state": "started"``) and publishes its result
-  later as an event of its own class (``BIAS`` ``"state": "done"``): the hub
-  never holds a connection's answers for it.
-
-Example session (``nc 127.0.0.1 2948``)::
-
-    {"class":"VERSION","release":"0.1.0","proto_major":1,"proto_minor":2,...}
-    {"class":"DEVICE","serial":"FOG-SYN-0001",...}
-    ?WATCH={"enable":true,"rate_hz":1}
-    {"class":"WATCH","enable":true,"rate_hz":1}
-    {"class":"ANGLE","t_s":12.0,"angle_arcsec":3.25,...}
-
 ``receive`` is lazy like ``LineBuffer.feed``: each line is read when the previous line's actions are done, so a
-``Control`` command is answered before the next line counts against the rate limit, as it always was.
+``Control`` command is answered before the next line counts against the rate limit.
 """
 
 from __future__ import annotations
@@ -110,7 +22,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..client.ndjson import OVERLONG, UNTERMINATED, Command, CommandError, LineBuffer, parse_command
+from ..ndjson import OVERLONG, UNTERMINATED, Command, CommandError, LineBuffer, parse_command
 from .guards import AuthThrottle, token_matches
 from .limits import (
     COMMAND_WINDOW_S,

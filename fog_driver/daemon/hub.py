@@ -1,7 +1,8 @@
 """The daemon's client multiplexer: JSON lines over TCP, in the manner of gpsd.
 
-The protocol clients speak (what each line means, the commands and the answers) is the docstring of
-``connection.py``, its state machine, sans-IO; its limits are in ``limits.py``.  This module is the I/O only:
+The protocol clients speak (what each line means, the commands and the answers) is written in
+``docs/reference/ndjson.md``; ``connection.py`` is its state machine, sans-IO, and its limits are in
+``limits.py``.  This module is the I/O only:
 it listens, reads each client's bytes and hands them to the client's ``Connection``, carries out the actions
 that come back (queue a line, run a control command in a worker thread, close), and writes each client's
 queue, dropping a client that does not read.
@@ -31,14 +32,13 @@ import contextlib
 import functools
 import math
 import socket
-import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Hashable, Iterable
 from typing import Any, Self
 
 import structlog
 
-from ..client.ndjson import clean, encode
+from ..ndjson import clean, encode
 from .connection import (
     Action,
     AuthGate,
@@ -54,7 +54,7 @@ from .connection import (
     is_positive_finite,
 )
 from .control import control_answer
-from .guards import AuthThrottle, LogRateLimiter, Slots, check_token, is_loopback_host, peer_address
+from .guards import AuthThrottle, check_token, is_loopback_host, peer_address
 from .limits import (
     CONTROL_WORKERS,
     DEFAULT_AUTH_BACKOFF_BASE_S,
@@ -73,7 +73,7 @@ from .limits import (
     SETTING_WAIT_S,
     SWEEP_EVERY_S,
 )
-from .loops import apply_on_loop
+from .listener import Listener
 from .web.metrics import LatencyHistogram
 
 __all__ = [
@@ -156,7 +156,7 @@ class _Client:
         return self.queue[0][0] if self.queue else None
 
 
-class Hub:
+class Hub(Listener):
     """TCP server speaking the client protocol (``connection.py``); see the module docstring.
 
     ``version()`` returns the VERSION object (the hub adds ``class``), ``device()``
@@ -226,6 +226,13 @@ class Hub:
             and auth_backoff_base_s <= auth_backoff_max_s
         ):
             raise ValueError("auth backoff: need 0 < auth_backoff_base_s <= auth_backoff_max_s < inf")
+        super().__init__(
+            thread_name="fog-hub",
+            logger=log,
+            log_lines_per_s=log_lines_per_s,
+            max_connections=max_clients,
+            max_per_peer=max_clients_per_peer,
+        )
         self.host = host
         self.port = port
         self._version = version
@@ -239,23 +246,14 @@ class Hub:
         self.max_clients_per_peer = max_clients_per_peer
         self.auth_deadline_s = auth_deadline_s
         self._gate = AuthGate(token, AuthThrottle(auth_backoff_base_s, auth_backoff_max_s), open_stream=open_stream)
-        self._log_limiter = LogRateLimiter(log_lines_per_s)
         self.latency = latency  #: frame-to-publish latency, observed once per published batch (None: not measured)
 
-        self._clients: dict[int, _Client] = {}
-        self._slots = Slots(max_clients, max_clients_per_peer)  # by client id
-        self._refused = 0
+        self._clients: dict[int, _Client] = {}  # (``slots``: by client id)
         self._next_id = 1
         self._watchers = 0
         self._dropped = 0
         self._bytes_sent = 0
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._thread: threading.Thread | None = None
         self._server: asyncio.AbstractServer | None = None
-        self._stop_event: asyncio.Event | None = None
-        self._ready = threading.Event()
-        self._start_error: BaseException | None = None
-        self._address: tuple[str, int] | None = None
         self._control_pool: concurrent.futures.ThreadPoolExecutor | None = None
 
     # ------------------------------------------------------------------ properties
@@ -285,19 +283,9 @@ class Hub:
         """Bytes handed to client sockets."""
         return self._bytes_sent
 
-    @property
-    def running(self) -> bool:
-        """The hub's loop thread is alive (a watchdog pings only while it is)."""
-        return self._thread is not None and self._thread.is_alive()
-
     def check_token(self, token: str | None) -> None:
         """``ValueError`` when ``set_token(token)`` would refuse it (checked before a reload applies anything)."""
         check_token(token, self.host)
-
-    @property
-    def address(self) -> tuple[str, int] | None:
-        """``(host, port)`` listened on, once started."""
-        return self._address
 
     # ------------------------------------------------------------------ settings (any thread)
 
@@ -322,7 +310,7 @@ class Hub:
 
     def _apply_on_loop(self, apply: Callable[..., None], *args: Any) -> None:
         """``apply(*args)`` on the loop thread, waiting for it (5 s at most); directly when no loop runs."""
-        if not apply_on_loop(self._loop, self._thread, functools.partial(apply, *args), SETTING_WAIT_S):
+        if not self._call_on_loop(functools.partial(apply, *args), SETTING_WAIT_S):
             log.warning("hub_setting_late", setting=getattr(apply, "__name__", repr(apply)))
 
     def _replace_token(self, token: str | None) -> None:
@@ -342,28 +330,16 @@ class Hub:
         self._control_pool = concurrent.futures.ThreadPoolExecutor(
             CONTROL_WORKERS, thread_name_prefix="fog-hub-control"
         )
-        self._thread = threading.Thread(target=self._run, name="fog-hub", daemon=True)
-        self._thread.start()
-        self._ready.wait()
-        if self._start_error is not None:
-            self._thread.join()
-            self._thread = None
+        try:
+            return self._start_thread()
+        except BaseException:
             self._shut_down_control_pool()
-            raise self._start_error
-        assert self._address is not None
-        return self._address
+            raise
 
     def stop(self, timeout: float = HUB_STOP_TIMEOUT_S) -> None:
         """Close every client and the server, join the loop thread, and shut the control workers down
         without waiting for a command still running there (idempotent)."""
-        loop, thread = self._loop, self._thread
-        if thread is None:
-            return
-        if loop is not None:
-            with contextlib.suppress(RuntimeError):  # loop already closed
-                loop.call_soon_threadsafe(self._request_stop)
-        thread.join(timeout)
-        self._thread = None
+        self._stop_thread(timeout)
         self._shut_down_control_pool()
 
     def _shut_down_control_pool(self) -> None:
@@ -378,68 +354,44 @@ class Hub:
     def __exit__(self, *exc: object) -> None:
         self.stop()
 
-    def _request_stop(self) -> None:
-        if self._stop_event is not None:
-            self._stop_event.set()
-
-    def _run(self) -> None:
-        loop = asyncio.new_event_loop()
+    def _prepare_loop(self, loop: asyncio.AbstractEventLoop) -> None:
         loop.set_exception_handler(self._on_loop_error)
-        try:
-            loop.run_until_complete(self._main(loop))
-        except BaseException as exc:  # noqa: BLE001 - reported to start() or logged
-            if not self._ready.is_set():
-                self._start_error = exc
-            else:
-                log.error("hub_failed", error=repr(exc))
-        finally:
-            self._ready.set()
-            self._loop = None
-            try:
-                loop.run_until_complete(loop.shutdown_asyncgens())
-            finally:
-                loop.close()
 
-    async def _main(self, loop: asyncio.AbstractEventLoop) -> None:
+    def _failed(self, exc: BaseException) -> None:
+        log.error("hub_failed", error=repr(exc))
+
+    async def _main(self) -> None:
         self._stop_event = asyncio.Event()
         self._server = await asyncio.start_server(self._on_connect, self.host, self.port, limit=READ_CHUNK_BYTES)
         sockname = self._server.sockets[0].getsockname()
-        self._address = (sockname[0], sockname[1])
-        self._loop = loop
-        log.info("hub_listening", host=self._address[0], port=self._address[1], auth=self._gate.token is not None)
-        self._ready.set()
-        sweeper = asyncio.create_task(self._sweep())
+        address = (sockname[0], sockname[1])
+        log.info("hub_listening", host=address[0], port=address[1], auth=self._gate.token is not None)
+        self._listening(address)
         try:
-            await self._stop_event.wait()
+            await self._serve_until_stopped([self._sweep_loop()], self._close_all)
         finally:
-            sweeper.cancel()
-            self._server.close()
-            clients = list(self._clients.values())
-            tasks = [t for c in clients for t in (c.reader_task, c.writer_task) if t is not None]
-            for client in clients:
-                self._discard(client, "hub_stopped")
-            if tasks:
-                await asyncio.gather(*tasks, return_exceptions=True)
-            await self._server.wait_closed()
-            self._log_limiter.log_suppressed(log, math.inf)  # the last counts too: every line left out is counted once
             log.info("hub_stopped", dropped_clients=self._dropped, bytes_sent=self._bytes_sent)
 
-    async def _sweep(self) -> None:
+    async def _close_all(self) -> None:
+        """Stop listening, close every client and wait for their tasks."""
+        assert self._server is not None
+        self._server.close()
+        clients = list(self._clients.values())
+        tasks = [t for c in clients for t in (c.reader_task, c.writer_task) if t is not None]
+        for client in clients:
+            self._discard(client, "hub_stopped")
+        if tasks:
+            await asyncio.gather(*tasks, return_exceptions=True)
+        await self._server.wait_closed()
+
+    def _sweep_period(self) -> float:
+        return min(SWEEP_EVERY_S, self.max_backlog_s / 4)
+
+    def _sweep(self, now: float) -> None:
         """Drop stalled clients even when nothing new is being published; summarize suppressed log lines."""
-        while True:
-            await asyncio.sleep(min(SWEEP_EVERY_S, self.max_backlog_s / 4))
-            now = time.monotonic()
-            for client in list(self._clients.values()):
-                self._check_backlog(client, now)
-            self._log_limiter.log_suppressed(log, now)
-
-    def _log(self, level: str, event: str, **fields: Any) -> None:
-        """Log a per-client ``event``, unless ``log_lines_per_s`` of it were logged in this second (then count it).
-
-        A flood of connections or guesses thus costs the log a few lines a second and one
-        ``log_lines_suppressed`` summary line a second per event."""
-        if self._log_limiter.allow(event, time.monotonic()):
-            getattr(log, level)(event, **fields)
+        for client in list(self._clients.values()):
+            self._check_backlog(client, now)
+        self._log_limiter.log_suppressed(log, now)
 
     def _on_loop_error(self, loop: asyncio.AbstractEventLoop, context: dict) -> None:
         """The loop's exception handler: one short, rate-limited line instead of a traceback each time.
@@ -614,7 +566,7 @@ class Hub:
         client.queue.clear()
         if client.auth_deadline is not None:
             client.auth_deadline.cancel()
-        self._slots.release(client.id)
+        self.slots.release(client.id)
         if self._clients.pop(client.id, None) is not None and client.conn.watch:
             self._watchers -= 1
         current = asyncio.current_task()
@@ -641,17 +593,14 @@ class Hub:
         peer = writer.get_extra_info("peername")
         address = peer_address(peer)
         cid = self._next_id
-        admission = self._slots.admit(cid, address, authorized=self._gate.token is None)
-        if admission.refused is not None:
-            self._refused += 1
-            refusal = self._refusal(admission.refused, address)
+        refused = self._admit(cid, address, authorized=self._gate.token is None)
+        if refused is not None:
+            refusal = self._refusal(refused, address)
             self._log("warning", "client_refused", peer=str(peer), reason=refusal, refused_clients=self._refused)
             writer.write(encode({"class": "ERROR", "message": refusal}))
             writer.close()
             return
         self._next_id += 1
-        for evicted in admission.evicted:
-            self._make_room(self._clients.get(evicted))
         sock = writer.get_extra_info("socket")
         if self.sndbuf_bytes is not None and sock is not None:
             with contextlib.suppress(OSError):
@@ -684,8 +633,9 @@ class Hub:
             return f"too many clients ({self.max_clients}): try again later"
         return f"too many connections from {peer_address} ({self.max_clients_per_peer}): try again later"
 
-    def _make_room(self, client: _Client | None) -> None:
-        """Close the oldest unauthorized ``client``: a new connection needs its slot (``Slots``)."""
+    def _make_room(self, key: Hashable) -> None:
+        """Close the oldest unauthorized client (id ``key``): a new connection needs its slot (``Slots``)."""
+        client = self._clients.get(key)  # type: ignore[call-overload]
         if client is None or client.gone or client.closing:
             return
         self._log("info", "client_made_room", client=client.id, peer=str(client.peer))
@@ -731,14 +681,14 @@ class Hub:
         elif isinstance(action, Close):
             self._close_after_flush(client)
         elif isinstance(action, Authorized):
-            self._slots.authorize(client.id)
+            self.slots.authorize(client.id)
             if client.auth_deadline is not None:
                 client.auth_deadline.cancel()
                 client.auth_deadline = None
         elif isinstance(action, WatchChanged):
             self._watchers += 1 if action.enable else -1
             if action.enable and self._gate.open_stream:
-                self._slots.set_reader(client.id)  # it reads the open stream: others make room first
+                self.slots.set_reader(client.id)  # it reads the open stream: others make room first
         elif isinstance(action, Log):
             self._log(action.level, action.event, client=client.id, peer=str(client.peer), **action.fields)
         else:

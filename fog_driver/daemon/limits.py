@@ -3,7 +3,7 @@
 A misbehaving client (NDJSON or web) costs the daemon a bounded amount and never delays anybody else; a slow
 disk or a silent port costs the acquisition nothing.  The numbers that bound each of those live here; the
 modules that enforce them (``connection.py``, ``hub.py``, ``service.py``, ``acquisition.py``, ``commands.py``,
-``web/server.py``) import them.
+``web/``) import them.
 
 The NDJSON hub's limits, as clients meet them.  Each is a constant here or a ``hub.Hub`` argument
 (named here, with its default):
@@ -55,8 +55,11 @@ unit is a count (clients, lines, attempts, samples, batches).
 
 from __future__ import annotations
 
+# The protocol's bounds the client library checks before sending: defined there, once.
+from ..client.protocol import MAX_BIAS_S as MAX_BIAS_S  # ?BIAS seconds, at most
+from ..client.protocol import MAX_TABLE_DWELL_S as MAX_TABLE_DWELL_S  # ?TABLE dwell_s, at most
 from ..client.session import MAX_WATCH_RATE_HZ as MAX_WATCH_RATE_HZ  # ?WATCH's rate_hz: the protocol's one bound
-from ..compensation.dwell import MAX_TABLE_ANGLE_DEG as MAX_TABLE_ANGLE_DEG  # the one bound, with the dwell
+from ..dwells import MAX_TABLE_ANGLE_DEG as MAX_TABLE_ANGLE_DEG  # the one bound, with the dwell
 
 # -- the NDJSON hub: lines ------------------------------------------------------------------------------------
 
@@ -129,15 +132,14 @@ MAX_SAMPLES_BEFORE_IDENTITY = 120_000
 #: A ``?BIAS`` capture whose seconds of device time have not arrived within its seconds plus this margin (host
 #: time) is abandoned: a ``BIAS`` ``failed`` event, and the bias in use is kept.
 BIAS_ANSWER_MARGIN_S = 30.0
-#: ``?BIAS`` seconds when the command gives none, and the fewest and most it accepts.
+#: ``?BIAS`` seconds when the command gives none, and the fewest it accepts (the most: ``MAX_BIAS_S``, above).
 DEFAULT_BIAS_S = 60
 MIN_BIAS_S = 1
-MAX_BIAS_S = 86400
 #: The largest ``?ADAPT`` ``reference_dph`` (deg/h, either sign).
 MAX_ADAPT_REFERENCE_DPH = 1e7
-#: ``?TABLE``: the largest angle (deg, either sign: ``dwell.MAX_TABLE_ANGLE_DEG``, a table log's and a sidecar's
-#: too), the longest dwell (s), and the least time between two from one client (more get ERROR).
-MAX_TABLE_DWELL_S = 86400.0
+#: ``?TABLE``: the largest angle (deg, either sign: ``dwells.MAX_TABLE_ANGLE_DEG``, a table log's and a sidecar's
+#: too) and the longest dwell (``MAX_TABLE_DWELL_S``) are imported above; the least time between two from one
+#: client (more get ERROR):
 TABLE_INTERVAL_S = 2.0
 #: The port reader is stuck (no watchdog ping) when its loop has not come round for this long.
 READER_STALL_S = 10.0

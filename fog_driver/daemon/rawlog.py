@@ -40,8 +40,8 @@ Rules (the tests hold them):
   number, the previous file's name, ``events`` (``note``: what happened at which byte of the file),
   plus the ``provenance`` mapping given (port, instrument, model...).
 - ``keep_model``: a copy of each model the daemon compensates with, ``models/<sha256>.yaml`` in the directory
-  (once per content, atomic), for ``compensate`` to replay a reload; ``prune`` deletes the copies no sidecar
-  left names.
+  (once per content, atomic), for ``compensate`` to replay a reload; ``prune`` deletes the copies no capture
+  left names (``modelstore.KeptModels``: by its index, never by reading the sidecars).
 - A sidecar a killed process left at ``status: recording`` is set right by ``repair_interrupted``
   (``status: interrupted``, the file's true size and SHA-256) before the next run writes.
 - A failed write (disk full) raises the ``CaptureWriter``'s one-line ``OutputFileError`` after the
@@ -67,19 +67,16 @@ import structlog
 
 from .. import __version__
 from ..errors import FogDriverError, OutputFileError
-from ..files.bounded import read_regular
 from ..files.stamps import utc_now_iso
-from ..files.yamlio import MAX_YAML_BYTES, write_text
 from ..samples.captures import (
-    KEPT_MODELS_DIR,
     CaptureWriter,
     find_sidecar,
-    kept_model_path,
     legacy_sidecar_path,
     read_provenance,
     sidecar_path,
     write_provenance,
 )
+from .modelstore import CAPTURE_NUMBER_DIGITS, KeptModels, numbered_captures
 
 log = structlog.get_logger("fog_driver.daemon")
 
@@ -101,7 +98,6 @@ WRITE_AT_BYTES = 64 * 1024
 #: After a failed write the sink tries a new file after this long, doubling up to the maximum.
 RETRY_FIRST_S = 1.0
 RETRY_MAX_S = 60.0
-_INDEX_DIGITS = 6
 
 
 class RotatingCapture:
@@ -155,6 +151,7 @@ class RotatingCapture:
         self._bytes_closed = 0  # bytes in files already closed
         self._closed = False
         self.pruned: list[Path] = []  # captures deleted by the retention limits, oldest first
+        self.models = KeptModels(self.directory, prefix)  #: the kept models (``modelstore``)
         self.prune()
 
     # -- what the daemon reads -------------------------------------------------------------------
@@ -250,18 +247,9 @@ class RotatingCapture:
 
     def keep_model(self, sha256: str, data: bytes) -> Path:
         """Keep a copy of the model file ``data`` (of SHA-256 ``sha256``) the daemon compensates with from
-        here on, at ``kept_model_path`` (once per content; atomic), so that ``compensate`` can replay a reload.
-        ``OutputFileError`` when it cannot be written; ``ValueError`` when ``data`` is not of ``sha256``."""
-        if hashlib.sha256(data).hexdigest() != sha256:
-            raise ValueError("the model's bytes are not those of its SHA-256")
-        path = kept_model_path(self.directory / "capture.bin", sha256)
-        if not path.exists():
-            try:
-                path.parent.mkdir(exist_ok=True)
-            except OSError as exc:
-                raise OutputFileError(f"{path.parent}: cannot keep the model: {exc.strerror or exc}") from None
-            write_text(path, data, "the model's copy")
-        return path
+        here on, naming the file being written (or the next one): ``KeptModels.keep`` (``OutputFileError``,
+        ``ValueError`` as it says)."""
+        return self.models.keep(sha256, data)
 
     def close(self) -> None:
         """Fsync and close the current file and write its final sidecar; idempotent."""
@@ -295,7 +283,7 @@ class RotatingCapture:
     def _next_path(self, start: _dt.datetime) -> Path:
         stamp = start.strftime("%Y%m%dT%H%M%SZ")
         while True:
-            path = self.directory / f"{self.prefix}-{self._index:0{_INDEX_DIGITS}d}-{stamp}.bin"
+            path = self.directory / f"{self.prefix}-{self._index:0{CAPTURE_NUMBER_DIGITS}d}-{stamp}.bin"
             self._index += 1
             if not any(p.exists() for p in (path, sidecar_path(path), legacy_sidecar_path(path))):
                 return path
@@ -325,6 +313,7 @@ class RotatingCapture:
         self._segment += 1
         self._files.append(path)
         self._opened_at = now
+        self.models.capture_opened(path)
 
     def _detach(self) -> CaptureWriter:
         """Take the current file out of use, counting its bytes as closed."""
@@ -332,6 +321,7 @@ class RotatingCapture:
         assert writer is not None
         self._writer = None
         self._bytes_closed += writer.bytes_written
+        self.models.capture_closed()
         return writer
 
     def _finish(self, reason: str) -> None:
@@ -358,7 +348,7 @@ class RotatingCapture:
             return []
         current = self.current_path
         captures = []  # (path, size, mtime), oldest first
-        for path in _numbered_captures(self.directory, self.prefix):
+        for _, path in sorted(numbered_captures(self.directory).get(self.prefix, {}).items()):
             try:
                 st = path.stat()
             except OSError:
@@ -392,28 +382,8 @@ class RotatingCapture:
             )
         self.pruned += deleted
         if deleted:
-            self._prune_models()
+            self.models.prune()
         return deleted
-
-    def _prune_models(self) -> None:
-        """Delete the kept models (``keep_model``) that no capture sidecar left in the directory names (a sidecar
-        names its models by SHA-256: at the start and at each reload)."""
-        directory = self.directory / KEPT_MODELS_DIR
-        if not directory.is_dir():
-            return
-        named = ""
-        for sidecar in self.directory.glob("*.yaml"):  # (a FIFO or a huge file there: never waited on, never read)
-            with contextlib.suppress(FogDriverError, UnicodeDecodeError):
-                named += (read_regular(sidecar, "sidecar", MAX_YAML_BYTES) or b"").decode("utf-8")
-        for path in directory.glob("*.yaml"):
-            if path.stem in named:
-                continue
-            try:
-                path.unlink()
-            except OSError as exc:
-                log.error("model_copy_prune_failed", model=str(path), reason=exc.strerror or str(exc))
-                continue
-            log.info("model_copy_pruned", model=str(path))
 
     def _fail(self, exc: OutputFileError) -> None:
         """A write or fsync failed: close what can be closed and describe the file as failed."""
@@ -454,7 +424,9 @@ class CaptureSink:
     - ``put(chunk)`` (any thread, O(1)): the bytes join a queue the writer thread empties in order.
       The thread writes the first chunk after a pause at once, and then, while bytes keep coming, what
       has arrived every ``write_every_s`` (20 ms) or as soon as ``WRITE_AT_BYTES`` wait: one wake-up per
-      batch rather than per chunk, which at 1 kHz in 5 ms lumps was 3 % of a core.  A killed daemon
+      batch rather than per chunk, so while bytes flow the thread's wake-ups follow ``write_every_s`` (and
+      ``WRITE_AT_BYTES``), not how finely the port hands its bytes over (``benchmarks/bench_daemon.py``
+      measures the daemon's CPU per thread, the capture thread's included).  A killed daemon
       (SIGKILL) loses at most the batch being gathered; a stopped one writes everything.
       When ``max_queue_bytes`` are already waiting (a disk that stalls) or the capture has failed, the
       chunk is not captured: it is counted in ``bytes_lost`` and the gap is noted in the sidecar of the
@@ -462,12 +434,12 @@ class CaptureSink:
       say exactly what they hold.
     - ``note(event)`` (any thread): an event for the sidecar, in order with the bytes put before it.
     - A write, fsync or file-open error (a full disk, EIO, no descriptor left) is logged once, the file
-      is closed as ``failed`` (its sidecar counts the bytes on disk), ``state`` becomes ``failed`` and
+      is closed as ``failed`` (its sidecar counts the bytes on disk), ``status`` becomes ``failed`` and
       the sink tries a new file after ``retry_first_s`` (1 s), doubling up to ``retry_max_s`` (60 s); the first file
-      that opens again sets ``state`` back to ``recording`` (``on_state`` is called at each change).
+      that opens again sets ``status`` back to ``recording`` (``on_status`` is called at each change).
     - Every ``fsync_every_s`` the current file is fsynced; ``poll_s`` is the thread's housekeeping tick
       (age rotation of a quiet port).
-    - ``status()``: a snapshot for STATUS: ``state`` (``idle`` before the first byte, ``recording``, ``failed``,
+    - ``status_fields()``: a snapshot for STATUS: ``status`` (``idle`` before the first byte, ``recording``, ``failed``,
       ``retrying``: the next chunk tries a new file, ``closed``), the file, bytes captured and lost, failures,
       the last error.
     - ``close(timeout_s)``: writes what is queued, closes the file, joins the thread (bounded).
@@ -483,7 +455,7 @@ class CaptureSink:
         write_every_s: float = DEFAULT_WRITE_EVERY_S,
         retry_first_s: float = RETRY_FIRST_S,
         retry_max_s: float = RETRY_MAX_S,
-        on_state: Callable[[str], None] | None = None,
+        on_status: Callable[[str], None] | None = None,
     ) -> None:
         if (
             max_queue_bytes <= 0
@@ -503,13 +475,13 @@ class CaptureSink:
         self.max_queue_bytes = int(max_queue_bytes)
         self.fsync_every_s = float(fsync_every_s)
         self.poll_s = float(poll_s)
-        self._on_state = on_state
+        self._on_status = on_status
         self._cond = threading.Condition()
         self._queue: collections.deque[tuple[str, Any]] = collections.deque()
         self._queued_bytes = 0
         self._idle = False  # the writer waits for bytes (not gathering a batch): the next put wakes it
         self._closing = False
-        self._state = "idle"  # idle (no byte yet), recording, failed, closed
+        self._status = "idle"  # idle (no byte yet), recording, failed, closed
         self._error: str | None = None
         self._retry_at = 0.0
         self._retry_s = self.retry_first_s
@@ -523,15 +495,16 @@ class CaptureSink:
         self._thread.start()
 
     @property
-    def state(self) -> str:
-        return self._state
+    def status(self) -> str:
+        """The capture's status now: ``idle`` (no byte yet), ``recording``, ``failed``, ``retrying``, ``closed``."""
+        return self._status
 
     def put(self, chunk: bytes) -> None:
         if not chunk:
             return
         with self._cond:
             self.bytes_put += len(chunk)
-            if self._closing or self._state == "failed" or self._queued_bytes + len(chunk) > self.max_queue_bytes:
+            if self._closing or self._status == "failed" or self._queued_bytes + len(chunk) > self.max_queue_bytes:
                 self.bytes_lost += len(chunk)
                 self._lost_pending += len(chunk)
                 return
@@ -565,10 +538,10 @@ class CaptureSink:
             self._queue.append(("model", (sha256, data)))
             self._cond.notify()
 
-    def status(self) -> dict[str, Any]:
+    def status_fields(self) -> dict[str, Any]:
         with self._cond:
             out: dict[str, Any] = {
-                "state": self._state,
+                "status": self._status,
                 "bytes": self._bytes_captured,
                 "bytes_lost": self.bytes_lost,
                 "failures": self.failures,
@@ -589,17 +562,17 @@ class CaptureSink:
 
     # -- the writer thread ---------------------------------------------------------------------------
 
-    def _set_state(self, state: str, error: str | None = None) -> None:
+    def _set_status(self, status: str, error: str | None = None) -> None:
         with self._cond:
-            changed = state != self._state
-            self._state = state
+            changed = status != self._status
+            self._status = status
             if error is not None:
                 self._error = error
             self._current = str(self.capture.current_path) if self.capture.current_path is not None else None
             self._bytes_captured = self.capture.bytes_written
-        if changed and self._on_state is not None:
+        if changed and self._on_status is not None:
             try:
-                self._on_state(state)
+                self._on_status(status)
             except Exception:  # noqa: BLE001 - a listener's bug must not stop the capture
                 log.exception("capture_state_listener_failed")
 
@@ -615,7 +588,7 @@ class CaptureSink:
                         self._cond.wait(self.write_every_s)  # put() does not wake it: one write per batch
                     elif not self._queue and not self._closing:
                         wait_s = self.poll_s
-                        if self._state == "failed":
+                        if self._status == "failed":
                             wait_s = max(0.0, min(wait_s, self._retry_at - time.monotonic()))
                         self._idle = True
                         self._cond.wait(wait_s)
@@ -628,19 +601,19 @@ class CaptureSink:
                     self._apply(kind, item)
                 gather = any(kind == "bytes" for kind, _ in items)
                 now = time.monotonic()
-                if self._state == "failed" and now >= self._retry_at:
-                    self._set_state("retrying")  # put() queues again; the next chunk tries a new file
-                elif self._state == "recording":
+                if self._status == "failed" and now >= self._retry_at:
+                    self._set_status("retrying")  # put() queues again; the next chunk tries a new file
+                elif self._status == "recording":
                     self._guard(self.capture.poll)
                     if now - last_sync >= self.fsync_every_s:
                         self._guard(self.capture.sync)
                         last_sync = now
-                self._set_state(self._state)
+                self._set_status(self._status)
                 if closing:
                     break
         except Exception as exc:  # noqa: BLE001 - a bug: the capture stops, the daemon goes on
             log.exception("capture_crashed", reason=str(exc))
-            self._set_state("failed", f"internal error: {exc}")
+            self._set_status("failed", f"internal error: {exc}")
         finally:
             try:
                 self.capture.close()
@@ -648,11 +621,11 @@ class CaptureSink:
                 log.error("capture_close_failed", reason=str(exc))
             with self._cond:
                 self._closing = True
-            self._set_state("closed")
+            self._set_status("closed")
 
     def _apply(self, kind: str, item: Any) -> None:
         if kind == "bytes":
-            if self._state == "failed":  # queued before the failure: not captured
+            if self._status == "failed":  # queued before the failure: not captured
                 with self._cond:
                     self.bytes_lost += len(item)
                     self._lost_pending += len(item)
@@ -664,10 +637,10 @@ class CaptureSink:
                     self.bytes_lost += missed
                     self._lost_pending += missed
             else:
-                if self._state != "recording":
+                if self._status != "recording":
                     log.info("capture_recording", path=str(self.capture.current_path))
                     self._retry_s = self.retry_first_s
-                self._set_state("recording")
+                self._set_status("recording")
         elif kind == "note":
             self._guard(self.capture.note, item)
         elif kind == "provenance":
@@ -688,7 +661,7 @@ class CaptureSink:
             log.error("capture_failed", reason=str(exc), retry_in_s=self._retry_s, failures=self.failures)
             self._retry_at = time.monotonic() + self._retry_s
             self._retry_s = min(2 * self._retry_s, self.retry_max_s)
-            self._set_state("failed", str(exc))
+            self._set_status("failed", str(exc))
             return False
         return True
 
@@ -741,13 +714,6 @@ def _alive(pid: Any) -> bool:
     return True
 
 
-def _numbered_captures(directory: Path, prefix: str) -> list[Path]:
-    """The ``<prefix>-<nnnnnn>-<UTC>.bin`` captures in ``directory``, in number order (oldest first)."""
-    pattern = re.compile(rf"^{re.escape(prefix)}-(\d{{{_INDEX_DIGITS},}})-[0-9TZ]+\.bin$")
-    found = [(int(m.group(1)), p) for p in directory.iterdir() if (m := pattern.match(p.name)) and p.is_file()]
-    return [p for _, p in sorted(found)]
-
-
 def _recording_elsewhere(capture: Path) -> bool:
     """Whether ``capture``'s sidecar says another live process is still writing it."""
     try:
@@ -759,7 +725,7 @@ def _recording_elsewhere(capture: Path) -> bool:
 
 def _next_index(directory: Path, prefix: str) -> int:
     """One more than the highest ``<prefix>-<nnnnnn>-`` number in ``directory`` (0 when there is none)."""
-    pattern = re.compile(rf"^{re.escape(prefix)}-(\d{{{_INDEX_DIGITS},}})-")
+    pattern = re.compile(rf"^{re.escape(prefix)}-(\d{{{CAPTURE_NUMBER_DIGITS},}})-")
     numbers = [int(m.group(1)) for p in directory.iterdir() if (m := pattern.match(p.name))]
     return max(numbers, default=-1) + 1
 

@@ -2,8 +2,9 @@
 
 The rooms: ``acquisition.py`` (the hot loop: port -> decoder -> compensator -> publish, and the pipeline state),
 ``commands.py`` (the control commands, a table), ``status.py`` (VERSION, DEVICE, STATUS and the numbers
-``/metrics`` reads), ``hub.py`` with ``connection.py`` (the NDJSON clients), ``rawlog.py`` (the raw capture),
-``web/`` (the web view and metrics), ``udp.py``, ``sdnotify.py``; ``limits.py`` holds their limits.  This
+``/metrics`` reads), ``hub.py`` with ``connection.py`` (the NDJSON clients), ``rawlog.py`` (the raw capture)
+with ``modelstore.py`` (the models kept beside it), ``web/`` (the web view and metrics; both listeners stand on
+``listener.py``), ``udp.py``, ``sdnotify.py``; ``limits.py`` holds their limits.  This
 module builds them, starts and stops them, and applies reloads (the model file, SIGHUP's config).
 
 Threads and who owns what:
@@ -57,9 +58,9 @@ import structlog
 from .. import __version__
 from ..compensation.adapt import AdaptConfig
 from ..compensation.binding import InstrumentCompensation, ModelMismatchError, check_channels
-from ..compensation.dwell import Dwell
 from ..compensation.model import ModelFile
 from ..compensation.pipeline import CompensatedSample, Compensator
+from ..dwells import Dwell
 from ..errors import FogDriverError, OutputFileError, TemporaryFailure, UsageError
 from ..extras import require_extra
 from ..files.bounded import NotARegularFile, file_sha256
@@ -319,7 +320,7 @@ class Service:
         if event.state in ("open", "lost"):
             self.publish(self.device_object())
 
-    def _on_capture_state(self, state: str) -> None:
+    def _on_capture_status(self, status: str) -> None:
         self.publish(self.device_object())
 
     def publish(self, obj: dict | None) -> None:
@@ -522,7 +523,7 @@ class Service:
                 keep_days=self.config.capture_keep_days,
                 max_total_bytes=None if self.config.capture_max_gb is None else int(self.config.capture_max_gb * 1e9),
             )
-            self.capture = CaptureSink(capture, on_state=self._on_capture_state)
+            self.capture = CaptureSink(capture, on_status=self._on_capture_status)
             self.capture.keep_model(self.model_sha256, self.model_bytes)  # the model the capture starts with
             if self.config.udp:
                 self.udp = UdpPublisher(*parse_host_port(self.config.udp), version=self.config.udp_version)

@@ -132,7 +132,7 @@ def device_object(service: Any) -> dict:
     if identity is not None:
         obj.update(identity_fields(identity))
     if service.capture is not None:
-        obj["capture"] = service.capture.state
+        obj["capture"] = service.capture.status
     return obj
 
 
@@ -225,11 +225,11 @@ def _listener_fields(service: Any) -> dict[str, Any]:
         obj["clients"] = service.hub.clients
         obj["dropped_clients"] = service.hub.dropped_clients
     if service.web is not None:
-        obj["web_clients"] = len(service.web.browsers)
-        obj["web_dropped_clients"] = service.web.dropped_browsers
+        obj["web_clients"] = len(service.web.fanout.browsers)
+        obj["web_dropped_clients"] = service.web.fanout.dropped_browsers
     if service.capture is not None:
-        capture = service.capture.status()
-        obj["capture_state"] = capture["state"]
+        capture = service.capture.status_fields()
+        obj["capture_state"] = capture["status"]
         obj["capture_bytes"] = capture["bytes"]
         obj["capture_bytes_lost"] = capture["bytes_lost"]
         if "path" in capture:
@@ -254,6 +254,6 @@ def metrics_state(service: Any) -> dict[str, Any]:
     if reader is not None:
         out["reconnects"] = max(0, reader.opens - 1)
     if service.capture is not None:
-        out["capture_failures"] = service.capture.status()["failures"]
+        out["capture_failures"] = service.capture.status_fields()["failures"]
     out["model_age_s"] = age_s(service.model_file.created_utc)
     return out

@@ -23,10 +23,10 @@ from ..compensation.binding import (
     check_channels,
     split_at_identities,
 )
-from ..compensation.dwell import Dwell
 from ..compensation.model import ModelFile
 from ..compensation.offsets import PublishOffsets
 from ..compensation.pipeline import CompensatedColumns, Compensator
+from ..dwells import Dwell
 from ..errors import InputFileError
 from ..files.kinds import COMPENSATE_PROVENANCE_FORMAT
 from ..files.yamlio import write_yaml

@@ -24,10 +24,7 @@ from ..compensation.fitting.program import RunProgram
 from ..compensation.fitting.report import FitReport
 from ..compensation.model import ModelFile
 from ..errors import InputFileError, UsageError
-from ..samples.captures import find_sidecar, read_provenance, what_it_is
-from ..samples.sources import CaptureReader, wire_settings_for
-from ..sim.chamber import ChamberProfile, Hold, Ramp, Sinusoid
-from ..sim.plan import (
+from ..lab.plan import (
     DESIGN,
     MIN_FAST_RATE_C_PER_MIN,
     WARMUP_FRACTION,
@@ -36,7 +33,10 @@ from ..sim.plan import (
     design_program,
     identifiability_gaps,
 )
-from ..sim.profiles import load_profile, parse_profile
+from ..lab.profiles import load_profile, parse_profile
+from ..lab.program import ChamberProfile, Hold, Ramp, Sinusoid
+from ..samples.captures import find_sidecar, read_provenance, what_it_is
+from ..samples.sources import CaptureReader, wire_settings_for
 
 __all__ = [
     "FitConfig",
@@ -106,7 +106,7 @@ def load_capture(
     )
 
 
-#: The sidecar key of the chamber program a run followed: a profile file's document (``sim.profiles``).
+#: The sidecar key of the chamber program a run followed: a profile file's document (``lab.profiles``).
 PROGRAM_KEY = "program"
 
 
@@ -117,7 +117,7 @@ def run_program(path: str | Path, held_s: float, profile: str | None = None) -> 
     The program is the sidecar's ``program`` (a profile file's document: what ``simulate`` ran), else
     ``profile`` (``fit --profile``: a built-in profile's name or a profile file, as ``simulate --profile``
     takes).  Both, and different, is a ``UsageError``; a ``program`` that is no profile an ``InputFileError``.
-    Judged (``judge_program``): ``sim.plan.identifiability_gaps`` of its first ``held_s`` seconds, whether it
+    Judged (``judge_program``): ``lab.plan.identifiability_gaps`` of its first ``held_s`` seconds, whether it
     is ``fog-driver plan``'s own program for its limits (``_planned``), and a fastest ramp half its own for a
     program with slower ramps, when that is still fast enough for the rate terms (``MIN_FAST_RATE_C_PER_MIN``)."""
     path = Path(path)
@@ -168,7 +168,7 @@ def _same_program(a: ChamberProfile, b: ChamberProfile) -> bool:
 
 def _planned(chamber: ChamberProfile) -> bool:
     """Whether ``chamber`` is the program ``fog-driver plan`` writes for its own limits: its extremes, its
-    fastest ramp and its length (``sim.plan.design_program``); only a program that starts as plan's do, with
+    fastest ramp and its length (``lab.plan.design_program``); only a program that starts as plan's do, with
     its warm-up hold (``WARMUP_MIN``, at most ``WARMUP_FRACTION`` of the run), is designed again to compare."""
     minutes = chamber.duration_s / 60.0
     first = chamber.segments[0] if chamber.segments else None

@@ -76,7 +76,7 @@ class ControlEvent:
         elif self.kind == "bias":
             offsets.bias_dph = float(self.fields["bias_dph"])
         elif self.kind == "table":
-            compensator.table_dwell(  # the angles checked there as ?TABLE checks them (``dwell.table_angle_deg``)
+            compensator.table_dwell(  # the angles checked there as ?TABLE checks them (``dwells.table_angle_deg``)
                 self.fields["angle_deg"], float(self.fields["dwell_s"]), self.fields.get("angle_start_deg")
             )
         elif self.kind == "adapt":

@@ -1,22 +1,14 @@
-"""``compensate --table-log``: the table log's dwells into the compensator, and what became of them."""
+"""``compensate --table-log``: whether the table log's dwells reached the compensator, and what became of them."""
 
 from __future__ import annotations
 
-from collections.abc import Iterable
 from pathlib import Path
-from typing import Any
 
-from ..compensation.dwell import Dwell
 from ..compensation.pipeline import Compensator
 from ..compensation.table import SHAPE_CANDIDATES, TableLaw
 from ..errors import InputFileError
 
-__all__ = ["check_table_log_used", "table_dwells", "table_summary_lines"]
-
-
-def table_dwells(stops: Iterable[Any]) -> list[Dwell]:
-    """Stops read from a table log (``t_start_s``, ``t_end_s``, ``angle_deg``, ``angle_end_deg``) as dwells."""
-    return [Dwell(s.t_start_s, s.t_end_s, s.angle_deg, s.angle_end_deg) for s in stops]
+__all__ = ["check_table_log_used", "table_summary_lines"]
 
 
 def check_table_log_used(compensator: Compensator, table_log: str | Path, capture: str | Path) -> TableLaw:

@@ -177,8 +177,8 @@ def _gather(data: bytes, at: np.ndarray, dtype: np.dtype) -> np.ndarray:
     """The ``dtype`` value stored at each byte offset in ``at`` (any alignment), as a new array.
 
     Indexes a stride-1, read-only view of the bytes as opaque ``void`` items
-    (numpy then copies each with a plain memcpy, several times faster than
-    gathering a structured or unaligned numeric view) and reinterprets the copy.
+    (numpy then copies each with a plain memcpy instead of gathering a structured
+    or unaligned numeric view) and reinterprets the copy.
     """
     raw = np.dtype((np.void, dtype.itemsize))
     count = max(0, len(data) - dtype.itemsize + 1)
@@ -260,7 +260,7 @@ class BatchDecoder:
         self.counters.bytes_in += len(data)
         parts = []
         # Pieces of about 1 MiB keep every temporary array small enough to stay in cache and be
-        # reused by the allocator: twice the speed of one pass over tens of MB (benchmarks/).
+        # reused by the allocator (benchmarks/bench_decode.py measures the decode rate).
         for start in range(0, max(len(data), 1), _PIECE_BYTES):
             piece = data[start : start + _PIECE_BYTES]
             is_last = start + _PIECE_BYTES >= len(data)

@@ -6,25 +6,12 @@ table's.  Table 1 gives, per temperature, the mean and standard deviation (arcse
 positioning error, uncompensated and compensated.
 
 Reference stops
-    ``Stop(t_start_s, t_end_s, angle_deg)``: the table is still from ``t_start_s`` to ``t_end_s``
-    (device time, seconds from the capture's first sample) at the cumulative angle ``angle_deg``; with
-    ``angle_end_deg`` it moved within the dwell (a creep), linearly to that angle, and the dwell's
+    Dwells (``fog_driver.dwells.Dwell(t_start_s, t_end_s, angle_deg)``): the table is still from ``t_start_s``
+    to ``t_end_s`` (device time, seconds from the capture's first sample) at the cumulative angle ``angle_deg``;
+    with ``angle_end_deg`` it moved within the dwell (a creep), linearly to that angle, and the dwell's
     reference is the mean over its trimmed window (``dwell_reference_deg``).
-    They come from the simulator's sidecar (``positioning_stops``) or from a station's reference
-    CSV (``read_reference_csv``, format below).  ``load_stops`` picks one.
-
-Reference CSV format (``REFERENCE_CSV_FORMAT`` holds the same text for help and error texts)::
-
-    # turntable reference for chamber-run-07.bin   <- '#' starts a comment (whole line or the rest of one)
-    t_start_s,t_end_s,angle_deg                    <- the header, these three names (any order; other columns ignored)
-    1500.0,1560.0,0                                <- one dwell per row: start, end (device time, s from
-    1563.8,1623.8,36                                  the capture's first sample) and the table's angle,
-    ...                                               cumulative, in degrees (360 is not 0)
-
-    Rows are in time order: t_end_s > t_start_s and each t_start_s >= the previous row's t_end_s.
-    Angles within +-1e6 degrees (``dwell.MAX_TABLE_ANGLE_DEG``, the bound ``?TABLE`` applies).
-    UTF-8 (a BOM is allowed), lines ended by LF, CRLF or CR, at most 1 MB, at least one row.  Every
-    problem is a one-line ``InputFileError`` naming the file and the line.
+    They come from the simulator's sidecar (``positioning_stops``) or from a station's table log
+    (``fog_driver.dwells.read_table_log``, whose docstring gives the format).  ``load_stops`` picks one.
 
 Sequences (``group_sequences``)
     Consecutive stops belong to one sequence while one dwell's end and the next one's start are less
@@ -69,9 +56,7 @@ Statistics and improvement
 
 from __future__ import annotations
 
-import csv
 import math
-import re
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -79,27 +64,23 @@ from typing import Any
 
 import numpy as np
 
-from ..compensation.dwell import DWELL_TRIM_S, reference_deg, table_angle_deg, trimmed_window
+from ..compensation.dwell import DWELL_TRIM_S, reference_deg, trimmed_window
 from ..compensation.model import ModelFile
+from ..dwells import ANGLE_END_COLUMN, TABLE_LOG_COLUMNS, Dwell, check_dwell_order, read_table_log, table_angle_deg
 from ..errors import InputFileError, UsageError
-from ..files.bounded import read_regular
 from ..flags import FLAG_UNCOMPENSATED
 from ..modelfiles import load_model
 from ..offline.compensate import compensate_capture
 from ..samples.captures import find_sidecar, read_provenance
 from ..samples.sources import CaptureReader, wire_settings_for
-from ..sim.motion import Stop
 
 __all__ = [
     "BIAS_WINDOW_S",
     "DEFAULT_GAP_S",
-    "MAX_REFERENCE_BYTES",
     "MIN_BIAS_WINDOW_S",
     "NO_SEQUENCES",
     "RAW",
-    "REFERENCE_CSV_FORMAT",
     "Row",
-    "Stop",
     "format_table",
     "group_sequences",
     "improvement",
@@ -107,7 +88,6 @@ __all__ = [
     "load_stops",
     "positioning_errors",
     "positioning_table",
-    "read_reference_csv",
     "report_for",
     "stops_from_sidecar",
     "summary_dict",
@@ -118,111 +98,10 @@ DEFAULT_GAP_S = 120.0
 DEFAULT_TRIM_S = DWELL_TRIM_S
 BIAS_WINDOW_S = 300.0
 MIN_BIAS_WINDOW_S = 30.0
-MAX_REFERENCE_BYTES = 1_000_000
 NO_SEQUENCES = "no positioning sequences in this capture: the table is skipped"
 ARCSEC_PER_DEG = 3600.0
-COLUMNS = ("t_start_s", "t_end_s", "angle_deg")
-#: What ends a line of a reference CSV: LF, CRLF, or CR alone (an old Mac's).
-LINE_END = re.compile(r"\r\n|\r|\n")
-#: Optional: where the table's angle ended when it moved within the dwell (a creep the log saw).
-END_COLUMN = "angle_end_deg"
-
-REFERENCE_CSV_FORMAT = """\
-Turntable reference CSV: one dwell (the table still) per row, in time order.
-  header    t_start_s,t_end_s,angle_deg   (any order; other columns are ignored)
-  t_start_s when the dwell starts, t_end_s when it ends: device time, seconds from the
-            capture's first sample; t_end_s > t_start_s >= the previous row's t_end_s
-  angle_deg the table's cumulative angle during the dwell, degrees (360 is not 0), within +-1e6
-  angle_end_deg  (optional column) the angle at the dwell's end, when the table moved within it:
-            the dwell's angle is then taken as changing linearly from angle_deg to angle_end_deg
-  '#' starts a comment (a whole line or the rest of one); blank lines are ignored;
-  UTF-8, at most 1 MB, at least one row.
-Example:
-  # chamber run 07, -40 degC
-  t_start_s,t_end_s,angle_deg
-  1500.0,1560.0,0
-  1563.8,1623.8,36
-"""
-
 
 # --- reference stops ---------------------------------------------------------------------------
-
-
-def _finite(text: str, name: str, where: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise InputFileError(f"{where}: {name} is not a number: {text.strip()!r}") from None
-    if not math.isfinite(value):
-        raise InputFileError(f"{where}: {name} must be finite, got {text.strip()!r}")
-    return value
-
-
-def _angle(text: str, name: str, where: str) -> float:
-    """A table angle of a row: finite, within the bound ``?TABLE`` applies (``dwell.table_angle_deg``)."""
-    try:
-        return table_angle_deg(_finite(text, name, where), name)
-    except ValueError as exc:
-        raise InputFileError(f"{where}: {exc} (the bound ?TABLE applies)") from None
-
-
-def _check_order(stops: list[Stop], start: float, end: float, where: str) -> None:
-    if start < 0:
-        raise InputFileError(
-            f"{where}: t_start_s must not be negative (device time from the first sample), got {start:g}"
-        )
-    if not end > start:
-        raise InputFileError(f"{where}: t_end_s ({end:g}) must be after t_start_s ({start:g})")
-    if stops and start < stops[-1].t_end_s:
-        raise InputFileError(
-            f"{where}: times must increase: t_start_s {start:g} is before the previous "
-            f"dwell's t_end_s {stops[-1].t_end_s:g}"
-        )
-
-
-def read_reference_csv(path: str | Path) -> list[Stop]:
-    """A station's turntable reference (format: the module docstring, ``REFERENCE_CSV_FORMAT``)."""
-    path = Path(path)
-    over = f"reference CSV over the limit of {MAX_REFERENCE_BYTES:,} bytes"
-    data = read_regular(path, "reference CSV", MAX_REFERENCE_BYTES, too_large=over) or b""
-    try:
-        text = data.decode("utf-8-sig")
-    except UnicodeDecodeError:
-        raise InputFileError(f"{path}: reference CSV is not UTF-8 text") from None
-    header: list[str] | None = None
-    index: dict[str, int] = {}
-    stops: list[Stop] = []
-    for lineno, line in enumerate(LINE_END.split(text), start=1):  # \n, \r\n or \r alone end a line
-        line = line.split("#", 1)[0].strip()
-        if not line:
-            continue
-        where = f"{path}:{lineno}"
-        try:
-            cells = [c.strip() for c in next(csv.reader([line]))]
-        except csv.Error as exc:  # a field over csv's limit, a stray quote
-            raise InputFileError(f"{where}: not a CSV row: {exc}") from None
-        if header is None:
-            header = cells
-            missing = [c for c in COLUMNS if c not in header]
-            if missing:
-                raise InputFileError(
-                    f"{where}: missing column{'s' if len(missing) > 1 else ''} "
-                    f"{', '.join(missing)} (the header must name {','.join(COLUMNS)})"
-                )
-            index = {c: header.index(c) for c in (*COLUMNS, END_COLUMN) if c in header}
-            continue
-        if len(cells) != len(header):
-            raise InputFileError(f"{where}: {len(cells)} fields, the header has {len(header)}")
-        start, end = (_finite(cells[index[c]], c, where) for c in COLUMNS[:2])
-        angle = _angle(cells[index["angle_deg"]], "angle_deg", where)
-        _check_order(stops, start, end, where)
-        angle_end = _angle(cells[index[END_COLUMN]], END_COLUMN, where) if END_COLUMN in index else None
-        stops.append(Stop(start, end, angle, angle_end))
-    if header is None:
-        raise InputFileError(f"{path}: reference CSV is empty (expected the header {','.join(COLUMNS)})")
-    if not stops:
-        raise InputFileError(f"{path}: reference CSV has a header but no stops")
-    return stops
 
 
 def _sidecar_number(entry: dict, name: str, where: str) -> float:
@@ -237,25 +116,27 @@ def _sidecar_number(entry: dict, name: str, where: str) -> float:
     return float(v)
 
 
-def stops_from_sidecar(capture: str | Path) -> list[Stop]:
+def stops_from_sidecar(capture: str | Path) -> list[Dwell]:
     """The ``positioning_stops`` of the capture's provenance sidecar; [] without a sidecar or stops."""
     provenance = read_provenance(capture) or {}
     entries = provenance.get("positioning_stops") or []
     where = f"{find_sidecar(capture)}: positioning_stops"
     if not isinstance(entries, list):
         raise InputFileError(f"{where}: expected a list of stops")
-    stops: list[Stop] = []
+    stops: list[Dwell] = []
     for i, entry in enumerate(entries):
-        if not isinstance(entry, dict) or any(c not in entry for c in COLUMNS):
-            raise InputFileError(f"{where}[{i}]: expected a mapping with {', '.join(COLUMNS)}")
-        start, end, angle = (_sidecar_number(entry, c, f"{where}[{i}]") for c in COLUMNS)
-        _check_order(stops, start, end, f"{where}[{i}]")
-        has_end = entry.get(END_COLUMN) is not None  # optional
-        stops.append(Stop(start, end, angle, _sidecar_number(entry, END_COLUMN, f"{where}[{i}]") if has_end else None))
+        if not isinstance(entry, dict) or any(c not in entry for c in TABLE_LOG_COLUMNS):
+            raise InputFileError(f"{where}[{i}]: expected a mapping with {', '.join(TABLE_LOG_COLUMNS)}")
+        start, end, angle = (_sidecar_number(entry, c, f"{where}[{i}]") for c in TABLE_LOG_COLUMNS)
+        check_dwell_order(stops, start, end, f"{where}[{i}]")
+        has_end = entry.get(ANGLE_END_COLUMN) is not None  # optional
+        stops.append(
+            Dwell(start, end, angle, _sidecar_number(entry, ANGLE_END_COLUMN, f"{where}[{i}]") if has_end else None)
+        )
     return stops
 
 
-def check_stops_within(stops: Sequence[Stop], span_s: float, where: str | Path, capture: str | Path) -> None:
+def check_stops_within(stops: Sequence[Dwell], span_s: float, where: str | Path, capture: str | Path) -> None:
     """A one-line ``InputFileError`` when reference stops lie outside the capture's device time (``span_s``
     seconds from its first sample): the reference of another capture, or times not counted from its start."""
     outside = [s for s in stops if s.t_end_s > span_s + 1.0]
@@ -267,17 +148,17 @@ def check_stops_within(stops: Sequence[Stop], span_s: float, where: str | Path, 
         )
 
 
-def load_stops(capture: str | Path, reference_csv: str | Path | None = None) -> list[Stop]:
+def load_stops(capture: str | Path, reference_csv: str | Path | None = None) -> list[Dwell]:
     """The station's reference CSV when given, else the simulator sidecar's stops (maybe [])."""
-    return read_reference_csv(reference_csv) if reference_csv is not None else stops_from_sidecar(capture)
+    return read_table_log(reference_csv) if reference_csv is not None else stops_from_sidecar(capture)
 
 
-def group_sequences(stops: Sequence[Stop], gap_s: float = DEFAULT_GAP_S) -> list[list[Stop]]:
+def group_sequences(stops: Sequence[Dwell], gap_s: float = DEFAULT_GAP_S) -> list[list[Dwell]]:
     """Split time-ordered stops into sequences: a new one where a dwell starts ``gap_s`` or more after the last ended.
 
     Sequences of a single stop (no move) are dropped.
     """
-    groups: list[list[Stop]] = []
+    groups: list[list[Dwell]] = []
     for stop in stops:
         if groups and stop.t_start_s - groups[-1][-1].t_end_s < gap_s:
             groups[-1].append(stop)
@@ -289,7 +170,7 @@ def group_sequences(stops: Sequence[Stop], gap_s: float = DEFAULT_GAP_S) -> list
 # --- dwell means ---------------------------------------------------------------------------------
 
 
-def _windows(stops: Sequence[Stop], trim_s: float) -> np.ndarray:
+def _windows(stops: Sequence[Dwell], trim_s: float) -> np.ndarray:
     """(n, 2) trimmed dwell windows (``dwell.trimmed_window``: the table law's too); a dwell not longer than
     2 trims is a ``ValueError``."""
     return np.array([trimmed_window(s.t_start_s, s.t_end_s, trim_s) for s in stops], dtype=np.float64).reshape(-1, 2)
@@ -320,13 +201,13 @@ class _DwellSums:
             return (self.sum_a - bias_arcsec_per_s * self.sum_t) / self.n
 
 
-def dwell_reference_deg(stop: Stop) -> float:
+def dwell_reference_deg(stop: Dwell) -> float:
     """The table's mean angle over the dwell's trimmed window (``dwell.reference_deg``, as the table law holds
     it): ``angle_deg``, or with ``angle_end_deg`` the mean of the two."""
     return reference_deg(stop.angle_deg, stop.angle_end_deg)
 
 
-def _move_errors(means: np.ndarray, stops: Sequence[Stop]) -> np.ndarray:
+def _move_errors(means: np.ndarray, stops: Sequence[Dwell]) -> np.ndarray:
     reference = np.array([dwell_reference_deg(s) for s in stops], dtype=np.float64) * ARCSEC_PER_DEG
     return np.diff(means) - np.diff(reference)
 
@@ -334,7 +215,7 @@ def _move_errors(means: np.ndarray, stops: Sequence[Stop]) -> np.ndarray:
 def positioning_errors(
     t_s: np.ndarray,
     angle_arcsec: np.ndarray,
-    stops: Sequence[Stop],
+    stops: Sequence[Dwell],
     *,
     dwell_trim_s: float = DEFAULT_TRIM_S,
     bias_arcsec_per_s: float = 0.0,
@@ -503,8 +384,8 @@ def _bias(
     remove_bias: bool,
     bias_window_s: tuple[float, float] | None,
     capture: Path,
-    flat: list[Stop],
-    stops: Sequence[Stop],
+    flat: list[Dwell],
+    stops: Sequence[Dwell],
     windows: np.ndarray,
 ) -> tuple[tuple[float, float] | None, dict[str, float]]:
     """The window the bias is read over and each method's bias rate on it (the module docstring): 0 without
@@ -532,7 +413,7 @@ def _bias(
 def positioning_table(
     capture: str | Path,
     model_files: Mapping[str, ModelFile],
-    stops: Sequence[Stop],
+    stops: Sequence[Dwell],
     *,
     plateau_temps_c: Sequence[float] | None = None,
     dwell_trim_s: float = DEFAULT_TRIM_S,

@@ -31,14 +31,15 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
+from ..dwells import ANGLE_END_COLUMN, TABLE_LOG_COLUMNS
 from ..errors import FogDriverError, InputFileError, OutputFileError, UsageError, read_error
 from ..files.bounded import open_regular
 from ..files.kinds import TRUTH_HEADER
 from ..files.outputs import check_outputs, write_error
 from ..files.stamps import utc_now_iso
+from ..lab.profiles import profile_to_doc
 from ..samples.captures import CaptureWriter, read_provenance, sidecar_path, write_provenance
 from .instrument import COMPONENTS, STDBIN_TEMPERATURE_CHANNELS, STDBIN_VERSION, FrameBlock, Simulator
-from .profiles import profile_to_doc
 
 TRUTH_COLUMNS = (
     "second",
@@ -85,7 +86,7 @@ def device_stops(sim: Simulator) -> list[dict]:
     ``clock_ppm`` fast), with the table's true angles; ``angle_end_deg`` where a creep turned it."""
     ppm = 1.0 + sim.config.clock_ppm * 1e-6
     out = []
-    for stop in sim.profile.motion.stops():
+    for stop in sim.profile.motion.dwells():
         entry = {
             "t_start_s": round(stop.t_start_s * ppm, 6),
             "t_end_s": round(stop.t_end_s * ppm, 6),
@@ -99,11 +100,9 @@ def device_stops(sim: Simulator) -> list[dict]:
 
 def write_table_log(path: Path, stops: list[dict], capture_name: str) -> None:
     """The table log: one dwell per row, ``t_start_s,t_end_s,angle_deg`` (the format ``evaluate --reference``
-    reads) and ``angle_end_deg`` when a creep turned the table within a dwell; angles cumulative, degrees,
-    at full precision (``repr``)."""
-    columns = ["t_start_s", "t_end_s", "angle_deg"] + (
-        ["angle_end_deg"] if any("angle_end_deg" in s for s in stops) else []
-    )
+    reads: ``fog_driver.dwells.read_table_log``) and ``angle_end_deg`` when a creep turned the table within a
+    dwell; angles cumulative, degrees, at full precision (``repr``)."""
+    columns = [*TABLE_LOG_COLUMNS] + ([ANGLE_END_COLUMN] if any(ANGLE_END_COLUMN in s for s in stops) else [])
     lines = [f"# table log of {capture_name}: the simulated table's true angles (device time)", ",".join(columns)]
     for stop in stops:
         lines.append(",".join(repr(float(stop.get(c, stop["angle_deg"]))) for c in columns))

@@ -22,7 +22,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from ..errors import UsageError
-from .profiles import MAX_PROFILE_S
+from ..lab.profiles import MAX_PROFILE_S
 
 #: The longest a thermometer fault may last: no simulated run lasts longer.
 MAX_THERMO_FAULT_S = MAX_PROFILE_S

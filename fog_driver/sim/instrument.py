@@ -35,6 +35,7 @@ from ..files.typed_mapping import dataclass_from_mapping
 from ..files.yamlio import read_yaml
 from ..formats.ixblue import CHECKSUM_LEN, COUNTER_MODULUS, HEADER_LEN, TIME_LSB_S, TIME_MODULUS, encode_stdbin
 from ..formats.kvh import ARCSEC_PER_RAD, SAMPLE_FORMATS, encode_kvh_frames
+from ..lab.profiles import SimProfile
 from ..protocol import (
     SAMPLE_FRAME_LEN,
     STATUS_LIGHT_SOURCE_FAULT,
@@ -48,7 +49,6 @@ from ..protocol import (
 )
 from .faults import FaultSpec
 from .gyro import ARCSEC_PER_SQRT_S_PER_DEG_PER_SQRT_H, GyroParams, SlowNoise, drift_terms
-from .profiles import SimProfile
 from .thermal import ThermalModel, ThermalParams
 
 GRID_DT_S = 1.0

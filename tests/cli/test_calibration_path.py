@@ -13,10 +13,10 @@ import yaml
 from fog_driver.cli import main
 from fog_driver.compensation.fitting.wesn import LAG_INTERVAL_WARN
 from fog_driver.compensation.models.wesn import COIL_LAG_GRID_S
+from fog_driver.lab.plan import ChamberLimits, design_program, identifiability_gaps
+from fog_driver.lab.profiles import load_profile, parse_profile
 from fog_driver.modelfiles import load_model
 from fog_driver.samples.captures import read_provenance
-from fog_driver.sim.plan import ChamberLimits, design_program, identifiability_gaps
-from fog_driver.sim.profiles import load_profile, parse_profile
 
 DATA = Path(__file__).parents[1] / "data"
 
@@ -63,7 +63,7 @@ def test_simulate_records_the_whole_program_in_the_sidecar(tmp_path):
         profile = load_profile(name)
         assert recorded.name == name and recorded.chamber.start_c == profile.chamber.start_c
         assert recorded.chamber.segments == profile.chamber.segments  # every segment, the whole run
-        assert recorded.motion.stops() == profile.motion.stops()
+        assert recorded.motion.dwells() == profile.motion.dwells()
 
 
 def test_fit_of_a_simulated_run_names_what_its_recorded_program_leaves_unidentified(slow_run, tmp_path, capsys):

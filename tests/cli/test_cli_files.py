@@ -542,9 +542,9 @@ def test_an_interrupted_simulate_leaves_a_sidecar_that_says_so_and_inspect_repor
 
 
 def test_a_keyboard_interrupt_mid_write_still_leaves_the_sidecar(tmp_path):
+    from fog_driver.lab.profiles import load_profile
     from fog_driver.sim.capture import simulate_to_file
     from fog_driver.sim.instrument import Simulator
-    from fog_driver.sim.profiles import load_profile
 
     def interrupt(done: int, total: int) -> None:
         raise KeyboardInterrupt

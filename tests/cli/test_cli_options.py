@@ -52,13 +52,13 @@ from fog_driver.cli.argtypes import positive_float, rate_hz
 from fog_driver.cli.parser import command_in
 from fog_driver.files.kinds import ROW_COLUMNS
 from fog_driver.formats.registry import FORMATS
+from fog_driver.lab.plan import DEFAULT_LIMITS
+from fog_driver.lab.profiles import load_profile
+from fog_driver.lab.program import Hold, Ramp, Sinusoid
 from fog_driver.modelfiles import load_model
 from fog_driver.samples.captures import inspect_capture, read_provenance
-from fog_driver.sim.chamber import Hold, Ramp, Sinusoid
 from fog_driver.sim.instrument import WIRE_FORMATS
-from fog_driver.sim.plan import DEFAULT_LIMITS
 from fog_driver.sim.population import MAX_INSTRUMENT_SEED
-from fog_driver.sim.profiles import load_profile
 
 ROOT = Path(__file__).resolve().parents[2]
 DATA = ROOT / "tests" / "data"

@@ -1,4 +1,4 @@
-"""The NDJSON codec (``fog_driver.client.ndjson``): one line buffer and one over-long policy for both sides."""
+"""The NDJSON codec (``fog_driver.ndjson``): one line buffer and one over-long policy for both sides."""
 
 from __future__ import annotations
 
@@ -6,7 +6,8 @@ import random
 
 import pytest
 
-from fog_driver.client.ndjson import (
+from fog_driver.client.wire import MAX_LINE_BYTES, LineReader
+from fog_driver.ndjson import (
     OVERLONG,
     UNTERMINATED,
     Command,
@@ -15,7 +16,6 @@ from fog_driver.client.ndjson import (
     encode,
     parse_command,
 )
-from fog_driver.client.wire import MAX_LINE_BYTES, LineReader
 
 LIMIT = 16
 

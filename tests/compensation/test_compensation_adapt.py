@@ -108,7 +108,7 @@ def test_gate_off_keeps_the_frozen_weights_while_the_sums_run(reference, static)
     # H and I evolved exactly as in a law run with update=True on the same regressors and (neutral) targets
     law = AdaptiveLaw(AdaptConfig().law, 4, 1.0, AdaptiveLawState.zeros(4, np.r_[W0, B0]))
     law.run(np.column_stack([f, np.ones(t)]), _frozen(f), True)
-    got, want = r.law.state, law.state
+    got, want = r.law.get_state(), law.get_state()
     assert np.abs(got.h).max() > 1.0
     np.testing.assert_array_equal(got.h, want.h)
     np.testing.assert_array_equal(got.i, want.i)
@@ -176,7 +176,7 @@ def test_a_huge_target_is_kept_from_the_law_by_the_innovation_gate():
     assert y == _frozen(f[1000:1001])[0]
     # not learned, and what was learned before is dropped (the mismatch may have grown for a while)
     np.testing.assert_array_equal(r.law.weights, np.r_[W0, B0])
-    assert np.abs(r.law.state.i).max() < 10  # the neutral target: nothing of the 1e6 in I
+    assert np.abs(r.law.get_state().i).max() < 10  # the neutral target: nothing of the 1e6 in I
     y, flags = r.step(f[1001], measured[1001], 0.0, True)
     assert flags == FLAG_GUARD  # the filtered innovation still remembers the bad block: still refused
     assert r.gate_innovation_dph > r.gate_limit_dph
@@ -184,7 +184,7 @@ def test_a_huge_target_is_kept_from_the_law_by_the_innovation_gate():
 
 def test_a_runaway_reverts_to_the_frozen_weights_and_clears_what_the_law_had_learned():
     r, f, measured = _adapted()
-    state = r.law.state
+    state = r.law.get_state()
     state.w = np.r_[W0, B0] + np.array([0.0, 0.0, 0.0, 5.0])  # 5 deg/h off: beyond the 2 deg/h runaway
     r.law.set_state(state)
     y, flags = r.step(f[1000], measured[1000], None, False)
@@ -193,9 +193,9 @@ def test_a_runaway_reverts_to_the_frozen_weights_and_clears_what_the_law_had_lea
     np.testing.assert_array_equal(r.law.weights, np.r_[W0, B0])  # W reset (and not updated: gate off)
     # H and I cleared: kept, they would lead W straight back to the solution that ran away
     law = AdaptiveLaw(AdaptConfig().law, 4, 1.0)
-    law.step(np.r_[f[1000], 1.0], float(np.r_[f[1000], 1.0] @ np.r_[W0, B0]), False)
-    np.testing.assert_allclose(r.law.state.h, law.state.h, rtol=0, atol=1e-12)
-    assert np.abs(r.law.state.i).max() < 1.0
+    law.track(np.r_[f[1000], 1.0], float(np.r_[f[1000], 1.0] @ np.r_[W0, B0]))
+    np.testing.assert_allclose(r.law.get_state().h, law.get_state().h, rtol=0, atol=1e-12)
+    assert np.abs(r.law.get_state().i).max() < 1.0
 
 
 def test_the_runaway_bound_comes_from_the_models_fit_residual():
@@ -210,7 +210,7 @@ def test_the_runaway_bound_comes_from_the_models_fit_residual():
 
 def test_a_non_finite_estimate_reverts_and_flags():
     r, f, measured = _adapted()
-    state = r.law.state
+    state = r.law.get_state()
     state.w = np.full(4, 1e308)  # overflows to inf in the estimate
     r.law.set_state(state)
     y, flags = r.step(f[1000], measured[1000], 0.0, False)
@@ -226,15 +226,15 @@ def test_a_non_finite_w_after_an_update_is_reset_at_once():
     y, flags = r.step(f[500], measured[500] + 1.0, 0.0, True)  # a plausible target (within the gate)
     assert flags == FLAG_ADAPTING | FLAG_GUARD and np.isfinite(y)
     np.testing.assert_array_equal(r.law.weights, np.r_[W0, B0])
-    assert yaml.safe_load(yaml.safe_dump(r.state_dict()))  # the state stays saveable
+    assert yaml.safe_load(yaml.safe_dump(r.get_state()))  # the state stays saveable
 
 
 def test_non_finite_regressors_give_a_flagged_nan_and_leave_the_state_alone():
     r, _, measured = _adapted()
-    before = r.state_dict()
+    before = r.get_state()
     y, flags = r.step(np.array([np.nan, 0.0, 0.0]), measured[1000], 0.0, True)
     assert np.isnan(y) and flags == FLAG_GUARD
-    after = r.state_dict()
+    after = r.get_state()
     assert after.pop("blocks") == before.pop("blocks") + 1 and after == before
 
 
@@ -281,19 +281,19 @@ def test_state_saved_and_restored_mid_stream_continues_bit_identically(tmp_path)
         b = OnlineReadout(W0, B0, config, 1.0)
         db = StaticDetector.from_config(config, 1.0)
         assert load_readout_state(b, path, detector=db) is not None
-        assert b.state_dict() == a.state_dict() and db.to_dict() == da.to_dict()
+        assert b.get_state() == a.get_state() and db.to_dict() == da.to_dict()
         got += _run_detected(b, db, f, measured, cut, len(f))
         assert got == expected  # estimates (floats) and flags, exactly
-        assert b.state_dict() == whole.state_dict()
+        assert b.get_state() == whole.get_state()
 
 
-def test_state_dict_round_trips_through_yaml_exactly():
+def test_readout_state_round_trips_through_yaml_exactly():
     r, f, measured = _adapted()
-    d = r.state_dict()
+    d = r.get_state()
     again = yaml.safe_load(yaml.safe_dump(d))
     assert again == d
     r2 = OnlineReadout(W0, B0, AdaptConfig(), 1.0, state=again)
-    assert r2.state_dict() == d
+    assert r2.get_state() == d
     a = [r.step(f[k], measured[k], 0.0, True) for k in range(1000, 1010)]
     b = [r2.step(f[k], measured[k], 0.0, True) for k in range(1000, 1010)]
     assert a == b
@@ -320,21 +320,21 @@ def test_step_equals_run_for_any_chunking():
             lo = hi
         np.testing.assert_array_equal(np.concatenate([p[0] for p in parts]), est)
         np.testing.assert_array_equal(np.concatenate([p[1] for p in parts]), flags)
-        assert runner.state_dict() == stepper.state_dict()
+        assert runner.get_state() == stepper.get_state()
 
 
 def test_reset_to_frozen_clears_the_laws_sums_keeps_the_bias_and_restarts_the_comparison():
     r, _, _ = _adapted()
-    before = r.state_dict()
+    before = r.get_state()
     assert before["compare_windows"] > 0
     r.reset_to_frozen()
-    after = r.state_dict()
+    after = r.get_state()
     assert after["law"]["w"] == [*W0.tolist(), B0]
     assert after["compare_weights"] == after["law"]["w"] and after["compare_windows"] == 0
     assert all(after[k] == 0 for k in after if k.startswith("compare_") and k != "compare_weights")
     keep = [k for k in before if k != "law" and not k.startswith("compare_")]
     assert {k: after[k] for k in keep} == {k: before[k] for k in keep}
-    fresh = OnlineReadout(W0, B0, AdaptConfig(), 1.0).state_dict()["law"]
+    fresh = OnlineReadout(W0, B0, AdaptConfig(), 1.0).get_state()["law"]
     assert after["law"] == fresh
 
 
@@ -368,13 +368,13 @@ def test_state_file_errors_are_one_line_input_file_errors(tmp_path):
     }
     (tmp_path / "garbage.yaml").write_text("readout: [unclosed\n")
     fresh = OnlineReadout(W0, B0, AdaptConfig(), 1.0)
-    untouched = fresh.state_dict()
+    untouched = fresh.get_state()
     for name, path in cases.items():
         detector = StaticDetector(30.0, 60) if name == "detector" else None
         with pytest.raises(InputFileError) as info:
             load_readout_state(fresh, path, detector=detector)
         assert "\n" not in str(info.value) and str(path) in str(info.value), name
-        assert fresh.state_dict() == untouched, name  # nothing half-loaded
+        assert fresh.get_state() == untouched, name  # nothing half-loaded
     # a python object tag is never constructed
     (tmp_path / "evil.yaml").write_text("!!python/object/apply:os.system ['true']\n")
     with pytest.raises(InputFileError):
@@ -521,17 +521,17 @@ def test_a_state_saved_before_the_comparison_existed_still_loads():
     f, _, measured = _problem(2000)
     r = OnlineReadout(W0, B0, AdaptConfig(bias_capture_s=60.0))
     r.run(f, measured, 0.0, True)
-    state = r.state_dict()
+    state = r.get_state()
     old = {k: v for k, v in state.items() if not k.startswith("compare_")}
     again = OnlineReadout(W0, B0, AdaptConfig(bias_capture_s=60.0))
-    again.load_state(old)
-    assert again.compare_windows == 0 and again.state_dict()["law"] == state["law"]
-    again.load_state(state)
-    assert again.state_dict() == state
+    again.set_state(old)
+    assert again.compare_windows == 0 and again.get_state()["law"] == state["law"]
+    again.set_state(state)
+    assert again.get_state() == state
     with pytest.raises(ValueError, match="the comparison needs all of"):
-        again.load_state({**old, "compare_windows": 3})
+        again.set_state({**old, "compare_windows": 3})
     with pytest.raises(ValueError, match="compare_gain_sq"):
-        again.load_state({**state, "compare_gain_sq": -1.0})
+        again.set_state({**state, "compare_gain_sq": -1.0})
     n = len(state["compare_weights"])
     for key, bad in (
         ("compare_weights", [0.0] * (n - 1)),
@@ -543,8 +543,8 @@ def test_a_state_saved_before_the_comparison_existed_still_loads():
         ("compare_level_frozen_dph", "1.0"),
     ):
         with pytest.raises(ValueError, match=key):
-            again.load_state({**state, key: bad})
-        assert again.state_dict() == state  # a refused state leaves the readout as it was
+            again.set_state({**state, key: bad})
+        assert again.get_state() == state  # a refused state leaves the readout as it was
 
 
 def test_a_gain_below_the_least_worth_having_keeps_the_frozen_estimate():

@@ -296,9 +296,9 @@ def test_compensate_refuses_another_instruments_model_unless_forced(model_path, 
 
 
 def test_motion_is_detected_and_excluded(tmp_path):
+    from fog_driver.lab.profiles import load_profile
     from fog_driver.sim.capture import simulate_to_file
     from fog_driver.sim.instrument import Simulator
-    from fog_driver.sim.profiles import load_profile
 
     out = tmp_path / "pos.bin"
     simulate_to_file(
@@ -359,7 +359,7 @@ def test_adapting_compensator_step_equals_run_in_any_chunks(model_path):
             *(np.concatenate([getattr(p, f) for p in parts]) for f in CompensatedColumns.__dataclass_fields__)
         )
         assert [repr(joined.sample(i)) for i in range(n)] == [repr(r) for r in reference]
-        assert runner.online.state_dict() == stepper.online.state_dict()
+        assert runner.online.get_state() == stepper.online.get_state()
 
 
 def test_adapting_without_a_reference_is_exactly_frozen(model_path):
@@ -399,13 +399,13 @@ def test_a_restart_of_the_same_run_continues_exactly(model_path, tmp_path, cut):
     rest = second.run(slice_block(samples, cut, n))
     for name in ("drift_dph", "dtheta_comp_arcsec", "flags", "drift_sigma_dph"):
         np.testing.assert_array_equal(getattr(rest, name), getattr(reference, name)[cut:], err_msg=name)
-    assert second.online.state_dict() == whole.online.state_dict()
-    assert dump(second.pipeline_state()) == dump(whole.pipeline_state())  # NaN-aware: absent values are NaN
+    assert second.online.get_state() == whole.online.get_state()
+    assert dump(second.get_state()) == dump(whole.get_state())  # NaN-aware: absent values are NaN
     # a new run restores the readout only: the pipeline starts afresh (a new switch-on, a new clock)
     third = Compensator(load_model(model_path), 0.1, adapt=adapt_config(), reference_rate_dph=0.0)
     load_adaptation(third, path)
-    assert dump(third.pipeline_state()) == dump(
-        Compensator(load_model(model_path), 0.1, adapt=adapt_config(), reference_rate_dph=0.0).pipeline_state()
+    assert dump(third.get_state()) == dump(
+        Compensator(load_model(model_path), 0.1, adapt=adapt_config(), reference_rate_dph=0.0).get_state()
     )
 
 
@@ -420,10 +420,10 @@ def test_a_pipeline_state_for_another_model_or_rate_is_refused_and_changes_nothi
     doc["pipeline"]["averager"]["frame_period_s"] = 0.01
     path.write_text(yaml.safe_dump(doc))
     other = Compensator(load_model(model_path), 0.1, adapt=adapt_config(), reference_rate_dph=0.0)
-    before = (other.pipeline_state(), other.online.state_dict())
+    before = (other.get_state(), other.online.get_state())
     with pytest.raises(FileError, match="corrupt adaptation state"):
         load_adaptation(other, path, new_run=False)
-    assert (other.pipeline_state(), other.online.state_dict()) == before
+    assert (other.get_state(), other.online.get_state()) == before
     doc["pipeline"]["averager"]["frame_period_s"] = 0.1
     if doc["pipeline"]["model"]:
         doc["pipeline"]["model"]["x"] = doc["pipeline"]["model"]["x"][:-1]
@@ -432,7 +432,7 @@ def test_a_pipeline_state_for_another_model_or_rate_is_refused_and_changes_nothi
     path.write_text(yaml.safe_dump(doc))
     with pytest.raises(FileError, match="corrupt adaptation state"):
         load_adaptation(other, path, new_run=False)
-    assert (other.pipeline_state(), other.online.state_dict()) == before
+    assert (other.get_state(), other.online.get_state()) == before
 
 
 def test_compensate_cli_adapts_and_keeps_its_state(model_path, tmp_path):
@@ -500,9 +500,9 @@ def test_fit_config_rates_must_agree(tmp_path):
 @pytest.fixture(scope="module")
 def ramp_samples(tmp_path_factory) -> SampleBlock:
     """The first 75 minutes of fast-ramps at 2 Hz: a 20-minute hold, then 2 degC/min down."""
+    from fog_driver.lab.profiles import load_profile
     from fog_driver.sim.capture import simulate_to_file
     from fog_driver.sim.instrument import Simulator
-    from fog_driver.sim.profiles import load_profile
 
     out = tmp_path_factory.mktemp("gap") / "ramp.bin"
     profile = load_profile(ROOT / "configs" / "profiles" / "fast-ramps.yaml")

@@ -69,7 +69,7 @@ def test_convergence_is_slow_along_weak_directions_of_h():
     w_true = np.array([1.0, -1.0])
     law = AdaptiveLaw(AdaptiveLawParams(filter_time_s=0.0, memory_time_s=500.0, kappa=1.0), 2)
     law.run(x, x @ w_true)
-    h = law.state.h
+    h = law.get_state().h
     lam = np.linalg.eigvalsh(h)
     assert np.trace(h) / lam[0] > 1e4  # a time constant of > 10,000 samples along the weak direction
     err = law.weights - w_true
@@ -107,7 +107,7 @@ def test_normalized_gain_is_stable_at_any_data_scale(scale):
         law.run(x[chunk], d[chunk])
         assert np.isfinite(law.weights).all() and np.abs(law.weights).max() < 100
     np.testing.assert_allclose(law.weights, w_true, rtol=0, atol=1e-6)
-    assert law.gain * np.linalg.eigvalsh(law.state.h).max() <= 1.9
+    assert law.gain * np.linalg.eigvalsh(law.get_state().h).max() <= 1.9
 
 
 @pytest.mark.filterwarnings("ignore:overflow encountered", "ignore:invalid value encountered")
@@ -116,30 +116,42 @@ def test_fixed_gain_diverges_beyond_the_bound_and_converges_below_it():
     x, d, w_true = _problem(4, 3000, 4)
     p = AdaptiveLawParams(filter_time_s=1.0, memory_time_s=100.0)
     probe = AdaptiveLaw(p, 4)
-    probe.run(x[:1500], d[:1500], update=False)
-    lam_max = float(np.linalg.eigvalsh(probe.state.h).max())  # H's size once the window is full
+    probe.run(x[:1500], d[:1500], learn=False)
+    lam_max = float(np.linalg.eigvalsh(probe.get_state().h).max())  # H's size once the window is full
     below = AdaptiveLaw(AdaptiveLawParams(filter_time_s=1.0, memory_time_s=100.0, fixed_gain=1.0 / lam_max), 4)
     below.run(x, d)
     np.testing.assert_allclose(below.weights, w_true, atol=1e-6)
     above = AdaptiveLaw(AdaptiveLawParams(filter_time_s=1.0, memory_time_s=100.0, fixed_gain=2.5 / lam_max), 4)
     above.run(x, d)
     assert not np.all(np.abs(above.weights) < 1e6)  # blown up (or overflowed)
-    assert above.gain * float(np.linalg.eigvalsh(probe.state.h).max()) > 2
+    assert above.gain * float(np.linalg.eigvalsh(probe.get_state().h).max()) > 2
 
 
 def test_sigma_modification_is_a_ridge_penalty_on_the_window():
     x, d, _ = _problem(5, 4000, 3, noise=0.1)
     law = AdaptiveLaw(AdaptiveLawParams(filter_time_s=1.0, memory_time_s=400.0, kappa=1.0, sigma=50.0), 3)
     law.run(x, d)
-    h, i = law.state.h, law.state.i
+    h, i = law.get_state().h, law.get_state().i
     # W tracks the slowly moving fixed point with a small lag: 3e-4 relative here
     np.testing.assert_allclose(law.weights, np.linalg.solve(h + 50.0 * np.eye(3), i), rtol=2e-3)
     assert np.linalg.norm(law.weights) < np.linalg.norm(np.linalg.solve(h, i))
 
 
+def _predict_then_learn(law: AdaptiveLaw, x: np.ndarray, d: float, learn: bool) -> float:
+    """One sample by the single calls: the a-priori prediction, then learned (or tracked with W held)."""
+    y = law.predict(x)
+    if learn:
+        law.learn(x, d)
+    else:
+        law.track(x, d)
+    return y
+
+
 def test_prediction_uses_the_weights_before_the_update():
     law = AdaptiveLaw(AdaptiveLawParams(filter_time_s=0.0), 2, state=AdaptiveLawState.zeros(2, [1.0, 2.0]))
-    assert law.step(np.array([3.0, 4.0]), 100.0) == 11.0
+    x = np.array([3.0, 4.0])
+    assert law.predict(x) == 11.0
+    law.learn(x, 100.0)
     assert not np.array_equal(law.weights, [1.0, 2.0])
     assert law.predict(np.array([1.0, 0.0])) == law.weights[0]
 
@@ -159,8 +171,8 @@ def test_gating_freezes_w_only(seed, mask):
     y_frozen = frozen.run(x, d, False)
     for law in (gated, frozen):
         for name in ("xf", "h", "i"):
-            assert getattr(law.state, name).tobytes() == getattr(always.state, name).tobytes()
-        assert law.state.df == always.state.df
+            assert getattr(law.get_state(), name).tobytes() == getattr(always.get_state(), name).tobytes()
+        assert law.get_state().df == always.get_state().df
     assert frozen.weights.tobytes() == start.w.tobytes()
     # The prediction is W . x summed left to right (numerics.dot), equal to BLAS to rounding.
     assert y_frozen.tobytes() == np.array([dot(row, start.w) for row in x]).tobytes()
@@ -188,7 +200,7 @@ def test_unfreezing_is_seamless():
     st.booleans(),
     st.floats(0.0, 1.0),
 )
-def test_run_equals_repeated_step_in_any_chunks(seed, cuts, fixed, nan_fraction):
+def test_run_equals_predict_then_learn_in_any_chunks(seed, cuts, fixed, nan_fraction):
     rng = np.random.default_rng(seed)
     x, d, _ = _problem(seed, 120, 5, noise=0.2)
     x[rng.random(120) < nan_fraction * 0.2, rng.integers(0, 5)] = np.nan
@@ -197,12 +209,12 @@ def test_run_equals_repeated_step_in_any_chunks(seed, cuts, fixed, nan_fraction)
     p = AdaptiveLawParams(filter_time_s=2.0, memory_time_s=30.0, sigma=0.05, fixed_gain=0.01 if fixed else None)
     whole = AdaptiveLaw(p, 5).run(x, d, mask)
     one = AdaptiveLaw(p, 5)
-    stepped = np.array([one.step(x[k], d[k], mask[k]) for k in range(120)])
+    stepped = np.array([_predict_then_learn(one, x[k], d[k], mask[k]) for k in range(120)])
     chunked = AdaptiveLaw(p, 5)
     b = [0, *sorted(cuts), 120]
     parts = np.concatenate([chunked.run(x[i:j], d[i:j], mask[i:j]) for i, j in itertools.pairwise(b)])
     assert stepped.tobytes() == whole.tobytes() == parts.tobytes()
-    assert chunked.state.to_dict() == one.state.to_dict()
+    assert chunked.get_state().to_dict() == one.get_state().to_dict()
 
 
 def test_state_round_trip_through_yaml_is_exact():
@@ -210,7 +222,7 @@ def test_state_round_trip_through_yaml_is_exact():
     p = AdaptiveLawParams(filter_time_s=5.0, memory_time_s=60.0)
     law = AdaptiveLaw(p, 6)
     law.run(x[:200], d[:200])
-    doc = yaml.safe_load(yaml.safe_dump({"params": p.to_dict(), "state": law.state.to_dict()}))
+    doc = yaml.safe_load(yaml.safe_dump({"params": p.to_dict(), "state": law.get_state().to_dict()}))
     loaded = AdaptiveLaw(AdaptiveLawParams.from_dict(doc["params"]), 6, state=AdaptiveLawState.from_dict(doc["state"]))
     assert loaded.params == p
     assert loaded.run(x[200:], d[200:]).tobytes() == law.run(x[200:], d[200:]).tobytes()
@@ -220,7 +232,7 @@ def test_state_round_trip_through_yaml_is_exact():
 def test_state_is_copied_in_and_out():
     start = AdaptiveLawState.zeros(3)
     law = AdaptiveLaw(AdaptiveLawParams(), 3, state=start)
-    law.step(np.ones(3), 1.0)
+    law.learn(np.ones(3), 1.0)
     assert not start.h.any() and not start.xf.any()  # the caller's state object is untouched
     w = law.weights
     w[:] = 99.0
@@ -264,14 +276,15 @@ def test_non_finite_sample_is_skipped_entirely(which):
     x, d, _ = _problem(8, 60, 4, noise=0.1)
     law = AdaptiveLaw(AdaptiveLawParams(filter_time_s=2.0, memory_time_s=30.0), 4)
     law.run(x[:50], d[:50])
-    before = law.state.to_dict()
+    before = law.get_state().to_dict()
     xi, di = x[50].copy(), float(d[50])
     if which.startswith("x"):
         xi[2] = np.nan if which == "x_nan" else -np.inf
     else:
         di = np.nan if which == "d_nan" else np.inf
-    y = law.step(xi, di, update=True)
-    assert law.state.to_dict() == before
+    y = law.predict(xi)
+    law.learn(xi, di)
+    assert law.get_state().to_dict() == before
     if which.startswith("x"):
         assert not math.isfinite(y)
     else:

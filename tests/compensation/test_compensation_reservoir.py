@@ -160,7 +160,7 @@ def test_run_equals_repeated_step_in_any_chunks(params, cuts, seed):
     parts = [chunked.run(u[a:b], y[a:b]) for a, b in itertools.pairwise(bounds)]
     assert stepped.tobytes() == whole.tobytes()
     assert np.concatenate(parts).tobytes() == whole.tobytes()
-    assert chunked.state.x.tobytes() == one.state.x.tobytes() == whole[-1].tobytes()
+    assert chunked.get_state().x.tobytes() == one.get_state().x.tobytes() == whole[-1].tobytes()
 
 
 @settings(max_examples=25)
@@ -181,7 +181,7 @@ def test_closed_loop_equals_the_hand_written_loop_and_resumes_from_state(params,
     assert np.array(ys).tobytes() == y_all.tobytes()
     first = WaveletReservoir(params)
     x1, y1 = first.run_closed_loop(u[:cut], readout)
-    resumed = WaveletReservoir(params, state=ReservoirState.from_dict(first.state.to_dict()))
+    resumed = WaveletReservoir(params, state=ReservoirState.from_dict(first.get_state().to_dict()))
     x2, y2 = resumed.run_closed_loop(u[cut:], readout)
     assert np.concatenate([x1, x2]).tobytes() == x_all.tobytes()
     assert np.concatenate([y1, y2]).tobytes() == y_all.tobytes()
@@ -214,7 +214,7 @@ def test_non_finite_input_holds_the_state():
     res = WaveletReservoir(params)
     u = _inputs(3, 20, 8)
     res.run(u[:10], np.zeros(10))
-    before = res.state
+    before = res.get_state()
     for bad_u, bad_y in (
         (np.full(8, np.nan), 0.0),
         (np.r_[np.inf, np.zeros(7)], 0.0),
@@ -222,7 +222,7 @@ def test_non_finite_input_holds_the_state():
         (np.full(8, 1e308), 0.0),
     ):
         x = res.step(bad_u, bad_y)
-        assert x.tobytes() == before.x.tobytes() and res.state.y == before.y
+        assert x.tobytes() == before.x.tobytes() and res.get_state().y == before.y
     clean = WaveletReservoir(params, state=before)
     assert res.run(u[10:], np.zeros(10)).tobytes() == clean.run(u[10:], np.zeros(10)).tobytes()
 
@@ -252,8 +252,8 @@ def test_feedforward_run_equals_steps_with_bad_rows_among_good_ones(normalized):
         ran = whole.run(u, y_prev)
         stepped = np.array([one.step(u[k], None if y_prev is None else y_prev[k]) for k in range(300)])
         assert ran.tobytes() == stepped.tobytes()
-        assert whole.state.x.tobytes() == one.state.x.tobytes()
-        assert str(whole.state.y) == str(one.state.y)
+        assert whole.get_state().x.tobytes() == one.get_state().x.tobytes()
+        assert str(whole.get_state().y) == str(one.get_state().y)
         assert np.isfinite(ran).all() and ran[3].tobytes() == ran[2].tobytes()  # a bad row holds the state
 
 
@@ -272,7 +272,7 @@ def test_model_round_trip_through_yaml_is_exact():
     res = WaveletReservoir(params)
     u, y = _inputs(4, 500, 8), np.random.default_rng(4).normal(0, 1, 500)
     res.run(u[:100], y[:100])
-    text = yaml.safe_dump({"reservoir": res.to_dict(), "state": res.state.to_dict()})
+    text = yaml.safe_dump({"reservoir": res.to_dict(), "state": res.get_state().to_dict()})
     doc = yaml.safe_load(text)
     loaded = WaveletReservoir.from_dict(doc["reservoir"], ReservoirState.from_dict(doc["state"]))
     assert loaded.params == params
@@ -307,7 +307,7 @@ def test_reset_and_state():
     res = WaveletReservoir(ReservoirParams(feedback_scale=0.3))
     first = res.run(_inputs(0, 30, 8), np.ones(30))
     res.reset()
-    assert not res.state.x.any() and res.state.y == 0.0
+    assert not res.get_state().x.any() and res.get_state().y == 0.0
     assert res.run(_inputs(0, 30, 8), np.ones(30)).tobytes() == first.tobytes()
 
 
@@ -413,7 +413,7 @@ def test_normalized_form_contracts_for_any_leaks(params, seed):
     b = WaveletReservoir(params, state=ReservoirState(rng.uniform(-PSI_MAX, PSI_MAX, params.n_neurons)))
     c = a.contraction_bound
     assert c < 1
-    d0 = np.abs(a.state.x - b.state.x).max()
+    d0 = np.abs(a.get_state().x - b.get_state().x).max()
     u, y = _inputs(seed, 200, params.n_inputs, 2.0), rng.normal(0, 1, 200)
     diff = np.abs(a.run(u, y) - b.run(u, y)).max(axis=1)
     assert np.all(diff <= c ** np.arange(1, 201) * d0 * (1 + 1e-9) + 1e-15)
@@ -519,7 +519,7 @@ def test_a_cascade_runs_as_it_steps_in_any_chunks(cuts):
         pieces.append(res.run(u[start:cut]))
         start = cut
     assert np.vstack(pieces).tobytes() == stepped.tobytes()
-    assert res.state.x.tobytes() == one.state.x.tobytes()
+    assert res.get_state().x.tobytes() == one.get_state().x.tobytes()
     assert stepped[100].tobytes() == stepped[99].tobytes()
 
 
@@ -549,7 +549,7 @@ def test_a_clean_ring_form_run_takes_the_column_path_and_gives_the_step_bits(cha
     ran = np.vstack([res.run(u[a:b]) for a, b in ((0, 1), (1, 777), (777, 2000))])
     assert taken == [True, True, True]
     assert ran.tobytes() == stepped.tobytes()
-    assert res.state.x.tobytes() == one.state.x.tobytes()
+    assert res.get_state().x.tobytes() == one.get_state().x.tobytes()
 
 
 def test_a_cascade_stays_inside_its_bound_and_forgets_its_start():

@@ -372,11 +372,11 @@ def test_fit_marks_a_model_that_makes_validation_worse_and_names_the_noise_floor
     in the model file; exit 0 with --accept-weak-fit, 65 without (the validation check, as before)."""
     from fog_driver.compensation.fitting.data import block_noise_dph
     from fog_driver.compensation.fitting.report import WORSE_MARKER
+    from fog_driver.lab.profiles import load_profile
     from fog_driver.modelfiles import load_model
     from fog_driver.offline.fit import load_capture
     from fog_driver.sim.capture import simulate_to_file
     from fog_driver.sim.instrument import Simulator
-    from fog_driver.sim.profiles import load_profile
 
     other = tmp_path / "other-temperatures.bin"
     simulate_to_file(

@@ -168,7 +168,7 @@ def test_the_adapted_sigma_comes_from_the_laws_window_statistics():
     readout.gate_noise_var_dph2 = 0.03
     window = AdaptConfig().compare_window_s
     assert readout.adapted_sigma_dph == pytest.approx(math.sqrt(0.0004 - 0.03 / window))
-    state = readout.state_dict()
+    state = readout.get_state()
     again = OnlineReadout(np.array([1.0, -0.5]), 0.1, AdaptConfig(), 1.0, state=state)
     assert again.compare_dev_sq_adapted_dph2 == 0.0004
     del state["compare_dev_sq_adapted_dph2"]  # a state saved before it existed

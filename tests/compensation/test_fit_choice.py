@@ -146,9 +146,9 @@ segments:
 def wobble_capture(directory: Path, curvature_dph_per_c2: float) -> Path:
     """A 1-Hz capture of the default instrument, warm from the start (no self-heating transient), its bias
     ``0.004 (T - 20) + curvature (T - 20)^2`` deg/h in the fiber temperature T."""
+    from fog_driver.lab.profiles import parse_profile
     from fog_driver.sim.capture import simulate_to_file
     from fog_driver.sim.instrument import InstrumentConfig, Simulator
-    from fog_driver.sim.profiles import parse_profile
     from fog_driver.sim.thermal import ThermalParams
 
     base = InstrumentConfig()

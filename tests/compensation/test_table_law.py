@@ -11,18 +11,18 @@ import numpy as np
 import pytest
 
 from fog_driver.cli.app import main
-from fog_driver.compensation.dwell import Dwell, angle_at_deg, blocks_within, reference_deg, trimmed_window
+from fog_driver.compensation.dwell import angle_at_deg, blocks_within, reference_deg, trimmed_window
 from fog_driver.compensation.pipeline import Compensator
 from fog_driver.compensation.table import SF_REF_C, TableLaw, TableOutcome
 from fog_driver.daemon.config import DEFAULT_MODEL
+from fog_driver.dwells import Dwell, read_table_log
 from fog_driver.flags import FLAG_ADAPTING, FLAG_GUARD, FLAG_SCALE_FACTOR
+from fog_driver.lab.profiles import parse_profile
 from fog_driver.modelfiles import load_model
 from fog_driver.protocol import decode_file
-from fog_driver.report.positioning import read_reference_csv
 from fog_driver.samples.stream import SampleBlock, SampleStream
 from fog_driver.sim.capture import read_truth, simulate_to_file, truth_noise_dph
 from fog_driver.sim.instrument import InstrumentConfig, Simulator
-from fog_driver.sim.profiles import parse_profile
 from fog_driver.sim.tablelog import late, lie
 
 S0_PPM, S1_PPM_PER_C = 40.0, 0.5
@@ -65,8 +65,7 @@ def simulate_run(config: InstrumentConfig, seed: int, out: Path) -> tuple[Sample
     """``PROFILE`` simulated for ``config`` into ``out``: its samples, table log (as dwells) and truth."""
     simulate_to_file(Simulator(parse_profile(PROFILE), config, rate_hz=RATE_HZ, seed=seed), out)
     samples = SampleStream().run(decode_file(out))
-    stops = read_reference_csv(out.with_suffix(".table.csv"))
-    dwells = [Dwell(s.t_start_s, s.t_end_s, s.angle_deg, s.angle_end_deg) for s in stops]
+    dwells = read_table_log(out.with_suffix(".table.csv"))
     return samples, dwells, read_truth(out.with_suffix(".truth.csv"))
 
 
@@ -104,16 +103,14 @@ def without_candidates():
 def test_the_lying_and_late_logs_against_the_simulators_truth(run):
     """``sim.tablelog``: one dwell off the simulator's true angle by exactly the lie (start and end angles under a
     creep alike), one ending late; the rest of the log the truth, untouched."""
-    from fog_driver.sim.motion import Stop
-
     *_, out = run
-    truth = read_reference_csv(out.with_suffix(".table.csv"))
+    truth = read_table_log(out.with_suffix(".table.csv"))
     lied = lie(truth, 7, 0.01)
     assert [d.angle_deg - t.angle_deg for d, t in zip(lied, truth)] == [0.0] * 7 + [
         lied[7].angle_deg - truth[7].angle_deg
     ] + [0.0] * (len(truth) - 8)
     assert lied[7].angle_deg - truth[7].angle_deg == pytest.approx(0.01, abs=1e-12)
-    crept = lie([Stop(0.0, 60.0, 36.0, 36.001)], 0, -0.5)[0]
+    crept = lie([Dwell(0.0, 60.0, 36.0, 36.001)], 0, -0.5)[0]
     assert (crept.angle_deg, crept.angle_end_deg) == (35.5, pytest.approx(35.501))
     delayed = late(truth, 3, 2.0)
     assert delayed[3].t_end_s == truth[3].t_end_s + 2.0 and delayed[3].angle_deg == truth[3].angle_deg
@@ -432,10 +429,7 @@ def creeping_run(out: Path, rate_dph: float, start_s: float, seed: int) -> tuple
     creep = {"kind": "creep", "rate_dph": rate_dph, "start_s": start_s, "stop_s": end_s}
     profile = {**PROFILE, "motion": [PROFILE["motion"], creep]}
     simulate_to_file(Simulator(parse_profile(profile), InstrumentConfig(), rate_hz=RATE_HZ, seed=seed), out)
-    stops = read_reference_csv(out.with_suffix(".table.csv"))
-    return SampleStream().run(decode_file(out)), [
-        Dwell(s.t_start_s, s.t_end_s, s.angle_deg, s.angle_end_deg) for s in stops
-    ]
+    return SampleStream().run(decode_file(out)), read_table_log(out.with_suffix(".table.csv"))
 
 
 def claimed_creep(dwells: list[Dwell], deg: float, every: int = 1, from_k: int = 0) -> list[Dwell]:
@@ -564,9 +558,11 @@ def test_a_fast_creep_is_learned_against_the_tables_angle_at_the_windows_mean_ti
     assert len(learned) >= 0.9 * len(log) and comp.table.rejected <= 1
     z = np.array([o.innovation_arcsec / o.sigma_arcsec for o in learned])
     assert np.sqrt(np.mean(z**2)) < 1.5, z
-    import fog_driver.compensation.table as table_module
+    import fog_driver.compensation.table.law as table_law
+    import fog_driver.compensation.table.screen as table_screen
 
-    monkeypatch.setattr(table_module, "angle_at_deg", lambda a, e, t0, t1, t: reference_deg(a, e))
+    for module in (table_law, table_screen):  # the anchor's angle, and the creep a dwell declares
+        monkeypatch.setattr(module, "angle_at_deg", lambda a, e, t0, t1, t: reference_deg(a, e))
     middle, _ = compensate(creeping, log)
     rms = np.sqrt(np.mean(np.array([o.innovation_arcsec for o in learned]) ** 2))
     off = np.array([o.innovation_arcsec for o in middle.table.outcomes if math.isfinite(o.innovation_arcsec)])
@@ -828,7 +824,7 @@ def test_what_the_table_law_learned_persists_across_a_restart(run, tmp_path):
     samples, dwells, *_ = run
     part, use = first(samples, dwells, 4000.0)
     comp, _ = compensate(part, use)
-    saved = comp.table.state_dict()
+    saved = comp.table.get_state()
     doc = yaml.safe_load(yaml.safe_dump(comp.adaptation_document()))
     restored = Compensator(load_model(DEFAULT_MODEL), 1.0 / RATE_HZ, table=True, adapt=comp.adapt)
     restored.restore_adaptation(doc, "state.yaml")
@@ -838,7 +834,7 @@ def test_what_the_table_law_learned_persists_across_a_restart(run, tmp_path):
     h = np.array(saved["h"])
     assert h[lvl, lvl] > 0 and abs(np.delete(h[:, lvl], lvl)).max() > 0  # there was a level, tied to the rest
     assert_level_marginalized(restored.table, saved)
-    rest = {k: v for k, v in restored.table.state_dict().items() if k not in ("h", "i", "delta", "cov")}
+    rest = {k: v for k, v in restored.table.get_state().items() if k not in ("h", "i", "delta", "cov")}
     assert rest == {k: v for k, v in saved.items() if k not in ("h", "i", "delta", "cov")}
     # the scale factor as learned, within what the level's own uncertainty moved it by
     assert restored.table.scale_factor_ppm == pytest.approx(comp.table.scale_factor_ppm, abs=0.01)
@@ -859,14 +855,14 @@ def test_what_the_table_law_learned_persists_across_a_restart(run, tmp_path):
     # a state of an earlier version, learned on the model's own regressors (no shape): refused by a law on the
     # candidates (the daemon sets it aside and starts afresh), restored by one without candidates
     own, _ = compensate(part, use, without_candidates())
-    earlier = {k: v for k, v in yaml.safe_load(yaml.safe_dump(own.table.state_dict())).items() if k != "shape"}
+    earlier = {k: v for k, v in yaml.safe_load(yaml.safe_dump(own.table.get_state())).items() if k != "shape"}
     with pytest.raises(InputFileError, match="'regressors' shape regressors, this law's are 'candidates'"):
         fresh.restore_adaptation({**doc, "table": earlier}, "state.yaml")
     assert fresh.table.accepted == 0
     plain = Compensator(without_candidates(), 1.0 / RATE_HZ, table=True, adapt=comp.adapt)
     plain.restore_adaptation({**doc, "table": earlier}, "state.yaml")
     assert plain.table.accepted == own.table.accepted
-    assert_level_marginalized(plain.table, own.table.state_dict())
+    assert_level_marginalized(plain.table, own.table.get_state())
 
 
 def assert_level_marginalized(law: TableLaw, saved: dict) -> None:
@@ -988,10 +984,57 @@ def test_a_sidecar_event_that_cannot_be_replayed_is_a_one_line_error(tmp_path, c
 @pytest.mark.parametrize("angle", [math.nan, math.inf, 1e308, True])
 def test_compensate_of_a_capture_whose_sidecar_table_event_has_a_nan_angle_is_a_one_line_error(tmp_path, capsys, angle):
     """A hand-edited sidecar whose ``?TABLE`` event says ``angle_deg: .nan`` (or infinite, 1e308, true): the
-    replay checks it as ``?TABLE`` did (``dwell.table_angle_deg``), one line naming the capture's event,
+    replay checks it as ``?TABLE`` did (``dwells.table_angle_deg``), one line naming the capture's event,
     exit 65, nothing written (a NaN ended in exit 70, or was taken as a dwell)."""
     code, err, recorded, out = compensate_edited_sidecar(tmp_path, capsys, angle_deg=angle)
     assert code == 65 and len(err) == 1 and "internal error" not in err[0], err
     assert str(recorded) in err[0] and "table event at byte" in err[0]
     assert "angle_deg must be a number within +-1e+06 degrees" in err[0]
     assert not out.exists()
+
+
+def test_a_dwell_blamed_by_its_neighbours_gives_a_new_outcome_log_and_leaves_the_one_read_before_as_it_was():
+    """The judge's verdict (``table.judge``): dwell 2, learned, was the wrong one; dwell 3, rejected, has the
+    interval (1, 3).  The revised log has them so, dwell 2's figures kept; the log and the outcomes a reader
+    held before are unchanged, and each log's tally counts its own outcomes."""
+    from fog_driver.compensation.table.judge import BLAMED_REASON
+    from fog_driver.compensation.table.outcomes import OutcomeLog, OutcomeStatus, Revision, outcome
+
+    dwells = [Dwell(100.0 * k, 100.0 * k + 60.0, 36.0 * k) for k in range(4)]
+    statuses = [OutcomeStatus.ANCHOR, OutcomeStatus.LEARNED, OutcomeStatus.LEARNED, OutcomeStatus.REJECTED]
+    log = OutcomeLog()
+    for k, status in enumerate(statuses):
+        log.note(outcome(dwells[k], status, "" if k < 3 else "disagrees", {"innovation_arcsec": 1.0 + k}))
+    held, before = log.recent, list(log.recent)
+    merged = outcome(dwells[3], OutcomeStatus.LEARNED, "", {"innovation_arcsec": -0.5})
+    revised = log.revised(Revision(dwells[2].t_end_s, merged, BLAMED_REASON))
+    assert log.recent is held and list(held) == before
+    assert list(revised.recent) == [
+        before[0],
+        before[1],
+        before[2]._replace(status=OutcomeStatus.REJECTED, reason=BLAMED_REASON),
+        merged,
+    ]
+    assert revised.recent[2].innovation_arcsec == before[2].innovation_arcsec == 3.0
+    assert dict(log.tally().by_status) == {"anchor": 1, "learned": 2, "rejected": 1}
+    assert dict(revised.tally().by_status) == {"anchor": 1, "learned": 2, "rejected": 1}
+    assert revised.tally().by_reason[("rejected", BLAMED_REASON)][0] == [1]
+
+
+def test_a_dwells_status_is_written_as_its_word_in_json_csv_and_text():
+    """``OutcomeStatus`` is a ``StrEnum``: every way an outcome is written (STATUS's NDJSON, a CSV, a report
+    line) gives the bare word, as the strings it replaced did."""
+    import csv
+    import io
+    import json
+
+    from fog_driver.compensation.table import OutcomeStatus
+
+    for status in OutcomeStatus:
+        word = status.value
+        assert json.dumps({"status": status}) == json.dumps({"status": word})
+        assert f"{status} {status:>9}" == f"{word} {word:>9}" and str(status) == word
+        out = io.StringIO()
+        csv.writer(out).writerow([status])
+        assert out.getvalue() == f"{word}\r\n"
+        assert status == word and {word: 1}[status] == 1

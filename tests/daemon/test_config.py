@@ -173,7 +173,7 @@ def _instrument(path: Path):
 
 
 def _profile(path: Path):
-    from fog_driver.sim.profiles import load_profile
+    from fog_driver.lab.profiles import load_profile
 
     return load_profile(str(path))
 

@@ -1,7 +1,7 @@
 """The raw capture's own thread (``rawlog.CaptureSink``): the reader never waits for the disk, a failing disk
 degrades the capture and never the daemon, and the sidecars say exactly what the files hold.
 
-No sleeps: the tests wait on the sink's state changes (its ``on_state`` callback) with bounded timeouts."""
+No sleeps: the tests wait on the sink's status changes (its ``on_status`` callback) with bounded timeouts."""
 
 from __future__ import annotations
 
@@ -68,22 +68,22 @@ def disk(monkeypatch):
     return d
 
 
-def states() -> tuple[queue.Queue, callable]:
+def statuses() -> tuple[queue.Queue, callable]:
     q: queue.Queue = queue.Queue()
     return q, q.put
 
 
-def until(q: queue.Queue, state: str) -> list[str]:
-    """The states seen up to and including ``state`` (bounded wait)."""
+def until(q: queue.Queue, status: str) -> list[str]:
+    """The statuses seen up to and including ``status`` (bounded wait)."""
     seen = []
-    while not seen or seen[-1] != state:
+    while not seen or seen[-1] != status:
         seen.append(q.get(timeout=TIMEOUT_S))
     return seen
 
 
 def test_bytes_and_events_land_in_order_with_their_byte_offsets(tmp_path):
-    q, on_state = states()
-    sink = CaptureSink(RotatingCapture(tmp_path, max_bytes=1000), on_state=on_state)
+    q, on_status = statuses()
+    sink = CaptureSink(RotatingCapture(tmp_path, max_bytes=1000), on_status=on_status)
     sink.note({"event": "model", "sha256": "ab"})  # before any byte: at byte 0 of the first file
     sink.put(b"a" * 600)
     sink.note({"event": "adapt", "reference_dph": 0.0})
@@ -97,7 +97,7 @@ def test_bytes_and_events_land_in_order_with_their_byte_offsets(tmp_path):
     assert [(e["event"], e["at_byte"]) for e in second["events"]] == [("zero", 600)]
     assert first["status"] == second["status"] == "complete"
     assert until(q, "closed") == ["recording", "closed"]
-    assert sink.status() == {"state": "closed", "bytes": 1200, "bytes_lost": 0, "failures": 0}
+    assert sink.status_fields() == {"status": "closed", "bytes": 1200, "bytes_lost": 0, "failures": 0}
 
 
 @pytest.mark.parametrize("error", [OSError(28, "No space left on device"), OSError(5, "Input/output error")])
@@ -105,8 +105,8 @@ def test_a_full_disk_degrades_the_capture_the_sidecar_stays_true_and_a_new_file_
     """The review's E7: the failed sidecar claimed bytes that never reached the disk, and the daemon stopped.
     A full disk, or one that fails (EIO)."""
     disk.free, disk.error = 1000, error
-    q, on_state = states()
-    sink = CaptureSink(RotatingCapture(tmp_path), retry_first_s=0.05, on_state=on_state)
+    q, on_status = statuses()
+    sink = CaptureSink(RotatingCapture(tmp_path), retry_first_s=0.05, on_status=on_status)
     sink.put(b"x" * 700)
     sink.put(b"y" * 700)  # 300 fit, then the disk is full
     assert until(q, "failed") == ["recording", "failed"]
@@ -115,7 +115,10 @@ def test_a_full_disk_degrades_the_capture_the_sidecar_stays_true_and_a_new_file_
     data = failed.read_bytes()
     assert side["status"].startswith("failed: ") and error.strerror in side["status"]
     assert side["bytes"] == len(data) == 1000 and side["sha256"] == hashlib.sha256(data).hexdigest()
-    assert sink.status()["state"] in ("failed", "retrying") and error.strerror in sink.status()["last_error"]
+    assert (
+        sink.status_fields()["status"] in ("failed", "retrying")
+        and error.strerror in sink.status_fields()["last_error"]
+    )
     disk.free = None  # space again
     until(q, "retrying")
     sink.put(b"z" * 50)  # tries a new file
@@ -145,13 +148,13 @@ def test_a_stalled_disk_never_blocks_put_and_the_overflow_is_counted(tmp_path, d
     assert sink.close()
     captured = b"".join(p.read_bytes() for p in sink.capture.files)
     assert sink.bytes_lost > 0 and len(captured) + sink.bytes_lost == 5000
-    assert sink.status()["bytes"] == len(captured)
+    assert sink.status_fields()["bytes"] == len(captured)
 
 
 def test_no_descriptor_left_at_rotation_is_retried_not_fatal(tmp_path, monkeypatch):
     """The review's E4: idle clients took every descriptor, the rotation could not open its file, exit 73."""
-    q, on_state = states()
-    sink = CaptureSink(RotatingCapture(tmp_path, max_bytes=10), retry_first_s=0.05, on_state=on_state)
+    q, on_status = statuses()
+    sink = CaptureSink(RotatingCapture(tmp_path, max_bytes=10), retry_first_s=0.05, on_status=on_status)
     sink.put(b"0123456789")
     until(q, "recording")
     real_init = rawlog.CaptureWriter.__init__

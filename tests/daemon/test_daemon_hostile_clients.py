@@ -731,7 +731,7 @@ def test_unauthorized_connections_cannot_starve_a_client_with_the_token(make_hub
     operator.expect("DEVICE")
     assert operator.expect("ECHO")["args"] == {}
     # the operator held one of the half (8) until it authorized; the 100 churned through the other 7
-    assert hub._slots.unauthorized("127.0.0.1") == 16 // 2 - 1 and hub.refused_clients == 0
+    assert hub.slots.unauthorized("127.0.0.1") == 16 // 2 - 1 and hub.refused_clients == 0
     assert idle[0].line() == {"class": "ERROR", "message": "closed to make room for a new client: authorize sooner"}
     # the authorized never make room: 16 of them fill the address, and one more is refused
     others = [authorized(address, "s3cret-token") for _ in range(15)]

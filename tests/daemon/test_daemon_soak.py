@@ -21,9 +21,9 @@ import hostile
 import pytest
 from daemon_hil import Daemon
 
+from fog_driver.lab.profiles import load_profile
 from fog_driver.protocol import SAMPLE_FRAME_LEN, decode_bytes
 from fog_driver.sim.instrument import Simulator
-from fog_driver.sim.profiles import load_profile
 from fog_driver.transport import PtyPair
 
 ROOT = Path(__file__).resolve().parents[2]

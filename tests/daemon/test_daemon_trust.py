@@ -142,7 +142,7 @@ def test_a_table_state_an_earlier_version_learned_on_the_models_own_regressors_i
     publish(first, SHORT)
     first.shutdown()
     model = load_model(DEFAULT_MODEL).model
-    earlier = TableLaw(model.weights, model.intercept, 1.0, shape="regressors").state_dict()
+    earlier = TableLaw(model.weights, model.intercept, 1.0, shape="regressors").get_state()
     del earlier["shape"]
     doc = yaml.safe_load(state.read_text())
     state.write_text(yaml.safe_dump({**doc, "table": earlier}))

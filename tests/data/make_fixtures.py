@@ -134,10 +134,10 @@ SIM_DURATION_S = 300
 
 def make_sim(name: str, out_dir: Path, overwrite: bool = True):
     """Simulate one of ``SIM_FIXTURES`` into ``out_dir`` (capture, sidecar, truth)."""
+    from fog_driver.lab.profiles import load_profile
     from fog_driver.sim.capture import simulate_to_file
     from fog_driver.sim.faults import parse_fault_spec
     from fog_driver.sim.instrument import Simulator
-    from fog_driver.sim.profiles import load_profile
 
     args = SIM_FIXTURES[name]
     faults = parse_fault_spec(args["faults"])

@@ -13,6 +13,7 @@ import yaml
 from daemon_hil import Client, Daemon
 
 from fog_driver.compensation.fitting.data import FitConfig
+from fog_driver.lab.profiles import load_profile
 from fog_driver.modelfiles import load_model, save_model
 from fog_driver.offline.compensate import compensate_capture
 from fog_driver.offline.fit import fit_model_file
@@ -21,7 +22,6 @@ from fog_driver.samples.stream import Sample
 from fog_driver.sim.capture import simulate_to_file
 from fog_driver.sim.instrument import Simulator
 from fog_driver.sim.kvh_device import FakeKvhDevice
-from fog_driver.sim.profiles import load_profile
 from fog_driver.transport import PtyPair
 
 pytestmark = pytest.mark.serial  # pty timing: run apart from the suite's parallel part

@@ -20,6 +20,7 @@ from fog_driver.compensation.pipeline import Compensator
 from fog_driver.daemon.config import DEFAULT_MODEL, DeviceConfig, DriverConfig, parse_config
 from fog_driver.daemon.service import ConfigError, Service
 from fog_driver.errors import InputFileError
+from fog_driver.lab.profiles import load_profile
 from fog_driver.modelfiles import load_model, save_model
 from fog_driver.offline.compensate import compensate_capture
 from fog_driver.offline.fit import fit_model_file
@@ -35,7 +36,6 @@ from fog_driver.samples.stream import Sample, SampleBlock
 from fog_driver.sim.capture import simulate_to_file
 from fog_driver.sim.faults import parse_fault_spec
 from fog_driver.sim.instrument import Simulator
-from fog_driver.sim.profiles import load_profile
 
 OTHER_FORMATS = ("kvh-a", "kvh-b", "kvh-c", "ixblue-stdbin")
 SHORT_FIT = FitConfig(warmup_s=30.0)

@@ -11,10 +11,10 @@ import pytest
 
 from fog_driver import cli
 from fog_driver.cli.captures import EXIT_PROBLEMS
+from fog_driver.lab.profiles import load_profile
 from fog_driver.sim.capture import read_truth, simulate_to_file
 from fog_driver.sim.faults import parse_fault_spec
 from fog_driver.sim.instrument import Simulator
-from fog_driver.sim.profiles import load_profile
 
 DATA = Path(__file__).parents[1] / "data"
 

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from cli_run import assert_one_line_error, run_cli
 
+from fog_driver.lab.plan import ChamberLimits, design_program, identifiability_gaps
+from fog_driver.lab.profiles import BUILTIN_PROFILES, load_profile
+from fog_driver.lab.program import Hold, Ramp, Sinusoid
 from fog_driver.sim.capture import read_truth
-from fog_driver.sim.chamber import Hold, Ramp, Sinusoid
-from fog_driver.sim.plan import ChamberLimits, design_program, identifiability_gaps
-from fog_driver.sim.profiles import BUILTIN_PROFILES, load_profile
 
 ROOT = Path(__file__).resolve().parents[2]
 SHIPPED = ROOT / "configs" / "profiles" / "calibration.yaml"

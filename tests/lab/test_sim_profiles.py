@@ -11,10 +11,11 @@ import yaml
 from hypothesis import given
 from hypothesis import strategies as st
 
+from fog_driver.dwells import Dwell
 from fog_driver.errors import InputFileError
-from fog_driver.sim.chamber import ChamberProfile, Hold, Plateau, Ramp, Sinusoid, Step
-from fog_driver.sim.motion import ConstantRate, Creep, MotionPlan, Positioning, Stop, positioning_at_plateau
-from fog_driver.sim.profiles import MAX_SEGMENTS, SimProfile, dump_profile, load_profile, parse_profile
+from fog_driver.lab.motion import ConstantRate, Creep, MotionPlan, Positioning, positioning_at_plateau
+from fog_driver.lab.profiles import MAX_SEGMENTS, SimProfile, dump_profile, load_profile, parse_profile
+from fog_driver.lab.program import ChamberProfile, Hold, Plateau, Ramp, Sinusoid, Step
 
 PROFILES = Path(__file__).resolve().parents[2] / "configs" / "profiles"
 SHIPPED = tuple(sorted(path.stem for path in PROFILES.glob("*.yaml")))  #: every profile the project ships
@@ -130,7 +131,7 @@ def test_paper_validation_profile():
         assert seq.end_s < plateau.t_end_s  # the whole sequence on the plateau
         t = np.linspace(seq.start_s, seq.end_s, 1001)
         np.testing.assert_array_equal(chamber.air_temp_c(t), plateau.temp_c)
-    stops = motion.stops()
+    stops = motion.dwells()
     assert len(stops) == 11 * 11
     assert stops[-1].angle_deg == 11 * 360.0  # cumulative angle, one full turn per temperature
     assert prof.duration_s == chamber.duration_s
@@ -182,7 +183,7 @@ def test_positioning_profile_has_the_ten_by_36_degree_sequence_on_a_plateau():
     (seq,) = prof.motion.items
     plateau = prof.chamber.plateaus()[1]
     assert seq.start_s == plateau.t_start_s + 600.0 and seq.end_s <= plateau.t_end_s
-    stops = prof.motion.stops()
+    stops = prof.motion.dwells()
     assert [s.angle_deg for s in stops] == [36.0 * k for k in range(11)]
 
 
@@ -283,7 +284,7 @@ def test_trapezoidal_moves_cruise_at_the_top_rate():
     t0 = seq.move_start_s(1)
     np.testing.assert_allclose(plan.rate_dps(np.linspace(t0 + 1.0, t0 + 3.6, 50)), -10.0, rtol=1e-12)
     assert plan.rate_dps(np.array(t0 + 0.5))[()] == pytest.approx(-5.0)
-    assert [s.angle_deg for s in plan.stops()] == [0.0, -36.0, -72.0, -108.0]
+    assert [s.angle_deg for s in plan.dwells()] == [0.0, -36.0, -72.0, -108.0]
 
 
 @pytest.mark.parametrize(
@@ -322,9 +323,9 @@ def test_positioning_angle_is_the_exact_integral_of_the_rate(seq):
 )
 def test_each_move_turns_exactly_step_deg_and_dwells_are_exact(seq):
     plan = MotionPlan((seq,))
-    stops = plan.stops()
+    stops = plan.dwells()
     assert len(stops) == seq.moves + 1
-    assert stops[0] == Stop(seq.start_s, seq.move_start_s(0), 0.0)
+    assert stops[0] == Dwell(seq.start_s, seq.move_start_s(0), 0.0)
     assert [s.angle_deg for s in stops] == [k * seq.step_deg for k in range(seq.moves + 1)]
     assert sum(b.angle_deg - a.angle_deg for a, b in zip(stops, stops[1:])) == seq.moves * seq.step_deg
     assert stops[-1].t_end_s == seq.end_s == plan.duration_s
@@ -348,7 +349,7 @@ def test_each_move_turns_exactly_step_deg_and_dwells_are_exact(seq):
 def test_random_positioning_sequences(moves, step_deg, max_rate, accel, dwell):
     seq = Positioning(7.0, moves, step_deg, dwell_s=dwell, max_rate_dps=max_rate, accel_dps2=accel)
     plan = MotionPlan((seq,))
-    stops = plan.stops()
+    stops = plan.dwells()
     assert [s.angle_deg for s in stops] == [k * step_deg for k in range(moves + 1)]
     for s in stops:
         assert np.all(plan.angle_deg(np.array([s.t_start_s, (s.t_start_s + s.t_end_s) / 2])) == s.angle_deg)
@@ -369,12 +370,12 @@ def test_constant_rate_and_mixed_plans():
     assert isinstance(plan.items[0], ConstantRate)  # kept in time order
     np.testing.assert_allclose(plan.angle_deg(np.array([0.0, 10.0, 60.0, 110.0, 150.0])), [0, 0, 250, 500, 500])
     np.testing.assert_array_equal(plan.rate_dps(np.array([9.9, 10.0, 109.9, 110.0])), [0, 5, 5, 0])
-    assert [s.angle_deg for s in plan.stops()] == [500.0, 590.0, 680.0]
+    assert [s.angle_deg for s in plan.dwells()] == [500.0, 590.0, 680.0]
     forever = MotionPlan((ConstantRate(-2.5, 100.0),))
     assert forever.final_rate_dps == -2.5 and forever.duration_s == 100.0
     assert forever.angle_deg(np.array(1100.0))[()] == -2500.0
     static = MotionPlan.static()
-    assert static.kind == "static" and static.duration_s == 0.0 and static.stops() == []
+    assert static.kind == "static" and static.duration_s == 0.0 and static.dwells() == []
     t = np.linspace(-1.0, 1e4, 1000)
     assert np.all(static.rate_dps(t) == 0) and np.all(static.angle_deg(t) == 0)
 
@@ -440,7 +441,7 @@ def test_the_scale_factor_run_holds_long_and_moves_both_ways_at_every_hold():
     assert all(p.t_end_s - p.t_start_s >= 60 * 60 for p in plateaus[1:])
     (positioning,) = prof.motion.items
     assert sum(positioning.step_deg) == 0 and min(positioning.step_deg) < 0 < max(positioning.step_deg)
-    stops = prof.motion.stops()
+    stops = prof.motion.dwells()
     for p in plateaus:
         inside = [s for s in stops if p.t_start_s + 300 <= s.t_start_s and s.t_end_s <= p.t_end_s]
         moves = np.diff([s.angle_deg for s in inside])
@@ -589,7 +590,7 @@ def test_profile_names_resolve_from_configs_profiles(tmp_path, monkeypatch):
     """``--profile fast-ramps`` failed ("built-in profiles: paper, paper-validation"); a name now also
     means ``configs/profiles/<name>.yaml``, from the current directory or the source tree."""
     from fog_driver.errors import InputFileError
-    from fog_driver.sim.profiles import load_profile, profile_names
+    from fog_driver.lab.profiles import load_profile, profile_names
 
     repo = Path(__file__).resolve().parents[2]
     by_path = load_profile(str(repo / "configs" / "profiles" / "fast-ramps.yaml"))
@@ -618,7 +619,7 @@ def test_a_list_of_steps_is_taken_in_turn_with_each_moves_own_shape():
     assert shapes[1].move_time_s == pytest.approx(2 * 2.0 + (72.0 - 40.0) / 20.0)
     assert seq.duration_s == pytest.approx(12.0 + sum(m.move_time_s + 12.0 for m in shapes))
     plan = MotionPlan((seq,))
-    stops = plan.stops()
+    stops = plan.dwells()
     assert [s.angle_deg for s in stops] == [0.0, 36.0, -36.0, 9.0, 45.0, -27.0]
     t = np.array([(s.t_start_s + s.t_end_s) / 2 for s in stops])
     np.testing.assert_array_equal(plan.angle_deg(t), [s.angle_deg for s in stops])
@@ -626,7 +627,7 @@ def test_a_list_of_steps_is_taken_in_turn_with_each_moves_own_shape():
     doc = yaml.safe_load(dump_profile(SimProfile("p", ChamberProfile("p", 20.0, (Hold(seq.end_s + 10),)), plan, "t")))
     assert doc["motion"]["step_deg"] == [36, -72, 45]
     again = parse_profile(doc)
-    assert again.motion.stops() == stops
+    assert again.motion.dwells() == stops
     with pytest.raises(ValueError, match="step_deg"):
         Positioning(start_s=0.0, step_deg=[36.0, 0.0])
     with pytest.raises(ValueError, match="empty"):
@@ -648,7 +649,7 @@ def test_a_creep_is_motion_that_adds_to_the_other_items_and_moves_the_dwells():
     assert plan.rate_dps(np.array([149.999, 150.0, 259.999, 260.0])).tolist() == pytest.approx(
         [still.rate_dps(np.array([149.999]))[0], *(still.rate_dps(np.array([150.0, 259.999])) + 20.0 / 3600.0), 0.0]
     )
-    for a, b in zip(plan.stops(), still.stops()):
+    for a, b in zip(plan.dwells(), still.dwells()):
         assert (a.t_start_s, a.t_end_s) == (b.t_start_s, b.t_end_s)
         covered = min(a.t_end_s, 260.0) - max(a.t_start_s, 150.0)
         start_gain = 20.0 / 3600.0 * (min(max(a.t_start_s, 150.0), 260.0) - 150.0)
@@ -657,7 +658,7 @@ def test_a_creep_is_motion_that_adds_to_the_other_items_and_moves_the_dwells():
     assert plan.kind == "mixed" and MotionPlan((creep,)).kind == "creep"
     assert plan.duration_s == seq.end_s and MotionPlan((creep,)).duration_s == 260.0
     doc = yaml.safe_load(dump_profile(SimProfile("p", ChamberProfile("p", 20.0, (Hold(600.0),)), plan, "t")))
-    assert parse_profile(doc).motion.stops() == plan.stops()
+    assert parse_profile(doc).motion.dwells() == plan.dwells()
     with pytest.raises(InputFileError, match="missing start_s"):
         parse_profile(
             {"start_c": 20, "segments": [{"hold": {"duration_s": 60}}], "motion": {"kind": "creep", "rate_dph": 1}}

@@ -15,7 +15,7 @@ from fog_driver.compensation.dwell import DWELL_TRIM_S
 from fog_driver.compensation.table import MAX_OUTCOMES
 from fog_driver.daemon.config import DEFAULT_MODEL
 from fog_driver.daemon.limits import MAX_TABLE_ANGLE_DEG
-from fog_driver.report.positioning import read_reference_csv
+from fog_driver.dwells import read_table_log
 
 CAPTURE = Path(__file__).parents[1] / "data" / "sim-short.bin"  # 300 s of the simulated instrument at rest, 10 Hz
 HEADER = "t_start_s,t_end_s,angle_deg\n"
@@ -66,9 +66,9 @@ def test_compensate_with_a_table_log_at_the_live_bound_takes_it(tmp_path, capsys
 
 def test_the_table_angle_bound_is_the_same_live_in_the_client_and_offline():
     """One bound: the daemon's ``?TABLE`` check, the client's and the table log's are the same number."""
-    from fog_driver.compensation import dwell
+    from fog_driver import dwells
 
-    assert MAX_TABLE_ANGLE_DEG is dwell.MAX_TABLE_ANGLE_DEG and CLIENT_MAX_TABLE_ANGLE_DEG == MAX_TABLE_ANGLE_DEG
+    assert MAX_TABLE_ANGLE_DEG is dwells.MAX_TABLE_ANGLE_DEG and CLIENT_MAX_TABLE_ANGLE_DEG == MAX_TABLE_ANGLE_DEG
 
 
 def test_compensate_with_a_table_log_of_cr_only_line_ends_reads_its_rows(tmp_path, capsys):
@@ -78,7 +78,7 @@ def test_compensate_with_a_table_log_of_cr_only_line_ends_reads_its_rows(tmp_pat
     cr, lf = tmp_path / "cr.csv", tmp_path / "lf.csv"
     cr.write_bytes("\r".join(rows).encode() + b"\r")
     lf.write_bytes("\n".join(rows).encode() + b"\n")
-    assert read_reference_csv(cr) == read_reference_csv(lf)
+    assert read_table_log(cr) == read_table_log(lf)
     code, printed, err, out = compensate_with_log(tmp_path, cr, capsys)
     assert code == 0 and out.exists(), err
     assert "table log: 3 dwells" in printed

@@ -3,19 +3,12 @@ seeds, and the PASS/MISS lines of the choice, the uncertainty and the program co
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-import bench_population as bench  # noqa: E402
-
-from fog_driver.report.coverage import MinuteErrors  # noqa: E402
-from fog_driver.sim.profiles import load_profile  # noqa: E402
+from benchmarks import bench_population as bench
+from fog_driver.lab.profiles import load_profile
+from fog_driver.report.coverage import MinuteErrors
 
 
 def test_the_run_beyond_the_fit_range_soaks_10_degc_above_the_programs_hottest():

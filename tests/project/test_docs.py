@@ -7,8 +7,9 @@ What each kind of block gets:
 * ``python``: compiled; run where practical (from the repository's top, with a daemon for the client
   examples of docs/how-to/station-software.md);
 * ``sh`` and transcripts (an untagged block's ``$ ...`` lines): every ``fog-driver SUBCOMMAND --option``
-  they use exists in the command line's parser, and every ``python benchmarks/X.py`` or ``tests/...`` script
-  exists (the README's and the tutorial's walkthrough blocks also run, in tests/project/test_readme_walkthrough.py);
+  they use exists in the command line's parser, and every ``tests/...`` script and ``python -m benchmarks.X``
+  benchmark exists (the README's and the tutorial's walkthrough blocks also run, in
+  tests/project/test_readme_walkthrough.py);
 * ``yaml`` and ``json``: parsed; ``csv``: read, header first;
 * ``d2``: drawn by the site's build (docs/hooks/d2.py), which fails on a diagram D2 cannot compile.
 """
@@ -236,7 +237,11 @@ def test_shell_blocks_use_only_commands_and_options_that_exist(doc, line, lang, 
             if tokens[0] == "fog-driver":
                 check_fog_driver_line(tokens, f"{doc}:{line}")
             elif tokens[0] in ("python", "python3") and len(tokens) > 1 and tokens[1].endswith(".py"):
+                assert not tokens[1].startswith("benchmarks/"), f"{doc}:{line}: python -m benchmarks.X, not {tokens[1]}"
                 assert (ROOT / tokens[1]).is_file() or tokens[1].startswith("/"), f"{doc}:{line}: {tokens[1]}"
+            elif tokens[0] in ("python", "python3") and tokens[1:2] == ["-m"] and tokens[2].startswith("benchmarks"):
+                module = ROOT.joinpath(*tokens[2].split("."))
+                assert module.with_suffix(".py").is_file() or (module / "__main__.py").is_file(), f"{doc}:{line}"
 
 
 def test_the_option_check_catches_what_does_not_exist():
@@ -329,8 +334,7 @@ def test_a_newcomer_on_the_site_gets_the_readmes_install_and_first_session():
     import markdown
     from pymdownx.snippets import SnippetMissingError
 
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    import readme_walkthrough
+    from benchmarks import readme_walkthrough
 
     def rendered(text: str) -> str:
         page = markdown.markdown(

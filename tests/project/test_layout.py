@@ -19,8 +19,18 @@ PACKAGE = ROOT / "fog_driver"
 #: The issue that set the layout allows at most this many imports of the package's own modules inside functions.
 MAX_IMPORTS_IN_FUNCTIONS = 10
 REASONS = ("# optional extra", "# start-up time")
-#: An evaluation set's name ("eval5") or a run's ratio ("1.10x frozen"): history, which docs/decisions/ holds.
-RUN_HISTORY = re.compile(r"\beval[0-9]+\b|\b[0-9]+\.[0-9]+x\b")
+#: An evaluation set's name ("eval5"), a run's ratio ("1.10x frozen") or a timing figure ("10x faster", "twice the
+#: speed", "about 11 us", "3 % of a core"): results of runs, which docs/decisions/ holds; a docstring names the
+#: benchmark that measures them instead.
+RUN_HISTORY = re.compile(
+    r"\beval[0-9]+\b|\b[0-9]+\.[0-9]+x\b"
+    r"|\b[0-9]+(?:\.[0-9]+)?\s*(?:x|times)\s+(?:faster|slower|quicker|cheaper|as fast|as slow|the speed)\b"
+    r"|\b(?:twice|thrice|half|(?:two|three|four|five|ten|a hundred) times)"
+    r"\s+(?:the speed|as fast|as slow|faster|slower)\b"
+    r"|(?:\babout|\bsome|~|\bcosts?|\btakes?)\s*~?\s*[0-9]+(?:\.[0-9]+)?\s*(?:ns|us|\u00b5s|\u03bcs|ms)\b"
+    r"|\b[0-9]+(?:\.[0-9]+)?\s*%\s*(?:of\s+(?:a|one|the)\s+)?(?:core|cpu)\b",
+    re.IGNORECASE,
+)
 
 
 def import_cycles(graph: grimp.ImportGraph) -> list[list[str]]:
@@ -137,3 +147,29 @@ def test_the_history_finder_finds_a_ratio_and_a_set_name():
     source = '"""On eval5 it was 1.10x frozen."""\nX = 1  # 0.73x at the bound\nY = "1.10x in code is no history"\n'
     found = [match.group() for _, text in docstrings_and_comments(source) for match in RUN_HISTORY.finditer(text)]
     assert found == ["0.73x", "eval5", "1.10x"]
+
+
+def test_the_history_finder_finds_timing_figures_and_passes_the_rules():
+    timings = [
+        "about 10x faster than numpy",
+        "~10x faster to update",
+        "three times faster with six candidates",
+        "twice the speed of one pass",
+        "a step costs about 11 us",
+        "some 12 us on a small array",
+        "costs ~25 ms of start-up",
+        "was 3 % of a core",
+        "0.03 % of a core at 1 kHz",
+        "under 2 % CPU",
+    ]
+    rules = [
+        "a validity time in 100 us steps",
+        "a block of under 1 ms would be 0 us long",
+        "waits 200 ms between commands",
+        "a 5x5 step",
+        "three times as much is extrapolating",
+        "10 times as long",
+    ]
+    source = "".join(f'def f{i}():\n    """{text}."""\n' for i, text in enumerate(timings + rules))
+    found = [text for _, text in docstrings_and_comments(source) if RUN_HISTORY.search(text)]
+    assert found == [f"{text}." for text in timings]

@@ -7,19 +7,22 @@ from the page, fails too, so the page and the code cannot drift apart.
 
 from __future__ import annotations
 
+import ast
 import csv
 import re
 from pathlib import Path
 
 import pytest
 
+from fog_driver import dwells
 from fog_driver.cli import argtypes
+from fog_driver.client import protocol as client_protocol
 from fog_driver.client import session, wire
-from fog_driver.compensation import dwell, model, model_checks, reservoir, uncertainty
+from fog_driver.compensation import model, model_checks, reservoir, uncertainty
 from fog_driver.daemon import config, limits
 from fog_driver.files import yamlio
-from fog_driver.report import positioning
-from fog_driver.sim import motion, plan, profiles, serve
+from fog_driver.lab import motion, plan, profiles
+from fog_driver.sim import serve
 
 PAGE = Path(__file__).resolve().parents[2] / "docs" / "reference" / "limits.md"
 
@@ -38,7 +41,7 @@ def _g(value: float) -> str:
 #: value cell, the others anywhere in the row.
 EXPECTED: dict[str, list[str]] = {
     "a YAML file: config, model, adaptation state, profile, sidecar": [f"{_n(yamlio.MAX_YAML_BYTES)} bytes"],
-    "a reference stops CSV (`--reference`, `--table-log`)": [f"{_n(positioning.MAX_REFERENCE_BYTES)} bytes"],
+    "a reference stops CSV (`--reference`, `--table-log`)": [f"{_n(dwells.MAX_TABLE_LOG_BYTES)} bytes"],
     "a CSV field": [f"{_n(csv.field_size_limit())} characters"],
     "a token file (`--token-file`)": [f"{_n(wire.MAX_TOKEN_BYTES)} bytes"],
     "every number outside `provenance`": [f"at most {_g(model_checks.MAX_MODEL_NUMBER)}"],
@@ -54,7 +57,7 @@ EXPECTED: dict[str, list[str]] = {
     "clients from one address (an IPv4 address or an IPv6 /64)": [_n(limits.DEFAULT_MAX_CLIENTS_PER_PEER)],
     "a client's oldest unsent line": [f"{_n(limits.DEFAULT_MAX_BACKLOG_S)} s"],
     "`?WATCH` `rate_hz`": [_n(limits.MAX_WATCH_RATE_HZ)],
-    "`?TABLE` angle": [f"+-{_g(dwell.MAX_TABLE_ANGLE_DEG)} degrees"],
+    "`?TABLE` angle": [f"+-{_g(dwells.MAX_TABLE_ANGLE_DEG)} degrees"],
     "`?TABLE` dwell": [f"{_n(limits.MAX_TABLE_DWELL_S)} s"],
     "`?TABLE` from one client": [f"one each {_n(limits.TABLE_INTERVAL_S)} s"],
     "`?ADAPT` `reference_dph`": [f"+-{_g(limits.MAX_ADAPT_REFERENCE_DPH)} deg/h"],
@@ -145,3 +148,28 @@ def test_the_arguments_bounds_the_page_quotes_are_the_parsers() -> None:
 def test_the_watch_rate_bound_is_one_on_both_sides_of_the_wire():
     """The client library refuses before asking what the daemon would refuse: the same bound."""
     assert session.MAX_WATCH_RATE_HZ == limits.MAX_WATCH_RATE_HZ
+
+
+def test_the_bias_and_dwell_bounds_are_defined_once_in_the_client_library():
+    """``?BIAS`` seconds and the ``?TABLE`` dwell: bound to a value in ``client/protocol.py`` alone (by the AST),
+    so the daemon refuses exactly what the client library refuses before sending."""
+    package = Path(__file__).resolve().parents[2] / "fog_driver"
+    names = {"MAX_BIAS_S", "MAX_TABLE_DWELL_S"}
+    bound: dict[str, list[str]] = {name: [] for name in names}
+    for path in sorted(package.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            targets = (
+                node.targets
+                if isinstance(node, ast.Assign)
+                else [node.target]
+                if isinstance(node, ast.AnnAssign)
+                else []
+            )
+            for target in targets:
+                if isinstance(target, ast.Name) and target.id in names:
+                    bound[target.id].append(path.relative_to(package).as_posix())
+    assert bound == {name: ["client/protocol.py"] for name in names}
+    assert (limits.MAX_BIAS_S, limits.MAX_TABLE_DWELL_S) == (
+        client_protocol.MAX_BIAS_S,
+        client_protocol.MAX_TABLE_DWELL_S,
+    )

@@ -7,15 +7,13 @@ from __future__ import annotations
 
 import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT / "benchmarks"))
+from benchmarks import readme_walkthrough as walkthrough
 
-import readme_walkthrough as walkthrough  # noqa: E402
+ROOT = Path(__file__).resolve().parents[2]
 
 INSTALL_TIMEOUT_S = 900.0  # a new virtual environment and its dependencies from the package index
 LINE_TIMEOUT_S = 300.0

@@ -26,9 +26,9 @@ def test_allan_read_points_on_synthetic_white_noise():
 
 
 def test_evaluate_measures_the_simulators_arw_within_10_percent(tmp_path):
+    from fog_driver.lab.profiles import load_profile
     from fog_driver.sim.capture import simulate_to_file
     from fog_driver.sim.instrument import Simulator
-    from fog_driver.sim.profiles import load_profile
 
     capture = tmp_path / "run.bin"
     simulate_to_file(
@@ -135,12 +135,12 @@ def test_a_link_gap_never_shifts_the_seconds_against_the_drift_or_the_truth(tmp_
     1-min drift RMS read 0.128 deg/h against 0.027 without the gap, the truth residual 0.157 against 0.016).
     Now the seconds without frames are rows of their own (NaN, not static): the gap changes the figures only
     by the minutes it removes."""
+    from fog_driver.lab.profiles import load_profile
     from fog_driver.modelfiles import load_model
     from fog_driver.report.evaluate import evaluate, per_second
     from fog_driver.sim.capture import read_truth, simulate_to_file
     from fog_driver.sim.faults import parse_fault_spec
     from fog_driver.sim.instrument import Simulator
-    from fog_driver.sim.profiles import load_profile
 
     model = load_model(DEFAULT_MODEL)
     summaries = {}

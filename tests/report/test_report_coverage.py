@@ -187,9 +187,9 @@ def _sigma_of_block(index: int) -> float:
 
 @pytest.fixture(scope="module")
 def short_run(tmp_path_factory):
+    from fog_driver.lab.profiles import load_profile
     from fog_driver.sim.capture import simulate_to_file
     from fog_driver.sim.instrument import Simulator
-    from fog_driver.sim.profiles import load_profile
 
     capture = tmp_path_factory.mktemp("coverage") / "run.bin"
     sim = Simulator(load_profile(ROOT / "configs" / "profiles" / "short-test.yaml"), rate_hz=10, seed=7)

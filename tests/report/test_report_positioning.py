@@ -8,14 +8,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fog_driver.dwells import MAX_TABLE_LOG_BYTES, TABLE_LOG_FORMAT, Dwell, read_table_log
 from fog_driver.errors import InputFileError, UsageError
 from fog_driver.report.positioning import (
-    MAX_REFERENCE_BYTES,
     NO_SEQUENCES,
     RAW,
-    REFERENCE_CSV_FORMAT,
     Row,
-    Stop,
     dwell_reference_deg,
     format_table,
     group_sequences,
@@ -24,7 +22,6 @@ from fog_driver.report.positioning import (
     load_stops,
     positioning_errors,
     positioning_table,
-    read_reference_csv,
     stops_from_sidecar,
 )
 
@@ -38,7 +35,7 @@ RATE_HZ = 50
 def make_stops(n=11, start=100.0, dwell=60.0, move=4.0, step=36.0):
     stops, t = [], start
     for k in range(n):
-        stops.append(Stop(t, t + dwell, k * step))
+        stops.append(Dwell(t, t + dwell, k * step))
         t += dwell + move
     return stops
 
@@ -136,7 +133,7 @@ def test_grouping_by_gap():
     end = a[-1].t_end_s
     b = make_stops(n=4, start=end + 119.9)  # just under 120 s: same sequence
     c = make_stops(n=2, start=b[-1].t_end_s + 120.0)  # exactly 120 s: a new sequence
-    lone = [Stop(c[-1].t_end_s + 1000, c[-1].t_end_s + 1060, 0.0)]  # one stop: no move, dropped
+    lone = [Dwell(c[-1].t_end_s + 1000, c[-1].t_end_s + 1060, 0.0)]  # one stop: no move, dropped
     groups = group_sequences(a + b + c + lone)
     assert [len(g) for g in groups] == [7, 2]
     assert groups[0][0] == a[0] and groups[1] == c
@@ -162,14 +159,14 @@ def test_reference_csv_good(tmp_path):
         "1563.8,1623.8,36  # trailing comment\n"
         "1627.6,1687.6,72\n"
     )
-    assert read_reference_csv(write(tmp_path, text)) == [
-        Stop(1500.0, 1560.0, 0.0),
-        Stop(1563.8, 1623.8, 36.0),
-        Stop(1627.6, 1687.6, 72.0),
+    assert read_table_log(write(tmp_path, text)) == [
+        Dwell(1500.0, 1560.0, 0.0),
+        Dwell(1563.8, 1623.8, 36.0),
+        Dwell(1627.6, 1687.6, 72.0),
     ]
     # any column order, extra columns, a BOM, touching dwells
     text = "angle_deg,t_end_s,note,t_start_s\n0,10,a,0\n-36,20,b,10\n"
-    assert read_reference_csv(write(tmp_path, text, "b.csv", "utf-8-sig")) == [Stop(0, 10, 0), Stop(10, 20, -36)]
+    assert read_table_log(write(tmp_path, text, "b.csv", "utf-8-sig")) == [Dwell(0, 10, 0), Dwell(10, 20, -36)]
 
 
 def test_a_dwell_the_table_moved_in_is_held_against_its_mean_angle(tmp_path):
@@ -183,7 +180,7 @@ def test_a_dwell_the_table_moved_in_is_held_against_its_mean_angle(tmp_path):
     base = synthetic(plain)[1] / 3600.0
     table_deg = base + creep / 3600.0 * (np.clip(t, t_a, t_b) - t_a)
     lagged = [
-        Stop(
+        Dwell(
             s.t_start_s,
             s.t_end_s,
             float(np.interp(s.t_start_s, t, table_deg)),
@@ -192,7 +189,7 @@ def test_a_dwell_the_table_moved_in_is_held_against_its_mean_angle(tmp_path):
         for s in plain
     ]
     rows = "".join(f"{s.t_start_s!r},{s.t_end_s!r},{s.angle_deg!r},{s.angle_end_deg!r}\n" for s in lagged)
-    logged = read_reference_csv(write(tmp_path, "t_start_s,t_end_s,angle_deg,angle_end_deg\n" + rows))
+    logged = read_table_log(write(tmp_path, "t_start_s,t_end_s,angle_deg,angle_end_deg\n" + rows))
     assert logged == lagged
     angle = table_deg * 3600.0
     with_end = positioning_errors(t, angle, logged)
@@ -206,7 +203,7 @@ def test_a_dwell_the_table_moved_in_is_held_against_its_mean_angle(tmp_path):
 
 
 def test_reference_csv_format_text_is_documented():
-    assert "t_start_s,t_end_s,angle_deg" in REFERENCE_CSV_FORMAT and "#" in REFERENCE_CSV_FORMAT
+    assert "t_start_s,t_end_s,angle_deg" in TABLE_LOG_FORMAT and "#" in TABLE_LOG_FORMAT
 
 
 @pytest.mark.parametrize(
@@ -229,25 +226,25 @@ def test_reference_csv_format_text_is_documented():
 )
 def test_reference_csv_bad(tmp_path, text, match):
     with pytest.raises(InputFileError, match=match) as info:
-        read_reference_csv(write(tmp_path, text))
+        read_table_log(write(tmp_path, text))
     assert "\n" not in str(info.value)
 
 
 def test_reference_csv_bad_files(tmp_path):
     big = tmp_path / "big.csv"
-    big.write_text("t_start_s,t_end_s,angle_deg\n" + "#" * MAX_REFERENCE_BYTES + "\n")
+    big.write_text("t_start_s,t_end_s,angle_deg\n" + "#" * MAX_TABLE_LOG_BYTES + "\n")
     for path, match in (
         (big, "over the limit"),
         (tmp_path / "none.csv", "no such reference CSV"),
         (tmp_path, "is a directory"),
     ):
         with pytest.raises(InputFileError, match=match) as info:
-            read_reference_csv(path)
+            read_table_log(path)
         assert "\n" not in str(info.value)
     binary = tmp_path / "bin.csv"
     binary.write_bytes(b"\xff\xfe\x00garbage")
     with pytest.raises(InputFileError, match="not UTF-8"):
-        read_reference_csv(binary)
+        read_table_log(binary)
 
 
 # --- statistics and formatting -------------------------------------------------------------------
@@ -281,9 +278,9 @@ def test_format_table():
 
 @pytest.fixture(scope="module")
 def positioning_capture(tmp_path_factory):
+    from fog_driver.lab.profiles import load_profile
     from fog_driver.sim.capture import simulate_to_file
     from fog_driver.sim.instrument import Simulator
-    from fog_driver.sim.profiles import load_profile
 
     out = tmp_path_factory.mktemp("pos") / "positioning.bin"
     sim = Simulator(load_profile(ROOT / "configs" / "profiles" / "positioning.yaml"), rate_hz=RATE_HZ, seed=1)
@@ -329,7 +326,7 @@ def test_end_to_end_with_a_station_csv(positioning_capture, default_model, tmp_p
     )
     assert load_stops(positioning_capture, ref) == stops
     a = positioning_table(positioning_capture, {"wesn": default_model}, stops, plateau_temps_c=[25])
-    b = positioning_table(positioning_capture, {}, read_reference_csv(ref), bias_window_s=(60.0, 360.0))
+    b = positioning_table(positioning_capture, {}, read_table_log(ref), bias_window_s=(60.0, 360.0))
     assert a[0].label == "25 degC" and list(b[0].stats) == [RAW]
     assert abs(a[0].stats[RAW][0] - b[0].stats[RAW][0]) < 1.0  # another bias window, the same drift
     with pytest.raises(UsageError, match="2 plateau temperatures for 1 positioning sequences"):
@@ -337,9 +334,9 @@ def test_end_to_end_with_a_station_csv(positioning_capture, default_model, tmp_p
 
 
 def test_capture_without_stops_skips_the_table(tmp_path, default_model):
+    from fog_driver.lab.profiles import load_profile
     from fog_driver.sim.capture import simulate_to_file
     from fog_driver.sim.instrument import Simulator
-    from fog_driver.sim.profiles import load_profile
 
     out = tmp_path / "static.bin"
     simulate_to_file(

@@ -26,9 +26,9 @@ def stream_of(wire_format: str, tmp_path: Path) -> tuple[bytes, WireSettings]:
     """A clean stream of ``wire_format`` frames and the settings that decode it."""
     if wire_format == "fog-v1":
         return (DATA / "sim-short.bin").read_bytes(), WireSettings()
+    from fog_driver.lab.profiles import load_profile
     from fog_driver.sim.capture import simulate_to_file
     from fog_driver.sim.instrument import Simulator
-    from fog_driver.sim.profiles import load_profile
 
     sim = Simulator(load_profile("paper"), rate_hz=100, seed=0, wire_format=wire_format)
     result = simulate_to_file(sim, tmp_path / "source.bin", duration_s=5)

@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 import yaml
 
+from fog_driver.lab.profiles import load_profile
 from fog_driver.protocol import STATUS_STARTUP, STATUS_THERMOMETER_FAULT, decode_bytes, decode_file
 from fog_driver.samples.captures import read_provenance
 from fog_driver.samples.stream import SampleStream
 from fog_driver.sim.capture import TRUTH_COLUMNS, read_truth, simulate_to_file
 from fog_driver.sim.faults import parse_fault_spec
 from fog_driver.sim.instrument import InstrumentConfig, Simulator, load_instrument_config
-from fog_driver.sim.profiles import load_profile
 
 ROOT = Path(__file__).resolve().parents[2]
 SHORT = ROOT / "configs" / "profiles" / "short-test.yaml"

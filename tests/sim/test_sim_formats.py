@@ -12,10 +12,10 @@ import pytest
 
 from fog_driver.formats.kvh import KvhDecoder
 from fog_driver.formats.registry import sniff
+from fog_driver.lab.profiles import load_profile
 from fog_driver.samples.captures import read_provenance
 from fog_driver.sim.faults import parse_fault_spec
 from fog_driver.sim.instrument import Simulator
-from fog_driver.sim.profiles import load_profile
 
 
 def decode(data: bytes, fmt: str, rate_hz: int):

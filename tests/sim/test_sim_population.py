@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import yaml
 
+from fog_driver.lab.profiles import load_profile
 from fog_driver.protocol import decode_file
 from fog_driver.samples.captures import read_provenance
 from fog_driver.samples.stream import temperature_c_array
@@ -19,7 +20,6 @@ from fog_driver.sim import population
 from fog_driver.sim.capture import read_truth, simulate_to_file
 from fog_driver.sim.instrument import InstrumentConfig, Simulator
 from fog_driver.sim.population import RANGES, draw_instrument
-from fog_driver.sim.profiles import load_profile
 from fog_driver.sim.thermal import ThermalModel, ThermalParams
 
 SEEDS = range(300)
@@ -286,10 +286,11 @@ def test_the_simulator_writes_a_table_log_of_its_dwells_with_the_tables_true_ang
     """``run.table.csv``: the dwells of the motion in device time, the format ``evaluate --reference`` reads
     (the same stops as the sidecar's), and under a creep the table's true angle at each dwell's start and
     end, as the truth's own angle column has it."""
-    from fog_driver.report.positioning import read_reference_csv, stops_from_sidecar
-    from fog_driver.sim.chamber import ChamberProfile, Hold
-    from fog_driver.sim.motion import Creep, MotionPlan, Positioning
-    from fog_driver.sim.profiles import SimProfile
+    from fog_driver.dwells import read_table_log
+    from fog_driver.lab.motion import Creep, MotionPlan, Positioning
+    from fog_driver.lab.profiles import SimProfile
+    from fog_driver.lab.program import ChamberProfile, Hold
+    from fog_driver.report.positioning import stops_from_sidecar
 
     seq = Positioning(start_s=60.0, moves=6, step_deg=[36.0, -72.0, 10.0], dwell_s=20.0)
     creep = Creep(rate_dph=720.0, start_s=100.0, stop_s=170.0)  # 0.2 deg/s: far above the gyro's noise
@@ -300,7 +301,7 @@ def test_the_simulator_writes_a_table_log_of_its_dwells_with_the_tables_true_ang
     result = simulate_to_file(Simulator(profile, config, rate_hz=10, seed=3), tmp_path / "c.bin")
     assert result.table_log == tmp_path / "c.table.csv" and result.table_log.is_file()
     assert read_provenance(result.capture)["table_log"] == "c.table.csv"
-    logged = read_reference_csv(result.table_log)
+    logged = read_table_log(result.table_log)
     assert [(s.t_start_s, s.t_end_s, s.angle_deg) for s in logged] == [
         (s.t_start_s, s.t_end_s, s.angle_deg) for s in stops_from_sidecar(result.capture)
     ]

@@ -23,11 +23,11 @@ from readerthread import Reader
 from sim_serving import GUARD_S, REPO, SHORT_TEST, _next_line, _start_cli
 
 from fog_driver.errors import DeviceError, OutputFileError
+from fog_driver.lab.profiles import load_profile
 from fog_driver.protocol import MAX_FRAME_LEN, SEQ_MODULUS, decode_bytes
 from fog_driver.sim.capture import simulate_to_file
 from fog_driver.sim.faults import parse_fault_spec
 from fog_driver.sim.instrument import Simulator
-from fog_driver.sim.profiles import load_profile
 from fog_driver.sim.serve import PtyServer, serve, serve_device, serve_pty
 from fog_driver.transport import PtyPair
 

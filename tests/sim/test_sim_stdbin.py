@@ -13,10 +13,10 @@ import pytest
 from fog_driver.formats.common import ImuSample
 from fog_driver.formats.ixblue import StdbinDecoder, encode_stdbin
 from fog_driver.formats.registry import sniff
+from fog_driver.lab.profiles import load_profile
 from fog_driver.samples.captures import read_provenance
 from fog_driver.sim.faults import parse_fault_spec
 from fog_driver.sim.instrument import STDBIN_VERSION, Simulator
-from fog_driver.sim.profiles import load_profile
 from fog_driver.sim.serve import required_baud, serve
 
 TELEGRAM_LEN = 67  # v5 header 27 + attitude 12 + rotation rate 12 + temperatures 12 + checksum 4

@@ -3,7 +3,7 @@
 The fit reads bytes, not chambers: it cannot tell from a capture which program the chamber ran.  The
 program comes from the capture's sidecar (``program``: what ``simulate`` ran, or what a tool that drives a
 chamber ran) or from ``fog-driver fit --profile``; ``offline.fit`` finds it, judges it
-(``sim.plan.identifiability_gaps`` of the part of it the capture holds) and hands the fit a ``RunProgram``.
+(``lab.plan.identifiability_gaps`` of the part of it the capture holds) and hands the fit a ``RunProgram``.
 The fit's lag warning (``wesn.lag_warning``) then names what the program leaves unidentified that bears on
 the coil's lag, and says what else would narrow the lag's interval, never the program just run.
 
@@ -22,7 +22,7 @@ from typing import Protocol
 
 from ..models.wesn import COIL_LAG_GRID_S
 
-#: The terms a program's gap is about (``sim.plan.Gap.term``).
+#: The terms a program's gap is about (``lab.plan.Gap.term``).
 LAGS_UNTRIED = "coil lags untried"  #: lags above a tenth of the run: not tried
 LAGS_UNSETTLED = "coil lags unsettled"  #: lags longer than the longest soak after a ramp
 COIL_STAGES = "coil stages"
@@ -35,7 +35,7 @@ HYSTERESIS = "hysteresis"
 
 
 class ProgramGap(Protocol):
-    """A time scale or term a program leaves unidentified (``sim.plan.Gap``)."""
+    """A time scale or term a program leaves unidentified (``lab.plan.Gap``)."""
 
     @property
     def what(self) -> str: ...
@@ -58,7 +58,7 @@ class RunProgram:
     source: str  #: where it was learned, in words: "chamber.bin's sidecar", "--profile calibration"
     held_min: float  #: the minutes of it the capture holds (judged), at most ``program_min``
     program_min: float  #: the program's own length
-    gaps: tuple[ProgramGap, ...]  #: what the part held leaves unidentified (``sim.plan.identifiability_gaps``)
+    gaps: tuple[ProgramGap, ...]  #: what the part held leaves unidentified (``lab.plan.identifiability_gaps``)
     #: it is the program ``fog-driver plan`` writes for its own limits (extremes, fastest ramp, minutes):
     #: under those limits no program identifies more
     planned: bool = False

@@ -97,6 +97,10 @@ class Memoryless:
     def reset(self) -> None:
         pass
 
+    def coil_lag(self) -> tuple[float, int] | None:
+        """No coil: a model without memory has no lag to find."""
+        return None
+
 
 class PolynomialModel(Memoryless):
     """``D_hat = w . polynomial_features(z) + b``; stateless."""

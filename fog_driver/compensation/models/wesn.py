@@ -347,7 +347,7 @@ class WesnModel:
         return np.array([self.step(row) for row in z])
 
     def get_state(self) -> dict:
-        return self.reservoir.state.to_dict()
+        return self.reservoir.get_state().to_dict()
 
     def set_state(self, state: dict) -> None:
         self.reservoir.set_state(ReservoirState.from_dict(state))

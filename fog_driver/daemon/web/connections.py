@@ -8,7 +8,9 @@ import re
 import time
 from typing import Any
 
-__all__ = ["CountedProtocol", "TrackedConnection", "HEAD_START_BYTES", "bad_request"]
+from ..guards import peer_address
+
+__all__ = ["CountedProtocol", "TrackedConnection", "HEAD_START_BYTES", "aiohttp_web", "bad_request", "request_peer"]
 
 #: How much of each request head a connection keeps (``TrackedConnection.head_start``): enough to tell a request
 #: line too long from a header too long (``bad_request``).
@@ -98,6 +100,19 @@ def peer_of(transport: Any) -> str:
     """The IP address (text) a connection comes from."""
     peer = transport.get_extra_info("peername")
     return str(peer[0]) if isinstance(peer, tuple) and peer else str(peer)
+
+
+def request_peer(request: Any) -> str:
+    """The address a request's client is counted on (``guards.peer_address``; behind a trusted proxy, the
+    forwarded one: ``WebView._guard`` puts it in ``remote``)."""
+    return peer_address(request.remote or "?")
+
+
+def aiohttp_web() -> Any:
+    """``aiohttp.web``, imported when a request needs it (the optional ``web`` extra)."""
+    from aiohttp import web  # optional extra: web
+
+    return web
 
 
 def bad_request(exc: BaseException, head_start: bytes) -> tuple[int, str, dict[str, Any]]:

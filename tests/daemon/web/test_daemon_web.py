@@ -579,12 +579,12 @@ def test_a_browser_that_stops_reading_is_dropped_and_others_carry_on(web):
     live.message()
     seq = 0
     pad = "x" * 60000
-    while view.dropped_browsers == 0:
+    while view.fanout.dropped_browsers == 0:
         view.publish_angles([angle(seq, 3.0 + seq / 100, pad=pad)])
         seq += 1
         message = live.message()  # the live page keeps getting its updates meanwhile
         assert message["type"] == "update"
-    assert len(view.browsers) == 1
+    assert len(view.fanout.browsers) == 1
     live.close()
     stalled.close()
 

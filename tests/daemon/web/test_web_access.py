@@ -17,7 +17,7 @@ from web_helpers import TIMEOUT_S, WsClient, get, host_of, http, login, post, st
 from fog_driver.daemon.limits import AUTH_FAILURES_BEFORE_BACKOFF, WEB_MAX_WS_MESSAGES_PER_S
 from fog_driver.daemon.limits import WEB_MAX_CONNECTIONS_PER_PEER as MAX_PER_PEER
 from fog_driver.daemon.web.access import AddressSet, Sessions, forwarded_client, host_name, origin_problem
-from fog_driver.daemon.web.server import SECURITY_HEADERS
+from fog_driver.daemon.web.answers import SECURITY_HEADERS
 
 TOKEN = "s3cret-token"
 BEARER = f"Authorization: Bearer {TOKEN}"
@@ -26,7 +26,7 @@ BEARER = f"Authorization: Bearer {TOKEN}"
 @pytest.fixture
 def long_backoff(monkeypatch):
     """An address in its backoff stays there for the test (300 s, not 1 s: no race with the clock)."""
-    monkeypatch.setattr("fog_driver.daemon.web.server.DEFAULT_AUTH_BACKOFF_BASE_S", 300.0)
+    monkeypatch.setattr("fog_driver.daemon.web.auth.DEFAULT_AUTH_BACKOFF_BASE_S", 300.0)
 
 
 class KeptAlive:
@@ -230,7 +230,7 @@ def test_after_the_backoff_the_right_token_works(web):
     view = web(token=TOKEN)
     for _ in range(AUTH_FAILURES_BEFORE_BACKOFF + 1):
         get(view.address, "/metrics", "Authorization: Bearer guess")
-    view._throttle._peers["127.0.0.1"].blocked_until = 0.0  # the block is over (no waiting on the clock)
+    view.auth.throttle._peers["127.0.0.1"].blocked_until = 0.0  # the block is over (no waiting on the clock)
     assert get(view.address, "/metrics", BEARER)[0] == 200
 
 

@@ -214,7 +214,7 @@ def test_what_aiohttp_itself_logs_and_a_failing_route_are_one_json_line_each(cap
     async def broken(request):
         raise RuntimeError("a bug in a route")
 
-    monkeypatch.setattr(view, "_api_view", broken)
+    monkeypatch.setattr(view.routes, "api_view", broken)
     view.start()
     try:
         status, headers, body = get(view.address, "/api/view")

@@ -4,8 +4,8 @@ A ``SimProfile`` is the chamber's air temperature over time (``ChamberProfile.ai
 the turntable's rotation about the instrument's sensitive axis (``MotionPlan.rate_dps(t_s)``,
 ``MotionPlan.angle_deg(t_s)``).  Both are exact closed forms, vectorized over numpy arrays with one
 ``np.searchsorted`` over the segment boundaries (the simulator evaluates millions of frame times at
-once).  Times are seconds from the start of the run.  The chamber program is in ``fog_driver.sim.chamber``, the
-motion plan in ``fog_driver.sim.motion``; this module holds the whole profile, the built-in ones and the profile
+once).  Times are seconds from the start of the run.  The chamber program is in ``fog_driver.lab.program``, the
+motion plan in ``fog_driver.lab.motion``; this module holds the whole profile, the built-in ones and the profile
 files.
 
 Built-in profiles (``load_profile("paper")``, ``load_profile("paper-validation")``, ``load_profile("calibration")``):
@@ -21,7 +21,7 @@ Built-in profiles (``load_profile("paper")``, ``load_profile("paper-validation")
   temperature: 60 min to settle, then the 10 x 36 deg positioning sequence (697.9 s), and 202 s of
   margin before the next ramp.  1010 min in total.
 - ``calibration``: the program ``fog-driver plan`` writes with its default options (the paper's -40..55 degC
-  and 440 min, ramps up to 3 degC/min; ``fog_driver.sim.plan``), from which the drift model's time scales
+  and 440 min, ramps up to 3 degC/min; ``fog_driver.lab.plan``), from which the drift model's time scales
   can be identified in one run.  Static table.  ``configs/profiles/calibration.yaml`` is the same profile.
 
 YAML profile files (read with ``yaml.safe_load``; unknown keys are errors; indices in messages and
@@ -54,10 +54,10 @@ import yaml
 from ..errors import InputFileError
 from ..files.typed_mapping import unknown_key
 from ..files.yamlio import MAX_YAML_BYTES, read_yaml
-from .chamber import KIND_OF, SEGMENT_KINDS, ChamberProfile, Hold, Ramp, Segment, Sinusoid, Step
 from .checks import check_number
 from .motion import ConstantRate, Creep, MotionItem, MotionPlan, Positioning, positioning_at_plateau
 from .plan import design_program
+from .program import KIND_OF, SEGMENT_KINDS, ChamberProfile, Hold, Ramp, Segment, Sinusoid, Step
 
 __all__ = [
     "BUILTIN_PROFILES",
@@ -134,7 +134,7 @@ def paper_validation_profile() -> SimProfile:
 
 
 def calibration_profile() -> SimProfile:
-    """The default calibration program: ``fog-driver plan`` with its default options (``fog_driver.sim.plan``)."""
+    """The default calibration program: ``fog-driver plan`` with its default options (``fog_driver.lab.plan``)."""
     return SimProfile("calibration", design_program().chamber, MotionPlan.static(), "built-in")
 
 

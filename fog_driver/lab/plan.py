@@ -46,8 +46,8 @@ from dataclasses import dataclass, replace
 from ..compensation.fitting import program as terms
 from ..compensation.fitting.wesn import HISTORY_FRACTION, LAG_FRACTION, MIN_SPAN_C, NOTED_LAG_S
 from ..compensation.models.wesn import COIL_LAG_GRID_S, WESN_DEFAULTS
-from .chamber import ChamberProfile, Hold, Ramp, Segment, Sinusoid
 from .checks import check_number
+from .program import ChamberProfile, Hold, Ramp, Segment, Sinusoid
 
 __all__ = [
     "DEFAULT_LIMITS",

@@ -32,8 +32,9 @@ from typing import Any
 
 import numpy as np
 
-from .chamber import ChamberProfile
+from ..dwells import Dwell
 from .checks import check_integer, check_number
+from .program import ChamberProfile
 
 # --- turntable motion --------------------------------------------------------------------------
 
@@ -239,24 +240,13 @@ MotionItem = ConstantRate | Positioning | Creep
 
 
 @dataclass(frozen=True)
-class Stop:
-    """A dwell of a positioning sequence: the table is still from ``t_start_s`` to ``t_end_s`` at ``angle_deg``;
-    under a creep it turns during the dwell, from ``angle_deg`` to ``angle_end_deg`` (None: it does not)."""
-
-    t_start_s: float
-    t_end_s: float
-    angle_deg: float
-    angle_end_deg: float | None = None
-
-
-@dataclass(frozen=True)
 class MotionPlan:
     """The turntable's motion: non-overlapping items in time order, the table still between them, and
     creeps (``Creep``) on top of them, overlapping anything."""
 
     items: tuple[MotionItem, ...] = ()
     _pieces: dict[str, np.ndarray] = field(init=False, repr=False, compare=False)
-    _stops: tuple[Stop, ...] = field(init=False, repr=False, compare=False)
+    _dwells: tuple[Dwell, ...] = field(init=False, repr=False, compare=False)
     _creeps: tuple[Creep, ...] = field(init=False, repr=False, compare=False)
 
     @classmethod
@@ -282,7 +272,7 @@ class MotionPlan:
         # Pieces (t_k, theta_k, omega_k, alpha_k).  Piece 0 is the rest before the first item; piece
         # k >= 1 starts at starts[k - 1].  Dwell pieces carry the commanded angle exactly.
         pieces: list[tuple[float, float, float, float]] = [(0.0, 0.0, 0.0, 0.0)]
-        stops: list[Stop] = []
+        dwells: list[Dwell] = []
         angle = 0.0
 
         def piece(t: float, theta: float, omega: float, alpha: float) -> None:
@@ -300,7 +290,7 @@ class MotionPlan:
             a = item.accel_dps2
             base = angle
             piece(item.start_s, base, 0.0, 0.0)
-            stops.append(Stop(item.start_s, item.move_start_s(0), base))
+            dwells.append(Dwell(item.start_s, item.move_start_s(0), base))
             shapes = item.shapes
             for k, move in enumerate(shapes):
                 t0 = item.move_start_s(k)
@@ -316,7 +306,7 @@ class MotionPlan:
                 piece(t0 + t_a + t_c, end_deg - sign * half, sign * peak, -sign * a)
                 dwell_end = item.move_start_s(k + 1) if k + 1 < len(shapes) else item.end_s
                 piece(t0 + t_m, end_deg, 0.0, 0.0)
-                stops.append(Stop(t0 + t_m, dwell_end, end_deg))
+                dwells.append(Dwell(t0 + t_m, dwell_end, end_deg))
                 angle = end_deg
         t0, theta, omega, alpha = (np.array(column, dtype=np.float64) for column in zip(*pieces))
         object.__setattr__(
@@ -325,11 +315,11 @@ class MotionPlan:
         creeps = [it for it in self.items if isinstance(it, Creep)]
         object.__setattr__(self, "_creeps", tuple(creeps))
         if creeps:  # the dwells' true angles, creep included
-            stops = [
-                Stop(s.t_start_s, s.t_end_s, float(self.angle_deg(s.t_start_s)), float(self.angle_deg(s.t_end_s)))
-                for s in stops
+            dwells = [
+                Dwell(s.t_start_s, s.t_end_s, float(self.angle_deg(s.t_start_s)), float(self.angle_deg(s.t_end_s)))
+                for s in dwells
             ]
-        object.__setattr__(self, "_stops", tuple(stops))
+        object.__setattr__(self, "_dwells", tuple(dwells))
 
     @property
     def kind(self) -> str:
@@ -378,10 +368,10 @@ class MotionPlan:
             theta = theta + c.rate_dps * (np.clip(t, c.start_s, c.stop_s) - c.start_s)
         return theta
 
-    def stops(self) -> list[Stop]:
+    def dwells(self) -> list[Dwell]:
         """Every dwell of every positioning sequence, in time order, with its commanded cumulative angle; under
         a creep, the true angles at the dwell's start and end (``angle_end_deg``)."""
-        return list(self._stops)
+        return list(self._dwells)
 
     def describe(self) -> str:
         return "static" if not self.items else "; ".join(_describe_item(it) for it in self.items)

@@ -1,12 +1,13 @@
-"""The NDJSON codec of the daemon's protocol, sans-IO and standard library only: the daemon and its clients share it.
+"""The NDJSON codec of the daemon's client protocol, sans-IO and standard library only: a leaf that the daemon and
+the client library both import.  The protocol itself (its lines, classes and commands) is written in
+``docs/reference/ndjson.md``; this module is the part of it both sides read and write the same way.
 
-One line buffer (``LineBuffer``) splits a byte stream into lines, with one policy for a line that is too long:
-a line of more than ``max_line_bytes`` bytes before its newline is reported once (``OVERLONG``, as soon as it
-is known: at its newline, or as soon as the bytes buffered for it exceed the limit) and its bytes are dropped up
-to its newline; the next line is read as usual.  Each side chooses its limit: the daemon's hub answers an
-over-long command with ERROR at 4096 bytes (``limits.DEFAULT_MAX_LINE_BYTES``), a client skips and counts a
-protocol line over 64 KiB (``wire.MAX_LINE_BYTES``, plus one byte for a ``\\r``).  A buffer may also bound the
-bytes without any newline (``max_unterminated_bytes``: ``UNTERMINATED``, after which the hub closes).
+``LineBuffer`` splits a byte stream into lines, with one policy for a line that is too long: a line of more
+than ``max_line_bytes`` bytes before its newline is reported once (``OVERLONG``, as soon as it is known: at its
+newline, or as soon as the bytes buffered for it exceed the limit) and its bytes are dropped up to its newline;
+the next line is read as usual.  Each side chooses its limit (the hub's ``limits.DEFAULT_MAX_LINE_BYTES``, the
+client's ``wire.MAX_LINE_BYTES``).  A buffer may also bound the bytes without any newline
+(``max_unterminated_bytes``: ``UNTERMINATED``, after which the hub closes).
 
 ``encode`` writes one protocol line (compact JSON, absent values omitted, ``\\n``); ``parse_command`` reads one
 command line (``?NAME;`` or ``?NAME={json object};``) the way the hub does.
