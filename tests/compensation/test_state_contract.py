@@ -39,7 +39,7 @@ from fog_driver.offline.fit import fit_model_file
 from fog_driver.protocol import decode_file
 from fog_driver.samples.stream import SampleBlock, SampleStream
 
-DATA = Path(__file__).resolve().parent / "data"
+DATA = Path(__file__).resolve().parents[1] / "data"
 FRAME_S = 0.1  # the fixtures' frame period
 #: adapting settings short enough for the fixtures' 300 s: the bias captured, the law learning, windows closing
 ADAPT = AdaptConfig(warmup_s=5.0, bias_capture_s=10.0, static_window_s=5.0, compare_window_s=20.0)
