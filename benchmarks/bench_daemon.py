@@ -9,7 +9,7 @@ accelerated replay.
 
 Method
 ------
-Every daemon is started exactly as ``tests/test_daemon_hil.py`` starts it:
+Every daemon is started exactly as ``tests/daemon/test_daemon_hil.py`` starts it:
 ``python -m fog_driver run --port PORT --listen 127.0.0.1:0 --capture-dir TMP`` in a
 subprocess, ready when its "listening on HOST:PORT" line arrives on stdout (stderr,
 its JSON log, goes to a file), stopped with SIGTERM.  Its CPU is utime + stime from
@@ -253,7 +253,7 @@ class CpuMark:
 
 
 class Daemon:
-    """``fog-driver run`` in a subprocess, exactly as tests/test_daemon_hil.py starts it."""
+    """``fog-driver run`` in a subprocess, exactly as tests/daemon/test_daemon_hil.py starts it."""
 
     def __init__(self, tmp: Path, port: str, *extra: str) -> None:
         """``extra``: more arguments for ``fog-driver run`` (``--config FILE``)."""

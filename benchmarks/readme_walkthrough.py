@@ -19,7 +19,7 @@ A block runs when the line before its ```` ```sh ```` fence is a marker::
 Lines run with bash in the walkthrough's directory, in the project's virtual environment once
 ``.venv/bin/activate`` exists there (as after ``source .venv/bin/activate``; with ``venv_bin`` given,
 that directory instead, for a benchmark that reuses an installed environment and skips the install
-lines).  A line ending in a backslash continues on the next.  ``tests/test_readme_walkthrough.py`` runs
+lines).  A line ending in a backslash continues on the next.  ``tests/project/test_readme_walkthrough.py`` runs
 the walkthrough on a fresh clone; ``bench_walkthrough.py`` times it.
 """
 

@@ -30,7 +30,7 @@ yet, and the first outputs are 0.  The step factor L settles within a few
 memories 1 / (1 - lam) (a few hundred samples at 0.99); the static-noise
 figures below skip the first 1000 samples.
 
-What the output is on static data (measured; ``tests/test_compensation_aflp.py``).
+What the output is on static data (measured; ``tests/compensation/test_compensation_aflp.py``).
 The output is a prediction, so how much noise it removes depends on the level
 of the input, not only on its noise:
 

@@ -79,7 +79,7 @@ features hold the last good thermometer reading); this is defence, not a gap mod
 
 Machine-independent.  ``W_in u`` and ``W x`` are summed strictly left to right and ``Psi`` uses
 ``numerics.exp`` (no BLAS, no CPU-specific exp), so a stored reservoir gives the same states, to the
-bit, on every CPU (``numerics``; tested by ``tests/test_numerics.py`` and the golden outputs).
+bit, on every CPU (``numerics``; tested by ``tests/compensation/test_numerics.py`` and the golden outputs).
 
 ``step`` and ``run`` share one update (``_advance``), so ``run`` is bit-identical to repeated
 ``step`` and to running in any chunks (tested).  Without recurrence and feedback (the ring form)

@@ -1,0 +1,407 @@
+"""One state contract for every streaming stage: ``get_state()`` and ``set_state(state)``.
+
+Each stage runs N inputs once uninterrupted; a second copy runs the first k, its state is taken, and a FRESH
+stage restored from it runs the rest: the continuation (and the final state) is the uninterrupted run's, bit for
+bit (NaN-aware), for k = 0, the end and points between.  The stage that was saved carries on identically too
+(saving changes nothing, and the restored stage shares nothing with it).  Where the daemon persists a state
+(the adaptation document, ``adapt_state``) it goes through YAML and JSON on the way.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import yaml
+
+from fog_driver.compensation.adapt import OnlineReadout
+from fog_driver.compensation.adapt_config import AdaptConfig, StaticDetector
+from fog_driver.compensation.aflp import AflpFilter, AflpParams
+from fog_driver.compensation.blocks import BlockAverager
+from fog_driver.compensation.features import FeatureExtractor
+from fog_driver.compensation.fitting.data import FitConfig
+from fog_driver.compensation.model import MODEL_KINDS, ModelFile
+from fog_driver.compensation.pipeline import CompensatedColumns, Compensator
+from fog_driver.compensation.readout import AdaptiveLaw, AdaptiveLawParams
+from fog_driver.compensation.reservoir import WaveletReservoir
+from fog_driver.compensation.table import SHAPE_CANDIDATES, TableLaw
+from fog_driver.compensation.uncertainty import DriftUncertainty
+from fog_driver.daemon.config import DEFAULT_MODEL
+from fog_driver.dwells import Dwell
+from fog_driver.modelfiles import load_model
+from fog_driver.offline.fit import fit_model_file
+from fog_driver.protocol import decode_file
+from fog_driver.samples.stream import SampleBlock, SampleStream
+
+DATA = Path(__file__).resolve().parents[1] / "data"
+FRAME_S = 0.1  # the fixtures' frame period
+#: adapting settings short enough for the fixtures' 300 s: the bias captured, the law learning, windows closing
+ADAPT = AdaptConfig(warmup_s=5.0, bias_capture_s=10.0, static_window_s=5.0, compare_window_s=20.0)
+
+
+def same(a: Any, b: Any) -> bool:
+    """Exact equality of plain values, arrays and states, NaN equal to NaN."""
+    if hasattr(a, "to_dict") and not isinstance(a, dict):
+        return type(a) is type(b) and same(a.to_dict(), b.to_dict())
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        a, b = np.asarray(a), np.asarray(b)
+        if a.shape != b.shape or a.dtype != b.dtype:
+            return False
+        return bool(np.array_equal(a, b, equal_nan=a.dtype.kind == "f"))
+    if isinstance(a, dict):
+        return isinstance(b, dict) and a.keys() == b.keys() and all(same(a[k], b[k]) for k in a)
+    if isinstance(a, (list, tuple)):
+        return isinstance(b, (list, tuple)) and len(a) == len(b) and all(same(x, y) for x, y in zip(a, b))
+    if isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b):
+        return True
+    return type(a) is type(b) and a == b
+
+
+def cuts(n: int) -> list[int]:
+    """Where to save: the start, the end, and points between (one of them odd)."""
+    return sorted({0, 1, n // 3, (2 * n) // 3 + 1, n - 1, n})
+
+
+def check_contract(
+    make: Callable[[], Any],
+    feed: Callable[[Any, Any], Any],
+    inputs: Sequence[Any],
+    k: int,
+    save: Callable[[Any], Any] = lambda s: s.get_state(),
+    restore: Callable[[Any, Any], None] = lambda s, state: s.set_state(state),
+) -> None:
+    """The contract (module docstring) for one stage, saved after ``k`` of ``inputs``."""
+    whole = make()
+    expected = [feed(whole, x) for x in inputs]
+    first = make()
+    for x in inputs[:k]:
+        feed(first, x)
+    state = save(first)
+    fresh = make()
+    restore(fresh, state)
+    assert same([feed(fresh, x) for x in inputs[k:]], expected[k:]), "the restored stage's continuation"
+    assert same([feed(first, x) for x in inputs[k:]], expected[k:]), "the saved stage's continuation"
+    assert same(save(fresh), save(whole)) and same(save(first), save(whole)), "the final state"
+
+
+def through_text(state: Any) -> Any:
+    """A state through YAML and JSON text, as the daemon writes and a client reads it."""
+    return json.loads(json.dumps(yaml.safe_load(yaml.safe_dump(state))))
+
+
+# -- the inputs ----------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def faulty_samples() -> SampleBlock:
+    """Frames with thermometer faults and gaps."""
+    return SampleStream().run(decode_file(DATA / "sim-faults.bin"))
+
+
+@pytest.fixture(scope="module")
+def samples() -> SampleBlock:
+    return SampleStream().run(decode_file(DATA / "sim-short.bin"))
+
+
+@pytest.fixture(scope="module")
+def default_model() -> ModelFile:
+    """The shipped model: a WESN with candidate structures and a coil."""
+    return load_model(DEFAULT_MODEL)
+
+
+@pytest.fixture(scope="module")
+def block_temps(faulty_samples) -> list[tuple[float, ...]]:
+    blocks = BlockAverager(FRAME_S, 1.0).run(faulty_samples)
+    return [blocks.block(i).temps_c for i in range(len(blocks))]
+
+
+def model_inputs(model_file: ModelFile, temps: list[tuple[float, ...]]) -> tuple[list[np.ndarray], list[Any]]:
+    """The standardized and the raw inputs of the blocks whose inputs are valid, as the pipeline makes them."""
+    features = FeatureExtractor(model_file.features, substitution=model_file.substitution)
+    z, raw = [], []
+    for t in temps:
+        u, _ = features.step(t)
+        if not any(v != v for v in u):
+            raw.append(list(u))
+            z.append(model_file.normalizer.transform(u))
+    return z, raw
+
+
+# -- the stages ----------------------------------------------------------------------------------
+
+
+def test_aflp_filter_continues_exactly_from_any_sample():
+    r = np.random.default_rng(1).normal(0.0, 1.0, 300).cumsum()
+    r[[40, 41, 200]] = np.nan
+    for k in cuts(len(r)):
+        check_contract(lambda: AflpFilter(AflpParams(order=6)), lambda f, x: f.step(x), list(r), k)
+
+
+def test_feature_extractor_continues_exactly_from_any_block(default_model, block_temps):
+    def make() -> FeatureExtractor:
+        return FeatureExtractor(default_model.features, substitution=default_model.substitution)
+
+    for k in cuts(len(block_temps)):
+        check_contract(make, lambda e, t: e.step(t), block_temps, k)
+
+
+def test_block_averager_continues_exactly_from_any_frame(faulty_samples):
+    frames = [faulty_samples.sample(i) for i in range(len(faulty_samples))]
+    for k in cuts(len(frames)):
+        check_contract(lambda: BlockAverager(FRAME_S, 1.0), lambda a, s: a.step(s), frames, k)
+
+
+@pytest.mark.parametrize("kind", sorted(MODEL_KINDS))
+def test_each_model_continues_exactly_from_any_block(kind, block_temps):
+    model_file, _ = fit_model_file(
+        [DATA / "sim-short.bin"], kind=kind, config=FitConfig(warmup_s=30.0), accept_weak=True
+    )
+    z, _ = model_inputs(model_file, block_temps)
+
+    def make() -> Any:
+        model = MODEL_KINDS[kind].from_dict(model_file.model.to_dict())
+        model.start(z[0])
+        return model
+
+    def feed(model: Any, zi: np.ndarray) -> tuple[float, float]:
+        y = model.step(zi)
+        model.feed_back(y + 0.01)  # the estimate used differs from the model's own (adapting)
+        return y, float(model.regressors_step(zi) @ model.weights)
+
+    for k in cuts(len(z)):
+        check_contract(make, feed, z, k)
+
+
+def test_reservoir_continues_exactly_from_any_sample(default_model):
+    params = default_model.model.reservoir.params
+    u = np.random.default_rng(2).normal(0.0, 1.0, (200, params.n_inputs))
+    for k in cuts(len(u)):
+        check_contract(lambda: WaveletReservoir(params), lambda r, ui: r.step(ui).copy(), list(u), k)
+
+
+def test_adaptive_law_continues_exactly_from_any_sample():
+    rng = np.random.default_rng(3)
+    x = rng.normal(0.0, 1.0, (300, 5))
+    d = x @ rng.normal(0.0, 1.0, 5) + rng.normal(0.0, 0.1, 300)
+    d[17] = np.nan
+    rows = list(zip(x, d.tolist(), (rng.random(300) < 0.7).tolist()))
+    params = AdaptiveLawParams(filter_time_s=2.0, memory_time_s=50.0, sigma=0.01)
+
+    def feed(law: AdaptiveLaw, row: tuple[np.ndarray, float, bool]) -> float:
+        xi, di, learn = row
+        y = law.predict(xi)
+        law.learn(xi, di) if learn else law.track(xi, di)
+        return y
+
+    for k in cuts(len(rows)):
+        check_contract(lambda: AdaptiveLaw(params, 5), feed, rows, k)
+
+
+def test_online_readout_continues_exactly_from_any_block_and_through_text():
+    rng = np.random.default_rng(4)
+    w0, b0 = np.array([0.5, -0.2, 0.1]), 0.3
+    f = rng.normal(0.0, 1.0, (400, 3))
+    measured = f @ (w0 + 0.05) + b0 + 7.0 + rng.normal(0.0, 0.05, 400)  # a bias to capture, a drift to learn
+    rows = list(zip(f, measured.tolist(), (rng.random(400) < 0.9).tolist()))
+    rows[250] = (f[250], 1e6, True)  # the gate refuses a move
+
+    def feed(readout: OnlineReadout, row: tuple[np.ndarray, float, bool]) -> tuple[float, int]:
+        return readout.step(row[0], row[1], 0.0, row[2])
+
+    for k in cuts(len(rows)):
+        check_contract(lambda: OnlineReadout(w0, b0, ADAPT, 1.0), feed, rows, k)
+        check_contract(
+            lambda: OnlineReadout(w0, b0, ADAPT, 1.0),
+            feed,
+            rows,
+            k,
+            save=lambda r: through_text(r.get_state()),
+        )
+    readout = OnlineReadout(w0, b0, ADAPT, 1.0)
+    for row in rows:
+        feed(readout, row)
+    assert readout.updates and readout.rejected and readout.compare_windows  # every part of the state was used
+
+
+def test_static_detector_continues_exactly_from_any_block():
+    rates = np.random.default_rng(5).normal(0.0, 5.0, 200)
+    rates[[60, 61, 130]] = [200.0, np.nan, -90.0]
+    for k in cuts(len(rates)):
+        check_contract(lambda: StaticDetector(30.0, 7), lambda s, r: s.step(r), rates.tolist(), k)
+
+
+def test_uncertainty_continues_exactly_from_any_block(default_model, block_temps):
+    z, raw = model_inputs(default_model, block_temps)
+    rows = list(zip(z, raw, np.linspace(-0.5, 0.5, len(z)).tolist()))
+
+    def make() -> DriftUncertainty:
+        u = DriftUncertainty(default_model.sigma_spec, default_model.candidate_models(), default_model.domain)
+        u.start(z[0])
+        return u
+
+    for k in cuts(len(rows)):
+        check_contract(make, lambda u, row: u.step(*row), rows, k)
+
+
+# -- the table law -------------------------------------------------------------------------------
+
+#: dwells of the table standing still at 0 deg in the fixture's 300 s
+DWELLS = [Dwell(t, t + 25.0, 0.0) for t in (10.0, 45.0, 80.0, 115.0, 150.0, 185.0, 220.0, 255.0)]
+
+
+def table_calls(model_file: ModelFile, samples: SampleBlock) -> tuple[list[tuple[str, tuple]], dict]:
+    """Every call the pipeline makes to its table law over ``samples`` with ``DWELLS``, and the law's settings."""
+    comp = Compensator(model_file, FRAME_S, adapt=ADAPT, table=True)
+    law = comp.table
+    assert law is not None
+    calls: list[tuple[str, tuple]] = []
+    for name in ("estimate", "block", "observe"):
+        method = getattr(law, name)
+
+        def recording(*args: Any, _method: Callable = method, _name: str = name) -> Any:
+            calls.append((_name, tuple(np.array(a) if isinstance(a, np.ndarray) else a for a in args)))
+            return _method(*args)
+
+        setattr(law, name, recording)
+    comp.add_dwells(DWELLS)
+    comp.run(samples)
+    settings = dict(
+        frozen_weights=law.w0,
+        frozen_intercept=law.b0,
+        block_s=law.block_s,
+        config=law.config,
+        coil=law.coil,
+        shape=law.shape,
+        n_shape=law.n_features if law.shape == SHAPE_CANDIDATES else None,
+    )
+    return calls, settings
+
+
+def test_table_law_restored_continues_as_a_new_run_exactly(default_model, samples):
+    """The table law's state is what it learned, not the run's own chain: a restored law starts a new run
+    (``TableLaw.set_state``), so its continuation is the uninterrupted law's after ``begin_run`` there."""
+    calls, settings = table_calls(default_model, samples)
+    assert any(name == "observe" for name, _ in calls)
+    rw = settings.pop("frozen_weights"), settings.pop("frozen_intercept"), settings.pop("block_s")
+
+    def make() -> TableLaw:
+        return TableLaw(*rw, **settings)
+
+    def feed(law: TableLaw, call: tuple[str, tuple]) -> Any:
+        name, args = call
+        return getattr(law, name)(*args), law.get_state()
+
+    for k in cuts(len(calls)):
+        whole = make()
+        expected = [feed(whole, c) for c in calls[:k]]
+        whole.begin_run()
+        expected += [feed(whole, c) for c in calls[k:]]
+        first = make()
+        for c in calls[:k]:
+            feed(first, c)
+        fresh = make()
+        fresh.set_state(through_text(first.get_state()))
+        assert same([feed(fresh, c) for c in calls[k:]], expected[k:])
+
+
+# -- the pipeline --------------------------------------------------------------------------------
+
+
+def columns_of(out: CompensatedColumns) -> list[np.ndarray]:
+    return [getattr(out, f) for f in CompensatedColumns.__dataclass_fields__]
+
+
+def slice_block(s: SampleBlock, lo: int, hi: int) -> SampleBlock:
+    return SampleBlock(*(getattr(s, f)[lo:hi] for f in SampleBlock.__dataclass_fields__))
+
+
+def check_pipeline(make: Callable[[], Compensator], samples: SampleBlock, k: int, adapting: bool) -> None:
+    """The pipeline's contract: ``get_state``/``set_state`` (the pipeline's own), with the readout's through the
+    adaptation document when adapting (through text, as the daemon keeps it), and the angles (the caller's)."""
+    n = len(samples)
+    whole = make()
+    expected = whole.run(samples)
+    first = make()
+    first.run(slice_block(samples, 0, k))
+    if adapting:
+        doc = through_text(first.adaptation_document())
+    state = through_text(first.get_state())
+    fresh = make()
+    fresh.set_state(state)
+    if adapting:
+        fresh.restore_adaptation(doc, "the document", new_run=False)
+    fresh.angle_raw_arcsec, fresh.angle_comp_arcsec = first.angle_raw_arcsec, first.angle_comp_arcsec
+    rest = fresh.run(slice_block(samples, k, n))
+    for got, want in zip(columns_of(rest), columns_of(expected)):
+        assert same(got, want[k:])
+    assert same(fresh.get_state(), whole.get_state())
+    if adapting:
+        assert same(fresh.adaptation_document(), whole.adaptation_document())
+
+
+@pytest.mark.parametrize("kind", ["polynomial", "wesn"])
+def test_frozen_pipeline_continues_exactly_from_any_frame(kind, faulty_samples):
+    model_file, _ = fit_model_file(
+        [DATA / "sim-short.bin"], kind=kind, config=FitConfig(warmup_s=30.0), accept_weak=True
+    )
+    for k in cuts(len(faulty_samples)):
+        check_pipeline(lambda: Compensator(model_file, FRAME_S), faulty_samples, k, adapting=False)
+
+
+def test_rate_adapting_pipeline_continues_exactly_from_any_frame(default_model, samples):
+    def make() -> Compensator:
+        return Compensator(default_model, FRAME_S, adapt=ADAPT, reference_rate_dph=0.0)
+
+    assert make().run(samples).flags.any()
+    for k in cuts(len(samples)):
+        check_pipeline(make, samples, k, adapting=True)
+
+
+def test_table_adapting_pipeline_continues_exactly_from_any_frame_before_a_dwell(default_model, samples):
+    """Adapting from table angles, the law recording every block and no dwell given yet: the pipeline's state,
+    the readout's and what the law learned carry the run on exactly."""
+
+    def make() -> Compensator:
+        return Compensator(dataclasses.replace(default_model), FRAME_S, adapt=ADAPT, table=True)
+
+    for k in cuts(len(samples)):
+        check_pipeline(make, samples, k, adapting=True)
+
+
+def test_table_adapting_pipeline_engaged_continues_exactly_as_a_new_chain(default_model, samples):
+    """Adapting from table angles with dwells given: restored (the pipeline, the readout, what the law learned,
+    the dwells still waiting), the run carries on as the uninterrupted one whose law starts a new run there
+    (``TableLaw.set_state``: the law's own chain is not state)."""
+    n = len(samples)
+
+    def make() -> Compensator:
+        return Compensator(default_model, FRAME_S, adapt=ADAPT, table=True)
+
+    for k in cuts(n):
+        whole = make()
+        whole.add_dwells(DWELLS)
+        head = whole.run(slice_block(samples, 0, k))
+        assert whole.table is not None
+        whole.table.begin_run()
+        tail = whole.run(slice_block(samples, k, n))
+        first = make()
+        first.add_dwells(DWELLS)
+        first.run(slice_block(samples, 0, k))
+        doc, state = through_text(first.adaptation_document()), through_text(first.get_state())
+        fresh = make()
+        fresh.set_state(state)
+        fresh.restore_adaptation(doc, "the document", new_run=False)
+        fresh.add_dwells(first.pending_dwells)
+        fresh.angle_raw_arcsec, fresh.angle_comp_arcsec = first.angle_raw_arcsec, first.angle_comp_arcsec
+        rest = fresh.run(slice_block(samples, k, n))
+        for got, want in zip(columns_of(rest), columns_of(tail)):
+            assert same(got, want)
+        assert len(head) == k
+        assert same(fresh.adaptation_document(), whole.adaptation_document())
+    assert sum(o.status == "learned" for o in whole.table_outcomes) >= 3  # the law learned from the dwells

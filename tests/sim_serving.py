@@ -1,0 +1,58 @@
+"""``fog-driver simulate --serve pty`` as a separate process, its stdout read line by line in a thread."""
+
+from __future__ import annotations
+
+import queue
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+SHORT_TEST = REPO / "configs" / "profiles" / "short-test.yaml"
+
+
+GUARD_S = 30.0  # failure guard only: nothing is expected to take anywhere near this long
+
+
+def _start_cli(*extra: str, link: Path) -> tuple[subprocess.Popen, queue.Queue]:
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "fog_driver",
+            "simulate",
+            "--serve",
+            "pty",
+            "--link",
+            str(link),
+            "--profile",
+            str(SHORT_TEST),
+            *extra,
+        ],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    lines: queue.Queue = queue.Queue()
+
+    def pump() -> None:
+        for line in proc.stdout:
+            lines.put(line)
+        lines.put(None)
+
+    threading.Thread(target=pump, daemon=True).start()
+    return proc, lines
+
+
+def _next_line(proc: subprocess.Popen, lines: queue.Queue) -> str:
+    try:
+        line = lines.get(timeout=GUARD_S)
+    except queue.Empty:
+        proc.kill()
+        raise
+    assert line is not None, f"no more output; stderr: {proc.stderr.read()}"
+    return line
