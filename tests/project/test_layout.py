@@ -173,3 +173,94 @@ def test_the_history_finder_finds_timing_figures_and_passes_the_rules():
     source = "".join(f'def f{i}():\n    """{text}."""\n' for i, text in enumerate(timings + rules))
     found = [text for _, text in docstrings_and_comments(source) if RUN_HISTORY.search(text)]
     assert found == [f"{text}." for text in timings]
+
+
+MAX_MODULE_LINES = 800
+#: The one state contract of a streaming stage, and the names it replaced.
+STATE_NAMES = ("get_state", "set_state")
+RETIRED_STATE_NAMES = ("state_dict", "load_state", "pipeline_state", "set_pipeline_state")
+
+
+def test_no_module_of_the_package_is_over_800_lines():
+    long = {
+        str(path.relative_to(ROOT)): n
+        for path in PACKAGE.rglob("*.py")
+        if (n := len(path.read_text(encoding="utf-8").splitlines())) > MAX_MODULE_LINES
+    }
+    assert not long, f"modules over {MAX_MODULE_LINES} lines: split them by job: {long}"
+
+
+def sys_path_edits(source: str) -> list[int]:
+    """Line numbers of ``sys.path.insert``/``append``/``extend`` calls and assignments to ``sys.path``."""
+    lines = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute):
+            target = node.func.value
+            if (
+                node.func.attr in ("insert", "append", "extend")
+                and isinstance(target, ast.Attribute)
+                and target.attr == "path"
+                and isinstance(target.value, ast.Name)
+                and target.value.id == "sys"
+            ):
+                lines.append(node.lineno)
+        elif isinstance(node, (ast.Assign, ast.AugAssign)):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            for t in targets:
+                if (
+                    isinstance(t, ast.Attribute)
+                    and t.attr == "path"
+                    and isinstance(t.value, ast.Name)
+                    and t.value.id == "sys"
+                ):
+                    lines.append(node.lineno)
+    return sorted(lines)
+
+
+def test_no_benchmark_edits_the_import_path():
+    edits = [
+        f"{path.relative_to(ROOT)}:{line}"
+        for path in sorted((ROOT / "benchmarks").rglob("*.py"))
+        for line in sys_path_edits(path.read_text(encoding="utf-8"))
+    ]
+    assert not edits, f"benchmarks import the harness as a package (python -m benchmarks.X): {edits}"
+
+
+def test_the_path_edit_finder_finds_an_insert_an_append_and_an_assignment():
+    source = "import sys\nsys.path.insert(0, 'x')\nsys.path.append('y')\nsys.path = []\nlist.insert(0, 1)\n"
+    assert sys_path_edits(source) == [2, 3, 4]
+
+
+def state_contract_breaches(source: str) -> list[str]:
+    """What breaks the one state contract in a module: a retired name defined, or a class with one half only."""
+    breaches = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.name in RETIRED_STATE_NAMES:
+            breaches.append(f"{node.name} (line {node.lineno}): say get_state/set_state")
+        if isinstance(node, ast.ClassDef):
+            methods = {item.name for item in node.body if isinstance(item, (ast.FunctionDef, ast.AsyncFunctionDef))}
+            halves = methods & set(STATE_NAMES)
+            if len(halves) == 1:
+                breaches.append(f"class {node.name} (line {node.lineno}) has {halves.pop()} without its pair")
+    return breaches
+
+
+def test_every_stage_saves_and_restores_by_one_pair_of_names():
+    breaches = [
+        f"{path.relative_to(ROOT)}: {breach}"
+        for path in sorted(PACKAGE.rglob("*.py"))
+        for breach in state_contract_breaches(path.read_text(encoding="utf-8"))
+    ]
+    assert not breaches, breaches
+
+
+def test_the_state_contract_finder_finds_a_retired_name_and_a_lone_half():
+    source = (
+        "class A:\n    def get_state(self): ...\n    def set_state(self, s): ...\n"
+        "class B:\n    def get_state(self): ...\n"
+        "class C:\n    def state_dict(self): ...\n"
+    )
+    assert state_contract_breaches(source) == [
+        "class B (line 4) has get_state without its pair",
+        "state_dict (line 7): say get_state/set_state",
+    ]
