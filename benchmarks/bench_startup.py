@@ -44,10 +44,14 @@ CONFIGS = ROOT / "configs"
 LOAD_CONFIGS = f"""
 from fog_driver.daemon.config import load_config
 from fog_driver.sim.instrument import load_instrument_config
-from fog_driver.cli.app import cmd_fit  # noqa: F401  (the fit config's loader lives in the command)
+from fog_driver.compensation.fitting.data import FitConfig
+from fog_driver.files.typed_mapping import dataclass_from_mapping
+from fog_driver.files.yamlio import read_yaml
 for name in ("default.yaml", "kvh-dsp1750.yaml"):
     load_config({str(CONFIGS)!r} + "/" + name)
 load_instrument_config({str(CONFIGS)!r} + "/sim/instrument.yaml")
+fit_yaml = {str(CONFIGS)!r} + "/fit.yaml"
+dataclass_from_mapping(FitConfig, read_yaml(fit_yaml, "fit config") or {{}}, fit_yaml)
 """
 
 #: Two times inside one fresh interpreter, ms on stdout: the library's import alone (before anything of the
