@@ -255,8 +255,10 @@ def test_uncertainty_continues_exactly_from_any_block(default_model, block_temps
 DWELLS = [Dwell(t, t + 25.0, 0.0) for t in (10.0, 45.0, 80.0, 115.0, 150.0, 185.0, 220.0, 255.0)]
 
 
-def table_calls(model_file: ModelFile, samples: SampleBlock) -> tuple[list[tuple[str, tuple]], dict]:
-    """Every call the pipeline makes to its table law over ``samples`` with ``DWELLS``, and the law's settings."""
+def table_calls(
+    model_file: ModelFile, samples: SampleBlock, dwells: list[Dwell]
+) -> tuple[list[tuple[str, tuple]], dict]:
+    """Every call the pipeline makes to its table law over ``samples`` with ``dwells``, and the law's settings."""
     comp = Compensator(model_file, FRAME_S, adapt=ADAPT, table=True)
     law = comp.table
     assert law is not None
@@ -269,13 +271,14 @@ def table_calls(model_file: ModelFile, samples: SampleBlock) -> tuple[list[tuple
             return _method(*args)
 
         setattr(law, name, recording)
-    comp.add_dwells(DWELLS)
+    comp.add_dwells(dwells)
     comp.run(samples)
     settings = dict(
         frozen_weights=law.w0,
         frozen_intercept=law.b0,
         block_s=law.block_s,
         config=law.config,
+        fit_residual_dph=model_file.fit_residual_dph,
         coil=law.coil,
         shape=law.shape,
         n_shape=law.n_features if law.shape == SHAPE_CANDIDATES else None,
@@ -283,11 +286,22 @@ def table_calls(model_file: ModelFile, samples: SampleBlock) -> tuple[list[tuple
     return calls, settings
 
 
-def test_table_law_restored_continues_as_a_new_run_exactly(default_model, samples):
-    """The table law's state is what it learned, not the run's own chain: a restored law starts a new run
-    (``TableLaw.set_state``), so its continuation is the uninterrupted law's after ``begin_run`` there."""
-    calls, settings = table_calls(default_model, samples)
-    assert any(name == "observe" for name, _ in calls)
+#: ``DWELLS`` with the fifth one's angle wrong by 18 arcsec: the gate rejects its interval, and the interval after
+#: it is judged by the neighbours (``table.judge``) while the law holds the interval learned last and the one
+#: rejected
+DWELLS_WITH_A_LIE = [*DWELLS[:4], Dwell(DWELLS[4].t_start_s, DWELLS[4].t_end_s, 0.005), *DWELLS[5:]]
+#: device times to save at (s): inside the first dwell (before the chain's anchor), between the first two (the
+#: anchor held, the bias captured next), inside the third (the bias captured, learning), between the lie and the
+#: next dwell (the interval rejected held for the judge), and inside that next dwell
+CHAIN_TIMES_S = (20.0, 40.0, 95.0, 180.0, 190.0)
+
+
+def test_table_law_restored_continues_exactly_inside_and_between_dwells(default_model, samples):
+    """The table law's state is what it learned and its chain (the ring of blocks, the anchor, the bias capture,
+    the intervals the judge may undo, the outcomes): a fresh law restored from it, through text, continues as
+    the uninterrupted one, call for call, to the same final state, saved anywhere: inside a dwell, between two dwells
+    of a chain, while an interval rejected waits for the judge."""
+    calls, settings = table_calls(default_model, samples, DWELLS_WITH_A_LIE)
     rw = settings.pop("frozen_weights"), settings.pop("frozen_intercept"), settings.pop("block_s")
 
     def make() -> TableLaw:
@@ -295,19 +309,29 @@ def test_table_law_restored_continues_as_a_new_run_exactly(default_model, sample
 
     def feed(law: TableLaw, call: tuple[str, tuple]) -> Any:
         name, args = call
-        return getattr(law, name)(*args), law.get_state()
+        return getattr(law, name)(*args)
 
-    for k in cuts(len(calls)):
-        whole = make()
-        expected = [feed(whole, c) for c in calls[:k]]
-        whole.begin_run()
-        expected += [feed(whole, c) for c in calls[k:]]
-        first = make()
-        for c in calls[:k]:
-            feed(first, c)
-        fresh = make()
-        fresh.set_state(through_text(first.get_state()))
-        assert same([feed(fresh, c) for c in calls[k:]], expected[k:])
+    def at(t_s: float) -> int:
+        """The call before which to save: the block that starts at ``t_s``'s record."""
+        return next(i for i, (name, args) in enumerate(calls) if name == "block" and args[0] * rw[2] >= t_s)
+
+    chains = []
+    for k in sorted({*cuts(len(calls)), *(at(t) for t in CHAIN_TIMES_S), at(95.0) - 1}):
+        check_contract(make, feed, calls, k, save=lambda law: through_text(law.get_state()))
+        chains.append(make_and_feed(make, calls[:k]).get_state()["chain"])
+    held = [c for c in chains if c["anchor"] is not None]
+    assert any(c["bias"]["bias_dph"] is None for c in held)  # saved while the bias was captured
+    assert any(c["bias"]["bias_dph"] is not None and c["window"]["middles"] for c in held)  # and while learning
+    assert any(c["doubted"] is not None and c["learned"] is not None for c in chains)  # and before the judge
+    statuses = [str(o.status) for o in make_and_feed(make, calls).outcomes]
+    assert statuses.count("learned") >= 3 and "rejected" in statuses
+
+
+def make_and_feed(make: Callable[[], TableLaw], calls: list[tuple[str, tuple]]) -> TableLaw:
+    law = make()
+    for name, args in calls:
+        getattr(law, name)(*args)
+    return law
 
 
 # -- the pipeline --------------------------------------------------------------------------------
@@ -374,34 +398,33 @@ def test_table_adapting_pipeline_continues_exactly_from_any_frame_before_a_dwell
         check_pipeline(make, samples, k, adapting=True)
 
 
-def test_table_adapting_pipeline_engaged_continues_exactly_as_a_new_chain(default_model, samples):
-    """Adapting from table angles with dwells given: restored (the pipeline, the readout, what the law learned,
-    the dwells still waiting), the run carries on as the uninterrupted one whose law starts a new run there
-    (``TableLaw.set_state``: the law's own chain is not state)."""
+def test_table_adapting_pipeline_engaged_continues_exactly_inside_and_between_dwells(default_model, samples):
+    """Adapting from table angles with dwells given (one of them a lie): restored into a fresh pipeline (the
+    readout through the adaptation document, the pipeline's state with its table path: the law, its chain, the
+    dwells still waiting, the scale factor held), through text, the run carries on as the uninterrupted one bit
+    for bit, saved inside a dwell, between two dwells of a chain and anywhere else."""
     n = len(samples)
 
     def make() -> Compensator:
-        return Compensator(default_model, FRAME_S, adapt=ADAPT, table=True)
+        c = Compensator(default_model, FRAME_S, adapt=ADAPT, table=True)
+        c.add_dwells(DWELLS_WITH_A_LIE)
+        return c
 
-    for k in cuts(n):
-        whole = make()
-        whole.add_dwells(DWELLS)
-        head = whole.run(slice_block(samples, 0, k))
-        assert whole.table is not None
-        whole.table.begin_run()
-        tail = whole.run(slice_block(samples, k, n))
+    whole = make()
+    expected = whole.run(samples)
+    for k in sorted({*cuts(n), *(int(round(t / FRAME_S)) for t in CHAIN_TIMES_S), int(round(180.0 / FRAME_S)) + 3}):
         first = make()
-        first.add_dwells(DWELLS)
         first.run(slice_block(samples, 0, k))
         doc, state = through_text(first.adaptation_document()), through_text(first.get_state())
-        fresh = make()
-        fresh.set_state(state)
-        fresh.restore_adaptation(doc, "the document", new_run=False)
-        fresh.add_dwells(first.pending_dwells)
+        fresh = Compensator(default_model, FRAME_S, adapt=ADAPT, table=True)
+        fresh.restore_adaptation(doc, "the document", new_run=False)  # the readout (the law's learning as a new run)
+        fresh.set_state(state)  # then the pipeline and the table path whole
         fresh.angle_raw_arcsec, fresh.angle_comp_arcsec = first.angle_raw_arcsec, first.angle_comp_arcsec
         rest = fresh.run(slice_block(samples, k, n))
-        for got, want in zip(columns_of(rest), columns_of(tail)):
-            assert same(got, want)
-        assert len(head) == k
+        for got, want in zip(columns_of(rest), columns_of(expected)):
+            assert same(got, want[k:])
+        assert same(fresh.get_state(), whole.get_state())
         assert same(fresh.adaptation_document(), whole.adaptation_document())
-    assert sum(o.status == "learned" for o in whole.table_outcomes) >= 3  # the law learned from the dwells
+    statuses = [str(o.status) for o in whole.table_outcomes]
+    assert statuses.count("learned") >= 3 and "rejected" in statuses  # the law learned, and rejected the lie
+    assert expected.flags.any()
