@@ -45,8 +45,7 @@ from .dwell import MIN_LIVE_DWELL_S, out_of_order
 from .estimate_sources import BlockInputs, EstimateSource, FrozenSource, RateSource, TableSource
 from .features import DEGRADED_FLAGS, FeatureExtractor
 from .model import ModelFile
-from .table import TableLaw, TableOutcome
-from .table.state import CHAIN_KEY, learned
+from .table import CHAIN_KEY, TableLaw, TableOutcome, learned_part
 from .uncertainty import DriftUncertainty
 
 #: A link gap longer than this restarts the pipeline at rest (the model's memory of before is stale);
@@ -509,7 +508,7 @@ class Compensator:
         path = pipeline.pop("table", None)  # the table path's chain is not the document's
         doc = online.state_document(detector=self.static_detector, pipeline=pipeline)
         if self.table is not None and (self.table_engaged or self.table.accepted):
-            doc["table"] = learned(path["law"])  # what it learned from the table's angles (a new run restores it)
+            doc["table"] = learned_part(path["law"])  # what it learned from the table's angles (a new run restores it)
         return doc
 
     def check_adapting(self) -> OnlineReadout:

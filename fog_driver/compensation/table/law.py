@@ -88,7 +88,7 @@ from .state import (
     checked_state,
     dwell_from,
     dwell_state,
-    learned,
+    learned_part,
     state_of,
 )
 from .window import Anchor, BlockWindow
@@ -564,7 +564,7 @@ class TableLaw(ComparisonGuard):
     def get_state(self) -> dict[str, Any]:
         """Everything the law continues from, as plain YAML-safe values (exact; ``state``): what it learned (its
         sums, weights, covariance and the regressors' gram, the noise and innovation calibration, the comparison,
-        the counters, and the frozen weights it was learned against: ``state.learned``) and, under
+        the counters, and the frozen weights it was learned against: ``state.learned_part``) and, under
         ``state.CHAIN_KEY``, the run's own chain (``_chain_state``)."""
         state = state_of(
             self.w0, self.b0, self.shape, lambda k: getattr(self.mixture if k in MIXTURE_KEYS else self, k)
@@ -574,11 +574,11 @@ class TableLaw(ComparisonGuard):
 
     def set_state(self, state: dict[str, Any]) -> None:
         """Inverse of ``get_state``: the law continues exactly; a state without the chain (what the law learned
-        alone, ``state.learned``) as a new run (``begin_run``).  ``ValueError`` (nothing changed) for missing or
+        alone, ``state.learned_part``) as a new run (``begin_run``).  ``ValueError`` (nothing changed) for missing or
         unknown keys, bad values, or a state learned against other frozen weights (another model)."""
         chain = state.get(CHAIN_KEY) if isinstance(state, dict) else None
         values = checked_state(
-            learned(state) if isinstance(state, dict) else state, self.w0, self.b0, self.shape, self.n_features
+            learned_part(state) if isinstance(state, dict) else state, self.w0, self.b0, self.shape, self.n_features
         )
         restore_chain = None if chain is None else self._chain_from(chain)
         for k, v in values.items():

@@ -1,7 +1,7 @@
 """The table law's state: what it learned and the run's own chain, as plain YAML-safe values (exact), and the
 checks a state passes.
 
-What it learned (``learned``: the adaptation document's ``table``): the frozen weights and intercept it was learned
+What it learned (``learned_part``: the adaptation document's ``table``): the frozen weights and intercept it was learned
 against and its shape regressors' kind, the sums, the estimate and its covariance, the regressors' gram and the
 evidence (``ARRAYS``), the noise, the innovation calibration and the comparison (``FLOATS``), and the counters
 (``COUNTS``).  A state saved by an earlier version lacks the keys of ``ADDED``, which start from their value there.
@@ -35,7 +35,7 @@ __all__ = [
     "checked_state",
     "dwell_from",
     "dwell_state",
-    "learned",
+    "learned_part",
     "state_of",
 ]
 
@@ -77,7 +77,7 @@ ADDED: dict[str, Callable[[], Any]] = {
 }
 
 
-def learned(state: dict[str, Any]) -> dict[str, Any]:
+def learned_part(state: dict[str, Any]) -> dict[str, Any]:
     """What the law learned, of its state (``get_state``): every key but the chain's (``CHAIN_KEY``), as the
     adaptation document keeps it."""
     return {k: v for k, v in state.items() if k != CHAIN_KEY}
