@@ -522,7 +522,9 @@ class Compensator:
         fit this model).  With ``new_run`` (a new switch-on: a new turn-on bias, a new device clock) the bias
         is captured again and only the readout is kept (the adapted W); without, the same run continues: the
         pipeline's state (open block, smoothers, reservoir, held estimate) is restored too, and the output
-        continues exactly as if uninterrupted."""
+        continues exactly as if uninterrupted, but for the table law, whose chain the document does not keep
+        (``table.learned_part``): it starts a new one (a document with a chain in it is refused; the pipeline's
+        ``get_state`` holds the chain)."""
         online = self.check_adapting()
         for part, key in (("table", CHAIN_KEY), ("pipeline", "table")):  # a document's table law starts a new chain
             if isinstance(doc.get(part), dict) and key in doc[part]:

@@ -17,7 +17,7 @@ The rooms, in the order a dwell goes through them:
 - ``bias``: the run's bias, captured from its first intervals.
 - ``judge``: which of two dwells was wrong, by the intervals around them.
 - ``outcomes``: what became of each dwell (``OutcomeStatus``), the log and its tally.
-- ``state``: what the law learned, saved and restored.
+- ``state``: what the law learned and the run's own chain, saved and restored.
 
 The shape regressors g (``SHAPES``).  With a model file that has candidate structures (the coils that explain
 the fit data within the noise of the chosen one), g_j are their drifts' departures from the frozen one,
@@ -112,7 +112,7 @@ CAPTURE_PRIOR_RUNAWAYS = 0.1
 class TableLaw(ComparisonGuard):
     """The readout's law from table angles (module docstring): ``estimate(y_frozen, g)`` per block (a priori),
     ``block(...)`` to record it, ``observe(dwell)`` when a dwell's blocks have closed; ``break_chain`` at a
-    break; ``get_state``/``set_state`` for what it learned."""
+    break; ``get_state``/``set_state`` for what it learned and its chain."""
 
     compare_sigmas = TABLE_COMPARE_SIGMAS
 
