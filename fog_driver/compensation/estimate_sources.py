@@ -13,7 +13,9 @@ it; the flags it adds to the estimate).
   gap); the adapted weights' sigma while their estimate is in use.
 * ``TableSource``: the table law (``table.TableLaw``) beside a rate path: the law records every block and gives
   the estimate once engaged (a dwell was given) and no reference rate is set (the two signals exclude each
-  other); until then the rate path does, as before.  Dwells wait until their blocks have closed.
+  other); until then the rate path does, as before.  Dwells wait until their blocks have closed.  Its state
+  (``TableSource.get_state``) is the law's, whole (``TableLaw.get_state``), the dwells waiting, whether it is
+  engaged, the scale factor held and the last ring temperature.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from .adapt_config import AdaptConfig, StaticDetector
 from .blocks import ModelBlock
 from .model import DriftModel
 from .table import SHAPE_CANDIDATES, SHAPE_REGRESSORS, TableLaw
+from .table.state import dwell_from, dwell_state
 from .uncertainty import DriftUncertainty
 
 
@@ -275,6 +278,33 @@ class TableSource:
         # the scale factor corrects the angle while adapting from table angles (not after ?ADAPT off)
         self._scale_ppm = table.scale_ppm_at(table.coil_temperature_c) if self._leads else 0.0
         return FLAG_SCALE_FACTOR if self._scale_ppm else 0
+
+    def get_state(self) -> dict[str, Any]:
+        """Everything the table path continues from, as plain YAML-safe values (exact): the law's state (its
+        chain too), whether it is engaged, the dwells waiting, the scale factor held and the last finite ring
+        temperature (what a block leaves for the next; the rest is the block's own)."""
+        return {
+            "law": self.table.get_state(),
+            "engaged": self.engaged,
+            "dwells": [dwell_state(d) for d in self.dwells],
+            "scale_ppm": float(self._scale_ppm),
+            "t_ring_c": float(self._t_ring_c),
+        }
+
+    def set_state(self, state: dict[str, Any]) -> None:
+        """Inverse of ``get_state``; ``ValueError`` (nothing changed) for missing or unknown keys or bad values."""
+        keys = {"law", "engaged", "dwells", "scale_ppm", "t_ring_c"}
+        if not isinstance(state, dict) or set(state) != keys:
+            raise ValueError(f"table path state needs exactly the keys {sorted(keys)}")
+        try:
+            dwells = [dwell_from(d) for d in state["dwells"]]
+            scale_ppm, t_ring_c = float(state["scale_ppm"]), float(state["t_ring_c"])
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"table path state: not dwells and numbers: {exc}") from None
+        if not isinstance(state["engaged"], bool):
+            raise ValueError("table path state: engaged must be true or false")
+        self.table.set_state(state["law"])
+        self.engaged, self.dwells, self._scale_ppm, self._t_ring_c = state["engaged"], dwells, scale_ppm, t_ring_c
 
     def carry_on(self, old: TableSource, same_model: bool) -> None:
         """Continue ``old``'s adapting from table angles (a reloaded model): engaged as it was; with the same

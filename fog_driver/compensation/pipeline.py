@@ -45,7 +45,7 @@ from .dwell import MIN_LIVE_DWELL_S, out_of_order
 from .estimate_sources import BlockInputs, EstimateSource, FrozenSource, RateSource, TableSource
 from .features import DEGRADED_FLAGS, FeatureExtractor
 from .model import ModelFile
-from .table import TableLaw, TableOutcome
+from .table import CHAIN_KEY, TableLaw, TableOutcome, learned_part
 from .uncertainty import DriftUncertainty
 
 #: A link gap longer than this restarts the pipeline at rest (the model's memory of before is stale);
@@ -364,8 +364,10 @@ class Compensator:
 
     def get_state(self) -> dict:
         """Everything but the readout the estimate depends on: the open block, the feature smoothers and
-        held values, the model's memory (reservoir), the held estimate.  Plain YAML-safe values, exact."""
-        return {
+        held values, the model's memory (reservoir), the held estimate, and when adapting from table angles the
+        table path's state under ``table`` (``TableSource.get_state``: the law, its chain, the dwells waiting).
+        Plain YAML-safe values, exact."""
+        state = {
             "averager": self.averager.get_state(),
             "features": self.features.get_state(),
             "model": self.model.get_state(),
@@ -380,9 +382,14 @@ class Compensator:
             "sigma_dph": self.sigma_dph,
             "uncertainty": self.uncertainty.get_state(),
         }
+        path = self.source.table_path
+        if path is not None:
+            state["table"] = path.get_state()
+        return state
 
     def set_state(self, state: dict) -> None:
-        """Inverse of ``get_state`` (``ValueError`` when it does not fit this model and frame rate)."""
+        """Inverse of ``get_state`` (``ValueError``, nothing changed, when it does not fit this model and frame
+        rate); a state without ``table`` leaves the table path as it is (the adaptation document's pipeline)."""
         keys = {
             "averager",
             "features",
@@ -397,6 +404,9 @@ class Compensator:
             "settle_until",
         }
         optional = {"sigma_dph", "uncertainty"}  # absent in states saved before drift_sigma_dph existed
+        path = self.source.table_path
+        if path is not None:
+            optional.add("table")
         if not isinstance(state, dict) or not keys <= set(state) <= keys | optional:
             raise ValueError(f"pipeline state needs exactly the keys {sorted(keys)} (and {sorted(optional)})")
         try:  # the scalars first, and every part on fresh objects: nothing changes when a part is bad
@@ -435,12 +445,20 @@ class Compensator:
         }:
             self.model.set_state(before)
             raise ValueError("pipeline state: the model state is for another model")
+        uncertainty_before = self.uncertainty.get_state()
         if "uncertainty" in state:
             try:
                 self.uncertainty.set_state(state["uncertainty"])
             except (KeyError, TypeError, ValueError) as exc:
                 self.model.set_state(before)
                 raise ValueError(f"pipeline state: bad uncertainty state: {exc}") from None
+        if path is not None and "table" in state:
+            try:
+                path.set_state(state["table"])
+            except ValueError as exc:
+                self.model.set_state(before)
+                self.uncertainty.set_state(uncertainty_before)
+                raise ValueError(f"pipeline state: bad table path state: {exc}") from None
         self.averager = averager
         self.features = features
         (
@@ -468,6 +486,7 @@ class Compensator:
         if self.features.params != old.features.params or not same_grid:
             return
         state = old.get_state()
+        state.pop("table", None)  # the table path carries on below (``TableSource.carry_on``)
         state["features"] = self.features.adopt_state(state["features"], old.features.substitution)
         if not same_model:
             state["model"], state["started"] = self.model.get_state(), False
@@ -485,9 +504,11 @@ class Compensator:
         of the same run continues exactly (``modelfiles.save_adaptation`` writes it), as a snapshot of plain
         values (to take under a lock and write outside it); only when adapting."""
         online = self.check_adapting()
-        doc = online.state_document(detector=self.static_detector, pipeline=self.get_state())
+        pipeline = self.get_state()
+        path = pipeline.pop("table", None)  # the table path's chain is not the document's
+        doc = online.state_document(detector=self.static_detector, pipeline=pipeline)
         if self.table is not None and (self.table_engaged or self.table.accepted):
-            doc["table"] = self.table.get_state()  # what it learned from the table's angles (a new run restores it)
+            doc["table"] = learned_part(path["law"])  # what it learned from the table's angles (a new run restores it)
         return doc
 
     def check_adapting(self) -> OnlineReadout:
@@ -501,8 +522,13 @@ class Compensator:
         fit this model).  With ``new_run`` (a new switch-on: a new turn-on bias, a new device clock) the bias
         is captured again and only the readout is kept (the adapted W); without, the same run continues: the
         pipeline's state (open block, smoothers, reservoir, held estimate) is restored too, and the output
-        continues exactly as if uninterrupted."""
+        continues exactly as if uninterrupted, but for the table law, whose chain the document does not keep
+        (``table.learned_part``): it starts a new one (a document with a chain in it is refused; the pipeline's
+        ``get_state`` holds the chain)."""
         online = self.check_adapting()
+        for part, key in (("table", CHAIN_KEY), ("pipeline", "table")):  # a document's table law starts a new chain
+            if isinstance(doc.get(part), dict) and key in doc[part]:
+                raise InputFileError(f"{where}: corrupt adaptation state: {part} has no {key!r} in a document")
         if self.table is not None and "table" in doc:  # checked first: a refusal changes nothing
             try:
                 self.table.set_state(doc["table"])

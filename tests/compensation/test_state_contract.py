@@ -30,10 +30,13 @@ from fog_driver.compensation.model import MODEL_KINDS, ModelFile
 from fog_driver.compensation.pipeline import CompensatedColumns, Compensator
 from fog_driver.compensation.readout import AdaptiveLaw, AdaptiveLawParams
 from fog_driver.compensation.reservoir import WaveletReservoir
-from fog_driver.compensation.table import SHAPE_CANDIDATES, TableLaw
+from fog_driver.compensation.table import CHAIN_KEY, SHAPE_CANDIDATES, TableLaw, learned_part
+from fog_driver.compensation.table import law as table_law_module
 from fog_driver.compensation.uncertainty import DriftUncertainty
 from fog_driver.daemon.config import DEFAULT_MODEL
 from fog_driver.dwells import Dwell
+from fog_driver.errors import InputFileError
+from fog_driver.flags import FLAG_SCALE_FACTOR
 from fog_driver.modelfiles import load_model
 from fog_driver.offline.fit import fit_model_file
 from fog_driver.protocol import decode_file
@@ -255,8 +258,10 @@ def test_uncertainty_continues_exactly_from_any_block(default_model, block_temps
 DWELLS = [Dwell(t, t + 25.0, 0.0) for t in (10.0, 45.0, 80.0, 115.0, 150.0, 185.0, 220.0, 255.0)]
 
 
-def table_calls(model_file: ModelFile, samples: SampleBlock) -> tuple[list[tuple[str, tuple]], dict]:
-    """Every call the pipeline makes to its table law over ``samples`` with ``DWELLS``, and the law's settings."""
+def table_calls(
+    model_file: ModelFile, samples: SampleBlock, dwells: list[Dwell]
+) -> tuple[list[tuple[str, tuple]], dict]:
+    """Every call the pipeline makes to its table law over ``samples`` with ``dwells``, and the law's settings."""
     comp = Compensator(model_file, FRAME_S, adapt=ADAPT, table=True)
     law = comp.table
     assert law is not None
@@ -269,13 +274,14 @@ def table_calls(model_file: ModelFile, samples: SampleBlock) -> tuple[list[tuple
             return _method(*args)
 
         setattr(law, name, recording)
-    comp.add_dwells(DWELLS)
+    comp.add_dwells(dwells)
     comp.run(samples)
     settings = dict(
         frozen_weights=law.w0,
         frozen_intercept=law.b0,
         block_s=law.block_s,
         config=law.config,
+        fit_residual_dph=model_file.fit_residual_dph,
         coil=law.coil,
         shape=law.shape,
         n_shape=law.n_features if law.shape == SHAPE_CANDIDATES else None,
@@ -283,11 +289,28 @@ def table_calls(model_file: ModelFile, samples: SampleBlock) -> tuple[list[tuple
     return calls, settings
 
 
-def test_table_law_restored_continues_as_a_new_run_exactly(default_model, samples):
-    """The table law's state is what it learned, not the run's own chain: a restored law starts a new run
-    (``TableLaw.set_state``), so its continuation is the uninterrupted law's after ``begin_run`` there."""
-    calls, settings = table_calls(default_model, samples)
-    assert any(name == "observe" for name, _ in calls)
+#: ``DWELLS`` with wrong angles: the fifth and sixth dwell lie by 18 arcsec (two intervals rejected in a row: the
+#: chain starts again from the sixth); or the fifth by 18 arcsec, the sixth by 9 (learned, and blamed by its
+#: neighbours two dwells later: undone, ``table.judge``)
+LYING_DWELLS = {
+    "two lies in a row": [*DWELLS[:4], Dwell(150.0, 175.0, 0.005), Dwell(185.0, 210.0, 0.005), *DWELLS[6:]],
+    "a lie blamed later": [*DWELLS[:4], Dwell(150.0, 175.0, 0.005), Dwell(185.0, 210.0, 0.0025), *DWELLS[6:]],
+}
+DWELLS_WITH_A_LIE = LYING_DWELLS["two lies in a row"]
+#: device times to save at (s): inside the first dwell (before the chain's anchor), between the first two (the
+#: anchor held, the bias captured next), inside the third (the bias captured, learning), between the first lie
+#: and the next dwell (the interval rejected held for the judge, a guard flag pending), inside that dwell, and
+#: just after it and the next (the intervals the judge may still undo held)
+CHAIN_TIMES_S = (20.0, 40.0, 95.0, 175.2, 180.0, 190.0, 210.3, 215.0)
+
+
+@pytest.mark.parametrize("lies", sorted(LYING_DWELLS))
+def test_table_law_restored_continues_exactly_inside_and_between_dwells(default_model, samples, lies):
+    """The table law's state is what it learned and its chain (the ring of blocks, the anchor, the bias capture,
+    the intervals the judge may undo, the outcomes): a fresh law restored from it, through text, continues as
+    the uninterrupted one, call for call, to the same final state, saved anywhere: inside a dwell, between two
+    dwells of a chain, while an interval rejected waits for the judge."""
+    calls, settings = table_calls(default_model, samples, LYING_DWELLS[lies])
     rw = settings.pop("frozen_weights"), settings.pop("frozen_intercept"), settings.pop("block_s")
 
     def make() -> TableLaw:
@@ -295,19 +318,32 @@ def test_table_law_restored_continues_as_a_new_run_exactly(default_model, sample
 
     def feed(law: TableLaw, call: tuple[str, tuple]) -> Any:
         name, args = call
-        return getattr(law, name)(*args), law.get_state()
+        return getattr(law, name)(*args)
 
-    for k in cuts(len(calls)):
-        whole = make()
-        expected = [feed(whole, c) for c in calls[:k]]
-        whole.begin_run()
-        expected += [feed(whole, c) for c in calls[k:]]
-        first = make()
-        for c in calls[:k]:
-            feed(first, c)
-        fresh = make()
-        fresh.set_state(through_text(first.get_state()))
-        assert same([feed(fresh, c) for c in calls[k:]], expected[k:])
+    def at(t_s: float) -> int:
+        """The call before which to save: the first call of the first block that ends after ``t_s``."""
+        starts = [i for i, (name, _) in enumerate(calls) if name == "estimate"]
+        blocks = [args[0] for name, args in calls if name == "block"]
+        return next(i for i, index in zip(starts, blocks) if (index + 1) * rw[2] > t_s)
+
+    chains = []
+    for k in sorted({*cuts(len(calls)), *(at(t) for t in CHAIN_TIMES_S), at(95.0) + 1}):
+        check_contract(make, feed, calls, k, save=lambda law: through_text(law.get_state()))
+        chains.append(make_and_feed(make, calls[:k]).get_state()["chain"])
+    held = [c for c in chains if c["anchor"] is not None]
+    assert any(c["bias"]["bias_dph"] is None for c in held)  # saved while the bias was captured
+    assert any(c["bias"]["bias_dph"] is not None and c["window"]["middles"] for c in held)  # and while learning
+    assert any(c["doubted"] is not None and c["learned"] is not None for c in chains)  # and before the judge
+    assert any(c["rejections_in_row"] and c["flag_pending"] for c in chains)  # and just after a rejection
+    statuses = [str(o.status) for o in make_and_feed(make, calls).outcomes]
+    assert statuses.count("learned") >= 3 and statuses.count("rejected") >= 2
+
+
+def make_and_feed(make: Callable[[], TableLaw], calls: list[tuple[str, tuple]]) -> TableLaw:
+    law = make()
+    for name, args in calls:
+        getattr(law, name)(*args)
+    return law
 
 
 # -- the pipeline --------------------------------------------------------------------------------
@@ -374,34 +410,97 @@ def test_table_adapting_pipeline_continues_exactly_from_any_frame_before_a_dwell
         check_pipeline(make, samples, k, adapting=True)
 
 
-def test_table_adapting_pipeline_engaged_continues_exactly_as_a_new_chain(default_model, samples):
-    """Adapting from table angles with dwells given: restored (the pipeline, the readout, what the law learned,
-    the dwells still waiting), the run carries on as the uninterrupted one whose law starts a new run there
-    (``TableLaw.set_state``: the law's own chain is not state)."""
+@pytest.mark.parametrize(
+    ("lies", "scale_factor"),
+    [("two lies in a row", False), ("a lie blamed later", False), ("a lie blamed later", True)],
+)
+def test_table_adapting_pipeline_engaged_continues_exactly_inside_and_between_dwells(
+    default_model, samples, lies, scale_factor, monkeypatch
+):
+    """Adapting from table angles with dwells given (some of them lies): restored into a fresh pipeline (the
+    readout through the adaptation document, the pipeline's state with its table path: the law, its chain, the
+    dwells still waiting, the scale factor held), through text, the run carries on as the uninterrupted one bit
+    for bit, saved inside a dwell, between two dwells of a chain and anywhere else.  ``scale_factor``: the scale
+    factor corrects the angle from the first interval learned (the fixture's table never turns: its threshold
+    raised)."""
+    if scale_factor:
+        monkeypatch.setattr(table_law_module, "SF_APPLY_SIGMA_PPM", 1e9)
     n = len(samples)
+
+    def make() -> Compensator:
+        c = Compensator(default_model, FRAME_S, adapt=ADAPT, table=True)
+        c.add_dwells(LYING_DWELLS[lies])
+        return c
+
+    whole = make()
+    expected = whole.run(samples)
+    for k in sorted({*cuts(n), *(int(round(t / FRAME_S)) for t in CHAIN_TIMES_S)}):
+        first = make()
+        first.run(slice_block(samples, 0, k))
+        doc, state = through_text(first.adaptation_document()), through_text(first.get_state())
+        fresh = Compensator(default_model, FRAME_S, adapt=ADAPT, table=True)
+        fresh.restore_adaptation(doc, "the document", new_run=False)  # the readout (the law's learning as a new run)
+        fresh.set_state(state)  # then the pipeline and the table path whole
+        fresh.angle_raw_arcsec, fresh.angle_comp_arcsec = first.angle_raw_arcsec, first.angle_comp_arcsec
+        rest = fresh.run(slice_block(samples, k, n))
+        for got, want in zip(columns_of(rest), columns_of(expected)):
+            assert same(got, want[k:])
+        assert same(fresh.get_state(), whole.get_state())
+        assert same(fresh.adaptation_document(), whole.adaptation_document())
+    statuses = [str(o.status) for o in whole.table_outcomes]
+    assert statuses.count("learned") >= 3 and statuses.count("rejected") >= 2  # it learned, and rejected the lies
+    assert (expected.flags & FLAG_SCALE_FACTOR).any() == scale_factor
+
+
+def test_the_adaptation_document_keeps_what_the_table_law_learned_and_a_chain_in_it_is_refused(default_model, samples):
+    """The state file is what the law learned, as before (``learned_part``: no chain, no table path in the
+    pipeline's part); reading it is a new run, and a document carrying a chain anyway is refused, nothing
+    changed."""
 
     def make() -> Compensator:
         return Compensator(default_model, FRAME_S, adapt=ADAPT, table=True)
 
-    for k in cuts(n):
-        whole = make()
-        whole.add_dwells(DWELLS)
-        head = whole.run(slice_block(samples, 0, k))
-        assert whole.table is not None
-        whole.table.begin_run()
-        tail = whole.run(slice_block(samples, k, n))
-        first = make()
-        first.add_dwells(DWELLS)
-        first.run(slice_block(samples, 0, k))
-        doc, state = through_text(first.adaptation_document()), through_text(first.get_state())
-        fresh = make()
-        fresh.set_state(state)
-        fresh.restore_adaptation(doc, "the document", new_run=False)
-        fresh.add_dwells(first.pending_dwells)
-        fresh.angle_raw_arcsec, fresh.angle_comp_arcsec = first.angle_raw_arcsec, first.angle_comp_arcsec
-        rest = fresh.run(slice_block(samples, k, n))
-        for got, want in zip(columns_of(rest), columns_of(tail)):
-            assert same(got, want)
-        assert len(head) == k
-        assert same(fresh.adaptation_document(), whole.adaptation_document())
-    assert sum(o.status == "learned" for o in whole.table_outcomes) >= 3  # the law learned from the dwells
+    saved = make()
+    saved.add_dwells(DWELLS_WITH_A_LIE)
+    saved.run(slice_block(samples, 0, int(round(180.0 / FRAME_S))))
+    doc, state = through_text(saved.adaptation_document()), through_text(saved.get_state())
+    assert CHAIN_KEY not in doc["table"] and "table" not in doc["pipeline"]
+    assert same(doc["table"], learned_part(state["table"]["law"]))
+    assert state["table"]["law"][CHAIN_KEY]["anchor"] is not None and state["table"]["dwells"]
+    restored = make()
+    restored.restore_adaptation(doc, "state.yaml", new_run=False)
+    assert restored.table is not None and restored.table.accepted == saved.table.accepted
+    assert restored.table.anchor is None and restored.table.bias_dph is None  # a new chain, the bias captured again
+    for part, extra in (
+        ("table", {CHAIN_KEY: state["table"]["law"][CHAIN_KEY]}),
+        ("pipeline", {"table": state["table"]}),
+    ):
+        refused = make()
+        before = refused.get_state()
+        with pytest.raises(InputFileError, match="corrupt adaptation state"):
+            refused.restore_adaptation({**doc, part: {**doc[part], **extra}}, "state.yaml", new_run=False)
+        assert same(refused.get_state(), before)
+
+
+def test_a_table_law_state_with_a_broken_chain_is_refused_and_changes_nothing(default_model, samples):
+    comp = Compensator(default_model, FRAME_S, adapt=ADAPT, table=True)
+    comp.add_dwells(DWELLS_WITH_A_LIE)
+    comp.run(slice_block(samples, 0, int(round(180.0 / FRAME_S))))
+    assert comp.table is not None
+    state = through_text(comp.table.get_state())
+    chain = state[CHAIN_KEY]
+    broken = [
+        {**chain, "anchor": len(chain["anchors"])},  # no such anchor
+        {**chain, "window": {**chain["window"], "rates": chain["window"]["rates"][1:]}},  # rows without rates
+        {**chain, "coil_c": [*chain["coil_c"], 20.0]},  # another coil's
+        {k: v for k, v in chain.items() if k != "doubted"},  # a field missing
+        {**chain, "outcomes": {**chain["outcomes"], "recent": [["x"]]}},  # not an outcome
+    ]
+    for bad in broken:
+        law = comp.table
+        before = law.get_state()
+        with pytest.raises(ValueError, match="table law state"):
+            law.set_state({**state, CHAIN_KEY: bad})
+        assert same(law.get_state(), before)
+    comp.table.set_state(state)  # and the state itself is taken
+    assert same(comp.table.get_state(), state)

@@ -8,12 +8,14 @@ over the first intervals spanning ``capture_s``::
 An interval whose rate is farther than ``TABLE_SIGMAS`` sigmas from the capture's mean so far is rejected,
 with ``sigma^2 = R / T_eff^2 + var(rates so far) + prior_dph^2 + (1e-6 SF_PRIOR_PPM m / T_eff)^2`` (its own
 noise, the capture's spread, the drift's spread allowed for, and the scale factor, not yet known, times the
-move m).  ``capture_s = 0``: no capture, the bias is 0.
+move m).  ``capture_s = 0``: no capture, the bias is 0.  ``BiasCapture.get_state`` is the capture in progress as
+plain values (exact), ``set_state`` its inverse.
 """
 
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -66,3 +68,20 @@ class BiasCapture:
         self.time_s += t_eff
         if self.time_s >= self.capture_s:
             self.bias_dph = self.sum_arcsec / self.time_s
+
+    def get_state(self) -> dict[str, Any]:
+        """The capture as plain values (exact): the bias (None while captured), the sums and the intervals'
+        (rate, T_eff) so far."""
+        return {
+            "bias_dph": None if self.bias_dph is None else float(self.bias_dph),
+            "sum_arcsec": float(self.sum_arcsec),
+            "time_s": float(self.time_s),
+            "rates": [[float(q), float(t)] for q, t in self.rates],
+        }
+
+    def set_state(self, state: dict[str, Any]) -> None:
+        """Inverse of ``get_state``; ``ValueError`` (nothing changed) for values that are not numbers."""
+        bias = None if state["bias_dph"] is None else float(state["bias_dph"])
+        rates = [(float(q), float(t)) for q, t in state["rates"]]
+        self.sum_arcsec, self.time_s = float(state["sum_arcsec"]), float(state["time_s"])
+        self.bias_dph, self.rates = bias, rates

@@ -17,7 +17,7 @@ The rooms, in the order a dwell goes through them:
 - ``bias``: the run's bias, captured from its first intervals.
 - ``judge``: which of two dwells was wrong, by the intervals around them.
 - ``outcomes``: what became of each dwell (``OutcomeStatus``), the log and its tally.
-- ``state``: what the law learned, saved and restored.
+- ``state``: what the law learned and the run's own chain, saved and restored.
 
 The shape regressors g (``SHAPES``).  With a model file that has candidate structures (the coils that explain
 the fit data within the noise of the chosen one), g_j are their drifts' departures from the frozen one,
@@ -56,6 +56,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -79,7 +80,17 @@ from .estimate import (
 )
 from .outcomes import OutcomeLog, OutcomeStatus, OutcomeTally, TableOutcome, outcome
 from .screen import CREEP_SIGMAS, Refused, Rejected, creep_disagreement, screen
-from .state import MIXTURE_KEYS, checked_state, state_of
+from .state import (
+    CHAIN_KEY,
+    MIXTURE_KEYS,
+    anchor_from,
+    anchor_state,
+    checked_state,
+    dwell_from,
+    dwell_state,
+    learned_part,
+    state_of,
+)
 from .window import Anchor, BlockWindow
 
 __all__ = ["TableLaw"]
@@ -101,7 +112,7 @@ CAPTURE_PRIOR_RUNAWAYS = 0.1
 class TableLaw(ComparisonGuard):
     """The readout's law from table angles (module docstring): ``estimate(y_frozen, g)`` per block (a priori),
     ``block(...)`` to record it, ``observe(dwell)`` when a dwell's blocks have closed; ``break_chain`` at a
-    break; ``get_state``/``set_state`` for what it learned."""
+    break; ``get_state``/``set_state`` for what it learned and its chain."""
 
     compare_sigmas = TABLE_COMPARE_SIGMAS
 
@@ -551,20 +562,166 @@ class TableLaw(ComparisonGuard):
     # -- state -----------------------------------------------------------------------------------
 
     def get_state(self) -> dict[str, Any]:
-        """What the law learned, as plain YAML-safe values (exact; ``state``): its sums, weights, covariance and
-        the regressors' gram, the noise and innovation calibration, the comparison, the counters, and the frozen
-        weights it was learned against.  Not the run's own chain (the ring of blocks, the bias, the anchor):
-        a restored law starts a new run (``begin_run``)."""
-        return state_of(self.w0, self.b0, self.shape, lambda k: getattr(self.mixture if k in MIXTURE_KEYS else self, k))
+        """Everything the law continues from, as plain YAML-safe values (exact; ``state``): what it learned (its
+        sums, weights, covariance and the regressors' gram, the noise and innovation calibration, the comparison,
+        the counters, and the frozen weights it was learned against: ``state.learned_part``) and, under
+        ``state.CHAIN_KEY``, the run's own chain (``_chain_state``)."""
+        state = state_of(
+            self.w0, self.b0, self.shape, lambda k: getattr(self.mixture if k in MIXTURE_KEYS else self, k)
+        )
+        state[CHAIN_KEY] = self._chain_state()
+        return state
 
     def set_state(self, state: dict[str, Any]) -> None:
-        """Inverse of ``get_state``, as a new run; ``ValueError`` (nothing changed) for missing or unknown keys,
-        bad values, or a state learned against other frozen weights (another model)."""
-        values = checked_state(state, self.w0, self.b0, self.shape, self.n_features)
+        """Inverse of ``get_state``: the law continues exactly; a state without the chain (what the law learned
+        alone, ``state.learned_part``) as a new run (``begin_run``).  ``ValueError`` (nothing changed) for missing or
+        unknown keys, bad values, or a state learned against other frozen weights (another model)."""
+        chain = state.get(CHAIN_KEY) if isinstance(state, dict) else None
+        values = checked_state(
+            learned_part(state) if isinstance(state, dict) else state, self.w0, self.b0, self.shape, self.n_features
+        )
+        restore_chain = None if chain is None else self._chain_from(chain)
         for k, v in values.items():
             setattr(self.mixture if k in MIXTURE_KEYS else self, k, v)
-        self.mixture.last_update_s = None
-        self.begin_run()
+        if restore_chain is None:
+            self.mixture.last_update_s = None
+            self.begin_run()
+        else:
+            restore_chain()
+
+    def _chain_state(self) -> dict[str, Any]:
+        """The run's own chain as plain values: the ring, the bias capture, the outcome log, the anchors (each
+        once: the law tells them apart by identity) and which is the current one, the interval learned last
+        (with the law before it) and the one rejected last, the coil's temperatures, the last ring temperature,
+        the rejections in a row, the flags pending, the last dwell's end and the last interval's time."""
+        anchors: list[Anchor] = []
+
+        def ref(a: Anchor | None) -> int | None:
+            if a is None:
+                return None
+            for k, seen in enumerate(anchors):
+                if seen is a:
+                    return k
+            anchors.append(a)
+            return len(anchors) - 1
+
+        learned_last, doubted = self._learned, self._doubted
+        chain: dict[str, Any] = {
+            "window": self.window.get_state(),
+            "bias": self.bias.get_state(),
+            "outcomes": self._log.get_state(),
+            "anchor": ref(self.anchor),
+            "learned": None,
+            "doubted": None,
+            "coil_c": [float(v) for v in self.coil_c],
+            "last_ring_c": float(self._last_ring_c),
+            "rejections_in_row": int(self.rejections_in_row),
+            "flag_pending": int(self._flag_pending),
+            "last_dwell_end_s": _optional(self.last_dwell_end_s),
+            "last_update_s": _optional(self.mixture.last_update_s),
+        }
+        if learned_last is not None:
+            before = learned_last.before
+            chain["learned"] = {
+                "before": {
+                    "law": {k: _plain(v) for k, v in before["law"].items()},
+                    **{k: _plain(before[k]) for k in (*self._COMPARISON, *self._COUNTERS)},
+                    "anchor": ref(before["anchor"]),
+                },
+                "t_end_s": float(learned_last.t_end_s),
+                "anchor": ref(learned_last.anchor),
+                "innovation_arcsec": float(learned_last.innovation_arcsec),
+                "sigma_arcsec": float(learned_last.sigma_arcsec),
+            }
+        if doubted is not None:
+            chain["doubted"] = {
+                "start": ref(doubted.start),
+                "end": ref(doubted.end),
+                "dwell": dwell_state(doubted.dwell),
+                "innovation_arcsec": float(doubted.innovation_arcsec),
+                "sigma_arcsec": float(doubted.sigma_arcsec),
+            }
+        chain["anchors"] = [anchor_state(a) for a in anchors]
+        return chain
+
+    def _chain_from(self, chain: dict[str, Any]) -> Callable[[], None]:
+        """``_chain_state``'s values checked and made: a function that puts them in place (nothing changed until
+        it is called); ``ValueError`` for values that are not a chain of this law."""
+        try:
+            window = BlockWindow(self.n_features, self.block_s)
+            window.set_state(chain["window"])
+            bias = BiasCapture(self.bias_capture_s)
+            bias.set_state(chain["bias"])
+            log = OutcomeLog()
+            log.set_state(chain["outcomes"])
+            anchors = [anchor_from(a, window.columns.width) for a in chain["anchors"]]
+
+            def at(k: Any) -> Anchor | None:
+                if k is not None and not 0 <= int(k) < len(anchors):
+                    raise ValueError(f"no anchor {k!r} of {len(anchors)}")
+                return None if k is None else anchors[int(k)]
+
+            def held(k: Any) -> Anchor:
+                a = at(k)
+                if a is None:
+                    raise ValueError("an interval's anchor is missing")
+                return a
+
+            learned_last = doubted = None
+            if chain["learned"] is not None:
+                c = chain["learned"]
+                b = c["before"]
+                law = {k: _array_or(b["law"][k]) for k in self.mixture.LEARNED}
+                snapshot = {
+                    "law": law,
+                    **{k: _number_like(getattr(self, k), b[k]) for k in (*self._COMPARISON, *self._COUNTERS)},
+                    "anchor": at(b["anchor"]),
+                }
+                learned_last = judge.Learned(
+                    snapshot,
+                    float(c["t_end_s"]),
+                    held(c["anchor"]),
+                    float(c["innovation_arcsec"]),
+                    float(c["sigma_arcsec"]),
+                )
+            if chain["doubted"] is not None:
+                c = chain["doubted"]
+                doubted = judge.Doubted(
+                    held(c["start"]),
+                    held(c["end"]),
+                    dwell_from(c["dwell"]),
+                    float(c["innovation_arcsec"]),
+                    float(c["sigma_arcsec"]),
+                )
+            coil_c = [float(v) for v in chain["coil_c"]]
+            scalars = (
+                at(chain["anchor"]),
+                float(chain["last_ring_c"]),
+                int(chain["rejections_in_row"]),
+                int(chain["flag_pending"]),
+                _optional(chain["last_dwell_end_s"]),
+                _optional(chain["last_update_s"]),
+            )
+            if len(chain) != len(CHAIN_FIELDS) or set(chain) != CHAIN_FIELDS:
+                raise ValueError(f"needs exactly the keys {sorted(CHAIN_FIELDS)}, got {sorted(chain)}")
+            if len(coil_c) != (0 if self.coil is None or not coil_c else self.coil[1]):
+                raise ValueError(f"{len(coil_c)} coil temperatures for a coil of {self.coil}")
+        except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
+            raise ValueError(f"table law state: not a chain of this law: {exc}") from None
+
+        def put() -> None:
+            self.window, self.bias, self._log = window, bias, log
+            self._learned, self._doubted, self.coil_c = learned_last, doubted, coil_c
+            (
+                self.anchor,
+                self._last_ring_c,
+                self.rejections_in_row,
+                self._flag_pending,
+                self.last_dwell_end_s,
+                self.mixture.last_update_s,
+            ) = scalars
+
+        return put
 
     def summary(self) -> dict[str, Any]:
         """Counts and the scale factor, for STATUS and reports."""
@@ -587,3 +744,36 @@ class TableLaw(ComparisonGuard):
             "scale_factor_sigma_ppm": math.sqrt(self.mixture.cov[sf0, sf0]) if self.accepted else SF_PRIOR_PPM,
             "scale_factor_applied": self.scale_factor_applied,
         }
+
+
+#: the keys of the chain's state (``TableLaw._chain_state``)
+CHAIN_FIELDS = frozenset(
+    ("window", "bias", "outcomes", "anchor", "learned", "doubted", "coil_c", "last_ring_c", "rejections_in_row")
+    + ("flag_pending", "last_dwell_end_s", "last_update_s", "anchors")
+)
+
+
+def _optional(value: Any) -> float | None:
+    """A time or None, as a plain float."""
+    return None if value is None else float(value)
+
+
+def _plain(value: Any) -> Any:
+    """A snapshot's value as plain values: an array as lists, a number as a float or an int, None as it is."""
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if value is None or isinstance(value, int):
+        return value
+    return float(value)
+
+
+def _array_or(value: Any) -> Any:
+    """Inverse of ``_plain`` for the estimate's snapshot: lists as an array, a number as a float."""
+    if isinstance(value, list):
+        return np.array(value, dtype=np.float64)
+    return None if value is None else float(value)
+
+
+def _number_like(current: Any, value: Any) -> int | float:
+    """``value`` as the kind of number ``current`` is (a count an int, else a float)."""
+    return int(value) if isinstance(current, int) else float(value)

@@ -4,6 +4,7 @@ A dwell's outcome is noted once, when the law has judged it.  The judge by the n
 (``judge``) may later find that a dwell learned was the wrong one: its verdict (``Revision``) gives a new
 log (``OutcomeLog.revised``) in which that dwell's outcome is rejected and the dwell after it has the
 interval learned in its place; the outcome values and the log they were in are left as they were.
+``OutcomeLog.get_state`` is the log and its tally as plain values (exact), ``set_state`` its inverse.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import enum
 import math
 import re
 from collections import Counter, deque
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 from ...dwells import Dwell
 
@@ -66,6 +67,19 @@ def outcome(
     )
 
 
+def outcome_state(o: TableOutcome) -> list[Any]:
+    """An outcome as plain values: its fields in order, the status as its word."""
+    return [float(o.t_end_s), str(o.status), o.reason, *(float(v) for v in o[3:])]
+
+
+def outcome_from(values: list[Any]) -> TableOutcome:
+    """Inverse of ``outcome_state``; ``ValueError`` for values that are not an outcome."""
+    t_end_s, status, reason, *figures = values
+    if not isinstance(reason, str) or len(figures) != 4:
+        raise ValueError(f"not an outcome: {values!r}")
+    return TableOutcome(float(t_end_s), OutcomeStatus(status), reason, *(float(v) for v in figures))
+
+
 #: A number in a reason (``reason_kind`` leaves them out).
 _NUMBER = re.compile(r"[-+]?\d[\d,]*(?:\.\d+)?(?:e[-+]?\d+)?|\bnan\b|\binf\b")
 
@@ -96,6 +110,24 @@ class OutcomeTally:
     @property
     def total(self) -> int:
         return sum(self.by_status.values())
+
+    def get_state(self) -> dict[str, Any]:
+        """The counts as plain values: by status, and by reason kind with their first outcomes (in order)."""
+        return {
+            "by_status": [[str(s), n] for s, n in self.by_status.items()],
+            "by_reason": [
+                [str(s), kind, n[0], [outcome_state(o) for o in e]] for (s, kind), (n, e) in self.by_reason.items()
+            ],
+        }
+
+    def set_state(self, state: dict[str, Any]) -> None:
+        """Inverse of ``get_state``."""
+        by_status: Counter[str] = Counter({OutcomeStatus(s): int(n) for s, n in state["by_status"]})
+        self.by_reason = {
+            (OutcomeStatus(s), str(kind)): ([int(n)], [outcome_from(o) for o in e])
+            for s, kind, n, e in state["by_reason"]
+        }
+        self.by_status = by_status
 
     def copy(self) -> OutcomeTally:
         out = OutcomeTally()
@@ -128,6 +160,19 @@ class OutcomeLog:
             self._dropped.add(self.recent[0])
         self.recent.append(outcome)
         return outcome
+
+    def get_state(self) -> dict[str, Any]:
+        """The log as plain values (exact): the outcomes kept, oldest first, and the tally of those dropped."""
+        return {"recent": [outcome_state(o) for o in self.recent], "dropped": self._dropped.get_state()}
+
+    def set_state(self, state: dict[str, Any]) -> None:
+        """Inverse of ``get_state``; ``ValueError`` (nothing changed) for values that are not outcomes."""
+        recent = [outcome_from(o) for o in state["recent"]]
+        if len(recent) > MAX_OUTCOMES:
+            raise ValueError(f"an outcome log keeps at most {MAX_OUTCOMES} outcomes, got {len(recent)}")
+        dropped = OutcomeTally()
+        dropped.set_state(state["dropped"])
+        self.recent, self._dropped = deque(recent, maxlen=MAX_OUTCOMES), dropped
 
     def tally(self) -> OutcomeTally:
         """Every outcome noted, counted (``recent`` keeps the last ``MAX_OUTCOMES``)."""

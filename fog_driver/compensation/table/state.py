@@ -1,10 +1,15 @@
-"""The table law's state: what it learned, as plain YAML-safe values (exact), and the checks a state passes.
+"""The table law's state: what it learned and the run's own chain, as plain YAML-safe values (exact), and the
+checks a state passes.
 
-Saved: the frozen weights and intercept it was learned against and its shape regressors' kind, the sums, the
-estimate and its covariance, the regressors' gram and the evidence (``ARRAYS``), the noise, the innovation
-calibration and the comparison (``FLOATS``), and the counters (``COUNTS``).  Not the run's own chain (the ring of
-blocks, the bias, the anchor): a restored law starts a new run.  A state saved by an earlier version lacks the
-keys of ``ADDED``, which start from their value there.
+What it learned (``learned_part``: the adaptation document's ``table``): the frozen weights and intercept it was learned
+against and its shape regressors' kind, the sums, the estimate and its covariance, the regressors' gram and the
+evidence (``ARRAYS``), the noise, the innovation calibration and the comparison (``FLOATS``), and the counters
+(``COUNTS``).  A state saved by an earlier version lacks the keys of ``ADDED``, which start from their value there.
+
+The run's own chain, under ``CHAIN_KEY``: the ring of blocks, the bias capture, the anchor, the interval learned
+last and the one rejected last (while the judge may still undo them), the outcome log, the coil's temperature, the
+time of the last dwell and of the last interval learned, and the pending flags (``law.TableLaw.get_state``).  A
+state without it (what it learned alone) is restored as a new run: the bias captured again, a new chain.
 """
 
 from __future__ import annotations
@@ -15,9 +20,27 @@ from typing import Any
 
 import numpy as np
 
+from ...dwells import Dwell
 from .estimate import PRIOR_SCALES, SHAPE_REGRESSORS
+from .window import Anchor
 
-__all__ = ["ARRAYS", "COUNTS", "FLOATS", "MIXTURE_KEYS", "checked_state", "state_of"]
+__all__ = [
+    "ARRAYS",
+    "CHAIN_KEY",
+    "COUNTS",
+    "FLOATS",
+    "MIXTURE_KEYS",
+    "anchor_from",
+    "anchor_state",
+    "checked_state",
+    "dwell_from",
+    "dwell_state",
+    "learned_part",
+    "state_of",
+]
+
+#: The key of the run's own chain in a state (module docstring); the other keys are what the law learned.
+CHAIN_KEY = "chain"
 
 ARRAYS = ("h", "i", "delta", "cov", "gram", "evidence")
 FLOATS = (
@@ -52,6 +75,40 @@ ADDED: dict[str, Callable[[], Any]] = {
     "clamped_blocks": lambda: 0,
     "shape": lambda: SHAPE_REGRESSORS,
 }
+
+
+def learned_part(state: dict[str, Any]) -> dict[str, Any]:
+    """What the law learned, of its state (``get_state``): every key but the chain's (``CHAIN_KEY``), as the
+    adaptation document keeps it."""
+    return {k: v for k, v in state.items() if k != CHAIN_KEY}
+
+
+def anchor_state(a: Anchor) -> list[Any]:
+    """An anchor as plain values: its summary, then its other fields in order."""
+    return [np.asarray(a.summary).tolist(), float(a.angle_arcsec), *(int(v) for v in a[2:])]
+
+
+def anchor_from(values: list[Any], width: int) -> Anchor:
+    """Inverse of ``anchor_state`` for a ring's rows of ``width``; ``ValueError`` for values that are not one."""
+    summary, angle, *ints = values
+    row = np.array(summary, dtype=np.float64)
+    if row.shape != (width,) or len(ints) != 4:
+        raise ValueError(f"not an anchor on rows of {width}: {values!r}")
+    return Anchor(row, float(angle), *(int(v) for v in ints))
+
+
+def dwell_state(d: Dwell) -> list[float | None]:
+    """A dwell as plain values: its fields in order."""
+    end = None if d.angle_end_deg is None else float(d.angle_end_deg)
+    return [float(d.t_start_s), float(d.t_end_s), float(d.angle_deg), end]
+
+
+def dwell_from(values: list[Any]) -> Dwell:
+    """Inverse of ``dwell_state``; ``ValueError`` for values that are not a dwell."""
+    t_start_s, t_end_s, angle_deg, angle_end_deg = values
+    return Dwell(
+        float(t_start_s), float(t_end_s), float(angle_deg), None if angle_end_deg is None else float(angle_end_deg)
+    )
 
 
 def state_of(

@@ -15,13 +15,14 @@ that rises linearly over the first window, is 1 between the windows and falls ov
     T_int = sum_j K_j T_j B / T_eff    F = sum_j K_j D_hat_j B
 
 A break (a gap, a restart, ``?ZERO``, a block that cannot be integrated) empties the ring and starts a new
-epoch: no interval spans it.
+epoch: no interval spans it.  ``BlockWindow.get_state`` is the ring as plain values (its blocks' rows oldest first,
+exact), ``set_state`` its inverse.
 """
 
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -179,3 +180,34 @@ class BlockWindow:
     def rates(self, first: int, end: int) -> np.ndarray:
         """The mean rates of blocks ``first`` to ``end``."""
         return self._rate[self._positions(first, end)]
+
+    def get_state(self) -> dict[str, Any]:
+        """The chain's blocks as plain values (exact): the epoch, the running sums, the first block's index and
+        the chain's start, whether old blocks were dropped, and the middle sums and rates of the blocks on the
+        ring, oldest first."""
+        live = (self._pos0 + np.arange(self._length)) % self.capacity
+        return {
+            "epoch": self.epoch,
+            "sums": self._cum.tolist(),
+            "first": self.first,
+            "chain_start_s": self.chain_start_s,
+            "dropped_old": self.dropped_old,
+            "middles": self._mid[live].tolist(),
+            "rates": self._rate[live].tolist(),
+        }
+
+    def set_state(self, state: dict[str, Any]) -> None:
+        """Inverse of ``get_state`` (the oldest block at the ring's start); ``ValueError`` (nothing changed) for
+        values that do not fit this ring."""
+        mid = np.array(state["middles"], dtype=np.float64).reshape(-1, self.columns.width)
+        rate = np.array(state["rates"], dtype=np.float64)
+        cum = np.array(state["sums"], dtype=np.float64)
+        first = None if state["first"] is None else int(state["first"])
+        start = None if state["chain_start_s"] is None else float(state["chain_start_s"])
+        n = len(mid)
+        if cum.shape != (self.columns.width,) or rate.shape != (n,) or n > self.capacity or (first is None) != (n == 0):
+            raise ValueError(f"the ring's state does not fit a ring of {self.capacity} blocks of {self.columns.width}")
+        self.epoch, self._cum, self.first, self.chain_start_s = int(state["epoch"]), cum, first, start
+        self.dropped_old = bool(state["dropped_old"])
+        self._mid[:n], self._rate[:n] = mid, rate
+        self._pos0, self._length = 0, n
