@@ -170,6 +170,25 @@ class RateSource:
     def end_block(self, block: ModelBlock, clean: bool) -> int:
         return 0
 
+    def get_state(self) -> dict[str, Any]:
+        """The rate path's state: the readout's (``OnlineReadout.get_state``) and the static detector's, as plain
+        YAML-safe values (exact); the rest is each block's own."""
+        return {"online": self.online.get_state(), "detector": self.static_detector.get_state()}
+
+    def set_state(self, state: dict[str, Any]) -> None:
+        """Inverse of ``get_state``; ``ValueError`` (nothing changed) for missing or unknown keys or bad values."""
+        if not isinstance(state, dict) or set(state) != {"online", "detector"}:
+            raise ValueError("rate path state needs exactly the keys ['detector', 'online']")
+        online_before = self.online.get_state()
+        detector = StaticDetector(self.static_detector.threshold_dph, self.static_detector.window_blocks)
+        try:
+            detector.set_state(state["detector"])
+            self.online.set_state(state["online"])
+        except (KeyError, TypeError, ValueError) as exc:
+            self.online.set_state(online_before)
+            raise ValueError(f"rate path state: {exc}") from None
+        self.static_detector = detector
+
     def carry_on(self, old: RateSource) -> None:
         """Continue ``old``'s adaptation (a reloaded model, the same one): its readout's state and its detector."""
         self.online.set_state(old.online.get_state())

@@ -363,10 +363,12 @@ class Compensator:
     # -- adaptation state ----------------------------------------------------------------------
 
     def get_state(self) -> dict:
-        """Everything but the readout the estimate depends on: the open block, the feature smoothers and
-        held values, the model's memory (reservoir), the held estimate, and when adapting from table angles the
-        table path's state under ``table`` (``TableSource.get_state``: the law, its chain, the dwells waiting).
-        Plain YAML-safe values, exact."""
+        """Everything the pipeline continues from: the open block, the feature smoothers and held values, the
+        model's memory (reservoir), the held estimate, the two angles (``angles``: raw and compensated, arcsec),
+        when adapting the rate path's state under ``readout`` (``RateSource.get_state``: the readout and the
+        static detector), and when adapting from table angles the table path's under ``table``
+        (``TableSource.get_state``: the law, its chain, the dwells waiting).  Plain YAML-safe values, exact.
+        The adaptation document keeps the first part only (``adaptation_document``)."""
         state = {
             "averager": self.averager.get_state(),
             "features": self.features.get_state(),
@@ -381,7 +383,11 @@ class Compensator:
             "settle_until": self._settle_until,
             "sigma_dph": self.sigma_dph,
             "uncertainty": self.uncertainty.get_state(),
+            "angles": [float(self.angle_raw_arcsec), float(self.angle_comp_arcsec)],
         }
+        rate = self.source.rate_path
+        if rate is not None:
+            state["readout"] = rate.get_state()
         path = self.source.table_path
         if path is not None:
             state["table"] = path.get_state()
@@ -389,7 +395,8 @@ class Compensator:
 
     def set_state(self, state: dict) -> None:
         """Inverse of ``get_state`` (``ValueError``, nothing changed, when it does not fit this model and frame
-        rate); a state without ``table`` leaves the table path as it is (the adaptation document's pipeline)."""
+        rate); a state without ``angles``, ``readout`` or ``table`` leaves that part as it is (the adaptation
+        document's pipeline has none of them)."""
         keys = {
             "averager",
             "features",
@@ -403,8 +410,10 @@ class Compensator:
             "last_temps",
             "settle_until",
         }
-        optional = {"sigma_dph", "uncertainty"}  # absent in states saved before drift_sigma_dph existed
-        path = self.source.table_path
+        optional = {"sigma_dph", "uncertainty", "angles"}  # the first two absent in states saved before the sigma
+        rate, path = self.source.rate_path, self.source.table_path
+        if rate is not None:
+            optional.add("readout")
         if path is not None:
             optional.add("table")
         if not isinstance(state, dict) or not keys <= set(state) <= keys | optional:
@@ -421,8 +430,11 @@ class Compensator:
                 int(state["settle_until"]),
                 float(state.get("sigma_dph", math.nan)),
             )
+            angles = tuple(float(v) for v in state["angles"]) if "angles" in state else None
         except (TypeError, ValueError) as exc:
             raise ValueError(f"pipeline state: not numbers: {exc}") from None
+        if angles is not None and len(angles) != 2:
+            raise ValueError("pipeline state: angles needs 2 values (raw, compensated)")
         if len(scalars[6]) != 3:
             raise ValueError("pipeline state: last_temps needs 3 values")
         averager = BlockAverager(self.averager.frame_period_s, self.averager.model_rate_hz, self.n_channels)
@@ -452,13 +464,23 @@ class Compensator:
             except (KeyError, TypeError, ValueError) as exc:
                 self.model.set_state(before)
                 raise ValueError(f"pipeline state: bad uncertainty state: {exc}") from None
-        if path is not None and "table" in state:
+        table_before = path.get_state() if path is not None and "table" in state else None
+        if path is not None and table_before is not None:
             try:
                 path.set_state(state["table"])
             except ValueError as exc:
                 self.model.set_state(before)
                 self.uncertainty.set_state(uncertainty_before)
                 raise ValueError(f"pipeline state: bad table path state: {exc}") from None
+        if rate is not None and "readout" in state:
+            try:
+                rate.set_state(state["readout"])
+            except ValueError as exc:
+                self.model.set_state(before)
+                self.uncertainty.set_state(uncertainty_before)
+                if path is not None and table_before is not None:
+                    path.set_state(table_before)
+                raise ValueError(f"pipeline state: bad readout state: {exc}") from None
         self.averager = averager
         self.features = features
         (
@@ -472,6 +494,8 @@ class Compensator:
             self._settle_until,
             self.sigma_dph,
         ) = scalars
+        if angles is not None:
+            self.angle_raw_arcsec, self.angle_comp_arcsec = angles
 
     def continue_from(self, old: Compensator, *, same_model: bool) -> None:
         """Carry on from ``old`` (a model reloaded mid-run): with the same inputs (features, block length
@@ -486,7 +510,9 @@ class Compensator:
         if self.features.params != old.features.params or not same_grid:
             return
         state = old.get_state()
-        state.pop("table", None)  # the table path carries on below (``TableSource.carry_on``)
+        state.pop("table", None)  # the table path carries on below (``TableSource.carry_on``), and so
+        state.pop("readout", None)  # does the rate path (``RateSource.carry_on``, with the same model)
+        state.pop("angles")  # the angles are the caller's to carry
         state["features"] = self.features.adopt_state(state["features"], old.features.substitution)
         if not same_model:
             state["model"], state["started"] = self.model.get_state(), False
@@ -505,6 +531,8 @@ class Compensator:
         values (to take under a lock and write outside it); only when adapting."""
         online = self.check_adapting()
         pipeline = self.get_state()
+        pipeline.pop("angles")  # the document's pipeline: what a restart of the run continues from, less the
+        pipeline.pop("readout")  # angles (the caller's) and the readout (the document's own, beside it)
         path = pipeline.pop("table", None)  # the table path's chain is not the document's
         doc = online.state_document(detector=self.static_detector, pipeline=pipeline)
         if self.table is not None and (self.table_engaged or self.table.accepted):
