@@ -42,6 +42,7 @@ from .limits import (
     MAX_TABLE_ANGLE_DEG,
     MAX_TABLE_DWELL_S,
     MIN_BIAS_S,
+    MIN_TABLE_DWELL_S,
 )
 
 __all__ = ["COMMANDS", "Arg", "Command", "run_command"]
@@ -256,8 +257,9 @@ COMMANDS: dict[str, Command] = {
             Arg("angle_deg", _angle, f'?TABLE needs "angle_deg": a number within +-{MAX_TABLE_ANGLE_DEG:g} degrees'),
             Arg(
                 "dwell_s",
-                lambda v: _is_number(v) and 12 <= v <= MAX_TABLE_DWELL_S,
-                f'?TABLE needs "dwell_s": the seconds the table has stood there, 12 to {MAX_TABLE_DWELL_S:g}',
+                lambda v: _is_number(v) and MIN_TABLE_DWELL_S <= v <= MAX_TABLE_DWELL_S,
+                f'?TABLE needs "dwell_s": the seconds the table has stood there, {MIN_TABLE_DWELL_S:g} to '
+                f"{MAX_TABLE_DWELL_S:g}",
             ),
             Arg(
                 "angle_start_deg",

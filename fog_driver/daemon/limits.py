@@ -58,6 +58,7 @@ from __future__ import annotations
 # The protocol's bounds the client library checks before sending: defined there, once.
 from ..client.protocol import MAX_BIAS_S as MAX_BIAS_S  # ?BIAS seconds, at most
 from ..client.protocol import MAX_TABLE_DWELL_S as MAX_TABLE_DWELL_S  # ?TABLE dwell_s, at most
+from ..client.protocol import MIN_TABLE_DWELL_S as MIN_TABLE_DWELL_S  # ?TABLE dwell_s, at least
 from ..client.session import MAX_WATCH_RATE_HZ as MAX_WATCH_RATE_HZ  # ?WATCH's rate_hz: the protocol's one bound
 from ..dwells import MAX_TABLE_ANGLE_DEG as MAX_TABLE_ANGLE_DEG  # the one bound, with the dwell
 

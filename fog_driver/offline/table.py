@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..compensation.pipeline import Compensator
-from ..compensation.table import SHAPE_CANDIDATES, TableLaw
+from ..compensation.table import SHAPE_CANDIDATES, OutcomeStatus, TableLaw
 from ..errors import InputFileError
 
 __all__ = ["check_table_log_used", "table_summary_lines"]
@@ -36,10 +36,10 @@ def table_summary_lines(compensator: Compensator) -> list[str]:
         return []
     tally = law.tally()
     counts = tally.by_status
-    order = ("anchor", "bias", "learned", "skipped", "rejected", "refused")
+    order = tuple(OutcomeStatus)  # report order
     parts = ", ".join(f"{counts[k]:,} {k}" for k in order if counts[k])
     lines = [f"table log: {tally.total:,} dwells: {parts or 'none reached'}"]
-    for status in ("rejected", "refused"):
+    for status in (OutcomeStatus.REJECTED, OutcomeStatus.REFUSED):
         kinds = [(n[0], examples) for (st, _), (n, examples) in tally.by_reason.items() if st == status]
         for n, examples in sorted(kinds, key=lambda k: -k[0]):
             ends = ", ".join(f"{o.t_end_s:,.1f}" for o in examples)
