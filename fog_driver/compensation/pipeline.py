@@ -45,7 +45,7 @@ from .dwell import MIN_LIVE_DWELL_S, out_of_order
 from .estimate_sources import BlockInputs, EstimateSource, FrozenSource, RateSource, TableSource
 from .features import DEGRADED_FLAGS, FeatureExtractor
 from .model import ModelFile
-from .table import CHAIN_KEY, TableLaw, TableOutcome, learned_part
+from .table import CHAIN_KEY, TableLaw, TableOutcome
 from .uncertainty import DriftUncertainty
 
 #: A link gap longer than this restarts the pipeline at rest (the model's memory of before is stale);
@@ -369,7 +369,20 @@ class Compensator:
         static detector), and when adapting from table angles the table path's under ``table``
         (``TableSource.get_state``: the law, its chain, the dwells waiting).  Plain YAML-safe values, exact.
         The adaptation document keeps the first part only (``adaptation_document``)."""
-        state = {
+        state = self._own_state()
+        state["angles"] = [float(self.angle_raw_arcsec), float(self.angle_comp_arcsec)]
+        rate = self.source.rate_path
+        if rate is not None:
+            state["readout"] = rate.get_state()
+        path = self.source.table_path
+        if path is not None:
+            state["table"] = path.get_state()
+        return state
+
+    def _own_state(self) -> dict:
+        """``get_state`` less the angles, the readout and the table path: the part the adaptation document keeps
+        and a reload carries on (``continue_from``), built without the parts they would drop."""
+        return {
             "averager": self.averager.get_state(),
             "features": self.features.get_state(),
             "model": self.model.get_state(),
@@ -383,15 +396,7 @@ class Compensator:
             "settle_until": self._settle_until,
             "sigma_dph": self.sigma_dph,
             "uncertainty": self.uncertainty.get_state(),
-            "angles": [float(self.angle_raw_arcsec), float(self.angle_comp_arcsec)],
         }
-        rate = self.source.rate_path
-        if rate is not None:
-            state["readout"] = rate.get_state()
-        path = self.source.table_path
-        if path is not None:
-            state["table"] = path.get_state()
-        return state
 
     def set_state(self, state: dict) -> None:
         """Inverse of ``get_state`` (``ValueError``, nothing changed, when it does not fit this model and frame
@@ -509,10 +514,8 @@ class Compensator:
         )
         if self.features.params != old.features.params or not same_grid:
             return
-        state = old.get_state()
-        state.pop("table", None)  # the table path carries on below (``TableSource.carry_on``), and so
-        state.pop("readout", None)  # does the rate path (``RateSource.carry_on``, with the same model)
-        state.pop("angles")  # the angles are the caller's to carry
+        # the table path and the rate path carry on below (``carry_on``); the angles are the caller's to carry
+        state = old._own_state()
         state["features"] = self.features.adopt_state(state["features"], old.features.substitution)
         if not same_model:
             state["model"], state["started"] = self.model.get_state(), False
@@ -530,13 +533,11 @@ class Compensator:
         of the same run continues exactly (``modelfiles.save_adaptation`` writes it), as a snapshot of plain
         values (to take under a lock and write outside it); only when adapting."""
         online = self.check_adapting()
-        pipeline = self.get_state()
-        pipeline.pop("angles")  # the document's pipeline: what a restart of the run continues from, less the
-        pipeline.pop("readout")  # angles (the caller's) and the readout (the document's own, beside it)
-        path = pipeline.pop("table", None)  # the table path's chain is not the document's
-        doc = online.state_document(detector=self.static_detector, pipeline=pipeline)
+        # the pipeline's own part: the angles are the caller's, the readout is the document's own (beside it), and
+        # the table law's chain is not the document's
+        doc = online.state_document(detector=self.static_detector, pipeline=self._own_state())
         if self.table is not None and (self.table_engaged or self.table.accepted):
-            doc["table"] = learned_part(path["law"])  # what it learned from the table's angles (a new run restores it)
+            doc["table"] = self.table.learned_state()  # what it learned from the table's angles (a new run restores it)
         return doc
 
     def check_adapting(self) -> OnlineReadout:

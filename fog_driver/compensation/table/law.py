@@ -566,11 +566,14 @@ class TableLaw(ComparisonGuard):
         sums, weights, covariance and the regressors' gram, the noise and innovation calibration, the comparison,
         the counters, and the frozen weights it was learned against: ``state.learned_part``) and, under
         ``state.CHAIN_KEY``, the run's own chain (``_chain_state``)."""
-        state = state_of(
-            self.w0, self.b0, self.shape, lambda k: getattr(self.mixture if k in MIXTURE_KEYS else self, k)
-        )
+        state = self.learned_state()
         state[CHAIN_KEY] = self._chain_state()
         return state
+
+    def learned_state(self) -> dict[str, Any]:
+        """What the law learned: ``get_state`` without its chain (``state.learned_part`` of it), built without the
+        chain; what the adaptation document keeps."""
+        return state_of(self.w0, self.b0, self.shape, lambda k: getattr(self.mixture if k in MIXTURE_KEYS else self, k))
 
     def set_state(self, state: dict[str, Any]) -> None:
         """Inverse of ``get_state``: the law continues exactly; a state without the chain (what the law learned
