@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from cli_run import run_cli as cli
 
 from fog_driver.daemon.rawlog import repair_interrupted
 from fog_driver.samples.captures import read_provenance, sidecar_path, write_provenance
@@ -23,17 +24,6 @@ ROOT = Path(__file__).resolve().parents[2]
 DATA = ROOT / "tests" / "data"
 MODEL = ROOT / "fog_driver" / "data" / "models" / "default.yaml"
 PROFILE = ROOT / "configs" / "profiles" / "short-test.yaml"
-
-
-def cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "fog_driver", *args],
-        capture_output=True,
-        text=True,
-        cwd=cwd,
-        timeout=120,
-        stdin=subprocess.DEVNULL,
-    )
 
 
 def started(*args: str, cwd: Path) -> subprocess.Popen:
