@@ -1,4 +1,4 @@
-"""Optional extras (``pyproject.toml``'s ``report``, ``svr`` and ``web``): checked before a command does any
+"""Optional extras (``pyproject.toml``'s ``report``, ``svr``, ``web`` and ``lab``): checked before a command does any
 work, with the README's own install command in the message."""
 
 from __future__ import annotations
@@ -12,6 +12,7 @@ EXTRAS = {
     "report": (("allantools", "allantools"), ("matplotlib", "matplotlib")),
     "svr": (("sklearn.svm", "scikit-learn"),),
     "web": (("aiohttp", "aiohttp"), ("plotly", "plotly"), ("prometheus_client", "prometheus-client")),
+    "lab": (("pymodbus", "pymodbus"),),
 }
 
 

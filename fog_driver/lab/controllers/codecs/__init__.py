@@ -1,0 +1,1 @@
+"""The controllers' protocols as bytes in, values out (sans-IO: no socket, no serial line, no event loop)."""
