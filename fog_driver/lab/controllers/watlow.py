@@ -32,7 +32,8 @@ else driving the chamber).
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import replace
 from typing import Any
 
@@ -144,34 +145,35 @@ class WatlowF4T:
         self._link.send(self._framer.request(pdu))
         frame = b""
         try:
-            while (needed := self._framer.bytes_needed(frame)) > len(frame):
-                frame += self._link.read_exact(needed - len(frame))
-            return self._framer.reply(frame)
-        except ControllerProtocolError as exc:
+            with self._named():
+                while (needed := self._framer.bytes_needed(frame)) > len(frame):
+                    frame += self._link.read_exact(needed - len(frame))
+                return self._framer.reply(frame)
+        except ControllerProtocolError:
             self._link.close()  # what follows garbage cannot be trusted: the next call reconnects
-            raise ControllerProtocolError(f"{self._link.where}: {exc}") from None
+            raise
+
+    @contextmanager
+    def _named(self, detail: str = "") -> Iterator[None]:
+        """Protocol errors raised inside, on one line naming the controller (and ``detail``)."""
+        try:
+            yield
+        except modbus.ModbusExceptionReply as exc:
+            raise modbus.ModbusExceptionReply(
+                f"{self._link.where}: {exc}{detail}", function=exc.function, code=exc.code
+            ) from None
+        except ControllerProtocolError as exc:
+            raise ControllerProtocolError(f"{self._link.where}: {exc}{detail}") from None
 
     def _read(self, address: int, count: int) -> tuple[int, ...]:
         pdu = self._transact(modbus.read_holding_request(address, count))
-        try:
+        with self._named():
             return modbus.decode_read_holding_reply(pdu, address, count)
-        except modbus.ModbusExceptionReply as exc:
-            raise modbus.ModbusExceptionReply(
-                f"{self._link.where}: {exc}", function=exc.function, code=exc.code
-            ) from None
-        except ControllerProtocolError as exc:
-            raise ControllerProtocolError(f"{self._link.where}: {exc}") from None
 
     def _write(self, address: int, values: tuple[int, ...]) -> None:
         pdu = self._transact(modbus.write_multiple_request(address, values))
-        try:
+        with self._named():
             modbus.decode_write_multiple_reply(pdu, address, len(values))
-        except modbus.ModbusExceptionReply as exc:
-            raise modbus.ModbusExceptionReply(
-                f"{self._link.where}: {exc}", function=exc.function, code=exc.code
-            ) from None
-        except ControllerProtocolError as exc:
-            raise ControllerProtocolError(f"{self._link.where}: {exc}") from None
 
     def _say_once(self, key: str, line: str) -> None:
         if key not in self._said:
@@ -190,10 +192,8 @@ class WatlowF4T:
         except modbus.ModbusExceptionReply as exc:
             self._say_once("unit", f"{exc}; the F4T's values taken as degC")
             return "C"
-        try:
+        with self._named(f" (units_register={register})"):
             return f4t.decode_units(value)
-        except ControllerProtocolError as exc:
-            raise ControllerProtocolError(f"{self._link.where}: {exc} (units_register={register})") from None
 
     def _to_c(self, value: float) -> float:
         return f_to_c(value) if self.unit_of_values == "F" else value
@@ -203,10 +203,8 @@ class WatlowF4T:
 
     def _read_float(self, address: int) -> float:
         registers = self._read(address, 2)
-        try:
+        with self._named(f" (register {address})"):
             return f4t.decode_float(registers, self.registers.word_order)
-        except ControllerProtocolError as exc:
-            raise ControllerProtocolError(f"{self._link.where}: register {address}: {exc}") from None
 
     # the interface
 
