@@ -144,18 +144,16 @@ class WatlowF4T:
         self._link.discard_input()
         self._link.send(self._framer.request(pdu))
         frame = b""
-        try:
-            with self._named():
-                while (needed := self._framer.bytes_needed(frame)) > len(frame):
-                    frame += self._link.read_exact(needed - len(frame))
-                return self._framer.reply(frame)
-        except ControllerProtocolError:
-            self._link.close()  # what follows garbage cannot be trusted: the next call reconnects
-            raise
+        with self._named():
+            while (needed := self._framer.bytes_needed(frame)) > len(frame):
+                frame += self._link.read_exact(needed - len(frame))
+            return self._framer.reply(frame)
 
     @contextmanager
     def _named(self, detail: str = "") -> Iterator[None]:
-        """Protocol errors raised inside, on one line naming the controller (and ``detail``)."""
+        """Protocol errors raised inside, on one line naming the controller (and ``detail``).  Garbage also
+        closes the link (what follows it cannot be trusted; the next ``connect`` starts afresh); an exception
+        reply is a well-formed answer and leaves it open."""
         try:
             yield
         except modbus.ModbusExceptionReply as exc:
@@ -163,6 +161,7 @@ class WatlowF4T:
                 f"{self._link.where}: {exc}{detail}", function=exc.function, code=exc.code
             ) from None
         except ControllerProtocolError as exc:
+            self._link.close()
             raise ControllerProtocolError(f"{self._link.where}: {exc}{detail}") from None
 
     def _read(self, address: int, count: int) -> tuple[int, ...]:

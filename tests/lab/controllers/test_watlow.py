@@ -363,3 +363,57 @@ def test_the_urls_options_name_the_controller_and_its_lock_address():
     assert rtu.registers.process_value == 2820 + 320
     explicit_port = registry.open_controller("watlow-f4t://10.0.0.5:1502")
     assert explicit_port.address == "watlow-f4t://10.0.0.5:1502/1/1"
+
+
+class RawPeer:
+    """A TCP peer on 127.0.0.1 that reads one request and answers it with ``answer(request)`` bytes, then
+    closes (garbage, a reply cut off)."""
+
+    def __init__(self, answer) -> None:
+        self.listener = socket.create_server(("127.0.0.1", 0))
+        self.port = self.listener.getsockname()[1]
+        self.answer = answer
+        self._thread = threading.Thread(target=self._serve, daemon=True)
+
+    def _serve(self) -> None:
+        connection, _ = self.listener.accept()
+        with connection:
+            request = connection.recv(260)
+            connection.sendall(self.answer(request))
+
+    def __enter__(self) -> RawPeer:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._thread.join(GUARD_S)
+        self.listener.close()
+
+
+def test_a_garbage_reply_is_one_protocol_line_and_drops_the_link(notices):
+    def garbage(request: bytes) -> bytes:
+        return request[:2] + b"\x00\x00\x00\x05\x01\x2b\x0e\x01\x01"  # a function 43 reply to a read
+
+    with RawPeer(garbage) as peer:
+        controller = registry.open_controller(
+            f"watlow-f4t://127.0.0.1:{peer.port}?units_register=none", on_notice=notices.append, timeout_s=GUARD_S
+        )
+        controller.connect()
+        with pytest.raises(ControllerProtocolError) as caught:
+            controller.read_air_c()
+        assert "function 43" in str(caught.value) and "\n" not in str(caught.value)
+        with pytest.raises(ControllerUnreachable, match="not connected"):
+            controller.read_air_c()
+
+
+def test_a_reply_cut_off_by_the_controller_closing_is_a_lost_link(notices):
+    def half(request: bytes) -> bytes:
+        return request[:2] + b"\x00\x00\x00\x07\x01\x03\x04\x00"  # 4 of the 7 bytes announced
+
+    with RawPeer(half) as peer:
+        controller = registry.open_controller(
+            f"watlow-f4t://127.0.0.1:{peer.port}?units_register=none", on_notice=notices.append, timeout_s=GUARD_S
+        )
+        controller.connect()
+        with pytest.raises(ControllerUnreachable, match="link lost"):
+            controller.read_setpoint_c()
