@@ -87,6 +87,7 @@ class ModbusServer:
         self.device = SimDevice(id=unit, simdata=registers)
         self.unit = unit
         self.framer = framer
+        self.requests: list[bytes] = []  # every frame the server received, as pymodbus traces it
         self.port = 0
         self._ready = threading.Event()
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -94,13 +95,20 @@ class ModbusServer:
         self._server: ModbusTcpServer | None = None
         self._thread = threading.Thread(target=self._run, daemon=True)
 
+    def _trace(self, sending: bool, data: bytes) -> bytes:
+        if not sending:
+            self.requests.append(bytes(data))
+        return data
+
     def _run(self) -> None:
         asyncio.run(self._serve())
 
     async def _serve(self) -> None:
         self._loop = asyncio.get_running_loop()
         self._stop = asyncio.Event()
-        self._server = ModbusTcpServer(self.device, framer=self.framer, address=("127.0.0.1", 0))
+        self._server = ModbusTcpServer(
+            self.device, framer=self.framer, address=("127.0.0.1", 0), trace_packet=self._trace
+        )
         await self._server.listen()
         self.port = self._server.transport.sockets[0].getsockname()[1]
         self._ready.set()
@@ -167,9 +175,12 @@ def test_a_celsius_f4t_reads_its_air_set_point_and_range_and_takes_a_set_point(c
         assert celsius_chamber.float_at(2782) == 37.5
         assert controller.read_setpoint_c() == 37.5
         assert controller.read_status().state == "constant"
+        controller.safe_stop()
     finally:
         controller.close()
     assert notices == []
+    functions = {frame[7] for frame in celsius_chamber.requests}  # the MBAP header is 7 bytes
+    assert functions == {3, 16}  # never function 6
 
 
 def test_a_fahrenheit_f4t_is_read_and_written_in_degf_and_seen_in_degc(notices):
