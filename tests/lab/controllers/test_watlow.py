@@ -428,3 +428,11 @@ def test_a_reply_cut_off_by_the_controller_closing_is_a_lost_link(notices):
         controller.connect()
         with pytest.raises(ControllerUnreachable, match="link lost"):
             controller.read_setpoint_c()
+
+
+def test_a_serial_device_that_is_not_there_is_unreachable(tmp_path, notices):
+    missing = tmp_path / "ttyUSB9"
+    controller = registry.open_controller(f"watlow-f4t+rtu://{missing}?unit=1", on_notice=notices.append)
+    with pytest.raises(ControllerUnreachable, match="cannot connect") as caught:
+        controller.connect()
+    assert str(missing) in str(caught.value) and "\n" not in str(caught.value)
