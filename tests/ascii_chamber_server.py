@@ -4,8 +4,9 @@ it receives at the request's line end and answers each line with what ``handler`
 The protocols themselves are written in each test file from the manuals (never from the codecs), so a test
 of a driver against its server can fail.  ``handler(line) -> reply``: ``None`` (no answer), ``bytes``, a list
 of ``bytes`` (sent as separate writes: a reply split across reads), or ``Drop(prefix)`` (send ``prefix``,
-then close the connection: a link lost mid-reply).  Ready as soon as it is built (the socket listens before
-the thread starts); every line received is kept in ``lines``.
+then close the connection: a link lost mid-reply).  ``inject(reply)``: the next line is answered ``reply``
+instead (a fault).  Ready as soon as it is built (the socket listens before the thread starts); every line
+received is kept in ``lines``.
 """
 
 from __future__ import annotations
@@ -15,6 +16,10 @@ import socket
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
+
+import pytest
+
+from fog_driver.lab.controllers.base import ControllerUnreachable
 
 
 @dataclass(frozen=True)
@@ -30,6 +35,7 @@ class LineServer:
         self.handler = handler
         self.request_end = request_end
         self.lines: list[bytes] = []
+        self._injected: list[Reply] = []
         self.sock = socket.create_server(("127.0.0.1", 0))
         self.port = self.sock.getsockname()[1]
         self._thread = threading.Thread(target=self._serve, daemon=True)
@@ -58,12 +64,15 @@ class LineServer:
             while self.request_end in pending:
                 line, _, pending = pending.partition(self.request_end)
                 self.lines.append(line)
-                reply = self.handler(line)
+                reply = self._injected.pop(0) if self._injected else self.handler(line)
                 if isinstance(reply, Drop):
                     conn.sendall(reply.prefix)
                     return
                 for part in [reply] if isinstance(reply, bytes) else reply or []:
                     conn.sendall(part)
+
+    def inject(self, reply: Reply) -> None:
+        self._injected.append(reply)
 
     def close(self) -> None:
         with contextlib.suppress(OSError):
@@ -75,3 +84,21 @@ class LineServer:
 def every_split(reply: bytes) -> list[list[bytes]]:
     """``reply`` cut in two at each point inside it (a reply arriving in two reads)."""
     return [[reply[:at], reply[at:]] for at in range(1, len(reply))]
+
+
+def assert_every_split_reads_the_same(
+    server: LineServer, read: Callable[[], float], reply: bytes, value: float
+) -> None:
+    """``reply`` arriving in two reads, cut at each point, reads as ``value``."""
+    for parts in every_split(reply):
+        server.inject(parts)
+        assert read() == value
+
+
+def assert_a_drop_mid_reply_is_unreachable(server: LineServer, controller, read: Callable[[], float], prefix: bytes):
+    """The connection closed after ``prefix`` of a reply: ``ControllerUnreachable``; a new connection reads."""
+    server.inject(Drop(prefix))
+    with pytest.raises(ControllerUnreachable):
+        read()
+    controller.connect()  # what the runner does after a lost link
+    read()

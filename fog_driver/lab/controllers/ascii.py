@@ -62,24 +62,24 @@ class AsciiChamber:
 
     who = "ascii"
     terminator = b"\r\n"
+    default_port = 0
+    #: the options the driver takes, for the message refusing the others
+    known = "unit, baud"
 
-    def __init__(
-        self, url: ControllerURL, *, default_port: int, timeout_s: float, on_notice: Notice, known: str
-    ) -> None:
+    def __init__(self, url: ControllerURL, *, timeout_s: float, on_notice: Notice) -> None:
         self.url = url.text
         self._on_notice = on_notice
         self._said: set[str] = set()
         unit = url.take("unit", parse_unit, None)
         baud = url.take("baud", parse_baud, 9600)
         self._options_url = url
-        self._known = known
         if url.device is not None:
             self.address = url.device
             self.link = StreamLink(
                 where=f"{url.scheme}://{url.device}", device=url.device, baud=baud, timeout_s=timeout_s
             )
         else:
-            port = url.port if url.port is not None else default_port
+            port = url.port if url.port is not None else self.default_port
             self.address = f"{url.scheme}://{url.host}:{port}"
             self.link = StreamLink(where=self.address, host=url.host, port=port, timeout_s=timeout_s)
         self._unit_assumed = unit is None
@@ -89,7 +89,7 @@ class AsciiChamber:
 
     def finish_options(self) -> None:
         """Refuse the options left untaken (call once the subclass has taken its own)."""
-        self._options_url.refuse_unknown(self._known)
+        self._options_url.refuse_unknown(self.known)
         if self._unit_assumed:
             self.notice_once("unit", f"{self.who}: the protocol does not say its unit: degC assumed (unit=F if not)")
 

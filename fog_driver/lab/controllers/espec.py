@@ -24,6 +24,7 @@ DEFAULT_PORT = 10001
 class EspecController(AsciiChamber):
     who = "espec"
     terminator = codec.TERMINATOR
+    default_port = DEFAULT_PORT
 
     def _temp(self) -> codec.TempReply:
         return codec.decode_temp(self.ask(codec.encode_read_temp()))
@@ -60,12 +61,6 @@ def open_controller(
     url: ControllerURL, *, overrides: dict[str, Any], on_notice: Notice, timeout_s: float
 ) -> EspecController:
     """The Espec controller ``url`` names, not connected (options under ``overrides``; the URL wins)."""
-    controller = EspecController(
-        with_overrides(url, overrides),
-        default_port=DEFAULT_PORT,
-        timeout_s=timeout_s,
-        on_notice=on_notice,
-        known="unit, baud",
-    )
+    controller = EspecController(with_overrides(url, overrides), timeout_s=timeout_s, on_notice=on_notice)
     controller.finish_options()
     return controller

@@ -31,15 +31,11 @@ def parse_command(text: str) -> int:
 class SimservController(AsciiChamber):
     who = "simserv"
     terminator = codec.TERMINATOR
+    default_port = DEFAULT_PORT
+    known = "loop, chamber, unit, lower_limit_command, upper_limit_command, baud"
 
     def __init__(self, url: ControllerURL, *, timeout_s: float, on_notice: Notice) -> None:
-        super().__init__(
-            url,
-            default_port=DEFAULT_PORT,
-            timeout_s=timeout_s,
-            on_notice=on_notice,
-            known="loop, chamber, unit, lower_limit_command, upper_limit_command, baud",
-        )
+        super().__init__(url, timeout_s=timeout_s, on_notice=on_notice)
         self.loop = url.take("loop", parse_index, 1)
         self.chamber = url.take("chamber", parse_index, 1)
         self.lower_limit_command = url.take("lower_limit_command", parse_command, codec.GET_LOWER_LIMIT)

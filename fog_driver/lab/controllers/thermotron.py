@@ -46,15 +46,11 @@ def parse_rate(text: str) -> float:
 class ThermotronController(AsciiChamber):
     who = "thermotron"
     terminator = codec.TERMINATOR
+    default_port = DEFAULT_PORT
+    known = "range, loop, unit, ramp_rate, baud"
 
     def __init__(self, url: ControllerURL, *, timeout_s: float, on_notice: Notice) -> None:
-        super().__init__(
-            url,
-            default_port=DEFAULT_PORT,
-            timeout_s=timeout_s,
-            on_notice=on_notice,
-            known="range, loop, unit, ramp_rate, baud",
-        )
+        super().__init__(url, timeout_s=timeout_s, on_notice=on_notice)
         self.loop = url.take("loop", parse_index, 1)
         self.ramp_rate_c_per_min = url.take("ramp_rate", parse_rate, None)
         range_c = url.take("range", parse_range, None)

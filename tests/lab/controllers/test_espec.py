@@ -6,7 +6,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import pytest
-from ascii_chamber_server import Drop, LineServer, Reply, every_split
+from ascii_chamber_server import (
+    LineServer,
+    Reply,
+    assert_a_drop_mid_reply_is_unreachable,
+    assert_every_split_reads_the_same,
+)
 
 from fog_driver.errors import UsageError
 from fog_driver.lab.controllers.base import (
@@ -32,16 +37,10 @@ class FakeP300:
     alarms: list[int] = field(default_factory=list)
     refuse: str | None = None  # an NA: message every setting gets (local mode)
     mode_error: bool = False
-    split: list[bytes] | None = None  # the next TEMP? reply, as these parts
-    drop_next: bool = False
 
     def __call__(self, line: bytes) -> Reply:
         text = line.decode("ascii")
-        if self.drop_next:
-            return Drop(b"23.4,20")
         if text == "TEMP?":
-            if self.split is not None:
-                return self.split
             return f"{self.air:.1f},{self.setpoint:.1f},{self.upper:.1f},{self.lower:.1f}\r\n".encode()
         if text == "MODE?":
             return b"NA:COMMAND ERR\r\n" if self.mode_error else f"{self.mode}\r\n".encode()
@@ -130,10 +129,7 @@ def test_an_na_answer_is_a_protocol_error_naming_its_message():
 def test_a_reply_split_at_every_point_reads_the_same(chamber):
     fake, server = chamber
     controller = _open(server)
-    reply = b"23.4,21.5,100.0,-40.0\r\n"
-    for parts in every_split(reply):
-        fake.split = parts
-        assert controller.read_setpoint_c() == 21.5
+    assert_every_split_reads_the_same(server, controller.read_setpoint_c, b"23.4,21.5,100.0,-40.0\r\n", 21.5)
     controller.close()
 
 
@@ -197,19 +193,14 @@ def test_a_mode_read_answering_an_error_is_state_unknown_said_once(chamber):
 def test_a_connection_dropped_mid_reply_is_unreachable(chamber):
     fake, server = chamber
     controller = _open(server)
-    fake.drop_next = True
-    with pytest.raises(ControllerUnreachable):
-        controller.read_air_c()
-    fake.drop_next = False
-    controller.connect()  # the runner reconnects
-    assert controller.read_air_c() == fake.air
+    assert_a_drop_mid_reply_is_unreachable(server, controller, controller.read_air_c, b"23.4,20")
     controller.close()
 
 
 def test_an_endless_reply_is_cut_at_its_bound(chamber):
     fake, server = chamber
     controller = _open(server)
-    fake.split = [b"1" * 5000]
+    server.inject(b"1" * 5000)
     with pytest.raises(ControllerUnreachable, match="more than"):
         controller.read_air_c()
     controller.close()

@@ -7,10 +7,15 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import pytest
-from ascii_chamber_server import Drop, LineServer, Reply, every_split
+from ascii_chamber_server import (
+    LineServer,
+    Reply,
+    assert_a_drop_mid_reply_is_unreachable,
+    assert_every_split_reads_the_same,
+)
 
 from fog_driver.errors import UsageError
-from fog_driver.lab.controllers.base import ControllerProtocolError, ControllerUnreachable
+from fog_driver.lab.controllers.base import ControllerProtocolError
 from fog_driver.lab.controllers.codecs import simserv
 from fog_driver.lab.controllers.registry import open_controller
 
@@ -27,15 +32,9 @@ class FakeSimserv:
     setpoint: dict[int, float] = field(default_factory=lambda: {1: 20.0, 2: 50.0})
     limits: tuple[float, float] = (-75.0, 180.0)
     manual: bool = False
-    split: list[bytes] | None = None
-    drop_next: bool = False
 
     def __call__(self, line: bytes) -> Reply:
         fields = [part.decode("ascii") for part in line.split(SEP)]
-        if self.drop_next:
-            return Drop(b"1" + SEP + b"23")
-        if self.split is not None:
-            return self.split
         command, chamber = int(fields[0]), int(fields[1])
         if chamber != 1:
             return b"-5\r\n"
@@ -98,9 +97,7 @@ def test_garbage_to_a_read_is_a_protocol_error(reply):
 def test_a_reply_split_at_every_point_reads_the_same(chamber):
     fake, server = chamber
     controller = _open(server)
-    for parts in every_split(b"1\xb6-12.3\r\n"):
-        fake.split = parts
-        assert controller.read_air_c() == -12.3
+    assert_every_split_reads_the_same(server, controller.read_air_c, b"1\xb6-12.3\r\n", -12.3)
     controller.close()
 
 
@@ -145,9 +142,7 @@ def test_an_error_answer_to_a_write_is_a_protocol_error(chamber):
 def test_a_connection_dropped_mid_reply_is_unreachable(chamber):
     fake, server = chamber
     controller = _open(server)
-    fake.drop_next = True
-    with pytest.raises(ControllerUnreachable):
-        controller.read_air_c()
+    assert_a_drop_mid_reply_is_unreachable(server, controller, controller.read_air_c, b"1" + SEP + b"23")
     controller.close()
 
 

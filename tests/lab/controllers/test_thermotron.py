@@ -6,10 +6,15 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import pytest
-from ascii_chamber_server import Drop, LineServer, Reply, every_split
+from ascii_chamber_server import (
+    LineServer,
+    Reply,
+    assert_a_drop_mid_reply_is_unreachable,
+    assert_every_split_reads_the_same,
+)
 
 from fog_driver.errors import UsageError
-from fog_driver.lab.controllers.base import ControllerProtocolError, ControllerUnreachable, f_to_c
+from fog_driver.lab.controllers.base import ControllerProtocolError, f_to_c
 from fog_driver.lab.controllers.codecs import thermotron
 from fog_driver.lab.controllers.registry import open_controller
 
@@ -23,15 +28,9 @@ class Fake8800:
     setpoint: dict[int, float] = field(default_factory=lambda: {1: 20.0, 2: 45.0})
     ramp: dict[int, float] = field(default_factory=dict)
     status: str = "0"
-    split: list[bytes] | None = None
-    drop_next: bool = False
 
     def __call__(self, line: bytes) -> Reply:
         text = line.decode("ascii")
-        if self.drop_next:
-            return Drop(b"23.")
-        if self.split is not None and text.endswith("?"):
-            return self.split
         if text.startswith("PVAR") and text.endswith("?"):
             return f"{self.air[int(text[4:-1])]:.2f}\r\n".encode()
         if text.startswith("SETP") and text.endswith("?"):
@@ -102,9 +101,7 @@ def test_garbage_to_a_read_is_a_protocol_error(reply):
 def test_a_reply_split_at_every_point_reads_the_same(chamber):
     fake, server = chamber
     controller = _open(server)
-    for parts in every_split(b"-12.30\r\n"):
-        fake.split = parts
-        assert controller.read_air_c() == -12.3
+    assert_every_split_reads_the_same(server, controller.read_air_c, b"-12.30\r\n", -12.3)
     controller.close()
 
 
@@ -150,9 +147,7 @@ def test_a_status_code_that_is_not_one_is_state_unknown_said_once(chamber):
 def test_a_connection_dropped_mid_reply_is_unreachable(chamber):
     fake, server = chamber
     controller = _open(server)
-    fake.drop_next = True
-    with pytest.raises(ControllerUnreachable):
-        controller.read_air_c()
+    assert_a_drop_mid_reply_is_unreachable(server, controller, controller.read_air_c, b"23.")
     controller.close()
 
 
