@@ -108,7 +108,9 @@ class AsciiChamber:
         self.link.close()
 
     def ask(self, request: bytes) -> bytes:
-        """Send ``request`` and return its answer line (with its line end)."""
+        """Send ``request`` and return its answer line (with its line end); whatever arrived unasked before
+        (a late or unexpected answer) is dropped first, so it is never taken for this one."""
+        self.link.discard_input()
         self.link.send(request)
         return self.link.read_until(self.terminator, MAX_LINE_BYTES)
 

@@ -7,8 +7,10 @@ manual), ``loop`` (1..8, default 1: only that loop is read and written), ``unit=
 say it: degC assumed, said once), ``ramp_rate`` (degC per minute, sent as ``MRMPn`` with the first set point
 of a connection; absent: the controller's own manual ramp rate is left as it is).
 
-Writes have no answer; the first set point written on a connection is followed by ``RUNM`` (run manual); the
-safe stop is ``STOP``.  State from ``SCOD?`` (an error or garbage answer: ``unknown``, said once); the
+A setting with data (``SETPn,x``, ``MRMPn,x``) is answered with its value, as the 8200 manual's example shows
+(``SETP1,22.000`` -> ``22.000``); ``write_echo=0`` for an interface that answers nothing.  ``RUNM``, ``HOLD``
+and ``STOP`` have no answer.  The first set point written on a connection is followed by ``RUNM`` (run
+manual); the safe stop is ``STOP``.  State from ``SCOD?`` (an error or garbage answer: ``unknown``, said once); the
 interface's alarms are not read (none listed).
 """
 
@@ -36,6 +38,12 @@ def parse_range(text: str) -> ChamberRange:
         raise ValueError("LOW:HIGH in degC, LOW < HIGH") from None
 
 
+def parse_flag(text: str) -> bool:
+    if text not in ("0", "1"):
+        raise ValueError("0 or 1")
+    return text == "1"
+
+
 def parse_rate(text: str) -> float:
     rate = float(text)
     if not 0.0 < rate < 1000.0:
@@ -47,12 +55,13 @@ class ThermotronController(AsciiChamber):
     who = "thermotron"
     terminator = codec.TERMINATOR
     default_port = DEFAULT_PORT
-    known = "range, loop, unit, ramp_rate, baud"
+    known = "range, loop, unit, ramp_rate, write_echo, baud"
 
     def __init__(self, url: ControllerURL, *, timeout_s: float, on_notice: Notice) -> None:
         super().__init__(url, timeout_s=timeout_s, on_notice=on_notice)
         self.loop = url.take("loop", parse_index, 1)
         self.ramp_rate_c_per_min = url.take("ramp_rate", parse_rate, None)
+        self.write_echo = url.take("write_echo", parse_flag, True)
         range_c = url.take("range", parse_range, None)
         self.finish_options()
         if range_c is None:
@@ -71,14 +80,21 @@ class ThermotronController(AsciiChamber):
     def read_range_c(self) -> ChamberRange:
         return self._range_c
 
+    def _set(self, request: bytes, what: str) -> None:
+        """A setting with data: its echo read (and checked to be a number) unless ``write_echo=0``."""
+        if self.write_echo:
+            codec.decode_number(self.ask(request), what=f"the echo of {what}")
+        else:
+            self.tell(request)
+
     def write_setpoint_c(self, setpoint_c: float) -> None:
-        self.tell(codec.encode_write_setpoint(self.loop, self.from_c(setpoint_c)))
+        self._set(codec.encode_write_setpoint(self.loop, self.from_c(setpoint_c)), "the set point")
         self.start_once(self._run_manual)
 
     def _run_manual(self) -> None:
         if self.ramp_rate_c_per_min is not None:
             rate = self.ramp_rate_c_per_min * (9.0 / 5.0 if self.unit == "F" else 1.0)
-            self.tell(codec.encode_ramp_rate(self.loop, rate))
+            self._set(codec.encode_ramp_rate(self.loop, rate), "the ramp rate")
         self.tell(codec.encode_run_manual())
 
     def safe_stop(self) -> None:

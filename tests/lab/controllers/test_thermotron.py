@@ -21,13 +21,15 @@ from fog_driver.lab.controllers.registry import open_controller
 
 @dataclass
 class Fake8800:
-    """The 8800 as its manual describes it: a request line ends CR, a query's answer ends CR LF; PVARn? and
-    SETPn? answer a number, SETPn,x / MRMPn,x / RUNM / HOLD / STOP answer nothing, SCOD? the status code."""
+    """The 8800 / 8200 as its manual describes it: a request line ends CR, an answer CR LF; PVARn? and SETPn?
+    answer a number, SETPn,x and MRMPn,x echo their value (unless ``echo`` is off), RUNM / HOLD / STOP answer
+    nothing, SCOD? the status code."""
 
     air: dict[int, float] = field(default_factory=lambda: {1: 23.4, 2: 50.0})
     setpoint: dict[int, float] = field(default_factory=lambda: {1: 20.0, 2: 45.0})
     ramp: dict[int, float] = field(default_factory=dict)
     status: str = "0"
+    echo: bool = True
 
     def __call__(self, line: bytes) -> Reply:
         text = line.decode("ascii")
@@ -35,17 +37,15 @@ class Fake8800:
             return f"{self.air[int(text[4:-1])]:.2f}\r\n".encode()
         if text.startswith("SETP") and text.endswith("?"):
             return f"{self.setpoint[int(text[4:-1])]:.2f}\r\n".encode()
-        if text.startswith("SETP"):
+        if text.startswith(("SETP", "MRMP")):
             loop, value = text[4:].split(",")
-            self.setpoint[int(loop)] = float(value)
-        elif text.startswith("MRMP"):
-            loop, value = text[4:].split(",")
-            self.ramp[int(loop)] = float(value)
-        elif text == "RUNM":
+            (self.setpoint if text.startswith("SETP") else self.ramp)[int(loop)] = float(value)
+            return f"{float(value):.3f}\r\n".encode() if self.echo else None
+        if text == "RUNM":
             self.status = "1"
-        elif text in ("STOP", "HOLD"):
+        if text in ("STOP", "HOLD"):
             self.status = "0" if text == "STOP" else "3"
-        elif text == "SCOD?":
+        if text == "SCOD?":
             return f"{self.status}\r\n".encode()
         return None
 
@@ -119,6 +119,24 @@ def test_the_driver_drives_only_its_loop_and_stops(chamber):
     assert server.lines.count(b"RUNM") == 1
     controller.safe_stop()
     assert controller.read_status().state == "standby"
+    controller.close()
+
+
+def test_the_8200_manuals_set_point_example_round_trips():
+    """The 8200 manual's example: 'SETP1,22.000' (53 45 54 50 31 2C 32 32 2E 30 30 30 0D) -> '22.000'
+    (32 32 2E 30 30 30 0D); 'PVAR1?' (50 56 41 52 31 3F 0D) -> '22.000'."""
+    assert thermotron.encode_read_air(1) == bytes.fromhex("50 56 41 52 31 3F 0D")
+    assert thermotron.decode_number(bytes.fromhex("32 32 2E 30 30 30 0D"), what="the air") == 22.0
+    assert thermotron.encode_write_setpoint(1, 22.0) == b"SETP1,22.0\r"  # one decimal, not the example's three
+
+
+def test_an_interface_that_echoes_nothing_is_driven_with_write_echo_0(chamber):
+    fake, server = chamber
+    fake.echo = False
+    controller = _open(server, "range=-70:180&write_echo=0&ramp_rate=2")
+    controller.write_setpoint_c(12.3)
+    assert controller.read_air_c() == 23.4  # no echo taken for the air
+    assert fake.setpoint[1] == 12.3 and fake.ramp[1] == 2.0
     controller.close()
 
 

@@ -2,9 +2,10 @@
 Communications" manual: the query and command mnemonics ``PVARn?``, ``SETPn``, ``MRMPn``, ``RUNM``, ``HOLD``,
 ``STOP`` and ``SCOD?``).
 
-A request is one line ending CR; a query's answer is one line ending CR (a LF after it is dropped, whichever
-of CR or CR LF the interface is set to send).  Commands that set something (``SETP1,20.0``, ``MRMP1,2.0``,
-``RUNM``, ``HOLD``, ``STOP``) have no answer: the driver reads the set point back.
+A request is one line ending CR; an answer is one line ending CR (a LF after it is dropped, whichever of CR
+or CR LF the interface is set to send).  A setting with data answers its value (the 8200 manual's example:
+``SETP1,22.000`` -> ``22.000``, bytes ``53 45 54 50 31 2C 32 32 2E 30 30 30 0D`` -> ``32 32 2E 30 30 30
+0D``); ``RUNM`` ("places a stopped 8200 in run manual mode"), ``HOLD`` and ``STOP`` answer nothing.
 
 - ``PVAR1?`` -> the loop's process variable (the air);
 - ``SETP1?`` -> its set point; ``SETP1,20.0`` sets it (one decimal: resolution 0.1);
@@ -24,7 +25,8 @@ TERMINATOR = b"\r"
 WHO = "thermotron"
 
 #: SCOD? status code -> the interface's state (any other code: ``unknown``).  0 stop, 1 run manual,
-#: 2 run program, 3 hold program, 4 suspend program.
+#: 2 run program, 3 hold program, 4 suspend program: the driver's reading, not checked against a manual's
+#: table yet (a code it does not know is ``unknown``, never a guess).
 STATUS_CODES = {0: "standby", 1: "constant", 2: "program", 3: "program", 4: "program"}
 
 
