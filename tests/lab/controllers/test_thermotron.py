@@ -179,3 +179,12 @@ def test_without_a_range_the_driver_refuses_to_open():
     assert controller.resolution_c == pytest.approx(f_to_c(0.1) - f_to_c(0.0))
     with pytest.raises(UsageError, match="unknown option"):
         open_controller("thermotron://h?range=-40:120&loops=2")
+
+
+def test_an_extra_answer_arriving_unasked_is_not_taken_for_the_next(chamber):
+    fake, server = chamber
+    controller = _open(server)
+    server.inject(b"23.40\r\n99.90\r\n")  # one write: the answer and a stray line after it (a late echo)
+    assert controller.read_air_c() == 23.4
+    assert controller.read_setpoint_c() == fake.setpoint[1]
+    controller.close()
