@@ -39,9 +39,11 @@ def parse_range(text: str) -> ChamberRange:
 
 
 def parse_flag(text: str) -> bool:
-    if text not in ("0", "1"):
+    """``1``/``0`` (also ``true``/``false``, ``yes``/``no``: a YAML boolean in a config file)."""
+    word = text.strip().lower()
+    if word not in ("0", "1", "true", "false", "yes", "no"):
         raise ValueError("0 or 1")
-    return text == "1"
+    return word in ("1", "true", "yes")
 
 
 def parse_rate(text: str) -> float:
