@@ -18,6 +18,7 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from typing import Any, TypeVar
 
+from ...errors import UsageError
 from .base import ControllerProtocolError, Notice, c_to_f, f_to_c
 from .codecs.lines import MAX_LINE_BYTES
 from .links import StreamLink
@@ -29,10 +30,12 @@ UNITS = ("C", "F")
 
 
 def with_overrides(url: ControllerURL, overrides: Mapping[str, Any]) -> ControllerURL:
-    """``url`` with each override it does not give itself added to its options (as text: the URL wins)."""
+    """``url`` with each override it does not give itself added to its options (as text: the URL wins; a
+    YAML list such as ``range: [-40, 120]`` becomes ``-40:120``)."""
     for name, value in overrides.items():
-        if name not in url.options:
-            url.options[str(name)] = str(value)
+        if str(name) not in url.options:
+            text = ":".join(str(item) for item in value) if isinstance(value, list | tuple) else str(value)
+            url.options[str(name)] = text
     return url
 
 
@@ -71,12 +74,14 @@ class AsciiChamber:
         self._on_notice = on_notice
         self._said: set[str] = set()
         unit = url.take("unit", parse_unit, None)
-        baud = url.take("baud", parse_baud, 9600)
+        baud = url.take("baud", parse_baud, None)
+        if baud is not None and url.device is None:
+            raise UsageError(f"controller URL {url.text}: baud is for a serial line (SCHEME:///dev/DEVICE)")
         self._options_url = url
         if url.device is not None:
             self.address = url.device
             self.link = StreamLink(
-                where=f"{url.scheme}://{url.device}", device=url.device, baud=baud, timeout_s=timeout_s
+                where=f"{url.scheme}://{url.device}", device=url.device, baud=baud or 9600, timeout_s=timeout_s
             )
         else:
             port = url.port if url.port is not None else self.default_port

@@ -211,5 +211,7 @@ def test_a_misspelt_option_is_refused_and_overrides_yield_to_the_url():
         open_controller("espec://h?unti=F")
     controller = open_controller("espec://h?unit=C", overrides={"unit": "F"})
     assert controller.resolution_c == 0.1
+    with pytest.raises(UsageError, match="baud is for a serial line"):
+        open_controller("espec://h?baud=9600")
     controller = open_controller("espec:///dev/ttyUSB1?baud=9600", overrides={"unit": "F"})
     assert controller.address == "/dev/ttyUSB1" and controller.resolution_c < 0.1

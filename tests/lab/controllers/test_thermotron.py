@@ -174,7 +174,7 @@ def test_without_a_range_the_driver_refuses_to_open():
         open_controller("thermotron://h")
     with pytest.raises(UsageError, match="bad range"):
         open_controller("thermotron://h?range=50:10")
-    controller = open_controller("thermotron://h", overrides={"range": "-40:120", "unit": "F", "write_echo": False})
+    controller = open_controller("thermotron://h", overrides={"range": [-40, 120], "unit": "F", "write_echo": False})
     assert controller.read_range_c().low_c == -40.0 and not controller.write_echo
     assert controller.resolution_c == pytest.approx(f_to_c(0.1) - f_to_c(0.0))
     with pytest.raises(UsageError, match="unknown option"):
