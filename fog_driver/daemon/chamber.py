@@ -39,20 +39,13 @@ import structlog
 from ..errors import FogDriverError
 from ..lab.chamberlog import ChamberLogWriter, LogHeader, LogRow, format_utc
 from ..lab.controllers.base import ChamberController
+from ..offline.chamber import chamber_log_beside as chamber_log_path
 from .config import ChamberConfig
 
 log = structlog.get_logger("fog_driver.daemon")
 
 #: The longest wait between two reconnection attempts (s).
 RECONNECT_MAX_S = 60.0
-#: The suffix of a capture file's chamber log: ``fog-0001.bin`` -> ``fog-0001.chamber.csv``.
-CHAMBER_LOG_SUFFIX = ".chamber.csv"
-
-
-def chamber_log_path(capture: str | Path) -> Path:
-    """The chamber log beside ``capture``: ``<capture stem>.chamber.csv``."""
-    capture = Path(capture)
-    return capture.with_name(capture.stem + CHAMBER_LOG_SUFFIX)
 
 
 def open_daemon_controller(config: ChamberConfig, on_notice: Callable[[str], None]) -> ChamberController:
