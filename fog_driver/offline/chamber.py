@@ -29,6 +29,7 @@ tolerance (0.5 degC).  A ramp the chamber could not follow (its heater or compre
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -44,6 +45,8 @@ __all__ = [
     "LAG_WINDOW_S",
     "MIN_STRETCH_S",
     "LagStretch",
+    "capture_program_warnings",
+    "chamber_log_and_warnings",
     "find_chamber_log",
     "lag_stretches",
     "program_warnings",
@@ -177,3 +180,19 @@ def program_warnings(capture: str | Path, log: ChamberLog) -> list[str]:
             f"program was designed to identify rests on ramps run at their rates"
         )
     return out
+
+
+def chamber_log_and_warnings(capture: str | Path) -> tuple[ChamberLog | None, list[str]]:
+    """The capture's chamber log (None: none, or one that cannot be read) and its ``program_warnings``; a chamber
+    log that cannot be read is a warning too (the capture is still fitted or evaluated: the log only says how
+    the program ran)."""
+    try:
+        log = load_chamber_log(capture)
+    except InputFileError as exc:
+        return None, [f"{capture}: its chamber log not read: {exc}"]
+    return log, ([] if log is None else program_warnings(capture, log))
+
+
+def capture_program_warnings(captures: Sequence[str | Path]) -> list[str]:
+    """``chamber_log_and_warnings``'s warnings of each capture, in order."""
+    return [line for capture in captures for line in chamber_log_and_warnings(capture)[1]]
