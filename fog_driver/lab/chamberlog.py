@@ -45,6 +45,7 @@ from typing import TextIO
 
 import numpy as np
 
+from ..dwells import _finite as finite_number
 from ..errors import InputFileError, OutputFileError
 from ..files.bounded import read_regular
 from ..files.outputs import check_outputs, write_error
@@ -301,13 +302,7 @@ def _parse_row(fields_: list[str], where: str) -> LogRow:
                 raise InputFileError(f"{where}: segment {text!r} is not a whole number >= 0")
             values[name] = int(text)
         else:
-            try:
-                number = float(text)
-            except ValueError:
-                raise InputFileError(f"{where}: {name} {text!r} is not a number") from None
-            if not math.isfinite(number):
-                raise InputFileError(f"{where}: {name} {text!r} is not a finite number")
-            values[name] = number
+            values[name] = finite_number(text, name, where)  # the table log's rule and words
     return LogRow(**values)  # type: ignore[arg-type]
 
 

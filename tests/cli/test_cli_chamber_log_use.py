@@ -34,12 +34,8 @@ def _log(path: Path, t_s, program_c, air_c, device_t_s=None) -> None:
             )
 
 
-def test_fit_of_a_capture_whose_chamber_ramped_at_half_the_designed_rate_warns_and_records_it(tmp_path):
-    capture = _capture(tmp_path)
-    t = np.arange(0.0, 7200.0, 30.0)
-    program_c = np.minimum(20.0 + t / 60.0, 80.0)  # 1 degC/min to 80
-    air_c = np.minimum(20.0 + t / 120.0, 80.0)  # the chamber managed 0.5 degC/min
-    _log(tmp_path / "sim-short.chamber.csv", t, program_c, air_c)
+def _fit(tmp_path: Path, capture: Path):
+    """``fit`` of ``capture`` (a polynomial, weak accepted: the capture is short): the model's path and the run."""
     (tmp_path / "fit.yaml").write_text("warmup_s: 30\n")
     out = tmp_path / "m.yaml"
     proc = run_cli(
@@ -47,6 +43,16 @@ def test_fit_of_a_capture_whose_chamber_ramped_at_half_the_designed_rate_warns_a
         "--out", str(out),
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
+    return out, proc
+
+
+def test_fit_of_a_capture_whose_chamber_ramped_at_half_the_designed_rate_warns_and_records_it(tmp_path):
+    capture = _capture(tmp_path)
+    t = np.arange(0.0, 7200.0, 30.0)
+    program_c = np.minimum(20.0 + t / 60.0, 80.0)  # 1 degC/min to 80
+    air_c = np.minimum(20.0 + t / 120.0, 80.0)  # the chamber managed 0.5 degC/min
+    _log(tmp_path / "sim-short.chamber.csv", t, program_c, air_c)
+    out, proc = _fit(tmp_path, capture)
     lines = [line for line in proc.stdout.splitlines() if "did not run its program as designed" in line]
     assert len(lines) == 1 and lines[0].startswith(f"warning: {capture}: the chamber")
     assert "ramps run at their rates" in lines[0]
@@ -59,13 +65,7 @@ def test_fit_of_a_capture_whose_chamber_followed_its_program_says_nothing_of_it(
     t = np.arange(0.0, 7200.0, 30.0)
     program_c = np.minimum(20.0 + t / 60.0, 80.0)
     _log(tmp_path / "sim-short.chamber.csv", t, program_c, program_c - 1.0)
-    (tmp_path / "fit.yaml").write_text("warmup_s: 30\n")
-    out = tmp_path / "m.yaml"
-    proc = run_cli(
-        "fit", str(capture), "--config", str(tmp_path / "fit.yaml"), "--accept-weak-fit", "--kind", "polynomial",
-        "--out", str(out),
-    )  # fmt: skip
-    assert proc.returncode == 0, proc.stderr
+    out, proc = _fit(tmp_path, capture)
     assert "chamber" not in proc.stdout
     assert "chamber_warnings" not in yaml.safe_load(out.read_text())["provenance"]
 
@@ -88,10 +88,7 @@ def test_evaluate_plots_the_chamber_beside_the_thermometers_on_the_device_time(t
     doc = yaml.safe_load(sidecar.read_text())
     doc["chamber_log"] = "logs/chamber.csv"
     sidecar.write_text(yaml.safe_dump(doc, sort_keys=False))
-    (tmp_path / "fit.yaml").write_text("warmup_s: 30\n")
-    model = tmp_path / "m.yaml"
-    assert run_cli("fit", str(capture), "--config", str(tmp_path / "fit.yaml"), "--accept-weak-fit",
-                   "--kind", "polynomial", "--out", str(model)).returncode == 0  # fmt: skip
+    model, _ = _fit(tmp_path, capture)
     proc = run_cli("evaluate", str(capture), "--model", str(model), "--out", str(tmp_path / "report"))
     assert proc.returncode == 0, proc.stderr
     summary = json.loads((tmp_path / "report" / "summary.json").read_text())
