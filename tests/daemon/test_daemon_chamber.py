@@ -277,3 +277,48 @@ def test_a_chamber_url_its_driver_refuses_stops_the_start_with_exit_78(monkeypat
     with pytest.raises(ConfigError, match="chamber: url: controller URL sim://") as err:
         service._make_chamber()
     assert err.value.exit_status == 78
+
+
+def test_a_running_daemon_logs_its_chamber_beside_the_capture_file_it_writes(tmp_path, monkeypatch):
+    from pathlib import Path
+
+    import fog_driver.daemon.service as service_module
+    from fog_driver.daemon.service import Service
+
+    data = (Path(__file__).resolve().parents[1] / "data" / "sim-short.bin").read_bytes()
+    polled = threading.Event()
+
+    class Signalling(FakeChamber):
+        def read_setpoint_c(self) -> float:
+            polled.set()
+            return super().read_setpoint_c()
+
+    chamber = Signalling()
+    monkeypatch.setattr(service_module, "open_daemon_controller", lambda config, on_notice: chamber)
+    config = DriverConfig(
+        listen="127.0.0.1:0", capture_dir=str(tmp_path / "captures"), chamber=ChamberConfig("sim://", 0.5)
+    )
+    service = Service(config, port=str(tmp_path / "no-such-tty"))  # the acquisition waits for the port
+    try:
+        service.start()
+        angles = service.process(data)  # the pipeline, as the acquisition thread runs it
+        service.capture.put(data)  # and the capture, as the port's reader feeds it
+        logs: list = []
+        for _ in range(40):  # each poll signals; the first after the capture's file exists writes a row
+            assert polled.wait(10)
+            polled.clear()
+            logs = list((tmp_path / "captures").glob("*.chamber.csv"))
+            if logs and read_chamber_log(logs[0]).rows:
+                break
+        with service.lock:
+            status = service.status_object()
+        assert status["chamber"]["air_c"] == 21.5 and status["chamber"]["link_up"] is True
+        capture = Path(service.capture.status_fields()["path"])
+    finally:
+        service.stop.set()
+        service.shutdown()
+    (log,) = logs
+    assert log == chamber_log_path(capture) and capture.exists()
+    rows = read_chamber_log(log).rows
+    assert rows and {r.device_t_s for r in rows} == {angles[-1]["t_s"]}
+    assert chamber.writes == []
