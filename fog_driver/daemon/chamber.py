@@ -209,7 +209,8 @@ class ChamberPoller:
     # -- the thread -----------------------------------------------------------------------------
 
     def run(self) -> None:
-        """Poll every ``poll_s`` until ``stop`` (the next poll is due ``poll_s`` after the last was due)."""
+        """Poll every ``poll_s`` until ``stop``: the next poll is due ``poll_s`` after the last was due, or at once
+        when a poll took longer than that (a controller's timeout): no burst of polls to catch up."""
         due = self.clock()
         try:
             while not self.stop.is_set():
@@ -217,7 +218,7 @@ class ChamberPoller:
                     self.poll_once()
                 except Exception:  # noqa: BLE001 - a bug here must never reach the acquisition: logged, polling goes on
                     log.exception("chamber_poll_failed", url=self.config.url)
-                due += self.config.poll_s
+                due = max(due + self.config.poll_s, self.clock())  # a slow poll delays the next, never a burst
                 if self.stop.wait(max(0.0, due - self.clock())):
                     break
         finally:

@@ -21,6 +21,7 @@ The file, in UTF-8 text with ``\\n`` line ends::
   ``20.0`` for a set point the ASCII protocols gave to one decimal); never NaN or infinite;
 - ``t_utc`` is ISO 8601 to the millisecond with a ``Z`` (``format_utc``, the NDJSON ``utc``'s format);
 - ``state`` is one of ``LOG_STATES``; ``segment`` is the 0-based index of the program's segment.
+- a log saved with CR LF line ends (an editor on Windows) reads the same.
 
 Nothing is lost: ``ChamberLogWriter`` writes each row whole with one ``write`` and flushes it at once, so a
 process that dies loses at most the row being written, and ``close`` syncs the file to disk.  The reader's
@@ -341,6 +342,7 @@ def read_chamber_log(path: str | Path) -> ChamberLog:
     lines = text.split("\n")
     cut = lines[-1] != ""  # a last line without its line end: the row a crash cut
     lines = lines[:-1]
+    lines = [line.removesuffix("\r") for line in lines]  # a log saved with CR LF line ends reads the same
     first = lines[0] if lines else text
     if first != LOG_FORMAT_LINE:
         if first.startswith("# fog-driver chamber log "):
@@ -352,10 +354,10 @@ def read_chamber_log(path: str | Path) -> ChamberLog:
     column_index = 1 + len(_HEADER_KEYS)
     if len(lines) <= column_index:
         raise InputFileError(f"{path}: the chamber log ends before its column line")
-    if lines[column_index].rstrip("\r") != ",".join(LOG_COLUMNS):
+    if lines[column_index] != ",".join(LOG_COLUMNS):
         raise InputFileError(f"{path}: line {column_index + 1}: expected the column line {','.join(LOG_COLUMNS)!r}")
     rows = [
-        _parse_row(line.rstrip("\r").split(","), f"{path}: line {number}")
+        _parse_row(line.split(","), f"{path}: line {number}")
         for number, line in enumerate(lines[column_index + 1 :], column_index + 2)
     ]
     return ChamberLog(header=header, rows=rows, cut_last_row=cut, path=path)

@@ -69,6 +69,15 @@ def test_a_chamber_log_written_row_by_row_reads_back_exactly(tmp_path):
     assert text[0] == LOG_FORMAT_LINE and text[6] == ",".join(LOG_COLUMNS)
 
 
+def test_a_chamber_log_saved_with_crlf_line_ends_reads_the_same(tmp_path):
+    path = tmp_path / "run.chamber.csv"
+    rows = _rows()
+    _write(path, rows)
+    path.write_bytes(path.read_bytes().replace(b"\n", b"\r\n"))
+    log = read_chamber_log(path)
+    assert log.rows == rows and log.header == HEADER and not log.cut_last_row
+
+
 def test_each_row_is_on_disk_as_soon_as_it_is_written(tmp_path):
     path = tmp_path / "run.chamber.csv"
     writer = ChamberLogWriter(path, HEADER)
