@@ -45,6 +45,14 @@ SCRAPED_STATUS = {
     "adapting": True,
     "flagged": {"gap": 2, "extrapolating": 5},
     "model_file": MODEL_FILE,
+    "chamber": {
+        "url": "sim://",
+        "state": "link_lost",
+        "link_up": False,
+        "air_c": 61.5,
+        "setpoint_c": 60.0,
+        "age_s": 7.5,
+    },
 }
 
 

@@ -33,6 +33,7 @@ from ..files.typed_mapping import dataclass_from_mapping
 from ..files.yamlio import MAX_YAML_BYTES, read_yaml
 from ..formats.registry import FORMATS
 from ..modelfiles import load_model, not_a_state_file, save_model
+from ..offline.chamber import capture_program_warnings
 from ..offline.compensate import (
     capture_facts,
     check_model,
@@ -102,6 +103,9 @@ def cmd_fit(args: argparse.Namespace) -> int:
         else ""
     )
     print(f"fitting a {kind} model{default}", flush=True)
+    chamber_warnings = capture_program_warnings(args.captures)  # did each capture's chamber run its program?
+    for line in chamber_warnings:
+        print(f"warning: {line}", flush=True)
     progress = Progress()
     try:
         model_file, report = fit_model_file(
@@ -126,6 +130,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
         ) from None
     finally:
         progress.clear()
+    if chamber_warnings:
+        model_file.provenance["chamber_warnings"] = chamber_warnings
     save_model(out, model_file)
     provenance = model_file.provenance
     fitted = provenance["captures"]

@@ -87,6 +87,7 @@ class Acquisition:
         self.samples_published = 0
         #: the sequence number of the last sample compensated (the sidecar's events say where they took effect)
         self.last_seq: int | None = None
+        self.last_t_s: float | None = None
         self.flagged = dict.fromkeys(FLAG_NAMES.values(), 0)  # published samples per flag, since start
         self.offsets = PublishOffsets()  #: what ?ZERO and ?BIAS do to the published angles (a replay does the same)
         self.bias_capture: BiasCapture | None = None
@@ -238,6 +239,7 @@ class Acquisition:
         service = self.service
         c = service.binding.step(sample)
         self.last_seq = c.seq
+        self.last_t_s = c.t_s  # the device time of the last sample (the chamber log's device_t_s)
         period = service.compensator.frame_period_s
         capture = self.bias_capture
         if capture is not None and capture.add(c.dtheta_comp_arcsec, period, c.drift_sigma_dph):

@@ -12,16 +12,18 @@ from __future__ import annotations
 import ipaddress
 import math
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from importlib.resources import files
 from pathlib import Path
 from typing import Any
 
 from ..client.address import DEFAULT_PORT, parse_host_port
 from ..client.address import format_address as format_address  # re-exported: service.py reads it here
-from ..errors import InputFileError
+from ..errors import InputFileError, UsageError
 from ..files.typed_mapping import dataclass_from_mapping
 from ..files.yamlio import read_yaml
+from ..lab.controllers.registry import SCHEMES
+from ..lab.controllers.url import parse_controller_url
 from ..samples.sources import WireSettings
 from ..samples.stream import DEFAULT_SCALE_ARCSEC_PER_COUNT, SampleStream
 from ..transport.port import DEFAULT_SILENCE_S, check_silence_s
@@ -103,6 +105,37 @@ class DeviceConfig:
         return DeviceSetup(commands=self.setup, reply_timeout_s=self.setup_reply_timeout_s) if self.setup else None
 
 
+#: The daemon's chamber poll period when ``chamber.poll_s`` is not given, and its bounds (s).
+DEFAULT_CHAMBER_POLL_S = 5.0
+CHAMBER_POLL_RANGE_S = (0.5, 3600.0)
+
+
+@dataclass(frozen=True)
+class ChamberConfig:
+    """The daemon's read-only chamber (the ``chamber:`` section): the controller's URL (``fog-driver chamber
+    status URL``'s), how often its air and set point are read (``poll_s``), and the driver's settings from a
+    file (``overrides``: register addresses, word order...; the URL's options win over them).  The daemon only
+    reads: it never writes a set point."""
+
+    url: str = ""
+    poll_s: float = DEFAULT_CHAMBER_POLL_S
+    overrides: dict[str, str | bool | int | float] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if not self.url:
+            raise ValueError("url: the chamber controller's URL is needed (watlow-f4t://HOST, espec://HOST, sim://)")
+        try:
+            scheme = parse_controller_url(self.url).scheme
+        except UsageError as exc:
+            raise ValueError(f"url: {exc}") from None
+        if scheme not in SCHEMES and scheme != "sim":
+            known = ", ".join(sorted([*SCHEMES, "sim"]))
+            raise ValueError(f"url: {self.url}: unknown scheme {scheme!r} (known: {known})")
+        low, high = CHAMBER_POLL_RANGE_S
+        if not low <= self.poll_s <= high:
+            raise ValueError(f"poll_s must be in [{low:g}, {high:g}] s, got {self.poll_s!r}")
+
+
 @dataclass(frozen=True)
 class DriverConfig:
     """Every setting of the driver and the daemon (``configs/default.yaml`` documents each)."""
@@ -138,6 +171,7 @@ class DriverConfig:
     axis: str = "z"  #: the instrument's angle axis, for a format with three (x, y or z)
     device: DeviceConfig = DeviceConfig()  #: the device's settings, for a format other than fog-v1
     publish_axes: bool = False  #: ANGLE carries the three axes' raw rates (a three-axis format's)
+    chamber: ChamberConfig | None = None  #: a chamber to log read-only beside the capture (None: none)
 
     def __post_init__(self) -> None:
         if self.port is not None and not self.port:

@@ -79,6 +79,7 @@ from ..transport import PortEvent, PortReader
 from ..transport.setup import make_on_open
 from . import status
 from .acquisition import Acquisition, stamp_utc
+from .chamber import ChamberPoller, open_daemon_controller
 from .commands import run_command
 from .config import DEFAULT_HTTP_PORT, DriverConfig, format_address, parse_host_port, token_warnings
 from .errors import ConfigError
@@ -129,6 +130,7 @@ class Service:
         "axis",
         "device",
         "publish_axes",
+        "chamber",
     )
 
     def __init__(self, config: DriverConfig, *, port: str, model_file: ModelFile | None = None) -> None:
@@ -174,6 +176,7 @@ class Service:
         self.latency = LatencyHistogram()  # frame-to-publish, for /metrics
         self.notifier = None
         self.reader: PortReader | None = None
+        self.chamber: ChamberPoller | None = None  #: the read-only chamber (the config's ``chamber:``)
         self._acquisition: threading.Thread | None = None
         self.failure: BaseException | None = None
         #: the save at exit that failed (``shutdown``): ``run_until_stopped`` then ends in it (exit 73)
@@ -527,6 +530,7 @@ class Service:
             self.capture.keep_model(self.model_sha256, self.model_bytes)  # the model the capture starts with
             if self.config.udp:
                 self.udp = UdpPublisher(*parse_host_port(self.config.udp), version=self.config.udp_version)
+            self.chamber = self._make_chamber()
         except BaseException:  # a start that fails leaves nothing listening or running behind it
             if self.capture is not None:
                 self.capture.close()
@@ -548,7 +552,31 @@ class Service:
             log.info("web_listening", address=format_address(*self.web.address), token=self.web.need_token)
         self._acquisition = threading.Thread(target=self.acquisition.run, name="acquisition", daemon=True)
         self._acquisition.start()
+        if self.chamber is not None:
+            self.chamber.start()
         return address
+
+    def _make_chamber(self) -> ChamberPoller | None:
+        """The read-only chamber poller of the ``chamber:`` section, not started (None: no section).  A URL its
+        driver refuses is a ``ConfigError`` (exit 78); a missing extra (``lab``) a ``UsageError`` (exit 64)."""
+        config = self.config.chamber
+        if config is None:
+            return None
+        try:
+            controller = open_daemon_controller(config, lambda line: log.warning("chamber_notice", message=line))
+        except UsageError as exc:
+            if "pip install" in str(exc):
+                raise
+            raise ConfigError(f"chamber: url: {exc}") from None
+        except FogDriverError as exc:
+            raise ConfigError(f"chamber: url: {exc}") from None
+        capture = self.capture
+        return ChamberPoller(
+            config,
+            controller,
+            capture_path=lambda: None if capture is None else capture.status_fields().get("path"),
+            device_t_s=lambda: self.acquisition.last_t_s,
+        )
 
     def _make_web(self):
         """The web view and /metrics on ``http``, not started (UsageError, exit 64 as for every command: the
@@ -694,6 +722,8 @@ class Service:
                 self.save_adapt_state(doc, log_failure=False)  # the run ends in it (``run_until_stopped``)
             except OutputFileError as exc:
                 self.adapt_state_not_saved = exc
+        if self.chamber is not None:
+            self.chamber.close(JOIN_TIMEOUT_S)
         if self.capture is not None and not self.capture.close(JOIN_TIMEOUT_S):
             log.error("capture_not_closed", reason=f"the capture thread did not finish within {JOIN_TIMEOUT_S} s")
         if self.hub is not None:

@@ -168,6 +168,9 @@ def status_object(service: Any, *, mark_cpu: bool = True) -> dict:
     }
     obj.update(_pipeline_fields(service))
     obj.update(_listener_fields(service))
+    chamber = getattr(service, "chamber", None)
+    if chamber is not None:  # the config's read-only chamber: its last reading (daemon/chamber.py)
+        obj["chamber"] = chamber.snapshot()
     return obj
 
 

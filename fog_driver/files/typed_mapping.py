@@ -13,6 +13,8 @@ What each annotation accepts::
     str                 a string
     tuple[str, ...]     a list of strings, held as a tuple
     tuple[float, ...]   a list of numbers (no bools), held as a tuple of floats
+    dict[str, ...]      a mapping of names to strings, integers, finite numbers or true/false (a driver's
+                        settings, such as a chamber controller's register overrides), held as a dict
     X | None            also null
     a dataclass         a nested mapping, checked the same way
 
@@ -52,6 +54,7 @@ EXPECTED = {
     "strings": "expected a list of strings",
     "numbers": "expected a list of numbers",
     "mapping": "expected a mapping",
+    "settings": "expected a mapping of names to numbers, strings or true/false",
 }
 
 #: The schema type of each kind (``mapping``: a nested schema, built apart).
@@ -62,6 +65,7 @@ _SCHEMA_TYPES: dict[str, Any] = {
     "str": str,
     "strings": tuple[str, ...],
     "numbers": tuple[float, ...],
+    "settings": dict[str, str | bool | int | FiniteFloat],
 }
 
 #: The kind of each scalar annotation.
@@ -96,6 +100,8 @@ def field_type(annotation: Any) -> FieldType:
             return FieldType("strings", optional)
         if args[0] in (float, int):
             return FieldType("numbers", optional)
+    if typing.get_origin(annotation) is dict and args[:1] == (str,):
+        return FieldType("settings", optional)
     kind = _SCALARS.get(annotation)
     if kind is not None:
         return FieldType(kind, optional)

@@ -39,6 +39,8 @@ from ..compensation.model import ModelFile
 from ..errors import UsageError
 from ..extras import missing_message
 from ..flags import FLAG_EXTRAPOLATING
+from ..lab.chamberlog import ChamberLog
+from ..offline.chamber import chamber_log_and_warnings
 from ..offline.compensate import compensate_capture
 from ..offline.fit import load_capture
 from ..sim.capture import truth_noise_dph
@@ -72,6 +74,8 @@ class Series:
     compared_drift_dph: dict[str, np.ndarray] = field(default_factory=dict)
     #: the mean ``drift_sigma_dph`` of each second's frames (NaN where any frame had none, or no frame came)
     drift_sigma_dph: np.ndarray | None = None
+    #: the capture's chamber log (``offline.chamber.find_chamber_log``), plotted beside the thermometers
+    chamber: ChamberLog | None = None
 
     @property
     def rate_comp_dph(self) -> np.ndarray:
@@ -280,6 +284,7 @@ def evaluate(
             wire_format=wire_format,
             progress=None if step is None else lambda done, step=step: step(done, size),
         ).drift_dph
+    series.chamber, chamber_warnings = chamber_log_and_warnings(capture)
     stretch = longest_run(series.static)
     if stretch.stop - stretch.start < 64:
         raise UsageError(
@@ -306,8 +311,10 @@ def evaluate(
         "allan_stretch_s": [int(stretch.start), int(stretch.stop)],
         "extrapolating_seconds": int(series.extrapolating.sum()),
         "static_minutes": static_minutes(series.static),
-        "warnings": stretch_warnings(stretch.stop - stretch.start, static_minutes(series.static)),
+        "warnings": stretch_warnings(stretch.stop - stretch.start, static_minutes(series.static)) + chamber_warnings,
     }
+    if series.chamber is not None and series.chamber.path is not None:
+        summary["chamber_log"] = str(series.chamber.path)
     for name, rate in rates.items():
         summary[name] = {**allans[name].read_points(), "drift_rms_1min_dph": minute_rms(rate, series.static)}
     summary["allan"] = {name: a.table() for name, a in allans.items()}
@@ -403,11 +410,29 @@ def plot(
     return [_save(figure, out_dir / name) for figure, name in zip(figures, PLOT_NAMES)]
 
 
+def chamber_minutes(log: ChamberLog, first_t_s: float) -> tuple[np.ndarray, str]:
+    """Where a chamber log's rows go on the report's time axis (device minutes), and what that axis is for them:
+    ``device_t_s`` (the gyro's device time of the last frame at each row, ``calibrate``'s and the daemon's logs)
+    where the log has it, rows without it left out; else (a ``chamber run`` log) the host time, its first row at
+    the capture's first second (``first_t_s``): the two clocks are aligned at the start only."""
+    device = log.device_t_s
+    if np.isfinite(device).any():
+        return device / 60.0, "device time"
+    host = log.utc_s
+    return (host - host[0] + first_t_s) / 60.0, "host time, aligned at the start"
+
+
 def _plot_temperatures(plt: Any, series: Series, minutes: np.ndarray) -> Any:
-    """The three thermometers over the run."""
+    """The three thermometers over the run, and the chamber's set point and air where the capture has a chamber
+    log (``chamber_minutes``: on the device time axis)."""
     fig, ax = plt.subplots(figsize=(9, 4))
     for k, name in enumerate(("ring top", "ring bottom", "housing")):
         ax.plot(minutes, series.temps_c[:, k], label=name, lw=1)
+    log = series.chamber
+    if log is not None and log.rows:
+        x, axis = chamber_minutes(log, float(series.t_s[0]) if len(series.t_s) else 0.0)
+        ax.plot(x, log.setpoint_c, label=f"chamber set point ({axis})", lw=1, ls="--", color="0.35")
+        ax.plot(x, log.air_c, label=f"chamber air ({axis})", lw=1, color="0.1")
     ax.set(xlabel="time, min", ylabel="temperature, degC", title="Thermometers")
     ax.grid(alpha=0.3)
     ax.legend()

@@ -66,6 +66,13 @@ METRICS: dict[str, tuple[str, str]] = {
     ),
     "fog_driver_model_age_seconds": ("gauge", "seconds since the model in use was fitted"),
     "fog_driver_extrapolating": ("gauge", "1 while the last sample lies outside what the model was fitted on"),
+    "fog_driver_chamber_up": (
+        "gauge",
+        "1 while the chamber (the config's chamber:) answers its reads, 0 while its link is lost (absent: no chamber)",
+    ),
+    "fog_driver_chamber_air_celsius": ("gauge", "the chamber's air temperature at its last good read, degC"),
+    "fog_driver_chamber_setpoint_celsius": ("gauge", "the chamber's set point at its last good read, degC"),
+    "fog_driver_chamber_reading_age_seconds": ("gauge", "host seconds since the chamber's last good read"),
     "fog_driver_publish_latency_seconds": (
         "histogram",
         "from the read that completed a chunk of samples to their lines queued for every watching client",
@@ -208,6 +215,12 @@ class DaemonCollector:
             yield f
         yield from single("fog_driver_last_sample_age_seconds", state.get("angle_age_s"))
         yield from self._listeners_and_readings(state, family, single)
+        chamber = status.get("chamber")
+        if isinstance(chamber, Mapping):
+            yield from single("fog_driver_chamber_up", 1 if chamber.get("link_up") else 0)
+            yield from single("fog_driver_chamber_air_celsius", chamber.get("air_c"))
+            yield from single("fog_driver_chamber_setpoint_celsius", chamber.get("setpoint_c"))
+            yield from single("fog_driver_chamber_reading_age_seconds", chamber.get("age_s"))
         buckets, total_s = self._latency.snapshot()
         h = HistogramMetricFamily(
             "fog_driver_publish_latency_seconds", METRICS["fog_driver_publish_latency_seconds"][1]

@@ -89,6 +89,7 @@ STATUS_ROWS = (
     ("web_dropped_clients", "dropped web pages"),
     ("capture_state", "capture"),
     ("capture_bytes", "capture bytes"),
+    ("chamber", "chamber (read-only)"),
     ("bias_dph", "bias removed (deg/h)"),
     ("adapting", "adapting"),
     ("cpu_percent", "daemon CPU (%)"),
@@ -352,6 +353,7 @@ class ViewState:
             out[f"status_{key}"] = (
                 format_duration(value) if key == "uptime_s" and value is not None else _status_text(value)
             )
+        out["status_chamber"] = chamber_text(status.get("chamber"))
         return out
 
 
@@ -404,6 +406,20 @@ def _model_texts(model_file: Mapping[str, Any]) -> dict[str, str]:
 def _angle(value: Any, fmt: Any) -> str:
     """An angle as ``watch`` shows it (``fmt``: ``format_arcsec`` or ``format_dms``), ``-`` when not a number."""
     return fmt(value) if _number(value) is not None else "-"
+
+
+def chamber_text(chamber: Any) -> str:
+    """STATUS's ``chamber`` on the page: "air 41.25 degC, set point 42.00 degC (link up, 1.2 s ago)"; the last
+    good reading with "link lost" while it is; "-" without a chamber."""
+    if not isinstance(chamber, Mapping):
+        return "-"
+    link = "link up" if chamber.get("link_up") else "link lost" if chamber.get("state") == "link_lost" else "starting"
+    age = chamber.get("age_s")
+    when = f", {age:.1f} s ago" if isinstance(age, (int, float)) and not isinstance(age, bool) else ""
+    air, setpoint = _fixed(chamber.get("air_c"), 2), _fixed(chamber.get("setpoint_c"), 2)
+    if air == "-" and setpoint == "-":
+        return f"no reading yet ({link})"
+    return f"air {air} degC, set point {setpoint} degC ({link}{when})"
 
 
 def _status_text(value: Any) -> str:
