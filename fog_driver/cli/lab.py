@@ -22,6 +22,7 @@ from ..extras import require_extra
 from ..lab.chamberlog import ChamberLogWriter, LogHeader, LogRow, program_sha256, read_chamber_log
 from ..lab.controllers.base import ChamberController, ProgramOutOfRange
 from ..lab.controllers.registry import open_controller
+from ..lab.controllers.url import ControllerURL
 from ..lab.lock import ControllerLock
 from ..lab.profiles import load_profile
 from ..lab.runner import OnStop, RunOptions, SystemClock, parse_on_stop, resume_point, run_program
@@ -48,13 +49,16 @@ def _overrides(path: str | None) -> dict[str, Any]:
     return section
 
 
+def _open_sim(url: ControllerURL, **settings: Any) -> ChamberController:
+    """``sim://``: the simulated lab's chamber, imported only when a URL names it."""
+    from ..sim.chamber import open_sim_controller
+
+    return open_sim_controller(url, **settings)  # type: ignore[no-any-return]
+
+
 def open_chamber(url: str, config: str | None) -> ChamberController:
     """The controller ``url`` names (``sim://`` from the simulator), not yet connected."""
-    from ..sim.chamber import open_sim_controller  # the simulated lab: imported when a command opens a controller
-
-    return open_controller(
-        url, overrides=_overrides(config), on_notice=_notice, extra_schemes={"sim": open_sim_controller}
-    )
+    return open_controller(url, overrides=_overrides(config), on_notice=_notice, extra_schemes={"sim": _open_sim})
 
 
 def status_line(controller: ChamberController) -> str:
