@@ -53,7 +53,7 @@ def _open_sim(url: ControllerURL, **settings: Any) -> ChamberController:
     """``sim://``: the simulated lab's chamber, imported only when a URL names it."""
     from ..sim.chamber import open_sim_controller
 
-    return open_sim_controller(url, **settings)  # type: ignore[no-any-return]
+    return open_sim_controller(url, **settings)
 
 
 def open_chamber(url: str, config: str | None) -> ChamberController:
