@@ -10,7 +10,6 @@ controller is locked (69 if another run drives it) and connected (69 if unreacha
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import threading
 import uuid
@@ -20,12 +19,12 @@ from typing import Any
 from ..errors import InputFileError, OutputFileError, UsageError
 from ..extras import require_extra
 from ..lab.chamberlog import ChamberLogWriter, LogHeader, LogRow, program_sha256, read_chamber_log
-from ..lab.controllers.base import ChamberController, ProgramOutOfRange
+from ..lab.controllers.base import ChamberController
 from ..lab.controllers.registry import open_controller
 from ..lab.controllers.url import ControllerURL
 from ..lab.lock import ControllerLock
 from ..lab.profiles import load_profile
-from ..lab.runner import OnStop, RunOptions, SystemClock, parse_on_stop, resume_point, run_program
+from ..lab.runner import OnStop, RunOptions, SystemClock, check_range, parse_on_stop, resume_point, run_program
 from ..signals import stop_on_signals
 from .argtypes import positive_float
 
@@ -120,6 +119,7 @@ def cmd_chamber_run(args: argparse.Namespace) -> int:
     options = RunOptions(step_s=args.step_s, on_stop=args.on_stop)
     with ControllerLock(controller.address):
         controller.connect()
+        check_range(program, controller.read_range_c(), options.on_stop)  # before the log: nothing to log
         header = LogHeader(profile.name, program_sha256(program), args.chamber, uuid.uuid4().hex, args.resume)
         log = ChamberLogWriter(log_path, header, force=args.force)
         stop = threading.Event()
@@ -141,10 +141,6 @@ def cmd_chamber_run(args: argparse.Namespace) -> int:
                     resume_t_s=resume_t_s,
                     on_row=_progress,
                 )
-        except ProgramOutOfRange:
-            log.close()
-            os.unlink(log_path)  # nothing was written to the chamber: no log of it either
-            raise
         finally:
             log.close()
             controller.close()
