@@ -108,10 +108,10 @@ def parse_on_stop(text: str) -> OnStop:
         return OnStop(text)  # type: ignore[arg-type]
     try:
         value = float(text)
+        if not math.isfinite(value):
+            raise ValueError(text)
     except ValueError:
-        raise ValueError(f"on-stop must be hold, standby or a temperature in degC: {text!r}") from None
-    if not math.isfinite(value):
-        raise ValueError(f"on-stop temperature must be finite: {text!r}")
+        raise ValueError(f"on-stop must be hold, standby or a finite temperature in degC: {text!r}") from None
     return OnStop("goto", value)
 
 
@@ -199,27 +199,25 @@ class _Stopped(Exception):
     """The run ends here (the stop event is set)."""
 
 
+@dataclass
 class _Run:
     """One run's state: the schedule's anchor, the program time and the log."""
 
-    def __init__(
-        self,
-        controller: ChamberController,
-        program: ChamberProfile,
-        log: ChamberLogWriter,
-        options: RunOptions,
-        clock: Clock,
-        stop: threading.Event,
-        gyro: GyroFeed | None,
-        on_row: Callable[[LogRow], None] | None,
-    ) -> None:
-        self.controller, self.program, self.log, self.options = controller, program, log, options
-        self.clock, self.stop, self.gyro, self.on_row = clock, stop, gyro, on_row
-        self.rows = 0
-        self.lateness_s: list[float] = []
-        self.last_written_c: float | None = None
-        self.paused_t_s: float | None = None  # the program time of the last step due (where a pause holds it)
-        self._starts = np.array([s.t_start_s for s in program.spans()])
+    controller: ChamberController
+    program: ChamberProfile
+    log: ChamberLogWriter
+    options: RunOptions
+    clock: Clock
+    stop: threading.Event
+    gyro: GyroFeed | None
+    on_row: Callable[[LogRow], None] | None
+    rows: int = 0
+    lateness_s: list[float] = field(default_factory=list)
+    last_written_c: float | None = None
+    paused_t_s: float | None = None  # the program time of the last step due (where a pause holds it)
+
+    def __post_init__(self) -> None:
+        self._starts = np.array([s.t_start_s for s in self.program.spans()])
 
     # --- rows --------------------------------------------------------------------------------------
     def segment_at(self, t_s: float) -> int | None:

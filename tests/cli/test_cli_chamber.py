@@ -100,7 +100,7 @@ def test_resuming_from_a_file_that_is_not_a_chamber_log_is_one_line_and_exit_65(
 
 def test_a_bad_on_stop_is_a_usage_error(tmp_path: Path) -> None:
     proc = run_cli("chamber", "run", "x", "--chamber", "sim://", "--log", "l.csv", "--on-stop", "warm")
-    assert proc.returncode == 2 and "on-stop must be hold, standby or a temperature" in proc.stderr
+    assert proc.returncode == 2 and "on-stop must be hold, standby or a finite temperature" in proc.stderr
 
 
 # --- against a controller (sim:// needs fog_driver.sim.chamber; espec:// the Espec driver) ------------------------
