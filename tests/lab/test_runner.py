@@ -83,6 +83,7 @@ def test_a_ramp_writes_the_program_at_each_step_rounded_to_the_resolution(tmp_pa
         assert abs(written_c - program_at(RAMP, row.t_s)) <= 0.05 + 1e-9
         assert when_s == host_s(row) == row.t_s  # no settling: the program starts at host time 0
         assert row.setpoint_c == written_c
+        assert abs(written_c / 0.1 - round(written_c / 0.1)) < 1e-9  # a multiple of the resolution
     assert rows[-1].state == "done" and result.status == "done" and result.program_t_s == RAMP.duration_s
     assert result.lateness_s == [0.0] * len(running)
     assert running[15].segment == 1 and running[0].segment == 0
@@ -333,6 +334,7 @@ def test_every_written_set_point_is_the_program_at_its_time_and_a_link_loss_paus
     running = [r for r in rows if r.state == "running"]
     for row in running:
         assert abs(row.program_c - program_at(program, row.t_s)) <= resolution_c / 2 + 1e-9
+        assert abs(row.program_c / resolution_c - round(row.program_c / resolution_c)) < 1e-6
         assert not any(a <= host_s(row) < a + d for a, d in windows)
     # the program's clock runs a step per step and stands still while the link is lost: no time skipped or repeated
     expected = [min(k * step_s, program.duration_s) for k in range(len(running))]
