@@ -26,11 +26,12 @@ The rules ``run_program`` follows:
 - **Refused or garbage** (``ControllerRefused``, ``ControllerProtocolError``): a ``stopped`` row, the error raised
   (one line); nothing more written.
 - **The end** (the program's end, or ``stop`` set: SIGINT/SIGTERM): ``on_stop``; ``hold`` writes nothing more,
-  ``standby`` calls ``controller.safe_stop()``, ``goto`` ramps from the last set point to its target at the
-  program's slowest ramp rate (1 degC/min if it has no ramp), stepping every ``step_s`` (rows ``stopped``, ``t_s``
-  the program time where it stopped), and returns once the target is written (the controller holds it).  The
-  ramp to the target does not end at ``stop`` (a second Ctrl-C ends the process).  Then a final row ``done`` or
-  ``interrupted`` with the set point and air read back (empty if the link is lost).
+  ``standby`` calls ``controller.safe_stop()`` (on a lost link: once reconnected), ``goto`` ramps from the last
+  set point to its target at the program's slowest ramp rate (1 degC/min if it has no ramp), stepping every
+  ``step_s`` (rows ``stopped``, ``t_s`` the program time where it stopped), and returns once the target is
+  written (the controller holds it).  The ramp to the target does not end at ``stop`` (a second Ctrl-C ends the
+  process).  Then a final row ``done`` or ``interrupted`` with the set point and air read back (empty if the
+  link is lost).
 
 ``resume_point`` gives the program time an interrupted run's log stops at; ``run_program(resume_t_s=...)`` goes on
 from there into a new log.
@@ -380,9 +381,14 @@ class _Run:
 
     def finish(self, status: str, t_s: float) -> None:
         on_stop = self.options.on_stop
-        if on_stop.kind == "standby":
-            self.controller.safe_stop()
-        elif on_stop.kind == "goto":
+        while on_stop.kind == "standby":
+            try:
+                self.controller.safe_stop()
+                break
+            except ControllerUnreachable:  # standby is the safe state: reach it once the link is back
+                self.row("link_lost", t_s, None, None, None, None)
+                self.reconnect(stoppable=False)
+        if on_stop.kind == "goto":
             assert on_stop.target_c is not None
             self.goto(on_stop.target_c, t_s)
         try:

@@ -232,6 +232,23 @@ def test_the_end_with_on_stop_standby_puts_the_chamber_in_standby(tmp_path: Path
     assert chamber.safe_stops == 1 and rows[-1].state == "done"
 
 
+def test_standby_at_the_end_on_a_lost_link_is_reached_once_the_link_is_back(tmp_path: Path) -> None:
+    program = ChamberProfile("h", 20.0, (Hold(10.0),))
+    chamber = FakeChamber(FakeClock(), link_lost_windows=[(10.5, 20.0)])
+    original = chamber.read_air_c
+
+    def lose_after_the_last_step() -> float:
+        value = original()
+        if len(chamber.writes) == 11:
+            chamber.clock.advance(0.6)  # the link goes in the window just after the program's last step
+        return value
+
+    chamber.read_air_c = lose_after_the_last_step  # type: ignore[method-assign]
+    _, rows = run(chamber, program, tmp_path / "log.csv", on_stop=OnStop("standby"))
+    assert chamber.safe_stops == 1 and chamber.connects[-1] >= 20.0
+    assert "link_lost" in [r.state for r in rows] and rows[-1].state == "done"
+
+
 def test_an_interrupt_with_on_stop_c_ramps_there_at_the_slowest_rate_and_holds(tmp_path: Path) -> None:
     program = ChamberProfile("two", 20.0, (Ramp(6.0, 30.0), Ramp(3.0, 20.0), Hold(100.0)))  # slowest 3 degC/min
     chamber = FakeChamber(FakeClock())
