@@ -11,9 +11,11 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from cli_run import assert_one_line_error, run_cli
 
 from fog_driver.lab.chamberlog import ChamberLogWriter, LogHeader, LogRow, program_sha256, read_chamber_log
+from fog_driver.lab.lock import ControllerLock
 from fog_driver.lab.profiles import load_profile
 
 SHORT = """\
@@ -130,12 +132,27 @@ def test_a_program_beyond_the_range_is_exit_65_with_nothing_written(tmp_path: Pa
 
 def test_a_short_program_runs_to_its_end_and_logs_each_step(tmp_path: Path) -> None:
     log = tmp_path / "log.csv"
-    proc = run_cli("chamber", "run", profile(tmp_path), "--chamber", "sim://", "--log", str(log), "--step-s", "0.5")
+    tiny = profile(
+        tmp_path, SHORT.replace("duration_s: 2", "duration_s: 0.5").replace("target_c: 21", "target_c: 20.5")
+    )
+    proc = run_cli("chamber", "run", tiny, "--chamber", "sim://", "--log", str(log), "--step-s", "0.25")
     assert proc.returncode == 0, proc.stderr
     rows = read_chamber_log(log).rows
     running = [r for r in rows if r.state == "running"]
-    assert [r.t_s for r in running] == [0.5 * k for k in range(7)] and rows[-1].state == "done"
-    assert running[-1].program_c == 21.0
+    assert [r.t_s for r in running] == [0.25 * k for k in range(5)] and rows[-1].state == "done"
+    assert running[-1].program_c == 20.5 and read_chamber_log(log).header.program_name == "short"
+
+
+def test_a_second_run_on_a_chamber_another_run_drives_is_one_line_and_exit_69(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))  # the lock folder, here and in the command's process
+    from fog_driver.cli.lab import open_chamber
+
+    with ControllerLock(open_chamber("sim://", None).address):
+        proc = run_cli("chamber", "run", profile(tmp_path), "--chamber", "sim://", "--log", str(tmp_path / "l.csv"))
+    assert_one_line_error(proc, 69, "another chamber run drives")
+    assert not (tmp_path / "l.csv").exists()
 
 
 def test_ctrl_c_ends_a_run_as_interrupted_with_exit_130(tmp_path: Path) -> None:
