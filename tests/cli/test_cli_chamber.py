@@ -6,6 +6,7 @@ The tests that open ``sim://`` run the simulated lab (``fog_driver.sim.chamber``
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -132,15 +133,16 @@ def test_a_program_beyond_the_range_is_exit_65_with_nothing_written(tmp_path: Pa
 
 def test_a_short_program_runs_to_its_end_and_logs_each_step(tmp_path: Path) -> None:
     log = tmp_path / "log.csv"
-    tiny = profile(
-        tmp_path, SHORT.replace("duration_s: 2", "duration_s: 0.5").replace("target_c: 21", "target_c: 20.5")
-    )
+    status = run_cli("chamber", "status", "sim://")
+    air_c = round(float(re.search(r"air (-?[0-9.]+) degC", status.stdout)[1]), 1)  # start there: no settling
+    tiny = profile(tmp_path, f"name: short\nstart_c: {air_c}\nsegments:\n- hold: {{duration_s: 0.5}}\n"
+                   f"- ramp: {{rate_c_per_min: 60, target_c: {air_c + 0.5}}}\n")  # fmt: skip
     proc = run_cli("chamber", "run", tiny, "--chamber", "sim://", "--log", str(log), "--step-s", "0.25")
     assert proc.returncode == 0, proc.stderr
     rows = read_chamber_log(log).rows
     running = [r for r in rows if r.state == "running"]
     assert [r.t_s for r in running] == [0.25 * k for k in range(5)] and rows[-1].state == "done"
-    assert running[-1].program_c == 20.5 and read_chamber_log(log).header.program_name == "short"
+    assert running[-1].program_c == pytest.approx(air_c + 0.5) and read_chamber_log(log).header.program_name == "short"
 
 
 def test_a_second_run_on_a_chamber_another_run_drives_is_one_line_and_exit_69(
