@@ -105,12 +105,13 @@ def cmd_chamber_run(args: argparse.Namespace) -> int:
     if not program.segments:
         raise InputFileError(f"{args.profile}: the profile has no chamber program")
     log_path = Path(args.log)
-    resume_t_s = None
+    resume_t_s, run_id = None, uuid.uuid4().hex
     if args.resume is not None:
         if Path(args.resume).resolve() == log_path.resolve():
             raise UsageError("--resume: the old log cannot be the new one (give another --log)")
         try:
-            resume_t_s = resume_point(read_chamber_log(args.resume), program)
+            old = read_chamber_log(args.resume)
+            resume_t_s, run_id = resume_point(old, program), old.header.run_id  # the same run, a new log
         except InputFileError as exc:
             raise InputFileError(f"--resume {args.resume}: {exc}") from None
     if log_path.exists() and not args.force:
@@ -120,7 +121,7 @@ def cmd_chamber_run(args: argparse.Namespace) -> int:
     with ControllerLock(controller.address):
         controller.connect()
         check_range(program, controller.read_range_c(), options.on_stop)  # before the log: nothing to log
-        header = LogHeader(profile.name, program_sha256(program), args.chamber, uuid.uuid4().hex, args.resume)
+        header = LogHeader(profile.name, program_sha256(program), args.chamber, run_id, args.resume)
         log = ChamberLogWriter(log_path, header, force=args.force)
         stop = threading.Event()
         try:

@@ -157,6 +157,27 @@ def test_a_second_run_on_a_chamber_another_run_drives_is_one_line_and_exit_69(
     assert not (tmp_path / "l.csv").exists()
 
 
+def test_resuming_goes_on_from_the_old_log_into_a_new_one_of_the_same_run(tmp_path: Path) -> None:
+    status = run_cli("chamber", "status", "sim://")
+    air_c = round(float(re.search(r"air (-?[0-9.]+) degC", status.stdout)[1]), 1)
+    text = f"name: r\nstart_c: {air_c}\nsegments:\n- hold: {{duration_s: 1.5}}\n"
+    old = tmp_path / "old.csv"
+    program = load_profile(profile(tmp_path, text)).chamber
+    log = ChamberLogWriter(old, LogHeader("r", program_sha256(program), "sim://", "run-7", None))
+    log.write(LogRow("2026-12-07T12:00:00.000Z", 1.0, None, air_c, air_c, "running", air_c, 0))
+    log.write(LogRow("2026-12-07T12:00:01.000Z", 1.0, None, air_c, air_c, "interrupted", None, None))
+    log.close()
+    new = tmp_path / "new.csv"
+    proc = run_cli(
+        "chamber", "run", str(tmp_path / "p.yaml"), "--chamber", "sim://", "--log", str(new), "--step-s", "0.25",
+        "--resume", str(old),
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    resumed = read_chamber_log(new)
+    assert resumed.header.resumed_from == str(old) and resumed.header.run_id == "run-7"
+    assert [r.t_s for r in resumed.rows if r.state == "running"] == [1.0, 1.25, 1.5]
+
+
 def test_ctrl_c_ends_a_run_as_interrupted_with_exit_130(tmp_path: Path) -> None:
     log = tmp_path / "log.csv"
     proc = subprocess.Popen(
