@@ -53,6 +53,7 @@ def run(
     **options: object,
 ) -> tuple[RunResult, list[LogRow]]:
     log = ChamberLogWriter(path, LogHeader(program.name, program_sha256(program), chamber.url, "run-1", None))
+    rows: list[LogRow] = []  # as written (exact: the file's number format is the log writer's)
     try:
         result = run_program(
             chamber,  # type: ignore[arg-type]
@@ -63,10 +64,12 @@ def run(
             stop=stop or threading.Event(),
             gyro=gyro,  # type: ignore[arg-type]
             resume_t_s=resume_t_s,
+            on_row=rows.append,
         )
     finally:
         log.close()
-    return result, read_chamber_log(path).rows
+    assert [row.state for row in read_chamber_log(path).rows] == [row.state for row in rows]
+    return result, rows
 
 
 def program_at(program: ChamberProfile, t_s: float) -> float:
