@@ -29,6 +29,7 @@ COMMANDS = {
     "web": ["run", "--simulate", "--http", "127.0.0.1:0", "--listen", "127.0.0.1:0", "--capture-dir", "c"],
     "report": ["evaluate", str(DATA / "sim-short.bin"), "--model", str(MODEL), "--out", "report"],
     "svr": ["fit", str(DATA / "sim-short.bin"), "--kind", "pso-svr", "--out", "m.yaml"],
+    "lab": ["chamber", "status", "sim://"],
 }
 
 
