@@ -95,8 +95,6 @@ class AsciiChamber:
     def finish_options(self) -> None:
         """Refuse the options left untaken (call once the subclass has taken its own)."""
         self._options_url.refuse_unknown(self.known)
-        if self._unit_assumed:
-            self.notice_once("unit", f"{self.who}: the protocol does not say its unit: degC assumed (unit=F if not)")
 
     def notice_once(self, key: str, line: str) -> None:
         if key not in self._said:
@@ -106,8 +104,12 @@ class AsciiChamber:
     # ------------------------------------------------------------------ the link
 
     def connect(self) -> None:
+        """Open the link; the unit assumed is said once, on the first connection that works (a controller
+        that cannot be reached gets its one error line alone)."""
         self.link.connect()
         self._started = False
+        if self._unit_assumed:
+            self.notice_once("unit", f"{self.who}: the protocol does not say its unit: degC assumed (unit=F if not)")
 
     def close(self) -> None:
         self.link.close()
