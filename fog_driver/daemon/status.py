@@ -35,7 +35,7 @@ __all__ = [
 #: the minor when keys are added (1.1: ANGLE's ``drift_sigma_dph``, STATUS's and BIAS's ``bias_sigma_dph``,
 #: STATUS's ``noise_1min_dph``; 1.2: STATUS's and VERSION's ``model_file``).
 PROTO_MAJOR = 1
-PROTO_MINOR = 2
+PROTO_MINOR = 3
 
 
 class CpuMeter:
