@@ -18,13 +18,13 @@ from typing import Any
 
 from ..errors import InputFileError, OutputFileError, UsageError
 from ..extras import require_extra
+from ..files.yamlio import read_yaml
 from ..lab.chamberlog import ChamberLogWriter, LogHeader, LogRow, program_sha256, read_chamber_log
 from ..lab.controllers.base import ChamberController
-from ..lab.controllers.registry import open_controller
-from ..lab.controllers.url import ControllerURL
 from ..lab.lock import ControllerLock
 from ..lab.profiles import load_profile
 from ..lab.runner import OnStop, RunOptions, SystemClock, check_range, parse_on_stop, resume_point, run_program
+from ..offline.chamber import open_lab_controller
 from ..signals import stop_on_signals
 from .argtypes import positive_float
 
@@ -35,29 +35,28 @@ def _notice(line: str) -> None:
     print(f"fog-driver: {line}", file=sys.stderr, flush=True)
 
 
-def _overrides(path: str | None) -> dict[str, Any]:
-    """The ``chamber:`` mapping of a config file (the driver's register addresses, word order...), or none."""
+def chamber_overrides(path: str | None) -> dict[str, Any]:
+    """``--chamber-config FILE``: the driver's settings (register addresses, word order...) under the file's
+    ``chamber: overrides:``, the daemon config's own shape, so one file serves the daemon and the commands (the
+    section's ``url`` and ``poll_s`` are the daemon's and are not read here); none without a file."""
     if path is None:
         return {}
-    from ..files.yamlio import read_yaml
-
     doc = read_yaml(path, "chamber config file")
     section = doc.get("chamber") if isinstance(doc, dict) else None
     if not isinstance(section, dict):
-        raise InputFileError(f"{path}: a chamber config file needs a 'chamber:' mapping")
-    return section
-
-
-def _open_sim(url: ControllerURL, **settings: Any) -> ChamberController:
-    """``sim://``: the simulated lab's chamber, imported only when a URL names it."""
-    from ..sim.chamber import open_sim_controller
-
-    return open_sim_controller(url, **settings)
+        raise InputFileError(f"{path}: a chamber config file needs a 'chamber:' mapping (with 'overrides:')")
+    unknown = sorted(set(section) - {"url", "poll_s", "overrides"})
+    if unknown:
+        raise InputFileError(f"{path}: chamber: unknown key {', '.join(unknown)} (keys: url, poll_s, overrides)")
+    overrides = section.get("overrides", {})
+    if not isinstance(overrides, dict):
+        raise InputFileError(f"{path}: chamber: overrides: must be a mapping of the driver's settings")
+    return dict(overrides)
 
 
 def open_chamber(url: str, config: str | None) -> ChamberController:
     """The controller ``url`` names (``sim://`` from the simulator), not yet connected."""
-    return open_controller(url, overrides=_overrides(config), on_notice=_notice, extra_schemes={"sim": _open_sim})
+    return open_lab_controller(url, overrides=chamber_overrides(config), on_notice=_notice)
 
 
 def status_line(controller: ChamberController) -> str:

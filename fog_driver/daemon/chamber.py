@@ -40,6 +40,7 @@ from ..errors import FogDriverError
 from ..lab.chamberlog import ChamberLogWriter, LogHeader, LogRow, format_utc
 from ..lab.controllers.base import ChamberController
 from ..offline.chamber import chamber_log_beside as chamber_log_path
+from ..offline.chamber import open_lab_controller
 from .config import ChamberConfig
 
 log = structlog.get_logger("fog_driver.daemon")
@@ -50,14 +51,7 @@ RECONNECT_MAX_S = 60.0
 
 def open_daemon_controller(config: ChamberConfig, on_notice: Callable[[str], None]) -> ChamberController:
     """The configured controller, not connected (``UsageError``: an unknown option, the ``lab`` extra missing)."""
-    from ..lab.controllers.registry import open_controller
-
-    extra: dict[str, Any] = {}
-    if config.url.startswith("sim:"):
-        from ..sim.chamber import open_sim_controller  # type: ignore[import-untyped,import-not-found,unused-ignore]
-
-        extra["sim"] = open_sim_controller
-    return open_controller(config.url, overrides=dict(config.overrides), on_notice=on_notice, extra_schemes=extra)
+    return open_lab_controller(config.url, overrides=dict(config.overrides), on_notice=on_notice)
 
 
 @dataclass(frozen=True)

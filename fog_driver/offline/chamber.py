@@ -29,14 +29,18 @@ tolerance (0.5 degC).  A ramp the chamber could not follow (its heater or compre
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from ..errors import InputFileError
 from ..lab.chamberlog import ChamberLog, read_chamber_log
+from ..lab.controllers.base import ChamberController, Notice
+from ..lab.controllers.registry import DEFAULT_TIMEOUT_S, open_controller
+from ..lab.controllers.url import ControllerURL
 from ..samples.captures import read_provenance
 
 __all__ = [
@@ -57,6 +61,23 @@ CHAMBER_LOG_SUFFIX = ".chamber.csv"
 LAG_TOLERANCE_C = 2.0
 LAG_WINDOW_S = 900.0
 MIN_STRETCH_S = 600.0
+
+
+def _open_sim(url: ControllerURL, **settings: Any) -> ChamberController:
+    """``sim://``: the simulated lab's chamber, imported only when a URL names it."""
+    from ..sim.chamber import open_sim_controller  # start-up time: the simulator is imported only for sim://
+
+    return open_sim_controller(url, **settings)
+
+
+def open_lab_controller(
+    url: str, *, overrides: Mapping[str, Any] | None = None, on_notice: Notice, timeout_s: float = DEFAULT_TIMEOUT_S
+) -> ChamberController:
+    """The controller ``url`` names, ``sim://`` (the simulated lab's chamber) included, not connected: the one
+    way the commands and the daemon open a chamber (``UsageError``: an unknown scheme or option)."""
+    return open_controller(
+        url, overrides=overrides, on_notice=on_notice, timeout_s=timeout_s, extra_schemes={"sim": _open_sim}
+    )
 
 
 def chamber_log_beside(capture: str | Path) -> Path:

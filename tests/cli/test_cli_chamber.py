@@ -198,3 +198,24 @@ def test_ctrl_c_ends_a_run_as_interrupted_with_exit_130(tmp_path: Path) -> None:
     assert proc.returncode == 130, err
     rows = read_chamber_log(log).rows
     assert rows[-1].state == "interrupted" and "Traceback" not in err
+
+
+def test_a_chamber_config_file_is_the_daemon_configs_shape_and_its_overrides_are_read(tmp_path):
+    """``--chamber-config`` reads ``chamber: overrides:`` as the daemon's config does, so one file serves both;
+    anything else under ``chamber:`` is refused in one line."""
+    from fog_driver.cli.lab import chamber_overrides
+    from fog_driver.errors import InputFileError
+
+    good = tmp_path / "daemon.yaml"
+    good.write_text("port: /dev/ttyUSB0\nchamber:\n  url: watlow-f4t://10.0.0.5\n  overrides: {word_order: high}\n")
+    assert chamber_overrides(str(good)) == {"word_order": "high"}
+    assert chamber_overrides(None) == {}
+    for text, needle in [
+        ("chamber:\n  word_order: high\n", "unknown key word_order"),
+        ("chamber:\n  overrides: [1, 2]\n", "must be a mapping"),
+        ("other: 1\n", "needs a 'chamber:' mapping"),
+    ]:
+        bad = tmp_path / "bad.yaml"
+        bad.write_text(text)
+        with pytest.raises(InputFileError, match=needle):
+            chamber_overrides(str(bad))
