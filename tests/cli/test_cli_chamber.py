@@ -85,9 +85,16 @@ def test_a_log_that_exists_is_refused_without_force_and_left_as_it_was(tmp_path:
 def test_resuming_with_another_runs_log_is_one_line_and_exit_65(tmp_path: Path) -> None:
     other = a_log(tmp_path / "old.csv", profile(tmp_path, SHORT.replace("target_c: 21", "target_c: 23"), "o.yaml"))
     proc = run_cli(
-        "chamber", "run", profile(tmp_path), "--chamber", "sim://", "--log", str(tmp_path / "new.csv"),
-        "--resume", str(other),
-    )  # fmt: skip
+        "chamber",
+        "run",
+        profile(tmp_path),
+        "--chamber",
+        "sim://",
+        "--log",
+        str(tmp_path / "new.csv"),
+        "--resume",
+        str(other),
+    )
     assert_one_line_error(proc, 65, "another run's")
     assert not (tmp_path / "new.csv").exists()
 
@@ -95,9 +102,16 @@ def test_resuming_with_another_runs_log_is_one_line_and_exit_65(tmp_path: Path) 
 def test_resuming_from_a_file_that_is_not_a_chamber_log_is_one_line_and_exit_65(tmp_path: Path) -> None:
     (tmp_path / "old.csv").write_text("t,x\n1,2\n")
     proc = run_cli(
-        "chamber", "run", profile(tmp_path), "--chamber", "sim://", "--log", str(tmp_path / "new.csv"),
-        "--resume", str(tmp_path / "old.csv"),
-    )  # fmt: skip
+        "chamber",
+        "run",
+        profile(tmp_path),
+        "--chamber",
+        "sim://",
+        "--log",
+        str(tmp_path / "new.csv"),
+        "--resume",
+        str(tmp_path / "old.csv"),
+    )
     assert_one_line_error(proc, 65, "not a chamber log")
 
 
@@ -135,8 +149,11 @@ def test_a_short_program_runs_to_its_end_and_logs_each_step(tmp_path: Path) -> N
     log = tmp_path / "log.csv"
     status = run_cli("chamber", "status", "sim://")
     air_c = round(float(re.search(r"air (-?[0-9.]+) degC", status.stdout)[1]), 1)  # start there: no settling
-    tiny = profile(tmp_path, f"name: short\nstart_c: {air_c}\nsegments:\n- hold: {{duration_s: 0.5}}\n"
-                   f"- ramp: {{rate_c_per_min: 60, target_c: {air_c + 0.5}}}\n")  # fmt: skip
+    tiny = profile(
+        tmp_path,
+        f"name: short\nstart_c: {air_c}\nsegments:\n- hold: {{duration_s: 0.5}}\n"
+        f"- ramp: {{rate_c_per_min: 60, target_c: {air_c + 0.5}}}\n",
+    )
     proc = run_cli("chamber", "run", tiny, "--chamber", "sim://", "--log", str(log), "--step-s", "0.25")
     assert proc.returncode == 0, proc.stderr
     rows = read_chamber_log(log).rows
@@ -169,9 +186,18 @@ def test_resuming_goes_on_from_the_old_log_into_a_new_one_of_the_same_run(tmp_pa
     log.close()
     new = tmp_path / "new.csv"
     proc = run_cli(
-        "chamber", "run", str(tmp_path / "p.yaml"), "--chamber", "sim://", "--log", str(new), "--step-s", "0.25",
-        "--resume", str(old),
-    )  # fmt: skip
+        "chamber",
+        "run",
+        str(tmp_path / "p.yaml"),
+        "--chamber",
+        "sim://",
+        "--log",
+        str(new),
+        "--step-s",
+        "0.25",
+        "--resume",
+        str(old),
+    )
     assert proc.returncode == 0, proc.stderr
     resumed = read_chamber_log(new)
     assert resumed.header.resumed_from == str(old) and resumed.header.run_id == "run-7"
@@ -181,11 +207,26 @@ def test_resuming_goes_on_from_the_old_log_into_a_new_one_of_the_same_run(tmp_pa
 def test_ctrl_c_ends_a_run_as_interrupted_with_exit_130(tmp_path: Path) -> None:
     log = tmp_path / "log.csv"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "fog_driver", "chamber", "run", profile(tmp_path, LONG_HOLD), "--chamber", "sim://",
-         "--log", str(log), "--step-s", "0.2"],
-        stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        [
+            sys.executable,
+            "-m",
+            "fog_driver",
+            "chamber",
+            "run",
+            profile(tmp_path, LONG_HOLD),
+            "--chamber",
+            "sim://",
+            "--log",
+            str(log),
+            "--step-s",
+            "0.2",
+        ],
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
         env={k: v for k, v in os.environ.items() if k != "NOTIFY_SOCKET"},
-    )  # fmt: skip
+    )
     try:
         assert proc.stderr is not None
         line = proc.stderr.readline()  # the readiness line, printed once the signal handlers are in place

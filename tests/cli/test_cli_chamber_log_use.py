@@ -39,9 +39,16 @@ def _fit(tmp_path: Path, capture: Path):
     (tmp_path / "fit.yaml").write_text("warmup_s: 30\n")
     out = tmp_path / "m.yaml"
     proc = run_cli(
-        "fit", str(capture), "--config", str(tmp_path / "fit.yaml"), "--accept-weak-fit", "--kind", "polynomial",
-        "--out", str(out),
-    )  # fmt: skip
+        "fit",
+        str(capture),
+        "--config",
+        str(tmp_path / "fit.yaml"),
+        "--accept-weak-fit",
+        "--kind",
+        "polynomial",
+        "--out",
+        str(out),
+    )
     assert proc.returncode == 0, proc.stderr
     return out, proc
 
@@ -97,9 +104,13 @@ def test_evaluate_plots_the_chamber_beside_the_thermometers_on_the_device_time(t
     # the figure's lines: the chamber's on the device time axis, in minutes
     n = 3
     series = Series(
-        np.arange(580.0, 580.0 + n), np.zeros(n), np.zeros(n), np.full((n, 3), 20.0), np.ones(n, bool),
+        np.arange(580.0, 580.0 + n),
+        np.zeros(n),
+        np.zeros(n),
+        np.full((n, 3), 20.0),
+        np.ones(n, bool),
         chamber=read_chamber_log(named),
-    )  # fmt: skip
+    )
     fig = _plot_temperatures(plt, series, series.t_s / 60.0)
     lines = {line.get_label(): line for line in fig.axes[0].get_lines()}
     air = lines["chamber air (device time)"]
