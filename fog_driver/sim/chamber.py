@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import UsageError
 from ..lab.controllers.base import ChamberRange, ChamberStatus, ControllerRefused, Notice
 from ..lab.controllers.url import ControllerURL
 
@@ -261,12 +262,11 @@ def sim_params_from_url(url: ControllerURL, overrides: dict | None = None) -> tu
         "high_c": opt("high_c", d.high_c),
     }
     url.refuse_unknown(SIM_OPTIONS)
-    from ..errors import UsageError
 
     if speed <= 0:
         raise UsageError(f"controller URL {url.text}: speed must be > 0")
     try:
-        return ChamberParams(**values), speed
+        return ChamberParams(**values), speed  # type: ignore[arg-type]
     except ValueError as exc:
         raise UsageError(f"controller URL {url.text}: {exc}") from None
 
