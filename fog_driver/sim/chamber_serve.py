@@ -278,13 +278,12 @@ class ChamberServer:
 
     # -- Watlow F4T on pymodbus --------------------------------------------------------------------------------
     async def _start_modbus(self) -> Callable[[], object]:
-        from pymodbus.datastore import ModbusDeviceContext, ModbusServerContext
+        import logging
+
         from pymodbus.server import ModbusTcpServer
 
-        block = _F4TBlock(self.wire, self.word_order)
-        device = ModbusDeviceContext(hr=block)
-        context = ModbusServerContext(devices=device, single=True)
-        server = ModbusTcpServer(context, address=self._requested)
+        logging.getLogger("pymodbus").setLevel(logging.ERROR)  # its datastore's deprecation notice
+        server = ModbusTcpServer(_f4t_context(self.wire, self.word_order), address=self._requested)
         await server.listen()
         listener = server.transport  # pymodbus keeps asyncio's listening Server here
         sockets = getattr(listener, "sockets", None) or ()
@@ -320,60 +319,61 @@ def _words_float(words: list[int], word_order: str) -> float:
     return float(struct.unpack(">f", struct.pack(">HH", high, low))[0])
 
 
-def _f4t_block_class() -> type:
-    from pymodbus.datastore import ModbusSparseDataBlock
+def _f4t_context(wire: _Wire, word_order: str) -> object:
+    """A pymodbus server context whose holding registers are the F4T's loop-1 map over ``wire`` (other addresses
+    read 0; a write elsewhere than the set point is accepted and ignored).  Faults: ``exception_code`` answers
+    every request with it, ``delay_s`` delays each answer, ``local`` answers a write exception 4 (device
+    failure, as a controller refusing it)."""
+    from pymodbus.constants import ExcCodes
+    from pymodbus.datastore import ModbusDeviceContext, ModbusServerContext
 
-    return ModbusSparseDataBlock
-
-
-class _F4TBlock:  # built on pymodbus's sparse block at first use (pymodbus is the optional extra)
-    def __new__(cls, wire: _Wire, word_order: str) -> object:
-        base = _f4t_block_class()
-        block_type = type("F4TBlock", (base,), {"getValues": _f4t_get, "setValues": _f4t_set, "validate": _f4t_ok})
-        block = block_type({0: 0})
-        block.wire = wire
-        block.word_order = word_order
-        return block
-
-
-def _f4t_ok(self: object, address: int, count: int = 1) -> bool:
-    return 0 <= address and address + count <= 0x10000
-
-
-def _f4t_get(self: object, address: int, count: int = 1) -> list[int]:
-    wire: _Wire = self.wire  # type: ignore[attr-defined]
-    order: str = self.word_order  # type: ignore[attr-defined]
     values = {
         F4T_SETPOINT: wire.setpoint,
         F4T_PV: wire.air,
         F4T_RANGE_LOW: wire.low,
         F4T_RANGE_HIGH: wire.high,
     }
-    words: list[int] = []
-    cache: dict[int, list[int]] = {}
-    for reg in range(address, address + count):
-        base = reg if reg in values else reg - 1 if reg - 1 in values else None
-        if base is None:
-            words.append(0)
-            continue
-        if base not in cache:
-            cache[base] = _float_words(values[base](), order)
-        words.append(cache[base][reg - base])
-    return words
 
+    class F4TContext(ModbusServerContext):  # type: ignore[misc]
+        async def async_getValues(self, device_id: int, func_code: int, address: int, count: int = 1) -> object:
+            faults = wire.faults
+            if faults.delay_s > 0:
+                await asyncio.sleep(faults.delay_s)
+            if faults.exception_code is not None:
+                return ExcCodes(faults.exception_code)
+            words: list[int] = []
+            cache: dict[int, list[int]] = {}
+            for reg in range(address, address + count):
+                base = reg if reg in values else reg - 1 if reg - 1 in values else None
+                if base is None:
+                    words.append(0)
+                    continue
+                if base not in cache:
+                    cache[base] = _float_words(values[base](), word_order)
+                words.append(cache[base][reg - base])
+            return words
 
-def _f4t_set(self: object, address: int, values: list[int]) -> None:
-    wire: _Wire = self.wire  # type: ignore[attr-defined]
-    order: str = self.word_order  # type: ignore[attr-defined]
-    if address == F4T_SETPOINT and len(values) == 2:
-        try:
-            wire.write(_words_float(list(values), order))
-        except (ControllerRefused, ValueError):
-            raise _F4TRefused from None
+        async def async_setValues(self, device_id: int, func_code: int, address: int, vals: list[int]) -> object:
+            faults = wire.faults
+            if faults.delay_s > 0:
+                await asyncio.sleep(faults.delay_s)
+            if faults.exception_code is not None:
+                return ExcCodes(faults.exception_code)
+            if address == F4T_SETPOINT:
+                if func_code != 16 or len(vals) != 2:
+                    return ExcCodes.ILLEGAL_VALUE
+                try:
+                    wire.write(_words_float(list(vals), word_order))
+                except ControllerRefused:
+                    return ExcCodes.DEVICE_FAILURE
+                except ValueError:
+                    return ExcCodes.ILLEGAL_VALUE
+            return None
 
-
-class _F4TRefused(Exception):
-    pass
+    context = F4TContext(devices=ModbusDeviceContext())
+    context.simdevices = []  # so pymodbus's server asks this context itself (its "old simulator" path)
+    context.old_simulator = True
+    return context
 
 
 def serve_chamber(url: str | ControllerURL, chamber: SimChamber, faults: ChamberFaults | None = None) -> ChamberServer:
