@@ -287,3 +287,37 @@ def open_sim_controller(
     t0 = time.monotonic()
     chamber = SimChamber(lambda: (time.monotonic() - t0) * speed, params)
     return SimChamberController(chamber, url.text)
+
+
+class ChamberAir:
+    """An air source for the instrument (``SimProfile.chamber``'s place): the air of a ``SimChamber`` at the
+    instrument's true time, the chamber's clock being the instrument's device time.  A time the chamber has not
+    reached yet holds its present air (``SimChamber.air_c_at``); the instrument computes its slow grid a few
+    seconds ahead at most in a coupled run (``COUPLED_BLOCK_STEPS``), so its air lags the chamber's by at most
+    that."""
+
+    def __init__(self, chamber: SimChamber, duration_s: float) -> None:
+        self.chamber = chamber
+        self.duration_s = duration_s
+
+    def air_temp_c(self, t_s: np.ndarray) -> np.ndarray:
+        return self.chamber.air_c_at(np.asarray(t_s, dtype=float))
+
+
+#: The instrument's slow-grid block in a coupled run, s (its air is at most this far behind the chamber's).
+COUPLED_BLOCK_STEPS = 2
+
+
+class StartedClock:
+    """Chamber time for a coupled run: 0 until ``start()``, then the host's monotonic seconds since times
+    ``speed`` (the instrument's device time, which starts when its stream does)."""
+
+    def __init__(self, speed: float) -> None:
+        self.speed = speed
+        self._t0: float | None = None
+
+    def start(self) -> None:
+        self._t0 = time.monotonic()
+
+    def __call__(self) -> float:
+        return 0.0 if self._t0 is None else (time.monotonic() - self._t0) * self.speed

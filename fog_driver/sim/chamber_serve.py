@@ -36,12 +36,15 @@ import asyncio
 import struct
 import threading
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+
+import numpy as np
 
 from ..errors import UsageError
 from ..lab.controllers.base import ControllerRefused, c_to_f, f_to_c
 from ..lab.controllers.url import ControllerURL, parse_controller_url
-from .chamber import SimChamber
+from .chamber import COUPLED_BLOCK_STEPS, ChamberAir, ChamberParams, SimChamber, StartedClock
+from .instrument import Simulator
 
 SERVED_SCHEMES = ("espec", "thermotron", "simserv", "watlow-f4t")
 MAX_LINE_BYTES = 256
@@ -401,3 +404,45 @@ def _word_order(text: str) -> str:
     if text not in ("low", "high"):
         raise ValueError("low or high")
     return text
+
+
+CHAMBER_SERVE_OPTIONS = "start_c, rate_c_per_min, tau_s, low_c, high_c, unit, mode"
+
+
+def coupled_chamber(
+    url_text: str, sim: Simulator, speed: float
+) -> tuple[Simulator, SimChamber, StartedClock, ControllerURL]:
+    """For ``simulate --serve ... --chamber-serve URL``: a chamber (options from the URL: ``start_c``, default
+    the profile's start air; ``rate_c_per_min``, ``tau_s``, ``low_c``, ``high_c``, ``unit`` C|F, ``mode``), its
+    clock (started with the stream: chamber time = device time) and a simulator like ``sim`` whose air is the
+    chamber's (``ChamberAir``, slow grid in ``COUPLED_BLOCK_STEPS`` blocks).  The URL comes back without those
+    options, for ``serve_chamber``."""
+    url = parse_controller_url(url_text)
+    d = ChamberParams()
+    start_c = float(sim.profile.chamber.air_temp_c(np.array([0.0]))[0])
+    raw = {
+        "start_c": url.take("start_c", float, start_c),
+        "rate_c_per_min": url.take("rate_c_per_min", float, d.rate_c_per_min),
+        "tau_s": url.take("tau_s", float, d.tau_s),
+        "low_c": url.take("low_c", float, d.low_c),
+        "high_c": url.take("high_c", float, d.high_c),
+    }
+    unit = url.take("unit", str, d.unit)
+    mode = url.take("mode", str, d.mode)
+    try:
+        params = ChamberParams(unit=unit, mode=mode, **raw)
+    except ValueError as exc:
+        raise UsageError(f"--chamber-serve {url.text}: {exc}") from None
+    clock = StartedClock(speed)
+    chamber = SimChamber(clock, params)
+    profile = replace(sim.profile, chamber=ChamberAir(chamber, sim.profile.chamber.duration_s))
+    coupled = Simulator(
+        profile,
+        sim.config,
+        rate_hz=sim.rate_hz,
+        seed=sim.seed,
+        faults=sim.faults,
+        wire_format=sim.wire_format,
+        grid_block_steps=COUPLED_BLOCK_STEPS,
+    )
+    return coupled, chamber, clock, url
