@@ -35,8 +35,9 @@ from __future__ import annotations
 import asyncio
 import struct
 import threading
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -235,7 +236,7 @@ class ChamberServer:
         await stop()
 
     # -- the ASCII protocols -----------------------------------------------------------------------------------
-    async def _start_lines(self) -> Callable[[], object]:
+    async def _start_lines(self) -> Callable[[], Awaitable[None]]:
         answer, ending = _LINE_PROTOCOLS[self.scheme]
         wire = self.wire
 
@@ -280,7 +281,7 @@ class ChamberServer:
         return stop
 
     # -- Watlow F4T on pymodbus --------------------------------------------------------------------------------
-    async def _start_modbus(self) -> Callable[[], object]:
+    async def _start_modbus(self) -> Callable[[], Awaitable[None]]:
         import logging
 
         from pymodbus.server import ModbusTcpServer
@@ -322,7 +323,7 @@ def _words_float(words: list[int], word_order: str) -> float:
     return float(struct.unpack(">f", struct.pack(">HH", high, low))[0])
 
 
-def _f4t_context(wire: _Wire, word_order: str) -> object:
+def _f4t_context(wire: _Wire, word_order: str) -> Any:
     """A pymodbus server context whose holding registers are the F4T's loop-1 map over ``wire`` (other addresses
     read 0; a write elsewhere than the set point is accepted and ignored).  Faults: ``exception_code`` answers
     every request with it, ``delay_s`` delays each answer, ``local`` answers a write exception 4 (device
@@ -337,8 +338,10 @@ def _f4t_context(wire: _Wire, word_order: str) -> object:
         F4T_RANGE_HIGH: wire.high,
     }
 
-    class F4TContext(ModbusServerContext):  # type: ignore[misc]
-        async def async_getValues(self, device_id: int, func_code: int, address: int, count: int = 1) -> object:
+    class F4TContext(ModbusServerContext):
+        async def async_getValues(
+            self, device_id: int, func_code: int, address: int, count: int = 1
+        ) -> list[int] | list[bool] | ExcCodes:
             faults = wire.faults
             if faults.delay_s > 0:
                 await asyncio.sleep(faults.delay_s)
@@ -356,7 +359,9 @@ def _f4t_context(wire: _Wire, word_order: str) -> object:
                 words.append(cache[base][reg - base])
             return words
 
-        async def async_setValues(self, device_id: int, func_code: int, address: int, vals: list[int]) -> object:
+        async def async_setValues(
+            self, device_id: int, func_code: int, address: int, vals: Sequence[int] | Sequence[bool]
+        ) -> ExcCodes | None:
             faults = wire.faults
             if faults.delay_s > 0:
                 await asyncio.sleep(faults.delay_s)
@@ -366,7 +371,7 @@ def _f4t_context(wire: _Wire, word_order: str) -> object:
                 if func_code != 16 or len(vals) != 2:
                     return ExcCodes.ILLEGAL_VALUE
                 try:
-                    wire.write(_words_float(list(vals), word_order))
+                    wire.write(_words_float([int(v) for v in vals], word_order))
                 except ControllerRefused:
                     return ExcCodes.DEVICE_FAILURE
                 except ValueError:
@@ -435,7 +440,8 @@ def coupled_chamber(
         raise UsageError(f"--chamber-serve {url.text}: {exc}") from None
     clock = StartedClock(speed)
     chamber = SimChamber(clock, params)
-    profile = replace(sim.profile, chamber=ChamberAir(chamber, sim.profile.chamber.duration_s))
+    air = ChamberAir(chamber, sim.profile.chamber.duration_s)
+    profile = replace(sim.profile, chamber=air)  # type: ignore[arg-type]  # duck-typed: air_temp_c, duration_s
     coupled = Simulator(
         profile,
         sim.config,
