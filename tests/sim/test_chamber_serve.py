@@ -4,18 +4,14 @@ instrument's temperatures to the served chamber's air."""
 
 from __future__ import annotations
 
-import queue
 import socket
 import struct
-import subprocess
-import sys
-import threading
 from collections.abc import Iterator
 
 import numpy as np
 import pytest
 from readerthread import Reader
-from sim_serving import GUARD_S, REPO, SHORT_TEST, _next_line
+from sim_serving import GUARD_S, _next_line, _start_cli
 
 from fog_driver.errors import UsageError
 from fog_driver.protocol import THERMOMETER_COUNTS_PER_C, decode_bytes
@@ -202,39 +198,15 @@ def test_serving_an_unknown_scheme_or_option_is_a_usage_error(chamber: SimChambe
 
 def test_simulate_with_a_served_chamber_moves_the_instruments_temperatures_towards_its_set_point(tmp_path) -> None:
     link = tmp_path / "ttyFOG0"
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "fog_driver",
-            "simulate",
-            "--serve",
-            "pty",
-            "--link",
-            str(link),
-            "--profile",
-            str(SHORT_TEST),  # holds 20 degC for its first 5 minutes
-            "--chamber-serve",
-            "espec://127.0.0.1:0?rate_c_per_min=60&tau_s=5",
-            "--speed",
-            "50",
-            "--duration",
-            "600",
-        ],
-        cwd=REPO,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
+    proc, lines = _start_cli(  # the short-test profile holds 20 degC for its first 5 minutes
+        "--chamber-serve",
+        "espec://127.0.0.1:0?rate_c_per_min=60&tau_s=5",
+        "--speed",
+        "50",
+        "--duration",
+        "600",
+        link=link,
     )
-    lines: queue.Queue = queue.Queue()
-
-    def pump() -> None:
-        assert proc.stdout is not None
-        for line in proc.stdout:
-            lines.put(line)
-        lines.put(None)
-
-    threading.Thread(target=pump, daemon=True).start()
     reader = None
     try:
         chamber_line = _next_line(proc, lines)
