@@ -41,7 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import UsageError
+from ..errors import DeviceError, UsageError
 from ..lab.controllers.base import ControllerRefused, c_to_f, f_to_c
 from ..lab.controllers.url import ControllerURL, parse_controller_url
 from .chamber import COUPLED_BLOCK_STEPS, ChamberAir, ChamberParams, SimChamber, StartedClock
@@ -199,7 +199,7 @@ class ChamberServer:
         self._thread.start()
         self._ready.wait()
         if self._error is not None:
-            raise UsageError(f"cannot serve {self.scheme} on {self._requested[0]}:{self._requested[1]}: {self._error}")
+            raise DeviceError(f"cannot serve {self.scheme} on {self._requested[0]}:{self._requested[1]}: {self._error}")
         return self
 
     def stop(self) -> None:
@@ -234,6 +234,10 @@ class ChamberServer:
         self._ready.set()
         await self._stopped.wait()
         await stop()
+        pending = [task for task in asyncio.all_tasks() if task is not asyncio.current_task()]
+        for task in pending:  # the connections still open
+            task.cancel()
+        await asyncio.gather(*pending, return_exceptions=True)
 
     # -- the ASCII protocols -----------------------------------------------------------------------------------
     async def _start_lines(self) -> Callable[[], Awaitable[None]]:
@@ -282,18 +286,57 @@ class ChamberServer:
 
     # -- Watlow F4T on pymodbus --------------------------------------------------------------------------------
     async def _start_modbus(self) -> Callable[[], Awaitable[None]]:
+        """pymodbus's server on a private loopback port, behind a relay on the served address that passes the
+        requests through and applies the reply faults (``garbage``: the reply's bytes replaced by as many that
+        are none; ``drop_mid_reply``: half the reply, then the close); exception codes, the delay and local
+        mode are the context's (``_f4t_context``)."""
         import logging
 
         from pymodbus.server import ModbusTcpServer
 
         logging.getLogger("pymodbus").setLevel(logging.ERROR)  # its datastore's deprecation notice
-        server = ModbusTcpServer(_f4t_context(self.wire, self.word_order), address=self._requested)
+        server = ModbusTcpServer(_f4t_context(self.wire, self.word_order), address=("127.0.0.1", 0))
         await server.listen()
         listener = server.transport  # pymodbus keeps asyncio's listening Server here
-        sockets = getattr(listener, "sockets", None) or ()
-        self.port = sockets[0].getsockname()[1] if sockets else self._requested[1]
+        inner_port = listener.sockets[0].getsockname()[1]  # type: ignore[attr-defined]
+        faults = self.wire.faults
+
+        async def relay(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+            inner_reader, inner_writer = await asyncio.open_connection("127.0.0.1", inner_port)
+
+            async def requests() -> None:
+                while data := await reader.read(4096):
+                    inner_writer.write(data)
+                    await inner_writer.drain()
+                inner_writer.close()
+
+            pump = asyncio.ensure_future(requests())
+            try:
+                while True:
+                    header = await inner_reader.readexactly(6)  # MBAP: transaction, protocol, length
+                    body = await inner_reader.readexactly(struct.unpack(">H", header[4:6])[0])
+                    reply = header + body
+                    if faults.garbage:
+                        reply = (GARBAGE * (len(reply) // len(GARBAGE) + 1))[: len(reply)]
+                    if faults.drop_mid_reply:
+                        writer.write(reply[: len(reply) // 2])
+                        await writer.drain()
+                        break
+                    writer.write(reply)
+                    await writer.drain()
+            except (ConnectionError, asyncio.IncompleteReadError):
+                pass
+            finally:
+                pump.cancel()
+                inner_writer.close()
+                writer.close()
+
+        outer = await asyncio.start_server(relay, self._requested[0], self._requested[1])
+        self.port = outer.sockets[0].getsockname()[1]
 
         async def stop() -> None:
+            outer.close()
+            await outer.wait_closed()
             await server.shutdown()
 
         return stop

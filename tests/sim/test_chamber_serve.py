@@ -245,3 +245,40 @@ def test_simulate_with_a_served_chamber_moves_the_instruments_temperatures_towar
             reader.stop.set()
         proc.terminate()
         proc.wait(GUARD_S)
+        while lines.get(timeout=GUARD_S) is not None:  # the pump has read to the end of stdout
+            pass
+        proc.stdout.close()
+        proc.stderr.close()
+
+
+def _mbap_read(transaction: int, address: int, count: int) -> bytes:
+    """A Modbus TCP request, function 3, unit 1 (MBAP: transaction, protocol 0, length, unit; PDU)."""
+    pdu = struct.pack(">BHH", 3, address, count)
+    return struct.pack(">HHHB", transaction, 0, len(pdu) + 1, 1) + pdu
+
+
+def test_watlow_f4t_faults_garbage_and_a_dropped_reply(chamber: SimChamber, servers) -> None:
+    faults = ChamberFaults()
+    server = served("watlow-f4t", chamber, faults)
+    servers.append(server)
+    with socket.create_connection((server.host, server.port), timeout=GUARD_S) as sock:
+        sock.sendall(_mbap_read(7, 2820, 2))
+        whole = b""
+        while len(whole) < 13:  # MBAP 7 + fc, byte count, 4 bytes
+            whole += sock.recv(64)
+        assert whole[:2] == b"\x00\x07" and whole[7:9] == b"\x03\x04"
+        assert struct.unpack(">f", whole[11:13] + whole[9:11])[0] == 20.0  # low word first
+        faults.garbage = True
+        sock.sendall(_mbap_read(8, 2820, 2))
+        junk = b""
+        while len(junk) < 13:
+            junk += sock.recv(64)
+        assert len(junk) == 13 and junk != whole and junk[:2] != b"\x00\x08"
+    faults.garbage = False
+    faults.drop_mid_reply = True
+    with socket.create_connection((server.host, server.port), timeout=GUARD_S) as sock:
+        sock.sendall(_mbap_read(9, 2820, 2))
+        cut = b""
+        while chunk := sock.recv(64):
+            cut += chunk
+        assert cut == b"\x00\x09\x00\x00\x00\x07"[: len(cut)] and 0 < len(cut) < 13
