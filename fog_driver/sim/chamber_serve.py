@@ -255,21 +255,12 @@ class ChamberServer:
                     faults = wire.faults
                     if faults.delay_s > 0:
                         await asyncio.sleep(faults.delay_s)
-                    if faults.garbage:
-                        writer.write(GARBAGE + ending.encode())
-                        await writer.drain()
-                        continue
                     if faults.exception_code is not None:
                         reply = {"espec": "NA:CONTROLLER ERR", "thermotron": "?", "simserv": "-1"}[self.scheme]
                     else:
                         reply = answer(wire, line)
-                    data = (reply + ending).encode("latin-1")
-                    if faults.drop_mid_reply:
-                        writer.write(data[: max(1, len(data) // 2)])
-                        await writer.drain()
+                    if not await _send_reply(writer, (reply + ending).encode("latin-1"), faults):
                         break
-                    writer.write(data)
-                    await writer.drain()
             except (ConnectionError, asyncio.IncompleteReadError):
                 pass
             finally:
@@ -315,15 +306,8 @@ class ChamberServer:
                 while True:
                     header = await inner_reader.readexactly(6)  # MBAP: transaction, protocol, length
                     body = await inner_reader.readexactly(struct.unpack(">H", header[4:6])[0])
-                    reply = header + body
-                    if faults.garbage:
-                        reply = (GARBAGE * (len(reply) // len(GARBAGE) + 1))[: len(reply)]
-                    if faults.drop_mid_reply:
-                        writer.write(reply[: len(reply) // 2])
-                        await writer.drain()
+                    if not await _send_reply(writer, header + body, faults):
                         break
-                    writer.write(reply)
-                    await writer.drain()
             except (ConnectionError, asyncio.IncompleteReadError):
                 pass
             finally:
@@ -340,6 +324,23 @@ class ChamberServer:
             await server.shutdown()
 
         return stop
+
+
+async def _send_reply(writer: asyncio.StreamWriter, reply: bytes, faults: ChamberFaults) -> bool:
+    """Send ``reply`` through the reply faults: ``garbage``, as many bytes that are no reply (a line protocol's
+    line ending kept, so the client reads a whole line of garbage); ``drop_mid_reply``, its first half and then
+    False (the caller closes the connection).  True: the connection goes on."""
+    if faults.garbage:
+        ending = reply[-2:] if reply.endswith(b"\r\n") else b""
+        size = len(reply) - len(ending)
+        reply = (GARBAGE * (size // len(GARBAGE) + 1))[:size] + ending
+    if faults.drop_mid_reply:
+        writer.write(reply[: max(1, len(reply) // 2)])
+        await writer.drain()
+        return False
+    writer.write(reply)
+    await writer.drain()
+    return True
 
 
 async def _read_line(reader: asyncio.StreamReader) -> str | None:
