@@ -205,6 +205,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         raise UsageError(
             f"--duration {args.duration:g} s: more than the {MAX_PROFILE_S / 86400:g} days a simulated run may last"
         )
+    if args.chamber_serve is not None and args.serve is None:
+        raise UsageError("--chamber-serve applies to --serve only (a live stream whose air the chamber drives)")
     sim, faults = _simulator(args)
     if args.serve is not None:
         return serve_cli(sim, args)
@@ -349,4 +351,13 @@ def add_simulate(p: argparse.ArgumentParser) -> None:
         help="--serve: run X times faster than real time (quick hardware-in-the-loop tests)",
     )
     p.add_argument("--baud", type=baud, default=460800, metavar="B", help="--serve DEVICE: baud rate (default 460800)")
+    p.add_argument(
+        "--chamber-serve",
+        metavar="URL",
+        help="--serve: also serve a simulated chamber on URL's protocol (espec://, thermotron://, simserv://, "
+        "watlow-f4t://HOST:PORT; port 0 picks a free one, printed as 'serving the chamber on URL'); the instrument's "
+        "air is that chamber's (its set point reached through a rate limit and a lag: URL options rate_c_per_min "
+        "(default 3), tau_s (60), start_c (the profile's start), low_c, high_c (-70, 180), unit (C|F)); its clock "
+        "is the device time (--speed)",
+    )
     p.set_defaults(func=cmd_simulate)

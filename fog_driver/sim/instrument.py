@@ -170,8 +170,15 @@ class _SlowGrid:
         "rrw_dph",
     )
 
-    def __init__(self, profile: SimProfile, config: InstrumentConfig, rng_noise: np.random.Generator) -> None:
+    def __init__(
+        self,
+        profile: SimProfile,
+        config: InstrumentConfig,
+        rng_noise: np.random.Generator,
+        block_steps: int = GRID_BLOCK_STEPS,
+    ) -> None:
         self.profile = profile
+        self.block_steps = block_steps
         self.config = config
         air0 = float(profile.chamber.air_temp_c(np.array([0.0]))[0])
         self.thermal = ThermalModel(config.thermal, GRID_DT_S, air0)
@@ -234,16 +241,16 @@ class _SlowGrid:
         """Compute whole blocks until the grid reaches past ``t_s``."""
         while (self.end - 1) * GRID_DT_S < t_s + GRID_DT_S:
             first = self.end
-            idx = np.arange(first, first + GRID_BLOCK_STEPS)
+            idx = np.arange(first, first + self.block_steps)
             air_mid = self.profile.chamber.air_temp_c((idx - 0.5) * GRID_DT_S)
             air_end = self.profile.chamber.air_temp_c(idx * GRID_DT_S)
             nodes = self.thermal.run(air_mid)
-            self._append(air_end, nodes, self.noise.run(GRID_BLOCK_STEPS))
+            self._append(air_end, nodes, self.noise.run(self.block_steps))
 
     def forget_before(self, t_s: float) -> None:
         """Drop grid points more than one step before ``t_s`` (live streams run for months)."""
         drop = int(t_s // GRID_DT_S) - 1 - self.start
-        if drop > 4 * GRID_BLOCK_STEPS:
+        if drop > 4 * max(self.block_steps, GRID_BLOCK_STEPS):
             for name in self.COLUMNS:
                 self.data[name] = self.data[name][drop:]
             self.start += drop
@@ -344,7 +351,11 @@ class Simulator:
         seed: int = 0,
         faults: FaultSpec | None = None,
         wire_format: str = "fog-v1",
+        grid_block_steps: int = GRID_BLOCK_STEPS,
     ) -> None:
+        """``grid_block_steps``: the slow grid (the air and the thermal model) is computed that many 1-s steps
+        ahead at a time; a coupled run (the air from a served chamber) takes a few, so it does not use air the
+        chamber has not reached (the default, 600, for a profile known in advance)."""
         if wire_format not in WIRE_FORMATS:
             raise ValueError(f"the simulator speaks {', '.join(WIRE_FORMATS)}, not {wire_format!r}")
         if not (isinstance(rate_hz, int) and 1 <= rate_hz <= 0xFFFF):
@@ -372,7 +383,7 @@ class Simulator:
         self.thermometer_offsets_c = np.array(
             sensors.offsets_c
         ) + sensors.offset_sigma_c * self._rng_run.standard_normal(3)
-        self._grid = _SlowGrid(profile, self.config, self._rng_slow)
+        self._grid = _SlowGrid(profile, self.config, self._rng_slow, grid_block_steps)
         self.period_true_s = 1.0 / (rate_hz * (1.0 + self.config.clock_ppm * 1e-6))
         self._scale = self.config.scale_f32
         self._identity = encode_identity(self.config.serial, self.config.firmware, rate_hz, self._scale)

@@ -652,6 +652,11 @@ def serve_cli(sim: Simulator, args: Any) -> int:
     ``--link PATH`` (default ``DEFAULT_LINK``); a path in its way (``check_link_path``) is one line, exit 73, before
     any pty is made.  SIGINT and SIGTERM end the stream cleanly (a second one interrupts at once) and remove the
     link if it still points at the pty.
+
+    ``--chamber-serve URL`` (``args.chamber_serve``): a simulated chamber served on the URL's protocol in the
+    same process (``chamber_serve.serve_chamber``; the line ``serving the chamber on URL`` with the bound port
+    comes first), whose air the instrument's temperatures follow (``chamber_serve.coupled_chamber``); the
+    chamber's clock starts with the stream, at the same ``--speed``.
     """
     speed = getattr(args, "speed", None)
     speed = 1.0 if speed is None else float(speed)
@@ -660,15 +665,42 @@ def serve_cli(sim: Simulator, args: Any) -> int:
     link = getattr(args, "link", None)
     if args.serve != "pty" and link is not None:
         raise UsageError("--link applies to --serve pty only")
+    chamber_url = getattr(args, "chamber_serve", None)
+    chamber_server = None
+    start_chamber: Callable[[], None] = lambda: None  # noqa: E731
+    if chamber_url is not None:
+        from .chamber_serve import coupled_chamber, serve_chamber
+
+        sim, chamber, clock, url = coupled_chamber(chamber_url, sim, speed)
+        chamber_server = serve_chamber(url, chamber)
+        start_chamber = clock.start
+    try:
+        return _serve_cli(sim, args, speed, link, chamber_server, start_chamber)
+    finally:
+        if chamber_server is not None:
+            chamber_server.stop()
+
+
+def _serve_cli(
+    sim: Simulator,
+    args: Any,
+    speed: float,
+    link: str | None,
+    chamber_server: Any,
+    start_chamber: Callable[[], None],
+) -> int:
     stop = threading.Event()
     signals = stop_on_signals(stop) if threading.current_thread() is threading.main_thread() else nullcontext()
     where = f"{sim.profile.name} at {sim.rate_hz} Hz"
     progress = ServeProgress(sim, speed, args.duration)
     with signals, progress:
+        if chamber_server is not None:
+            print(f"serving the chamber on {chamber_server.url}", flush=True)
         if args.serve == "pty":
 
             def pty_ready(server: PtyServer) -> None:
                 print(f"serving {where} on {server.slave_path} (link {server.link})", flush=True)
+                start_chamber()
                 progress.start(server)
 
             link = link if link is not None else DEFAULT_LINK
@@ -677,6 +709,7 @@ def serve_cli(sim: Simulator, args: Any) -> int:
 
             def device_ready(device: str) -> None:
                 print(f"serving {where} on {device} at {args.baud} baud", flush=True)
+                start_chamber()
                 progress.start(None)
 
             stats = serve_device(
