@@ -168,8 +168,9 @@ def test_a_second_run_on_a_chamber_another_run_drives_is_one_line_and_exit_69(
     monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))  # the lock folder, here and in the command's process
     from fog_driver.cli.lab import open_chamber
 
-    with ControllerLock(open_chamber("sim://", None).address):
-        proc = run_cli("chamber", "run", profile(tmp_path), "--chamber", "sim://", "--log", str(tmp_path / "l.csv"))
+    url = "espec://127.0.0.1:1"  # (every sim:// is a chamber of its own: the lock is for a real address)
+    with ControllerLock(open_chamber(url, None).address):
+        proc = run_cli("chamber", "run", profile(tmp_path), "--chamber", url, "--log", str(tmp_path / "l.csv"))
     assert_one_line_error(proc, 69, "another chamber run drives")
     assert not (tmp_path / "l.csv").exists()
 
