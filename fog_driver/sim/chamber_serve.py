@@ -55,6 +55,15 @@ F4T_PV = 2820
 F4T_RANGE_LOW = 2774
 F4T_RANGE_HIGH = 2776
 F4T_LOOP_STRIDE = 160
+# One-register values (the F4T user's guide's Modbus map, 0600-0093-0000): the display unit (F 30, C 15), loop 1's
+# control mode (Off 62, Auto 10, Manual 54), the profile's state (149 running, 146 paused; the chamber runs none)
+# and the profile action (148 terminate).
+F4T_DISPLAY_UNITS = 1328
+F4T_CONTROL_MODE = 2730
+F4T_PROFILE_STATE = 16568
+F4T_PROFILE_ACTION = 16566
+F4T_MODE_OFF, F4T_MODE_AUTO, F4T_MODE_MANUAL = 62, 10, 54
+F4T_PROFILE_IDLE = 0
 SIMSERV_SEP = "\xb6"
 
 
@@ -122,26 +131,28 @@ def _espec(wire: _Wire, line: str) -> str:
     return "NA:COMMAND ERR"
 
 
-def _thermotron(wire: _Wire, line: str) -> str:
+def _thermotron(wire: _Wire, line: str) -> str | None:
+    """The 8200's interface: a query answers its value; a setting with data answers the value set (the manual's
+    ``SETP1,22.000`` -> ``22.000``); ``RUNM``, ``HOLD`` and ``STOP`` answer nothing (None); ``SCOD?`` 0 stopped,
+    1 running manual; an error answers ``?``."""
     cmd = line.strip().upper()
     if cmd == "PVAR1?":
-        return f"{wire.air():.1f}"
+        return f"{wire.air():.3f}"
     if cmd == "SETP1?":
-        return f"{wire.setpoint():.1f}"
+        return f"{wire.setpoint():.3f}"
     if cmd == "SCOD?":
-        return "0" if wire.chamber.mode == "standby" else "2"
+        return "0" if wire.chamber.mode == "standby" else "1"
     try:
         if cmd.startswith("SETP1,"):
             wire.write(float(cmd[len("SETP1,") :]))
-            return "0"
+            return f"{wire.setpoint():.3f}"
         if cmd.startswith("MRMP1,"):
-            float(cmd[len("MRMP1,") :])
-            return "0"
+            return f"{float(cmd[len('MRMP1,') :]):.3f}"
         if cmd in ("RUNM", "HOLD", "STOP"):
             if wire.faults.local:
                 raise ControllerRefused("local mode")
             wire.chamber.set_mode("standby" if cmd == "STOP" else "constant")
-            return "0"
+            return None
     except (ControllerRefused, ValueError):
         return "?"
     return "?"
@@ -155,22 +166,26 @@ def _simserv(wire: _Wire, line: str) -> str:
             return f"1{SIMSERV_SEP}{wire.air():.1f}"
         if cmd == "11002":
             return f"1{SIMSERV_SEP}{wire.setpoint():.1f}"
+        if cmd == "11007":
+            return f"1{SIMSERV_SEP}{wire.low():.1f}"
+        if cmd == "11009":
+            return f"1{SIMSERV_SEP}{wire.high():.1f}"
         if cmd == "11001" and len(fields) >= 4:
             wire.write(float(fields[3]))
             return "1"
-        if cmd == "14001":
+        if cmd == "14001" and len(fields) >= 3 and fields[2] in ("0", "1"):
             if wire.faults.local:
                 raise ControllerRefused("local mode")
-            wire.chamber.set_mode("constant")
+            wire.chamber.set_mode("constant" if fields[2] == "1" else "standby")
             return "1"
     except (ControllerRefused, ValueError):
         return "-6"
     return "-5"
 
 
-_LINE_PROTOCOLS: dict[str, tuple[Callable[[_Wire, str], str], str]] = {
+_LINE_PROTOCOLS: dict[str, tuple[Callable[[_Wire, str], str | None], str]] = {
     "espec": (_espec, "\r\n"),
-    "thermotron": (_thermotron, "\r\n"),
+    "thermotron": (_thermotron, "\r"),
     "simserv": (_simserv, "\r\n"),
 }
 
@@ -255,10 +270,13 @@ class ChamberServer:
                     faults = wire.faults
                     if faults.delay_s > 0:
                         await asyncio.sleep(faults.delay_s)
+                    reply: str | None
                     if faults.exception_code is not None:
                         reply = {"espec": "NA:CONTROLLER ERR", "thermotron": "?", "simserv": "-1"}[self.scheme]
                     else:
                         reply = answer(wire, line)
+                    if reply is None:  # a command the protocol answers with nothing
+                        continue
                     if not await _send_reply(writer, (reply + ending).encode("latin-1"), faults):
                         break
             except (ConnectionError, asyncio.IncompleteReadError):
@@ -368,8 +386,10 @@ def _words_float(words: list[int], word_order: str) -> float:
 
 
 def _f4t_context(wire: _Wire, word_order: str) -> Any:
-    """A pymodbus server context whose holding registers are the F4T's loop-1 map over ``wire`` (other addresses
-    read 0; a write elsewhere than the set point is accepted and ignored).  Faults: ``exception_code`` answers
+    """A pymodbus server context whose holding registers are the F4T's loop-1 map over ``wire``: the floats (set
+    point, air, range), the display unit, the control mode (written Off 62: standby; Auto 10: constant), the
+    profile's state (none runs) and its action (accepted); any other address answers exception 2 (illegal data
+    address), as a controller does.  Faults: ``exception_code`` answers
     every request with it, ``delay_s`` delays each answer, ``local`` answers a write exception 4 (device
     failure, as a controller refusing it)."""
     from pymodbus.constants import ExcCodes
@@ -380,6 +400,18 @@ def _f4t_context(wire: _Wire, word_order: str) -> Any:
         F4T_PV: wire.air,
         F4T_RANGE_LOW: wire.low,
         F4T_RANGE_HIGH: wire.high,
+    }
+
+    def control_mode() -> int:
+        if wire.faults.local:
+            return F4T_MODE_MANUAL
+        return F4T_MODE_OFF if wire.chamber.mode == "standby" else F4T_MODE_AUTO
+
+    words_at: dict[int, Callable[[], int]] = {
+        F4T_DISPLAY_UNITS: lambda: 30 if wire.in_f else 15,
+        F4T_CONTROL_MODE: control_mode,
+        F4T_PROFILE_STATE: lambda: F4T_PROFILE_IDLE,
+        F4T_PROFILE_ACTION: lambda: 0,
     }
 
     class F4TContext(ModbusServerContext):
@@ -394,10 +426,12 @@ def _f4t_context(wire: _Wire, word_order: str) -> Any:
             words: list[int] = []
             cache: dict[int, list[int]] = {}
             for reg in range(address, address + count):
+                if reg in words_at:
+                    words.append(words_at[reg]())
+                    continue
                 base = reg if reg in values else reg - 1 if reg - 1 in values else None
                 if base is None:
-                    words.append(0)
-                    continue
+                    return ExcCodes.ILLEGAL_ADDRESS
                 if base not in cache:
                     cache[base] = _float_words(values[base](), word_order)
                 words.append(cache[base][reg - base])
@@ -411,6 +445,16 @@ def _f4t_context(wire: _Wire, word_order: str) -> Any:
                 await asyncio.sleep(faults.delay_s)
             if faults.exception_code is not None:
                 return ExcCodes(faults.exception_code)
+            if address == F4T_CONTROL_MODE and len(vals) == 1:
+                if faults.local:
+                    return ExcCodes.DEVICE_FAILURE
+                mode = {F4T_MODE_OFF: "standby", F4T_MODE_AUTO: "constant"}.get(int(vals[0]))
+                if mode is None:
+                    return ExcCodes.ILLEGAL_VALUE
+                wire.chamber.set_mode(mode)
+                return None
+            if address == F4T_PROFILE_ACTION and len(vals) == 1:
+                return None  # no profile runs: a terminate has nothing to end
             if address == F4T_SETPOINT:
                 if func_code != 16 or len(vals) != 2:
                     return ExcCodes.ILLEGAL_VALUE
@@ -420,7 +464,8 @@ def _f4t_context(wire: _Wire, word_order: str) -> Any:
                     return ExcCodes.DEVICE_FAILURE
                 except ValueError:
                     return ExcCodes.ILLEGAL_VALUE
-            return None
+                return None
+            return ExcCodes.ILLEGAL_ADDRESS
 
     context = F4TContext(devices=ModbusDeviceContext())
     context.simdevices = []  # so pymodbus's server asks this context itself (its "old simulator" path)

@@ -88,19 +88,20 @@ def test_espec_in_fahrenheit_speaks_degf(clock: FakeClock, servers) -> None:
 
 
 def test_thermotron_answers_pvar_setp_and_status(chamber: SimChamber, clock: FakeClock, servers) -> None:
+    """The 8200 manual's forms: lines end CR; a query answers its value (``PVAR1?`` -> ``22.000``), a setting
+    with data its value set (``SETP1,22.000`` -> ``22.000``); ``RUNM`` and ``STOP`` answer nothing (the next
+    query's answer is the next line); ``SCOD?`` 0 stopped, 1 running manual."""
     server = served("thermotron", chamber)
     servers.append(server)
-    assert ask(server, b"PVAR1?\r") == b"20.0\r\n"
-    assert ask(server, b"SETP1,-12.5\r") == b"0\r\n"
-    assert ask(server, b"MRMP1,2.0\r") == b"0\r\n"
-    assert ask(server, b"SETP1?\r") == b"-12.5\r\n"
+    assert ask(server, b"PVAR1?\r", b"\r") == b"20.000\r"
+    assert ask(server, b"SETP1,-12.5\r", b"\r") == b"-12.500\r"
+    assert ask(server, b"MRMP1,2.0\r", b"\r") == b"2.000\r"
+    assert ask(server, b"SETP1?\r", b"\r") == b"-12.500\r"
     clock.t_s = 5.0
-    assert ask(server, b"PVAR1?\r") == b"-12.5\r\n"
-    assert ask(server, b"RUNM\r") == b"0\r\n"
-    assert ask(server, b"SCOD?\r") == b"2\r\n"
-    assert ask(server, b"STOP\r") == b"0\r\n"
-    assert ask(server, b"SCOD?\r") == b"0\r\n"
-    assert ask(server, b"XYZZY\r") == b"?\r\n"
+    assert ask(server, b"PVAR1?\r", b"\r") == b"-12.500\r"
+    assert ask(server, b"RUNM\rSCOD?\r", b"\r") == b"1\r"
+    assert ask(server, b"STOP\rSCOD?\r", b"\r") == b"0\r"
+    assert ask(server, b"XYZZY\r", b"\r") == b"?\r"
 
 
 def test_simserv_answers_its_0xb6_separated_commands(chamber: SimChamber, clock: FakeClock, servers) -> None:
@@ -110,7 +111,16 @@ def test_simserv_answers_its_0xb6_separated_commands(chamber: SimChamber, clock:
     assert ask(server, b"11004" + sep + b"1" + sep + b"1\r") == b"1" + sep + b"20.0\r\n"
     assert ask(server, sep.join([b"11001", b"1", b"1", b"45.0"]) + b"\r") == b"1\r\n"
     assert ask(server, b"11002" + sep + b"1" + sep + b"1\r") == b"1" + sep + b"45.0\r\n"
+    assert (
+        ask(server, b"11007" + sep + b"1" + sep + b"1\r") == b"1" + sep + f"{chamber.range_c().low_c:.1f}\r\n".encode()
+    )  # the lower limit
+    assert (
+        ask(server, b"11009" + sep + b"1" + sep + b"1\r") == b"1" + sep + f"{chamber.range_c().high_c:.1f}\r\n".encode()
+    )  # the upper limit
+    assert ask(server, b"14001" + sep + b"1" + sep + b"0\r") == b"1\r\n"
+    assert chamber.mode == "standby"
     assert ask(server, b"14001" + sep + b"1" + sep + b"1\r") == b"1\r\n"
+    assert chamber.mode == "constant"
     assert ask(server, b"99999\r") == b"-5\r\n"
 
 
