@@ -253,12 +253,10 @@ def _fit(capture: Path, args: argparse.Namespace) -> int:
 
 
 def _on_stop(text: str) -> Any:
-    from ..lab.runner import parse_on_stop
+    """``--on-stop``: as ``chamber run --on-stop`` reads it (imported when given: ``--help`` needs no lab module)."""
+    from .lab import on_stop_option
 
-    try:
-        return parse_on_stop(text)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
+    return on_stop_option(text)
 
 
 def add_calibrate(p: argparse.ArgumentParser) -> None:

@@ -32,6 +32,12 @@ def _program(tmp_path: Path) -> Path:
     return path
 
 
+def _calibrate(tmp_path: Path, port: str = "loop://", chamber: str = "sim://", profile: str | None = None):
+    """``fog-driver calibrate PORT --chamber CHAMBER --profile PROFILE --out tmp_path/r.bin``."""
+    profile = str(_program(tmp_path)) if profile is None else profile
+    return run_cli("calibrate", port, "--chamber", chamber, "--profile", profile, "--out", str(tmp_path / "r.bin"))
+
+
 def test_calibrate_with_an_out_not_a_capture_name_is_a_usage_error(tmp_path):
     proc = run_cli("calibrate", "loop://", "--chamber", "sim://", "--profile", "x", "--out", str(tmp_path / "x.txt"))
     assert_one_line_error(proc, 64, "must end in .bin")
@@ -52,47 +58,20 @@ def test_calibrate_with_a_profile_that_is_not_one_is_bad_input(tmp_path):
 
 
 def test_calibrate_with_an_unknown_chamber_scheme_is_a_usage_error(tmp_path):
-    proc = run_cli(
-        "calibrate",
-        "loop://",
-        "--chamber",
-        "nochamber://x",
-        "--profile",
-        str(_program(tmp_path)),
-        "--out",
-        str(tmp_path / "r.bin"),
-    )
+    proc = _calibrate(tmp_path, chamber="nochamber://x")
     assert_one_line_error(proc, 64)
     assert not (tmp_path / "r.bin").exists()
 
 
 def test_calibrate_onto_an_existing_chamber_log_is_refused_without_force(tmp_path):
     (tmp_path / "r.chamber.csv").write_text("old\n")
-    proc = run_cli(
-        "calibrate",
-        "loop://",
-        "--chamber",
-        "sim://",
-        "--profile",
-        str(_program(tmp_path)),
-        "--out",
-        str(tmp_path / "r.bin"),
-    )
+    proc = _calibrate(tmp_path)
     assert_one_line_error(proc, 73, "r.chamber.csv")
     assert (tmp_path / "r.chamber.csv").read_text() == "old\n"
 
 
 def test_calibrate_with_a_program_beyond_the_chamber_range_records_nothing(tmp_path):
-    proc = run_cli(
-        "calibrate",
-        "loop://",
-        "--chamber",
-        "sim://?high_c=20.5",
-        "--profile",
-        str(_program(tmp_path)),
-        "--out",
-        str(tmp_path / "r.bin"),
-    )
+    proc = _calibrate(tmp_path, chamber="sim://?high_c=20.5")
     assert_one_line_error(proc, 65)
     assert not (tmp_path / "r.bin").exists() and not (tmp_path / "r.chamber.csv").exists()
 
@@ -116,16 +95,7 @@ def test_calibrate_on_a_port_a_daemon_holds_is_refused_with_one_line(tmp_path):
     with PtyPair() as pty:
         held = open_port(pty.slave_path)
         try:
-            proc = run_cli(
-                "calibrate",
-                pty.slave_path,
-                "--chamber",
-                "sim://",
-                "--profile",
-                str(_program(tmp_path)),
-                "--out",
-                str(tmp_path / "r.bin"),
-            )
+            proc = _calibrate(tmp_path, port=pty.slave_path)
         finally:
             held.close()
     assert_one_line_error(proc, 69, "held by another program")
