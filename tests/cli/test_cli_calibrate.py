@@ -130,3 +130,27 @@ def test_calibrate_against_the_simulated_chamber_writes_the_capture_the_log_and_
     device_t = [float(r["device_t_s"]) for r in running]
     assert device_t == sorted(device_t)
     assert float(running[-1]["program_c"]) == 21.0 or float(running[-1]["program_c"]) <= 21.0
+
+
+def test_calibrate_stopped_with_ctrl_c_exits_130_and_says_interrupted_in_its_sidecar(tmp_path):
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    out = tmp_path / "run.bin"
+    program = tmp_path / "long.yaml"
+    program.write_text("name: long\nstart_c: 20\nsegments:\n- hold: {duration_min: 10}\n")
+    argv = [sys.executable, "-m", "fog_driver", "calibrate", f"replay://{DATA / 'sim-short.bin'}?rate=200"]
+    argv += ["--chamber", "sim://", "--profile", str(program), "--out", str(out), "--step-s", "0.2"]
+    proc = subprocess.Popen(argv, stderr=subprocess.PIPE, text=True, env=os.environ)
+    assert proc.stderr is not None
+    for line in proc.stderr:  # the readiness line: the program has started
+        if "Ctrl-C to stop" in line:
+            break
+    proc.send_signal(signal.SIGINT)
+    proc.communicate(timeout=30)
+    assert proc.returncode == 130
+    assert read_provenance(out)["status"] == "interrupted"
+    lines = [line for line in (tmp_path / "run.chamber.csv").read_text().splitlines() if not line.startswith("#")]
+    assert list(csv.DictReader(lines))[-1]["state"] == "interrupted"
