@@ -1,5 +1,6 @@
 """The ``fog-driver`` argument tree: the options of every command, the table of commands, and each command's
-own arguments, added by its group's module (``captures``, ``plan``, ``lab``, ``calibration``, ``daemon``, ``tools``).
+own arguments, added by its group's module (``captures``, ``plan``, ``lab``, ``calibrate``, ``calibration``,
+``daemon``, ``tools``).
 
 A group's module is imported only when its command is parsed: ``fog-driver ctl --help`` or ``fog-driver watch``
 import neither numpy nor the compensation (start-up time).
@@ -22,6 +23,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "simulate": ("captures", "simulate the instrument: write a capture with its truth, or serve it live"),
     "plan": ("plan", "design a calibration program for your chamber: a profile that pins the drift model down"),
     "chamber": ("lab", "drive a thermal chamber: read its controller (status), run a program on it (run)"),
+    "calibrate": (
+        "calibrate",
+        "a calibration in one command: record the gyro, run the program on the chamber, log it, fit at the end",
+    ),
     "fit": ("calibration", "fit a drift model to static chamber captures"),
     "compensate": ("calibration", "apply a drift model to a capture; write a CSV row per period"),
     "run": ("daemon", "the headless daemon: live compensation, publishing, control, raw capture"),

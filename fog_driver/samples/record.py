@@ -74,6 +74,8 @@ def record(
     wire: Any = None,
     setup: Any = None,
     silence_s: float | None = DEFAULT_SILENCE_S,
+    on_event: Callable[[Any], None] | None = None,
+    extra_fields: dict[str, Any] | None = None,
 ) -> RecordResult:
     """Copy bytes from ``url`` into ``out_path`` until ``duration_s`` (host time) passes, ``stop`` is set,
     or (with ``reconnect=False``) the port is lost; a duration or a stop ends on a frame boundary (the module
@@ -90,12 +92,15 @@ def record(
     ``transport.setup.DeviceSetup`` run on every open (its replies are in the capture, as every byte read).
     ``silence_s``: a network port (``socket://``, ``rfc2217://``) that gives no byte for this long after it has
     given some is taken as lost (``PortReader``), and reopened unless ``reconnect=False``; None: never.
+    ``on_event``: called, in the recording's thread, with every event the decoder gives (frames, gaps), as it
+    decodes the bytes written (``calibrate`` watches the gyro's clock and temperatures by it).
+    ``extra_fields``: more sidecar fields, from the start (``calibrate``: the chamber log, the program).
     """
     wire = wire or WireSettings()
     stop = stop or threading.Event()
     out_path = Path(out_path)
-    recording = _Recording(wire, on_state)
-    base_fields = _base_fields(url, baudrate, wire, notes)
+    recording = _Recording(wire, on_state, on_event)
+    base_fields = {**_base_fields(url, baudrate, wire, notes), **(extra_fields or {})}
     # say so now, not after waiting for the port
     check_outputs([out_path, sidecar_path(out_path)], force=overwrite, captures=[out_path])
     reader = PortReader(
@@ -162,7 +167,9 @@ class _Recording:
     """What a recording learns as it goes, for its sidecar: the port's states, the device setups run on each
     open (the offline readers skip their bytes, as the daemon does), the frames decoded and the identity."""
 
-    def __init__(self, wire: Any, on_state: Callable[[PortEvent], None] | None) -> None:
+    def __init__(
+        self, wire: Any, on_state: Callable[[PortEvent], None] | None, on_event: Callable[[Any], None] | None = None
+    ) -> None:
         self.decoder = wire.make_decoder()
         self.identity: IdentityFrame | None = None
         self.port_state = "opening"
@@ -170,6 +177,7 @@ class _Recording:
         self.events: list[dict[str, Any]] = []
         self.bytes_written = 0  # to the capture so far
         self._on_state = on_state
+        self._on_event = on_event
 
     def state_changed(self, event: PortEvent) -> None:
         self.port_state = event.state
@@ -203,6 +211,8 @@ class _Recording:
         for event in self.decoder.feed(chunk):
             if isinstance(event, IdentityFrame):
                 self.identity = event
+            if self._on_event is not None:
+                self._on_event(event)
 
     def sidecar_fields(self, base_fields: dict[str, Any], status: str, elapsed_s: float, writer: CaptureWriter) -> dict:
         """The sidecar at the end: ``base_fields``, how the recording ended, and what it learnt."""

@@ -205,10 +205,20 @@ def open_port(
 ) -> serial.SerialBase:
     """Open a device path or a pyserial URL (``replay://`` included) with a read timeout.
 
-    Raises ``serial.SerialException`` when the port cannot be opened and
+    A device path (no ``scheme://``) is opened exclusively (pyserial's ``exclusive``: an flock on POSIX), so a
+    port a running daemon or recorder holds is refused, not shared (two readers would each get half the bytes).
+
+    Raises ``serial.SerialException`` when the port cannot be opened (or is held) and
     ``ValueError`` for a URL scheme nobody handles or bad settings.
     """
-    return serial.serial_for_url(url_or_path, baudrate=baudrate, timeout=timeout_s)
+    if "://" in url_or_path:
+        return serial.serial_for_url(url_or_path, baudrate=baudrate, timeout=timeout_s)
+    try:
+        return serial.serial_for_url(url_or_path, baudrate=baudrate, timeout=timeout_s, exclusive=True)
+    except serial.SerialException as exc:
+        if "exclusively lock" in str(exc):
+            raise serial.SerialException(f"{url_or_path} is held by another program (a running daemon?)") from None
+        raise
 
 
 class PortReader:

@@ -248,7 +248,7 @@ def test_the_option_check_catches_what_does_not_exist():
     with pytest.raises(AssertionError, match="no option --colour"):
         check_fog_driver_line(["fog-driver", "watch", "--colour"], "x")
     with pytest.raises(AssertionError, match="no sub-command"):
-        check_fog_driver_line(["fog-driver", "calibrate"], "x")
+        check_fog_driver_line(["fog-driver", "teleport"], "x")
     check_fog_driver_line(["fog-driver", "-v", "ctl", "adapt", "on", "--reference-dph", "0"], "x")
 
 
