@@ -19,17 +19,22 @@ import argparse
 import sys
 import threading
 import time
-import uuid
 from pathlib import Path
 from typing import Any
 
 from ..client.display import Progress
-from ..errors import InputFileError, UsageError
+from ..errors import UsageError
 from ..extras import require_extra
 from ..files.outputs import check_outputs
+from ..lab.chamberlog import ChamberLogWriter, LogHeader, program_sha256
+from ..lab.lock import ControllerLock
+from ..lab.runner import RunOptions, SystemClock, check_range, run_program
 from ..samples.captures import read_provenance, sidecar_path, write_provenance
+from ..samples.record import record
+from ..signals import stop_on_signals
 from .argtypes import baud, positive_float
 from .captures import FORMAT_NAMES, _record_wire, load_config
+from .lab import EXIT_INTERRUPTED, add_program_options, load_program, open_chamber, resume_from
 
 #: The chamber log beside the capture ``RUN.bin``: ``RUN.chamber.csv``.
 CHAMBER_LOG_SUFFIX = ".chamber.csv"
@@ -108,8 +113,6 @@ class _RecordingThread(threading.Thread):
         self.done = threading.Event()
 
     def run(self) -> None:
-        from ..samples.record import record
-
         try:
             self.result = record(**self.kwargs)
         except BaseException as exc:  # raised again in the caller's thread
@@ -128,30 +131,12 @@ def _wait_for_frames(feed: FrameFeed, recording: _RecordingThread, stop: threadi
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
     require_extra("lab", "fog-driver calibrate")
-    from ..lab.chamberlog import ChamberLogWriter, LogHeader, program_sha256, read_chamber_log
-    from ..lab.lock import ControllerLock
-    from ..lab.profiles import load_profile
-    from ..lab.runner import RunOptions, SystemClock, check_range, resume_point, run_program
-    from ..signals import stop_on_signals
-    from .lab import EXIT_INTERRUPTED, open_chamber
-
     if not args.out.endswith(".bin"):
         raise UsageError(f"--out {args.out!r}: a capture file name must end in .bin")
     out = Path(args.out)
     log_path = chamber_log_path(out)
-    profile = load_profile(args.profile)
-    program = profile.chamber
-    if not program.segments:
-        raise InputFileError(f"{args.profile}: the profile has no chamber program")
-    resume_t_s, run_id = None, uuid.uuid4().hex
-    if args.resume is not None:
-        if Path(args.resume).resolve() == log_path.resolve():
-            raise UsageError(f"--resume: the old log cannot be the new one ({log_path}: give another --out)")
-        try:
-            old = read_chamber_log(args.resume)
-            resume_t_s, run_id = resume_point(old, program), old.header.run_id
-        except InputFileError as exc:
-            raise InputFileError(f"--resume {args.resume}: {exc}") from None
+    profile, program = load_program(args.profile)
+    resume_t_s, run_id = resume_from(args.resume, log_path, program, "--out")
     outputs = [out, sidecar_path(out), log_path, *([Path(args.fit)] if args.fit else [])]
     check_outputs(outputs, force=args.force, captures=[out])
     config = load_config(args.config) if args.config else None
@@ -243,20 +228,13 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 def _fit(capture: Path, args: argparse.Namespace) -> int:
     """``fog-driver fit CAPTURE --out MODEL --profile PROFILE [--format F] --force``: the same code, the same
     arguments' defaults (the outputs were checked before the run: ``--force`` here only lets it write)."""
-    from .calibration import cmd_fit
-    from .parser import build_parser
+    from .calibration import cmd_fit  # start-up time: the fit's modules only with --fit
+    from .parser import build_parser  # start-up time: the parser imports this module
 
     argv = ["fit", str(capture), "--out", args.fit, "--profile", args.profile, "--force"]
     if args.format:
         argv += ["--format", args.format]
     return int(cmd_fit(build_parser(["fit"]).parse_args(argv)))
-
-
-def _on_stop(text: str) -> Any:
-    """``--on-stop``: as ``chamber run --on-stop`` reads it (imported when given: ``--help`` needs no lab module)."""
-    from .lab import on_stop_option
-
-    return on_stop_option(text)
 
 
 def add_calibrate(p: argparse.ArgumentParser) -> None:
@@ -269,15 +247,6 @@ def add_calibrate(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--fit", metavar="MODEL.yaml", help="fit a drift model to the capture at the end (as fit does)")
     p.add_argument("--force", action="store_true", help="overwrite the capture, its sidecar, the log and the model")
-    p.add_argument("--step-s", type=positive_float, default=1.0, metavar="S", help="seconds between set points")
-    p.add_argument(
-        "--on-stop",
-        type=_on_stop,
-        default="hold",
-        metavar="hold|standby|C",
-        help="at the end or on Ctrl-C: hold (write nothing more), standby, or go to C degC at the program's "
-        "slowest ramp rate and hold (default: hold)",
-    )
     p.add_argument(
         "--pause-after-s",
         type=positive_float,
@@ -285,12 +254,7 @@ def add_calibrate(p: argparse.ArgumentParser) -> None:
         metavar="S",
         help="hold the program while the gyro sends no frame for more than S seconds (default 10)",
     )
-    p.add_argument("--resume", metavar="LOG.csv", help="go on from an interrupted run's chamber log, into a new --out")
-    p.add_argument(
-        "--chamber-config",
-        metavar="FILE",
-        help="a YAML file whose 'chamber:' mapping overrides the driver's settings (registers, word order)",
-    )
+    add_program_options(p, resume_help="go on from an interrupted run's chamber log, into a new --out")
     p.add_argument("--baud", type=baud, default=460800, metavar="B", help="the gyro's baud rate (default 460800)")
     p.add_argument("--config", metavar="FILE", help="a daemon config saying what the port sends (as record --config)")
     p.add_argument(

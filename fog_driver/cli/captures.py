@@ -12,6 +12,7 @@ import threading
 from ..client.display import Progress
 from ..daemon.config import DriverConfig, load_config
 from ..errors import InputFileError, UsageError
+from ..extras import require_extra
 from ..formats.registry import FORMATS
 from ..formats.summary import format_format_summary, summarize_format
 from ..lab.profiles import MAX_PROFILE_S, load_profile
@@ -207,6 +208,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         )
     if args.chamber_serve is not None and args.serve is None:
         raise UsageError("--chamber-serve applies to --serve only (a live stream whose air the chamber drives)")
+    if args.chamber_serve is not None and args.chamber_serve.lower().startswith("watlow-f4t"):
+        require_extra("lab", "simulate --chamber-serve watlow-f4t://")  # the F4T is served by pymodbus
     sim, faults = _simulator(args)
     if args.serve is not None:
         return serve_cli(sim, args)

@@ -22,7 +22,8 @@ from ..files.yamlio import read_yaml
 from ..lab.chamberlog import ChamberLogWriter, LogHeader, LogRow, program_sha256, read_chamber_log
 from ..lab.controllers.base import ChamberController
 from ..lab.lock import ControllerLock
-from ..lab.profiles import load_profile
+from ..lab.profiles import SimProfile, load_profile
+from ..lab.program import ChamberProfile
 from ..lab.runner import OnStop, RunOptions, SystemClock, check_range, parse_on_stop, resume_point, run_program
 from ..offline.chamber import open_lab_controller
 from ..signals import stop_on_signals
@@ -97,22 +98,33 @@ def _progress(row: LogRow) -> None:
         print(f"\r{text}\033[K", end="", file=sys.stderr, flush=True)
 
 
+def load_program(name_or_path: str) -> tuple[SimProfile, ChamberProfile]:
+    """``PROFILE`` (``chamber run``) or ``--profile`` (``calibrate``): the profile and its chamber program."""
+    profile = load_profile(name_or_path)
+    if not profile.chamber.segments:
+        raise InputFileError(f"{name_or_path}: the profile has no chamber program")
+    return profile, profile.chamber
+
+
+def resume_from(resume: str | None, new_log: Path, program: ChamberProfile, give: str) -> tuple[float | None, str]:
+    """``--resume OLD.csv``: where the program's clock goes on (None: a new run) and the run's id (the old log's:
+    the same run, a new log); the old log may not be the new one (``give``: what to give instead)."""
+    if resume is None:
+        return None, uuid.uuid4().hex
+    if Path(resume).resolve() == new_log.resolve():
+        raise UsageError(f"--resume: the old log cannot be the new one ({new_log}: give another {give})")
+    try:
+        old = read_chamber_log(resume)
+        return resume_point(old, program), old.header.run_id
+    except InputFileError as exc:
+        raise InputFileError(f"--resume {resume}: {exc}") from None
+
+
 def cmd_chamber_run(args: argparse.Namespace) -> int:
     require_extra("lab", "fog-driver chamber")
-    profile = load_profile(args.profile)
-    program = profile.chamber
-    if not program.segments:
-        raise InputFileError(f"{args.profile}: the profile has no chamber program")
+    profile, program = load_program(args.profile)
     log_path = Path(args.log)
-    resume_t_s, run_id = None, uuid.uuid4().hex
-    if args.resume is not None:
-        if Path(args.resume).resolve() == log_path.resolve():
-            raise UsageError("--resume: the old log cannot be the new one (give another --log)")
-        try:
-            old = read_chamber_log(args.resume)
-            resume_t_s, run_id = resume_point(old, program), old.header.run_id  # the same run, a new log
-        except InputFileError as exc:
-            raise InputFileError(f"--resume {args.resume}: {exc}") from None
+    resume_t_s, run_id = resume_from(args.resume, log_path, program, "--log")
     if log_path.exists() and not args.force:
         raise OutputFileError(f"{log_path}: exists (give --force to overwrite it)")
     controller = open_chamber(args.chamber, args.chamber_config)
@@ -160,20 +172,16 @@ def on_stop_option(text: str) -> OnStop:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
-def add_chamber(p: argparse.ArgumentParser) -> None:
-    """``fog-driver chamber``: its subcommands ``status`` and ``run``."""
-    sub = p.add_subparsers(dest="chamber_command", metavar="SUBCOMMAND", required=True)
-    config_help = "a YAML file whose 'chamber:' mapping overrides the driver's settings (registers, word order)"
-    s = sub.add_parser("status", help="one line: the air, the set point, the state and the range")
-    s.add_argument("url", metavar="URL", help="the controller, e.g. espec://HOST, watlow-f4t://HOST, sim://")
-    s.add_argument("--chamber-config", metavar="FILE", help=config_help)
-    s.set_defaults(func=cmd_chamber_status)
-    r = sub.add_parser("run", help="run a program on the chamber: a set point a step, logged")
-    r.add_argument("profile", metavar="PROFILE", help="a profile file (as plan writes) or a built-in profile name")
-    r.add_argument("--chamber", required=True, metavar="URL", help="the controller, e.g. espec://HOST, sim://")
-    r.add_argument("--log", required=True, metavar="LOG.csv", help="the chamber log to write (a row a step)")
-    r.add_argument("--step-s", type=positive_float, default=1.0, metavar="S", help="seconds between set points")
-    r.add_argument(
+CONFIG_HELP = (
+    "a YAML file whose 'chamber: overrides:' mapping (the daemon config's shape) overrides the driver's settings"
+)
+
+
+def add_program_options(p: argparse.ArgumentParser, *, resume_help: str) -> None:
+    """The options ``chamber run`` and ``calibrate`` share: ``--step-s``, ``--on-stop``, ``--resume`` and
+    ``--chamber-config``."""
+    p.add_argument("--step-s", type=positive_float, default=1.0, metavar="S", help="seconds between set points")
+    p.add_argument(
         "--on-stop",
         type=on_stop_option,
         default=OnStop("hold"),
@@ -181,7 +189,21 @@ def add_chamber(p: argparse.ArgumentParser) -> None:
         help="at the end or on Ctrl-C: hold (write nothing more), standby, or go to C degC at the program's "
         "slowest ramp rate and hold (default: hold)",
     )
-    r.add_argument("--resume", metavar="LOG.csv", help="go on from an interrupted run's log, into --log")
+    p.add_argument("--resume", metavar="LOG.csv", help=resume_help)
+    p.add_argument("--chamber-config", metavar="FILE", help=CONFIG_HELP)
+
+
+def add_chamber(p: argparse.ArgumentParser) -> None:
+    """``fog-driver chamber``: its subcommands ``status`` and ``run``."""
+    sub = p.add_subparsers(dest="chamber_command", metavar="SUBCOMMAND", required=True)
+    s = sub.add_parser("status", help="one line: the air, the set point, the state and the range")
+    s.add_argument("url", metavar="URL", help="the controller, e.g. espec://HOST, watlow-f4t://HOST, sim://")
+    s.add_argument("--chamber-config", metavar="FILE", help=CONFIG_HELP)
+    s.set_defaults(func=cmd_chamber_status)
+    r = sub.add_parser("run", help="run a program on the chamber: a set point a step, logged")
+    r.add_argument("profile", metavar="PROFILE", help="a profile file (as plan writes) or a built-in profile name")
+    r.add_argument("--chamber", required=True, metavar="URL", help="the controller, e.g. espec://HOST, sim://")
+    r.add_argument("--log", required=True, metavar="LOG.csv", help="the chamber log to write (a row a step)")
+    add_program_options(r, resume_help="go on from an interrupted run's log, into --log")
     r.add_argument("--force", action="store_true", help="overwrite --log if it exists")
-    r.add_argument("--chamber-config", metavar="FILE", help=config_help)
     r.set_defaults(func=cmd_chamber_run)

@@ -19,7 +19,10 @@ from fog_driver.sim.chamber_serve import serve_chamber
 OPTIONS = {"espec": "", "thermotron": "?range=-70:180", "simserv": "", "watlow-f4t": ""}
 
 #: 3 s of program: a hold, a ramp of 1 degC, a hold (the chamber follows at once: no lag, 120 degC/min)
-PROGRAM = "name: short\nstart_c: 20.0\nsegments:\n- hold: {duration_s: 1}\n- ramp: {rate_c_per_min: 60, target_c: 21}\n- hold: {duration_s: 1}\n"
+PROGRAM = (
+    "name: short\nstart_c: 20.0\nsegments:\n"
+    "- hold: {duration_s: 1}\n- ramp: {rate_c_per_min: 60, target_c: 21}\n- hold: {duration_s: 1}\n"
+)
 
 
 @pytest.fixture
