@@ -669,7 +669,7 @@ def serve_cli(sim: Simulator, args: Any) -> int:
     chamber_server = None
     start_chamber: Callable[[], None] = lambda: None  # noqa: E731
     if chamber_url is not None:
-        from .chamber_serve import coupled_chamber, serve_chamber  # start-up time: the chamber servers only with --chamber-serve
+        from .chamber_serve import coupled_chamber, serve_chamber  # start-up time: only with --chamber-serve
 
         sim, chamber, clock, url = coupled_chamber(chamber_url, sim, speed)
         chamber_server = serve_chamber(url, chamber)
