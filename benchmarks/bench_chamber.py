@@ -153,4 +153,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from benchmarks._harness import run_main  # --update-readme: the documentation's block for this command
+
+    run_main(main)
