@@ -13,7 +13,7 @@ from cli_run import run_cli
 from fog_driver.lab.chamberlog import read_chamber_log
 from fog_driver.lab.profiles import load_profile
 from fog_driver.sim.chamber import ChamberParams, SimChamber, StartedClock
-from fog_driver.sim.chamber_serve import serve_chamber
+from fog_driver.sim.chamber_serve import ChamberFaults, serve_chamber
 
 #: scheme -> the URL options its driver needs (Thermotron has no range read)
 OPTIONS = {"espec": "", "thermotron": "?range=-70:180", "simserv": "", "watlow-f4t": ""}
@@ -58,3 +58,32 @@ def test_chamber_status_and_a_short_run_on_each_protocols_simulated_chamber(serv
     written = np.array([row.setpoint_c for row in running])
     assert np.abs(written - expected).max() <= 0.05 + 1e-9  # half the ASCII protocols' 0.1 degC
     assert chamber.setpoint_c() == pytest.approx(21.0, abs=0.05)
+
+
+@pytest.mark.parametrize(
+    ("scheme", "faults", "needle"),
+    [
+        ("espec", ChamberFaults(garbage=True), "espec"),
+        ("watlow-f4t", ChamberFaults(exception_code=2), "Modbus exception 2"),
+        ("espec", ChamberFaults(drop_mid_reply=True), "link lost"),
+        ("simserv", ChamberFaults(local=True), "simserv"),
+    ],
+)
+def test_a_controller_that_answers_garbage_an_exception_or_refuses_is_one_line_and_nothing_written(
+    scheme: str, faults: ChamberFaults, needle: str, tmp_path: Path
+) -> None:
+    """A required read answered with garbage, a Modbus exception or a reply cut off, or a write refused (local
+    mode): ``chamber run`` stops with one error line and exit 69, and the chamber's set point is the one it had."""
+    clock = StartedClock(1.0)
+    clock.start()
+    chamber = SimChamber(clock, ChamberParams(start_c=20.0, rate_c_per_min=120.0, tau_s=0.0))
+    (tmp_path / "p.yaml").write_text(PROGRAM.replace("target_c: 21", "target_c: 25"))
+    with serve_chamber(f"{scheme}://127.0.0.1:0", chamber, faults) as server:
+        proc = run_cli(
+            "chamber", "run", str(tmp_path / "p.yaml"), "--chamber", server.url, "--log", str(tmp_path / "l.csv")
+        )
+    assert proc.returncode == 69 and "Traceback" not in proc.stderr, proc.stderr
+    lines = proc.stderr.strip().splitlines()  # (a notice said once, the run's start line may come before it)
+    errors = [line for line in lines if line.startswith("fog-driver: error: ")]
+    assert errors == [lines[-1]] and needle in errors[0], proc.stderr
+    assert chamber.setpoint_c() == 20.0
