@@ -279,8 +279,8 @@ class ChamberServer:
                         continue
                     if not await _send_reply(writer, (reply + ending).encode("latin-1"), faults):
                         break
-            except (ConnectionError, asyncio.IncompleteReadError):
-                pass
+            except (ConnectionError, asyncio.IncompleteReadError, asyncio.CancelledError):
+                pass  # (CancelledError: the server stops; ended quietly, as the relay's)
             finally:
                 writer.close()
 
@@ -328,6 +328,8 @@ class ChamberServer:
                         break
             except (ConnectionError, asyncio.IncompleteReadError):
                 pass
+            except asyncio.CancelledError:  # the server stops: end the task quietly (3.11's stream callback would
+                pass  # log a cancelled handler's CancelledError as an error with its traceback)
             finally:
                 pump.cancel()
                 inner_writer.close()

@@ -4,6 +4,7 @@ instrument's temperatures to the served chamber's air."""
 
 from __future__ import annotations
 
+import logging
 import socket
 import struct
 from collections.abc import Iterator
@@ -292,3 +293,21 @@ def test_watlow_f4t_faults_garbage_and_a_dropped_reply(chamber: SimChamber, serv
         while chunk := sock.recv(64):
             cut += chunk
         assert cut == b"\x00\x09\x00\x00\x00\x07"[: len(cut)] and 0 < len(cut) < 13
+
+
+@pytest.mark.parametrize("scheme", ["watlow-f4t", "espec"])
+def test_a_server_stopped_with_a_client_connected_logs_no_traceback(
+    scheme: str, chamber: SimChamber, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Stopping the simulated lab (Ctrl-C) while a driver is connected ends its connections quietly: Python
+    3.11's stream callback would log a cancelled handler's CancelledError with a traceback."""
+    from fog_driver.offline.chamber import open_lab_controller
+
+    caplog.set_level(logging.ERROR, logger="asyncio")
+    server = served(scheme, chamber)
+    controller = open_lab_controller(server.url, on_notice=lambda line: None)
+    controller.connect()
+    assert controller.read_air_c() == pytest.approx(chamber.air_c(), abs=0.05)
+    server.stop()
+    controller.close()
+    assert [record.getMessage() for record in caplog.records if record.name == "asyncio"] == []
