@@ -99,10 +99,10 @@ def test_the_calibration_tutorials_session_runs_as_written(tmp_path: Path) -> No
     check_run(tmp_path, "run.bin", tmp_path / "short.yaml", port_url)
 
 
-#: a 3-s program at the served chamber's start temperature (20 degC): a hold, a ramp of 0.5 degC, a hold
+#: a 1.5-s program at the served chamber's start temperature (20 degC): a hold, a ramp of 0.25 degC, a hold
 SHORT = (
     "name: s\nstart_c: 20\nsegments:\n"
-    "- hold: {duration_s: 1}\n- ramp: {rate_c_per_min: 30, target_c: 20.5}\n- hold: {duration_s: 1}\n"
+    "- hold: {duration_s: 0.5}\n- ramp: {rate_c_per_min: 30, target_c: 20.25}\n- hold: {duration_s: 0.5}\n"
 )
 OPTIONS = {"thermotron": "?range=-70:180", "simserv": "", "watlow-f4t": ""}
 

@@ -18,10 +18,10 @@ from fog_driver.sim.chamber_serve import ChamberFaults, serve_chamber
 #: scheme -> the URL options its driver needs (Thermotron has no range read)
 OPTIONS = {"espec": "", "thermotron": "?range=-70:180", "simserv": "", "watlow-f4t": ""}
 
-#: 3 s of program: a hold, a ramp of 1 degC, a hold (the chamber follows at once: no lag, 120 degC/min)
+#: 1.5 s of program: a hold, a ramp of 0.5 degC, a hold (the chamber follows at once: no lag, 120 degC/min)
 PROGRAM = (
     "name: short\nstart_c: 20.0\nsegments:\n"
-    "- hold: {duration_s: 1}\n- ramp: {rate_c_per_min: 60, target_c: 21}\n- hold: {duration_s: 1}\n"
+    "- hold: {duration_s: 0.5}\n- ramp: {rate_c_per_min: 60, target_c: 20.5}\n- hold: {duration_s: 0.5}\n"
 )
 
 
@@ -52,12 +52,12 @@ def test_chamber_status_and_a_short_run_on_each_protocols_simulated_chamber(serv
     log = read_chamber_log(log_path)
     running = [row for row in log.rows if row.state == "running"]
     assert log.rows[-1].state == "done"
-    assert [row.t_s for row in running] == [0.5 * k for k in range(len(running))] and running[-1].t_s == 3.0
+    assert [row.t_s for row in running] == [0.5 * k for k in range(len(running))] and running[-1].t_s == 1.5
     program = load_profile(str(tmp_path / "p.yaml")).chamber
     expected = program.air_temp_c(np.array([row.t_s for row in running]))
     written = np.array([row.setpoint_c for row in running])
     assert np.abs(written - expected).max() <= 0.05 + 1e-9  # half the ASCII protocols' 0.1 degC
-    assert chamber.setpoint_c() == pytest.approx(21.0, abs=0.05)
+    assert chamber.setpoint_c() == pytest.approx(20.5, abs=0.05)
 
 
 @pytest.mark.parametrize(
@@ -77,7 +77,7 @@ def test_a_controller_that_answers_garbage_an_exception_or_refuses_is_one_line_a
     clock = StartedClock(1.0)
     clock.start()
     chamber = SimChamber(clock, ChamberParams(start_c=20.0, rate_c_per_min=120.0, tau_s=0.0))
-    (tmp_path / "p.yaml").write_text(PROGRAM.replace("target_c: 21", "target_c: 25"))
+    (tmp_path / "p.yaml").write_text(PROGRAM.replace("target_c: 20.5", "target_c: 25"))
     with serve_chamber(f"{scheme}://127.0.0.1:0", chamber, faults) as server:
         proc = run_cli(
             "chamber", "run", str(tmp_path / "p.yaml"), "--chamber", server.url, "--log", str(tmp_path / "l.csv")
