@@ -17,22 +17,12 @@ SHORT_TEST = REPO / "configs" / "profiles" / "short-test.yaml"
 GUARD_S = 30.0  # failure guard only: nothing is expected to take anywhere near this long
 
 
-def _start_cli(*extra: str, link: Path) -> tuple[subprocess.Popen, queue.Queue]:
+def start_fog_driver(*argv: str, cwd: Path = REPO) -> tuple[subprocess.Popen, queue.Queue]:
+    """``python -m fog_driver ARGV...`` as a process whose stdout lines a thread puts on a queue (None at its
+    end): read them with ``_next_line``, which gives up after ``GUARD_S``."""
     proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "fog_driver",
-            "simulate",
-            "--serve",
-            "pty",
-            "--link",
-            str(link),
-            "--profile",
-            str(SHORT_TEST),
-            *extra,
-        ],
-        cwd=REPO,
+        [sys.executable, "-m", "fog_driver", *argv],
+        cwd=cwd,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -46,6 +36,10 @@ def _start_cli(*extra: str, link: Path) -> tuple[subprocess.Popen, queue.Queue]:
 
     threading.Thread(target=pump, daemon=True).start()
     return proc, lines
+
+
+def _start_cli(*extra: str, link: Path) -> tuple[subprocess.Popen, queue.Queue]:
+    return start_fog_driver("simulate", "--serve", "pty", "--link", str(link), "--profile", str(SHORT_TEST), *extra)
 
 
 def _next_line(proc: subprocess.Popen, lines: queue.Queue) -> str:

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import yaml
 from cli_run import run_cli
+from sim_serving import GUARD_S, _next_line, start_fog_driver
 
 from fog_driver.lab.chamberlog import read_chamber_log
 from fog_driver.lab.profiles import load_profile
@@ -22,7 +23,7 @@ from fog_driver.samples.captures import read_provenance, sidecar_path
 
 ROOT = Path(__file__).resolve().parents[2]
 TUTORIAL = ROOT / "docs" / "tutorials" / "calibrate-with-a-chamber.md"
-GUARD_S = 120
+RUN_GUARD_S = 120  # a failure guard for a calibrate run, as cli_run's
 
 
 def blocks(kind: str) -> list[str]:
@@ -33,20 +34,21 @@ class Lab:
     """``fog-driver simulate --serve pty --chamber-serve URL`` as a process: its chamber's URL and its link."""
 
     def __init__(self, argv: list[str]) -> None:
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "fog_driver", *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
-        )
-        assert self.proc.stdout is not None
-        first = self.proc.stdout.readline()
+        self.proc, self.lines = start_fog_driver(*argv)
+        first = _next_line(self.proc, self.lines)
         found = re.match(r"serving the chamber on (\S+)", first)
-        assert found, first + self.proc.stderr.read()
+        assert found, first
         self.chamber_url = found[1]
-        second = self.proc.stdout.readline()  # the pty is served: the device time runs
+        second = _next_line(self.proc, self.lines)  # the pty is served: the device time runs
         assert " on /dev/" in second, second
 
     def stop(self) -> None:
         self.proc.terminate()
-        self.proc.communicate(timeout=GUARD_S)
+        self.proc.wait(GUARD_S)
+        while self.lines.get(timeout=GUARD_S) is not None:  # the pump has read to the end of stdout
+            pass
+        self.proc.stdout.close()
+        self.proc.stderr.close()
 
 
 def check_run(folder: Path, out: str, program_path: Path, chamber_url: str) -> None:
@@ -90,7 +92,11 @@ def test_the_calibration_tutorials_session_runs_as_written(tmp_path: Path) -> No
             for w in calibrate[1:]
         ]
         proc = subprocess.run(
-            [sys.executable, "-m", "fog_driver", *argv], cwd=tmp_path, capture_output=True, text=True, timeout=GUARD_S
+            [sys.executable, "-m", "fog_driver", *argv],
+            cwd=tmp_path,
+            capture_output=True,
+            text=True,
+            timeout=RUN_GUARD_S,
         )
     finally:
         lab.stop()
