@@ -109,14 +109,18 @@ def test_step_equals_run_for_any_split_across_the_first_block_and_a_long_gap(gap
         np.testing.assert_array_equal(got, getattr(want, f), err_msg=f)  # NaN equals NaN here
 
 
-def test_a_datagram_of_a_sample_without_an_estimate_carries_nan(samples):
-    comp = Compensator(load_model(DEFAULT_MODEL), PERIOD_S)
-    c = comp.step(samples.sample(0))
-    obj = {"seq": c.seq, "t_s": c.t_s, "angle_arcsec": c.angle_comp_arcsec, "flags": ["uncompensated"]}
+def test_a_datagram_of_a_sample_without_an_estimate_carries_nan():
+    """The daemon's first ANGLE object omits both keys; its datagram (as the UDP publisher sends it) has NaN."""
+    from fog_driver.daemon.config import DriverConfig
+    from fog_driver.daemon.service import Service
+
+    published = Service(DriverConfig(), port="unused").process((DATA / "sim-short.bin").read_bytes()[:4096])
+    first = published[0]
+    assert "drift_dph" not in first and "drift_sigma_dph" not in first and "uncompensated" in first["flags"]
     for version in (1, 2):
-        got = decode_datagram(encode_datagram(**fields_from_angle(obj), version=version))
+        got = decode_datagram(encode_datagram(**fields_from_angle(first), version=version))
         assert math.isnan(got["drift_dph"]) and math.isnan(got["drift_sigma_dph"])
-        assert got["angle_arcsec"] == c.angle_comp_arcsec == c.angle_raw_arcsec
+        assert got["angle_arcsec"] == first["angle_arcsec"] == first["angle_raw_arcsec"]
 
 
 def test_the_csv_row_of_the_first_block_writes_nan_for_the_drift_and_its_sigma(samples):
