@@ -110,7 +110,9 @@ class Angle(_Base):
     angle_raw_arcsec: float | None = None  #: uncompensated, cumulative
     rate_dph: float | None = None  #: compensated rate of this sample, deg/h
     rate_raw_dph: float | None = None
-    drift_dph: float | None = None  #: the model's drift estimate, deg/h
+    #: the model's drift estimate, deg/h; None while there is none (the sample flagged ``uncompensated``: the first
+    #: block of a run, after a long gap, a thermometer never valid; ``angle_arcsec`` then integrates the raw rate)
+    drift_dph: float | None = None
     #: the 1-sigma of the drift estimate's error as a 1-min mean, about its mean over the run (the bias), deg/h;
     #: None while there is no estimate, and from a daemon older than protocol 1.1 (keyword-only: added in 1.1)
     drift_sigma_dph: float | None = field(default=None, kw_only=True)

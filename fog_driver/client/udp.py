@@ -27,7 +27,8 @@ offset  type   field             meaning
 24      f64    angle_arcsec      compensated angle, arcsec
 32      f64    angle_raw_arcsec  uncompensated angle, arcsec
 40      f64    rate_dph          measured rate, deg/h
-48      f64    drift_dph         estimated temperature drift, deg/h
+48      f64    drift_dph         estimated temperature drift, deg/h; NaN while there
+                                 is no estimate (flag uncompensated)
 56      f32    t_top_c           fiber ring top thermometer, degC
 60      f32    t_bottom_c        fiber ring bottom thermometer, degC
 64      f32    t_housing_c       housing thermometer, degC

@@ -9,11 +9,14 @@ before j (causal, held)::
     dtheta_comp = dtheta - D_hat * frame_period_s        (1 deg/h = 1 arcsec/s)
     angle_raw   = sum of dtheta,  angle_comp = sum of dtheta_comp         (from the frames, never host time)
 
-Until the first block closes there is no estimate: D_hat = 0 and the frame is
-flagged ``FLAG_UNCOMPENSATED``.  Inputs outside the model file's fit box (``domain``) are
-clamped to it and an estimate beyond its bound is clipped, both flagged ``FLAG_EXTRAPOLATING``.
-A non-finite estimate (inputs never valid) keeps the last good one and flags the frame; the angle
-is never NaN.
+Until the model gives an estimate there is none: D_hat is NaN (``drift_dph`` and ``drift_sigma_dph`` absent),
+the frame is flagged ``FLAG_UNCOMPENSATED`` and compensated by nothing, ``dtheta_comp = dtheta`` (the
+compensated angle integrates the raw rate; no NaN reaches an angle).  That is so in the first block of a run,
+while a thermometer has never read valid, while the inputs are stale before any estimate, and from the frame
+after a gap longer than ``MAX_GAP_S`` (the pipeline restarts at rest) until the first block after it closes.
+Inputs outside the model file's fit box (``domain``) are clamped to it and an estimate beyond its bound is
+clipped, both flagged ``FLAG_EXTRAPOLATING``.  A non-finite estimate keeps the last good one and flags the
+frame ``guard`` (``uncompensated`` when there is none); a NaN is never fed back to the model.
 ``step(sample)`` and ``run(samples)`` share the block-level code and give
 bit-identical results for any split of a capture (tested).
 """
@@ -55,17 +58,32 @@ MAX_GAP_S = 6 * 3600.0
 SETTLE_TAUS = 3.0
 
 
-def frame_flags(estimate_flags, estimate_block, frame_block, missing_before, status, temps_c):
+def restarts_at_rest(missing_blocks, block_s: float):
+    """Whether ``missing_blocks`` blocks missing (a link gap; a scalar or an array, element-wise) restart the
+    pipeline at rest: longer than ``MAX_GAP_S``."""
+    return missing_blocks * block_s > MAX_GAP_S
+
+
+def stale_estimate(estimate_block, frame_block, block_s: float):
+    """Whether a frame's held estimate is from before a gap that restarts the pipeline (``restarts_at_rest``):
+    the blocks from the estimate's to the frame's are all missing (scalars or arrays, element-wise).  Such a
+    frame has no estimate (``Compensator.step``/``run``: NaN, ``uncompensated``)."""
+    return (estimate_block >= 0) & restarts_at_rest(frame_block - estimate_block, block_s)
+
+
+def frame_flags(estimate_flags, estimate_block, frame_block, missing_before, status, temps_c, stale=False):
     """The flags of a frame, the one rule of ``Compensator.step`` (scalars) and ``Compensator.run`` (arrays,
     element-wise)::
 
-        flags = the flags of the estimate it is compensated with
+        flags = the flags of the estimate it is compensated with (uncompensated when ``stale``:
+                ``stale_estimate``)
               | gap                if frames were lost just before it (missing_before > 0), or its estimate is
                                    from before a gap (0 <= estimate_block < frame_block)
               | thermometer_fault  if its status says so, or a reading of ``temps_c`` (its format's channels,
                                    a scalar or a column each) is NaN or outside ``PLAUSIBLE_TEMP_C``
     """
     low, high = PLAUSIBLE_TEMP_C
+    estimate_flags = estimate_flags * (stale == 0) + FLAG_UNCOMPENSATED * stale  # stale: no estimate's flags
     gap = (missing_before > 0) | ((estimate_block >= 0) & (frame_block > estimate_block))
     fault = (status & STATUS_THERMOMETER_FAULT) != 0
     for t in temps_c:
@@ -77,6 +95,7 @@ class CompensatedSample(NamedTuple):
     seq: int
     t_s: float
     dtheta_arcsec: float
+    #: the drift estimate applied (deg/h); NaN while there is none (flagged ``uncompensated``: module docstring)
     drift_dph: float
     dtheta_comp_arcsec: float
     angle_raw_arcsec: float
@@ -157,7 +176,7 @@ class Compensator:
             math.nan,
         )  # its temperatures (a gap is interpolated from them)
         self._settle_until = -1  # estimates up to this block are flagged gap (the smoothers catch up)
-        self.estimate_dph = 0.0
+        self.estimate_dph = math.nan  #: the held estimate; NaN: none yet (module docstring)
         self.sigma_dph = math.nan  #: the held estimate's drift_sigma_dph
         self.estimate_flags = FLAG_UNCOMPENSATED
         self._estimate_block = -1  # the block index the estimate applies from
@@ -223,11 +242,12 @@ class Compensator:
         flagged ``gap``: the smoothers are catching up with what the gap hid."""
         if self._last_index is not None and block.index > self._last_index + 1:
             missing = block.index - self._last_index - 1
-            if missing * self._block_s > MAX_GAP_S:
+            if restarts_at_rest(missing, self._block_s):
                 self.features.reset()
                 self.model.reset()
                 self.uncertainty.reset()
                 self._started = False
+                self.estimate_dph, self.sigma_dph, self.estimate_flags = math.nan, math.nan, FLAG_UNCOMPENSATED
             else:  # the temperatures interpolated linearly across the gap (exact for a ramp)
                 before, now = self._last_temps, block.temps_c
                 for i, index in enumerate(range(self._last_index + 1, block.index)):
@@ -249,7 +269,8 @@ class Compensator:
         source = self.source
         source.begin_block(block, self.reference_rate_dph)
         clean = not flags & (FLAG_GAP | FLAG_THERMOMETER_FAULT | DEGRADED_FLAGS) and block.index > self._settle_until
-        if any(v != v for v in u):  # a thermometer never read valid yet: nothing to model
+        if any(v != v for v in u):  # a thermometer never read valid yet: nothing to model, no estimate
+            self.estimate_dph, self.sigma_dph = math.nan, math.nan
             self.estimate_flags = FLAG_UNCOMPENSATED | flags
         else:
             extrapolating = 0
@@ -269,14 +290,17 @@ class Compensator:
             held = flags & FLAG_INPUT_STALE  # inputs frozen beyond hold_s: the estimate is held
             if held:
                 estimate, sigma = self.estimate_dph, self.sigma_dph
-            if source.feeds_back:
-                self.model.feed_back(estimate)  # the estimate actually used (the WESN's output feedback)
+            if source.feeds_back and math.isfinite(estimate):
+                self.model.feed_back(estimate)  # the estimate actually used (the WESN's output feedback), never NaN
             if math.isfinite(estimate):
                 self.estimate_dph = estimate
                 self.sigma_dph = sigma
                 self.estimate_flags = (flags & DEGRADED_FLAGS) | adapt_flags | extrapolating
-            else:
+            elif math.isfinite(self.estimate_dph):  # the last good estimate is kept
                 self.estimate_flags = FLAG_GUARD | (flags & DEGRADED_FLAGS)
+            else:  # none to keep: no estimate yet
+                self.estimate_dph, self.sigma_dph = math.nan, math.nan
+                self.estimate_flags = FLAG_UNCOMPENSATED | (flags & DEGRADED_FLAGS)
         self.estimate_flags |= source.end_block(block, clean)
         self._estimate_block = block.index + 1
 
@@ -584,20 +608,26 @@ class Compensator:
     def step(self, sample: Sample) -> CompensatedSample:
         for block in self.averager.step(sample):
             self._on_block(block)
-        drift = self.estimate_dph
-        dtheta_comp = sample.dtheta_arcsec - drift * self.frame_period_s
-        if self.source.corrects_scale:
-            dtheta_comp -= (1e-6 * self.scale_ppm) * sample.dtheta_arcsec
+        frame_block = self.averager.open_block
+        stale = stale_estimate(self._estimate_block, frame_block, self._block_s)
+        drift, sigma = (math.nan, math.nan) if stale else (self.estimate_dph, self.sigma_dph)
+        if drift == drift:
+            dtheta_comp = sample.dtheta_arcsec - drift * self.frame_period_s
+            if self.source.corrects_scale:
+                dtheta_comp -= (1e-6 * self.scale_ppm) * sample.dtheta_arcsec
+        else:  # no estimate: nothing subtracted
+            dtheta_comp = sample.dtheta_arcsec
         self.angle_raw_arcsec += sample.dtheta_arcsec
         self.angle_comp_arcsec += dtheta_comp
         temps = (sample.t_top_c, sample.t_bottom_c, sample.t_housing_c)
         flags = frame_flags(
             self.estimate_flags,
             self._estimate_block,
-            self.averager.open_block,
+            frame_block,
             sample.missing_before,
             sample.status,
             temps[: self.n_channels],
+            stale,
         )
         return CompensatedSample(
             sample.seq,
@@ -609,7 +639,7 @@ class Compensator:
             self.angle_comp_arcsec,
             temps,
             flags,
-            self.sigma_dph,
+            sigma,
         )
 
     def run(self, samples: SampleBlock) -> CompensatedColumns:
@@ -646,12 +676,14 @@ class Compensator:
         est_flags = np.array([held_before[1]] + [a[1] for a in after], dtype=np.int64)
         est_blocks = np.array([held_before[2]] + [a[2] for a in after], dtype=np.int64)
         sigmas = np.array([held_before[3]] + [a[3] for a in after], dtype=float)
-        drift = estimates[which + 1]
+        stale = stale_estimate(est_blocks[which + 1], frame_block, self._block_s)
+        drift = np.where(stale, math.nan, estimates[which + 1])
         dtheta = samples.dtheta_arcsec
         dtheta_comp = dtheta - drift * self.frame_period_s
         if self.source.corrects_scale:
             scales = np.array([held_before[4]] + [a[4] for a in after], dtype=float)
             dtheta_comp = dtheta_comp - (1e-6 * scales[which + 1]) * dtheta
+        dtheta_comp = np.where(np.isnan(drift), dtheta, dtheta_comp)  # no estimate: nothing subtracted
         angle_raw = np.cumsum(np.r_[self.angle_raw_arcsec, dtheta])[1:]
         angle_comp = np.cumsum(np.r_[self.angle_comp_arcsec, dtheta_comp])[1:]
         if n:
@@ -666,9 +698,11 @@ class Compensator:
             samples.missing_before,
             samples.status,
             columns[: self.n_channels],
+            stale,
         )
+        sigma = np.where(stale, math.nan, sigmas[which + 1])
         return CompensatedColumns(
-            samples.seq, samples.t_s, dtheta, drift, dtheta_comp, angle_raw, angle_comp, temps, flags, sigmas[which + 1]
+            samples.seq, samples.t_s, dtheta, drift, dtheta_comp, angle_raw, angle_comp, temps, flags, sigma
         )
 
 

@@ -270,8 +270,9 @@ class Acquisition:
             "angle_raw_arcsec": offsets.angle_raw_arcsec(c.angle_raw_arcsec),
             "rate_dph": rate_comp,
             "rate_raw_dph": c.dtheta_arcsec / period,
-            "drift_dph": c.drift_dph,
         }
+        if math.isfinite(c.drift_dph):  # NaN while there is no estimate (flagged uncompensated): omitted
+            obj["drift_dph"] = c.drift_dph
         if math.isfinite(c.drift_sigma_dph):  # NaN while there is no estimate: omitted, as an absent thermometer
             obj["drift_sigma_dph"] = c.drift_sigma_dph
         obj["temps_c"] = temps

@@ -7,13 +7,16 @@ period is a last row.  Columns::
     t_s               device time at the end of the period (last frame + one frame period), s from the first frame
     n_samples         frames received in the period
     rate_raw_dph      sum(dtheta) / (n * frame_period)          mean over the period
-    drift_dph         mean of the drift applied to each frame
-    rate_comp_dph     sum(dtheta_comp) / (n * frame_period)     = rate_raw - drift
+    drift_dph         mean of the drift applied to each frame; NaN (written ``nan``) when a frame of the period
+                      has no estimate (flagged ``uncompensated``: nothing was subtracted from it)
+    rate_comp_dph     sum(dtheta_comp) / (n * frame_period)     = rate_raw - drift (= rate_raw where no frame has
+                      an estimate)
     angle_raw_arcsec, angle_comp_arcsec                          cumulative from the capture start to t_s
     t_top_c, t_bottom_c, t_housing_c                             means of the valid readings
     flags             the flags of any frame in the period, by name, joined by '|'
     drift_sigma_dph   mean of the drift_sigma_dph of the frames that have one (the 1-sigma of the drift
-                      estimate's error as a 1-min mean); NaN (written ``nan``) when no frame has one
+                      estimate's error as a 1-min mean); NaN (written ``nan``) when no frame has one, or
+                      drift_dph is NaN (the row has no estimate, so no sigma of one)
 """
 
 from __future__ import annotations
@@ -71,10 +74,10 @@ class RowAggregator:
         period = count * self.frame_period_s
         rate_raw = np.add.reduceat(cols.dtheta_arcsec, starts) / period
         rate_comp = np.add.reduceat(cols.dtheta_comp_arcsec, starts) / period
-        drift = np.add.reduceat(cols.drift_dph, starts) / count
+        drift = np.add.reduceat(cols.drift_dph, starts) / count  # NaN in, NaN out: a frame without an estimate
         temps = _valid_means(cols.temps_c, starts)
         flags = np.bitwise_or.reduceat(cols.flags, starts)
-        sigma = _valid_means(cast(np.ndarray, cols.drift_sigma_dph), starts)
+        sigma = np.where(np.isnan(drift), np.nan, _valid_means(cast(np.ndarray, cols.drift_sigma_dph), starts))
         t_end = (t_us[ends] - self._first_us) / 1e6 + self.frame_period_s
         return [
             (

@@ -1,6 +1,8 @@
 """How honest the drift's uncertainty is: ``drift_sigma_dph`` against a simulator's true drift.
 
-The error the sigma describes, per whole static minute ``m`` (a minute all of whose 60 seconds are static)::
+The error the sigma describes, per whole static minute ``m`` (a minute all of whose 60 seconds are static and
+have an estimate: a second with a frame flagged ``uncompensated`` has a NaN estimate, and its minute is not
+scored)::
 
     e_m     = mean over minute m of (D_hat - D)          D_hat the estimate, D the true drift (deg/h)
     err_m   = e_m - mean of e over the static minutes    both taken relative to their means over the run
@@ -86,6 +88,7 @@ def minute_errors(
     estimate, the true drift, the sigma (NaN where there was none) and the static and extrapolating seconds."""
     n = min(len(estimate_dph), len(truth_drift_dph), len(sigma_dph), len(static))
     error, full = whole_minutes(np.asarray(estimate_dph[:n], float) - truth_drift_dph[:n], static[:n])
+    full &= np.isfinite(error)  # a minute with a second without an estimate is not scored (module docstring)
     sigma, _ = whole_minutes(sigma_dph[:n], static[:n])
     flagged = np.zeros(n, dtype=bool) if extrapolating is None else np.asarray(extrapolating[:n], dtype=bool)
     n_min = len(full) * 60

@@ -2,7 +2,9 @@
 
 For a capture and a model: the per-second measured rate and the drift the
 compensator applied (the same code as ``compensate``); over the static seconds
-(table motion excluded, as when fitting): the Allan deviation before and after
+(table motion excluded, as when fitting; and the seconds in which a frame had no drift estimate, flagged
+``uncompensated``, for every model: all are scored on the same seconds, and no NaN enters a figure): the
+Allan deviation before and after
 with its IEEE 952 read points (``allan.py``), and the RMS of 1-minute means of
 the rate (mean removed); with ``--truth`` (a simulator truth file) the drift
 residual against the true drift and the noise floor, and how honest the estimate's
@@ -124,7 +126,7 @@ def per_second(
         _on_grid(index, data.blocks.rate_dph, n, np.nan),
         applied.drift_dph,
         _on_grid(index, data.blocks.temps_c, n, np.nan),
-        _on_grid(index, data.static, n, False),
+        _on_grid(index, data.static, n, False) & np.isfinite(applied.drift_dph),  # scored: static, estimated
         applied.extrapolating > 0,
         drift_sigma_dph=applied.drift_sigma_dph,
     )
@@ -142,7 +144,9 @@ def _on_grid(index: np.ndarray, values: np.ndarray, n: int, missing) -> np.ndarr
 class Applied(NamedTuple):
     """What a model applied per device second (``drift_per_second``)."""
 
-    drift_dph: np.ndarray  #: the mean drift of the second's frames (0 where none came)
+    #: the mean drift of the second's frames (0 where none came; NaN where a frame had no estimate: flagged
+    #: ``uncompensated``)
+    drift_dph: np.ndarray
     extrapolating: np.ndarray  #: how many of its frames were flagged extrapolating
     drift_sigma_dph: np.ndarray  #: the mean drift_sigma_dph of its frames (NaN where any is NaN, or none came)
 
@@ -284,6 +288,7 @@ def evaluate(
             wire_format=wire_format,
             progress=None if step is None else lambda done, step=step: step(done, size),
         ).drift_dph
+        series.static &= np.isfinite(series.compared_drift_dph[name])  # every series scored on the same seconds
     series.chamber, chamber_warnings = chamber_log_and_warnings(capture)
     stretch = longest_run(series.static)
     if stretch.stop - stretch.start < 64:

@@ -177,7 +177,10 @@ def _rate_text(state: Mapping[str, Any], angle: Mapping[str, Any]) -> str:
 
 def _drift_text(angle: Mapping[str, Any], status: Mapping[str, Any]) -> str:
     """The drift estimate and, when the sample has one, its 1-sigma (``display.drift_sigma``: since the bias
-    once one was captured, and labelled so)."""
+    once one was captured, and labelled so); ``- (no estimate yet)`` while the sample has none (``drift_dph``
+    absent: flagged uncompensated)."""
+    if finite_number(angle.get("drift_dph")) is None:
+        return f"{show(None)} (no estimate yet)"
     text = f"{show(angle.get('drift_dph'), '.4f')} deg/h"
     if finite_number(angle.get("drift_sigma_dph")) is None:
         return text

@@ -80,8 +80,10 @@ def test_compensator_values(model_path, faulty_samples):
     comp = Compensator(load_model(model_path), 0.1)
     cols = comp.run(faulty_samples)
     first_block = cols.t_s - cols.t_s[0] < 1.0
-    assert np.all(cols.flags[first_block] & FLAG_UNCOMPENSATED) and np.all(cols.drift_dph[first_block] == 0)
-    np.testing.assert_array_equal(cols.dtheta_comp_arcsec, cols.dtheta_arcsec - cols.drift_dph * 0.1)
+    assert np.all(cols.flags[first_block] & FLAG_UNCOMPENSATED) and np.all(np.isnan(cols.drift_dph[first_block]))
+    estimated = ~np.isnan(cols.drift_dph)  # no estimate: nothing subtracted
+    want = np.where(estimated, cols.dtheta_arcsec - cols.drift_dph * 0.1, cols.dtheta_arcsec)
+    np.testing.assert_array_equal(cols.dtheta_comp_arcsec, want)
     np.testing.assert_allclose(cols.angle_raw_arcsec[-1], faulty_samples.dtheta_arcsec.sum(), rtol=1e-12)
     assert np.all(np.isfinite(cols.angle_comp_arcsec))
     # The drift is held per block: constant within each block after the first.
@@ -193,9 +195,10 @@ def test_compensate_writes_the_sigma_column_as_a_live_replay_gives_it(tmp_path, 
         frames = held[
             (samples.t_s - samples.t_s[0] >= 2 * r - 1e-9) & (samples.t_s - samples.t_s[0] < 2 * r + 2 - 1e-9)
         ]
-        want = np.nanmean(frames) if np.isfinite(frames).any() else math.nan
+        want = math.nan if np.isnan(frames).any() else np.mean(frames)  # a frame without an estimate: no sigma
         assert cell == f"{want:.6f}", (r, cell, want)
-    assert cells[0] != "nan" and len({float(c) for c in cells}) > 10  # it moves, row by row
+    assert cells[0] == "nan" and cells[1] != "nan"  # the first row holds block 0, which has no estimate
+    assert len({float(c) for c in cells}) > 10  # it moves, row by row
 
 
 def test_model_file_round_trip_is_exact(model_path, tmp_path):
@@ -210,7 +213,7 @@ def test_model_file_round_trip_is_exact(model_path, tmp_path):
     a = Compensator(load_model(model_path), 0.1).run(samples)
     b = Compensator(load_model(again), 0.1).run(samples)
     np.testing.assert_array_equal(a.drift_dph, b.drift_dph)
-    assert np.ptp(a.drift_dph) > 0
+    assert np.isfinite(a.drift_dph).mean() > 0.9  # estimates (the polynomial's is at its domain bound: constant)
 
 
 @pytest.mark.parametrize(

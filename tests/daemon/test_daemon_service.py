@@ -20,10 +20,13 @@ from fog_driver.offline.compensate import compensate_capture
 DATA = Path(__file__).resolve().parents[1] / "data"
 
 
-def offline_sigmas(capture: Path, model_path: Path = DEFAULT_MODEL, **settings) -> list[float | None]:
-    """The drift sigma of ``fog-driver compensate``, sample by sample: None where it is NaN (no estimate)."""
+def offline_sigmas(
+    capture: Path, model_path: Path = DEFAULT_MODEL, column: str = "drift_sigma_dph", **settings
+) -> list[float | None]:
+    """The drift sigma (or another ``column``) of ``fog-driver compensate``, sample by sample: None where it is
+    NaN (no estimate)."""
     parts = [cols for _, cols in compensate_capture(capture, load_model(model_path), **settings)]
-    return [float(v) if math.isfinite(v) else None for cols in parts for v in cols.drift_sigma_dph]
+    return [float(v) if math.isfinite(v) else None for cols in parts for v in getattr(cols, column)]
 
 
 @pytest.fixture(scope="module")
@@ -61,6 +64,11 @@ def test_published_angles_equal_offline_compensation(chunk, sigma, monkeypatch, 
     offline_sigma = offline_sigmas(capture, model)
     assert [o.get("drift_sigma_dph") for o in published] == offline_sigma
     assert offline_sigma[0] is None and sum(v is not None for v in offline_sigma) > 2900  # from the 2nd block
+    # drift_dph likewise: omitted exactly where the offline drift is NaN (no estimate: flagged uncompensated)
+    offline_drift = offline_sigmas(capture, model, "drift_dph")
+    assert [o.get("drift_dph") for o in published] == offline_drift
+    assert [o.get("drift_dph") is None for o in published] == ["uncompensated" in o["flags"] for o in published]
+    assert offline_drift[0] is None and offline_drift[-1] is not None
     if sigma == "stub":
         assert {v for v in offline_sigma if v is not None} == {stub_value(j) for j in range(STUB_PERIOD)}
     if sigma == "fitted":
@@ -74,10 +82,11 @@ def test_published_angles_equal_offline_compensation(chunk, sigma, monkeypatch, 
         "angle_arcsec",
         "angle_raw_arcsec",
         "rate_dph",
-        "drift_dph",
         "temps_c",
         "flags",
     }
+    assert "drift_dph" not in first and "drift_sigma_dph" not in first and "uncompensated" in first["flags"]
+    assert first["rate_dph"] == first["rate_raw_dph"] and first["angle_arcsec"] == first["angle_raw_arcsec"]
     assert any("gap" in o["flags"] for o in published)
     assert any(len(o["temps_c"]) < 3 for o in published)  # a faulted thermometer is omitted, never NaN
     # STATUS counts the published samples per flag, as the offline flags do

@@ -180,10 +180,10 @@ def test_a_one_channel_pipeline_steps_as_it_runs(kvh_model, captures):
     drift = np.concatenate([c.drift_dph for c in cols])
     angle = np.concatenate([c.angle_comp_arcsec for c in cols])
     flags = np.concatenate([c.flags for c in cols])
-    assert [s.drift_dph for s in stepped] == drift.tolist()
+    assert [repr(s.drift_dph) for s in stepped] == [repr(v) for v in drift.tolist()]  # NaN: no estimate yet
     assert [s.angle_comp_arcsec for s in stepped] == angle.tolist()
     assert [s.flags for s in stepped] == flags.tolist()
-    assert np.count_nonzero(drift) > len(drift) // 2  # the model estimated something
+    assert np.count_nonzero(np.isfinite(drift) & (drift != 0)) > len(drift) // 2  # the model estimated something
     assert not np.any(flags & 2)  # the two absent channels are no thermometer fault
 
 

@@ -13,8 +13,8 @@ Series kept for the plots (the last ``history_min`` minutes of device time):
   ``rate_dph = (1/n) * sum_i rate_dph_i`` over its n samples; and the half-width of the band the drift plot
   draws, ``drift_band_dph = BAND_SIGMAS * sigma`` with sigma as shown then (``display.drift_sigma``: the
   sample's sigma(t), or once STATUS says a bias was captured, sqrt(sigma(t)^2 + sigma(t_b)^2), and
-  ``band_since_bias`` true), None without a sigma; ``drift_dph`` and the band None while the sample is flagged
-  ``uncompensated`` (no estimate yet: its ``drift_dph`` is 0, which the plot would draw as a spike from 0);
+  ``band_since_bias`` true), None without a sigma; ``drift_dph`` and the band None while the sample has no
+  estimate (its ``drift_dph`` absent, flagged ``uncompensated``; a sample so flagged is never drawn as a drift);
 * ``minutes``: one per minute of device time that the samples cover (the first within ``MINUTE_COVER_S`` of its
   start, the last within it of its end: not the minute the daemon started in, nor one a link gap cut short),
   the minute's mean compensated and raw rates ``rate_dph = (1/n) * sum_i rate_dph_i`` (every sample, not the
@@ -208,7 +208,7 @@ class ViewState:
         temps = last.get("temps_c") if isinstance(last.get("temps_c"), Mapping) else {}
         shown, since_bias = drift_sigma(last, self.objects.get("STATUS", {}))
         flags = last.get("flags")
-        estimated = not (isinstance(flags, list) and "uncompensated" in flags)  # no estimate yet: drift_dph is 0
+        estimated = not (isinstance(flags, list) and "uncompensated" in flags)  # no estimate: drift_dph absent
         self.points.append(
             {
                 "t_s": last["t_s"],
