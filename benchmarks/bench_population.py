@@ -178,6 +178,7 @@ def fit_kinds(fit_run: Path, kinds: Iterable[str]) -> tuple[dict, dict]:
         else:  # a fit that fails its checks is scored all the same (and counted: ``weak``)
             models[kind], _ = fit_model_file([fit_run], kind=kind, config=FitConfig(), accept_weak=True)
         info["fit_s"][kind] = time.perf_counter() - t0
+        info.setdefault("sigma", {})[kind] = (models[kind].provenance.get("sigma_calibration") or {}).get("method")
         checks = models[kind].provenance["fit_quality"]["checks"]
         info["weak"][kind] = [name for name, c in checks.items() if not c["passed"]]
     return models, info
@@ -457,6 +458,60 @@ def summarize_coverage(results: list[dict], kinds: tuple[str, ...]) -> None:
     )
 
 
+#: Issue 49's targets for the sigma, per family and fit program.
+SIGMA_POOLED = (0.92, 0.98)
+SIGMA_PER_INSTRUMENT = (0.80, 0.995)
+SIGMA_INSTRUMENTS_COVERED = 22 / 24
+SIGMA_MEDIAN_RATIO = 1.5
+SIGMA_RATIO = 1.2
+SIGMA_INSTRUMENTS_RATIO = 20 / 24
+SIGMA_WORST_RATIO = 0.9
+
+
+def summarize_sigma(results: list[dict], kind: str) -> None:
+    """Issue 49's targets for ``kind``'s sigma: coverage pooled and per instrument (between the bounds), the
+    information r (top-sigma quarter / bottom quarter RMS error, per instrument: median, share above
+    ``SIGMA_RATIO``, worst), the sharpness; a fit that did not calibrate its sigma counts as a miss on every
+    per-instrument figure."""
+    n = len(results)
+    each = [coverage_figures(x["minutes"][kind]) for x in results]
+    calibrated = [x.get("sigma", {}).get(kind) == "held-out-stretches" for x in results]
+    pooled = coverage_figures(MinuteErrors.pooled(x["minutes"][kind] for x in results))
+    lo, hi = SIGMA_PER_INSTRUMENT
+    cov = [f.get("coverage") for f in each]
+    ok_cov = sum(bool(c is not None and lo <= c <= hi and cal) for c, cal in zip(cov, calibrated))
+    ratios = [f.get("top_bottom_error_ratio") for f in each]
+    r = np.array([v if v is not None and cal else 0.0 for v, cal in zip(ratios, calibrated)])
+    print(f"\nthe sigma (issue 49 targets, {kind}): calibrated on held-out stretches by {sum(calibrated)} of {n} fits")
+    print(
+        "  per instrument: coverage "
+        + " ".join(_pct(c) if c is not None else "-" for c in cov)
+        + "\n  per instrument: r "
+        + " ".join(f"{v:.2f}" for v in r)
+    )
+    if "note" in pooled:
+        verdict(False, f"{kind}: {pooled['note']}")
+        return
+    plo, phi = SIGMA_POOLED
+    verdict(
+        plo <= pooled["coverage"] <= phi, f"pooled coverage {_pct(pooled['coverage'])} within {_pct(plo)}..{_pct(phi)}"
+    )
+    need = math.ceil(SIGMA_INSTRUMENTS_COVERED * n - 1e-9)
+    verdict(ok_cov >= need, f"coverage within {_pct(lo)}..{_pct(hi)} on {ok_cov} of {n} instruments (at least {need})")
+    verdict(
+        float(np.median(r)) >= SIGMA_MEDIAN_RATIO,
+        f"information r median {np.median(r):.2f}x >= {SIGMA_MEDIAN_RATIO:g}x",
+    )
+    need_r = math.ceil(SIGMA_INSTRUMENTS_RATIO * n - 1e-9)
+    above = int((r >= SIGMA_RATIO).sum())
+    verdict(above >= need_r, f"r >= {SIGMA_RATIO:g}x on {above} of {n} instruments (at least {need_r})")
+    verdict(r.min() >= SIGMA_WORST_RATIO, f"worst r {r.min():.2f}x >= {SIGMA_WORST_RATIO:g}x")
+    verdict(
+        pooled["sharpness"] is not None and pooled["sharpness"] <= MAX_SHARPNESS,
+        f"median sigma {_times(pooled['sharpness'])} the error's RMS, <= {MAX_SHARPNESS:g}x",
+    )
+
+
 def summarize_programs(results: list[dict], fit_profile: str, against: str) -> None:
     """Issue 30 item 3: the kinds fitted on one run of ``fit_profile`` against one run of ``against``, scored
     on the same runs; the targets for ``auto`` fitted on ``fit_profile``."""
@@ -591,6 +646,7 @@ def main() -> None:
             summarize_choice(results)
         if any(k in COMPARED_KINDS for k in kinds):
             summarize_coverage(results, kinds)
+            summarize_sigma(results, "auto" if "auto" in kinds else next(k for k in kinds if k in COMPARED_KINDS))
         if against:
             summarize_programs(results, fit_profile, against)
 

@@ -135,11 +135,21 @@ class ModelFile:
                 f"{name} is a weak fit, accepted with --accept-weak-fit: "
                 f"{'; '.join(map(str, quality.get('weak') or []))}"
             )
-        if self.sigma_spec.sigma_kind == "residual":
+        calibration = self.sigma_spec.calibration
+        if calibration is None:
             lines.append(
-                f"{name} has no candidate structures: its drift_sigma_dph comes from the validation residual "
-                f"and the fit box alone, and does not follow what the fit data left undecided"
-                + ("" if self.uncertainty is not None else " (made by an older fog-driver: refit it)")
+                f"{name} was made by an older fog-driver: its drift_sigma_dph uses factors fixed on simulated "
+                f"instruments, not calibrated on its own data; refit it"
+                + (
+                    " (it has no candidate structures either: the validation residual and the fit box alone)"
+                    if self.sigma_spec.sigma_kind == "residual"
+                    else ""
+                )
+            )
+        elif not calibration.calibrated:
+            lines.append(
+                f"{name}'s drift_sigma_dph is not calibrated on its own data ({calibration.reason}): it uses the "
+                f"conservative fall-back rule"
             )
         if self.domain is None:
             lines.append(

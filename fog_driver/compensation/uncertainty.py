@@ -1,9 +1,24 @@
 """The drift estimate's uncertainty, ``drift_sigma_dph``: the 1-sigma of the error of the estimate as a
 1-min mean, about the error's mean over the run (that mean is the bias, which a zero window removes).
 
-Built from what the fit knows, in three parts, each scaled by a factor calibrated on simulated
-instruments (``SPREAD_SCALE``, ``RESIDUAL_SCALE``, ``BOX_SCALE``; the model file keeps the factors it was
-made with)::
+**Calibrated by the fit on its own data** (``calibration``: ``SigmaCalibration``, made by
+``fitting.sigma_calibration`` from contiguous stretches of the fit run the model was refitted without)::
+
+    sigma^2 = k^2 (c_0 + c_s s^2 + c_r rdot^2 + c_c (1 - p)^2 + c_w p^2 + c_d d^2) + (k_b d R)^2
+
+    s       the candidates' spread (below); rdot the ring temperature's rate, degC/min (the inputs' own,
+            unclamped); p = clip((T_ring - T_lo) / (T_hi - T_lo), 0, 1) where the ring temperature sits in
+            the fit data's range T_lo..T_hi (1 - p: towards the cold end, p: towards the warm end); d the
+            distance from the fit box (below: in the calibration, from the box of the data it was refitted on)
+    c_j     >= 0, the weights of the features the held-out stretches showed to predict the error's size
+            (a feature that did not gets 0); k the scale that makes the band cover 95 % of the held-out
+            minutes; (k_b d R)^2 today's box term below beside it, kept as a floor: how far an estimate
+            may err outside everything the fit saw is more than a few held-out stretches can show
+
+**Today's rule without a calibration** (a model file made before it, or a fit whose data were too few to
+calibrate on, ``calibration.method: none``, which uses ``FALLBACK_SCALE`` on the first two parts):
+three parts, each scaled by a factor set on simulated instruments (``SPREAD_SCALE``, ``RESIDUAL_SCALE``,
+``BOX_SCALE``; the model file keeps the factors it was made with)::
 
     sigma^2 = (k_s s)^2 + (k_r r)^2 + (k_b d R)^2
 
@@ -51,6 +66,125 @@ BOX_SCALE = 1.0
 
 SIGMA_KINDS = ("candidates", "residual")
 
+#: The features a calibrated sigma weighs, in this order (module docstring): each enters squared.
+SIGMA_FEATURES = ("constant", "spread", "rate", "cold", "warm", "box")
+#: ``calibration.method``: calibrated on held-out stretches, or not (too few: the fall-back rule).
+CALIBRATION_METHODS = ("held-out-stretches", "none")
+#: The fall-back's factor on the spread and the residual when a fit could not calibrate its sigma: the
+#: population's rule without its 0.85 shrink, wider than it (conservative).
+FALLBACK_SCALE = 1.0
+
+
+@dataclass(frozen=True)
+class SigmaCalibration:
+    """The model file's ``uncertainty.calibration``: how the fit calibrated ``drift_sigma_dph`` on its own
+    held-out stretches (module docstring), or why it could not (``method: none``, ``reason``)."""
+
+    method: str
+    weights: tuple[float, ...] = (0.0,) * len(SIGMA_FEATURES)  #: c_j, in the order of ``SIGMA_FEATURES``
+    scale: float = 1.0  #: k
+    ring_low_c: float = 0.0  #: T_lo
+    ring_high_c: float = 0.0  #: T_hi
+    stretches: int = 0  #: held-out stretches it was calibrated on
+    stretch_min: float = 0.0
+    reason: str = ""  #: with ``method: none``: why
+
+    def __post_init__(self) -> None:
+        if self.method not in CALIBRATION_METHODS:
+            raise ValueError(f"uncertainty.calibration: method must be one of {', '.join(CALIBRATION_METHODS)}")
+        values = (*self.weights, self.scale, self.ring_low_c, self.ring_high_c, self.stretch_min)
+        if len(self.weights) != len(SIGMA_FEATURES) or not all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in values
+        ):
+            raise ValueError(
+                f"uncertainty.calibration: {len(SIGMA_FEATURES)} finite weights, a finite scale and ring range"
+            )
+        if min(self.weights) < 0 or self.scale < 0 or self.ring_high_c < self.ring_low_c:
+            raise ValueError("uncertainty.calibration: weights and scale must be >= 0, ring_c low <= high")
+        if self.method == "held-out-stretches" and not self.weights[0] > 0:
+            raise ValueError("uncertainty.calibration: a calibrated sigma needs a constant weight > 0")
+        object.__setattr__(self, "weights", tuple(float(v) for v in self.weights))
+
+    @property
+    def calibrated(self) -> bool:
+        return self.method == "held-out-stretches"
+
+    def to_dict(self) -> dict[str, Any]:
+        if not self.calibrated:
+            return {"method": self.method, "reason": self.reason}
+        return {
+            "method": self.method,
+            "weights": {name: float(w) for name, w in zip(SIGMA_FEATURES, self.weights)},
+            "scale": float(self.scale),
+            "ring_c": [float(self.ring_low_c), float(self.ring_high_c)],
+            "stretches": int(self.stretches),
+            "stretch_min": float(self.stretch_min),
+        }
+
+    @classmethod
+    def from_dict(cls, doc: Any) -> SigmaCalibration:
+        if not isinstance(doc, dict):
+            raise ValueError("uncertainty.calibration must be a mapping")
+        method = doc.get("method")
+        if method == "none":
+            unknown = set(doc) - {"method", "reason"}
+            if unknown:
+                raise ValueError(f"uncertainty.calibration: unknown keys {', '.join(sorted(map(str, unknown)))}")
+            return cls("none", reason=str(doc.get("reason", "")))
+        known = {"method", "weights", "scale", "ring_c", "stretches", "stretch_min"}
+        unknown = set(doc) - known
+        if unknown:
+            raise ValueError(f"uncertainty.calibration: unknown keys {', '.join(sorted(map(str, unknown)))}")
+        weights, ring = doc.get("weights"), doc.get("ring_c")
+        if not isinstance(weights, dict) or set(weights) - set(SIGMA_FEATURES):
+            raise ValueError(f"uncertainty.calibration.weights: a mapping of {', '.join(SIGMA_FEATURES)}")
+        if not isinstance(ring, list) or len(ring) != 2:
+            raise ValueError("uncertainty.calibration.ring_c: [low, high]")
+        stretches = doc.get("stretches", 0)
+        if isinstance(stretches, bool) or not isinstance(stretches, int) or stretches < 0:
+            raise ValueError("uncertainty.calibration.stretches: an integer >= 0")
+        return cls(
+            str(method),
+            tuple(weights.get(name, 0.0) for name in SIGMA_FEATURES),
+            doc.get("scale", 1.0),
+            ring[0],
+            ring[1],
+            stretches,
+            doc.get("stretch_min", 0.0),
+        )
+
+    def features(self, spread_sq: Any, ring_c: Any, ring_rate_c_per_min: Any, box: Any) -> np.ndarray:
+        """The squared features (``SIGMA_FEATURES``, last axis) of rows of (s^2, T_ring, rdot, d): what the
+        weights multiply; the fit's calibration and ``sigma_of`` use the same numbers."""
+        p = _position(ring_c, self.ring_low_c, self.ring_high_c)
+        rate = np.asarray(ring_rate_c_per_min, dtype=np.float64)
+        d = np.asarray(box, dtype=np.float64) + 0.0 * p
+        q = 1.0 - p
+        return np.stack(
+            [np.ones_like(p), np.asarray(spread_sq, dtype=np.float64) + 0.0 * p, rate * rate, q * q, p * p, d * d],
+            axis=-1,
+        )
+
+
+def _position(ring_c: Any, low_c: float, high_c: float) -> np.ndarray:
+    """p of the module docstring: where the ring temperature sits in the fit's range, clipped to 0..1 (0.5 for a
+    range of width 0)."""
+    t = np.asarray(ring_c, dtype=np.float64)
+    span = high_c - low_c
+    if not span > 0:
+        return np.full(t.shape, 0.5)
+    return np.clip((t - low_c) / span, 0.0, 1.0)
+
+
+def ring_reading(u: Any) -> tuple[float, float]:
+    """(T_ring, rdot) of one raw input row: the mean of the first two channels' temperatures and rates (one
+    channel: its own), as ``features.ring_of``."""
+    n = channels_of(len(u))
+    if n == 1:
+        return float(u[0]), float(u[1])
+    return 0.5 * (float(u[0]) + float(u[1])), 0.5 * (float(u[n]) + float(u[n + 1]))
+
+
 #: The candidate structures a fit keeps beside the chosen one (``fitting.wesn.spread_candidates``: at most this
 #: many of the tied coils, spread over their lags); a model file with more is refused (``UncertaintySpec``).
 MAX_CANDIDATES = 6
@@ -68,6 +202,8 @@ class UncertaintySpec:
     box_scale: float = BOX_SCALE
     #: the candidate structures, as model dicts of the model's own kind
     candidates: tuple[dict[str, Any], ...] = field(default=(), compare=False)
+    #: the fit's own calibration (module docstring); None in files made before it: today's rule, warned
+    calibration: SigmaCalibration | None = None
 
     def __post_init__(self) -> None:
         if self.sigma_kind not in SIGMA_KINDS:
@@ -92,6 +228,7 @@ class UncertaintySpec:
             "residual_scale": float(self.residual_scale),
             "box_scale": float(self.box_scale),
             **({"candidates": list(self.candidates)} if self.candidates else {}),
+            **({"calibration": self.calibration.to_dict()} if self.calibration is not None else {}),
         }
 
     @classmethod
@@ -106,6 +243,7 @@ class UncertaintySpec:
             "residual_scale",
             "box_scale",
             "candidates",
+            "calibration",
         }
         unknown = set(doc) - known
         if unknown:
@@ -122,6 +260,7 @@ class UncertaintySpec:
                 doc.get("residual_scale", RESIDUAL_SCALE),
                 doc.get("box_scale", BOX_SCALE),
                 tuple(candidates),
+                SigmaCalibration.from_dict(doc["calibration"]) if "calibration" in doc else None,
             )
         except KeyError as exc:
             raise ValueError(f"uncertainty: missing {exc}") from None
@@ -165,6 +304,10 @@ class DriftUncertainty:
         self.domain = domain
         self._fixed_sq = (spec.residual_scale * spec.residual_dph) ** 2
         self._box = spec.box_scale * spec.target_range_dph
+        calibration = spec.calibration
+        #: the calibrated rule's numbers (module docstring), or None: today's rule
+        self._calibration = calibration if calibration is not None and calibration.calibrated else None
+        self._k2 = 0.0 if self._calibration is None else self._calibration.scale**2
         self._deferred: list[list[Any]] | None = None  # between defer() and resolve(): the candidates' work
         self._placeholders = 0  # placeholders handed out since defer()
 
@@ -192,11 +335,14 @@ class DriftUncertainty:
             box = self._box * box_distance(self.domain, u)
             last = self._deferred[-1] if self._deferred else None
             if last is None or last[0] != "step":
-                last = ["step", [], [], [], self._placeholders]
+                last = ["step", [], [], [], self._placeholders, []]
                 self._deferred.append(last)
             last[1].append(np.array(z, dtype=np.float64))
             last[2].append(estimate_dph)
             last[3].append(box)
+            last[5].append(
+                (*ring_reading(u), box_distance(self.domain, u)) if self._calibration is not None else (0.0, 0.0, 0.0)
+            )
             self._placeholders += 1
             return -float(self._placeholders)
         return self.sigma_of(self.advance(z), u, estimate_dph)
@@ -220,6 +366,17 @@ class DriftUncertainty:
                 dev = d - estimate_dph
                 total += dev * dev
             spread_sq = total / len(drifts_dph)
+        cal = self._calibration
+        if cal is not None:
+            ring_c, rate = ring_reading(u)
+            span = cal.ring_high_c - cal.ring_low_c
+            p = min(max((ring_c - cal.ring_low_c) / span, 0.0), 1.0) if span > 0 else 0.5
+            q = 1.0 - p
+            w = cal.weights
+            d = box_distance(self.domain, u)
+            v = w[0] + w[1] * spread_sq + w[2] * (rate * rate) + w[3] * (q * q) + w[4] * (p * p) + w[5] * (d * d)
+            sigma = math.sqrt(self._k2 * v + box * box)
+            return sigma if math.isfinite(sigma) else math.sqrt(self._k2 * w[0] + box * box)
         sigma = math.sqrt((self.spec.spread_scale**2) * spread_sq + self._fixed_sq + box * box)
         return sigma if math.isfinite(sigma) else math.sqrt(self._fixed_sq + box * box)
 
@@ -244,16 +401,34 @@ class DriftUncertainty:
                 for c in self.candidates:
                     c.start(item[1])
             else:
-                _, z, estimates, boxes, first = item
+                _, z, estimates, boxes, first, rings = item
                 z, estimate, box = np.array(z), np.array(estimates), np.array(boxes)
                 total = np.zeros(len(z))
                 for c in self.candidates:
                     dev = c.run(z) - estimate
                     total = total + dev * dev
                 spread_sq = total / len(self.candidates)
-                fixed = self._fixed_sq + box * box
+                cal = self._calibration
                 with np.errstate(invalid="ignore", over="ignore"):
-                    sigma = np.sqrt((self.spec.spread_scale**2) * spread_sq + self._fixed_sq + box * box)
+                    if cal is not None:
+                        ring = np.array(rings, dtype=np.float64).reshape(-1, 3)
+                        p = _position(ring[:, 0], cal.ring_low_c, cal.ring_high_c)
+                        q = 1.0 - p
+                        rate, d = ring[:, 1], ring[:, 2]
+                        w = cal.weights
+                        v = (
+                            w[0]
+                            + w[1] * spread_sq
+                            + w[2] * (rate * rate)
+                            + w[3] * (q * q)
+                            + w[4] * (p * p)
+                            + w[5] * (d * d)
+                        )
+                        sigma = np.sqrt(self._k2 * v + box * box)
+                        fixed = self._k2 * w[0] + box * box
+                    else:
+                        sigma = np.sqrt((self.spec.spread_scale**2) * spread_sq + self._fixed_sq + box * box)
+                        fixed = self._fixed_sq + box * box
                 sigma = np.where(np.isfinite(sigma), sigma, np.sqrt(fixed))
                 sigmas[first : first + len(z)] = sigma
         return sigmas

@@ -21,6 +21,7 @@ from ..model import ModelFile
 from ..models.polynomial import PolynomialModel, polynomial_features
 from ..models.wesn import PAPER_DEFAULTS, WESN_DEFAULTS
 from ..readout import Standardizer
+from ..uncertainty import SigmaCalibration
 from .choice import block_squares, choose, paired, paired_margin, polynomial_lead
 from .data import (
     CaptureData,
@@ -34,8 +35,10 @@ from .data import (
 from .quality import FitQuality, assess, condition_number
 from .report import FitReport, report_for
 from .ridge import standardized_ridge
+from .sigma_calibration import calibrate, held_out_minutes
+from .sigma_calibration import describe as describe_sigma
 from .svr import PSO_SVR_DEFAULTS, fit_pso_svr
-from .uncertainty import report_error_dph, uncertainty_for
+from .uncertainty import report_error_dph, uncertainty_for, with_calibration
 from .wesn import capture_regressors, fit_wesn
 
 
@@ -135,6 +138,17 @@ def regressor_rows(model, captures: list[CaptureData], normalizer: Standardizer)
     return None
 
 
+def readout_penalty(model, config: FitConfig) -> tuple[float, np.ndarray | None]:
+    """The ridge penalty and the per-column penalty a refit of the readout uses, at the structure the fit chose
+    (the polynomial's ``poly_alpha``; the ring ``wesn``'s chosen penalty, its history neurons penalized more)."""
+    if isinstance(model, PolynomialModel):
+        return (config.poly_alpha if config.poly_alpha is not None else 1e-3), None
+    sel = model.selection
+    penalty = np.ones(len(model.weights))
+    penalty[1 : 1 + len(sel["history_s"])] = sel["history_penalty"]
+    return sel["ridge_alpha"], penalty
+
+
 #: The fit's own validation split: chunks of device time dealt in turn to the folds.
 VALIDATION_CHUNK_S = 1200.0
 VALIDATION_FOLDS = 4
@@ -160,13 +174,7 @@ def own_validation_squares(
     window = max(1, min(int(round(VALIDATION_CHUNK_S * rate)), longest // (2 * VALIDATION_FOLDS)) // 2)
     chunk = 2 * window  # whole windows in every chunk
     rows = cast(list[np.ndarray], regressor_rows(model, captures, normalizer))  # these two kinds have them
-    if isinstance(model, PolynomialModel):
-        alpha, penalty = (config.poly_alpha if config.poly_alpha is not None else 1e-3), None
-    else:
-        sel = model.selection
-        alpha = sel["ridge_alpha"]
-        penalty = np.ones(len(model.weights))
-        penalty[1 : 1 + len(sel["history_s"])] = sel["history_penalty"]
+    alpha, penalty = readout_penalty(model, config)
     index = [np.flatnonzero(c.static) for c in captures]
     x = np.vstack([f[i] for f, i in zip(rows, index)])
     y = np.concatenate([c.target_dph[i] for c, i in zip(captures, index)])
@@ -303,7 +311,12 @@ def fit_model(
     validate_minutes = static_minute_count(validate, config.model_rate_hz) if validate else 0
     r_dph = report_error_dph(report, kind, len(means), validate_minutes)
     uncertainty = uncertainty_for(models[kind], r_dph, domain)
+    say("drift_sigma_dph: calibrating on held-out stretches")
+    calibration, evidence = calibrate_sigma(models[kind], captures, normalizer, config, report, inputs)
+    uncertainty = with_calibration(uncertainty, calibration)
     provenance["sigma_kind"] = uncertainty.sigma_kind
+    provenance["sigma_calibration"] = evidence
+    report.sigma_line = describe_sigma(evidence)
     provenance["fit_quality"] = quality.to_dict(accept_weak)
     _add_findings(provenance["fit_quality"], models[kind], captures, normalizer, config, say)
     model_file = ModelFile(
@@ -323,6 +336,31 @@ def fit_model(
     if quality.failed and not accept_weak:
         raise WeakFitError(quality, report, model_file)
     return model_file, report
+
+
+def calibrate_sigma(
+    model: Any,
+    captures: list[CaptureData],
+    normalizer: Standardizer,
+    config: FitConfig,
+    report: FitReport,
+    inputs: np.ndarray,
+) -> tuple[SigmaCalibration, dict[str, Any]]:
+    """The sigma's calibration on the fit's held-out stretches (``sigma_calibration``) and its evidence; for a
+    kind without a linear readout, ``method: none``."""
+    rows = regressor_rows(model, captures, normalizer)
+    if rows is None:
+        reason = "this kind's readout is not a linear regression the fit can refit without a stretch"
+        return SigmaCalibration("none", reason=reason), {"method": "none", "reason": reason}
+    ring_c, _ = ring_of(inputs)
+    ring_c = ring_c[np.isfinite(ring_c)]
+    bounds = SigmaCalibration("none", ring_low_c=float(ring_c.min()), ring_high_c=float(ring_c.max()))
+    alpha, penalty = readout_penalty(model, config)
+    noise = report.noise_1min_dph
+    held = held_out_minutes(
+        model, rows, alpha, penalty, captures, normalizer, config, bounds, noise if noise is not None else 0.0
+    )
+    return calibrate(held, bounds.ring_low_c, bounds.ring_high_c)
 
 
 def check_one_instrument(captures: list[CaptureData], validate: list[CaptureData]) -> None:

@@ -65,6 +65,8 @@ class FitReport:
     noise_floor: tuple[float, float | None] | None = None
     #: the model choice on the fit's own validation split (``choice.choose``), when the fit made one
     choice: dict[str, Any] | None = None
+    #: how the fit calibrated ``drift_sigma_dph`` (``sigma_calibration.describe``), once it has
+    sigma_line: str | None = None
 
     @property
     def noise_1min_dph(self) -> float | None:
@@ -82,6 +84,8 @@ class FitReport:
             )
         if self.choice is not None:
             out.append(describe(self.choice))
+        if self.sigma_line is not None:
+            out.append(self.sigma_line)
         return out
 
     def worse(self) -> dict[str, list[str]]:

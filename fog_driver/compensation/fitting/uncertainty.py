@@ -13,11 +13,12 @@ R                                    the range of the fit target's 1-min means (
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
 
 from ..domain import InputDomain
-from ..uncertainty import UncertaintySpec, target_range_of
+from ..uncertainty import FALLBACK_SCALE, SigmaCalibration, UncertaintySpec, target_range_of
 from .report import FitReport
 
 
@@ -52,3 +53,11 @@ def uncertainty_for(model: Any, r_dph: float, domain: InputDomain) -> Uncertaint
     return UncertaintySpec(
         "candidates", r_dph, target_range_of(domain), candidates=tuple(c.to_dict() for c in candidates)
     )
+
+
+def with_calibration(spec: UncertaintySpec, calibration: SigmaCalibration) -> UncertaintySpec:
+    """``spec`` carrying the fit's calibration; a fit that could not calibrate (``method: none``) gets the
+    fall-back's factors (``uncertainty.FALLBACK_SCALE``) on the spread and the residual."""
+    scale = spec.spread_scale if calibration.calibrated else FALLBACK_SCALE
+    residual = spec.residual_scale if calibration.calibrated else FALLBACK_SCALE
+    return dataclasses.replace(spec, calibration=calibration, spread_scale=scale, residual_scale=residual)
