@@ -46,8 +46,8 @@ RMS of 0.05-0.2 deg/h raw), not a small correction; "log" is log-uniform, "+-" a
     D_F   = k_S S + k_Q (Tc - Tf)^2
     q_w(t) = Q_w (1 - exp(-t / tau_w))   more heat in the housing (degC of its steady rise), through the network
 
-  tau_C log 1..6 h (the stress of a held difference relaxes to 0), k_S +-log 0.02..0.1 deg/h/degC,
-  k_Q +-log 0.005..0.05 deg/h/degC^2 (elasto-optic: birefringence goes with the stress squared), Q_w 1..4
+  tau_C log 1..6 h (the stress of a held difference relaxes to 0), k_S +-log 0.005..0.025 deg/h/degC,
+  k_Q +-log 0.0005..0.003 deg/h/degC^2 (elasto-optic: birefringence goes with the stress squared), Q_w 1..4
   degC, tau_w log 10..40 min (the electronics' dissipation rising after power-on, at every run's start).
   The warm-up changes the true temperatures (the thermometers see it): it is physics the fit can see, the
   other two terms are stress it must infer.  Mechanism: Lefevre 2014 (thermal stress, elasto-optic effect).
@@ -95,8 +95,8 @@ FAMILY_RANGES: dict[str, dict[str, Range]] = {
     },
     "stress": {
         "creep_tau_s": Range(3600.0, 21600.0, log=True),
-        "stress_dph_per_c": Range(0.02, 0.1, log=True, signed=True),
-        "radial_quadratic_dph_per_c2": Range(0.005, 0.05, log=True, signed=True),
+        "stress_dph_per_c": Range(0.005, 0.025, log=True, signed=True),
+        "radial_quadratic_dph_per_c2": Range(0.0005, 0.003, log=True, signed=True),
         "warmup_heating_c": Range(1.0, 4.0),
         "warmup_tau_s": Range(600.0, 2400.0, log=True),
     },
