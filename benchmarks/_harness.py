@@ -14,7 +14,10 @@ development is spent, and the next version goes to a fresh one (which set was sp
 ``docs/decisions/``).  Individual evaluation instruments are not studied: to find what failed there, draw more
 development instruments (``--set dev --first 72``) and look for the same failure among them.  Instrument K's run
 of a profile has the run seed ``10 K + j``, ``j`` per profile (``FIT_RUN`` for the fit's; each benchmark names
-its others).
+its others).  ``families-screen`` (92 000 ..) and ``families-eval`` (93 000 ..) are for the physics families
+(``fog_driver.sim.families``, ``--family``) and for nothing else: ``families-screen`` to see whether a method's
+sigma misses a target on a family the development population never had, ``families-eval`` for the one
+evaluation of the finished method on the families; the same rule holds for both.
 
 **The capture cache.**  ``capture`` simulates instrument K's run of a profile once into a work directory
 (``--workdir``, else a temporary one), keyed by instrument, profile, run seed and rate, and again only when the
@@ -184,6 +187,8 @@ SEED_SETS = {
     "eval12": 97_000,
     "eval13": 98_000,
     "eval14": 99_000,
+    "families-screen": 92_000,  # the physics families only (THE RULE)
+    "families-eval": 93_000,  # the physics families only (THE RULE)
 }  #: first instrument seed of each set (THE RULE above)
 #: The profile every population benchmark fits on, and its run seed's j.
 FIT_PROFILE = "paper"
@@ -238,13 +243,16 @@ def resolve_profile(name: str) -> SimProfile:
     return load_profile(name if name in BUILTIN_PROFILES else ROOT / "configs" / "profiles" / f"{name}.yaml")
 
 
-def capture(workdir: Path, seed: int, profile: str | SimProfile, run_seed: int, rate_hz: int) -> Path:
-    """Instrument ``seed``'s run of ``profile`` (a name for ``resolve_profile``, or a profile made here), cached
-    by its name, and simulated again when the cached one's sidecar holds another instrument K (a cache made
-    before the population changed)."""
+def capture(
+    workdir: Path, seed: int, profile: str | SimProfile, run_seed: int, rate_hz: int, family: str | None = None
+) -> Path:
+    """Instrument ``seed``'s run of ``profile`` (a name for ``resolve_profile``, or a profile made here), with
+    the physics ``family`` (None: the development population's), cached by its name (in ``i<seed>``, with a
+    family ``i<seed>-<family>``), and simulated again when the cached one's sidecar holds another instrument K
+    (a cache made before the population changed)."""
     name = profile if isinstance(profile, str) else profile.name
-    out = workdir / f"i{seed}" / f"{name}-r{run_seed}-{rate_hz}hz.bin"
-    config = draw_instrument(seed)
+    out = workdir / (f"i{seed}" if family is None else f"i{seed}-{family}") / f"{name}-r{run_seed}-{rate_hz}hz.bin"
+    config = draw_instrument(seed, family=family)
     if out.exists() and (read_provenance(out) or {}).get("model") != config.as_dict():
         out.unlink()  # simulated by a version whose instrument K differed (e.g. before its scale-factor draws)
     if not out.exists():

@@ -96,6 +96,7 @@ from fog_driver.offline.fit import fit_model_file
 from fog_driver.report.coverage import SIGMA_PER_MINUTE, MinuteErrors, coverage_figures, minute_errors
 from fog_driver.report.evaluate import minute_rms, per_second
 from fog_driver.sim.capture import read_truth, truth_noise_dph
+from fog_driver.sim.families import FAMILIES
 
 #: Model kinds; "auto" is what ``fog-driver fit`` fits without --kind (the default's choice between the wesn
 #: and the polynomial).
@@ -222,13 +223,15 @@ def score_instrument(
     fit_profile: str = FIT_PROFILE,
     score_profiles: Sequence[str] = SCORE_PROFILES,
     against: str | None = None,
+    family: str | None = None,
 ) -> dict:
     """Fit every kind on instrument ``seed``'s run of ``fit_profile``; score each on the scoring profiles, and
     the compared kinds' uncertainty on the run beyond the fit range too; with ``against`` (a program), fit the
-    compared kinds on a run of it as well and score them on the same runs."""
-    fit_run = capture(workdir, seed, fit_profile, 10 * seed + FIT_RUN, rate_hz)
+    compared kinds on a run of it as well and score them on the same runs; ``family``: the instrument's physics
+    family (``fog_driver.sim.families``; None: the development population's)."""
+    fit_run = capture(workdir, seed, fit_profile, 10 * seed + FIT_RUN, rate_hz, family)
     run_seeds = score_run_seeds(score_profiles)
-    runs = [capture(workdir, seed, p, 10 * seed + run_seeds[p], rate_hz) for p in score_profiles]
+    runs = [capture(workdir, seed, p, 10 * seed + run_seeds[p], rate_hz, family) for p in score_profiles]
     models, info = fit_kinds(fit_run, kinds)
     result: dict = {"seed": seed, **info}
     adapting = [f"{k}+adapt" for k in kinds if adapt and k in COMPARED_KINDS]
@@ -237,11 +240,13 @@ def score_instrument(
     compared = [k for k in kinds if k in COMPARED_KINDS]
     result["minutes"] = {k: MinuteErrors.pooled(m[k] for _, m in scored) for k in compared}
     if compared:
-        beyond = capture(workdir, seed, beyond_profile(resolve_profile(fit_profile)), 10 * seed + BEYOND_RUN, rate_hz)
+        beyond_run = beyond_profile(resolve_profile(fit_profile))
+        beyond = capture(workdir, seed, beyond_run, 10 * seed + BEYOND_RUN, rate_hz, family)
         sq, minutes = score_run(beyond, models, compared)
         result["beyond"] = {"r": pooled_r([sq]), "minutes": minutes}
     if against is not None:
-        ref_models, ref_info = fit_kinds(capture(workdir, seed, against, 10 * seed + FIT_RUN, rate_hz), compared)
+        ref_run = capture(workdir, seed, against, 10 * seed + FIT_RUN, rate_hz, family)
+        ref_models, ref_info = fit_kinds(ref_run, compared)
         result["against"] = {**ref_info, "r": pooled_r([score_run(path, ref_models, compared)[0] for path in runs])}
     result["step_us"] = {kind: model_step_us(models[kind], fit_run) for kind in kinds}
     result["adapting"] = adapting
@@ -590,6 +595,12 @@ def main() -> None:
         help=f"also fit {','.join(COMPARED_KINDS)} on one run of {FIT_PROFILE} and compare them with the fit on "
         "--fit-profile, on the same scoring runs (issue 30's program targets)",
     )
+    parser.add_argument(
+        "--family",
+        choices=FAMILIES,
+        help="add a physics family the development population never had (fog_driver.sim.families; default: none, "
+        "the development population's physics)",
+    )
     args = parser.parse_args()
     programs = args.compare_programs
     kinds = _names(args.kinds or ",".join(COMPARED_KINDS if programs else KINDS))
@@ -619,7 +630,7 @@ def main() -> None:
     seeds = instrument_seeds(args.set, args.first, args.instruments)
     with kept_or_temporary(args.workdir) as workdir:
         t0 = time.perf_counter()
-        same = (kinds, args.rate_hz, workdir, args.adapt, fit_profile, score_profiles, against)
+        same = (kinds, args.rate_hz, workdir, args.adapt, fit_profile, score_profiles, against, args.family)
         results = []
         for x in in_pool(score_instrument, args.workers, seeds, *([value] * len(seeds) for value in same)):
             results.append(x)
@@ -637,7 +648,9 @@ def main() -> None:
                 )
         print(
             f"\n{args.set} set: {len(seeds)} instruments (seeds {seeds[0]}..{seeds[-1]}), fitted on {fit_profile}, "
-            f"scored on {' and '.join(score_profiles)} at {args.rate_hz} Hz  [{time.perf_counter() - t0:.0f} s]\n"
+            f"scored on {' and '.join(score_profiles)} at {args.rate_hz} Hz"
+            + (f", family {args.family}" if args.family else "")
+            + f"  [{time.perf_counter() - t0:.0f} s]\n"
         )
         summarize(results, kinds)
         if args.adapt:

@@ -39,7 +39,7 @@ from ..files.outputs import check_outputs, write_error
 from ..files.stamps import utc_now_iso
 from ..lab.profiles import profile_to_doc
 from ..samples.captures import CaptureWriter, read_provenance, sidecar_path, write_provenance
-from .instrument import COMPONENTS, STDBIN_TEMPERATURE_CHANNELS, STDBIN_VERSION, FrameBlock, Simulator
+from .instrument import COMPONENTS, FAMILY_COMPONENT, STDBIN_TEMPERATURE_CHANNELS, STDBIN_VERSION, FrameBlock, Simulator
 
 TRUTH_COLUMNS = (
     "second",
@@ -135,7 +135,7 @@ def truth_rows(block: FrameBlock, rate_hz: int, scale_arcsec_per_count: float) -
             if name != "input"
         },
         "input_dph": rate(c["input"]),
-        "drift_dph": rate(sum(c[name] for name in _DRIFT_PARTS)),
+        "drift_dph": rate(sum(c[name] for name in (*_DRIFT_PARTS, FAMILY_COMPONENT) if name in c)),
         "measured_dph": rate(block.dtheta_counts * scale_arcsec_per_count),
         **{
             f"{name}": mean(block.truth_temps_c[name])

@@ -47,6 +47,7 @@ from ..protocol import (
     encode_identity,
     encode_sample_frames,
 )
+from .families import FamilyPhysics, FamilyTerm
 from .faults import FaultSpec
 from .gyro import ARCSEC_PER_SQRT_S_PER_DEG_PER_SQRT_H, GyroParams, SlowNoise, drift_terms
 from .thermal import ThermalModel, ThermalParams
@@ -107,6 +108,8 @@ class InstrumentConfig:
     thermometers: ThermometerParams = field(default_factory=ThermometerParams)
     #: Provenance: the ``fog_driver.sim.population`` instrument these physics were drawn for (None: not drawn).
     population_seed: int | None = None
+    #: A physics family on top of the drawn instrument (``fog_driver.sim.families``; None: the population's own).
+    family: FamilyPhysics | None = None
 
     def __post_init__(self) -> None:
         if len(self.serial.encode("ascii", errors="replace")) > 16:
@@ -124,7 +127,12 @@ class InstrumentConfig:
         return float(np.float32(self.scale_arcsec_per_count))
 
     def as_dict(self) -> dict[str, Any]:
-        return _to_plain(self)
+        """Every field as plain values; ``family`` only when there is one (a configuration without a family
+        serializes as it did before families existed)."""
+        plain = _to_plain(self)
+        if self.family is None:
+            del plain["family"]
+        return plain
 
 
 def _to_plain(obj: Any) -> Any:
@@ -132,6 +140,8 @@ def _to_plain(obj: Any) -> Any:
         return {f.name: _to_plain(getattr(obj, f.name)) for f in fields(obj)}
     if isinstance(obj, tuple):
         return [_to_plain(v) for v in obj]
+    if isinstance(obj, dict):
+        return {k: _to_plain(v) for k, v in obj.items()}
     return obj
 
 
@@ -148,7 +158,9 @@ class _SlowGrid:
     """Slow quantities on a 1-s grid of true time, extended in fixed blocks, with explicit state.
 
     Grid point i is at ``t = i * GRID_DT_S``.  Arrays are kept from a moving start index, so an
-    endless live stream keeps only a window.
+    endless live stream keeps only a window.  An instrument with a physics family has one more column,
+    ``drift_family_dph`` (``families.FamilyTerm``, from ``rng_family``), and the family's extra housing heat
+    drives the thermal model.
     """
 
     COLUMNS = (
@@ -176,12 +188,16 @@ class _SlowGrid:
         config: InstrumentConfig,
         rng_noise: np.random.Generator,
         block_steps: int = GRID_BLOCK_STEPS,
+        rng_family: np.random.Generator | None = None,
     ) -> None:
         self.profile = profile
         self.block_steps = block_steps
         self.config = config
         air0 = float(profile.chamber.air_temp_c(np.array([0.0]))[0])
-        self.thermal = ThermalModel(config.thermal, GRID_DT_S, air0)
+        self.family = None if config.family is None else FamilyTerm(config.family, GRID_DT_S, rng_family)
+        self.columns = self.COLUMNS + (("drift_family_dph",) if self.family else ())
+        self._heats = self.family is not None and self.family.heat_c(np.zeros(1)) is not None
+        self.thermal = ThermalModel(config.thermal, GRID_DT_S, air0, housing_heat=self._heats)
         self.noise = SlowNoise(config.gyro, GRID_DT_S, rng_noise)
         x = self.thermal.state
         self._history = float(x[3])
@@ -191,7 +207,7 @@ class _SlowGrid:
         )
         self._sensors = np.array([x[1], x[2], x[0]])
         self.start = 0  # grid index of the first kept point
-        self.data = {name: np.zeros(0) for name in self.COLUMNS}
+        self.data = {name: np.zeros(0) for name in self.columns}
         self._append(np.array([air0]), x[None, :], self.noise.run(1))
 
     @property
@@ -213,9 +229,8 @@ class _SlowGrid:
         self._history, self._sensors = h, s
         p = self.config.thermal
         fiber_rate = p.fiber_rate_c_per_s(nodes)  # dTf/dt from the model
-        terms = drift_terms(
-            self.config.gyro, nodes[:, 3], fiber_rate, nodes[:, 1], nodes[:, 2], history, p.boundary_c(nodes)
-        )
+        boundary = p.boundary_c(nodes)
+        terms = drift_terms(self.config.gyro, nodes[:, 3], fiber_rate, nodes[:, 1], nodes[:, 2], history, boundary)
         new = {
             "air_c": air_c,
             "housing_c": nodes[:, 0],
@@ -234,7 +249,9 @@ class _SlowGrid:
             "bias_instability_dph": noise[0],
             "rrw_dph": noise[1],
         }
-        for name in self.COLUMNS:
+        if self.family is not None:
+            new["drift_family_dph"] = self.family.run(nodes, fiber_rate, boundary)
+        for name in self.columns:
             self.data[name] = np.concatenate((self.data[name], new[name]))
 
     def ensure(self, t_s: float) -> None:
@@ -244,14 +261,15 @@ class _SlowGrid:
             idx = np.arange(first, first + self.block_steps)
             air_mid = self.profile.chamber.air_temp_c((idx - 0.5) * GRID_DT_S)
             air_end = self.profile.chamber.air_temp_c(idx * GRID_DT_S)
-            nodes = self.thermal.run(air_mid)
+            heat = self.family.heat_c((idx - 0.5) * GRID_DT_S) if self._heats and self.family else None
+            nodes = self.thermal.run(air_mid, heat)
             self._append(air_end, nodes, self.noise.run(self.block_steps))
 
     def forget_before(self, t_s: float) -> None:
         """Drop grid points more than one step before ``t_s`` (live streams run for months)."""
         drop = int(t_s // GRID_DT_S) - 1 - self.start
         if drop > 4 * max(self.block_steps, GRID_BLOCK_STEPS):
-            for name in self.COLUMNS:
+            for name in self.columns:
                 self.data[name] = self.data[name][drop:]
             self.start += drop
 
@@ -303,6 +321,8 @@ COMPONENTS = (
     "rrw",
     "arw",
 )
+#: The per-frame component of an instrument's physics family (``InstrumentConfig.family``), when it has one.
+FAMILY_COMPONENT = "drift_family"
 
 
 def _stdbin_layout() -> tuple[np.dtype, np.ndarray]:
@@ -383,7 +403,9 @@ class Simulator:
         self.thermometer_offsets_c = np.array(
             sensors.offsets_c
         ) + sensors.offset_sigma_c * self._rng_run.standard_normal(3)
-        self._grid = _SlowGrid(profile, self.config, self._rng_slow, grid_block_steps)
+        # The family's stream is the seed's tenth child: the nine above are the same with or without it.
+        rng_family = np.random.default_rng(np.random.SeedSequence(seed).spawn(10)[9]) if self.config.family else None
+        self._grid = _SlowGrid(profile, self.config, self._rng_slow, grid_block_steps, rng_family)
         self.period_true_s = 1.0 / (rate_hz * (1.0 + self.config.clock_ppm * 1e-6))
         self._scale = self.config.scale_f32
         self._identity = encode_identity(self.config.serial, self.config.firmware, rate_hz, self._scale)
@@ -472,6 +494,7 @@ class Simulator:
                 "drift_hysteresis_dph",
                 "bias_instability_dph",
                 "rrw_dph",
+                *(("drift_family_dph",) if self.config.family else ()),
             ),
         )
         temps = self._grid.at(t_k, ("air_c", "housing_c", "top_c", "bottom_c", "fiber_c"))
@@ -495,7 +518,9 @@ class Simulator:
             * math.sqrt(period)
             * self._rng_arw.standard_normal(n),
         }
-        total_counts = sum(comp[name] for name in COMPONENTS) / self._scale
+        if self.config.family:
+            comp[FAMILY_COMPONENT] = slow["drift_family_dph"] * period
+        total_counts = sum(comp[name] for name in (*COMPONENTS, FAMILY_COMPONENT) if name in comp) / self._scale
         # Exact remainder carry: running sum in integer 2^-24 counts.
         fixed = np.round(total_counts * _FIXED_ONE).astype(np.int64)
         running = self._remainder_fixed + np.cumsum(fixed)

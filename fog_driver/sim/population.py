@@ -70,12 +70,11 @@ Thermometers (``instrument.ThermometerParams``):
 from __future__ import annotations
 
 import dataclasses
-import zlib
-from dataclasses import dataclass
-from decimal import Context, Decimal
 
 import numpy as np
 
+from .draws import Draws, Range
+from .families import draw_family
 from .gyro import GyroParams
 from .instrument import InstrumentConfig, ThermometerParams
 
@@ -88,16 +87,6 @@ MAX_INSTRUMENT_SEED = 99_999
 BIAS_CURVE_SPAN_C = (-40.0, 60.0)
 BIAS_CURVE_SCALE_C = 50.0
 PER_RUN_OFFSET_SIGMA_C = 0.01
-
-
-@dataclass(frozen=True)
-class Range:
-    """A parameter's range: uniform in ``lo..hi`` (``log``: log-uniform), with a random sign if ``signed``."""
-
-    lo: float
-    hi: float
-    log: bool = False
-    signed: bool = False
 
 
 RANGES: dict[str, Range] = {
@@ -127,35 +116,6 @@ RANGES: dict[str, Range] = {
     "sensor_offset_c": Range(-0.3, 0.3),  # each sensor
 }
 
-_DECIMAL = Context(prec=40)
-
-
-class _Draws:
-    """Uniform draws for one instrument, one stream per parameter name (independent of their order)."""
-
-    def __init__(self, seed: int) -> None:
-        self.seed = seed
-
-    def uniforms(self, name: str, n: int) -> list[float]:
-        stream = np.random.SeedSequence([self.seed, zlib.crc32(name.encode("ascii"))])
-        return np.random.default_rng(stream).random(2 * n).tolist()  # (value, sign) pairs
-
-    def values(self, name: str, n: int = 1) -> list[float]:
-        r = RANGES[name]
-        u = self.uniforms(name, n)
-        out = []
-        for value_u, sign_u in zip(u[0::2], u[1::2]):
-            if r.log:  # exp(ln lo + u (ln hi - ln lo)), correctly rounded: the same on every machine
-                lo, hi = Decimal(r.lo).ln(_DECIMAL), Decimal(r.hi).ln(_DECIMAL)
-                v = float(_DECIMAL.exp(lo + Decimal(value_u) * (hi - lo)))
-            else:
-                v = r.lo + value_u * (r.hi - r.lo)
-            out.append(-v if r.signed and sign_u < 0.5 else v)
-        return out
-
-    def value(self, name: str) -> float:
-        return self.values(name)[0]
-
 
 def _bias_coefficients(excursion_dph: float, shape: list[float], reference_c: float) -> tuple[float, ...]:
     """Coefficients ``c_k`` of ``sum_k c_k (Tf - Tref)^k`` for the curve ``A sum_k a_k u^k``, ``u = (Tf - 20) / 50``,
@@ -168,13 +128,15 @@ def _bias_coefficients(excursion_dph: float, shape: list[float], reference_c: fl
     return tuple(amplitude * a / BIAS_CURVE_SCALE_C ** (k + 1) for k, a in enumerate(shape))
 
 
-def draw_instrument(seed: int, base: InstrumentConfig | None = None) -> InstrumentConfig:
+def draw_instrument(seed: int, base: InstrumentConfig | None = None, family: str | None = None) -> InstrumentConfig:
     """Instrument ``seed`` of the population: ``base`` (default: the defaults) with its physics drawn
-    from ``RANGES`` (see the module docstring) and the serial ``FOG-POP-<seed>``."""
+    from ``RANGES`` (see the module docstring) and the serial ``FOG-POP-<seed>``; with a ``family``
+    (``fog_driver.sim.families.FAMILIES``), the same instrument plus that family's physics, drawn for ``seed``
+    (the serial stays ``FOG-POP-<seed>``; the configuration's ``family`` records it)."""
     if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= MAX_INSTRUMENT_SEED:
         raise ValueError(f"instrument seed must be an integer 0..{MAX_INSTRUMENT_SEED}, got {seed!r}")
     base = base or InstrumentConfig()
-    d = _Draws(seed)
+    d = Draws(seed, RANGES)
     stages = 1 + min(2, int(d.uniforms("coil_stages", 1)[0] * 3))
     lags = d.values("coil_lag_s", stages)
     weights = [d.value("coil_weight_top"), d.value("coil_weight_bottom"), d.value("coil_weight_housing")]
@@ -230,4 +192,5 @@ def draw_instrument(seed: int, base: InstrumentConfig | None = None) -> Instrume
         gyro=gyro,
         thermometers=thermometers,
         population_seed=seed,
+        family=None if family is None else draw_family(family, seed),
     )

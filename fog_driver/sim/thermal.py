@@ -186,7 +186,10 @@ class ThermalModel:
     at the END of each step, shape (n, 5) in ``NODES`` order.
     """
 
-    def __init__(self, params: ThermalParams, dt_s: float, initial_air_c: float) -> None:
+    def __init__(self, params: ThermalParams, dt_s: float, initial_air_c: float, housing_heat: bool = False) -> None:
+        """``housing_heat``: ``run`` also takes an extra heat in the housing (degC of its steady rise, like
+        ``self_heating_c``) per step (a physics family's warm-up); its Gamma column is computed apart, so
+        Phi and the other columns are the same bits with or without it."""
         self.params = params
         self.dt_s = float(dt_s)
         a, bu, c = params.system()
@@ -198,15 +201,30 @@ class ThermalModel:
         self._phi = [row[:n] for row in e[:n]]
         self._gamma_u = [row[n] for row in e[:n]]
         self._gamma_c = [row[n + 1] for row in e[:n]]
+        self._gamma_heat: list[float] | None = None
+        if housing_heat:
+            heat = [[*row, float(i == 0) / params.tau_housing_s] for i, row in enumerate(a)] + [[0.0] * (n + 1)]
+            self._gamma_heat = [row[n] for row in expm([[v * dt_s for v in row] for row in heat])[:n]]
         if params.cold_start:
             self.state = np.full(n, float(initial_air_c))
         else:
             self.state = params.equilibrium(initial_air_c)
 
-    def run(self, air_c_mid: np.ndarray) -> np.ndarray:
+    def run(self, air_c_mid: np.ndarray, heat_c_mid: np.ndarray | None = None) -> np.ndarray:
+        """``heat_c_mid``: the extra housing heat per step (only with ``housing_heat``)."""
         out = np.empty((len(air_c_mid), len(self.state)))
         x = self.state.tolist()
         rows = [(phi_row, gu, gc) for phi_row, gu, gc in zip(self._phi, self._gamma_u, self._gamma_c)]
+        if heat_c_mid is not None:
+            if self._gamma_heat is None:
+                raise ValueError("this thermal model was built without housing_heat")
+            gh = self._gamma_heat
+            air = np.asarray(air_c_mid, dtype=np.float64).tolist()
+            for k, (u, q) in enumerate(zip(air, np.asarray(heat_c_mid, dtype=np.float64).tolist())):
+                x = [sum(p * v for p, v in zip(r[0], x)) + r[1] * u + r[2] + g * q for r, g in zip(rows, gh)]
+                out[k] = x
+            self.state = np.array(x)
+            return out
         for k, u in enumerate(np.asarray(air_c_mid, dtype=np.float64).tolist()):
             # Plain floats: a 5x5 step is faster (and the same on every machine) outside numpy.
             x = [sum(p * v for p, v in zip(phi_row, x)) + gu * u + gc for phi_row, gu, gc in rows]
