@@ -332,7 +332,8 @@ class DriftUncertainty:
         Between ``defer`` and ``resolve`` it returns a placeholder instead (a negative number, which no
         sigma is), resolved to the sigma by ``resolve``."""
         if self._deferred is not None and self.candidates:
-            box = self._box * box_distance(self.domain, u)
+            d = box_distance(self.domain, u)
+            box = self._box * d
             last = self._deferred[-1] if self._deferred else None
             if last is None or last[0] != "step":
                 last = ["step", [], [], [], self._placeholders, []]
@@ -340,9 +341,7 @@ class DriftUncertainty:
             last[1].append(np.array(z, dtype=np.float64))
             last[2].append(estimate_dph)
             last[3].append(box)
-            last[5].append(
-                (*ring_reading(u), box_distance(self.domain, u)) if self._calibration is not None else (0.0, 0.0, 0.0)
-            )
+            last[5].append((*ring_reading(u), d) if self._calibration is not None else (0.0, 0.0, 0.0))
             self._placeholders += 1
             return -float(self._placeholders)
         return self.sigma_of(self.advance(z), u, estimate_dph)
@@ -358,7 +357,8 @@ class DriftUncertainty:
     def sigma_of(self, drifts_dph: list[float], u: Any, estimate_dph: float) -> float:
         """The second half of ``step``: the sigma of ``estimate_dph`` from the candidates' drifts of this block
         (``advance``) and the raw inputs ``u``."""
-        box = self._box * box_distance(self.domain, u)
+        distance = box_distance(self.domain, u)
+        box = self._box * distance
         spread_sq = 0.0
         if drifts_dph:
             total = 0.0
@@ -373,8 +373,14 @@ class DriftUncertainty:
             p = min(max((ring_c - cal.ring_low_c) / span, 0.0), 1.0) if span > 0 else 0.5
             q = 1.0 - p
             w = cal.weights
-            d = box_distance(self.domain, u)
-            v = w[0] + w[1] * spread_sq + w[2] * (rate * rate) + w[3] * (q * q) + w[4] * (p * p) + w[5] * (d * d)
+            v = (
+                w[0]
+                + w[1] * spread_sq
+                + w[2] * (rate * rate)
+                + w[3] * (q * q)
+                + w[4] * (p * p)
+                + w[5] * (distance * distance)
+            )
             sigma = math.sqrt(self._k2 * v + box * box)
             return sigma if math.isfinite(sigma) else math.sqrt(self._k2 * w[0] + box * box)
         sigma = math.sqrt((self.spec.spread_scale**2) * spread_sq + self._fixed_sq + box * box)

@@ -146,6 +146,7 @@ def held_out_minutes(
     errors, features, stretch_of = [], [], []
     stretch_id = 0
     for g, c in enumerate(captures):
+        ring_c, ring_rate = ring_of(c.inputs)  # the capture's, for every stretch of it
         for s in np.unique(labels[g]):
             blocks = np.flatnonzero(labels[g] == s)
             lo, hi = int(blocks[0]), int(blocks[-1]) + 1
@@ -174,7 +175,6 @@ def held_out_minutes(
                     minutes.append(m)
             if len(minutes) < MIN_STRETCH_MINUTES:
                 continue
-            ring_c, ring_rate = ring_of(c.inputs)
             f = calibration.features(spread, ring_c, ring_rate, _fold_box_distance(temps[train], c.inputs))
             minute_e = {m: float(residual[m * per_minute : (m + 1) * per_minute].mean()) for m in minutes}
             minute_f = {m: f[m * per_minute : (m + 1) * per_minute].mean(axis=0) for m in minutes}
