@@ -21,6 +21,7 @@ from ..samples.record import record
 from ..samples.sources import PROTOCOL_V1, capture_format, wire_settings_for
 from ..signals import stop_on_signals
 from ..sim.capture import simulate_to_file
+from ..sim.families import FAMILIES
 from ..sim.faults import parse_fault_spec
 from ..sim.instrument import WIRE_FORMATS, Simulator, load_instrument_config
 from ..sim.population import MAX_INSTRUMENT_SEED, draw_instrument
@@ -191,8 +192,10 @@ def _instrument_seed(text: str) -> int:
 def _simulator(args: argparse.Namespace):
     profile = load_profile(args.profile)
     config = load_instrument_config(args.instrument)
+    if args.family is not None and args.instrument_seed is None:
+        raise UsageError("--family adds a physics family to a population instrument: give --instrument-seed K too")
     if args.instrument_seed is not None:
-        config = draw_instrument(args.instrument_seed, config)
+        config = draw_instrument(args.instrument_seed, config, family=args.family)
     faults = parse_fault_spec(args.faults)
     return Simulator(
         profile, config, rate_hz=args.rate_hz, seed=args.seed, faults=faults, wire_format=args.format
@@ -340,6 +343,11 @@ def add_simulate(p: argparse.ArgumentParser) -> None:
         type=_instrument_seed,
         metavar="K",
         help="instrument K of the simulated population: its physics drawn from documented ranges",
+    )
+    p.add_argument(
+        "--family",
+        choices=FAMILIES,
+        help="with --instrument-seed: add this physics family, which the population never had",
     )
     p.add_argument("--duration", type=positive_float, metavar="S", help="stop after S device seconds")
     p.add_argument("--force", action="store_true", help="overwrite an existing capture")

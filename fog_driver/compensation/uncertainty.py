@@ -10,10 +10,13 @@
             unclamped); p = clip((T_ring - T_lo) / (T_hi - T_lo), 0, 1) where the ring temperature sits in
             the fit data's range T_lo..T_hi (1 - p: towards the cold end, p: towards the warm end); d the
             distance from the fit box (below: in the calibration, from the box of the data it was refitted on)
-    c_j     >= 0, the weights of the features the held-out stretches showed to predict the error's size
-            (a feature that did not gets 0); k the scale that makes the band cover 95 % of the held-out
-            minutes; (k_b d R)^2 today's box term below beside it, kept as a floor: how far an estimate
-            may err outside everything the fit saw is more than a few held-out stretches can show
+    c_j     >= 0: c_0 = c_b r^2 and c_s = c_b, the model's validation residual r and the candidates'
+            spread in the model's own proportion, sized by the held-out stretches; c_r, c_c, c_w the
+            weights of the features the held-out stretches showed to predict the error's size (a feature
+            that did not gets 0); c_d 0 (files may carry one); k the scale that makes the band cover 95 %
+            of the held-out minutes with the box term beside it; (k_b d R)^2 today's box term below, kept as
+            a floor: how far an estimate may err outside everything the fit saw is more than a few held-out
+            stretches can show
 
 **Today's rule without a calibration** (a model file made before it, or a fit whose data were too few to
 calibrate on, ``calibration.method: none``, which uses ``FALLBACK_SCALE`` on the first two parts):

@@ -70,14 +70,47 @@ def test_a_feature_that_predicts_the_held_out_error_is_kept_and_one_that_does_no
     rng = np.random.default_rng(2)
     n = 1600
     rate = rng.uniform(0.0, 2.0, n)
-    useless = rng.uniform(0.0, 2.0, n)
+    useless = rng.uniform(0.0, 1.0, n)
     e = rng.standard_normal(n) * np.sqrt(0.01**2 + (0.02 * rate) ** 2)
-    f = features_with({2: rate * rate, 1: useless * useless}, n)
-    calibration, evidence = sc.calibrate(held(f, e, 16), -10.0, 40.0)
+    f = features_with({2: rate * rate, 4: useless * useless}, n)
+    calibration, evidence = sc.calibrate(held(f, e, 16), -10.0, 40.0, residual_dph=0.01)
     assert calibration.calibrated
-    assert calibration.weights[2] > 0 and calibration.weights[1] == 0.0
-    assert evidence["evidence"]["rate"]["kept"] and not evidence["evidence"]["spread"]["kept"]
-    assert evidence["features"] == ["constant", "rate"]
+    assert calibration.weights[2] > 0 and calibration.weights[4] == 0.0
+    assert evidence["evidence"]["rate"]["kept"] and not evidence["evidence"]["warm"]["kept"]
+    assert evidence["features"] == ["constant", "spread", "rate"]
+
+
+def test_the_spread_and_the_residual_carry_the_sigma_in_their_own_proportion_scaled_by_the_held_out_error():
+    """Held-out errors whose variance is 2.25 (r^2 + s^2): the constant and the spread get the weights
+    2.25 r^2 and 2.25, with k near 1, so that the band is k sqrt(2.25 (r^2 + s^2)) = 1.5 sqrt(r^2 + s^2)."""
+    rng = np.random.default_rng(5)
+    n = 6400
+    r = 0.01
+    s = rng.uniform(0.0, 0.03, n)
+    e = rng.standard_normal(n) * 1.5 * np.sqrt(r * r + s * s)
+    f = features_with({1: s * s}, n)
+    calibration, evidence = sc.calibrate(held(f, e, 16), -10.0, 40.0, residual_dph=r)
+    w, k = np.array(calibration.weights), calibration.scale
+    assert w[1] * k * k == pytest.approx(2.25, rel=0.12)
+    assert w[0] / w[1] == pytest.approx(r * r, rel=1e-9)
+    assert evidence["evidence"]["spread"]["kept"] and evidence["evidence"]["spread"]["gain_per_stretch"] > 0
+
+
+def test_the_box_term_is_beside_the_scale_not_in_it():
+    """Errors that are large only outside the refit's box, as large as the box term says: the scale stays set
+    by the errors inside it."""
+    rng = np.random.default_rng(6)
+    n = 3200
+    d2 = np.where(np.arange(n) % 8 == 0, 0.25, 0.0)  # an eighth of the windows half a span outside
+    box_dph = 0.2
+    e = rng.standard_normal(n) * np.sqrt(0.01**2 + box_dph**2 * d2)
+    f = features_with({5: d2}, n)
+    with_box, _ = sc.calibrate(held(f, e, 16), -10.0, 40.0, residual_dph=0.01, box_dph=box_dph)
+    without, _ = sc.calibrate(held(f, e, 16), -10.0, 40.0, residual_dph=0.01, box_dph=0.0)
+    inside = math.sqrt(with_box.weights[0]) * with_box.scale
+    assert inside == pytest.approx(0.01, rel=0.15)
+    assert math.sqrt(without.weights[0]) * without.scale > 2 * inside
+    assert with_box.weights[5] == 0.0
 
 
 def test_the_conformal_scale_restores_a_band_that_was_made_too_narrow():
@@ -97,15 +130,19 @@ def test_fewer_than_eight_stretches_fall_back_and_say_why():
     assert evidence["method"] == "none"
 
 
-def test_held_out_errors_come_from_a_refit_that_never_saw_the_stretch():
+@pytest.mark.parametrize("minutes", [300, 480, 800])
+def test_held_out_errors_come_from_a_refit_that_never_saw_the_stretch(minutes):
     """A bump confined to one stretch, which no regressor explains: the held-out error there is the bump, as an
-    independent least-squares refit without the stretch and its guard gives it."""
-    rate_hz, minutes = 1.0, 480
+    independent least-squares refit without the stretch and its guard gives it.  The stretches are half an
+    hour each (300, 480 min: 10, 16 of them) or 16 longer ones (800 min)."""
+    rate_hz = 1.0
     n = minutes * 60
     t = np.arange(n)
     x = np.column_stack([np.sin(t / 3000.0), np.cos(t / 2100.0)])
     y = 0.3 * x[:, 0] - 0.2 * x[:, 1] + 0.05
-    stretch_blocks = n // sc.MIN_STRETCHES
+    stretch_blocks = max(int(sc.MIN_STRETCH_S * rate_hz), n // sc.STRETCHES)
+    count = n // stretch_blocks
+    assert count == {300: 10, 480: 16, 800: 16}[minutes]
     bump = (t >= 3 * stretch_blocks) & (t < 4 * stretch_blocks)
     y = y + 0.04 * bump
     inputs = np.zeros((n, 8))
@@ -114,20 +151,20 @@ def test_held_out_errors_come_from_a_refit_that_never_saw_the_stretch():
     model = SimpleNamespace(candidates=[])
     bounds = SigmaCalibration("none", ring_low_c=10.0, ring_high_c=30.0)
     out = sc.held_out_minutes(model, [x], 1e-9, None, [capture], None, FitConfig(), bounds, 0.0)
-    assert out.stretches == sc.MIN_STRETCHES
+    assert out.stretches == count
     # the reference: per stretch, plain least squares with an intercept without the stretch and its guard,
     # the mean of its residual over the stretch's first whole window
     guard = int(sc.GUARD_S * rate_hz)
     a = np.column_stack([x, np.ones(n)])
     reference = []
-    for k in range(sc.MIN_STRETCHES):
+    for k in range(count):
         lo, hi = k * stretch_blocks, (k + 1) * stretch_blocks
         train = ~((t >= lo - guard) & (t < hi + guard))
         coef, *_ = np.linalg.lstsq(a[train], y[train], rcond=None)
         first_minute = -(-lo // 60)
         reference.append((y - a @ coef)[first_minute * 60 : (first_minute + sc.WINDOW_MIN) * 60].mean())
     reference = np.array(reference)
-    firsts = np.array([np.flatnonzero(out.stretch == k)[0] for k in range(sc.MIN_STRETCHES)])
+    firsts = np.array([np.flatnonzero(out.stretch == k)[0] for k in range(count)])
     # the capture's mean over its held-out windows is removed from every window: compare about the means
     got = out.error_dph[firsts]
     np.testing.assert_allclose(got - got.mean(), reference - reference.mean(), atol=2e-4)

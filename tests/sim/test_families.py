@@ -5,15 +5,20 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from fog_driver.lab.profiles import load_profile
-from fog_driver.sim.capture import TRUTH_COLUMNS, truth_rows
+from fog_driver.sim.capture import TRUTH_COLUMNS, read_provenance, read_truth, truth_rows
 from fog_driver.sim.families import FAMILIES, FAMILY_RANGES, FamilyPhysics, FamilyTerm, draw_family
 from fog_driver.sim.instrument import InstrumentConfig, Simulator
 from fog_driver.sim.population import draw_instrument
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _nodes(housing, top, bottom, fiber, mount) -> np.ndarray:
@@ -197,3 +202,22 @@ def test_the_truth_drift_of_a_family_instrument_holds_the_family_term():
     family = np.add.reduceat(block.components_arcsec["drift_family"], np.arange(0, 2400, 2))  # arcsec per 1 s
     np.testing.assert_allclose(col["drift_dph"] - parts, family, atol=1e-9)
     assert np.abs(family).max() > 0.01
+
+
+def test_simulate_adds_a_family_to_a_population_instrument_and_refuses_it_alone(tmp_path):
+    """``simulate --instrument-seed K --family NAME`` writes instrument K with the family's physics (the sidecar
+    holds the same configuration ``draw_instrument`` makes, the truth's drift the family's term); ``--family`` without
+    ``--instrument-seed`` is a usage error on one line."""
+    out = tmp_path / "fam.bin"
+    cmd = [sys.executable, "-m", "fog_driver", "simulate", "--profile", "configs/profiles/short-test.yaml"]
+    cmd += ["--rate-hz", "5", "--duration", "60", "--instrument-seed", "7", "--family", "layered", "--out", str(out)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr
+    assert read_provenance(out)["model"] == draw_instrument(7, family="layered").as_dict()
+    truth = read_truth(out.with_suffix(".truth.csv"))
+    parts = sum(truth[f"drift_{p}_dph"] for p in ("bias_temp", "shupe", "gradient", "hysteresis"))
+    assert np.abs(truth["drift_dph"] - parts).max() > 1e-6  # the family's term, beyond the population's four
+    alone = [*cmd[:8], "--family", "layered", "--out", str(tmp_path / "x.bin")]
+    bad = subprocess.run(alone, capture_output=True, text=True, timeout=60, cwd=ROOT)
+    assert bad.returncode == 64 and "--instrument-seed" in bad.stderr and "Traceback" not in bad.stderr
+    assert len(bad.stderr.strip().splitlines()) == 1

@@ -21,7 +21,7 @@ from ..model import ModelFile
 from ..models.polynomial import PolynomialModel, polynomial_features
 from ..models.wesn import PAPER_DEFAULTS, WESN_DEFAULTS
 from ..readout import Standardizer
-from ..uncertainty import SigmaCalibration
+from ..uncertainty import SigmaCalibration, UncertaintySpec
 from .choice import block_squares, choose, paired, paired_margin, polynomial_lead
 from .data import (
     CaptureData,
@@ -312,7 +312,7 @@ def fit_model(
     r_dph = report_error_dph(report, kind, len(means), validate_minutes)
     uncertainty = uncertainty_for(models[kind], r_dph, domain)
     say("drift_sigma_dph: calibrating on held-out stretches")
-    calibration, evidence = calibrate_sigma(models[kind], captures, normalizer, config, report, inputs)
+    calibration, evidence = calibrate_sigma(models[kind], captures, normalizer, config, report, inputs, uncertainty)
     uncertainty = with_calibration(uncertainty, calibration)
     provenance["sigma_kind"] = uncertainty.sigma_kind
     provenance["sigma_calibration"] = evidence
@@ -345,9 +345,10 @@ def calibrate_sigma(
     config: FitConfig,
     report: FitReport,
     inputs: np.ndarray,
+    uncertainty: UncertaintySpec,
 ) -> tuple[SigmaCalibration, dict[str, Any]]:
-    """The sigma's calibration on the fit's held-out stretches (``sigma_calibration``) and its evidence; for a
-    kind without a linear readout, ``method: none``."""
+    """The sigma's calibration on the fit's held-out stretches (``sigma_calibration``) and its evidence, about
+    ``uncertainty``'s validation residual and box term; for a kind without a linear readout, ``method: none``."""
     rows = regressor_rows(model, captures, normalizer)
     if rows is None:
         reason = "this kind's readout is not a linear regression the fit can refit without a stretch"
@@ -360,7 +361,8 @@ def calibrate_sigma(
     held = held_out_minutes(
         model, rows, alpha, penalty, captures, normalizer, config, bounds, noise if noise is not None else 0.0
     )
-    return calibrate(held, bounds.ring_low_c, bounds.ring_high_c)
+    box_dph = uncertainty.box_scale * uncertainty.target_range_dph
+    return calibrate(held, bounds.ring_low_c, bounds.ring_high_c, uncertainty.residual_dph, box_dph)
 
 
 def check_one_instrument(captures: list[CaptureData], validate: list[CaptureData]) -> None:

@@ -1,15 +1,16 @@
 """Each fit calibrates its own ``drift_sigma_dph`` on contiguous stretches of its own run that the model was
 refitted without (``compensation.uncertainty``, "Calibrated by the fit on its own data").
 
-**The held-out stretches.**  The fit's blocks are cut into ``MIN_STRETCHES`` stretches of equal device time,
-none shorter than ``MIN_STRETCH_S`` (per capture; a tail shorter than half of one joins the stretch before
-it).  For each stretch the model's readout is refitted, at its chosen structure and penalty and with one
-intercept per capture (``fit.readout_penalty``, as the own validation split refits it), on the static
-blocks of every other stretch less ``GUARD_S`` either side of it, and its residual on the stretch is kept;
-so is every candidate structure's, refitted on the same blocks, and their spread about the model on the
-stretch is the spread feature there: out of sample, as at run time (on the data they were fitted on, the
-candidates agree by construction).  Unlike the interleaved folds of the model choice, which put every
-temperature in each training set, a stretch shows what the model does over a part of the run it never saw.
+**The held-out stretches.**  The fit's blocks are cut into stretches of ``MIN_STRETCH_S`` of device time
+(``STRETCHES`` equal ones, longer, when the run holds more; per capture, a tail shorter than half of one
+joins the stretch before it).  For each stretch the model's readout is refitted, at its chosen structure
+and penalty and with one intercept per capture (``fit.readout_penalty``, as the own validation split
+refits it), on the static blocks of every other stretch less ``GUARD_S`` either side of it, and its
+residual on the stretch is kept; so is every candidate structure's, refitted on the same blocks, and their
+spread about the model on the stretch is the spread feature there: out of sample, as at run time (on the
+data they were fitted on, the candidates agree by construction).  Unlike the interleaved folds of the
+model choice, which put every temperature in each training set, a stretch shows what the model does over a
+part of the run it never saw.
 
 **The errors.**  The residual is averaged over windows of ``WINDOW_MIN`` whole static minutes inside a
 stretch (one window starting at each minute): the model's error is slow, while the gyro's white noise at
@@ -18,29 +19,43 @@ away): ``e_m``.  Its features ``f_m`` are the windows' means of the squared feat
 (``SigmaCalibration.features``: a constant, the candidates' spread, the ring's rate, the cold and the warm
 end of the fit's range, and the distance from the box of the blocks the refit saw).
 
-**The error's size.**  ``E[e_m^2] = n^2 + v_m``, ``n`` the white noise of a window's mean (the report's
-1-min floor over sqrt(``WINDOW_MIN``)), ``v_m = sum_j c_j f_mj`` with ``c_j >= 0`` by the largest Gaussian
-likelihood (a gamma GLM with identity link: iteratively reweighted non-negative least squares of
-``e_m^2 - n^2`` on ``f_m``, weights ``1 / (n^2 + v_m)^2``; the non-negative solution exact over the subsets
-of the few features).  The constant's weight is at least ``mean(e^2) sqrt(2 / N)`` over the ``N`` windows:
-an error the data cannot tell from 0 is not 0.
+**The error's size.**  ``E[e_m^2] = o_m + v_m`` with the offset ``o_m = n^2 + (k_b R)^2 d_m^2``: ``n`` the
+white noise of a window's mean (the report's 1-min floor over sqrt(``WINDOW_MIN``)) and the box term the
+run-time rule puts beside the calibrated part (``d`` from the refit's box), so that a window outside what
+its refit saw is judged with the same floor it gets at run time.  The calibrated part is
 
-**Which features carry it.**  Forward selection from the constant: a feature joins when adding it improves
-the held-out likelihood stretch by stretch (the variance model refitted without each stretch and scored on
-it) by more than ``SELECT_SE`` standard errors of the paired per-stretch gains, the most significant first,
-until none does.  A feature that does not predict the held-out error on this fit gets weight 0; the fit
-report and ``provenance.sigma_calibration`` give each feature's gain and its standard error.
+    v_m = c_b (rho^2 + s_m^2) + sum_j c_j f_mj          c >= 0
 
-**The scale.**  Then the split-conformal step: the smallest ``k`` for which ``|e_m| <= 1.96 sqrt(n^2 + k^2
+``rho`` the model's validation residual ``r`` (``uncertainty``; at least the floor ``mean(e^2) sqrt(2 / N)``
+over the ``N`` windows: an error the data cannot tell from 0 is not 0) and ``s`` the candidates' spread: the
+model's own two parts of its uncertainty, in the proportion the model gives them; the ``f_j`` the squared
+features the held-out stretches may add (the ring's rate, the cold end and the warm end of the fit range).
+The weights come by the largest Gaussian likelihood (a gamma GLM with identity link: iteratively reweighted
+non-negative least squares of ``e_m^2 - o_m``, weights ``1 / (o_m + v_m)^2``; the non-negative solution exact
+over the subsets of the few features).  The run-time weights (``SigmaCalibration.weights``) are
+``c_0 = c_b rho^2``, ``c_spread = c_b`` and the ``c_j``; the box's weight is 0 (it is the floor beside).
+
+**Which features carry it.** The spread and the residual always: they are the model's own statement of where it is
+unsure, and a few stretches of one run cannot show what the spread shows on other profiles (the development runs:
+selected like the others on eight stretches, the spread was dropped on about half the fits; kept on all, it gave a
+median top-to-bottom error ratio of 3.06 on other runs). Their evidence is reported all the same (the held-out gain
+of ``rho^2 + s^2`` over ``rho^2`` alone). Each other feature joins by forward selection only when adding it improves
+the held-out likelihood stretch by stretch (the variance model refitted without each stretch and scored on it) by
+more than ``SELECT_SE`` standard errors of the paired per-stretch gains, the most significant first, until none
+does. A feature that does not predict the held-out error on this fit gets weight 0; the fit report and
+``provenance.sigma_calibration`` give each feature's gain and its standard error.
+
+**The scale.**  Then the split-conformal step: the smallest ``k`` for which ``|e_m| <= 1.96 sqrt(o_m + k^2
 v_m)`` holds on a share ``ceil(0.95 (N + 1)) / N`` of the windows, within ``SCALE_LIMITS``; the run-time sigma
-is ``k sqrt(v)`` (the noise is not the estimate's error).
+is ``sqrt(k^2 v + (k_b d R)^2)`` (the noise is not the estimate's error).
 
 **Too few to calibrate.**  Fewer than ``MIN_STRETCHES`` stretches with ``MIN_STRETCH_MINUTES`` whole static
 minutes each (a run under four hours), or a kind whose readout is not a linear regression (the paper's
 WESN, the PSO-SVR): no calibration (``method: none`` with the reason), and the fall-back rule, today's
 factors without their shrink (``uncertainty.FALLBACK_SCALE``), with a warning.
 
-The choices and the development runs that made them: docs/decisions/2026-12-07-sigma-held-out-stretches.md.
+The choices and the development runs that made them: docs/decisions/2026-12-07-sigma-held-out-stretches.md
+and docs/decisions/2026-12-08-sigma-shape-and-stretches.md.
 """
 
 from __future__ import annotations
@@ -60,12 +75,14 @@ from .data import CaptureData, FitConfig
 from .ridge import standardized_ridge
 from .wesn import capture_regressors
 
-#: The held-out stretches: the fit's blocks cut into ``MIN_STRETCHES`` stretches of equal device time, none
-#: shorter than ``MIN_STRETCH_S`` (so a run under ``MIN_STRETCHES`` of them has too few); the guard either side
-#: of a stretch left out of its refit, s.  An eighth of the run holds out a whole part of the program (55 min of
-#: a 440-min one): 30-min stretches showed half the error the model left on other runs (dev family,
-#: docs/decisions/2026-12-07-sigma-held-out-stretches.md).
+#: The held-out stretches: the fit's blocks cut into stretches of ``MIN_STRETCH_S`` of device time, or into
+#: ``STRETCHES`` equal ones when the run is longer than ``STRETCHES`` of those; the guard either side of a
+#: stretch left out of its refit, s.  The shorter a stretch, the nearer its refit is to the model fitted on the
+#: whole run, whose error the sigma describes; half an hour is six times the guard.  On the development fits
+#: of the paper program, eighths of the run (55 min) sized the sigma off by a factor of 1.8 on average (either
+#: way), half hours by 1.4 (the decision page).
 MIN_STRETCH_S = 1800.0
+STRETCHES = 16
 GUARD_S = 300.0
 #: The fewest held-out stretches a sigma is calibrated on, and the fewest whole static minutes a stretch
 #: needs to count: eight stretches give the conformal quantile and the paired selection at least eight
@@ -81,10 +98,10 @@ Z95 = 1.96
 COVERAGE = 0.95
 #: The conformal scale k is kept within these: the likelihood fit sets the size, k corrects the tails.
 SCALE_LIMITS = (0.5, 3.0)
-#: A feature joins when its paired held-out gain exceeds this many standard errors: with eight stretches, two
-#: kept the spread on 2 of 24 development fits where it carried most of the error on other runs; one keeps
-#: it where the stretches show it (the decision page).
-SELECT_SE = 1.0
+#: A feature beyond the spread and the residual joins when its paired held-out gain exceeds this many standard
+#: errors: at 2 the rate joined on development fits where it inverted the sigma on other runs (worst
+#: top-to-bottom ratio 0.79); at 3 none did (the decision page).
+SELECT_SE = 3.0
 #: IRLS iterations of the variance fit.
 IRLS_ITERATIONS = 25
 
@@ -122,7 +139,7 @@ def held_out_minutes(
     the features are made with."""
     rate = config.model_rate_hz
     total = sum(len(c.static) for c in captures)
-    stretch_blocks = max(1, int(round(MIN_STRETCH_S * rate)), total // MIN_STRETCHES)
+    stretch_blocks = max(1, int(round(MIN_STRETCH_S * rate)), total // STRETCHES)
     guard = int(round(GUARD_S * rate))
     per_minute = max(1, int(round(60.0 * rate)))
     labels = []
@@ -243,15 +260,16 @@ def _nnls(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return best
 
 
-def fit_variance(features: np.ndarray, e2: np.ndarray, n2: float, floor: float = 0.0) -> np.ndarray:
-    """The ``c_j >= 0`` of ``E[e^2] = n^2 + f c`` by the largest Gaussian likelihood (module docstring); column
-    0 is the constant, its weight at least ``floor``."""
-    target = e2 - n2
-    start = max(float(np.mean(target)), floor, 1e-12)
+def fit_variance(features: np.ndarray, e2: np.ndarray, offset: Any, floor: float = 0.0) -> np.ndarray:
+    """The ``c_j >= 0`` of ``E[e^2] = offset + f c`` by the largest Gaussian likelihood (module docstring);
+    ``offset`` (a number or one per row) the variance the weights do not carry: the noise, and the box term;
+    column 0's weight at least ``floor``."""
+    target = e2 - offset
+    start = max(float(np.mean(target)) / max(float(np.mean(features[:, 0])), 1e-300), floor, 1e-12)
     c = np.zeros(features.shape[1])
     c[0] = start
     for _ in range(IRLS_ITERATIONS):
-        mu = np.maximum(n2 + features @ c, 1e-12)
+        mu = np.maximum(offset + features @ c, 1e-12)
         w = 1.0 / mu
         new = _nnls(features * w[:, None], target * w)
         new[0] = max(new[0], floor, 1e-12)
@@ -262,33 +280,47 @@ def fit_variance(features: np.ndarray, e2: np.ndarray, n2: float, floor: float =
     return c
 
 
-def _nll(features: np.ndarray, e2: np.ndarray, n2: float, c: np.ndarray) -> np.ndarray:
-    mu = np.maximum(n2 + features @ c, 1e-12)
+def _nll(features: np.ndarray, e2: np.ndarray, offset: Any, c: np.ndarray) -> np.ndarray:
+    mu = np.maximum(offset + features @ c, 1e-12)
     return 0.5 * (np.log(2.0 * math.pi * mu) + e2 / mu)
 
 
-def _per_stretch_nll(held: HeldOut, columns: Sequence[int], floor: float) -> np.ndarray:
+def _per_stretch_nll(
+    features: np.ndarray,
+    e2: np.ndarray,
+    offset: np.ndarray,
+    stretch: np.ndarray,
+    columns: Sequence[int],
+    floor: float = 0.0,
+) -> np.ndarray:
     """Each stretch's held-out negative log-likelihood under the variance model of ``columns`` refitted
-    without it."""
-    e2 = held.error_dph**2
-    n2 = held.noise_1min_dph**2
+    without it (the first column's weight at least ``floor``)."""
     cols = list(columns)
     out = []
-    for s in np.unique(held.stretch):
-        test = held.stretch == s
-        c = fit_variance(held.features[~test][:, cols], e2[~test], n2, floor)
-        out.append(float(_nll(held.features[test][:, cols], e2[test], n2, c).sum()))
+    for s in np.unique(stretch):
+        test = stretch == s
+        c = fit_variance(features[~test][:, cols], e2[~test], offset[~test], floor)
+        out.append(float(_nll(features[test][:, cols], e2[test], offset[test], c).sum()))
     return np.array(out)
 
 
-def conformal_scale(held: HeldOut, v: np.ndarray) -> float:
-    """The smallest k of the module docstring, by bisection, within ``SCALE_LIMITS``."""
+def _paired(base: np.ndarray, trial: np.ndarray) -> tuple[float, float]:
+    """The mean per-stretch gain of ``trial`` over ``base`` (their held-out NLLs) and its standard error."""
+    d = base - trial
+    se = float(d.std(ddof=1) / math.sqrt(len(d))) if len(d) > 1 else math.inf
+    return float(d.mean()), se
+
+
+def conformal_scale(held: HeldOut, v: np.ndarray, offset: Any = None) -> float:
+    """The smallest k of the module docstring, by bisection, within ``SCALE_LIMITS``; ``offset`` the variance
+    beside ``k^2 v`` (default: the noise, ``n^2``)."""
     n = len(held.error_dph)
     share = min(1.0, math.ceil(COVERAGE * (n + 1)) / n)
-    a, n2 = np.abs(held.error_dph), held.noise_1min_dph**2
+    a = np.abs(held.error_dph)
+    off = held.noise_1min_dph**2 if offset is None else offset
 
     def covered(k: float) -> float:
-        return float(np.mean(a <= Z95 * np.sqrt(n2 + k * k * v)))
+        return float(np.mean(a <= Z95 * np.sqrt(off + k * k * v)))
 
     lo, hi = SCALE_LIMITS
     if covered(lo) >= share:
@@ -304,9 +336,12 @@ def conformal_scale(held: HeldOut, v: np.ndarray) -> float:
     return hi
 
 
-def calibrate(held: HeldOut, ring_low_c: float, ring_high_c: float) -> tuple[SigmaCalibration, dict[str, Any]]:
+def calibrate(
+    held: HeldOut, ring_low_c: float, ring_high_c: float, residual_dph: float = 0.0, box_dph: float = 0.0
+) -> tuple[SigmaCalibration, dict[str, Any]]:
     """The calibration of a fit's sigma from its held-out minutes, and the evidence for the fit report and the
-    provenance (module docstring); ``method: none`` when they are too few."""
+    provenance (module docstring); ``residual_dph`` the model's validation residual r, ``box_dph`` the box
+    term's k_b R; ``method: none`` when the minutes are too few."""
     stretches = held.stretches
     if stretches < MIN_STRETCHES:
         reason = (
@@ -316,45 +351,54 @@ def calibrate(held: HeldOut, ring_low_c: float, ring_high_c: float) -> tuple[Sig
         )
         return SigmaCalibration("none", reason=reason), {"method": "none", "reason": reason}
     e2 = held.error_dph**2
-    n2 = held.noise_1min_dph**2
+    f = held.features
+    spread, box = SIGMA_FEATURES.index("spread"), SIGMA_FEATURES.index("box")
+    offset = held.noise_1min_dph**2 + box_dph**2 * f[:, box]
     floor = float(np.mean(e2)) * math.sqrt(2.0 / len(e2))
-    chosen = [0]
+    rho2 = max(residual_dph**2, floor)
+    low = floor / rho2  # c_b at least this: the constant c_b rho^2 at least the floor
+    extras = [j for j in range(len(SIGMA_FEATURES)) if j not in (0, spread, box)]
+    g = np.column_stack([rho2 + f[:, spread], np.full(len(e2), rho2), *(f[:, j] for j in extras)])
+    stretch = held.stretch
     evidence: dict[str, Any] = {}
-    base = _per_stretch_nll(held, chosen, floor)
+    base = _per_stretch_nll(g, e2, offset, stretch, [0], low)
+    gain, se = _paired(_per_stretch_nll(g, e2, offset, stretch, [1], low), base)
+    evidence["spread"] = {"gain_per_stretch": gain, "se": se, "with": ["constant"], "kept": True}
+    chosen = [0]
     while True:
         trials = {}
-        for j in range(1, len(SIGMA_FEATURES)):
-            if j in chosen or not np.ptp(held.features[:, j]) > 0:
+        for col, j in enumerate(extras, start=2):
+            if col in chosen or not np.ptp(g[:, col]) > 0:
                 continue
-            nll = _per_stretch_nll(held, [*chosen, j], floor)
-            d = base - nll  # > 0: the feature helps on the stretch it did not see
-            se = float(d.std(ddof=1) / math.sqrt(len(d))) if len(d) > 1 else math.inf
-            trials[j] = (float(d.mean()), se, nll)
-        for j, (mean, se, _) in trials.items():
+            nll = _per_stretch_nll(g, e2, offset, stretch, [*chosen, col], low)
+            trials[col] = (*_paired(base, nll), nll)
             evidence[SIGMA_FEATURES[j]] = {
-                "gain_per_stretch": mean,
-                "se": se,
-                "with": [SIGMA_FEATURES[k] for k in chosen],
+                "gain_per_stretch": trials[col][0],
+                "se": trials[col][1],
+                "with": ["constant", "spread", *(SIGMA_FEATURES[extras[c - 2]] for c in chosen[1:])],
             }
-        passing = {j: t for j, t in trials.items() if t[0] > SELECT_SE * t[1] and t[0] > 0}
+        passing = {c: t for c, t in trials.items() if t[0] > SELECT_SE * t[1] and t[0] > 0}
         if not passing:
             break
-        j = max(passing, key=lambda k: passing[k][0] / max(passing[k][1], 1e-300))
-        chosen.append(j)
-        base = passing[j][2]
-    c_sub = fit_variance(held.features[:, chosen], e2, n2, floor)
+        col = max(passing, key=lambda c: passing[c][0] / max(passing[c][1], 1e-300))
+        chosen.append(col)
+        base = passing[col][2]
+    c_sub = fit_variance(g[:, chosen], e2, offset, low)
     c = np.zeros(len(SIGMA_FEATURES))
-    c[chosen] = c_sub
-    v = held.features @ c
-    k = conformal_scale(held, v)
+    c[0], c[spread] = c_sub[0] * rho2, c_sub[0]
+    for col, weight in zip(chosen[1:], c_sub[1:]):
+        c[extras[col - 2]] = weight
+    v = f @ c
+    k = conformal_scale(held, v, offset)
     calibration = SigmaCalibration(
         "held-out-stretches", tuple(c), k, ring_low_c, ring_high_c, stretches, held.stretch_min
     )
-    sigma = k * np.sqrt(v)
-    covered = float(np.mean(np.abs(held.error_dph) <= Z95 * np.sqrt(n2 + sigma * sigma)))
-    for name in SIGMA_FEATURES[1:]:
+    sigma_sq = k * k * v + box_dph**2 * f[:, box]
+    covered = float(np.mean(np.abs(held.error_dph) <= Z95 * np.sqrt(held.noise_1min_dph**2 + sigma_sq)))
+    for j in extras:
+        name = SIGMA_FEATURES[j]
         if name in evidence:
-            evidence[name]["kept"] = SIGMA_FEATURES.index(name) in chosen
+            evidence[name]["kept"] = any(extras[col - 2] == j for col in chosen[1:])
     return calibration, {
         "method": "held-out-stretches",
         "stretches": stretches,
@@ -362,11 +406,12 @@ def calibrate(held: HeldOut, ring_low_c: float, ring_high_c: float) -> tuple[Sig
         "minutes": len(e2),
         "noise_1min_dph": held.noise_1min_dph,
         "held_out_rms_dph": float(np.sqrt(np.mean(e2))),
-        "features": [SIGMA_FEATURES[j] for j in chosen],
+        "residual_dph": math.sqrt(rho2),
+        "features": ["constant", "spread", *(SIGMA_FEATURES[extras[col - 2]] for col in chosen[1:])],
         "evidence": evidence,
         "scale": k,
         "held_out_coverage": covered,
-        "median_sigma_dph": float(np.median(sigma)),
+        "median_sigma_dph": float(np.median(np.sqrt(sigma_sq))),
     }
 
 
@@ -376,10 +421,10 @@ def describe(evidence: dict[str, Any]) -> str:
         return f"drift_sigma_dph: not calibrated ({evidence.get('reason', '')}); the conservative fall-back rule"
     parts = []
     for name, ev in evidence["evidence"].items():
-        verdict = "kept" if ev.get("kept") else "no weight"
+        verdict = "kept, the model's own" if name == "spread" else "kept" if ev.get("kept") else "no weight"
         parts.append(f"{name} {verdict} (held-out log-likelihood {ev['gain_per_stretch']:+.2f} +- {ev['se']:.2f})")
     return (
-        f"drift_sigma_dph calibrated on {evidence['stretches']} held-out stretches of {evidence['stretch_min']:g} "
+        f"drift_sigma_dph calibrated on {evidence['stretches']} held-out stretches of {evidence['stretch_min']:.0f} "
         f"min ({evidence['minutes']} minutes, RMS error {evidence['held_out_rms_dph']:.4f} deg/h): carried by "
         f"{', '.join(evidence['features'])}; scale {evidence['scale']:.2f}; " + "; ".join(parts)
     )
