@@ -12,6 +12,8 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from fog_driver.compensation.fitting import sigma_calibration as sc
 from fog_driver.compensation.fitting.data import FitConfig
@@ -262,3 +264,32 @@ def test_step_and_run_give_the_same_calibrated_sigma_bit_for_bit(short_fit):
         ),
     )
     assert np.nanstd(Compensator(flat, 0.1).run(samples).drift_sigma_dph) < np.nanstd(run)  # the features act
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    stretches=st.integers(8, 20),
+    per=st.integers(2, 12),
+    scale=st.sampled_from([0.0, 1e-9, 1e-3, 1.0]),
+    residual=st.sampled_from([0.0, 1e-6, 0.01]),
+    box_dph=st.sampled_from([0.0, 0.5]),
+    noise=st.sampled_from([0.0, 0.003, 0.1]),
+    seed=st.integers(0, 2**16),
+)
+def test_any_held_out_windows_give_finite_non_negative_weights_and_a_bounded_scale(
+    stretches, per, scale, residual, box_dph, noise, seed
+):
+    """Whatever the held-out windows hold (errors of exactly 0, a residual of 0, noise far above the error, features
+    constant or wild), the calibration is finite: weights >= 0, the scale within its limits, the box weight 0."""
+    rng = np.random.default_rng(seed)
+    n = stretches * per
+    f = np.abs(rng.standard_normal((n, N_FEATURES))) ** rng.integers(1, 4)
+    f[:, 0] = 1.0
+    f[:, 5] = np.where(rng.random(n) < 0.2, f[:, 5], 0.0)
+    e = scale * rng.standard_normal(n) * np.sqrt(1.0 + f[:, 2])
+    calibration, evidence = sc.calibrate(held(f, e, stretches, noise), -10.0, 40.0, residual, box_dph)
+    w = np.array(calibration.weights)
+    assert calibration.calibrated and np.isfinite(w).all() and (w >= 0).all() and w[5] == 0.0
+    lo, hi = sc.SCALE_LIMITS
+    assert lo <= calibration.scale <= hi
+    assert math.isfinite(evidence["median_sigma_dph"]) and evidence["features"][:2] == ["constant", "spread"]

@@ -355,7 +355,7 @@ def calibrate(
     spread, box = SIGMA_FEATURES.index("spread"), SIGMA_FEATURES.index("box")
     offset = held.noise_1min_dph**2 + box_dph**2 * f[:, box]
     floor = float(np.mean(e2)) * math.sqrt(2.0 / len(e2))
-    rho2 = max(residual_dph**2, floor)
+    rho2 = max(residual_dph**2, floor, 1e-300)  # > 0 even for errors and a residual of exactly 0
     low = floor / rho2  # c_b at least this: the constant c_b rho^2 at least the floor
     extras = [j for j in range(len(SIGMA_FEATURES)) if j not in (0, spread, box)]
     g = np.column_stack([rho2 + f[:, spread], np.full(len(e2), rho2), *(f[:, j] for j in extras)])
