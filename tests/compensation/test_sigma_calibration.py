@@ -79,7 +79,8 @@ def test_a_feature_that_predicts_the_held_out_error_is_kept_and_one_that_does_no
     assert calibration.calibrated
     assert calibration.weights[2] > 0 and calibration.weights[4] == 0.0
     assert evidence["evidence"]["rate"]["kept"] and not evidence["evidence"]["warm"]["kept"]
-    assert evidence["features"] == ["constant", "spread", "rate"]
+    assert evidence["features"] == ["constant", "rate"]  # no candidates here: no spread to carry it
+    assert "spread" not in evidence["evidence"]
 
 
 def test_the_spread_and_the_residual_carry_the_sigma_in_their_own_proportion_scaled_by_the_held_out_error():

@@ -35,15 +35,15 @@ non-negative least squares of ``e_m^2 - o_m``, weights ``1 / (o_m + v_m)^2``; th
 over the subsets of the few features).  The run-time weights (``SigmaCalibration.weights``) are
 ``c_0 = c_b rho^2``, ``c_spread = c_b`` and the ``c_j``; the box's weight is 0 (it is the floor beside).
 
-**Which features carry it.** The spread and the residual always: they are the model's own statement of where it is
-unsure, and a few stretches of one run cannot show what the spread shows on other profiles (the development runs:
-selected like the others on eight stretches, the spread was dropped on about half the fits; kept on all, it gave a
-median top-to-bottom error ratio of 3.06 on other runs). Their evidence is reported all the same (the held-out gain
-of ``rho^2 + s^2`` over ``rho^2`` alone). Each other feature joins by forward selection only when adding it improves
-the held-out likelihood stretch by stretch (the variance model refitted without each stretch and scored on it) by
-more than ``SELECT_SE`` standard errors of the paired per-stretch gains, the most significant first, until none
-does. A feature that does not predict the held-out error on this fit gets weight 0; the fit report and
-``provenance.sigma_calibration`` give each feature's gain and its standard error.
+**Which features carry it.** The spread and the residual always (a model without candidates: the residual): they are
+the model's own statement of where it is unsure, and a few stretches of one run cannot show what the spread shows on
+other profiles (the development runs: selected like the others on eight stretches, the spread was dropped on about
+half the fits; kept on all, it gave a median top-to-bottom error ratio of 3.06 on other runs). Their evidence is
+reported all the same (the held-out gain of ``rho^2 + s^2`` over ``rho^2`` alone). Each other feature joins by
+forward selection only when adding it improves the held-out likelihood stretch by stretch (the variance model
+refitted without each stretch and scored on it) by more than ``SELECT_SE`` standard errors of the paired per-stretch
+gains, the most significant first, until none does. A feature that does not predict the held-out error on this fit
+gets weight 0; the fit report and ``provenance.sigma_calibration`` give each feature's gain and its standard error.
 
 **The scale.**  Then the split-conformal step: the smallest ``k`` for which ``|e_m| <= 1.96 sqrt(o_m + k^2
 v_m)`` holds on a share ``ceil(0.95 (N + 1)) / N`` of the windows, within ``SCALE_LIMITS``; the run-time sigma
@@ -362,8 +362,10 @@ def calibrate(
     stretch = held.stretch
     evidence: dict[str, Any] = {}
     base = _per_stretch_nll(g, e2, offset, stretch, [0], low)
-    gain, se = _paired(_per_stretch_nll(g, e2, offset, stretch, [1], low), base)
-    evidence["spread"] = {"gain_per_stretch": gain, "se": se, "with": ["constant"], "kept": True}
+    own = ["constant", "spread"] if np.any(f[:, spread] > 0) else ["constant"]  # no candidates: no spread
+    if len(own) == 2:
+        gain, se = _paired(_per_stretch_nll(g, e2, offset, stretch, [1], low), base)
+        evidence["spread"] = {"gain_per_stretch": gain, "se": se, "with": ["constant"], "kept": True}
     chosen = [0]
     while True:
         trials = {}
@@ -375,7 +377,7 @@ def calibrate(
             evidence[SIGMA_FEATURES[j]] = {
                 "gain_per_stretch": trials[col][0],
                 "se": trials[col][1],
-                "with": ["constant", "spread", *(SIGMA_FEATURES[extras[c - 2]] for c in chosen[1:])],
+                "with": [*own, *(SIGMA_FEATURES[extras[c - 2]] for c in chosen[1:])],
             }
         passing = {c: t for c, t in trials.items() if t[0] > SELECT_SE * t[1] and t[0] > 0}
         if not passing:
@@ -407,7 +409,7 @@ def calibrate(
         "noise_1min_dph": held.noise_1min_dph,
         "held_out_rms_dph": float(np.sqrt(np.mean(e2))),
         "residual_dph": math.sqrt(rho2),
-        "features": ["constant", "spread", *(SIGMA_FEATURES[extras[col - 2]] for col in chosen[1:])],
+        "features": [*own, *(SIGMA_FEATURES[extras[col - 2]] for col in chosen[1:])],
         "evidence": evidence,
         "scale": k,
         "held_out_coverage": covered,
