@@ -143,7 +143,7 @@ def score_instrument(
                     "kind": kind,
                     "profile": profile,
                     "sensor": "glitch",
-                    "glitch_dph": float(np.abs(estimate - clean).max()),
+                    "glitch_dph": float(np.abs((estimate - clean)[np.isfinite(estimate) & np.isfinite(clean)]).max()),
                 }
             )
     return {"seed": seed, "cases": cases}
