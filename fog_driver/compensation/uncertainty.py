@@ -179,6 +179,14 @@ def _position(ring_c: Any, low_c: float, high_c: float) -> np.ndarray:
     return np.clip((t - low_c) / span, 0.0, 1.0)
 
 
+def _calibrated_variance(w: Any, spread_sq: Any, rate: Any, p: Any, d: Any) -> Any:
+    """The calibrated part ``c_0 + c_s s^2 + c_r rdot^2 + c_c (1 - p)^2 + c_w p^2 + c_d d^2`` (module
+    docstring), of numbers (``step``) or of arrays (``resolve``) alike: one order of operations, so the two
+    agree bit for bit."""
+    q = 1.0 - p
+    return w[0] + w[1] * spread_sq + w[2] * (rate * rate) + w[3] * (q * q) + w[4] * (p * p) + w[5] * (d * d)
+
+
 def ring_reading(u: Any) -> tuple[float, float]:
     """(T_ring, rdot) of one raw input row: the mean of the first two channels' temperatures and rates (one
     channel: its own), as ``features.ring_of``."""
@@ -374,18 +382,9 @@ class DriftUncertainty:
             ring_c, rate = ring_reading(u)
             span = cal.ring_high_c - cal.ring_low_c
             p = min(max((ring_c - cal.ring_low_c) / span, 0.0), 1.0) if span > 0 else 0.5
-            q = 1.0 - p
-            w = cal.weights
-            v = (
-                w[0]
-                + w[1] * spread_sq
-                + w[2] * (rate * rate)
-                + w[3] * (q * q)
-                + w[4] * (p * p)
-                + w[5] * (distance * distance)
-            )
+            v = _calibrated_variance(cal.weights, spread_sq, rate, p, distance)
             sigma = math.sqrt(self._k2 * v + box * box)
-            return sigma if math.isfinite(sigma) else math.sqrt(self._k2 * w[0] + box * box)
+            return sigma if math.isfinite(sigma) else math.sqrt(self._k2 * cal.weights[0] + box * box)
         sigma = math.sqrt((self.spec.spread_scale**2) * spread_sq + self._fixed_sq + box * box)
         return sigma if math.isfinite(sigma) else math.sqrt(self._fixed_sq + box * box)
 
@@ -422,19 +421,9 @@ class DriftUncertainty:
                     if cal is not None:
                         ring = np.array(rings, dtype=np.float64).reshape(-1, 3)
                         p = _position(ring[:, 0], cal.ring_low_c, cal.ring_high_c)
-                        q = 1.0 - p
-                        rate, d = ring[:, 1], ring[:, 2]
-                        w = cal.weights
-                        v = (
-                            w[0]
-                            + w[1] * spread_sq
-                            + w[2] * (rate * rate)
-                            + w[3] * (q * q)
-                            + w[4] * (p * p)
-                            + w[5] * (d * d)
-                        )
+                        v = _calibrated_variance(cal.weights, spread_sq, ring[:, 1], p, ring[:, 2])
                         sigma = np.sqrt(self._k2 * v + box * box)
-                        fixed = self._k2 * w[0] + box * box
+                        fixed = self._k2 * cal.weights[0] + box * box
                     else:
                         sigma = np.sqrt((self.spec.spread_scale**2) * spread_sq + self._fixed_sq + box * box)
                         fixed = self._fixed_sq + box * box
